@@ -1,0 +1,75 @@
+"""Typed errors. Every failure names what is at fault: file, row, column, joint or frame."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class M3t1rError(Exception):
+    """Base class of every error raised by m3t1r."""
+
+
+class ModelFileError(M3t1rError):
+    """A model file (URDF or closures YAML) is missing, unreadable or inconsistent."""
+
+    def __init__(self, path: object, message: str) -> None:
+        self.path = str(path)
+        super().__init__(f"{self.path}: {message}")
+
+
+class InvalidInputError(M3t1rError, ValueError):
+    """A numeric input is malformed: NaN/inf, wrong length, or outside its joint's limits."""
+
+
+class KinematicsError(M3t1rError):
+    """A closed-loop solve failed. Carries the final residual norm and iteration count."""
+
+    def __init__(self, message: str, residual: float = float("nan"), iterations: int = 0) -> None:
+        self.residual = float(residual)
+        self.iterations = int(iterations)
+        super().__init__(f"{message} (residual {self.residual:.3e} after {self.iterations} iterations)")
+
+
+class NotConvergedError(KinematicsError):
+    """Newton did not bring the residual below tolerance."""
+
+
+class SingularConfigurationError(KinematicsError):
+    """The Jacobian of the square system is singular (or nearly) at the solution or on the way."""
+
+
+class OutOfWorkspaceError(KinematicsError):
+    """The target cannot be reached: no assembly, or the solution needs a slider beyond its limit."""
+
+
+class DataFileError(M3t1rError):
+    """A CSV input is malformed; names the file, row (1-based line number) and column at fault."""
+
+    def __init__(self, path: object, message: str, row: int | None = None, column: str | None = None) -> None:
+        self.path = str(path)
+        self.row = row
+        self.column = column
+        where = self.path
+        if row is not None:
+            where += f", line {row}"
+        if column is not None:
+            where += f", column '{column}'"
+        super().__init__(f"{where}: {message}")
+
+
+class IdentificationError(M3t1rError):
+    """Identification cannot proceed: too few poses, rank-deficient data, divergence."""
+
+
+def require_finite_vector(values: object, length: int, what: str) -> np.ndarray:
+    """Return `values` as a float vector of `length`, or raise InvalidInputError naming `what`."""
+    try:
+        vector = np.asarray(values, dtype=float).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{what}: not a numeric vector ({exc})") from None
+    if vector.size != length:
+        raise InvalidInputError(f"{what}: expected {length} values, got {vector.size}")
+    bad = np.flatnonzero(~np.isfinite(vector))
+    if bad.size:
+        raise InvalidInputError(f"{what}: non-finite value {vector[bad[0]]} at index {bad[0]}")
+    return vector
