@@ -1,0 +1,452 @@
+"""Closed-loop kinematics of a `Mechanism`: closure residuals, their Jacobian, FK, IK, mobility.
+
+Pinocchio computes the tree's placements and its WORLD-frame joint Jacobian; this module keeps
+the closures satisfied by Newton's method on the enforced closure rows.
+
+Structure used for speed. With `J` the WORLD joint Jacobian (6 x nv, spatial twists at the base
+origin, [v; w]), the relative spatial twist of closure frame b with respect to frame a is
+`J * s_c`, where s_c = support(b) - support(a) is a signed column mask. Every closure residual is
+a function of the relative placement only, so its derivative is a small row operator O_c
+(k_c x 6) applied to that relative twist, and the whole closure Jacobian is `(O @ J) * S`: two
+array operations for all closures. FK solves only the passive columns (a square system when the
+sliders are independent inputs); its LU factors are reused across Newton steps (chord steps)
+and across warm-started solves until contraction slows.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Iterator
+
+import numpy as np
+import pinocchio as pin
+from scipy.linalg import lapack
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components, maximum_bipartite_matching
+
+from .description import ClosureSpec, Mechanism
+from .errors import (BranchChangeError, InvalidInputError, NotConvergedError, OutOfWorkspaceError,
+                     SingularConfigurationError, require_finite_vector)
+
+__all__ = [
+    "ForwardResult", "InverseResult", "ClosedLoopSolver", "closure_residual_by_closure",
+    "yaw_of", "roll_pitch_of", "MOBILITY_RANK_TOL", "SINGULAR_RCOND",
+]
+
+MOBILITY_RANK_TOL = 1e-9  # singular values below this fraction of the largest count as zero
+SINGULAR_RCOND = 1e-10  # reciprocal condition number of the square system below which we call it singular
+_MAX_STEP = 0.3  # [m or rad] cap on a Newton step component, keeps a far start on its branch
+_CHORD_CONTRACTION = 0.05  # refresh the Jacobian when a reused factorisation contracts worse than this
+
+
+def yaw_of(rotation: np.ndarray) -> float:
+    """Heading of the frame's x axis in the base frame: atan2(R[1,0], R[0,0]) [rad].
+
+    Used everywhere as the platform's yaw theta. Under residual tilt it differs by about
+    roll*pitch/2 from the z component of log3 (calibration.md); this is the one we command.
+    """
+    return math.atan2(rotation[1, 0], rotation[0, 0])
+
+
+def roll_pitch_of(rotation: np.ndarray) -> tuple[float, float]:
+    """Roll and pitch [rad] of a rotation, from Pinocchio's ZYX (yaw-pitch-roll) RPY convention."""
+    rpy = pin.rpy.matrixToRpy(rotation)
+    return float(rpy[0]), float(rpy[1])
+
+
+# Batched skew matrices: [p]x[r, c] = sign * p[src] for the six off-diagonal entries.
+_SKEW_ROWS, _SKEW_COLS = np.array([0, 0, 1, 1, 2, 2]), np.array([1, 2, 0, 2, 0, 1])
+_SKEW_SRC, _SKEW_SIGN = np.array([2, 1, 2, 0, 1, 0]), np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
+
+
+def _det_sign(lu: tuple) -> int:
+    """Sign of det(A) from LAPACK getrf factors (0-based pivots)."""
+    factors, pivots = lu[0], lu[1]
+    swaps = np.count_nonzero(pivots != np.arange(len(pivots)))
+    return int(np.prod(np.sign(np.diag(factors)))) * (-1 if swaps % 2 else 1)
+
+
+def diagonal_blocks(pattern: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(rows, columns) of the diagonal blocks of the block-triangular form of a square pattern.
+
+    A perfect matching puts one unknown on each row; the strongly connected components of
+    "row i uses the unknown matched to row k" are the blocks (Dulmage-Mendelsohn fine form).
+    """
+    match = maximum_bipartite_matching(csr_matrix(pattern.astype(np.int8)), perm_type="column")
+    if np.any(match < 0):
+        raise SingularConfigurationError("the closure system is structurally singular")
+    count, labels = connected_components(csr_matrix(pattern[:, match].astype(np.int8)), directed=True,
+                                         connection="strong")
+    return [(rows, match[rows]) for rows in (np.flatnonzero(labels == b) for b in range(count))]
+
+
+class _BranchSignature:
+    """Signs of the determinants of the diagonal blocks of the passive closure system.
+
+    One determinant over the whole system would miss two loops flipping at once (e.g. both
+    five-bars folding their knees below the rails); each block's determinant changes sign only
+    through that block's own singularity. Blocks of equal size are evaluated as one stack.
+    """
+
+    def __init__(self, blocks: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        self._stacks = []
+        for size in sorted({len(rows) for rows, _ in blocks}):
+            same = [(rows, cols) for rows, cols in blocks if len(rows) == size]
+            self._stacks.append((np.array([r for r, _ in same])[:, :, None], np.array([c for _, c in same])[:, None, :]))
+
+    def __call__(self, jac: np.ndarray) -> tuple[bool, ...]:
+        return tuple(np.concatenate([np.linalg.det(jac[rows, cols]) for rows, cols in self._stacks]) > 0)
+
+
+def _skew(p: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
+
+
+@dataclass(frozen=True)
+class _Outcome:
+    """A converged Newton solve: solution, residual, steps, last LU factors, Jacobian and branch."""
+
+    q: np.ndarray
+    residual: float
+    iterations: int
+    lu: tuple
+    jacobian: np.ndarray
+    branch: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class ForwardResult:
+    """A converged forward-kinematics solve.
+
+    pose: platform frame in the base frame; q: full configuration (nq);
+    residual: max |enforced closure row| at q [m or rad]; iterations: Newton steps taken.
+    """
+
+    pose: pin.SE3
+    q: np.ndarray
+    residual: float
+    iterations: int
+
+    @property
+    def yaw(self) -> float:
+        return yaw_of(self.pose.rotation)
+
+    @property
+    def roll_pitch(self) -> tuple[float, float]:
+        return roll_pitch_of(self.pose.rotation)
+
+
+@dataclass(frozen=True)
+class InverseResult:
+    """A converged inverse-kinematics solve of position and yaw (a square system).
+
+    actuators: slider values in `Mechanism.actuated_joints` order [m]; pose: the platform pose
+    reached (position and yaw equal the target; roll and pitch are whatever the geometry gives);
+    tilt: (roll, pitch) of the reached pose minus those requested (zero when a 4-vector target was
+    given) [rad]: the part of a 6D target that cannot be commanded.
+    """
+
+    actuators: np.ndarray
+    q: np.ndarray
+    pose: pin.SE3
+    residual: float
+    iterations: int
+    tilt: tuple[float, float]
+
+
+def closure_residual_by_closure(mechanism: Mechanism, q: np.ndarray) -> Iterator[tuple[ClosureSpec, np.ndarray]]:
+    """Yield (closure, full residual of its type) at q; a slow, obvious reference for checks."""
+    model = mechanism.model
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, q)
+    for spec in mechanism.closures:
+        oMa, oMb = data.oMf[spec.frame_a_id], data.oMf[spec.frame_b_id]
+        if spec.type == "3D":
+            yield spec, oMa.rotation.T @ (oMb.translation - oMa.translation)
+        else:
+            yield spec, pin.log6(oMa.actInv(oMb)).vector
+
+
+class ClosedLoopSolver:
+    """Newton solver for the closures of one `Mechanism` (keeps its own Pinocchio `Data`).
+
+    Not thread-safe: one solver per thread. All outputs are copies.
+    """
+
+    def __init__(self, mechanism: Mechanism, tolerance: float = 1e-12, max_iterations: int = 60) -> None:
+        self.mechanism = mechanism
+        self.model = mechanism.model
+        self.data = self.model.createData()
+        self.tolerance = float(tolerance)
+        self.max_iterations = int(max_iterations)
+        model = self.model
+        nv = model.nv
+
+        def support_mask(frame_id: int) -> np.ndarray:
+            mask = np.zeros(nv)
+            for j in model.supports[model.frames[frame_id].parentJoint][1:]:
+                mask[model.idx_vs[j]] = 1.0
+            return mask
+
+        # Row bookkeeping for the enforced rows (and for all rows, used by rank analysis).
+        # Layout of the full residual (every component of every closure, in closure order) and
+        # of the enforced rows within it.
+        closures = mechanism.closures
+        sizes = [3 if c.type == "3D" else 6 for c in closures]
+        starts = np.concatenate(([0], np.cumsum(sizes)[:-1]))
+        self._n_full = int(sum(sizes))
+        self._all_rows = np.arange(self._n_full)
+        self._enforced = np.concatenate([start + np.array(c.rows) for start, c in zip(starts, closures)])
+        signed = [support_mask(c.frame_b_id) - support_mask(c.frame_a_id) for c in closures]
+        self._full_row_mask = np.repeat(np.array(signed), sizes, axis=0)
+        self._frame_ids = sorted({c.frame_a_id for c in closures} | {c.frame_b_id for c in closures})
+        position = {fid: k for k, fid in enumerate(self._frame_ids)}
+        points = [(start, c) for start, c in zip(starts, closures) if c.type == "3D"]
+        self._p_a = np.array([position[c.frame_a_id] for _, c in points], dtype=int)
+        self._p_b = np.array([position[c.frame_b_id] for _, c in points], dtype=int)
+        self._p_slots = np.array([start + np.arange(3) for start, _ in points], dtype=int).reshape(-1)
+        self._w_frames = [(int(start), c.frame_a_id, c.frame_b_id) for start, c in zip(starts, closures) if c.type == "6D"]
+        self.n_rows = len(self._enforced)
+
+        self.actuated = mechanism.actuated_ids
+        self.passive = mechanism.passive_ids
+        self._act_lower, self._act_upper = mechanism.joint_limits()
+        self._platform = mechanism.platform_frame_id
+        self._platform_mask = support_mask(self._platform)
+        if self.n_rows != len(self.passive):
+            raise InvalidInputError(
+                f"{mechanism.closures_path}: {self.n_rows} enforced closure rows for {len(self.passive)} passive joints; "
+                "forward kinematics needs a square system (one row per passive joint)")
+        # Block-triangular structure of the passive system, from its pattern at a few generic q
+        # (numerically zero entries at one q, e.g. by axis alignment at home, must not split blocks).
+        rng = np.random.default_rng(0)
+        pattern = np.zeros((self.n_rows, len(self.passive)), dtype=bool)
+        for _ in range(3):
+            q = mechanism.home + rng.normal(0.0, 0.1, model.nv)
+            jac = self._evaluate(q, with_jacobian=True)[1][:, self.passive]
+            pattern |= np.abs(jac) > 1e-9 * np.max(np.abs(jac))
+        self._branch = _BranchSignature([(rows, self.passive[cols]) for rows, cols in diagonal_blocks(pattern)])
+        self._last_branch: tuple[int, ...] | None = None  # signature at this solver's last FK solution
+        self._tangent: np.ndarray | None = None  # d q_passive / d sliders at the last factorisation
+        self.last_q = mechanism.home.copy()
+
+    # ----------------------------------------------------------------------------------------
+    # Residual and Jacobian
+    def _evaluate(self, q: np.ndarray, with_jacobian: bool, all_rows: bool = False):
+        """Residual (enforced or all rows) and, optionally, its Jacobian (rows x nv) at q.
+
+        3D closures are evaluated together on stacked frame placements: Python-level calls,
+        not arithmetic, dominate the cost at this size.
+        """
+        model, data = self.model, self.data
+        if with_jacobian:
+            pin.computeJointJacobians(model, data, q)  # forward kinematics + WORLD joint Jacobian
+            pin.updateFramePlacements(model, data)
+        else:
+            pin.framesForwardKinematics(model, data, q)
+        frames = data.oMf.tolist()
+        H = np.array([frames[i].homogeneous for i in self._frame_ids])
+        Ra, pa, pb = H[self._p_a, :3, :3], H[self._p_a, :3, 3], H[self._p_b, :3, 3]
+        full = np.empty(self._n_full)
+        Ra_T = Ra.transpose(0, 2, 1)
+        full[self._p_slots] = (Ra_T @ (pb - pa)[:, :, None]).ravel()  # R_a^T (p_b - p_a)
+        welds = []
+        for slot, ia, ib in self._w_frames:
+            aMb = frames[ia].actInv(frames[ib])
+            full[slot:slot + 6] = pin.log6(aMb).vector
+            welds.append((slot, aMb, frames[ib]))
+        rows = self._all_rows if all_rows else self._enforced
+        residual = full[rows]
+        if not with_jacobian:
+            return residual, None
+        operator = np.empty((self._n_full, 6))
+        # d[R_a^T (p_b - p_a)] = R_a^T [I, -[p_b]x] (relative spatial twist of b w.r.t. a)
+        skew_pb = np.zeros((len(pb), 3, 3))
+        skew_pb[:, _SKEW_ROWS, _SKEW_COLS] = pb[:, _SKEW_SRC] * _SKEW_SIGN
+        operator[self._p_slots.reshape(-1, 3)] = np.concatenate((Ra_T, -(Ra_T @ skew_pb)), axis=2)
+        for slot, aMb, oMb in welds:
+            # d log6(aMb) = Jlog6(aMb) Ad(oMb^-1) (relative spatial twist)
+            operator[slot:slot + 6] = pin.Jlog6(aMb) @ oMb.inverse().action
+        mask = self._full_row_mask[rows]
+        return residual, (operator[rows] @ data.J) * mask
+
+    def closure_residual(self, q: np.ndarray, all_rows: bool = False) -> np.ndarray:
+        """Enforced closure rows at q (or every row of every closure) [m, rad]."""
+        q = require_finite_vector(q, self.model.nq, "configuration q")
+        return self._evaluate(q, with_jacobian=False, all_rows=all_rows)[0]
+
+    def closure_jacobian(self, q: np.ndarray, all_rows: bool = False) -> np.ndarray:
+        """d(closure residual)/dq (rows x nv), exact (analytic), enforced rows unless all_rows."""
+        q = require_finite_vector(q, self.model.nq, "configuration q")
+        return self._evaluate(q, with_jacobian=True, all_rows=all_rows)[1]
+
+    def mobility(self, q: np.ndarray, all_rows: bool = False, rel_tol: float = MOBILITY_RANK_TOL) -> int:
+        """nv minus the rank of the closure Jacobian at q.
+
+        Rank counts singular values above rel_tol times the largest (default 1e-9). With
+        all_rows=True the redundant rows are included: at the nominal geometry they are linear
+        combinations of the enforced ones and the mobility is the same.
+        """
+        singular = np.linalg.svd(self.closure_jacobian(q, all_rows), compute_uv=False)
+        return self.model.nv - int(np.sum(singular > rel_tol * singular[0]))
+
+    # ----------------------------------------------------------------------------------------
+    # Forward kinematics
+    def check_actuators(self, actuators: np.ndarray) -> np.ndarray:
+        """Validate slider values [m]: finite, right count, within the URDF limits (no clipping)."""
+        values = require_finite_vector(actuators, len(self.actuated), "actuator values")
+        names = self.mechanism.actuated_joints
+        outside = (values < self._act_lower) | (values > self._act_upper)
+        for k in np.flatnonzero(outside) if outside.any() else ():
+            raise InvalidInputError(
+                f"actuator '{names[k]}' = {values[k]:.6g} is beyond its joint limit "
+                f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}] (SI units: metres for sliders)")
+        return values
+
+    def forward(self, actuators: np.ndarray, q_init: np.ndarray | None = None) -> ForwardResult:
+        """Platform pose for the given slider values, on the assembly branch of q_init.
+
+        Newton on the enforced closure rows over the passive joints only (sliders locked):
+        J_c,passive dq_passive = -r_c. Starts from q_init (default: the last solution of this
+        solver, initially home). Raises InvalidInputError for bad actuators, NotConvergedError /
+        OutOfWorkspaceError / SingularConfigurationError (with the final residual) otherwise.
+        """
+        values = self.check_actuators(actuators)
+        q = (self.last_q if q_init is None else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
+        if q_init is None and self._tangent is not None:
+            # First-order predictor along the solution manifold: dq_passive = -J_pas^-1 J_act d(sliders).
+            q[self.passive] += self._tangent @ (values - q[self.actuated])
+        q[self.actuated] = values
+        warm = q_init is None
+        self._tangent = None  # dropped until this solve succeeds
+        outcome = self._newton(q, self.passive, self._evaluate, lambda jac, lu: self._branch(jac),
+                               start_branch=self._last_branch if warm else None)
+        lu = outcome.lu
+        self._tangent = -lapack.dgetrs(lu[0], lu[1], outcome.jacobian[:, self.actuated])[0]
+        self._last_branch = outcome.branch
+        self.last_q = outcome.q
+        return ForwardResult(self._platform_pose(), outcome.q.copy(), outcome.residual, outcome.iterations)
+
+    def _platform_pose(self) -> pin.SE3:
+        return pin.SE3(self.data.oMf[self._platform])
+
+    def _newton(self, q: np.ndarray, unknowns: np.ndarray, system, signature, start_branch=None) -> _Outcome:
+        """Newton on a square system over the columns `unknowns`, with chord steps.
+
+        The Jacobian is evaluated at the start; later steps reuse its LU factors while each
+        step still contracts the residual by `_CHORD_CONTRACTION`, and refresh it otherwise.
+        `signature(jac, lu)` labels the branch: its value at the last Jacobian must equal
+        `start_branch` (default: its value at the first Jacobian), else BranchChangeError.
+        """
+        residual, jac = system(q, True)
+        previous = norm = math.inf
+        last_jac = lu = branch = None
+        for iteration in range(self.max_iterations + 1):
+            norm = float(abs(residual).max())
+            if not math.isfinite(norm):
+                break
+            if jac is None and norm > _CHORD_CONTRACTION * previous and norm > self.tolerance:
+                residual, jac = system(q, True)
+            if jac is not None:
+                square = jac[:, unknowns]
+                lu = (*lapack.dgetrf(square)[:2], float(np.max(np.sum(np.abs(square), axis=0))))
+                branch = signature(jac, lu)
+                start_branch = branch if start_branch is None else start_branch
+                last_jac, jac = jac, None
+            if norm <= self.tolerance:
+                rcond = lapack.dgecon(lu[0], lu[2])[0]
+                if rcond < SINGULAR_RCOND:
+                    raise SingularConfigurationError(f"singular configuration (reciprocal condition {rcond:.2e})",
+                                                     norm, iteration)
+                if branch != start_branch:
+                    raise BranchChangeError("the solution lies on another assembly branch than the start "
+                                            "(Newton crossed a singularity)", norm, iteration)
+                return _Outcome(q, norm, iteration, lu, last_jac, branch)
+            if iteration == self.max_iterations:
+                break
+            step = lapack.dgetrs(lu[0], lu[1], residual)[0]
+            biggest = float(abs(step).max())
+            if biggest > _MAX_STEP:
+                step *= _MAX_STEP / biggest
+            q[unknowns] -= step
+            previous = norm
+            residual, _ = system(q, False)
+        if norm > 1e-6 or not math.isfinite(norm):
+            raise OutOfWorkspaceError("the closures cannot be assembled here (target out of the workspace "
+                                      "or too far from the initial configuration's branch)", norm, iteration)
+        raise NotConvergedError("Newton did not reach the tolerance", norm, iteration)
+
+    # ----------------------------------------------------------------------------------------
+    # Inverse kinematics
+    def inverse(self, target: pin.SE3 | np.ndarray, q_init: np.ndarray | None = None) -> InverseResult:
+        """Slider values that put the platform frame at target position and yaw.
+
+        target: a pin.SE3 (its yaw = heading of its x axis) or (x, y, z, theta) [m, m, m, rad].
+        Solves the square system [closure rows; p_P - p*; yaw_P - theta*] = 0 over all joints,
+        from q_init (default: this solver's last solution). Roll and pitch cannot be commanded:
+        they are reported in `tilt`. Raises OutOfWorkspaceError when no assembly reaches the
+        target or a slider would leave its limits (never clipped).
+        """
+        if isinstance(target, pin.SE3):
+            xyz, theta = np.array(target.translation), yaw_of(target.rotation)
+            wanted_tilt = roll_pitch_of(target.rotation)
+            if not (np.all(np.isfinite(target.homogeneous))):
+                raise InvalidInputError("target pose: non-finite value")
+        else:
+            vector = require_finite_vector(target, 4, "target (x, y, z, theta)")
+            xyz, theta, wanted_tilt = vector[:3], float(vector[3]), (0.0, 0.0)
+        q = (self.last_q if q_init is None else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
+        everything = np.arange(self.model.nv)
+        if q_init is None and self._lu_inverse is not None and self._last_task is not None:
+            # Predictor: one step with the last factorisation; at the last solution the closure
+            # rows vanish and the task rows are just (last reached - new target).
+            last_xyz, last_yaw = self._last_task
+            change = np.concatenate((np.zeros(self.n_rows), last_xyz - xyz,
+                                     [math.remainder(last_yaw - theta, 2 * math.pi)]))
+            q -= lapack.dgetrs(self._lu_inverse[0], self._lu_inverse[1], change)[0]
+
+        def system(qk: np.ndarray, with_jacobian: bool):
+            residual, jac = self._evaluate(qk, with_jacobian)
+            oMp = self.data.oMf[self._platform]
+            rotation = oMp.rotation
+            yaw_error = math.remainder(yaw_of(rotation) - theta, 2 * math.pi)
+            residual = np.concatenate((residual, oMp.translation - xyz, [yaw_error]))
+            if not with_jacobian:
+                return residual, None
+            c = rotation[:, 0]
+            horizontal = c[0] ** 2 + c[1] ** 2
+            J = self.data.J * self._platform_mask
+            point = J[:3] - _skew(oMp.translation) @ J[3:]
+            # d atan2(R10, R00) / d(omega_world) for dR = [omega]x R
+            yaw_row = np.array([-c[0] * c[2], -c[1] * c[2], horizontal]) / horizontal @ J[3:]
+            return residual, np.vstack((jac, point, yaw_row))
+
+        self._lu_inverse = None  # dropped until this solve succeeds
+        outcome = self._newton(q, everything, system, lambda jac, lu: self._branch(jac) + (_det_sign(lu),))
+        q, residual, iterations = outcome.q, outcome.residual, outcome.iterations
+        actuators = q[self.actuated].copy()
+        names = self.mechanism.actuated_joints
+        for k in np.flatnonzero((actuators < self._act_lower) | (actuators > self._act_upper)):
+            raise OutOfWorkspaceError(
+                f"target needs actuator '{names[k]}' = {actuators[k]:.6g} m, beyond its limit "
+                f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]", residual, iterations)
+        # The FK warm start now follows this solution; its predictor tangent is from elsewhere.
+        self.last_q, self._tangent, self._last_branch = q, None, outcome.branch[:-1]
+        self._lu_inverse = outcome.lu
+        pose = self._platform_pose()
+        self._last_task = (pose.translation.copy(), yaw_of(pose.rotation))
+        roll, pitch = roll_pitch_of(pose.rotation)
+        return InverseResult(actuators, q.copy(), pose, residual, iterations,
+                             (roll - wanted_tilt[0], pitch - wanted_tilt[1]))
+
+    _lu_inverse: tuple[np.ndarray, np.ndarray, float] | None = None
+    _last_task: tuple[np.ndarray, float] | None = None  # platform (position, yaw) at the last IK solution
+
+    def reset(self) -> None:
+        """Forget the warm start and cached factorisations (next solve starts from home)."""
+        self._tangent = None
+        self._last_branch = None
+        self._lu_inverse = None
+        self._last_task = None
+        self.last_q = self.mechanism.home.copy()

@@ -1,0 +1,100 @@
+"""The model files: generated consistently, loadable by Pinocchio and yourdfpy, validated on load."""
+
+import shutil
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import yaml
+import yourdfpy
+
+from m3t1r.description import Mechanism, nominal_model_paths
+from m3t1r.design import NOMINAL, build_closures, build_urdf
+from m3t1r.errors import ModelFileError
+
+
+def test_committed_model_files_match_the_generator():
+    urdf, closures = nominal_model_paths()
+    assert urdf.read_text() == build_urdf(NOMINAL), "run `make models`"
+    assert yaml.safe_load(closures.read_text()) == build_closures(NOMINAL), "run `make models`"
+
+
+def test_urdf_loads_in_pinocchio_and_yourdfpy():
+    urdf, _ = nominal_model_paths()
+    model = pin.buildModelFromUrdf(str(urdf))
+    visual = pin.buildGeomFromUrdf(model, str(urdf), pin.GeometryType.VISUAL)
+    assert (model.nq, model.nv, model.njoints - 1) == (20, 20, 20)
+    assert visual.ngeoms > 15
+    robot = yourdfpy.URDF.load(str(urdf), build_scene_graph=True, load_meshes=False)
+    assert len(robot.actuated_joint_names) == 20
+    assert robot.base_link == "base"
+
+
+def test_mechanism_summary(mechanism):
+    assert mechanism.actuated_joints == ("q11", "q11_B2", "q21", "q21_B4")
+    assert mechanism.n_constraints == 16 and len(mechanism.passive_ids) == 16
+    assert [c.type for c in mechanism.closures].count("3D") == 6
+    assert mechanism.principal_chains["B1"][-1] == mechanism.platform_frame == "P_I"
+
+
+def _copy_model(tmp_path):
+    urdf, closures = nominal_model_paths()
+    shutil.copy(urdf, tmp_path / "m.urdf")
+    shutil.copy(closures, tmp_path / "m.yaml")
+    return tmp_path / "m.urdf", tmp_path / "m.yaml"
+
+
+def _edit_closures(path, edit):
+    doc = yaml.safe_load(path.read_text())
+    edit(doc)
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+
+
+def test_missing_file_is_named(tmp_path):
+    _, closures = nominal_model_paths()
+    with pytest.raises(ModelFileError, match="nope.urdf: file not found"):
+        Mechanism.load(tmp_path / "nope.urdf", closures)
+
+
+def test_urdf_rejected_by_pinocchio(tmp_path):
+    urdf, closures = _copy_model(tmp_path)
+    urdf.write_text("<robot name='x'><link name='a'/><joint name='j' type='revolute'>")
+    with pytest.raises(ModelFileError, match="Pinocchio rejected the URDF"):
+        Mechanism.load(urdf, closures)
+
+
+def test_closure_naming_an_unknown_frame(tmp_path):
+    urdf, closures = _copy_model(tmp_path)
+    _edit_closures(closures, lambda d: d["closures"][2].update(frame_b="lower_pt_X"))
+    with pytest.raises(ModelFileError, match=r"closure 'lower_parallelogram_I': frame 'lower_pt_X' does not exist"):
+        Mechanism.load(urdf, closures)
+
+
+def test_actuated_joint_must_be_a_slider_or_hinge(tmp_path):
+    urdf, closures = _copy_model(tmp_path)
+    _edit_closures(closures, lambda d: d["actuated_joints"].__setitem__(0, "P_I_fixed"))
+    with pytest.raises(ModelFileError, match="'P_I_fixed' is a fixed joint, not prismatic or revolute"):
+        Mechanism.load(urdf, closures)
+    _edit_closures(closures, lambda d: d["actuated_joints"].__setitem__(0, "q99"))
+    with pytest.raises(ModelFileError, match="joint 'q99' does not exist"):
+        Mechanism.load(urdf, closures)
+
+
+def test_home_that_does_not_close(tmp_path):
+    urdf, closures = _copy_model(tmp_path)
+    _edit_closures(closures, lambda d: d["home"].update(q13=1.0))
+    with pytest.raises(ModelFileError, match="home does not close: closure 'lower_parallelogram_I'"):
+        Mechanism.load(urdf, closures)
+
+
+def test_bad_rows(tmp_path):
+    urdf, closures = _copy_model(tmp_path)
+    _edit_closures(closures, lambda d: d["closures"][0].update(rows=[1, 3]))
+    with pytest.raises(ModelFileError, match="rows must be distinct indices in 0..2"):
+        Mechanism.load(urdf, closures)
+
+
+def test_configuration_by_name(mechanism):
+    q = mechanism.configuration({"q11": 0.1})
+    assert q[mechanism.model.idx_qs[mechanism.model.getJointId("q11")]] == 0.1
+    assert np.count_nonzero(q != mechanism.home) == 1
