@@ -234,7 +234,8 @@ class ClosedLoopSolver:
     # ----------------------------------------------------------------------------------------
     # Residual and Jacobian
     def _evaluate(self, q: np.ndarray, with_jacobian: bool, all_rows: bool = False):
-        """Residual (enforced or all rows) and, optionally, its Jacobian (rows x nv) at q.
+        """Residual (enforced or all rows) at q and, optionally, its Jacobian (rows x nv) and the
+        row operator (rows x 6) that maps each closure's relative spatial twist to its rows.
 
         3D closures are evaluated together on stacked frame placements: Python-level calls,
         not arithmetic, dominate the cost at this size.
@@ -259,7 +260,7 @@ class ClosedLoopSolver:
         rows = self._all_rows if all_rows else self._enforced
         residual = full[rows]
         if not with_jacobian:
-            return residual, None
+            return residual, None, None
         operator = np.empty((self._n_full, 6))
         # d[R_a^T (p_b - p_a)] = R_a^T [I, -[p_b]x] (relative spatial twist of b w.r.t. a)
         skew_pb = np.zeros((len(pb), 3, 3))
@@ -269,12 +270,21 @@ class ClosedLoopSolver:
             # d log6(aMb) = Jlog6(aMb) Ad(oMb^-1) (relative spatial twist)
             operator[slot:slot + 6] = pin.Jlog6(aMb) @ oMb.inverse().action
         mask = self._full_row_mask[rows]
-        return residual, (operator[rows] @ data.J) * mask
+        return residual, (operator[rows] @ data.J) * mask, operator[rows]
 
     def closure_residual(self, q: np.ndarray, all_rows: bool = False) -> np.ndarray:
         """Enforced closure rows at q (or every row of every closure) [m, rad]."""
         q = require_finite_vector(q, self.model.nq, "configuration q")
         return self._evaluate(q, with_jacobian=False, all_rows=all_rows)[0]
+
+    def closure_sensitivity(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(residual, Jacobian wrt q, row operator) of the enforced rows at q; leaves `data` at q.
+
+        Row r of closure c changes by operator[r] @ (xi_b - xi_a) for spatial (WORLD) twists
+        xi of its two frames: that is how geometric-parameter sensitivities enter (calibration).
+        """
+        q = require_finite_vector(q, self.model.nq, "configuration q")
+        return self._evaluate(q, with_jacobian=True)
 
     def closure_jacobian(self, q: np.ndarray, all_rows: bool = False) -> np.ndarray:
         """d(closure residual)/dq (rows x nv), exact (analytic), enforced rows unless all_rows."""
@@ -320,7 +330,8 @@ class ClosedLoopSolver:
         q[self.actuated] = values
         warm = q_init is None
         self._tangent = None  # dropped until this solve succeeds
-        outcome = self._newton(q, self.passive, self._evaluate, lambda jac, lu: self._branch(jac),
+        outcome = self._newton(q, self.passive, lambda qk, wj: self._evaluate(qk, wj)[:2],
+                               lambda jac, lu: self._branch(jac),
                                start_branch=self._last_branch if warm else None)
         lu = outcome.lu
         self._tangent = -lapack.dgetrs(lu[0], lu[1], outcome.jacobian[:, self.actuated])[0]
@@ -407,7 +418,7 @@ class ClosedLoopSolver:
             q -= lapack.dgetrs(self._lu_inverse[0], self._lu_inverse[1], change)[0]
 
         def system(qk: np.ndarray, with_jacobian: bool):
-            residual, jac = self._evaluate(qk, with_jacobian)
+            residual, jac, _ = self._evaluate(qk, with_jacobian)
             oMp = self.data.oMf[self._platform]
             rotation = oMp.rotation
             yaw_error = math.remainder(yaw_of(rotation) - theta, 2 * math.pi)

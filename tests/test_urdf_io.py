@@ -1,0 +1,425 @@
+"""Calibrated URDF writing: origins recovered through fixed-link chains, round trips, safety."""
+
+from __future__ import annotations
+
+import re
+import hashlib
+import importlib.metadata
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import yourdfpy
+from lxml import etree
+
+from m3t1r import urdf_io
+from m3t1r.errors import InvalidInputError, ModelFileError, OutputPathError
+from m3t1r.urdf_io import max_placement_difference, write_calibrated_urdf
+
+UR5_IN_PACKAGE = "cmeel.prefix/share/example-robot-data/robots/ur_description/urdf/ur5_robot.urdf"
+
+# A chain with fixed links between moving joints (l1 -f1- l2 -f2- l3 -j2-), a fixed branch
+# (l2 -f4- sensor), a joint without <origin> (j3) and one with only xyz (f3).
+CHAIN_URDF = """<?xml version="1.0"?>
+<!-- synthetic chain for the URDF writer tests -->
+<robot name="chain">
+  <link name="base"/>
+  <joint name="j1" type="revolute">
+    <parent link="base"/>
+    <child link="l1"/>
+    <origin xyz="0.1 0.2 0.3" rpy="0.1 -0.2 0.3"/>
+    <axis xyz="0 0 1"/>
+    <limit lower="-3" upper="3" effort="10" velocity="1"/>
+  </joint>
+  <link name="l1"/>
+  <joint name="f1" type="fixed">
+    <parent link="l1"/>
+    <child link="l2"/>
+    <origin xyz="0.4 0 0.05" rpy="0 0.5 0"/>
+  </joint>
+  <link name="l2"/>
+  <joint name="f2" type="fixed">
+    <parent link="l2"/>
+    <child link="l3"/>
+    <origin rpy='0.7 0 -0.2' xyz='0 0.3 0' />
+  </joint>
+  <link name="l3"/>
+  <joint name="j2" type="prismatic">
+    <parent link="l3"/>
+    <child link="l4"/>
+    <origin xyz="0.05 -0.02 0.2" rpy="-0.3 0.4 1.2"/>
+    <axis xyz="1 0 0"/>
+    <limit lower="-0.1" upper="0.1" effort="10" velocity="1"/>
+  </joint>
+  <link name="l4"/>
+  <joint name="j3" type="continuous">
+    <parent link="l4"/>
+    <child link="l5"/>
+    <axis xyz="0 1 0"/>
+  </joint>
+  <link name="l5"/>
+  <joint name="f3" type="fixed">
+    <parent link="l5"/>
+    <child link="tool"/>
+    <origin xyz="0 0 0.1"/>
+  </joint>
+  <link name="tool"/>
+  <joint name="f4" type="fixed">
+    <parent link="l2"/>
+    <child link="sensor"/>
+    <origin xyz="-0.1 0 0.02" rpy="3.0 0 0"/>
+  </joint>
+  <link name="sensor"/>
+</robot>
+"""
+
+
+@pytest.fixture(scope="module")
+def ur5_urdf() -> Path:
+    path = Path(importlib.metadata.distribution("example-robot-data").locate_file(UR5_IN_PACKAGE))
+    if not path.is_file():
+        pytest.skip(f"example-robot-data does not ship {UR5_IN_PACKAGE}")
+    return path
+
+
+@pytest.fixture()
+def chain_urdf(tmp_path: Path) -> Path:
+    path = tmp_path / "chain.urdf"
+    path.write_text(CHAIN_URDF)
+    return path
+
+
+def small_motion(rng: np.random.Generator, translation: float = 1e-3, rotation: float = 1e-3) -> pin.SE3:
+    """A placement `translation` m and `rotation` rad away from the identity, in random directions."""
+    linear, angular = rng.normal(size=3), rng.normal(size=3)
+    return pin.exp6(pin.Motion(linear / np.linalg.norm(linear) * translation, angular / np.linalg.norm(angular) * rotation))
+
+
+def set_link_frame(model: pin.Model, link: str, placement: pin.SE3) -> None:
+    """Move a fixed-joint child link's BODY frame and the FIXED_JOINT frame Pinocchio made with it."""
+    body = model.frames[model.getFrameId(link, pin.FrameType.BODY)]
+    body.placement = placement
+    fixed_joint = model.frames[body.parentFrame]
+    assert fixed_joint.type == pin.FrameType.FIXED_JOINT
+    fixed_joint.placement = placement
+
+
+def fixed_children(model: pin.Model) -> list[str]:
+    """Links hanging off a fixed joint (their BODY frame's parent frame is a FIXED_JOINT)."""
+    return [
+        frame.name
+        for frame in model.frames
+        if frame.type == pin.FrameType.BODY
+        and frame.parentFrame != 0  # the root link hangs off the universe frame, not a fixed joint
+        and model.frames[frame.parentFrame].type == pin.FrameType.FIXED_JOINT
+    ]
+
+
+def calibrate_randomly(model: pin.Model, rng: np.random.Generator) -> pin.Model:
+    """A copy of `model` with every joint placement and fixed-joint link frame moved by 1 mm / 1 mrad."""
+    calibrated = model.copy()
+    for joint in range(1, calibrated.njoints):
+        # jointPlacements[j] is a reference into the model: build a new SE3 instead of editing it.
+        calibrated.jointPlacements[joint] = pin.SE3(calibrated.jointPlacements[joint]) * small_motion(rng)
+    for link in fixed_children(calibrated):
+        nominal = pin.SE3(calibrated.frames[calibrated.getFrameId(link, pin.FrameType.BODY)].placement)
+        set_link_frame(calibrated, link, nominal * small_motion(rng))
+    return calibrated
+
+
+def random_velocity_configurations(model: pin.Model, rng: np.random.Generator, count: int) -> list[np.ndarray]:
+    """Tangent vectors v (one value per 1-dof joint: rad or m); the configuration is neutral (+) v."""
+    return [rng.uniform(-1.0, 1.0, model.nv) for _ in range(count)]
+
+
+def frame_poses(model: pin.Model, v: np.ndarray) -> dict[tuple[str, pin.FrameType], pin.SE3]:
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, pin.integrate(model, pin.neutral(model), v))
+    return {(frame.name, frame.type): pin.SE3(data.oMf[i]) for i, frame in enumerate(model.frames)}
+
+
+def assert_same_kinematics(expected: pin.Model, actual: pin.Model, rng: np.random.Generator, atol: float) -> None:
+    """Every frame at the same world pose, by frame name and type, at random configurations."""
+    assert expected.nv == actual.nv
+    for v in random_velocity_configurations(expected, rng, 5):
+        # Same joint order is not assumed: map the tangent vector joint by joint, by name.
+        v_actual = np.zeros(actual.nv)
+        for joint in range(1, expected.njoints):
+            source = expected.joints[joint]
+            target = actual.joints[actual.getJointId(expected.names[joint])]
+            v_actual[target.idx_v : target.idx_v + target.nv] = v[source.idx_v : source.idx_v + source.nv]
+        poses_expected, poses_actual = frame_poses(expected, v), frame_poses(actual, v_actual)
+        assert poses_expected.keys() == poses_actual.keys()
+        for key, pose in poses_expected.items():
+            difference = pin.log6(pose.actInv(poses_actual[key])).vector
+            assert np.abs(difference).max() < atol, f"frame {key[0]} ({key[1].name}) off by {difference}"
+
+
+def origin_of(urdf: Path, joint: str) -> pin.SE3:
+    """A joint's <origin> as written in the file (identity if absent)."""
+    element = etree.parse(str(urdf)).getroot().find(f"joint[@name='{joint}']/origin")
+    if element is None:
+        return pin.SE3.Identity()
+    xyz = np.array(element.get("xyz", "0 0 0").split(), dtype=float)
+    rpy = np.array(element.get("rpy", "0 0 0").split(), dtype=float)
+    return pin.SE3(pin.rpy.rpyToMatrix(rpy), xyz)
+
+
+def placement_distance(a: pin.SE3, b: pin.SE3) -> float:
+    """max(|translation|, rotation angle) of a^-1 b, in m and rad."""
+    delta = a.actInv(b)
+    return max(np.linalg.norm(delta.translation), np.linalg.norm(pin.log3(delta.rotation)))
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+# --------------------------------------------------------------------------------------------
+# UR5 from example-robot-data
+# --------------------------------------------------------------------------------------------
+
+
+def test_ur5_calibrated_round_trip(ur5_urdf: Path, tmp_path: Path) -> None:
+    rng = np.random.default_rng(2024)
+    nominal_hash = sha256(ur5_urdf)
+    nominal = pin.buildModelFromUrdf(str(ur5_urdf))
+    calibrated = calibrate_randomly(nominal, rng)
+    assert max_placement_difference(nominal, calibrated) > 0.9e-3
+    out = tmp_path / "ur5_calibrated.urdf"
+
+    write_calibrated_urdf(ur5_urdf, calibrated, out)
+    reloaded = pin.buildModelFromUrdf(str(out))
+
+    assert sha256(ur5_urdf) == nominal_hash
+    assert max_placement_difference(calibrated, reloaded) < 1e-12
+    assert_same_kinematics(calibrated, reloaded, rng, atol=1e-9)
+    yourdfpy.URDF.load(str(out), build_scene_graph=False, load_meshes=False)
+
+
+def test_ur5_written_file_agrees_with_an_independent_parser(ur5_urdf: Path, tmp_path: Path) -> None:
+    # yourdfpy has its own rpy and kinematic-tree code: link poses must match Pinocchio's BODY frames.
+    rng = np.random.default_rng(5)
+    calibrated = calibrate_randomly(pin.buildModelFromUrdf(str(ur5_urdf)), rng)
+    out = tmp_path / "ur5_calibrated.urdf"
+    write_calibrated_urdf(ur5_urdf, calibrated, out)
+
+    robot = yourdfpy.URDF.load(str(out), build_scene_graph=True, load_meshes=False)
+    v = rng.uniform(-np.pi, np.pi, calibrated.nv)
+    robot.update_cfg({name: v[calibrated.joints[calibrated.getJointId(name)].idx_v] for name in robot.actuated_joint_names})
+    poses = frame_poses(calibrated, v)
+    base = poses[(robot.base_link, pin.FrameType.BODY)]
+    for link in robot.link_map:
+        expected = base.actInv(poses[(link, pin.FrameType.BODY)]).homogeneous
+        np.testing.assert_allclose(robot.get_transform(link), expected, rtol=0.0, atol=1e-9, err_msg=link)
+
+
+def test_ur5_unchanged_model_only_touches_joint_origins(ur5_urdf: Path, tmp_path: Path) -> None:
+    out = tmp_path / "ur5_same.urdf"
+    write_calibrated_urdf(ur5_urdf, pin.buildModelFromUrdf(str(ur5_urdf)), out)
+
+    before, after = ur5_urdf.read_text().splitlines(), out.read_text().splitlines()
+    joint_origin_lines = {origin.sourceline for origin in etree.parse(str(ur5_urdf)).getroot().iterfind("joint/origin")}
+    changed = [number for number, (old, new) in enumerate(zip(before, after), start=1) if old != new]
+    assert len(before) == len(after)
+    # At least "0 0 -3.14159265359" comes back as an equivalent "0.0 0.0 3.1415926535895866".
+    assert changed and set(changed) <= joint_origin_lines
+    for number in changed:
+        old, new = before[number - 1], after[number - 1]
+        assert old[: old.index("<origin ")] == new[: new.index("<origin ")]  # indentation kept
+
+
+def test_model_with_a_root_joint(ur5_urdf: Path, tmp_path: Path) -> None:
+    rng = np.random.default_rng(11)
+    floating = pin.buildModelFromUrdf(str(ur5_urdf), pin.JointModelFreeFlyer())
+    calibrated = calibrate_randomly(floating, rng)
+    # The root joint is not in the URDF; keep it at the identity so the comparison is meaningful.
+    calibrated.jointPlacements[1] = pin.SE3.Identity()
+    out = tmp_path / "ur5_floating.urdf"
+
+    write_calibrated_urdf(ur5_urdf, calibrated, out)
+
+    assert max_placement_difference(calibrated, pin.buildModelFromUrdf(str(out), pin.JointModelFreeFlyer())) < 1e-12
+
+
+# --------------------------------------------------------------------------------------------
+# Synthetic chain: origins through fixed links
+# --------------------------------------------------------------------------------------------
+
+
+def test_origin_after_fixed_links_is_relative_to_the_parent_link(chain_urdf: Path, tmp_path: Path) -> None:
+    model = pin.buildModelFromUrdf(str(chain_urdf))
+    out = tmp_path / "chain_out.urdf"
+
+    write_calibrated_urdf(chain_urdf, model, out)
+
+    # Pinocchio folds f1 and f2 into j2's placement; the file must get back j2's own origin.
+    folded = origin_of(chain_urdf, "f1") * origin_of(chain_urdf, "f2") * origin_of(chain_urdf, "j2")
+    assert placement_distance(model.jointPlacements[model.getJointId("j2")], folded) < 1e-15
+    for joint in ["j1", "f1", "f2", "j2", "j3", "f3", "f4"]:
+        assert placement_distance(origin_of(out, joint), origin_of(chain_urdf, joint)) < 1e-14, joint
+    assert max_placement_difference(model, pin.buildModelFromUrdf(str(out))) < 1e-14
+
+
+def test_chain_calibrated_round_trip(chain_urdf: Path, tmp_path: Path) -> None:
+    rng = np.random.default_rng(99)
+    calibrated = calibrate_randomly(pin.buildModelFromUrdf(str(chain_urdf)), rng)
+    assert set(fixed_children(calibrated)) == {"l2", "l3", "tool", "sensor"}
+    out = tmp_path / "chain_calibrated.urdf"
+
+    write_calibrated_urdf(chain_urdf, calibrated, out)
+    reloaded = pin.buildModelFromUrdf(str(out))
+
+    assert max_placement_difference(calibrated, reloaded) < 1e-12
+    assert_same_kinematics(calibrated, reloaded, rng, atol=1e-9)
+    yourdfpy.URDF.load(str(out), build_scene_graph=False, load_meshes=False)
+
+
+def test_moving_a_link_with_rigid_descendants_changes_only_its_own_origin(chain_urdf: Path, tmp_path: Path) -> None:
+    # The convention of the calibration code: perturb l2's frame and carry everything on l2 along.
+    model = pin.buildModelFromUrdf(str(chain_urdf))
+    l2 = pin.SE3(model.frames[model.getFrameId("l2", pin.FrameType.BODY)].placement)
+    moved = l2 * small_motion(np.random.default_rng(1), 2e-3, 2e-3)
+    carry = moved * l2.inverse()
+    for name, kind in [("l2", pin.FrameType.BODY), ("f1", pin.FrameType.FIXED_JOINT), ("l3", pin.FrameType.BODY),
+                       ("f2", pin.FrameType.FIXED_JOINT), ("sensor", pin.FrameType.BODY), ("f4", pin.FrameType.FIXED_JOINT)]:
+        frame = model.frames[model.getFrameId(name, kind)]
+        frame.placement = carry * pin.SE3(frame.placement)
+    j2 = model.getJointId("j2")
+    model.jointPlacements[j2] = carry * pin.SE3(model.jointPlacements[j2])
+    out = tmp_path / "chain_rigid.urdf"
+
+    write_calibrated_urdf(chain_urdf, model, out)
+
+    assert placement_distance(origin_of(out, "f1"), origin_of(chain_urdf, "f1")) > 1e-3
+    for joint in ["j1", "f2", "f4", "j2", "j3", "f3"]:
+        assert placement_distance(origin_of(out, joint), origin_of(chain_urdf, joint)) < 1e-14, joint
+
+
+def test_body_frame_wins_over_a_stale_fixed_joint_frame(chain_urdf: Path, tmp_path: Path) -> None:
+    model = pin.buildModelFromUrdf(str(chain_urdf))
+    shift = pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.01]))
+    stale = model.frames[model.getFrameId("f3", pin.FrameType.FIXED_JOINT)]
+    stale.placement = pin.SE3(stale.placement) * shift  # ignored
+    out = tmp_path / "chain_stale.urdf"
+    write_calibrated_urdf(chain_urdf, model, out)
+    assert placement_distance(origin_of(out, "f3"), origin_of(chain_urdf, "f3")) < 1e-15
+
+    tool = model.frames[model.getFrameId("tool", pin.FrameType.BODY)]
+    tool.placement = pin.SE3(tool.placement) * shift  # authoritative
+    write_calibrated_urdf(chain_urdf, model, out)
+    assert placement_distance(origin_of(out, "f3"), origin_of(chain_urdf, "f3") * shift) < 1e-15
+
+
+def test_missing_origin_is_inserted_in_the_file_style(chain_urdf: Path, tmp_path: Path) -> None:
+    model = pin.buildModelFromUrdf(str(chain_urdf))
+    j3 = model.getJointId("j3")
+    model.jointPlacements[j3] = pin.SE3(np.eye(3), np.array([0.0, 0.125, 0.0]))
+    out = tmp_path / "chain_origin.urdf"
+
+    write_calibrated_urdf(chain_urdf, model, out)
+
+    text = out.read_text()
+    assert '<joint name="j3" type="continuous">\n    <origin xyz="0.0 0.125 0.0" rpy="0.0 0.0 0.0"/>\n    <parent link="l4"/>' in text
+    assert re.search(r"<origin rpy='[-0-9. e]+' xyz='[-0-9. e]+' />", text)  # f2's quoting and spacing kept
+    assert '<origin xyz="0.0 0.0 0.1" rpy="0.0 0.0 0.0"/>' in text  # f3 had no rpy
+    assert text.startswith('<?xml version="1.0"?>\n<!-- synthetic chain for the URDF writer tests -->\n<robot name="chain">')
+    assert max_placement_difference(model, pin.buildModelFromUrdf(str(out))) < 1e-15
+
+
+def test_fallback_serialization_is_equivalent(chain_urdf: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # If the byte splice were wrong, the canonical-XML check must catch it and lxml write the tree.
+    monkeypatch.setattr(urdf_io, "_splice_origins", lambda raw, attributes: raw)
+    calibrated = calibrate_randomly(pin.buildModelFromUrdf(str(chain_urdf)), np.random.default_rng(4))
+    out = tmp_path / "chain_fallback.urdf"
+
+    write_calibrated_urdf(chain_urdf, calibrated, out)
+
+    assert out.read_bytes().startswith(b"<?xml")
+    assert max_placement_difference(calibrated, pin.buildModelFromUrdf(str(out))) < 1e-12
+
+
+# --------------------------------------------------------------------------------------------
+# Refusals
+# --------------------------------------------------------------------------------------------
+
+
+def test_never_writes_onto_the_nominal_or_a_protected_file(chain_urdf: Path, tmp_path: Path) -> None:
+    model = calibrate_randomly(pin.buildModelFromUrdf(str(chain_urdf)), np.random.default_rng(0))
+    measurements = tmp_path / "measurements.csv"
+    measurements.write_text("x\n1\n")
+    before = sha256(chain_urdf)
+
+    with pytest.raises(OutputPathError, match="refusing to overwrite"):
+        write_calibrated_urdf(chain_urdf, model, chain_urdf)
+    with pytest.raises(OutputPathError, match="refusing to overwrite"):
+        write_calibrated_urdf(chain_urdf, model, tmp_path / "." / "chain.urdf")
+    with pytest.raises(OutputPathError, match="refusing to overwrite"):
+        write_calibrated_urdf(chain_urdf, model, measurements, protect=[measurements])
+
+    assert sha256(chain_urdf) == before
+    assert measurements.read_text() == "x\n1\n"
+
+
+@pytest.mark.parametrize(
+    ("link", "kind"),
+    [("l4", pin.FrameType.BODY), ("base", pin.FrameType.BODY), ("j2", pin.FrameType.JOINT)],
+    ids=["moving-joint child", "root link", "joint frame"],
+)
+def test_link_frame_off_its_joint_is_refused(
+    chain_urdf: Path, tmp_path: Path, link: str, kind: pin.FrameType
+) -> None:
+    model = pin.buildModelFromUrdf(str(chain_urdf))
+    frame = model.frames[model.getFrameId(link, kind)]
+    frame.placement = pin.SE3(np.eye(3), np.array([1e-4, 0.0, 0.0]))
+    out = tmp_path / "chain_bad.urdf"
+
+    with pytest.raises(ModelFileError, match=f"'{link}'.*cannot be written"):
+        write_calibrated_urdf(chain_urdf, model, out)
+    assert not out.exists()
+
+
+def test_model_of_another_urdf_is_refused(chain_urdf: Path, ur5_urdf: Path, tmp_path: Path) -> None:
+    with pytest.raises(ModelFileError, match="the model has joints the URDF does not: shoulder_pan_joint, shoulder_lift_joint"):
+        write_calibrated_urdf(chain_urdf, pin.buildModelFromUrdf(str(ur5_urdf)), tmp_path / "x.urdf")
+
+    other = tmp_path / "other.urdf"
+    other.write_text(CHAIN_URDF.replace('"j2" type="prismatic"', '"j2" type="fixed"'))
+    with pytest.raises(ModelFileError, match=r"joints the URDF does not: j2 \(fixed in the URDF\)"):
+        write_calibrated_urdf(other, pin.buildModelFromUrdf(str(chain_urdf)), tmp_path / "x.urdf")
+
+    broken = tmp_path / "broken.urdf"
+    broken.write_text(CHAIN_URDF[:-20])
+    with pytest.raises(ModelFileError, match="not well-formed XML"):
+        write_calibrated_urdf(broken, pin.buildModelFromUrdf(str(chain_urdf)), tmp_path / "x.urdf")
+
+
+# --------------------------------------------------------------------------------------------
+# max_placement_difference
+# --------------------------------------------------------------------------------------------
+
+
+def test_max_placement_difference_measures_by_name(chain_urdf: Path) -> None:
+    model = pin.buildModelFromUrdf(str(chain_urdf))
+    other = model.copy()
+    assert max_placement_difference(model, other) == 0.0
+
+    j2 = other.getJointId("j2")
+    other.jointPlacements[j2] = pin.SE3(other.jointPlacements[j2]) * pin.SE3(np.eye(3), np.array([0.0, 3e-4, 0.0]))
+    assert max_placement_difference(model, other) == pytest.approx(3e-4, abs=1e-15)
+
+    sensor = other.frames[other.getFrameId("sensor", pin.FrameType.BODY)]
+    sensor.placement = pin.SE3(sensor.placement) * pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, 5e-3), np.zeros(3))
+    assert max_placement_difference(model, other) == pytest.approx(5e-3, abs=1e-15)
+
+
+def test_max_placement_difference_refuses_different_structures(chain_urdf: Path, ur5_urdf: Path) -> None:
+    chain = pin.buildModelFromUrdf(str(chain_urdf))
+    with pytest.raises(InvalidInputError, match="models differ in joints"):
+        max_placement_difference(chain, pin.buildModelFromUrdf(str(ur5_urdf)))
+
+    renamed = chain.copy()
+    renamed.frames[renamed.getFrameId("sensor", pin.FrameType.BODY)].name = "sensor2"
+    with pytest.raises(InvalidInputError, match=r"only in the first: sensor \(BODY\); only in the second: sensor2 \(BODY\)"):
+        max_placement_difference(chain, renamed)
