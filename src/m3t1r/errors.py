@@ -38,6 +38,10 @@ class SingularConfigurationError(KinematicsError):
     """The Jacobian of the square system is singular (or nearly) at the solution or on the way."""
 
 
+class BranchChangeError(KinematicsError):
+    """Newton crossed a singularity: the solution is on another assembly or working mode than the start."""
+
+
 class OutOfWorkspaceError(KinematicsError):
     """The target cannot be reached: no assembly, or the solution needs a slider beyond its limit."""
 
@@ -69,7 +73,37 @@ def require_finite_vector(values: object, length: int, what: str) -> np.ndarray:
         raise InvalidInputError(f"{what}: not a numeric vector ({exc})") from None
     if vector.size != length:
         raise InvalidInputError(f"{what}: expected {length} values, got {vector.size}")
-    bad = np.flatnonzero(~np.isfinite(vector))
-    if bad.size:
+    finite = np.isfinite(vector)
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
         raise InvalidInputError(f"{what}: non-finite value {vector[bad[0]]} at index {bad[0]}")
     return vector
+
+
+class OutputPathError(M3t1rError):
+    """An output cannot be written: the path is a protected input, is not a file path, or the write failed."""
+
+    def __init__(self, path: object, message: str) -> None:
+        self.path = str(path)
+        super().__init__(f"{self.path}: {message}")
+
+
+class UnknownNameError(InvalidInputError):
+    """A joint or frame name does not exist in the model (names are matched exactly)."""
+
+    def __init__(self, kind: str, name: str, message: str = "") -> None:
+        self.kind = kind
+        self.name = name
+        super().__init__(f"{kind} '{name}': {message or 'not found in the model'}")
+
+
+class UnsupportedJointError(InvalidInputError):
+    """A joint cannot be used where it is needed (e.g. a multi-DoF joint inside a serial POE chain)."""
+
+    def __init__(self, joint: str, message: str) -> None:
+        self.joint = joint
+        super().__init__(f"joint '{joint}': {message}")
+
+
+class PoorExcitationWarning(UserWarning):
+    """The pose set barely excites some kept parameters: their estimates will be noise-dominated."""
