@@ -1,0 +1,440 @@
+"""Model-agnostic parameter identification: base parameters, linear and nonlinear least squares.
+
+Nothing here knows about robots. The calibration model of Zhang et al. (Symmetry 2020) is the
+stacked linear system Y = A X of eq. (31), solved in the least-squares sense (eq. 32), recursively
+(section 5), or iterated with multiplicative updates of the initial poses (eq. 33); these are the
+three solvers below, plus the choice of an identifiable (base) parameter subset that makes them
+well posed, since the 6 (n + 1) placement errors of a chain are redundant (section 3.2).
+
+Conventions: a Jacobian has one row per scalar measurement and one column per parameter; weights
+are per-row inverse standard deviations (1/sigma, in the inverse units of the row).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Generic, Literal, Protocol, TypeVar
+
+import numpy as np
+import scipy.linalg
+from numpy.typing import ArrayLike
+
+from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
+
+__all__ = [
+    "BaseParameters",
+    "LMResult",
+    "LeastSquaresProblem",
+    "LinearFit",
+    "RecursiveLeastSquares",
+    "batch_least_squares",
+    "levenberg_marquardt",
+    "select_base_parameters",
+]
+
+#: Above this condition number of the kept, column-normalised Jacobian, a relative perturbation of
+#: 1e-6 in the data (a micrometre on a metre) can reach the parameters at order one.
+POOR_EXCITATION_CONDITION = 1e6
+
+
+def _as_matrix(values: ArrayLike, what: str) -> np.ndarray:
+    matrix = np.asarray(values, dtype=float)
+    if matrix.ndim != 2:
+        raise InvalidInputError(f"{what}: expected a 2-D array, got shape {matrix.shape}")
+    if not np.all(np.isfinite(matrix)):
+        row, col = np.argwhere(~np.isfinite(matrix))[0]
+        raise InvalidInputError(f"{what}: non-finite value at row {row}, column {col}")
+    return matrix
+
+
+def _as_rows(values: ArrayLike, n_rows: int, what: str) -> np.ndarray:
+    vector = np.asarray(values, dtype=float).reshape(-1)
+    if vector.size != n_rows:
+        raise InvalidInputError(f"{what}: expected {n_rows} values, got {vector.size}")
+    if not np.all(np.isfinite(vector)):
+        raise InvalidInputError(f"{what}: non-finite value at index {int(np.flatnonzero(~np.isfinite(vector))[0])}")
+    return vector
+
+
+def _as_weights(values: ArrayLike | None, n_rows: int, what: str) -> np.ndarray | None:
+    if values is None:
+        return None
+    weights = _as_rows(values, n_rows, what)
+    if np.any(weights <= 0.0):
+        raise InvalidInputError(f"{what}: must be positive inverse standard deviations")
+    return weights
+
+
+# --------------------------------------------------------------------------------------------------
+# Base parameters
+
+
+@dataclass(frozen=True)
+class BaseParameters:
+    """An identifiable subset of parameters, chosen by column-pivoted QR.
+
+    All quantities are computed on the column-normalised Jacobian (every non-zero column scaled to
+    unit 2-norm), so that the choice does not depend on the parameters' units (m versus rad).
+
+    indices: kept columns, sorted in the original column order; names: their names.
+    rank: number of kept columns.
+    singular_values: of the whole column-normalised Jacobian (zero columns stay zero), descending.
+    condition_number: ratio of extreme singular values of the kept normalised columns.
+    r_diag_ratio: |R_ii| / |R_00| along the pivot order, for the kept columns and the first dropped
+        one if any; the drop from the last to the next entry shows how clear the rank decision is.
+    zero_columns: names of columns whose norm is below rel_tol times the largest column norm
+        (parameters with no effect at all on the measurements).
+    """
+
+    indices: tuple[int, ...]
+    names: tuple[str, ...]
+    rank: int
+    singular_values: np.ndarray
+    condition_number: float
+    r_diag_ratio: np.ndarray
+    zero_columns: tuple[str, ...]
+
+
+def select_base_parameters(
+    jacobian: ArrayLike,
+    names: Sequence[str],
+    rel_tol: float = 1e-9,
+    *,
+    max_condition: float = POOR_EXCITATION_CONDITION,
+) -> BaseParameters:
+    """Choose a maximal set of linearly independent columns of the stacked Jacobian (m, p).
+
+    A column is kept while |R_ii| > rel_tol |R_00| in the pivoted QR of the column-normalised
+    matrix. Exactly redundant parameters (e.g. a placement error along its own joint axis, which
+    commutes with the joint motion) give |R_ii| at rounding level; rel_tol must sit between that
+    and the weakest genuine direction. Emits PoorExcitationWarning when the kept set's condition
+    number exceeds `max_condition`: the pose set is then too poor to pin down every kept parameter.
+    """
+    matrix = _as_matrix(jacobian, "jacobian")
+    names = tuple(names)
+    if len(names) != matrix.shape[1]:
+        raise InvalidInputError(f"select_base_parameters: {matrix.shape[1]} columns but {len(names)} names")
+    if not 0.0 < rel_tol < 1.0:
+        raise InvalidInputError(f"select_base_parameters: rel_tol must be in (0, 1), got {rel_tol}")
+    norms = np.linalg.norm(matrix, axis=0)
+    largest = norms.max(initial=0.0)
+    if largest == 0.0:
+        raise IdentificationError("select_base_parameters: the Jacobian is identically zero")
+    nonzero = norms > rel_tol * largest
+    candidates = np.flatnonzero(nonzero)
+    # An unpivoted QR of the tall matrix first: pivoting decisions depend only on column norms of
+    # trailing blocks, which are invariant under the orthogonal factor, so pivoting its small
+    # triangular factor picks the same columns at a fraction of the cost. Every spectrum below
+    # then comes from triangular factors too (A P = Q R: equal singular values).
+    r0 = np.linalg.qr(matrix[:, candidates] / norms[candidates], mode="r")
+    r, pivots = scipy.linalg.qr(r0, mode="r", pivoting=True)
+    diag = np.abs(np.diag(r))
+    ratio = diag / diag[0]
+    rank = int(np.count_nonzero(ratio > rel_tol))
+    kept = np.sort(candidates[pivots[:rank]])
+    singular_values = np.zeros(min(matrix.shape))
+    spectrum = np.linalg.svd(r, compute_uv=False)
+    singular_values[: spectrum.size] = spectrum
+    kept_singular = np.linalg.svd(r[:rank, :rank], compute_uv=False)
+    condition = float(kept_singular[0] / kept_singular[-1])
+    if condition > max_condition:
+        warnings.warn(
+            PoorExcitationWarning(
+                f"kept {rank} parameters with condition number {condition:.3g} > {max_condition:.3g}: "
+                "add or spread out poses"
+            ),
+            stacklevel=2,
+        )
+    return BaseParameters(
+        indices=tuple(int(i) for i in kept),
+        names=tuple(names[i] for i in kept),
+        rank=rank,
+        singular_values=singular_values,
+        condition_number=condition,
+        r_diag_ratio=ratio[: min(rank + 1, ratio.size)],
+        zero_columns=tuple(names[i] for i in np.flatnonzero(~nonzero)),
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Linear least squares
+
+
+@dataclass(frozen=True)
+class LinearFit:
+    """Result of a (weighted) linear least-squares fit y ~ A x.
+
+    x: minimum-norm solution (parameter units).
+    residual_rms: RMS of the unweighted residual y - A x (units of y).
+    variance_factor: chi^2 / (m - rank) of the weighted residual; about 1 when the weights are the
+        true inverse noise standard deviations (the a-posteriori check of the noise model).
+    covariance: (p, p) parameter covariance, see `batch_least_squares`; std: sqrt of its diagonal.
+    rank: numerical rank of the weighted A.
+    """
+
+    x: np.ndarray
+    residual_rms: float
+    variance_factor: float
+    covariance: np.ndarray
+    std: np.ndarray
+    rank: int
+
+
+def batch_least_squares(
+    A: ArrayLike,
+    y: ArrayLike,
+    weights: ArrayLike | None = None,
+    *,
+    rcond: float = 1e-12,
+    covariance_from: Literal["noise_model", "residuals"] | None = None,
+) -> LinearFit:
+    """Solve min || W (A x - y) || (paper eq. 32) by SVD of W A, never forming A^T A.
+
+    weights: per-row 1/sigma (W = diag(weights)); None means unit weights.
+    rcond: singular values below rcond * s_max are treated as zero, which yields the minimum-norm
+        solution when A is rank deficient (the unobservable combination is left at zero).
+    covariance_from: "noise_model" gives (A^T W^2 A)^+, exact when the weights are the true
+        inverse standard deviations; "residuals" scales it by the variance factor s^2 estimated
+        from the residuals. Default: "noise_model" when weights are given, else "residuals".
+    """
+    A = _as_matrix(A, "A")
+    m, p = A.shape
+    y = _as_rows(y, m, "y")
+    w = _as_weights(weights, m, "weights")
+    if covariance_from is None:
+        covariance_from = "noise_model" if w is not None else "residuals"
+    A_w = A if w is None else A * w[:, None]
+    y_w = y if w is None else y * w
+    u, s, vt = np.linalg.svd(A_w, full_matrices=False)
+    if s.size == 0 or s[0] == 0.0:
+        raise IdentificationError("batch_least_squares: A is identically zero")
+    rank = int(np.count_nonzero(s > rcond * s[0]))
+    v_r = vt[:rank].T
+    x = v_r @ ((u[:, :rank].T @ y_w) / s[:rank])
+    residual = A @ x - y
+    weighted = residual if w is None else residual * w
+    dof = m - rank
+    variance_factor = float(weighted @ weighted / dof) if dof > 0 else float("nan")
+    covariance = (v_r / s[:rank] ** 2) @ v_r.T
+    if covariance_from == "residuals":
+        if dof <= 0:
+            raise IdentificationError("batch_least_squares: no redundancy to estimate the noise from residuals")
+        covariance = covariance * variance_factor
+    return LinearFit(
+        x=x,
+        residual_rms=float(np.sqrt(residual @ residual / m)),
+        variance_factor=variance_factor,
+        covariance=covariance,
+        std=np.sqrt(np.diag(covariance)),
+        rank=rank,
+    )
+
+
+class RecursiveLeastSquares:
+    """Streaming least squares, one block of rows (e.g. one pose) at a time (paper section 5).
+
+    Kept in square-root information form: an upper-triangular R and vector z with
+    R^T R = sum_k lambda^(K-k) A_k^T W_k^2 A_k and R^T z the matching right-hand side, updated by a
+    QR of [sqrt(lambda) R, sqrt(lambda) z; W A_k, W y_k]. This is algebraically the classic
+    covariance-form RLS (P = (R^T R)^-1, gain K = P A^T ...) without its loss of symmetry and
+    positivity in floating point, and without a large made-up initial covariance: with no prior
+    the estimate after K blocks equals the batch solution of all K blocks (minimum-norm while the
+    data are still rank deficient).
+
+    forgetting_factor lambda in (0, 1] discounts old blocks geometrically; the default 1 keeps all.
+    prior_mean / prior_std optionally add x ~ N(prior_mean, diag(prior_std^2)) as initial information.
+    """
+
+    def __init__(
+        self,
+        n_parameters: int,
+        *,
+        forgetting_factor: float = 1.0,
+        prior_mean: ArrayLike | None = None,
+        prior_std: ArrayLike | None = None,
+        rcond: float = 1e-12,
+    ) -> None:
+        if n_parameters < 1:
+            raise InvalidInputError(f"RecursiveLeastSquares: n_parameters must be >= 1, got {n_parameters}")
+        if not 0.0 < forgetting_factor <= 1.0:
+            raise InvalidInputError(f"RecursiveLeastSquares: forgetting_factor {forgetting_factor} not in (0, 1]")
+        self._n = n_parameters
+        self._sqrt_lambda = float(np.sqrt(forgetting_factor))
+        self._rcond = rcond
+        # Augmented factor [R z; 0 rho]: rho^2 accumulates the weighted residual sum of squares.
+        self._factor = np.zeros((n_parameters + 1, n_parameters + 1))
+        self._rows = 0
+        if prior_std is not None:
+            std = np.broadcast_to(np.asarray(prior_std, dtype=float), (n_parameters,))
+            if np.any(std <= 0.0) or not np.all(np.isfinite(std)):
+                raise InvalidInputError("RecursiveLeastSquares: prior_std must be positive and finite")
+            mean = np.zeros(n_parameters) if prior_mean is None else _as_rows(prior_mean, n_parameters, "prior_mean")
+            self._factor[:n_parameters, :n_parameters] = np.diag(1.0 / std)
+            self._factor[:n_parameters, n_parameters] = mean / std
+        elif prior_mean is not None:
+            raise InvalidInputError("RecursiveLeastSquares: prior_mean needs prior_std")
+        self._x = np.zeros(n_parameters)
+
+    @property
+    def n_rows(self) -> int:
+        """Number of measurement rows absorbed so far."""
+        return self._rows
+
+    @property
+    def estimate(self) -> np.ndarray:
+        """Current (minimum-norm) least-squares estimate, a copy."""
+        return self._x.copy()
+
+    @property
+    def information_factor(self) -> np.ndarray:
+        """Upper-triangular R with R^T R the (weighted, discounted) information matrix, a copy."""
+        return self._factor[: self._n, : self._n].copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """(R^T R)^+: the parameter covariance under the weights' noise model."""
+        r = self._factor[: self._n, : self._n]
+        r_pinv = np.linalg.pinv(r, rcond=self._rcond)
+        return r_pinv @ r_pinv.T
+
+    @property
+    def weighted_residual_sum_of_squares(self) -> float:
+        """sum over absorbed rows of (w (a x - y))^2 at the current estimate (exact, not approximated)."""
+        return float(self._factor[self._n, self._n] ** 2)
+
+    def update(self, A_k: ArrayLike, y_k: ArrayLike, weights_k: ArrayLike | None = None) -> np.ndarray:
+        """Absorb a block of rows A_k x ~ y_k (weights_k: per-row 1/sigma); return the new estimate."""
+        A_k = _as_matrix(np.atleast_2d(A_k), "A_k")
+        if A_k.shape[1] != self._n:
+            raise InvalidInputError(f"A_k: expected {self._n} columns, got {A_k.shape[1]}")
+        y_k = _as_rows(y_k, A_k.shape[0], "y_k")
+        w = _as_weights(weights_k, A_k.shape[0], "weights_k")
+        block = np.hstack([A_k, y_k[:, None]])
+        if w is not None:
+            block = block * w[:, None]
+        stacked = np.vstack([self._sqrt_lambda * self._factor, block])
+        r = scipy.linalg.qr(stacked, mode="r", check_finite=False)[0]
+        size = min(r.shape[0], self._n + 1)
+        self._factor = np.zeros((self._n + 1, self._n + 1))
+        self._factor[:size] = r[:size]
+        self._rows += A_k.shape[0]
+        self._x = self._solve()
+        return self._x.copy()
+
+    def _solve(self) -> np.ndarray:
+        r = self._factor[: self._n, : self._n]
+        z = self._factor[: self._n, self._n]
+        diag = np.abs(np.diag(r))
+        if diag.min() > self._rcond * diag.max():
+            return scipy.linalg.solve_triangular(r, z, check_finite=False)
+        return np.linalg.lstsq(r, z, rcond=self._rcond)[0]
+
+
+# --------------------------------------------------------------------------------------------------
+# Levenberg-Marquardt on a manifold
+
+State = TypeVar("State")
+
+
+class LeastSquaresProblem(Protocol[State]):
+    """A nonlinear least-squares problem min 1/2 ||r(state)||^2 over a manifold of states.
+
+    residual_and_jacobian: whitened residual r (m,) and its Jacobian (m, p) with respect to a
+        tangent step dx at `state`, i.e. r(retract(state, dx)) = r + J dx + O(dx^2).
+    retract: the state moved by the tangent step dx (p,), e.g. T(0) <- T(0) exp6(dx) (eq. 33).
+    """
+
+    def residual_and_jacobian(self, state: State) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def retract(self, state: State, step: np.ndarray) -> State: ...
+
+
+@dataclass(frozen=True)
+class LMResult(Generic[State]):
+    """Outcome of `levenberg_marquardt`.
+
+    cost_history: 1/2 ||r||^2 at the start and after every accepted step.
+    termination: which test stopped the iteration: "gradient", "step", "cost" (converged), or
+        "max_iterations", "stalled" (no damping value lowers the cost; not converged).
+    converged: one of the first three tests was met.
+    step_norm: 2-norm of the last computed step (parameter units).
+    """
+
+    state: State
+    iterations: int
+    cost: float
+    cost_history: tuple[float, ...]
+    converged: bool
+    termination: str
+    step_norm: float
+
+
+def levenberg_marquardt(
+    problem: LeastSquaresProblem[State],
+    x0: State,
+    *,
+    max_iterations: int = 50,
+    step_tolerance: float = 1e-12,
+    cost_tolerance: float = 1e-12,
+    gradient_tolerance: float = 1e-12,
+    initial_damping: float = 1e-3,
+) -> LMResult[State]:
+    """Minimise 1/2 ||r||^2 with Levenberg-Marquardt steps applied through `problem.retract`.
+
+    Step: argmin ||r + J dx||^2 + mu ||D dx||^2 with D^2 = diag(J^T J) (Marquardt's scaling, so mu
+    is unit free), solved through a QR of J and a small QR of [R; sqrt(mu) D] per damping value.
+    Damping follows Nielsen: on acceptance (actual decrease > 0) mu *= max(1/3, 1 - (2 rho - 1)^3),
+    on rejection mu *= nu and nu doubles, rho being actual over predicted decrease.
+    Stops when ||J^T r||_inf <= gradient_tolerance, when a step has ||dx|| <= step_tolerance
+    (parameter units), or when an accepted step lowers the cost by less than cost_tolerance times
+    the cost. An iteration is one Jacobian evaluation, however many damping trials it took.
+    """
+    state = x0
+    r, J = problem.residual_and_jacobian(state)
+    cost = 0.5 * float(r @ r)
+    history = [cost]
+    mu = initial_damping
+    nu = 2.0
+    step_norm = float("nan")
+    for iteration in range(1, max_iterations + 1):
+        gradient = J.T @ r
+        if not np.all(np.isfinite(gradient)):
+            raise IdentificationError(f"levenberg_marquardt: non-finite gradient at iteration {iteration}")
+        if np.max(np.abs(gradient), initial=0.0) <= gradient_tolerance:
+            return LMResult(state, iteration - 1, cost, tuple(history), True, "gradient", step_norm)
+        q, rj = np.linalg.qr(J, mode="reduced")
+        qtr = q.T @ r
+        scale = np.sqrt(np.einsum("ij,ij->j", J, J))
+        scale = np.maximum(scale, 1e-12 * max(scale.max(), 1e-300))
+        p = J.shape[1]
+        while True:
+            augmented = np.vstack([rj, np.sqrt(mu) * np.diag(scale)])
+            rhs = np.concatenate([-qtr, np.zeros(p)])
+            dx = np.linalg.lstsq(augmented, rhs, rcond=None)[0]
+            step_norm = float(np.linalg.norm(dx))
+            if step_norm <= step_tolerance:
+                return LMResult(state, iteration, cost, tuple(history), True, "step", step_norm)
+            j_dx = rj @ dx
+            predicted = -float(qtr @ j_dx) - 0.5 * float(j_dx @ j_dx)
+            trial = problem.retract(state, dx)
+            r_trial, J_trial = problem.residual_and_jacobian(trial)
+            cost_trial = 0.5 * float(r_trial @ r_trial)
+            decrease = cost - cost_trial
+            if decrease > 0.0 and np.isfinite(cost_trial):
+                rho = decrease / predicted if predicted > 0.0 else 0.0
+                mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
+                state, r, J, cost = trial, r_trial, J_trial, cost_trial
+                history.append(cost)
+                if decrease <= cost_tolerance * (cost + decrease):
+                    return LMResult(state, iteration, cost, tuple(history), True, "cost", step_norm)
+                break
+            mu *= nu
+            nu *= 2.0
+            if mu > 1e30:
+                # No step along the descent direction lowers the cost although the gradient test
+                # failed: the Jacobian is inconsistent with the residual, or rounding dominates.
+                return LMResult(state, iteration, cost, tuple(history), False, "stalled", step_norm)
+    return LMResult(state, max_iterations, cost, tuple(history), False, "max_iterations", step_norm)

@@ -1,0 +1,492 @@
+"""Local product-of-exponentials (POE) view of a Pinocchio model.
+
+Zhang et al. (Symmetry 2020), section 2, write a serial chain as (eq. 4-6)
+
+    g(q) = T_{B,1}(0) exp(s_1 q_1) T_{1,2}(0) exp(s_2 q_2) ... T_{n-1,n}(0) exp(s_n q_n) T_{n,P}(0)
+
+with every kinematic error lumped into the constant initial poses T(0) (section 3.1). That is
+exactly how Pinocchio stores a kinematic tree: `model.jointPlacements[j]` is T_{parent(j),j}(0)
+expressed in the parent joint frame, each 1-DoF joint moves by exp6(S_j q_j) with its constant
+motion subspace S_j, and a frame placement (relative to its parent joint) is the tool pose T_{n,P}(0).
+So this module needs no second kinematic description: a `Placement` names one T(0) of the model,
+`perturb` applies the paper's error model T(0) <- T(0) exp6(dt) (eq. 33/34) to a copy, and the error
+Jacobian of eq. (17)-(20) is a list of adjoint matrices along the chain.
+
+Conventions (Pinocchio's): SE3 objects, twists and Jacobian rows in [linear; angular] order, SI units
+(m, rad). WORLD means the chain's base frame {B} (Pinocchio's world frame when no base frame is given).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import pinocchio as pin
+from numpy.typing import ArrayLike
+
+from m3t1r.errors import InvalidInputError, UnknownNameError, UnsupportedJointError, require_finite_vector
+
+__all__ = [
+    "Placement",
+    "SerialChain",
+    "error_jacobian_world",
+    "express_error_jacobian",
+    "forward_and_error_jacobians",
+    "perturb",
+    "placement_of",
+    "poe_forward",
+]
+
+_TWIST_COMPONENTS = 6
+
+
+@dataclass(frozen=True)
+class Placement:
+    """One constant initial pose T(0) of the model that can carry a kinematic error.
+
+    kind="joint": `model.jointPlacements[model.getJointId(name)]`, the pose of joint `name` in its
+    parent joint frame at q = 0 (T_{k-1,k}(0) of eq. 6).
+    kind="frame": the placement of frame `name` in its parent joint frame (e.g. the tool T_{n,P}(0)).
+    A URDF fixed link gives two frames with the same placement: a FIXED_JOINT frame named after the
+    URDF joint and a BODY frame named after the link. Both names denote the same physical placement
+    and `perturb` applies the error to the FIXED_JOINT frame (the fixed joint carries the link), then
+    carries everything rigidly attached below it. JOINT frames are not placements: use kind="joint".
+
+    Identity is by exact name; ids are resolved against a model only when the placement is used.
+    """
+
+    kind: Literal["joint", "frame"]
+    name: str
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("joint", "frame"):
+            raise InvalidInputError(f"Placement kind must be 'joint' or 'frame', got {self.kind!r}")
+        if not isinstance(self.name, str) or not self.name:
+            raise InvalidInputError(f"Placement name must be a non-empty string, got {self.name!r}")
+
+    @classmethod
+    def joint(cls, name: str) -> Placement:
+        return cls("joint", name)
+
+    @classmethod
+    def frame(cls, name: str) -> Placement:
+        return cls("frame", name)
+
+    def parameter_names(self) -> tuple[str, ...]:
+        """Names of the six error components dt = [v; w] (m, rad), e.g. 'elbow_joint.dt[5]'."""
+        return tuple(f"{self.name}.dt[{k}]" for k in range(_TWIST_COMPONENTS))
+
+
+# --------------------------------------------------------------------------------------------------
+# Name resolution
+
+
+def _joint_id(model: pin.Model, name: str) -> int:
+    if not model.existJointName(name):
+        raise UnknownNameError("joint", name)
+    joint_id = model.getJointId(name)
+    if joint_id == 0:
+        raise UnknownNameError("joint", name, "the universe joint has no placement")
+    return joint_id
+
+
+def _frame_id(model: pin.Model, name: str, *, allow_joint_frame: bool) -> int:
+    """Frame id by exact name. Pinocchio allows a JOINT frame and a link frame to share a name,
+    so every match is examined instead of trusting getFrameId's first hit."""
+    if not model.existFrame(name):
+        raise UnknownNameError("frame", name)
+    matches = [i for i, frame in enumerate(model.frames) if frame.name == name]
+    if not allow_joint_frame:
+        non_joint = [i for i in matches if model.frames[i].type != pin.FrameType.JOINT]
+        if not non_joint:
+            raise UnknownNameError(
+                "frame", name, "is the JOINT frame of a joint; use Placement.joint(...) to perturb the joint placement"
+            )
+        matches = non_joint
+    if len(matches) > 1:
+        kinds = ", ".join(str(model.frames[i].type) for i in matches)
+        raise UnknownNameError("frame", name, f"ambiguous: {len(matches)} frames carry this name ({kinds})")
+    return matches[0]
+
+
+def _frame_anchor(model: pin.Model, frame_id: int) -> int:
+    """The frame that physically carries `frame_id`'s placement.
+
+    Pinocchio's URDF parser turns a fixed joint into a FIXED_JOINT frame and the child link into a
+    BODY frame whose parentFrame is that FIXED_JOINT frame, with the same placement. The fixed joint
+    is what an assembly error displaces, so it is the anchor; any other frame anchors itself.
+    """
+    frame = model.frames[frame_id]
+    if frame.type == pin.FrameType.BODY and frame.parentFrame != frame_id:
+        parent = model.frames[frame.parentFrame]
+        if (
+            parent.type == pin.FrameType.FIXED_JOINT
+            and parent.parentJoint == frame.parentJoint
+            and parent.placement.isApprox(frame.placement)
+        ):
+            return frame.parentFrame
+    return frame_id
+
+
+def _rigidly_attached(model: pin.Model, anchor_id: int) -> tuple[list[int], list[int]]:
+    """Frames and joints whose placements are rigidly tied to frame `anchor_id`.
+
+    Frames: every frame reached from the anchor through parentFrame links that stay on the anchor's
+    parent joint. Joints: those whose JOINT frame hangs from one of these frames; their placements
+    are expressed in the common parent joint frame, so a displaced fixed link must move them too.
+    """
+    parent_joint = model.frames[anchor_id].parentJoint
+    children: dict[int, list[int]] = {}
+    for i, frame in enumerate(model.frames):
+        if i != frame.parentFrame:
+            children.setdefault(frame.parentFrame, []).append(i)
+    frames: list[int] = []
+    joints: list[int] = []
+    stack = list(children.get(anchor_id, ()))
+    while stack:
+        i = stack.pop()
+        frame = model.frames[i]
+        if frame.type == pin.FrameType.JOINT:
+            if frame.parentJoint != parent_joint and model.parents[frame.parentJoint] == parent_joint:
+                joints.append(frame.parentJoint)
+            continue
+        if frame.parentJoint != parent_joint:
+            continue
+        frames.append(i)
+        stack.extend(children.get(i, ()))
+    return frames, joints
+
+
+def placement_of(model: pin.Model, placement: Placement) -> pin.SE3:
+    """A copy of the initial pose T(0) named by `placement`, in its parent joint frame (m, rad)."""
+    if placement.kind == "joint":
+        return model.jointPlacements[_joint_id(model, placement.name)].copy()
+    return model.frames[_frame_id(model, placement.name, allow_joint_frame=False)].placement.copy()
+
+
+def perturb(model: pin.Model, deltas: Mapping[Placement, ArrayLike]) -> pin.Model:
+    """A copy of `model` with T(0) <- T(0) exp6(dt) for every (placement, dt) (paper eq. 33/34).
+
+    dt = [v; w] (m, rad) is a right-multiplied error, i.e. a twist expressed in the frame of the
+    placement itself (the paper's "error relative to its local coordinate system", eq. 15).
+
+    A frame error is applied to the frame's anchor (the FIXED_JOINT frame when a URDF BODY frame is
+    named, see `Placement`) and carried rigidly by everything attached below it on the same parent
+    joint: new_G = new_A (old_A^-1 old_G) for frames and for the placements of joints hanging from
+    them. The caller's model is never modified. Naming the same physical placement twice (e.g. a
+    link and its fixed joint) is rejected rather than silently composed.
+    """
+    out = pin.Model(model)
+    seen: dict[tuple[str, int], Placement] = {}
+    for placement, value in deltas.items():
+        if not isinstance(placement, Placement):
+            raise InvalidInputError(f"perturb: keys must be Placement objects, got {placement!r}")
+        dt = require_finite_vector(value, _TWIST_COMPONENTS, f"error twist of {placement.kind} '{placement.name}'")
+        if placement.kind == "joint":
+            key = ("joint", _joint_id(model, placement.name))
+        else:
+            key = ("frame", _frame_anchor(model, _frame_id(model, placement.name, allow_joint_frame=False)))
+        if key in seen:
+            raise InvalidInputError(
+                f"perturb: {placement.kind} '{placement.name}' and {seen[key].kind} '{seen[key].name}' "
+                "name the same physical placement"
+            )
+        seen[key] = placement
+        error = pin.exp6(dt)
+        if key[0] == "joint":
+            out.jointPlacements[key[1]] = out.jointPlacements[key[1]] * error
+            continue
+        anchor = key[1]
+        old = out.frames[anchor].placement.copy()
+        new = old * error
+        # Compose with the current (possibly already perturbed) placements so that errors on nested
+        # frames commute: the parent's error acts on the left, the child's own on the right.
+        to_new = new * old.inverse()
+        frames, joints = _rigidly_attached(out, anchor)
+        out.frames[anchor].placement = new
+        for i in frames:
+            out.frames[i].placement = to_new * out.frames[i].placement
+        for j in joints:
+            out.jointPlacements[j] = to_new * out.jointPlacements[j]
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Serial chain
+
+
+@dataclass(frozen=True)
+class SerialChain:
+    """The joints from a base frame {B} to a tool frame {P}, seen as the local POE of eq. (6).
+
+    joint_ids: the tool's parent-joint support after the base frame's parent joint, root first.
+    Every joint must have one DoF and move as exp6(S q) with a constant motion subspace S
+    (revolute, prismatic, helical, any axis). Unbounded revolute joints (nq = 2: cos, sin) are
+    accepted; their chain coordinate is the angle atan2(sin, cos) in rad.
+    Chain configurations `q_chain` are vectors of these joint coordinates in chain order (rad or m).
+
+    The chain stores ids, names and the (n, 6) read-only joint twists S_k = [v; w] (each in its own
+    joint frame), not poses: every function takes the model whose placements to use, so one chain
+    serves a nominal model and all its `perturb`-ed copies (which never change joint types).
+    Build it with `from_model`.
+    """
+
+    joint_ids: tuple[int, ...]
+    joint_names: tuple[str, ...]
+    tool_frame_id: int
+    tool_frame: str
+    base_frame_id: int | None
+    base_frame: str | None
+    idx_q: tuple[int, ...]
+    nq_per_joint: tuple[int, ...]
+    twists: np.ndarray = field(repr=False, compare=False)
+
+    @classmethod
+    def from_model(cls, model: pin.Model, tool_frame: str, base_frame: str | None = None) -> SerialChain:
+        """Build the chain {B} -> {P}.
+
+        tool_frame: any non-JOINT frame (its placement is the tool pose T_{n,P}(0)).
+        base_frame: a frame on a joint of the tool's support (or on the universe); None means
+        Pinocchio's world frame. Raises UnknownNameError / UnsupportedJointError naming the culprit.
+        """
+        tool_id = _frame_id(model, tool_frame, allow_joint_frame=False)
+        tool_joint = model.frames[tool_id].parentJoint
+        support = list(model.supports[tool_joint])  # [0, ..., tool_joint]
+        base_id: int | None = None
+        start = 0
+        if base_frame is not None:
+            base_id = _frame_id(model, base_frame, allow_joint_frame=True)
+            base_joint = model.frames[base_id].parentJoint
+            if base_joint not in support:
+                raise UnknownNameError(
+                    "frame",
+                    base_frame,
+                    f"is on joint '{model.names[base_joint]}', which does not support tool frame '{tool_frame}'",
+                )
+            start = support.index(base_joint)
+        joint_ids = tuple(int(j) for j in support[start + 1 :])
+        if not joint_ids:
+            raise InvalidInputError(f"no joint moves tool frame '{tool_frame}' relative to the base")
+        idx_q: list[int] = []
+        nq_per_joint: list[int] = []
+        for j in joint_ids:
+            joint = model.joints[j]
+            if joint.nv != 1 or joint.nq not in (1, 2):
+                raise UnsupportedJointError(
+                    model.names[j],
+                    f"{joint.shortname()} has nq={joint.nq}, nv={joint.nv}; a serial POE chain needs 1-DoF joints",
+                )
+            idx_q.append(joint.idx_q)
+            nq_per_joint.append(joint.nq)
+        chain = cls(
+            joint_ids=joint_ids,
+            joint_names=tuple(model.names[j] for j in joint_ids),
+            tool_frame_id=tool_id,
+            tool_frame=tool_frame,
+            base_frame_id=base_id,
+            base_frame=base_frame,
+            idx_q=tuple(idx_q),
+            nq_per_joint=tuple(nq_per_joint),
+            twists=np.empty((0, 6)),
+        )
+        twists = chain.joint_twists(model)
+        twists.flags.writeable = False
+        object.__setattr__(chain, "twists", twists)  # frozen: set once, before anyone sees the chain
+        chain._check_exponential_joints(model)
+        return chain
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_ids)
+
+    @property
+    def n_parameters(self) -> int:
+        """6 (n + 1): one error twist per joint placement plus the tool placement."""
+        return _TWIST_COMPONENTS * (self.n_joints + 1)
+
+    def placements(self) -> tuple[Placement, ...]:
+        """The chain's error-carrying placements in Jacobian column order: each joint, then the tool."""
+        return tuple(Placement.joint(name) for name in self.joint_names) + (Placement.frame(self.tool_frame),)
+
+    def parameter_names(self) -> tuple[str, ...]:
+        """Column names of `error_jacobian_world`, 6 per placement."""
+        return tuple(name for p in self.placements() for name in p.parameter_names())
+
+    def check_model(self, model: pin.Model) -> None:
+        """Raise InvalidInputError if `model` does not have this chain's joints and frames at the same ids."""
+        ok = model.njoints > max(self.joint_ids) and model.nframes > self.tool_frame_id
+        ok = ok and all(model.names[j] == name for j, name in zip(self.joint_ids, self.joint_names))
+        ok = ok and model.frames[self.tool_frame_id].name == self.tool_frame
+        if ok and self.base_frame_id is not None:
+            ok = model.nframes > self.base_frame_id and model.frames[self.base_frame_id].name == self.base_frame
+        if not ok:
+            raise InvalidInputError(
+                f"model '{model.name}' does not match the serial chain to '{self.tool_frame}' "
+                "(build the chain from this model or from the model it was perturbed from)"
+            )
+
+    def initial_poses(self, model: pin.Model) -> list[pin.SE3]:
+        """[T_{B,1}(0), T_{1,2}(0), ..., T_{n-1,n}(0), T_{n,P}(0)] of eq. (6), copies.
+
+        T_{B,1}(0) includes the inverse base-frame placement when a base frame is set.
+        """
+        self.check_model(model)
+        poses = [model.jointPlacements[j].copy() for j in self.joint_ids]
+        if self.base_frame_id is not None:
+            poses[0] = model.frames[self.base_frame_id].placement.inverse() * poses[0]
+        poses.append(model.frames[self.tool_frame_id].placement.copy())
+        return poses
+
+    def joint_twists(self, model: pin.Model) -> np.ndarray:
+        """(n, 6) joint twists S_k = [v; w] (dimensionless; per rad or per m), each in its own joint
+        frame, read from Pinocchio's motion subspace (e.g. revolute about z -> [0, 0, 0, 0, 0, 1])."""
+        q = pin.neutral(model)
+        twists = np.empty((len(self.joint_ids), 6))
+        for k, j in enumerate(self.joint_ids):
+            joint = model.joints[j]
+            joint_data = joint.createData()
+            joint.calc(joint_data, q)
+            twists[k] = np.asarray(joint_data.S).reshape(6)
+        return twists
+
+    def position_limits(self, model: pin.Model) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) chain coordinate limits (rad or m); unbounded revolute joints get [-pi, pi]."""
+        lower = np.empty(self.n_joints)
+        upper = np.empty(self.n_joints)
+        for k, (i, nq) in enumerate(zip(self.idx_q, self.nq_per_joint)):
+            if nq == 2:
+                lower[k], upper[k] = -np.pi, np.pi
+            else:
+                lower[k], upper[k] = model.lowerPositionLimit[i], model.upperPositionLimit[i]
+        return lower, upper
+
+    def chain_configuration(self, q: ArrayLike) -> np.ndarray:
+        """Chain coordinates (n,) extracted from a full model configuration q (nq,)."""
+        q = np.asarray(q, dtype=float)
+        needed = max(i + nq for i, nq in zip(self.idx_q, self.nq_per_joint))
+        if q.ndim != 1 or q.size < needed:
+            raise InvalidInputError(f"configuration: expected a vector of >= {needed} values, got shape {q.shape}")
+        out = np.empty(self.n_joints)
+        for k, (i, nq) in enumerate(zip(self.idx_q, self.nq_per_joint)):
+            out[k] = np.arctan2(q[i + 1], q[i]) if nq == 2 else q[i]
+        return out
+
+    def model_configuration(
+        self, model: pin.Model, q_chain: ArrayLike, reference: ArrayLike | None = None
+    ) -> np.ndarray:
+        """A full configuration (nq,) equal to `reference` (default: neutral) except on the chain."""
+        q_chain = require_finite_vector(q_chain, self.n_joints, "chain configuration")
+        q = pin.neutral(model) if reference is None else require_finite_vector(reference, model.nq, "reference").copy()
+        for k, (i, nq) in enumerate(zip(self.idx_q, self.nq_per_joint)):
+            if nq == 2:
+                q[i], q[i + 1] = np.cos(q_chain[k]), np.sin(q_chain[k])
+            else:
+                q[i] = q_chain[k]
+        return q
+
+    def _check_exponential_joints(self, model: pin.Model) -> None:
+        """The POE needs each joint to move as exp6(S q); verify it once rather than trust joint types."""
+        angle = 0.7
+        for k, j in enumerate(self.joint_ids):
+            joint = model.joints[j]
+            joint_data = joint.createData()
+            q = np.zeros(self.n_joints)
+            q[k] = angle
+            joint.calc(joint_data, self.model_configuration(model, q))
+            if not joint_data.M.isApprox(pin.exp6(self.twists[k] * angle), 1e-12):
+                raise UnsupportedJointError(
+                    model.names[j], f"{joint.shortname()} does not move as exp6(S q); it cannot be a POE factor"
+                )
+
+
+# --------------------------------------------------------------------------------------------------
+# Forward kinematics and error Jacobian
+
+
+def _base_inverse(chain: SerialChain, model: pin.Model) -> pin.SE3:
+    if chain.base_frame_id is None:
+        return pin.SE3.Identity()
+    return model.frames[chain.base_frame_id].placement.inverse()
+
+
+def poe_forward(chain: SerialChain, model: pin.Model, q_chain: ArrayLike) -> pin.SE3:
+    """Tool pose g_{B,P}(q) = prod_k T_{k-1,k}(0) exp6(S_k q_k) . T_{n,P}(0) (eq. 4/6), in {B}.
+
+    Equals Pinocchio's `data.oMf[tool]` (or oMf[base]^-1 oMf[tool] with a base frame).
+    q_chain: (n,) chain coordinates (rad or m), see `SerialChain.chain_configuration`.
+    """
+    chain.check_model(model)
+    q_chain = require_finite_vector(q_chain, chain.n_joints, "chain configuration")
+    g = _base_inverse(chain, model)
+    for k, j in enumerate(chain.joint_ids):
+        g = g * model.jointPlacements[j] * pin.exp6(chain.twists[k] * q_chain[k])
+    return g * model.frames[chain.tool_frame_id].placement
+
+
+def forward_and_error_jacobians(
+    chain: SerialChain, model: pin.Model, q_chain: ArrayLike
+) -> tuple[list[pin.SE3], np.ndarray]:
+    """Tool poses and WORLD error Jacobians at a batch of chain configurations.
+
+    q_chain: (N, n). Returns ([g_1 .. g_N], J of shape (N, 6, 6(n+1))); see `error_jacobian_world`
+    for the meaning of J. One pass along the chain per pose yields both.
+    """
+    chain.check_model(model)
+    q_chain = np.atleast_2d(np.asarray(q_chain, dtype=float))
+    if q_chain.ndim != 2 or q_chain.shape[1] != chain.n_joints:
+        raise InvalidInputError(f"chain configurations: expected shape (N, {chain.n_joints}), got {q_chain.shape}")
+    if not np.all(np.isfinite(q_chain)):
+        row = int(np.flatnonzero(~np.all(np.isfinite(q_chain), axis=1))[0])
+        raise InvalidInputError(f"chain configurations: non-finite value in row {row}")
+    base_inv = _base_inverse(chain, model)
+    joint_placements = [model.jointPlacements[j].copy() for j in chain.joint_ids]
+    tool = model.frames[chain.tool_frame_id].placement.copy()
+    n = chain.n_joints
+    poses: list[pin.SE3] = []
+    jacobians = np.empty((q_chain.shape[0], 6, chain.n_parameters))
+    for i, q in enumerate(q_chain):
+        g = base_inv
+        for k in range(n):
+            g = g * joint_placements[k]
+            jacobians[i, :, 6 * k : 6 * k + 6] = g.action
+            g = g * pin.exp6(chain.twists[k] * q[k])
+        g = g * tool
+        jacobians[i, :, 6 * n :] = g.action
+        poses.append(g)
+    return poses, jacobians
+
+
+def error_jacobian_world(chain: SerialChain, model: pin.Model, q_chain: ArrayLike) -> np.ndarray:
+    """Error Jacobian J (6, 6(n+1)) of eq. (17)-(20), WORLD (spatial) convention.
+
+    J = [Ad(T_{B,1}(0)), Ad(g_{B,1} T_{1,2}(0)), ..., Ad(g_{B,n-1} T_{n-1,n}(0)), Ad(g_{B,n} T_{n,P}(0))]
+    with g_{B,k} the pose of joint k after its motion. Columns follow `chain.parameter_names()`:
+    the stacked right-multiplied placement errors x = [dt_1; ...; dt_n; dt_P] ([v; w], m and rad,
+    each in its own placement frame, as in `perturb`). Rows are the end-effector error twist
+    y = log6(g_actual g^-1) = [v; w] expressed in {B} (eq. 18), to first order y = J x.
+    Without a base frame, the joint blocks equal those of
+    `pin.computeFrameKinematicRegressor(model, data, tool, pin.WORLD)` and the tool block is Ad(oMf).
+    """
+    return forward_and_error_jacobians(chain, model, np.reshape(q_chain, (1, -1)))[1][0]
+
+
+def express_error_jacobian(
+    jacobian_world: np.ndarray, pose: pin.SE3, frame: pin.ReferenceFrame
+) -> np.ndarray:
+    """Re-express the rows of a WORLD error Jacobian (6, m) at the tool pose `pose` = g_{B,P}.
+
+    LOCAL: y = log6(g^-1 g_actual), the error in the tool frame.
+    LOCAL_WORLD_ALIGNED: [dp; w], the tool origin displacement and rotation, both on {B}'s axes.
+    """
+    if frame == pin.WORLD:
+        transform = np.eye(6)
+    elif frame == pin.LOCAL:
+        transform = pose.inverse().action
+    elif frame == pin.LOCAL_WORLD_ALIGNED:
+        # v + w x p: the velocity of the point at the tool origin rather than at {B}'s origin.
+        transform = pin.SE3(np.eye(3), -pose.translation).action
+    else:
+        raise InvalidInputError(f"unknown reference frame {frame!r}")
+    return transform @ jacobian_world
