@@ -31,7 +31,7 @@ from .errors import (BranchChangeError, InvalidInputError, NotConvergedError, Ou
 
 __all__ = [
     "ForwardResult", "InverseResult", "ClosedLoopSolver", "closure_residual_by_closure",
-    "yaw_of", "roll_pitch_of", "MOBILITY_RANK_TOL", "SINGULAR_RCOND",
+    "yaw_of", "roll_pitch_of", "rehomed", "MOBILITY_RANK_TOL", "SINGULAR_RCOND",
 ]
 
 MOBILITY_RANK_TOL = 1e-9  # singular values below this fraction of the largest count as zero
@@ -461,3 +461,16 @@ class ClosedLoopSolver:
         self._lu_inverse = None
         self._last_task = None
         self.last_q = self.mechanism.home.copy()
+
+
+def rehomed(mechanism: Mechanism, sliders: np.ndarray | None = None) -> Mechanism:
+    """The mechanism with `home` re-assembled at `sliders` (default: the current home's sliders).
+
+    A perturbed or calibrated tree does not close at the nominal home joint values; its closures
+    file must carry its own assembled home (`Mechanism.load` checks it).
+    """
+    sliders = mechanism.home[mechanism.actuated_ids] if sliders is None else sliders
+    q = ClosedLoopSolver(mechanism).forward(sliders, q_init=mechanism.home).q
+    return Mechanism(mechanism.model, mechanism.visual_model, mechanism.closures, mechanism.actuated_joints,
+                     mechanism.principal_chains, mechanism.platform_frame, q, mechanism.urdf_path,
+                     mechanism.closures_path)

@@ -1,0 +1,413 @@
+"""Closed-loop calibration from slider readings and measured platform poses (beyond the paper).
+
+Parameters: a right-multiplied 6-vector error dt = [v; w] on every joint placement of the tree
+and on every frame a closure or the measurement uses (paper eq. 33: T(0) <- T(0) exp6(dt)). With
+the sliders fixed, the passive joints follow the closures, so the sensitivity of the measured
+platform pose to the parameters is found by implicit differentiation:
+
+    r_c(q, p) = 0  =>  dq_passive/dp = -J_c,passive^-1 dr_c/dp        (16 x 16 square system)
+    d xi_P / dp    = X_P + J_P,passive dq_passive/dp                  (spatial twist, WORLD)
+
+where X_f (6 x P) is the spatial twist of frame f per unit parameter: Pinocchio's WORLD kinematic
+regressor for the joint placements (paper eq. 17 columns, Ad(g_{0,k-1} T_{k-1,k}(0))), and
+Ad(oMf) for the frame's own placement; a closure's rows see operator @ (X_b - X_a).
+
+The measurement residual of one pose is e = [p_model - p_meas; log3(R_meas^T R_model)]: position
+in WORLD [m], orientation in the platform frame [rad]; position-only data keeps the first three.
+It is whitened by the tracker noise and minimised by Levenberg-Marquardt over the base
+(identifiable) parameters, chosen once at the start by column-pivoted QR.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+from scipy.linalg import lapack
+
+from ._threads import on_one_blas_thread
+from .description import Mechanism
+from .errors import IdentificationError, InvalidInputError, KinematicsError
+from .identification import BaseParameters, LMResult, levenberg_marquardt, select_base_parameters
+from .kinematics import ClosedLoopSolver, rehomed
+from .poe import Placement, perturb
+
+__all__ = [
+    "ClosedLoopErrorModel", "PoseMeasurements", "TrackerNoise", "ClosedLoopCalibration",
+    "calibrate_closed_loop", "PoseErrors", "pose_errors", "predicted_pose_std",
+]
+
+
+@dataclass(frozen=True)
+class TrackerNoise:
+    """Standard deviations of the measurements: tracker position [m] and orientation [rad],
+    slider readings [m]. Used to whiten the residual and to predict the parameter covariance."""
+
+    position: float = 10e-6
+    rotation: float = 20e-6
+    actuator: float = 1e-6
+
+    def __post_init__(self) -> None:
+        for name in ("position", "rotation", "actuator"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InvalidInputError(f"noise {name} must be a finite non-negative number, got {value}")
+        if self.position <= 0 or self.rotation <= 0:
+            raise InvalidInputError("tracker noise must be positive (it whitens the residual)")
+
+
+@dataclass(frozen=True)
+class PoseMeasurements:
+    """N calibration poses: slider readings (N x n_act) [m] and measured platform poses in the base
+    frame (orientation ignored when position_only)."""
+
+    actuators: np.ndarray
+    poses: tuple[pin.SE3, ...]
+    position_only: bool = False
+
+    def __post_init__(self) -> None:
+        actuators = np.asarray(self.actuators, dtype=float)
+        if actuators.ndim != 2 or actuators.shape[0] != len(self.poses):
+            raise InvalidInputError(f"{actuators.shape} actuator rows for {len(self.poses)} poses")
+        if not np.all(np.isfinite(actuators)):
+            raise InvalidInputError("non-finite actuator reading")
+        object.__setattr__(self, "actuators", actuators)
+
+    @property
+    def rows_per_pose(self) -> int:
+        return 3 if self.position_only else 6
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+
+class ClosedLoopErrorModel:
+    """The placement parameters of a mechanism and the platform pose's sensitivity to them.
+
+    placements: every joint of the tree (model order), then every closure frame and the platform
+    frame (each once). Parameter k of placement i is named f"{name}.dt[{k}]", [v; w] order.
+    """
+
+    def __init__(self, mechanism: Mechanism, placements: tuple[Placement, ...] | None = None) -> None:
+        model = mechanism.model
+        if placements is None:
+            joints = tuple(Placement.joint(model.names[j]) for j in range(1, model.njoints))
+            frame_names: list[str] = []
+            for spec in mechanism.closures:
+                frame_names += [spec.frame_a, spec.frame_b]
+            frame_names.append(mechanism.platform_frame)
+            frames = tuple(Placement.frame(n) for n in dict.fromkeys(frame_names))
+            placements = joints + frames
+        self.mechanism = mechanism
+        self.placements = placements
+        self.names = tuple(n for p in placements for n in p.parameter_names())
+        self.n_parameters = len(self.names)
+        # Joint parameters: regressor column c (6 per joint, model order) -> parameter column.
+        self._joint_columns = np.full(6 * (model.njoints - 1), -1)
+        self._frame_block: dict[int, int] = {}
+        for i, placement in enumerate(placements):
+            if placement.kind == "joint":
+                j = model.getJointId(placement.name)
+                self._joint_columns[6 * (j - 1):6 * j] = np.arange(6 * i, 6 * i + 6)
+            else:
+                self._frame_block[model.getFrameId(placement.name)] = 6 * i
+        self._joint_targets = np.flatnonzero(self._joint_columns >= 0)
+
+        def support(frame_id: int) -> np.ndarray:
+            mask = np.zeros(model.njoints - 1)
+            mask[np.array(model.supports[model.frames[frame_id].parentJoint][1:], dtype=int) - 1] = 1.0
+            return np.repeat(mask, 6)
+
+        # Every frame's regressor is one matrix G (per-joint blocks Ad(oMi[parent] jointPlacement),
+        # WORLD) masked by the frame's support; a closure sees the signed mask support(b) - support(a).
+        self._closure_frames = [(spec.frame_a_id, spec.frame_b_id, len(spec.rows)) for spec in mechanism.closures]
+        self._row_masks = np.vstack([np.tile(support(fb) - support(fa), (count, 1))
+                                     for fa, fb, count in self._closure_frames])
+        self._platform = mechanism.platform_frame_id
+        self._platform_mask = support(self._platform)
+        # A few frames whose supports cover every joint: their regressors fill G.
+        needed = set(np.flatnonzero(np.any(self._row_masks != 0, axis=0) | (self._platform_mask != 0)) // 6)
+        self._cover: list[tuple[int, np.ndarray]] = []
+        for frame_id in sorted({f for fa, fb, _ in self._closure_frames for f in (fa, fb)},
+                               key=lambda f: -int(support(f).sum())):
+            new_joints = needed & set(np.flatnonzero(support(frame_id))[::6] // 6)
+            if new_joints:
+                self._cover.append((frame_id, np.concatenate([np.arange(6 * j, 6 * j + 6) for j in sorted(new_joints)])))
+                needed -= new_joints
+
+    def deltas(self, vector: np.ndarray) -> dict[Placement, np.ndarray]:
+        """{placement: dt} for a full parameter vector (placements with a zero error omitted)."""
+        blocks = np.asarray(vector, dtype=float).reshape(-1, 6)
+        return {p: b for p, b in zip(self.placements, blocks) if np.any(b)}
+
+    def perturbed(self, model: pin.Model, vector: np.ndarray) -> pin.Model:
+        """A copy of `model` with the parameter vector applied (eq. 33)."""
+        return perturb(model, self.deltas(vector))
+
+    def _joint_twist_matrix(self, model: pin.Model, data: pin.Data) -> np.ndarray:
+        """G (6 x 6(njoints-1)): spatial twist (WORLD) per unit joint-placement error (eq. 17)."""
+        G = np.zeros((6, 6 * (model.njoints - 1)))
+        for frame_id, columns in self._cover:
+            G[:, columns] = pin.computeFrameKinematicRegressor(model, data, frame_id, pin.WORLD)[:, columns]
+        return G
+
+    def platform_sensitivity(self, solver: ClosedLoopSolver, q: np.ndarray,
+                             columns: np.ndarray | None = None) -> tuple[pin.SE3, np.ndarray, np.ndarray]:
+        """Platform pose at an assembled q, d xi_P / dp (6 x P, spatial twist in WORLD) and
+        dq_passive / dp (n_passive x P), for the parameter `columns` (default all).
+
+        Sliders held fixed; the passive joints move with the parameters through the closures.
+        """
+        model, data = solver.model, solver.data
+        _, jac_q, operator = solver.closure_sensitivity(q)
+        G = self._joint_twist_matrix(model, data)
+        dr_dp = np.zeros((solver.n_rows, self.n_parameters))
+        dr_dp[:, self._joint_columns[self._joint_targets]] = ((operator @ G) * self._row_masks)[:, self._joint_targets]
+        row = 0
+        for fa, fb, count in self._closure_frames:
+            for frame_id, sign in ((fb, 1.0), (fa, -1.0)):
+                own = self._frame_block.get(frame_id)
+                if own is not None:
+                    dr_dp[row:row + count, own:own + 6] += sign * (operator[row:row + count] @ data.oMf[frame_id].action)
+            row += count
+        xi = np.zeros((6, self.n_parameters))
+        xi[:, self._joint_columns[self._joint_targets]] = (G * self._platform_mask)[:, self._joint_targets]
+        own = self._frame_block.get(self._platform)
+        if own is not None:
+            xi[:, own:own + 6] = data.oMf[self._platform].action
+        if columns is not None:
+            dr_dp, xi = dr_dp[:, columns], xi[:, columns]
+        passive = solver.passive
+        lu, piv, _ = lapack.dgetrf(jac_q[:, passive])
+        dq_dp = -lapack.dgetrs(lu, piv, dr_dp)[0]
+        J_platform = pin.getFrameJacobian(model, data, self._platform, pin.WORLD)
+        return pin.SE3(data.oMf[self._platform]), xi + J_platform[:, passive] @ dq_dp, dq_dp
+
+
+def _residual_rows(model_pose: pin.SE3, measured: pin.SE3, position_only: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Residual e = [p_model - p_meas; log3(R_meas^T R_model)] and de/dxi (xi spatial, WORLD)."""
+    p = model_pose.translation
+    position_map = np.hstack((np.eye(3), -pin.skew(p)))  # dp = v + w x p
+    position_error = p - measured.translation
+    if position_only:
+        return position_error, position_map
+    relative = measured.rotation.T @ model_pose.rotation
+    rotation_map = np.hstack((np.zeros((3, 3)), pin.Jlog3(relative) @ model_pose.rotation.T))
+    return np.concatenate((position_error, pin.log3(relative))), np.vstack((position_map, rotation_map))
+
+
+@dataclass(eq=False)
+class _State:
+    """An LM iterate: a model, the assembled configuration of every measured pose on it, and
+    (once its Jacobian is known) dq_passive/d(base parameters) per pose, used to predict the
+    configurations of the next trial model."""
+
+    model: pin.Model | None
+    configurations: tuple[np.ndarray, ...]
+    tangents: tuple[np.ndarray, ...] | None = None
+    whitened: tuple[np.ndarray, np.ndarray] | None = None
+
+
+class _ClosedLoopProblem:
+    """Whitened pose residuals over the base parameters (the LeastSquaresProblem protocol)."""
+
+    def __init__(self, error_model: ClosedLoopErrorModel, measurements: PoseMeasurements, noise: TrackerNoise,
+                 columns: np.ndarray) -> None:
+        self.error_model = error_model
+        self.measurements = measurements
+        self.columns = columns
+        rows = measurements.rows_per_pose
+        weights = np.r_[np.full(3, 1 / noise.position), np.full(3, 1 / noise.rotation)][:rows]
+        self.weights = np.tile(weights, len(measurements))
+
+    def assemble(self, model: pin.Model, start: tuple[np.ndarray, ...]) -> _State:
+        solver = ClosedLoopSolver(self.error_model.mechanism.with_model(model))
+        configurations = tuple(solver.forward(a, q_init=q0).q for a, q0 in zip(self.measurements.actuators, start))
+        return _State(model, configurations)
+
+    def evaluate(self, state: _State, columns: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+        """Unwhitened residual (6N or 3N), its Jacobian over `columns`, and dq_passive/dp per pose."""
+        m = self.measurements
+        rows = m.rows_per_pose
+        solver = ClosedLoopSolver(self.error_model.mechanism.with_model(state.model))
+        residual = np.empty(rows * len(m))
+        jacobian = np.empty((rows * len(m), len(columns)))
+        tangents = []
+        for i, (q, measured) in enumerate(zip(state.configurations, m.poses)):
+            pose, dxi, dq_dp = self.error_model.platform_sensitivity(solver, q, columns)
+            e, de = _residual_rows(pose, measured, m.position_only)
+            residual[rows * i:rows * (i + 1)] = e
+            jacobian[rows * i:rows * (i + 1)] = de @ dxi
+            tangents.append(dq_dp)
+        return residual, jacobian, tuple(tangents)
+
+    def residual_and_jacobian(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
+        if state.model is None:  # a trial step that did not assemble: reject it
+            n = len(self.weights)
+            return np.full(n, np.inf), np.zeros((n, len(self.columns)))
+        if state.whitened is None:
+            residual, jacobian, state.tangents = self.evaluate(state, self.columns)
+            state.whitened = (residual * self.weights, jacobian * self.weights[:, None])
+        return state.whitened
+
+    def retract(self, state: _State, step: np.ndarray) -> _State:
+        vector = np.zeros(self.error_model.n_parameters)
+        vector[self.columns] = step
+        model = self.error_model.perturbed(state.model, vector)
+        start = state.configurations
+        if state.tangents is not None:
+            # First-order prediction of the new assembly: q_passive + dq_passive/dp step.
+            passive = self.error_model.mechanism.passive_ids
+            start = tuple(_shifted(q, passive, t @ step) for q, t in zip(start, state.tangents))
+        try:
+            return self.assemble(model, start)
+        except KinematicsError:
+            return _State(None, state.configurations)
+
+
+def _shifted(q: np.ndarray, indices: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    out = q.copy()
+    out[indices] += delta
+    return out
+
+
+@dataclass(frozen=True)
+class ClosedLoopCalibration:
+    """Result of `calibrate_closed_loop`.
+
+    mechanism: the calibrated machine (nominal closures on the identified tree model, home
+    re-assembled); parameters: identified error per parameter name, relative to the starting model
+    (zero for non-identifiable ones); std: their standard deviations from sigma^2 (J^T W J)^-1 over
+    the base parameters (zero elsewhere); base: the identifiable set; rms_before/rms_after:
+    position [m] and orientation [rad] RMS of the measurement residual (orientation nan when
+    position-only); lm: the solver's record.
+    """
+
+    mechanism: Mechanism
+    error_model: ClosedLoopErrorModel
+    parameters: dict[str, float]
+    std: dict[str, float]
+    base: BaseParameters
+    rms_before: tuple[float, float]
+    rms_after: tuple[float, float]
+    covariance: np.ndarray = field(repr=False)
+    lm: LMResult = field(repr=False)
+
+
+def _rms(residual: np.ndarray, rows: int) -> tuple[float, float]:
+    per_pose = residual.reshape(-1, rows)
+    position = float(np.sqrt(np.mean(np.sum(per_pose[:, :3] ** 2, axis=1))))
+    rotation = float(np.sqrt(np.mean(np.sum(per_pose[:, 3:] ** 2, axis=1)))) if rows == 6 else float("nan")
+    return position, rotation
+
+
+@on_one_blas_thread
+def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, noise: TrackerNoise = TrackerNoise(),
+                          *, rank_tolerance: float = 1e-8, max_iterations: int = 60,
+                          error_model: ClosedLoopErrorModel | None = None) -> ClosedLoopCalibration:
+    """Identify the placement errors of every joint and closure/platform frame (module docstring).
+
+    Base parameters are selected once, at the starting model, by column-pivoted QR of the whitened
+    Jacobian (relative tolerance `rank_tolerance`); re-selecting during the iterations oscillates.
+    Raises IdentificationError when there are fewer measurement rows than base parameters, when a
+    measured pose cannot be assembled on the starting model, or when LM fails.
+    """
+    error_model = error_model or ClosedLoopErrorModel(mechanism)
+    everything = np.arange(error_model.n_parameters)
+    problem = _ClosedLoopProblem(error_model, measurements, noise, everything)
+    try:
+        state = problem.assemble(mechanism.model, (mechanism.home,) * len(measurements))
+    except KinematicsError as exc:
+        raise IdentificationError(f"a measured pose does not assemble on the starting model: {exc}") from None
+    residual, jacobian, _ = problem.evaluate(state, everything)
+    whitened = jacobian * problem.weights[:, None]
+    base = select_base_parameters(whitened, error_model.names, rel_tol=rank_tolerance)
+    if len(residual) < base.rank:
+        raise IdentificationError(f"{len(measurements)} poses give {len(residual)} residual rows for "
+                                  f"{base.rank} identifiable parameters: add poses")
+    problem.columns = np.array(base.indices)
+    result = levenberg_marquardt(problem, state, max_iterations=max_iterations)
+    if result.state.model is None:
+        raise IdentificationError("calibration ended on a model that does not assemble")
+    final_residual, final_jacobian = problem.residual_and_jacobian(result.state)
+    rows = measurements.rows_per_pose
+    # Covariance of the base parameters from the noise model: (J^T W J)^-1 with whitened J.
+    covariance = np.linalg.pinv(final_jacobian.T @ final_jacobian)
+    std = np.zeros(error_model.n_parameters)
+    std[problem.columns] = np.sqrt(np.diag(covariance))
+    identified = _accumulated_parameters(error_model, mechanism.model, result.state.model)
+    calibrated = rehomed(mechanism.with_model(result.state.model))
+    return ClosedLoopCalibration(
+        mechanism=calibrated,
+        error_model=error_model,
+        parameters=dict(zip(error_model.names, identified)),
+        std=dict(zip(error_model.names, std)),
+        base=base,
+        rms_before=_rms(residual, rows),
+        rms_after=_rms(final_residual / problem.weights, rows),
+        covariance=covariance,
+        lm=result,
+    )
+
+
+def _accumulated_parameters(error_model: ClosedLoopErrorModel, start: pin.Model, end: pin.Model) -> np.ndarray:
+    """dt per placement with end = start * exp6(dt): log6(start^-1 end), placement by placement."""
+    from .poe import placement_of
+
+    blocks = [pin.log6(placement_of(start, p).actInv(placement_of(end, p))).vector for p in error_model.placements]
+    return np.concatenate(blocks)
+
+
+@dataclass(frozen=True)
+class PoseErrors:
+    """Per-pose platform errors between two machines at the same slider values:
+    position [m] (norm) and orientation [rad] (angle of R_a^T R_b)."""
+
+    position: np.ndarray
+    rotation: np.ndarray
+
+    @property
+    def position_mean(self) -> float:
+        return float(np.mean(self.position))
+
+    @property
+    def rotation_mean(self) -> float:
+        return float(np.mean(self.rotation))
+
+
+@on_one_blas_thread
+def pose_errors(machine_a: Mechanism, machine_b: Mechanism, actuators: np.ndarray) -> PoseErrors:
+    """Platform pose differences of two machines driven with the same sliders (rows of actuators)."""
+    solver_a, solver_b = ClosedLoopSolver(machine_a), ClosedLoopSolver(machine_b)
+    position, rotation = [], []
+    for sliders in np.asarray(actuators, dtype=float):
+        pa, pb = solver_a.forward(sliders).pose, solver_b.forward(sliders).pose
+        position.append(np.linalg.norm(pa.translation - pb.translation))
+        rotation.append(np.linalg.norm(pin.log3(pa.rotation.T @ pb.rotation)))
+    return PoseErrors(np.array(position), np.array(rotation))
+
+
+@on_one_blas_thread
+def predicted_pose_std(calibration: ClosedLoopCalibration, actuators: np.ndarray) -> PoseErrors:
+    """Predicted standard deviation of the calibrated platform pose at the given sliders.
+
+    Propagates the base-parameter covariance sigma^2 (J^T W J)^-1 through the pose sensitivity:
+    position [m] = sqrt(trace of the 3x3 position block), orientation [rad] likewise.
+    """
+    mechanism = calibration.mechanism
+    error_model = ClosedLoopErrorModel(mechanism, calibration.error_model.placements)
+    solver = ClosedLoopSolver(mechanism)
+    columns = np.array(calibration.base.indices)
+    position, rotation = [], []
+    for sliders in np.asarray(actuators, dtype=float):
+        q = solver.forward(sliders).q
+        pose, dxi, _ = error_model.platform_sensitivity(solver, q, columns)
+        # Position of P and local orientation, per unit base parameter.
+        point = np.hstack((np.eye(3), -pin.skew(pose.translation))) @ dxi
+        angular = pose.rotation.T @ dxi[3:]
+        position.append(math.sqrt(np.trace(point @ calibration.covariance @ point.T)))
+        rotation.append(math.sqrt(np.trace(angular @ calibration.covariance @ angular.T)))
+    return PoseErrors(np.array(position), np.array(rotation))
