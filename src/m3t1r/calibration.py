@@ -325,9 +325,11 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     residual, jacobian, _ = problem.evaluate(state, everything)
     whitened = jacobian * problem.weights[:, None]
     base = select_base_parameters(whitened, error_model.names, rel_tol=rank_tolerance)
-    if len(residual) < base.rank:
-        raise IdentificationError(f"{len(measurements)} poses give {len(residual)} residual rows for "
-                                  f"{base.rank} identifiable parameters: add poses")
+    identifiable = _structural_rank(error_model, measurements.position_only, noise, rank_tolerance)
+    if base.rank < identifiable:
+        raise IdentificationError(
+            f"{len(measurements)} poses give {len(residual)} residual rows for {identifiable} identifiable "
+            f"parameters and identify only {base.rank}: add poses spread over the workspace")
     problem.columns = np.array(base.indices)
     result = levenberg_marquardt(problem, state, max_iterations=max_iterations)
     if result.state.model is None:
@@ -351,6 +353,26 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
         covariance=covariance,
         lm=result,
     )
+
+
+_REFERENCE_POSES = 40  # a well-spread pose set on which the model's identifiable count is measured
+
+
+def _structural_rank(error_model: ClosedLoopErrorModel, position_only: bool, noise: TrackerNoise,
+                     rank_tolerance: float) -> int:
+    """Number of identifiable parameters of the model itself, independent of the user's poses:
+    the base-parameter count on a fixed, seeded set of poses spread over the workspace box."""
+    from .simulation import measure, workspace_actuators
+
+    mechanism = error_model.mechanism
+    actuators = workspace_actuators(mechanism, _REFERENCE_POSES, np.random.default_rng(2020))
+    reference = measure(mechanism, actuators, position_only=position_only)
+    problem = _ClosedLoopProblem(error_model, reference, noise, np.arange(error_model.n_parameters))
+    state = problem.assemble(mechanism.model, (mechanism.home,) * len(reference))
+    _, jacobian, _ = problem.evaluate(state, problem.columns)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return select_base_parameters(jacobian * problem.weights[:, None], error_model.names, rank_tolerance).rank
 
 
 def _accumulated_parameters(error_model: ClosedLoopErrorModel, start: pin.Model, end: pin.Model) -> np.ndarray:

@@ -1,0 +1,318 @@
+"""The `m3t1r` command line: kinematics, simulation, calibration, compensation, viewing, demo.
+
+Every verb reads validated files, computes, and only then writes its outputs atomically; it never
+writes onto an input or the nominal model. Errors print `m3t1r: error: ...` naming the file, line,
+column or joint at fault, and exit with status 2 (1 when some rows failed and nothing was written).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from . import __version__
+from ._threads import single_blas_thread
+from .errors import InvalidInputError, KinematicsError, M3t1rError
+
+EXIT_ERROR, EXIT_ROWS_FAILED = 2, 1
+
+
+class RowFailures(M3t1rError):
+    """Some input rows could not be processed; nothing was written."""
+
+    def __init__(self, path: Path, failures: list[tuple[int, str]]) -> None:
+        self.failures = failures
+        lines = "\n".join(f"  {path}, line {line}: {reason}" for line, reason in failures)
+        super().__init__(f"{len(failures)} row(s) failed, nothing written:\n{lines}")
+
+
+def _mechanism(urdf: str | None, closures: str | None):
+    from .description import Mechanism
+
+    if urdf is not None and closures is None:
+        sibling = Path(urdf).with_suffix("").with_suffix(".closures.yaml")
+        closures = str(sibling) if sibling.is_file() else None
+        if closures is None:
+            raise InvalidInputError(f"--closures is required with --model {urdf} (no {sibling.name} beside it)")
+    return Mechanism.load(urdf, closures)
+
+
+def _closures_beside(urdf_out: Path) -> Path:
+    """calibrated.urdf -> calibrated.closures.yaml: a machine is always a pair of files."""
+    return urdf_out.with_suffix("").with_suffix(".closures.yaml")
+
+
+def _provenance(args: argparse.Namespace) -> list[str]:
+    return [f"written by m3t1r {__version__} on {_dt.datetime.now().isoformat(timespec='seconds')}",
+            "command: m3t1r " + " ".join(sys.argv[1:]) if sys.argv[1:] else "command: m3t1r (API)"]
+
+
+# ------------------------------------------------------------------------------------------------
+def cmd_fk(args: argparse.Namespace) -> None:
+    from .datasets import read_actuators, write_poses
+    from .kinematics import ClosedLoopSolver
+
+    mechanism = _mechanism(args.model, args.closures)
+    actuators, lines = read_actuators(args.actuators, mechanism)
+    solver = ClosedLoopSolver(mechanism)
+    poses, failures = [], []
+    for sliders, line in zip(actuators, lines):
+        try:
+            poses.append(solver.forward(sliders).pose)
+        except KinematicsError as exc:
+            failures.append((int(line), str(exc)))
+            solver.reset()
+    if failures:
+        raise RowFailures(Path(args.actuators), failures)
+    write_poses(args.output, poses, _provenance(args) + ["platform frame pose in the base frame: m, unit quaternion"],
+                protect=(args.actuators, mechanism.urdf_path, mechanism.closures_path))
+    print(f"wrote {len(poses)} poses to {args.output}")
+
+
+def cmd_ik(args: argparse.Namespace) -> None:
+    from .datasets import read_targets, write_actuators
+    from .kinematics import ClosedLoopSolver
+
+    mechanism = _mechanism(args.model, args.closures)
+    targets, lines = read_targets(args.poses)
+    solver = ClosedLoopSolver(mechanism)
+    rows, failures, max_tilt = [], [], 0.0
+    for target, line in zip(targets, lines):
+        try:
+            result = solver.inverse(target)
+            rows.append(result.actuators)
+            max_tilt = max(max_tilt, *map(abs, result.tilt))
+        except (KinematicsError, InvalidInputError) as exc:
+            failures.append((int(line), str(exc)))
+            solver.reset()
+    if failures:
+        raise RowFailures(Path(args.poses), failures)
+    write_actuators(args.output, mechanism, np.array(rows), _provenance(args) + ["slider positions in m"],
+                    protect=(args.poses, mechanism.urdf_path, mechanism.closures_path))
+    print(f"wrote {len(rows)} slider sets to {args.output}; largest uncommandable tilt (roll/pitch) {max_tilt:.3g} rad")
+
+
+def cmd_simulate(args: argparse.Namespace) -> None:
+    from .calibration import TrackerNoise
+    from .datasets import write_measurements
+    from .simulation import simulate_study
+
+    nominal = _mechanism(args.model, args.closures)
+    noise = None if args.noise_free else TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
+    study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only)
+    protect = (nominal.urdf_path, nominal.closures_path)
+    comments = _provenance(args) + [
+        f"truth: {args.sigma_pos:g} m / {args.sigma_rot:g} rad errors on every joint placement and closure/platform frame, seed {args.seed}",
+        "noise: none" if noise is None else f"noise: tracker {noise.position:g} m / {noise.rotation:g} rad, sliders {noise.actuator:g} m",
+    ]
+    write_measurements(args.output, nominal, study.measurements, comments=comments, protect=protect)
+    print(f"wrote {args.n} {'position-only ' if args.position_only else ''}measurements to {args.output}")
+    if args.truth_urdf:
+        truth_urdf = Path(args.truth_urdf)
+        study.truth.save(truth_urdf, _closures_beside(truth_urdf), protect=(args.output,))
+        print(f"wrote the truth machine to {truth_urdf} and {_closures_beside(truth_urdf)}")
+
+
+def _calibration_report(calibration, measurement_file, mechanism, noise) -> dict:
+    base = set(calibration.base.names)
+    return {
+        "tool": f"m3t1r {__version__}",
+        "created": _dt.datetime.now().isoformat(timespec="seconds"),
+        "input": {"path": str(measurement_file.path), "sha256": measurement_file.sha256,
+                  "poses": len(measurement_file.measurements),
+                  "position_only": measurement_file.measurements.position_only},
+        "nominal_model": {"urdf": str(mechanism.urdf_path), "closures": str(mechanism.closures_path)},
+        "noise_model": {"position_m": noise.position, "rotation_rad": noise.rotation, "actuator_m": noise.actuator},
+        "identifiable": {"count": calibration.base.rank, "of": len(calibration.parameters),
+                         "condition_number": calibration.base.condition_number, "names": list(calibration.base.names)},
+        "residual_rms": {
+            "before": {"position_m": calibration.rms_before[0], "rotation_rad": calibration.rms_before[1]},
+            "after": {"position_m": calibration.rms_after[0], "rotation_rad": calibration.rms_after[1]},
+        },
+        "solver": {"iterations": calibration.lm.iterations, "converged": calibration.lm.converged,
+                   "termination": calibration.lm.termination},
+        "parameters": [{"name": name, "value": value, "std": calibration.std[name], "identifiable": name in base}
+                       for name, value in calibration.parameters.items()],
+    }
+
+
+def cmd_calibrate(args: argparse.Namespace) -> None:
+    if args.serial:
+        return _calibrate_serial(args)
+    from .calibration import TrackerNoise, calibrate_closed_loop
+    from .datasets import read_measurements
+    from .io import atomic_write_text, ensure_not_protected
+
+    nominal = _mechanism(args.model, args.closures)
+    output = Path(args.output)
+    protect = (Path(args.measurements), nominal.urdf_path, nominal.closures_path)
+    for path in (output, _closures_beside(output), *(Path(p) for p in (args.report,) if p)):
+        ensure_not_protected(path, protect)  # fail before a long computation
+    data = read_measurements(args.measurements, nominal)
+    noise = TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
+    print(f"calibrating from {len(data.measurements)} poses ...", flush=True)
+    calibration = calibrate_closed_loop(nominal, data.measurements, noise)
+    calibration.mechanism.save(output, _closures_beside(output), protect=protect)
+    before, after = calibration.rms_before, calibration.rms_after
+    print(f"identified {calibration.base.rank} of {len(calibration.parameters)} parameters "
+          f"(condition number {calibration.base.condition_number:.3g}) in {calibration.lm.iterations} iterations")
+    print(f"residual RMS position {before[0]:.3e} -> {after[0]:.3e} m, orientation {before[1]:.3e} -> {after[1]:.3e} rad")
+    print(f"wrote {output} and {_closures_beside(output)}")
+    if args.report:
+        report = _calibration_report(calibration, data, nominal, noise)
+        atomic_write_text(args.report, json.dumps(report, indent=2) + "\n", protect=protect)
+        print(f"wrote {args.report}")
+    if args.plots:
+        from .reporting import write_calibration_plots
+
+        for path in write_calibration_plots(nominal, calibration, data.measurements, Path(args.plots), protect):
+            print(f"wrote {path}")
+
+
+def _calibrate_serial(args: argparse.Namespace) -> None:
+    import pinocchio as pin
+
+    from .io import atomic_write_text, read_table, poses_from_table
+    from .poe import SerialChain
+    from .serial import MeasurementNoise, calibrate_serial, example_robot_data_dir, load_example_robot
+
+    if not args.tool:
+        raise InvalidInputError("--serial needs --tool FRAME (the measured frame)")
+    source = Path(args.serial)
+    if source.suffix == ".urdf":
+        if not source.is_file():
+            raise InvalidInputError(f"{source}: file not found")
+        model = pin.buildModelFromUrdf(str(source))
+        urdf = source
+    else:
+        model = load_example_robot(args.serial)
+        urdf = None
+    chain = SerialChain.from_model(model, args.tool, args.base)
+    names = tuple(model.names[j] for j in chain.joint_ids)
+    table = read_table(args.measurements, required=names + ("x", "y", "z"), optional_groups=(("qx", "qy", "qz", "qw"),),
+                       reject_duplicate_rows=True)
+    position_only = not table.has_column("qw")
+    poses = ([pin.SE3(np.eye(3), row) for row in np.column_stack([table.column(c) for c in "xyz"])]
+             if position_only else poses_from_table(table))
+    readings = np.column_stack([table.column(n) for n in names])
+    noise = MeasurementNoise(args.noise_pos, args.noise_rot, 0.0)
+    result = calibrate_serial(model, chain, readings, poses, position_only=position_only, noise=noise)
+    print(f"identified {result.base.rank} parameters of chain {names[0]} .. {args.tool}; "
+          f"residual RMS {result.residual_before} -> {result.residual_after}")
+    if urdf is not None:
+        from .urdf_io import write_calibrated_urdf
+
+        write_calibrated_urdf(urdf, result.model, Path(args.output), protect=(Path(args.measurements),))
+        print(f"wrote {args.output}")
+    else:
+        print(f"{args.serial} is an example-robot-data robot: give its URDF path to write a calibrated URDF")
+    if args.report:
+        report = {"tool": f"m3t1r {__version__}", "robot": str(args.serial), "chain": list(names),
+                  "identifiable": list(result.base.names), "iterations": result.iterations,
+                  "parameters": {p.name: list(map(float, d)) for p, d in result.deltas.items()}}
+        atomic_write_text(args.report, json.dumps(report, indent=2) + "\n", protect=(Path(args.measurements),))
+
+
+def cmd_evaluate(args: argparse.Namespace) -> None:
+    from .calibration import pose_errors
+    from .simulation import workspace_actuators
+
+    nominal = _mechanism(args.nominal, args.nominal_closures)
+    truth = _mechanism(args.truth, None)
+    calibrated = _mechanism(args.calibrated, None)
+    sliders = workspace_actuators(nominal, args.n, np.random.default_rng(args.seed))
+    print(f"held-out platform error over {args.n} slider sets in the workspace (seed {args.seed}):")
+    print(f"{'model':<12}{'position mean':>16}{'position max':>16}{'orientation mean':>19}{'orientation max':>18}")
+    for name, machine in (("nominal", nominal), ("calibrated", calibrated)):
+        e = pose_errors(machine, truth, sliders)
+        print(f"{name:<12}{e.position_mean:>14.3e} m{e.position.max():>14.3e} m"
+              f"{e.rotation_mean:>15.3e} rad{e.rotation.max():>14.3e} rad")
+
+
+# ------------------------------------------------------------------------------------------------
+def _add_model_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", metavar="URDF", help="machine URDF (default: the packaged nominal model)")
+    parser.add_argument("--closures", metavar="YAML", help="its closures file (default: URDF stem + .closures.yaml)")
+
+
+def _add_noise_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--noise-pos", type=float, default=10e-6, metavar="M", help="tracker position noise [m]")
+    parser.add_argument("--noise-rot", type=float, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
+    parser.add_argument("--noise-act", type=float, default=1e-6, metavar="M", help="slider reading noise [m]")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="m3t1r", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"m3t1r {__version__}")
+    verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
+
+    p = verbs.add_parser("fk", help="forward kinematics: slider sets -> platform poses")
+    p.add_argument("actuators", help="CSV with one column per actuated joint [m]")
+    p.add_argument("-o", "--output", required=True, help="poses CSV (x,y,z,qx,qy,qz,qw)")
+    _add_model_options(p)
+    p.set_defaults(run=cmd_fk)
+
+    p = verbs.add_parser("ik", help="inverse kinematics: platform poses -> slider sets (position + yaw)")
+    p.add_argument("poses", help="CSV with x,y,z,theta or x,y,z,qx,qy,qz,qw")
+    p.add_argument("-o", "--output", required=True, help="slider CSV (columns named by actuated joint)")
+    _add_model_options(p)
+    p.set_defaults(run=cmd_ik)
+
+    p = verbs.add_parser("simulate", help="simulate an actual machine and its calibration measurements")
+    p.add_argument("-n", type=int, default=20, help="number of poses (default 20)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sigma-pos", type=float, default=1e-3, metavar="M", help="placement error std, translation [m]")
+    p.add_argument("--sigma-rot", type=float, default=1e-3, metavar="RAD", help="placement error std, rotation [rad]")
+    _add_noise_options(p)
+    p.add_argument("--noise-free", action="store_true", help="exact measurements")
+    p.add_argument("--position-only", action="store_true", help="a tracker without orientation")
+    p.add_argument("-o", "--output", required=True, help="measurement CSV")
+    p.add_argument("--truth-urdf", metavar="URDF", help="also write the actual machine (and its closures file)")
+    _add_model_options(p)
+    p.set_defaults(run=cmd_simulate)
+
+    p = verbs.add_parser("calibrate", help="identify the geometry from measurements; write a calibrated URDF")
+    p.add_argument("measurements", help="measurement CSV (sliders by joint name, x,y,z[,qx,qy,qz,qw])")
+    p.add_argument("-o", "--output", required=True, help="calibrated URDF (a .closures.yaml is written beside it)")
+    p.add_argument("--report", metavar="JSON", help="identified parameters, std, rank, RMS, input sha256")
+    p.add_argument("--plots", metavar="DIR", help="write error plots (PNG) into DIR")
+    p.add_argument("--serial", metavar="ROBOT_OR_URDF", help="calibrate a serial chain instead (ur5, ur10, panda or a URDF)")
+    p.add_argument("--base", metavar="FRAME", help="with --serial: base frame (default the model root)")
+    p.add_argument("--tool", metavar="FRAME", help="with --serial: the measured tool frame")
+    _add_noise_options(p)
+    _add_model_options(p)
+    p.set_defaults(run=cmd_calibrate)
+
+    p = verbs.add_parser("evaluate", help="compare nominal and calibrated machines against a (simulated) truth")
+    p.add_argument("--truth", required=True, metavar="URDF")
+    p.add_argument("--calibrated", required=True, metavar="URDF")
+    p.add_argument("--nominal", metavar="URDF")
+    p.add_argument("--nominal-closures", metavar="YAML")
+    p.add_argument("-n", type=int, default=200)
+    p.add_argument("--seed", type=int, default=1)
+    p.set_defaults(run=cmd_evaluate)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        with single_blas_thread():
+            args.run(args)
+    except RowFailures as exc:
+        print(f"m3t1r: error: {exc}", file=sys.stderr)
+        return EXIT_ROWS_FAILED
+    except (M3t1rError, OSError) as exc:
+        print(f"m3t1r: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

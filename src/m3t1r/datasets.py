@@ -1,0 +1,153 @@
+"""The machine's data files: slider sets, platform poses, calibration measurements, targets.
+
+All are CSV tables read by `m3t1r.io.read_table` (header row, `#` comments, SI units), with
+columns named after the machine: sliders by their actuated joint names, passive readings by their
+joint names, platform poses as x, y, z [m] and a unit quaternion qx, qy, qz, qw (platform frame in
+the base frame). Every check names the file, line and column at fault; models/README.md documents
+the formats.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+import pinocchio as pin
+
+from .calibration import PoseMeasurements
+from .description import Mechanism
+from .errors import DataFileError
+from .io import POSE_COLUMNS, StrPath, Table, pose_rows, poses_from_table, read_table, write_table
+
+__all__ = [
+    "TARGET_COLUMNS", "read_actuators", "write_actuators", "read_poses", "write_poses", "read_targets",
+    "MeasurementFile", "read_measurements", "write_measurements", "sha256_of",
+]
+
+TARGET_COLUMNS = ("x", "y", "z", "theta")  # platform position [m] and yaw [rad], the 4 commandable DoF
+_QUATERNION = ("qx", "qy", "qz", "qw")
+
+
+def sha256_of(path: StrPath) -> str:
+    """Hex digest of a file's bytes (provenance in reports)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _check_joint_columns(table: Table, mechanism: Mechanism, names: Iterable[str]) -> None:
+    for name in names:
+        if not mechanism.model.existJointName(name):
+            raise DataFileError(table.path, f"column '{name}' names no joint of {mechanism.urdf_path.name}",
+                                column=name)
+
+
+def _check_limits(table: Table, mechanism: Mechanism, names: Sequence[str]) -> None:
+    lower, upper = mechanism.joint_limits(tuple(names))
+    for k, name in enumerate(names):
+        values = table.column(name)
+        outside = np.flatnonzero((values < lower[k]) | (values > upper[k]))
+        if outside.size:
+            row = int(outside[0])
+            raise table.error(row, f"{values[row]:.6g} is beyond the joint limit [{lower[k]:.6g}, {upper[k]:.6g}] "
+                                   "(SI units: m for sliders, rad for hinges)", column=name)
+
+
+def read_actuators(path: StrPath, mechanism: Mechanism) -> tuple[np.ndarray, np.ndarray]:
+    """Slider sets (n x 4) [m] in `actuated_joints` order, and each row's line number."""
+    names = mechanism.actuated_joints
+    table = read_table(path, required=names)
+    _check_limits(table, mechanism, names)
+    return np.column_stack([table.column(n) for n in names]), table.line_numbers
+
+
+def write_actuators(path: StrPath, mechanism: Mechanism, actuators: np.ndarray, comments: Sequence[str] = (),
+                    protect: Iterable[StrPath] = ()) -> None:
+    write_table(path, mechanism.actuated_joints, np.asarray(actuators, dtype=float), comments, protect)
+
+
+def read_poses(path: StrPath) -> tuple[list[pin.SE3], np.ndarray]:
+    """Platform poses (x, y, z, qx, qy, qz, qw per row) and line numbers; quaternions checked unit."""
+    table = read_table(path, required=POSE_COLUMNS)
+    return poses_from_table(table), table.line_numbers
+
+
+def write_poses(path: StrPath, poses: Sequence[pin.SE3], comments: Sequence[str] = (),
+                protect: Iterable[StrPath] = ()) -> None:
+    write_table(path, POSE_COLUMNS, pose_rows(poses), comments, protect)
+
+
+def read_targets(path: StrPath) -> tuple[list[pin.SE3] | np.ndarray, np.ndarray]:
+    """Commanded platform poses: either x, y, z, theta (rows of a (n x 4) array: position [m] and
+    yaw [rad]) or x, y, z, qx, qy, qz, qw (a list of SE3). Returns them and the line numbers."""
+    table = read_table(path, required=("x", "y", "z"), optional=("theta",), optional_groups=(_QUATERNION,))
+    has_theta, has_quaternion = table.has_column("theta"), table.has_column("qw")
+    if has_theta == has_quaternion:
+        raise DataFileError(table.path, "a target file needs either a 'theta' column or qx, qy, qz, qw, not "
+                                        + ("both" if has_theta else "neither"))
+    if has_theta:
+        return np.column_stack([table.column(n) for n in TARGET_COLUMNS]), table.line_numbers
+    return poses_from_table(table), table.line_numbers
+
+
+@dataclass(frozen=True)
+class MeasurementFile:
+    """A calibration measurement file, read and checked against a mechanism.
+
+    measurements: slider readings and measured platform poses (position-only when the file has no
+    quaternion columns); passive: optional passive-joint readings (n x k) [rad or m] named by
+    `passive_joints` (paper section 4: encoders on passive joints); lines: file line per pose.
+    """
+
+    path: Path
+    measurements: PoseMeasurements
+    passive_joints: tuple[str, ...]
+    passive: np.ndarray
+    lines: np.ndarray
+    sha256: str
+
+
+def read_measurements(path: StrPath, mechanism: Mechanism) -> MeasurementFile:
+    """Read a measurement CSV: actuator columns (named by the actuated joints), optional passive
+    joint columns (named by joint), x, y, z and optionally qx, qy, qz, qw.
+
+    Raises DataFileError naming file, line and column for: missing/extra/unknown columns (a file
+    of another model), NaN, duplicate rows, non-unit quaternions, slider values beyond limits.
+    """
+    source = Path(path)
+    model = mechanism.model
+    passive_names = tuple(model.names[j] for j in range(1, model.njoints) if model.names[j] not in mechanism.actuated_joints)
+    table = read_table(source, required=mechanism.actuated_joints + ("x", "y", "z"), optional=passive_names,
+                       optional_groups=(_QUATERNION,), reject_duplicate_rows=True)
+    _check_joint_columns(table, mechanism, mechanism.actuated_joints)
+    _check_limits(table, mechanism, mechanism.actuated_joints)
+    position_only = not table.has_column("qw")
+    if position_only:
+        poses = [pin.SE3(np.eye(3), np.array(row)) for row in
+                 np.column_stack([table.column(n) for n in ("x", "y", "z")])]
+    else:
+        poses = poses_from_table(table)
+    actuators = np.column_stack([table.column(n) for n in mechanism.actuated_joints])
+    present = tuple(n for n in passive_names if table.has_column(n))
+    passive = np.column_stack([table.column(n) for n in present]) if present else np.zeros((table.n_rows, 0))
+    return MeasurementFile(source, PoseMeasurements(actuators, tuple(poses), position_only), present, passive,
+                           table.line_numbers, sha256_of(source))
+
+
+def write_measurements(path: StrPath, mechanism: Mechanism, measurements: PoseMeasurements,
+                       passive_joints: Sequence[str] = (), passive: np.ndarray | None = None,
+                       comments: Sequence[str] = (), protect: Iterable[StrPath] = ()) -> None:
+    """Write measurements in the format `read_measurements` reads (atomically)."""
+    columns = list(mechanism.actuated_joints) + list(passive_joints)
+    blocks = [measurements.actuators]
+    if passive_joints:
+        blocks.append(np.asarray(passive, dtype=float))
+    rows = pose_rows(measurements.poses)
+    if measurements.position_only:
+        columns += ["x", "y", "z"]
+        blocks.append(rows[:, :3])
+    else:
+        columns += list(POSE_COLUMNS)
+        blocks.append(rows)
+    write_table(path, columns, np.hstack(blocks), comments, protect)
