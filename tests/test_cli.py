@@ -1,0 +1,115 @@
+"""The command line: round trips, row-numbered failures, atomic outputs, protected inputs."""
+
+import json
+
+import numpy as np
+import pytest
+
+import closed_form
+from m3t1r.cli import main
+from m3t1r.description import Mechanism, nominal_model_paths
+from m3t1r.datasets import read_actuators, read_poses
+from m3t1r.design import NOMINAL
+from m3t1r.kinematics import yaw_of
+
+
+def _write(path, text):
+    path.write_text(text)
+    return path
+
+
+def test_help_lists_the_verbs(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = capsys.readouterr().out
+    for verb in ("fk", "ik", "simulate", "calibrate", "evaluate", "compensate", "view", "demo"):
+        assert verb in out
+
+
+def test_ik_then_fk_round_trip(tmp_path):
+    poses = NOMINAL.workspace.sample(np.random.default_rng(0), 8)
+    lines = ["# targets", "x,y,z,theta"] + [",".join(repr(float(v)) for v in row) for row in poses]
+    targets = _write(tmp_path / "targets.csv", "\n".join(lines) + "\n")
+    assert main(["ik", str(targets), "-o", str(tmp_path / "sliders.csv")]) == 0
+    assert main(["fk", str(tmp_path / "sliders.csv"), "-o", str(tmp_path / "poses.csv")]) == 0
+    reached, _ = read_poses(tmp_path / "poses.csv")
+    np.testing.assert_allclose([p.translation for p in reached], poses[:, :3], atol=1e-10)
+    np.testing.assert_allclose([yaw_of(p.rotation) for p in reached], poses[:, 3], atol=1e-10)
+    sliders, _ = read_actuators(tmp_path / "sliders.csv", Mechanism.load())
+    np.testing.assert_allclose(sliders, [closed_form.inverse(p) for p in poses], atol=1e-10)
+
+
+def test_failing_rows_are_reported_by_line_and_nothing_is_written(tmp_path, capsys):
+    targets = _write(tmp_path / "t.csv", "x,y,z,theta\n0.5,0.5,-0.1,0\n3.0,0.5,-0.1,0\n0.5,1.2,-0.1,0\n")
+    output = _write(tmp_path / "out.csv", "precious\n")
+    assert main(["ik", str(targets), "-o", str(output)]) == 1
+    err = capsys.readouterr().err
+    assert "2 row(s) failed" in err and "line 3:" in err and "line 4:" in err and "beyond its limit" in err
+    assert output.read_text() == "precious\n"
+
+
+def test_bad_actuator_file_names_line_and_column(tmp_path, capsys):
+    sliders = _write(tmp_path / "s.csv", "q11,q11_B2,q21,q21_B4\n0,0,0,0\n0,0.9,0,0\n")
+    assert main(["fk", str(sliders), "-o", str(tmp_path / "p.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "line 3" in err and "q11_B2" in err and "beyond the joint limit" in err
+    assert not (tmp_path / "p.csv").exists()
+    other = _write(tmp_path / "o.csv", "shoulder,elbow,q21,q21_B4\n0,0,0,0\n")
+    assert main(["fk", str(other), "-o", str(tmp_path / "p.csv")]) == 2
+    assert "unknown columns" in capsys.readouterr().err
+
+
+def test_simulate_calibrate_evaluate(tmp_path, capsys):
+    meas, truth, cal = tmp_path / "m.csv", tmp_path / "truth.urdf", tmp_path / "cal.urdf"
+    assert main(["simulate", "-n", "50", "--seed", "3", "-o", str(meas), "--truth-urdf", str(truth)]) == 0
+    assert main(["calibrate", str(meas), "-o", str(cal), "--report", str(tmp_path / "r.json")]) == 0
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["identifiable"]["count"] == 56 and len(report["parameters"]) == 204
+    assert report["residual_rms"]["after"]["position_m"] < 3e-5 < report["residual_rms"]["before"]["position_m"]
+    assert len(report["input"]["sha256"]) == 64
+    reloaded = Mechanism.load(cal, tmp_path / "cal.closures.yaml")  # the pair loads and its home closes
+    assert reloaded.model.nq == 20
+    capsys.readouterr()
+    assert main(["evaluate", "--truth", str(truth), "--calibrated", str(cal), "-n", "50"]) == 0
+    out = capsys.readouterr().out
+    calibrated_mean = float(out.split("calibrated")[1].split()[0])
+    nominal_mean = float(out.split("nominal")[1].split()[0])
+    assert calibrated_mean < 3e-5 and nominal_mean > 1e-3
+
+
+def test_calibrate_never_overwrites_its_inputs(tmp_path, capsys):
+    meas = tmp_path / "m.csv"
+    assert main(["simulate", "-n", "12", "-o", str(meas)]) == 0
+    before = meas.read_bytes()
+    nominal_urdf, _ = nominal_model_paths()
+    nominal_bytes = nominal_urdf.read_bytes()
+    assert main(["calibrate", str(meas), "-o", str(meas)]) == 2
+    assert main(["calibrate", str(meas), "-o", str(nominal_urdf)]) == 2
+    assert "refusing to overwrite" in capsys.readouterr().err
+    assert meas.read_bytes() == before and nominal_urdf.read_bytes() == nominal_bytes
+
+
+@pytest.mark.parametrize("mutate,message", [
+    (lambda rows: rows.__setitem__(2, rows[2].replace(rows[2].split(",")[4], "nan", 1)), "is not finite"),
+    (lambda rows: rows.insert(3, rows[2]), "row repeats line"),
+    (lambda rows: rows.__setitem__(2, ",".join(rows[2].split(",")[:-1] + ["0.5"])), "quaternion"),
+    (lambda rows: rows.__setitem__(1, rows[1].replace("q21_B4", "q99")), "q99"),
+])
+def test_bad_measurement_files_write_nothing(tmp_path, capsys, mutate, message):
+    meas = tmp_path / "m.csv"
+    assert main(["simulate", "-n", "12", "-o", str(meas)]) == 0
+    rows = [line for line in meas.read_text().splitlines() if not line.startswith("#")]
+    rows.insert(0, "# edited")
+    mutate(rows)
+    meas.write_text("\n".join(rows) + "\n")
+    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf")]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "c.urdf").exists() and not (tmp_path / "c.closures.yaml").exists()
+
+
+def test_too_few_poses(tmp_path, capsys):
+    meas = tmp_path / "m.csv"
+    assert main(["simulate", "-n", "6", "-o", str(meas)]) == 0
+    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf")]) == 2
+    assert "identify only" in capsys.readouterr().err
+    assert not (tmp_path / "c.urdf").exists()
