@@ -128,6 +128,24 @@ class ClosedLoopErrorModel:
                                      for fa, fb, count in self._closure_frames])
         self._platform = mechanism.platform_frame_id
         self._platform_mask = support(self._platform)
+        # Rows seeing their closure frames' own errors: (rows, frame slot per row, parameter
+        # columns per row, sign) for the frame_b and the frame_a side.
+        self._own_frame_ids = sorted(f for f in self._frame_block)
+        slot_of = {f: k for k, f in enumerate(self._own_frame_ids)}
+        self._own_terms = []
+        for side, sign in ((1, 1.0), (0, -1.0)):
+            rows, slots, columns = [], [], []
+            row = 0
+            for frames_and_count in self._closure_frames:
+                frame_id, count = frames_and_count[side], frames_and_count[2]
+                if frame_id in self._frame_block:
+                    for r in range(row, row + count):
+                        rows.append(r)
+                        slots.append(slot_of[frame_id])
+                        columns.append(np.arange(self._frame_block[frame_id], self._frame_block[frame_id] + 6))
+                row += count
+            if rows:
+                self._own_terms.append((np.array(rows), np.array(slots), np.array(columns), sign))
         # A few frames whose supports cover every joint: their regressors fill G.
         needed = set(np.flatnonzero(np.any(self._row_masks != 0, axis=0) | (self._platform_mask != 0)) // 6)
         self._cover: list[tuple[int, np.ndarray]] = []
@@ -166,18 +184,16 @@ class ClosedLoopErrorModel:
         G = self._joint_twist_matrix(model, data)
         dr_dp = np.zeros((solver.n_rows, self.n_parameters))
         dr_dp[:, self._joint_columns[self._joint_targets]] = ((operator @ G) * self._row_masks)[:, self._joint_targets]
-        row = 0
-        for fa, fb, count in self._closure_frames:
-            for frame_id, sign in ((fb, 1.0), (fa, -1.0)):
-                own = self._frame_block.get(frame_id)
-                if own is not None:
-                    dr_dp[row:row + count, own:own + 6] += sign * (operator[row:row + count] @ data.oMf[frame_id].action)
-            row += count
+        # Own placement errors of the closure frames: row r of a closure sees +Ad(oMb) and -Ad(oMa).
+        frames = data.oMf.tolist()
+        adjoints = np.array([frames[f].action for f in self._own_frame_ids])
+        for rows, slots, blocks, sign in self._own_terms:
+            dr_dp[rows[:, None], blocks] += sign * np.einsum("rk,rkj->rj", operator[rows], adjoints[slots])
         xi = np.zeros((6, self.n_parameters))
         xi[:, self._joint_columns[self._joint_targets]] = (G * self._platform_mask)[:, self._joint_targets]
         own = self._frame_block.get(self._platform)
         if own is not None:
-            xi[:, own:own + 6] = data.oMf[self._platform].action
+            xi[:, own:own + 6] = frames[self._platform].action
         if columns is not None:
             dr_dp, xi = dr_dp[:, columns], xi[:, columns]
         passive = solver.passive
@@ -306,7 +322,7 @@ def _rms(residual: np.ndarray, rows: int) -> tuple[float, float]:
 
 @on_one_blas_thread
 def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, noise: TrackerNoise = TrackerNoise(),
-                          *, rank_tolerance: float = 1e-8, max_iterations: int = 60,
+                          *, rank_tolerance: float = 1e-8, max_iterations: int = 60, cost_tolerance: float = 1e-10,
                           error_model: ClosedLoopErrorModel | None = None) -> ClosedLoopCalibration:
     """Identify the placement errors of every joint and closure/platform frame (module docstring).
 
@@ -331,7 +347,9 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
             f"{len(measurements)} poses give {len(residual)} residual rows for {identifiable} identifiable "
             f"parameters and identify only {base.rank}: add poses spread over the workspace")
     problem.columns = np.array(base.indices)
-    result = levenberg_marquardt(problem, state, max_iterations=max_iterations)
+    # Damping starts low: 1e-3 over-damps the weak directions (about twice the iterations).
+    result = levenberg_marquardt(problem, state, max_iterations=max_iterations, initial_damping=1e-6,
+                                 cost_tolerance=cost_tolerance)
     if result.state.model is None:
         raise IdentificationError("calibration ended on a model that does not assemble")
     final_residual, final_jacobian = problem.residual_and_jacobian(result.state)

@@ -81,6 +81,9 @@ def diagonal_blocks(pattern: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     return [(rows, match[rows]) for rows in (np.flatnonzero(labels == b) for b in range(count))]
 
 
+_BLOCK_CACHE: dict[tuple, list[tuple[np.ndarray, np.ndarray]]] = {}
+
+
 class _BranchSignature:
     """Signs of the determinants of the diagonal blocks of the passive closure system.
 
@@ -220,13 +223,17 @@ class ClosedLoopSolver:
                 "forward kinematics needs a square system (one row per passive joint)")
         # Block-triangular structure of the passive system, from its pattern at a few generic q
         # (numerically zero entries at one q, e.g. by axis alignment at home, must not split blocks).
-        rng = np.random.default_rng(0)
-        pattern = np.zeros((self.n_rows, len(self.passive)), dtype=bool)
-        for _ in range(3):
-            q = mechanism.home + rng.normal(0.0, 0.1, model.nv)
-            jac = self._evaluate(q, with_jacobian=True)[1][:, self.passive]
-            pattern |= np.abs(jac) > 1e-9 * np.max(np.abs(jac))
-        self._branch = _BranchSignature([(rows, self.passive[cols]) for rows, cols in diagonal_blocks(pattern)])
+        # It depends on the topology only, so calibrated copies of a machine share it.
+        key = (mechanism.closures, mechanism.actuated_joints, tuple(model.names))
+        if key not in _BLOCK_CACHE:
+            rng = np.random.default_rng(0)
+            pattern = np.zeros((self.n_rows, len(self.passive)), dtype=bool)
+            for _ in range(3):
+                q = mechanism.home + rng.normal(0.0, 0.1, model.nv)
+                jac = self._evaluate(q, with_jacobian=True)[1][:, self.passive]
+                pattern |= np.abs(jac) > 1e-9 * np.max(np.abs(jac))
+            _BLOCK_CACHE[key] = [(rows, self.passive[cols]) for rows, cols in diagonal_blocks(pattern)]
+        self._branch = _BranchSignature(_BLOCK_CACHE[key])
         self._last_branch: tuple[int, ...] | None = None  # signature at this solver's last FK solution
         self._tangent: np.ndarray | None = None  # d q_passive / d sliders at the last factorisation
         self.last_q = mechanism.home.copy()
