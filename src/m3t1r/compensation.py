@@ -1,0 +1,461 @@
+"""Pre-processing compensation of commanded platform poses (paper section 7, Fig. 6).
+
+A controller only knows the nominal model. To put the real platform at a commanded pose T_co:
+
+1. inverse kinematics of the CALIBRATED model gives the slider values q^c that reach T_co on the
+   machine as identified (`ClosedLoopSolver.inverse`: position and yaw, a square system);
+2. forward kinematics of the NOMINAL model at q^c gives T_cp, the pose to send to the
+   controller: its own (nominal) IK of T_cp returns q^c, so the machine moves to T_co.
+
+A controller that accepts slider commands takes q^c directly ("actuators" output); one that takes
+platform poses gets T_cp ("pose" output).
+
+Only position and yaw are commandable. The roll and pitch a perturbed machine takes at a target
+are set by its geometry; they are reported as `tilt` and never "compensated" (a 6D target is
+over-determined for a 4-DoF machine, calibration.md "IK pitfalls").
+
+Frames and units: platform frame `Mechanism.platform_frame` in the base frame, metres and
+radians; yaw is `kinematics.yaw_of` (heading of the platform x axis) everywhere. Target rows are
+(x, y, z, theta); pose targets are `pin.SE3` (their yaw is `yaw_of` of their rotation).
+
+Batches follow the target order as a path: every solve warm-starts from the previous solution,
+which keeps consecutive targets on the home assembly branch and costs two or three Newton steps.
+A failed warm solve is retried once from home (the reference branch), so an unreachable target
+in the middle of a path costs two solves and does not derail its neighbours.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence, Union
+
+import numpy as np
+import pinocchio as pin
+
+from ._threads import on_one_blas_thread
+from .description import Mechanism
+from .design import NOMINAL, WorkspaceBox
+from .errors import InvalidInputError, KinematicsError, M3t1rError
+from .io import pose_rows
+from .kinematics import ClosedLoopSolver, ForwardResult, InverseResult, yaw_of
+
+__all__ = [
+    "Targets", "TargetFailure", "CompensatedCommand", "Compensation", "Compensator", "compensate",
+    "TrackingErrors", "CompensationAccuracy", "compensation_accuracy", "workspace_targets", "workspace_grid",
+]
+
+Targets = Union[np.ndarray, Sequence[pin.SE3]]
+"""Commanded platform poses: an (N, 4) array of rows (x, y, z, theta) [m, m, m, rad], or a
+sequence of N `pin.SE3` placements of the platform frame in the base frame."""
+
+_TARGET_COLUMNS = ("x", "y", "z", "theta")
+
+
+# ------------------------------------------------------------------------------------------------
+# Results
+@dataclass(frozen=True)
+class TargetFailure:
+    """A target that could not be processed.
+
+    index: 0-based position of the target in the batch; reason: which solve failed and the typed
+    error's message (residual and iterations included); error: the typed error's class, e.g.
+    `OutOfWorkspaceError` for a target out of reach or needing a slider beyond its limit.
+    """
+
+    index: int
+    reason: str
+    error: type[M3t1rError]
+
+
+@dataclass(frozen=True)
+class CompensatedCommand:
+    """The compensated command for one target T_co.
+
+    actuators: q^c, calibrated-model IK sliders [m] in `actuated_joints` order ("actuators" output);
+    command_pose: T_cp, nominal-model FK at q^c ("pose" output for a nominal-model controller);
+    reached_pose: the calibrated model's platform pose at q^c (position and yaw equal T_co's);
+    tilt: (roll, pitch) [rad] of `reached_pose` minus those of T_co (the requested ones are zero
+    for an (x, y, z, theta) target): what the machine does that cannot be commanded;
+    iterations: Newton steps of the calibrated IK.
+    """
+
+    actuators: np.ndarray
+    command_pose: pin.SE3
+    reached_pose: pin.SE3
+    tilt: tuple[float, float]
+    iterations: int
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array = np.array(array)
+    array.setflags(write=False)
+    return array
+
+
+@dataclass(frozen=True, eq=False)
+class Compensation:
+    """Compensated commands for a batch of N targets.
+
+    Failed targets are EXCLUDED from the arrays, not filled: row k of every array belongs to target
+    `indices[k]` of the input, and `failures` lists the others by index with the reason. Every array
+    is therefore finite. M = len(indices) = N - len(failures).
+
+    indices: (M,) int, input position of each row; actuators: (M, 4) q^c [m] ("actuators" output,
+    columns `actuated_joints`); command_poses: M placements T_cp ("pose" output);
+    reached_poses: M platform poses of the calibrated model at q^c; tilt: (M, 2) roll, pitch [rad]
+    of the calibrated machine at each target minus the requested ones (reported, not compensated);
+    iterations: (M,) Newton steps of the calibrated IK; failures: the excluded targets, ascending.
+    """
+
+    n_targets: int
+    actuated_joints: tuple[str, ...]
+    indices: np.ndarray
+    actuators: np.ndarray
+    command_poses: tuple[pin.SE3, ...]
+    reached_poses: tuple[pin.SE3, ...]
+    tilt: np.ndarray
+    iterations: np.ndarray
+    failures: tuple[TargetFailure, ...]
+
+    @property
+    def complete(self) -> bool:
+        """True when every target was compensated."""
+        return not self.failures
+
+    @property
+    def command_targets(self) -> np.ndarray:
+        """T_cp as (M, 4) rows (x, y, z, theta) [m, rad], theta = `yaw_of`: the pose output for a
+        controller taking 4-DoF targets (T_cp's roll and pitch are the nominal machine's, zero)."""
+        rows = [np.r_[pose.translation, yaw_of(pose.rotation)] for pose in self.command_poses]
+        return np.array(rows).reshape(-1, 4)
+
+    def command_pose_rows(self) -> np.ndarray:
+        """T_cp as (M, 7) rows x, y, z, qx, qy, qz, qw (`io.POSE_COLUMNS`): the pose output as a file row."""
+        return pose_rows(self.command_poses)
+
+    @property
+    def max_tilt(self) -> float:
+        """Largest |roll| or |pitch| [rad] over the compensated targets (0 when none)."""
+        return float(np.max(np.abs(self.tilt))) if self.tilt.size else 0.0
+
+
+# ------------------------------------------------------------------------------------------------
+# Inputs
+def _validated_targets(targets: Targets) -> list[np.ndarray] | list[pin.SE3]:
+    """Targets as a list of 4-vectors or of SE3, every value finite; else InvalidInputError naming the row."""
+    if isinstance(targets, pin.SE3):
+        raise InvalidInputError("targets: a single pin.SE3; give a sequence of them (or use Compensator.command)")
+    if not isinstance(targets, np.ndarray) and len(targets) and all(isinstance(t, pin.SE3) for t in targets):
+        poses = list(targets)
+        for index, pose in enumerate(poses):
+            homogeneous = pose.homogeneous
+            if not np.all(np.isfinite(homogeneous)):
+                raise InvalidInputError(f"target {index} (0-based): non-finite value in its placement")
+            rotation = homogeneous[:3, :3]
+            # A non-orthonormal "rotation" has no well-defined yaw; catch corrupted input early.
+            if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-9):
+                raise InvalidInputError(f"target {index} (0-based): rotation matrix is not orthonormal")
+        return poses
+    if not isinstance(targets, np.ndarray) and any(isinstance(t, pin.SE3) for t in targets):
+        raise InvalidInputError("targets: mix of pin.SE3 and other rows; give all placements or an (N, 4) array")
+    try:
+        array = np.asarray(targets, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"targets: not numeric rows (x, y, z, theta) ({exc})") from None
+    if array.ndim != 2 or array.shape[1] != 4:
+        raise InvalidInputError(f"targets: shape {array.shape}, expected (N, 4) rows (x, y, z, theta)")
+    if array.shape[0] == 0:
+        raise InvalidInputError("targets: no rows")
+    bad = np.argwhere(~np.isfinite(array))
+    if bad.size:
+        row, col = (int(i) for i in bad[0])
+        raise InvalidInputError(
+            f"target {row} (0-based): {_TARGET_COLUMNS[col]} = {array[row, col]}, not a finite number")
+    return list(array)
+
+
+def _check_compatible(nominal: Mechanism, calibrated: Mechanism) -> None:
+    # Slider commands and platform poses only carry over between two models that name the same
+    # joints and frame; anything else is a wrong file pair, not a geometry difference.
+    if nominal.actuated_joints != calibrated.actuated_joints:
+        raise InvalidInputError(f"calibrated model actuates {calibrated.actuated_joints}, "
+                                f"the nominal one {nominal.actuated_joints}: not the same machine")
+    if nominal.platform_frame != calibrated.platform_frame:
+        raise InvalidInputError(f"calibrated platform frame '{calibrated.platform_frame}' differs from the "
+                                f"nominal '{nominal.platform_frame}'")
+    if nominal.model.nq != calibrated.model.nq:
+        raise InvalidInputError(f"calibrated model has nq = {calibrated.model.nq}, nominal {nominal.model.nq}")
+
+
+# ------------------------------------------------------------------------------------------------
+# Warm-started path solving
+class _PathSolver:
+    """A `ClosedLoopSolver` that follows a path and falls back to home once per failed solve.
+
+    The warm start (last good solution) is what makes a path fast; home is the reference branch.
+    A warm solve can fail for reasons of the start alone (a jump across the workspace that Newton's
+    capped steps cannot follow, or a branch check against the last solution), so one retry from
+    home separates "unreachable" from "badly started"; the retry's error is the one raised. A
+    failed solve leaves the solver's state alone, so the next target starts from the last good
+    solution again.
+    """
+
+    def __init__(self, mechanism: Mechanism) -> None:
+        self.solver = ClosedLoopSolver(mechanism)
+        self._home = mechanism.home
+        self._warm = False  # False while the last good solution is home itself: nothing to retry from
+
+    def inverse(self, target: np.ndarray | pin.SE3) -> InverseResult:
+        try:
+            result = self.solver.inverse(target)
+        except KinematicsError:
+            if not self._warm:
+                raise
+            result = self.solver.inverse(target, q_init=self._home)
+        self._warm = True
+        return result
+
+    def forward(self, actuators: np.ndarray) -> ForwardResult:
+        try:
+            result = self.solver.forward(actuators)
+        except KinematicsError:
+            if not self._warm:
+                raise
+            result = self.solver.forward(actuators, q_init=self._home)
+        self._warm = True
+        return result
+
+    def reset(self) -> None:
+        self.solver.reset()
+        self._warm = False
+
+
+def _add_target_note(exc: Exception, index: int) -> None:
+    # Python >= 3.11 shows notes in tracebacks; the typed error itself is re-raised unchanged.
+    if hasattr(exc, "add_note"):
+        exc.add_note(f"while compensating target {index} (0-based) of the batch")
+
+
+# ------------------------------------------------------------------------------------------------
+# Compensation
+class Compensator:
+    """Paper Fig. 6 for a stream of targets: calibrated IK, then nominal FK, warm-started.
+
+    Keeps one solver per model, so successive calls follow a path (about 2 Newton steps each).
+    Not thread-safe: one compensator per thread. A caller streaming `command` in its own loop
+    should run it inside `_threads.single_blas_thread()`: the matrices are tiny and BLAS threads
+    only add wake-ups (`compensate` does this itself).
+    """
+
+    def __init__(self, nominal: Mechanism, calibrated: Mechanism) -> None:
+        _check_compatible(nominal, calibrated)
+        self.nominal = nominal
+        self.calibrated = calibrated
+        self._inverse = _PathSolver(calibrated)
+        self._forward = _PathSolver(nominal)
+
+    def reset(self) -> None:
+        """Start the next target from home on both models."""
+        self._inverse.reset()
+        self._forward.reset()
+
+    def command(self, target: np.ndarray | pin.SE3) -> CompensatedCommand:
+        """Compensated command for one target (x, y, z, theta) [m, rad] or pin.SE3.
+
+        Raises InvalidInputError for a malformed target, and the typed `KinematicsError` of the
+        failing solve otherwise: `OutOfWorkspaceError` when the calibrated machine cannot reach the
+        target or needs a slider beyond its limit (never clipped), `BranchChangeError`,
+        `NotConvergedError`, `SingularConfigurationError`. InvalidInputError also when q^c is
+        beyond the nominal model's slider limits (a calibrated file with other limits).
+        """
+        ik = self._inverse.inverse(target)
+        fk = self._forward.forward(ik.actuators)
+        return CompensatedCommand(ik.actuators, fk.pose, ik.pose, ik.tilt, ik.iterations)
+
+    @on_one_blas_thread
+    def compensate(self, targets: Targets, *, strict: bool = False) -> Compensation:
+        """Compensated commands for a batch of targets, in order, warm-started along the path.
+
+        targets: (N, 4) rows (x, y, z, theta) [m, m, m, rad] or N `pin.SE3` (platform in base).
+        Every target is checked first: a NaN/inf value raises InvalidInputError naming the row
+        before any solve. A target that fails is reported in `Compensation.failures` (index, reason,
+        error class) and excluded from the arrays; the next one restarts from the last good
+        solution. With strict=True the first failure is raised instead (the typed error, with a note
+        naming the target's index).
+        """
+        rows = _validated_targets(targets)
+        indices, commands, failures = [], [], []
+        for index, target in enumerate(rows):
+            stage = "inverse kinematics of the calibrated model"
+            try:
+                ik = self._inverse.inverse(target)
+                stage = "forward kinematics of the nominal model at the compensated sliders"
+                fk = self._forward.forward(ik.actuators)
+            except (KinematicsError, InvalidInputError) as exc:
+                # InvalidInputError here can only be q^c beyond the nominal model's slider limits.
+                if strict:
+                    _add_target_note(exc, index)
+                    raise
+                failures.append(TargetFailure(index, f"{stage}: {exc}", type(exc)))
+                continue
+            indices.append(index)
+            commands.append(CompensatedCommand(ik.actuators, fk.pose, ik.pose, ik.tilt, ik.iterations))
+        return Compensation(
+            n_targets=len(rows),
+            actuated_joints=self.calibrated.actuated_joints,
+            indices=_frozen(np.array(indices, dtype=int)),
+            actuators=_frozen(np.array([c.actuators for c in commands]).reshape(-1, 4)),
+            command_poses=tuple(c.command_pose for c in commands),
+            reached_poses=tuple(c.reached_pose for c in commands),
+            tilt=_frozen(np.array([c.tilt for c in commands]).reshape(-1, 2)),
+            iterations=_frozen(np.array([c.iterations for c in commands], dtype=int)),
+            failures=tuple(failures),
+        )
+
+
+def compensate(nominal: Mechanism, calibrated: Mechanism, targets: Targets, *, strict: bool = False) -> Compensation:
+    """Compensated commands (paper section 7, Fig. 6) for a batch of targets; see `Compensator.compensate`.
+
+    The first target starts from home on both models, each next one from the previous solution.
+    """
+    return Compensator(nominal, calibrated).compensate(targets, strict=strict)
+
+
+# ------------------------------------------------------------------------------------------------
+# Accuracy in simulation
+@dataclass(frozen=True, eq=False)
+class TrackingErrors:
+    """How far a machine ends up from the commanded targets, per target.
+
+    position: |p_achieved - p_target| [m]; yaw: |yaw_achieved - theta_target| wrapped to [0, pi]
+    [rad], yaw by `yaw_of`. Roll and pitch are not commanded and not counted here.
+    """
+
+    position: np.ndarray
+    yaw: np.ndarray
+
+    @property
+    def position_mean(self) -> float:
+        return float(np.mean(self.position))
+
+    @property
+    def position_max(self) -> float:
+        return float(np.max(self.position))
+
+    @property
+    def position_rms(self) -> float:
+        return float(np.sqrt(np.mean(self.position ** 2)))
+
+    @property
+    def yaw_mean(self) -> float:
+        return float(np.mean(self.yaw))
+
+    @property
+    def yaw_max(self) -> float:
+        return float(np.max(self.yaw))
+
+    @property
+    def yaw_rms(self) -> float:
+        return float(np.sqrt(np.mean(self.yaw ** 2)))
+
+
+@dataclass(frozen=True, eq=False)
+class CompensationAccuracy:
+    """Errors of the truth machine at the targets, driven without and with compensation.
+
+    n_targets: N, targets given; indices: (M,) those where all four solves succeeded (nominal IK,
+    calibrated IK, truth FK at both slider sets), the rows of every array here; before: truth errors at the nominal-IK sliders (a controller that trusts
+    the nominal model); after: truth errors at the calibrated-IK sliders q^c; actuators_before /
+    actuators_after: (M, 4) those sliders [m]; failures: the other targets, by index and reason.
+    """
+
+    n_targets: int
+    indices: np.ndarray
+    before: TrackingErrors
+    after: TrackingErrors
+    actuators_before: np.ndarray
+    actuators_after: np.ndarray
+    failures: tuple[TargetFailure, ...]
+
+
+def _target_position_yaw(target: np.ndarray | pin.SE3) -> tuple[np.ndarray, float]:
+    if isinstance(target, pin.SE3):
+        return np.array(target.translation), yaw_of(target.rotation)
+    return np.asarray(target[:3]), float(target[3])
+
+
+@on_one_blas_thread
+def compensation_accuracy(nominal: Mechanism, calibrated: Mechanism, truth: Mechanism,
+                          targets: Targets) -> CompensationAccuracy:
+    """Simulate commanding `truth` at the targets with nominal-IK and with calibrated-IK sliders.
+
+    With compensation the truth's error at a target equals the calibrated model's own error at
+    q^c (the calibrated model reaches the target's position and yaw exactly), so `after` should
+    match `pose_errors(calibrated, truth, actuators_after)`; `before` is the raw effect of the
+    geometric errors. Targets that fail any of the four solves are reported, not evaluated.
+    """
+    _check_compatible(nominal, calibrated)
+    _check_compatible(nominal, truth)
+    rows = _validated_targets(targets)
+    # Two command streams, each with its own IK solver and its own truth FK solver, so that both
+    # warm-start along the target path.
+    streams = (("uncompensated", _PathSolver(nominal), "nominal", _PathSolver(truth)),
+               ("compensated", _PathSolver(calibrated), "calibrated", _PathSolver(truth)))
+    indices, sliders, achieved, failures = [], [], [], []
+    for index, target in enumerate(rows):
+        commands, poses, stage = [], [], ""
+        try:
+            for label, ik_solver, model_name, truth_solver in streams:
+                stage = f"{model_name}-model inverse kinematics ({label} command)"
+                commands.append(ik_solver.inverse(target).actuators)
+                stage = f"truth forward kinematics at the {label} sliders"
+                poses.append(truth_solver.forward(commands[-1]).pose)
+        except (KinematicsError, InvalidInputError) as exc:
+            failures.append(TargetFailure(index, f"{stage}: {exc}", type(exc)))
+            continue
+        indices.append(index)
+        sliders.append(commands)
+        achieved.append((_target_position_yaw(target), poses))
+
+    def errors(stream: int) -> TrackingErrors:
+        position = [np.linalg.norm(poses[stream].translation - xyz) for (xyz, _), poses in achieved]
+        yaw = [abs(math.remainder(yaw_of(poses[stream].rotation) - theta, 2 * math.pi))
+               for (_, theta), poses in achieved]
+        return TrackingErrors(_frozen(np.array(position, dtype=float)), _frozen(np.array(yaw, dtype=float)))
+
+    stacked = np.array(sliders, dtype=float).reshape(-1, 2, 4)
+    return CompensationAccuracy(len(rows), _frozen(np.array(indices, dtype=int)), errors(0), errors(1),
+                                _frozen(stacked[:, 0]), _frozen(stacked[:, 1]), tuple(failures))
+
+
+# ------------------------------------------------------------------------------------------------
+# Targets over the workspace
+def workspace_targets(n: int, rng: np.random.Generator, box: WorkspaceBox = NOMINAL.workspace) -> np.ndarray:
+    """n targets (n, 4) rows (x, y, z, theta) [m, m, m, rad], uniform in the workspace box."""
+    if n < 1:
+        raise InvalidInputError(f"workspace_targets: n must be >= 1, got {n}")
+    return box.sample(rng, n)
+
+
+def workspace_grid(counts: tuple[int, int, int, int], box: WorkspaceBox = NOMINAL.workspace) -> np.ndarray:
+    """A regular grid over the workspace box, as a path: (prod(counts), 4) rows (x, y, z, theta).
+
+    counts: points per axis (x, y, z, theta), each >= 1 (1 puts the axis at the box centre).
+    Rows are in serpentine (boustrophedon) order, theta fastest: consecutive rows differ by one
+    grid step along one axis, so a warm-started batch never jumps across the box.
+    """
+    counts = tuple(int(c) for c in counts)
+    if len(counts) != 4 or min(counts) < 1:
+        raise InvalidInputError(f"workspace_grid: counts must be 4 integers >= 1, got {counts}")
+    axes = []
+    for count, (lo, hi) in zip(counts, (box.x, box.y, box.z, box.theta)):
+        axes.append(np.array([(lo + hi) / 2.0]) if count == 1 else np.linspace(lo, hi, count))
+    # Serpentine order built from the fastest axis outwards: the inner block is reversed on every
+    # other step of the next-slower axis, so block ends meet at the same inner point.
+    order = np.arange(counts[3])[:, None]
+    for axis in (2, 1, 0):
+        blocks = [np.column_stack((np.full(len(order), i), order if i % 2 == 0 else order[::-1]))
+                  for i in range(counts[axis])]
+        order = np.concatenate(blocks)
+    return np.column_stack([axes[k][order[:, k]] for k in range(4)])

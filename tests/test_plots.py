@@ -1,0 +1,150 @@
+"""PNG figures: written atomically, never onto an input, readable, and refusing malformed data."""
+
+import struct
+
+import matplotlib.image
+import numpy as np
+import pytest
+
+from m3t1r.calibration import PoseErrors
+from m3t1r.errors import InvalidInputError, OutputPathError
+from m3t1r.plots import (_ANGLE_UNITS, _LENGTH_UNITS, _readable, _unit_for, plot_error_vs_poses, plot_pose_errors_before_after,
+                         plot_predicted_std_map, plot_workspace_error_map)
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def png_size(path) -> tuple[int, int]:
+    """(width, height) in pixels from the IHDR chunk, which must follow the magic bytes."""
+    data = path.read_bytes()
+    assert data[:8] == PNG_MAGIC and data[12:16] == b"IHDR"
+    return struct.unpack(">II", data[16:24])
+
+
+def assert_real_png(path, min_bytes: int = 15_000) -> None:
+    assert path.is_file() and path.stat().st_size > min_bytes
+    width, height = png_size(path)
+    assert width > 400 and height > 300
+    pixels = matplotlib.image.imread(path)
+    assert pixels.shape[:2] == (height, width)
+    assert pixels[..., :3].std() > 0.05  # not a blank canvas
+
+
+def assert_only(directory, *names) -> None:
+    """No temporary file left behind by the atomic write."""
+    assert sorted(p.name for p in directory.iterdir()) == sorted(names)
+
+
+@pytest.fixture()
+def errors():
+    rng = np.random.default_rng(0)
+    before = PoseErrors(rng.uniform(5e-3, 2e-2, 50), rng.uniform(1e-2, 0.1, 50))
+    after = PoseErrors(rng.uniform(1e-6, 3e-5, 50), rng.uniform(2e-6, 5e-5, 50))
+    return before, after
+
+
+@pytest.fixture()
+def workspace_points():
+    rng = np.random.default_rng(1)
+    lo, hi = np.array([0.40, 0.225, -0.211, -0.785]), np.array([0.60, 0.825, -0.011, 0.785])
+    return lo + (hi - lo) * rng.random((120, 4))
+
+
+def test_pose_errors_before_after(tmp_path, errors):
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    backend = matplotlib.get_backend()
+    target = tmp_path / "fig4.png"
+    target.write_bytes(b"an older file")  # replaced whole
+    out = plot_pose_errors_before_after(*errors, target)
+    assert out == target
+    assert_real_png(out)
+    assert_only(tmp_path, "fig4.png")
+    # Built without pyplot: no open figure, no backend switch in the caller's process.
+    assert plt.get_fignums() == [] and matplotlib.get_backend() == backend
+
+
+def test_pose_errors_with_exact_zeros_are_drawn_not_crashing(tmp_path, errors):
+    before, _ = errors
+    exact = PoseErrors(np.zeros(50), np.r_[np.zeros(10), np.full(40, 1e-9)])
+    assert_real_png(plot_pose_errors_before_after(before, exact, tmp_path / "zeros.png"))
+
+
+def test_error_vs_poses_with_and_without_prediction(tmp_path):
+    n = [20, 50, 100, 200]
+    position, rotation = [2.1e-5, 8.5e-6, 5.7e-6, 3.9e-6], [3.0e-5, 1.3e-5, 9.2e-6, 6.1e-6]
+    predicted = ([1.9e-5, 9.0e-6, 6.0e-6, 4.1e-6], [2.8e-5, 1.2e-5, 8.8e-6, 6.3e-6])
+    a = plot_error_vs_poses(n, position, rotation, tmp_path / "a.png", predicted=predicted)
+    b = plot_error_vs_poses(n, position, None, tmp_path / "b.png")  # a position-only study
+    assert_real_png(a)
+    assert_real_png(b, min_bytes=10_000)
+    assert png_size(a)[0] > png_size(b)[0]  # two panels vs one
+    assert_only(tmp_path, "a.png", "b.png")
+
+
+def test_workspace_error_map_and_predicted_std_map(tmp_path, errors, workspace_points):
+    before = np.linspace(5e-3, 2e-2, 120)
+    after = np.linspace(1e-6, 4e-5, 120)
+    map_path = plot_workspace_error_map(workspace_points, before, after, tmp_path / "map.png")
+    yaw_path = plot_workspace_error_map(workspace_points, before * 5, after, tmp_path / "yaw.png", kind="yaw",
+                                        shared_scale=True)
+    std = PoseErrors(np.linspace(4e-6, 2e-5, 120), np.linspace(8e-6, 3e-5, 120))
+    std_path = plot_predicted_std_map(workspace_points, std, tmp_path / "std.png")
+    for path in (map_path, yaw_path, std_path):
+        assert_real_png(path)
+    assert_only(tmp_path, "map.png", "yaw.png", "std.png")
+
+
+def test_refuses_to_overwrite_a_protected_input(tmp_path, errors, workspace_points):
+    measurements = tmp_path / "measurements.csv"
+    measurements.write_text("q11,q21\n0.1,0.2\n")
+    alias = tmp_path / "link.csv"
+    alias.symlink_to(measurements)
+    calls = [
+        lambda p: plot_pose_errors_before_after(*errors, p, protect=[measurements]),
+        lambda p: plot_error_vs_poses([10, 20], [1e-5, 5e-6], [2e-5, 1e-5], p, protect=[measurements]),
+        lambda p: plot_workspace_error_map(workspace_points, np.ones(120), np.ones(120), p, protect=[measurements]),
+        lambda p: plot_predicted_std_map(workspace_points, PoseErrors(np.ones(120), np.ones(120)), p,
+                                         protect=[measurements]),
+    ]
+    for call in calls:
+        for path in (measurements, alias):
+            with pytest.raises(OutputPathError, match="refusing to overwrite"):
+                call(path)
+    assert measurements.read_text() == "q11,q21\n0.1,0.2\n"
+    assert_only(tmp_path, "measurements.csv", "link.csv")
+
+
+def test_missing_directory_is_an_output_error(tmp_path, errors):
+    with pytest.raises(OutputPathError, match="does not exist"):
+        plot_pose_errors_before_after(*errors, tmp_path / "nowhere" / "fig.png")
+
+
+def test_malformed_data_is_refused_and_nothing_written(tmp_path, errors, workspace_points):
+    before, after = errors
+    bad = PoseErrors(np.r_[before.position[:-1], np.nan], before.rotation)
+    with pytest.raises(InvalidInputError, match="before.position: non-finite"):
+        plot_pose_errors_before_after(bad, after, tmp_path / "x.png")
+    with pytest.raises(InvalidInputError, match="same poses"):
+        plot_pose_errors_before_after(before, PoseErrors(after.position[:10], after.rotation[:10]), tmp_path / "x.png")
+    with pytest.raises(InvalidInputError, match="negative"):
+        plot_pose_errors_before_after(before, PoseErrors(-after.position, after.rotation), tmp_path / "x.png")
+    with pytest.raises(InvalidInputError, match="3 values for 2"):
+        plot_error_vs_poses([10, 20], [1e-5, 5e-6, 1e-6], None, tmp_path / "x.png")
+    with pytest.raises(InvalidInputError, match="one error of each per target"):
+        plot_workspace_error_map(workspace_points, np.ones(119), np.ones(120), tmp_path / "x.png")
+    with pytest.raises(InvalidInputError, match="kind"):
+        plot_workspace_error_map(workspace_points, np.ones(120), np.ones(120), tmp_path / "x.png", kind="roll")
+    assert_only(tmp_path)
+
+
+def test_units_follow_the_data():
+    # Before (mm) and after (um) together: the middle of the range reads in micrometres.
+    assert _unit_for(np.array([2e-2, 1e-6]), _LENGTH_UNITS).label == "µm"
+    assert _unit_for(np.array([5e-3, 1e-2]), _LENGTH_UNITS).label == "mm"
+    assert _unit_for(np.array([0.1, 0.05]), _ANGLE_UNITS).label == "mrad"
+    assert _unit_for(np.array([0.0, 0.0]), _ANGLE_UNITS).label == "rad"
+    # Tick and legend text: each value in its own unit.
+    assert _readable(0.0235, _LENGTH_UNITS) == "23.5 mm" and _readable(1e-5, _LENGTH_UNITS) == "10 µm"
+    assert _readable(0.14, _ANGLE_UNITS) == "140 mrad" and _readable(3e-10, _LENGTH_UNITS) == "0.3 nm"
