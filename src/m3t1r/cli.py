@@ -171,7 +171,8 @@ def cmd_calibrate(args: argparse.Namespace) -> None:
     if args.plots:
         from .reporting import write_calibration_plots
 
-        for path in write_calibration_plots(nominal, calibration, data.measurements, Path(args.plots), protect):
+        print("writing plots (cross-validation recalibrates on subsets) ...", flush=True)
+        for path in write_calibration_plots(nominal, calibration, data.measurements, Path(args.plots), protect, noise):
             print(f"wrote {path}")
 
 
@@ -217,6 +218,60 @@ def _calibrate_serial(args: argparse.Namespace) -> None:
                   "identifiable": list(result.base.names), "iterations": result.iterations,
                   "parameters": {p.name: list(map(float, d)) for p, d in result.deltas.items()}}
         atomic_write_text(args.report, json.dumps(report, indent=2) + "\n", protect=(Path(args.measurements),))
+
+
+def cmd_compensate(args: argparse.Namespace) -> None:
+    from .compensation import compensate
+    from .datasets import TARGET_COLUMNS, read_targets, write_actuators, write_poses
+    from .io import ensure_not_protected, write_table
+
+    nominal = _mechanism(args.model, args.closures)
+    calibrated = _mechanism(args.calibrated, args.calibrated_closures)
+    protect = (Path(args.targets), nominal.urdf_path, nominal.closures_path, calibrated.urdf_path,
+               calibrated.closures_path)
+    ensure_not_protected(args.output, protect)
+    targets, lines = read_targets(args.targets)
+    result = compensate(nominal, calibrated, targets)
+    if result.failures:
+        raise RowFailures(Path(args.targets), [(int(lines[f.index]), f.reason) for f in result.failures])
+    comments = _provenance(args) + [f"calibrated model: {calibrated.urdf_path}"]
+    if args.output_kind == "actuators":
+        write_actuators(args.output, calibrated, result.actuators, comments + ["corrected slider commands [m]"], protect)
+    elif isinstance(targets, np.ndarray):
+        write_table(args.output, TARGET_COLUMNS, result.command_targets,
+                    comments + ["poses to send to a controller that knows only the nominal model (T_cp)"], protect)
+    else:
+        write_poses(args.output, result.command_poses,
+                    comments + ["poses to send to a controller that knows only the nominal model (T_cp)"], protect)
+    print(f"wrote {result.n_targets} compensated {args.output_kind} commands to {args.output}; "
+          f"largest uncommandable tilt (roll/pitch) of the calibrated machine {result.max_tilt:.3g} rad")
+
+
+def cmd_view(args: argparse.Namespace) -> None:
+    from .viz import comparison_views, open_viewer, write_static_html
+
+    nominal = _mechanism(args.nominal, args.closures)
+    calibrated = _mechanism(args.calibrated, args.calibrated_closures) if args.calibrated else None
+    views = comparison_views(nominal, calibrated)
+    markers = None
+    if args.measurements:
+        from .datasets import read_measurements
+
+        markers = read_measurements(args.measurements, nominal).measurements.poses
+    if args.html:
+        protect = [nominal.urdf_path, nominal.closures_path]
+        path = write_static_html(views, args.html, pose=args.pose, markers=markers, protect=protect)
+        print(f"wrote {path} (self-contained: open it in any browser, no network needed)")
+        return
+    with open_viewer(views, pose=args.pose, markers=markers) as viewer:
+        print(f"meshcat viewer at {viewer.url} (Ctrl-C to stop)", flush=True)
+        viewer.wait()
+
+
+def cmd_demo(args: argparse.Namespace) -> None:
+    from .demo import run_demo
+
+    run_demo(Path(args.out))
 
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
@@ -288,6 +343,31 @@ def build_parser() -> argparse.ArgumentParser:
     _add_noise_options(p)
     _add_model_options(p)
     p.set_defaults(run=cmd_calibrate)
+
+    p = verbs.add_parser("compensate", help="corrected commands for targets, from a calibrated model (paper sec. 7)")
+    p.add_argument("targets", help="CSV with x,y,z,theta or x,y,z,qx,qy,qz,qw")
+    p.add_argument("--calibrated", required=True, metavar="URDF", help="calibrated URDF")
+    p.add_argument("--calibrated-closures", metavar="YAML", help="its closures (default: beside the URDF)")
+    p.add_argument("--output-kind", choices=("pose", "actuators"), default="pose",
+                   help="pose: T_cp for a controller with the nominal model; actuators: slider commands")
+    p.add_argument("-o", "--output", required=True, help="commands CSV")
+    _add_model_options(p)
+    p.set_defaults(run=cmd_compensate)
+
+    p = verbs.add_parser("view", help="meshcat scene of the nominal and calibrated machines")
+    p.add_argument("--nominal", metavar="URDF", help="nominal URDF (default: packaged)")
+    p.add_argument("--closures", metavar="YAML", help="nominal closures")
+    p.add_argument("--calibrated", metavar="URDF")
+    p.add_argument("--calibrated-closures", metavar="YAML")
+    p.add_argument("--pose", nargs=4, type=float, metavar=("X", "Y", "Z", "THETA"),
+                   help="command both machines to this platform pose [m, m, m, rad] (default: home)")
+    p.add_argument("--measurements", metavar="CSV", help="show measured platform positions as markers")
+    p.add_argument("--html", metavar="PATH", help="write a self-contained static page instead of serving")
+    p.set_defaults(run=cmd_view)
+
+    p = verbs.add_parser("demo", help="the main job: simulate, calibrate, compensate, report (no input needed)")
+    p.add_argument("--out", default="demo_out", help="artifact folder (default demo_out)")
+    p.set_defaults(run=cmd_demo)
 
     p = verbs.add_parser("evaluate", help="compare nominal and calibrated machines against a (simulated) truth")
     p.add_argument("--truth", required=True, metavar="URDF")

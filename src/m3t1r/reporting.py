@@ -1,0 +1,103 @@
+"""Calibration plots from measurements alone (`m3t1r calibrate --plots DIR`).
+
+Without a known truth, each plot uses what the data can show honestly:
+- per-pose error before/after (paper Fig. 4): the model's platform pose against the measured one
+  at the calibration poses (a fit residual, not an accuracy);
+- error vs number of poses: cross-validation: calibrate on the first k of a shuffled pose set and
+  measure the error on poses kept out of every fit;
+- workspace map: the position standard deviation predicted from the parameter covariance, which is
+  the expected positioning error after compensation.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+import pinocchio as pin
+
+from .calibration import (ClosedLoopCalibration, PoseErrors, PoseMeasurements, TrackerNoise, calibrate_closed_loop,
+                          predicted_pose_std)
+from .description import Mechanism
+from .errors import IdentificationError, KinematicsError
+from .kinematics import ClosedLoopSolver
+
+__all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots"]
+
+
+def measured_pose_errors(machine: Mechanism, measurements: PoseMeasurements) -> PoseErrors:
+    """Model platform pose vs measured pose at the measured sliders: position norm [m], rotation
+    angle [rad] (NaN rotation for position-only data)."""
+    solver = ClosedLoopSolver(machine)
+    position, rotation = [], []
+    for sliders, measured in zip(measurements.actuators, measurements.poses):
+        pose = solver.forward(sliders).pose
+        position.append(np.linalg.norm(pose.translation - measured.translation))
+        rotation.append(np.nan if measurements.position_only
+                        else np.linalg.norm(pin.log3(measured.rotation.T @ pose.rotation)))
+    return PoseErrors(np.array(position), np.array(rotation))
+
+
+def _subset(measurements: PoseMeasurements, indices: np.ndarray) -> PoseMeasurements:
+    return PoseMeasurements(measurements.actuators[indices], tuple(measurements.poses[i] for i in indices),
+                            measurements.position_only)
+
+
+def cross_validation_curve(nominal: Mechanism, measurements: PoseMeasurements, noise: TrackerNoise,
+                           seed: int = 0, test_fraction: float = 0.2) -> tuple[list[int], list[float], list[float]]:
+    """(training sizes, mean position error [m], mean rotation error [rad]) on held-back poses.
+
+    Sizes too small to identify every parameter are skipped (calibrate_closed_loop refuses them).
+    """
+    order = np.random.default_rng(seed).permutation(len(measurements))
+    n_test = max(5, int(round(test_fraction * len(measurements))))
+    test, train = order[:n_test], order[n_test:]
+    sizes = sorted({int(k) for k in np.linspace(min(15, len(train)), len(train), 4)})
+    kept, position, rotation = [], [], []
+    for k in sizes:
+        try:
+            fitted = calibrate_closed_loop(nominal, _subset(measurements, train[:k]), noise)
+        except (IdentificationError, KinematicsError):
+            continue
+        errors = measured_pose_errors(fitted.mechanism, _subset(measurements, test))
+        kept.append(k)
+        position.append(errors.position_mean)
+        rotation.append(float(np.nanmean(errors.rotation)) if not measurements.position_only else float("nan"))
+    return kept, position, rotation
+
+
+def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibration, measurements: PoseMeasurements,
+                            out_dir: Path, protect: Iterable[Path] = (), noise: TrackerNoise = TrackerNoise(),
+                            seed: int = 0) -> list[Path]:
+    """Write the three calibration plots (module docstring) into out_dir; return their paths."""
+    from .compensation import workspace_targets
+    from .plots import plot_error_vs_poses, plot_pose_errors_before_after, plot_predicted_std_map
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    protect = tuple(protect)
+    written = [plot_pose_errors_before_after(
+        measured_pose_errors(nominal, measurements), measured_pose_errors(calibration.mechanism, measurements),
+        out_dir / "pose_errors_before_after.png", title="Calibration poses: model vs measured platform pose",
+        protect=protect)]
+    sizes, position, rotation = cross_validation_curve(nominal, measurements, noise, seed)
+    if sizes:
+        written.append(plot_error_vs_poses(sizes, position, None if measurements.position_only else rotation,
+                                           out_dir / "error_vs_poses.png",
+                                           title="Cross-validated error vs number of calibration poses",
+                                           protect=protect))
+    targets = workspace_targets(300, np.random.default_rng(seed))
+    solver = ClosedLoopSolver(calibration.mechanism)
+    reachable, sliders = [], []
+    for target in targets:
+        try:
+            sliders.append(solver.inverse(target).actuators)
+            reachable.append(target)
+        except KinematicsError:
+            solver.reset()
+    std = predicted_pose_std(calibration, np.array(sliders))
+    written.append(plot_predicted_std_map(np.array(reachable), std, out_dir / "predicted_error_map.png",
+                                          title="Predicted position error after compensation (1 sigma)",
+                                          protect=protect))
+    return written

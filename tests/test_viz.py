@@ -1,0 +1,325 @@
+"""Meshcat scenes: node layout, posing modes, the self-contained page, the live server's lifecycle,
+and a real render of the page in headless Chromium.
+
+Set M3T1R_SCREENSHOT=<png path> to keep the two-machine render (docs/meshcat_scene.png is made so).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import umsgpack
+
+from m3t1r import viz
+from m3t1r.description import Mechanism
+from m3t1r.errors import InvalidInputError, KinematicsError, OutputPathError
+from m3t1r.simulation import simulate_study
+
+POSE = (0.55, 0.6, -0.1, 0.3)  # inside the design workspace box, with some yaw
+
+
+@pytest.fixture(scope="module")
+def study(mechanism):
+    # 5 mm / 5 mrad errors (five times a real machine's) so the two machines differ visibly.
+    return simulate_study(mechanism, n_poses=8, n_holdout=0, seed=1, sigma_position=5e-3, sigma_rotation=5e-3)
+
+
+@pytest.fixture(scope="module")
+def views(mechanism, study):
+    return viz.comparison_views(mechanism, study.truth)
+
+
+def page_messages(page: str) -> list[dict]:
+    """The meshcat commands inlined in a page written by `scene_html`."""
+    match = re.search(r"var commands = (\[.*?\]);", page)
+    assert match, "no inlined command list in the page"
+    return [umsgpack.unpackb(base64.b64decode(item)) for item in json.loads(match.group(1))]
+
+
+def object_paths(messages: list[dict]) -> list[str]:
+    return [m["path"] for m in messages if m["type"] == "set_object"]
+
+
+def child_pids() -> set[int]:
+    """Live child processes of this test process (Linux /proc)."""
+    children = set()
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == os.getpid() and fields[0] != "Z":
+                children.add(int(entry.name))
+    return children
+
+
+needs_proc = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="process checks read Linux /proc")
+
+
+# ------------------------------------------------------------------------------------------
+# Scene content and posing
+
+
+def test_page_has_both_machines_triads_and_markers(views, study):
+    page = viz.scene_html(viz.build_scene(views, pose=POSE, markers=study.measurements.poses))
+    paths = object_paths(page_messages(page))
+    for view in views:
+        visuals = [p for p in paths if p.startswith(f"{view.node}/visuals/")]
+        assert len(visuals) == len(view.mechanism.visual_model.geometryObjects), view.name
+        assert {f"{view.node}/platform_frame/{axis}" for axis in "xyz"} <= set(paths)
+        assert f'data-node="{view.node}"' in page  # legend entry
+    markers = [p for p in paths if p.startswith(f"/meshcat/{viz.MEASUREMENTS_NODE}/")]
+    assert len(markers) == len(study.measurements.poses)
+    assert "/meshcat/m3t1r/nominal" in views[0].node and "/meshcat/m3t1r/calibrated" in views[1].node
+
+
+def test_calibrated_colour_overrides_every_material(views):
+    messages = page_messages(viz.scene_html(viz.build_scene(views)))
+    calibrated = [m for m in messages if m["type"] == "set_object" and "/calibrated/visuals/" in m["path"]]
+    nominal = [m for m in messages if m["type"] == "set_object" and "/nominal/visuals/" in m["path"]]
+    r, g, b, alpha = viz.CALIBRATED_COLOR
+    wanted = (int(r * 255) << 16) + (int(g * 255) << 8) + int(b * 255)
+    for message in calibrated:
+        material = message["object"]["materials"][0]
+        assert material["color"] == wanted and material["transparent"] and material["opacity"] == pytest.approx(alpha)
+    assert len({m["object"]["materials"][0]["color"] for m in nominal}) > 3  # URDF materials kept
+
+
+def test_pose_mode_reaches_the_same_pose_with_different_sliders(views):
+    nominal, calibrated = viz.pose_machines(views, pose=POSE)
+    for machine in (nominal, calibrated):
+        assert machine.platform.translation == pytest.approx(POSE[:3], abs=1e-9)
+    assert np.abs(nominal.sliders - calibrated.sliders).max() > 1e-3
+
+
+def test_slider_mode_gives_the_same_sliders_and_different_poses(views):
+    sliders = viz.pose_machines(views[:1], pose=POSE)[0].sliders
+    nominal, calibrated = viz.pose_machines(views, sliders=sliders)
+    assert calibrated.sliders == pytest.approx(sliders, abs=1e-12)
+    assert np.linalg.norm(nominal.platform.translation - calibrated.platform.translation) > 1e-3
+
+
+def test_scene_transforms_are_the_solved_configuration(views):
+    messages = page_messages(viz.scene_html(viz.build_scene(views, pose=POSE)))
+    last = {m["path"]: m["matrix"] for m in messages if m["type"] == "set_transform"}
+    for machine in viz.pose_machines(views, pose=POSE):
+        drawn = np.array(last[f"{machine.view.node}/platform_frame"]).reshape(4, 4).T
+        assert drawn == pytest.approx(machine.platform.homogeneous, abs=1e-12)
+
+
+# ------------------------------------------------------------------------------------------
+# Errors
+
+
+def test_unreachable_pose_names_the_machine(views):
+    with pytest.raises(KinematicsError, match="machine 'nominal'"):
+        viz.build_scene(views, pose=(0.5, 0.5, 3.0, 0.0))
+
+
+def test_sliders_beyond_limits_name_the_machine(views):
+    with pytest.raises(InvalidInputError, match="machine 'nominal'.*q11"):
+        viz.pose_machines(views, sliders=(5.0, 0.0, 0.0, 0.0))
+
+
+def test_pose_and_sliders_together_are_refused(views):
+    with pytest.raises(InvalidInputError, match="not both"):
+        viz.pose_machines(views, pose=POSE, sliders=(0, 0, 0, 0))
+    with pytest.raises(InvalidInputError, match="4 values"):
+        viz.pose_machines(views, pose=(0.5, 0.5))
+
+
+def test_machines_with_different_joints_are_refused(mechanism):
+    model = mechanism.model.copy()
+    model.names[3] = "renamed_joint"
+    other = mechanism.with_model(model)
+    with pytest.raises(InvalidInputError, match=r"only in 'nominal': q12_pa; only in 'other': renamed_joint"):
+        viz.build_scene([viz.MachineView("nominal", mechanism), viz.MachineView("other", other)])
+
+
+def test_bad_views_and_markers_are_refused(mechanism):
+    with pytest.raises(InvalidInputError, match="unique"):
+        viz.pose_machines([viz.MachineView("a", mechanism), viz.MachineView("a", mechanism)])
+    with pytest.raises(InvalidInputError, match="no machine"):
+        viz.pose_machines([])
+    with pytest.raises(InvalidInputError, match="scene node"):
+        viz.MachineView("a/b", mechanism)
+    with pytest.raises(InvalidInputError, match="reserved"):
+        viz.MachineView("measurements", mechanism)
+    with pytest.raises(InvalidInputError, match=r"\[0, 1\]"):
+        viz.MachineView("a", mechanism, (1.0, 0.0, 2.0, 1.0))
+    with pytest.raises(InvalidInputError, match=r"\(n, 3\)"):
+        viz.build_scene([viz.MachineView("a", mechanism)], markers=np.zeros((2, 7)))
+    with pytest.raises(InvalidInputError, match="non-finite"):
+        viz.build_scene([viz.MachineView("a", mechanism)], markers=[[0.0, np.nan, 0.0]])
+
+
+# ------------------------------------------------------------------------------------------
+# The static page
+
+
+def test_page_is_self_contained(views, tmp_path):
+    path = viz.write_static_html(views, tmp_path / "scene.html", pose=POSE)
+    page = path.read_text(encoding="utf-8")
+    # Nothing the page would load: no src/href attribute, stylesheet import or <link>. The viewer
+    # bundle holds two absolute URLs, neither fetched: the XHTML namespace name (an identifier) and
+    # the server socket template of Viewer.connect(), which our page never calls.
+    assert not re.search(r"""\b(?:src|href)\s*=""", page.split("<script>")[0], re.IGNORECASE)
+    assert "@import" not in page and "<link" not in page.lower()
+    urls = set(re.findall(r"(?:https?|wss?|ftp)://[^\s\"'`<>)]*", page))
+    assert urls <= {"http://www.w3.org/1999/xhtml", "ws://${location.host}"}, urls
+    assert re.search(r"(?<![:\w])//[a-z0-9-]+\.[a-z]{2,}/", page) is None  # protocol-relative URLs
+    script = page.rsplit("<script>", 1)[1]  # ours, after the bundle
+    assert "MeshCat.Viewer" in script
+    for loader in ("fetch(", "XMLHttpRequest", "WebSocket", ".connect(", "import("):
+        assert loader not in script  # the commands are inlined, not loaded
+
+
+def test_write_refuses_protected_paths_and_leaves_them_intact(views, tmp_path):
+    urdf = views[0].mechanism.urdf_path
+    before = urdf.read_bytes()
+    with pytest.raises(OutputPathError, match="refusing"):
+        viz.write_static_html(views, urdf)  # a model file is always protected
+    assert urdf.read_bytes() == before
+    data = tmp_path / "measured.csv"
+    data.write_text("x\n1\n")
+    with pytest.raises(OutputPathError, match="refusing"):
+        viz.write_static_html(views, data, protect=[data])
+    assert data.read_text() == "x\n1\n"
+    with pytest.raises(OutputPathError, match="does not exist"):
+        viz.write_static_html(views, tmp_path / "missing" / "scene.html")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["measured.csv"]  # no temporary left
+
+
+@needs_proc
+def test_static_page_starts_no_process(views, tmp_path):
+    before = child_pids()
+    viz.write_static_html(views, tmp_path / "scene.html")
+    assert child_pids() == before
+
+
+def test_calibrated_machine_loaded_from_files(mechanism, study, tmp_path):
+    urdf, closures = tmp_path / "calibrated.urdf", tmp_path / "calibrated.closures.yaml"
+    study.truth.save(urdf, closures)
+    views = viz.comparison_views(mechanism, Mechanism.load(urdf, closures))
+    page = viz.write_static_html(views, tmp_path / "scene.html", pose=POSE).read_text(encoding="utf-8")
+    assert "(calibrated.urdf)" in page
+    paths = object_paths(page_messages(page))
+    assert sum(p.startswith("/meshcat/m3t1r/calibrated/visuals/") for p in paths) == len(
+        views[1].mechanism.visual_model.geometryObjects)
+    with pytest.raises(OutputPathError, match="refusing"):
+        viz.write_static_html(views, closures)  # every machine's model files are protected
+
+
+# ------------------------------------------------------------------------------------------
+# Live server
+
+
+@needs_proc
+def test_live_viewer_serves_the_scene_and_is_stopped(views):
+    before = child_pids()
+    with viz.open_viewer(views, pose=POSE) as live:
+        assert live.url.startswith("http://127.0.0.1:") and live.pid in child_pids()
+        with urllib.request.urlopen(live.url, timeout=10) as response:
+            assert b"main.min.js" in response.read()
+        served = live.visualizer.static_html()  # the server's own copy of the scene
+        blobs = re.findall(r"data:application/octet-binary;base64,([A-Za-z0-9+/=]+)", served)
+        paths = {umsgpack.unpackb(base64.b64decode(blob)).get("path") for blob in blobs}
+        assert any(p and p.startswith("/meshcat/m3t1r/calibrated/visuals/") for p in paths)
+        pid = live.pid
+    assert live.process.poll() is not None
+    assert not Path(f"/proc/{pid}").exists() and child_pids() == before
+    live.close()  # idempotent
+
+
+@needs_proc
+def test_failed_command_starts_no_server(views):
+    before = child_pids()
+    with pytest.raises(KinematicsError):
+        viz.open_viewer(views, pose=(0.5, 0.5, 3.0, 0.0))
+    assert child_pids() == before
+
+
+# ------------------------------------------------------------------------------------------
+# Render in headless Chromium
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMIUM_FLAGS = (
+    "--headless", "--no-sandbox", "--disable-gpu",
+    "--enable-unsafe-swiftshader",  # WebGL on the CPU; without it Chromium warns and may stop falling back
+    "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update",
+    "--disable-sync", "--host-resolver-rules=MAP * ~NOTFOUND",  # no name resolves: the page must be offline
+    "--window-size=1024,768", "--virtual-time-budget=2500", "--hide-scrollbars",
+)
+
+
+def screenshots(pages: dict[str, Path], folder: Path) -> dict[str, np.ndarray]:
+    """Render each page (all at once, to halve the wait) and return its RGB pixels by label.
+
+    Every process Chromium starts is ended afterwards: each browser leads its own process group.
+    """
+    from PIL import Image
+
+    running = {}
+    for label, page in pages.items():
+        command = [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={folder / ('profile-' + label)}",
+                   f"--screenshot={folder / (label + '.png')}", page.as_uri()]
+        running[label] = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                          start_new_session=True)
+    outputs = {}
+    try:
+        for label, process in running.items():
+            outputs[label] = process.communicate(timeout=60)[0]
+    finally:
+        for process in running.values():
+            try:  # its renderer and GPU helpers are in the group it leads
+                os.killpg(process.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            process.wait()
+    pixels = {}
+    for label in pages:
+        png = folder / f"{label}.png"
+        assert png.is_file(), f"chromium wrote no screenshot:\n{outputs[label].decode(errors='replace')[-2000:]}"
+        pixels[label] = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    return pixels
+
+
+def magenta_pixels(rgb: np.ndarray) -> int:
+    """Pixels of the translucent calibrated colour, over any background; no URDF material is like it."""
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    return int(np.count_nonzero((r - g > 60) & (b - g > 50)))
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed: apt-get install chromium (.ci/run does)")
+def test_page_renders_both_machines(views, study, tmp_path):
+    started = time.monotonic()
+    pages = {label: viz.write_static_html(shown, tmp_path / f"{label}.html", pose=POSE,
+                                          markers=study.measurements.poses)
+             for label, shown in (("nominal", views[:1]), ("both", views))}
+    # Above the HTML legend only: its swatches are colours too.
+    scenes = {label: rgb[: int(rgb.shape[0] * 0.78)] for label, rgb in screenshots(pages, tmp_path).items()}
+    nominal, both = scenes["nominal"], scenes["both"]
+    for rgb in (nominal, both):
+        assert rgb.std() > 10, "blank render"
+        assert len(np.unique(rgb.reshape(-1, 3) // 32, axis=0)) >= 12, "too few colours: WebGL drew nothing?"
+        urdf_orange = (np.abs(rgb - [217, 140, 26]).max(axis=-1) < 40).sum()  # the upper bars
+        assert urdf_orange > 200, "the nominal machine's materials are not on screen"
+    assert magenta_pixels(nominal) < 50
+    assert magenta_pixels(both) > 2000, "the calibrated machine is not on screen"
+    assert time.monotonic() - started < 60
+    keep = os.environ.get("M3T1R_SCREENSHOT")
+    if keep:
+        shutil.copyfile(tmp_path / "both.png", keep)
