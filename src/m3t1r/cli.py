@@ -274,6 +274,44 @@ def cmd_demo(args: argparse.Namespace) -> None:
     run_demo(Path(args.out))
 
 
+def cmd_paper(args: argparse.Namespace) -> None:
+    from .paper import SensorNoise, closed_chain_study, paper_study
+
+    noise = SensorNoise() if args.noise else None
+    label = "with noise (tracker 10 um / 20 urad, encoders 10 urad)" if args.noise else "noise-free"
+
+    def row(name, errors) -> str:
+        return (f"{name:<46}{errors.position_mean:>12.3e}{errors.position.max():>12.3e}"
+                f"{errors.rotation_mean:>13.3e}{errors.rotation.max():>12.3e}")
+
+    header = f"{'':<46}{'pos mean [m]':>12}{'pos max':>12}{'rot mean [rad]':>14}{'rot max':>11}"
+    if args.closed:
+        print(f"the paper's two-chain method on the closed-chain machine, seed {args.seed}, {label}:", flush=True)
+        result = closed_chain_study(args.seed, noise=noise)
+        print(header)
+        print(row("nominal model", result.nominal))
+        print(row("chain B1, every passive joint read: before", result.sensors_before))
+        print(row("chain B1, every passive joint read: after", result.sensors_after))
+        print(row("chain B3 fitted to P_I: after", result.second_chain_after))
+        print(row("chain B1 from the sliders alone", result.sliders_only))
+        if result.closed_loop is not None:
+            print(row("closed-loop calibration (m3t1r.calibration)", result.closed_loop))
+        return
+    print(f"the paper's simulation study (two serial chains, Table-1-like dt, ds, dq), seed {args.seed}, "
+          f"lower cranks from {args.passive_from}, {label}:", flush=True)
+    result = paper_study(args.seed, noise=noise, passive_from=args.passive_from)
+    ident = result.identifiability
+    print(f"identifiable: {ident.rank_per_chain} per chain, {ident.rank_stacked} stacked "
+          f"(the paper's bound for the whole machine: {ident.paper_bound})")
+    if result.failure:
+        print(f"identification failed: {result.failure}")
+    print(header)
+    for chain, errors in result.holdout_poses.items():
+        print(row(f"held-out poses, chain {chain}: before", errors.before))
+        if errors.after is not None:
+            print(row(f"held-out poses, chain {chain}: after", errors.after))
+
+
 def cmd_evaluate(args: argparse.Namespace) -> None:
     from .calibration import pose_errors
     from .simulation import workspace_actuators
@@ -368,6 +406,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = verbs.add_parser("demo", help="the main job: simulate, calibrate, compensate, report (no input needed)")
     p.add_argument("--out", default="demo_out", help="artifact folder (default demo_out)")
     p.set_defaults(run=cmd_demo)
+
+    p = verbs.add_parser("paper", help="the paper's two-chain method: its simulation study, or on the closed chain")
+    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--noise", action="store_true", help="tracker, encoder and slider noise")
+    p.add_argument("--passive-from", choices=("sensor", "distance", "platform", "sliders"), default="sensor",
+                   help="lower cranks q13, q23: read, the paper's recursion (eq. 30), or a closure solve")
+    p.add_argument("--closed", action="store_true", help="run the method on the full closed-chain machine instead")
+    p.set_defaults(run=cmd_paper)
 
     p = verbs.add_parser("evaluate", help="compare nominal and calibrated machines against a (simulated) truth")
     p.add_argument("--truth", required=True, metavar="URDF")
