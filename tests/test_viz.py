@@ -13,6 +13,7 @@ import re
 import shutil
 import signal
 import subprocess
+import sys
 import time
 import urllib.request
 from pathlib import Path
@@ -64,6 +65,14 @@ def child_pids() -> set[int]:
             if int(fields[1]) == os.getpid() and fields[0] != "Z":
                 children.add(int(entry.name))
     return children
+
+
+def alive(pid: int) -> bool:
+    """Whether `pid` runs (a zombie left unreaped by a container's init does not count)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 needs_proc = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="process checks read Linux /proc")
@@ -164,6 +173,8 @@ def test_bad_views_and_markers_are_refused(mechanism):
         viz.build_scene([viz.MachineView("a", mechanism)], markers=np.zeros((2, 7)))
     with pytest.raises(InvalidInputError, match="non-finite"):
         viz.build_scene([viz.MachineView("a", mechanism)], markers=[[0.0, np.nan, 0.0]])
+    with pytest.raises(InvalidInputError, match="coincide"):
+        viz.Camera(position=(1.0, 1.0, 1.0), target=(1.0, 1.0, 1.0))
 
 
 # ------------------------------------------------------------------------------------------
@@ -240,7 +251,7 @@ def test_live_viewer_serves_the_scene_and_is_stopped(views):
         assert any(p and p.startswith("/meshcat/m3t1r/calibrated/visuals/") for p in paths)
         pid = live.pid
     assert live.process.poll() is not None
-    assert not Path(f"/proc/{pid}").exists() and child_pids() == before
+    assert not alive(pid) and child_pids() == before
     live.close()  # idempotent
 
 
@@ -250,6 +261,32 @@ def test_failed_command_starts_no_server(views):
     with pytest.raises(KinematicsError):
         viz.open_viewer(views, pose=(0.5, 0.5, 3.0, 0.0))
     assert child_pids() == before
+
+
+@needs_proc
+def test_server_exits_when_its_owner_is_killed(tmp_path):
+    # A CLI killed by SIGKILL runs no cleanup; the server's watchdog must notice on its own.
+    script = tmp_path / "owner.py"
+    script.write_text(
+        "import time\n"
+        "from m3t1r.description import Mechanism\n"
+        "from m3t1r import viz\n"
+        "live = viz.open_viewer(viz.comparison_views(Mechanism.load()))\n"
+        "print(live.pid, flush=True)\n"
+        "time.sleep(60)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        filter(None, [str(Path(viz.__file__).parents[1]), os.environ.get("PYTHONPATH")]))}
+    owner = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        server = int(owner.stdout.readline())
+        assert alive(server)
+    finally:
+        owner.kill()
+        owner.wait()
+    deadline = time.monotonic() + 5.0
+    while alive(server) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not alive(server), f"meshcat server {server} outlived its owner"
 
 
 # ------------------------------------------------------------------------------------------

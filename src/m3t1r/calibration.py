@@ -172,12 +172,14 @@ class ClosedLoopErrorModel:
             G[:, columns] = pin.computeFrameKinematicRegressor(model, data, frame_id, pin.WORLD)[:, columns]
         return G
 
-    def platform_sensitivity(self, solver: ClosedLoopSolver, q: np.ndarray,
-                             columns: np.ndarray | None = None) -> tuple[pin.SE3, np.ndarray, np.ndarray]:
+    def platform_sensitivity(self, solver: ClosedLoopSolver, q: np.ndarray, columns: np.ndarray | None = None,
+                             with_factors: bool = False):
         """Platform pose at an assembled q, d xi_P / dp (6 x P, spatial twist in WORLD) and
         dq_passive / dp (n_passive x P), for the parameter `columns` (default all).
 
         Sliders held fixed; the passive joints move with the parameters through the closures.
+        with_factors=True also returns the LU factors of the passive closure Jacobian at q, which
+        `ClosedLoopSolver.forward(..., factors=...)` can reuse on a nearby model.
         """
         model, data = solver.model, solver.data
         _, jac_q, operator = solver.closure_sensitivity(q)
@@ -197,20 +199,26 @@ class ClosedLoopErrorModel:
         if columns is not None:
             dr_dp, xi = dr_dp[:, columns], xi[:, columns]
         passive = solver.passive
-        lu, piv, _ = lapack.dgetrf(jac_q[:, passive])
+        square = jac_q[:, passive]
+        lu, piv, _ = lapack.dgetrf(square)
         dq_dp = -lapack.dgetrs(lu, piv, dr_dp)[0]
         J_platform = pin.getFrameJacobian(model, data, self._platform, pin.WORLD)
-        return pin.SE3(data.oMf[self._platform]), xi + J_platform[:, passive] @ dq_dp, dq_dp
+        result = (pin.SE3(data.oMf[self._platform]), xi + J_platform[:, passive] @ dq_dp, dq_dp)
+        if with_factors:
+            return result + ((lu, piv, float(np.max(np.sum(np.abs(square), axis=0)))),)
+        return result
 
 
-def _residual_rows(model_pose: pin.SE3, measured: pin.SE3, position_only: bool) -> tuple[np.ndarray, np.ndarray]:
+def _residual_rows(model_pose: pin.SE3, measured: pin.SE3, position_only: bool, with_jacobian: bool = True):
     """Residual e = [p_model - p_meas; log3(R_meas^T R_model)] and de/dxi (xi spatial, WORLD)."""
     p = model_pose.translation
-    position_map = np.hstack((np.eye(3), -pin.skew(p)))  # dp = v + w x p
     position_error = p - measured.translation
+    relative = None if position_only else measured.rotation.T @ model_pose.rotation
+    if not with_jacobian:
+        return position_error if position_only else np.concatenate((position_error, pin.log3(relative)))
+    position_map = np.hstack((np.eye(3), -pin.skew(p)))  # dp = v + w x p
     if position_only:
         return position_error, position_map
-    relative = measured.rotation.T @ model_pose.rotation
     rotation_map = np.hstack((np.zeros((3, 3)), pin.Jlog3(relative) @ model_pose.rotation.T))
     return np.concatenate((position_error, pin.log3(relative))), np.vstack((position_map, rotation_map))
 
@@ -223,7 +231,9 @@ class _State:
 
     model: pin.Model | None
     configurations: tuple[np.ndarray, ...]
+    poses: tuple[pin.SE3, ...] = ()
     tangents: tuple[np.ndarray, ...] | None = None
+    factors: tuple[tuple, ...] | None = None
     whitened: tuple[np.ndarray, np.ndarray] | None = None
 
 
@@ -239,10 +249,23 @@ class _ClosedLoopProblem:
         weights = np.r_[np.full(3, 1 / noise.position), np.full(3, 1 / noise.rotation)][:rows]
         self.weights = np.tile(weights, len(measurements))
 
-    def assemble(self, model: pin.Model, start: tuple[np.ndarray, ...]) -> _State:
+    def assemble(self, model: pin.Model, start: tuple[np.ndarray, ...], factors: tuple | None = None) -> _State:
+        """Assemble every measured pose on `model`, from `start`; with `factors` (each pose's
+        passive-Jacobian LU on a nearby model) Newton takes chord steps without a new Jacobian."""
         solver = ClosedLoopSolver(self.error_model.mechanism.with_model(model))
-        configurations = tuple(solver.forward(a, q_init=q0).q for a, q0 in zip(self.measurements.actuators, start))
-        return _State(model, configurations)
+        factors = factors or (None,) * len(start)
+        solutions = [solver.forward(a, q_init=q0, factors=lu)
+                     for a, q0, lu in zip(self.measurements.actuators, start, factors)]
+        return _State(model, tuple(s.q for s in solutions), tuple(s.pose for s in solutions))
+
+    def residual(self, state: _State) -> np.ndarray:
+        """Whitened residual from the assembled poses alone (LM trial steps)."""
+        if state.model is None:
+            return np.full(len(self.weights), np.inf)
+        m = self.measurements
+        e = [_residual_rows(pose, measured, m.position_only, with_jacobian=False)
+             for pose, measured in zip(state.poses, m.poses)]
+        return np.concatenate(e) * self.weights
 
     def evaluate(self, state: _State, columns: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
         """Unwhitened residual (6N or 3N), its Jacobian over `columns`, and dq_passive/dp per pose."""
@@ -251,13 +274,15 @@ class _ClosedLoopProblem:
         solver = ClosedLoopSolver(self.error_model.mechanism.with_model(state.model))
         residual = np.empty(rows * len(m))
         jacobian = np.empty((rows * len(m), len(columns)))
-        tangents = []
+        tangents, factors = [], []
         for i, (q, measured) in enumerate(zip(state.configurations, m.poses)):
-            pose, dxi, dq_dp = self.error_model.platform_sensitivity(solver, q, columns)
+            pose, dxi, dq_dp, lu = self.error_model.platform_sensitivity(solver, q, columns, with_factors=True)
             e, de = _residual_rows(pose, measured, m.position_only)
             residual[rows * i:rows * (i + 1)] = e
             jacobian[rows * i:rows * (i + 1)] = de @ dxi
             tangents.append(dq_dp)
+            factors.append(lu)
+        state.factors = tuple(factors)
         return residual, jacobian, tuple(tangents)
 
     def residual_and_jacobian(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
@@ -279,7 +304,7 @@ class _ClosedLoopProblem:
             passive = self.error_model.mechanism.passive_ids
             start = tuple(_shifted(q, passive, t @ step) for q, t in zip(start, state.tangents))
         try:
-            return self.assemble(model, start)
+            return self.assemble(model, start, state.factors)
         except KinematicsError:
             return _State(None, state.configurations)
 
@@ -323,9 +348,12 @@ def _rms(residual: np.ndarray, rows: int) -> tuple[float, float]:
 @on_one_blas_thread
 def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, noise: TrackerNoise = TrackerNoise(),
                           *, rank_tolerance: float = 1e-8, max_iterations: int = 60, cost_tolerance: float = 1e-10,
+                          absolute_cost_tolerance: float = 1e-6,
                           error_model: ClosedLoopErrorModel | None = None) -> ClosedLoopCalibration:
     """Identify the placement errors of every joint and closure/platform frame (module docstring).
 
+    LM stops when the whitened cost 1/2 chi^2 drops by less than cost_tolerance relatively or
+    absolute_cost_tolerance absolutely (1e-6 of a noise variance: far below what the data resolve).
     Base parameters are selected once, at the starting model, by column-pivoted QR of the whitened
     Jacobian (relative tolerance `rank_tolerance`); re-selecting during the iterations oscillates.
     Raises IdentificationError when there are fewer measurement rows than base parameters, when a
@@ -349,7 +377,7 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     problem.columns = np.array(base.indices)
     # Damping starts low: 1e-3 over-damps the weak directions (about twice the iterations).
     result = levenberg_marquardt(problem, state, max_iterations=max_iterations, initial_damping=1e-6,
-                                 cost_tolerance=cost_tolerance)
+                                 cost_tolerance=cost_tolerance, absolute_cost_tolerance=absolute_cost_tolerance)
     if result.state.model is None:
         raise IdentificationError("calibration ended on a model that does not assemble")
     final_residual, final_jacobian = problem.residual_and_jacobian(result.state)
@@ -379,7 +407,22 @@ _REFERENCE_POSES = 40  # a well-spread pose set on which the model's identifiabl
 def _structural_rank(error_model: ClosedLoopErrorModel, position_only: bool, noise: TrackerNoise,
                      rank_tolerance: float) -> int:
     """Number of identifiable parameters of the model itself, independent of the user's poses:
-    the base-parameter count on a fixed, seeded set of poses spread over the workspace box."""
+    the base-parameter count on a fixed, seeded set of poses spread over the workspace box.
+    Cached on the error model (it depends on the starting geometry, not on the data)."""
+    model = error_model.mechanism.model
+    geometry = np.concatenate([np.ravel([p.homogeneous for p in model.jointPlacements]),
+                               np.ravel([f.placement.homogeneous for f in model.frames])]).tobytes()
+    key = (geometry, error_model.placements, position_only, noise.position / noise.rotation, rank_tolerance)
+    if key not in _STRUCTURAL_RANKS:
+        _STRUCTURAL_RANKS[key] = _count_identifiable(error_model, position_only, noise, rank_tolerance)
+    return _STRUCTURAL_RANKS[key]
+
+
+_STRUCTURAL_RANKS: dict[tuple, int] = {}
+
+
+def _count_identifiable(error_model: ClosedLoopErrorModel, position_only: bool, noise: TrackerNoise,
+                        rank_tolerance: float) -> int:
     from .simulation import measure, workspace_actuators
 
     mechanism = error_model.mechanism

@@ -343,6 +343,8 @@ class LeastSquaresProblem(Protocol[State]):
 
     residual_and_jacobian: whitened residual r (m,) and its Jacobian (m, p) with respect to a
         tangent step dx at `state`, i.e. r(retract(state, dx)) = r + J dx + O(dx^2).
+    A problem may also define `residual(state) -> r` (same r, no Jacobian): trial steps then use
+    it, and the Jacobian is only computed for accepted steps.
     retract: the state moved by the tangent step dx (p,), e.g. T(0) <- T(0) exp6(dx) (eq. 33).
     """
 
@@ -380,6 +382,7 @@ def levenberg_marquardt(
     cost_tolerance: float = 1e-12,
     gradient_tolerance: float = 1e-12,
     initial_damping: float = 1e-3,
+    absolute_cost_tolerance: float = 0.0,
 ) -> LMResult[State]:
     """Minimise 1/2 ||r||^2 with Levenberg-Marquardt steps applied through `problem.retract`.
 
@@ -389,9 +392,13 @@ def levenberg_marquardt(
     on rejection mu *= nu and nu doubles, rho being actual over predicted decrease.
     Stops when ||J^T r||_inf <= gradient_tolerance, when a step has ||dx|| <= step_tolerance
     (parameter units), or when an accepted step lowers the cost by less than cost_tolerance times
-    the cost. An iteration is one Jacobian evaluation, however many damping trials it took.
+    the cost or by less than absolute_cost_tolerance (for a whitened residual, in units of noise
+    variance: a decrease far below one cannot be told from noise). An iteration is one Jacobian
+    evaluation, however many damping trials it took.
     """
     state = x0
+    # Optional cheaper residual for trial steps (rejected steps then cost no Jacobian).
+    residual_only = getattr(problem, "residual", None)
     r, J = problem.residual_and_jacobian(state)
     cost = 0.5 * float(r @ r)
     history = [cost]
@@ -419,16 +426,21 @@ def levenberg_marquardt(
             j_dx = rj @ dx
             predicted = -float(qtr @ j_dx) - 0.5 * float(j_dx @ j_dx)
             trial = problem.retract(state, dx)
-            r_trial, J_trial = problem.residual_and_jacobian(trial)
+            if residual_only is not None:  # the Jacobian only if the step is accepted
+                r_trial, J_trial = residual_only(trial), None
+            else:
+                r_trial, J_trial = problem.residual_and_jacobian(trial)
             cost_trial = 0.5 * float(r_trial @ r_trial)
             decrease = cost - cost_trial
             if decrease > 0.0 and np.isfinite(cost_trial):
                 rho = decrease / predicted if predicted > 0.0 else 0.0
                 mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
                 nu = 2.0
+                if J_trial is None:
+                    r_trial, J_trial = problem.residual_and_jacobian(trial)
                 state, r, J, cost = trial, r_trial, J_trial, cost_trial
                 history.append(cost)
-                if decrease <= cost_tolerance * (cost + decrease):
+                if decrease <= max(cost_tolerance * (cost + decrease), absolute_cost_tolerance):
                     return LMResult(state, iteration, cost, tuple(history), True, "cost", step_norm)
                 break
             mu *= nu

@@ -321,12 +321,14 @@ class ClosedLoopSolver:
                 f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}] (SI units: metres for sliders)")
         return values
 
-    def forward(self, actuators: np.ndarray, q_init: np.ndarray | None = None) -> ForwardResult:
+    def forward(self, actuators: np.ndarray, q_init: np.ndarray | None = None, factors: tuple | None = None) -> ForwardResult:
         """Platform pose for the given slider values, on the assembly branch of q_init.
 
         Newton on the enforced closure rows over the passive joints only (sliders locked):
         J_c,passive dq_passive = -r_c. Starts from q_init (default: the last solution of this
-        solver, initially home). Raises InvalidInputError for bad actuators, NotConvergedError /
+        solver, initially home). `factors`: LU factors (getrf, 1-norm) of a passive closure Jacobian
+        valid near q_init (e.g. from a nearby calibrated model): Newton starts with chord steps on
+        them instead of evaluating a Jacobian. Raises InvalidInputError for bad actuators, NotConvergedError /
         OutOfWorkspaceError / SingularConfigurationError (with the final residual) otherwise.
         """
         values = self.check_actuators(actuators)
@@ -339,9 +341,10 @@ class ClosedLoopSolver:
         self._tangent = None  # dropped until this solve succeeds
         outcome = self._newton(q, self.passive, lambda qk, wj: self._evaluate(qk, wj)[:2],
                                lambda jac, lu: self._branch(jac),
-                               start_branch=self._last_branch if warm else None)
+                               start_branch=self._last_branch if warm else None, factors=factors)
         lu = outcome.lu
-        self._tangent = -lapack.dgetrs(lu[0], lu[1], outcome.jacobian[:, self.actuated])[0]
+        if outcome.jacobian is not None:
+            self._tangent = -lapack.dgetrs(lu[0], lu[1], outcome.jacobian[:, self.actuated])[0]
         self._last_branch = outcome.branch
         self.last_q = outcome.q
         return ForwardResult(self._platform_pose(), outcome.q.copy(), outcome.residual, outcome.iterations)
@@ -349,7 +352,8 @@ class ClosedLoopSolver:
     def _platform_pose(self) -> pin.SE3:
         return pin.SE3(self.data.oMf[self._platform])
 
-    def _newton(self, q: np.ndarray, unknowns: np.ndarray, system, signature, start_branch=None) -> _Outcome:
+    def _newton(self, q: np.ndarray, unknowns: np.ndarray, system, signature, start_branch=None,
+                factors: tuple | None = None) -> _Outcome:
         """Newton on a square system over the columns `unknowns`, with chord steps.
 
         The Jacobian is evaluated at the start; later steps reuse its LU factors while each
@@ -357,9 +361,10 @@ class ClosedLoopSolver:
         `signature(jac, lu)` labels the branch: its value at the last Jacobian must equal
         `start_branch` (default: its value at the first Jacobian), else BranchChangeError.
         """
-        residual, jac = system(q, True)
+        residual, jac = system(q, factors is None)
         previous = norm = math.inf
-        last_jac = lu = branch = None
+        last_jac = branch = None
+        lu = factors
         for iteration in range(self.max_iterations + 1):
             norm = float(abs(residual).max())
             if not math.isfinite(norm):

@@ -134,6 +134,15 @@ class Camera:
     position: tuple[float, float, float]
     target: tuple[float, float, float]
 
+    def __post_init__(self) -> None:
+        # Checked here, not when drawing, so a bad camera fails before any command is sent.
+        position = require_finite_vector(self.position, 3, "camera position")
+        target = require_finite_vector(self.target, 3, "camera target")
+        if np.allclose(position, target):
+            raise InvalidInputError("camera position and target coincide: no view direction")
+        object.__setattr__(self, "position", tuple(float(v) for v in position))
+        object.__setattr__(self, "target", tuple(float(v) for v in target))
+
 
 DEFAULT_CAMERA = Camera(position=(1.6, -1.2, 1.0), target=(0.5, 0.5, 0.1))
 """Three-quarter view from the front right: both rails (along y at x = 0 and x = 1), the knees
@@ -346,14 +355,13 @@ def _draw_triad(node: meshcat.Visualizer, placement: pin.SE3) -> None:
 
 
 def _place_camera(viewer: meshcat.Visualizer, camera: Camera) -> None:
-    position = require_finite_vector(camera.position, 3, "camera position")
-    target = require_finite_vector(camera.target, 3, "camera target")
+    position, target = np.array(camera.position), np.array(camera.target)
     # meshcat 0.3.2's orbit controls always turn about the scene origin (no command moves their
     # target), so the target is brought to the origin instead: our root node, the grid and the
     # axes are all shifted by -target. Node transforms below /meshcat/m3t1r stay in the base
     # frame, and the grid and axes still mark the base frame's z = 0 plane and origin.
     shift = pin.SE3(np.eye(3), -target).homogeneous
-    for node in (f"/meshcat/{ROOT_NODE}", "/Grid", "/Axes"):
+    for node in (ROOT_NODE, "/Grid", "/Axes"):  # ours relative to the viewer, meshcat's absolute
         viewer[node].set_transform(shift)
     # The camera sits in a node rotated +90 deg about x (three.js is y-up, meshcat z-up), where
     # an offset (dx, dy, dz) from the target reads (dx, dz, -dy).
@@ -572,6 +580,22 @@ def _stop_server(process: subprocess.Popen, visualizer: meshcat.Visualizer | Non
             stream.close()
 
 
+# meshcat's server, plus a watchdog: if we die without stopping it (SIGTERM, SIGKILL), it is
+# re-parented, notices within a second and exits, instead of holding its ports forever.
+_SERVER_MAIN = """
+import os, sys, threading, time
+parent = os.getppid()
+def watch():
+    while os.getppid() == parent:
+        time.sleep(1.0)
+    os._exit(0)
+threading.Thread(target=watch, daemon=True).start()
+from meshcat.servers.zmqserver import main
+sys.argv = ["meshcat-server"]
+main()
+"""
+
+
 def _start_server() -> tuple[subprocess.Popen, str, str]:
     """Start meshcat's server and read its (zmq_url, web_url) announcement.
 
@@ -581,7 +605,7 @@ def _start_server() -> tuple[subprocess.Popen, str, str]:
     and waits for its announcement with no timeout.
     """
     # Its own session: a Ctrl-C meant for the CLI reaches us, and we stop the server cleanly.
-    process = subprocess.Popen([sys.executable, "-u", "-m", "meshcat.servers.zmqserver"],
+    process = subprocess.Popen([sys.executable, "-u", "-c", _SERVER_MAIN],
                                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                                start_new_session=True)
     announced: dict[str, str] = {}
