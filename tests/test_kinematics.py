@@ -162,3 +162,14 @@ def test_inverse_rejects_bad_targets(solver, bad, message):
 
 def test_yaw_convention():
     assert math.isclose(yaw_of(pin.rpy.rpyToMatrix(0.0, 0.0, 0.4)), 0.4)
+
+
+def test_warm_path_through_a_singularity_is_loud(solver):
+    """Driving the knees down through the flat five-bar by small warm steps must not silently
+    continue on the knees-below-the-rails branch."""
+    solver.inverse([0.5, 0.5, -0.1, 0.0], q_init=solver.mechanism.home)
+    knee = solver.model.idx_qs[solver.model.getJointId("q12")]
+    with pytest.raises(KinematicsError):
+        for z in np.linspace(-0.1, -0.9, 400):
+            result = solver.inverse([0.5, 0.5, z, 0.0])
+            assert result.q[knee] > 0.0, f"crossed to the other assembly mode at z = {z}"

@@ -60,11 +60,14 @@ _SKEW_ROWS, _SKEW_COLS = np.array([0, 0, 1, 1, 2, 2]), np.array([1, 2, 0, 2, 0, 
 _SKEW_SRC, _SKEW_SIGN = np.array([2, 1, 2, 0, 1, 0]), np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
 
 
-def _det_sign(lu: tuple) -> int:
-    """Sign of det(A) from LAPACK getrf factors (0-based pivots)."""
+def _det_sign(lu: tuple) -> bool:
+    """Whether det(A) > 0, from LAPACK getrf factors (0-based pivots)."""
     factors, pivots = lu[0], lu[1]
-    swaps = np.count_nonzero(pivots != np.arange(len(pivots)))
-    return int(np.prod(np.sign(np.diag(factors)))) * (-1 if swaps % 2 else 1)
+    flips = int((factors.diagonal() < 0).sum()) + int((pivots != _ARANGE[:len(pivots)]).sum())
+    return flips % 2 == 0
+
+
+_ARANGE = np.arange(256)
 
 
 def diagonal_blocks(pattern: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -96,10 +99,19 @@ class _BranchSignature:
         self._stacks = []
         for size in sorted({len(rows) for rows, _ in blocks}):
             same = [(rows, cols) for rows, cols in blocks if len(rows) == size]
-            self._stacks.append((np.array([r for r, _ in same])[:, :, None], np.array([c for _, c in same])[:, None, :]))
+            self._stacks.append((size, np.array([r for r, _ in same])[:, :, None], np.array([c for _, c in same])[:, None, :]))
 
-    def __call__(self, jac: np.ndarray) -> tuple[bool, ...]:
-        return tuple(np.concatenate([np.linalg.det(jac[rows, cols]) for rows, cols in self._stacks]) > 0)
+    def __call__(self, jac: np.ndarray) -> bytes:
+        signs = []
+        for size, rows, cols in self._stacks:
+            blocks = jac[rows, cols]
+            if size == 1:
+                signs.append(blocks[:, 0, 0] > 0)
+            elif size == 2:  # closed form: numpy's det costs ~10 us of overhead per call
+                signs.append(blocks[:, 0, 0] * blocks[:, 1, 1] - blocks[:, 0, 1] * blocks[:, 1, 0] > 0)
+            else:
+                signs.append(np.linalg.det(blocks) > 0)
+        return b"".join(sign.tobytes() for sign in signs)
 
 
 def _skew(p: np.ndarray) -> np.ndarray:
@@ -115,7 +127,7 @@ class _Outcome:
     iterations: int
     lu: tuple
     jacobian: np.ndarray
-    branch: tuple[int, ...]
+    branch: bytes
 
 
 @dataclass(frozen=True)
@@ -212,6 +224,7 @@ class ClosedLoopSolver:
         self._w_frames = [(int(start), c.frame_a_id, c.frame_b_id) for start, c in zip(starts, closures) if c.type == "6D"]
         self.n_rows = len(self._enforced)
 
+        self._all_columns = np.arange(nv)
         self.actuated = mechanism.actuated_ids
         self.passive = mechanism.passive_ids
         self._act_lower, self._act_upper = mechanism.joint_limits()
@@ -234,7 +247,7 @@ class ClosedLoopSolver:
                 pattern |= np.abs(jac) > 1e-9 * np.max(np.abs(jac))
             _BLOCK_CACHE[key] = [(rows, self.passive[cols]) for rows, cols in diagonal_blocks(pattern)]
         self._branch = _BranchSignature(_BLOCK_CACHE[key])
-        self._last_branch: tuple[int, ...] | None = None  # signature at this solver's last FK solution
+        self._last_branch: bytes | None = None  # signature at this solver's last FK solution
         self._tangent: np.ndarray | None = None  # d q_passive / d sliders at the last factorisation
         self.last_q = mechanism.home.copy()
 
@@ -420,7 +433,6 @@ class ClosedLoopSolver:
             vector = require_finite_vector(target, 4, "target (x, y, z, theta)")
             xyz, theta, wanted_tilt = vector[:3], float(vector[3]), (0.0, 0.0)
         q = (self.last_q if q_init is None else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
-        everything = np.arange(self.model.nv)
         if q_init is None and self._lu_inverse is not None and self._last_task is not None:
             # Predictor: one step with the last factorisation; at the last solution the closure
             # rows vanish and the task rows are just (last reached - new target).
@@ -446,7 +458,11 @@ class ClosedLoopSolver:
             return residual, np.vstack((jac, point, yaw_row))
 
         self._lu_inverse = None  # dropped until this solve succeeds
-        outcome = self._newton(q, everything, system, lambda jac, lu: self._branch(jac) + (_det_sign(lu),))
+        # A warm solve must stay on the previous solution's branch (assembly and working mode).
+        start = self._last_inverse_branch if q_init is None else None
+        self._last_inverse_branch = None
+        outcome = self._newton(q, self._all_columns, system,
+                               lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]), start_branch=start)
         q, residual, iterations = outcome.q, outcome.residual, outcome.iterations
         actuators = q[self.actuated].copy()
         names = self.mechanism.actuated_joints
@@ -456,7 +472,7 @@ class ClosedLoopSolver:
                 f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]", residual, iterations)
         # The FK warm start now follows this solution; its predictor tangent is from elsewhere.
         self.last_q, self._tangent, self._last_branch = q, None, outcome.branch[:-1]
-        self._lu_inverse = outcome.lu
+        self._lu_inverse, self._last_inverse_branch = outcome.lu, outcome.branch
         pose = self._platform_pose()
         self._last_task = (pose.translation.copy(), yaw_of(pose.rotation))
         roll, pitch = roll_pitch_of(pose.rotation)
@@ -464,6 +480,7 @@ class ClosedLoopSolver:
                              (roll - wanted_tilt[0], pitch - wanted_tilt[1]))
 
     _lu_inverse: tuple[np.ndarray, np.ndarray, float] | None = None
+    _last_inverse_branch: bytes | None = None  # signature at the last IK solution
     _last_task: tuple[np.ndarray, float] | None = None  # platform (position, yaw) at the last IK solution
 
     def reset(self) -> None:
@@ -471,6 +488,7 @@ class ClosedLoopSolver:
         self._tangent = None
         self._last_branch = None
         self._lu_inverse = None
+        self._last_inverse_branch = None
         self._last_task = None
         self.last_q = self.mechanism.home.copy()
 
