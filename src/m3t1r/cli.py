@@ -105,13 +105,18 @@ def cmd_simulate(args: argparse.Namespace) -> None:
 
     nominal = _mechanism(args.model, args.closures)
     noise = None if args.noise_free else TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
-    study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only)
+    from .reporting import IDLE_CHAIN_JOINTS
+
+    passive = IDLE_CHAIN_JOINTS if args.with_passive else ()
+    study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only,
+                           passive_joints=passive)
     protect = (nominal.urdf_path, nominal.closures_path)
     comments = _provenance(args) + [
         f"truth: {args.sigma_pos:g} m / {args.sigma_rot:g} rad errors on every joint placement and closure/platform frame, seed {args.seed}",
         "noise: none" if noise is None else f"noise: tracker {noise.position:g} m / {noise.rotation:g} rad, sliders {noise.actuator:g} m",
     ]
-    write_measurements(args.output, nominal, study.measurements, comments=comments, protect=protect)
+    write_measurements(args.output, nominal, study.measurements, passive_joints=passive,
+                       passive=study.passive_readings, comments=comments, protect=protect)
     print(f"wrote {args.n} {'position-only ' if args.position_only else ''}measurements to {args.output}")
     if args.truth_urdf:
         truth_urdf = Path(args.truth_urdf)
@@ -164,8 +169,23 @@ def cmd_calibrate(args: argparse.Namespace) -> None:
           f"(condition number {calibration.base.condition_number:.3g}) in {calibration.lm.iterations} iterations")
     print(f"residual RMS position {before[0]:.3e} -> {after[0]:.3e} m, orientation {before[1]:.3e} -> {after[1]:.3e} rad")
     print(f"wrote {output} and {_closures_beside(output)}")
+    cross_validation = None
+    if data.passive_joints:
+        from .reporting import passive_joint_residuals
+
+        actuators = data.measurements.actuators
+        before = passive_joint_residuals(nominal, actuators, data.passive_joints, data.passive)
+        after = passive_joint_residuals(calibration.mechanism, actuators, data.passive_joints, data.passive)
+        print("passive-joint readings the fit did not use (RMS after removing each encoder's zero offset):")
+        for k, name in enumerate(data.passive_joints):
+            print(f"  {name}: nominal {before.rms[k]:.3e}, calibrated {after.rms[k]:.3e}")
+        cross_validation = {name: {"nominal_rms": float(before.rms[k]), "calibrated_rms": float(after.rms[k]),
+                                   "calibrated_offset": float(after.offsets[k])}
+                            for k, name in enumerate(data.passive_joints)}
     if args.report:
         report = _calibration_report(calibration, data, nominal, noise)
+        if cross_validation is not None:
+            report["passive_joint_cross_validation"] = cross_validation
         atomic_write_text(args.report, json.dumps(report, indent=2) + "\n", protect=protect)
         print(f"wrote {args.report}")
     if args.plots:
@@ -365,6 +385,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_noise_options(p)
     p.add_argument("--noise-free", action="store_true", help="exact measurements")
     p.add_argument("--position-only", action="store_true", help="a tracker without orientation")
+    p.add_argument("--with-passive", action="store_true",
+                   help="also record encoders on the idle chains' hinges (q12_B2, q22_B4) for cross-validation")
     p.add_argument("-o", "--output", required=True, help="measurement CSV")
     p.add_argument("--truth-urdf", metavar="URDF", help="also write the actual machine (and its closures file)")
     _add_model_options(p)

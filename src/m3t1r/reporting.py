@@ -11,6 +11,7 @@ Without a known truth, each plot uses what the data can show honestly:
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
@@ -23,7 +24,12 @@ from .description import Mechanism
 from .errors import IdentificationError, KinematicsError
 from .kinematics import ClosedLoopSolver
 
-__all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots"]
+__all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots", "PassiveJointResiduals",
+           "passive_joint_residuals", "IDLE_CHAIN_JOINTS"]
+
+# The hinges of the idle sub-branches B2 and B4 (paper section 2.4: the pair not used by its
+# two-chain model, "used for cross-validation").
+IDLE_CHAIN_JOINTS = ("q12_B2", "q22_B4")
 
 
 def measured_pose_errors(machine: Mechanism, measurements: PoseMeasurements) -> PoseErrors:
@@ -101,3 +107,38 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
                                           title="Predicted position error after compensation (1 sigma)",
                                           protect=protect))
     return written
+
+
+@dataclass(frozen=True)
+class PassiveJointResiduals:
+    """Measured minus predicted passive-joint angles [rad] (or positions [m]) at the measured sliders.
+
+    An encoder's zero is not observable from platform poses (a rotation of a joint placement
+    about its own axis is absorbed by the next placement), so each joint's constant offset is
+    removed first: `offsets` (k,) is it, `residuals` (N, k) what is left, `rms` (k,) their RMS.
+    """
+
+    joints: tuple[str, ...]
+    offsets: np.ndarray
+    residuals: np.ndarray
+
+    @property
+    def rms(self) -> np.ndarray:
+        return np.sqrt(np.mean(self.residuals**2, axis=0))
+
+
+def passive_joint_residuals(machine: Mechanism, actuators: np.ndarray, joints: tuple[str, ...],
+                            readings: np.ndarray) -> PassiveJointResiduals:
+    """How well a machine model predicts passive-joint readings it was not fitted to.
+
+    With readings of the idle chains' hinges (IDLE_CHAIN_JOINTS) this is the paper's
+    cross-validation with the idle pair of branched chains: closed-loop FK of the model at each
+    slider set predicts those angles; a good model leaves only encoder noise.
+    """
+    model = machine.model
+    columns = [model.idx_qs[model.getJointId(name)] for name in joints]
+    solver = ClosedLoopSolver(machine)
+    predicted = np.array([solver.forward(sliders).q[columns] for sliders in np.asarray(actuators, dtype=float)])
+    difference = np.asarray(readings, dtype=float) - predicted
+    offsets = difference.mean(axis=0)
+    return PassiveJointResiduals(tuple(joints), offsets, difference - offsets)

@@ -77,7 +77,12 @@ def measure(machine: Mechanism, actuators: np.ndarray, rng: np.random.Generator 
 
 @dataclass(frozen=True)
 class SimulatedStudy:
-    """A truth machine, calibration measurements on it, and held-out slider sets to judge a model."""
+    """A truth machine, calibration measurements on it, and held-out slider sets to judge a model.
+
+    passive_joints / passive_readings: encoder readings (N, k) of those joints of the truth at
+    the measured poses (noisy with `encoder_noise` [rad] when the study is noisy), for
+    cross-validation; the calibration does not use them.
+    """
 
     nominal: Mechanism
     truth: Mechanism
@@ -85,11 +90,14 @@ class SimulatedStudy:
     measurements: PoseMeasurements
     holdout_actuators: np.ndarray
     seed: int
+    passive_joints: tuple[str, ...] = ()
+    passive_readings: np.ndarray | None = None
 
 
 def simulate_study(nominal: Mechanism, n_poses: int = 50, n_holdout: int = 200, seed: int = 0,
                    sigma_position: float = 1e-3, sigma_rotation: float = 1e-3, noise: TrackerNoise | None = None,
-                   position_only: bool = False) -> SimulatedStudy:
+                   position_only: bool = False, passive_joints: tuple[str, ...] = (),
+                   encoder_noise: float = 1e-5) -> SimulatedStudy:
     """Draw a truth machine (errors on every joint and closure/platform frame), n_poses noisy (or
     exact, noise=None) measurements and n_holdout other slider sets, all from one seed."""
     if n_poses < 1 or n_holdout < 0:
@@ -100,4 +108,13 @@ def simulate_study(nominal: Mechanism, n_poses: int = 50, n_holdout: int = 200, 
     truth = actual_machine(nominal, errors, error_model)
     actuators = workspace_actuators(nominal, n_poses + n_holdout, rng)
     measurements = measure(truth, actuators[:n_poses], rng, noise, position_only)
-    return SimulatedStudy(nominal, truth, errors, measurements, actuators[n_poses:], seed)
+    readings = None
+    if passive_joints:
+        # Drawn after everything else, so adding encoders does not change the rest of the study.
+        solver = ClosedLoopSolver(truth)
+        columns = [truth.model.idx_qs[truth.model.getJointId(name)] for name in passive_joints]
+        readings = np.array([solver.forward(sliders).q[columns] for sliders in actuators[:n_poses]])
+        if noise is not None:
+            readings = readings + rng.normal(0.0, encoder_noise, readings.shape)
+    return SimulatedStudy(nominal, truth, errors, measurements, actuators[n_poses:], seed, tuple(passive_joints),
+                          readings)
