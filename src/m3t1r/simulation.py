@@ -9,6 +9,7 @@ frame already span what a real machine can be, and that is what `actual_machine`
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,7 +21,8 @@ from .description import Mechanism
 from .errors import InvalidInputError, KinematicsError
 from .kinematics import ClosedLoopSolver, rehomed
 
-__all__ = ["SimulatedStudy", "random_placement_errors", "actual_machine", "workspace_actuators",
+__all__ = ["SimulatedStudy", "random_placement_errors", "actual_machine", "with_joint_errors", "orthonormal_twist",
+           "workspace_actuators",
            "measure", "simulate_study"]
 
 
@@ -31,10 +33,61 @@ def random_placement_errors(error_model: ClosedLoopErrorModel, rng: np.random.Ge
     return rng.normal(0.0, 1.0, error_model.n_parameters) * scale
 
 
-def actual_machine(nominal: Mechanism, errors: np.ndarray, error_model: ClosedLoopErrorModel | None = None) -> Mechanism:
-    """The nominal machine with placement errors applied (eq. 34) and its home re-assembled."""
+def actual_machine(nominal: Mechanism, errors: np.ndarray, error_model: ClosedLoopErrorModel | None = None,
+                   twist_errors: Mapping[str, np.ndarray] | None = None,
+                   joint_offsets: Mapping[str, float] | None = None) -> Mechanism:
+    """The nominal machine with placement errors dt (eq. 34), and optionally twist errors ds
+    (eq. 35) and joint offsets dq (eq. 36) per joint name, with its home re-assembled."""
     error_model = error_model or ClosedLoopErrorModel(nominal)
-    return rehomed(nominal.with_model(error_model.perturbed(nominal.model, errors)))
+    model = error_model.perturbed(nominal.model, errors)
+    if twist_errors or joint_offsets:
+        model = with_joint_errors(model, twist_errors or {}, joint_offsets or {})
+    return rehomed(nominal.with_model(model))
+
+
+def orthonormal_twist(twist: np.ndarray, error: np.ndarray) -> np.ndarray:
+    """s + ds projected back onto 1-DoF twists of the same kind (paper section 6): a revolute
+    keeps |w| = 1 and w . v = 0 (zero pitch), a prismatic |v| = 1 and w = 0."""
+    v, w = twist[:3] + error[:3], twist[3:] + error[3:]
+    if not np.any(twist[3:]):
+        return np.r_[v / np.linalg.norm(v), np.zeros(3)]
+    w = w / np.linalg.norm(w)
+    return np.r_[v - (w @ v) * w, w]
+
+
+def with_joint_errors(model: pin.Model, twist_errors: Mapping[str, np.ndarray],
+                      joint_offsets: Mapping[str, float]) -> pin.Model:
+    """A copy of `model` whose joints move along actual twists s^a = orthonormal(s + ds) with
+    actual values q + dq, expressed through placements only (the local POE model's claim).
+
+    s^a = Ad_C s for the rigid transform C that carries the nominal axis onto the actual one
+    (through the joint origin for Pinocchio's joints), so
+        T(0) exp(s^a (q + dq)) = [T(0) C exp(s dq)] exp(s q) C^-1,
+    i.e. the joint placement becomes T(0) C exp(s dq) and C^-1 moves onto everything the joint
+    carries: its child joints' placements and its frames.
+    """
+    out = pin.Model(model)
+    data = out.createData()
+    for name in set(twist_errors) | set(joint_offsets):
+        if not out.existJointName(name):
+            raise InvalidInputError(f"joint '{name}' does not exist")
+        j = out.getJointId(name)
+        motion = np.array(data.joints[j].S).reshape(6)  # the joint's twist in its own frame, [v; w]
+        actual = orthonormal_twist(motion, np.asarray(twist_errors.get(name, np.zeros(6)), dtype=float))
+        axis, moved = (motion[3:], actual[3:]) if np.any(motion[3:]) else (motion[:3], actual[:3])
+        rotation = pin.Quaternion.FromTwoVectors(axis, moved).matrix()
+        point = np.cross(actual[3:], actual[:3]) if np.any(motion[3:]) else np.zeros(3)
+        carry = pin.SE3(rotation, point)
+        offset = pin.exp6(motion * float(joint_offsets.get(name, 0.0)))
+        out.jointPlacements[j] = pin.SE3(out.jointPlacements[j]) * carry * offset
+        inverse = carry.inverse()
+        for child in range(j + 1, out.njoints):
+            if out.parents[child] == j:
+                out.jointPlacements[child] = inverse * out.jointPlacements[child]
+        for frame in out.frames:
+            if frame.parentJoint == j and frame.type != pin.FrameType.JOINT:
+                frame.placement = inverse * frame.placement
+    return out
 
 
 @on_one_blas_thread
