@@ -30,7 +30,7 @@ from scipy.linalg import lapack
 
 from ._threads import on_one_blas_thread
 from .description import Mechanism
-from .errors import IdentificationError, InvalidInputError, KinematicsError
+from .errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
 from .identification import BaseParameters, LMResult, levenberg_marquardt, select_base_parameters
 from .kinematics import ClosedLoopSolver, rehomed
 from .poe import Placement, perturb
@@ -348,7 +348,8 @@ def _rms(residual: np.ndarray, rows: int) -> tuple[float, float]:
 @on_one_blas_thread
 def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, noise: TrackerNoise = TrackerNoise(),
                           *, rank_tolerance: float = 1e-8, max_iterations: int = 60, cost_tolerance: float = 1e-10,
-                          absolute_cost_tolerance: float = 1e-6,
+                          absolute_cost_tolerance: float = 1e-6, refine: bool = False,
+                          refine_rank_tolerance: float = 1e-7, refine_iterations: int = 400,
                           error_model: ClosedLoopErrorModel | None = None) -> ClosedLoopCalibration:
     """Identify the placement errors of every joint and closure/platform frame (module docstring).
 
@@ -356,6 +357,11 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     absolute_cost_tolerance absolutely (1e-6 of a noise variance: far below what the data resolve).
     Base parameters are selected once, at the starting model, by column-pivoted QR of the whitened
     Jacobian (relative tolerance `rank_tolerance`); re-selecting during the iterations oscillates.
+    refine=True (exact data only, e.g. simulation studies): after convergence, re-select the
+    base parameters at the estimate, where some of the 148 directions unidentifiable at the
+    nominal geometry have become weakly identifiable (O(error^2) effects), and continue with
+    damped LM for up to `refine_iterations`. Noise-free 1 mm / 1 mrad: 0.4 um -> 0.04 um
+    held-out in ~15 s. With noisy data it fits noise along those weak directions: leave it off.
     Raises IdentificationError when there are fewer measurement rows than base parameters, when a
     measured pose cannot be assembled on the starting model, or when LM fails.
     """
@@ -380,12 +386,28 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
                                  cost_tolerance=cost_tolerance, absolute_cost_tolerance=absolute_cost_tolerance)
     if result.state.model is None:
         raise IdentificationError("calibration ended on a model that does not assemble")
+    if refine:
+        _, jacobian, _ = problem.evaluate(result.state, everything)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PoorExcitationWarning)  # weak by construction
+            refined = select_base_parameters(jacobian * problem.weights[:, None], error_model.names,
+                                             rel_tol=refine_rank_tolerance)
+        if refined.rank > base.rank:
+            base = refined
+            problem.columns = np.array(base.indices)
+            state = problem.assemble(result.state.model, result.state.configurations)
+            result = levenberg_marquardt(problem, state, max_iterations=refine_iterations, initial_damping=1e-9,
+                                         cost_tolerance=1e-14)
     final_residual, final_jacobian = problem.residual_and_jacobian(result.state)
     rows = measurements.rows_per_pose
     # Covariance of the base parameters from the noise model: (J^T W J)^-1 with whitened J.
-    covariance = np.linalg.pinv(final_jacobian.T @ final_jacobian)
+    # From the SVD of J rather than pinv(J^T J): squaring the condition number of a weakly
+    # excited set can make the diagonal slightly negative.
+    _, singular, vt = np.linalg.svd(final_jacobian, full_matrices=False)
+    kept = singular > 1e-12 * singular[0]
+    covariance = (vt[kept].T / singular[kept] ** 2) @ vt[kept]
     std = np.zeros(error_model.n_parameters)
-    std[problem.columns] = np.sqrt(np.diag(covariance))
+    std[problem.columns] = np.sqrt(np.sum((vt[kept] / singular[kept, None]) ** 2, axis=0))
     identified = _accumulated_parameters(error_model, mechanism.model, result.state.model)
     calibrated = rehomed(mechanism.with_model(result.state.model))
     return ClosedLoopCalibration(
