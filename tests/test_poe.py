@@ -10,12 +10,16 @@ from m3t1r.errors import InvalidInputError, UnknownNameError, UnsupportedJointEr
 from m3t1r.poe import (
     Placement,
     SerialChain,
+    adjoint_matrices,
     error_jacobian_world,
     express_error_jacobian,
     forward_and_error_jacobians,
     perturb,
     placement_of,
+    placement_poses,
     poe_forward,
+    skew,
+    tool_poses,
 )
 from m3t1r.serial import example_tool_frame, load_example_robot
 
@@ -197,6 +201,98 @@ def test_error_jacobian_matches_pinocchio_regressor(robot: str, request: pytest.
         for k, j in enumerate(chain.joint_ids):
             np.testing.assert_allclose(jacobian[:, 6 * k : 6 * k + 6], regressor[:, 6 * (j - 1) : 6 * j], atol=1e-12)
         np.testing.assert_allclose(jacobian[:, -6:], data.oMf[chain.tool_frame_id].action, atol=1e-12)
+
+
+# --------------------------------------------------------------------------------------------------
+# Batched evaluation
+
+
+def chain_and_model(name: str, request: pytest.FixtureRequest) -> tuple[pin.Model, SerialChain]:
+    if name == "mixed":
+        model = mixed_joint_model()
+        return model, SerialChain.from_model(model, "tool")
+    if name == "ur5-sub":
+        model = request.getfixturevalue("ur5")
+        return model, SerialChain.from_model(model, "tool0", base_frame="upper_arm_link")
+    model = request.getfixturevalue(name)
+    return model, SerialChain.from_model(model, example_tool_frame(name))
+
+
+@pytest.mark.parametrize("name", ["ur5", "panda", "mixed", "ur5-sub"])
+def test_joint_motions_equal_exp6(name: str, request: pytest.FixtureRequest) -> None:
+    _, chain = chain_and_model(name, request)
+    q = np.random.default_rng(20).uniform(-3.0, 3.0, size=(12, chain.n_joints))
+    q[0] = 0.0
+    q[1] = 1e-9  # the closed form has no 1/angle term: nothing special near zero
+    motions = chain.joint_motions(q)
+    assert motions.shape == (chain.n_joints, len(q), 4, 4)
+    for i, row in enumerate(q):
+        for k, value in enumerate(row):
+            np.testing.assert_allclose(motions[k, i], pin.exp6(chain.twists[k] * value).homogeneous, atol=1e-15)
+
+
+@pytest.mark.parametrize("name", ["ur5", "panda", "mixed", "ur5-sub"])
+def test_placement_poses_equal_pinocchio(name: str, request: pytest.FixtureRequest) -> None:
+    model, chain = chain_and_model(name, request)
+    data = model.createData()
+    q_chain = random_chain_configurations(model, chain, 20, seed=21)
+    frames = placement_poses(chain, chain.initial_transforms(model), q_chain)
+    assert frames.shape == (20, chain.n_joints + 1, 4, 4)
+    np.testing.assert_array_equal(tool_poses(chain, model, q_chain), frames[:, -1])
+    for q_c, poses in zip(q_chain, frames):
+        q = chain.model_configuration(model, q_c)
+        pin.framesForwardKinematics(model, data, q)
+        base = pin.SE3.Identity() if chain.base_frame_id is None else data.oMf[chain.base_frame_id]
+        # F_k: joint k's placement frame before its motion, oMi[parent] T(0); the tool frame last.
+        expected = [base.actInv(data.oMi[model.parents[j]] * model.jointPlacements[j]) for j in chain.joint_ids]
+        expected.append(base.actInv(data.oMf[chain.tool_frame_id]))
+        for frame, pose in zip(poses, expected):
+            np.testing.assert_allclose(frame, pose.homogeneous, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["ur5", "panda", "mixed", "ur5-sub"])
+def test_batched_jacobians_equal_the_pose_by_pose_product(name: str, request: pytest.FixtureRequest) -> None:
+    # The former implementation, one Pinocchio SE3 product per link and pose, is the reference.
+    model, chain = chain_and_model(name, request)
+    q_chain = random_chain_configurations(model, chain, 15, seed=22)
+    poses, jacobians = forward_and_error_jacobians(chain, model, q_chain)
+    initial = chain.initial_poses(model)
+    for q, pose, jacobian in zip(q_chain, poses, jacobians):
+        g = pin.SE3.Identity()
+        for k in range(chain.n_joints):
+            g = g * initial[k]
+            np.testing.assert_allclose(jacobian[:, 6 * k : 6 * k + 6], g.action, atol=1e-12)
+            g = g * pin.exp6(chain.twists[k] * q[k])
+        g = g * initial[-1]
+        np.testing.assert_allclose(jacobian[:, -6:], g.action, atol=1e-12)
+        assert se3_distance(pose, g) < 1e-12
+        assert se3_distance(pose, poe_forward(chain, model, q)) < 1e-12
+
+
+def test_adjoint_and_skew_match_pinocchio() -> None:
+    rng = np.random.default_rng(23)
+    poses = [pin.SE3(pin.exp3(rng.normal(size=3)), rng.normal(size=3)) for _ in range(4)]
+    adjoints = adjoint_matrices(np.array([g.homogeneous for g in poses]))
+    for g, ad in zip(poses, adjoints):
+        np.testing.assert_allclose(ad, g.action, atol=1e-15)
+    vectors = rng.normal(size=(5, 3))
+    for v, m in zip(vectors, skew(vectors)):
+        np.testing.assert_array_equal(m, pin.skew(v))
+
+
+def test_batched_inputs_are_validated(ur5: pin.Model) -> None:
+    chain = SerialChain.from_model(ur5, "tool0")
+    transforms = chain.initial_transforms(ur5)
+    with pytest.raises(InvalidInputError, match=r"expected shape \(7, 4, 4\)"):
+        placement_poses(chain, transforms[:-1], np.zeros((2, 6)))
+    with pytest.raises(InvalidInputError, match=r"expected shape \(N, 6\)"):
+        placement_poses(chain, transforms, np.zeros((2, 5)))
+    bad = np.zeros((3, 6))
+    bad[2, 1] = np.nan
+    with pytest.raises(InvalidInputError, match="row 2"):
+        tool_poses(chain, ur5, bad)
+    # A single configuration is a batch of one.
+    assert tool_poses(chain, ur5, np.zeros(6)).shape == (1, 4, 4)
 
 
 # --------------------------------------------------------------------------------------------------

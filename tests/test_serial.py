@@ -6,8 +6,10 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from m3t1r import serial
 from m3t1r.errors import InvalidInputError
 from m3t1r.identification import select_base_parameters
+from m3t1r.metrics import PoseErrors
 from m3t1r.poe import SerialChain, forward_and_error_jacobians, perturb
 from m3t1r.serial import (
     MeasurementNoise,
@@ -163,3 +165,90 @@ def test_measurement_formats_and_validation() -> None:
         calibrate_serial(model, chain, data.q_readings, bad, noise=NOISE)
     with pytest.raises(InvalidInputError, match="must be > 0"):
         calibrate_serial(model, chain, data.q_readings, xyzquat, noise=MeasurementNoise(0.0, 0.0, 0.0))
+
+
+# --------------------------------------------------------------------------------------------------
+# Batched residual internals against their Pinocchio / finite-difference references
+
+
+def test_batched_log3_and_jlog3_equal_pinocchio() -> None:
+    rng = np.random.default_rng(30)
+    angles = [0.0, 1e-12, 1e-7, 1e-5, 9.9e-3, 1.01e-2, 0.3, 1.5, 2.9, 3.1, np.pi - 1e-6, np.pi]
+    axes = rng.normal(size=(len(angles), 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    rotations = np.array([pin.exp3(a * u) for a, u in zip(angles, axes)])
+    logs, measured_angles = serial._log3_batch(rotations)
+    jacobians = serial._jlog3_batch(logs, measured_angles)
+    for rotation, log, angle, jacobian in zip(rotations, logs, measured_angles, jacobians):
+        np.testing.assert_allclose(log, pin.log3(rotation), rtol=1e-12, atol=1e-15)
+        assert angle == pytest.approx(np.linalg.norm(pin.log3(rotation)), rel=1e-12, abs=1e-15)
+        if angle < np.pi - 1e-3:  # Jlog3 is singular at pi
+            np.testing.assert_allclose(jacobian, pin.Jlog3(rotation), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("position_only", [False, True])
+def test_residual_jacobian_matches_finite_differences(position_only: bool) -> None:
+    # The analytic whitened Jacobian against central differences of the residual through the same
+    # retraction T(0) <- T(0) exp6(dt) that the optimiser uses, at a perturbed (non-nominal) state.
+    model = load_example_robot("ur5")
+    chain = SerialChain.from_model(model, "tool0")
+    data = simulate_serial_measurements(model, chain, 8, np.random.default_rng(31), noise=NOISE)
+    measurements = serial._parse_measurements(chain, data.q_readings, data.measured_poses, position_only)
+    state = serial._readonly_state(chain, perturb(model, {p: np.full(6, 2e-3) for p in chain.placements()}))
+    whitening = serial._whitening(chain, state, measurements, NOISE)
+    residual = serial._SerialResidual(chain, measurements, whitening)
+    r, J = residual.residual_and_jacobian(state)
+    np.testing.assert_array_equal(residual.residual(state), r)
+    step = 1e-7
+    numeric = np.empty_like(J)
+    for i in range(chain.n_parameters):
+        dt = np.zeros(chain.n_parameters)
+        dt[i] = step
+        plus, minus = residual.retract(state, dt), residual.retract(state, -dt)
+        numeric[:, i] = (residual.residual(plus) - residual.residual(minus)) / (2 * step)
+    assert np.linalg.norm(J - numeric) <= 1e-6 * np.linalg.norm(J)
+
+
+def test_rank_bound_is_reached_at_a_generic_model(robot) -> None:
+    # The structural bound 4 r + 2 p + 6 (+ 3 with positions only) used to skip a re-selection that
+    # cannot find more parameters: it must be the rank wherever the geometry is not special.
+    _, model, chain = robot
+    rng = np.random.default_rng(32)
+    generic = perturb(model, {p: rng.normal(0.0, 1e-2, 6) for p in chain.placements()})
+    q = sample_configurations(model, chain, N_POSES, rng)
+    for position_only, rows in ((False, slice(0, 6)), (True, slice(0, 3))):
+        poses, jacobians = forward_and_error_jacobians(chain, generic, q)
+        p = np.array([g.translation for g in poses])
+        position = jacobians[:, :3] + np.cross(jacobians[:, 3:], p[:, :, None], axis=1)
+        stacked = np.concatenate([position, jacobians[:, 3:]], axis=1)[:, rows].reshape(-1, chain.n_parameters)
+        rank = select_base_parameters(stacked, chain.parameter_names()).rank
+        assert rank == serial._rank_bound(chain, position_only)
+
+
+def test_stopping_one_iteration_earlier_changes_nothing() -> None:
+    # absolute_cost_tolerance only saves the final iteration whose step is at rounding level.
+    model = load_example_robot("ur10")
+    chain = SerialChain.from_model(model, "tool0")
+    noise = MeasurementNoise(position=1e-5, rotation=2e-5, joint=0.0)
+    data = simulate_serial_measurements(model, chain, N_POSES, np.random.default_rng(33), noise=noise)
+    default = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=noise)
+    exhaustive = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=noise,
+                                  absolute_cost_tolerance=0.0)
+    assert default.converged and exhaustive.converged
+    assert default.iterations <= exhaustive.iterations <= default.iterations + 1
+    q = sample_configurations(model, chain, N_HELD_OUT, np.random.default_rng(34))
+    difference = pose_errors(default.model, exhaustive.model, chain, q)
+    assert difference.position_max < 1e-10 and difference.rotation_max < 1e-10
+    assert default.variance_factor == pytest.approx(exhaustive.variance_factor, rel=1e-9)
+
+
+def test_evaluations_return_the_shared_pose_errors_type() -> None:
+    model = load_example_robot("ur5")
+    chain = SerialChain.from_model(model, "tool0")
+    data = simulate_serial_measurements(model, chain, 20, np.random.default_rng(35), noise=NOISE)
+    calibration = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=NOISE)
+    q = sample_configurations(model, chain, 5, np.random.default_rng(36))
+    assert isinstance(pose_errors(calibration.model, data.truth, chain, q), PoseErrors)
+    predicted = predicted_pose_std(calibration, q)
+    assert isinstance(predicted, PoseErrors) and predicted.position.shape == (5,)
+    assert serial.PoseErrors is PoseErrors

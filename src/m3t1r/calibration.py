@@ -33,6 +33,7 @@ from .description import Mechanism
 from .errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
 from .identification import BaseParameters, LMResult, levenberg_marquardt, select_base_parameters
 from .kinematics import ClosedLoopSolver, rehomed
+from .metrics import PoseErrors  # re-exported: one pose-error type for every calibration
 from .poe import Placement, perturb
 
 __all__ = [
@@ -464,23 +465,6 @@ def _accumulated_parameters(error_model: ClosedLoopErrorModel, start: pin.Model,
 
     blocks = [pin.log6(placement_of(start, p).actInv(placement_of(end, p))).vector for p in error_model.placements]
     return np.concatenate(blocks)
-
-
-@dataclass(frozen=True)
-class PoseErrors:
-    """Per-pose platform errors between two machines at the same slider values:
-    position [m] (norm) and orientation [rad] (angle of R_a^T R_b)."""
-
-    position: np.ndarray
-    rotation: np.ndarray
-
-    @property
-    def position_mean(self) -> float:
-        return float(np.mean(self.position))
-
-    @property
-    def rotation_mean(self) -> float:
-        return float(np.mean(self.rotation))
 
 
 @on_one_blas_thread

@@ -12,14 +12,20 @@ So this module needs no second kinematic description: a `Placement` names one T(
 `perturb` applies the paper's error model T(0) <- T(0) exp6(dt) (eq. 33/34) to a copy, and the error
 Jacobian of eq. (17)-(20) is a list of adjoint matrices along the chain.
 
+Batches of configurations are evaluated in numpy, all poses at once: the joint motions exp6(S q) in
+closed form (Rodrigues), then one stacked 4 x 4 product per chain link (`placement_poses`). Pinocchio
+objects are kept for single poses and for the model itself (`poe_forward`, `perturb`).
+
 Conventions (Pinocchio's): SE3 objects, twists and Jacobian rows in [linear; angular] order, SI units
 (m, rad). WORLD means the chain's base frame {B} (Pinocchio's world frame when no base frame is given).
+Arrays of poses are homogeneous matrices (..., 4, 4), as `pin.SE3.homogeneous`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
@@ -31,12 +37,16 @@ from m3t1r.errors import InvalidInputError, UnknownNameError, UnsupportedJointEr
 __all__ = [
     "Placement",
     "SerialChain",
+    "adjoint_matrices",
     "error_jacobian_world",
     "express_error_jacobian",
     "forward_and_error_jacobians",
     "perturb",
     "placement_of",
+    "placement_poses",
     "poe_forward",
+    "skew",
+    "tool_poses",
 ]
 
 _TWIST_COMPONENTS = 6
@@ -218,6 +228,42 @@ def perturb(model: pin.Model, deltas: Mapping[Placement, ArrayLike]) -> pin.Mode
 
 
 @dataclass(frozen=True)
+class _JointMotionTerms:
+    """Constants of exp6(S q) for the chain's twists S_k = [v_k; w_k], to evaluate it in closed form.
+
+    With u = w / |w| and angle a = |w| q (rad), Rodrigues gives the rotation
+        R = I + sin(a) [u] + (1 - cos(a)) [u]^2
+    and the translation V(a) v q of the SE(3) exponential is
+        p = q v + (1 - cos(a)) [u] v / |w| + (a - sin(a)) [u]^2 v / |w|,
+    which has no 1/a singularity at q = 0. A prismatic joint (w = 0) gets zero [u] terms: R = I, p = q v.
+
+    Both are linear in the five scalars c = (1, sin a, 1 - cos a, q, a - sin a), so the flattened 4 x 4
+    matrix of joint k is c @ basis[k], with basis (n, 5, 16) holding the matching constant parts.
+    """
+
+    rate: np.ndarray  # (n,) |w_k| (rad per unit of joint coordinate; 0 for prismatic joints)
+    basis: np.ndarray  # (n, 5, 16)
+
+    @classmethod
+    def from_twists(cls, twists: np.ndarray) -> _JointMotionTerms:
+        twists = np.asarray(twists, dtype=float).reshape(-1, 6)
+        linear, angular = twists[:, :3], twists[:, 3:]
+        rate = np.linalg.norm(angular, axis=1)
+        inverse_rate = np.divide(1.0, rate, out=np.zeros_like(rate), where=rate > 0.0)
+        axis_skew = skew(angular * inverse_rate[:, None])
+        axis_skew2 = axis_skew @ axis_skew
+        basis = np.zeros((len(twists), 5, 4, 4))
+        basis[:, 0, :3, :3] = np.eye(3)
+        basis[:, 0, 3, 3] = 1.0
+        basis[:, 1, :3, :3] = axis_skew
+        basis[:, 2, :3, :3] = axis_skew2
+        basis[:, 2, :3, 3] = (axis_skew @ linear[:, :, None])[:, :, 0] * inverse_rate[:, None]
+        basis[:, 3, :3, 3] = linear
+        basis[:, 4, :3, 3] = (axis_skew2 @ linear[:, :, None])[:, :, 0] * inverse_rate[:, None]
+        return cls(rate, basis.reshape(len(twists), 5, 16))
+
+
+@dataclass(frozen=True)
 class SerialChain:
     """The joints from a base frame {B} to a tool frame {P}, seen as the local POE of eq. (6).
 
@@ -339,6 +385,33 @@ class SerialChain:
         poses.append(model.frames[self.tool_frame_id].placement.copy())
         return poses
 
+    def initial_transforms(self, model: pin.Model) -> np.ndarray:
+        """`initial_poses` as one (n + 1, 4, 4) array of homogeneous matrices (m), a fresh copy.
+
+        This is the state `placement_poses` consumes: a calibration can update these n + 1 matrices
+        (T(0) <- T(0) exp6(dt), eq. 33) without copying a Pinocchio model at every step.
+        """
+        return np.array([pose.homogeneous for pose in self.initial_poses(model)])
+
+    @cached_property
+    def _motion_terms(self) -> _JointMotionTerms:
+        # cached_property writes the instance __dict__ directly, which a frozen dataclass allows.
+        return _JointMotionTerms.from_twists(self.twists)
+
+    def joint_motions(self, q_chain: ArrayLike) -> np.ndarray:
+        """exp6(S_k q_k) for every joint k and configuration, (n, N, 4, 4) homogeneous matrices.
+
+        q_chain: (N, n) chain coordinates (rad or m).
+        Closed form for all N configurations at once (see `_JointMotionTerms`), instead of N n
+        calls to pin.exp6; joint-major so that each joint's (N, 4, 4) stack is contiguous.
+        """
+        terms = self._motion_terms
+        q = _checked_configurations(self, q_chain).T  # (n, N)
+        angle = q * terms.rate[:, None]
+        sine = np.sin(angle)
+        coefficients = np.stack([np.ones_like(q), sine, 1.0 - np.cos(angle), q, angle - sine], axis=-1)
+        return (coefficients @ terms.basis).reshape(q.shape + (4, 4))
+
     def joint_twists(self, model: pin.Model) -> np.ndarray:
         """(n, 6) joint twists S_k = [v; w] (dimensionless; per rad or per m), each in its own joint
         frame, read from Pinocchio's motion subspace (e.g. revolute about z -> [0, 0, 0, 0, 0, 1])."""
@@ -425,37 +498,84 @@ def poe_forward(chain: SerialChain, model: pin.Model, q_chain: ArrayLike) -> pin
     return g * model.frames[chain.tool_frame_id].placement
 
 
-def forward_and_error_jacobians(
-    chain: SerialChain, model: pin.Model, q_chain: ArrayLike
-) -> tuple[list[pin.SE3], np.ndarray]:
-    """Tool poses and WORLD error Jacobians at a batch of chain configurations.
+def placement_poses(chain: SerialChain, transforms: ArrayLike, q_chain: ArrayLike) -> np.ndarray:
+    """Poses in {B} of the chain's n + 1 placement frames, at a batch of configurations.
 
-    q_chain: (N, n). Returns ([g_1 .. g_N], J of shape (N, 6, 6(n+1))); see `error_jacobian_world`
-    for the meaning of J. One pass along the chain per pose yields both.
+    transforms: (n + 1, 4, 4) initial poses T(0) as from `SerialChain.initial_transforms` (m).
+    q_chain: (N, n) chain coordinates (rad or m).
+    Returns F (N, n + 1, 4, 4) with F_k = g_{B,k-1}(q) T_{k-1,k}(0): the frame in which the error dt_k
+    of placement k acts (eq. 17: its Jacobian block is Ad(F_k)), and F_n = g_{B,P}(q), the tool pose
+    of eq. (6). Batched over poses: 2 n stacked 4 x 4 products instead of a Python loop per pose.
     """
+    n = chain.n_joints
+    transforms = np.asarray(transforms, dtype=float)
+    if transforms.shape != (n + 1, 4, 4):
+        raise InvalidInputError(f"initial transforms: expected shape ({n + 1}, 4, 4), got {transforms.shape}")
+    motions = chain.joint_motions(q_chain)  # (n, N, 4, 4)
+    n_poses = motions.shape[1]
+    frames = np.empty((n + 1, n_poses, 4, 4))
+    frames[0] = transforms[0]
+    moved = np.empty((n_poses, 4, 4))
+    for k in range(n):
+        np.matmul(frames[k], motions[k], out=moved)  # g_{B,k} = F_k exp6(S_k q_k)
+        # F_{k+1} = g_{B,k} T_{k,k+1}(0): one constant right factor, so a single (4N x 4) @ (4 x 4)
+        # product, several times faster than a broadcast stacked matmul.
+        np.matmul(moved.reshape(-1, 4), transforms[k + 1], out=frames[k + 1].reshape(-1, 4))
+    return np.swapaxes(frames, 0, 1)
+
+
+def tool_poses(chain: SerialChain, model: pin.Model, q_chain: ArrayLike) -> np.ndarray:
+    """Tool poses g_{B,P} (N, 4, 4) (m) of `model` at chain configurations (N, n): `poe_forward` for a
+    batch, as homogeneous matrices."""
     chain.check_model(model)
+    return placement_poses(chain, chain.initial_transforms(model), q_chain)[:, -1]
+
+
+def adjoint_matrices(poses: np.ndarray) -> np.ndarray:
+    """Ad(g) = [[R, [p] R], [0, R]] (..., 6, 6) of homogeneous poses (..., 4, 4), [linear; angular] order
+    like `pin.SE3.action`: it maps a twist in the frame of g to the same twist in the reference frame."""
+    rotation, position = poses[..., :3, :3], poses[..., :3, 3]
+    out = np.zeros(poses.shape[:-2] + (6, 6))
+    out[..., :3, :3] = rotation
+    out[..., 3:, 3:] = rotation
+    out[..., :3, 3:] = skew(position) @ rotation
+    return out
+
+
+def skew(vectors: np.ndarray) -> np.ndarray:
+    """Cross-product matrices [x] (..., 3, 3) of vectors (..., 3): [x] y = x cross y."""
+    x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
+    out = np.zeros(vectors.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -z, y, -x
+    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = z, -y, x
+    return out
+
+
+def _checked_configurations(chain: SerialChain, q_chain: ArrayLike) -> np.ndarray:
     q_chain = np.atleast_2d(np.asarray(q_chain, dtype=float))
     if q_chain.ndim != 2 or q_chain.shape[1] != chain.n_joints:
         raise InvalidInputError(f"chain configurations: expected shape (N, {chain.n_joints}), got {q_chain.shape}")
     if not np.all(np.isfinite(q_chain)):
         row = int(np.flatnonzero(~np.all(np.isfinite(q_chain), axis=1))[0])
         raise InvalidInputError(f"chain configurations: non-finite value in row {row}")
-    base_inv = _base_inverse(chain, model)
-    joint_placements = [model.jointPlacements[j].copy() for j in chain.joint_ids]
-    tool = model.frames[chain.tool_frame_id].placement.copy()
-    n = chain.n_joints
-    poses: list[pin.SE3] = []
-    jacobians = np.empty((q_chain.shape[0], 6, chain.n_parameters))
-    for i, q in enumerate(q_chain):
-        g = base_inv
-        for k in range(n):
-            g = g * joint_placements[k]
-            jacobians[i, :, 6 * k : 6 * k + 6] = g.action
-            g = g * pin.exp6(chain.twists[k] * q[k])
-        g = g * tool
-        jacobians[i, :, 6 * n :] = g.action
-        poses.append(g)
-    return poses, jacobians
+    return q_chain
+
+
+def forward_and_error_jacobians(
+    chain: SerialChain, model: pin.Model, q_chain: ArrayLike
+) -> tuple[list[pin.SE3], np.ndarray]:
+    """Tool poses and WORLD error Jacobians at a batch of chain configurations.
+
+    q_chain: (N, n). Returns ([g_1 .. g_N], J of shape (N, 6, 6(n+1))); see `error_jacobian_world`
+    for the meaning of J. Both come from one batched pass along the chain (`placement_poses`); use
+    that function directly to stay in arrays.
+    """
+    chain.check_model(model)
+    frames = placement_poses(chain, chain.initial_transforms(model), q_chain)
+    n_poses, n_blocks = frames.shape[:2]
+    # (N, n+1, 6, 6) -> (N, 6, n+1, 6): block k holds the 6 columns of placement k.
+    jacobians = np.swapaxes(adjoint_matrices(frames), 1, 2).reshape(n_poses, 6, 6 * n_blocks)
+    return [pin.SE3(g) for g in frames[:, -1]], jacobians
 
 
 def error_jacobian_world(chain: SerialChain, model: pin.Model, q_chain: ArrayLike) -> np.ndarray:

@@ -35,13 +35,13 @@ from numpy.typing import ArrayLike
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.errors import InvalidInputError, ModelFileError
 from m3t1r.identification import BaseParameters, batch_least_squares, levenberg_marquardt, select_base_parameters
-from m3t1r.poe import Placement, SerialChain, forward_and_error_jacobians, perturb, placement_of
+from m3t1r.metrics import PoseErrors, pose_errors_between
+from m3t1r.poe import Placement, SerialChain, perturb, placement_poses, skew, tool_poses
 
 __all__ = [
     "MeasurementNoise",
     "PoseErrorRMS",
     "PoseErrors",
-    "PredictedPoseStd",
     "RobotName",
     "SerialCalibration",
     "SerialMeasurements",
@@ -215,11 +215,10 @@ def simulate_serial_measurements(
     truth = perturb(perturb(model, errors), {p: chain.twists[k] * offsets[k] for k, p in enumerate(placements[:-1])})
     q_true = sample_configurations(model, chain, n_poses, rng)
     q_readings = q_true + rng.normal(0.0, noise.joint, q_true.shape) if noise.joint > 0.0 else q_true.copy()
-    poses, _ = forward_and_error_jacobians(chain, truth, q_true)
     measured = []
-    for g in poses:
-        rotation = g.rotation @ pin.exp3(rng.normal(0.0, noise.rotation, 3))
-        measured.append(pin.SE3(rotation, g.translation + rng.normal(0.0, noise.position, 3)))
+    for g in tool_poses(chain, truth, q_true):
+        rotation = g[:3, :3] @ pin.exp3(rng.normal(0.0, noise.rotation, 3))
+        measured.append(pin.SE3(rotation, g[:3, 3] + rng.normal(0.0, noise.position, 3)))
     frozen_errors = MappingProxyType({p: _readonly(v) for p, v in errors.items()})
     return SerialMeasurements(
         truth=truth,
@@ -240,20 +239,84 @@ def _readonly(array: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------------------------------
 # Residuals
+#
+# The optimiser's state is the chain's n + 1 initial poses T(0) as one read-only (n + 1, 4, 4) array
+# (`SerialChain.initial_transforms`), not a Pinocchio model: a step T(0) <- T(0) exp6(dx) (eq. 33)
+# then costs n + 1 small products instead of a model copy, and forward kinematics of all poses is one
+# batched pass (`placement_poses`). The calibrated model is built once, at the end.
+
+# Above this rotation angle the axis is read from the symmetric part of R (pin.log3) instead of from
+# R - R^T, whose size, 2 sin(angle), vanishes at pi; cos(angle) < -0.99 is beyond 171.9 deg.
+_NEAR_PI_COSINE = -0.99
 
 
-def _pose_rows(
-    jacobians: np.ndarray, poses: Sequence[pin.SE3], log_jacobians: np.ndarray | None
-) -> np.ndarray:
-    """Map WORLD twist rows (N, 6, m) to residual rows: the tool origin displacement v + w x p
-    (WORLD) and, when log_jacobians (N, 3, 3) is given, the orientation rows Jlog3 R^T w (LOCAL)."""
-    p = np.array([g.translation for g in poses])
-    position = jacobians[:, :3, :] + np.cross(jacobians[:, 3:, :], p[:, :, None], axis=1)
-    if log_jacobians is None:
-        return position
-    rotation_t = np.array([g.rotation.T for g in poses])
-    orientation = log_jacobians @ rotation_t @ jacobians[:, 3:, :]
-    return np.concatenate([position, orientation], axis=1)
+def _log3_batch(rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """log3 (N, 3) of rotation matrices (N, 3, 3) and the angles (N,) (rad): pin.log3, batched.
+
+    With R - R^T = 2 sin(a) [u] and trace R = 1 + 2 cos(a): a = atan2(|sin|, cos), log = a u. Angles
+    near pi fall back to pin.log3, which recovers the axis from R + R^T (never met by calibration
+    residuals, which are small rotations).
+    """
+    sine_axis = 0.5 * np.stack(
+        [
+            rotations[:, 2, 1] - rotations[:, 1, 2],
+            rotations[:, 0, 2] - rotations[:, 2, 0],
+            rotations[:, 1, 0] - rotations[:, 0, 1],
+        ],
+        axis=1,
+    )
+    sine = np.linalg.norm(sine_axis, axis=1)
+    cosine = 0.5 * (np.trace(rotations, axis1=1, axis2=2) - 1.0)
+    angle = np.arctan2(sine, cosine)
+    # a / sin(a) is well conditioned everywhere below pi; at a = 0 exactly, sine_axis is zero anyway.
+    ratio = np.divide(angle, sine, out=np.ones_like(angle), where=sine > 0.0)
+    logs = ratio[:, None] * sine_axis
+    for i in np.flatnonzero(cosine < _NEAR_PI_COSINE):
+        logs[i] = pin.log3(rotations[i])
+    return logs, angle
+
+
+def _jlog3_batch(logs: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """pin.Jlog3 (N, 3, 3) at rotations exp3(logs), logs (N, 3), angles = |logs| (rad).
+
+    Jlog3 = I + [w]/2 + b(a) [w]^2 with b(a) = 1/a^2 - 1 / (2 a tan(a/2)) (the inverse right Jacobian
+    of SO(3)). b cancels catastrophically at small a, where calibration residuals live, so its
+    series 1/12 + a^2/720 + a^4/30240 (error below 1e-18 for a < 1e-2) is used there.
+    """
+    small = angles < 1e-2
+    safe = np.where(small, 1.0, angles)
+    squared = angles**2
+    b = np.where(small, 1.0 / 12.0 + squared / 720.0 + squared**2 / 30240.0,
+                 1.0 / safe**2 - 1.0 / (2.0 * safe * np.tan(0.5 * safe)))
+    w = skew(logs)
+    return np.eye(3) + 0.5 * w + b[:, None, None] * (w @ w)
+
+
+def _placement_rows(frames: np.ndarray, orientation: bool, log_jacobians: np.ndarray | None = None) -> np.ndarray:
+    """Residual rows (N, k, 6 (n + 1)) per unit placement error, from `placement_poses` frames F.
+
+    The WORLD Jacobian block of placement j is Ad(F_j) = [[R_j, [p_j] R_j], [0, R_j]] (eq. 17). Mapped
+    to this module's residual: the tool origin moves by v + w x p_P, i.e. [R_j, [p_j - p_P] R_j]
+    (WORLD); the orientation rows are Jlog3 R_P^T w = Jlog3 [0, R_P^T R_j] (LOCAL), with Jlog3 = I when
+    log_jacobians (N, 3, 3) is None. k = 6 with orientation, else 3. Formed from the frames directly,
+    without the 6 x 6 adjoints.
+    """
+    n_poses, n_blocks = frames.shape[:2]
+    k = 6 if orientation else 3
+    rotations = np.ascontiguousarray(frames[..., :3, :3])  # (N, m, 3, 3); stacked products are slow on views
+    side_by_side = rotations.transpose(0, 2, 1, 3).reshape(n_poses, 3, 3 * n_blocks)  # [R_1 ... R_m] per pose
+    offsets = frames[..., :3, 3] - frames[:, -1:, :3, 3]  # p_j - p_P (N, m, 3)
+    rows = np.empty((n_poses, k, n_blocks, 6))  # pose, residual row, placement, twist component
+    rows[:, :3, :, :3] = side_by_side.reshape(n_poses, 3, n_blocks, 3)
+    rows[:, :3, :, 3:] = (skew(offsets) @ rotations).transpose(0, 2, 1, 3)
+    if orientation:
+        rows[:, 3:, :, :3] = 0.0
+        left = np.swapaxes(rotations[:, -1], 1, 2)  # R_P^T
+        if log_jacobians is not None:
+            left = log_jacobians @ left
+        # One (3 x 3) @ (3 x 3m) product per pose covers every placement.
+        rows[:, 3:, :, 3:] = (left @ side_by_side).reshape(n_poses, 3, n_blocks, 3)
+    return rows.reshape(n_poses, k, 6 * n_blocks)
 
 
 @dataclass(frozen=True)
@@ -262,54 +325,116 @@ class _Measurements:
     positions: np.ndarray  # (N, 3)
     rotations: np.ndarray | None  # (N, 3, 3), None in position-only mode
 
+    @property
+    def rows_per_pose(self) -> int:
+        return 3 if self.rotations is None else 6
 
-class _SerialProblem:
-    """The whitened calibration residual over the base parameters, for `levenberg_marquardt`."""
 
-    def __init__(
-        self,
-        chain: SerialChain,
-        data: _Measurements,
-        columns: np.ndarray,
-        whitening: np.ndarray,
-    ) -> None:
+class _Evaluation:
+    """What one state gives, computed on demand: frames (N, n+1, 4, 4), raw residual (N, k),
+    orientation logs and angles, whitened residual and full whitened Jacobian."""
+
+    def __init__(self, frames: np.ndarray) -> None:
+        self.frames = frames
+        self.residual: np.ndarray | None = None
+        self.logs: np.ndarray | None = None
+        self.angles: np.ndarray | None = None
+        self.whitened: np.ndarray | None = None
+        self.jacobian: np.ndarray | None = None
+
+
+class _SerialResidual:
+    """The whitened residual of every placement error, as a function of the state (n + 1, 4, 4).
+
+    The last state's evaluation is kept (keyed by identity; states are read-only arrays): the
+    optimiser asks for a trial's residual and, once accepted, for its Jacobian at the same state,
+    and `calibrate_serial` reuses the nominal and final evaluations for the base-parameter choice.
+    """
+
+    def __init__(self, chain: SerialChain, data: _Measurements, whitening: np.ndarray) -> None:
         self.chain = chain
         self.data = data
-        self.columns = columns
         self.whitening = whitening  # (N, k, k): inverse Cholesky factor of each pose's covariance
-        self.placements = chain.placements()
+        self._state: np.ndarray | None = None
+        self._evaluation: _Evaluation | None = None
 
-    def residual_and_jacobian(self, model: pin.Model) -> tuple[np.ndarray, np.ndarray]:
-        residual, jacobian = _raw_residual_and_jacobian(self.chain, model, self.data)
-        r = np.einsum("nij,nj->ni", self.whitening, residual).reshape(-1)
-        J = np.einsum("nij,njm->nim", self.whitening, jacobian[:, :, self.columns]).reshape(r.size, -1)
-        return r, J
+    def _evaluate(self, state: np.ndarray) -> _Evaluation:
+        if state is not self._state or self._evaluation is None:
+            self._evaluation = _Evaluation(placement_poses(self.chain, state, self.data.q))
+            self._state = state
+        return self._evaluation
 
-    def retract(self, model: pin.Model, step: np.ndarray) -> pin.Model:
-        full = np.zeros(self.chain.n_parameters)
+    def raw_residual(self, state: np.ndarray) -> np.ndarray:
+        """(N, k): p_model - p_meas (m, WORLD) [, log3(R_meas^T R_model) (rad, LOCAL)]."""
+        e = self._evaluate(state)
+        if e.residual is None:
+            tool = e.frames[:, -1]
+            position = tool[:, :3, 3] - self.data.positions
+            if self.data.rotations is None:
+                e.residual = position
+            else:
+                e.logs, e.angles = _log3_batch(np.swapaxes(self.data.rotations, 1, 2) @ tool[:, :3, :3])
+                e.residual = np.concatenate([position, e.logs], axis=1)
+            e.residual.flags.writeable = False  # cached: callers share it
+        return e.residual
+
+    def residual(self, state: np.ndarray) -> np.ndarray:
+        """Whitened residual (N k,), no Jacobian: what a trial step needs."""
+        e = self._evaluate(state)
+        if e.whitened is None:
+            e.whitened = (self.whitening @ self.raw_residual(state)[:, :, None]).reshape(-1)
+            e.whitened.flags.writeable = False
+        return e.whitened
+
+    def residual_and_jacobian(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened residual (N k,) and its Jacobian (N k, 6 (n + 1)) over all placement errors."""
+        r = self.residual(state)
+        e = self._evaluate(state)
+        if e.jacobian is None:
+            log_jacobians = None if e.logs is None else _jlog3_batch(e.logs, e.angles)
+            rows = _placement_rows(e.frames, self.data.rotations is not None, log_jacobians)
+            e.jacobian = (self.whitening @ rows).reshape(r.size, -1)
+            e.jacobian.flags.writeable = False
+        return r, e.jacobian
+
+    def retract(self, state: np.ndarray, step: np.ndarray) -> np.ndarray:
+        """T_j(0) <- T_j(0) exp6(dt_j) for every placement j, step = [dt_1; ...; dt_P] (eq. 33)."""
+        out = state.copy()
+        for j in range(out.shape[0]):
+            twist = step[6 * j : 6 * j + 6]
+            if np.any(twist):
+                out[j] = out[j] @ pin.exp6(twist).homogeneous
+        out.flags.writeable = False
+        return out
+
+
+class _SerialProblem:
+    """The whitened calibration residual over the base parameters (columns), for `levenberg_marquardt`."""
+
+    def __init__(self, residual: _SerialResidual, columns: Sequence[int]) -> None:
+        self._residual = residual
+        self.columns = np.asarray(columns, dtype=int)
+
+    def residual(self, state: np.ndarray) -> np.ndarray:
+        return self._residual.residual(state)
+
+    def residual_and_jacobian(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r, J = self._residual.residual_and_jacobian(state)
+        return r, J[:, self.columns]
+
+    def retract(self, state: np.ndarray, step: np.ndarray) -> np.ndarray:
+        full = np.zeros(self._residual.chain.n_parameters)
         full[self.columns] = step
-        return perturb(model, {p: full[6 * k : 6 * k + 6] for k, p in enumerate(self.placements)})
+        return self._residual.retract(state, full)
 
 
-def _orientation_errors(measured: np.ndarray, poses: Sequence[pin.SE3]) -> tuple[np.ndarray, np.ndarray]:
-    """log3(R_meas^T R_model) (N, 3) and its Jlog3 (N, 3, 3) for measured rotations (N, 3, 3)."""
-    errors = np.swapaxes(measured, 1, 2) @ np.array([g.rotation for g in poses])
-    return np.array([pin.log3(e) for e in errors]), np.array([pin.Jlog3(e) for e in errors])
+def _readonly_state(chain: SerialChain, model: pin.Model) -> np.ndarray:
+    state = chain.initial_transforms(model)
+    state.flags.writeable = False
+    return state
 
 
-def _raw_residual_and_jacobian(
-    chain: SerialChain, model: pin.Model, data: _Measurements
-) -> tuple[np.ndarray, np.ndarray]:
-    """Unwhitened residuals (N, k) and their Jacobians (N, k, 6(n+1)) over all placement errors."""
-    poses, jacobians = forward_and_error_jacobians(chain, model, data.q)
-    residual = np.array([g.translation for g in poses]) - data.positions
-    if data.rotations is None:
-        return residual, _pose_rows(jacobians, poses, None)
-    logs, log_jacobians = _orientation_errors(data.rotations, poses)
-    return np.concatenate([residual, logs], axis=1), _pose_rows(jacobians, poses, log_jacobians)
-
-
-def _whitening(chain: SerialChain, model: pin.Model, data: _Measurements, noise: MeasurementNoise) -> np.ndarray:
+def _whitening(chain: SerialChain, state: np.ndarray, data: _Measurements, noise: MeasurementNoise) -> np.ndarray:
     """Inverse Cholesky factors (N, k, k) of the residual covariance of each pose.
 
     Cov = diag(sigma_p^2 I3 [, sigma_R^2 I3]) + J_q sigma_q^2 J_q^T, with J_q the residual's
@@ -318,7 +443,7 @@ def _whitening(chain: SerialChain, model: pin.Model, data: _Measurements, noise:
     millimetre-size corrections.
     """
     n_poses = data.q.shape[0]
-    k = 3 if data.rotations is None else 6
+    k = data.rows_per_pose
     sigmas = np.full(k, noise.position)
     if data.rotations is not None:
         sigmas[3:] = noise.rotation
@@ -326,14 +451,12 @@ def _whitening(chain: SerialChain, model: pin.Model, data: _Measurements, noise:
         raise InvalidInputError("MeasurementNoise: position (and rotation, for full poses) must be > 0 to whiten")
     if noise.joint == 0.0:
         return np.broadcast_to(np.diag(1.0 / sigmas), (n_poses, k, k)).copy()
-    poses, jacobians = forward_and_error_jacobians(chain, model, data.q)
+    unit = _SerialResidual(chain, data, np.broadcast_to(np.eye(k), (n_poses, k, k)))
+    rows = unit.residual_and_jacobian(state)[1].reshape(n_poses, k, -1)
     n = chain.n_joints
     # Column k of the joint Jacobian is block k of the error Jacobian applied to S_k:
     # Ad(g_{B,k-1} T_{k-1,k}(0)) S_k = Ad(g_{B,k}) S_k because Ad(exp(S_k q_k)) S_k = S_k.
-    blocks = jacobians[:, :, : 6 * n].reshape(n_poses, 6, n, 6)
-    joint_world = np.einsum("nikj,kj->nik", blocks, chain.twists)
-    log_jacobians = None if data.rotations is None else _orientation_errors(data.rotations, poses)[1]
-    joint_rows = _pose_rows(joint_world, poses, log_jacobians)
+    joint_rows = np.einsum("nikj,kj->nik", rows[:, :, : 6 * n].reshape(n_poses, k, n, 6), chain.twists)
     covariance = np.diag(sigmas**2) + noise.joint**2 * joint_rows @ np.swapaxes(joint_rows, 1, 2)
     return np.linalg.inv(np.linalg.cholesky(covariance))
 
@@ -402,8 +525,9 @@ def _parse_measurements(
         not_se3 = [i for i, g in enumerate(measured_poses) if not isinstance(g, pin.SE3)]
         if not_se3:
             raise InvalidInputError(f"measured_poses: row {not_se3[0]} is not an SE3 like the others")
-        positions = np.array([g.translation for g in measured_poses])
-        rotations = np.array([g.rotation for g in measured_poses])
+        homogeneous = np.array([g.homogeneous for g in measured_poses])  # one conversion per pose
+        positions = homogeneous[:, :3, 3].copy()
+        rotations = np.ascontiguousarray(homogeneous[:, :3, :3])
     else:
         array = np.asarray(measured_poses, dtype=float)
         if array.ndim != 2 or array.shape[1] not in (3, 7):
@@ -430,6 +554,24 @@ def _parse_measurements(
     return _Measurements(q=q, positions=positions, rotations=None if position_only else rotations)
 
 
+def _rank_bound(chain: SerialChain, position_only: bool) -> int:
+    """An upper bound on the rank of the error Jacobian that holds at every model and configuration.
+
+    An error twist c on placement k that commutes with the joint twist S_k (ad_{S_k} c = 0) passes
+    through the joint motion, Ad(exp6(S_k q)) c = c, so it equals the error Ad(T_{k,k+1}(0)^-1) c on the
+    next placement, exactly: one linear dependency among the columns per dimension of the
+    centraliser of S_k. That is 2 for a screw (revolute or helical joint: the twist itself and the
+    pure rotation about, or translation along, its axis) and 4 for a pure translation (prismatic
+    joint: every translation and the rotation about its axis), the paper's 4 r + 2 p + 6 (section
+    3.2). Position rows also never see the tool's own rotation (3 zero columns). The dependencies are
+    independent (each involves its own placement's block), hence the bound; base-parameter selection
+    never counts them, its pivots being at rounding level there.
+    """
+    prismatic = int(np.count_nonzero(~np.any(chain.twists[:, 3:], axis=1)))
+    dependencies = 2 * chain.n_joints + 2 * prismatic + (3 if position_only else 0)
+    return chain.n_parameters - dependencies
+
+
 def _rms(residual: np.ndarray) -> PoseErrorRMS:
     position = float(np.sqrt(np.mean(np.sum(residual[:, :3] ** 2, axis=1))))
     rotation = float(np.sqrt(np.mean(np.sum(residual[:, 3:] ** 2, axis=1)))) if residual.shape[1] == 6 else np.nan
@@ -447,6 +589,7 @@ def calibrate_serial(
     noise: MeasurementNoise = MeasurementNoise(),
     rel_tol: float = 1e-9,
     max_iterations: int = 30,
+    absolute_cost_tolerance: float = 1e-6,
 ) -> SerialCalibration:
     """Identify the placement errors of `chain` from measured tool poses (eq. 17-20, 32, 33).
 
@@ -456,42 +599,57 @@ def calibrate_serial(
     position_only: use only the position rows (3 per pose); tool-orientation errors are then
         unobservable and stay at zero.
     noise: standard deviations used to whiten the residuals (see `MeasurementNoise`).
+    absolute_cost_tolerance: Levenberg-Marquardt also stops once an accepted step lowers the whitened
+        cost 1/2 chi^2 by less than this (a noise variance; 1e-6 moves the estimate by about 1e-3 of
+        its standard deviation, far below what the data resolve). Without it, the run ends with one
+        more iteration whose step is at rounding level; 0 restores that.
 
     Method: select the base parameters by pivoted QR of the whitened Jacobian at the nominal model
     and run Levenberg-Marquardt over them with multiplicative updates T(0) <- T(0) exp6(dx)
     (eq. 33); the set is fixed during a run, since re-selecting at every iterate makes the kept
     set, hence the steps, jump. Nominal CAD geometry can be special (e.g. UR's tool point lies on
     the last joint axis, which hides two parameters from position measurements), so the selection
-    is repeated at the converged model, and the run resumed from there, while the rank grows.
+    is repeated at the converged model, and the run resumed from there, while the rank grows (and
+    is below the structural maximum 4 r + 2 p + 6, or + 3 with positions only, section 3.2).
     """
     chain.check_model(model)
     data = _parse_measurements(chain, q_readings, measured_poses, position_only)
-    whitening = _whitening(chain, model, data, noise)
-    residual0, _ = _raw_residual_and_jacobian(chain, model, data)
+    nominal = _readonly_state(chain, model)
+    whitening = _whitening(chain, nominal, data, noise)
+    residual = _SerialResidual(chain, data, whitening)
+    residual0 = residual.raw_residual(nominal)
     names = chain.parameter_names()
-    every_parameter = _SerialProblem(chain, data, np.arange(chain.n_parameters), whitening)
-    base = select_base_parameters(every_parameter.residual_and_jacobian(model)[1], names, rel_tol)
-    problem = _SerialProblem(chain, data, np.array(base.indices), whitening)
-    result = levenberg_marquardt(problem, model, max_iterations=max_iterations, initial_damping=_INITIAL_DAMPING)
+    base = select_base_parameters(residual.residual_and_jacobian(nominal)[1], names, rel_tol)
+    problem = _SerialProblem(residual, base.indices)
+    solve = functools.partial(
+        levenberg_marquardt,
+        max_iterations=max_iterations,
+        initial_damping=_INITIAL_DAMPING,
+        absolute_cost_tolerance=absolute_cost_tolerance,
+    )
+    result = solve(problem, nominal)
     iterations = result.iterations
-    for _ in range(_MAX_RESELECTIONS):
-        candidate = select_base_parameters(every_parameter.residual_and_jacobian(result.state)[1], names, rel_tol)
+    # At the bound, a re-selection can only confirm the rank: skip its pivoted QR.
+    reselections = _MAX_RESELECTIONS if base.rank < _rank_bound(chain, position_only) else 0
+    for _ in range(reselections):
+        candidate = select_base_parameters(residual.residual_and_jacobian(result.state)[1], names, rel_tol)
         if candidate.rank <= base.rank:
             break
         base = candidate
-        problem = _SerialProblem(chain, data, np.array(base.indices), whitening)
-        result = levenberg_marquardt(
-            problem, result.state, max_iterations=max_iterations, initial_damping=_INITIAL_DAMPING
-        )
+        problem = _SerialProblem(residual, base.indices)
+        result = solve(problem, result.state)
         iterations += result.iterations
-    calibrated: pin.Model = result.state
-    r, J = problem.residual_and_jacobian(calibrated)
+    state: np.ndarray = result.state
+    r, J = problem.residual_and_jacobian(state)
     fit = batch_least_squares(J, -r, covariance_from="noise_model")
-    residual1, _ = _raw_residual_and_jacobian(chain, calibrated, data)
+    residual1 = residual.raw_residual(state)
+    # dt_j = log6(T_j(0)^-1 T_j,c(0)) per placement (for j = 1 with a base frame, the inverse base
+    # placement cancels); the calibrated model is the nominal one perturbed by exactly these.
     deltas = {
-        p: _readonly(pin.log6(placement_of(model, p).actInv(placement_of(calibrated, p))).vector)
-        for p in chain.placements()
+        p: _readonly(pin.log6(pin.SE3(nominal[j]).actInv(pin.SE3(state[j]))).vector)
+        for j, p in enumerate(chain.placements())
     }
+    calibrated = perturb(model, deltas)
     return SerialCalibration(
         model=calibrated,
         chain=chain,
@@ -512,70 +670,27 @@ def calibrate_serial(
 # Evaluation
 
 
-@dataclass(frozen=True)
-class PoseErrors:
-    """Per-configuration tool pose errors of a model against a reference model.
-
-    position: (M,) norm of the tool position difference (m). rotation: (M,) rotation angle of
-    R_ref^T R_model (rad).
-    """
-
-    position: np.ndarray
-    rotation: np.ndarray
-
-    @property
-    def position_rms(self) -> float:
-        return float(np.sqrt(np.mean(self.position**2)))
-
-    @property
-    def rotation_rms(self) -> float:
-        return float(np.sqrt(np.mean(self.rotation**2)))
-
-
 def pose_errors(model: pin.Model, reference: pin.Model, chain: SerialChain, q_chain: ArrayLike) -> PoseErrors:
-    """Tool pose errors of `model` against `reference` (e.g. the truth) at chain configurations (M, n)."""
-    poses, _ = forward_and_error_jacobians(chain, model, q_chain)
-    reference_poses, _ = forward_and_error_jacobians(chain, reference, q_chain)
-    position = np.array([np.linalg.norm(g.translation - h.translation) for g, h in zip(poses, reference_poses)])
-    rotation = np.array([np.linalg.norm(pin.log3(h.rotation.T @ g.rotation)) for g, h in zip(poses, reference_poses)])
-    return PoseErrors(position=position, rotation=rotation)
+    """Tool pose errors of `model` against `reference` (e.g. the truth) at chain configurations (M, n):
+    position distance (m, in {B}) and rotation angle of R_ref^T R_model (rad), per configuration."""
+    return pose_errors_between(tool_poses(chain, model, q_chain), tool_poses(chain, reference, q_chain))
 
 
-@dataclass(frozen=True)
-class PredictedPoseStd:
-    """Predicted standard deviation of the calibrated model's tool pose error, per configuration.
-
-    position: (M,) sqrt(trace Cov(dp)) (m), the RMS of the position error norm;
-    rotation: (M,) sqrt(trace Cov(dr)) (rad), nan after a position-only calibration.
-    """
-
-    position: np.ndarray
-    rotation: np.ndarray
-
-    @property
-    def position_rms(self) -> float:
-        """RMS over configurations, to compare with `PoseErrors.position_rms`."""
-        return float(np.sqrt(np.mean(self.position**2)))
-
-    @property
-    def rotation_rms(self) -> float:
-        return float(np.sqrt(np.mean(self.rotation**2)))
-
-
-def predicted_pose_std(calibration: SerialCalibration, q_chain: ArrayLike) -> PredictedPoseStd:
-    """Propagate the parameter covariance to the tool pose at chain configurations (M, n).
+def predicted_pose_std(calibration: SerialCalibration, q_chain: ArrayLike) -> PoseErrors:
+    """Predicted standard deviation of the calibrated tool pose error at chain configurations (M, n).
 
     Cov(pose) = J_b Cov(x_b) J_b^T with J_b the position (WORLD) and orientation (LOCAL) rows of the
     error Jacobian restricted to the base parameters, at the calibrated model. This is the error
     expected against the truth from measurement noise alone, assuming the error model is complete.
+    Returns position = sqrt(trace Cov(dp)) (m) and rotation = sqrt(trace Cov(dr)) (rad, NaN after a
+    position-only calibration), i.e. the RMS of the error norms to compare with `pose_errors`.
     """
     chain = calibration.chain
-    poses, jacobians = forward_and_error_jacobians(chain, calibration.model, q_chain)
-    n_poses = len(poses)
-    rows = _pose_rows(jacobians, poses, np.broadcast_to(np.eye(3), (n_poses, 3, 3)))
-    rows = rows[:, :, np.array(calibration.base.indices)]
+    frames = placement_poses(chain, chain.initial_transforms(calibration.model), q_chain)
+    n_poses = frames.shape[0]
+    rows = _placement_rows(frames, orientation=True)[:, :, np.array(calibration.base.indices)]
     covariance = rows @ calibration.covariance @ np.swapaxes(rows, 1, 2)
     variances = np.einsum("nii->ni", covariance)
     position = np.sqrt(variances[:, :3].sum(axis=1))
     rotation = np.full(n_poses, np.nan) if calibration.position_only else np.sqrt(variances[:, 3:].sum(axis=1))
-    return PredictedPoseStd(position=position, rotation=rotation)
+    return PoseErrors(position=position, rotation=rotation)
