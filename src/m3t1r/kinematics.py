@@ -63,8 +63,8 @@ _SKEW_SRC, _SKEW_SIGN = np.array([2, 1, 2, 0, 1, 0]), np.array([-1.0, 1.0, 1.0, 
 def _det_sign(lu: tuple) -> bool:
     """Whether det(A) > 0, from LAPACK getrf factors (0-based pivots)."""
     factors, pivots = lu[0], lu[1]
-    flips = int((factors.diagonal() < 0).sum()) + int((pivots != _ARANGE[:len(pivots)]).sum())
-    return flips % 2 == 0
+    flips = np.count_nonzero(factors.diagonal() < 0) + np.count_nonzero(pivots != _ARANGE[:len(pivots)])
+    return bool(flips % 2 == 0)
 
 
 _ARANGE = np.arange(256)
@@ -92,26 +92,28 @@ class _BranchSignature:
 
     One determinant over the whole system would miss two loops flipping at once (e.g. both
     five-bars folding their knees below the rails); each block's determinant changes sign only
-    through that block's own singularity. Blocks of equal size are evaluated as one stack.
+    through that block's own singularity. 1 x 1 and 2 x 2 blocks are read as one stack each (closed
+    form); larger ones from LAPACK's LU, as numpy's det costs ~10 us of overhead per call.
     """
 
     def __init__(self, blocks: list[tuple[np.ndarray, np.ndarray]]) -> None:
-        self._stacks = []
-        for size in sorted({len(rows) for rows, _ in blocks}):
+        self._small = []
+        for size in (1, 2):
             same = [(rows, cols) for rows, cols in blocks if len(rows) == size]
-            self._stacks.append((size, np.array([r for r, _ in same])[:, :, None], np.array([c for _, c in same])[:, None, :]))
+            if same:
+                self._small.append((size, np.array([r for r, _ in same])[:, :, None],
+                                    np.array([c for _, c in same])[:, None, :]))
+        self._large = [(rows[:, None], cols[None, :]) for rows, cols in blocks if len(rows) > 2]
 
     def __call__(self, jac: np.ndarray) -> bytes:
         signs = []
-        for size, rows, cols in self._stacks:
-            blocks = jac[rows, cols]
-            if size == 1:
-                signs.append(blocks[:, 0, 0] > 0)
-            elif size == 2:  # closed form: numpy's det costs ~10 us of overhead per call
-                signs.append(blocks[:, 0, 0] * blocks[:, 1, 1] - blocks[:, 0, 1] * blocks[:, 1, 0] > 0)
-            else:
-                signs.append(np.linalg.det(blocks) > 0)
-        return b"".join(sign.tobytes() for sign in signs)
+        for size, rows, cols in self._small:
+            b = jac[rows, cols]
+            signs.append((b[:, 0, 0] > 0) if size == 1 else (b[:, 0, 0] * b[:, 1, 1] - b[:, 0, 1] * b[:, 1, 0] > 0))
+        signature = b"".join(sign.tobytes() for sign in signs)
+        for rows, cols in self._large:
+            signature += b"\x01" if _det_sign(lapack.dgetrf(jac[rows, cols])) else b"\x00"
+        return signature
 
 
 def _skew(p: np.ndarray) -> np.ndarray:
@@ -214,14 +216,18 @@ class ClosedLoopSolver:
         self._all_rows = np.arange(self._n_full)
         self._enforced = np.concatenate([start + np.array(c.rows) for start, c in zip(starts, closures)])
         signed = [support_mask(c.frame_b_id) - support_mask(c.frame_a_id) for c in closures]
-        self._full_row_mask = np.repeat(np.array(signed), sizes, axis=0)
+        full_row_mask = np.repeat(np.array(signed), sizes, axis=0)
+        self._row_masks = {False: full_row_mask[self._enforced], True: full_row_mask}
+        # Frames the residuals read (the platform last, for IK); indices below are into this list.
         self._frame_ids = sorted({c.frame_a_id for c in closures} | {c.frame_b_id for c in closures})
+        self._frame_ids.append(mechanism.platform_frame_id)
         position = {fid: k for k, fid in enumerate(self._frame_ids)}
         points = [(start, c) for start, c in zip(starts, closures) if c.type == "3D"]
         self._p_a = np.array([position[c.frame_a_id] for _, c in points], dtype=int)
         self._p_b = np.array([position[c.frame_b_id] for _, c in points], dtype=int)
         self._p_slots = np.array([start + np.arange(3) for start, _ in points], dtype=int).reshape(-1)
-        self._w_frames = [(int(start), c.frame_a_id, c.frame_b_id) for start, c in zip(starts, closures) if c.type == "6D"]
+        self._w_frames = [(int(start), position[c.frame_a_id], position[c.frame_b_id])
+                          for start, c in zip(starts, closures) if c.type == "6D"]
         self.n_rows = len(self._enforced)
 
         self._all_columns = np.arange(nv)
@@ -262,15 +268,20 @@ class ClosedLoopSolver:
         """
         model, data = self.model, self.data
         if with_jacobian:
+            # Every frame is updated here: callers of closure_sensitivity read data.oMf.
             pin.computeJointJacobians(model, data, q)  # forward kinematics + WORLD joint Jacobian
             pin.updateFramePlacements(model, data)
+            every = data.oMf.tolist()
+            frames = [every[i] for i in self._frame_ids]
         else:
-            pin.framesForwardKinematics(model, data, q)
-        frames = data.oMf.tolist()
-        H = np.array([frames[i].homogeneous for i in self._frame_ids])
-        Ra, pa, pb = H[self._p_a, :3, :3], H[self._p_a, :3, 3], H[self._p_b, :3, 3]
+            # Only the frames used (closure frames and platform): cheaper than all of them.
+            pin.forwardKinematics(model, data, q)
+            update = pin.updateFramePlacement
+            frames = [update(model, data, i) for i in self._frame_ids]
+        self._frames = frames
+        H = np.array([f.homogeneous for f in frames])
+        Ra_T, pa, pb = H[self._p_a, :3, :3].transpose(0, 2, 1), H[self._p_a, :3, 3], H[self._p_b, :3, 3]
         full = np.empty(self._n_full)
-        Ra_T = Ra.transpose(0, 2, 1)
         full[self._p_slots] = (Ra_T @ (pb - pa)[:, :, None]).ravel()  # R_a^T (p_b - p_a)
         welds = []
         for slot, ia, ib in self._w_frames:
@@ -289,8 +300,8 @@ class ClosedLoopSolver:
         for slot, aMb, oMb in welds:
             # d log6(aMb) = Jlog6(aMb) Ad(oMb^-1) (relative spatial twist)
             operator[slot:slot + 6] = pin.Jlog6(aMb) @ oMb.inverse().action
-        mask = self._full_row_mask[rows]
-        return residual, (operator[rows] @ data.J) * mask, operator[rows]
+        operator = operator[rows]
+        return residual, (operator @ data.J) * self._row_masks[all_rows], operator
 
     def closure_residual(self, q: np.ndarray, all_rows: bool = False) -> np.ndarray:
         """Enforced closure rows at q (or every row of every closure) [m, rad]."""
@@ -363,7 +374,7 @@ class ClosedLoopSolver:
         return ForwardResult(self._platform_pose(), outcome.q.copy(), outcome.residual, outcome.iterations)
 
     def _platform_pose(self) -> pin.SE3:
-        return pin.SE3(self.data.oMf[self._platform])
+        return pin.SE3(self._frames[-1])  # a copy: the solver's data moves on
 
     def _newton(self, q: np.ndarray, unknowns: np.ndarray, system, signature, start_branch=None,
                 factors: tuple | None = None) -> _Outcome:
@@ -376,7 +387,7 @@ class ClosedLoopSolver:
         """
         residual, jac = system(q, factors is None)
         previous = norm = math.inf
-        last_jac = branch = None
+        last_jac = square = None
         lu = factors
         for iteration in range(self.max_iterations + 1):
             norm = float(abs(residual).max())
@@ -385,16 +396,20 @@ class ClosedLoopSolver:
             if jac is None and norm > _CHORD_CONTRACTION * previous and norm > self.tolerance:
                 residual, jac = system(q, True)
             if jac is not None:
-                square = jac[:, unknowns]
-                lu = (*lapack.dgetrf(square)[:2], float(np.max(np.sum(np.abs(square), axis=0))))
-                branch = signature(jac, lu)
-                start_branch = branch if start_branch is None else start_branch
+                square = jac if unknowns is None else jac[:, unknowns]
+                lu = lapack.dgetrf(square)[:2]
+                if start_branch is None:
+                    start_branch = signature(jac, lu)
                 last_jac, jac = jac, None
             if norm <= self.tolerance:
-                rcond = lapack.dgecon(lu[0], lu[2])[0]
+                # Conditioning and branch are judged at the last Jacobian only; converged on the
+                # caller's factors alone, on those (their 1-norm comes with them, no branch to keep).
+                one_norm = lu[2] if square is None else float(np.abs(square).sum(axis=0).max())
+                rcond = lapack.dgecon(lu[0], one_norm)[0]
                 if rcond < SINGULAR_RCOND:
                     raise SingularConfigurationError(f"singular configuration (reciprocal condition {rcond:.2e})",
                                                      norm, iteration)
+                branch = None if last_jac is None else signature(last_jac, lu)
                 if branch != start_branch:
                     raise BranchChangeError("the solution lies on another assembly branch than the start "
                                             "(Newton crossed a singularity)", norm, iteration)
@@ -405,7 +420,10 @@ class ClosedLoopSolver:
             biggest = float(abs(step).max())
             if biggest > _MAX_STEP:
                 step *= _MAX_STEP / biggest
-            q[unknowns] -= step
+            if unknowns is None:
+                q -= step
+            else:
+                q[unknowns] -= step
             previous = norm
             residual, _ = system(q, False)
         if norm > 1e-6 or not math.isfinite(norm):
@@ -437,36 +455,45 @@ class ClosedLoopSolver:
             # Predictor: one step with the last factorisation; at the last solution the closure
             # rows vanish and the task rows are just (last reached - new target).
             last_xyz, last_yaw = self._last_task
-            change = np.concatenate((np.zeros(self.n_rows), last_xyz - xyz,
-                                     [math.remainder(last_yaw - theta, 2 * math.pi)]))
+            change = np.zeros(self.n_rows + 4)
+            change[self.n_rows:self.n_rows + 3] = last_xyz - xyz
+            change[-1] = math.remainder(last_yaw - theta, 2 * math.pi)
             q -= lapack.dgetrs(self._lu_inverse[0], self._lu_inverse[1], change)[0]
 
+        n_rows, model, data, platform = self.n_rows, self.model, self.data, self._platform
+
         def system(qk: np.ndarray, with_jacobian: bool):
-            residual, jac, _ = self._evaluate(qk, with_jacobian)
-            oMp = self.data.oMf[self._platform]
+            closure, jac, _ = self._evaluate(qk, with_jacobian)
+            oMp = self._frames[-1]
             rotation = oMp.rotation
-            yaw_error = math.remainder(yaw_of(rotation) - theta, 2 * math.pi)
-            residual = np.concatenate((residual, oMp.translation - xyz, [yaw_error]))
+            residual = np.empty(n_rows + 4)
+            residual[:n_rows] = closure
+            residual[n_rows:n_rows + 3] = oMp.translation - xyz
+            residual[-1] = math.remainder(math.atan2(rotation[1, 0], rotation[0, 0]) - theta, 2 * math.pi)
             if not with_jacobian:
                 return residual, None
             c = rotation[:, 0]
             horizontal = c[0] ** 2 + c[1] ** 2
-            J = self.data.J * self._platform_mask
-            point = J[:3] - _skew(oMp.translation) @ J[3:]
+            # Platform origin velocity and angular velocity, both in WORLD axes.
+            frame_jac = pin.getFrameJacobian(model, data, platform, pin.LOCAL_WORLD_ALIGNED)
+            full = np.empty((n_rows + 4, jac.shape[1]))
+            full[:n_rows] = jac
+            full[n_rows:n_rows + 3] = frame_jac[:3]
             # d atan2(R10, R00) / d(omega_world) for dR = [omega]x R
-            yaw_row = np.array([-c[0] * c[2], -c[1] * c[2], horizontal]) / horizontal @ J[3:]
-            return residual, np.vstack((jac, point, yaw_row))
+            full[-1] = np.array([-c[0] * c[2], -c[1] * c[2], horizontal]) / horizontal @ frame_jac[3:]
+            return residual, full
 
         self._lu_inverse = None  # dropped until this solve succeeds
         # A warm solve must stay on the previous solution's branch (assembly and working mode).
         start = self._last_inverse_branch if q_init is None else None
         self._last_inverse_branch = None
-        outcome = self._newton(q, self._all_columns, system,
+        outcome = self._newton(q, None, system,
                                lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]), start_branch=start)
         q, residual, iterations = outcome.q, outcome.residual, outcome.iterations
         actuators = q[self.actuated].copy()
         names = self.mechanism.actuated_joints
-        for k in np.flatnonzero((actuators < self._act_lower) | (actuators > self._act_upper)):
+        outside = (actuators < self._act_lower) | (actuators > self._act_upper)
+        for k in np.flatnonzero(outside) if outside.any() else ():
             raise OutOfWorkspaceError(
                 f"target needs actuator '{names[k]}' = {actuators[k]:.6g} m, beyond its limit "
                 f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]", residual, iterations)
