@@ -39,6 +39,7 @@ from .design import NOMINAL, WorkspaceBox
 from .errors import InvalidInputError, KinematicsError, M3t1rError
 from .io import pose_rows
 from .kinematics import ClosedLoopSolver, ForwardResult, InverseResult, yaw_of
+from .metrics import PoseErrors
 
 __all__ = [
     "Targets", "TargetFailure", "CompensatedCommand", "Compensation", "Compensator", "compensate",
@@ -325,39 +326,29 @@ def compensate(nominal: Mechanism, calibrated: Mechanism, targets: Targets, *, s
 # ------------------------------------------------------------------------------------------------
 # Accuracy in simulation
 @dataclass(frozen=True, eq=False)
-class TrackingErrors:
+class TrackingErrors(PoseErrors):
     """How far a machine ends up from the commanded targets, per target.
 
-    position: |p_achieved - p_target| [m]; yaw: |yaw_achieved - theta_target| wrapped to [0, pi]
-    [rad], yaw by `yaw_of`. Roll and pitch are not commanded and not counted here.
+    position: |p_achieved - p_target| [m]; rotation: the yaw error |yaw_achieved - theta_target|
+    wrapped to [0, pi] [rad], yaw by `yaw_of` (also readable as `yaw`). Roll and pitch are not
+    commanded and not counted here.
     """
 
-    position: np.ndarray
-    yaw: np.ndarray
-
     @property
-    def position_mean(self) -> float:
-        return float(np.mean(self.position))
-
-    @property
-    def position_max(self) -> float:
-        return float(np.max(self.position))
-
-    @property
-    def position_rms(self) -> float:
-        return float(np.sqrt(np.mean(self.position ** 2)))
+    def yaw(self) -> np.ndarray:
+        return self.rotation
 
     @property
     def yaw_mean(self) -> float:
-        return float(np.mean(self.yaw))
+        return self.rotation_mean
 
     @property
     def yaw_max(self) -> float:
-        return float(np.max(self.yaw))
+        return self.rotation_max
 
     @property
     def yaw_rms(self) -> float:
-        return float(np.sqrt(np.mean(self.yaw ** 2)))
+        return self.rotation_rms
 
 
 @dataclass(frozen=True, eq=False)
