@@ -44,11 +44,32 @@ def test_platform_sensitivity_matches_finite_differences_through_the_closures(me
         assert np.allclose(dxi[:, k], fd, atol=1e-6 * max(1.0, np.abs(dxi).max())), error_model.names[k]
 
 
+def test_batched_sensitivities_equal_the_full_computation_column_by_column(mechanism, error_model):
+    """Restricting the columns (LM asks only for the base parameters) changes nothing but the width;
+    the batch equals pose-by-pose calls, and passive_motion equals -J_c,pas^-1 dr_c/dp step."""
+    truth = simulate_study(mechanism, n_poses=1, n_holdout=0, seed=4).truth
+    solver = ClosedLoopSolver(truth)
+    configurations = [solver.forward(s, q_init=truth.home).q
+                      for s in workspace_actuators(mechanism, 3, np.random.default_rng(8))]
+    full = error_model.platform_sensitivities(solver, configurations)
+    columns = np.random.default_rng(9).choice(error_model.n_parameters, 70, replace=False)
+    part = error_model.platform_sensitivities(solver, configurations, columns)
+    np.testing.assert_allclose(part.twist_jacobians, full.twist_jacobians[:, :, columns], atol=1e-12)
+    np.testing.assert_allclose(part.closure_jacobians, full.closure_jacobians[:, :, columns], atol=1e-12)
+    for i, q in enumerate(configurations):
+        pose, dxi, dq_dp = error_model.platform_sensitivity(solver, q, columns)
+        np.testing.assert_allclose(pose.homogeneous, part.poses[i], atol=1e-15)
+        np.testing.assert_allclose(dxi, part.twist_jacobians[i], atol=1e-12)
+        step = np.linspace(-1e-3, 1e-3, len(columns))
+        np.testing.assert_allclose(part.passive_motion(step)[i], dq_dp @ step, atol=1e-12)
+
+
 def test_joint_twists_are_pinocchio_regressors(mechanism, error_model):
     solver = ClosedLoopSolver(mechanism)
     q = solver.forward([0.1, 0.05, -0.05, 0.1]).q
     solver.closure_sensitivity(q)
-    G = error_model._joint_twist_matrix(solver.model, solver.data)
+    joints = np.array([[placement.homogeneous for placement in solver.data.oMi.tolist()]])
+    G = error_model._joint_twist_matrices(solver.model, joints)[0]
     for frame in ("P_I", "P_II", "fivebar_tip_I", "lower_tip_II"):
         fid = solver.model.getFrameId(frame)
         regressor = pin.computeFrameKinematicRegressor(solver.model, solver.data, fid, pin.WORLD)

@@ -14,6 +14,8 @@ from m3t1r.poe import (
     error_jacobian_world,
     express_error_jacobian,
     forward_and_error_jacobians,
+    jlog3_batch,
+    log3_batch,
     perturb,
     placement_of,
     placement_poses,
@@ -379,3 +381,18 @@ def test_chain_rejects_a_different_model(ur5: pin.Model, panda: pin.Model) -> No
     chain = SerialChain.from_model(ur5, "tool0")
     with pytest.raises(InvalidInputError, match="does not match"):
         poe_forward(chain, panda, np.zeros(6))
+
+
+def test_batched_log3_and_jlog3_equal_pinocchio() -> None:
+    rng = np.random.default_rng(30)
+    angles = [0.0, 1e-12, 1e-7, 1e-5, 9.9e-3, 1.01e-2, 0.3, 1.5, 2.9, 3.1, np.pi - 1e-6, np.pi]
+    axes = rng.normal(size=(len(angles), 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    rotations = np.array([pin.exp3(a * u) for a, u in zip(angles, axes)])
+    logs, measured_angles = log3_batch(rotations)
+    jacobians = jlog3_batch(logs, measured_angles)
+    for rotation, log, angle, jacobian in zip(rotations, logs, measured_angles, jacobians):
+        np.testing.assert_allclose(log, pin.log3(rotation), rtol=1e-12, atol=1e-15)
+        assert angle == pytest.approx(np.linalg.norm(pin.log3(rotation)), rel=1e-12, abs=1e-15)
+        if angle < np.pi - 1e-3:  # Jlog3 is singular at pi
+            np.testing.assert_allclose(jacobian, pin.Jlog3(rotation), rtol=1e-12, atol=1e-12)

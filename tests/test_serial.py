@@ -171,21 +171,6 @@ def test_measurement_formats_and_validation() -> None:
 # Batched residual internals against their Pinocchio / finite-difference references
 
 
-def test_batched_log3_and_jlog3_equal_pinocchio() -> None:
-    rng = np.random.default_rng(30)
-    angles = [0.0, 1e-12, 1e-7, 1e-5, 9.9e-3, 1.01e-2, 0.3, 1.5, 2.9, 3.1, np.pi - 1e-6, np.pi]
-    axes = rng.normal(size=(len(angles), 3))
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    rotations = np.array([pin.exp3(a * u) for a, u in zip(angles, axes)])
-    logs, measured_angles = serial._log3_batch(rotations)
-    jacobians = serial._jlog3_batch(logs, measured_angles)
-    for rotation, log, angle, jacobian in zip(rotations, logs, measured_angles, jacobians):
-        np.testing.assert_allclose(log, pin.log3(rotation), rtol=1e-12, atol=1e-15)
-        assert angle == pytest.approx(np.linalg.norm(pin.log3(rotation)), rel=1e-12, abs=1e-15)
-        if angle < np.pi - 1e-3:  # Jlog3 is singular at pi
-            np.testing.assert_allclose(jacobian, pin.Jlog3(rotation), rtol=1e-12, atol=1e-12)
-
-
 @pytest.mark.parametrize("position_only", [False, True])
 def test_residual_jacobian_matches_finite_differences(position_only: bool) -> None:
     # The analytic whitened Jacobian against central differences of the residual through the same

@@ -34,11 +34,11 @@ from .errors import IdentificationError, InvalidInputError, KinematicsError, Poo
 from .identification import BaseParameters, LMResult, levenberg_marquardt, select_base_parameters
 from .kinematics import ClosedLoopSolver, rehomed
 from .metrics import PoseErrors  # re-exported: one pose-error type for every calibration
-from .poe import Placement, perturb
+from .poe import Placement, adjoint_matrices, jlog3_batch, log3_batch, perturb, skew
 
 __all__ = [
     "ClosedLoopErrorModel", "PoseMeasurements", "TrackerNoise", "ClosedLoopCalibration",
-    "calibrate_closed_loop", "PoseErrors", "pose_errors", "predicted_pose_std",
+    "PlatformSensitivities", "calibrate_closed_loop", "PoseErrors", "pose_errors", "predicted_pose_std",
 ]
 
 
@@ -147,15 +147,14 @@ class ClosedLoopErrorModel:
                 row += count
             if rows:
                 self._own_terms.append((np.array(rows), np.array(slots), np.array(columns), sign))
-        # A few frames whose supports cover every joint: their regressors fill G.
-        needed = set(np.flatnonzero(np.any(self._row_masks != 0, axis=0) | (self._platform_mask != 0)) // 6)
-        self._cover: list[tuple[int, np.ndarray]] = []
-        for frame_id in sorted({f for fa, fb, _ in self._closure_frames for f in (fa, fb)},
-                               key=lambda f: -int(support(f).sum())):
-            new_joints = needed & set(np.flatnonzero(support(frame_id))[::6] // 6)
-            if new_joints:
-                self._cover.append((frame_id, np.concatenate([np.arange(6 * j, 6 * j + 6) for j in sorted(new_joints)])))
-                needed -= new_joints
+        # Batched sensitivities: the parent of each joint (G's blocks are Ad(oMi[parent] jointPlacement)),
+        # the platform's support per velocity column, and the frames whose own adjoints are needed.
+        self._parents = np.array(model.parents[1:], dtype=int)
+        self._platform_v_mask = np.zeros(model.nv)
+        for j in model.supports[model.frames[self._platform].parentJoint][1:]:
+            self._platform_v_mask[model.idx_vs[j]] = 1.0
+        self._adjoint_frames = self._own_frame_ids + [self._platform]
+        self._plans: dict[bytes, _ColumnPlan] = {}
 
     def deltas(self, vector: np.ndarray) -> dict[Placement, np.ndarray]:
         """{placement: dt} for a full parameter vector (placements with a zero error omitted)."""
@@ -166,12 +165,13 @@ class ClosedLoopErrorModel:
         """A copy of `model` with the parameter vector applied (eq. 33)."""
         return perturb(model, self.deltas(vector))
 
-    def _joint_twist_matrix(self, model: pin.Model, data: pin.Data) -> np.ndarray:
-        """G (6 x 6(njoints-1)): spatial twist (WORLD) per unit joint-placement error (eq. 17)."""
-        G = np.zeros((6, 6 * (model.njoints - 1)))
-        for frame_id, columns in self._cover:
-            G[:, columns] = pin.computeFrameKinematicRegressor(model, data, frame_id, pin.WORLD)[:, columns]
-        return G
+    def _joint_twist_matrices(self, model: pin.Model, joints: np.ndarray) -> np.ndarray:
+        """G (N, 6, 6 n_joints): spatial twist (WORLD) per unit joint-placement error (eq. 17), from
+        the joint placements oMi (N, njoints, 4, 4): block j = Ad(oMi[parent(j)] jointPlacements[j]),
+        the columns of Pinocchio's WORLD kinematic regressor."""
+        placements = np.array([placement.homogeneous for placement in model.jointPlacements.tolist()[1:]])
+        blocks = adjoint_matrices(joints[:, self._parents] @ placements)  # (N, n_joints, 6, 6)
+        return blocks.transpose(0, 2, 1, 3).reshape(len(joints), 6, -1)
 
     def platform_sensitivity(self, solver: ClosedLoopSolver, q: np.ndarray, columns: np.ndarray | None = None,
                              with_factors: bool = False):
@@ -181,59 +181,151 @@ class ClosedLoopErrorModel:
         Sliders held fixed; the passive joints move with the parameters through the closures.
         with_factors=True also returns the LU factors of the passive closure Jacobian at q, which
         `ClosedLoopSolver.forward(..., factors=...)` can reuse on a nearby model.
+        One pose of `platform_sensitivities`.
+        """
+        batch = self.platform_sensitivities(solver, [q], columns)
+        dq_dp = -np.linalg.solve(batch.passive_jacobians[0], batch.closure_jacobians[0])
+        result = (pin.SE3(batch.poses[0]), batch.twist_jacobians[0], dq_dp)
+        return result + (batch.factors[0],) if with_factors else result
+
+    def platform_sensitivities(self, solver: ClosedLoopSolver, configurations,
+                               columns: np.ndarray | None = None) -> PlatformSensitivities:
+        """`platform_sensitivity` at N assembled configurations at once, for the parameter `columns`.
+
+        Only the Pinocchio passes run per pose; the algebra (eq. 17 blocks Ad(oMi[parent]
+        jointPlacement), closure rows, the implicit passive solve) runs on stacks, restricted to the
+        requested columns. d xi_P / dp = X_P - (J_P,pas J_c,pas^-1) dr_c/dp: the passive solve has
+        6 right-hand sides, not P. Leaves solver.data at the last configuration.
         """
         model, data = solver.model, solver.data
-        _, jac_q, operator = solver.closure_sensitivity(q)
-        G = self._joint_twist_matrix(model, data)
-        dr_dp = np.zeros((solver.n_rows, self.n_parameters))
-        dr_dp[:, self._joint_columns[self._joint_targets]] = ((operator @ G) * self._row_masks)[:, self._joint_targets]
+        n = len(configurations)
+        jac_q = np.empty((n, solver.n_rows, model.nv))
+        operator = np.empty((n, solver.n_rows, 6))
+        joint_jacobian = np.empty((n, 6, model.nv))
+        joints = np.empty((n, model.njoints, 4, 4))
+        frames = np.empty((n, len(self._adjoint_frames), 4, 4))
+        for i, q in enumerate(configurations):
+            _, jac_q[i], operator[i] = solver.closure_sensitivity(q)
+            joint_jacobian[i] = data.J
+            joints[i] = [placement.homogeneous for placement in data.oMi.tolist()]
+            every = data.oMf.tolist()
+            frames[i] = [every[f].homogeneous for f in self._adjoint_frames]
+        plan = self._column_plan(np.arange(self.n_parameters) if columns is None else np.asarray(columns, dtype=int))
+        G = self._joint_twist_matrices(model, joints)[:, :, plan.g_columns]
+        adjoints = adjoint_matrices(frames)
+        dr_dp = np.zeros((n, solver.n_rows, plan.size))
+        dr_dp[:, :, plan.joint_slots] = (operator @ G) * plan.row_masks
         # Own placement errors of the closure frames: row r of a closure sees +Ad(oMb) and -Ad(oMa).
-        frames = data.oMf.tolist()
-        adjoints = np.array([frames[f].action for f in self._own_frame_ids])
-        for rows, slots, blocks, sign in self._own_terms:
-            dr_dp[rows[:, None], blocks] += sign * np.einsum("rk,rkj->rj", operator[rows], adjoints[slots])
-        xi = np.zeros((6, self.n_parameters))
-        xi[:, self._joint_columns[self._joint_targets]] = (G * self._platform_mask)[:, self._joint_targets]
-        own = self._frame_block.get(self._platform)
+        for rows, slots, sign, pick, row_index, slot_index in plan.own_terms:
+            values = np.einsum("nrk,nrkj->nrj", operator[:, rows], adjoints[:, slots])[:, pick]
+            dr_dp[:, row_index, slot_index] += sign * values
+        xi = np.zeros((n, 6, plan.size))
+        xi[:, :, plan.joint_slots] = G * plan.platform_mask
+        if plan.platform_components.size:
+            xi[:, :, plan.platform_slots] = adjoints[:, -1][:, :, plan.platform_components]
+        square = jac_q[:, :, solver.passive]
+        one_norms = np.abs(square).sum(axis=1).max(axis=1)
+        factors = tuple((*lapack.dgetrf(block)[:2], float(norm)) for block, norm in zip(square, one_norms))
+        platform_jacobian = (joint_jacobian * self._platform_v_mask)[:, :, solver.passive]  # WORLD frame Jacobian
+        through_passive = np.swapaxes(np.linalg.solve(np.swapaxes(square, 1, 2), np.swapaxes(platform_jacobian, 1, 2)), 1, 2)
+        return PlatformSensitivities(frames[:, -1], xi - through_passive @ dr_dp, square, dr_dp, factors)
+
+    def _column_plan(self, columns: np.ndarray) -> _ColumnPlan:
+        key = columns.tobytes()
+        if key not in self._plans:
+            self._plans[key] = _ColumnPlan.build(self, columns)
+        return self._plans[key]
+
+
+@dataclass(frozen=True, eq=False)
+class PlatformSensitivities:
+    """Platform sensitivities at N assembled configurations, over P parameter columns.
+
+    poses: platform frames (N, 4, 4) in the base frame; twist_jacobians: d xi_P / dp (N, 6, P),
+    spatial twists in WORLD; passive_jacobians: J_c,passive (N, n_pas, n_pas); closure_jacobians:
+    dr_c / dp (N, n_pas, P) at fixed joints; factors: getrf LU and 1-norm of each passive Jacobian.
+    """
+
+    poses: np.ndarray
+    twist_jacobians: np.ndarray
+    passive_jacobians: np.ndarray
+    closure_jacobians: np.ndarray
+    factors: tuple[tuple, ...]
+
+    def passive_motion(self, step: np.ndarray) -> np.ndarray:
+        """First-order passive-joint change (N, n_pas) [rad or m] for a parameter step (P,):
+        dq_passive = -J_c,passive^-1 (dr_c/dp) step."""
+        return -np.linalg.solve(self.passive_jacobians, (self.closure_jacobians @ step)[:, :, None])[:, :, 0]
+
+
+@dataclass(frozen=True, eq=False)
+class _ColumnPlan:
+    """Where each requested parameter column comes from in `platform_sensitivities`."""
+
+    size: int
+    joint_slots: np.ndarray  # output columns that are joint-placement parameters
+    g_columns: np.ndarray  # their columns in G
+    row_masks: np.ndarray  # (n_rows, len(joint_slots)) signed closure supports
+    platform_mask: np.ndarray  # (len(joint_slots),) platform support
+    own_terms: tuple  # (rows, slots, sign, pick (R, 6) mask, row index, output slot) per closure side
+    platform_slots: np.ndarray  # output columns of the platform frame's own parameters
+    platform_components: np.ndarray  # and their twist components
+
+    @staticmethod
+    def build(model: ClosedLoopErrorModel, columns: np.ndarray) -> _ColumnPlan:
+        slot_of = np.full(model.n_parameters, -1)
+        slot_of[columns] = np.arange(len(columns))
+        g_column_of = np.full(model.n_parameters, -1)
+        g_column_of[model._joint_columns[model._joint_targets]] = model._joint_targets
+        joint_slots = np.flatnonzero(g_column_of[columns] >= 0)
+        g_columns = g_column_of[columns[joint_slots]]
+        own_terms = []
+        for rows, slots, blocks, sign in model._own_terms:
+            pick = slot_of[blocks] >= 0  # (R, 6)
+            if pick.any():
+                row_index = np.broadcast_to(rows[:, None], blocks.shape)[pick]
+                own_terms.append((rows, slots, sign, pick, row_index, slot_of[blocks][pick]))
+        own = model._frame_block.get(model._platform)
+        platform_slots = np.array([], dtype=int)
+        platform_components = np.array([], dtype=int)
         if own is not None:
-            xi[:, own:own + 6] = frames[self._platform].action
-        if columns is not None:
-            dr_dp, xi = dr_dp[:, columns], xi[:, columns]
-        passive = solver.passive
-        square = jac_q[:, passive]
-        lu, piv, _ = lapack.dgetrf(square)
-        dq_dp = -lapack.dgetrs(lu, piv, dr_dp)[0]
-        J_platform = pin.getFrameJacobian(model, data, self._platform, pin.WORLD)
-        result = (pin.SE3(data.oMf[self._platform]), xi + J_platform[:, passive] @ dq_dp, dq_dp)
-        if with_factors:
-            return result + ((lu, piv, float(np.max(np.sum(np.abs(square), axis=0)))),)
-        return result
+            wanted = slot_of[own:own + 6] >= 0
+            platform_slots = slot_of[own:own + 6][wanted]
+            platform_components = np.flatnonzero(wanted)
+        return _ColumnPlan(len(columns), joint_slots, g_columns, model._row_masks[:, g_columns],
+                           model._platform_mask[g_columns], tuple(own_terms), platform_slots, platform_components)
 
 
-def _residual_rows(model_pose: pin.SE3, measured: pin.SE3, position_only: bool, with_jacobian: bool = True):
-    """Residual e = [p_model - p_meas; log3(R_meas^T R_model)] and de/dxi (xi spatial, WORLD)."""
-    p = model_pose.translation
-    position_error = p - measured.translation
-    relative = None if position_only else measured.rotation.T @ model_pose.rotation
-    if not with_jacobian:
-        return position_error if position_only else np.concatenate((position_error, pin.log3(relative)))
-    position_map = np.hstack((np.eye(3), -pin.skew(p)))  # dp = v + w x p
-    if position_only:
-        return position_error, position_map
-    rotation_map = np.hstack((np.zeros((3, 3)), pin.Jlog3(relative) @ model_pose.rotation.T))
-    return np.concatenate((position_error, pin.log3(relative))), np.vstack((position_map, rotation_map))
+def _residual_rows_batch(poses: np.ndarray, measured_positions: np.ndarray, measured_rotations: np.ndarray | None,
+                         with_jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """Residuals e = [p_model - p_meas; log3(R_meas^T R_model)] (N, k) of N model poses (N, 4, 4)
+    and de/dxi (N, k, 6) for spatial twists xi (WORLD): [I, -[p]x] and [0, Jlog3 R_model^T].
+    k = 6, or 3 when measured_rotations is None (position only)."""
+    p, rotation = poses[:, :3, 3], poses[:, :3, :3]
+    position_error = p - measured_positions
+    rows = None
+    if with_jacobian:
+        rows = np.zeros((len(poses), 3 if measured_rotations is None else 6, 6))
+        rows[:, :3, :3] = np.eye(3)
+        rows[:, :3, 3:] = -skew(p)  # dp = v + w x p
+    if measured_rotations is None:
+        return position_error, rows
+    logs, angles = log3_batch(np.swapaxes(measured_rotations, 1, 2) @ rotation)
+    if with_jacobian:
+        rows[:, 3:, 3:] = jlog3_batch(logs, angles) @ np.swapaxes(rotation, 1, 2)
+    return np.concatenate((position_error, logs), axis=1), rows
 
 
 @dataclass(eq=False)
 class _State:
     """An LM iterate: a model, the assembled configuration of every measured pose on it, and
-    (once its Jacobian is known) dq_passive/d(base parameters) per pose, used to predict the
+    (once its Jacobian is known) its sensitivities, whose passive motion per step predicts the
     configurations of the next trial model."""
 
     model: pin.Model | None
     configurations: tuple[np.ndarray, ...]
     poses: tuple[pin.SE3, ...] = ()
-    tangents: tuple[np.ndarray, ...] | None = None
+    tangents: PlatformSensitivities | None = None
     factors: tuple[tuple, ...] | None = None
     whitened: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -249,6 +341,9 @@ class _ClosedLoopProblem:
         rows = measurements.rows_per_pose
         weights = np.r_[np.full(3, 1 / noise.position), np.full(3, 1 / noise.rotation)][:rows]
         self.weights = np.tile(weights, len(measurements))
+        measured = np.array([pose.homogeneous for pose in measurements.poses]).reshape(-1, 4, 4)
+        self._measured_positions = measured[:, :3, 3]
+        self._measured_rotations = None if measurements.position_only else measured[:, :3, :3]
 
     def assemble(self, model: pin.Model, start: tuple[np.ndarray, ...], factors: tuple | None = None) -> _State:
         """Assemble every measured pose on `model`, from `start`; with `factors` (each pose's
@@ -263,28 +358,18 @@ class _ClosedLoopProblem:
         """Whitened residual from the assembled poses alone (LM trial steps)."""
         if state.model is None:
             return np.full(len(self.weights), np.inf)
-        m = self.measurements
-        e = [_residual_rows(pose, measured, m.position_only, with_jacobian=False)
-             for pose, measured in zip(state.poses, m.poses)]
-        return np.concatenate(e) * self.weights
+        poses = np.array([pose.homogeneous for pose in state.poses])
+        residual, _ = _residual_rows_batch(poses, self._measured_positions, self._measured_rotations,
+                                           with_jacobian=False)
+        return residual.reshape(-1) * self.weights
 
-    def evaluate(self, state: _State, columns: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
-        """Unwhitened residual (6N or 3N), its Jacobian over `columns`, and dq_passive/dp per pose."""
-        m = self.measurements
-        rows = m.rows_per_pose
+    def evaluate(self, state: _State, columns: np.ndarray) -> tuple[np.ndarray, np.ndarray, PlatformSensitivities]:
+        """Unwhitened residual (6N or 3N), its Jacobian over `columns`, and the sensitivities behind it."""
         solver = ClosedLoopSolver(self.error_model.mechanism.with_model(state.model))
-        residual = np.empty(rows * len(m))
-        jacobian = np.empty((rows * len(m), len(columns)))
-        tangents, factors = [], []
-        for i, (q, measured) in enumerate(zip(state.configurations, m.poses)):
-            pose, dxi, dq_dp, lu = self.error_model.platform_sensitivity(solver, q, columns, with_factors=True)
-            e, de = _residual_rows(pose, measured, m.position_only)
-            residual[rows * i:rows * (i + 1)] = e
-            jacobian[rows * i:rows * (i + 1)] = de @ dxi
-            tangents.append(dq_dp)
-            factors.append(lu)
-        state.factors = tuple(factors)
-        return residual, jacobian, tuple(tangents)
+        sensitivities = self.error_model.platform_sensitivities(solver, state.configurations, columns)
+        state.factors = sensitivities.factors
+        residual, rows = _residual_rows_batch(sensitivities.poses, self._measured_positions, self._measured_rotations)
+        return residual.reshape(-1), (rows @ sensitivities.twist_jacobians).reshape(residual.size, -1), sensitivities
 
     def residual_and_jacobian(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
         if state.model is None:  # a trial step that did not assemble: reject it
@@ -303,7 +388,7 @@ class _ClosedLoopProblem:
         if state.tangents is not None:
             # First-order prediction of the new assembly: q_passive + dq_passive/dp step.
             passive = self.error_model.mechanism.passive_ids
-            start = tuple(_shifted(q, passive, t @ step) for q, t in zip(start, state.tangents))
+            start = tuple(_shifted(q, passive, d) for q, d in zip(start, state.tangents.passive_motion(step)))
         try:
             return self.assemble(model, start, state.factors)
         except KinematicsError:

@@ -97,6 +97,9 @@ class BaseParameters:
     zero_columns: tuple[str, ...]
 
 
+_TIE_BREAK = 1e-9
+
+
 def select_base_parameters(
     jacobian: ArrayLike,
     names: Sequence[str],
@@ -128,7 +131,11 @@ def select_base_parameters(
     # trailing blocks, which are invariant under the orthogonal factor, so pivoting its small
     # triangular factor picks the same columns at a fraction of the cost. Every spectrum below
     # then comes from triangular factors too (A P = Q R: equal singular values).
-    r0 = np.linalg.qr(matrix[:, candidates] / norms[candidates], mode="r")
+    # Symmetric mechanisms give columns of equal norm at every pivot step; which of them wins would
+    # then depend on rounding, i.e. on how the Jacobian was evaluated. A relative tilt of 1e-9,
+    # far above rounding and far below any genuine difference, breaks such ties by column order.
+    tie_break = 1.0 + _TIE_BREAK * np.linspace(1.0, 0.0, candidates.size)
+    r0 = np.linalg.qr(matrix[:, candidates] * (tie_break / norms[candidates]), mode="r")
     r, pivots = scipy.linalg.qr(r0, mode="r", pivoting=True)
     diag = np.abs(np.diag(r))
     ratio = diag / diag[0]

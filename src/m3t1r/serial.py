@@ -36,7 +36,7 @@ from m3t1r._threads import on_one_blas_thread
 from m3t1r.errors import InvalidInputError, ModelFileError
 from m3t1r.identification import BaseParameters, batch_least_squares, levenberg_marquardt, select_base_parameters
 from m3t1r.metrics import PoseErrors, pose_errors_between
-from m3t1r.poe import Placement, SerialChain, perturb, placement_poses, skew, tool_poses
+from m3t1r.poe import Placement, SerialChain, jlog3_batch, log3_batch, perturb, placement_poses, skew, tool_poses
 
 __all__ = [
     "MeasurementNoise",
@@ -245,53 +245,6 @@ def _readonly(array: np.ndarray) -> np.ndarray:
 # then costs n + 1 small products instead of a model copy, and forward kinematics of all poses is one
 # batched pass (`placement_poses`). The calibrated model is built once, at the end.
 
-# Above this rotation angle the axis is read from the symmetric part of R (pin.log3) instead of from
-# R - R^T, whose size, 2 sin(angle), vanishes at pi; cos(angle) < -0.99 is beyond 171.9 deg.
-_NEAR_PI_COSINE = -0.99
-
-
-def _log3_batch(rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """log3 (N, 3) of rotation matrices (N, 3, 3) and the angles (N,) (rad): pin.log3, batched.
-
-    With R - R^T = 2 sin(a) [u] and trace R = 1 + 2 cos(a): a = atan2(|sin|, cos), log = a u. Angles
-    near pi fall back to pin.log3, which recovers the axis from R + R^T (never met by calibration
-    residuals, which are small rotations).
-    """
-    sine_axis = 0.5 * np.stack(
-        [
-            rotations[:, 2, 1] - rotations[:, 1, 2],
-            rotations[:, 0, 2] - rotations[:, 2, 0],
-            rotations[:, 1, 0] - rotations[:, 0, 1],
-        ],
-        axis=1,
-    )
-    sine = np.linalg.norm(sine_axis, axis=1)
-    cosine = 0.5 * (np.trace(rotations, axis1=1, axis2=2) - 1.0)
-    angle = np.arctan2(sine, cosine)
-    # a / sin(a) is well conditioned everywhere below pi; at a = 0 exactly, sine_axis is zero anyway.
-    ratio = np.divide(angle, sine, out=np.ones_like(angle), where=sine > 0.0)
-    logs = ratio[:, None] * sine_axis
-    for i in np.flatnonzero(cosine < _NEAR_PI_COSINE):
-        logs[i] = pin.log3(rotations[i])
-    return logs, angle
-
-
-def _jlog3_batch(logs: np.ndarray, angles: np.ndarray) -> np.ndarray:
-    """pin.Jlog3 (N, 3, 3) at rotations exp3(logs), logs (N, 3), angles = |logs| (rad).
-
-    Jlog3 = I + [w]/2 + b(a) [w]^2 with b(a) = 1/a^2 - 1 / (2 a tan(a/2)) (the inverse right Jacobian
-    of SO(3)). b cancels catastrophically at small a, where calibration residuals live, so its
-    series 1/12 + a^2/720 + a^4/30240 (error below 1e-18 for a < 1e-2) is used there.
-    """
-    small = angles < 1e-2
-    safe = np.where(small, 1.0, angles)
-    squared = angles**2
-    b = np.where(small, 1.0 / 12.0 + squared / 720.0 + squared**2 / 30240.0,
-                 1.0 / safe**2 - 1.0 / (2.0 * safe * np.tan(0.5 * safe)))
-    w = skew(logs)
-    return np.eye(3) + 0.5 * w + b[:, None, None] * (w @ w)
-
-
 def _placement_rows(frames: np.ndarray, orientation: bool, log_jacobians: np.ndarray | None = None) -> np.ndarray:
     """Residual rows (N, k, 6 (n + 1)) per unit placement error, from `placement_poses` frames F.
 
@@ -373,7 +326,7 @@ class _SerialResidual:
             if self.data.rotations is None:
                 e.residual = position
             else:
-                e.logs, e.angles = _log3_batch(np.swapaxes(self.data.rotations, 1, 2) @ tool[:, :3, :3])
+                e.logs, e.angles = log3_batch(np.swapaxes(self.data.rotations, 1, 2) @ tool[:, :3, :3])
                 e.residual = np.concatenate([position, e.logs], axis=1)
             e.residual.flags.writeable = False  # cached: callers share it
         return e.residual
@@ -391,7 +344,7 @@ class _SerialResidual:
         r = self.residual(state)
         e = self._evaluate(state)
         if e.jacobian is None:
-            log_jacobians = None if e.logs is None else _jlog3_batch(e.logs, e.angles)
+            log_jacobians = None if e.logs is None else jlog3_batch(e.logs, e.angles)
             rows = _placement_rows(e.frames, self.data.rotations is not None, log_jacobians)
             e.jacobian = (self.whitening @ rows).reshape(r.size, -1)
             e.jacobian.flags.writeable = False
