@@ -16,7 +16,7 @@
    target) along a 1,000-target path, warm-started, against the same solves started from home.
 
 Run: python benchmarks/bench_scaling.py [--sizes 20 50 100 1000] [--fd-sizes 20 50] [--quick]
-     (add 10000 to --sizes to measure it rather than extrapolate; several minutes)
+     (add 10000 to --sizes to measure it rather than extrapolate; about a minute and 1.4 GB here)
 """
 
 from __future__ import annotations
