@@ -207,7 +207,7 @@ def test_rank_bound_is_reached_at_a_generic_model(robot) -> None:
         position = jacobians[:, :3] + np.cross(jacobians[:, 3:], p[:, :, None], axis=1)
         stacked = np.concatenate([position, jacobians[:, 3:]], axis=1)[:, rows].reshape(-1, chain.n_parameters)
         rank = select_base_parameters(stacked, chain.parameter_names()).rank
-        assert rank == serial._rank_bound(chain, position_only)
+        assert rank == chain.rank_bound(position_only)
 
 
 def test_stopping_one_iteration_earlier_changes_nothing() -> None:

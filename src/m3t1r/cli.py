@@ -301,10 +301,10 @@ def cmd_paper(args: argparse.Namespace) -> None:
     label = "with noise (tracker 10 um / 20 urad, encoders 10 urad)" if args.noise else "noise-free"
 
     def row(name, errors) -> str:
-        return (f"{name:<46}{errors.position_mean:>12.3e}{errors.position.max():>12.3e}"
-                f"{errors.rotation_mean:>13.3e}{errors.rotation.max():>12.3e}")
+        return (f"{name:<46}{errors.position_mean:>14.3e}{errors.position.max():>14.3e}"
+                f"{errors.rotation_mean:>16.3e}{errors.rotation.max():>15.3e}")
 
-    header = f"{'':<46}{'pos mean [m]':>12}{'pos max':>12}{'rot mean [rad]':>14}{'rot max':>11}"
+    header = f"{'':<46}{'pos mean [m]':>14}{'pos max [m]':>14}{'rot mean [rad]':>16}{'rot max [rad]':>15}"
     if args.closed:
         print(f"the paper's two-chain method on the closed-chain machine, seed {args.seed}, {label}:", flush=True)
         result = closed_chain_study(args.seed, noise=noise)

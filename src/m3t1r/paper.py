@@ -47,6 +47,7 @@ only the entries of the joints that are read matter.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -60,7 +61,7 @@ from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration import (ClosedLoopCalibration, PoseErrors, PoseMeasurements, TrackerNoise,
                                calibrate_closed_loop, pose_errors)
 from m3t1r.description import ClosureSpec, Mechanism
-from m3t1r.errors import (IdentificationError, InvalidInputError, KinematicsError, ModelFileError,
+from m3t1r.errors import (IdentificationError, InvalidInputError, KinematicsError, ModelFileError, PoorExcitationWarning,
                           NotConvergedError)
 from m3t1r.identification import BaseParameters, RecursiveLeastSquares, batch_least_squares, select_base_parameters
 from m3t1r.kinematics import ClosedLoopSolver, rehomed
@@ -545,9 +546,14 @@ def calibrate_two_chains(
     residual_before = {c.name: _pose_differences(p, m) for c, p, m in zip(chains, system.poses, measured)}
     base = select(A, system.parameter_names)
     current, system, y, A, converged = iterate(start, system, y, A, base)
-    for _ in range(_MAX_RESELECTIONS if unidentifiable == "base" else 0):
-        candidate = select(A, system.parameter_names)
-        if not converged or candidate.rank <= base.rank:
+    # Special nominal geometry can hide parameters; re-select at the estimate, but never beyond the
+    # structural bound 4 r + 2 p + 6 per chain (section 3.2): columns past it are rounding noise.
+    bound = sum(chain.serial.rank_bound() for chain in chains)
+    for _ in range(_MAX_RESELECTIONS if unidentifiable == "base" and base.rank < bound else 0):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PoorExcitationWarning)
+            candidate = select(A, system.parameter_names)
+        if not converged or candidate.rank <= base.rank or candidate.rank > bound:
             break
         base = candidate
         current, system, y, A, converged = iterate(current, system, y, A, base)

@@ -362,6 +362,23 @@ class SerialChain:
         """Column names of `error_jacobian_world`, 6 per placement."""
         return tuple(name for p in self.placements() for name in p.parameter_names())
 
+    def rank_bound(self, position_only: bool = False) -> int:
+        """An upper bound on the rank of the error Jacobian that holds at every model and configuration.
+
+        An error twist c on placement k that commutes with the joint twist S_k (ad_{S_k} c = 0) passes
+        through the joint motion, Ad(exp6(S_k q)) c = c, so it equals the error Ad(T_{k,k+1}(0)^-1) c on the
+        next placement, exactly: one linear dependency among the columns per dimension of the
+        centraliser of S_k. That is 2 for a screw (revolute or helical joint: the twist itself and the
+        pure rotation about, or translation along, its axis) and 4 for a pure translation (prismatic
+        joint: every translation and the rotation about its axis), the paper's 4 r + 2 p + 6 (section
+        3.2). Position rows also never see the tool's own rotation (3 zero columns). The dependencies are
+        independent (each involves its own placement's block), hence the bound; base-parameter selection
+        never counts them, its pivots being at rounding level there.
+        """
+        prismatic = int(np.count_nonzero(~np.any(self.twists[:, 3:], axis=1)))
+        dependencies = 2 * self.n_joints + 2 * prismatic + (3 if position_only else 0)
+        return self.n_parameters - dependencies
+
     def check_model(self, model: pin.Model) -> None:
         """Raise InvalidInputError if `model` does not have this chain's joints and frames at the same ids."""
         ok = model.njoints > max(self.joint_ids) and model.nframes > self.tool_frame_id

@@ -507,24 +507,6 @@ def _parse_measurements(
     return _Measurements(q=q, positions=positions, rotations=None if position_only else rotations)
 
 
-def _rank_bound(chain: SerialChain, position_only: bool) -> int:
-    """An upper bound on the rank of the error Jacobian that holds at every model and configuration.
-
-    An error twist c on placement k that commutes with the joint twist S_k (ad_{S_k} c = 0) passes
-    through the joint motion, Ad(exp6(S_k q)) c = c, so it equals the error Ad(T_{k,k+1}(0)^-1) c on the
-    next placement, exactly: one linear dependency among the columns per dimension of the
-    centraliser of S_k. That is 2 for a screw (revolute or helical joint: the twist itself and the
-    pure rotation about, or translation along, its axis) and 4 for a pure translation (prismatic
-    joint: every translation and the rotation about its axis), the paper's 4 r + 2 p + 6 (section
-    3.2). Position rows also never see the tool's own rotation (3 zero columns). The dependencies are
-    independent (each involves its own placement's block), hence the bound; base-parameter selection
-    never counts them, its pivots being at rounding level there.
-    """
-    prismatic = int(np.count_nonzero(~np.any(chain.twists[:, 3:], axis=1)))
-    dependencies = 2 * chain.n_joints + 2 * prismatic + (3 if position_only else 0)
-    return chain.n_parameters - dependencies
-
-
 def _rms(residual: np.ndarray) -> PoseErrorRMS:
     position = float(np.sqrt(np.mean(np.sum(residual[:, :3] ** 2, axis=1))))
     rotation = float(np.sqrt(np.mean(np.sum(residual[:, 3:] ** 2, axis=1)))) if residual.shape[1] == 6 else np.nan
@@ -583,7 +565,7 @@ def calibrate_serial(
     result = solve(problem, nominal)
     iterations = result.iterations
     # At the bound, a re-selection can only confirm the rank: skip its pivoted QR.
-    reselections = _MAX_RESELECTIONS if base.rank < _rank_bound(chain, position_only) else 0
+    reselections = _MAX_RESELECTIONS if base.rank < chain.rank_bound(position_only) else 0
     for _ in range(reselections):
         candidate = select_base_parameters(residual.residual_and_jacobian(result.state)[1], names, rel_tol)
         if candidate.rank <= base.rank:
