@@ -584,13 +584,13 @@ def predicted_pose_std(calibration: ClosedLoopCalibration, actuators: np.ndarray
     error_model = ClosedLoopErrorModel(mechanism, calibration.error_model.placements)
     solver = ClosedLoopSolver(mechanism)
     columns = np.array(calibration.base.indices)
+    configurations = [solver.forward(sliders).q for sliders in np.asarray(actuators, dtype=float)]
+    sensitivities = error_model.platform_sensitivities(solver, configurations, columns)
     position, rotation = [], []
-    for sliders in np.asarray(actuators, dtype=float):
-        q = solver.forward(sliders).q
-        pose, dxi, _ = error_model.platform_sensitivity(solver, q, columns)
+    for pose, dxi in zip(sensitivities.poses, sensitivities.twist_jacobians):
         # Position of P and local orientation, per unit base parameter.
-        point = np.hstack((np.eye(3), -pin.skew(pose.translation))) @ dxi
-        angular = pose.rotation.T @ dxi[3:]
+        point = np.hstack((np.eye(3), -pin.skew(pose[:3, 3]))) @ dxi
+        angular = pose[:3, :3].T @ dxi[3:]
         position.append(math.sqrt(np.trace(point @ calibration.covariance @ point.T)))
         rotation.append(math.sqrt(np.trace(angular @ calibration.covariance @ angular.T)))
     return PoseErrors(np.array(position), np.array(rotation))

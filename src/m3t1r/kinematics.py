@@ -230,7 +230,6 @@ class ClosedLoopSolver:
                           for start, c in zip(starts, closures) if c.type == "6D"]
         self.n_rows = len(self._enforced)
 
-        self._all_columns = np.arange(nv)
         self.actuated = mechanism.actuated_ids
         self.passive = mechanism.passive_ids
         self._act_lower, self._act_upper = mechanism.joint_limits()

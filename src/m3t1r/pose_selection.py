@@ -296,12 +296,11 @@ def closed_loop_candidate_blocks(mechanism: Mechanism, actuators: ArrayLike, noi
     weights = np.r_[np.full(3, 1.0 / noise.position), np.full(3, 1.0 / noise.rotation)]
     rows = 3 if position_only else 6
     sliders = np.atleast_2d(np.asarray(actuators, dtype=float))
-    blocks = np.empty((len(sliders), rows, error_model.n_parameters))
-    for i, values in enumerate(sliders):
-        q = solver.forward(values, q_init=mechanism.home).q
-        pose, dxi, _ = error_model.platform_sensitivity(solver, q)
-        blocks[i] = _pose_residual_rows(pose.translation, pose.rotation, dxi, position_only) * weights[:rows, None]
-    return blocks, error_model.names
+    configurations = [solver.forward(values, q_init=mechanism.home).q for values in sliders]
+    sensitivities = error_model.platform_sensitivities(solver, configurations)
+    blocks = np.array([_pose_residual_rows(pose[:3, 3], pose[:3, :3], dxi, position_only)
+                       for pose, dxi in zip(sensitivities.poses, sensitivities.twist_jacobians)])
+    return blocks * weights[:rows, None], error_model.names
 
 
 def serial_candidate_blocks(model: pin.Model, chain: SerialChain, q_chain: ArrayLike,
