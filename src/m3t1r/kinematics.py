@@ -377,7 +377,7 @@ class ClosedLoopSolver:
 
     def _newton(self, q: np.ndarray, unknowns: np.ndarray, system, signature, start_branch=None,
                 factors: tuple | None = None) -> _Outcome:
-        """Newton on a square system over the columns `unknowns`, with chord steps.
+        """Newton on a square system over the columns `unknowns` (None: every column), with chord steps.
 
         The Jacobian is evaluated at the start; later steps reuse its LU factors while each
         step still contracts the residual by `_CHORD_CONTRACTION`, and refresh it otherwise.
@@ -505,7 +505,7 @@ class ClosedLoopSolver:
         return InverseResult(actuators, q.copy(), pose, residual, iterations,
                              (roll - wanted_tilt[0], pitch - wanted_tilt[1]))
 
-    _lu_inverse: tuple[np.ndarray, np.ndarray, float] | None = None
+    _lu_inverse: tuple[np.ndarray, np.ndarray] | None = None  # getrf factors at the last IK solution
     _last_inverse_branch: bytes | None = None  # signature at the last IK solution
     _last_task: tuple[np.ndarray, float] | None = None  # platform (position, yaw) at the last IK solution
 
