@@ -113,3 +113,8 @@ def test_too_few_poses(tmp_path, capsys):
     assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf")]) == 2
     assert "identify only" in capsys.readouterr().err
     assert not (tmp_path / "c.urdf").exists()
+
+
+def test_paper_closed_refuses_a_passive_source_it_would_ignore(capsys):
+    assert main(["paper", "--closed", "--passive-from", "distance"]) == 2
+    assert "--passive-from applies to the two-chain study only" in capsys.readouterr().err

@@ -297,6 +297,10 @@ def cmd_demo(args: argparse.Namespace) -> None:
 def cmd_paper(args: argparse.Namespace) -> None:
     from .paper import SensorNoise, closed_chain_study, paper_study
 
+    if args.closed and args.passive_from is not None:
+        raise InvalidInputError("--closed runs every variant (passive joints read, sliders alone, closed loop); "
+                                "--passive-from applies to the two-chain study only")
+    passive_from = args.passive_from or "sensor"
     noise = SensorNoise() if args.noise else None
     label = "with noise (tracker 10 um / 20 urad, encoders 10 urad)" if args.noise else "noise-free"
 
@@ -318,8 +322,8 @@ def cmd_paper(args: argparse.Namespace) -> None:
             print(row("closed-loop calibration (m3t1r.calibration)", result.closed_loop))
         return
     print(f"the paper's simulation study (two serial chains, Table-1-like dt, ds, dq), seed {args.seed}, "
-          f"lower cranks from {args.passive_from}, {label}:", flush=True)
-    result = paper_study(args.seed, noise=noise, passive_from=args.passive_from)
+          f"lower cranks from {passive_from}, {label}:", flush=True)
+    result = paper_study(args.seed, noise=noise, passive_from=passive_from)
     ident = result.identifiability
     print(f"identifiable: {ident.rank_per_chain} per chain, {ident.rank_stacked} stacked "
           f"(the paper's bound for the whole machine: {ident.paper_bound})")
@@ -432,8 +436,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = verbs.add_parser("paper", help="the paper's two-chain method: its simulation study, or on the closed chain")
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--noise", action="store_true", help="tracker, encoder and slider noise")
-    p.add_argument("--passive-from", choices=("sensor", "distance", "platform", "sliders"), default="sensor",
-                   help="lower cranks q13, q23: read, the paper's recursion (eq. 30), or a closure solve")
+    p.add_argument("--passive-from", choices=("sensor", "distance", "platform", "sliders"), default=None,
+                   help="lower cranks q13, q23: read (default), the paper's recursion (eq. 30), or a closure solve; "
+                        "not with --closed")
     p.add_argument("--closed", action="store_true", help="run the method on the full closed-chain machine instead")
     p.set_defaults(run=cmd_paper)
 
