@@ -208,22 +208,19 @@ class _PathSolver:
         self._warm = False  # False while the last good solution is home itself: nothing to retry from
 
     def inverse(self, target: np.ndarray | pin.SE3) -> InverseResult:
-        try:
-            result = self.solver.inverse(target)
-        except KinematicsError:
-            if not self._warm:
-                raise
-            result = self.solver.inverse(target, q_init=self._home)
-        self._warm = True
-        return result
+        return self._solve(self.solver.inverse, target)
 
     def forward(self, actuators: np.ndarray) -> ForwardResult:
+        return self._solve(self.solver.forward, actuators)
+
+    def _solve(self, solve, argument):
+        """Warm-started solve; after a failure, once more from home (unless that was the start)."""
         try:
-            result = self.solver.forward(actuators)
+            result = solve(argument)
         except KinematicsError:
             if not self._warm:
                 raise
-            result = self.solver.forward(actuators, q_init=self._home)
+            result = solve(argument, q_init=self._home)
         self._warm = True
         return result
 

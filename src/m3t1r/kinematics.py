@@ -116,10 +116,6 @@ class _BranchSignature:
         return signature
 
 
-def _skew(p: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
-
-
 @dataclass(frozen=True)
 class _Outcome:
     """A converged Newton solve: solution, residual, steps, last LU factors, Jacobian and branch."""
@@ -234,7 +230,6 @@ class ClosedLoopSolver:
         self.passive = mechanism.passive_ids
         self._act_lower, self._act_upper = mechanism.joint_limits()
         self._platform = mechanism.platform_frame_id
-        self._platform_mask = support_mask(self._platform)
         if self.n_rows != len(self.passive):
             raise InvalidInputError(
                 f"{mechanism.closures_path}: {self.n_rows} enforced closure rows for {len(self.passive)} passive joints; "
