@@ -20,6 +20,7 @@ It is whitened by the tracker noise and minimised by Levenberg-Marquardt over th
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -252,6 +253,11 @@ class PlatformSensitivities:
     closure_jacobians: np.ndarray
     factors: tuple[tuple, ...]
 
+    def restricted(self, columns: np.ndarray) -> PlatformSensitivities:
+        """The same sensitivities over a subset of the parameter columns."""
+        return dataclasses.replace(self, twist_jacobians=self.twist_jacobians[:, :, columns],
+                                   closure_jacobians=self.closure_jacobians[:, :, columns])
+
     def passive_motion(self, step: np.ndarray) -> np.ndarray:
         """First-order passive-joint change (N, n_pas) [rad or m] for a parameter step (P,):
         dq_passive = -J_c,passive^-1 (dr_c/dp) step."""
@@ -465,7 +471,7 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
         state = problem.assemble(mechanism.model, (mechanism.home,) * len(measurements))
     except KinematicsError as exc:
         raise IdentificationError(f"a measured pose does not assemble on the starting model: {exc}") from None
-    residual, jacobian, _ = problem.evaluate(state, everything)
+    residual, jacobian, sensitivities = problem.evaluate(state, everything)
     whitened = jacobian * problem.weights[:, None]
     base = select_base_parameters(whitened, error_model.names, rel_tol=rank_tolerance)
     identifiable = _structural_rank(error_model, measurements.position_only, noise, rank_tolerance)
@@ -474,6 +480,9 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
             f"{len(measurements)} poses give {len(residual)} residual rows for {identifiable} identifiable "
             f"parameters and identify only {base.rank}: add poses spread over the workspace")
     problem.columns = np.array(base.indices)
+    # LM starts here: its first residual and Jacobian are these, restricted to the base columns.
+    state.whitened = (residual * problem.weights, whitened[:, problem.columns])
+    state.tangents = sensitivities.restricted(problem.columns)
     # Damping starts low: 1e-3 over-damps the weak directions (about twice the iterations).
     degrees_of_freedom = max(len(residual) - base.rank, 1)
     relative_tolerance = max(cost_tolerance, 2.0 * step_significance / degrees_of_freedom)
