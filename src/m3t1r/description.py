@@ -6,8 +6,10 @@ each error names the file and the joint, frame or field at fault.
 
 from __future__ import annotations
 
+import copy
+import hashlib
 import importlib.resources
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -17,7 +19,7 @@ import yaml
 
 from .errors import ModelFileError
 
-__all__ = ["ClosureSpec", "Mechanism", "nominal_model_paths", "HOME_TOLERANCE"]
+__all__ = ["ClosureSpec", "Mechanism", "nominal_model_paths", "paired_closures", "HOME_TOLERANCE"]
 
 HOME_TOLERANCE = 1e-9  # max |closure residual| accepted at the declared home pose
 _ROW_COUNT = {"3D": 3, "6D": 6}
@@ -70,27 +72,48 @@ class Mechanism:
     urdf_path: Path
     closures_path: Path
 
+    closures_document: dict | None = field(default=None, repr=False, compare=False)
+    """The closures file as read (a YAML mapping), so that `save` never re-reads a file that may have changed."""
+
     @classmethod
     def load(cls, urdf: str | Path | None = None, closures: str | Path | None = None) -> "Mechanism":
         """Load a description: the packaged nominal one by default, or any URDF + closures pair.
 
+        With a URDF and no closures file, the URDF's pair is loaded (`paired_closures`):
+        `NAME.urdf` pairs with `NAME.closures.yaml`. A URDF written by `save` records its closures
+        file's sha256, and a closures file of another sha256 is refused, naming both files, so a
+        URDF never loads with the closures of another machine. A URDF without a pair beside it and
+        without a recorded sha256 gets the packaged nominal closures (a plain URDF of this machine).
+
         Raises ModelFileError (naming the file and the field, joint or frame) when a file is
-        missing, Pinocchio rejects the URDF, the closures name unknown frames or joints, an
-        actuated joint is not a 1-DoF prismatic/revolute joint, or the home pose does not close.
+        missing, Pinocchio rejects the URDF, the two files are not a pair, the closures name
+        unknown frames or joints, an actuated joint is not a 1-DoF prismatic/revolute joint, or
+        the home pose does not close.
         """
-        if (urdf is None) != (closures is None):
+        if urdf is None:
             nominal_urdf, nominal_closures = nominal_model_paths()
-            urdf = urdf if urdf is not None else nominal_urdf
+            urdf = nominal_urdf
             closures = closures if closures is not None else nominal_closures
-        elif urdf is None:
-            urdf, closures = nominal_model_paths()
-        urdf_path, closures_path = Path(urdf), Path(closures)
-        for path in (urdf_path, closures_path):
-            if not path.is_file():
-                raise ModelFileError(path, "file not found")
+        urdf_path = Path(urdf)
+        if not urdf_path.is_file():
+            raise ModelFileError(urdf_path, "file not found" if not urdf_path.exists() else "not a regular file")
+        recorded = _recorded_sha256(urdf_path)
+        if closures is None and recorded is None and not _paired_path(urdf_path).is_file():
+            closures = nominal_model_paths()[1]
+        if closures is None:
+            closures_path, data = paired_closures(urdf_path, recorded=recorded)
+        else:
+            closures_path, data = _closures_of(urdf_path, Path(closures), recorded)
         model, visual = _load_urdf(urdf_path)
-        doc = _read_yaml(closures_path)
-        mechanism = _build(model, visual, doc, urdf_path, closures_path)
+        doc = _parse_yaml(closures_path, data)
+        try:
+            mechanism = _build(model, visual, doc, urdf_path, closures_path)
+        except ModelFileError:
+            raise
+        except (TypeError, ValueError, AttributeError, OverflowError, KeyError) as exc:
+            # Safety net for a malformed cell the field checks above did not foresee.
+            raise ModelFileError(closures_path, f"malformed closures file: {type(exc).__name__}: {exc}") from None
+        mechanism = _with_document(mechanism, doc)
         _check_home_closes(mechanism)
         return mechanism
 
@@ -131,32 +154,50 @@ class Mechanism:
             q[self.model.idx_qs[self.model.getJointId(name)]] = value
         return q
 
-    def save(self, urdf: str | Path, closures: str | Path, protect: tuple = ()) -> None:
-        """Write this machine as a URDF + closures pair that `Mechanism.load` reads back.
+    def pair_bytes(self, urdf: str | Path, closures: str | Path | None = None) -> tuple[bytes, bytes]:
+        """The (URDF, closures) bytes `save` writes for a pair named `urdf` (closures default: its pair).
 
         The URDF is this machine's source URDF with every joint `<origin>` rewritten from `model`
-        (a calibrated tree keeps its visuals, limits and names); the closures file is the source's
-        with `home` replaced by this machine's assembled home. Both writes are atomic and never
-        touch the source files or `protect`.
+        (a calibrated tree keeps its visuals, limits and names) and a comment recording the
+        closures bytes' sha256; the closures file is the source's with `home` replaced by this
+        machine's assembled home.
         """
-        from .io import atomic_write_text
-        from .urdf_io import write_calibrated_urdf
+        from .io import paired_closures_path, sha256_bytes
+        from .urdf_io import calibrated_urdf_bytes
 
-        sources = (self.urdf_path, self.closures_path, *protect)
-        doc = yaml.safe_load(self.closures_path.read_text())
+        doc = copy.deepcopy(self.closures_document) if self.closures_document is not None else \
+            _parse_yaml(self.closures_path, _read_bytes(self.closures_path))
         doc["home"] = {self.model.names[j]: float(self.home[self.model.idx_qs[j]]) for j in range(1, self.model.njoints)}
-        header = f"# Closures of {Path(urdf).name}; home re-assembled for its geometry. Schema: models/README.md\n"
-        from .io import ensure_not_protected
+        closures_path = paired_closures_path(urdf) if closures is None else Path(closures)
+        header = (f"# Closures of {Path(urdf).name} (written with it as a pair; its URDF records this file's sha256); "
+                  "home re-assembled for its geometry. Schema: models/README.md\n")
+        closures_bytes = (header + yaml.safe_dump(doc, sort_keys=False)).encode("utf-8")
+        del closures_path
+        return calibrated_urdf_bytes(self.urdf_path, self.model, sha256_bytes(closures_bytes)), closures_bytes
 
-        ensure_not_protected(closures, sources)
-        write_calibrated_urdf(self.urdf_path, self.model, Path(urdf), protect=sources)
-        atomic_write_text(closures, header + yaml.safe_dump(doc, sort_keys=False), protect=sources)
+    def save(self, urdf: str | Path, closures: str | Path | None = None, protect: tuple = ()) -> None:
+        """Write this machine as a URDF + closures pair that `Mechanism.load(urdf)` reads back.
+
+        `closures` defaults to the pair name `NAME.closures.yaml` (`m3t1r.io.paired_closures_path`).
+        The two files are written as a unit (`m3t1r.io.OutputSet`): checked first (no collision
+        with each other, the source files or `protect`, through symlinks and hard links; folder
+        writable), then staged and renamed so that an interruption at any instant leaves a
+        loadable pair, the old one or the new one.
+        """
+        from .io import OutputSet
+
+        outputs = OutputSet(inputs=(self.urdf_path, self.closures_path, *protect))
+        machine = outputs.add_machine(urdf, "URDF", closures)
+        with outputs:
+            outputs.check()
+            outputs.stage_machine(machine, self)
+            outputs.commit()
 
     def with_model(self, model: pin.Model) -> "Mechanism":
         """The same closures and actuation on another tree model (a calibrated or perturbed copy)."""
         return Mechanism(model, self.visual_model, self.closures, self.actuated_joints,
                          self.principal_chains, self.platform_frame, self.home.copy(),
-                         self.urdf_path, self.closures_path)
+                         self.urdf_path, self.closures_path, self.closures_document)
 
 
 def _load_urdf(path: Path) -> tuple[pin.Model, pin.GeometryModel]:
@@ -172,17 +213,102 @@ def _load_urdf(path: Path) -> tuple[pin.Model, pin.GeometryModel]:
     return model, visual
 
 
-def _read_yaml(path: Path) -> dict:
+def paired_closures(urdf: str | Path, *, recorded: str | None | bool = False) -> tuple[Path, bytes]:
+    """The closures file that pairs with `urdf`, and its bytes, as read once.
+
+    `NAME.urdf` pairs with `NAME.closures.yaml` (only the final `.urdf` replaced). If the URDF
+    records a closures sha256 (every URDF written by `Mechanism.save` does), the closures file must
+    have it; when `NAME.closures.yaml` does not, a staged closures file of an interrupted pair
+    write (`.NAME.closures.yaml.m3t1r-*.tmp`) that has it is used instead: the URDF was renamed,
+    its closures file not yet (models/README.md, "A machine is a pair of files").
+
+    Raises ModelFileError: no closures file, or none with the recorded sha256.
+    """
+    urdf_path = Path(urdf)
+    if recorded is False:
+        recorded = _recorded_sha256(urdf_path)
+    return _closures_of(urdf_path, _paired_path(urdf_path), recorded)
+
+
+def _paired_path(urdf: Path) -> Path:
+    from .io import paired_closures_path
+
+    return paired_closures_path(urdf)
+
+
+def _recorded_sha256(urdf: Path) -> str | None:
+    from .urdf_io import recorded_closures_sha256
+
     try:
-        doc = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ModelFileError(path, f"cannot read closures YAML: {exc}") from None
+        return recorded_closures_sha256(_read_bytes(urdf))
+    except ModelFileError as exc:
+        raise ModelFileError(urdf, str(exc).split(": ", 1)[-1]) from None
+
+
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise ModelFileError(path, "file not found") from None
+    except IsADirectoryError:
+        raise ModelFileError(path, "is a directory, expected a file") from None
+    except OSError as exc:
+        raise ModelFileError(path, f"cannot read: {exc.strerror or exc}") from None
+
+
+def _closures_of(urdf: Path, closures: Path, recorded: str | None) -> tuple[Path, bytes]:
+    from .io import pending_temporaries
+
+    data = None if not closures.exists() and recorded is not None else _read_bytes(closures)
+    if recorded is None:
+        return closures, data
+    if data is not None and hashlib.sha256(data).hexdigest() == recorded:
+        return closures, data
+    for pending in reversed(pending_temporaries(closures)):
+        try:
+            staged = pending.read_bytes()
+        except OSError:
+            continue
+        if hashlib.sha256(staged).hexdigest() == recorded:
+            return closures, staged
+    if data is None:
+        raise ModelFileError(closures, f"file not found: {urdf.name} records closures sha256 {recorded[:16]}..., "
+                                       "and no closures file with it is there")
+    actual = hashlib.sha256(data).hexdigest()
+    raise ModelFileError(
+        closures, f"not the closures file of {urdf}: the URDF records closures sha256 {recorded[:16]}..., "
+                  f"this file has {actual[:16]}... The two files were not written together (one was rewritten "
+                  "by another run, or copied from another machine); load the URDF with the closures file "
+                  "written with it")
+
+
+def _parse_yaml(path: Path, data: bytes) -> dict:
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise ModelFileError(path, f"line {line}: not UTF-8 text (byte 0x{data[exc.start]:02x})") from None
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ModelFileError(path, f"{where}not valid YAML: {problem}") from None
+    except (ValueError, TypeError, OverflowError, RecursionError) as exc:  # e.g. a date 2001-13-01
+        raise ModelFileError(path, f"cannot read closures YAML: {type(exc).__name__}: {exc}") from None
     if not isinstance(doc, dict):
         raise ModelFileError(path, "closures file must be a YAML mapping")
     for key in ("actuated_joints", "closures", "platform_frame", "home"):
         if key not in doc:
             raise ModelFileError(path, f"missing field '{key}'")
     return doc
+
+
+def _with_document(mechanism: Mechanism, doc: dict) -> Mechanism:
+    return Mechanism(mechanism.model, mechanism.visual_model, mechanism.closures, mechanism.actuated_joints,
+                     mechanism.principal_chains, mechanism.platform_frame, mechanism.home,
+                     mechanism.urdf_path, mechanism.closures_path, copy.deepcopy(doc))
 
 
 def _frame_id(model: pin.Model, name: object, path: Path, where: str) -> int:
@@ -267,6 +393,6 @@ def _check_home_closes(mechanism: Mechanism) -> None:
     for spec, residual in closure_residual_by_closure(mechanism, mechanism.home):
         # Only the enforced rows: on a machine with errors the others cannot all hold (mechanism.md).
         worst = float(np.max(np.abs(residual[list(spec.rows)])))
-        if worst > HOME_TOLERANCE:
+        if not worst <= HOME_TOLERANCE:  # a NaN residual (home values too large) fails too
             raise ModelFileError(mechanism.closures_path,
                                  f"home does not close: closure '{spec.name}' residual {worst:.3e} > {HOME_TOLERANCE:g}")

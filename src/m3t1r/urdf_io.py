@@ -83,6 +83,8 @@ def write_calibrated_urdf(
     `xyz` (m) and `rpy` (rad, URDF convention R = Rz(yaw) Ry(pitch) Rx(roll)) are written as
     the shortest decimals that parse back to the same doubles. A joint without `<origin>` gets
     one. See the module docstring for how each origin is computed and which frame wins.
+    A closures-pairing comment copied from the nominal file is dropped: the output is a URDF
+    on its own (`Mechanism.save` writes pairs).
 
     Raises:
         ModelFileError: the nominal file is unreadable or not a URDF, or `model` does not have
@@ -93,6 +95,15 @@ def write_calibrated_urdf(
     nominal = Path(nominal_urdf)
     protected = (nominal, *protect)
     ensure_not_protected(out_path, protected)  # before any work, not only at the final write
+    atomic_write_bytes(out_path, calibrated_urdf_bytes(nominal, model), protect=protected)
+
+
+def calibrated_urdf_bytes(nominal_urdf: StrPath, model: pin.Model, closures_sha256: str | None = None) -> bytes:
+    """The bytes `write_calibrated_urdf` writes, with the pairing comment for `closures_sha256` if given.
+
+    Raises ModelFileError as `write_calibrated_urdf` does.
+    """
+    nominal = Path(nominal_urdf)
     try:
         raw = nominal.read_bytes()
     except OSError as exc:
@@ -109,7 +120,44 @@ def write_calibrated_urdf(
         for joint in joints
     }
     output = _rewrite_origins(raw, root, joints, {name: _origin_attributes(m) for name, m in origins.items()})
-    atomic_write_bytes(out_path, output, protect=protected)
+    return with_closures_sha256(output, closures_sha256)
+
+
+# --------------------------------------------------------------------------------------------
+# Pairing a URDF with its closures file
+# --------------------------------------------------------------------------------------------
+
+# One comment line before the root element. The digest is what the loader checks; the words
+# are for a person opening the file.
+_PAIRING = re.compile(rb"<!-- m3t1r pair: closures sha256 ([0-9a-f]{64})\b[^>]*-->[ \t]*(?:\r?\n)?")
+_DECLARATION = re.compile(rb"\A(?:\xef\xbb\xbf)?\s*<\?xml[^>]*\?>[ \t]*(?:\r?\n)?")
+
+
+def recorded_closures_sha256(urdf: bytes) -> str | None:
+    """The closures sha256 a paired URDF records, or None for a URDF that records none.
+
+    Raises ModelFileError (path unknown here: "URDF") if it records two different ones.
+    """
+    digests = {match[1].decode("ascii") for match in _PAIRING.finditer(urdf)}
+    if len(digests) > 1:
+        raise ModelFileError("URDF", "records two different closures sha256 digests")
+    return digests.pop() if digests else None
+
+
+def with_closures_sha256(urdf: bytes, digest: str | None) -> bytes:
+    """`urdf` with its pairing comment set to `digest` (removed when None), placed after the XML declaration."""
+    stripped = _PAIRING.sub(b"", urdf)
+    if digest is None:
+        return stripped
+    if not re.fullmatch(r"[0-9a-f]{64}", digest):
+        raise ValueError(f"not a sha256 hex digest: {digest!r}")
+    comment = (b"<!-- m3t1r pair: closures sha256 " + digest.encode("ascii")
+               + b" (this URDF loads only with the closures file of that sha256; models/README.md) -->\n")
+    declaration = _DECLARATION.match(stripped)
+    at = declaration.end() if declaration else 0
+    if declaration and not stripped[:at].endswith(b"\n"):
+        comment = b"\n" + comment
+    return stripped[:at] + comment + stripped[at:]
 
 
 def max_placement_difference(model_a: pin.Model, model_b: pin.Model) -> float:
