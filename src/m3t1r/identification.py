@@ -19,6 +19,7 @@ from typing import Generic, Literal, Protocol, TypeVar
 
 import numpy as np
 import scipy.linalg
+import scipy.stats
 from numpy.typing import ArrayLike
 
 from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
@@ -26,6 +27,10 @@ from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationW
 __all__ = [
     "BaseParameters",
     "LMResult",
+    "OUTLIER_SIGMA",
+    "ParameterSelection",
+    "forward_selection",
+    "outlier_poses",
     "LeastSquaresProblem",
     "LinearFit",
     "RecursiveLeastSquares",
@@ -106,6 +111,7 @@ def select_base_parameters(
     rel_tol: float = 1e-9,
     *,
     max_condition: float = POOR_EXCITATION_CONDITION,
+    forced: Sequence[int] = (),
 ) -> BaseParameters:
     """Choose a maximal set of linearly independent columns of the stacked Jacobian (m, p).
 
@@ -114,7 +120,15 @@ def select_base_parameters(
     commutes with the joint motion) give |R_ii| at rounding level; rel_tol must sit between that
     and the weakest genuine direction. Emits PoorExcitationWarning when the kept set's condition
     number exceeds `max_condition`: the pose set is then too poor to pin down every kept parameter.
+
+    forced: columns kept first, whatever their norm (the gauge: e.g. a measurement frame whose 6
+    parameters are redundant with base-side placements keeps them, and the placements it makes
+    redundant are the ones dropped). They are taken in the given order, and one that the earlier
+    ones explain is dropped; the rest is chosen on the remainder after projecting them out.
     """
+    if len(forced):
+        return _select_with_forced(_as_matrix(jacobian, "jacobian"), tuple(names), rel_tol, max_condition,
+                                   np.asarray(forced, dtype=int))
     matrix = _as_matrix(jacobian, "jacobian")
     names = tuple(names)
     if len(names) != matrix.shape[1]:
@@ -162,6 +176,181 @@ def select_base_parameters(
         condition_number=condition,
         r_diag_ratio=ratio[: min(rank + 1, ratio.size)],
         zero_columns=tuple(names[i] for i in np.flatnonzero(~nonzero)),
+    )
+
+
+def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rel_tol: float, max_condition: float,
+                        forced: np.ndarray) -> BaseParameters:
+    if len(names) != matrix.shape[1]:
+        raise InvalidInputError(f"select_base_parameters: {matrix.shape[1]} columns but {len(names)} names")
+    norms = np.linalg.norm(matrix, axis=0)
+    largest = norms.max(initial=0.0)
+    if largest == 0.0:
+        raise IdentificationError("select_base_parameters: the Jacobian is identically zero")
+    nonzero = norms > rel_tol * largest
+    normalised = matrix[:, nonzero] / norms[nonzero]
+    position = np.full(matrix.shape[1], -1)
+    position[np.flatnonzero(nonzero)] = np.arange(np.count_nonzero(nonzero))
+    # Forced columns in their given order, unpivoted: one that the earlier ones explain is dropped.
+    q_forced = np.zeros((matrix.shape[0], 0))
+    kept_forced, forced_diag = [], []
+    for column in forced[nonzero[forced]]:
+        vector = normalised[:, position[column]]
+        vector = vector - q_forced @ (q_forced.T @ vector)
+        length = float(np.linalg.norm(vector))
+        if length > rel_tol:
+            q_forced = np.column_stack((q_forced, vector / length))
+            kept_forced.append(int(column))
+            forced_diag.append(length)
+    forced = np.array(kept_forced, dtype=int)
+    rest = np.setdiff1d(np.flatnonzero(nonzero), forced)
+    remainder = normalised[:, position[rest]]
+    remainder = remainder - q_forced @ (q_forced.T @ remainder)
+    tie_break = 1.0 + _TIE_BREAK * np.linspace(1.0, 0.0, rest.size)
+    r0 = np.linalg.qr(remainder * tie_break, mode="r")
+    r, pivots = scipy.linalg.qr(r0, mode="r", pivoting=True)
+    diag = np.abs(np.diag(r))
+    rank_rest = int(np.count_nonzero(diag > rel_tol))
+    kept = np.sort(np.concatenate((forced, rest[pivots[:rank_rest]])))
+    r_kept = np.linalg.qr(normalised[:, position[kept]], mode="r")
+    kept_singular = np.linalg.svd(r_kept, compute_uv=False)
+    condition = float(kept_singular[0] / kept_singular[-1])
+    if condition > max_condition:
+        warnings.warn(PoorExcitationWarning(
+            f"kept {kept.size} parameters with condition number {condition:.3g} > {max_condition:.3g}: "
+            "add or spread out poses"), stacklevel=3)
+    singular_values = np.zeros(min(matrix.shape))
+    spectrum = np.linalg.svd(np.linalg.qr(normalised, mode="r"), compute_uv=False)
+    singular_values[: spectrum.size] = spectrum
+    return BaseParameters(
+        indices=tuple(int(i) for i in kept),
+        names=tuple(names[i] for i in kept),
+        rank=int(kept.size),
+        singular_values=singular_values,
+        condition_number=condition,
+        r_diag_ratio=np.concatenate((forced_diag, diag[: min(rank_rest + 1, diag.size)])),
+        zero_columns=tuple(names[i] for i in np.flatnonzero(~nonzero)),
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Outliers and model selection by leave-one-pose-out prediction
+
+#: A pose is an outlier when its whitened residual is as unlikely under the noise model as a
+#: 5-sigma deviation of one normal variable (two-sided tail probability 5.7e-7).
+OUTLIER_SIGMA = 5.0
+
+
+def outlier_poses(whitened: ArrayLike, sigma: float = OUTLIER_SIGMA) -> tuple[np.ndarray, float]:
+    """Flag poses whose whitened residual block (N, k) is beyond `sigma` noise sigmas.
+
+    A pose's statistic d^2 = ||r_i||^2 is chi^2 with k degrees of freedom under the noise model; it
+    is flagged when d^2 / s^2 exceeds the chi^2_k quantile with the two-sided normal tail
+    probability of `sigma`. s^2 = max(1, median(d^2) / median(chi^2_k)) is a robust variance
+    factor: unmodelled effects larger than the stated noise widen the gate instead of flagging
+    every pose, and the outliers themselves cannot widen it. Returns (mask (N,), s).
+    """
+    blocks = np.asarray(whitened, dtype=float)
+    if blocks.ndim != 2 or blocks.shape[0] == 0:
+        raise InvalidInputError(f"outlier_poses: expected an (N, k) residual, got shape {blocks.shape}")
+    if not np.all(np.isfinite(blocks)):
+        raise InvalidInputError("outlier_poses: non-finite residual")
+    k = blocks.shape[1]
+    d2 = np.sum(blocks**2, axis=1)
+    scale2 = max(1.0, float(np.median(d2)) / float(scipy.stats.chi2.median(k)))
+    gate = float(scipy.stats.chi2.isf(2.0 * scipy.stats.norm.sf(sigma), k))
+    return d2 / scale2 > gate, float(np.sqrt(scale2))
+
+
+@dataclass(frozen=True)
+class ParameterSelection:
+    """Columns chosen by forward selection scored by leave-one-pose-out prediction (PRESS).
+
+    indices: chosen columns, sorted (forced ones included). press: sum over poses of the squared
+    whitened leave-one-pose-out prediction error of that choice; press_all: the same with every
+    candidate column; order / path: the columns in the order they were added and PRESS after each.
+    tied: how many other set sizes on the path score within one standard error of the best (the
+    paired per-pose differences): CV on few poses cannot separate them, and the report says so.
+    """
+
+    indices: tuple[int, ...]
+    press: float
+    press_all: float
+    order: tuple[int, ...]
+    path: tuple[float, ...]
+    tied: int
+
+
+def _loo_press(residual: np.ndarray, leverage: np.ndarray) -> np.ndarray:
+    """Per-pose squared LOO residuals (..., N): e_loo_i = (I - H_ii)^-1 e_i for each k-row block."""
+    k = residual.shape[-1]
+    eye = np.eye(k)
+    system = eye - leverage + 1e-12 * eye
+    loo = np.linalg.solve(system, residual[..., None])[..., 0]
+    return np.sum(loo**2, axis=-1)
+
+
+def forward_selection(jacobian: ArrayLike, residual: ArrayLike, rows_per_pose: int, candidates: Sequence[int],
+                      forced: Sequence[int] = (), *, rel_tol: float = 1e-9) -> ParameterSelection:
+    """Greedy forward selection of columns of the whitened linear model r + J dx (m = N k rows).
+
+    Starting from `forced`, each step adds the candidate column whose least-squares fit has the
+    smallest leave-one-pose-out PRESS; the hat matrix gives every LOO residual without a refit
+    (e_loo_i = (I - H_ii)^-1 e_i, H_ii the pose's k x k block). The whole path is scored and the
+    set with the lowest PRESS is chosen: a parameter enters only where it predicts left-out poses
+    better, not merely fits the training set better.
+    """
+    J = _as_matrix(jacobian, "jacobian")
+    r = _as_rows(residual, J.shape[0], "residual")
+    k = int(rows_per_pose)
+    n = J.shape[0] // k
+    if n * k != J.shape[0]:
+        raise InvalidInputError(f"forward_selection: {J.shape[0]} rows are not a multiple of {k} per pose")
+    chosen = [int(c) for c in forced]
+    basis = np.linalg.qr(J[:, chosen])[0] if chosen else np.zeros((J.shape[0], 0))
+    fitted = r - basis @ (basis.T @ r)
+    leverage = np.einsum("nia,nja->nij", basis.reshape(n, k, -1), basis.reshape(n, k, -1))
+    per_pose = [_loo_press(fitted.reshape(n, k), leverage)]
+    remaining = [int(c) for c in candidates if int(c) not in chosen]
+    norms = np.linalg.norm(J, axis=0)
+    projected = J[:, remaining] - basis @ (basis.T @ J[:, remaining])
+    chunk = max(1, int(2e7 // max(1, n * k * k)))
+    while remaining:
+        lengths = np.linalg.norm(projected, axis=0)
+        alive = lengths > rel_tol * np.maximum(norms[remaining], 1e-300)
+        if not alive.any():
+            break
+        scores = np.full(len(remaining), np.inf)
+        for start in range(0, len(remaining), chunk):
+            block = np.arange(start, min(start + chunk, len(remaining)))
+            block = block[alive[block]]
+            if not block.size:
+                continue
+            u = (projected[:, block] / lengths[block]).T.reshape(block.size, n, k)
+            trial_fit = fitted.reshape(n, k) - u * np.einsum("cnk,nk->c", u, fitted.reshape(n, k))[:, None, None]
+            trial_leverage = leverage + u[..., :, None] * u[..., None, :]
+            scores[block] = _loo_press(trial_fit, trial_leverage).sum(axis=1)
+        best = int(np.argmin(scores))
+        u = projected[:, best] / lengths[best]
+        fitted = fitted - u * (u @ fitted)
+        leverage = leverage + np.einsum("ni,nj->nij", u.reshape(n, k), u.reshape(n, k))
+        per_pose.append(_loo_press(fitted.reshape(n, k), leverage))
+        chosen.append(remaining.pop(best))
+        projected = np.delete(projected, best, axis=1)
+        projected -= np.outer(u, u @ projected)
+    path = np.array([p.sum() for p in per_pose])
+    best_size = int(np.argmin(path))
+    differences = np.array(per_pose) - per_pose[best_size]
+    standard_error = differences.std(axis=1, ddof=1) * np.sqrt(n) if n > 1 else np.zeros(len(path))
+    tied = int(np.count_nonzero(path - path[best_size] <= standard_error)) - 1
+    added = tuple(chosen[len(forced):])
+    return ParameterSelection(
+        indices=tuple(sorted(chosen[: len(forced) + best_size])),
+        press=float(path[best_size]),
+        press_all=float(path[-1]),
+        order=added,
+        path=tuple(float(v) for v in path),
+        tied=tied,
     )
 
 

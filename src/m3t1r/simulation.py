@@ -10,7 +10,7 @@ frame already span what a real machine can be, and that is what `actual_machine`
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pinocchio as pin
@@ -20,10 +20,11 @@ from .calibration import ClosedLoopErrorModel, PoseMeasurements, TrackerNoise
 from .description import Mechanism
 from .errors import InvalidInputError, KinematicsError
 from .kinematics import ClosedLoopSolver, rehomed
+from .measurement_setup import MeasurementSetup
 
 __all__ = ["SimulatedStudy", "random_placement_errors", "actual_machine", "with_joint_errors", "orthonormal_twist",
            "workspace_actuators",
-           "measure", "simulate_study"]
+           "measure", "simulate_study", "with_outliers"]
 
 
 def random_placement_errors(error_model: ClosedLoopErrorModel, rng: np.random.Generator,
@@ -105,19 +106,24 @@ def workspace_actuators(nominal: Mechanism, n: int, rng: np.random.Generator) ->
 
 @on_one_blas_thread
 def measure(machine: Mechanism, actuators: np.ndarray, rng: np.random.Generator | None = None,
-            noise: TrackerNoise | None = None, position_only: bool = False) -> PoseMeasurements:
+            noise: TrackerNoise | None = None, position_only: bool = False,
+            setup: MeasurementSetup | None = None) -> PoseMeasurements:
     """What a tracker sees on `machine` driven at `actuators`, and what the slider encoders read.
 
-    With `noise`, the recorded poses get Gaussian position [m] and rotation (right-multiplied,
-    [rad]) noise and the recorded slider readings Gaussian noise; without, both are exact.
+    The tracker sees setup.frame . T_platform . setup.marker (default: the platform frame in the
+    base frame). With `noise`, the recorded poses get Gaussian position [m] and rotation
+    (right-multiplied, [rad]) noise and the recorded slider readings Gaussian noise; without,
+    both are exact.
     """
     solver = ClosedLoopSolver(machine)
-    poses = []
+    platform = []
     for sliders in actuators:
         try:
-            poses.append(solver.forward(sliders).pose)
+            platform.append(solver.forward(sliders).pose.homogeneous)
         except KinematicsError as exc:
             raise InvalidInputError(f"slider set {sliders} does not assemble on the machine: {exc}") from None
+    seen = (setup or MeasurementSetup()).measured_poses(np.array(platform).reshape(-1, 4, 4))
+    poses = [pin.SE3(pose) for pose in seen]
     readings = np.array(actuators, dtype=float)
     if noise is not None:
         if rng is None:
@@ -128,13 +134,30 @@ def measure(machine: Mechanism, actuators: np.ndarray, rng: np.random.Generator 
     return PoseMeasurements(readings, tuple(poses), position_only)
 
 
+def with_outliers(measurements: PoseMeasurements, rng: np.random.Generator, count: int,
+                  size: tuple[float, float] = (3e-3, 5e-3)) -> tuple[PoseMeasurements, tuple[int, ...]]:
+    """`count` poses moved by a gross error of uniform length in `size` [m] in a random direction
+    (a broken beam, a reflector not seated); returns the measurements and the spoiled indices."""
+    if not 0 <= count <= len(measurements):
+        raise InvalidInputError(f"outliers: {count} of {len(measurements)} poses")
+    spoiled = tuple(sorted(int(i) for i in rng.choice(len(measurements), count, replace=False)))
+    poses = list(measurements.poses)
+    for i in spoiled:
+        direction = rng.normal(size=3)
+        shift = rng.uniform(*size) * direction / np.linalg.norm(direction)
+        poses[i] = pin.SE3(poses[i].rotation, poses[i].translation + shift)
+    return PoseMeasurements(measurements.actuators, tuple(poses), measurements.position_only), spoiled
+
+
 @dataclass(frozen=True)
 class SimulatedStudy:
     """A truth machine, calibration measurements on it, and held-out slider sets to judge a model.
 
-    passive_joints / passive_readings: encoder readings (N, k) of those joints of the truth at
-    the measured poses (noisy with `encoder_noise` [rad] when the study is noisy), for
-    cross-validation; the calibration does not use them.
+    setup: the truth measurement frame and marker the measurements were taken with; outliers:
+    indices of the measurements spoiled by gross errors. passive_joints / passive_readings:
+    encoder readings (N, k) of those joints of the truth at the measured poses (noisy with
+    `encoder_noise` [rad] when the study is noisy), for cross-validation; the calibration does not
+    use them.
     """
 
     nominal: Mechanism
@@ -145,14 +168,18 @@ class SimulatedStudy:
     seed: int
     passive_joints: tuple[str, ...] = ()
     passive_readings: np.ndarray | None = None
+    setup: MeasurementSetup = field(default_factory=MeasurementSetup)
+    outliers: tuple[int, ...] = ()
 
 
 def simulate_study(nominal: Mechanism, n_poses: int = 50, n_holdout: int = 200, seed: int = 0,
                    sigma_position: float = 1e-3, sigma_rotation: float = 1e-3, noise: TrackerNoise | None = None,
                    position_only: bool = False, passive_joints: tuple[str, ...] = (),
-                   encoder_noise: float = 1e-5) -> SimulatedStudy:
+                   encoder_noise: float = 1e-5, setup: MeasurementSetup | None = None,
+                   outliers: int = 0) -> SimulatedStudy:
     """Draw a truth machine (errors on every joint and closure/platform frame), n_poses noisy (or
-    exact, noise=None) measurements and n_holdout other slider sets, all from one seed."""
+    exact, noise=None) measurements taken with `setup` and n_holdout other slider sets, all from one
+    seed; `outliers` of the measurements get a 3-5 mm gross error (drawn last)."""
     if n_poses < 1 or n_holdout < 0:
         raise InvalidInputError(f"n_poses must be >= 1 and n_holdout >= 0, got {n_poses}, {n_holdout}")
     rng = np.random.default_rng(seed)
@@ -160,7 +187,8 @@ def simulate_study(nominal: Mechanism, n_poses: int = 50, n_holdout: int = 200, 
     errors = random_placement_errors(error_model, rng, sigma_position, sigma_rotation)
     truth = actual_machine(nominal, errors, error_model)
     actuators = workspace_actuators(nominal, n_poses + n_holdout, rng)
-    measurements = measure(truth, actuators[:n_poses], rng, noise, position_only)
+    setup = setup or MeasurementSetup()
+    measurements = measure(truth, actuators[:n_poses], rng, noise, position_only, setup)
     readings = None
     if passive_joints:
         # Drawn after everything else, so adding encoders does not change the rest of the study.
@@ -169,5 +197,8 @@ def simulate_study(nominal: Mechanism, n_poses: int = 50, n_holdout: int = 200, 
         readings = np.array([solver.forward(sliders).q[columns] for sliders in actuators[:n_poses]])
         if noise is not None:
             readings = readings + rng.normal(0.0, encoder_noise, readings.shape)
+    spoiled: tuple[int, ...] = ()
+    if outliers:
+        measurements, spoiled = with_outliers(measurements, rng, outliers)
     return SimulatedStudy(nominal, truth, errors, measurements, actuators[n_poses:], seed, tuple(passive_joints),
-                          readings)
+                          readings, setup, spoiled)

@@ -1,0 +1,292 @@
+"""The closed-loop error model: placement parameters and the platform pose's sensitivity to them.
+
+Parameters: a right-multiplied 6-vector error dt = [v; w] on every joint placement of the tree
+and on every frame a closure or the measurement uses (paper eq. 33: T(0) <- T(0) exp6(dt)). With
+the sliders fixed, the passive joints follow the closures, so the sensitivity of the measured
+platform pose to the parameters is found by implicit differentiation:
+
+    r_c(q, p) = 0  =>  dq_passive/dp = -J_c,passive^-1 dr_c/dp        (16 x 16 square system)
+    d xi_P / dp    = X_P + J_P,passive dq_passive/dp                  (spatial twist, WORLD)
+
+where X_f (6 x P) is the spatial twist of frame f per unit parameter: Pinocchio's WORLD kinematic
+regressor for the joint placements (paper eq. 17 columns, Ad(g_{0,k-1} T_{k-1,k}(0))), and
+Ad(oMf) for the frame's own placement; a closure's rows see operator @ (X_b - X_a).
+
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+from scipy.linalg import lapack
+
+from .description import Mechanism
+from .errors import InvalidInputError
+from .kinematics import ClosedLoopSolver
+from .poe import Placement, adjoint_matrices, perturb
+
+__all__ = ["ClosedLoopErrorModel", "PoseMeasurements", "TrackerNoise", "PlatformSensitivities"]
+
+
+@dataclass(frozen=True)
+class TrackerNoise:
+    """Standard deviations of the measurements: tracker position [m] and orientation [rad],
+    slider readings [m]. Used to whiten the residual and to predict the parameter covariance."""
+
+    position: float = 10e-6
+    rotation: float = 20e-6
+    actuator: float = 1e-6
+
+    def __post_init__(self) -> None:
+        for name in ("position", "rotation", "actuator"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InvalidInputError(f"noise {name} must be a finite non-negative number, got {value}")
+        if self.position <= 0 or self.rotation <= 0:
+            raise InvalidInputError("tracker noise must be positive (it whitens the residual)")
+
+
+@dataclass(frozen=True)
+class PoseMeasurements:
+    """N calibration poses: slider readings (N x n_act) [m] and measured platform poses in the base
+    frame (orientation ignored when position_only)."""
+
+    actuators: np.ndarray
+    poses: tuple[pin.SE3, ...]
+    position_only: bool = False
+
+    def __post_init__(self) -> None:
+        actuators = np.asarray(self.actuators, dtype=float)
+        if actuators.ndim != 2 or actuators.shape[0] != len(self.poses):
+            raise InvalidInputError(f"{actuators.shape} actuator rows for {len(self.poses)} poses")
+        if not np.all(np.isfinite(actuators)):
+            raise InvalidInputError("non-finite actuator reading")
+        object.__setattr__(self, "actuators", actuators)
+
+    @property
+    def rows_per_pose(self) -> int:
+        return 3 if self.position_only else 6
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+
+class ClosedLoopErrorModel:
+    """The placement parameters of a mechanism and the platform pose's sensitivity to them.
+
+    placements: every joint of the tree (model order), then every closure frame and the platform
+    frame (each once). Parameter k of placement i is named f"{name}.dt[{k}]", [v; w] order.
+    """
+
+    def __init__(self, mechanism: Mechanism, placements: tuple[Placement, ...] | None = None) -> None:
+        model = mechanism.model
+        if placements is None:
+            joints = tuple(Placement.joint(model.names[j]) for j in range(1, model.njoints))
+            frame_names: list[str] = []
+            for spec in mechanism.closures:
+                frame_names += [spec.frame_a, spec.frame_b]
+            frame_names.append(mechanism.platform_frame)
+            frames = tuple(Placement.frame(n) for n in dict.fromkeys(frame_names))
+            placements = joints + frames
+        self.mechanism = mechanism
+        self.placements = placements
+        self.names = tuple(n for p in placements for n in p.parameter_names())
+        self.n_parameters = len(self.names)
+        # Joint parameters: regressor column c (6 per joint, model order) -> parameter column.
+        self._joint_columns = np.full(6 * (model.njoints - 1), -1)
+        self._frame_block: dict[int, int] = {}
+        for i, placement in enumerate(placements):
+            if placement.kind == "joint":
+                j = model.getJointId(placement.name)
+                self._joint_columns[6 * (j - 1):6 * j] = np.arange(6 * i, 6 * i + 6)
+            else:
+                self._frame_block[model.getFrameId(placement.name)] = 6 * i
+        self._joint_targets = np.flatnonzero(self._joint_columns >= 0)
+
+        def support(frame_id: int) -> np.ndarray:
+            mask = np.zeros(model.njoints - 1)
+            mask[np.array(model.supports[model.frames[frame_id].parentJoint][1:], dtype=int) - 1] = 1.0
+            return np.repeat(mask, 6)
+
+        # Every frame's regressor is one matrix G (per-joint blocks Ad(oMi[parent] jointPlacement),
+        # WORLD) masked by the frame's support; a closure sees the signed mask support(b) - support(a).
+        self._closure_frames = [(spec.frame_a_id, spec.frame_b_id, len(spec.rows)) for spec in mechanism.closures]
+        self._row_masks = np.vstack([np.tile(support(fb) - support(fa), (count, 1))
+                                     for fa, fb, count in self._closure_frames])
+        self._platform = mechanism.platform_frame_id
+        self._platform_mask = support(self._platform)
+        # Rows seeing their closure frames' own errors: (rows, frame slot per row, parameter
+        # columns per row, sign) for the frame_b and the frame_a side.
+        self._own_frame_ids = sorted(f for f in self._frame_block)
+        slot_of = {f: k for k, f in enumerate(self._own_frame_ids)}
+        self._own_terms = []
+        for side, sign in ((1, 1.0), (0, -1.0)):
+            rows, slots, columns = [], [], []
+            row = 0
+            for frames_and_count in self._closure_frames:
+                frame_id, count = frames_and_count[side], frames_and_count[2]
+                if frame_id in self._frame_block:
+                    for r in range(row, row + count):
+                        rows.append(r)
+                        slots.append(slot_of[frame_id])
+                        columns.append(np.arange(self._frame_block[frame_id], self._frame_block[frame_id] + 6))
+                row += count
+            if rows:
+                self._own_terms.append((np.array(rows), np.array(slots), np.array(columns), sign))
+        # Batched sensitivities: the parent of each joint (G's blocks are Ad(oMi[parent] jointPlacement)),
+        # the platform's support per velocity column, and the frames whose own adjoints are needed.
+        self._parents = np.array(model.parents[1:], dtype=int)
+        self._platform_v_mask = np.zeros(model.nv)
+        for j in model.supports[model.frames[self._platform].parentJoint][1:]:
+            self._platform_v_mask[model.idx_vs[j]] = 1.0
+        self._adjoint_frames = self._own_frame_ids + [self._platform]
+        self._plans: dict[bytes, _ColumnPlan] = {}
+
+    def deltas(self, vector: np.ndarray) -> dict[Placement, np.ndarray]:
+        """{placement: dt} for a full parameter vector (placements with a zero error omitted)."""
+        blocks = np.asarray(vector, dtype=float).reshape(-1, 6)
+        return {p: b for p, b in zip(self.placements, blocks) if np.any(b)}
+
+    def perturbed(self, model: pin.Model, vector: np.ndarray) -> pin.Model:
+        """A copy of `model` with the parameter vector applied (eq. 33)."""
+        return perturb(model, self.deltas(vector))
+
+    def _joint_twist_matrices(self, model: pin.Model, joints: np.ndarray) -> np.ndarray:
+        """G (N, 6, 6 n_joints): spatial twist (WORLD) per unit joint-placement error (eq. 17), from
+        the joint placements oMi (N, njoints, 4, 4): block j = Ad(oMi[parent(j)] jointPlacements[j]),
+        the columns of Pinocchio's WORLD kinematic regressor."""
+        placements = np.array([placement.homogeneous for placement in model.jointPlacements.tolist()[1:]])
+        blocks = adjoint_matrices(joints[:, self._parents] @ placements)  # (N, n_joints, 6, 6)
+        return blocks.transpose(0, 2, 1, 3).reshape(len(joints), 6, -1)
+
+    def platform_sensitivity(self, solver: ClosedLoopSolver, q: np.ndarray, columns: np.ndarray | None = None,
+                             with_factors: bool = False):
+        """Platform pose at an assembled q, d xi_P / dp (6 x P, spatial twist in WORLD) and
+        dq_passive / dp (n_passive x P), for the parameter `columns` (default all).
+
+        Sliders held fixed; the passive joints move with the parameters through the closures.
+        with_factors=True also returns the LU factors of the passive closure Jacobian at q, which
+        `ClosedLoopSolver.forward(..., factors=...)` can reuse on a nearby model.
+        One pose of `platform_sensitivities`.
+        """
+        batch = self.platform_sensitivities(solver, [q], columns)
+        dq_dp = -np.linalg.solve(batch.passive_jacobians[0], batch.closure_jacobians[0])
+        result = (pin.SE3(batch.poses[0]), batch.twist_jacobians[0], dq_dp)
+        return result + (batch.factors[0],) if with_factors else result
+
+    def platform_sensitivities(self, solver: ClosedLoopSolver, configurations,
+                               columns: np.ndarray | None = None) -> PlatformSensitivities:
+        """`platform_sensitivity` at N assembled configurations at once, for the parameter `columns`.
+
+        Only the Pinocchio passes run per pose; the algebra (eq. 17 blocks Ad(oMi[parent]
+        jointPlacement), closure rows, the implicit passive solve) runs on stacks, restricted to the
+        requested columns. d xi_P / dp = X_P - (J_P,pas J_c,pas^-1) dr_c/dp: the passive solve has
+        6 right-hand sides, not P. Leaves solver.data at the last configuration.
+        """
+        model, data = solver.model, solver.data
+        n = len(configurations)
+        jac_q = np.empty((n, solver.n_rows, model.nv))
+        operator = np.empty((n, solver.n_rows, 6))
+        joint_jacobian = np.empty((n, 6, model.nv))
+        joints = np.empty((n, model.njoints, 4, 4))
+        frames = np.empty((n, len(self._adjoint_frames), 4, 4))
+        for i, q in enumerate(configurations):
+            _, jac_q[i], operator[i] = solver.closure_sensitivity(q)
+            joint_jacobian[i] = data.J
+            joints[i] = [placement.homogeneous for placement in data.oMi.tolist()]
+            every = data.oMf.tolist()
+            frames[i] = [every[f].homogeneous for f in self._adjoint_frames]
+        plan = self._column_plan(np.arange(self.n_parameters) if columns is None else np.asarray(columns, dtype=int))
+        G = self._joint_twist_matrices(model, joints)[:, :, plan.g_columns]
+        adjoints = adjoint_matrices(frames)
+        dr_dp = np.zeros((n, solver.n_rows, plan.size))
+        dr_dp[:, :, plan.joint_slots] = (operator @ G) * plan.row_masks
+        # Own placement errors of the closure frames: row r of a closure sees +Ad(oMb) and -Ad(oMa).
+        for rows, slots, sign, pick, row_index, slot_index in plan.own_terms:
+            values = np.einsum("nrk,nrkj->nrj", operator[:, rows], adjoints[:, slots])[:, pick]
+            dr_dp[:, row_index, slot_index] += sign * values
+        xi = np.zeros((n, 6, plan.size))
+        xi[:, :, plan.joint_slots] = G * plan.platform_mask
+        if plan.platform_components.size:
+            xi[:, :, plan.platform_slots] = adjoints[:, -1][:, :, plan.platform_components]
+        square = jac_q[:, :, solver.passive]
+        one_norms = np.abs(square).sum(axis=1).max(axis=1)
+        factors = tuple((*lapack.dgetrf(block)[:2], float(norm)) for block, norm in zip(square, one_norms))
+        platform_jacobian = (joint_jacobian * self._platform_v_mask)[:, :, solver.passive]  # WORLD frame Jacobian
+        through_passive = np.swapaxes(np.linalg.solve(np.swapaxes(square, 1, 2), np.swapaxes(platform_jacobian, 1, 2)), 1, 2)
+        return PlatformSensitivities(frames[:, -1], xi - through_passive @ dr_dp, square, dr_dp, factors)
+
+    def _column_plan(self, columns: np.ndarray) -> _ColumnPlan:
+        key = columns.tobytes()
+        if key not in self._plans:
+            self._plans[key] = _ColumnPlan.build(self, columns)
+        return self._plans[key]
+
+
+@dataclass(frozen=True, eq=False)
+class PlatformSensitivities:
+    """Platform sensitivities at N assembled configurations, over P parameter columns.
+
+    poses: platform frames (N, 4, 4) in the base frame; twist_jacobians: d xi_P / dp (N, 6, P),
+    spatial twists in WORLD; passive_jacobians: J_c,passive (N, n_pas, n_pas); closure_jacobians:
+    dr_c / dp (N, n_pas, P) at fixed joints; factors: getrf LU and 1-norm of each passive Jacobian.
+    """
+
+    poses: np.ndarray
+    twist_jacobians: np.ndarray
+    passive_jacobians: np.ndarray
+    closure_jacobians: np.ndarray
+    factors: tuple[tuple, ...]
+
+    def restricted(self, columns: np.ndarray) -> PlatformSensitivities:
+        """The same sensitivities over a subset of the parameter columns."""
+        return dataclasses.replace(self, twist_jacobians=self.twist_jacobians[:, :, columns],
+                                   closure_jacobians=self.closure_jacobians[:, :, columns])
+
+    def passive_motion(self, step: np.ndarray) -> np.ndarray:
+        """First-order passive-joint change (N, n_pas) [rad or m] for a parameter step (P,):
+        dq_passive = -J_c,passive^-1 (dr_c/dp) step."""
+        return -np.linalg.solve(self.passive_jacobians, (self.closure_jacobians @ step)[:, :, None])[:, :, 0]
+
+
+@dataclass(frozen=True, eq=False)
+class _ColumnPlan:
+    """Where each requested parameter column comes from in `platform_sensitivities`."""
+
+    size: int
+    joint_slots: np.ndarray  # output columns that are joint-placement parameters
+    g_columns: np.ndarray  # their columns in G
+    row_masks: np.ndarray  # (n_rows, len(joint_slots)) signed closure supports
+    platform_mask: np.ndarray  # (len(joint_slots),) platform support
+    own_terms: tuple  # (rows, slots, sign, pick (R, 6) mask, row index, output slot) per closure side
+    platform_slots: np.ndarray  # output columns of the platform frame's own parameters
+    platform_components: np.ndarray  # and their twist components
+
+    @staticmethod
+    def build(model: ClosedLoopErrorModel, columns: np.ndarray) -> _ColumnPlan:
+        slot_of = np.full(model.n_parameters, -1)
+        slot_of[columns] = np.arange(len(columns))
+        g_column_of = np.full(model.n_parameters, -1)
+        g_column_of[model._joint_columns[model._joint_targets]] = model._joint_targets
+        joint_slots = np.flatnonzero(g_column_of[columns] >= 0)
+        g_columns = g_column_of[columns[joint_slots]]
+        own_terms = []
+        for rows, slots, blocks, sign in model._own_terms:
+            pick = slot_of[blocks] >= 0  # (R, 6)
+            if pick.any():
+                row_index = np.broadcast_to(rows[:, None], blocks.shape)[pick]
+                own_terms.append((rows, slots, sign, pick, row_index, slot_of[blocks][pick]))
+        own = model._frame_block.get(model._platform)
+        platform_slots = np.array([], dtype=int)
+        platform_components = np.array([], dtype=int)
+        if own is not None:
+            wanted = slot_of[own:own + 6] >= 0
+            platform_slots = slot_of[own:own + 6][wanted]
+            platform_components = np.flatnonzero(wanted)
+        return _ColumnPlan(len(columns), joint_slots, g_columns, model._row_masks[:, g_columns],
+                           model._platform_mask[g_columns], tuple(own_terms), platform_slots, platform_components)
+

@@ -1,0 +1,107 @@
+"""Where measurements are taken: the measurement frame and the marker, apart from the machine.
+
+A tracker or motion-capture system reports the pose (or the position) of a marker, a reflector
+or a probe mounted on the platform (serial: on the tool), in its own frame:
+
+    T_measured = frame . T_platform(q) . marker          (all SE3; T_platform in the robot base)
+
+frame: the robot base in the measurement frame, p_measured = R p_base + t [m];
+marker: the measured frame in the platform (tool) frame [m]; a single reflector gives its
+position only, and the marker's orientation is then irrelevant.
+
+Both belong to the measurement setup, not to the machine: a calibration estimates them together
+with the machine's geometry and reports them, and the calibrated URDF keeps the robot alone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+from numpy.typing import ArrayLike
+from scipy.spatial.transform import Rotation
+
+from .errors import IdentificationError, InvalidInputError
+
+__all__ = ["MeasurementSetup", "LENGTH_UNITS", "register_frame", "se3_from_report", "se3_to_report"]
+
+#: Length units a measurement file may use, in metres per unit (command-line lengths stay in m).
+LENGTH_UNITS: Mapping[str, float] = {"m": 1.0, "mm": 1e-3}
+
+
+def se3_to_report(placement: pin.SE3) -> dict[str, list[float]]:
+    """{"translation": [x, y, z] (m), "quaternion": [qx, qy, qz, qw]} of a placement."""
+    xyzquat = pin.SE3ToXYZQUAT(placement)
+    return {"translation": [float(v) for v in xyzquat[:3]], "quaternion": [float(v) for v in xyzquat[3:]]}
+
+
+def se3_from_report(entry: Mapping[str, object], what: str) -> pin.SE3:
+    """The inverse of `se3_to_report`; raises InvalidInputError naming `what` on a malformed entry."""
+    try:
+        translation = np.asarray(entry["translation"], dtype=float).reshape(3)
+        quaternion = np.asarray(entry["quaternion"], dtype=float).reshape(4)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{what}: expected translation [x, y, z] and quaternion [qx, qy, qz, qw] ({exc})") \
+            from None
+    if not (np.all(np.isfinite(translation)) and np.all(np.isfinite(quaternion))):
+        raise InvalidInputError(f"{what}: non-finite value")
+    if abs(np.linalg.norm(quaternion) - 1.0) > 1e-6:
+        raise InvalidInputError(f"{what}: quaternion norm {np.linalg.norm(quaternion):.6g} is not 1")
+    return pin.XYZQUATToSE3(np.r_[translation, quaternion])
+
+
+@dataclass(frozen=True)
+class MeasurementSetup:
+    """The measurement frame and the marker (module docstring); identity for both by default,
+    i.e. the platform frame itself measured in the robot's base frame."""
+
+    frame: pin.SE3 = field(default_factory=pin.SE3.Identity)
+    marker: pin.SE3 = field(default_factory=pin.SE3.Identity)
+
+    def measured_poses(self, platform_poses: np.ndarray) -> np.ndarray:
+        """frame . T_platform . marker for platform poses (N, 4, 4) in the base: (N, 4, 4)."""
+        return self.frame.homogeneous @ np.asarray(platform_poses, dtype=float) @ self.marker.homogeneous
+
+    def to_report(self) -> dict[str, dict[str, list[float]]]:
+        return {"measurement_frame": se3_to_report(self.frame), "marker": se3_to_report(self.marker)}
+
+    @staticmethod
+    def from_report(report: Mapping[str, object]) -> MeasurementSetup:
+        """The setup a calibration report recorded (identity for a missing entry)."""
+        def entry(key: str) -> pin.SE3:
+            value = report.get(key)
+            if value is None:
+                return pin.SE3.Identity()
+            if not isinstance(value, Mapping):
+                raise InvalidInputError(f"report '{key}': expected an object")
+            return se3_from_report(value, f"report '{key}'")
+        return MeasurementSetup(entry("measurement_frame"), entry("marker"))
+
+
+def register_frame(model_poses: ArrayLike, measured_positions: ArrayLike,
+                   measured_rotations: ArrayLike | None = None) -> pin.SE3:
+    """Closed-form rigid registration: the frame F minimising sum |F p_model - p_measured|^2.
+
+    model_poses: (N, 4, 4) measured frames as the model predicts them in the robot base;
+    measured_positions (N, 3) [m]; measured_rotations (N, 3, 3) or None. With orientations, each
+    pose also pairs the model's and the measured frame's axes, weighted by the spread of the points
+    so that points and axes count alike. Any rotation is found (SVD of the cross-covariance,
+    scipy's `Rotation.align_vectors`), and the translation follows from the centroids. Raises
+    IdentificationError when the points are too few or collinear and no orientation was measured.
+    """
+    poses = np.asarray(model_poses, dtype=float)
+    measured = np.asarray(measured_positions, dtype=float)
+    points = poses[:, :3, 3]
+    centroid_model, centroid_measured = points.mean(axis=0), measured.mean(axis=0)
+    a, b = measured - centroid_measured, points - centroid_model
+    if measured_rotations is not None:
+        spread = float(np.sqrt(np.mean(np.sum(b**2, axis=1)))) or 1.0
+        measured_axes = np.asarray(measured_rotations, dtype=float).transpose(0, 2, 1).reshape(-1, 3)
+        model_axes = poses[:, :3, :3].transpose(0, 2, 1).reshape(-1, 3)
+        a, b = np.vstack((a, spread * measured_axes)), np.vstack((b, spread * model_axes))
+    elif len(points) < 3 or np.linalg.matrix_rank(b, tol=1e-9 * max(np.abs(b).max(), 1e-300)) < 2:
+        raise IdentificationError("the measured positions are too few or collinear to place the measurement frame")
+    rotation = Rotation.align_vectors(a, b)[0].as_matrix()
+    return pin.SE3(rotation, centroid_measured - rotation @ centroid_model)
