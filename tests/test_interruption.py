@@ -1,0 +1,158 @@
+"""`m3t1r calibrate` killed with SIGKILL at random and at aimed instants (issue 10, item 8).
+
+A worker process imports m3t1r once, then forks one child per run; the child runs the real
+`m3t1r.cli.main(["calibrate", ...])` and dies by SIGKILL, either after a random delay sent by the
+parent or by itself right before or after its k-th `os.replace` (the renames that commit the
+outputs). After every kill the parent checks, before anything else touches the folder:
+
+- the inputs (measurements, nominal model) are byte-for-byte untouched;
+- the output folder holds a pair that `Mechanism.load(NAME.urdf)` loads, and it is the old pair
+  or the new one, never a mix (the URDF's recorded closures sha256 is checked by the loader);
+- the report is the old one or the new one, and strict JSON.
+
+The folder then goes back to the old pair (leftover temporary files are left in place), so each
+run starts from the same state; the last, uninterrupted, run must sweep every leftover away.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from m3t1r.cli import main
+
+WORKER = textwrap.dedent(r'''
+    import hashlib, json, os, random, signal, sys, time
+    from pathlib import Path
+
+    from m3t1r import cli
+    from m3t1r.description import Mechanism, nominal_model_paths
+    import m3t1r.calibration, m3t1r.datasets, m3t1r.urdf_io, m3t1r.kinematics  # imported before forking
+
+    config = json.loads(sys.argv[1])
+    folder, measurements = Path(config["folder"]), Path(config["measurements"])
+    urdf, closures, report = folder / "c.urdf", folder / "c.closures.yaml", folder / "c.json"
+    argv = ["calibrate", str(measurements), "-o", str(urdf), "--report", str(report), "--quiet"]
+    inputs = [measurements, *nominal_model_paths()]
+
+    def digest(path):
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+
+    def run(plan):
+        pid = os.fork()
+        if pid == 0:
+            code = 99
+            try:
+                if plan.get("rename") is not None:
+                    real = os.replace
+                    def replace(src, dst, **kw):
+                        aimed = Path(dst).name == plan["rename"]
+                        if aimed and plan["when"] == "before":
+                            os.kill(os.getpid(), signal.SIGKILL)
+                        real(src, dst, **kw)
+                        if aimed and plan["when"] == "after":
+                            os.kill(os.getpid(), signal.SIGKILL)
+                    os.replace = replace
+                code = cli.main(argv)
+            finally:
+                os._exit(code)
+        if plan.get("delay") is not None:
+            time.sleep(plan["delay"])
+            os.kill(pid, plan.get("signal", signal.SIGKILL))
+        _, status = os.waitpid(pid, 0)
+        return status
+
+    input_digests = {str(p): digest(p) for p in inputs}
+    old_input, new_input = config["old_input_sha256"], digest(measurements)
+    old = {p.name: p.read_bytes() for p in (urdf, closures, report)}
+
+    def restore_old():
+        for name, data in old.items():
+            staging = folder / ("restore-" + name)
+            staging.write_bytes(data)
+            os.replace(staging, folder / name)
+
+    # One uninterrupted run: the new outputs, and how long a run takes.
+    start = time.monotonic()
+    assert run({}) == 0
+    duration = time.monotonic() - start
+    new = {p.name: p.read_bytes() for p in (urdf, closures, report)}
+    assert new[urdf.name] != old[urdf.name] and new[closures.name] != old[closures.name]
+    restore_old()
+
+    rng = random.Random(config["seed"])
+    plans = [{"rename": name, "when": when} for name in (urdf.name, closures.name, report.name)
+             for when in ("before", "after")]
+    # Half anywhere in a run, half in its last part, where the outputs are staged and renamed.
+    plans += [{"delay": rng.uniform(0.0, duration * 1.1)} for _ in range(config["random_runs"] // 2)]
+    plans += [{"delay": rng.uniform(duration * 0.8, duration * 1.05)} for _ in range(config["random_runs"] // 2)]
+    plans += [{"delay": rng.uniform(0.2, duration * 0.9), "signal": signal.SIGTERM}]
+    outcomes = []
+    for plan in plans:
+        status = run(plan)
+        state = {}
+        for path in inputs:
+            assert digest(path) == input_digests[str(path)], f"{plan}: input {path} changed"
+        machine = Mechanism.load(urdf)  # must load: old pair, new pair, or new URDF + staged closures
+        urdf_bytes = urdf.read_bytes()
+        version = "new" if urdf_bytes == new[urdf.name] else "old" if urdf_bytes == old[urdf.name] else None
+        assert version is not None, f"{plan}: the URDF is neither the old nor the new one"
+        closures_used = machine.closures_document
+        document = json.loads(report.read_bytes(), parse_constant=lambda token: (_ for _ in ()).throw(ValueError(token)))
+        assert document["input"]["sha256"] in (old_input, new_input), f"{plan}: the report is neither old nor new"
+        leftovers = sorted(p.name for p in folder.iterdir() if p.name.endswith(".tmp"))
+        outcomes.append({"plan": {k: v for k, v in plan.items()}, "status": status, "version": version,
+                         "leftovers": leftovers,
+                         "closures_final": closures.read_bytes() == (new if version == "new" else old)[closures.name]})
+        restore_old()
+
+    # A last complete run sweeps what the killed ones left.
+    assert run({}) == 0
+    final_leftovers = sorted(p.name for p in folder.iterdir() if p.name.endswith(".tmp"))
+    print(json.dumps({"duration": duration, "outcomes": outcomes, "final_leftovers": final_leftovers}))
+''')
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_calibrate_killed_at_any_instant_leaves_a_loadable_pair(tmp_path, capsys):
+    measurements, old_measurements = tmp_path / "m.csv", tmp_path / "m_old.csv"
+    folder = tmp_path / "out"
+    folder.mkdir()
+    assert main(["simulate", "-n", "20", "--seed", "0", "-o", str(measurements)]) == 0
+    assert main(["simulate", "-n", "20", "--seed", "1", "-o", str(old_measurements)]) == 0
+    # The old outputs: the same command on other data.
+    assert main(["calibrate", str(old_measurements), "-o", str(folder / "c.urdf"), "--report",
+                 str(folder / "c.json"), "--quiet"]) == 0
+    capsys.readouterr()
+
+    config = {"folder": str(folder), "measurements": str(measurements), "seed": 10, "random_runs": 18,
+              "old_input_sha256": hashlib.sha256(old_measurements.read_bytes()).hexdigest()}
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    done = subprocess.run([sys.executable, "-c", WORKER, json.dumps(config)], capture_output=True, text=True,
+                          env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    outcomes = result["outcomes"]
+
+    assert len(outcomes) >= 25
+    aimed = {(o["plan"]["rename"], o["plan"]["when"]): o for o in outcomes if "rename" in o["plan"]}
+    # The URDF rename is the pair's commit point.
+    assert aimed[("c.urdf", "before")]["version"] == "old" and aimed[("c.urdf", "after")]["version"] == "new"
+    # Killed between the URDF and the closures renames: the new URDF loads with the staged closures.
+    assert not aimed[("c.urdf", "after")]["closures_final"]
+    assert aimed[("c.closures.yaml", "after")]["closures_final"]
+    assert aimed[("c.closures.yaml", "after")]["version"] == "new"
+    killed = [o for o in outcomes if o["status"] != 0]
+    assert len(killed) >= 20
+    assert {o["version"] for o in outcomes} == {"old", "new"}  # both outcomes were exercised
+    # A caught SIGTERM removes the temporary files itself.
+    terminated = [o for o in outcomes if o["plan"].get("signal") == 15]
+    assert terminated and not terminated[0]["leftovers"]
+    assert result["final_leftovers"] == []
