@@ -36,13 +36,13 @@ import pinocchio as pin
 from ._threads import on_one_blas_thread
 from .description import Mechanism
 from .design import NOMINAL, WorkspaceBox
-from .errors import InvalidInputError, KinematicsError, M3t1rError
+from .errors import InvalidInputError, KinematicsError, M3t1rError, OutOfWorkspaceError
 from .io import pose_rows
 from .kinematics import ClosedLoopSolver, ForwardResult, InverseResult, yaw_of
 from .metrics import PoseErrors
 
 __all__ = [
-    "Targets", "TargetFailure", "CompensatedCommand", "Compensation", "Compensator", "compensate",
+    "Targets", "TargetFailure", "CompensatedCommand", "Compensation", "Compensator", "compensate", "check_joint_limits",
     "TrackingErrors", "CompensationAccuracy", "compensation_accuracy", "workspace_targets", "workspace_grid",
 ]
 
@@ -229,6 +229,22 @@ class _PathSolver:
         self._warm = False
 
 
+def check_joint_limits(mechanism: Mechanism, result: InverseResult) -> None:
+    """Raise OutOfWorkspaceError if any joint of the solved configuration is beyond its URDF limit.
+
+    The solver keeps the sliders within their limits but not the passive hinges (models/README.md):
+    a target reachable only with, say, the platform hinge past its stop is not a command to send.
+    """
+    model = mechanism.model
+    for j in range(1, model.njoints):
+        k = model.idx_qs[j]
+        value, lower, upper = float(result.q[k]), float(model.lowerPositionLimit[k]), float(model.upperPositionLimit[k])
+        if not lower <= value <= upper:
+            raise OutOfWorkspaceError(
+                f"target puts joint '{model.names[j]}' at {value:.6g}, beyond its limit [{lower:.6g}, {upper:.6g}]",
+                result.residual, result.iterations)
+
+
 def _add_target_note(exc: Exception, index: int) -> None:
     # Python >= 3.11 shows notes in tracebacks; the typed error itself is re-raised unchanged.
     if hasattr(exc, "add_note"):
@@ -268,11 +284,12 @@ class Compensator:
         beyond the nominal model's slider limits (a calibrated file with other limits).
         """
         ik = self._inverse.inverse(target)
+        check_joint_limits(self.calibrated, ik)
         fk = self._forward.forward(ik.actuators)
         return CompensatedCommand(ik.actuators, fk.pose, ik.pose, ik.tilt, ik.iterations)
 
     @on_one_blas_thread
-    def compensate(self, targets: Targets, *, strict: bool = False) -> Compensation:
+    def compensate(self, targets: Targets, *, strict: bool = False, progress=None) -> Compensation:
         """Compensated commands for a batch of targets, in order, warm-started along the path.
 
         targets: (N, 4) rows (x, y, z, theta) [m, m, m, rad] or N `pin.SE3` (platform in base).
@@ -280,14 +297,19 @@ class Compensator:
         before any solve. A target that fails is reported in `Compensation.failures` (index, reason,
         error class) and excluded from the arrays; the next one restarts from the last good
         solution. With strict=True the first failure is raised instead (the typed error, with a note
-        naming the target's index).
+        naming the target's index). A target that puts any joint of the calibrated machine beyond its
+        URDF limit (a passive hinge past its stop, say) fails with OutOfWorkspaceError. `progress`, if
+        given, is called with the index of each target before it is solved.
         """
         rows = _validated_targets(targets)
         indices, commands, failures = [], [], []
         for index, target in enumerate(rows):
+            if progress is not None:
+                progress(index)
             stage = "inverse kinematics of the calibrated model"
             try:
                 ik = self._inverse.inverse(target)
+                check_joint_limits(self.calibrated, ik)
                 stage = "forward kinematics of the nominal model at the compensated sliders"
                 fk = self._forward.forward(ik.actuators)
             except (KinematicsError, InvalidInputError) as exc:
@@ -312,12 +334,13 @@ class Compensator:
         )
 
 
-def compensate(nominal: Mechanism, calibrated: Mechanism, targets: Targets, *, strict: bool = False) -> Compensation:
+def compensate(nominal: Mechanism, calibrated: Mechanism, targets: Targets, *, strict: bool = False,
+               progress=None) -> Compensation:
     """Compensated commands (paper section 7, Fig. 6) for a batch of targets; see `Compensator.compensate`.
 
     The first target starts from home on both models, each next one from the previous solution.
     """
-    return Compensator(nominal, calibrated).compensate(targets, strict=strict)
+    return Compensator(nominal, calibrated).compensate(targets, strict=strict, progress=progress)
 
 
 # ------------------------------------------------------------------------------------------------

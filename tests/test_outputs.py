@@ -1,0 +1,366 @@
+"""Outputs that can be trusted (issue 10): file pairs, collisions, special files, strict JSON, row errors.
+
+Library-level tests of `m3t1r.io.OutputSet` and the pair loader, and CLI tests of the verbs that
+use them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import stat
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from m3t1r.cli import main
+from m3t1r.description import Mechanism, nominal_model_paths
+from m3t1r.errors import DataFileError, ModelFileError, OutputPathError
+from m3t1r.io import OutputSet, Progress, json_text, paired_closures_path, set_quiet, sweep, temporary_path
+
+
+def _strict_json(text: str) -> object:
+    def refuse(token):
+        raise ValueError(f"non-standard JSON constant {token}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def _no_temporaries(folder: Path) -> bool:
+    return not [p for p in folder.iterdir() if ".m3t1r-" in p.name]
+
+
+@pytest.fixture(scope="module")
+def machines(tmp_path_factory):
+    """A perturbed machine saved as a pair, and 20 measurements of it."""
+    from m3t1r.calibration import TrackerNoise
+    from m3t1r.datasets import write_measurements
+    from m3t1r.simulation import simulate_study
+
+    folder = tmp_path_factory.mktemp("machines")
+    nominal = Mechanism.load()
+    study = simulate_study(nominal, n_poses=20, n_holdout=0, seed=0, noise=TrackerNoise())
+    study.truth.save(folder / "truth.urdf")
+    write_measurements(folder / "m.csv", nominal, study.measurements)
+    return folder
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. File pairs
+def test_pair_name_replaces_only_the_final_urdf():
+    assert paired_closures_path("machine.v1.urdf") == Path("machine.v1.closures.yaml")
+    assert paired_closures_path("machine.v2.urdf") == Path("machine.v2.closures.yaml")
+    assert paired_closures_path("dir.x/robot.URDF") == Path("dir.x/robot.closures.yaml")
+    assert paired_closures_path("robot") == Path("robot.closures.yaml")
+
+
+def test_versions_of_a_machine_do_not_share_a_closures_file(tmp_path, machines):
+    truth = Mechanism.load(machines / "truth.urdf")
+    truth.save(tmp_path / "machine.v1.urdf")
+    Mechanism.load().save(tmp_path / "machine.v2.urdf")  # writing v2 must not touch v1's closures
+    v1 = Mechanism.load(tmp_path / "machine.v1.urdf")
+    assert v1.closures_path == tmp_path / "machine.v1.closures.yaml"
+    np.testing.assert_array_equal(v1.home, truth.home)
+    assert not (tmp_path / "machine.closures.yaml").exists()
+
+
+def test_cli_derives_v2_from_v1(tmp_path, machines, capsys):
+    Mechanism.load(machines / "truth.urdf").save(tmp_path / "machine.v1.urdf")
+    code = main(["ik", str(_targets(tmp_path)), "--model", str(tmp_path / "machine.v1.urdf"), "-o",
+                 str(tmp_path / "s.csv")])
+    assert code == 0, capsys.readouterr().err
+
+
+def test_a_urdf_with_another_machines_closures_is_refused_by_name(tmp_path, machines):
+    Mechanism.load(machines / "truth.urdf").save(tmp_path / "a.urdf")
+    Mechanism.load().save(tmp_path / "b.urdf")
+    shutil.copy(tmp_path / "b.closures.yaml", tmp_path / "a.closures.yaml")
+    with pytest.raises(ModelFileError, match=r"not the closures file of .*a\.urdf.*records closures sha256") as caught:
+        Mechanism.load(tmp_path / "a.urdf")
+    assert "home does not close" not in str(caught.value)
+    with pytest.raises(ModelFileError, match="not the closures file"):
+        Mechanism.load(tmp_path / "a.urdf", tmp_path / "b.closures.yaml")
+
+
+def test_the_urdf_records_its_closures_sha256(tmp_path, machines):
+    import hashlib
+
+    Mechanism.load(machines / "truth.urdf").save(tmp_path / "t.urdf")
+    digest = hashlib.sha256((tmp_path / "t.closures.yaml").read_bytes()).hexdigest()
+    assert f"closures sha256 {digest}" in (tmp_path / "t.urdf").read_text()
+    # Saved again from a paired URDF: one pairing comment, the new one.
+    Mechanism.load(tmp_path / "t.urdf").save(tmp_path / "u.urdf")
+    assert (tmp_path / "u.urdf").read_text().count("closures sha256") == 1
+
+
+def test_staged_closures_of_an_interrupted_commit_load_and_are_completed_by_the_next_writer(tmp_path, machines):
+    Mechanism.load().save(tmp_path / "c.urdf")
+    old_closures = (tmp_path / "c.closures.yaml").read_bytes()
+    truth = Mechanism.load(machines / "truth.urdf")
+    urdf_bytes, closures_bytes = truth.pair_bytes(tmp_path / "c.urdf")
+    # The state a SIGKILL between the two renames leaves (pid 2**22 + 1 is never alive).
+    (tmp_path / "c.urdf").write_bytes(urdf_bytes)
+    staged = tmp_path / f".c.closures.yaml.m3t1r-{2**22 + 1}-00aa.tmp"
+    staged.write_bytes(closures_bytes)
+    np.testing.assert_array_equal(Mechanism.load(tmp_path / "c.urdf").home, truth.home)
+    assert (tmp_path / "c.closures.yaml").read_bytes() == old_closures
+    notes = sweep(tmp_path, announce=None)
+    assert any("completed the interrupted write" in note for note in notes)
+    assert (tmp_path / "c.closures.yaml").read_bytes() == closures_bytes and not staged.exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. Collisions and folders, before any work
+def test_outputs_colliding_with_each_other_are_refused(tmp_path):
+    outputs = OutputSet()
+    outputs.add_machine(tmp_path / "c.urdf")
+    outputs.add(tmp_path / "c.closures.yaml", "--report")
+    with pytest.raises(OutputPathError, match="--report is the same file as closures file of -o"):
+        outputs.check()
+    outputs = OutputSet()
+    outputs.add_machine(tmp_path / "c.urdf")
+    outputs.add(tmp_path / "sub" / ".." / "c.urdf", "--report")
+    (tmp_path / "sub").mkdir()
+    with pytest.raises(OutputPathError, match="same file"):
+        outputs.check()
+
+
+def test_collisions_through_symlinks_and_hard_links(tmp_path):
+    data = tmp_path / "in.csv"
+    data.write_text("x\n1\n")
+    os.link(data, tmp_path / "hard.csv")
+    os.symlink(data, tmp_path / "soft.csv")
+    for name in ("hard.csv", "soft.csv", "in.csv"):
+        outputs = OutputSet(inputs=[data])
+        outputs.add(tmp_path / name, "-o")
+        with pytest.raises(OutputPathError, match="refusing to overwrite the input file"):
+            outputs.check()
+    (tmp_path / "a.txt").write_text("a")
+    os.link(tmp_path / "a.txt", tmp_path / "b.txt")
+    outputs = OutputSet()
+    outputs.add(tmp_path / "a.txt", "-o")
+    outputs.add(tmp_path / "b.txt", "--report")
+    with pytest.raises(OutputPathError, match="same file"):
+        outputs.check()
+
+
+def test_missing_or_read_only_folders_are_refused_before_any_work(tmp_path):
+    outputs = OutputSet()
+    outputs.add(tmp_path / "nodir" / "r.json", "--report")
+    with pytest.raises(OutputPathError, match="--report: folder .*nodir does not exist"):
+        outputs.check()
+    if os.geteuid() != 0:  # root writes anywhere
+        locked = tmp_path / "locked"
+        locked.mkdir()
+        locked.chmod(0o555)
+        outputs = OutputSet()
+        outputs.add(locked / "r.json", "--report")
+        with pytest.raises(OutputPathError, match="not writable"):
+            outputs.check()
+
+
+def test_cli_refuses_a_missing_output_folder_before_computing(tmp_path, capsys):
+    sliders = tmp_path / "s.csv"
+    sliders.write_text("q11,q11_B2,q21,q21_B4\n0,0,0,0\n")
+    assert main(["fk", str(sliders), "-o", str(tmp_path / "nodir" / "p.csv")]) == 2
+    assert "folder" in capsys.readouterr().err
+
+
+def test_calibrate_report_onto_its_own_urdf_or_closures_is_refused(tmp_path, machines, capsys):
+    for report in ("c.urdf", "c.closures.yaml", "nodir/r.json"):
+        code = main(["calibrate", str(machines / "m.csv"), "-o", str(tmp_path / "c.urdf"), "--report",
+                     str(tmp_path / report), "--quiet"])
+        assert code == 2, report
+        assert not (tmp_path / "c.urdf").exists() and not (tmp_path / "c.closures.yaml").exists(), report
+    capsys.readouterr()
+
+
+def test_simulate_output_onto_its_truth_urdf_is_refused(tmp_path, capsys):
+    x = tmp_path / "x"
+    assert main(["simulate", "-n", "5", "-o", str(x), "--truth-urdf", str(x)]) == 2
+    assert not x.exists()
+    capsys.readouterr()
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. A unit: temporary files removed on errors
+def test_an_error_before_commit_removes_every_temporary_file(tmp_path):
+    with pytest.raises(RuntimeError):
+        with OutputSet() as outputs:
+            first = outputs.add(tmp_path / "a.csv")
+            outputs.add_machine(tmp_path / "m.urdf")
+            outputs.check()
+            outputs.stage(first, "x\n1\n")
+            raise RuntimeError("computation failed")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_leftovers_of_killed_runs_are_removed_and_live_ones_kept(tmp_path):
+    dead = tmp_path / f".r.json.m3t1r-{2**22 + 1}-0a.tmp"
+    live = temporary_path(tmp_path / "r.json")  # this process: alive
+    dead.write_text("{")
+    live.write_text("{")
+    outputs = OutputSet(announce=None)
+    outputs.add(tmp_path / "r.json")
+    outputs.check()
+    assert not dead.exists() and live.exists()
+    assert any("temporary file left by an interrupted run" in note for note in outputs.notes)
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. Special files
+def test_dash_writes_to_stdout(tmp_path, capfd):
+    sliders = tmp_path / "s.csv"
+    sliders.write_text("q11,q11_B2,q21,q21_B4\n0,0,0,0\n")
+    assert main(["fk", str(sliders), "-o", "-"]) == 0
+    out, err = capfd.readouterr()
+    assert "x,y,z,qx,qy,qz,qw" in out.splitlines() and "wrote 1 poses" in err
+    assert not (tmp_path / "-").exists()
+
+
+def test_a_named_pipe_is_written_through_not_replaced(tmp_path, capsys):
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    received = []
+    reader = threading.Thread(target=lambda: received.append(fifo.read_bytes()))
+    reader.start()
+    sliders = tmp_path / "s.csv"
+    sliders.write_text("q11,q11_B2,q21,q21_B4\n0,0,0,0\n")
+    assert main(["fk", str(sliders), "-o", str(fifo)]) == 0
+    reader.join(timeout=30)
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode)
+    assert b"x,y,z,qx,qy,qz,qw" in received[0]
+    assert _no_temporaries(tmp_path)
+
+
+def test_a_device_is_written_through_not_replaced(tmp_path, capsys):
+    sliders = tmp_path / "s.csv"
+    sliders.write_text("q11,q11_B2,q21,q21_B4\n0,0,0,0\n")
+    before = os.stat("/dev/null")
+    assert main(["fk", str(sliders), "-o", "/dev/null"]) == 0
+    after = os.stat("/dev/null")
+    assert stat.S_ISCHR(after.st_mode) and (after.st_ino, after.st_rdev) == (before.st_ino, before.st_rdev)
+
+
+def test_a_machine_cannot_go_to_a_stream(tmp_path):
+    with pytest.raises(OutputPathError, match="standard output"):
+        OutputSet().add_machine("-")
+    fifo = tmp_path / "pipe.urdf"
+    os.mkfifo(fifo)
+    outputs = OutputSet()
+    outputs.add_machine(fifo)
+    with pytest.raises(OutputPathError, match="pair of regular files"):
+        outputs.check()
+
+
+# ------------------------------------------------------------------------------------------------
+# 5. Strict JSON
+def test_json_text_is_strict():
+    document = {"a": math.nan, "b": [np.float64(np.inf), np.float32(1.5), np.int64(3)], "c": np.array([1.0, np.nan])}
+    assert _strict_json(json_text(document)) == {"a": None, "b": [None, 1.5, 3], "c": [1.0, None]}
+
+
+def test_position_only_calibration_report_is_strict_json(tmp_path, capsys):
+    meas = tmp_path / "m.csv"
+    assert main(["simulate", "-n", "20", "--position-only", "-o", str(meas)]) == 0
+    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--report", str(tmp_path / "r.json"),
+                 "--quiet"]) == 0
+    _strict_json((tmp_path / "r.json").read_text())
+    capsys.readouterr()
+
+
+# ------------------------------------------------------------------------------------------------
+# 6. Errors name the place; rows that fail do not stop the rest
+def test_huge_values_are_refused_with_line_and_column(tmp_path, machines, capsys):
+    lines = (machines / "m.csv").read_text().splitlines()
+    header = [n for n, line in enumerate(lines) if line.startswith("q11,")][0]
+    column = lines[header].split(",").index("x")
+    fields = lines[header + 3].split(",")
+    fields[column] = "1e300"
+    lines[header + 3] = ",".join(fields)
+    meas = tmp_path / "m.csv"
+    meas.write_text("\n".join(lines) + "\n")
+    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"line {header + 4}, column 'x'" in err and "implausibly large" in err
+
+
+def test_swapped_position_columns_are_named(tmp_path, machines):
+    from m3t1r.datasets import read_measurements
+    from m3t1r.screening import screen_measurements
+
+    nominal = Mechanism.load()
+    text = (machines / "m.csv").read_text().replace(",x,y,z,", ",y,x,z,")
+    (tmp_path / "m.csv").write_text(text)
+    screen_measurements(nominal, read_measurements(machines / "m.csv", nominal))  # the true file passes
+    with pytest.raises(DataFileError, match=r"line \d+.*columns 'x' and 'y' look swapped"):
+        screen_measurements(nominal, read_measurements(tmp_path / "m.csv", nominal))
+
+
+def test_compensate_refuses_a_hinge_beyond_its_limit_by_row(tmp_path, machines, capsys):
+    targets = tmp_path / "t.csv"
+    # Yaw just past pi/2: the platform hinges q14, q24 (limits +-pi/2) would pass their stops.
+    targets.write_text("x,y,z,theta\n0.5,0.5,-0.1,0.0\n0.5,0.5,-0.1,1.6\n")
+    out = tmp_path / "c.csv"
+    code = main(["compensate", str(targets), "--calibrated", str(machines / "truth.urdf"), "-o", str(out)])
+    err = capsys.readouterr().err
+    assert code == 1 and not out.exists()
+    assert "t.csv, line 3" in err and "beyond its limit" in err and "line 2" not in err
+
+
+def test_evaluate_reports_a_failing_pose_and_goes_on(tmp_path, machines, capsys, monkeypatch):
+    from m3t1r import kinematics
+    from m3t1r.errors import NotConvergedError
+
+    real = kinematics.ClosedLoopSolver.forward
+    calls = {"n": 0}
+
+    def flaky(self, sliders, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise NotConvergedError("does not assemble", 1.0, 50)
+        return real(self, sliders, *args, **kwargs)
+
+    monkeypatch.setattr(kinematics.ClosedLoopSolver, "forward", flaky)
+    truth = str(machines / "truth.urdf")
+    assert main(["evaluate", "--truth", truth, "--calibrated", truth, "-n", "10"]) == 0
+    out, err = capsys.readouterr()
+    assert "over 9 slider sets" in out and "1 skipped" in out
+    assert "slider set 1" in err and "does not assemble" in err
+
+
+# ------------------------------------------------------------------------------------------------
+# 7. Progress
+def test_progress_lines_and_quiet(tmp_path):
+    import io
+
+    stream = io.StringIO()
+    with Progress("calibrating", total=4, stream=stream, delay=0.0, interval=0.0) as progress:
+        for _ in range(4):
+            progress.advance()
+    assert "calibrating: 4/4" in stream.getvalue()
+    set_quiet(True)
+    try:
+        quiet = io.StringIO()
+        with Progress("calibrating", total=4, stream=quiet, delay=0.0, interval=0.0) as progress:
+            progress.advance()
+        assert quiet.getvalue() == ""
+    finally:
+        set_quiet(False)
+
+
+def test_quiet_is_accepted_before_and_after_the_verb(tmp_path, capsys):
+    sliders = tmp_path / "s.csv"
+    sliders.write_text("q11,q11_B2,q21,q21_B4\n0,0,0,0\n")
+    assert main(["--quiet", "fk", str(sliders), "-o", str(tmp_path / "a.csv")]) == 0
+    assert main(["fk", str(sliders), "-o", str(tmp_path / "b.csv"), "--quiet"]) == 0
+
+
+def _targets(folder: Path) -> Path:
+    path = folder / "targets.csv"
+    path.write_text("x,y,z,theta\n0.5,0.5,-0.1,0.0\n")
+    return path
