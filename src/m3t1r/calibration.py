@@ -20,6 +20,7 @@ the measurement frame makes redundant stay nominal). Then, in that order:
 
 from __future__ import annotations
 
+import copy
 import math
 import warnings
 from collections.abc import Mapping, Sequence
@@ -42,7 +43,7 @@ from .poe import adjoint_matrices, jlog3_batch, log3_batch, placement_of, skew
 __all__ = [
     "ClosedLoopErrorModel", "PoseMeasurements", "TrackerNoise", "ClosedLoopCalibration", "MeasurementSetup",
     "PlatformSensitivities", "calibrate_closed_loop", "PoseErrors", "pose_errors", "predicted_pose_std",
-    "setup_parameter_names",
+    "setup_parameter_names", "CrossValidation", "cross_validate",
 ]
 
 _MAX_OUTLIER_ROUNDS = 5
@@ -253,6 +254,8 @@ class ClosedLoopCalibration:
     lm: LMResult = field(repr=False)
     selection: ParameterSelection | None = field(default=None, repr=False)
     problem: _ClosedLoopProblem | None = field(default=None, repr=False)
+    start: _State | None = field(default=None, repr=False)
+    options: dict = field(default_factory=dict, repr=False)
 
     @property
     def converged(self) -> bool:
@@ -361,7 +364,7 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
         selection, result = _select_parameters(problem, start, result, forced, options)
     if refine:
         result = _refine(problem, result, refine_rank_tolerance, refine_iterations)
-    return _calibration(mechanism, problem, start, result, base, selection)
+    return replace(_calibration(mechanism, problem, start, result, base, selection), start=start, options=options)
 
 
 def _fit(problem: _ClosedLoopProblem, state: _State, options: dict) -> LMResult:
@@ -457,6 +460,44 @@ def _calibration(mechanism: Mechanism, problem: _ClosedLoopProblem, start: _Stat
         selection=selection,
         problem=problem,
     )
+
+
+@dataclass(frozen=True)
+class CrossValidation:
+    """k-fold prediction of held-back measurements (outliers excluded): each fold is refitted on
+    the others (same parameters, same setup estimation) and predicts its poses' measurements.
+    The errors include the measurement noise, as a fresh validation set of the same quality does.
+    errors: per inlier pose, position [m] and rotation [rad] (nan when position-only)."""
+
+    errors: PoseErrors
+    folds: int
+
+
+@on_one_blas_thread
+def cross_validate(calibration: ClosedLoopCalibration, folds: int = 5, seed: int = 0) -> CrossValidation:
+    """k-fold cross-validation of a calibration on its own inlier poses (`CrossValidation`)."""
+    problem, start = calibration.problem, calibration.start
+    if problem is None or start is None:
+        raise InvalidInputError("cross_validate needs a calibration made by calibrate_closed_loop")
+    inliers = np.flatnonzero(problem.active)
+    if folds < 2 or len(inliers) < 2 * folds:
+        raise InvalidInputError(f"cross-validation: {folds} folds need at least {2 * folds} inlier poses")
+    assignment = np.random.default_rng(seed).permutation(len(inliers)) % folds
+    residuals = np.empty((len(inliers), problem.measurements.rows_per_pose))
+    fold_problem = copy.copy(problem)
+    try:
+        for fold in range(folds):
+            held = inliers[assignment == fold]
+            fold_problem.active = problem.active.copy()
+            fold_problem.active[held] = False
+            result = _fit(fold_problem, replace(start, whitened=None), calibration.options)
+            residuals[assignment == fold] = fold_problem.pose_residuals(result.state)[held]
+    except KinematicsError as exc:
+        raise IdentificationError(f"cross-validation: a fold's fit does not assemble: {exc}") from None
+    position = np.linalg.norm(residuals[:, :3], axis=1)
+    rotation = (np.linalg.norm(residuals[:, 3:], axis=1) if residuals.shape[1] == 6
+                else np.full(len(inliers), np.nan))
+    return CrossValidation(PoseErrors(position, rotation), folds)
 
 
 _REFERENCE_POSES = 40  # a well-spread pose set on which the model's identifiable count is measured

@@ -2,7 +2,8 @@
 
 Every verb reads validated files, computes, and only then writes its outputs atomically; it never
 writes onto an input or the nominal model. Errors print `m3t1r: error: ...` naming the file, line,
-column or joint at fault, and exit with status 2 (1 when some rows failed and nothing was written).
+column or joint at fault, and exit with status 2 (1 when some rows failed, or a fit was refused as
+not supported by the data, and nothing was written).
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ import numpy as np
 
 from . import __version__
 from ._threads import single_blas_thread
+from .assessment import FitRejected
+from .cli_calibrate import add_campaign_options
 from .errors import InvalidInputError, KinematicsError, M3t1rError
 
 EXIT_ERROR, EXIT_ROWS_FAILED = 2, 1
@@ -33,19 +36,42 @@ class RowFailures(M3t1rError):
 
 
 def _mechanism(urdf: str | None, closures: str | None):
+    """Load a machine; a URDF without --closures loads with its pair NAME.closures.yaml (sha256-checked)."""
     from .description import Mechanism
+    from .io import paired_closures_path
+    from .urdf_io import recorded_closures_sha256
 
     if urdf is not None and closures is None:
-        sibling = Path(urdf).with_suffix("").with_suffix(".closures.yaml")
-        closures = str(sibling) if sibling.is_file() else None
-        if closures is None:
-            raise InvalidInputError(f"--closures is required with --model {urdf} (no {sibling.name} beside it)")
+        sibling = paired_closures_path(urdf)
+        try:
+            recorded = recorded_closures_sha256(Path(urdf).read_bytes())
+        except (OSError, M3t1rError):
+            recorded = None  # Mechanism.load names the problem with the URDF
+        if recorded is None and not sibling.is_file() and Path(urdf).is_file():
+            raise InvalidInputError(f"--closures is required with {urdf} (no {sibling.name} beside it)")
     return Mechanism.load(urdf, closures)
 
 
 def _closures_beside(urdf_out: Path) -> Path:
-    """calibrated.urdf -> calibrated.closures.yaml: a machine is always a pair of files."""
-    return urdf_out.with_suffix("").with_suffix(".closures.yaml")
+    """calibrated.urdf -> calibrated.closures.yaml: a machine is always a pair of files.
+
+    Only the final .urdf is replaced: machine.v1.urdf -> machine.v1.closures.yaml.
+    """
+    from .io import paired_closures_path
+
+    return paired_closures_path(urdf_out)
+
+
+def _say(outputs, message: str) -> None:
+    """A status line: stdout, or stderr when an output of the command is stdout (`-o -`)."""
+    to_stdout = outputs is None or all(o.path is not None for o in outputs.outputs)
+    print(message, file=sys.stdout if to_stdout else sys.stderr, flush=True)
+
+
+def _progress(label: str, total: int):
+    from .io import Progress
+
+    return Progress(label, total)
 
 
 def _provenance(args: argparse.Namespace) -> list[str]:
@@ -55,73 +81,117 @@ def _provenance(args: argparse.Namespace) -> list[str]:
 
 # ------------------------------------------------------------------------------------------------
 def cmd_fk(args: argparse.Namespace) -> None:
-    from .datasets import read_actuators, write_poses
+    from .datasets import read_actuators
     from .kinematics import ClosedLoopSolver
 
+    from .io import POSE_COLUMNS, OutputSet, pose_rows, table_text
+
     mechanism = _mechanism(args.model, args.closures)
+    outputs = OutputSet(inputs=(args.actuators, mechanism.urdf_path, mechanism.closures_path))
+    output = outputs.add(args.output, "-o")
+    outputs.check()
     actuators, lines = read_actuators(args.actuators, mechanism)
     solver = ClosedLoopSolver(mechanism)
     poses, failures = [], []
-    for sliders, line in zip(actuators, lines):
-        try:
-            poses.append(solver.forward(sliders).pose)
-        except KinematicsError as exc:
-            failures.append((int(line), str(exc)))
-            solver.reset()
+    with _progress("fk", len(lines)) as progress:
+        for sliders, line in zip(actuators, lines):
+            progress.advance()
+            try:
+                poses.append(solver.forward(sliders).pose)
+            except KinematicsError as exc:
+                failures.append((int(line), str(exc)))
+                solver.reset()
     if failures:
         raise RowFailures(Path(args.actuators), failures)
-    write_poses(args.output, poses, _provenance(args) + ["platform frame pose in the base frame: m, unit quaternion"],
-                protect=(args.actuators, mechanism.urdf_path, mechanism.closures_path))
-    print(f"wrote {len(poses)} poses to {args.output}")
+    comments = _provenance(args) + ["platform frame pose in the base frame: m, unit quaternion"]
+    with outputs:
+        outputs.stage(output, table_text(POSE_COLUMNS, pose_rows(poses), comments))
+        outputs.commit()
+    _say(outputs, f"wrote {len(poses)} poses to {output.name}")
 
 
 def cmd_ik(args: argparse.Namespace) -> None:
-    from .datasets import read_targets, write_actuators
+    from .compensation import check_joint_limits
+    from .datasets import read_targets
+    from .io import OutputSet, table_text
     from .kinematics import ClosedLoopSolver
 
     mechanism = _mechanism(args.model, args.closures)
+    outputs = OutputSet(inputs=(args.poses, mechanism.urdf_path, mechanism.closures_path))
+    output = outputs.add(args.output, "-o")
+    outputs.check()
     targets, lines = read_targets(args.poses)
     solver = ClosedLoopSolver(mechanism)
     rows, failures, max_tilt = [], [], 0.0
-    for target, line in zip(targets, lines):
-        try:
-            result = solver.inverse(target)
-            rows.append(result.actuators)
-            max_tilt = max(max_tilt, *map(abs, result.tilt))
-        except (KinematicsError, InvalidInputError) as exc:
-            failures.append((int(line), str(exc)))
-            solver.reset()
+    with _progress("ik", len(lines)) as progress:
+        for target, line in zip(targets, lines):
+            progress.advance()
+            try:
+                result = solver.inverse(target)
+                check_joint_limits(mechanism, result)
+                rows.append(result.actuators)
+                max_tilt = max(max_tilt, *map(abs, result.tilt))
+            except (KinematicsError, InvalidInputError) as exc:
+                failures.append((int(line), str(exc)))
+                solver.reset()
     if failures:
         raise RowFailures(Path(args.poses), failures)
-    write_actuators(args.output, mechanism, np.array(rows), _provenance(args) + ["slider positions in m"],
-                    protect=(args.poses, mechanism.urdf_path, mechanism.closures_path))
-    print(f"wrote {len(rows)} slider sets to {args.output}; largest uncommandable tilt (roll/pitch) {max_tilt:.3g} rad")
+    with outputs:
+        outputs.stage(output, table_text(mechanism.actuated_joints, np.array(rows),
+                                         _provenance(args) + ["slider positions in m"]))
+        outputs.commit()
+    _say(outputs, f"wrote {len(rows)} slider sets to {output.name}; "
+                  f"largest uncommandable tilt (roll/pitch) {max_tilt:.3g} rad")
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:
     from .calibration import TrackerNoise
-    from .datasets import write_measurements
+    from .datasets import measurement_table
+    from .io import OutputSet, table_text
+    from .reporting import IDLE_CHAIN_JOINTS
     from .simulation import simulate_study
 
     nominal = _mechanism(args.model, args.closures)
+    outputs = OutputSet(inputs=(nominal.urdf_path, nominal.closures_path))
+    measurement_output = outputs.add(args.output, "-o")
+    truth_output = outputs.add_machine(args.truth_urdf, "--truth-urdf")
+    outputs.check()
     noise = None if args.noise_free else TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
-    from .reporting import IDLE_CHAIN_JOINTS
-
     passive = IDLE_CHAIN_JOINTS if args.with_passive else ()
+    setup = _simulated_setup(args)
     study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only,
-                           passive_joints=passive)
-    protect = (nominal.urdf_path, nominal.closures_path)
+                           passive_joints=passive, setup=setup, outliers=args.outliers)
     comments = _provenance(args) + [
         f"truth: {args.sigma_pos:g} m / {args.sigma_rot:g} rad errors on every joint placement and closure/platform frame, seed {args.seed}",
         "noise: none" if noise is None else f"noise: tracker {noise.position:g} m / {noise.rotation:g} rad, sliders {noise.actuator:g} m",
+        f"lengths in {args.units}; measured: tracker frame . platform . marker",
     ]
-    write_measurements(args.output, nominal, study.measurements, passive_joints=passive,
-                       passive=study.passive_readings, comments=comments, protect=protect)
-    print(f"wrote {args.n} {'position-only ' if args.position_only else ''}measurements to {args.output}")
-    if args.truth_urdf:
-        truth_urdf = Path(args.truth_urdf)
-        study.truth.save(truth_urdf, _closures_beside(truth_urdf), protect=(args.output,))
-        print(f"wrote the truth machine to {truth_urdf} and {_closures_beside(truth_urdf)}")
+    if study.outliers:
+        comments.append(f"gross outliers (3-5 mm) on data rows {', '.join(str(i + 1) for i in study.outliers)}")
+    columns, rows = measurement_table(nominal, study.measurements, passive, study.passive_readings, args.units)
+    with outputs:
+        outputs.stage(measurement_output, table_text(columns, rows, comments))
+        if truth_output is not None:
+            outputs.stage_machine(truth_output, study.truth)
+        outputs.commit()
+    _say(outputs, f"wrote {args.n} {'position-only ' if args.position_only else ''}measurements to "
+                  f"{measurement_output.name}")
+    if truth_output is not None:
+        _say(outputs, f"wrote the truth machine to {truth_output.name} and {truth_output.closures.name}")
+
+
+def _simulated_setup(args: argparse.Namespace):
+    """The truth measurement setup of `simulate`: --tracker-frame and --marker (identity without)."""
+    import pinocchio as pin
+
+    from .measurement_setup import MeasurementSetup
+
+    frame = pin.SE3.Identity()
+    if args.tracker_frame is not None:
+        x, y, z, roll, pitch, yaw = args.tracker_frame
+        frame = pin.SE3(pin.rpy.rpyToMatrix(roll, pitch, yaw), np.array([x, y, z]))
+    marker = pin.SE3(np.eye(3), np.array(args.marker)) if args.marker else pin.SE3.Identity()
+    return MeasurementSetup(frame, marker)
 
 
 def _calibration_report(calibration, measurement_file, mechanism, noise) -> dict:
@@ -148,52 +218,12 @@ def _calibration_report(calibration, measurement_file, mechanism, noise) -> dict
 
 
 def cmd_calibrate(args: argparse.Namespace) -> None:
+    from .cli_calibrate import parse_priors, run_closed_loop_calibration
+
+    args.prior = parse_priors(args.prior)
     if args.serial:
         return _calibrate_serial(args)
-    from .calibration import TrackerNoise, calibrate_closed_loop
-    from .datasets import read_measurements
-    from .io import atomic_write_text, ensure_not_protected
-
-    nominal = _mechanism(args.model, args.closures)
-    output = Path(args.output)
-    protect = (Path(args.measurements), nominal.urdf_path, nominal.closures_path)
-    for path in (output, _closures_beside(output), *(Path(p) for p in (args.report,) if p)):
-        ensure_not_protected(path, protect)  # fail before a long computation
-    data = read_measurements(args.measurements, nominal)
-    noise = TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
-    print(f"calibrating from {len(data.measurements)} poses ...", flush=True)
-    calibration = calibrate_closed_loop(nominal, data.measurements, noise)
-    calibration.mechanism.save(output, _closures_beside(output), protect=protect)
-    before, after = calibration.rms_before, calibration.rms_after
-    print(f"identified {calibration.base.rank} of {len(calibration.parameters)} parameters "
-          f"(condition number {calibration.base.condition_number:.3g}) in {calibration.lm.iterations} iterations")
-    print(f"residual RMS position {before[0]:.3e} -> {after[0]:.3e} m, orientation {before[1]:.3e} -> {after[1]:.3e} rad")
-    print(f"wrote {output} and {_closures_beside(output)}")
-    cross_validation = None
-    if data.passive_joints:
-        from .reporting import passive_joint_residuals
-
-        actuators = data.measurements.actuators
-        before = passive_joint_residuals(nominal, actuators, data.passive_joints, data.passive)
-        after = passive_joint_residuals(calibration.mechanism, actuators, data.passive_joints, data.passive)
-        print("passive-joint readings the fit did not use (RMS after removing each encoder's zero offset):")
-        for k, name in enumerate(data.passive_joints):
-            print(f"  {name}: nominal {before.rms[k]:.3e}, calibrated {after.rms[k]:.3e}")
-        cross_validation = {name: {"nominal_rms": float(before.rms[k]), "calibrated_rms": float(after.rms[k]),
-                                   "calibrated_offset": float(after.offsets[k])}
-                            for k, name in enumerate(data.passive_joints)}
-    if args.report:
-        report = _calibration_report(calibration, data, nominal, noise)
-        if cross_validation is not None:
-            report["passive_joint_cross_validation"] = cross_validation
-        atomic_write_text(args.report, json.dumps(report, indent=2) + "\n", protect=protect)
-        print(f"wrote {args.report}")
-    if args.plots:
-        from .reporting import write_calibration_plots
-
-        print("writing plots (cross-validation recalibrates on subsets) ...", flush=True)
-        for path in write_calibration_plots(nominal, calibration, data.measurements, Path(args.plots), protect, noise):
-            print(f"wrote {path}")
+    run_closed_loop_calibration(args, _mechanism(args.model, args.closures))
 
 
 def _calibrate_serial(args: argparse.Namespace) -> None:
@@ -242,46 +272,56 @@ def _calibrate_serial(args: argparse.Namespace) -> None:
 
 def cmd_compensate(args: argparse.Namespace) -> None:
     from .compensation import compensate
-    from .datasets import TARGET_COLUMNS, read_targets, write_actuators, write_poses
-    from .io import ensure_not_protected, write_table
+    from .datasets import TARGET_COLUMNS, read_targets
+    from .io import POSE_COLUMNS, OutputSet, table_text
 
     nominal = _mechanism(args.model, args.closures)
     calibrated = _mechanism(args.calibrated, args.calibrated_closures)
-    protect = (Path(args.targets), nominal.urdf_path, nominal.closures_path, calibrated.urdf_path,
-               calibrated.closures_path)
-    ensure_not_protected(args.output, protect)
+    outputs = OutputSet(inputs=(args.targets, nominal.urdf_path, nominal.closures_path, calibrated.urdf_path,
+                                calibrated.closures_path))
+    output = outputs.add(args.output, "-o")
+    outputs.check()
     targets, lines = read_targets(args.targets)
-    result = compensate(nominal, calibrated, targets)
+    with _progress("compensate", len(lines)) as progress:
+        result = compensate(nominal, calibrated, targets, progress=progress.update)
     if result.failures:
         raise RowFailures(Path(args.targets), [(int(lines[f.index]), f.reason) for f in result.failures])
     comments = _provenance(args) + [f"calibrated model: {calibrated.urdf_path}"]
+    pose_note = "poses to send to a controller that knows only the nominal model (T_cp)"
     if args.output_kind == "actuators":
-        write_actuators(args.output, calibrated, result.actuators, comments + ["corrected slider commands [m]"], protect)
+        text = table_text(calibrated.actuated_joints, result.actuators, comments + ["corrected slider commands [m]"])
     elif isinstance(targets, np.ndarray):
-        write_table(args.output, TARGET_COLUMNS, result.command_targets,
-                    comments + ["poses to send to a controller that knows only the nominal model (T_cp)"], protect)
+        text = table_text(TARGET_COLUMNS, result.command_targets, comments + [pose_note])
     else:
-        write_poses(args.output, result.command_poses,
-                    comments + ["poses to send to a controller that knows only the nominal model (T_cp)"], protect)
-    print(f"wrote {result.n_targets} compensated {args.output_kind} commands to {args.output}; "
-          f"largest uncommandable tilt (roll/pitch) of the calibrated machine {result.max_tilt:.3g} rad")
+        text = table_text(POSE_COLUMNS, result.command_pose_rows, comments + [pose_note])
+    with outputs:
+        outputs.stage(output, text)
+        outputs.commit()
+    _say(outputs, f"wrote {result.n_targets} compensated {args.output_kind} commands to {output.name}; "
+                  f"largest uncommandable tilt (roll/pitch) of the calibrated machine {result.max_tilt:.3g} rad")
 
 
 def cmd_view(args: argparse.Namespace) -> None:
-    from .viz import comparison_views, open_viewer, write_static_html
+    from .io import OutputSet
+    from .viz import build_scene, comparison_views, open_viewer, scene_html
 
     nominal = _mechanism(args.nominal, args.closures)
     calibrated = _mechanism(args.calibrated, args.calibrated_closures) if args.calibrated else None
+    outputs = OutputSet(inputs=(nominal.urdf_path, nominal.closures_path, args.measurements,
+                                *((calibrated.urdf_path, calibrated.closures_path) if calibrated else ())))
+    output = outputs.add(args.html, "--html")
+    outputs.check()
     views = comparison_views(nominal, calibrated)
     markers = None
     if args.measurements:
         from .datasets import read_measurements
 
         markers = read_measurements(args.measurements, nominal).measurements.poses
-    if args.html:
-        protect = [nominal.urdf_path, nominal.closures_path]
-        path = write_static_html(views, args.html, pose=args.pose, markers=markers, protect=protect)
-        print(f"wrote {path} (self-contained: open it in any browser, no network needed)")
+    if output is not None:
+        with outputs:
+            outputs.stage(output, scene_html(build_scene(views, pose=args.pose, markers=markers)))
+            outputs.commit()
+        _say(outputs, f"wrote {output.name} (self-contained: open it in any browser, no network needed)")
         return
     with open_viewer(views, pose=args.pose, markers=markers) as viewer:
         print(f"meshcat viewer at {viewer.url} (Ctrl-C to stop)", flush=True)
@@ -337,19 +377,49 @@ def cmd_paper(args: argparse.Namespace) -> None:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
-    from .calibration import pose_errors
+    import pinocchio as pin
+
+    from .kinematics import ClosedLoopSolver
     from .simulation import workspace_actuators
 
     nominal = _mechanism(args.nominal, args.nominal_closures)
     truth = _mechanism(args.truth, None)
     calibrated = _mechanism(args.calibrated, None)
     sliders = workspace_actuators(nominal, args.n, np.random.default_rng(args.seed))
-    print(f"held-out platform error over {args.n} slider sets in the workspace (seed {args.seed}):")
+    machines = {"truth": truth, "nominal": nominal, "calibrated": calibrated}
+    solvers = {name: ClosedLoopSolver(machine) for name, machine in machines.items()}
+    errors: dict[str, list[tuple[float, float]]] = {"nominal": [], "calibrated": []}
+    failures: list[tuple[int, str]] = []
+    # One slider set that does not assemble on some machine is reported and skipped, not fatal.
+    with _progress("evaluate", len(sliders)) as progress:
+        for index, values in enumerate(sliders):
+            progress.advance()
+            poses = {}
+            for name, solver in solvers.items():
+                try:
+                    poses[name] = solver.forward(values).pose
+                except (KinematicsError, InvalidInputError) as exc:
+                    failures.append((index, f"{name} machine: {exc}"))
+                    solver.reset()
+                    break
+            else:
+                for name in errors:
+                    a, b = poses[name], poses["truth"]
+                    errors[name].append((float(np.linalg.norm(a.translation - b.translation)),
+                                         float(np.linalg.norm(pin.log3(a.rotation.T @ b.rotation)))))
+    for index, reason in failures:
+        print(f"m3t1r: slider set {index} ({', '.join(f'{v:.6g}' for v in sliders[index])} m) skipped: {reason}",
+              file=sys.stderr)
+    kept = args.n - len(failures)
+    if kept == 0:
+        raise InvalidInputError(f"none of the {args.n} slider sets assembles on every machine: nothing to evaluate")
+    skipped = f", {len(failures)} skipped (see stderr)" if failures else ""
+    print(f"held-out platform error over {kept} slider sets in the workspace (seed {args.seed}{skipped}):")
     print(f"{'model':<12}{'position mean':>16}{'position max':>16}{'orientation mean':>19}{'orientation max':>18}")
-    for name, machine in (("nominal", nominal), ("calibrated", calibrated)):
-        e = pose_errors(machine, truth, sliders)
-        print(f"{name:<12}{e.position_mean:>14.3e} m{e.position.max():>14.3e} m"
-              f"{e.rotation_mean:>15.3e} rad{e.rotation.max():>14.3e} rad")
+    for name, values in errors.items():
+        e = np.array(values)
+        print(f"{name:<12}{e[:, 0].mean():>14.3e} m{e[:, 0].max():>14.3e} m"
+              f"{e[:, 1].mean():>15.3e} rad{e[:, 1].max():>14.3e} rad")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -389,6 +459,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_noise_options(p)
     p.add_argument("--noise-free", action="store_true", help="exact measurements")
     p.add_argument("--position-only", action="store_true", help="a tracker without orientation")
+    p.add_argument("--tracker-frame", nargs=6, type=float, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
+                   help="the robot base in the tracker's frame [m, rad] (default: measured in the base frame)")
+    p.add_argument("--marker", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="the reflector in the platform frame [m] (default: the platform frame's origin)")
+    p.add_argument("--units", choices=("m", "mm"), default="m", help="length unit of the written file")
+    p.add_argument("--outliers", type=int, default=0, metavar="K", help="spoil K measurements with 3-5 mm gross errors")
     p.add_argument("--with-passive", action="store_true",
                    help="also record encoders on the idle chains' hinges (q12_B2, q22_B4) for cross-validation")
     p.add_argument("-o", "--output", required=True, help="measurement CSV")
@@ -404,6 +480,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--serial", metavar="ROBOT_OR_URDF", help="calibrate a serial chain instead (ur5, ur10, panda or a URDF)")
     p.add_argument("--base", metavar="FRAME", help="with --serial: base frame (default the model root)")
     p.add_argument("--tool", metavar="FRAME", help="with --serial: the measured tool frame")
+    add_campaign_options(p)
     _add_noise_options(p)
     _add_model_options(p)
     p.set_defaults(run=cmd_calibrate)
@@ -450,20 +527,38 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-n", type=int, default=200)
     p.add_argument("--seed", type=int, default=1)
     p.set_defaults(run=cmd_evaluate)
+
+    # --quiet before or after the verb; the verb's copy must not reset the global one.
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress display on stderr")
+    for sub in verbs.choices.values():
+        sub.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                         help="no progress display on stderr")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from .io import Terminated, set_quiet, termination_as_exception
+
     args = build_parser().parse_args(argv)
+    set_quiet(getattr(args, "quiet", False))
     try:
-        with single_blas_thread():
+        # SIGTERM/SIGHUP unwind like Ctrl-C, so every OutputSet removes its temporary files.
+        with termination_as_exception(), single_blas_thread():
             args.run(args)
-    except RowFailures as exc:
+    except (RowFailures, FitRejected) as exc:
         print(f"m3t1r: error: {exc}", file=sys.stderr)
         return EXIT_ROWS_FAILED
     except (M3t1rError, OSError) as exc:
         print(f"m3t1r: error: {exc}", file=sys.stderr)
         return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("m3t1r: interrupted; outputs not yet in place were not written", file=sys.stderr)
+        return 130
+    except Terminated as exc:
+        print(f"m3t1r: {exc}; outputs not yet in place were not written", file=sys.stderr)
+        return 128 + exc.signum
+    finally:
+        set_quiet(False)
     return 0
 
 

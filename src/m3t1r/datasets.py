@@ -12,7 +12,7 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 import pinocchio as pin
@@ -20,11 +20,12 @@ import pinocchio as pin
 from .calibration import PoseMeasurements
 from .description import Mechanism
 from .errors import DataFileError
+from .measurement_setup import LENGTH_UNITS
 from .io import POSE_COLUMNS, StrPath, Table, pose_rows, poses_from_table, read_table, write_table
 
 __all__ = [
     "TARGET_COLUMNS", "read_actuators", "write_actuators", "read_poses", "write_poses", "read_targets",
-    "MeasurementFile", "read_measurements", "write_measurements", "sha256_of",
+    "MeasurementFile", "read_measurements", "write_measurements", "measurement_table", "sha256_of",
 ]
 
 TARGET_COLUMNS = ("x", "y", "z", "theta")  # platform position [m] and yaw [rad], the 4 commandable DoF
@@ -43,15 +44,38 @@ def _check_joint_columns(table: Table, mechanism: Mechanism, names: Iterable[str
                                 column=name)
 
 
-def _check_limits(table: Table, mechanism: Mechanism, names: Sequence[str]) -> None:
+def _check_limits(table: Table, mechanism: Mechanism, names: Sequence[str], scale: Mapping[str, float] | None = None
+                  ) -> None:
+    """Every value within its joint's limits, after `scale` (column -> metres per file unit)."""
     lower, upper = mechanism.joint_limits(tuple(names))
+    scale = scale or {}
     for k, name in enumerate(names):
-        values = table.column(name)
+        values = table.column(name) * scale.get(name, 1.0)
         outside = np.flatnonzero((values < lower[k]) | (values > upper[k]))
         if outside.size:
             row = int(outside[0])
+            hint = "(SI units: m for sliders, rad for hinges)"
+            prismatic = name in _prismatic_joints(mechanism, names)
+            if prismatic and scale.get(name, 1.0) == 1.0 and np.all((values * 1e-3 >= lower[k]) & (values * 1e-3 <= upper[k])):
+                hint = "(every value of the column is within the limits in millimetres: use --units mm)"
             raise table.error(row, f"{values[row]:.6g} is beyond the joint limit [{lower[k]:.6g}, {upper[k]:.6g}] "
-                                   "(SI units: m for sliders, rad for hinges)", column=name)
+                                   + hint, column=name)
+
+
+def _prismatic_joints(mechanism: Mechanism, names: Iterable[str]) -> tuple[str, ...]:
+    """The prismatic joints among `names`: their readings are lengths, scaled by --units."""
+    model = mechanism.model
+    return tuple(n for n in names if model.existJointName(n)
+                 and model.joints[model.getJointId(n)].shortname().startswith("JointModelP"))
+
+
+def _length_scale(table: Table, mechanism: Mechanism, units: str) -> dict[str, float]:
+    """Column -> metres per file unit for the length columns (x, y, z and prismatic joints)."""
+    if units not in LENGTH_UNITS:
+        raise DataFileError(table.path, f"unknown length unit '{units}' (one of {', '.join(LENGTH_UNITS)})")
+    factor = LENGTH_UNITS[units]
+    lengths = ("x", "y", "z") + _prismatic_joints(mechanism, table.columns)
+    return {name: factor for name in lengths if table.has_column(name)}
 
 
 def read_actuators(path: StrPath, mechanism: Mechanism) -> tuple[np.ndarray, np.ndarray]:
@@ -108,12 +132,14 @@ class MeasurementFile:
     sha256: str
 
 
-def read_measurements(path: StrPath, mechanism: Mechanism) -> MeasurementFile:
+def read_measurements(path: StrPath, mechanism: Mechanism, units: str = "m") -> MeasurementFile:
     """Read a measurement CSV: actuator columns (named by the actuated joints), optional passive
     joint columns (named by joint), x, y, z and optionally qx, qy, qz, qw.
 
-    Raises DataFileError naming file, line and column for: missing/extra/unknown columns (a file
-    of another model), NaN, duplicate rows, non-unit quaternions, slider values beyond limits.
+    units: the length unit of the file's length columns (x, y, z and prismatic joints), "m" or
+    "mm"; everything returned is in SI units. Raises DataFileError naming file, line and column
+    for: missing/extra/unknown columns (a file of another model), NaN, duplicate rows, non-unit
+    quaternions, slider values beyond limits (saying so when they look like millimetres).
     """
     source = Path(path)
     model = mechanism.model
@@ -121,24 +147,34 @@ def read_measurements(path: StrPath, mechanism: Mechanism) -> MeasurementFile:
     table = read_table(source, required=mechanism.actuated_joints + ("x", "y", "z"), optional=passive_names,
                        optional_groups=(_QUATERNION,), reject_duplicate_rows=True)
     _check_joint_columns(table, mechanism, mechanism.actuated_joints)
-    _check_limits(table, mechanism, mechanism.actuated_joints)
+    scale = _length_scale(table, mechanism, units)
+    _check_limits(table, mechanism, mechanism.actuated_joints, scale)
     position_only = not table.has_column("qw")
+    positions = np.column_stack([table.column(n) for n in ("x", "y", "z")]) * scale["x"]
     if position_only:
-        poses = [pin.SE3(np.eye(3), np.array(row)) for row in
-                 np.column_stack([table.column(n) for n in ("x", "y", "z")])]
+        poses = [pin.SE3(np.eye(3), row) for row in positions]
     else:
-        poses = poses_from_table(table)
-    actuators = np.column_stack([table.column(n) for n in mechanism.actuated_joints])
+        poses = [pin.SE3(pose.rotation, position) for pose, position in zip(poses_from_table(table), positions)]
+    actuators = np.column_stack([table.column(n) * scale.get(n, 1.0) for n in mechanism.actuated_joints])
     present = tuple(n for n in passive_names if table.has_column(n))
-    passive = np.column_stack([table.column(n) for n in present]) if present else np.zeros((table.n_rows, 0))
+    passive = (np.column_stack([table.column(n) * scale.get(n, 1.0) for n in present]) if present
+               else np.zeros((table.n_rows, 0)))
     return MeasurementFile(source, PoseMeasurements(actuators, tuple(poses), position_only), present, passive,
                            table.line_numbers, sha256_of(source))
 
 
 def write_measurements(path: StrPath, mechanism: Mechanism, measurements: PoseMeasurements,
                        passive_joints: Sequence[str] = (), passive: np.ndarray | None = None,
-                       comments: Sequence[str] = (), protect: Iterable[StrPath] = ()) -> None:
-    """Write measurements in the format `read_measurements` reads (atomically)."""
+                       comments: Sequence[str] = (), protect: Iterable[StrPath] = (), units: str = "m") -> None:
+    """Write measurements in the format `read_measurements` reads (atomically), lengths in `units`."""
+    write_table(path, *measurement_table(mechanism, measurements, passive_joints, passive, units), comments, protect)
+
+
+def measurement_table(mechanism: Mechanism, measurements: PoseMeasurements, passive_joints: Sequence[str] = (),
+                      passive: np.ndarray | None = None, units: str = "m") -> tuple[list[str], np.ndarray]:
+    """Columns and rows of a measurement file, lengths (x, y, z, prismatic joints) in `units`."""
+    if units not in LENGTH_UNITS:
+        raise DataFileError("-", f"unknown length unit '{units}' (one of {', '.join(LENGTH_UNITS)})")
     columns = list(mechanism.actuated_joints) + list(passive_joints)
     blocks = [measurements.actuators]
     if passive_joints:
@@ -150,4 +186,7 @@ def write_measurements(path: StrPath, mechanism: Mechanism, measurements: PoseMe
     else:
         columns += list(POSE_COLUMNS)
         blocks.append(rows)
-    write_table(path, columns, np.hstack(blocks), comments, protect)
+    table = np.hstack(blocks)
+    lengths = set(_prismatic_joints(mechanism, columns)) | {"x", "y", "z"}
+    divide = np.array([LENGTH_UNITS[units] if c in lengths else 1.0 for c in columns])
+    return columns, table / divide

@@ -11,6 +11,7 @@ Without a known truth, each plot uses what the data can show honestly:
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
@@ -21,8 +22,10 @@ import pinocchio as pin
 from .calibration import (ClosedLoopCalibration, PoseErrors, PoseMeasurements, TrackerNoise, calibrate_closed_loop,
                           predicted_pose_std)
 from .description import Mechanism
-from .errors import IdentificationError, KinematicsError
+from .errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
 from .kinematics import ClosedLoopSolver
+from .measurement_setup import MeasurementSetup
+from .metrics import rotation_angles
 
 __all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots", "PassiveJointResiduals",
            "passive_joint_residuals", "IDLE_CHAIN_JOINTS"]
@@ -32,17 +35,18 @@ __all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_
 IDLE_CHAIN_JOINTS = ("q12_B2", "q22_B4")
 
 
-def measured_pose_errors(machine: Mechanism, measurements: PoseMeasurements) -> PoseErrors:
-    """Model platform pose vs measured pose at the measured sliders: position norm [m], rotation
-    angle [rad] (NaN rotation for position-only data)."""
+def measured_pose_errors(machine: Mechanism, measurements: PoseMeasurements,
+                         setup: MeasurementSetup = MeasurementSetup()) -> PoseErrors:
+    """Model prediction (setup.frame . platform . setup.marker) vs measured pose at the measured
+    sliders: position norm [m], rotation angle [rad] (NaN rotation for position-only data)."""
     solver = ClosedLoopSolver(machine)
-    position, rotation = [], []
-    for sliders, measured in zip(measurements.actuators, measurements.poses):
-        pose = solver.forward(sliders).pose
-        position.append(np.linalg.norm(pose.translation - measured.translation))
-        rotation.append(np.nan if measurements.position_only
-                        else np.linalg.norm(pin.log3(measured.rotation.T @ pose.rotation)))
-    return PoseErrors(np.array(position), np.array(rotation))
+    platform = np.array([solver.forward(sliders).pose.homogeneous for sliders in measurements.actuators])
+    predicted = setup.measured_poses(platform.reshape(-1, 4, 4))
+    measured = np.array([pose.homogeneous for pose in measurements.poses]).reshape(-1, 4, 4)
+    position = np.linalg.norm(predicted[:, :3, 3] - measured[:, :3, 3], axis=1)
+    rotation = (np.full(len(position), np.nan) if measurements.position_only
+                else rotation_angles(measured[:, :3, :3], predicted[:, :3, :3]))
+    return PoseErrors(position, rotation)
 
 
 def _subset(measurements: PoseMeasurements, indices: np.ndarray) -> PoseMeasurements:
@@ -51,10 +55,12 @@ def _subset(measurements: PoseMeasurements, indices: np.ndarray) -> PoseMeasurem
 
 
 def cross_validation_curve(nominal: Mechanism, measurements: PoseMeasurements, noise: TrackerNoise,
-                           seed: int = 0, test_fraction: float = 0.2) -> tuple[list[int], list[float], list[float]]:
+                           seed: int = 0, test_fraction: float = 0.2, **fit_options
+                           ) -> tuple[list[int], list[float], list[float]]:
     """(training sizes, mean position error [m], mean rotation error [rad]) on held-back poses.
 
-    Sizes too small to identify every parameter are skipped (calibrate_closed_loop refuses them).
+    fit_options go to `calibrate_closed_loop` (e.g. the measurement setup to estimate). Sizes too
+    small to identify every parameter are skipped (calibrate_closed_loop refuses them).
     """
     order = np.random.default_rng(seed).permutation(len(measurements))
     n_test = max(5, int(round(test_fraction * len(measurements))))
@@ -63,31 +69,41 @@ def cross_validation_curve(nominal: Mechanism, measurements: PoseMeasurements, n
     kept, position, rotation = [], [], []
     for k in sizes:
         try:
-            fitted = calibrate_closed_loop(nominal, _subset(measurements, train[:k]), noise)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", PoorExcitationWarning)  # small subsets are poor by design
+                fitted = calibrate_closed_loop(nominal, _subset(measurements, train[:k]), noise, **fit_options)
         except (IdentificationError, KinematicsError):
             continue
-        errors = measured_pose_errors(fitted.mechanism, _subset(measurements, test))
+        errors = measured_pose_errors(fitted.mechanism, _subset(measurements, test), fitted.setup)
         kept.append(k)
         position.append(errors.position_mean)
         rotation.append(float(np.nanmean(errors.rotation)) if not measurements.position_only else float("nan"))
     return kept, position, rotation
 
 
-def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibration, measurements: PoseMeasurements,
-                            out_dir: Path, protect: Iterable[Path] = (), noise: TrackerNoise = TrackerNoise(),
+def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibration, out_dir: Path,
+                            protect: Iterable[Path] = (), noise: TrackerNoise = TrackerNoise(),
                             seed: int = 0) -> list[Path]:
-    """Write the three calibration plots (module docstring) into out_dir; return their paths."""
+    """Write the three calibration plots (module docstring) into out_dir; return their paths.
+    The calibration's own inlier measurements and measurement setup are used throughout."""
     from .compensation import workspace_targets
     from .plots import plot_error_vs_poses, plot_pose_errors_before_after, plot_predicted_std_map
 
+    problem, start = calibration.problem, calibration.start
+    if problem is None or start is None:
+        raise InvalidInputError("write_calibration_plots needs a calibration made by calibrate_closed_loop")
+    measurements = _subset(problem.measurements, np.flatnonzero(problem.active))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     protect = tuple(protect)
     written = [plot_pose_errors_before_after(
-        measured_pose_errors(nominal, measurements), measured_pose_errors(calibration.mechanism, measurements),
-        out_dir / "pose_errors_before_after.png", title="Calibration poses: model vs measured platform pose",
+        measured_pose_errors(nominal, measurements, start.setup),
+        measured_pose_errors(calibration.mechanism, measurements, calibration.setup),
+        out_dir / "pose_errors_before_after.png", title="Calibration poses: model vs measured pose",
         protect=protect)]
-    sizes, position, rotation = cross_validation_curve(nominal, measurements, noise, seed)
+    fit_options = {"setup": MeasurementSetup(marker=start.setup.marker),
+                   "estimate_frame": problem.frame_slot is not None, "estimate_marker": problem.marker_slot is not None}
+    sizes, position, rotation = cross_validation_curve(nominal, measurements, noise, seed, **fit_options)
     if sizes:
         written.append(plot_error_vs_poses(sizes, position, None if measurements.position_only else rotation,
                                            out_dir / "error_vs_poses.png",

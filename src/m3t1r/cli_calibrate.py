@@ -1,0 +1,305 @@
+"""`m3t1r calibrate` for the closed-loop machine: a tracker campaign from file to judged result.
+
+Reads the measurements (in the tracker's frame and units), fits the machine with the measurement
+frame and marker, flags outliers, judges the fit (refusing what the data do not support, with the
+likely cause named), cross-validates it, says in plain words what the data could not determine,
+and writes the calibrated pair and the report as a unit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import sys
+import warnings
+from pathlib import Path
+from collections.abc import Callable
+
+import numpy as np
+import pinocchio as pin
+
+from . import __version__
+from .assessment import FitRejected, check_fit, coverage_notes, describe_parameter, fit_movement_notes, likely_causes
+from .calibration import (ClosedLoopCalibration, CrossValidation, MeasurementSetup, TrackerNoise,
+                          calibrate_closed_loop, cross_validate)
+from .datasets import MeasurementFile, read_measurements
+from .description import Mechanism
+from .design import NOMINAL
+from .errors import InvalidInputError, KinematicsError, PoorExcitationWarning
+from .io import OutputSet
+from .kinematics import ClosedLoopSolver, yaw_of
+from .measurement_setup import register_frame, se3_to_report
+from .reporting import passive_joint_residuals, write_calibration_plots
+
+__all__ = ["add_campaign_options", "parse_priors", "run_closed_loop_calibration", "calibration_report"]
+
+#: A fitted parameter whose standard deviation exceeds these is "weakly determined" [m], [rad].
+WEAK_TRANSLATION, WEAK_ROTATION = 1e-3, 1e-3
+#: The nominal model this far from the data (RMS, after the frame registration when estimated) is
+#: beyond any manufacturing error: the fit is not attempted [m].
+HOPELESS_RESIDUAL = 0.1
+_DIAGNOSIS_POSES = 200  # the likely-cause checks look at this many poses at most
+
+
+def add_campaign_options(parser: argparse.ArgumentParser) -> None:
+    """The measurement-setup, robustness and judgement options of `calibrate` (closed loop and serial)."""
+    parser.add_argument("--frame", choices=("base", "estimate"), default="base",
+                        help="base: data are in the robot base frame; estimate: in a tracker's own frame, "
+                             "estimated with the machine (default base)")
+    parser.add_argument("--marker", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                        help="nominal position of the measured point in the platform (serial: tool) frame [m]; "
+                             "estimated with the machine")
+    parser.add_argument("--units", choices=("m", "mm"), default="m",
+                        help="length unit of the file's length columns (x, y, z and prismatic joints)")
+    parser.add_argument("--outlier-sigma", type=float, default=5.0, metavar="S",
+                        help="flag poses beyond S noise sigmas and leave them out (0: keep every pose; default 5)")
+    parser.add_argument("--select", choices=("loo", "none"), default="loo",
+                        help="model selection: keep the parameters that predict left-out poses (default loo)")
+    parser.add_argument("--fix", nargs="+", default=[], metavar="NAME",
+                        help="hold parameters (q12.dt[3]) or whole placements (q12) at nominal")
+    parser.add_argument("--prior", action="append", default=[], metavar="NAME=SIGMA",
+                        help="a prior toward nominal with this standard deviation [m or rad] (repeatable)")
+    parser.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    parser.add_argument("--max-iterations", type=int, default=None, metavar="N", help="Levenberg-Marquardt cap")
+    parser.add_argument("--force", action="store_true", help="write a fit that is judged unsupported, with a warning")
+
+
+def parse_priors(entries: list[str]) -> dict[str, float]:
+    """["q12=1e-3", ...] -> {"q12": 0.001}; InvalidInputError naming the entry otherwise."""
+    priors = {}
+    for entry in entries:
+        name, _, value = entry.partition("=")
+        try:
+            sigma = float(value)
+        except ValueError:
+            sigma = float("nan")
+        if not name or not (np.isfinite(sigma) and sigma > 0):
+            raise InvalidInputError(f"--prior {entry}: expected NAME=SIGMA with SIGMA > 0 [m or rad]")
+        priors[name] = sigma
+    return priors
+
+
+def _nominal_points(nominal: Mechanism, marker: pin.SE3) -> Callable[[np.ndarray], np.ndarray]:
+    solver = ClosedLoopSolver(nominal)
+
+    def predict(actuators: np.ndarray) -> np.ndarray:
+        points = np.full((len(actuators), 3), np.nan)
+        for i, sliders in enumerate(actuators):
+            try:
+                points[i] = (solver.forward(sliders, q_init=nominal.home).pose * marker).translation
+            except (KinematicsError, InvalidInputError):
+                pass
+        return points
+    return predict
+
+
+def _diagnose(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, frame_estimated: bool) -> list[str]:
+    measurements = data.measurements
+    pick = np.linspace(0, len(measurements) - 1, min(len(measurements), _DIAGNOSIS_POSES)).astype(int)
+    measured = np.array([measurements.poses[i].translation for i in pick])
+    return likely_causes(_nominal_points(nominal, marker), measurements.actuators[pick], measured,
+                         nominal.actuated_joints, frame_estimated=frame_estimated)
+
+
+def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) -> None:
+    """The whole `calibrate` verb for a closed-loop machine (module docstring)."""
+    outputs = OutputSet(inputs=(args.measurements, nominal.urdf_path, nominal.closures_path))
+    machine_output = outputs.add_machine(args.output, "-o")
+    report_output = outputs.add(args.report, "--report")
+    outputs.check()
+    data = read_measurements(args.measurements, nominal, units=args.units)
+    noise = TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
+    marker = pin.SE3(np.eye(3), np.array(args.marker)) if args.marker else pin.SE3.Identity()
+    estimate_frame = args.frame == "estimate"
+    print(f"calibrating from {len(data.measurements)} poses"
+          + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PoorExcitationWarning)
+        calibration = _fit(args, nominal, data, noise, marker, estimate_frame)
+    lines = [int(data.lines[i]) for i in calibration.outliers]
+    _print_summary(calibration, lines)
+    try:
+        check_fit(calibration.converged, calibration.lm.termination, calibration.lm.iterations,
+                  calibration.variance_factor, _diagnose(nominal, data, marker, estimate_frame)
+                  if calibration.variance_factor > 9 or not calibration.converged else ())
+    except FitRejected as exc:
+        if not args.force:
+            raise
+        print(f"m3t1r: warning: writing anyway (--force): {exc.reason}", file=sys.stderr)
+    validation = cross_validate(calibration, folds=args.folds)
+    notes = explain(calibration, [str(w.message) for w in caught])
+    _print_judgement(calibration, validation, notes)
+    report = calibration_report(calibration, data, nominal, noise, args, lines, validation, notes)
+    if data.passive_joints:
+        report["passive_joint_cross_validation"] = _idle_chain_check(nominal, calibration, data)
+    with outputs:
+        outputs.stage_machine(machine_output, calibration.mechanism)
+        outputs.stage_json(report_output, report)
+        written = outputs.commit()
+    print("wrote " + ", ".join(written))
+    if args.plots:
+        print("writing plots (cross-validation recalibrates on subsets) ...", flush=True)
+        protect = (args.measurements, nominal.urdf_path, nominal.closures_path, *written)
+        for path in write_calibration_plots(nominal, calibration, Path(args.plots), protect, noise):
+            print(f"wrote {path}")
+
+
+def _idle_chain_check(nominal: Mechanism, calibration: ClosedLoopCalibration, data: MeasurementFile) -> dict:
+    """Passive-joint readings the fit did not use, predicted by the nominal and the calibrated model."""
+    actuators = data.measurements.actuators
+    before = passive_joint_residuals(nominal, actuators, data.passive_joints, data.passive)
+    after = passive_joint_residuals(calibration.mechanism, actuators, data.passive_joints, data.passive)
+    print("passive-joint readings the fit did not use (RMS after removing each encoder's zero offset):")
+    for k, name in enumerate(data.passive_joints):
+        print(f"  {name}: nominal {before.rms[k]:.3e}, calibrated {after.rms[k]:.3e}")
+    return {name: {"nominal_rms": float(before.rms[k]), "calibrated_rms": float(after.rms[k]),
+                   "calibrated_offset": float(after.offsets[k])} for k, name in enumerate(data.passive_joints)}
+
+
+def _fit(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, noise: TrackerNoise,
+         marker: pin.SE3, estimate_frame: bool) -> ClosedLoopCalibration:
+    """The fit, refused with the likely causes when the data cannot even be started from."""
+    _precheck(nominal, data, marker, estimate_frame)
+    kwargs = {} if args.max_iterations is None else {"max_iterations": args.max_iterations}
+    return calibrate_closed_loop(
+        nominal, data.measurements, noise, setup=MeasurementSetup(marker=marker), estimate_frame=estimate_frame,
+        estimate_marker=args.marker is not None, outlier_sigma=args.outlier_sigma or None,
+        select=args.select == "loo", fixed=args.fix, priors=args.prior, **kwargs)
+
+
+def _precheck(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, estimate_frame: bool) -> None:
+    """Refuse at once when the nominal model is further from the data than any build error."""
+    measurements = data.measurements
+    pick = np.linspace(0, len(measurements) - 1, min(len(measurements), _DIAGNOSIS_POSES)).astype(int)
+    points = _nominal_points(nominal, marker)(measurements.actuators[pick])
+    measured = np.array([measurements.poses[i].translation for i in pick])
+    valid = np.all(np.isfinite(points), axis=1)
+    if np.count_nonzero(valid) < 3:
+        raise FitRejected("the slider readings do not assemble on the nominal machine",
+                          _diagnose(nominal, data, marker, estimate_frame))
+    points, measured = points[valid], measured[valid]
+    if estimate_frame:
+        frame = register_frame(np.array([pin.SE3(np.eye(3), p).homogeneous for p in points]), measured)
+        points = points @ frame.rotation.T + frame.translation
+    rms = float(np.sqrt(np.mean(np.sum((points - measured) ** 2, axis=1))))
+    if rms > HOPELESS_RESIDUAL:
+        raise FitRejected(f"the nominal model is {rms:.3g} m RMS from the measurements"
+                          + (" after registering the frame" if estimate_frame else "")
+                          + f", beyond any build error ({HOPELESS_RESIDUAL:g} m): the fit was not attempted",
+                          _diagnose(nominal, data, marker, estimate_frame))
+
+
+def _print_summary(calibration: ClosedLoopCalibration, outlier_lines: list[int]) -> None:
+    before, after = calibration.rms_before, calibration.rms_after
+    fitted = len(calibration.fitted)
+    print(f"identified {calibration.base.rank} of {len(calibration.std)} parameters "
+          f"(condition number {calibration.base.condition_number:.3g}); fitted {fitted} "
+          f"in {calibration.lm.iterations} iterations ({'converged' if calibration.converged else 'NOT converged'})")
+    print(f"residual RMS position {before[0]:.3e} -> {after[0]:.3e} m, orientation {before[1]:.3e} -> "
+          f"{after[1]:.3e} rad; variance factor {calibration.variance_factor:.3g}")
+    if outlier_lines:
+        print(f"outliers (left out of the fit), file lines: {', '.join(map(str, outlier_lines))}")
+    else:
+        print("outliers: none")
+
+
+def _print_judgement(calibration: ClosedLoopCalibration, validation: CrossValidation, notes: list[str]) -> None:
+    errors = validation.errors
+    rotation = "" if np.isnan(errors.rotation_mean) else f", {errors.rotation_mean:.3e} rad"
+    print(f"cross-validation ({validation.folds} folds): predicting held-back measurements "
+          f"{errors.position_mean:.3e} m{rotation} mean (noise included: what `m3t1r validate` will show "
+          "on fresh measurements of the same quality)")
+    for note in notes:
+        print(f"note: {note}")
+
+
+def explain(calibration: ClosedLoopCalibration, warnings_seen: list[str] = ()) -> list[str]:
+    """Plain-word notes: what the data could not determine, and how far the fit moved."""
+    notes = list(warnings_seen)
+    base, fitted = set(calibration.base.names), set(calibration.fitted)
+    setup_names = [n for n in calibration.std if n.startswith(("measurement_frame.", "marker."))]
+    gauge = [n for n in setup_names if n not in base]
+    if gauge:
+        notes.append("not separable from the machine or the measurement frame with these data, kept at the given "
+                     "value: " + ", ".join(describe_parameter(n) for n in gauge)
+                     + " (a marker offset along the platform z axis is the frame's height while the platform never tilts)")
+    dropped = sorted(base - fitted)
+    if dropped:
+        selection = calibration.selection
+        tied = f"; {selection.tied} other set sizes score within one standard error" if selection else ""
+        notes.append(f"{len(dropped)} identifiable parameters held at nominal because they did not predict "
+                     f"left-out poses better (leave-one-pose-out{tied}): "
+                     + ", ".join(describe_parameter(n) for n in dropped[:8]) + (" ..." if len(dropped) > 8 else ""))
+    weak = [n for n in calibration.fitted if n in calibration.parameters and calibration.std[n] >
+            (WEAK_TRANSLATION if n.rpartition(".dt[")[2] in ("0]", "1]", "2]") else WEAK_ROTATION)]
+    if weak:
+        notes.append("weakly determined on their own (std over 1 mm / 1 mrad; their joint effect on the "
+                     "platform can still be well determined): "
+                     + ", ".join(f"{describe_parameter(n)} (std {calibration.std[n]:.2g})" for n in weak[:8]))
+    notes += _coverage(calibration, bool(weak))
+    machine = {n: v for n, v in calibration.parameters.items() if n in fitted}
+    notes += fit_movement_notes(machine, calibration.rms_before[0], calibration.rms_after[0])
+    return notes
+
+
+def _coverage(calibration: ClosedLoopCalibration, weak: bool) -> list[str]:
+    problem = calibration.problem
+    if problem is None or not weak:
+        return []
+    solver = ClosedLoopSolver(calibration.mechanism)
+    values = []
+    for sliders in problem.measurements.actuators[problem.active]:
+        pose = solver.forward(sliders).pose
+        values.append([*pose.translation, yaw_of(pose.rotation)])
+    box = NOMINAL.workspace
+    spans = coverage_notes(np.array(values), {"x": box.x, "y": box.y, "z": box.z, "theta": box.theta})
+    if not spans:
+        return ["the poses cover the workspace box; more poses would tighten the weak parameters"]
+    return ["poses spread over more of the workspace would excite them: " + "; ".join(spans)]
+
+
+def calibration_report(calibration: ClosedLoopCalibration, data: MeasurementFile, nominal: Mechanism,
+                       noise: TrackerNoise, args: argparse.Namespace | None = None, outlier_lines: list[int] = (),
+                       validation: CrossValidation | None = None, notes: list[str] = ()) -> dict:
+    """The JSON report of a closed-loop calibration (models/README.md documents every field)."""
+    base, fitted = set(calibration.base.names), set(calibration.fitted)
+    setup = calibration.setup
+    estimate_frame = any(n.startswith("measurement_frame.") for n in calibration.std)
+    estimate_marker = any(n.startswith("marker.") for n in calibration.std)
+    selection = calibration.selection
+    return {
+        "tool": f"m3t1r {__version__}",
+        "created": _dt.datetime.now().isoformat(timespec="seconds"),
+        "kind": "closed_loop",
+        "input": {"path": str(data.path), "sha256": data.sha256, "poses": len(data.measurements),
+                  "position_only": data.measurements.position_only, "units": getattr(args, "units", "m")},
+        "nominal_model": {"urdf": str(nominal.urdf_path), "closures": str(nominal.closures_path)},
+        "measured_frame": nominal.platform_frame,
+        "measurement_frame": {**se3_to_report(setup.frame), "estimated": estimate_frame},
+        "marker": {**se3_to_report(setup.marker), "estimated": estimate_marker},
+        "noise_model": {"position_m": noise.position, "rotation_rad": noise.rotation, "actuator_m": noise.actuator},
+        "converged": calibration.converged,
+        "variance_factor": calibration.variance_factor,
+        "outliers": list(outlier_lines),
+        "cross_validation": None if validation is None else {
+            "position_mean_m": validation.errors.position_mean, "rotation_mean_rad": validation.errors.rotation_mean,
+            "folds": validation.folds},
+        "identifiable": {"count": calibration.base.rank, "of": len(calibration.std),
+                         "condition_number": calibration.base.condition_number, "names": list(calibration.base.names)},
+        "selection": {"method": "forward_loo" if selection else "none", "kept": list(calibration.fitted),
+                      "press": selection.press if selection else None,
+                      "press_all": selection.press_all if selection else None,
+                      "tied": selection.tied if selection else None},
+        "fixed": list(getattr(args, "fix", [])), "priors": dict(getattr(args, "prior", {})),
+        "residual_rms": {
+            "before": {"position_m": calibration.rms_before[0], "rotation_rad": calibration.rms_before[1]},
+            "after": {"position_m": calibration.rms_after[0], "rotation_rad": calibration.rms_after[1]},
+        },
+        "solver": {"iterations": calibration.lm.iterations, "converged": calibration.converged,
+                   "termination": calibration.lm.termination},
+        "notes": list(notes),
+        "forced": bool(getattr(args, "force", False)),
+        "parameters": [{"name": name, "value": calibration.parameters.get(name, 0.0), "std": std,
+                        "identifiable": name in base, "fitted": name in fitted}
+                       for name, std in calibration.std.items() if name in calibration.parameters],
+    }
