@@ -5,25 +5,30 @@ error twist on an initial pose, T(0) <- T(0) exp6(dt) (eq. 33), for each joint p
 chain and the tool placement. Joint twists and joint readings are taken as exact; a joint zero
 offset needs no parameter of its own (see `simulate_serial_measurements`).
 
-Measurement model and residual, per pose i (one choice, used everywhere here):
-    position    r_p = p_model - p_meas          (m, in WORLD = the chain's base frame {B})
-    orientation r_R = log3(R_meas^T R_model)    (rad, in the LOCAL tool frame)
+Measurement model and residual, per pose i (one choice, used everywhere here): a tracker measures
+the frame M = F g(q) K (`m3t1r.measurement_setup`), F the robot base {B} in the measurement frame,
+g(q) the tool pose in {B}, K the measured frame (marker) in the tool frame; both F and K are
+identity unless given or estimated. Optionally, joints comply under gravity: q -> q + c tau(q).
+    position    r_p = p_model - p_meas          (m, in the measurement frame; {B} when F = I)
+    orientation r_R = log3(R_meas^T R_model)    (rad, in the LOCAL measured frame)
 with measurement noise p_meas = p + e_p, e_p ~ N(0, sigma_p^2 I) and R_meas = R exp3(e_R),
 e_R ~ N(0, sigma_R^2 I), and joint-reading noise sigma_q per joint. Residuals are whitened by the
 Cholesky factor of their predicted covariance, which includes the joint noise propagated through the
 joint Jacobian. Unlike the paper's spatial log6 error (eq. 18), whose linear part is the motion of
 the point at {B}'s origin, these rows have the physical units of the sensor's noise, so whitening
 by the tracker's specification is meaningful. Their exact Jacobians follow from the WORLD error
-Jacobian of `m3t1r.poe` (eq. 17): d p = v + w x p and d r_R = Jlog3(R_meas^T R) R^T w.
+Jacobian of `m3t1r.poe` (eq. 17): d p = v + w x p and d r_R = Jlog3(R_meas^T R) R^T w, with every
+twist expressed in the measurement frame.
 Position-only mode drops the orientation rows.
 """
 
 from __future__ import annotations
 
+import copy
 import functools
 import importlib.metadata
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
 from typing import Literal
@@ -33,8 +38,10 @@ import pinocchio as pin
 from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
-from m3t1r.errors import InvalidInputError, ModelFileError
-from m3t1r.identification import BaseParameters, batch_least_squares, levenberg_marquardt, select_base_parameters
+from m3t1r.errors import IdentificationError, InvalidInputError, ModelFileError
+from m3t1r.identification import (OUTLIER_SIGMA, BaseParameters, LMResult, ParameterSelection, batch_least_squares,
+                                  forward_selection, levenberg_marquardt, outlier_poses, select_base_parameters)
+from m3t1r.measurement_setup import MeasurementSetup, register_frame
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.poe import Placement, SerialChain, jlog3_batch, log3_batch, perturb, placement_poses, skew, tool_poses
 
@@ -44,12 +51,16 @@ __all__ = [
     "PoseErrors",
     "RobotName",
     "SerialCalibration",
+    "SerialCrossValidation",
     "SerialMeasurements",
     "calibrate_serial",
+    "cross_validate_serial",
     "example_robot_data_dir",
     "example_tool_frame",
+    "gravity_torques",
     "load_example_robot",
     "pose_errors",
+    "predict_measurements",
     "predicted_pose_std",
     "sample_configurations",
     "simulate_serial_measurements",
@@ -240,10 +251,11 @@ def _readonly(array: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------
 # Residuals
 #
-# The optimiser's state is the chain's n + 1 initial poses T(0) as one read-only (n + 1, 4, 4) array
-# (`SerialChain.initial_transforms`), not a Pinocchio model: a step T(0) <- T(0) exp6(dx) (eq. 33)
-# then costs n + 1 small products instead of a model copy, and forward kinematics of all poses is one
-# batched pass (`placement_poses`). The calibrated model is built once, at the end.
+# The optimiser's state (`_State`) holds the chain's n + 1 initial poses T(0) as one read-only
+# (n + 1, 4, 4) array (`SerialChain.initial_transforms`), not a Pinocchio model: a step
+# T(0) <- T(0) exp6(dx) (eq. 33) then costs n + 1 small products instead of a model copy, and forward
+# kinematics of all poses is one batched pass (`placement_poses`); beside them, the measurement frame
+# F and marker K (4 x 4) and the joint compliances. The calibrated model is built once, at the end.
 
 def _placement_rows(frames: np.ndarray, orientation: bool, log_jacobians: np.ndarray | None = None) -> np.ndarray:
     """Residual rows (N, k, 6 (n + 1)) per unit placement error, from `placement_poses` frames F.
@@ -283,12 +295,85 @@ class _Measurements:
         return 3 if self.rotations is None else 6
 
 
-class _Evaluation:
-    """What one state gives, computed on demand: frames (N, n+1, 4, 4), raw residual (N, k),
-    orientation logs and angles, whitened residual and full whitened Jacobian."""
+@dataclass(frozen=True)
+class _Layout:
+    """The columns of the parameter vector x, in this order: the chain's 6 (n + 1) placement errors
+    (`SerialChain.parameter_names`), the measurement frame's right-multiplied error F <- F exp6(df)
+    (6, m and rad), the marker's K <- K exp6(dk) (6, or its 3 translations with positions only), and
+    one compliance per joint (rad/Nm, or m/N for a prismatic joint)."""
 
-    def __init__(self, frames: np.ndarray) -> None:
+    n_joints: int
+    frame: bool = False
+    marker: int = 0  # 0, 3 or 6 columns
+    compliance: bool = False
+
+    @property
+    def n_chain(self) -> int:
+        return 6 * (self.n_joints + 1)
+
+    @property
+    def frame_slice(self) -> slice:
+        return slice(self.n_chain, self.n_chain + (6 if self.frame else 0))
+
+    @property
+    def marker_slice(self) -> slice:
+        return slice(self.frame_slice.stop, self.frame_slice.stop + self.marker)
+
+    @property
+    def compliance_slice(self) -> slice:
+        start = self.marker_slice.stop
+        return slice(start, start + (self.n_joints if self.compliance else 0))
+
+    @property
+    def size(self) -> int:
+        return self.compliance_slice.stop
+
+    @property
+    def setup_columns(self) -> np.ndarray:
+        """The measurement setup's columns: the gauge, kept first by the base-parameter choice."""
+        return np.arange(self.n_chain, self.marker_slice.stop)
+
+    def names(self, chain: SerialChain) -> tuple[str, ...]:
+        names = chain.parameter_names()
+        names += tuple(f"measurement_frame.dt[{k}]" for k in range(6)) if self.frame else ()
+        names += tuple(f"marker.dt[{k}]" for k in range(self.marker))
+        return names + (tuple(f"compliance.{joint}" for joint in chain.joint_names) if self.compliance else ())
+
+
+_IDENTITY = np.eye(4)
+_IDENTITY.flags.writeable = False
+
+
+@dataclass(frozen=True, eq=False)
+class _State:
+    """One optimiser iterate (read-only arrays; caches key on identity).
+
+    transforms: the chain's initial poses T(0) (n + 1, 4, 4) (m). frame: F, the robot base in the
+    measurement frame (4, 4); marker: K, the measured frame in the tool frame (4, 4).
+    compliance: c (n,) with joint coordinates q + c tau(q), or None. accumulated: the sum of the
+    steps taken since the start (layout order), which priors pull toward zero; None means zero.
+    """
+
+    transforms: np.ndarray
+    frame: np.ndarray = field(default_factory=lambda: _IDENTITY)
+    marker: np.ndarray = field(default_factory=lambda: _IDENTITY)
+    compliance: np.ndarray | None = None
+    accumulated: np.ndarray | None = None
+
+    @property
+    def plain(self) -> bool:
+        """Identity frame and marker: the tool itself measured in the robot base."""
+        return np.array_equal(self.frame, _IDENTITY) and np.array_equal(self.marker, _IDENTITY)
+
+
+class _Evaluation:
+    """What one state gives, computed on demand: frames (N, n+1, 4, 4) in the robot base, the
+    measured frames M = F g K (N, 4, 4), raw residual (N, k), orientation logs and angles, whitened
+    residual and full whitened Jacobian."""
+
+    def __init__(self, frames: np.ndarray, measured: np.ndarray) -> None:
         self.frames = frames
+        self.measured = measured
         self.residual: np.ndarray | None = None
         self.logs: np.ndarray | None = None
         self.angles: np.ndarray | None = None
@@ -297,41 +382,52 @@ class _Evaluation:
 
 
 class _SerialResidual:
-    """The whitened residual of every placement error, as a function of the state (n + 1, 4, 4).
+    """The whitened residual of every parameter of `layout`, as a function of the state (`_State`).
 
-    The last state's evaluation is kept (keyed by identity; states are read-only arrays): the
-    optimiser asks for a trial's residual and, once accepted, for its Jacobian at the same state,
-    and `calibrate_serial` reuses the nominal and final evaluations for the base-parameter choice.
+    Pose i is predicted as M_i = F g(q_i + c tau_i) K (module docstring); its residual is
+    [p_M - p_meas (m, measurement frame); log3(R_meas^T R_M) (rad, measured frame)].
+    The last state's evaluation is kept (keyed by identity): the optimiser asks for a trial's
+    residual and, once accepted, for its Jacobian at the same state.
     """
 
-    def __init__(self, chain: SerialChain, data: _Measurements, whitening: np.ndarray) -> None:
+    def __init__(self, chain: SerialChain, data: _Measurements, whitening: np.ndarray,
+                 layout: _Layout | None = None, torques: np.ndarray | None = None) -> None:
         self.chain = chain
         self.data = data
         self.whitening = whitening  # (N, k, k): inverse Cholesky factor of each pose's covariance
-        self._state: np.ndarray | None = None
+        self.layout = layout or _Layout(chain.n_joints)
+        self.torques = torques  # (N, n) gravity torques tau(q) (Nm or N), for the compliance columns
+        self._state: _State | None = None
         self._evaluation: _Evaluation | None = None
 
-    def _evaluate(self, state: np.ndarray) -> _Evaluation:
+    def joint_coordinates(self, state: _State) -> np.ndarray:
+        """q + c tau(q) (N, n): the readings moved by the joints' compliance under gravity."""
+        if state.compliance is None or self.torques is None:
+            return self.data.q
+        return self.data.q + state.compliance * self.torques
+
+    def _evaluate(self, state: _State) -> _Evaluation:
         if state is not self._state or self._evaluation is None:
-            self._evaluation = _Evaluation(placement_poses(self.chain, state, self.data.q))
+            frames = placement_poses(self.chain, state.transforms, self.joint_coordinates(state))
+            measured = frames[:, -1] if state.plain else state.frame @ frames[:, -1] @ state.marker
+            self._evaluation = _Evaluation(frames, measured)
             self._state = state
         return self._evaluation
 
-    def raw_residual(self, state: np.ndarray) -> np.ndarray:
-        """(N, k): p_model - p_meas (m, WORLD) [, log3(R_meas^T R_model) (rad, LOCAL)]."""
+    def raw_residual(self, state: _State) -> np.ndarray:
+        """(N, k): p_model - p_meas (m, measurement frame) [, log3(R_meas^T R_model) (rad, measured frame)]."""
         e = self._evaluate(state)
         if e.residual is None:
-            tool = e.frames[:, -1]
-            position = tool[:, :3, 3] - self.data.positions
+            position = e.measured[:, :3, 3] - self.data.positions
             if self.data.rotations is None:
                 e.residual = position
             else:
-                e.logs, e.angles = log3_batch(np.swapaxes(self.data.rotations, 1, 2) @ tool[:, :3, :3])
+                e.logs, e.angles = log3_batch(np.swapaxes(self.data.rotations, 1, 2) @ e.measured[:, :3, :3])
                 e.residual = np.concatenate([position, e.logs], axis=1)
             e.residual.flags.writeable = False  # cached: callers share it
         return e.residual
 
-    def residual(self, state: np.ndarray) -> np.ndarray:
+    def residual(self, state: _State) -> np.ndarray:
         """Whitened residual (N k,), no Jacobian: what a trial step needs."""
         e = self._evaluate(state)
         if e.whitened is None:
@@ -339,59 +435,145 @@ class _SerialResidual:
             e.whitened.flags.writeable = False
         return e.whitened
 
-    def residual_and_jacobian(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Whitened residual (N k,) and its Jacobian (N k, 6 (n + 1)) over all placement errors."""
+    def residual_and_jacobian(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened residual (N k,) and its Jacobian (N k, layout.size) over every parameter."""
         r = self.residual(state)
         e = self._evaluate(state)
         if e.jacobian is None:
             log_jacobians = None if e.logs is None else jlog3_batch(e.logs, e.angles)
-            rows = _placement_rows(e.frames, self.data.rotations is not None, log_jacobians)
-            e.jacobian = (self.whitening @ rows).reshape(r.size, -1)
+            e.jacobian = (self.whitening @ self._rows(state, e, log_jacobians)).reshape(r.size, -1)
             e.jacobian.flags.writeable = False
         return r, e.jacobian
 
-    def retract(self, state: np.ndarray, step: np.ndarray) -> np.ndarray:
-        """T_j(0) <- T_j(0) exp6(dt_j) for every placement j, step = [dt_1; ...; dt_P] (eq. 33)."""
-        out = state.copy()
+    def _rows(self, state: _State, e: _Evaluation, log_jacobians: np.ndarray | None) -> np.ndarray:
+        """Unwhitened residual rows (N, k, layout.size).
+
+        Each error acts as a right-multiplied twist on a frame known in the measurement frame: F
+        (the frame's error), F F_j (placement j, `placement_poses`) and M = F g K (the marker's); so
+        `_placement_rows` of the stack [F, F F_1 .. F F_P, M] with M as endpoint gives them all. A
+        compliance column is d r / d q_j tau_j, with d r / d q_j = (placement j's rows) S_j because
+        F_j exp6(S_j q_j) moves like F_j exp6(S_j dq) at fixed q_j (the twists commute).
+        """
+        layout, n_poses, n = self.layout, e.frames.shape[0], self.chain.n_joints
+        orientation = self.data.rotations is not None
+        k = 6 if orientation else 3
+        if state.plain and not (layout.frame or layout.marker):
+            placement = _placement_rows(e.frames, orientation, log_jacobians).reshape(n_poses, k, n + 1, 6)
+            frame_rows = marker_rows = None
+        else:
+            stack = np.concatenate([np.broadcast_to(state.frame, (n_poses, 1, 4, 4)), state.frame @ e.frames,
+                                    e.measured[:, None]], axis=1)
+            rows = _placement_rows(stack, orientation, log_jacobians).reshape(n_poses, k, n + 3, 6)
+            placement, frame_rows, marker_rows = rows[:, :, 1 : n + 2], rows[:, :, 0], rows[:, :, -1]
+        if layout.size == layout.n_chain:
+            return placement.reshape(n_poses, k, -1)
+        out = np.empty((n_poses, k, layout.size))
+        out[:, :, : layout.n_chain] = placement.reshape(n_poses, k, -1)
+        if layout.frame:
+            out[:, :, layout.frame_slice] = frame_rows
+        if layout.marker:
+            out[:, :, layout.marker_slice] = marker_rows[:, :, : layout.marker]
+        if layout.compliance:
+            joint_rows = np.einsum("nikj,kj->nik", placement[:, :, :n], self.chain.twists)
+            out[:, :, layout.compliance_slice] = joint_rows * self.torques[:, None, :]
+        return out
+
+    def retract(self, state: _State, step: np.ndarray) -> _State:
+        """T_j(0) <- T_j(0) exp6(dt_j) per placement (eq. 33), F <- F exp6(df), K <- K exp6(dk),
+        c <- c + dc, for step = x in layout order."""
+        layout = self.layout
+        out = state.transforms.copy()
         for j in range(out.shape[0]):
             twist = step[6 * j : 6 * j + 6]
             if np.any(twist):
                 out[j] = out[j] @ pin.exp6(twist).homogeneous
         out.flags.writeable = False
-        return out
+        frame, marker, compliance = state.frame, state.marker, state.compliance
+        if layout.frame:
+            frame = _readonly(frame @ pin.exp6(step[layout.frame_slice]).homogeneous)
+        if layout.marker:
+            twist = np.zeros(6)
+            twist[: layout.marker] = step[layout.marker_slice]
+            marker = _readonly(marker @ pin.exp6(twist).homogeneous)
+        if layout.compliance:
+            compliance = _readonly((0.0 if compliance is None else compliance) + step[layout.compliance_slice])
+        accumulated = _readonly(step if state.accumulated is None else state.accumulated + step)
+        return _State(out, frame, marker, compliance, accumulated)
 
 
 class _SerialProblem:
-    """The whitened calibration residual over the base parameters (columns), for `levenberg_marquardt`."""
+    """The whitened calibration residual over some columns, for `levenberg_marquardt`.
 
-    def __init__(self, residual: _SerialResidual, columns: Sequence[int]) -> None:
+    active: (N,) poses that count (flagged outliers are zero rows); priors: {column: sigma} add a
+    row x_c / sigma (Tikhonov, toward the start) per column with a prior, sigma in m, rad or rad/Nm.
+    """
+
+    def __init__(self, residual: _SerialResidual, columns: Sequence[int],
+                 priors: Mapping[int, float] | None = None) -> None:
         self._residual = residual
         self.columns = np.asarray(columns, dtype=int)
+        self.priors = dict(priors or {})
+        self.active = np.ones(residual.data.q.shape[0], dtype=bool)
 
-    def residual(self, state: np.ndarray) -> np.ndarray:
-        return self._residual.residual(state)
+    @property
+    def model(self) -> _SerialResidual:
+        return self._residual
 
-    def residual_and_jacobian(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _mask(self) -> np.ndarray | None:
+        return None if self.active.all() else np.repeat(self.active, self._residual.data.rows_per_pose)
+
+    def _prior_rows(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
+        picked = [(i, self.priors[c]) for i, c in enumerate(self.columns) if c in self.priors]
+        values, jacobian = np.zeros(len(picked)), np.zeros((len(picked), len(self.columns)))
+        for row, (i, sigma) in enumerate(picked):
+            jacobian[row, i] = 1.0 / sigma
+            values[row] = 0.0 if state.accumulated is None else state.accumulated[self.columns[i]] / sigma
+        return values, jacobian
+
+    def residual(self, state: _State) -> np.ndarray:
+        r = self._residual.residual(state)
+        mask = self._mask()
+        if mask is None and not self.priors:
+            return r
+        r = r if mask is None else r * mask
+        return np.concatenate((r, self._prior_rows(state)[0]))
+
+    def residual_and_jacobian(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
         r, J = self._residual.residual_and_jacobian(state)
-        return r, J[:, self.columns]
+        J = J[:, self.columns]
+        mask = self._mask()
+        if mask is None and not self.priors:
+            return r, J
+        if mask is not None:
+            r, J = r * mask, J * mask[:, None]
+        values, rows = self._prior_rows(state)
+        return np.concatenate((r, values)), np.vstack((J, rows))
 
-    def retract(self, state: np.ndarray, step: np.ndarray) -> np.ndarray:
-        full = np.zeros(self._residual.chain.n_parameters)
+    def retract(self, state: _State, step: np.ndarray) -> _State:
+        full = np.zeros(self._residual.layout.size)
         full[self.columns] = step
         return self._residual.retract(state, full)
 
+    def degrees_of_freedom(self) -> int:
+        """Rows of the inliers and priors, less the fitted columns."""
+        picked = sum(1 for c in self.columns if c in self.priors)
+        return int(np.count_nonzero(self.active)) * self._residual.data.rows_per_pose + picked - len(self.columns)
 
-def _readonly_state(chain: SerialChain, model: pin.Model) -> np.ndarray:
-    state = chain.initial_transforms(model)
-    state.flags.writeable = False
-    return state
+
+def _readonly_state(chain: SerialChain, model: pin.Model, setup: MeasurementSetup | None = None) -> _State:
+    """The starting state: `model`'s initial poses, and the setup's frame and marker (default identity)."""
+    transforms = chain.initial_transforms(model)
+    transforms.flags.writeable = False
+    if setup is None:
+        return _State(transforms)
+    return _State(transforms, _readonly(setup.frame.homogeneous), _readonly(setup.marker.homogeneous))
 
 
-def _whitening(chain: SerialChain, state: np.ndarray, data: _Measurements, noise: MeasurementNoise) -> np.ndarray:
+def _whitening(chain: SerialChain, state: _State, data: _Measurements, noise: MeasurementNoise) -> np.ndarray:
     """Inverse Cholesky factors (N, k, k) of the residual covariance of each pose.
 
     Cov = diag(sigma_p^2 I3 [, sigma_R^2 I3]) + J_q sigma_q^2 J_q^T, with J_q the residual's
-    Jacobian with respect to the joint readings. Computed once at the starting model so that the
+    Jacobian with respect to the joint readings. Computed once at the starting state so that the
     cost function does not change under the optimiser's feet; the joint Jacobian barely moves over
     millimetre-size corrections.
     """
@@ -414,6 +596,25 @@ def _whitening(chain: SerialChain, state: np.ndarray, data: _Measurements, noise
     return np.linalg.inv(np.linalg.cholesky(covariance))
 
 
+def gravity_torques(model: pin.Model, chain: SerialChain, q_chain: ArrayLike) -> np.ndarray:
+    """Generalized gravity tau(q) (N, n) on the chain's joints (Nm, or N for prismatic joints).
+
+    tau = pinocchio.computeGeneralizedGravity at each configuration (the chain's coordinates set,
+    every other joint at neutral), with the model's inertias (the URDF's <inertial>): the torque
+    each joint must deliver to hold the arm still. A joint of torsional stiffness k then deflects
+    by -tau / k: the compliance model q -> q + c tau has c = -1/k (rad/Nm).
+    """
+    q_chain = np.atleast_2d(np.asarray(q_chain, dtype=float))
+    data = model.createData()
+    velocity_index = [model.joints[j].idx_v for j in chain.joint_ids]
+    out = np.empty(q_chain.shape)
+    for i, row in enumerate(q_chain):
+        tau = pin.computeGeneralizedGravity(model, data, chain.model_configuration(model, row))
+        out[i] = tau[velocity_index]
+    return out
+
+
+
 # --------------------------------------------------------------------------------------------------
 # Calibration
 
@@ -423,6 +624,8 @@ _MAX_RESELECTIONS = 2
 # close to Gauss-Newton (Madsen & Nielsen's advice for a good starting point). With the textbook
 # 1e-3, Marquardt's column scaling over-damps the weak combinations found by a re-selection.
 _INITIAL_DAMPING = 1e-6
+# Refits while the set of flagged outlier poses changes.
+_MAX_OUTLIER_ROUNDS = 5
 
 
 @dataclass(frozen=True)
@@ -434,36 +637,6 @@ class PoseErrorRMS:
     rotation: float
 
 
-@dataclass(frozen=True)
-class SerialCalibration:
-    """Result of `calibrate_serial`.
-
-    model: calibrated copy of the input model, T_c(0) = T(0) exp6(dt) per placement (eq. 33).
-    deltas: identified dt = log6(T(0)^-1 T_c(0)) per placement of `chain.placements()` ([v; w], m, rad).
-    base: the identifiable parameters the final run estimated (see `calibrate_serial`); the other
-        components are not estimated and stay at their nominal value.
-    covariance: (rank, rank) covariance of the base parameters (m^2, rad^2, ordered as base.names)
-        from the noise model, (J_w^T J_w)^-1 with the whitened Jacobian at the solution.
-    parameter_std: sqrt(diag(covariance)).
-    variance_factor: chi^2 / (rows - rank) of the whitened residual at the solution; ~1 when the
-        noise model is right and the error model explains the data.
-    iterations: Levenberg-Marquardt iterations over all runs; converged: the last run converged.
-    residual_before / residual_after: RMS of the measurement residuals at the nominal and the
-        calibrated model (the data used for calibration, not held-out poses).
-    """
-
-    model: pin.Model
-    chain: SerialChain
-    deltas: Mapping[Placement, np.ndarray]
-    base: BaseParameters
-    covariance: np.ndarray
-    parameter_std: np.ndarray
-    variance_factor: float
-    iterations: int
-    converged: bool
-    residual_before: PoseErrorRMS
-    residual_after: PoseErrorRMS
-    position_only: bool
 
 
 def _parse_measurements(
@@ -513,6 +686,172 @@ def _rms(residual: np.ndarray) -> PoseErrorRMS:
     return PoseErrorRMS(position, rotation)
 
 
+
+@dataclass(frozen=True)
+class SerialCalibration:
+    """Result of `calibrate_serial`.
+
+    model: calibrated copy of the input model, T_c(0) = T(0) exp6(dt) per placement (eq. 33): the
+        robot alone (the measurement frame and the marker are in `setup`, the compliance apart).
+    deltas: identified dt = log6(T(0)^-1 T_c(0)) per placement of `chain.placements()` ([v; w], m, rad).
+    setup: the measurement frame and marker, estimated or as given.
+    compliance: {joint: c} (rad/Nm, m/N) of the joints whose compliance was fitted; q -> q + c tau(q).
+    names: every candidate parameter (`_Layout`: placements, setup, compliance); values: each one's
+        identified change from the start (zero where not fitted).
+    base: the identifiable parameters (column-pivoted QR, the setup's kept first: the gauge);
+        fitted: the names finally fitted (base, or fewer after model selection), fitted_indices
+        their columns; covariance: (len(fitted),)^2 from the noise model, (J_w^T J_w)^-1 at the
+        solution; parameter_std: sqrt(diag(covariance)).
+    variance_factor: chi^2 / (rows - fitted) of the inliers' whitened residual (priors included);
+        ~1 when the noise model is right and the error model explains the data.
+    iterations: Levenberg-Marquardt iterations over all runs; converged, termination: the last run's.
+    outliers: indices of the poses flagged and left out; selection: the forward-selection record.
+    residual_before / residual_after: RMS of the inliers' residuals at the start (nominal robot,
+        given or registered frame) and at the calibrated model.
+    """
+
+    model: pin.Model
+    chain: SerialChain
+    deltas: Mapping[Placement, np.ndarray]
+    base: BaseParameters
+    covariance: np.ndarray
+    parameter_std: np.ndarray
+    variance_factor: float
+    iterations: int
+    converged: bool
+    residual_before: PoseErrorRMS
+    residual_after: PoseErrorRMS
+    position_only: bool
+    setup: MeasurementSetup = field(default_factory=MeasurementSetup)
+    termination: str = ""
+    outliers: tuple[int, ...] = ()
+    fitted: tuple[str, ...] = ()
+    fitted_indices: tuple[int, ...] = ()
+    names: tuple[str, ...] = ()
+    values: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    compliance: Mapping[str, float] = field(default_factory=dict)
+    selection: ParameterSelection | None = field(default=None, repr=False)
+    _problem: _SerialProblem | None = field(default=None, repr=False)
+    _start: _State | None = field(default=None, repr=False)
+    _solve: Callable[..., LMResult] | None = field(default=None, repr=False)
+
+    def std(self) -> dict[str, float]:
+        """Standard deviation per fitted parameter name (m, rad, rad/Nm)."""
+        return dict(zip(self.fitted, map(float, self.parameter_std)))
+
+
+def _parameter_columns(names: Sequence[str], wanted: Sequence[str], what: str) -> list[int]:
+    """Columns named by `wanted`: a parameter (elbow_joint.dt[3]) or a placement (all its columns)."""
+    index = {name: i for i, name in enumerate(names)}
+    columns: list[int] = []
+    for name in wanted:
+        if name in index:
+            columns.append(index[name])
+            continue
+        group = [i for i, n in enumerate(names) if n.rsplit(".dt[", 1)[0] == name]
+        if not group:
+            raise InvalidInputError(f"{what}: '{name}' is neither a parameter (e.g. elbow_joint.dt[3], "
+                                    "compliance.elbow_joint) nor a placement (a joint or frame name)")
+        columns += group
+    return columns
+
+
+def _prior_columns(names: Sequence[str], priors: Mapping[str, float] | None) -> dict[int, float]:
+    out: dict[int, float] = {}
+    for name, sigma in (priors or {}).items():
+        if not (np.isfinite(sigma) and sigma > 0.0):
+            raise InvalidInputError(f"prior of '{name}': sigma must be a positive number (m, rad or rad/Nm)")
+        out.update({c: float(sigma) for c in _parameter_columns(names, [name], "prior")})
+    return out
+
+
+def _start_state(chain: SerialChain, model: pin.Model, data: _Measurements, setup: MeasurementSetup,
+                 estimate_frame: bool, compliance: bool) -> _State:
+    """The nominal robot with the given setup; with estimate_frame, F from the closed-form rigid
+    registration of the nominal predictions g(q) K to the measurements (any rotation, any distance)."""
+    state = _readonly_state(chain, model, setup)
+    if estimate_frame:
+        predicted = placement_poses(chain, state.transforms, data.q)[:, -1] @ state.marker
+        frame = register_frame(predicted, data.positions, data.rotations)
+        state = replace(state, frame=_readonly(frame.homogeneous))
+    if compliance:
+        state = replace(state, compliance=_readonly(np.zeros(chain.n_joints)))
+    return state
+
+
+def _select_base(problem: _SerialProblem, state: _State, names: Sequence[str], rel_tol: float,
+                 fixed: Sequence[int]) -> BaseParameters:
+    """Base parameters of the whitened Jacobian at `state`, fixed columns zeroed, setup kept first."""
+    J = problem.model.residual_and_jacobian(state)[1]
+    if len(fixed):
+        J = J.copy()
+        J[:, list(fixed)] = 0.0
+    return select_base_parameters(J, names, rel_tol, forced=problem.model.layout.setup_columns)
+
+
+def _fit_base(problem: _SerialProblem, start: _State, names: Sequence[str], rel_tol: float, fixed: Sequence[int],
+              solve: Callable[..., LMResult]) -> tuple[BaseParameters, LMResult, int]:
+    """Select the base parameters at the start, fit them; while the rank is below the structural
+    bound, re-select at the estimate and resume (nominal CAD geometry can hide parameters, e.g.
+    UR's tool point on the last joint axis hides two from position measurements)."""
+    base = _select_base(problem, start, names, rel_tol, fixed)
+    problem.columns = np.array(base.indices)
+    result = solve(problem, start)
+    iterations = result.iterations
+    layout = problem.model.layout
+    bound = problem.model.chain.rank_bound(problem.model.data.rotations is None) + (
+        layout.n_joints if layout.compliance else 0)
+    for _ in range(_MAX_RESELECTIONS if base.rank < bound else 0):
+        candidate = _select_base(problem, result.state, names, rel_tol, fixed)
+        if candidate.rank <= base.rank:
+            break
+        base = candidate
+        problem.columns = np.array(base.indices)
+        result = solve(problem, result.state)
+        iterations += result.iterations
+    return base, result, iterations
+
+
+def _reject_outliers(problem: _SerialProblem, start: _State, result: LMResult, sigma: float,
+                     solve: Callable[..., LMResult]) -> tuple[LMResult, int]:
+    """Flag poses beyond `sigma` noise sigmas (`outlier_poses`), refit from the start without them,
+    re-judge every pose; until the flagged set is stable (at most _MAX_OUTLIER_ROUNDS refits)."""
+    iterations = 0
+    rows = problem.model.data.rows_per_pose
+    for _ in range(_MAX_OUTLIER_ROUNDS):
+        flagged, _scale = outlier_poses(problem.model.residual(result.state).reshape(-1, rows), sigma)
+        if np.array_equal(~flagged, problem.active):
+            break
+        if np.count_nonzero(~flagged) * rows <= len(problem.columns):
+            raise IdentificationError(f"{np.count_nonzero(flagged)} of {len(flagged)} poses are outliers: "
+                                      "too few poses are left to fit the model")
+        problem.active = ~flagged
+        result = solve(problem, start)
+        iterations += result.iterations
+    return result, iterations
+
+
+def _select_parameters(problem: _SerialProblem, start: _State, result: LMResult,
+                       solve: Callable[..., LMResult]) -> tuple[ParameterSelection, LMResult, int]:
+    """Forward selection by leave-one-pose-out PRESS of the fit linearised at the estimate (the
+    residual at the start is about r - J x, x the accumulated step), the setup forced; a smaller
+    set is refitted from the start."""
+    rows = problem.model.data.rows_per_pose
+    r, J = problem.model.residual_and_jacobian(result.state)
+    J = J[:, problem.columns]
+    keep = np.repeat(problem.active, rows)
+    step = np.zeros(len(problem.columns)) if result.state.accumulated is None else \
+        result.state.accumulated[problem.columns]
+    r0 = (r - J @ step)[keep]
+    forced = np.flatnonzero(np.isin(problem.columns, problem.model.layout.setup_columns))
+    selection = forward_selection(J[keep], r0, rows, range(len(problem.columns)), forced)
+    if len(selection.indices) == len(problem.columns):
+        return selection, result, 0
+    problem.columns = problem.columns[list(selection.indices)]
+    refit = solve(problem, start)
+    return selection, refit, refit.iterations
+
+
 @on_one_blas_thread  # tiny matrices: BLAS threads only add wake-up latency
 def calibrate_serial(
     model: pin.Model,
@@ -525,79 +864,98 @@ def calibrate_serial(
     rel_tol: float = 1e-9,
     max_iterations: int = 30,
     absolute_cost_tolerance: float = 1e-6,
+    setup: MeasurementSetup | None = None,
+    estimate_frame: bool = False,
+    estimate_marker: bool = False,
+    outlier_sigma: float | None = OUTLIER_SIGMA,
+    select: bool = False,
+    compliance: bool = False,
+    fixed: Sequence[str] = (),
+    priors: Mapping[str, float] | None = None,
 ) -> SerialCalibration:
-    """Identify the placement errors of `chain` from measured tool poses (eq. 17-20, 32, 33).
+    """Identify the placement errors of `chain` (and the measurement setup, compliance) from measurements.
 
+    Measurement model: M_i = F g(q_i + c tau(q_i)) K (measurement_setup module), F = setup.frame
+    (robot base in the measurement frame), K = setup.marker (measured frame in the tool frame).
     q_readings: (N, n) chain coordinates (rad or m) as read by the robot.
-    measured_poses: tool poses g_{B,P} in the chain's base frame {B}: SE3 objects, or an (N, 7)
-        array [x, y, z, qx, qy, qz, qw] (m), or (N, 3) positions (m) with position_only=True.
-    position_only: use only the position rows (3 per pose); tool-orientation errors are then
-        unobservable and stay at zero.
+    measured_poses: measured frames M_i in the measurement frame: SE3 objects, or an (N, 7) array
+        [x, y, z, qx, qy, qz, qw] (m), or (N, 3) positions (m) with position_only=True.
+    position_only: use the position rows only (3 per pose; the marker's orientation is irrelevant).
     noise: standard deviations used to whiten the residuals (see `MeasurementNoise`).
-    absolute_cost_tolerance: Levenberg-Marquardt also stops once an accepted step lowers the whitened
-        cost 1/2 chi^2 by less than this (a noise variance; 1e-6 moves the estimate by about 1e-3 of
-        its standard deviation, far below what the data resolve). Without it, the run ends with one
-        more iteration whose step is at rounding level; 0 restores that.
+    estimate_frame: fit F's 6 parameters, started by `register_frame` of the nominal predictions
+        to the measurements; estimate_marker: fit K's 6 (3 translations with positions only).
+        The setup's columns are kept first in the base-parameter choice, so the placements it makes
+        redundant (the first placement for F, the tool placement for K) are the ones left nominal:
+        the calibrated URDF's base stays the robot's base and its tool frame the tool.
+    outlier_sigma: gate of `identification.outlier_poses` in noise sigmas; flagged poses are
+        dropped and the fit restarted until the flagged set is stable. None keeps every pose.
+    select: forward selection of the fitted parameters by leave-one-pose-out PRESS, setup forced.
+    compliance: add candidates c_j (rad/Nm) with q_j -> q_j + c_j tau_j(q), tau from
+        `gravity_torques` (the model's inertias); chosen like the other parameters.
+    fixed: parameter or placement names held at their start; priors: {name: sigma} adds a row
+        x / sigma pulling the parameter toward its start (m, rad, rad/Nm).
+    absolute_cost_tolerance: LM also stops once an accepted step lowers 1/2 chi^2 by less than
+        this (a noise variance; 1e-6 moves the estimate by ~1e-3 of its std).
 
-    Method: select the base parameters by pivoted QR of the whitened Jacobian at the nominal model
-    and run Levenberg-Marquardt over them with multiplicative updates T(0) <- T(0) exp6(dx)
-    (eq. 33); the set is fixed during a run, since re-selecting at every iterate makes the kept
-    set, hence the steps, jump. Nominal CAD geometry can be special (e.g. UR's tool point lies on
-    the last joint axis, which hides two parameters from position measurements), so the selection
-    is repeated at the converged model, and the run resumed from there, while the rank grows (and
-    is below the structural maximum 4 r + 2 p + 6, or + 3 with positions only, section 3.2).
+    Method: base parameters by pivoted QR of the whitened Jacobian at the start; LM over them with
+    T(0) <- T(0) exp6(dx) (eq. 33); re-selection at the estimate while the rank is below the
+    structural bound 4 r + 2 p + 6 (+ 3 with positions only, section 3.2; + n with compliance);
+    then outliers, then selection. A fit that did not converge is returned with converged False.
     """
     chain.check_model(model)
     data = _parse_measurements(chain, q_readings, measured_poses, position_only)
-    nominal = _readonly_state(chain, model)
-    whitening = _whitening(chain, nominal, data, noise)
-    residual = _SerialResidual(chain, data, whitening)
-    residual0 = residual.raw_residual(nominal)
-    names = chain.parameter_names()
-    base = select_base_parameters(residual.residual_and_jacobian(nominal)[1], names, rel_tol)
-    problem = _SerialProblem(residual, base.indices)
-    solve = functools.partial(
-        levenberg_marquardt,
-        max_iterations=max_iterations,
-        initial_damping=_INITIAL_DAMPING,
-        absolute_cost_tolerance=absolute_cost_tolerance,
-    )
-    result = solve(problem, nominal)
-    iterations = result.iterations
-    # At the bound, a re-selection can only confirm the rank: skip its pivoted QR.
-    reselections = _MAX_RESELECTIONS if base.rank < chain.rank_bound(position_only) else 0
-    for _ in range(reselections):
-        candidate = select_base_parameters(residual.residual_and_jacobian(result.state)[1], names, rel_tol)
-        if candidate.rank <= base.rank:
-            break
-        base = candidate
-        problem = _SerialProblem(residual, base.indices)
-        result = solve(problem, result.state)
-        iterations += result.iterations
-    state: np.ndarray = result.state
+    layout = _Layout(chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0, compliance)
+    names = layout.names(chain)
+    fixed_columns = _parameter_columns(names, fixed, "fixed parameter")
+    start = _start_state(chain, model, data, setup or MeasurementSetup(), estimate_frame, compliance)
+    torques = gravity_torques(model, chain, data.q) if compliance else None
+    residual = _SerialResidual(chain, data, _whitening(chain, start, data, noise), layout, torques)
+    problem = _SerialProblem(residual, np.arange(layout.size), _prior_columns(names, priors))
+    solve = functools.partial(levenberg_marquardt, max_iterations=max_iterations, initial_damping=_INITIAL_DAMPING,
+                              absolute_cost_tolerance=absolute_cost_tolerance)
+    base, result, iterations = _fit_base(problem, start, names, rel_tol, fixed_columns, solve)
+    if outlier_sigma is not None and outlier_sigma > 0.0:
+        result, more = _reject_outliers(problem, start, result, outlier_sigma, solve)
+        iterations += more
+    selection = None
+    if select:
+        selection, result, more = _select_parameters(problem, start, result, solve)
+        iterations += more
+    return _result(model, problem, start, result, base, selection, iterations, solve)
+
+
+def _result(model: pin.Model, problem: _SerialProblem, start: _State, result: LMResult, base: BaseParameters,
+            selection: ParameterSelection | None, iterations: int, solve: Callable[..., LMResult]) -> SerialCalibration:
+    residual, state = problem.model, result.state
+    chain, layout = residual.chain, residual.layout
     r, J = problem.residual_and_jacobian(state)
     fit = batch_least_squares(J, -r, covariance_from="noise_model")
-    residual1 = residual.raw_residual(state)
+    dof = problem.degrees_of_freedom()
+    inliers = problem.active
     # dt_j = log6(T_j(0)^-1 T_j,c(0)) per placement (for j = 1 with a base frame, the inverse base
     # placement cancels); the calibrated model is the nominal one perturbed by exactly these.
-    deltas = {
-        p: _readonly(pin.log6(pin.SE3(nominal[j]).actInv(pin.SE3(state[j]))).vector)
-        for j, p in enumerate(chain.placements())
-    }
-    calibrated = perturb(model, deltas)
+    deltas = {p: _readonly(pin.log6(pin.SE3(start.transforms[j]).actInv(pin.SE3(state.transforms[j]))).vector)
+              for j, p in enumerate(chain.placements())}
+    values = np.zeros(layout.size) if state.accumulated is None else state.accumulated.copy()
+    values[: layout.n_chain] = np.concatenate(list(deltas.values()))
+    fitted = tuple(int(c) for c in problem.columns)
+    names = layout.names(chain)
+    compliance = {}
+    if layout.compliance and state.compliance is not None:
+        compliance = {joint: float(state.compliance[k]) for k, joint in enumerate(chain.joint_names)
+                      if layout.compliance_slice.start + k in fitted}
     return SerialCalibration(
-        model=calibrated,
-        chain=chain,
-        deltas=MappingProxyType(deltas),
-        base=base,
-        covariance=fit.covariance,
-        parameter_std=fit.std,
-        variance_factor=fit.variance_factor,
-        iterations=iterations,
-        converged=result.converged,
-        residual_before=_rms(residual0),
-        residual_after=_rms(residual1),
-        position_only=position_only,
+        model=perturb(model, deltas), chain=chain, deltas=MappingProxyType(deltas), base=base,
+        covariance=fit.covariance, parameter_std=fit.std,
+        variance_factor=float(r @ r / dof) if dof > 0 else float("nan"),
+        iterations=iterations, converged=result.converged,
+        residual_before=_rms(residual.raw_residual(start)[inliers]),
+        residual_after=_rms(residual.raw_residual(state)[inliers]),
+        position_only=residual.data.rotations is None,
+        setup=MeasurementSetup(pin.SE3(state.frame), pin.SE3(state.marker)),
+        termination=result.termination, outliers=tuple(int(i) for i in np.flatnonzero(~inliers)),
+        fitted=tuple(names[c] for c in fitted), fitted_indices=fitted, names=names, values=_readonly(values),
+        compliance=MappingProxyType(compliance), selection=selection, _problem=problem, _start=start, _solve=solve,
     )
 
 
@@ -611,21 +969,88 @@ def pose_errors(model: pin.Model, reference: pin.Model, chain: SerialChain, q_ch
     return pose_errors_between(tool_poses(chain, model, q_chain), tool_poses(chain, reference, q_chain))
 
 
+def _compliant_coordinates(calibration: SerialCalibration, q_chain: ArrayLike) -> np.ndarray:
+    """q + c tau(q) (M, n) with the calibration's compliances (q itself without any)."""
+    q = np.atleast_2d(np.asarray(q_chain, dtype=float))
+    if not calibration.compliance:
+        return q
+    c = np.array([calibration.compliance.get(joint, 0.0) for joint in calibration.chain.joint_names])
+    return q + c * gravity_torques(calibration.model, calibration.chain, q)
+
+
+def predict_measurements(calibration: SerialCalibration, q_readings: ArrayLike) -> np.ndarray:
+    """The measured frames (M, 4, 4) the calibration predicts at joint readings (M, n), in the
+    measurement frame: F g_c(q + c tau(q)) K with the calibrated robot, compliance and setup (m)."""
+    chain = calibration.chain
+    g = tool_poses(chain, calibration.model, _compliant_coordinates(calibration, q_readings))
+    return calibration.setup.frame.homogeneous @ g @ calibration.setup.marker.homogeneous
+
+
 def predicted_pose_std(calibration: SerialCalibration, q_chain: ArrayLike) -> PoseErrors:
     """Predicted standard deviation of the calibrated tool pose error at chain configurations (M, n).
 
     Cov(pose) = J_b Cov(x_b) J_b^T with J_b the position (WORLD) and orientation (LOCAL) rows of the
-    error Jacobian restricted to the base parameters, at the calibrated model. This is the error
-    expected against the truth from measurement noise alone, assuming the error model is complete.
-    Returns position = sqrt(trace Cov(dp)) (m) and rotation = sqrt(trace Cov(dr)) (rad, NaN after a
-    position-only calibration), i.e. the RMS of the error norms to compare with `pose_errors`.
+    robot's fitted parameters (placements, compliances; the setup's are marginalised out), at the
+    calibrated model. This is the error expected against the truth from measurement noise alone,
+    assuming the error model is complete. Returns position = sqrt(trace Cov(dp)) (m) and rotation =
+    sqrt(trace Cov(dr)) (rad, NaN after a position-only calibration), the RMS of the error norms.
     """
     chain = calibration.chain
-    frames = placement_poses(chain, chain.initial_transforms(calibration.model), q_chain)
-    n_poses = frames.shape[0]
-    rows = _placement_rows(frames, orientation=True)[:, :, np.array(calibration.base.indices)]
-    covariance = rows @ calibration.covariance @ np.swapaxes(rows, 1, 2)
-    variances = np.einsum("nii->ni", covariance)
+    q = _compliant_coordinates(calibration, q_chain)
+    frames = placement_poses(chain, chain.initial_transforms(calibration.model), q)
+    n_poses, n = frames.shape[0], chain.n_joints
+    rows = _placement_rows(frames, orientation=True)
+    fitted = np.array(calibration.fitted_indices or calibration.base.indices, dtype=int)
+    n_chain = 6 * (n + 1)
+    machine = np.flatnonzero(fitted < n_chain)
+    blocks = [rows[:, :, fitted[machine]]]
+    compliant = [k for k, c in enumerate(fitted) if c >= n_chain and calibration.names[c].startswith("compliance.")]
+    if compliant:
+        joint_rows = np.einsum("nikj,kj->nik", rows[:, :, : 6 * n].reshape(n_poses, 6, n, 6), chain.twists)
+        torques = gravity_torques(calibration.model, chain, q_chain)
+        joints = [chain.joint_names.index(calibration.names[fitted[k]].partition(".")[2]) for k in compliant]
+        blocks.append(joint_rows[:, :, joints] * torques[:, None, joints])
+    picked = np.concatenate([machine, np.array(compliant, dtype=int)])
+    covariance = calibration.covariance[np.ix_(picked, picked)]
+    jacobian = np.concatenate(blocks, axis=2)
+    variances = np.einsum("nii->ni", jacobian @ covariance @ np.swapaxes(jacobian, 1, 2))
     position = np.sqrt(variances[:, :3].sum(axis=1))
     rotation = np.full(n_poses, np.nan) if calibration.position_only else np.sqrt(variances[:, 3:].sum(axis=1))
     return PoseErrors(position=position, rotation=rotation)
+
+
+@dataclass(frozen=True)
+class SerialCrossValidation:
+    """k-fold prediction of held-back measurements (outliers excluded): each fold is refitted on the
+    others (same parameters, same setup estimation, from the same start) and predicts its poses'
+    measurements in the measurement frame. The errors include the measurement noise, as a fresh
+    validation set of the same quality would. errors: per inlier pose, position (m) and rotation
+    (rad, nan when position-only)."""
+
+    errors: PoseErrors
+    folds: int
+
+
+@on_one_blas_thread
+def cross_validate_serial(calibration: SerialCalibration, folds: int = 5, seed: int = 0) -> SerialCrossValidation:
+    """k-fold cross-validation of a serial calibration on its own inlier poses (`SerialCrossValidation`)."""
+    problem, start, solve = calibration._problem, calibration._start, calibration._solve
+    if problem is None or start is None or solve is None:
+        raise InvalidInputError("cross_validate_serial needs a calibration made by calibrate_serial")
+    inliers = np.flatnonzero(problem.active)
+    if folds < 2 or len(inliers) < 2 * folds:
+        raise InvalidInputError(f"cross-validation: {folds} folds need at least {2 * folds} inlier poses")
+    fold_of = np.random.default_rng(seed).permutation(len(inliers)) % folds
+    residuals = np.empty((len(inliers), problem.model.data.rows_per_pose))
+    fold_problem = copy.copy(problem)
+    fold_problem.columns = np.array(calibration.fitted_indices, dtype=int)
+    for fold in range(folds):
+        held = inliers[fold_of == fold]
+        fold_problem.active = problem.active.copy()
+        fold_problem.active[held] = False
+        result = solve(fold_problem, start)
+        residuals[fold_of == fold] = problem.model.raw_residual(result.state)[held]
+    position = np.linalg.norm(residuals[:, :3], axis=1)
+    rotation = (np.linalg.norm(residuals[:, 3:], axis=1) if residuals.shape[1] == 6
+                else np.full(len(inliers), np.nan))
+    return SerialCrossValidation(PoseErrors(position, rotation), folds)
