@@ -1,0 +1,238 @@
+"""Command-line verbs of a measurement campaign: `m3t1r plan` (what to measure) and `m3t1r validate`
+(how well a calibrated model predicts a measurement file).
+
+`m3t1r.cli` registers them with `add_plan_parser(verbs)` and `add_validate_parser(verbs)`. Errors are
+m3t1r errors (exit status 2 in `m3t1r.cli.main`); `validate --predictions` with rows that could
+not be predicted raises `cli.RowFailures` (status 1) and writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from .errors import InvalidInputError, ModelFileError
+
+__all__ = ["add_plan_parser", "add_validate_parser", "cmd_plan", "cmd_validate"]
+
+
+# ------------------------------------------------------------------------------------------------
+# plan
+
+
+def add_plan_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add the `plan` verb to argparse's subparsers object `verbs`."""
+    p = verbs.add_parser("plan", help="choose calibration poses D-optimally, ordered for short travel")
+    p.add_argument("-n", type=int, required=True, help="number of poses to measure")
+    p.add_argument("-o", "--output", required=True, help="plan CSV (sliders, or joints with --serial, by joint name)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the candidate draw (default 0)")
+    p.add_argument("--candidates", type=int, metavar="K", help="candidates drawn in the workspace (default 20 n)")
+    p.add_argument("--position-only", action="store_true", help="a tracker without orientation")
+    p.add_argument("--noise-pos", type=float, default=10e-6, metavar="M", help="tracker position noise [m]")
+    p.add_argument("--noise-rot", type=float, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
+    p.add_argument("--model", metavar="URDF", help="machine URDF (default: the packaged nominal model)")
+    p.add_argument("--closures", metavar="YAML", help="its closures file (default: URDF stem + .closures.yaml)")
+    p.add_argument("--serial", metavar="ROBOT_OR_URDF", help="plan for a serial robot (ur3, ur5, ur10, panda or a URDF)")
+    p.add_argument("--base", metavar="FRAME", help="with --serial: base frame (default the model root)")
+    p.add_argument("--tool", metavar="FRAME", help="with --serial: the measured tool frame (default for example robots)")
+    p.set_defaults(run=cmd_plan)
+    return p
+
+
+def _serial_robot(source: str, tool: str | None, base: str | None):
+    """(model, chain) of `--serial` (an example robot name or a URDF path)."""
+    import pinocchio as pin
+
+    from .poe import SerialChain
+    from .serial import example_tool_frame, load_example_robot
+
+    path = Path(source)
+    if path.suffix.lower() == ".urdf" or path.exists():
+        if not path.is_file():
+            raise ModelFileError(path, "file not found" if not path.exists() else "not a regular file")
+        try:
+            model = pin.buildModelFromUrdf(str(path))
+        except (RuntimeError, ValueError) as exc:
+            raise ModelFileError(path, f"Pinocchio cannot read this URDF: {exc}") from None
+        if tool is None:
+            raise InvalidInputError(f"--serial {source}: give the measured frame with --tool FRAME")
+    else:
+        model = load_example_robot(source)
+        tool = tool or example_tool_frame(source)
+    return model, SerialChain.from_model(model, tool, base)
+
+
+def _make_plan(args: argparse.Namespace):
+    """The plan the arguments ask for, and the input files it read."""
+    from .calibration import TrackerNoise
+    from .planning import plan_closed_loop, plan_serial
+    from .serial import MeasurementNoise
+
+    rng = np.random.default_rng(args.seed)
+    if args.serial:
+        if args.model or args.closures:
+            raise InvalidInputError("--model/--closures describe the M machine; with --serial give the robot only")
+        model, chain = _serial_robot(args.serial, args.tool, args.base)
+        noise = MeasurementNoise(args.noise_pos, args.noise_rot, 0.0)
+        plan = plan_serial(model, chain, args.n, rng, n_candidates=args.candidates, noise=noise,
+                           position_only=args.position_only)
+        return plan, [args.serial] if Path(args.serial).exists() else []
+    if args.tool or args.base:
+        raise InvalidInputError("--tool/--base apply to --serial only")
+    from .cli import _mechanism
+
+    mechanism = _mechanism(args.model, args.closures)
+    plan = plan_closed_loop(mechanism, args.n, rng, n_candidates=args.candidates,
+                            noise=TrackerNoise(args.noise_pos, args.noise_rot), position_only=args.position_only)
+    return plan, [mechanism.urdf_path, mechanism.closures_path]
+
+
+def _plan_summary(plan, args: argparse.Namespace) -> list[str]:
+    """Lines describing a plan: what was chosen, its travel and predicted accuracy (also the CSV comments)."""
+    what = "slider sets" if plan.kind == "closed_loop" else "joint configurations"
+    unit = "/".join(sorted(set(plan.column_units)))
+    std = plan.accuracy.std
+    lines = [
+        f"{plan.n_poses} {what} chosen D-optimally among {plan.n_candidates} candidates (seed {args.seed}): "
+        f"log det {plan.log_det:.6g}, condition number {plan.selection.condition_number:.3g}, "
+        f"{len(plan.selection.columns)} identifiable parameters",
+        f"travel (largest joint stroke per move, from home): {plan.travel:.4g} {unit} in this order, "
+        f"{plan.travel_selection_order:.4g} {unit} in selection order",
+        f"predicted accuracy after calibrating on this plan (tracker noise {plan.noise[0]:g} m / {plan.noise[1]:g} rad"
+        f"{', position only' if plan.position_only else ''}), std at {plan.accuracy.n} workspace poses:",
+        f"  position     mean {std.position_mean:.3e} m    max {std.position_max:.3e} m",
+    ]
+    if not plan.position_only:
+        lines.append(f"  orientation  mean {std.rotation_mean:.3e} rad  max {std.rotation_max:.3e} rad")
+    return lines
+
+
+def cmd_plan(args: argparse.Namespace) -> None:
+    """`m3t1r plan`: write the plan CSV (columns by joint name, SI units) and print its summary."""
+    from .cli import _provenance, _say
+    from .io import OutputSet, table_text
+
+    outputs = OutputSet(inputs=[p for p in (args.model, args.closures, args.serial) if p and Path(p).exists()])
+    output = outputs.add(args.output, "-o")
+    outputs.check()
+    print("planning ...", file=sys.stderr if output.path is None else sys.stdout, flush=True)
+    plan, inputs = _make_plan(args)
+    for path in inputs:
+        outputs.add_input(path)
+    outputs.check()
+    summary = _plan_summary(plan, args)
+    unit = ", ".join(f"{name} [{u}]" for name, u in zip(plan.columns, plan.column_units))
+    comments = _provenance(args) + ["measurement plan: " + summary[0], summary[1], *summary[2:],
+                                    f"columns {unit}; one row per pose, in measuring order"]
+    with outputs:
+        outputs.stage(output, table_text(plan.columns, plan.configurations, comments))
+        outputs.commit()
+    for line in summary:
+        _say(outputs, line)
+    _say(outputs, f"wrote {plan.n_poses} rows to {output.name}")
+
+
+# ------------------------------------------------------------------------------------------------
+# validate
+
+
+def add_validate_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add the `validate` verb to argparse's subparsers object `verbs`."""
+    p = verbs.add_parser("validate", help="predict a measurement file with a calibrated model; per-row errors")
+    p.add_argument("measurements", help="measurement CSV (joints by name, x,y,z[,qx,qy,qz,qw])")
+    p.add_argument("--calibrated", required=True, metavar="URDF",
+                   help="calibrated URDF (M machine: its NAME.closures.yaml beside it)")
+    p.add_argument("--report", required=True, metavar="JSON", help="the calibration report (model kind, setup, noise)")
+    p.add_argument("--units", choices=("m", "mm"), help="length unit of the file (default: the calibration input's)")
+    p.add_argument("--predictions", metavar="CSV", help="write the predicted measurements, one row per input row")
+    p.set_defaults(run=cmd_validate)
+    return p
+
+
+def _row_table(result, out: TextIO) -> None:
+    """Per-row errors, in the file's length unit."""
+    scale = 1.0 / _unit_scale(result.units)
+    heading = result.heading is not None
+    header = f"{'line':>6}  {'position [' + result.units + ']':>15}"
+    if not result.position_only:
+        header += f"  {'rotation [rad]':>15}" + (f"  {'heading [rad]':>15}" if heading else "")
+    print(header + f"  {'sigmas':>7}", file=out)
+    flagged = set(result.flagged)
+    for k, row in enumerate(result.rows):
+        line = int(result.lines[row])
+        text = f"{line:>6}  {result.errors.position[k] * scale:>15.4e}"
+        if not result.position_only:
+            text += f"  {result.errors.rotation[k]:>15.4e}" + (f"  {result.heading[k]:>+15.4e}" if heading else "")
+        print(text + f"  {result.sigmas[k]:>7.2f}" + ("  FLAGGED" if line in flagged else ""), file=out)
+
+
+def _unit_scale(units: str) -> float:
+    from .measurement_setup import LENGTH_UNITS
+
+    return LENGTH_UNITS[units]
+
+
+def _summary(result, out: TextIO) -> None:
+    """Mean, RMS and max of each error, the flag count and the failed rows."""
+    scale = 1.0 / _unit_scale(result.units)
+    e = result.errors
+    print(f"{len(result.rows)} of {len(result.lines)} rows predicted; errors:{'':>10}mean{'':>10}RMS{'':>10}max",
+          file=out)
+    print(f"  position [{result.units}]{'':<{12 - len(result.units)}}{e.position_mean * scale:>12.4e}"
+          f"{e.position_rms * scale:>13.4e}{e.position_max * scale:>13.4e}", file=out)
+    if not result.position_only:
+        print(f"  rotation [rad]{'':<9}{e.rotation_mean:>12.4e}{e.rotation_rms:>13.4e}{e.rotation_max:>13.4e}", file=out)
+    if result.heading is not None:
+        h = np.abs(result.heading)
+        print(f"  heading |yaw| [rad]{'':<4}{h.mean():>12.4e}{np.sqrt(np.mean(h**2)):>13.4e}{h.max():>13.4e}",
+              file=out)
+    flags = ", ".join(map(str, result.flagged)) or "none"
+    print(f"rows beyond 5 sigma (chi-square gate on the report's noise model x {result.scale:.3g}, the square root "
+          f"of its variance factor): {flags}", file=out)
+    for line, reason in result.failures:
+        print(f"  {result.path}, line {line} not predicted: {reason}", file=out)
+
+
+def _prediction_rows(result) -> np.ndarray:
+    """(N, 3 or 7) rows x, y, z [file unit][, qx, qy, qz, qw] of the predictions."""
+    import pinocchio as pin
+
+    from .io import pose_rows
+
+    rows = pose_rows([pin.SE3(p) for p in result.predictions])
+    rows[:, :3] /= _unit_scale(result.units)
+    return rows[:, :3] if result.position_only else rows
+
+
+def cmd_validate(args: argparse.Namespace) -> None:
+    """`m3t1r validate`: per-row errors and summary on stdout; PRED.csv only when every row was predicted."""
+    from .cli import RowFailures, _progress, _provenance
+    from .io import POSE_COLUMNS, OutputSet, paired_closures_path, table_text
+    from .validation import validate
+
+    outputs = OutputSet(inputs=(args.measurements, args.calibrated, paired_closures_path(args.calibrated),
+                                args.report))
+    output = outputs.add(args.predictions, "--predictions")
+    outputs.check()
+    out = sys.stderr if output is not None and output.path is None else sys.stdout
+    with _progress("validate", None) as progress:
+        result = validate(args.measurements, args.calibrated, args.report, args.units, progress=progress.update)
+    _row_table(result, out)
+    _summary(result, out)
+    if output is None:
+        return
+    if result.failures:
+        raise RowFailures(result.path, list(result.failures))
+    columns = POSE_COLUMNS[:3] if result.position_only else POSE_COLUMNS
+    comments = _provenance(args) + [
+        f"predicted measurements of {args.measurements} by {args.calibrated}, with the measurement frame and "
+        f"marker of {args.report}", f"position in {result.units}" + ("" if result.position_only else ", unit quaternion")
+        + ", in the measurement file's frame; one row per input row, same order"]
+    with outputs:
+        outputs.stage(output, table_text(columns, _prediction_rows(result), comments))
+        outputs.commit()
+    print(f"wrote {len(result.lines)} predicted measurements to {output.name}", file=out)

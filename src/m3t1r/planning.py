@@ -1,0 +1,299 @@
+"""Measurement plans: which poses to measure for a calibration, in which order, and what to expect.
+
+A plan is N joint-space configurations (slider sets of the M machine, or joint configurations of
+a serial robot) chosen among K candidates drawn in the workspace so that the calibration's
+information matrix M = sum_i A_i^T A_i has the largest determinant (D-optimality,
+`m3t1r.pose_selection.select_poses`), A_i being candidate i's block of the whitened identification
+Jacobian at the nominal model. It is then ordered for short travel between consecutive poses, and
+its predicted accuracy is the standard deviation of the calibrated model's pose at workspace
+poses that follows from M and the noise model alone:
+
+    Cov(x_base) = M^-1 (whitened rows, so the noise variance is inside M),
+    std_position(pose) = sqrt(trace(J_p Cov J_p^T)) [m],  std_rotation = sqrt(trace(J_r Cov J_r^T)) [rad],
+
+with J_p (3 rows, m per unit parameter) and J_r (3 rows, rad) the pose sensitivities to the base
+parameters; this is what `calibration.predicted_pose_std` reports after a calibration on the same
+poses, up to the (second-order) difference between the nominal and the calibrated geometry. The
+measurement frame and marker of a tracker add no base parameter: the first joint placements and
+the platform (tool) frame already span them.
+
+Travel: the drives move concurrently, so the time of a move is set by its longest joint stroke;
+the distance between two configurations is the largest absolute joint difference (the L-infinity
+norm, m or rad), and a plan's travel is the sum over its moves, starting from the home
+configuration. Ordering is greedy nearest neighbour from home, then 2-opt (segment reversals)
+until no reversal shortens the path.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import pinocchio as pin
+from numpy.typing import ArrayLike
+
+from ._threads import on_one_blas_thread
+from .calibration import TrackerNoise
+from .description import Mechanism
+from .errors import InvalidInputError
+from .metrics import PoseErrors
+from .poe import SerialChain
+from .pose_selection import PoseSelection, closed_loop_candidate_blocks, select_poses, serial_candidate_blocks
+from .serial import MeasurementNoise, sample_configurations
+from .simulation import workspace_actuators
+
+__all__ = [
+    "MeasurementPlan", "PredictedAccuracy", "plan_closed_loop", "plan_serial", "order_for_travel", "path_travel",
+    "predicted_accuracy", "base_information", "DEFAULT_CANDIDATES_PER_POSE", "DEFAULT_EVALUATION_POSES",
+]
+
+#: Candidates drawn per planned pose when the caller does not say (K = 20 N).
+DEFAULT_CANDIDATES_PER_POSE = 20
+#: Workspace poses at which the predicted accuracy is evaluated.
+DEFAULT_EVALUATION_POSES = 200
+
+
+@dataclass(frozen=True)
+class PredictedAccuracy:
+    """Predicted standard deviation of the calibrated pose at `n` workspace poses (module docstring).
+
+    std.position [m] and std.rotation [rad] per evaluation pose (rotation NaN for a position-only
+    plan, whose data leaves the measured frame's own orientation unidentified).
+    """
+
+    std: PoseErrors
+
+    @property
+    def n(self) -> int:
+        return int(self.std.position.size)
+
+
+@dataclass(frozen=True)
+class MeasurementPlan:
+    """A measurement plan (module docstring).
+
+    kind: "closed_loop" or "serial"; columns: joint names of `configurations`' columns (the M
+    machine's actuated joints, or the serial chain's joints in order); configurations: (N, n) in
+    measuring order [m for sliders and prismatic joints, rad for revolute joints];
+    candidate_indices: each row's index among the candidates; n_candidates: K;
+    selection: the D-optimal selection (indices sorted ascending, i.e. the selection order);
+    log_det: log det of the plan's information matrix over the base columns, whitened rows
+    [nepers]; start: the configuration the machine moves from (home); travel: the plan's travel in
+    measuring order, travel_selection_order: the same rows in selection order [m or rad, L-inf];
+    accuracy: the predicted accuracy over the workspace; noise: (position [m], rotation [rad]);
+    column_units: "m" or "rad" per column.
+    """
+
+    kind: Literal["closed_loop", "serial"]
+    columns: tuple[str, ...]
+    configurations: np.ndarray
+    candidate_indices: tuple[int, ...]
+    n_candidates: int
+    selection: PoseSelection = field(repr=False)
+    log_det: float
+    start: np.ndarray
+    travel: float
+    travel_selection_order: float
+    accuracy: PredictedAccuracy
+    position_only: bool
+    noise: tuple[float, float]
+    column_units: tuple[str, ...] = ()
+
+    @property
+    def n_poses(self) -> int:
+        return int(self.configurations.shape[0])
+
+
+# --------------------------------------------------------------------------------------------------
+# Travel ordering
+
+
+def _distances(points: np.ndarray) -> np.ndarray:
+    """(n, n) largest absolute coordinate difference between every two rows [m or rad]."""
+    return np.max(np.abs(points[:, None, :] - points[None, :, :]), axis=2)
+
+
+def path_travel(points: ArrayLike, start: ArrayLike | None = None) -> float:
+    """Travel of visiting the rows of `points` (n, d) in order, from `start` (d,) if given: the sum of
+    the largest joint stroke of each move [m or rad]."""
+    rows = np.atleast_2d(np.asarray(points, dtype=float))
+    if start is not None:
+        rows = np.vstack((np.asarray(start, dtype=float).reshape(1, -1), rows))
+    return float(np.sum(np.max(np.abs(np.diff(rows, axis=0)), axis=1))) if len(rows) > 1 else 0.0
+
+
+def _nearest_neighbour(distance: np.ndarray) -> list[int]:
+    """Greedy path over nodes 1..n-1 of a distance matrix, from node 0."""
+    n = distance.shape[0]
+    path, left = [0], np.ones(n, dtype=bool)
+    left[0] = False
+    for _ in range(n - 1):
+        row = np.where(left, distance[path[-1]], np.inf)
+        nxt = int(np.argmin(row))
+        path.append(nxt)
+        left[nxt] = False
+    return path
+
+
+def _two_opt(path: list[int], distance: np.ndarray, max_passes: int = 100) -> list[int]:
+    """Reverse segments path[i..j] (i >= 1: the start stays first; the path is open) while one
+    shortens it by more than 1e-12 relatively; first improvement per i, best j."""
+    order = np.array(path)
+    n = len(order)
+    tolerance = 1e-12 * max(float(distance.max()), 1e-300)
+    for _ in range(max_passes):
+        improved = False
+        for i in range(1, n - 1):
+            j = np.arange(i + 1, n)
+            before_i, at_i, at_j = order[i - 1], order[i], order[j]
+            after_j = np.where(j + 1 < n, order[np.minimum(j + 1, n - 1)], -1)
+            tail_old = np.where(after_j >= 0, distance[at_j, np.maximum(after_j, 0)], 0.0)
+            tail_new = np.where(after_j >= 0, distance[at_i, np.maximum(after_j, 0)], 0.0)
+            gain = distance[before_i, at_i] + tail_old - distance[before_i, at_j] - tail_new
+            best = int(np.argmax(gain))
+            if gain[best] > tolerance:
+                order[i:j[best] + 1] = order[i:j[best] + 1][::-1].copy()
+                improved = True
+        if not improved:
+            break
+    return order.tolist()
+
+
+def order_for_travel(points: ArrayLike, start: ArrayLike | None = None) -> np.ndarray:
+    """A visiting order (indices into the rows of `points` (n, d)) with short travel from `start`
+    (d,) (default: from the first row): greedy nearest neighbour, then 2-opt (module docstring)."""
+    rows = np.atleast_2d(np.asarray(points, dtype=float))
+    if rows.shape[0] == 0 or not np.all(np.isfinite(rows)):
+        raise InvalidInputError(f"order_for_travel: expected finite points (n >= 1, d), got shape {rows.shape}")
+    origin = rows[0] if start is None else np.asarray(start, dtype=float).reshape(-1)
+    nodes = np.vstack((origin[None, :], rows))
+    distance = _distances(nodes)
+    path = _two_opt(_nearest_neighbour(distance), distance)
+    return np.array(path[1:], dtype=int) - 1
+
+
+# --------------------------------------------------------------------------------------------------
+# Predicted accuracy
+
+
+def base_information(blocks: np.ndarray, indices: ArrayLike, columns: ArrayLike) -> np.ndarray:
+    """M = sum_{i in indices} A_i^T A_i over the given parameter columns (whitened blocks (K, r, P))."""
+    chosen = np.asarray(blocks, dtype=float)[np.asarray(indices, dtype=int)][:, :, np.asarray(columns, dtype=int)]
+    stacked = chosen.reshape(-1, chosen.shape[2])
+    return stacked.T @ stacked
+
+
+def predicted_accuracy(information: np.ndarray, sensitivities: np.ndarray, position_only: bool = False
+                       ) -> PredictedAccuracy:
+    """Pose std at evaluation poses from an information matrix (m, m) over base parameters and the
+    un-whitened pose sensitivities (n, 6, m) to them (position [m], then orientation [rad] rows).
+
+    The covariance M^-1 is formed with M scaled to a unit diagonal (its entries mix m and rad
+    units over many decades). Rotation is NaN when `position_only`.
+    """
+    scale = 1.0 / np.sqrt(np.diag(information))
+    try:
+        factor = np.linalg.cholesky(information * scale[:, None] * scale[None, :])
+    except np.linalg.LinAlgError:
+        raise InvalidInputError("the plan does not identify every base parameter: add poses or candidates") from None
+    # J Cov J^T = (J S L^-T)(J S L^-T)^T with Cov = S (L L^T)^-1 S.
+    rows = np.asarray(sensitivities, dtype=float) * scale
+    flat = np.linalg.solve(factor, rows.reshape(-1, rows.shape[2]).T).T.reshape(rows.shape)
+    variance = np.sum(flat**2, axis=2)  # (n, 6) per row
+    position = np.sqrt(variance[:, :3].sum(axis=1))
+    rotation = np.full(len(position), np.nan) if position_only else np.sqrt(variance[:, 3:].sum(axis=1))
+    return PredictedAccuracy(PoseErrors(position, rotation))
+
+
+def _unwhitened(blocks: np.ndarray, noise: tuple[float, float]) -> np.ndarray:
+    """Pose sensitivity rows of full 6-row whitened blocks, back in m and rad."""
+    return blocks * np.r_[np.full(3, noise[0]), np.full(3, noise[1])][None, :, None]
+
+
+# --------------------------------------------------------------------------------------------------
+# Plans
+
+
+@dataclass(frozen=True)
+class _Candidates:
+    configurations: np.ndarray  # (K, n)
+    blocks: np.ndarray  # (K, rows, P) whitened
+    evaluation: np.ndarray  # (E, 6, P) un-whitened sensitivities at the evaluation poses
+
+
+def _plan(kind: Literal["closed_loop", "serial"], columns: tuple[str, ...], candidates: _Candidates, n_poses: int,
+          start: np.ndarray, position_only: bool, noise: tuple[float, float], units: tuple[str, ...]
+          ) -> MeasurementPlan:
+    """Select, order and assess a plan from prepared candidates."""
+    selection = select_poses(candidates.blocks, n_poses)
+    if not math.isfinite(selection.log_det):
+        raise InvalidInputError(f"{n_poses} poses cannot identify every base parameter: plan more poses")
+    chosen = np.array(selection.indices, dtype=int)
+    order = order_for_travel(candidates.configurations[chosen], start)
+    information = base_information(candidates.blocks, chosen, selection.columns)
+    sign, log_det = np.linalg.slogdet(information)
+    accuracy = predicted_accuracy(information, candidates.evaluation[:, :, list(selection.columns)], position_only)
+    ordered = candidates.configurations[chosen[order]]
+    return MeasurementPlan(
+        kind=kind, columns=columns, configurations=ordered, candidate_indices=tuple(int(i) for i in chosen[order]),
+        n_candidates=len(candidates.configurations), selection=selection,
+        log_det=float(log_det) if sign > 0 else -math.inf, start=np.asarray(start, dtype=float),
+        travel=path_travel(ordered, start),
+        travel_selection_order=path_travel(candidates.configurations[chosen], start),
+        accuracy=accuracy, position_only=position_only, noise=noise, column_units=units)
+
+
+def _check_counts(n_poses: int, n_candidates: int | None) -> int:
+    if n_poses < 1:
+        raise InvalidInputError(f"plan: the number of poses must be >= 1, got {n_poses}")
+    k = DEFAULT_CANDIDATES_PER_POSE * n_poses if n_candidates is None else int(n_candidates)
+    if k < n_poses:
+        raise InvalidInputError(f"plan: {k} candidates cannot give {n_poses} distinct poses")
+    return k
+
+
+@on_one_blas_thread
+def plan_closed_loop(mechanism: Mechanism, n_poses: int, rng: np.random.Generator, *,
+                     n_candidates: int | None = None, noise: TrackerNoise | None = None, position_only: bool = False,
+                     n_evaluation: int = DEFAULT_EVALUATION_POSES) -> MeasurementPlan:
+    """A plan of `n_poses` slider sets [m] for the M machine (module docstring).
+
+    Candidates (default 20 n_poses) and evaluation poses are drawn uniformly in the design's
+    workspace box and mapped to sliders by the nominal IK from home (`workspace_actuators`), so
+    every one is within the slider limits and assembles on the home branch. noise: the tracker
+    noise the calibration will assume (default `TrackerNoise()`, as `m3t1r calibrate`).
+    """
+    k = _check_counts(n_poses, n_candidates)
+    noise = noise or TrackerNoise()
+    sliders = workspace_actuators(mechanism, k, rng)
+    blocks, _ = closed_loop_candidate_blocks(mechanism, sliders, noise, position_only=position_only)
+    evaluation, _ = closed_loop_candidate_blocks(mechanism, workspace_actuators(mechanism, n_evaluation, rng), noise)
+    scales = (noise.position, noise.rotation)
+    candidates = _Candidates(sliders, blocks, _unwhitened(evaluation, scales))
+    home = mechanism.home[[mechanism.model.idx_qs[mechanism.model.getJointId(n)] for n in mechanism.actuated_joints]]
+    units = tuple("m" for _ in mechanism.actuated_joints)  # the M machine's drives are sliders
+    return _plan("closed_loop", mechanism.actuated_joints, candidates, n_poses, home, position_only, scales, units)
+
+
+@on_one_blas_thread
+def plan_serial(model: pin.Model, chain: SerialChain, n_poses: int, rng: np.random.Generator, *,
+                n_candidates: int | None = None, noise: MeasurementNoise | None = None, position_only: bool = False,
+                n_evaluation: int = DEFAULT_EVALUATION_POSES) -> MeasurementPlan:
+    """A plan of `n_poses` joint configurations [rad or m] of a serial chain (module docstring).
+
+    Candidates and evaluation configurations are uniform within the joint limits shrunk by 5 % on
+    each side (`serial.sample_configurations`); the robot starts from its neutral configuration.
+    noise: default `MeasurementNoise()` (10 um, 20 urad), as `m3t1r calibrate --serial`.
+    """
+    k = _check_counts(n_poses, n_candidates)
+    noise = noise or MeasurementNoise()
+    configurations = sample_configurations(model, chain, k, rng)
+    blocks, _ = serial_candidate_blocks(model, chain, configurations, noise, position_only=position_only)
+    evaluation, _ = serial_candidate_blocks(model, chain, sample_configurations(model, chain, n_evaluation, rng), noise)
+    scales = (noise.position, noise.rotation)
+    candidates = _Candidates(configurations, blocks, _unwhitened(evaluation, scales))
+    start = chain.chain_configuration(pin.neutral(model))
+    units = tuple("rad" if np.any(twist[3:]) else "m" for twist in chain.twists)
+    return _plan("serial", chain.joint_names, candidates, n_poses, start, position_only, scales, units)

@@ -1,0 +1,360 @@
+"""Validation of a calibrated model on a measurement campaign: predict every measured row, compare.
+
+Each row of a measurement file (the format `m3t1r calibrate` reads: joint readings named by joint,
+x, y, z and optionally qx, qy, qz, qw, all lengths in the file's unit) is predicted as
+
+    T_predicted = measurement_frame . FK(readings) . marker
+
+with the model kind, the measured frame, the measurement frame and the marker taken from the
+calibration report (`m3t1r calibrate --report`): for the M machine, FK is the closed-loop forward
+kinematics of the calibrated URDF and its closures file, each slider set assembled from home (the
+branch the calibration used); for a serial robot, the POE forward kinematics of the report's chain
+(base frame to tool frame) on the calibrated URDF.
+
+Per row: position error |p_predicted - p_measured| [m], and when orientation was measured the
+rotation angle |log3(R_measured^T R_predicted)| [rad] and, for the M machine, the heading (yaw)
+error of the platform implied by the measurement, yaw(R_f^T R_measured R_m^T) - yaw(R_platform)
+[rad, wrapped to (-pi, pi]].
+
+Flags (5-sigma-equivalent chi-square gate, as `m3t1r.identification.outlier_poses` applies it in
+calibration): a row's statistic is d^2 = |dp|^2 / sigma_p^2 (+ |dr|^2 / sigma_r^2 with
+orientation), dr = log3(R_measured^T R_predicted), sigma_p and sigma_r from the report's noise
+model. Under that noise d^2 is chi^2 with k = 3 (position only) or 6 degrees of freedom; the row is
+flagged when d^2 / s^2 exceeds the chi^2_k quantile whose upper tail has the two-sided normal tail
+probability of 5 sigma (5.7e-7): d^2 > 31.8 s^2 for k = 3 and 39.5 s^2 for k = 6 (a position-only
+row is flagged beyond 5.64 s sigma_p of 3-D distance; the naive gate "distance over sigma_p sqrt(3)
+above 5", i.e. beyond 8.66 sigma_p, would be an 8.1-sigma gate, tail probability 4e-16).
+s^2 = max(1, v) with v the report's `variance_factor` (chi^2 per degree of freedom of the
+calibration's own residual; 1 when the report has none): unmodelled effects the calibration
+already saw widen the gate instead of flagging every row. Unlike `outlier_poses`, the factor is
+not re-estimated from the rows being validated: it is fixed before they are seen, so a model (or
+a measurement setup) that predicts the whole file badly gets every row flagged rather than a gate
+widened to fit it. The sigma-equivalent of a row is z with P(|N(0,1)| > z) = P(chi^2_k > d^2 / s^2).
+The prediction itself is taken as exact: its uncertainty after a calibration on N >> p poses is
+small against the noise.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pinocchio as pin
+import scipy.special
+import scipy.stats
+
+from .errors import InvalidInputError, KinematicsError, M3t1rError, ModelFileError
+from .identification import OUTLIER_SIGMA
+from .io import poses_from_table, read_table
+from .measurement_setup import LENGTH_UNITS, MeasurementSetup
+from .metrics import PoseErrors, pose_errors_between
+from .poe import log3_batch
+
+__all__ = ["CalibrationReport", "Campaign", "Validation", "read_report", "read_campaign", "validate", "sigma_equivalent"]
+
+_QUATERNION = ("qx", "qy", "qz", "qw")
+
+
+@dataclass(frozen=True)
+class CalibrationReport:
+    """What validation needs from a calibration report (`read_report`).
+
+    kind: "closed_loop" or "serial"; setup: measurement frame and marker (m); noise: tracker
+    (position [m], rotation [rad]) standard deviations; units: the calibration input's length unit
+    ("m" or "mm"; None when the report does not say); measured_frame: the frame measured (the
+    platform frame P_I, or the serial tool frame; None when absent); tool, base, chain: the serial
+    chain (None / () for the M machine); variance_factor: the calibration's chi^2 per degree of
+    freedom (None when the report has none).
+    """
+
+    path: Path
+    kind: Literal["closed_loop", "serial"]
+    setup: MeasurementSetup
+    noise: tuple[float, float]
+    units: str | None
+    measured_frame: str | None
+    tool: str | None = None
+    base: str | None = None
+    chain: tuple[str, ...] = ()
+    variance_factor: float | None = None
+
+
+def _field(document: Mapping, dotted: str, path: Path) -> object:
+    """document["a"]["b"] for "a.b", or InvalidInputError naming the file and the field."""
+    value: object = document
+    for key in dotted.split("."):
+        if not isinstance(value, Mapping) or key not in value:
+            raise InvalidInputError(f"{path}: report field '{dotted}' is missing")
+        value = value[key]
+    return value
+
+
+def _positive(document: Mapping, dotted: str, path: Path) -> float:
+    value = _field(document, dotted, path)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+        raise InvalidInputError(f"{path}: report field '{dotted}' must be a positive number, got {value!r}")
+    return float(value)
+
+
+def _load_json(path: Path) -> Mapping:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InvalidInputError(f"{path}: calibration report not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InvalidInputError(f"{path}: cannot read the calibration report: {exc}") from None
+    try:
+        document = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InvalidInputError(f"{path}: not a JSON report ({exc})") from None
+    if not isinstance(document, Mapping):
+        raise InvalidInputError(f"{path}: a calibration report is a JSON object")
+    return document
+
+
+def read_report(path: str | Path) -> CalibrationReport:
+    """Read the fields validation needs from a calibration report (JSON of `m3t1r calibrate`).
+
+    Required: kind, noise_model.position_m, noise_model.rotation_rad, measurement_frame, marker,
+    and for kind "serial" nominal_model.tool and nominal_model.chain. Raises InvalidInputError
+    naming the file and the field for a missing or malformed one or another kind.
+    """
+    source = Path(path)
+    document = _load_json(source)
+    kind = _field(document, "kind", source)
+    if kind not in ("closed_loop", "serial"):
+        raise InvalidInputError(f"{source}: report field 'kind' is {kind!r}; validation reads 'closed_loop' or 'serial'")
+    for key in ("measurement_frame", "marker"):
+        _field(document, key, source)
+    try:
+        setup = MeasurementSetup.from_report(document)
+    except InvalidInputError as exc:
+        raise InvalidInputError(f"{source}: {exc}") from None
+    noise = (_positive(document, "noise_model.position_m", source), _positive(document, "noise_model.rotation_rad", source))
+    units = document.get("input", {}).get("units") if isinstance(document.get("input"), Mapping) else None
+    if units is not None and units not in LENGTH_UNITS:
+        raise InvalidInputError(f"{source}: report field 'input.units' is {units!r}; expected one of {sorted(LENGTH_UNITS)}")
+    measured = document.get("measured_frame")
+    factor = _variance_factor(document, source)
+    if kind == "closed_loop":
+        return CalibrationReport(source, "closed_loop", setup, noise, units, measured, variance_factor=factor)
+    tool, chain = _field(document, "nominal_model.tool", source), _field(document, "nominal_model.chain", source)
+    base = document["nominal_model"].get("base")
+    if not isinstance(tool, str) or not (base is None or isinstance(base, str)):
+        raise InvalidInputError(f"{source}: report fields 'nominal_model.tool' / 'nominal_model.base' must be frame names")
+    if not isinstance(chain, list) or not chain or not all(isinstance(n, str) for n in chain):
+        raise InvalidInputError(f"{source}: report field 'nominal_model.chain' must be a list of joint names")
+    return CalibrationReport(source, "serial", setup, noise, units, measured, tool, base, tuple(chain), factor)
+
+
+def _variance_factor(document: Mapping, path: Path) -> float | None:
+    """The report's optional `variance_factor` (a non-negative number or null)."""
+    value = document.get("variance_factor")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
+        raise InvalidInputError(f"{path}: report field 'variance_factor' must be a non-negative number or null, "
+                                f"got {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class Campaign:
+    """Rows of a measurement file in SI units: readings (N, n) [m or rad] in `columns` order,
+    measured poses (N, 4, 4) [m] (identity rotation when position-only), and each row's file line."""
+
+    path: Path
+    columns: tuple[str, ...]
+    readings: np.ndarray
+    measured: np.ndarray
+    position_only: bool
+    lines: np.ndarray
+    units: str
+
+
+def read_campaign(path: str | Path, columns: Sequence[str], prismatic: Sequence[bool], units: str = "m",
+                  optional: Sequence[str] = ()) -> Campaign:
+    """Read a measurement CSV: the joint `columns`, optional columns (read and ignored, e.g. passive
+    joint encoders), x, y, z and optionally qx, qy, qz, qw. Lengths (x, y, z and the columns whose
+    `prismatic` flag is set) are in `units` and converted to m. Raises DataFileError naming the
+    file, line and column (missing file, unknown columns, non-numbers, non-unit quaternions)."""
+    if units not in LENGTH_UNITS:
+        raise InvalidInputError(f"units must be one of {sorted(LENGTH_UNITS)}, got {units!r}")
+    scale = LENGTH_UNITS[units]
+    table = read_table(path, required=tuple(columns) + ("x", "y", "z"), optional=tuple(optional),
+                       optional_groups=(_QUATERNION,))
+    readings = np.column_stack([table.column(n) * (scale if p else 1.0) for n, p in zip(columns, prismatic)])
+    position_only = not table.has_column("qw")
+    measured = np.tile(np.eye(4), (table.n_rows, 1, 1))
+    if not position_only:
+        measured[:] = [pose.homogeneous for pose in poses_from_table(table)]
+    measured[:, :3, 3] = np.column_stack([table.column(n) for n in ("x", "y", "z")]) * scale
+    return Campaign(table.path, tuple(columns), readings, measured, position_only, table.line_numbers, units)
+
+
+@dataclass(frozen=True, eq=False)
+class Validation:
+    """Outcome of `validate` (module docstring), SI units (m, rad) throughout.
+
+    lines: file line of every input row (N,); predictions: predicted measurements (N, 4, 4) in the
+    measurement frame [m], NaN for a failed row; measured: the measured poses (N, 4, 4) [m];
+    rows: indices of the rows that were predicted (M,), in file order; errors: their position and
+    rotation errors (M,) (rotation NaN when position-only); heading: their heading (yaw) errors
+    (M,) [rad] for the M machine with orientation, else None; statistic: d^2 per predicted row (M,);
+    sigmas: its sigma-equivalent z (M,); flagged: file lines of the rows beyond the gate;
+    failures: (file line, reason) of the rows that could not be predicted; scale: the factor s
+    (from the report's variance factor); gate: the chi^2_k quantile d^2 / s^2 is compared with; units: the file's length unit.
+    """
+
+    path: Path
+    kind: Literal["closed_loop", "serial"]
+    lines: np.ndarray
+    predictions: np.ndarray
+    measured: np.ndarray
+    rows: np.ndarray
+    errors: PoseErrors
+    heading: np.ndarray | None
+    statistic: np.ndarray
+    sigmas: np.ndarray
+    flagged: tuple[int, ...]
+    failures: tuple[tuple[int, str], ...]
+    scale: float
+    gate: float
+    position_only: bool
+    units: str
+
+
+def sigma_equivalent(d2: np.ndarray, dof: int) -> np.ndarray:
+    """z with P(|N(0, 1)| > z) = P(chi^2_dof > d2), per entry: a chi-square statistic in normal sigmas.
+
+    From the log tail, so that z stays finite far beyond 8 sigma; where even the log tail
+    underflows (d2 in the thousands), sqrt(d2) stands in (the two agree within a few percent there).
+    """
+    d2 = np.asarray(d2, dtype=float)
+    z = -scipy.special.ndtri_exp(scipy.stats.chi2.logsf(d2, dof) - math.log(2.0))
+    return np.where(np.isfinite(z), z, np.sqrt(d2))
+
+
+def _predict_closed_loop(calibrated: Path, report: CalibrationReport, units: str, measurements: Path,
+                         progress: Callable[[int], None] | None) -> tuple[Campaign, np.ndarray, list[tuple[int, str]]]:
+    """Platform poses (N, 4, 4) of the calibrated M machine at each row's sliders (NaN where it fails)."""
+    from .description import Mechanism
+    from .kinematics import ClosedLoopSolver
+
+    mechanism = Mechanism.load(calibrated)
+    if report.measured_frame not in (None, mechanism.platform_frame):
+        raise InvalidInputError(f"{report.path}: report field 'measured_frame' is {report.measured_frame!r}, "
+                                f"but {calibrated} measures its platform frame '{mechanism.platform_frame}'")
+    model = mechanism.model
+    names = mechanism.actuated_joints
+    passive = tuple(model.names[j] for j in range(1, model.njoints) if model.names[j] not in names)
+    campaign = read_campaign(measurements, names, [_is_prismatic(model, n) for n in names], units, passive)
+    solver = ClosedLoopSolver(mechanism)
+    poses = np.full((len(campaign.lines), 4, 4), np.nan)
+    failures: list[tuple[int, str]] = []
+    for i, sliders in enumerate(campaign.readings):
+        try:
+            poses[i] = solver.forward(sliders, q_init=mechanism.home).pose.homogeneous
+        except (KinematicsError, InvalidInputError) as exc:
+            failures.append((int(campaign.lines[i]), f"{calibrated.name}: {exc}"))
+        if progress is not None:
+            progress(i + 1)
+    return campaign, poses, failures
+
+
+def _is_prismatic(model: pin.Model, joint: str) -> bool:
+    """Whether a 1-DoF joint translates (its motion subspace has no angular part)."""
+    j = model.getJointId(joint)
+    data = model.joints[j].createData()
+    model.joints[j].calc(data, pin.neutral(model))
+    return not np.any(np.asarray(data.S)[3:])
+
+
+def _predict_serial(calibrated: Path, report: CalibrationReport, units: str,
+                    measurements: Path) -> tuple[Campaign, np.ndarray]:
+    """Tool poses (N, 4, 4) in the chain's base frame of the calibrated serial robot at each row."""
+    from .poe import SerialChain, tool_poses
+
+    if not calibrated.is_file():
+        raise ModelFileError(calibrated, "file not found" if not calibrated.exists() else "not a regular file")
+    try:
+        model = pin.buildModelFromUrdf(str(calibrated))
+    except (RuntimeError, ValueError) as exc:
+        raise ModelFileError(calibrated, f"Pinocchio cannot read this URDF: {exc}") from None
+    try:
+        chain = SerialChain.from_model(model, report.tool, report.base)
+    except M3t1rError as exc:
+        raise ModelFileError(calibrated, f"chain of report {report.path.name} (base {report.base}, tool "
+                                         f"{report.tool}): {exc}") from None
+    if chain.joint_names != report.chain:
+        raise InvalidInputError(f"{report.path}: report field 'nominal_model.chain' lists {list(report.chain)}, but "
+                                f"{calibrated} has {list(chain.joint_names)} from {report.base} to {report.tool}")
+    campaign = read_campaign(measurements, chain.joint_names, [not np.any(s[3:]) for s in chain.twists], units)
+    return campaign, tool_poses(chain, model, campaign.readings)
+
+
+def _heading_errors(setup: MeasurementSetup, measured: np.ndarray, platform: np.ndarray) -> np.ndarray:
+    """Heading errors [rad] of the platform implied by each measurement against the predicted one."""
+    implied = setup.frame.rotation.T @ measured[:, :3, :3] @ setup.marker.rotation.T
+    yaw = lambda r: np.arctan2(r[:, 1, 0], r[:, 0, 0])  # noqa: E731  (kinematics.yaw_of, batched)
+    return np.angle(np.exp(1j * (yaw(implied) - yaw(platform[:, :3, :3]))))
+
+
+def _whitened(predicted: np.ndarray, measured: np.ndarray, noise: tuple[float, float], position_only: bool
+              ) -> np.ndarray:
+    """Per-row residual [dp / sigma_p, dr / sigma_r] (M, 3 or 6), dr = log3(R_measured^T R_predicted)."""
+    position = (predicted[:, :3, 3] - measured[:, :3, 3]) / noise[0]
+    if position_only:
+        return position
+    logs, _ = log3_batch(np.swapaxes(measured[:, :3, :3], 1, 2) @ predicted[:, :3, :3])
+    return np.hstack((position, logs / noise[1]))
+
+
+def validate(measurements: str | Path, calibrated: str | Path, report: str | Path, units: str | None = None,
+             progress: Callable[[int], None] | None = None) -> Validation:
+    """Predict every row of a measurement file with a calibrated model and compare (module docstring).
+
+    units: the file's length unit, "m" or "mm" (default: the unit of the calibration's input, as
+    the report records it, else m). progress: called with the number of rows done (M machine).
+    Rows that cannot be predicted (a slider set that does not assemble or is beyond its limit) are
+    listed in `failures` and the rest are assessed. Raises InvalidInputError when no row could be
+    predicted, and the errors of `read_report`, `read_campaign` and the model loaders.
+    """
+    info = read_report(report)
+    units = units or info.units or "m"
+    calibrated = Path(calibrated)
+    failures: list[tuple[int, str]] = []
+    if info.kind == "closed_loop":
+        campaign, platform, failures = _predict_closed_loop(calibrated, info, units, Path(measurements), progress)
+    else:
+        campaign, platform = _predict_serial(calibrated, info, units, Path(measurements))
+    ok = np.flatnonzero(np.all(np.isfinite(platform), axis=(1, 2)))
+    if ok.size == 0:
+        raise InvalidInputError(f"{campaign.path}: no row could be predicted; first failure, line "
+                                f"{failures[0][0]}: {failures[0][1]}")
+    predictions = np.full_like(platform, np.nan)
+    predictions[ok] = info.setup.measured_poses(platform[ok])
+    measured = campaign.measured[ok]
+    errors = pose_errors_between(predictions[ok], measured)
+    if campaign.position_only:
+        errors = PoseErrors(errors.position, np.full(ok.size, np.nan))
+    whitened = _whitened(predictions[ok], measured, info.noise, campaign.position_only)
+    dof = whitened.shape[1]
+    statistic = np.sum(whitened**2, axis=1)
+    scale = math.sqrt(max(1.0, info.variance_factor or 1.0))
+    gate = float(scipy.stats.chi2.isf(2.0 * scipy.stats.norm.sf(OUTLIER_SIGMA), dof))
+    mask = statistic / scale**2 > gate
+    heading = None if (info.kind != "closed_loop" or campaign.position_only) else \
+        _heading_errors(info.setup, measured, platform[ok])
+    return Validation(
+        path=campaign.path, kind=info.kind, lines=campaign.lines, predictions=predictions,
+        measured=campaign.measured, rows=ok, errors=errors, heading=heading, statistic=statistic,
+        sigmas=sigma_equivalent(statistic / scale**2, dof),
+        flagged=tuple(int(campaign.lines[i]) for i in ok[mask]), failures=tuple(failures), scale=scale,
+        gate=gate,
+        position_only=campaign.position_only, units=units)

@@ -1,0 +1,168 @@
+"""`m3t1r plan` and `m3t1r.planning`: a D-optimal plan calibrates the machine to the noise level,
+beats random poses, stays assemblable and within limits, is ordered for short travel, and its
+predicted accuracy is the one a calibration on it reports."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import itertools
+
+import numpy as np
+import pytest
+
+from m3t1r.calibration import (ClosedLoopErrorModel, TrackerNoise, calibrate_closed_loop, pose_errors,
+                               predicted_pose_std)
+from m3t1r.datasets import read_actuators
+from m3t1r.errors import InvalidInputError, M3t1rError
+from m3t1r.identification import select_base_parameters
+from m3t1r.io import read_table
+from m3t1r.kinematics import ClosedLoopSolver
+from m3t1r.planning import order_for_travel, path_travel, plan_closed_loop, plan_serial
+from m3t1r.pose_selection import closed_loop_candidate_blocks, information_log_det
+from m3t1r.poe import SerialChain
+from m3t1r.serial import load_example_robot
+from m3t1r.simulation import actual_machine, measure, random_placement_errors, workspace_actuators
+
+
+def run(argv: list[str]) -> int:
+    """The verbs through cli_campaign's own registration, with `m3t1r.cli.main`'s exit statuses."""
+    from m3t1r.cli_campaign import add_plan_parser, add_validate_parser
+
+    parser = argparse.ArgumentParser(prog="m3t1r")
+    verbs = parser.add_subparsers(dest="verb", required=True)
+    add_plan_parser(verbs)
+    add_validate_parser(verbs)
+    args = parser.parse_args(argv)
+    try:
+        args.run(args)
+    except (M3t1rError, OSError) as exc:
+        print(f"m3t1r: error: {exc}")
+        return 2
+    return 0
+
+
+@pytest.fixture(scope="module")
+def plan_file(tmp_path_factory):
+    """`m3t1r plan -n 40 -o PLAN.csv` (seed 0, 800 candidates) and its printed summary."""
+    path = tmp_path_factory.mktemp("plan") / "plan.csv"
+    stream = io.StringIO()
+    with contextlib.redirect_stdout(stream):
+        status = run(["plan", "-n", "40", "-o", str(path)])
+    assert status == 0, stream.getvalue()
+    return path, stream.getvalue()
+
+
+def test_plan_of_40_calibrates_to_the_noise_level(plan_file, mechanism) -> None:
+    """Acceptance: simulate a truth machine measured at exactly the planned slider sets, calibrate,
+    and judge on 200 other workspace slider sets: at most 10 um mean position error."""
+    path, printed = plan_file
+    sliders, _ = read_actuators(path, mechanism)  # also checks every slider against its limits
+    assert sliders.shape == (40, 4)
+    rng = np.random.default_rng(11)
+    truth = actual_machine(mechanism, random_placement_errors(ClosedLoopErrorModel(mechanism), rng, 1e-3, 1e-3))
+    noise = TrackerNoise(10e-6, 20e-6)
+    calibration = calibrate_closed_loop(mechanism, measure(truth, sliders, rng, noise), noise)
+    held_out = workspace_actuators(mechanism, 200, np.random.default_rng(12))
+    errors = pose_errors(calibration.mechanism, truth, held_out)
+    print(f"held-out after plan -n 40: {errors.position_mean * 1e6:.2f} um mean, {errors.position_max * 1e6:.2f} um "
+          f"max, {errors.rotation_mean * 1e6:.2f} urad mean")
+    assert errors.position_mean <= 10e-6
+    assert errors.rotation_mean <= 20e-6
+    # The printed prediction is what the calibration itself predicts on those poses.
+    predicted = float(printed.split("position     mean ")[1].split()[0])
+    reported = predicted_pose_std(calibration, held_out)
+    assert predicted == pytest.approx(reported.position_mean, rel=0.15)
+
+
+def test_plan_rows_assemble_on_the_home_branch_within_limits(plan_file, mechanism) -> None:
+    path, printed = plan_file
+    text = path.read_text()
+    assert text.startswith("# written by m3t1r") and "# command: m3t1r" in text
+    assert "q11 [m]" in text and "chosen D-optimally among 800 candidates" in printed
+    table = read_table(path, required=mechanism.actuated_joints)
+    sliders = np.column_stack([table.column(n) for n in mechanism.actuated_joints])
+    lower, upper = mechanism.joint_limits()
+    assert np.all(sliders >= lower) and np.all(sliders <= upper)
+    solver = ClosedLoopSolver(mechanism)
+    for row in sliders:
+        assert solver.forward(row, q_init=mechanism.home).residual < 1e-9
+    assert len({tuple(row) for row in sliders}) == 40
+
+
+def test_plan_is_d_better_than_random_slider_sets(plan_file, mechanism) -> None:
+    path, _ = plan_file
+    planned, _ = read_actuators(path, mechanism)
+    rng = np.random.default_rng(5)
+    random_sets = [workspace_actuators(mechanism, 40, rng) for _ in range(3)]
+    blocks, names = closed_loop_candidate_blocks(mechanism, np.vstack([planned, *random_sets]))
+    columns = list(select_base_parameters(blocks.reshape(-1, len(names)), names, 1e-9,
+                                          max_condition=np.inf).indices)
+    planned_value = information_log_det(blocks[:, :, columns], range(40))
+    random_values = [information_log_det(blocks[:, :, columns], range(40 * k, 40 * k + 40)) for k in (1, 2, 3)]
+    print(f"log det: plan {planned_value:.1f}, random {', '.join(f'{v:.1f}' for v in random_values)}")
+    assert all(planned_value > v + 10.0 for v in random_values)  # e^10: a much smaller confidence volume
+
+
+def test_ordering_shortens_travel_and_keeps_every_pose() -> None:
+    points = np.random.default_rng(0).uniform(-0.5, 0.5, (40, 4))
+    start = np.zeros(4)
+    order = order_for_travel(points, start)
+    assert sorted(order.tolist()) == list(range(40))
+    ordered = path_travel(points[order], start)
+    assert ordered < 0.5 * path_travel(points, start)
+    assert path_travel(points[:1], start) == pytest.approx(np.max(np.abs(points[0])))
+
+
+def test_two_opt_is_optimal_on_a_small_set() -> None:
+    points = np.random.default_rng(3).uniform(-1, 1, (7, 2))
+    start = np.zeros(2)
+    best = min(path_travel(points[list(p)], start) for p in itertools.permutations(range(7)))
+    assert path_travel(points[order_for_travel(points, start)], start) <= best * 1.1  # 2-opt: near optimal
+
+
+def test_library_plan_travel_and_accuracy(mechanism) -> None:
+    plan = plan_closed_loop(mechanism, 15, np.random.default_rng(1), n_candidates=150, n_evaluation=30)
+    assert plan.n_poses == 15 and plan.travel < plan.travel_selection_order
+    assert sorted(plan.candidate_indices) == list(plan.selection.indices)
+    assert plan.accuracy.n == 30 and np.all(plan.accuracy.std.position > 0)
+    home = mechanism.home[[mechanism.model.idx_qs[mechanism.model.getJointId(n)] for n in mechanism.actuated_joints]]
+    np.testing.assert_allclose(plan.start, home)
+    position_only = plan_closed_loop(mechanism, 25, np.random.default_rng(1), n_candidates=150, n_evaluation=30,
+                                     position_only=True)
+    assert np.all(np.isnan(position_only.accuracy.std.rotation)) and position_only.accuracy.std.position_mean > 0
+
+
+def test_serial_plan(tmp_path, capsys) -> None:
+    assert run(["plan", "-n", "20", "--serial", "ur5", "--candidates", "200", "-o", str(tmp_path / "ur5.csv")]) == 0
+    out = capsys.readouterr().out
+    model = load_example_robot("ur5")
+    chain = SerialChain.from_model(model, "tool0")
+    table = read_table(tmp_path / "ur5.csv", required=chain.joint_names)
+    q = np.column_stack([table.column(n) for n in chain.joint_names])
+    lower, upper = chain.position_limits(model)
+    assert q.shape == (20, 6) and np.all(q >= lower) and np.all(q <= upper)
+    assert "20 joint configurations" in out and "rad in this order" in out
+    plan = plan_serial(model, chain, 20, np.random.default_rng(0), n_candidates=200, n_evaluation=20)
+    assert plan.travel < plan.travel_selection_order and plan.column_units == ("rad",) * 6
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["-n", "0"], "must be >= 1"),
+    (["-n", "10", "--candidates", "5"], "5 candidates"),
+    (["-n", "5"], "cannot identify"),
+    (["-n", "10", "--serial", "ur5", "--model", "x.urdf"], "--model/--closures"),
+    (["-n", "10", "--tool", "tool0"], "--serial only"),
+    (["-n", "10", "--serial", "nowhere.urdf"], "nowhere.urdf: file not found"),
+    (["-n", "10", "--serial", "ur5", "--tool", "no_frame"], "no_frame"),
+])
+def test_plan_errors(tmp_path, capsys, argv, message) -> None:
+    assert run(["plan", *argv, "-o", str(tmp_path / "plan.csv")]) == 2
+    assert message in capsys.readouterr().out
+    assert not (tmp_path / "plan.csv").exists()
+
+
+def test_bad_counts_in_the_library(mechanism) -> None:
+    with pytest.raises(InvalidInputError):
+        plan_closed_loop(mechanism, 3, np.random.default_rng(0), n_candidates=2)

@@ -1,0 +1,278 @@
+"""`m3t1r validate` and `m3t1r.validation`: predictions through the measurement frame and marker,
+units, flags, failed rows, PRED.csv, and typed errors for bad reports and files."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import scipy.stats
+
+from m3t1r.calibration import ClosedLoopErrorModel, TrackerNoise
+from m3t1r.description import Mechanism
+from m3t1r.errors import DataFileError, InvalidInputError, M3t1rError, ModelFileError
+from m3t1r.io import POSE_COLUMNS, pose_rows, read_table, write_table
+from m3t1r.measurement_setup import MeasurementSetup, se3_to_report
+from m3t1r.poe import SerialChain, tool_poses
+from m3t1r.serial import example_robot_data_dir, load_example_robot, sample_configurations
+from m3t1r.simulation import actual_machine, measure, random_placement_errors, workspace_actuators
+from m3t1r.validation import read_report, sigma_equivalent, validate
+
+N_ROWS = 12
+SETUP = MeasurementSetup(pin.SE3(pin.utils.rpyToMatrix(0.1, -0.2, 2.5), np.array([3.0, -1.5, 0.8])),
+                         pin.SE3(pin.utils.rpyToMatrix(0.3, 0.0, -0.4), np.array([0.05, -0.02, 0.11])))
+
+
+def run(argv: list[str]) -> int:
+    """The verbs through cli_campaign's own registration, with `m3t1r.cli.main`'s exit statuses."""
+    from m3t1r.cli import RowFailures
+    from m3t1r.cli_campaign import add_plan_parser, add_validate_parser
+
+    parser = argparse.ArgumentParser(prog="m3t1r")
+    verbs = parser.add_subparsers(dest="verb", required=True)
+    add_plan_parser(verbs)
+    add_validate_parser(verbs)
+    args = parser.parse_args(argv)
+    try:
+        args.run(args)
+    except RowFailures as exc:
+        print(f"m3t1r: error: {exc}")
+        return 1
+    except (M3t1rError, OSError) as exc:
+        print(f"m3t1r: error: {exc}")
+        return 2
+    return 0
+
+
+def report_document(kind: str = "closed_loop", units: str = "m", **nominal) -> dict:
+    return {"kind": kind, "input": {"path": "cal.csv", "sha256": "0" * 64, "poses": 40, "position_only": False,
+                                    "units": units},
+            "nominal_model": nominal or {"urdf": "nominal.urdf", "closures": "nominal.closures.yaml"},
+            "measured_frame": "P_I" if kind == "closed_loop" else nominal.get("tool"),
+            "measurement_frame": {**se3_to_report(SETUP.frame), "estimated": True},
+            "marker": {**se3_to_report(SETUP.marker), "estimated": True},
+            "noise_model": {"position_m": 10e-6, "rotation_rad": 20e-6, "actuator_m": 1e-6},
+            "converged": True, "variance_factor": 1.0, "outliers": [],
+            "cross_validation": {"position_mean_m": 1e-5, "rotation_mean_rad": 2e-5, "folds": 5}}
+
+
+def write_campaign(path: Path, columns, readings, poses: np.ndarray, scale: float = 1.0, position_only: bool = False,
+                   extra: dict[int, str] | None = None) -> None:
+    """A measurement CSV: readings (N, n) and poses (N, 4, 4) [m], lengths divided by `scale` (1e-3: mm)."""
+    rows = pose_rows([pin.SE3(p) for p in poses])
+    rows[:, :3] /= scale
+    data = np.hstack((readings, rows[:, :3] if position_only else rows))
+    names = list(columns) + list(POSE_COLUMNS[:3] if position_only else POSE_COLUMNS)
+    write_table(path, names, data, ["a tracker campaign, " + ("mm" if scale != 1.0 else "m")])
+
+
+@pytest.fixture(scope="module")
+def machine(tmp_path_factory, mechanism):
+    """A truth machine saved as the 'calibrated' model, its report, and noise-free measurements of it."""
+    folder = tmp_path_factory.mktemp("validate")
+    rng = np.random.default_rng(7)
+    truth = actual_machine(mechanism, random_placement_errors(ClosedLoopErrorModel(mechanism), rng, 1e-3, 1e-3))
+    truth.save(folder / "cal.urdf", folder / "cal.closures.yaml")
+    sliders = workspace_actuators(mechanism, N_ROWS, rng)
+    exact = measure(truth, sliders, setup=SETUP)
+    poses = np.array([p.homogeneous for p in exact.poses])
+    (folder / "report.json").write_text(json.dumps(report_document()))
+    write_campaign(folder / "exact.csv", mechanism.actuated_joints, sliders, poses)
+    noisy = measure(truth, sliders, rng, TrackerNoise(), setup=SETUP)
+    return folder, truth, sliders, poses, noisy
+
+
+def test_noise_free_rows_are_predicted_exactly_through_frame_and_marker(machine, capsys) -> None:
+    folder, _, _, poses, _ = machine
+    assert run(["validate", str(folder / "exact.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
+                str(folder / "report.json"), "--predictions", str(folder / "pred.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "position [m]" in out and "heading |yaw| [rad]" in out and "rows beyond 5 sigma" in out
+    assert "FLAGGED" not in out
+    table = read_table(folder / "pred.csv", required=POSE_COLUMNS)
+    np.testing.assert_allclose(np.column_stack([table.column(c) for c in POSE_COLUMNS]),
+                               pose_rows([pin.SE3(p) for p in poses]), atol=1e-9)
+    result = validate(folder / "exact.csv", folder / "cal.urdf", folder / "report.json")
+    assert result.predictions.shape == (N_ROWS, 4, 4) and result.failures == () and result.flagged == ()
+    assert result.errors.position_max < 1e-9 and result.errors.rotation_max < 1e-9
+    assert np.max(np.abs(result.heading)) < 1e-9
+    with pytest.raises(AttributeError):
+        result.flagged = (1,)  # frozen
+
+
+def test_without_the_setup_every_row_is_off_by_metres(machine, tmp_path) -> None:
+    folder, *_ = machine
+    document = report_document()
+    document["measurement_frame"] = {**se3_to_report(pin.SE3.Identity()), "estimated": False}
+    (tmp_path / "identity.json").write_text(json.dumps(document))
+    result = validate(folder / "exact.csv", folder / "cal.urdf", tmp_path / "identity.json")
+    assert result.errors.position_mean > 1.0 and len(result.flagged) == N_ROWS
+
+
+def test_millimetre_file_gives_the_same_errors_and_predictions_in_mm(machine, tmp_path, mechanism, capsys) -> None:
+    folder, _, sliders, poses, noisy = machine
+    noisy_poses = np.array([p.homogeneous for p in noisy.poses])
+    write_campaign(tmp_path / "m.csv", mechanism.actuated_joints, sliders, noisy_poses)
+    write_campaign(tmp_path / "mm.csv", mechanism.actuated_joints, sliders * 1e3, noisy_poses, scale=1e-3)
+    in_m = validate(tmp_path / "m.csv", folder / "cal.urdf", folder / "report.json")
+    in_mm = validate(tmp_path / "mm.csv", folder / "cal.urdf", folder / "report.json", units="mm")
+    np.testing.assert_allclose(in_mm.errors.position, in_m.errors.position, rtol=1e-6, atol=1e-12)
+    assert 3e-6 < in_m.errors.position_mean < 4e-5 and 5e-6 < in_m.errors.rotation_mean < 8e-5  # ~1.6 sigma
+    assert run(["validate", str(tmp_path / "mm.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
+                str(folder / "report.json"), "--units", "mm", "--predictions", str(tmp_path / "pred.csv")]) == 0
+    assert "position [mm]" in capsys.readouterr().out
+    table = read_table(tmp_path / "pred.csv", required=POSE_COLUMNS)
+    np.testing.assert_allclose(table.column("x"), poses[:, 0, 3] * 1e3, atol=1e-6)
+    # Without --units, the unit of the calibration input (the report's input.units) applies.
+    document = report_document(units="mm")
+    (tmp_path / "mm.json").write_text(json.dumps(document))
+    default = validate(tmp_path / "mm.csv", folder / "cal.urdf", tmp_path / "mm.json")
+    assert default.units == "mm" and default.errors.position_mean == pytest.approx(in_m.errors.position_mean)
+
+
+def test_gross_errors_are_flagged_by_line_and_exit_status_stays_zero(machine, tmp_path, mechanism, capsys) -> None:
+    folder, _, sliders, _, noisy = machine
+    poses = np.array([p.homogeneous for p in noisy.poses])
+    poses[[2, 7], :3, 3] += np.array([[2e-4, 0, 0], [0, 0, -3e-4]])
+    write_campaign(tmp_path / "spoiled.csv", mechanism.actuated_joints, sliders, poses)
+    assert run(["validate", str(tmp_path / "spoiled.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
+                str(folder / "report.json")]) == 0
+    out = capsys.readouterr().out
+    lines = read_table(tmp_path / "spoiled.csv", required=mechanism.actuated_joints, optional=POSE_COLUMNS).line_numbers
+    assert out.count("FLAGGED") == 2
+    result = validate(tmp_path / "spoiled.csv", folder / "cal.urdf", folder / "report.json")
+    assert result.flagged == (int(lines[2]), int(lines[7]))
+    assert np.all(result.sigmas[[2, 7]] > 5) and np.all(np.delete(result.sigmas, [2, 7]) < 5)
+    assert result.gate == pytest.approx(scipy.stats.chi2.isf(2 * scipy.stats.norm.sf(5.0), 6))
+
+
+def test_position_only_gate_is_chi_square_with_three_dof(machine, tmp_path, mechanism) -> None:
+    folder, _, sliders, _, noisy = machine
+    poses = np.array([p.homogeneous for p in noisy.poses])
+    poses[4, :3, 3] += np.array([0.0, 6.2e-5, 0.0])  # ~6 sigma_p on top of noise: beyond 5.64, below 8.66
+    write_campaign(tmp_path / "xyz.csv", mechanism.actuated_joints, sliders, poses, position_only=True)
+    result = validate(tmp_path / "xyz.csv", folder / "cal.urdf", folder / "report.json")
+    assert result.position_only and np.all(np.isnan(result.errors.rotation)) and result.heading is None
+    assert result.gate == pytest.approx(31.81, abs=0.01)
+    assert int(result.lines[4]) in result.flagged
+
+
+def test_rows_that_do_not_assemble_are_listed_and_the_rest_assessed(machine, tmp_path, mechanism, capsys) -> None:
+    folder, _, sliders, poses, _ = machine
+    bad = sliders.copy()
+    bad[3, 0] = 0.75  # beyond the slider limit 0.6 m
+    write_campaign(tmp_path / "bad.csv", mechanism.actuated_joints, bad, poses)
+    line = int(read_table(tmp_path / "bad.csv", required=mechanism.actuated_joints,
+                          optional=POSE_COLUMNS).line_numbers[3])
+    common = ["validate", str(tmp_path / "bad.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
+              str(folder / "report.json")]
+    assert run(common) == 0
+    out = capsys.readouterr().out
+    assert f"line {line} not predicted" in out and f"{N_ROWS - 1} of {N_ROWS} rows predicted" in out
+    result = validate(tmp_path / "bad.csv", folder / "cal.urdf", folder / "report.json")
+    assert [f[0] for f in result.failures] == [line] and np.all(np.isnan(result.predictions[3]))
+    assert result.errors.position_max < 1e-9
+    assert run(common + ["--predictions", str(tmp_path / "pred.csv")]) == 1
+    assert f"line {line}" in capsys.readouterr().out and not (tmp_path / "pred.csv").exists()
+
+
+def test_the_reports_variance_factor_widens_the_gate(machine, tmp_path, mechanism) -> None:
+    folder, _, sliders, _, noisy = machine
+    poses = np.array([p.homogeneous for p in noisy.poses])
+    poses[5, :3, 3] += np.array([1.2e-4, 0.0, 0.0])  # about 12 sigma_p
+    write_campaign(tmp_path / "one.csv", mechanism.actuated_joints, sliders, poses)
+    assert len(validate(tmp_path / "one.csv", folder / "cal.urdf", folder / "report.json").flagged) == 1
+    document = report_document()
+    document["variance_factor"] = 9.0  # the calibration saw 3x the stated noise
+    (tmp_path / "wide.json").write_text(json.dumps(document))
+    wide = validate(tmp_path / "one.csv", folder / "cal.urdf", tmp_path / "wide.json")
+    assert wide.scale == pytest.approx(3.0) and wide.flagged == ()
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d.update(kind="paper"), "'kind'"),
+    (lambda d: d.pop("kind"), "'kind' is missing"),
+    (lambda d: d["noise_model"].pop("position_m"), "'noise_model.position_m' is missing"),
+    (lambda d: d["noise_model"].update(rotation_rad=-1), "'noise_model.rotation_rad' must be a positive"),
+    (lambda d: d.pop("marker"), "'marker' is missing"),
+    (lambda d: d["measurement_frame"].update(quaternion=[0, 0, 0, 2]), "measurement_frame"),
+    (lambda d: d.update(measured_frame="tool0"), "'measured_frame'"),
+    (lambda d: d.update(variance_factor="big"), "'variance_factor'"),
+])
+def test_bad_reports_are_refused_naming_file_and_field(machine, tmp_path, edit, message, capsys) -> None:
+    folder, *_ = machine
+    document = report_document()
+    edit(document)
+    (tmp_path / "bad.json").write_text(json.dumps(document))
+    with pytest.raises(InvalidInputError, match=message) as caught:
+        validate(folder / "exact.csv", folder / "cal.urdf", tmp_path / "bad.json")
+    assert "bad.json" in str(caught.value)
+    assert run(["validate", str(folder / "exact.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
+                str(tmp_path / "bad.json")]) == 2
+
+
+def test_missing_files_are_typed_errors_naming_the_file(machine, tmp_path) -> None:
+    folder, *_ = machine
+    with pytest.raises(InvalidInputError, match="nowhere.json"):
+        validate(folder / "exact.csv", folder / "cal.urdf", tmp_path / "nowhere.json")
+    with pytest.raises(DataFileError, match="nowhere.csv"):
+        validate(tmp_path / "nowhere.csv", folder / "cal.urdf", folder / "report.json")
+    with pytest.raises(ModelFileError, match="nowhere.urdf"):
+        validate(folder / "exact.csv", tmp_path / "nowhere.urdf", folder / "report.json")
+    (tmp_path / "text.json").write_text("not json")
+    with pytest.raises(InvalidInputError, match="text.json: not a JSON report"):
+        read_report(tmp_path / "text.json")
+
+
+def test_predictions_never_overwrite_an_input(machine, capsys) -> None:
+    folder, *_ = machine
+    before = (folder / "exact.csv").read_bytes()
+    assert run(["validate", str(folder / "exact.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
+                str(folder / "report.json"), "--predictions", str(folder / "exact.csv")]) == 2
+    assert (folder / "exact.csv").read_bytes() == before
+    assert "refusing to overwrite the input" in capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def serial_robot():
+    urdf = example_robot_data_dir() / "ur_description" / "urdf" / "ur5_robot.urdf"
+    model = load_example_robot("ur5")
+    chain = SerialChain.from_model(model, "tool0")
+    return urdf, model, chain
+
+
+def test_serial_rows_are_predicted_through_the_reports_chain(serial_robot, tmp_path, capsys) -> None:
+    urdf, model, chain = serial_robot
+    q = sample_configurations(model, chain, 10, np.random.default_rng(3))
+    measured = SETUP.measured_poses(tool_poses(chain, model, q))
+    write_campaign(tmp_path / "ur5.csv", chain.joint_names, q, measured, scale=1e-3)
+    document = report_document("serial", "mm", robot="ur5", base=None, tool="tool0", chain=list(chain.joint_names))
+    (tmp_path / "report.json").write_text(json.dumps(document))
+    result = validate(tmp_path / "ur5.csv", urdf, tmp_path / "report.json")
+    assert result.kind == "serial" and result.heading is None
+    assert result.errors.position_max < 1e-9 and result.errors.rotation_max < 1e-9
+    assert run(["validate", str(tmp_path / "ur5.csv"), "--calibrated", str(urdf), "--report",
+                str(tmp_path / "report.json"), "--predictions", str(tmp_path / "pred.csv")]) == 0
+    assert "heading" not in capsys.readouterr().out
+    table = read_table(tmp_path / "pred.csv", required=POSE_COLUMNS)
+    np.testing.assert_allclose(table.column("z"), measured[:, 2, 3] * 1e3, atol=1e-6)
+    document["nominal_model"]["chain"] = list(chain.joint_names[:-1])
+    (tmp_path / "short.json").write_text(json.dumps(document))
+    with pytest.raises(InvalidInputError, match="'nominal_model.chain'"):
+        validate(tmp_path / "ur5.csv", urdf, tmp_path / "short.json")
+    document["nominal_model"]["tool"] = "no_such_frame"
+    (tmp_path / "tool.json").write_text(json.dumps(document))
+    with pytest.raises(ModelFileError, match="no_such_frame"):
+        validate(tmp_path / "ur5.csv", urdf, tmp_path / "tool.json")
+
+
+def test_sigma_equivalent_inverts_the_gate() -> None:
+    gate3 = scipy.stats.chi2.isf(2 * scipy.stats.norm.sf(5.0), 3)
+    np.testing.assert_allclose(sigma_equivalent(np.array([gate3, 1.0]), 3)[0], 5.0, rtol=1e-9)
+    assert sigma_equivalent(np.array([1e6]), 6)[0] == pytest.approx(1e3)  # beyond double range: sqrt(d^2)
+    z = sigma_equivalent(np.array([scipy.stats.chi2.isf(2 * scipy.stats.norm.sf(2.0), 6)]), 6)
+    assert z[0] == pytest.approx(2.0, rel=1e-9)
