@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench models clean
+.PHONY: demo test bench models mutation clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -20,6 +20,12 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
+
+# Mutation testing of the core modules, one module at a time, in copies under build/mutation/
+# (slow: not part of `make test`). MODULES="kinematics poe" restricts it; see docs/mutation.md.
+MODULES ?=
+mutation: $(STAMP)
+	$(BIN)/python tools/mutation.py $(MODULES)
 
 # Regenerate models/m3t1r.urdf and models/m3t1r.closures.yaml from the nominal design.
 models: $(STAMP)

@@ -61,3 +61,47 @@ def test_too_few_iterations_is_not_converged_not_out_of_workspace(mechanism):
     with pytest.raises(NotConvergedError) as caught:
         ClosedLoopSolver(mechanism, tolerance=1e-300, max_iterations=1).forward(ik.actuators, q_init=start)
     assert caught.value.residual <= 1e-6
+
+
+# --------------------------------------------------------------------------------------------------
+# Survivors of the first `make mutation` run (docs/mutation.md)
+
+
+def test_diagonal_blocks_of_a_block_triangular_pattern():
+    """Rows/columns permuted lower block-triangular pattern: blocks {0, 2} (2 x 2) and {1} (1 x 1)."""
+    from m3t1r.kinematics import diagonal_blocks
+
+    pattern = np.array([[1, 0, 1], [1, 1, 0], [1, 0, 1]], dtype=bool)
+    blocks = sorted((sorted(r.tolist()), sorted(c.tolist())) for r, c in diagonal_blocks(pattern))
+    assert blocks == [([0, 2], [0, 2]), ([1], [1])]
+    # Each row's matched column is one of its own non-zeros.
+    for rows, cols in diagonal_blocks(pattern):
+        assert pattern[np.ix_(rows, cols)].any(axis=1).all()
+    from m3t1r.errors import SingularConfigurationError
+    with pytest.raises(SingularConfigurationError, match="structurally singular"):
+        diagonal_blocks(np.array([[1, 1], [0, 0]], dtype=bool))
+
+
+@pytest.mark.parametrize("target, most", [((0.55, 0.6, -0.1, 0.3), 6), ((0.45, 0.3, -0.2, -0.6), 8),
+                                          ((0.58, 0.8, -0.02, 0.7), 7)])
+def test_cold_inverse_converges_quadratically(mechanism, target, most):
+    """Exact Newton from home: a wrong yaw-row Jacobian still converges, but in more steps."""
+    assert ClosedLoopSolver(mechanism).inverse(target).iterations <= most
+
+
+def test_closure_residual_by_closure_sizes(mechanism):
+    from m3t1r.kinematics import closure_residual_by_closure
+
+    sizes = {spec.name: residual.shape for spec, residual in closure_residual_by_closure(mechanism, mechanism.home)}
+    assert sizes["platform"] == (6,) and sizes["five_bar_I"] == (3,)
+    solver = ClosedLoopSolver(mechanism)
+    full = np.concatenate([r for _, r in closure_residual_by_closure(mechanism, mechanism.home + 0.01)])
+    np.testing.assert_allclose(solver.closure_residual(mechanism.home + 0.01, all_rows=True), full, atol=1e-15)
+
+
+def test_bad_configuration_is_named(solver, mechanism):
+    with pytest.raises(InvalidInputError, match="configuration q"):
+        solver.closure_residual(np.full(mechanism.model.nq, np.nan))
+    with pytest.raises(InvalidInputError, match="configuration q"):
+        solver.closure_jacobian(np.zeros(3))
+    assert solver.mobility(mechanism.home, all_rows=True) == 4
