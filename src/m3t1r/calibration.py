@@ -36,7 +36,7 @@ from .errors import IdentificationError, InvalidInputError, KinematicsError, Poo
 from .identification import (OUTLIER_SIGMA, BaseParameters, LMResult, ParameterSelection, forward_selection,
                              levenberg_marquardt, outlier_poses, select_base_parameters)
 from .kinematics import ClosedLoopSolver, rehomed
-from .measurement_setup import MeasurementSetup, register_frame
+from .measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
 from .metrics import PoseErrors  # re-exported: one pose-error type for every calibration
 from .poe import adjoint_matrices, jlog3_batch, log3_batch, placement_of, skew
 
@@ -333,11 +333,7 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
         start = problem.assemble(mechanism.model, (mechanism.home,) * len(measurements), setup=setup)
     except KinematicsError as exc:
         raise IdentificationError(f"a measured pose does not assemble on the starting model: {exc}") from None
-    if estimate_frame:
-        nominal_frames = MeasurementSetup(marker=setup.marker).measured_poses(
-            np.array([pose.homogeneous for pose in start.poses]))
-        start.setup = replace(setup, frame=register_frame(nominal_frames, problem._measured_positions,
-                                                          problem._measured_rotations))
+    start.setup = _registered_setup(problem, start, setup, estimate_frame, estimate_marker)
     residual, jacobian, sensitivities = problem.evaluate(start, everything)
     whitened = jacobian * problem.weights[:, None]
     whitened[:, fixed_columns] = 0.0
@@ -365,6 +361,20 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     if refine:
         result = _refine(problem, result, refine_rank_tolerance, refine_iterations)
     return replace(_calibration(mechanism, problem, start, result, base, selection), start=start, options=options)
+
+
+def _registered_setup(problem: _ClosedLoopProblem, start: _State, setup: MeasurementSetup, estimate_frame: bool,
+                      estimate_marker: bool) -> MeasurementSetup:
+    """The setup LM starts from: the frame by rigid registration of the nominal predictions
+    (positions), then, with orientation data, the marker's orientation in closed form."""
+    platform = np.array([pose.homogeneous for pose in start.poses])
+    if estimate_frame:
+        setup = replace(setup, frame=register_frame(MeasurementSetup(marker=setup.marker).measured_poses(platform),
+                                                    problem._measured_positions))
+    if estimate_marker and problem._measured_rotations is not None:
+        rotation = register_marker_rotation(setup.frame, platform, problem._measured_rotations)
+        setup = replace(setup, marker=pin.SE3(rotation, setup.marker.translation))
+    return setup
 
 
 def _fit(problem: _ClosedLoopProblem, state: _State, options: dict) -> LMResult:

@@ -25,7 +25,8 @@ from scipy.spatial.transform import Rotation
 
 from .errors import IdentificationError, InvalidInputError
 
-__all__ = ["MeasurementSetup", "LENGTH_UNITS", "register_frame", "se3_from_report", "se3_to_report"]
+__all__ = ["MeasurementSetup", "LENGTH_UNITS", "register_frame", "register_marker_rotation", "se3_from_report",
+           "se3_to_report"]
 
 #: Length units a measurement file may use, in metres per unit (command-line lengths stay in m).
 LENGTH_UNITS: Mapping[str, float] = {"m": 1.0, "mm": 1e-3}
@@ -80,28 +81,29 @@ class MeasurementSetup:
         return MeasurementSetup(entry("measurement_frame"), entry("marker"))
 
 
-def register_frame(model_poses: ArrayLike, measured_positions: ArrayLike,
-                   measured_rotations: ArrayLike | None = None) -> pin.SE3:
+def register_frame(model_poses: ArrayLike, measured_positions: ArrayLike) -> pin.SE3:
     """Closed-form rigid registration: the frame F minimising sum |F p_model - p_measured|^2.
 
-    model_poses: (N, 4, 4) measured frames as the model predicts them in the robot base;
-    measured_positions (N, 3) [m]; measured_rotations (N, 3, 3) or None. With orientations, each
-    pose also pairs the model's and the measured frame's axes, weighted by the spread of the points
-    so that points and axes count alike. Any rotation is found (SVD of the cross-covariance,
-    scipy's `Rotation.align_vectors`), and the translation follows from the centroids. Raises
-    IdentificationError when the points are too few or collinear and no orientation was measured.
+    model_poses: (N, 4, 4) measured frames as the model predicts them in the robot base (their
+    positions are used); measured_positions (N, 3) [m]. Any rotation is found (SVD of the
+    cross-covariance, scipy's `Rotation.align_vectors`), and the translation follows from the
+    centroids. Positions only, so that an unknown marker orientation cannot spoil it (see
+    `register_marker_rotation`). Raises IdentificationError when the points are too few or collinear.
     """
-    poses = np.asarray(model_poses, dtype=float)
+    points = np.asarray(model_poses, dtype=float)[:, :3, 3]
     measured = np.asarray(measured_positions, dtype=float)
-    points = poses[:, :3, 3]
     centroid_model, centroid_measured = points.mean(axis=0), measured.mean(axis=0)
     a, b = measured - centroid_measured, points - centroid_model
-    if measured_rotations is not None:
-        spread = float(np.sqrt(np.mean(np.sum(b**2, axis=1)))) or 1.0
-        measured_axes = np.asarray(measured_rotations, dtype=float).transpose(0, 2, 1).reshape(-1, 3)
-        model_axes = poses[:, :3, :3].transpose(0, 2, 1).reshape(-1, 3)
-        a, b = np.vstack((a, spread * measured_axes)), np.vstack((b, spread * model_axes))
-    elif len(points) < 3 or np.linalg.matrix_rank(b, tol=1e-9 * max(np.abs(b).max(), 1e-300)) < 2:
+    if len(points) < 3 or np.linalg.svd(b, compute_uv=False)[1] <= 1e-6 * max(np.abs(b).max(), 1e-300):
         raise IdentificationError("the measured positions are too few or collinear to place the measurement frame")
     rotation = Rotation.align_vectors(a, b)[0].as_matrix()
     return pin.SE3(rotation, centroid_measured - rotation @ centroid_model)
+
+
+def register_marker_rotation(frame: pin.SE3, platform_poses: ArrayLike, measured_rotations: ArrayLike) -> np.ndarray:
+    """Closed-form marker orientation R_M from R_measured,i = R_F R_P,i R_M: the rotation nearest
+    (chordal mean, by SVD projection) to the per-pose estimates (R_F R_P,i)^T R_measured,i."""
+    platform = np.asarray(platform_poses, dtype=float)[:, :3, :3]
+    estimates = np.swapaxes(frame.rotation @ platform, 1, 2) @ np.asarray(measured_rotations, dtype=float)
+    u, _, vt = np.linalg.svd(estimates.sum(axis=0))
+    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
