@@ -265,6 +265,7 @@ def test_serial_rows_are_predicted_through_the_reports_chain(serial_robot, tmp_p
     with pytest.raises(InvalidInputError, match="'nominal_model.chain'"):
         validate(tmp_path / "ur5.csv", urdf, tmp_path / "short.json")
     document["nominal_model"]["tool"] = "no_such_frame"
+    document["measured_frame"] = "no_such_frame"
     (tmp_path / "tool.json").write_text(json.dumps(document))
     with pytest.raises(ModelFileError, match="no_such_frame"):
         validate(tmp_path / "ur5.csv", urdf, tmp_path / "tool.json")
@@ -276,3 +277,28 @@ def test_sigma_equivalent_inverts_the_gate() -> None:
     assert sigma_equivalent(np.array([1e6]), 6)[0] == pytest.approx(1e3)  # beyond double range: sqrt(d^2)
     z = sigma_equivalent(np.array([scipy.stats.chi2.isf(2 * scipy.stats.norm.sf(2.0), 6)]), 6)
     assert z[0] == pytest.approx(2.0, rel=1e-9)
+
+
+def _registered() -> bool:
+    from m3t1r.cli import build_parser
+
+    verbs = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return {"plan", "validate"} <= set(verbs.choices)
+
+
+@pytest.mark.skipif(not _registered(), reason="the verbs are not registered in m3t1r.cli yet")
+def test_exit_statuses_through_the_main_command_line(machine, tmp_path, mechanism, capsys) -> None:
+    from m3t1r.cli import main
+
+    folder, _, sliders, poses, _ = machine
+    common = ["validate", str(folder / "exact.csv"), "--calibrated", str(folder / "cal.urdf"), "--report"]
+    assert main(["-q", *common, str(folder / "report.json"), "--predictions", str(tmp_path / "pred.csv")]) == 0
+    assert main([*common, str(tmp_path / "nowhere.json")]) == 2
+    bad = sliders.copy()
+    bad[0, 0] = 0.75
+    write_campaign(tmp_path / "bad.csv", mechanism.actuated_joints, bad, poses)
+    assert main(["validate", str(tmp_path / "bad.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
+                 str(folder / "report.json"), "--predictions", str(tmp_path / "bad_pred.csv")]) == 1
+    assert not (tmp_path / "bad_pred.csv").exists()
+    assert main(["plan", "-n", "0", "-o", str(tmp_path / "plan.csv")]) == 2
+    assert "m3t1r: error:" in capsys.readouterr().err

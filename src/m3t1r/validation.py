@@ -291,6 +291,9 @@ def _predict_serial(calibrated: Path, report: CalibrationReport, units: str,
     except M3t1rError as exc:
         raise ModelFileError(calibrated, f"chain of report {report.path.name} (base {report.base}, tool "
                                          f"{report.tool}): {exc}") from None
+    if report.measured_frame not in (None, report.tool):
+        raise InvalidInputError(f"{report.path}: report field 'measured_frame' is {report.measured_frame!r}, but "
+                                f"'nominal_model.tool' is {report.tool!r}")
     if chain.joint_names != report.chain:
         raise InvalidInputError(f"{report.path}: report field 'nominal_model.chain' lists {list(report.chain)}, but "
                                 f"{calibrated} has {list(chain.joint_names)} from {report.base} to {report.tool}")
