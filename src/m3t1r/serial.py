@@ -766,14 +766,25 @@ def _prior_columns(names: Sequence[str], priors: Mapping[str, float] | None) -> 
 
 
 def _start_state(chain: SerialChain, model: pin.Model, data: _Measurements, setup: MeasurementSetup,
-                 estimate_frame: bool, compliance: bool) -> _State:
-    """The nominal robot with the given setup; with estimate_frame, F from the closed-form rigid
-    registration of the nominal predictions g(q) K to the measurements (any rotation, any distance)."""
+                 estimate_frame: bool, estimate_marker: bool, compliance: bool) -> _State:
+    """The nominal robot with the given setup, and closed-form starts for what is estimated.
+
+    estimate_frame: F from the rigid registration of the nominal predictions g(q) K to the measured
+    positions (`register_frame`: any rotation, any distance). estimate_marker with orientations:
+    K's rotation from R_meas,i = R_F R_g,i R_K, the rotation nearest (chordal mean, SVD
+    projection) to sum_i (R_F R_g,i)^T R_meas,i, so that a marker given by its position alone
+    (unknown axes) starts right too.
+    """
     state = _readonly_state(chain, model, setup)
+    tool = placement_poses(chain, state.transforms, data.q)[:, -1]
     if estimate_frame:
-        predicted = placement_poses(chain, state.transforms, data.q)[:, -1] @ state.marker
-        frame = register_frame(predicted, data.positions, data.rotations)
+        frame = register_frame(tool @ state.marker, data.positions)
         state = replace(state, frame=_readonly(frame.homogeneous))
+    if estimate_marker and data.rotations is not None:
+        u, _, vt = np.linalg.svd(np.sum(np.swapaxes(state.frame[:3, :3] @ tool[:, :3, :3], 1, 2) @ data.rotations, 0))
+        marker = state.marker.copy()
+        marker[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        state = replace(state, marker=_readonly(marker))
     if compliance:
         state = replace(state, compliance=_readonly(np.zeros(chain.n_joints)))
     return state
@@ -907,7 +918,8 @@ def calibrate_serial(
     layout = _Layout(chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0, compliance)
     names = layout.names(chain)
     fixed_columns = _parameter_columns(names, fixed, "fixed parameter")
-    start = _start_state(chain, model, data, setup or MeasurementSetup(), estimate_frame, compliance)
+    start = _start_state(chain, model, data, setup or MeasurementSetup(), estimate_frame, estimate_marker,
+                         compliance)
     torques = gravity_torques(model, chain, data.q) if compliance else None
     residual = _SerialResidual(chain, data, _whitening(chain, start, data, noise), layout, torques)
     problem = _SerialProblem(residual, np.arange(layout.size), _prior_columns(names, priors))

@@ -1,0 +1,284 @@
+"""`m3t1r calibrate --serial`: a serial robot's tracker campaign from file to judged result.
+
+Reads joint readings and measured poses (in the tracker's frame and units), fits the robot's
+local-POE placement errors with the measurement frame and the marker (and, optionally, joint
+compliance under gravity), flags outliers, judges the fit (refusing what the data do not support,
+with the likely cause named), cross-validates it, says in plain words what the data could not
+determine, and writes the calibrated URDF (the robot alone) and the report as a unit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import sys
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from . import __version__
+from .assessment import FitRejected, check_fit, describe_parameter, fit_movement_notes, likely_causes
+from .errors import InvalidInputError, PoorExcitationWarning
+from .io import OutputSet, poses_from_table, read_table, sha256_bytes
+from .measurement_setup import LENGTH_UNITS, MeasurementSetup, register_frame, se3_to_report
+from .poe import SerialChain, tool_poses
+from .serial import (MeasurementNoise, SerialCalibration, SerialCrossValidation, calibrate_serial,
+                     cross_validate_serial, example_tool_frame, load_example_robot)
+
+__all__ = ["run_serial_calibration", "serial_calibration_report", "SerialCampaign"]
+
+#: A fitted parameter whose standard deviation exceeds these is "weakly determined" [m], [rad].
+WEAK_TRANSLATION, WEAK_ROTATION = 1e-3, 1e-3
+#: The nominal robot this far from the data (RMS, after the frame registration when estimated) is
+#: beyond any build error: the fit is not attempted [m].
+HOPELESS_RESIDUAL = 0.1
+_EXAMPLE_ROBOTS = ("ur3", "ur5", "ur10", "panda")
+
+
+@dataclass(frozen=True)
+class SerialCampaign:
+    """A measurement file read for a chain: readings (N, n) [rad, m], measured poses (SE3, m),
+    the file's data lines (for outliers) and sha256."""
+
+    path: Path
+    sha256: str
+    readings: np.ndarray
+    poses: list[pin.SE3]
+    lines: np.ndarray
+    position_only: bool
+    units: str
+
+
+def _robot(source: str, tool: str | None, base: str | None) -> tuple[pin.Model, SerialChain, Path | None]:
+    """(model, chain, URDF path or None) of --serial: an example-robot-data name or a URDF path."""
+    path = Path(source)
+    if source in _EXAMPLE_ROBOTS and not path.exists():
+        model = load_example_robot(source)  # type: ignore[arg-type]
+        return model, SerialChain.from_model(model, tool or example_tool_frame(source), base), None  # type: ignore[arg-type]
+    if not path.is_file():
+        raise InvalidInputError(f"--serial {source}: neither an example robot ({', '.join(_EXAMPLE_ROBOTS)}) "
+                                "nor a URDF file")
+    if not tool:
+        raise InvalidInputError(f"--serial {source}: give the measured frame with --tool FRAME")
+    model = pin.buildModelFromUrdf(str(path))
+    return model, SerialChain.from_model(model, tool, base), path
+
+
+def read_campaign(path: str, chain: SerialChain, units: str) -> SerialCampaign:
+    """Joint columns by joint name, x, y, z [, qx, qy, qz, qw]; lengths (x, y, z and prismatic
+    joints) in `units` ("m" or "mm", `LENGTH_UNITS`), converted to m."""
+    if units not in LENGTH_UNITS:
+        raise InvalidInputError(f"--units {units}: expected one of {', '.join(LENGTH_UNITS)}")
+    names = chain.joint_names
+    table = read_table(path, required=names + ("x", "y", "z"), optional_groups=(("qx", "qy", "qz", "qw"),),
+                       reject_duplicate_rows=True)
+    scale = LENGTH_UNITS[units]
+    prismatic = ~np.any(chain.twists[:, 3:], axis=1)
+    readings = np.column_stack([table.column(n) for n in names]) * np.where(prismatic, scale, 1.0)
+    positions = np.column_stack([table.column(c) for c in "xyz"]) * scale
+    position_only = not table.has_column("qw")
+    rotations = [np.eye(3)] * len(positions) if position_only else [g.rotation for g in poses_from_table(table)]
+    poses = [pin.SE3(r, p) for r, p in zip(rotations, positions)]
+    return SerialCampaign(Path(path), sha256_bytes(Path(path).read_bytes()), readings, poses,
+                          np.asarray(table.line_numbers), position_only, units)
+
+
+def _nominal_points(model: pin.Model, chain: SerialChain, marker: pin.SE3) -> Callable[[np.ndarray], np.ndarray]:
+    """readings (N, n) -> the measured point (N, 3) the nominal robot predicts in its base [m]."""
+    def predict(readings: np.ndarray) -> np.ndarray:
+        return (tool_poses(chain, model, readings) @ marker.homogeneous)[:, :3, 3]
+    return predict
+
+
+def _diagnose(model: pin.Model, chain: SerialChain, data: SerialCampaign, marker: pin.SE3,
+              frame_estimated: bool) -> list[str]:
+    measured = np.array([g.translation for g in data.poses])
+    return likely_causes(_nominal_points(model, chain, marker), data.readings, measured, chain.joint_names,
+                         frame_estimated=frame_estimated)
+
+
+def _precheck(model: pin.Model, chain: SerialChain, data: SerialCampaign, marker: pin.SE3,
+              estimate_frame: bool) -> None:
+    """Refuse at once when the nominal robot is further from the data than any build error."""
+    points = _nominal_points(model, chain, marker)(data.readings)
+    measured = np.array([g.translation for g in data.poses])
+    if estimate_frame:
+        homogeneous = np.tile(np.eye(4), (len(points), 1, 1))
+        homogeneous[:, :3, 3] = points
+        frame = register_frame(homogeneous, measured)
+        points = points @ frame.rotation.T + frame.translation
+    rms = float(np.sqrt(np.mean(np.sum((points - measured) ** 2, axis=1))))
+    if rms > HOPELESS_RESIDUAL:
+        raise FitRejected(f"the nominal robot is {rms:.3g} m RMS from the measurements"
+                          + (" after registering the frame" if estimate_frame else "")
+                          + f", beyond any build error ({HOPELESS_RESIDUAL:g} m): the fit was not attempted",
+                          _diagnose(model, chain, data, marker, estimate_frame))
+
+
+def run_serial_calibration(args: argparse.Namespace) -> None:
+    """The whole `calibrate --serial` verb (module docstring). Raises FitRejected (exit 1) when the fit
+    is not supported by the data, unless args.force."""
+    model, chain, urdf = _robot(args.serial, args.tool, args.base)
+    outputs = OutputSet(inputs=(args.measurements, urdf))
+    urdf_output = outputs.add(args.output, "-o") if urdf is not None else None
+    report_output = outputs.add(args.report, "--report")
+    outputs.check()
+    if urdf is None:
+        print(f"{args.serial} is an example-robot-data robot: no calibrated URDF is written "
+              "(give its URDF path to --serial for one)" + (f"; -o {args.output} ignored" if args.output else ""))
+    data = read_campaign(args.measurements, chain, args.units)
+    marker = pin.SE3(np.eye(3), np.array(args.marker, dtype=float)) if args.marker is not None else pin.SE3.Identity()
+    estimate_frame = args.frame == "estimate"
+    noise = MeasurementNoise(args.noise_pos, args.noise_rot, 0.0)
+    _precheck(model, chain, data, marker, estimate_frame)
+    print(f"calibrating chain {chain.joint_names[0]} .. {chain.tool_frame} from {len(data.poses)} poses"
+          + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PoorExcitationWarning)
+        calibration = _fit(args, model, chain, data, noise, marker, estimate_frame)
+    lines = [int(data.lines[i]) for i in calibration.outliers]
+    _print_summary(calibration, lines)
+    _judge(args, calibration, lambda: _diagnose(model, chain, data, marker, estimate_frame))
+    validation = cross_validate_serial(calibration, folds=args.folds)
+    notes = explain(calibration, [str(w.message) for w in caught])
+    _print_judgement(validation, notes)
+    report = serial_calibration_report(calibration, data, args, noise, lines, validation, notes)
+    with outputs:
+        if urdf_output is not None:
+            from .urdf_io import calibrated_urdf_bytes
+
+            outputs.stage(urdf_output, calibrated_urdf_bytes(urdf, calibration.model))
+        outputs.stage_json(report_output, report)
+        written = outputs.commit()
+    if written:
+        print("wrote " + ", ".join(written))
+
+
+def _fit(args: argparse.Namespace, model: pin.Model, chain: SerialChain, data: SerialCampaign,
+         noise: MeasurementNoise, marker: pin.SE3, estimate_frame: bool) -> SerialCalibration:
+    kwargs = {} if args.max_iterations is None else {"max_iterations": args.max_iterations}
+    measured = np.array([g.translation for g in data.poses]) if data.position_only else data.poses
+    return calibrate_serial(
+        model, chain, data.readings, measured, position_only=data.position_only, noise=noise,
+        setup=MeasurementSetup(marker=marker), estimate_frame=estimate_frame, estimate_marker=args.marker is not None,
+        outlier_sigma=args.outlier_sigma or None, select=args.select == "loo", compliance=bool(args.compliance),
+        fixed=list(args.fix or ()), priors=dict(args.prior or {}), **kwargs)
+
+
+def _judge(args: argparse.Namespace, calibration: SerialCalibration, causes: Callable[[], list[str]]) -> None:
+    """check_fit with the likely causes (computed only for a failing fit); --force downgrades to a warning."""
+    suspicious = not calibration.converged or not calibration.variance_factor <= 9.0
+    try:
+        check_fit(calibration.converged, calibration.termination, calibration.iterations,
+                  calibration.variance_factor, causes() if suspicious else ())
+    except FitRejected as exc:
+        if not args.force:
+            raise
+        print(f"m3t1r: warning: writing anyway (--force): {exc.reason}", file=sys.stderr)
+
+
+def _print_summary(calibration: SerialCalibration, outlier_lines: list[int]) -> None:
+    before, after = calibration.residual_before, calibration.residual_after
+    print(f"identified {calibration.base.rank} of {len(calibration.names)} parameters "
+          f"(condition number {calibration.base.condition_number:.3g}); fitted {len(calibration.fitted)} in "
+          f"{calibration.iterations} iterations ({'converged' if calibration.converged else 'NOT converged'}: "
+          f"{calibration.termination})")
+    print(f"residual RMS position {before.position:.3e} -> {after.position:.3e} m, orientation "
+          f"{before.rotation:.3e} -> {after.rotation:.3e} rad; variance factor {calibration.variance_factor:.3g}")
+    if calibration.compliance:
+        print("joint compliance under gravity: " + ", ".join(f"{j} {c:.3g} rad/Nm"
+                                                               for j, c in calibration.compliance.items()))
+    print(f"outliers (left out of the fit), file lines: {', '.join(map(str, outlier_lines))}"
+          if outlier_lines else "outliers: none")
+
+
+def _print_judgement(validation: SerialCrossValidation, notes: list[str]) -> None:
+    errors = validation.errors
+    rotation = "" if np.isnan(errors.rotation_mean) else f", {errors.rotation_mean:.3e} rad"
+    print(f"cross-validation ({validation.folds} folds): predicting held-back measurements "
+          f"{errors.position_mean:.3e} m{rotation} mean (noise included, as fresh measurements would show)")
+    for note in notes:
+        print(f"note: {note}")
+
+
+def _is_translation(name: str) -> bool:
+    return name.rpartition(".dt[")[2] in ("0]", "1]", "2]")
+
+
+def explain(calibration: SerialCalibration, warnings_seen: list[str] = ()) -> list[str]:
+    """Plain-word notes: the gauge, what selection dropped, weak parameters, how far the fit moved."""
+    notes = list(warnings_seen)
+    base, fitted = set(calibration.base.names), set(calibration.fitted)
+    chain_names = set(calibration.chain.parameter_names())
+    if any(n.startswith("measurement_frame.") for n in calibration.names):
+        notes.append("the measurement frame takes up the robot's base placement errors (the first joint's "
+                     "placement stays nominal, so the calibrated URDF's base is the robot's base)")
+    dropped = sorted((base - fitted) & (chain_names | {n for n in calibration.names if n.startswith("compliance.")}))
+    if dropped:
+        selection = calibration.selection
+        tied = f"; {selection.tied} other set sizes score within one standard error" if selection else ""
+        notes.append(f"{len(dropped)} identifiable parameters held at nominal because they did not predict "
+                     f"left-out poses better (leave-one-pose-out{tied}): "
+                     + ", ".join(describe_parameter(n) for n in dropped[:8]) + (" ..." if len(dropped) > 8 else ""))
+    std = calibration.std()
+    weak = [n for n in calibration.fitted if n in chain_names
+            and std[n] > (WEAK_TRANSLATION if _is_translation(n) else WEAK_ROTATION)]
+    if weak:
+        notes.append("weakly determined on their own (std over 1 mm / 1 mrad; their joint effect on the tool can "
+                     "still be well determined): "
+                     + ", ".join(f"{describe_parameter(n)} (std {std[n]:.2g})" for n in weak[:8]))
+    undetermined = len(chain_names) - len(base & chain_names)
+    notes.append(f"{undetermined} of {len(chain_names)} placement components are not separable with these data "
+                 "(redundant with others or with the measurement setup) and stay nominal")
+    moved = {n: float(v) for n, v in zip(calibration.names, calibration.values) if n in fitted and n in chain_names}
+    notes += fit_movement_notes(moved, calibration.residual_before.position, calibration.residual_after.position)
+    return notes
+
+
+def serial_calibration_report(calibration: SerialCalibration, data: SerialCampaign, args: argparse.Namespace,
+                              noise: MeasurementNoise, outlier_lines: list[int] = (),
+                              validation: SerialCrossValidation | None = None, notes: list[str] = ()) -> dict:
+    """The JSON report of a serial calibration (strict JSON through io.json_text: NaN becomes null)."""
+    chain, setup, selection = calibration.chain, calibration.setup, calibration.selection
+    std, fitted = calibration.std(), set(calibration.fitted)
+    robot_parameters = [n for n in calibration.names if not n.startswith(("measurement_frame.", "marker."))]
+    values = dict(zip(calibration.names, calibration.values))
+    before, after = calibration.residual_before, calibration.residual_after
+    return {
+        "tool": f"m3t1r {__version__}",
+        "created": _dt.datetime.now().isoformat(timespec="seconds"),
+        "kind": "serial",
+        "input": {"path": str(data.path), "sha256": data.sha256, "poses": len(data.poses),
+                  "position_only": data.position_only, "units": data.units},
+        "nominal_model": {"robot": str(args.serial), "base": chain.base_frame, "tool": chain.tool_frame,
+                          "chain": list(chain.joint_names)},
+        "measured_frame": chain.tool_frame,
+        "measurement_frame": {**se3_to_report(setup.frame), "estimated": any(
+            n.startswith("measurement_frame.") for n in calibration.names)},
+        "marker": {**se3_to_report(setup.marker), "estimated": any(n.startswith("marker.") for n in calibration.names)},
+        "noise_model": {"position_m": noise.position, "rotation_rad": noise.rotation, "joint_rad": noise.joint},
+        "converged": calibration.converged, "termination": calibration.termination,
+        "iterations": calibration.iterations, "variance_factor": calibration.variance_factor,
+        "outliers": list(outlier_lines),
+        "cross_validation": None if validation is None else {
+            "position_mean_m": validation.errors.position_mean, "rotation_mean_rad": validation.errors.rotation_mean,
+            "folds": validation.folds},
+        "identifiable": {"count": calibration.base.rank, "of": len(calibration.names),
+                         "condition_number": calibration.base.condition_number, "names": list(calibration.base.names)},
+        "selection": {"method": "forward_loo" if selection else "none", "kept": list(calibration.fitted),
+                      "press": selection.press if selection else None,
+                      "press_all": selection.press_all if selection else None,
+                      "tied": selection.tied if selection else None},
+        "fixed": list(getattr(args, "fix", None) or []), "priors": dict(getattr(args, "prior", None) or {}),
+        "compliance": dict(calibration.compliance),
+        "residual_rms": {"before": {"position_m": before.position, "rotation_rad": before.rotation},
+                         "after": {"position_m": after.position, "rotation_rad": after.rotation}},
+        "notes": list(notes),
+        "forced": bool(getattr(args, "force", False)),
+        "parameters": [{"name": n, "value": float(values[n]) if n in fitted else 0.0, "std": std.get(n),
+                        "fitted": n in fitted} for n in robot_parameters],
+    }
