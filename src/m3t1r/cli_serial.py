@@ -187,8 +187,10 @@ def _print_summary(calibration: SerialCalibration, outlier_lines: list[int]) -> 
           f"(condition number {calibration.base.condition_number:.3g}); fitted {len(calibration.fitted)} in "
           f"{calibration.iterations} iterations ({'converged' if calibration.converged else 'NOT converged'}: "
           f"{calibration.termination})")
-    print(f"residual RMS position {before.position:.3e} -> {after.position:.3e} m, orientation "
-          f"{before.rotation:.3e} -> {after.rotation:.3e} rad; variance factor {calibration.variance_factor:.3g}")
+    orientation = "" if calibration.position_only else \
+        f", orientation {before.rotation:.3e} -> {after.rotation:.3e} rad"
+    print(f"residual RMS position {before.position:.3e} -> {after.position:.3e} m{orientation}; "
+          f"variance factor {calibration.variance_factor:.3g}")
     if calibration.compliance:
         print("joint compliance under gravity: " + ", ".join(f"{j} {c:.3g} rad/Nm"
                                                                for j, c in calibration.compliance.items()))
