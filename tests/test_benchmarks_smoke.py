@@ -18,6 +18,7 @@ TITLES = (
     "## Scaling",
     "## Pose selection",
     "## Uncertainty",
+    "## Tracker campaign",
 )
 
 

@@ -21,6 +21,7 @@ from . import __version__
 from ._threads import single_blas_thread
 from .assessment import FitRejected
 from .cli_calibrate import add_campaign_options
+from .cli_campaign import add_plan_parser, add_validate_parser
 from .errors import InvalidInputError, KinematicsError, M3t1rError
 
 EXIT_ERROR, EXIT_ROWS_FAILED = 2, 1
@@ -194,80 +195,15 @@ def _simulated_setup(args: argparse.Namespace):
     return MeasurementSetup(frame, marker)
 
 
-def _calibration_report(calibration, measurement_file, mechanism, noise) -> dict:
-    base = set(calibration.base.names)
-    return {
-        "tool": f"m3t1r {__version__}",
-        "created": _dt.datetime.now().isoformat(timespec="seconds"),
-        "input": {"path": str(measurement_file.path), "sha256": measurement_file.sha256,
-                  "poses": len(measurement_file.measurements),
-                  "position_only": measurement_file.measurements.position_only},
-        "nominal_model": {"urdf": str(mechanism.urdf_path), "closures": str(mechanism.closures_path)},
-        "noise_model": {"position_m": noise.position, "rotation_rad": noise.rotation, "actuator_m": noise.actuator},
-        "identifiable": {"count": calibration.base.rank, "of": len(calibration.parameters),
-                         "condition_number": calibration.base.condition_number, "names": list(calibration.base.names)},
-        "residual_rms": {
-            "before": {"position_m": calibration.rms_before[0], "rotation_rad": calibration.rms_before[1]},
-            "after": {"position_m": calibration.rms_after[0], "rotation_rad": calibration.rms_after[1]},
-        },
-        "solver": {"iterations": calibration.lm.iterations, "converged": calibration.lm.converged,
-                   "termination": calibration.lm.termination},
-        "parameters": [{"name": name, "value": value, "std": calibration.std[name], "identifiable": name in base}
-                       for name, value in calibration.parameters.items()],
-    }
-
-
 def cmd_calibrate(args: argparse.Namespace) -> None:
     from .cli_calibrate import parse_priors, run_closed_loop_calibration
 
     args.prior = parse_priors(args.prior)
     if args.serial:
-        return _calibrate_serial(args)
+        from .cli_serial import run_serial_calibration
+
+        return run_serial_calibration(args)
     run_closed_loop_calibration(args, _mechanism(args.model, args.closures))
-
-
-def _calibrate_serial(args: argparse.Namespace) -> None:
-    import pinocchio as pin
-
-    from .io import atomic_write_text, read_table, poses_from_table
-    from .poe import SerialChain
-    from .serial import MeasurementNoise, calibrate_serial, example_robot_data_dir, load_example_robot
-
-    if not args.tool:
-        raise InvalidInputError("--serial needs --tool FRAME (the measured frame)")
-    source = Path(args.serial)
-    if source.suffix == ".urdf":
-        if not source.is_file():
-            raise InvalidInputError(f"{source}: file not found")
-        model = pin.buildModelFromUrdf(str(source))
-        urdf = source
-    else:
-        model = load_example_robot(args.serial)
-        urdf = None
-    chain = SerialChain.from_model(model, args.tool, args.base)
-    names = tuple(model.names[j] for j in chain.joint_ids)
-    table = read_table(args.measurements, required=names + ("x", "y", "z"), optional_groups=(("qx", "qy", "qz", "qw"),),
-                       reject_duplicate_rows=True)
-    position_only = not table.has_column("qw")
-    poses = ([pin.SE3(np.eye(3), row) for row in np.column_stack([table.column(c) for c in "xyz"])]
-             if position_only else poses_from_table(table))
-    readings = np.column_stack([table.column(n) for n in names])
-    noise = MeasurementNoise(args.noise_pos, args.noise_rot, 0.0)
-    result = calibrate_serial(model, chain, readings, poses, position_only=position_only, noise=noise)
-    print(f"identified {result.base.rank} parameters of chain {names[0]} .. {args.tool}; "
-          f"residual RMS {result.residual_before} -> {result.residual_after}")
-    if urdf is not None:
-        from .urdf_io import write_calibrated_urdf
-
-        write_calibrated_urdf(urdf, result.model, Path(args.output), protect=(Path(args.measurements),))
-        print(f"wrote {args.output}")
-    else:
-        print(f"{args.serial} is an example-robot-data robot: give its URDF path to write a calibrated URDF")
-    if args.report:
-        report = {"tool": f"m3t1r {__version__}", "robot": str(args.serial), "chain": list(names),
-                  "identifiable": list(result.base.names), "iterations": result.iterations,
-                  "parameters": {p.name: list(map(float, d)) for p, d in result.deltas.items()}}
-        atomic_write_text(args.report, json.dumps(report, indent=2) + "\n", protect=(Path(args.measurements),))
 
 
 def cmd_compensate(args: argparse.Namespace) -> None:
@@ -480,6 +416,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--serial", metavar="ROBOT_OR_URDF", help="calibrate a serial chain instead (ur5, ur10, panda or a URDF)")
     p.add_argument("--base", metavar="FRAME", help="with --serial: base frame (default the model root)")
     p.add_argument("--tool", metavar="FRAME", help="with --serial: the measured tool frame")
+    p.add_argument("--compliance", action="store_true",
+                   help="with --serial: joint compliance under gravity as candidate parameters")
     add_campaign_options(p)
     _add_noise_options(p)
     _add_model_options(p)
@@ -528,6 +466,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=1)
     p.set_defaults(run=cmd_evaluate)
 
+    add_plan_parser(verbs)
+    add_validate_parser(verbs)
     # --quiet before or after the verb; the verb's copy must not reset the global one.
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress display on stderr")
     for sub in verbs.choices.values():
