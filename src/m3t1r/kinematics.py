@@ -246,7 +246,10 @@ class ClosedLoopSolver:
                 jac = self._evaluate(q, with_jacobian=True)[1][:, self.passive]
                 pattern |= np.abs(jac) > 1e-9 * np.max(np.abs(jac))
             _BLOCK_CACHE[key] = [(rows, self.passive[cols]) for rows, cols in diagonal_blocks(pattern)]
-        self._branch = _BranchSignature(_BLOCK_CACHE[key])
+        self._branch_blocks = _BLOCK_CACHE[key]
+        self._branch = _BranchSignature(self._branch_blocks)
+        self.singular_rcond = SINGULAR_RCOND
+        self._stacked = None  # batched kinematics, built on first use
         self._last_branch: bytes | None = None  # signature at this solver's last FK solution
         self._tangent: np.ndarray | None = None  # d q_passive / d sliders at the last factorisation
         self.last_q = mechanism.home.copy()
@@ -499,6 +502,32 @@ class ClosedLoopSolver:
         roll, pitch = roll_pitch_of(pose.rotation)
         return InverseResult(actuators, q.copy(), pose, residual, iterations,
                              (roll - wanted_tilt[0], pitch - wanted_tilt[1]))
+
+    # ----------------------------------------------------------------------------------------
+    # Many poses at once
+    def forward_batch(self, actuators: np.ndarray, q_init: np.ndarray | None = None):
+        """Forward kinematics of n slider sets (n, k) [m] at once (`batch_kinematics.forward_batch`).
+
+        Every row starts from q_init (default home: the reference branch), like
+        `forward(a, q_init=home)`, and is solved by one vectorised Newton over all rows (numpy over
+        stacked POE placements, batched LU), not by n calls. Returns a `ForwardBatch`: `.poses`
+        (M, 4, 4), `.q`, `.iterations` of the M converged rows `.indices`; every other row is in
+        `.failures` with its typed error class (never in the arrays). Leaves this solver's warm start alone.
+        """
+        from .batch_kinematics import forward_batch
+        return forward_batch(self._batch_kinematics(), actuators, q_init)
+
+    def inverse_batch(self, targets: np.ndarray, q_init: np.ndarray | None = None):
+        """Inverse kinematics of n targets (n, 4) rows (x, y, z, theta) [m, rad] at once; returns an
+        `InverseBatch` (`.actuators`, `.poses`, `.tilt`, ... of the converged rows, `.failures`)."""
+        from .batch_kinematics import inverse_batch
+        return inverse_batch(self._batch_kinematics(), targets, q_init)
+
+    def _batch_kinematics(self):
+        if self._stacked is None:
+            from .batch_kinematics import StackedKinematics
+            self._stacked = StackedKinematics(self)
+        return self._stacked
 
     _lu_inverse: tuple[np.ndarray, np.ndarray] | None = None  # getrf factors at the last IK solution
     _last_inverse_branch: bytes | None = None  # signature at the last IK solution

@@ -1,0 +1,554 @@
+"""Closed-loop FK and IK for many poses at once: numpy over stacked product-of-exponential frames.
+
+Pinocchio's Python API computes one configuration per call. Here the tree's placements are
+recomputed for n configurations at once, level by level of the kinematic tree:
+
+    oMi[j] = oMi[parent(j)] * jMp(j) * exp(S_j q_j)
+
+with jMp the joint placement and exp in closed form: a revolute joint about the unit axis a turns by
+R = I + sin(q) [a] + (1 - cos(q)) [a]^2 (Rodrigues), a prismatic one shifts by a q. Frames are
+oMf = oMi[parent] * fMp. The WORLD joint Jacobian column of joint j (spatial twist at the base
+origin, [v; w], as `pin.computeJointJacobians`) is [p_j x w_j; w_j] with w_j = R_j a (revolute) or
+[R_j a; 0] (prismatic). Closure residuals and their Jacobians then follow
+`ClosedLoopSolver._evaluate` row for row, with batched log6 / Jlog6.
+
+Newton runs on all rows together: one batched LU solve (`np.linalg.solve` on (m, k, k)) per step,
+rows leave the active set as they converge. A row that does not converge, changes assembly branch
+or ends singular is reported with its typed error class, never returned as a result.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from .description import Mechanism
+from .errors import (BranchChangeError, InvalidInputError, M3t1rError, NotConvergedError, OutOfWorkspaceError,
+                     SingularConfigurationError)
+from .poe import jlog3_batch, log3_batch, skew
+
+__all__ = ["UnsupportedJointError", "RowFailure", "ForwardBatch", "InverseBatch", "StackedKinematics",
+           "rpy_batch"]
+
+_MAX_STEP = 0.3  # [m or rad] cap on a Newton step component (as the single solve)
+_CHUNK = 2048  # rows solved together: bounds memory (about 6 kB per row) and keeps arrays in cache
+
+
+class UnsupportedJointError(InvalidInputError):
+    """The model has a joint type the batched kinematics does not implement (only 1-DoF revolute and
+    prismatic joints are supported: RX/RY/RZ/unaligned, PX/PY/PZ/unaligned)."""
+
+
+@dataclass(frozen=True)
+class RowFailure:
+    """A row of a batch that has no result: index (0-based input row), reason, typed error class."""
+
+    index: int
+    reason: str
+    error: type[M3t1rError]
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array = np.ascontiguousarray(array)
+    array.setflags(write=False)
+    return array
+
+
+@dataclass(frozen=True, eq=False)
+class ForwardBatch:
+    """Forward kinematics of n slider sets. Failed rows are EXCLUDED from every array.
+
+    Row k of `poses`, `q`, `residuals`, `iterations` belongs to input row `indices[k]`; `ok` (n,) is
+    True exactly at `indices`; `failures` lists the other rows with their reason and error class.
+    poses: (M, 4, 4) platform frame in the base frame [m]; q: (M, nq); residuals: (M,) max |enforced
+    closure row| [m or rad]; iterations: (M,) Newton steps.
+    """
+
+    n: int
+    indices: np.ndarray
+    poses: np.ndarray
+    q: np.ndarray
+    residuals: np.ndarray
+    iterations: np.ndarray
+    failures: tuple[RowFailure, ...]
+
+    @property
+    def ok(self) -> np.ndarray:
+        mask = np.zeros(self.n, dtype=bool)
+        mask[self.indices] = True
+        return mask
+
+    @property
+    def complete(self) -> bool:
+        return not self.failures
+
+
+@dataclass(frozen=True, eq=False)
+class InverseBatch(ForwardBatch):
+    """Inverse kinematics of n targets (x, y, z, theta); same row convention as `ForwardBatch`.
+
+    actuators: (M, k) slider values [m] (`actuated_joints` order); tilt: (M, 2) roll and pitch [rad]
+    of the reached pose (the part of a pose the machine's geometry sets, not the command).
+    """
+
+    actuators: np.ndarray = None  # type: ignore[assignment]
+    tilt: np.ndarray = None  # type: ignore[assignment]
+
+
+def rpy_batch(rotations: np.ndarray) -> np.ndarray:
+    """(roll, pitch, yaw) (..., 3) [rad] of rotations (..., 3, 3), ZYX convention as `pin.rpy.matrixToRpy`
+    away from pitch = +-pi/2: yaw = atan2(R10, R00), pitch = atan2(-R20, hypot(R21, R22)),
+    roll = atan2(R21, R22)."""
+    r = rotations
+    return np.stack([np.arctan2(r[..., 2, 1], r[..., 2, 2]),
+                     np.arctan2(-r[..., 2, 0], np.hypot(r[..., 2, 1], r[..., 2, 2])),
+                     np.arctan2(r[..., 1, 0], r[..., 0, 0])], axis=-1)
+
+
+def _jlog3_t_series(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """b(a) = 1/a^2 - 1/(2 a tan(a/2)) and b'(a)/a, with their series below a = 1e-2."""
+    small = angles < 1e-2
+    a = np.where(small, 1.0, angles)
+    sq = angles ** 2
+    b = np.where(small, 1 / 12 + sq / 720 + sq ** 2 / 30240, 1 / a ** 2 - 1 / (2 * a * np.tan(a / 2)))
+    # b'(a) = -2/a^3 + (tan(a/2) + a / (2 cos^2(a/2))) / (2 a^2 tan^2(a/2))
+    t = np.tan(a / 2)
+    db = -2 / a ** 3 + (t + a / (2 * np.cos(a / 2) ** 2)) / (2 * a ** 2 * t ** 2)
+    db_over_a = np.where(small, 1 / 360 + sq / 7560, db / a)
+    return b, db_over_a
+
+
+def log6_jlog6_batch(rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """log6 (m, 6) [v; w] of placements (R, p) and Jlog6 (m, 6, 6), batched like `pin.log6`/`pin.Jlog6`.
+
+    w = log3(R), v = Jlog3(w)^T p (= V(w)^-1 p). Jlog6 = [[Jlog3, X Jlog3], [0, Jlog3]] with
+    X = d v / d w = 1/2 [p] + (b'(a)/a) ([w]^2 p) w^T - b(a) ([w x p] + [w][p]), a = |w|.
+    """
+    w, angles = log3_batch(rotation)
+    jl = jlog3_batch(w, angles)
+    v = np.einsum("nji,nj->ni", jl, position)
+    b, db_over_a = _jlog3_t_series(angles)
+    W, P = skew(w), skew(position)
+    w2p = np.einsum("nij,nj->ni", W @ W, position)
+    X = 0.5 * P + db_over_a[:, None, None] * w2p[:, :, None] * w[:, None, :] \
+        - b[:, None, None] * (skew(np.cross(w, position)) + W @ P)
+    jac = np.zeros((len(w), 6, 6))
+    jac[:, :3, :3] = jl
+    jac[:, 3:, 3:] = jl
+    jac[:, :3, 3:] = X @ jl
+    return np.concatenate((v, w), axis=1), jac
+
+
+_REVOLUTE_AXES = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0), "JointModelRZ": (0.0, 0.0, 1.0)}
+_PRISMATIC_AXES = {"JointModelPX": (1.0, 0.0, 0.0), "JointModelPY": (0.0, 1.0, 0.0), "JointModelPZ": (0.0, 0.0, 1.0)}
+
+
+def _joint_axis(joint) -> tuple[np.ndarray, bool]:
+    """(unit axis in the joint frame, is_revolute) of a 1-DoF joint; UnsupportedJointError otherwise."""
+    name = joint.shortname()
+    if name in _REVOLUTE_AXES:
+        return np.array(_REVOLUTE_AXES[name]), True
+    if name in _PRISMATIC_AXES:
+        return np.array(_PRISMATIC_AXES[name]), False
+    if name in ("JointModelRevoluteUnaligned", "JointModelPrismaticUnaligned"):
+        axis = np.array(joint.extract().axis, dtype=float)
+        return axis / np.linalg.norm(axis), name.startswith("JointModelRevolute")
+    raise UnsupportedJointError(f"joint type {name} is not supported by the batched kinematics "
+                                "(1-DoF revolute or prismatic joints only)")
+
+
+class StackedTree:
+    """Placements of a Pinocchio tree of 1-DoF joints for n configurations at once (numpy).
+
+    Joint j's local motion is jMp(j) exp(S_j q): R = R0 + sin(q) R0[a] + (1 - cos q) R0[a]^2 for a
+    revolute joint (R0[a], R0[a]^2 precomputed, so no matrix product), p = p0 + R0 a q for a prismatic
+    one. Joints are composed one tree level at a time (one stacked matmul per level).
+    """
+
+    def __init__(self, model: pin.Model) -> None:
+        n_joints = model.njoints - 1
+        axes, revolute = zip(*(_joint_axis(model.joints[j]) for j in range(1, model.njoints)))
+        if model.nq != n_joints or model.nv != n_joints:
+            raise UnsupportedJointError("batched kinematics needs one coordinate per joint (nq = nv = joints)")
+        self.axes, self.revolute = np.array(axes), np.array(revolute)
+        self.q_index = np.array([model.idx_qs[j] for j in range(1, model.njoints)])
+        self.parent = np.array([model.parents[j] for j in range(1, model.njoints)])
+        r0 = np.array([model.jointPlacements[j].rotation for j in range(1, model.njoints)])
+        self.p0 = np.array([model.jointPlacements[j].translation for j in range(1, model.njoints)])
+        k = skew(self.axes)
+        self.r0, self.r0k, self.r0k2 = r0, r0 @ k, r0 @ k @ k
+        self.r0a = np.einsum("jik,jk->ji", r0, self.axes) * (~self.revolute)[:, None]
+        depth = np.zeros(model.njoints, dtype=int)
+        for j in range(1, model.njoints):
+            depth[j] = depth[model.parents[j]] + 1
+        self.levels = [np.flatnonzero(depth[1:] == d) + 1 for d in range(1, depth.max() + 1)]
+        self.n_joints = n_joints
+
+    def joints(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World rotations (n, J+1, 3, 3) and positions (n, J+1, 3) of every joint frame (0 = universe)."""
+        n = len(q)
+        angle = q[:, self.q_index] * self.revolute
+        s, c1 = np.sin(angle)[:, :, None, None], (1.0 - np.cos(angle))[:, :, None, None]
+        local_r = self.r0 + s * self.r0k + c1 * self.r0k2
+        local_p = self.p0 + q[:, self.q_index, None] * self.r0a
+        rot = np.empty((n, self.n_joints + 1, 3, 3))
+        pos = np.empty((n, self.n_joints + 1, 3))
+        rot[:, 0], pos[:, 0] = np.eye(3), 0.0
+        for level in self.levels:
+            parent = self.parent[level - 1]
+            pr = rot[:, parent]
+            rot[:, level] = pr @ local_r[:, level - 1]
+            pos[:, level] = pos[:, parent] + (pr @ local_p[:, level - 1, :, None])[..., 0]
+        return rot, pos
+
+    def world_jacobian(self, rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        """WORLD joint Jacobian (n, 6, nv) as `pin.computeJointJacobians`: column of joint j =
+        [p_j x w_j; w_j] (revolute) or [w_j; 0] (prismatic), w_j = R_j a_j."""
+        w = np.einsum("njik,jk->nji", rot[:, 1:], self.axes)
+        jac = np.empty((len(rot), 6, self.n_joints))
+        lin = np.where(self.revolute[:, None], np.cross(pos[:, 1:], w), w)
+        jac[:, :3, self.q_index] = lin.transpose(0, 2, 1)
+        jac[:, 3:, self.q_index] = (w * self.revolute[:, None]).transpose(0, 2, 1)
+        return jac
+
+
+class StackedKinematics:
+    """Closure residuals, Jacobians and Newton solves of one `ClosedLoopSolver`'s mechanism, batched.
+
+    Built from the solver (its row layout, tolerance, block structure and slider limits) so that a
+    batch solve and a single solve are the same problem, row for row.
+    """
+
+    def __init__(self, solver) -> None:
+        mechanism: Mechanism = solver.mechanism
+        model = mechanism.model
+        self.solver, self.tree = solver, StackedTree(model)
+        frame_ids = sorted({c.frame_a_id for c in mechanism.closures} | {c.frame_b_id for c in mechanism.closures})
+        frame_ids.append(mechanism.platform_frame_id)
+        where = {f: k for k, f in enumerate(frame_ids)}
+        self.frame_parent = np.array([model.frames[f].parentJoint for f in frame_ids])
+        self.frame_r = np.array([model.frames[f].placement.rotation for f in frame_ids])
+        self.frame_p = np.array([model.frames[f].placement.translation for f in frame_ids])
+        self.point_a, self.point_b, self.point_slot, self.weld = [], [], [], []
+        start = 0
+        for c in mechanism.closures:
+            if c.type == "3D":
+                self.point_a.append(where[c.frame_a_id])
+                self.point_b.append(where[c.frame_b_id])
+                self.point_slot.append(start)
+                start += 3
+            else:
+                self.weld.append((start, where[c.frame_a_id], where[c.frame_b_id]))
+                start += 6
+        self.point_rows = (np.array(self.point_slot)[:, None] + np.arange(3)).reshape(-1)
+        self.enforced = solver._enforced
+        self.row_mask = solver._row_masks[False]
+        self.n_full = start
+        self.passive, self.actuated = solver.passive, solver.actuated
+        self.blocks = [(np.asarray(r), np.asarray(c)) for r, c in solver._branch_blocks]
+        support = np.zeros(model.nv)
+        for j in model.supports[model.frames[mechanism.platform_frame_id].parentJoint][1:]:
+            support[model.idx_vs[j]] = 1.0
+        self.platform_support = support  # columns of the joints that move the platform frame
+
+    def frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(closure and platform frame rotations (n, F, 3, 3), positions (n, F, 3), WORLD Jacobian (n, 6, nv))."""
+        rot, pos = self.tree.joints(q)
+        pr = rot[:, self.frame_parent]
+        frot = pr @ self.frame_r
+        fpos = pos[:, self.frame_parent] + (pr @ self.frame_p[:, :, None])[..., 0]
+        return frot, fpos, self.tree.world_jacobian(rot, pos)
+
+    def closures(self, q: np.ndarray, with_jacobian: bool = True) -> tuple:
+        """Enforced closure rows (n, rows) at q (n, nq), their Jacobian (n, rows, nv) and the frames.
+
+        3D: r = R_a^T (p_b - p_a), d r = R_a^T [I, -[p_b]] (xi_b - xi_a); 6D: r = log6(aMb),
+        d r = Jlog6(aMb) Ad(oMb^-1) (xi_b - xi_a), xi the WORLD twists (as `ClosedLoopSolver._evaluate`).
+        """
+        frot, fpos, world = self.frames(q)
+        n = len(q)
+        full = np.empty((n, self.n_full))
+        ra_t = frot[:, self.point_a].transpose(0, 1, 3, 2)
+        pb = fpos[:, self.point_b]
+        full[:, self.point_rows] = (ra_t @ (pb - fpos[:, self.point_a])[..., None]).reshape(n, -1)
+        operator = np.zeros((n, self.n_full, 6)) if with_jacobian else None
+        if with_jacobian:
+            block = np.concatenate((ra_t, -(ra_t @ skew(pb))), axis=3)  # (n, points, 3, 6)
+            operator[:, self.point_rows] = block.reshape(n, -1, 6)
+        for slot, ia, ib in self.weld:
+            ra_t6 = frot[:, ia].transpose(0, 2, 1)
+            rel_r = ra_t6 @ frot[:, ib]
+            rel_p = (ra_t6 @ (fpos[:, ib] - fpos[:, ia])[..., None])[..., 0]
+            full[:, slot:slot + 6], jlog = log6_jlog6_batch(rel_r, rel_p)
+            if with_jacobian:
+                rb_t = frot[:, ib].transpose(0, 2, 1)
+                ad_inv = np.zeros((n, 6, 6))
+                ad_inv[:, :3, :3] = ad_inv[:, 3:, 3:] = rb_t
+                ad_inv[:, :3, 3:] = -(rb_t @ skew(fpos[:, ib]))
+                operator[:, slot:slot + 6] = jlog @ ad_inv
+        residual = full[:, self.enforced]
+        if not with_jacobian:
+            return residual, None, frot, fpos, world
+        jac = (operator[:, self.enforced] @ world) * self.row_mask
+        return residual, jac, frot, fpos, world
+
+    def signatures(self, jac: np.ndarray) -> np.ndarray:
+        """Signs (m, blocks) of the determinants of the diagonal blocks of the passive closure system
+        (as `ClosedLoopSolver`'s branch signature): True where det > 0."""
+        signs = []
+        for rows, cols in self.blocks:
+            block = jac[:, rows[:, None], cols[None, :]]
+            if len(rows) == 1:
+                signs.append(block[:, 0, 0] > 0)
+            elif len(rows) == 2:
+                signs.append(block[:, 0, 0] * block[:, 1, 1] - block[:, 0, 1] * block[:, 1, 0] > 0)
+            else:
+                signs.append(np.linalg.slogdet(block)[0] > 0)
+        return np.stack(signs, axis=1)
+
+
+_CONVERGED, _ACTIVE, _LIMIT = 0, -1, 5  # _LIMIT: converged, but a slider is beyond its limit
+_FAILURES = {1: OutOfWorkspaceError, 2: NotConvergedError, 3: SingularConfigurationError, 4: BranchChangeError}
+_REASONS = {1: "the closures cannot be assembled here (target out of the workspace or too far from the "
+               "initial configuration's branch)",
+            2: "Newton did not reach the tolerance",
+            3: "singular configuration (reciprocal condition below 1e-10)",
+            4: "the solution lies on another assembly branch than the start (Newton crossed a singularity)"}
+
+
+def _solve_stack(square: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Solutions (m, k) of square (m, k, k) x = rhs (m, k) and a mask of rows whose matrix is exactly
+    singular (their solution is zero): one singular row must not fail the whole stack."""
+    try:
+        return np.linalg.solve(square, rhs[..., None])[..., 0], np.zeros(len(rhs), dtype=bool)
+    except np.linalg.LinAlgError:
+        out, bad = np.zeros_like(rhs), np.zeros(len(rhs), dtype=bool)
+        for i in range(len(rhs)):
+            try:
+                out[i] = np.linalg.solve(square[i], rhs[i])
+            except np.linalg.LinAlgError:
+                bad[i] = True
+        return out, bad
+
+
+def _rcond_1(square: np.ndarray) -> np.ndarray:
+    """Reciprocal 1-norm condition numbers 1 / (|A|_1 |A^-1|_1) (m,) of a stack (0 where singular)."""
+    norm = np.abs(square).sum(axis=1).max(axis=1)
+    try:
+        inverse = np.linalg.inv(square)
+    except np.linalg.LinAlgError:
+        inverse = np.full_like(square, np.inf)
+        for i, a in enumerate(square):
+            try:
+                inverse[i] = np.linalg.inv(a)
+            except np.linalg.LinAlgError:
+                pass
+    return 1.0 / (norm * np.abs(inverse).sum(axis=1).max(axis=1))
+
+
+@dataclass
+class _Solved:
+    """Raw outcome of a batched Newton solve: per row q, status code, residual, steps, platform pose."""
+
+    q: np.ndarray
+    status: np.ndarray
+    norm: np.ndarray
+    iterations: np.ndarray
+    rotation: np.ndarray
+    position: np.ndarray
+
+
+def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, tolerance: float,
+                 max_iterations: int, singular_rcond: float) -> _Solved:
+    """Newton on n independent square systems at once; rows leave the active set as they finish.
+
+    system(q_active, active) -> (residual (m, r), Jacobian (m, r, nv), platform rotation (m, 3, 3), position (m, 3));
+    signature(jac, square) -> (m, s) bool branch labels. Each step solves J[:, unknowns] dx = -r with
+    the largest component capped at 0.3. A row converges when max|r| <= tolerance; it then fails if its
+    Jacobian there has reciprocal 1-norm condition < singular_rcond (singular) or a branch label other
+    than at its start (branch change). Status codes: 0 converged, 1 out of workspace (no assembly:
+    residual > 1e-6 or non-finite), 2 not converged, 3 singular, 4 branch change.
+    """
+    n = len(q)
+    q = q.copy()
+    out = _Solved(q, np.full(n, _ACTIVE), np.full(n, np.inf), np.zeros(n, dtype=int),
+                  np.zeros((n, 3, 3)), np.zeros((n, 3)))
+    active, start = np.arange(n), None
+    for iteration in range(max_iterations + 1):
+        residual, jac, rot, pos = system(q[active], active)
+        norm = np.abs(residual).max(axis=1)
+        square = jac[:, :, unknowns]
+        labels = signature(jac, square)
+        start = labels if start is None else start
+        out.norm[active], out.iterations[active] = norm, iteration
+        bad = ~np.isfinite(norm)
+        done = (norm <= tolerance) & ~bad
+        if done.any():
+            rows = active[done]
+            out.rotation[rows], out.position[rows] = rot[done], pos[done]
+            code = np.where(_rcond_1(square[done]) < singular_rcond, 3,
+                            np.where((labels[done] != start[done]).any(axis=1), 4, _CONVERGED))
+            out.status[rows] = code
+        out.status[active[bad]] = 1
+        keep = ~(done | bad)
+        if iteration == max_iterations or not keep.any():
+            break
+        active, start = active[keep], start[keep]
+        step, singular = _solve_stack(square[keep], residual[keep])
+        out.status[active[singular]] = 3
+        biggest = np.abs(step).max(axis=1)
+        step *= np.minimum(1.0, _MAX_STEP / np.maximum(biggest, 1e-300))[:, None]
+        q[active[:, None], unknowns[None, :]] -= step
+        active, start = active[~singular], start[~singular]
+    left = out.status == _ACTIVE
+    out.status[left] = np.where(out.norm[left] > 1e-6, 1, 2)
+    return out
+
+
+def failures_of(solved: _Solved, offset: int, what: str) -> list[RowFailure]:
+    """Typed failures of the rows of `solved` that did not converge (indices shifted by `offset`)."""
+    return [RowFailure(offset + int(i), f"{what}: {_REASONS[int(solved.status[i])]} (residual "
+                       f"{solved.norm[i]:.3e} after {int(solved.iterations[i])} iterations)",
+                       _FAILURES[int(solved.status[i])])
+            for i in np.flatnonzero((solved.status != _CONVERGED) & (solved.status != _LIMIT))]
+
+
+def _starts(kin: StackedKinematics, n: int, q_init: np.ndarray | None) -> np.ndarray:
+    """Start configurations (n, nq): home by default, one nq vector for every row, or one per row."""
+    nq = kin.solver.model.nq
+    if q_init is None:
+        return np.repeat(kin.solver.mechanism.home[None, :], n, axis=0)
+    start = np.asarray(q_init, dtype=float)
+    if start.shape == (nq,):
+        start = np.repeat(start[None, :], n, axis=0)
+    if start.shape != (n, nq) or not np.all(np.isfinite(start)):
+        raise InvalidInputError(f"q_init: expected finite ({nq},) or ({n}, {nq}) values, got shape {start.shape}")
+    return start.copy()
+
+
+def _rows(values: object, width: int, what: str, columns: tuple[str, ...]) -> np.ndarray:
+    """An (n, width) finite float array, or InvalidInputError naming the first bad row and column."""
+    try:
+        array = np.asarray(values, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{what}: not numeric rows ({exc})") from None
+    if array.ndim != 2 or array.shape[1] != width or array.shape[0] == 0:
+        raise InvalidInputError(f"{what}: shape {array.shape}, expected (n, {width}) rows {columns}")
+    bad = np.argwhere(~np.isfinite(array))
+    if bad.size:
+        row, col = (int(i) for i in bad[0])
+        raise InvalidInputError(f"{what}: row {row} (0-based): {columns[col]} = {array[row, col]}, not finite")
+    return array
+
+
+def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarray | None = None) -> ForwardBatch:
+    """Platform poses for n slider sets (n, k) [m], each solved from q_init (default home), in chunks.
+
+    A row with a slider beyond its URDF limit fails with InvalidInputError (reported, not raised);
+    non-finite values or a wrong shape raise InvalidInputError for the whole batch.
+    """
+    solver = kin.solver
+    names = solver.mechanism.actuated_joints
+    values = _rows(sliders, len(names), "actuator values", names)
+    start = _starts(kin, len(values), q_init)
+    outside = (values < solver._act_lower) | (values > solver._act_upper)
+    failures = [RowFailure(int(i), f"actuator '{names[int(np.argmax(outside[i]))]}' = "
+                           f"{values[i, np.argmax(outside[i])]:.6g} is beyond its joint limit", InvalidInputError)
+                for i in np.flatnonzero(outside.any(axis=1))]
+    rows = np.flatnonzero(~outside.any(axis=1))
+    start[:, kin.actuated] = values
+
+    def system(q: np.ndarray, active: np.ndarray):
+        residual, jac, frot, fpos, _ = kin.closures(q)
+        return residual, jac, frot[:, -1], fpos[:, -1]
+
+    parts = []
+    for chunk in np.array_split(rows, max(1, -(-len(rows) // _CHUNK))) if len(rows) else []:
+        solved = newton_batch(start[chunk], kin.passive, system, lambda jac, sq: kin.signatures(jac),
+                              solver.tolerance, solver.max_iterations, solver.singular_rcond)
+        failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
+                     for f in failures_of(solved, 0, "forward kinematics")]
+        parts.append((chunk, solved))
+    return _forward_result(len(values), parts, failures)
+
+
+def _forward_result(n: int, parts: list, failures: list) -> ForwardBatch:
+    """Gather the converged rows of every chunk (in input order) into a frozen ForwardBatch."""
+    indices, poses, qs, norms, steps = [], [], [], [], []
+    for chunk, solved in parts:
+        good = solved.status == _CONVERGED
+        pose = np.zeros((int(good.sum()), 4, 4))
+        pose[:, :3, :3], pose[:, :3, 3], pose[:, 3, 3] = solved.rotation[good], solved.position[good], 1.0
+        indices.append(chunk[good]), poses.append(pose), qs.append(solved.q[good])
+        norms.append(solved.norm[good]), steps.append(solved.iterations[good])
+    nq = parts[0][1].q.shape[1] if parts else 0
+    cat = (lambda arrays, shape: np.concatenate(arrays) if arrays else np.zeros(shape))
+    index = cat(indices, (0,)).astype(int)
+    order = np.argsort(index, kind="stable")
+    fields = dict(n=n, indices=_frozen(index[order]), poses=_frozen(cat(poses, (0, 4, 4))[order]),
+                  q=_frozen(cat(qs, (0, nq))[order]), residuals=_frozen(cat(norms, (0,))[order]),
+                  iterations=_frozen(cat(steps, (0,)).astype(int)[order]),
+                  failures=tuple(sorted(failures, key=lambda f: f.index)))
+    return ForwardBatch(**fields)
+
+
+def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarray | None = None) -> InverseBatch:
+    """Slider values for n targets (n, 4) rows (x, y, z, theta) [m, rad], each from q_init (default home).
+
+    Row system as `ClosedLoopSolver.inverse`: [closure rows; p_P - p*; wrap(yaw_P - theta*)] = 0 over
+    all joints; branch labels = closure blocks plus the sign of det of the whole system. A converged
+    row needing a slider beyond its limit fails with OutOfWorkspaceError naming the slider.
+    """
+    solver = kin.solver
+    goal = _rows(targets, 4, "targets", ("x", "y", "z", "theta"))
+    start = _starts(kin, len(goal), q_init)
+    support = kin.platform_support
+    n_rows, every = len(kin.enforced), np.arange(solver.model.nv)
+
+    def system(q: np.ndarray, active: np.ndarray):
+        closure, jac, frot, fpos, world = kin.closures(q)
+        rot, pos = frot[:, -1], fpos[:, -1]
+        residual = np.empty((len(q), n_rows + 4))
+        residual[:, :n_rows] = closure
+        residual[:, n_rows:n_rows + 3] = pos - goal[active, :3]
+        yaw = np.arctan2(rot[:, 1, 0], rot[:, 0, 0]) - goal[active, 3]
+        residual[:, -1] = yaw - 2 * np.pi * np.round(yaw / (2 * np.pi))
+        platform = world * support
+        full = np.empty((len(q), n_rows + 4, len(every)))
+        full[:, :n_rows] = jac
+        # origin velocity v + w x p, in WORLD axes (LOCAL_WORLD_ALIGNED)
+        full[:, n_rows:n_rows + 3] = platform[:, :3] - skew(pos) @ platform[:, 3:]
+        c = rot[:, :, 0]
+        horizontal = c[:, 0] ** 2 + c[:, 1] ** 2
+        row = np.stack([-c[:, 0] * c[:, 2], -c[:, 1] * c[:, 2], horizontal], axis=1) / horizontal[:, None]
+        full[:, -1] = np.einsum("nk,nkv->nv", row, platform[:, 3:])
+        return residual, full, rot, pos
+
+    def signature(jac: np.ndarray, square: np.ndarray) -> np.ndarray:
+        return np.concatenate((kin.signatures(jac), (np.linalg.slogdet(square)[0] > 0)[:, None]), axis=1)
+
+    parts, failures = [], []
+    names = solver.mechanism.actuated_joints
+    for chunk in np.array_split(np.arange(len(goal)), max(1, -(-len(goal) // _CHUNK))):
+        solved = newton_batch(start[chunk], every, lambda q, a: system(q, chunk[a]), signature,
+                              solver.tolerance, solver.max_iterations, solver.singular_rcond)
+        sliders = solved.q[:, kin.actuated]
+        outside = ((sliders < solver._act_lower) | (sliders > solver._act_upper)) & \
+            (solved.status == _CONVERGED)[:, None]
+        for i in np.flatnonzero(outside.any(axis=1)):
+            k = int(np.argmax(outside[i]))
+            solved.status[i] = _LIMIT
+            failures.append(RowFailure(int(chunk[i]), f"inverse kinematics: target needs actuator '{names[k]}' = "
+                                       f"{sliders[i, k]:.6g} m, beyond its limit [{solver._act_lower[k]:.6g}, "
+                                       f"{solver._act_upper[k]:.6g}]", OutOfWorkspaceError))
+        failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
+                     for f in failures_of(solved, 0, "inverse kinematics")]
+        parts.append((chunk, solved))
+    fk = _forward_result(len(goal), parts, failures)
+    wanted = np.zeros(2)  # 4-vector targets request zero roll and pitch
+    return InverseBatch(**{f: getattr(fk, f) for f in ("n", "indices", "poses", "q", "residuals", "iterations",
+                                                       "failures")},
+                        actuators=_frozen(fk.q[:, kin.actuated]),
+                        tilt=_frozen(rpy_batch(fk.poses[:, :3, :3])[:, :2] - wanted))
