@@ -22,6 +22,7 @@ from ._threads import single_blas_thread
 from .assessment import FitRejected
 from .cli_calibrate import add_campaign_options
 from .cli_campaign import add_plan_parser, add_validate_parser
+from .demo import run_demo
 from .errors import InvalidInputError, KinematicsError, M3t1rError
 
 EXIT_ERROR, EXIT_ROWS_FAILED = 2, 1
@@ -214,10 +215,12 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     nominal = _mechanism(args.model, args.closures)
     calibrated = _mechanism(args.calibrated, args.calibrated_closures)
     outputs = OutputSet(inputs=(args.targets, nominal.urdf_path, nominal.closures_path, calibrated.urdf_path,
-                                calibrated.closures_path))
+                                calibrated.closures_path, args.report))
     output = outputs.add(args.output, "-o")
     outputs.check()
     targets, lines = read_targets(args.targets)
+    if args.report:
+        targets = _targets_in_base(targets, args.report, args.targets, calibrated)
     with _progress("compensate", len(lines)) as progress:
         result = compensate(nominal, calibrated, targets, progress=progress.update)
     if result.failures:
@@ -235,6 +238,41 @@ def cmd_compensate(args: argparse.Namespace) -> None:
         outputs.commit()
     _say(outputs, f"wrote {result.n_targets} compensated {args.output_kind} commands to {output.name}; "
                   f"largest uncommandable tilt (roll/pitch) of the calibrated machine {result.max_tilt:.3g} rad")
+
+
+def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -> np.ndarray:
+    """Targets of the measured point (the reflector) in a calibration's measurement frame, to
+    platform targets (x, y, z, theta) in the calibrated base.
+
+    The measured point is commanded in position and heading (its yaw in the base, the platform's
+    plus the marker's); the platform's roll and pitch are not commandable, so the platform
+    position that puts the point on target depends on the tilt the machine takes there:
+    p_platform = p_target - R_platform(q) m, solved by fixed point with the calibrated IK
+    (the tilt varies slowly: 2-4 rounds to 1e-10 m).
+    """
+    from .kinematics import ClosedLoopSolver, yaw_of
+    from .validation import read_report
+
+    if isinstance(targets, np.ndarray):
+        raise InvalidInputError(f"{targets_path}: with --report the targets are poses of the measured frame in the "
+                                "measurement frame, and need x,y,z,qx,qy,qz,qw")
+    setup = read_report(report_path).setup
+    solver, offset = ClosedLoopSolver(calibrated), setup.marker.translation
+    rows = []
+    for target in targets:
+        in_base = setup.frame.actInv(target)
+        row = np.r_[(in_base * setup.marker.inverse()).translation, yaw_of((in_base * setup.marker.inverse()).rotation)]
+        for _ in range(10):
+            try:
+                platform = solver.forward(solver.inverse(row).actuators).pose
+            except KinematicsError:
+                break  # compensate reports this target's failure itself
+            miss = platform.act(offset) - in_base.translation
+            row[:3] -= miss
+            if np.linalg.norm(miss) < 1e-10:
+                break
+        rows.append(row)
+    return np.array(rows)
 
 
 def cmd_view(args: argparse.Namespace) -> None:
@@ -265,9 +303,7 @@ def cmd_view(args: argparse.Namespace) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> None:
-    from .demo import run_demo
-
-    run_demo(Path(args.out))
+    run_demo(Path(args.out), main)
 
 
 def cmd_paper(args: argparse.Namespace) -> None:
@@ -427,6 +463,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("targets", help="CSV with x,y,z,theta or x,y,z,qx,qy,qz,qw")
     p.add_argument("--calibrated", required=True, metavar="URDF", help="calibrated URDF")
     p.add_argument("--calibrated-closures", metavar="YAML", help="its closures (default: beside the URDF)")
+    p.add_argument("--report", metavar="JSON", help="targets are poses of the measured frame (the marker) in this "
+                                                    "calibration's measurement frame (the tracker's), not the base's")
     p.add_argument("--output-kind", choices=("pose", "actuators"), default="pose",
                    help="pose: T_cp for a controller with the nominal model; actuators: slider commands")
     p.add_argument("-o", "--output", required=True, help="commands CSV")
@@ -444,7 +482,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--html", metavar="PATH", help="write a self-contained static page instead of serving")
     p.set_defaults(run=cmd_view)
 
-    p = verbs.add_parser("demo", help="the main job: simulate, calibrate, compensate, report (no input needed)")
+    p = verbs.add_parser("demo", help="the main job: a simulated tracker campaign, plan to compensation (no input needed)")
     p.add_argument("--out", default="demo_out", help="artifact folder (default demo_out)")
     p.set_defaults(run=cmd_demo)
 

@@ -1,48 +1,66 @@
-"""`make demo`: the main job on the embedded default, no input needed.
+"""`make demo`: a whole tracker campaign on a simulated machine, through the real commands.
 
-Simulate an actual machine (1 mm / 1 mrad errors on every joint origin and frame), measure it
-with a noisy tracker, calibrate from slider readings and poses, compensate commands over the
-workspace, print the before/after tables and write every artifact into one folder.
+The actual machine has 1 mm / 1 mrad errors on every joint origin and frame. A laser tracker
+stands 3 m away, turned 120 degrees, exports millimetres, and sees a reflector 70 mm off the
+platform frame (its CAD position 0.4 mm off); two of its readings are gross errors. The demo runs
+what a user runs: `m3t1r plan`, the measurements, `m3t1r calibrate --frame estimate`,
+`m3t1r validate` on a fresh set, `m3t1r compensate`, and then, since this machine is simulated,
+checks the calibrated model and the compensated commands against the truth.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import shlex
 import time
-import warnings
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
+import pinocchio as pin
 
 from . import __version__
 from ._threads import on_one_blas_thread
-from .calibration import TrackerNoise, calibrate_closed_loop, pose_errors
-from .datasets import write_measurements
+from .calibration import MeasurementSetup, TrackerNoise
+from .compensation import workspace_targets
+from .datasets import read_actuators, write_measurements
 from .description import Mechanism
-from .errors import PoorExcitationWarning
-from .design import NOMINAL
-from .io import atomic_write_text
+from .errors import M3t1rError
+from .io import POSE_COLUMNS, atomic_write_text, pose_rows, write_table
 from .kinematics import ClosedLoopSolver
+from .measurement_setup import register_frame
+from .metrics import pose_errors_between
+from .simulation import actual_machine, measure, random_placement_errors, with_outliers, workspace_actuators
+from .error_model import ClosedLoopErrorModel
+from .viz import comparison_views, write_static_html
 
 __all__ = ["DemoSettings", "run_demo"]
+
+Command = Callable[[Sequence[str]], int]
 
 
 @dataclass(frozen=True)
 class DemoSettings:
-    """What the demo simulates: truth errors [m, rad], tracker noise, pose counts, seed."""
+    """What the demo simulates: truth errors [m, rad], tracker noise and setup, pose counts, seed."""
 
     sigma_position: float = 1e-3
     sigma_rotation: float = 1e-3
     noise: TrackerNoise = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
-    n_poses: int = 50
+    tracker_frame: tuple[float, ...] = (3.0, -1.2, 0.4, 0.0, 0.0, 2.1)  # x, y, z [m], roll, pitch, yaw [rad]
+    marker: tuple[float, float, float] = (0.07, -0.02, 0.03)  # the reflector in the platform frame [m]
+    marker_cad_error: tuple[float, float, float] = (0.3e-3, -0.2e-3, 0.2e-3)  # what the CAD gets wrong [m]
+    n_poses: int = 60
+    n_outliers: int = 2
+    n_validation: int = 100
     n_holdout: int = 200
     n_targets: int = 250
     seed: int = 0
 
 
-class _Progress:
+class _Steps:
     def __init__(self, steps: int, say: Callable[[str], None]) -> None:
         self.steps, self.step, self.say, self.start = steps, 0, say, time.perf_counter()
 
@@ -52,143 +70,161 @@ class _Progress:
 
 
 def _row(label: str, position: np.ndarray, rotation: np.ndarray) -> str:
-    return (f"  {label:<34}{np.mean(position) * 1e6:>12.1f}{np.max(position) * 1e6:>11.1f}"
-            f"{np.mean(rotation) * 1e6:>13.1f}{np.max(rotation) * 1e6:>11.1f}")
+    return (f"  {label:<36}{np.mean(position) * 1e6:>10.1f}{np.max(position) * 1e6:>10.1f}"
+            f"{np.mean(rotation) * 1e6:>11.1f}{np.max(rotation) * 1e6:>10.1f}")
 
 
-_HEADER = f"  {'':<34}{'pos mean':>12}{'pos max':>11}{'rot mean':>13}{'rot max':>11}\n  {'':<34}{'[um]':>12}{'[um]':>11}{'[urad]':>13}{'[urad]':>11}"
+_HEADER = (f"  {'':<36}{'pos mean':>10}{'pos max':>10}{'rot mean':>11}{'rot max':>10}\n"
+           f"  {'':<36}{'[um]':>10}{'[um]':>10}{'[urad]':>11}{'[urad]':>10}")
+
+
+def _run(command: Command, arguments: list[str], out_dir: Path, say: Callable[[str], None],
+         keep: Callable[[str], bool] = lambda line: True) -> None:
+    """Run one `m3t1r` command as a user would, show it and the lines `keep` selects; the whole
+    output goes to out_dir/<verb>.log. A failing step stops the demo."""
+    shown = ["m3t1r"] + [a if not a.startswith(str(out_dir)) else Path(a).name for a in arguments]
+    say("  $ " + shlex.join(shown))
+    buffer = io.StringIO()
+    with contextlib.redirect_stdout(buffer), contextlib.redirect_stderr(buffer):
+        status = command(["-q", *arguments])
+    text = buffer.getvalue().replace(str(out_dir) + "/", "")
+    atomic_write_text(out_dir / f"{arguments[0]}.log", text)
+    for line in text.splitlines():
+        if keep(line):
+            say("    " + line)
+    if status != 0:
+        raise M3t1rError(f"demo step `{shlex.join(shown)}` failed with status {status}")
+
+
+def _tracker(settings: DemoSettings) -> MeasurementSetup:
+    x, y, z, roll, pitch, yaw = settings.tracker_frame
+    frame = pin.SE3(pin.rpy.rpyToMatrix(roll, pitch, yaw), np.array([x, y, z]))
+    return MeasurementSetup(frame, pin.SE3(np.eye(3), np.array(settings.marker)))
 
 
 @on_one_blas_thread
-def run_demo(out_dir: Path, settings: DemoSettings = DemoSettings(), say: Callable[[str], None] = print) -> dict:
-    """Run the whole job; return the summary written to out_dir/summary.json."""
-    from .compensation import compensation_accuracy
-    from .simulation import simulate_study
-
+def run_demo(out_dir: Path, command: Command, settings: DemoSettings = DemoSettings(),
+             say: Callable[[str], None] = print) -> dict:
+    """Run the campaign; `command` runs one `m3t1r` command line (the CLI's `main`).
+    Returns the summary written to out_dir/summary.json."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    progress = _Progress(7, say)
+    step = _Steps(7, say)
     nominal = Mechanism.load()
+    rng = np.random.default_rng(settings.seed)
+    setup = _tracker(settings)
+    file = lambda name: str(out_dir / name)  # noqa: E731
 
-    progress("kinematics of the nominal machine")
-    solver = ClosedLoopSolver(nominal)
-    say(f"  {'x':>7}{'y':>8}{'z':>8}{'theta':>8}  ->  sliders {', '.join(nominal.actuated_joints)} [m]"
-        f"  ->  FK error [m]")
-    for target in ([0.5, 0.525, -0.111, 0.0], [0.42, 0.3, -0.2, -0.6], [0.58, 0.8, -0.02, 0.7]):
-        ik = solver.inverse(target, q_init=nominal.home)
-        fk = solver.forward(ik.actuators, q_init=nominal.home)
-        error = np.linalg.norm(fk.pose.translation - np.array(target[:3]))
-        say(f"  {target[0]:7.3f}{target[1]:8.3f}{target[2]:8.3f}{target[3]:8.2f}  ->  "
-            + " ".join(f"{v:+.4f}" for v in ik.actuators) + f"  ->  {error:.1e}")
-    say(f"  mobility at home: {solver.mobility(nominal.home)} (closure Jacobian rank {nominal.model.nv - solver.mobility(nominal.home)})")
+    step(f"planning {settings.n_poses} measurement poses (D-optimal, ordered for short travel)")
+    _run(command, ["plan", "-n", str(settings.n_poses), "--seed", str(settings.seed), "-o", file("plan.csv")], out_dir,
+         say, keep=lambda line: "predicted" in line or "wrote" in line or "travel" in line)
 
-    progress(f"simulating an actual machine ({settings.sigma_position * 1e3:g} mm / {settings.sigma_rotation * 1e3:g} mrad "
-             f"on every joint origin and frame) and {settings.n_poses} noisy measurements")
-    study = simulate_study(nominal, settings.n_poses, settings.n_holdout, settings.seed, settings.sigma_position,
-                           settings.sigma_rotation, settings.noise)
-    write_measurements(out_dir / "measurements.csv", nominal, study.measurements,
-                       comments=[f"m3t1r {__version__} demo, seed {settings.seed}"])
-    study.truth.save(out_dir / "truth.urdf", out_dir / "truth.closures.yaml")
+    step(f"measuring an actual machine ({settings.sigma_position * 1e3:g} mm / {settings.sigma_rotation * 1e3:g} mrad "
+         "errors) with a tracker 3 m away, in mm, through a 70 mm reflector, with two gross errors")
+    error_model = ClosedLoopErrorModel(nominal)
+    truth = actual_machine(nominal, random_placement_errors(error_model, rng, settings.sigma_position,
+                                                            settings.sigma_rotation), error_model)
+    planned, _ = read_actuators(out_dir / "plan.csv", nominal)
+    campaign, spoiled = with_outliers(measure(truth, planned, rng, settings.noise, setup=setup), rng,
+                                      settings.n_outliers)
+    fresh = measure(truth, workspace_actuators(nominal, settings.n_validation, rng), rng, settings.noise, setup=setup)
+    comments = [f"m3t1r {__version__} demo: simulated tracker, lengths in mm"]
+    write_measurements(out_dir / "measurements.csv", nominal, campaign, comments=comments, units="mm")
+    write_measurements(out_dir / "validation.csv", nominal, fresh, comments=comments, units="mm")
+    truth.save(out_dir / "truth.urdf", out_dir / "truth.closures.yaml")
+    say(f"  wrote measurements.csv ({len(campaign)} poses; gross errors on data rows "
+        f"{', '.join(str(i + 1) for i in spoiled)}, i.e. file lines {', '.join(str(i + 3) for i in spoiled)}) "
+        f"and validation.csv ({len(fresh)} fresh poses)")
 
-    progress("calibrating from slider readings and tracker poses (closed loop, implicit differentiation)")
-    start = time.perf_counter()
-    calibration = calibrate_closed_loop(nominal, study.measurements, settings.noise)
-    seconds = time.perf_counter() - start
-    calibration.mechanism.save(out_dir / "calibrated.urdf", out_dir / "calibrated.closures.yaml")
-    say(f"  {calibration.base.rank} of {len(calibration.parameters)} parameters identifiable, "
-        f"{calibration.lm.iterations} iterations, {seconds:.2f} s")
+    step("calibrating: machine, tracker frame and reflector together; outliers flagged; the fit judged")
+    cad_marker = np.array(settings.marker) + np.array(settings.marker_cad_error)
+    _run(command, ["calibrate", file("measurements.csv"), "-o", file("calibrated.urdf"), "--report",
+                   file("report.json"), "--frame", "estimate", "--marker", *(f"{v:g}" for v in cad_marker),
+                   "--units", "mm", "--plots", file("plots")], out_dir, say,
+         keep=lambda line: not line.startswith("wrote") or "urdf" in line)
 
-    progress(f"checking on {settings.n_holdout} held-out poses and compensating {settings.n_targets} targets")
-    train = study.measurements.actuators
-    before_train = pose_errors(nominal, study.truth, train)
-    after_train = pose_errors(calibration.mechanism, study.truth, train)
-    before_held = pose_errors(nominal, study.truth, study.holdout_actuators)
-    after_held = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
-    targets = NOMINAL.workspace.sample(np.random.default_rng(settings.seed + 1), settings.n_targets)
-    accuracy = compensation_accuracy(nominal, calibration.mechanism, study.truth, targets)
+    step(f"validating on {settings.n_validation} fresh measurements")
+    _run(command, ["validate", file("validation.csv"), "--calibrated", file("calibrated.urdf"), "--report",
+                   file("report.json"), "--predictions", file("predictions.csv")], out_dir, say,
+         keep=lambda line: not line.lstrip()[:1].isdigit())
 
-    progress("results")
-    say("  platform error of the model vs the actual machine, at the same slider readings:")
-    say(_HEADER)
-    say(_row(f"calibration poses, nominal model", before_train.position, before_train.rotation))
-    say(_row(f"calibration poses, calibrated", after_train.position, after_train.rotation))
-    say(_row(f"held-out poses, nominal model", before_held.position, before_held.rotation))
-    say(_row(f"held-out poses, calibrated", after_held.position, after_held.rotation))
-    say(f"  achieved pose error when commanding {accuracy.n_targets} targets on the actual machine (yaw only for rotation):")
-    say(_HEADER)
-    say(_row("targets, nominal commands", accuracy.before.position, accuracy.before.yaw))
-    say(_row("targets, compensated commands", accuracy.after.position, accuracy.after.yaw))
-    if accuracy.failures:
-        say(f"  {len(accuracy.failures)} target(s) out of reach, reported not clipped: "
-            + "; ".join(f"#{f.index}: {f.reason}" for f in accuracy.failures[:3]))
+    step(f"compensating {settings.n_targets} targets given in the tracker's frame")
+    calibrated = Mechanism.load(out_dir / "calibrated.urdf")
+    estimated = MeasurementSetup.from_report(json.loads((out_dir / "report.json").read_text()))
+    targets = _tracker_targets(calibrated, estimated, settings)
+    write_table(out_dir / "targets.csv", POSE_COLUMNS, pose_rows(targets),
+                ["where the tracker should see the reflector: x, y, z [m] and orientation, in the tracker's frame"])
+    _run(command, ["compensate", file("targets.csv"), "--calibrated", file("calibrated.urdf"), "--report",
+                   file("report.json"), "--output-kind", "actuators", "-o", file("commands.csv")], out_dir, say)
 
-    progress("writing the report, plots and the meshcat page")
-    artifacts = _write_artifacts(out_dir, settings, nominal, calibration, study, before_held, after_held, accuracy, targets, say)
-    summary = {
-        "version": __version__, "settings": {"sigma_position_m": settings.sigma_position,
-                                             "sigma_rotation_rad": settings.sigma_rotation, "n_poses": settings.n_poses,
-                                             "n_holdout": settings.n_holdout, "n_targets": settings.n_targets,
-                                             "seed": settings.seed},
-        "identifiable": calibration.base.rank, "calibration_seconds": seconds,
-        "held_out_position_mean_m": {"nominal": before_held.position_mean, "calibrated": after_held.position_mean},
-        "held_out_rotation_mean_rad": {"nominal": before_held.rotation_mean, "calibrated": after_held.rotation_mean},
-        "compensated_position_mean_m": {"nominal_commands": accuracy.before.position_mean,
-                                        "compensated": accuracy.after.position_mean},
-        "compensated_yaw_mean_rad": {"nominal_commands": accuracy.before.yaw_mean,
-                                     "compensated": accuracy.after.yaw_mean},
-        "artifacts": [str(p) for p in artifacts],
-    }
+    step("checking against the truth (possible only in simulation)")
+    commands, _ = read_actuators(out_dir / "commands.csv", nominal)
+    summary = _truth_check(nominal, calibrated, estimated, truth, setup, targets, commands, rng, settings, say)
+    write_static_html(comparison_views(nominal, calibrated), out_dir / "scene.html", pose=(0.5, 0.6, -0.1, 0.3))
+    report = json.loads((out_dir / "report.json").read_text())
+    summary.update({"version": __version__, "seed": settings.seed, "outlier_lines_flagged": report["outliers"],
+                    "outlier_lines_true": [i + 3 for i in spoiled],
+                    "cross_validation_position_mean_m": report["cross_validation"]["position_mean_m"]})
     atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
-    progress("done")
-    say(f"  artifacts in {out_dir}/:")
-    for path in sorted({*artifacts, out_dir / "summary.json", out_dir / "measurements.csv", out_dir / "truth.urdf",
-                        out_dir / "calibrated.urdf", out_dir / "calibrated.closures.yaml"}):
-        say(f"    {path.name}")
+
+    step("done")
+    say(f"  artifacts in {out_dir}/: " + ", ".join(sorted(p.name for p in out_dir.iterdir())))
     return summary
 
 
-def _write_artifacts(out_dir: Path, settings: DemoSettings, nominal: Mechanism, calibration, study, held_before,
-                     held_after, accuracy, targets: np.ndarray, say: Callable[[str], None]) -> list[Path]:
-    from .calibration import PoseMeasurements, predicted_pose_std
-    from .cli import _calibration_report
-    from .datasets import MeasurementFile, sha256_of
-    from .plots import (plot_error_vs_poses, plot_pose_errors_before_after, plot_predicted_std_map,
-                        plot_workspace_error_map)
-    from .viz import comparison_views, write_static_html
-
-    artifacts = []
-    reached = targets[np.asarray(accuracy.indices, dtype=int)]  # rows of the accuracy arrays
-    data = MeasurementFile(out_dir / "measurements.csv", study.measurements, (), np.zeros((0, 0)),
-                           np.arange(len(study.measurements)), sha256_of(out_dir / "measurements.csv"))
-    report = _calibration_report(calibration, data, nominal, settings.noise)
-    atomic_write_text(out_dir / "report.json", json.dumps(report, indent=2) + "\n")
-    artifacts.append(out_dir / "report.json")
-    artifacts.append(plot_pose_errors_before_after(held_before, held_after, out_dir / "pose_errors_before_after.png",
-                                                   title="Held-out poses: platform error vs the actual machine"))
-    sizes, position, rotation = [], [], []
-    for k in (15, 25, 35, settings.n_poses):
-        m = study.measurements
-        subset = PoseMeasurements(m.actuators[:k], m.poses[:k], m.position_only)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", PoorExcitationWarning)
-            fitted = calibration if k == settings.n_poses else calibrate_closed_loop(nominal, subset, settings.noise)
-        errors = pose_errors(fitted.mechanism, study.truth, study.holdout_actuators)
-        sizes.append(k)
-        position.append(errors.position_mean)
-        rotation.append(errors.rotation_mean)
-        note = f"  (poorly excited: condition number {fitted.base.condition_number:.2g})" if caught else ""
-        say(f"  {k:3d} poses: held-out error {errors.position_mean * 1e6:7.1f} um, "
-            f"{errors.rotation_mean * 1e6:7.1f} urad{note}")
-    artifacts.append(plot_error_vs_poses(sizes, position, rotation, out_dir / "error_vs_poses.png",
-                                         title="Held-out error vs number of calibration poses"))
-    artifacts.append(plot_workspace_error_map(reached, accuracy.before.position,
-                                              accuracy.after.position, out_dir / "compensation_error_map.png",
-                                              title="Achieved position error over the workspace"))
-    std = predicted_pose_std(calibration, accuracy.actuators_after)
-    artifacts.append(plot_predicted_std_map(reached, std, out_dir / "predicted_error_map.png",
-                                            title="Predicted position error after compensation (1 sigma)"))
-    artifacts.append(write_static_html(comparison_views(nominal, calibration.mechanism), out_dir / "scene.html",
-                                       pose=(0.5, 0.6, -0.1, 0.3), markers=study.measurements.poses))
-    return artifacts
+def _tracker_targets(calibrated: Mechanism, estimated: MeasurementSetup, settings: DemoSettings) -> list[pin.SE3]:
+    """Workspace targets as a user with a tracker writes them: where the tracker should see the
+    reflector (pose in the tracker's frame); drawn as platform poses of the calibrated machine."""
+    platform = workspace_targets(settings.n_targets, np.random.default_rng(settings.seed + 1))
+    poses = np.array([pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, theta), np.array([x, y, z])).homogeneous
+                      for x, y, z, theta in platform])
+    return [pin.SE3(pose) for pose in estimated.measured_poses(poses)]
 
 
+def _truth_check(nominal: Mechanism, calibrated: Mechanism, estimated: MeasurementSetup, truth: Mechanism,
+                 setup: MeasurementSetup, targets: list[pin.SE3], commands: np.ndarray, rng: np.random.Generator,
+                 settings: DemoSettings, say: Callable[[str], None]) -> dict:
+    """What the tracker would see, predicted by each model, against the truth: at held-out slider
+    sets, and when the truth is driven with nominal and with compensated commands to the targets.
+
+    Everything is compared where the tracker sees it (the reflector in the tracker's frame): the
+    robot's base and the platform frame's origin are gauges that a tracker cannot observe. The
+    nominal model is given the best it can have without calibration: the frame registered to the
+    calibration data and the CAD reflector.
+    """
+    holdout = workspace_actuators(nominal, settings.n_holdout, rng)
+    seen = setup.measured_poses(_platform_poses(truth, holdout))
+    cad = MeasurementSetup(marker=pin.SE3(np.eye(3), np.array(settings.marker) + settings.marker_cad_error))
+    registered = replace(cad, frame=register_frame(cad.measured_poses(_platform_poses(nominal, holdout)), seen[:, :3, 3]))
+    say(f"  the reflector as the tracker sees it vs the models' prediction, at {settings.n_holdout} held-out slider sets:")
+    say(_HEADER)
+    summary = {}
+    for name, model, model_setup in (("nominal model", nominal, registered), ("calibrated model", calibrated, estimated)):
+        errors = pose_errors_between(model_setup.measured_poses(_platform_poses(model, holdout)), seen)
+        say(_row(name, errors.position, errors.rotation))
+        summary[name] = {"position_mean_m": errors.position_mean, "rotation_mean_rad": errors.rotation_mean}
+    nominal_commands = np.array([ClosedLoopSolver(nominal).inverse(registered.frame.actInv(t) * cad.marker.inverse())
+                                 .actuators for t in targets])
+    say(f"  where the tracker sees the reflector when the machine is commanded to {len(targets)} targets "
+        "(rotation: heading):")
+    say(_HEADER)
+    for name, sliders in (("nominal commands", nominal_commands), ("compensated commands", commands)):
+        reached = setup.measured_poses(_platform_poses(truth, sliders))
+        position = np.linalg.norm(reached[:, :3, 3] - np.array([t.translation for t in targets]), axis=1)
+        heading = _heading(estimated, reached) - _heading(estimated, np.array([t.homogeneous for t in targets]))
+        say(_row(name, position, heading))
+        heading = np.abs(np.angle(np.exp(1j * heading)))
+        summary[name] = {"position_mean_m": float(position.mean()), "heading_mean_rad": float(heading.mean())}
+    return summary
+
+
+def _heading(setup: MeasurementSetup, measured: np.ndarray) -> np.ndarray:
+    """Platform heading [rad] implied by measured frames (N, 4, 4) in the tracker's frame, under a
+    setup's conventions: yaw of frame^-1 . T . marker^-1 (what the IK commands; tilt is not)."""
+    platform = setup.frame.inverse().homogeneous @ measured @ setup.marker.inverse().homogeneous
+    return np.arctan2(platform[:, 1, 0], platform[:, 0, 0])
+
+
+def _platform_poses(machine: Mechanism, actuators: np.ndarray) -> np.ndarray:
+    solver = ClosedLoopSolver(machine)
+    return np.array([solver.forward(sliders).pose.homogeneous for sliders in actuators])
