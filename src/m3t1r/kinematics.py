@@ -96,23 +96,19 @@ class _BranchSignature:
     form); larger ones from LAPACK's LU, as numpy's det costs ~10 us of overhead per call.
     """
 
-    def __init__(self, blocks: list[tuple[np.ndarray, np.ndarray]]) -> None:
-        self._small = []
-        for size in (1, 2):
-            same = [(rows, cols) for rows, cols in blocks if len(rows) == size]
-            if same:
-                self._small.append((size, np.array([r for r, _ in same])[:, :, None],
-                                    np.array([c for _, c in same])[:, None, :]))
-        self._large = [(rows[:, None], cols[None, :]) for rows, cols in blocks if len(rows) > 2]
+    def __init__(self, blocks: list[tuple[np.ndarray, np.ndarray]], n_columns: int) -> None:
+        # Flat indices into a C-ordered (rows x n_columns) Jacobian: one `take` per block size.
+        flat = [(len(rows), (rows[:, None] * n_columns + cols[None, :]).reshape(-1)) for rows, cols in blocks]
+        self._ones = np.array([f for size, f in flat if size == 1], dtype=int).reshape(-1)
+        self._twos = np.array([f for size, f in flat if size == 2], dtype=int).reshape(-1, 4)
+        self._large = [(size, f) for size, f in flat if size > 2]
 
     def __call__(self, jac: np.ndarray) -> bytes:
-        signs = []
-        for size, rows, cols in self._small:
-            b = jac[rows, cols]
-            signs.append((b[:, 0, 0] > 0) if size == 1 else (b[:, 0, 0] * b[:, 1, 1] - b[:, 0, 1] * b[:, 1, 0] > 0))
-        signature = b"".join(sign.tobytes() for sign in signs)
-        for rows, cols in self._large:
-            signature += b"\x01" if _det_sign(lapack.dgetrf(jac[rows, cols])) else b"\x00"
+        flat = jac.reshape(-1)  # the callers' Jacobians are C-contiguous
+        two = flat[self._twos]
+        signature = (flat[self._ones] > 0).tobytes() + (two[:, 0] * two[:, 3] - two[:, 1] * two[:, 2] > 0).tobytes()
+        for size, index in self._large:
+            signature += b"\x01" if _det_sign(lapack.dgetrf(flat[index].reshape(size, size))) else b"\x00"
         return signature
 
 
@@ -229,6 +225,7 @@ class ClosedLoopSolver:
         self.actuated = mechanism.actuated_ids
         self.passive = mechanism.passive_ids
         self._act_lower, self._act_upper = mechanism.joint_limits()
+        self._finite_limits = bool(np.all(np.isfinite(self._act_lower)) and np.all(np.isfinite(self._act_upper)))
         self._platform = mechanism.platform_frame_id
         if self.n_rows != len(self.passive):
             raise InvalidInputError(
@@ -247,15 +244,59 @@ class ClosedLoopSolver:
                 pattern |= np.abs(jac) > 1e-9 * np.max(np.abs(jac))
             _BLOCK_CACHE[key] = [(rows, self.passive[cols]) for rows, cols in diagonal_blocks(pattern)]
         self._branch_blocks = _BLOCK_CACHE[key]
-        self._branch = _BranchSignature(self._branch_blocks)
+        self._branch = _BranchSignature(self._branch_blocks, model.nv)
         self.singular_rcond = SINGULAR_RCOND
         self._stacked = None  # batched kinematics, built on first use
+        self._build_constraints()
         self._last_branch: bytes | None = None  # signature at this solver's last FK solution
         self._tangent: np.ndarray | None = None  # d q_passive / d sliders at the last factorisation
         self.last_q = mechanism.home.copy()
 
     # ----------------------------------------------------------------------------------------
     # Residual and Jacobian
+    def _build_constraints(self) -> None:
+        """Pinocchio constraint models of the closures, for the Newton loops' evaluation (`_system`).
+
+        PointAnchor (3D) residual c1Mc2.translation = R_a^T (p_b - p_a) and FrameAnchor (6D) residual
+        log6(c1Mc2) are exactly our rows, and their data's error arrays stay live between `calc`s, so a
+        residual is one forwardKinematics, one `calc` per closure and one concatenate; the Jacobian one
+        `getConstraintsJacobian`. The FrameAnchor Jacobian is velocity-level; the exact one is
+        Jlog6(c1Mc2) Ad(c1Mc2^-1) times it (checked against `_evaluate` in the tests).
+        """
+        model = self.model
+        self._cmodels, self._cdatas = pin.StdVec_ConstraintModel(), pin.StdVec_ConstraintData()
+        for spec in self.mechanism.closures:
+            fa, fb = model.frames[spec.frame_a_id], model.frames[spec.frame_b_id]
+            kind = pin.PointAnchorConstraintModel if spec.type == "3D" else pin.FrameAnchorConstraintModel
+            constraint = kind(model, fa.parentJoint, fa.placement, fb.parentJoint, fb.placement)
+            self._cmodels.append(constraint)
+            self._cdatas.append(constraint.createData())
+        self._cpairs = [(self._cmodels[i], self._cdatas[i]) for i in range(len(self._cmodels))]
+        inner = [self._cdatas[i].extract() for i in range(len(self._cdatas))]
+        self._cerrors = [d.constraint_position_error for d in inner]
+        slots = np.concatenate(([0], np.cumsum([len(e) for e in self._cerrors])))
+        self._cwelds = [(int(slots[i]), d) for i, d in enumerate(inner) if len(self._cerrors[i]) == 6]
+
+    def _system(self, q: np.ndarray, with_jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """Enforced closure rows at q and, optionally, their exact Jacobian (rows x nv): the Newton
+        loops' evaluation, about 10 Python-level calls (see `_build_constraints`). Leaves `data` at q
+        (joint placements, and the WORLD joint Jacobian when with_jacobian)."""
+        model, data = self.model, self.data
+        if with_jacobian:
+            pin.computeJointJacobians(model, data, q)
+        else:
+            pin.forwardKinematics(model, data, q)
+        for constraint, cdata in self._cpairs:
+            constraint.calc(model, data, cdata)
+        residual = np.concatenate(self._cerrors)[self._enforced]
+        if not with_jacobian:
+            return residual, None
+        jac = pin.getConstraintsJacobian(model, data, self._cmodels, self._cdatas)
+        for slot, cdata in self._cwelds:
+            relative = cdata.c1Mc2
+            jac[slot:slot + 6] = (pin.Jlog6(relative) @ relative.inverse().action) @ jac[slot:slot + 6]
+        return residual, jac[self._enforced]
+
     def _evaluate(self, q: np.ndarray, with_jacobian: bool, all_rows: bool = False):
         """Residual (enforced or all rows) at q and, optionally, its Jacobian (rows x nv) and the
         row operator (rows x 6) that maps each closure's relative spatial twist to its rows.
@@ -333,6 +374,10 @@ class ClosedLoopSolver:
     # Forward kinematics
     def check_actuators(self, actuators: np.ndarray) -> np.ndarray:
         """Validate slider values [m]: finite, right count, within the URDF limits (no clipping)."""
+        if type(actuators) is np.ndarray and actuators.shape == self._act_lower.shape:
+            inside = (actuators >= self._act_lower) & (actuators <= self._act_upper)  # False for NaN
+            if inside.all() and self._finite_limits:
+                return actuators.astype(float)  # a copy
         values = require_finite_vector(actuators, len(self.actuated), "actuator values")
         names = self.mechanism.actuated_joints
         outside = (values < self._act_lower) | (values > self._act_upper)
@@ -354,24 +399,48 @@ class ClosedLoopSolver:
         """
         values = self.check_actuators(actuators)
         q = (self.last_q if q_init is None else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
-        if q_init is None and self._tangent is not None:
-            # First-order predictor along the solution manifold: dq_passive = -J_pas^-1 J_act d(sliders).
-            q[self.passive] += self._tangent @ (values - q[self.actuated])
-        q[self.actuated] = values
         warm = q_init is None
-        self._tangent = None  # dropped until this solve succeeds
-        outcome = self._newton(q, self.passive, lambda qk, wj: self._evaluate(qk, wj)[:2],
-                               lambda jac, lu: self._branch(jac),
+        if warm and self._tangent is not None:
+            q[self.passive] += self._predict(values - q[self.actuated])
+        q[self.actuated] = values
+        self._tangent, previous, self._previous = None, self._previous, None  # dropped until this solve succeeds
+        outcome = self._newton(q, self.passive, self._system, self._passive_branch,
                                start_branch=self._last_branch if warm else None, factors=factors)
         lu = outcome.lu
         if outcome.jacobian is not None:
             self._tangent = -lapack.dgetrs(lu[0], lu[1], outcome.jacobian[:, self.actuated])[0]
+        if warm or previous is None:  # the solution this one started from, for the second-order predictor
+            self._previous = (self.last_q[self.actuated], self.last_q[self.passive])
         self._last_branch = outcome.branch
         self.last_q = outcome.q
         return ForwardResult(self._platform_pose(), outcome.q.copy(), outcome.residual, outcome.iterations)
 
+    _previous: tuple[np.ndarray, np.ndarray] | None = None  # (sliders, passive q) of the solution before last_q
+
+    def _predict(self, change: np.ndarray) -> np.ndarray:
+        """Passive-joint change [rad or m] for a slider change `change` [m] from the last solution.
+
+        First order: T d, T = -J_pas^-1 J_act the tangent of the solution manifold. Second order along
+        the previous step e (sliders s_k - s_(k-1)): the previous solution gives
+        1/2 H[e, e] ~= q_(k-1) - q_k + T e, applied as lam^2 1/2 H[e, e] with lam = (d . e) / (e . e),
+        only while the path keeps going the same way (0 < lam < 2). Newton corrects whatever remains.
+        """
+        step = self._tangent @ change
+        if self._previous is not None:
+            last_sliders, last_passive = self._previous
+            e = self.last_q[self.actuated] - last_sliders
+            ee = float(e @ e)
+            lam = float(change @ e) / ee if ee > 0.0 else 0.0
+            if 0.0 < lam < 2.0:
+                step += lam * lam * (last_passive - self.last_q[self.passive] + self._tangent @ e)
+        return step
+
+    def _passive_branch(self, jac: np.ndarray, lu: tuple) -> bytes:
+        return self._branch(jac)
+
     def _platform_pose(self) -> pin.SE3:
-        return pin.SE3(self._frames[-1])  # a copy: the solver's data moves on
+        """The platform frame at the configuration last evaluated (a copy: the solver's data moves on)."""
+        return pin.SE3(pin.updateFramePlacement(self.model, self.data, self._platform))
 
     def _newton(self, q: np.ndarray, unknowns: np.ndarray, system, signature, start_branch=None,
                 factors: tuple | None = None) -> _Outcome:
@@ -460,8 +529,8 @@ class ClosedLoopSolver:
         n_rows, model, data, platform = self.n_rows, self.model, self.data, self._platform
 
         def system(qk: np.ndarray, with_jacobian: bool):
-            closure, jac, _ = self._evaluate(qk, with_jacobian)
-            oMp = self._frames[-1]
+            closure, jac = self._system(qk, with_jacobian)
+            oMp = pin.updateFramePlacement(model, data, platform)
             rotation = oMp.rotation
             residual = np.empty(n_rows + 4)
             residual[:n_rows] = closure
@@ -495,7 +564,7 @@ class ClosedLoopSolver:
                 f"target needs actuator '{names[k]}' = {actuators[k]:.6g} m, beyond its limit "
                 f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]", residual, iterations)
         # The FK warm start now follows this solution; its predictor tangent is from elsewhere.
-        self.last_q, self._tangent, self._last_branch = q, None, outcome.branch[:-1]
+        self.last_q, self._tangent, self._last_branch, self._previous = q, None, outcome.branch[:-1], None
         self._lu_inverse, self._last_inverse_branch = outcome.lu, outcome.branch
         pose = self._platform_pose()
         self._last_task = (pose.translation.copy(), yaw_of(pose.rotation))
@@ -536,6 +605,7 @@ class ClosedLoopSolver:
     def reset(self) -> None:
         """Forget the warm start and cached factorisations (next solve starts from home)."""
         self._tangent = None
+        self._previous = None
         self._last_branch = None
         self._lu_inverse = None
         self._last_inverse_branch = None
