@@ -106,3 +106,19 @@ def test_unsupported_joint_is_a_typed_error():
     model.addJoint(0, pin.JointModelSpherical(), pin.SE3.Identity(), "ball")
     with pytest.raises(UnsupportedJointError, match="Spherical"):
         StackedTree(model)
+
+
+def test_compensate_batch_agrees_with_the_path_compensation(mechanism):
+    from m3t1r.compensation import Compensator
+    calibrated = mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(7), 1e-3, 1e-3))
+    from m3t1r.kinematics import rehomed
+    calibrated = rehomed(calibrated)
+    targets = workspace_poses(30, 8)
+    targets[4] = [0.5, 1.2, -0.1, 0.0]  # unreachable: reported, excluded
+    path = Compensator(mechanism, calibrated).compensate(targets)
+    batch = Compensator(mechanism, calibrated).compensate_batch(targets)
+    assert list(batch.indices) == list(path.indices) and [f.index for f in batch.failures] == [4]
+    assert batch.failures[0].error is OutOfWorkspaceError
+    np.testing.assert_allclose(batch.actuators, path.actuators, atol=1e-11)
+    np.testing.assert_allclose(batch.command_targets, path.command_targets, atol=1e-11)
+    np.testing.assert_allclose(batch.tilt, path.tilt, atol=1e-11)

@@ -38,7 +38,7 @@ from .description import Mechanism
 from .design import NOMINAL, WorkspaceBox
 from .errors import InvalidInputError, KinematicsError, M3t1rError, OutOfWorkspaceError
 from .io import pose_rows
-from .kinematics import ClosedLoopSolver, ForwardResult, InverseResult, yaw_of
+from .kinematics import ClosedLoopSolver, ForwardResult, InverseResult, roll_pitch_of, yaw_of
 from .metrics import PoseErrors
 
 __all__ = [
@@ -332,6 +332,47 @@ class Compensator:
             iterations=_frozen(np.array([c.iterations for c in commands], dtype=int)),
             failures=tuple(failures),
         )
+
+
+    @on_one_blas_thread
+    def compensate_batch(self, targets: Targets) -> Compensation:
+        """Compensated commands for many targets at once: calibrated `inverse_batch`, then nominal
+        `forward_batch` at q^c, every target solved from home (the reference branch), vectorised.
+
+        Same result type and row convention as `compensate` (failed targets excluded, listed in
+        `failures` with the failing stage and error class), but no path order is assumed: use it for
+        maps, grids and files of unrelated targets. A target putting any joint of the calibrated machine
+        beyond its URDF limit fails with OutOfWorkspaceError, as in `compensate`.
+        """
+        rows = _validated_targets(targets)
+        if isinstance(rows[0], pin.SE3):
+            wanted = np.array([roll_pitch_of(p.rotation) for p in rows])
+            rows = [np.r_[p.translation, yaw_of(p.rotation)] for p in rows]
+        else:
+            wanted = np.zeros((len(rows), 2))
+        ik = self._inverse.solver.inverse_batch(np.array(rows))
+        failures = [TargetFailure(f.index, f"inverse kinematics of the calibrated model: {f.reason}", f.error)
+                    for f in ik.failures]
+        model = self.calibrated.model
+        lower, upper = model.lowerPositionLimit, model.upperPositionLimit
+        outside = (ik.q < lower) | (ik.q > upper)
+        for k in np.flatnonzero(outside.any(axis=1)):
+            joint = int(np.argmax(outside[k]))
+            name = model.names[1 + list(model.idx_qs[1:]).index(joint)]
+            failures.append(TargetFailure(int(ik.indices[k]), f"inverse kinematics of the calibrated model: target "
+                                          f"puts joint '{name}' at {ik.q[k, joint]:.6g}, beyond its limit "
+                                          f"[{lower[joint]:.6g}, {upper[joint]:.6g}]", OutOfWorkspaceError))
+        keep = ~outside.any(axis=1)
+        fk = self._forward.solver.forward_batch(ik.actuators[keep])
+        failures += [TargetFailure(int(ik.indices[keep][f.index]), "forward kinematics of the nominal model at the "
+                                   f"compensated sliders: {f.reason}", f.error) for f in fk.failures]
+        good = np.flatnonzero(keep)[fk.indices]  # rows of `ik` with a command
+        return Compensation(
+            n_targets=len(rows), actuated_joints=self.calibrated.actuated_joints,
+            indices=_frozen(ik.indices[good]), actuators=_frozen(ik.actuators[good]),
+            command_poses=tuple(pin.SE3(h) for h in fk.poses), reached_poses=tuple(pin.SE3(h) for h in ik.poses[good]),
+            tilt=_frozen(ik.tilt[good] - wanted[ik.indices[good]]), iterations=_frozen(ik.iterations[good]),
+            failures=tuple(sorted(failures, key=lambda f: f.index)))
 
 
 def compensate(nominal: Mechanism, calibrated: Mechanism, targets: Targets, *, strict: bool = False,
