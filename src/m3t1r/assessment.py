@@ -103,11 +103,33 @@ def likely_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndar
         causes.append(f"the data look like they are in another frame (a rigid registration moves them "
                       f"{np.linalg.norm(frame.translation):.3g} m and {angle:.3g} deg and leaves {registered:.3g} m "
                       "RMS): use --frame estimate")
+    causes += _swapped_position_columns(points, target, registered, direct, frame_estimated)
     causes += _swapped_columns(predict, readings, measured, names, registered)
     if not causes and registered > 0.02:
         causes.append(f"the data do not fit this machine even after a rigid registration ({registered:.3g} m RMS): "
                       "data from another machine, or the wrong model files")
     return causes
+
+
+def _swapped_position_columns(points: np.ndarray, measured: np.ndarray, registered: float, direct: float,
+                              frame_estimated: bool) -> list[str]:
+    """x, y, z columns in another order. In the base frame the order itself is tested. Against an
+    estimated frame only a mirror shows (a swap mirrors the points, which no rigid frame undoes;
+    every swap is the same mirror up to a rotation, so which two columns cannot be told)."""
+    if frame_estimated:
+        rms = _registered_rms(points, measured[:, [1, 0, 2]])[0]
+        if rms < registered / 5.0:
+            return [f"two of the x, y, z columns look swapped (the data are a mirror image of the model's; read "
+                    f"mirrored, the nominal model explains them {registered / max(rms, 1e-12):.0f} times better)"]
+        return []
+    found = []
+    for order in itertools.permutations(range(3)):
+        rms = float(np.sqrt(np.mean(np.sum((points - measured[:, list(order)]) ** 2, axis=1))))
+        if order != (0, 1, 2) and rms < direct / 5.0:
+            names = ", ".join("xyz"[k] for k in order)
+            found.append((rms, f"the position columns look like they hold {names} in that order (the nominal model "
+                               f"explains the data {direct / max(rms, 1e-12):.0f} times better read that way)"))
+    return [text for _, text in sorted(found)[:1]]
 
 
 def _swapped_columns(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndarray, measured: np.ndarray,

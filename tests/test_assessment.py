@@ -1,0 +1,192 @@
+"""Judging fits, naming likely causes, the measurement setup, outliers and model selection."""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from m3t1r.assessment import (FitRejected, check_fit, coverage_notes, describe_parameter, fit_movement_notes,
+                              likely_causes)
+from m3t1r.errors import IdentificationError, InvalidInputError
+from m3t1r.identification import forward_selection, outlier_poses, select_base_parameters
+from m3t1r.measurement_setup import (MeasurementSetup, register_frame, register_marker_rotation, se3_from_report,
+                                     se3_to_report)
+
+# A toy "machine": two readings move a point on a tilted plane (metres), enough to test the checks.
+_AXES = np.array([[0.3, 0.05, 0.02], [0.04, 0.25, 0.1]])
+
+
+def _predict(readings: np.ndarray) -> np.ndarray:
+    return np.array([0.5, 0.5, -0.1]) + readings @ _AXES + 0.2 * np.sin(readings[:, :1]) * np.array([0, 0, 1])
+
+
+def _readings(n: int = 40, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(-1.0, 1.0, (n, 2))
+
+
+def test_likely_causes_are_silent_on_good_data():
+    readings = _readings()
+    assert likely_causes(_predict, readings, _predict(readings), ("a", "b"), frame_estimated=False) == []
+
+
+def test_millimetres_are_named():
+    readings = _readings()
+    causes = likely_causes(_predict, readings, 1000 * _predict(readings), ("a", "b"), frame_estimated=True)
+    assert any("--units mm" in c for c in causes)
+
+
+def test_another_frame_is_named_only_when_the_frame_is_not_estimated():
+    readings = _readings()
+    frame = pin.SE3(pin.exp3(np.array([0.3, -1.2, 2.0])), np.array([2.0, -1.0, 0.5]))
+    measured = _predict(readings) @ frame.rotation.T + frame.translation
+    assert any("--frame estimate" in c for c in likely_causes(_predict, readings, measured, ("a", "b"),
+                                                              frame_estimated=False))
+    assert likely_causes(_predict, readings, measured, ("a", "b"), frame_estimated=True) == []
+
+
+def test_swapped_reading_columns_are_named():
+    readings = _readings()
+    measured = _predict(readings[:, ::-1])
+    causes = likely_causes(_predict, readings, measured, ("a", "b"), frame_estimated=True)
+    assert any("'a' and 'b' look swapped" in c for c in causes)
+
+
+def test_swapped_position_columns_are_named_in_the_base_frame_and_as_a_mirror_otherwise():
+    readings = _readings()
+    measured = _predict(readings)[:, [0, 2, 1]]
+    base = likely_causes(_predict, readings, measured, ("a", "b"), frame_estimated=False)
+    assert any("hold x, z, y in that order" in c for c in base)
+    estimated = likely_causes(_predict, readings, measured, ("a", "b"), frame_estimated=True)
+    assert any("mirror image" in c for c in estimated)
+
+
+def test_data_of_another_machine_are_named_when_nothing_else_explains_them():
+    readings = _readings()
+    measured = _predict(np.random.default_rng(5).uniform(-1.0, 1.0, readings.shape))
+    causes = likely_causes(_predict, readings, measured, ("a", "b"), frame_estimated=True)
+    assert causes and "another machine" in causes[-1]
+
+
+def test_check_fit_refuses_unconverged_and_unexplained_fits_and_names_the_causes():
+    check_fit(True, "cost", 7, 1.2)
+    check_fit(True, "cost", 7, 8.99)  # within 3x the noise
+    with pytest.raises(FitRejected, match="did not converge") as caught:
+        check_fit(False, "max_iterations", 60, 1.0, ["use --frame estimate"])
+    assert caught.value.causes == ["use --frame estimate"] and isinstance(caught.value, IdentificationError)
+    with pytest.raises(FitRejected, match="3.02 times the stated noise"):
+        check_fit(True, "cost", 7, 9.1)
+    with pytest.raises(FitRejected, match="nan times"):
+        check_fit(True, "cost", 7, float("nan"))
+
+
+def test_parameters_are_described_by_joint_and_component():
+    assert describe_parameter("q22.dt[3]") == "q22 rotation about x"
+    assert describe_parameter("marker.dt[2]") == "marker translation along z"
+    assert describe_parameter("q22.dt[9]") == "q22.dt[9]" and describe_parameter("q22") == "q22"
+
+
+def test_movement_notes_flag_implausible_and_negligible_fits():
+    far = fit_movement_notes({"q11.dt[0]": 0.03, "q12.dt[4]": 0.05}, 1e-2, 1e-5)
+    assert len(far) == 1 and "q11 translation along x +0.03 m" in far[0] and "q12" not in far[0]
+    assert fit_movement_notes({"q12.dt[4]": 0.2}, 1e-2, 1e-5)[0].count("rad") == 1
+    assert "barely moved" in fit_movement_notes({}, 1e-2, 0.9e-2)[0]
+    assert fit_movement_notes({"q11.dt[0]": 0.019, "q12.dt[5]": 0.099}, 1e-2, 1e-5) == []
+
+
+def test_coverage_names_the_poorly_covered_coordinates():
+    values = np.column_stack([np.linspace(0, 1, 10), np.linspace(0, 0.1, 10)])
+    notes = coverage_notes(values, {"x": (0.0, 1.0), "theta": (-0.5, 0.5)})
+    assert len(notes) == 1 and notes[0].startswith("theta spans") and "10 %" in notes[0]
+
+
+# ------------------------------------------------------------------------------------------------
+# The measurement setup
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.floats(-4, 4), min_size=3, max_size=3), st.lists(st.floats(-5, 5), min_size=3, max_size=3))
+def test_registration_finds_any_rotation_and_translation(rotation_vector, translation):
+    frame = pin.SE3(pin.exp3(np.array(rotation_vector)), np.array(translation))
+    poses = np.tile(np.eye(4), (30, 1, 1))
+    poses[:, :3, 3] = np.random.default_rng(1).uniform(-0.5, 0.5, (30, 3))
+    found = register_frame(poses, (frame.homogeneous @ poses)[:, :3, 3])
+    assert np.linalg.norm(pin.log6(found.actInv(frame)).vector) < 1e-9
+
+
+def test_registration_refuses_collinear_points():
+    poses = np.tile(np.eye(4), (10, 1, 1))
+    poses[:, 0, 3] = np.linspace(0, 1, 10)
+    with pytest.raises(IdentificationError, match="collinear"):
+        register_frame(poses, poses[:, :3, 3])
+
+
+def test_marker_rotation_is_found_in_closed_form():
+    rng = np.random.default_rng(3)
+    frame = pin.SE3(pin.exp3(rng.normal(size=3)), rng.normal(size=3))
+    marker = pin.exp3(rng.normal(size=3))
+    platform = np.array([pin.SE3(pin.exp3(np.array([0, 0, t])), rng.normal(size=3)).homogeneous
+                         for t in np.linspace(-0.7, 0.7, 12)])
+    measured = frame.rotation @ platform[:, :3, :3] @ marker
+    assert np.allclose(register_marker_rotation(frame, platform, measured), marker, atol=1e-12)
+
+
+def test_setup_round_trips_through_the_report_and_refuses_bad_entries():
+    setup = MeasurementSetup(pin.SE3(pin.exp3(np.array([0.1, 2.0, -0.3])), np.array([3.0, -1.0, 0.5])),
+                             pin.SE3(pin.exp3(np.array([0.0, 0.5, 0.0])), np.array([0.07, 0.0, 0.02])))
+    again = MeasurementSetup.from_report(setup.to_report())
+    assert np.allclose(again.frame.homogeneous, setup.frame.homogeneous)
+    assert np.allclose(again.marker.homogeneous, setup.marker.homogeneous)
+    assert np.allclose(MeasurementSetup.from_report({}).frame.homogeneous, np.eye(4))
+    bad = se3_to_report(setup.frame)
+    bad["quaternion"] = [0.0, 0.0, 0.0, 2.0]
+    with pytest.raises(InvalidInputError, match="norm 2"):
+        se3_from_report(bad, "measurement_frame")
+    with pytest.raises(InvalidInputError, match="marker"):
+        MeasurementSetup.from_report({"marker": {"translation": [1, 2]}})
+
+
+# ------------------------------------------------------------------------------------------------
+# Outliers and selection
+
+def test_outliers_are_flagged_at_the_5_sigma_gate_and_the_gate_widens_with_unmodelled_effects():
+    rng = np.random.default_rng(0)
+    blocks = rng.normal(size=(200, 6))
+    blocks[7] += 8.0
+    flagged, scale = outlier_poses(blocks)
+    assert list(np.flatnonzero(flagged)) == [7] and scale == pytest.approx(1.0, abs=0.15)
+    wide, scale = outlier_poses(4.0 * blocks)  # every residual 4x the stated noise: the gate widens
+    assert list(np.flatnonzero(wide)) == [7] and 3.5 < scale < 4.5
+    with pytest.raises(InvalidInputError):
+        outlier_poses(np.full((3, 3), np.nan))
+
+
+def test_forward_selection_keeps_the_parameters_that_predict_and_its_press_is_a_true_leave_one_out():
+    rng = np.random.default_rng(2)
+    n, k, p = 50, 3, 8
+    jacobian = rng.normal(size=(n * k, p))
+    truth = np.r_[1.0, -2.0, 0.5, np.zeros(p - 3)]
+    residual = -(jacobian @ truth) + 0.3 * rng.normal(size=n * k)
+    selection = forward_selection(jacobian, residual, k, range(p))
+    assert {0, 1, 2} <= set(selection.indices)
+    # PRESS of the chosen set equals refitting without each pose in turn.
+    columns = list(selection.indices)
+    press = 0.0
+    for i in range(n):
+        keep = np.r_[np.arange(0, i * k), np.arange((i + 1) * k, n * k)]
+        x = np.linalg.lstsq(jacobian[keep][:, columns], -residual[keep], rcond=None)[0]
+        press += float(np.sum((residual[i * k:(i + 1) * k] + jacobian[i * k:(i + 1) * k, columns] @ x) ** 2))
+    assert selection.press == pytest.approx(press, rel=1e-9)
+    assert selection.path[len(columns)] == pytest.approx(selection.press) and selection.press <= selection.press_all
+
+
+def test_forced_columns_are_kept_first_and_the_ones_they_explain_are_dropped():
+    rng = np.random.default_rng(4)
+    base = rng.normal(size=(60, 4))
+    jacobian = np.column_stack([base, base[:, 0] + base[:, 1], base[:, 2]])  # 4 = 0 + 1, 5 = 2
+    names = [f"p{i}" for i in range(6)]
+    chosen = select_base_parameters(jacobian, names, forced=[4, 5])
+    assert chosen.rank == 4 and {4, 5} <= set(chosen.indices) and 2 not in chosen.indices
+    dependent = select_base_parameters(jacobian, names, forced=[2, 5])  # 5 duplicates 2: dropped
+    assert 2 in dependent.indices and 5 not in dependent.indices and dependent.rank == 4
