@@ -1,0 +1,200 @@
+"""Kinematics cost in "units" of Pinocchio's own work, single solves and batches, measured in one run.
+
+Unit: one `computeJointJacobians` + `updateFramePlacements` on the M model (the pass a Newton step
+cannot avoid), timed interleaved with every operation below, so that each ratio is taken under the
+same machine load. Operations:
+
+- warm FK / IK along the 1,000-target Lissajous path of `bench_kinematics.py` (per solve);
+- compensation along the same path (`Compensator.compensate`, calibrated IK + nominal FK) with a
+  1 mm / 1 mrad perturbed machine as the calibrated model (per target);
+- `forward_batch` / `inverse_batch` over n random workspace poses, every row from home (per pose),
+  with the largest platform difference to `forward(a, q_init=home)` on a sample of rows;
+- SLSQP with exact Jacobians and with finite differences (`bench_kinematics.SlsqpKinematics`) from
+  home on the first rows of the same set (per pose), for the batch ratio at equal accuracy;
+- Pinocchio evaluations per warm solve (counted), times their cost: the floor a C++ Newton loop
+  would still pay; peak traced memory of `forward_batch` by pose count.
+
+Run: python benchmarks/bench_batch.py [--n-batch 10000 --n-slsqp 50 --repeats 5] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import fmt_time, header, interleaved_times, median, table  # noqa: E402
+from bench_kinematics import SlsqpKinematics, workspace_path  # noqa: E402
+
+from m3t1r._threads import single_blas_thread  # noqa: E402
+from m3t1r.compensation import Compensator  # noqa: E402
+from m3t1r.description import Mechanism  # noqa: E402
+from m3t1r.design import NOMINAL  # noqa: E402
+from m3t1r.kinematics import ClosedLoopSolver, rehomed  # noqa: E402
+
+
+def perturbed(mechanism: Mechanism, seed: int = 0, size: float = 1e-3) -> Mechanism:
+    """The machine with every joint placement moved by a random 1 mm / 1 mrad twist, re-assembled."""
+    rng = np.random.default_rng(seed)
+    model = mechanism.model.copy()
+    for j in range(1, model.njoints):
+        model.jointPlacements[j] = model.jointPlacements[j] * pin.exp6(rng.normal(0.0, size, 6))
+    return rehomed(mechanism.with_model(model))
+
+
+def unit_runner(mechanism: Mechanism, count: int):
+    """`count` unit passes at home (callable for interleaved timing)."""
+    model, data, q = mechanism.model, mechanism.model.createData(), mechanism.home.copy()
+
+    def run() -> None:
+        for _ in range(count):
+            pin.computeJointJacobians(model, data, q)
+            pin.updateFramePlacements(model, data)
+    return run
+
+
+def path_runners(mechanism: Mechanism, calibrated: Mechanism, targets: np.ndarray, sliders: np.ndarray) -> dict:
+    solver = ClosedLoopSolver(mechanism)
+    compensator = Compensator(mechanism, calibrated)
+
+    def fk() -> None:
+        solver.reset()
+        for values in sliders:
+            solver.forward(values)
+
+    def ik() -> None:
+        solver.reset()
+        for target in targets:
+            solver.inverse(target)
+
+    def compensation():
+        compensator.reset()
+        return compensator.compensate(targets)
+    return {"FK warm (path)": fk, "IK warm (path)": ik, "compensation (path)": compensation}
+
+
+def evaluations_per_solve(mechanism: Mechanism, targets: np.ndarray, sliders: np.ndarray) -> dict:
+    """Mean Jacobian and residual-only evaluations per warm solve along the path (counted)."""
+    solver = ClosedLoopSolver(mechanism)
+    counts = {"jac": 0, "res": 0}
+    original = solver._system
+
+    def counted(q, with_jacobian):
+        counts["jac" if with_jacobian else "res"] += 1
+        return original(q, with_jacobian)
+    solver._system = counted
+    out = {}
+    for name, items, solve in (("FK", sliders, solver.forward), ("IK", targets, solver.inverse)):
+        solver.reset()
+        counts.update(jac=0, res=0)
+        for item in items:
+            solve(item)
+        out[name] = (counts["jac"] / len(items), counts["res"] / len(items))
+    return out
+
+
+def residual_cost(mechanism: Mechanism, count: int):
+    model, data, q = mechanism.model, mechanism.model.createData(), mechanism.home.copy()
+
+    def run() -> None:
+        for _ in range(count):
+            pin.forwardKinematics(model, data, q)
+    return run
+
+
+def batch_agreement(solver: ClosedLoopSolver, sliders: np.ndarray, batch, rows: int) -> float:
+    """Largest platform position difference [m] between forward_batch and forward(q_init=home)."""
+    worst = 0.0
+    for k in np.linspace(0, len(batch.indices) - 1, min(rows, len(batch.indices))).astype(int):
+        fk = solver.forward(sliders[batch.indices[k]], q_init=solver.mechanism.home)
+        worst = max(worst, float(np.linalg.norm(fk.pose.translation - batch.poses[k, :3, 3])))
+    return worst
+
+
+def peak_memory(solver: ClosedLoopSolver, sliders: np.ndarray, sizes: list[int]) -> list[list]:
+    rows = []
+    for n in sizes:
+        values = np.resize(sliders, (n, sliders.shape[1]))
+        tracemalloc.start()
+        start = time.perf_counter()
+        solver.forward_batch(values)
+        seconds = time.perf_counter() - start
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        rows.append([f"{n:,}", f"{peak / 2**20:.1f} MiB", fmt_time(seconds)])
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--n-path", type=int, default=1000)
+    parser.add_argument("--n-batch", type=int, default=10000)
+    parser.add_argument("--n-slsqp", type=int, default=50)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--memory-sizes", type=int, nargs="*", default=[1000, 10000, 100000])
+    parser.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.n_path, args.n_batch, args.n_slsqp, args.repeats, args.memory_sizes = 40, 60, 3, 1, [100]
+    print(header("Kinematics in units of one Pinocchio pass: single solves, batches, SLSQP", __file__, argv))
+    mechanism = Mechanism.load()
+    with single_blas_thread():
+        calibrated = perturbed(mechanism)
+        solver = ClosedLoopSolver(mechanism)
+        targets = workspace_path(args.n_path)
+        sliders = np.array([solver.inverse(t).actuators for t in targets])
+        cloud = NOMINAL.workspace.sample(np.random.default_rng(0), args.n_batch)
+        cloud_sliders = solver.inverse_batch(cloud).actuators
+        slsqp = {name: SlsqpKinematics(mechanism, analytic) for name, analytic in
+                 (("SLSQP exact Jacobians", True), ("SLSQP finite differences", False))}
+        few = cloud_sliders[:args.n_slsqp]
+        runs = {"unit": unit_runner(mechanism, 2000), "residual pass (forwardKinematics)": residual_cost(mechanism, 2000)}
+        runs.update(path_runners(mechanism, calibrated, targets, sliders))
+        runs["forward_batch"] = lambda: solver.forward_batch(cloud_sliders)
+        runs["inverse_batch"] = lambda: solver.inverse_batch(cloud)
+        for name, baseline in slsqp.items():
+            runs[f"{name} (FK from home)"] = (lambda b=baseline: [b.forward(a, mechanism.home) for a in few])
+        results: dict = {}
+        times = interleaved_times(runs, args.repeats, results)
+        evaluations = evaluations_per_solve(mechanism, targets, sliders)
+        agreement = batch_agreement(solver, cloud_sliders, results["forward_batch"], 200)
+        memory = peak_memory(solver, cloud_sliders, args.memory_sizes)
+    counts = {"unit": 2000, "residual pass (forwardKinematics)": 2000, "FK warm (path)": args.n_path,
+              "IK warm (path)": args.n_path, "compensation (path)": args.n_path, "forward_batch": args.n_batch,
+              "inverse_batch": args.n_batch}
+    counts.update({f"{name} (FK from home)": len(few) for name in slsqp})
+    unit = median(times["unit"]) / 2000
+    per = {name: median(t) / counts[name] for name, t in times.items()}
+    rows = [[name, fmt_time(per[name]), f"{per[name] / unit:.1f}"] for name in runs]
+    print(f"Unit (computeJointJacobians + updateFramePlacements): {fmt_time(unit)}; median of {args.repeats} "
+          "interleaved rounds.\n")
+    print(table(["operation", "time per solve / pose / target", "units"], rows))
+    batch = results["forward_batch"]
+    print(f"\nforward_batch: {len(batch.indices)}/{args.n_batch} rows converged, max closure residual "
+          f"{batch.residuals.max():.1e}, mean {batch.iterations.mean():.2f} Newton steps from home; largest "
+          f"platform difference to forward(q_init=home) over 200 rows: {agreement:.2e} m.")
+    comp = results["compensation (path)"]
+    print(f"compensation: {len(comp.indices)}/{args.n_path} targets; 4 kHz loop budget 250 us.")
+    for name in slsqp:
+        theirs = per[f"{name} (FK from home)"]
+        print(f"{name}: {fmt_time(theirs)} per FK from home; forward_batch is {theirs / per['forward_batch']:.1f}x "
+              "faster per pose (both to <= 1e-10 closure residual).")
+    res_unit = per["residual pass (forwardKinematics)"] / unit
+    print("\nPinocchio evaluations per warm solve (counted) and the floor they set (a C++ Newton loop pays "
+          "at least these passes):\n")
+    print(table(["solve", "Jacobian evaluations", "residual evaluations", "floor [units]"],
+                [[name, f"{j:.2f}", f"{r:.2f}", f"{j + r * res_unit:.1f}"] for name, (j, r) in evaluations.items()]))
+    print("\nPeak traced memory of forward_batch (numpy arrays; rows solved in chunks of 2,048):\n")
+    print(table(["poses", "peak memory", "time"], memory))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
