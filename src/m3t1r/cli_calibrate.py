@@ -26,7 +26,7 @@ from .datasets import MeasurementFile, read_measurements
 from .description import Mechanism
 from .design import NOMINAL
 from .errors import InvalidInputError, KinematicsError, PoorExcitationWarning
-from .io import OutputSet
+from .io import OutputSet, Progress
 from .kinematics import ClosedLoopSolver, yaw_of
 from .measurement_setup import register_frame, se3_to_report
 from .reporting import passive_joint_residuals, write_calibration_plots
@@ -113,9 +113,9 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     estimate_frame = args.frame == "estimate"
     print(f"calibrating from {len(data.measurements)} poses"
           + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
-    with warnings.catch_warnings(record=True) as caught:
+    with warnings.catch_warnings(record=True) as caught, Progress("calibrating", None) as progress:
         warnings.simplefilter("always", PoorExcitationWarning)
-        calibration = _fit(args, nominal, data, noise, marker, estimate_frame)
+        calibration = _fit(args, nominal, data, noise, marker, estimate_frame, progress.advance)
     lines = [int(data.lines[i]) for i in calibration.outliers]
     _print_summary(calibration, lines)
     try:
@@ -126,7 +126,9 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
         if not args.force:
             raise
         print(f"m3t1r: warning: writing anyway (--force): {exc.reason}", file=sys.stderr)
-    validation = cross_validate(calibration, folds=args.folds)
+    with Progress(f"cross-validating ({args.folds} folds)", None) as progress:
+        calibration.problem.on_evaluate = progress.advance
+        validation = cross_validate(calibration, folds=args.folds)
     notes = explain(calibration, [str(w.message) for w in caught])
     _print_judgement(calibration, validation, notes)
     report = calibration_report(calibration, data, nominal, noise, args, lines, validation, notes)
@@ -157,14 +159,14 @@ def _idle_chain_check(nominal: Mechanism, calibration: ClosedLoopCalibration, da
 
 
 def _fit(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, noise: TrackerNoise,
-         marker: pin.SE3, estimate_frame: bool) -> ClosedLoopCalibration:
+         marker: pin.SE3, estimate_frame: bool, progress: Callable[[], None]) -> ClosedLoopCalibration:
     """The fit, refused with the likely causes when the data cannot even be started from."""
     _precheck(nominal, data, marker, estimate_frame)
     kwargs = {} if args.max_iterations is None else {"max_iterations": args.max_iterations}
     return calibrate_closed_loop(
         nominal, data.measurements, noise, setup=MeasurementSetup(marker=marker), estimate_frame=estimate_frame,
         estimate_marker=args.marker is not None, outlier_sigma=args.outlier_sigma or None,
-        select=args.select == "loo", fixed=args.fix, priors=args.prior, **kwargs)
+        select=args.select == "loo", fixed=args.fix, priors=args.prior, progress=progress, **kwargs)
 
 
 def _precheck(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, estimate_frame: bool) -> None:

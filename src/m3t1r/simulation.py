@@ -119,9 +119,13 @@ def measure(machine: Mechanism, actuators: np.ndarray, rng: np.random.Generator 
     platform = []
     for sliders in actuators:
         try:
-            platform.append(solver.forward(sliders).pose.homogeneous)
+            try:
+                pose = solver.forward(sliders).pose
+            except KinematicsError:  # the warm start may jump across a singularity: retry from home
+                pose = solver.forward(sliders, q_init=machine.home).pose
         except KinematicsError as exc:
             raise InvalidInputError(f"slider set {sliders} does not assemble on the machine: {exc}") from None
+        platform.append(pose.homogeneous)
     seen = (setup or MeasurementSetup()).measured_poses(np.array(platform).reshape(-1, 4, 4))
     poses = [pin.SE3(pose) for pose in seen]
     readings = np.array(actuators, dtype=float)
