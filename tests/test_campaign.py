@@ -130,3 +130,20 @@ def test_linearised_cross_validation_agrees_with_refitting_every_fold():
     assert quick.errors.rotation_mean == pytest.approx(refitted.errors.rotation_mean, rel=0.01)
     # Noise included: the held-back measurements' own noise (10 um per axis) is part of the figure.
     assert 10e-6 < quick.errors.position_mean < 30e-6
+
+
+def test_fixed_and_prior_parameters_are_honoured_and_reported(tmp_path):
+    study, path, options = _campaign(tmp_path, 4, False)
+    urdf, report_path = tmp_path / "cal.urdf", tmp_path / "cal.json"
+    assert main(["calibrate", str(path), "-o", str(urdf), "--report", str(report_path), "--frame", "estimate",
+                 "--fix", "q12", "q22.dt[5]", "--prior", "q13=1e-4", "--prior", "q23.dt[0]=1e-5", *options]) == 0
+    report = json.loads(report_path.read_text())
+    assert report["fixed"] == ["q12", "q22.dt[5]"] and report["priors"] == {"q13": 1e-4, "q23.dt[0]": 1e-5}
+    values = {p["name"]: p for p in report["parameters"]}
+    assert all(values[f"q12.dt[{k}]"]["value"] == 0.0 and not values[f"q12.dt[{k}]"]["fitted"] for k in range(6))
+    assert values["q22.dt[5]"]["value"] == 0.0
+    assert abs(values["q23.dt[0]"]["value"]) < 5e-5  # held within a few sigmas of nominal by its prior
+    for bad in (["--fix", "q99"], ["--prior", "q13=-1"], ["--prior", "q13"]):
+        assert main(["calibrate", str(path), "-o", str(tmp_path / "x.urdf"), "--frame", "estimate", *bad,
+                     *options]) == 2
+    assert not (tmp_path / "x.urdf").exists()

@@ -29,7 +29,7 @@ from .compensation import workspace_targets
 from .datasets import read_actuators, write_measurements
 from .description import Mechanism
 from .errors import M3t1rError
-from .io import POSE_COLUMNS, atomic_write_text, pose_rows, write_table
+from .io import POSE_COLUMNS, atomic_write_text, json_text, pose_rows, write_table
 from .kinematics import ClosedLoopSolver
 from .measurement_setup import register_frame
 from .metrics import pose_errors_between
@@ -165,7 +165,7 @@ def run_demo(out_dir: Path, command: Command, settings: DemoSettings = DemoSetti
     summary.update({"version": __version__, "seed": settings.seed, "outlier_lines_flagged": report["outliers"],
                     "outlier_lines_true": [i + 3 for i in spoiled],
                     "cross_validation_position_mean_m": report["cross_validation"]["position_mean_m"]})
-    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+    atomic_write_text(out_dir / "summary.json", json_text(summary))
 
     step("done")
     say(f"  artifacts in {out_dir}/: " + ", ".join(sorted(p.name for p in out_dir.iterdir())))
