@@ -16,13 +16,15 @@ demo: $(STAMP)
 	$(BIN)/m3t1r demo --out demo_out
 
 test: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/mypy
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
 
 # Mutation testing of the core modules, one module at a time, in copies under build/mutation/
-# (slow: not part of `make test`). MODULES="kinematics poe" restricts it; see docs/mutation.md.
+# (slow: not part of `make test`). MODULES="model.kinematics model.poe" restricts it; see docs/mutation.md.
 MODULES ?=
 mutation: $(STAMP)
 	$(BIN)/python tools/mutation.py $(MODULES)

@@ -35,9 +35,9 @@ from bench_kinematics import SlsqpKinematics, workspace_path  # noqa: E402
 
 from m3t1r._threads import single_blas_thread  # noqa: E402
 from m3t1r.compensation import Compensator  # noqa: E402
-from m3t1r.description import Mechanism  # noqa: E402
-from m3t1r.design import NOMINAL  # noqa: E402
-from m3t1r.kinematics import ClosedLoopSolver, rehomed  # noqa: E402
+from m3t1r.model.description import Mechanism  # noqa: E402
+from m3t1r.model.design import NOMINAL  # noqa: E402
+from m3t1r.model.kinematics import ClosedLoopSolver, rehomed  # noqa: E402
 
 
 def perturbed(mechanism: Mechanism, seed: int = 0, size: float = 1e-3) -> Mechanism:

@@ -25,11 +25,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import fmt_time, header, interleaved_times, median, table  # noqa: E402
 
 from m3t1r._threads import single_blas_thread  # noqa: E402
-from m3t1r.calibration import MeasurementSetup, TrackerNoise, calibrate_closed_loop, cross_validate  # noqa: E402
-from m3t1r.description import Mechanism  # noqa: E402
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, cross_validate  # noqa: E402
+from m3t1r.calibration.measurement_setup import MeasurementSetup
+from m3t1r.calibration.measurements import TrackerNoise, measure
+from m3t1r.calibration.simulation import simulate_study  # noqa: E402
 from m3t1r.errors import PoorExcitationWarning  # noqa: E402
 from m3t1r.metrics import pose_errors_between  # noqa: E402
-from m3t1r.simulation import measure, simulate_study  # noqa: E402
+from m3t1r.model.description import Mechanism  # noqa: E402
 
 NOISE = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
 

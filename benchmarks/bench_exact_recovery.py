@@ -11,9 +11,9 @@ import argparse
 import time
 
 from m3t1r._threads import single_blas_thread
-from m3t1r.calibration import calibrate_closed_loop, pose_errors
-from m3t1r.description import Mechanism
-from m3t1r.simulation import simulate_study
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors
+from m3t1r.calibration.simulation import simulate_study
+from m3t1r.model.description import Mechanism
 
 
 def main() -> None:

@@ -1,6 +1,6 @@
 """Serial-robot identification: analytic POE Jacobian + our LM vs finite-difference LM.
 
-Ours: `m3t1r.serial.calibrate_serial` (error Jacobian from adjoints along the chain, Levenberg-
+Ours: `m3t1r.calibration.serial.calibrate_serial` (error Jacobian from adjoints along the chain, Levenberg-
 Marquardt with multiplicative updates T(0) <- T(0) exp6(dx) over the base parameters).
 
 Baseline: the approach of the FIGAROH toolbox, a residual function evaluated with Pinocchio's
@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -33,9 +32,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import fmt_time, header, interleaved_times, median, table  # noqa: E402
 
 from m3t1r._threads import single_blas_thread  # noqa: E402
-from m3t1r.poe import SerialChain, perturb  # noqa: E402
-from m3t1r.serial import (MeasurementNoise, calibrate_serial, example_tool_frame, load_example_robot,  # noqa: E402
-                          pose_errors, sample_configurations, simulate_serial_measurements)
+from m3t1r.calibration.serial import (  # noqa: E402
+    MeasurementNoise,
+    calibrate_serial,
+    example_tool_frame,
+    load_example_robot,
+    pose_errors,
+    sample_configurations,
+    simulate_serial_measurements,
+)
+from m3t1r.model.poe import SerialChain, perturb  # noqa: E402
 
 N_POSES = 50
 N_HELD_OUT = 200

@@ -36,9 +36,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import fmt_rate, fmt_time, header, median, table  # noqa: E402
 
 from m3t1r._threads import single_blas_thread  # noqa: E402
-from m3t1r.description import Mechanism  # noqa: E402
-from m3t1r.design import NOMINAL  # noqa: E402
-from m3t1r.kinematics import ClosedLoopSolver, yaw_of  # noqa: E402
+from m3t1r.model.description import Mechanism  # noqa: E402
+from m3t1r.model.design import NOMINAL  # noqa: E402
+from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of  # noqa: E402
 
 ACCURACY = 1e-10  # [m, rad] closure residual both methods must reach for the comparison to count
 # SLSQP stops when the objective change and the summed constraint violation are below ftol; 1e-10

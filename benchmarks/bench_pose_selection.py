@@ -1,7 +1,7 @@
 """D-optimal calibration poses vs random ones: held-out error after a noisy closed-loop calibration.
 
 Candidates: slider sets of platform poses drawn uniformly in the workspace box. Ours:
-`m3t1r.pose_selection.select_poses` on the whitened identification blocks of the NOMINAL model
+`m3t1r.calibration.pose_selection.select_poses` on the whitened identification blocks of the NOMINAL model
 (the truth is unknown when poses are planned): greedy + exchange maximisation of log det of the
 information matrix over the 56 base parameters. Baseline: the same number of poses drawn at random
 from the same candidates, several draws. Both sets are then measured on the same truth machines
@@ -25,12 +25,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import fmt_time, header, table  # noqa: E402
 
 from m3t1r._threads import single_blas_thread  # noqa: E402
-from m3t1r.calibration import ClosedLoopErrorModel, TrackerNoise, calibrate_closed_loop, pose_errors  # noqa: E402
-from m3t1r.description import Mechanism  # noqa: E402
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors  # noqa: E402
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.measurements import TrackerNoise, measure
+from m3t1r.calibration.pose_selection import (
+    closed_loop_candidate_blocks,
+    information_log_det,
+    observability_index,
+    select_poses,  # noqa: E402
+)
+from m3t1r.calibration.simulation import actual_machine, random_placement_errors
 from m3t1r.errors import IdentificationError  # noqa: E402
-from m3t1r.pose_selection import (closed_loop_candidate_blocks, information_log_det, observability_index,
-                                  select_poses)  # noqa: E402
-from m3t1r.simulation import actual_machine, measure, random_placement_errors, workspace_actuators  # noqa: E402
+from m3t1r.model.description import Mechanism  # noqa: E402
+from m3t1r.model.workspace import workspace_actuators  # noqa: E402
 
 NOISE = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
 

@@ -35,13 +35,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import fmt_rate, fmt_time, header, interleaved_times, median, table  # noqa: E402
 
 from m3t1r._threads import single_blas_thread  # noqa: E402
-from m3t1r.calibration import (ClosedLoopErrorModel, PoseMeasurements, TrackerNoise,  # noqa: E402
-                               calibrate_closed_loop, pose_errors)
-from m3t1r.description import Mechanism  # noqa: E402
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors  # noqa: E402
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.identification import RecursiveLeastSquares, batch_least_squares  # noqa: E402
+from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
+from m3t1r.calibration.simulation import simulate_study  # noqa: E402
 from m3t1r.errors import KinematicsError  # noqa: E402
-from m3t1r.identification import RecursiveLeastSquares, batch_least_squares  # noqa: E402
-from m3t1r.kinematics import ClosedLoopSolver  # noqa: E402
-from m3t1r.simulation import simulate_study  # noqa: E402
+from m3t1r.model.description import Mechanism  # noqa: E402
+from m3t1r.model.kinematics import ClosedLoopSolver  # noqa: E402
 
 NOISE = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
 REFERENCE_50_POSES = 2.8  # [s] reference implementation, 50 poses (shared/design/calibration.md)
@@ -110,7 +111,7 @@ class FiniteDifferenceClosedLoop:
         vector = np.zeros(self.error_model.n_parameters)
         vector[self.columns] = result.x
         model = self.error_model.perturbed(self.nominal.model, vector)
-        from m3t1r.kinematics import rehomed
+        from m3t1r.model.kinematics import rehomed
 
         return rehomed(self.nominal.with_model(model)), calls[0]
 
@@ -169,12 +170,12 @@ def closed_loop_section(nominal: Mechanism, sizes: list[int], fd_sizes: list[int
 
 def rls_section(nominal: Mechanism, n_poses: int) -> str:
     """Per-pose RLS update against a batch re-solve, on whitened closed-loop rows at the nominal model."""
-    from m3t1r.pose_selection import closed_loop_candidate_blocks
-    from m3t1r.simulation import workspace_actuators
+    from m3t1r.calibration.pose_selection import closed_loop_candidate_blocks
+    from m3t1r.model.workspace import workspace_actuators
 
     rng = np.random.default_rng(11)
     blocks, _ = closed_loop_candidate_blocks(nominal, workspace_actuators(nominal, n_poses, rng), NOISE)
-    from m3t1r.identification import select_base_parameters
+    from m3t1r.calibration.identification import select_base_parameters
 
     base = select_base_parameters(blocks.reshape(-1, blocks.shape[2]), [str(k) for k in range(blocks.shape[2])])
     A = blocks[:, :, list(base.indices)]
@@ -188,7 +189,7 @@ def rls_section(nominal: Mechanism, n_poses: int) -> str:
         update_times.append(time.perf_counter() - start)
         if k + 1 >= 10 and (k + 1) % max(1, n_poses // 20) == 0:  # the batch baseline at a few sizes
             start = time.perf_counter()
-            batch = batch_least_squares(A[:k + 1].reshape(-1, A.shape[2]), y[:k + 1].ravel())
+            batch_least_squares(A[:k + 1].reshape(-1, A.shape[2]), y[:k + 1].ravel())
             batch_times.append((k + 1, time.perf_counter() - start))
     final = batch_least_squares(A.reshape(-1, A.shape[2]), y.ravel())
     agreement = float(np.max(np.abs(rls.estimate - final.x)) / np.max(np.abs(final.x)))
@@ -205,8 +206,13 @@ def serial_section(sizes: list[int], fd_sizes: list[int], repeats: int, memory: 
     from bench_identification import NOISE as SERIAL_NOISE
     from bench_identification import FiniteDifferenceCalibration
 
-    from m3t1r.poe import SerialChain
-    from m3t1r.serial import calibrate_serial, example_tool_frame, load_example_robot, simulate_serial_measurements
+    from m3t1r.calibration.serial import (
+        calibrate_serial,
+        example_tool_frame,
+        load_example_robot,
+        simulate_serial_measurements,
+    )
+    from m3t1r.model.poe import SerialChain
 
     model = load_example_robot("ur10")
     chain = SerialChain.from_model(model, example_tool_frame("ur10"))
@@ -232,7 +238,7 @@ def serial_section(sizes: list[int], fd_sizes: list[int], repeats: int, memory: 
 def compensation_section(nominal: Mechanism, n_targets: int, repeats: int) -> str:
     from bench_kinematics import workspace_path
 
-    from m3t1r.simulation import actual_machine, random_placement_errors
+    from m3t1r.calibration.simulation import actual_machine, random_placement_errors
 
     try:
         from m3t1r.compensation import Compensator

@@ -24,11 +24,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import header, table  # noqa: E402
 
 from m3t1r._threads import single_blas_thread  # noqa: E402
-from m3t1r.calibration import TrackerNoise, calibrate_closed_loop, pose_errors, predicted_pose_std  # noqa: E402
-from m3t1r.description import Mechanism  # noqa: E402
-from m3t1r.design import NOMINAL  # noqa: E402
-from m3t1r.kinematics import ClosedLoopSolver  # noqa: E402
-from m3t1r.simulation import simulate_study  # noqa: E402
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std  # noqa: E402
+from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.simulation import simulate_study  # noqa: E402
+from m3t1r.model.description import Mechanism  # noqa: E402
+from m3t1r.model.design import NOMINAL  # noqa: E402
+from m3t1r.model.kinematics import ClosedLoopSolver  # noqa: E402
 
 NOISE = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
 

@@ -71,8 +71,8 @@ Every cell runs in well under a second. Change the numbers and re-run.
 """),
     code(SETUP + '''
 
-from m3t1r.description import Mechanism
-from m3t1r.kinematics import ClosedLoopSolver, roll_pitch_of, yaw_of'''),
+from m3t1r.model.description import Mechanism
+from m3t1r.model.kinematics import ClosedLoopSolver, roll_pitch_of, yaw_of'''),
     md(r"""
 ## 1. The description: a tree plus closures
 
@@ -244,7 +244,7 @@ The platform frame $P_I$ itself tilts: this is the residual tilt below. Roll and
 stays whatever the geometry makes it.
 """),
     code('''
-from m3t1r.simulation import simulate_study
+from m3t1r.calibration.simulation import simulate_study
 
 study = simulate_study(mech, n_poses=5, n_holdout=0, seed=0)
 truth = study.truth
@@ -273,8 +273,8 @@ angle of the order of 0.001 / 0.08 ≈ 12 mrad. The next cell applies one parame
 Parameter `name.dt[k]` is component $k$ of $[v;\ \omega]$ on placement `name`.
 """),
     code('''
-from m3t1r.calibration import ClosedLoopErrorModel
-from m3t1r.simulation import actual_machine
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.simulation import actual_machine
 
 error_model = ClosedLoopErrorModel(mech)
 reference = nominal_solver.forward(home_sliders, q_init=mech.home)
@@ -303,7 +303,7 @@ ourselves.
 """),
     code('''
 from IPython.display import IFrame
-from m3t1r.viz import CALIBRATED_COLOR, MachineView, comparison_views, write_static_html
+from m3t1r.app.viz import CALIBRATED_COLOR, MachineView, comparison_views, write_static_html
 
 views = comparison_views(mech) + (MachineView("actual", truth, CALIBRATED_COLOR),)
 page = write_static_html(views, OUT / "01_nominal_vs_actual.html", pose=(0.5, 0.6, -0.1, 0.3),
@@ -344,13 +344,15 @@ the rotation angle [rad] between two poses.
 from IPython.display import Image, display
 
 from m3t1r import paper
-from m3t1r.calibration import PoseErrors, calibrate_closed_loop, pose_errors
-from m3t1r.description import Mechanism
+from m3t1r.metrics import PoseErrors
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors
+from m3t1r.model.description import Mechanism
 from m3t1r.errors import PoorExcitationWarning
-from m3t1r.kinematics import ClosedLoopSolver
-from m3t1r.plots import plot_pose_errors_before_after
-from m3t1r.poe import poe_forward
-from m3t1r.simulation import simulate_study, workspace_actuators
+from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.app.plots import plot_pose_errors_before_after
+from m3t1r.model.poe import poe_forward
+from m3t1r.calibration.simulation import simulate_study
+from m3t1r.model.workspace import workspace_actuators
 
 # calibrate_two_chains re-selects its identifiable parameters on the fitted model and keeps weakly
 # conditioned combinations on purpose (see its docstring), so this conditioning warning is expected.
@@ -687,15 +689,16 @@ from collections import Counter
 
 from IPython.display import IFrame, Image, display
 
-from m3t1r.calibration import (ClosedLoopErrorModel, PoseMeasurements, TrackerNoise, calibrate_closed_loop,
-                               pose_errors, predicted_pose_std)
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
 from m3t1r.compensation import compensate, compensation_accuracy, workspace_targets
-from m3t1r.description import Mechanism
+from m3t1r.model.description import Mechanism
 from m3t1r.errors import PoorExcitationWarning
-from m3t1r.kinematics import ClosedLoopSolver
-from m3t1r.plots import plot_pose_errors_before_after
-from m3t1r.simulation import simulate_study
-from m3t1r.viz import comparison_views, write_static_html
+from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.app.plots import plot_pose_errors_before_after
+from m3t1r.calibration.simulation import simulate_study
+from m3t1r.app.viz import comparison_views, write_static_html
 
 SEED, N_POSES, N_HOLDOUT = 0, 50, 200
 mech = Mechanism.load()

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from m3t1r.design import NOMINAL, MechanismDesign
+from m3t1r.model.design import NOMINAL, MechanismDesign
 
 
 def forward(sliders: np.ndarray, d: MechanismDesign = NOMINAL) -> np.ndarray:

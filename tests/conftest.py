@@ -7,8 +7,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from m3t1r.description import Mechanism  # noqa: E402
-from m3t1r.kinematics import ClosedLoopSolver  # noqa: E402
+from m3t1r.model.description import Mechanism  # noqa: E402
+from m3t1r.model.kinematics import ClosedLoopSolver  # noqa: E402
 
 
 @pytest.fixture(scope="session")

@@ -8,12 +8,23 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from m3t1r.assessment import (FitRejected, check_fit, coverage_notes, describe_parameter, fit_movement_notes,
-                              likely_causes)
+from m3t1r.calibration.assessment import (
+    FitRejected,
+    check_fit,
+    coverage_notes,
+    describe_parameter,
+    fit_movement_notes,
+    likely_causes,
+)
+from m3t1r.calibration.identification import forward_selection, outlier_poses, select_base_parameters
+from m3t1r.calibration.measurement_setup import (
+    MeasurementSetup,
+    register_frame,
+    register_marker_rotation,
+    se3_from_report,
+    se3_to_report,
+)
 from m3t1r.errors import IdentificationError, InvalidInputError
-from m3t1r.identification import forward_selection, outlier_poses, select_base_parameters
-from m3t1r.measurement_setup import (MeasurementSetup, register_frame, register_marker_rotation, se3_from_report,
-                                     se3_to_report)
 
 # A toy "machine": two readings move a point on a tilted plane (metres), enough to test the checks.
 _AXES = np.array([[0.3, 0.05, 0.02], [0.04, 0.25, 0.1]])

@@ -1,15 +1,15 @@
 """Batched closed-loop kinematics (`ClosedLoopSolver.forward_batch` / `inverse_batch`) against the single solves."""
 
+import closed_form
 import numpy as np
 import pinocchio as pin
 import pytest
-
-import closed_form
 from conftest import perturb_every_origin
-from m3t1r.batch_kinematics import StackedTree, UnsupportedJointError, log6_jlog6_batch, rpy_batch
-from m3t1r.design import NOMINAL
+
 from m3t1r.errors import InvalidInputError, OutOfWorkspaceError
-from m3t1r.kinematics import ClosedLoopSolver
+from m3t1r.model.batch_kinematics import StackedTree, UnsupportedJointError, log6_jlog6_batch, rpy_batch
+from m3t1r.model.design import NOMINAL
+from m3t1r.model.kinematics import ClosedLoopSolver
 
 
 def workspace_poses(n: int, seed: int) -> np.ndarray:
@@ -111,7 +111,7 @@ def test_unsupported_joint_is_a_typed_error():
 def test_compensate_batch_agrees_with_the_path_compensation(mechanism):
     from m3t1r.compensation import Compensator
     calibrated = mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(7), 1e-3, 1e-3))
-    from m3t1r.kinematics import rehomed
+    from m3t1r.model.kinematics import rehomed
     calibrated = rehomed(calibrated)
     targets = workspace_poses(30, 8)
     targets[4] = [0.5, 1.2, -0.1, 0.0]  # unreachable: reported, excluded

@@ -4,11 +4,13 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from m3t1r.calibration import (ClosedLoopErrorModel, PoseMeasurements, TrackerNoise, calibrate_closed_loop,
-                               pose_errors, predicted_pose_std)
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
+from m3t1r.calibration.simulation import simulate_study
 from m3t1r.errors import IdentificationError, InvalidInputError
-from m3t1r.kinematics import ClosedLoopSolver
-from m3t1r.simulation import simulate_study, workspace_actuators
+from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.workspace import workspace_actuators
 
 
 @pytest.fixture(scope="module")
@@ -161,7 +163,7 @@ def test_measurements_validate_their_shape():
 def test_idle_chains_cross_validate_a_noise_free_calibration(mechanism, noise_free_1mm):
     """The paper's cross-validation with the idle chains: encoders on the B2/B4 hinges, unused by
     the fit, are predicted 10x better by the calibrated model (offsets removed)."""
-    from m3t1r.reporting import IDLE_CHAIN_JOINTS, passive_joint_residuals
+    from m3t1r.app.reporting import IDLE_CHAIN_JOINTS, passive_joint_residuals
 
     study = simulate_study(mechanism, n_poses=50, n_holdout=200, seed=11, passive_joints=IDLE_CHAIN_JOINTS)
     _, calibration = noise_free_1mm  # same seed, same truth and poses

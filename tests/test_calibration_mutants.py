@@ -9,10 +9,11 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from m3t1r.calibration import (ClosedLoopErrorModel, TrackerNoise, calibrate_closed_loop, pose_errors,
-                               predicted_pose_std)
-from m3t1r.kinematics import ClosedLoopSolver
-from m3t1r.simulation import simulate_study
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.simulation import simulate_study
+from m3t1r.model.kinematics import ClosedLoopSolver
 
 NOISE = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
 

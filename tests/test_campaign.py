@@ -14,12 +14,15 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from m3t1r.calibration import MeasurementSetup, TrackerNoise, calibrate_closed_loop, cross_validate
-from m3t1r.cli import main
-from m3t1r.datasets import write_measurements
-from m3t1r.description import Mechanism
+from m3t1r.app.cli import main
+from m3t1r.app.datasets import write_measurements
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, cross_validate
+from m3t1r.calibration.measurement_setup import MeasurementSetup
+from m3t1r.calibration.measurements import TrackerNoise, measure
+from m3t1r.calibration.simulation import SimulatedStudy, simulate_study
 from m3t1r.metrics import pose_errors_between
-from m3t1r.simulation import SimulatedStudy, measure, simulate_study, workspace_actuators
+from m3t1r.model.description import Mechanism
+from m3t1r.model.workspace import workspace_actuators
 
 
 def _random_setup(rng: np.random.Generator) -> MeasurementSetup:

@@ -2,15 +2,15 @@
 
 import json
 
+import closed_form
 import numpy as np
 import pytest
 
-import closed_form
-from m3t1r.cli import main
-from m3t1r.description import Mechanism, nominal_model_paths
-from m3t1r.datasets import read_actuators, read_poses
-from m3t1r.design import NOMINAL
-from m3t1r.kinematics import yaw_of
+from m3t1r.app.cli import main
+from m3t1r.app.datasets import read_actuators, read_poses
+from m3t1r.model.description import Mechanism, nominal_model_paths
+from m3t1r.model.design import NOMINAL
+from m3t1r.model.kinematics import yaw_of
 
 
 def _write(path, text):

@@ -6,13 +6,13 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from m3t1r.calibration import TrackerNoise, calibrate_closed_loop, pose_errors
-from m3t1r.compensation import (Compensator, compensate, compensation_accuracy, workspace_grid,
-                                workspace_targets)
-from m3t1r.design import NOMINAL
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors
+from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.simulation import simulate_study
+from m3t1r.compensation import Compensator, compensate, compensation_accuracy, workspace_grid, workspace_targets
 from m3t1r.errors import BranchChangeError, InvalidInputError, OutOfWorkspaceError
-from m3t1r.kinematics import ClosedLoopSolver, roll_pitch_of, yaw_of
-from m3t1r.simulation import simulate_study
+from m3t1r.model.design import NOMINAL
+from m3t1r.model.kinematics import ClosedLoopSolver, roll_pitch_of, yaw_of
 
 N_TARGETS = 240
 UNREACHABLE = np.array([2.0, 0.5, -0.1, 0.0])  # 1.5 m outside the box in x: no assembly

@@ -8,9 +8,9 @@ import pytest
 import yaml
 import yourdfpy
 
-from m3t1r.description import Mechanism, nominal_model_paths
-from m3t1r.design import NOMINAL, build_closures, build_urdf
 from m3t1r.errors import ModelFileError
+from m3t1r.model.description import Mechanism, nominal_model_paths
+from m3t1r.model.design import NOMINAL, build_closures, build_urdf
 
 
 def test_committed_model_files_match_the_generator():

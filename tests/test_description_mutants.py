@@ -10,8 +10,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from m3t1r.description import HOME_TOLERANCE, Mechanism, _check_home_closes
 from m3t1r.errors import ModelFileError
+from m3t1r.model.description import HOME_TOLERANCE, Mechanism, _check_home_closes
 
 
 def _with_closure_frame_moved(mechanism: Mechanism, closure: str, row: int, amount: float) -> Mechanism:

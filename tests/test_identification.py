@@ -8,13 +8,13 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
-from m3t1r.identification import (
+from m3t1r.calibration.identification import (
     RecursiveLeastSquares,
     batch_least_squares,
     levenberg_marquardt,
     select_base_parameters,
 )
+from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
 
 
 def random_blocks(n_blocks: int, rows: int, n_parameters: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

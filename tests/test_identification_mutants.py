@@ -9,9 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from m3t1r.calibration.identification import (
+    RecursiveLeastSquares,
+    batch_least_squares,
+    levenberg_marquardt,
+    select_base_parameters,
+)
 from m3t1r.errors import IdentificationError, InvalidInputError
-from m3t1r.identification import (RecursiveLeastSquares, batch_least_squares, levenberg_marquardt,
-                                  select_base_parameters)
 
 
 class ExponentialFit:

@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from m3t1r.identification import RecursiveLeastSquares, batch_least_squares
+from m3t1r.calibration.identification import RecursiveLeastSquares, batch_least_squares
 
 FAST = settings(max_examples=25, deadline=None)
 

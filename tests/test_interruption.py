@@ -1,7 +1,7 @@
 """`m3t1r calibrate` killed with SIGKILL at random and at aimed instants (issue 10, item 8).
 
 A worker process imports m3t1r once, then forks one child per run; the child runs the real
-`m3t1r.cli.main(["calibrate", ...])` and dies by SIGKILL, either after a random delay sent by the
+`m3t1r.app.cli.main(["calibrate", ...])` and dies by SIGKILL, either after a random delay sent by the
 parent or by itself right before or after its k-th `os.replace` (the renames that commit the
 outputs). After every kill the parent checks, before anything else touches the folder:
 
@@ -22,19 +22,18 @@ import os
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import pytest
 
-from m3t1r.cli import main
+from m3t1r.app.cli import main
 
 WORKER = textwrap.dedent(r'''
     import hashlib, itertools, json, os, random, signal, sys, time
     from pathlib import Path
 
-    from m3t1r import cli
-    from m3t1r.description import Mechanism, nominal_model_paths
-    import m3t1r.calibration, m3t1r.datasets, m3t1r.urdf_io, m3t1r.kinematics  # imported before forking
+    from m3t1r.app import cli
+    from m3t1r.model.description import Mechanism, nominal_model_paths
+    import m3t1r.calibration.closed_loop, m3t1r.app.datasets, m3t1r.model.urdf_io, m3t1r.model.kinematics  # imported before forking
 
     config = json.loads(sys.argv[1])
     folder, measurements = Path(config["folder"]), Path(config["measurements"])

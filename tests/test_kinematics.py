@@ -2,15 +2,15 @@
 
 import math
 
+import closed_form
 import numpy as np
 import pinocchio as pin
 import pytest
-
-import closed_form
 from conftest import perturb_every_origin
-from m3t1r.design import NOMINAL
+
 from m3t1r.errors import BranchChangeError, InvalidInputError, KinematicsError, OutOfWorkspaceError
-from m3t1r.kinematics import ClosedLoopSolver, yaw_of
+from m3t1r.model.design import NOMINAL
+from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 
 
 def workspace_poses(n: int, seed: int) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Kinematics tests that kill mutants the behaviour tests let through (docs/mutation.md).
 
-Each test pins one decision of `m3t1r.kinematics` that a plausible bug would change: the yaw wrap
+Each test pins one decision of `m3t1r.model.kinematics` that a plausible bug would change: the yaw wrap
 of IK targets beyond (-pi, pi], tolerance boundaries, and the typed errors of the solver.
 """
 
@@ -11,7 +11,7 @@ import pinocchio as pin
 import pytest
 
 from m3t1r.errors import InvalidInputError, NotConvergedError, OutOfWorkspaceError
-from m3t1r.kinematics import ClosedLoopSolver, yaw_of
+from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 
 TARGET = np.array([0.55, 0.60, -0.10, 0.3])
 
@@ -69,7 +69,7 @@ def test_too_few_iterations_is_not_converged_not_out_of_workspace(mechanism):
 
 def test_diagonal_blocks_of_a_block_triangular_pattern():
     """Rows/columns permuted lower block-triangular pattern: blocks {0, 2} (2 x 2) and {1} (1 x 1)."""
-    from m3t1r.kinematics import diagonal_blocks
+    from m3t1r.model.kinematics import diagonal_blocks
 
     pattern = np.array([[1, 0, 1], [1, 1, 0], [1, 0, 1]], dtype=bool)
     blocks = sorted((sorted(r.tolist()), sorted(c.tolist())) for r, c in diagonal_blocks(pattern))
@@ -90,7 +90,7 @@ def test_cold_inverse_converges_quadratically(mechanism, target, most):
 
 
 def test_closure_residual_by_closure_sizes(mechanism):
-    from m3t1r.kinematics import closure_residual_by_closure
+    from m3t1r.model.description import closure_residual_by_closure
 
     sizes = {spec.name: residual.shape for spec, residual in closure_residual_by_closure(mechanism, mechanism.home)}
     assert sizes["platform"] == (6,) and sizes["five_bar_I"] == (3,)

@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from m3t1r.design import NOMINAL
-from m3t1r.kinematics import ClosedLoopSolver, yaw_of
+from m3t1r.model.design import NOMINAL
+from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 
 BOX = NOMINAL.workspace
 FAST = settings(max_examples=20, deadline=None)

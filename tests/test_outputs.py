@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from m3t1r.cli import main
-from m3t1r.description import Mechanism, nominal_model_paths
-from m3t1r.errors import DataFileError, ModelFileError, OutputPathError
+from m3t1r.app.cli import main
+from m3t1r.errors import ModelFileError, OutputPathError
 from m3t1r.io import OutputSet, Progress, json_text, paired_closures_path, set_quiet, sweep, temporary_path
+from m3t1r.model.description import Mechanism
 
 
 def _strict_json(text: str) -> object:
@@ -37,9 +37,9 @@ def _no_temporaries(folder: Path) -> bool:
 @pytest.fixture(scope="module")
 def machines(tmp_path_factory):
     """A perturbed machine saved as a pair, and 20 measurements of it."""
-    from m3t1r.calibration import TrackerNoise
-    from m3t1r.datasets import write_measurements
-    from m3t1r.simulation import simulate_study
+    from m3t1r.app.datasets import write_measurements
+    from m3t1r.calibration.measurements import TrackerNoise
+    from m3t1r.calibration.simulation import simulate_study
 
     folder = tmp_path_factory.mktemp("machines")
     nominal = Mechanism.load()
@@ -309,8 +309,8 @@ def test_compensate_refuses_a_hinge_beyond_its_limit_by_row(tmp_path, machines, 
 
 
 def test_evaluate_reports_a_failing_pose_and_goes_on(tmp_path, machines, capsys, monkeypatch):
-    from m3t1r import kinematics
     from m3t1r.errors import NotConvergedError
+    from m3t1r.model import kinematics
 
     real = kinematics.ClosedLoopSolver.forward
     calls = {"n": 0}

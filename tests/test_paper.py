@@ -8,12 +8,23 @@ import pinocchio as pin
 import pytest
 
 from m3t1r.errors import InvalidInputError, ModelFileError
-from m3t1r.kinematics import ClosedLoopSolver
-from m3t1r.paper import (NOISY_READINGS_REL_TOL, PAPER_IDENTIFIABLE_BOUND, SensorNoise, actual_chain_poses,
-                         calibrate_two_chains, closed_chain_study, estimate_lower_crank_angles, paper_chains,
-                         paper_study, preset_errors, two_chain_error_model, two_chain_identifiability)
-from m3t1r.poe import perturb
-from m3t1r.simulation import workspace_actuators
+from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.poe import perturb
+from m3t1r.model.workspace import workspace_actuators
+from m3t1r.paper import (
+    NOISY_READINGS_REL_TOL,
+    PAPER_IDENTIFIABLE_BOUND,
+    SensorNoise,
+    actual_chain_poses,
+    calibrate_two_chains,
+    closed_chain_study,
+    estimate_lower_crank_angles,
+    paper_chains,
+    paper_study,
+    preset_errors,
+    two_chain_error_model,
+    two_chain_identifiability,
+)
 
 # The re-selected base of an exact fit keeps second-order combinations on purpose (see
 # `calibrate_two_chains`); the pivoted QR rightly reports their conditioning.

@@ -1,4 +1,4 @@
-"""`m3t1r plan` and `m3t1r.planning`: a D-optimal plan calibrates the machine to the noise level,
+"""`m3t1r plan` and `m3t1r.calibration.planning`: a D-optimal plan calibrates the machine to the noise level,
 beats random poses, stays assemblable and within limits, is ordered for short travel, and its
 predicted accuracy is the one a calibration on it reports."""
 
@@ -12,23 +12,25 @@ import itertools
 import numpy as np
 import pytest
 
-from m3t1r.calibration import (ClosedLoopErrorModel, TrackerNoise, calibrate_closed_loop, pose_errors,
-                               predicted_pose_std)
-from m3t1r.datasets import read_actuators
+from m3t1r.app.datasets import read_actuators
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.identification import select_base_parameters
+from m3t1r.calibration.measurements import TrackerNoise, measure
+from m3t1r.calibration.planning import order_for_travel, path_travel, plan_closed_loop, plan_serial
+from m3t1r.calibration.pose_selection import closed_loop_candidate_blocks, information_log_det
+from m3t1r.calibration.serial import load_example_robot
+from m3t1r.calibration.simulation import actual_machine, random_placement_errors
 from m3t1r.errors import InvalidInputError, M3t1rError
-from m3t1r.identification import select_base_parameters
 from m3t1r.io import read_table
-from m3t1r.kinematics import ClosedLoopSolver
-from m3t1r.planning import order_for_travel, path_travel, plan_closed_loop, plan_serial
-from m3t1r.pose_selection import closed_loop_candidate_blocks, information_log_det
-from m3t1r.poe import SerialChain
-from m3t1r.serial import load_example_robot
-from m3t1r.simulation import actual_machine, measure, random_placement_errors, workspace_actuators
+from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.poe import SerialChain
+from m3t1r.model.workspace import workspace_actuators
 
 
 def run(argv: list[str]) -> int:
-    """The verbs through cli_campaign's own registration, with `m3t1r.cli.main`'s exit statuses."""
-    from m3t1r.cli_campaign import add_plan_parser, add_validate_parser
+    """The verbs through cli_campaign's own registration, with `m3t1r.app.cli.main`'s exit statuses."""
+    from m3t1r.app.cli_campaign import add_plan_parser, add_validate_parser
 
     parser = argparse.ArgumentParser(prog="m3t1r")
     verbs = parser.add_subparsers(dest="verb", required=True)

@@ -6,10 +6,18 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from m3t1r.calibration import PoseErrors
+from m3t1r.app.plots import (
+    _ANGLE_UNITS,
+    _LENGTH_UNITS,
+    _readable,
+    _unit_for,
+    plot_error_vs_poses,
+    plot_pose_errors_before_after,
+    plot_predicted_std_map,
+    plot_workspace_error_map,
+)
 from m3t1r.errors import InvalidInputError, OutputPathError
-from m3t1r.plots import (_ANGLE_UNITS, _LENGTH_UNITS, _readable, _unit_for, plot_error_vs_poses, plot_pose_errors_before_after,
-                         plot_predicted_std_map, plot_workspace_error_map)
+from m3t1r.metrics import PoseErrors
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

@@ -6,8 +6,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from m3t1r.calibration.serial import example_tool_frame, load_example_robot
 from m3t1r.errors import InvalidInputError, UnknownNameError, UnsupportedJointError
-from m3t1r.poe import (
+from m3t1r.model.poe import (
     Placement,
     SerialChain,
     adjoint_matrices,
@@ -23,7 +24,6 @@ from m3t1r.poe import (
     skew,
     tool_poses,
 )
-from m3t1r.serial import example_tool_frame, load_example_robot
 
 
 @pytest.fixture(scope="module")

@@ -11,9 +11,19 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from m3t1r.poe import (Placement, SerialChain, adjoint_matrices, error_jacobian_world, jlog3_batch, log3_batch,
-                       perturb, placement_of, poe_forward, skew)
-from m3t1r.serial import load_example_robot
+from m3t1r.calibration.serial import load_example_robot
+from m3t1r.model.poe import (
+    Placement,
+    SerialChain,
+    adjoint_matrices,
+    error_jacobian_world,
+    jlog3_batch,
+    log3_batch,
+    perturb,
+    placement_of,
+    poe_forward,
+    skew,
+)
 
 FAST = settings(max_examples=30, deadline=None)
 finite = st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False)

@@ -8,14 +8,14 @@ import math
 import numpy as np
 import pytest
 
-from m3t1r.errors import IdentificationError, InvalidInputError
-from m3t1r.pose_selection import (
+from m3t1r.calibration.pose_selection import (
     closed_loop_candidate_blocks,
     information_log_det,
     observability_index,
     select_poses,
     serial_candidate_blocks,
 )
+from m3t1r.errors import IdentificationError, InvalidInputError
 
 
 def synthetic_blocks(n_candidates: int, rows: int, n_parameters: int, seed: int) -> np.ndarray:
@@ -119,8 +119,8 @@ def test_invalid_inputs() -> None:
 
 
 def test_serial_blocks_selection_beats_random() -> None:
-    from m3t1r.poe import SerialChain
-    from m3t1r.serial import example_tool_frame, load_example_robot, sample_configurations
+    from m3t1r.calibration.serial import example_tool_frame, load_example_robot, sample_configurations
+    from m3t1r.model.poe import SerialChain
 
     model = load_example_robot("ur5")
     chain = SerialChain.from_model(model, example_tool_frame("ur5"))
@@ -135,9 +135,10 @@ def test_serial_blocks_selection_beats_random() -> None:
 
 
 def test_closed_loop_blocks_match_the_calibration_jacobian(mechanism) -> None:
-    from m3t1r.calibration import TrackerNoise, _ClosedLoopProblem
-    from m3t1r.calibration import ClosedLoopErrorModel
-    from m3t1r.simulation import measure, workspace_actuators
+    from m3t1r.calibration.closed_loop import _ClosedLoopProblem
+    from m3t1r.calibration.error_model import ClosedLoopErrorModel
+    from m3t1r.calibration.measurements import TrackerNoise, measure
+    from m3t1r.model.workspace import workspace_actuators
 
     actuators = workspace_actuators(mechanism, 40, np.random.default_rng(14))
     noise = TrackerNoise()

@@ -15,10 +15,10 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from m3t1r.datasets import read_actuators, read_measurements, read_targets
-from m3t1r.description import Mechanism, nominal_model_paths
+from m3t1r.app.datasets import read_actuators, read_measurements, read_targets
 from m3t1r.errors import DataFileError, M3t1rError, ModelFileError
 from m3t1r.io import read_table
+from m3t1r.model.description import Mechanism, nominal_model_paths
 
 NOMINAL = Mechanism.load()
 NOMINAL_URDF, NOMINAL_CLOSURES = nominal_model_paths()

@@ -6,12 +6,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from m3t1r import serial
-from m3t1r.errors import InvalidInputError
-from m3t1r.identification import select_base_parameters
-from m3t1r.metrics import PoseErrors
-from m3t1r.poe import SerialChain, forward_and_error_jacobians, perturb
-from m3t1r.serial import (
+from m3t1r.calibration import serial
+from m3t1r.calibration.identification import select_base_parameters
+from m3t1r.calibration.serial import (
     MeasurementNoise,
     calibrate_serial,
     example_tool_frame,
@@ -21,6 +18,9 @@ from m3t1r.serial import (
     sample_configurations,
     simulate_serial_measurements,
 )
+from m3t1r.errors import InvalidInputError
+from m3t1r.metrics import PoseErrors
+from m3t1r.model.poe import SerialChain, forward_and_error_jacobians, perturb
 
 # 10 um / 20 urad tracker, 1e-5 rad encoders: the test setting of the brief.
 NOISE = MeasurementNoise(position=1e-5, rotation=2e-5, joint=1e-5)

@@ -11,10 +11,16 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from m3t1r.calibration.serial import (
+    MeasurementNoise,
+    calibrate_serial,
+    load_example_robot,
+    predicted_pose_std,
+    sample_configurations,
+    simulate_serial_measurements,
+)
 from m3t1r.errors import InvalidInputError
-from m3t1r.poe import SerialChain
-from m3t1r.serial import (MeasurementNoise, calibrate_serial, load_example_robot, predicted_pose_std,
-                          sample_configurations, simulate_serial_measurements)
+from m3t1r.model.poe import SerialChain
 
 EXACT_JOINTS = MeasurementNoise(position=1e-5, rotation=2e-5, joint=0.0)
 

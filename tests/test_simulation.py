@@ -4,9 +4,12 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from m3t1r.calibration import ClosedLoopErrorModel, calibrate_closed_loop, pose_errors
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.measurements import measure
+from m3t1r.calibration.simulation import actual_machine, orthonormal_twist, with_joint_errors
 from m3t1r.errors import InvalidInputError
-from m3t1r.simulation import actual_machine, measure, orthonormal_twist, with_joint_errors, workspace_actuators
+from m3t1r.model.workspace import workspace_actuators
 
 
 def test_orthonormal_twist_keeps_the_joint_kind():

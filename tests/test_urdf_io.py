@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import re
 import hashlib
 import importlib.metadata
+import re
 from pathlib import Path
 
 import numpy as np
@@ -13,9 +13,9 @@ import pytest
 import yourdfpy
 from lxml import etree
 
-from m3t1r import urdf_io
 from m3t1r.errors import InvalidInputError, ModelFileError, OutputPathError
-from m3t1r.urdf_io import max_placement_difference, write_calibrated_urdf
+from m3t1r.model import urdf_io
+from m3t1r.model.urdf_io import max_placement_difference, write_calibrated_urdf
 
 UR5_IN_PACKAGE = "cmeel.prefix/share/example-robot-data/robots/ur_description/urdf/ur5_robot.urdf"
 

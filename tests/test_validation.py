@@ -1,4 +1,4 @@
-"""`m3t1r validate` and `m3t1r.validation`: predictions through the measurement frame and marker,
+"""`m3t1r validate` and `m3t1r.calibration.validation`: predictions through the measurement frame and marker,
 units, flags, failed rows, PRED.csv, and typed errors for bad reports and files."""
 
 from __future__ import annotations
@@ -12,15 +12,16 @@ import pinocchio as pin
 import pytest
 import scipy.stats
 
-from m3t1r.calibration import ClosedLoopErrorModel, TrackerNoise
-from m3t1r.description import Mechanism
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.measurement_setup import MeasurementSetup, se3_to_report
+from m3t1r.calibration.measurements import TrackerNoise, measure
+from m3t1r.calibration.serial import example_robot_data_dir, load_example_robot, sample_configurations
+from m3t1r.calibration.simulation import actual_machine, random_placement_errors
+from m3t1r.calibration.validation import read_report, sigma_equivalent, validate
 from m3t1r.errors import DataFileError, InvalidInputError, M3t1rError, ModelFileError
 from m3t1r.io import POSE_COLUMNS, pose_rows, read_table, write_table
-from m3t1r.measurement_setup import MeasurementSetup, se3_to_report
-from m3t1r.poe import SerialChain, tool_poses
-from m3t1r.serial import example_robot_data_dir, load_example_robot, sample_configurations
-from m3t1r.simulation import actual_machine, measure, random_placement_errors, workspace_actuators
-from m3t1r.validation import read_report, sigma_equivalent, validate
+from m3t1r.model.poe import SerialChain, tool_poses
+from m3t1r.model.workspace import workspace_actuators
 
 N_ROWS = 12
 SETUP = MeasurementSetup(pin.SE3(pin.utils.rpyToMatrix(0.1, -0.2, 2.5), np.array([3.0, -1.5, 0.8])),
@@ -28,9 +29,9 @@ SETUP = MeasurementSetup(pin.SE3(pin.utils.rpyToMatrix(0.1, -0.2, 2.5), np.array
 
 
 def run(argv: list[str]) -> int:
-    """The verbs through cli_campaign's own registration, with `m3t1r.cli.main`'s exit statuses."""
-    from m3t1r.cli import RowFailures
-    from m3t1r.cli_campaign import add_plan_parser, add_validate_parser
+    """The verbs through cli_campaign's own registration, with `m3t1r.app.cli.main`'s exit statuses."""
+    from m3t1r.app.cli_campaign import add_plan_parser, add_validate_parser
+    from m3t1r.app.cli_common import RowFailures
 
     parser = argparse.ArgumentParser(prog="m3t1r")
     verbs = parser.add_subparsers(dest="verb", required=True)
@@ -280,15 +281,15 @@ def test_sigma_equivalent_inverts_the_gate() -> None:
 
 
 def _registered() -> bool:
-    from m3t1r.cli import build_parser
+    from m3t1r.app.cli import build_parser
 
     verbs = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     return {"plan", "validate"} <= set(verbs.choices)
 
 
-@pytest.mark.skipif(not _registered(), reason="the verbs are not registered in m3t1r.cli yet")
+@pytest.mark.skipif(not _registered(), reason="the verbs are not registered in m3t1r.app.cli yet")
 def test_exit_statuses_through_the_main_command_line(machine, tmp_path, mechanism, capsys) -> None:
-    from m3t1r.cli import main
+    from m3t1r.app.cli import main
 
     folder, _, sliders, poses, _ = machine
     common = ["validate", str(folder / "exact.csv"), "--calibrated", str(folder / "cal.urdf"), "--report"]

@@ -19,14 +19,13 @@ import urllib.request
 from pathlib import Path
 
 import numpy as np
-import pinocchio as pin
 import pytest
 import umsgpack
 
-from m3t1r import viz
-from m3t1r.description import Mechanism
+from m3t1r.app import viz
+from m3t1r.calibration.simulation import simulate_study
 from m3t1r.errors import InvalidInputError, KinematicsError, OutputPathError
-from m3t1r.simulation import simulate_study
+from m3t1r.model.description import Mechanism
 
 POSE = (0.55, 0.6, -0.1, 0.3)  # inside the design workspace box, with some yaw
 
@@ -269,8 +268,8 @@ def test_server_exits_when_its_owner_is_killed(tmp_path):
     script = tmp_path / "owner.py"
     script.write_text(
         "import time\n"
-        "from m3t1r.description import Mechanism\n"
-        "from m3t1r import viz\n"
+        "from m3t1r.model.description import Mechanism\n"
+        "from m3t1r.app import viz\n"
         "live = viz.open_viewer(viz.comparison_views(Mechanism.load()))\n"
         "print(live.pid, flush=True)\n"
         "time.sleep(60)\n")

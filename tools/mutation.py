@@ -24,9 +24,10 @@ import re
 import shutil
 import subprocess
 import sys
-import tomllib
 from collections import Counter
 from pathlib import Path
+
+import tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 KILLED = {"killed", "timeout", "caught by type check"}
@@ -50,11 +51,16 @@ def copy_tree(destination: Path) -> None:
             shutil.copy2(source, target)
 
 
+def module_path(module: str) -> str:
+    """`model.kinematics` -> `src/m3t1r/model/kinematics.py`: a module's key in [tool.m3t1r-mutation.tests]."""
+    return "src/m3t1r/" + module.replace(".", "/") + ".py"
+
+
 def configure(copy: Path, module: str, tests: list[str]) -> None:
     path = copy / "pyproject.toml"
     text = path.read_text(encoding="utf-8")
     as_toml = lambda items: "[" + ", ".join(f'"{item}"' for item in items) + "]"  # noqa: E731
-    text = re.sub(r"^only_mutate = .*$", f"only_mutate = {as_toml([f'src/m3t1r/{module}.py'])}", text, flags=re.MULTILINE)
+    text = re.sub(r"^only_mutate = .*$", f"only_mutate = {as_toml([module_path(module)])}", text, flags=re.MULTILINE)
     text = re.sub(r"^pytest_add_cli_args_test_selection = .*$",
                   f"pytest_add_cli_args_test_selection = {as_toml(tests)}", text, flags=re.MULTILINE)
     path.write_text(text, encoding="utf-8")

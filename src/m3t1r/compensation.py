@@ -33,13 +33,13 @@ from typing import Sequence, Union
 import numpy as np
 import pinocchio as pin
 
-from ._threads import on_one_blas_thread
-from .description import Mechanism
-from .design import NOMINAL, WorkspaceBox
-from .errors import InvalidInputError, KinematicsError, M3t1rError, OutOfWorkspaceError
-from .io import pose_rows
-from .kinematics import ClosedLoopSolver, ForwardResult, InverseResult, roll_pitch_of, yaw_of
-from .metrics import PoseErrors
+from m3t1r._threads import on_one_blas_thread
+from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError, OutOfWorkspaceError
+from m3t1r.io import pose_rows
+from m3t1r.metrics import PoseErrors
+from m3t1r.model.description import Mechanism
+from m3t1r.model.design import NOMINAL, WorkspaceBox
+from m3t1r.model.kinematics import ClosedLoopSolver, ForwardResult, InverseResult, roll_pitch_of, yaw_of
 
 __all__ = [
     "Targets", "TargetFailure", "CompensatedCommand", "Compensation", "Compensator", "compensate", "check_joint_limits",

@@ -40,7 +40,7 @@ from typing import TypeAlias
 import numpy as np
 import pinocchio as pin
 
-from m3t1r.errors import DataFileError, InvalidInputError, M3t1rError, OutputPathError
+from m3t1r.errors import DataFileError, InvalidInputError, M3t1rError, ModelFileError, OutputPathError
 
 StrPath: TypeAlias = "str | os.PathLike[str]"
 
@@ -480,8 +480,6 @@ def sweep(folder: StrPath, announce=print_notice) -> list[str]:
 
 
 def _completes_pair(leftover: Path, closures: Path) -> bool:
-    from m3t1r.urdf_io import recorded_closures_sha256  # urdf_io builds on this module
-
     urdf = closures.with_name(closures.name[: -len(CLOSURES_SUFFIX)] + ".urdf")
     try:
         recorded = recorded_closures_sha256(urdf.read_bytes())
@@ -1114,3 +1112,42 @@ def pose_rows(poses: Iterable[pin.SE3]) -> np.ndarray:
     quaternions[flip] *= -1.0
     rows += 0.0  # turns -0.0 into 0.0, so files never show "-0.0"
     return rows
+
+
+# --------------------------------------------------------------------------------------------
+# Pairing a URDF with its closures file (the loader checks it; urdf_io writes it)
+# --------------------------------------------------------------------------------------------
+
+# One comment line before the root element. The digest is what the loader checks; the words
+# are for a person opening the file.
+_PAIRING = re.compile(rb"<!-- m3t1r pair: closures sha256 ([0-9a-f]{64})\b[^>]*-->[ \t]*(?:\r?\n)?")
+
+
+_DECLARATION = re.compile(rb"\A(?:\xef\xbb\xbf)?\s*<\?xml[^>]*\?>[ \t]*(?:\r?\n)?")
+
+
+def recorded_closures_sha256(urdf: bytes) -> str | None:
+    """The closures sha256 a paired URDF records, or None for a URDF that records none.
+
+    Raises ModelFileError (path unknown here: "URDF") if it records two different ones.
+    """
+    digests = {match[1].decode("ascii") for match in _PAIRING.finditer(urdf)}
+    if len(digests) > 1:
+        raise ModelFileError("URDF", "records two different closures sha256 digests")
+    return digests.pop() if digests else None
+
+
+def with_closures_sha256(urdf: bytes, digest: str | None) -> bytes:
+    """`urdf` with its pairing comment set to `digest` (removed when None), placed after the XML declaration."""
+    stripped = _PAIRING.sub(b"", urdf)
+    if digest is None:
+        return stripped
+    if not re.fullmatch(r"[0-9a-f]{64}", digest):
+        raise ValueError(f"not a sha256 hex digest: {digest!r}")
+    comment = (b"<!-- m3t1r pair: closures sha256 " + digest.encode("ascii")
+               + b" (this URDF loads only with the closures file of that sha256; models/README.md) -->\n")
+    declaration = _DECLARATION.match(stripped)
+    at = declaration.end() if declaration else 0
+    if declaration and not stripped[:at].endswith(b"\n"):
+        comment = b"\n" + comment
+    return stripped[:at] + comment + stripped[at:]

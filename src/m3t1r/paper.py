@@ -58,15 +58,28 @@ import pinocchio as pin
 from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
-from m3t1r.calibration import (ClosedLoopCalibration, PoseErrors, PoseMeasurements, TrackerNoise,
-                               calibrate_closed_loop, pose_errors)
-from m3t1r.description import ClosureSpec, Mechanism
-from m3t1r.errors import (IdentificationError, InvalidInputError, KinematicsError, ModelFileError, PoorExcitationWarning,
-                          NotConvergedError)
-from m3t1r.identification import BaseParameters, RecursiveLeastSquares, batch_least_squares, select_base_parameters
-from m3t1r.kinematics import ClosedLoopSolver, rehomed
-from m3t1r.poe import Placement, SerialChain, forward_and_error_jacobians, perturb, placement_of
-from m3t1r.simulation import simulate_study, workspace_actuators
+from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_closed_loop, pose_errors
+from m3t1r.calibration.identification import (
+    BaseParameters,
+    RecursiveLeastSquares,
+    batch_least_squares,
+    select_base_parameters,
+)
+from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
+from m3t1r.calibration.simulation import simulate_study
+from m3t1r.errors import (
+    IdentificationError,
+    InvalidInputError,
+    KinematicsError,
+    ModelFileError,
+    NotConvergedError,
+    PoorExcitationWarning,
+)
+from m3t1r.metrics import PoseErrors
+from m3t1r.model.description import ClosureSpec, Mechanism
+from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
+from m3t1r.model.poe import Placement, SerialChain, forward_and_error_jacobians, perturb, placement_of
+from m3t1r.model.workspace import workspace_actuators
 
 __all__ = [
     "EXACT_DATA_REL_TOL",

@@ -12,24 +12,31 @@ import argparse
 import datetime as _dt
 import sys
 import warnings
-from pathlib import Path
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 
-from . import __version__
-from .assessment import FitRejected, check_fit, coverage_notes, describe_parameter, fit_movement_notes, likely_causes
-from .calibration import (ClosedLoopCalibration, CrossValidation, MeasurementSetup, TrackerNoise,
-                          calibrate_closed_loop, cross_validate)
-from .datasets import MeasurementFile, read_measurements
-from .description import Mechanism
-from .design import NOMINAL
-from .errors import InvalidInputError, KinematicsError, PoorExcitationWarning
-from .io import OutputSet, Progress
-from .kinematics import ClosedLoopSolver, yaw_of
-from .measurement_setup import register_frame, se3_to_report
-from .reporting import passive_joint_residuals, write_calibration_plots
+from m3t1r._version import __version__
+from m3t1r.app.datasets import MeasurementFile, read_measurements
+from m3t1r.app.reporting import passive_joint_residuals, write_calibration_plots
+from m3t1r.calibration.assessment import (
+    FitRejected,
+    check_fit,
+    coverage_notes,
+    describe_parameter,
+    fit_movement_notes,
+    likely_causes,
+)
+from m3t1r.calibration.closed_loop import ClosedLoopCalibration, CrossValidation, calibrate_closed_loop, cross_validate
+from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, se3_to_report
+from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.errors import InvalidInputError, KinematicsError, PoorExcitationWarning
+from m3t1r.io import OutputSet, Progress
+from m3t1r.model.description import Mechanism
+from m3t1r.model.design import NOMINAL
+from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 
 __all__ = ["add_campaign_options", "parse_priors", "run_closed_loop_calibration", "calibration_report"]
 

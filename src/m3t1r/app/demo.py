@@ -22,20 +22,21 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from . import __version__
-from ._threads import on_one_blas_thread
-from .calibration import MeasurementSetup, TrackerNoise
-from .compensation import workspace_targets
-from .datasets import read_actuators, write_measurements
-from .description import Mechanism
-from .errors import M3t1rError
-from .io import POSE_COLUMNS, atomic_write_text, json_text, pose_rows, write_table
-from .kinematics import ClosedLoopSolver
-from .measurement_setup import register_frame
-from .metrics import pose_errors_between
-from .simulation import actual_machine, measure, random_placement_errors, with_outliers, workspace_actuators
-from .error_model import ClosedLoopErrorModel
-from .viz import comparison_views, write_static_html
+from m3t1r._threads import on_one_blas_thread
+from m3t1r._version import __version__
+from m3t1r.app.datasets import read_actuators, write_measurements
+from m3t1r.app.viz import comparison_views, write_static_html
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
+from m3t1r.calibration.measurements import TrackerNoise, measure
+from m3t1r.calibration.simulation import actual_machine, random_placement_errors, with_outliers
+from m3t1r.compensation import workspace_targets
+from m3t1r.errors import M3t1rError
+from m3t1r.io import POSE_COLUMNS, atomic_write_text, json_text, pose_rows, write_table
+from m3t1r.metrics import pose_errors_between
+from m3t1r.model.description import Mechanism
+from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.workspace import workspace_actuators
 
 __all__ = ["DemoSettings", "run_demo"]
 

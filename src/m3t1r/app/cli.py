@@ -9,93 +9,49 @@ not supported by the data, and nothing was written).
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
-import json
 import sys
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from . import __version__
-from ._threads import single_blas_thread
-from .assessment import FitRejected
-from .cli_calibrate import add_campaign_options
-from .cli_campaign import add_plan_parser, add_validate_parser
-from .demo import run_demo
-from .errors import InvalidInputError, KinematicsError, M3t1rError
+from m3t1r._threads import single_blas_thread
+from m3t1r._version import __version__
+from m3t1r.app.cli_calibrate import add_campaign_options, parse_priors, run_closed_loop_calibration
+from m3t1r.app.cli_campaign import add_plan_parser, add_validate_parser
+from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, provenance, say
+from m3t1r.app.cli_serial import run_serial_calibration
+from m3t1r.app.datasets import TARGET_COLUMNS, measurement_table, read_actuators, read_measurements, read_targets
+from m3t1r.app.demo import run_demo
+from m3t1r.app.reporting import IDLE_CHAIN_JOINTS
+from m3t1r.app.viz import build_scene, comparison_views, open_viewer, scene_html
+from m3t1r.calibration.assessment import FitRejected
+from m3t1r.calibration.measurement_setup import MeasurementSetup
+from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.simulation import simulate_study
+from m3t1r.calibration.validation import read_report
+from m3t1r.compensation import check_joint_limits, compensate
+from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError
+from m3t1r.io import POSE_COLUMNS, OutputSet, Terminated, pose_rows, set_quiet, table_text, termination_as_exception
+from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
+from m3t1r.model.workspace import workspace_actuators
+from m3t1r.paper import SensorNoise, closed_chain_study, paper_study
 
 EXIT_ERROR, EXIT_ROWS_FAILED = 2, 1
 
 
-class RowFailures(M3t1rError):
-    """Some input rows could not be processed; nothing was written."""
-
-    def __init__(self, path: Path, failures: list[tuple[int, str]]) -> None:
-        self.failures = failures
-        lines = "\n".join(f"  {path}, line {line}: {reason}" for line, reason in failures)
-        super().__init__(f"{len(failures)} row(s) failed, nothing written:\n{lines}")
-
-
-def _mechanism(urdf: str | None, closures: str | None):
-    """Load a machine; a URDF without --closures loads with its pair NAME.closures.yaml (sha256-checked)."""
-    from .description import Mechanism
-    from .io import paired_closures_path
-    from .urdf_io import recorded_closures_sha256
-
-    if urdf is not None and closures is None:
-        sibling = paired_closures_path(urdf)
-        try:
-            recorded = recorded_closures_sha256(Path(urdf).read_bytes())
-        except (OSError, M3t1rError):
-            recorded = None  # Mechanism.load names the problem with the URDF
-        if recorded is None and not sibling.is_file() and Path(urdf).is_file():
-            raise InvalidInputError(f"--closures is required with {urdf} (no {sibling.name} beside it)")
-    return Mechanism.load(urdf, closures)
-
-
-def _closures_beside(urdf_out: Path) -> Path:
-    """calibrated.urdf -> calibrated.closures.yaml: a machine is always a pair of files.
-
-    Only the final .urdf is replaced: machine.v1.urdf -> machine.v1.closures.yaml.
-    """
-    from .io import paired_closures_path
-
-    return paired_closures_path(urdf_out)
-
-
-def _say(outputs, message: str) -> None:
-    """A status line: stdout, or stderr when an output of the command is stdout (`-o -`)."""
-    to_stdout = outputs is None or all(o.path is not None for o in outputs.outputs)
-    print(message, file=sys.stdout if to_stdout else sys.stderr, flush=True)
-
-
-def _progress(label: str, total: int):
-    from .io import Progress
-
-    return Progress(label, total)
-
-
-def _provenance(args: argparse.Namespace) -> list[str]:
-    return [f"written by m3t1r {__version__} on {_dt.datetime.now().isoformat(timespec='seconds')}",
-            "command: m3t1r " + " ".join(sys.argv[1:]) if sys.argv[1:] else "command: m3t1r (API)"]
-
-
 # ------------------------------------------------------------------------------------------------
 def cmd_fk(args: argparse.Namespace) -> None:
-    from .datasets import read_actuators
-    from .kinematics import ClosedLoopSolver
+    """`m3t1r fk`: platform poses of slider sets."""
 
-    from .io import POSE_COLUMNS, OutputSet, pose_rows, table_text
-
-    mechanism = _mechanism(args.model, args.closures)
+    mechanism = load_mechanism(args.model, args.closures)
     outputs = OutputSet(inputs=(args.actuators, mechanism.urdf_path, mechanism.closures_path))
     output = outputs.add(args.output, "-o")
     outputs.check()
     actuators, lines = read_actuators(args.actuators, mechanism)
     solver = ClosedLoopSolver(mechanism)
     poses, failures = [], []
-    with _progress("fk", len(lines)) as progress:
+    with progress_bar("fk", len(lines)) as progress:
         for sliders, line in zip(actuators, lines):
             progress.advance()
             try:
@@ -105,27 +61,23 @@ def cmd_fk(args: argparse.Namespace) -> None:
                 solver.reset()
     if failures:
         raise RowFailures(Path(args.actuators), failures)
-    comments = _provenance(args) + ["platform frame pose in the base frame: m, unit quaternion"]
+    comments = provenance(args) + ["platform frame pose in the base frame: m, unit quaternion"]
     with outputs:
         outputs.stage(output, table_text(POSE_COLUMNS, pose_rows(poses), comments))
         outputs.commit()
-    _say(outputs, f"wrote {len(poses)} poses to {output.name}")
+    say(outputs, f"wrote {len(poses)} poses to {output.name}")
 
 
 def cmd_ik(args: argparse.Namespace) -> None:
-    from .compensation import check_joint_limits
-    from .datasets import read_targets
-    from .io import OutputSet, table_text
-    from .kinematics import ClosedLoopSolver
-
-    mechanism = _mechanism(args.model, args.closures)
+    """`m3t1r ik`: slider sets of platform poses."""
+    mechanism = load_mechanism(args.model, args.closures)
     outputs = OutputSet(inputs=(args.poses, mechanism.urdf_path, mechanism.closures_path))
     output = outputs.add(args.output, "-o")
     outputs.check()
     targets, lines = read_targets(args.poses)
     solver = ClosedLoopSolver(mechanism)
     rows, failures, max_tilt = [], [], 0.0
-    with _progress("ik", len(lines)) as progress:
+    with progress_bar("ik", len(lines)) as progress:
         for target, line in zip(targets, lines):
             progress.advance()
             try:
@@ -140,20 +92,15 @@ def cmd_ik(args: argparse.Namespace) -> None:
         raise RowFailures(Path(args.poses), failures)
     with outputs:
         outputs.stage(output, table_text(mechanism.actuated_joints, np.array(rows),
-                                         _provenance(args) + ["slider positions in m"]))
+                                         provenance(args) + ["slider positions in m"]))
         outputs.commit()
-    _say(outputs, f"wrote {len(rows)} slider sets to {output.name}; "
+    say(outputs, f"wrote {len(rows)} slider sets to {output.name}; "
                   f"largest uncommandable tilt (roll/pitch) {max_tilt:.3g} rad")
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:
-    from .calibration import TrackerNoise
-    from .datasets import measurement_table
-    from .io import OutputSet, table_text
-    from .reporting import IDLE_CHAIN_JOINTS
-    from .simulation import simulate_study
-
-    nominal = _mechanism(args.model, args.closures)
+    """`m3t1r simulate`: a perturbed machine and noisy measurements of it."""
+    nominal = load_mechanism(args.model, args.closures)
     outputs = OutputSet(inputs=(nominal.urdf_path, nominal.closures_path))
     measurement_output = outputs.add(args.output, "-o")
     truth_output = outputs.add_machine(args.truth_urdf, "--truth-urdf")
@@ -163,7 +110,7 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     setup = _simulated_setup(args)
     study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only,
                            passive_joints=passive, setup=setup, outliers=args.outliers)
-    comments = _provenance(args) + [
+    comments = provenance(args) + [
         f"truth: {args.sigma_pos:g} m / {args.sigma_rot:g} rad errors on every joint placement and closure/platform frame, seed {args.seed}",
         "noise: none" if noise is None else f"noise: tracker {noise.position:g} m / {noise.rotation:g} rad, sliders {noise.actuator:g} m",
         f"lengths in {args.units}; measured: tracker frame . platform . marker",
@@ -176,17 +123,16 @@ def cmd_simulate(args: argparse.Namespace) -> None:
         if truth_output is not None:
             outputs.stage_machine(truth_output, study.truth)
         outputs.commit()
-    _say(outputs, f"wrote {args.n} {'position-only ' if args.position_only else ''}measurements to "
+    say(outputs, f"wrote {args.n} {'position-only ' if args.position_only else ''}measurements to "
                   f"{measurement_output.name}")
     if truth_output is not None:
-        _say(outputs, f"wrote the truth machine to {truth_output.name} and {truth_output.closures.name}")
+        say(outputs, f"wrote the truth machine to {truth_output.name} and {truth_output.closures.name}")
 
 
 def _simulated_setup(args: argparse.Namespace):
     """The truth measurement setup of `simulate`: --tracker-frame and --marker (identity without)."""
     import pinocchio as pin
 
-    from .measurement_setup import MeasurementSetup
 
     frame = pin.SE3.Identity()
     if args.tracker_frame is not None:
@@ -197,23 +143,17 @@ def _simulated_setup(args: argparse.Namespace):
 
 
 def cmd_calibrate(args: argparse.Namespace) -> None:
-    from .cli_calibrate import parse_priors, run_closed_loop_calibration
-
+    """`m3t1r calibrate`: closed-loop or serial calibration from a measurement file."""
     args.prior = parse_priors(args.prior)
     if args.serial:
-        from .cli_serial import run_serial_calibration
-
         return run_serial_calibration(args)
-    run_closed_loop_calibration(args, _mechanism(args.model, args.closures))
+    run_closed_loop_calibration(args, load_mechanism(args.model, args.closures))
 
 
 def cmd_compensate(args: argparse.Namespace) -> None:
-    from .compensation import compensate
-    from .datasets import TARGET_COLUMNS, read_targets
-    from .io import POSE_COLUMNS, OutputSet, table_text
-
-    nominal = _mechanism(args.model, args.closures)
-    calibrated = _mechanism(args.calibrated, args.calibrated_closures)
+    """`m3t1r compensate`: corrected slider commands for target poses."""
+    nominal = load_mechanism(args.model, args.closures)
+    calibrated = load_mechanism(args.calibrated, args.calibrated_closures)
     outputs = OutputSet(inputs=(args.targets, nominal.urdf_path, nominal.closures_path, calibrated.urdf_path,
                                 calibrated.closures_path, args.report))
     output = outputs.add(args.output, "-o")
@@ -221,11 +161,11 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     targets, lines = read_targets(args.targets)
     if args.report:
         targets = _targets_in_base(targets, args.report, args.targets, calibrated)
-    with _progress("compensate", len(lines)) as progress:
+    with progress_bar("compensate", len(lines)) as progress:
         result = compensate(nominal, calibrated, targets, progress=progress.update)
     if result.failures:
         raise RowFailures(Path(args.targets), [(int(lines[f.index]), f.reason) for f in result.failures])
-    comments = _provenance(args) + [f"calibrated model: {calibrated.urdf_path}"]
+    comments = provenance(args) + [f"calibrated model: {calibrated.urdf_path}"]
     pose_note = "poses to send to a controller that knows only the nominal model (T_cp)"
     if args.output_kind == "actuators":
         text = table_text(calibrated.actuated_joints, result.actuators, comments + ["corrected slider commands [m]"])
@@ -236,7 +176,7 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     with outputs:
         outputs.stage(output, text)
         outputs.commit()
-    _say(outputs, f"wrote {result.n_targets} compensated {args.output_kind} commands to {output.name}; "
+    say(outputs, f"wrote {result.n_targets} compensated {args.output_kind} commands to {output.name}; "
                   f"largest uncommandable tilt (roll/pitch) of the calibrated machine {result.max_tilt:.3g} rad")
 
 
@@ -250,9 +190,6 @@ def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -
     p_platform = p_target - R_platform(q) m, solved by fixed point with the calibrated IK
     (the tilt varies slowly: 2-4 rounds to 1e-10 m).
     """
-    from .kinematics import ClosedLoopSolver, yaw_of
-    from .validation import read_report
-
     if isinstance(targets, np.ndarray):
         raise InvalidInputError(f"{targets_path}: with --report the targets are poses of the measured frame in the "
                                 "measurement frame, and need x,y,z,qx,qy,qz,qw")
@@ -276,11 +213,9 @@ def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -
 
 
 def cmd_view(args: argparse.Namespace) -> None:
-    from .io import OutputSet
-    from .viz import build_scene, comparison_views, open_viewer, scene_html
-
-    nominal = _mechanism(args.nominal, args.closures)
-    calibrated = _mechanism(args.calibrated, args.calibrated_closures) if args.calibrated else None
+    """`m3t1r view`: the nominal and calibrated machines in meshcat."""
+    nominal = load_mechanism(args.nominal, args.closures)
+    calibrated = load_mechanism(args.calibrated, args.calibrated_closures) if args.calibrated else None
     outputs = OutputSet(inputs=(nominal.urdf_path, nominal.closures_path, args.measurements,
                                 *((calibrated.urdf_path, calibrated.closures_path) if calibrated else ())))
     output = outputs.add(args.html, "--html")
@@ -288,14 +223,12 @@ def cmd_view(args: argparse.Namespace) -> None:
     views = comparison_views(nominal, calibrated)
     markers = None
     if args.measurements:
-        from .datasets import read_measurements
-
         markers = read_measurements(args.measurements, nominal).measurements.poses
     if output is not None:
         with outputs:
             outputs.stage(output, scene_html(build_scene(views, pose=args.pose, markers=markers)))
             outputs.commit()
-        _say(outputs, f"wrote {output.name} (self-contained: open it in any browser, no network needed)")
+        say(outputs, f"wrote {output.name} (self-contained: open it in any browser, no network needed)")
         return
     with open_viewer(views, pose=args.pose, markers=markers) as viewer:
         print(f"meshcat viewer at {viewer.url} (Ctrl-C to stop)", flush=True)
@@ -303,12 +236,12 @@ def cmd_view(args: argparse.Namespace) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> None:
+    """`m3t1r demo`: the end-to-end simulated calibration."""
     run_demo(Path(args.out), main)
 
 
 def cmd_paper(args: argparse.Namespace) -> None:
-    from .paper import SensorNoise, closed_chain_study, paper_study
-
+    """`m3t1r paper`: the paper's simulation study, or its method on the closed chain."""
     if args.closed and args.passive_from is not None:
         raise InvalidInputError("--closed runs every variant (passive joints read, sliders alone, closed loop); "
                                 "--passive-from applies to the two-chain study only")
@@ -349,21 +282,20 @@ def cmd_paper(args: argparse.Namespace) -> None:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
+    """`m3t1r evaluate`: nominal and calibrated machines against a (simulated) truth."""
     import pinocchio as pin
 
-    from .kinematics import ClosedLoopSolver
-    from .simulation import workspace_actuators
 
-    nominal = _mechanism(args.nominal, args.nominal_closures)
-    truth = _mechanism(args.truth, None)
-    calibrated = _mechanism(args.calibrated, None)
+    nominal = load_mechanism(args.nominal, args.nominal_closures)
+    truth = load_mechanism(args.truth, None)
+    calibrated = load_mechanism(args.calibrated, None)
     sliders = workspace_actuators(nominal, args.n, np.random.default_rng(args.seed))
     machines = {"truth": truth, "nominal": nominal, "calibrated": calibrated}
     solvers = {name: ClosedLoopSolver(machine) for name, machine in machines.items()}
     errors: dict[str, list[tuple[float, float]]] = {"nominal": [], "calibrated": []}
     failures: list[tuple[int, str]] = []
     # One slider set that does not assemble on some machine is reported and skipped, not fatal.
-    with _progress("evaluate", len(sliders)) as progress:
+    with progress_bar("evaluate", len(sliders)) as progress:
         for index, values in enumerate(sliders):
             progress.advance()
             poses = {}
@@ -407,6 +339,7 @@ def _add_noise_options(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of every verb."""
     parser = argparse.ArgumentParser(prog="m3t1r", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"m3t1r {__version__}")
     verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
@@ -515,8 +448,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from .io import Terminated, set_quiet, termination_as_exception
-
+    """Run the command line; returns the exit status."""
     args = build_parser().parse_args(argv)
     set_quiet(getattr(args, "quiet", False))
     try:

@@ -23,7 +23,7 @@ import pinocchio as pin
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
-from .errors import IdentificationError, InvalidInputError
+from m3t1r.errors import IdentificationError, InvalidInputError
 
 __all__ = ["MeasurementSetup", "LENGTH_UNITS", "register_frame", "register_marker_rotation", "se3_from_report",
            "se3_to_report"]

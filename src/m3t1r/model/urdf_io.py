@@ -44,7 +44,7 @@ import pinocchio as pin
 from lxml import etree
 
 from m3t1r.errors import InvalidInputError, ModelFileError
-from m3t1r.io import StrPath, atomic_write_bytes, ensure_not_protected, format_float
+from m3t1r.io import StrPath, atomic_write_bytes, ensure_not_protected, format_float, with_closures_sha256
 
 IDENTITY_TOLERANCE = 1e-12
 """m and rad. A link frame closer than this to its joint frame counts as on it: far below any
@@ -121,43 +121,6 @@ def calibrated_urdf_bytes(nominal_urdf: StrPath, model: pin.Model, closures_sha2
     }
     output = _rewrite_origins(raw, root, joints, {name: _origin_attributes(m) for name, m in origins.items()})
     return with_closures_sha256(output, closures_sha256)
-
-
-# --------------------------------------------------------------------------------------------
-# Pairing a URDF with its closures file
-# --------------------------------------------------------------------------------------------
-
-# One comment line before the root element. The digest is what the loader checks; the words
-# are for a person opening the file.
-_PAIRING = re.compile(rb"<!-- m3t1r pair: closures sha256 ([0-9a-f]{64})\b[^>]*-->[ \t]*(?:\r?\n)?")
-_DECLARATION = re.compile(rb"\A(?:\xef\xbb\xbf)?\s*<\?xml[^>]*\?>[ \t]*(?:\r?\n)?")
-
-
-def recorded_closures_sha256(urdf: bytes) -> str | None:
-    """The closures sha256 a paired URDF records, or None for a URDF that records none.
-
-    Raises ModelFileError (path unknown here: "URDF") if it records two different ones.
-    """
-    digests = {match[1].decode("ascii") for match in _PAIRING.finditer(urdf)}
-    if len(digests) > 1:
-        raise ModelFileError("URDF", "records two different closures sha256 digests")
-    return digests.pop() if digests else None
-
-
-def with_closures_sha256(urdf: bytes, digest: str | None) -> bytes:
-    """`urdf` with its pairing comment set to `digest` (removed when None), placed after the XML declaration."""
-    stripped = _PAIRING.sub(b"", urdf)
-    if digest is None:
-        return stripped
-    if not re.fullmatch(r"[0-9a-f]{64}", digest):
-        raise ValueError(f"not a sha256 hex digest: {digest!r}")
-    comment = (b"<!-- m3t1r pair: closures sha256 " + digest.encode("ascii")
-               + b" (this URDF loads only with the closures file of that sha256; models/README.md) -->\n")
-    declaration = _DECLARATION.match(stripped)
-    at = declaration.end() if declaration else 0
-    if declaration and not stripped[:at].endswith(b"\n"):
-        comment = b"\n" + comment
-    return stripped[:at] + comment + stripped[at:]
 
 
 def max_placement_difference(model_a: pin.Model, model_b: pin.Model) -> float:

@@ -24,10 +24,16 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from .description import Mechanism
-from .errors import (BranchChangeError, InvalidInputError, M3t1rError, NotConvergedError, OutOfWorkspaceError,
-                     SingularConfigurationError)
-from .poe import jlog3_batch, log3_batch, skew
+from m3t1r.errors import (
+    BranchChangeError,
+    InvalidInputError,
+    M3t1rError,
+    NotConvergedError,
+    OutOfWorkspaceError,
+    SingularConfigurationError,
+)
+from m3t1r.model.description import Mechanism
+from m3t1r.model.poe import jlog3_batch, log3_batch, skew
 
 __all__ = ["UnsupportedJointError", "RowFailure", "ForwardBatch", "InverseBatch", "StackedKinematics",
            "rpy_batch"]

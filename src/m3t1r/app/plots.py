@@ -25,9 +25,9 @@ from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 from matplotlib.ticker import FixedLocator, LogFormatter, NullFormatter
 
-from .calibration import PoseErrors
-from .errors import InvalidInputError, OutputPathError
-from .io import StrPath, atomic_write_bytes, ensure_not_protected
+from m3t1r.errors import InvalidInputError, OutputPathError
+from m3t1r.io import StrPath, atomic_write_bytes, ensure_not_protected
+from m3t1r.metrics import PoseErrors
 
 __all__ = ["plot_pose_errors_before_after", "plot_error_vs_poses", "plot_workspace_error_map",
            "plot_predicted_std_map"]

@@ -55,10 +55,10 @@ with warnings.catch_warnings():
     import meshcat.geometry as mg
     from pinocchio.visualize import MeshcatVisualizer
 
-from .description import Mechanism
-from .errors import InvalidInputError, KinematicsError, M3t1rError, require_finite_vector
-from .io import atomic_write_text, ensure_not_protected
-from .kinematics import ClosedLoopSolver, yaw_of
+from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError, require_finite_vector
+from m3t1r.io import atomic_write_text, ensure_not_protected
+from m3t1r.model.description import Mechanism
+from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 
 __all__ = [
     "ROOT_NODE", "MEASUREMENTS_NODE", "NOMINAL_COLOR", "CALIBRATED_COLOR", "MARKER_COLOR",

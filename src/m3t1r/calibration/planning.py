@@ -34,15 +34,20 @@ import numpy as np
 import pinocchio as pin
 from numpy.typing import ArrayLike
 
-from ._threads import on_one_blas_thread
-from .calibration import TrackerNoise
-from .description import Mechanism
-from .errors import InvalidInputError
-from .metrics import PoseErrors
-from .poe import SerialChain
-from .pose_selection import PoseSelection, closed_loop_candidate_blocks, select_poses, serial_candidate_blocks
-from .serial import MeasurementNoise, sample_configurations
-from .simulation import workspace_actuators
+from m3t1r._threads import on_one_blas_thread
+from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.pose_selection import (
+    PoseSelection,
+    closed_loop_candidate_blocks,
+    select_poses,
+    serial_candidate_blocks,
+)
+from m3t1r.calibration.serial import MeasurementNoise, sample_configurations
+from m3t1r.errors import InvalidInputError
+from m3t1r.metrics import PoseErrors
+from m3t1r.model.description import Mechanism
+from m3t1r.model.poe import SerialChain
+from m3t1r.model.workspace import workspace_actuators
 
 __all__ = [
     "MeasurementPlan", "PredictedAccuracy", "plan_closed_loop", "plan_serial", "order_for_travel", "path_travel",

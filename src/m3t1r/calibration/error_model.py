@@ -17,62 +17,17 @@ Ad(oMf) for the frame's own placement; a closure's rows see operator @ (X_b - X_
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
 from scipy.linalg import lapack
 
-from .description import Mechanism
-from .errors import InvalidInputError
-from .kinematics import ClosedLoopSolver
-from .poe import Placement, adjoint_matrices, perturb
+from m3t1r.model.description import Mechanism
+from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.poe import Placement, adjoint_matrices, perturb
 
-__all__ = ["ClosedLoopErrorModel", "PoseMeasurements", "TrackerNoise", "PlatformSensitivities"]
-
-
-@dataclass(frozen=True)
-class TrackerNoise:
-    """Standard deviations of the measurements: tracker position [m] and orientation [rad],
-    slider readings [m]. Used to whiten the residual and to predict the parameter covariance."""
-
-    position: float = 10e-6
-    rotation: float = 20e-6
-    actuator: float = 1e-6
-
-    def __post_init__(self) -> None:
-        for name in ("position", "rotation", "actuator"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise InvalidInputError(f"noise {name} must be a finite non-negative number, got {value}")
-        if self.position <= 0 or self.rotation <= 0:
-            raise InvalidInputError("tracker noise must be positive (it whitens the residual)")
-
-
-@dataclass(frozen=True)
-class PoseMeasurements:
-    """N calibration poses: slider readings (N x n_act) [m] and measured platform poses in the base
-    frame (orientation ignored when position_only)."""
-
-    actuators: np.ndarray
-    poses: tuple[pin.SE3, ...]
-    position_only: bool = False
-
-    def __post_init__(self) -> None:
-        actuators = np.asarray(self.actuators, dtype=float)
-        if actuators.ndim != 2 or actuators.shape[0] != len(self.poses):
-            raise InvalidInputError(f"{actuators.shape} actuator rows for {len(self.poses)} poses")
-        if not np.all(np.isfinite(actuators)):
-            raise InvalidInputError("non-finite actuator reading")
-        object.__setattr__(self, "actuators", actuators)
-
-    @property
-    def rows_per_pose(self) -> int:
-        return 3 if self.position_only else 6
-
-    def __len__(self) -> int:
-        return len(self.poses)
+__all__ = ["ClosedLoopErrorModel", "PlatformSensitivities"]
 
 
 class ClosedLoopErrorModel:

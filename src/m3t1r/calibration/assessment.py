@@ -17,8 +17,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import pinocchio as pin
 
-from .errors import IdentificationError
-from .measurement_setup import register_frame
+from m3t1r.calibration.measurement_setup import register_frame
+from m3t1r.errors import IdentificationError
 
 __all__ = ["FitRejected", "MAX_NOISE_RATIO", "check_fit", "likely_causes", "describe_parameter",
            "fit_movement_notes", "coverage_notes"]

@@ -38,17 +38,25 @@ import pinocchio as pin
 from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
+from m3t1r.calibration.identification import (
+    OUTLIER_SIGMA,
+    BaseParameters,
+    LMResult,
+    ParameterSelection,
+    batch_least_squares,
+    forward_selection,
+    levenberg_marquardt,
+    outlier_poses,
+    select_base_parameters,
+)
+from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
 from m3t1r.errors import IdentificationError, InvalidInputError, ModelFileError
-from m3t1r.identification import (OUTLIER_SIGMA, BaseParameters, LMResult, ParameterSelection, batch_least_squares,
-                                  forward_selection, levenberg_marquardt, outlier_poses, select_base_parameters)
-from m3t1r.measurement_setup import MeasurementSetup, register_frame
 from m3t1r.metrics import PoseErrors, pose_errors_between
-from m3t1r.poe import Placement, SerialChain, jlog3_batch, log3_batch, perturb, placement_poses, skew, tool_poses
+from m3t1r.model.poe import Placement, SerialChain, jlog3_batch, log3_batch, perturb, placement_poses, skew, tool_poses
 
 __all__ = [
     "MeasurementNoise",
     "PoseErrorRMS",
-    "PoseErrors",
     "RobotName",
     "SerialCalibration",
     "SerialCrossValidation",

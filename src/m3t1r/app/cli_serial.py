@@ -20,14 +20,22 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from . import __version__
-from .assessment import FitRejected, check_fit, describe_parameter, fit_movement_notes, likely_causes
-from .errors import InvalidInputError, PoorExcitationWarning
-from .io import OutputSet, poses_from_table, read_table, sha256_bytes
-from .measurement_setup import LENGTH_UNITS, MeasurementSetup, register_frame, se3_to_report
-from .poe import SerialChain, tool_poses
-from .serial import (MeasurementNoise, SerialCalibration, SerialCrossValidation, calibrate_serial,
-                     cross_validate_serial, example_tool_frame, load_example_robot)
+from m3t1r._version import __version__
+from m3t1r.calibration.assessment import FitRejected, check_fit, describe_parameter, fit_movement_notes, likely_causes
+from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup, register_frame, se3_to_report
+from m3t1r.calibration.serial import (
+    MeasurementNoise,
+    SerialCalibration,
+    SerialCrossValidation,
+    calibrate_serial,
+    cross_validate_serial,
+    example_tool_frame,
+    load_example_robot,
+)
+from m3t1r.errors import InvalidInputError, PoorExcitationWarning
+from m3t1r.io import OutputSet, poses_from_table, read_table, sha256_bytes
+from m3t1r.model.poe import SerialChain, tool_poses
+from m3t1r.model.urdf_io import calibrated_urdf_bytes
 
 __all__ = ["run_serial_calibration", "serial_calibration_report", "SerialCampaign"]
 
@@ -149,8 +157,6 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
     report = serial_calibration_report(calibration, data, args, noise, lines, validation, notes)
     with outputs:
         if urdf_output is not None:
-            from .urdf_io import calibrated_urdf_bytes
-
             outputs.stage(urdf_output, calibrated_urdf_bytes(urdf, calibration.model))
         outputs.stage_json(report_output, report)
         written = outputs.commit()

@@ -28,13 +28,14 @@ import scipy.linalg
 from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
-from m3t1r.calibration import ClosedLoopErrorModel, TrackerNoise
-from m3t1r.description import Mechanism
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.identification import select_base_parameters
+from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.serial import MeasurementNoise
 from m3t1r.errors import InvalidInputError
-from m3t1r.identification import select_base_parameters
-from m3t1r.kinematics import ClosedLoopSolver
-from m3t1r.poe import SerialChain, forward_and_error_jacobians
-from m3t1r.serial import MeasurementNoise
+from m3t1r.model.description import Mechanism
+from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.poe import SerialChain, forward_and_error_jacobians
 
 __all__ = [
     "PoseSelection",

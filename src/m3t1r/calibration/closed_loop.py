@@ -29,22 +29,29 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pinocchio as pin
 
-from ._threads import on_one_blas_thread
-from .description import Mechanism
-from .error_model import ClosedLoopErrorModel, PlatformSensitivities, PoseMeasurements, TrackerNoise
-from .errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
-from .identification import (OUTLIER_SIGMA, BaseParameters, LMResult, ParameterSelection, forward_selection,
-                             levenberg_marquardt, outlier_poses, select_base_parameters)
-from .kinematics import ClosedLoopSolver, rehomed
-from .measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
-from .metrics import PoseErrors  # re-exported: one pose-error type for every calibration
-from .poe import adjoint_matrices, jlog3_batch, log3_batch, placement_of, skew
+from m3t1r._threads import on_one_blas_thread
+from m3t1r.calibration.error_model import ClosedLoopErrorModel, PlatformSensitivities
+from m3t1r.calibration.identification import (
+    OUTLIER_SIGMA,
+    BaseParameters,
+    LMResult,
+    ParameterSelection,
+    forward_selection,
+    levenberg_marquardt,
+    outlier_poses,
+    select_base_parameters,
+)
+from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
+from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, measure
+from m3t1r.errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
+from m3t1r.metrics import PoseErrors
+from m3t1r.model.description import Mechanism
+from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
+from m3t1r.model.poe import adjoint_matrices, jlog3_batch, log3_batch, placement_of, skew
+from m3t1r.model.workspace import workspace_actuators
 
-__all__ = [
-    "ClosedLoopErrorModel", "PoseMeasurements", "TrackerNoise", "ClosedLoopCalibration", "MeasurementSetup",
-    "PlatformSensitivities", "calibrate_closed_loop", "PoseErrors", "pose_errors", "predicted_pose_std",
-    "setup_parameter_names", "CrossValidation", "cross_validate",
-]
+__all__ = ["ClosedLoopCalibration", "calibrate_closed_loop", "pose_errors", "predicted_pose_std", "setup_parameter_names",
+           "CrossValidation", "cross_validate"]
 
 _MAX_OUTLIER_ROUNDS = 5
 
@@ -556,8 +563,6 @@ _STRUCTURAL_RANKS: dict[tuple, int] = {}
 
 def _count_identifiable(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int],
                         rank_tolerance: float) -> int:
-    from .simulation import measure, workspace_actuators
-
     error_model = problem.error_model
     mechanism = error_model.mechanism
     actuators = workspace_actuators(mechanism, _REFERENCE_POSES, np.random.default_rng(2020))

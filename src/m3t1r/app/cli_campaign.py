@@ -15,7 +15,15 @@ from typing import TextIO
 
 import numpy as np
 
-from .errors import InvalidInputError, ModelFileError
+from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, provenance, say
+from m3t1r.calibration.measurement_setup import LENGTH_UNITS
+from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.planning import plan_closed_loop, plan_serial
+from m3t1r.calibration.serial import MeasurementNoise, example_tool_frame, load_example_robot
+from m3t1r.calibration.validation import validate
+from m3t1r.errors import InvalidInputError, ModelFileError
+from m3t1r.io import POSE_COLUMNS, OutputSet, paired_closures_path, pose_rows, table_text
+from m3t1r.model.poe import SerialChain
 
 __all__ = ["add_plan_parser", "add_validate_parser", "cmd_plan", "cmd_validate"]
 
@@ -47,8 +55,6 @@ def _serial_robot(source: str, tool: str | None, base: str | None):
     """(model, chain) of `--serial` (an example robot name or a URDF path)."""
     import pinocchio as pin
 
-    from .poe import SerialChain
-    from .serial import example_tool_frame, load_example_robot
 
     path = Path(source)
     if path.suffix.lower() == ".urdf" or path.exists():
@@ -68,10 +74,6 @@ def _serial_robot(source: str, tool: str | None, base: str | None):
 
 def _make_plan(args: argparse.Namespace):
     """The plan the arguments ask for, and the input files it read."""
-    from .calibration import TrackerNoise
-    from .planning import plan_closed_loop, plan_serial
-    from .serial import MeasurementNoise
-
     rng = np.random.default_rng(args.seed)
     if args.serial:
         if args.model or args.closures:
@@ -83,9 +85,8 @@ def _make_plan(args: argparse.Namespace):
         return plan, [args.serial] if Path(args.serial).exists() else []
     if args.tool or args.base:
         raise InvalidInputError("--tool/--base apply to --serial only")
-    from .cli import _mechanism
 
-    mechanism = _mechanism(args.model, args.closures)
+    mechanism = load_mechanism(args.model, args.closures)
     plan = plan_closed_loop(mechanism, args.n, rng, n_candidates=args.candidates,
                             noise=TrackerNoise(args.noise_pos, args.noise_rot), position_only=args.position_only)
     return plan, [mechanism.urdf_path, mechanism.closures_path]
@@ -113,9 +114,6 @@ def _plan_summary(plan, args: argparse.Namespace) -> list[str]:
 
 def cmd_plan(args: argparse.Namespace) -> None:
     """`m3t1r plan`: write the plan CSV (columns by joint name, SI units) and print its summary."""
-    from .cli import _provenance, _say
-    from .io import OutputSet, table_text
-
     outputs = OutputSet(inputs=[p for p in (args.model, args.closures, args.serial) if p and Path(p).exists()])
     output = outputs.add(args.output, "-o")
     outputs.check()
@@ -126,14 +124,14 @@ def cmd_plan(args: argparse.Namespace) -> None:
     outputs.check()
     summary = _plan_summary(plan, args)
     unit = ", ".join(f"{name} [{u}]" for name, u in zip(plan.columns, plan.column_units))
-    comments = _provenance(args) + ["measurement plan: " + summary[0], summary[1], *summary[2:],
+    comments = provenance(args) + ["measurement plan: " + summary[0], summary[1], *summary[2:],
                                     f"columns {unit}; one row per pose, in measuring order"]
     with outputs:
         outputs.stage(output, table_text(plan.columns, plan.configurations, comments))
         outputs.commit()
     for line in summary:
-        _say(outputs, line)
-    _say(outputs, f"wrote {plan.n_poses} rows to {output.name}")
+        say(outputs, line)
+    say(outputs, f"wrote {plan.n_poses} rows to {output.name}")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -171,8 +169,6 @@ def _row_table(result, out: TextIO) -> None:
 
 
 def _unit_scale(units: str) -> float:
-    from .measurement_setup import LENGTH_UNITS
-
     return LENGTH_UNITS[units]
 
 
@@ -201,7 +197,6 @@ def _prediction_rows(result) -> np.ndarray:
     """(N, 3 or 7) rows x, y, z [file unit][, qx, qy, qz, qw] of the predictions."""
     import pinocchio as pin
 
-    from .io import pose_rows
 
     rows = pose_rows([pin.SE3(p) for p in result.predictions])
     rows[:, :3] /= _unit_scale(result.units)
@@ -210,16 +205,12 @@ def _prediction_rows(result) -> np.ndarray:
 
 def cmd_validate(args: argparse.Namespace) -> None:
     """`m3t1r validate`: per-row errors and summary on stdout; PRED.csv only when every row was predicted."""
-    from .cli import RowFailures, _progress, _provenance
-    from .io import POSE_COLUMNS, OutputSet, paired_closures_path, table_text
-    from .validation import validate
-
     outputs = OutputSet(inputs=(args.measurements, args.calibrated, paired_closures_path(args.calibrated),
                                 args.report))
     output = outputs.add(args.predictions, "--predictions")
     outputs.check()
     out = sys.stderr if output is not None and output.path is None else sys.stdout
-    with _progress("validate", None) as progress:
+    with progress_bar("validate", None) as progress:
         result = validate(args.measurements, args.calibrated, args.report, args.units, progress=progress.update)
     _row_table(result, out)
     _summary(result, out)
@@ -228,7 +219,7 @@ def cmd_validate(args: argparse.Namespace) -> None:
     if result.failures:
         raise RowFailures(result.path, list(result.failures))
     columns = POSE_COLUMNS[:3] if result.position_only else POSE_COLUMNS
-    comments = _provenance(args) + [
+    comments = provenance(args) + [
         f"predicted measurements of {args.measurements} by {args.calibrated}, with the measurement frame and "
         f"marker of {args.report}", f"position in {result.units}" + ("" if result.position_only else ", unit quaternion")
         + ", in the measurement file's frame; one row per input row, same order"]

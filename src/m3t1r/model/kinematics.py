@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 import pinocchio as pin
@@ -25,12 +24,19 @@ from scipy.linalg import lapack
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components, maximum_bipartite_matching
 
-from .description import ClosureSpec, Mechanism
-from .errors import (BranchChangeError, InvalidInputError, NotConvergedError, OutOfWorkspaceError,
-                     SingularConfigurationError, require_finite_vector)
+from m3t1r.errors import (
+    BranchChangeError,
+    InvalidInputError,
+    NotConvergedError,
+    OutOfWorkspaceError,
+    SingularConfigurationError,
+    require_finite_vector,
+)
+from m3t1r.model.batch_kinematics import StackedKinematics, forward_batch, inverse_batch
+from m3t1r.model.description import Mechanism
 
 __all__ = [
-    "ForwardResult", "InverseResult", "ClosedLoopSolver", "closure_residual_by_closure",
+    "ForwardResult", "InverseResult", "ClosedLoopSolver",
     "yaw_of", "roll_pitch_of", "rehomed", "MOBILITY_RANK_TOL", "SINGULAR_RCOND",
 ]
 
@@ -162,19 +168,6 @@ class InverseResult:
     residual: float
     iterations: int
     tilt: tuple[float, float]
-
-
-def closure_residual_by_closure(mechanism: Mechanism, q: np.ndarray) -> Iterator[tuple[ClosureSpec, np.ndarray]]:
-    """Yield (closure, full residual of its type) at q; a slow, obvious reference for checks."""
-    model = mechanism.model
-    data = model.createData()
-    pin.framesForwardKinematics(model, data, q)
-    for spec in mechanism.closures:
-        oMa, oMb = data.oMf[spec.frame_a_id], data.oMf[spec.frame_b_id]
-        if spec.type == "3D":
-            yield spec, oMa.rotation.T @ (oMb.translation - oMa.translation)
-        else:
-            yield spec, pin.log6(oMa.actInv(oMb)).vector
 
 
 class ClosedLoopSolver:
@@ -583,18 +576,15 @@ class ClosedLoopSolver:
         (M, 4, 4), `.q`, `.iterations` of the M converged rows `.indices`; every other row is in
         `.failures` with its typed error class (never in the arrays). Leaves this solver's warm start alone.
         """
-        from .batch_kinematics import forward_batch
         return forward_batch(self._batch_kinematics(), actuators, q_init)
 
     def inverse_batch(self, targets: np.ndarray, q_init: np.ndarray | None = None):
         """Inverse kinematics of n targets (n, 4) rows (x, y, z, theta) [m, rad] at once; returns an
         `InverseBatch` (`.actuators`, `.poses`, `.tilt`, ... of the converged rows, `.failures`)."""
-        from .batch_kinematics import inverse_batch
         return inverse_batch(self._batch_kinematics(), targets, q_init)
 
     def _batch_kinematics(self):
         if self._stacked is None:
-            from .batch_kinematics import StackedKinematics
             self._stacked = StackedKinematics(self)
         return self._stacked
 

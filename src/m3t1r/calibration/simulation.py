@@ -15,16 +15,16 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
-from ._threads import on_one_blas_thread
-from .calibration import ClosedLoopErrorModel, PoseMeasurements, TrackerNoise
-from .description import Mechanism
-from .errors import InvalidInputError, KinematicsError
-from .kinematics import ClosedLoopSolver, rehomed
-from .measurement_setup import MeasurementSetup
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.measurement_setup import MeasurementSetup
+from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, measure
+from m3t1r.errors import InvalidInputError
+from m3t1r.model.description import Mechanism
+from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
+from m3t1r.model.workspace import workspace_actuators
 
 __all__ = ["SimulatedStudy", "random_placement_errors", "actual_machine", "with_joint_errors", "orthonormal_twist",
-           "workspace_actuators",
-           "measure", "simulate_study", "with_outliers"]
+           "simulate_study", "with_outliers"]
 
 
 def random_placement_errors(error_model: ClosedLoopErrorModel, rng: np.random.Generator,
@@ -89,53 +89,6 @@ def with_joint_errors(model: pin.Model, twist_errors: Mapping[str, np.ndarray],
             if frame.parentJoint == j and frame.type != pin.FrameType.JOINT:
                 frame.placement = inverse * frame.placement
     return out
-
-
-@on_one_blas_thread
-def workspace_actuators(nominal: Mechanism, n: int, rng: np.random.Generator) -> np.ndarray:
-    """n slider sets (n x 4) [m]: platform poses drawn uniformly in the design's workspace box,
-    through the nominal model's IK (each from home, so every pose is on the home branch)."""
-    from .design import NOMINAL
-
-    solver = ClosedLoopSolver(nominal)
-    rows = []
-    for pose in NOMINAL.workspace.sample(rng, n):
-        rows.append(solver.inverse(pose, q_init=nominal.home).actuators)
-    return np.array(rows)
-
-
-@on_one_blas_thread
-def measure(machine: Mechanism, actuators: np.ndarray, rng: np.random.Generator | None = None,
-            noise: TrackerNoise | None = None, position_only: bool = False,
-            setup: MeasurementSetup | None = None) -> PoseMeasurements:
-    """What a tracker sees on `machine` driven at `actuators`, and what the slider encoders read.
-
-    The tracker sees setup.frame . T_platform . setup.marker (default: the platform frame in the
-    base frame). With `noise`, the recorded poses get Gaussian position [m] and rotation
-    (right-multiplied, [rad]) noise and the recorded slider readings Gaussian noise; without,
-    both are exact.
-    """
-    solver = ClosedLoopSolver(machine)
-    platform = []
-    for sliders in actuators:
-        try:
-            try:
-                pose = solver.forward(sliders).pose
-            except KinematicsError:  # the warm start may jump across a singularity: retry from home
-                pose = solver.forward(sliders, q_init=machine.home).pose
-        except KinematicsError as exc:
-            raise InvalidInputError(f"slider set {sliders} does not assemble on the machine: {exc}") from None
-        platform.append(pose.homogeneous)
-    seen = (setup or MeasurementSetup()).measured_poses(np.array(platform).reshape(-1, 4, 4))
-    poses = [pin.SE3(pose) for pose in seen]
-    readings = np.array(actuators, dtype=float)
-    if noise is not None:
-        if rng is None:
-            raise InvalidInputError("measure: noise needs a random generator")
-        poses = [pin.SE3(p.rotation @ pin.exp3(rng.normal(0.0, noise.rotation, 3)),
-                         p.translation + rng.normal(0.0, noise.position, 3)) for p in poses]
-        readings = readings + rng.normal(0.0, noise.actuator, readings.shape)
-    return PoseMeasurements(readings, tuple(poses), position_only)
 
 
 def with_outliers(measurements: PoseMeasurements, rng: np.random.Generator, count: int,

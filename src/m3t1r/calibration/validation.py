@@ -48,12 +48,14 @@ import pinocchio as pin
 import scipy.special
 import scipy.stats
 
-from .errors import InvalidInputError, KinematicsError, M3t1rError, ModelFileError
-from .identification import OUTLIER_SIGMA
-from .io import poses_from_table, read_table
-from .measurement_setup import LENGTH_UNITS, MeasurementSetup
-from .metrics import PoseErrors, pose_errors_between
-from .poe import log3_batch
+from m3t1r.calibration.identification import OUTLIER_SIGMA
+from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
+from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError, ModelFileError
+from m3t1r.io import poses_from_table, read_table
+from m3t1r.metrics import PoseErrors, pose_errors_between
+from m3t1r.model.description import Mechanism
+from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.poe import SerialChain, log3_batch, tool_poses
 
 __all__ = ["CalibrationReport", "Campaign", "Validation", "read_report", "read_campaign", "validate", "sigma_equivalent"]
 
@@ -243,9 +245,6 @@ def sigma_equivalent(d2: np.ndarray, dof: int) -> np.ndarray:
 def _predict_closed_loop(calibrated: Path, report: CalibrationReport, units: str, measurements: Path,
                          progress: Callable[[int], None] | None) -> tuple[Campaign, np.ndarray, list[tuple[int, str]]]:
     """Platform poses (N, 4, 4) of the calibrated M machine at each row's sliders (NaN where it fails)."""
-    from .description import Mechanism
-    from .kinematics import ClosedLoopSolver
-
     mechanism = Mechanism.load(calibrated)
     if report.measured_frame not in (None, mechanism.platform_frame):
         raise InvalidInputError(f"{report.path}: report field 'measured_frame' is {report.measured_frame!r}, "
@@ -278,8 +277,6 @@ def _is_prismatic(model: pin.Model, joint: str) -> bool:
 def _predict_serial(calibrated: Path, report: CalibrationReport, units: str,
                     measurements: Path) -> tuple[Campaign, np.ndarray]:
     """Tool poses (N, 4, 4) in the chain's base frame of the calibrated serial robot at each row."""
-    from .poe import SerialChain, tool_poses
-
     if not calibrated.is_file():
         raise ModelFileError(calibrated, "file not found" if not calibrated.exists() else "not a regular file")
     try:

@@ -17,11 +17,11 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 import pinocchio as pin
 
-from .calibration import PoseMeasurements
-from .description import Mechanism
-from .errors import DataFileError
-from .measurement_setup import LENGTH_UNITS
-from .io import POSE_COLUMNS, StrPath, Table, pose_rows, poses_from_table, read_table, write_table
+from m3t1r.calibration.measurement_setup import LENGTH_UNITS
+from m3t1r.calibration.measurements import PoseMeasurements
+from m3t1r.errors import DataFileError
+from m3t1r.io import POSE_COLUMNS, StrPath, Table, pose_rows, poses_from_table, read_table, write_table
+from m3t1r.model.description import Mechanism
 
 __all__ = [
     "TARGET_COLUMNS", "read_actuators", "write_actuators", "read_poses", "write_poses", "read_targets",
@@ -88,6 +88,7 @@ def read_actuators(path: StrPath, mechanism: Mechanism) -> tuple[np.ndarray, np.
 
 def write_actuators(path: StrPath, mechanism: Mechanism, actuators: np.ndarray, comments: Sequence[str] = (),
                     protect: Iterable[StrPath] = ()) -> None:
+    """Write slider sets as a CSV table with the machine's actuated joint names as columns."""
     write_table(path, mechanism.actuated_joints, np.asarray(actuators, dtype=float), comments, protect)
 
 
@@ -99,6 +100,7 @@ def read_poses(path: StrPath) -> tuple[list[pin.SE3], np.ndarray]:
 
 def write_poses(path: StrPath, poses: Sequence[pin.SE3], comments: Sequence[str] = (),
                 protect: Iterable[StrPath] = ()) -> None:
+    """Write platform poses as a CSV table (m, unit quaternion)."""
     write_table(path, POSE_COLUMNS, pose_rows(poses), comments, protect)
 
 

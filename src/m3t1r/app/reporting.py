@@ -17,15 +17,16 @@ from pathlib import Path
 from typing import Iterable
 
 import numpy as np
-import pinocchio as pin
 
-from .calibration import (ClosedLoopCalibration, PoseErrors, PoseMeasurements, TrackerNoise, calibrate_closed_loop,
-                          predicted_pose_std)
-from .description import Mechanism
-from .errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
-from .kinematics import ClosedLoopSolver
-from .measurement_setup import MeasurementSetup
-from .metrics import rotation_angles
+from m3t1r.app.plots import plot_error_vs_poses, plot_pose_errors_before_after, plot_predicted_std_map
+from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_closed_loop, predicted_pose_std
+from m3t1r.calibration.measurement_setup import MeasurementSetup
+from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
+from m3t1r.compensation import workspace_targets
+from m3t1r.errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
+from m3t1r.metrics import PoseErrors, rotation_angles
+from m3t1r.model.description import Mechanism
+from m3t1r.model.kinematics import ClosedLoopSolver
 
 __all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots", "PassiveJointResiduals",
            "passive_joint_residuals", "IDLE_CHAIN_JOINTS"]
@@ -86,9 +87,6 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
                             seed: int = 0) -> list[Path]:
     """Write the three calibration plots (module docstring) into out_dir; return their paths.
     The calibration's own inlier measurements and measurement setup are used throughout."""
-    from .compensation import workspace_targets
-    from .plots import plot_error_vs_poses, plot_pose_errors_before_after, plot_predicted_std_map
-
     problem, start = calibration.problem, calibration.start
     if problem is None or start is None:
         raise InvalidInputError("write_calibration_plots needs a calibration made by calibrate_closed_loop")

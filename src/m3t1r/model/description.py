@@ -11,13 +11,15 @@ import hashlib
 import importlib.resources
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Iterator, Literal
 
 import numpy as np
 import pinocchio as pin
 import yaml
 
-from .errors import ModelFileError
+from m3t1r.errors import ModelFileError
+from m3t1r.io import OutputSet, paired_closures_path, pending_temporaries, recorded_closures_sha256, sha256_bytes
+from m3t1r.model.urdf_io import calibrated_urdf_bytes
 
 __all__ = ["ClosureSpec", "Mechanism", "nominal_model_paths", "paired_closures", "HOME_TOLERANCE"]
 
@@ -28,7 +30,7 @@ _ROW_COUNT = {"3D": 3, "6D": 6}
 def nominal_model_paths() -> tuple[Path, Path]:
     """Paths of the packaged nominal URDF and closures file."""
     packaged = importlib.resources.files("m3t1r") / "models"
-    candidates = [Path(str(packaged)), Path(__file__).resolve().parents[2] / "models"]
+    candidates = [Path(str(packaged)), Path(__file__).resolve().parents[3] / "models"]
     for folder in candidates:  # installed wheel first, then a source checkout (editable install)
         urdf, closures = folder / "m3t1r.urdf", folder / "m3t1r.closures.yaml"
         if urdf.is_file() and closures.is_file():
@@ -162,9 +164,6 @@ class Mechanism:
         closures bytes' sha256; the closures file is the source's with `home` replaced by this
         machine's assembled home.
         """
-        from .io import paired_closures_path, sha256_bytes
-        from .urdf_io import calibrated_urdf_bytes
-
         doc = copy.deepcopy(self.closures_document) if self.closures_document is not None else \
             _parse_yaml(self.closures_path, _read_bytes(self.closures_path))
         doc["home"] = {self.model.names[j]: float(self.home[self.model.idx_qs[j]]) for j in range(1, self.model.njoints)}
@@ -184,8 +183,6 @@ class Mechanism:
         writable), then staged and renamed so that an interruption at any instant leaves a
         loadable pair, the old one or the new one.
         """
-        from .io import OutputSet
-
         outputs = OutputSet(inputs=(self.urdf_path, self.closures_path, *protect))
         machine = outputs.add_machine(urdf, "URDF", closures)
         with outputs:
@@ -231,14 +228,10 @@ def paired_closures(urdf: str | Path, *, recorded: str | None | bool = False) ->
 
 
 def _paired_path(urdf: Path) -> Path:
-    from .io import paired_closures_path
-
     return paired_closures_path(urdf)
 
 
 def _recorded_sha256(urdf: Path) -> str | None:
-    from .urdf_io import recorded_closures_sha256
-
     try:
         return recorded_closures_sha256(_read_bytes(urdf))
     except ModelFileError as exc:
@@ -257,8 +250,6 @@ def _read_bytes(path: Path) -> bytes:
 
 
 def _closures_of(urdf: Path, closures: Path, recorded: str | None) -> tuple[Path, bytes]:
-    from .io import pending_temporaries
-
     data = None if not closures.exists() and recorded is not None else _read_bytes(closures)
     if recorded is None:
         return closures, data
@@ -387,12 +378,22 @@ def _build(model: pin.Model, visual: pin.GeometryModel, doc: dict, urdf_path: Pa
 
 
 def _check_home_closes(mechanism: Mechanism) -> None:
-    # Imported here: kinematics depends on this module, not the other way round.
-    from .kinematics import closure_residual_by_closure
-
     for spec, residual in closure_residual_by_closure(mechanism, mechanism.home):
         # Only the enforced rows: on a machine with errors the others cannot all hold (mechanism.md).
         worst = float(np.max(np.abs(residual[list(spec.rows)])))
         if not worst <= HOME_TOLERANCE:  # a NaN residual (home values too large) fails too
             raise ModelFileError(mechanism.closures_path,
                                  f"home does not close: closure '{spec.name}' residual {worst:.3e} > {HOME_TOLERANCE:g}")
+
+
+def closure_residual_by_closure(mechanism: Mechanism, q: np.ndarray) -> Iterator[tuple[ClosureSpec, np.ndarray]]:
+    """Yield (closure, full residual of its type) at q; a slow, obvious reference for checks."""
+    model = mechanism.model
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, q)
+    for spec in mechanism.closures:
+        oMa, oMb = data.oMf[spec.frame_a_id], data.oMf[spec.frame_b_id]
+        if spec.type == "3D":
+            yield spec, oMa.rotation.T @ (oMb.translation - oMa.translation)
+        else:
+            yield spec, pin.log6(oMa.actInv(oMb)).vector

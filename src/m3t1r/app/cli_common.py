@@ -1,0 +1,62 @@
+"""What every `m3t1r` verb shares: loading the machine pair, status lines, progress, provenance, row failures."""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import sys
+from pathlib import Path
+
+from m3t1r._version import __version__
+from m3t1r.errors import InvalidInputError, M3t1rError
+from m3t1r.io import Progress, paired_closures_path, recorded_closures_sha256
+from m3t1r.model.description import Mechanism
+
+__all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "progress_bar", "provenance"]
+
+
+class RowFailures(M3t1rError):
+    """Some input rows could not be processed; nothing was written."""
+
+    def __init__(self, path: Path, failures: list[tuple[int, str]]) -> None:
+        self.failures = failures
+        lines = "\n".join(f"  {path}, line {line}: {reason}" for line, reason in failures)
+        super().__init__(f"{len(failures)} row(s) failed, nothing written:\n{lines}")
+
+
+def load_mechanism(urdf: str | None, closures: str | None):
+    """Load a machine; a URDF without --closures loads with its pair NAME.closures.yaml (sha256-checked)."""
+    if urdf is not None and closures is None:
+        sibling = paired_closures_path(urdf)
+        try:
+            recorded = recorded_closures_sha256(Path(urdf).read_bytes())
+        except (OSError, M3t1rError):
+            recorded = None  # Mechanism.load names the problem with the URDF
+        if recorded is None and not sibling.is_file() and Path(urdf).is_file():
+            raise InvalidInputError(f"--closures is required with {urdf} (no {sibling.name} beside it)")
+    return Mechanism.load(urdf, closures)
+
+
+def closures_beside(urdf_out: Path) -> Path:
+    """calibrated.urdf -> calibrated.closures.yaml: a machine is always a pair of files.
+
+    Only the final .urdf is replaced: machine.v1.urdf -> machine.v1.closures.yaml.
+    """
+    return paired_closures_path(urdf_out)
+
+
+def say(outputs, message: str) -> None:
+    """A status line: stdout, or stderr when an output of the command is stdout (`-o -`)."""
+    to_stdout = outputs is None or all(o.path is not None for o in outputs.outputs)
+    print(message, file=sys.stdout if to_stdout else sys.stderr, flush=True)
+
+
+def progress_bar(label: str, total: int):
+    """A progress display on stderr for `total` rows."""
+    return Progress(label, total)
+
+
+def provenance(args: argparse.Namespace) -> list[str]:
+    """Comment lines naming the version, the time and the command that wrote a file."""
+    return [f"written by m3t1r {__version__} on {_dt.datetime.now().isoformat(timespec='seconds')}",
+            "command: m3t1r " + " ".join(sys.argv[1:]) if sys.argv[1:] else "command: m3t1r (API)"]

@@ -1,0 +1,98 @@
+"""What is measured on the closed-loop machine: tracker noise, pose measurements, and simulated ones.
+
+The tracker sees a frame on the platform in its own frame (`MeasurementSetup`); the slider
+encoders read the actuators. `measure` simulates both on a known machine.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from m3t1r._threads import on_one_blas_thread
+from m3t1r.calibration.measurement_setup import MeasurementSetup
+from m3t1r.errors import InvalidInputError, KinematicsError
+from m3t1r.model.description import Mechanism
+from m3t1r.model.kinematics import ClosedLoopSolver
+
+__all__ = ["TrackerNoise", "PoseMeasurements", "measure"]
+
+
+@dataclass(frozen=True)
+class TrackerNoise:
+    """Standard deviations of the measurements: tracker position [m] and orientation [rad],
+    slider readings [m]. Used to whiten the residual and to predict the parameter covariance."""
+
+    position: float = 10e-6
+    rotation: float = 20e-6
+    actuator: float = 1e-6
+
+    def __post_init__(self) -> None:
+        for name in ("position", "rotation", "actuator"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InvalidInputError(f"noise {name} must be a finite non-negative number, got {value}")
+        if self.position <= 0 or self.rotation <= 0:
+            raise InvalidInputError("tracker noise must be positive (it whitens the residual)")
+
+
+@dataclass(frozen=True)
+class PoseMeasurements:
+    """N calibration poses: slider readings (N x n_act) [m] and measured platform poses in the base
+    frame (orientation ignored when position_only)."""
+
+    actuators: np.ndarray
+    poses: tuple[pin.SE3, ...]
+    position_only: bool = False
+
+    def __post_init__(self) -> None:
+        actuators = np.asarray(self.actuators, dtype=float)
+        if actuators.ndim != 2 or actuators.shape[0] != len(self.poses):
+            raise InvalidInputError(f"{actuators.shape} actuator rows for {len(self.poses)} poses")
+        if not np.all(np.isfinite(actuators)):
+            raise InvalidInputError("non-finite actuator reading")
+        object.__setattr__(self, "actuators", actuators)
+
+    @property
+    def rows_per_pose(self) -> int:
+        return 3 if self.position_only else 6
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+
+@on_one_blas_thread
+def measure(machine: Mechanism, actuators: np.ndarray, rng: np.random.Generator | None = None,
+            noise: TrackerNoise | None = None, position_only: bool = False,
+            setup: MeasurementSetup | None = None) -> PoseMeasurements:
+    """What a tracker sees on `machine` driven at `actuators`, and what the slider encoders read.
+
+    The tracker sees setup.frame . T_platform . setup.marker (default: the platform frame in the
+    base frame). With `noise`, the recorded poses get Gaussian position [m] and rotation
+    (right-multiplied, [rad]) noise and the recorded slider readings Gaussian noise; without,
+    both are exact.
+    """
+    solver = ClosedLoopSolver(machine)
+    platform = []
+    for sliders in actuators:
+        try:
+            try:
+                pose = solver.forward(sliders).pose
+            except KinematicsError:  # the warm start may jump across a singularity: retry from home
+                pose = solver.forward(sliders, q_init=machine.home).pose
+        except KinematicsError as exc:
+            raise InvalidInputError(f"slider set {sliders} does not assemble on the machine: {exc}") from None
+        platform.append(pose.homogeneous)
+    seen = (setup or MeasurementSetup()).measured_poses(np.array(platform).reshape(-1, 4, 4))
+    poses = [pin.SE3(pose) for pose in seen]
+    readings = np.array(actuators, dtype=float)
+    if noise is not None:
+        if rng is None:
+            raise InvalidInputError("measure: noise needs a random generator")
+        poses = [pin.SE3(p.rotation @ pin.exp3(rng.normal(0.0, noise.rotation, 3)),
+                         p.translation + rng.normal(0.0, noise.position, 3)) for p in poses]
+        readings = readings + rng.normal(0.0, noise.actuator, readings.shape)
+    return PoseMeasurements(readings, tuple(poses), position_only)
