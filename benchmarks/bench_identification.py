@@ -32,15 +32,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import fmt_time, header, interleaved_times, median, table  # noqa: E402
 
 from m3t1r._threads import single_blas_thread  # noqa: E402
-from m3t1r.calibration.serial import (  # noqa: E402
-    MeasurementNoise,
-    calibrate_serial,
-    example_tool_frame,
-    load_example_robot,
-    pose_errors,
-    sample_configurations,
-    simulate_serial_measurements,
-)
+from m3t1r.calibration.serial import calibrate_serial  # noqa: E402
+from m3t1r.calibration.serial_evaluation import pose_errors
+from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
+from m3t1r.calibration.serial_simulation import MeasurementNoise, sample_configurations, simulate_serial_measurements
 from m3t1r.model.poe import SerialChain, perturb  # noqa: E402
 
 N_POSES = 50

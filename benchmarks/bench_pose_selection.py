@@ -32,7 +32,7 @@ from m3t1r.calibration.pose_selection import (
     closed_loop_candidate_blocks,
     information_log_det,
     observability_index,
-    select_poses,  # noqa: E402
+    select_poses,
 )
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors
 from m3t1r.errors import IdentificationError  # noqa: E402

@@ -206,12 +206,9 @@ def serial_section(sizes: list[int], fd_sizes: list[int], repeats: int, memory: 
     from bench_identification import NOISE as SERIAL_NOISE
     from bench_identification import FiniteDifferenceCalibration
 
-    from m3t1r.calibration.serial import (
-        calibrate_serial,
-        example_tool_frame,
-        load_example_robot,
-        simulate_serial_measurements,
-    )
+    from m3t1r.calibration.serial import calibrate_serial
+    from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
+    from m3t1r.calibration.serial_simulation import simulate_serial_measurements
     from m3t1r.model.poe import SerialChain
 
     model = load_example_robot("ur10")

@@ -9,7 +9,7 @@ import pinocchio as pin
 import pytest
 
 from m3t1r.calibration import closed_loop as calibration
-from m3t1r.calibration import serial
+from m3t1r.calibration import serial_evaluation
 from m3t1r.errors import InvalidInputError
 from m3t1r.metrics import PoseErrors, pose_errors_between, rotation_angles
 
@@ -47,7 +47,7 @@ def test_one_type_everywhere() -> None:
     import m3t1r
 
     assert calibration.PoseErrors is PoseErrors
-    assert serial.PoseErrors is PoseErrors
+    assert serial_evaluation.PoseErrors is PoseErrors
     assert m3t1r.PoseErrors is PoseErrors and "PoseErrors" in m3t1r.__all__
 
 

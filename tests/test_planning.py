@@ -19,7 +19,7 @@ from m3t1r.calibration.identification import select_base_parameters
 from m3t1r.calibration.measurements import TrackerNoise, measure
 from m3t1r.calibration.planning import order_for_travel, path_travel, plan_closed_loop, plan_serial
 from m3t1r.calibration.pose_selection import closed_loop_candidate_blocks, information_log_det
-from m3t1r.calibration.serial import load_example_robot
+from m3t1r.calibration.serial_robots import load_example_robot
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors
 from m3t1r.errors import InvalidInputError, M3t1rError
 from m3t1r.io import read_table

@@ -6,7 +6,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from m3t1r.calibration.serial import example_tool_frame, load_example_robot
+from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
 from m3t1r.errors import InvalidInputError, UnknownNameError, UnsupportedJointError
 from m3t1r.model.poe import (
     Placement,

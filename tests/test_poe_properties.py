@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from m3t1r.calibration.serial import load_example_robot
+from m3t1r.calibration.serial_robots import load_example_robot
 from m3t1r.model.poe import (
     Placement,
     SerialChain,

@@ -119,7 +119,8 @@ def test_invalid_inputs() -> None:
 
 
 def test_serial_blocks_selection_beats_random() -> None:
-    from m3t1r.calibration.serial import example_tool_frame, load_example_robot, sample_configurations
+    from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
+    from m3t1r.calibration.serial_simulation import sample_configurations
     from m3t1r.model.poe import SerialChain
 
     model = load_example_robot("ur5")

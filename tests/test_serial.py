@@ -6,18 +6,12 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from m3t1r.calibration import serial
+from m3t1r.calibration import serial, serial_evaluation
 from m3t1r.calibration.identification import select_base_parameters
-from m3t1r.calibration.serial import (
-    MeasurementNoise,
-    calibrate_serial,
-    example_tool_frame,
-    load_example_robot,
-    pose_errors,
-    predicted_pose_std,
-    sample_configurations,
-    simulate_serial_measurements,
-)
+from m3t1r.calibration.serial import calibrate_serial
+from m3t1r.calibration.serial_evaluation import pose_errors, predicted_pose_std
+from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
+from m3t1r.calibration.serial_simulation import MeasurementNoise, sample_configurations, simulate_serial_measurements
 from m3t1r.errors import InvalidInputError
 from m3t1r.metrics import PoseErrors
 from m3t1r.model.poe import SerialChain, forward_and_error_jacobians, perturb
@@ -236,4 +230,4 @@ def test_evaluations_return_the_shared_pose_errors_type() -> None:
     assert isinstance(pose_errors(calibration.model, data.truth, chain, q), PoseErrors)
     predicted = predicted_pose_std(calibration, q)
     assert isinstance(predicted, PoseErrors) and predicted.position.shape == (5,)
-    assert serial.PoseErrors is PoseErrors
+    assert serial_evaluation.PoseErrors is PoseErrors

@@ -12,12 +12,13 @@ import pytest
 
 from m3t1r.app.cli_serial import run_serial_calibration
 from m3t1r.calibration import serial as S
+from m3t1r.calibration import serial_evaluation, serial_robots, serial_simulation
 from m3t1r.calibration.assessment import FitRejected
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.io import table_text
 from m3t1r.model.poe import SerialChain, perturb, tool_poses
 
-NOISE = S.MeasurementNoise(position=1e-5, rotation=2e-5, joint=0.0)  # 10 um / 20 urad tracker
+NOISE = serial_simulation.MeasurementNoise(position=1e-5, rotation=2e-5, joint=0.0)  # 10 um / 20 urad tracker
 MARKER = pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.0, 0.02, 0.067]))  # 70 mm from the flange
 FRAMES = {
     "z180": pin.SE3(pin.utils.rotate("z", np.pi), np.array([2.5, -1.2, 0.8])),
@@ -27,14 +28,14 @@ FRAMES = {
 
 @pytest.fixture(scope="module")
 def ur10():
-    model = S.load_example_robot("ur10")
+    model = serial_robots.load_example_robot("ur10")
     return model, SerialChain.from_model(model, "tool0")
 
 
 def campaign(model, chain, frame: pin.SE3, seed: int, n_poses: int = 60):
     """A 1 mm / 1 mrad UR10 measured as frame . g(q) . MARKER with NOISE: (data, measured (N, 4, 4))."""
     rng = np.random.default_rng(seed)
-    data = S.simulate_serial_measurements(model, chain, n_poses, rng, noise=S.MeasurementNoise(0.0, 0.0, 0.0))
+    data = serial_simulation.simulate_serial_measurements(model, chain, n_poses, rng, noise=serial_simulation.MeasurementNoise(0.0, 0.0, 0.0))
     exact = frame.homogeneous @ tool_poses(chain, data.truth, data.q_true) @ MARKER.homogeneous
     measured = exact.copy()
     measured[:, :3, 3] += rng.normal(0.0, NOISE.position, (n_poses, 3))
@@ -92,9 +93,9 @@ def test_frame_and_marker_are_recovered_up_to_the_robot_gauge(ur10, turn: str) -
         difference = truth.actInv(estimate)
         assert np.linalg.norm(difference.translation) < 1e-2 and np.linalg.norm(pin.log3(difference.rotation)) < 1e-2
     # And it predicts fresh measurements at the noise level.
-    q = S.sample_configurations(model, chain, 50, np.random.default_rng(4))
+    q = serial_simulation.sample_configurations(model, chain, 50, np.random.default_rng(4))
     exact = frame.homogeneous @ tool_poses(chain, data.truth, q) @ MARKER.homogeneous
-    error = np.linalg.norm(S.predict_measurements(calibration, q)[:, :3, 3] - exact[:, :3, 3], axis=1)
+    error = np.linalg.norm(serial_evaluation.predict_measurements(calibration, q)[:, :3, 3] - exact[:, :3, 3], axis=1)
     assert error.mean() < 2e-5
 
 
@@ -107,7 +108,7 @@ def test_gross_outliers_are_flagged_exactly(ur10) -> None:
         marker=MARKER), estimate_frame=True, estimate_marker=True)
     assert calibration.outliers == (11, 42)
     assert calibration.converged and calibration.variance_factor < 1.4
-    validation = S.cross_validate_serial(calibration, folds=4)
+    validation = serial_evaluation.cross_validate_serial(calibration, folds=4)
     assert validation.errors.position.shape == (58,) and validation.errors.position_mean < 5e-5
 
 
@@ -153,7 +154,7 @@ def test_selection_with_compliance_predicts_outside_the_training_postures(ur10) 
         calibration = S.calibrate_serial(model, chain, train, as_rows(measured), noise=NOISE,
                                          setup=MeasurementSetup(marker=MARKER), estimate_frame=True,
                                          estimate_marker=True, **options)
-        predicted = S.predict_measurements(calibration, test)
+        predicted = serial_evaluation.predict_measurements(calibration, test)
         mean_error[name] = np.linalg.norm(predicted[:, :3, 3] - exact[:, :3, 3], axis=1).mean()
         if name == "selected":
             assert set(calibration.compliance) >= {"shoulder_lift_joint", "elbow_joint"}
@@ -189,7 +190,7 @@ def test_command_writes_a_strict_report_and_names_outlier_lines(ur10, tmp_path, 
     rows[7, :3] += np.array([0.0, 4e-3, 0.0])  # a 4 mm gross error
     path = tmp_path / "campaign.csv"
     write_campaign(path, chain, data.q_readings, rows)
-    urdf = S.example_robot_data_dir() / "ur_description" / "urdf" / "ur10_robot.urdf"
+    urdf = serial_robots.example_robot_data_dir() / "ur_description" / "urdf" / "ur10_robot.urdf"
     run_serial_calibration(namespace(tmp_path, path, serial=str(urdf), output=str(tmp_path / "ur10.urdf")))
     out = capsys.readouterr().out
     assert "file lines: 11" in out  # 2 comment lines and the header before the data: row 7 is line 11

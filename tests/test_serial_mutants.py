@@ -11,14 +11,10 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from m3t1r.calibration.serial import (
-    MeasurementNoise,
-    calibrate_serial,
-    load_example_robot,
-    predicted_pose_std,
-    sample_configurations,
-    simulate_serial_measurements,
-)
+from m3t1r.calibration.serial import calibrate_serial
+from m3t1r.calibration.serial_evaluation import predicted_pose_std
+from m3t1r.calibration.serial_robots import load_example_robot
+from m3t1r.calibration.serial_simulation import MeasurementNoise, sample_configurations, simulate_serial_measurements
 from m3t1r.errors import InvalidInputError
 from m3t1r.model.poe import SerialChain
 

@@ -15,7 +15,8 @@ import scipy.stats
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.measurement_setup import MeasurementSetup, se3_to_report
 from m3t1r.calibration.measurements import TrackerNoise, measure
-from m3t1r.calibration.serial import example_robot_data_dir, load_example_robot, sample_configurations
+from m3t1r.calibration.serial_robots import example_robot_data_dir, load_example_robot
+from m3t1r.calibration.serial_simulation import sample_configurations
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors
 from m3t1r.calibration.validation import read_report, sigma_equivalent, validate
 from m3t1r.errors import DataFileError, InvalidInputError, M3t1rError, ModelFileError

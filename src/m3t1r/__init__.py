@@ -26,14 +26,10 @@ from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, measure
 from m3t1r.calibration.planning import MeasurementPlan, plan_closed_loop, plan_serial
 from m3t1r.calibration.pose_selection import PoseSelection, select_poses
-from m3t1r.calibration.serial import (
-                                           MeasurementNoise,
-                                           SerialCalibration,
-                                           SerialCrossValidation,
-                                           calibrate_serial,
-                                           cross_validate_serial,
-                                           load_example_robot,
-)
+from m3t1r.calibration.serial import SerialCalibration, calibrate_serial
+from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial
+from m3t1r.calibration.serial_robots import load_example_robot
+from m3t1r.calibration.serial_simulation import MeasurementNoise
 from m3t1r.calibration.simulation import SimulatedStudy, actual_machine, simulate_study
 from m3t1r.calibration.validation import Validation, validate
 from m3t1r.compensation import Compensation, CompensationAccuracy, Compensator, compensate, compensation_accuracy

@@ -19,7 +19,8 @@ from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, prov
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.planning import plan_closed_loop, plan_serial
-from m3t1r.calibration.serial import MeasurementNoise, example_tool_frame, load_example_robot
+from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
+from m3t1r.calibration.serial_simulation import MeasurementNoise
 from m3t1r.calibration.validation import validate
 from m3t1r.errors import InvalidInputError, ModelFileError
 from m3t1r.io import POSE_COLUMNS, OutputSet, paired_closures_path, pose_rows, table_text

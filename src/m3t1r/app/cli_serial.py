@@ -23,15 +23,10 @@ import pinocchio as pin
 from m3t1r._version import __version__
 from m3t1r.calibration.assessment import FitRejected, check_fit, describe_parameter, fit_movement_notes, likely_causes
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup, register_frame, se3_to_report
-from m3t1r.calibration.serial import (
-    MeasurementNoise,
-    SerialCalibration,
-    SerialCrossValidation,
-    calibrate_serial,
-    cross_validate_serial,
-    example_tool_frame,
-    load_example_robot,
-)
+from m3t1r.calibration.serial import SerialCalibration, calibrate_serial
+from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial
+from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
+from m3t1r.calibration.serial_simulation import MeasurementNoise
 from m3t1r.errors import InvalidInputError, PoorExcitationWarning
 from m3t1r.io import OutputSet, poses_from_table, read_table, sha256_bytes
 from m3t1r.model.poe import SerialChain, tool_poses

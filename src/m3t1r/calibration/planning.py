@@ -42,7 +42,7 @@ from m3t1r.calibration.pose_selection import (
     select_poses,
     serial_candidate_blocks,
 )
-from m3t1r.calibration.serial import MeasurementNoise, sample_configurations
+from m3t1r.calibration.serial_simulation import MeasurementNoise, sample_configurations
 from m3t1r.errors import InvalidInputError
 from m3t1r.metrics import PoseErrors
 from m3t1r.model.description import Mechanism

@@ -31,7 +31,7 @@ from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.identification import select_base_parameters
 from m3t1r.calibration.measurements import TrackerNoise
-from m3t1r.calibration.serial import MeasurementNoise
+from m3t1r.calibration.serial_simulation import MeasurementNoise
 from m3t1r.errors import InvalidInputError
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver

@@ -1,0 +1,117 @@
+"""Evaluation of a serial calibration: pose errors against a reference, predicted measurements and pose
+standard deviations, cross-validation.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+from numpy.typing import ArrayLike
+
+from m3t1r._threads import on_one_blas_thread
+from m3t1r.calibration.serial import SerialCalibration, _placement_rows, gravity_torques
+from m3t1r.errors import InvalidInputError
+from m3t1r.metrics import PoseErrors, pose_errors_between
+from m3t1r.model.poe import SerialChain, placement_poses, tool_poses
+
+__all__ = ["SerialCrossValidation", "cross_validate_serial", "pose_errors", "predict_measurements", "predicted_pose_std"]
+
+
+# --------------------------------------------------------------------------------------------------
+# Evaluation
+
+
+def pose_errors(model: pin.Model, reference: pin.Model, chain: SerialChain, q_chain: ArrayLike) -> PoseErrors:
+    """Tool pose errors of `model` against `reference` (e.g. the truth) at chain configurations (M, n):
+    position distance (m, in {B}) and rotation angle of R_ref^T R_model (rad), per configuration."""
+    return pose_errors_between(tool_poses(chain, model, q_chain), tool_poses(chain, reference, q_chain))
+
+
+def _compliant_coordinates(calibration: SerialCalibration, q_chain: ArrayLike) -> np.ndarray:
+    """q + c tau(q) (M, n) with the calibration's compliances (q itself without any)."""
+    q = np.atleast_2d(np.asarray(q_chain, dtype=float))
+    if not calibration.compliance:
+        return q
+    c = np.array([calibration.compliance.get(joint, 0.0) for joint in calibration.chain.joint_names])
+    return q + c * gravity_torques(calibration.model, calibration.chain, q)
+
+
+def predict_measurements(calibration: SerialCalibration, q_readings: ArrayLike) -> np.ndarray:
+    """The measured frames (M, 4, 4) the calibration predicts at joint readings (M, n), in the
+    measurement frame: F g_c(q + c tau(q)) K with the calibrated robot, compliance and setup (m)."""
+    chain = calibration.chain
+    g = tool_poses(chain, calibration.model, _compliant_coordinates(calibration, q_readings))
+    return calibration.setup.frame.homogeneous @ g @ calibration.setup.marker.homogeneous
+
+
+def predicted_pose_std(calibration: SerialCalibration, q_chain: ArrayLike) -> PoseErrors:
+    """Predicted standard deviation of the calibrated tool pose error at chain configurations (M, n).
+
+    Cov(pose) = J_b Cov(x_b) J_b^T with J_b the position (WORLD) and orientation (LOCAL) rows of the
+    robot's fitted parameters (placements, compliances; the setup's are marginalised out), at the
+    calibrated model. This is the error expected against the truth from measurement noise alone,
+    assuming the error model is complete. Returns position = sqrt(trace Cov(dp)) (m) and rotation =
+    sqrt(trace Cov(dr)) (rad, NaN after a position-only calibration), the RMS of the error norms.
+    """
+    chain = calibration.chain
+    q = _compliant_coordinates(calibration, q_chain)
+    frames = placement_poses(chain, chain.initial_transforms(calibration.model), q)
+    n_poses, n = frames.shape[0], chain.n_joints
+    rows = _placement_rows(frames, orientation=True)
+    fitted = np.array(calibration.fitted_indices or calibration.base.indices, dtype=int)
+    n_chain = 6 * (n + 1)
+    machine = np.flatnonzero(fitted < n_chain)
+    blocks = [rows[:, :, fitted[machine]]]
+    compliant = [k for k, c in enumerate(fitted) if c >= n_chain and calibration.names[c].startswith("compliance.")]
+    if compliant:
+        joint_rows = np.einsum("nikj,kj->nik", rows[:, :, : 6 * n].reshape(n_poses, 6, n, 6), chain.twists)
+        torques = gravity_torques(calibration.model, chain, q_chain)
+        joints = [chain.joint_names.index(calibration.names[fitted[k]].partition(".")[2]) for k in compliant]
+        blocks.append(joint_rows[:, :, joints] * torques[:, None, joints])
+    picked = np.concatenate([machine, np.array(compliant, dtype=int)])
+    covariance = calibration.covariance[np.ix_(picked, picked)]
+    jacobian = np.concatenate(blocks, axis=2)
+    variances = np.einsum("nii->ni", jacobian @ covariance @ np.swapaxes(jacobian, 1, 2))
+    position = np.sqrt(variances[:, :3].sum(axis=1))
+    rotation = np.full(n_poses, np.nan) if calibration.position_only else np.sqrt(variances[:, 3:].sum(axis=1))
+    return PoseErrors(position=position, rotation=rotation)
+
+
+@dataclass(frozen=True)
+class SerialCrossValidation:
+    """k-fold prediction of held-back measurements (outliers excluded): each fold is refitted on the
+    others (same parameters, same setup estimation, from the same start) and predicts its poses'
+    measurements in the measurement frame. The errors include the measurement noise, as a fresh
+    validation set of the same quality would. errors: per inlier pose, position (m) and rotation
+    (rad, nan when position-only)."""
+
+    errors: PoseErrors
+    folds: int
+
+
+@on_one_blas_thread
+def cross_validate_serial(calibration: SerialCalibration, folds: int = 5, seed: int = 0) -> SerialCrossValidation:
+    """k-fold cross-validation of a serial calibration on its own inlier poses (`SerialCrossValidation`)."""
+    problem, start, solve = calibration._problem, calibration._start, calibration._solve
+    if problem is None or start is None or solve is None:
+        raise InvalidInputError("cross_validate_serial needs a calibration made by calibrate_serial")
+    inliers = np.flatnonzero(problem.active)
+    if folds < 2 or len(inliers) < 2 * folds:
+        raise InvalidInputError(f"cross-validation: {folds} folds need at least {2 * folds} inlier poses")
+    fold_of = np.random.default_rng(seed).permutation(len(inliers)) % folds
+    residuals = np.empty((len(inliers), problem.model.data.rows_per_pose))
+    fold_problem = copy.copy(problem)
+    fold_problem.columns = np.array(calibration.fitted_indices, dtype=int)
+    for fold in range(folds):
+        held = inliers[fold_of == fold]
+        fold_problem.active = problem.active.copy()
+        fold_problem.active[held] = False
+        result = solve(fold_problem, start)
+        residuals[fold_of == fold] = problem.model.raw_residual(result.state)[held]
+    position = np.linalg.norm(residuals[:, :3], axis=1)
+    rotation = (np.linalg.norm(residuals[:, 3:], axis=1) if residuals.shape[1] == 6
+                else np.full(len(inliers), np.nan))
+    return SerialCrossValidation(PoseErrors(position, rotation), folds)

@@ -1,0 +1,119 @@
+"""Simulated measurements of a serial robot: tracker and joint-reading noise, sampled configurations, measured poses."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from types import MappingProxyType
+
+import numpy as np
+import pinocchio as pin
+
+from m3t1r.errors import InvalidInputError
+from m3t1r.model.poe import Placement, SerialChain, perturb, tool_poses
+
+__all__ = ["MeasurementNoise", "SerialMeasurements", "sample_configurations", "simulate_serial_measurements"]
+
+
+# --------------------------------------------------------------------------------------------------
+# Simulation
+
+
+@dataclass(frozen=True)
+class MeasurementNoise:
+    """Standard deviations of the calibration data, per axis.
+
+    position: tool position (m), isotropic in WORLD. rotation: tool orientation (rad), isotropic,
+    R_meas = R exp3(e). joint: joint readings (rad or m), independent per joint.
+    """
+
+    position: float = 1e-5
+    rotation: float = 2e-5
+    joint: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("position", "rotation", "joint"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0.0):
+                raise InvalidInputError(f"MeasurementNoise.{name}: must be finite and >= 0, got {value}")
+
+
+@dataclass(frozen=True)
+class SerialMeasurements:
+    """A simulated calibration experiment.
+
+    truth: the "real" robot, nominal placements T(0) exp6(dt) exp6(S dq) (offsets folded in).
+    placement_errors: the dt per placement (m, rad); joint_offsets: dq (n,) (rad or m).
+    q_true: (N, n) noise-free joint readings; the truth model takes them directly.
+    q_readings: (N, n) q_true plus reading noise. measured_poses: noisy tool poses g_{B,P} in {B}.
+    """
+
+    truth: pin.Model
+    placement_errors: Mapping[Placement, np.ndarray]
+    joint_offsets: np.ndarray
+    q_true: np.ndarray
+    q_readings: np.ndarray
+    measured_poses: tuple[pin.SE3, ...]
+    noise: MeasurementNoise
+
+
+def sample_configurations(
+    model: pin.Model, chain: SerialChain, n: int, rng: np.random.Generator, *, margin: float = 0.05
+) -> np.ndarray:
+    """(n, n_joints) chain configurations uniform within the joint limits shrunk by `margin`
+    (a fraction of each range, on each side)."""
+    lower, upper = chain.position_limits(model)
+    span = upper - lower
+    return rng.uniform(lower + margin * span, upper - margin * span, size=(n, chain.n_joints))
+
+
+def simulate_serial_measurements(
+    model: pin.Model,
+    chain: SerialChain,
+    n_poses: int,
+    rng: np.random.Generator,
+    *,
+    translation_error: float = 1e-3,
+    rotation_error: float = 1e-3,
+    joint_offset: float = 1e-3,
+    noise: MeasurementNoise = MeasurementNoise(),
+) -> SerialMeasurements:
+    """Draw a true robot and `n_poses` noisy measurements of its tool pose.
+
+    Placement errors: dt ~ N(0, diag(translation_error^2 I3, rotation_error^2 I3)) (m, rad) on each
+    placement of `chain.placements()`. Joint offsets: dq_k ~ N(0, joint_offset^2) (rad or m).
+
+    A joint offset needs no parameter of its own: T(0) exp(S (q + dq)) = [T(0) exp(S dq)] exp(S q)
+    exactly, because exp(S dq) and exp(S q) share their twist and commute. The offset is therefore a
+    right-multiplied error exp6(S dq) of the same placement, along the joint twist, and that is how
+    the truth model carries it.
+    """
+    if n_poses < 1:
+        raise InvalidInputError(f"n_poses must be >= 1, got {n_poses}")
+    sigma = np.r_[np.full(3, translation_error), np.full(3, rotation_error)]
+    placements = chain.placements()
+    errors = {p: rng.normal(0.0, 1.0, 6) * sigma for p in placements}
+    offsets = rng.normal(0.0, joint_offset, chain.n_joints)
+    truth = perturb(perturb(model, errors), {p: chain.twists[k] * offsets[k] for k, p in enumerate(placements[:-1])})
+    q_true = sample_configurations(model, chain, n_poses, rng)
+    q_readings = q_true + rng.normal(0.0, noise.joint, q_true.shape) if noise.joint > 0.0 else q_true.copy()
+    measured = []
+    for g in tool_poses(chain, truth, q_true):
+        rotation = g[:3, :3] @ pin.exp3(rng.normal(0.0, noise.rotation, 3))
+        measured.append(pin.SE3(rotation, g[:3, 3] + rng.normal(0.0, noise.position, 3)))
+    frozen_errors = MappingProxyType({p: _readonly(v) for p, v in errors.items()})
+    return SerialMeasurements(
+        truth=truth,
+        placement_errors=frozen_errors,
+        joint_offsets=_readonly(offsets),
+        q_true=_readonly(q_true),
+        q_readings=_readonly(q_readings),
+        measured_poses=tuple(measured),
+        noise=noise,
+    )
+
+
+def _readonly(array: np.ndarray) -> np.ndarray:
+    array = np.array(array, dtype=float)
+    array.flags.writeable = False
+    return array
