@@ -303,7 +303,8 @@ ourselves.
 """),
     code('''
 from IPython.display import IFrame
-from m3t1r.app.viz import CALIBRATED_COLOR, MachineView, comparison_views, write_static_html
+from m3t1r.app.scene import CALIBRATED_COLOR, MachineView, comparison_views
+from m3t1r.app.static_page import write_static_html
 
 views = comparison_views(mech) + (MachineView("actual", truth, CALIBRATED_COLOR),)
 page = write_static_html(views, OUT / "01_nominal_vs_actual.html", pose=(0.5, 0.6, -0.1, 0.3),
@@ -698,7 +699,8 @@ from m3t1r.errors import PoorExcitationWarning
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.app.plots import plot_pose_errors_before_after
 from m3t1r.calibration.simulation import simulate_study
-from m3t1r.app.viz import comparison_views, write_static_html
+from m3t1r.app.scene import comparison_views
+from m3t1r.app.static_page import write_static_html
 
 SEED, N_POSES, N_HOLDOUT = 0, 50, 200
 mech = Mechanism.load()

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 import umsgpack
 
-from m3t1r.app import viz
+from m3t1r.app import live_viewer, scene, static_page
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.errors import InvalidInputError, KinematicsError, OutputPathError
 from m3t1r.model.description import Mechanism
@@ -38,7 +38,7 @@ def study(mechanism):
 
 @pytest.fixture(scope="module")
 def views(mechanism, study):
-    return viz.comparison_views(mechanism, study.truth)
+    return scene.comparison_views(mechanism, study.truth)
 
 
 def page_messages(page: str) -> list[dict]:
@@ -82,23 +82,23 @@ needs_proc = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="pr
 
 
 def test_page_has_both_machines_triads_and_markers(views, study):
-    page = viz.scene_html(viz.build_scene(views, pose=POSE, markers=study.measurements.poses))
+    page = static_page.scene_html(static_page.build_scene(views, pose=POSE, markers=study.measurements.poses))
     paths = object_paths(page_messages(page))
     for view in views:
         visuals = [p for p in paths if p.startswith(f"{view.node}/visuals/")]
         assert len(visuals) == len(view.mechanism.visual_model.geometryObjects), view.name
         assert {f"{view.node}/platform_frame/{axis}" for axis in "xyz"} <= set(paths)
         assert f'data-node="{view.node}"' in page  # legend entry
-    markers = [p for p in paths if p.startswith(f"/meshcat/{viz.MEASUREMENTS_NODE}/")]
+    markers = [p for p in paths if p.startswith(f"/meshcat/{scene.MEASUREMENTS_NODE}/")]
     assert len(markers) == len(study.measurements.poses)
     assert "/meshcat/m3t1r/nominal" in views[0].node and "/meshcat/m3t1r/calibrated" in views[1].node
 
 
 def test_calibrated_colour_overrides_every_material(views):
-    messages = page_messages(viz.scene_html(viz.build_scene(views)))
+    messages = page_messages(static_page.scene_html(static_page.build_scene(views)))
     calibrated = [m for m in messages if m["type"] == "set_object" and "/calibrated/visuals/" in m["path"]]
     nominal = [m for m in messages if m["type"] == "set_object" and "/nominal/visuals/" in m["path"]]
-    r, g, b, alpha = viz.CALIBRATED_COLOR
+    r, g, b, alpha = scene.CALIBRATED_COLOR
     wanted = (int(r * 255) << 16) + (int(g * 255) << 8) + int(b * 255)
     for message in calibrated:
         material = message["object"]["materials"][0]
@@ -107,23 +107,23 @@ def test_calibrated_colour_overrides_every_material(views):
 
 
 def test_pose_mode_reaches_the_same_pose_with_different_sliders(views):
-    nominal, calibrated = viz.pose_machines(views, pose=POSE)
+    nominal, calibrated = scene.pose_machines(views, pose=POSE)
     for machine in (nominal, calibrated):
         assert machine.platform.translation == pytest.approx(POSE[:3], abs=1e-9)
     assert np.abs(nominal.sliders - calibrated.sliders).max() > 1e-3
 
 
 def test_slider_mode_gives_the_same_sliders_and_different_poses(views):
-    sliders = viz.pose_machines(views[:1], pose=POSE)[0].sliders
-    nominal, calibrated = viz.pose_machines(views, sliders=sliders)
+    sliders = scene.pose_machines(views[:1], pose=POSE)[0].sliders
+    nominal, calibrated = scene.pose_machines(views, sliders=sliders)
     assert calibrated.sliders == pytest.approx(sliders, abs=1e-12)
     assert np.linalg.norm(nominal.platform.translation - calibrated.platform.translation) > 1e-3
 
 
 def test_scene_transforms_are_the_solved_configuration(views):
-    messages = page_messages(viz.scene_html(viz.build_scene(views, pose=POSE)))
+    messages = page_messages(static_page.scene_html(static_page.build_scene(views, pose=POSE)))
     last = {m["path"]: m["matrix"] for m in messages if m["type"] == "set_transform"}
-    for machine in viz.pose_machines(views, pose=POSE):
+    for machine in scene.pose_machines(views, pose=POSE):
         drawn = np.array(last[f"{machine.view.node}/platform_frame"]).reshape(4, 4).T
         assert drawn == pytest.approx(machine.platform.homogeneous, abs=1e-12)
 
@@ -134,19 +134,19 @@ def test_scene_transforms_are_the_solved_configuration(views):
 
 def test_unreachable_pose_names_the_machine(views):
     with pytest.raises(KinematicsError, match="machine 'nominal'"):
-        viz.build_scene(views, pose=(0.5, 0.5, 3.0, 0.0))
+        static_page.build_scene(views, pose=(0.5, 0.5, 3.0, 0.0))
 
 
 def test_sliders_beyond_limits_name_the_machine(views):
     with pytest.raises(InvalidInputError, match="machine 'nominal'.*q11"):
-        viz.pose_machines(views, sliders=(5.0, 0.0, 0.0, 0.0))
+        scene.pose_machines(views, sliders=(5.0, 0.0, 0.0, 0.0))
 
 
 def test_pose_and_sliders_together_are_refused(views):
     with pytest.raises(InvalidInputError, match="not both"):
-        viz.pose_machines(views, pose=POSE, sliders=(0, 0, 0, 0))
+        scene.pose_machines(views, pose=POSE, sliders=(0, 0, 0, 0))
     with pytest.raises(InvalidInputError, match="4 values"):
-        viz.pose_machines(views, pose=(0.5, 0.5))
+        scene.pose_machines(views, pose=(0.5, 0.5))
 
 
 def test_machines_with_different_joints_are_refused(mechanism):
@@ -154,26 +154,26 @@ def test_machines_with_different_joints_are_refused(mechanism):
     model.names[3] = "renamed_joint"
     other = mechanism.with_model(model)
     with pytest.raises(InvalidInputError, match=r"only in 'nominal': q12_pa; only in 'other': renamed_joint"):
-        viz.build_scene([viz.MachineView("nominal", mechanism), viz.MachineView("other", other)])
+        static_page.build_scene([scene.MachineView("nominal", mechanism), scene.MachineView("other", other)])
 
 
 def test_bad_views_and_markers_are_refused(mechanism):
     with pytest.raises(InvalidInputError, match="unique"):
-        viz.pose_machines([viz.MachineView("a", mechanism), viz.MachineView("a", mechanism)])
+        scene.pose_machines([scene.MachineView("a", mechanism), scene.MachineView("a", mechanism)])
     with pytest.raises(InvalidInputError, match="no machine"):
-        viz.pose_machines([])
+        scene.pose_machines([])
     with pytest.raises(InvalidInputError, match="scene node"):
-        viz.MachineView("a/b", mechanism)
+        scene.MachineView("a/b", mechanism)
     with pytest.raises(InvalidInputError, match="reserved"):
-        viz.MachineView("measurements", mechanism)
+        scene.MachineView("measurements", mechanism)
     with pytest.raises(InvalidInputError, match=r"\[0, 1\]"):
-        viz.MachineView("a", mechanism, (1.0, 0.0, 2.0, 1.0))
+        scene.MachineView("a", mechanism, (1.0, 0.0, 2.0, 1.0))
     with pytest.raises(InvalidInputError, match=r"\(n, 3\)"):
-        viz.build_scene([viz.MachineView("a", mechanism)], markers=np.zeros((2, 7)))
+        static_page.build_scene([scene.MachineView("a", mechanism)], markers=np.zeros((2, 7)))
     with pytest.raises(InvalidInputError, match="non-finite"):
-        viz.build_scene([viz.MachineView("a", mechanism)], markers=[[0.0, np.nan, 0.0]])
+        static_page.build_scene([scene.MachineView("a", mechanism)], markers=[[0.0, np.nan, 0.0]])
     with pytest.raises(InvalidInputError, match="coincide"):
-        viz.Camera(position=(1.0, 1.0, 1.0), target=(1.0, 1.0, 1.0))
+        scene.Camera(position=(1.0, 1.0, 1.0), target=(1.0, 1.0, 1.0))
 
 
 # ------------------------------------------------------------------------------------------
@@ -181,7 +181,7 @@ def test_bad_views_and_markers_are_refused(mechanism):
 
 
 def test_page_is_self_contained(views, tmp_path):
-    path = viz.write_static_html(views, tmp_path / "scene.html", pose=POSE)
+    path = static_page.write_static_html(views, tmp_path / "scene.html", pose=POSE)
     page = path.read_text(encoding="utf-8")
     # Nothing the page would load: no src/href attribute, stylesheet import or <link>. The viewer
     # bundle holds two absolute URLs, neither fetched: the XHTML namespace name (an identifier) and
@@ -201,36 +201,36 @@ def test_write_refuses_protected_paths_and_leaves_them_intact(views, tmp_path):
     urdf = views[0].mechanism.urdf_path
     before = urdf.read_bytes()
     with pytest.raises(OutputPathError, match="refusing"):
-        viz.write_static_html(views, urdf)  # a model file is always protected
+        static_page.write_static_html(views, urdf)  # a model file is always protected
     assert urdf.read_bytes() == before
     data = tmp_path / "measured.csv"
     data.write_text("x\n1\n")
     with pytest.raises(OutputPathError, match="refusing"):
-        viz.write_static_html(views, data, protect=[data])
+        static_page.write_static_html(views, data, protect=[data])
     assert data.read_text() == "x\n1\n"
     with pytest.raises(OutputPathError, match="does not exist"):
-        viz.write_static_html(views, tmp_path / "missing" / "scene.html")
+        static_page.write_static_html(views, tmp_path / "missing" / "scene.html")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["measured.csv"]  # no temporary left
 
 
 @needs_proc
 def test_static_page_starts_no_process(views, tmp_path):
     before = child_pids()
-    viz.write_static_html(views, tmp_path / "scene.html")
+    static_page.write_static_html(views, tmp_path / "scene.html")
     assert child_pids() == before
 
 
 def test_calibrated_machine_loaded_from_files(mechanism, study, tmp_path):
     urdf, closures = tmp_path / "calibrated.urdf", tmp_path / "calibrated.closures.yaml"
     study.truth.save(urdf, closures)
-    views = viz.comparison_views(mechanism, Mechanism.load(urdf, closures))
-    page = viz.write_static_html(views, tmp_path / "scene.html", pose=POSE).read_text(encoding="utf-8")
+    views = scene.comparison_views(mechanism, Mechanism.load(urdf, closures))
+    page = static_page.write_static_html(views, tmp_path / "scene.html", pose=POSE).read_text(encoding="utf-8")
     assert "(calibrated.urdf)" in page
     paths = object_paths(page_messages(page))
     assert sum(p.startswith("/meshcat/m3t1r/calibrated/visuals/") for p in paths) == len(
         views[1].mechanism.visual_model.geometryObjects)
     with pytest.raises(OutputPathError, match="refusing"):
-        viz.write_static_html(views, closures)  # every machine's model files are protected
+        static_page.write_static_html(views, closures)  # every machine's model files are protected
 
 
 # ------------------------------------------------------------------------------------------
@@ -240,7 +240,7 @@ def test_calibrated_machine_loaded_from_files(mechanism, study, tmp_path):
 @needs_proc
 def test_live_viewer_serves_the_scene_and_is_stopped(views):
     before = child_pids()
-    with viz.open_viewer(views, pose=POSE) as live:
+    with live_viewer.open_viewer(views, pose=POSE) as live:
         assert live.url.startswith("http://127.0.0.1:") and live.pid in child_pids()
         with urllib.request.urlopen(live.url, timeout=10) as response:
             assert b"main.min.js" in response.read()
@@ -258,7 +258,7 @@ def test_live_viewer_serves_the_scene_and_is_stopped(views):
 def test_failed_command_starts_no_server(views):
     before = child_pids()
     with pytest.raises(KinematicsError):
-        viz.open_viewer(views, pose=(0.5, 0.5, 3.0, 0.0))
+        live_viewer.open_viewer(views, pose=(0.5, 0.5, 3.0, 0.0))
     assert child_pids() == before
 
 
@@ -269,12 +269,12 @@ def test_server_exits_when_its_owner_is_killed(tmp_path):
     script.write_text(
         "import time\n"
         "from m3t1r.model.description import Mechanism\n"
-        "from m3t1r.app import viz\n"
-        "live = viz.open_viewer(viz.comparison_views(Mechanism.load()))\n"
+        "from m3t1r.app import live_viewer, scene\n"
+        "live = live_viewer.open_viewer(scene.comparison_views(Mechanism.load()))\n"
         "print(live.pid, flush=True)\n"
         "time.sleep(60)\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        filter(None, [str(Path(viz.__file__).parents[1]), os.environ.get("PYTHONPATH")]))}
+        filter(None, [str(Path(scene.__file__).parents[2]), os.environ.get("PYTHONPATH")]))}
     owner = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=env)
     try:
         server = int(owner.stdout.readline())
@@ -342,7 +342,7 @@ def magenta_pixels(rgb: np.ndarray) -> int:
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed: apt-get install chromium (.ci/run does)")
 def test_page_renders_both_machines(views, study, tmp_path):
     started = time.monotonic()
-    pages = {label: viz.write_static_html(shown, tmp_path / f"{label}.html", pose=POSE,
+    pages = {label: static_page.write_static_html(shown, tmp_path / f"{label}.html", pose=POSE,
                                           markers=study.measurements.poses)
              for label, shown in (("nominal", views[:1]), ("both", views))}
     # Above the HTML legend only: its swatches are colours too.

@@ -23,8 +23,10 @@ from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, prov
 from m3t1r.app.cli_serial import run_serial_calibration
 from m3t1r.app.datasets import TARGET_COLUMNS, measurement_table, read_actuators, read_measurements, read_targets
 from m3t1r.app.demo import run_demo
+from m3t1r.app.live_viewer import open_viewer
 from m3t1r.app.reporting import IDLE_CHAIN_JOINTS
-from m3t1r.app.viz import build_scene, comparison_views, open_viewer, scene_html
+from m3t1r.app.scene import comparison_views
+from m3t1r.app.static_page import build_scene, scene_html
 from m3t1r.calibration.assessment import FitRejected
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise

@@ -25,7 +25,8 @@ import pinocchio as pin
 from m3t1r._threads import on_one_blas_thread
 from m3t1r._version import __version__
 from m3t1r.app.datasets import read_actuators, write_measurements
-from m3t1r.app.viz import comparison_views, write_static_html
+from m3t1r.app.scene import comparison_views
+from m3t1r.app.static_page import write_static_html
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
 from m3t1r.calibration.measurements import TrackerNoise, measure

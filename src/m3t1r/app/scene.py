@@ -24,29 +24,14 @@ server (`open_viewer`), whose process this module starts and stops itself.
 
 from __future__ import annotations
 
-import base64
-import contextlib
-import html
-import io
-import json
-import math
-import os
 import re
-import select
-import subprocess
-import sys
-import threading
-import time
 import warnings
-import weakref
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any, TypeAlias
 
 import numpy as np
 import pinocchio as pin
-import umsgpack
 
 with warnings.catch_warnings():
     # meshcat 0.3.2 imports pyzmq's deprecated zmq.eventloop.ioloop; nothing we can act on.
@@ -55,16 +40,14 @@ with warnings.catch_warnings():
     import meshcat.geometry as mg
     from pinocchio.visualize import MeshcatVisualizer
 
-from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError, require_finite_vector
-from m3t1r.io import atomic_write_text, ensure_not_protected
-from m3t1r.model.description import Mechanism
-from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 
-__all__ = [
-    "ROOT_NODE", "MEASUREMENTS_NODE", "NOMINAL_COLOR", "CALIBRATED_COLOR", "MARKER_COLOR",
-    "MachineView", "Camera", "DEFAULT_CAMERA", "PosedMachine", "LiveViewer", "ViewerError",
-    "comparison_views", "pose_machines", "build_scene", "scene_html", "write_static_html", "open_viewer",
-]
+from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError, require_finite_vector
+from m3t1r.model.description import Mechanism
+from m3t1r.model.kinematics import ClosedLoopSolver
+
+__all__ = ["ROOT_NODE", "MEASUREMENTS_NODE", "NOMINAL_COLOR", "CALIBRATED_COLOR", "MARKER_COLOR", "MachineView", "Camera",
+           "DEFAULT_CAMERA", "PosedMachine", "ViewerError", "comparison_views", "pose_machines"]
+
 
 Rgba: TypeAlias = "tuple[float, float, float, float]"
 
@@ -81,8 +64,6 @@ TRIAD_LENGTH = 0.15  # [m] sticks out of the platform box so the axes stay visib
 TRIAD_THICKNESS = 0.008  # [m] WebGL ignores line widths, so the axes are thin boxes, not lines
 _BACKGROUND = ((0.96, 0.96, 0.98), (0.74, 0.77, 0.82))  # light, so every material colour stands out
 _NAME = re.compile(r"[A-Za-z0-9_.-]+")  # one scene-node path element, safe in HTML too
-_SERVER_START_TIMEOUT = 20.0  # [s] a first import of tornado/zmq on a cold disk is slow
-_SERVER_STOP_TIMEOUT = 5.0  # [s]
 
 
 class ViewerError(M3t1rError):
@@ -269,50 +250,6 @@ class _Lowered:
         return self.message
 
 
-@dataclass(eq=False)
-class _Recording:
-    """Stands in for meshcat's `ViewerWindow`: keeps the commands instead of sending them.
-
-    `meshcat.Visualizer(window=_Recording())` then builds a scene with no server and no socket;
-    its `static_html()` returns the self-contained page.
-    """
-
-    messages: list[dict[str, Any]] = field(default_factory=list)
-    legend: str = ""
-    title: str = "m3t1r"
-    web_url: str | None = None  # meshcat's Visualizer.url() reads it; there is no server
-
-    def send(self, command: Any) -> None:
-        self.messages.append(command.lower())
-
-    def get_scene(self) -> str:
-        return _page(self.messages, self.title, self.legend)
-
-
-def build_scene(views: Sequence[MachineView], pose: Sequence[float] | None = None,
-                sliders: Sequence[float] | None = None, markers: Iterable[pin.SE3] | np.ndarray | None = None,
-                viewer: meshcat.Visualizer | None = None, camera: Camera | None = DEFAULT_CAMERA,
-                ) -> meshcat.Visualizer:
-    """Draw every machine, posed at one command, into `viewer` and return it.
-
-    views: the machines, drawn in order (put the translucent ones last so the opaque ones show
-    through them); pose / sliders: the command (see `pose_machines`); markers: measured platform
-    poses (pin.SE3) or an (n, 3) array of positions [m], drawn as spheres; viewer: a meshcat
-    Visualizer to draw into (a live one, say), or None for an offline recording whose
-    `static_html()` is the shareable page; camera: the initial view, None to leave the viewer's.
-
-    Every machine is solved before anything is drawn, so a failure leaves `viewer` untouched.
-    Raises what `pose_machines` raises, and InvalidInputError for malformed markers.
-    """
-    posed = pose_machines(views, pose, sliders)
-    points = _marker_positions(markers)
-    if viewer is None:
-        viewer = meshcat.Visualizer(window=_Recording(legend=_legend(posed, pose, sliders),
-                                                      title=_title(posed)))
-    _draw(viewer, posed, points, camera)
-    return viewer
-
-
 def _draw(viewer: meshcat.Visualizer, posed: Sequence[PosedMachine], points: np.ndarray,
           camera: Camera | None) -> None:
     viewer["/Background"].set_property("top_color", list(_BACKGROUND[0]))
@@ -388,287 +325,3 @@ def _marker_positions(markers: Iterable[pin.SE3] | np.ndarray | None) -> np.ndar
         raise InvalidInputError(f"markers: non-finite position at index {bad[0]}: {points[bad[0]]}")
     return points
 
-
-# --------------------------------------------------------------------------------------------
-# Static page
-# --------------------------------------------------------------------------------------------
-
-
-def _viewer_script() -> str:
-    # The viewer bundle ships inside the meshcat Python package; it is read, never fetched.
-    path = Path(meshcat.__file__).parent / "viewer" / "dist" / "main.min.js"
-    try:
-        script = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ViewerError(f"meshcat's viewer bundle is unreadable at {path}: {exc}") from None
-    if "</script" in script.lower():  # would end the inline <script> element early
-        raise ViewerError(f"{path} contains '</script' and cannot be inlined")
-    return script
-
-
-def _page(messages: Sequence[dict[str, Any]], title: str, legend: str) -> str:
-    # Commands are msgpack, base64-encoded and decoded synchronously in order: no fetch(), not
-    # even of data: URLs, so the page works from file:// and offline in any browser.
-    encoded = [base64.b64encode(umsgpack.packb(message)).decode("ascii") for message in messages]
-    return _PAGE.format(title=html.escape(title), legend=legend, viewer=_viewer_script(),
-                        commands=json.dumps(encoded, separators=(",", ":")))
-
-
-_PAGE = """<!DOCTYPE html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<title>{title}</title>
-<style>
-html, body {{ margin: 0; height: 100%; overflow: hidden; font: 13px/1.35 sans-serif; }}
-#meshcat-pane {{ width: 100vw; height: 100vh; overflow: hidden; }}
-#m3t1r-legend {{ position: absolute; left: 8px; bottom: 8px; padding: 6px 9px; max-width: 60vw;
-  background: rgba(255, 255, 255, 0.85); border-radius: 4px; color: #222; }}
-#m3t1r-legend .swatch {{ display: inline-block; width: 0.9em; height: 0.9em; margin-right: 0.4em;
-  vertical-align: -0.1em; border: 1px solid #555; }}
-</style>
-</head>
-<body>
-<div id="meshcat-pane"></div>
-<div id="m3t1r-legend">{legend}</div>
-<script>
-{viewer}
-</script>
-<script>
-(function () {{
-  var viewer = new MeshCat.Viewer(document.getElementById("meshcat-pane"));
-  var commands = {commands};
-  for (var i = 0; i < commands.length; i++) {{
-    var text = atob(commands[i]);
-    var bytes = new Uint8Array(text.length);
-    for (var k = 0; k < text.length; k++) bytes[k] = text.charCodeAt(k);
-    viewer.handle_command_bytearray(bytes);
-  }}
-  window.viewer = viewer;
-}})();
-</script>
-</body>
-</html>
-"""
-
-
-def _title(posed: Sequence[PosedMachine]) -> str:
-    return "m3t1r: " + " vs ".join(machine.view.name for machine in posed)
-
-
-def _legend(posed: Sequence[PosedMachine], pose: Sequence[float] | None, sliders: Sequence[float] | None) -> str:
-    if pose is not None:
-        x, y, z, theta = (float(v) for v in pose)
-        command = (f"platform pose x {_fixed(x * 1e3, 1)}, y {_fixed(y * 1e3, 1)}, z {_fixed(z * 1e3, 1)} mm, "
-                   f"&theta; {_fixed(math.degrees(theta), 2)}&deg; reached by IK on each machine")
-    elif sliders is not None:
-        command = "same slider values on each machine (FK)"
-    else:
-        command = "each machine at its home configuration"
-    names = ", ".join(html.escape(name) for name in posed[0].view.mechanism.actuated_joints)
-    lines = [f"<div>{command}; sliders ({names}) in mm</div>"]
-    for machine in posed:
-        view = machine.view
-        if view.color is None:  # a strip of the URDF's main material colours
-            swatch = "background: linear-gradient(90deg, #3a5cbf, #d98c1a, #33a64d, #bf2626)"
-        else:
-            r, g, b, a = view.color
-            swatch = f"background: rgba({r * 255:.0f}, {g * 255:.0f}, {b * 255:.0f}, {a:.2f})"
-        p = [_fixed(v * 1e3, 2) for v in machine.platform.translation]
-        slider_text = ", ".join(_fixed(v * 1e3, 2) for v in machine.sliders)
-        lines.append(
-            f'<div data-node="{html.escape(view.node)}"><span class="swatch" style="{swatch}"></span>'
-            f"<b>{html.escape(view.name)}</b> ({html.escape(view.mechanism.urdf_path.name)}): "
-            f"platform {', '.join(p)} mm, yaw {_fixed(math.degrees(yaw_of(machine.platform.rotation)), 3)}&deg;; "
-            f"sliders {slider_text}</div>")
-    return "\n".join(lines)
-
-
-def _fixed(value: float, digits: int) -> str:
-    # Rounding first keeps a -1e-17 from showing as "-0.000".
-    return f"{round(value, digits) + 0.0:.{digits}f}"
-
-
-def scene_html(viewer: meshcat.Visualizer) -> str:
-    """The self-contained page of a scene recorded offline by `build_scene(..., viewer=None)`."""
-    if not isinstance(viewer.window, _Recording):
-        raise InvalidInputError("scene_html needs a scene built offline (build_scene with viewer=None)")
-    return viewer.window.get_scene()
-
-
-def write_static_html(views: Sequence[MachineView], path: str | os.PathLike[str],
-                      pose: Sequence[float] | None = None, sliders: Sequence[float] | None = None,
-                      markers: Iterable[pin.SE3] | np.ndarray | None = None, camera: Camera | None = DEFAULT_CAMERA,
-                      protect: Iterable[str | os.PathLike[str]] = ()) -> Path:
-    """Write the scene as one shareable HTML file (opens offline, from file://) and return its path.
-
-    No server is started. The model files of every machine are protected on top of `protect`,
-    and the path is checked before solving, so a mistyped output fails fast and nothing is
-    overwritten. The file is replaced atomically.
-
-    Raises OutputPathError (protected path, missing directory, failed write) and what
-    `build_scene` raises.
-    """
-    target = Path(path)
-    views = tuple(views)
-    protected = [*protect, *(p for v in views if isinstance(v, MachineView)
-                             for p in (v.mechanism.urdf_path, v.mechanism.closures_path))]
-    ensure_not_protected(target, protected)
-    viewer = build_scene(views, pose=pose, sliders=sliders, markers=markers, camera=camera)
-    atomic_write_text(target, scene_html(viewer), protect=protected)
-    return target
-
-
-# --------------------------------------------------------------------------------------------
-# Live viewer
-# --------------------------------------------------------------------------------------------
-
-
-class LiveViewer:
-    """A meshcat server process showing a scene, and the client connected to it.
-
-    Owns the process: `close()` (or leaving the `with` block, or garbage collection, or
-    interpreter exit) stops it. `url` is the page to open in a browser.
-    """
-
-    def __init__(self, process: subprocess.Popen, url: str, visualizer: meshcat.Visualizer) -> None:
-        self.process = process
-        self.url = url
-        self.visualizer = visualizer
-        self._finalizer = weakref.finalize(self, _stop_server, process, visualizer)
-
-    @property
-    def pid(self) -> int:
-        return self.process.pid
-
-    def wait(self, poll: float = 0.5) -> None:
-        """Block until Ctrl-C or the server process ends, then stop the server."""
-        try:
-            while self.process.poll() is None:
-                time.sleep(poll)
-        except KeyboardInterrupt:
-            pass
-        finally:
-            self.close()
-
-    def close(self) -> None:
-        """Stop the server process and close the client socket (idempotent)."""
-        self._finalizer()
-
-    def __enter__(self) -> "LiveViewer":
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
-
-
-def _stop_server(process: subprocess.Popen, visualizer: meshcat.Visualizer | None) -> None:
-    window = getattr(visualizer, "window", None)
-    socket = getattr(window, "zmq_socket", None)
-    if socket is not None:
-        socket.close(linger=0)  # a pending request would otherwise keep the context alive
-    if process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(timeout=_SERVER_STOP_TIMEOUT)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-    for stream in (process.stdout, process.stderr):
-        if stream is not None:
-            stream.close()
-
-
-# meshcat's server, plus a watchdog: if we die without stopping it (SIGTERM, SIGKILL), it is
-# re-parented, notices within a second and exits, instead of holding its ports forever.
-_SERVER_MAIN = """
-import os, sys, threading, time
-parent = os.getppid()
-def watch():
-    while os.getppid() == parent:
-        time.sleep(1.0)
-    os._exit(0)
-threading.Thread(target=watch, daemon=True).start()
-from meshcat.servers.zmqserver import main
-sys.argv = ["meshcat-server"]
-main()
-"""
-
-
-def _start_server() -> tuple[subprocess.Popen, str, str]:
-    """Start meshcat's server and read its (zmq_url, web_url) announcement.
-
-    Started here rather than by `meshcat.Visualizer()` so that this module owns the process:
-    meshcat 0.3.2 only kills it at interpreter exit (its `Visualizer.close()` is broken), pipes
-    its stderr without ever reading it (a long session would fill the pipe and hang the server),
-    and waits for its announcement with no timeout.
-    """
-    # Its own session: a Ctrl-C meant for the CLI reaches us, and we stop the server cleanly.
-    process = subprocess.Popen([sys.executable, "-u", "-c", _SERVER_MAIN],
-                               stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                               start_new_session=True)
-    announced: dict[str, str] = {}
-    pending = b""
-    deadline = time.monotonic() + _SERVER_START_TIMEOUT
-    assert process.stdout is not None
-    descriptor = process.stdout.fileno()
-    try:
-        while len(announced) < 2:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise ViewerError(f"the meshcat server did not start within {_SERVER_START_TIMEOUT:.0f} s")
-            # Raw reads: a buffered readline could swallow both lines while select() waits on the fd.
-            ready, _, _ = select.select([descriptor], [], [], remaining)
-            if not ready:
-                continue
-            chunk = os.read(descriptor, 4096)
-            if not chunk:
-                process.wait(timeout=_SERVER_STOP_TIMEOUT)
-                raise ViewerError(f"the meshcat server exited with code {process.returncode} "
-                                        f"(run `{sys.executable} -m meshcat.servers.zmqserver` to see why)")
-            *lines, pending = (pending + chunk).split(b"\n")
-            for line in lines:
-                key, _, value = line.decode("utf-8", "replace").strip().partition("=")
-                if key in ("zmq_url", "web_url") and value:
-                    announced[key] = value
-    except BaseException:
-        _stop_server(process, None)
-        raise
-    # Anything it prints later must not fill the pipe and block it.
-    threading.Thread(target=_drain, args=(process.stdout,), daemon=True).start()
-    return process, announced["zmq_url"], announced["web_url"]
-
-
-def _drain(stream: io.BufferedReader) -> None:
-    with contextlib.suppress(OSError, ValueError):
-        while stream.read(4096):
-            pass
-
-
-def open_viewer(views: Sequence[MachineView], pose: Sequence[float] | None = None,
-                sliders: Sequence[float] | None = None, markers: Iterable[pin.SE3] | np.ndarray | None = None,
-                camera: Camera | None = DEFAULT_CAMERA) -> LiveViewer:
-    """Start a meshcat server, draw the scene in it, and return it (url, visualizer, close()).
-
-    The scene is solved and recorded before the server starts, so a bad command starts nothing.
-    Use as `with open_viewer(views) as live: print(live.url); live.wait()`.
-
-    Raises what `build_scene` raises, and ViewerError when the server does not come up.
-    """
-    recording = build_scene(views, pose=pose, sliders=sliders, markers=markers, camera=camera)
-    process, zmq_url, web_url = _start_server()
-    try:
-        with contextlib.redirect_stdout(io.StringIO()):  # meshcat prints the URL; the caller decides
-            visualizer = meshcat.Visualizer(zmq_url=zmq_url)
-        live = LiveViewer(process, web_url, visualizer)
-    except BaseException:
-        _stop_server(process, None)
-        raise
-    try:
-        for message in recording.window.messages:
-            visualizer.window.send(_Lowered(message))
-    except BaseException:
-        live.close()
-        raise
-    return live
