@@ -6,8 +6,8 @@ import pinocchio as pin
 import pytest
 from conftest import perturb_every_origin
 
-from m3t1r.errors import InvalidInputError, OutOfWorkspaceError
-from m3t1r.model.batch_kinematics import StackedTree, UnsupportedJointError, log6_jlog6_batch, rpy_batch
+from m3t1r.errors import InvalidInputError, OutOfWorkspaceError, UnsupportedJointError
+from m3t1r.model.batch_kinematics import StackedTree, log6_jlog6_batch, rpy_batch
 from m3t1r.model.design import NOMINAL
 from m3t1r.model.kinematics import ClosedLoopSolver
 

@@ -39,6 +39,7 @@ from m3t1r.calibration.identification import (
     forward_selection,
     levenberg_marquardt,
     outlier_poses,
+    parameter_columns,
     select_base_parameters,
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
@@ -278,22 +279,6 @@ def _rms(residual: np.ndarray) -> tuple[float, float]:
     return position, rotation
 
 
-def _parameter_indices(names: Sequence[str], wanted: Sequence[str], what: str) -> list[int]:
-    """Columns named by `wanted`: a parameter name (q12.dt[3]) or a placement name (all its columns)."""
-    index = {name: i for i, name in enumerate(names)}
-    columns: list[int] = []
-    for name in wanted:
-        if name in index:
-            columns.append(index[name])
-            continue
-        group = [i for i, n in enumerate(names) if n.rsplit(".dt[", 1)[0] == name]
-        if not group:
-            raise InvalidInputError(f"{what}: '{name}' is neither a parameter (e.g. q12.dt[3]) nor a placement "
-                                    f"(a joint or frame name such as q12)")
-        columns += group
-    return columns
-
-
 @on_one_blas_thread
 def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, noise: TrackerNoise = TrackerNoise(),
                           *, setup: MeasurementSetup | None = None, estimate_frame: bool = False,
@@ -337,9 +322,9 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     problem = _ClosedLoopProblem(error_model, measurements, noise, everything, estimate_frame=estimate_frame,
                                  estimate_marker=estimate_marker)
     problem.on_evaluate = progress
-    fixed_columns = _parameter_indices(problem.names, fixed, "fixed parameter")
+    fixed_columns = parameter_columns(problem.names, fixed, "fixed parameter")
     problem.priors = {c: sigma for name, sigma in (priors or {}).items()
-                      for c in _parameter_indices(problem.names, [name], "prior")}
+                      for c in parameter_columns(problem.names, [name], "prior")}
     if any(not (math.isfinite(s) and s > 0) for s in problem.priors.values()):
         raise InvalidInputError("a prior's sigma must be a positive number [m or rad]")
     try:

@@ -31,6 +31,7 @@ __all__ = [
     "ParameterSelection",
     "forward_selection",
     "outlier_poses",
+    "parameter_columns",
     "LeastSquaresProblem",
     "LinearFit",
     "RecursiveLeastSquares",
@@ -231,6 +232,25 @@ def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rel_tol: flo
         r_diag_ratio=np.concatenate((forced_diag, diag[: min(rank_rest + 1, diag.size)])),
         zero_columns=tuple(names[i] for i in np.flatnonzero(~nonzero)),
     )
+
+
+def parameter_columns(names: Sequence[str], wanted: Sequence[str], what: str) -> list[int]:
+    """Columns named by `wanted`: a parameter name (`q12.dt[3]`) or a group's prefix (`q12`: all
+    of that placement's columns, any name before ".dt[" or the last "."). InvalidInputError naming
+    `what` and the unknown name otherwise, with an example taken from `names`."""
+    index = {name: i for i, name in enumerate(names)}
+    columns: list[int] = []
+    for name in wanted:
+        if name in index:
+            columns.append(index[name])
+            continue
+        group = [i for i, n in enumerate(names) if n.rsplit(".dt[", 1)[0] == name]
+        if not group:
+            example = names[0] if names else "q12.dt[3]"
+            raise InvalidInputError(f"{what}: '{name}' is neither a parameter (e.g. {example}) nor a placement "
+                                    f"(e.g. {example.rsplit('.dt[', 1)[0]}: all its components)")
+        columns += group
+    return columns
 
 
 # --------------------------------------------------------------------------------------------------

@@ -43,6 +43,7 @@ from m3t1r.calibration.identification import (
     forward_selection,
     levenberg_marquardt,
     outlier_poses,
+    parameter_columns,
     select_base_parameters,
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
@@ -545,28 +546,12 @@ class SerialCalibration:
         return dict(zip(self.fitted, map(float, self.parameter_std)))
 
 
-def _parameter_columns(names: Sequence[str], wanted: Sequence[str], what: str) -> list[int]:
-    """Columns named by `wanted`: a parameter (elbow_joint.dt[3]) or a placement (all its columns)."""
-    index = {name: i for i, name in enumerate(names)}
-    columns: list[int] = []
-    for name in wanted:
-        if name in index:
-            columns.append(index[name])
-            continue
-        group = [i for i, n in enumerate(names) if n.rsplit(".dt[", 1)[0] == name]
-        if not group:
-            raise InvalidInputError(f"{what}: '{name}' is neither a parameter (e.g. elbow_joint.dt[3], "
-                                    "compliance.elbow_joint) nor a placement (a joint or frame name)")
-        columns += group
-    return columns
-
-
 def _prior_columns(names: Sequence[str], priors: Mapping[str, float] | None) -> dict[int, float]:
     out: dict[int, float] = {}
     for name, sigma in (priors or {}).items():
         if not (np.isfinite(sigma) and sigma > 0.0):
             raise InvalidInputError(f"prior of '{name}': sigma must be a positive number (m, rad or rad/Nm)")
-        out.update({c: float(sigma) for c in _parameter_columns(names, [name], "prior")})
+        out.update({c: float(sigma) for c in parameter_columns(names, [name], "prior")})
     return out
 
 
@@ -722,7 +707,7 @@ def calibrate_serial(
     data = _parse_measurements(chain, q_readings, measured_poses, position_only)
     layout = _Layout(chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0, compliance)
     names = layout.names(chain)
-    fixed_columns = _parameter_columns(names, fixed, "fixed parameter")
+    fixed_columns = parameter_columns(names, fixed, "fixed parameter")
     start = _start_state(chain, model, data, setup or MeasurementSetup(), estimate_frame, estimate_marker,
                          compliance)
     torques = gravity_torques(model, chain, data.q) if compliance else None

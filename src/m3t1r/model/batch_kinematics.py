@@ -31,20 +31,16 @@ from m3t1r.errors import (
     NotConvergedError,
     OutOfWorkspaceError,
     SingularConfigurationError,
+    UnsupportedJointError,
 )
 from m3t1r.model.description import Mechanism
 from m3t1r.model.poe import jlog3_batch, log3_batch, skew
 
-__all__ = ["UnsupportedJointError", "RowFailure", "ForwardBatch", "InverseBatch", "StackedKinematics",
+__all__ = ["RowFailure", "ForwardBatch", "InverseBatch", "StackedKinematics",
            "rpy_batch"]
 
 _MAX_STEP = 0.3  # [m or rad] cap on a Newton step component (as the single solve)
 _CHUNK = 2048  # rows solved together: bounds memory (about 6 kB per row) and keeps arrays in cache
-
-
-class UnsupportedJointError(InvalidInputError):
-    """The model has a joint type the batched kinematics does not implement (only 1-DoF revolute and
-    prismatic joints are supported: RX/RY/RZ/unaligned, PX/PY/PZ/unaligned)."""
 
 
 @dataclass(frozen=True)
@@ -151,7 +147,7 @@ _REVOLUTE_AXES = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.
 _PRISMATIC_AXES = {"JointModelPX": (1.0, 0.0, 0.0), "JointModelPY": (0.0, 1.0, 0.0), "JointModelPZ": (0.0, 0.0, 1.0)}
 
 
-def _joint_axis(joint) -> tuple[np.ndarray, bool]:
+def _joint_axis(joint, joint_name: str) -> tuple[np.ndarray, bool]:
     """(unit axis in the joint frame, is_revolute) of a 1-DoF joint; UnsupportedJointError otherwise."""
     name = joint.shortname()
     if name in _REVOLUTE_AXES:
@@ -161,8 +157,8 @@ def _joint_axis(joint) -> tuple[np.ndarray, bool]:
     if name in ("JointModelRevoluteUnaligned", "JointModelPrismaticUnaligned"):
         axis = np.array(joint.extract().axis, dtype=float)
         return axis / np.linalg.norm(axis), name.startswith("JointModelRevolute")
-    raise UnsupportedJointError(f"joint type {name} is not supported by the batched kinematics "
-                                "(1-DoF revolute or prismatic joints only)")
+    raise UnsupportedJointError(joint_name, f"joint type {name} is not supported by the batched kinematics "
+                                            "(1-DoF revolute or prismatic joints only)")
 
 
 class StackedTree:
@@ -175,9 +171,10 @@ class StackedTree:
 
     def __init__(self, model: pin.Model) -> None:
         n_joints = model.njoints - 1
-        axes, revolute = zip(*(_joint_axis(model.joints[j]) for j in range(1, model.njoints)))
+        axes, revolute = zip(*(_joint_axis(model.joints[j], model.names[j]) for j in range(1, model.njoints)))
         if model.nq != n_joints or model.nv != n_joints:
-            raise UnsupportedJointError("batched kinematics needs one coordinate per joint (nq = nv = joints)")
+            raise UnsupportedJointError(model.names[1], "batched kinematics needs one coordinate per joint "
+                                                        "(nq = nv = joints)")
         self.axes, self.revolute = np.array(axes), np.array(revolute)
         self.q_index = np.array([model.idx_qs[j] for j in range(1, model.njoints)])
         self.parent = np.array([model.parents[j] for j in range(1, model.njoints)])
