@@ -248,6 +248,10 @@ def explain(calibration: ClosedLoopCalibration, warnings_seen: list[str] = ()) -
     notes += _coverage(calibration, bool(weak))
     machine = {n: v for n, v in calibration.parameters.items() if n in fitted}
     notes += fit_movement_notes(machine, calibration.rms_before[0], calibration.rms_after[0])
+    if calibration.variance_factor < 0.05:
+        notes.append(f"the residual is {np.sqrt(calibration.variance_factor):.2g} times the stated noise: the "
+                     "measurements are more precise than stated, so the standard deviations above are pessimistic "
+                     "(--noise-pos, --noise-rot)")
     return notes
 
 
