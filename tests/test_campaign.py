@@ -150,3 +150,19 @@ def test_fixed_and_prior_parameters_are_honoured_and_reported(tmp_path):
         assert main(["calibrate", str(path), "-o", str(tmp_path / "x.urdf"), "--frame", "estimate", *bad,
                      *options]) == 2
     assert not (tmp_path / "x.urdf").exists()
+
+
+def test_a_reflector_without_marker_is_named_as_baked_into_the_platform_frame(tmp_path, capsys):
+    study, path, options = _campaign(tmp_path, 5, False)
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "c.urdf"), "--frame", "estimate", "--units", "mm"]) == 0
+    out = capsys.readouterr().out
+    assert "moved implausibly far" in out and "P_I itself moved" in out and "--marker X Y Z" in out
+
+
+@pytest.mark.parametrize("option", [["--folds", "1"], ["--outlier-sigma", "-3"], ["--outlier-sigma", "0.5"]])
+def test_campaign_options_are_checked_before_any_work(tmp_path, capsys, option):
+    path = tmp_path / "m.csv"
+    path.write_text("not read\n")
+    with pytest.raises(SystemExit) as exited:
+        main(["calibrate", str(path), "-o", str(tmp_path / "c.urdf"), *option])
+    assert exited.value.code == 2 and option[0] in capsys.readouterr().err

@@ -58,7 +58,7 @@ def add_campaign_options(parser: argparse.ArgumentParser) -> None:
                              "estimated with the machine")
     parser.add_argument("--units", choices=("m", "mm"), default="m",
                         help="length unit of the file's length columns (x, y, z and prismatic joints)")
-    parser.add_argument("--outlier-sigma", type=float, default=5.0, metavar="S",
+    parser.add_argument("--outlier-sigma", type=_outlier_sigma, default=5.0, metavar="S",
                         help="flag poses beyond S noise sigmas and leave them out (0: keep every pose; default 5)")
     parser.add_argument("--select", choices=("loo", "none"), default="loo",
                         help="model selection: keep the parameters that predict left-out poses (default loo)")
@@ -66,9 +66,23 @@ def add_campaign_options(parser: argparse.ArgumentParser) -> None:
                         help="hold parameters (q12.dt[3]) or whole placements (q12) at nominal")
     parser.add_argument("--prior", action="append", default=[], metavar="NAME=SIGMA",
                         help="a prior toward nominal with this standard deviation [m or rad] (repeatable)")
-    parser.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    parser.add_argument("--folds", type=_folds, default=5, help="cross-validation folds, at least 2 (default 5)")
     parser.add_argument("--max-iterations", type=int, default=None, metavar="N", help="Levenberg-Marquardt cap")
     parser.add_argument("--force", action="store_true", help="write a fit that is judged unsupported, with a warning")
+
+
+def _folds(text: str) -> int:
+    value = int(text)
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"at least 2 folds, got {value}")
+    return value
+
+
+def _outlier_sigma(text: str) -> float:
+    value = float(text)
+    if not (value == 0 or 1.0 <= value < 1e3):
+        raise argparse.ArgumentTypeError(f"0 (keep every pose) or a gate of 1 to 1000 sigmas, got {text}")
+    return value
 
 
 def parse_priors(entries: list[str]) -> dict[str, float]:
@@ -247,7 +261,9 @@ def explain(calibration: ClosedLoopCalibration, warnings_seen: list[str] = ()) -
                      + ", ".join(f"{describe_parameter(n)} (std {calibration.std[n]:.2g})" for n in weak[:8]))
     notes += _coverage(calibration, bool(weak))
     machine = {n: v for n, v in calibration.parameters.items() if n in fitted}
-    notes += fit_movement_notes(machine, calibration.rms_before[0], calibration.rms_after[0])
+    marker_estimated = any(n.startswith("marker.") for n in calibration.std)
+    notes += fit_movement_notes(machine, calibration.rms_before[0], calibration.rms_after[0],
+                                None if marker_estimated else calibration.mechanism.platform_frame)
     if calibration.variance_factor < 0.05:
         notes.append(f"the residual is {np.sqrt(calibration.variance_factor):.2g} times the stated noise: the "
                      "measurements are more precise than stated, so the standard deviations above are pessimistic "

@@ -149,11 +149,14 @@ def _swapped_columns(predict: Callable[[np.ndarray], np.ndarray], readings: np.n
     return [text for _, text in sorted(found)]
 
 
-def fit_movement_notes(moved: dict[str, float], rms_before: float, rms_after: float) -> list[str]:
+def fit_movement_notes(moved: dict[str, float], rms_before: float, rms_after: float,
+                       measured_frame: str | None = None) -> list[str]:
     """Plain-word notes on how far the fit moved: implausibly far, or barely.
 
     moved: identified error per parameter name ([m] for translations, [rad] for rotations);
-    rms_before / rms_after: position residual RMS [m] at the start and the end.
+    rms_before / rms_after: position residual RMS [m] at the start and the end; measured_frame:
+    the model frame the data measure, when no marker was estimated (its translating far means a
+    reflector off that frame was taken for the machine's geometry).
     """
     notes, far = [], []
     for name, value in moved.items():
@@ -165,6 +168,11 @@ def fit_movement_notes(moved: dict[str, float], rms_before: float, rms_after: fl
         listed = ", ".join(text for _, text in sorted(far, reverse=True)[:3])
         notes.append(f"the fit moved implausibly far for a machine built to drawing ({listed}): check the "
                      "units, the measurement frame, the reading columns and that the model is this machine's")
+        frame_moved = [n for n, v in moved.items() if measured_frame and n.startswith(f"{measured_frame}.dt[")
+                       and n[-2] in "012" and abs(v) > IMPLAUSIBLE_TRANSLATION]
+        if frame_moved:
+            notes.append(f"the measured frame {measured_frame} itself moved: the measured point is probably a "
+                         "reflector off it, now baked into the machine; give its position with --marker X Y Z")
     if rms_before > 0 and rms_after > 0.8 * rms_before:
         notes.append(f"the fit barely moved (residual RMS {rms_before:.3g} -> {rms_after:.3g} m): the nominal "
                      "model already explains the data, or the poses do not excite the errors")
