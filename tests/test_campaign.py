@@ -153,10 +153,17 @@ def test_fixed_and_prior_parameters_are_honoured_and_reported(tmp_path):
 
 
 def test_a_reflector_without_marker_is_named_as_baked_into_the_platform_frame(tmp_path, capsys):
-    study, path, options = _campaign(tmp_path, 5, False)
+    study, path, options = _campaign(tmp_path, 5, True)  # one reflector, positions only
     assert main(["calibrate", str(path), "-o", str(tmp_path / "c.urdf"), "--frame", "estimate", "--units", "mm"]) == 0
     out = capsys.readouterr().out
     assert "moved implausibly far" in out and "P_I itself moved" in out and "--marker X Y Z" in out
+
+
+def test_a_probe_frame_without_marker_is_refused_naming_the_marker(tmp_path, capsys):
+    study, path, options = _campaign(tmp_path, 5, False)  # a 6-D probe at an unknown orientation
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "c.urdf"), "--frame", "estimate", "--units", "mm"]) == 1
+    assert "give its position with --marker X Y Z" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["campaign.csv"]
 
 
 @pytest.mark.parametrize("option", [["--folds", "1"], ["--outlier-sigma", "-3"], ["--outlier-sigma", "0.5"]])

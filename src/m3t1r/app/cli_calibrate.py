@@ -141,7 +141,7 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     _print_summary(calibration, lines)
     try:
         check_fit(calibration.converged, calibration.lm.termination, calibration.lm.iterations,
-                  calibration.variance_factor, _diagnose(nominal, data, marker, estimate_frame)
+                  calibration.variance_factor, _fit_causes(args, nominal, data, marker, estimate_frame)
                   if calibration.variance_factor > 9 or not calibration.converged else ())
     except FitRejected as exc:
         if not args.force:
@@ -188,6 +188,17 @@ def _fit(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, no
         nominal, data.measurements, noise, setup=MeasurementSetup(marker=marker), estimate_frame=estimate_frame,
         estimate_marker=args.marker is not None, outlier_sigma=args.outlier_sigma or None,
         select=args.select == "loo", fixed=args.fix, priors=args.prior, progress=progress, **kwargs)
+
+
+def _fit_causes(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, marker: pin.SE3,
+                estimate_frame: bool) -> list[str]:
+    """Likely causes of a fit that does not explain the data: the data checks, and a measured frame
+    whose orientation is not the platform's while no marker was given to absorb it."""
+    causes = _diagnose(nominal, data, marker, estimate_frame)
+    if args.marker is None and not data.measurements.position_only:
+        causes.append("the measured frame (a probe or a set of reflectors) is not the platform frame: give its "
+                      "position with --marker X Y Z, and its orientation is estimated with it")
+    return causes
 
 
 def _precheck(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, estimate_frame: bool) -> None:
