@@ -6,16 +6,21 @@ rule that fired; NaN and inf are fed to the solver; tolerances are probed at the
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
 from m3t1r.calibration.identification import (
     RecursiveLeastSquares,
     batch_least_squares,
+    forward_selection,
     levenberg_marquardt,
+    outlier_poses,
+    parameter_columns,
     select_base_parameters,
 )
-from m3t1r.errors import IdentificationError, InvalidInputError
+from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
 
 
 class ExponentialFit:
@@ -181,3 +186,348 @@ def test_recursive_least_squares_zero_forgetting_is_refused():
     RecursiveLeastSquares(2, forgetting_factor=1.0)
     with pytest.raises(InvalidInputError, match="forgetting_factor"):
         RecursiveLeastSquares(2, forgetting_factor=1.0 + 1e-12)
+
+
+# --------------------------------------------------------------------------------------------------
+# Parameter names, outliers, forward selection and forced base parameters: tested here, in the
+# module's own tests, rather than only through the assessment and CLI tests.
+
+
+NAMES = ("q1.dt[0]", "q1.dt[1]", "q2.dt[0]", "tool.x")
+
+
+def test_parameter_columns_by_name_and_by_placement_in_the_order_asked():
+    assert parameter_columns(NAMES, ["q2.dt[0]", "q1", "tool.x"], "--fix") == [2, 0, 1, 3]
+    assert parameter_columns(NAMES, [], "--fix") == []
+    message = ("--fix: 'q3' is neither a parameter (e.g. q1.dt[0]) nor a placement "
+               "(e.g. q1: all its components)")
+    with pytest.raises(InvalidInputError) as error:
+        parameter_columns(NAMES, ["q1", "q3"], "--fix")
+    assert str(error.value) == message
+    with pytest.raises(InvalidInputError) as error:
+        parameter_columns((), ["q3"], "--prior")
+    assert str(error.value) == ("--prior: 'q3' is neither a parameter (e.g. q12.dt[3]) nor a placement "
+                                "(e.g. q12: all its components)")
+    with pytest.raises(InvalidInputError):
+        parameter_columns(NAMES, ["q1.dt"], "--fix")  # only the part before ".dt[" names a placement
+
+
+def _blocks_with_d2(d2: np.ndarray, k: int) -> np.ndarray:
+    blocks = np.zeros((d2.size, k))
+    blocks[:, 0] = np.sqrt(d2)
+    return blocks
+
+
+@pytest.mark.parametrize("k", [1, 3, 6])
+def test_outlier_gate_is_the_5_sigma_chi2_quantile_from_both_sides(k):
+    import scipy.stats
+
+    gate = scipy.stats.chi2.isf(2.0 * scipy.stats.norm.sf(5.0), k)
+    # The median d^2 is far below median(chi^2_k): the variance factor stays at one.
+    d2 = np.r_[np.full(9, 1e-3), gate * (1 + 1e-9), gate * (1 - 1e-9)]
+    flagged, scale = outlier_poses(_blocks_with_d2(d2, k))
+    assert scale == 1.0
+    assert list(np.flatnonzero(flagged)) == [9]
+    # An explicit gate of 4 sigma.
+    gate4 = scipy.stats.chi2.isf(2.0 * scipy.stats.norm.sf(4.0), k)
+    d2 = np.r_[np.full(9, 1e-3), gate4 * (1 + 1e-9), gate4 * (1 - 1e-9)]
+    assert list(np.flatnonzero(outlier_poses(_blocks_with_d2(d2, k), sigma=4.0)[0])) == [9]
+
+
+def test_outlier_scale_is_the_median_ratio_and_never_below_one():
+    import scipy.stats
+
+    k = 3
+    median = scipy.stats.chi2.median(k)
+    d2 = np.r_[np.full(5, 16.0 * median), np.full(4, 0.5)]  # median 16 median(chi^2_3): s = 4
+    flagged, scale = outlier_poses(_blocks_with_d2(d2, k))
+    assert scale == pytest.approx(4.0, rel=1e-12) and not flagged.any()
+    gate = scipy.stats.chi2.isf(2.0 * scipy.stats.norm.sf(5.0), k)
+    d2 = np.r_[d2, 16.0 * gate * (1 + 1e-9), 16.0 * gate * (1 - 1e-9)]
+    d2 = np.r_[d2, 16.0 * median]  # keep the median where it was (13 poses, 7th is 16 median)
+    flagged, scale = outlier_poses(_blocks_with_d2(d2, k))
+    assert scale == pytest.approx(4.0, rel=1e-12) and list(np.flatnonzero(flagged)) == [9]
+    # Exactly at the median of chi^2_k the factor is one, just above it is larger.
+    assert outlier_poses(_blocks_with_d2(np.full(3, median), k))[1] == pytest.approx(1.0, rel=1e-12)
+    assert outlier_poses(_blocks_with_d2(np.full(3, 1.21 * median), k))[1] == pytest.approx(1.1, rel=1e-12)
+
+
+@pytest.mark.parametrize("bad", [np.zeros((0, 3)), np.zeros(3), np.zeros((2, 3, 1))])
+def test_outlier_poses_refuses_a_shape_that_is_not_n_by_k(bad):
+    with pytest.raises(InvalidInputError, match=r"expected an \(N, k\) residual"):
+        outlier_poses(bad)
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_outlier_poses_refuses_one_non_finite_value(value):
+    blocks = np.ones((4, 2))
+    blocks[2, 1] = value
+    with pytest.raises(InvalidInputError, match="non-finite residual"):
+        outlier_poses(blocks)
+
+
+def _loo_reference(J, r, k, columns):
+    """Per-pose squared leave-one-pose-out errors of the fit r + J[:, columns] x, by refitting."""
+    n = J.shape[0] // k
+    out = np.empty(n)
+    for i in range(n):
+        rows = slice(i * k, (i + 1) * k)
+        keep = np.r_[np.arange(0, i * k), np.arange((i + 1) * k, n * k)]
+        x = np.linalg.lstsq(J[keep][:, columns], -r[keep], rcond=None)[0] if columns else np.zeros(0)
+        out[i] = np.sum((r[rows] + J[rows][:, columns] @ x) ** 2)
+    return out
+
+
+@pytest.mark.parametrize("forced", [(), (5,), (6, 1)])
+def test_forward_selection_path_press_order_and_ties_against_refits(forced):
+    rng = np.random.default_rng(5)
+    n, k, p = 12, 3, 7
+    J = rng.normal(size=(n * k, p))
+    r = -(J @ np.r_[1.0, -0.6, 0.3, 0.0, 0.0, 0.0, 0.0]) + rng.normal(size=n * k)
+    selection = forward_selection(J, r, k, range(p), forced=forced)
+    assert set(selection.order).isdisjoint(forced) and sorted(selection.order + tuple(forced)) == list(range(p))
+    per_pose = [_loo_reference(J, r, k, list(forced) + list(selection.order[:size]))
+                for size in range(p - len(forced) + 1)]
+    path = np.array([pp.sum() for pp in per_pose])
+    np.testing.assert_allclose(selection.path, path, rtol=1e-8)
+    best = int(np.argmin(path))
+    assert selection.indices == tuple(sorted(list(forced) + list(selection.order[:best])))
+    assert selection.press == pytest.approx(path[best], rel=1e-8)
+    assert selection.press_all == pytest.approx(path[-1], rel=1e-8)
+    # Each step adds the column with the smallest PRESS among those left.
+    chosen = list(forced)
+    for column in selection.order:
+        left = [c for c in range(p) if c not in chosen]
+        scores = [_loo_reference(J, r, k, chosen + [c]).sum() for c in left]
+        assert column == left[int(np.argmin(scores))]
+        chosen.append(column)
+    differences = np.array(per_pose) - per_pose[best]
+    se = differences.std(axis=1, ddof=1) * np.sqrt(n)
+    assert selection.tied == int(np.count_nonzero(path - path[best] <= se)) - 1
+    assert selection.tied >= 1  # on 12 poses a few sizes are within one standard error
+    assert len(selection.indices) < p  # and the best is not every column
+
+
+def test_forward_selection_stops_when_no_candidate_is_independent_and_checks_rows():
+    rng = np.random.default_rng(5)
+    base = rng.normal(size=(30, 2))
+    J = np.column_stack((base, base[:, 0] - base[:, 1], 1e-12 * base[:, 0]))  # 2 = 0 - 1, 3 tiny
+    r = rng.normal(size=30)
+    selection = forward_selection(J, r, 3, range(4))
+    assert len(selection.order) == 2 and len(selection.path) == 3
+    # A relative tolerance of one refuses every column.
+    assert forward_selection(J, r, 3, range(4), rel_tol=1.0 + 1e-9).order == ()
+    with pytest.raises(InvalidInputError, match="31 rows are not a multiple of 3 per pose"):
+        forward_selection(np.ones((31, 2)), np.ones(31), 3, range(2))
+    with pytest.raises(InvalidInputError, match="residual"):
+        forward_selection(J, r[:-1], 3, range(4))
+
+
+def test_forced_base_parameters_match_the_documented_quantities():
+    rng = np.random.default_rng(4)
+    base = rng.normal(size=(60, 4))
+    J = np.column_stack([base, base[:, 0] + base[:, 1], base[:, 2] * 3.0, np.zeros(60), 1e-13 * base[:, 3]])
+    names = [f"p{i}" for i in range(J.shape[1])]
+    chosen = select_base_parameters(J, names, forced=[4, 6, 5, 2])  # 6 is zero, 2 is explained by 5
+    assert chosen.indices == (0, 3, 4, 5) or chosen.indices == (1, 3, 4, 5)
+    assert chosen.names == tuple(names[i] for i in chosen.indices) and chosen.rank == 4
+    assert chosen.zero_columns == ("p6", "p7")
+    normalised = J[:, :6] / np.linalg.norm(J[:, :6], axis=0)
+    kept = normalised[:, list(chosen.indices)]
+    s = np.linalg.svd(kept, compute_uv=False)
+    assert chosen.condition_number == pytest.approx(s[0] / s[-1], rel=1e-9)
+    np.testing.assert_allclose(chosen.singular_values[:6], np.linalg.svd(normalised, compute_uv=False), atol=1e-12)
+    np.testing.assert_array_equal(chosen.singular_values[6:], 0.0)
+    assert chosen.singular_values.shape == (8,)
+    # r_diag_ratio: the forced columns' lengths (first one 1), then the rest's pivots and one dropped.
+    assert chosen.r_diag_ratio[0] == pytest.approx(1.0) and chosen.r_diag_ratio.size == 2 + 2 + 1
+    assert chosen.r_diag_ratio[-1] < 1e-9 < chosen.r_diag_ratio[-2]
+    with pytest.raises(InvalidInputError, match="8 columns but 7 names"):
+        select_base_parameters(J, names[:7], forced=[4])
+    with pytest.raises(IdentificationError, match="identically zero"):
+        select_base_parameters(np.zeros((5, 2)), "ab", forced=[0])
+
+
+def test_forced_base_parameters_warn_above_max_condition_from_both_sides():
+    rng = np.random.default_rng(6)
+    a = rng.normal(size=40)
+    J = np.column_stack((a, a + 1e-3 * rng.normal(size=40), rng.normal(size=40)))
+    condition = select_base_parameters(J, "abc", forced=[2]).condition_number
+    assert condition > 100
+    with pytest.warns(PoorExcitationWarning):
+        select_base_parameters(J, "abc", forced=[2], max_condition=condition * (1 - 1e-9))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        select_base_parameters(J, "abc", forced=[2], max_condition=condition * (1 + 1e-9))
+    # The same boundary without forced columns.
+    plain = select_base_parameters(J, "abc").condition_number
+    with pytest.warns(PoorExcitationWarning):
+        select_base_parameters(J, "abc", max_condition=plain * (1 - 1e-9))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        select_base_parameters(J, "abc", max_condition=plain * (1 + 1e-9))
+
+
+# --------------------------------------------------------------------------------------------------
+# Refusals name the argument and the fault (exact messages)
+
+
+def _message(call) -> str:
+    with pytest.raises((InvalidInputError, IdentificationError)) as error:
+        call()
+    return str(error.value)
+
+
+def test_linear_solvers_refuse_bad_input_with_exact_messages():
+    A = np.arange(12.0).reshape(6, 2) ** 0.5
+    y = np.ones(6)
+    assert _message(lambda: batch_least_squares(np.ones(3), y)) == "A: expected a 2-D array, got shape (3,)"
+    assert _message(lambda: batch_least_squares(A, y[:5])) == "y: expected 6 values, got 5"
+    y_bad = y.copy()
+    y_bad[4] = np.inf
+    assert _message(lambda: batch_least_squares(A, y_bad)) == "y: non-finite value at index 4"
+    y_bad[[1, 4]] = np.nan
+    assert _message(lambda: batch_least_squares(A, y_bad)) == "y: non-finite value at index 1"
+    assert batch_least_squares(A, y.reshape(3, 2)).x.shape == (2,)  # any shape of 6 values
+    assert _message(lambda: batch_least_squares(A, y, np.ones(5))) == "weights: expected 6 values, got 5"
+    weights = np.ones(6)
+    weights[2] = 0.0
+    assert _message(lambda: batch_least_squares(A, y, weights)) == (
+        "weights: must be positive inverse standard deviations")
+    weights[2] = -1e-300
+    assert "weights: must be positive" in _message(lambda: batch_least_squares(A, y, weights))
+    weights[2] = 1e-300  # tiny but positive is a weight
+    batch_least_squares(A, y, weights)
+    weights[2] = 0.5  # below one is a weight too
+    batch_least_squares(A, y, weights)
+    A_bad = A.copy()
+    A_bad[3, 1] = np.nan
+    assert _message(lambda: batch_least_squares(A_bad, y)) == "A: non-finite value at row 3, column 1"
+    assert _message(lambda: batch_least_squares(np.zeros((6, 2)), y)) == "batch_least_squares: A is identically zero"
+    assert _message(lambda: batch_least_squares(np.ones((2, 2)) * [1.0, 2.0] + np.eye(2), y[:2])) == (
+        "batch_least_squares: no redundancy to estimate the noise from residuals")
+    # Integer input is read as float (a list of ints gives a float solution).
+    fit = batch_least_squares([[1, 0], [0, 1], [1, 1]], [1, 2, 4])
+    np.testing.assert_allclose(fit.x, [4 / 3, 7 / 3])
+
+
+def test_batch_least_squares_rank_and_covariance_choice():
+    rng = np.random.default_rng(8)
+    A = rng.normal(size=(20, 3))
+    A = np.column_stack((A, A[:, 0] * 1e-13 + A[:, 1]))  # s_min / s_max around 1e-13
+    s = np.linalg.svd(A, compute_uv=False)
+    y = rng.normal(size=20)
+    assert batch_least_squares(A, y).rank == 3
+    assert batch_least_squares(A, y, rcond=s[-1] / s[0] * (1 - 1e-6)).rank == 4
+    assert batch_least_squares(A, y, rcond=s[-1] / s[0] * (1 + 1e-6)).rank == 3
+    # Unit weights given explicitly: noise model covariance; not given: scaled by the variance factor.
+    B = rng.normal(size=(20, 3))
+    unweighted, weighted = batch_least_squares(B, y), batch_least_squares(B, y, np.ones(20))
+    np.testing.assert_allclose(weighted.covariance, np.linalg.inv(B.T @ B), rtol=1e-10)
+    np.testing.assert_allclose(unweighted.covariance, np.linalg.inv(B.T @ B) * unweighted.variance_factor, rtol=1e-10)
+    residual = B @ unweighted.x - y
+    assert unweighted.variance_factor == pytest.approx(residual @ residual / 17, rel=1e-12)
+    # Square and full rank: no degree of freedom, NaN variance factor with a noise-model covariance.
+    square = batch_least_squares(B[:3], y[:3], np.ones(3))
+    assert np.isnan(square.variance_factor)
+    np.testing.assert_allclose(square.covariance, np.linalg.inv(B[:3].T @ B[:3]), rtol=1e-8)
+    with pytest.raises(IdentificationError, match="no redundancy"):
+        batch_least_squares(B[:3], y[:3])
+
+
+def test_recursive_least_squares_refusals_with_exact_messages():
+    assert _message(lambda: RecursiveLeastSquares(0)) == "RecursiveLeastSquares: n_parameters must be >= 1, got 0"
+    RecursiveLeastSquares(1)
+    for std in (0.0, -1.0, np.inf, np.nan, [1.0, 0.0]):
+        assert _message(lambda std=std: RecursiveLeastSquares(2, prior_std=std)) == (
+            "RecursiveLeastSquares: prior_std must be positive and finite")
+    assert _message(lambda: RecursiveLeastSquares(2, prior_mean=[1.0, 2.0])) == (
+        "RecursiveLeastSquares: prior_mean needs prior_std")
+    assert _message(lambda: RecursiveLeastSquares(2, prior_std=1.0, prior_mean=[1.0])) == (
+        "prior_mean: expected 2 values, got 1")
+    rls = RecursiveLeastSquares(2)
+    assert _message(lambda: rls.update(np.ones((2, 3)), np.ones(2))) == "A_k: expected 2 columns, got 3"
+    assert _message(lambda: rls.update(np.ones((2, 2)), np.ones(3))) == "y_k: expected 2 values, got 3"
+    assert _message(lambda: rls.update(np.ones((2, 2)), np.ones(2), [1.0, 0.0])) == (
+        "weights_k: must be positive inverse standard deviations")
+    assert _message(lambda: rls.update([[1.0, np.nan]], [1.0])) == "A_k: non-finite value at row 0, column 1"
+    # One row as a 1-D array, integers accepted.
+    np.testing.assert_allclose(rls.update([1, 0], [2]), [2.0, 0.0])
+    assert rls.n_rows == 1
+
+
+def test_recursive_least_squares_prior_factor_and_residual_sum():
+    rls = RecursiveLeastSquares(2, prior_std=[0.5, 2.0], prior_mean=[1.0, -4.0])
+    np.testing.assert_allclose(rls.information_factor, np.diag([2.0, 0.5]))
+    np.testing.assert_allclose(rls.covariance, np.diag([0.25, 4.0]))
+    rls.update([[1.0, 0.0]], [3.0], [1.0])
+    # Posterior of x0: information 4 + 1, mean (4 * 1 + 3) / 5; x1 untouched.
+    np.testing.assert_allclose(rls.estimate, [7.0 / 5.0, -4.0])
+    assert rls.weighted_residual_sum_of_squares == pytest.approx(4 * (0.4) ** 2 + (1.6) ** 2, rel=1e-12)
+    # Without a prior, 1 row in 2 unknowns: the minimum-norm estimate (lstsq branch).
+    free = RecursiveLeastSquares(2)
+    np.testing.assert_allclose(free.update([[3.0, 4.0]], [5.0]), [0.6, 0.8], atol=1e-12)
+    # Nearly dependent rows within rcond: still the minimum-norm answer, not a huge one.
+    near = RecursiveLeastSquares(2, rcond=1e-6)
+    x = near.update([[1.0, 1.0], [1.0, 1.0 + 1e-9]], [2.0, 2.0])
+    np.testing.assert_allclose(x, [1.0, 1.0], atol=1e-6)
+    exact = RecursiveLeastSquares(2, rcond=1e-12)
+    np.testing.assert_allclose(exact.update([[1.0, 1.0], [1.0, 1.0 + 1e-9]], [2.0, 2.0 + 1e-9]), [1.0, 1.0], atol=1e-5)
+
+
+# --------------------------------------------------------------------------------------------------
+# The damping schedule, step by step, against the documented rule
+
+
+class Recorded(ExponentialFit):
+    def __init__(self) -> None:
+        super().__init__()
+        self.steps = []
+
+    def retract(self, x, step):
+        self.steps.append(np.array(step))
+        return x + step
+
+
+def _reference_steps(problem, x, mu, iterations):
+    """Every trial step of LM with Marquardt scaling and Nielsen's damping update (the docstring)."""
+    r, J = problem.residual_and_jacobian(x)
+    cost, nu, steps = 0.5 * r @ r, 2.0, []
+    for _ in range(iterations):
+        d2 = np.diag(J.T @ J)
+        while True:
+            dx = np.linalg.solve(J.T @ J + mu * np.diag(d2), -J.T @ r)
+            steps.append(dx)
+            r_trial, J_trial = problem.residual_and_jacobian(x + dx)
+            decrease = cost - 0.5 * r_trial @ r_trial
+            if decrease > 0:
+                predicted = -(r @ (J @ dx)) - 0.5 * (J @ dx) @ (J @ dx)
+                rho = decrease / predicted
+                mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
+                x, r, J, cost = x + dx, r_trial, J_trial, cost - decrease
+                break
+            mu *= nu
+            nu *= 2.0
+    return steps
+
+
+@pytest.mark.parametrize("damping", [1e-3, 1e-9, 10.0])
+def test_trial_steps_follow_the_marquardt_nielsen_schedule(damping):
+    problem = Recorded()
+    start = np.array([0.1, 6.0])  # far: the first undamped steps overshoot and are rejected
+    result = levenberg_marquardt(problem, start, initial_damping=damping, max_iterations=6, cost_tolerance=0.0,
+                                 step_tolerance=0.0, gradient_tolerance=0.0)
+    assert result.termination == "max_iterations" and result.iterations == 6
+    reference = _reference_steps(ExponentialFit(), start, damping, 6)
+    assert len(problem.steps) == len(reference)
+    np.testing.assert_allclose(np.array(problem.steps), np.array(reference), rtol=1e-6, atol=1e-12)
+    assert result.step_norm == pytest.approx(np.linalg.norm(reference[-1]), rel=1e-6)
+
+
+def test_rejections_happen_in_the_schedule_test():
+    problem = Recorded()
+    levenberg_marquardt(problem, np.array([0.1, 6.0]), initial_damping=1e-9, max_iterations=6, cost_tolerance=0.0,
+                        step_tolerance=0.0, gradient_tolerance=0.0)
+    assert len(problem.steps) >= 6 + 3  # several rejected trials in a row: nu doubles
+

@@ -16,7 +16,7 @@ from m3t1r.model.design import NOMINAL
 from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 
 BOX = NOMINAL.workspace
-FAST = settings(max_examples=20, deadline=None)
+FAST = settings(max_examples=20, deadline=None, derandomize=True)  # reproducible mutation runs
 target = st.tuples(st.floats(*BOX.x), st.floats(*BOX.y), st.floats(*BOX.z), st.floats(*BOX.theta))
 
 
@@ -37,7 +37,7 @@ def test_forward_of_inverse_is_the_target(mechanism, solvers, pose, turns):
     np.testing.assert_allclose(fk.q, ik.q, atol=1e-8)  # same assembly branch as the IK's
 
 
-@settings(max_examples=6, deadline=None)
+@settings(max_examples=6, deadline=None, derandomize=True)
 @given(arrays(np.float64, 20, elements=st.floats(-0.2, 0.2)), st.booleans())
 def test_closure_jacobian_matches_central_differences(mechanism, solvers, offset, all_rows):
     solver = solvers[0]

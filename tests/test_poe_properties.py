@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
@@ -25,7 +25,7 @@ from m3t1r.model.poe import (
     skew,
 )
 
-FAST = settings(max_examples=30, deadline=None)
+FAST = settings(max_examples=30, deadline=None, derandomize=True)  # reproducible mutation runs
 finite = st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False)
 vector3 = arrays(np.float64, 3, elements=finite)
 twist = arrays(np.float64, 6, elements=finite)
@@ -57,14 +57,16 @@ def test_log3_batch_near_pi_gives_the_same_rotation(direction, angle):
 
 
 @FAST
+@example(direction=np.array([0.0, 1.0, 1.0]), scale=0.1875)  # pin.Jlog3 off by 1.5e-9 at 1.9e-4 rad
 @given(vector3, st.floats(0.0, 3.0))
 def test_jlog3_batch_equals_pinocchio_small_and_large(direction, scale):
     for angle in (scale, scale * 1e-3, scale * 1e-7):
         w = _rotation_vector(direction, angle)
         jlog = jlog3_batch(w[None], np.array([np.linalg.norm(w)]))[0]
-        # pin.Jlog3 reads the angle back from the matrix and loses ~1e-6 relative at small angles;
-        # the inverse of the right Jacobian of exp3 (from the vector itself) is exact.
-        np.testing.assert_allclose(jlog, pin.Jlog3(pin.exp3(w)), atol=1e-9)
+        # pin.Jlog3 reads the angle back from the matrix and loses ~1e-6 relative at small angles
+        # (its [w]^2 coefficient is off by up to 1/12, i.e. by angle^2 in the matrix); the inverse
+        # of the right Jacobian of exp3 (from the vector itself) is exact.
+        np.testing.assert_allclose(jlog, pin.Jlog3(pin.exp3(w)), atol=1e-9 + (angle**2 if angle < 1e-2 else 0.0))
         np.testing.assert_allclose(jlog @ pin.Jexp3(w), np.eye(3), atol=1e-12)
 
 
@@ -94,7 +96,7 @@ def test_perturb_then_read_back_is_the_error_twist(ur5, error, index):
     np.testing.assert_allclose(pin.log6(relative).vector, error, atol=1e-12)
 
 
-@settings(max_examples=8, deadline=None)
+@settings(max_examples=8, deadline=None, derandomize=True)
 @given(arrays(np.float64, 6, elements=st.floats(-3.0, 3.0)), st.integers(0, 41))
 def test_error_jacobian_matches_finite_differences(ur5, q, column):
     """Column k of the WORLD error Jacobian is log6(g(x + eps e_k) g(x)^-1) / eps (eq. 18)."""

@@ -76,8 +76,10 @@ def run_module(module: str, tests: list[str], max_children: int, workdir: Path) 
     copy = workdir / module
     copy_tree(copy)
     configure(copy, module, tests)
-    subprocess.run(["nice", "-n", "10", sys.executable, "-m", "mutmut", "run", "--max-children", str(max_children)],
-                   cwd=copy, check=True, stdout=subprocess.DEVNULL)
+    log = workdir / f"{module}.log"  # mutmut's output: why a run failed (e.g. its clean test run)
+    with log.open("w") as output:
+        subprocess.run(["nice", "-n", "10", sys.executable, "-m", "mutmut", "run", "--max-children", str(max_children)],
+                       cwd=copy, check=True, stdout=output, stderr=subprocess.STDOUT)
     statuses = results(copy)
     equivalent = equivalent_mutants()
     counted = {name: status for name, status in statuses.items() if name not in equivalent}
