@@ -86,6 +86,17 @@ def _residual_rows_batch(poses: np.ndarray, measured_positions: np.ndarray, meas
     return np.concatenate((position_error, logs), axis=1), rows
 
 
+_BLOCK = 512  # poses per block of the error model's stacks (about 100 kB per pose and 216 columns)
+
+
+@dataclass(frozen=True, eq=False)
+class _Tangents:
+    """dq_passive / dp (N, n_passive, P machine columns) at an iterate, float32: a first-order
+    prediction of the next trial's assembly needs no more precision (Newton refines it)."""
+
+    passive: np.ndarray
+
+
 @dataclass(eq=False)
 class _State:
     """An LM iterate: a model and measurement setup, the assembled configuration of every measured
@@ -97,7 +108,7 @@ class _State:
     poses: tuple[pin.SE3, ...] = ()
     setup: MeasurementSetup = field(default_factory=MeasurementSetup)
     accumulated: np.ndarray | None = None
-    tangents: PlatformSensitivities | None = None
+    tangents: _Tangents | None = None
     factors: tuple[tuple, ...] | None = None
     whitened: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -171,17 +182,50 @@ class _ClosedLoopProblem:
             return np.full(len(self.weights) + len(self._prior_rows(_State(None, ()))[0]), np.inf)
         return np.concatenate((self.pose_residuals(state).reshape(-1) * self.weights, self._prior_rows(state)[0]))
 
-    def evaluate(self, state: _State, columns: np.ndarray) -> tuple[np.ndarray, np.ndarray, PlatformSensitivities]:
-        """Unwhitened pose residual (6N or 3N), its Jacobian over `columns`, and the machine's
-        sensitivities behind it (over the machine columns among `columns`)."""
+    def evaluate(self, state: _State, columns: np.ndarray, reduce: bool = False
+                 ) -> tuple[np.ndarray, np.ndarray, _Tangents]:
+        """Unwhitened pose residual (6N or 3N), its Jacobian over `columns`, and the passive joints'
+        sensitivities (over the machine columns among `columns`).
+
+        Poses are processed in blocks of `_BLOCK`, so the per-pose stacks of the error model exist
+        for one block at a time: memory grows with the pose count only by the Jacobian and the
+        tangents kept (float32). reduce=True returns instead of the Jacobian the triangular factor
+        R of the whitened one (R^T R = J^T W^2 J, same column norms, `len(columns)` rows): enough
+        to choose base parameters, in memory independent of the pose count (and no tangents).
+        """
         if self.on_evaluate is not None:
             self.on_evaluate()
         solver = ClosedLoopSolver(self.error_model.mechanism.with_model(state.model))
         machine = columns[columns < self.n_machine]
-        sensitivities = self.error_model.platform_sensitivities(solver, state.configurations, machine)
-        state.factors = sensitivities.factors
+        n, k = len(state.configurations), self.measurements.rows_per_pose
+        residual = np.empty(n * k)
+        jacobian = np.zeros((0, len(columns))) if reduce else np.empty((n * k, len(columns)))
+        passive = np.empty((0 if reduce else n, len(self.error_model.mechanism.passive_ids), len(machine)),
+                           dtype=np.float32)
+        factors: list[tuple] = []
+        for start in range(0, n, _BLOCK):
+            block = slice(start, min(start + _BLOCK, n))
+            sensitivities = self.error_model.platform_sensitivities(solver, state.configurations[block], machine)
+            factors += sensitivities.factors
+            if not reduce:
+                passive[block] = -np.linalg.solve(sensitivities.passive_jacobians, sensitivities.closure_jacobians)
+            rows = slice(k * block.start, k * block.stop)
+            residual[rows], block_jacobian = self._block_rows(state, block, columns, sensitivities)
+            if reduce:
+                stacked = np.vstack((jacobian, block_jacobian * self.weights[rows, None]))
+                jacobian = np.linalg.qr(stacked, mode="r")
+            else:
+                jacobian[rows] = block_jacobian
+        state.factors = tuple(factors)
+        return residual, jacobian, _Tangents(passive)
+
+    def _block_rows(self, state: _State, block: slice, columns: np.ndarray,
+                    sensitivities: PlatformSensitivities) -> tuple[np.ndarray, np.ndarray]:
+        """Residual rows and Jacobian rows of the poses in `block` (measurement-frame twists)."""
         measured = self.measured_frames(state, sensitivities.poses)
-        residual, rows = _residual_rows_batch(measured, self._measured_positions, self._measured_rotations)
+        residual, rows = _residual_rows_batch(measured, self._measured_positions[block],
+                                              None if self._measured_rotations is None
+                                              else self._measured_rotations[block])
         frame_adjoint = adjoint_matrices(state.setup.frame.homogeneous[None])[0]
         blocks = [frame_adjoint @ sensitivities.twist_jacobians]  # base-frame twists seen in the measurement frame
         for c in columns[columns >= self.n_machine]:
@@ -190,7 +234,7 @@ class _ClosedLoopProblem:
             else:
                 blocks.append(adjoint_matrices(measured)[:, :, c - self.marker_slot, None])
         twists = np.concatenate(blocks, axis=2)
-        return residual.reshape(-1), (rows @ twists).reshape(residual.size, -1), sensitivities
+        return residual.reshape(-1), (rows @ twists).reshape(residual.size, -1)
 
     def residual_and_jacobian(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
         if state.model is None:  # a trial step that did not assemble: reject it
@@ -220,7 +264,7 @@ class _ClosedLoopProblem:
             # First-order prediction of the new assembly: q_passive + dq_passive/dp step.
             passive = self.error_model.mechanism.passive_ids
             machine_step = step[self.columns < self.n_machine]
-            start = tuple(_shifted(q, passive, d) for q, d in zip(start, state.tangents.passive_motion(machine_step)))
+            start = tuple(_shifted(q, passive, d) for q, d in zip(start, state.tangents.passive @ machine_step))
         try:
             return self.assemble(model, start, state.factors, setup, state.accumulated + vector)
         except KinematicsError:
@@ -332,20 +376,17 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     except KinematicsError as exc:
         raise IdentificationError(f"a measured pose does not assemble on the starting model: {exc}") from None
     start.setup = _registered_setup(problem, start, setup, estimate_frame, estimate_marker)
-    residual, jacobian, sensitivities = problem.evaluate(start, everything)
-    whitened = jacobian * problem.weights[:, None]
-    whitened[:, fixed_columns] = 0.0
+    residual, factor, _ = problem.evaluate(start, everything, reduce=True)
+    factor[:, fixed_columns] = 0.0
     forced = np.arange(error_model.n_parameters, len(everything))
-    base = select_base_parameters(whitened, problem.names, rel_tol=rank_tolerance, forced=forced)
+    base = select_base_parameters(factor, problem.names, rel_tol=rank_tolerance, forced=forced)
     identifiable = _structural_rank(problem, setup.marker, fixed_columns, rank_tolerance)
     if base.rank < identifiable:
         raise IdentificationError(
             f"{len(measurements)} poses give {len(residual)} residual rows for {identifiable} identifiable "
             f"parameters and identify only {base.rank}: add poses spread over the workspace")
     problem.columns = np.array(base.indices)
-    # LM starts here: its first residual and Jacobian are these, restricted to the base columns.
-    machine_columns = problem.columns[problem.columns < error_model.n_parameters]
-    state = replace(start, whitened=None, tangents=sensitivities.restricted(machine_columns))
+    state = replace(start, whitened=None)
     # Damping starts low: 1e-3 over-damps the weak directions (about twice the iterations).
     degrees_of_freedom = max(len(residual) - base.rank, 1)
     options = dict(max_iterations=max_iterations, initial_damping=1e-6, absolute_cost_tolerance=absolute_cost_tolerance,

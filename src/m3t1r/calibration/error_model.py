@@ -16,7 +16,6 @@ Ad(oMf) for the frame's own placement; a closure's rows see operator @ (X_b - X_
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -196,11 +195,6 @@ class PlatformSensitivities:
     passive_jacobians: np.ndarray
     closure_jacobians: np.ndarray
     factors: tuple[tuple, ...]
-
-    def restricted(self, columns: np.ndarray) -> PlatformSensitivities:
-        """The same sensitivities over a subset of the parameter columns."""
-        return dataclasses.replace(self, twist_jacobians=self.twist_jacobians[:, :, columns],
-                                   closure_jacobians=self.closure_jacobians[:, :, columns])
 
     def passive_motion(self, step: np.ndarray) -> np.ndarray:
         """First-order passive-joint change (N, n_pas) [rad or m] for a parameter step (P,):

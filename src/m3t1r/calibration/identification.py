@@ -334,7 +334,7 @@ def forward_selection(jacobian: ArrayLike, residual: ArrayLike, rows_per_pose: i
     remaining = [int(c) for c in candidates if int(c) not in chosen]
     norms = np.linalg.norm(J, axis=0)
     projected = J[:, remaining] - basis @ (basis.T @ J[:, remaining])
-    chunk = max(1, int(2e7 // max(1, n * k * k)))
+    chunk = max(1, int(2e6 // max(1, n * k * k)))  # candidates per batch: about 16 MB per (c, N, k, k) stack
     while remaining:
         lengths = np.linalg.norm(projected, axis=0)
         alive = lengths > rel_tol * np.maximum(norms[remaining], 1e-300)
