@@ -19,6 +19,7 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r._version import __version__
+from m3t1r.app.cli_common import campaign_report_fields, selection_note
 from m3t1r.app.datasets import MeasurementFile, read_measurements
 from m3t1r.app.reporting import passive_joint_residuals, write_calibration_plots
 from m3t1r.calibration.assessment import (
@@ -30,7 +31,7 @@ from m3t1r.calibration.assessment import (
     likely_causes,
 )
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, CrossValidation, calibrate_closed_loop, cross_validate
-from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, se3_to_report
+from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.errors import InvalidInputError, KinematicsError, PoorExcitationWarning
 from m3t1r.io import OutputSet, Progress
@@ -257,13 +258,7 @@ def explain(calibration: ClosedLoopCalibration, warnings_seen: list[str] = ()) -
         notes.append("not separable from the machine or the measurement frame with these data, kept at the given "
                      "value: " + ", ".join(describe_parameter(n) for n in gauge)
                      + " (a marker offset along the platform z axis is the frame's height while the platform never tilts)")
-    dropped = sorted(base - fitted)
-    if dropped:
-        selection = calibration.selection
-        tied = f"; {selection.tied} other set sizes score within one standard error" if selection else ""
-        notes.append(f"{len(dropped)} identifiable parameters held at nominal because they did not predict "
-                     f"left-out poses better (leave-one-pose-out{tied}): "
-                     + ", ".join(describe_parameter(n) for n in dropped[:8]) + (" ..." if len(dropped) > 8 else ""))
+    notes += selection_note(sorted(base - fitted), calibration.selection)
     weak = [n for n in calibration.fitted if n in calibration.parameters and calibration.std[n] >
             (WEAK_TRANSLATION if n.rpartition(".dt[")[2] in ("0]", "1]", "2]") else WEAK_ROTATION)]
     if weak:
@@ -303,10 +298,7 @@ def calibration_report(calibration: ClosedLoopCalibration, data: MeasurementFile
                        validation: CrossValidation | None = None, notes: list[str] = ()) -> dict:
     """The JSON report of a closed-loop calibration (models/README.md documents every field)."""
     base, fitted = set(calibration.base.names), set(calibration.fitted)
-    setup = calibration.setup
-    estimate_frame = any(n.startswith("measurement_frame.") for n in calibration.std)
-    estimate_marker = any(n.startswith("marker.") for n in calibration.std)
-    selection = calibration.selection
+    setup, selection = calibration.setup, calibration.selection
     return {
         "tool": f"m3t1r {__version__}",
         "created": _dt.datetime.now().isoformat(timespec="seconds"),
@@ -315,22 +307,13 @@ def calibration_report(calibration: ClosedLoopCalibration, data: MeasurementFile
                   "position_only": data.measurements.position_only, "units": getattr(args, "units", "m")},
         "nominal_model": {"urdf": str(nominal.urdf_path), "closures": str(nominal.closures_path)},
         "measured_frame": nominal.platform_frame,
-        "measurement_frame": {**se3_to_report(setup.frame), "estimated": estimate_frame},
-        "marker": {**se3_to_report(setup.marker), "estimated": estimate_marker},
+        **campaign_report_fields(setup, list(calibration.std), validation, selection, calibration.fitted, args),
         "noise_model": {"position_m": noise.position, "rotation_rad": noise.rotation, "actuator_m": noise.actuator},
         "converged": calibration.converged,
         "variance_factor": calibration.variance_factor,
         "outliers": list(outlier_lines),
-        "cross_validation": None if validation is None else {
-            "position_mean_m": validation.errors.position_mean, "rotation_mean_rad": validation.errors.rotation_mean,
-            "folds": validation.folds},
         "identifiable": {"count": calibration.base.rank, "of": len(calibration.std),
                          "condition_number": calibration.base.condition_number, "names": list(calibration.base.names)},
-        "selection": {"method": "forward_loo" if selection else "none", "kept": list(calibration.fitted),
-                      "press": selection.press if selection else None,
-                      "press_all": selection.press_all if selection else None,
-                      "tied": selection.tied if selection else None},
-        "fixed": list(getattr(args, "fix", [])), "priors": dict(getattr(args, "prior", {})),
         "residual_rms": {
             "before": {"position_m": calibration.rms_before[0], "rotation_rad": calibration.rms_before[1]},
             "after": {"position_m": calibration.rms_after[0], "rotation_rad": calibration.rms_after[1]},
@@ -338,7 +321,6 @@ def calibration_report(calibration: ClosedLoopCalibration, data: MeasurementFile
         "solver": {"iterations": calibration.lm.iterations, "converged": calibration.converged,
                    "termination": calibration.lm.termination},
         "notes": list(notes),
-        "forced": bool(getattr(args, "force", False)),
         "parameters": [{"name": name, "value": calibration.parameters.get(name, 0.0), "std": std,
                         "identifiable": name in base, "fitted": name in fitted}
                        for name, std in calibration.std.items() if name in calibration.parameters],

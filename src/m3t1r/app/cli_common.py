@@ -5,9 +5,12 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from m3t1r._version import __version__
+from m3t1r.calibration.assessment import describe_parameter
+from m3t1r.calibration.measurement_setup import MeasurementSetup, se3_to_report
 from m3t1r.errors import InvalidInputError, M3t1rError
 from m3t1r.io import Progress, paired_closures_path, recorded_closures_sha256
 from m3t1r.model.description import Mechanism
@@ -60,3 +63,35 @@ def provenance(args: argparse.Namespace) -> list[str]:
     """Comment lines naming the version, the time and the command that wrote a file."""
     return [f"written by m3t1r {__version__} on {_dt.datetime.now().isoformat(timespec='seconds')}",
             "command: m3t1r " + " ".join(sys.argv[1:]) if sys.argv[1:] else "command: m3t1r (API)"]
+
+
+def campaign_report_fields(setup: MeasurementSetup, estimated: Sequence[str], validation, selection,
+                           fitted: Sequence[str], args: argparse.Namespace) -> dict:
+    """The report fields closed-loop and serial calibrations share (models/README.md): the
+    measurement frame and marker (`estimated`: the setup parameter names that were estimated),
+    the cross-validation, the selection, and the --fix / --prior / --force choices."""
+    errors = None if validation is None else validation.errors
+    return {
+        "measurement_frame": {**se3_to_report(setup.frame),
+                              "estimated": any(n.startswith("measurement_frame.") for n in estimated)},
+        "marker": {**se3_to_report(setup.marker), "estimated": any(n.startswith("marker.") for n in estimated)},
+        "cross_validation": None if errors is None else {
+            "position_mean_m": errors.position_mean, "rotation_mean_rad": errors.rotation_mean,
+            "folds": validation.folds},
+        "selection": {"method": "forward_loo" if selection else "none", "kept": list(fitted),
+                      "press": selection.press if selection else None,
+                      "press_all": selection.press_all if selection else None,
+                      "tied": selection.tied if selection else None},
+        "fixed": list(getattr(args, "fix", None) or []), "priors": dict(getattr(args, "prior", None) or {}),
+        "forced": bool(getattr(args, "force", False)),
+    }
+
+
+def selection_note(dropped: Sequence[str], selection) -> list[str]:
+    """The plain-word note on identifiable parameters that model selection held at nominal."""
+    if not dropped:
+        return []
+    tied = f"; {selection.tied} other set sizes score within one standard error" if selection else ""
+    return [f"{len(dropped)} identifiable parameters held at nominal because they did not predict left-out poses "
+            f"better (leave-one-pose-out{tied}): " + ", ".join(describe_parameter(n) for n in dropped[:8])
+            + (" ..." if len(dropped) > 8 else "")]

@@ -21,8 +21,9 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r._version import __version__
+from m3t1r.app.cli_common import campaign_report_fields, selection_note
 from m3t1r.calibration.assessment import FitRejected, check_fit, describe_parameter, fit_movement_notes, likely_causes
-from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup, register_frame, se3_to_report
+from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup, register_frame
 from m3t1r.calibration.serial import SerialCalibration, calibrate_serial
 from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
@@ -221,12 +222,7 @@ def explain(calibration: SerialCalibration, warnings_seen: list[str] = ()) -> li
         notes.append("the measurement frame takes up the robot's base placement errors (the first joint's "
                      "placement stays nominal, so the calibrated URDF's base is the robot's base)")
     dropped = sorted((base - fitted) & (chain_names | {n for n in calibration.names if n.startswith("compliance.")}))
-    if dropped:
-        selection = calibration.selection
-        tied = f"; {selection.tied} other set sizes score within one standard error" if selection else ""
-        notes.append(f"{len(dropped)} identifiable parameters held at nominal because they did not predict "
-                     f"left-out poses better (leave-one-pose-out{tied}): "
-                     + ", ".join(describe_parameter(n) for n in dropped[:8]) + (" ..." if len(dropped) > 8 else ""))
+    notes += selection_note(dropped, calibration.selection)
     std = calibration.std()
     weak = [n for n in calibration.fitted if n in chain_names
             and std[n] > (WEAK_TRANSLATION if _is_translation(n) else WEAK_ROTATION)]
@@ -260,28 +256,17 @@ def serial_calibration_report(calibration: SerialCalibration, data: SerialCampai
         "nominal_model": {"robot": str(args.serial), "base": chain.base_frame, "tool": chain.tool_frame,
                           "chain": list(chain.joint_names)},
         "measured_frame": chain.tool_frame,
-        "measurement_frame": {**se3_to_report(setup.frame), "estimated": any(
-            n.startswith("measurement_frame.") for n in calibration.names)},
-        "marker": {**se3_to_report(setup.marker), "estimated": any(n.startswith("marker.") for n in calibration.names)},
+        **campaign_report_fields(setup, calibration.names, validation, selection, calibration.fitted, args),
         "noise_model": {"position_m": noise.position, "rotation_rad": noise.rotation, "joint_rad": noise.joint},
         "converged": calibration.converged, "termination": calibration.termination,
         "iterations": calibration.iterations, "variance_factor": calibration.variance_factor,
         "outliers": list(outlier_lines),
-        "cross_validation": None if validation is None else {
-            "position_mean_m": validation.errors.position_mean, "rotation_mean_rad": validation.errors.rotation_mean,
-            "folds": validation.folds},
         "identifiable": {"count": calibration.base.rank, "of": len(calibration.names),
                          "condition_number": calibration.base.condition_number, "names": list(calibration.base.names)},
-        "selection": {"method": "forward_loo" if selection else "none", "kept": list(calibration.fitted),
-                      "press": selection.press if selection else None,
-                      "press_all": selection.press_all if selection else None,
-                      "tied": selection.tied if selection else None},
-        "fixed": list(getattr(args, "fix", None) or []), "priors": dict(getattr(args, "prior", None) or {}),
         "compliance": dict(calibration.compliance),
         "residual_rms": {"before": {"position_m": before.position, "rotation_rad": before.rotation},
                          "after": {"position_m": after.position, "rotation_rad": after.rotation}},
         "notes": list(notes),
-        "forced": bool(getattr(args, "force", False)),
         "parameters": [{"name": n, "value": float(values[n]) if n in fitted else 0.0, "std": std.get(n),
                         "fitted": n in fitted} for n in robot_parameters],
     }

@@ -132,15 +132,7 @@ def select_base_parameters(
                                    np.asarray(forced, dtype=int))
     matrix = _as_matrix(jacobian, "jacobian")
     names = tuple(names)
-    if len(names) != matrix.shape[1]:
-        raise InvalidInputError(f"select_base_parameters: {matrix.shape[1]} columns but {len(names)} names")
-    if not 0.0 < rel_tol < 1.0:
-        raise InvalidInputError(f"select_base_parameters: rel_tol must be in (0, 1), got {rel_tol}")
-    norms = np.linalg.norm(matrix, axis=0)
-    largest = norms.max(initial=0.0)
-    if largest == 0.0:
-        raise IdentificationError("select_base_parameters: the Jacobian is identically zero")
-    nonzero = norms > rel_tol * largest
+    norms, nonzero = _column_norms(matrix, names, rel_tol)
     candidates = np.flatnonzero(nonzero)
     # An unpivoted QR of the tall matrix first: pivoting decisions depend only on column norms of
     # trailing blocks, which are invariant under the orthogonal factor, so pivoting its small
@@ -180,15 +172,22 @@ def select_base_parameters(
     )
 
 
-def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rel_tol: float, max_condition: float,
-                        forced: np.ndarray) -> BaseParameters:
+def _column_norms(matrix: np.ndarray, names: tuple[str, ...], rel_tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Column norms and the mask of columns above rel_tol of the largest (the others have no effect)."""
     if len(names) != matrix.shape[1]:
         raise InvalidInputError(f"select_base_parameters: {matrix.shape[1]} columns but {len(names)} names")
+    if not 0.0 < rel_tol < 1.0:
+        raise InvalidInputError(f"select_base_parameters: rel_tol must be in (0, 1), got {rel_tol}")
     norms = np.linalg.norm(matrix, axis=0)
     largest = norms.max(initial=0.0)
     if largest == 0.0:
         raise IdentificationError("select_base_parameters: the Jacobian is identically zero")
-    nonzero = norms > rel_tol * largest
+    return norms, norms > rel_tol * largest
+
+
+def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rel_tol: float, max_condition: float,
+                        forced: np.ndarray) -> BaseParameters:
+    norms, nonzero = _column_norms(matrix, names, rel_tol)
     normalised = matrix[:, nonzero] / norms[nonzero]
     position = np.full(matrix.shape[1], -1)
     position[np.flatnonzero(nonzero)] = np.arange(np.count_nonzero(nonzero))
