@@ -45,6 +45,7 @@ def test_report_entry_is_translation_then_xyzw_quaternion_as_floats():
     ({"translation": [1, 2], "quaternion": [0, 0, 0, 1]}, "(cannot reshape array of size 2 into shape (3,))"),
     ({"translation": [1, 2, 3], "quaternion": [0, 0, 1]}, "(cannot reshape array of size 3 into shape (4,))"),
     ({"translation": ["a", 2, 3], "quaternion": [0, 0, 0, 1]}, "(could not convert string to float: 'a')"),
+    ({"translation": [1, 2, 3], "quaternion": [0, 0, "a", 1]}, "(could not convert string to float: 'a')"),
     ({"translation": [1, 2, 3], "quaternion": None}, "(cannot reshape array of size 1 into shape (4,))"),
     ({"translation": object(), "quaternion": [0, 0, 0, 1]}, "(float() argument must be a string or a real number, "
                                                             "not 'object')"),
