@@ -69,8 +69,8 @@ def test_quaternion_norm_tolerance_is_1e_6_from_both_sides(sign):
     quaternion /= np.linalg.norm(quaternion)
     inside = {"translation": [0, 0, 0], "quaternion": list(quaternion * (1 + sign * 0.9e-6))}
     rotation = se3_from_report(inside, "marker").rotation
-    # Accepted as is: not renormalised, so R R^T is off by 2 (|q| - 1) (see the final report).
-    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=2e-6)
+    # Accepted and renormalised: the rotation is orthonormal to rounding (compensation checks 1e-9).
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
     outside = {"translation": [0, 0, 0], "quaternion": list(quaternion * (1 + sign * 1.1e-6))}
     assert _message(lambda: se3_from_report(outside, "marker")) == (
         f"marker: quaternion norm {1 + sign * 1.1e-6:.6g} is not 1")

@@ -234,9 +234,9 @@ def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rel_tol: flo
 
 
 def parameter_columns(names: Sequence[str], wanted: Sequence[str], what: str) -> list[int]:
-    """Columns named by `wanted`: a parameter name (`q12.dt[3]`) or a group's prefix (`q12`: all
-    of that placement's columns, any name before ".dt[" or the last "."). InvalidInputError naming
-    `what` and the unknown name otherwise, with an example taken from `names`."""
+    """Columns named by `wanted`: a parameter name (`q12.dt[3]`, `compliance.elbow_joint`) or a
+    placement's name (`q12`: every column named `q12.dt[k]`). InvalidInputError naming `what` and
+    the unknown name otherwise, with an example taken from `names`."""
     index = {name: i for i, name in enumerate(names)}
     columns: list[int] = []
     for name in wanted:

@@ -50,7 +50,7 @@ def se3_from_report(entry: Mapping[str, object], what: str) -> pin.SE3:
         raise InvalidInputError(f"{what}: non-finite value")
     if abs(np.linalg.norm(quaternion) - 1.0) > 1e-6:
         raise InvalidInputError(f"{what}: quaternion norm {np.linalg.norm(quaternion):.6g} is not 1")
-    return pin.XYZQUATToSE3(np.r_[translation, quaternion])
+    return pin.XYZQUATToSE3(np.r_[translation, quaternion / np.linalg.norm(quaternion)])  # exactly orthonormal
 
 
 @dataclass(frozen=True)
