@@ -25,13 +25,14 @@ from m3t1r.app.reporting import passive_joint_residuals, write_calibration_plots
 from m3t1r.calibration.assessment import (
     FitRejected,
     check_fit,
+    check_start,
     coverage_notes,
     describe_parameter,
     fit_movement_notes,
     likely_causes,
 )
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, CrossValidation, calibrate_closed_loop, cross_validate
-from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
+from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.errors import InvalidInputError, KinematicsError, PoorExcitationWarning
 from m3t1r.io import OutputSet, Progress
@@ -43,9 +44,6 @@ __all__ = ["add_campaign_options", "parse_priors", "run_closed_loop_calibration"
 
 #: A fitted parameter whose standard deviation exceeds these is "weakly determined" [m], [rad].
 WEAK_TRANSLATION, WEAK_ROTATION = 1e-3, 1e-3
-#: The nominal model this far from the data (RMS, after the frame registration when estimated) is
-#: beyond any manufacturing error: the fit is not attempted [m].
-HOPELESS_RESIDUAL = 0.1
 _DIAGNOSIS_POSES = 200  # the likely-cause checks look at this many poses at most
 
 
@@ -212,16 +210,7 @@ def _precheck(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, estima
     if np.count_nonzero(valid) < 3:
         raise FitRejected("the slider readings do not assemble on the nominal machine",
                           _diagnose(nominal, data, marker, estimate_frame))
-    points, measured = points[valid], measured[valid]
-    if estimate_frame:
-        frame = register_frame(np.array([pin.SE3(np.eye(3), p).homogeneous for p in points]), measured)
-        points = points @ frame.rotation.T + frame.translation
-    rms = float(np.sqrt(np.mean(np.sum((points - measured) ** 2, axis=1))))
-    if rms > HOPELESS_RESIDUAL:
-        raise FitRejected(f"the nominal model is {rms:.3g} m RMS from the measurements"
-                          + (" after registering the frame" if estimate_frame else "")
-                          + f", beyond any build error ({HOPELESS_RESIDUAL:g} m): the fit was not attempted",
-                          _diagnose(nominal, data, marker, estimate_frame))
+    check_start(points[valid], measured[valid], estimate_frame, lambda: _diagnose(nominal, data, marker, estimate_frame))
 
 
 def _print_summary(calibration: ClosedLoopCalibration, outlier_lines: list[int]) -> None:

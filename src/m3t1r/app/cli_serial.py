@@ -22,8 +22,15 @@ import pinocchio as pin
 
 from m3t1r._version import __version__
 from m3t1r.app.cli_common import campaign_report_fields, selection_note
-from m3t1r.calibration.assessment import FitRejected, check_fit, describe_parameter, fit_movement_notes, likely_causes
-from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup, register_frame
+from m3t1r.calibration.assessment import (
+    FitRejected,
+    check_fit,
+    check_start,
+    describe_parameter,
+    fit_movement_notes,
+    likely_causes,
+)
+from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
 from m3t1r.calibration.serial import SerialCalibration, calibrate_serial
 from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
@@ -37,9 +44,6 @@ __all__ = ["run_serial_calibration", "serial_calibration_report", "SerialCampaig
 
 #: A fitted parameter whose standard deviation exceeds these is "weakly determined" [m], [rad].
 WEAK_TRANSLATION, WEAK_ROTATION = 1e-3, 1e-3
-#: The nominal robot this far from the data (RMS, after the frame registration when estimated) is
-#: beyond any build error: the fit is not attempted [m].
-HOPELESS_RESIDUAL = 0.1
 _EXAMPLE_ROBOTS = ("ur3", "ur5", "ur10", "panda")
 
 
@@ -110,17 +114,8 @@ def _precheck(model: pin.Model, chain: SerialChain, data: SerialCampaign, marker
     """Refuse at once when the nominal robot is further from the data than any build error."""
     points = _nominal_points(model, chain, marker)(data.readings)
     measured = np.array([g.translation for g in data.poses])
-    if estimate_frame:
-        homogeneous = np.tile(np.eye(4), (len(points), 1, 1))
-        homogeneous[:, :3, 3] = points
-        frame = register_frame(homogeneous, measured)
-        points = points @ frame.rotation.T + frame.translation
-    rms = float(np.sqrt(np.mean(np.sum((points - measured) ** 2, axis=1))))
-    if rms > HOPELESS_RESIDUAL:
-        raise FitRejected(f"the nominal robot is {rms:.3g} m RMS from the measurements"
-                          + (" after registering the frame" if estimate_frame else "")
-                          + f", beyond any build error ({HOPELESS_RESIDUAL:g} m): the fit was not attempted",
-                          _diagnose(model, chain, data, marker, estimate_frame))
+    check_start(points, measured, estimate_frame, lambda: _diagnose(model, chain, data, marker, estimate_frame),
+                "robot")
 
 
 def run_serial_calibration(args: argparse.Namespace) -> None:

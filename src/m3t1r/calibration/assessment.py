@@ -20,7 +20,7 @@ import pinocchio as pin
 from m3t1r.calibration.measurement_setup import register_frame
 from m3t1r.errors import IdentificationError
 
-__all__ = ["FitRejected", "MAX_NOISE_RATIO", "check_fit", "likely_causes", "describe_parameter",
+__all__ = ["FitRejected", "MAX_NOISE_RATIO", "HOPELESS_RESIDUAL", "check_fit", "check_start", "likely_causes", "describe_parameter",
            "fit_movement_notes", "coverage_notes"]
 
 #: A fit is accepted while its whitened residual RMS is at most this many times the stated noise
@@ -32,6 +32,11 @@ IMPLAUSIBLE_TRANSLATION, IMPLAUSIBLE_ROTATION = 0.02, 0.1
 
 _COMPONENTS = ("translation along x", "translation along y", "translation along z",
                "rotation about x", "rotation about y", "rotation about z")
+
+
+#: The nominal model this far from the data (RMS, after the frame registration when estimated) is
+#: beyond any manufacturing error: the fit is not attempted [m].
+HOPELESS_RESIDUAL = 0.1
 
 
 class FitRejected(IdentificationError):
@@ -57,6 +62,21 @@ def check_fit(converged: bool, termination: str, iterations: int, variance_facto
                           f"{max_noise_ratio:g}): the model does not explain the data", list(causes) or [
                               "effects the geometric model does not hold (compliance, thermal drift), or a "
                               "noise smaller than the data's: state a realistic noise with --noise-pos/--noise-rot"])
+
+
+def check_start(points: np.ndarray, measured: np.ndarray, frame_estimated: bool,
+                causes: Callable[[], list[str]], what: str = "machine") -> None:
+    """Raise FitRejected, with `causes()`, when the nominal model's predicted points (N, 3) are
+    more than HOPELESS_RESIDUAL RMS from the measured ones, after a rigid registration when the
+    frame is estimated: no build error explains that, and a fit would only wander."""
+    if frame_estimated:
+        rms = _registered_rms(points, measured)[0]
+    else:
+        rms = float(np.sqrt(np.mean(np.sum((points - measured) ** 2, axis=1))))
+    if rms > HOPELESS_RESIDUAL:
+        raise FitRejected(f"the nominal {what} is {rms:.3g} m RMS from the measurements"
+                          + (" after registering the frame" if frame_estimated else "")
+                          + f", beyond any build error ({HOPELESS_RESIDUAL:g} m): the fit was not attempted", causes())
 
 
 def describe_parameter(name: str) -> str:
