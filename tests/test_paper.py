@@ -11,20 +11,13 @@ from m3t1r.errors import InvalidInputError, ModelFileError
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.poe import perturb
 from m3t1r.model.workspace import workspace_actuators
-from m3t1r.paper import (
-    NOISY_READINGS_REL_TOL,
-    PAPER_IDENTIFIABLE_BOUND,
-    SensorNoise,
-    actual_chain_poses,
-    calibrate_two_chains,
-    closed_chain_study,
-    estimate_lower_crank_angles,
-    paper_chains,
-    paper_study,
-    preset_errors,
-    two_chain_error_model,
-    two_chain_identifiability,
-)
+from m3t1r.paper.chains import paper_chains
+from m3t1r.paper.closed_chain import closed_chain_study
+from m3t1r.paper.error_model import PAPER_IDENTIFIABLE_BOUND, two_chain_error_model, two_chain_identifiability
+from m3t1r.paper.identification import NOISY_READINGS_REL_TOL, calibrate_two_chains
+from m3t1r.paper.passive_angles import estimate_lower_crank_angles
+from m3t1r.paper.simulation import SensorNoise, actual_chain_poses, preset_errors
+from m3t1r.paper.study import paper_study
 
 # The re-selected base of an exact fit keeps second-order combinations on purpose (see
 # `calibrate_two_chains`); the pivoted QR rightly reports their conditioning.

@@ -37,7 +37,9 @@ from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError
 from m3t1r.io import POSE_COLUMNS, OutputSet, Terminated, pose_rows, set_quiet, table_text, termination_as_exception
 from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 from m3t1r.model.workspace import workspace_actuators
-from m3t1r.paper import SensorNoise, closed_chain_study, paper_study
+from m3t1r.paper.closed_chain import closed_chain_study
+from m3t1r.paper.simulation import SensorNoise
+from m3t1r.paper.study import paper_study
 
 EXIT_ERROR, EXIT_ROWS_FAILED = 2, 1
 
