@@ -8,7 +8,7 @@ from pathlib import Path
 
 import yaml
 
-from m3t1r.io import atomic_write_text
+from m3t1r.io.outputs import atomic_write_text
 from m3t1r.model.design import NOMINAL, build_closures, build_urdf
 
 HERE = Path(__file__).resolve().parent

@@ -12,17 +12,10 @@ import pinocchio as pin
 import pytest
 
 from m3t1r.errors import DataFileError, InvalidInputError, OutputPathError
-from m3t1r.io import (
-    POSE_COLUMNS,
-    Table,
-    atomic_write_bytes,
-    atomic_write_text,
-    ensure_not_protected,
-    pose_rows,
-    poses_from_table,
-    read_table,
-    write_table,
-)
+from m3t1r.io.outputs import atomic_write_bytes, atomic_write_text
+from m3t1r.io.paths import ensure_not_protected
+from m3t1r.io.poses import POSE_COLUMNS, pose_rows, poses_from_table
+from m3t1r.io.tables import Table, read_table, write_table
 
 QUATERNION = ("qx", "qy", "qz", "qw")
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from m3t1r.errors import DataFileError
-from m3t1r.io import POSE_COLUMNS, Table, poses_from_table
+from m3t1r.io.poses import POSE_COLUMNS, poses_from_table
+from m3t1r.io.tables import Table
 
 
 def _table(tmp_path: Path, norm_error: float) -> Table:

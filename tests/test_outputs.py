@@ -1,6 +1,6 @@
 """Outputs that can be trusted (issue 10): file pairs, collisions, special files, strict JSON, row errors.
 
-Library-level tests of `m3t1r.io.OutputSet` and the pair loader, and CLI tests of the verbs that
+Library-level tests of `m3t1r.io.outputs.OutputSet` and the pair loader, and CLI tests of the verbs that
 use them.
 """
 
@@ -19,7 +19,11 @@ import pytest
 
 from m3t1r.app.cli import main
 from m3t1r.errors import ModelFileError, OutputPathError
-from m3t1r.io import OutputSet, Progress, json_text, paired_closures_path, set_quiet, sweep, temporary_path
+from m3t1r.io.outputs import OutputSet
+from m3t1r.io.pairing import paired_closures_path
+from m3t1r.io.progress import Progress, set_quiet
+from m3t1r.io.strict_json import json_text
+from m3t1r.io.temporaries import sweep, temporary_path
 from m3t1r.model.description import Mechanism
 
 

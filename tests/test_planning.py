@@ -22,7 +22,7 @@ from m3t1r.calibration.pose_selection import closed_loop_candidate_blocks, infor
 from m3t1r.calibration.serial_robots import load_example_robot
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors
 from m3t1r.errors import InvalidInputError, M3t1rError
-from m3t1r.io import read_table
+from m3t1r.io.tables import read_table
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.poe import SerialChain
 from m3t1r.model.workspace import workspace_actuators

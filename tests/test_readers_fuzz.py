@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from m3t1r.app.datasets import read_actuators, read_measurements, read_targets
 from m3t1r.errors import DataFileError, M3t1rError, ModelFileError
-from m3t1r.io import read_table
+from m3t1r.io.tables import read_table
 from m3t1r.model.description import Mechanism, nominal_model_paths
 
 NOMINAL = Mechanism.load()

@@ -15,7 +15,7 @@ from m3t1r.calibration import serial as S
 from m3t1r.calibration import serial_evaluation, serial_robots, serial_simulation
 from m3t1r.calibration.assessment import FitRejected
 from m3t1r.calibration.measurement_setup import MeasurementSetup
-from m3t1r.io import table_text
+from m3t1r.io.tables import table_text
 from m3t1r.model.poe import SerialChain, perturb, tool_poses
 
 NOISE = serial_simulation.MeasurementNoise(position=1e-5, rotation=2e-5, joint=0.0)  # 10 um / 20 urad tracker

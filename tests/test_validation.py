@@ -20,7 +20,8 @@ from m3t1r.calibration.serial_simulation import sample_configurations
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors
 from m3t1r.calibration.validation import read_report, sigma_equivalent, validate
 from m3t1r.errors import DataFileError, InvalidInputError, M3t1rError, ModelFileError
-from m3t1r.io import POSE_COLUMNS, pose_rows, read_table, write_table
+from m3t1r.io.poses import POSE_COLUMNS, pose_rows
+from m3t1r.io.tables import read_table, write_table
 from m3t1r.model.poe import SerialChain, tool_poses
 from m3t1r.model.workspace import workspace_actuators
 

@@ -35,7 +35,7 @@ import pinocchio as pin
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError, OutOfWorkspaceError
-from m3t1r.io import pose_rows
+from m3t1r.io.poses import pose_rows
 from m3t1r.metrics import PoseErrors
 from m3t1r.model.description import Mechanism
 from m3t1r.model.design import NOMINAL, WorkspaceBox

@@ -34,7 +34,11 @@ from m3t1r.calibration.simulation import simulate_study
 from m3t1r.calibration.validation import read_report
 from m3t1r.compensation import check_joint_limits, compensate
 from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError
-from m3t1r.io import POSE_COLUMNS, OutputSet, Terminated, pose_rows, set_quiet, table_text, termination_as_exception
+from m3t1r.io.outputs import OutputSet
+from m3t1r.io.poses import POSE_COLUMNS, pose_rows
+from m3t1r.io.progress import set_quiet
+from m3t1r.io.signals import Terminated, termination_as_exception
+from m3t1r.io.tables import table_text
 from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 from m3t1r.model.workspace import workspace_actuators
 from m3t1r.paper.closed_chain import closed_chain_study

@@ -35,7 +35,8 @@ from m3t1r.calibration.closed_loop import ClosedLoopCalibration, CrossValidation
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.errors import InvalidInputError, KinematicsError, PoorExcitationWarning
-from m3t1r.io import OutputSet, Progress
+from m3t1r.io.outputs import OutputSet
+from m3t1r.io.progress import Progress
 from m3t1r.model.description import Mechanism
 from m3t1r.model.design import NOMINAL
 from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of

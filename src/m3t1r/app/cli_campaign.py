@@ -23,7 +23,10 @@ from m3t1r.calibration.serial_robots import example_tool_frame, load_example_rob
 from m3t1r.calibration.serial_simulation import MeasurementNoise
 from m3t1r.calibration.validation import validate
 from m3t1r.errors import InvalidInputError, ModelFileError
-from m3t1r.io import POSE_COLUMNS, OutputSet, paired_closures_path, pose_rows, table_text
+from m3t1r.io.outputs import OutputSet
+from m3t1r.io.pairing import paired_closures_path
+from m3t1r.io.poses import POSE_COLUMNS, pose_rows
+from m3t1r.io.tables import table_text
 from m3t1r.model.poe import SerialChain
 
 __all__ = ["add_plan_parser", "add_validate_parser", "cmd_plan", "cmd_validate"]

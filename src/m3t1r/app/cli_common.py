@@ -12,7 +12,8 @@ from m3t1r._version import __version__
 from m3t1r.calibration.assessment import describe_parameter
 from m3t1r.calibration.measurement_setup import MeasurementSetup, se3_to_report
 from m3t1r.errors import InvalidInputError, M3t1rError
-from m3t1r.io import Progress, paired_closures_path, recorded_closures_sha256
+from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256
+from m3t1r.io.progress import Progress
 from m3t1r.model.description import Mechanism
 
 __all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "progress_bar", "provenance"]

@@ -36,7 +36,10 @@ from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_val
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
 from m3t1r.calibration.serial_simulation import MeasurementNoise
 from m3t1r.errors import InvalidInputError, PoorExcitationWarning
-from m3t1r.io import OutputSet, poses_from_table, read_table, sha256_bytes
+from m3t1r.io.outputs import OutputSet
+from m3t1r.io.pairing import sha256_bytes
+from m3t1r.io.poses import poses_from_table
+from m3t1r.io.tables import read_table
 from m3t1r.model.poe import SerialChain, tool_poses
 from m3t1r.model.urdf_io import calibrated_urdf_bytes
 

@@ -1,6 +1,6 @@
 """The machine's data files: slider sets, platform poses, calibration measurements, targets.
 
-All are CSV tables read by `m3t1r.io.read_table` (header row, `#` comments, SI units), with
+All are CSV tables read by `m3t1r.io.tables.read_table` (header row, `#` comments, SI units), with
 columns named after the machine: sliders by their actuated joint names, passive readings by their
 joint names, platform poses as x, y, z [m] and a unit quaternion qx, qy, qz, qw (platform frame in
 the base frame). Every check names the file, line and column at fault; models/README.md documents
@@ -20,7 +20,9 @@ import pinocchio as pin
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS
 from m3t1r.calibration.measurements import PoseMeasurements
 from m3t1r.errors import DataFileError
-from m3t1r.io import POSE_COLUMNS, StrPath, Table, pose_rows, poses_from_table, read_table, write_table
+from m3t1r.io.paths import StrPath
+from m3t1r.io.poses import POSE_COLUMNS, pose_rows, poses_from_table
+from m3t1r.io.tables import Table, read_table, write_table
 from m3t1r.model.description import Mechanism
 
 __all__ = [

@@ -33,7 +33,10 @@ from m3t1r.calibration.measurements import TrackerNoise, measure
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors, with_outliers
 from m3t1r.compensation import workspace_targets
 from m3t1r.errors import M3t1rError
-from m3t1r.io import POSE_COLUMNS, atomic_write_text, json_text, pose_rows, write_table
+from m3t1r.io.outputs import atomic_write_text
+from m3t1r.io.poses import POSE_COLUMNS, pose_rows
+from m3t1r.io.strict_json import json_text
+from m3t1r.io.tables import write_table
 from m3t1r.metrics import pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver

@@ -26,7 +26,8 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FixedLocator, LogFormatter, NullFormatter
 
 from m3t1r.errors import InvalidInputError, OutputPathError
-from m3t1r.io import StrPath, atomic_write_bytes, ensure_not_protected
+from m3t1r.io.outputs import atomic_write_bytes
+from m3t1r.io.paths import StrPath, ensure_not_protected
 from m3t1r.metrics import PoseErrors
 
 __all__ = ["plot_pose_errors_before_after", "plot_error_vs_poses", "plot_workspace_error_map",

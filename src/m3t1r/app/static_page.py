@@ -33,7 +33,8 @@ from m3t1r.app.scene import (
     pose_machines,
 )
 from m3t1r.errors import InvalidInputError
-from m3t1r.io import atomic_write_text, ensure_not_protected
+from m3t1r.io.outputs import atomic_write_text
+from m3t1r.io.paths import ensure_not_protected
 from m3t1r.model.kinematics import yaw_of
 
 __all__ = ["build_scene", "scene_html", "write_static_html"]

@@ -51,7 +51,8 @@ import scipy.stats
 from m3t1r.calibration.identification import OUTLIER_SIGMA
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
 from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError, ModelFileError
-from m3t1r.io import poses_from_table, read_table
+from m3t1r.io.poses import poses_from_table
+from m3t1r.io.tables import read_table
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver

@@ -18,7 +18,9 @@ import pinocchio as pin
 import yaml
 
 from m3t1r.errors import ModelFileError
-from m3t1r.io import OutputSet, paired_closures_path, pending_temporaries, recorded_closures_sha256, sha256_bytes
+from m3t1r.io.outputs import OutputSet
+from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256, sha256_bytes
+from m3t1r.io.temporaries import pending_temporaries
 from m3t1r.model.urdf_io import calibrated_urdf_bytes
 
 __all__ = ["ClosureSpec", "Mechanism", "nominal_model_paths", "paired_closures", "HOME_TOLERANCE"]
@@ -177,8 +179,8 @@ class Mechanism:
     def save(self, urdf: str | Path, closures: str | Path | None = None, protect: tuple = ()) -> None:
         """Write this machine as a URDF + closures pair that `Mechanism.load(urdf)` reads back.
 
-        `closures` defaults to the pair name `NAME.closures.yaml` (`m3t1r.io.paired_closures_path`).
-        The two files are written as a unit (`m3t1r.io.OutputSet`): checked first (no collision
+        `closures` defaults to the pair name `NAME.closures.yaml` (`m3t1r.io.pairing.paired_closures_path`).
+        The two files are written as a unit (`m3t1r.io.outputs.OutputSet`): checked first (no collision
         with each other, the source files or `protect`, through symlinks and hard links; folder
         writable), then staged and renamed so that an interruption at any instant leaves a
         loadable pair, the old one or the new one.

@@ -44,7 +44,10 @@ import pinocchio as pin
 from lxml import etree
 
 from m3t1r.errors import InvalidInputError, ModelFileError
-from m3t1r.io import StrPath, atomic_write_bytes, ensure_not_protected, format_float, with_closures_sha256
+from m3t1r.io.outputs import atomic_write_bytes
+from m3t1r.io.pairing import with_closures_sha256
+from m3t1r.io.paths import StrPath, ensure_not_protected
+from m3t1r.io.tables import format_float
 
 IDENTITY_TOLERANCE = 1e-12
 """m and rad. A link frame closer than this to its joint frame counts as on it: far below any

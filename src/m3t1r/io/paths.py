@@ -1,0 +1,63 @@
+"""What an output path names: `-` for standard output, and whether two paths are the same file
+(through symlinks, hard links and bind mounts), so an output never overwrites an input."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable
+from pathlib import Path
+from typing import TypeAlias
+
+from m3t1r.errors import OutputPathError
+
+__all__ = ["STDOUT", "StrPath", "ensure_not_protected"]
+
+StrPath: TypeAlias = "str | os.PathLike[str]"
+
+
+STDOUT = "-"
+"""The output path that means standard output (`-o -`)."""
+
+
+def ensure_not_protected(path: StrPath, protect: Iterable[StrPath]) -> None:
+    """Raise OutputPathError if `path` is the same file as any path in `protect`.
+
+    Two paths are the same file if they resolve to the same absolute path (symlinks followed) or
+    name the same existing inode (hard links, bind mounts). Call it before a long computation to
+    fail early; the atomic writers call it again anyway.
+    """
+    if str(path) == STDOUT:
+        return
+    target = Path(path)
+    for protected in protect:
+        if str(protected) != STDOUT and _same_file(target, Path(protected)):
+            raise OutputPathError(target, f"refusing to overwrite the input file {protected}")
+
+
+def _identity(path: Path) -> tuple[Path, tuple[int, int] | None]:
+    try:
+        info = os.stat(path)
+        inode = (info.st_dev, info.st_ino)
+    except OSError:
+        inode = None
+    return _resolved(path), inode
+
+
+def _same_identity(a: Path, a_inode, b: Path, b_inode) -> bool:
+    return a == b or (a_inode is not None and a_inode == b_inode)
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    if _resolved(a) == _resolved(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist, so they cannot be the same file
+        return False
+
+
+def _resolved(path: Path) -> Path:
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError):  # symlink loop: compare the unresolved absolute path instead
+        return path.absolute()

@@ -1,0 +1,54 @@
+"""Signals around writes: held back while outputs are renamed into place, and SIGTERM or SIGHUP
+turned into an exception so that cleanup runs as for Ctrl-C."""
+
+from __future__ import annotations
+
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+__all__ = ["Terminated", "termination_as_exception"]
+
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """Hold SIGINT, SIGTERM, SIGHUP back while renaming; they are delivered when the block ends."""
+    held = {signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", signal.SIGTERM)}
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+class Terminated(BaseException):
+    """A SIGTERM or SIGHUP arrived; raised so that cleanup runs as for Ctrl-C."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum = signum
+        super().__init__(f"terminated by signal {signal.Signals(signum).name}")
+
+
+@contextmanager
+def termination_as_exception() -> Iterator[None]:
+    """Within the block, SIGTERM and SIGHUP raise `Terminated` (SIGINT already raises
+    KeyboardInterrupt), so `with OutputSet` blocks and `finally` clauses remove temporary files."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Terminated(signum)
+
+    previous = {}
+    for signum in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        if signum is not None:
+            previous[signum] = signal.signal(signum, handler)
+    try:
+        yield
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
