@@ -6,7 +6,13 @@ function still makes an arrow), including `if TYPE_CHECKING:` imports. The test 
 (a) no cycle among m3t1r modules;
 (b) no arrow pointing up the layer order;
 (c) no function-level import of an m3t1r module (none is needed now that the graph is acyclic);
-(d) no module imports the package facade `m3t1r/__init__.py`, which re-exports the public API.
+(d) no module imports the package facade `m3t1r/__init__.py`, which re-exports the public API, nor
+    `m3t1r/paper/__init__.py`, which re-exports the paper's (for notebooks: `from m3t1r import paper`);
+    `m3t1r/io/__init__.py` re-exports nothing, so io names come from its modules anyway.
+
+A layer's prefix covers a subpackage's modules: `m3t1r.io` is the ground's io package (paths, pairing,
+temporaries, signals, strict_json, outputs, tables, poses, progress), `m3t1r.paper` the paper's
+package (chains, error_model, identification, passive_angles, simulation, study, closed_chain).
 
 Allowed exceptions, listed explicitly: the app layer sits above the paper layer (the `paper`
 verb runs the paper's study), so app -> paper is a downward arrow, not a sideways one. There is no
@@ -23,7 +29,8 @@ import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 
-# Lowest first. A module belongs to the first layer whose prefix matches its dotted name.
+# Lowest first. A module belongs to the first layer whose prefix matches its dotted name (`m3t1r.io`
+# covers m3t1r.io.tables, `m3t1r.paper` covers m3t1r.paper.study, and so on).
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("ground", ("m3t1r.errors", "m3t1r._threads", "m3t1r._version", "m3t1r.io", "m3t1r.metrics")),
     ("model", ("m3t1r.model",)),
@@ -124,8 +131,23 @@ def test_no_function_level_imports_of_package_modules():
     assert not hidden, "\n".join(hidden)
 
 
+# Packages whose __init__ re-exports their modules' names, for users outside the package.
+FACADES = ("m3t1r", "m3t1r.paper")
+
+
 def test_nothing_inside_imports_the_facade():
     assert [m for m, imports in GRAPH.items() if m != "m3t1r" and any(t == "m3t1r" for t, _, _ in imports)] == []
+
+
+def test_nothing_inside_imports_a_subpackage_facade():
+    found = [f"{module}:{line} imports {target}" for module, imports in GRAPH.items() if module not in FACADES
+             for target, line, _ in imports if target in FACADES]
+    assert found == []
+
+
+def test_the_io_package_exports_nothing():
+    body = ast.parse((SRC / "m3t1r" / "io" / "__init__.py").read_text(encoding="utf-8")).body
+    assert len(body) == 1 and isinstance(body[0], ast.Expr)  # its docstring only
 
 
 def test_the_facade_exports_what_it_names():
