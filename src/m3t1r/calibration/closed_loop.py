@@ -247,6 +247,10 @@ class _ClosedLoopProblem:
                               np.vstack((jacobian * self.weights[:, None], prior_jacobian)))
         return state.whitened
 
+    def release(self, state: _State) -> None:
+        """LM hook: a superseded iterate drops its per-pose caches (`_release`)."""
+        _release(state)
+
     def retract(self, state: _State, step: np.ndarray) -> _State:
         vector = np.zeros(len(self.names))
         vector[self.columns] = step
@@ -440,8 +444,15 @@ def _reject_outliers(problem: _ClosedLoopProblem, start: _State, result: LMResul
             raise IdentificationError(f"{np.count_nonzero(flagged)} of {len(flagged)} poses are outliers: "
                                       "too few poses are left to fit the model")
         problem.active = ~flagged
+        _release(result.state)
         result = _fit(problem, replace(start, whitened=None), options)
     return result
+
+
+def _release(state: _State) -> None:
+    """Drop what an iterate holds per pose for the next LM step (tangents, LU factors, Jacobian):
+    a superseded fit's final state keeps only its model, setup and assembly."""
+    state.tangents, state.factors, state.whitened = None, None, None
 
 
 def _select_parameters(problem: _ClosedLoopProblem, start: _State, result: LMResult, forced: np.ndarray,
@@ -460,6 +471,7 @@ def _select_parameters(problem: _ClosedLoopProblem, start: _State, result: LMRes
     if len(selection.indices) == len(problem.columns):
         return selection, result
     problem.columns = problem.columns[list(selection.indices)]
+    _release(result.state)
     return selection, _fit(problem, replace(start, whitened=None, tangents=None), options)
 
 

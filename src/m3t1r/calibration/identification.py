@@ -559,7 +559,8 @@ class LeastSquaresProblem(Protocol[State]):
     residual_and_jacobian: whitened residual r (m,) and its Jacobian (m, p) with respect to a
         tangent step dx at `state`, i.e. r(retract(state, dx)) = r + J dx + O(dx^2).
     A problem may also define `residual(state) -> r` (same r, no Jacobian): trial steps then use
-    it, and the Jacobian is only computed for accepted steps.
+    it, and the Jacobian is only computed for accepted steps; and `release(state)`, called on an
+    iterate once a step from it is accepted, to drop what it cached for that step.
     retract: the state moved by the tangent step dx (p,), e.g. T(0) <- T(0) exp6(dx) (eq. 33).
     """
 
@@ -612,8 +613,10 @@ def levenberg_marquardt(
     evaluation, however many damping trials it took.
     """
     state = x0
-    # Optional cheaper residual for trial steps (rejected steps then cost no Jacobian).
+    # Optional cheaper residual for trial steps (rejected steps then cost no Jacobian), and an
+    # optional hook dropping a superseded iterate's caches (the caller may still hold x0).
     residual_only = getattr(problem, "residual", None)
+    release = getattr(problem, "release", None)
     r, J = problem.residual_and_jacobian(state)
     cost = 0.5 * float(r @ r)
     history = [cost]
@@ -651,6 +654,9 @@ def levenberg_marquardt(
                 rho = decrease / predicted if predicted > 0.0 else 0.0
                 mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
                 nu = 2.0
+                if release is not None:
+                    release(state)
+                q = J = None  # the superseded iterate's factorisation, before the next one is built
                 if J_trial is None:
                     r_trial, J_trial = problem.residual_and_jacobian(trial)
                 state, r, J, cost = trial, r_trial, J_trial, cost_trial
