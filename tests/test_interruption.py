@@ -78,11 +78,14 @@ WORKER = textwrap.dedent(r'''
             staging.write_bytes(data)
             os.replace(staging, folder / name)
 
-    # Uninterrupted runs: the new outputs, and how long a run takes once everything is imported.
-    assert run({}) == 0
-    start = time.monotonic()
-    assert run({}) == 0
-    duration = time.monotonic() - start
+    # Uninterrupted runs: the new outputs, and how long a run takes once everything is imported
+    # (the shorter of two, so that kills aimed inside a run land inside it on a loaded machine too).
+    durations = []
+    for _ in range(2):
+        start = time.monotonic()
+        assert run({}) == 0
+        durations.append(time.monotonic() - start)
+    duration = min(durations)
     new = {p.name: p.read_bytes() for p in (urdf, closures, report)}
     assert new[urdf.name] != old[urdf.name] and new[closures.name] != old[closures.name]
     restore_old()
@@ -99,7 +102,7 @@ WORKER = textwrap.dedent(r'''
             if sum(o["killed"] and "delay" in o["plan"] for o in outcomes) >= config["random_kills"]:
                 return
             high = k % 2 == 1
-            yield {"delay": duration * rng.uniform(0.6, 0.92) if high else duration * rng.uniform(0.0, 0.92)}
+            yield {"delay": duration * rng.uniform(0.5, 0.85) if high else duration * rng.uniform(0.0, 0.85)}
 
     outcomes = []
     for plan in itertools.chain(plans, random_plans()):
@@ -142,7 +145,7 @@ def test_calibrate_killed_at_any_instant_leaves_a_loadable_pair(tmp_path, capsys
     capsys.readouterr()
 
     config = {"folder": str(folder), "measurements": str(measurements), "seed": 10, "random_kills": 14,
-              "max_random_runs": 24,
+              "max_random_runs": 40,
               "old_input_sha256": hashlib.sha256(old_measurements.read_bytes()).hexdigest()}
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
     done = subprocess.run([sys.executable, "-c", WORKER, json.dumps(config)], capture_output=True, text=True,
