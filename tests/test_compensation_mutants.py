@@ -119,3 +119,123 @@ def test_accuracy_reports_sliders_beyond_the_truth_stroke_per_target(mechanism):
     assert [f.index for f in result.failures] == [2]
     assert result.failures[0].error is InvalidInputError and "truth forward kinematics" in result.failures[0].reason
     np.testing.assert_array_equal(result.indices, [0, 1, 3])
+
+
+# ------------------------------------------------------------------------------------------------
+# Exact refusals, limits at their bounds, every field of a command (mutation run of 2026-11-29)
+FAR_AWAY = np.array([3.0, 3.0, 1.0, 0.0])  # no assembly reaches it
+
+
+def test_a_strict_failure_names_its_target_in_a_note(mechanism):
+    with pytest.raises(OutOfWorkspaceError) as caught:
+        compensate(mechanism, mechanism, np.vstack((PATH[:2], FAR_AWAY)), strict=True)
+    assert caught.value.__notes__ == ["while compensating target 2 (0-based) of the batch"]
+
+
+def test_incompatible_models_are_refused_word_for_word(mechanism):
+    import dataclasses
+
+    renamed = dataclasses.replace(mechanism, actuated_joints=("a", "b", "c", "d"))
+    with pytest.raises(InvalidInputError) as caught:
+        Compensator(mechanism, renamed)
+    assert str(caught.value) == (f"calibrated model actuates ('a', 'b', 'c', 'd'), the nominal one "
+                                 f"{mechanism.actuated_joints}: not the same machine")
+    other_frame = dataclasses.replace(mechanism, platform_frame="tool")
+    with pytest.raises(InvalidInputError) as caught:
+        Compensator(mechanism, other_frame)
+    assert str(caught.value) == "calibrated platform frame 'tool' differs from the nominal 'P_I'"
+    smaller = dataclasses.replace(mechanism, model=pin.Model())
+    with pytest.raises(InvalidInputError) as caught:
+        Compensator(mechanism, smaller)
+    assert str(caught.value) == f"calibrated model has nq = 0, nominal {mechanism.model.nq}"
+
+
+def test_malformed_targets_are_refused_word_for_word(mechanism):
+    cases = [
+        (pin.SE3.Identity(), "targets: a single pin.SE3; give a sequence of them (or use Compensator.command)"),
+        ([[0.5, 0.5, -0.1, 0.0], pin.SE3.Identity()],
+         "targets: mix of pin.SE3 and other rows; give all placements or an (N, 4) array"),
+        (np.zeros((0, 4)), "targets: no rows"),
+    ]
+    for targets, message in cases:
+        with pytest.raises(InvalidInputError) as caught:
+            compensate(mechanism, mechanism, targets)
+        assert str(caught.value) == message
+    with pytest.raises(InvalidInputError) as caught:
+        compensate(mechanism, mechanism, [[0.5, 0.5, -0.1, "x"]])
+    assert str(caught.value).startswith("targets: not numeric rows (x, y, z, theta) (")
+
+
+def test_targets_may_be_lists_of_any_real_numbers(mechanism):
+    from decimal import Decimal
+
+    rows = [[Decimal(str(v)) for v in row] for row in PATH]
+    as_lists = compensate(mechanism, mechanism, rows)
+    assert as_lists.complete
+    np.testing.assert_allclose(as_lists.actuators, compensate(mechanism, mechanism, PATH).actuators, atol=1e-12)
+
+
+def _solved(q: np.ndarray):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(q=q, residual=1e-13, iterations=4)
+
+
+def test_joint_limits_are_inclusive_and_a_violation_names_the_joint(mechanism):
+    from m3t1r.compensation import check_joint_limits
+
+    model = mechanism.model
+    lower, upper = model.lowerPositionLimit.copy(), model.upperPositionLimit.copy()
+    check_joint_limits(mechanism, _solved(lower.copy()))  # every joint exactly at its lower stop
+    check_joint_limits(mechanism, _solved(upper.copy()))  # and at its upper stop
+    q = (lower + upper) / 2.0
+    q[0] = upper[0] + 1e-3  # the first joint, q11
+    with pytest.raises(OutOfWorkspaceError) as caught:
+        check_joint_limits(mechanism, _solved(q))
+    assert str(caught.value) == ("target puts joint 'q11' at 0.601, beyond its limit [-0.6, 0.6] "
+                                 "(residual 1.000e-13 after 4 iterations)")
+    assert (caught.value.residual, caught.value.iterations) == (1e-13, 4)
+
+
+def test_a_command_carries_every_field_of_the_batch(mechanism):
+    compensator = Compensator(mechanism, mechanism)
+    assert compensator.nominal is mechanism and compensator.calibrated is mechanism
+    target = pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, 0.1), PATH[1, :3])
+    command = compensator.command(target)
+    batch = compensate(mechanism, mechanism, [target])
+    assert command.command_pose.isApprox(batch.command_poses[0], 1e-10)
+    assert command.reached_pose.isApprox(batch.reached_poses[0], 1e-10)
+    np.testing.assert_allclose(command.tilt, batch.tilt[0], atol=1e-12)
+    assert command.iterations == batch.iterations[0] and command.iterations > 0
+
+
+def test_compensate_reports_progress_per_target(mechanism):
+    seen = []
+    compensate(mechanism, mechanism, PATH, progress=seen.append)
+    assert seen == [0, 1, 2]
+
+
+def test_accuracy_of_se3_targets_equals_that_of_their_rows(mechanism):
+    poses = [pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, row[3]), row[:3]) for row in PATH]
+    wide = _wider_stroke(mechanism, 0.7)
+    from_poses = compensation_accuracy(mechanism, wide, mechanism, poses)
+    from_rows = compensation_accuracy(mechanism, wide, mechanism, PATH)
+    np.testing.assert_allclose(from_poses.after.position, from_rows.after.position, atol=1e-12)
+    np.testing.assert_allclose(from_poses.after.yaw, from_rows.after.yaw, atol=1e-12)
+
+
+def test_workspace_helpers_start_at_the_low_corner_and_refuse_word_for_word():
+    from m3t1r.compensation import workspace_grid, workspace_targets
+    from m3t1r.model.design import NOMINAL
+
+    box = NOMINAL.workspace
+    grid = workspace_grid((2, 2, 2, 3))
+    np.testing.assert_array_equal(grid[0], [box.x[0], box.y[0], box.z[0], box.theta[0]])
+    np.testing.assert_array_equal(grid[3], [box.x[0], box.y[0], box.z[1], box.theta[1]])  # z step, theta back
+    with pytest.raises(InvalidInputError) as caught:
+        workspace_grid((2, 0, 2, 2))
+    assert str(caught.value) == "workspace_grid: counts must be 4 integers >= 1, got (2, 0, 2, 2)"
+    assert workspace_targets(1, np.random.default_rng(0)).shape == (1, 4)
+    with pytest.raises(InvalidInputError) as caught:
+        workspace_targets(0, np.random.default_rng(0))
+    assert str(caught.value) == "workspace_targets: n must be >= 1, got 0"
