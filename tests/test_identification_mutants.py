@@ -157,15 +157,15 @@ def test_base_parameters_rank_tolerance_boundary():
     A = rng.normal(size=(40, 3))
     weak = A[:, 0] + 1e-4 * rng.normal(size=40)  # independent at 1e-4 relative
     matrix = np.column_stack((A, weak))
-    assert select_base_parameters(matrix, "abcd", rel_tol=1e-9).rank == 4
-    assert select_base_parameters(matrix, "abcd", rel_tol=1e-2).rank == 3
+    assert select_base_parameters(matrix, "abcd", rank_tolerance=1e-9).rank == 4
+    assert select_base_parameters(matrix, "abcd", rank_tolerance=1e-2).rank == 3
     zero = np.column_stack((A, 1e-12 * A[:, 1]))
-    base = select_base_parameters(zero, "abcd", rel_tol=1e-9)
+    base = select_base_parameters(zero, "abcd", rank_tolerance=1e-9)
     assert base.zero_columns == ("d",) and base.rank == 3
-    with pytest.raises(InvalidInputError, match="rel_tol"):
-        select_base_parameters(A, "abc", rel_tol=1.0)
-    with pytest.raises(InvalidInputError, match="rel_tol"):
-        select_base_parameters(A, "abc", rel_tol=0.0)
+    with pytest.raises(InvalidInputError, match="rank_tolerance"):
+        select_base_parameters(A, "abc", rank_tolerance=1.0)
+    with pytest.raises(InvalidInputError, match="rank_tolerance"):
+        select_base_parameters(A, "abc", rank_tolerance=0.0)
 
 
 def test_batch_least_squares_variance_factor_near_one_from_both_sides():
@@ -316,7 +316,7 @@ def test_forward_selection_stops_when_no_candidate_is_independent_and_checks_row
     selection = forward_selection(J, r, 3, range(4))
     assert len(selection.order) == 2 and len(selection.path) == 3
     # A relative tolerance of one refuses every column.
-    assert forward_selection(J, r, 3, range(4), rel_tol=1.0 + 1e-9).order == ()
+    assert forward_selection(J, r, 3, range(4), rank_tolerance=1.0 + 1e-9).order == ()
     with pytest.raises(InvalidInputError, match="31 rows are not a multiple of 3 per pose"):
         forward_selection(np.ones((31, 2)), np.ones(31), 3, range(2))
     with pytest.raises(InvalidInputError, match="residual"):

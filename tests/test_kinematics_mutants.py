@@ -215,9 +215,9 @@ def test_mobility_counts_rows_and_singular_values_as_documented(mechanism):
     assert solver.mobility(perturbed.home, all_rows=True) == 0  # the redundant rows no longer are
     nominal = ClosedLoopSolver(mechanism)
     singular = np.linalg.svd(nominal.closure_jacobian(mechanism.home), compute_uv=False)
-    for rel_tol in (0.1, 0.28):
-        expected = mechanism.model.nv - int(np.sum(singular > rel_tol * singular[0]))
-        assert nominal.mobility(mechanism.home, rel_tol=rel_tol) == expected
+    for rank_tolerance in (0.1, 0.28):
+        expected = mechanism.model.nv - int(np.sum(singular > rank_tolerance * singular[0]))
+        assert nominal.mobility(mechanism.home, rank_tolerance=rank_tolerance) == expected
 
 
 def test_check_actuators_limits_are_inclusive_and_a_copy(solver):

@@ -126,7 +126,7 @@ def test_identifiable_parameter_counts(mechanism, nominal_configurations):
     # per chain surface at the noise level, and a threshold above it keeps them out.
     noisy = nominal_configurations[:20] + np.random.default_rng(5).normal(0.0, 1e-5, (20, mechanism.model.nq))
     assert dict(two_chain_identifiability(mechanism, noisy).rank_per_chain) == {"B1": 28, "B3": 28}
-    robust = two_chain_identifiability(mechanism, noisy, rel_tol=NOISY_READINGS_REL_TOL)
+    robust = two_chain_identifiability(mechanism, noisy, rank_tolerance=NOISY_READINGS_REL_TOL)
     assert dict(robust.rank_per_chain) == {"B1": 24, "B3": 24}
 
 
@@ -143,7 +143,7 @@ def test_recursive_least_squares_equals_batch(mechanism, nominal_configurations,
     difference = max(np.abs(one["batch"].deltas[p] - one["recursive"].deltas[p]).max() for p in one["batch"].deltas)
     assert difference <= 1e-12  # measured 1.7e-16 on a step of norm 1.1e-2
     # Whole calibrations over the 48 structural combinations (condition 1e3): same parameters.
-    structural = {solver: calibrate_two_chains(mechanism, q, measured, solver=solver, rel_tol=NOISY_READINGS_REL_TOL)
+    structural = {solver: calibrate_two_chains(mechanism, q, measured, solver=solver, rank_tolerance=NOISY_READINGS_REL_TOL)
                   for solver in ("batch", "recursive")}
     assert max(np.abs(structural["batch"].deltas[p] - structural["recursive"].deltas[p]).max()
                for p in structural["batch"].deltas) <= 1e-9  # measured 1.1e-14

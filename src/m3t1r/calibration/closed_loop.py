@@ -383,7 +383,7 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     residual, factor, _ = problem.evaluate(start, everything, reduce=True)
     factor[:, fixed_columns] = 0.0
     forced = np.arange(error_model.n_parameters, len(everything))
-    base = select_base_parameters(factor, problem.names, rel_tol=rank_tolerance, forced=forced)
+    base = select_base_parameters(factor, problem.names, rank_tolerance=rank_tolerance, forced=forced)
     identifiable = _structural_rank(problem, setup.marker, fixed_columns, rank_tolerance)
     if base.rank < identifiable:
         raise IdentificationError(
@@ -480,7 +480,7 @@ def _refine(problem: _ClosedLoopProblem, result: LMResult, rank_tolerance: float
     _, jacobian, _ = problem.evaluate(result.state, everything)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)  # weak by construction
-        refined = select_base_parameters(jacobian * problem.weights[:, None], problem.names, rel_tol=rank_tolerance)
+        refined = select_base_parameters(jacobian * problem.weights[:, None], problem.names, rank_tolerance=rank_tolerance)
     if refined.rank <= len(problem.columns):
         return result
     problem.columns = np.array(refined.indices)

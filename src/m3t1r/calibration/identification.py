@@ -90,7 +90,7 @@ class BaseParameters:
     condition_number: ratio of extreme singular values of the kept normalised columns.
     r_diag_ratio: |R_ii| / |R_00| along the pivot order, for the kept columns and the first dropped
         one if any; the drop from the last to the next entry shows how clear the rank decision is.
-    zero_columns: names of columns whose norm is below rel_tol times the largest column norm
+    zero_columns: names of columns whose norm is below rank_tolerance times the largest column norm
         (parameters with no effect at all on the measurements).
     """
 
@@ -109,16 +109,16 @@ _TIE_BREAK = 1e-9
 def select_base_parameters(
     jacobian: ArrayLike,
     names: Sequence[str],
-    rel_tol: float = 1e-9,
+    rank_tolerance: float = 1e-9,
     *,
     max_condition: float = POOR_EXCITATION_CONDITION,
     forced: Sequence[int] = (),
 ) -> BaseParameters:
     """Choose a maximal set of linearly independent columns of the stacked Jacobian (m, p).
 
-    A column is kept while |R_ii| > rel_tol |R_00| in the pivoted QR of the column-normalised
+    A column is kept while |R_ii| > rank_tolerance |R_00| in the pivoted QR of the column-normalised
     matrix. Exactly redundant parameters (e.g. a placement error along its own joint axis, which
-    commutes with the joint motion) give |R_ii| at rounding level; rel_tol must sit between that
+    commutes with the joint motion) give |R_ii| at rounding level; rank_tolerance must sit between that
     and the weakest genuine direction. Emits PoorExcitationWarning when the kept set's condition
     number exceeds `max_condition`: the pose set is then too poor to pin down every kept parameter.
 
@@ -128,11 +128,11 @@ def select_base_parameters(
     ones explain is dropped; the rest is chosen on the remainder after projecting them out.
     """
     if len(forced):
-        return _select_with_forced(_as_matrix(jacobian, "jacobian"), tuple(names), rel_tol, max_condition,
+        return _select_with_forced(_as_matrix(jacobian, "jacobian"), tuple(names), rank_tolerance, max_condition,
                                    np.asarray(forced, dtype=int))
     matrix = _as_matrix(jacobian, "jacobian")
     names = tuple(names)
-    norms, nonzero = _column_norms(matrix, names, rel_tol)
+    norms, nonzero = _column_norms(matrix, names, rank_tolerance)
     candidates = np.flatnonzero(nonzero)
     # An unpivoted QR of the tall matrix first: pivoting decisions depend only on column norms of
     # trailing blocks, which are invariant under the orthogonal factor, so pivoting its small
@@ -146,7 +146,7 @@ def select_base_parameters(
     r, pivots = scipy.linalg.qr(r0, mode="r", pivoting=True)
     diag = np.abs(np.diag(r))
     ratio = diag / diag[0]
-    rank = int(np.count_nonzero(ratio > rel_tol))
+    rank = int(np.count_nonzero(ratio > rank_tolerance))
     kept = np.sort(candidates[pivots[:rank]])
     singular_values = np.zeros(min(matrix.shape))
     spectrum = np.linalg.svd(r, compute_uv=False)
@@ -172,22 +172,22 @@ def select_base_parameters(
     )
 
 
-def _column_norms(matrix: np.ndarray, names: tuple[str, ...], rel_tol: float) -> tuple[np.ndarray, np.ndarray]:
-    """Column norms and the mask of columns above rel_tol of the largest (the others have no effect)."""
+def _column_norms(matrix: np.ndarray, names: tuple[str, ...], rank_tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Column norms and the mask of columns above rank_tolerance of the largest (the others have no effect)."""
     if len(names) != matrix.shape[1]:
         raise InvalidInputError(f"select_base_parameters: {matrix.shape[1]} columns but {len(names)} names")
-    if not 0.0 < rel_tol < 1.0:
-        raise InvalidInputError(f"select_base_parameters: rel_tol must be in (0, 1), got {rel_tol}")
+    if not 0.0 < rank_tolerance < 1.0:
+        raise InvalidInputError(f"select_base_parameters: rank_tolerance must be in (0, 1), got {rank_tolerance}")
     norms = np.linalg.norm(matrix, axis=0)
     largest = norms.max(initial=0.0)
     if largest == 0.0:
         raise IdentificationError("select_base_parameters: the Jacobian is identically zero")
-    return norms, norms > rel_tol * largest
+    return norms, norms > rank_tolerance * largest
 
 
-def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rel_tol: float, max_condition: float,
+def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rank_tolerance: float, max_condition: float,
                         forced: np.ndarray) -> BaseParameters:
-    norms, nonzero = _column_norms(matrix, names, rel_tol)
+    norms, nonzero = _column_norms(matrix, names, rank_tolerance)
     normalised = matrix[:, nonzero] / norms[nonzero]
     position = np.full(matrix.shape[1], -1)
     position[np.flatnonzero(nonzero)] = np.arange(np.count_nonzero(nonzero))
@@ -198,7 +198,7 @@ def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rel_tol: flo
         vector = normalised[:, position[column]]
         vector = vector - q_forced @ (q_forced.T @ vector)
         length = float(np.linalg.norm(vector))
-        if length > rel_tol:
+        if length > rank_tolerance:
             q_forced = np.column_stack((q_forced, vector / length))
             kept_forced.append(int(column))
             forced_diag.append(length)
@@ -210,7 +210,7 @@ def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rel_tol: flo
     r0 = np.linalg.qr(remainder * tie_break, mode="r")
     r, pivots = scipy.linalg.qr(r0, mode="r", pivoting=True)
     diag = np.abs(np.diag(r))
-    rank_rest = int(np.count_nonzero(diag > rel_tol))
+    rank_rest = int(np.count_nonzero(diag > rank_tolerance))
     kept = np.sort(np.concatenate((forced, rest[pivots[:rank_rest]])))
     r_kept = np.linalg.qr(normalised[:, position[kept]], mode="r")
     kept_singular = np.linalg.svd(r_kept, compute_uv=False)
@@ -310,7 +310,7 @@ def _loo_press(residual: np.ndarray, leverage: np.ndarray) -> np.ndarray:
 
 
 def forward_selection(jacobian: ArrayLike, residual: ArrayLike, rows_per_pose: int, candidates: Sequence[int],
-                      forced: Sequence[int] = (), *, rel_tol: float = 1e-9) -> ParameterSelection:
+                      forced: Sequence[int] = (), *, rank_tolerance: float = 1e-9) -> ParameterSelection:
     """Greedy forward selection of columns of the whitened linear model r + J dx (m = N k rows).
 
     Starting from `forced`, each step adds the candidate column whose least-squares fit has the
@@ -336,7 +336,7 @@ def forward_selection(jacobian: ArrayLike, residual: ArrayLike, rows_per_pose: i
     chunk = max(1, int(2e6 // max(1, n * k * k)))  # candidates per batch: about 16 MB per (c, N, k, k) stack
     while remaining:
         lengths = np.linalg.norm(projected, axis=0)
-        alive = lengths > rel_tol * np.maximum(norms[remaining], 1e-300)
+        alive = lengths > rank_tolerance * np.maximum(norms[remaining], 1e-300)
         if not alive.any():
             break
         scores = np.full(len(remaining), np.inf)

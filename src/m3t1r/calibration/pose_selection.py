@@ -163,7 +163,7 @@ def select_poses(
     *,
     columns: Sequence[int] | None = None,
     initial: Sequence[int] | None = None,
-    rel_tol: float = 1e-9,
+    rank_tolerance: float = 1e-9,
     max_passes: int = 50,
 ) -> PoseSelection:
     """Choose `n_poses` of the candidates maximising log det of the information matrix.
@@ -171,7 +171,7 @@ def select_poses(
     blocks: (n_candidates, rows, parameters) whitened Jacobian block of each candidate pose (rows
         per pose, e.g. 6 for a full pose); a 2-D array means one row per candidate.
     columns: the parameter columns to judge identifiability on; default: the base parameters of
-        all candidates stacked (column-pivoted QR, relative tolerance `rel_tol`).
+        all candidates stacked (column-pivoted QR, relative tolerance `rank_tolerance`).
     initial: a starting set of `n_poses` distinct candidates for the exchange search; default:
         the greedy forward selection.
     max_passes: cap on exchange passes (each tries every selected position once).
@@ -185,7 +185,7 @@ def select_poses(
         raise InvalidInputError(f"select_poses: n_poses must be in [1, {n_candidates}], got {n_poses}")
     if columns is None:
         names = [f"p{k}" for k in range(n_parameters)]
-        columns = select_base_parameters(array.reshape(-1, n_parameters), names, rel_tol, max_condition=math.inf).indices
+        columns = select_base_parameters(array.reshape(-1, n_parameters), names, rank_tolerance, max_condition=math.inf).indices
     chosen_columns = np.asarray(columns, dtype=int)
     if chosen_columns.size == 0 or chosen_columns.min() < 0 or chosen_columns.max() >= n_parameters:
         raise InvalidInputError(f"select_poses: columns must index the {n_parameters} parameters")

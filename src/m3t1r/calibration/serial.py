@@ -580,22 +580,22 @@ def _start_state(chain: SerialChain, model: pin.Model, data: _Measurements, setu
     return state
 
 
-def _select_base(problem: _SerialProblem, state: _State, names: Sequence[str], rel_tol: float,
+def _select_base(problem: _SerialProblem, state: _State, names: Sequence[str], rank_tolerance: float,
                  fixed: Sequence[int]) -> BaseParameters:
     """Base parameters of the whitened Jacobian at `state`, fixed columns zeroed, setup kept first."""
     J = problem.model.residual_and_jacobian(state)[1]
     if len(fixed):
         J = J.copy()
         J[:, list(fixed)] = 0.0
-    return select_base_parameters(J, names, rel_tol, forced=problem.model.layout.setup_columns)
+    return select_base_parameters(J, names, rank_tolerance, forced=problem.model.layout.setup_columns)
 
 
-def _fit_base(problem: _SerialProblem, start: _State, names: Sequence[str], rel_tol: float, fixed: Sequence[int],
+def _fit_base(problem: _SerialProblem, start: _State, names: Sequence[str], rank_tolerance: float, fixed: Sequence[int],
               solve: Callable[..., LMResult]) -> tuple[BaseParameters, LMResult, int]:
     """Select the base parameters at the start, fit them; while the rank is below the structural
     bound, re-select at the estimate and resume (nominal CAD geometry can hide parameters, e.g.
     UR's tool point on the last joint axis hides two from position measurements)."""
-    base = _select_base(problem, start, names, rel_tol, fixed)
+    base = _select_base(problem, start, names, rank_tolerance, fixed)
     problem.columns = np.array(base.indices)
     result = solve(problem, start)
     iterations = result.iterations
@@ -603,7 +603,7 @@ def _fit_base(problem: _SerialProblem, start: _State, names: Sequence[str], rel_
     bound = problem.model.chain.rank_bound(problem.model.data.rotations is None) + (
         layout.n_joints if layout.compliance else 0)
     for _ in range(_MAX_RESELECTIONS if base.rank < bound else 0):
-        candidate = _select_base(problem, result.state, names, rel_tol, fixed)
+        candidate = _select_base(problem, result.state, names, rank_tolerance, fixed)
         if candidate.rank <= base.rank:
             break
         base = candidate
@@ -662,7 +662,7 @@ def calibrate_serial(
     *,
     position_only: bool = False,
     noise: MeasurementNoise = MeasurementNoise(),
-    rel_tol: float = 1e-9,
+    rank_tolerance: float = 1e-9,
     max_iterations: int = 30,
     absolute_cost_tolerance: float = 1e-6,
     setup: MeasurementSetup | None = None,
@@ -715,7 +715,7 @@ def calibrate_serial(
     problem = _SerialProblem(residual, np.arange(layout.size), _prior_columns(names, priors))
     solve = functools.partial(levenberg_marquardt, max_iterations=max_iterations, initial_damping=_INITIAL_DAMPING,
                               absolute_cost_tolerance=absolute_cost_tolerance)
-    base, result, iterations = _fit_base(problem, start, names, rel_tol, fixed_columns, solve)
+    base, result, iterations = _fit_base(problem, start, names, rank_tolerance, fixed_columns, solve)
     if outlier_sigma is not None and outlier_sigma > 0.0:
         result, more = _reject_outliers(problem, start, result, outlier_sigma, solve)
         iterations += more

@@ -353,15 +353,15 @@ class ClosedLoopSolver:
         q = require_finite_vector(q, self.model.nq, "configuration q")
         return self._evaluate(q, with_jacobian=True, all_rows=all_rows)[1]
 
-    def mobility(self, q: np.ndarray, all_rows: bool = False, rel_tol: float = MOBILITY_RANK_TOL) -> int:
+    def mobility(self, q: np.ndarray, all_rows: bool = False, rank_tolerance: float = MOBILITY_RANK_TOL) -> int:
         """nv minus the rank of the closure Jacobian at q.
 
-        Rank counts singular values above rel_tol times the largest (default 1e-9). With
+        Rank counts singular values above rank_tolerance times the largest (default 1e-9). With
         all_rows=True the redundant rows are included: at the nominal geometry they are linear
         combinations of the enforced ones and the mobility is the same.
         """
         singular = np.linalg.svd(self.closure_jacobian(q, all_rows), compute_uv=False)
-        return self.model.nv - int(np.sum(singular > rel_tol * singular[0]))
+        return self.model.nv - int(np.sum(singular > rank_tolerance * singular[0]))
 
     # ----------------------------------------------------------------------------------------
     # Forward kinematics

@@ -118,7 +118,7 @@ def closed_chain_study(
     sigma_position: float = 1e-3,
     sigma_rotation: float = 1e-3,
     compare_closed_loop: bool = True,
-    rel_tol: float | None = None,
+    rank_tolerance: float | None = None,
     mechanism: Mechanism | None = None,
 ) -> ClosedChainStudyResult:
     """Calibrate the paper's two chains on a simulated closed-chain machine and judge the result
@@ -135,7 +135,7 @@ def closed_chain_study(
     with the pose (the strain a real machine takes up in joint play and elasticity). Chain B1
     ends at the measured frame and fits it exactly; chain B3 cannot, and its undamped iteration
     can wander along weakly identifiable directions.
-    rel_tol: as in `paper_study`.
+    rank_tolerance: as in `paper_study`.
     """
     nominal = Mechanism.load() if mechanism is None else mechanism
     chains = paper_chains(nominal)
@@ -153,9 +153,9 @@ def closed_chain_study(
     readings = _read(nominal, chains, q_fit, noise, rng)
     measured = _observe([r.pose for r in fit_forward], noise, rng)
     tracker = noise.tracker if noise is not None else TrackerNoise()
-    if rel_tol is None:
-        rel_tol = EXACT_DATA_REL_TOL if noise is None else NOISY_READINGS_REL_TOL
-    calibration = calibrate_two_chains(nominal, readings, measured, noise=tracker, rel_tol=rel_tol)
+    if rank_tolerance is None:
+        rank_tolerance = EXACT_DATA_REL_TOL if noise is None else NOISY_READINGS_REL_TOL
+    calibration = calibrate_two_chains(nominal, readings, measured, noise=tracker, rank_tolerance=rank_tolerance)
 
     first, second = chains
     sensors_before = _pose_differences(_chain_poses(first, nominal.model, q_held), held_truth)

@@ -146,17 +146,17 @@ class Identifiability:
     base: BaseParameters
 
 
-def _numerical_rank(matrix: np.ndarray, rel_tol: float) -> int:
+def _numerical_rank(matrix: np.ndarray, rank_tolerance: float) -> int:
     """Rank of the column-normalised matrix (the same scaling as `select_base_parameters`)."""
     norms = np.linalg.norm(matrix, axis=0)
-    keep = norms > rel_tol * norms.max()
+    keep = norms > rank_tolerance * norms.max()
     singular = np.linalg.svd(matrix[:, keep] / norms[keep], compute_uv=False)
-    return int(np.count_nonzero(singular > rel_tol * singular[0]))
+    return int(np.count_nonzero(singular > rank_tolerance * singular[0]))
 
 
 @on_one_blas_thread
 def two_chain_identifiability(mechanism: Mechanism, readings: ArrayLike | Mapping[str, ArrayLike], *,
-                              noise: TrackerNoise = TrackerNoise(), rel_tol: float = 1e-9,
+                              noise: TrackerNoise = TrackerNoise(), rank_tolerance: float = 1e-9,
                               model: pin.Model | None = None) -> Identifiability:
     """Rank analysis of the stacked model at the given readings (N, nq) (measured poses do not
     enter the Jacobian). `model` defaults to the mechanism's (nominal) tree model."""
@@ -167,12 +167,12 @@ def two_chain_identifiability(mechanism: Mechanism, readings: ArrayLike | Mappin
     system = two_chain_error_model(model, chains, q, (identity, identity))
     _, jacobian = system.at_tool_points()
     weighted = jacobian * _row_weights(noise, len(chains))[None, :, None]
-    base = select_base_parameters(weighted.reshape(-1, jacobian.shape[2]), system.parameter_names, rel_tol)
+    base = select_base_parameters(weighted.reshape(-1, jacobian.shape[2]), system.parameter_names, rank_tolerance)
     ranks = {}
     column = 0
     for c, chain in enumerate(chains):
         block = weighted[:, _TWIST * c:_TWIST * (c + 1), column:column + chain.n_parameters]
-        ranks[chain.name] = _numerical_rank(block.reshape(-1, chain.n_parameters), rel_tol)
+        ranks[chain.name] = _numerical_rank(block.reshape(-1, chain.n_parameters), rank_tolerance)
         column += chain.n_parameters
     # Eq. (21) as printed: one 6-row error per pose explained by [J_1, J_2]. Row changes within a
     # pose do not change a rank, so WORLD rows do.
@@ -182,7 +182,7 @@ def two_chain_identifiability(mechanism: Mechanism, readings: ArrayLike | Mappin
         n_parameters=len(system.parameter_names),
         rank_per_chain=MappingProxyType(ranks),
         rank_stacked=base.rank,
-        rank_literal_eq21=_numerical_rank(literal.reshape(-1, literal.shape[2]), rel_tol),
+        rank_literal_eq21=_numerical_rank(literal.reshape(-1, literal.shape[2]), rank_tolerance),
         paper_bound=PAPER_IDENTIFIABLE_BOUND,
         base=base,
     )

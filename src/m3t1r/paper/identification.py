@@ -133,7 +133,7 @@ def calibrate_two_chains(
     unidentifiable: Unidentifiable = "base",
     tolerance: float = 1e-12,
     max_iterations: int = 30,
-    rel_tol: float = EXACT_DATA_REL_TOL,
+    rank_tolerance: float = EXACT_DATA_REL_TOL,
     model: pin.Model | None = None,
 ) -> PaperCalibration:
     """Identify both chains' initial-pose errors by the paper's iterated least squares.
@@ -155,7 +155,7 @@ def calibrate_two_chains(
         the data see only weakly, rounding alone moves X by eps / sigma_min, far above any useful
         parameter tolerance, while the poses have long converged.
     max_iterations: per stage (see below).
-    rel_tol: rank threshold of `select_base_parameters`.
+    rank_tolerance: rank threshold of `select_base_parameters`.
     model: the starting tree model (default: the mechanism's nominal one).
 
     Each iteration linearises at the current model: X = argmin ||W (A X - Y)|| (eq. 31-32) and
@@ -172,7 +172,7 @@ def calibrate_two_chains(
     Reading noise also breaks the coupling, at its own level (relative singular values ~1e-5 for
     1e-5 rad encoders): the same combinations then pass any threshold below that, and their
     estimates are driven by the noise, up to tenths of a metre or radian, while moving the poses
-    the machine can reach only at second order. rel_tol=1e-4 leaves them out with the same
+    the machine can reach only at second order. rank_tolerance=1e-4 leaves them out with the same
     held-out accuracy and physically sized placement errors (`NOISY_READINGS_REL_TOL`).
 
     Raises IdentificationError when there are fewer rows than estimated parameters or when the
@@ -191,7 +191,7 @@ def calibrate_two_chains(
         return (system, *system.at_tool_points())
 
     def select(A: np.ndarray, names: tuple[str, ...]) -> BaseParameters:
-        return select_base_parameters((A * weights[None, :, None]).reshape(-1, A.shape[2]), names, rel_tol)
+        return select_base_parameters((A * weights[None, :, None]).reshape(-1, A.shape[2]), names, rank_tolerance)
 
     def iterate(model_now: pin.Model, system: TwoChainErrorModel, y: np.ndarray, A: np.ndarray,
                 base: BaseParameters) -> tuple[pin.Model, TwoChainErrorModel, np.ndarray, np.ndarray, bool]:

@@ -123,7 +123,7 @@ def paper_study(
     n_holdout: int = 50,
     scale: PresetErrorScale = PresetErrorScale(),
     solver: Solver = "recursive",
-    rel_tol: float | None = None,
+    rank_tolerance: float | None = None,
     mechanism: Mechanism | None = None,
 ) -> PaperStudyResult:
     """The paper's simulation, step by step (section 6):
@@ -140,7 +140,7 @@ def paper_study(
     With noise, the tracker perturbs the measured poses and the sensors the readings. With
     passive_from other than "sensor", q_13 and q_23 are estimated from the other readings with
     the nominal model instead of read. The first n_poses calibrate, the rest are held out.
-    solver and rel_tol are passed to `calibrate_two_chains`; rel_tol defaults to
+    solver and rank_tolerance are passed to `calibrate_two_chains`; rank_tolerance defaults to
     `EXACT_DATA_REL_TOL` without noise and `NOISY_READINGS_REL_TOL` with it.
     """
     if n_poses < 1 or n_holdout < 1:
@@ -159,16 +159,16 @@ def paper_study(
     readings, fit_estimate = _with_passive(nominal, readings, passive_from, nominal.model)
     measured = {chain.name: _observe(poses[fit], noise, rng) for chain, poses in zip(chains, truth)}
     tracker = noise.tracker if noise is not None else TrackerNoise()
-    if rel_tol is None:
-        rel_tol = EXACT_DATA_REL_TOL if noise is None else NOISY_READINGS_REL_TOL
+    if rank_tolerance is None:
+        rank_tolerance = EXACT_DATA_REL_TOL if noise is None else NOISY_READINGS_REL_TOL
     calibration: PaperCalibration | None = None
     failure = None
     try:
-        calibration = calibrate_two_chains(nominal, readings, measured, noise=tracker, solver=solver, rel_tol=rel_tol)
+        calibration = calibrate_two_chains(nominal, readings, measured, noise=tracker, solver=solver, rank_tolerance=rank_tolerance)
     except IdentificationError as exc:
         failure = str(exc)
     calibrated = None if calibration is None else calibration.model
-    identifiability = two_chain_identifiability(nominal, readings, noise=tracker, rel_tol=rel_tol)
+    identifiability = two_chain_identifiability(nominal, readings, noise=tracker, rank_tolerance=rank_tolerance)
 
     holdout, held_estimate = _with_passive(nominal, q_true[held], passive_from, nominal.model)
     crank_error = None
