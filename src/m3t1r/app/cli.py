@@ -115,7 +115,7 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     outputs.check()
     noise = None if args.noise_free else TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
     passive = IDLE_CHAIN_JOINTS if args.with_passive else ()
-    setup = _simulated_setup(args)
+    setup = MeasurementSetup.from_numbers(args.tracker_frame, args.marker)
     study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only,
                            passive_joints=passive, setup=setup, outliers=args.outliers)
     comments = provenance(args) + [
@@ -135,19 +135,6 @@ def cmd_simulate(args: argparse.Namespace) -> None:
                   f"{measurement_output.name}")
     if truth_output is not None:
         say(outputs, f"wrote the truth machine to {truth_output.name} and {truth_output.closures.name}")
-
-
-def _simulated_setup(args: argparse.Namespace):
-    """The truth measurement setup of `simulate`: --tracker-frame and --marker (identity without)."""
-    import pinocchio as pin
-
-
-    frame = pin.SE3.Identity()
-    if args.tracker_frame is not None:
-        x, y, z, roll, pitch, yaw = args.tracker_frame
-        frame = pin.SE3(pin.rpy.rpyToMatrix(roll, pitch, yaw), np.array([x, y, z]))
-    marker = pin.SE3(np.eye(3), np.array(args.marker)) if args.marker else pin.SE3.Identity()
-    return MeasurementSetup(frame, marker)
 
 
 def cmd_calibrate(args: argparse.Namespace) -> None:

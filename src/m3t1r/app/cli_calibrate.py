@@ -130,7 +130,7 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     outputs.check()
     data = read_measurements(args.measurements, nominal, units=args.units)
     noise = TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
-    marker = pin.SE3(np.eye(3), np.array(args.marker)) if args.marker else pin.SE3.Identity()
+    marker = MeasurementSetup.from_numbers(marker_xyz=args.marker).marker
     estimate_frame = args.frame == "estimate"
     print(f"calibrating from {len(data.measurements)} poses"
           + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)

@@ -101,12 +101,6 @@ def _run(command: Command, arguments: list[str], out_dir: Path, say: Callable[[s
         raise M3t1rError(f"demo step `{shlex.join(shown)}` failed with status {status}")
 
 
-def _tracker(settings: DemoSettings) -> MeasurementSetup:
-    x, y, z, roll, pitch, yaw = settings.tracker_frame
-    frame = pin.SE3(pin.rpy.rpyToMatrix(roll, pitch, yaw), np.array([x, y, z]))
-    return MeasurementSetup(frame, pin.SE3(np.eye(3), np.array(settings.marker)))
-
-
 @on_one_blas_thread
 def run_demo(out_dir: Path, command: Command, settings: DemoSettings = DemoSettings(),
              say: Callable[[str], None] = print) -> dict:
@@ -117,7 +111,7 @@ def run_demo(out_dir: Path, command: Command, settings: DemoSettings = DemoSetti
     step = _Steps(7, say)
     nominal = Mechanism.load()
     rng = np.random.default_rng(settings.seed)
-    setup = _tracker(settings)
+    setup = MeasurementSetup.from_numbers(settings.tracker_frame, settings.marker)
     file = lambda name: str(out_dir / name)  # noqa: E731
 
     step(f"planning {settings.n_poses} measurement poses (D-optimal, ordered for short travel)")
@@ -199,7 +193,7 @@ def _truth_check(nominal: Mechanism, calibrated: Mechanism, estimated: Measureme
     """
     holdout = workspace_actuators(nominal, settings.n_holdout, rng)
     seen = setup.measured_poses(_platform_poses(truth, holdout))
-    cad = MeasurementSetup(marker=pin.SE3(np.eye(3), np.array(settings.marker) + settings.marker_cad_error))
+    cad = MeasurementSetup.from_numbers(marker_xyz=np.add(settings.marker, settings.marker_cad_error))
     registered = replace(cad, frame=register_frame(cad.measured_poses(_platform_poses(nominal, holdout)), seen[:, :3, 3]))
     say(f"  the reflector as the tracker sees it vs the models' prediction, at {settings.n_holdout} held-out slider sets:")
     say(_HEADER)

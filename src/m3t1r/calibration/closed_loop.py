@@ -208,7 +208,7 @@ class _ClosedLoopProblem:
             sensitivities = self.error_model.platform_sensitivities(solver, state.configurations[block], machine)
             factors += sensitivities.factors
             if not reduce:
-                passive[block] = -np.linalg.solve(sensitivities.passive_jacobians, sensitivities.closure_jacobians)
+                passive[block] = sensitivities.passive_sensitivities()
             rows = slice(k * block.start, k * block.stop)
             residual[rows], block_jacobian = self._block_rows(state, block, columns, sensitivities)
             if reduce:

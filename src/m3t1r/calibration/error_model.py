@@ -128,7 +128,7 @@ class ClosedLoopErrorModel:
         One pose of `platform_sensitivities`.
         """
         batch = self.platform_sensitivities(solver, [q], columns)
-        dq_dp = -np.linalg.solve(batch.passive_jacobians[0], batch.closure_jacobians[0])
+        dq_dp = batch.passive_sensitivities()[0]
         result = (pin.SE3(batch.poses[0]), batch.twist_jacobians[0], dq_dp)
         return result + (batch.factors[0],) if with_factors else result
 
@@ -196,10 +196,10 @@ class PlatformSensitivities:
     closure_jacobians: np.ndarray
     factors: tuple[tuple, ...]
 
-    def passive_motion(self, step: np.ndarray) -> np.ndarray:
-        """First-order passive-joint change (N, n_pas) [rad or m] for a parameter step (P,):
-        dq_passive = -J_c,passive^-1 (dr_c/dp) step."""
-        return -np.linalg.solve(self.passive_jacobians, (self.closure_jacobians @ step)[:, :, None])[:, :, 0]
+    def passive_sensitivities(self) -> np.ndarray:
+        """dq_passive / dp (N, n_pas, P) [rad or m per parameter unit], sliders held fixed:
+        -J_c,passive^-1 dr_c/dp."""
+        return -np.linalg.solve(self.passive_jacobians, self.closure_jacobians)
 
 
 @dataclass(frozen=True, eq=False)

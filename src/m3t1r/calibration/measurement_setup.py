@@ -61,6 +61,20 @@ class MeasurementSetup:
     frame: pin.SE3 = field(default_factory=pin.SE3.Identity)
     marker: pin.SE3 = field(default_factory=pin.SE3.Identity)
 
+    @staticmethod
+    def from_numbers(frame_xyz_rpy: ArrayLike | None = None, marker_xyz: ArrayLike | None = None) -> MeasurementSetup:
+        """The setup from command-line numbers: the frame as x, y, z [m], roll, pitch, yaw [rad]
+        (Pinocchio's rpy, R = Rz(yaw) Ry(pitch) Rx(roll)), the marker as x, y, z [m] with the
+        platform's orientation; identity where None."""
+        frame = pin.SE3.Identity()
+        if frame_xyz_rpy is not None:
+            x, y, z, roll, pitch, yaw = np.asarray(frame_xyz_rpy, dtype=float).reshape(6)
+            frame = pin.SE3(pin.rpy.rpyToMatrix(roll, pitch, yaw), np.array([x, y, z]))
+        marker = pin.SE3.Identity()
+        if marker_xyz is not None:
+            marker = pin.SE3(np.eye(3), np.asarray(marker_xyz, dtype=float).reshape(3))
+        return MeasurementSetup(frame, marker)
+
     def measured_poses(self, platform_poses: np.ndarray) -> np.ndarray:
         """frame . T_platform . marker for platform poses (N, 4, 4) in the base: (N, 4, 4)."""
         return self.frame.homogeneous @ np.asarray(platform_poses, dtype=float) @ self.marker.homogeneous
