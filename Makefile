@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench models mutation clean
+.PHONY: demo test bench models notebooks mutation clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -28,6 +28,10 @@ bench: $(STAMP)
 MODULES ?=
 mutation: $(STAMP)
 	$(BIN)/python tools/mutation.py $(MODULES)
+
+# Regenerate notebooks/*.ipynb (no outputs) from their jupytext scripts notebooks/*.py, the source of truth.
+notebooks: $(STAMP)
+	$(BIN)/jupytext --to ipynb $(wildcard notebooks/*.py)
 
 # Regenerate models/m3t1r.urdf and models/m3t1r.closures.yaml from the nominal design.
 models: $(STAMP)
