@@ -26,7 +26,6 @@ in the middle of a path costs two solves and does not derail its neighbours.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Sequence, Union
 
@@ -39,7 +38,8 @@ from m3t1r.io.poses import pose_rows
 from m3t1r.metrics import PoseErrors
 from m3t1r.model.description import Mechanism
 from m3t1r.model.design import NOMINAL, WorkspaceBox
-from m3t1r.model.kinematics import ClosedLoopSolver, ForwardResult, InverseResult, roll_pitch_of, yaw_of
+from m3t1r.model.kinematics import ClosedLoopSolver, ForwardResult, InverseResult, roll_pitch_of
+from m3t1r.model.task import TaskSpec
 
 __all__ = [
     "Targets", "TargetFailure", "CompensatedCommand", "Compensation", "Compensator", "compensate", "check_joint_limits",
@@ -47,10 +47,10 @@ __all__ = [
 ]
 
 Targets = Union[np.ndarray, Sequence[pin.SE3]]
-"""Commanded platform poses: an (N, 4) array of rows (x, y, z, theta) [m, m, m, rad], or a
-sequence of N `pin.SE3` placements of the platform frame in the base frame."""
-
-_TARGET_COLUMNS = ("x", "y", "z", "theta")
+"""Commanded task-frame poses: an (N, d) array of task coordinates (`TaskSpec.columns`: rows
+(x, y, z, theta) [m, m, m, rad] on the M machine, (x, y) on a planar five-bar, (qx, qy, qz, qw) on an
+orientation mechanism), or a sequence of N `pin.SE3` placements of the task frame in the base frame
+(components the task does not command are ignored)."""
 
 
 # ------------------------------------------------------------------------------------------------
@@ -118,6 +118,7 @@ class Compensation:
     tilt: np.ndarray
     iterations: np.ndarray
     failures: tuple[TargetFailure, ...]
+    task: TaskSpec | None = None
 
     @property
     def complete(self) -> bool:
@@ -126,10 +127,10 @@ class Compensation:
 
     @property
     def command_targets(self) -> np.ndarray:
-        """T_cp as (M, 4) rows (x, y, z, theta) [m, rad], theta = `yaw_of`: the pose output for a
-        controller taking 4-DoF targets (T_cp's roll and pitch are the nominal machine's, zero)."""
-        rows = [np.r_[pose.translation, yaw_of(pose.rotation)] for pose in self.command_poses]
-        return np.array(rows).reshape(-1, 4)
+        """T_cp as task coordinates (M, d) (`TaskSpec.columns`, e.g. x, y, z, theta [m, rad] with
+        theta = `yaw_of`): the pose output for a controller taking task targets."""
+        task = self.task or TaskSpec("platform")
+        return task.coordinates(np.array([pose.homogeneous for pose in self.command_poses]).reshape(-1, 4, 4))
 
     def command_pose_rows(self) -> np.ndarray:
         """T_cp as (M, 7) rows x, y, z, qx, qy, qz, qw (`io.POSE_COLUMNS`): the pose output as a file row."""
@@ -143,8 +144,9 @@ class Compensation:
 
 # ------------------------------------------------------------------------------------------------
 # Inputs
-def _validated_targets(targets: Targets) -> list[np.ndarray] | list[pin.SE3]:
-    """Targets as a list of 4-vectors or of SE3, every value finite; else InvalidInputError naming the row."""
+def _validated_targets(targets: Targets, task: TaskSpec) -> list[np.ndarray] | list[pin.SE3]:
+    """Targets as a list of task-coordinate vectors or of SE3, every value finite; else InvalidInputError
+    naming the row."""
     if isinstance(targets, pin.SE3):
         raise InvalidInputError("targets: a single pin.SE3; give a sequence of them (or use Compensator.command)")
     if not isinstance(targets, np.ndarray) and len(targets) and all(isinstance(t, pin.SE3) for t in targets):
@@ -159,21 +161,23 @@ def _validated_targets(targets: Targets) -> list[np.ndarray] | list[pin.SE3]:
                 raise InvalidInputError(f"target {index} (0-based): rotation matrix is not orthonormal")
         return poses
     if not isinstance(targets, np.ndarray) and any(isinstance(t, pin.SE3) for t in targets):
-        raise InvalidInputError("targets: mix of pin.SE3 and other rows; give all placements or an (N, 4) array")
+        raise InvalidInputError(f"targets: mix of pin.SE3 and other rows; give all placements or an "
+                                f"(N, {len(task.columns)}) array")
+    columns = task.columns
     try:
         array = np.asarray(targets, dtype=float)
     except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"targets: not numeric rows (x, y, z, theta) ({exc})") from None
-    if array.ndim != 2 or array.shape[1] != 4:
-        raise InvalidInputError(f"targets: shape {array.shape}, expected (N, 4) rows (x, y, z, theta)")
+        raise InvalidInputError(f"targets: not numeric rows ({', '.join(columns)}) ({exc})") from None
+    if array.ndim != 2 or array.shape[1] != len(columns):
+        raise InvalidInputError(f"targets: shape {array.shape}, expected (N, {len(columns)}) rows ({', '.join(columns)})")
     if array.shape[0] == 0:
         raise InvalidInputError("targets: no rows")
     bad = np.argwhere(~np.isfinite(array))
     if bad.size:
         row, col = (int(i) for i in bad[0])
         raise InvalidInputError(
-            f"target {row} (0-based): {_TARGET_COLUMNS[col]} = {array[row, col]}, not a finite number")
-    return list(array)
+            f"target {row} (0-based): {columns[col]} = {array[row, col]}, not a finite number")
+    return list(task.goals(array))
 
 
 def _check_compatible(nominal: Mechanism, calibrated: Mechanism) -> None:
@@ -185,6 +189,8 @@ def _check_compatible(nominal: Mechanism, calibrated: Mechanism) -> None:
     if nominal.platform_frame != calibrated.platform_frame:
         raise InvalidInputError(f"calibrated platform frame '{calibrated.platform_frame}' differs from the "
                                 f"nominal '{nominal.platform_frame}'")
+    if nominal.task != calibrated.task:
+        raise InvalidInputError(f"calibrated model's task {calibrated.task} differs from the nominal {nominal.task}")
     if nominal.model.nq != calibrated.model.nq:
         raise InvalidInputError(f"calibrated model has nq = {calibrated.model.nq}, nominal {nominal.model.nq}")
 
@@ -301,7 +307,7 @@ class Compensator:
         URDF limit (a passive hinge past its stop, say) fails with OutOfWorkspaceError. `progress`, if
         given, is called with the index of each target before it is solved.
         """
-        rows = _validated_targets(targets)
+        rows = _validated_targets(targets, self.calibrated.task)
         indices, commands, failures = [], [], []
         for index, target in enumerate(rows):
             if progress is not None:
@@ -325,12 +331,12 @@ class Compensator:
             n_targets=len(rows),
             actuated_joints=self.calibrated.actuated_joints,
             indices=_frozen(np.array(indices, dtype=int)),
-            actuators=_frozen(np.array([c.actuators for c in commands]).reshape(-1, 4)),
+            actuators=_frozen(np.array([c.actuators for c in commands]).reshape(-1, len(self.calibrated.actuated_joints))),
             command_poses=tuple(c.command_pose for c in commands),
             reached_poses=tuple(c.reached_pose for c in commands),
             tilt=_frozen(np.array([c.tilt for c in commands]).reshape(-1, 2)),
             iterations=_frozen(np.array([c.iterations for c in commands], dtype=int)),
-            failures=tuple(failures),
+            failures=tuple(failures), task=self.calibrated.task,
         )
 
 
@@ -344,12 +350,15 @@ class Compensator:
         maps, grids and files of unrelated targets. A target putting any joint of the calibrated machine
         beyond its URDF limit fails with OutOfWorkspaceError, as in `compensate`.
         """
-        rows = _validated_targets(targets)
+        task = self.calibrated.task
+        rows = _validated_targets(targets, task)
         if isinstance(rows[0], pin.SE3):
             wanted = np.array([roll_pitch_of(p.rotation) for p in rows])
-            rows = [np.r_[p.translation, yaw_of(p.rotation)] for p in rows]
+            rows = list(task.coordinates(np.array([p.homogeneous for p in rows])))
         else:
             wanted = np.zeros((len(rows), 2))
+        if task.rotation == "full":
+            wanted[:] = 0.0  # the batch IK's tilt is already relative to a full-rotation goal
         ik = self._inverse.solver.inverse_batch(np.array(rows))
         failures = [TargetFailure(f.index, f"inverse kinematics of the calibrated model: {f.reason}", f.error)
                     for f in ik.failures]
@@ -372,7 +381,7 @@ class Compensator:
             indices=_frozen(ik.indices[good]), actuators=_frozen(ik.actuators[good]),
             command_poses=tuple(pin.SE3(h) for h in fk.poses), reached_poses=tuple(pin.SE3(h) for h in ik.poses[good]),
             tilt=_frozen(ik.tilt[good] - wanted[ik.indices[good]]), iterations=_frozen(ik.iterations[good]),
-            failures=tuple(sorted(failures, key=lambda f: f.index)))
+            failures=tuple(sorted(failures, key=lambda f: f.index)), task=task)
 
 
 def compensate(nominal: Mechanism, calibrated: Mechanism, targets: Targets, *, strict: bool = False,
@@ -390,9 +399,10 @@ def compensate(nominal: Mechanism, calibrated: Mechanism, targets: Targets, *, s
 class TrackingErrors(PoseErrors):
     """How far a machine ends up from the commanded targets, per target.
 
-    position: |p_achieved - p_target| [m]; rotation: the yaw error |yaw_achieved - theta_target|
-    wrapped to [0, pi] [rad], yaw by `yaw_of` (also readable as `yaw`). Roll and pitch are not
-    commanded and not counted here.
+    position: |p_achieved - p_target| over the task's commanded axes [m]; rotation: the commanded
+    rotation error [rad]: |yaw_achieved - theta_target| wrapped to [0, pi] (yaw by `yaw_of`, also
+    readable as `yaw`) for a yaw task, the log3 angle for a full rotation, 0 for none. Uncommanded
+    components (roll and pitch of the M machine) are not counted here.
     """
 
     @property
@@ -431,10 +441,14 @@ class CompensationAccuracy:
     failures: tuple[TargetFailure, ...]
 
 
-def _target_position_yaw(target: np.ndarray | pin.SE3) -> tuple[np.ndarray, float]:
-    if isinstance(target, pin.SE3):
-        return np.array(target.translation), yaw_of(target.rotation)
-    return np.asarray(target[:3]), float(target[3])
+def _tracking_error(task: TaskSpec, target: np.ndarray | pin.SE3, pose: pin.SE3) -> tuple[float, float]:
+    """(|commanded position error| [m], |commanded rotation error| [rad]) of a reached pose: the
+    norms of the position rows and of the rotation rows (wrapped yaw, or log3 angle) of the task."""
+    goal = task.coordinates(target.homogeneous)[0] if isinstance(target, pin.SE3) else np.asarray(target)
+    rotations = task.target_rotations(goal[None, :])
+    rows = task.residual(pose, goal, None if rotations is None else rotations[0])
+    count = len(task.position)
+    return float(np.linalg.norm(rows[:count])), float(np.linalg.norm(rows[count:]))
 
 
 @on_one_blas_thread
@@ -449,7 +463,8 @@ def compensation_accuracy(nominal: Mechanism, calibrated: Mechanism, truth: Mech
     """
     _check_compatible(nominal, calibrated)
     _check_compatible(nominal, truth)
-    rows = _validated_targets(targets)
+    task = nominal.task
+    rows = _validated_targets(targets, task)
     # Two command streams, each with its own IK solver and its own truth FK solver, so that both
     # warm-start along the target path.
     streams = (("uncompensated", _PathSolver(nominal), "nominal", _PathSolver(truth)),
@@ -468,15 +483,13 @@ def compensation_accuracy(nominal: Mechanism, calibrated: Mechanism, truth: Mech
             continue
         indices.append(index)
         sliders.append(commands)
-        achieved.append((_target_position_yaw(target), poses))
+        achieved.append([_tracking_error(task, target, pose) for pose in poses])
 
     def errors(stream: int) -> TrackingErrors:
-        position = [np.linalg.norm(poses[stream].translation - xyz) for (xyz, _), poses in achieved]
-        yaw = [abs(math.remainder(yaw_of(poses[stream].rotation) - theta, 2 * math.pi))
-               for (_, theta), poses in achieved]
-        return TrackingErrors(_frozen(np.array(position, dtype=float)), _frozen(np.array(yaw, dtype=float)))
+        pairs = np.array([both[stream] for both in achieved], dtype=float).reshape(-1, 2)
+        return TrackingErrors(_frozen(pairs[:, 0]), _frozen(pairs[:, 1]))
 
-    stacked = np.array(sliders, dtype=float).reshape(-1, 2, 4)
+    stacked = np.array(sliders, dtype=float).reshape(-1, 2, len(nominal.actuated_joints))
     return CompensationAccuracy(len(rows), _frozen(np.array(indices, dtype=int)), errors(0), errors(1),
                                 _frozen(stacked[:, 0]), _frozen(stacked[:, 1]), tuple(failures))
 

@@ -107,3 +107,7 @@ class UnsupportedJointError(InvalidInputError):
 
 class PoorExcitationWarning(UserWarning):
     """The pose set barely excites some kept parameters: their estimates will be noise-dominated."""
+
+
+class ModelWarning(UserWarning):
+    """`Mechanism.load` changed or assumed something about the files (see `Mechanism.notes`)."""

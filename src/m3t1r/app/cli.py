@@ -82,8 +82,9 @@ def cmd_ik(args: argparse.Namespace) -> None:
     outputs = OutputSet(inputs=(args.poses, mechanism.urdf_path, mechanism.closures_path))
     output = outputs.add(args.output, "-o")
     outputs.check()
-    targets, lines = read_targets(args.poses)
+    targets, lines = read_targets(args.poses, mechanism.task)
     solver = ClosedLoopSolver(mechanism)
+    solver.check_square_task()
     rows, failures, max_tilt = [], [], 0.0
     with progress_bar("ik", len(lines)) as progress:
         for target, line in zip(targets, lines):
@@ -100,10 +101,10 @@ def cmd_ik(args: argparse.Namespace) -> None:
         raise RowFailures(Path(args.poses), failures)
     with outputs:
         outputs.stage(output, table_text(mechanism.actuated_joints, np.array(rows),
-                                         provenance(args) + ["slider positions in m"]))
+                                         provenance(args) + ["actuator positions in m or rad"]))
         outputs.commit()
-    say(outputs, f"wrote {len(rows)} slider sets to {output.name}; "
-                  f"largest uncommandable tilt (roll/pitch) {max_tilt:.3g} rad")
+    tilt = "" if mechanism.task.rotation == "full" else f"; largest uncommandable tilt (roll/pitch) {max_tilt:.3g} rad"
+    say(outputs, f"wrote {len(rows)} actuator sets to {output.name}{tilt}")
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:
@@ -153,7 +154,8 @@ def cmd_compensate(args: argparse.Namespace) -> None:
                                 calibrated.closures_path, args.report))
     output = outputs.add(args.output, "-o")
     outputs.check()
-    targets, lines = read_targets(args.targets)
+    targets, lines = read_targets(args.targets, calibrated.task)
+    ClosedLoopSolver(calibrated).check_square_task()
     if args.report:
         targets = _targets_in_base(targets, args.report, args.targets, calibrated)
     with progress_bar("compensate", len(lines)) as progress:
@@ -165,14 +167,15 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     if args.output_kind == "actuators":
         text = table_text(calibrated.actuated_joints, result.actuators, comments + ["corrected slider commands [m]"])
     elif isinstance(targets, np.ndarray):
-        text = table_text(TARGET_COLUMNS, result.command_targets, comments + [pose_note])
+        text = table_text(calibrated.task.columns, result.command_targets, comments + [pose_note])
     else:
         text = table_text(POSE_COLUMNS, result.command_pose_rows, comments + [pose_note])
     with outputs:
         outputs.stage(output, text)
         outputs.commit()
-    say(outputs, f"wrote {result.n_targets} compensated {args.output_kind} commands to {output.name}; "
-                  f"largest uncommandable tilt (roll/pitch) of the calibrated machine {result.max_tilt:.3g} rad")
+    tilt = ("" if calibrated.task.rotation == "full" else
+            f"; largest uncommandable tilt (roll/pitch) of the calibrated machine {result.max_tilt:.3g} rad")
+    say(outputs, f"wrote {result.n_targets} compensated {args.output_kind} commands to {output.name}{tilt}")
 
 
 def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -> np.ndarray:
@@ -188,6 +191,9 @@ def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -
     if isinstance(targets, np.ndarray):
         raise InvalidInputError(f"{targets_path}: with --report the targets are poses of the measured frame in the "
                                 "measurement frame, and need x,y,z,qx,qy,qz,qw")
+    if calibrated.task.columns != TARGET_COLUMNS or calibrated.task.frame != calibrated.platform_frame:
+        raise InvalidInputError(f"{targets_path}: targets of the measured point (--report) need a task commanding "
+                                "x, y, z and yaw of the platform frame (the M machine's); give task-frame targets")
     setup = read_report(report_path).setup
     solver, offset = ClosedLoopSolver(calibrated), setup.marker.translation
     rows = []
@@ -345,8 +351,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_model_options(p)
     p.set_defaults(run=cmd_fk)
 
-    p = verbs.add_parser("ik", help="inverse kinematics: platform poses -> slider sets (position + yaw)")
-    p.add_argument("poses", help="CSV with x,y,z,theta or x,y,z,qx,qy,qz,qw")
+    p = verbs.add_parser("ik", help="inverse kinematics: task-frame poses -> actuator sets (the closures file's task)")
+    p.add_argument("poses", help="CSV with the task's columns (M machine: x,y,z,theta) or x,y,z,qx,qy,qz,qw")
     p.add_argument("-o", "--output", required=True, help="slider CSV (columns named by actuated joint)")
     _add_model_options(p)
     p.set_defaults(run=cmd_ik)
@@ -388,7 +394,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=cmd_calibrate)
 
     p = verbs.add_parser("compensate", help="corrected commands for targets, from a calibrated model (paper sec. 7)")
-    p.add_argument("targets", help="CSV with x,y,z,theta or x,y,z,qx,qy,qz,qw")
+    p.add_argument("targets", help="CSV with the task's columns (M machine: x,y,z,theta) or x,y,z,qx,qy,qz,qw")
     p.add_argument("--calibrated", required=True, metavar="URDF", help="calibrated URDF")
     p.add_argument("--calibrated-closures", metavar="YAML", help="its closures (default: beside the URDF)")
     p.add_argument("--report", metavar="JSON", help="targets are poses of the measured frame (the marker) in this "
@@ -404,8 +410,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--closures", metavar="YAML", help="nominal closures")
     p.add_argument("--calibrated", metavar="URDF")
     p.add_argument("--calibrated-closures", metavar="YAML")
-    p.add_argument("--pose", nargs=4, type=float, metavar=("X", "Y", "Z", "THETA"),
-                   help="command both machines to this platform pose [m, m, m, rad] (default: home)")
+    p.add_argument("--pose", nargs="+", type=float, metavar="VALUE",
+                   help="command both machines to these task coordinates (the task's columns; M machine: "
+                        "x y z theta [m, m, m, rad]; default: home)")
     p.add_argument("--measurements", metavar="CSV", help="show measured platform positions as markers")
     p.add_argument("--html", metavar="PATH", help="write a self-contained static page instead of serving")
     p.set_defaults(run=cmd_view)

@@ -38,8 +38,8 @@ from m3t1r.errors import InvalidInputError, KinematicsError, PoorExcitationWarni
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.progress import Progress
 from m3t1r.model.description import Mechanism
-from m3t1r.model.design import NOMINAL
-from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
+from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.workspace import declared_workspace
 
 __all__ = ["add_campaign_options", "parse_priors", "run_closed_loop_calibration", "calibration_report"]
 
@@ -271,13 +271,16 @@ def _coverage(calibration: ClosedLoopCalibration, weak: bool) -> list[str]:
     problem = calibration.problem
     if problem is None or not weak:
         return []
-    solver = ClosedLoopSolver(calibration.mechanism)
-    values = []
-    for sliders in problem.measurements.actuators[problem.active]:
-        pose = solver.forward(sliders).pose
-        values.append([*pose.translation, yaw_of(pose.rotation)])
-    box = NOMINAL.workspace
-    spans = coverage_notes(np.array(values), {"x": box.x, "y": box.y, "z": box.z, "theta": box.theta})
+    mechanism = calibration.mechanism
+    actuators = problem.measurements.actuators[problem.active]
+    workspace = declared_workspace(mechanism)
+    if workspace.kind == "actuators":
+        names, values = mechanism.actuated_joints, actuators
+    else:
+        names = mechanism.task.box_keys
+        values = mechanism.task.box_coordinates(ClosedLoopSolver(mechanism).forward_batch(actuators).poses)
+    lo, hi = workspace.bounds(names)
+    spans = coverage_notes(np.array(values), {name: (a, b) for name, a, b in zip(names, lo, hi)})
     if not spans:
         return ["the poses cover the workspace box; more poses would tighten the weak parameters"]
     return ["poses spread over more of the workspace would excite them: " + "; ".join(spans)]

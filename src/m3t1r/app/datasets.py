@@ -24,13 +24,14 @@ from m3t1r.io.paths import StrPath
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows, poses_from_table
 from m3t1r.io.tables import Table, read_table, write_table
 from m3t1r.model.description import Mechanism
+from m3t1r.model.task import TaskSpec
 
 __all__ = [
     "TARGET_COLUMNS", "read_actuators", "write_actuators", "read_poses", "write_poses", "read_targets",
     "MeasurementFile", "read_measurements", "write_measurements", "measurement_table", "sha256_of",
 ]
 
-TARGET_COLUMNS = ("x", "y", "z", "theta")  # platform position [m] and yaw [rad], the 4 commandable DoF
+TARGET_COLUMNS = TaskSpec("platform").columns  # the M machine's: platform position [m] and yaw [rad]
 _QUATERNION = ("qx", "qy", "qz", "qw")
 
 
@@ -106,17 +107,30 @@ def write_poses(path: StrPath, poses: Sequence[pin.SE3], comments: Sequence[str]
     write_table(path, POSE_COLUMNS, pose_rows(poses), comments, protect)
 
 
-def read_targets(path: StrPath) -> tuple[list[pin.SE3] | np.ndarray, np.ndarray]:
-    """Commanded platform poses: either x, y, z, theta (rows of a (n x 4) array: position [m] and
-    yaw [rad]) or x, y, z, qx, qy, qz, qw (a list of SE3). Returns them and the line numbers."""
-    table = read_table(path, required=("x", "y", "z"), optional=("theta",), optional_groups=(_QUATERNION,))
-    has_theta, has_quaternion = table.has_column("theta"), table.has_column("qw")
-    if has_theta == has_quaternion:
-        raise DataFileError(table.path, "a target file needs either a 'theta' column or qx, qy, qz, qw, not "
-                                        + ("both" if has_theta else "neither"))
-    if has_theta:
-        return np.column_stack([table.column(n) for n in TARGET_COLUMNS]), table.line_numbers
-    return poses_from_table(table), table.line_numbers
+def read_targets(path: StrPath, task: TaskSpec | None = None) -> tuple[list[pin.SE3] | np.ndarray, np.ndarray]:
+    """Commanded poses of the task frame, and the file's line numbers.
+
+    Either the task's own columns (`TaskSpec.columns`: x, y, z, theta on the M machine, x, y on a
+    planar five-bar, qx, qy, qz, qw on an orientation mechanism), returned as an (n, d) array, or a
+    full pose x, y, z, qx, qy, qz, qw, returned as SE3 (the task ignores what it does not command).
+    task: default the M machine's (x, y, z, theta of the platform).
+    """
+    task = task or TaskSpec("platform")
+    columns = task.columns
+    optional = tuple(dict.fromkeys(c for c in columns + POSE_COLUMNS if c not in _QUATERNION))
+    groups = (_QUATERNION,)
+    table = read_table(path, required=(), optional=optional, optional_groups=groups)
+    full_pose = all(table.has_column(c) for c in POSE_COLUMNS)
+    own = all(table.has_column(c) for c in columns)
+    if task.rotation == "yaw" and full_pose and table.has_column("theta"):
+        raise DataFileError(table.path, "a target file needs either a 'theta' column or qx, qy, qz, qw, not both")
+    if own and not (full_pose and task.rotation != "yaw"):
+        return np.column_stack([table.column(n) for n in columns]), table.line_numbers
+    if full_pose:
+        return poses_from_table(table), table.line_numbers
+    missing = [c for c in columns if not table.has_column(c)]
+    raise DataFileError(table.path, f"a target file needs the task's columns {', '.join(columns)} or a full pose "
+                                    f"{', '.join(POSE_COLUMNS)}; missing {', '.join(missing)}", column=missing[0])
 
 
 @dataclass(frozen=True)

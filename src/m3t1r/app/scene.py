@@ -161,7 +161,8 @@ def pose_machines(views: Sequence[MachineView], pose: Sequence[float] | None = N
                   sliders: Sequence[float] | None = None) -> tuple[PosedMachine, ...]:
     """Assemble every machine at one command (see the module docstring for the three modes).
 
-    pose: (x, y, z, theta) [m, m, m, rad] of the platform frame, reached by IK on each machine;
+    pose: task coordinates (`TaskSpec.columns`; the M machine's x, y, z, theta [m, m, m, rad]),
+    reached by IK on each machine;
     sliders: actuated joint values [m], applied by FK on each machine. At most one of them.
     Both solves start from each machine's home, so every machine is on its home branch.
 
@@ -172,7 +173,8 @@ def pose_machines(views: Sequence[MachineView], pose: Sequence[float] | None = N
     views = _check_views(views)
     if pose is not None and sliders is not None:
         raise InvalidInputError("give the platform pose or the slider values, not both")
-    target = None if pose is None else require_finite_vector(pose, 4, "platform pose (x, y, z, theta)")
+    task = views[0].mechanism.task
+    target = None if pose is None else require_finite_vector(pose, len(task.columns), f"task pose ({', '.join(task.columns)})")
     inputs = None if sliders is None else require_finite_vector(
         sliders, len(views[0].mechanism.actuated_joints), "slider values")
     posed = []

@@ -33,18 +33,20 @@ class ClosedLoopErrorModel:
     """The placement parameters of a mechanism and the platform pose's sensitivity to them.
 
     placements: every joint of the tree (model order), then every closure frame and the platform
-    frame (each once). Parameter k of placement i is named f"{name}.dt[{k}]", [v; w] order.
+    frame (each once; a JOINT frame is its joint's placement and adds none). Parameter k of placement i is named f"{name}.dt[{k}]", [v; w] order.
     """
 
     def __init__(self, mechanism: Mechanism, placements: tuple[Placement, ...] | None = None) -> None:
         model = mechanism.model
         if placements is None:
             joints = tuple(Placement.joint(model.names[j]) for j in range(1, model.njoints))
-            frame_names: list[str] = []
+            frame_ids: list[int] = []
             for spec in mechanism.closures:
-                frame_names += [spec.frame_a, spec.frame_b]
-            frame_names.append(mechanism.platform_frame)
-            frames = tuple(Placement.frame(n) for n in dict.fromkeys(frame_names))
+                frame_ids += [spec.frame_a_id, spec.frame_b_id]
+            frame_ids.append(mechanism.platform_frame_id)
+            # A JOINT frame is its joint's placement, already a parameter: it gets none of its own.
+            frames = tuple(Placement.frame(model.frames[i].name) for i in dict.fromkeys(frame_ids)
+                           if model.frames[i].type != pin.FrameType.JOINT)
             placements = joints + frames
         self.mechanism = mechanism
         self.placements = placements

@@ -14,7 +14,7 @@ import pinocchio as pin
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.measurement_setup import MeasurementSetup
-from m3t1r.errors import InvalidInputError, KinematicsError
+from m3t1r.errors import InvalidInputError
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
 
@@ -75,17 +75,14 @@ def measure(machine: Mechanism, actuators: np.ndarray, rng: np.random.Generator 
     (right-multiplied, [rad]) noise and the recorded slider readings Gaussian noise; without,
     both are exact.
     """
-    solver = ClosedLoopSolver(machine)
-    platform = []
-    for sliders in actuators:
-        try:
-            try:
-                pose = solver.forward(sliders).pose
-            except KinematicsError:  # the warm start may jump across a singularity: retry from home
-                pose = solver.forward(sliders, q_init=machine.home).pose
-        except KinematicsError as exc:
-            raise InvalidInputError(f"slider set {sliders} does not assemble on the machine: {exc}") from None
-        platform.append(pose.homogeneous)
+    # Every set from home (cold starts, one vectorised solve): a warm start carried from one random
+    # set to the next can cross a singularity onto another branch (a five-bar's elbows).
+    solved = ClosedLoopSolver(machine).forward_batch(np.asarray(actuators, dtype=float).reshape(len(actuators), -1))
+    if solved.failures:
+        first = solved.failures[0]
+        raise InvalidInputError(f"slider set {first.index} ({np.asarray(actuators)[first.index]}) does not assemble "
+                                f"on the machine from its home: {first.reason}")
+    platform = solved.poses
     seen = (setup or MeasurementSetup()).measured_poses(np.array(platform).reshape(-1, 4, 4))
     poses = [pin.SE3(pose) for pose in seen]
     readings = np.array(actuators, dtype=float)

@@ -35,6 +35,7 @@ from m3t1r.errors import (
 )
 from m3t1r.model.description import Mechanism
 from m3t1r.model.poe import jlog3_batch, log3_batch, skew
+from m3t1r.model.task import TaskSpec
 
 __all__ = ["RowFailure", "ForwardBatch", "InverseBatch", "StackedKinematics",
            "rpy_batch"]
@@ -230,6 +231,10 @@ class StackedKinematics:
         self.solver, self.tree = solver, StackedTree(model)
         frame_ids = sorted({c.frame_a_id for c in mechanism.closures} | {c.frame_b_id for c in mechanism.closures})
         frame_ids.append(mechanism.platform_frame_id)
+        task_frame = model.getFrameId(mechanism.task.frame)
+        # The task frame last (-1); the platform frame before it when they differ (else both -1).
+        frame_ids.append(task_frame)
+        self.platform_index = -1 if task_frame == mechanism.platform_frame_id else -2
         where = {f: k for k, f in enumerate(frame_ids)}
         self.frame_parent = np.array([model.frames[f].parentJoint for f in frame_ids])
         self.frame_r = np.array([model.frames[f].placement.rotation for f in frame_ids])
@@ -252,9 +257,10 @@ class StackedKinematics:
         self.passive, self.actuated = solver.passive, solver.actuated
         self.blocks = [(np.asarray(r), np.asarray(c)) for r, c in solver._branch_blocks]
         support = np.zeros(model.nv)
-        for j in model.supports[model.frames[mechanism.platform_frame_id].parentJoint][1:]:
+        for j in model.supports[model.frames[task_frame].parentJoint][1:]:
             support[model.idx_vs[j]] = 1.0
-        self.platform_support = support  # columns of the joints that move the platform frame
+        self.task_support = support  # columns of the joints that move the task frame
+        self.unknowns = np.sort(np.concatenate((self.passive, self.actuated)))  # every joint but the locked ones
 
     def frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(closure and platform frame rotations (n, F, 3, 3), positions (n, F, 3), WORLD Jacobian (n, 6, nv))."""
@@ -465,7 +471,7 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
 
     def system(q: np.ndarray, active: np.ndarray):
         residual, jac, frot, fpos, _ = kin.closures(q)
-        return residual, jac, frot[:, -1], fpos[:, -1]
+        return residual, jac, frot[:, kin.platform_index], fpos[:, kin.platform_index]
 
     parts = []
     for chunk in np.array_split(rows, max(1, -(-len(rows) // _CHUNK))) if len(rows) else []:
@@ -497,37 +503,54 @@ def _forward_result(n: int, parts: list, failures: list) -> ForwardBatch:
     return ForwardBatch(**fields)
 
 
-def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarray | None = None) -> InverseBatch:
-    """Slider values for n targets (n, 4) rows (x, y, z, theta) [m, rad], each from q_init (default home).
+def task_rows(task: TaskSpec, rot: np.ndarray, pos: np.ndarray, twist: np.ndarray, goal: np.ndarray,
+              goal_rot: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Task residual rows (n, d) and their Jacobian (n, d, nv), batched as `TaskSpec.residual`/`jacobian`.
 
-    Row system as `ClosedLoopSolver.inverse`: [closure rows; p_P - p*; wrap(yaw_P - theta*)] = 0 over
-    all joints; branch labels = closure blocks plus the sign of det of the whole system. A converged
+    rot, pos: the task frame (n, 3, 3), (n, 3); twist: the WORLD Jacobian columns that move it
+    (n, 6, nv); goal: (n, len(task.columns)) task coordinates; goal_rot: (n, 3, 3) for a full rotation.
+    """
+    axes, count = task.axes, len(task.position)
+    origin = twist[:, :3] - skew(pos) @ twist[:, 3:]  # origin velocity v + w x p, WORLD axes
+    residual, jacobian = [pos[:, axes] - goal[:, :count]], [origin[:, axes]]
+    if task.rotation == "yaw":
+        yaw = np.arctan2(rot[:, 1, 0], rot[:, 0, 0]) - goal[:, count]
+        residual.append((yaw - 2 * np.pi * np.round(yaw / (2 * np.pi)))[:, None])
+        c = rot[:, :, 0]
+        horizontal = c[:, 0] ** 2 + c[:, 1] ** 2
+        row = np.stack([-c[:, 0] * c[:, 2], -c[:, 1] * c[:, 2], horizontal], axis=1) / horizontal[:, None]
+        jacobian.append(np.einsum("nk,nkv->nv", row, twist[:, 3:])[:, None])
+    elif task.rotation == "full":
+        error = goal_rot.transpose(0, 2, 1) @ rot
+        log, jlog = log6_jlog6_batch(error, np.zeros((len(rot), 3)))
+        residual.append(log[:, 3:])
+        jacobian.append(jlog[:, 3:, 3:] @ rot.transpose(0, 2, 1) @ twist[:, 3:])
+    return np.concatenate(residual, axis=1), np.concatenate(jacobian, axis=1)
+
+
+def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarray | None = None) -> InverseBatch:
+    """Slider values for n targets, rows of task coordinates (`TaskSpec.columns`, e.g. x, y, z, theta)
+    [m, rad], each from q_init (default home).
+
+    Row system as `ClosedLoopSolver.inverse`: [closure rows; task rows] = 0 over every joint but the
+    locked ones; branch labels = closure blocks plus the sign of det of the whole system. A converged
     row needing a slider beyond its limit fails with OutOfWorkspaceError naming the slider.
     """
     solver = kin.solver
-    goal = _rows(targets, 4, "targets", ("x", "y", "z", "theta"))
+    task = solver.mechanism.task
+    solver.check_square_task()
+    goal = task.goals(_rows(targets, len(task.columns), "targets", task.columns))
+    goal_rot = task.target_rotations(goal)
     start = _starts(kin, len(goal), q_init)
-    support = kin.platform_support
-    n_rows, every = len(kin.enforced), np.arange(solver.model.nv)
+    every = kin.unknowns
 
     def system(q: np.ndarray, active: np.ndarray):
         closure, jac, frot, fpos, world = kin.closures(q)
         rot, pos = frot[:, -1], fpos[:, -1]
-        residual = np.empty((len(q), n_rows + 4))
-        residual[:, :n_rows] = closure
-        residual[:, n_rows:n_rows + 3] = pos - goal[active, :3]
-        yaw = np.arctan2(rot[:, 1, 0], rot[:, 0, 0]) - goal[active, 3]
-        residual[:, -1] = yaw - 2 * np.pi * np.round(yaw / (2 * np.pi))
-        platform = world * support
-        full = np.empty((len(q), n_rows + 4, len(every)))
-        full[:, :n_rows] = jac
-        # origin velocity v + w x p, in WORLD axes (LOCAL_WORLD_ALIGNED)
-        full[:, n_rows:n_rows + 3] = platform[:, :3] - skew(pos) @ platform[:, 3:]
-        c = rot[:, :, 0]
-        horizontal = c[:, 0] ** 2 + c[:, 1] ** 2
-        row = np.stack([-c[:, 0] * c[:, 2], -c[:, 1] * c[:, 2], horizontal], axis=1) / horizontal[:, None]
-        full[:, -1] = np.einsum("nk,nkv->nv", row, platform[:, 3:])
-        return residual, full, rot, pos
+        rows, rows_jac = task_rows(task, rot, pos, world * kin.task_support, goal[active],
+                                   None if goal_rot is None else goal_rot[active])
+        return (np.concatenate((closure, rows), axis=1), np.concatenate((jac, rows_jac), axis=1),
+                frot[:, kin.platform_index], fpos[:, kin.platform_index])
 
     def signature(jac: np.ndarray, square: np.ndarray) -> np.ndarray:
         return np.concatenate((kin.signatures(jac), (np.linalg.slogdet(square)[0] > 0)[:, None]), axis=1)
@@ -550,7 +573,7 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
                      for f in failures_of(solved, 0, "inverse kinematics")]
         parts.append((chunk, solved))
     fk = _forward_result(len(goal), parts, failures)
-    wanted = np.zeros(2)  # 4-vector targets request zero roll and pitch
+    wanted = np.zeros(2) if goal_rot is None else rpy_batch(goal_rot[fk.indices])[:, :2]
     return InverseBatch(**{f: getattr(fk, f) for f in ("n", "indices", "poses", "q", "residuals", "iterations",
                                                        "failures")},
                         actuators=_frozen(fk.q[:, kin.actuated]),

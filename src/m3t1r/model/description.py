@@ -7,26 +7,31 @@ each error names the file and the joint, frame or field at fault.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import importlib.resources
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Literal
+from typing import Iterator
 
 import numpy as np
 import pinocchio as pin
 import yaml
 
-from m3t1r.errors import ModelFileError
+from m3t1r.errors import ModelFileError, ModelWarning
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256, sha256_bytes
 from m3t1r.io.temporaries import pending_temporaries
+from m3t1r.model.closures import ASSEMBLY_MAX_CHANGE, ClosureSpec, ClosureSystem, without_rows
+from m3t1r.model.schema import SCHEMA_VERSIONS, read_description
+from m3t1r.model.task import TaskSpec, WorkspaceSpec
 from m3t1r.model.urdf_io import calibrated_urdf_bytes
 
-__all__ = ["ClosureSpec", "Mechanism", "nominal_model_paths", "paired_closures", "HOME_TOLERANCE"]
+__all__ = ["ClosureSpec", "Mechanism", "nominal_model_paths", "paired_closures", "HOME_TOLERANCE",
+           "SCHEMA_VERSIONS"]
 
-HOME_TOLERANCE = 1e-9  # max |closure residual| accepted at the declared home pose
-_ROW_COUNT = {"3D": 3, "6D": 6}
+HOME_TOLERANCE = 1e-9  # max |closure residual| accepted at the home pose (after assembly)
 
 
 def nominal_model_paths() -> tuple[Path, Path]:
@@ -40,34 +45,20 @@ def nominal_model_paths() -> tuple[Path, Path]:
     raise ModelFileError(candidates[-1], "the packaged nominal model files are missing")
 
 
-@dataclass(frozen=True)
-class ClosureSpec:
-    """One loop closure between two frames of the tree.
-
-    type "3D": the frame origins coincide; residual R_a^T (p_b - p_a), in frame_a's axes [m].
-    type "6D": the frames coincide; residual log6(oMa^-1 oMb) = [v; w] in frame_a [m, rad].
-    `rows` are the residual components enforced (indices into those 3 or 6 components).
-    """
-
-    name: str
-    type: Literal["3D", "6D"]
-    frame_a: str
-    frame_b: str
-    rows: tuple[int, ...]
-    frame_a_id: int
-    frame_b_id: int
-
-
 @dataclass(frozen=True, eq=False)
 class Mechanism:
-    """A closed-chain machine: Pinocchio tree model, visual geometry, closures and actuation.
+    """A closed-chain machine: Pinocchio tree model, closures, actuation, task and workspace.
 
-    `model` is the open tree (four chains from `base`); the closures make it a mechanism.
+    `model` is the open tree (one chain per actuator from `base`); the closures make it a mechanism.
     Joint values are Pinocchio configuration vectors (nq == nv, revolute/prismatic only).
+    `task`: what inverse kinematics commands (schema v1 files: position and yaw of `platform_frame`);
+    `workspace`: where simulations and plans sample (None: not declared, schema v1);
+    `locked_joints`: passive joints found redundant at load (a gauge), held at their home value;
+    `notes`: what `load` changed or assumed (assembled home, locked joints, missing limits).
+    The visual geometry loads on first use of `visual_model` (kinematics never needs the meshes).
     """
 
     model: pin.Model
-    visual_model: pin.GeometryModel
     closures: tuple[ClosureSpec, ...]
     actuated_joints: tuple[str, ...]
     principal_chains: dict[str, tuple[str, ...]]
@@ -78,6 +69,26 @@ class Mechanism:
 
     closures_document: dict | None = field(default=None, repr=False, compare=False)
     """The closures file as read (a YAML mapping), so that `save` never re-reads a file that may have changed."""
+    task: TaskSpec | None = None
+    workspace: WorkspaceSpec | None = None
+    locked_joints: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()
+    visual_cache: dict = field(default_factory=dict, repr=False, compare=False)
+    """Holds the visual geometry once loaded; shared by the copies `with_model`/`with_home` make (same tree)."""
+
+    def __post_init__(self) -> None:
+        if self.task is None:
+            object.__setattr__(self, "task", TaskSpec(self.platform_frame))
+
+    @property
+    def visual_model(self) -> pin.GeometryModel:
+        """Visual geometry of the URDF (meshes resolved next to it), loaded on first use.
+
+        Raises ModelFileError naming the URDF when a mesh cannot be found or read.
+        """
+        if "geometry" not in self.visual_cache:
+            self.visual_cache["geometry"] = _load_visual(self.urdf_path, self.model)
+        return self.visual_cache["geometry"]
 
     @classmethod
     def load(cls, urdf: str | Path | None = None, closures: str | Path | None = None) -> "Mechanism":
@@ -108,17 +119,18 @@ class Mechanism:
             closures_path, data = paired_closures(urdf_path, recorded=recorded)
         else:
             closures_path, data = _closures_of(urdf_path, Path(closures), recorded)
-        model, visual = _load_urdf(urdf_path)
+        model = _load_urdf(urdf_path)
         doc = _parse_yaml(closures_path, data)
         try:
-            mechanism = _build(model, visual, doc, urdf_path, closures_path)
+            mechanism = _build(model, doc, urdf_path, closures_path)
         except ModelFileError:
             raise
         except (TypeError, ValueError, AttributeError, OverflowError, KeyError) as exc:
             # Safety net for a malformed cell the field checks above did not foresee.
             raise ModelFileError(closures_path, f"malformed closures file: {type(exc).__name__}: {exc}") from None
-        mechanism = _with_document(mechanism, doc)
-        _check_home_closes(mechanism)
+        mechanism = _settled(dataclasses.replace(mechanism, closures_document=copy.deepcopy(doc)))
+        for note in mechanism.notes:
+            warnings.warn(f"{mechanism.closures_path.name}: {note}", ModelWarning, stacklevel=2)
         return mechanism
 
     # Convenience views, all derived from the model (no duplicated state).
@@ -129,10 +141,16 @@ class Mechanism:
 
     @property
     def passive_ids(self) -> np.ndarray:
-        """Velocity indices of every joint that is not actuated, ascending."""
+        """Velocity indices of the joints the closures solve for (neither actuated nor locked), ascending."""
         mask = np.ones(self.model.nv, dtype=bool)
         mask[self.actuated_ids] = False
+        mask[self.locked_ids] = False
         return np.flatnonzero(mask)
+
+    @property
+    def locked_ids(self) -> np.ndarray:
+        """Velocity indices of the locked (gauge) joints, in `locked_joints` order."""
+        return np.array([self.model.idx_vs[self.model.getJointId(n)] for n in self.locked_joints], dtype=int)
 
     @property
     def platform_frame_id(self) -> int:
@@ -194,22 +212,30 @@ class Mechanism:
 
     def with_model(self, model: pin.Model) -> "Mechanism":
         """The same closures and actuation on another tree model (a calibrated or perturbed copy)."""
-        return Mechanism(model, self.visual_model, self.closures, self.actuated_joints,
-                         self.principal_chains, self.platform_frame, self.home.copy(),
-                         self.urdf_path, self.closures_path, self.closures_document)
+        return dataclasses.replace(self, model=model, home=self.home.copy())
+
+    def with_home(self, home: np.ndarray) -> "Mechanism":
+        """The same machine with another home configuration (nq) [m, rad]."""
+        return dataclasses.replace(self, home=np.array(home, dtype=float))
 
 
-def _load_urdf(path: Path) -> tuple[pin.Model, pin.GeometryModel]:
+def _load_urdf(path: Path) -> pin.Model:
     try:
         model = pin.buildModelFromUrdf(str(path))
-        visual = pin.buildGeomFromUrdf(model, str(path), pin.GeometryType.VISUAL, package_dirs=[str(path.parent)])
     except Exception as exc:  # Pinocchio raises bare RuntimeError/ValueError for bad XML
         raise ModelFileError(path, f"Pinocchio rejected the URDF: {exc}") from None
     for j in range(1, model.njoints):
         if model.nqs[j] != 1 or model.nvs[j] != 1:
             raise ModelFileError(path, f"joint '{model.names[j]}' is not a 1-DoF revolute/prismatic joint "
                                        f"(nq={model.nqs[j]}); continuous and multi-DoF joints are not supported")
-    return model, visual
+    return model
+
+
+def _load_visual(path: Path, model: pin.Model) -> pin.GeometryModel:
+    try:
+        return pin.buildGeomFromUrdf(model, str(path), pin.GeometryType.VISUAL, package_dirs=[str(path.parent)])
+    except Exception as exc:  # a mesh not found or unreadable
+        raise ModelFileError(path, f"cannot load the visual geometry: {exc}") from None
 
 
 def paired_closures(urdf: str | Path, *, recorded: str | None | bool = False) -> tuple[Path, bytes]:
@@ -298,94 +324,86 @@ def _parse_yaml(path: Path, data: bytes) -> dict:
     return doc
 
 
-def _with_document(mechanism: Mechanism, doc: dict) -> Mechanism:
-    return Mechanism(mechanism.model, mechanism.visual_model, mechanism.closures, mechanism.actuated_joints,
-                     mechanism.principal_chains, mechanism.platform_frame, mechanism.home,
-                     mechanism.urdf_path, mechanism.closures_path, copy.deepcopy(doc))
+def _build(model: pin.Model, doc: dict, urdf_path: Path, path: Path) -> Mechanism:
+    described = read_description(model, doc, urdf_path, path)
+    return Mechanism(model, described.closures, described.actuated_joints, described.principal_chains,
+                     described.platform_frame, described.home, urdf_path, path, task=described.task,
+                     workspace=described.workspace)
 
 
-def _frame_id(model: pin.Model, name: object, path: Path, where: str) -> int:
-    if not isinstance(name, str) or not model.existFrame(name):
-        raise ModelFileError(path, f"{where}: frame '{name}' does not exist in the URDF")
-    return model.getFrameId(name)
+def _settled(mechanism: Mechanism) -> Mechanism:
+    """The mechanism with its actuator limits, home and closure system made usable, and notes on what
+    that changed: missing limits replaced, an approximate home assembled, gauge joints locked."""
+    notes = list(_replace_missing_limits(mechanism))
+    system = ClosureSystem(mechanism.model, mechanism.closures)
+    passive = mechanism.passive_ids
+    home = mechanism.home
+    residual = np.abs(system.evaluate(home, False)[0])
+    if not residual.max(initial=0.0) <= HOME_TOLERANCE:  # NaN fails too
+        row = int(np.argmax(np.where(np.isfinite(residual), residual, np.inf)))
+        given = (f"home does not close: closure '{_row_names(mechanism.closures, (row,))[0].split('[')[0]}' "
+                 f"residual {residual[row]:.3e} > {HOME_TOLERANCE:g}")
+        home = _assembled_home(mechanism, system, passive, given)
+        notes.append(f"{given}; assembled by Newton from the given values (joints moved by up to "
+                     f"{np.abs(home - mechanism.home).max():.1e})")
+    redundancy, full_rank = system.redundancy(home, passive)
+    if full_rank > redundancy.rank:
+        raise ModelFileError(mechanism.closures_path,
+                             f"the closures hold the actuators: the rows have rank {full_rank} over every joint but "
+                             f"{redundancy.rank} over the passive ones (the actuators are not independent inputs)")
+    locked = tuple(_joint_name(mechanism.model, v) for v in redundancy.locked)
+    closures = mechanism.closures
+    if locked:
+        notes.append(f"passive joint(s) {', '.join(locked)} locked at their home value: their motion is "
+                     "already spanned by the other passive joints (a gauge, e.g. a cut joint modelled twice)")
+    if redundancy.dropped:
+        closures = without_rows(closures, redundancy.dropped)
+        notes.append(f"{len(redundancy.dropped)} closure row(s) dropped as dependent on the others: "
+                     + ", ".join(_row_names(mechanism.closures, redundancy.dropped)))
+    return dataclasses.replace(mechanism, closures=closures, home=home, locked_joints=locked, notes=tuple(notes))
 
 
-def _build(model: pin.Model, visual: pin.GeometryModel, doc: dict, urdf_path: Path, path: Path) -> Mechanism:
-    actuated = doc["actuated_joints"]
-    if not isinstance(actuated, list) or not actuated:
-        raise ModelFileError(path, "actuated_joints must be a non-empty list of joint names")
-    for name in actuated:
-        if isinstance(name, str) and model.existFrame(name, pin.FrameType.FIXED_JOINT):
-            raise ModelFileError(path, f"actuated_joints: '{name}' is a fixed joint, not prismatic or revolute")
-        if not isinstance(name, str) or not model.existJointName(name):
-            raise ModelFileError(path, f"actuated_joints: joint '{name}' does not exist in {urdf_path.name}")
-        shortname = model.joints[model.getJointId(name)].shortname()
-        if not any(shortname.startswith(k) for k in ("JointModelP", "JointModelR")) or "Unbounded" in shortname:
-            raise ModelFileError(path, f"actuated_joints: joint '{name}' is {shortname}, not prismatic or revolute")
-    if len(set(actuated)) != len(actuated):
-        raise ModelFileError(path, "actuated_joints: a joint is listed twice")
-
-    closures = []
-    seen = set()
-    for k, entry in enumerate(doc["closures"] or []):
-        where = f"closures[{k}]"
-        if not isinstance(entry, dict):
-            raise ModelFileError(path, f"{where}: expected a mapping")
-        name = entry.get("name", where)
-        where = f"closure '{name}'"
-        if name in seen:
-            raise ModelFileError(path, f"{where}: duplicate closure name")
-        seen.add(name)
-        kind = entry.get("type")
-        if kind not in _ROW_COUNT:
-            raise ModelFileError(path, f"{where}: type must be 3D or 6D, got {kind!r}")
-        ia = _frame_id(model, entry.get("frame_a"), path, where)
-        ib = _frame_id(model, entry.get("frame_b"), path, where)
-        rows = entry.get("rows", list(range(_ROW_COUNT[kind])))
-        if (not isinstance(rows, list) or not rows or len(set(rows)) != len(rows)
-                or not all(isinstance(r, int) and 0 <= r < _ROW_COUNT[kind] for r in rows)):
-            raise ModelFileError(path, f"{where}: rows must be distinct indices in 0..{_ROW_COUNT[kind] - 1}, got {rows!r}")
-        closures.append(ClosureSpec(name, kind, entry["frame_a"], entry["frame_b"], tuple(sorted(rows)), ia, ib))
-    if not closures:
-        raise ModelFileError(path, "closures: at least one closure is required")
-
-    platform = doc["platform_frame"]
-    _frame_id(model, platform, path, "platform_frame")
-
-    chains = {}
-    for chain_name, items in (doc.get("principal_chains") or {}).items():
-        if not isinstance(items, list) or len(items) < 2:
-            raise ModelFileError(path, f"principal_chains.{chain_name}: expected joint names then a frame name")
-        for joint in items[:-1]:
-            if not model.existJointName(joint):
-                raise ModelFileError(path, f"principal_chains.{chain_name}: joint '{joint}' does not exist")
-        _frame_id(model, items[-1], path, f"principal_chains.{chain_name}")
-        chains[chain_name] = tuple(items)
-
-    home_doc = doc["home"]
-    if not isinstance(home_doc, dict):
-        raise ModelFileError(path, "home must map joint names to values")
-    home = pin.neutral(model)
-    for name, value in home_doc.items():
-        if not model.existJointName(name):
-            raise ModelFileError(path, f"home: joint '{name}' does not exist")
-        try:
-            value = float(value)
-        except (TypeError, ValueError):
-            raise ModelFileError(path, f"home: joint '{name}' has non-numeric value {value!r}") from None
-        if not np.isfinite(value):
-            raise ModelFileError(path, f"home: joint '{name}' has non-finite value {value}")
-        home[model.idx_qs[model.getJointId(name)]] = value
-    return Mechanism(model, visual, tuple(closures), tuple(actuated), chains, platform, home, urdf_path, path)
+def _joint_name(model: pin.Model, velocity_index: int) -> str:
+    return next(model.names[j] for j in range(1, model.njoints) if model.idx_vs[j] == velocity_index)
 
 
-def _check_home_closes(mechanism: Mechanism) -> None:
-    for spec, residual in closure_residual_by_closure(mechanism, mechanism.home):
-        # Only the enforced rows: on a machine with errors the others cannot all hold (mechanism.md).
-        worst = float(np.max(np.abs(residual[list(spec.rows)])))
-        if not worst <= HOME_TOLERANCE:  # a NaN residual (home values too large) fails too
-            raise ModelFileError(mechanism.closures_path,
-                                 f"home does not close: closure '{spec.name}' residual {worst:.3e} > {HOME_TOLERANCE:g}")
+def _row_names(closures: tuple[ClosureSpec, ...], dropped: tuple[int, ...]) -> list[str]:
+    names = [f"{spec.name}[{r}]" for spec in closures for r in spec.rows]
+    return [names[k] for k in dropped]
+
+
+def _assembled_home(mechanism: Mechanism, system: ClosureSystem, passive: np.ndarray, given: str) -> np.ndarray:
+    """The home closed by least-squares Newton over the passive joints from the given values."""
+    home, worst = system.assemble(mechanism.home, passive, 1e-13)
+    change = float(np.abs(home - mechanism.home).max())
+    if not worst <= HOME_TOLERANCE:
+        raise ModelFileError(mechanism.closures_path,
+                             f"{given}, and Newton from the given values reached only {worst:.1e} "
+                             "(give home values closer to an assembly)")
+    if change > ASSEMBLY_MAX_CHANGE:
+        raise ModelFileError(mechanism.closures_path,
+                             f"{given}; assembling it moved a joint by {change:.3g} (more than "
+                             f"{ASSEMBLY_MAX_CHANGE:g}), so the given values are not an approximate home")
+    return home
+
+
+def _replace_missing_limits(mechanism: Mechanism) -> list[str]:
+    """Actuators without usable URDF limits (lower >= upper, as Pinocchio gives for a missing
+    <limit>) take the workspace's actuator interval, else none (unbounded); one note per joint."""
+    model, notes = mechanism.model, []
+    box = mechanism.workspace.actuators if mechanism.workspace is not None else ()
+    intervals = {name: (lo, hi) for name, lo, hi in box}
+    for name in mechanism.actuated_joints:
+        k = model.idx_qs[model.getJointId(name)]
+        if model.lowerPositionLimit[k] < model.upperPositionLimit[k]:
+            continue
+        lo, hi = intervals.get(name, (-np.inf, np.inf))
+        lower, upper = model.lowerPositionLimit.copy(), model.upperPositionLimit.copy()
+        lower[k], upper[k] = lo, hi
+        model.lowerPositionLimit, model.upperPositionLimit = lower, upper
+        source = "the workspace box's" if name in intervals else "no"
+        notes.append(f"actuator '{name}' has no usable URDF limits; {source} limits [{lo:g}, {hi:g}] used instead")
+    return notes
 
 
 def closure_residual_by_closure(mechanism: Mechanism, q: np.ndarray) -> Iterator[tuple[ClosureSpec, np.ndarray]]:

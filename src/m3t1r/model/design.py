@@ -258,8 +258,9 @@ def build_closures(design: MechanismDesign = NOMINAL) -> dict:
              "frame_b": f"lower_pt_{roman}", "rows": [0, 2]},
         ]
     closures.append({"name": "platform", "type": "6D", "frame_a": "P_I", "frame_b": "P_II", "rows": [0, 1, 2, 5]})
+    box = design.workspace
     return {
-        "schema_version": 1,
+        "schema_version": 2,
         "actuated_joints": ["q11", "q11_B2", "q21", "q21_B4"],
         "closures": closures,
         "principal_chains": {
@@ -267,5 +268,7 @@ def build_closures(design: MechanismDesign = NOMINAL) -> dict:
             "B3": ["q21", "q22", "q22_pa", "q23", "q23_pa", "q24", "P_II"],
         },
         "platform_frame": "P_I",
+        "task": {"frame": "P_I", "position": ["x", "y", "z"], "rotation": "yaw"},
+        "workspace": {"task": {"x": list(box.x), "y": list(box.y), "z": list(box.z), "yaw": list(box.theta)}},
         "home": {name: float(value) for name, value in design.home().items()},
     }

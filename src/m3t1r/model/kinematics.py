@@ -33,6 +33,7 @@ from m3t1r.errors import (
     require_finite_vector,
 )
 from m3t1r.model.batch_kinematics import StackedKinematics, forward_batch, inverse_batch
+from m3t1r.model.closures import ClosureSystem
 from m3t1r.model.description import Mechanism
 
 __all__ = [
@@ -179,7 +180,8 @@ class ClosedLoopSolver:
     def __init__(self, mechanism: Mechanism, tolerance: float = 1e-12, max_iterations: int = 60) -> None:
         self.mechanism = mechanism
         self.model = mechanism.model
-        self.data = self.model.createData()
+        self._closure_system = ClosureSystem(self.model, mechanism.closures)
+        self.data = self._closure_system.data  # one Data: every evaluation leaves it at the q evaluated
         self.tolerance = float(tolerance)
         self.max_iterations = int(max_iterations)
         model = self.model
@@ -220,6 +222,11 @@ class ClosedLoopSolver:
         self._act_lower, self._act_upper = mechanism.joint_limits()
         self._finite_limits = bool(np.all(np.isfinite(self._act_lower)) and np.all(np.isfinite(self._act_upper)))
         self._platform = mechanism.platform_frame_id
+        self._task_frame = model.getFrameId(mechanism.task.frame)
+        locked = np.zeros(nv, dtype=bool)
+        locked[mechanism.locked_ids] = True
+        # IK's columns: every joint but the locked ones (None: all, which saves a copy per step)
+        self._unknowns = np.flatnonzero(~locked) if locked.any() else None
         if self.n_rows != len(self.passive):
             raise InvalidInputError(
                 f"{mechanism.closures_path}: {self.n_rows} enforced closure rows for {len(self.passive)} passive joints; "
@@ -240,55 +247,18 @@ class ClosedLoopSolver:
         self._branch = _BranchSignature(self._branch_blocks, model.nv)
         self.singular_rcond = SINGULAR_RCOND
         self._stacked = None  # batched kinematics, built on first use
-        self._build_constraints()
         self._last_branch: bytes | None = None  # signature at this solver's last FK solution
         self._tangent: np.ndarray | None = None  # d q_passive / d sliders at the last factorisation
         self.last_q = mechanism.home.copy()
 
     # ----------------------------------------------------------------------------------------
     # Residual and Jacobian
-    def _build_constraints(self) -> None:
-        """Pinocchio constraint models of the closures, for the Newton loops' evaluation (`_system`).
-
-        PointAnchor (3D) residual c1Mc2.translation = R_a^T (p_b - p_a) and FrameAnchor (6D) residual
-        log6(c1Mc2) are exactly our rows, and their data's error arrays stay live between `calc`s, so a
-        residual is one forwardKinematics, one `calc` per closure and one concatenate; the Jacobian one
-        `getConstraintsJacobian`. The FrameAnchor Jacobian is velocity-level; the exact one is
-        Jlog6(c1Mc2) Ad(c1Mc2^-1) times it (checked against `_evaluate` in the tests).
-        """
-        model = self.model
-        self._cmodels, self._cdatas = pin.StdVec_ConstraintModel(), pin.StdVec_ConstraintData()
-        for spec in self.mechanism.closures:
-            fa, fb = model.frames[spec.frame_a_id], model.frames[spec.frame_b_id]
-            kind = pin.PointAnchorConstraintModel if spec.type == "3D" else pin.FrameAnchorConstraintModel
-            constraint = kind(model, fa.parentJoint, fa.placement, fb.parentJoint, fb.placement)
-            self._cmodels.append(constraint)
-            self._cdatas.append(constraint.createData())
-        self._cpairs = [(self._cmodels[i], self._cdatas[i]) for i in range(len(self._cmodels))]
-        inner = [self._cdatas[i].extract() for i in range(len(self._cdatas))]
-        self._cerrors = [d.constraint_position_error for d in inner]
-        slots = np.concatenate(([0], np.cumsum([len(e) for e in self._cerrors])))
-        self._cwelds = [(int(slots[i]), d) for i, d in enumerate(inner) if len(self._cerrors[i]) == 6]
-
     def _system(self, q: np.ndarray, with_jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """Enforced closure rows at q and, optionally, their exact Jacobian (rows x nv): the Newton
-        loops' evaluation, about 10 Python-level calls (see `_build_constraints`). Leaves `data` at q
-        (joint placements, and the WORLD joint Jacobian when with_jacobian)."""
-        model, data = self.model, self.data
-        if with_jacobian:
-            pin.computeJointJacobians(model, data, q)
-        else:
-            pin.forwardKinematics(model, data, q)
-        for constraint, cdata in self._cpairs:
-            constraint.calc(model, data, cdata)
-        residual = np.concatenate(self._cerrors)[self._enforced]
-        if not with_jacobian:
-            return residual, None
-        jac = pin.getConstraintsJacobian(model, data, self._cmodels, self._cdatas)
-        for slot, cdata in self._cwelds:
-            relative = cdata.c1Mc2
-            jac[slot:slot + 6] = (pin.Jlog6(relative) @ relative.inverse().action) @ jac[slot:slot + 6]
-        return residual, jac[self._enforced]
+        loops' evaluation through Pinocchio's constraint models (`ClosureSystem`), about 10
+        Python-level calls. Leaves `data` at q (joint placements, and the WORLD joint Jacobian when
+        with_jacobian)."""
+        return self._closure_system.evaluate(q, with_jacobian)
 
     def _evaluate(self, q: np.ndarray, with_jacobian: bool, all_rows: bool = False):
         """Residual (enforced or all rows) at q and, optionally, its Jacobian (rows x nv) and the
@@ -492,61 +462,64 @@ class ClosedLoopSolver:
 
     # ----------------------------------------------------------------------------------------
     # Inverse kinematics
-    def inverse(self, target: pin.SE3 | np.ndarray, q_init: np.ndarray | None = None) -> InverseResult:
-        """Slider values that put the platform frame at target position and yaw.
+    def check_square_task(self) -> None:
+        """Raise InvalidInputError unless the task commands as many coordinates as there are actuators."""
+        task, count = self.mechanism.task, len(self.actuated)
+        if task.dimension != count:
+            raise InvalidInputError(
+                f"{self.mechanism.closures_path}: inverse kinematics needs as many task coordinates as actuators; "
+                f"the task ({', '.join(task.columns)} of frame '{task.frame}') commands {task.dimension} for "
+                f"{count} actuators (declare the task in the closures file: models/README.md)")
 
-        target: a pin.SE3 (its yaw = heading of its x axis) or (x, y, z, theta) [m, m, m, rad].
-        Solves the square system [closure rows; p_P - p*; yaw_P - theta*] = 0 over all joints,
-        from q_init (default: this solver's last solution). Roll and pitch cannot be commanded:
-        they are reported in `tilt`. Raises OutOfWorkspaceError when no assembly reaches the
-        target or a slider would leave its limits (never clipped).
+    def inverse(self, target: pin.SE3 | np.ndarray, q_init: np.ndarray | None = None) -> InverseResult:
+        """Actuator values that put the task frame at the target (the mechanism's `task`).
+
+        target: a pin.SE3 (its uncommanded components are ignored) or the task coordinates
+        (`TaskSpec.columns`: e.g. (x, y, z, theta) [m, m, m, rad] for the M machine, (x, y) for a
+        planar five-bar, (qx, qy, qz, qw) for an orientation mechanism). Solves the square system
+        [closure rows; task rows] = 0 over every joint but the locked ones, from q_init (default:
+        this solver's last solution). Uncommanded roll and pitch are reported in `tilt`. Raises
+        InvalidInputError when the task is not square, OutOfWorkspaceError when no assembly reaches
+        the target or an actuator would leave its limits (never clipped).
         """
+        self.check_square_task()
+        task = self.mechanism.task
         if isinstance(target, pin.SE3):
-            xyz, theta = np.array(target.translation), yaw_of(target.rotation)
-            wanted_tilt = roll_pitch_of(target.rotation)
             if not (np.all(np.isfinite(target.homogeneous))):
                 raise InvalidInputError("target pose: non-finite value")
+            goal = task.coordinates(target.homogeneous)[0]
+            wanted_tilt = roll_pitch_of(target.rotation)
         else:
-            vector = require_finite_vector(target, 4, "target (x, y, z, theta)")
-            xyz, theta, wanted_tilt = vector[:3], float(vector[3]), (0.0, 0.0)
+            vector = require_finite_vector(target, len(task.columns), f"target ({', '.join(task.columns)})")
+            goal = task.goals(vector)[0]
+            wanted_tilt = (0.0, 0.0)
+        goal_rotations = task.target_rotations(goal[None, :])
+        goal_rotation = None if goal_rotations is None else goal_rotations[0]
+        if goal_rotation is not None and not isinstance(target, pin.SE3):
+            wanted_tilt = roll_pitch_of(goal_rotation)
         q = (self.last_q if q_init is None else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
         if q_init is None and self._lu_inverse is not None and self._last_task is not None:
             # Predictor: one step with the last factorisation; at the last solution the closure
-            # rows vanish and the task rows are just (last reached - new target).
-            last_xyz, last_yaw = self._last_task
-            change = np.zeros(self.n_rows + 4)
-            change[self.n_rows:self.n_rows + 3] = last_xyz - xyz
-            change[-1] = math.remainder(last_yaw - theta, 2 * math.pi)
-            q -= lapack.dgetrs(self._lu_inverse[0], self._lu_inverse[1], change)[0]
+            # rows vanish and the task rows are those of the new goal at the last pose reached.
+            change = np.concatenate((np.zeros(self.n_rows), task.residual(self._last_task, goal, goal_rotation)))
+            q[slice(None) if self._unknowns is None else self._unknowns] -= lapack.dgetrs(self._lu_inverse[0], self._lu_inverse[1], change)[0]
 
-        n_rows, model, data, platform = self.n_rows, self.model, self.data, self._platform
+        model, data, frame = self.model, self.data, self._task_frame
 
         def system(qk: np.ndarray, with_jacobian: bool):
             closure, jac = self._system(qk, with_jacobian)
-            oMp = pin.updateFramePlacement(model, data, platform)
-            rotation = oMp.rotation
-            residual = np.empty(n_rows + 4)
-            residual[:n_rows] = closure
-            residual[n_rows:n_rows + 3] = oMp.translation - xyz
-            residual[-1] = math.remainder(math.atan2(rotation[1, 0], rotation[0, 0]) - theta, 2 * math.pi)
+            placement = pin.updateFramePlacement(model, data, frame)
+            residual = np.concatenate((closure, task.residual(placement, goal, goal_rotation)))
             if not with_jacobian:
                 return residual, None
-            c = rotation[:, 0]
-            horizontal = c[0] ** 2 + c[1] ** 2
-            # Platform origin velocity and angular velocity, both in WORLD axes.
-            frame_jac = pin.getFrameJacobian(model, data, platform, pin.LOCAL_WORLD_ALIGNED)
-            full = np.empty((n_rows + 4, jac.shape[1]))
-            full[:n_rows] = jac
-            full[n_rows:n_rows + 3] = frame_jac[:3]
-            # d atan2(R10, R00) / d(omega_world) for dR = [omega]x R
-            full[-1] = np.array([-c[0] * c[2], -c[1] * c[2], horizontal]) / horizontal @ frame_jac[3:]
-            return residual, full
+            frame_jac = pin.getFrameJacobian(model, data, frame, pin.LOCAL_WORLD_ALIGNED)
+            return residual, np.vstack((jac, task.jacobian(placement, frame_jac, goal_rotation)))
 
         self._lu_inverse = None  # dropped until this solve succeeds
         # A warm solve must stay on the previous solution's branch (assembly and working mode).
         start = self._last_inverse_branch if q_init is None else None
         self._last_inverse_branch = None
-        outcome = self._newton(q, None, system,
+        outcome = self._newton(q, self._unknowns, system,
                                lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]), start_branch=start)
         q, residual, iterations = outcome.q, outcome.residual, outcome.iterations
         actuators = q[self.actuated].copy()
@@ -559,9 +532,9 @@ class ClosedLoopSolver:
         # The FK warm start now follows this solution; its predictor tangent is from elsewhere.
         self.last_q, self._tangent, self._last_branch, self._previous = q, None, outcome.branch[:-1], None
         self._lu_inverse, self._last_inverse_branch = outcome.lu, outcome.branch
+        self._last_task = pin.SE3(pin.updateFramePlacement(self.model, self.data, self._task_frame))
         pose = self._platform_pose()
-        self._last_task = (pose.translation.copy(), yaw_of(pose.rotation))
-        roll, pitch = roll_pitch_of(pose.rotation)
+        roll, pitch = roll_pitch_of(self._last_task.rotation)
         return InverseResult(actuators, q.copy(), pose, residual, iterations,
                              (roll - wanted_tilt[0], pitch - wanted_tilt[1]))
 
@@ -590,7 +563,7 @@ class ClosedLoopSolver:
 
     _lu_inverse: tuple[np.ndarray, np.ndarray] | None = None  # getrf factors at the last IK solution
     _last_inverse_branch: bytes | None = None  # signature at the last IK solution
-    _last_task: tuple[np.ndarray, float] | None = None  # platform (position, yaw) at the last IK solution
+    _last_task: pin.SE3 | None = None  # task frame placement at the last IK solution
 
     def reset(self) -> None:
         """Forget the warm start and cached factorisations (next solve starts from home)."""
@@ -610,7 +583,4 @@ def rehomed(mechanism: Mechanism, sliders: np.ndarray | None = None) -> Mechanis
     file must carry its own assembled home (`Mechanism.load` checks it).
     """
     sliders = mechanism.home[mechanism.actuated_ids] if sliders is None else sliders
-    q = ClosedLoopSolver(mechanism).forward(sliders, q_init=mechanism.home).q
-    return Mechanism(mechanism.model, mechanism.visual_model, mechanism.closures, mechanism.actuated_joints,
-                     mechanism.principal_chains, mechanism.platform_frame, q, mechanism.urdf_path,
-                     mechanism.closures_path)
+    return mechanism.with_home(ClosedLoopSolver(mechanism).forward(sliders, q_init=mechanism.home).q)

@@ -1,0 +1,153 @@
+"""Loop closures of a tree model: their residual and Jacobian through Pinocchio's constraint models,
+and what `Mechanism.load` does with them before any solver exists: assemble an approximate home,
+and find redundant (gauge) passive joints and dependent closure rows.
+
+Residual of a closure between frames a and b (both placements in the base frame):
+- "3D": R_a^T (p_b - p_a) [m] (Pinocchio's PointAnchorConstraint error);
+- "6D": log6(oMa^-1 oMb) = [v; w] [m, rad] (FrameAnchorConstraint error).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Literal
+
+import numpy as np
+import pinocchio as pin
+import scipy.linalg
+
+__all__ = ["ClosureSpec", "ClosureSystem", "Redundancy", "ROW_COUNT", "ASSEMBLY_MAX_CHANGE", "without_rows"]
+
+ROW_COUNT = {"3D": 3, "6D": 6}
+ASSEMBLY_MAX_CHANGE = 0.1  # [rad or m] the most any joint may move when a home is assembled at load
+_ASSEMBLY_ITERATIONS = 50
+
+
+@dataclass(frozen=True)
+class ClosureSpec:
+    """One loop closure between two frames of the tree.
+
+    type "3D": the frame origins coincide; residual R_a^T (p_b - p_a), in frame_a's axes [m].
+    type "6D": the frames coincide; residual log6(oMa^-1 oMb) = [v; w] in frame_a [m, rad].
+    `rows` are the residual components enforced (indices into those 3 or 6 components).
+    """
+
+    name: str
+    type: Literal["3D", "6D"]
+    frame_a: str
+    frame_b: str
+    rows: tuple[int, ...]
+    frame_a_id: int
+    frame_b_id: int
+
+
+@dataclass(frozen=True)
+class Redundancy:
+    """Passive joints and closure rows that a square closure system must leave out.
+
+    locked: velocity indices of passive joints whose motion the others already span (a gauge, e.g. a
+    cut joint modelled as two coaxial hinges); they keep their home value. dropped: indices into the
+    enforced rows that depend on the others (e.g. out-of-plane rows of a planar weld).
+    """
+
+    locked: tuple[int, ...]
+    dropped: tuple[int, ...]
+    rank: int
+
+
+class ClosureSystem:
+    """Residual and Jacobian of the enforced rows of some closures of `model` (its own `Data`)."""
+
+    def __init__(self, model: pin.Model, closures: tuple[ClosureSpec, ...]) -> None:
+        self.model, self.data = model, model.createData()
+        self.constraints, self.constraint_data = pin.StdVec_ConstraintModel(), pin.StdVec_ConstraintData()
+        for spec in closures:
+            fa, fb = model.frames[spec.frame_a_id], model.frames[spec.frame_b_id]
+            kind = pin.PointAnchorConstraintModel if spec.type == "3D" else pin.FrameAnchorConstraintModel
+            constraint = kind(model, fa.parentJoint, fa.placement, fb.parentJoint, fb.placement)
+            self.constraints.append(constraint)
+            self.constraint_data.append(constraint.createData())
+        self.pairs = [(self.constraints[i], self.constraint_data[i]) for i in range(len(self.constraints))]
+        inner = [self.constraint_data[i].extract() for i in range(len(self.constraint_data))]
+        self.errors = [d.constraint_position_error for d in inner]  # live views, refreshed by `calc`
+        slots = np.concatenate(([0], np.cumsum([ROW_COUNT[c.type] for c in closures]))).astype(int)
+        self.welds = [(int(slots[i]), d) for i, d in enumerate(inner) if closures[i].type == "6D"]
+        self.enforced = np.concatenate([slots[i] + np.array(c.rows, dtype=int) for i, c in enumerate(closures)]
+                                       + [np.zeros(0, dtype=int)])
+
+    def evaluate(self, q: np.ndarray, with_jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """Enforced rows at q and, optionally, their exact Jacobian (rows x nv). The constraint models'
+        6D Jacobian is velocity-level; the exact one is Jlog6(aMb) Ad(aMb^-1) times it."""
+        model, data = self.model, self.data
+        if with_jacobian:
+            pin.computeJointJacobians(model, data, q)
+        else:
+            pin.forwardKinematics(model, data, q)
+        for constraint, cdata in self.pairs:
+            constraint.calc(model, data, cdata)
+        residual = np.concatenate(self.errors)[self.enforced]
+        if not with_jacobian:
+            return residual, None
+        jac = pin.getConstraintsJacobian(model, data, self.constraints, self.constraint_data)
+        for slot, cdata in self.welds:
+            relative = cdata.c1Mc2
+            jac[slot:slot + 6] = (pin.Jlog6(relative) @ relative.inverse().action) @ jac[slot:slot + 6]
+        return residual, jac[self.enforced]
+
+    def assemble(self, q: np.ndarray, free: np.ndarray, tolerance: float) -> tuple[np.ndarray, float]:
+        """Least-squares Gauss-Newton on the enforced rows over the columns `free` from q.
+
+        Minimum-norm steps (lstsq) so that a gauge joint does not drift. Returns (q, max |row|); the
+        caller judges whether that is closed.
+        """
+        q = q.copy()
+        residual, jac = self.evaluate(q, True)
+        for _ in range(_ASSEMBLY_ITERATIONS):
+            if not np.all(np.isfinite(residual)) or float(np.abs(residual).max(initial=0.0)) <= tolerance:
+                break
+            q[free] -= np.linalg.lstsq(jac[:, free], residual, rcond=None)[0]
+            residual, jac = self.evaluate(q, True)
+        worst = float(np.abs(residual).max(initial=0.0)) if np.all(np.isfinite(residual)) else float("inf")
+        return q, worst
+
+    def redundancy(self, q: np.ndarray, passive: np.ndarray) -> tuple[Redundancy, int]:
+        """Gauge joints and dependent rows at an assembled q, and the rank of the rows over every column.
+
+        Ranks count singular values above max(shape) * eps * 1e3 times the largest (rounding level of
+        an exact closure Jacobian); the choice of which joint to lock and which row to drop follows
+        LAPACK's column-pivoted QR (the first independent columns and rows are kept).
+        """
+        _, jac = self.evaluate(q, True)
+        square = jac[:, passive]
+        rank = _rank(square)
+        locked: tuple[int, ...] = ()
+        dropped: tuple[int, ...] = ()
+        if rank < square.shape[1]:
+            keep = _pivots(square, rank)
+            locked = tuple(int(passive[c]) for c in range(square.shape[1]) if c not in keep)
+        if rank < square.shape[0]:
+            keep = _pivots(square.T, rank)
+            dropped = tuple(r for r in range(square.shape[0]) if r not in keep)
+        return Redundancy(locked, dropped, rank), _rank(jac)
+
+
+def _rank(matrix: np.ndarray) -> int:
+    if matrix.size == 0:
+        return 0
+    singular = np.linalg.svd(matrix, compute_uv=False)
+    return int(np.sum(singular > max(matrix.shape) * np.finfo(float).eps * 1e3 * singular[0]))
+
+
+def _pivots(matrix: np.ndarray, count: int) -> set[int]:
+    """Columns chosen first by column-pivoted QR."""
+    return set(int(c) for c in scipy.linalg.qr(matrix, pivoting=True, mode="r")[1][:count])
+
+
+def without_rows(closures: tuple[ClosureSpec, ...], dropped: tuple[int, ...]) -> tuple[ClosureSpec, ...]:
+    """The closures with the enforced rows at positions `dropped` (in enforced order) removed."""
+    out, position = [], 0
+    for spec in closures:
+        kept = tuple(r for k, r in enumerate(spec.rows) if position + k not in dropped)
+        position += len(spec.rows)
+        out.append(replace(spec, rows=kept))
+    return tuple(out)

@@ -1,0 +1,180 @@
+"""The closures file's fields, read and checked against the URDF's tree (schema: models/README.md).
+
+Version 1 has actuated_joints, closures, platform_frame, principal_chains and home; version 2 adds
+`task` (what inverse kinematics commands) and `workspace` (where simulations sample). Every error
+is a ModelFileError naming the file and the field, joint or frame at fault.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from m3t1r.errors import InvalidInputError, ModelFileError
+from m3t1r.model.closures import ROW_COUNT, ClosureSpec
+from m3t1r.model.task import TaskSpec, WorkspaceSpec
+
+__all__ = ["Description", "read_description", "SCHEMA_VERSIONS"]
+
+SCHEMA_VERSIONS = (1, 2)
+
+
+@dataclass(frozen=True)
+class Description:
+    """The checked fields of a closures file (home as given, not yet assembled)."""
+
+    closures: tuple[ClosureSpec, ...]
+    actuated_joints: tuple[str, ...]
+    principal_chains: dict[str, tuple[str, ...]]
+    platform_frame: str
+    home: np.ndarray
+    task: TaskSpec
+    workspace: WorkspaceSpec | None
+
+
+def read_description(model: pin.Model, doc: dict, urdf_path: Path, path: Path) -> Description:
+    """Check a parsed closures document against `model` (built from `urdf_path`)."""
+    version = doc.get("schema_version", 1)
+    if version not in SCHEMA_VERSIONS:
+        raise ModelFileError(path, f"schema_version {version!r} is not supported (known: 1, 2)")
+    actuated = _actuated(model, doc["actuated_joints"], urdf_path, path)
+    platform = doc["platform_frame"]
+    _frame_id(model, platform, path, "platform_frame")
+    task = _task(model, doc.get("task"), platform, path)
+    workspace = _workspace(doc.get("workspace"), actuated, task, path)
+    return Description(_closures(model, doc["closures"], path), actuated, _chains(model, doc, path), platform,
+                       _home(model, doc["home"], path), task, workspace)
+
+
+def _frame_id(model: pin.Model, name: object, path: Path, where: str) -> int:
+    if not isinstance(name, str) or not model.existFrame(name):
+        raise ModelFileError(path, f"{where}: frame '{name}' does not exist in the URDF")
+    return model.getFrameId(name)
+
+
+def _actuated(model: pin.Model, actuated: object, urdf_path: Path, path: Path) -> tuple[str, ...]:
+    if not isinstance(actuated, list) or not actuated:
+        raise ModelFileError(path, "actuated_joints must be a non-empty list of joint names")
+    for name in actuated:
+        if isinstance(name, str) and model.existFrame(name, pin.FrameType.FIXED_JOINT):
+            raise ModelFileError(path, f"actuated_joints: '{name}' is a fixed joint, not prismatic or revolute")
+        if not isinstance(name, str) or not model.existJointName(name):
+            raise ModelFileError(path, f"actuated_joints: joint '{name}' does not exist in {urdf_path.name}")
+        shortname = model.joints[model.getJointId(name)].shortname()
+        if not any(shortname.startswith(k) for k in ("JointModelP", "JointModelR")) or "Unbounded" in shortname:
+            raise ModelFileError(path, f"actuated_joints: joint '{name}' is {shortname}, not prismatic or revolute")
+    if len(set(actuated)) != len(actuated):
+        raise ModelFileError(path, "actuated_joints: a joint is listed twice")
+    return tuple(actuated)
+
+
+def _closures(model: pin.Model, entries: object, path: Path) -> tuple[ClosureSpec, ...]:
+    closures = []
+    seen = set()
+    for k, entry in enumerate(entries or []):  # type: ignore[arg-type]
+        where = f"closures[{k}]"
+        if not isinstance(entry, dict):
+            raise ModelFileError(path, f"{where}: expected a mapping")
+        name = entry.get("name", where)
+        where = f"closure '{name}'"
+        if name in seen:
+            raise ModelFileError(path, f"{where}: duplicate closure name")
+        seen.add(name)
+        kind = entry.get("type")
+        if kind not in ROW_COUNT:
+            raise ModelFileError(path, f"{where}: type must be 3D or 6D, got {kind!r}")
+        ia = _frame_id(model, entry.get("frame_a"), path, where)
+        ib = _frame_id(model, entry.get("frame_b"), path, where)
+        rows = entry.get("rows", list(range(ROW_COUNT[kind])))
+        if (not isinstance(rows, list) or not rows or len(set(rows)) != len(rows)
+                or not all(isinstance(r, int) and 0 <= r < ROW_COUNT[kind] for r in rows)):
+            raise ModelFileError(path, f"{where}: rows must be distinct indices in 0..{ROW_COUNT[kind] - 1}, got {rows!r}")
+        closures.append(ClosureSpec(name, kind, entry["frame_a"], entry["frame_b"], tuple(sorted(rows)), ia, ib))
+    if not closures:
+        raise ModelFileError(path, "closures: at least one closure is required")
+    return tuple(closures)
+
+
+def _chains(model: pin.Model, doc: dict, path: Path) -> dict[str, tuple[str, ...]]:
+    chains = {}
+    for chain_name, items in (doc.get("principal_chains") or {}).items():
+        if not isinstance(items, list) or len(items) < 2:
+            raise ModelFileError(path, f"principal_chains.{chain_name}: expected joint names then a frame name")
+        for joint in items[:-1]:
+            if not model.existJointName(joint):
+                raise ModelFileError(path, f"principal_chains.{chain_name}: joint '{joint}' does not exist")
+        _frame_id(model, items[-1], path, f"principal_chains.{chain_name}")
+        chains[chain_name] = tuple(items)
+    return chains
+
+
+def _home(model: pin.Model, home_doc: object, path: Path) -> np.ndarray:
+    if not isinstance(home_doc, dict):
+        raise ModelFileError(path, "home must map joint names to values")
+    home = pin.neutral(model)
+    for name, value in home_doc.items():
+        if not model.existJointName(name):
+            raise ModelFileError(path, f"home: joint '{name}' does not exist")
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            raise ModelFileError(path, f"home: joint '{name}' has non-numeric value {value!r}") from None
+        if not np.isfinite(value):
+            raise ModelFileError(path, f"home: joint '{name}' has non-finite value {value}")
+        home[model.idx_qs[model.getJointId(name)]] = value
+    return home
+
+
+def _task(model: pin.Model, entry: object, platform: str, path: Path) -> TaskSpec:
+    if entry is None:  # schema 1: the M machine's task
+        return TaskSpec(platform)
+    if not isinstance(entry, dict):
+        raise ModelFileError(path, "task must be a mapping with frame, position and rotation")
+    unknown = set(entry) - {"frame", "position", "rotation"}
+    if unknown:
+        raise ModelFileError(path, f"task: unknown field '{sorted(unknown)[0]}' (known: frame, position, rotation)")
+    frame = entry.get("frame", platform)
+    _frame_id(model, frame, path, "task.frame")
+    position = entry.get("position", [])
+    if not isinstance(position, list):
+        raise ModelFileError(path, f"task.position must be a list of axes among x, y, z, got {position!r}")
+    try:
+        return TaskSpec(frame, tuple(position), entry.get("rotation", "none"))
+    except InvalidInputError as exc:
+        raise ModelFileError(path, str(exc)) from None
+
+
+def _intervals(entry: object, names: tuple[str, ...], where: str, path: Path) -> tuple[tuple[str, float, float], ...]:
+    if not isinstance(entry, dict) or set(entry) != set(names):
+        given = sorted(entry) if isinstance(entry, dict) else entry
+        raise ModelFileError(path, f"{where} must give an interval [lo, hi] for each of {', '.join(names)}; "
+                                   f"got {given!r}")
+    out = []
+    for name in names:
+        interval = entry[name]
+        if (not isinstance(interval, list) or len(interval) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in interval)):
+            raise ModelFileError(path, f"{where}.{name} must be [lo, hi] numbers, got {interval!r}")
+        out.append((name, float(interval[0]), float(interval[1])))
+    return tuple(out)
+
+
+def _workspace(entry: object, actuated: tuple[str, ...], task: TaskSpec, path: Path) -> WorkspaceSpec | None:
+    if entry is None:
+        return None
+    if not isinstance(entry, dict) or len(entry) != 1 or next(iter(entry)) not in ("actuators", "task"):
+        raise ModelFileError(path, "workspace must have exactly one of 'actuators' or 'task'")
+    kind, box = next(iter(entry.items()))
+    try:
+        if kind == "actuators":
+            return WorkspaceSpec(actuators=_intervals(box, actuated, "workspace.actuators", path))
+        if task.dimension != len(actuated):
+            raise ModelFileError(path, f"workspace.task: the task commands {task.dimension} coordinates for "
+                                       f"{len(actuated)} actuators; sample a task box only when they match "
+                                       "(give an actuators box)")
+        return WorkspaceSpec(task=_intervals(box, task.box_keys, "workspace.task", path))
+    except InvalidInputError as exc:
+        raise ModelFileError(path, str(exc)) from None
