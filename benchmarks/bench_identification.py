@@ -32,22 +32,23 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import fmt_time, header, interleaved_times, median, table  # noqa: E402
 
 from m3t1r._threads import single_blas_thread  # noqa: E402
+from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.serial import calibrate_serial  # noqa: E402
 from m3t1r.calibration.serial_evaluation import pose_errors
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
-from m3t1r.calibration.serial_simulation import MeasurementNoise, sample_configurations, simulate_serial_measurements
+from m3t1r.calibration.serial_simulation import sample_configurations, simulate_serial_measurements
 from m3t1r.model.poe import SerialChain, perturb  # noqa: E402
 
 N_POSES = 50
 N_HELD_OUT = 200
-NOISE = MeasurementNoise(position=10e-6, rotation=20e-6, joint=0.0)  # tracker 10 um / 20 urad
+NOISE = TrackerNoise(position=10e-6, rotation=20e-6)  # tracker 10 um / 20 urad; exact joint readings
 
 
 class FiniteDifferenceCalibration:
     """Whitened pose residual over the base parameters for MINPACK's LM with difference quotients."""
 
     def __init__(self, model: pin.Model, chain: SerialChain, q_chain: np.ndarray, measured: tuple[pin.SE3, ...],
-                 base_indices: tuple[int, ...], noise: MeasurementNoise) -> None:
+                 base_indices: tuple[int, ...], noise: TrackerNoise) -> None:
         self.model, self.chain = model, chain
         self.configurations = [chain.model_configuration(model, q) for q in q_chain]
         self.positions = np.array([g.translation for g in measured])

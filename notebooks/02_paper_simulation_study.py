@@ -45,6 +45,7 @@ from IPython.display import Image, display
 from m3t1r import paper
 from m3t1r.app.plots import plot_pose_errors_before_after
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors
+from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.errors import PoorExcitationWarning
 from m3t1r.metrics import PoseErrors
@@ -257,14 +258,15 @@ display(Image(filename=str(figure), width=640))
 # ## 7. The whole simulation in one call, then with measurement noise
 #
 # `paper_study` runs sections 2-6 above from one seed, drawing in the same order. Without noise it should print the
-# same held-out numbers as the cell above. With `SensorNoise` the tracker perturbs the measured poses (10 µm,
-# 20 µrad) and the joint readings get encoder noise (1 µm on the sliders, 10 µrad on the other joints). The
+# same held-out numbers as the cell above. With `noise=TrackerNoise()` the tracker perturbs the measured poses
+# (10 µm, 20 µrad) and the joint readings get encoder noise: 1 µm on the sliders (`TrackerNoise.actuator`) and
+# 10 µrad on the other joints (`passive_encoder_noise`, by default `paper.PASSIVE_ENCODER_NOISE`). The
 # identification then stops at the noise level, as in the paper's Fig. 4.
 
 # %%
 exact = paper.paper_study(SEED, n_poses=N_POSES, n_holdout=N_HOLDOUT)
-noisy = paper.paper_study(SEED, n_poses=N_POSES, n_holdout=N_HOLDOUT, noise=paper.SensorNoise())
-print(noisy.noise)
+noisy = paper.paper_study(SEED, n_poses=N_POSES, n_holdout=N_HOLDOUT, noise=TrackerNoise())
+print(f"{noisy.noise}, passive joints' encoders {noisy.passive_encoder_noise} rad")
 print(HEADER)
 for label, result in (("exact", exact), ("noisy", noisy)):
     if result.failure:
@@ -317,7 +319,7 @@ print()
 print(HEADER)
 after_by_source = {}
 for source in ("sensor", "distance", "platform"):
-    for noise in (None, paper.SensorNoise()):
+    for noise in (None, TrackerNoise()):
         result = paper.paper_study(SEED, n_poses=N_POSES, n_holdout=N_HOLDOUT, passive_from=source, noise=noise)
         label = f"q_i3 from {source}, {'noisy' if noise else 'exact'}"
         if result.failure:
@@ -350,7 +352,7 @@ for (source, noisy_data), e in after_by_source.items():
 
 # %%
 studies = {"exact": paper.closed_chain_study(SEED, n_poses=N_POSES, n_holdout=N_HOLDOUT),
-           "noisy": paper.closed_chain_study(SEED, n_poses=N_POSES, n_holdout=N_HOLDOUT, noise=paper.SensorNoise())}
+           "noisy": paper.closed_chain_study(SEED, n_poses=N_POSES, n_holdout=N_HOLDOUT, noise=TrackerNoise())}
 fields = ("nominal", "sensors_before", "sensors_after", "second_chain_before", "second_chain_after",
           "sliders_only", "calibrated_tree", "closed_loop")
 print(f"{'held-out pose error, mean':<28}" + "".join(f"{k + ' pos [m]':>17}{k + ' rot [rad]':>17}" for k in studies))

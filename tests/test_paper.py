@@ -7,6 +7,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.errors import InvalidInputError, ModelFileError
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.poe import perturb
@@ -16,7 +17,7 @@ from m3t1r.paper.closed_chain import closed_chain_study
 from m3t1r.paper.error_model import PAPER_IDENTIFIABLE_BOUND, two_chain_error_model, two_chain_identifiability
 from m3t1r.paper.identification import NOISY_READINGS_REL_TOL, calibrate_two_chains
 from m3t1r.paper.passive_angles import estimate_lower_crank_angles
-from m3t1r.paper.simulation import SensorNoise, actual_chain_poses, preset_errors
+from m3t1r.paper.simulation import PASSIVE_ENCODER_NOISE, _read, actual_chain_poses, preset_errors
 from m3t1r.paper.study import paper_study
 
 # The re-selected base of an exact fit keeps second-order combinations on purpose (see
@@ -287,6 +288,7 @@ def test_paper_study_noise_free_with_sensors_is_exact():
             assert errors.before.position_mean > 1e-3  # measured 1.4-9.1 mm, 2.1-7.1 mrad
             assert _worst(errors.after) <= 1e-12  # measured <= 2.5e-15 m and rad
         assert dict(result.identifiability.rank_per_chain) == {"B1": 24, "B3": 24}
+        assert result.noise is None and result.passive_encoder_noise == 0.0  # every reading exact
     table = result.preset.rows()
     assert len(table) == 14 + 12 + 12 and table[0][1] == "dt" and len(table[0][2]) == 6
 
@@ -294,7 +296,8 @@ def test_paper_study_noise_free_with_sensors_is_exact():
 def test_paper_study_with_noise_reduces_errors_far_more_than_ten_times():
     """Tracker 10 um / 20 urad, encoders 10 urad, sliders 1 um: the paper claims >= 10x."""
     for seed in (3, 4):
-        result = paper_study(seed, noise=SensorNoise())
+        result = paper_study(seed, noise=TrackerNoise())
+        assert result.noise == TrackerNoise() and result.passive_encoder_noise == PASSIVE_ENCODER_NOISE == 1e-5
         assert result.calibration.converged and result.calibration.base.rank == 48
         for errors in result.holdout_poses.values():
             position, rotation = errors.reduction
@@ -320,8 +323,27 @@ def test_paper_study_with_cranks_from_the_platform_weld_is_as_good_as_sensors():
     exact = paper_study(4, passive_from="platform")
     assert np.abs(exact.crank_error).max() <= 1e-11  # measured 1.1e-12 rad
     assert all(_worst(e.after) <= 1e-11 for e in exact.holdout_poses.values())  # measured 1.1e-12
-    noisy = paper_study(4, noise=SensorNoise(), passive_from="platform")
+    noisy = paper_study(4, noise=TrackerNoise(), passive_from="platform")
     assert all(min(e.reduction) >= 50 for e in noisy.holdout_poses.values())  # measured 269-727x
+
+
+def test_the_sensors_read_with_the_tracker_noise_and_the_passive_encoder_noise(mechanism, chains,
+                                                                               nominal_configurations):
+    """Sliders with TrackerNoise.actuator, the chains' other joints with passive_encoder_noise,
+    joints of no chain exact; noise=None reads everything exactly."""
+    q = np.repeat(nominal_configurations, 100, axis=0)
+    noise = TrackerNoise(actuator=2e-6)
+    readings = _read(mechanism, chains, q, noise, 3e-5, np.random.default_rng(0))
+    model = mechanism.model
+    sliders = {model.idx_qs[model.getJointId(n)] for n in mechanism.actuated_joints}
+    read = {i for c in chains for i in c.serial.idx_q}
+    error = np.std(readings - q, axis=0)
+    for index in range(model.nq):
+        expected = 0.0 if index not in read else noise.actuator if index in sliders else 3e-5
+        assert error[index] == pytest.approx(expected, rel=0.05)
+    assert np.array_equal(_read(mechanism, chains, q, None, 3e-5, np.random.default_rng(0)), q)
+    with pytest.raises(InvalidInputError, match="passive_encoder_noise must be finite and >= 0"):
+        paper_study(3, noise=noise, passive_encoder_noise=-1e-5, mechanism=mechanism)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -361,7 +383,8 @@ def test_closed_chain_without_sensors_the_paper_model_is_no_better_than_nominal(
 
 
 def test_closed_chain_with_noise(mechanism):
-    r = closed_chain_study(5, noise=SensorNoise(), n_holdout=30, mechanism=mechanism)
+    r = closed_chain_study(5, noise=TrackerNoise(), n_holdout=30, mechanism=mechanism)
+    assert r.noise == TrackerNoise() and r.passive_encoder_noise == PASSIVE_ENCODER_NOISE
     assert r.sensors_after.position_mean <= 3e-5 and r.sensors_after.rotation_mean <= 4e-5  # measured 12 um, 17 urad
     assert r.closed_loop.position_mean <= 7e-5 and r.closed_loop.rotation_mean <= 5e-5  # measured 33 um, 20 urad
     assert r.sliders_only.position_mean > 5e-3  # measured 16 mm

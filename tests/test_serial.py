@@ -8,16 +8,19 @@ import pytest
 
 from m3t1r.calibration import serial, serial_evaluation
 from m3t1r.calibration.identification import select_base_parameters
+from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.serial import calibrate_serial
 from m3t1r.calibration.serial_evaluation import pose_errors, predicted_pose_std
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
-from m3t1r.calibration.serial_simulation import MeasurementNoise, sample_configurations, simulate_serial_measurements
+from m3t1r.calibration.serial_simulation import sample_configurations, simulate_serial_measurements
 from m3t1r.errors import InvalidInputError
 from m3t1r.metrics import PoseErrors
-from m3t1r.model.poe import SerialChain, forward_and_error_jacobians, perturb
+from m3t1r.model.poe import SerialChain, forward_and_error_jacobians, perturb, tool_poses
 
 # 10 um / 20 urad tracker, 1e-5 rad encoders: the test setting of the brief.
-NOISE = MeasurementNoise(position=1e-5, rotation=2e-5, joint=1e-5)
+NOISE = TrackerNoise(position=1e-5, rotation=2e-5)
+JOINT_NOISE = 1e-5
+SENSORS = {"noise": NOISE, "joint_noise": JOINT_NOISE}  # simulated, and assumed by the fit
 N_POSES = 50
 N_HELD_OUT = 150
 
@@ -65,18 +68,14 @@ def test_identifiable_parameter_counts() -> None:
 
 
 def run_calibration(
-    model: pin.Model, chain: SerialChain, seed: int, *, noise: MeasurementNoise, position_only: bool = False
+    model: pin.Model, chain: SerialChain, seed: int, *, exact: bool = False, position_only: bool = False
 ):
+    """Simulated with SENSORS' noise (exact: none at all), fitted assuming SENSORS' noise."""
     rng = np.random.default_rng(seed)
-    data = simulate_serial_measurements(model, chain, N_POSES, rng, noise=noise)
-    calibration = calibrate_serial(
-        model,
-        chain,
-        data.q_readings,
-        data.measured_poses,
-        position_only=position_only,
-        noise=noise if noise.position > 0.0 else NOISE,
-    )
+    data = simulate_serial_measurements(model, chain, N_POSES, rng, noise=None if exact else NOISE,
+                                        joint_noise=0.0 if exact else JOINT_NOISE)
+    calibration = calibrate_serial(model, chain, data.q_readings, data.measured_poses, position_only=position_only,
+                                   **SENSORS)
     held_out = sample_configurations(model, chain, N_HELD_OUT, rng)
     before = pose_errors(model, data.truth, chain, held_out)
     after = pose_errors(calibration.model, data.truth, chain, held_out)
@@ -85,7 +84,7 @@ def run_calibration(
 
 def test_full_pose_calibration_reaches_the_predicted_noise_floor(robot) -> None:
     name, model, chain = robot
-    data, calibration, held_out, before, after = run_calibration(model, chain, seed=11, noise=NOISE)
+    data, calibration, held_out, before, after = run_calibration(model, chain, seed=11)
     assert calibration.converged
     assert calibration.base.rank == 4 * chain.n_joints + 6
     assert before.position.mean() > 1e-3  # 1 mm / 1 mrad placement errors: millimetres at the tool
@@ -103,8 +102,7 @@ def test_full_pose_calibration_reaches_the_predicted_noise_floor(robot) -> None:
 
 def test_noise_free_calibration_is_exact(robot) -> None:
     _, model, chain = robot
-    silent = MeasurementNoise(position=0.0, rotation=0.0, joint=0.0)
-    _, calibration, _, before, after = run_calibration(model, chain, seed=12, noise=silent)
+    _, calibration, _, before, after = run_calibration(model, chain, seed=12, exact=True)
     assert before.position.max() > 1e-3
     assert after.position.max() < 1e-9 and after.rotation.max() < 1e-9
     # The deltas are the calibrated model: perturbing the nominal by them reproduces it.
@@ -116,7 +114,7 @@ def test_noise_free_calibration_is_exact(robot) -> None:
 
 def test_position_only_calibration(robot) -> None:
     _, model, chain = robot
-    _, calibration, held_out, before, after = run_calibration(model, chain, seed=13, noise=NOISE, position_only=True)
+    _, calibration, held_out, before, after = run_calibration(model, chain, seed=13, position_only=True)
     assert calibration.converged
     assert calibration.base.rank == 4 * chain.n_joints + 3
     tool_rotation = {6 * chain.n_joints + 3, 6 * chain.n_joints + 4, 6 * chain.n_joints + 5}
@@ -130,35 +128,55 @@ def test_position_only_calibration(robot) -> None:
 def test_position_only_noise_free_is_exact() -> None:
     model = load_example_robot("ur5")
     chain = SerialChain.from_model(model, "tool0")
-    silent = MeasurementNoise(position=0.0, rotation=0.0, joint=0.0)
-    _, _, _, _, after = run_calibration(model, chain, seed=14, noise=silent, position_only=True)
+    _, _, _, _, after = run_calibration(model, chain, seed=14, exact=True, position_only=True)
     assert after.position.max() < 1e-9
 
 
 def test_measurement_formats_and_validation() -> None:
     model = load_example_robot("ur5")
     chain = SerialChain.from_model(model, "tool0")
-    data = simulate_serial_measurements(model, chain, 20, np.random.default_rng(15), noise=NOISE)
-    from_se3 = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=NOISE)
+    data = simulate_serial_measurements(model, chain, 20, np.random.default_rng(15), **SENSORS)
+    from_se3 = calibrate_serial(model, chain, data.q_readings, data.measured_poses, **SENSORS)
     xyzquat = np.array([pin.SE3ToXYZQUAT(g) for g in data.measured_poses])
-    from_array = calibrate_serial(model, chain, data.q_readings, xyzquat, noise=NOISE)
+    from_array = calibrate_serial(model, chain, data.q_readings, xyzquat, **SENSORS)
     q = sample_configurations(model, chain, 10, np.random.default_rng(16))
     assert pose_errors(from_se3.model, from_array.model, chain, q).position.max() < 1e-12
     positions = xyzquat[:, :3]
-    position_only = calibrate_serial(model, chain, data.q_readings, positions, position_only=True, noise=NOISE)
+    position_only = calibrate_serial(model, chain, data.q_readings, positions, position_only=True, **SENSORS)
     assert np.isnan(position_only.residual_after.rotation)
     with pytest.raises(InvalidInputError, match="position_only=True"):
-        calibrate_serial(model, chain, data.q_readings, positions, noise=NOISE)
+        calibrate_serial(model, chain, data.q_readings, positions, **SENSORS)
     with pytest.raises(InvalidInputError, match="20 joint readings but 19"):
-        calibrate_serial(model, chain, data.q_readings, xyzquat[:19], noise=NOISE)
+        calibrate_serial(model, chain, data.q_readings, xyzquat[:19], **SENSORS)
     with pytest.raises(InvalidInputError, match="expected shape"):
-        calibrate_serial(model, chain, data.q_readings[:, :5], xyzquat, noise=NOISE)
+        calibrate_serial(model, chain, data.q_readings[:, :5], xyzquat, **SENSORS)
     bad = xyzquat.copy()
     bad[4, 3:] *= 2.0
     with pytest.raises(InvalidInputError, match="row 4"):
-        calibrate_serial(model, chain, data.q_readings, bad, noise=NOISE)
-    with pytest.raises(InvalidInputError, match="must be > 0"):
-        calibrate_serial(model, chain, data.q_readings, xyzquat, noise=MeasurementNoise(0.0, 0.0, 0.0))
+        calibrate_serial(model, chain, data.q_readings, bad, **SENSORS)
+    for joint_noise in (-1e-5, float("nan")):
+        with pytest.raises(InvalidInputError, match="joint_noise: must be finite and >= 0"):
+            calibrate_serial(model, chain, data.q_readings, xyzquat, noise=NOISE, joint_noise=joint_noise)
+        with pytest.raises(InvalidInputError, match="joint_noise: must be finite and >= 0"):
+            simulate_serial_measurements(model, chain, 5, np.random.default_rng(17), joint_noise=joint_noise)
+
+
+def test_serial_simulation_takes_the_tracker_noise_and_a_joint_noise() -> None:
+    model = load_example_robot("ur5")
+    chain = SerialChain.from_model(model, "tool0")
+    exact = simulate_serial_measurements(model, chain, 30, np.random.default_rng(18), noise=None)
+    assert exact.noise is None and exact.joint_noise == 0.0
+    assert np.array_equal(exact.q_readings, exact.q_true)
+    truth = [pin.SE3(g) for g in tool_poses(chain, exact.truth, exact.q_true)]
+    assert max(np.linalg.norm(pin.log6(g.actInv(m)).vector) for g, m in zip(truth, exact.measured_poses)) < 1e-12
+    noisy = simulate_serial_measurements(model, chain, 400, np.random.default_rng(19), noise=TrackerNoise(1e-4, 3e-4),
+                                         joint_noise=2e-4)
+    assert noisy.noise == TrackerNoise(1e-4, 3e-4) and noisy.joint_noise == 2e-4
+    assert np.std(noisy.q_readings - noisy.q_true) == pytest.approx(2e-4, rel=0.05)
+    truth = [pin.SE3(g) for g in tool_poses(chain, noisy.truth, noisy.q_true)]
+    position = np.array([m.translation - g.translation for g, m in zip(truth, noisy.measured_poses)])
+    rotation = np.array([pin.log3(g.rotation.T @ m.rotation) for g, m in zip(truth, noisy.measured_poses)])
+    assert np.std(position) == pytest.approx(1e-4, rel=0.05) and np.std(rotation) == pytest.approx(3e-4, rel=0.05)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -171,10 +189,10 @@ def test_residual_jacobian_matches_finite_differences(position_only: bool) -> No
     # retraction T(0) <- T(0) exp6(dt) that the optimiser uses, at a perturbed (non-nominal) state.
     model = load_example_robot("ur5")
     chain = SerialChain.from_model(model, "tool0")
-    data = simulate_serial_measurements(model, chain, 8, np.random.default_rng(31), noise=NOISE)
+    data = simulate_serial_measurements(model, chain, 8, np.random.default_rng(31), **SENSORS)
     measurements = serial._parse_measurements(chain, data.q_readings, data.measured_poses, position_only)
     state = serial._readonly_state(chain, perturb(model, {p: np.full(6, 2e-3) for p in chain.placements()}))
-    whitening = serial._whitening(chain, state, measurements, NOISE)
+    whitening = serial._whitening(chain, state, measurements, NOISE, JOINT_NOISE)
     residual = serial._SerialResidual(chain, measurements, whitening)
     r, J = residual.residual_and_jacobian(state)
     np.testing.assert_array_equal(residual.residual(state), r)
@@ -208,7 +226,7 @@ def test_stopping_one_iteration_earlier_changes_nothing() -> None:
     # absolute_cost_tolerance only saves the final iteration whose step is at rounding level.
     model = load_example_robot("ur10")
     chain = SerialChain.from_model(model, "tool0")
-    noise = MeasurementNoise(position=1e-5, rotation=2e-5, joint=0.0)
+    noise = TrackerNoise(position=1e-5, rotation=2e-5)  # exact joint readings
     data = simulate_serial_measurements(model, chain, N_POSES, np.random.default_rng(33), noise=noise)
     default = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=noise)
     exhaustive = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=noise,
@@ -224,8 +242,8 @@ def test_stopping_one_iteration_earlier_changes_nothing() -> None:
 def test_evaluations_return_the_shared_pose_errors_type() -> None:
     model = load_example_robot("ur5")
     chain = SerialChain.from_model(model, "tool0")
-    data = simulate_serial_measurements(model, chain, 20, np.random.default_rng(35), noise=NOISE)
-    calibration = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=NOISE)
+    data = simulate_serial_measurements(model, chain, 20, np.random.default_rng(35), **SENSORS)
+    calibration = calibrate_serial(model, chain, data.q_readings, data.measured_poses, **SENSORS)
     q = sample_configurations(model, chain, 5, np.random.default_rng(36))
     assert isinstance(pose_errors(calibration.model, data.truth, chain, q), PoseErrors)
     predicted = predicted_pose_std(calibration, q)

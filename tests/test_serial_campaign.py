@@ -15,10 +15,11 @@ from m3t1r.calibration import serial as S
 from m3t1r.calibration import serial_evaluation, serial_robots, serial_simulation
 from m3t1r.calibration.assessment import FitRejected
 from m3t1r.calibration.measurement_setup import MeasurementSetup
+from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.io.tables import table_text
 from m3t1r.model.poe import SerialChain, perturb, tool_poses
 
-NOISE = serial_simulation.MeasurementNoise(position=1e-5, rotation=2e-5, joint=0.0)  # 10 um / 20 urad tracker
+NOISE = TrackerNoise(position=1e-5, rotation=2e-5)  # 10 um / 20 urad tracker, exact joint readings
 MARKER = pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.0, 0.02, 0.067]))  # 70 mm from the flange
 FRAMES = {
     "z180": pin.SE3(pin.utils.rotate("z", np.pi), np.array([2.5, -1.2, 0.8])),
@@ -35,7 +36,7 @@ def ur10():
 def campaign(model, chain, frame: pin.SE3, seed: int, n_poses: int = 60):
     """A 1 mm / 1 mrad UR10 measured as frame . g(q) . MARKER with NOISE: (data, measured (N, 4, 4))."""
     rng = np.random.default_rng(seed)
-    data = serial_simulation.simulate_serial_measurements(model, chain, n_poses, rng, noise=serial_simulation.MeasurementNoise(0.0, 0.0, 0.0))
+    data = serial_simulation.simulate_serial_measurements(model, chain, n_poses, rng, noise=None)
     exact = frame.homogeneous @ tool_poses(chain, data.truth, data.q_true) @ MARKER.homogeneous
     measured = exact.copy()
     measured[:, :3, 3] += rng.normal(0.0, NOISE.position, (n_poses, 3))

@@ -11,14 +11,15 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.serial import calibrate_serial
 from m3t1r.calibration.serial_evaluation import predicted_pose_std
 from m3t1r.calibration.serial_robots import load_example_robot
-from m3t1r.calibration.serial_simulation import MeasurementNoise, sample_configurations, simulate_serial_measurements
+from m3t1r.calibration.serial_simulation import sample_configurations, simulate_serial_measurements
 from m3t1r.errors import InvalidInputError
 from m3t1r.model.poe import SerialChain
 
-EXACT_JOINTS = MeasurementNoise(position=1e-5, rotation=2e-5, joint=0.0)
+TRACKER = TrackerNoise(position=1e-5, rotation=2e-5)  # and exact joint readings (joint_noise 0, the default)
 
 
 @pytest.fixture(scope="module")
@@ -28,8 +29,8 @@ def ur5():
 
 
 def _calibrate(model, chain, seed: int, n_poses: int = 40):
-    data = simulate_serial_measurements(model, chain, n_poses, np.random.default_rng(seed), noise=EXACT_JOINTS)
-    calibration = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=EXACT_JOINTS)
+    data = simulate_serial_measurements(model, chain, n_poses, np.random.default_rng(seed), noise=TRACKER)
+    calibration = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=TRACKER)
     return data, calibration
 
 
@@ -48,12 +49,12 @@ def test_parameter_std_matches_the_scatter_of_repeated_experiments(ur5):
     truth_rng_seed = 5
     for k in range(12):
         rng = np.random.default_rng(truth_rng_seed)  # same truth and configurations every time ...
-        data = simulate_serial_measurements(model, chain, 40, rng, noise=MeasurementNoise(0.0, 0.0, 0.0))
+        data = simulate_serial_measurements(model, chain, 40, rng, noise=None)
         noise_rng = np.random.default_rng(100 + k)  # ... fresh tracker noise
-        measured = [pin.SE3(g.rotation @ pin.exp3(noise_rng.normal(0.0, EXACT_JOINTS.rotation, 3)),
-                            g.translation + noise_rng.normal(0.0, EXACT_JOINTS.position, 3))
+        measured = [pin.SE3(g.rotation @ pin.exp3(noise_rng.normal(0.0, TRACKER.rotation, 3)),
+                            g.translation + noise_rng.normal(0.0, TRACKER.position, 3))
                     for g in data.measured_poses]
-        calibration = calibrate_serial(model, chain, data.q_readings, measured, noise=EXACT_JOINTS)
+        calibration = calibrate_serial(model, chain, data.q_readings, measured, noise=TRACKER)
         estimates.append(np.concatenate([calibration.deltas[p] for p in chain.placements()])[list(calibration.base.indices)])
         stds.append(calibration.parameter_std)
     scatter = np.std(np.array(estimates), axis=0, ddof=1)
@@ -73,12 +74,12 @@ def test_predicted_pose_std_without_joint_noise_is_micrometres(ur5):
 @pytest.mark.parametrize("norm_error, refused", [(1e-4, True), (2e-6, True), (5e-7, False), (-5e-7, False)])
 def test_quaternion_norm_tolerance_is_1e_6(ur5, norm_error, refused):
     model, chain = ur5
-    data = simulate_serial_measurements(model, chain, 12, np.random.default_rng(7), noise=EXACT_JOINTS)
+    data = simulate_serial_measurements(model, chain, 12, np.random.default_rng(7), noise=TRACKER)
     xyzquat = np.array([pin.SE3ToXYZQUAT(g) for g in data.measured_poses])
     xyzquat[5, 3:] *= 1.0 + norm_error
     if refused:
         with pytest.raises(InvalidInputError, match="quaternion of row 5 has norm"):
-            calibrate_serial(model, chain, data.q_readings, xyzquat, noise=EXACT_JOINTS)
+            calibrate_serial(model, chain, data.q_readings, xyzquat, noise=TRACKER)
     else:
-        calibration = calibrate_serial(model, chain, data.q_readings, xyzquat, noise=EXACT_JOINTS)
+        calibration = calibrate_serial(model, chain, data.q_readings, xyzquat, noise=TRACKER)
         assert calibration.converged

@@ -29,7 +29,6 @@ from m3t1r.calibration.pose_selection import PoseSelection, select_poses
 from m3t1r.calibration.serial import SerialCalibration, calibrate_serial
 from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial
 from m3t1r.calibration.serial_robots import load_example_robot
-from m3t1r.calibration.serial_simulation import MeasurementNoise
 from m3t1r.calibration.simulation import SimulatedStudy, actual_machine, simulate_study
 from m3t1r.calibration.validation import Validation, validate
 from m3t1r.compensation import Compensation, CompensationAccuracy, Compensator, compensate, compensation_accuracy
@@ -67,7 +66,7 @@ __all__ = [
     # calibration
     "PoseErrors", "TrackerNoise", "PoseMeasurements", "MeasurementSetup", "measure", "ClosedLoopErrorModel",
     "ClosedLoopCalibration", "calibrate_closed_loop", "pose_errors", "predicted_pose_std", "CrossValidation",
-    "cross_validate", "MeasurementNoise", "SerialCalibration", "SerialCrossValidation", "calibrate_serial",
+    "cross_validate", "SerialCalibration", "SerialCrossValidation", "calibrate_serial",
     "cross_validate_serial", "load_example_robot", "SimulatedStudy", "simulate_study", "actual_machine",
     "PoseSelection", "select_poses", "MeasurementPlan", "plan_closed_loop", "plan_serial", "Validation", "validate",
     # compensation

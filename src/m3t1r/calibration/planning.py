@@ -42,7 +42,7 @@ from m3t1r.calibration.pose_selection import (
     select_poses,
     serial_candidate_blocks,
 )
-from m3t1r.calibration.serial_simulation import MeasurementNoise, sample_configurations
+from m3t1r.calibration.serial_simulation import sample_configurations
 from m3t1r.errors import InvalidInputError
 from m3t1r.metrics import PoseErrors
 from m3t1r.model.description import Mechanism
@@ -284,16 +284,17 @@ def plan_closed_loop(mechanism: Mechanism, n_poses: int, rng: np.random.Generato
 
 @on_one_blas_thread
 def plan_serial(model: pin.Model, chain: SerialChain, n_poses: int, rng: np.random.Generator, *,
-                n_candidates: int | None = None, noise: MeasurementNoise | None = None, position_only: bool = False,
+                n_candidates: int | None = None, noise: TrackerNoise | None = None, position_only: bool = False,
                 n_evaluation: int = DEFAULT_EVALUATION_POSES) -> MeasurementPlan:
     """A plan of `n_poses` joint configurations [rad or m] of a serial chain (module docstring).
 
     Candidates and evaluation configurations are uniform within the joint limits shrunk by 5 % on
     each side (`serial.sample_configurations`); the robot starts from its neutral configuration.
-    noise: default `MeasurementNoise()` (10 um, 20 urad), as `m3t1r calibrate --serial`.
+    noise: the tracker noise the calibration will assume (default `TrackerNoise()`: 10 um, 20 urad,
+    as `m3t1r calibrate --serial`).
     """
     k = _check_counts(n_poses, n_candidates)
-    noise = noise or MeasurementNoise()
+    noise = noise or TrackerNoise()
     configurations = sample_configurations(model, chain, k, rng)
     blocks, _ = serial_candidate_blocks(model, chain, configurations, noise, position_only=position_only)
     evaluation, _ = serial_candidate_blocks(model, chain, sample_configurations(model, chain, n_evaluation, rng), noise)

@@ -31,7 +31,6 @@ from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.identification import select_base_parameters
 from m3t1r.calibration.measurements import TrackerNoise
-from m3t1r.calibration.serial_simulation import MeasurementNoise
 from m3t1r.errors import InvalidInputError
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
@@ -305,15 +304,16 @@ def closed_loop_candidate_blocks(mechanism: Mechanism, actuators: ArrayLike, noi
 
 
 def serial_candidate_blocks(model: pin.Model, chain: SerialChain, q_chain: ArrayLike,
-                            noise: MeasurementNoise | None = None, *,
+                            noise: TrackerNoise | None = None, *,
                             position_only: bool = False) -> tuple[np.ndarray, tuple[str, ...]]:
     """Whitened identification blocks (n, rows, 6(joints+1)) of a serial chain at configurations (n, joints).
 
     Same rows as `calibrate_serial` with exact joint readings: tool position [m] in the base frame
-    and orientation [rad] in the tool frame, divided by `noise` (default `MeasurementNoise()`).
+    and orientation [rad] in the tool frame, divided by the tracker noise of `noise` (default
+    `TrackerNoise()`).
     Returns blocks and `chain.parameter_names()`.
     """
-    noise = noise or MeasurementNoise()
+    noise = noise or TrackerNoise()
     poses, jacobians = forward_and_error_jacobians(chain, model, q_chain)
     weights = np.r_[np.full(3, 1.0 / noise.position), np.full(3, 1.0 / noise.rotation)]
     rows = 3 if position_only else 6

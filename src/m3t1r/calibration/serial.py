@@ -12,13 +12,13 @@ identity unless given or estimated. Optionally, joints comply under gravity: q -
     position    r_p = p_model - p_meas          (m, in the measurement frame; {B} when F = I)
     orientation r_R = log3(R_meas^T R_model)    (rad, in the LOCAL measured frame)
 with measurement noise p_meas = p + e_p, e_p ~ N(0, sigma_p^2 I) and R_meas = R exp3(e_R),
-e_R ~ N(0, sigma_R^2 I), and joint-reading noise sigma_q per joint. Residuals are whitened by the
-Cholesky factor of their predicted covariance, which includes the joint noise propagated through the
-joint Jacobian. Unlike the paper's spatial log6 error (eq. 18), whose linear part is the motion of
-the point at {B}'s origin, these rows have the physical units of the sensor's noise, so whitening
-by the tracker's specification is meaningful. Their exact Jacobians follow from the WORLD error
-Jacobian of `m3t1r.poe` (eq. 17): d p = v + w x p and d r_R = Jlog3(R_meas^T R) R^T w, with every
-twist expressed in the measurement frame.
+e_R ~ N(0, sigma_R^2 I) (the tracker's, `TrackerNoise`), and joint-reading noise sigma_q per joint
+(`joint_noise`). Residuals are whitened by the Cholesky factor of their predicted covariance, which
+includes the joint noise propagated through the joint Jacobian. Unlike the paper's spatial log6
+error (eq. 18), whose linear part is the motion of the point at {B}'s origin, these rows have the
+physical units of the sensor's noise, so whitening by the tracker's specification is meaningful.
+Their exact Jacobians follow from the WORLD error Jacobian of `m3t1r.poe` (eq. 17): d p = v + w x p
+and d r_R = Jlog3(R_meas^T R) R^T w, with every twist expressed in the measurement frame.
 Position-only mode drops the orientation rows.
 """
 
@@ -47,7 +47,8 @@ from m3t1r.calibration.identification import (
     select_base_parameters,
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
-from m3t1r.calibration.serial_simulation import MeasurementNoise, _readonly
+from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.serial_simulation import _checked_joint_noise, _readonly
 from m3t1r.errors import IdentificationError, InvalidInputError
 from m3t1r.model.poe import Placement, SerialChain, jlog3_batch, log3_batch, perturb, placement_poses, skew
 
@@ -375,11 +376,13 @@ def _readonly_state(chain: SerialChain, model: pin.Model, setup: MeasurementSetu
     return _State(transforms, _readonly(setup.frame.homogeneous), _readonly(setup.marker.homogeneous))
 
 
-def _whitening(chain: SerialChain, state: _State, data: _Measurements, noise: MeasurementNoise) -> np.ndarray:
+def _whitening(chain: SerialChain, state: _State, data: _Measurements, noise: TrackerNoise,
+               joint_noise: float) -> np.ndarray:
     """Inverse Cholesky factors (N, k, k) of the residual covariance of each pose.
 
-    Cov = diag(sigma_p^2 I3 [, sigma_R^2 I3]) + J_q sigma_q^2 J_q^T, with J_q the residual's
-    Jacobian with respect to the joint readings. Computed once at the starting state so that the
+    Cov = diag(sigma_p^2 I3 [, sigma_R^2 I3]) + J_q sigma_q^2 J_q^T, with sigma_p, sigma_R the
+    tracker's `noise`, sigma_q = `joint_noise` and J_q the residual's Jacobian with respect to the
+    joint readings. Computed once at the starting state so that the
     cost function does not change under the optimiser's feet; the joint Jacobian barely moves over
     millimetre-size corrections.
     """
@@ -388,9 +391,7 @@ def _whitening(chain: SerialChain, state: _State, data: _Measurements, noise: Me
     sigmas = np.full(k, noise.position)
     if data.rotations is not None:
         sigmas[3:] = noise.rotation
-    if np.any(sigmas <= 0.0):
-        raise InvalidInputError("MeasurementNoise: position (and rotation, for full poses) must be > 0 to whiten")
-    if noise.joint == 0.0:
+    if joint_noise == 0.0:
         return np.broadcast_to(np.diag(1.0 / sigmas), (n_poses, k, k)).copy()
     unit = _SerialResidual(chain, data, np.broadcast_to(np.eye(k), (n_poses, k, k)))
     rows = unit.residual_and_jacobian(state)[1].reshape(n_poses, k, -1)
@@ -398,7 +399,7 @@ def _whitening(chain: SerialChain, state: _State, data: _Measurements, noise: Me
     # Column k of the joint Jacobian is block k of the error Jacobian applied to S_k:
     # Ad(g_{B,k-1} T_{k-1,k}(0)) S_k = Ad(g_{B,k}) S_k because Ad(exp(S_k q_k)) S_k = S_k.
     joint_rows = np.einsum("nikj,kj->nik", rows[:, :, : 6 * n].reshape(n_poses, k, n, 6), chain.twists)
-    covariance = np.diag(sigmas**2) + noise.joint**2 * joint_rows @ np.swapaxes(joint_rows, 1, 2)
+    covariance = np.diag(sigmas**2) + joint_noise**2 * joint_rows @ np.swapaxes(joint_rows, 1, 2)
     return np.linalg.inv(np.linalg.cholesky(covariance))
 
 
@@ -661,7 +662,8 @@ def calibrate_serial(
     measured_poses: Sequence[pin.SE3] | ArrayLike,
     *,
     position_only: bool = False,
-    noise: MeasurementNoise = MeasurementNoise(),
+    noise: TrackerNoise = TrackerNoise(),
+    joint_noise: float = 0.0,
     rank_tolerance: float = 1e-9,
     max_iterations: int = 30,
     absolute_cost_tolerance: float = 1e-6,
@@ -682,7 +684,10 @@ def calibrate_serial(
     measured_poses: measured frames M_i in the measurement frame: SE3 objects, or an (N, 7) array
         [x, y, z, qx, qy, qz, qw] (m), or (N, 3) positions (m) with position_only=True.
     position_only: use the position rows only (3 per pose; the marker's orientation is irrelevant).
-    noise: standard deviations used to whiten the residuals (see `MeasurementNoise`).
+    noise: the tracker's position [m] and orientation [rad] standard deviations, used to whiten
+        the residuals (`TrackerNoise`; its `actuator` is not used).
+    joint_noise: standard deviation of the joint readings (rad or m, every joint), propagated
+        into the whitening through the joint Jacobian; 0 takes the readings as exact.
     estimate_frame: fit F's 6 parameters, started by `register_frame` of the nominal predictions
         to the measurements; estimate_marker: fit K's 6 (3 translations with positions only).
         The setup's columns are kept first in the base-parameter choice, so the placements it makes
@@ -711,7 +716,8 @@ def calibrate_serial(
     start = _start_state(chain, model, data, setup or MeasurementSetup(), estimate_frame, estimate_marker,
                          compliance)
     torques = gravity_torques(model, chain, data.q) if compliance else None
-    residual = _SerialResidual(chain, data, _whitening(chain, start, data, noise), layout, torques)
+    whitening = _whitening(chain, start, data, noise, _checked_joint_noise(joint_noise))
+    residual = _SerialResidual(chain, data, whitening, layout, torques)
     problem = _SerialProblem(residual, np.arange(layout.size), _prior_columns(names, priors))
     solve = functools.partial(levenberg_marquardt, max_iterations=max_iterations, initial_damping=_INITIAL_DAMPING,
                               absolute_cost_tolerance=absolute_cost_tolerance)

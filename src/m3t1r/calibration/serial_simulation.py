@@ -1,4 +1,5 @@
-"""Simulated measurements of a serial robot: tracker and joint-reading noise, sampled configurations, measured poses."""
+"""Simulated measurements of a serial robot: sampled configurations and measured poses, with tracker
+noise (`TrackerNoise`) and joint-reading noise."""
 
 from __future__ import annotations
 
@@ -9,33 +10,36 @@ from types import MappingProxyType
 import numpy as np
 import pinocchio as pin
 
+from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.errors import InvalidInputError
 from m3t1r.model.poe import Placement, SerialChain, perturb, tool_poses
 
-__all__ = ["MeasurementNoise", "SerialMeasurements", "sample_configurations", "simulate_serial_measurements"]
+__all__ = ["SerialMeasurements", "sample_configurations", "simulate_serial_measurements"]
+
+
+class MeasurementNoise(TrackerNoise):
+    """Transitional: not part of the API. app/cli_serial.py and app/cli_campaign.py still build
+    `MeasurementNoise(position, rotation, 0.0)` and read `.joint`; delete this class once they pass
+    `TrackerNoise(position, rotation)` (and `joint_noise=0.0`, the default) instead. It is a
+    `TrackerNoise` whose third field is read as `joint`; the serial functions use only its
+    position and rotation, and take the joint-reading noise as `joint_noise`."""
+
+    @property
+    def joint(self) -> float:
+        return self.actuator
 
 
 # --------------------------------------------------------------------------------------------------
 # Simulation
 
 
-@dataclass(frozen=True)
-class MeasurementNoise:
-    """Standard deviations of the calibration data, per axis.
-
-    position: tool position (m), isotropic in WORLD. rotation: tool orientation (rad), isotropic,
-    R_meas = R exp3(e). joint: joint readings (rad or m), independent per joint.
-    """
-
-    position: float = 1e-5
-    rotation: float = 2e-5
-    joint: float = 0.0
-
-    def __post_init__(self) -> None:
-        for name in ("position", "rotation", "joint"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value >= 0.0):
-                raise InvalidInputError(f"MeasurementNoise.{name}: must be finite and >= 0, got {value}")
+def _checked_joint_noise(joint_noise: float) -> float:
+    """`joint_noise`, the standard deviation of a serial robot's joint readings (rad or m, the same
+    for every joint), as a float; InvalidInputError unless finite and >= 0."""
+    value = float(joint_noise)
+    if not (np.isfinite(value) and value >= 0.0):
+        raise InvalidInputError(f"joint_noise: must be finite and >= 0, got {joint_noise}")
+    return value
 
 
 @dataclass(frozen=True)
@@ -45,7 +49,9 @@ class SerialMeasurements:
     truth: the "real" robot, nominal placements T(0) exp6(dt) exp6(S dq) (offsets folded in).
     placement_errors: the dt per placement (m, rad); joint_offsets: dq (n,) (rad or m).
     q_true: (N, n) noise-free joint readings; the truth model takes them directly.
-    q_readings: (N, n) q_true plus reading noise. measured_poses: noisy tool poses g_{B,P} in {B}.
+    q_readings: (N, n) q_true plus reading noise. measured_poses: tool poses g_{B,P} in {B}, with
+    the tracker noise. noise: that tracker noise (None: exact poses); joint_noise: the reading
+    noise (rad or m, 0: exact readings).
     """
 
     truth: pin.Model
@@ -54,7 +60,8 @@ class SerialMeasurements:
     q_true: np.ndarray
     q_readings: np.ndarray
     measured_poses: tuple[pin.SE3, ...]
-    noise: MeasurementNoise
+    noise: TrackerNoise | None
+    joint_noise: float = 0.0
 
 
 def sample_configurations(
@@ -76,12 +83,17 @@ def simulate_serial_measurements(
     translation_error: float = 1e-3,
     rotation_error: float = 1e-3,
     joint_offset: float = 1e-3,
-    noise: MeasurementNoise = MeasurementNoise(),
+    noise: TrackerNoise | None = TrackerNoise(),
+    joint_noise: float = 0.0,
 ) -> SerialMeasurements:
     """Draw a true robot and `n_poses` noisy measurements of its tool pose.
 
     Placement errors: dt ~ N(0, diag(translation_error^2 I3, rotation_error^2 I3)) (m, rad) on each
     placement of `chain.placements()`. Joint offsets: dq_k ~ N(0, joint_offset^2) (rad or m).
+    Measured poses: the tracker's position noise N(0, noise.position^2 I3) (m) in {B} and rotation
+    noise R_meas = R exp3(e), e ~ N(0, noise.rotation^2 I3) (rad); exact with noise=None
+    (`noise.actuator` is not used). Joint readings: q_true plus N(0, joint_noise^2) per joint
+    (rad or m); exact with joint_noise=0.
 
     A joint offset needs no parameter of its own: T(0) exp(S (q + dq)) = [T(0) exp(S dq)] exp(S q)
     exactly, because exp(S dq) and exp(S q) share their twist and commute. The offset is therefore a
@@ -90,15 +102,19 @@ def simulate_serial_measurements(
     """
     if n_poses < 1:
         raise InvalidInputError(f"n_poses must be >= 1, got {n_poses}")
+    joint_noise = _checked_joint_noise(joint_noise)
     sigma = np.r_[np.full(3, translation_error), np.full(3, rotation_error)]
     placements = chain.placements()
     errors = {p: rng.normal(0.0, 1.0, 6) * sigma for p in placements}
     offsets = rng.normal(0.0, joint_offset, chain.n_joints)
     truth = perturb(perturb(model, errors), {p: chain.twists[k] * offsets[k] for k, p in enumerate(placements[:-1])})
     q_true = sample_configurations(model, chain, n_poses, rng)
-    q_readings = q_true + rng.normal(0.0, noise.joint, q_true.shape) if noise.joint > 0.0 else q_true.copy()
+    q_readings = q_true + rng.normal(0.0, joint_noise, q_true.shape) if joint_noise > 0.0 else q_true.copy()
     measured = []
     for g in tool_poses(chain, truth, q_true):
+        if noise is None:
+            measured.append(pin.SE3(g[:3, :3], g[:3, 3]))
+            continue
         rotation = g[:3, :3] @ pin.exp3(rng.normal(0.0, noise.rotation, 3))
         measured.append(pin.SE3(rotation, g[:3, 3] + rng.normal(0.0, noise.position, 3)))
     frozen_errors = MappingProxyType({p: _readonly(v) for p, v in errors.items()})
@@ -110,6 +126,7 @@ def simulate_serial_measurements(
         q_readings=_readonly(q_readings),
         measured_poses=tuple(measured),
         noise=noise,
+        joint_noise=joint_noise,
     )
 
 

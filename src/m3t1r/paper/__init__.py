@@ -77,9 +77,9 @@ from m3t1r.paper.identification import (
 )
 from m3t1r.paper.passive_angles import CrankMethod, LowerCrankEstimate, estimate_lower_crank_angles
 from m3t1r.paper.simulation import (
+    PASSIVE_ENCODER_NOISE,
     PresetErrors,
     PresetErrorScale,
-    SensorNoise,
     actual_chain_poses,
     preset_errors,
 )
@@ -89,6 +89,7 @@ __all__ = [
     "EXACT_DATA_REL_TOL",
     "NOISY_READINGS_REL_TOL",
     "PAPER_IDENTIFIABLE_BOUND",
+    "PASSIVE_ENCODER_NOISE",
     "ChainErrors",
     "ClosedChainStudyResult",
     "CrankMethod",
@@ -100,7 +101,6 @@ __all__ = [
     "PassiveSource",
     "PresetErrorScale",
     "PresetErrors",
-    "SensorNoise",
     "TwoChainErrorModel",
     "actual_chain_poses",
     "calibrate_two_chains",

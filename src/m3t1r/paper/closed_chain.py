@@ -32,7 +32,7 @@ from m3t1r.paper.identification import (
     calibrate_two_chains,
 )
 from m3t1r.paper.passive_angles import estimate_lower_crank_angles
-from m3t1r.paper.simulation import SensorNoise, _observe, _read
+from m3t1r.paper.simulation import PASSIVE_ENCODER_NOISE, _checked_passive_encoder_noise, _observe, _read
 
 __all__ = ["ClosedChainStudyResult", "closed_chain_study"]
 
@@ -62,10 +62,12 @@ class ClosedChainStudyResult:
     crank_error: {method: (M, 2) estimated minus true q_13, q_23 (rad) at the held-out poses},
         "distance" and "platform" from the truth's other readings with the nominal chain model,
         "sliders" from the nominal closed-loop model.
+    noise, passive_encoder_noise: the sensors' noise (None and 0 when every reading is exact).
     """
 
     seed: int
-    noise: SensorNoise | None
+    noise: TrackerNoise | None
+    passive_encoder_noise: float
     calibration: PaperCalibration = field(repr=False)
     nominal: PoseErrors = field(repr=False)
     sensors_before: PoseErrors = field(repr=False)
@@ -112,7 +114,8 @@ def _crank_errors(nominal: Mechanism, q_held: np.ndarray) -> dict[str, np.ndarra
 def closed_chain_study(
     seed: int = 0,
     *,
-    noise: SensorNoise | None = None,
+    noise: TrackerNoise | None = None,
+    passive_encoder_noise: float = PASSIVE_ENCODER_NOISE,
     n_poses: int = 20,
     n_holdout: int = 50,
     sigma_position: float = 1e-3,
@@ -126,8 +129,9 @@ def closed_chain_study(
 
     Data per calibration pose: the slider readings, the readings of every joint of both chains
     (the truth's assembled configuration, plus noise), and the measured pose of the platform
-    frame P_I (plus tracker noise), which is the target of both chains. Held-out poses use exact
-    readings for every method.
+    frame P_I (plus tracker noise), which is the target of both chains. Noise as in `paper_study`:
+    `noise` for the tracker and the sliders, `passive_encoder_noise` [rad] for the other joints,
+    none at all with noise=None. Held-out poses use exact readings for every method.
 
     The paper's premise y_1 = y_2 (eq. 21) is a rigid platform that both chains end on. On a
     machine with errors the closure cannot hold in every direction: the truth keeps P_I and P_II
@@ -150,9 +154,10 @@ def closed_chain_study(
     q_held = np.array([r.q for r in held_forward])
     held_truth = tuple(r.pose for r in held_forward)
 
-    readings = _read(nominal, chains, q_fit, noise, rng)
+    passive_encoder_noise = _checked_passive_encoder_noise(passive_encoder_noise) if noise is not None else 0.0
+    readings = _read(nominal, chains, q_fit, noise, passive_encoder_noise, rng)
     measured = _observe([r.pose for r in fit_forward], noise, rng)
-    tracker = noise.tracker if noise is not None else TrackerNoise()
+    tracker = noise if noise is not None else TrackerNoise()
     if rank_tolerance is None:
         rank_tolerance = EXACT_DATA_REL_TOL if noise is None else NOISY_READINGS_REL_TOL
     calibration = calibrate_two_chains(nominal, readings, measured, noise=tracker, rank_tolerance=rank_tolerance)
@@ -178,6 +183,7 @@ def closed_chain_study(
     return ClosedChainStudyResult(
         seed=seed,
         noise=noise,
+        passive_encoder_noise=passive_encoder_noise,
         calibration=calibration,
         nominal=pose_errors(truth, nominal, study.holdout_actuators),
         sensors_before=sensors_before,

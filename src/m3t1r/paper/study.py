@@ -32,9 +32,10 @@ from m3t1r.paper.identification import (
 )
 from m3t1r.paper.passive_angles import LowerCrankEstimate, estimate_lower_crank_angles
 from m3t1r.paper.simulation import (
+    PASSIVE_ENCODER_NOISE,
     PresetErrors,
     PresetErrorScale,
-    SensorNoise,
+    _checked_passive_encoder_noise,
     _observe,
     _read,
     actual_chain_poses,
@@ -83,6 +84,7 @@ class PaperStudyResult:
     the readings the calibration used (noisy when `noise` is set); held-out poses at exact
     readings, so that they measure the identified model rather than the sensors. When
     passive_from is not "sensor", the lower cranks are estimated at both (with the nominal model).
+    noise, passive_encoder_noise: the sensors' noise (None and 0 when every reading is exact).
     crank_error: (N, 2) estimated minus true q_13, q_23 (rad) on the calibration then held-out
         poses, None when read.
     calibration is None, and failure says why, when the identification raised IdentificationError
@@ -92,7 +94,8 @@ class PaperStudyResult:
     """
 
     seed: int
-    noise: SensorNoise | None
+    noise: TrackerNoise | None
+    passive_encoder_noise: float
     passive_from: PassiveSource
     preset: PresetErrors = field(repr=False)
     calibration: PaperCalibration | None = field(repr=False)
@@ -117,7 +120,8 @@ def _paper_chain_errors(chains: Sequence[PaperChain], before: pin.Model, after: 
 def paper_study(
     seed: int = 0,
     *,
-    noise: SensorNoise | None = None,
+    noise: TrackerNoise | None = None,
+    passive_encoder_noise: float = PASSIVE_ENCODER_NOISE,
     passive_from: PassiveSource = "sensor",
     n_poses: int = 20,
     n_holdout: int = 50,
@@ -137,7 +141,9 @@ def paper_study(
        `closed_chain_study` for a machine that does);
     6. `calibrate_two_chains` with the local POE model (initial-pose errors only).
 
-    With noise, the tracker perturbs the measured poses and the sensors the readings. With
+    With `noise` (the tracker's and slider encoders'), the tracker perturbs the measured poses, the
+    slider encoders the slider readings and the passive joints' encoders, of standard deviation
+    `passive_encoder_noise` [rad], every other reading; without, every reading is exact. With
     passive_from other than "sensor", q_13 and q_23 are estimated from the other readings with
     the nominal model instead of read. The first n_poses calibrate, the rest are held out.
     solver and rank_tolerance are passed to `calibrate_two_chains`; rank_tolerance defaults to
@@ -155,10 +161,11 @@ def paper_study(
     truth = [actual_chain_poses(chain, nominal.model, preset, q_true) for chain in chains]
 
     fit, held = slice(0, n_poses), slice(n_poses, None)
-    readings = _read(nominal, chains, q_true[fit], noise, rng)
+    passive_encoder_noise = _checked_passive_encoder_noise(passive_encoder_noise) if noise is not None else 0.0
+    readings = _read(nominal, chains, q_true[fit], noise, passive_encoder_noise, rng)
     readings, fit_estimate = _with_passive(nominal, readings, passive_from, nominal.model)
     measured = {chain.name: _observe(poses[fit], noise, rng) for chain, poses in zip(chains, truth)}
-    tracker = noise.tracker if noise is not None else TrackerNoise()
+    tracker = noise if noise is not None else TrackerNoise()
     if rank_tolerance is None:
         rank_tolerance = EXACT_DATA_REL_TOL if noise is None else NOISY_READINGS_REL_TOL
     calibration: PaperCalibration | None = None
@@ -178,6 +185,7 @@ def paper_study(
     return PaperStudyResult(
         seed=seed,
         noise=noise,
+        passive_encoder_noise=passive_encoder_noise,
         passive_from=passive_from,
         preset=preset,
         calibration=calibration,
