@@ -11,6 +11,7 @@ import yourdfpy
 from m3t1r.errors import ModelFileError, ModelWarning
 from m3t1r.model.description import Mechanism, nominal_model_paths
 from m3t1r.model.design import NOMINAL, build_closures, build_urdf
+from m3t1r.model.examples import five_bar_files
 from m3t1r.model.kinematics import ClosedLoopSolver
 
 
@@ -18,6 +19,12 @@ def test_committed_model_files_match_the_generator():
     urdf, closures = nominal_model_paths()
     assert urdf.read_text() == build_urdf(NOMINAL), "run `make models`"
     assert yaml.safe_load(closures.read_text()) == build_closures(NOMINAL), "run `make models`"
+
+
+def test_committed_five_bar_matches_its_generator(tmp_path):
+    packaged = nominal_model_paths()[0].parent
+    for written in five_bar_files(tmp_path):
+        assert (packaged / written.name).read_bytes() == written.read_bytes(), "run `make models`"
 
 
 def test_urdf_loads_in_pinocchio_and_yourdfpy():

@@ -42,7 +42,6 @@ from m3t1r.io.tables import table_text
 from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 from m3t1r.model.workspace import workspace_actuators
 from m3t1r.paper.closed_chain import closed_chain_study
-from m3t1r.paper.simulation import SensorNoise
 from m3t1r.paper.study import paper_study
 
 EXIT_ERROR, EXIT_ROWS_FAILED = 2, 1
@@ -165,7 +164,7 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     comments = provenance(args) + [f"calibrated model: {calibrated.urdf_path}"]
     pose_note = "poses to send to a controller that knows only the nominal model (T_cp)"
     if args.output_kind == "actuators":
-        text = table_text(calibrated.actuated_joints, result.actuators, comments + ["corrected slider commands [m]"])
+        text = table_text(calibrated.actuated_joints, result.actuators, comments + ["corrected actuator commands [m or rad]"])
     elif isinstance(targets, np.ndarray):
         text = table_text(calibrated.task.columns, result.command_targets, comments + [pose_note])
     else:
@@ -247,7 +246,7 @@ def cmd_paper(args: argparse.Namespace) -> None:
         raise InvalidInputError("--closed runs every variant (passive joints read, sliders alone, closed loop); "
                                 "--passive-from applies to the two-chain study only")
     passive_from = args.passive_from or "sensor"
-    noise = SensorNoise() if args.noise else None
+    noise = TrackerNoise() if args.noise else None
     label = "with noise (tracker 10 um / 20 urad, encoders 10 urad)" if args.noise else "noise-free"
 
     def row(name, errors) -> str:

@@ -20,7 +20,6 @@ from m3t1r.calibration.measurement_setup import LENGTH_UNITS
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.planning import plan_closed_loop, plan_serial
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
-from m3t1r.calibration.serial_simulation import MeasurementNoise
 from m3t1r.calibration.validation import validate
 from m3t1r.errors import InvalidInputError, ModelFileError
 from m3t1r.io.outputs import OutputSet
@@ -83,7 +82,7 @@ def _make_plan(args: argparse.Namespace):
         if args.model or args.closures:
             raise InvalidInputError("--model/--closures describe the M machine; with --serial give the robot only")
         model, chain = _serial_robot(args.serial, args.tool, args.base)
-        noise = MeasurementNoise(args.noise_pos, args.noise_rot, 0.0)
+        noise = TrackerNoise(args.noise_pos, args.noise_rot)
         plan = plan_serial(model, chain, args.n, rng, n_candidates=args.candidates, noise=noise,
                            position_only=args.position_only)
         return plan, [args.serial] if Path(args.serial).exists() else []

@@ -31,10 +31,10 @@ from m3t1r.calibration.assessment import (
     likely_causes,
 )
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
+from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.serial import SerialCalibration, calibrate_serial
 from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
-from m3t1r.calibration.serial_simulation import MeasurementNoise
 from m3t1r.errors import InvalidInputError, PoorExcitationWarning
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import sha256_bytes
@@ -135,7 +135,7 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
     data = read_campaign(args.measurements, chain, args.units)
     marker = pin.SE3(np.eye(3), np.array(args.marker, dtype=float)) if args.marker is not None else pin.SE3.Identity()
     estimate_frame = args.frame == "estimate"
-    noise = MeasurementNoise(args.noise_pos, args.noise_rot, 0.0)
+    noise = TrackerNoise(args.noise_pos, args.noise_rot)
     _precheck(model, chain, data, marker, estimate_frame)
     print(f"calibrating chain {chain.joint_names[0]} .. {chain.tool_frame} from {len(data.poses)} poses"
           + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
@@ -159,7 +159,7 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
 
 
 def _fit(args: argparse.Namespace, model: pin.Model, chain: SerialChain, data: SerialCampaign,
-         noise: MeasurementNoise, marker: pin.SE3, estimate_frame: bool) -> SerialCalibration:
+         noise: TrackerNoise, marker: pin.SE3, estimate_frame: bool) -> SerialCalibration:
     kwargs = {} if args.max_iterations is None else {"max_iterations": args.max_iterations}
     measured = np.array([g.translation for g in data.poses]) if data.position_only else data.poses
     return calibrate_serial(
@@ -237,7 +237,7 @@ def explain(calibration: SerialCalibration, warnings_seen: list[str] = ()) -> li
 
 
 def serial_calibration_report(calibration: SerialCalibration, data: SerialCampaign, args: argparse.Namespace,
-                              noise: MeasurementNoise, outlier_lines: list[int] = (),
+                              noise: TrackerNoise, outlier_lines: list[int] = (),
                               validation: SerialCrossValidation | None = None, notes: list[str] = ()) -> dict:
     """The JSON report of a serial calibration (strict JSON through io.json_text: NaN becomes null)."""
     chain, setup, selection = calibration.chain, calibration.setup, calibration.selection
@@ -255,7 +255,7 @@ def serial_calibration_report(calibration: SerialCalibration, data: SerialCampai
                           "chain": list(chain.joint_names)},
         "measured_frame": chain.tool_frame,
         **campaign_report_fields(setup, calibration.names, validation, selection, calibration.fitted, args),
-        "noise_model": {"position_m": noise.position, "rotation_rad": noise.rotation, "joint_rad": noise.joint},
+        "noise_model": {"position_m": noise.position, "rotation_rad": noise.rotation, "joint_rad": 0.0},
         "converged": calibration.converged, "termination": calibration.termination,
         "iterations": calibration.iterations, "variance_factor": calibration.variance_factor,
         "outliers": list(outlier_lines),

@@ -153,21 +153,41 @@ html, body {{ margin: 0; height: 100%; overflow: hidden; font: 13px/1.35 sans-se
 """
 
 
+def _task_text(columns: Sequence[str], values: Sequence[float]) -> str:
+    """Task coordinates for people: positions in mm, the heading in degrees, a quaternion as is."""
+    parts = []
+    for name, value in zip(columns, values):
+        if name in ("x", "y", "z"):
+            parts.append(f"{name} {_fixed(float(value) * 1e3, 1)} mm")
+        elif name == "theta":
+            parts.append(f"&theta; {_fixed(math.degrees(float(value)), 2)}&deg;")
+        else:
+            parts.append(f"{name} {_fixed(float(value), 4)}")
+    return ", ".join(parts)
+
+
+def _actuator_text(mechanism, values: Sequence[float]) -> str:
+    """Prismatic actuators in mm, revolute ones in degrees."""
+    model = mechanism.model
+    prismatic = [model.joints[model.getJointId(name)].shortname().startswith("JointModelP")
+                 for name in mechanism.actuated_joints]
+    return ", ".join(_fixed(v * 1e3, 2) if slide else _fixed(math.degrees(v), 3) for v, slide in zip(values, prismatic))
+
+
 def _title(posed: Sequence[PosedMachine]) -> str:
     return "m3t1r: " + " vs ".join(machine.view.name for machine in posed)
 
 
 def _legend(posed: Sequence[PosedMachine], pose: Sequence[float] | None, sliders: Sequence[float] | None) -> str:
+    mechanism = posed[0].view.mechanism
     if pose is not None:
-        x, y, z, theta = (float(v) for v in pose)
-        command = (f"platform pose x {_fixed(x * 1e3, 1)}, y {_fixed(y * 1e3, 1)}, z {_fixed(z * 1e3, 1)} mm, "
-                   f"&theta; {_fixed(math.degrees(theta), 2)}&deg; reached by IK on each machine")
+        command = f"task pose {_task_text(mechanism.task.columns, pose)} reached by IK on each machine"
     elif sliders is not None:
-        command = "same slider values on each machine (FK)"
+        command = "same actuator values on each machine (FK)"
     else:
         command = "each machine at its home configuration"
-    names = ", ".join(html.escape(name) for name in posed[0].view.mechanism.actuated_joints)
-    lines = [f"<div>{command}; sliders ({names}) in mm</div>"]
+    names = ", ".join(html.escape(name) for name in mechanism.actuated_joints)
+    lines = [f"<div>{command}; actuators ({names}) in mm or &deg;</div>"]
     for machine in posed:
         view = machine.view
         if view.color is None:  # a strip of the URDF's main material colours
@@ -176,12 +196,11 @@ def _legend(posed: Sequence[PosedMachine], pose: Sequence[float] | None, sliders
             r, g, b, a = view.color
             swatch = f"background: rgba({r * 255:.0f}, {g * 255:.0f}, {b * 255:.0f}, {a:.2f})"
         p = [_fixed(v * 1e3, 2) for v in machine.platform.translation]
-        slider_text = ", ".join(_fixed(v * 1e3, 2) for v in machine.sliders)
         lines.append(
             f'<div data-node="{html.escape(view.node)}"><span class="swatch" style="{swatch}"></span>'
             f"<b>{html.escape(view.name)}</b> ({html.escape(view.mechanism.urdf_path.name)}): "
             f"platform {', '.join(p)} mm, yaw {_fixed(math.degrees(yaw_of(machine.platform.rotation)), 3)}&deg;; "
-            f"sliders {slider_text}</div>")
+            f"actuators {_actuator_text(view.mechanism, machine.sliders)}</div>")
     return "\n".join(lines)
 
 

@@ -24,16 +24,31 @@ from scipy.linalg import lapack
 
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
-from m3t1r.model.poe import Placement, adjoint_matrices, perturb
+from m3t1r.model.poe import Placement, adjoint_matrices, frames_moved_by_frame_error, perturb
 
-__all__ = ["ClosedLoopErrorModel", "PlatformSensitivities"]
+__all__ = ["ClosedLoopErrorModel", "PlatformSensitivities", "has_own_placement"]
+
+
+def has_own_placement(model: pin.Model, frame_id: int) -> bool:
+    """Whether a frame has a placement of its own to identify: a frame on a fixed joint (or an
+    operational frame), not a JOINT frame nor the frame of a link hanging from a moving joint.
+
+    Those two coincide with their joint's frame by definition (a URDF cannot give a link frame an
+    offset from its joint), so an error there is the joint's own placement error, or the
+    measurement setup's marker for a measured link.
+    """
+    frame = model.frames[frame_id]
+    if frame.type == pin.FrameType.JOINT:
+        return False
+    return not (frame.type == pin.FrameType.BODY and frames_moved_by_frame_error(model, frame_id)[0] == frame_id
+                and model.frames[frame.parentFrame].type == pin.FrameType.JOINT)
 
 
 class ClosedLoopErrorModel:
     """The placement parameters of a mechanism and the platform pose's sensitivity to them.
 
     placements: every joint of the tree (model order), then every closure frame and the platform
-    frame (each once; a JOINT frame is its joint's placement and adds none). Parameter k of placement i is named f"{name}.dt[{k}]", [v; w] order.
+    frame (each once, those with a placement of their own: `has_own_placement`). Parameter k of placement i is named f"{name}.dt[{k}]", [v; w] order.
     """
 
     def __init__(self, mechanism: Mechanism, placements: tuple[Placement, ...] | None = None) -> None:
@@ -44,9 +59,8 @@ class ClosedLoopErrorModel:
             for spec in mechanism.closures:
                 frame_ids += [spec.frame_a_id, spec.frame_b_id]
             frame_ids.append(mechanism.platform_frame_id)
-            # A JOINT frame is its joint's placement, already a parameter: it gets none of its own.
             frames = tuple(Placement.frame(model.frames[i].name) for i in dict.fromkeys(frame_ids)
-                           if model.frames[i].type != pin.FrameType.JOINT)
+                           if has_own_placement(model, i))
             placements = joints + frames
         self.mechanism = mechanism
         self.placements = placements
@@ -75,31 +89,38 @@ class ClosedLoopErrorModel:
                                      for fa, fb, count in self._closure_frames])
         self._platform = mechanism.platform_frame_id
         self._platform_mask = support(self._platform)
-        # Rows seeing their closure frames' own errors: (rows, frame slot per row, parameter
-        # columns per row, sign) for the frame_b and the frame_a side.
-        self._own_frame_ids = sorted(f for f in self._frame_block)
-        slot_of = {f: k for k, f in enumerate(self._own_frame_ids)}
+        # Rows seeing frame parameters: a frame error moves its anchor and everything rigidly attached
+        # to it (`frames_moved_by_frame_error`, as `perturb` applies it) by the spatial twist
+        # Ad(oM_anchor) dt: (rows, adjoint slot per row, parameter columns per row, sign) for the
+        # frame_b and the frame_a side of every closure whose frame moves.
+        self._own_frame_ids = sorted(self._frame_block)
+        moved = [frames_moved_by_frame_error(model, f) for f in self._own_frame_ids]
         self._own_terms = []
         for side, sign in ((1, 1.0), (0, -1.0)):
             rows, slots, columns = [], [], []
             row = 0
             for frames_and_count in self._closure_frames:
                 frame_id, count = frames_and_count[side], frames_and_count[2]
-                if frame_id in self._frame_block:
-                    for r in range(row, row + count):
-                        rows.append(r)
-                        slots.append(slot_of[frame_id])
-                        columns.append(np.arange(self._frame_block[frame_id], self._frame_block[frame_id] + 6))
+                for slot, (owner, (_, family)) in enumerate(zip(self._own_frame_ids, moved)):
+                    if frame_id in family:
+                        block = self._frame_block[owner]
+                        for r in range(row, row + count):
+                            rows.append(r)
+                            slots.append(slot)
+                            columns.append(np.arange(block, block + 6))
                 row += count
             if rows:
                 self._own_terms.append((np.array(rows), np.array(slots), np.array(columns), sign))
+        # The platform frame moves with its own parameters and with any frame's it is attached to.
+        self._platform_terms = tuple((self._frame_block[owner], slot) for slot, (owner, (_, family))
+                                     in enumerate(zip(self._own_frame_ids, moved)) if self._platform in family)
         # Batched sensitivities: the parent of each joint (G's blocks are Ad(oMi[parent] jointPlacement)),
         # the platform's support per velocity column, and the frames whose own adjoints are needed.
         self._parents = np.array(model.parents[1:], dtype=int)
         self._platform_v_mask = np.zeros(model.nv)
         for j in model.supports[model.frames[self._platform].parentJoint][1:]:
             self._platform_v_mask[model.idx_vs[j]] = 1.0
-        self._adjoint_frames = self._own_frame_ids + [self._platform]
+        self._adjoint_frames = [anchor for anchor, _ in moved] + [self._platform]
         self._plans: dict[bytes, _ColumnPlan] = {}
 
     def deltas(self, vector: np.ndarray) -> dict[Placement, np.ndarray]:
@@ -167,8 +188,8 @@ class ClosedLoopErrorModel:
             dr_dp[:, row_index, slot_index] += sign * values
         xi = np.zeros((n, 6, plan.size))
         xi[:, :, plan.joint_slots] = G * plan.platform_mask
-        if plan.platform_components.size:
-            xi[:, :, plan.platform_slots] = adjoints[:, -1][:, :, plan.platform_components]
+        for slots, components, adjoint in plan.platform_terms:
+            xi[:, :, slots] += adjoints[:, adjoint][:, :, components]
         square = jac_q[:, :, solver.passive]
         one_norms = np.abs(square).sum(axis=1).max(axis=1)
         factors = tuple((*lapack.dgetrf(block)[:2], float(norm)) for block, norm in zip(square, one_norms))
@@ -214,8 +235,7 @@ class _ColumnPlan:
     row_masks: np.ndarray  # (n_rows, len(joint_slots)) signed closure supports
     platform_mask: np.ndarray  # (len(joint_slots),) platform support
     own_terms: tuple  # (rows, slots, sign, pick (R, 6) mask, row index, output slot) per closure side
-    platform_slots: np.ndarray  # output columns of the platform frame's own parameters
-    platform_components: np.ndarray  # and their twist components
+    platform_terms: tuple  # (output columns, twist components, adjoint slot) per frame parameter moving the platform
 
     @staticmethod
     def build(model: ClosedLoopErrorModel, columns: np.ndarray) -> _ColumnPlan:
@@ -231,13 +251,11 @@ class _ColumnPlan:
             if pick.any():
                 row_index = np.broadcast_to(rows[:, None], blocks.shape)[pick]
                 own_terms.append((rows, slots, sign, pick, row_index, slot_of[blocks][pick]))
-        own = model._frame_block.get(model._platform)
-        platform_slots = np.array([], dtype=int)
-        platform_components = np.array([], dtype=int)
-        if own is not None:
-            wanted = slot_of[own:own + 6] >= 0
-            platform_slots = slot_of[own:own + 6][wanted]
-            platform_components = np.flatnonzero(wanted)
+        platform_terms = []
+        for block, adjoint in model._platform_terms:
+            wanted = slot_of[block:block + 6] >= 0
+            if wanted.any():
+                platform_terms.append((slot_of[block:block + 6][wanted], np.flatnonzero(wanted), adjoint))
         return _ColumnPlan(len(columns), joint_slots, g_columns, model._row_masks[:, g_columns],
-                           model._platform_mask[g_columns], tuple(own_terms), platform_slots, platform_components)
+                           model._platform_mask[g_columns], tuple(own_terms), tuple(platform_terms))
 

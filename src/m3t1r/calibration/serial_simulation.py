@@ -17,18 +17,6 @@ from m3t1r.model.poe import Placement, SerialChain, perturb, tool_poses
 __all__ = ["SerialMeasurements", "sample_configurations", "simulate_serial_measurements"]
 
 
-class MeasurementNoise(TrackerNoise):
-    """Transitional: not part of the API. app/cli_serial.py and app/cli_campaign.py still build
-    `MeasurementNoise(position, rotation, 0.0)` and read `.joint`; delete this class once they pass
-    `TrackerNoise(position, rotation)` (and `joint_noise=0.0`, the default) instead. It is a
-    `TrackerNoise` whose third field is read as `joint`; the serial functions use only its
-    position and rotation, and take the joint-reading noise as `joint_noise`."""
-
-    @property
-    def joint(self) -> float:
-        return self.actuator
-
-
 # --------------------------------------------------------------------------------------------------
 # Simulation
 

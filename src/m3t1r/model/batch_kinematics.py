@@ -250,7 +250,8 @@ class StackedKinematics:
             else:
                 self.weld.append((start, where[c.frame_a_id], where[c.frame_b_id]))
                 start += 6
-        self.point_rows = (np.array(self.point_slot)[:, None] + np.arange(3)).reshape(-1)
+        self.point_rows = (np.array(self.point_slot, dtype=int)[:, None] + np.arange(3)).reshape(-1)
+        self.point_a, self.point_b = np.array(self.point_a, dtype=int), np.array(self.point_b, dtype=int)
         self.enforced = solver._enforced
         self.row_mask = solver._row_masks[False]
         self.n_full = start

@@ -35,6 +35,7 @@ from numpy.typing import ArrayLike
 from m3t1r.errors import InvalidInputError, UnknownNameError, UnsupportedJointError, require_finite_vector
 
 __all__ = [
+    "frames_moved_by_frame_error",
     "Placement",
     "SerialChain",
     "adjoint_matrices",
@@ -169,6 +170,19 @@ def _rigidly_attached(model: pin.Model, anchor_id: int) -> tuple[list[int], list
         frames.append(i)
         stack.extend(children.get(i, ()))
     return frames, joints
+
+
+def frames_moved_by_frame_error(model: pin.Model, frame_id: int) -> tuple[int, set[int]]:
+    """(anchor, frames) of a frame placement error as `perturb` applies it: the anchor frame that
+    carries it, and every frame that moves rigidly with the anchor (its attached frames, and all
+    frames of the subtrees of joints hanging from them), the named frame included. All of them
+    move by the same spatial twist Ad(oM_anchor) dt."""
+    anchor = _frame_anchor(model, frame_id)
+    attached, joints = _rigidly_attached(model, anchor)
+    moved = {anchor, frame_id, *attached}
+    subtree = {j for j in range(1, model.njoints) if any(k in model.supports[j].tolist() for k in joints)}
+    moved |= {i for i, frame in enumerate(model.frames) if frame.parentJoint in subtree}
+    return anchor, moved
 
 
 def placement_of(model: pin.Model, placement: Placement) -> pin.SE3:

@@ -131,12 +131,6 @@ def actual_chain_poses(chain: PaperChain, model: pin.Model, preset: PresetErrors
     return tuple(poses)
 
 
-# Transitional alias, not part of the API: app/cli.py still builds `SensorNoise()` for `m3t1r paper
-# --noise`; delete it once that passes `TrackerNoise()` (the passive encoders' noise is the studies'
-# `passive_encoder_noise`, PASSIVE_ENCODER_NOISE by default, so the output stays the same).
-SensorNoise = TrackerNoise
-
-
 def _checked_passive_encoder_noise(passive_encoder_noise: float) -> float:
     value = float(passive_encoder_noise)
     if not (math.isfinite(value) and value >= 0.0):

@@ -1,0 +1,270 @@
+"""Three mechanisms of different kinds, through the same code: the M machine (3T1R, sliders), a
+planar five-bar (task x, y; revolute motors) and a spherical 3-RRR wrist (task: full orientation).
+
+Forward kinematics against independent solvers, inverse kinematics round trips, noise-free and
+noisy closed-loop calibration, and the load-time repairs (approximate home, missing limits,
+JOINT-frame closures, a cut joint modelled as two welded hinges).
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from pathlib import Path
+
+import closed_form
+import numpy as np
+import pinocchio as pin
+import pytest
+import reference_kinematics as reference
+import yaml
+
+from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.simulation import simulate_study
+from m3t1r.errors import InvalidInputError, ModelFileError, ModelWarning
+from m3t1r.model.description import Mechanism, nominal_model_paths
+from m3t1r.model.examples import five_bar_files, spherical_wrist_files
+from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.poe import Placement
+from m3t1r.model.workspace import workspace_actuators
+
+KINDS = ("m_machine", "five_bar", "spherical_wrist")
+
+
+def _files(kind: str, folder: Path) -> tuple[Path, Path]:
+    if kind == "m_machine":
+        return nominal_model_paths()
+    return (five_bar_files if kind == "five_bar" else spherical_wrist_files)(folder)
+
+
+@pytest.fixture(scope="module", params=KINDS)
+def mechanism(request, tmp_path_factory) -> Mechanism:
+    return Mechanism.load(*_files(request.param, tmp_path_factory.mktemp(request.param)))
+
+
+def _kind(mechanism: Mechanism) -> str:
+    return {"P_I": "m_machine", "effector": "five_bar", "platform": "spherical_wrist"}[mechanism.platform_frame]
+
+
+def _reference_forward(kind: str, actuators: np.ndarray) -> np.ndarray:
+    """Task coordinates by an independent solver: position (M: x, y, z, yaw), or a rotation matrix."""
+    if kind == "m_machine":
+        return closed_form.forward(actuators)
+    if kind == "five_bar":
+        return reference.five_bar_forward(actuators)
+    return reference.wrist_forward(actuators)
+
+
+def test_forward_kinematics_matches_an_independent_solver(mechanism):
+    kind = _kind(mechanism)
+    solver = ClosedLoopSolver(mechanism)
+    actuators = workspace_actuators(mechanism, 25, np.random.default_rng(3))
+    batch = solver.forward_batch(actuators)
+    assert batch.complete
+    for sliders, pose in zip(actuators, batch.poses):
+        expected = _reference_forward(kind, sliders)
+        if kind == "m_machine":
+            got = np.r_[pose[:3, 3], np.arctan2(pose[1, 0], pose[0, 0])]
+            np.testing.assert_allclose(got, expected, atol=1e-9)
+        elif kind == "five_bar":
+            np.testing.assert_allclose(pose[:2, 3], expected, atol=1e-9)
+        else:
+            assert np.linalg.norm(pin.log3(np.asarray(expected).T @ pose[:3, :3])) < 1e-9
+
+
+def test_inverse_kinematics_round_trip(mechanism):
+    solver = ClosedLoopSolver(mechanism)
+    actuators = workspace_actuators(mechanism, 25, np.random.default_rng(4))
+    coordinates = mechanism.task.coordinates(solver.forward_batch(actuators).poses)
+    batch = solver.inverse_batch(coordinates)
+    assert batch.complete
+    np.testing.assert_allclose(batch.actuators, actuators, atol=1e-8)
+    for target, sliders in zip(coordinates[:8], actuators[:8]):
+        np.testing.assert_allclose(solver.inverse(target, q_init=mechanism.home).actuators, sliders, atol=1e-8)
+    # A full pose as target: its uncommanded components are ignored.
+    full = pin.SE3(solver.forward(actuators[0], q_init=mechanism.home).pose)
+    np.testing.assert_allclose(solver.inverse(full, q_init=mechanism.home).actuators, actuators[0], atol=1e-8)
+
+
+def test_task_columns_name_what_is_commanded(mechanism):
+    expected = {"m_machine": ("x", "y", "z", "theta"), "five_bar": ("x", "y"),
+                "spherical_wrist": ("qx", "qy", "qz", "qw")}[_kind(mechanism)]
+    assert mechanism.task.columns == expected
+    assert mechanism.task.dimension == len(mechanism.actuated_joints)
+    with pytest.raises(InvalidInputError, match=re.escape(f"expected {len(expected)} values")):
+        ClosedLoopSolver(mechanism).inverse(np.zeros(len(expected) + 1))
+
+
+@pytest.mark.parametrize("noisy", [False, True])
+def test_closed_loop_calibration_of_every_origin(mechanism, noisy):
+    """0.1 mm / 0.1 mrad errors on every joint and frame origin; 60 poses, judged on 150 held out."""
+    noise = TrackerNoise() if noisy else None
+    study = simulate_study(mechanism, n_poses=60, n_holdout=150, seed=11, sigma_position=1e-4,
+                           sigma_rotation=1e-4, noise=noise)
+    calibration = calibrate_closed_loop(mechanism, study.measurements, noise or TrackerNoise())
+    assert calibration.lm.converged
+    held_out = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
+    if not noisy:
+        assert held_out.position_max < 1e-7 and held_out.rotation_max < 1e-6
+        return
+    # At the covariance floor: the held-out error is what the fit's own covariance predicts.
+    predicted = predicted_pose_std(calibration, study.holdout_actuators)
+    assert 0.5 < calibration.variance_factor < 1.5
+    ratio = held_out.position_rms / predicted.position_rms
+    assert 0.4 < ratio < 2.0, ratio
+
+
+# ------------------------------------------------------------------------------------------------
+# Load-time repairs
+def _edit(path: Path, change) -> None:
+    text = path.read_text()
+    path.write_text(change(text))
+
+
+def _edit_yaml(path: Path, change) -> None:
+    document = yaml.safe_load(path.read_text())
+    change(document)
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
+
+
+def _load_noting(urdf: Path, closures: Path, pattern: str) -> Mechanism:
+    with pytest.warns(ModelWarning, match=pattern):
+        return Mechanism.load(urdf, closures)
+
+
+def test_urdf_without_actuator_limits_takes_the_workspace_box(tmp_path):
+    urdf, closures = five_bar_files(tmp_path)
+    # A <limit> with effort and velocity only (URDF requires the element on a revolute joint): Pinocchio
+    # then reads the position limits as [0, 0].
+    _edit(urdf, lambda text: re.sub(r'(<joint name="motor_\d" type="revolute">(?:(?!</joint>).)*?)<limit[^>]*/>',
+                                    r'\1<limit effort="10" velocity="10"/>', text, flags=re.S))
+    with pytest.warns(ModelWarning) as caught:
+        mechanism = Mechanism.load(urdf, closures)
+    assert [str(w.message) for w in caught] == [
+        f"five_bar.closures.yaml: actuator 'motor_{k}' has no usable URDF limits; the workspace box's limits "
+        f"[{lo}, {hi}] used instead" for k, lo, hi in ((1, 1.93, 2.73), (2, 0.41, 1.21))]
+    lower, upper = mechanism.joint_limits()
+    np.testing.assert_array_equal(lower, [1.93, 0.41])
+    np.testing.assert_array_equal(upper, [2.73, 1.21])
+    with pytest.raises(InvalidInputError, match="beyond its joint limit"):
+        ClosedLoopSolver(mechanism).forward(np.array([2.8, 0.8]))
+
+
+def test_home_off_by_1e_5_is_assembled(tmp_path):
+    urdf, closures = spherical_wrist_files(tmp_path)
+    exact = Mechanism.load(urdf, closures).home
+    _edit_yaml(closures, lambda d: d["home"].update({name: value + 1e-5 for name, value in d["home"].items()
+                                                     if not name.startswith("motor")}))
+    mechanism = _load_noting(urdf, closures, "home does not close: .* assembled by Newton")
+    np.testing.assert_allclose(mechanism.home, exact, atol=1e-10)
+    assert ClosedLoopSolver(mechanism).mobility(mechanism.home, all_rows=True) == 3
+
+
+def test_closure_on_a_joint_frame(tmp_path):
+    """D_I is the origin of joint q12_pa (identity placement): a closure may name the joint's frame."""
+    source_urdf, source_closures = nominal_model_paths()
+    urdf, closures = tmp_path / "m.urdf", tmp_path / "m.closures.yaml"
+    urdf.write_bytes(source_urdf.read_bytes())
+    closures.write_bytes(source_closures.read_bytes())
+    _edit_yaml(closures, lambda d: next(c for c in d["closures"] if c["name"] == "five_bar_I").update(frame_b="q12_pa"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing to note
+        mechanism = Mechanism.load(urdf, closures)
+    nominal = Mechanism.load()
+    sliders = workspace_actuators(nominal, 5, np.random.default_rng(0))
+    np.testing.assert_allclose(ClosedLoopSolver(mechanism).forward_batch(sliders).poses,
+                               ClosedLoopSolver(nominal).forward_batch(sliders).poses, atol=1e-12)
+    study = simulate_study(mechanism, n_poses=40, n_holdout=50, seed=2, sigma_position=1e-4, sigma_rotation=1e-4)
+    calibration = calibrate_closed_loop(mechanism, study.measurements)
+    assert "D_I.dt[0]" not in calibration.error_model.names  # the joint's own placement carries it
+    assert pose_errors(calibration.mechanism, study.truth, study.holdout_actuators).position_max < 1e-7
+
+
+_CUT_JOINTS = """
+  <joint name="cut_1" type="revolute"><parent link="effector"/><child link="cut_link_1"/>
+    <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="0 0 1"/><limit lower="-4" upper="4" effort="1" velocity="1"/></joint>
+  <link name="cut_link_1"/>
+  <joint name="cut_2" type="revolute"><parent link="tip_2"/><child link="cut_link_2"/>
+    <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="0 0 1"/><limit lower="-4" upper="4" effort="1" velocity="1"/></joint>
+  <link name="cut_link_2"/>
+</robot>"""
+
+
+def _welded_double_hinge(folder: Path) -> tuple[Path, Path]:
+    """The five-bar with its distal hinge modelled as two coaxial hinges, one per chain, welded 6D."""
+    urdf, closures = five_bar_files(folder)
+    _edit(urdf, lambda text: text.replace("</robot>", _CUT_JOINTS))
+
+    def weld(document: dict) -> None:
+        home = document["home"]
+        heading_1, heading_2 = home["motor_1"] + home["elbow_1"], home["motor_2"] + home["elbow_2"]
+        home.update(cut_1=0.0, cut_2=heading_1 - heading_2 + 1e-5)  # approximate, as from a CAD export
+        document["closures"] = [{"name": "cut", "type": "6D", "frame_a": "cut_link_1", "frame_b": "cut_link_2"}]
+    _edit_yaml(closures, weld)
+    return urdf, closures
+
+
+def test_welded_double_hinge_locks_the_gauge_joint(tmp_path):
+    urdf, closures = _welded_double_hinge(tmp_path)
+    with pytest.warns(ModelWarning) as caught:
+        mechanism = Mechanism.load(urdf, closures)
+    notes = [str(w.message) for w in caught]
+    assert any("locked at their home value" in n for n in notes), notes
+    assert any("3 closure row(s) dropped as dependent on the others: cut[2], cut[3], cut[4]" in n for n in notes), notes
+    assert len(mechanism.locked_joints) == 1 and mechanism.locked_joints[0] in ("cut_1", "cut_2")
+    assert mechanism.closures[0].rows == (0, 1, 5)
+    plain = Mechanism.load(*five_bar_files(tmp_path / "plain"))
+    solver, plain_solver = ClosedLoopSolver(mechanism), ClosedLoopSolver(plain)
+    sliders = workspace_actuators(plain, 10, np.random.default_rng(5))
+    np.testing.assert_allclose(solver.forward_batch(sliders).poses[:, :2, 3],
+                               plain_solver.forward_batch(sliders).poses[:, :2, 3], atol=1e-12)
+    targets = plain.task.coordinates(plain_solver.forward_batch(sliders).poses)
+    np.testing.assert_allclose(solver.inverse_batch(targets).actuators, sliders, atol=1e-8)
+    study = simulate_study(mechanism, n_poses=50, n_holdout=50, seed=3, sigma_position=1e-4, sigma_rotation=1e-4)
+    calibration = calibrate_closed_loop(mechanism, study.measurements)
+    assert pose_errors(calibration.mechanism, study.truth, study.holdout_actuators).position_max < 1e-7
+
+
+def test_a_home_far_from_any_assembly_is_refused(tmp_path):
+    urdf, closures = five_bar_files(tmp_path)
+    _edit_yaml(closures, lambda d: d["home"].update(elbow_1=d["home"]["elbow_1"] + 0.5))
+    with pytest.raises(ModelFileError, match=r"home does not close: closure 'loop' .*moved a joint by"):
+        Mechanism.load(urdf, closures)
+
+
+def test_a_task_that_is_not_square_is_refused_by_inverse_only(tmp_path):
+    urdf, closures = five_bar_files(tmp_path)
+    _edit_yaml(closures, lambda d: d["task"].update(position=["x", "y", "z"]))
+    mechanism = Mechanism.load(urdf, closures)
+    solver = ClosedLoopSolver(mechanism)
+    solver.forward(mechanism.home[mechanism.actuated_ids])  # forward kinematics does not need the task
+    with pytest.raises(InvalidInputError, match="commands 3 for 2 actuators"):
+        solver.inverse(np.zeros(3))
+
+
+def test_a_frame_error_moves_the_closure_frames_attached_to_it(tmp_path):
+    """The wrist's platform link carries the closure frames attach_2 and attach_3: an error on the
+    platform frame moves them too (as `perturb` applies it), and the fit's Jacobian must say so.
+    Checked against central differences of the residual at the fitted state, column by column."""
+    mechanism = Mechanism.load(*spherical_wrist_files(tmp_path))
+    default = ClosedLoopErrorModel(mechanism)
+    assert "platform.dt[0]" not in default.names  # a link frame on a moving joint: no placement of its own
+    error_model = ClosedLoopErrorModel(mechanism, default.placements + (Placement.frame("platform"),))
+    study = simulate_study(mechanism, n_poses=30, n_holdout=0, seed=11, sigma_position=1e-4, sigma_rotation=1e-4)
+    calibration = calibrate_closed_loop(mechanism, study.measurements, error_model=error_model, outlier_sigma=None)
+    problem, state = calibration.problem, calibration.lm.state
+    _, jacobian = problem.residual_and_jacobian(state)
+    names = [problem.names[c] for c in problem.columns]
+    step = 1e-7
+    for k, name in enumerate(names):
+        if not name.startswith("platform."):
+            continue
+        dx = np.zeros(len(names))
+        dx[k] = step
+        plus = problem.residual_and_jacobian(problem.retract(state, dx))[0]
+        minus = problem.residual_and_jacobian(problem.retract(state, -dx))[0]
+        difference = (plus - minus) / (2 * step)
+        assert np.abs(difference - jacobian[:, k]).max() < 1e-5 * np.abs(jacobian[:, k]).max(), name
+    assert any(name.startswith("platform.") for name in names)

@@ -1,0 +1,86 @@
+"""The command line on mechanisms other than the M machine (`--model --closures`): a planar five-bar
+(task x, y) and a spherical wrist (task: full orientation), from simulation to compensation."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from m3t1r.app.cli import main
+from m3t1r.app.datasets import read_actuators, read_poses
+from m3t1r.calibration.closed_loop import pose_errors
+from m3t1r.model.description import Mechanism, nominal_model_paths
+from m3t1r.model.examples import spherical_wrist_files
+from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.workspace import workspace_actuators
+
+
+@pytest.fixture(params=["five_bar", "spherical_wrist"])
+def files(request, tmp_path):
+    if request.param == "five_bar":
+        urdf = nominal_model_paths()[0].parent / "five_bar.urdf"
+        return urdf, urdf.with_name("five_bar.closures.yaml")
+    return spherical_wrist_files(tmp_path / "model")
+
+
+def _model(files) -> list[str]:
+    return ["--model", str(files[0]), "--closures", str(files[1])]
+
+
+@pytest.mark.parametrize("noise_free", [True, False])
+def test_simulate_calibrate_evaluate(files, tmp_path, noise_free, capsys):
+    measurements, truth_urdf, calibrated = tmp_path / "m.csv", tmp_path / "truth.urdf", tmp_path / "cal.urdf"
+    noise = ["--noise-free"] if noise_free else []
+    assert main(["simulate", *_model(files), "-n", "50", "--seed", "4", "--sigma-pos", "1e-4", "--sigma-rot", "1e-4",
+                 *noise, "-o", str(measurements), "--truth-urdf", str(truth_urdf)]) == 0
+    assert main(["calibrate", str(measurements), *_model(files), "-o", str(calibrated),
+                 "--report", str(tmp_path / "cal.json")]) == 0
+    nominal, truth, fitted = Mechanism.load(*files), Mechanism.load(truth_urdf), Mechanism.load(calibrated)
+    holdout = workspace_actuators(nominal, 100, np.random.default_rng(9))
+    before, after = pose_errors(nominal, truth, holdout), pose_errors(fitted, truth, holdout)
+    if noise_free:
+        assert after.position_max < 1e-7 and after.rotation_max < 1e-6, (after.position_max, after.rotation_max)
+    else:
+        assert after.position_rms < 0.1 * before.position_rms and after.rotation_rms < 0.1 * before.rotation_rms
+        assert after.position_max < 3e-5 and after.rotation_max < 1e-4
+        report = json.loads((tmp_path / "cal.json").read_text())
+        assert 0.5 < report["variance_factor"] < 1.5
+    capsys.readouterr()
+    assert main(["evaluate", "--truth", str(truth_urdf), "--calibrated", str(calibrated), "--nominal", str(files[0]),
+                 "--nominal-closures", str(files[1]), "-n", "50"]) == 0
+    assert "calibrated" in capsys.readouterr().out
+
+
+def test_ik_fk_compensate_and_view_use_the_task_columns(files, tmp_path):
+    nominal = Mechanism.load(*files)
+    task = nominal.task
+    solver = ClosedLoopSolver(nominal)
+    sliders = workspace_actuators(nominal, 6, np.random.default_rng(1))
+    poses = solver.forward_batch(sliders).poses
+    targets = tmp_path / "targets.csv"
+    targets.write_text(",".join(task.columns) + "\n" + "\n".join(
+        ",".join(repr(float(v)) for v in row) for row in task.coordinates(poses)) + "\n")
+    assert main(["ik", str(targets), *_model(files), "-o", str(tmp_path / "s.csv")]) == 0
+    read_sliders, _ = read_actuators(tmp_path / "s.csv", nominal)
+    np.testing.assert_allclose(read_sliders, sliders, atol=1e-8)
+    assert main(["fk", str(tmp_path / "s.csv"), *_model(files), "-o", str(tmp_path / "p.csv")]) == 0
+    back = np.array([p.homogeneous for p in read_poses(tmp_path / "p.csv")[0]])
+    np.testing.assert_allclose(task.coordinates(back), task.coordinates(poses), atol=1e-9)
+    # Compensating with the nominal model as "calibrated" changes nothing; the header names the task.
+    assert main(["compensate", str(targets), *_model(files), "--calibrated", str(files[0]),
+                 "--calibrated-closures", str(files[1]), "-o", str(tmp_path / "c.csv")]) == 0
+    text = (tmp_path / "c.csv").read_text()
+    assert ",".join(task.columns) in text.splitlines()[[line.startswith("#") for line in text.splitlines()].index(False)]
+    assert main(["view", "--nominal", str(files[0]), "--closures", str(files[1]), "--pose",
+                 *map(str, task.coordinates(poses)[0]), "--html", str(tmp_path / "page.html")]) == 0
+    assert "reached by IK on each machine" in (tmp_path / "page.html").read_text()
+
+
+def test_a_target_file_of_another_task_is_refused(files, tmp_path, capsys):
+    targets = tmp_path / "targets.csv"
+    targets.write_text("x,y,z,theta\n0.5,0.5,-0.1,0.0\n")
+    assert main(["ik", str(targets), *_model(files), "-o", str(tmp_path / "s.csv")]) == 2
+    assert "unknown column" in capsys.readouterr().err
+    assert not (tmp_path / "s.csv").exists()
