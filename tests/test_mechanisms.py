@@ -268,3 +268,43 @@ def test_a_frame_error_moves_the_closure_frames_attached_to_it(tmp_path):
         difference = (plus - minus) / (2 * step)
         assert np.abs(difference - jacobian[:, k]).max() < 1e-5 * np.abs(jacobian[:, k]).max(), name
     assert any(name.startswith("platform.") for name in names)
+
+
+def test_kinematics_do_not_need_the_meshes(tmp_path):
+    urdf, closures = five_bar_files(tmp_path)
+    _edit(urdf, lambda text: text.replace('<sphere radius="0.01"/>', '<mesh filename="package://gone/effector.stl"/>', 1))
+    assert "gone/effector.stl" in urdf.read_text()
+    mechanism = Mechanism.load(urdf, closures)
+    ClosedLoopSolver(mechanism).forward(mechanism.home[mechanism.actuated_ids])
+    with pytest.raises(ModelFileError, match="cannot load the visual geometry"):
+        mechanism.visual_model  # noqa: B018  (the viewer's first access)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d.update(schema_version=3), "schema_version 3 is not supported"),
+    (lambda d: d["task"].update(rotation="roll"), "task rotation must be one of none, yaw, full, got 'roll'"),
+    (lambda d: d["task"].update(position=["x", "w"]), r"task position must be distinct axes among x, y, z"),
+    (lambda d: d["task"].update(frame="nowhere"), "task.frame: frame 'nowhere' does not exist"),
+    (lambda d: d["task"].update(speed=1), "task: unknown field 'speed'"),
+    (lambda d: d["task"].update(position=[], rotation="none"), "task: commands nothing"),
+    (lambda d: d["workspace"]["actuators"].pop("motor_2"), r"workspace.actuators must give an interval \[lo, hi\] "
+                                                           "for each of motor_1, motor_2"),
+    (lambda d: d["workspace"]["actuators"].update(motor_1=[2.0, 1.0]), "interval of 'motor_1' must be finite with lo <= hi"),
+    (lambda d: d["workspace"]["actuators"].update(motor_1=["a", 1.0]), r"workspace.actuators.motor_1 must be \[lo, hi\]"),
+    (lambda d: d.update(workspace={"task": {"x": [0, 1]}, "actuators": {}}), "exactly one of 'actuators' or 'task'"),
+    (lambda d: d.update(workspace={"task": {"x": [-0.1, 0.1], "y": [0.3, 0.5]}}) or d["task"].update(
+        rotation="yaw"), "the task commands 3 coordinates for 2 actuators"),
+])
+def test_malformed_task_or_workspace_is_named(tmp_path, change, message):
+    urdf, closures = five_bar_files(tmp_path)
+    _edit_yaml(closures, change)
+    with pytest.raises(ModelFileError, match=message):
+        Mechanism.load(urdf, closures)
+
+
+def test_a_declared_box_the_machine_cannot_reach_is_named(tmp_path):
+    urdf, closures = five_bar_files(tmp_path)
+    _edit_yaml(closures, lambda d: d.update(workspace={"task": {"x": [-0.1, 0.1], "y": [0.9, 1.0]}}))
+    mechanism = Mechanism.load(urdf, closures)
+    with pytest.raises(ModelFileError, match=r"draws in the declared task workspace box cannot be assembled from home"):
+        workspace_actuators(mechanism, 5, np.random.default_rng(0))

@@ -40,6 +40,7 @@ from m3t1r.errors import (
                                            KinematicsError,
                                            M3t1rError,
                                            ModelFileError,
+                                           ModelWarning,
                                            NotConvergedError,
                                            OutOfWorkspaceError,
                                            OutputPathError,
@@ -49,20 +50,23 @@ from m3t1r.errors import (
 from m3t1r.metrics import PoseErrors
 from m3t1r.model.description import ClosureSpec, Mechanism
 from m3t1r.model.design import NOMINAL
+from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver, ForwardResult, InverseResult
 from m3t1r.model.poe import SerialChain
+from m3t1r.model.task import TaskSpec, WorkspaceSpec
 from m3t1r.model.urdf_io import write_calibrated_urdf
-from m3t1r.model.workspace import workspace_actuators
+from m3t1r.model.workspace import declared_workspace, workspace_actuators
 
 __all__ = [
     "__version__",
     # errors
     "M3t1rError", "InvalidInputError", "ModelFileError", "DataFileError", "OutputPathError", "KinematicsError",
     "OutOfWorkspaceError", "BranchChangeError", "SingularConfigurationError", "NotConvergedError",
-    "IdentificationError", "PoorExcitationWarning",
+    "IdentificationError", "PoorExcitationWarning", "ModelWarning",
     # model
     "NOMINAL", "Mechanism", "ClosureSpec", "ClosedLoopSolver", "ForwardResult", "InverseResult", "SerialChain",
-    "write_calibrated_urdf", "workspace_actuators",
+    "write_calibrated_urdf", "workspace_actuators", "declared_workspace", "TaskSpec", "WorkspaceSpec",
+    "five_bar_files", "spherical_wrist_files",
     # calibration
     "PoseErrors", "TrackerNoise", "PoseMeasurements", "MeasurementSetup", "measure", "ClosedLoopErrorModel",
     "ClosedLoopCalibration", "calibrate_closed_loop", "pose_errors", "predicted_pose_std", "CrossValidation",

@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import sys
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 from m3t1r._version import __version__
 from m3t1r.calibration.assessment import describe_parameter
 from m3t1r.calibration.measurement_setup import MeasurementSetup, se3_to_report
-from m3t1r.errors import InvalidInputError, M3t1rError
+from m3t1r.errors import InvalidInputError, M3t1rError, ModelWarning
 from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256
 from m3t1r.io.progress import Progress
 from m3t1r.model.description import Mechanism
@@ -38,7 +39,12 @@ def load_mechanism(urdf: str | None, closures: str | None):
             recorded = None  # Mechanism.load names the problem with the URDF
         if recorded is None and not sibling.is_file() and Path(urdf).is_file():
             raise InvalidInputError(f"--closures is required with {urdf} (no {sibling.name} beside it)")
-    return Mechanism.load(urdf, closures)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ModelWarning)  # printed below as notes, once, without a traceback line
+        mechanism = Mechanism.load(urdf, closures)
+    for note in mechanism.notes:
+        print(f"note: {mechanism.closures_path.name}: {note}", file=sys.stderr)
+    return mechanism
 
 
 def closures_beside(urdf_out: Path) -> Path:

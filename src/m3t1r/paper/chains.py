@@ -74,7 +74,9 @@ def paper_chains(mechanism: Mechanism) -> tuple[PaperChain, PaperChain]:
     entries = mechanism.principal_chains
     where = mechanism.closures_path
     if len(entries) != 2:
-        raise ModelFileError(where, f"principal_chains: the paper's method needs 2 chains, found {len(entries)}")
+        raise ModelFileError(where, f"principal_chains: the paper's two-chain method is specific to the M machine's "
+                                    f"structure and needs its 2 principal chains, found {len(entries)}; other "
+                                    "mechanisms calibrate with the closed-loop method (`m3t1r calibrate`)")
     chains = []
     for name, items in entries.items():
         if len(items) != _CHAIN_LENGTH:
