@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+import pinocchio as pin
 
 from m3t1r._threads import single_blas_thread
 from m3t1r._version import __version__
@@ -32,7 +33,7 @@ from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.calibration.validation import read_report
-from m3t1r.compensation import check_joint_limits, compensate
+from m3t1r.compensation import compensate
 from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows
@@ -56,18 +57,12 @@ def cmd_fk(args: argparse.Namespace) -> None:
     output = outputs.add(args.output, "-o")
     outputs.check()
     actuators, lines = read_actuators(args.actuators, mechanism)
-    solver = ClosedLoopSolver(mechanism)
-    poses, failures = [], []
-    with progress_bar("fk", len(lines)) as progress:
-        for sliders, line in zip(actuators, lines):
-            progress.advance()
-            try:
-                poses.append(solver.forward(sliders).pose)
-            except KinematicsError as exc:
-                failures.append((int(line), str(exc)))
-                solver.reset()
-    if failures:
-        raise RowFailures(Path(args.actuators), failures)
+    with progress_bar("fk", 1) as progress:  # one vectorised solve, every row from home
+        batch = ClosedLoopSolver(mechanism).forward_batch(actuators)
+        progress.advance()
+    if batch.failures:
+        raise RowFailures(Path(args.actuators), [(int(lines[f.index]), f.reason) for f in batch.failures])
+    poses = [pin.SE3(pose) for pose in batch.poses]
     comments = provenance(args) + ["platform frame pose in the base frame: m, unit quaternion"]
     with outputs:
         outputs.stage(output, table_text(POSE_COLUMNS, pose_rows(poses), comments))
@@ -84,20 +79,24 @@ def cmd_ik(args: argparse.Namespace) -> None:
     targets, lines = read_targets(args.poses, mechanism.task)
     solver = ClosedLoopSolver(mechanism)
     solver.check_square_task()
-    rows, failures, max_tilt = [], [], 0.0
-    with progress_bar("ik", len(lines)) as progress:
-        for target, line in zip(targets, lines):
-            progress.advance()
-            try:
-                result = solver.inverse(target)
-                check_joint_limits(mechanism, result)
-                rows.append(result.actuators)
-                max_tilt = max(max_tilt, *map(abs, result.tilt))
-            except (KinematicsError, InvalidInputError) as exc:
-                failures.append((int(line), str(exc)))
-                solver.reset()
+    if not isinstance(targets, np.ndarray):
+        targets = mechanism.task.coordinates(np.array([pose.homogeneous for pose in targets]))
+    with progress_bar("ik", 1) as progress:  # one vectorised solve, every row from home
+        batch = solver.inverse_batch(targets)
+        progress.advance()
+    failures = [(int(lines[f.index]), f.reason) for f in batch.failures]
+    model = mechanism.model
+    for k, q in zip(batch.indices, batch.q):
+        outside = np.flatnonzero((q < model.lowerPositionLimit) | (q > model.upperPositionLimit))
+        if outside.size:
+            j = 1 + list(model.idx_qs[1:]).index(int(outside[0]))
+            failures.append((int(lines[k]), f"target puts joint '{model.names[j]}' at {q[outside[0]]:.6g}, beyond "
+                                            f"its limit [{model.lowerPositionLimit[outside[0]]:.6g}, "
+                                            f"{model.upperPositionLimit[outside[0]]:.6g}]"))
     if failures:
-        raise RowFailures(Path(args.poses), failures)
+        raise RowFailures(Path(args.poses), sorted(failures))
+    rows = batch.actuators
+    max_tilt = float(np.abs(batch.tilt).max(initial=0.0))
     with outputs:
         outputs.stage(output, table_text(mechanism.actuated_joints, np.array(rows),
                                          provenance(args) + ["actuator positions in m or rad"]))

@@ -45,7 +45,7 @@ from m3t1r.calibration.identification import (
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, measure
 from m3t1r.errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
-from m3t1r.metrics import PoseErrors
+from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
 from m3t1r.model.poe import adjoint_matrices, jlog3_batch, log3_batch, placement_of, skew
@@ -641,14 +641,23 @@ def _accumulated_parameters(error_model: ClosedLoopErrorModel, start: pin.Model,
 
 @on_one_blas_thread
 def pose_errors(machine_a: Mechanism, machine_b: Mechanism, actuators: np.ndarray) -> PoseErrors:
-    """Platform pose differences of two machines driven with the same sliders (rows of actuators)."""
-    solver_a, solver_b = ClosedLoopSolver(machine_a), ClosedLoopSolver(machine_b)
-    position, rotation = [], []
-    for sliders in np.asarray(actuators, dtype=float):
-        pa, pb = solver_a.forward(sliders).pose, solver_b.forward(sliders).pose
-        position.append(np.linalg.norm(pa.translation - pb.translation))
-        rotation.append(np.linalg.norm(pin.log3(pa.rotation.T @ pb.rotation)))
-    return PoseErrors(np.array(position), np.array(rotation))
+    """Platform pose differences of two machines driven with the same actuators (rows of actuators):
+    |p_a - p_b| [m] and |log3(R_a^T R_b)| [rad], each set solved from each machine's home (batch FK,
+    so unrelated rows never carry a warm start across a singularity).
+
+    Raises InvalidInputError naming the first set that does not assemble on one of the machines (and
+    why): no error is reported for a pose that was not solved.
+    """
+    actuators = np.asarray(actuators, dtype=float).reshape(len(actuators), -1)
+    poses = []
+    for machine in (machine_a, machine_b):
+        batch = ClosedLoopSolver(machine).forward_batch(actuators) if len(actuators) else None
+        if batch is not None and batch.failures:
+            first = batch.failures[0]
+            raise InvalidInputError(f"pose_errors: actuator set {first.index} does not assemble on "
+                                    f"{machine.urdf_path.name}: {first.reason}")
+        poses.append(np.zeros((0, 4, 4)) if batch is None else batch.poses)
+    return pose_errors_between(*poses)
 
 
 @on_one_blas_thread
