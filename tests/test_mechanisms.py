@@ -308,3 +308,19 @@ def test_a_declared_box_the_machine_cannot_reach_is_named(tmp_path):
     mechanism = Mechanism.load(urdf, closures)
     with pytest.raises(ModelFileError, match=r"draws in the declared task workspace box cannot be assembled from home"):
         workspace_actuators(mechanism, 5, np.random.default_rng(0))
+
+
+def test_missing_closure_rows_are_not_taken_for_a_gauge(tmp_path):
+    """With only the x row of the five-bar's loop, the effector keeps a free motion: an error, not a lock."""
+    urdf, closures = five_bar_files(tmp_path)
+    _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0]))
+    with pytest.raises(ModelFileError, match="leave 1 degree.* of freedom beyond the actuators: with the actuators "
+                                             "held, frame 'effector' can still move"):
+        Mechanism.load(urdf, closures)
+
+
+def test_a_row_that_holds_by_itself_is_dropped_with_a_note(tmp_path):
+    urdf, closures = five_bar_files(tmp_path)
+    _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0, 1, 2]))  # z: the plane's normal, always 0
+    mechanism = _load_noting(urdf, closures, r"1 closure row\(s\) dropped as dependent on the others: loop\[2\]")
+    assert mechanism.closures[0].rows == (0, 1) and mechanism.locked_joints == ()

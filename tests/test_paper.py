@@ -69,7 +69,7 @@ def test_a_principal_chain_that_is_not_the_tree_path_is_rejected(mechanism):
     swapped["B1"] = ("q11", "q12_pa", "q12", "q13", "q13_pa", "q14", "P_I")
     with pytest.raises(ModelFileError, match="tree path"):
         paper_chains(dataclasses.replace(mechanism, principal_chains=swapped))
-    with pytest.raises(ModelFileError, match="2 chains"):
+    with pytest.raises(ModelFileError, match="specific to the M machine.s structure and needs its 2 principal chains, found 1"):
         paper_chains(dataclasses.replace(mechanism, principal_chains={"B1": mechanism.principal_chains["B1"]}))
 
 

@@ -110,6 +110,19 @@ class ClosureSystem:
         worst = float(np.abs(residual).max(initial=0.0)) if np.all(np.isfinite(residual)) else float("inf")
         return q, worst
 
+    def free_motion(self, q: np.ndarray, passive: np.ndarray, frame_id: int) -> float:
+        """Largest speed [m/s or rad/s] of frame `frame_id` along the unit null-space directions of the
+        passive closure Jacobian at q (sliders fixed): zero for a gauge (the redundant joints move
+        nothing but themselves), not zero when the closures leave the frame free to move."""
+        _, jac = self.evaluate(q, True)
+        square = jac[:, passive]
+        null = scipy.linalg.null_space(square, rcond=max(square.shape) * np.finfo(float).eps * 1e3) \
+            if square.size else np.eye(len(passive))
+        if null.shape[1] == 0:
+            return 0.0
+        frame = pin.getFrameJacobian(self.model, self.data, frame_id, pin.LOCAL_WORLD_ALIGNED)[:, passive]
+        return float(np.abs(frame @ null).max())
+
     def redundancy(self, q: np.ndarray, passive: np.ndarray) -> tuple[Redundancy, int]:
         """Gauge joints and dependent rows at an assembled q, and the rank of the rows over every column.
 

@@ -351,6 +351,14 @@ def _settled(mechanism: Mechanism) -> Mechanism:
         raise ModelFileError(mechanism.closures_path,
                              f"the closures hold the actuators: the rows have rank {full_rank} over every joint but "
                              f"{redundancy.rank} over the passive ones (the actuators are not independent inputs)")
+    if redundancy.locked:
+        for frame in dict.fromkeys((mechanism.platform_frame_id, mechanism.model.getFrameId(mechanism.task.frame))):
+            speed = system.free_motion(home, passive, frame)
+            if speed > 1e-9:
+                raise ModelFileError(mechanism.closures_path,
+                                     f"the closures leave {len(redundancy.locked)} degree(s) of freedom beyond the "
+                                     f"actuators: with the actuators held, frame '{mechanism.model.frames[frame].name}' "
+                                     f"can still move ({speed:.2g} per unit joint speed); rows or closures are missing")
     locked = tuple(_joint_name(mechanism.model, v) for v in redundancy.locked)
     closures = mechanism.closures
     if locked:
