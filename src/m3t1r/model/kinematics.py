@@ -506,14 +506,21 @@ class ClosedLoopSolver:
 
         model, data, frame = self.model, self.data, self._task_frame
 
+        n_rows = self.n_rows
+
         def system(qk: np.ndarray, with_jacobian: bool):
             closure, jac = self._system(qk, with_jacobian)
             placement = pin.updateFramePlacement(model, data, frame)
-            residual = np.concatenate((closure, task.residual(placement, goal, goal_rotation)))
+            residual = np.empty(n_rows + task.dimension)
+            residual[:n_rows] = closure
+            residual[n_rows:] = task.residual(placement, goal, goal_rotation)
             if not with_jacobian:
                 return residual, None
             frame_jac = pin.getFrameJacobian(model, data, frame, pin.LOCAL_WORLD_ALIGNED)
-            return residual, np.vstack((jac, task.jacobian(placement, frame_jac, goal_rotation)))
+            full = np.empty((n_rows + task.dimension, jac.shape[1]))
+            full[:n_rows] = jac
+            full[n_rows:] = task.jacobian(placement, frame_jac, goal_rotation)
+            return residual, full
 
         self._lu_inverse = None  # dropped until this solve succeeds
         # A warm solve must stay on the previous solution's branch (assembly and working mode).
