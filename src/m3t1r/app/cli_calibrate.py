@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import math
 import sys
 import warnings
 from collections.abc import Callable
@@ -220,8 +221,10 @@ def _print_summary(calibration: ClosedLoopCalibration, outlier_lines: list[int])
     print(f"identified {calibration.base.rank} of {len(calibration.std)} parameters "
           f"(condition number {calibration.base.condition_number:.3g}); fitted {fitted} "
           f"in {calibration.lm.iterations} iterations ({'converged' if calibration.converged else 'NOT converged'})")
-    print(f"residual RMS position {before[0]:.3e} -> {after[0]:.3e} m, orientation {before[1]:.3e} -> "
-          f"{after[1]:.3e} rad; variance factor {calibration.variance_factor:.3g}")
+    orientation = ("" if not (math.isfinite(before[1]) and math.isfinite(after[1])) else  # position-only data
+                   f", orientation {before[1]:.3e} -> {after[1]:.3e} rad")
+    print(f"residual RMS position {before[0]:.3e} -> {after[0]:.3e} m{orientation}; "
+          f"variance factor {calibration.variance_factor:.3g}")
     if outlier_lines:
         print(f"outliers (left out of the fit), file lines: {', '.join(map(str, outlier_lines))}")
     else:
