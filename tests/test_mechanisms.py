@@ -324,3 +324,20 @@ def test_a_row_that_holds_by_itself_is_dropped_with_a_note(tmp_path):
     _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0, 1, 2]))  # z: the plane's normal, always 0
     mechanism = _load_noting(urdf, closures, r"1 closure row\(s\) dropped as dependent on the others: loop\[2\]")
     assert mechanism.closures[0].rows == (0, 1) and mechanism.locked_joints == ()
+
+
+def test_closures_that_hold_the_actuators_are_refused(tmp_path):
+    """A second closure pinning the effector to the base: the motors could no longer move."""
+    urdf, closures = five_bar_files(tmp_path)
+    mechanism = Mechanism.load(urdf, closures)
+    data = mechanism.model.createData()
+    pin.framesForwardKinematics(mechanism.model, data, mechanism.home)
+    x, y, _ = (float(v) for v in data.oMf[mechanism.model.getFrameId("effector")].translation)
+    _edit(urdf, lambda text: text.replace("</robot>", f'<joint name="anchor_fixed" type="fixed"><parent link="base"/>'
+                                                      f'<child link="anchor"/><origin xyz="{x!r} {y!r} 0" rpy="0 0 0"/>'
+                                                      '</joint><link name="anchor"/></robot>'))
+    _edit_yaml(closures, lambda d: d["closures"].append({"name": "pin", "type": "3D", "frame_a": "anchor",
+                                                         "frame_b": "effector", "rows": [0, 1]}))
+    with pytest.raises(ModelFileError, match=r"the closures hold the actuators: the rows have rank 4 over every joint "
+                                             r"but 2 over the passive ones"):
+        Mechanism.load(urdf, closures)
