@@ -110,3 +110,66 @@ def test_workspace_boxes():
         WorkspaceSpec()
     with pytest.raises(InvalidInputError, match="finite with lo <= hi"):
         WorkspaceSpec(actuators=(("m", 1.0, math.inf),))
+
+
+@pytest.mark.parametrize("axes", [("x",), ("y",), ("z",), ("x", "y"), ("y", "z"), ("x", "z"), ("x", "y", "z")])
+@pytest.mark.parametrize("rotation", ["none", "yaw", "full"])
+def test_position_rows_for_every_axis_subset(axes, rotation):
+    """The position rows are the named axes, whatever subset (contiguous or not) and rotation."""
+    task = TaskSpec("P", axes, rotation)  # built here: its construction is part of what is tested
+    pose = pin.SE3(pin.rpy.rpyToMatrix(0.1, -0.2, 0.3), np.array([1.0, 2.0, 3.0]))
+    index = [("x", "y", "z").index(a) for a in axes]
+    goal = task.coordinates(np.stack([pose.homogeneous, pose.homogeneous]))[1].copy()
+    goal[:len(axes)] -= 0.5
+    rotations = task.target_rotations(goal[None])
+    rows = task.residual(pose, goal, None if rotations is None else rotations[0])
+    np.testing.assert_allclose(rows[:len(axes)], 0.5, atol=1e-15)
+    frame_jacobian = np.arange(6 * 5, dtype=float).reshape(6, 5)
+    np.testing.assert_array_equal(task.jacobian(pose, frame_jacobian, None if rotations is None else rotations[0])
+                                  [:len(axes)], frame_jacobian[index])
+
+
+def test_coordinates_of_several_poses_and_a_single_goal_vector():
+    task = TaskSpec("P", ("x",), "full")
+    poses = np.stack([pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, a), np.array([a, 0.0, 0.0])).homogeneous
+                      for a in (0.1, 0.2, 0.3)])
+    coordinates = task.coordinates(poses)
+    assert coordinates.shape == (3, 5)
+    np.testing.assert_allclose(coordinates[:, 0], [0.1, 0.2, 0.3])
+    np.testing.assert_allclose(task.box_coordinates(poses)[:, 0], [0.1, 0.2, 0.3])
+    np.testing.assert_allclose(task.box_coordinates(poses)[:, 3], [0.1, 0.2, 0.3])  # yaw of Rz(a)
+    rotations = task.target_rotations(coordinates)
+    assert rotations.shape == (3, 3, 3)
+    np.testing.assert_allclose(rotations, poses[:, :3, :3], atol=1e-15)
+    single = task.goals(coordinates[0])  # one vector: one row
+    assert single.shape == (1, 5)
+    np.testing.assert_array_equal(single[0], coordinates[0])
+    yaw = TaskSpec("P", ("x", "y"), "yaw")
+    np.testing.assert_allclose(yaw.box_coordinates(poses), yaw.coordinates(poses))
+    assert yaw.box_coordinates(poses).shape == (3, 3)
+
+
+def test_renormalising_a_quaternion_leaves_the_position_alone():
+    task = TaskSpec("P", ("x",), "full")
+    scale = 1 + 5e-7
+    goal = task.goals([[1.0, 0.0, 0.0, 0.0, scale]])[0]
+    assert goal[0] == 1.0 and goal[4] == pytest.approx(1.0, abs=1e-15)
+
+
+def test_messages_and_bounds():
+    with pytest.raises(InvalidInputError, match=r"^task: commands nothing \(no position axis and rotation none\)$"):
+        TaskSpec("P", (), "none")
+    with pytest.raises(InvalidInputError, match=r"^workspace: give exactly one box, 'actuators' or 'task'$"):
+        WorkspaceSpec(actuators=(("m", 0.0, 1.0),), task=(("x", 0.0, 1.0),))
+    with pytest.raises(InvalidInputError, match=r"^targets: shape \(2, 3\), expected rows of 2 task coordinates \(x, y\)$"):
+        TaskSpec("P", ("x", "y"), "none").goals(np.zeros((2, 3)))
+    box = WorkspaceSpec(actuators=(("a", -1.0, 2.0), ("b", 0.5, 0.5)))  # a fixed value is an interval too
+    lower, upper = box.bounds(("b", "a"))
+    np.testing.assert_array_equal(lower, [0.5, -1.0])
+    np.testing.assert_array_equal(upper, [0.5, 2.0])
+
+
+def test_integer_goals_are_read_as_floats():
+    goal = TaskSpec("P", (), "full").goals([[0, 0, 0, 1]])
+    assert goal.dtype == float
+    np.testing.assert_array_equal(goal, [[0.0, 0.0, 0.0, 1.0]])
