@@ -11,6 +11,7 @@ import warnings
 import numpy as np
 import pytest
 
+from m3t1r.calibration import identification
 from m3t1r.calibration.identification import (
     RecursiveLeastSquares,
     batch_least_squares,
@@ -531,3 +532,457 @@ def test_rejections_happen_in_the_schedule_test():
                         step_tolerance=0.0, gradient_tolerance=0.0)
     assert len(problem.steps) >= 6 + 3  # several rejected trials in a row: nu doubles
 
+
+
+# --------------------------------------------------------------------------------------------------
+# Issue 13, second pass: the 161 survivors of the full mutmut run (docs/mutation.md lists the
+# equivalent ones). Termination rules at their exact boundary, every field of every LMResult, the
+# optional `residual` and `release` hooks, the documented tie-break of 1e-9 from both sides.
+
+
+class Linear:
+    """r = x - 0.75 with J = 1: with no damping the first step is exactly 0.75, the cost exactly 0.28125 -> 0."""
+
+    def __init__(self) -> None:
+        self.steps = []
+
+    def residual_and_jacobian(self, x):
+        return np.array([x[0] - 0.75]), np.array([[1.0]])
+
+    def retract(self, x, step):
+        self.steps.append(np.array(step))
+        return x + step
+
+
+def test_step_rule_at_its_exact_tolerance_and_every_field_of_the_result():
+    problem = Linear()
+    result = levenberg_marquardt(problem, np.zeros(1), initial_damping=0.0, step_tolerance=0.75)
+    assert result.termination == "step" and result.converged is True and result.iterations == 1
+    assert result.step_norm == 0.75 and problem.steps == []  # a step of exactly the tolerance is not taken
+    np.testing.assert_array_equal(result.state, [0.0])
+    assert result.cost == 0.28125 and result.cost_history == (0.28125,)
+    # Just below the step: taken, then the gradient rule stops at the minimum.
+    result = levenberg_marquardt(Linear(), np.zeros(1), initial_damping=0.0, step_tolerance=0.75 * (1 - 1e-12))
+    assert result.termination == "gradient" and result.iterations == 1 and result.cost == 0.0
+
+
+def test_cost_rules_at_their_exact_tolerance_and_every_field_of_the_result():
+    # The first step removes the whole cost: decrease 0.28125 = 1.0 x the cost before the step.
+    relative = levenberg_marquardt(Linear(), np.zeros(1), initial_damping=0.0, cost_tolerance=1.0)
+    assert relative.termination == "cost" and relative.converged is True and relative.iterations == 1
+    assert relative.cost == 0.0 and relative.cost_history == (0.28125, 0.0) and relative.step_norm == 0.75
+    np.testing.assert_array_equal(relative.state, [0.75])
+    absolute = levenberg_marquardt(Linear(), np.zeros(1), initial_damping=0.0, cost_tolerance=0.0,
+                                   absolute_cost_tolerance=0.28125)
+    assert absolute.termination == "cost" and absolute.iterations == 1 and absolute.cost == 0.0
+    # Just below: the cost rules let the step through and the gradient rule stops one iteration on.
+    for tolerances in ({"cost_tolerance": 1.0 - 1e-12}, {"cost_tolerance": 0.0, "absolute_cost_tolerance": 0.28}):
+        result = levenberg_marquardt(Linear(), np.zeros(1), initial_damping=0.0, **tolerances)
+        assert result.termination == "gradient" and result.iterations == 1 and result.cost == 0.0
+
+
+def test_gradient_rule_at_its_exact_tolerance():
+    class Line:
+        def residual_and_jacobian(self, x):
+            return np.array([x[0] - 1.0, 2.0 * (x[1] + 3.0)]), np.array([[1.0, 0.0], [0.0, 2.0]])
+
+        def retract(self, x, step):
+            return x + step
+
+    start = np.array([0.5, -3.0])  # gradient J^T r = (-0.5, 0) exactly
+    at = levenberg_marquardt(Line(), start, gradient_tolerance=0.5)
+    assert at.termination == "gradient" and at.iterations == 0 and at.state is start
+    assert levenberg_marquardt(Line(), start, gradient_tolerance=0.5 * (1 - 1e-12)).iterations >= 1
+
+
+def test_no_parameters_stops_on_the_gradient_rule():
+    class Fixed:
+        def residual_and_jacobian(self, x):
+            return np.array([1.0, -2.0]), np.zeros((2, 0))
+
+        def retract(self, x, step):
+            raise AssertionError("nothing to move")
+
+    result = levenberg_marquardt(Fixed(), np.zeros(0))
+    assert result.termination == "gradient" and result.iterations == 0 and result.cost == 2.5
+
+
+class Decaying:
+    """r = exp(-x): every step lowers the cost by most of it and the minimum is at infinity."""
+
+    def residual_and_jacobian(self, x):
+        return np.exp(-x), -np.exp(-x)[:, None]
+
+    def retract(self, x, step):
+        return x + step
+
+
+def test_default_iteration_limit_is_50_and_every_field_of_the_result():
+    result = levenberg_marquardt(Decaying(), np.zeros(1), gradient_tolerance=0.0)
+    assert result.termination == "max_iterations" and result.iterations == 50 and result.converged is False
+    assert len(result.cost_history) == 51 and result.cost == result.cost_history[-1] < 1e-40
+    assert result.state[0] > 45.0 and 0.5 < result.step_norm < 1.5
+
+
+class Opposed:
+    """A Jacobian of the wrong sign: no trial step is ever accepted."""
+
+    def __init__(self) -> None:
+        self.steps = []
+
+    def residual_and_jacobian(self, x):
+        return np.array([x[0] - 1.0, 2.0 * x[0]]), -np.array([[1.0], [2.0]])
+
+    def retract(self, x, step):
+        self.steps.append(np.array(step))
+        return x + step
+
+
+def test_stalled_after_the_damping_passes_1e30_and_every_field_of_the_result():
+    start = np.array([0.3])
+    problem = Opposed()
+    result = levenberg_marquardt(problem, start, step_tolerance=0.0)
+    # mu = 1e-3 x 2 x 4 x ... x 2^k first exceeds 1e30 at k = 15 (2^120 > 1e33 > 2^105).
+    assert len(problem.steps) == 15
+    assert result.termination == "stalled" and result.converged is False and result.iterations == 1
+    assert result.state is start and result.cost == result.cost_history[0] == pytest.approx(0.425)
+    assert result.step_norm == float(np.linalg.norm(problem.steps[-1])) > 0.0
+    # Rejected steps shrink as 1 / mu: each is the previous over (1 + mu nu) / (1 + mu), mu the damping.
+    norms = np.array([np.linalg.norm(s) for s in problem.steps])
+    assert np.all(norms[1:] < norms[:-1])
+    # Exactly 1e30 is not beyond the limit: 5e29 x 2 = 1e30 leads to one more trial (at 4e30).
+    problem = Opposed()
+    assert levenberg_marquardt(problem, start, step_tolerance=0.0, initial_damping=5e29).termination == "stalled"
+    assert len(problem.steps) == 2
+
+
+def test_residual_only_trials_and_release_of_superseded_iterates():
+    class Hooked(ExponentialFit):
+        def __init__(self) -> None:
+            super().__init__()
+            self.trials = 0
+            self.released = []
+            self.states = []
+
+        def residual_and_jacobian(self, x):
+            self.states.append(x)
+            return super().residual_and_jacobian(x)
+
+        def residual(self, x):
+            self.trials += 1
+            e = np.exp(x[1] * self.t)
+            return x[0] * e - self.y
+
+        def release(self, x):
+            self.released.append(x)
+
+    problem = Hooked()
+    start = np.array([0.1, 6.0])  # far: several trials are rejected
+    result = levenberg_marquardt(problem, start, max_iterations=6, cost_tolerance=0.0, step_tolerance=0.0,
+                                 gradient_tolerance=0.0)
+    accepted = len(result.cost_history) - 1
+    assert accepted == 6 and problem.trials > accepted  # rejected trials cost no Jacobian
+    assert problem.calls == 1 + accepted  # one Jacobian per accepted step, plus the start
+    assert len(problem.released) == accepted and problem.released[0] is start
+    assert all(a is b for a, b in zip(problem.released, problem.states[:-1], strict=True))
+
+
+def test_steps_are_invariant_under_a_scaling_of_the_residual_even_with_a_vanishing_column():
+    class Scaled:
+        """Column 1 is 1e-14 of column 0: below the 1e-12 floor of Marquardt's scaling at any c."""
+
+        def __init__(self, c: float) -> None:
+            self.c = c
+            self.steps = []
+
+        def residual_and_jacobian(self, x):
+            r = np.array([x[0] - 1.0 + 0.3 * x[0] ** 2, 1e-14 * (x[1] - 2.0), 1e-14 * x[0] * x[1]])
+            J = np.array([[1.0 + 0.6 * x[0], 0.0], [0.0, 1e-14], [1e-14 * x[1], 1e-14 * x[0]]])
+            return self.c * r, self.c * J
+
+        def retract(self, x, step):
+            self.steps.append(np.array(step))
+            return x + step
+
+    runs = []
+    for c in (1.0, 1e-3, 1e3):
+        problem = Scaled(c)
+        levenberg_marquardt(problem, np.array([3.0, 0.0]), max_iterations=3, gradient_tolerance=0.0,
+                            cost_tolerance=0.0, step_tolerance=0.0)
+        runs.append(np.array(problem.steps))
+    assert runs[0].shape == (3, 2)
+    np.testing.assert_allclose(runs[1], runs[0], rtol=1e-9)
+    np.testing.assert_allclose(runs[2], runs[0], rtol=1e-9)
+
+
+def test_an_accepted_step_with_a_predicted_decrease_of_zero_doubles_the_damping():
+    class Blind:
+        """Row 0 drops from 1 to 0.5 once x < 0, which its zero Jacobian row cannot predict; row 1
+        is 1e-100 x + 1e-170, whose predicted decrease (of order 1e-340) underflows to exactly 0."""
+
+        def __init__(self) -> None:
+            self.steps = []
+
+        def residual_and_jacobian(self, x):
+            return np.array([1.0 if x[0] >= 0 else 0.5, 1e-100 * x[0] + 1e-170]), np.array([[0.0], [1e-100]])
+
+        def retract(self, x, step):
+            self.steps.append(float(step[0]))
+            return x + step
+
+    problem = Blind()
+    result = levenberg_marquardt(problem, np.zeros(1), max_iterations=2, gradient_tolerance=0.0, cost_tolerance=0.0,
+                                 step_tolerance=0.0)
+    assert result.cost_history[:2] == (0.5, 0.125)
+    # Step k is -r_1 / (1e-100 (1 + mu)): mu = 1e-3 first, then 2e-3 (rho taken as 0: mu x 2).
+    assert problem.steps[0] / -1e-70 == pytest.approx(1.0 / 1.001, rel=1e-12)
+    assert problem.steps[1] / -(1e-70 + problem.steps[0]) == pytest.approx(1.0 / 1.002, rel=1e-9)
+
+
+# --------------------------------------------------------------------------------------------------
+# Base parameters: exact boundaries, the tie-break, the warning, the names in messages
+
+
+def _two_on_one_plane(d: float) -> np.ndarray:
+    """Columns e1, (cos a, sin a) and (cos b, sin b) with sin b = (1 + d) sin a: after e1, the other two
+    are dependent and their lengths differ by the relative amount d."""
+    a = 0.6
+    J = np.zeros((4, 3))
+    J[0] = [1.0, np.cos(a), np.sqrt(1.0 - ((1 + d) * np.sin(a)) ** 2)]
+    J[1] = [0.0, np.sin(a), (1 + d) * np.sin(a)]
+    return J
+
+
+def test_ties_are_broken_by_a_relative_tilt_of_1e_9_by_column_order():
+    # Three candidate columns: tilts 1e-9, 0.5e-9 and 0; the second wins while it is shorter by less than 0.5e-9.
+    for d, kept in ((0.0, (0, 1)), (0.3e-9, (0, 1)), (0.75e-9, (0, 2)), (-0.3e-9, (0, 1))):
+        assert select_base_parameters(_two_on_one_plane(d), "abc").indices == kept, d
+    # With the first column forced, two rest columns: tilts 1e-9 and 0.
+    for d, kept in ((0.0, (0, 1)), (0.75e-9, (0, 1)), (1.5e-9, (0, 2))):
+        assert select_base_parameters(_two_on_one_plane(d), "abc", forced=[0]).indices == kept, d
+
+
+def test_r_diag_ratio_starts_at_exactly_one_and_ends_one_past_the_rank():
+    rng = np.random.default_rng(11)
+    A = rng.normal(size=(30, 3))
+    J = np.column_stack((A, A[:, 0] + A[:, 1], A[:, 1] - A[:, 2]))  # rank 3, two dropped
+    base = select_base_parameters(J, "abcde")
+    assert base.rank == 3 and base.r_diag_ratio.size == 4 and base.r_diag_ratio[0] == 1.0
+    assert base.r_diag_ratio[3] < 1e-12 < base.r_diag_ratio[2] < 1.0
+    one = select_base_parameters(A[:, :1], "a")
+    assert one.rank == 1 and one.r_diag_ratio.tolist() == [1.0] and one.condition_number == 1.0
+    # Forced: the forced lengths then the rest's pivots, with none dropped when the rest is independent.
+    forced = select_base_parameters(A, "abc", forced=[1])
+    assert forced.indices == (0, 1, 2) and forced.r_diag_ratio.size == 3
+    assert forced.r_diag_ratio[0] == pytest.approx(1.0, rel=1e-15)
+    # The rest's diagonal is that of the normalised columns after projecting the forced one out:
+    # lengths below one, whose product is the product of that projected block's singular values.
+    assert np.all(forced.r_diag_ratio[1:] < 1.0) and np.all(forced.r_diag_ratio[1:] > 0.5)
+    rest = A[:, [0, 2]] / np.linalg.norm(A[:, [0, 2]], axis=0)
+    q = A[:, 1] / np.linalg.norm(A[:, 1])
+    rest = rest - np.outer(q, q @ rest)
+    assert np.prod(forced.r_diag_ratio[1:]) == pytest.approx(np.prod(np.linalg.svd(rest, compute_uv=False)), rel=1e-8)
+
+
+def test_forced_columns_that_are_all_zero_leave_the_plain_selection():
+    rng = np.random.default_rng(12)
+    A = rng.normal(size=(20, 3))
+    J = np.column_stack((A, np.zeros(20)))
+    forced = select_base_parameters(J, "abcd", forced=[3])
+    plain = select_base_parameters(J, "abcd")
+    assert forced.indices == plain.indices == (0, 1, 2) and forced.zero_columns == ("d",)
+    # Column indices of integral floats are read as integers.
+    assert select_base_parameters(J, "abcd", forced=np.array([2.0])).indices == (0, 1, 2)
+
+
+def test_zero_columns_are_relative_to_the_largest_column_at_the_exact_tolerance():
+    J = np.array([[2.0, 0.0], [0.0, 1.0], [0.0, 0.0]])  # norms 2 and 1
+    assert select_base_parameters(J, "ab", rank_tolerance=0.5).zero_columns == ("b",)  # 1 = 0.5 x 2 is not above
+    assert select_base_parameters(J, "ab", rank_tolerance=0.5 * (1 - 1e-12)).zero_columns == ()
+    # Scaling the whole Jacobian changes nothing: a column 1e-10 of the largest is zero at any scale.
+    rng = np.random.default_rng(13)
+    A = rng.normal(size=(20, 3))
+    tiny = np.column_stack((A, 1e-10 * rng.normal(size=20)))
+    for scale in (1e-3, 1.0, 1e3):
+        base = select_base_parameters(scale * tiny, "abcd", rank_tolerance=1e-6)
+        assert base.zero_columns == ("d",) and base.indices == (0, 1, 2)
+
+
+def test_zero_by_zero_and_empty_jacobians_are_identically_zero_with_the_exact_message():
+    for J in (np.zeros((3, 2)), np.zeros((3, 0))):
+        for forced in ((), (0,)):
+            names = "ab"[: J.shape[1]]
+            with pytest.raises(IdentificationError) as error:
+                select_base_parameters(J, names, forced=forced if names else ())
+            assert str(error.value) == "select_base_parameters: the Jacobian is identically zero"
+
+
+def test_jacobian_is_named_in_the_non_finite_message_with_and_without_forced_columns():
+    J = np.ones((3, 2))
+    J[2, 1] = np.nan
+    for forced in ((), (0,)):
+        with pytest.raises(InvalidInputError) as error:
+            select_base_parameters(J, "ab", forced=forced)
+        assert str(error.value) == "jacobian: non-finite value at row 2, column 1"
+
+
+def _poorly_excited() -> np.ndarray:
+    rng = np.random.default_rng(6)
+    a = rng.normal(size=40)
+    return np.column_stack((a, a + 1e-3 * rng.normal(size=40), rng.normal(size=40)))
+
+
+@pytest.mark.parametrize("forced", [(), (2,)])
+def test_poor_excitation_warning_text_caller_and_exact_boundary(forced):
+    J = _poorly_excited()
+    condition = select_base_parameters(J, "abc", forced=forced).condition_number
+    with pytest.warns(PoorExcitationWarning) as record:
+        select_base_parameters(J, "abc", forced=forced, max_condition=100.0)
+    assert len(record) == 1
+    assert str(record[0].message) == (f"kept 3 parameters with condition number {condition:.3g} > 100: "
+                                      "add or spread out poses")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        select_base_parameters(J, "abc", forced=forced, max_condition=condition)  # not above itself
+
+
+@pytest.mark.skipif("/mutants/" in identification.__file__,
+                    reason="mutmut's trampoline adds frames between the caller and the warning")
+@pytest.mark.parametrize("forced", [(), (2,)])
+def test_poor_excitation_warning_points_at_the_caller(forced):
+    with pytest.warns(PoorExcitationWarning) as record:
+        select_base_parameters(_poorly_excited(), "abc", forced=forced, max_condition=100.0)
+    assert record[0].filename == __file__
+
+
+# --------------------------------------------------------------------------------------------------
+# Linear solvers, outliers and names: input conversion, boundaries, exact messages
+
+
+def test_float32_and_exact_python_numbers_are_computed_in_double_precision():
+    from decimal import Decimal
+    from fractions import Fraction
+
+    rng = np.random.default_rng(14)
+    A = rng.normal(size=(12, 3)).astype(np.float32)
+    y = rng.normal(size=12).astype(np.float32)
+    fit32, fit64 = batch_least_squares(A, y), batch_least_squares(A.astype(float), y.astype(float))
+    np.testing.assert_array_equal(fit32.x, fit64.x)
+    assert fit32.variance_factor == fit64.variance_factor
+    exact = batch_least_squares([[Fraction(1), Fraction(0)], [Fraction(0), Decimal(1)], [1, 1]],
+                                [Fraction(1, 2), Decimal("2"), 4])
+    np.testing.assert_allclose(exact.x, batch_least_squares([[1, 0], [0, 1], [1, 1]], [0.5, 2.0, 4.0]).x, rtol=1e-15)
+    blocks = (rng.normal(size=(9, 3)) * 3).astype(np.float32)
+    assert outlier_poses(blocks)[1] == outlier_poses(blocks.astype(float))[1] > 1.0
+    assert outlier_poses([[Fraction(1, 2)], [Decimal(3)]])[1] == outlier_poses([[0.5], [3.0]])[1]
+    std = np.float32(0.3)
+    np.testing.assert_array_equal(RecursiveLeastSquares(2, prior_std=std).information_factor,
+                                  RecursiveLeastSquares(2, prior_std=float(std)).information_factor)
+
+
+def test_batch_least_squares_one_column_one_redundant_row_and_no_column():
+    fit = batch_least_squares([[1.0], [2.0]], [1.0, 3.0])
+    assert fit.rank == 1 and fit.x == pytest.approx([1.4])
+    # One degree of freedom: the variance factor is the residual sum of squares itself.
+    assert fit.variance_factor == pytest.approx((1.0 - 1.4) ** 2 + (3.0 - 2.8) ** 2, rel=1e-12)
+    assert fit.covariance[0, 0] == pytest.approx(fit.variance_factor / 5.0, rel=1e-12)
+    with pytest.raises(IdentificationError) as error:
+        batch_least_squares(np.zeros((3, 0)), np.ones(3))
+    assert str(error.value) == "batch_least_squares: A is identically zero"
+
+
+def test_outlier_gate_at_its_exact_value_is_not_an_outlier():
+    import scipy.stats
+
+    gate = float(scipy.stats.chi2.isf(2.0 * scipy.stats.norm.sf(5.0), 2))
+    v = float(np.sqrt(gate))
+    candidates = [v + i * np.spacing(v) for i in range(-4, 5)]
+    exact = next(c for c in candidates if c * c == gate)  # d^2 = gate exactly
+    blocks = np.zeros((5, 2))
+    blocks[:4, 0] = 0.1
+    blocks[4, 0] = exact
+    flagged, scale = outlier_poses(blocks)
+    assert scale == 1.0 and not flagged.any()
+    blocks[4, 0] = np.nextafter(exact, np.inf)
+    assert outlier_poses(blocks)[0].tolist() == [False] * 4 + [True]
+    blocks[4, 0] = np.nan
+    with pytest.raises(InvalidInputError) as error:
+        outlier_poses(blocks)
+    assert str(error.value) == "outlier_poses: non-finite residual"
+
+
+def test_placement_is_everything_before_the_last_dt():
+    names = ("arm.dt[1].dt[0]", "arm.dt[1].dt[1]", "arm.dt[2]")
+    assert parameter_columns(names, ["arm.dt[1]"], "--fix") == [0, 1]
+    assert parameter_columns(names, ["arm"], "--fix") == [2]
+    with pytest.raises(InvalidInputError) as error:
+        parameter_columns(names, ["leg"], "--fix")
+    assert str(error.value) == ("--fix: 'leg' is neither a parameter (e.g. arm.dt[1].dt[0]) nor a placement "
+                                "(e.g. arm.dt[1]: all its components)")
+
+
+def test_rls_prior_without_mean_and_estimate_before_any_row():
+    rls = RecursiveLeastSquares(2, prior_std=[0.5, 2.0])
+    np.testing.assert_array_equal(rls.estimate, [0.0, 0.0])
+    np.testing.assert_array_equal(rls.information_factor, np.diag([2.0, 0.5]))
+    assert rls.weighted_residual_sum_of_squares == 0.0 and rls.n_rows == 0
+    np.testing.assert_array_equal(RecursiveLeastSquares(3).estimate, np.zeros(3))
+    # With a prior mean and no row yet, the estimate is the prior mean.
+    np.testing.assert_allclose(RecursiveLeastSquares(2, prior_std=[0.5, 2.0], prior_mean=[1.0, -4.0]).estimate,
+                               [1.0, -4.0], rtol=1e-15)
+
+
+# --------------------------------------------------------------------------------------------------
+# Forward selection: batches of candidates, dead columns, tiny scales, the standard error of ties
+
+
+def test_forward_selection_scores_every_batch_of_candidates_and_skips_dead_ones():
+    # 400 poses of 50 rows: 2e6 // (400 x 50^2) = 2 candidates per batch, three batches for five.
+    rng = np.random.default_rng(15)
+    n, k = 400, 50
+    live = rng.normal(size=(n * k, 3))
+    J = np.column_stack((np.zeros(n * k), np.zeros(n * k), live))  # the first batch is dead
+    r = -(live @ np.r_[0.05, 0.2, 1.0]) + 3.0 * rng.normal(size=n * k)
+    selection = forward_selection(J, r, k, range(5))
+    # The same as without the zero columns, which are never chosen; the last candidate goes first.
+    alone = forward_selection(live, r, k, range(3))
+    assert selection.order == tuple(c + 2 for c in alone.order) and selection.order[0] == 4
+    np.testing.assert_allclose(selection.path, alone.path, rtol=1e-12)
+    assert len(selection.path) == 4 and selection.path[1] < selection.path[0]
+
+
+def test_forward_selection_is_scale_invariant_and_a_column_is_never_longer_than_itself():
+    rng = np.random.default_rng(16)
+    J = rng.normal(size=(30, 3))
+    r = -(J @ np.r_[1.0, 0.5, 0.0]) + rng.normal(size=30)
+    reference = forward_selection(J, r, 3, range(3))
+    tiny = forward_selection(1e-12 * J, 1e-12 * r, 3, range(3))
+    assert tiny.order == reference.order and tiny.indices == reference.indices
+    assert forward_selection(J, r, 3, range(3), rank_tolerance=1.0).order == ()
+    # Just below one, the first column is taken and the others, shortened by its projection, are not.
+    assert forward_selection(J, r, 3, range(3), rank_tolerance=1.0 - 1e-9).order == reference.order[:1]
+
+
+def test_forward_selection_messages_name_the_arguments():
+    J = np.ones((6, 2))
+    with pytest.raises(InvalidInputError) as error:
+        forward_selection(J, np.ones(5), 3, range(2))
+    assert str(error.value) == "residual: expected 6 values, got 5"
+    J[4, 0] = np.inf
+    with pytest.raises(InvalidInputError) as error:
+        forward_selection(J, np.ones(6), 3, range(2))
+    assert str(error.value) == "jacobian: non-finite value at row 4, column 0"
+
+
+@pytest.mark.parametrize("n, seed, tied", [(1, 0, 0), (2, 2, 1), (4, 19, 1)])
+def test_forward_selection_ties_use_the_sample_standard_error(n, seed, tied):
+    # n = 4, seed 19: the population std (ddof 0) gives 0 ties, ddof 2 gives 2; n = 2: a zero
+    # standard error would give 0; one pose: no spread to estimate, no warning, no tie.
+    rng = np.random.default_rng(seed)
+    k = 3
+    J = rng.normal(size=(n * k, 3))
+    r = -(J @ np.r_[1.0, 0.2, 0.0]) + rng.normal(size=n * k)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        selection = forward_selection(J, r, k, range(3))
+    assert selection.tied == tied

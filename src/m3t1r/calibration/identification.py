@@ -490,7 +490,7 @@ class RecursiveLeastSquares:
             self._factor[:n_parameters, n_parameters] = mean / std
         elif prior_mean is not None:
             raise InvalidInputError("RecursiveLeastSquares: prior_mean needs prior_std")
-        self._x = np.zeros(n_parameters)
+        self._x = self._solve()  # before any row: the prior mean, or zero (minimum norm) without a prior
 
     @property
     def n_rows(self) -> int:
