@@ -62,6 +62,8 @@ REFUSALS = [
     (_set("principal_chains", {"B": ["nope", "motor_1", "effector"]}), "principal_chains.B: joint 'nope' does not exist"),
     (_set("principal_chains", {"B": ["motor_1", "nowhere"]}),
      "principal_chains.B: frame 'nowhere' does not exist in the URDF"),
+    (_set("principal_chains", {"B": ["motor_1", "elbow_1", "nowhere"]}),
+     "principal_chains.B: frame 'nowhere' does not exist in the URDF"),
     (_set("home", [1.0]), "home must map joint names to values"),
     (lambda d: d["home"].update(nope=0.0), "home: joint 'nope' does not exist"),
     (lambda d: d["home"].update(motor_1="abc"), "home: joint 'motor_1' has non-numeric value 'abc'"),
