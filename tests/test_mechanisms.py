@@ -341,3 +341,19 @@ def test_closures_that_hold_the_actuators_are_refused(tmp_path):
     with pytest.raises(ModelFileError, match=r"the closures hold the actuators: the rows have rank 4 over every joint "
                                              r"but 2 over the passive ones"):
         Mechanism.load(urdf, closures)
+
+
+def test_a_schema_1_file_samples_between_the_actuator_limits(tmp_path):
+    urdf, closures = five_bar_files(tmp_path)
+    _edit_yaml(closures, lambda d: [d.pop(key) for key in ("schema_version", "workspace")] and d.update(
+        task={"frame": "effector", "position": ["x", "y"], "rotation": "none"}))
+    mechanism = Mechanism.load(urdf, closures)
+    assert mechanism.workspace is None
+    lower, upper = mechanism.joint_limits()
+    draws = workspace_actuators(mechanism, 40, np.random.default_rng(1))
+    assert np.all(draws >= lower) and np.all(draws <= upper)
+    # The five-bar's URDF limits are 0.1 rad wider than its declared box; wide enough to be refused somewhere
+    _edit(urdf, lambda text: text.replace('lower="1.83" upper="2.83"', 'lower="0.5" upper="3.5"'))
+    with pytest.raises(ModelFileError, match=r"draws in the actuators' URDF limits \(no workspace declared: add a "
+                                             r"`workspace:` box, models/README.md\) cannot be assembled from home"):
+        workspace_actuators(Mechanism.load(urdf, closures), 200, np.random.default_rng(1))

@@ -50,7 +50,8 @@ def workspace_actuators(nominal: Mechanism, n: int, rng: np.random.Generator) ->
         batch = solver.forward_batch(actuators)
     if batch.failures:
         first = batch.failures[0]
-        raise ModelFileError(nominal.closures_path, f"{len(batch.failures)} of {n} draws in the declared "
-                                                    f"{workspace.kind} workspace box cannot be assembled from home; "
-                                                    f"first, draw {first.index}: {first.reason}")
+        where = (f"declared {workspace.kind} workspace box" if nominal.workspace is not None else
+                 "actuators' URDF limits (no workspace declared: add a `workspace:` box, models/README.md)")
+        raise ModelFileError(nominal.closures_path, f"{len(batch.failures)} of {n} draws in the {where} cannot be "
+                                                    f"assembled from home; first, draw {first.index}: {first.reason}")
     return np.array(actuators).reshape(n, len(nominal.actuated_joints))
