@@ -115,13 +115,9 @@ class ClosureSystem:
         passive closure Jacobian at q (sliders fixed): zero for a gauge (the redundant joints move
         nothing but themselves), not zero when the closures leave the frame free to move."""
         _, jac = self.evaluate(q, True)
-        square = jac[:, passive]
-        null = scipy.linalg.null_space(square, rcond=max(square.shape) * np.finfo(float).eps * 1e3) \
-            if square.size else np.eye(len(passive))
-        if null.shape[1] == 0:
-            return 0.0
+        null = _null_space(jac[:, passive])
         frame = pin.getFrameJacobian(self.model, self.data, frame_id, pin.LOCAL_WORLD_ALIGNED)[:, passive]
-        return float(np.abs(frame @ null).max())
+        return float(np.abs(frame @ null).max(initial=0.0))
 
     def redundancy(self, q: np.ndarray, passive: np.ndarray) -> tuple[Redundancy, int]:
         """Gauge joints and dependent rows at an assembled q, and the rank of the rows over every column.
@@ -145,10 +141,19 @@ class ClosureSystem:
 
 
 def _rank(matrix: np.ndarray) -> int:
+    """Singular values above max(shape) * eps * 1e3 times the largest (one rule for rank and null space)."""
     if matrix.size == 0:
         return 0
     singular = np.linalg.svd(matrix, compute_uv=False)
     return int(np.sum(singular > max(matrix.shape) * np.finfo(float).eps * 1e3 * singular[0]))
+
+
+def _null_space(matrix: np.ndarray) -> np.ndarray:
+    """Orthonormal basis (columns) of the right null space, under `_rank`'s rule."""
+    if matrix.shape[0] == 0:
+        return np.eye(matrix.shape[1])
+    vt = np.linalg.svd(matrix)[2]
+    return vt[_rank(matrix):].T
 
 
 def _pivots(matrix: np.ndarray, count: int) -> set[int]:

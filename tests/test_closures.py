@@ -1,0 +1,69 @@
+"""m3t1r.model.closures: the closure system's Jacobian, the rank rule, row bookkeeping, assembly."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from m3t1r.errors import ModelFileError
+from m3t1r.model.closures import ClosureSpec, ClosureSystem, _null_space, _rank, without_rows
+from m3t1r.model.description import Mechanism, nominal_model_paths
+from m3t1r.model.examples import spherical_wrist_files
+
+
+@pytest.fixture(scope="module")
+def wrist(tmp_path_factory):
+    return Mechanism.load(*spherical_wrist_files(tmp_path_factory.mktemp("wrist")))
+
+
+def test_jacobian_matches_differences_far_from_assembly(wrist):
+    """Away from an assembly the 6D rows' relative placement is far from identity, where the
+    Jlog6 Ad(aMb^-1) factor on Pinocchio's velocity-level Jacobian matters."""
+    system = ClosureSystem(wrist.model, wrist.closures)
+    q = wrist.home + np.random.default_rng(0).normal(0.0, 0.4, wrist.model.nq)
+    residual, jacobian = system.evaluate(q, True)
+    assert np.abs(residual).max() > 0.1
+    step = 1e-7
+    for k in range(wrist.model.nv):
+        dq = np.zeros(wrist.model.nv)
+        dq[k] = step
+        difference = (system.evaluate(q + dq, False)[0] - system.evaluate(q - dq, False)[0]) / (2 * step)
+        np.testing.assert_allclose(jacobian[:, k], difference, atol=1e-7)
+
+
+def test_rank_rule():
+    assert _rank(np.zeros((0, 3))) == 0
+    assert _rank(np.array([[2.0]])) == 1
+    assert _rank(np.diag([1.0, 1e-11])) == 2  # well above 2 * eps * 1e3
+    assert _rank(np.diag([1.0, 1e-14])) == 1  # below 2 * eps * 1e3 = 4.4e-13
+    assert _rank(np.diag([1e-9, 1e-23])) == 1  # relative to the largest, not absolute
+    assert _rank(np.diag([1e9, 1.0])) == 2
+    null = _null_space(np.array([[1.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))
+    assert null.shape == (3, 1)
+    np.testing.assert_allclose(np.abs(null[:, 0]), [2 ** -0.5, 2 ** -0.5, 0.0], atol=1e-15)
+    np.testing.assert_array_equal(_null_space(np.zeros((0, 2))), np.eye(2))
+
+
+def test_without_rows_counts_positions_across_closures():
+    def spec(name: str, rows: tuple[int, ...]) -> ClosureSpec:
+        return ClosureSpec(name, "6D", "a", "b", rows, 1, 2)
+    closures = (spec("one", (0, 1, 5)), spec("two", (0, 1, 2)), spec("three", (3, 4)))
+    kept = without_rows(closures, (1, 3, 7))  # one[1], two[0], three[4]
+    assert [c.rows for c in kept] == [(0, 5), (1, 2), (3,)]
+    assert [c.name for c in kept] == ["one", "two", "three"]
+
+
+def test_a_home_that_overflows_is_refused_by_name(tmp_path):
+    """Two sliders of one loop at +-1.7e308: the residual overflows to inf, and Newton cannot help."""
+    source_urdf, source_closures = nominal_model_paths()
+    urdf, closures = tmp_path / "m.urdf", tmp_path / "m.closures.yaml"
+    urdf.write_bytes(source_urdf.read_bytes())
+    document = yaml.safe_load(source_closures.read_text())
+    document["home"].update(q11=1.7e308, q11_B2=-1.7e308)
+    closures.write_text(yaml.safe_dump(document, sort_keys=False))
+    with pytest.raises(ModelFileError) as caught:
+        Mechanism.load(urdf, closures)
+    assert str(caught.value) == (f"{closures}: home does not close: closure 'five_bar_I' residual inf > 1e-09, and "
+                                 "Newton from the given values reached only inf (give home values closer to an "
+                                 "assembly)")
