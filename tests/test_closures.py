@@ -43,6 +43,7 @@ def test_rank_rule():
     assert null.shape == (3, 1)
     np.testing.assert_allclose(np.abs(null[:, 0]), [2 ** -0.5, 2 ** -0.5, 0.0], atol=1e-15)
     np.testing.assert_array_equal(_null_space(np.zeros((0, 2))), np.eye(2))
+    np.testing.assert_allclose(np.abs(_null_space(np.array([[1.0, 0.0]]))), [[0.0], [1.0]], atol=1e-15)
 
 
 def test_without_rows_counts_positions_across_closures():
