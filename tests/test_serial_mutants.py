@@ -206,7 +206,8 @@ def test_whitening_is_the_inverse_cholesky_factor_of_the_covariance(ur5, positio
     exact = S._whitening(chain, state, data, TRACKER, 0.0)
     np.testing.assert_array_equal(exact, np.broadcast_to(np.diag(1.0 / sigmas), (6, k, k)))
     assert exact.flags.writeable
-    whitening = S._whitening(chain, state, data, TRACKER, sigma_q)
+    whitening = S._whitening(chain, replace(state, compliance=np.zeros(6)), data, TRACKER, sigma_q)
+    assert np.abs(np.tril(S._whitening(chain, state, data, TRACKER, 1.0), -1)).max() > 0.0
     # The joint Jacobian of the residual at the state, F and K included.
     joint_jacobian = np.empty((6, k, 6))
     for j in range(6):
@@ -246,10 +247,12 @@ def _plain_problem(model, chain, n_poses: int = 5, position_only: bool = False):
 def test_problem_masks_outlier_poses_and_appends_prior_rows(ur5):
     model, chain = ur5
     residual, state = _plain_problem(model, chain)  # 5 poses, 6 rows each
-    plain = S._SerialProblem(residual, [3, 7])
+    plain = S._SerialProblem(residual, [3.0, 7.0])
     assert plain.columns.dtype.kind == "i" and plain.priors == {}
     assert plain.active.dtype == bool and plain.active.shape == (5,) and plain.active.all()
     r_full, J_full = residual.residual_and_jacobian(state)
+    assert not (r_full.flags.writeable or J_full.flags.writeable or residual.raw_residual(state).flags.writeable)
+    assert not S._readonly_state(chain, model).transforms.flags.writeable
     assert plain.residual(state) is r_full  # every pose, no prior: the residual itself
     r, J = plain.residual_and_jacobian(state)
     assert r is r_full
@@ -563,3 +566,123 @@ def test_exact_nominal_measurements_take_no_step(ur5):
     assert calibration.iterations == 0 and calibration.converged
     np.testing.assert_array_equal(calibration.values, np.zeros(42))
     assert calibration.compliance == {} and calibration.residual_after.position < 1e-12
+
+
+def test_measurement_parsing_and_its_exact_refusals(ur5):
+    model, chain = ur5
+    data = simulate_serial_measurements(model, chain, 4, np.random.default_rng(51), noise=TRACKER)
+    q, poses = data.q_readings, list(data.measured_poses)
+    homogeneous = np.array([g.homogeneous for g in poses])
+    rows = np.array([pin.SE3ToXYZQUAT(g) for g in poses])
+
+    def refused(message, q_readings, measured, position_only=False):
+        with pytest.raises(InvalidInputError) as error:
+            S._parse_measurements(chain, q_readings, measured, position_only)
+        assert str(error.value) == message
+
+    from_se3 = S._parse_measurements(chain, q.tolist(), poses, False)
+    assert from_se3.q.dtype == float and from_se3.rows_per_pose == 6
+    np.testing.assert_array_equal(from_se3.q, q)
+    np.testing.assert_array_equal(from_se3.positions, homogeneous[:, :3, 3])
+    np.testing.assert_array_equal(from_se3.rotations, homogeneous[:, :3, :3])
+    assert from_se3.positions.flags.c_contiguous and from_se3.rotations.flags.c_contiguous
+    from_rows = S._parse_measurements(chain, q, rows, False)
+    np.testing.assert_array_equal(from_rows.positions, rows[:, :3])
+    np.testing.assert_allclose(from_rows.rotations, homogeneous[:, :3, :3], atol=1e-15)
+    from_lists = S._parse_measurements(chain, q, rows.tolist(), False)  # a Sequence, but of rows
+    np.testing.assert_array_equal(from_lists.rotations, from_rows.rotations)
+    for measured in (poses, rows, rows[:, :3]):
+        positions_only = S._parse_measurements(chain, q, measured, True)
+        assert positions_only.rotations is None and positions_only.rows_per_pose == 3
+        np.testing.assert_allclose(positions_only.positions, homogeneous[:, :3, 3], atol=1e-15)
+    integers = S._parse_measurements(chain, q.astype(int), rows.round().astype(int)[:, :3], True)
+    assert integers.q.dtype == float and integers.positions.dtype == float
+
+    refused("q_readings: expected shape (N, 6), got (6,)", q[0], rows[:1])
+    refused("q_readings: expected shape (N, 6), got (4, 5)", q[:, :5], rows)
+    bad_q = q.copy()
+    bad_q[2, 4] = np.inf
+    refused("q_readings: non-finite value in row 2", bad_q, rows)
+    refused("measured_poses: row 1 is not an SE3 like the others", q, [poses[0], rows[1], *poses[2:]])
+    expected = "measured_poses: expected SE3 objects, (N, 7) [x, y, z, qx, qy, qz, qw] or (N, 3) positions, got shape "
+    refused(expected + "(4, 6)", q, rows[:, :6])
+    refused(expected + "(28,)", q, rows.reshape(-1))
+    bad_rows = rows.copy()
+    bad_rows[3, 0] = np.nan
+    refused("measured_poses: non-finite value in row 3", q, bad_rows)
+    refused("measured_poses: positions only (N, 3) need position_only=True", q, rows[:, :3])
+    refused("4 joint readings but 3 measured poses", q, rows[:3])
+    refused("4 joint readings but 3 measured poses", q, poses[:3])
+    twice = rows.copy()
+    twice[1, 3:] *= 2.0
+    refused(f"measured_poses: quaternion of row 1 has norm {np.linalg.norm(twice[1, 3:]):.6g}", q, twice)
+
+
+@pytest.mark.parametrize("layout", [S._Layout(6, frame=True), S._Layout(6, marker=6), S._Layout(6, frame=True, marker=6)])
+def test_setup_columns_at_the_identity_setup(ur5, layout):
+    """An identity frame and marker (a plain state) still give the setup's columns."""
+    model, chain = ur5
+    data = S._parse_measurements(chain, *(lambda d: (d.q_readings, d.measured_poses))(
+        simulate_serial_measurements(model, chain, 5, np.random.default_rng(52), noise=TRACKER)), False)
+    residual = S._SerialResidual(chain, data, np.broadcast_to(np.eye(6), (5, 6, 6)), layout)
+    state = S._readonly_state(chain, model)
+    assert state.plain
+    _, J = residual.residual_and_jacobian(state)
+    columns = np.arange(42, layout.size)
+    numeric = np.empty((30, columns.size))
+    for i, c in enumerate(columns):
+        dx = np.zeros(layout.size)
+        dx[c] = 1e-7
+        numeric[:, i] = (residual.residual(residual.retract(state, dx)) -
+                         residual.residual(residual.retract(state, -dx))) / 2e-7
+    assert np.linalg.norm(J[:, columns] - numeric) <= 1e-6 * np.linalg.norm(numeric)
+
+
+def test_gravity_torques_of_a_chain_shorter_than_the_model(ur5):
+    model, _ = ur5
+    chain = SerialChain.from_model(model, "forearm_link")  # 3 of the 6 joints; the others at neutral
+    q = np.array([[0.1, -1.0, 0.5], [0.0, -0.3, 1.2]])
+    torques = S.gravity_torques(model, chain, q)
+    assert torques.shape == (2, 3)
+    data = model.createData()
+    for row, tau in zip(q, torques):
+        np.testing.assert_array_equal(tau, pin.computeGeneralizedGravity(model, data, np.r_[row, 0.0, 0.0, 0.0])[:3])
+
+
+def test_degrees_of_freedom_zero_gives_no_variance_factor(ur5):
+    """Positions only, 9 poses for 27 base parameters: no redundancy (nan); a prior adds one row."""
+    model, chain = ur5
+    data = simulate_serial_measurements(model, chain, 9, np.random.default_rng(53), noise=TRACKER)
+    rows = np.array([g.translation for g in data.measured_poses])
+    exact = calibrate_serial(model, chain, data.q_readings, rows, position_only=True, noise=TRACKER, outlier_sigma=None)
+    assert len(exact.fitted) == 27 and np.isnan(exact.variance_factor)
+    one = calibrate_serial(model, chain, data.q_readings, rows, position_only=True, noise=TRACKER, outlier_sigma=None,
+                           priors={"elbow_joint.dt[0]": 1e-3})
+    assert len(one.fitted) == 27 and np.isfinite(one.variance_factor) and one.variance_factor > 0.0
+
+
+def test_selection_and_outliers_reach_the_result(ur5):
+    model, chain = ur5
+    data = simulate_serial_measurements(model, chain, 20, np.random.default_rng(54), noise=TRACKER)
+    measured = list(data.measured_poses)
+    measured[7] = pin.SE3(measured[7].rotation, measured[7].translation + np.array([5e-3, 0.0, 0.0]))
+    calibration = calibrate_serial(model, chain, data.q_readings, measured, noise=TRACKER, select=True)
+    assert calibration.outliers == (7,)
+    assert calibration.selection is not None
+    assert len(calibration.selection.indices) == len(calibration.fitted)
+    refit = calibration._solve(calibration._problem, calibration._start)  # the solver cross-validation reruns
+    assert refit.converged
+
+
+def test_selection_at_the_start_scores_the_residual_itself(ur5):
+    """No step taken yet (accumulated None): the linearised residual is the residual."""
+    model, chain = ur5
+    simulated = simulate_serial_measurements(model, chain, 15, np.random.default_rng(55), noise=TRACKER)
+    data = S._parse_measurements(chain, simulated.q_readings, simulated.measured_poses, False)
+    problem, start = _problem(model, chain, data, S._Layout(6))
+    problem.columns = np.arange(0, 42, 2)
+    r, J = problem.model.residual_and_jacobian(start)
+    expected = forward_selection(J[:, problem.columns], r, 6, range(21), np.array([], dtype=int))
+    selection, _, _ = S._select_parameters(problem, start, SimpleNamespace(state=start, iterations=0),
+                                           _Fixed([start], [0]))
+    assert selection == expected
