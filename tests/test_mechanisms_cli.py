@@ -84,3 +84,13 @@ def test_a_target_file_of_another_task_is_refused(files, tmp_path, capsys):
     assert main(["ik", str(targets), *_model(files), "-o", str(tmp_path / "s.csv")]) == 2
     assert "unknown column" in capsys.readouterr().err
     assert not (tmp_path / "s.csv").exists()
+
+
+def test_plan_draws_in_the_declared_workspace(files, tmp_path):
+    plan = tmp_path / "plan.csv"
+    assert main(["plan", *_model(files), "-n", "12", "--seed", "2", "-o", str(plan)]) == 0
+    nominal = Mechanism.load(*files)
+    sliders, _ = read_actuators(plan, nominal)
+    assert sliders.shape == (12, len(nominal.actuated_joints))
+    lower, upper = nominal.workspace.bounds(nominal.actuated_joints)
+    assert np.all(sliders >= lower) and np.all(sliders <= upper)
