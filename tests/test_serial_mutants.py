@@ -686,3 +686,14 @@ def test_selection_at_the_start_scores_the_residual_itself(ur5):
     selection, _, _ = S._select_parameters(problem, start, SimpleNamespace(state=start, iterations=0),
                                            _Fixed([start], [0]))
     assert selection == expected
+
+
+def test_orientation_residual_near_a_half_turn(ur5):
+    """A marker whose axes are off by nearly pi: log3's fallback near pi, on the 3 x 3 rotation."""
+    model, chain = ur5
+    q = sample_configurations(model, chain, 3, np.random.default_rng(56))
+    turned = tool_poses(chain, model, q) @ pin.SE3(pin.utils.rotate("x", 3.1), np.zeros(3)).homogeneous
+    data = S._parse_measurements(chain, q, [pin.SE3(m) for m in turned], False)
+    residual = S._SerialResidual(chain, data, np.broadcast_to(np.eye(6), (3, 6, 6)))
+    raw = residual.raw_residual(S._readonly_state(chain, model))
+    np.testing.assert_allclose(raw, np.tile([0.0, 0.0, 0.0, -3.1, 0.0, 0.0], (3, 1)), atol=1e-12)
