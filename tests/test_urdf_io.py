@@ -15,6 +15,8 @@ from lxml import etree
 
 from m3t1r.errors import InvalidInputError, ModelFileError, OutputPathError
 from m3t1r.model import urdf_io
+from m3t1r.model.description import Mechanism
+from m3t1r.model.examples import five_bar_files
 from m3t1r.model.urdf_io import max_placement_difference, write_calibrated_urdf
 
 UR5_IN_PACKAGE = "cmeel.prefix/share/example-robot-data/robots/ur_description/urdf/ur5_robot.urdf"
@@ -423,3 +425,19 @@ def test_max_placement_difference_refuses_different_structures(chain_urdf: Path,
     renamed.frames[renamed.getFrameId("sensor", pin.FrameType.BODY)].name = "sensor2"
     with pytest.raises(InvalidInputError, match=r"only in the first: sensor \(BODY\); only in the second: sensor2 \(BODY\)"):
         max_placement_difference(chain, renamed)
+
+
+def test_a_urdf_with_entity_references_is_written(tmp_path):
+    """lxml cannot canonicalise unexpanded entities (C14NError): the writer serialises the tree instead."""
+    urdf, closures = five_bar_files(tmp_path)
+    urdf.write_text(urdf.read_text().replace(
+        '<robot name="five_bar">', '<!DOCTYPE robot [<!ENTITY maker "m3t1r tests">]>\n<robot name="five_bar">\n'
+        '  <description>&maker;</description>', 1))
+    mechanism = Mechanism.load(urdf, closures)
+    model = pin.Model(mechanism.model)
+    model.jointPlacements[2] = pin.SE3(model.jointPlacements[2].rotation, model.jointPlacements[2].translation + 1e-4)
+    mechanism.with_model(model).save(tmp_path / "calibrated.urdf")
+    written = (tmp_path / "calibrated.urdf").read_text()
+    assert "<!ENTITY maker" in written and "&maker;" in written
+    reloaded = Mechanism.load(tmp_path / "calibrated.urdf")
+    assert max_placement_difference(reloaded.model, model) < 1e-12

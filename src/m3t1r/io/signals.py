@@ -12,16 +12,29 @@ __all__ = ["Terminated", "termination_as_exception"]
 
 @contextmanager
 def _signals_held() -> Iterator[None]:
-    """Hold SIGINT, SIGTERM, SIGHUP back while renaming; they are delivered when the block ends."""
-    held = {signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", signal.SIGTERM)}
-    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+    """Hold SIGINT, SIGTERM, SIGHUP back while renaming; they are delivered when the block ends.
+
+    Deferred by Python-level handlers, not by a signal mask: a mask holds signals for the calling
+    thread only, and a process-directed `kill` may be taken by any of numpy's threads, after which
+    Python runs the handler in the main thread anyway.
+    """
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    pending: list[int] = []
+
+    def defer(signum, frame):
+        pending.append(signum)
+
+    held = dict.fromkeys((signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", signal.SIGTERM)))
+    previous = {signum: signal.signal(signum, defer) for signum in held}
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        for signum, old in previous.items():
+            signal.signal(signum, old)
+        for signum in dict.fromkeys(pending):
+            signal.raise_signal(signum)
 
 
 class Terminated(BaseException):

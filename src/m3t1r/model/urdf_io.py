@@ -309,7 +309,11 @@ def _rewrite_origins(
 
     tree = root.getroottree()
     spliced = _splice_origins(raw, [attributes[joint.name] for joint in joints])
-    if spliced is not None and _canonical(spliced) == etree.tostring(tree, method="c14n"):
+    try:
+        same = spliced is not None and _canonical(spliced) == etree.tostring(tree, method="c14n")
+    except etree.C14NError:  # unexpanded entity references cannot be canonicalised: serialise the tree
+        same = False
+    if same:
         return spliced
     encoding = tree.docinfo.encoding or "UTF-8"
     return etree.tostring(tree, xml_declaration=True, encoding=encoding) + "\n".encode(encoding)
@@ -366,7 +370,7 @@ def _with_attribute(tag: bytes, name: bytes, value: bytes) -> bytes:
 def _canonical(document: bytes) -> bytes | None:
     try:
         return etree.tostring(etree.fromstring(document, _parser()).getroottree(), method="c14n")
-    except etree.XMLSyntaxError:
+    except (etree.XMLSyntaxError, etree.C14NError):
         return None
 
 
