@@ -9,11 +9,24 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
+from m3t1r.calibration.closed_loop import (
+    _ClosedLoopProblem,
+    _count_identifiable,
+    _residual_rows_batch,
+    _rms,
+    _shifted,
+    calibrate_closed_loop,
+    default_iterations,
+    pose_errors,
+    predicted_pose_std,
+    setup_parameter_names,
+)
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
-from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.measurements import TrackerNoise, measure
 from m3t1r.calibration.simulation import simulate_study
+from m3t1r.errors import InvalidInputError
 from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.workspace import workspace_actuators
 
 NOISE = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
 
@@ -87,3 +100,93 @@ def test_lm_stops_on_the_statistical_significance_rule(noisy):
     assert 6 <= lm.iterations <= 30
     # The fit sits at the noise: chi^2 / dof near one, from both sides.
     assert 0.7 < 2.0 * history[-1] / dof < 1.4
+
+
+# --------------------------------------------------------------------------------------------------
+# Small pieces, without a fit: names, residual rows, iteration cap, refusals before the fit
+
+
+def test_setup_parameter_names():
+    frame = tuple(f"measurement_frame.dt[{k}]" for k in range(6))
+    marker = tuple(f"marker.dt[{k}]" for k in range(6))
+    assert setup_parameter_names(False, False, False) == () and setup_parameter_names(False, False, True) == ()
+    assert setup_parameter_names(True, False, False) == frame == setup_parameter_names(True, False, True)
+    assert setup_parameter_names(False, True, False) == marker
+    assert setup_parameter_names(False, True, True) == marker[:3]
+    assert setup_parameter_names(True, True, False) == frame + marker
+    assert setup_parameter_names(True, True, True) == frame + marker[:3]
+
+
+@pytest.mark.parametrize("position_only", [False, True])
+def test_residual_rows_are_the_derivatives_for_spatial_twists(position_only):
+    """e = [p - p_meas; log3(R_meas^T R)] and de/dxi for pose <- exp6(xi) pose, by central differences."""
+    rng = np.random.default_rng(60)
+    poses = np.array([pin.SE3.Random().homogeneous for _ in range(3)])
+    measured = poses @ np.array([pin.exp6(rng.normal(0.0, 0.1, 6)).homogeneous for _ in range(3)])
+    rotations = None if position_only else measured[:, :3, :3]
+    residual, rows = _residual_rows_batch(poses, measured[:, :3, 3], rotations)
+    k = 3 if position_only else 6
+    assert residual.shape == (3, k) and rows.shape == (3, k, 6)
+    np.testing.assert_allclose(residual[:, :3], poses[:, :3, 3] - measured[:, :3, 3], atol=1e-15)
+    if not position_only:
+        expected = [pin.log3(m[:3, :3].T @ p[:3, :3]) for p, m in zip(poses, measured)]
+        np.testing.assert_allclose(residual[:, 3:], expected, atol=1e-12)
+    numeric = np.empty_like(rows)
+    for j in range(6):
+        xi = np.zeros(6)
+        xi[j] = 1e-7
+        plus = _residual_rows_batch(pin.exp6(xi).homogeneous @ poses, measured[:, :3, 3], rotations, False)
+        minus = _residual_rows_batch(pin.exp6(-xi).homogeneous @ poses, measured[:, :3, 3], rotations, False)
+        assert plus[1] is None and minus[1] is None
+        numeric[:, :, j] = (plus[0] - minus[0]) / 2e-7
+    np.testing.assert_allclose(rows, numeric, atol=1e-7)
+    again, none = _residual_rows_batch(poses, measured[:, :3, 3], rotations, with_jacobian=False)
+    assert none is None
+    np.testing.assert_array_equal(again, residual)
+
+
+def test_iteration_cap_is_60_or_5_per_parameter():
+    assert [default_iterations(n) for n in (0, 11, 12, 13, 56, 100)] == [60, 60, 60, 65, 280, 500]
+
+
+def test_rms_and_shifted_coordinates():
+    residual = np.array([[3.0, 4.0, 0.0, 1.0, 2.0, 2.0], [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    assert _rms(residual) == pytest.approx((np.sqrt(12.5), np.sqrt(4.5)), rel=1e-15)
+    position, rotation = _rms(residual[:, :3])
+    assert position == pytest.approx(np.sqrt(12.5), rel=1e-15) and np.isnan(rotation) and type(rotation) is float
+    q = np.arange(5.0)
+    np.testing.assert_array_equal(_shifted(q, np.array([1, 3]), np.array([0.5, -1.0])), [0.0, 1.5, 2.0, 2.0, 4.0])
+    np.testing.assert_array_equal(q, np.arange(5.0))  # a copy
+
+
+@pytest.fixture(scope="module")
+def few_poses(mechanism):
+    actuators = workspace_actuators(mechanism, 4, np.random.default_rng(61))
+    return measure(mechanism, actuators)
+
+
+def test_names_and_priors_are_checked_before_any_fit(mechanism, few_poses):
+    for sigma in (0.0, -1.0, float("inf"), float("nan")):
+        with pytest.raises(InvalidInputError) as error:
+            calibrate_closed_loop(mechanism, few_poses, priors={"q11.dt[0]": sigma})
+        assert str(error.value) == "a prior's sigma must be a positive number [m or rad]"
+    with pytest.raises(InvalidInputError, match=r"^prior: 'nope' is neither a parameter \(e.g. q11.dt\[0\]\)"):
+        calibrate_closed_loop(mechanism, few_poses, priors={"nope": 1.0})
+    with pytest.raises(InvalidInputError, match=r"^fixed parameter: 'nope' is neither a parameter"):
+        calibrate_closed_loop(mechanism, few_poses, fixed=["nope"])
+
+
+def test_identifiable_count_on_the_reference_poses(mechanism, few_poses):
+    """`_count_identifiable` itself (`_structural_rank` caches it, so a fit may never call it): 56 of
+    204 with full poses (calibration.md), 53 with positions only, fewer with fixed columns or a
+    looser tolerance; the marker's rotation shows at a loose tolerance."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    full = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(204))
+    positions = _ClosedLoopProblem(error_model, measure(mechanism, few_poses.actuators, position_only=True), NOISE,
+                                   np.arange(204))
+    identity, turned = pin.SE3.Identity(), pin.SE3(pin.utils.rotate("x", 0.5), np.array([0.0, 0.0, 0.05]))
+    assert _count_identifiable(full, identity, [], 1e-8) == 56
+    assert _count_identifiable(full, identity, list(range(12)), 1e-8) == 52
+    assert _count_identifiable(positions, identity, [], 1e-8) == 53
+    assert _count_identifiable(positions, identity, [], 1e-3) == 47
+    assert _count_identifiable(positions, turned, [], 1e-3) == 48
