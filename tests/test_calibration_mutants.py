@@ -5,6 +5,8 @@ machine (exact) and against the held-out error from both sides (statistical); th
 checked on the iteration that fired it.
 """
 
+import copy
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -12,8 +14,10 @@ import pytest
 from m3t1r.calibration.closed_loop import (
     _ClosedLoopProblem,
     _count_identifiable,
+    _refine,
     _residual_rows_batch,
     _rms,
+    _select_parameters,
     _shifted,
     calibrate_closed_loop,
     default_iterations,
@@ -22,6 +26,7 @@ from m3t1r.calibration.closed_loop import (
     setup_parameter_names,
 )
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.identification import forward_selection
 from m3t1r.calibration.measurements import TrackerNoise, measure
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.errors import InvalidInputError
@@ -190,3 +195,39 @@ def test_identifiable_count_on_the_reference_poses(mechanism, few_poses):
     assert _count_identifiable(positions, identity, [], 1e-8) == 53
     assert _count_identifiable(positions, identity, [], 1e-3) == 47
     assert _count_identifiable(positions, turned, [], 1e-3) == 48
+
+
+def test_selection_scores_the_fit_linearised_at_the_estimate(noisy):
+    """Forward selection on r - J x at the estimate over the inliers; all kept: the same fit."""
+    _, calibration = noisy
+    problem = copy.copy(calibration.problem)
+    state = calibration.lm.state
+    r, J = problem.residual_and_jacobian(state)
+    rows = len(problem.weights)
+    keep = np.repeat(problem.active, 6)
+    columns = problem.columns.copy()
+    expected = forward_selection(J[:rows][keep], (r[:rows] - J[:rows] @ state.accumulated[columns])[keep], 6,
+                                 range(len(columns)), np.flatnonzero(columns < 12))
+    selection, result = _select_parameters(problem, calibration.start, calibration.lm, np.arange(12),
+                                           calibration.options)
+    assert selection == expected
+    if len(selection.indices) == len(columns):
+        assert result is calibration.lm
+    else:
+        np.testing.assert_array_equal(problem.columns, columns[list(selection.indices)])
+        assert result.state.model is not None and result is not calibration.lm
+
+
+def test_refine_reselects_at_the_estimate_and_continues(noisy):
+    """At the estimate more directions are identifiable: the columns grow and LM continues from the
+    estimate (capped here at 2 iterations); a tolerance that finds no more returns the fit as is."""
+    _, calibration = noisy
+    problem = copy.copy(calibration.problem)
+    assert _refine(problem, calibration.lm, 0.5, 2) is calibration.lm
+    np.testing.assert_array_equal(problem.columns, calibration.problem.columns)
+    before = len(problem.columns)
+    refined = _refine(problem, calibration.lm, 1e-7, 2)
+    assert len(problem.columns) > before and refined.iterations <= 2
+    assert refined.cost_history[0] == pytest.approx(calibration.lm.cost_history[-1], rel=1e-6)
+    np.testing.assert_array_equal(refined.state.accumulated[:204] != 0.0,
+                                  np.isin(np.arange(204), problem.columns) | (calibration.lm.state.accumulated[:204] != 0))
