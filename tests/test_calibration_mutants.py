@@ -19,6 +19,7 @@ from m3t1r.calibration.closed_loop import (
     _rms,
     _select_parameters,
     _shifted,
+    _State,
     calibrate_closed_loop,
     default_iterations,
     pose_errors,
@@ -231,3 +232,24 @@ def test_refine_reselects_at_the_estimate_and_continues(noisy):
     assert refined.cost_history[0] == pytest.approx(calibration.lm.cost_history[-1], rel=1e-6)
     np.testing.assert_array_equal(refined.state.accumulated[:204] != 0.0,
                                   np.isin(np.arange(204), problem.columns) | (calibration.lm.state.accumulated[:204] != 0))
+
+
+def test_prior_rows_and_a_trial_that_does_not_assemble(mechanism, few_poses):
+    """Prior rows x_c / sigma_c in the columns' order; a trial step whose model did not assemble
+    (model None, nothing accumulated) is all infinite, prior rows included (it used to raise
+    TypeError with priors)."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    problem = _ClosedLoopProblem(error_model, few_poses, NOISE, np.array([0, 5, 7]), priors={5: 0.5, 7: 2e-3, 100: 1.0})
+    accumulated = np.zeros(204)
+    accumulated[[0, 5, 7]] = [1.0, 1e-3, -4e-3]
+    values, jacobian = problem._prior_rows(_State(mechanism.model, (), accumulated=accumulated))
+    np.testing.assert_allclose(values, [1e-3 / 0.5, -4e-3 / 2e-3], rtol=1e-15)
+    np.testing.assert_array_equal(jacobian, [[0.0, 2.0, 0.0], [0.0, 0.0, 500.0]])
+    failed = _State(None, ())
+    residual = problem.residual(failed)
+    assert residual.shape == (4 * 6 + 2,) and np.all(residual == np.inf)
+    r, J = problem.residual_and_jacobian(failed)
+    assert r.shape == (26,) and np.all(r == np.inf)
+    np.testing.assert_array_equal(J, np.zeros((26, 3)))
+    plain = _ClosedLoopProblem(error_model, few_poses, NOISE, np.array([0, 5, 7]))
+    assert plain.residual(failed).shape == (24,)

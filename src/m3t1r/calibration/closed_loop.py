@@ -178,8 +178,8 @@ class _ClosedLoopProblem:
 
     def residual(self, state: _State) -> np.ndarray:
         """Whitened residual from the assembled poses alone (LM trial steps)."""
-        if state.model is None:
-            return np.full(len(self.weights) + len(self._prior_rows(_State(None, ()))[0]), np.inf)
+        if state.model is None:  # a trial that did not assemble: every row infinite, prior rows too
+            return np.full(len(self.weights) + sum(1 for c in self.columns if c in self.priors), np.inf)
         return np.concatenate((self.pose_residuals(state).reshape(-1) * self.weights, self._prior_rows(state)[0]))
 
     def evaluate(self, state: _State, columns: np.ndarray, reduce: bool = False
