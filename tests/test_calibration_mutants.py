@@ -6,6 +6,7 @@ checked on the iteration that fired it.
 """
 
 import copy
+import dataclasses
 
 import numpy as np
 import pinocchio as pin
@@ -21,6 +22,7 @@ from m3t1r.calibration.closed_loop import (
     _shifted,
     _State,
     calibrate_closed_loop,
+    cross_validate,
     default_iterations,
     pose_errors,
     predicted_pose_std,
@@ -28,6 +30,7 @@ from m3t1r.calibration.closed_loop import (
 )
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.identification import forward_selection
+from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise, measure
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.errors import InvalidInputError
@@ -253,3 +256,44 @@ def test_prior_rows_and_a_trial_that_does_not_assemble(mechanism, few_poses):
     np.testing.assert_array_equal(J, np.zeros((26, 3)))
     plain = _ClosedLoopProblem(error_model, few_poses, NOISE, np.array([0, 5, 7]))
     assert plain.residual(failed).shape == (24,)
+
+
+def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
+    """One fit with every option: the frame and marker estimated (the setup's 12 columns kept),
+    one gross outlier flagged, a placement held, a prior, progress reported; then cross-validation
+    and its refusals."""
+    frame = pin.SE3(pin.utils.rotate("z", 2.0), np.array([1.5, -0.8, 0.3]))
+    marker = pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.01, 0.0, 0.05]))
+    study = simulate_study(mechanism, n_poses=40, n_holdout=0, seed=17, noise=NOISE,
+                           setup=MeasurementSetup(frame, marker), outliers=1)
+    calls = []
+    calibration = calibrate_closed_loop(
+        mechanism, study.measurements, NOISE, setup=MeasurementSetup(marker=pin.SE3(np.eye(3), marker.translation)),
+        estimate_frame=True, estimate_marker=True, fixed=["q11"], priors={"q12.dt[0]": 1e-3},
+        progress=lambda: calls.append(1))
+    assert calibration.outliers == tuple(study.outliers) and len(calibration.outliers) == 1
+    assert calibration.converged is bool(calibration.lm.converged) is True
+    setup_names = setup_parameter_names(True, True, False)
+    assert set(setup_names[:6]) <= set(calibration.fitted) and len(set(setup_names) & set(calibration.fitted)) >= 11
+    assert not any(name.startswith("q11.") for name in calibration.fitted)
+    assert all(calibration.parameters[f"q11.dt[{k}]"] == 0.0 for k in range(6))
+    assert list(calibration.parameters) == list(calibration.error_model.names)
+    assert list(calibration.std) == list(calibration.error_model.names) + list(setup_names)
+    assert all(calibration.std[name] > 0.0 for name in calibration.fitted)
+    assert 0.6 < calibration.variance_factor < 1.6
+    assert calibration.rms_after[0] < 3e-5 < 1e-3 < calibration.rms_before[0]
+    assert len(calls) >= calibration.lm.iterations + 1
+    for estimate, truth in ((calibration.setup.frame, frame), (calibration.setup.marker, marker)):
+        difference = truth.actInv(estimate)
+        assert np.linalg.norm(difference.translation) < 1e-2 and np.linalg.norm(pin.log3(difference.rotation)) < 1e-2
+    validation = cross_validate(calibration, folds=3)
+    assert validation.folds == 3 and validation.errors.position.shape == (39,)
+    assert validation.errors.position_mean < 5e-5 and validation.errors.rotation_mean < 1e-4
+    with pytest.raises(InvalidInputError) as error:
+        cross_validate(calibration, folds=20)
+    assert str(error.value) == "cross-validation: 20 folds need at least 40 inlier poses"
+    with pytest.raises(InvalidInputError, match="^cross-validation: 1 folds need at least 2 inlier poses$"):
+        cross_validate(calibration, folds=1)
+    with pytest.raises(InvalidInputError) as error:
+        cross_validate(dataclasses.replace(calibration, problem=None))
+    assert str(error.value) == "cross_validate needs a calibration made by calibrate_closed_loop"
