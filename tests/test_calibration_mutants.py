@@ -297,3 +297,15 @@ def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
     with pytest.raises(InvalidInputError) as error:
         cross_validate(dataclasses.replace(calibration, problem=None))
     assert str(error.value) == "cross_validate needs a calibration made by calibrate_closed_loop"
+
+
+def test_pose_errors_name_the_first_set_that_does_not_assemble(mechanism, few_poses):
+    good = few_poses.actuators[:2]
+    bad = np.vstack((good, [[-0.3, 0.3, 0.0, 0.0]], good))  # the five-bar cannot close at row 2
+    with pytest.raises(InvalidInputError, match=rf"^pose_errors: actuator set 2 does not assemble on "
+                                                rf"{mechanism.urdf_path.name}: "):
+        pose_errors(mechanism, mechanism, bad)
+    same = pose_errors(mechanism, mechanism, good)
+    assert same.position.shape == (2,) and np.all(same.position == 0.0) and np.all(same.rotation == 0.0)
+    empty = pose_errors(mechanism, mechanism, np.zeros((0, 4)))
+    assert empty.position.shape == (0,) and empty.rotation.shape == (0,)

@@ -648,7 +648,8 @@ def pose_errors(machine_a: Mechanism, machine_b: Mechanism, actuators: np.ndarra
     Raises InvalidInputError naming the first set that does not assemble on one of the machines (and
     why): no error is reported for a pose that was not solved.
     """
-    actuators = np.asarray(actuators, dtype=float).reshape(len(actuators), -1)
+    actuators = np.asarray(actuators, dtype=float)
+    actuators = actuators.reshape(len(actuators), -1 if actuators.size else 0)  # no sets: (0, 0), not a reshape error
     poses = []
     for machine in (machine_a, machine_b):
         batch = ClosedLoopSolver(machine).forward_batch(actuators) if len(actuators) else None
