@@ -16,6 +16,7 @@ from m3t1r.calibration.closed_loop import (
     _ClosedLoopProblem,
     _count_identifiable,
     _refine,
+    _registered_setup,
     _residual_rows_batch,
     _rms,
     _select_parameters,
@@ -309,3 +310,28 @@ def test_pose_errors_name_the_first_set_that_does_not_assemble(mechanism, few_po
     assert same.position.shape == (2,) and np.all(same.position == 0.0) and np.all(same.rotation == 0.0)
     empty = pose_errors(mechanism, mechanism, np.zeros((0, 4)))
     assert empty.position.shape == (0,) and empty.rotation.shape == (0,)
+
+
+def test_registered_setup_is_exact_on_the_nominal_machine(mechanism):
+    frame = pin.SE3(pin.utils.rotate("z", 2.0) @ pin.utils.rotate("x", 0.3), np.array([1.5, -0.8, 0.3]))
+    marker = pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.01, 0.0, 0.05]))
+    actuators = workspace_actuators(mechanism, 6, np.random.default_rng(62))
+    error_model = ClosedLoopErrorModel(mechanism)
+    axes_unknown = pin.SE3(np.eye(3), marker.translation)
+    for position_only in (False, True):
+        measurements = measure(mechanism, actuators, position_only=position_only, setup=MeasurementSetup(frame, marker))
+        problem = _ClosedLoopProblem(error_model, measurements, NOISE, np.arange(204), estimate_frame=True,
+                                     estimate_marker=True)
+        start = problem.assemble(mechanism.model, (mechanism.home,) * 6)
+        both = _registered_setup(problem, start, MeasurementSetup(marker=axes_unknown), True, True)
+        np.testing.assert_allclose(both.frame.homogeneous, frame.homogeneous, atol=1e-9)
+        expected_marker = axes_unknown if position_only else marker  # no orientation data: axes as given
+        np.testing.assert_allclose(both.marker.homogeneous, expected_marker.homogeneous, atol=1e-9)
+        frame_only = _registered_setup(problem, start, MeasurementSetup(marker=axes_unknown), True, False)
+        np.testing.assert_allclose(frame_only.frame.homogeneous, frame.homogeneous, atol=1e-9)
+        assert frame_only.marker == axes_unknown
+        given = MeasurementSetup(frame, axes_unknown)
+        marker_only = _registered_setup(problem, start, given, False, True)
+        assert marker_only.frame == frame
+        np.testing.assert_allclose(marker_only.marker.homogeneous, expected_marker.homogeneous, atol=1e-9)
+        assert _registered_setup(problem, start, given, False, False) == given
