@@ -7,6 +7,7 @@ checked on the iteration that fired it.
 
 import copy
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pinocchio as pin
@@ -17,6 +18,7 @@ from m3t1r.calibration.closed_loop import (
     _count_identifiable,
     _refine,
     _registered_setup,
+    _reject_outliers,
     _residual_rows_batch,
     _rms,
     _select_parameters,
@@ -32,9 +34,9 @@ from m3t1r.calibration.closed_loop import (
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.identification import forward_selection
 from m3t1r.calibration.measurement_setup import MeasurementSetup
-from m3t1r.calibration.measurements import TrackerNoise, measure
+from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, measure
 from m3t1r.calibration.simulation import simulate_study
-from m3t1r.errors import InvalidInputError
+from m3t1r.errors import IdentificationError, InvalidInputError
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import workspace_actuators
 
@@ -335,3 +337,26 @@ def test_registered_setup_is_exact_on_the_nominal_machine(mechanism):
         assert marker_only.frame == frame
         np.testing.assert_allclose(marker_only.marker.homogeneous, expected_marker.homogeneous, atol=1e-9)
         assert _registered_setup(problem, start, given, False, False) == given
+
+
+def test_outlier_rounds_and_too_few_poses_left(mechanism):
+    """4 exact poses of the nominal machine, one 1 m off: with 18 columns the 3 left are too few
+    (18 rows), with 17 the pose is dropped and the fit restarted from the start."""
+    actuators = workspace_actuators(mechanism, 4, np.random.default_rng(63))
+    exact = measure(mechanism, actuators)
+    poses = list(exact.poses)
+    poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
+    measurements = PoseMeasurements(exact.actuators, tuple(poses))
+    problem = _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), measurements, NOISE, np.arange(18))
+    start = problem.assemble(mechanism.model, (mechanism.home,) * 4)
+    fit = SimpleNamespace(state=start)
+    with pytest.raises(IdentificationError) as error:
+        _reject_outliers(problem, start, fit, 5.0, {"max_iterations": 1})
+    assert str(error.value) == "1 of 4 poses are outliers: too few poses are left to fit the model"
+    assert problem.active.all()
+    problem.columns = np.arange(17)
+    result = _reject_outliers(problem, start, fit, 5.0, {"max_iterations": 1})
+    np.testing.assert_array_equal(problem.active, [True, False, True, True])
+    assert result is not fit and result.iterations <= 1 and result.state.model is not None
+    assert _reject_outliers(problem, start, result, 1e9, {"max_iterations": 1}).state is not None  # gate: none
+    np.testing.assert_array_equal(problem.active, [True, True, True, True])
