@@ -129,3 +129,46 @@ def test_task_defaults_and_the_chains_read(tmp_path):
     assert mechanism.principal_chains == {"B1": ("motor_1", "elbow_1", "effector"), "B2": ("motor_2", "tip_2")}
     assert mechanism.workspace.kind == "task"
     assert mechanism.workspace.bounds(("x", "y"))[1].tolist() == [0.05, 0.45]
+
+
+def _written(folder: Path, data: bytes) -> tuple[Path, Path]:
+    urdf, closures = five_bar_files(folder)
+    closures.write_bytes(data)
+    return urdf, closures
+
+
+READ_REFUSALS = [
+    (b"a: 1\nb: \xff\n", "line 2: not UTF-8 text (byte 0xff)"),
+    (b"\xef\xbb\xbfa: [1, 2\n", "line 2, column 1: not valid YAML: expected ',' or ']', but got '<stream end>'"),
+    (b"a: 2001-13-01\n", "cannot read closures YAML: ValueError: month must be in 1..12"),
+    (b"- 1\n- 2\n", "closures file must be a YAML mapping"),
+    (b"actuated_joints: [motor_1]\nclosures: []\nhome: {}\n", "missing field 'platform_frame'"),
+    (b"closures: []\nplatform_frame: effector\nhome: {}\n", "missing field 'actuated_joints'"),
+    (b"actuated_joints: [motor_1]\nplatform_frame: effector\nhome: {}\n", "missing field 'closures'"),
+    (b"actuated_joints: [motor_1]\nclosures: []\nplatform_frame: effector\n", "missing field 'home'"),
+]
+
+
+@pytest.mark.parametrize("data, message", READ_REFUSALS, ids=[m[:40] for _, m in READ_REFUSALS])
+def test_unreadable_closures_files_are_named(tmp_path, data, message):
+    urdf, closures = _written(tmp_path, data)
+    with pytest.raises(ModelFileError) as caught:
+        Mechanism.load(urdf, closures)
+    assert str(caught.value) == f"{closures}: {message}"
+
+
+def test_missing_files_are_named(tmp_path):
+    urdf, closures = five_bar_files(tmp_path)
+    missing = tmp_path / "none.closures.yaml"
+    with pytest.raises(ModelFileError) as caught:
+        Mechanism.load(urdf, missing)
+    assert str(caught.value) == f"{missing}: file not found"
+    with pytest.raises(ModelFileError) as caught:
+        Mechanism.load(urdf, tmp_path)
+    assert str(caught.value) == f"{tmp_path}: is a directory, expected a file"
+    with pytest.raises(ModelFileError) as caught:
+        Mechanism.load(tmp_path / "none.urdf", closures)
+    assert str(caught.value) == f"{tmp_path / 'none.urdf'}: file not found"
+    with pytest.raises(ModelFileError) as caught:
+        Mechanism.load(tmp_path, closures)
+    assert str(caught.value) == f"{tmp_path}: not a regular file"
