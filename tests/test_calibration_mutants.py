@@ -199,6 +199,9 @@ def test_identifiable_count_on_the_reference_poses(mechanism, few_poses):
     identity, turned = pin.SE3.Identity(), pin.SE3(pin.utils.rotate("x", 0.5), np.array([0.0, 0.0, 0.05]))
     assert _count_identifiable(full, identity, [], 1e-8) == 56
     assert _count_identifiable(full, identity, list(range(12)), 1e-8) == 52
+    with_setup = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(216), estimate_frame=True,
+                                    estimate_marker=True)
+    assert _count_identifiable(with_setup, turned, [], 1e-8) == 56
     assert _count_identifiable(positions, identity, [], 1e-8) == 53
     assert _count_identifiable(positions, identity, [], 1e-3) == 47
     assert _count_identifiable(positions, turned, [], 1e-3) == 48
@@ -230,12 +233,20 @@ def test_refine_reselects_at_the_estimate_and_continues(noisy):
     estimate (capped here at 2 iterations); a tolerance that finds no more returns the fit as is."""
     _, calibration = noisy
     problem = copy.copy(calibration.problem)
+    problem.active = problem.active.copy()
+    problem.active[0] = False  # an outlier's rows: zero weights in the re-selection
     assert _refine(problem, calibration.lm, 0.5, 2) is calibration.lm
+    problem.active = calibration.problem.active
     np.testing.assert_array_equal(problem.columns, calibration.problem.columns)
     before = len(problem.columns)
-    refined = _refine(problem, calibration.lm, 1e-7, 2)
+    # The iterate's setup is carried into the refit (here a marker 0.1 mm off: a higher cost).
+    moved = MeasurementSetup(marker=pin.SE3(np.eye(3), np.array([1e-4, 0.0, 0.0])))
+    start = dataclasses.replace(calibration.lm, state=dataclasses.replace(calibration.lm.state, setup=moved))
+    refined = _refine(problem, start, 1e-7, 2)
     assert len(problem.columns) > before and refined.iterations <= 2
-    assert refined.cost_history[0] == pytest.approx(calibration.lm.cost_history[-1], rel=1e-6)
+    shifted = problem.residual(dataclasses.replace(calibration.lm.state, setup=moved))
+    assert refined.cost_history[0] == pytest.approx(0.5 * shifted @ shifted, rel=1e-9)
+    assert refined.cost_history[0] > 10 * calibration.lm.cost_history[-1]
     np.testing.assert_array_equal(refined.state.accumulated[:204] != 0.0,
                                   np.isin(np.arange(204), problem.columns) | (calibration.lm.state.accumulated[:204] != 0))
 
@@ -272,8 +283,9 @@ def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
     calls = []
     calibration = calibrate_closed_loop(
         mechanism, study.measurements, NOISE, setup=MeasurementSetup(marker=pin.SE3(np.eye(3), marker.translation)),
-        estimate_frame=True, estimate_marker=True, fixed=["q11"], priors={"q12.dt[0]": 1e-3},
+        estimate_frame=True, estimate_marker=True, fixed=["q11"], priors={"q12.dt[0]": 1e-3}, select=True,
         progress=lambda: calls.append(1))
+    assert calibration.selection is not None and len(calibration.selection.indices) == len(calibration.fitted)
     assert calibration.outliers == tuple(study.outliers) and len(calibration.outliers) == 1
     assert calibration.converged is bool(calibration.lm.converged) is True
     setup_names = setup_parameter_names(True, True, False)
