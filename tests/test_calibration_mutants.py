@@ -372,3 +372,17 @@ def test_outlier_rounds_and_too_few_poses_left(mechanism):
     assert result is not fit and result.iterations <= 1 and result.state.model is not None
     assert _reject_outliers(problem, start, result, 1e9, {"max_iterations": 1}).state is not None  # gate: none
     np.testing.assert_array_equal(problem.active, [True, True, True, True])
+
+
+def test_covariance_std_and_variance_factor_from_the_final_jacobian(noisy):
+    """(J^T J)^-1 of the whitened Jacobian at the solution, its diagonal's square root per fitted
+    name (zero for the others), and chi^2 over rows less fitted columns."""
+    _, calibration = noisy
+    problem = calibration.problem
+    r, J = problem.residual_and_jacobian(calibration.lm.state)
+    covariance = np.linalg.inv(J.T @ J)
+    np.testing.assert_allclose(calibration.covariance, covariance, rtol=1e-6, atol=1e-6 * np.abs(covariance).max())
+    std = np.array([calibration.std[name] for name in calibration.fitted])
+    np.testing.assert_allclose(std, np.sqrt(np.diag(covariance)), rtol=1e-6)
+    assert all(calibration.std[name] == 0.0 for name in set(problem.names) - set(calibration.fitted))
+    assert calibration.variance_factor == pytest.approx(r @ r / (len(r) - len(problem.columns)), rel=1e-12)
