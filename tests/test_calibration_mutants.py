@@ -13,9 +13,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from m3t1r.calibration import closed_loop
 from m3t1r.calibration.closed_loop import (
     _ClosedLoopProblem,
-    _count_identifiable,
     _refine,
     _registered_setup,
     _reject_outliers,
@@ -24,6 +24,7 @@ from m3t1r.calibration.closed_loop import (
     _select_parameters,
     _shifted,
     _State,
+    _structural_rank,
     calibrate_closed_loop,
     cross_validate,
     default_iterations,
@@ -188,23 +189,28 @@ def test_names_and_priors_are_checked_before_any_fit(mechanism, few_poses):
         calibrate_closed_loop(mechanism, few_poses, fixed=["nope"])
 
 
-def test_identifiable_count_on_the_reference_poses(mechanism, few_poses):
-    """`_count_identifiable` itself (`_structural_rank` caches it, so a fit may never call it): 56 of
-    204 with full poses (calibration.md), 53 with positions only, fewer with fixed columns or a
-    looser tolerance; the marker's rotation shows at a loose tolerance."""
+def test_identifiable_count_on_the_reference_poses(mechanism, few_poses, monkeypatch):
+    """`_structural_rank` from an empty cache (a fit would find it filled by earlier fits), hence
+    `_count_identifiable`: 56 of 204 with full poses (calibration.md), 53 with positions only, fewer
+    with fixed columns or a looser tolerance; the marker's rotation shows at a loose tolerance.
+    Each distinct key is counted once."""
+    cache = {}
+    monkeypatch.setattr(closed_loop, "_STRUCTURAL_RANKS", cache)
     error_model = ClosedLoopErrorModel(mechanism)
     full = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(204))
     positions = _ClosedLoopProblem(error_model, measure(mechanism, few_poses.actuators, position_only=True), NOISE,
                                    np.arange(204))
     identity, turned = pin.SE3.Identity(), pin.SE3(pin.utils.rotate("x", 0.5), np.array([0.0, 0.0, 0.05]))
-    assert _count_identifiable(full, identity, [], 1e-8) == 56
-    assert _count_identifiable(full, identity, list(range(12)), 1e-8) == 52
+    assert _structural_rank(full, identity, [], 1e-8) == 56
+    assert _structural_rank(full, identity, list(range(12)), 1e-8) == 52
     with_setup = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(216), estimate_frame=True,
                                     estimate_marker=True)
-    assert _count_identifiable(with_setup, turned, [], 1e-8) == 56
-    assert _count_identifiable(positions, identity, [], 1e-8) == 53
-    assert _count_identifiable(positions, identity, [], 1e-3) == 47
-    assert _count_identifiable(positions, turned, [], 1e-3) == 48
+    assert _structural_rank(with_setup, turned, [], 1e-8) == 56
+    assert _structural_rank(positions, identity, [], 1e-8) == 53
+    assert _structural_rank(positions, identity, [], 1e-3) == 47
+    assert _structural_rank(positions, turned, [], 1e-3) == 48
+    assert len(cache) == 6 and sorted(cache.values()) == [47, 48, 52, 53, 56, 56]
+    assert _structural_rank(positions, identity, [], 1e-3) == 47 and len(cache) == 6
 
 
 def test_selection_scores_the_fit_linearised_at_the_estimate(noisy):
