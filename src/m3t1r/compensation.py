@@ -44,6 +44,7 @@ from m3t1r.model.task import TaskSpec
 __all__ = [
     "Targets", "TargetFailure", "CompensatedCommand", "Compensation", "Compensator", "compensate", "check_joint_limits",
     "TrackingErrors", "CompensationAccuracy", "compensation_accuracy", "workspace_targets", "workspace_grid",
+    "joint_limit_violation",
 ]
 
 Targets = Union[np.ndarray, Sequence[pin.SE3]]
@@ -241,14 +242,21 @@ def check_joint_limits(mechanism: Mechanism, result: InverseResult) -> None:
     The solver keeps the sliders within their limits but not the passive hinges (models/README.md):
     a target reachable only with, say, the platform hinge past its stop is not a command to send.
     """
-    model = mechanism.model
-    for j in range(1, model.njoints):
-        k = model.idx_qs[j]
-        value, lower, upper = float(result.q[k]), float(model.lowerPositionLimit[k]), float(model.upperPositionLimit[k])
-        if not lower <= value <= upper:
-            raise OutOfWorkspaceError(
-                f"target puts joint '{model.names[j]}' at {value:.6g}, beyond its limit [{lower:.6g}, {upper:.6g}]",
-                result.residual, result.iterations)
+    violation = joint_limit_violation(mechanism.model, result.q)
+    if violation is not None:
+        raise OutOfWorkspaceError(violation, result.residual, result.iterations)
+
+
+def joint_limit_violation(model: pin.Model, q: np.ndarray) -> str | None:
+    """"target puts joint 'NAME' at V, beyond its limit [LO, HI]" for the first joint of a configuration
+    (model order) outside its URDF limits (NaN counts as outside), or None when every joint is inside."""
+    lower, upper = model.lowerPositionLimit, model.upperPositionLimit
+    outside = np.flatnonzero(~((q >= lower) & (q <= upper)))
+    if not outside.size:
+        return None
+    k = int(outside[0])
+    name = model.names[1 + list(model.idx_qs[1:]).index(k)]
+    return f"target puts joint '{name}' at {q[k]:.6g}, beyond its limit [{lower[k]:.6g}, {upper[k]:.6g}]"
 
 
 def _add_target_note(exc: Exception, index: int) -> None:
@@ -362,16 +370,11 @@ class Compensator:
         ik = self._inverse.solver.inverse_batch(np.array(rows))
         failures = [TargetFailure(f.index, f"inverse kinematics of the calibrated model: {f.reason}", f.error)
                     for f in ik.failures]
-        model = self.calibrated.model
-        lower, upper = model.lowerPositionLimit, model.upperPositionLimit
-        outside = (ik.q < lower) | (ik.q > upper)
-        for k in np.flatnonzero(outside.any(axis=1)):
-            joint = int(np.argmax(outside[k]))
-            name = model.names[1 + list(model.idx_qs[1:]).index(joint)]
-            failures.append(TargetFailure(int(ik.indices[k]), f"inverse kinematics of the calibrated model: target "
-                                          f"puts joint '{name}' at {ik.q[k, joint]:.6g}, beyond its limit "
-                                          f"[{lower[joint]:.6g}, {upper[joint]:.6g}]", OutOfWorkspaceError))
-        keep = ~outside.any(axis=1)
+        violations = [joint_limit_violation(self.calibrated.model, q) for q in ik.q]
+        failures += [TargetFailure(int(index), f"inverse kinematics of the calibrated model: {violation}",
+                                   OutOfWorkspaceError)
+                     for index, violation in zip(ik.indices, violations) if violation is not None]
+        keep = np.array([violation is None for violation in violations], dtype=bool)
         fk = self._forward.solver.forward_batch(ik.actuators[keep])
         failures += [TargetFailure(int(ik.indices[keep][f.index]), "forward kinematics of the nominal model at the "
                                    f"compensated sliders: {f.reason}", f.error) for f in fk.failures]
@@ -441,14 +444,17 @@ class CompensationAccuracy:
     failures: tuple[TargetFailure, ...]
 
 
-def _tracking_error(task: TaskSpec, target: np.ndarray | pin.SE3, pose: pin.SE3) -> tuple[float, float]:
-    """(|commanded position error| [m], |commanded rotation error| [rad]) of a reached pose: the
+def _tracking_errors(task: TaskSpec, target: np.ndarray | pin.SE3, poses: Sequence[pin.SE3]) -> list[tuple[float, float]]:
+    """(|commanded position error| [m], |commanded rotation error| [rad]) of each reached pose: the
     norms of the position rows and of the rotation rows (wrapped yaw, or log3 angle) of the task."""
     goal = task.coordinates(target.homogeneous)[0] if isinstance(target, pin.SE3) else np.asarray(target)
     rotations = task.target_rotations(goal[None, :])
-    rows = task.residual(pose, goal, None if rotations is None else rotations[0])
     count = len(task.position)
-    return float(np.linalg.norm(rows[:count])), float(np.linalg.norm(rows[count:]))
+    errors = []
+    for pose in poses:
+        rows = task.residual(pose, goal, None if rotations is None else rotations[0])
+        errors.append((float(np.linalg.norm(rows[:count])), float(np.linalg.norm(rows[count:]))))
+    return errors
 
 
 @on_one_blas_thread
@@ -483,7 +489,7 @@ def compensation_accuracy(nominal: Mechanism, calibrated: Mechanism, truth: Mech
             continue
         indices.append(index)
         sliders.append(commands)
-        achieved.append([_tracking_error(task, target, pose) for pose in poses])
+        achieved.append(_tracking_errors(task, target, poses))
 
     def errors(stream: int) -> TrackingErrors:
         pairs = np.array([both[stream] for both in achieved], dtype=float).reshape(-1, 2)

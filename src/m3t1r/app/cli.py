@@ -33,14 +33,14 @@ from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.calibration.validation import read_report
-from m3t1r.compensation import compensate
+from m3t1r.compensation import compensate, joint_limit_violation
 from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows
 from m3t1r.io.progress import set_quiet
 from m3t1r.io.signals import Terminated, termination_as_exception
 from m3t1r.io.tables import table_text
-from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
+from m3t1r.model.kinematics import ClosedLoopSolver, require_square_task, yaw_of
 from m3t1r.model.workspace import workspace_actuators
 from m3t1r.paper.closed_chain import closed_chain_study
 from m3t1r.paper.study import paper_study
@@ -85,14 +85,10 @@ def cmd_ik(args: argparse.Namespace) -> None:
         batch = solver.inverse_batch(targets)
         progress.advance()
     failures = [(int(lines[f.index]), f.reason) for f in batch.failures]
-    model = mechanism.model
     for k, q in zip(batch.indices, batch.q):
-        outside = np.flatnonzero((q < model.lowerPositionLimit) | (q > model.upperPositionLimit))
-        if outside.size:
-            j = 1 + list(model.idx_qs[1:]).index(int(outside[0]))
-            failures.append((int(lines[k]), f"target puts joint '{model.names[j]}' at {q[outside[0]]:.6g}, beyond "
-                                            f"its limit [{model.lowerPositionLimit[outside[0]]:.6g}, "
-                                            f"{model.upperPositionLimit[outside[0]]:.6g}]"))
+        violation = joint_limit_violation(mechanism.model, q)
+        if violation is not None:
+            failures.append((int(lines[k]), violation))
     if failures:
         raise RowFailures(Path(args.poses), sorted(failures))
     rows = batch.actuators
@@ -153,7 +149,7 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     output = outputs.add(args.output, "-o")
     outputs.check()
     targets, lines = read_targets(args.targets, calibrated.task)
-    ClosedLoopSolver(calibrated).check_square_task()
+    require_square_task(calibrated)
     if args.report:
         targets = _targets_in_base(targets, args.report, args.targets, calibrated)
     with progress_bar("compensate", len(lines)) as progress:

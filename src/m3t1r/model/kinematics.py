@@ -38,7 +38,7 @@ from m3t1r.model.description import Mechanism
 
 __all__ = [
     "ForwardResult", "InverseResult", "ClosedLoopSolver",
-    "yaw_of", "roll_pitch_of", "rehomed", "MOBILITY_RANK_TOL", "SINGULAR_RCOND",
+    "yaw_of", "roll_pitch_of", "rehomed", "require_square_task", "MOBILITY_RANK_TOL", "SINGULAR_RCOND",
 ]
 
 MOBILITY_RANK_TOL = 1e-9  # singular values below this fraction of the largest count as zero
@@ -464,12 +464,7 @@ class ClosedLoopSolver:
     # Inverse kinematics
     def check_square_task(self) -> None:
         """Raise InvalidInputError unless the task commands as many coordinates as there are actuators."""
-        task, count = self.mechanism.task, len(self.actuated)
-        if task.dimension != count:
-            raise InvalidInputError(
-                f"{self.mechanism.closures_path}: inverse kinematics needs as many task coordinates as actuators; "
-                f"the task ({', '.join(task.columns)} of frame '{task.frame}') commands {task.dimension} for "
-                f"{count} actuators (declare the task in the closures file: models/README.md)")
+        require_square_task(self.mechanism)
 
     def inverse(self, target: pin.SE3 | np.ndarray, q_init: np.ndarray | None = None) -> InverseResult:
         """Actuator values that put the task frame at the target (the mechanism's `task`).
@@ -581,6 +576,17 @@ class ClosedLoopSolver:
         self._last_inverse_branch = None
         self._last_task = None
         self.last_q = self.mechanism.home.copy()
+
+
+def require_square_task(mechanism: Mechanism) -> None:
+    """Raise InvalidInputError unless the mechanism's task commands as many coordinates as it has
+    actuators (what inverse kinematics needs; nothing else does)."""
+    task, count = mechanism.task, len(mechanism.actuated_joints)
+    if task.dimension != count:
+        raise InvalidInputError(
+            f"{mechanism.closures_path}: inverse kinematics needs as many task coordinates as actuators; "
+            f"the task ({', '.join(task.columns)} of frame '{task.frame}') commands {task.dimension} for "
+            f"{count} actuators (declare the task in the closures file: models/README.md)")
 
 
 def rehomed(mechanism: Mechanism, sliders: np.ndarray | None = None) -> Mechanism:
