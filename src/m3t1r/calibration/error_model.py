@@ -40,8 +40,9 @@ def has_own_placement(model: pin.Model, frame_id: int) -> bool:
     frame = model.frames[frame_id]
     if frame.type == pin.FrameType.JOINT:
         return False
-    return not (frame.type == pin.FrameType.BODY and frames_moved_by_frame_error(model, frame_id)[0] == frame_id
-                and model.frames[frame.parentFrame].type == pin.FrameType.JOINT)
+    # A BODY frame right under a JOINT frame is a link on a moving joint (under a FIXED_JOINT frame
+    # it is a fixed link, whose fixed joint carries the placement).
+    return not (frame.type == pin.FrameType.BODY and model.frames[frame.parentFrame].type == pin.FrameType.JOINT)
 
 
 class ClosedLoopErrorModel:
