@@ -260,10 +260,11 @@ def _paired_path(urdf: Path) -> Path:
 
 
 def _recorded_sha256(urdf: Path) -> str | None:
+    data = _read_bytes(urdf)  # its errors name `urdf` already
     try:
-        return recorded_closures_sha256(_read_bytes(urdf))
-    except ModelFileError as exc:
-        raise ModelFileError(urdf, str(exc).split(": ", 1)[-1]) from None
+        return recorded_closures_sha256(data)
+    except ModelFileError as exc:  # names the file "URDF": name it by its path (which may hold ": ")
+        raise ModelFileError(urdf, str(exc).removeprefix(f"{exc.path}: ")) from None
 
 
 def _read_bytes(path: Path) -> bytes:
