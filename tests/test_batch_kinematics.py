@@ -25,8 +25,8 @@ def test_stacked_tree_matches_pinocchio_placements_and_world_jacobian(mechanism)
     for i in range(len(q)):
         pin.computeJointJacobians(model, data, q[i])
         for j in range(1, model.njoints):
-            np.testing.assert_allclose(rot[i, j], data.oMi[j].rotation, atol=1e-14)
-            np.testing.assert_allclose(pos[i, j], data.oMi[j].translation, atol=1e-14)
+            np.testing.assert_allclose(rot[j, :, :, i], data.oMi[j].rotation, atol=1e-14)
+            np.testing.assert_allclose(pos[j, :, i], data.oMi[j].translation, atol=1e-14)
         np.testing.assert_allclose(world[i], data.J, atol=1e-14)
 
 
@@ -122,3 +122,28 @@ def test_compensate_batch_agrees_with_the_path_compensation(mechanism):
     np.testing.assert_allclose(batch.actuators, path.actuators, atol=1e-11)
     np.testing.assert_allclose(batch.command_targets, path.command_targets, atol=1e-11)
     np.testing.assert_allclose(batch.tilt, path.tilt, atol=1e-11)
+
+
+@pytest.mark.parametrize("kind", ["m_machine", "five_bar", "spherical_wrist"])
+def test_stacked_closures_match_the_single_evaluation(kind, tmp_path):
+    """Residual and exact Jacobian of every enforced row (3D points and the 6D weld, far from assembly
+    so that the rotation terms of Jlog6 matter) equal `ClosedLoopSolver._evaluate`'s, pose by pose."""
+    from m3t1r.model.description import Mechanism, nominal_model_paths
+    from m3t1r.model.examples import five_bar_files, spherical_wrist_files
+
+    files = {"m_machine": nominal_model_paths, "five_bar": lambda: five_bar_files(tmp_path),
+             "spherical_wrist": lambda: spherical_wrist_files(tmp_path)}[kind]()
+    solver = ClosedLoopSolver(Mechanism.load(*files))
+    kin = solver._batch_kinematics()
+    q = solver.mechanism.home + np.random.default_rng(4).normal(0, 0.4, (7, solver.model.nq))
+    residual, jac, frot, fpos, world = kin.closures(q)
+    assert residual.shape == (7, solver.n_rows) and jac.shape == (7, solver.n_rows, solver.model.nv)
+    for i in range(len(q)):
+        expected, expected_jac, _ = solver._evaluate(q[i], with_jacobian=True)
+        np.testing.assert_allclose(residual[i], expected, atol=1e-13)
+        np.testing.assert_allclose(jac[i], expected_jac, atol=1e-12)
+        np.testing.assert_allclose(world[i], solver.data.J, atol=1e-13)
+        platform = solver.data.oMf[solver.mechanism.platform_frame_id]
+        np.testing.assert_allclose(frot[i, kin.platform_index], platform.rotation, atol=1e-13)
+        np.testing.assert_allclose(fpos[i, kin.platform_index], platform.translation, atol=1e-13)
+    np.testing.assert_array_equal(kin.closures(q, with_jacobian=False)[0], residual)

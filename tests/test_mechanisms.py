@@ -352,8 +352,11 @@ def test_a_schema_1_file_samples_between_the_actuator_limits(tmp_path):
     lower, upper = mechanism.joint_limits()
     draws = workspace_actuators(mechanism, 40, np.random.default_rng(1))
     assert np.all(draws >= lower) and np.all(draws <= upper)
-    # The five-bar's URDF limits are 0.1 rad wider than its declared box; wide enough to be refused somewhere
+    # URDF limits of [0.5, 3.5] rad still assemble everywhere on home's branch (tests/reference_kinematics.py
+    # agrees); [0.2, 4.0] reach past the five-bar's singularities, where FK from home changes branch.
     _edit(urdf, lambda text: text.replace('lower="1.83" upper="2.83"', 'lower="0.5" upper="3.5"'))
+    assert len(workspace_actuators(Mechanism.load(urdf, closures), 200, np.random.default_rng(1))) == 200
+    _edit(urdf, lambda text: text.replace('lower="0.5" upper="3.5"', 'lower="0.2" upper="4.0"'))
     with pytest.raises(ModelFileError, match=r"draws in the actuators' URDF limits \(no workspace declared: add a "
                                              r"`workspace:` box, models/README.md\) cannot be assembled from home"):
         workspace_actuators(Mechanism.load(urdf, closures), 200, np.random.default_rng(1))

@@ -12,8 +12,15 @@ origin, [v; w], as `pin.computeJointJacobians`) is [p_j x w_j; w_j] with w_j = R
 [R_j a; 0] (prismatic). Closure residuals and their Jacobians then follow
 `ClosedLoopSolver._evaluate` row for row, with batched log6 / Jlog6.
 
-Newton runs on all rows together: one batched LU solve (`np.linalg.solve` on (m, k, k)) per step,
-rows leave the active set as they converge. A row that does not converge, changes assembly branch
+Layout: arrays are stored poses-last ((..., 3, 3, n)), so that a 3 x 3 product is a few
+multiply-adds over rows of n contiguous numbers instead of n small matrix products, each of which
+costs numpy about 100 ns of overhead; rows are solved in chunks of 256, which keeps those arrays in
+cache. Only the (closure, joint) pairs where a joint moves one closure frame and not the other are
+differentiated.
+
+Newton runs on all rows together, with chord steps: a row's Jacobian is inverted (one batched
+`np.linalg.inv`) where it is evaluated and reused while the residual is small and contracts well.
+Rows leave the active set as they converge. A row that does not converge, changes assembly branch
 or ends singular is reported with its typed error class, never returned as a result.
 """
 
@@ -41,7 +48,9 @@ __all__ = ["RowFailure", "ForwardBatch", "InverseBatch", "StackedKinematics",
            "rpy_batch"]
 
 _MAX_STEP = 0.3  # [m or rad] cap on a Newton step component (as the single solve)
-_CHUNK = 2048  # rows solved together: bounds memory (about 6 kB per row) and keeps arrays in cache
+_CHORD_CONTRACTION = 0.05  # re-evaluate a row's Jacobian when a chord step contracted less (as the single solve)
+_CHORD_BELOW = 1e-4  # [m or rad] chord steps only from residuals below this; above, Newton's quadratic rate pays
+_CHUNK = 256  # rows solved together: bounds memory and keeps the poses-last arrays in cache
 
 
 @dataclass(frozen=True)
@@ -162,12 +171,71 @@ def _joint_axis(joint, joint_name: str) -> tuple[np.ndarray, bool]:
                                             "(1-DoF revolute or prismatic joints only)")
 
 
+def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Products of 3 x 3 matrices stored poses-last, (..., 3, 3, n) @ (..., 3, 3, n or 1)."""
+    return np.einsum("...ijn,...jkn->...ikn", a, b)
+
+
+def _apply(a: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """a v for 3 x 3 matrices (..., 3, 3, n) and vectors (..., 3, n or 1) stored poses-last."""
+    return a[..., :, 0, :] * v[..., 0:1, :] + a[..., :, 1, :] * v[..., 1:2, :] + a[..., :, 2, :] * v[..., 2:3, :]
+
+
+def _apply_transposed(a: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """a^T v for 3 x 3 matrices (..., 3, 3, n) and vectors (..., 3, n) stored poses-last."""
+    return a[..., 0, :, :] * v[..., 0:1, :] + a[..., 1, :, :] * v[..., 1:2, :] + a[..., 2, :, :] * v[..., 2:3, :]
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b for vectors (..., 3, n) stored poses-last."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0, :] = a[..., 1, :] * b[..., 2, :] - a[..., 2, :] * b[..., 1, :]
+    out[..., 1, :] = a[..., 2, :] * b[..., 0, :] - a[..., 0, :] * b[..., 2, :]
+    out[..., 2, :] = a[..., 0, :] * b[..., 1, :] - a[..., 1, :] * b[..., 0, :]
+    return out
+
+
+def _skew_last(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices [v] (3, 3, n) of vectors (3, n) stored poses-last."""
+    out = np.zeros((3, 3) + v.shape[1:])
+    out[0, 1], out[0, 2], out[1, 2] = -v[2], v[1], -v[0]
+    out[1, 0], out[2, 0], out[2, 1] = v[2], -v[1], v[0]
+    return out
+
+
+def _weld_rows(rotation_a: np.ndarray, position_a: np.ndarray, rotation_b: np.ndarray,
+               position_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 6D closure between frames a and b (poses last): residual log6(aMb) = [v; w] (6, n) and the
+    operator Jlog6(aMb) Ad(oMb^-1) = [[A, B]; [0, A]] on WORLD twists, as A, B (3, 3, n).
+
+    With (R, p) = aMb, w = log3(R), a = |w|, Jl = Jlog3 = I + [w]/2 + b(a) [w]^2, v = Jl^T p and
+    X = 1/2 [p] + (b'(a)/a) ([w]^2 p) w^T - b(a) ([w x p] + [w][p]) (`log6_jlog6_batch`):
+    A = Jl R_b^T, B = X A - A [p_b].
+    """
+    rotation = _times(rotation_a.transpose(1, 0, 2), rotation_b)
+    p = _apply_transposed(rotation_a, position_b - position_a)
+    logs, angles = log3_batch(rotation.transpose(2, 0, 1))
+    w = logs.T
+    b, db_over_a = _jlog3_t_series(angles)
+    w_skew, p_skew = _skew_last(w), _skew_last(p)
+    w_skew2 = _times(w_skew, w_skew)
+    jlog3 = np.eye(3)[..., None] + 0.5 * w_skew + b * w_skew2
+    v = _apply_transposed(jlog3, p)
+    x = 0.5 * p_skew + db_over_a * _apply(w_skew2, p)[:, None, :] * w[None, :, :] \
+        - b * (_skew_last(_cross(w, p)) + _times(w_skew, p_skew))
+    a = _times(jlog3, rotation_b.transpose(1, 0, 2))
+    return np.concatenate((v, w)), a, _times(x, a) - _times(a, _skew_last(position_b))
+
+
 class StackedTree:
     """Placements of a Pinocchio tree of 1-DoF joints for n configurations at once (numpy).
 
+    Arrays are stored poses-last ((..., 3, 3, n) rotations, (..., 3, n) vectors): every 3 x 3
+    product is then a few multiply-adds over contiguous rows of n numbers, where a stack of n small
+    matrix products pays numpy's per-matrix overhead (about 100 ns against 10-25 ns per pose).
     Joint j's local motion is jMp(j) exp(S_j q): R = R0 + sin(q) R0[a] + (1 - cos q) R0[a]^2 for a
-    revolute joint (R0[a], R0[a]^2 precomputed, so no matrix product), p = p0 + R0 a q for a prismatic
-    one. Joints are composed one tree level at a time (one stacked matmul per level).
+    revolute joint (R0[a], R0[a]^2 precomputed), p = p0 + R0 a q for a prismatic one. Joints are
+    composed one tree level at a time (all joints of a level in one product).
     """
 
     def __init__(self, model: pin.Model) -> None:
@@ -180,10 +248,12 @@ class StackedTree:
         self.q_index = np.array([model.idx_qs[j] for j in range(1, model.njoints)])
         self.parent = np.array([model.parents[j] for j in range(1, model.njoints)])
         r0 = np.array([model.jointPlacements[j].rotation for j in range(1, model.njoints)])
-        self.p0 = np.array([model.jointPlacements[j].translation for j in range(1, model.njoints)])
         k = skew(self.axes)
-        self.r0, self.r0k, self.r0k2 = r0, r0 @ k, r0 @ k @ k
-        self.r0a = np.einsum("jik,jk->ji", r0, self.axes) * (~self.revolute)[:, None]
+        # Constant factors poses-last, shaped to broadcast against (joints, 3, 3, n).
+        self.r0, self.r0k, self.r0k2 = r0[..., None], (r0 @ k)[..., None], (r0 @ k @ k)[..., None]
+        self.p0 = np.array([model.jointPlacements[j].translation for j in range(1, model.njoints)])[..., None]
+        self.r0a = (np.einsum("jik,jk->ji", r0, self.axes) * (~self.revolute)[:, None])[..., None]
+        self.axes_last = self.axes[..., None]
         depth = np.zeros(model.njoints, dtype=int)
         for j in range(1, model.njoints):
             depth[j] = depth[model.parents[j]] + 1
@@ -191,31 +261,38 @@ class StackedTree:
         self.n_joints = n_joints
 
     def joints(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World rotations (n, J+1, 3, 3) and positions (n, J+1, 3) of every joint frame (0 = universe)."""
+        """World rotations (J+1, 3, 3, n) and positions (J+1, 3, n) of every joint frame (0 = universe)
+        for configurations q (n, nq): poses last."""
         n = len(q)
-        angle = q[:, self.q_index] * self.revolute
-        s, c1 = np.sin(angle)[:, :, None, None], (1.0 - np.cos(angle))[:, :, None, None]
+        value = q[:, self.q_index].T  # (J, n)
+        angle = value * self.revolute[:, None]
+        s, c1 = np.sin(angle)[:, None, None, :], (1.0 - np.cos(angle))[:, None, None, :]
         local_r = self.r0 + s * self.r0k + c1 * self.r0k2
-        local_p = self.p0 + q[:, self.q_index, None] * self.r0a
-        rot = np.empty((n, self.n_joints + 1, 3, 3))
-        pos = np.empty((n, self.n_joints + 1, 3))
-        rot[:, 0], pos[:, 0] = np.eye(3), 0.0
+        local_p = self.p0 + value[:, None, :] * self.r0a
+        rot = np.empty((self.n_joints + 1, 3, 3, n))
+        pos = np.empty((self.n_joints + 1, 3, n))
+        rot[0], pos[0] = np.eye(3)[..., None], 0.0
         for level in self.levels:
             parent = self.parent[level - 1]
-            pr = rot[:, parent]
-            rot[:, level] = pr @ local_r[:, level - 1]
-            pos[:, level] = pos[:, parent] + (pr @ local_p[:, level - 1, :, None])[..., 0]
+            parent_r = rot[parent]
+            rot[level] = _times(parent_r, local_r[level - 1])
+            pos[level] = pos[parent] + _apply(parent_r, local_p[level - 1])
         return rot, pos
 
+    def twists(self, rot: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Columns of the WORLD joint Jacobian (`pin.computeJointJacobians`), poses last: linear
+        (nv, 3, n) and angular (nv, 3, n) parts. Joint j's column is [p_j x w_j; w_j] (revolute) or
+        [w_j; 0] (prismatic), w_j = R_j a_j."""
+        w = _apply(rot[1:], self.axes_last)
+        linear, angular = np.empty_like(w), np.zeros_like(w)
+        linear[self.q_index] = np.where(self.revolute[:, None, None], _cross(pos[1:], w), w)
+        angular[self.q_index[self.revolute]] = w[self.revolute]
+        return linear, angular
+
     def world_jacobian(self, rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
-        """WORLD joint Jacobian (n, 6, nv) as `pin.computeJointJacobians`: column of joint j =
-        [p_j x w_j; w_j] (revolute) or [w_j; 0] (prismatic), w_j = R_j a_j."""
-        w = np.einsum("njik,jk->nji", rot[:, 1:], self.axes)
-        jac = np.empty((len(rot), 6, self.n_joints))
-        lin = np.where(self.revolute[:, None], np.cross(pos[:, 1:], w), w)
-        jac[:, :3, self.q_index] = lin.transpose(0, 2, 1)
-        jac[:, 3:, self.q_index] = (w * self.revolute[:, None]).transpose(0, 2, 1)
-        return jac
+        """WORLD joint Jacobian (n, 6, nv), as `pin.computeJointJacobians` per configuration."""
+        linear, angular = self.twists(rot, pos)
+        return np.concatenate((linear, angular), axis=1).transpose(2, 1, 0)
 
 
 class StackedKinematics:
@@ -253,8 +330,22 @@ class StackedKinematics:
         self.point_rows = (np.array(self.point_slot, dtype=int)[:, None] + np.arange(3)).reshape(-1)
         self.point_a, self.point_b = np.array(self.point_a, dtype=int), np.array(self.point_b, dtype=int)
         self.enforced = solver._enforced
-        self.row_mask = solver._row_masks[False]
         self.n_full = start
+        # The 3D closures' Jacobian entries, one (closure, column) pair at a time: the columns of the
+        # joints that move frame b but not frame a (sign +1) or a but not b (-1); every other entry is 0.
+        full_mask = solver._row_masks[True]
+        pairs = [(k, v, full_mask[slot, v]) for k, slot in enumerate(self.point_slot)
+                 for v in np.flatnonzero(full_mask[slot])]
+        self.pair_point = np.array([k for k, _, _ in pairs], dtype=int)
+        self.pair_column = np.array([v for _, v, _ in pairs], dtype=int)
+        self.pair_sign = np.array([sign for _, _, sign in pairs], dtype=float)[:, None, None]
+        self.pair_rows = np.array([self.point_slot[k] for k, _, _ in pairs], dtype=int)[:, None] + np.arange(3)
+        # The same for each 6D closure: (columns (K,), signs (K, 1, 1), rows (K, 6)).
+        self.weld_pairs = []
+        for slot, _, _ in self.weld:
+            columns = np.flatnonzero(full_mask[slot])
+            self.weld_pairs.append((columns, full_mask[slot, columns][:, None, None],
+                                    slot + np.arange(6)[None, :] + 0 * columns[:, None]))
         self.passive, self.actuated = solver.passive, solver.actuated
         self.blocks = [(np.asarray(r), np.asarray(c)) for r, c in solver._branch_blocks]
         support = np.zeros(model.nv)
@@ -263,46 +354,56 @@ class StackedKinematics:
         self.task_support = support  # columns of the joints that move the task frame
         self.unknowns = np.sort(np.concatenate((self.passive, self.actuated)))  # every joint but the locked ones
 
-    def frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(closure and platform frame rotations (n, F, 3, 3), positions (n, F, 3), WORLD Jacobian (n, 6, nv))."""
+    def frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Closure, platform and task frame rotations (F, 3, 3, n) and positions (F, 3, n), and the WORLD
+        Jacobian columns, linear (nv, 3, n) and angular (nv, 3, n): all poses last."""
         rot, pos = self.tree.joints(q)
-        pr = rot[:, self.frame_parent]
-        frot = pr @ self.frame_r
-        fpos = pos[:, self.frame_parent] + (pr @ self.frame_p[:, :, None])[..., 0]
-        return frot, fpos, self.tree.world_jacobian(rot, pos)
+        parent_r = rot[self.frame_parent]
+        frot = _times(parent_r, self.frame_r[..., None])
+        fpos = pos[self.frame_parent] + _apply(parent_r, self.frame_p[..., None])
+        return (frot, fpos) + self.tree.twists(rot, pos)
 
     def closures(self, q: np.ndarray, with_jacobian: bool = True) -> tuple:
-        """Enforced closure rows (n, rows) at q (n, nq), their Jacobian (n, rows, nv) and the frames.
+        """Enforced closure rows (n, rows) at q (n, nq), their Jacobian (n, rows, nv), the frames
+        (n, F, 3, 3) and (n, F, 3) and the WORLD joint Jacobian (n, 6, nv).
 
-        3D: r = R_a^T (p_b - p_a), d r = R_a^T [I, -[p_b]] (xi_b - xi_a); 6D: r = log6(aMb),
-        d r = Jlog6(aMb) Ad(oMb^-1) (xi_b - xi_a), xi the WORLD twists (as `ClosedLoopSolver._evaluate`).
+        3D: r = R_a^T (p_b - p_a); the column of joint j is +-R_a^T (v_j - p_b x w_j), [v_j; w_j] its
+        WORLD twist (`ClosedLoopSolver._evaluate`'s R_a^T [I, -[p_b]] operator, column by column).
+        6D: r = log6(aMb); the column is +-Jlog6(aMb) Ad(oMb^-1) [v_j; w_j]. Only the (closure, joint)
+        pairs where a joint moves one frame and not the other are computed; the rest are zero.
         """
-        frot, fpos, world = self.frames(q)
+        frot, fpos, linear, angular = self.frames(q)
         n = len(q)
-        full = np.empty((n, self.n_full))
-        ra_t = frot[:, self.point_a].transpose(0, 1, 3, 2)
-        pb = fpos[:, self.point_b]
-        full[:, self.point_rows] = (ra_t @ (pb - fpos[:, self.point_a])[..., None]).reshape(n, -1)
-        operator = np.zeros((n, self.n_full, 6)) if with_jacobian else None
-        if with_jacobian:
-            block = np.concatenate((ra_t, -(ra_t @ skew(pb))), axis=3)  # (n, points, 3, 6)
-            operator[:, self.point_rows] = block.reshape(n, -1, 6)
-        for slot, ia, ib in self.weld:
-            ra_t6 = frot[:, ia].transpose(0, 2, 1)
-            rel_r = ra_t6 @ frot[:, ib]
-            rel_p = (ra_t6 @ (fpos[:, ib] - fpos[:, ia])[..., None])[..., 0]
-            full[:, slot:slot + 6], jlog = log6_jlog6_batch(rel_r, rel_p)
+        full = np.empty((self.n_full, n))
+        ra, pb = frot[self.point_a], fpos[self.point_b]
+        full[self.point_rows] = _apply_transposed(ra, pb - fpos[self.point_a]).reshape(-1, n)
+        jac = np.zeros((self.n_full, len(linear), n)) if with_jacobian else None
+        if with_jacobian and len(self.pair_point):
+            column = self.pair_column
+            moved = linear[column] - _cross(pb[self.pair_point], angular[column])
+            jac[self.pair_rows, column[:, None]] = self.pair_sign * _apply_transposed(ra[self.pair_point], moved)
+        for (slot, ia, ib), (columns, sign, rows) in zip(self.weld, self.weld_pairs):
+            full[slot:slot + 6], a, b = _weld_rows(frot[ia], fpos[ia], frot[ib], fpos[ib])
             if with_jacobian:
-                rb_t = frot[:, ib].transpose(0, 2, 1)
-                ad_inv = np.zeros((n, 6, 6))
-                ad_inv[:, :3, :3] = ad_inv[:, 3:, 3:] = rb_t
-                ad_inv[:, :3, 3:] = -(rb_t @ skew(fpos[:, ib]))
-                operator[:, slot:slot + 6] = jlog @ ad_inv
-        residual = full[:, self.enforced]
+                v, w = linear[columns], angular[columns]
+                jac[rows, columns[:, None]] = sign * np.concatenate((_apply(a, v) + _apply(b, w), _apply(a, w)), axis=1)
+        world = np.concatenate((linear, angular), axis=1).transpose(2, 1, 0)  # (n, 6, nv), a view
+        frames = frot.transpose(3, 0, 1, 2), fpos.transpose(2, 0, 1)  # (n, F, 3, 3), (n, F, 3) views
+        residual = full[self.enforced].T
         if not with_jacobian:
-            return residual, None, frot, fpos, world
-        jac = (operator[:, self.enforced] @ world) * self.row_mask
-        return residual, jac, frot, fpos, world
+            return (residual, None) + frames + (world,)
+        return (residual, jac[self.enforced].transpose(2, 0, 1)) + frames + (world,)
+
+    def home_reference(self) -> tuple[np.ndarray, np.ndarray]:
+        """At home: T = -J_passive^-1 J_actuated (passive x actuated), d q_passive / d a, and the branch
+        labels (blocks,) of the passive closure system (FK from home must end on that branch)."""
+        if self._home is None:
+            _, jac, _, _, _ = self.closures(self.solver.mechanism.home[None, :])
+            tangent = -np.linalg.solve(jac[0][:, self.passive], jac[0][:, self.actuated])
+            self._home = tangent, self.signatures(jac)[0]
+        return self._home
+
+    _home: tuple[np.ndarray, np.ndarray] | None = None
 
     def signatures(self, jac: np.ndarray) -> np.ndarray:
         """Signs (m, blocks) of the determinants of the diagonal blocks of the passive closure system
@@ -328,34 +429,19 @@ _REASONS = {1: "the closures cannot be assembled here (target out of the workspa
             4: "the solution lies on another assembly branch than the start (Newton crossed a singularity)"}
 
 
-def _solve_stack(square: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Solutions (m, k) of square (m, k, k) x = rhs (m, k) and a mask of rows whose matrix is exactly
-    singular (their solution is zero): one singular row must not fail the whole stack."""
+def _inverses(square: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverses (m, k, k) of a stack and a mask of the exactly singular matrices (inverse left zero):
+    one singular row must not fail the whole stack."""
     try:
-        return np.linalg.solve(square, rhs[..., None])[..., 0], np.zeros(len(rhs), dtype=bool)
+        return np.linalg.inv(square), np.zeros(len(square), dtype=bool)
     except np.linalg.LinAlgError:
-        out, bad = np.zeros_like(rhs), np.zeros(len(rhs), dtype=bool)
-        for i in range(len(rhs)):
+        out, bad = np.zeros_like(square), np.zeros(len(square), dtype=bool)
+        for i, matrix in enumerate(square):
             try:
-                out[i] = np.linalg.solve(square[i], rhs[i])
+                out[i] = np.linalg.inv(matrix)
             except np.linalg.LinAlgError:
                 bad[i] = True
         return out, bad
-
-
-def _rcond_1(square: np.ndarray) -> np.ndarray:
-    """Reciprocal 1-norm condition numbers 1 / (|A|_1 |A^-1|_1) (m,) of a stack (0 where singular)."""
-    norm = np.abs(square).sum(axis=1).max(axis=1)
-    try:
-        inverse = np.linalg.inv(square)
-    except np.linalg.LinAlgError:
-        inverse = np.full_like(square, np.inf)
-        for i, a in enumerate(square):
-            try:
-                inverse[i] = np.linalg.inv(a)
-            except np.linalg.LinAlgError:
-                pass
-    return 1.0 / (norm * np.abs(inverse).sum(axis=1).max(axis=1))
 
 
 @dataclass
@@ -370,48 +456,107 @@ class _Solved:
     position: np.ndarray
 
 
-def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, tolerance: float,
-                 max_iterations: int, singular_rcond: float) -> _Solved:
-    """Newton on n independent square systems at once; rows leave the active set as they finish.
+class _Factors:
+    """Per-row inverse Jacobians (chord steps reuse them), their 1-norm reciprocal condition and
+    branch labels at the last Jacobian, and the labels at the first one."""
 
-    system(q_active, active) -> (residual (m, r), Jacobian (m, r, nv), platform rotation (m, 3, 3), position (m, 3));
-    signature(jac, square) -> (m, s) bool branch labels. Each step solves J[:, unknowns] dx = -r with
-    the largest component capped at 0.3. A row converges when max|r| <= tolerance; it then fails if its
-    Jacobian there has reciprocal 1-norm condition < singular_rcond (singular) or a branch label other
-    than at its start (branch change). Status codes: 0 converged, 1 out of workspace (no assembly:
-    residual > 1e-6 or non-finite), 2 not converged, 3 singular, 4 branch change.
+    def __init__(self, n: int, k: int) -> None:
+        self.inverse, self.rcond = np.zeros((n, k, k)), np.zeros(n)
+        self.labels: np.ndarray | None = None
+        self.start: np.ndarray | None = None
+
+    def refresh(self, rows: np.ndarray, jac: np.ndarray, unknowns: np.ndarray, signature) -> np.ndarray:
+        """Factor the Jacobians of `rows` (ids); returns the mask of exactly singular ones."""
+        square = jac[:, :, unknowns]
+        inverse, singular = _inverses(square)
+        labels = signature(jac, square)
+        if self.labels is None:
+            self.labels = np.zeros((len(self.rcond), labels.shape[1]), dtype=bool)
+            self.start = np.zeros_like(self.labels)
+            self.start[rows] = labels
+        self.inverse[rows], self.labels[rows] = inverse, labels
+        norms = np.abs(square).sum(axis=1).max(axis=1) * np.abs(inverse).sum(axis=1).max(axis=1)
+        self.rcond[rows] = np.where(singular, 0.0, 1.0 / np.where(singular, 1.0, norms))
+        return singular
+
+
+def _evaluate_rows(q: np.ndarray, active: np.ndarray, previous: np.ndarray, tolerance: float, system,
+                   factors: _Factors, unknowns: np.ndarray, signature) -> tuple:
+    """Residual, platform pose and singular mask of the `active` rows after a step. Rows whose last
+    residual was above `_CHORD_BELOW` get a Jacobian (Newton); the others get the residual alone (chord),
+    and a Jacobian too when that step contracted by less than `_CHORD_CONTRACTION`."""
+    m = len(active)
+    rot, pos, singular = np.empty((m, 3, 3)), np.empty((m, 3)), np.zeros(m, dtype=bool)
+    residual: np.ndarray | None = None
+    stale = previous > _CHORD_BELOW
+    near = np.flatnonzero(~stale)
+    if len(near):
+        near_residual, _, rot[near], pos[near] = system(q[active[near]], active[near], False)
+        residual = np.empty((m, near_residual.shape[1]))
+        residual[near] = near_residual
+        norm = np.abs(near_residual).max(axis=1)
+        stale[near] = (norm > _CHORD_CONTRACTION * previous[near]) & (norm > tolerance) & np.isfinite(norm)
+    if stale.any():
+        rows = active[stale]
+        stale_residual, jac, rot[stale], pos[stale] = system(q[rows], rows, True)
+        if residual is None:
+            residual = np.empty((m, stale_residual.shape[1]))
+        residual[stale] = stale_residual
+        singular[stale] = factors.refresh(rows, jac, unknowns, signature)
+    return residual, rot, pos, singular
+
+
+def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, tolerance: float,
+                 max_iterations: int, singular_rcond: float, steps_taken: int = 0,
+                 branch: np.ndarray | None = None) -> _Solved:
+    """Chord Newton on n independent square systems at once; rows leave the active set as they finish.
+
+    system(q_rows, rows, with_jacobian) -> (residual (m, r), Jacobian (m, r, nv) or None, platform
+    rotation (m, 3, 3), position (m, 3)); signature(jac, square) -> (m, s) bool branch labels. A
+    step solves J[:, unknowns] dx = -r with the inverse of the row's last Jacobian, the largest
+    component capped at 0.3 (as `ClosedLoopSolver._newton`): the Jacobian is evaluated at the start
+    and again only for rows whose residual contracted by less than 0.05 in the last step. A row
+    converges when max|r| <= tolerance; it then fails if its last Jacobian has reciprocal 1-norm
+    condition < singular_rcond (singular) or branch labels other than at its first Jacobian
+    (branch change). Status codes: 0 converged, 1 out of workspace (no assembly: residual > 1e-6 or
+    non-finite), 2 not converged, 3 singular, 4 branch change. `steps_taken`: steps already taken
+    (a predictor), counted in the iterations; `branch`: (s,) labels every row must end with, instead
+    of those at its first Jacobian (a predicted start is not a reference).
     """
     n = len(q)
     q = q.copy()
     out = _Solved(q, np.full(n, _ACTIVE), np.full(n, np.inf), np.zeros(n, dtype=int),
                   np.zeros((n, 3, 3)), np.zeros((n, 3)))
-    active, start = np.arange(n), None
-    for iteration in range(max_iterations + 1):
-        residual, jac, rot, pos = system(q[active], active)
+    factors, previous = _Factors(n, len(unknowns)), np.full(n, np.inf)
+    active = np.arange(n)
+    residual, jac, rot, pos = system(q, active, True)
+    singular = factors.refresh(active, jac, unknowns, signature)
+    if branch is not None:
+        factors.start[:] = branch
+    for iteration in range(steps_taken, max_iterations + steps_taken + 1):
         norm = np.abs(residual).max(axis=1)
-        square = jac[:, :, unknowns]
-        labels = signature(jac, square)
-        start = labels if start is None else start
         out.norm[active], out.iterations[active] = norm, iteration
         bad = ~np.isfinite(norm)
         done = (norm <= tolerance) & ~bad
         if done.any():
             rows = active[done]
             out.rotation[rows], out.position[rows] = rot[done], pos[done]
-            code = np.where(_rcond_1(square[done]) < singular_rcond, 3,
-                            np.where((labels[done] != start[done]).any(axis=1), 4, _CONVERGED))
-            out.status[rows] = code
+            out.status[rows] = np.where(factors.rcond[rows] < singular_rcond, 3,
+                                        np.where((factors.labels[rows] != factors.start[rows]).any(axis=1), 4,
+                                                 _CONVERGED))
         out.status[active[bad]] = 1
-        keep = ~(done | bad)
-        if iteration == max_iterations or not keep.any():
+        out.status[active[singular & ~done & ~bad]] = 3
+        keep = ~(done | bad | singular)
+        if iteration == max_iterations + steps_taken or not keep.any():
             break
-        active, start = active[keep], start[keep]
-        step, singular = _solve_stack(square[keep], residual[keep])
-        out.status[active[singular]] = 3
+        previous[active[keep]] = norm[keep]
+        active, residual = active[keep], residual[keep]
+        step = np.einsum("nij,nj->ni", factors.inverse[active], residual)
         biggest = np.abs(step).max(axis=1)
         step *= np.minimum(1.0, _MAX_STEP / np.maximum(biggest, 1e-300))[:, None]
         q[active[:, None], unknowns[None, :]] -= step
-        active, start = active[~singular], start[~singular]
+        residual, rot, pos, singular = _evaluate_rows(q, active, previous[active], tolerance, system,
+                                                      factors, unknowns, signature)
     left = out.status == _ACTIVE
     out.status[left] = np.where(out.norm[left] > 1e-6, 1, 2)
     return out
@@ -454,8 +599,14 @@ def _rows(values: object, width: int, what: str, columns: tuple[str, ...]) -> np
 
 
 def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarray | None = None) -> ForwardBatch:
-    """Platform poses for n slider sets (n, k) [m], each solved from q_init (default home), in chunks.
+    """Platform poses for n slider sets (n, k) [m], each solved from q_init, in chunks.
 
+    Default (q_init None): every row starts from home moved along home's solution manifold to first
+    order (dq_passive = T (a - a_home), T = -J_passive^-1 J_actuated at home) and must end on home's
+    assembly branch (the branch labels at home). Far from home this assembles rows where plain
+    Newton from home's passive joints crosses a singularity (`forward(a, q_init=home)` then raises
+    BranchChangeError or OutOfWorkspaceError); where both succeed they agree to the tolerance.
+    Given q_init (nq,) or (n, nq), each row starts there, branch labels taken at its start.
     A row with a slider beyond its URDF limit fails with InvalidInputError (reported, not raised);
     non-finite values or a wrong shape raise InvalidInputError for the whole batch.
     """
@@ -468,16 +619,21 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
                            f"{values[i, np.argmax(outside[i])]:.6g} is beyond its joint limit", InvalidInputError)
                 for i in np.flatnonzero(outside.any(axis=1))]
     rows = np.flatnonzero(~outside.any(axis=1))
+    predicted = q_init is None
+    if predicted:  # first-order predictor along home's solution manifold: dq_passive = T (a - a_home)
+        tangent, branch = kin.home_reference()
+        start[:, kin.passive] += (values - start[:, kin.actuated]) @ tangent.T
     start[:, kin.actuated] = values
 
-    def system(q: np.ndarray, active: np.ndarray):
-        residual, jac, frot, fpos, _ = kin.closures(q)
+    def system(q: np.ndarray, active: np.ndarray, with_jacobian: bool):
+        residual, jac, frot, fpos, _ = kin.closures(q, with_jacobian)
         return residual, jac, frot[:, kin.platform_index], fpos[:, kin.platform_index]
 
     parts = []
     for chunk in np.array_split(rows, max(1, -(-len(rows) // _CHUNK))) if len(rows) else []:
         solved = newton_batch(start[chunk], kin.passive, system, lambda jac, sq: kin.signatures(jac),
-                              solver.tolerance, solver.max_iterations, solver.singular_rcond)
+                              solver.tolerance, solver.max_iterations, solver.singular_rcond, int(predicted),
+                              branch if predicted else None)
         failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
                      for f in failures_of(solved, 0, "forward kinematics")]
         parts.append((chunk, solved))
@@ -529,6 +685,33 @@ def task_rows(task: TaskSpec, rot: np.ndarray, pos: np.ndarray, twist: np.ndarra
     return np.concatenate(residual, axis=1), np.concatenate(jacobian, axis=1)
 
 
+def _first_step_from_home(kin: StackedKinematics, start: np.ndarray, rows: np.ndarray, goal: np.ndarray,
+                          signature) -> np.ndarray | None:
+    """Newton's first IK step from home for `rows` at once, in place on `start` (n, nq); returns the
+    branch labels at home (the rows' reference), or None (start untouched) if home is singular.
+
+    At home the system's Jacobian is the same for every row when the task rows do not depend on the
+    goal (position and yaw tasks), and the closure rows are those of home: one factorisation serves
+    all rows, dq = -J_home^-1 [r_closure(home); task(home) - goal], capped as every step.
+    """
+    home = kin.solver.mechanism.home
+    closure, jac, frot, fpos, world = kin.closures(home[None, :])
+    n = len(rows)
+    task_residual, task_jac = task_rows(kin.solver.mechanism.task, np.broadcast_to(frot[:, -1], (n, 3, 3)),
+                                        np.broadcast_to(fpos[:, -1], (n, 3)),
+                                        np.broadcast_to(world * kin.task_support, (n,) + world.shape[1:]), goal[rows], None)
+    full_jac = np.concatenate((jac, task_jac[:1]), axis=1)
+    square = full_jac[:, :, kin.unknowns]
+    inverse, singular = _inverses(square)
+    if singular[0] or 1.0 / (np.abs(square).sum(axis=1).max() * np.abs(inverse).sum(axis=1).max()) < kin.solver.singular_rcond:
+        return None
+    residual = np.concatenate((np.broadcast_to(closure, (n, closure.shape[1])), task_residual), axis=1)
+    step = residual @ inverse[0].T
+    step *= np.minimum(1.0, _MAX_STEP / np.maximum(np.abs(step).max(axis=1), 1e-300))[:, None]
+    start[rows[:, None], kin.unknowns[None, :]] -= step
+    return signature(full_jac, square)[0]
+
+
 def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarray | None = None) -> InverseBatch:
     """Slider values for n targets, rows of task coordinates (`TaskSpec.columns`, e.g. x, y, z, theta)
     [m, rad], each from q_init (default home).
@@ -545,12 +728,13 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
     start = _starts(kin, len(goal), q_init)
     every = kin.unknowns
 
-    def system(q: np.ndarray, active: np.ndarray):
-        closure, jac, frot, fpos, world = kin.closures(q)
+    def system(q: np.ndarray, active: np.ndarray, with_jacobian: bool):
+        closure, jac, frot, fpos, world = kin.closures(q, with_jacobian)
         rot, pos = frot[:, -1], fpos[:, -1]
         rows, rows_jac = task_rows(task, rot, pos, world * kin.task_support, goal[active],
                                    None if goal_rot is None else goal_rot[active])
-        return (np.concatenate((closure, rows), axis=1), np.concatenate((jac, rows_jac), axis=1),
+        return (np.concatenate((closure, rows), axis=1),
+                np.concatenate((jac, rows_jac), axis=1) if with_jacobian else None,
                 frot[:, kin.platform_index], fpos[:, kin.platform_index])
 
     def signature(jac: np.ndarray, square: np.ndarray) -> np.ndarray:
@@ -559,8 +743,12 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
     parts, failures = [], []
     names = solver.mechanism.actuated_joints
     for chunk in np.array_split(np.arange(len(goal)), max(1, -(-len(goal) // _CHUNK))):
-        solved = newton_batch(start[chunk], every, lambda q, a: system(q, chunk[a]), signature,
-                              solver.tolerance, solver.max_iterations, solver.singular_rcond)
+        branch = None
+        if q_init is None and task.rotation != "full":
+            branch = _first_step_from_home(kin, start, chunk, goal, signature)
+        solved = newton_batch(start[chunk], every, lambda q, a, jacobian: system(q, chunk[a], jacobian), signature,
+                              solver.tolerance, solver.max_iterations, solver.singular_rcond,
+                              int(branch is not None), branch)
         sliders = solved.q[:, kin.actuated]
         outside = ((sliders < solver._act_lower) | (sliders > solver._act_upper)) & \
             (solved.status == _CONVERGED)[:, None]

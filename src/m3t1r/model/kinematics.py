@@ -545,9 +545,11 @@ class ClosedLoopSolver:
     def forward_batch(self, actuators: np.ndarray, q_init: np.ndarray | None = None):
         """Forward kinematics of n slider sets (n, k) [m] at once (`batch_kinematics.forward_batch`).
 
-        Every row starts from q_init (default home: the reference branch), like
-        `forward(a, q_init=home)`, and is solved by one vectorised Newton over all rows (numpy over
-        stacked POE placements, batched LU), not by n calls. Returns a `ForwardBatch`: `.poses`
+        Every row is solved on home's branch (the reference), from home moved along the solution
+        manifold to first order, or from q_init when given, by one vectorised Newton over all rows
+        (numpy over stacked POE placements, batched inverses), not by n calls. Where
+        `forward(a, q_init=home)` converges the two agree to the tolerance; far from home the batch
+        also assembles rows where plain Newton from home crosses a singularity. Returns a `ForwardBatch`: `.poses`
         (M, 4, 4), `.q`, `.iterations` of the M converged rows `.indices`; every other row is in
         `.failures` with its typed error class (never in the arrays). Leaves this solver's warm start alone.
         """
