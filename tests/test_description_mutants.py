@@ -215,6 +215,16 @@ def test_load_notes_are_warnings_attributed_to_the_caller(tmp_path):
     assert Path(caught[0].filename).name != Path(description.__file__).name
 
 
+@pytest.mark.skipif("/mutants/" in description.__file__,
+                    reason="mutmut's trampoline adds a frame between the caller and the warning")
+def test_load_notes_point_at_the_caller_exactly(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0, 1, 2]))
+    with pytest.warns(ModelWarning) as caught:
+        Mechanism.load(urdf, closures)
+    assert caught[0].filename == __file__
+
+
 def test_a_continuous_first_joint_is_refused(tmp_path):
     urdf, closures = _five_bar(tmp_path)
     urdf.write_text(urdf.read_text().replace('<joint name="motor_1" type="revolute">',
@@ -420,10 +430,20 @@ def test_closures_holding_the_actuators_are_refused_naming_the_file(tmp_path):
         "ones (the actuators are not independent inputs)")
 
 
-def test_the_locked_gauge_note(tmp_path):
+_THIRD_CUT_JOINT = """<joint name="cut_3" type="revolute"><parent link="cut_link_1"/><child link="cut_link_3"/>
+    <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="0 0 1"/><limit lower="-4" upper="4" effort="1" velocity="1"/></joint>
+  <link name="cut_link_3"/>
+</robot>"""
+
+
+def test_the_locked_gauge_note_names_every_locked_joint(tmp_path):
+    """The five-bar's distal hinge modelled three times (two in series on chain 1): two gauges."""
     urdf, closures = _welded_double_hinge(tmp_path)
+    urdf.write_text(urdf.read_text().replace("</robot>", _THIRD_CUT_JOINT))
+    _edit_yaml(closures, lambda d: d["home"].update(cut_3=0.0) or d["closures"][0].update(frame_a="cut_link_3"))
     with pytest.warns(ModelWarning):
         mechanism = Mechanism.load(urdf, closures)
-    (locked,) = mechanism.locked_joints
-    assert f"passive joint(s) {locked} locked at their home value: their motion is already spanned by the other " \
-           "passive joints (a gauge, e.g. a cut joint modelled twice)" in mechanism.notes
+    locked = mechanism.locked_joints
+    assert len(locked) == 2 and set(locked) < {"cut_1", "cut_2", "cut_3"}
+    assert f"passive joint(s) {locked[0]}, {locked[1]} locked at their home value: their motion is already spanned " \
+           "by the other passive joints (a gauge, e.g. a cut joint modelled twice)" in mechanism.notes
