@@ -7,6 +7,7 @@ checked on the iteration that fired it.
 
 import copy
 import dataclasses
+import warnings
 from types import SimpleNamespace
 
 import numpy as np
@@ -33,11 +34,11 @@ from m3t1r.calibration.closed_loop import (
     setup_parameter_names,
 )
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
-from m3t1r.calibration.identification import forward_selection
+from m3t1r.calibration.identification import forward_selection, select_base_parameters
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, measure
 from m3t1r.calibration.simulation import simulate_study
-from m3t1r.errors import IdentificationError, InvalidInputError
+from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import workspace_actuators
 
@@ -392,3 +393,186 @@ def test_covariance_std_and_variance_factor_from_the_final_jacobian(noisy):
     np.testing.assert_allclose(std, np.sqrt(np.diag(covariance)), rtol=1e-6)
     assert all(calibration.std[name] == 0.0 for name in set(problem.names) - set(calibration.fitted))
     assert calibration.variance_factor == pytest.approx(r @ r / (len(r) - len(problem.columns)), rel=1e-12)
+
+
+# --------------------------------------------------------------------------------------------------
+# Fast pieces of the fit, each on a few exact poses or a stand-in problem (the mutation run's
+# selection: every surviving mutant reruns the tests that reach it, so these are kept small)
+
+
+class _Recorder:
+    """Stands in for `levenberg_marquardt`: records its call and returns a given result."""
+
+    def __init__(self, result):
+        self.result, self.calls = result, []
+
+    def __call__(self, problem, state, **options):
+        self.calls.append((problem, state, options))
+        return self.result
+
+
+def test_fit_passes_its_options_and_refuses_a_model_that_does_not_assemble(monkeypatch):
+    problem, state = object(), object()
+    options = {"max_iterations": 7, "initial_damping": 1e-6, "cost_tolerance": 0.25}
+    good = SimpleNamespace(state=SimpleNamespace(model="a model"))
+    recorder = _Recorder(good)
+    monkeypatch.setattr(closed_loop, "levenberg_marquardt", recorder)
+    assert closed_loop._fit(problem, state, options) is good
+    assert len(recorder.calls) == 1
+    called_problem, called_state, called_options = recorder.calls[0]
+    assert called_problem is problem and called_state is state and called_options == options
+    recorder.result = SimpleNamespace(state=SimpleNamespace(model=None))
+    with pytest.raises(IdentificationError) as error:
+        closed_loop._fit(problem, state, options)
+    assert str(error.value) == "calibration ended on a model that does not assemble"
+
+
+def test_refine_options_weights_and_an_equal_rank(mechanism, few_poses, monkeypatch):
+    """_refine re-selects on the whitened Jacobian of every parameter at the iterate (zero rows
+    for outliers), keeps the fit when no more columns are identifiable (equal count included), and
+    otherwise continues with damped LM (1e-9, cost tolerance 1e-14) from the iterate's model,
+    assembly, setup and accumulated steps; the weak-excitation warning is silenced."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    problem = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(3))
+    problem.active = np.array([True, False, True, True])
+    setup = MeasurementSetup(marker=pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.02])))
+    accumulated = np.linspace(-1e-4, 1e-4, 204)
+    state = problem.assemble(mechanism.model, (mechanism.home,) * 4, setup=setup, accumulated=accumulated)
+    _, jacobian, _ = problem.evaluate(state, np.arange(204))  # unwhitened: the same for every noise
+    expected = select_base_parameters(jacobian * problem.weights[:, None], problem.names, rank_tolerance=1e-3)
+    assert 3 < expected.rank < 24
+    result = SimpleNamespace(state=state)
+    recorder = _Recorder("continued")
+    monkeypatch.setattr(closed_loop, "levenberg_marquardt", recorder)
+    problem.columns = np.arange(expected.rank)  # as many as identifiable: the fit is kept
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _refine(problem, result, 1e-3, 5) is result
+        assert recorder.calls == [] and len(problem.columns) == expected.rank
+        problem.columns = np.arange(3)
+        assert _refine(problem, result, 1e-3, 5) == "continued"
+    np.testing.assert_array_equal(problem.columns, expected.indices)
+    (called_problem, continued, options), = recorder.calls
+    assert called_problem is problem
+    assert options == {"max_iterations": 5, "initial_damping": 1e-9, "cost_tolerance": 1e-14}
+    assert continued.model is state.model and continued.setup is setup and continued.accumulated is accumulated
+    for q, q0 in zip(continued.configurations, state.configurations):
+        np.testing.assert_allclose(q, q0, atol=1e-12)
+    assert continued.whitened is None and continued.tangents is None
+    # Orientation weighted 1e5 below position: the re-selection warns of weak excitation, which
+    # _refine silences.
+    weak = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=1.0), np.arange(3))
+    with pytest.warns(PoorExcitationWarning):
+        select_base_parameters(jacobian * weak.weights[:, None], weak.names, rank_tolerance=1e-9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _refine(weak, result, 1e-9, 5) == "continued"
+
+
+def test_select_parameters_scores_the_pose_rows_only(mechanism, few_poses):
+    """With priors the residual has prior rows after the pose rows; the selection sees the pose
+    rows of the inliers, at r - J x."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    columns = np.array([0, 1, 2, 6, 7, 8])
+    problem = _ClosedLoopProblem(error_model, few_poses, NOISE, columns, priors={1: 1e-3, 7: 2e-3})
+    problem.active = np.array([True, True, False, True])
+    accumulated = np.zeros(204)
+    accumulated[columns] = [1e-5, -2e-5, 3e-5, 1e-5, 0.0, -1e-5]
+    state = problem.assemble(mechanism.model, (mechanism.home,) * 4, accumulated=accumulated)
+    r, J = problem.residual_and_jacobian(dataclasses.replace(state))
+    assert len(r) == 24 + 2
+    keep = np.repeat(problem.active, 6)
+    expected = forward_selection(J[:24][keep], (r[:24] - J[:24] @ accumulated[columns])[keep], 6, range(6), [0, 1])
+    selection, result = _select_parameters(problem, state, SimpleNamespace(state=state), np.arange(2),
+                                           {"max_iterations": 1})
+    assert selection == expected
+    np.testing.assert_array_equal(problem.columns, columns[list(selection.indices)])
+
+
+def test_outlier_refit_starts_from_a_fresh_jacobian(mechanism):
+    """The start's whitened residual and Jacobian, cached by the first fit with every pose, are not
+    reused by the refit without the outlier: its first cost is that of the inliers."""
+    actuators = workspace_actuators(mechanism, 4, np.random.default_rng(63))
+    exact = measure(mechanism, actuators)
+    poses = list(exact.poses)
+    poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
+    problem = _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), PoseMeasurements(exact.actuators, tuple(poses)),
+                                 NOISE, np.arange(17))
+    start = problem.assemble(mechanism.model, (mechanism.home,) * 4)
+    problem.residual_and_jacobian(start)  # cached with the outlier's rows
+    fit = SimpleNamespace(state=dataclasses.replace(start))  # the first fit's final iterate (released)
+    result = _reject_outliers(problem, start, fit, 5.0, {"max_iterations": 1})
+    np.testing.assert_array_equal(problem.active, [True, False, True, True])
+    assert fit.state.whitened is None and start.whitened is not None
+    inliers = problem.residual(start)
+    assert result.cost_history[0] == pytest.approx(0.5 * inliers @ inliers, rel=1e-12)
+    assert result.cost_history[0] < 1.0
+
+
+class _StandInProblem:
+    """The parts of `_ClosedLoopProblem` that `_calibration` reads, with a chosen final Jacobian."""
+
+    def __init__(self, error_model, residual, jacobian, weights, columns, active, pose_residuals):
+        self.error_model, self.weights, self.columns, self.active = error_model, weights, columns, active
+        self.names = error_model.names + setup_parameter_names(True, False, False)
+        self._final, self._pose_residuals = (residual, jacobian), pose_residuals
+
+    def residual_and_jacobian(self, state):
+        return self._final
+
+    def pose_residuals(self, state):
+        return self._pose_residuals[id(state)]
+
+
+def test_calibration_result_from_a_known_final_jacobian(mechanism):
+    """Covariance V S^-2 V^T over the singular values above 1e-12 of the largest (a 5e-10 one of 1e3
+    is dropped, 0.5 is kept), std per fitted name and zero elsewhere, chi^2 / (active rows + prior
+    rows - columns) and nan when that is not positive, the inliers' RMS before and after, the
+    outliers, the identified machine errors; the result carries the fit's pieces as given."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    rng = np.random.default_rng(64)
+    u, _ = np.linalg.qr(rng.normal(size=(14, 3)))
+    v, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    singular = np.array([1e3, 0.5, 5e-10])
+    jacobian = (u * singular) @ v.T
+    residual = rng.normal(size=14)
+    errors = np.zeros(204)
+    errors[[3, 40, 100]] = [2e-5, -1e-5, 3e-5]
+    model = error_model.perturbed(mechanism.model, errors)
+    setup = MeasurementSetup(frame=pin.SE3(np.eye(3), np.array([0.1, 0.0, 0.0])))
+    end = _State(model, (), setup=setup)
+    start = _State(mechanism.model, ())
+    before = np.arange(12.0).reshape(2, 6)
+    after = before / 1000
+    columns = np.array([3, 40, 205])
+    base, selection = object(), object()
+    lm = SimpleNamespace(state=end)
+    outcomes, problems = {}, {}
+    for active_rows in (8, 3, 2, 1):  # 2 prior rows, 3 columns: dof 7, 2, 1, 0
+        weights = np.zeros(12)
+        weights[:active_rows] = 1.0
+        problems[active_rows] = _StandInProblem(error_model, residual, jacobian, weights, columns,
+                                                np.array([True, False]), {id(start): before, id(end): after})
+        outcomes[active_rows] = closed_loop._calibration(mechanism, problems[active_rows], start, lm, base, selection)
+    calibration = outcomes[8]
+    expected = (v[:, :2] / singular[:2] ** 2) @ v[:, :2].T
+    np.testing.assert_allclose(calibration.covariance, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
+    std = np.array([calibration.std[name] for name in calibration.problem.names])
+    expected_std = np.zeros(210)
+    expected_std[columns] = np.sqrt(np.diag(expected))
+    np.testing.assert_allclose(std, expected_std, rtol=1e-9)
+    assert list(calibration.std) == list(error_model.names) + list(setup_parameter_names(True, False, False))
+    assert calibration.fitted == ("q11.dt[3]", error_model.names[40], "measurement_frame.dt[1]")
+    assert calibration.variance_factor == pytest.approx(residual @ residual / 7, rel=1e-12)
+    assert outcomes[3].variance_factor == pytest.approx(residual @ residual / 2, rel=1e-12)
+    assert outcomes[2].variance_factor == pytest.approx(residual @ residual, rel=1e-12)
+    assert np.isnan(outcomes[1].variance_factor) and type(outcomes[1].variance_factor) is float
+    assert calibration.rms_before == _rms(before[:1]) and calibration.rms_after == _rms(after[:1])
+    assert calibration.outliers == (1,) and type(calibration.outliers[0]) is int
+    assert list(calibration.parameters) == list(error_model.names)
+    np.testing.assert_allclose([calibration.parameters[name] for name in error_model.names], errors, atol=1e-12)
+    assert calibration.setup is setup and calibration.error_model is error_model
+    assert calibration.base is base and calibration.selection is selection and calibration.lm is lm
+    assert calibration.problem is problems[8]
+    for placement, expected_placement in zip(calibration.mechanism.model.jointPlacements, model.jointPlacements):
+        np.testing.assert_allclose(placement.homogeneous, expected_placement.homogeneous, atol=1e-15)
