@@ -35,6 +35,7 @@ from bench_kinematics import SlsqpKinematics, workspace_path  # noqa: E402
 
 from m3t1r._threads import single_blas_thread  # noqa: E402
 from m3t1r.compensation import Compensator  # noqa: E402
+from m3t1r.model import batch_kinematics  # noqa: E402
 from m3t1r.model.description import Mechanism  # noqa: E402
 from m3t1r.model.design import NOMINAL  # noqa: E402
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed  # noqa: E402
@@ -191,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
           "at least these passes):\n")
     print(table(["solve", "Jacobian evaluations", "residual evaluations", "floor [units]"],
                 [[name, f"{j:.2f}", f"{r:.2f}", f"{j + r * res_unit:.1f}"] for name, (j, r) in evaluations.items()]))
-    print("\nPeak traced memory of forward_batch (numpy arrays; rows solved in chunks of 2,048):\n")
+    print(f"\nPeak traced memory of forward_batch (numpy arrays; rows solved in chunks of {batch_kinematics._CHUNK:,}):\n")
     print(table(["poses", "peak memory", "time"], memory))
     return 0
 
