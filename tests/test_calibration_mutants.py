@@ -576,3 +576,19 @@ def test_calibration_result_from_a_known_final_jacobian(mechanism):
     assert calibration.problem is problems[8]
     for placement, expected_placement in zip(calibration.mechanism.model.jointPlacements, model.jointPlacements):
         np.testing.assert_allclose(placement.homogeneous, expected_placement.homogeneous, atol=1e-15)
+
+
+def test_identifiable_count_weights_fixed_columns_and_the_setup_gauge(mechanism, few_poses):
+    """`_count_identifiable` whitens the reference Jacobian with the problem's own noise weights
+    (orientation 1e5 times less trusted than position: 56 still), zeroes the fixed columns (all but
+    4 machine columns fixed: 8 with the frame), and keeps the setup's columns first: 29 at a
+    tolerance of 1e-5 with position 1e5 times less trusted than orientation (30 without that gauge)."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    identity, turned = pin.SE3.Identity(), pin.SE3(pin.utils.rotate("x", 0.5), np.array([0.0, 0.0, 0.05]))
+    skewed = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=1.0), np.arange(204))
+    assert closed_loop._count_identifiable(skewed, identity, [], 1e-8) == 56
+    frame = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(210), estimate_frame=True)
+    assert closed_loop._count_identifiable(frame, identity, list(range(200)), 1e-8) == 8
+    both = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1.0, rotation=1e-5), np.arange(216),
+                              estimate_frame=True, estimate_marker=True)
+    assert closed_loop._count_identifiable(both, turned, [], 1e-5) == 29
