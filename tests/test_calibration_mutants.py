@@ -592,3 +592,160 @@ def test_identifiable_count_weights_fixed_columns_and_the_setup_gauge(mechanism,
     both = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1.0, rotation=1e-5), np.arange(216),
                               estimate_frame=True, estimate_marker=True)
     assert closed_loop._count_identifiable(both, turned, [], 1e-5) == 29
+
+
+def test_problem_layout_weights_and_measured_frames(mechanism, few_poses):
+    """Names, setup slots, per-row noise weights, the measured positions and rotations, and the
+    defaults (no setup columns, every pose active, no progress hook)."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    plain = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=4e-5), np.arange(204))
+    assert plain.names == error_model.names and plain.frame_slot is None and plain.marker_slot is None
+    assert plain.n_machine == 204 and plain.priors == {} and plain.on_evaluate is None
+    assert plain.active.dtype == bool and plain.active.tolist() == [True] * 4
+    np.testing.assert_array_equal(plain.noise_weights, np.tile([1 / 1e-5] * 3 + [1 / 4e-5] * 3, 4))
+    np.testing.assert_array_equal(plain.weights, plain.noise_weights)
+    measured = np.array([pose.homogeneous for pose in few_poses.poses])
+    np.testing.assert_array_equal(plain._measured_positions, measured[:, :3, 3])
+    np.testing.assert_array_equal(plain._measured_rotations, measured[:, :3, :3])
+    positions = measure(mechanism, few_poses.actuators[:1], position_only=True)
+    marker = _ClosedLoopProblem(error_model, positions, NOISE, np.arange(207), estimate_marker=True)
+    assert marker.names == error_model.names + ("marker.dt[0]", "marker.dt[1]", "marker.dt[2]")
+    assert marker.frame_slot is None and marker.marker_slot == 204 and marker._measured_rotations is None
+    np.testing.assert_array_equal(marker.noise_weights, [1 / NOISE.position] * 3)
+    np.testing.assert_array_equal(marker._measured_positions, [positions.poses[0].translation])
+    both = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(216), estimate_frame=True, estimate_marker=True,
+                              priors={3: 0.5})
+    assert both.frame_slot == 204 and both.marker_slot == 210 and len(both.names) == 216 and both.priors == {3: 0.5}
+    frame = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(210), estimate_frame=True)
+    assert frame.frame_slot == 204 and frame.marker_slot is None and len(frame.names) == 210
+    both.active = np.array([True, False, True, True])
+    np.testing.assert_array_equal(both.weights, np.tile([1 / NOISE.position] * 3 + [1 / NOISE.rotation] * 3, 4)
+                                  * np.repeat(both.active, 6))
+
+
+class _FakeSolver:
+    """Stands in for ClosedLoopSolver: records forward's arguments, returns q = q_init + 1."""
+
+    calls: list = []
+
+    def __init__(self, mechanism):
+        self.mechanism = mechanism
+
+    def forward(self, actuators, q_init=None, factors=None):
+        _FakeSolver.calls.append((actuators, q_init, factors))
+        return SimpleNamespace(q=q_init + 1.0, pose=("pose", float(actuators[0])))
+
+
+def test_assemble_solves_each_pose_from_its_start_and_factors(mechanism, few_poses, monkeypatch):
+    problem = _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), few_poses, NOISE, np.arange(204))
+    monkeypatch.setattr(closed_loop, "ClosedLoopSolver", _FakeSolver)
+    _FakeSolver.calls = []
+    starts = tuple(np.full(20, float(i)) for i in range(4))
+    state = problem.assemble(mechanism.model, starts)
+    np.testing.assert_array_equal([call[0] for call in _FakeSolver.calls], few_poses.actuators)
+    assert [call[1] is q for call, q in zip(_FakeSolver.calls, starts)] == [True] * 4
+    assert [call[2] for call in _FakeSolver.calls] == [None] * 4
+    assert state.model is mechanism.model and state.setup == MeasurementSetup()
+    assert [q[0] for q in state.configurations] == [1.0, 2.0, 3.0, 4.0]
+    assert state.poses == tuple(("pose", float(a[0])) for a in few_poses.actuators)
+    np.testing.assert_array_equal(state.accumulated, np.zeros(204))
+    assert state.tangents is None and state.factors is None and state.whitened is None
+    _FakeSolver.calls = []
+    factors = ("lu0", "lu1", "lu2", "lu3")
+    setup, accumulated = MeasurementSetup(marker=pin.SE3(np.eye(3), np.ones(3))), np.ones(204)
+    state = problem.assemble(mechanism.model, starts, factors, setup, accumulated)
+    assert [call[2] for call in _FakeSolver.calls] == list(factors)
+    assert state.setup is setup and state.accumulated is accumulated
+
+
+def test_retract_moves_model_setup_and_predicts_the_assembly(mechanism, few_poses, monkeypatch):
+    """A step on machine, frame and marker columns: the model perturbed by the machine part, the
+    frame and marker right-multiplied by exp6 of theirs (3 marker components with positions
+    only), the steps accumulated; assembly starts from q + dq_passive/dp . step with the
+    iterate's factors; a model that does not assemble gives a state without model."""
+    from m3t1r.errors import KinematicsError
+
+    error_model = ClosedLoopErrorModel(mechanism)
+    positions = measure(mechanism, few_poses.actuators, position_only=True)
+    columns = np.array([2, 30, 205, 209, 210, 212])
+    problem = _ClosedLoopProblem(error_model, positions, NOISE, columns, estimate_frame=True, estimate_marker=True)
+    frame = pin.SE3(pin.utils.rotate("z", 0.3), np.array([0.1, 0.2, 0.3]))
+    marker = pin.SE3(pin.utils.rotate("x", 0.2), np.array([0.0, 0.0, 0.05]))
+    configurations = tuple(np.full(20, 0.01 * i) for i in range(4))
+    accumulated = np.linspace(0.0, 1.0, 213)
+    passive = np.arange(4 * len(mechanism.passive_ids) * 2, dtype=np.float32).reshape(4, -1, 2)
+    state = _State("model", configurations, setup=MeasurementSetup(frame, marker), accumulated=accumulated,
+                   tangents=closed_loop._Tangents(passive), factors=("f",) * 4)
+    step = np.array([1e-3, -2e-3, 0.01, 0.02, 0.03, -0.04])
+    calls = []
+    monkeypatch.setattr(error_model, "perturbed", lambda model, vector: ("perturbed", model, vector.copy()))
+    monkeypatch.setattr(problem, "assemble", lambda *args: calls.append(args) or "assembled")
+    assert problem.retract(state, step) == "assembled"
+    (model, start, factors, setup, total), = calls
+    vector = np.zeros(213)
+    vector[columns] = step
+    assert model[:2] == ("perturbed", "model")
+    np.testing.assert_array_equal(model[2], vector[:204])
+    assert factors is state.factors
+    np.testing.assert_allclose(setup.frame.homogeneous, (frame * pin.exp6(vector[204:210])).homogeneous, atol=1e-15)
+    dm = np.r_[0.03, 0.0, -0.04, 0.0, 0.0, 0.0]
+    np.testing.assert_allclose(setup.marker.homogeneous, (marker * pin.exp6(dm)).homogeneous, atol=1e-15)
+    np.testing.assert_array_equal(total, accumulated + vector)
+    shift = passive @ np.array([1e-3, -2e-3])
+    for q, q0, d in zip(start, configurations, shift):
+        expected = q0.copy()
+        expected[mechanism.passive_ids] += d
+        np.testing.assert_array_equal(q, expected)
+    # Without tangents (the first trial from a fresh state) the assembly starts where the iterate was.
+    calls.clear()
+    problem.retract(dataclasses.replace(state, tangents=None), step)
+    assert calls[0][1] is configurations
+    # No setup columns: the setup is carried as is.
+    machine_only = _ClosedLoopProblem(error_model, positions, NOISE, np.array([2, 30]))
+    monkeypatch.setattr(machine_only, "assemble", lambda *args: calls.append(args) or "assembled")
+    calls.clear()
+    machine_only.retract(dataclasses.replace(state, tangents=None, accumulated=np.zeros(204)), step[:2])
+    assert calls[0][3] is state.setup
+
+    def fails(*args):
+        raise KinematicsError("no assembly")
+
+    monkeypatch.setattr(problem, "assemble", fails)
+    failed = problem.retract(state, step)
+    assert failed.model is None and failed.configurations is configurations and failed.poses == ()
+    np.testing.assert_allclose(failed.setup.frame.homogeneous, setup.frame.homogeneous, atol=1e-15)
+    np.testing.assert_allclose(failed.setup.marker.homogeneous, setup.marker.homogeneous, atol=1e-15)
+    np.testing.assert_array_equal(failed.accumulated, accumulated + vector)
+
+
+def test_evaluate_in_blocks_reduced_and_with_progress(mechanism, few_poses, monkeypatch):
+    """Blocks of 3 poses give what one block gives (residual, Jacobian, float32 tangents, one LU
+    per pose); reduce=True gives R with R^T R = J^T W^2 J over the active rows and no tangents;
+    each evaluation calls the progress hook once."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    measurements = measure(mechanism, np.vstack((few_poses.actuators, few_poses.actuators[:3])))
+    columns = np.array([0, 7, 33, 100, 203, 204, 209, 210, 215])
+    problem = _ClosedLoopProblem(error_model, measurements, NOISE, columns, estimate_frame=True, estimate_marker=True)
+    problem.active = np.array([True, True, False, True, True, True, True])
+    calls = []
+    problem.on_evaluate = lambda: calls.append(1)
+    setup = MeasurementSetup(pin.SE3(pin.utils.rotate("z", 0.4), np.array([0.2, 0.0, 0.1])),
+                             pin.SE3(pin.utils.rotate("y", 0.2), np.array([0.0, 0.01, 0.05])))
+    state = problem.assemble(mechanism.model, (mechanism.home,) * 7, setup=setup)
+    whole = problem.evaluate(state, columns)
+    assert len(state.factors) == 7 and len(calls) == 1
+    monkeypatch.setattr(closed_loop, "_BLOCK", 3)
+    state.factors = None
+    blocks = problem.evaluate(state, columns)
+    assert len(state.factors) == 7 and len(calls) == 2
+    np.testing.assert_array_equal(blocks[0], whole[0])
+    np.testing.assert_array_equal(blocks[1], whole[1])
+    np.testing.assert_array_equal(blocks[2].passive, whole[2].passive)
+    assert blocks[2].passive.dtype == np.float32 and blocks[2].passive.shape == (7, len(mechanism.passive_ids), 5)
+    np.testing.assert_array_equal(blocks[0], problem.pose_residuals(state).reshape(-1))
+    residual, factor, tangents = problem.evaluate(state, columns, reduce=True)
+    assert len(calls) == 3 and tangents.passive.shape == (0, len(mechanism.passive_ids), 5)
+    np.testing.assert_array_equal(residual, whole[0])
+    whitened = whole[1] * problem.weights[:, None]
+    assert factor.shape == (9, 9)
+    np.testing.assert_allclose(factor.T @ factor, whitened.T @ whitened, rtol=1e-9, atol=1e-9 * np.abs(whitened).max() ** 2)
