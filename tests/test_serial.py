@@ -112,6 +112,25 @@ def test_noise_free_calibration_is_exact(robot) -> None:
         assert np.linalg.norm(pin.log6(difference).vector) < 1e-12
 
 
+def test_measurements_of_the_nominal_robot_fit_nothing_with_selection() -> None:
+    """Exact measurements of the nominal robot: selection keeps no parameter (none lowers the
+    prediction error), so the result is the nominal robot with nothing fitted, no covariance, zero
+    predicted std and zero cross-validation error, not an error from the empty final fit."""
+    model = load_example_robot("ur5")
+    chain = SerialChain.from_model(model, "tool0")
+    q = sample_configurations(model, chain, 30, np.random.default_rng(0))
+    measured = [pin.SE3(h) for h in tool_poses(chain, model, q)]
+    calibration = calibrate_serial(model, chain, q, measured, select=True)
+    assert calibration.converged and calibration.fitted == () and calibration.fitted_indices == ()
+    assert calibration.covariance.shape == (0, 0) and calibration.parameter_std.shape == (0,)
+    assert calibration.residual_after.position == 0.0 and calibration.outliers == ()
+    for j in chain.joint_ids:
+        assert calibration.model.jointPlacements[j].isApprox(model.jointPlacements[j], 1e-15)
+    predicted = predicted_pose_std(calibration, q[:4])
+    np.testing.assert_array_equal(predicted.position, np.zeros(4))
+    assert serial_evaluation.cross_validate_serial(calibration).errors.position_mean == 0.0
+
+
 def test_position_only_calibration(robot) -> None:
     _, model, chain = robot
     _, calibration, held_out, before, after = run_calibration(model, chain, seed=13, position_only=True)

@@ -737,7 +737,12 @@ def _result(model: pin.Model, problem: _SerialProblem, start: _State, result: LM
     residual, state = problem.model, result.state
     chain, layout = residual.chain, residual.layout
     r, J = problem.residual_and_jacobian(state)
-    fit = batch_least_squares(J, -r, covariance_from="noise_model")
+    # Selection keeps no parameter when the start already explains the data (e.g. exact nominal
+    # measurements): nothing is fitted, so there is no covariance to report.
+    covariance, std = np.zeros((0, 0)), np.zeros(0)
+    if J.shape[1]:
+        fit = batch_least_squares(J, -r, covariance_from="noise_model")
+        covariance, std = fit.covariance, fit.std
     dof = problem.degrees_of_freedom()
     inliers = problem.active
     # dt_j = log6(T_j(0)^-1 T_j,c(0)) per placement (for j = 1 with a base frame, the inverse base
@@ -754,7 +759,7 @@ def _result(model: pin.Model, problem: _SerialProblem, start: _State, result: LM
                       if layout.compliance_slice.start + k in fitted}
     return SerialCalibration(
         model=perturb(model, deltas), chain=chain, deltas=MappingProxyType(deltas), base=base,
-        covariance=fit.covariance, parameter_std=fit.std,
+        covariance=covariance, parameter_std=std,
         variance_factor=float(r @ r / dof) if dof > 0 else float("nan"),
         iterations=iterations, converged=result.converged,
         residual_before=_rms(residual.raw_residual(start)[inliers]),

@@ -61,7 +61,7 @@ def predicted_pose_std(calibration: SerialCalibration, q_chain: ArrayLike) -> Po
     frames = placement_poses(chain, chain.initial_transforms(calibration.model), q)
     n_poses, n = frames.shape[0], chain.n_joints
     rows = _placement_rows(frames, orientation=True)
-    fitted = np.array(calibration.fitted_indices or calibration.base.indices, dtype=int)
+    fitted = np.array(calibration.fitted_indices, dtype=int)
     n_chain = 6 * (n + 1)
     machine = np.flatnonzero(fitted < n_chain)
     blocks = [rows[:, :, fitted[machine]]]
