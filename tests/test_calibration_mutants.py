@@ -749,3 +749,27 @@ def test_evaluate_in_blocks_reduced_and_with_progress(mechanism, few_poses, monk
     whitened = whole[1] * problem.weights[:, None]
     assert factor.shape == (9, 9)
     np.testing.assert_allclose(factor.T @ factor, whitened.T @ whitened, rtol=1e-9, atol=1e-9 * np.abs(whitened).max() ** 2)
+
+
+def test_outlier_rounds_refit_only_when_the_flagged_set_changes(mechanism, monkeypatch):
+    """One refit when the flagged set changes (then it is stable), none when it is stable from the
+    start; a set that never settles stops after _MAX_OUTLIER_ROUNDS (5) refits."""
+    actuators = workspace_actuators(mechanism, 4, np.random.default_rng(63))
+    exact = measure(mechanism, actuators)
+    poses = list(exact.poses)
+    poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
+    problem = _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), PoseMeasurements(exact.actuators, tuple(poses)),
+                                 NOISE, np.arange(3))
+    start = problem.assemble(mechanism.model, (mechanism.home,) * 4)
+    fits = []
+    fit = closed_loop._fit
+    monkeypatch.setattr(closed_loop, "_fit", lambda *args: fits.append(args[1]) or fit(*args))
+    first = _reject_outliers(problem, start, SimpleNamespace(state=dataclasses.replace(start)), 5.0,
+                             {"max_iterations": 1})
+    assert len(fits) == 1 and fits[0] is not start and fits[0].whitened is None
+    np.testing.assert_array_equal(problem.active, [True, False, True, True])
+    assert _reject_outliers(problem, start, first, 5.0, {"max_iterations": 1}) is first and len(fits) == 1
+    flips = iter([[False, False, False, False], [False, True, False, False]] * 3)
+    monkeypatch.setattr(closed_loop, "outlier_poses", lambda blocks, sigma: (np.array(next(flips)), 1.0))
+    _reject_outliers(problem, start, first, 5.0, {"max_iterations": 1})
+    assert len(fits) == 1 + 5 and closed_loop._MAX_OUTLIER_ROUNDS == 5
