@@ -773,3 +773,19 @@ def test_outlier_rounds_refit_only_when_the_flagged_set_changes(mechanism, monke
     monkeypatch.setattr(closed_loop, "outlier_poses", lambda blocks, sigma: (np.array(next(flips)), 1.0))
     _reject_outliers(problem, start, first, 5.0, {"max_iterations": 1})
     assert len(fits) == 1 + 5 and closed_loop._MAX_OUTLIER_ROUNDS == 5
+
+
+def test_structural_rank_cache_keys_on_the_noise_ratio_and_the_data_kind(mechanism, few_poses, monkeypatch):
+    """Orientation trusted 1e5 times less than position (56) or more (52): different entries though
+    the weights' product is the same; positions only (53) and full poses (56) with equal sigmas:
+    different entries though the weight ratio is the same."""
+    monkeypatch.setattr(closed_loop, "_STRUCTURAL_RANKS", {})
+    error_model = ClosedLoopErrorModel(mechanism)
+    identity = pin.SE3.Identity()
+    positions = measure(mechanism, few_poses.actuators, position_only=True)
+    counts = [_structural_rank(_ClosedLoopProblem(error_model, measurements, noise, np.arange(204)), identity, [], 1e-8)
+              for measurements, noise in ((few_poses, TrackerNoise(position=1e-5, rotation=1.0)),
+                                          (few_poses, TrackerNoise(position=1.0, rotation=1e-5)),
+                                          (few_poses, TrackerNoise(position=1e-5, rotation=1e-5)),
+                                          (positions, TrackerNoise(position=1e-5, rotation=1e-5)))]
+    assert counts == [56, 52, 56, 53]
