@@ -35,7 +35,7 @@ from m3t1r.calibration.assessment import (
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, CrossValidation, calibrate_closed_loop, cross_validate
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
-from m3t1r.errors import InvalidInputError, KinematicsError, PoorExcitationWarning
+from m3t1r.errors import InvalidInputError, PoorExcitationWarning
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.progress import Progress
 from m3t1r.model.description import Mechanism
@@ -105,12 +105,12 @@ def _nominal_points(nominal: Mechanism, marker: pin.SE3) -> Callable[[np.ndarray
     solver = ClosedLoopSolver(nominal)
 
     def predict(actuators: np.ndarray) -> np.ndarray:
+        """Marker positions [m] at each slider set, from home; NaN where it does not assemble."""
         points = np.full((len(actuators), 3), np.nan)
-        for i, sliders in enumerate(actuators):
-            try:
-                points[i] = (solver.forward(sliders, q_init=nominal.home).pose * marker).translation
-            except (KinematicsError, InvalidInputError):
-                pass
+        if len(actuators) == 0:
+            return points
+        solved = solver.forward_batch(actuators)
+        points[solved.indices] = solved.poses[:, :3, :3] @ marker.translation + solved.poses[:, :3, 3]
         return points
     return predict
 

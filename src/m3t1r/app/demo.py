@@ -29,7 +29,7 @@ from m3t1r.app.scene import comparison_views
 from m3t1r.app.static_page import write_static_html
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
-from m3t1r.calibration.measurements import TrackerNoise, measure
+from m3t1r.calibration.measurements import TrackerNoise, assembled_from_home, measure
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors, with_outliers
 from m3t1r.compensation import workspace_targets
 from m3t1r.errors import M3t1rError
@@ -225,5 +225,4 @@ def _heading(setup: MeasurementSetup, measured: np.ndarray) -> np.ndarray:
 
 
 def _platform_poses(machine: Mechanism, actuators: np.ndarray) -> np.ndarray:
-    solver = ClosedLoopSolver(machine)
-    return np.array([solver.forward(sliders).pose.homogeneous for sliders in actuators])
+    return np.array(assembled_from_home(machine, actuators).poses)

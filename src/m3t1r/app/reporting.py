@@ -21,7 +21,7 @@ import numpy as np
 from m3t1r.app.plots import plot_error_vs_poses, plot_pose_errors_before_after, plot_predicted_std_map
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_closed_loop, predicted_pose_std
 from m3t1r.calibration.measurement_setup import MeasurementSetup
-from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
+from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home
 from m3t1r.compensation import workspace_targets
 from m3t1r.errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
 from m3t1r.metrics import PoseErrors, rotation_angles
@@ -40,9 +40,7 @@ def measured_pose_errors(machine: Mechanism, measurements: PoseMeasurements,
                          setup: MeasurementSetup = MeasurementSetup()) -> PoseErrors:
     """Model prediction (setup.frame . platform . setup.marker) vs measured pose at the measured
     sliders: position norm [m], rotation angle [rad] (NaN rotation for position-only data)."""
-    solver = ClosedLoopSolver(machine)
-    platform = np.array([solver.forward(sliders).pose.homogeneous for sliders in measurements.actuators])
-    predicted = setup.measured_poses(platform.reshape(-1, 4, 4))
+    predicted = setup.measured_poses(assembled_from_home(machine, measurements.actuators).poses)
     measured = np.array([pose.homogeneous for pose in measurements.poses]).reshape(-1, 4, 4)
     position = np.linalg.norm(predicted[:, :3, 3] - measured[:, :3, 3], axis=1)
     rotation = (np.full(len(position), np.nan) if measurements.position_only
@@ -151,8 +149,7 @@ def passive_joint_residuals(machine: Mechanism, actuators: np.ndarray, joints: t
     """
     model = machine.model
     columns = [model.idx_qs[model.getJointId(name)] for name in joints]
-    solver = ClosedLoopSolver(machine)
-    predicted = np.array([solver.forward(sliders).q[columns] for sliders in np.asarray(actuators, dtype=float)])
+    predicted = assembled_from_home(machine, actuators).q[:, columns]
     difference = np.asarray(readings, dtype=float) - predicted
     offsets = difference.mean(axis=0)
     return PassiveJointResiduals(tuple(joints), offsets, difference - offsets)

@@ -15,10 +15,11 @@ import pinocchio as pin
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.errors import InvalidInputError
+from m3t1r.model.batch_kinematics import ForwardBatch
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
 
-__all__ = ["TrackerNoise", "PoseMeasurements", "measure"]
+__all__ = ["TrackerNoise", "PoseMeasurements", "measure", "assembled_from_home"]
 
 
 @dataclass(frozen=True)
@@ -75,14 +76,7 @@ def measure(machine: Mechanism, actuators: np.ndarray, rng: np.random.Generator 
     (right-multiplied, [rad]) noise and the recorded slider readings Gaussian noise; without,
     both are exact.
     """
-    # Every set from home (cold starts, one vectorised solve): a warm start carried from one random
-    # set to the next can cross a singularity onto another branch (a five-bar's elbows).
-    solved = ClosedLoopSolver(machine).forward_batch(np.asarray(actuators, dtype=float).reshape(len(actuators), -1))
-    if solved.failures:
-        first = solved.failures[0]
-        raise InvalidInputError(f"slider set {first.index} ({np.asarray(actuators)[first.index]}) does not assemble "
-                                f"on the machine from its home: {first.reason}")
-    platform = solved.poses
+    platform = assembled_from_home(machine, actuators).poses
     seen = (setup or MeasurementSetup()).measured_poses(np.array(platform).reshape(-1, 4, 4))
     poses = [pin.SE3(pose) for pose in seen]
     readings = np.array(actuators, dtype=float)
@@ -93,3 +87,21 @@ def measure(machine: Mechanism, actuators: np.ndarray, rng: np.random.Generator 
                          p.translation + rng.normal(0.0, noise.position, 3)) for p in poses]
         readings = readings + rng.normal(0.0, noise.actuator, readings.shape)
     return PoseMeasurements(readings, tuple(poses), position_only)
+
+
+def assembled_from_home(machine: Mechanism, actuators: np.ndarray) -> ForwardBatch:
+    """Forward kinematics of every slider set (n, k) on `machine`, each from home, in one vectorised
+    solve (`ClosedLoopSolver.forward_batch`); InvalidInputError naming the first set that does not
+    assemble. From home, not warm-started: a start carried from one unrelated set to the next can
+    cross a singularity onto another branch (a five-bar's elbows)."""
+    values = np.asarray(actuators, dtype=float)
+    if len(values) == 0:
+        empty = np.zeros(0)
+        return ForwardBatch(0, empty.astype(int), np.zeros((0, 4, 4)), np.zeros((0, machine.model.nq)), empty,
+                            empty.astype(int), ())
+    solved = ClosedLoopSolver(machine).forward_batch(values.reshape(len(values), -1))
+    if solved.failures:
+        first = solved.failures[0]
+        raise InvalidInputError(f"slider set {first.index} ({values[first.index]}) does not assemble on the machine "
+                                f"from its home: {first.reason}")
+    return solved

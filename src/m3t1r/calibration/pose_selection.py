@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.identification import select_base_parameters
-from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.measurements import TrackerNoise, assembled_from_home
 from m3t1r.errors import InvalidInputError
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
@@ -296,7 +296,7 @@ def closed_loop_candidate_blocks(mechanism: Mechanism, actuators: ArrayLike, noi
     weights = np.r_[np.full(3, 1.0 / noise.position), np.full(3, 1.0 / noise.rotation)]
     rows = 3 if position_only else 6
     sliders = np.atleast_2d(np.asarray(actuators, dtype=float))
-    configurations = [solver.forward(values, q_init=mechanism.home).q for values in sliders]
+    configurations = list(assembled_from_home(mechanism, sliders).q)
     sensitivities = error_model.platform_sensitivities(solver, configurations)
     blocks = np.array([_pose_residual_rows(pose[:3, 3], pose[:3, :3], dxi, position_only)
                        for pose, dxi in zip(sensitivities.poses, sensitivities.twist_jacobians)])

@@ -17,10 +17,10 @@ import pinocchio as pin
 
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.measurement_setup import MeasurementSetup
-from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, measure
+from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
 from m3t1r.errors import InvalidInputError
 from m3t1r.model.description import Mechanism
-from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
+from m3t1r.model.kinematics import rehomed
 from m3t1r.model.workspace import workspace_actuators
 
 __all__ = ["SimulatedStudy", "random_placement_errors", "actual_machine", "with_joint_errors", "orthonormal_twist",
@@ -149,9 +149,8 @@ def simulate_study(nominal: Mechanism, n_poses: int = 50, n_holdout: int = 200, 
     readings = None
     if passive_joints:
         # Drawn after everything else, so adding encoders does not change the rest of the study.
-        solver = ClosedLoopSolver(truth)
         columns = [truth.model.idx_qs[truth.model.getJointId(name)] for name in passive_joints]
-        readings = np.array([solver.forward(sliders).q[columns] for sliders in actuators[:n_poses]])
+        readings = assembled_from_home(truth, actuators[:n_poses]).q[:, columns]
         if noise is not None:
             readings = readings + rng.normal(0.0, encoder_noise, readings.shape)
     spoiled: tuple[int, ...] = ()

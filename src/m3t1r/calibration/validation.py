@@ -50,7 +50,7 @@ import scipy.stats
 
 from m3t1r.calibration.identification import OUTLIER_SIGMA
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
-from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError, ModelFileError
+from m3t1r.errors import InvalidInputError, M3t1rError, ModelFileError
 from m3t1r.io.poses import poses_from_table
 from m3t1r.io.tables import read_table
 from m3t1r.metrics import PoseErrors, pose_errors_between
@@ -254,16 +254,14 @@ def _predict_closed_loop(calibrated: Path, report: CalibrationReport, units: str
     names = mechanism.actuated_joints
     passive = tuple(model.names[j] for j in range(1, model.njoints) if model.names[j] not in names)
     campaign = read_campaign(measurements, names, [_is_prismatic(model, n) for n in names], units, passive)
-    solver = ClosedLoopSolver(mechanism)
     poses = np.full((len(campaign.lines), 4, 4), np.nan)
     failures: list[tuple[int, str]] = []
-    for i, sliders in enumerate(campaign.readings):
-        try:
-            poses[i] = solver.forward(sliders, q_init=mechanism.home).pose.homogeneous
-        except (KinematicsError, InvalidInputError) as exc:
-            failures.append((int(campaign.lines[i]), f"{calibrated.name}: {exc}"))
-        if progress is not None:
-            progress(i + 1)
+    if len(campaign.readings):
+        solved = ClosedLoopSolver(mechanism).forward_batch(campaign.readings)  # every row from home
+        poses[solved.indices] = solved.poses
+        failures = [(int(campaign.lines[f.index]), f"{calibrated.name}: {f.reason}") for f in solved.failures]
+    if progress is not None:
+        progress(len(campaign.readings))
     return campaign, poses, failures
 
 
