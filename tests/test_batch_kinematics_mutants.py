@@ -217,6 +217,7 @@ def test_newton_batch_statuses_iterations_and_calls():
     out = bk.newton_batch(q, UNKNOWNS, system, sign_of_first, 1e-12, 60, 1e-10)
     assert list(out.status) == [0, 0, 0, 1, 3]
     assert list(out.iterations) == [9, 6, 10, 0, 0]
+    assert out.iterations.dtype.kind == "i" and out.norm.dtype == float and out.status.dtype.kind == "i"
     np.testing.assert_allclose(out.q[:3], [[1.0, 2.0], [2.0, 4.0], [1.0, 2.0]], atol=1e-12)
     np.testing.assert_array_equal(out.q[3:], [[1.0, 0.0], [0.0, 0.0]])  # never stepped
     np.testing.assert_array_equal(q, [[1.2, 0.0], [1.5, 3.0], [0.1, 0.0], [1.0, 0.0], [0.0, 0.0]])  # not in place
@@ -379,33 +380,50 @@ def test_signatures_of_one_two_and_larger_blocks(five_bar):
         expected = np.linalg.det(jac[:, rows[:, None], cols[None, :]]) > 0
         np.testing.assert_array_equal(signs[:, k], expected)
     assert signs.any(axis=0).all() and (~signs).any(axis=0).all()  # both signs seen in every block
+    singular = np.zeros((1, 5, 6))
+    singular[0, 1, 5], singular[0, 1, 2], singular[0, 0, 5], singular[0, 0, 2] = 1.0, 2.0, 2.0, 4.0  # det 0 exactly
+    singular[0, 0, 1], singular[0, 2, 3] = 1.0, 1.0  # the 3 x 3 block's third column is zero
+    assert kin.signatures(singular).tolist() == [[False, False, False]]  # True only where det > 0
+
+
+def with_tool(five_bar: Mechanism) -> Mechanism:
+    """The five-bar commanded at a `tool` frame 5 cm beside the effector (the platform) on its link."""
+    model = five_bar.model.copy()
+    effector = model.frames[model.getFrameId("effector")]
+    model.addFrame(pin.Frame("tool", effector.parentJoint, model.getFrameId("effector"),
+                             effector.placement * pin.SE3(np.eye(3), np.array([0.03, 0.04, 0.0])), pin.FrameType.OP_FRAME))
+    return dataclasses.replace(five_bar.with_model(model), task=TaskSpec("tool", ("x", "y"), "none"))
 
 
 def test_task_frame_other_than_the_platform(five_bar):
-    """Task on `tip_2` (closes onto `effector`, the platform): the platform frame sits before the task
-    frame (-2); poses are the platform's, the task rows follow tip_2, moved by chain 2's joints only."""
-    moved = dataclasses.replace(five_bar, task=TaskSpec("tip_2", ("x", "y"), "none"))
+    """Task on `tool`: the platform frame sits before the task frame (-2); poses are the platform's,
+    the task rows follow the tool, moved by chain 1's joints only."""
+    moved = with_tool(five_bar)
     solver = ClosedLoopSolver(moved)
     kin = solver._batch_kinematics()
     assert kin.platform_index == -2 and ClosedLoopSolver(five_bar)._batch_kinematics().platform_index == -1
-    np.testing.assert_array_equal(kin.task_support, [0.0, 0.0, 1.0, 1.0])
+    np.testing.assert_array_equal(kin.task_support, [1.0, 1.0, 0.0, 0.0])
     q = five_bar.home + np.random.default_rng(17).normal(0, 0.3, (3, 4))
     _, _, frot, fpos, world = kin.closures(q)
     model, data = moved.model, moved.model.createData()
     for i in range(3):
         pin.framesForwardKinematics(model, data, q[i])
-        for index, name in ((-1, "tip_2"), (-2, "effector")):
+        for index, name in ((-1, "tool"), (-2, "effector")):
             placement = data.oMf[model.getFrameId(name)]
             np.testing.assert_allclose(frot[i, index], placement.rotation, atol=1e-14)
             np.testing.assert_allclose(fpos[i, index], placement.translation, atol=1e-14)
     sliders = five_bar.home[[0, 2]] + np.array([[0.0, 0.0], [0.05, 0.05], [-0.1, 0.2]])
     reference = ClosedLoopSolver(five_bar).forward_batch(sliders)
     batch = solver.forward_batch(sliders)
-    np.testing.assert_allclose(batch.poses, reference.poses, atol=1e-12)  # the effector's rotation, not tip_2's
-    ik = solver.inverse_batch(batch.poses[:, :2, 3])
+    np.testing.assert_allclose(batch.poses, reference.poses, atol=1e-12)  # the effector's, not the tool's
+    tool = batch.poses[:, :3, :3] @ np.array([0.03, 0.04, 0.0]) + batch.poses[:, :3, 3]
+    ik = solver.inverse_batch(tool[:, :2])
     assert ik.complete
     np.testing.assert_allclose(ik.actuators, sliders, atol=1e-10)
     np.testing.assert_allclose(ik.poses, reference.poses, atol=1e-10)
+    cold = solver.inverse_batch(tool[:, :2], q_init=five_bar.home)
+    np.testing.assert_allclose(cold.actuators, sliders, atol=1e-10)
+    assert list(ik.iterations) == [1, 3, 4] and list(cold.iterations) == [0, 3, 4]  # home: the first step is 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -435,7 +453,8 @@ def test_forward_batch_slider_limits_are_inclusive_and_named(five_bar):
 def test_forward_batch_every_row_beyond_its_limits(five_bar):
     batch = ClosedLoopSolver(five_bar).forward_batch(np.array([[2.33, 0.3], [3.0, 0.8]]))
     assert batch.n == 2 and len(batch.indices) == 0 and batch.indices.dtype.kind == "i"
-    assert batch.poses.shape == (0, 4, 4) and len(batch.q) == 0 and batch.residuals.shape == (0,)
+    # q keeps its width nq when no row converged (it was (0, 0) before the fix).
+    assert batch.poses.shape == (0, 4, 4) and batch.q.shape == (0, 4) and batch.residuals.shape == (0,)
     assert batch.iterations.shape == (0,) and [f.index for f in batch.failures] == [0, 1]
     assert list(batch.ok) == [False, False]
 
@@ -533,11 +552,18 @@ def test_task_rows_match_the_single_task_residual_and_jacobian(task):
         np.testing.assert_allclose(jacobian[i], task.jacobian(placements[i], frame_jac, g_rot), atol=1e-12)
 
 
-def test_first_step_from_home_is_one_newton_step_of_the_whole_system(mechanism):
+@pytest.mark.parametrize("machine", ["m_machine", "tool"])
+def test_first_step_from_home_is_one_newton_step_of_the_whole_system(machine, mechanism, five_bar):
+    """Rows 0, 2, 3 of 4 get -J^-1 [closures; task - goal] at home, capped at 0.3 (row 2) or not (row 3)."""
+    if machine == "tool":
+        mechanism = with_tool(five_bar)
+        targets = np.array([[0.05, 0.45], [0.0, 0.4], [0.3, 0.2], [0.01, 0.44]])
+    else:
+        targets = np.array([[0.55, 0.60, -0.10, 0.3], [0.5, 0.5, -0.1, 0.0], [0.3, 0.9, 0.0, -2.5],
+                            [0.6, 0.6, -0.1, 0.1]])
     solver = ClosedLoopSolver(mechanism)
     kin = solver._batch_kinematics()
     task = mechanism.task
-    targets = np.array([[0.55, 0.60, -0.10, 0.3], [0.5, 0.5, -0.1, 0.0], [0.3, 0.9, 0.0, -2.5], [0.6, 0.6, -0.1, 0.1]])
     start = np.repeat(mechanism.home[None, :], 4, axis=0)
     rows = np.array([0, 2, 3])
     signature = lambda jac, square: np.concatenate(  # noqa: E731
@@ -574,8 +600,10 @@ def test_first_step_from_a_singular_home_is_skipped(mechanism):
     _, task_jac = bk.task_rows(mechanism.task, frot[:, -1], fpos[:, -1], world * kin.task_support, targets[:1], None)
     square = np.concatenate((jac, task_jac), axis=1)[0][:, kin.unknowns]
     rcond = 1 / np.linalg.cond(square, 1)
-    for factor, skipped in ((1 + 1e-9, True), (1 - 1e-9, False)):
-        solver.singular_rcond = rcond * factor
+    exact = 1.0 / (np.abs(square[None]).sum(axis=1).max() * np.abs(np.linalg.inv(square[None])).sum(axis=1).max())
+    assert exact == pytest.approx(rcond, rel=1e-12)
+    for threshold, skipped in ((rcond * (1 + 1e-9), True), (rcond * (1 - 1e-9), False), (exact, False)):
+        solver.singular_rcond = threshold  # skipped below the threshold, not at it
         start = home.copy()
         labels = bk._first_step_from_home(kin, start, np.array([0, 1]), targets, lambda jac, square: np.ones((1, 1)))
         assert (labels is None) is skipped
@@ -658,3 +686,113 @@ def test_m_machine_iteration_counts_from_home(mechanism):
     assert list(solver.forward_batch(ik.actuators, q_init=mechanism.home).iterations) == [4, 3, 4]
     np.testing.assert_allclose(ik.poses[:, :3, 3], targets[[0, 1, 3], :3], atol=1e-12)
     np.testing.assert_allclose(bk.rpy_batch(ik.poses[:, :3, :3])[:, 2], targets[[0, 1, 3], 3], atol=1e-12)
+
+
+def _recorded_newton(monkeypatch):
+    """Record every newton_batch call's arguments (the batch solves' systems and signatures)."""
+    calls = []
+    real = bk.newton_batch
+
+    def recording(*args):
+        calls.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(bk, "newton_batch", recording)
+    return calls
+
+
+def test_inverse_batch_system_and_labels(monkeypatch, wrist):
+    """The IK system is [closure rows; task rows] at the platform (task) frame with the goals of the
+    rows asked for; its labels are the closure blocks plus sign(det) of the whole square system."""
+    solver = ClosedLoopSolver(wrist)
+    kin = solver._batch_kinematics()
+    calls = _recorded_newton(monkeypatch)
+    goals = np.array([pin.Quaternion(pin.exp3(np.array(v))).coeffs() for v in ([0.1, 0.2, 0.0], [0.0, -0.1, 0.3],
+                                                                       [0.2, 0.0, 0.1])])
+    solver.inverse_batch(goals)
+    (start, unknowns, system, signature, tolerance, max_iterations, rcond, steps, branch), = calls
+    assert (tolerance, max_iterations, rcond, steps, branch) == (1e-12, 60, 1e-10, 0, None)
+    np.testing.assert_array_equal(unknowns, np.arange(9))
+    np.testing.assert_array_equal(start, np.repeat(wrist.home[None, :], 3, axis=0))
+    q = wrist.home + np.random.default_rng(20).normal(0, 0.2, (2, 9))
+    rows = np.array([2, 0])
+    residual, jac, rot, pos = system(q, rows, True)
+    for k, i in enumerate(rows):
+        closure, closure_jac, _ = solver._evaluate(q[k], with_jacobian=True)
+        placement = solver.data.oMf[wrist.platform_frame_id]
+        frame_jac = pin.computeFrameJacobian(solver.model, solver.data, q[k], wrist.platform_frame_id,
+                                             pin.LOCAL_WORLD_ALIGNED)
+        goal_rot = pin.Quaternion(*goals[i][[3, 0, 1, 2]]).matrix()
+        np.testing.assert_allclose(residual[k], np.r_[closure, wrist.task.residual(placement, goals[i], goal_rot)],
+                                   atol=1e-12)
+        np.testing.assert_allclose(jac[k], np.vstack((closure_jac, wrist.task.jacobian(placement, frame_jac, goal_rot))),
+                                   atol=1e-12)
+        np.testing.assert_allclose(rot[k], placement.rotation, atol=1e-14)
+        np.testing.assert_allclose(pos[k], placement.translation, atol=1e-14)
+    no_jac = system(q, rows, False)
+    assert no_jac[1] is None
+    np.testing.assert_array_equal(no_jac[0], residual)
+    square = np.array([np.diag([2.0, 1, 1, 1, 1, 1, 1, 1, 1]), np.diag([-0.5, 1, 1, 1, 1, 1, 1, 1, 1]),
+                       np.diag([0.5, 1, 1, 1, 1, 1, 1, 1, 1])])
+    full = np.zeros((3, 9, 9))
+    full[:] = jac[0]
+    full[:, 6:] = square[:, 6:]
+    labels = signature(full, square)
+    np.testing.assert_array_equal(labels[:, :-1], kin.signatures(full))
+    np.testing.assert_array_equal(labels[:, -1], [True, False, True])
+
+
+def test_forward_batch_system_and_labels(monkeypatch, five_bar):
+    solver = ClosedLoopSolver(five_bar)
+    kin = solver._batch_kinematics()
+    calls = _recorded_newton(monkeypatch)
+    solver.forward_batch(np.array([[2.4, 0.9], [2.3, 0.7]]))
+    (start, unknowns, system, signature, tolerance, max_iterations, rcond, steps, branch), = calls
+    assert (tolerance, max_iterations, rcond, steps) == (1e-12, 60, 1e-10, 1)
+    np.testing.assert_array_equal(unknowns, kin.passive)
+    np.testing.assert_array_equal(branch, kin.home_reference()[1])
+    tangent = kin.home_reference()[0]
+    expected = np.repeat(five_bar.home[None, :], 2, axis=0)
+    expected[:, kin.passive] += (np.array([[2.4, 0.9], [2.3, 0.7]]) - five_bar.home[kin.actuated]) @ tangent.T
+    expected[:, kin.actuated] = [[2.4, 0.9], [2.3, 0.7]]
+    np.testing.assert_allclose(start, expected, atol=1e-15)
+    q = five_bar.home + np.random.default_rng(21).normal(0, 0.2, (2, 4))
+    residual, jac, rot, pos = system(q, np.array([1, 0]), True)
+    for k in range(2):
+        closure, closure_jac, _ = solver._evaluate(q[k], with_jacobian=True)
+        np.testing.assert_allclose(residual[k], closure, atol=1e-14)
+        np.testing.assert_allclose(jac[k], closure_jac, atol=1e-14)
+        np.testing.assert_allclose(pos[k], solver.data.oMf[five_bar.platform_frame_id].translation, atol=1e-14)
+    assert system(q, np.array([1, 0]), False)[1] is None
+    np.testing.assert_array_equal(signature(jac, jac[:, :, kin.passive]), kin.signatures(jac))
+    calls.clear()
+    solver.forward_batch(np.array([[2.4, 0.9]]), q_init=five_bar.home)
+    assert calls[0][7] == 0 and calls[0][8] is None
+
+
+def test_one_target_and_one_slider_set(mechanism, five_bar):
+    ik = ClosedLoopSolver(mechanism).inverse_batch([[0.5, 0.5, -0.1, 0.0]])
+    assert ik.complete and list(ik.indices) == [0] and ik.actuators.shape == (1, 4) and ik.tilt.shape == (1, 2)
+    fk = ClosedLoopSolver(five_bar).forward_batch([[2.4, 0.9]])
+    assert fk.complete and fk.poses.shape == (1, 4, 4) and fk.q.shape == (1, 4)
+
+
+def test_newton_batch_boundaries_at_exact_residuals():
+    """Residual exactly 1e-6 (2^-20 - (2^-20 - 1e-6) is exact): converged at a tolerance of 1e-6, and
+    with no step allowed below a tolerance, 'not converged' (not out of workspace: <= 1e-6)."""
+    q0 = 2.0 ** -10
+    t = q0 ** 2 - 1e-6
+    q = np.array([[q0, 2 * q0]])
+    assert (q0 ** 2 - t) == 1e-6
+    done = bk.newton_batch(q, UNKNOWNS, quadratic([t]), sign_of_first, 1e-6, 60, 1e-10)
+    assert list(done.status) == [0] and list(done.iterations) == [0] and done.norm[0] == 1e-6
+    left = bk.newton_batch(q, UNKNOWNS, quadratic([t]), sign_of_first, 1e-12, 0, 1e-10)
+    assert list(left.status) == [2] and left.norm[0] == 1e-6
+
+
+def test_batch_results_are_typed_arrays(five_bar):
+    batch = ClosedLoopSolver(five_bar).forward_batch([[2.4, 0.9], [2.3, 0.7]])
+    assert batch.residuals.dtype == float and batch.iterations.dtype.kind == "i" and batch.q.dtype == float
+    assert batch.poses.dtype == float and batch.indices.dtype.kind == "i"
+    assert all(not a.flags.writeable for a in (batch.indices, batch.poses, batch.q, batch.residuals,
+                                                 batch.iterations))

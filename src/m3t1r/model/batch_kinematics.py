@@ -637,11 +637,12 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
         failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
                      for f in failures_of(solved, 0, "forward kinematics")]
         parts.append((chunk, solved))
-    return _forward_result(len(values), parts, failures)
+    return _forward_result(len(values), parts, failures, solver.model.nq)
 
 
-def _forward_result(n: int, parts: list, failures: list) -> ForwardBatch:
-    """Gather the converged rows of every chunk (in input order) into a frozen ForwardBatch."""
+def _forward_result(n: int, parts: list, failures: list, nq: int) -> ForwardBatch:
+    """Gather the converged rows of every chunk (in input order) into a frozen ForwardBatch (q: (M, nq),
+    also when no row converged)."""
     indices, poses, qs, norms, steps = [], [], [], [], []
     for chunk, solved in parts:
         good = solved.status == _CONVERGED
@@ -649,7 +650,6 @@ def _forward_result(n: int, parts: list, failures: list) -> ForwardBatch:
         pose[:, :3, :3], pose[:, :3, 3], pose[:, 3, 3] = solved.rotation[good], solved.position[good], 1.0
         indices.append(chunk[good]), poses.append(pose), qs.append(solved.q[good])
         norms.append(solved.norm[good]), steps.append(solved.iterations[good])
-    nq = parts[0][1].q.shape[1] if parts else 0
     cat = (lambda arrays, shape: np.concatenate(arrays) if arrays else np.zeros(shape))
     index = cat(indices, (0,)).astype(int)
     order = np.argsort(index, kind="stable")
@@ -761,7 +761,7 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
         failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
                      for f in failures_of(solved, 0, "inverse kinematics")]
         parts.append((chunk, solved))
-    fk = _forward_result(len(goal), parts, failures)
+    fk = _forward_result(len(goal), parts, failures, solver.model.nq)
     wanted = np.zeros(2) if goal_rot is None else rpy_batch(goal_rot[fk.indices])[:, :2]
     return InverseBatch(**{f: getattr(fk, f) for f in ("n", "indices", "poses", "q", "residuals", "iterations",
                                                        "failures")},
