@@ -106,6 +106,9 @@ def test_poses_last_products_and_cross_products():
     np.testing.assert_allclose(first(bk._apply_transposed(a, v)), np.einsum("knji,knj->kni", first(a), first(v)),
                                atol=1e-14)
     np.testing.assert_allclose(first(bk._cross(v, w)), np.cross(first(v), first(w)), atol=1e-14)
+    one = v[0, :, :1]  # (3, 1): one vector against n, either side
+    np.testing.assert_allclose(bk._cross(one, w[0]), np.cross(one.T, w[0].T).T, atol=1e-14)
+    np.testing.assert_allclose(bk._cross(w[0], one), np.cross(w[0].T, one.T).T, atol=1e-14)
     skew = bk._skew_last(v[0])
     assert skew.shape == (3, 3, 4)
     np.testing.assert_allclose(np.einsum("ijn,jn->in", skew, w[0]), np.cross(v[0].T, w[0].T).T, atol=1e-14)
@@ -386,13 +389,18 @@ def test_signatures_of_one_two_and_larger_blocks(five_bar):
     assert kin.signatures(singular).tolist() == [[False, False, False]]  # True only where det > 0
 
 
-def with_tool(five_bar: Mechanism) -> Mechanism:
-    """The five-bar commanded at a `tool` frame 5 cm beside the effector (the platform) on its link."""
+def with_tool(five_bar: Mechanism, task: TaskSpec = TaskSpec("tool", ("x", "y"), "none")) -> Mechanism:
+    """The five-bar commanded at a `tool` frame 5 cm beside the effector (the platform) on its link,
+    turned by 0.4 rad about z."""
     model = five_bar.model.copy()
     effector = model.frames[model.getFrameId("effector")]
-    model.addFrame(pin.Frame("tool", effector.parentJoint, model.getFrameId("effector"),
-                             effector.placement * pin.SE3(np.eye(3), np.array([0.03, 0.04, 0.0])), pin.FrameType.OP_FRAME))
-    return dataclasses.replace(five_bar.with_model(model), task=TaskSpec("tool", ("x", "y"), "none"))
+    offset = pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, 0.4), np.array([0.03, 0.04, 0.0]))
+    model.addFrame(pin.Frame("tool", effector.parentJoint, model.getFrameId("effector"), effector.placement * offset,
+                             pin.FrameType.OP_FRAME))
+    return dataclasses.replace(five_bar.with_model(model), task=task)
+
+
+TOOL_YAW = TaskSpec("tool", ("x",), "yaw")  # the tool's x and heading: square for the five-bar
 
 
 def test_task_frame_other_than_the_platform(five_bar):
@@ -552,12 +560,17 @@ def test_task_rows_match_the_single_task_residual_and_jacobian(task):
         np.testing.assert_allclose(jacobian[i], task.jacobian(placements[i], frame_jac, g_rot), atol=1e-12)
 
 
-@pytest.mark.parametrize("machine", ["m_machine", "tool"])
+@pytest.mark.parametrize("machine", ["m_machine", "tool", "tool_yaw"])
 def test_first_step_from_home_is_one_newton_step_of_the_whole_system(machine, mechanism, five_bar):
     """Rows 0, 2, 3 of 4 get -J^-1 [closures; task - goal] at home, capped at 0.3 (row 2) or not (row 3)."""
     if machine == "tool":
         mechanism = with_tool(five_bar)
         targets = np.array([[0.05, 0.45], [0.0, 0.4], [0.3, 0.2], [0.01, 0.44]])
+    elif machine == "tool_yaw":
+        mechanism = with_tool(five_bar, TOOL_YAW)
+        home = ClosedLoopSolver(mechanism)._batch_kinematics().closures(mechanism.home[None, :])
+        x, yaw = home[3][0, -1, 0], np.arctan2(home[2][0, -1, 1, 0], home[2][0, -1, 0, 0])
+        targets = np.array([[x + 0.01, yaw + 0.02], [x, yaw], [x + 0.2, yaw + 1.0], [x + 1e-3, yaw - 1e-3]])
     else:
         targets = np.array([[0.55, 0.60, -0.10, 0.3], [0.5, 0.5, -0.1, 0.0], [0.3, 0.9, 0.0, -2.5],
                             [0.6, 0.6, -0.1, 0.1]])
@@ -796,3 +809,46 @@ def test_batch_results_are_typed_arrays(five_bar):
     assert batch.poses.dtype == float and batch.indices.dtype.kind == "i"
     assert all(not a.flags.writeable for a in (batch.indices, batch.poses, batch.q, batch.residuals,
                                                  batch.iterations))
+
+
+def test_newton_batch_a_jacobian_singular_after_a_step_ends_the_row():
+    """r = q + 10 with J = 1 at q = 0 and exactly 0 elsewhere: after the capped first step (q = -0.3)
+    the refreshed Jacobian is singular, and the row stops there as singular (3), not after 60 steps."""
+    def kink(q, rows, with_jacobian):
+        jac = np.where(q[:, 0] == 0.0, 1.0, 0.0)[:, None, None] if with_jacobian else None
+        return q[:, :1] + 10.0, jac, np.zeros((len(q), 3, 3)), np.zeros((len(q), 3))
+
+    out = bk.newton_batch(np.zeros((1, 1)), np.array([0]), kink, lambda jac, square: np.ones((len(jac), 1), bool),
+                          1e-12, 60, 1e-10)
+    assert list(out.status) == [3] and list(out.iterations) == [1]
+    np.testing.assert_allclose(out.q, [[-0.3]], rtol=1e-15)
+
+
+def test_inverse_batch_of_a_yaw_task_on_a_frame_off_the_platform(monkeypatch, five_bar):
+    """The tool's x and heading (turned 0.4 rad from the effector): IK reaches them, from home (first
+    step batched, branch labels of home) and from given starts (no step, labels at the start)."""
+    machine = with_tool(five_bar, TOOL_YAW)
+    solver = ClosedLoopSolver(machine)
+    kin = solver._batch_kinematics()
+    sliders = five_bar.home[[0, 2]] + np.array([[0.0, 0.0], [0.05, 0.05], [-0.1, 0.2]])
+    fk = solver.forward_batch(sliders)
+    _, _, frot, fpos, _ = kin.closures(fk.q)
+    targets = np.c_[fpos[:, -1, 0], np.arctan2(frot[:, -1, 1, 0], frot[:, -1, 0, 0])]
+    calls = _recorded_newton(monkeypatch)
+    ik = solver.inverse_batch(targets)
+    assert ik.complete and ik.n == 3 and list(ik.ok) == [True] * 3
+    np.testing.assert_allclose(ik.actuators, sliders, atol=1e-10)
+    np.testing.assert_allclose(ik.poses, fk.poses, atol=1e-10)  # the platform's poses
+    assert calls[0][7] == 1
+    start = np.repeat(machine.home[None, :], 3, axis=0)
+    signature = calls[0][3]
+    np.testing.assert_array_equal(calls[0][8], bk._first_step_from_home(kin, start, np.arange(3), targets, signature))
+    calls.clear()
+    warm = solver.inverse_batch(targets, q_init=fk.q)
+    assert list(warm.iterations) == [0, 0, 0] and calls[0][7] == 0 and calls[0][8] is None
+    np.testing.assert_array_equal(calls[0][0], fk.q)
+
+
+def test_inverse_batch_counts_every_row(five_bar):
+    ik = ClosedLoopSolver(five_bar).inverse_batch([[0.0, 0.7], [0.0, 0.40]])
+    assert ik.n == 2 and list(ik.ok) == [False, True] and not ik.complete
