@@ -8,6 +8,8 @@ five-bar column by column; column subsets against the full computation; the para
 `deltas` / `perturbed` and `has_own_placement` on every kind of frame.
 """
 
+import dataclasses
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -57,21 +59,48 @@ def _differences(machine: Mechanism, placements, sliders, starts, direction: np.
 
 @pytest.fixture(scope="module")
 def m_machine():
+    """The M machine, a generic copy of it, its solver and two assembled configurations.
+
+    The error model and its sensitivities are built inside each test (a few ms): mutmut 3 runs for
+    a mutant only the tests that call the mutated function, and a module fixture's calls count for
+    the first test that uses it only.
+    """
     mechanism = Mechanism.load()
     machine = _generic(mechanism, 1)
-    model = ClosedLoopErrorModel(mechanism)
     solver = ClosedLoopSolver(machine)
     sliders = workspace_actuators(mechanism, 2, np.random.default_rng(5))
     configurations = [solver.forward(s, q_init=machine.home).q for s in sliders]
-    full = model.platform_sensitivities(solver, configurations)
-    return mechanism, machine, model, solver, sliders, configurations, full
+    return mechanism, machine, solver, sliders, configurations
+
+
+def _full(m_machine):
+    mechanism, _, solver, _, configurations = m_machine
+    model = ClosedLoopErrorModel(mechanism)
+    return model, model.platform_sensitivities(solver, configurations)
 
 
 @pytest.fixture(scope="module")
-def five_bar(tmp_path_factory):
-    mechanism = Mechanism.load(*five_bar_files(tmp_path_factory.mktemp("five_bar")))
-    machine = _generic(mechanism, 2)
-    model = ClosedLoopErrorModel(mechanism)
+def five_bar_files_pair(tmp_path_factory):
+    return five_bar_files(tmp_path_factory.mktemp("five_bar"))
+
+
+def _five_bar(files, variant: str):
+    """A five-bar variant, its error model, a generic copy's solver, sliders and configurations.
+
+    "base": the base frame's placement is a parameter too (it moves the whole machine, both sides of
+    the closure alike); "swapped": the elbows drive and the motors follow (the platform's first
+    supporting joint is passive); "platform_on_base": the measured frame is the base frame itself.
+    """
+    mechanism = Mechanism.load(*files)
+    if variant == "swapped":
+        mechanism = dataclasses.replace(mechanism, actuated_joints=("elbow_1", "elbow_2"))
+    elif variant == "platform_on_base":
+        mechanism = dataclasses.replace(mechanism, platform_frame="base")
+    placements = ClosedLoopErrorModel(mechanism).placements
+    if variant == "base":
+        placements += (Placement.frame("base"),)
+    model = ClosedLoopErrorModel(mechanism, placements)
+    machine = _perturbed(mechanism, placements, np.random.default_rng(2).normal(0.0, 1e-3, model.n_parameters))
     solver = ClosedLoopSolver(machine)
     home = _sliders(mechanism, mechanism.home)
     sliders = np.array([home + [0.05, -0.04], home + [-0.03, 0.06]])
@@ -84,7 +113,8 @@ def five_bar(tmp_path_factory):
 
 
 def test_m_machine_parameter_layout(m_machine):
-    mechanism, _, model, *_ = m_machine
+    mechanism = m_machine[0]
+    model = ClosedLoopErrorModel(mechanism)
     frames = ["upper_tip_I", "upper_pt_I", "fivebar_tip_I", "D_I", "lower_tip_I", "lower_pt_I",
               "upper_tip_II", "upper_pt_II", "fivebar_tip_II", "D_II", "lower_tip_II", "lower_pt_II", "P_I", "P_II"]
     joints = [mechanism.model.names[j] for j in range(1, mechanism.model.njoints)]
@@ -95,8 +125,9 @@ def test_m_machine_parameter_layout(m_machine):
     assert model.names[-1] == "P_II.dt[5]" and model.mechanism is mechanism
 
 
-def test_five_bar_parameter_layout(five_bar):
-    mechanism, _, model, *_ = five_bar
+def test_five_bar_parameter_layout(five_bar_files_pair):
+    mechanism = Mechanism.load(*five_bar_files_pair)
+    model = ClosedLoopErrorModel(mechanism)
     assert model.placements == (Placement.joint("motor_1"), Placement.joint("elbow_1"), Placement.joint("motor_2"),
                                 Placement.joint("elbow_2"), Placement.frame("effector"), Placement.frame("tip_2"))
     assert model.n_parameters == 36
@@ -122,7 +153,8 @@ def test_has_own_placement_on_every_kind_of_frame(m_machine):
 
 
 def test_explicit_placements_map_to_the_same_columns(m_machine):
-    mechanism, _, model, solver, _, configurations, full = m_machine
+    mechanism, _, solver, _, configurations = m_machine
+    model, full = _full(m_machine)
     chosen = (Placement.frame("P_I"), Placement.joint("q12"), Placement.frame("upper_tip_I"), Placement.joint("q11"),
               Placement.frame("D_II"))
     small = ClosedLoopErrorModel(mechanism, chosen)
@@ -136,7 +168,8 @@ def test_explicit_placements_map_to_the_same_columns(m_machine):
 
 
 def test_deltas_and_perturbed_round_trip(m_machine):
-    mechanism, _, model, *_ = m_machine
+    mechanism = m_machine[0]
+    model = ClosedLoopErrorModel(mechanism)
     vector = np.zeros(model.n_parameters)
     vector[6 * 3 + 2] = 1e-3  # the fourth joint's placement
     vector[-6:] = [1e-3, -2e-3, 3e-3, 1e-2, 0.0, -1e-2]
@@ -167,7 +200,8 @@ def test_deltas_and_perturbed_round_trip(m_machine):
 
 
 def test_m_machine_sensitivities_along_random_directions(m_machine):
-    mechanism, machine, model, solver, sliders, configurations, full = m_machine
+    mechanism, machine, solver, sliders, configurations = m_machine
+    model, full = _full(m_machine)
     assert isinstance(full, PlatformSensitivities)
     n_pas = len(solver.passive)
     assert full.poses.shape == (2, 4, 4) and full.twist_jacobians.shape == (2, 6, 204)
@@ -191,8 +225,9 @@ def test_m_machine_sensitivities_along_random_directions(m_machine):
             np.testing.assert_allclose(full.closure_jacobians[i] @ direction, fd, atol=2e-7)
 
 
-def test_five_bar_sensitivities_column_by_column(five_bar):
-    _, machine, model, solver, sliders, configurations = five_bar
+@pytest.mark.parametrize("variant", ["nominal", "base", "swapped", "platform_on_base"])
+def test_five_bar_sensitivities_column_by_column(five_bar_files_pair, variant):
+    _, machine, model, solver, sliders, configurations = _five_bar(five_bar_files_pair, variant)
     full = model.platform_sensitivities(solver, configurations)
     passive = full.passive_sensitivities()
     for k in range(model.n_parameters):
@@ -205,7 +240,8 @@ def test_five_bar_sensitivities_column_by_column(five_bar):
 
 
 def test_passive_and_closure_jacobians_and_factors(m_machine):
-    _, _, _, solver, _, configurations, full = m_machine
+    _, _, solver, _, configurations = m_machine
+    model, full = _full(m_machine)
     for i, q in enumerate(configurations):
         square = solver.closure_jacobian(q)[:, solver.passive]
         np.testing.assert_allclose(full.passive_jacobians[i], square, atol=1e-13)
@@ -220,13 +256,14 @@ def test_passive_and_closure_jacobians_and_factors(m_machine):
     solver.closure_sensitivity(configurations[-1])
     last = [m.homogeneous.copy() for m in solver.data.oMf.tolist()]
     solver.closure_sensitivity(configurations[0])
-    full_again = m_machine[2].platform_sensitivities(solver, configurations)
+    full_again = model.platform_sensitivities(solver, configurations)
     assert np.allclose(full_again.poses, full.poses, atol=0)
     np.testing.assert_array_equal([m.homogeneous for m in solver.data.oMf.tolist()], last)
 
 
 def test_platform_sensitivity_is_one_pose_of_the_batch(m_machine):
-    mechanism, _, model, solver, sliders, configurations, full = m_machine
+    _, _, solver, sliders, configurations = m_machine
+    model, full = _full(m_machine)
     columns = np.array([200, 3, 150, 7, 199])
     part = model.platform_sensitivities(solver, configurations, columns)
     for i, q in enumerate(configurations):
@@ -250,7 +287,8 @@ def test_platform_sensitivity_is_one_pose_of_the_batch(m_machine):
 
 @pytest.mark.parametrize("selection", ["random", "frames", "partial_frames", "joints", "single", "platform"])
 def test_column_subsets_equal_the_full_computation(m_machine, selection):
-    _, _, model, solver, _, configurations, full = m_machine
+    _, _, solver, _, configurations = m_machine
+    model, full = _full(m_machine)
     rng = np.random.default_rng(3)
     index = {name: k for k, name in enumerate(model.names)}
     columns = {
@@ -274,7 +312,8 @@ def test_column_subsets_equal_the_full_computation(m_machine, selection):
 
 
 def test_column_plans_are_cached_per_selection(m_machine):
-    _, _, model, solver, _, configurations, full = m_machine
+    _, _, solver, _, configurations = m_machine
+    model, full = _full(m_machine)
     first = model.platform_sensitivities(solver, configurations[:1], np.array([1, 2]))
     second = model.platform_sensitivities(solver, configurations[:1], np.array([198, 5, 2]))
     third = model.platform_sensitivities(solver, configurations[:1], np.array([1, 2]))
@@ -285,13 +324,14 @@ def test_column_plans_are_cached_per_selection(m_machine):
 
 def test_every_column_depends_on_its_parameter(m_machine):
     """No all-zero column where a parameter moves the platform or a closure (no parameter dropped)."""
-    _, _, model, _, _, _, full = m_machine
+    model, full = _full(m_machine)
     moves = np.abs(full.twist_jacobians).max(axis=(0, 1)) + np.abs(full.closure_jacobians).max(axis=(0, 1))
     assert (moves > 1e-6).sum() >= 150
 
 
 def test_joint_twist_matrices_are_pinocchio_regressors(m_machine):
-    _, _, model, solver, _, configurations, _ = m_machine
+    mechanism, _, solver, _, configurations = m_machine
+    model = ClosedLoopErrorModel(mechanism)
     solver.closure_sensitivity(configurations[0])
     joints = np.array([[m.homogeneous for m in solver.data.oMi.tolist()]] * 2)
     G = model._joint_twist_matrices(solver.model, joints)
@@ -304,8 +344,17 @@ def test_joint_twist_matrices_are_pinocchio_regressors(m_machine):
 
 
 def test_invalid_configuration_is_refused(m_machine):
-    _, _, model, solver, _, configurations, _ = m_machine
+    mechanism, _, solver, _, configurations = m_machine
+    model = ClosedLoopErrorModel(mechanism)
     with pytest.raises(InvalidInputError):
         model.platform_sensitivities(solver, [configurations[0][:-1]])
     with pytest.raises(InvalidInputError):
         model.platform_sensitivity(solver, np.full_like(configurations[0], np.nan))
+
+
+def test_columns_are_read_as_integers(m_machine):
+    _, _, solver, _, configurations = m_machine
+    model, full = _full(m_machine)
+    floats = model.platform_sensitivities(solver, configurations, np.array([198.0, 5.0, 2.0]))
+    np.testing.assert_allclose(floats.twist_jacobians, full.twist_jacobians[:, :, [198, 5, 2]], atol=1e-12)
+    np.testing.assert_allclose(floats.closure_jacobians, full.closure_jacobians[:, :, [198, 5, 2]], atol=1e-12)

@@ -122,6 +122,7 @@ class ClosedLoopErrorModel:
         for j in model.supports[model.frames[self._platform].parentJoint][1:]:
             self._platform_v_mask[model.idx_vs[j]] = 1.0
         self._adjoint_frames = [anchor for anchor, _ in moved] + [self._platform]
+        self._adjoint_joints = np.array([model.frames[f].parentJoint for f in self._adjoint_frames], dtype=int)
         self._plans: dict[bytes, _ColumnPlan] = {}
 
     def deltas(self, vector: np.ndarray) -> dict[Placement, np.ndarray]:
@@ -171,13 +172,14 @@ class ClosedLoopErrorModel:
         operator = np.empty((n, solver.n_rows, 6))
         joint_jacobian = np.empty((n, 6, model.nv))
         joints = np.empty((n, model.njoints, 4, 4))
-        frames = np.empty((n, len(self._adjoint_frames), 4, 4))
         for i, q in enumerate(configurations):
             _, jac_q[i], operator[i] = solver.closure_sensitivity(q)
             joint_jacobian[i] = data.J
             joints[i] = [placement.homogeneous for placement in data.oMi.tolist()]
-            every = data.oMf.tolist()
-            frames[i] = [every[f].homogeneous for f in self._adjoint_frames]
+        # oMf = oMi[parent] frame.placement, not data.oMf: Pinocchio never updates oMf[0], the universe
+        # frame, which anchors an error of the base frame (it stays at identity when the base moves).
+        placements = np.array([model.frames[f].placement.homogeneous for f in self._adjoint_frames])
+        frames = joints[:, self._adjoint_joints] @ placements
         plan = self._column_plan(np.arange(self.n_parameters) if columns is None else np.asarray(columns, dtype=int))
         G = self._joint_twist_matrices(model, joints)[:, :, plan.g_columns]
         adjoints = adjoint_matrices(frames)
