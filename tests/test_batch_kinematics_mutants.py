@@ -8,6 +8,7 @@ recorded), the typed failure rows with their reason text, and the input checks.
 
 import dataclasses
 import re
+import warnings
 
 import numpy as np
 import pinocchio as pin
@@ -82,6 +83,16 @@ def test_jlog3_t_series_and_closed_form_values():
     b, db_over_a = bk._jlog3_t_series(np.array([0.0101, 0.02]))
     np.testing.assert_allclose(b, _b_series(np.array([0.0101, 0.02])), rtol=1e-8)
     np.testing.assert_allclose(db_over_a, _db_over_a_series(np.array([0.0101, 0.02])), rtol=1e-4)
+
+
+def test_jlog3_t_series_at_zero_rotation_is_quiet():
+    """At a = 0 the closed form (discarded there) is evaluated at a = 1, not 0: no division by zero."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        b, db_over_a = bk._jlog3_t_series(np.zeros(3))
+        bk.log6_jlog6_batch(np.eye(3)[None], np.zeros((1, 3)))
+    np.testing.assert_array_equal(b, 1 / 12)
+    np.testing.assert_array_equal(db_over_a, 1 / 360)
 
 
 def test_log6_jlog6_match_pinocchio_tightly_away_from_small_angles():
@@ -318,20 +329,32 @@ def test_inverses_of_a_stack_with_a_singular_matrix():
 
 def test_factors_refresh_rcond_labels_and_start():
     factors = bk._Factors(4, 2)
-    jac = np.array([[[1.0, 3.0, 9.0], [0.0, 1.0, 9.0]], [[1.0, 2.0, 9.0], [2.0, 4.0, 9.0]], [[-2.0, 0.0, 9.0],
+    jac = np.array([[[1.0, 3.0, 9.0], [0.0, 2.0, 9.0]], [[1.0, 2.0, 9.0], [2.0, 4.0, 9.0]], [[-2.0, 0.0, 9.0],
                                                                                            [0.0, 1.0, 9.0]]])
-    singular = factors.refresh(np.array([0, 2, 3]), jac, UNKNOWNS, sign_of_first)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the singular row divides by nothing
+        singular = factors.refresh(np.array([0, 2, 3]), jac, UNKNOWNS, sign_of_first)
     assert list(singular) == [False, True, False]
     square = jac[[0, 2], :, :2]
     np.testing.assert_allclose(factors.rcond, [1 / np.linalg.cond(square[0], 1), 0.0, 0.0,
                                                1 / np.linalg.cond(square[1], 1)], rtol=1e-14)
-    assert factors.rcond[0] == pytest.approx(1 / 16)  # column sums (1, 4), inverse's (1, 4): not the row sums (4, 1)
+    # 1-norms (largest column sum): 5 and 2 (inverse [[1, -1.5], [0, 0.5]]); the row sums would give 4 and 2.5.
+    assert factors.rcond[0] == pytest.approx(1 / 10, rel=1e-15)
     assert factors.labels.tolist() == [[True], [False], [True], [False]]
     assert factors.start.tolist() == [[True], [False], [True], [False]]
-    np.testing.assert_allclose(factors.inverse[0], [[1.0, -3.0], [0.0, 1.0]])
+    np.testing.assert_allclose(factors.inverse[0], [[1.0, -1.5], [0.0, 0.5]])
     factors.refresh(np.array([0]), -jac[:1], UNKNOWNS, sign_of_first)
     assert factors.labels.tolist() == [[False], [False], [True], [False]]
     assert factors.start.tolist() == [[True], [False], [True], [False]]  # labels at the first Jacobian stay
+
+
+@pytest.mark.parametrize("factor, status", [(1.0, 0), (1.0 + 1e-15, 3)])
+def test_newton_batch_singular_threshold_is_strict(factor, status):
+    """Converged at the start with J = [[2, 0], [-2, 1]]: 1-norm condition 4 x 1.5 = 6 exactly; a
+    threshold of exactly 1/6 is not above the reciprocal condition, so the row is not singular."""
+    out = bk.newton_batch(np.array([[1.0, 2.0]]), UNKNOWNS, quadratic([1.0]), sign_of_first, 1e-12, 60,
+                          (1.0 / 6.0) * factor)
+    assert list(out.status) == [status] and list(out.iterations) == [0]
 
 
 def test_evaluate_rows_chooses_newton_or_chord_per_row():
