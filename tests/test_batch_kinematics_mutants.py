@@ -525,8 +525,9 @@ def test_forward_batch_failures_sorted_by_row(solver):
                         r"iterations\)", batch.failures[0].reason)
 
 
-def test_forward_batch_in_chunks_of_256(five_bar):
-    """300 rows: two chunks; the same poses as the rows solved alone, in input order."""
+def test_forward_batch_in_chunks(five_bar, monkeypatch):
+    """300 rows in chunks of 256: two chunks; the same poses as the rows solved alone, in input order."""
+    monkeypatch.setattr(bk, "_CHUNK", 256)
     solver = ClosedLoopSolver(five_bar)
     sliders = five_bar.home[[0, 2]] + np.random.default_rng(18).uniform(-0.3, 0.3, (300, 2))
     sliders[[5, 280]] = [[3.0, 0.8], [2.3, 0.2]]  # beyond the limits, one in each chunk
