@@ -240,10 +240,8 @@ class StackedTree:
 
     def __init__(self, model: pin.Model) -> None:
         n_joints = model.njoints - 1
+        # `_joint_axis` admits 1-DoF joints only (nq = nv = 1 each), so q and v share the joints' order.
         axes, revolute = zip(*(_joint_axis(model.joints[j], model.names[j]) for j in range(1, model.njoints)))
-        if model.nq != n_joints or model.nv != n_joints:
-            raise UnsupportedJointError(model.names[1], "batched kinematics needs one coordinate per joint "
-                                                        "(nq = nv = joints)")
         self.axes, self.revolute = np.array(axes), np.array(revolute)
         self.q_index = np.array([model.idx_qs[j] for j in range(1, model.njoints)])
         self.parent = np.array([model.parents[j] for j in range(1, model.njoints)])
