@@ -369,3 +369,333 @@ def test_a_failed_inverse_leaves_a_usable_warm_start(mechanism):
     near = TARGET + [0.01, 0.0, 0.0, 0.05]
     np.testing.assert_allclose(solver.inverse(near).actuators, ClosedLoopSolver(mechanism).inverse(near).actuators,
                                atol=1e-10)
+
+
+# ------------------------------------------------------------------------------------------------
+# Survivors of the 2026-11-30 run (991 mutants): the predictor's bounds, the batch methods' q_init
+
+
+def _predictor_state(solver, previous_sliders, previous_passive):
+    """A solver whose last solution is home, with a zero tangent and the given solution before it."""
+    solver._tangent = np.zeros((len(solver.passive), len(solver.actuated)))
+    solver._previous = (np.asarray(previous_sliders, dtype=float), np.asarray(previous_passive, dtype=float))
+
+
+def test_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism):
+    """With T = 0 the prediction is lam^2 (q_prev - q_last) exactly while 0 < lam < 2, else nothing;
+    a repeated slider set (e = 0) has no direction: nothing either."""
+    solver = ClosedLoopSolver(mechanism)
+    sliders, passive = solver.last_q[solver.actuated], solver.last_q[solver.passive]
+    e = np.array([0.01, -0.02, 0.005, 0.01])
+    offset = np.linspace(-0.01, 0.02, len(passive))  # q_prev - q_last on the passive joints
+    _predictor_state(solver, sliders - e, passive + offset)
+    for lam, expected in ((0.5, 0.25), (1.0, 1.0), (1.5, 2.25), (0.0, 0.0), (2.0, 0.0), (2.5, 0.0), (-0.5, 0.0)):
+        change = lam * e if lam else np.array([0.02, 0.01, 0.0, 0.0])  # (0.02, 0.01, 0, 0) . e = 0
+        np.testing.assert_allclose(solver._predict(change), expected * offset, rtol=1e-12, atol=0.0, err_msg=str(lam))
+    _predictor_state(solver, sliders, passive + offset)  # the same sliders twice: e = 0
+    np.testing.assert_array_equal(solver._predict(e), np.zeros(len(passive)))
+
+
+def test_batch_methods_pass_q_init_on(solver, mechanism):
+    """An explicit start reaches the batch solvers: a wrong one is refused there, by shape."""
+    sliders = mechanism.home[mechanism.actuated_ids][None, :]
+    nq = mechanism.model.nq
+    for call, rows in ((solver.forward_batch, sliders), (solver.inverse_batch, TARGET[None, :])):
+        with pytest.raises(InvalidInputError) as caught:
+            call(rows, q_init=np.zeros(3))
+        assert str(caught.value) == f"q_init: expected finite ({nq},) or (1, {nq}) values, got shape (3,)"
+
+
+def test_inverse_of_a_full_rotation_task_commands_roll_and_pitch(tmp_path):
+    """The spherical wrist's task is the full orientation (qx, qy, qz, qw): IK meets the goal's
+    rotation, so nothing is left uncommanded (tilt 0), whether the goal is a quaternion or an SE3."""
+    from m3t1r.model.description import Mechanism
+    from m3t1r.model.examples import spherical_wrist_files
+
+    wrist = Mechanism.load(*spherical_wrist_files(tmp_path))
+    solver = ClosedLoopSolver(wrist)
+    sliders = wrist.home[wrist.actuated_ids] + np.array([0.2, 0.1, -0.2])
+    fk = ClosedLoopSolver(wrist).forward(sliders, q_init=wrist.home)
+    assert min(abs(angle) for angle in fk.roll_pitch) > 0.15  # the goal has roll and pitch
+    quaternion = pin.Quaternion(fk.pose.rotation).coeffs()
+    for target in (quaternion, pin.SE3(fk.pose)):
+        ik = solver.inverse(target, q_init=wrist.home)
+        np.testing.assert_allclose(ik.actuators, sliders, atol=1e-10)
+        np.testing.assert_allclose(ik.pose.rotation, fk.pose.rotation, atol=1e-10)
+        np.testing.assert_allclose(ik.tilt, 0.0, atol=1e-10)
+    # Warm: the predictor's task rows are those of the new goal rotation at the last pose reached.
+    nearby = ClosedLoopSolver(wrist).forward(sliders + 0.02, q_init=wrist.home)
+    warm = solver.inverse(pin.Quaternion(nearby.pose.rotation).coeffs())
+    np.testing.assert_allclose(warm.actuators, sliders + 0.02, atol=1e-10)
+    assert warm.iterations <= 3
+
+
+def test_warm_inverse_with_a_locked_joint_steps_the_unlocked_columns(tmp_path):
+    """The welded double hinge locks one joint: IK's unknowns are the other columns, and the warm
+    predictor's step goes to those columns only."""
+    import warnings
+
+    from test_mechanisms import _welded_double_hinge
+
+    from m3t1r.model.description import Mechanism
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        hinge = Mechanism.load(*_welded_double_hinge(tmp_path))
+    assert len(hinge.locked_joints) == 1
+    solver = ClosedLoopSolver(hinge)
+    assert solver._unknowns is not None and len(solver._unknowns) == hinge.model.nv - 1
+    sliders = hinge.home[hinge.actuated_ids]
+    for change in (0.05, 0.1):
+        target = ClosedLoopSolver(hinge).forward(sliders + change, q_init=hinge.home).pose.translation[:2]
+        warm = solver.inverse(target)
+        np.testing.assert_allclose(warm.actuators, sliders + change, atol=1e-9)
+        assert warm.q[hinge.locked_ids] == hinge.home[hinge.locked_ids]
+
+
+def test_an_explicit_start_takes_its_own_branch_not_the_warm_one(mechanism):
+    """With q_init the branch is labelled at that start: the warm solve's branch is not asked for
+    (here one no solve can have), in IK as in FK."""
+    solver = ClosedLoopSolver(mechanism)
+    solution = solver.inverse(TARGET)
+    solver._last_inverse_branch = solver._last_branch = b"\x02"
+    assert solver.inverse(TARGET, q_init=mechanism.home).residual <= 1e-12
+    assert solver.forward(solution.actuators, q_init=mechanism.home).residual <= 1e-12
+
+
+@pytest.mark.parametrize("slider, bound", [(0, "upper"), (1, "lower")])
+def test_inverse_accepts_an_actuator_exactly_at_its_limit(mechanism, slider, bound):
+    """IK's limit check is inclusive, as `check_actuators`: a start at a solution with a slider
+    exactly at its limit takes no step and is accepted."""
+    solver = ClosedLoopSolver(mechanism)
+    sliders = mechanism.home[mechanism.actuated_ids].copy()
+    sliders[slider] = (solver._act_upper if bound == "upper" else solver._act_lower)[slider]
+    fk = ClosedLoopSolver(mechanism).forward(sliders, q_init=mechanism.home)
+    ik = solver.inverse(np.r_[fk.pose.translation, fk.yaw], q_init=fk.q)
+    assert ik.iterations == 0
+    np.testing.assert_array_equal(ik.actuators, sliders)
+
+
+def test_warm_forward_keeps_the_last_solution_s_branch(mechanism):
+    """Without q_init, FK must end on the branch of the last solution: a label no solve can have
+    (set by hand here) makes it refuse the solution it finds."""
+    from m3t1r.errors import BranchChangeError
+
+    solver = ClosedLoopSolver(mechanism)
+    sliders = solver.forward(mechanism.home[mechanism.actuated_ids] + 0.01).q[mechanism.actuated_ids]
+    solver._last_branch = b"\x02"
+    with pytest.raises(BranchChangeError):
+        solver.forward(sliders + 0.01)
+
+
+def test_a_task_that_is_not_square_is_refused_word_for_word(tmp_path):
+    from test_mechanisms import _edit_yaml
+
+    from m3t1r.model.description import Mechanism
+    from m3t1r.model.examples import five_bar_files
+
+    urdf, closures = five_bar_files(tmp_path)
+    _edit_yaml(closures, lambda d: d["task"].update(position=["x", "y", "z"]))
+    solver = ClosedLoopSolver(Mechanism.load(urdf, closures))
+    with pytest.raises(InvalidInputError) as caught:
+        solver.inverse(np.zeros(3))
+    assert str(caught.value) == (
+        f"{closures}: inverse kinematics needs as many task coordinates as actuators; the task (x, y, z of "
+        "frame 'effector') commands 3 for 2 actuators (declare the task in the closures file: models/README.md)")
+
+
+def _recording(solver):
+    """Wrap the solver's `_system`: the list of its with_jacobian arguments, one per evaluation."""
+    calls, system = [], solver._system
+
+    def recorded(q, with_jacobian):
+        calls.append(with_jacobian)
+        return system(q, with_jacobian)
+    solver._system = recorded
+    return calls
+
+
+def test_forward_with_factors_starts_on_them_without_a_jacobian(mechanism):
+    """`factors` from a nearby model (here a perturbed copy's solution): Newton starts with chord
+    steps on them, and with factors exact at the start (its own solution) evaluates no Jacobian at all."""
+    from conftest import perturb_every_origin
+    from scipy.linalg import lapack
+
+    from m3t1r.model.kinematics import rehomed
+
+    nearby = rehomed(mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(3), 1e-4, 1e-4)))
+    sliders = mechanism.home[mechanism.actuated_ids] + np.array([0.02, -0.01, 0.01, 0.0])
+    near = ClosedLoopSolver(nearby).forward(sliders, q_init=nearby.home)
+    solver = ClosedLoopSolver(nearby)
+    square = solver.closure_jacobian(near.q)[:, solver.passive]
+    factors = (*lapack.dgetrf(square)[:2], float(np.abs(square).sum(axis=0).max()))
+    calls = _recording(solver)
+    again = solver.forward(sliders, q_init=near.q, factors=factors)
+    assert calls == [False] and again.iterations == 0 and solver._tangent is None
+    # On the nominal machine the same factors are a chord: no Jacobian at the start either.
+    solver = ClosedLoopSolver(mechanism)
+    calls = _recording(solver)
+    chord = solver.forward(sliders, q_init=near.q, factors=factors)
+    assert calls[0] is False and chord.iterations >= 1 and chord.residual <= 1e-12
+    np.testing.assert_allclose(chord.q, ClosedLoopSolver(mechanism).forward(sliders, q_init=mechanism.home).q, atol=1e-10)
+
+
+# ------------------------------------------------------------------------------------------------
+# `_newton` on stand-in systems: every evaluation recorded, residuals scripted
+
+
+class _Scripted:
+    """A 2 x 2 stand-in system: the k-th evaluation returns residuals[k] (whatever q is), and the
+    Jacobian `jacobian` when asked. `calls` records each with_jacobian argument."""
+
+    def __init__(self, residuals, jacobian=np.eye(2)):
+        self.residuals, self.jacobian, self.calls = [np.asarray(r, dtype=float) for r in residuals], jacobian, []
+
+    def __call__(self, q, with_jacobian):
+        self.calls.append(with_jacobian)
+        residual = self.residuals[min(len(self.calls), len(self.residuals)) - 1]
+        return residual, (self.jacobian.copy() if with_jacobian else None)
+
+
+def _identity_factors():
+    from scipy.linalg import lapack
+
+    return (*lapack.dgetrf(np.eye(2))[:2], 1.0)
+
+
+def _label(jac, lu):
+    return b"branch"
+
+
+def test_newton_refreshes_the_jacobian_only_when_a_chord_step_contracts_too_little(solver):
+    """Chord steps while |r| <= 0.05 |r_previous| (a contraction of exactly 0.05 is still enough);
+    a refresh otherwise, and none once the tolerance is met (a residual exactly at it is converged)."""
+    solver.tolerance = 0.04
+    # From the caller's factors: 1 -> 0.05 (exactly 0.05 of it: keep the factors) -> 0.04 (met).
+    system = _Scripted([[1.0, 0.0], [0.05, 0.0], [0.04, 0.0]])
+    outcome = solver._newton(np.zeros(2), None, system, _label, factors=_identity_factors())
+    assert system.calls == [False, False, False] and outcome.iterations == 2 and outcome.residual == 0.04
+    assert outcome.jacobian is None and outcome.branch is None  # converged on the factors alone
+    # 1 -> 0.5 (too little: refresh) -> 0.04 = tolerance, 0.04 > 0.05 * 0.5: met all the same, no refresh.
+    system = _Scripted([[1.0, 0.0], [0.5, 0.0], [0.5, 0.0], [0.04, 0.0]])
+    outcome = solver._newton(np.zeros(2), None, system, _label)
+    assert system.calls == [True, False, True, False] and outcome.iterations == 2 and outcome.branch == b"branch"
+    # No factors: the first evaluation has the Jacobian, then chord steps while they contract.
+    solver.tolerance = 1e-12
+    system = _Scripted([[1.0, 0.0], [0.01, 0.0], [1e-4, 0.0], [0.0, 0.0]])
+    outcome = solver._newton(np.zeros(2), None, system, _label)
+    assert system.calls == [True, False, False, False] and outcome.iterations == 3
+    np.testing.assert_array_equal(outcome.jacobian, np.eye(2))
+
+
+def test_newton_stops_on_a_non_finite_residual_as_out_of_workspace(solver):
+    for bad in (np.nan, np.inf):
+        system = _Scripted([[1.0, 0.0], [bad, 0.0]])
+        with pytest.raises(OutOfWorkspaceError) as caught:
+            solver._newton(np.zeros(2), None, system, _label)
+        assert caught.value.iterations == 1 and system.calls == [True, False]
+
+
+def test_newton_singular_verdict_uses_the_one_norm_and_is_word_for_word(solver):
+    """J = [[1, 1], [0, 1e-11]]: 1-norm 1, |J^-1|_1 = 2e11, so rcond = 5e-12 (the infinity norm,
+    2, would give 2.5e-12)."""
+    from m3t1r.errors import SingularConfigurationError
+
+    system = _Scripted([[1.0, 0.0], [3e-13, 0.0]], jacobian=np.array([[1.0, 1.0], [0.0, 1e-11]]))
+    solver.tolerance = 1e-12
+    with pytest.raises(SingularConfigurationError) as caught:
+        solver._newton(np.zeros(2), None, system, _label)
+    assert str(caught.value) == "singular configuration (reciprocal condition 5.00e-12) (residual 3.000e-13 after 1 iterations)"
+    assert caught.value.residual == 3e-13 and caught.value.iterations == 1
+
+
+def test_newton_branch_change_is_word_for_word(solver):
+    from m3t1r.errors import BranchChangeError
+
+    system = _Scripted([[1.0, 0.0], [0.5, 0.0], [0.5, 0.0], [2e-13, 0.0]])
+    labels = iter([b"start", b"other", b"other"])
+    with pytest.raises(BranchChangeError) as caught:
+        solver._newton(np.zeros(2), None, system, lambda jac, lu: next(labels))
+    assert str(caught.value) == ("the solution lies on another assembly branch than the start (Newton crossed a "
+                                 "singularity) (residual 2.000e-13 after 2 iterations)")
+    assert caught.value.residual == 2e-13 and caught.value.iterations == 2
+
+
+def test_newton_far_or_near_after_the_last_step_at_exactly_1e_6(solver):
+    """Stopped by max_iterations: a residual of exactly 1e-6 is near (NotConverged), above it far."""
+    solver.max_iterations = 1
+    for last, error in ((1e-6, NotConvergedError), (np.nextafter(1e-6, 1.0), OutOfWorkspaceError)):
+        system = _Scripted([[1.0, 0.0], [last, 0.0]])
+        with pytest.raises(error) as caught:
+            solver._newton(np.zeros(2), None, system, _label, factors=_identity_factors())
+        assert caught.value.residual == last and caught.value.iterations == 1
+
+
+def test_forward_records_the_predictor_history_and_the_branch(mechanism):
+    """After each FK: the branch label at the solution, and the solution before it only when this
+    one started from it (warm) or when there was none (so that a cold solve restarts the history)."""
+    solver = ClosedLoopSolver(mechanism)
+    home_sliders = mechanism.home[mechanism.actuated_ids]
+    history = []
+    for change, start in ((0.01, mechanism.home), (0.02, None), (0.03, mechanism.home)):
+        before = solver.last_q.copy()
+        result = solver.forward(home_sliders + change, q_init=start)
+        assert solver._last_branch == solver._branch(solver.closure_jacobian(result.q))
+        history.append(None if solver._previous is None else solver._previous[0].copy())
+        if solver._previous is not None:
+            np.testing.assert_array_equal(solver._previous[1], before[solver.passive])
+    np.testing.assert_array_equal(history[0], home_sliders)
+    np.testing.assert_allclose(history[1], home_sliders + 0.01, atol=0.0)
+    assert history[2] is None
+
+
+def test_inverse_beyond_an_actuator_limit_reports_the_converged_solve(mechanism):
+    """The assembly exists but needs q21 = 0.656 m: refused with the solve's own residual and steps."""
+    with pytest.raises(OutOfWorkspaceError) as caught:
+        ClosedLoopSolver(mechanism).inverse(TARGET + [0.0, 0.5, 0.0, 0.0])
+    assert str(caught.value).startswith("target needs actuator 'q21' = 0.656167 m, beyond its limit [-0.6, 0.6] "
+                                        "(residual ")
+    assert caught.value.residual <= 1e-12 and 3 <= caught.value.iterations <= 20
+
+
+def test_a_closure_system_that_is_not_square_is_refused_word_for_word(mechanism):
+    from dataclasses import replace
+
+    from m3t1r.model.closures import without_rows
+
+    short = replace(mechanism, closures=without_rows(mechanism.closures, (0,)))
+    with pytest.raises(InvalidInputError) as caught:
+        ClosedLoopSolver(short)
+    assert str(caught.value) == (
+        f"{mechanism.closures_path}: 15 enforced closure rows for 16 passive joints; forward kinematics needs a "
+        "square system (one row per passive joint)")
+
+
+def test_a_half_open_stroke_still_refuses_an_infinite_slider(mechanism):
+    """Limits finite below, infinite above: the fast path (which trusts the limits to reject inf)
+    is off, so +inf is refused as non-finite instead of passing as 'inside'."""
+    model = mechanism.model.copy()
+    upper = model.upperPositionLimit.copy()
+    upper[model.idx_qs[model.getJointId(mechanism.actuated_joints[0])]] = np.inf
+    model.upperPositionLimit = upper
+    solver = ClosedLoopSolver(mechanism.with_model(model))
+    assert np.isinf(solver._act_upper[0]) and np.all(np.isfinite(solver._act_lower))
+    sliders = mechanism.home[mechanism.actuated_ids].copy()
+    sliders[0] = np.inf
+    with pytest.raises(InvalidInputError, match="actuator values"):
+        solver.check_actuators(sliders)
+
+
+def test_the_block_cache_is_per_topology(mechanism, tmp_path):
+    """A five-bar built after the M machine gets its own blocks (two 1 x 1), not the machine's."""
+    from m3t1r.model.description import Mechanism
+    from m3t1r.model.examples import five_bar_files
+
+    ClosedLoopSolver(mechanism)
+    five_bar = Mechanism.load(*five_bar_files(tmp_path))
+    solver = ClosedLoopSolver(five_bar)
+    found = sorted((r.tolist(), c.tolist()) for r, c in solver._branch_blocks)
+    assert sorted(sum((c for _, c in found), [])) == sorted(solver.passive.tolist())
+    assert sorted(sum((r for r, _ in found), [])) == list(range(solver.n_rows))
+    result = solver.forward(five_bar.home[five_bar.actuated_ids] + 0.01)
+    assert result.residual <= 1e-12
