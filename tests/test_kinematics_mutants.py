@@ -458,8 +458,9 @@ def test_an_explicit_start_takes_its_own_branch_not_the_warm_one(mechanism):
     (here one no solve can have), in IK as in FK."""
     solver = ClosedLoopSolver(mechanism)
     solution = solver.inverse(TARGET)
-    solver._last_inverse_branch = solver._last_branch = b"\x02"
+    solver._last_inverse_branch = b"\x02"
     assert solver.inverse(TARGET, q_init=mechanism.home).residual <= 1e-12
+    solver._last_branch = b"\x02"  # after the IK, which sets it
     assert solver.forward(solution.actuators, q_init=mechanism.home).residual <= 1e-12
 
 
