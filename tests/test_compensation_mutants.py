@@ -239,3 +239,51 @@ def test_workspace_helpers_start_at_the_low_corner_and_refuse_word_for_word():
     with pytest.raises(InvalidInputError) as caught:
         workspace_targets(0, np.random.default_rng(0))
     assert str(caught.value) == "workspace_targets: n must be >= 1, got 0"
+
+
+def test_a_violation_names_a_joint_after_the_first(mechanism):
+    """The joint name is read at 1 + the joint's position among the coordinates (joint 0 is the universe)."""
+    from m3t1r.compensation import joint_limit_violation
+
+    model = mechanism.model
+    q = (model.lowerPositionLimit + model.upperPositionLimit) / 2.0
+    k = 5
+    q[k] = model.upperPositionLimit[k] + 0.25
+    name = model.names[1 + list(model.idx_qs[1:]).index(k)]
+    assert name != model.names[1 - list(model.idx_qs[1:]).index(k)]
+    assert joint_limit_violation(model, q) == (f"target puts joint '{name}' at {q[k]:.6g}, beyond its limit "
+                                               f"[{model.lowerPositionLimit[k]:.6g}, {model.upperPositionLimit[k]:.6g}]")
+
+
+def test_models_with_different_tasks_are_refused_word_for_word(mechanism):
+    import dataclasses
+
+    from m3t1r.model.task import TaskSpec
+
+    other = dataclasses.replace(mechanism, task=TaskSpec(frame=mechanism.task.frame, position=("x", "y", "z"),
+                                                         rotation="none"))
+    with pytest.raises(InvalidInputError) as caught:
+        Compensator(mechanism, other)
+    assert str(caught.value) == f"calibrated model's task {other.task} differs from the nominal {mechanism.task}"
+
+
+def test_a_wrong_target_width_names_every_column(mechanism):
+    with pytest.raises(InvalidInputError) as caught:
+        compensate(mechanism, mechanism, np.zeros((2, 3)))
+    assert str(caught.value) == "targets: shape (2, 3), expected (N, 4) rows (x, y, z, theta)"
+
+
+def test_tracking_errors_of_a_full_rotation_task():
+    """Position rows then the log3 angle of the target rotation's error, per reached pose."""
+    from m3t1r.compensation import _tracking_errors
+    from m3t1r.model.task import TaskSpec
+
+    task = TaskSpec(frame="tool", position=("x",), rotation="full")
+    goal_rotation = pin.rpy.rpyToMatrix(0.1, -0.2, 0.3)
+    target = pin.SE3(goal_rotation, np.array([0.4, 0.0, 0.0]))
+    reached = [pin.SE3(goal_rotation @ pin.exp3(np.array([0.0, 0.02, 0.0])), np.array([0.43, 1.0, 2.0])),
+               pin.SE3(goal_rotation, np.array([0.4, 5.0, 5.0]))]
+    errors = _tracking_errors(task, target, reached)
+    np.testing.assert_allclose(errors, [(0.03, 0.02), (0.0, 0.0)], atol=1e-12)
+    as_row = task.coordinates(target.homogeneous)[0]
+    np.testing.assert_allclose(_tracking_errors(task, as_row, reached), errors, atol=1e-12)

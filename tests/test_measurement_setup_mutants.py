@@ -170,3 +170,27 @@ def test_marker_rotation_beyond_pi_over_2_and_the_nearest_rotation_with_noise():
     flips = np.array([np.diag([1.0, 1.0, 1.0]), np.diag([-1.0, -1.0, 1.0]), np.diag([1.0, -1.0, -1.0])])
     result = register_marker_rotation(pin.SE3.Identity(), np.tile(np.eye(4), (3, 1, 1)), flips)
     assert np.linalg.det(result) == pytest.approx(1.0)
+
+
+def test_setup_from_command_line_numbers():
+    """Frame from x, y, z, roll, pitch, yaw (R = Rz(yaw) Ry(pitch) Rx(roll)); marker from x, y, z with the
+    platform's orientation; identity for what is not given."""
+    from m3t1r.calibration.measurement_setup import MeasurementSetup as Setup
+
+    setup = Setup.from_numbers([1.0, -2.0, 0.5, 0.1, -0.2, 0.3], (0.07, -0.02, 0.03))
+    rz, ry, rx = (pin.AngleAxis(a, axis).matrix() for a, axis in ((0.3, np.array([0.0, 0.0, 1.0])),
+                                                                  (-0.2, np.array([0.0, 1.0, 0.0])),
+                                                                  (0.1, np.array([1.0, 0.0, 0.0]))))
+    np.testing.assert_allclose(setup.frame.rotation, rz @ ry @ rx, atol=1e-15)
+    np.testing.assert_array_equal(setup.frame.translation, [1.0, -2.0, 0.5])
+    np.testing.assert_array_equal(setup.marker.rotation, np.eye(3))
+    np.testing.assert_array_equal(setup.marker.translation, [0.07, -0.02, 0.03])
+    only_marker = Setup.from_numbers(marker_xyz=np.array([[1, 2, 3]]))
+    assert only_marker.frame.isIdentity() and only_marker.marker.translation.dtype == float
+    np.testing.assert_array_equal(only_marker.marker.translation, [1.0, 2.0, 3.0])
+    only_frame = Setup.from_numbers(np.array([[0, 0, 1, 0, 0, np.pi / 2]]))
+    assert only_frame.marker.isIdentity()
+    np.testing.assert_allclose(only_frame.frame.rotation, [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
+    assert Setup.from_numbers().frame.isIdentity() and Setup.from_numbers().marker.isIdentity()
+    as_text = Setup.from_numbers(["1", "-2", "0.5", "0.1", "-0.2", "0.3"], ["0.07", "-0.02", "0.03"])  # argv strings
+    assert as_text.frame.isApprox(setup.frame, 1e-15) and as_text.marker.isApprox(setup.marker, 1e-15)

@@ -384,3 +384,34 @@ def test_prismatic_motion_terms_are_finite_whatever_the_memory() -> None:
                 terms = _JointMotionTerms.from_twists(twists[:n])
                 assert np.all(np.isfinite(terms.basis))
                 np.testing.assert_array_equal(terms.rate, np.zeros(n))
+
+
+def test_frames_moved_by_a_frame_error_are_the_frames_perturb_moves() -> None:
+    """For frames on the base (parent joint 0), mid-chain and at the platform of the M machine, the set
+    returned is exactly the set of frames whose world placement changes when `perturb` applies an
+    error to that frame, at a generic configuration; the anchor carries the error. World placements
+    are oMi[parent] * placement: Pinocchio never updates oMf[0], the universe frame a base error moves."""
+    from m3t1r.model.description import Mechanism
+    from m3t1r.model.poe import Placement, frames_moved_by_frame_error, perturb
+
+    model = Mechanism.load().model
+    q = np.random.default_rng(3).uniform(-0.3, 0.3, model.nq)
+
+    def world_frames(machine: pin.Model) -> list[pin.SE3]:
+        data = machine.createData()
+        pin.forwardKinematics(machine, data, q)
+        return [data.oMi[frame.parentJoint] * frame.placement for frame in machine.frames]
+
+    before = world_frames(model)
+    names = [f.name for f in model.frames if f.type != pin.FrameType.JOINT]
+    base = next(f.name for f in model.frames if f.parentJoint == 0 and f.type == pin.FrameType.BODY and f.name != "universe")
+    chosen = {base, "P_I", "slider_B1", names[len(names) // 2]}
+    for name in chosen:
+        frame_id = model.getFrameId(name)
+        anchor, moved = frames_moved_by_frame_error(model, frame_id)
+        perturbed = perturb(model, {Placement("frame", name): np.full(6, 1e-3)})
+        after = world_frames(perturbed)
+        changed = {i for i in range(model.nframes)
+                   if np.linalg.norm(pin.log6(before[i].actInv(after[i])).vector) > 1e-12}
+        assert moved == changed, name
+        assert anchor in moved and frame_id in moved
