@@ -489,15 +489,19 @@ def test_select_parameters_scores_the_pose_rows_only(mechanism, few_poses):
     np.testing.assert_array_equal(problem.columns, columns[list(selection.indices)])
 
 
+def _problem_with_a_1_m_outlier(mechanism, columns: np.ndarray) -> _ClosedLoopProblem:
+    """Four exact poses of the nominal machine, pose 1 moved 1 m along x, fitting `columns`."""
+    exact = measure(mechanism, workspace_actuators(mechanism, 4, np.random.default_rng(63)))
+    poses = list(exact.poses)
+    poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
+    return _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), PoseMeasurements(exact.actuators, tuple(poses)),
+                              NOISE, columns)
+
+
 def test_outlier_refit_starts_from_a_fresh_jacobian(mechanism):
     """The start's whitened residual and Jacobian, cached by the first fit with every pose, are not
     reused by the refit without the outlier: its first cost is that of the inliers."""
-    actuators = workspace_actuators(mechanism, 4, np.random.default_rng(63))
-    exact = measure(mechanism, actuators)
-    poses = list(exact.poses)
-    poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
-    problem = _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), PoseMeasurements(exact.actuators, tuple(poses)),
-                                 NOISE, np.arange(17))
+    problem = _problem_with_a_1_m_outlier(mechanism, np.arange(17))
     start = problem.assemble(mechanism.model, (mechanism.home,) * 4)
     problem.residual_and_jacobian(start)  # cached with the outlier's rows
     fit = SimpleNamespace(state=dataclasses.replace(start))  # the first fit's final iterate (released)
@@ -754,12 +758,7 @@ def test_evaluate_in_blocks_reduced_and_with_progress(mechanism, few_poses, monk
 def test_outlier_rounds_refit_only_when_the_flagged_set_changes(mechanism, monkeypatch):
     """One refit when the flagged set changes (then it is stable), none when it is stable from the
     start; a set that never settles stops after _MAX_OUTLIER_ROUNDS (5) refits."""
-    actuators = workspace_actuators(mechanism, 4, np.random.default_rng(63))
-    exact = measure(mechanism, actuators)
-    poses = list(exact.poses)
-    poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
-    problem = _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), PoseMeasurements(exact.actuators, tuple(poses)),
-                                 NOISE, np.arange(3))
+    problem = _problem_with_a_1_m_outlier(mechanism, np.arange(3))
     start = problem.assemble(mechanism.model, (mechanism.home,) * 4)
     fits = []
     fit = closed_loop._fit

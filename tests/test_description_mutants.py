@@ -414,22 +414,6 @@ def test_missing_rows_are_refused_naming_the_file(tmp_path):
         "frame 'effector' can still move (1 per unit joint speed); rows or closures are missing")
 
 
-def test_closures_holding_the_actuators_are_refused_naming_the_file(tmp_path):
-    urdf, closures = _five_bar(tmp_path)
-    mechanism = Mechanism.load(urdf, closures)
-    data = mechanism.model.createData()
-    pin.framesForwardKinematics(mechanism.model, data, mechanism.home)
-    x, y, _ = (float(v) for v in data.oMf[mechanism.model.getFrameId("effector")].translation)
-    urdf.write_text(urdf.read_text().replace(
-        "</robot>", f'<joint name="anchor_fixed" type="fixed"><parent link="base"/><child link="anchor"/>'
-                    f'<origin xyz="{x!r} {y!r} 0" rpy="0 0 0"/></joint><link name="anchor"/></robot>'))
-    _edit_yaml(closures, lambda d: d["closures"].append({"name": "pin", "type": "3D", "frame_a": "anchor",
-                                                         "frame_b": "effector", "rows": [0, 1]}))
-    assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
-        f"{closures}: the closures hold the actuators: the rows have rank 4 over every joint but 2 over the passive "
-        "ones (the actuators are not independent inputs)")
-
-
 _THIRD_CUT_JOINT = """<joint name="cut_3" type="revolute"><parent link="cut_link_1"/><child link="cut_link_3"/>
     <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="0 0 1"/><limit lower="-4" upper="4" effort="1" velocity="1"/></joint>
   <link name="cut_link_3"/>
