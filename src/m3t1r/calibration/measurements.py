@@ -77,7 +77,7 @@ def measure(machine: Mechanism, actuators: np.ndarray, rng: np.random.Generator 
     both are exact.
     """
     platform = assembled_from_home(machine, actuators).poses
-    seen = (setup or MeasurementSetup()).measured_poses(np.array(platform).reshape(-1, 4, 4))
+    seen = (setup or MeasurementSetup()).measured_poses(platform)
     poses = [pin.SE3(pose) for pose in seen]
     readings = np.array(actuators, dtype=float)
     if noise is not None:
