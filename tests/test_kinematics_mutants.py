@@ -700,3 +700,77 @@ def test_the_block_cache_is_per_topology(mechanism, tmp_path):
     assert sorted(sum((r for r, _ in found), [])) == list(range(solver.n_rows))
     result = solver.forward(five_bar.home[five_bar.actuated_ids] + 0.01)
     assert result.residual <= 1e-12
+
+
+# ------------------------------------------------------------------------------------------------
+# Issue 12 speed-ups: the block order the one-LU signature relies on, its fallback, the exact rcond
+
+
+def test_diagonal_blocks_come_in_upper_block_triangular_order():
+    """Rows 0, 1, 2 on their own unknowns; row 0 also uses unknown 1 and row 2 unknown 0: block {2}
+    must come before {0}, and {0} before {1}, so that no row uses an unknown of an earlier block."""
+    from m3t1r.model.kinematics import diagonal_blocks
+
+    pattern = np.array([[1, 1, 0], [0, 1, 0], [1, 0, 1]], dtype=bool)
+    blocks = diagonal_blocks(pattern)
+    assert [(r.tolist(), c.tolist()) for r, c in blocks] == [([2], [2]), ([0], [0]), ([1], [1])]
+    # The machine's blocks, in the solver's order, leave zeros below the diagonal blocks.
+    from m3t1r.model.description import Mechanism
+
+    solver = ClosedLoopSolver(Mechanism.load())
+    jac = solver.closure_jacobian(solver.mechanism.home + 0.05)
+    order = solver._branch_blocks
+    for later, (rows, _) in enumerate(order):
+        for _, columns in order[:later]:
+            assert not jac[np.ix_(rows, columns)].any()
+
+
+def test_branch_signature_factors_each_block_when_a_pivot_comes_from_below():
+    """An entry the block structure says is zero (row 1, column 0) but is not, and larger than the
+    block's own: the LU takes its pivot from the next block, so each block is factored on its own."""
+    from m3t1r.model.kinematics import _BranchSignature
+
+    signature = _BranchSignature([(np.array([0]), np.array([0])), (np.array([1]), np.array([1]))], 2)
+    assert signature(np.array([[0.1, 0.0], [5.0, -1.0]])) == b"\x01\x00"
+    assert signature(np.array([[0.1, 0.0], [0.0, -1.0]])) == b"\x01\x00"  # the same from the one LU
+    assert signature(np.array([[-0.1, 3.0], [0.0, -1.0]])) == b"\x00\x00"
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the steps on these factors are nan
+@pytest.mark.parametrize("jacobian", [np.array([[1.0, 1.0], [1.0, 1.0]]), np.array([[1.0, np.nan], [0.0, 1.0]])],
+                         ids=["zero pivot", "nan"])
+def test_newton_calls_a_zero_pivot_or_a_nan_inverse_singular(solver, jacobian):
+    """rcond is 0 when U has a zero pivot (no inverse) or the inverse is nan, never accepted."""
+    from m3t1r.errors import SingularConfigurationError
+
+    system = _Scripted([[1.0, 0.0], [0.0, 0.0]], jacobian=jacobian)
+    with pytest.raises(SingularConfigurationError) as caught:
+        solver._newton(np.zeros(2), None, system, _label)
+    assert str(caught.value).startswith("singular configuration (reciprocal condition 0.00e+00)")
+
+
+def test_newton_rcond_is_exact_and_its_inverse_is_returned(solver):
+    """rcond = 1 / (|J|_1 |J^-1|_1): J = [[2, 1], [0, 4]] has |J|_1 = 5, J^-1 = [[0.5, -0.125], [0, 0.25]],
+    |J^-1|_1 = 0.5: 0.4, reported with the inverse (FK's tangent uses it)."""
+    from m3t1r.model.kinematics import _inverse_and_rcond
+
+    jacobian = np.array([[2.0, 1.0], [0.0, 4.0]])
+    system = _Scripted([[1.0, 0.0], [0.0, 0.0]], jacobian=jacobian)
+    outcome = solver._newton(np.zeros(2), None, system, _label)
+    np.testing.assert_allclose(outcome.inverse, np.linalg.inv(jacobian), rtol=1e-15)
+    from scipy.linalg import lapack
+
+    inverse, rcond = _inverse_and_rcond(lapack.dgetrf(jacobian)[:2], 5.0)
+    assert rcond == pytest.approx(0.4, rel=1e-15)
+
+
+def test_newton_labels_a_single_jacobian_once(solver):
+    """A cold solve on one Jacobian computes its signature once and compares it with itself."""
+    calls = []
+
+    def counted(jac, lu):
+        calls.append(1)
+        return b"branch"
+    system = _Scripted([[1.0, 0.0], [0.01, 0.0], [0.0, 0.0]])
+    outcome = solver._newton(np.zeros(2), None, system, counted)
+    assert len(calls) == 1 and outcome.branch == b"branch" and system.calls == [True, False, False]

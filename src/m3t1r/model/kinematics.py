@@ -17,10 +17,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import pinocchio as pin
-from scipy.linalg import lapack
+from scipy.linalg import blas, lapack
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components, maximum_bipartite_matching
 
@@ -78,7 +79,8 @@ _ARANGE = np.arange(256)
 
 
 def diagonal_blocks(pattern: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(rows, columns) of the diagonal blocks of the block-triangular form of a square pattern.
+    """(rows, columns) of the diagonal blocks of the block-triangular form of a square pattern,
+    in upper block-triangular order: no row uses an unknown of an earlier block.
 
     A perfect matching puts one unknown on each row; the strongly connected components of
     "row i uses the unknown matched to row k" are the blocks (Dulmage-Mendelsohn fine form).
@@ -86,9 +88,16 @@ def diagonal_blocks(pattern: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     match = maximum_bipartite_matching(csr_matrix(pattern.astype(np.int8)), perm_type="column")
     if np.any(match < 0):
         raise SingularConfigurationError("the closure system is structurally singular")
-    count, labels = connected_components(csr_matrix(pattern[:, match].astype(np.int8)), directed=True,
-                                         connection="strong")
-    return [(rows, match[rows]) for rows in (np.flatnonzero(labels == b) for b in range(count))]
+    uses = pattern[:, match]
+    count, labels = connected_components(csr_matrix(uses.astype(np.int8)), directed=True, connection="strong")
+    before = np.zeros((count, count), dtype=bool)  # before[a, b]: block a's rows use block b's unknowns
+    row, used = np.nonzero(uses)
+    before[labels[row], labels[used]] = True
+    order: list[int] = []
+    while len(order) < count:  # the blocks form a DAG: one of them is never used by the others left
+        order.append(next(b for b in range(count) if b not in order
+                          and not any(before[a, b] for a in range(count) if a != b and a not in order)))
+    return [(rows, match[rows]) for rows in (np.flatnonzero(labels == b) for b in order)]
 
 
 _BLOCK_CACHE: dict[tuple, list[tuple[np.ndarray, np.ndarray]]] = {}
@@ -99,36 +108,72 @@ class _BranchSignature:
 
     One determinant over the whole system would miss two loops flipping at once (e.g. both
     five-bars folding their knees below the rails); each block's determinant changes sign only
-    through that block's own singularity. 1 x 1 and 2 x 2 blocks are read as one stack each (closed
-    form); larger ones from LAPACK's LU, as numpy's det costs ~10 us of overhead per call.
+    through that block's own singularity. All of them come from one LU of the system permuted to
+    upper block-triangular form (`diagonal_blocks`' order): with zeros below the diagonal blocks,
+    partial pivoting takes each pivot of a block's columns among that block's rows, so a block's
+    sign is that of its U diagonal times that of its own row swaps. Should a pivot come from below
+    its block (entries the structure says are zero are not), the blocks are factored one by one.
     """
 
     def __init__(self, blocks: list[tuple[np.ndarray, np.ndarray]], n_columns: int) -> None:
-        # Flat indices into a C-ordered (rows x n_columns) Jacobian: one `take` per block size.
-        flat = [(len(rows), (rows[:, None] * n_columns + cols[None, :]).reshape(-1)) for rows, cols in blocks]
-        self._ones = np.array([f for size, f in flat if size == 1], dtype=int).reshape(-1)
-        self._twos = np.array([f for size, f in flat if size == 2], dtype=int).reshape(-1, 4)
-        self._large = [(size, f) for size, f in flat if size > 2]
+        rows, columns = np.concatenate([r for r, _ in blocks]), np.concatenate([c for _, c in blocks])
+        self._square = rows[:, None] * n_columns + columns[None, :]  # flat indices into a (rows x n_columns) Jacobian
+        ends = np.cumsum([len(r) for r, _ in blocks]).tolist()
+        self._spans = list(zip([0] + ends[:-1], ends))  # each block's positions in the permuted system
 
     def __call__(self, jac: np.ndarray) -> bytes:
-        flat = jac.reshape(-1)  # the callers' Jacobians are C-contiguous
-        two = flat[self._twos]
-        signature = (flat[self._ones] > 0).tobytes() + (two[:, 0] * two[:, 3] - two[:, 1] * two[:, 2] > 0).tobytes()
-        for size, index in self._large:
-            signature += b"\x01" if _det_sign(lapack.dgetrf(flat[index].reshape(size, size))) else b"\x00"
-        return signature
+        square = jac.take(self._square)
+        factors, pivots = lapack.dgetrf(square)[:2]
+        # Python lists: at this size a loop costs less than the numpy calls that would replace it.
+        diagonal, swaps, signs = factors.diagonal().tolist(), pivots.tolist(), []
+        for start, end in self._spans:
+            flips = 0
+            for k in range(start, end):
+                if swaps[k] >= end:  # a pivot from below the block: its structural zeros are not
+                    return b"".join(b"\x01" if _det_sign(lapack.dgetrf(square[a:b, a:b])) else b"\x00"
+                                    for a, b in self._spans)
+                flips += (diagonal[k] < 0.0) + (swaps[k] != k)
+            signs.append(flips % 2 == 0)
+        return bytes(signs)
 
 
-@dataclass(frozen=True)
-class _Outcome:
-    """A converged Newton solve: solution, residual, steps, last LU factors, Jacobian and branch."""
+class _Outcome(NamedTuple):
+    """A converged Newton solve: solution, residual, steps, last LU factors and the inverse they give,
+    last Jacobian and branch."""
 
     q: np.ndarray
     residual: float
     iterations: int
     lu: tuple
-    jacobian: np.ndarray
-    branch: bytes
+    inverse: np.ndarray
+    jacobian: np.ndarray | None
+    branch: bytes | None
+
+
+_dasum, _idamax, _dlange = blas.dasum, blas.idamax, lapack.dlange
+
+
+def _one_norm(square: np.ndarray) -> float:
+    """Largest column sum of |A| (dgecon's anorm): the infinity norm of A^T, which for a C-ordered A
+    LAPACK reads in place (Fortran order), without the copy that A itself would cost."""
+    return float(_dlange("I", square.T))
+
+
+def _inverse_and_rcond(lu: tuple, one_norm: float) -> tuple[np.ndarray, float]:
+    """A^-1 from getrf factors, and A's reciprocal condition number 1 / (|A|_1 |A^-1|_1), exact where
+    dgecon would estimate it at about the same cost; the inverse then serves FK's tangent too.
+    0 when U has a zero pivot or the inverse overflows."""
+    inverse, info = lapack.dgetri(lu[0], lu[1])
+    rcond = 1.0 / (one_norm * float(_dlange("1", inverse))) if info == 0 else 0.0
+    return inverse, (rcond if rcond == rcond else 0.0)  # nan (inf - inf in the inverse) counts as singular
+
+
+def _max_abs(vector: np.ndarray) -> float:
+    """max |v_i| as numpy's abs().max() gives it (nan if any entry is nan), by two BLAS calls: a
+    fraction of a numpy reduction's overhead on vectors this short. dasum is nan exactly when an
+    entry is (a sum of absolute values never makes nan from finite or infinite terms)."""
+    total = _dasum(vector)
+    return abs(float(vector[_idamax(vector)])) if total == total else math.nan
 
 
 @dataclass(frozen=True)
@@ -364,16 +409,15 @@ class ClosedLoopSolver:
         q = (self.last_q if q_init is None else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
         warm = q_init is None
         if warm and self._tangent is not None:
-            q[self.passive] += self._predict(values - q[self.actuated])
+            q[self.passive] += self._predict(values - q.take(self.actuated))
         q[self.actuated] = values
         self._tangent, previous, self._previous = None, self._previous, None  # dropped until this solve succeeds
         outcome = self._newton(q, self.passive, self._system, self._passive_branch,
                                start_branch=self._last_branch if warm else None, factors=factors)
-        lu = outcome.lu
         if outcome.jacobian is not None:
-            self._tangent = -lapack.dgetrs(lu[0], lu[1], outcome.jacobian[:, self.actuated])[0]
+            self._tangent = -outcome.inverse.dot(outcome.jacobian.take(self.actuated, axis=1))
         if warm or previous is None:  # the solution this one started from, for the second-order predictor
-            self._previous = (self.last_q[self.actuated], self.last_q[self.passive])
+            self._previous = (self.last_q.take(self.actuated), self.last_q.take(self.passive))
         self._last_branch = outcome.branch
         self.last_q = outcome.q
         return ForwardResult(self._platform_pose(), outcome.q.copy(), outcome.residual, outcome.iterations)
@@ -388,14 +432,14 @@ class ClosedLoopSolver:
         1/2 H[e, e] ~= q_(k-1) - q_k + T e, applied as lam^2 1/2 H[e, e] with lam = (d . e) / (e . e),
         only while the path keeps going the same way (0 < lam < 2). Newton corrects whatever remains.
         """
-        step = self._tangent @ change
+        step = self._tangent.dot(change)
         if self._previous is not None:
             last_sliders, last_passive = self._previous
-            e = self.last_q[self.actuated] - last_sliders
-            ee = float(e @ e)
-            lam = float(change @ e) / ee if ee > 0.0 else 0.0
+            e = self.last_q.take(self.actuated) - last_sliders
+            ee = float(e.dot(e))
+            lam = float(change.dot(e)) / ee if ee > 0.0 else 0.0
             if 0.0 < lam < 2.0:
-                step += lam * lam * (last_passive - self.last_q[self.passive] + self._tangent @ e)
+                step += lam * lam * (last_passive - self.last_q.take(self.passive) + self._tangent.dot(e))
         return step
 
     def _passive_branch(self, jac: np.ndarray, lu: tuple) -> bytes:
@@ -416,37 +460,38 @@ class ClosedLoopSolver:
         """
         residual, jac = system(q, factors is None)
         previous = norm = math.inf
-        last_jac = square = None
+        last_jac = square = label = None  # label: the signature of last_jac, once computed
         lu = factors
         for iteration in range(self.max_iterations + 1):
-            norm = float(abs(residual).max())
+            norm = _max_abs(residual)
             if not math.isfinite(norm):
                 break
             if jac is None and norm > _CHORD_CONTRACTION * previous and norm > self.tolerance:
                 residual, jac = system(q, True)
             if jac is not None:
-                square = jac if unknowns is None else jac[:, unknowns]
+                square = jac if unknowns is None else jac.take(unknowns, axis=1)
                 lu = lapack.dgetrf(square)[:2]
+                label = None
                 if start_branch is None:
-                    start_branch = signature(jac, lu)
+                    start_branch = label = signature(jac, lu)
                 last_jac, jac = jac, None
             if norm <= self.tolerance:
                 # Conditioning and branch are judged at the last Jacobian only; converged on the
                 # caller's factors alone, on those (their 1-norm comes with them, no branch to keep).
-                one_norm = lu[2] if square is None else float(np.abs(square).sum(axis=0).max())
-                rcond = lapack.dgecon(lu[0], one_norm)[0]
+                one_norm = lu[2] if square is None else _one_norm(square)
+                inverse, rcond = _inverse_and_rcond(lu, one_norm)
                 if rcond < SINGULAR_RCOND:
                     raise SingularConfigurationError(f"singular configuration (reciprocal condition {rcond:.2e})",
                                                      norm, iteration)
-                branch = None if last_jac is None else signature(last_jac, lu)
+                branch = label if label is not None or last_jac is None else signature(last_jac, lu)
                 if branch != start_branch:
                     raise BranchChangeError("the solution lies on another assembly branch than the start "
                                             "(Newton crossed a singularity)", norm, iteration)
-                return _Outcome(q, norm, iteration, lu, last_jac, branch)
+                return _Outcome(q, norm, iteration, lu, inverse, last_jac, branch)
             if iteration == self.max_iterations:
                 break
             step = lapack.dgetrs(lu[0], lu[1], residual)[0]
-            biggest = float(abs(step).max())
+            biggest = abs(float(step[_idamax(step)]))  # nan entries make q nan: the next residual stops
             if biggest > _MAX_STEP:
                 step *= _MAX_STEP / biggest
             if unknowns is None:
