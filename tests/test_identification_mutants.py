@@ -717,14 +717,15 @@ def test_steps_are_invariant_under_a_scaling_of_the_residual_even_with_a_vanishi
 
 def test_an_accepted_step_with_a_predicted_decrease_of_zero_doubles_the_damping():
     class Blind:
-        """Row 0 drops from 1 to 0.5 once x < 0, which its zero Jacobian row cannot predict; row 1
-        is 1e-100 x + 1e-170, whose predicted decrease (of order 1e-340) underflows to exactly 0."""
+        """Row 1 drops from 1 to 0.5 once x < 0, which its zero Jacobian row cannot predict; row 0
+        is 1e-100 x + 1e-170, whose predicted decrease (of order 1e-340) underflows to exactly 0.
+        (Row 0 first: the QR of [J r] then needs no reflection, and Q^T r keeps the 1e-170 exactly.)"""
 
         def __init__(self) -> None:
             self.steps = []
 
         def residual_and_jacobian(self, x):
-            return np.array([1.0 if x[0] >= 0 else 0.5, 1e-100 * x[0] + 1e-170]), np.array([[0.0], [1e-100]])
+            return np.array([1e-100 * x[0] + 1e-170, 1.0 if x[0] >= 0 else 0.5]), np.array([[1e-100], [0.0]])
 
         def retract(self, x, step):
             self.steps.append(float(step[0]))

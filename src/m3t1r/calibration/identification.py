@@ -38,6 +38,7 @@ __all__ = [
     "batch_least_squares",
     "levenberg_marquardt",
     "select_base_parameters",
+    "triangular_factor",
 ]
 
 #: Above this condition number of the kept, column-normalised Jacobian, a relative perturbation of
@@ -71,6 +72,29 @@ def _as_weights(values: ArrayLike | None, n_rows: int, what: str) -> np.ndarray 
     if np.any(weights <= 0.0):
         raise InvalidInputError(f"{what}: must be positive inverse standard deviations")
     return weights
+
+
+# Rows per QR in `triangular_factor`: a block of 4,096 rows by 57 columns is 1.9 MB.
+_FACTOR_ROWS = 4096
+
+
+def triangular_factor(matrix: np.ndarray, vector: np.ndarray | None = None,
+                      previous: np.ndarray | None = None) -> np.ndarray:
+    """Upper-triangular R with R^T R = P^T P + M^T M for M = [matrix, vector] (the vector, when
+    given, as a last column) and P = `previous`: the R of a QR of [P; M], taken over blocks of rows.
+
+    Memory is R plus one block, never a copy of M. With a vector, R = [R_J, Q^T r; 0, rho]: the
+    factor of the matrix alone, the vector rotated by the same Q, and rho^2 the part of |r|^2
+    outside the matrix's range. Rows: min(rows of [P; M], columns).
+    """
+    width = matrix.shape[1] + (vector is not None)
+    factor = np.zeros((0, width)) if previous is None else previous
+    for start in range(0, matrix.shape[0], _FACTOR_ROWS):
+        block = matrix[start:start + _FACTOR_ROWS]
+        if vector is not None:
+            block = np.column_stack((block, vector[start:start + _FACTOR_ROWS]))
+        factor = np.linalg.qr(np.vstack((factor, block)), mode="r")
+    return factor
 
 
 # --------------------------------------------------------------------------------------------------
@@ -309,6 +333,33 @@ def _loo_press(residual: np.ndarray, leverage: np.ndarray) -> np.ndarray:
     return np.sum(loo**2, axis=-1)
 
 
+# Columns per in-place update of `forward_selection`'s projected Jacobian (temporaries of this width).
+_UPDATE_COLUMNS = 8
+
+
+def _column_norms_of(matrix: np.ndarray) -> np.ndarray:
+    """2-norm of every column, without the (m, p) temporary of np.linalg.norm(axis=0)."""
+    return np.sqrt(np.einsum("ij,ij->j", matrix, matrix))
+
+
+def _project_out(matrix: np.ndarray, basis: np.ndarray) -> None:
+    """matrix -= basis basis^T matrix, in place, a few columns at a time (orthonormal basis columns)."""
+    if basis.shape[1] == 0:
+        return
+    for start in range(0, matrix.shape[1], _UPDATE_COLUMNS):
+        block = matrix[:, start:start + _UPDATE_COLUMNS]
+        block -= basis @ (basis.T @ block)
+
+
+def _without_column(matrix: np.ndarray, column: int) -> np.ndarray:
+    """`matrix` without `column`: the later columns shifted left in place, a few at a time, and a view
+    of the first p - 1 returned (np.delete would copy the whole matrix)."""
+    for start in range(column, matrix.shape[1] - 1, _UPDATE_COLUMNS):
+        stop = min(start + _UPDATE_COLUMNS, matrix.shape[1] - 1)
+        matrix[:, start:stop] = matrix[:, start + 1:stop + 1].copy()
+    return matrix[:, :-1]
+
+
 def forward_selection(jacobian: ArrayLike, residual: ArrayLike, rows_per_pose: int, candidates: Sequence[int],
                       forced: Sequence[int] = (), *, rank_tolerance: float = 1e-9) -> ParameterSelection:
     """Greedy forward selection of columns of the whitened linear model r + J dx (m = N k rows).
@@ -331,11 +382,16 @@ def forward_selection(jacobian: ArrayLike, residual: ArrayLike, rows_per_pose: i
     leverage = np.einsum("nia,nja->nij", basis.reshape(n, k, -1), basis.reshape(n, k, -1))
     per_pose = [_loo_press(fitted.reshape(n, k), leverage)]
     remaining = [int(c) for c in candidates if int(c) not in chosen]
-    norms = np.linalg.norm(J, axis=0)
-    projected = J[:, remaining] - basis @ (basis.T @ J[:, remaining])
+    # The one copy of the Jacobian, column-major so that the in-place updates below run on contiguous columns.
+    projected = np.empty((J.shape[0], len(remaining)), order="F")
+    for position, column in enumerate(remaining):
+        projected[:, position] = J[:, column]
+    norms = np.zeros(J.shape[1])
+    norms[remaining] = _column_norms_of(projected)  # as the lengths below: a column is never longer than itself
+    _project_out(projected, basis)
     chunk = max(1, int(2e6 // max(1, n * k * k)))  # candidates per batch: about 16 MB per (c, N, k, k) stack
     while remaining:
-        lengths = np.linalg.norm(projected, axis=0)
+        lengths = _column_norms_of(projected)
         alive = lengths > rank_tolerance * np.maximum(norms[remaining], 1e-300)
         if not alive.any():
             break
@@ -355,8 +411,8 @@ def forward_selection(jacobian: ArrayLike, residual: ArrayLike, rows_per_pose: i
         leverage = leverage + np.einsum("ni,nj->nij", u.reshape(n, k), u.reshape(n, k))
         per_pose.append(_loo_press(fitted.reshape(n, k), leverage))
         chosen.append(remaining.pop(best))
-        projected = np.delete(projected, best, axis=1)
-        projected -= np.outer(u, u @ projected)
+        projected = _without_column(projected, best)
+        _project_out(projected, u[:, None])
     path = np.array([p.sum() for p in per_pose])
     best_size = int(np.argmin(path))
     differences = np.array(per_pose) - per_pose[best_size]
@@ -629,8 +685,10 @@ def levenberg_marquardt(
             raise IdentificationError(f"levenberg_marquardt: non-finite gradient at iteration {iteration}")
         if np.max(np.abs(gradient), initial=0.0) <= gradient_tolerance:
             return LMResult(state, iteration - 1, cost, tuple(history), True, "gradient", step_norm)
-        q, rj = np.linalg.qr(J, mode="reduced")
-        qtr = q.T @ r
+        # R and Q^T r from a QR of [J r] in row blocks: the memory of J's Q is never needed.
+        augmented_factor = triangular_factor(J, r)
+        size = min(augmented_factor.shape[0], J.shape[1])
+        rj, qtr = augmented_factor[:size, :-1], augmented_factor[:size, -1]
         scale = np.sqrt(np.einsum("ij,ij->j", J, J))
         scale = np.maximum(scale, 1e-12 * max(scale.max(), 1e-300))
         p = J.shape[1]
@@ -656,7 +714,7 @@ def levenberg_marquardt(
                 nu = 2.0
                 if release is not None:
                     release(state)
-                q = J = None  # the superseded iterate's factorisation, before the next one is built
+                J = None  # the superseded iterate's Jacobian, before the next one is built
                 if J_trial is None:
                     r_trial, J_trial = problem.residual_and_jacobian(trial)
                 state, r, J, cost = trial, r_trial, J_trial, cost_trial
