@@ -23,7 +23,6 @@ from m3t1r.calibration.closed_loop import (
     _residual_rows_batch,
     _rms,
     _select_parameters,
-    _shifted,
     _State,
     _structural_rank,
     calibrate_closed_loop,
@@ -38,7 +37,8 @@ from m3t1r.calibration.identification import forward_selection, select_base_para
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, measure
 from m3t1r.calibration.simulation import simulate_study
-from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
+from m3t1r.errors import BranchChangeError, IdentificationError, InvalidInputError, PoorExcitationWarning
+from m3t1r.model.batch_kinematics import RowFailure
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import workspace_actuators
 
@@ -163,14 +163,11 @@ def test_iteration_cap_is_60_or_5_per_parameter():
     assert [default_iterations(n) for n in (0, 11, 12, 13, 56, 100)] == [60, 60, 60, 65, 280, 500]
 
 
-def test_rms_and_shifted_coordinates():
+def test_rms():
     residual = np.array([[3.0, 4.0, 0.0, 1.0, 2.0, 2.0], [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
     assert _rms(residual) == pytest.approx((np.sqrt(12.5), np.sqrt(4.5)), rel=1e-15)
     position, rotation = _rms(residual[:, :3])
     assert position == pytest.approx(np.sqrt(12.5), rel=1e-15) and np.isnan(rotation) and type(rotation) is float
-    q = np.arange(5.0)
-    np.testing.assert_array_equal(_shifted(q, np.array([1, 3]), np.array([0.5, -1.0])), [0.0, 1.5, 2.0, 2.0, 4.0])
-    np.testing.assert_array_equal(q, np.arange(5.0))  # a copy
 
 
 @pytest.fixture(scope="module")
@@ -266,10 +263,11 @@ def test_prior_rows_and_a_trial_that_does_not_assemble(mechanism, few_poses):
     problem = _ClosedLoopProblem(error_model, few_poses, NOISE, np.array([0, 5, 7]), priors={5: 0.5, 7: 2e-3, 100: 1.0})
     accumulated = np.zeros(204)
     accumulated[[0, 5, 7]] = [1.0, 1e-3, -4e-3]
-    values, jacobian = problem._prior_rows(_State(mechanism.model, (), accumulated=accumulated))
+    values, jacobian = problem._prior_rows(_State(mechanism.model, np.zeros((0, 20)), np.zeros((0, 4, 4)),
+                                                  accumulated=accumulated))
     np.testing.assert_allclose(values, [1e-3 / 0.5, -4e-3 / 2e-3], rtol=1e-15)
     np.testing.assert_array_equal(jacobian, [[0.0, 2.0, 0.0], [0.0, 0.0, 500.0]])
-    failed = _State(None, ())
+    failed = _State(None, np.zeros((0, 20)), np.zeros((0, 4, 4)))
     residual = problem.residual(failed)
     assert residual.shape == (4 * 6 + 2,) and np.all(residual == np.inf)
     r, J = problem.residual_and_jacobian(failed)
@@ -343,7 +341,7 @@ def test_registered_setup_is_exact_on_the_nominal_machine(mechanism):
         measurements = measure(mechanism, actuators, position_only=position_only, setup=MeasurementSetup(frame, marker))
         problem = _ClosedLoopProblem(error_model, measurements, NOISE, np.arange(204), estimate_frame=True,
                                      estimate_marker=True)
-        start = problem.assemble(mechanism.model, (mechanism.home,) * 6)
+        start = problem.assemble(mechanism.model, None)
         both = _registered_setup(problem, start, MeasurementSetup(marker=axes_unknown), True, True)
         np.testing.assert_allclose(both.frame.homogeneous, frame.homogeneous, atol=1e-9)
         expected_marker = axes_unknown if position_only else marker  # no orientation data: axes as given
@@ -367,7 +365,7 @@ def test_outlier_rounds_and_too_few_poses_left(mechanism):
     poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
     measurements = PoseMeasurements(exact.actuators, tuple(poses))
     problem = _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), measurements, NOISE, np.arange(18))
-    start = problem.assemble(mechanism.model, (mechanism.home,) * 4)
+    start = problem.assemble(mechanism.model, None)
     fit = SimpleNamespace(state=start)
     with pytest.raises(IdentificationError) as error:
         _reject_outliers(problem, start, fit, 5.0, {"max_iterations": 1})
@@ -437,9 +435,10 @@ def test_refine_options_weights_and_an_equal_rank(mechanism, few_poses, monkeypa
     problem.active = np.array([True, False, True, True])
     setup = MeasurementSetup(marker=pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.02])))
     accumulated = np.linspace(-1e-4, 1e-4, 204)
-    state = problem.assemble(mechanism.model, (mechanism.home,) * 4, setup=setup, accumulated=accumulated)
-    _, jacobian, _ = problem.evaluate(state, np.arange(204))  # unwhitened: the same for every noise
-    expected = select_base_parameters(jacobian * problem.weights[:, None], problem.names, rank_tolerance=1e-3)
+    state = problem.assemble(mechanism.model, None, setup=setup, accumulated=accumulated)
+    _, jacobian = problem.evaluate(state, np.arange(204))  # whitened, zero rows for the outlier
+    assert np.all(jacobian[6:12] == 0.0) and np.any(jacobian[:6] != 0.0)
+    expected = select_base_parameters(jacobian, problem.names, rank_tolerance=1e-3)
     assert 3 < expected.rank < 24
     result = SimpleNamespace(state=state)
     recorder = _Recorder("continued")
@@ -458,12 +457,12 @@ def test_refine_options_weights_and_an_equal_rank(mechanism, few_poses, monkeypa
     assert continued.model is state.model and continued.setup is setup and continued.accumulated is accumulated
     for q, q0 in zip(continued.configurations, state.configurations):
         np.testing.assert_allclose(q, q0, atol=1e-12)
-    assert continued.whitened is None and continued.tangents is None
+    assert continued.whitened is None
     # Orientation weighted 1e5 below position: the re-selection warns of weak excitation, which
     # _refine silences.
     weak = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=1.0), np.arange(3))
     with pytest.warns(PoorExcitationWarning):
-        select_base_parameters(jacobian * weak.weights[:, None], weak.names, rank_tolerance=1e-9)
+        select_base_parameters(weak.evaluate(state, np.arange(204))[1], weak.names, rank_tolerance=1e-9)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert _refine(weak, result, 1e-9, 5) == "continued"
@@ -478,7 +477,7 @@ def test_select_parameters_scores_the_pose_rows_only(mechanism, few_poses):
     problem.active = np.array([True, True, False, True])
     accumulated = np.zeros(204)
     accumulated[columns] = [1e-5, -2e-5, 3e-5, 1e-5, 0.0, -1e-5]
-    state = problem.assemble(mechanism.model, (mechanism.home,) * 4, accumulated=accumulated)
+    state = problem.assemble(mechanism.model, None, accumulated=accumulated)
     r, J = problem.residual_and_jacobian(dataclasses.replace(state))
     assert len(r) == 24 + 2
     keep = np.repeat(problem.active, 6)
@@ -502,7 +501,7 @@ def test_outlier_refit_starts_from_a_fresh_jacobian(mechanism):
     """The start's whitened residual and Jacobian, cached by the first fit with every pose, are not
     reused by the refit without the outlier: its first cost is that of the inliers."""
     problem = _problem_with_a_1_m_outlier(mechanism, np.arange(17))
-    start = problem.assemble(mechanism.model, (mechanism.home,) * 4)
+    start = problem.assemble(mechanism.model, None)
     problem.residual_and_jacobian(start)  # cached with the outlier's rows
     fit = SimpleNamespace(state=dataclasses.replace(start))  # the first fit's final iterate (released)
     result = _reject_outliers(problem, start, fit, 5.0, {"max_iterations": 1})
@@ -544,8 +543,8 @@ def test_calibration_result_from_a_known_final_jacobian(mechanism):
     errors[[3, 40, 100]] = [2e-5, -1e-5, 3e-5]
     model = error_model.perturbed(mechanism.model, errors)
     setup = MeasurementSetup(frame=pin.SE3(np.eye(3), np.array([0.1, 0.0, 0.0])))
-    end = _State(model, (), setup=setup)
-    start = _State(mechanism.model, ())
+    end = _State(model, np.zeros((0, 20)), np.zeros((0, 4, 4)), setup)
+    start = _State(mechanism.model, np.zeros((0, 20)), np.zeros((0, 4, 4)))
     before = np.arange(12.0).reshape(2, 6)
     after = before / 1000
     columns = np.array([3, 40, 205])
@@ -628,104 +627,102 @@ def test_problem_layout_weights_and_measured_frames(mechanism, few_poses):
 
 
 class _FakeSolver:
-    """Stands in for ClosedLoopSolver: records forward's arguments, returns q = q_init + 1."""
+    """Stands in for ClosedLoopSolver: records forward_batch's arguments, returns q = start + 1
+    (start: q_init, or zeros from home), poses filled with each row's first slider, and the
+    failures set on the class."""
 
     calls: list = []
+    failures: tuple = ()
 
     def __init__(self, mechanism):
         self.mechanism = mechanism
 
-    def forward(self, actuators, q_init=None, factors=None):
-        _FakeSolver.calls.append((actuators, q_init, factors))
-        return SimpleNamespace(q=q_init + 1.0, pose=("pose", float(actuators[0])))
+    def forward_batch(self, actuators, q_init=None):
+        _FakeSolver.calls.append((actuators, q_init))
+        start = np.zeros((len(actuators), 20)) if q_init is None else q_init
+        return SimpleNamespace(q=start + 1.0, poses=actuators[:, :1, None] * np.ones((1, 4, 4)),
+                               failures=_FakeSolver.failures)
 
 
-def test_assemble_solves_each_pose_from_its_start_and_factors(mechanism, few_poses, monkeypatch):
+def test_assemble_solves_every_pose_in_one_batch_from_its_start(mechanism, few_poses, monkeypatch):
     problem = _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), few_poses, NOISE, np.arange(204))
     monkeypatch.setattr(closed_loop, "ClosedLoopSolver", _FakeSolver)
-    _FakeSolver.calls = []
-    starts = tuple(np.full(20, float(i)) for i in range(4))
+    _FakeSolver.calls, _FakeSolver.failures = [], ()
+    starts = np.repeat(np.arange(4.0)[:, None], 20, axis=1)
     state = problem.assemble(mechanism.model, starts)
-    np.testing.assert_array_equal([call[0] for call in _FakeSolver.calls], few_poses.actuators)
-    assert [call[1] is q for call, q in zip(_FakeSolver.calls, starts)] == [True] * 4
-    assert [call[2] for call in _FakeSolver.calls] == [None] * 4
+    (actuators, q_init), = _FakeSolver.calls
+    assert actuators is few_poses.actuators and q_init is starts
     assert state.model is mechanism.model and state.setup == MeasurementSetup()
-    assert [q[0] for q in state.configurations] == [1.0, 2.0, 3.0, 4.0]
-    assert state.poses == tuple(("pose", float(a[0])) for a in few_poses.actuators)
+    np.testing.assert_array_equal(state.configurations, starts + 1.0)
+    np.testing.assert_array_equal(state.poses[:, 2, 3], few_poses.actuators[:, 0])
     np.testing.assert_array_equal(state.accumulated, np.zeros(204))
-    assert state.tangents is None and state.factors is None and state.whitened is None
-    _FakeSolver.calls = []
-    factors = ("lu0", "lu1", "lu2", "lu3")
+    assert state.whitened is None
     setup, accumulated = MeasurementSetup(marker=pin.SE3(np.eye(3), np.ones(3))), np.ones(204)
-    state = problem.assemble(mechanism.model, starts, factors, setup, accumulated)
-    assert [call[2] for call in _FakeSolver.calls] == list(factors)
-    assert state.setup is setup and state.accumulated is accumulated
+    state = problem.assemble(mechanism.model, None, setup, accumulated)
+    assert _FakeSolver.calls[-1][1] is None and state.setup is setup and state.accumulated is accumulated
+    # The first failing pose named; a slider beyond its limit stays an input error; no state is made.
+    _FakeSolver.failures = (RowFailure(2, "forward kinematics: branch change", BranchChangeError),
+                            RowFailure(3, "actuator 'q11' = 9 is beyond its joint limit", InvalidInputError))
+    with pytest.raises(IdentificationError) as error:
+        problem.assemble(mechanism.model, starts)
+    assert str(error.value) == "measured pose 2 (0-based) does not assemble: forward kinematics: branch change"
+    _FakeSolver.failures = _FakeSolver.failures[1:]
+    with pytest.raises(InvalidInputError, match=r"^measured pose 3 \(0-based\) does not assemble: actuator 'q11' = 9 is"):
+        problem.assemble(mechanism.model, starts)
+    _FakeSolver.failures = ()
 
 
-def test_retract_moves_model_setup_and_predicts_the_assembly(mechanism, few_poses, monkeypatch):
+def test_retract_moves_model_and_setup_and_assembles_from_the_iterate(mechanism, few_poses, monkeypatch):
     """A step on machine, frame and marker columns: the model perturbed by the machine part, the
     frame and marker right-multiplied by exp6 of theirs (3 marker components with positions
-    only), the steps accumulated; assembly starts from q + dq_passive/dp . step with the
-    iterate's factors; a model that does not assemble gives a state without model."""
-    from m3t1r.errors import KinematicsError
-
+    only), the steps accumulated; assembly starts from the iterate's configurations; a model that
+    does not assemble gives a state without model or poses."""
     error_model = ClosedLoopErrorModel(mechanism)
     positions = measure(mechanism, few_poses.actuators, position_only=True)
     columns = np.array([2, 30, 204, 209, 210, 212])
     problem = _ClosedLoopProblem(error_model, positions, NOISE, columns, estimate_frame=True, estimate_marker=True)
     frame = pin.SE3(pin.utils.rotate("z", 0.3), np.array([0.1, 0.2, 0.3]))
     marker = pin.SE3(pin.utils.rotate("x", 0.2), np.array([0.0, 0.0, 0.05]))
-    configurations = tuple(np.full(20, 0.01 * i) for i in range(4))
+    configurations = np.repeat(0.01 * np.arange(4.0)[:, None], 20, axis=1)
     accumulated = np.linspace(0.0, 1.0, 213)
-    passive = np.arange(4 * len(mechanism.passive_ids) * 2, dtype=np.float32).reshape(4, -1, 2)
-    state = _State("model", configurations, setup=MeasurementSetup(frame, marker), accumulated=accumulated,
-                   tangents=closed_loop._Tangents(passive), factors=("f",) * 4)
+    state = _State("model", configurations, np.ones((4, 4, 4)), MeasurementSetup(frame, marker), accumulated)
     step = np.array([1e-3, -2e-3, 0.01, 0.02, 0.03, -0.04])
     calls = []
     monkeypatch.setattr(error_model, "perturbed", lambda model, vector: ("perturbed", model, vector.copy()))
     monkeypatch.setattr(problem, "assemble", lambda *args: calls.append(args) or "assembled")
     assert problem.retract(state, step) == "assembled"
-    (model, start, factors, setup, total), = calls
+    (model, start, setup, total), = calls
     vector = np.zeros(213)
     vector[columns] = step
     assert model[:2] == ("perturbed", "model")
     np.testing.assert_array_equal(model[2], vector[:204])
-    assert factors is state.factors
+    assert start is configurations
     np.testing.assert_allclose(setup.frame.homogeneous, (frame * pin.exp6(vector[204:210])).homogeneous, atol=1e-15)
     dm = np.r_[0.03, 0.0, -0.04, 0.0, 0.0, 0.0]
     np.testing.assert_allclose(setup.marker.homogeneous, (marker * pin.exp6(dm)).homogeneous, atol=1e-15)
     np.testing.assert_array_equal(total, accumulated + vector)
-    shift = passive @ np.array([1e-3, -2e-3])
-    for q, q0, d in zip(start, configurations, shift):
-        expected = q0.copy()
-        expected[mechanism.passive_ids] += d
-        np.testing.assert_array_equal(q, expected)
-    # Without tangents (the first trial from a fresh state) the assembly starts where the iterate was.
-    calls.clear()
-    problem.retract(dataclasses.replace(state, tangents=None), step)
-    assert calls[0][1] is configurations
     # No setup columns: the setup is carried as is.
     machine_only = _ClosedLoopProblem(error_model, positions, NOISE, np.array([2, 30]))
     monkeypatch.setattr(machine_only, "assemble", lambda *args: calls.append(args) or "assembled")
     calls.clear()
-    machine_only.retract(dataclasses.replace(state, tangents=None, accumulated=np.zeros(204)), step[:2])
-    assert calls[0][3] is state.setup
+    machine_only.retract(dataclasses.replace(state, accumulated=np.zeros(204)), step[:2])
+    assert calls[0][2] is state.setup
 
     def fails(*args):
-        raise KinematicsError("no assembly")
+        raise IdentificationError("no assembly")
 
     monkeypatch.setattr(problem, "assemble", fails)
     failed = problem.retract(state, step)
-    assert failed.model is None and failed.configurations is configurations and failed.poses == ()
+    assert failed.model is None and failed.configurations is configurations and failed.poses.shape == (0, 4, 4)
     np.testing.assert_allclose(failed.setup.frame.homogeneous, setup.frame.homogeneous, atol=1e-15)
     np.testing.assert_allclose(failed.setup.marker.homogeneous, setup.marker.homogeneous, atol=1e-15)
     np.testing.assert_array_equal(failed.accumulated, accumulated + vector)
 
 
-def test_evaluate_in_blocks_reduced_and_with_progress(mechanism, few_poses, monkeypatch):
-    """Blocks of 3 poses give what one block gives (residual, Jacobian, float32 tangents, one LU
-    per pose); reduce=True gives R with R^T R = J^T W^2 J over the active rows and no tangents;
-    each evaluation calls the progress hook once."""
+def test_evaluate_in_blocks_reduced_with_extra_rows_and_progress(mechanism, few_poses, monkeypatch):
+    """Blocks of 3 poses give what one block gives: the whitened residual and Jacobian (zero rows
+    for an outlier); extra rows are appended for the caller; reduce=True gives R with
+    R^T R = J^T J; each evaluation calls the progress hook once."""
     error_model = ClosedLoopErrorModel(mechanism)
     measurements = measure(mechanism, np.vstack((few_poses.actuators, few_poses.actuators[:3])))
     columns = np.array([0, 7, 33, 100, 203, 204, 209, 210, 215])
@@ -735,31 +732,30 @@ def test_evaluate_in_blocks_reduced_and_with_progress(mechanism, few_poses, monk
     problem.on_evaluate = lambda: calls.append(1)
     setup = MeasurementSetup(pin.SE3(pin.utils.rotate("z", 0.4), np.array([0.2, 0.0, 0.1])),
                              pin.SE3(pin.utils.rotate("y", 0.2), np.array([0.0, 0.01, 0.05])))
-    state = problem.assemble(mechanism.model, (mechanism.home,) * 7, setup=setup)
+    state = problem.assemble(mechanism.model, None, setup=setup)
     whole = problem.evaluate(state, columns)
-    assert len(state.factors) == 7 and len(calls) == 1
+    assert len(calls) == 1 and whole[1].shape == (42, 9)
     monkeypatch.setattr(closed_loop, "_BLOCK", 3)
-    state.factors = None
-    blocks = problem.evaluate(state, columns)
-    assert len(state.factors) == 7 and len(calls) == 2
-    np.testing.assert_array_equal(blocks[0], whole[0])
-    np.testing.assert_array_equal(blocks[1], whole[1])
-    np.testing.assert_array_equal(blocks[2].passive, whole[2].passive)
-    assert blocks[2].passive.dtype == np.float32 and blocks[2].passive.shape == (7, len(mechanism.passive_ids), 5)
-    np.testing.assert_array_equal(blocks[0], problem.pose_residuals(state).reshape(-1))
-    residual, factor, tangents = problem.evaluate(state, columns, reduce=True)
-    assert len(calls) == 3 and tangents.passive.shape == (0, len(mechanism.passive_ids), 5)
+    blocks = problem.evaluate(state, columns, extra_rows=2)
+    assert len(calls) == 2 and blocks[0].shape == (44,) and blocks[1].shape == (44, 9)
+    np.testing.assert_array_equal(blocks[0][:42], whole[0])
+    np.testing.assert_array_equal(blocks[1][:42], whole[1])
+    # The sensitivities' own FK pass against the batch assembly's poses: equal to rounding.
+    np.testing.assert_allclose(whole[0], problem.pose_residuals(state).reshape(-1) * problem.weights, rtol=1e-12, atol=1e-9)
+    assert np.all(whole[1][12:18] == 0.0) and np.all(whole[1][:12].any(axis=0))
+    residual, factor = problem.evaluate(state, columns, reduce=True)
+    assert len(calls) == 3
     np.testing.assert_array_equal(residual, whole[0])
-    whitened = whole[1] * problem.weights[:, None]
     assert factor.shape == (9, 9)
-    np.testing.assert_allclose(factor.T @ factor, whitened.T @ whitened, rtol=1e-9, atol=1e-9 * np.abs(whitened).max() ** 2)
+    np.testing.assert_allclose(factor.T @ factor, whole[1].T @ whole[1], rtol=1e-9,
+                               atol=1e-9 * np.abs(whole[1]).max() ** 2)
 
 
 def test_outlier_rounds_refit_only_when_the_flagged_set_changes(mechanism, monkeypatch):
     """One refit when the flagged set changes (then it is stable), none when it is stable from the
     start; a set that never settles stops after _MAX_OUTLIER_ROUNDS (5) refits."""
     problem = _problem_with_a_1_m_outlier(mechanism, np.arange(3))
-    start = problem.assemble(mechanism.model, (mechanism.home,) * 4)
+    start = problem.assemble(mechanism.model, None)
     fits = []
     fit = closed_loop._fit
     monkeypatch.setattr(closed_loop, "_fit", lambda *args: fits.append((args[1], args[1].whitened)) or fit(*args))
@@ -801,9 +797,10 @@ def test_jacobian_is_the_derivative_of_the_residual_along_retract(mechanism, few
     problem = _ClosedLoopProblem(error_model, measurements, NOISE, columns, estimate_frame=True, estimate_marker=True)
     setup = MeasurementSetup(pin.SE3(pin.utils.rotate("z", 0.4) @ pin.utils.rotate("x", 0.2), np.array([0.2, -0.1, 0.1])),
                              pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.01, 0.02, 0.05])))
-    state = problem.assemble(mechanism.model, (mechanism.home,) * 3, setup=setup)
-    residual, jacobian, _ = problem.evaluate(state, columns)
-    np.testing.assert_array_equal(residual, problem.pose_residuals(state).reshape(-1))
+    state = problem.assemble(mechanism.model, None, setup=setup)
+    residual, jacobian = problem.evaluate(state, columns)
+    np.testing.assert_allclose(residual, problem.pose_residuals(state).reshape(-1) * problem.weights, rtol=1e-12, atol=1e-9)
+    jacobian = jacobian / problem.weights[:, None]  # every weight positive here
     eps = 1e-6
     numeric = np.empty_like(jacobian)
     for j in range(len(columns)):

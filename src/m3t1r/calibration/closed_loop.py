@@ -41,10 +41,11 @@ from m3t1r.calibration.identification import (
     outlier_poses,
     parameter_columns,
     select_base_parameters,
+    triangular_factor,
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, measure
-from m3t1r.errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
+from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
@@ -89,27 +90,17 @@ def _residual_rows_batch(poses: np.ndarray, measured_positions: np.ndarray, meas
 _BLOCK = 512  # poses per block of the error model's stacks (about 100 kB per pose and 216 columns)
 
 
-@dataclass(frozen=True, eq=False)
-class _Tangents:
-    """dq_passive / dp (N, n_passive, P machine columns) at an iterate, float32: a first-order
-    prediction of the next trial's assembly needs no more precision (Newton refines it)."""
-
-    passive: np.ndarray
-
-
 @dataclass(eq=False)
 class _State:
-    """An LM iterate: a model and measurement setup, the assembled configuration of every measured
-    pose, the parameter steps accumulated since the start (for priors), and (once its Jacobian is
-    known) its sensitivities, whose passive motion per step predicts the next trial's assembly."""
+    """An LM iterate: a model and measurement setup, the assembled configuration (N, nq) and
+    platform pose (N, 4, 4, base frame) of every measured pose, the parameter steps accumulated
+    since the start (for priors), and, once evaluated, its whitened residual and Jacobian."""
 
     model: pin.Model | None
-    configurations: tuple[np.ndarray, ...]
-    poses: tuple[pin.SE3, ...] = ()
+    configurations: np.ndarray
+    poses: np.ndarray
     setup: MeasurementSetup = field(default_factory=MeasurementSetup)
     accumulated: np.ndarray | None = None
-    tangents: _Tangents | None = None
-    factors: tuple[tuple, ...] | None = None
     whitened: tuple[np.ndarray, np.ndarray] | None = None
 
 
@@ -144,22 +135,24 @@ class _ClosedLoopProblem:
         """Per-row 1/sigma of the pose rows; zero on the rows of flagged outliers."""
         return self.noise_weights * np.repeat(self.active, self.measurements.rows_per_pose)
 
-    def assemble(self, model: pin.Model, start: tuple[np.ndarray, ...], factors: tuple | None = None,
-                 setup: MeasurementSetup = MeasurementSetup(), accumulated: np.ndarray | None = None) -> _State:
-        """Assemble every measured pose on `model`, from `start`; with `factors` (each pose's
-        passive-Jacobian LU on a nearby model) Newton takes chord steps without a new Jacobian."""
+    def assemble(self, model: pin.Model, start: np.ndarray | None, setup: MeasurementSetup = MeasurementSetup(),
+                 accumulated: np.ndarray | None = None) -> _State:
+        """Assemble every measured pose on `model` in one vectorised solve (`forward_batch`): each
+        from its row of `start` (N, nq) and on that row's branch, or from home (None) on home's.
+        The first pose that fails is named in an IdentificationError (InvalidInputError for a slider
+        beyond its limit): no iterate is made of a partial assembly."""
         solver = ClosedLoopSolver(self.error_model.mechanism.with_model(model))
-        factors = factors or (None,) * len(start)
-        solutions = [solver.forward(a, q_init=q0, factors=lu)
-                     for a, q0, lu in zip(self.measurements.actuators, start, factors)]
+        solved = solver.forward_batch(self.measurements.actuators, q_init=start)
+        if solved.failures:
+            first = solved.failures[0]
+            error = InvalidInputError if first.error is InvalidInputError else IdentificationError
+            raise error(f"measured pose {first.index} (0-based) does not assemble: {first.reason}")
         accumulated = np.zeros(len(self.names)) if accumulated is None else accumulated
-        return _State(model, tuple(s.q for s in solutions), tuple(s.pose for s in solutions), setup, accumulated)
+        return _State(model, solved.q, solved.poses, setup, accumulated)
 
     def measured_frames(self, state: _State, platform_poses: np.ndarray | None = None) -> np.ndarray:
         """The model's prediction of every measured frame (N, 4, 4), in the measurement frame."""
-        if platform_poses is None:
-            platform_poses = np.array([pose.homogeneous for pose in state.poses])
-        return state.setup.measured_poses(platform_poses)
+        return state.setup.measured_poses(state.poses if platform_poses is None else platform_poses)
 
     def pose_residuals(self, state: _State) -> np.ndarray:
         """Unwhitened residual blocks (N, k) of every pose, outliers included."""
@@ -182,42 +175,37 @@ class _ClosedLoopProblem:
             return np.full(len(self.weights) + sum(1 for c in self.columns if c in self.priors), np.inf)
         return np.concatenate((self.pose_residuals(state).reshape(-1) * self.weights, self._prior_rows(state)[0]))
 
-    def evaluate(self, state: _State, columns: np.ndarray, reduce: bool = False
-                 ) -> tuple[np.ndarray, np.ndarray, _Tangents]:
-        """Unwhitened pose residual (6N or 3N), its Jacobian over `columns`, and the passive joints'
-        sensitivities (over the machine columns among `columns`).
+    def evaluate(self, state: _State, columns: np.ndarray, reduce: bool = False, extra_rows: int = 0
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened pose residual (6N or 3N rows, times `weights`) and its whitened Jacobian over
+        `columns`, each followed by `extra_rows` rows left for the caller to fill (priors).
 
         Poses are processed in blocks of `_BLOCK`, so the per-pose stacks of the error model exist
-        for one block at a time: memory grows with the pose count only by the Jacobian and the
-        tangents kept (float32). reduce=True returns instead of the Jacobian the triangular factor
-        R of the whitened one (R^T R = J^T W^2 J, same column norms, `len(columns)` rows): enough
-        to choose base parameters, in memory independent of the pose count (and no tangents).
+        for one block at a time: memory grows with the pose count only by the Jacobian returned.
+        reduce=True returns instead of the Jacobian its triangular factor R (R^T R = J^T J, same
+        column norms, at most `len(columns)` rows; no extra rows): enough to choose base
+        parameters, in memory independent of the pose count.
         """
         if self.on_evaluate is not None:
             self.on_evaluate()
         solver = ClosedLoopSolver(self.error_model.mechanism.with_model(state.model))
         machine = columns[columns < self.n_machine]
         n, k = len(state.configurations), self.measurements.rows_per_pose
-        residual = np.empty(n * k)
-        jacobian = np.zeros((0, len(columns))) if reduce else np.empty((n * k, len(columns)))
-        passive = np.empty((0 if reduce else n, len(self.error_model.mechanism.passive_ids), len(machine)),
-                           dtype=np.float32)
-        factors: list[tuple] = []
+        weights = self.weights
+        residual = np.empty(n * k + extra_rows)
+        jacobian = np.zeros((0, len(columns))) if reduce else np.empty((n * k + extra_rows, len(columns)))
         for start in range(0, n, _BLOCK):
             block = slice(start, min(start + _BLOCK, n))
             sensitivities = self.error_model.platform_sensitivities(solver, state.configurations[block], machine)
-            factors += sensitivities.factors
-            if not reduce:
-                passive[block] = sensitivities.passive_sensitivities()
             rows = slice(k * block.start, k * block.stop)
-            residual[rows], block_jacobian = self._block_rows(state, block, columns, sensitivities)
+            block_residual, block_jacobian = self._block_rows(state, block, columns, sensitivities)
+            residual[rows] = block_residual * weights[rows]
+            block_jacobian *= weights[rows, None]
             if reduce:
-                stacked = np.vstack((jacobian, block_jacobian * self.weights[rows, None]))
-                jacobian = np.linalg.qr(stacked, mode="r")
+                jacobian = triangular_factor(block_jacobian, previous=jacobian)
             else:
                 jacobian[rows] = block_jacobian
-        state.factors = tuple(factors)
-        return residual, jacobian, _Tangents(passive)
+        return residual, jacobian
 
     def _block_rows(self, state: _State, block: slice, columns: np.ndarray,
                     sensitivities: PlatformSensitivities) -> tuple[np.ndarray, np.ndarray]:
@@ -241,14 +229,15 @@ class _ClosedLoopProblem:
             n = len(self.residual(state))
             return np.full(n, np.inf), np.zeros((n, len(self.columns)))
         if state.whitened is None:
-            residual, jacobian, state.tangents = self.evaluate(state, self.columns)
             prior_values, prior_jacobian = self._prior_rows(state)
-            state.whitened = (np.concatenate((residual * self.weights, prior_values)),
-                              np.vstack((jacobian * self.weights[:, None], prior_jacobian)))
+            residual, jacobian = self.evaluate(state, self.columns, extra_rows=len(prior_values))
+            pose_rows = len(self.weights)
+            residual[pose_rows:], jacobian[pose_rows:] = prior_values, prior_jacobian
+            state.whitened = (residual, jacobian)
         return state.whitened
 
     def release(self, state: _State) -> None:
-        """LM hook: a superseded iterate drops its per-pose caches (`_release`)."""
+        """LM hook: a superseded iterate drops its Jacobian (`_release`)."""
         _release(state)
 
     def retract(self, state: _State, step: np.ndarray) -> _State:
@@ -263,22 +252,10 @@ class _ClosedLoopProblem:
             size = len(self.names) - self.marker_slot
             dm[:size] = vector[self.marker_slot:]
             setup = replace(setup, marker=setup.marker * pin.exp6(dm))
-        start = state.configurations
-        if state.tangents is not None:
-            # First-order prediction of the new assembly: q_passive + dq_passive/dp step.
-            passive = self.error_model.mechanism.passive_ids
-            machine_step = step[self.columns < self.n_machine]
-            start = tuple(_shifted(q, passive, d) for q, d in zip(start, state.tangents.passive @ machine_step))
-        try:
-            return self.assemble(model, start, state.factors, setup, state.accumulated + vector)
-        except KinematicsError:
-            return _State(None, state.configurations, setup=setup, accumulated=state.accumulated + vector)
-
-
-def _shifted(q: np.ndarray, indices: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    out = q.copy()
-    out[indices] += delta
-    return out
+        try:  # from the iterate's assembly, which the batch's chord Newton corrects in a few steps
+            return self.assemble(model, state.configurations, setup, state.accumulated + vector)
+        except IdentificationError:  # a pose does not assemble on the trial model: LM rejects the step
+            return _State(None, state.configurations, np.zeros((0, 4, 4)), setup, state.accumulated + vector)
 
 
 @dataclass(frozen=True)
@@ -377,11 +354,11 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     if any(not (math.isfinite(s) and s > 0) for s in problem.priors.values()):
         raise InvalidInputError("a prior's sigma must be a positive number [m or rad]")
     try:
-        start = problem.assemble(mechanism.model, (mechanism.home,) * len(measurements), setup=setup)
-    except KinematicsError as exc:
-        raise IdentificationError(f"a measured pose does not assemble on the starting model: {exc}") from None
+        start = problem.assemble(mechanism.model, None, setup=setup)
+    except IdentificationError as exc:
+        raise IdentificationError(f"on the starting model, {exc}") from None
     start.setup = _registered_setup(problem, start, setup, estimate_frame, estimate_marker)
-    residual, factor, _ = problem.evaluate(start, everything, reduce=True)
+    residual, factor = problem.evaluate(start, everything, reduce=True)
     factor[:, fixed_columns] = 0.0
     forced = np.arange(error_model.n_parameters, len(everything))
     base = select_base_parameters(factor, problem.names, rank_tolerance=rank_tolerance, forced=forced)
@@ -413,7 +390,7 @@ def _registered_setup(problem: _ClosedLoopProblem, start: _State, setup: Measure
                       estimate_marker: bool) -> MeasurementSetup:
     """The setup LM starts from: the frame by rigid registration of the nominal predictions
     (positions), then, with orientation data, the marker's orientation in closed form."""
-    platform = np.array([pose.homogeneous for pose in start.poses])
+    platform = start.poses
     if estimate_frame:
         setup = replace(setup, frame=register_frame(MeasurementSetup(marker=setup.marker).measured_poses(platform),
                                                     problem._measured_positions))
@@ -453,9 +430,9 @@ def _reject_outliers(problem: _ClosedLoopProblem, start: _State, result: LMResul
 
 
 def _release(state: _State) -> None:
-    """Drop what an iterate holds per pose for the next LM step (tangents, LU factors, Jacobian):
-    a superseded fit's final state keeps only its model, setup and assembly."""
-    state.tangents, state.factors, state.whitened = None, None, None
+    """Drop the Jacobian an iterate holds for the next LM step: a superseded fit's final state keeps
+    only its model, setup and assembly."""
+    state.whitened = None
 
 
 def _select_parameters(problem: _ClosedLoopProblem, start: _State, result: LMResult, forced: np.ndarray,
@@ -470,25 +447,26 @@ def _select_parameters(problem: _ClosedLoopProblem, start: _State, result: LMRes
     step = result.state.accumulated[problem.columns]
     r0 = (r[:pose_rows] - J[:pose_rows] @ step)[keep]
     forced_positions = np.flatnonzero(np.isin(problem.columns, forced))
-    selection = forward_selection(J[:pose_rows][keep], r0, rows, range(len(problem.columns)), forced_positions)
+    pose_jacobian = J[:pose_rows] if keep.all() else J[:pose_rows][keep]  # a copy only with outliers
+    selection = forward_selection(pose_jacobian, r0, rows, range(len(problem.columns)), forced_positions)
     if len(selection.indices) == len(problem.columns):
         return selection, result
     problem.columns = problem.columns[list(selection.indices)]
     _release(result.state)
-    return selection, _fit(problem, replace(start, whitened=None, tangents=None), options)
+    return selection, _fit(problem, replace(start, whitened=None), options)
 
 
 def _refine(problem: _ClosedLoopProblem, result: LMResult, rank_tolerance: float, iterations: int) -> LMResult:
     everything = np.arange(len(problem.names))
-    _, jacobian, _ = problem.evaluate(result.state, everything)
+    _, factor = problem.evaluate(result.state, everything, reduce=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)  # weak by construction
-        refined = select_base_parameters(jacobian * problem.weights[:, None], problem.names, rank_tolerance=rank_tolerance)
+        refined = select_base_parameters(factor, problem.names, rank_tolerance=rank_tolerance)
     if refined.rank <= len(problem.columns):
         return result
     problem.columns = np.array(refined.indices)
-    state = problem.assemble(result.state.model, result.state.configurations, setup=result.state.setup,
-                             accumulated=result.state.accumulated)
+    state = problem.assemble(result.state.model, result.state.configurations, result.state.setup,
+                             result.state.accumulated)
     return levenberg_marquardt(problem, state, max_iterations=iterations, initial_damping=1e-9, cost_tolerance=1e-14)
 
 
@@ -496,9 +474,10 @@ def _calibration(mechanism: Mechanism, problem: _ClosedLoopProblem, start: _Stat
                  base: BaseParameters, selection: ParameterSelection | None) -> ClosedLoopCalibration:
     final_residual, final_jacobian = problem.residual_and_jacobian(result.state)
     # Covariance of the fitted parameters from the noise model: (J^T W J)^-1 with whitened J.
-    # From the SVD of J rather than pinv(J^T J): squaring the condition number of a weakly
-    # excited set can make the diagonal slightly negative.
-    _, singular, vt = np.linalg.svd(final_jacobian, full_matrices=False)
+    # From the SVD of J (of its triangular factor: the same singular values and right vectors, in
+    # memory independent of the pose count) rather than pinv(J^T J): squaring the condition number
+    # of a weakly excited set can make the diagonal slightly negative.
+    _, singular, vt = np.linalg.svd(triangular_factor(final_jacobian), full_matrices=False)
     kept = singular > 1e-12 * singular[0]
     covariance = (vt[kept].T / singular[kept] ** 2) @ vt[kept]
     std = np.zeros(len(problem.names))
@@ -623,9 +602,8 @@ def _count_identifiable(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_colu
                               estimate_frame=problem.frame_slot is not None,
                               estimate_marker=problem.marker_slot is not None)
     twin.noise_weights = np.tile(problem.noise_weights[:reference.rows_per_pose], len(reference))
-    state = twin.assemble(mechanism.model, (mechanism.home,) * len(reference), setup=MeasurementSetup(marker=marker))
-    _, jacobian, _ = twin.evaluate(state, everything)
-    jacobian = jacobian * twin.weights[:, None]
+    state = twin.assemble(mechanism.model, None, setup=MeasurementSetup(marker=marker))
+    _, jacobian = twin.evaluate(state, everything)
     jacobian[:, list(fixed_columns)] = 0.0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

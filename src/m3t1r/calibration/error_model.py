@@ -20,7 +20,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
-from scipy.linalg import lapack
 
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
@@ -142,20 +141,16 @@ class ClosedLoopErrorModel:
         blocks = adjoint_matrices(joints[:, self._parents] @ placements)  # (N, n_joints, 6, 6)
         return blocks.transpose(0, 2, 1, 3).reshape(len(joints), 6, -1)
 
-    def platform_sensitivity(self, solver: ClosedLoopSolver, q: np.ndarray, columns: np.ndarray | None = None,
-                             with_factors: bool = False):
+    def platform_sensitivity(self, solver: ClosedLoopSolver, q: np.ndarray, columns: np.ndarray | None = None
+                             ) -> tuple[pin.SE3, np.ndarray, np.ndarray]:
         """Platform pose at an assembled q, d xi_P / dp (6 x P, spatial twist in WORLD) and
         dq_passive / dp (n_passive x P), for the parameter `columns` (default all).
 
         Sliders held fixed; the passive joints move with the parameters through the closures.
-        with_factors=True also returns the LU factors of the passive closure Jacobian at q, which
-        `ClosedLoopSolver.forward(..., factors=...)` can reuse on a nearby model.
         One pose of `platform_sensitivities`.
         """
         batch = self.platform_sensitivities(solver, [q], columns)
-        dq_dp = batch.passive_sensitivities()[0]
-        result = (pin.SE3(batch.poses[0]), batch.twist_jacobians[0], dq_dp)
-        return result + (batch.factors[0],) if with_factors else result
+        return pin.SE3(batch.poses[0]), batch.twist_jacobians[0], batch.passive_sensitivities()[0]
 
     def platform_sensitivities(self, solver: ClosedLoopSolver, configurations,
                                columns: np.ndarray | None = None) -> PlatformSensitivities:
@@ -194,11 +189,9 @@ class ClosedLoopErrorModel:
         for slots, components, adjoint in plan.platform_terms:
             xi[:, :, slots] += adjoints[:, adjoint][:, :, components]
         square = jac_q[:, :, solver.passive]
-        one_norms = np.abs(square).sum(axis=1).max(axis=1)
-        factors = tuple((*lapack.dgetrf(block)[:2], float(norm)) for block, norm in zip(square, one_norms))
         platform_jacobian = (joint_jacobian * self._platform_v_mask)[:, :, solver.passive]  # WORLD frame Jacobian
         through_passive = np.swapaxes(np.linalg.solve(np.swapaxes(square, 1, 2), np.swapaxes(platform_jacobian, 1, 2)), 1, 2)
-        return PlatformSensitivities(frames[:, -1], xi - through_passive @ dr_dp, square, dr_dp, factors)
+        return PlatformSensitivities(frames[:, -1], xi - through_passive @ dr_dp, square, dr_dp)
 
     def _column_plan(self, columns: np.ndarray) -> _ColumnPlan:
         key = columns.tobytes()
@@ -213,14 +206,13 @@ class PlatformSensitivities:
 
     poses: platform frames (N, 4, 4) in the base frame; twist_jacobians: d xi_P / dp (N, 6, P),
     spatial twists in WORLD; passive_jacobians: J_c,passive (N, n_pas, n_pas); closure_jacobians:
-    dr_c / dp (N, n_pas, P) at fixed joints; factors: getrf LU and 1-norm of each passive Jacobian.
+    dr_c / dp (N, n_pas, P) at fixed joints.
     """
 
     poses: np.ndarray
     twist_jacobians: np.ndarray
     passive_jacobians: np.ndarray
     closure_jacobians: np.ndarray
-    factors: tuple[tuple, ...]
 
     def passive_sensitivities(self) -> np.ndarray:
         """dq_passive / dp (N, n_pas, P) [rad or m per parameter unit], sliders held fixed:
