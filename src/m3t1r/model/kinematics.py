@@ -266,12 +266,15 @@ class ClosedLoopSolver:
         self.passive = mechanism.passive_ids
         self._act_lower, self._act_upper = mechanism.joint_limits()
         self._finite_limits = bool(np.all(np.isfinite(self._act_lower)) and np.all(np.isfinite(self._act_upper)))
+        self._limit_lists = (self._act_lower.tolist(), self._act_upper.tolist())
         self._platform = mechanism.platform_frame_id
         self._task_frame = model.getFrameId(mechanism.task.frame)
+        self._target_name = f"target ({', '.join(mechanism.task.columns)})"  # in IK's input refusals
         locked = np.zeros(nv, dtype=bool)
         locked[mechanism.locked_ids] = True
         # IK's columns: every joint but the locked ones (None: all, which saves a copy per step)
         self._unknowns = np.flatnonzero(~locked) if locked.any() else None
+        self._unknown_columns = slice(None) if self._unknowns is None else self._unknowns
         if self.n_rows != len(self.passive):
             raise InvalidInputError(
                 f"{mechanism.closures_path}: {self.n_rows} enforced closure rows for {len(self.passive)} passive joints; "
@@ -382,10 +385,12 @@ class ClosedLoopSolver:
     # Forward kinematics
     def check_actuators(self, actuators: np.ndarray) -> np.ndarray:
         """Validate slider values [m]: finite, right count, within the URDF limits (no clipping)."""
-        if type(actuators) is np.ndarray and actuators.shape == self._act_lower.shape:
-            inside = (actuators >= self._act_lower) & (actuators <= self._act_upper)  # False for NaN
-            if inside.all() and self._finite_limits:
-                return actuators.astype(float)  # a copy
+        if type(actuators) is np.ndarray and actuators.shape == self._act_lower.shape and self._finite_limits:
+            values = actuators.astype(float)  # a copy
+            # A loop over a handful of floats costs less than the numpy calls; False for NaN.
+            if all(low <= value <= high for low, value, high in zip(self._limit_lists[0], values.tolist(),
+                                                                     self._limit_lists[1])):
+                return values
         values = require_finite_vector(actuators, len(self.actuated), "actuator values")
         names = self.mechanism.actuated_joints
         outside = (values < self._act_lower) | (values > self._act_upper)
@@ -412,6 +417,7 @@ class ClosedLoopSolver:
             q[self.passive] += self._predict(values - q.take(self.actuated))
         q[self.actuated] = values
         self._tangent, previous, self._previous = None, self._previous, None  # dropped until this solve succeeds
+        self._last_goal = self._inverse_previous = None  # last_q is about to be no IK solution
         outcome = self._newton(q, self.passive, self._system, self._passive_branch,
                                start_branch=self._last_branch if warm else None, factors=factors)
         if outcome.jacobian is not None:
@@ -523,6 +529,39 @@ class ClosedLoopSolver:
         the target or an actuator would leave its limits (never clipped).
         """
         self.check_square_task()
+        goal, goal_rotation, wanted_tilt = self._goal(target)
+        warm = q_init is None
+        q = (self.last_q if warm else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
+        if warm and self._task_inverse is not None and self._last_task is not None:
+            q[self._unknown_columns] += self._inverse_step(goal, goal_rotation)
+        self._task_inverse = None  # dropped until this solve succeeds
+        # A warm solve must stay on the previous solution's branch (assembly and working mode).
+        start = self._last_inverse_branch if warm else None
+        self._last_inverse_branch = None
+        outcome = self._newton(q, self._unknowns, self._inverse_system(goal, goal_rotation),
+                               lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]), start_branch=start)
+        q, residual, iterations = outcome.q, outcome.residual, outcome.iterations
+        actuators = q.take(self.actuated)
+        names = self.mechanism.actuated_joints
+        outside = (actuators < self._act_lower) | (actuators > self._act_upper)
+        for k in np.flatnonzero(outside) if outside.any() else ():
+            raise OutOfWorkspaceError(
+                f"target needs actuator '{names[k]}' = {actuators[k]:.6g} m, beyond its limit "
+                f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]", residual, iterations)
+        # The second-order predictor's history: the solution this one started from, with its goal.
+        self._inverse_previous = (self._last_goal, self.last_q) if warm and self._last_goal is not None else None
+        # The FK warm start now follows this solution; its predictor tangent is from elsewhere.
+        self.last_q, self._tangent, self._last_branch, self._previous = q, None, outcome.branch[:-1], None
+        self._task_inverse, self._last_inverse_branch = outcome.inverse[:, self.n_rows:], outcome.branch
+        self._last_goal = (goal, goal_rotation)
+        self._last_task = pin.SE3(pin.updateFramePlacement(self.model, self.data, self._task_frame))
+        pose = self._platform_pose()
+        roll, pitch = roll_pitch_of(self._last_task.rotation)
+        return InverseResult(actuators, q.copy(), pose, residual, iterations,
+                             (roll - wanted_tilt[0], pitch - wanted_tilt[1]))
+
+    def _goal(self, target: pin.SE3 | np.ndarray) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float]]:
+        """(task goal, goal rotation for a full-rotation task else None, requested (roll, pitch))."""
         task = self.mechanism.task
         if isinstance(target, pin.SE3):
             if not (np.all(np.isfinite(target.homogeneous))):
@@ -530,60 +569,58 @@ class ClosedLoopSolver:
             goal = task.coordinates(target.homogeneous)[0]
             wanted_tilt = roll_pitch_of(target.rotation)
         else:
-            vector = require_finite_vector(target, len(task.columns), f"target ({', '.join(task.columns)})")
-            goal = task.goals(vector)[0]
+            vector = require_finite_vector(target, len(task.columns), self._target_name)
+            # Only a quaternion goal has more to check (its norm) and to do (renormalise). A copy:
+            # the goal is kept for the next warm solve, and `vector` may be the caller's array.
+            goal = task.goals(vector)[0] if task.rotation == "full" else vector.copy()
             wanted_tilt = (0.0, 0.0)
         goal_rotations = task.target_rotations(goal[None, :])
         goal_rotation = None if goal_rotations is None else goal_rotations[0]
         if goal_rotation is not None and not isinstance(target, pin.SE3):
             wanted_tilt = roll_pitch_of(goal_rotation)
-        q = (self.last_q if q_init is None else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
-        if q_init is None and self._lu_inverse is not None and self._last_task is not None:
-            # Predictor: one step with the last factorisation; at the last solution the closure
-            # rows vanish and the task rows are those of the new goal at the last pose reached.
-            change = np.concatenate((np.zeros(self.n_rows), task.residual(self._last_task, goal, goal_rotation)))
-            q[slice(None) if self._unknowns is None else self._unknowns] -= lapack.dgetrs(self._lu_inverse[0], self._lu_inverse[1], change)[0]
+        return goal, goal_rotation, wanted_tilt
 
-        model, data, frame = self.model, self.data, self._task_frame
+    def _inverse_step(self, goal: np.ndarray, goal_rotation: np.ndarray | None) -> np.ndarray:
+        """Change of the unknown joints [rad or m] from the last IK solution toward a new goal.
 
-        n_rows = self.n_rows
+        First order: -X [0; r], X the inverse of the last IK system (at its last Jacobian), r the task
+        rows of the new goal at the last pose reached (the closure rows vanish there). Second order as
+        FK's `_predict`, along the previous goal change: the task rows b of the previous goal at the
+        last pose give 1/2 H[e, e] ~= q_(k-1) - q_k + X [0; b], applied as lam^2 1/2 H[e, e] with
+        lam = -(r . b) / (b . b), only while the path keeps going the same way (0 < lam < 2).
+        """
+        task, task_inverse = self.mechanism.task, self._task_inverse
+        rows = task.residual(self._last_task, goal, goal_rotation)
+        step = -task_inverse.dot(rows)
+        if self._inverse_previous is not None:
+            (last_goal, last_rotation), last_q = self._inverse_previous
+            back = task.residual(self._last_task, last_goal, last_rotation)
+            bb = float(back.dot(back))
+            lam = -float(rows.dot(back)) / bb if bb > 0.0 else 0.0
+            if 0.0 < lam < 2.0:
+                columns = self._unknown_columns
+                step += lam * lam * (last_q[columns] - self.last_q[columns] + task_inverse.dot(back))
+        return step
+
+    def _inverse_system(self, goal: np.ndarray, goal_rotation: np.ndarray | None):
+        """IK's square system for `_newton`: (q, with_jacobian) -> ([closure rows; task rows], Jacobian)."""
+        model, data, frame, task, n_rows = self.model, self.data, self._task_frame, self.mechanism.task, self.n_rows
+        size = n_rows + task.dimension
 
         def system(qk: np.ndarray, with_jacobian: bool):
             closure, jac = self._system(qk, with_jacobian)
             placement = pin.updateFramePlacement(model, data, frame)
-            residual = np.empty(n_rows + task.dimension)
+            residual = np.empty(size)
             residual[:n_rows] = closure
             residual[n_rows:] = task.residual(placement, goal, goal_rotation)
             if not with_jacobian:
                 return residual, None
             frame_jac = pin.getFrameJacobian(model, data, frame, pin.LOCAL_WORLD_ALIGNED)
-            full = np.empty((n_rows + task.dimension, jac.shape[1]))
+            full = np.empty((size, jac.shape[1]))
             full[:n_rows] = jac
             full[n_rows:] = task.jacobian(placement, frame_jac, goal_rotation)
             return residual, full
-
-        self._lu_inverse = None  # dropped until this solve succeeds
-        # A warm solve must stay on the previous solution's branch (assembly and working mode).
-        start = self._last_inverse_branch if q_init is None else None
-        self._last_inverse_branch = None
-        outcome = self._newton(q, self._unknowns, system,
-                               lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]), start_branch=start)
-        q, residual, iterations = outcome.q, outcome.residual, outcome.iterations
-        actuators = q[self.actuated].copy()
-        names = self.mechanism.actuated_joints
-        outside = (actuators < self._act_lower) | (actuators > self._act_upper)
-        for k in np.flatnonzero(outside) if outside.any() else ():
-            raise OutOfWorkspaceError(
-                f"target needs actuator '{names[k]}' = {actuators[k]:.6g} m, beyond its limit "
-                f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]", residual, iterations)
-        # The FK warm start now follows this solution; its predictor tangent is from elsewhere.
-        self.last_q, self._tangent, self._last_branch, self._previous = q, None, outcome.branch[:-1], None
-        self._lu_inverse, self._last_inverse_branch = outcome.lu, outcome.branch
-        self._last_task = pin.SE3(pin.updateFramePlacement(self.model, self.data, self._task_frame))
-        pose = self._platform_pose()
-        roll, pitch = roll_pitch_of(self._last_task.rotation)
-        return InverseResult(actuators, q.copy(), pose, residual, iterations,
-                             (roll - wanted_tilt[0], pitch - wanted_tilt[1]))
+        return system
 
     # ----------------------------------------------------------------------------------------
     # Many poses at once
@@ -610,7 +647,9 @@ class ClosedLoopSolver:
             self._stacked = StackedKinematics(self)
         return self._stacked
 
-    _lu_inverse: tuple[np.ndarray, np.ndarray] | None = None  # getrf factors at the last IK solution
+    _task_inverse: np.ndarray | None = None  # task-row columns of the last IK system's inverse
+    _inverse_previous: tuple | None = None  # ((goal, goal rotation), q) of the IK solution before last_q
+    _last_goal: tuple | None = None  # (goal, goal rotation) of last_q when it is an IK solution
     _last_inverse_branch: bytes | None = None  # signature at the last IK solution
     _last_task: pin.SE3 | None = None  # task frame placement at the last IK solution
 
@@ -619,7 +658,9 @@ class ClosedLoopSolver:
         self._tangent = None
         self._previous = None
         self._last_branch = None
-        self._lu_inverse = None
+        self._task_inverse = None
+        self._inverse_previous = None
+        self._last_goal = None
         self._last_inverse_branch = None
         self._last_task = None
         self.last_q = self.mechanism.home.copy()
