@@ -9,8 +9,10 @@ origin, [v; w]), the relative spatial twist of closure frame b with respect to f
 a function of the relative placement only, so its derivative is a small row operator O_c
 (k_c x 6) applied to that relative twist, and the whole closure Jacobian is `(O @ J) * S`: two
 array operations for all closures. FK solves only the passive columns (a square system when the
-sliders are independent inputs); its LU factors are reused across Newton steps (chord steps)
-and across warm-started solves until contraction slows.
+sliders are independent inputs); LU factors are reused across Newton steps (chord steps) until
+contraction slows. A warm-started solve (FK or IK) starts from the last solution moved by a
+predictor built from the last solve's factorisation: first order along the solution manifold,
+plus a second-order term from the solution before it.
 """
 
 from __future__ import annotations
