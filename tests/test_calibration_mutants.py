@@ -87,6 +87,12 @@ def test_predicted_pose_std_is_the_covariance_through_finite_differences(noisy):
     predicted = predicted_pose_std(calibration, sliders)
     np.testing.assert_allclose(predicted.position, expected_position, rtol=1e-3)
     np.testing.assert_allclose(predicted.rotation, expected_rotation, rtol=1e-3)
+    # No slider set: nothing predicted; a set beyond a limit: refused, naming it.
+    empty = predicted_pose_std(calibration, np.zeros((0, 4)))
+    assert empty.position.shape == empty.rotation.shape == (0,)
+    with pytest.raises(InvalidInputError, match=r"^slider set 1 .* does not assemble on the machine from its home: "
+                                                r"actuator 'q11' = 9 is beyond its joint limit"):
+        predicted_pose_std(calibration, np.vstack((sliders[:1], [[9.0, 0.0, 0.0, 0.0]])))
 
 
 def test_held_out_error_matches_the_prediction_from_both_sides(noisy):

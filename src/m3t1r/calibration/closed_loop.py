@@ -44,7 +44,7 @@ from m3t1r.calibration.identification import (
     triangular_factor,
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
-from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, measure
+from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
 from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
@@ -645,7 +645,8 @@ def predicted_pose_std(calibration: ClosedLoopCalibration, actuators: np.ndarray
 
     Propagates the machine block of the fitted parameters' covariance sigma^2 (J^T W J)^-1 through
     the pose sensitivity: position [m] = sqrt(trace of the 3x3 position block), orientation [rad]
-    likewise. The measurement setup's uncertainty is not part of the machine's.
+    likewise. The measurement setup's uncertainty is not part of the machine's. Every slider set is
+    assembled from home (`assembled_from_home`: InvalidInputError naming one that does not).
     """
     mechanism = calibration.mechanism
     error_model = ClosedLoopErrorModel(mechanism, calibration.error_model.placements)
@@ -654,13 +655,11 @@ def predicted_pose_std(calibration: ClosedLoopCalibration, actuators: np.ndarray
     machine = [k for k, name in enumerate(calibration.fitted) if name in index]
     columns = np.array([index[calibration.fitted[k]] for k in machine], dtype=int)
     covariance = calibration.covariance[np.ix_(machine, machine)]
-    configurations = [solver.forward(sliders).q for sliders in np.asarray(actuators, dtype=float)]
+    configurations = assembled_from_home(mechanism, actuators).q
     sensitivities = error_model.platform_sensitivities(solver, configurations, columns)
-    position, rotation = [], []
-    for pose, dxi in zip(sensitivities.poses, sensitivities.twist_jacobians):
-        # Position of P and local orientation, per unit base parameter.
-        point = np.hstack((np.eye(3), -pin.skew(pose[:3, 3]))) @ dxi
-        angular = pose[:3, :3].T @ dxi[3:]
-        position.append(math.sqrt(np.trace(point @ covariance @ point.T)))
-        rotation.append(math.sqrt(np.trace(angular @ covariance @ angular.T)))
-    return PoseErrors(np.array(position), np.array(rotation))
+    poses, dxi = sensitivities.poses, sensitivities.twist_jacobians
+    # Position of P (v + w x p) and local orientation, per unit base parameter.
+    point = dxi[:, :3] - skew(poses[:, :3, 3]) @ dxi[:, 3:]
+    angular = np.swapaxes(poses[:, :3, :3], 1, 2) @ dxi[:, 3:]
+    return PoseErrors(np.sqrt(np.einsum("nip,pq,niq->n", point, covariance, point)),
+                      np.sqrt(np.einsum("nip,pq,niq->n", angular, covariance, angular)))

@@ -139,7 +139,7 @@ class ClosedLoopErrorModel:
         the columns of Pinocchio's WORLD kinematic regressor."""
         placements = np.array([placement.homogeneous for placement in model.jointPlacements.tolist()[1:]])
         blocks = adjoint_matrices(joints[:, self._parents] @ placements)  # (N, n_joints, 6, 6)
-        return blocks.transpose(0, 2, 1, 3).reshape(len(joints), 6, -1)
+        return blocks.transpose(0, 2, 1, 3).reshape(len(joints), 6, 6 * len(placements))  # also for no pose
 
     def platform_sensitivity(self, solver: ClosedLoopSolver, q: np.ndarray, columns: np.ndarray | None = None
                              ) -> tuple[pin.SE3, np.ndarray, np.ndarray]:
