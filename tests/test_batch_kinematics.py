@@ -7,7 +7,7 @@ import pytest
 from conftest import perturb_every_origin
 
 from m3t1r.errors import InvalidInputError, OutOfWorkspaceError, UnsupportedJointError
-from m3t1r.model.batch_kinematics import StackedTree, log6_jlog6_batch, rpy_batch
+from m3t1r.model.batch_kinematics import StackedTree, rpy_batch
 from m3t1r.model.design import NOMINAL
 from m3t1r.model.kinematics import ClosedLoopSolver
 
@@ -28,17 +28,6 @@ def test_stacked_tree_matches_pinocchio_placements_and_world_jacobian(mechanism)
             np.testing.assert_allclose(rot[j, :, :, i], data.oMi[j].rotation, atol=1e-14)
             np.testing.assert_allclose(pos[j, :, i], data.oMi[j].translation, atol=1e-14)
         np.testing.assert_allclose(world[i], data.J, atol=1e-14)
-
-
-def test_log6_and_jlog6_match_pinocchio():
-    rng = np.random.default_rng(1)
-    placements = [pin.exp6(rng.normal(0, scale, 6)) for scale in (1e-6, 1e-2, 0.3, 1.5) for _ in range(5)]
-    logs, jacs = log6_jlog6_batch(np.array([m.rotation for m in placements]),
-                                  np.array([m.translation for m in placements]))
-    for m, log, jac in zip(placements, logs, jacs):
-        np.testing.assert_allclose(log, pin.log6(m).vector, atol=1e-14)
-        # pin.Jlog6 uses a shorter series at small angles (about 1e-10 off there); ours matches differences.
-        np.testing.assert_allclose(jac, pin.Jlog6(m), atol=1e-9)
 
 
 def test_rpy_batch_matches_pinocchio():

@@ -90,21 +90,30 @@ def test_jlog3_t_series_at_zero_rotation_is_quiet():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         b, db_over_a = bk._jlog3_t_series(np.zeros(3))
-        bk.log6_jlog6_batch(np.eye(3)[None], np.zeros((1, 3)))
+        identity = (np.eye(3)[..., None], np.zeros((3, 1)))
+        bk._weld_rows(*identity, *identity)
     np.testing.assert_array_equal(b, 1 / 12)
     np.testing.assert_array_equal(db_over_a, 1 / 360)
 
 
-def test_log6_jlog6_match_pinocchio_tightly_away_from_small_angles():
+@pytest.mark.parametrize("angles, tolerance", [
+    ((1e-6, 1e-6, 1e-2, 1e-2), 1e-9),  # pin.Jlog6's shorter small-angle series is about 1e-10 off there
+    ((0.05, 0.4, 1.1, 2.0, 2.9), 1e-12)])
+def test_weld_rows_match_pinocchio_from_small_angles_to_near_pi(angles, tolerance):
+    """With frame a at the base origin, _weld_rows is log6(oMb) and Jlog6(oMb) Ad(oMb^-1): both
+    branches of the Jlog3 series against Pinocchio."""
     rng = np.random.default_rng(11)
-    placements = [pin.exp6(np.r_[rng.normal(0, 0.5, 3), (lambda u: u / np.linalg.norm(u))(rng.normal(size=3)) * a])
-                  for a in (0.05, 0.4, 1.1, 2.0, 2.9)]
-    logs, jacs = bk.log6_jlog6_batch(np.array([m.rotation for m in placements]),
-                                     np.array([m.translation for m in placements]))
-    assert logs.shape == (5, 6) and jacs.shape == (5, 6, 6)
-    for m, log, jac in zip(placements, logs, jacs):
-        np.testing.assert_allclose(log, pin.log6(m).vector, atol=1e-13)
-        np.testing.assert_allclose(jac, pin.Jlog6(m), atol=1e-12)
+    unit = (lambda u: u / np.linalg.norm(u))
+    omb = [pin.exp6(np.r_[rng.normal(0, 0.5, 3), unit(rng.normal(size=3)) * a]) for a in angles]
+    n = len(omb)
+    residual, a, b = bk._weld_rows(np.repeat(np.eye(3)[..., None], n, axis=2), np.zeros((3, n)),
+                                   np.moveaxis(np.array([m.rotation for m in omb]), 0, -1),
+                                   np.moveaxis(np.array([m.translation for m in omb]), 0, -1))
+    assert residual.shape == (6, n) and a.shape == b.shape == (3, 3, n)
+    for i, m in enumerate(omb):
+        np.testing.assert_allclose(residual[:, i], pin.log6(m).vector, atol=1e-13)
+        jlog6 = np.block([[a[:, :, i], b[:, :, i]], [np.zeros((3, 3)), a[:, :, i]]]) @ m.toActionMatrix()
+        np.testing.assert_allclose(jlog6, pin.Jlog6(m), atol=tolerance)
 
 
 def test_poses_last_products_and_cross_products():

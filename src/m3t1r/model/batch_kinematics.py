@@ -132,27 +132,6 @@ def _jlog3_t_series(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return b, db_over_a
 
 
-def log6_jlog6_batch(rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """log6 (m, 6) [v; w] of placements (R, p) and Jlog6 (m, 6, 6), batched like `pin.log6`/`pin.Jlog6`.
-
-    w = log3(R), v = Jlog3(w)^T p (= V(w)^-1 p). Jlog6 = [[Jlog3, X Jlog3], [0, Jlog3]] with
-    X = d v / d w = 1/2 [p] + (b'(a)/a) ([w]^2 p) w^T - b(a) ([w x p] + [w][p]), a = |w|.
-    """
-    w, angles = log3_batch(rotation)
-    jl = jlog3_batch(w, angles)
-    v = np.einsum("nji,nj->ni", jl, position)
-    b, db_over_a = _jlog3_t_series(angles)
-    W, P = skew(w), skew(position)
-    w2p = np.einsum("nij,nj->ni", W @ W, position)
-    X = 0.5 * P + db_over_a[:, None, None] * w2p[:, :, None] * w[:, None, :] \
-        - b[:, None, None] * (skew(np.cross(w, position)) + W @ P)
-    jac = np.zeros((len(w), 6, 6))
-    jac[:, :3, :3] = jl
-    jac[:, 3:, 3:] = jl
-    jac[:, :3, 3:] = X @ jl
-    return np.concatenate((v, w), axis=1), jac
-
-
 _REVOLUTE_AXES = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0), "JointModelRZ": (0.0, 0.0, 1.0)}
 _PRISMATIC_AXES = {"JointModelPX": (1.0, 0.0, 0.0), "JointModelPY": (0.0, 1.0, 0.0), "JointModelPZ": (0.0, 0.0, 1.0)}
 
@@ -209,7 +188,7 @@ def _weld_rows(rotation_a: np.ndarray, position_a: np.ndarray, rotation_b: np.nd
     operator Jlog6(aMb) Ad(oMb^-1) = [[A, B]; [0, A]] on WORLD twists, as A, B (3, 3, n).
 
     With (R, p) = aMb, w = log3(R), a = |w|, Jl = Jlog3 = I + [w]/2 + b(a) [w]^2, v = Jl^T p and
-    X = 1/2 [p] + (b'(a)/a) ([w]^2 p) w^T - b(a) ([w x p] + [w][p]) (`log6_jlog6_batch`):
+    X = d v / d w = 1/2 [p] + (b'(a)/a) ([w]^2 p) w^T - b(a) ([w x p] + [w][p]):
     A = Jl R_b^T, B = X A - A [p_b].
     """
     rotation = _times(rotation_a.transpose(1, 0, 2), rotation_b)
@@ -676,10 +655,9 @@ def task_rows(task: TaskSpec, rot: np.ndarray, pos: np.ndarray, twist: np.ndarra
         row = np.stack([-c[:, 0] * c[:, 2], -c[:, 1] * c[:, 2], horizontal], axis=1) / horizontal[:, None]
         jacobian.append(np.einsum("nk,nkv->nv", row, twist[:, 3:])[:, None])
     elif task.rotation == "full":
-        error = goal_rot.transpose(0, 2, 1) @ rot
-        log, jlog = log6_jlog6_batch(error, np.zeros((len(rot), 3)))
-        residual.append(log[:, 3:])
-        jacobian.append(jlog[:, 3:, 3:] @ rot.transpose(0, 2, 1) @ twist[:, 3:])
+        logs, angles = log3_batch(goal_rot.transpose(0, 2, 1) @ rot)
+        residual.append(logs)
+        jacobian.append(jlog3_batch(logs, angles) @ rot.transpose(0, 2, 1) @ twist[:, 3:])
     return np.concatenate(residual, axis=1), np.concatenate(jacobian, axis=1)
 
 
