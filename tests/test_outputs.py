@@ -310,6 +310,30 @@ def test_compensate_refuses_a_hinge_beyond_its_limit_by_row(tmp_path, machines, 
     err = capsys.readouterr().err
     assert code == 1 and not out.exists()
     assert "t.csv, line 3" in err and "beyond its limit" in err and "line 2" not in err
+    code = main(["compensate", str(targets), "--unordered", "--calibrated", str(machines / "truth.urdf"), "-o", str(out)])
+    err = capsys.readouterr().err
+    assert code == 1 and not out.exists()
+    assert "t.csv, line 3" in err and "beyond its limit" in err and "line 2" not in err
+
+
+def test_compensate_unordered_targets_gives_the_path_commands(tmp_path, machines, capsys):
+    """--unordered solves every target from home in one batch: the same commands as the path
+    (warm-started) solve to 1e-9 m, for targets in no particular order."""
+    rng = np.random.default_rng(5)
+    rows = np.column_stack((rng.uniform(0.3, 0.7, 12), rng.uniform(0.3, 0.7, 12), rng.uniform(-0.15, -0.05, 12),
+                            rng.uniform(-0.4, 0.4, 12)))
+    targets = tmp_path / "t.csv"
+    targets.write_text("x,y,z,theta\n" + "\n".join(",".join(f"{v:.6f}" for v in row) for row in rows) + "\n")
+    outputs = []
+    for extra in ([], ["--unordered"]):
+        out = tmp_path / f"c{len(extra)}.csv"
+        assert main(["compensate", str(targets), *extra, "--output-kind", "actuators", "--calibrated",
+                     str(machines / "truth.urdf"), "-o", str(out)]) == 0
+        data = [line for line in out.read_text().splitlines() if not line.startswith("#")]
+        assert data[0] == "q11,q11_B2,q21,q21_B4"
+        outputs.append(np.array([[float(v) for v in line.split(",")] for line in data[1:]]))
+    assert outputs[0].shape == (12, 4)
+    np.testing.assert_allclose(outputs[1], outputs[0], atol=1e-9)
 
 
 def test_evaluate_reports_a_failing_pose_and_goes_on(tmp_path, machines, capsys, monkeypatch):

@@ -33,7 +33,7 @@ from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.calibration.validation import read_report
-from m3t1r.compensation import compensate, joint_limit_violation
+from m3t1r.compensation import Compensator, compensate, joint_limit_violation
 from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows
@@ -152,8 +152,11 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     require_square_task(calibrated)
     if args.report:
         targets = _targets_in_base(targets, args.report, args.targets, calibrated)
-    with progress_bar("compensate", len(lines)) as progress:
-        result = compensate(nominal, calibrated, targets, progress=progress.update)
+    if args.unordered:  # every target from home, vectorised: no path order to follow
+        result = Compensator(nominal, calibrated).compensate_batch(targets)
+    else:
+        with progress_bar("compensate", len(lines)) as progress:
+            result = compensate(nominal, calibrated, targets, progress=progress.update)
     if result.failures:
         raise RowFailures(Path(args.targets), [(int(lines[f.index]), f.reason) for f in result.failures])
     comments = provenance(args) + [f"calibrated model: {calibrated.urdf_path}"]
@@ -395,6 +398,9 @@ def build_parser() -> argparse.ArgumentParser:
                                                     "calibration's measurement frame (the tracker's), not the base's")
     p.add_argument("--output-kind", choices=("pose", "actuators"), default="pose",
                    help="pose: T_cp for a controller with the nominal model; actuators: slider commands")
+    p.add_argument("--unordered", action="store_true",
+                   help="the targets are not a path (a grid, a map, unrelated poses): solve each from home, "
+                        "all at once, instead of warm-starting from the previous target")
     p.add_argument("-o", "--output", required=True, help="commands CSV")
     _add_model_options(p)
     p.set_defaults(run=cmd_compensate)
