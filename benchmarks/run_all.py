@@ -19,7 +19,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-BENCHMARKS = ("kinematics", "identification", "scaling", "pose_selection", "uncertainty", "campaign")
+BENCHMARKS = ("kinematics", "batch", "identification", "scaling", "memory", "pose_selection", "uncertainty",
+              "campaign")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,8 +14,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 TITLES = (
     "## Closed-loop kinematics",
+    "## Kinematics in units of one Pinocchio pass",
     "## Serial identification",
     "## Scaling",
+    "## Calibration memory by pose count",
     "## Pose selection",
     "## Uncertainty",
     "## Tracker campaign",
