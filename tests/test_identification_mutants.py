@@ -987,3 +987,60 @@ def test_forward_selection_ties_use_the_sample_standard_error(n, seed, tied):
         warnings.simplefilter("error")
         selection = forward_selection(J, r, k, range(3))
     assert selection.tied == tied
+
+
+# --------------------------------------------------------------------------------------------------
+# Memory-bounded pieces: the triangular factor in row blocks, in-place projections and column removal
+
+
+def test_triangular_factor_over_several_row_blocks_with_a_vector_and_a_previous_factor():
+    """R^T R = P^T P + M^T M and R^T (last column) = M^T r over more rows than one block (4,096);
+    a previous factor is stacked on; with fewer rows than columns R has only that many rows."""
+    rng = np.random.default_rng(21)
+    matrix, vector = rng.normal(size=(9000, 4)), rng.normal(size=9000)
+    augmented = np.column_stack((matrix, vector))
+    factor = identification.triangular_factor(matrix, vector)
+    assert factor.shape == (5, 5) and np.allclose(np.tril(factor, -1), 0.0)
+    np.testing.assert_allclose(factor.T @ factor, augmented.T @ augmented, rtol=1e-10)
+    alone = identification.triangular_factor(matrix)
+    np.testing.assert_allclose(alone.T @ alone, matrix.T @ matrix, rtol=1e-10)
+    previous = rng.normal(size=(3, 4))
+    stacked = identification.triangular_factor(matrix[:10], previous=previous)
+    both = np.vstack((previous, matrix[:10]))
+    np.testing.assert_allclose(stacked.T @ stacked, both.T @ both, rtol=1e-10)
+    few = identification.triangular_factor(matrix[:2])
+    assert few.shape == (2, 4)
+    np.testing.assert_allclose(few.T @ few, matrix[:2].T @ matrix[:2], atol=1e-12)
+
+
+def test_in_place_projection_and_column_removal_over_several_column_blocks():
+    rng = np.random.default_rng(22)
+    matrix = np.asfortranarray(rng.normal(size=(30, 21)))
+    basis = np.linalg.qr(rng.normal(size=(30, 2)))[0]
+    expected = matrix - basis @ (basis.T @ matrix)
+    identification._project_out(matrix, basis)
+    np.testing.assert_allclose(matrix, expected, atol=1e-13)
+    identification._project_out(matrix, np.zeros((30, 0)))  # an empty basis changes nothing
+    np.testing.assert_allclose(matrix, expected, atol=1e-13)
+    removed = identification._without_column(matrix, 2)
+    np.testing.assert_array_equal(removed, np.delete(expected, 2, axis=1))
+    np.testing.assert_array_equal(identification._without_column(removed, 19), np.delete(expected, [2, 20], axis=1))
+
+
+def test_forward_selection_with_more_candidates_than_one_update_block_matches_refits():
+    """20 candidates (more than the 8 columns updated at a time) with two forced columns: the path
+    and the order against refits, as with 7 columns."""
+    rng = np.random.default_rng(23)
+    n, k, p = 10, 4, 22
+    J = rng.normal(size=(n * k, p))
+    r = -(J @ np.r_[1.0, -0.6, 0.3, np.zeros(p - 3)]) + 0.5 * rng.normal(size=n * k)
+    forced = (17, 3)
+    selection = forward_selection(J, r, k, range(p), forced=forced)
+    chosen = list(forced)
+    for column in selection.order[:6]:
+        left = [c for c in range(p) if c not in chosen]
+        scores = [_loo_reference(J, r, k, chosen + [c]).sum() for c in left]
+        assert column == left[int(np.argmin(scores))]
+        chosen.append(column)
+    path = [_loo_reference(J, r, k, list(forced) + list(selection.order[:size])).sum() for size in range(7)]
+    np.testing.assert_allclose(selection.path[:7], path, rtol=1e-8)
