@@ -429,6 +429,15 @@ def test_inverse_of_a_full_rotation_task_commands_roll_and_pitch(tmp_path):
     warm = solver.inverse(pin.Quaternion(nearby.pose.rotation).coeffs())
     np.testing.assert_allclose(warm.actuators, sliders + 0.02, atol=1e-10)
     assert warm.iterations <= 3
+    # Warm again: the second-order term reads the previous goal's rotation at the last pose.
+    further = ClosedLoopSolver(wrist).forward(sliders + 0.04, q_init=wrist.home)
+    again = solver.inverse(pin.Quaternion(further.pose.rotation).coeffs())
+    np.testing.assert_allclose(again.actuators, sliders + 0.04, atol=1e-10)
+    # A quaternion goal is checked and renormalised: norm 2 is refused, norm 1 + 1e-7 is the unit one.
+    with pytest.raises(InvalidInputError, match="norm"):
+        solver.inverse(2.0 * quaternion, q_init=wrist.home)
+    scaled = solver.inverse((1.0 + 1e-7) * quaternion, q_init=wrist.home)
+    np.testing.assert_allclose(scaled.actuators, sliders, atol=1e-10)
 
 
 def test_warm_inverse_with_a_locked_joint_steps_the_unlocked_columns(tmp_path):
@@ -591,11 +600,13 @@ def test_newton_refreshes_the_jacobian_only_when_a_chord_step_contracts_too_litt
 
 
 def test_newton_stops_on_a_non_finite_residual_as_out_of_workspace(solver):
-    for bad in (np.nan, np.inf):
-        system = _Scripted([[1.0, 0.0], [bad, 0.0]])
+    """Wherever the nan is: after a larger entry too (BLAS idamax may skip a nan there)."""
+    for residual in ([np.nan, 0.0], [np.inf, 0.0], [5.0, np.nan], [0.5, -np.inf]):
+        system = _Scripted([[1.0, 0.0], residual])
         with pytest.raises(OutOfWorkspaceError) as caught:
             solver._newton(np.zeros(2), None, system, _label)
         assert caught.value.iterations == 1 and system.calls == [True, False]
+        assert not math.isfinite(caught.value.residual)
 
 
 def test_newton_singular_verdict_uses_the_one_norm_and_is_word_for_word(solver):

@@ -140,13 +140,12 @@ class _BranchSignature:
 
 
 class _Outcome(NamedTuple):
-    """A converged Newton solve: solution, residual, steps, last LU factors and the inverse they give,
+    """A converged Newton solve: solution, residual, steps, the inverse of the last factorised system,
     last Jacobian and branch."""
 
     q: np.ndarray
     residual: float
     iterations: int
-    lu: tuple
     inverse: np.ndarray
     jacobian: np.ndarray | None
     branch: bytes | None
@@ -495,7 +494,7 @@ class ClosedLoopSolver:
                 if branch != start_branch:
                     raise BranchChangeError("the solution lies on another assembly branch than the start "
                                             "(Newton crossed a singularity)", norm, iteration)
-                return _Outcome(q, norm, iteration, lu, inverse, last_jac, branch)
+                return _Outcome(q, norm, iteration, inverse, last_jac, branch)
             if iteration == self.max_iterations:
                 break
             step = lapack.dgetrs(lu[0], lu[1], residual)[0]
