@@ -301,6 +301,24 @@ def test_swapped_position_columns_are_named(tmp_path, machines, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv"]
 
 
+def test_calibrate_names_every_line_whose_sliders_do_not_assemble(tmp_path, machines, capsys):
+    """Two rows whose sliders are within their limits but close no loop (the five-bars cannot
+    reach): refused before any fit, each by its file line, nothing written."""
+    lines = (machines / "m.csv").read_text().splitlines()
+    data = [k for k, line in enumerate(lines) if line[:1].isdigit() or line[:1] == "-"]
+    for k in (data[3], data[11]):
+        values = lines[k].split(",")
+        values[:2] = ["-0.3", "0.3"]
+        lines[k] = ",".join(values)
+    (tmp_path / "m.csv").write_text("\n".join(lines) + "\n")
+    assert main(["calibrate", str(tmp_path / "m.csv"), "-o", str(tmp_path / "c.urdf"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "2 row(s) failed, nothing written" in err
+    for k in (data[3], data[11]):
+        assert f"m.csv, line {k + 1}: the slider readings do not assemble on the nominal machine" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv"]
+
+
 def test_compensate_refuses_a_hinge_beyond_its_limit_by_row(tmp_path, machines, capsys):
     targets = tmp_path / "t.csv"
     # Yaw just past pi/2: the platform hinges q14, q24 (limits +-pi/2) would pass their stops.

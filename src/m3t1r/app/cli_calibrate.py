@@ -20,7 +20,7 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r._version import __version__
-from m3t1r.app.cli_common import campaign_report_fields, selection_note
+from m3t1r.app.cli_common import RowFailures, campaign_report_fields, selection_note
 from m3t1r.app.datasets import MeasurementFile, read_measurements
 from m3t1r.app.reporting import passive_joint_residuals, write_calibration_plots
 from m3t1r.calibration.assessment import (
@@ -183,7 +183,7 @@ def _idle_chain_check(nominal: Mechanism, calibration: ClosedLoopCalibration, da
 def _fit(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, noise: TrackerNoise,
          marker: pin.SE3, estimate_frame: bool, progress: Callable[[], None]) -> ClosedLoopCalibration:
     """The fit, refused with the likely causes when the data cannot even be started from."""
-    _precheck(nominal, data, marker, estimate_frame)
+    _precheck(nominal, data, marker, estimate_frame, args.measurements)
     kwargs = {} if args.max_iterations is None else {"max_iterations": args.max_iterations}
     return calibrate_closed_loop(
         nominal, data.measurements, noise, setup=MeasurementSetup(marker=marker), estimate_frame=estimate_frame,
@@ -202,17 +202,24 @@ def _fit_causes(args: argparse.Namespace, nominal: Mechanism, data: MeasurementF
     return causes
 
 
-def _precheck(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, estimate_frame: bool) -> None:
-    """Refuse at once when the nominal model is further from the data than any build error."""
+def _precheck(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, estimate_frame: bool,
+              path: str) -> None:
+    """Refuse at once when the nominal model is further from the data than any build error, and
+    name every line whose slider readings do not assemble on it (one batch solve of every row)."""
     measurements = data.measurements
+    points = _nominal_points(nominal, marker)(measurements.actuators)
     pick = np.linspace(0, len(measurements) - 1, min(len(measurements), _DIAGNOSIS_POSES)).astype(int)
-    points = _nominal_points(nominal, marker)(measurements.actuators[pick])
     measured = np.array([measurements.poses[i].translation for i in pick])
-    valid = np.all(np.isfinite(points), axis=1)
+    valid = np.all(np.isfinite(points[pick]), axis=1)
     if np.count_nonzero(valid) < 3:
         raise FitRejected("the slider readings do not assemble on the nominal machine",
                           _diagnose(nominal, data, marker, estimate_frame))
-    check_start(points[valid], measured[valid], estimate_frame, lambda: _diagnose(nominal, data, marker, estimate_frame))
+    failed = np.flatnonzero(~np.all(np.isfinite(points), axis=1))
+    if failed.size:
+        raise RowFailures(Path(path), [(int(data.lines[i]), "the slider readings do not assemble on the nominal "
+                                        "machine (from its home, on its branch)") for i in failed])
+    check_start(points[pick][valid], measured[valid], estimate_frame,
+                lambda: _diagnose(nominal, data, marker, estimate_frame))
 
 
 def _print_summary(calibration: ClosedLoopCalibration, outlier_lines: list[int]) -> None:
