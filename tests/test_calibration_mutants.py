@@ -95,6 +95,18 @@ def test_predicted_pose_std_is_the_covariance_through_finite_differences(noisy):
         predicted_pose_std(calibration, np.vstack((sliders[:1], [[9.0, 0.0, 0.0, 0.0]])))
 
 
+def test_predicted_pose_std_in_blocks_is_the_one_block_result(noisy, monkeypatch):
+    """Blocks of 2 poses (5 poses: a partial last block) give what one block gives."""
+    study, calibration = noisy
+    sliders = study.holdout_actuators[:5]
+    whole = predicted_pose_std(calibration, sliders)
+    monkeypatch.setattr(closed_loop, "_BLOCK", 2)
+    blocks = predicted_pose_std(calibration, sliders)
+    np.testing.assert_allclose(blocks.position, whole.position, rtol=1e-12)
+    np.testing.assert_allclose(blocks.rotation, whole.rotation, rtol=1e-12)
+    assert np.all(whole.position > 0) and np.all(whole.rotation > 0)
+
+
 def test_held_out_error_matches_the_prediction_from_both_sides(noisy):
     """One draw of the parameter error: RMS ratio held-out / predicted in (0.6, 1.6), not just <= 1.3."""
     study, calibration = noisy

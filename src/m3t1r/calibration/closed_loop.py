@@ -656,10 +656,14 @@ def predicted_pose_std(calibration: ClosedLoopCalibration, actuators: np.ndarray
     columns = np.array([index[calibration.fitted[k]] for k in machine], dtype=int)
     covariance = calibration.covariance[np.ix_(machine, machine)]
     configurations = assembled_from_home(mechanism, actuators).q
-    sensitivities = error_model.platform_sensitivities(solver, configurations, columns)
-    poses, dxi = sensitivities.poses, sensitivities.twist_jacobians
-    # Position of P (v + w x p) and local orientation, per unit base parameter.
-    point = dxi[:, :3] - skew(poses[:, :3, 3]) @ dxi[:, 3:]
-    angular = np.swapaxes(poses[:, :3, :3], 1, 2) @ dxi[:, 3:]
-    return PoseErrors(np.sqrt(np.einsum("nip,pq,niq->n", point, covariance, point)),
-                      np.sqrt(np.einsum("nip,pq,niq->n", angular, covariance, angular)))
+    position, rotation = np.empty(len(configurations)), np.empty(len(configurations))
+    for start in range(0, len(configurations), _BLOCK):  # the error model's stacks for one block at a time
+        block = slice(start, start + _BLOCK)
+        sensitivities = error_model.platform_sensitivities(solver, configurations[block], columns)
+        poses, dxi = sensitivities.poses, sensitivities.twist_jacobians
+        # Position of P (v + w x p) and local orientation, per unit base parameter.
+        point = dxi[:, :3] - skew(poses[:, :3, 3]) @ dxi[:, 3:]
+        angular = np.swapaxes(poses[:, :3, :3], 1, 2) @ dxi[:, 3:]
+        position[block] = np.sqrt(np.einsum("nip,pq,niq->n", point, covariance, point))
+        rotation[block] = np.sqrt(np.einsum("nip,pq,niq->n", angular, covariance, angular))
+    return PoseErrors(position, rotation)
