@@ -526,31 +526,6 @@ def _recording(solver):
     return calls
 
 
-def test_forward_with_factors_starts_on_them_without_a_jacobian(mechanism):
-    """`factors` from a nearby model (here a perturbed copy's solution): Newton starts with chord
-    steps on them, and with factors exact at the start (its own solution) evaluates no Jacobian at all."""
-    from conftest import perturb_every_origin
-    from scipy.linalg import lapack
-
-    from m3t1r.model.kinematics import rehomed
-
-    nearby = rehomed(mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(3), 1e-4, 1e-4)))
-    sliders = mechanism.home[mechanism.actuated_ids] + np.array([0.02, -0.01, 0.01, 0.0])
-    near = ClosedLoopSolver(nearby).forward(sliders, q_init=nearby.home)
-    solver = ClosedLoopSolver(nearby)
-    square = solver.closure_jacobian(near.q)[:, solver.passive]
-    factors = (*lapack.dgetrf(square)[:2], float(np.abs(square).sum(axis=0).max()))
-    calls = _recording(solver)
-    again = solver.forward(sliders, q_init=near.q, factors=factors)
-    assert calls == [False] and again.iterations == 0 and solver._tangent is None
-    # On the nominal machine the same factors are a chord: no Jacobian at the start either.
-    solver = ClosedLoopSolver(mechanism)
-    calls = _recording(solver)
-    chord = solver.forward(sliders, q_init=near.q, factors=factors)
-    assert calls[0] is False and chord.iterations >= 1 and chord.residual <= 1e-12
-    np.testing.assert_allclose(chord.q, ClosedLoopSolver(mechanism).forward(sliders, q_init=mechanism.home).q, atol=1e-10)
-
-
 # ------------------------------------------------------------------------------------------------
 # `_newton` on stand-in systems: every evaluation recorded, residuals scripted
 
@@ -568,12 +543,6 @@ class _Scripted:
         return residual, (self.jacobian.copy() if with_jacobian else None)
 
 
-def _identity_factors():
-    from scipy.linalg import lapack
-
-    return (*lapack.dgetrf(np.eye(2))[:2], 1.0)
-
-
 def _label(jac, lu):
     return b"branch"
 
@@ -582,16 +551,16 @@ def test_newton_refreshes_the_jacobian_only_when_a_chord_step_contracts_too_litt
     """Chord steps while |r| <= 0.05 |r_previous| (a contraction of exactly 0.05 is still enough);
     a refresh otherwise, and none once the tolerance is met (a residual exactly at it is converged)."""
     solver.tolerance = 0.04
-    # From the caller's factors: 1 -> 0.05 (exactly 0.05 of it: keep the factors) -> 0.04 (met).
+    # 1 -> 0.05 (exactly 0.05 of it: keep the factors) -> 0.04 (met).
     system = _Scripted([[1.0, 0.0], [0.05, 0.0], [0.04, 0.0]])
-    outcome = solver._newton(np.zeros(2), None, system, _label, factors=_identity_factors())
-    assert system.calls == [False, False, False] and outcome.iterations == 2 and outcome.residual == 0.04
-    assert outcome.jacobian is None and outcome.branch is None  # converged on the factors alone
+    outcome = solver._newton(np.zeros(2), None, system, _label)
+    assert system.calls == [True, False, False] and outcome.iterations == 2 and outcome.residual == 0.04
+    assert outcome.branch == b"branch"
     # 1 -> 0.5 (too little: refresh) -> 0.04 = tolerance, 0.04 > 0.05 * 0.5: met all the same, no refresh.
     system = _Scripted([[1.0, 0.0], [0.5, 0.0], [0.5, 0.0], [0.04, 0.0]])
     outcome = solver._newton(np.zeros(2), None, system, _label)
     assert system.calls == [True, False, True, False] and outcome.iterations == 2 and outcome.branch == b"branch"
-    # No factors: the first evaluation has the Jacobian, then chord steps while they contract.
+    # The first evaluation has the Jacobian, then chord steps while they contract.
     solver.tolerance = 1e-12
     system = _Scripted([[1.0, 0.0], [0.01, 0.0], [1e-4, 0.0], [0.0, 0.0]])
     outcome = solver._newton(np.zeros(2), None, system, _label)
@@ -640,7 +609,7 @@ def test_newton_far_or_near_after_the_last_step_at_exactly_1e_6(solver):
     for last, error in ((1e-6, NotConvergedError), (np.nextafter(1e-6, 1.0), OutOfWorkspaceError)):
         system = _Scripted([[1.0, 0.0], [last, 0.0]])
         with pytest.raises(error) as caught:
-            solver._newton(np.zeros(2), None, system, _label, factors=_identity_factors())
+            solver._newton(np.zeros(2), None, system, _label)
         assert caught.value.residual == last and caught.value.iterations == 1
 
 

@@ -147,8 +147,8 @@ class _Outcome(NamedTuple):
     residual: float
     iterations: int
     inverse: np.ndarray
-    jacobian: np.ndarray | None
-    branch: bytes | None
+    jacobian: np.ndarray
+    branch: bytes
 
 
 _dasum, _idamax, _dlange = blas.dasum, blas.idamax, lapack.dlange
@@ -401,14 +401,12 @@ class ClosedLoopSolver:
                 f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}] (SI units: metres for sliders)")
         return values
 
-    def forward(self, actuators: np.ndarray, q_init: np.ndarray | None = None, factors: tuple | None = None) -> ForwardResult:
+    def forward(self, actuators: np.ndarray, q_init: np.ndarray | None = None) -> ForwardResult:
         """Platform pose for the given slider values, on the assembly branch of q_init.
 
         Newton on the enforced closure rows over the passive joints only (sliders locked):
         J_c,passive dq_passive = -r_c. Starts from q_init (default: the last solution of this
-        solver, initially home). `factors`: LU factors (getrf, 1-norm) of a passive closure Jacobian
-        valid near q_init (e.g. from a nearby calibrated model): Newton starts with chord steps on
-        them instead of evaluating a Jacobian. Raises InvalidInputError for bad actuators, NotConvergedError /
+        solver, initially home). Raises InvalidInputError for bad actuators, NotConvergedError /
         OutOfWorkspaceError / SingularConfigurationError (with the final residual) otherwise.
         """
         values = self.check_actuators(actuators)
@@ -420,9 +418,8 @@ class ClosedLoopSolver:
         self._tangent, previous, self._previous = None, self._previous, None  # dropped until this solve succeeds
         self._last_goal = self._inverse_previous = None  # last_q is about to be no IK solution
         outcome = self._newton(q, self.passive, self._system, self._passive_branch,
-                               start_branch=self._last_branch if warm else None, factors=factors)
-        if outcome.jacobian is not None:
-            self._tangent = -outcome.inverse.dot(outcome.jacobian.take(self.actuated, axis=1))
+                               start_branch=self._last_branch if warm else None)
+        self._tangent = -outcome.inverse.dot(outcome.jacobian.take(self.actuated, axis=1))
         if warm or previous is None:  # the solution this one started from, for the second-order predictor
             self._previous = (self.last_q.take(self.actuated), self.last_q.take(self.passive))
         self._last_branch = outcome.branch
@@ -456,8 +453,7 @@ class ClosedLoopSolver:
         """The platform frame at the configuration last evaluated (a copy: the solver's data moves on)."""
         return pin.SE3(pin.updateFramePlacement(self.model, self.data, self._platform))
 
-    def _newton(self, q: np.ndarray, unknowns: np.ndarray, system, signature, start_branch=None,
-                factors: tuple | None = None) -> _Outcome:
+    def _newton(self, q: np.ndarray, unknowns: np.ndarray, system, signature, start_branch=None) -> _Outcome:
         """Newton on a square system over the columns `unknowns` (None: every column), with chord steps.
 
         The Jacobian is evaluated at the start; later steps reuse its LU factors while each
@@ -465,10 +461,9 @@ class ClosedLoopSolver:
         `signature(jac, lu)` labels the branch: its value at the last Jacobian must equal
         `start_branch` (default: its value at the first Jacobian), else BranchChangeError.
         """
-        residual, jac = system(q, factors is None)
+        residual, jac = system(q, True)
         previous = norm = math.inf
-        last_jac = square = label = None  # label: the signature of last_jac, once computed
-        lu = factors
+        last_jac = square = label = lu = None  # label: the signature of last_jac, once computed
         for iteration in range(self.max_iterations + 1):
             norm = _max_abs(residual)
             if not math.isfinite(norm):
@@ -483,14 +478,12 @@ class ClosedLoopSolver:
                     start_branch = label = signature(jac, lu)
                 last_jac, jac = jac, None
             if norm <= self.tolerance:
-                # Conditioning and branch are judged at the last Jacobian only; converged on the
-                # caller's factors alone, on those (their 1-norm comes with them, no branch to keep).
-                one_norm = lu[2] if square is None else _one_norm(square)
-                inverse, rcond = _inverse_and_rcond(lu, one_norm)
+                # Conditioning and branch are judged at the last Jacobian only.
+                inverse, rcond = _inverse_and_rcond(lu, _one_norm(square))
                 if rcond < SINGULAR_RCOND:
                     raise SingularConfigurationError(f"singular configuration (reciprocal condition {rcond:.2e})",
                                                      norm, iteration)
-                branch = label if label is not None or last_jac is None else signature(last_jac, lu)
+                branch = label if label is not None else signature(last_jac, lu)
                 if branch != start_branch:
                     raise BranchChangeError("the solution lies on another assembly branch than the start "
                                             "(Newton crossed a singularity)", norm, iteration)
