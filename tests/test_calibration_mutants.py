@@ -486,7 +486,7 @@ def test_refine_options_weights_and_an_equal_rank(mechanism, few_poses, monkeypa
         assert _refine(weak, result, 1e-9, 5) == "continued"
 
 
-def test_select_parameters_scores_the_pose_rows_only(mechanism, few_poses):
+def test_select_parameters_scores_the_pose_rows_only(mechanism, few_poses, monkeypatch):
     """With priors the residual has prior rows after the pose rows; the selection sees the pose
     rows of the inliers, at r - J x."""
     error_model = ClosedLoopErrorModel(mechanism)
@@ -500,10 +500,18 @@ def test_select_parameters_scores_the_pose_rows_only(mechanism, few_poses):
     assert len(r) == 24 + 2
     keep = np.repeat(problem.active, 6)
     expected = forward_selection(J[:24][keep], (r[:24] - J[:24] @ accumulated[columns])[keep], 6, range(6), [0, 1])
-    selection, result = _select_parameters(problem, state, SimpleNamespace(state=state), np.arange(2),
+    fits = []
+    fit = closed_loop._fit
+    monkeypatch.setattr(closed_loop, "_fit", lambda *args: fits.append(args[1]) or fit(*args))
+    start = dataclasses.replace(state)
+    problem.residual_and_jacobian(start)  # the start's Jacobian cached over every column
+    selection, result = _select_parameters(problem, start, SimpleNamespace(state=state), np.arange(2),
                                            {"max_iterations": 1})
     assert selection == expected
     np.testing.assert_array_equal(problem.columns, columns[list(selection.indices)])
+    assert len(selection.indices) < len(columns)
+    (refit_start,) = fits  # a smaller set is refitted from the start, its Jacobian evaluated afresh
+    assert refit_start is not start and refit_start.whitened is None and start.whitened is not None
 
 
 def _problem_with_a_1_m_outlier(mechanism, columns: np.ndarray) -> _ClosedLoopProblem:
@@ -765,6 +773,10 @@ def test_evaluate_in_blocks_reduced_with_extra_rows_and_progress(mechanism, few_
     assert len(calls) == 3
     np.testing.assert_array_equal(residual, whole[0])
     assert factor.shape == (9, 9)
+    # One pose, 6 rows for 9 columns: a factor of 6 rows (nothing stacked on an empty start).
+    one = _ClosedLoopProblem(error_model, measure(mechanism, few_poses.actuators[:1]), NOISE, columns,
+                             estimate_frame=True, estimate_marker=True)
+    assert one.evaluate(one.assemble(mechanism.model, None, setup=setup), columns, reduce=True)[1].shape == (6, 9)
     np.testing.assert_allclose(factor.T @ factor, whole[1].T @ whole[1], rtol=1e-9,
                                atol=1e-9 * np.abs(whole[1]).max() ** 2)
 
