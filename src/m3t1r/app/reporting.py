@@ -106,16 +106,9 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
                                            title="Cross-validated error vs number of calibration poses",
                                            protect=protect))
     targets = workspace_targets(300, np.random.default_rng(seed))
-    solver = ClosedLoopSolver(calibration.mechanism)
-    reachable, sliders = [], []
-    for target in targets:
-        try:
-            sliders.append(solver.inverse(target).actuators)
-            reachable.append(target)
-        except KinematicsError:
-            solver.reset()
-    std = predicted_pose_std(calibration, np.array(sliders))
-    written.append(plot_predicted_std_map(np.array(reachable), std, out_dir / "predicted_error_map.png",
+    solved = ClosedLoopSolver(calibration.mechanism).inverse_batch(targets)  # each from home; the unreachable left out
+    std = predicted_pose_std(calibration, solved.actuators)
+    written.append(plot_predicted_std_map(targets[solved.indices], std, out_dir / "predicted_error_map.png",
                                           title="Predicted position error after compensation (1 sigma)",
                                           protect=protect))
     return written
