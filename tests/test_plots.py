@@ -156,3 +156,36 @@ def test_units_follow_the_data():
     # Tick and legend text: each value in its own unit.
     assert _readable(0.0235, _LENGTH_UNITS) == "23.5 mm" and _readable(1e-5, _LENGTH_UNITS) == "10 µm"
     assert _readable(0.14, _ANGLE_UNITS) == "140 mrad" and _readable(3e-10, _LENGTH_UNITS) == "0.3 nm"
+
+
+@pytest.mark.parametrize("estimate_frame", [False, True])
+def test_calibration_plots_title_the_map_by_what_it_shows(tmp_path, monkeypatch, estimate_frame):
+    """With the tracker frame estimated, the predicted map is the platform's std in the calibrated
+    base frame, which includes the base placement the data leave free: the title says so instead
+    of calling it the error after compensation. Every map point is an assembled workspace target."""
+    import pinocchio as pin
+
+    from m3t1r.app import reporting
+    from m3t1r.calibration.closed_loop import calibrate_closed_loop
+    from m3t1r.calibration.measurement_setup import MeasurementSetup
+    from m3t1r.calibration.measurements import TrackerNoise
+    from m3t1r.calibration.simulation import simulate_study
+    from m3t1r.model.description import Mechanism
+
+    mechanism = Mechanism.load()
+    frame = pin.SE3(pin.utils.rotate("z", 2.0), np.array([1.5, -0.8, 0.3])) if estimate_frame else pin.SE3.Identity()
+    study = simulate_study(mechanism, n_poses=40, n_holdout=0, seed=5, noise=TrackerNoise(),
+                           setup=MeasurementSetup(frame))
+    calibration = calibrate_closed_loop(mechanism, study.measurements, TrackerNoise(), estimate_frame=estimate_frame)
+    maps = []
+    monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
+    monkeypatch.setattr(reporting, "plot_predicted_std_map",
+                        lambda targets, std, path, title, protect: maps.append((targets, std, title)) or path)
+    reporting.write_calibration_plots(mechanism, calibration, tmp_path)
+    (targets, std, title), = maps
+    assert 250 < len(targets) <= 300 and len(std.position) == len(targets)
+    if estimate_frame:
+        assert title.startswith("Predicted platform pose std in the calibrated base frame")
+        assert "estimated tracker frame leaves free" in title
+    else:
+        assert title == "Predicted position error after compensation (1 sigma)"
