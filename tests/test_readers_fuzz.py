@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from m3t1r.app.datasets import read_actuators, read_measurements, read_targets
-from m3t1r.errors import DataFileError, M3t1rError, ModelFileError
+from m3t1r.errors import DataFileError, M3t1rError, ModelFileError, ModelWarning
 from m3t1r.io.tables import read_table
 from m3t1r.model.description import Mechanism, nominal_model_paths
 
@@ -132,6 +133,10 @@ def test_closures_reader_on_random_cells(data):
     with tempfile.TemporaryDirectory() as folder:
         path = _write(folder, "m.closures.yaml", yaml.safe_dump(doc, allow_unicode=True).encode("utf-8"))
         try:
-            Mechanism.load(NOMINAL_URDF, path)
+            with warnings.catch_warnings():
+                # A home value a little off is repaired by Newton with a ModelWarning (its own tests
+                # are in test_mechanisms); here only refusals and crashes matter.
+                warnings.simplefilter("ignore", ModelWarning)
+                Mechanism.load(NOMINAL_URDF, path)
         except M3t1rError as exc:
             assert str(path) in str(exc)
