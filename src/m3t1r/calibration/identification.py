@@ -689,7 +689,7 @@ def levenberg_marquardt(
         augmented_factor = triangular_factor(J, r)
         size = min(augmented_factor.shape[0], J.shape[1])
         rj, qtr = augmented_factor[:size, :-1], augmented_factor[:size, -1]
-        scale = np.sqrt(np.einsum("ij,ij->j", J, J))
+        scale = _column_norms_of(J)
         scale = np.maximum(scale, 1e-12 * max(scale.max(), 1e-300))
         p = J.shape[1]
         while True:
