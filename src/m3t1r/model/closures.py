@@ -92,7 +92,7 @@ class ClosureSystem:
         jac = pin.getConstraintsJacobian(model, data, self.constraints, self.constraint_data)
         for slot, cdata in self.welds:
             relative = cdata.c1Mc2
-            jac[slot:slot + 6] = pin.Jlog6(relative).dot(relative.inverse().action).dot(jac[slot:slot + 6])
+            jac[slot:slot + 6] = pin.Jlog6(relative).dot(relative.actionInverse).dot(jac[slot:slot + 6])
         return residual, jac.take(self.enforced, axis=0)
 
     def assemble(self, q: np.ndarray, free: np.ndarray, tolerance: float) -> tuple[np.ndarray, float]:

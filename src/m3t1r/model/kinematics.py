@@ -78,6 +78,7 @@ def _det_sign(lu: tuple) -> bool:
 
 
 _ARANGE = np.arange(256)
+_dasum, _dnrm2, _idamax, _dlange = blas.dasum, blas.dnrm2, blas.idamax, lapack.dlange
 
 
 def diagonal_blocks(pattern: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -110,32 +111,45 @@ class _BranchSignature:
 
     One determinant over the whole system would miss two loops flipping at once (e.g. both
     five-bars folding their knees below the rails); each block's determinant changes sign only
-    through that block's own singularity. All of them come from one LU of the system permuted to
-    upper block-triangular form (`diagonal_blocks`' order): with zeros below the diagonal blocks,
-    partial pivoting takes each pivot of a block's columns among that block's rows, so a block's
-    sign is that of its U diagonal times that of its own row swaps. Should a pivot come from below
-    its block (entries the structure says are zero are not), the blocks are factored one by one.
+    through that block's own singularity. All of them come from one LU of D, the blocks alone on
+    the diagonal of an otherwise zero matrix: partial pivoting then never leaves a block, so a
+    block's sign is that of its U diagonal times that of its own row swaps.
+
+    Anchored, so that a warm solve needs no factorisation: the last factorised D (the anchor) keeps
+    its signs and |D^-1|_F, which bounds every |B_k^-1|_2 = 1 / sigma_min(B_k). For a system whose
+    blocks differ from the anchor's by |dD|_F |D^-1|_F < 1/2, each block moves by less than half
+    its smallest singular value along the whole segment between them, so it stays nonsingular and
+    its determinant keeps its sign: the anchor's signs hold. (1/2 leaves room for rounding in the
+    bound.) Any other system is factorised and becomes the anchor.
     """
 
     def __init__(self, blocks: list[tuple[np.ndarray, np.ndarray]], n_columns: int) -> None:
-        rows, columns = np.concatenate([r for r, _ in blocks]), np.concatenate([c for _, c in blocks])
-        self._square = rows[:, None] * n_columns + columns[None, :]  # flat indices into a (rows x n_columns) Jacobian
         ends = np.cumsum([len(r) for r, _ in blocks]).tolist()
-        self._spans = list(zip([0] + ends[:-1], ends))  # each block's positions in the permuted system
+        self._spans = list(zip([0] + ends[:-1], ends))  # each block's positions in D
+        self._size = ends[-1]
+        # Flat indices of each block's entries in a (rows x n_columns) Jacobian, and in D.
+        self._entries = np.concatenate([(r[:, None] * n_columns + c[None, :]).ravel() for r, c in blocks])
+        self._slots = np.concatenate([(np.arange(a, b)[:, None] * self._size + np.arange(a, b)[None, :]).ravel()
+                                      for a, b in self._spans])
+        self._anchor: tuple[np.ndarray, float, bytes] | None = None  # (block entries, |D^-1|_F, signs)
 
     def __call__(self, jac: np.ndarray) -> bytes:
-        square = jac.take(self._square)
-        factors, pivots = lapack.dgetrf(square)[:2]
+        entries = jac.take(self._entries)
+        if self._anchor is not None:
+            anchor, bound, signs = self._anchor
+            if float(_dnrm2(entries - anchor)) * bound < 0.5:
+                return signs
+        blocks = np.zeros(self._size * self._size)
+        blocks[self._slots] = entries
+        factors, pivots, info = lapack.dgetrf(blocks.reshape(self._size, self._size))
         # Python lists: at this size a loop costs less than the numpy calls that would replace it.
         diagonal, swaps, signs = factors.diagonal().tolist(), pivots.tolist(), []
         for start, end in self._spans:
-            flips = 0
-            for k in range(start, end):
-                if swaps[k] >= end:  # a pivot from below the block: its structural zeros are not
-                    return b"".join(b"\x01" if _det_sign(lapack.dgetrf(square[a:b, a:b])) else b"\x00"
-                                    for a, b in self._spans)
-                flips += (diagonal[k] < 0.0) + (swaps[k] != k)
+            flips = sum((diagonal[k] < 0.0) + (swaps[k] != k) for k in range(start, end))
             signs.append(flips % 2 == 0)
+        inverse, singular = lapack.dgetri(factors, pivots) if info == 0 else (None, 1)
+        bound = math.inf if singular else float(_dnrm2(inverse.ravel()))
+        self._anchor = (entries, bound if bound == bound else math.inf, bytes(signs))
         return bytes(signs)
 
 
@@ -151,7 +165,6 @@ class _Outcome(NamedTuple):
     branch: bytes
 
 
-_dasum, _idamax, _dlange = blas.dasum, blas.idamax, lapack.dlange
 
 
 def _one_norm(square: np.ndarray) -> float:
@@ -271,6 +284,8 @@ class ClosedLoopSolver:
         self._platform = mechanism.platform_frame_id
         self._task_frame = model.getFrameId(mechanism.task.frame)
         self._target_name = f"target ({', '.join(mechanism.task.columns)})"  # in IK's input refusals
+        self._square_task = mechanism.task.dimension == len(mechanism.actuated_joints)
+        self._goal_shape = (len(mechanism.task.columns),)
         locked = np.zeros(nv, dtype=bool)
         locked[mechanism.locked_ids] = True
         # IK's columns: every joint but the locked ones (None: all, which saves a copy per step)
@@ -450,8 +465,9 @@ class ClosedLoopSolver:
         return self._branch(jac)
 
     def _platform_pose(self) -> pin.SE3:
-        """The platform frame at the configuration last evaluated (a copy: the solver's data moves on)."""
-        return pin.SE3(pin.updateFramePlacement(self.model, self.data, self._platform))
+        """The platform frame at the configuration last evaluated: a copy (the binding returns
+        `updateFramePlacement`'s placement by value), so the solver's data may move on."""
+        return pin.updateFramePlacement(self.model, self.data, self._platform)
 
     def _newton(self, q: np.ndarray, unknowns: np.ndarray, system, signature, start_branch=None) -> _Outcome:
         """Newton on a square system over the columns `unknowns` (None: every column), with chord steps.
@@ -522,7 +538,8 @@ class ClosedLoopSolver:
         InvalidInputError when the task is not square, OutOfWorkspaceError when no assembly reaches
         the target or an actuator would leave its limits (never clipped).
         """
-        self.check_square_task()
+        if not self._square_task:
+            self.check_square_task()
         goal, goal_rotation, wanted_tilt = self._goal(target)
         warm = q_init is None
         q = (self.last_q if warm else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
@@ -537,8 +554,9 @@ class ClosedLoopSolver:
         q, residual, iterations = outcome.q, outcome.residual, outcome.iterations
         actuators = q.take(self.actuated)
         names = self.mechanism.actuated_joints
-        outside = (actuators < self._act_lower) | (actuators > self._act_upper)
-        for k in np.flatnonzero(outside) if outside.any() else ():
+        lower, upper = self._limit_lists
+        outside = [k for k, value in enumerate(actuators.tolist()) if not lower[k] <= value <= upper[k]]
+        for k in outside:
             raise OutOfWorkspaceError(
                 f"target needs actuator '{names[k]}' = {actuators[k]:.6g} m, beyond its limit "
                 f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]", residual, iterations)
@@ -548,7 +566,7 @@ class ClosedLoopSolver:
         self.last_q, self._tangent, self._last_branch, self._previous = q, None, outcome.branch[:-1], None
         self._task_inverse, self._last_inverse_branch = outcome.inverse[:, self.n_rows:], outcome.branch
         self._last_goal = (goal, goal_rotation)
-        self._last_task = pin.SE3(pin.updateFramePlacement(self.model, self.data, self._task_frame))
+        self._last_task = pin.updateFramePlacement(self.model, self.data, self._task_frame)  # a copy
         pose = self._platform_pose()
         roll, pitch = roll_pitch_of(self._last_task.rotation)
         return InverseResult(actuators, q.copy(), pose, residual, iterations,
@@ -557,6 +575,11 @@ class ClosedLoopSolver:
     def _goal(self, target: pin.SE3 | np.ndarray) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float]]:
         """(task goal, goal rotation for a full-rotation task else None, requested (roll, pitch))."""
         task = self.mechanism.task
+        if type(target) is np.ndarray and target.shape == self._goal_shape and task.rotation != "full":
+            goal = target.astype(float)  # a copy: it is kept for the next warm solve
+            total = _dasum(goal)
+            if total - total == 0.0:  # every entry finite (else the checks below name the bad one)
+                return goal, None, (0.0, 0.0)
         if isinstance(target, pin.SE3):
             if not (np.all(np.isfinite(target.homogeneous))):
                 raise InvalidInputError("target pose: non-finite value")
@@ -598,22 +621,16 @@ class ClosedLoopSolver:
 
     def _inverse_system(self, goal: np.ndarray, goal_rotation: np.ndarray | None):
         """IK's square system for `_newton`: (q, with_jacobian) -> ([closure rows; task rows], Jacobian)."""
-        model, data, frame, task, n_rows = self.model, self.data, self._task_frame, self.mechanism.task, self.n_rows
-        size = n_rows + task.dimension
+        model, data, frame, task = self.model, self.data, self._task_frame, self.mechanism.task
 
         def system(qk: np.ndarray, with_jacobian: bool):
             closure, jac = self._system(qk, with_jacobian)
             placement = pin.updateFramePlacement(model, data, frame)
-            residual = np.empty(size)
-            residual[:n_rows] = closure
-            residual[n_rows:] = task.residual(placement, goal, goal_rotation)
+            residual = np.concatenate((closure, task.residual(placement, goal, goal_rotation)))
             if not with_jacobian:
                 return residual, None
             frame_jac = pin.getFrameJacobian(model, data, frame, pin.LOCAL_WORLD_ALIGNED)
-            full = np.empty((size, jac.shape[1]))
-            full[:n_rows] = jac
-            full[n_rows:] = task.jacobian(placement, frame_jac, goal_rotation)
-            return residual, full
+            return residual, np.concatenate((jac, task.jacobian(placement, frame_jac, goal_rotation)))
         return system
 
     # ----------------------------------------------------------------------------------------

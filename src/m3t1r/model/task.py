@@ -158,11 +158,9 @@ class TaskSpec:
         out = np.empty((self.dimension, frame_jacobian.shape[1]))
         out[:count] = frame_jacobian[self._rows]
         if self.rotation == "yaw":
-            c = placement.rotation[:, 0]
-            horizontal = c[0] * c[0] + c[1] * c[1]
-            out[count] = (-c[0] * c[2] / horizontal) * frame_jacobian[3]
-            out[count] += (-c[1] * c[2] / horizontal) * frame_jacobian[4]
-            out[count] += frame_jacobian[5]
+            c0, c1, c2 = placement.rotation[:, 0].tolist()
+            horizontal = c0 * c0 + c1 * c1
+            out[count] = np.dot((-c0 * c2 / horizontal, -c1 * c2 / horizontal, 1.0), frame_jacobian[3:])
         elif self.rotation == "full":
             rotation = placement.rotation
             out[count:] = pin.Jlog3(goal_rotation.T @ rotation) @ (rotation.T @ frame_jacobian[3:])
