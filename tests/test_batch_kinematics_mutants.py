@@ -679,7 +679,7 @@ def test_inverse_batch_with_a_full_rotation_task(wrist):
     (object(), "actuator values: not numeric rows (float() argument must be a string or a real number, not 'object')"),
     ([[1.0, 2.0, 3.0]], "actuator values: shape (1, 3), expected (n, 2) rows ('motor_1', 'motor_2')"),
     ([1.0, 2.0], "actuator values: shape (2,), expected (n, 2) rows ('motor_1', 'motor_2')"),
-    (np.zeros((0, 2)), "actuator values: shape (0, 2), expected (n, 2) rows ('motor_1', 'motor_2')"),
+    (np.zeros((0, 3)), "actuator values: shape (0, 3), expected (n, 2) rows ('motor_1', 'motor_2')"),
     (np.zeros((1, 2, 1)), "actuator values: shape (1, 2, 1), expected (n, 2) rows ('motor_1', 'motor_2')"),
     ([[1.0, 2.0], [1.0, np.inf]], "actuator values: row 1 (0-based): motor_2 = inf, not finite"),
     ([[2.0, 1.0], [np.nan, np.inf]], "actuator values: row 1 (0-based): motor_1 = nan, not finite"),

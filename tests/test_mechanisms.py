@@ -88,6 +88,19 @@ def test_inverse_kinematics_round_trip(mechanism):
     np.testing.assert_allclose(solver.inverse(full, q_init=mechanism.home).actuators, actuators[0], atol=1e-8)
 
 
+def test_batches_of_no_rows_return_empty_results(mechanism):
+    """Zero slider sets or targets (of the right width) are a valid batch: empty arrays of the right
+    shapes and no failures, for every task kind (the full-rotation task goes through its own goals)."""
+    solver = ClosedLoopSolver(mechanism)
+    forward = solver.forward_batch(np.zeros((0, len(mechanism.actuated_joints))))
+    assert forward.n == 0 and forward.poses.shape == (0, 4, 4) and forward.q.shape == (0, mechanism.model.nq)
+    assert forward.failures == () and forward.indices.shape == (0,)
+    inverse = solver.inverse_batch(np.zeros((0, len(mechanism.task.columns))))
+    assert inverse.n == 0 and inverse.actuators.shape == (0, len(mechanism.actuated_joints))
+    assert inverse.tilt.shape == (0, 2) and inverse.failures == ()
+    with pytest.raises(InvalidInputError, match="shape"):
+        solver.forward_batch(np.zeros(0))  # no rows and no width: not a batch
+
 def test_task_columns_name_what_is_commanded(mechanism):
     expected = {"m_machine": ("x", "y", "z", "theta"), "five_bar": ("x", "y"),
                 "spherical_wrist": ("qx", "qy", "qz", "qw")}[_kind(mechanism)]

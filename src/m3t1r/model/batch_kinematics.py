@@ -561,12 +561,12 @@ def _starts(kin: StackedKinematics, n: int, q_init: np.ndarray | None) -> np.nda
 
 
 def _rows(values: object, width: int, what: str, columns: tuple[str, ...]) -> np.ndarray:
-    """An (n, width) finite float array, or InvalidInputError naming the first bad row and column."""
+    """An (n, width) finite float array (n may be 0), or InvalidInputError naming the first bad row and column."""
     try:
         array = np.asarray(values, dtype=float)
     except (TypeError, ValueError) as exc:
         raise InvalidInputError(f"{what}: not numeric rows ({exc})") from None
-    if array.ndim != 2 or array.shape[1] != width or array.shape[0] == 0:
+    if array.ndim != 2 or array.shape[1] != width:
         raise InvalidInputError(f"{what}: shape {array.shape}, expected (n, {width}) rows {columns}")
     bad = np.argwhere(~np.isfinite(array))
     if bad.size:
@@ -718,7 +718,7 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
 
     parts, failures = [], []
     names = solver.mechanism.actuated_joints
-    for chunk in np.array_split(np.arange(len(goal)), max(1, -(-len(goal) // _CHUNK))):
+    for chunk in np.array_split(np.arange(len(goal)), max(1, -(-len(goal) // _CHUNK))) if len(goal) else []:
         branch = None
         if q_init is None and task.rotation != "full":
             branch = _first_step_from_home(kin, start, chunk, goal, signature)
