@@ -345,34 +345,6 @@ def test_block_structure_of_the_passive_system_from_a_cold_cache(mechanism):
                      ([6, 7], [12, 17]), ([8, 9], [11, 19])]
 
 
-def test_branch_signature_reuses_its_anchor_only_within_half_of_one_over_the_inverse_norm():
-    """A system whose blocks are within |dD|_F < 1 / (2 |D^-1|_F) of the last factorised ones gets
-    that anchor's signs without a factorisation; one that moves further is factorised and anchors
-    (here: a block that crossed its singularity). Entries outside the blocks play no part."""
-    from m3t1r.model.kinematics import _BranchSignature
-
-    signature = _BranchSignature([(np.array([0, 1]), np.array([0, 1])), (np.array([2]), np.array([2]))], 3)
-    anchor = np.diag([2.0, 1.0, 0.01])
-    assert signature(anchor) == b"\x01\x01"
-    first = signature._anchor
-    radius = 0.5 / math.sqrt(0.5**2 + 1.0 + 100.0**2)  # |D^-1|_F of diag(2, 1, 0.01)
-    inside = anchor.copy()
-    inside[0, 1], inside[2, 0] = 0.999 * radius, 5.0  # (2, 0) lies outside every block
-    assert signature(inside) == b"\x01\x01" and signature._anchor is first
-    outside = anchor.copy()
-    outside[0, 1] = 1.001 * radius
-    assert signature(outside) == b"\x01\x01" and signature._anchor is not first
-    across = anchor.copy()
-    across[2, 2] = -0.01  # the 1 x 1 block flipped: far from any anchor
-    assert signature(across) == b"\x01\x00"
-    singular = np.diag([2.0, 1.0, 0.0])  # an anchor with a singular block anchors nothing
-    signature(singular)
-    held = signature._anchor
-    assert held[1] == math.inf
-    signature(singular)
-    assert signature._anchor is not held
-
-
 def test_returned_poses_do_not_move_with_later_solves(mechanism):
     """FK and IK hand out their own placements: the solver's next solves leave them as they were."""
     solver = ClosedLoopSolver(mechanism)

@@ -78,7 +78,7 @@ def _det_sign(lu: tuple) -> bool:
 
 
 _ARANGE = np.arange(256)
-_dasum, _dnrm2, _idamax, _dlange = blas.dasum, blas.dnrm2, blas.idamax, lapack.dlange
+_dasum, _idamax, _dlange = blas.dasum, blas.idamax, lapack.dlange
 
 
 def diagonal_blocks(pattern: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -111,45 +111,32 @@ class _BranchSignature:
 
     One determinant over the whole system would miss two loops flipping at once (e.g. both
     five-bars folding their knees below the rails); each block's determinant changes sign only
-    through that block's own singularity. All of them come from one LU of D, the blocks alone on
-    the diagonal of an otherwise zero matrix: partial pivoting then never leaves a block, so a
-    block's sign is that of its U diagonal times that of its own row swaps.
-
-    Anchored, so that a warm solve needs no factorisation: the last factorised D (the anchor) keeps
-    its signs and |D^-1|_F, which bounds every |B_k^-1|_2 = 1 / sigma_min(B_k). For a system whose
-    blocks differ from the anchor's by |dD|_F |D^-1|_F < 1/2, each block moves by less than half
-    its smallest singular value along the whole segment between them, so it stays nonsingular and
-    its determinant keeps its sign: the anchor's signs hold. (1/2 leaves room for rounding in the
-    bound.) Any other system is factorised and becomes the anchor.
+    through that block's own singularity. All of them come from one LU of the system permuted to
+    upper block-triangular form (`diagonal_blocks`' order): with zeros below the diagonal blocks,
+    partial pivoting takes each pivot of a block's columns among that block's rows, so a block's
+    sign is that of its U diagonal times that of its own row swaps. Should a pivot come from below
+    its block (entries the structure says are zero are not), the blocks are factored one by one.
     """
 
     def __init__(self, blocks: list[tuple[np.ndarray, np.ndarray]], n_columns: int) -> None:
+        rows, columns = np.concatenate([r for r, _ in blocks]), np.concatenate([c for _, c in blocks])
+        self._square = rows[:, None] * n_columns + columns[None, :]  # flat indices into a (rows x n_columns) Jacobian
         ends = np.cumsum([len(r) for r, _ in blocks]).tolist()
-        self._spans = list(zip([0] + ends[:-1], ends))  # each block's positions in D
-        self._size = ends[-1]
-        # Flat indices of each block's entries in a (rows x n_columns) Jacobian, and in D.
-        self._entries = np.concatenate([(r[:, None] * n_columns + c[None, :]).ravel() for r, c in blocks])
-        self._slots = np.concatenate([(np.arange(a, b)[:, None] * self._size + np.arange(a, b)[None, :]).ravel()
-                                      for a, b in self._spans])
-        self._anchor: tuple[np.ndarray, float, bytes] | None = None  # (block entries, |D^-1|_F, signs)
+        self._spans = list(zip([0] + ends[:-1], ends))  # each block's positions in the permuted system
 
     def __call__(self, jac: np.ndarray) -> bytes:
-        entries = jac.take(self._entries)
-        if self._anchor is not None:
-            anchor, bound, signs = self._anchor
-            if float(_dnrm2(entries - anchor)) * bound < 0.5:
-                return signs
-        blocks = np.zeros(self._size * self._size)
-        blocks[self._slots] = entries
-        factors, pivots, info = lapack.dgetrf(blocks.reshape(self._size, self._size))
+        square = jac.take(self._square)
+        factors, pivots = lapack.dgetrf(square)[:2]
         # Python lists: at this size a loop costs less than the numpy calls that would replace it.
         diagonal, swaps, signs = factors.diagonal().tolist(), pivots.tolist(), []
         for start, end in self._spans:
-            flips = sum((diagonal[k] < 0.0) + (swaps[k] != k) for k in range(start, end))
+            flips = 0
+            for k in range(start, end):
+                if swaps[k] >= end:  # a pivot from below the block: its structural zeros are not
+                    return b"".join(b"\x01" if _det_sign(lapack.dgetrf(square[a:b, a:b])) else b"\x00"
+                                    for a, b in self._spans)
+                flips += (diagonal[k] < 0.0) + (swaps[k] != k)
             signs.append(flips % 2 == 0)
-        inverse, singular = lapack.dgetri(factors, pivots) if info == 0 else (None, 1)
-        bound = math.inf if singular else float(_dnrm2(inverse.ravel()))
-        self._anchor = (entries, bound if bound == bound else math.inf, bytes(signs))
         return bytes(signs)
 
 
