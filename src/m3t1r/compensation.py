@@ -251,10 +251,10 @@ def joint_limit_violation(model: pin.Model, q: np.ndarray) -> str | None:
     """"target puts joint 'NAME' at V, beyond its limit [LO, HI]" for the first joint of a configuration
     (model order) outside its URDF limits (NaN counts as outside), or None when every joint is inside."""
     lower, upper = model.lowerPositionLimit, model.upperPositionLimit
-    outside = np.flatnonzero(~((q >= lower) & (q <= upper)))
-    if not outside.size:
+    inside = (q >= lower) & (q <= upper)
+    if inside.all():  # the common case, in a servo loop: no index search
         return None
-    k = int(outside[0])
+    k = int(np.argmin(inside))
     name = model.names[1 + list(model.idx_qs[1:]).index(k)]
     return f"target puts joint '{name}' at {q[k]:.6g}, beyond its limit [{lower[k]:.6g}, {upper[k]:.6g}]"
 
