@@ -19,7 +19,7 @@ def wrist(tmp_path_factory):
 
 def test_jacobian_matches_differences_far_from_assembly(wrist):
     """Away from an assembly the 6D rows' relative placement is far from identity, where the
-    Jlog6 Ad(aMb^-1) factor on Pinocchio's velocity-level Jacobian matters."""
+    Jlog6(aMb) Ad(aMb^-1) = Jlog6(bMa) factor on Pinocchio's velocity-level Jacobian matters."""
     system = ClosureSystem(wrist.model, wrist.closures)
     q = wrist.home + np.random.default_rng(0).normal(0.0, 0.4, wrist.model.nq)
     residual, jacobian = system.evaluate(q, True)

@@ -77,7 +77,9 @@ class ClosureSystem:
 
     def evaluate(self, q: np.ndarray, with_jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """Enforced rows at q and, optionally, their exact Jacobian (rows x nv). The constraint models'
-        6D Jacobian is velocity-level; the exact one is Jlog6(aMb) Ad(aMb^-1) times it."""
+        6D Jacobian is velocity-level (the relative twist of b in a's frame, a left perturbation of
+        aMb); the exact one is Jlog6(aMb) Ad(aMb^-1) = Jlog6(bMa) times it, since
+        log6(exp(x) M) = -log6(M^-1 exp(-x))."""
         model, data = self.model, self.data
         if with_jacobian:
             pin.computeJointJacobians(model, data, q)
@@ -91,8 +93,7 @@ class ClosureSystem:
             return residual, None
         jac = pin.getConstraintsJacobian(model, data, self.constraints, self.constraint_data)
         for slot, cdata in self.welds:
-            relative = cdata.c1Mc2
-            jac[slot:slot + 6] = pin.Jlog6(relative).dot(relative.actionInverse).dot(jac[slot:slot + 6])
+            jac[slot:slot + 6] = pin.Jlog6(cdata.c1Mc2.inverse()).dot(jac[slot:slot + 6])
         return residual, jac.take(self.enforced, axis=0)
 
     def assemble(self, q: np.ndarray, free: np.ndarray, tolerance: float) -> tuple[np.ndarray, float]:
