@@ -160,9 +160,10 @@ def test_units_follow_the_data():
 
 @pytest.mark.parametrize("estimate_frame", [False, True])
 def test_calibration_plots_title_the_map_by_what_it_shows(tmp_path, monkeypatch, estimate_frame):
-    """With the tracker frame estimated, the predicted map is the platform's std in the calibrated
-    base frame, which includes the base placement the data leave free: the title says so instead
-    of calling it the error after compensation. Every map point is an assembled workspace target."""
+    """The predicted map shows what the tracker would measure, in its frame: with the tracker frame
+    estimated it is titled so and stays at the tracker-noise level (the platform's std in the base
+    would be millimetres, the base placement being the gauge); without a setup it is the platform's
+    error, as before. Every map point is an assembled workspace target."""
     import pinocchio as pin
 
     from m3t1r.app import reporting
@@ -185,7 +186,7 @@ def test_calibration_plots_title_the_map_by_what_it_shows(tmp_path, monkeypatch,
     (targets, std, title), = maps
     assert 250 < len(targets) <= 300 and len(std.position) == len(targets)
     if estimate_frame:
-        assert title.startswith("Predicted platform pose std in the calibrated base frame")
-        assert "estimated tracker frame leaves free" in title
+        assert title.startswith("Predicted error of the measured point in the measurement frame (1 sigma)")
     else:
         assert title == "Predicted position error after compensation (1 sigma)"
+    assert 1e-6 < float(np.mean(std.position)) < 30e-6  # not the millimetres of the base gauge

@@ -19,6 +19,7 @@ from m3t1r.calibration.closed_loop import (
                                            calibrate_closed_loop,
                                            cross_validate,
                                            pose_errors,
+                                           predicted_measurement_std,
                                            predicted_pose_std,
 )
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
@@ -69,7 +70,8 @@ __all__ = [
     "five_bar_files", "spherical_wrist_files",
     # calibration
     "PoseErrors", "TrackerNoise", "PoseMeasurements", "MeasurementSetup", "measure", "ClosedLoopErrorModel",
-    "ClosedLoopCalibration", "calibrate_closed_loop", "pose_errors", "predicted_pose_std", "CrossValidation",
+    "ClosedLoopCalibration", "calibrate_closed_loop", "pose_errors", "predicted_pose_std", "predicted_measurement_std",
+    "CrossValidation",
     "cross_validate", "SerialCalibration", "SerialCrossValidation", "calibrate_serial",
     "cross_validate_serial", "load_example_robot", "SimulatedStudy", "simulate_study", "actual_machine",
     "PoseSelection", "select_poses", "MeasurementPlan", "plan_closed_loop", "plan_serial", "Validation", "validate",

@@ -5,8 +5,9 @@ Without a known truth, each plot uses what the data can show honestly:
   at the calibration poses (a fit residual, not an accuracy);
 - error vs number of poses: cross-validation: calibrate on the first k of a shuffled pose set and
   measure the error on poses kept out of every fit;
-- workspace map: the position standard deviation predicted from the parameter covariance, which is
-  the expected positioning error after compensation.
+- workspace map: the standard deviation of what the tracker would measure, in its frame, predicted
+  from the covariance of every fitted parameter (the setup's included): the expected error of a
+  pose commanded in that frame after compensation (`predicted_measurement_std`).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Iterable
 import numpy as np
 
 from m3t1r.app.plots import plot_error_vs_poses, plot_pose_errors_before_after, plot_predicted_std_map
-from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_closed_loop, predicted_pose_std
+from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_closed_loop, predicted_measurement_std
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home
 from m3t1r.compensation import workspace_targets
@@ -107,14 +108,15 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
                                            protect=protect))
     targets = workspace_targets(300, np.random.default_rng(seed))
     solved = ClosedLoopSolver(calibration.mechanism).inverse_batch(targets)  # each from home; the unreachable left out
-    std = predicted_pose_std(calibration, solved.actuators)
-    # With an estimated tracker frame the base-side placements are the gauge: the platform's place in
-    # the true base is not observable, and its predicted std says so; commands given in the tracker's
-    # frame are far more accurate (the cross-validation shows how much), so the title must not
-    # call this their error.
-    title = ("Predicted platform pose std in the calibrated base frame (1 sigma):\n"
-             "includes the base placement, which the estimated tracker frame leaves free" if problem.frame_slot is not None
-             else "Predicted position error after compensation (1 sigma)")
+    # What the tracker would measure, in its own frame, with the setup's uncertainty: with an estimated
+    # frame the platform's place in the machine's base is not observable (`predicted_measurement_std`),
+    # so a map of the platform in the base would show the gauge, not the accuracy of a command.
+    std = predicted_measurement_std(calibration, solved.actuators)
+    plain = calibration.setup.frame.isIdentity() and calibration.setup.marker.isIdentity() and \
+        problem.frame_slot is None and problem.marker_slot is None
+    title = ("Predicted position error after compensation (1 sigma)" if plain else
+             "Predicted error of the measured point in the measurement frame (1 sigma),\n"
+             "for poses commanded in that frame after calibration")
     written.append(plot_predicted_std_map(targets[solved.indices], std, out_dir / "predicted_error_map.png",
                                           title=title,
                                           protect=protect))

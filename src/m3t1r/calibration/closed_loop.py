@@ -52,7 +52,8 @@ from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
 from m3t1r.model.poe import adjoint_matrices, jlog3_batch, log3_batch, placement_of, skew
 from m3t1r.model.workspace import workspace_actuators
 
-__all__ = ["ClosedLoopCalibration", "calibrate_closed_loop", "pose_errors", "predicted_pose_std", "setup_parameter_names",
+__all__ = ["ClosedLoopCalibration", "calibrate_closed_loop", "pose_errors", "predicted_pose_std",
+           "predicted_measurement_std", "setup_parameter_names",
            "CrossValidation", "cross_validate"]
 
 _MAX_OUTLIER_ROUNDS = 5
@@ -210,19 +211,27 @@ class _ClosedLoopProblem:
     def _block_rows(self, state: _State, block: slice, columns: np.ndarray,
                     sensitivities: PlatformSensitivities) -> tuple[np.ndarray, np.ndarray]:
         """Residual rows and Jacobian rows of the poses in `block` (measurement-frame twists)."""
-        measured = self.measured_frames(state, sensitivities.poses)
+        measured, twists = self.measured_frame_twists(state.setup, columns, sensitivities)
         residual, rows = _residual_rows_batch(measured, self._measured_positions[block],
                                               None if self._measured_rotations is None
                                               else self._measured_rotations[block])
-        frame_adjoint = adjoint_matrices(state.setup.frame.homogeneous[None])[0]
+        return residual.reshape(-1), (rows @ twists).reshape(residual.size, -1)
+
+    def measured_frame_twists(self, setup: MeasurementSetup, columns: np.ndarray,
+                              sensitivities: PlatformSensitivities) -> tuple[np.ndarray, np.ndarray]:
+        """The measured frames (N, 4, 4) in the measurement frame, and their spatial twists there per
+        unit of each column (N, 6, len(columns)), machine columns first (`sensitivities` holds
+        theirs, in base-frame twists), then the setup's in `columns` order: a frame error moves
+        every measured frame by one constant twist, a marker error by its own adjoint."""
+        measured = setup.measured_poses(sensitivities.poses)
+        frame_adjoint = adjoint_matrices(setup.frame.homogeneous[None])[0]
         blocks = [frame_adjoint @ sensitivities.twist_jacobians]  # base-frame twists seen in the measurement frame
         for c in columns[columns >= self.n_machine]:
             if self.frame_slot is not None and self.frame_slot <= c < self.frame_slot + 6:
                 blocks.append(np.broadcast_to(frame_adjoint[:, c - self.frame_slot, None], (len(measured), 6, 1)))
             else:
                 blocks.append(adjoint_matrices(measured)[:, :, c - self.marker_slot, None])
-        twists = np.concatenate(blocks, axis=2)
-        return residual.reshape(-1), (rows @ twists).reshape(residual.size, -1)
+        return measured, np.concatenate(blocks, axis=2)
 
     def residual_and_jacobian(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
         if state.model is None:  # a trial step that did not assemble: reject it
@@ -640,6 +649,43 @@ def pose_errors(machine_a: Mechanism, machine_b: Mechanism, actuators: np.ndarra
 
 
 @on_one_blas_thread
+def predicted_measurement_std(calibration: ClosedLoopCalibration, actuators: np.ndarray) -> PoseErrors:
+    """Predicted standard deviation of what the tracker would measure at the given sliders: the
+    measured frame (frame . T_platform . marker) in the measurement frame, with the covariance of
+    every fitted parameter, the measurement setup's included.
+
+    This is the accuracy of a pose commanded in the tracker's frame, the frame the data fix. With
+    the frame estimated, the platform's placement in the machine's own base is not observable
+    (the base-side placements are the gauge), so `predicted_pose_std` is large there while this
+    one is not. Position [m]: root of the trace of the 3x3 position block of J C J^T, J the
+    sensitivity of the measured point to the fitted parameters and C their covariance;
+    orientation [rad] likewise, in the measured frame's axes. Every slider set is assembled from
+    home (`assembled_from_home`: InvalidInputError naming one that does not).
+    """
+    problem = calibration.problem
+    if problem is None:
+        raise InvalidInputError("predicted_measurement_std needs a calibration made by calibrate_closed_loop")
+    mechanism = calibration.mechanism
+    error_model = ClosedLoopErrorModel(mechanism, calibration.error_model.placements)
+    solver = ClosedLoopSolver(mechanism)
+    index = {name: i for i, name in enumerate(problem.names)}
+    columns = np.array([index[name] for name in calibration.fitted], dtype=int)
+    order = np.argsort(columns, kind="stable")  # machine columns first, as the twists come
+    columns, covariance = columns[order], calibration.covariance[np.ix_(order, order)]
+    machine = columns[columns < problem.n_machine]
+    configurations = assembled_from_home(mechanism, actuators).q
+    position, rotation = np.empty(len(configurations)), np.empty(len(configurations))
+    for start in range(0, len(configurations), _BLOCK):
+        block = slice(start, start + _BLOCK)
+        sensitivities = error_model.platform_sensitivities(solver, configurations[block], machine)
+        measured, twists = problem.measured_frame_twists(calibration.setup, columns, sensitivities)
+        point = twists[:, :3] - skew(measured[:, :3, 3]) @ twists[:, 3:]  # dp = v + w x p
+        angular = np.swapaxes(measured[:, :3, :3], 1, 2) @ twists[:, 3:]
+        position[block] = np.sqrt(np.einsum("nip,pq,niq->n", point, covariance, point))
+        rotation[block] = np.sqrt(np.einsum("nip,pq,niq->n", angular, covariance, angular))
+    return PoseErrors(position, rotation)
+
+
 def predicted_pose_std(calibration: ClosedLoopCalibration, actuators: np.ndarray) -> PoseErrors:
     """Predicted standard deviation of the calibrated platform pose at the given sliders.
 
