@@ -75,8 +75,10 @@ class CompensatedCommand:
     """The compensated command for one target T_co.
 
     actuators: q^c, calibrated-model IK sliders [m] in `actuated_joints` order ("actuators" output);
-    command_pose: T_cp, nominal-model FK at q^c ("pose" output for a nominal-model controller);
-    reached_pose: the calibrated model's platform pose at q^c (position and yaw equal T_co's);
+    command_pose: T_cp, the task frame of the nominal model at q^c, by FK ("pose" output for a
+    nominal-model controller, which takes task-frame targets);
+    reached_pose: the calibrated model's task frame at q^c (its commanded components, e.g. position
+    and yaw, equal T_co's);
     tilt: (roll, pitch) [rad] of `reached_pose` minus those of T_co (the requested ones are zero
     for an (x, y, z, theta) target): what the machine does that cannot be commanded;
     iterations: Newton steps of the calibrated IK.
@@ -104,8 +106,8 @@ class Compensation:
     is therefore finite. M = len(indices) = N - len(failures).
 
     indices: (M,) int, input position of each row; actuators: (M, 4) q^c [m] ("actuators" output,
-    columns `actuated_joints`); command_poses: M placements T_cp ("pose" output);
-    reached_poses: M platform poses of the calibrated model at q^c; tilt: (M, 2) roll, pitch [rad]
+    columns `actuated_joints`); command_poses: M task-frame placements T_cp ("pose" output);
+    reached_poses: M task-frame placements of the calibrated model at q^c; tilt: (M, 2) roll, pitch [rad]
     of the calibrated machine at each target minus the requested ones (reported, not compensated);
     iterations: (M,) Newton steps of the calibrated IK; failures: the excluded targets, ascending.
     """
@@ -300,7 +302,7 @@ class Compensator:
         ik = self._inverse.inverse(target)
         check_joint_limits(self.calibrated, ik)
         fk = self._forward.forward(ik.actuators)
-        return CompensatedCommand(ik.actuators, fk.pose, ik.pose, ik.tilt, ik.iterations)
+        return CompensatedCommand(ik.actuators, fk.task_pose, ik.task_pose, ik.tilt, ik.iterations)
 
     @on_one_blas_thread
     def compensate(self, targets: Targets, *, strict: bool = False, progress=None) -> Compensation:
@@ -334,7 +336,7 @@ class Compensator:
                 failures.append(TargetFailure(index, f"{stage}: {exc}", type(exc)))
                 continue
             indices.append(index)
-            commands.append(CompensatedCommand(ik.actuators, fk.pose, ik.pose, ik.tilt, ik.iterations))
+            commands.append(CompensatedCommand(ik.actuators, fk.task_pose, ik.task_pose, ik.tilt, ik.iterations))
         return Compensation(
             n_targets=len(rows),
             actuated_joints=self.calibrated.actuated_joints,
@@ -382,7 +384,8 @@ class Compensator:
         return Compensation(
             n_targets=len(rows), actuated_joints=self.calibrated.actuated_joints,
             indices=_frozen(ik.indices[good]), actuators=_frozen(ik.actuators[good]),
-            command_poses=tuple(pin.SE3(h) for h in fk.poses), reached_poses=tuple(pin.SE3(h) for h in ik.poses[good]),
+            command_poses=tuple(pin.SE3(h) for h in fk.task_poses),
+            reached_poses=tuple(pin.SE3(h) for h in ik.task_poses[good]),
             tilt=_frozen(ik.tilt[good] - wanted[ik.indices[good]]), iterations=_frozen(ik.iterations[good]),
             failures=tuple(sorted(failures, key=lambda f: f.index)), task=task)
 
@@ -483,7 +486,7 @@ def compensation_accuracy(nominal: Mechanism, calibrated: Mechanism, truth: Mech
                 stage = f"{model_name}-model inverse kinematics ({label} command)"
                 commands.append(ik_solver.inverse(target).actuators)
                 stage = f"truth forward kinematics at the {label} sliders"
-                poses.append(truth_solver.forward(commands[-1]).pose)
+                poses.append(truth_solver.forward(commands[-1]).task_pose)
         except (KinematicsError, InvalidInputError) as exc:
             failures.append(TargetFailure(index, f"{stage}: {exc}", type(exc)))
             continue

@@ -288,7 +288,7 @@ def _coverage(calibration: ClosedLoopCalibration, weak: bool) -> list[str]:
         names, values = mechanism.actuated_joints, actuators
     else:
         names = mechanism.task.box_keys
-        values = mechanism.task.box_coordinates(ClosedLoopSolver(mechanism).forward_batch(actuators).poses)
+        values = mechanism.task.box_coordinates(ClosedLoopSolver(mechanism).forward_batch(actuators).task_poses)
     lo, hi = workspace.bounds(names)
     spans = coverage_notes(np.array(values), {name: (a, b) for name, a, b in zip(names, lo, hi)})
     if not spans:

@@ -98,7 +98,7 @@ def assembled_from_home(machine: Mechanism, actuators: np.ndarray) -> ForwardBat
     if len(values) == 0:
         empty = np.zeros(0)
         return ForwardBatch(0, empty.astype(int), np.zeros((0, 4, 4)), np.zeros((0, machine.model.nq)), empty,
-                            empty.astype(int), ())
+                            empty.astype(int), (), np.zeros((0, 4, 4)))
     solved = ClosedLoopSolver(machine).forward_batch(values.reshape(len(values), -1))
     if solved.failures:
         first = solved.failures[0]

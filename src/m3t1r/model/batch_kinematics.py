@@ -75,7 +75,9 @@ class ForwardBatch:
     Row k of `poses`, `q`, `residuals`, `iterations` belongs to input row `indices[k]`; `ok` (n,) is
     True exactly at `indices`; `failures` lists the other rows with their reason and error class.
     poses: (M, 4, 4) platform frame in the base frame [m]; q: (M, nq); residuals: (M,) max |enforced
-    closure row| [m or rad]; iterations: (M,) Newton steps.
+    closure row| [m or rad]; iterations: (M,) Newton steps; task_poses: (M, 4, 4) the task frame
+    (what IK and compensation command) in the base frame, `poses` itself when the task is on the
+    platform frame.
     """
 
     n: int
@@ -85,6 +87,7 @@ class ForwardBatch:
     residuals: np.ndarray
     iterations: np.ndarray
     failures: tuple[RowFailure, ...]
+    task_poses: np.ndarray
 
     @property
     def ok(self) -> np.ndarray:
@@ -102,7 +105,8 @@ class InverseBatch(ForwardBatch):
     """Inverse kinematics of n targets (x, y, z, theta); same row convention as `ForwardBatch`.
 
     actuators: (M, k) slider values [m] (`actuated_joints` order); tilt: (M, 2) roll and pitch [rad]
-    of the reached pose (the part of a pose the machine's geometry sets, not the command).
+    of the task frame reached minus those requested (the part of a pose the machine's geometry sets,
+    not the command).
     """
 
     actuators: np.ndarray = None  # type: ignore[assignment]
@@ -330,6 +334,16 @@ class StackedKinematics:
             support[model.idx_vs[j]] = 1.0
         self.task_support = support  # columns of the joints that move the task frame
         self.unknowns = np.sort(np.concatenate((self.passive, self.actuated)))  # every joint but the locked ones
+
+    def task_poses(self, q: np.ndarray) -> np.ndarray:
+        """Task frame placements (n, 4, 4) in the base frame at configurations q (n, nq)."""
+        rot, pos = self.tree.joints(q)
+        parent = self.frame_parent[-1]
+        poses = np.zeros((len(q), 4, 4))
+        poses[:, :3, :3] = np.einsum("ijn,jk->nik", rot[parent], self.frame_r[-1])
+        poses[:, :3, 3] = pos[parent].T + np.einsum("ijn,j->ni", rot[parent], self.frame_p[-1])
+        poses[:, 3, 3] = 1.0
+        return poses
 
     def frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Closure, platform and task frame rotations (F, 3, 3, n) and positions (F, 3, n), and the WORLD
@@ -614,12 +628,12 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
         failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
                      for f in failures_of(solved, 0, "forward kinematics")]
         parts.append((chunk, solved))
-    return _forward_result(len(values), parts, failures, solver.model.nq)
+    return _forward_result(kin, len(values), parts, failures)
 
 
-def _forward_result(n: int, parts: list, failures: list, nq: int) -> ForwardBatch:
+def _forward_result(kin: StackedKinematics, n: int, parts: list, failures: list) -> ForwardBatch:
     """Gather the converged rows of every chunk (in input order) into a frozen ForwardBatch (q: (M, nq),
-    also when no row converged)."""
+    also when no row converged), with the task frame's placements."""
     indices, poses, qs, norms, steps = [], [], [], [], []
     for chunk, solved in parts:
         good = solved.status == _CONVERGED
@@ -630,10 +644,11 @@ def _forward_result(n: int, parts: list, failures: list, nq: int) -> ForwardBatc
     cat = (lambda arrays, shape: np.concatenate(arrays) if arrays else np.zeros(shape))
     index = cat(indices, (0,)).astype(int)
     order = np.argsort(index, kind="stable")
-    fields = dict(n=n, indices=_frozen(index[order]), poses=_frozen(cat(poses, (0, 4, 4))[order]),
-                  q=_frozen(cat(qs, (0, nq))[order]), residuals=_frozen(cat(norms, (0,))[order]),
+    platform, q = _frozen(cat(poses, (0, 4, 4))[order]), _frozen(cat(qs, (0, kin.solver.model.nq))[order])
+    task = platform if kin.platform_index == -1 else _frozen(kin.task_poses(q) if len(q) else np.zeros((0, 4, 4)))
+    fields = dict(n=n, indices=_frozen(index[order]), poses=platform, q=q, residuals=_frozen(cat(norms, (0,))[order]),
                   iterations=_frozen(cat(steps, (0,)).astype(int)[order]),
-                  failures=tuple(sorted(failures, key=lambda f: f.index)))
+                  failures=tuple(sorted(failures, key=lambda f: f.index)), task_poses=task)
     return ForwardBatch(**fields)
 
 
@@ -737,9 +752,9 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
         failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
                      for f in failures_of(solved, 0, "inverse kinematics")]
         parts.append((chunk, solved))
-    fk = _forward_result(len(goal), parts, failures, solver.model.nq)
+    fk = _forward_result(kin, len(goal), parts, failures)
     wanted = np.zeros(2) if goal_rot is None else rpy_batch(goal_rot[fk.indices])[:, :2]
     return InverseBatch(**{f: getattr(fk, f) for f in ("n", "indices", "poses", "q", "residuals", "iterations",
-                                                       "failures")},
+                                                       "failures", "task_poses")},
                         actuators=_frozen(fk.q[:, kin.actuated]),
-                        tilt=_frozen(rpy_batch(fk.poses[:, :3, :3])[:, :2] - wanted))
+                        tilt=_frozen(rpy_batch(fk.task_poses[:, :3, :3])[:, :2] - wanted))

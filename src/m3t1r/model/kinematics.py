@@ -182,13 +182,16 @@ class ForwardResult:
     """A converged forward-kinematics solve.
 
     pose: platform frame in the base frame; q: full configuration (nq);
-    residual: max |enforced closure row| at q [m or rad]; iterations: Newton steps taken.
+    residual: max |enforced closure row| at q [m or rad]; iterations: Newton steps taken;
+    task_pose: the task frame (`Mechanism.task.frame`, what IK and compensation command) in the base
+    frame: `pose` itself when the task is on the platform frame.
     """
 
     pose: pin.SE3
     q: np.ndarray
     residual: float
     iterations: int
+    task_pose: pin.SE3
 
     @property
     def yaw(self) -> float:
@@ -204,9 +207,11 @@ class InverseResult:
     """A converged inverse-kinematics solve of position and yaw (a square system).
 
     actuators: slider values in `Mechanism.actuated_joints` order [m]; pose: the platform pose
-    reached (position and yaw equal the target; roll and pitch are whatever the geometry gives);
-    tilt: (roll, pitch) of the reached pose minus those requested (zero when a 4-vector target was
-    given) [rad]: the part of a 6D target that cannot be commanded.
+    reached; task_pose: the task frame reached, whose commanded components (M machine: position and
+    yaw) equal the target's, roll and pitch being whatever the geometry gives (`pose` itself when the
+    task is on the platform frame); tilt: (roll, pitch) of the task frame reached minus those
+    requested (zero when a 4-vector target was given) [rad]: the part of a 6D target that cannot be
+    commanded.
     """
 
     actuators: np.ndarray
@@ -215,6 +220,7 @@ class InverseResult:
     residual: float
     iterations: int
     tilt: tuple[float, float]
+    task_pose: pin.SE3
 
 
 class ClosedLoopSolver:
@@ -426,7 +432,8 @@ class ClosedLoopSolver:
             self._previous = (self.last_q.take(self.actuated), self.last_q.take(self.passive))
         self._last_branch = outcome.branch
         self.last_q = outcome.q
-        return ForwardResult(self._platform_pose(), outcome.q.copy(), outcome.residual, outcome.iterations)
+        pose = self._platform_pose()
+        return ForwardResult(pose, outcome.q.copy(), outcome.residual, outcome.iterations, self._task_pose(pose))
 
     _previous: tuple[np.ndarray, np.ndarray] | None = None  # (sliders, passive q) of the solution before last_q
 
@@ -450,6 +457,11 @@ class ClosedLoopSolver:
 
     def _passive_branch(self, jac: np.ndarray, lu: tuple) -> bytes:
         return self._branch(jac)
+
+    def _task_pose(self, platform: pin.SE3) -> pin.SE3:
+        """The task frame at the configuration last evaluated (a copy), or `platform` when they are one frame."""
+        return platform if self._task_frame == self._platform else pin.updateFramePlacement(self.model, self.data,
+                                                                                           self._task_frame)
 
     def _platform_pose(self) -> pin.SE3:
         """The platform frame at the configuration last evaluated: a copy (the binding returns
@@ -557,7 +569,7 @@ class ClosedLoopSolver:
         pose = self._platform_pose()
         roll, pitch = roll_pitch_of(self._last_task.rotation)
         return InverseResult(actuators, q.copy(), pose, residual, iterations,
-                             (roll - wanted_tilt[0], pitch - wanted_tilt[1]))
+                             (roll - wanted_tilt[0], pitch - wanted_tilt[1]), self._task_pose(pose))
 
     def _goal(self, target: pin.SE3 | np.ndarray) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float]]:
         """(task goal, goal rotation for a full-rotation task else None, requested (roll, pitch))."""
