@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import frame_coordinates
 
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors
 from m3t1r.calibration.measurements import TrackerNoise
@@ -268,41 +269,19 @@ def test_workspace_targets_lie_in_the_box():
 # A task on a tool frame offset from the platform: what is commanded is the tool, not the platform
 
 
-def _tool_machine(folder, mechanism, offset=((0.05, 0.02, -0.1), (0.0, 0.0, 0.3))):
-    """The M machine with a 'tool' link fixed to P_I (5 cm, 2 cm, -10 cm, yawed 0.3 rad) as its task frame."""
-    import yaml
-
-    from m3t1r.model.description import Mechanism
-
-    (xyz, rpy) = offset
-    joint = (f'<link name="tool"/><joint name="tool_joint" type="fixed"><parent link="P_I"/><child link="tool"/>'
-             f'<origin xyz="{" ".join(map(str, xyz))}" rpy="{" ".join(map(str, rpy))}"/></joint></robot>')
-    (folder / "m.urdf").write_text(mechanism.urdf_path.read_text().replace("</robot>", joint))
-    closures = yaml.safe_load(mechanism.closures_path.read_text())
-    closures["task"]["frame"] = "tool"
-    (folder / "m.closures.yaml").write_text(yaml.safe_dump(closures))
-    return Mechanism.load(folder / "m.urdf", folder / "m.closures.yaml")
-
-
-def _frame_coordinates(machine, q, name):
-    data = machine.model.createData()
-    pin.framesForwardKinematics(machine.model, data, q)
-    return machine.task.coordinates(data.oMf[machine.model.getFrameId(name)].homogeneous[None])[0]
-
-
-def test_a_tool_task_frame_is_what_ik_reaches_and_compensation_commands(tmp_path, mechanism):
+def test_a_tool_task_frame_is_what_ik_reaches_and_compensation_commands(tool_machine):
     """IK reaches the target with the tool; compensation's command is the nominal tool pose at q^c
     (what a nominal controller taking tool targets turns into q^c), not the platform's 11 cm away;
     single, path and batch agree, and so do the tilts."""
     from m3t1r.model.kinematics import rehomed
 
-    nominal = _tool_machine(tmp_path, mechanism)
+    nominal = tool_machine
     rng = np.random.default_rng(0)
     model = nominal.model.copy()
     for j in range(1, model.njoints):
         model.jointPlacements[j] = model.jointPlacements[j] * pin.exp6(rng.normal(0.0, 1e-3, 6))
     calibrated = rehomed(nominal.with_model(model))
-    target = _frame_coordinates(nominal, nominal.home, "tool") + [0.01, -0.02, 0.01, 0.05]
+    target = frame_coordinates(nominal, nominal.home, "tool") + [0.01, -0.02, 0.01, 0.05]
     ik = ClosedLoopSolver(calibrated).inverse(target)
     np.testing.assert_allclose(calibrated.task.coordinates(ik.task_pose.homogeneous[None])[0], target, atol=1e-12)
     assert np.linalg.norm(ik.pose.translation - ik.task_pose.translation) > 0.1  # the platform is elsewhere
@@ -310,7 +289,7 @@ def test_a_tool_task_frame_is_what_ik_reaches_and_compensation_commands(tmp_path
     np.testing.assert_allclose(fk.task_pose.homogeneous, ik.task_pose.homogeneous, atol=1e-12)
     np.testing.assert_allclose(fk.pose.homogeneous, ik.pose.homogeneous, atol=1e-12)
     command = Compensator(nominal, calibrated).command(target)
-    expected = _frame_coordinates(nominal, ClosedLoopSolver(nominal).forward(command.actuators).q, "tool")
+    expected = frame_coordinates(nominal, ClosedLoopSolver(nominal).forward(command.actuators).q, "tool")
     np.testing.assert_allclose(nominal.task.coordinates(command.command_pose.homogeneous[None])[0], expected,
                                atol=1e-12)
     path = Compensator(nominal, calibrated).compensate(np.array([target]))
@@ -329,11 +308,3 @@ def test_a_tool_task_frame_is_what_ik_reaches_and_compensation_commands(tmp_path
     tracked = compensation_accuracy(nominal, calibrated, calibrated, np.array([target]))
     assert tracked.after.position[0] < 1e-9 and tracked.before.position[0] > 1e-4
 
-
-def test_the_task_pose_is_the_platform_pose_when_the_task_is_on_the_platform(mechanism):
-    solver = ClosedLoopSolver(mechanism)
-    forward = solver.forward(mechanism.home[mechanism.actuated_ids] + 0.01)
-    inverse = solver.inverse(np.array([0.5, 0.5, -0.1, 0.1]))
-    assert forward.task_pose is forward.pose and inverse.task_pose is inverse.pose
-    batch = solver.forward_batch(np.array([mechanism.home[mechanism.actuated_ids]]))
-    assert batch.task_poses is batch.poses

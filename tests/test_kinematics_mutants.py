@@ -831,3 +831,46 @@ def test_inverse_keeps_its_own_copy_of_the_goal(mechanism):
     solver.inverse(target)
     target[0] += 0.01
     np.testing.assert_array_equal(solver._last_goal[0], TARGET)
+
+
+# ------------------------------------------------------------------------------------------------
+# The task frame and the input fast path
+
+
+def test_the_task_pose_is_the_platform_pose_when_the_task_is_on_the_platform(mechanism):
+    solver = ClosedLoopSolver(mechanism)
+    forward = solver.forward(mechanism.home[mechanism.actuated_ids] + 0.01)
+    inverse = solver.inverse(np.array([0.5, 0.5, -0.1, 0.1]))
+    assert forward.task_pose is forward.pose and inverse.task_pose is inverse.pose
+
+
+def test_a_tool_task_frame_is_reported_apart_from_the_platform(tool_machine):
+    """IK puts the tool, not the platform, on the target; FK and IK report both frames at q."""
+    from conftest import frame_coordinates
+
+    solver = ClosedLoopSolver(tool_machine)
+    target = frame_coordinates(tool_machine, tool_machine.home, "tool") + [0.01, -0.02, 0.01, 0.05]
+    inverse = solver.inverse(target)
+    np.testing.assert_allclose(tool_machine.task.coordinates(inverse.task_pose.homogeneous[None])[0], target,
+                               atol=1e-12)
+    np.testing.assert_allclose(frame_coordinates(tool_machine, inverse.q, "P_I"),
+                               tool_machine.task.coordinates(inverse.pose.homogeneous[None])[0], atol=1e-12)
+    forward = solver.forward(inverse.actuators)
+    np.testing.assert_allclose(forward.task_pose.homogeneous, inverse.task_pose.homogeneous, atol=1e-12)
+    np.testing.assert_allclose(forward.pose.homogeneous, inverse.pose.homogeneous, atol=1e-12)
+    assert np.linalg.norm(forward.pose.translation - forward.task_pose.translation) > 0.1
+
+
+def test_targets_of_every_kind_give_the_same_solve(mechanism):
+    """An array, a list and a wrong-dtype array of the same target: the same sliders and tilt (the
+    array takes a fast input path, the others the general one); a NaN in an array is refused."""
+    array = TARGET.copy()
+    reference = ClosedLoopSolver(mechanism).inverse(array)
+    for other in (TARGET.tolist(), TARGET.astype(np.longdouble), (TARGET * 1.0).reshape(1, 4)):
+        result = ClosedLoopSolver(mechanism).inverse(other)
+        np.testing.assert_allclose(result.actuators, reference.actuators, atol=1e-12)
+        np.testing.assert_allclose(result.tilt, reference.tilt, atol=1e-12)
+    np.testing.assert_array_equal(array, TARGET)  # the caller's array is left alone
+    for bad in (np.array([0.5, np.nan, -0.1, 0.0]), np.array([0.5, 0.5, np.inf, 0.0])):
+        with pytest.raises(InvalidInputError, match="non-finite"):
+            ClosedLoopSolver(mechanism).inverse(bad)
