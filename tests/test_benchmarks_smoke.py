@@ -51,3 +51,16 @@ def test_uncertainty_map_is_written(quick_run) -> None:
     _, out_dir = quick_run
     image = out_dir / "uncertainty_map.png"
     assert image.is_file() and image.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_bench_against_an_earlier_revision_runs_in_one_process() -> None:
+    """`bench_against.py REV` imports the revision's package beside the tree's and times both; against
+    HEAD itself the results agree to rounding."""
+    completed = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_against.py"), "HEAD", "--quick"],
+                               capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert completed.returncode == 0, completed.stdout[-3000:] + completed.stderr[-3000:]
+    rows = [line for line in completed.stdout.splitlines() if line.startswith("| ") and "operation" not in line]
+    assert [row.split("|")[1].strip() for row in rows] == ["FK warm (path)", "IK warm (path)", "compensation (path)",
+                                                           "forward_batch"]
+    for row in rows:
+        assert float(row.split("|")[-2]) <= 1e-12  # the same code on both sides
