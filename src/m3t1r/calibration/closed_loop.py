@@ -662,54 +662,43 @@ def predicted_measurement_std(calibration: ClosedLoopCalibration, actuators: np.
     orientation [rad] likewise, in the measured frame's axes. Every slider set is assembled from
     home (`assembled_from_home`: InvalidInputError naming one that does not).
     """
+    return _predicted_std(calibration, actuators, calibration.setup, calibration.fitted)
+
+
+def predicted_pose_std(calibration: ClosedLoopCalibration, actuators: np.ndarray) -> PoseErrors:
+    """Predicted standard deviation of the calibrated platform pose in the base frame at the given
+    sliders, from the machine block of the fitted parameters' covariance sigma^2 (J^T W J)^-1 (the
+    setup's uncertainty is not the machine's): `predicted_measurement_std` with no frame and no
+    marker. Position [m] and orientation [rad], the latter in the platform's axes."""
+    machine = set(calibration.error_model.names)
+    return _predicted_std(calibration, actuators, MeasurementSetup(),
+                          tuple(name for name in calibration.fitted if name in machine))
+
+
+def _predicted_std(calibration: ClosedLoopCalibration, actuators: np.ndarray, setup: MeasurementSetup,
+                   names: tuple[str, ...]) -> PoseErrors:
+    """Std of setup.frame . T_platform . setup.marker at the sliders from the covariance of the fitted
+    parameters `names` (a subset of `calibration.fitted`), in blocks of `_BLOCK` poses."""
     problem = calibration.problem
     if problem is None:
-        raise InvalidInputError("predicted_measurement_std needs a calibration made by calibrate_closed_loop")
+        raise InvalidInputError("a predicted std needs a calibration made by calibrate_closed_loop")
     mechanism = calibration.mechanism
     error_model = ClosedLoopErrorModel(mechanism, calibration.error_model.placements)
     solver = ClosedLoopSolver(mechanism)
-    index = {name: i for i, name in enumerate(problem.names)}
-    columns = np.array([index[name] for name in calibration.fitted], dtype=int)
-    order = np.argsort(columns, kind="stable")  # machine columns first, as the twists come
-    columns, covariance = columns[order], calibration.covariance[np.ix_(order, order)]
+    fitted, index = {name: k for k, name in enumerate(calibration.fitted)}, {n: i for i, n in enumerate(problem.names)}
+    picked = sorted(names, key=index.__getitem__)  # machine columns first, as the twists come
+    columns = np.array([index[name] for name in picked], dtype=int)
+    rows = [fitted[name] for name in picked]
+    covariance = calibration.covariance[np.ix_(rows, rows)]
     machine = columns[columns < problem.n_machine]
     configurations = assembled_from_home(mechanism, actuators).q
     position, rotation = np.empty(len(configurations)), np.empty(len(configurations))
     for start in range(0, len(configurations), _BLOCK):
         block = slice(start, start + _BLOCK)
         sensitivities = error_model.platform_sensitivities(solver, configurations[block], machine)
-        measured, twists = problem.measured_frame_twists(calibration.setup, columns, sensitivities)
+        measured, twists = problem.measured_frame_twists(setup, columns, sensitivities)
         point = twists[:, :3] - skew(measured[:, :3, 3]) @ twists[:, 3:]  # dp = v + w x p
         angular = np.swapaxes(measured[:, :3, :3], 1, 2) @ twists[:, 3:]
-        position[block] = np.sqrt(np.einsum("nip,pq,niq->n", point, covariance, point))
-        rotation[block] = np.sqrt(np.einsum("nip,pq,niq->n", angular, covariance, angular))
-    return PoseErrors(position, rotation)
-
-
-def predicted_pose_std(calibration: ClosedLoopCalibration, actuators: np.ndarray) -> PoseErrors:
-    """Predicted standard deviation of the calibrated platform pose at the given sliders.
-
-    Propagates the machine block of the fitted parameters' covariance sigma^2 (J^T W J)^-1 through
-    the pose sensitivity: position [m] = sqrt(trace of the 3x3 position block), orientation [rad]
-    likewise. The measurement setup's uncertainty is not part of the machine's. Every slider set is
-    assembled from home (`assembled_from_home`: InvalidInputError naming one that does not).
-    """
-    mechanism = calibration.mechanism
-    error_model = ClosedLoopErrorModel(mechanism, calibration.error_model.placements)
-    solver = ClosedLoopSolver(mechanism)
-    index = {name: i for i, name in enumerate(error_model.names)}
-    machine = [k for k, name in enumerate(calibration.fitted) if name in index]
-    columns = np.array([index[calibration.fitted[k]] for k in machine], dtype=int)
-    covariance = calibration.covariance[np.ix_(machine, machine)]
-    configurations = assembled_from_home(mechanism, actuators).q
-    position, rotation = np.empty(len(configurations)), np.empty(len(configurations))
-    for start in range(0, len(configurations), _BLOCK):  # the error model's stacks for one block at a time
-        block = slice(start, start + _BLOCK)
-        sensitivities = error_model.platform_sensitivities(solver, configurations[block], columns)
-        poses, dxi = sensitivities.poses, sensitivities.twist_jacobians
-        # Position of P (v + w x p) and local orientation, per unit base parameter.
-        point = dxi[:, :3] - skew(poses[:, :3, 3]) @ dxi[:, 3:]
-        angular = np.swapaxes(poses[:, :3, :3], 1, 2) @ dxi[:, 3:]
         position[block] = np.sqrt(np.einsum("nip,pq,niq->n", point, covariance, point))
         rotation[block] = np.sqrt(np.einsum("nip,pq,niq->n", angular, covariance, angular))
     return PoseErrors(position, rotation)
