@@ -93,6 +93,9 @@ def test_predicted_pose_std_is_the_covariance_through_finite_differences(noisy):
     with pytest.raises(InvalidInputError, match=r"^slider set 1 .* does not assemble on the machine from its home: "
                                                 r"actuator 'q11' = 9 is beyond its joint limit"):
         predicted_pose_std(calibration, np.vstack((sliders[:1], [[9.0, 0.0, 0.0, 0.0]])))
+    with pytest.raises(InvalidInputError) as error:
+        predicted_pose_std(dataclasses.replace(calibration, problem=None), sliders)
+    assert str(error.value) == "a predicted std needs a calibration made by calibrate_closed_loop"
 
 
 def test_predicted_pose_std_in_blocks_is_the_one_block_result(noisy, monkeypatch):
