@@ -79,6 +79,20 @@ def test_pose_errors_with_exact_zeros_are_drawn_not_crashing(tmp_path, errors):
     assert_real_png(plot_pose_errors_before_after(before, exact, tmp_path / "zeros.png"))
 
 
+def test_position_only_errors_get_the_position_panel_alone(tmp_path, errors):
+    """A position-only tracker measures no orientation (rotation NaN at every pose, before and after):
+    one panel; a NaN among measured rotations is still refused."""
+    before, after = errors
+    nan = np.full(len(before.position), np.nan)
+    out = plot_pose_errors_before_after(PoseErrors(before.position, nan), PoseErrors(after.position, nan),
+                                        tmp_path / "position.png")
+    assert_real_png(out)
+    with pytest.raises(InvalidInputError, match="before.rotation: non-finite"):
+        plot_pose_errors_before_after(PoseErrors(before.position, np.r_[before.rotation[:-1], np.nan]), after,
+                                      tmp_path / "x.png")
+    with pytest.raises(InvalidInputError, match="before.rotation: non-finite"):  # orientation after but not before
+        plot_pose_errors_before_after(PoseErrors(before.position, nan), after, tmp_path / "x.png")
+
 def test_error_vs_poses_with_and_without_prediction(tmp_path):
     n = [20, 50, 100, 200]
     position, rotation = [2.1e-5, 8.5e-6, 5.7e-6, 3.9e-6], [3.0e-5, 1.3e-5, 9.2e-6, 6.1e-6]
@@ -190,3 +204,27 @@ def test_calibration_plots_title_the_map_by_what_it_shows(tmp_path, monkeypatch,
     else:
         assert title == "Predicted position error after compensation (1 sigma)"
     assert 1e-6 < float(np.mean(std.position)) < 30e-6  # not the millimetres of the base gauge
+
+
+def test_calibration_plots_of_a_position_only_tracker(tmp_path, monkeypatch):
+    """A tracker without orientation, its frame estimated: every plot is written (the per-pose plot
+    with its position panel alone), where the orientation panel used to refuse the NaN rotations."""
+    import pinocchio as pin
+
+    from m3t1r.app import reporting
+    from m3t1r.calibration.closed_loop import calibrate_closed_loop
+    from m3t1r.calibration.measurement_setup import MeasurementSetup
+    from m3t1r.calibration.measurements import TrackerNoise
+    from m3t1r.calibration.simulation import simulate_study
+    from m3t1r.model.description import Mechanism
+
+    mechanism = Mechanism.load()
+    setup = MeasurementSetup(pin.SE3(pin.utils.rotate("z", -1.0), np.array([1.5, 2.0, -0.3])))
+    study = simulate_study(mechanism, n_poses=40, n_holdout=0, seed=6, noise=TrackerNoise(), position_only=True,
+                           setup=setup)
+    calibration = calibrate_closed_loop(mechanism, study.measurements, TrackerNoise(), estimate_frame=True)
+    monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
+    written = reporting.write_calibration_plots(mechanism, calibration, tmp_path)
+    assert [path.name for path in written] == ["pose_errors_before_after.png", "predicted_error_map.png"]
+    for path in written:
+        assert_real_png(path)

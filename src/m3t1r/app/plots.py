@@ -143,12 +143,17 @@ def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: S
     """Paper Fig. 4: (a) orientation error and (b) position error per pose, before and after.
 
     before, after: errors of the nominal and of the calibrated model against the actual machine
-    at the same poses (`calibration.pose_errors`): position norm [m], rotation angle [rad].
+    at the same poses (`calibration.pose_errors`): position norm [m], rotation angle [rad]. Data
+    without orientation (rotation NaN at every pose, before and after, as `measured_pose_errors`
+    gives for a position-only tracker) get the position panel alone.
     Log y-scale, ticks and legend means in readable units. Returns the PNG path.
     """
     panels = []
-    for kind, units, label in (("rotation", _ANGLE_UNITS, "(a) Orientation error"),
-                               ("position", _LENGTH_UNITS, "(b) Position error")):
+    kinds = (("rotation", _ANGLE_UNITS, "(a) Orientation error"), ("position", _LENGTH_UNITS, "(b) Position error"))
+    if np.all(np.isnan(np.asarray(before.rotation, dtype=float))) and np.all(np.isnan(np.asarray(after.rotation,
+                                                                                                    dtype=float))):
+        kinds = (("position", _LENGTH_UNITS, "Position error"),)
+    for kind, units, label in kinds:
         b = _nonnegative(_finite_array(getattr(before, kind), f"before.{kind}"), f"before.{kind}")
         a = _nonnegative(_finite_array(getattr(after, kind), f"after.{kind}"), f"after.{kind}")
         if len(a) != len(b):
@@ -159,7 +164,7 @@ def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: S
     _check_output(path, protect)
     figure = Figure(figsize=(8.0, 6.5), layout="constrained")
     figure.suptitle(title)
-    axes = figure.subplots(2, 1, sharex=True)
+    axes = np.atleast_1d(figure.subplots(len(panels), 1, sharex=True))
     for ax, (label, units, b, a) in zip(axes, panels):
         index = np.arange(1, len(b) + 1)
         for values, name, style, colour in ((b, "before", "o-", "tab:red"), (a, "after", "s-", "tab:blue")):
@@ -168,7 +173,7 @@ def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: S
                               f"{_zero_note(int(np.sum(values == 0)))}")
         _readable_log_axis(ax.yaxis, units)
         ax.set_title(label, loc="left")
-        ax.set_ylabel(label.split(" ", 1)[1].lower())
+        ax.set_ylabel(label.split(") ", 1)[-1].lower())
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(loc="center right", fontsize="small")
     axes[-1].set_xlabel("pose index")
