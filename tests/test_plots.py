@@ -195,14 +195,14 @@ def test_calibration_plots_title_the_map_by_what_it_shows(tmp_path, monkeypatch,
     maps = []
     monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
     monkeypatch.setattr(reporting, "plot_predicted_std_map",
-                        lambda targets, std, path, title, protect: maps.append((targets, std, title)) or path)
+                        lambda targets, std, path, title, protect, plane: maps.append((targets, std, title)) or path)
     reporting.write_calibration_plots(mechanism, calibration, tmp_path)
     (targets, std, title), = maps
     assert 250 < len(targets) <= 300 and len(std.position) == len(targets)
     if estimate_frame:
         assert title.startswith("Predicted error of the measured point in the measurement frame (1 sigma)")
     else:
-        assert title == "Predicted position error after compensation (1 sigma)"
+        assert title == "Predicted error after compensation (1 sigma)"
     assert 1e-6 < float(np.mean(std.position)) < 30e-6  # not the millimetres of the base gauge
 
 
@@ -228,3 +228,32 @@ def test_calibration_plots_of_a_position_only_tracker(tmp_path, monkeypatch):
     assert [path.name for path in written] == ["pose_errors_before_after.png", "predicted_error_map.png"]
     for path in written:
         assert_real_png(path)
+
+
+@pytest.mark.parametrize("kind", ["five_bar", "spherical_wrist"])
+def test_calibration_plots_of_other_mechanisms_map_their_own_workspace(tmp_path, monkeypatch, kind):
+    """The map's poses come from the mechanism's declared workspace and are drawn over its task's first
+    two coordinates (five-bar: x, y; orientation wrist: roll, pitch), where the M machine's (x, y, z,
+    theta) box used to be fed to their inverse kinematics and refused."""
+    from m3t1r.app import reporting
+    from m3t1r.calibration.closed_loop import calibrate_closed_loop
+    from m3t1r.calibration.measurements import TrackerNoise
+    from m3t1r.calibration.simulation import simulate_study
+    from m3t1r.model.description import Mechanism
+    from m3t1r.model.examples import five_bar_files, spherical_wrist_files
+
+    files = (five_bar_files if kind == "five_bar" else spherical_wrist_files)(tmp_path / "model")
+    mechanism = Mechanism.load(*files)
+    study = simulate_study(mechanism, n_poses=30, n_holdout=0, seed=2, noise=TrackerNoise())
+    calibration = calibrate_closed_loop(mechanism, study.measurements, TrackerNoise())
+    maps = []
+    monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
+    monkeypatch.setattr(reporting, "plot_predicted_std_map", lambda where, std, path, title, protect, plane:
+                        maps.append((where, std, plane)) or path)
+    reporting.write_calibration_plots(mechanism, calibration, tmp_path / "plots")
+    (where, std, plane), = maps
+    frame = mechanism.task.frame
+    assert plane == ((f"{frame} x [m]", f"{frame} y [m]") if kind == "five_bar" else
+                     (f"{frame} roll [rad]", f"{frame} pitch [rad]"))
+    assert 250 < len(where) <= 300 and len(std.position) == len(where) and np.all(np.isfinite(where))
+    assert np.ptp(where, axis=0).min() > 0.1  # spread over the workspace, not one point

@@ -246,9 +246,13 @@ def _log_norm(values: np.ndarray) -> LogNorm:
     return LogNorm(vmin=low, vmax=high if high > low else low * 10.0)
 
 
+_PLATFORM_PLANE = ("platform x [m]", "platform y [m]")
+
+
 def _scatter_panels(figure: Figure, xy: np.ndarray, panels: list[tuple[str, np.ndarray]], units: tuple[_Unit, ...],
-                    quantity: str, shared_scale: bool) -> None:
-    """Side-by-side x-y scatters of SI magnitudes on log colour scales, shared or one per panel."""
+                    quantity: str, shared_scale: bool, plane: tuple[str, str] = _PLATFORM_PLANE) -> None:
+    """Side-by-side scatters over a plane (axis labels `plane`) of SI magnitudes on log colour scales,
+    shared or one per panel."""
     axes = np.atleast_1d(figure.subplots(1, len(panels), sharex=True, sharey=True))
     shared = _log_norm(np.concatenate([v for _, v in panels])) if shared_scale else None
     for ax, (label, v) in zip(axes, panels):
@@ -260,13 +264,13 @@ def _scatter_panels(figure: Figure, xy: np.ndarray, panels: list[tuple[str, np.n
             ax.legend(fontsize="small")
         ax.set_title(f"{label}\nmean {_readable(float(np.mean(v)), units)}, max {_readable(float(np.max(v)), units)}",
                      fontsize="medium")
-        ax.set_xlabel("platform x [m]")
+        ax.set_xlabel(plane[0])
         ax.set_aspect("equal", adjustable="box")
         ax.grid(True, alpha=0.3)
         if shared is None or ax is axes[-1]:
             colorbar = figure.colorbar(mappable, ax=ax if shared is None else list(axes), label=quantity)
             _readable_log_axis(colorbar.ax.yaxis, units)
-    axes[0].set_ylabel("platform y [m]")
+    axes[0].set_ylabel(plane[1])
 
 
 def plot_workspace_error_map(targets: object, errors_before: Sequence[float], errors_after: Sequence[float],
@@ -300,13 +304,14 @@ def plot_workspace_error_map(targets: object, errors_before: Sequence[float], er
 
 def plot_predicted_std_map(targets: object, std: PoseErrors, path: StrPath,
                            title: str = "Predicted standard deviation of the calibrated platform pose",
-                           protect: Iterable[StrPath] = ()) -> Path:
-    """Predicted pose uncertainty of the calibrated model over the workspace, in x-y.
+                           protect: Iterable[StrPath] = (), plane: tuple[str, str] = _PLATFORM_PLANE) -> Path:
+    """Predicted pose uncertainty of the calibrated model over the workspace, drawn over a plane.
 
-    targets: (N, >= 2) rows (x, y, ...) [m] where the prediction was made; std: from
-    `calibration.predicted_pose_std` at the same poses: position [m] (root of the trace of the
-    3x3 position covariance) and orientation [rad]. Two panels, position and orientation, each
-    with its own log colour scale. Returns the PNG path.
+    targets: (N, >= 2) rows whose first two columns place each pose in the plane (default x, y [m];
+    `plane` names the two axes); std: from `calibration.predicted_measurement_std` or
+    `predicted_pose_std` at the same poses: position [m] (root of the trace of the 3x3 position
+    covariance) and orientation [rad]. Two panels, position and orientation, each with its own log
+    colour scale; the other coordinates are projected onto the plane. Returns the PNG path.
     """
     xy = _xy(targets, "targets")
     position = _nonnegative(_finite_array(std.position, "std.position"), "std.position")
@@ -315,8 +320,8 @@ def plot_predicted_std_map(targets: object, std: PoseErrors, path: StrPath,
         raise InvalidInputError(f"{len(xy)} targets, {len(position)} position std, {len(rotation)} orientation std")
     _check_output(path, protect)
     figure = Figure(figsize=(8.5, 6.0), layout="constrained")
-    figure.suptitle(f"{title}\n({len(xy)} poses; z and theta projected onto x-y)")
+    figure.suptitle(f"{title}\n({len(xy)} poses; the other coordinates projected onto this plane)")
     left, right = figure.subfigures(1, 2)
-    _scatter_panels(left, xy, [("position", position)], _LENGTH_UNITS, "predicted position std", False)
-    _scatter_panels(right, xy, [("orientation", rotation)], _ANGLE_UNITS, "predicted orientation std", False)
+    _scatter_panels(left, xy, [("position", position)], _LENGTH_UNITS, "predicted position std", False, plane)
+    _scatter_panels(right, xy, [("orientation", rotation)], _ANGLE_UNITS, "predicted orientation std", False, plane)
     return _save(figure, path, protect)

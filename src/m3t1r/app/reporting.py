@@ -23,11 +23,11 @@ from m3t1r.app.plots import plot_error_vs_poses, plot_pose_errors_before_after, 
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_closed_loop, predicted_measurement_std
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home
-from m3t1r.compensation import workspace_targets
 from m3t1r.errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
 from m3t1r.metrics import PoseErrors, rotation_angles
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.workspace import declared_workspace
 
 __all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots", "PassiveJointResiduals",
            "passive_joint_residuals", "IDLE_CHAIN_JOINTS"]
@@ -106,21 +106,40 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
                                            out_dir / "error_vs_poses.png",
                                            title="Cross-validated error vs number of calibration poses",
                                            protect=protect))
-    targets = workspace_targets(300, np.random.default_rng(seed))
-    solved = ClosedLoopSolver(calibration.mechanism).inverse_batch(targets)  # each from home; the unreachable left out
+    sliders, where, plane = map_poses(calibration.mechanism, 300, np.random.default_rng(seed))
     # What the tracker would measure, in its own frame, with the setup's uncertainty: with an estimated
     # frame the platform's place in the machine's base is not observable (`predicted_measurement_std`),
     # so a map of the platform in the base would show the gauge, not the accuracy of a command.
-    std = predicted_measurement_std(calibration, solved.actuators)
+    std = predicted_measurement_std(calibration, sliders)
     plain = calibration.setup.frame.isIdentity() and calibration.setup.marker.isIdentity() and \
         problem.frame_slot is None and problem.marker_slot is None
-    title = ("Predicted position error after compensation (1 sigma)" if plain else
+    title = ("Predicted error after compensation (1 sigma)" if plain else
              "Predicted error of the measured point in the measurement frame (1 sigma),\n"
              "for poses commanded in that frame after calibration")
-    written.append(plot_predicted_std_map(targets[solved.indices], std, out_dir / "predicted_error_map.png",
-                                          title=title,
-                                          protect=protect))
+    written.append(plot_predicted_std_map(where, std, out_dir / "predicted_error_map.png", title=title,
+                                          protect=protect, plane=plane))
     return written
+
+
+def map_poses(mechanism: Mechanism, count: int, rng: np.random.Generator
+              ) -> tuple[np.ndarray, np.ndarray, tuple[str, str]]:
+    """Slider sets (M, k) drawn in the mechanism's declared workspace box (task or actuators) that
+    assemble from home, their place in a plane (M, 2) and the plane's axis labels: the task frame's
+    first two box coordinates (M machine and five-bar: x, y [m]; an orientation task: roll, pitch
+    [rad]). Draws that do not assemble (a box corner beyond a calibrated machine's reach) are left out."""
+    workspace, solver, task = declared_workspace(mechanism), ClosedLoopSolver(mechanism), mechanism.task
+    if workspace.kind == "task":
+        batch = solver.inverse_batch(workspace.task_poses(task, rng, count))
+    else:
+        lower, upper = workspace.bounds(mechanism.actuated_joints)
+        batch = solver.forward_batch(lower + (upper - lower) * rng.random((count, len(lower))))
+    sliders = batch.q[:, mechanism.actuated_ids]
+    if len(task.box_keys) < 2:  # a one-coordinate task: the platform's x-y instead
+        return sliders, batch.poses[:, :2, 3], ("platform x [m]", "platform y [m]")
+    where = task.box_coordinates(batch.task_poses)[:, :2]
+    units = ["m" if key in task.position else "rad" for key in task.box_keys[:2]]
+    return sliders, where, (f"{task.frame} {task.box_keys[0]} [{units[0]}]",
+                            f"{task.frame} {task.box_keys[1]} [{units[1]}]")
 
 
 @dataclass(frozen=True)
