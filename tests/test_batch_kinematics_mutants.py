@@ -885,3 +885,41 @@ def test_inverse_batch_of_a_yaw_task_on_a_frame_off_the_platform(monkeypatch, fi
 def test_inverse_batch_counts_every_row(five_bar):
     ik = ClosedLoopSolver(five_bar).inverse_batch([[0.0, 0.7], [0.0, 0.40]])
     assert ik.n == 2 and list(ik.ok) == [False, True] and not ik.complete
+
+
+# ------------------------------------------------------------------------------------------------
+# The task frame apart from the platform, and batches of no rows
+
+
+def test_batch_task_poses_of_a_tool_frame_are_the_single_solves(tool_machine):
+    """forward_batch and inverse_batch report the platform in `poses` and the tool in `task_poses`, as
+    the single solves do; the batch IK's tilt is the tool's."""
+    solver = ClosedLoopSolver(tool_machine)
+    home_tool = tool_machine.task.coordinates(solver.forward(tool_machine.home[tool_machine.actuated_ids]).task_pose
+                                              .homogeneous[None])[0]
+    targets = home_tool + np.array([[0.0, 0.0, 0.0, 0.0], [0.02, -0.03, 0.01, 0.1], [-0.02, 0.05, -0.02, -0.2]])
+    inverse = solver.inverse_batch(targets)
+    assert list(inverse.indices) == [0, 1, 2]
+    for k, target in enumerate(targets):
+        single = ClosedLoopSolver(tool_machine).inverse(target)
+        np.testing.assert_allclose(inverse.task_poses[k], single.task_pose.homogeneous, atol=1e-10)
+        np.testing.assert_allclose(inverse.poses[k], single.pose.homogeneous, atol=1e-10)
+        np.testing.assert_allclose(inverse.tilt[k], single.tilt, atol=1e-10)
+    forward = solver.forward_batch(inverse.actuators)
+    np.testing.assert_allclose(forward.task_poses, inverse.task_poses, atol=1e-10)
+    np.testing.assert_allclose(forward.poses, inverse.poses, atol=1e-10)
+    assert np.all(np.linalg.norm(forward.poses[:, :3, 3] - forward.task_poses[:, :3, 3], axis=1) > 0.1)
+
+
+def test_batches_of_no_rows_have_empty_task_poses(tool_machine, mechanism):
+    for machine in (tool_machine, mechanism):
+        solver = ClosedLoopSolver(machine)
+        forward = solver.forward_batch(np.zeros((0, 4)))
+        inverse = solver.inverse_batch(np.zeros((0, 4)))
+        for batch in (forward, inverse):
+            assert batch.task_poses.shape == (0, 4, 4) and batch.poses.shape == (0, 4, 4) and batch.failures == ()
+        assert inverse.actuators.shape == (0, 4) and inverse.tilt.shape == (0, 2)
+    everything_beyond = ClosedLoopSolver(tool_machine).forward_batch(np.full((2, 4), 9.0))
+    assert everything_beyond.task_poses.shape == (0, 4, 4) and len(everything_beyond.failures) == 2
+    platform = ClosedLoopSolver(mechanism).forward_batch(mechanism.home[mechanism.actuated_ids][None])
+    assert platform.task_poses is platform.poses
