@@ -29,6 +29,7 @@ from m3t1r.calibration.closed_loop import (
     cross_validate,
     default_iterations,
     pose_errors,
+    predicted_measurement_std,
     predicted_pose_std,
     setup_parameter_names,
 )
@@ -40,6 +41,7 @@ from m3t1r.calibration.simulation import simulate_study
 from m3t1r.errors import BranchChangeError, IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.model.batch_kinematics import RowFailure
 from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.poe import Placement
 from m3t1r.model.workspace import workspace_actuators
 
 NOISE = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
@@ -57,16 +59,15 @@ def _fitted_names(calibration) -> tuple[str, ...]:
     return tuple(fitted) if fitted is not None else tuple(calibration.base.names)
 
 
-def test_predicted_pose_std_is_the_covariance_through_finite_differences(noisy):
-    """sqrt(trace(J C J^T)) with J from central differences of the calibrated machine's FK."""
-    study, calibration = noisy
+def _finite_difference_pose_std(calibration, sliders):
+    """sqrt(trace(J C J^T)) for position and orientation, J from central differences of the
+    calibrated machine's FK over its fitted machine parameters (of its own error model)."""
     mechanism = calibration.mechanism
     error_model = ClosedLoopErrorModel(mechanism, calibration.error_model.placements)
     index = {name: i for i, name in enumerate(error_model.names)}
     names = _fitted_names(calibration)
     machine = [k for k, name in enumerate(names) if name in index]
     covariance = np.asarray(calibration.covariance)[np.ix_(machine, machine)]
-    sliders = study.holdout_actuators[:3]
     reference = ClosedLoopSolver(mechanism)
     starts = [reference.forward(s).q for s in sliders]
     eps = 1e-7
@@ -82,8 +83,15 @@ def test_predicted_pose_std_is_the_covariance_through_finite_differences(noisy):
         for i, (plus, minus) in enumerate(zip(*moved)):
             position_rows[i, :, column] = (plus.translation - minus.translation) / (2 * eps)
             rotation_rows[i, :, column] = pin.log3(minus.rotation.T @ plus.rotation) / (2 * eps)
-    expected_position = np.sqrt(np.einsum("nij,jk,nik->n", position_rows, covariance, position_rows))
-    expected_rotation = np.sqrt(np.einsum("nij,jk,nik->n", rotation_rows, covariance, rotation_rows))
+    return (np.sqrt(np.einsum("nij,jk,nik->n", position_rows, covariance, position_rows)),
+            np.sqrt(np.einsum("nij,jk,nik->n", rotation_rows, covariance, rotation_rows)))
+
+
+def test_predicted_pose_std_is_the_covariance_through_finite_differences(noisy):
+    """sqrt(trace(J C J^T)) with J from central differences of the calibrated machine's FK."""
+    study, calibration = noisy
+    sliders = study.holdout_actuators[:3]
+    expected_position, expected_rotation = _finite_difference_pose_std(calibration, sliders)
     predicted = predicted_pose_std(calibration, sliders)
     np.testing.assert_allclose(predicted.position, expected_position, rtol=1e-3)
     np.testing.assert_allclose(predicted.rotation, expected_rotation, rtol=1e-3)
@@ -97,6 +105,21 @@ def test_predicted_pose_std_is_the_covariance_through_finite_differences(noisy):
         predicted_pose_std(dataclasses.replace(calibration, problem=None), sliders)
     assert str(error.value) == "a predicted std needs a calibration made by calibrate_closed_loop"
 
+
+def test_predicted_std_of_a_fit_with_its_own_placements(noisy):
+    """A fit over the joint placements alone, listed last joint first (a custom error model whose
+    columns are not the default model's): both predictions propagate its own parameters, as finite
+    differences of its FK say."""
+    study, _ = noisy
+    mechanism = study.nominal
+    joints_only = ClosedLoopErrorModel(mechanism, tuple(Placement.joint(mechanism.model.names[j])
+                                                         for j in reversed(range(1, mechanism.model.njoints))))
+    calibration = calibrate_closed_loop(mechanism, study.measurements, NOISE, error_model=joints_only)
+    sliders = study.holdout_actuators[:2]
+    expected_position, expected_rotation = _finite_difference_pose_std(calibration, sliders)
+    for predicted in (predicted_pose_std(calibration, sliders), predicted_measurement_std(calibration, sliders)):
+        np.testing.assert_allclose(predicted.position, expected_position, rtol=1e-3)
+        np.testing.assert_allclose(predicted.rotation, expected_rotation, rtol=1e-3)
 
 def test_predicted_pose_std_in_blocks_is_the_one_block_result(noisy, monkeypatch):
     """Blocks of 2 poses (5 poses: a partial last block) give what one block gives."""

@@ -151,9 +151,9 @@ class _ClosedLoopProblem:
         accumulated = np.zeros(len(self.names)) if accumulated is None else accumulated
         return _State(model, solved.q, solved.poses, setup, accumulated)
 
-    def measured_frames(self, state: _State, platform_poses: np.ndarray | None = None) -> np.ndarray:
+    def measured_frames(self, state: _State) -> np.ndarray:
         """The model's prediction of every measured frame (N, 4, 4), in the measurement frame."""
-        return state.setup.measured_poses(state.poses if platform_poses is None else platform_poses)
+        return state.setup.measured_poses(state.poses)
 
     def pose_residuals(self, state: _State) -> np.ndarray:
         """Unwhitened residual blocks (N, k) of every pose, outliers included."""
@@ -665,6 +665,7 @@ def predicted_measurement_std(calibration: ClosedLoopCalibration, actuators: np.
     return _predicted_std(calibration, actuators, calibration.setup, calibration.fitted)
 
 
+@on_one_blas_thread
 def predicted_pose_std(calibration: ClosedLoopCalibration, actuators: np.ndarray) -> PoseErrors:
     """Predicted standard deviation of the calibrated platform pose in the base frame at the given
     sliders, from the machine block of the fitted parameters' covariance sigma^2 (J^T W J)^-1 (the
