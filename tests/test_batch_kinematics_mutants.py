@@ -923,3 +923,21 @@ def test_batches_of_no_rows_have_empty_task_poses(tool_machine, mechanism):
     assert everything_beyond.task_poses.shape == (0, 4, 4) and len(everything_beyond.failures) == 2
     platform = ClosedLoopSolver(mechanism).forward_batch(mechanism.home[mechanism.actuated_ids][None])
     assert platform.task_poses is platform.poses
+
+
+def test_batch_task_poses_of_a_task_frame_on_another_joint(mechanism, tmp_path):
+    """P_II as the task frame: on chain B3's last joint, not on P_I's; the batch places it from its own
+    parent joint, as the single solve does."""
+    import yaml
+
+    closures = yaml.safe_load(mechanism.closures_path.read_text())
+    closures["task"]["frame"] = "P_II"
+    (tmp_path / "m.closures.yaml").write_text(yaml.safe_dump(closures))
+    machine = Mechanism.load(mechanism.urdf_path, tmp_path / "m.closures.yaml")
+    model = machine.model
+    assert model.frames[model.getFrameId("P_II")].parentJoint != model.frames[machine.platform_frame_id].parentJoint
+    sliders = machine.home[machine.actuated_ids] + np.array([[0.0, 0.0, 0.0, 0.0], [0.02, -0.01, 0.03, 0.01]])
+    batch = ClosedLoopSolver(machine).forward_batch(sliders)
+    for k, values in enumerate(sliders):
+        single = ClosedLoopSolver(machine).forward(values, q_init=machine.home)
+        np.testing.assert_allclose(batch.task_poses[k], single.task_pose.homogeneous, atol=1e-10)
