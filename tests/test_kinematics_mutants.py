@@ -861,6 +861,19 @@ def test_a_tool_task_frame_is_reported_apart_from_the_platform(tool_machine):
     assert np.linalg.norm(forward.pose.translation - forward.task_pose.translation) > 0.1
 
 
+def test_slider_arrays_of_every_dtype_are_checked(solver, mechanism):
+    """Integer sliders are converted; an object array holding a word is refused as not numeric, not
+    with numpy's ValueError (float arrays take a fast path, the others the general one)."""
+    home = mechanism.home[mechanism.actuated_ids]
+    reference = ClosedLoopSolver(mechanism).forward(home)
+    as_list = ClosedLoopSolver(mechanism).forward(home.tolist())
+    np.testing.assert_allclose(as_list.pose.homogeneous, reference.pose.homogeneous, atol=1e-12)
+    assert solver.check_actuators(np.zeros(4, dtype=int)).dtype == np.float64
+    with pytest.raises(InvalidInputError, match="not a numeric vector"):
+        solver.forward(np.array([0.0, 0.0, 0.0, "x"], dtype=object))
+    values = np.zeros(4)
+    assert solver.check_actuators(values) is not values  # a copy
+
 def test_targets_of_every_kind_give_the_same_solve(mechanism):
     """An array, a list and a wrong-dtype array of the same target: the same sliders and tilt (the
     array takes a fast input path, the others the general one); a NaN in an array is refused."""
@@ -874,3 +887,5 @@ def test_targets_of_every_kind_give_the_same_solve(mechanism):
     for bad in (np.array([0.5, np.nan, -0.1, 0.0]), np.array([0.5, 0.5, np.inf, 0.0])):
         with pytest.raises(InvalidInputError, match="non-finite"):
             ClosedLoopSolver(mechanism).inverse(bad)
+    with pytest.raises(InvalidInputError, match="not a numeric vector"):  # not a float array: the general path
+        ClosedLoopSolver(mechanism).inverse(np.array([0.5, 0.5, -0.1, "x"], dtype=object))

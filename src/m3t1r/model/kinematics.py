@@ -78,6 +78,7 @@ def _det_sign(lu: tuple) -> bool:
 
 
 _ARANGE = np.arange(256)
+_FLOAT = np.dtype(float)
 _dasum, _idamax, _dlange = blas.dasum, blas.idamax, lapack.dlange
 
 
@@ -394,8 +395,9 @@ class ClosedLoopSolver:
     # Forward kinematics
     def check_actuators(self, actuators: np.ndarray) -> np.ndarray:
         """Validate slider values [m]: finite, right count, within the URDF limits (no clipping)."""
-        if type(actuators) is np.ndarray and actuators.shape == self._act_lower.shape and self._finite_limits:
-            values = actuators.astype(float)  # a copy
+        if type(actuators) is np.ndarray and actuators.dtype == _FLOAT and actuators.shape == self._act_lower.shape \
+                and self._finite_limits:
+            values = actuators.copy()
             # A loop over a handful of floats costs less than the numpy calls; False for NaN.
             if all(low <= value <= high for low, value, high in zip(self._limit_lists[0], values.tolist(),
                                                                      self._limit_lists[1])):
@@ -574,8 +576,9 @@ class ClosedLoopSolver:
     def _goal(self, target: pin.SE3 | np.ndarray) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float]]:
         """(task goal, goal rotation for a full-rotation task else None, requested (roll, pitch))."""
         task = self.mechanism.task
-        if type(target) is np.ndarray and target.shape == self._goal_shape and task.rotation != "full":
-            goal = target.astype(float)  # a copy: it is kept for the next warm solve
+        if type(target) is np.ndarray and target.dtype == _FLOAT and target.shape == self._goal_shape \
+                and task.rotation != "full":
+            goal = target.copy()  # kept for the next warm solve
             total = _dasum(goal)
             if total - total == 0.0:  # every entry finite (else the checks below name the bad one)
                 return goal, None, (0.0, 0.0)
