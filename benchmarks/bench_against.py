@@ -28,15 +28,17 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pinocchio as pin
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import fmt_time, header, median, table  # noqa: E402
-from bench_batch import perturbed  # noqa: E402
+from bench_batch import perturbed, unit_runner  # noqa: E402
 from bench_kinematics import workspace_path  # noqa: E402
 
 from m3t1r._threads import single_blas_thread  # noqa: E402
+from m3t1r.model.description import Mechanism  # noqa: E402
+from m3t1r.model.kinematics import ClosedLoopSolver  # noqa: E402
+from m3t1r.model.workspace import workspace_actuators  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -88,19 +90,6 @@ def runners(package: str, models: Path, targets: np.ndarray, sliders: np.ndarray
     return build
 
 
-def unit(count: int):
-    from m3t1r.model.description import Mechanism
-
-    mechanism = Mechanism.load()
-    model, data, q = mechanism.model, mechanism.model.createData(), mechanism.home.copy()
-
-    def run() -> None:
-        for _ in range(count):
-            pin.computeJointJacobians(model, data, q)
-            pin.updateFramePlacements(model, data)
-    return run
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("revision", help="git revision to compare with, e.g. HEAD~3")
@@ -109,9 +98,6 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     n_path, n_batch, rounds = (20, 20, 1) if args.quick else (1000, 2000, args.rounds)
     print(header(f"Kinematics of this tree against {args.revision}, in one process", __file__, argv))
-    from m3t1r.model.description import Mechanism
-    from m3t1r.model.kinematics import ClosedLoopSolver
-    from m3t1r.model.workspace import workspace_actuators
 
     with tempfile.TemporaryDirectory() as folder, single_blas_thread():
         name, models = extract_revision(args.revision, Path(folder))
@@ -124,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
                      "revision": runners(name, models, targets, sliders, cloud)}
         times: dict[tuple[str, str], list[float]] = {}
         results: dict[tuple[str, str], object] = {}
-        base = unit(2000)
+        base = unit_runner(mechanism, 2000)
         for _ in range(rounds):
             start = time.perf_counter()
             base()

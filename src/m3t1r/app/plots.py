@@ -150,8 +150,7 @@ def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: S
     """
     panels = []
     kinds = (("rotation", _ANGLE_UNITS, "(a) Orientation error"), ("position", _LENGTH_UNITS, "(b) Position error"))
-    if np.all(np.isnan(np.asarray(before.rotation, dtype=float))) and np.all(np.isnan(np.asarray(after.rotation,
-                                                                                                    dtype=float))):
+    if all(np.isnan(np.asarray(errors.rotation, dtype=float)).all() for errors in (before, after)):
         kinds = (("position", _LENGTH_UNITS, "Position error"),)
     for kind, units, label in kinds:
         b = _nonnegative(_finite_array(getattr(before, kind), f"before.{kind}"), f"before.{kind}")

@@ -153,8 +153,6 @@ class _Outcome(NamedTuple):
     branch: bytes
 
 
-
-
 def _one_norm(square: np.ndarray) -> float:
     """Largest column sum of |A| (dgecon's anorm): the infinity norm of A^T, which for a C-ordered A
     LAPACK reads in place (Fortran order), without the copy that A itself would cost."""
