@@ -89,6 +89,17 @@ def test_calibrate_never_overwrites_its_inputs(tmp_path, capsys):
     assert meas.read_bytes() == before and nominal_urdf.read_bytes() == nominal_bytes
 
 
+
+def test_calibrate_refuses_a_plots_folder_that_is_a_file_before_writing_anything(tmp_path, capsys):
+    """`--plots` naming an existing file (here the measurements): refused by name before the fit, the
+    file and everything else left alone, where it failed with 'File exists' after writing the fit."""
+    meas = tmp_path / "m.csv"
+    assert main(["simulate", "-n", "12", "-o", str(meas)]) == 0
+    before = meas.read_bytes()
+    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--plots", str(meas)]) == 2
+    assert f"{meas}: exists and is not a folder (the plots go into a folder)" in capsys.readouterr().err
+    assert meas.read_bytes() == before and not (tmp_path / "c.urdf").exists()
+
 @pytest.mark.parametrize("mutate,message", [
     (lambda rows: rows.__setitem__(2, rows[2].replace(rows[2].split(",")[4], "nan", 1)), "is not finite"),
     (lambda rows: rows.insert(3, rows[2]), "row repeats line"),

@@ -22,7 +22,7 @@ import pinocchio as pin
 from m3t1r._version import __version__
 from m3t1r.app.cli_common import RowFailures, campaign_report_fields, selection_note
 from m3t1r.app.datasets import MeasurementFile, read_measurements
-from m3t1r.app.reporting import passive_joint_residuals, write_calibration_plots
+from m3t1r.app.reporting import check_plots_folder, passive_joint_residuals, write_calibration_plots
 from m3t1r.calibration.assessment import (
     FitRejected,
     check_fit,
@@ -129,6 +129,8 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     machine_output = outputs.add_machine(args.output, "-o")
     report_output = outputs.add(args.report, "--report")
     outputs.check()
+    if args.plots:
+        check_plots_folder(args.plots)
     data = read_measurements(args.measurements, nominal, units=args.units)
     noise = TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
     marker = MeasurementSetup.from_numbers(marker_xyz=args.marker).marker

@@ -23,14 +23,14 @@ from m3t1r.app.plots import plot_error_vs_poses, plot_pose_errors_before_after, 
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_closed_loop, predicted_measurement_std
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home
-from m3t1r.errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
+from m3t1r.errors import IdentificationError, InvalidInputError, KinematicsError, OutputPathError, PoorExcitationWarning
 from m3t1r.metrics import PoseErrors, rotation_angles
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import declared_workspace
 
-__all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots", "PassiveJointResiduals",
-           "passive_joint_residuals", "IDLE_CHAIN_JOINTS"]
+__all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots", "check_plots_folder",
+           "PassiveJointResiduals", "passive_joint_residuals", "IDLE_CHAIN_JOINTS"]
 
 # The hinges of the idle sub-branches B2 and B4 (paper section 2.4: the pair not used by its
 # two-chain model, "used for cross-validation").
@@ -90,7 +90,7 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
     if problem is None or start is None:
         raise InvalidInputError("write_calibration_plots needs a calibration made by calibrate_closed_loop")
     measurements = _subset(problem.measurements, np.flatnonzero(problem.active))
-    out_dir = Path(out_dir)
+    out_dir = check_plots_folder(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     protect = tuple(protect)
     written = [plot_pose_errors_before_after(
@@ -120,6 +120,14 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
                                           protect=protect, plane=plane))
     return written
 
+
+def check_plots_folder(path: str | Path) -> Path:
+    """The plots' folder as a Path; OutputPathError naming it when it exists and is not a folder
+    (checked before any work, so that a file there is refused and left alone)."""
+    folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        raise OutputPathError(folder, "exists and is not a folder (the plots go into a folder)")
+    return folder
 
 def map_poses(mechanism: Mechanism, count: int, rng: np.random.Generator
               ) -> tuple[np.ndarray, np.ndarray, tuple[str, str]]:
