@@ -46,8 +46,11 @@ ROOT = Path(__file__).resolve().parents[1]
 def extract_revision(revision: str, folder: Path) -> tuple[str, Path]:
     """The package of `revision` under `folder` as an importable, renamed package; returns its name
     and the revision's models folder."""
-    short = subprocess.run(["git", "rev-parse", "--short", revision], cwd=ROOT, check=True, capture_output=True,
-                           text=True).stdout.strip()
+    found = subprocess.run(["git", "rev-parse", "--short", "--verify", "--quiet", f"{revision}^{{commit}}"], cwd=ROOT,
+                           capture_output=True, text=True)
+    if found.returncode != 0:
+        raise SystemExit(f"bench_against: {revision!r} is not a revision of {ROOT}")
+    short = found.stdout.strip()
     name = f"m3t1r_at_{short}"
     archive = subprocess.run(["git", "archive", revision, "src/m3t1r", "models"], cwd=ROOT, check=True,
                              capture_output=True).stdout
