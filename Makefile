@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench models notebooks mutation clean
+.PHONY: demo test bench models notebooks mutation clean native
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -12,15 +12,20 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-demo: $(STAMP)
+# The compiled Newton loop of FK (src/m3t1r/model/_native_newton.cpp, about a minute of g++ the first
+# time, a no-op when up to date). Without it the solvers run their pure-Python loop.
+native: $(STAMP)
+	$(BIN)/python tools/build_native.py
+
+demo: native
 	$(BIN)/m3t1r demo --out demo_out
 
-test: $(STAMP)
+test: native
 	$(BIN)/ruff check .
 	$(BIN)/mypy
 	$(BIN)/python -m pytest -q
 
-bench: $(STAMP)
+bench: native
 	$(BIN)/python benchmarks/run_all.py
 
 # Mutation testing of the core modules, one module at a time, in copies under build/mutation/
@@ -38,4 +43,4 @@ models: $(STAMP)
 	$(BIN)/python models/generate.py
 
 clean:
-	rm -rf $(VENV) demo_out
+	rm -rf $(VENV) demo_out src/m3t1r/model/_native_newton*.so

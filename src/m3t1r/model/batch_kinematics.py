@@ -621,6 +621,14 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
         return residual, jac, frot[:, kin.platform_index], fpos[:, kin.platform_index]
 
     parts = []
+    if solver.native is not None and len(rows):  # the same Newton, row by row in the compiled loop
+        q = start[rows]
+        status, norm, iterations, platform, _ = solver.native.forward_rows(
+            q, branch if predicted else None, _CHORD_BELOW, int(predicted),
+            (solver.tolerance, solver.max_iterations, solver.singular_rcond))
+        solved = _Solved(q, status, norm, iterations, platform[:, :3, :3], platform[:, :3, 3])
+        failures += [RowFailure(int(rows[f.index]), f.reason, f.error) for f in failures_of(solved, 0, "forward kinematics")]
+        return _forward_result(kin, len(values), [(rows, solved)], failures)
     for chunk in np.array_split(rows, max(1, -(-len(rows) // _CHUNK))) if len(rows) else []:
         solved = newton_batch(start[chunk], kin.passive, system, lambda jac, sq: kin.signatures(jac),
                               solver.tolerance, solver.max_iterations, solver.singular_rcond, int(predicted),

@@ -38,6 +38,8 @@ from m3t1r.errors import (
 from m3t1r.model.batch_kinematics import StackedKinematics, forward_batch, inverse_batch
 from m3t1r.model.closures import ClosureSystem
 from m3t1r.model.description import Mechanism
+from m3t1r.model.native import CONVERGED as _native_converged
+from m3t1r.model.native import NativeChain
 
 __all__ = [
     "ForwardResult", "InverseResult", "ClosedLoopSolver",
@@ -141,6 +143,20 @@ class _BranchSignature:
         return bytes(signs)
 
 
+def _native_error(status: int, norm: float, iterations: int) -> Exception:
+    """The typed error of a compiled solve's status, worded as `_newton`'s."""
+    if status == 1:
+        return OutOfWorkspaceError("the closures cannot be assembled here (target out of the workspace or too far "
+                                   "from the initial configuration's branch)", norm, iterations)
+    if status == 2:
+        return NotConvergedError("Newton did not reach the tolerance", norm, iterations)
+    if status == 3:
+        return SingularConfigurationError(f"singular configuration (reciprocal condition below {SINGULAR_RCOND:.0e})",
+                                          norm, iterations)
+    return BranchChangeError("the solution lies on another assembly branch than the start (Newton crossed a "
+                             "singularity)", norm, iterations)
+
+
 class _Outcome(NamedTuple):
     """A converged Newton solve: solution, residual, steps, the inverse of the last factorised system,
     last Jacobian and branch."""
@@ -228,7 +244,8 @@ class ClosedLoopSolver:
     Not thread-safe: one solver per thread. All outputs are copies.
     """
 
-    def __init__(self, mechanism: Mechanism, tolerance: float = 1e-12, max_iterations: int = 60) -> None:
+    def __init__(self, mechanism: Mechanism, tolerance: float = 1e-12, max_iterations: int = 60,
+                 native: bool = True) -> None:
         self.mechanism = mechanism
         self.model = mechanism.model
         self._closure_system = ClosureSystem(self.model, mechanism.closures)
@@ -302,6 +319,9 @@ class ClosedLoopSolver:
         self._branch_blocks = _BLOCK_CACHE[key]
         self._branch = _BranchSignature(self._branch_blocks, model.nv)
         self.singular_rcond = SINGULAR_RCOND
+        # FK's Newton loop compiled (`model.native`), when built and the joints allow; None: the Python loop.
+        self.native = NativeChain.of(model, mechanism.closures, self.passive, self.actuated, self._branch_blocks,
+                                     self._platform, self._task_frame, _MAX_STEP, _CHORD_CONTRACTION) if native else None
         self._stacked = None  # batched kinematics, built on first use
         self._last_branch: bytes | None = None  # signature at this solver's last FK solution
         self._tangent: np.ndarray | None = None  # d q_passive / d sliders at the last factorisation
@@ -425,6 +445,8 @@ class ClosedLoopSolver:
         q[self.actuated] = values
         self._tangent, previous, self._previous = None, self._previous, None  # dropped until this solve succeeds
         self._last_goal = self._inverse_previous = None  # last_q is about to be no IK solution
+        if self.native is not None:
+            return self._forward_native(q, warm, previous)
         outcome = self._newton(q, self.passive, self._system, self._passive_branch,
                                start_branch=self._last_branch if warm else None)
         self._tangent = -outcome.inverse.dot(outcome.jacobian.take(self.actuated, axis=1))
@@ -436,6 +458,23 @@ class ClosedLoopSolver:
         return ForwardResult(pose, outcome.q.copy(), outcome.residual, outcome.iterations, self._task_pose(pose))
 
     _previous: tuple[np.ndarray, np.ndarray] | None = None  # (sliders, passive q) of the solution before last_q
+
+    def _forward_native(self, q: np.ndarray, warm: bool, previous: tuple | None) -> ForwardResult:
+        """`forward`'s Newton in the compiled loop (q: the predicted start, solved in place); the same
+        bookkeeping, errors and result as the Python loop. `data` is not moved to the solution."""
+        native = self.native
+        status, norm, iterations = native.forward(q, self._last_branch if warm else None,
+                                                  (self.tolerance, self.max_iterations, self.singular_rcond))
+        if status != _native_converged:
+            raise _native_error(status, norm, iterations)
+        self._tangent = native.tangent  # overwritten only by the next success, which reads it first
+        if warm or previous is None:
+            self._previous = (self.last_q.take(self.actuated), self.last_q.take(self.passive))
+        self._last_branch = bytes(native.branch)
+        self.last_q = q
+        pose = pin.SE3(native.platform)
+        task = pose if self._task_frame == self._platform else pin.SE3(native.task)
+        return ForwardResult(pose, q.copy(), norm, iterations, task)
 
     def _predict(self, change: np.ndarray) -> np.ndarray:
         """Passive-joint change [rad or m] for a slider change `change` [m] from the last solution.

@@ -1,0 +1,430 @@
+// Closed-loop forward kinematics of a tree of 1-DoF joints: Newton on the enforced closure rows over
+// the passive joints, in one compiled loop on Pinocchio's C++ API (built by tools/build_native.py).
+//
+// The same problem, step for step, as m3t1r.model.kinematics.ClosedLoopSolver._newton (single solve)
+// and m3t1r.model.batch_kinematics.newton_batch (many rows): residual and exact Jacobian of the
+// enforced rows, chord steps on one LU until contraction slows, the largest step component capped,
+// then at convergence the 1-norm reciprocal condition and the branch labels (signs of the diagonal
+// blocks' determinants) of the last factorised system. Python keeps input checks, the predictor and
+// the result objects; this file keeps what runs per Newton step.
+//
+// Residual of a closure between frames a and b (placements in the base frame):
+//   "3D": R_a^T (p_b - p_a), derivative R_a^T [I, -[p_b]] (xi_b - xi_a);
+//   "6D": log6(aMb),         derivative Jlog6(aMb) Ad(oMb^-1) (xi_b - xi_a);
+// xi: WORLD spatial twists, the columns of computeJointJacobians' data.J masked by the supports.
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <pinocchio/multibody.hpp>
+#include <pinocchio/spatial.hpp>
+#include <pinocchio/algorithm/jacobian.hpp>
+#include <pinocchio/algorithm/kinematics.hpp>
+#include <Eigen/LU>
+
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <memory>
+#include <string>
+#include <vector>
+
+namespace {
+
+using Matrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+using Vector = Eigen::VectorXd;
+using Model = pinocchio::Model;
+using Data = pinocchio::Data;
+using SE3 = pinocchio::SE3;
+
+// Status codes shared with the Python side (batch_kinematics' row statuses).
+enum Status { CONVERGED = 0, NO_ASSEMBLY = 1, NOT_CONVERGED = 2, SINGULAR = 3, BRANCH_CHANGE = 4 };
+
+struct Closure {
+  int type;                             // 3 or 6
+  int frame_a, frame_b;                 // indices into Chain::frame_parent
+  int first_row;                        // its first enforced row
+  std::vector<int> components;          // enforced components (0..2 or 0..5)
+  std::vector<std::pair<int, double>> columns;  // (velocity index, +1 or -1): joints moving b and not a, or a and not b
+};
+
+struct Block {
+  std::vector<int> rows, columns;  // enforced rows, velocity indices
+  Matrix square;
+  Eigen::PartialPivLU<Eigen::MatrixXd> lu;
+};
+
+struct Chain {
+  Model model;
+  Data data;
+  std::vector<int> frame_parent;
+  std::vector<SE3> frame_placement, frame_world;
+  std::vector<Closure> closures;
+  std::vector<int> passive, actuated;
+  std::vector<Block> blocks;
+  int platform = 0, task = 0, rows = 0;
+  double tolerance = 0.0, singular_rcond = 0.0, max_step = 0.0, contraction = 0.0;  // the first two per call
+  int max_iterations = 0;
+  // Work buffers, allocated once.
+  Vector residual, step;
+  Matrix jacobian;         // rows x nv
+  Eigen::MatrixXd square;  // rows x passive
+  Eigen::PartialPivLU<Eigen::MatrixXd> lu;
+};
+
+void evaluate(Chain & c, const Vector & q, bool with_jacobian) {
+  if (with_jacobian)
+    pinocchio::computeJointJacobians(c.model, c.data, q);
+  else
+    pinocchio::forwardKinematics(c.model, c.data, q);
+  for (size_t f = 0; f < c.frame_parent.size(); ++f)
+    c.frame_world[f] = c.data.oMi[c.frame_parent[f]] * c.frame_placement[f];
+  if (with_jacobian) c.jacobian.setZero();
+  Eigen::Matrix<double, 6, 1> full;
+  Eigen::Matrix<double, 6, 6> op;
+  for (const Closure & k : c.closures) {
+    const SE3 & a = c.frame_world[k.frame_a];
+    const SE3 & b = c.frame_world[k.frame_b];
+    if (k.type == 3) {
+      full.head<3>() = a.rotation().transpose() * (b.translation() - a.translation());
+      if (with_jacobian) {
+        op.topLeftCorner<3, 3>() = a.rotation().transpose();
+        op.topRightCorner<3, 3>() = -a.rotation().transpose() * pinocchio::skew(b.translation());
+      }
+    } else {
+      const SE3 aMb = a.actInv(b);
+      full = pinocchio::log6(aMb).toVector();
+      if (with_jacobian) op = pinocchio::Jlog6(aMb) * b.inverse().toActionMatrix();
+    }
+    for (size_t r = 0; r < k.components.size(); ++r) {
+      const int row = k.first_row + static_cast<int>(r);
+      c.residual[row] = full[k.components[r]];
+      if (!with_jacobian) continue;
+      for (const auto & col : k.columns)
+        c.jacobian(row, col.first) = col.second * op.row(k.components[r]).dot(c.data.J.col(col.first));
+    }
+  }
+}
+
+double max_abs(const Vector & v) {
+  double m = 0.0;
+  for (Eigen::Index i = 0; i < v.size(); ++i) {
+    const double a = std::fabs(v[i]);
+    if (!(a <= m)) m = a;  // NaN propagates
+    if (std::isnan(a)) return a;
+  }
+  return m;
+}
+
+// Branch labels at the current Jacobian: sign of each diagonal block's determinant (true: > 0).
+void labels(Chain & c, unsigned char * out) {
+  for (size_t b = 0; b < c.blocks.size(); ++b) {
+    Block & block = c.blocks[b];
+    for (size_t i = 0; i < block.rows.size(); ++i)
+      for (size_t j = 0; j < block.columns.size(); ++j)
+        block.square(i, j) = c.jacobian(block.rows[i], block.columns[j]);
+    block.lu.compute(block.square);
+    out[b] = block.lu.determinant() > 0.0 ? 1 : 0;
+  }
+}
+
+bool factor(Chain & c) {
+  for (size_t j = 0; j < c.passive.size(); ++j) c.square.col(j) = c.jacobian.col(c.passive[j]);
+  c.lu.compute(c.square);
+  const auto diagonal = c.lu.matrixLU().diagonal();
+  for (Eigen::Index i = 0; i < diagonal.size(); ++i)
+    if (diagonal[i] == 0.0) return false;
+  return true;
+}
+
+struct Outcome {
+  int status, iterations;
+  double norm;
+};
+
+// Newton from q over the passive joints. `branch` holds the labels the solution must have when
+// `has_start`, else receives those at the first Jacobian. Chord steps only from residuals at or below
+// `chord_below` (inf: always, as the single solve). On convergence `tangent` (passive x actuated,
+// row-major) receives -J_passive^-1 J_actuated at the last Jacobian, when not null.
+Outcome newton(Chain & c, Vector & q, unsigned char * branch, bool has_start, double chord_below,
+               int steps_taken, double * tangent) {
+  std::vector<unsigned char> now(c.blocks.size());
+  evaluate(c, q, true);
+  bool fresh = true, factored = false;
+  double previous = std::numeric_limits<double>::infinity(), norm = previous;
+  int iteration = steps_taken;
+  for (; iteration <= c.max_iterations + steps_taken; ++iteration) {
+    norm = max_abs(c.residual);
+    if (!std::isfinite(norm)) return {NO_ASSEMBLY, iteration, norm};
+    if (!fresh && norm > c.contraction * previous && norm > c.tolerance) {
+      evaluate(c, q, true);
+      fresh = true;
+    }
+    if (fresh) {
+      if (!factor(c)) return {SINGULAR, iteration, norm};
+      factored = true;
+      if (!has_start) {
+        labels(c, branch);
+        has_start = true;
+      }
+      fresh = false;
+    }
+    if (norm <= c.tolerance) {
+      const Eigen::MatrixXd inverse = c.lu.inverse();
+      const double rcond = 1.0 / (c.square.cwiseAbs().colwise().sum().maxCoeff()
+                                  * inverse.cwiseAbs().colwise().sum().maxCoeff());
+      if (!(rcond >= c.singular_rcond)) return {SINGULAR, iteration, norm};
+      labels(c, now.data());
+      if (std::memcmp(now.data(), branch, now.size()) != 0) return {BRANCH_CHANGE, iteration, norm};
+      if (tangent != nullptr) {
+        Eigen::Map<Matrix> t(tangent, c.passive.size(), c.actuated.size());
+        for (size_t j = 0; j < c.actuated.size(); ++j)
+          t.col(j) = -inverse * c.jacobian.col(c.actuated[j]);
+      }
+      return {CONVERGED, iteration, norm};
+    }
+    if (iteration == c.max_iterations + steps_taken) break;
+    c.step = c.lu.solve(c.residual);
+    const double biggest = c.step.cwiseAbs().maxCoeff();
+    if (biggest > c.max_step) c.step *= c.max_step / biggest;
+    for (size_t j = 0; j < c.passive.size(); ++j) q[c.passive[j]] -= c.step[j];
+    previous = norm;
+    fresh = previous > chord_below;
+    evaluate(c, q, fresh);
+  }
+  (void)factored;
+  return {norm > 1e-6 || !std::isfinite(norm) ? NO_ASSEMBLY : NOT_CONVERGED, iteration, norm};
+}
+
+void write_pose(const SE3 & m, double * out) {
+  Eigen::Map<Eigen::Matrix<double, 4, 4, Eigen::RowMajor>> pose(out);
+  pose = m.toHomogeneousMatrix();
+}
+
+// ---- Python glue: arrays by the buffer protocol, the chain in a capsule -----------------------------
+
+struct Buffer {
+  Py_buffer view{};
+  bool held = false;
+  ~Buffer() { if (held) PyBuffer_Release(&view); }
+  bool get(PyObject * obj, bool writable, char kind, Py_ssize_t count, const char * what) {
+    const int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, &view, flags) != 0) return false;
+    held = true;
+    const char * format = view.format ? view.format : "B";
+    const bool ok_kind = (kind == 'd' && std::strcmp(format, "d") == 0 && view.itemsize == 8)
+                         || (kind == 'q' && (std::strcmp(format, "q") == 0 || std::strcmp(format, "l") == 0)
+                             && view.itemsize == 8)
+                         || (kind == 'B' && view.itemsize == 1);
+    if (!ok_kind || (count >= 0 && view.len / view.itemsize != count)) {
+      PyErr_Format(PyExc_ValueError, "%s: expected %zd items of kind %c", what, count, kind);
+      return false;
+    }
+    return true;
+  }
+  double * d() const { return static_cast<double *>(view.buf); }
+  long long * q() const { return static_cast<long long *>(view.buf); }
+  unsigned char * b() const { return static_cast<unsigned char *>(view.buf); }
+  Py_ssize_t items() const { return view.len / view.itemsize; }
+};
+
+SE3 se3_from(const double * h) {
+  const Eigen::Map<const Eigen::Matrix<double, 4, 4, Eigen::RowMajor>> m(h);
+  return SE3(m.topLeftCorner<3, 3>(), m.topRightCorner<3, 1>());
+}
+
+pinocchio::JointModel joint_of(long long kind, const double * axis) {
+  switch (kind) {
+    case 0: return pinocchio::JointModelRX();
+    case 1: return pinocchio::JointModelRY();
+    case 2: return pinocchio::JointModelRZ();
+    case 3: return pinocchio::JointModelRevoluteUnaligned(axis[0], axis[1], axis[2]);
+    case 4: return pinocchio::JointModelPX();
+    case 5: return pinocchio::JointModelPY();
+    case 6: return pinocchio::JointModelPZ();
+    default: return pinocchio::JointModelPrismaticUnaligned(axis[0], axis[1], axis[2]);
+  }
+}
+
+void destroy(PyObject * capsule) {
+  delete static_cast<Chain *>(PyCapsule_GetPointer(capsule, "m3t1r.Chain"));
+}
+
+Chain * chain_of(PyObject * capsule) {
+  return static_cast<Chain *>(PyCapsule_GetPointer(capsule, "m3t1r.Chain"));
+}
+
+// build(joints (J,2) int64 [parent, kind], axes (J,3), placements (J,4,4), frame_parents (F,) int64,
+//       frame_placements (F,4,4), closures (C,4) int64 [type, frame_a, frame_b, first_row],
+//       components (R,) int64, column_signs (C, nv) float, passive (P,), actuated (A,) int64,
+//       block_rows (P,), block_columns (P,), block_ends (B,) int64,
+//       platform, task: int, max_step, contraction: float)
+PyObject * build(PyObject *, PyObject * args) {
+  PyObject * o[13];
+  int platform, task;
+  double max_step, contraction;
+  if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOiidd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7],
+                        &o[8], &o[9], &o[10], &o[11], &o[12], &platform, &task, &max_step, &contraction))
+    return nullptr;
+  Buffer joints, axes, placements, fparents, fplacements, closures, components, signs, passive, actuated,
+      brows, bcols, bends;
+  if (!joints.get(o[0], false, 'q', -1, "joints")) return nullptr;
+  const Py_ssize_t n_joints = joints.items() / 2;
+  if (!axes.get(o[1], false, 'd', 3 * n_joints, "axes") || !placements.get(o[2], false, 'd', 16 * n_joints, "placements")
+      || !fparents.get(o[3], false, 'q', -1, "frame_parents")
+      || !fplacements.get(o[4], false, 'd', 16 * fparents.items(), "frame_placements")
+      || !closures.get(o[5], false, 'q', -1, "closures") || !components.get(o[6], false, 'q', -1, "components")
+      || !signs.get(o[7], false, 'd', (closures.items() / 4) * n_joints, "column_signs")
+      || !passive.get(o[8], false, 'q', -1, "passive") || !actuated.get(o[9], false, 'q', -1, "actuated")
+      || !brows.get(o[10], false, 'q', passive.items(), "block_rows")
+      || !bcols.get(o[11], false, 'q', passive.items(), "block_columns") || !bends.get(o[12], false, 'q', -1, "block_ends"))
+    return nullptr;
+  auto c = std::make_unique<Chain>();
+  for (Py_ssize_t j = 0; j < n_joints; ++j) {
+    const long long parent = joints.q()[2 * j];
+    if (parent < 0 || parent > j) {
+      PyErr_SetString(PyExc_ValueError, "joints: parents must precede their children");
+      return nullptr;
+    }
+    c->model.addJoint(static_cast<pinocchio::JointIndex>(parent), joint_of(joints.q()[2 * j + 1], axes.d() + 3 * j),
+                      se3_from(placements.d() + 16 * j), "j" + std::to_string(j + 1));
+  }
+  c->data = Data(c->model);
+  const int nv = c->model.nv;
+  for (Py_ssize_t f = 0; f < fparents.items(); ++f) {
+    c->frame_parent.push_back(static_cast<int>(fparents.q()[f]));
+    c->frame_placement.push_back(se3_from(fplacements.d() + 16 * f));
+  }
+  c->frame_world.resize(c->frame_parent.size());
+  const Py_ssize_t n_closures = closures.items() / 4;
+  Py_ssize_t component = 0;
+  for (Py_ssize_t k = 0; k < n_closures; ++k) {
+    Closure closure;
+    const long long * spec = closures.q() + 4 * k;
+    closure.type = static_cast<int>(spec[0]);
+    closure.frame_a = static_cast<int>(spec[1]);
+    closure.frame_b = static_cast<int>(spec[2]);
+    closure.first_row = static_cast<int>(spec[3]);
+    const Py_ssize_t end = k + 1 < n_closures ? (closures.q() + 4 * (k + 1))[3] : components.items();
+    for (; component < end; ++component) closure.components.push_back(static_cast<int>(components.q()[component]));
+    for (int v = 0; v < nv; ++v)
+      if (signs.d()[k * nv + v] != 0.0) closure.columns.emplace_back(v, signs.d()[k * nv + v]);
+    c->closures.push_back(closure);
+  }
+  c->rows = static_cast<int>(components.items());
+  for (Py_ssize_t j = 0; j < passive.items(); ++j) c->passive.push_back(static_cast<int>(passive.q()[j]));
+  for (Py_ssize_t j = 0; j < actuated.items(); ++j) c->actuated.push_back(static_cast<int>(actuated.q()[j]));
+  long long start = 0;
+  for (Py_ssize_t b = 0; b < bends.items(); ++b) {
+    Block block;
+    for (long long i = start; i < bends.q()[b]; ++i) {
+      block.rows.push_back(static_cast<int>(brows.q()[i]));
+      block.columns.push_back(static_cast<int>(bcols.q()[i]));
+    }
+    block.square.resize(block.rows.size(), block.columns.size());
+    start = bends.q()[b];
+    c->blocks.push_back(std::move(block));
+  }
+  c->platform = platform;
+  c->task = task;
+  c->max_step = max_step;
+  c->contraction = contraction;
+  c->residual = Vector::Zero(c->rows);
+  c->jacobian = Matrix::Zero(c->rows, nv);
+  c->square = Eigen::MatrixXd::Zero(c->rows, static_cast<Eigen::Index>(c->passive.size()));
+  c->step = Vector::Zero(c->rows);
+  return PyCapsule_New(c.release(), "m3t1r.Chain", destroy);
+}
+
+// forward(chain, q (nq,) in/out, branch (B,) uint8 in/out, has_start, chord_below, steps_taken,
+//         tangent (P*A,) out, platform (16,) out, task (16,) out, tolerance, max_iterations, singular_rcond)
+//   -> (status, residual, iterations)
+PyObject * forward(PyObject *, PyObject * args) {
+  PyObject *capsule, *oq, *obranch, *otangent, *oplatform, *otask;
+  int has_start, steps_taken, max_iterations;
+  double chord_below, tolerance, singular_rcond;
+  if (!PyArg_ParseTuple(args, "OOOpdiOOOdid", &capsule, &oq, &obranch, &has_start, &chord_below, &steps_taken,
+                        &otangent, &oplatform, &otask, &tolerance, &max_iterations, &singular_rcond))
+    return nullptr;
+  Chain * c = chain_of(capsule);
+  if (c == nullptr) return nullptr;
+  c->tolerance = tolerance;
+  c->max_iterations = max_iterations;
+  c->singular_rcond = singular_rcond;
+  Buffer bq, bbranch, btangent, bplatform, btask;
+  if (!bq.get(oq, true, 'd', c->model.nq, "q") || !bbranch.get(obranch, true, 'B', c->blocks.size(), "branch")
+      || !btangent.get(otangent, true, 'd', c->passive.size() * c->actuated.size(), "tangent")
+      || !bplatform.get(oplatform, true, 'd', 16, "platform") || !btask.get(otask, true, 'd', 16, "task"))
+    return nullptr;
+  Eigen::Map<Vector> qmap(bq.d(), c->model.nq);
+  Vector q = qmap;
+  const Outcome out = newton(*c, q, bbranch.b(), has_start != 0, chord_below, steps_taken, btangent.d());
+  qmap = q;
+  if (out.status == CONVERGED) {
+    write_pose(c->frame_world[c->platform], bplatform.d());
+    write_pose(c->frame_world[c->task], btask.d());
+  }
+  return Py_BuildValue("(idi)", out.status, out.norm, out.iterations);
+}
+
+// forward_rows(chain, q (n, nq) in/out, branch (B,) uint8 or empty (labels at each row's start),
+//              chord_below, steps_taken, status (n,) int64 out, residual (n,) out, iterations (n,) int64 out,
+//              platform (n, 16) out, task (n, 16) out, tolerance, max_iterations, singular_rcond):
+//   `forward` row by row, without the tangent.
+PyObject * forward_rows(PyObject *, PyObject * args) {
+  PyObject *capsule, *oq, *obranch, *ostatus, *onorm, *oiter, *oplatform, *otask;
+  int steps_taken, max_iterations;
+  double chord_below, tolerance, singular_rcond;
+  if (!PyArg_ParseTuple(args, "OOOdiOOOOOdid", &capsule, &oq, &obranch, &chord_below, &steps_taken, &ostatus, &onorm,
+                        &oiter, &oplatform, &otask, &tolerance, &max_iterations, &singular_rcond))
+    return nullptr;
+  Chain * c = chain_of(capsule);
+  if (c == nullptr) return nullptr;
+  c->tolerance = tolerance;
+  c->max_iterations = max_iterations;
+  c->singular_rcond = singular_rcond;
+  Buffer bq, bbranch, bstatus, bnorm, biter, bplatform, btask;
+  if (!bq.get(oq, true, 'd', -1, "q") || !bbranch.get(obranch, false, 'B', -1, "branch")) return nullptr;
+  const Py_ssize_t n = bq.items() / c->model.nq;
+  const bool given = bbranch.items() > 0;
+  if (bq.items() != n * c->model.nq || (given && bbranch.items() != static_cast<Py_ssize_t>(c->blocks.size()))
+      || !bstatus.get(ostatus, true, 'q', n, "status") || !bnorm.get(onorm, true, 'd', n, "residual")
+      || !biter.get(oiter, true, 'q', n, "iterations") || !bplatform.get(oplatform, true, 'd', 16 * n, "platform")
+      || !btask.get(otask, true, 'd', 16 * n, "task")) {
+    if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "q or branch: wrong size");
+    return nullptr;
+  }
+  std::vector<unsigned char> branch(c->blocks.size());
+  Vector q(c->model.nq);
+  Py_BEGIN_ALLOW_THREADS
+  for (Py_ssize_t i = 0; i < n; ++i) {
+    if (given) std::memcpy(branch.data(), bbranch.b(), branch.size());
+    Eigen::Map<Vector> row(bq.d() + i * c->model.nq, c->model.nq);
+    q = row;
+    const Outcome out = newton(*c, q, branch.data(), given, chord_below, steps_taken, nullptr);
+    row = q;
+    bstatus.q()[i] = out.status;
+    bnorm.d()[i] = out.norm;
+    biter.q()[i] = out.iterations;
+    if (out.status == CONVERGED) {
+      write_pose(c->frame_world[c->platform], bplatform.d() + 16 * i);
+      write_pose(c->frame_world[c->task], btask.d() + 16 * i);
+    }
+  }
+  Py_END_ALLOW_THREADS
+  return PyLong_FromSsize_t(n);
+}
+
+PyMethodDef methods[] = {
+    {"build", build, METH_VARARGS, "A closed chain from arrays (see the source)."},
+    {"forward", forward, METH_VARARGS, "One Newton solve of the passive joints, in place."},
+    {"forward_rows", forward_rows, METH_VARARGS, "Newton solves of many rows, in place."},
+    {nullptr, nullptr, 0, nullptr}};
+
+PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native_newton",
+                      "Compiled Newton loop of closed-loop forward kinematics (Pinocchio C++).", -1, methods,
+                      nullptr, nullptr, nullptr, nullptr};
+
+}  // namespace
+
+PyMODINIT_FUNC PyInit__native_newton(void) { return PyModule_Create(&module); }

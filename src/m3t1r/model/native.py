@@ -1,0 +1,122 @@
+"""The compiled Newton loop of closed-loop FK (`_native_newton`, C++ on Pinocchio), when it is built.
+
+`tools/build_native.py` (run by `make`) compiles it in place. It solves the problem of
+`ClosedLoopSolver._newton` (single solves) and `batch_kinematics.newton_batch` (rows), step for step:
+the same residual and exact Jacobian of the enforced rows, chord steps, step cap, convergence test,
+1-norm reciprocal condition and branch labels (signs of the diagonal blocks' determinants). It holds
+its own `pinocchio::Model`, rebuilt from the Python model's joints and placements, so a calibrated
+copy of a machine gets its own. Trees of 1-DoF revolute and prismatic joints only; anything else
+(and an interpreter without the module) keeps the pure-Python loop: `NativeChain.of` returns None.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pinocchio as pin
+
+try:
+    from m3t1r.model import _native_newton  # type: ignore[attr-defined]
+except ImportError:  # not compiled: the pure-Python Newton runs
+    _native_newton = None
+
+if TYPE_CHECKING:
+    from m3t1r.model.closures import ClosureSpec
+
+__all__ = ["AVAILABLE", "NativeChain", "CONVERGED"]
+
+AVAILABLE = _native_newton is not None
+CONVERGED = 0  # status codes 1-4 as batch_kinematics' rows: no assembly, not converged, singular, branch change
+
+# Joint types the compiled model rebuilds, by Pinocchio's short name: the code `joint_of` reads.
+_KINDS = {"JointModelRX": 0, "JointModelRY": 1, "JointModelRZ": 2, "JointModelRevoluteUnaligned": 3,
+          "JointModelPX": 4, "JointModelPY": 5, "JointModelPZ": 6, "JointModelPrismaticUnaligned": 7}
+
+
+def _support(model: pin.Model, frame_id: int) -> np.ndarray:
+    mask = np.zeros(model.nv)
+    for j in model.supports[model.frames[frame_id].parentJoint][1:]:
+        mask[model.idx_vs[j]] = 1.0
+    return mask
+
+
+class NativeChain:
+    """One mechanism's closures, passive and actuated joints and branch blocks, compiled.
+
+    `forward` solves one configuration in place, `forward_rows` many; both return status codes
+    (0 converged; 1 no assembly, 2 not converged, 3 singular, 4 branch change) that the callers turn
+    into their typed errors.
+    """
+
+    def __init__(self, handle: object, n_blocks: int, n_passive: int, n_actuated: int) -> None:
+        self._handle, self.n_blocks = handle, n_blocks
+        self.tangent = np.zeros((n_passive, n_actuated))  # -J_passive^-1 J_actuated at the last success
+        self.platform, self.task = np.eye(4), np.eye(4)  # their placements at the last success [m]
+        self.branch = bytearray(n_blocks)  # labels at the last success
+
+    @classmethod
+    def of(cls, model: pin.Model, closures: tuple[ClosureSpec, ...], passive: np.ndarray, actuated: np.ndarray,
+           blocks: list[tuple[np.ndarray, np.ndarray]], platform_frame: int, task_frame: int, max_step: float,
+           contraction: float) -> NativeChain | None:
+        """The compiled chain, or None when the module is not built or a joint is not 1-DoF revolute/prismatic."""
+        names = [model.joints[j].shortname() for j in range(1, model.njoints)]
+        if _native_newton is None or any(name not in _KINDS for name in names):
+            return None
+        joints = np.array([[model.parents[j], _KINDS[names[j - 1]]] for j in range(1, model.njoints)], dtype=np.int64)
+        axes = np.array([_axis(model.joints[j]) for j in range(1, model.njoints)])
+        placements = np.array([model.jointPlacements[j].homogeneous for j in range(1, model.njoints)])
+        frame_ids = sorted({c.frame_a_id for c in closures} | {c.frame_b_id for c in closures})
+        frame_ids += [platform_frame, task_frame]
+        where = {f: k for k, f in enumerate(frame_ids)}
+        rows = np.cumsum([0] + [len(c.rows) for c in closures])
+        spec = np.array([[3 if c.type == "3D" else 6, where[c.frame_a_id], where[c.frame_b_id], rows[k]]
+                         for k, c in enumerate(closures)], dtype=np.int64).reshape(-1, 4)
+        components = np.array([r for c in closures for r in c.rows], dtype=np.int64)
+        signs = np.array([_support(model, c.frame_b_id) - _support(model, c.frame_a_id) for c in closures])
+        handle = _native_newton.build(
+            joints, np.ascontiguousarray(axes, dtype=float), np.ascontiguousarray(placements),
+            np.array([model.frames[f].parentJoint for f in frame_ids], dtype=np.int64),
+            np.array([model.frames[f].placement.homogeneous for f in frame_ids]), spec, components,
+            np.ascontiguousarray(signs.reshape(len(closures), model.nv)), np.asarray(passive, dtype=np.int64),
+            np.asarray(actuated, dtype=np.int64), np.concatenate([r for r, _ in blocks]).astype(np.int64),
+            np.concatenate([c for _, c in blocks]).astype(np.int64),
+            np.cumsum([len(r) for r, _ in blocks]).astype(np.int64), len(frame_ids) - 2, len(frame_ids) - 1,
+            float(max_step), float(contraction))
+        return cls(handle, len(blocks), len(passive), len(actuated))
+
+    def forward(self, q: np.ndarray, start_branch: bytes | None, limits: tuple[float, int, float]
+                ) -> tuple[int, float, int]:
+        """Newton over the passive joints from q (nq, float64, solved in place), chord steps throughout.
+
+        start_branch: the labels the solution must have (None: those at q); limits: (tolerance
+        [m or rad], max_iterations, singular_rcond). On success `tangent`, `platform`, `task` and
+        `branch` hold the solution's. Returns (status, max |row|, iterations).
+        """
+        if start_branch is not None:  # labels are 0 or 1: a label of another length cannot be met
+            self.branch[:] = start_branch if len(start_branch) == self.n_blocks else b"\xff" * self.n_blocks
+        return _native_newton.forward(self._handle, q, self.branch, start_branch is not None, math.inf, 0,
+                                      self.tangent, self.platform, self.task, *limits)
+
+    def forward_rows(self, q: np.ndarray, start_branch: np.ndarray | None, chord_below: float, steps_taken: int,
+                     limits: tuple[float, int, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                                np.ndarray]:
+        """`forward` for every row of q (n, nq) (solved in place), chord steps only from residuals at or
+        below `chord_below`, iterations counted from `steps_taken`. Returns per row (status, max |row|,
+        iterations, platform (n, 4, 4), task frame (n, 4, 4)); poses are valid where status is 0."""
+        n = len(q)
+        status, norm, iterations = np.zeros(n, dtype=np.int64), np.zeros(n), np.zeros(n, dtype=np.int64)
+        platform, task = np.zeros((n, 4, 4)), np.zeros((n, 4, 4))
+        branch = b"" if start_branch is None else np.asarray(start_branch, dtype=np.uint8).tobytes()
+        _native_newton.forward_rows(self._handle, q, branch, float(chord_below), int(steps_taken), status, norm,
+                                    iterations, platform, task, *limits)
+        return status, norm, iterations, platform, task
+
+
+def _axis(joint: pin.JointModel) -> np.ndarray:
+    name = joint.shortname()
+    if name.endswith("Unaligned"):
+        axis = np.array(joint.extract().axis, dtype=float)
+        return axis / np.linalg.norm(axis)
+    return np.zeros(3)

@@ -1,0 +1,192 @@
+"""The compiled Newton loop of FK (`model.native`) against the Python loops it replaces.
+
+Single solves against `ClosedLoopSolver(native=False)` (the Python `_newton`), batches against the
+numpy `newton_batch`: same solutions, iterations, branches and typed failures, on the M machine, a
+calibrated copy, a tool task frame and the example mechanisms.
+"""
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from conftest import perturb_every_origin
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from m3t1r.errors import BranchChangeError, M3t1rError, OutOfWorkspaceError, SingularConfigurationError
+from m3t1r.model import native
+from m3t1r.model.description import Mechanism
+from m3t1r.model.design import NOMINAL
+from m3t1r.model.examples import five_bar_files, spherical_wrist_files
+from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
+
+
+def test_the_compiled_loop_is_built():
+    """`make` builds it (tools/build_native.py); every other test here would silently compare the
+    Python loop with itself without it."""
+    assert native.AVAILABLE, "run `make native` (python tools/build_native.py) to compile the Newton loop"
+
+
+def _path(solver: ClosedLoopSolver, n: int = 200) -> np.ndarray:
+    """Slider values along a smooth workspace path (Lissajous in x, y, z, theta)."""
+    t = np.linspace(0.0, 2.0 * np.pi, n)
+    centre = solver.forward(solver.mechanism.home[solver.actuated]).pose
+    solver.reset()
+    targets = np.c_[centre.translation[0] + 0.04 * np.sin(t), centre.translation[1] + 0.03 * np.sin(2 * t),
+                    centre.translation[2] + 0.02 * np.cos(t), 0.15 * np.sin(t)]
+    sliders = np.array([solver.inverse(target).actuators for target in targets])
+    solver.reset()
+    return sliders
+
+
+def _compare_paths(machine: Mechanism, sliders: np.ndarray) -> None:
+    compiled, python = ClosedLoopSolver(machine), ClosedLoopSolver(machine, native=False)
+    assert compiled.native is not None and python.native is None
+    for values in sliders:
+        a, b = compiled.forward(values), python.forward(values)
+        np.testing.assert_allclose(a.q, b.q, atol=1e-12)
+        np.testing.assert_allclose(a.pose.homogeneous, b.pose.homogeneous, atol=1e-12)
+        np.testing.assert_allclose(a.task_pose.homogeneous, b.task_pose.homogeneous, atol=1e-12)
+        assert a.iterations == b.iterations and a.residual <= 1e-12
+        assert compiled._last_branch == python._last_branch
+        np.testing.assert_allclose(compiled._tangent, python._tangent, atol=1e-10)
+    assert not np.shares_memory(a.q, compiled.last_q)
+
+
+def test_warm_path_matches_the_python_loop(mechanism):
+    _compare_paths(mechanism, _path(ClosedLoopSolver(mechanism)))
+
+
+def test_warm_path_of_a_calibrated_copy_matches(mechanism):
+    """The compiled model is rebuilt from the copy's own joint and frame placements."""
+    machine = rehomed(mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(3), 1e-3, 1e-3)))
+    _compare_paths(machine, _path(ClosedLoopSolver(machine), 60))
+    nominal = ClosedLoopSolver(mechanism).forward(machine.home[machine.actuated_ids], q_init=machine.home)
+    moved = ClosedLoopSolver(machine).forward(machine.home[machine.actuated_ids], q_init=machine.home)
+    assert np.linalg.norm(nominal.pose.translation - moved.pose.translation) > 1e-4
+
+
+def test_a_tool_task_frame_is_returned_as_the_python_loop_does(tool_machine):
+    _compare_paths(tool_machine, _path(ClosedLoopSolver(tool_machine), 40))
+    result = ClosedLoopSolver(tool_machine).forward(tool_machine.home[tool_machine.actuated_ids])
+    data = tool_machine.model.createData()
+    pin.framesForwardKinematics(tool_machine.model, data, result.q)
+    np.testing.assert_allclose(result.task_pose.homogeneous, data.oMf[tool_machine.model.getFrameId("tool")].homogeneous,
+                               atol=1e-13)
+
+
+@pytest.mark.parametrize("files", [five_bar_files, spherical_wrist_files])
+def test_example_mechanisms_match(files, tmp_path):
+    machine = Mechanism.load(*files(tmp_path))
+    rng = np.random.default_rng(5)
+    low, high = machine.joint_limits()
+    home = machine.home[machine.actuated_ids]
+    sliders = home + np.cumsum(rng.uniform(-1, 1, (30, len(home))) * 0.01 * (high - low), axis=0)
+    _compare_paths(machine, np.clip(sliders, low, high))
+
+
+def _outcome(solver: ClosedLoopSolver, values: np.ndarray, q_init: np.ndarray | None):
+    try:
+        return solver.forward(values, q_init=q_init)
+    except M3t1rError as error:
+        return type(error)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(0.0, 1.0), min_size=4, max_size=4))
+def test_cold_solves_from_home_fail_or_agree_as_the_python_loop(mechanism, fractions):
+    """Anywhere in the slider box, far from home included: the same typed failure, or the same solution."""
+    low, high = mechanism.joint_limits()
+    values = low + np.array(fractions) * (high - low)
+    a = _outcome(ClosedLoopSolver(mechanism), values, mechanism.home)
+    b = _outcome(ClosedLoopSolver(mechanism, native=False), values, mechanism.home)
+    if isinstance(a, type) or isinstance(b, type):
+        assert a == b
+    else:
+        np.testing.assert_allclose(a.q, b.q, atol=1e-11)
+        assert a.iterations == b.iterations
+
+
+def test_failures_are_the_python_loop_s_typed_errors(mechanism):
+    low, high = mechanism.joint_limits()
+    far = np.array([low[0], high[1], low[2], high[3]])
+    kinds = set()
+    for use in (True, False):
+        solver = ClosedLoopSolver(mechanism, native=use)
+        with pytest.raises((OutOfWorkspaceError, BranchChangeError)) as caught:
+            solver.forward(far, q_init=mechanism.home)
+        kinds.add((type(caught.value), caught.value.iterations))
+        solver.forward(mechanism.home[mechanism.actuated_ids])
+        solver._last_branch = bytes(1 - b for b in solver._last_branch)  # a branch the next solve cannot keep
+        with pytest.raises(BranchChangeError) as caught:
+            solver.forward(mechanism.home[mechanism.actuated_ids] + 1e-3)
+        kinds.add((type(caught.value), caught.value.iterations))
+        assert solver._tangent is None  # the warm start is dropped with the failed solve
+    assert len(kinds) == 2
+
+
+def test_a_singular_configuration_is_refused_with_its_class(mechanism, monkeypatch):
+    """A threshold no configuration meets makes every converged solve singular, in both loops."""
+    monkeypatch.setattr("m3t1r.model.kinematics.SINGULAR_RCOND", 2.0)  # what the Python single solve reads
+    for use in (True, False):
+        solver = ClosedLoopSolver(mechanism, native=use)
+        with pytest.raises(SingularConfigurationError):
+            solver.forward(mechanism.home[mechanism.actuated_ids] + 1e-3)
+
+
+def test_tolerance_and_iteration_limits_are_read_at_each_solve(mechanism):
+    solver = ClosedLoopSolver(mechanism)
+    far = mechanism.home[mechanism.actuated_ids] + np.array([0.02, -0.01, 0.015, -0.02])
+    solver.max_iterations = 1
+    with pytest.raises(M3t1rError) as caught:
+        solver.forward(far, q_init=mechanism.home)
+    assert caught.value.iterations == 1
+    solver.max_iterations, solver.tolerance = 60, 1e-6
+    loose = solver.forward(far, q_init=mechanism.home)
+    assert 1e-13 < loose.residual <= 1e-6
+    assert loose.iterations < ClosedLoopSolver(mechanism).forward(far, q_init=mechanism.home).iterations
+
+
+def test_forward_batch_matches_the_numpy_newton(mechanism):
+    cloud = NOMINAL.workspace.sample(np.random.default_rng(2), 300)
+    sliders = ClosedLoopSolver(mechanism).inverse_batch(cloud).actuators
+    low, high = mechanism.joint_limits()
+    sliders = np.vstack((sliders, [low[0], high[1], low[2], high[3]], high + 1.0))  # a far row, a row beyond limits
+    compiled = ClosedLoopSolver(mechanism).forward_batch(sliders)
+    numpy_batch = ClosedLoopSolver(mechanism, native=False).forward_batch(sliders)
+    np.testing.assert_array_equal(compiled.indices, numpy_batch.indices)
+    np.testing.assert_allclose(compiled.q, numpy_batch.q, atol=1e-12)
+    np.testing.assert_allclose(compiled.poses, numpy_batch.poses, atol=1e-12)
+    np.testing.assert_array_equal(compiled.iterations, numpy_batch.iterations)
+    assert [(f.index, f.error) for f in compiled.failures] == [(f.index, f.error) for f in numpy_batch.failures]
+    assert len(compiled.failures) >= 1 and not compiled.poses.flags.writeable
+    given_start = ClosedLoopSolver(mechanism).forward_batch(sliders[:20], q_init=mechanism.home)
+    numpy_start = ClosedLoopSolver(mechanism, native=False).forward_batch(sliders[:20], q_init=mechanism.home)
+    np.testing.assert_array_equal(given_start.indices, numpy_start.indices)
+    np.testing.assert_allclose(given_start.q, numpy_start.q, atol=1e-12)
+
+
+def test_forward_batch_task_frame_of_a_tool(tool_machine):
+    solver = ClosedLoopSolver(tool_machine)
+    sliders = tool_machine.home[tool_machine.actuated_ids] + np.linspace(0, 0.01, 5)[:, None]
+    batch = solver.forward_batch(sliders)
+    for q, task in zip(batch.q, batch.task_poses):
+        data = tool_machine.model.createData()
+        pin.framesForwardKinematics(tool_machine.model, data, q)
+        np.testing.assert_allclose(task, data.oMf[tool_machine.model.getFrameId("tool")].homogeneous, atol=1e-13)
+
+
+def test_only_one_dof_revolute_and_prismatic_trees_are_compiled(mechanism):
+    model = pin.Model()
+    model.addJoint(0, pin.JointModelSpherical(), pin.SE3.Identity(), "ball")
+    assert native.NativeChain.of(model, (), np.zeros(0, dtype=int), np.zeros(0, dtype=int), [], 0, 0, 0.3, 0.05) is None
+    assert ClosedLoopSolver(mechanism, native=False).native is None
+
+
+def test_the_compiled_loop_refuses_buffers_of_the_wrong_size(mechanism):
+    chain = ClosedLoopSolver(mechanism).native
+    with pytest.raises(ValueError, match="q"):
+        chain.forward(np.zeros(3), None, (1e-12, 60, 1e-10))
+    with pytest.raises(ValueError, match="q"):
+        chain.forward(np.zeros(mechanism.model.nq, dtype=np.float32), None, (1e-12, 60, 1e-10))
+    with pytest.raises(ValueError):
+        chain.forward_rows(np.zeros((2, 3)), None, 1e-4, 0, (1e-12, 60, 1e-10))

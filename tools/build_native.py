@@ -1,0 +1,66 @@
+"""Compile m3t1r's Newton core (src/m3t1r/model/_native_newton.cpp) in place, for this interpreter.
+
+Header-only use of Pinocchio's C++ API (the `pin` wheel ships its headers), with Eigen's headers from
+`cmeel-eigen` (the Eigen that eigenpy is built against) and Boost's from `cmeel-boost`: the module
+builds its own `pinocchio::Model` from arrays and links no Pinocchio library, so it does not depend on
+the wheel's binary interface. `make` runs this after installing; without the module the solvers run
+their pure-Python Newton (same results, slower; `m3t1r.model.native.AVAILABLE` says which).
+
+Run: python tools/build_native.py [--force]   (about a minute of g++; skipped when up to date)
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+
+import pinocchio
+
+SOURCE = Path(__file__).resolve().parents[1] / "src" / "m3t1r" / "model" / "_native_newton.cpp"
+# Pinocchio's CMake targets set these (its joint variant needs more than Boost.MPL's default 20 types).
+DEFINES = ["BOOST_MPL_LIMIT_LIST_SIZE=30", "BOOST_MPL_LIMIT_VECTOR_SIZE=30", "BOOST_MPL_CFG_NO_PREPROCESSED_HEADERS",
+           "BOOST_FUSION_INVOKE_MAX_ARITY=12", "NDEBUG"]
+
+
+def target() -> Path:
+    return SOURCE.with_name("_native_newton" + sysconfig.get_config_var("EXT_SUFFIX"))
+
+
+def include_dirs() -> list[Path]:
+    prefix = Path(pinocchio.__file__).resolve().parents[4]  # .../cmeel.prefix/lib/pythonX.Y/site-packages/pinocchio
+    eigen = prefix / "include" / "eigen3"
+    if not (eigen / "Eigen" / "Core").exists():
+        raise SystemExit(f"build_native: Eigen headers not found at {eigen} (pip install cmeel-eigen)")
+    return [prefix / "include", eigen, Path(sysconfig.get_paths()["include"])]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--force", action="store_true", help="rebuild even when the module is newer than its source")
+    args = parser.parse_args(argv)
+    out = target()
+    if not args.force and out.exists() and out.stat().st_mtime >= SOURCE.stat().st_mtime:
+        print(f"build_native: {out.name} is up to date")
+        return 0
+    compiler = os.environ.get("CXX", "g++")
+    if shutil.which(compiler) is None:
+        raise SystemExit(f"build_native: no C++ compiler ({compiler}); the pure-Python solver will run")
+    partial = out.with_suffix(".partial")
+    command = [compiler, "-O2", "-std=c++17", "-shared", "-fPIC", "-fvisibility=hidden", "-w",
+               *(f"-D{d}" for d in DEFINES), *(f"-I{d}" for d in include_dirs()), str(SOURCE), "-o", str(partial)]
+    print("build_native: compiling", SOURCE.name, "(about a minute)", flush=True)
+    if subprocess.run(command).returncode != 0:
+        partial.unlink(missing_ok=True)
+        raise SystemExit("build_native: the compiler failed (above); the pure-Python solver will run")
+    partial.replace(out)  # atomic: an interrupted build leaves no half-written module behind
+    print(f"build_native: wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
