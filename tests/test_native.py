@@ -1,8 +1,8 @@
-"""The compiled Newton loop of FK (`model.native`) against the Python loops it replaces.
+"""The compiled Newton loops of FK and IK (`model.native`) against the Python loops they replace.
 
 Single solves against `ClosedLoopSolver(native=False)` (the Python `_newton`), batches against the
 numpy `newton_batch`: same solutions, iterations, branches and typed failures, on the M machine, a
-calibrated copy, a tool task frame and the example mechanisms.
+calibrated copy, a tool task frame and the example mechanisms (planar x, y and full-rotation tasks).
 """
 
 import numpy as np
@@ -178,7 +178,8 @@ def test_forward_batch_task_frame_of_a_tool(tool_machine):
 def test_only_one_dof_revolute_and_prismatic_trees_are_compiled(mechanism):
     model = pin.Model()
     model.addJoint(0, pin.JointModelSpherical(), pin.SE3.Identity(), "ball")
-    assert native.NativeChain.of(model, (), np.zeros(0, dtype=int), np.zeros(0, dtype=int), [], 0, 0, 0.3, 0.05) is None
+    none = np.zeros(0, dtype=int)
+    assert native.NativeChain.of(model, (), none, none, [], 0, mechanism.task, none, 0.3, 0.05) is None
     assert ClosedLoopSolver(mechanism, native=False).native is None
 
 
@@ -190,3 +191,60 @@ def test_the_compiled_loop_refuses_buffers_of_the_wrong_size(mechanism):
         chain.forward(np.zeros(mechanism.model.nq, dtype=np.float32), None, (1e-12, 60, 1e-10))
     with pytest.raises(ValueError):
         chain.forward_rows(np.zeros((2, 3)), None, 1e-4, 0, (1e-12, 60, 1e-10))
+
+
+def _targets(machine: Mechanism, n: int, seed: int) -> np.ndarray:
+    """Task coordinates along a smooth path of reachable poses (FK of a slider random walk)."""
+    solver = ClosedLoopSolver(machine, native=False)
+    low, high = machine.joint_limits()
+    rng = np.random.default_rng(seed)
+    sliders = machine.home[machine.actuated_ids] + np.cumsum(rng.uniform(-1, 1, (n, len(low))) * 0.004 * (high - low),
+                                                             axis=0)
+    poses = [solver.forward(values).task_pose.homogeneous for values in np.clip(sliders, low, high)]
+    return machine.task.coordinates(np.array(poses))
+
+
+def _compare_inverse(machine: Mechanism, targets: np.ndarray) -> None:
+    compiled, python = ClosedLoopSolver(machine), ClosedLoopSolver(machine, native=False)
+    for target in targets:
+        a, b = compiled.inverse(target), python.inverse(target)
+        np.testing.assert_allclose(a.q, b.q, atol=1e-12)
+        np.testing.assert_allclose(a.actuators, b.actuators, atol=1e-12)
+        np.testing.assert_allclose(a.pose.homogeneous, b.pose.homogeneous, atol=1e-12)
+        np.testing.assert_allclose(a.task_pose.homogeneous, b.task_pose.homogeneous, atol=1e-12)
+        np.testing.assert_allclose(a.tilt, b.tilt, atol=1e-12)
+        assert a.iterations == b.iterations and a.residual <= 1e-12
+        assert compiled._last_inverse_branch == python._last_inverse_branch
+        np.testing.assert_allclose(compiled._task_inverse, python._task_inverse, atol=1e-9)
+    assert a.task_pose is not compiled._last_task and a.q is not compiled.last_q
+
+
+def test_warm_inverse_path_matches_the_python_loop(mechanism):
+    _compare_inverse(mechanism, _targets(mechanism, 120, 1))
+
+
+def test_inverse_of_a_tool_and_of_a_calibrated_copy_match(mechanism, tool_machine):
+    _compare_inverse(tool_machine, _targets(tool_machine, 30, 2))
+    machine = rehomed(mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(4), 1e-3, 1e-3)))
+    _compare_inverse(machine, _targets(machine, 30, 3))
+
+
+@pytest.mark.parametrize("files", [five_bar_files, spherical_wrist_files])
+def test_inverse_of_example_mechanisms_match(files, tmp_path):
+    """Planar (x, y) and full-rotation (quaternion) tasks."""
+    machine = Mechanism.load(*files(tmp_path))
+    _compare_inverse(machine, _targets(machine, 30, 4))
+
+
+def test_inverse_failures_are_the_python_loop_s(mechanism):
+    kinds = []
+    for use in (True, False):
+        solver = ClosedLoopSolver(mechanism, native=use)
+        # no assembly; a branch crossed (yaw 3 rad); a slider beyond its limit (y 1.5 m)
+        for target in ([0.5, 0.5, 0.4, 0.0], [0.52, 0.52, -0.11, 3.0], [0.52, 1.5, -0.11, 0.0]):
+            with pytest.raises(M3t1rError) as caught:
+                solver.inverse(np.array(target), q_init=mechanism.home)
+            kinds.append((type(caught.value), caught.value.iterations))
+            assert solver._task_inverse is None
+    assert kinds[:3] == kinds[3:]
+    assert [kind for kind, _ in kinds[:3]] == [OutOfWorkspaceError, BranchChangeError, OutOfWorkspaceError]

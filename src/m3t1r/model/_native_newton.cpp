@@ -54,32 +54,47 @@ struct Block {
   Eigen::PartialPivLU<Eigen::MatrixXd> lu;
 };
 
+// The commanded components of the task frame (model.task.TaskSpec): position axes, then "yaw"
+// (wrap(atan2(R10, R00) - theta*)) or "full" (log3(R*^T R)); the goal is set per IK call.
+struct Task {
+  std::vector<int> axes;
+  int rotation = 0;  // 0 none, 1 yaw, 2 full
+  int rows = 0;
+  std::vector<int> columns;  // velocity indices of the joints that move the task frame
+  double goal[4] = {0, 0, 0, 0};
+  Eigen::Matrix3d goal_rotation = Eigen::Matrix3d::Identity();
+};
+
+// One square Newton system: FK (closure rows over the passive joints) or IK (closure and task rows
+// over every unlocked joint), with its own factorisation buffers.
+struct System {
+  bool inverse = false;
+  int rows = 0;
+  std::vector<int> unknowns;
+  Eigen::MatrixXd square, inverse_matrix;
+  Eigen::PartialPivLU<Eigen::MatrixXd> lu;
+};
+
 struct Chain {
   Model model;
   Data data;
   std::vector<int> frame_parent;
   std::vector<SE3> frame_placement, frame_world;
   std::vector<Closure> closures;
-  std::vector<int> passive, actuated;
+  std::vector<int> actuated;
   std::vector<Block> blocks;
+  Task task_spec;
+  System fk, ik;
   int platform = 0, task = 0, rows = 0;
   double tolerance = 0.0, singular_rcond = 0.0, max_step = 0.0, contraction = 0.0;  // the first two per call
   int max_iterations = 0;
-  // Work buffers, allocated once.
+  // Work buffers, allocated once: closure rows then task rows.
   Vector residual, step;
-  Matrix jacobian;         // rows x nv
-  Eigen::MatrixXd square;  // rows x passive
-  Eigen::PartialPivLU<Eigen::MatrixXd> lu;
+  Matrix jacobian;  // (rows + task rows) x nv
+  std::vector<unsigned char> now;
 };
 
-void evaluate(Chain & c, const Vector & q, bool with_jacobian) {
-  if (with_jacobian)
-    pinocchio::computeJointJacobians(c.model, c.data, q);
-  else
-    pinocchio::forwardKinematics(c.model, c.data, q);
-  for (size_t f = 0; f < c.frame_parent.size(); ++f)
-    c.frame_world[f] = c.data.oMi[c.frame_parent[f]] * c.frame_placement[f];
-  if (with_jacobian) c.jacobian.setZero();
+void evaluate_closures(Chain & c, bool with_jacobian) {
   Eigen::Matrix<double, 6, 1> full;
   Eigen::Matrix<double, 6, 6> op;
   for (const Closure & k : c.closures) {
@@ -106,18 +121,67 @@ void evaluate(Chain & c, const Vector & q, bool with_jacobian) {
   }
 }
 
-double max_abs(const Vector & v) {
+// Task rows after the closure rows; Jacobian from the WORLD joint Jacobian: the task frame's
+// LOCAL_WORLD_ALIGNED column is [v + w x p; w] for its supporting joints.
+void evaluate_task(Chain & c, bool with_jacobian) {
+  const Task & t = c.task_spec;
+  const SE3 & frame = c.frame_world[c.task];
+  const Eigen::Vector3d p = frame.translation();
+  const Eigen::Matrix3d & rotation = frame.rotation();
+  int row = c.rows;
+  for (size_t k = 0; k < t.axes.size(); ++k) c.residual[row + k] = p[t.axes[k]] - t.goal[k];
+  const int count = static_cast<int>(t.axes.size());
+  Eigen::Matrix3d jlog;
+  Eigen::Vector3d yaw_row;
+  if (t.rotation == 1) {
+    const double theta = std::atan2(rotation(1, 0), rotation(0, 0));
+    c.residual[row + count] = std::remainder(theta - t.goal[count], 2.0 * M_PI);
+    const double c0 = rotation(0, 0), c1 = rotation(1, 0), c2 = rotation(2, 0), horizontal = c0 * c0 + c1 * c1;
+    yaw_row << -c0 * c2 / horizontal, -c1 * c2 / horizontal, 1.0;
+  } else if (t.rotation == 2) {
+    const Eigen::Matrix3d error = t.goal_rotation.transpose() * rotation;
+    c.residual.segment<3>(row + count) = pinocchio::log3(error);
+    if (with_jacobian) {
+      pinocchio::Jlog3(error, jlog);
+      jlog = jlog * rotation.transpose();
+    }
+  }
+  if (!with_jacobian) return;
+  for (int k = 0; k < t.rows; ++k) c.jacobian.row(row + k).setZero();
+  for (const int col : t.columns) {
+    const Eigen::Vector3d v = c.data.J.col(col).head<3>(), w = c.data.J.col(col).tail<3>();
+    const Eigen::Vector3d linear = v + w.cross(p);
+    for (int k = 0; k < count; ++k) c.jacobian(row + k, col) = linear[t.axes[k]];
+    if (t.rotation == 1) c.jacobian(row + count, col) = yaw_row.dot(w);
+    if (t.rotation == 2) c.jacobian.block<3, 1>(row + count, col) = jlog * w;
+  }
+}
+
+void evaluate(Chain & c, const System & s, const Vector & q, bool with_jacobian) {
+  if (with_jacobian)
+    pinocchio::computeJointJacobians(c.model, c.data, q);
+  else
+    pinocchio::forwardKinematics(c.model, c.data, q);
+  for (size_t f = 0; f < c.frame_parent.size(); ++f)
+    c.frame_world[f] = c.data.oMi[c.frame_parent[f]] * c.frame_placement[f];
+  if (with_jacobian) c.jacobian.topRows(c.rows).setZero();
+  evaluate_closures(c, with_jacobian);
+  if (s.inverse) evaluate_task(c, with_jacobian);
+}
+
+double max_abs(const Vector & v, int n) {
   double m = 0.0;
-  for (Eigen::Index i = 0; i < v.size(); ++i) {
+  for (int i = 0; i < n; ++i) {
     const double a = std::fabs(v[i]);
-    if (!(a <= m)) m = a;  // NaN propagates
     if (std::isnan(a)) return a;
+    if (a > m) m = a;
   }
   return m;
 }
 
-// Branch labels at the current Jacobian: sign of each diagonal block's determinant (true: > 0).
-void labels(Chain & c, unsigned char * out) {
+// Branch labels at the current Jacobian: sign of each diagonal block's determinant of the passive
+// closure system (true: > 0), then for IK the sign of the whole system's determinant.
+void labels(Chain & c, const System & s, unsigned char * out) {
   for (size_t b = 0; b < c.blocks.size(); ++b) {
     Block & block = c.blocks[b];
     for (size_t i = 0; i < block.rows.size(); ++i)
@@ -126,12 +190,13 @@ void labels(Chain & c, unsigned char * out) {
     block.lu.compute(block.square);
     out[b] = block.lu.determinant() > 0.0 ? 1 : 0;
   }
+  if (s.inverse) out[c.blocks.size()] = s.lu.determinant() > 0.0 ? 1 : 0;
 }
 
-bool factor(Chain & c) {
-  for (size_t j = 0; j < c.passive.size(); ++j) c.square.col(j) = c.jacobian.col(c.passive[j]);
-  c.lu.compute(c.square);
-  const auto diagonal = c.lu.matrixLU().diagonal();
+bool factor(Chain & c, System & s) {
+  for (size_t j = 0; j < s.unknowns.size(); ++j) s.square.col(j) = c.jacobian.col(s.unknowns[j]).head(s.rows);
+  s.lu.compute(s.square);
+  const auto diagonal = s.lu.matrixLU().diagonal();
   for (Eigen::Index i = 0; i < diagonal.size(); ++i)
     if (diagonal[i] == 0.0) return false;
   return true;
@@ -142,57 +207,50 @@ struct Outcome {
   double norm;
 };
 
-// Newton from q over the passive joints. `branch` holds the labels the solution must have when
+// Newton from q over the system's unknowns. `branch` holds the labels the solution must have when
 // `has_start`, else receives those at the first Jacobian. Chord steps only from residuals at or below
-// `chord_below` (inf: always, as the single solve). On convergence `tangent` (passive x actuated,
-// row-major) receives -J_passive^-1 J_actuated at the last Jacobian, when not null.
-Outcome newton(Chain & c, Vector & q, unsigned char * branch, bool has_start, double chord_below,
-               int steps_taken, double * tangent) {
-  std::vector<unsigned char> now(c.blocks.size());
-  evaluate(c, q, true);
-  bool fresh = true, factored = false;
+// `chord_below` (inf: always, as the single solve). On convergence the system's `inverse_matrix`
+// holds the inverse of the last factorised system.
+Outcome newton(Chain & c, System & s, Vector & q, unsigned char * branch, bool has_start, double chord_below,
+               int steps_taken) {
+  evaluate(c, s, q, true);
+  bool fresh = true;
   double previous = std::numeric_limits<double>::infinity(), norm = previous;
   int iteration = steps_taken;
+  const size_t n_labels = c.blocks.size() + (s.inverse ? 1 : 0);
   for (; iteration <= c.max_iterations + steps_taken; ++iteration) {
-    norm = max_abs(c.residual);
+    norm = max_abs(c.residual, s.rows);
     if (!std::isfinite(norm)) return {NO_ASSEMBLY, iteration, norm};
     if (!fresh && norm > c.contraction * previous && norm > c.tolerance) {
-      evaluate(c, q, true);
+      evaluate(c, s, q, true);
       fresh = true;
     }
     if (fresh) {
-      if (!factor(c)) return {SINGULAR, iteration, norm};
-      factored = true;
+      if (!factor(c, s)) return {SINGULAR, iteration, norm};
       if (!has_start) {
-        labels(c, branch);
+        labels(c, s, branch);
         has_start = true;
       }
       fresh = false;
     }
     if (norm <= c.tolerance) {
-      const Eigen::MatrixXd inverse = c.lu.inverse();
-      const double rcond = 1.0 / (c.square.cwiseAbs().colwise().sum().maxCoeff()
-                                  * inverse.cwiseAbs().colwise().sum().maxCoeff());
+      s.inverse_matrix = s.lu.inverse();
+      const double rcond = 1.0 / (s.square.cwiseAbs().colwise().sum().maxCoeff()
+                                  * s.inverse_matrix.cwiseAbs().colwise().sum().maxCoeff());
       if (!(rcond >= c.singular_rcond)) return {SINGULAR, iteration, norm};
-      labels(c, now.data());
-      if (std::memcmp(now.data(), branch, now.size()) != 0) return {BRANCH_CHANGE, iteration, norm};
-      if (tangent != nullptr) {
-        Eigen::Map<Matrix> t(tangent, c.passive.size(), c.actuated.size());
-        for (size_t j = 0; j < c.actuated.size(); ++j)
-          t.col(j) = -inverse * c.jacobian.col(c.actuated[j]);
-      }
+      labels(c, s, c.now.data());
+      if (std::memcmp(c.now.data(), branch, n_labels) != 0) return {BRANCH_CHANGE, iteration, norm};
       return {CONVERGED, iteration, norm};
     }
     if (iteration == c.max_iterations + steps_taken) break;
-    c.step = c.lu.solve(c.residual);
-    const double biggest = c.step.cwiseAbs().maxCoeff();
-    if (biggest > c.max_step) c.step *= c.max_step / biggest;
-    for (size_t j = 0; j < c.passive.size(); ++j) q[c.passive[j]] -= c.step[j];
+    c.step.head(s.rows) = s.lu.solve(c.residual.head(s.rows));
+    const double biggest = c.step.head(s.rows).cwiseAbs().maxCoeff();
+    if (biggest > c.max_step) c.step.head(s.rows) *= c.max_step / biggest;
+    for (size_t j = 0; j < s.unknowns.size(); ++j) q[s.unknowns[j]] -= c.step[j];
     previous = norm;
     fresh = previous > chord_below;
-    evaluate(c, q, fresh);
+    evaluate(c, s, q, fresh);
   }
-  (void)factored;
   return {norm > 1e-6 || !std::isfinite(norm) ? NO_ASSEMBLY : NOT_CONVERGED, iteration, norm};
 }
 
@@ -257,17 +315,19 @@ Chain * chain_of(PyObject * capsule) {
 // build(joints (J,2) int64 [parent, kind], axes (J,3), placements (J,4,4), frame_parents (F,) int64,
 //       frame_placements (F,4,4), closures (C,4) int64 [type, frame_a, frame_b, first_row],
 //       components (R,) int64, column_signs (C, nv) float, passive (P,), actuated (A,) int64,
-//       block_rows (P,), block_columns (P,), block_ends (B,) int64,
-//       platform, task: int, max_step, contraction: float)
+//       block_rows (P,), block_columns (P,), block_ends (B,), unknowns (U,) (IK's columns),
+//       task_axes (k,), task_columns (m,) int64 (joints moving the task frame),
+//       platform, task (frame indices), task_rotation (0 none, 1 yaw, 2 full): int, max_step, contraction: float)
 PyObject * build(PyObject *, PyObject * args) {
-  PyObject * o[13];
-  int platform, task;
+  PyObject * o[16];
+  int platform, task, task_rotation;
   double max_step, contraction;
-  if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOiidd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7],
-                        &o[8], &o[9], &o[10], &o[11], &o[12], &platform, &task, &max_step, &contraction))
+  if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOOiiidd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7],
+                        &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &platform, &task,
+                        &task_rotation, &max_step, &contraction))
     return nullptr;
   Buffer joints, axes, placements, fparents, fplacements, closures, components, signs, passive, actuated,
-      brows, bcols, bends;
+      brows, bcols, bends, unknowns, taxes, tcols;
   if (!joints.get(o[0], false, 'q', -1, "joints")) return nullptr;
   const Py_ssize_t n_joints = joints.items() / 2;
   if (!axes.get(o[1], false, 'd', 3 * n_joints, "axes") || !placements.get(o[2], false, 'd', 16 * n_joints, "placements")
@@ -277,7 +337,9 @@ PyObject * build(PyObject *, PyObject * args) {
       || !signs.get(o[7], false, 'd', (closures.items() / 4) * n_joints, "column_signs")
       || !passive.get(o[8], false, 'q', -1, "passive") || !actuated.get(o[9], false, 'q', -1, "actuated")
       || !brows.get(o[10], false, 'q', passive.items(), "block_rows")
-      || !bcols.get(o[11], false, 'q', passive.items(), "block_columns") || !bends.get(o[12], false, 'q', -1, "block_ends"))
+      || !bcols.get(o[11], false, 'q', passive.items(), "block_columns") || !bends.get(o[12], false, 'q', -1, "block_ends")
+      || !unknowns.get(o[13], false, 'q', -1, "unknowns") || !taxes.get(o[14], false, 'q', -1, "task_axes")
+      || !tcols.get(o[15], false, 'q', -1, "task_columns"))
     return nullptr;
   auto c = std::make_unique<Chain>();
   for (Py_ssize_t j = 0; j < n_joints; ++j) {
@@ -312,7 +374,6 @@ PyObject * build(PyObject *, PyObject * args) {
     c->closures.push_back(closure);
   }
   c->rows = static_cast<int>(components.items());
-  for (Py_ssize_t j = 0; j < passive.items(); ++j) c->passive.push_back(static_cast<int>(passive.q()[j]));
   for (Py_ssize_t j = 0; j < actuated.items(); ++j) c->actuated.push_back(static_cast<int>(actuated.q()[j]));
   long long start = 0;
   for (Py_ssize_t b = 0; b < bends.items(); ++b) {
@@ -325,42 +386,107 @@ PyObject * build(PyObject *, PyObject * args) {
     start = bends.q()[b];
     c->blocks.push_back(std::move(block));
   }
+  Task & t = c->task_spec;
+  for (Py_ssize_t k = 0; k < taxes.items(); ++k) t.axes.push_back(static_cast<int>(taxes.q()[k]));
+  for (Py_ssize_t k = 0; k < tcols.items(); ++k) t.columns.push_back(static_cast<int>(tcols.q()[k]));
+  t.rotation = task_rotation;
+  t.rows = static_cast<int>(t.axes.size()) + (task_rotation == 1 ? 1 : task_rotation == 2 ? 3 : 0);
+  c->fk.rows = c->rows;
+  for (Py_ssize_t j = 0; j < passive.items(); ++j) c->fk.unknowns.push_back(static_cast<int>(passive.q()[j]));
+  c->ik.inverse = true;
+  c->ik.rows = c->rows + t.rows;
+  for (Py_ssize_t j = 0; j < unknowns.items(); ++j) c->ik.unknowns.push_back(static_cast<int>(unknowns.q()[j]));
+  for (System * s : {&c->fk, &c->ik}) {
+    if (static_cast<int>(s->unknowns.size()) != s->rows) {
+      PyErr_SetString(PyExc_ValueError, "a Newton system is not square");
+      return nullptr;
+    }
+    s->square = Eigen::MatrixXd::Zero(s->rows, s->rows);
+  }
   c->platform = platform;
   c->task = task;
   c->max_step = max_step;
   c->contraction = contraction;
-  c->residual = Vector::Zero(c->rows);
-  c->jacobian = Matrix::Zero(c->rows, nv);
-  c->square = Eigen::MatrixXd::Zero(c->rows, static_cast<Eigen::Index>(c->passive.size()));
-  c->step = Vector::Zero(c->rows);
+  c->residual = Vector::Zero(c->ik.rows);
+  c->jacobian = Matrix::Zero(c->ik.rows, nv);
+  c->step = Vector::Zero(c->ik.rows);
+  c->now.resize(c->blocks.size() + 1);
   return PyCapsule_New(c.release(), "m3t1r.Chain", destroy);
 }
 
-// forward(chain, q (nq,) in/out, branch (B,) uint8 in/out, has_start, chord_below, steps_taken,
-//         tangent (P*A,) out, platform (16,) out, task (16,) out, tolerance, max_iterations, singular_rcond)
-//   -> (status, residual, iterations)
-PyObject * forward(PyObject *, PyObject * args) {
-  PyObject *capsule, *oq, *obranch, *otangent, *oplatform, *otask;
-  int has_start, steps_taken, max_iterations;
-  double chord_below, tolerance, singular_rcond;
-  if (!PyArg_ParseTuple(args, "OOOpdiOOOdid", &capsule, &oq, &obranch, &has_start, &chord_below, &steps_taken,
-                        &otangent, &oplatform, &otask, &tolerance, &max_iterations, &singular_rcond))
-    return nullptr;
-  Chain * c = chain_of(capsule);
-  if (c == nullptr) return nullptr;
+bool set_limits(Chain * c, double tolerance, int max_iterations, double singular_rcond) {
   c->tolerance = tolerance;
   c->max_iterations = max_iterations;
   c->singular_rcond = singular_rcond;
+  return true;
+}
+
+// forward(chain, q (nq,) in/out, branch (B,) uint8 in/out, has_start, tangent (P*A,) out, platform (16,) out,
+//         task (16,) out, tolerance, max_iterations, singular_rcond) -> (status, residual, iterations)
+// Chord steps throughout; on success tangent = -J_passive^-1 J_actuated at the last Jacobian.
+PyObject * forward(PyObject *, PyObject * args) {
+  PyObject *capsule, *oq, *obranch, *otangent, *oplatform, *otask;
+  int has_start, max_iterations;
+  double tolerance, singular_rcond;
+  if (!PyArg_ParseTuple(args, "OOOpOOOdid", &capsule, &oq, &obranch, &has_start, &otangent, &oplatform, &otask,
+                        &tolerance, &max_iterations, &singular_rcond))
+    return nullptr;
+  Chain * c = chain_of(capsule);
+  if (c == nullptr) return nullptr;
+  set_limits(c, tolerance, max_iterations, singular_rcond);
   Buffer bq, bbranch, btangent, bplatform, btask;
   if (!bq.get(oq, true, 'd', c->model.nq, "q") || !bbranch.get(obranch, true, 'B', c->blocks.size(), "branch")
-      || !btangent.get(otangent, true, 'd', c->passive.size() * c->actuated.size(), "tangent")
+      || !btangent.get(otangent, true, 'd', c->fk.unknowns.size() * c->actuated.size(), "tangent")
       || !bplatform.get(oplatform, true, 'd', 16, "platform") || !btask.get(otask, true, 'd', 16, "task"))
     return nullptr;
   Eigen::Map<Vector> qmap(bq.d(), c->model.nq);
   Vector q = qmap;
-  const Outcome out = newton(*c, q, bbranch.b(), has_start != 0, chord_below, steps_taken, btangent.d());
+  const Outcome out = newton(*c, c->fk, q, bbranch.b(), has_start != 0, std::numeric_limits<double>::infinity(), 0);
   qmap = q;
   if (out.status == CONVERGED) {
+    Eigen::Map<Matrix> tangent(btangent.d(), c->fk.unknowns.size(), c->actuated.size());
+    for (size_t j = 0; j < c->actuated.size(); ++j)
+      tangent.col(j) = -c->fk.inverse_matrix * c->jacobian.col(c->actuated[j]).head(c->rows);
+    write_pose(c->frame_world[c->platform], bplatform.d());
+    write_pose(c->frame_world[c->task], btask.d());
+  }
+  return Py_BuildValue("(idi)", out.status, out.norm, out.iterations);
+}
+
+// inverse(chain, q (nq,) in/out, branch (B+1,) uint8 in/out, has_start, goal (task coordinates), goal_rotation (9,),
+//         task_inverse (U*T,) out, platform (16,) out, task (16,) out, tolerance, max_iterations, singular_rcond)
+//   -> (status, residual, iterations)
+// Chord steps throughout; on success task_inverse = the task-row columns of the inverse of the last system.
+PyObject * inverse(PyObject *, PyObject * args) {
+  PyObject *capsule, *oq, *obranch, *ogoal, *orot, *oinverse, *oplatform, *otask;
+  int has_start, max_iterations;
+  double tolerance, singular_rcond;
+  if (!PyArg_ParseTuple(args, "OOOpOOOOOdid", &capsule, &oq, &obranch, &has_start, &ogoal, &orot, &oinverse,
+                        &oplatform, &otask, &tolerance, &max_iterations, &singular_rcond))
+    return nullptr;
+  Chain * c = chain_of(capsule);
+  if (c == nullptr) return nullptr;
+  set_limits(c, tolerance, max_iterations, singular_rcond);
+  Task & t = c->task_spec;
+  Buffer bq, bbranch, bgoal, brot, binverse, bplatform, btask;
+  if (!bq.get(oq, true, 'd', c->model.nq, "q") || !bbranch.get(obranch, true, 'B', c->blocks.size() + 1, "branch")
+      || !bgoal.get(ogoal, false, 'd', -1, "goal") || !brot.get(orot, false, 'd', 9, "goal_rotation")
+      || !binverse.get(oinverse, true, 'd', c->ik.unknowns.size() * t.rows, "task_inverse")
+      || !bplatform.get(oplatform, true, 'd', 16, "platform") || !btask.get(otask, true, 'd', 16, "task"))
+    return nullptr;
+  const Py_ssize_t needed = static_cast<Py_ssize_t>(t.axes.size()) + (t.rotation == 1 ? 1 : 0);
+  if (bgoal.items() < needed || bgoal.items() > 4 + static_cast<Py_ssize_t>(t.axes.size())) {
+    PyErr_SetString(PyExc_ValueError, "goal: wrong number of task coordinates");
+    return nullptr;
+  }
+  for (Py_ssize_t k = 0; k < needed; ++k) t.goal[k] = bgoal.d()[k];
+  t.goal_rotation = Eigen::Map<const Eigen::Matrix<double, 3, 3, Eigen::RowMajor>>(brot.d());
+  Eigen::Map<Vector> qmap(bq.d(), c->model.nq);
+  Vector q = qmap;
+  const Outcome out = newton(*c, c->ik, q, bbranch.b(), has_start != 0, std::numeric_limits<double>::infinity(), 0);
+  qmap = q;
+  if (out.status == CONVERGED) {
+    Eigen::Map<Matrix>(binverse.d(), c->ik.unknowns.size(), t.rows) = c->ik.inverse_matrix.rightCols(t.rows);
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
   }
@@ -380,9 +506,7 @@ PyObject * forward_rows(PyObject *, PyObject * args) {
     return nullptr;
   Chain * c = chain_of(capsule);
   if (c == nullptr) return nullptr;
-  c->tolerance = tolerance;
-  c->max_iterations = max_iterations;
-  c->singular_rcond = singular_rcond;
+  set_limits(c, tolerance, max_iterations, singular_rcond);
   Buffer bq, bbranch, bstatus, bnorm, biter, bplatform, btask;
   if (!bq.get(oq, true, 'd', -1, "q") || !bbranch.get(obranch, false, 'B', -1, "branch")) return nullptr;
   const Py_ssize_t n = bq.items() / c->model.nq;
@@ -401,7 +525,7 @@ PyObject * forward_rows(PyObject *, PyObject * args) {
     if (given) std::memcpy(branch.data(), bbranch.b(), branch.size());
     Eigen::Map<Vector> row(bq.d() + i * c->model.nq, c->model.nq);
     q = row;
-    const Outcome out = newton(*c, q, branch.data(), given, chord_below, steps_taken, nullptr);
+    const Outcome out = newton(*c, c->fk, q, branch.data(), given, chord_below, steps_taken);
     row = q;
     bstatus.q()[i] = out.status;
     bnorm.d()[i] = out.norm;
@@ -418,11 +542,12 @@ PyObject * forward_rows(PyObject *, PyObject * args) {
 PyMethodDef methods[] = {
     {"build", build, METH_VARARGS, "A closed chain from arrays (see the source)."},
     {"forward", forward, METH_VARARGS, "One Newton solve of the passive joints, in place."},
+    {"inverse", inverse, METH_VARARGS, "One Newton solve of closure and task rows, in place."},
     {"forward_rows", forward_rows, METH_VARARGS, "Newton solves of many rows, in place."},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native_newton",
-                      "Compiled Newton loop of closed-loop forward kinematics (Pinocchio C++).", -1, methods,
+                      "Compiled Newton loops of closed-loop FK and IK (Pinocchio C++).", -1, methods,
                       nullptr, nullptr, nullptr, nullptr};
 
 }  // namespace

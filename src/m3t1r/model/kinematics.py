@@ -319,9 +319,11 @@ class ClosedLoopSolver:
         self._branch_blocks = _BLOCK_CACHE[key]
         self._branch = _BranchSignature(self._branch_blocks, model.nv)
         self.singular_rcond = SINGULAR_RCOND
-        # FK's Newton loop compiled (`model.native`), when built and the joints allow; None: the Python loop.
+        # FK's and IK's Newton loops compiled (`model.native`), when built and the joints allow; None: the Python loops.
         self.native = NativeChain.of(model, mechanism.closures, self.passive, self.actuated, self._branch_blocks,
-                                     self._platform, self._task_frame, _MAX_STEP, _CHORD_CONTRACTION) if native else None
+                                     self._platform, mechanism.task,
+                                     np.arange(nv) if self._unknowns is None else self._unknowns,
+                                     _MAX_STEP, _CHORD_CONTRACTION) if native else None
         self._stacked = None  # batched kinematics, built on first use
         self._last_branch: bytes | None = None  # signature at this solver's last FK solution
         self._tangent: np.ndarray | None = None  # d q_passive / d sliders at the last factorisation
@@ -587,9 +589,16 @@ class ClosedLoopSolver:
         # A warm solve must stay on the previous solution's branch (assembly and working mode).
         start = self._last_inverse_branch if warm else None
         self._last_inverse_branch = None
-        outcome = self._newton(q, self._unknowns, self._inverse_system(goal, goal_rotation),
-                               lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]), start_branch=start)
-        q, residual, iterations = outcome.q, outcome.residual, outcome.iterations
+        if self.native is not None:
+            q, residual, iterations, branch, task_inverse, last_task, pose = self._inverse_native(
+                q, start, goal, goal_rotation)
+        else:
+            outcome = self._newton(q, self._unknowns, self._inverse_system(goal, goal_rotation),
+                                   lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]), start_branch=start)
+            q, residual, iterations, branch = outcome.q, outcome.residual, outcome.iterations, outcome.branch
+            task_inverse = outcome.inverse[:, self.n_rows:]
+            last_task = pin.updateFramePlacement(self.model, self.data, self._task_frame)  # a copy
+            pose = self._platform_pose()
         actuators = q.take(self.actuated)
         names = self.mechanism.actuated_joints
         lower, upper = self._limit_lists
@@ -601,14 +610,26 @@ class ClosedLoopSolver:
         # The second-order predictor's history: the solution this one started from, with its goal.
         self._inverse_previous = (self._last_goal, self.last_q) if warm and self._last_goal is not None else None
         # The FK warm start now follows this solution; its predictor tangent is from elsewhere.
-        self.last_q, self._tangent, self._last_branch, self._previous = q, None, outcome.branch[:-1], None
-        self._task_inverse, self._last_inverse_branch = outcome.inverse[:, self.n_rows:], outcome.branch
+        self.last_q, self._tangent, self._last_branch, self._previous = q, None, branch[:-1], None
+        self._task_inverse, self._last_inverse_branch = task_inverse, branch
         self._last_goal = (goal, goal_rotation)
-        self._last_task = pin.updateFramePlacement(self.model, self.data, self._task_frame)  # a copy
-        pose = self._platform_pose()
-        roll, pitch = roll_pitch_of(self._last_task.rotation)
+        self._last_task = last_task
+        roll, pitch = roll_pitch_of(last_task.rotation)
+        task_pose = pose if self._task_frame == self._platform else pin.SE3(last_task)
         return InverseResult(actuators, q.copy(), pose, residual, iterations,
-                             (roll - wanted_tilt[0], pitch - wanted_tilt[1]), self._task_pose(pose))
+                             (roll - wanted_tilt[0], pitch - wanted_tilt[1]), task_pose)
+
+    def _inverse_native(self, q: np.ndarray, start: bytes | None, goal: np.ndarray, goal_rotation: np.ndarray | None):
+        """IK's Newton in the compiled loop (q solved in place): (q, residual, iterations, branch, task
+        columns of the inverse, task frame, platform pose) as the Python loop gives them; `data` is not
+        moved to the solution."""
+        native = self.native
+        status, residual, iterations = native.inverse(q, start, goal, goal_rotation,
+                                                      (self.tolerance, self.max_iterations, self.singular_rcond))
+        if status != _native_converged:
+            raise _native_error(status, residual, iterations)
+        return (q, residual, iterations, bytes(native.inverse_branch), native.task_inverse, pin.SE3(native.task),
+                pin.SE3(native.platform))
 
     def _goal(self, target: pin.SE3 | np.ndarray) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float]]:
         """(task goal, goal rotation for a full-rotation task else None, requested (roll, pitch))."""

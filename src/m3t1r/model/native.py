@@ -11,7 +11,6 @@ copy of a machine gets its own. Trees of 1-DoF revolute and prismatic joints onl
 
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -24,6 +23,7 @@ except ImportError:  # not compiled: the pure-Python Newton runs
 
 if TYPE_CHECKING:
     from m3t1r.model.closures import ClosureSpec
+    from m3t1r.model.task import TaskSpec
 
 __all__ = ["AVAILABLE", "NativeChain", "CONVERGED"]
 
@@ -31,6 +31,7 @@ AVAILABLE = _native_newton is not None
 CONVERGED = 0  # status codes 1-4 as batch_kinematics' rows: no assembly, not converged, singular, branch change
 
 # Joint types the compiled model rebuilds, by Pinocchio's short name: the code `joint_of` reads.
+_ROTATION_CODES = {"none": 0, "yaw": 1, "full": 2}
 _KINDS = {"JointModelRX": 0, "JointModelRY": 1, "JointModelRZ": 2, "JointModelRevoluteUnaligned": 3,
           "JointModelPX": 4, "JointModelPY": 5, "JointModelPZ": 6, "JointModelPrismaticUnaligned": 7}
 
@@ -50,17 +51,25 @@ class NativeChain:
     into their typed errors.
     """
 
-    def __init__(self, handle: object, n_blocks: int, n_passive: int, n_actuated: int) -> None:
+    def __init__(self, handle: object, n_blocks: int, n_passive: int, n_actuated: int, n_unknowns: int,
+                 task_rows: int) -> None:
         self._handle, self.n_blocks = handle, n_blocks
-        self.tangent = np.zeros((n_passive, n_actuated))  # -J_passive^-1 J_actuated at the last success
+        self.tangent = np.zeros((n_passive, n_actuated))  # FK: -J_passive^-1 J_actuated at the last success
+        self.task_inverse = np.zeros((n_unknowns, task_rows))  # IK: task-row columns of the last inverse
         self.platform, self.task = np.eye(4), np.eye(4)  # their placements at the last success [m]
-        self.branch = bytearray(n_blocks)  # labels at the last success
+        self.branch = bytearray(n_blocks)  # FK's labels at the last success
+        self.inverse_branch = bytearray(n_blocks + 1)  # IK's: the blocks', then sign(det) of the whole system
+        self._identity = np.eye(3)
 
     @classmethod
     def of(cls, model: pin.Model, closures: tuple[ClosureSpec, ...], passive: np.ndarray, actuated: np.ndarray,
-           blocks: list[tuple[np.ndarray, np.ndarray]], platform_frame: int, task_frame: int, max_step: float,
-           contraction: float) -> NativeChain | None:
-        """The compiled chain, or None when the module is not built or a joint is not 1-DoF revolute/prismatic."""
+           blocks: list[tuple[np.ndarray, np.ndarray]], platform_frame: int, task: TaskSpec, unknowns: np.ndarray,
+           max_step: float, contraction: float) -> NativeChain | None:
+        """The compiled chain, or None when the module is not built or a joint is not 1-DoF revolute/prismatic.
+
+        unknowns: IK's columns (every joint but the locked ones); IK is square only when the task's
+        dimension equals the actuator count (else only FK may be called).
+        """
         names = [model.joints[j].shortname() for j in range(1, model.njoints)]
         if _native_newton is None or any(name not in _KINDS for name in names):
             return None
@@ -68,6 +77,7 @@ class NativeChain:
         axes = np.array([_axis(model.joints[j]) for j in range(1, model.njoints)])
         placements = np.array([model.jointPlacements[j].homogeneous for j in range(1, model.njoints)])
         frame_ids = sorted({c.frame_a_id for c in closures} | {c.frame_b_id for c in closures})
+        task_frame = model.getFrameId(task.frame)
         frame_ids += [platform_frame, task_frame]
         where = {f: k for k, f in enumerate(frame_ids)}
         rows = np.cumsum([0] + [len(c.rows) for c in closures])
@@ -75,6 +85,9 @@ class NativeChain:
                          for k, c in enumerate(closures)], dtype=np.int64).reshape(-1, 4)
         components = np.array([r for c in closures for r in c.rows], dtype=np.int64)
         signs = np.array([_support(model, c.frame_b_id) - _support(model, c.frame_a_id) for c in closures])
+        square = int(rows[-1]) + task.dimension == len(unknowns)
+        ik_columns = np.asarray(unknowns if square else passive, dtype=np.int64)  # FK only: a square stand-in
+        ik_axes = task.axes if square else np.zeros(0, dtype=int)
         handle = _native_newton.build(
             joints, np.ascontiguousarray(axes, dtype=float), np.ascontiguousarray(placements),
             np.array([model.frames[f].parentJoint for f in frame_ids], dtype=np.int64),
@@ -82,9 +95,10 @@ class NativeChain:
             np.ascontiguousarray(signs.reshape(len(closures), model.nv)), np.asarray(passive, dtype=np.int64),
             np.asarray(actuated, dtype=np.int64), np.concatenate([r for r, _ in blocks]).astype(np.int64),
             np.concatenate([c for _, c in blocks]).astype(np.int64),
-            np.cumsum([len(r) for r, _ in blocks]).astype(np.int64), len(frame_ids) - 2, len(frame_ids) - 1,
-            float(max_step), float(contraction))
-        return cls(handle, len(blocks), len(passive), len(actuated))
+            np.cumsum([len(r) for r, _ in blocks]).astype(np.int64), ik_columns, ik_axes.astype(np.int64),
+            np.flatnonzero(_support(model, task_frame)).astype(np.int64), len(frame_ids) - 2, len(frame_ids) - 1,
+            _ROTATION_CODES[task.rotation] if square else 0, float(max_step), float(contraction))
+        return cls(handle, len(blocks), len(passive), len(actuated), len(ik_columns), task.dimension if square else 0)
 
     def forward(self, q: np.ndarray, start_branch: bytes | None, limits: tuple[float, int, float]
                 ) -> tuple[int, float, int]:
@@ -96,8 +110,19 @@ class NativeChain:
         """
         if start_branch is not None:  # labels are 0 or 1: a label of another length cannot be met
             self.branch[:] = start_branch if len(start_branch) == self.n_blocks else b"\xff" * self.n_blocks
-        return _native_newton.forward(self._handle, q, self.branch, start_branch is not None, math.inf, 0,
-                                      self.tangent, self.platform, self.task, *limits)
+        return _native_newton.forward(self._handle, q, self.branch, start_branch is not None, self.tangent,
+                                      self.platform, self.task, *limits)
+
+    def inverse(self, q: np.ndarray, start_branch: bytes | None, goal: np.ndarray, goal_rotation: np.ndarray | None,
+                limits: tuple[float, int, float]) -> tuple[int, float, int]:
+        """IK's Newton over the unknown joints from q (solved in place) on [closure rows; task rows] with
+        `goal` (task coordinates) and `goal_rotation` (3 x 3, a full-rotation task). As `forward`, with
+        `task_inverse` and `inverse_branch` for the solution."""
+        if start_branch is not None:
+            self.inverse_branch[:] = start_branch if len(start_branch) == self.n_blocks + 1 else b"\xff" * (self.n_blocks + 1)
+        return _native_newton.inverse(self._handle, q, self.inverse_branch, start_branch is not None, goal,
+                                      self._identity if goal_rotation is None else goal_rotation, self.task_inverse,
+                                      self.platform, self.task, *limits)
 
     def forward_rows(self, q: np.ndarray, start_branch: np.ndarray | None, chord_below: float, steps_taken: int,
                      limits: tuple[float, int, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
