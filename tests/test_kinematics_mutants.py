@@ -626,19 +626,24 @@ def test_newton_far_or_near_after_the_last_step_at_exactly_1e_6(solver):
         assert caught.value.residual == last and caught.value.iterations == 1
 
 
-def test_forward_records_the_predictor_history_and_the_branch(mechanism):
+@pytest.mark.parametrize("compiled", [False, True])
+def test_forward_records_the_predictor_history_and_the_branch(mechanism, compiled):
     """After each FK: the branch label at the solution, and the solution before it only when this
-    one started from it (warm) or when there was none (so that a cold solve restarts the history)."""
-    solver = ClosedLoopSolver(mechanism)
+    one started from it (warm) or when there was none (so that a cold solve restarts the history).
+    The compiled loop keeps the same history as one array (sliders, then passive joints)."""
+    solver = ClosedLoopSolver(mechanism, native=compiled)
     home_sliders = mechanism.home[mechanism.actuated_ids]
     history = []
     for change, start in ((0.01, mechanism.home), (0.02, None), (0.03, mechanism.home)):
         before = solver.last_q.copy()
         result = solver.forward(home_sliders + change, q_init=start)
         assert solver._last_branch == solver._branch(solver.closure_jacobian(result.q))
-        history.append(None if solver._previous is None else solver._previous[0].copy())
-        if solver._previous is not None:
-            np.testing.assert_array_equal(solver._previous[1], before[solver.passive])
+        previous = solver._previous
+        if compiled and previous is not None:
+            previous = (previous[:len(home_sliders)], previous[len(home_sliders):])
+        history.append(None if previous is None else previous[0].copy())
+        if previous is not None:
+            np.testing.assert_array_equal(previous[1], before[solver.passive])
     np.testing.assert_array_equal(history[0], home_sliders)
     np.testing.assert_allclose(history[1], home_sliders + 0.01, atol=0.0)
     assert history[2] is None

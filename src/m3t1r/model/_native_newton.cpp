@@ -121,32 +121,38 @@ void evaluate_closures(Chain & c, bool with_jacobian) {
   }
 }
 
+// Task rows of a placement for a goal (position axes, then theta or a rotation): TaskSpec.residual.
+void task_residual(const Task & t, const SE3 & frame, const double * goal, const Eigen::Matrix3d & goal_rotation,
+                   double * out) {
+  const int count = static_cast<int>(t.axes.size());
+  for (int k = 0; k < count; ++k) out[k] = frame.translation()[t.axes[k]] - goal[k];
+  const Eigen::Matrix3d & rotation = frame.rotation();
+  if (t.rotation == 1) {
+    out[count] = std::remainder(std::atan2(rotation(1, 0), rotation(0, 0)) - goal[count], 2.0 * M_PI);
+  } else if (t.rotation == 2) {
+    Eigen::Map<Eigen::Vector3d>(out + count) = pinocchio::log3(goal_rotation.transpose() * rotation);
+  }
+}
+
 // Task rows after the closure rows; Jacobian from the WORLD joint Jacobian: the task frame's
 // LOCAL_WORLD_ALIGNED column is [v + w x p; w] for its supporting joints.
 void evaluate_task(Chain & c, bool with_jacobian) {
   const Task & t = c.task_spec;
   const SE3 & frame = c.frame_world[c.task];
+  const int row = c.rows, count = static_cast<int>(t.axes.size());
+  task_residual(t, frame, t.goal, t.goal_rotation, c.residual.data() + row);
+  if (!with_jacobian) return;
   const Eigen::Vector3d p = frame.translation();
   const Eigen::Matrix3d & rotation = frame.rotation();
-  int row = c.rows;
-  for (size_t k = 0; k < t.axes.size(); ++k) c.residual[row + k] = p[t.axes[k]] - t.goal[k];
-  const int count = static_cast<int>(t.axes.size());
   Eigen::Matrix3d jlog;
   Eigen::Vector3d yaw_row;
   if (t.rotation == 1) {
-    const double theta = std::atan2(rotation(1, 0), rotation(0, 0));
-    c.residual[row + count] = std::remainder(theta - t.goal[count], 2.0 * M_PI);
     const double c0 = rotation(0, 0), c1 = rotation(1, 0), c2 = rotation(2, 0), horizontal = c0 * c0 + c1 * c1;
     yaw_row << -c0 * c2 / horizontal, -c1 * c2 / horizontal, 1.0;
   } else if (t.rotation == 2) {
-    const Eigen::Matrix3d error = t.goal_rotation.transpose() * rotation;
-    c.residual.segment<3>(row + count) = pinocchio::log3(error);
-    if (with_jacobian) {
-      pinocchio::Jlog3(error, jlog);
-      jlog = jlog * rotation.transpose();
-    }
+    pinocchio::Jlog3(Eigen::Matrix3d(t.goal_rotation.transpose() * rotation), jlog);
+    jlog = jlog * rotation.transpose();
   }
-  if (!with_jacobian) return;
   for (int k = 0; k < t.rows; ++k) c.jacobian.row(row + k).setZero();
   for (const int col : t.columns) {
     const Eigen::Vector3d v = c.data.J.col(col).head<3>(), w = c.data.J.col(col).tail<3>();
@@ -421,31 +427,54 @@ bool set_limits(Chain * c, double tolerance, int max_iterations, double singular
   return true;
 }
 
-// forward(chain, q (nq,) in/out, branch (B,) uint8 in/out, has_start, tangent (P*A,) out, platform (16,) out,
-//         task (16,) out, tolerance, max_iterations, singular_rcond) -> (status, residual, iterations)
-// Chord steps throughout; on success tangent = -J_passive^-1 J_actuated at the last Jacobian.
+// forward(chain, q (nq,) in/out, sliders (A,), order, tangent (P*A,) in/out, previous (A+P,),
+//         branch (B,) uint8 in/out, has_start, platform (16,) out, task (16,) out,
+//         tolerance, max_iterations, singular_rcond) -> (status, residual, iterations)
+// q: the last solution; `order` 1 or 2 moves its passive joints by the predictor of
+// ClosedLoopSolver._predict (tangent T of the last success; order 2 adds lam^2 (p_prev - p + T e) with
+// e = a - a_prev, lam = (d . e) / (e . e), d the slider change, previous = (a_prev, p_prev)); then the
+// sliders are set and Newton runs with chord steps throughout. On success tangent = -J_passive^-1 J_actuated.
 PyObject * forward(PyObject *, PyObject * args) {
-  PyObject *capsule, *oq, *obranch, *otangent, *oplatform, *otask;
-  int has_start, max_iterations;
+  PyObject *capsule, *oq, *osliders, *otangent, *oprevious, *obranch, *oplatform, *otask;
+  int order, has_start, max_iterations;
   double tolerance, singular_rcond;
-  if (!PyArg_ParseTuple(args, "OOOpOOOdid", &capsule, &oq, &obranch, &has_start, &otangent, &oplatform, &otask,
-                        &tolerance, &max_iterations, &singular_rcond))
+  if (!PyArg_ParseTuple(args, "OOOiOOOpOOdid", &capsule, &oq, &osliders, &order, &otangent, &oprevious, &obranch,
+                        &has_start, &oplatform, &otask, &tolerance, &max_iterations, &singular_rcond))
     return nullptr;
   Chain * c = chain_of(capsule);
   if (c == nullptr) return nullptr;
   set_limits(c, tolerance, max_iterations, singular_rcond);
-  Buffer bq, bbranch, btangent, bplatform, btask;
-  if (!bq.get(oq, true, 'd', c->model.nq, "q") || !bbranch.get(obranch, true, 'B', c->blocks.size(), "branch")
-      || !btangent.get(otangent, true, 'd', c->fk.unknowns.size() * c->actuated.size(), "tangent")
+  const size_t n_passive = c->fk.unknowns.size(), n_act = c->actuated.size();
+  Buffer bq, bsliders, btangent, bprevious, bbranch, bplatform, btask;
+  if (!bq.get(oq, true, 'd', c->model.nq, "q") || !bsliders.get(osliders, false, 'd', n_act, "sliders")
+      || !btangent.get(otangent, true, 'd', n_passive * n_act, "tangent")
+      || !bprevious.get(oprevious, false, 'd', order == 2 ? static_cast<Py_ssize_t>(n_act + n_passive) : -1, "previous")
+      || !bbranch.get(obranch, true, 'B', c->blocks.size(), "branch")
       || !bplatform.get(oplatform, true, 'd', 16, "platform") || !btask.get(otask, true, 'd', 16, "task"))
     return nullptr;
   Eigen::Map<Vector> qmap(bq.d(), c->model.nq);
+  Eigen::Map<Matrix> tangent(btangent.d(), n_passive, n_act);
   Vector q = qmap;
+  if (order >= 1) {
+    Vector change(n_act), e(n_act);
+    for (size_t j = 0; j < n_act; ++j) change[j] = bsliders.d()[j] - q[c->actuated[j]];
+    Vector step = tangent * change;
+    if (order == 2) {
+      for (size_t j = 0; j < n_act; ++j) e[j] = q[c->actuated[j]] - bprevious.d()[j];
+      const double ee = e.dot(e), lam = ee > 0.0 ? change.dot(e) / ee : 0.0;
+      if (0.0 < lam && lam < 2.0) {
+        Vector curve = tangent * e;
+        for (size_t j = 0; j < n_passive; ++j) curve[j] += bprevious.d()[n_act + j] - q[c->fk.unknowns[j]];
+        step += lam * lam * curve;
+      }
+    }
+    for (size_t j = 0; j < n_passive; ++j) q[c->fk.unknowns[j]] += step[j];
+  }
+  for (size_t j = 0; j < n_act; ++j) q[c->actuated[j]] = bsliders.d()[j];
   const Outcome out = newton(*c, c->fk, q, bbranch.b(), has_start != 0, std::numeric_limits<double>::infinity(), 0);
   qmap = q;
   if (out.status == CONVERGED) {
-    Eigen::Map<Matrix> tangent(btangent.d(), c->fk.unknowns.size(), c->actuated.size());
-    for (size_t j = 0; j < c->actuated.size(); ++j)
+    for (size_t j = 0; j < n_act; ++j)
       tangent.col(j) = -c->fk.inverse_matrix * c->jacobian.col(c->actuated[j]).head(c->rows);
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
@@ -453,28 +482,39 @@ PyObject * forward(PyObject *, PyObject * args) {
   return Py_BuildValue("(idi)", out.status, out.norm, out.iterations);
 }
 
-// inverse(chain, q (nq,) in/out, branch (B+1,) uint8 in/out, has_start, goal (task coordinates), goal_rotation (9,),
-//         task_inverse (U*T,) out, platform (16,) out, task (16,) out, tolerance, max_iterations, singular_rcond)
-//   -> (status, residual, iterations)
-// Chord steps throughout; on success task_inverse = the task-row columns of the inverse of the last system.
+// inverse(chain, q (nq,) in/out, goal (task coordinates), goal_rotation (9,), order, task_inverse (U*T,) in/out,
+//         last_task (16,), previous_goal (task coordinates), previous_rotation (9,), previous_q (nq,),
+//         branch (B+1,) uint8 in/out, has_start, platform (16,) out, task (16,) out,
+//         tolerance, max_iterations, singular_rcond) -> (status, residual, iterations)
+// q: the last solution; `order` 1 or 2 moves its unknown joints by ClosedLoopSolver._inverse_step's
+// predictor (X the task columns of the last inverse, r the new goal's task rows at last_task; order 2
+// adds lam^2 (q_prev - q + X b), b the previous goal's rows, lam = -(r . b) / (b . b)). Chord steps
+// throughout; on success task_inverse = the task-row columns of the inverse of the last system.
 PyObject * inverse(PyObject *, PyObject * args) {
-  PyObject *capsule, *oq, *obranch, *ogoal, *orot, *oinverse, *oplatform, *otask;
-  int has_start, max_iterations;
+  PyObject *capsule, *oq, *ogoal, *orot, *oinverse, *olast, *opgoal, *oprot, *opq, *obranch, *oplatform, *otask;
+  int order, has_start, max_iterations;
   double tolerance, singular_rcond;
-  if (!PyArg_ParseTuple(args, "OOOpOOOOOdid", &capsule, &oq, &obranch, &has_start, &ogoal, &orot, &oinverse,
-                        &oplatform, &otask, &tolerance, &max_iterations, &singular_rcond))
+  if (!PyArg_ParseTuple(args, "OOOOiOOOOOOpOOdid", &capsule, &oq, &ogoal, &orot, &order, &oinverse, &olast, &opgoal,
+                        &oprot, &opq, &obranch, &has_start, &oplatform, &otask, &tolerance, &max_iterations,
+                        &singular_rcond))
     return nullptr;
   Chain * c = chain_of(capsule);
   if (c == nullptr) return nullptr;
   set_limits(c, tolerance, max_iterations, singular_rcond);
   Task & t = c->task_spec;
-  Buffer bq, bbranch, bgoal, brot, binverse, bplatform, btask;
-  if (!bq.get(oq, true, 'd', c->model.nq, "q") || !bbranch.get(obranch, true, 'B', c->blocks.size() + 1, "branch")
-      || !bgoal.get(ogoal, false, 'd', -1, "goal") || !brot.get(orot, false, 'd', 9, "goal_rotation")
-      || !binverse.get(oinverse, true, 'd', c->ik.unknowns.size() * t.rows, "task_inverse")
+  const size_t n_unknowns = c->ik.unknowns.size();
+  const Py_ssize_t needed = static_cast<Py_ssize_t>(t.axes.size()) + (t.rotation == 1 ? 1 : 0);
+  Buffer bq, bgoal, brot, binverse, blast, bpgoal, bprot, bpq, bbranch, bplatform, btask;
+  if (!bq.get(oq, true, 'd', c->model.nq, "q") || !bgoal.get(ogoal, false, 'd', -1, "goal")
+      || !brot.get(orot, false, 'd', 9, "goal_rotation")
+      || !binverse.get(oinverse, true, 'd', n_unknowns * t.rows, "task_inverse")
+      || !blast.get(olast, false, 'd', order >= 1 ? 16 : -1, "last_task")
+      || !bpgoal.get(opgoal, false, 'd', order == 2 ? bgoal.items() : -1, "previous_goal")
+      || !bprot.get(oprot, false, 'd', order == 2 ? 9 : -1, "previous_rotation")
+      || !bpq.get(opq, false, 'd', order == 2 ? c->model.nq : -1, "previous_q")
+      || !bbranch.get(obranch, true, 'B', c->blocks.size() + 1, "branch")
       || !bplatform.get(oplatform, true, 'd', 16, "platform") || !btask.get(otask, true, 'd', 16, "task"))
     return nullptr;
-  const Py_ssize_t needed = static_cast<Py_ssize_t>(t.axes.size()) + (t.rotation == 1 ? 1 : 0);
   if (bgoal.items() < needed || bgoal.items() > 4 + static_cast<Py_ssize_t>(t.axes.size())) {
     PyErr_SetString(PyExc_ValueError, "goal: wrong number of task coordinates");
     return nullptr;
@@ -482,11 +522,29 @@ PyObject * inverse(PyObject *, PyObject * args) {
   for (Py_ssize_t k = 0; k < needed; ++k) t.goal[k] = bgoal.d()[k];
   t.goal_rotation = Eigen::Map<const Eigen::Matrix<double, 3, 3, Eigen::RowMajor>>(brot.d());
   Eigen::Map<Vector> qmap(bq.d(), c->model.nq);
+  Eigen::Map<Matrix> task_inverse(binverse.d(), n_unknowns, t.rows);
   Vector q = qmap;
+  if (order >= 1) {
+    const SE3 last = se3_from(blast.d());
+    Vector rows(t.rows), back(t.rows);
+    task_residual(t, last, t.goal, t.goal_rotation, rows.data());
+    Vector step = -(task_inverse * rows);
+    if (order == 2) {
+      const Eigen::Matrix3d previous_rotation = Eigen::Map<const Eigen::Matrix<double, 3, 3, Eigen::RowMajor>>(bprot.d());
+      task_residual(t, last, bpgoal.d(), previous_rotation, back.data());
+      const double bb = back.dot(back), lam = bb > 0.0 ? -rows.dot(back) / bb : 0.0;
+      if (0.0 < lam && lam < 2.0) {
+        Vector curve = task_inverse * back;
+        for (size_t j = 0; j < n_unknowns; ++j) curve[j] += bpq.d()[c->ik.unknowns[j]] - q[c->ik.unknowns[j]];
+        step += lam * lam * curve;
+      }
+    }
+    for (size_t j = 0; j < n_unknowns; ++j) q[c->ik.unknowns[j]] += step[j];
+  }
   const Outcome out = newton(*c, c->ik, q, bbranch.b(), has_start != 0, std::numeric_limits<double>::infinity(), 0);
   qmap = q;
   if (out.status == CONVERGED) {
-    Eigen::Map<Matrix>(binverse.d(), c->ik.unknowns.size(), t.rows) = c->ik.inverse_matrix.rightCols(t.rows);
+    task_inverse = c->ik.inverse_matrix.rightCols(t.rows);
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
   }

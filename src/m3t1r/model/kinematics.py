@@ -287,6 +287,7 @@ class ClosedLoopSolver:
 
         self.actuated = mechanism.actuated_ids
         self.passive = mechanism.passive_ids
+        self._prior_columns = np.concatenate((self.actuated, self.passive))  # the compiled predictor's history
         self._act_lower, self._act_upper = mechanism.joint_limits()
         self._finite_limits = bool(np.all(np.isfinite(self._act_lower)) and np.all(np.isfinite(self._act_upper)))
         self._limit_lists = (self._act_lower.tolist(), self._act_upper.tolist())
@@ -442,13 +443,13 @@ class ClosedLoopSolver:
         values = self.check_actuators(actuators)
         q = (self.last_q if q_init is None else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
         warm = q_init is None
+        if self.native is not None:
+            return self._forward_native(q, values, warm)
         if warm and self._tangent is not None:
             q[self.passive] += self._predict(values - q.take(self.actuated))
         q[self.actuated] = values
         self._tangent, previous, self._previous = None, self._previous, None  # dropped until this solve succeeds
         self._last_goal = self._inverse_previous = None  # last_q is about to be no IK solution
-        if self.native is not None:
-            return self._forward_native(q, warm, previous)
         outcome = self._newton(q, self.passive, self._system, self._passive_branch,
                                start_branch=self._last_branch if warm else None)
         self._tangent = -outcome.inverse.dot(outcome.jacobian.take(self.actuated, axis=1))
@@ -459,24 +460,28 @@ class ClosedLoopSolver:
         pose = self._platform_pose()
         return ForwardResult(pose, outcome.q.copy(), outcome.residual, outcome.iterations, self._task_pose(pose))
 
-    _previous: tuple[np.ndarray, np.ndarray] | None = None  # (sliders, passive q) of the solution before last_q
+    # (sliders, passive q) of the solution before last_q; with the compiled loop, the two concatenated
+    _previous: tuple[np.ndarray, np.ndarray] | np.ndarray | None = None
 
-    def _forward_native(self, q: np.ndarray, warm: bool, previous: tuple | None) -> ForwardResult:
-        """`forward`'s Newton in the compiled loop (q: the predicted start, solved in place); the same
+    def _forward_native(self, q: np.ndarray, values: np.ndarray, warm: bool) -> ForwardResult:
+        """`forward` in the compiled loop, predictor included (q: the start, solved in place); the same
         bookkeeping, errors and result as the Python loop. `data` is not moved to the solution."""
-        native = self.native
-        status, norm, iterations = native.forward(q, self._last_branch if warm else None,
+        native, previous = self.native, self._previous
+        order = (1 if previous is None else 2) if warm and self._tangent is not None else 0
+        self._tangent = self._previous = self._last_goal = self._inverse_previous = None  # until this succeeds
+        status, norm, iterations = native.forward(q, values, order, previous if order == 2 else None,
+                                                  self._last_branch if warm else None,
                                                   (self.tolerance, self.max_iterations, self.singular_rcond))
         if status != _native_converged:
             raise _native_error(status, norm, iterations)
         self._tangent = native.tangent  # overwritten only by the next success, which reads it first
         if warm or previous is None:
-            self._previous = (self.last_q.take(self.actuated), self.last_q.take(self.passive))
+            self._previous = self.last_q.take(self._prior_columns)
         self._last_branch = bytes(native.branch)
         self.last_q = q
         pose = pin.SE3(native.platform)
-        task = pose if self._task_frame == self._platform else pin.SE3(native.task)
-        return ForwardResult(pose, q.copy(), norm, iterations, task)
+        return ForwardResult(pose, q.copy(), norm, iterations,
+                             pose if self._task_frame == self._platform else pin.SE3(native.task))
 
     def _predict(self, change: np.ndarray) -> np.ndarray:
         """Passive-joint change [rad or m] for a slider change `change` [m] from the last solution.
@@ -583,15 +588,17 @@ class ClosedLoopSolver:
         goal, goal_rotation, wanted_tilt = self._goal(target)
         warm = q_init is None
         q = (self.last_q if warm else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
-        if warm and self._task_inverse is not None and self._last_task is not None:
+        predicted = warm and self._task_inverse is not None and self._last_task is not None
+        if predicted and self.native is None:
             q[self._unknown_columns] += self._inverse_step(goal, goal_rotation)
         self._task_inverse = None  # dropped until this solve succeeds
         # A warm solve must stay on the previous solution's branch (assembly and working mode).
         start = self._last_inverse_branch if warm else None
         self._last_inverse_branch = None
         if self.native is not None:
+            order = (1 if self._inverse_previous is None else 2) if predicted else 0
             q, residual, iterations, branch, task_inverse, last_task, pose = self._inverse_native(
-                q, start, goal, goal_rotation)
+                q, start, goal, goal_rotation, order)
         else:
             outcome = self._newton(q, self._unknowns, self._inverse_system(goal, goal_rotation),
                                    lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]), start_branch=start)
@@ -619,17 +626,18 @@ class ClosedLoopSolver:
         return InverseResult(actuators, q.copy(), pose, residual, iterations,
                              (roll - wanted_tilt[0], pitch - wanted_tilt[1]), task_pose)
 
-    def _inverse_native(self, q: np.ndarray, start: bytes | None, goal: np.ndarray, goal_rotation: np.ndarray | None):
-        """IK's Newton in the compiled loop (q solved in place): (q, residual, iterations, branch, task
-        columns of the inverse, task frame, platform pose) as the Python loop gives them; `data` is not
-        moved to the solution."""
+    def _inverse_native(self, q: np.ndarray, start: bytes | None, goal: np.ndarray, goal_rotation: np.ndarray | None,
+                        order: int):
+        """IK in the compiled loop, predictor of the given order included (q: the last solution, solved in
+        place): (q, residual, iterations, branch, task columns of the inverse, task frame, platform pose)
+        as the Python loop gives them; `data` is not moved to the solution."""
         native = self.native
-        status, residual, iterations = native.inverse(q, start, goal, goal_rotation,
+        status, residual, iterations = native.inverse(q, goal, goal_rotation, order, self._inverse_previous, start,
                                                       (self.tolerance, self.max_iterations, self.singular_rcond))
         if status != _native_converged:
             raise _native_error(status, residual, iterations)
-        return (q, residual, iterations, bytes(native.inverse_branch), native.task_inverse, pin.SE3(native.task),
-                pin.SE3(native.platform))
+        return (q, residual, iterations, bytes(native.inverse_branch), native.task_inverse,
+                pin.SE3(native.inverse_task), pin.SE3(native.inverse_platform))
 
     def _goal(self, target: pin.SE3 | np.ndarray) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float]]:
         """(task goal, goal rotation for a full-rotation task else None, requested (roll, pitch))."""

@@ -28,6 +28,7 @@ if TYPE_CHECKING:
 __all__ = ["AVAILABLE", "NativeChain", "CONVERGED"]
 
 AVAILABLE = _native_newton is not None
+_EMPTY = np.zeros(0)
 CONVERGED = 0  # status codes 1-4 as batch_kinematics' rows: no assembly, not converged, singular, branch change
 
 # Joint types the compiled model rebuilds, by Pinocchio's short name: the code `joint_of` reads.
@@ -56,7 +57,8 @@ class NativeChain:
         self._handle, self.n_blocks = handle, n_blocks
         self.tangent = np.zeros((n_passive, n_actuated))  # FK: -J_passive^-1 J_actuated at the last success
         self.task_inverse = np.zeros((n_unknowns, task_rows))  # IK: task-row columns of the last inverse
-        self.platform, self.task = np.eye(4), np.eye(4)  # their placements at the last success [m]
+        self.platform, self.task = np.eye(4), np.eye(4)  # FK: their placements at the last success [m]
+        self.inverse_platform, self.inverse_task = np.eye(4), np.eye(4)  # IK's
         self.branch = bytearray(n_blocks)  # FK's labels at the last success
         self.inverse_branch = bytearray(n_blocks + 1)  # IK's: the blocks', then sign(det) of the whole system
         self._identity = np.eye(3)
@@ -100,29 +102,43 @@ class NativeChain:
             _ROTATION_CODES[task.rotation] if square else 0, float(max_step), float(contraction))
         return cls(handle, len(blocks), len(passive), len(actuated), len(ik_columns), task.dimension if square else 0)
 
-    def forward(self, q: np.ndarray, start_branch: bytes | None, limits: tuple[float, int, float]
-                ) -> tuple[int, float, int]:
-        """Newton over the passive joints from q (nq, float64, solved in place), chord steps throughout.
+    def forward(self, q: np.ndarray, sliders: np.ndarray, order: int, previous: np.ndarray | None,
+                start_branch: bytes | None, limits: tuple[float, int, float]) -> tuple[int, float, int]:
+        """FK from the last solution q (nq, float64, solved in place) to `sliders` (float64).
 
-        start_branch: the labels the solution must have (None: those at q); limits: (tolerance
-        [m or rad], max_iterations, singular_rcond). On success `tangent`, `platform`, `task` and
-        `branch` hold the solution's. Returns (status, max |row|, iterations).
+        order: 0 no predictor, 1 first order along `tangent` (the last success's), 2 also second order
+        with previous = (sliders, passive joints) of the solution before q, concatenated
+        (`ClosedLoopSolver._predict`). start_branch: the labels the solution must have (None: those at
+        its start); limits: (tolerance [m or rad], max_iterations, singular_rcond). On success
+        `tangent`, `platform`, `task` and `branch` hold the solution's. Returns (status, max |row|,
+        iterations).
         """
         if start_branch is not None:  # labels are 0 or 1: a label of another length cannot be met
             self.branch[:] = start_branch if len(start_branch) == self.n_blocks else b"\xff" * self.n_blocks
-        return _native_newton.forward(self._handle, q, self.branch, start_branch is not None, self.tangent,
-                                      self.platform, self.task, *limits)
+        return _native_newton.forward(self._handle, q, sliders, order, self.tangent,
+                                      _EMPTY if previous is None else previous, self.branch,
+                                      start_branch is not None, self.platform, self.task, *limits)
 
-    def inverse(self, q: np.ndarray, start_branch: bytes | None, goal: np.ndarray, goal_rotation: np.ndarray | None,
-                limits: tuple[float, int, float]) -> tuple[int, float, int]:
-        """IK's Newton over the unknown joints from q (solved in place) on [closure rows; task rows] with
-        `goal` (task coordinates) and `goal_rotation` (3 x 3, a full-rotation task). As `forward`, with
-        `task_inverse` and `inverse_branch` for the solution."""
+    def inverse(self, q: np.ndarray, goal: np.ndarray, goal_rotation: np.ndarray | None, order: int,
+                previous: tuple | None, start_branch: bytes | None, limits: tuple[float, int, float]
+                ) -> tuple[int, float, int]:
+        """IK from the last solution q (solved in place) on [closure rows; task rows] with `goal` (task
+        coordinates) and `goal_rotation` (3 x 3, a full-rotation task).
+
+        order: 0 no predictor, 1 first order from `task_inverse` and `inverse_task` (the last IK
+        success's), 2 also second order with previous = ((goal, goal rotation), q) of the IK solution
+        before (`ClosedLoopSolver._inverse_step`). On success `task_inverse`, `inverse_platform`,
+        `inverse_task` and `inverse_branch` hold the solution's; otherwise as `forward`.
+        """
         if start_branch is not None:
-            self.inverse_branch[:] = start_branch if len(start_branch) == self.n_blocks + 1 else b"\xff" * (self.n_blocks + 1)
-        return _native_newton.inverse(self._handle, q, self.inverse_branch, start_branch is not None, goal,
-                                      self._identity if goal_rotation is None else goal_rotation, self.task_inverse,
-                                      self.platform, self.task, *limits)
+            count = self.n_blocks + 1
+            self.inverse_branch[:] = start_branch if len(start_branch) == count else b"\xff" * count
+        (last_goal, last_rotation), last_q = previous if previous is not None else ((_EMPTY, None), _EMPTY)
+        return _native_newton.inverse(self._handle, q, goal, self._identity if goal_rotation is None else goal_rotation,
+                                      order, self.task_inverse, self.inverse_task, last_goal,
+                                      self._identity if last_rotation is None else last_rotation, last_q,
+                                      self.inverse_branch, start_branch is not None, self.inverse_platform,
+                                      self.inverse_task, *limits)
 
     def forward_rows(self, q: np.ndarray, start_branch: np.ndarray | None, chord_below: float, steps_taken: int,
                      limits: tuple[float, int, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
