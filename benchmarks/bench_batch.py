@@ -4,15 +4,17 @@ Unit: one `computeJointJacobians` + `updateFramePlacements` on the M model (the 
 cannot avoid), timed interleaved with every operation below, so that each ratio is taken under the
 same machine load. Operations:
 
-- warm FK / IK along the 1,000-target Lissajous path of `bench_kinematics.py` (per solve);
+- warm FK / IK along the 1,000-target Lissajous path of `bench_kinematics.py` (per solve), in the
+  compiled Newton loop (`model.native`) and in the Python loop it replaces (`native=False`);
 - compensation along the same path (`Compensator.compensate`, calibrated IK + nominal FK) with a
   1 mm / 1 mrad perturbed machine as the calibrated model (per target);
 - `forward_batch` / `inverse_batch` over n random workspace poses, every row from home (per pose),
   with the largest platform difference to `forward(a, q_init=home)` on a sample of rows;
+  `forward_batch` on every core, on one thread, and in the numpy loop (`native=False`);
 - SLSQP with exact Jacobians and with finite differences (`bench_kinematics.SlsqpKinematics`) from
   home on the first rows of the same set (per pose), for the batch ratio at equal accuracy;
-- Pinocchio evaluations per warm solve (counted), times their cost: the floor a C++ Newton loop
-  would still pay; peak traced memory of `forward_batch` by pose count.
+- Pinocchio evaluations per warm solve (counted in the Python loop; the compiled one takes the same
+  steps), times their cost: the floor any Newton loop pays; peak traced memory of `forward_batch`.
 
 Run: python benchmarks/bench_batch.py [--n-batch 10000 --n-slsqp 50 --repeats 5] [--quick]
 """
@@ -62,28 +64,34 @@ def unit_runner(mechanism: Mechanism, count: int):
 
 
 def path_runners(mechanism: Mechanism, calibrated: Mechanism, targets: np.ndarray, sliders: np.ndarray) -> dict:
-    solver = ClosedLoopSolver(mechanism)
+    """Warm FK and IK along the path in the compiled loop and in the Python loop, and compensation."""
     compensator = Compensator(mechanism, calibrated)
+    runs = {}
+    for suffix, compiled in (("", True), (", Python loop", False)):
+        solver = ClosedLoopSolver(mechanism, native=compiled)
 
-    def fk() -> None:
-        solver.reset()
-        for values in sliders:
-            solver.forward(values)
+        def fk(solver=solver) -> None:
+            solver.reset()
+            for values in sliders:
+                solver.forward(values)
 
-    def ik() -> None:
-        solver.reset()
-        for target in targets:
-            solver.inverse(target)
+        def ik(solver=solver) -> None:
+            solver.reset()
+            for target in targets:
+                solver.inverse(target)
+        runs.update({f"FK warm (path){suffix}": fk, f"IK warm (path){suffix}": ik})
 
     def compensation():
         compensator.reset()
         return compensator.compensate(targets)
-    return {"FK warm (path)": fk, "IK warm (path)": ik, "compensation (path)": compensation}
+    runs["compensation (path)"] = compensation
+    return runs
 
 
 def evaluations_per_solve(mechanism: Mechanism, targets: np.ndarray, sliders: np.ndarray) -> dict:
-    """Mean Jacobian and residual-only evaluations per warm solve along the path (counted)."""
-    solver = ClosedLoopSolver(mechanism)
+    """Mean Jacobian and residual-only evaluations per warm solve along the path, counted in the Python
+    loop (the compiled loop takes the same steps: tests/test_native.py)."""
+    solver = ClosedLoopSolver(mechanism, native=False)
     counts = {"jac": 0, "res": 0}
     original = solver._system
 
@@ -182,6 +190,9 @@ def main(argv: list[str] | None = None) -> int:
         runs = {"unit": unit_runner(mechanism, 2000), "residual pass (forwardKinematics)": residual_cost(mechanism, 2000)}
         runs.update(path_runners(mechanism, calibrated, targets, sliders))
         runs["forward_batch"] = lambda: solver.forward_batch(cloud_sliders)
+        runs["forward_batch, 1 thread"] = lambda: solver.forward_batch(cloud_sliders, threads=1)
+        numpy_solver = ClosedLoopSolver(mechanism, native=False)
+        runs["forward_batch, numpy loop"] = lambda: numpy_solver.forward_batch(cloud_sliders)
         runs["inverse_batch"] = lambda: solver.inverse_batch(cloud)
         for name, baseline in slsqp.items():
             runs[f"{name} (FK from home)"] = (lambda b=baseline: [b.forward(a, mechanism.home) for a in few])
@@ -190,9 +201,10 @@ def main(argv: list[str] | None = None) -> int:
         evaluations = evaluations_per_solve(mechanism, targets, sliders)
         agreement = batch_agreement(solver, cloud_sliders, results["forward_batch"], 200)
         memory = peak_memory(solver, cloud_sliders, args.memory_sizes)
-    counts = {"unit": 2000, "residual pass (forwardKinematics)": 2000, "FK warm (path)": args.n_path,
-              "IK warm (path)": args.n_path, "compensation (path)": args.n_path, "forward_batch": args.n_batch,
+    counts = {"unit": 2000, "residual pass (forwardKinematics)": 2000, "compensation (path)": args.n_path,
               "inverse_batch": args.n_batch}
+    counts.update({name: args.n_path for name in runs if name.startswith(("FK warm", "IK warm"))})
+    counts.update({name: args.n_batch for name in runs if name.startswith("forward_batch")})
     counts.update({f"{name} (FK from home)": len(few) for name in slsqp})
     unit = median(times["unit"]) / 2000
     per = {name: median(t) / counts[name] for name, t in times.items()}
@@ -216,7 +228,8 @@ def main(argv: list[str] | None = None) -> int:
           "at least these passes):\n")
     print(table(["solve", "Jacobian evaluations", "residual evaluations", "floor [units]"],
                 [[name, f"{j:.2f}", f"{r:.2f}", f"{j + r * res_unit:.1f}"] for name, (j, r) in evaluations.items()]))
-    print(f"\nPeak traced memory of forward_batch (numpy arrays; rows solved in chunks of {batch_kinematics._CHUNK:,}):\n")
+    print(f"\nPeak traced memory of forward_batch (numpy arrays; the numpy loop solves rows in chunks of "
+          f"{batch_kinematics._CHUNK:,}):\n")
     print(table(["poses", "peak memory", "time"], memory))
     return 0
 

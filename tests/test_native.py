@@ -275,3 +275,22 @@ def test_inverse_failures_are_the_python_loop_s(mechanism):
             assert solver._task_inverse is None
     assert kinds[:3] == kinds[3:]
     assert [kind for kind, _ in kinds[:3]] == [OutOfWorkspaceError, BranchChangeError, OutOfWorkspaceError]
+
+
+def test_forward_batch_on_several_threads_gives_the_same_rows(mechanism):
+    cloud = NOMINAL.workspace.sample(np.random.default_rng(8), 400)
+    sliders = ClosedLoopSolver(mechanism).inverse_batch(cloud).actuators
+    solver = ClosedLoopSolver(mechanism)
+    one, three = solver.forward_batch(sliders, threads=1), solver.forward_batch(sliders, threads=3)
+    np.testing.assert_array_equal(one.q, three.q)  # rows are independent: bit for bit
+    np.testing.assert_array_equal(one.iterations, three.iterations)
+    np.testing.assert_array_equal(one.poses, three.poses)
+    assert native.available_cores() >= 1
+
+
+@pytest.mark.parametrize("threads", [0, -2, 1.5, "2", True])
+def test_a_bad_thread_count_is_refused_by_name(solver, threads):
+    from m3t1r.errors import InvalidInputError
+
+    with pytest.raises(InvalidInputError, match="threads"):
+        solver.forward_batch(np.zeros((2, 4)), threads=threads)

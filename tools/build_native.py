@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     if shutil.which(compiler) is None:
         raise SystemExit(f"build_native: no C++ compiler ({compiler}); the pure-Python solver will run")
     partial = out.with_suffix(".partial")
-    command = [compiler, "-O2", "-std=c++17", "-shared", "-fPIC", "-fvisibility=hidden", "-w",
+    command = [compiler, "-O2", "-std=c++17", "-shared", "-fPIC", "-pthread", "-fvisibility=hidden", "-w",
                *(f"-D{d}" for d in DEFINES), *(f"-I{d}" for d in include_dirs()), str(SOURCE), "-o", str(partial)]
     print("build_native: compiling", SOURCE.name, "(about a minute)", flush=True)
     if subprocess.run(command).returncode != 0:

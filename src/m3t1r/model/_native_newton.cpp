@@ -27,6 +27,8 @@
 #include <limits>
 #include <memory>
 #include <string>
+#include <thread>
+#include <algorithm>
 #include <vector>
 
 namespace {
@@ -551,16 +553,39 @@ PyObject * inverse(PyObject *, PyObject * args) {
   return Py_BuildValue("(idi)", out.status, out.norm, out.iterations);
 }
 
+// Rows [begin, end) of forward_rows on one chain (its own Data and buffers: one per thread).
+void solve_rows(Chain & c, double * qs, Py_ssize_t begin, Py_ssize_t end, const unsigned char * given,
+                double chord_below, int steps_taken, long long * status, double * norms, long long * iterations,
+                double * platform, double * task) {
+  std::vector<unsigned char> branch(c.blocks.size());
+  Vector q(c.model.nq);
+  for (Py_ssize_t i = begin; i < end; ++i) {
+    if (given != nullptr) std::memcpy(branch.data(), given, branch.size());
+    Eigen::Map<Vector> row(qs + i * c.model.nq, c.model.nq);
+    q = row;
+    const Outcome out = newton(c, c.fk, q, branch.data(), given != nullptr, chord_below, steps_taken);
+    row = q;
+    status[i] = out.status;
+    norms[i] = out.norm;
+    iterations[i] = out.iterations;
+    if (out.status == CONVERGED) {
+      write_pose(c.frame_world[c.platform], platform + 16 * i);
+      write_pose(c.frame_world[c.task], task + 16 * i);
+    }
+  }
+}
+
 // forward_rows(chain, q (n, nq) in/out, branch (B,) uint8 or empty (labels at each row's start),
 //              chord_below, steps_taken, status (n,) int64 out, residual (n,) out, iterations (n,) int64 out,
-//              platform (n, 16) out, task (n, 16) out, tolerance, max_iterations, singular_rcond):
-//   `forward` row by row, without the tangent.
+//              platform (n, 16) out, task (n, 16) out, tolerance, max_iterations, singular_rcond, threads):
+//   `forward` row by row, without the predictor and the tangent, on `threads` threads (each with a copy of
+//   the chain: rows are independent, so the results do not depend on the thread count).
 PyObject * forward_rows(PyObject *, PyObject * args) {
   PyObject *capsule, *oq, *obranch, *ostatus, *onorm, *oiter, *oplatform, *otask;
-  int steps_taken, max_iterations;
+  int steps_taken, max_iterations, threads;
   double chord_below, tolerance, singular_rcond;
-  if (!PyArg_ParseTuple(args, "OOOdiOOOOOdid", &capsule, &oq, &obranch, &chord_below, &steps_taken, &ostatus, &onorm,
-                        &oiter, &oplatform, &otask, &tolerance, &max_iterations, &singular_rcond))
+  if (!PyArg_ParseTuple(args, "OOOdiOOOOOdidi", &capsule, &oq, &obranch, &chord_below, &steps_taken, &ostatus,
+                        &onorm, &oiter, &oplatform, &otask, &tolerance, &max_iterations, &singular_rcond, &threads))
     return nullptr;
   Chain * c = chain_of(capsule);
   if (c == nullptr) return nullptr;
@@ -576,23 +601,19 @@ PyObject * forward_rows(PyObject *, PyObject * args) {
     if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "q or branch: wrong size");
     return nullptr;
   }
-  std::vector<unsigned char> branch(c->blocks.size());
-  Vector q(c->model.nq);
+  const unsigned char * labels_given = given ? bbranch.b() : nullptr;
+  const Py_ssize_t workers = std::max<Py_ssize_t>(1, std::min<Py_ssize_t>(threads, n / 64));
+  const Py_ssize_t share = (n + workers - 1) / std::max<Py_ssize_t>(workers, 1);
   Py_BEGIN_ALLOW_THREADS
-  for (Py_ssize_t i = 0; i < n; ++i) {
-    if (given) std::memcpy(branch.data(), bbranch.b(), branch.size());
-    Eigen::Map<Vector> row(bq.d() + i * c->model.nq, c->model.nq);
-    q = row;
-    const Outcome out = newton(*c, c->fk, q, branch.data(), given, chord_below, steps_taken);
-    row = q;
-    bstatus.q()[i] = out.status;
-    bnorm.d()[i] = out.norm;
-    biter.q()[i] = out.iterations;
-    if (out.status == CONVERGED) {
-      write_pose(c->frame_world[c->platform], bplatform.d() + 16 * i);
-      write_pose(c->frame_world[c->task], btask.d() + 16 * i);
-    }
-  }
+  std::vector<Chain> copies(static_cast<size_t>(workers - 1), *c);
+  std::vector<std::thread> pool;
+  for (Py_ssize_t w = 1; w < workers; ++w)
+    pool.emplace_back(solve_rows, std::ref(copies[w - 1]), bq.d(), w * share, std::min(n, (w + 1) * share),
+                      labels_given, chord_below, steps_taken, bstatus.q(), bnorm.d(), biter.q(), bplatform.d(),
+                      btask.d());
+  solve_rows(*c, bq.d(), 0, std::min(n, share), labels_given, chord_below, steps_taken, bstatus.q(), bnorm.d(),
+             biter.q(), bplatform.d(), btask.d());
+  for (std::thread & t : pool) t.join();
   Py_END_ALLOW_THREADS
   return PyLong_FromSsize_t(n);
 }

@@ -41,6 +41,7 @@ from m3t1r.errors import (
     UnsupportedJointError,
 )
 from m3t1r.model.description import Mechanism
+from m3t1r.model.native import available_cores
 from m3t1r.model.poe import jlog3_batch, log3_batch, skew
 from m3t1r.model.task import TaskSpec
 
@@ -589,7 +590,8 @@ def _rows(values: object, width: int, what: str, columns: tuple[str, ...]) -> np
     return array
 
 
-def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarray | None = None) -> ForwardBatch:
+def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarray | None = None,
+                  threads: int | None = None) -> ForwardBatch:
     """Platform poses for n slider sets (n, k) [m], each solved from q_init, in chunks.
 
     Default (q_init None): every row starts from home moved along home's solution manifold to first
@@ -599,9 +601,12 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
     BranchChangeError or OutOfWorkspaceError); where both succeed they agree to the tolerance.
     Given q_init (nq,) or (n, nq), each row starts there, branch labels taken at its start.
     A row with a slider beyond its URDF limit fails with InvalidInputError (reported, not raised);
-    non-finite values or a wrong shape raise InvalidInputError for the whole batch.
+    non-finite values or a wrong shape raise InvalidInputError for the whole batch. threads: how many
+    threads share the rows in the compiled loop (None: every core this process may use; the numpy
+    loop ignores it); the results do not depend on it.
     """
     solver = kin.solver
+    workers = _thread_count(threads)
     names = solver.mechanism.actuated_joints
     values = _rows(sliders, len(names), "actuator values", names)
     start = _starts(kin, len(values), q_init)
@@ -625,7 +630,7 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
         q = start[rows]
         status, norm, iterations, platform, _ = solver.native.forward_rows(
             q, branch if predicted else None, _CHORD_BELOW, int(predicted),
-            (solver.tolerance, solver.max_iterations, solver.singular_rcond))
+            (solver.tolerance, solver.max_iterations, solver.singular_rcond), workers)
         solved = _Solved(q, status, norm, iterations, platform[:, :3, :3], platform[:, :3, 3])
         failures += [RowFailure(int(rows[f.index]), f.reason, f.error) for f in failures_of(solved, 0, "forward kinematics")]
         return _forward_result(kin, len(values), [(rows, solved)], failures)
@@ -637,6 +642,15 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
                      for f in failures_of(solved, 0, "forward kinematics")]
         parts.append((chunk, solved))
     return _forward_result(kin, len(values), parts, failures)
+
+
+def _thread_count(threads: int | None) -> int:
+    """The thread count asked for (an int >= 1), or every available core for None."""
+    if threads is None:
+        return available_cores()
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise InvalidInputError(f"threads: expected an integer >= 1 or None, got {threads!r}")
+    return int(threads)
 
 
 def _forward_result(kin: StackedKinematics, n: int, parts: list, failures: list) -> ForwardBatch:

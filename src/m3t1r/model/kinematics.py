@@ -703,18 +703,21 @@ class ClosedLoopSolver:
 
     # ----------------------------------------------------------------------------------------
     # Many poses at once
-    def forward_batch(self, actuators: np.ndarray, q_init: np.ndarray | None = None):
+    def forward_batch(self, actuators: np.ndarray, q_init: np.ndarray | None = None, threads: int | None = None):
         """Forward kinematics of n slider sets (n, k) [m] at once (`batch_kinematics.forward_batch`).
 
         Every row is solved on home's branch (the reference), from home moved along the solution
-        manifold to first order, or from q_init when given, by one vectorised Newton over all rows
-        (numpy over stacked POE placements, batched inverses), not by n calls. Where
+        manifold to first order, or from q_init when given, by the compiled Newton loop row by row in one
+        call (without it, one vectorised numpy Newton over all rows: stacked POE placements, batched
+        inverses), not by n calls. Where
         `forward(a, q_init=home)` converges the two agree to the tolerance; far from home the batch
         also assembles rows where plain Newton from home crosses a singularity. Returns a `ForwardBatch`: `.poses`
         (M, 4, 4), `.q`, `.iterations` of the M converged rows `.indices`; every other row is in
         `.failures` with its typed error class (never in the arrays). Leaves this solver's warm start alone.
+        With the compiled loop the rows are shared among `threads` threads (None: every core this
+        process may use); the results do not depend on it.
         """
-        return forward_batch(self._batch_kinematics(), actuators, q_init)
+        return forward_batch(self._batch_kinematics(), actuators, q_init, threads)
 
     def inverse_batch(self, targets: np.ndarray, q_init: np.ndarray | None = None):
         """Inverse kinematics of n targets (n, 4) rows (x, y, z, theta) [m, rad] at once; returns an

@@ -11,6 +11,7 @@ copy of a machine gets its own. Trees of 1-DoF revolute and prismatic joints onl
 
 from __future__ import annotations
 
+import os
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -25,7 +26,7 @@ if TYPE_CHECKING:
     from m3t1r.model.closures import ClosureSpec
     from m3t1r.model.task import TaskSpec
 
-__all__ = ["AVAILABLE", "NativeChain", "CONVERGED"]
+__all__ = ["AVAILABLE", "NativeChain", "CONVERGED", "available_cores"]
 
 AVAILABLE = _native_newton is not None
 _EMPTY = np.zeros(0)
@@ -141,18 +142,26 @@ class NativeChain:
                                       self.inverse_task, *limits)
 
     def forward_rows(self, q: np.ndarray, start_branch: np.ndarray | None, chord_below: float, steps_taken: int,
-                     limits: tuple[float, int, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                                                np.ndarray]:
-        """`forward` for every row of q (n, nq) (solved in place), chord steps only from residuals at or
-        below `chord_below`, iterations counted from `steps_taken`. Returns per row (status, max |row|,
-        iterations, platform (n, 4, 4), task frame (n, 4, 4)); poses are valid where status is 0."""
+                     limits: tuple[float, int, float], threads: int = 1
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Newton for every row of q (n, nq) (solved in place, no predictor), chord steps only from
+        residuals at or below `chord_below`, iterations counted from `steps_taken`, rows shared among
+        `threads` threads (at least 64 rows each; the results do not depend on it). Returns per row
+        (status, max |row|, iterations, platform (n, 4, 4), task frame (n, 4, 4)); poses are valid where
+        status is 0."""
         n = len(q)
         status, norm, iterations = np.zeros(n, dtype=np.int64), np.zeros(n), np.zeros(n, dtype=np.int64)
         platform, task = np.zeros((n, 4, 4)), np.zeros((n, 4, 4))
         branch = b"" if start_branch is None else np.asarray(start_branch, dtype=np.uint8).tobytes()
         _native_newton.forward_rows(self._handle, q, branch, float(chord_below), int(steps_taken), status, norm,
-                                    iterations, platform, task, *limits)
+                                    iterations, platform, task, *limits, int(threads))
         return status, norm, iterations, platform, task
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the platform tells, else the CPU count)."""
+    affinity = getattr(os, "sched_getaffinity", None)
+    return len(affinity(0)) if affinity is not None else (os.cpu_count() or 1)
 
 
 def _axis(joint: pin.JointModel) -> np.ndarray:
