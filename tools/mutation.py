@@ -41,6 +41,8 @@ def equivalent_mutants() -> set[str]:
 def copy_tree(destination: Path) -> None:
     files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "src", "tests", "models", "pyproject.toml"],
                            cwd=ROOT, check=True, capture_output=True, text=True).stdout.split()
+    # The compiled Newton loop is built, not tracked: the copy's tests run the same solver as the checkout's.
+    files += [str(p.relative_to(ROOT)) for p in (ROOT / "src" / "m3t1r" / "model").glob("_native_newton*.so")]
     if destination.exists():
         shutil.rmtree(destination)
     for name in files:

@@ -336,16 +336,17 @@ class Compensator:
                 failures.append(TargetFailure(index, f"{stage}: {exc}", type(exc)))
                 continue
             indices.append(index)
-            commands.append(CompensatedCommand(ik.actuators, fk.task_pose, ik.task_pose, ik.tilt, ik.iterations))
+            commands.append((ik.actuators, fk.task_pose, ik.task_pose, ik.tilt, ik.iterations))
+        actuators, command_poses, reached_poses, tilt, iterations = zip(*commands) if commands else ((),) * 5
         return Compensation(
             n_targets=len(rows),
             actuated_joints=self.calibrated.actuated_joints,
             indices=_frozen(np.array(indices, dtype=int)),
-            actuators=_frozen(np.array([c.actuators for c in commands]).reshape(-1, len(self.calibrated.actuated_joints))),
-            command_poses=tuple(c.command_pose for c in commands),
-            reached_poses=tuple(c.reached_pose for c in commands),
-            tilt=_frozen(np.array([c.tilt for c in commands]).reshape(-1, 2)),
-            iterations=_frozen(np.array([c.iterations for c in commands], dtype=int)),
+            actuators=_frozen(np.array(actuators).reshape(-1, len(self.calibrated.actuated_joints))),
+            command_poses=command_poses,
+            reached_poses=reached_poses,
+            tilt=_frozen(np.array(tilt).reshape(-1, 2)),
+            iterations=_frozen(np.array(iterations, dtype=int)),
             failures=tuple(failures), task=self.calibrated.task,
         )
 
