@@ -750,7 +750,7 @@ def _recorded_newton(monkeypatch):
 def test_inverse_batch_system_and_labels(monkeypatch, wrist):
     """The IK system is [closure rows; task rows] at the platform (task) frame with the goals of the
     rows asked for; its labels are the closure blocks plus sign(det) of the whole square system."""
-    solver = ClosedLoopSolver(wrist)
+    solver = ClosedLoopSolver(wrist, native=False)  # the numpy Newton (the compiled one never calls newton_batch)
     kin = solver._batch_kinematics()
     calls = _recorded_newton(monkeypatch)
     goals = np.array([pin.Quaternion(pin.exp3(np.array(v))).coeffs() for v in ([0.1, 0.2, 0.0], [0.0, -0.1, 0.3],
@@ -861,7 +861,7 @@ def test_inverse_batch_of_a_yaw_task_on_a_frame_off_the_platform(monkeypatch, fi
     """The tool's x and heading (turned 0.4 rad from the effector): IK reaches them, from home (first
     step batched, branch labels of home) and from given starts (no step, labels at the start)."""
     machine = with_tool(five_bar, TOOL_YAW)
-    solver = ClosedLoopSolver(machine)
+    solver = ClosedLoopSolver(machine, native=False)  # the numpy Newton's calls are recorded
     kin = solver._batch_kinematics()
     sliders = five_bar.home[[0, 2]] + np.array([[0.0, 0.0], [0.05, 0.05], [-0.1, 0.2]])
     fk = solver.forward_batch(sliders)

@@ -294,3 +294,32 @@ def test_a_bad_thread_count_is_refused_by_name(solver, threads):
 
     with pytest.raises(InvalidInputError, match="threads"):
         solver.forward_batch(np.zeros((2, 4)), threads=threads)
+
+
+def _compare_inverse_batches(machine: Mechanism, targets: np.ndarray, q_init: np.ndarray | None = None) -> None:
+    compiled = ClosedLoopSolver(machine).inverse_batch(targets, q_init=q_init)
+    numpy_batch = ClosedLoopSolver(machine, native=False).inverse_batch(targets, q_init=q_init)
+    np.testing.assert_array_equal(compiled.indices, numpy_batch.indices)
+    for name in ("q", "actuators", "poses", "task_poses", "tilt"):
+        np.testing.assert_allclose(getattr(compiled, name), getattr(numpy_batch, name), atol=1e-11, err_msg=name)
+    np.testing.assert_array_equal(compiled.iterations, numpy_batch.iterations)
+    assert [(f.index, f.error) for f in compiled.failures] == [(f.index, f.error) for f in numpy_batch.failures]
+
+
+def test_inverse_batch_matches_the_numpy_newton(mechanism):
+    cloud = NOMINAL.workspace.sample(np.random.default_rng(9), 300)
+    # a target beyond the sliders (y 1.5 m), one without assembly (z 0.4 m), one crossing a branch (yaw 3 rad)
+    targets = np.vstack((cloud, [[0.52, 1.5, -0.11, 0.0], [0.5, 0.5, 0.4, 0.0], [0.52, 0.52, -0.11, 3.0]]))
+    _compare_inverse_batches(mechanism, targets)
+    _compare_inverse_batches(mechanism, targets[:30], q_init=mechanism.home)
+    one = ClosedLoopSolver(mechanism).inverse_batch(targets, threads=1)
+    two = ClosedLoopSolver(mechanism).inverse_batch(targets, threads=2)
+    np.testing.assert_array_equal(one.q, two.q)
+    assert {f.error for f in one.failures} >= {OutOfWorkspaceError}
+
+
+def test_inverse_batch_of_a_tool_and_of_the_example_mechanisms_match(tool_machine, tmp_path):
+    _compare_inverse_batches(tool_machine, _targets(tool_machine, 40, 5))
+    for files in (five_bar_files, spherical_wrist_files):  # planar x, y; full rotation (from home, no first step)
+        machine = Mechanism.load(*files(tmp_path / files.__name__))
+        _compare_inverse_batches(machine, _targets(machine, 40, 6))

@@ -553,67 +553,103 @@ PyObject * inverse(PyObject *, PyObject * args) {
   return Py_BuildValue("(idi)", out.status, out.norm, out.iterations);
 }
 
-// Rows [begin, end) of forward_rows on one chain (its own Data and buffers: one per thread).
-void solve_rows(Chain & c, double * qs, Py_ssize_t begin, Py_ssize_t end, const unsigned char * given,
-                double chord_below, int steps_taken, long long * status, double * norms, long long * iterations,
-                double * platform, double * task) {
-  std::vector<unsigned char> branch(c.blocks.size());
+// Where a row batch reads and writes: q (n, nq) in/out, optional labels every row must end with, per-row
+// goals (IK: n x goal_width task coordinates and n x 9 rotations), and per-row outputs.
+struct Rows {
+  double * q;
+  const unsigned char * given;
+  const double * goals = nullptr;
+  const double * rotations = nullptr;
+  Py_ssize_t goal_width = 0;
+  double chord_below;
+  int steps_taken;
+  long long * status;
+  double * norms;
+  long long * iterations;
+  double * platform;
+  double * task;
+};
+
+// Rows [begin, end) on one chain (its own Data and buffers: one per thread).
+void solve_rows(Chain & c, bool inverse, const Rows & r, Py_ssize_t begin, Py_ssize_t end) {
+  System & s = inverse ? c.ik : c.fk;
+  const size_t n_labels = c.blocks.size() + (inverse ? 1 : 0);
+  std::vector<unsigned char> branch(n_labels);
   Vector q(c.model.nq);
+  Task & t = c.task_spec;
+  const Py_ssize_t needed = static_cast<Py_ssize_t>(t.axes.size()) + (t.rotation == 1 ? 1 : 0);
   for (Py_ssize_t i = begin; i < end; ++i) {
-    if (given != nullptr) std::memcpy(branch.data(), given, branch.size());
-    Eigen::Map<Vector> row(qs + i * c.model.nq, c.model.nq);
+    if (r.given != nullptr) std::memcpy(branch.data(), r.given, n_labels);
+    if (inverse) {
+      for (Py_ssize_t k = 0; k < needed; ++k) t.goal[k] = r.goals[i * r.goal_width + k];
+      t.goal_rotation = Eigen::Map<const Eigen::Matrix<double, 3, 3, Eigen::RowMajor>>(r.rotations + 9 * i);
+    }
+    Eigen::Map<Vector> row(r.q + i * c.model.nq, c.model.nq);
     q = row;
-    const Outcome out = newton(c, c.fk, q, branch.data(), given != nullptr, chord_below, steps_taken);
+    const Outcome out = newton(c, s, q, branch.data(), r.given != nullptr, r.chord_below, r.steps_taken);
     row = q;
-    status[i] = out.status;
-    norms[i] = out.norm;
-    iterations[i] = out.iterations;
+    r.status[i] = out.status;
+    r.norms[i] = out.norm;
+    r.iterations[i] = out.iterations;
     if (out.status == CONVERGED) {
-      write_pose(c.frame_world[c.platform], platform + 16 * i);
-      write_pose(c.frame_world[c.task], task + 16 * i);
+      write_pose(c.frame_world[c.platform], r.platform + 16 * i);
+      write_pose(c.frame_world[c.task], r.task + 16 * i);
     }
   }
 }
 
-// forward_rows(chain, q (n, nq) in/out, branch (B,) uint8 or empty (labels at each row's start),
-//              chord_below, steps_taken, status (n,) int64 out, residual (n,) out, iterations (n,) int64 out,
-//              platform (n, 16) out, task (n, 16) out, tolerance, max_iterations, singular_rcond, threads):
-//   `forward` row by row, without the predictor and the tangent, on `threads` threads (each with a copy of
-//   the chain: rows are independent, so the results do not depend on the thread count).
-PyObject * forward_rows(PyObject *, PyObject * args) {
-  PyObject *capsule, *oq, *obranch, *ostatus, *onorm, *oiter, *oplatform, *otask;
-  int steps_taken, max_iterations, threads;
+// The rows on `threads` threads (at least 64 rows each), each with a copy of the chain: rows are
+// independent, so the results do not depend on the thread count. Call without the GIL.
+void solve_rows_threaded(Chain & c, bool inverse, const Rows & r, Py_ssize_t n, int threads) {
+  const Py_ssize_t workers = std::max<Py_ssize_t>(1, std::min<Py_ssize_t>(threads, n / 64));
+  const Py_ssize_t share = (n + workers - 1) / workers;
+  std::vector<Chain> copies(static_cast<size_t>(workers - 1), c);
+  std::vector<std::thread> pool;
+  for (Py_ssize_t w = 1; w < workers; ++w)
+    pool.emplace_back(solve_rows, std::ref(copies[w - 1]), inverse, std::cref(r), w * share,
+                      std::min(n, (w + 1) * share));
+  solve_rows(c, inverse, r, 0, std::min(n, share));
+  for (std::thread & thread : pool) thread.join();
+}
+
+// rows(chain, inverse, q (n, nq) in/out, branch (B or B+1,) uint8 or empty (labels at each row's start),
+//      goals (n, g) and rotations (n, 9) (IK; empty for FK), chord_below, steps_taken, status (n,) int64 out,
+//      residual (n,) out, iterations (n,) int64 out, platform (n, 16) out, task (n, 16) out,
+//      tolerance, max_iterations, singular_rcond, threads):
+//   FK or IK Newton row by row, without predictor (the caller sets each start), tangent or inverse.
+PyObject * rows(PyObject *, PyObject * args) {
+  PyObject *capsule, *oq, *obranch, *ogoals, *orots, *ostatus, *onorm, *oiter, *oplatform, *otask;
+  int inverse, steps_taken, max_iterations, threads;
   double chord_below, tolerance, singular_rcond;
-  if (!PyArg_ParseTuple(args, "OOOdiOOOOOdidi", &capsule, &oq, &obranch, &chord_below, &steps_taken, &ostatus,
-                        &onorm, &oiter, &oplatform, &otask, &tolerance, &max_iterations, &singular_rcond, &threads))
+  if (!PyArg_ParseTuple(args, "OpOOOOdiOOOOOdidi", &capsule, &inverse, &oq, &obranch, &ogoals, &orots, &chord_below,
+                        &steps_taken, &ostatus, &onorm, &oiter, &oplatform, &otask, &tolerance, &max_iterations,
+                        &singular_rcond, &threads))
     return nullptr;
   Chain * c = chain_of(capsule);
   if (c == nullptr) return nullptr;
   set_limits(c, tolerance, max_iterations, singular_rcond);
-  Buffer bq, bbranch, bstatus, bnorm, biter, bplatform, btask;
-  if (!bq.get(oq, true, 'd', -1, "q") || !bbranch.get(obranch, false, 'B', -1, "branch")) return nullptr;
+  Buffer bq, bbranch, bgoals, brots, bstatus, bnorm, biter, bplatform, btask;
+  if (!bq.get(oq, true, 'd', -1, "q") || !bbranch.get(obranch, false, 'B', -1, "branch")
+      || !bgoals.get(ogoals, false, 'd', -1, "goals") || !brots.get(orots, false, 'd', -1, "rotations"))
+    return nullptr;
   const Py_ssize_t n = bq.items() / c->model.nq;
-  const bool given = bbranch.items() > 0;
-  if (bq.items() != n * c->model.nq || (given && bbranch.items() != static_cast<Py_ssize_t>(c->blocks.size()))
-      || !bstatus.get(ostatus, true, 'q', n, "status") || !bnorm.get(onorm, true, 'd', n, "residual")
-      || !biter.get(oiter, true, 'q', n, "iterations") || !bplatform.get(oplatform, true, 'd', 16 * n, "platform")
-      || !btask.get(otask, true, 'd', 16 * n, "task")) {
-    if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "q or branch: wrong size");
+  const Py_ssize_t labels = static_cast<Py_ssize_t>(c->blocks.size()) + (inverse ? 1 : 0);
+  const Py_ssize_t width = n > 0 ? bgoals.items() / n : 0;
+  const Task & t = c->task_spec;
+  const bool goals_ok = !inverse || (bgoals.items() == n * width && brots.items() == 9 * n
+                                     && (n == 0 || (width >= static_cast<Py_ssize_t>(t.axes.size()) + (t.rotation == 1)
+                                                    && width <= static_cast<Py_ssize_t>(t.axes.size()) + 4)));
+  if (bq.items() != n * c->model.nq || (bbranch.items() > 0 && bbranch.items() != labels) || !goals_ok
+      || (inverse && t.rows == 0) || !bstatus.get(ostatus, true, 'q', n, "status")
+      || !bnorm.get(onorm, true, 'd', n, "residual") || !biter.get(oiter, true, 'q', n, "iterations")
+      || !bplatform.get(oplatform, true, 'd', 16 * n, "platform") || !btask.get(otask, true, 'd', 16 * n, "task")) {
+    if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "q, branch or goals: wrong size (or no square IK)");
     return nullptr;
   }
-  const unsigned char * labels_given = given ? bbranch.b() : nullptr;
-  const Py_ssize_t workers = std::max<Py_ssize_t>(1, std::min<Py_ssize_t>(threads, n / 64));
-  const Py_ssize_t share = (n + workers - 1) / std::max<Py_ssize_t>(workers, 1);
+  Rows r{bq.d(), bbranch.items() > 0 ? bbranch.b() : nullptr, bgoals.d(), brots.d(), width, chord_below, steps_taken,
+         bstatus.q(), bnorm.d(), biter.q(), bplatform.d(), btask.d()};
   Py_BEGIN_ALLOW_THREADS
-  std::vector<Chain> copies(static_cast<size_t>(workers - 1), *c);
-  std::vector<std::thread> pool;
-  for (Py_ssize_t w = 1; w < workers; ++w)
-    pool.emplace_back(solve_rows, std::ref(copies[w - 1]), bq.d(), w * share, std::min(n, (w + 1) * share),
-                      labels_given, chord_below, steps_taken, bstatus.q(), bnorm.d(), biter.q(), bplatform.d(),
-                      btask.d());
-  solve_rows(*c, bq.d(), 0, std::min(n, share), labels_given, chord_below, steps_taken, bstatus.q(), bnorm.d(),
-             biter.q(), bplatform.d(), btask.d());
-  for (std::thread & t : pool) t.join();
+  solve_rows_threaded(*c, inverse != 0, r, n, threads);
   Py_END_ALLOW_THREADS
   return PyLong_FromSsize_t(n);
 }
@@ -622,7 +658,7 @@ PyMethodDef methods[] = {
     {"build", build, METH_VARARGS, "A closed chain from arrays (see the source)."},
     {"forward", forward, METH_VARARGS, "One Newton solve of the passive joints, in place."},
     {"inverse", inverse, METH_VARARGS, "One Newton solve of closure and task rows, in place."},
-    {"forward_rows", forward_rows, METH_VARARGS, "Newton solves of many rows, in place."},
+    {"rows", rows, METH_VARARGS, "FK or IK Newton solves of many rows, in place."},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native_newton",

@@ -725,15 +725,18 @@ def _first_step_from_home(kin: StackedKinematics, start: np.ndarray, rows: np.nd
     return signature(full_jac, square)[0]
 
 
-def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarray | None = None) -> InverseBatch:
+def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarray | None = None,
+                  threads: int | None = None) -> InverseBatch:
     """Slider values for n targets, rows of task coordinates (`TaskSpec.columns`, e.g. x, y, z, theta)
     [m, rad], each from q_init (default home).
 
     Row system as `ClosedLoopSolver.inverse`: [closure rows; task rows] = 0 over every joint but the
     locked ones; branch labels = closure blocks plus the sign of det of the whole system. A converged
-    row needing a slider beyond its limit fails with OutOfWorkspaceError naming the slider.
+    row needing a slider beyond its limit fails with OutOfWorkspaceError naming the slider. threads:
+    as `forward_batch`.
     """
     solver = kin.solver
+    workers = _thread_count(threads)
     task = solver.mechanism.task
     solver.check_square_task()
     goal = task.goals(_rows(targets, len(task.columns), "targets", task.columns))
@@ -755,13 +758,22 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
 
     parts, failures = [], []
     names = solver.mechanism.actuated_joints
-    for chunk in np.array_split(np.arange(len(goal)), max(1, -(-len(goal) // _CHUNK))) if len(goal) else []:
+    # The compiled loop takes every row at once (row by row, on `workers` threads); numpy, chunks of rows.
+    size = max(len(goal), 1) if solver.native is not None else _CHUNK
+    for chunk in np.array_split(np.arange(len(goal)), max(1, -(-len(goal) // size))) if len(goal) else []:
         branch = None
         if q_init is None and task.rotation != "full":
             branch = _first_step_from_home(kin, start, chunk, goal, signature)
-        solved = newton_batch(start[chunk], every, lambda q, a, jacobian: system(q, chunk[a], jacobian), signature,
-                              solver.tolerance, solver.max_iterations, solver.singular_rcond,
-                              int(branch is not None), branch)
+        if solver.native is not None:
+            q = start[chunk]
+            status, norm, iterations, platform, _ = solver.native.inverse_rows(
+                q, goal[chunk], None if goal_rot is None else goal_rot[chunk], branch, _CHORD_BELOW,
+                int(branch is not None), (solver.tolerance, solver.max_iterations, solver.singular_rcond), workers)
+            solved = _Solved(q, status, norm, iterations, platform[:, :3, :3], platform[:, :3, 3])
+        else:
+            solved = newton_batch(start[chunk], every, lambda q, a, jacobian: system(q, chunk[a], jacobian),
+                                  signature, solver.tolerance, solver.max_iterations, solver.singular_rcond,
+                                  int(branch is not None), branch)
         sliders = solved.q[:, kin.actuated]
         outside = ((sliders < solver._act_lower) | (sliders > solver._act_upper)) & \
             (solved.status == _CONVERGED)[:, None]

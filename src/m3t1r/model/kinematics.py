@@ -719,10 +719,11 @@ class ClosedLoopSolver:
         """
         return forward_batch(self._batch_kinematics(), actuators, q_init, threads)
 
-    def inverse_batch(self, targets: np.ndarray, q_init: np.ndarray | None = None):
+    def inverse_batch(self, targets: np.ndarray, q_init: np.ndarray | None = None, threads: int | None = None):
         """Inverse kinematics of n targets (n, 4) rows (x, y, z, theta) [m, rad] at once; returns an
-        `InverseBatch` (`.actuators`, `.poses`, `.tilt`, ... of the converged rows, `.failures`)."""
-        return inverse_batch(self._batch_kinematics(), targets, q_init)
+        `InverseBatch` (`.actuators`, `.poses`, `.tilt`, ... of the converged rows, `.failures`).
+        Compiled loop and threads as `forward_batch`."""
+        return inverse_batch(self._batch_kinematics(), targets, q_init, threads)
 
     def _batch_kinematics(self):
         if self._stacked is None:

@@ -144,17 +144,34 @@ class NativeChain:
     def forward_rows(self, q: np.ndarray, start_branch: np.ndarray | None, chord_below: float, steps_taken: int,
                      limits: tuple[float, int, float], threads: int = 1
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Newton for every row of q (n, nq) (solved in place, no predictor), chord steps only from
+        """FK's Newton for every row of q (n, nq) (solved in place, no predictor), chord steps only from
         residuals at or below `chord_below`, iterations counted from `steps_taken`, rows shared among
-        `threads` threads (at least 64 rows each; the results do not depend on it). Returns per row
-        (status, max |row|, iterations, platform (n, 4, 4), task frame (n, 4, 4)); poses are valid where
-        status is 0."""
+        `threads` threads (at least 64 rows each; the results do not depend on it). start_branch: the
+        labels every row must end with (None: each row's at its start). Returns per row (status,
+        max |row|, iterations, platform (n, 4, 4), task frame (n, 4, 4)); poses are valid where status is 0."""
+        return self._rows(False, q, start_branch, _EMPTY, _EMPTY, chord_below, steps_taken, limits, threads)
+
+    def inverse_rows(self, q: np.ndarray, goals: np.ndarray, rotations: np.ndarray | None,
+                     start_branch: np.ndarray | None, chord_below: float, steps_taken: int,
+                     limits: tuple[float, int, float], threads: int = 1
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """IK's Newton for every row of q (n, nq), row i toward goals[i] (task coordinates) and
+        rotations[i] (3 x 3, a full-rotation task; None otherwise); as `forward_rows` otherwise, the
+        labels being the blocks' then sign(det) of the whole system."""
+        n = len(q)
+        turns = np.broadcast_to(self._identity, (n, 3, 3)) if rotations is None else rotations
+        return self._rows(True, q, start_branch, np.ascontiguousarray(goals, dtype=float),
+                          np.ascontiguousarray(turns, dtype=float), chord_below, steps_taken, limits, threads)
+
+    def _rows(self, inverse: bool, q: np.ndarray, start_branch: np.ndarray | None, goals: np.ndarray,
+              rotations: np.ndarray, chord_below: float, steps_taken: int, limits: tuple[float, int, float],
+              threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         n = len(q)
         status, norm, iterations = np.zeros(n, dtype=np.int64), np.zeros(n), np.zeros(n, dtype=np.int64)
         platform, task = np.zeros((n, 4, 4)), np.zeros((n, 4, 4))
         branch = b"" if start_branch is None else np.asarray(start_branch, dtype=np.uint8).tobytes()
-        _native_newton.forward_rows(self._handle, q, branch, float(chord_below), int(steps_taken), status, norm,
-                                    iterations, platform, task, *limits, int(threads))
+        _native_newton.rows(self._handle, inverse, q, branch, goals, rotations, float(chord_below), int(steps_taken),
+                            status, norm, iterations, platform, task, *limits, int(threads))
         return status, norm, iterations, platform, task
 
 
