@@ -323,3 +323,22 @@ def test_inverse_batch_of_a_tool_and_of_the_example_mechanisms_match(tool_machin
     for files in (five_bar_files, spherical_wrist_files):  # planar x, y; full rotation (from home, no first step)
         machine = Mechanism.load(*files(tmp_path / files.__name__))
         _compare_inverse_batches(machine, _targets(machine, 40, 6))
+
+
+def test_a_batch_in_another_thread_does_not_disturb_single_solves(mechanism):
+    """The batch runs without the GIL; single solves of the same solver from this thread meanwhile
+    wait for its lock instead of sharing its buffers: both give what they give alone."""
+    import threading
+
+    cloud = NOMINAL.workspace.sample(np.random.default_rng(10), 3000)
+    sliders = ClosedLoopSolver(mechanism).inverse_batch(cloud).actuators
+    path = _path(ClosedLoopSolver(mechanism), 100)
+    alone_batch = ClosedLoopSolver(mechanism).forward_batch(sliders)
+    alone_path = [ClosedLoopSolver(mechanism).forward(values, q_init=mechanism.home).q for values in path]
+    solver, out = ClosedLoopSolver(mechanism), {}
+    worker = threading.Thread(target=lambda: out.setdefault("batch", solver.forward_batch(sliders, threads=2)))
+    worker.start()
+    shared = [solver.forward(values, q_init=mechanism.home).q for values in path]
+    worker.join()
+    np.testing.assert_array_equal(out["batch"].q, alone_batch.q)
+    np.testing.assert_array_equal(np.array(shared), np.array(alone_path))

@@ -27,6 +27,7 @@
 #include <limits>
 #include <memory>
 #include <string>
+#include <mutex>
 #include <thread>
 #include <algorithm>
 #include <vector>
@@ -312,12 +313,20 @@ pinocchio::JointModel joint_of(long long kind, const double * axis) {
   }
 }
 
+// What the capsule owns: the chain, and a lock held by every solve on it. A batch releases the GIL
+// while it runs; a single solve from another Python thread then waits for the lock instead of
+// sharing the chain's buffers (it holds the GIL meanwhile, which the batch needs only after unlocking).
+struct Handle {
+  Chain chain;
+  std::mutex lock;
+};
+
 void destroy(PyObject * capsule) {
-  delete static_cast<Chain *>(PyCapsule_GetPointer(capsule, "m3t1r.Chain"));
+  delete static_cast<Handle *>(PyCapsule_GetPointer(capsule, "m3t1r.Chain"));
 }
 
-Chain * chain_of(PyObject * capsule) {
-  return static_cast<Chain *>(PyCapsule_GetPointer(capsule, "m3t1r.Chain"));
+Handle * handle_of(PyObject * capsule) {
+  return static_cast<Handle *>(PyCapsule_GetPointer(capsule, "m3t1r.Chain"));
 }
 
 // build(joints (J,2) int64 [parent, kind], axes (J,3), placements (J,4,4), frame_parents (F,) int64,
@@ -349,7 +358,8 @@ PyObject * build(PyObject *, PyObject * args) {
       || !unknowns.get(o[13], false, 'q', -1, "unknowns") || !taxes.get(o[14], false, 'q', -1, "task_axes")
       || !tcols.get(o[15], false, 'q', -1, "task_columns"))
     return nullptr;
-  auto c = std::make_unique<Chain>();
+  auto handle = std::make_unique<Handle>();
+  Chain * c = &handle->chain;
   for (Py_ssize_t j = 0; j < n_joints; ++j) {
     const long long parent = joints.q()[2 * j];
     if (parent < 0 || parent > j) {
@@ -419,7 +429,7 @@ PyObject * build(PyObject *, PyObject * args) {
   c->jacobian = Matrix::Zero(c->ik.rows, nv);
   c->step = Vector::Zero(c->ik.rows);
   c->now.resize(c->blocks.size() + 1);
-  return PyCapsule_New(c.release(), "m3t1r.Chain", destroy);
+  return PyCapsule_New(handle.release(), "m3t1r.Chain", destroy);
 }
 
 bool set_limits(Chain * c, double tolerance, int max_iterations, double singular_rcond) {
@@ -443,8 +453,10 @@ PyObject * forward(PyObject *, PyObject * args) {
   if (!PyArg_ParseTuple(args, "OOOiOOOpOOdid", &capsule, &oq, &osliders, &order, &otangent, &oprevious, &obranch,
                         &has_start, &oplatform, &otask, &tolerance, &max_iterations, &singular_rcond))
     return nullptr;
-  Chain * c = chain_of(capsule);
-  if (c == nullptr) return nullptr;
+  Handle * handle = handle_of(capsule);
+  if (handle == nullptr) return nullptr;
+  const std::lock_guard<std::mutex> guard(handle->lock);
+  Chain * c = &handle->chain;
   set_limits(c, tolerance, max_iterations, singular_rcond);
   const size_t n_passive = c->fk.unknowns.size(), n_act = c->actuated.size();
   Buffer bq, bsliders, btangent, bprevious, bbranch, bplatform, btask;
@@ -500,8 +512,10 @@ PyObject * inverse(PyObject *, PyObject * args) {
                         &oprot, &opq, &obranch, &has_start, &oplatform, &otask, &tolerance, &max_iterations,
                         &singular_rcond))
     return nullptr;
-  Chain * c = chain_of(capsule);
-  if (c == nullptr) return nullptr;
+  Handle * handle = handle_of(capsule);
+  if (handle == nullptr) return nullptr;
+  const std::lock_guard<std::mutex> guard(handle->lock);
+  Chain * c = &handle->chain;
   set_limits(c, tolerance, max_iterations, singular_rcond);
   Task & t = c->task_spec;
   const size_t n_unknowns = c->ik.unknowns.size();
@@ -598,8 +612,9 @@ void solve_rows(Chain & c, bool inverse, const Rows & r, Py_ssize_t begin, Py_ss
   }
 }
 
-// The rows on `threads` threads (at least 64 rows each), each with a copy of the chain: rows are
-// independent, so the results do not depend on the thread count. Call without the GIL.
+// The rows on `threads` threads (at least 64 rows each): the first on the chain itself, the others on
+// copies of it. Rows are independent: the results do not depend on the thread count. Call without the
+// GIL, holding the chain's lock.
 void solve_rows_threaded(Chain & c, bool inverse, const Rows & r, Py_ssize_t n, int threads) {
   const Py_ssize_t workers = std::max<Py_ssize_t>(1, std::min<Py_ssize_t>(threads, n / 64));
   const Py_ssize_t share = (n + workers - 1) / workers;
@@ -625,9 +640,9 @@ PyObject * rows(PyObject *, PyObject * args) {
                         &steps_taken, &ostatus, &onorm, &oiter, &oplatform, &otask, &tolerance, &max_iterations,
                         &singular_rcond, &threads))
     return nullptr;
-  Chain * c = chain_of(capsule);
-  if (c == nullptr) return nullptr;
-  set_limits(c, tolerance, max_iterations, singular_rcond);
+  Handle * handle = handle_of(capsule);
+  if (handle == nullptr) return nullptr;
+  Chain * c = &handle->chain;
   Buffer bq, bbranch, bgoals, brots, bstatus, bnorm, biter, bplatform, btask;
   if (!bq.get(oq, true, 'd', -1, "q") || !bbranch.get(obranch, false, 'B', -1, "branch")
       || !bgoals.get(ogoals, false, 'd', -1, "goals") || !brots.get(orots, false, 'd', -1, "rotations"))
@@ -649,7 +664,11 @@ PyObject * rows(PyObject *, PyObject * args) {
   Rows r{bq.d(), bbranch.items() > 0 ? bbranch.b() : nullptr, bgoals.d(), brots.d(), width, chord_below, steps_taken,
          bstatus.q(), bnorm.d(), biter.q(), bplatform.d(), btask.d()};
   Py_BEGIN_ALLOW_THREADS
-  solve_rows_threaded(*c, inverse != 0, r, n, threads);
+  {
+    const std::lock_guard<std::mutex> guard(handle->lock);  // released before the GIL is taken back
+    set_limits(c, tolerance, max_iterations, singular_rcond);
+    solve_rows_threaded(*c, inverse != 0, r, n, threads);
+  }
   Py_END_ALLOW_THREADS
   return PyLong_FromSsize_t(n);
 }
