@@ -342,3 +342,55 @@ def test_a_batch_in_another_thread_does_not_disturb_single_solves(mechanism):
     worker.join()
     np.testing.assert_array_equal(out["batch"].q, alone_batch.q)
     np.testing.assert_array_equal(np.array(shared), np.array(alone_path))
+
+
+def test_available_cores_follows_the_affinity_else_the_cpu_count(monkeypatch):
+    import os
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {3} if pid == 0 else set(), raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: 7)
+    assert native.available_cores() == 1
+    monkeypatch.delattr(os, "sched_getaffinity")
+    assert native.available_cores() == 7
+    monkeypatch.setattr(os, "cpu_count", lambda: None)  # "undetermined"
+    assert native.available_cores() == 1
+
+
+def test_labels_no_solution_can_have_fail_every_row_and_solve(mechanism):
+    """Given labels are what rows and solves must end with: labels of another length, or 2 (labels
+    are 0 or 1), fail them all with BranchChangeError (status 4); without labels they succeed."""
+    solver = ClosedLoopSolver(mechanism)
+    chain, limits = solver.native, (1e-12, 60, 1e-10)
+    blocks = len(solver._branch_blocks)
+    start = np.repeat(mechanism.home[None, :], 3, axis=0)
+    start[:, solver.actuated] += np.linspace(0.0, 0.01, 3)[:, None]
+    assert list(chain.forward_rows(start.copy(), None, 1e-4, 0, limits)[0]) == [0, 0, 0]
+    assert list(chain.forward_rows(start.copy(), np.full(blocks, 2), 1e-4, 0, limits)[0]) == [4, 4, 4]
+    goals = np.ascontiguousarray(mechanism.task.coordinates(
+        ClosedLoopSolver(mechanism).forward_batch(start[:, solver.actuated]).task_poses))
+    assert list(chain.inverse_rows(start.copy(), goals, None, None, 1e-4, 0, limits)[0]) == [0, 0, 0]
+    assert list(chain.inverse_rows(start.copy(), goals, None, np.full(blocks + 1, 2), 1e-4, 0, limits)[0]) == [4] * 3
+    sliders = start[1, solver.actuated]
+    for labels in (b"\x01", bytes(blocks + 1), b"\x02" * blocks):
+        assert chain.forward(mechanism.home.copy(), sliders, 0, None, labels, limits)[0] == 4
+    for labels in (b"\x01", bytes(blocks), b"\x02" * (blocks + 1)):
+        assert chain.inverse(mechanism.home.copy(), goals[1], None, 0, None, labels, limits)[0] == 4
+    assert chain.inverse(mechanism.home.copy(), goals[1], None, 0, None, None, limits)[0] == 0
+
+
+def test_a_task_that_is_not_square_still_gets_the_compiled_forward(tmp_path):
+    """IK needs as many task rows as actuators; FK does not: the five-bar commanding x, y, z (3 rows
+    for 2 sliders) solves FK in the compiled loop as in the Python one, and IK is refused by name."""
+    from test_mechanisms import _edit_yaml
+
+    from m3t1r.errors import InvalidInputError
+
+    urdf, closures = five_bar_files(tmp_path)
+    _edit_yaml(closures, lambda d: d["task"].update(position=["x", "y", "z"]))
+    machine = Mechanism.load(urdf, closures)
+    assert ClosedLoopSolver(machine).native is not None
+    low, high = machine.joint_limits()
+    home = machine.home[machine.actuated_ids]
+    _compare_paths(machine, np.clip(home + np.linspace(0, 1, 20)[:, None] * 0.05 * (high - low), low, high))
+    with pytest.raises(InvalidInputError, match="as many task coordinates as actuators"):
+        ClosedLoopSolver(machine).inverse(np.zeros(3))
