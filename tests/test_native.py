@@ -394,3 +394,22 @@ def test_a_task_that_is_not_square_still_gets_the_compiled_forward(tmp_path):
     _compare_paths(machine, np.clip(home + np.linspace(0, 1, 20)[:, None] * 0.05 * (high - low), low, high))
     with pytest.raises(InvalidInputError, match="as many task coordinates as actuators"):
         ClosedLoopSolver(machine).inverse(np.zeros(3))
+
+
+def test_a_module_compiled_from_other_source_is_not_used(monkeypatch):
+    """The build stamps the source's sha256 into the module; an edited source (or an old build) makes
+    `native` warn and leave the Python loops in charge rather than call a module of another interface."""
+    import hashlib
+    import importlib
+    from pathlib import Path
+
+    source = Path(native.__file__).with_name("_native_newton.cpp")
+    assert native._native_newton.source_sha256 == hashlib.sha256(source.read_bytes()).hexdigest()
+    module = native._native_newton
+    monkeypatch.setattr(module, "source_sha256", "0" * 64)
+    try:
+        with pytest.warns(RuntimeWarning, match="older than its source"):
+            assert importlib.reload(native).AVAILABLE is False
+    finally:
+        monkeypatch.undo()
+        assert importlib.reload(native).AVAILABLE is True

@@ -12,6 +12,7 @@ Run: python tools/build_native.py [--force]   (about a minute of g++; skipped wh
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
 import shutil
 import subprocess
@@ -51,8 +52,10 @@ def main(argv: list[str] | None = None) -> int:
     if shutil.which(compiler) is None:
         raise SystemExit(f"build_native: no C++ compiler ({compiler}); the pure-Python solver will run")
     partial = out.with_suffix(".partial")
+    digest = hashlib.sha256(SOURCE.read_bytes()).hexdigest()  # m3t1r.model.native refuses a module of other source
     command = [compiler, "-O2", "-std=c++17", "-shared", "-fPIC", "-pthread", "-fvisibility=hidden", "-w",
-               *(f"-D{d}" for d in DEFINES), *(f"-I{d}" for d in include_dirs()), str(SOURCE), "-o", str(partial)]
+               *(f"-D{d}" for d in DEFINES), f'-DM3T1R_SOURCE_SHA256="{digest}"',
+               *(f"-I{d}" for d in include_dirs()), str(SOURCE), "-o", str(partial)]
     print("build_native: compiling", SOURCE.name, "(about a minute)", flush=True)
     if subprocess.run(command).returncode != 0:
         partial.unlink(missing_ok=True)

@@ -686,4 +686,16 @@ PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native_newton",
 
 }  // namespace
 
-PyMODINIT_FUNC PyInit__native_newton(void) { return PyModule_Create(&module); }
+#ifndef M3T1R_SOURCE_SHA256
+#define M3T1R_SOURCE_SHA256 "unknown"
+#endif
+
+PyMODINIT_FUNC PyInit__native_newton(void) {
+  PyObject * m = PyModule_Create(&module);
+  // The sha256 of this file when it was compiled: m3t1r.model.native uses the module only if it matches.
+  if (m != nullptr && PyModule_AddStringConstant(m, "source_sha256", M3T1R_SOURCE_SHA256) != 0) {
+    Py_DECREF(m);
+    return nullptr;
+  }
+  return m;
+}

@@ -11,7 +11,10 @@ copy of a machine gets its own. Trees of 1-DoF revolute and prismatic joints onl
 
 from __future__ import annotations
 
+import hashlib
 import os
+import warnings
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -20,6 +23,16 @@ import pinocchio as pin
 try:
     from m3t1r.model import _native_newton  # type: ignore[attr-defined]
 except ImportError:  # not compiled: the pure-Python Newton runs
+    _native_newton = None
+
+_SOURCE = Path(__file__).with_name("_native_newton.cpp")
+if _native_newton is not None and _SOURCE.exists() and \
+        getattr(_native_newton, "source_sha256", "") != hashlib.sha256(_SOURCE.read_bytes()).hexdigest():
+    # Compiled from another version of the source (edited since, or an old build): its calls may not
+    # match this module's. The Python loops run until `make native` rebuilds it.
+    warnings.warn(f"{_SOURCE.with_suffix('').name}: the compiled Newton loop is older than its source; using "
+                  "the Python loop (rebuild: make native, or python tools/build_native.py)", RuntimeWarning,
+                  stacklevel=2)
     _native_newton = None
 
 if TYPE_CHECKING:
