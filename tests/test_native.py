@@ -413,3 +413,18 @@ def test_a_module_compiled_from_other_source_is_not_used(monkeypatch):
     finally:
         monkeypatch.undo()
         assert importlib.reload(native).AVAILABLE is True
+
+
+def test_a_locked_gauge_joint_stays_out_of_the_compiled_ik(tmp_path):
+    """The welded double hinge locks one joint: the compiled IK solves the other columns, as the Python one."""
+    import warnings
+
+    from test_mechanisms import _welded_double_hinge
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        hinge = Mechanism.load(*_welded_double_hinge(tmp_path))
+    assert len(hinge.locked_joints) == 1
+    _compare_inverse(hinge, _targets(hinge, 20, 7))
+    result = ClosedLoopSolver(hinge).inverse(_targets(hinge, 3, 8)[-1], q_init=hinge.home)
+    assert result.q[hinge.locked_ids] == hinge.home[hinge.locked_ids]
