@@ -476,10 +476,11 @@ def test_warm_inverse_with_a_locked_joint_steps_the_unlocked_columns(tmp_path):
         assert warm.q[hinge.locked_ids] == hinge.home[hinge.locked_ids]
 
 
-def test_an_explicit_start_takes_its_own_branch_not_the_warm_one(mechanism):
+@pytest.mark.parametrize("compiled", [True, False])
+def test_an_explicit_start_takes_its_own_branch_not_the_warm_one(mechanism, compiled):
     """With q_init the branch is labelled at that start: the warm solve's branch is not asked for
-    (here one no solve can have), in IK as in FK."""
-    solver = ClosedLoopSolver(mechanism)
+    (here one no solve can have), in IK as in FK, in both Newton loops."""
+    solver = ClosedLoopSolver(mechanism, native=compiled)
     solution = solver.inverse(TARGET)
     solver._last_inverse_branch = b"\x02"
     assert solver.inverse(TARGET, q_init=mechanism.home).residual <= 1e-12
@@ -634,7 +635,7 @@ def test_forward_records_the_predictor_history_and_the_branch(mechanism, compile
     solver = ClosedLoopSolver(mechanism, native=compiled)
     home_sliders = mechanism.home[mechanism.actuated_ids]
     history = []
-    for change, start in ((0.01, mechanism.home), (0.02, None), (0.03, mechanism.home)):
+    for change, start in ((0.01, mechanism.home), (0.02, None), (0.03, mechanism.home), (0.04, None)):
         before = solver.last_q.copy()
         result = solver.forward(home_sliders + change, q_init=start)
         assert solver._last_branch == solver._branch(solver.closure_jacobian(result.q))
@@ -646,7 +647,8 @@ def test_forward_records_the_predictor_history_and_the_branch(mechanism, compile
             np.testing.assert_array_equal(previous[1], before[solver.passive])
     np.testing.assert_array_equal(history[0], home_sliders)
     np.testing.assert_allclose(history[1], home_sliders + 0.01, atol=0.0)
-    assert history[2] is None
+    assert history[2] is None  # a cold solve after a warm one: no history, so the next is first order
+    np.testing.assert_allclose(history[3], home_sliders + 0.03, atol=0.0)
 
 
 def test_inverse_beyond_an_actuator_limit_reports_the_converged_solve(mechanism):

@@ -46,7 +46,10 @@ def _compare_paths(machine: Mechanism, sliders: np.ndarray) -> None:
         np.testing.assert_allclose(a.q, b.q, atol=1e-12)
         np.testing.assert_allclose(a.pose.homogeneous, b.pose.homogeneous, atol=1e-12)
         np.testing.assert_allclose(a.task_pose.homogeneous, b.task_pose.homogeneous, atol=1e-12)
-        assert a.iterations == b.iterations and a.residual <= 1e-12
+        assert a.iterations == b.iterations and a.residual <= 1e-12 and b.residual <= 1e-12
+        assert abs(a.residual - b.residual) <= 1e-13
+        on_platform = machine.task.frame == machine.model.frames[machine.platform_frame_id].name
+        assert (a.task_pose is a.pose) == on_platform and (b.task_pose is b.pose) == on_platform
         assert compiled._last_branch == python._last_branch
         np.testing.assert_allclose(compiled._tangent, python._tangent, atol=1e-10)
     assert not np.shares_memory(a.q, compiled.last_q)
@@ -428,3 +431,82 @@ def test_a_locked_gauge_joint_stays_out_of_the_compiled_ik(tmp_path):
     _compare_inverse(hinge, _targets(hinge, 20, 7))
     result = ClosedLoopSolver(hinge).inverse(_targets(hinge, 3, 8)[-1], q_init=hinge.home)
     assert result.q[hinge.locked_ids] == hinge.home[hinge.locked_ids]
+
+
+def _failure(solve):
+    try:
+        solve()
+    except M3t1rError as error:
+        return error
+    raise AssertionError("the solve did not fail")
+
+
+def test_failures_read_word_for_word_as_the_python_loop_s(mechanism, monkeypatch):
+    """Each typed failure of FK and IK: the same class, message, iterations and residual (to rounding)."""
+    low, high = mechanism.joint_limits()
+    far = np.array([low[0], high[1], low[2], high[3]])
+    near = mechanism.home[mechanism.actuated_ids] + np.array([0.01, -0.005, 0.0, 0.004])
+    scenarios = {
+        "no assembly (FK)": lambda s: s.forward(far, q_init=mechanism.home),
+        "no assembly (IK)": lambda s: s.inverse(np.array([0.5, 0.5, 0.4, 0.0]), q_init=mechanism.home),
+        "branch (IK)": lambda s: s.inverse(np.array([0.52, 0.52, -0.11, 3.0]), q_init=mechanism.home),
+        "not converged": lambda s: setattr(s, "tolerance", 1e-30) or s.forward(near, q_init=mechanism.home),
+        "singular": lambda s: s.forward(near, q_init=mechanism.home),
+    }
+    for name, scenario in scenarios.items():
+        if name == "singular":
+            monkeypatch.setattr("m3t1r.model.kinematics.SINGULAR_RCOND", 2.0)  # what the Python single solve reads
+        errors = []
+        for use in (True, False):
+            solver = ClosedLoopSolver(mechanism, native=use)
+            solver.singular_rcond = 2.0 if name == "singular" else solver.singular_rcond
+            errors.append(_failure(lambda: scenario(solver)))
+        a, b = errors
+        assert type(a) is type(b) and a.iterations == b.iterations, name
+        message_a, message_b = (str(e).split(" (residual")[0] for e in errors)  # the residual is compared below
+        if name == "singular":  # the reciprocal condition's last digits may differ
+            assert message_a[:42] == message_b[:42] == "singular configuration (reciprocal conditi"
+            assert abs(float(message_a.split()[-1][:-1]) - float(message_b.split()[-1][:-1])) < 1e-3
+        else:
+            assert message_a == message_b, name
+        if not name.startswith("no assembly"):  # sixty steps far from any solution end wherever rounding takes them
+            assert abs(a.residual - b.residual) <= 1e-9 * max(1.0, abs(b.residual)), name
+
+
+def test_fk_and_ik_in_turn_match_the_python_loop(mechanism):
+    """Warm starts handed between FK and IK (IK's solution starts FK without its tangent; FK's starts IK
+    without its predictor), with cold solves in between: both loops take the same steps."""
+    targets = _targets(mechanism, 24, 11)
+    compiled, python = ClosedLoopSolver(mechanism), ClosedLoopSolver(mechanism, native=False)
+    for k, target in enumerate(targets):
+        for solver in (compiled, python):
+            solver.results = getattr(solver, "results", [])
+            start = mechanism.home if k % 7 == 3 else None
+            ik = solver.inverse(target, q_init=start)
+            fk = solver.forward(ik.actuators + 1e-4 * (k % 3), q_init=start if k % 5 == 4 else None)
+            solver.results.append((ik.q, ik.iterations, fk.q, fk.iterations))
+    for (qa, ia, fa, ja), (qb, ib, fb, jb) in zip(compiled.results, python.results):
+        np.testing.assert_allclose(qa, qb, atol=1e-12)
+        np.testing.assert_allclose(fa, fb, atol=1e-12)
+        assert (ia, ja) == (ib, jb)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_warm_inverse_keeps_the_last_solution_s_branch(mechanism, compiled):
+    """Without q_init, IK must end on the branch of its last solution (and working mode): a label no
+    solve can have (set by hand) makes it refuse what it finds; with q_init it takes the start's."""
+    solver = ClosedLoopSolver(mechanism, native=compiled)
+    targets = _targets(mechanism, 3, 12)
+    solver.inverse(targets[0])
+    solver._last_inverse_branch = b"\x02" * (len(solver._branch_blocks) + 1)
+    with pytest.raises(BranchChangeError):
+        solver.inverse(targets[1])
+    solver._last_inverse_branch = b"\x02" * (len(solver._branch_blocks) + 1)
+    assert solver.inverse(targets[2], q_init=mechanism.home).residual <= 1e-12
+
+
+def test_a_bad_thread_count_is_refused_by_inverse_batch_too(solver):
+    from m3t1r.errors import InvalidInputError
+
+    with pytest.raises(InvalidInputError, match="threads"):
+        solver.inverse_batch(np.zeros((2, 4)), threads=0)

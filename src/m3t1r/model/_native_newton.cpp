@@ -213,7 +213,7 @@ bool factor(Chain & c, System & s) {
 
 struct Outcome {
   int status, iterations;
-  double norm;
+  double norm, rcond = 0.0;  // rcond: the reciprocal condition of a singular outcome (0: a zero pivot)
 };
 
 // Newton from q over the system's unknowns. `branch` holds the labels the solution must have when
@@ -246,7 +246,7 @@ Outcome newton(Chain & c, System & s, Vector & q, unsigned char * branch, bool h
       s.inverse_matrix = s.lu.inverse();
       const double rcond = 1.0 / (s.square.cwiseAbs().colwise().sum().maxCoeff()
                                   * s.inverse_matrix.cwiseAbs().colwise().sum().maxCoeff());
-      if (!(rcond >= c.singular_rcond)) return {SINGULAR, iteration, norm};
+      if (!(rcond >= c.singular_rcond)) return {SINGULAR, iteration, norm, rcond == rcond ? rcond : 0.0};
       labels(c, s, c.now.data());
       if (std::memcmp(c.now.data(), branch, n_labels) != 0) return {BRANCH_CHANGE, iteration, norm};
       return {CONVERGED, iteration, norm};
@@ -441,7 +441,7 @@ bool set_limits(Chain * c, double tolerance, int max_iterations, double singular
 
 // forward(chain, q (nq,) in/out, sliders (A,), order, tangent (P*A,) in/out, previous (A+P,),
 //         branch (B,) uint8 in/out, has_start, platform (16,) out, task (16,) out,
-//         tolerance, max_iterations, singular_rcond) -> (status, residual, iterations)
+//         tolerance, max_iterations, singular_rcond) -> (status, residual, iterations, rcond of a singular end)
 // q: the last solution; `order` 1 or 2 moves its passive joints by the predictor of
 // ClosedLoopSolver._predict (tangent T of the last success; order 2 adds lam^2 (p_prev - p + T e) with
 // e = a - a_prev, lam = (d . e) / (e . e), d the slider change, previous = (a_prev, p_prev)); then the
@@ -493,13 +493,13 @@ PyObject * forward(PyObject *, PyObject * args) {
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
   }
-  return Py_BuildValue("(idi)", out.status, out.norm, out.iterations);
+  return Py_BuildValue("(idid)", out.status, out.norm, out.iterations, out.rcond);
 }
 
 // inverse(chain, q (nq,) in/out, goal (task coordinates), goal_rotation (9,), order, task_inverse (U*T,) in/out,
 //         last_task (16,), previous_goal (task coordinates), previous_rotation (9,), previous_q (nq,),
 //         branch (B+1,) uint8 in/out, has_start, platform (16,) out, task (16,) out,
-//         tolerance, max_iterations, singular_rcond) -> (status, residual, iterations)
+//         tolerance, max_iterations, singular_rcond) -> (status, residual, iterations, rcond of a singular end)
 // q: the last solution; `order` 1 or 2 moves its unknown joints by ClosedLoopSolver._inverse_step's
 // predictor (X the task columns of the last inverse, r the new goal's task rows at last_task; order 2
 // adds lam^2 (q_prev - q + X b), b the previous goal's rows, lam = -(r . b) / (b . b)). Chord steps
@@ -564,7 +564,7 @@ PyObject * inverse(PyObject *, PyObject * args) {
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
   }
-  return Py_BuildValue("(idi)", out.status, out.norm, out.iterations);
+  return Py_BuildValue("(idid)", out.status, out.norm, out.iterations, out.rcond);
 }
 
 // Where a row batch reads and writes: q (n, nq) in/out, optional labels every row must end with, per-row

@@ -143,7 +143,7 @@ class _BranchSignature:
         return bytes(signs)
 
 
-def _native_error(status: int, norm: float, iterations: int) -> Exception:
+def _native_error(status: int, norm: float, iterations: int, rcond: float) -> Exception:
     """The typed error of a compiled solve's status, worded as `_newton`'s."""
     if status == 1:
         return OutOfWorkspaceError("the closures cannot be assembled here (target out of the workspace or too far "
@@ -151,8 +151,8 @@ def _native_error(status: int, norm: float, iterations: int) -> Exception:
     if status == 2:
         return NotConvergedError("Newton did not reach the tolerance", norm, iterations)
     if status == 3:
-        return SingularConfigurationError(f"singular configuration (reciprocal condition below {SINGULAR_RCOND:.0e})",
-                                          norm, iterations)
+        return SingularConfigurationError(f"singular configuration (reciprocal condition {rcond:.2e})", norm,
+                                          iterations)
     return BranchChangeError("the solution lies on another assembly branch than the start (Newton crossed a "
                              "singularity)", norm, iterations)
 
@@ -469,11 +469,11 @@ class ClosedLoopSolver:
         native, previous = self.native, self._previous
         order = (1 if previous is None else 2) if warm and self._tangent is not None else 0
         self._tangent = self._previous = self._last_goal = self._inverse_previous = None  # until this succeeds
-        status, norm, iterations = native.forward(q, values, order, previous if order == 2 else None,
-                                                  self._last_branch if warm else None,
-                                                  (self.tolerance, self.max_iterations, self.singular_rcond))
+        status, norm, iterations, rcond = native.forward(q, values, order, previous if order == 2 else None,
+                                                         self._last_branch if warm else None,
+                                                         (self.tolerance, self.max_iterations, self.singular_rcond))
         if status != _native_converged:
-            raise _native_error(status, norm, iterations)
+            raise _native_error(status, norm, iterations, rcond)
         self._tangent = native.tangent  # overwritten only by the next success, which reads it first
         if warm or previous is None:
             self._previous = self.last_q.take(self._prior_columns)
@@ -632,10 +632,11 @@ class ClosedLoopSolver:
         place): (q, residual, iterations, branch, task columns of the inverse, task frame, platform pose)
         as the Python loop gives them; `data` is not moved to the solution."""
         native = self.native
-        status, residual, iterations = native.inverse(q, goal, goal_rotation, order, self._inverse_previous, start,
-                                                      (self.tolerance, self.max_iterations, self.singular_rcond))
+        status, residual, iterations, rcond = native.inverse(q, goal, goal_rotation, order, self._inverse_previous,
+                                                             start, (self.tolerance, self.max_iterations,
+                                                                     self.singular_rcond))
         if status != _native_converged:
-            raise _native_error(status, residual, iterations)
+            raise _native_error(status, residual, iterations, rcond)
         return (q, residual, iterations, bytes(native.inverse_branch), native.task_inverse,
                 pin.SE3(native.inverse_task), pin.SE3(native.inverse_platform))
 

@@ -117,7 +117,7 @@ class NativeChain:
         return cls(handle, len(blocks), len(passive), len(actuated), len(ik_columns), task.dimension if square else 0)
 
     def forward(self, q: np.ndarray, sliders: np.ndarray, order: int, previous: np.ndarray | None,
-                start_branch: bytes | None, limits: tuple[float, int, float]) -> tuple[int, float, int]:
+                start_branch: bytes | None, limits: tuple[float, int, float]) -> tuple[int, float, int, float]:
         """FK from the last solution q (nq, float64, solved in place) to `sliders` (float64).
 
         order: 0 no predictor, 1 first order along `tangent` (the last success's), 2 also second order
@@ -125,7 +125,7 @@ class NativeChain:
         (`ClosedLoopSolver._predict`). start_branch: the labels the solution must have (None: those at
         its start); limits: (tolerance [m or rad], max_iterations, singular_rcond). On success
         `tangent`, `platform`, `task` and `branch` hold the solution's. Returns (status, max |row|,
-        iterations).
+        iterations, reciprocal condition of a singular end (0 for a zero pivot) or 0).
         """
         if start_branch is not None:  # labels are 0 or 1: a label of another length cannot be met
             self.branch[:] = start_branch if len(start_branch) == self.n_blocks else b"\xff" * self.n_blocks
@@ -135,7 +135,7 @@ class NativeChain:
 
     def inverse(self, q: np.ndarray, goal: np.ndarray, goal_rotation: np.ndarray | None, order: int,
                 previous: tuple | None, start_branch: bytes | None, limits: tuple[float, int, float]
-                ) -> tuple[int, float, int]:
+                ) -> tuple[int, float, int, float]:
         """IK from the last solution q (solved in place) on [closure rows; task rows] with `goal` (task
         coordinates) and `goal_rotation` (3 x 3, a full-rotation task).
 
