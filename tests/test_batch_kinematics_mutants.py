@@ -499,10 +499,11 @@ def test_forward_batch_every_row_beyond_its_limits(five_bar):
     assert list(batch.ok) == [False, False]
 
 
-def test_forward_batch_predictor_from_home_and_given_starts(five_bar):
+@pytest.mark.parametrize("compiled", [True, False])
+def test_forward_batch_predictor_from_home_and_given_starts(five_bar, compiled):
     """From home's tangent the predictor is step 1 (home itself: converged at 1); from q_init = home,
-    plain Newton. Both end on the same poses; q_init is neither modified nor shared."""
-    solver = ClosedLoopSolver(five_bar)
+    plain Newton. Both end on the same poses; q_init is neither modified nor shared. Both Newton loops."""
+    solver = ClosedLoopSolver(five_bar, native=compiled)
     sliders = np.array([[2.73, 0.41], [2.9, 0.8], [1.93, 1.21], [2.33, 0.81]])
     predicted = solver.forward_batch(sliders)
     assert list(predicted.indices) == [0, 2, 3] and list(predicted.iterations) == [4, 4, 1]
@@ -524,8 +525,11 @@ def test_forward_batch_predictor_from_home_and_given_starts(five_bar):
     assert kin.home_reference()[0] is tangent  # computed once
 
 
-def test_forward_batch_failures_sorted_by_row(solver):
-    """A row that cannot close (row 0) and a slider beyond its limit (row 1): reported in row order."""
+@pytest.mark.parametrize("compiled", [True, False])
+def test_forward_batch_failures_sorted_by_row(mechanism, compiled):
+    """A row that cannot close (row 0) and a slider beyond its limit (row 1): reported in row order,
+    word for word, by both Newton loops."""
+    solver = ClosedLoopSolver(mechanism, native=compiled)
     sliders = np.array([[-0.3, 0.3, 0.0, 0.0], [0.0, 0.7, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
     batch = solver.forward_batch(sliders)
     assert [(f.index, f.error) for f in batch.failures] == [(0, OutOfWorkspaceError), (1, InvalidInputError)]
@@ -548,8 +552,9 @@ def test_forward_batch_in_chunks(five_bar, monkeypatch):
     np.testing.assert_allclose(batch.poses[np.searchsorted(batch.indices, some)], alone.poses, atol=1e-13)
 
 
-def test_inverse_batch_limit_and_assembly_failures_word_for_word(five_bar):
-    solver = ClosedLoopSolver(five_bar)
+@pytest.mark.parametrize("compiled", [True, False])
+def test_inverse_batch_limit_and_assembly_failures_word_for_word(five_bar, compiled):
+    solver = ClosedLoopSolver(five_bar, native=compiled)
     targets = np.array([[0.0, 0.7], [0.0, 0.40], [0.15, 0.3], [0.0, 0.3], [-0.2, 0.3]])
     ik = solver.inverse_batch(targets)
     assert list(ik.indices) == [1, 3] and list(ik.iterations) == [3, 4]

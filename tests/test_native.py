@@ -170,15 +170,28 @@ def test_forward_batch_matches_the_numpy_newton(mechanism):
     cloud = NOMINAL.workspace.sample(np.random.default_rng(2), 300)
     sliders = ClosedLoopSolver(mechanism).inverse_batch(cloud).actuators
     low, high = mechanism.joint_limits()
-    sliders = np.vstack((sliders, [low[0], high[1], low[2], high[3]], high + 1.0))  # a far row, a row beyond limits
+    # a far row, a row beyond the limits, and five rows of the slider box whose solution from home's
+    # predicted start lies on another branch than home's (found among 3,000 draws)
+    crossing = low + np.random.default_rng(0).random((3000, 4))[[29, 51, 92, 165, 203]] * (high - low)
+    sliders = np.vstack((sliders, [low[0], high[1], low[2], high[3]], high + 1.0, crossing))
     compiled = ClosedLoopSolver(mechanism).forward_batch(sliders)
     numpy_batch = ClosedLoopSolver(mechanism, native=False).forward_batch(sliders)
+    assert sum(f.error is BranchChangeError for f in compiled.failures) >= 3
     np.testing.assert_array_equal(compiled.indices, numpy_batch.indices)
     np.testing.assert_allclose(compiled.q, numpy_batch.q, atol=1e-12)
     np.testing.assert_allclose(compiled.poses, numpy_batch.poses, atol=1e-12)
     np.testing.assert_array_equal(compiled.iterations, numpy_batch.iterations)
     assert [(f.index, f.error) for f in compiled.failures] == [(f.index, f.error) for f in numpy_batch.failures]
     assert len(compiled.failures) >= 1 and not compiled.poses.flags.writeable
+    assert [f.reason.split(" (residual")[0] for f in compiled.failures] == \
+        [f.reason.split(" (residual")[0] for f in numpy_batch.failures]
+    short = []
+    for use in (True, False):  # three steps at most: some rows stop unconverged, counted alike
+        solver = ClosedLoopSolver(mechanism, native=use)
+        solver.max_iterations = 3
+        batch = solver.forward_batch(sliders[:40])
+        short.append((list(batch.indices), list(batch.iterations), [(f.index, f.error) for f in batch.failures]))
+    assert short[0] == short[1] and short[0][2]
     given_start = ClosedLoopSolver(mechanism).forward_batch(sliders[:20], q_init=mechanism.home)
     numpy_start = ClosedLoopSolver(mechanism, native=False).forward_batch(sliders[:20], q_init=mechanism.home)
     np.testing.assert_array_equal(given_start.indices, numpy_start.indices)
@@ -381,22 +394,24 @@ def test_labels_no_solution_can_have_fail_every_row_and_solve(mechanism):
     assert chain.inverse(mechanism.home.copy(), goals[1], None, 0, None, None, limits)[0] == 0
 
 
-def test_a_task_that_is_not_square_still_gets_the_compiled_forward(tmp_path):
-    """IK needs as many task rows as actuators; FK does not: the five-bar commanding x, y, z (3 rows
-    for 2 sliders) solves FK in the compiled loop as in the Python one, and IK is refused by name."""
+@pytest.mark.parametrize("task", [{"position": ["x", "y", "z"]}, {"position": ["x", "y"], "rotation": "yaw"}])
+def test_a_task_that_is_not_square_still_gets_the_compiled_forward(tmp_path, task):
+    """IK needs as many task rows as actuators; FK does not: the five-bar commanding x, y, z or x, y,
+    yaw (3 rows for 2 sliders) solves FK in the compiled loop as in the Python one, and IK is refused
+    by name."""
     from test_mechanisms import _edit_yaml
 
     from m3t1r.errors import InvalidInputError
 
     urdf, closures = five_bar_files(tmp_path)
-    _edit_yaml(closures, lambda d: d["task"].update(position=["x", "y", "z"]))
+    _edit_yaml(closures, lambda d: d["task"].update(task))
     machine = Mechanism.load(urdf, closures)
     assert ClosedLoopSolver(machine).native is not None
     low, high = machine.joint_limits()
     home = machine.home[machine.actuated_ids]
     _compare_paths(machine, np.clip(home + np.linspace(0, 1, 20)[:, None] * 0.05 * (high - low), low, high))
     with pytest.raises(InvalidInputError, match="as many task coordinates as actuators"):
-        ClosedLoopSolver(machine).inverse(np.zeros(3))
+        ClosedLoopSolver(machine).inverse(np.zeros(len(machine.task.columns)))
 
 
 def test_a_module_compiled_from_other_source_is_not_used(monkeypatch):
