@@ -1,17 +1,21 @@
-// Closed-loop forward kinematics of a tree of 1-DoF joints: Newton on the enforced closure rows over
-// the passive joints, in one compiled loop on Pinocchio's C++ API (built by tools/build_native.py).
+// Closed-loop FK and IK of a tree of 1-DoF joints in one compiled Newton loop on Pinocchio's C++ API
+// (built by tools/build_native.py; m3t1r.model.native is its Python side).
 //
-// The same problem, step for step, as m3t1r.model.kinematics.ClosedLoopSolver._newton (single solve)
-// and m3t1r.model.batch_kinematics.newton_batch (many rows): residual and exact Jacobian of the
-// enforced rows, chord steps on one LU until contraction slows, the largest step component capped,
-// then at convergence the 1-norm reciprocal condition and the branch labels (signs of the diagonal
-// blocks' determinants) of the last factorised system. Python keeps input checks, the predictor and
-// the result objects; this file keeps what runs per Newton step.
+// The same problems, step for step, as the Python loops they stand in for:
+// m3t1r.model.kinematics.ClosedLoopSolver._newton with its predictors `_predict` and `_inverse_step`
+// (single warm solves), and m3t1r.model.batch_kinematics.newton_batch (rows). FK solves the enforced
+// closure rows over the passive joints; IK the closure rows and the task rows over every unlocked
+// joint. Each Newton step: residual and exact Jacobian, chord steps on one LU until contraction
+// slows, the largest step component capped; at convergence the exact 1-norm reciprocal condition and
+// the branch labels (signs of the loop blocks' determinants, plus the whole system's for IK) of the
+// last factorised system. Python keeps input checks, limits and the result objects.
 //
 // Residual of a closure between frames a and b (placements in the base frame):
 //   "3D": R_a^T (p_b - p_a), derivative R_a^T [I, -[p_b]] (xi_b - xi_a);
 //   "6D": log6(aMb),         derivative Jlog6(aMb) Ad(oMb^-1) (xi_b - xi_a);
 // xi: WORLD spatial twists, the columns of computeJointJacobians' data.J masked by the supports.
+// Task rows (model.task.TaskSpec): position axes p - p*, then wrap(atan2(R10, R00) - theta*) or
+// log3(R*^T R), from the task frame's LOCAL_WORLD_ALIGNED Jacobian.
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
