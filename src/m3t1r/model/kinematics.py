@@ -241,7 +241,11 @@ class InverseResult:
 class ClosedLoopSolver:
     """Newton solver for the closures of one `Mechanism` (keeps its own Pinocchio `Data`).
 
-    Not thread-safe: one solver per thread. All outputs are copies.
+    native=True (the default): FK, IK and the batches run their Newton loops compiled
+    (`m3t1r.model.native`) when the module is built and the joints allow, with the same steps and
+    results as the Python loops that native=False runs (`self.native` is None then). Compiled solves
+    do not move `data` to their solution. Not thread-safe: one solver per thread (a batch running in
+    another thread makes single solves wait). All outputs are copies.
     """
 
     def __init__(self, mechanism: Mechanism, tolerance: float = 1e-12, max_iterations: int = 60,
