@@ -212,7 +212,8 @@ def test_only_one_dof_revolute_and_prismatic_trees_are_compiled(mechanism):
     model = pin.Model()
     model.addJoint(0, pin.JointModelSpherical(), pin.SE3.Identity(), "ball")
     none = np.zeros(0, dtype=int)
-    assert native.NativeChain.of(model, (), none, none, [], 0, mechanism.task, none, 0.3, 0.05) is None
+    assert native.NativeChain.of(model, (), none, none, [], 0, mechanism.task, none, np.zeros((0, 1)), none, 0.3,
+                                 0.05) is None
     assert ClosedLoopSolver(mechanism, native=False).native is None
 
 

@@ -436,11 +436,21 @@ PyObject * build(PyObject *, PyObject * args) {
   return PyCapsule_New(handle.release(), "m3t1r.Chain", destroy);
 }
 
-bool set_limits(Chain * c, double tolerance, int max_iterations, double singular_rcond) {
+void set_limits(Chain * c, double tolerance, int max_iterations, double singular_rcond) {
   c->tolerance = tolerance;
   c->max_iterations = max_iterations;
   c->singular_rcond = singular_rcond;
-  return true;
+}
+
+// The capsule's chain for a single solve: `lock` takes its lock for the call, and the call's limits are
+// set (nullptr, with the Python error set, when the capsule holds no chain).
+Chain * open_chain(PyObject * capsule, std::unique_lock<std::mutex> & lock, double tolerance, int max_iterations,
+                   double singular_rcond) {
+  Handle * handle = handle_of(capsule);
+  if (handle == nullptr) return nullptr;
+  lock = std::unique_lock<std::mutex>(handle->lock);
+  set_limits(&handle->chain, tolerance, max_iterations, singular_rcond);
+  return &handle->chain;
 }
 
 // forward(chain, q (nq,) in/out, sliders (A,), order, tangent (P*A,) in/out, previous (A+P,),
@@ -457,11 +467,9 @@ PyObject * forward(PyObject *, PyObject * args) {
   if (!PyArg_ParseTuple(args, "OOOiOOOpOOdid", &capsule, &oq, &osliders, &order, &otangent, &oprevious, &obranch,
                         &has_start, &oplatform, &otask, &tolerance, &max_iterations, &singular_rcond))
     return nullptr;
-  Handle * handle = handle_of(capsule);
-  if (handle == nullptr) return nullptr;
-  const std::lock_guard<std::mutex> guard(handle->lock);
-  Chain * c = &handle->chain;
-  set_limits(c, tolerance, max_iterations, singular_rcond);
+  std::unique_lock<std::mutex> lock;
+  Chain * c = open_chain(capsule, lock, tolerance, max_iterations, singular_rcond);
+  if (c == nullptr) return nullptr;
   const size_t n_passive = c->fk.unknowns.size(), n_act = c->actuated.size();
   Buffer bq, bsliders, btangent, bprevious, bbranch, bplatform, btask;
   if (!bq.get(oq, true, 'd', c->model.nq, "q") || !bsliders.get(osliders, false, 'd', n_act, "sliders")
@@ -516,11 +524,9 @@ PyObject * inverse(PyObject *, PyObject * args) {
                         &oprot, &opq, &obranch, &has_start, &oplatform, &otask, &tolerance, &max_iterations,
                         &singular_rcond))
     return nullptr;
-  Handle * handle = handle_of(capsule);
-  if (handle == nullptr) return nullptr;
-  const std::lock_guard<std::mutex> guard(handle->lock);
-  Chain * c = &handle->chain;
-  set_limits(c, tolerance, max_iterations, singular_rcond);
+  std::unique_lock<std::mutex> lock;
+  Chain * c = open_chain(capsule, lock, tolerance, max_iterations, singular_rcond);
+  if (c == nullptr) return nullptr;
   Task & t = c->task_spec;
   const size_t n_unknowns = c->ik.unknowns.size();
   const Py_ssize_t needed = static_cast<Py_ssize_t>(t.axes.size()) + (t.rotation == 1 ? 1 : 0);
@@ -585,7 +591,6 @@ struct Rows {
   double * norms;
   long long * iterations;
   double * platform;
-  double * task;
 };
 
 // Rows [begin, end) on one chain (its own Data and buffers: one per thread).
@@ -609,10 +614,7 @@ void solve_rows(Chain & c, bool inverse, const Rows & r, Py_ssize_t begin, Py_ss
     r.status[i] = out.status;
     r.norms[i] = out.norm;
     r.iterations[i] = out.iterations;
-    if (out.status == CONVERGED) {
-      write_pose(c.frame_world[c.platform], r.platform + 16 * i);
-      write_pose(c.frame_world[c.task], r.task + 16 * i);
-    }
+    if (out.status == CONVERGED) write_pose(c.frame_world[c.platform], r.platform + 16 * i);
   }
 }
 
@@ -633,21 +635,22 @@ void solve_rows_threaded(Chain & c, bool inverse, const Rows & r, Py_ssize_t n, 
 
 // rows(chain, inverse, q (n, nq) in/out, branch (B or B+1,) uint8 or empty (labels at each row's start),
 //      goals (n, g) and rotations (n, 9) (IK; empty for FK), chord_below, steps_taken, status (n,) int64 out,
-//      residual (n,) out, iterations (n,) int64 out, platform (n, 16) out, task (n, 16) out,
+//      residual (n,) out, iterations (n,) int64 out, platform (n, 16) out,
 //      tolerance, max_iterations, singular_rcond, threads):
-//   FK or IK Newton row by row, without predictor (the caller sets each start), tangent or inverse.
+//   FK or IK Newton row by row, without predictor (the caller sets each start), tangent or inverse
+//   (the task frame's placements, where it is not the platform, come from the rows' q).
 PyObject * rows(PyObject *, PyObject * args) {
-  PyObject *capsule, *oq, *obranch, *ogoals, *orots, *ostatus, *onorm, *oiter, *oplatform, *otask;
+  PyObject *capsule, *oq, *obranch, *ogoals, *orots, *ostatus, *onorm, *oiter, *oplatform;
   int inverse, steps_taken, max_iterations, threads;
   double chord_below, tolerance, singular_rcond;
-  if (!PyArg_ParseTuple(args, "OpOOOOdiOOOOOdidi", &capsule, &inverse, &oq, &obranch, &ogoals, &orots, &chord_below,
-                        &steps_taken, &ostatus, &onorm, &oiter, &oplatform, &otask, &tolerance, &max_iterations,
+  if (!PyArg_ParseTuple(args, "OpOOOOdiOOOOdidi", &capsule, &inverse, &oq, &obranch, &ogoals, &orots, &chord_below,
+                        &steps_taken, &ostatus, &onorm, &oiter, &oplatform, &tolerance, &max_iterations,
                         &singular_rcond, &threads))
     return nullptr;
   Handle * handle = handle_of(capsule);
   if (handle == nullptr) return nullptr;
   Chain * c = &handle->chain;
-  Buffer bq, bbranch, bgoals, brots, bstatus, bnorm, biter, bplatform, btask;
+  Buffer bq, bbranch, bgoals, brots, bstatus, bnorm, biter, bplatform;
   if (!bq.get(oq, true, 'd', -1, "q") || !bbranch.get(obranch, false, 'B', -1, "branch")
       || !bgoals.get(ogoals, false, 'd', -1, "goals") || !brots.get(orots, false, 'd', -1, "rotations"))
     return nullptr;
@@ -661,12 +664,12 @@ PyObject * rows(PyObject *, PyObject * args) {
   if (bq.items() != n * c->model.nq || (bbranch.items() > 0 && bbranch.items() != labels) || !goals_ok
       || (inverse && t.rows == 0) || !bstatus.get(ostatus, true, 'q', n, "status")
       || !bnorm.get(onorm, true, 'd', n, "residual") || !biter.get(oiter, true, 'q', n, "iterations")
-      || !bplatform.get(oplatform, true, 'd', 16 * n, "platform") || !btask.get(otask, true, 'd', 16 * n, "task")) {
+      || !bplatform.get(oplatform, true, 'd', 16 * n, "platform")) {
     if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "q, branch or goals: wrong size (or no square IK)");
     return nullptr;
   }
   Rows r{bq.d(), bbranch.items() > 0 ? bbranch.b() : nullptr, bgoals.d(), brots.d(), width, chord_below, steps_taken,
-         bstatus.q(), bnorm.d(), biter.q(), bplatform.d(), btask.d()};
+         bstatus.q(), bnorm.d(), biter.q(), bplatform.d()};
   Py_BEGIN_ALLOW_THREADS
   {
     const std::lock_guard<std::mutex> guard(handle->lock);  // released before the GIL is taken back

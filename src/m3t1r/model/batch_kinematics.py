@@ -626,22 +626,28 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
         return residual, jac, frot[:, kin.platform_index], fpos[:, kin.platform_index]
 
     parts = []
-    if solver.native is not None and len(rows):  # the same Newton, row by row in the compiled loop
-        q = start[rows]
-        status, norm, iterations, platform, _ = solver.native.forward_rows(
-            q, branch if predicted else None, _CHORD_BELOW, int(predicted),
-            (solver.tolerance, solver.max_iterations, solver.singular_rcond), workers)
-        solved = _Solved(q, status, norm, iterations, platform[:, :3, :3], platform[:, :3, 3])
-        failures += [RowFailure(int(rows[f.index]), f.reason, f.error) for f in failures_of(solved, 0, "forward kinematics")]
-        return _forward_result(kin, len(values), [(rows, solved)], failures)
-    for chunk in np.array_split(rows, max(1, -(-len(rows) // _CHUNK))) if len(rows) else []:
-        solved = newton_batch(start[chunk], kin.passive, system, lambda jac, sq: kin.signatures(jac),
-                              solver.tolerance, solver.max_iterations, solver.singular_rcond, int(predicted),
-                              branch if predicted else None)
+    # The compiled loop takes every row at once (row by row, on `workers` threads); numpy, chunks of rows.
+    size = max(len(rows), 1) if solver.native is not None else _CHUNK
+    for chunk in np.array_split(rows, max(1, -(-len(rows) // size))) if len(rows) else []:
+        if solver.native is not None:
+            q = start[chunk]
+            solved = _native_solved(q, solver.native.forward_rows(
+                q, branch if predicted else None, _CHORD_BELOW, int(predicted),
+                (solver.tolerance, solver.max_iterations, solver.singular_rcond), workers))
+        else:
+            solved = newton_batch(start[chunk], kin.passive, system, lambda jac, sq: kin.signatures(jac),
+                                  solver.tolerance, solver.max_iterations, solver.singular_rcond, int(predicted),
+                                  branch if predicted else None)
         failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
                      for f in failures_of(solved, 0, "forward kinematics")]
         parts.append((chunk, solved))
     return _forward_result(kin, len(values), parts, failures)
+
+
+def _native_solved(q: np.ndarray, outcome: tuple) -> _Solved:
+    """A compiled row solve of q (`NativeChain.forward_rows` / `inverse_rows`) as `newton_batch`'s result."""
+    status, norm, iterations, platform = outcome
+    return _Solved(q, status, norm, iterations, platform[:, :3, :3], platform[:, :3, 3])
 
 
 def _thread_count(threads: int | None) -> int:
@@ -766,10 +772,9 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
             branch = _first_step_from_home(kin, start, chunk, goal, signature)
         if solver.native is not None:
             q = start[chunk]
-            status, norm, iterations, platform, _ = solver.native.inverse_rows(
+            solved = _native_solved(q, solver.native.inverse_rows(
                 q, goal[chunk], None if goal_rot is None else goal_rot[chunk], branch, _CHORD_BELOW,
-                int(branch is not None), (solver.tolerance, solver.max_iterations, solver.singular_rcond), workers)
-            solved = _Solved(q, status, norm, iterations, platform[:, :3, :3], platform[:, :3, 3])
+                int(branch is not None), (solver.tolerance, solver.max_iterations, solver.singular_rcond), workers))
         else:
             solved = newton_batch(start[chunk], every, lambda q, a, jacobian: system(q, chunk[a], jacobian),
                                   signature, solver.tolerance, solver.max_iterations, solver.singular_rcond,

@@ -36,7 +36,7 @@ from m3t1r.errors import (
     SingularConfigurationError,
     require_finite_vector,
 )
-from m3t1r.model.batch_kinematics import StackedKinematics, forward_batch, inverse_batch
+from m3t1r.model.batch_kinematics import _FAILURES, _REASONS, StackedKinematics, forward_batch, inverse_batch
 from m3t1r.model.closures import ClosureSystem
 from m3t1r.model.description import Mechanism
 from m3t1r.model.native import CONVERGED as _native_converged
@@ -145,17 +145,9 @@ class _BranchSignature:
 
 
 def _native_error(status: int, norm: float, iterations: int, rcond: float) -> Exception:
-    """The typed error of a compiled solve's status, worded as `_newton`'s."""
-    if status == 1:
-        return OutOfWorkspaceError("the closures cannot be assembled here (target out of the workspace or too far "
-                                   "from the initial configuration's branch)", norm, iterations)
-    if status == 2:
-        return NotConvergedError("Newton did not reach the tolerance", norm, iterations)
-    if status == 3:
-        return SingularConfigurationError(f"singular configuration (reciprocal condition {rcond:.2e})", norm,
-                                          iterations)
-    return BranchChangeError("the solution lies on another assembly branch than the start (Newton crossed a "
-                             "singularity)", norm, iterations)
+    """The typed error of a compiled solve's status, worded as `_newton`'s (and the batches')."""
+    reason = f"singular configuration (reciprocal condition {rcond:.2e})" if status == 3 else _REASONS[status]
+    return _FAILURES[status](reason, norm, iterations)
 
 
 class _Outcome(NamedTuple):
@@ -328,7 +320,8 @@ class ClosedLoopSolver:
         # FK's and IK's Newton loops compiled (`model.native`), when built and the joints allow; None: the Python loops.
         self.native = NativeChain.of(model, mechanism.closures, self.passive, self.actuated, self._branch_blocks,
                                      self._platform, mechanism.task,
-                                     np.arange(nv) if self._unknowns is None else self._unknowns,
+                                     np.arange(nv) if self._unknowns is None else self._unknowns, np.array(signed),
+                                     np.flatnonzero(support_mask(self._task_frame)),
                                      _MAX_STEP, _CHORD_CONTRACTION) if native else None
         self._stacked = None  # batched kinematics, built on first use
         self._last_branch: bytes | None = None  # signature at this solver's last FK solution

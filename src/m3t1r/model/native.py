@@ -51,13 +51,6 @@ _KINDS = {"JointModelRX": 0, "JointModelRY": 1, "JointModelRZ": 2, "JointModelRe
           "JointModelPX": 4, "JointModelPY": 5, "JointModelPZ": 6, "JointModelPrismaticUnaligned": 7}
 
 
-def _support(model: pin.Model, frame_id: int) -> np.ndarray:
-    mask = np.zeros(model.nv)
-    for j in model.supports[model.frames[frame_id].parentJoint][1:]:
-        mask[model.idx_vs[j]] = 1.0
-    return mask
-
-
 class NativeChain:
     """One mechanism's closures, passive and actuated joints and branch blocks, compiled.
 
@@ -80,11 +73,14 @@ class NativeChain:
     @classmethod
     def of(cls, model: pin.Model, closures: tuple[ClosureSpec, ...], passive: np.ndarray, actuated: np.ndarray,
            blocks: list[tuple[np.ndarray, np.ndarray]], platform_frame: int, task: TaskSpec, unknowns: np.ndarray,
-           max_step: float, contraction: float) -> NativeChain | None:
+           column_signs: np.ndarray, task_columns: np.ndarray, max_step: float, contraction: float
+           ) -> NativeChain | None:
         """The compiled chain, or None when the module is not built or a joint is not 1-DoF revolute/prismatic.
 
         unknowns: IK's columns (every joint but the locked ones); IK is square only when the task's
-        dimension equals the actuator count (else only FK may be called).
+        dimension equals the actuator count (else only FK may be called). column_signs: (closures, nv)
+        support(frame b) - support(frame a) of each closure (`ClosedLoopSolver`'s); task_columns: the
+        velocity indices of the joints that move the task frame.
         """
         names = [model.joints[j].shortname() for j in range(1, model.njoints)]
         if _native_newton is None or any(name not in _KINDS for name in names):
@@ -100,7 +96,6 @@ class NativeChain:
         spec = np.array([[3 if c.type == "3D" else 6, where[c.frame_a_id], where[c.frame_b_id], rows[k]]
                          for k, c in enumerate(closures)], dtype=np.int64).reshape(-1, 4)
         components = np.array([r for c in closures for r in c.rows], dtype=np.int64)
-        signs = np.array([_support(model, c.frame_b_id) - _support(model, c.frame_a_id) for c in closures])
         square = int(rows[-1]) + task.dimension == len(unknowns)
         ik_columns = np.asarray(unknowns if square else passive, dtype=np.int64)  # FK only: a square stand-in
         ik_axes = task.axes if square else np.zeros(0, dtype=int)
@@ -108,11 +103,12 @@ class NativeChain:
             joints, np.ascontiguousarray(axes, dtype=float), np.ascontiguousarray(placements),
             np.array([model.frames[f].parentJoint for f in frame_ids], dtype=np.int64),
             np.array([model.frames[f].placement.homogeneous for f in frame_ids]), spec, components,
-            np.ascontiguousarray(signs.reshape(len(closures), model.nv)), np.asarray(passive, dtype=np.int64),
+            np.ascontiguousarray(np.reshape(column_signs, (len(closures), model.nv)), dtype=float),
+            np.asarray(passive, dtype=np.int64),
             np.asarray(actuated, dtype=np.int64), np.concatenate([r for r, _ in blocks]).astype(np.int64),
             np.concatenate([c for _, c in blocks]).astype(np.int64),
             np.cumsum([len(r) for r, _ in blocks]).astype(np.int64), ik_columns, ik_axes.astype(np.int64),
-            np.flatnonzero(_support(model, task_frame)).astype(np.int64), len(frame_ids) - 2, len(frame_ids) - 1,
+            np.asarray(task_columns, dtype=np.int64), len(frame_ids) - 2, len(frame_ids) - 1,
             _ROTATION_CODES[task.rotation] if square else 0, float(max_step), float(contraction))
         return cls(handle, len(blocks), len(passive), len(actuated), len(ik_columns), task.dimension if square else 0)
 
@@ -156,18 +152,18 @@ class NativeChain:
 
     def forward_rows(self, q: np.ndarray, start_branch: np.ndarray | None, chord_below: float, steps_taken: int,
                      limits: tuple[float, int, float], threads: int = 1
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """FK's Newton for every row of q (n, nq) (solved in place, no predictor), chord steps only from
         residuals at or below `chord_below`, iterations counted from `steps_taken`, rows shared among
         `threads` threads (at least 64 rows each; the results do not depend on it). start_branch: the
         labels every row must end with (None: each row's at its start). Returns per row (status,
-        max |row|, iterations, platform (n, 4, 4), task frame (n, 4, 4)); poses are valid where status is 0."""
+        max |row|, iterations, platform (n, 4, 4)); poses are valid where status is 0."""
         return self._rows(False, q, start_branch, _EMPTY, _EMPTY, chord_below, steps_taken, limits, threads)
 
     def inverse_rows(self, q: np.ndarray, goals: np.ndarray, rotations: np.ndarray | None,
                      start_branch: np.ndarray | None, chord_below: float, steps_taken: int,
                      limits: tuple[float, int, float], threads: int = 1
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """IK's Newton for every row of q (n, nq), row i toward goals[i] (task coordinates) and
         rotations[i] (3 x 3, a full-rotation task; None otherwise); as `forward_rows` otherwise, the
         labels being the blocks' then sign(det) of the whole system."""
@@ -178,14 +174,14 @@ class NativeChain:
 
     def _rows(self, inverse: bool, q: np.ndarray, start_branch: np.ndarray | None, goals: np.ndarray,
               rotations: np.ndarray, chord_below: float, steps_taken: int, limits: tuple[float, int, float],
-              threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+              threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         n = len(q)
         status, norm, iterations = np.zeros(n, dtype=np.int64), np.zeros(n), np.zeros(n, dtype=np.int64)
-        platform, task = np.zeros((n, 4, 4)), np.zeros((n, 4, 4))
+        platform = np.zeros((n, 4, 4))
         branch = b"" if start_branch is None else np.asarray(start_branch, dtype=np.uint8).tobytes()
         _native_newton.rows(self._handle, inverse, q, branch, goals, rotations, float(chord_below), int(steps_taken),
-                            status, norm, iterations, platform, task, *limits, int(threads))
-        return status, norm, iterations, platform, task
+                            status, norm, iterations, platform, *limits, int(threads))
+        return status, norm, iterations, platform
 
 
 def available_cores() -> int:
