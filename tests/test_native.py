@@ -527,3 +527,11 @@ def test_a_bad_thread_count_is_refused_by_inverse_batch_too(solver):
 
     with pytest.raises(InvalidInputError, match="threads"):
         solver.inverse_batch(np.zeros((2, 4)), threads=0)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_batches_of_no_rows_in_both_loops(mechanism, compiled):
+    solver = ClosedLoopSolver(mechanism, native=compiled)
+    forward, inverse = solver.forward_batch(np.zeros((0, 4))), solver.inverse_batch(np.zeros((0, 4)))
+    assert forward.n == inverse.n == 0 and forward.q.shape == inverse.q.shape == (0, mechanism.model.nq)
+    assert forward.complete and inverse.complete and inverse.actuators.shape == (0, 4)
