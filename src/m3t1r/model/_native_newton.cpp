@@ -24,7 +24,6 @@
 #include <pinocchio/spatial.hpp>
 #include <pinocchio/algorithm/jacobian.hpp>
 #include <pinocchio/algorithm/kinematics.hpp>
-#include <Eigen/LU>
 
 #include <cmath>
 #include <cstring>
@@ -55,10 +54,101 @@ struct Closure {
   std::vector<std::pair<int, double>> columns;  // (velocity index, +1 or -1): joints moving b and not a, or a and not b
 };
 
+// LU with partial pivoting of a small dense matrix (LAPACK getrf's pivots: the first entry of largest
+// magnitude), and what Newton takes from it: solves, the inverse, the sign of the determinant (from the
+// signs of U's diagonal and the count of row swaps, as the Python loops' `_det_sign`). Eigen's
+// PartialPivLU and its inverse() spent 3-5 times these instructions at 16 x 16 (callgrind): their
+// blocking and packing are made for large matrices. Zero multipliers are skipped: the closure
+// Jacobians are block-triangular, mostly zeros.
+class DenseLU {
+ public:
+  void resize(int n) {
+    n_ = n;
+    f_.setZero(n, n);
+    pivot_.assign(static_cast<size_t>(n), 0);
+  }
+  double & operator()(int i, int j) { return f_(i, j); }  // fill A here, then factor()
+
+  // Factors A in place; false at a zero (or NaN) pivot. Keeps |A|_1, the largest column sum of |A|.
+  bool factor() {
+    one_norm_ = f_.cwiseAbs().colwise().sum().maxCoeff();
+    odd_ = false;
+    double * a = f_.data();
+    for (int k = 0; k < n_; ++k) {
+      int p = k;
+      double biggest = std::fabs(a[k * n_ + k]);
+      for (int i = k + 1; i < n_; ++i) {
+        const double size = std::fabs(a[i * n_ + k]);
+        if (size > biggest) {
+          biggest = size;
+          p = i;
+        }
+      }
+      pivot_[k] = p;
+      if (!(biggest > 0.0)) return false;
+      if (p != k) {
+        std::swap_ranges(a + k * n_, a + (k + 1) * n_, a + p * n_);
+        odd_ = !odd_;
+      }
+      const double * pivot_row = a + k * n_;
+      for (int i = k + 1; i < n_; ++i) {
+        double * row = a + i * n_;
+        if (row[k] == 0.0) continue;
+        const double l = row[k] /= pivot_row[k];
+        for (int j = k + 1; j < n_; ++j) row[j] -= l * pivot_row[j];
+      }
+    }
+    return true;
+  }
+
+  void solve(double * b) const {  // b := A^-1 b
+    const double * a = f_.data();
+    for (int k = 0; k < n_; ++k) std::swap(b[k], b[pivot_[k]]);
+    for (int i = 1; i < n_; ++i)
+      for (int j = 0; j < i; ++j) b[i] -= a[i * n_ + j] * b[j];
+    for (int i = n_ - 1; i >= 0; --i) {
+      for (int j = i + 1; j < n_; ++j) b[i] -= a[i * n_ + j] * b[j];
+      b[i] /= a[i * n_ + i];
+    }
+  }
+
+  void inverse(Matrix & out) const {  // out := A^-1, all columns at once (row operations on P I)
+    out.setIdentity(n_, n_);
+    const double * a = f_.data();
+    double * x = out.data();
+    for (int k = 0; k < n_; ++k)
+      if (pivot_[k] != k) std::swap_ranges(x + k * n_, x + (k + 1) * n_, x + pivot_[k] * n_);
+    for (int i = 1; i < n_; ++i)
+      for (int j = 0; j < i; ++j) subtract_row(x, i, j, a[i * n_ + j]);
+    for (int i = n_ - 1; i >= 0; --i) {
+      for (int j = i + 1; j < n_; ++j) subtract_row(x, i, j, a[i * n_ + j]);
+      for (int c = 0; c < n_; ++c) x[i * n_ + c] /= a[i * n_ + i];
+    }
+  }
+
+  bool positive_determinant() const {
+    bool positive = !odd_;
+    for (int k = 0; k < n_; ++k)
+      if (f_(k, k) < 0.0) positive = !positive;
+    return positive;
+  }
+  double one_norm() const { return one_norm_; }
+
+ private:
+  void subtract_row(double * x, int i, int j, double factor) const {  // row i of x -= factor row j
+    if (factor == 0.0) return;
+    for (int c = 0; c < n_; ++c) x[i * n_ + c] -= factor * x[j * n_ + c];
+  }
+  int n_ = 0;
+  Matrix f_;  // A, then its factors: unit L strictly below the diagonal, U on and above
+  std::vector<int> pivot_;  // the row swapped with row k at step k
+  bool odd_ = false;  // an odd count of swaps
+  double one_norm_ = 0.0;
+};
+
 struct Block {
   std::vector<int> rows, columns;  // enforced rows, velocity indices
-  Matrix square;
-  Eigen::PartialPivLU<Eigen::MatrixXd> lu;
+  DenseLU lu;
 };
 
 // The commanded components of the task frame (model.task.TaskSpec): position axes, then "yaw"
@@ -78,8 +168,8 @@ struct System {
   bool inverse = false;
   int rows = 0;
   std::vector<int> unknowns;
-  Eigen::MatrixXd square, inverse_matrix;
-  Eigen::PartialPivLU<Eigen::MatrixXd> lu;
+  Matrix inverse_matrix;
+  DenseLU lu;
 };
 
 struct Chain {
@@ -199,20 +289,16 @@ void labels(Chain & c, const System & s, unsigned char * out) {
     Block & block = c.blocks[b];
     for (size_t i = 0; i < block.rows.size(); ++i)
       for (size_t j = 0; j < block.columns.size(); ++j)
-        block.square(i, j) = c.jacobian(block.rows[i], block.columns[j]);
-    block.lu.compute(block.square);
-    out[b] = block.lu.determinant() > 0.0 ? 1 : 0;
+        block.lu(static_cast<int>(i), static_cast<int>(j)) = c.jacobian(block.rows[i], block.columns[j]);
+    out[b] = block.lu.factor() && block.lu.positive_determinant() ? 1 : 0;
   }
-  if (s.inverse) out[c.blocks.size()] = s.lu.determinant() > 0.0 ? 1 : 0;
+  if (s.inverse) out[c.blocks.size()] = s.lu.positive_determinant() ? 1 : 0;
 }
 
 bool factor(Chain & c, System & s) {
-  for (size_t j = 0; j < s.unknowns.size(); ++j) s.square.col(j) = c.jacobian.col(s.unknowns[j]).head(s.rows);
-  s.lu.compute(s.square);
-  const auto diagonal = s.lu.matrixLU().diagonal();
-  for (Eigen::Index i = 0; i < diagonal.size(); ++i)
-    if (diagonal[i] == 0.0) return false;
-  return true;
+  for (int i = 0; i < s.rows; ++i)
+    for (size_t j = 0; j < s.unknowns.size(); ++j) s.lu(i, static_cast<int>(j)) = c.jacobian(i, s.unknowns[j]);
+  return s.lu.factor();
 }
 
 struct Outcome {
@@ -247,16 +333,16 @@ Outcome newton(Chain & c, System & s, Vector & q, unsigned char * branch, bool h
       fresh = false;
     }
     if (norm <= c.tolerance) {
-      s.inverse_matrix = s.lu.inverse();
-      const double rcond = 1.0 / (s.square.cwiseAbs().colwise().sum().maxCoeff()
-                                  * s.inverse_matrix.cwiseAbs().colwise().sum().maxCoeff());
+      s.lu.inverse(s.inverse_matrix);
+      const double rcond = 1.0 / (s.lu.one_norm() * s.inverse_matrix.cwiseAbs().colwise().sum().maxCoeff());
       if (!(rcond >= c.singular_rcond)) return {SINGULAR, iteration, norm, rcond == rcond ? rcond : 0.0};
       labels(c, s, c.now.data());
       if (std::memcmp(c.now.data(), branch, n_labels) != 0) return {BRANCH_CHANGE, iteration, norm};
       return {CONVERGED, iteration, norm};
     }
     if (iteration == c.max_iterations + steps_taken) break;
-    c.step.head(s.rows) = s.lu.solve(c.residual.head(s.rows));
+    c.step.head(s.rows) = c.residual.head(s.rows);
+    s.lu.solve(c.step.data());
     const double biggest = c.step.head(s.rows).cwiseAbs().maxCoeff();
     if (biggest > c.max_step) c.step.head(s.rows) *= c.max_step / biggest;
     for (size_t j = 0; j < s.unknowns.size(); ++j) q[s.unknowns[j]] -= c.step[j];
@@ -404,7 +490,7 @@ PyObject * build(PyObject *, PyObject * args) {
       block.rows.push_back(static_cast<int>(brows.q()[i]));
       block.columns.push_back(static_cast<int>(bcols.q()[i]));
     }
-    block.square.resize(block.rows.size(), block.columns.size());
+    block.lu.resize(static_cast<int>(block.rows.size()));
     start = bends.q()[b];
     c->blocks.push_back(std::move(block));
   }
@@ -423,7 +509,7 @@ PyObject * build(PyObject *, PyObject * args) {
       PyErr_SetString(PyExc_ValueError, "a Newton system is not square");
       return nullptr;
     }
-    s->square = Eigen::MatrixXd::Zero(s->rows, s->rows);
+    s->lu.resize(s->rows);
   }
   c->platform = platform;
   c->task = task;
