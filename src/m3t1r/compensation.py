@@ -238,6 +238,27 @@ class _PathSolver:
         self._warm = False
 
 
+class _JointLimits:
+    """One model's joint limits, read once, for a check per target: at about 20 joints a loop over
+    Python floats costs a fraction of numpy's comparisons and of reading the limits from the model."""
+
+    def __init__(self, model: pin.Model) -> None:
+        self._model = model
+        self._lower, self._upper = model.lowerPositionLimit.tolist(), model.upperPositionLimit.tolist()
+
+    def violation(self, q: np.ndarray) -> str | None:
+        """`joint_limit_violation` of q (None when every joint is inside its limits)."""
+        if all(low <= value <= high for low, value, high in zip(self._lower, q.tolist(), self._upper)):
+            return None
+        return joint_limit_violation(self._model, q)  # names the joint; NaN counts as outside there too
+
+    def check(self, result: InverseResult) -> None:
+        """`check_joint_limits` of a solved configuration."""
+        violation = self.violation(result.q)
+        if violation is not None:
+            raise OutOfWorkspaceError(violation, result.residual, result.iterations)
+
+
 def check_joint_limits(mechanism: Mechanism, result: InverseResult) -> None:
     """Raise OutOfWorkspaceError if any joint of the solved configuration is beyond its URDF limit.
 
@@ -284,6 +305,7 @@ class Compensator:
         self.calibrated = calibrated
         self._inverse = _PathSolver(calibrated)
         self._forward = _PathSolver(nominal)
+        self._limits = _JointLimits(calibrated.model)
 
     def reset(self) -> None:
         """Start the next target from home on both models."""
@@ -300,7 +322,7 @@ class Compensator:
         beyond the nominal model's slider limits (a calibrated file with other limits).
         """
         ik = self._inverse.inverse(target)
-        check_joint_limits(self.calibrated, ik)
+        self._limits.check(ik)
         fk = self._forward.forward(ik.actuators)
         return CompensatedCommand(ik.actuators, fk.task_pose, ik.task_pose, ik.tilt, ik.iterations)
 
@@ -325,7 +347,7 @@ class Compensator:
             stage = "inverse kinematics of the calibrated model"
             try:
                 ik = self._inverse.inverse(target)
-                check_joint_limits(self.calibrated, ik)
+                self._limits.check(ik)
                 stage = "forward kinematics of the nominal model at the compensated sliders"
                 fk = self._forward.forward(ik.actuators)
             except (KinematicsError, InvalidInputError) as exc:
@@ -373,7 +395,7 @@ class Compensator:
         ik = self._inverse.solver.inverse_batch(np.array(rows))
         failures = [TargetFailure(f.index, f"inverse kinematics of the calibrated model: {f.reason}", f.error)
                     for f in ik.failures]
-        violations = [joint_limit_violation(self.calibrated.model, q) for q in ik.q]
+        violations = [self._limits.violation(q) for q in ik.q]
         failures += [TargetFailure(int(index), f"inverse kinematics of the calibrated model: {violation}",
                                    OutOfWorkspaceError)
                      for index, violation in zip(ik.indices, violations) if violation is not None]
