@@ -3,7 +3,8 @@
 Two processes of the same code on this VM differ by up to 40 % in the unit (memory placement), so
 before/after comparisons made in separate runs can show a change that is not there. Here the
 revision's package is extracted with `git archive`, renamed (`m3t1r` -> `m3t1r_at_<rev>`, its own
-imports rewritten) and imported beside the working tree's; each operation of both is then timed in
+imports rewritten; its compiled Newton loop, if it has one, built with `tools/build_native.py`'s
+command, about a minute) and imported beside the working tree's; each operation of both is then timed in
 interleaved rounds, so both see the same machine. Operations: the unit (one `computeJointJacobians`
 + `updateFramePlacements`), warm FK / IK and compensation along the 1,000-target path of
 `bench_kinematics.py` (a 1 mm / 1 mrad perturbed machine as the calibrated one), and
@@ -30,7 +31,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 
+import build_native  # noqa: E402
 from _common import fmt_time, header, median, table  # noqa: E402
 from bench_batch import perturbed, unit_runner  # noqa: E402
 from bench_kinematics import workspace_path  # noqa: E402
@@ -61,6 +64,9 @@ def extract_revision(revision: str, folder: Path) -> tuple[str, Path]:
     pattern = re.compile(r"\bm3t1r(?=[.\s]|$)")  # m3t1r.x, `from m3t1r import`, `import m3t1r`
     for source in package.rglob("*.py"):
         source.write_text(pattern.sub(name, source.read_text()))
+    compiled = package / "model" / "_native_newton.cpp"
+    if compiled.exists():  # a revision with the compiled Newton loop: built, so that compiled meets compiled
+        build_native.compile_module(compiled, compiled.with_name(build_native.target().name))
     return name, folder / "models"
 
 

@@ -48,21 +48,26 @@ def main(argv: list[str] | None = None) -> int:
     if not args.force and out.exists() and out.stat().st_mtime >= SOURCE.stat().st_mtime:
         print(f"build_native: {out.name} is up to date")
         return 0
+    compile_module(SOURCE, out)
+    return 0
+
+
+def compile_module(source: Path, out: Path) -> None:
+    """Compile `source` into the extension module `out` (SystemExit when the compiler fails or is missing)."""
     compiler = os.environ.get("CXX", "g++")
     if shutil.which(compiler) is None:
         raise SystemExit(f"build_native: no C++ compiler ({compiler}); the pure-Python solver will run")
     partial = out.with_suffix(".partial")
-    digest = hashlib.sha256(SOURCE.read_bytes()).hexdigest()  # m3t1r.model.native refuses a module of other source
+    digest = hashlib.sha256(source.read_bytes()).hexdigest()  # m3t1r.model.native refuses a module of other source
     command = [compiler, "-O2", "-std=c++17", "-shared", "-fPIC", "-pthread", "-fvisibility=hidden", "-w",
                *(f"-D{d}" for d in DEFINES), f'-DM3T1R_SOURCE_SHA256="{digest}"',
-               *(f"-I{d}" for d in include_dirs()), str(SOURCE), "-o", str(partial)]
-    print("build_native: compiling", SOURCE.name, "(about a minute)", flush=True)
+               *(f"-I{d}" for d in include_dirs()), str(source), "-o", str(partial)]
+    print("build_native: compiling", source, "(about a minute)", flush=True)
     if subprocess.run(command).returncode != 0:
         partial.unlink(missing_ok=True)
         raise SystemExit("build_native: the compiler failed (above); the pure-Python solver will run")
     partial.replace(out)  # atomic: an interrupted build leaves no half-written module behind
     print(f"build_native: wrote {out}")
-    return 0
 
 
 if __name__ == "__main__":
