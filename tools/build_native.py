@@ -59,7 +59,9 @@ def compile_module(source: Path, out: Path) -> None:
         raise SystemExit(f"build_native: no C++ compiler ({compiler}); the pure-Python solver will run")
     partial = out.with_suffix(".partial")
     digest = hashlib.sha256(source.read_bytes()).hexdigest()  # m3t1r.model.native refuses a module of other source
-    command = [compiler, "-O2", "-std=c++17", "-shared", "-fPIC", "-pthread", "-fvisibility=hidden", "-w",
+    # -O3: it vectorises the dense LU's row operations (no fast-math: the same rounding as -O2);
+    # forward_batch about 10 % faster than with -O2 (benchmarks/README.md).
+    command = [compiler, "-O3", "-std=c++17", "-shared", "-fPIC", "-pthread", "-fvisibility=hidden", "-w",
                *(f"-D{d}" for d in DEFINES), f'-DM3T1R_SOURCE_SHA256="{digest}"',
                *(f"-I{d}" for d in include_dirs()), str(source), "-o", str(partial)]
     print("build_native: compiling", source, "(about a minute)", flush=True)
