@@ -13,6 +13,7 @@ import pytest
 
 from m3t1r.compensation import Compensator, _PathSolver, compensate, compensation_accuracy
 from m3t1r.errors import InvalidInputError, NotConvergedError, OutOfWorkspaceError
+from m3t1r.model.kinematics import ClosedLoopSolver
 
 PATH = np.array([[0.50, 0.50, -0.10, 0.0], [0.52, 0.55, -0.12, 0.1], [0.48, 0.60, -0.08, -0.2]])
 # Needs q11 near 0.70 m: beyond the nominal 0.6 m stroke, within a 1 m one.
@@ -287,3 +288,29 @@ def test_tracking_errors_of_a_full_rotation_task():
     np.testing.assert_allclose(errors, [(0.03, 0.02), (0.0, 0.0)], atol=1e-12)
     as_row = task.coordinates(target.homogeneous)[0]
     np.testing.assert_allclose(_tracking_errors(task, as_row, reached), errors, atol=1e-12)
+
+
+def test_a_passive_hinge_past_its_stop_fails_the_target_in_every_compensation(mechanism):
+    """A calibrated model whose hinge q13 may turn only to 1.05 rad (nominal: 2.62): targets needing more
+    fail with the hinge named, in `command`, `compensate` and `compensate_batch` alike; the others are
+    compensated."""
+    model = mechanism.model.copy()
+    k = model.idx_qs[model.getJointId("q13")]
+    upper = model.upperPositionLimit.copy()
+    upper[k] = 1.05
+    model.upperPositionLimit = upper
+    stiff = mechanism.with_model(model)
+    solver = ClosedLoopSolver(stiff)
+    angles = [solver.inverse(target, q_init=mechanism.home).q[k] for target in PATH]
+    assert min(angles) <= 1.05 < max(angles)  # the path crosses the new stop
+    compensator = Compensator(mechanism, stiff)
+    failing = [i for i, angle in enumerate(angles) if angle > 1.05]
+    for batch in (compensator.compensate(PATH), compensator.compensate_batch(PATH)):
+        assert [f.index for f in batch.failures] == failing
+        for failure in batch.failures:
+            assert failure.error is OutOfWorkspaceError
+            assert failure.reason.startswith("inverse kinematics of the calibrated model: target puts joint 'q13' "
+                                             f"at {angles[failure.index]:.6g}, beyond its limit [-0.523599, 1.05]")
+    compensator.reset()
+    with pytest.raises(OutOfWorkspaceError, match="target puts joint 'q13' at 1.075"):
+        compensator.command(PATH[failing[0]])

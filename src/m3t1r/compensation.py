@@ -265,9 +265,7 @@ def check_joint_limits(mechanism: Mechanism, result: InverseResult) -> None:
     The solver keeps the sliders within their limits but not the passive hinges (models/README.md):
     a target reachable only with, say, the platform hinge past its stop is not a command to send.
     """
-    violation = joint_limit_violation(mechanism.model, result.q)
-    if violation is not None:
-        raise OutOfWorkspaceError(violation, result.residual, result.iterations)
+    _JointLimits(mechanism.model).check(result)
 
 
 def joint_limit_violation(model: pin.Model, q: np.ndarray) -> str | None:
