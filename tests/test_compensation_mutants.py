@@ -189,6 +189,9 @@ def test_joint_limits_are_inclusive_and_a_violation_names_the_joint(mechanism):
     lower, upper = model.lowerPositionLimit.copy(), model.upperPositionLimit.copy()
     check_joint_limits(mechanism, _solved(lower.copy()))  # every joint exactly at its lower stop
     check_joint_limits(mechanism, _solved(upper.copy()))  # and at its upper stop
+    from m3t1r.compensation import joint_limit_violation  # its own test too: check_joint_limits reads lists first
+
+    assert joint_limit_violation(model, lower.copy()) is None and joint_limit_violation(model, upper.copy()) is None
     q = (lower + upper) / 2.0
     q[0] = upper[0] + 1e-3  # the first joint, q11
     with pytest.raises(OutOfWorkspaceError) as caught:
