@@ -422,8 +422,9 @@ def test_a_module_compiled_from_other_source_is_not_used(monkeypatch):
     import importlib
     from pathlib import Path
 
-    source = Path(native.__file__).with_name("_native_newton.cpp")
-    assert native._native_newton.source_sha256 == hashlib.sha256(source.read_bytes()).hexdigest()
+    folder = Path(native.__file__).parent
+    sources = b"".join((folder / name).read_bytes() for name in ("_native_newton.cpp", "_native_core.hpp"))
+    assert native._native_newton.source_sha256 == hashlib.sha256(sources).hexdigest()
     module = native._native_newton
     monkeypatch.setattr(module, "source_sha256", "0" * 64)
     try:

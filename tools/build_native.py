@@ -1,4 +1,4 @@
-"""Compile m3t1r's Newton core (src/m3t1r/model/_native_newton.cpp) in place, for this interpreter.
+"""Compile m3t1r's Newton core (src/m3t1r/model/_native_newton.cpp and its _native_core.hpp) in place, for this interpreter.
 
 Header-only use of Pinocchio's C++ API (the `pin` wheel ships its headers), with Eigen's headers from
 `cmeel-eigen` (the Eigen that eigenpy is built against) and Boost's from `cmeel-boost`: the module
@@ -45,7 +45,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--force", action="store_true", help="rebuild even when the module is newer than its source")
     args = parser.parse_args(argv)
     out = target()
-    if not args.force and out.exists() and out.stat().st_mtime >= SOURCE.stat().st_mtime:
+    newest = max(SOURCE.stat().st_mtime, SOURCE.with_name("_native_core.hpp").stat().st_mtime)
+    if not args.force and out.exists() and out.stat().st_mtime >= newest:
         print(f"build_native: {out.name} is up to date")
         return 0
     compile_module(SOURCE, out)
@@ -58,7 +59,10 @@ def compile_module(source: Path, out: Path) -> None:
     if shutil.which(compiler) is None:
         raise SystemExit(f"build_native: no C++ compiler ({compiler}); the pure-Python solver will run")
     partial = out.with_suffix(".partial")
-    digest = hashlib.sha256(source.read_bytes()).hexdigest()  # m3t1r.model.native refuses a module of other source
+    # m3t1r.model.native refuses a module of other source: the stamp covers the file and the core header
+    # it includes (a revision from before the header has the file alone).
+    parts = [source, source.with_name("_native_core.hpp")]
+    digest = hashlib.sha256(b"".join(part.read_bytes() for part in parts if part.exists())).hexdigest()
     # -O3: it vectorises the dense LU's row operations (no fast-math: the same rounding as -O2);
     # forward_batch about 10 % faster than with -O2 (benchmarks/README.md).
     command = [compiler, "-O3", "-std=c++17", "-shared", "-fPIC", "-pthread", "-fvisibility=hidden", "-w",

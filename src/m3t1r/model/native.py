@@ -25,12 +25,13 @@ try:
 except ImportError:  # not compiled: the pure-Python Newton runs
     _native_newton = None
 
-_SOURCE = Path(__file__).with_name("_native_newton.cpp")
-if _native_newton is not None and _SOURCE.exists() and \
-        getattr(_native_newton, "source_sha256", "") != hashlib.sha256(_SOURCE.read_bytes()).hexdigest():
+_SOURCES = [Path(__file__).with_name(name) for name in ("_native_newton.cpp", "_native_core.hpp")]
+if _native_newton is not None and all(source.exists() for source in _SOURCES) and \
+        getattr(_native_newton, "source_sha256", "") != hashlib.sha256(b"".join(
+            source.read_bytes() for source in _SOURCES)).hexdigest():
     # Compiled from another version of the source (edited since, or an old build): its calls may not
     # match this module's. The Python loops run until `make native` rebuilds it.
-    warnings.warn(f"{_SOURCE.with_suffix('').name}: the compiled Newton loop is older than its source; using "
+    warnings.warn("_native_newton: the compiled Newton loop is older than its source; using "
                   "the Python loop (rebuild: make native, or python tools/build_native.py)", RuntimeWarning,
                   stacklevel=2)
     _native_newton = None
