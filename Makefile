@@ -12,8 +12,8 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-# The compiled Newton loop of FK and IK (src/m3t1r/model/_native_core.hpp and _native_newton.cpp, about a minute of g++ the first
-# time, a no-op when up to date). Without it the solvers run their pure-Python loop.
+# The compiled Newton loop of FK and IK (src/m3t1r/model/_native_core.hpp and _native_newton.cpp; about a
+# minute of g++ the first time, a no-op when up to date). Without it the solvers run their pure-Python loop.
 native: $(STAMP)
 	$(BIN)/python tools/build_native.py
 

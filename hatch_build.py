@@ -1,7 +1,8 @@
 """Hatchling build hook: a wheel (`pip install .`, `pip wheel .`) carries the compiled Newton loop.
 
-It compiles src/m3t1r/model/_native_newton.cpp (with the _native_core.hpp it includes) with `tools/build_native.py`'s command into a temporary
-folder and adds the module to the wheel, which is then tagged for this interpreter and platform.
+It compiles src/m3t1r/model/_native_newton.cpp (with the _native_core.hpp it includes) by
+`tools/build_native.py`'s command into a temporary folder and adds the module to the wheel, which is
+then tagged for this interpreter and platform.
 Without a C++ compiler (or Pinocchio's headers) the wheel is built without it and says so; the solvers
 then run their pure-Python loops. Editable installs (`make`'s `pip install -e`) are left to `make native`,
 which builds the module in place.

@@ -420,10 +420,9 @@ def test_a_module_compiled_from_other_source_is_not_used(monkeypatch):
     `native` warn and leave the Python loops in charge rather than call a module of another interface."""
     import hashlib
     import importlib
-    from pathlib import Path
 
-    folder = Path(native.__file__).parent
-    sources = b"".join((folder / name).read_bytes() for name in ("_native_newton.cpp", "_native_core.hpp"))
+    assert [source.name for source in native._SOURCES] == ["_native_newton.cpp", "_native_core.hpp"]
+    sources = b"".join(source.read_bytes() for source in native._SOURCES)
     assert native._native_newton.source_sha256 == hashlib.sha256(sources).hexdigest()
     module = native._native_newton
     monkeypatch.setattr(module, "source_sha256", "0" * 64)

@@ -1,4 +1,4 @@
-"""Compile m3t1r's Newton core (src/m3t1r/model/_native_newton.cpp and its _native_core.hpp) in place, for this interpreter.
+"""Compile m3t1r's Newton loop (src/m3t1r/model/_native_newton.cpp, _native_core.hpp) in place, for this Python.
 
 Header-only use of Pinocchio's C++ API (the `pin` wheel ships its headers), with Eigen's headers from
 `cmeel-eigen` (the Eigen that eigenpy is built against) and Boost's from `cmeel-boost`: the module
@@ -45,12 +45,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--force", action="store_true", help="rebuild even when the module is newer than its source")
     args = parser.parse_args(argv)
     out = target()
-    newest = max(SOURCE.stat().st_mtime, SOURCE.with_name("_native_core.hpp").stat().st_mtime)
-    if not args.force and out.exists() and out.stat().st_mtime >= newest:
+    if not args.force and out.exists() and out.stat().st_mtime >= max(p.stat().st_mtime for p in sources(SOURCE)):
         print(f"build_native: {out.name} is up to date")
         return 0
     compile_module(SOURCE, out)
     return 0
+
+
+def sources(source: Path) -> list[Path]:
+    """What the module is compiled from: `source` and the core header it includes (a revision from
+    before the header has the file alone). m3t1r.model.native hashes the same files, in this order."""
+    return [part for part in (source, source.with_name("_native_core.hpp")) if part.exists()]
 
 
 def compile_module(source: Path, out: Path) -> None:
@@ -59,10 +64,8 @@ def compile_module(source: Path, out: Path) -> None:
     if shutil.which(compiler) is None:
         raise SystemExit(f"build_native: no C++ compiler ({compiler}); the pure-Python solver will run")
     partial = out.with_suffix(".partial")
-    # m3t1r.model.native refuses a module of other source: the stamp covers the file and the core header
-    # it includes (a revision from before the header has the file alone).
-    parts = [source, source.with_name("_native_core.hpp")]
-    digest = hashlib.sha256(b"".join(part.read_bytes() for part in parts if part.exists())).hexdigest()
+    # m3t1r.model.native refuses a module of other source: the stamp covers every file it is built from.
+    digest = hashlib.sha256(b"".join(part.read_bytes() for part in sources(source))).hexdigest()
     # -O3: it vectorises the dense LU's row operations (no fast-math: the same rounding as -O2);
     # forward_batch about 10 % faster than with -O2 (benchmarks/README.md).
     command = [compiler, "-O3", "-std=c++17", "-shared", "-fPIC", "-pthread", "-fvisibility=hidden", "-w",

@@ -25,6 +25,7 @@ try:
 except ImportError:  # not compiled: the pure-Python Newton runs
     _native_newton = None
 
+# What the module is compiled from, in the order tools/build_native.py hashes them into its stamp.
 _SOURCES = [Path(__file__).with_name(name) for name in ("_native_newton.cpp", "_native_core.hpp")]
 if _native_newton is not None and all(source.exists() for source in _SOURCES) and \
         getattr(_native_newton, "source_sha256", "") != hashlib.sha256(b"".join(
