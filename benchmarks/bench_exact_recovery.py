@@ -1,7 +1,7 @@
 """Noise-free recovery of a 1 mm / 1 mrad machine: base-parameter LM vs the opt-in refinement.
 
 The stretch goal of issue 3 is exact recovery (1e-9 m). This prints how close each stage gets on
-held-out poses and what it costs, against the reference implementation's 0.17 um (calibration.md).
+held-out poses and what it costs, against the reference implementation's 0.17 um (docs/results.md).
 Run: python benchmarks/bench_exact_recovery.py [--seeds 0 1]
 """
 
@@ -34,7 +34,7 @@ def main() -> None:
                 errors = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
                 print(f"{seed:>4} {label:<28}{calibration.base.rank:>7}{errors.position_mean:>19.2e}"
                       f"{errors.position.max():>11.2e}{seconds:>10.1f}")
-    print("reference implementation (calibration.md): 1.7e-07 mean, 1.3e-06 max")
+    print("reference implementation (docs/results.md): 1.7e-07 mean, 1.3e-06 max")
 
 
 if __name__ == "__main__":

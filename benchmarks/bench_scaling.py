@@ -4,7 +4,7 @@
    simulated data (1 mm / 1 mrad truth errors, tracker 10 um / 20 urad): wall time, LM iterations,
    peak Python/numpy memory (tracemalloc, in a separate run because tracing slows Python down;
    Pinocchio's C++ allocations are not traced) and held-out error. Baselines: the reference
-   implementation's published 2.8 s at 50 poses (calibration.md; not runnable here) and, measured
+   implementation's published 2.8 s at 50 poses (docs/results.md; not runnable here) and, measured
    in the same run at the smallest sizes, finite-difference LM (`least_squares(method="lm")`, no
    Jacobian) on the same whitened residual over the same base parameters, each residual a fresh
    assembly of every pose on the trial model.
@@ -45,7 +45,7 @@ from m3t1r.model.description import Mechanism  # noqa: E402
 from m3t1r.model.kinematics import ClosedLoopSolver  # noqa: E402
 
 NOISE = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
-REFERENCE_50_POSES = 2.8  # [s] reference implementation, 50 poses (shared/design/calibration.md)
+REFERENCE_50_POSES = 2.8  # [s] an independent reference implementation (plain Python), 50 poses: docs/results.md
 GOALS = {50: 0.5, 1000: 5.0}  # [s] issue goals on one core
 
 

@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     print(table(["truth", "pred. pos. RMS um", "actual pos. RMS um", "actual / pred.", "pred. rot. RMS urad",
                  "actual rot. RMS urad", "actual / pred.", "per-pose corr. (pos.)"], rows))
     print(f"\nMap ({args.grid[0]} x {args.grid[1]} grid, first truth machine): {args.out}")
-    print("Expected (calibration.md): the covariance predicts the held-out error within about 30 % for N >= 50, "
+    print("Expected (docs/results.md): the covariance predicts the held-out error within about 30 % for N >= 50, "
           "i.e. actual / predicted in [0.7, 1.3].")
     return 0
 

@@ -1,4 +1,4 @@
-"""Closed-loop calibration: sensitivities, identifiability and reachable accuracy (calibration.md)."""
+"""Closed-loop calibration: sensitivities, identifiability and reachable accuracy (docs/results.md)."""
 
 import numpy as np
 import pinocchio as pin
@@ -26,7 +26,7 @@ def error_model(mechanism):
 
 
 def test_parameter_layout(error_model):
-    # 20 joint placements, 12 closure point frames, P_I and P_II: 204 parameters (calibration.md).
+    # 20 joint placements, 12 closure point frames, P_I and P_II: 204 parameters (docs/results.md).
     assert len(error_model.placements) == 34 and error_model.n_parameters == 204
     assert error_model.names[:2] == ("q11.dt[0]", "q11.dt[1]")
     assert "P_I.dt[5]" in error_model.names and "fivebar_tip_II.dt[3]" in error_model.names
@@ -95,7 +95,7 @@ def noise_free_1mm(mechanism):
 def test_identifiable_parameters_at_nominal(noise_free_1mm):
     _, calibration = noise_free_1mm
     base = calibration.base
-    assert base.rank == 56  # calibration.md: 56 of 204 at the nominal geometry
+    assert base.rank == 56  # docs/results.md: 56 of 204 at the nominal geometry
     assert base.r_diag_ratio[-2] > 1e-6 and base.r_diag_ratio[-1] < 1e-12  # a clean QR gap
     # Columns with no effect at all: e.g. a closure frame's motion along its loop's unenforced axis.
     # (The reference implementation reports 96 with its own frame conventions; ours gives 90.)

@@ -233,7 +233,7 @@ def test_names_and_priors_are_checked_before_any_fit(mechanism, few_poses):
 
 def test_identifiable_count_on_the_reference_poses(mechanism, few_poses, monkeypatch):
     """`_structural_rank` from an empty cache (a fit would find it filled by earlier fits), hence
-    `_count_identifiable`: 56 of 204 with full poses (calibration.md), 53 with positions only, fewer
+    `_count_identifiable`: 56 of 204 with full poses (docs/results.md), 53 with positions only, fewer
     with fixed columns or a looser tolerance; the marker's rotation shows at a loose tolerance.
     Each distinct key is counted once."""
     cache = {}

@@ -1,4 +1,4 @@
-"""Closed-loop kinematics against the closed form of mechanism.md, on nominal and perturbed machines."""
+"""Closed-loop kinematics against the closed form of docs/design.md, on nominal and perturbed machines."""
 
 import math
 

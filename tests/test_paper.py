@@ -359,7 +359,7 @@ def test_closed_chain_with_sensors_the_measured_chain_is_exact(closed_exact):
     r = closed_exact
     assert r.sensors_before.position_mean > 1e-3  # measured 4.4 mm, 5.4 mrad
     assert _worst(r.sensors_after) <= 1e-12  # measured 1.2e-14 m, 1.8e-15 rad
-    # The closed-loop calibration from the sliders alone, on the same 20 poses (calibration.md).
+    # The closed-loop calibration from the sliders alone, on the same 20 poses (docs/results.md).
     assert r.closed_loop.position_mean <= 1e-5 and r.closed_loop.rotation_mean <= 1e-5  # measured 1.4 / 1.6 um, urad
 
 

@@ -153,7 +153,7 @@ def test_closed_loop_blocks_match_the_calibration_jacobian(mechanism) -> None:
     _, jacobian = problem.evaluate(state, problem.columns)
     np.testing.assert_allclose(blocks.reshape(-1, error_model.n_parameters), jacobian,
                                atol=1e-6 * np.abs(blocks).max())
-    # 56 base parameters at the nominal geometry (shared/design/calibration.md); 20 poses identify them.
+    # 56 base parameters at the nominal geometry (docs/design.md); 20 poses identify them.
     selection = select_poses(blocks, 20)
     assert np.isfinite(selection.log_det) and len(selection.columns) == 56
     rng = np.random.default_rng(15)

@@ -12,7 +12,7 @@ platform poses gets T_cp ("pose" output).
 
 Only position and yaw are commandable. The roll and pitch a perturbed machine takes at a target
 are set by its geometry; they are reported as `tilt` and never "compensated" (a 6D target is
-over-determined for a 4-DoF machine, calibration.md "IK pitfalls").
+over-determined for a 4-DoF machine, docs/design.md, "Conventions").
 
 Frames and units: platform frame `Mechanism.platform_frame` in the base frame, metres and
 radians; yaw is `kinematics.yaw_of` (heading of the platform x axis) everywhere. Target rows are

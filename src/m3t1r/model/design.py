@@ -1,7 +1,7 @@
 """The nominal design of the M-shaped 3T1R machine and the generator of its model files.
 
 One source for every number: `MechanismDesign` holds the paper's dimensions and the design
-choices of `shared/design/mechanism.md`; `build_urdf` and `build_closures` turn it into the
+choices explained in `docs/design.md` ("The mechanism"); `build_urdf` and `build_closures` turn it into the
 URDF (four open chains from `base`) and the closures file. `models/generate.py` writes both.
 
 Geometry (base frame B at rail-axis height, z up, SI units):
@@ -51,7 +51,7 @@ class WorkspaceBox:
 
 @dataclass(frozen=True)
 class MechanismDesign:
-    """Nominal dimensions [m, rad] of the machine (paper section 6 plus mechanism.md choices)."""
+    """Nominal dimensions [m, rad] of the machine (paper section 6 plus the choices of docs/design.md)."""
 
     l_u: float = 0.7  # upper link length (slider hinge to knee D)
     l_d: float = 0.7  # lower link length (knee D to foot A)
@@ -243,7 +243,7 @@ def build_urdf(design: MechanismDesign = NOMINAL) -> str:
 def build_closures(design: MechanismDesign = NOMINAL) -> dict:
     """Return the closures document (schema in models/README.md) for `build_urdf(design)`.
 
-    Only the 16 independent rows are enforced (mechanism.md): a planar loop's residual along its
+    Only the 16 independent rows are enforced (docs/design.md, "The mechanism"): a planar loop's residual along its
     cut axis, and the platform weld's roll and pitch, hold by themselves at the nominal geometry
     and cannot all hold on a machine with manufacturing errors.
     """

@@ -57,7 +57,7 @@ def yaw_of(rotation: np.ndarray) -> float:
     """Heading of the frame's x axis in the base frame: atan2(R[1,0], R[0,0]) [rad].
 
     Used everywhere as the platform's yaw theta. Under residual tilt it differs by about
-    roll*pitch/2 from the z component of log3 (calibration.md); this is the one we command.
+    roll*pitch/2 from the z component of log3 (docs/design.md, "Conventions"); this is the one we command.
     """
     return math.atan2(rotation[1, 0], rotation[0, 0])
 

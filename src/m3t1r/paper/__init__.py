@@ -12,7 +12,7 @@ each read by sensors on every joint, and measures the platform pose with a track
 - simulation (section 6): an "actual" chain with errors on T(0), twists and joint variables
   (eq. 34-37), 20 poses from the mechanism's numerical forward kinematics.
 
-On this repository's machine (`shared/design/mechanism.md`) the paper's "equivalent" revolute
+On this repository's machine (`docs/design.md`, "The mechanism") the paper's "equivalent" revolute
 joints q_i2, q_i3 are parallelograms: chain B1 is (q11, q12, q12_pa, q13, q13_pa, q14, P_I), the
 coupling joints q_i2_pa, q_i3_pa being read like every other joint of the chain. Chain B3 ends
 at P_II, the second copy of the platform frame, welded to P_I by the platform closure.
