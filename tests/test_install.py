@@ -16,8 +16,6 @@ from pathlib import Path
 
 import pytest
 
-pytest.importorskip("hatchling", reason="the build backend is a dev dependency: pip install -e '.[dev]'")
-
 ROOT = Path(__file__).resolve().parents[1]
 MODULE_GLOB = "_native_newton*.so"
 
@@ -37,6 +35,7 @@ def _tree(tmp_path: Path, with_module: bool = False) -> Path:
 
 def _build(tree: Path, kind: str, pure_python: bool) -> tuple[subprocess.CompletedProcess, Path]:
     """hatchling's build_wheel or build_editable in `tree`, with no C++ compiler; (process, output folder)."""
+    pytest.importorskip("hatchling", reason="the build backend is a dev dependency: pip install -e '.[dev]'")
     out = tree.parent / "dist"
     out.mkdir(exist_ok=True)
     env = {**os.environ, "CXX": "no-such-compiler"}
@@ -92,3 +91,27 @@ def test_an_editable_build_keeps_an_up_to_date_module_without_compiling(tmp_path
     process, out = _build(tree, "editable", pure_python=False)
     assert process.returncode == 0, process.stderr
     assert module.stat().st_mtime_ns == before
+
+
+def _build_native():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("build_native_under_test", ROOT / "tools" / "build_native.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_header_trees_are_found_in_the_installed_distributions_files():
+    """Through the metadata of cmeel-eigen, libpinocchio (or pin) and cmeel-boost, not `import pinocchio`."""
+    folders = _build_native().include_dirs()
+    for probe in ("Eigen/Core", "pinocchio/multibody.hpp", "boost/version.hpp", "Python.h"):
+        assert any((folder / probe).is_file() for folder in folders), probe
+
+
+def test_a_missing_header_tree_is_named_with_the_distribution_to_install(monkeypatch):
+    build_native = _build_native()
+    monkeypatch.setitem(build_native.HEADER_TREES, "Eigen", (("no-such-eigen",), "include/eigen3", "Eigen/Core"))
+    with pytest.raises(SystemExit, match=r"Eigen's headers not found: no installed no-such-eigen distribution "
+                                         r"ships include/eigen3/Eigen/Core \(pip install no-such-eigen\)"):
+        build_native.include_dirs()
