@@ -26,6 +26,64 @@ def test_the_compiled_loop_is_built():
     assert native.AVAILABLE, "run `make native` (python tools/build_native.py) to compile the Newton loop"
 
 
+def test_status_names_the_compiled_module_in_use():
+    assert native.status().startswith("compiled Newton loop (_native_newton")
+
+
+def _without_the_module(monkeypatch):
+    """`native` re-imported as in an install without the compiled module (restored by `_with_the_module`)."""
+    import importlib
+    import sys
+
+    import m3t1r.model
+
+    monkeypatch.setitem(sys.modules, "m3t1r.model._native_newton", None)  # None: the import fails
+    monkeypatch.delattr(m3t1r.model, "_native_newton")
+    return importlib.reload(native)
+
+
+def _with_the_module(monkeypatch):
+    import importlib
+
+    monkeypatch.undo()
+    assert importlib.reload(native).AVAILABLE is True
+
+
+def test_without_the_module_the_first_solver_warns_once_that_it_is_slower(mechanism, monkeypatch):
+    import warnings
+
+    monkeypatch.delenv(native.PURE_PYTHON_VARIABLE, raising=False)
+    try:
+        assert _without_the_module(monkeypatch).AVAILABLE is False
+        assert native.status().startswith("pure-Python Newton loop: the compiled one is not built (4-6x slower")
+        assert "make native" in native.status()
+        with pytest.warns(RuntimeWarning, match="not built: the solvers run their pure-Python loop, four to six"):
+            assert ClosedLoopSolver(mechanism).native is None
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # said once per run
+            assert ClosedLoopSolver(mechanism).native is None
+    finally:
+        _with_the_module(monkeypatch)
+
+
+def test_without_the_module_the_pure_python_variable_keeps_it_quiet(mechanism, monkeypatch):
+    import warnings
+
+    monkeypatch.setenv(native.PURE_PYTHON_VARIABLE, "1")
+    try:
+        _without_the_module(monkeypatch)
+        assert "not built, as M3T1R_PURE_PYTHON asks" in native.status()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            solver = ClosedLoopSolver(mechanism)
+        assert solver.native is None
+        values = mechanism.home[solver.actuated]
+        assert np.allclose(solver.forward(values).pose.translation,
+                           ClosedLoopSolver(mechanism, native=False).forward(values).pose.translation, atol=1e-12)
+    finally:
+        _with_the_module(monkeypatch)
+
+
 def _path(solver: ClosedLoopSolver, n: int = 200) -> np.ndarray:
     """Slider values along a smooth workspace path (Lissajous in x, y, z, theta)."""
     t = np.linspace(0.0, 2.0 * np.pi, n)

@@ -7,6 +7,8 @@ the same residual and exact Jacobian of the enforced rows, chord steps, step cap
 its own `pinocchio::Model`, rebuilt from the Python model's joints and placements, so a calibrated
 copy of a machine gets its own. Trees of 1-DoF revolute and prismatic joints only; anything else
 (and an interpreter without the module) keeps the pure-Python loop: `NativeChain.of` returns None.
+Without the module the first solver of a run warns (RuntimeWarning: four to six times slower),
+unless M3T1R_PURE_PYTHON is set; `status()` says in one line which loop runs and why.
 """
 
 from __future__ import annotations
@@ -18,15 +20,18 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-import pinocchio as pin
 
 try:
     from m3t1r.model import _native_newton  # type: ignore[attr-defined]
 except ImportError:  # not compiled: the pure-Python Newton runs
     _native_newton = None
 
+# The variable that asks for the pure-Python package (tools/build_native.py, hatch_build.py): set, a
+# run without the compiled loop is what the user chose and goes without the warning.
+PURE_PYTHON_VARIABLE = "M3T1R_PURE_PYTHON"
 # What the module is compiled from, in the order tools/build_native.py hashes them into its stamp.
 _SOURCES = [Path(__file__).with_name(name) for name in ("_native_newton.cpp", "_native_core.hpp")]
+_WHY_NOT = "not built" if _native_newton is None else ""  # why the Python loops run ("": they do not)
 if _native_newton is not None and all(source.exists() for source in _SOURCES) and \
         getattr(_native_newton, "source_sha256", "") != hashlib.sha256(b"".join(
             source.read_bytes() for source in _SOURCES)).hexdigest():
@@ -35,13 +40,16 @@ if _native_newton is not None and all(source.exists() for source in _SOURCES) an
     warnings.warn("_native_newton: the compiled Newton loop is older than its source; using "
                   "the Python loop (rebuild: make native, or python tools/build_native.py)", RuntimeWarning,
                   stacklevel=2)
-    _native_newton = None
+    _native_newton, _WHY_NOT = None, "older than its source"
+_warned = _WHY_NOT == "older than its source"  # that case has had its warning, above
 
 if TYPE_CHECKING:
+    import pinocchio as pin
+
     from m3t1r.model.closures import ClosureSpec
     from m3t1r.model.task import TaskSpec
 
-__all__ = ["AVAILABLE", "NativeChain", "CONVERGED", "available_cores"]
+__all__ = ["AVAILABLE", "NativeChain", "CONVERGED", "PURE_PYTHON_VARIABLE", "available_cores", "status"]
 
 AVAILABLE = _native_newton is not None
 _EMPTY = np.zeros(0)
@@ -84,8 +92,11 @@ class NativeChain:
         support(frame b) - support(frame a) of each closure (`ClosedLoopSolver`'s); task_columns: the
         velocity indices of the joints that move the task frame.
         """
+        if _native_newton is None:
+            _warn_once_without_module()
+            return None
         names = [model.joints[j].shortname() for j in range(1, model.njoints)]
-        if _native_newton is None or any(name not in _KINDS for name in names):
+        if any(name not in _KINDS for name in names):
             return None
         joints = np.array([[model.parents[j], _KINDS[names[j - 1]]] for j in range(1, model.njoints)], dtype=np.int64)
         axes = np.array([_axis(model.joints[j]) for j in range(1, model.njoints)])
@@ -184,6 +195,33 @@ class NativeChain:
         _native_newton.rows(self._handle, inverse, q, branch, goals, rotations, float(chord_below), int(steps_taken),
                             status, norm, iterations, platform, *limits, int(threads))
         return status, norm, iterations, platform
+
+
+def status() -> str:
+    """One line saying whether the solvers run the compiled Newton loop, and if not why (for
+    `m3t1r --version`). Cheap: it reads what this module found at import and imports nothing."""
+    if _native_newton is not None:
+        return f"compiled Newton loop ({Path(_native_newton.__file__).name})"
+    chosen = f", as {PURE_PYTHON_VARIABLE} asks" if _pure_python_chosen() else ""
+    return f"pure-Python Newton loop: the compiled one is {_WHY_NOT}{chosen} (4-6x slower; {_HOW_TO_BUILD})"
+
+
+_HOW_TO_BUILD = "build it: make native, or reinstall with a C++ compiler, e.g. pip install --force-reinstall ."
+
+
+def _pure_python_chosen() -> bool:
+    return os.environ.get(PURE_PYTHON_VARIABLE, "").strip().lower() in ("1", "yes", "true", "on")
+
+
+def _warn_once_without_module() -> None:
+    """The first solver of a run without the compiled loop says so, unless the user chose it."""
+    global _warned
+    if _warned or _pure_python_chosen():
+        return
+    _warned = True
+    warnings.warn(f"m3t1r: the compiled Newton loop is {_WHY_NOT}: the solvers run their pure-Python loop, "
+                  f"four to six times slower ({_HOW_TO_BUILD}; {PURE_PYTHON_VARIABLE}=1 silences this)",
+                  RuntimeWarning, stacklevel=4)  # at the code that made the solver
 
 
 def available_cores() -> int:
