@@ -26,16 +26,12 @@ from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assem
 from m3t1r.errors import IdentificationError, InvalidInputError, KinematicsError, OutputPathError, PoorExcitationWarning
 from m3t1r.metrics import PoseErrors, rotation_angles
 from m3t1r.model.description import Mechanism
+from m3t1r.model.design import IDLE_CHAIN_JOINTS
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import declared_workspace
 
 __all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots", "check_plots_folder",
            "PassiveJointResiduals", "passive_joint_residuals", "IDLE_CHAIN_JOINTS"]
-
-# The hinges of the idle sub-branches B2 and B4 (paper section 2.4: the pair not used by its
-# two-chain model, "used for cross-validation").
-IDLE_CHAIN_JOINTS = ("q12_B2", "q22_B4")
-
 
 def measured_pose_errors(machine: Mechanism, measurements: PoseMeasurements,
                          setup: MeasurementSetup = MeasurementSetup()) -> PoseErrors:
