@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 import m3t1r
-from m3t1r.app.cli import SERIAL_CALIBRATION, VERBS, build_parser, load, main
+from m3t1r.app.cli import build_parser, main
+from m3t1r.app.cli_verbs import CALIBRATION_PLOTS, DEMO, RUNNER, SERIAL_CALIBRATION, VERBS, load
 from m3t1r.model import native
 
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -61,15 +62,15 @@ def test_version_names_the_compiled_loop_as_the_solver_sees_it() -> None:
     assert (match[2] == "yes") == native.AVAILABLE  # the same verdict as the module the solvers use
 
 
-# What no verb module may import, and what only some need (the closed-loop calibration writes plots
-# with --plots; the viewer and the demo draw with meshcat).
+# What no verb module may import, and what only some need (matplotlib comes with `calibrate --plots`
+# alone, through cli_verbs.CALIBRATION_PLOTS; the viewer and the demo draw with meshcat).
 NEVER = ("scipy.stats",)
 NOT_FOR = {
     "m3t1r.app.cli_kinematics": ("matplotlib", "meshcat", "pinocchio.visualize", "m3t1r.calibration.closed_loop"),
     "m3t1r.app.cli_serial": ("matplotlib", "meshcat", "pinocchio.visualize", "m3t1r.calibration.closed_loop"),
     "m3t1r.app.cli_campaign": ("matplotlib", "meshcat", "pinocchio.visualize"),
     "m3t1r.app.cli_studies": ("matplotlib", "meshcat", "pinocchio.visualize"),
-    "m3t1r.app.cli_calibrate": ("meshcat", "pinocchio.visualize"),
+    "m3t1r.app.cli_calibrate": ("matplotlib", "meshcat", "pinocchio.visualize"),
     "m3t1r.app.cli_view": ("matplotlib",),
     "m3t1r.app.cli": ("numpy",),  # the demo's own module is imported when it runs
 }
@@ -78,8 +79,9 @@ NOT_FOR = {
 def test_every_verb_has_a_run_function_and_nothing_else_does() -> None:
     verbs = next(a for a in build_parser()._actions if a.dest == "verb").choices
     assert set(verbs) == set(VERBS)
-    for reference in [*VERBS.values(), SERIAL_CALIBRATION]:
+    for reference in [*VERBS.values(), SERIAL_CALIBRATION, CALIBRATION_PLOTS, RUNNER, DEMO]:
         assert callable(load(reference)), reference
+    for reference in [*VERBS.values(), SERIAL_CALIBRATION]:
         assert reference.partition(":")[0] in NOT_FOR, f"{reference}: say what its module may not import"
 
 

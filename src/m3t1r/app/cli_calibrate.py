@@ -20,9 +20,17 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r._version import __version__
-from m3t1r.app.cli_common import RowFailures, campaign_report_fields, load_mechanism, parse_priors, selection_note
+from m3t1r.app.cli_common import (
+    RowFailures,
+    campaign_report_fields,
+    check_plots_folder,
+    load_mechanism,
+    parse_priors,
+    selection_note,
+)
+from m3t1r.app.cli_verbs import CALIBRATION_PLOTS, load
 from m3t1r.app.datasets import MeasurementFile, read_measurements
-from m3t1r.app.reporting import check_plots_folder, passive_joint_residuals, write_calibration_plots
+from m3t1r.app.passive_joints import passive_joint_residuals
 from m3t1r.calibration.assessment import (
     FitRejected,
     check_fit,
@@ -120,7 +128,7 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     if args.plots:
         print("writing plots (cross-validation recalibrates on subsets) ...", flush=True)
         protect = (args.measurements, nominal.urdf_path, nominal.closures_path, *written)
-        for path in write_calibration_plots(nominal, calibration, Path(args.plots), protect, noise):
+        for path in load(CALIBRATION_PLOTS)(nominal, calibration, Path(args.plots), protect, noise):
             print(f"wrote {path}")
 
 
