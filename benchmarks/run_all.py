@@ -20,7 +20,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 BENCHMARKS = ("kinematics", "batch", "identification", "scaling", "memory", "pose_selection", "uncertainty",
-              "campaign")
+              "campaign", "startup")
 
 
 def main(argv: list[str] | None = None) -> int:

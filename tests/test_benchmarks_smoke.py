@@ -21,6 +21,7 @@ TITLES = (
     "## Pose selection",
     "## Uncertainty",
     "## Tracker campaign",
+    "## Start-up of the command line and the package",
 )
 
 

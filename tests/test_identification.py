@@ -7,11 +7,13 @@ import warnings
 import numpy as np
 import pinocchio as pin
 import pytest
+import scipy.stats  # a reference for outlier_gate, which the package computes with scipy.special
 
 from m3t1r.calibration.identification import (
     RecursiveLeastSquares,
     batch_least_squares,
     levenberg_marquardt,
+    outlier_gate,
     select_base_parameters,
 )
 from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
@@ -197,3 +199,11 @@ def test_levenberg_marquardt_on_a_manifold_matches_closed_form() -> None:
 def test_levenberg_marquardt_reports_non_convergence() -> None:
     result = levenberg_marquardt(Rosenbrock(), np.array([-1.2, 1.0]), max_iterations=2)
     assert not result.converged and result.termination == "max_iterations" and result.iterations == 2
+
+
+@pytest.mark.parametrize("dof", [1, 3, 6, 12])
+def test_outlier_gate_is_the_chi2_quantile_of_the_two_sided_normal_tail(dof: int) -> None:
+    for sigma in (2.0, 3.0, 5.0, 8.0):
+        expected = scipy.stats.chi2.isf(2.0 * scipy.stats.norm.sf(sigma), dof)
+        assert outlier_gate(sigma, dof) == pytest.approx(expected, rel=1e-12)
+    assert outlier_gate(1.0, 1) == pytest.approx(1.0, rel=1e-12)  # chi^2_1 is N(0, 1) squared

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
+import scipy.special
 import scipy.stats
 
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
@@ -280,6 +281,14 @@ def test_sigma_equivalent_inverts_the_gate() -> None:
     assert sigma_equivalent(np.array([1e6]), 6)[0] == pytest.approx(1e3)  # beyond double range: sqrt(d^2)
     z = sigma_equivalent(np.array([scipy.stats.chi2.isf(2 * scipy.stats.norm.sf(2.0), 6)]), 6)
     assert z[0] == pytest.approx(2.0, rel=1e-9)
+
+
+@pytest.mark.parametrize("dof", [3, 6])
+def test_sigma_equivalent_follows_the_chi2_tail_below_and_above_its_median(dof: int) -> None:
+    d2 = np.array([0.05, 0.5, 0.9 * dof, 1.1 * dof, 3.0 * dof, 200.0])  # the median of chi^2_k is near k
+    expected = -scipy.special.ndtri_exp(scipy.stats.chi2.logsf(d2, dof) - np.log(2.0))
+    np.testing.assert_allclose(sigma_equivalent(d2, dof), expected, rtol=1e-10)
+    assert np.all(np.diff(sigma_equivalent(d2, dof)) > 0)
 
 
 def _registered() -> bool:

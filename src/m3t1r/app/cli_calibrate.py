@@ -20,9 +20,17 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r._version import __version__
-from m3t1r.app.cli_common import RowFailures, campaign_report_fields, selection_note
+from m3t1r.app.cli_common import (
+    RowFailures,
+    campaign_report_fields,
+    check_plots_folder,
+    load_mechanism,
+    parse_priors,
+    selection_note,
+)
+from m3t1r.app.cli_verbs import CALIBRATION_PLOTS, load
 from m3t1r.app.datasets import MeasurementFile, read_measurements
-from m3t1r.app.reporting import check_plots_folder, passive_joint_residuals, write_calibration_plots
+from m3t1r.app.passive_joints import passive_joint_residuals
 from m3t1r.calibration.assessment import (
     FitRejected,
     check_fit,
@@ -35,70 +43,18 @@ from m3t1r.calibration.assessment import (
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, CrossValidation, calibrate_closed_loop, cross_validate
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
-from m3t1r.errors import InvalidInputError, PoorExcitationWarning
+from m3t1r.errors import PoorExcitationWarning
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.progress import Progress
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import declared_workspace
 
-__all__ = ["add_campaign_options", "parse_priors", "run_closed_loop_calibration", "calibration_report"]
+__all__ = ["cmd_calibrate", "run_closed_loop_calibration", "calibration_report"]
 
 #: A fitted parameter whose standard deviation exceeds these is "weakly determined" [m], [rad].
 WEAK_TRANSLATION, WEAK_ROTATION = 1e-3, 1e-3
 _DIAGNOSIS_POSES = 200  # the likely-cause checks look at this many poses at most
-
-
-def add_campaign_options(parser: argparse.ArgumentParser) -> None:
-    """The measurement-setup, robustness and judgement options of `calibrate` (closed loop and serial)."""
-    parser.add_argument("--frame", choices=("base", "estimate"), default="base",
-                        help="base: data are in the robot base frame; estimate: in a tracker's own frame, "
-                             "estimated with the machine (default base)")
-    parser.add_argument("--marker", nargs=3, type=float, metavar=("X", "Y", "Z"),
-                        help="nominal position of the measured point in the platform (serial: tool) frame [m]; "
-                             "estimated with the machine")
-    parser.add_argument("--units", choices=("m", "mm"), default="m",
-                        help="length unit of the file's length columns (x, y, z and prismatic joints)")
-    parser.add_argument("--outlier-sigma", type=_outlier_sigma, default=5.0, metavar="S",
-                        help="flag poses beyond S noise sigmas and leave them out (0: keep every pose; default 5)")
-    parser.add_argument("--select", choices=("loo", "none"), default="loo",
-                        help="model selection: keep the parameters that predict left-out poses (default loo)")
-    parser.add_argument("--fix", nargs="+", default=[], metavar="NAME",
-                        help="hold parameters (q12.dt[3]) or whole placements (q12) at nominal")
-    parser.add_argument("--prior", action="append", default=[], metavar="NAME=SIGMA",
-                        help="a prior toward nominal with this standard deviation [m or rad] (repeatable)")
-    parser.add_argument("--folds", type=_folds, default=5, help="cross-validation folds, at least 2 (default 5)")
-    parser.add_argument("--max-iterations", type=int, default=None, metavar="N", help="Levenberg-Marquardt cap")
-    parser.add_argument("--force", action="store_true", help="write a fit that is judged unsupported, with a warning")
-
-
-def _folds(text: str) -> int:
-    value = int(text)
-    if value < 2:
-        raise argparse.ArgumentTypeError(f"at least 2 folds, got {value}")
-    return value
-
-
-def _outlier_sigma(text: str) -> float:
-    value = float(text)
-    if not (value == 0 or 1.0 <= value < 1e3):
-        raise argparse.ArgumentTypeError(f"0 (keep every pose) or a gate of 1 to 1000 sigmas, got {text}")
-    return value
-
-
-def parse_priors(entries: list[str]) -> dict[str, float]:
-    """["q12=1e-3", ...] -> {"q12": 0.001}; InvalidInputError naming the entry otherwise."""
-    priors = {}
-    for entry in entries:
-        name, _, value = entry.partition("=")
-        try:
-            sigma = float(value)
-        except ValueError:
-            sigma = float("nan")
-        if not name or not (np.isfinite(sigma) and sigma > 0):
-            raise InvalidInputError(f"--prior {entry}: expected NAME=SIGMA with SIGMA > 0 [m or rad]")
-        priors[name] = sigma
-    return priors
 
 
 def _nominal_points(nominal: Mechanism, marker: pin.SE3) -> Callable[[np.ndarray], np.ndarray]:
@@ -121,6 +77,12 @@ def _diagnose(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, frame_
     measured = np.array([measurements.poses[i].translation for i in pick])
     return likely_causes(_nominal_points(nominal, marker), measurements.actuators[pick], measured,
                          nominal.actuated_joints, frame_estimated=frame_estimated)
+
+
+def cmd_calibrate(args: argparse.Namespace) -> None:
+    """`m3t1r calibrate` without --serial: a closed-loop calibration from a measurement file."""
+    args.prior = parse_priors(args.prior)
+    run_closed_loop_calibration(args, load_mechanism(args.model, args.closures))
 
 
 def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) -> None:
@@ -166,7 +128,7 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     if args.plots:
         print("writing plots (cross-validation recalibrates on subsets) ...", flush=True)
         protect = (args.measurements, nominal.urdf_path, nominal.closures_path, *written)
-        for path in write_calibration_plots(nominal, calibration, Path(args.plots), protect, noise):
+        for path in load(CALIBRATION_PLOTS)(nominal, calibration, Path(args.plots), protect, noise):
             print(f"wrote {path}")
 
 

@@ -1,9 +1,11 @@
 """Command-line verbs of a measurement campaign: `m3t1r plan` (what to measure) and `m3t1r validate`
 (how well a calibrated model predicts a measurement file).
 
-`m3t1r.cli` registers them with `add_plan_parser(verbs)` and `add_validate_parser(verbs)`. Errors are
-m3t1r errors (exit status 2 in `m3t1r.cli.main`); `validate --predictions` with rows that could
-not be predicted raises `cli.RowFailures` (status 1) and writes nothing.
+Their options are in `m3t1r.app.cli_parser`; `m3t1r.app.cli` runs `cmd_plan` and `cmd_validate`.
+`add_plan_parser(verbs)` and `add_validate_parser(verbs)` add them to a parser of one's own with
+`args.run` set. Errors are m3t1r errors (exit status 2 in `m3t1r.app.cli.main`); `validate
+--predictions` with rows that could not be predicted raises `cli_common.RowFailures` (status 1) and
+writes nothing.
 """
 
 from __future__ import annotations
@@ -14,7 +16,9 @@ from pathlib import Path
 from typing import TextIO
 
 import numpy as np
+import pinocchio as pin
 
+from m3t1r.app import cli_parser
 from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, provenance, say
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS
 from m3t1r.calibration.measurements import TrackerNoise
@@ -36,29 +40,14 @@ __all__ = ["add_plan_parser", "add_validate_parser", "cmd_plan", "cmd_validate"]
 
 
 def add_plan_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Add the `plan` verb to argparse's subparsers object `verbs`."""
-    p = verbs.add_parser("plan", help="choose calibration poses D-optimally, ordered for short travel")
-    p.add_argument("-n", type=int, required=True, help="number of poses to measure")
-    p.add_argument("-o", "--output", required=True, help="plan CSV (sliders, or joints with --serial, by joint name)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the candidate draw (default 0)")
-    p.add_argument("--candidates", type=int, metavar="K", help="candidates drawn in the workspace (default 20 n)")
-    p.add_argument("--position-only", action="store_true", help="a tracker without orientation")
-    p.add_argument("--noise-pos", type=float, default=10e-6, metavar="M", help="tracker position noise [m]")
-    p.add_argument("--noise-rot", type=float, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
-    p.add_argument("--model", metavar="URDF", help="machine URDF (default: the packaged nominal model)")
-    p.add_argument("--closures", metavar="YAML", help="its closures file (default: URDF stem + .closures.yaml)")
-    p.add_argument("--serial", metavar="ROBOT_OR_URDF", help="plan for a serial robot (ur3, ur5, ur10, panda or a URDF)")
-    p.add_argument("--base", metavar="FRAME", help="with --serial: base frame (default the model root)")
-    p.add_argument("--tool", metavar="FRAME", help="with --serial: the measured tool frame (default for example robots)")
-    p.set_defaults(run=cmd_plan)
-    return p
+    """Add the `plan` verb to argparse's subparsers object `verbs`, run by `cmd_plan` (`args.run`)."""
+    parser = cli_parser.add_plan_parser(verbs)
+    parser.set_defaults(run=cmd_plan)
+    return parser
 
 
 def _serial_robot(source: str, tool: str | None, base: str | None):
     """(model, chain) of `--serial` (an example robot name or a URDF path)."""
-    import pinocchio as pin
-
-
     path = Path(source)
     if path.suffix.lower() == ".urdf" or path.exists():
         if not path.is_file():
@@ -142,16 +131,10 @@ def cmd_plan(args: argparse.Namespace) -> None:
 
 
 def add_validate_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Add the `validate` verb to argparse's subparsers object `verbs`."""
-    p = verbs.add_parser("validate", help="predict a measurement file with a calibrated model; per-row errors")
-    p.add_argument("measurements", help="measurement CSV (joints by name, x,y,z[,qx,qy,qz,qw])")
-    p.add_argument("--calibrated", required=True, metavar="URDF",
-                   help="calibrated URDF (M machine: its NAME.closures.yaml beside it)")
-    p.add_argument("--report", required=True, metavar="JSON", help="the calibration report (model kind, setup, noise)")
-    p.add_argument("--units", choices=("m", "mm"), help="length unit of the file (default: the calibration input's)")
-    p.add_argument("--predictions", metavar="CSV", help="write the predicted measurements, one row per input row")
-    p.set_defaults(run=cmd_validate)
-    return p
+    """Add the `validate` verb to argparse's subparsers object `verbs`, run by `cmd_validate` (`args.run`)."""
+    parser = cli_parser.add_validate_parser(verbs)
+    parser.set_defaults(run=cmd_validate)
+    return parser
 
 
 def _row_table(result, out: TextIO) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import math
 import sys
 import warnings
 from collections.abc import Sequence
@@ -12,12 +13,13 @@ from pathlib import Path
 from m3t1r._version import __version__
 from m3t1r.calibration.assessment import describe_parameter
 from m3t1r.calibration.measurement_setup import MeasurementSetup, se3_to_report
-from m3t1r.errors import InvalidInputError, M3t1rError, ModelWarning
+from m3t1r.errors import InvalidInputError, M3t1rError, ModelWarning, OutputPathError
 from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256
 from m3t1r.io.progress import Progress
 from m3t1r.model.description import Mechanism
 
-__all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "progress_bar", "provenance"]
+__all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "progress_bar", "provenance", "parse_priors",
+           "check_plots_folder"]
 
 
 class RowFailures(M3t1rError):
@@ -70,6 +72,30 @@ def provenance(args: argparse.Namespace) -> list[str]:
     """Comment lines naming the version, the time and the command that wrote a file."""
     return [f"written by m3t1r {__version__} on {_dt.datetime.now().isoformat(timespec='seconds')}",
             "command: m3t1r " + " ".join(sys.argv[1:]) if sys.argv[1:] else "command: m3t1r (API)"]
+
+
+def parse_priors(entries: list[str]) -> dict[str, float]:
+    """["q12=1e-3", ...] -> {"q12": 0.001}; InvalidInputError naming the entry otherwise."""
+    priors = {}
+    for entry in entries:
+        name, _, value = entry.partition("=")
+        try:
+            sigma = float(value)
+        except ValueError:
+            sigma = float("nan")
+        if not name or not (math.isfinite(sigma) and sigma > 0):
+            raise InvalidInputError(f"--prior {entry}: expected NAME=SIGMA with SIGMA > 0 [m or rad]")
+        priors[name] = sigma
+    return priors
+
+
+def check_plots_folder(path: str | Path) -> Path:
+    """The plots' folder as a Path; OutputPathError naming it when it exists and is not a folder
+    (checked before any work, so that a file there is refused and left alone)."""
+    folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        raise OutputPathError(folder, "exists and is not a folder (the plots go into a folder)")
+    return folder
 
 
 def campaign_report_fields(setup: MeasurementSetup, estimated: Sequence[str], validation, selection,

@@ -21,7 +21,7 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r._version import __version__
-from m3t1r.app.cli_common import campaign_report_fields, selection_note
+from m3t1r.app.cli_common import campaign_report_fields, parse_priors, selection_note
 from m3t1r.calibration.assessment import (
     FitRejected,
     check_fit,
@@ -43,7 +43,7 @@ from m3t1r.io.tables import read_table
 from m3t1r.model.poe import SerialChain, tool_poses
 from m3t1r.model.urdf_io import calibrated_urdf_bytes
 
-__all__ = ["run_serial_calibration", "serial_calibration_report", "SerialCampaign"]
+__all__ = ["cmd_calibrate_serial", "run_serial_calibration", "serial_calibration_report", "SerialCampaign"]
 
 #: A fitted parameter whose standard deviation exceeds these is "weakly determined" [m], [rad].
 WEAK_TRANSLATION, WEAK_ROTATION = 1e-3, 1e-3
@@ -119,6 +119,12 @@ def _precheck(model: pin.Model, chain: SerialChain, data: SerialCampaign, marker
     measured = np.array([g.translation for g in data.poses])
     check_start(points, measured, estimate_frame, lambda: _diagnose(model, chain, data, marker, estimate_frame),
                 "robot")
+
+
+def cmd_calibrate_serial(args: argparse.Namespace) -> None:
+    """`m3t1r calibrate --serial`: a serial robot's calibration from a measurement file."""
+    args.prior = parse_priors(args.prior)
+    run_serial_calibration(args)
 
 
 def run_serial_calibration(args: argparse.Namespace) -> None:

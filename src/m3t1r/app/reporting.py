@@ -13,28 +13,28 @@ Without a known truth, each plot uses what the data can show honestly:
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
 import numpy as np
 
+from m3t1r.app.cli_common import check_plots_folder
+from m3t1r.app.passive_joints import PassiveJointResiduals, passive_joint_residuals
 from m3t1r.app.plots import plot_error_vs_poses, plot_pose_errors_before_after, plot_predicted_std_map
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_closed_loop, predicted_measurement_std
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home
-from m3t1r.errors import IdentificationError, InvalidInputError, KinematicsError, OutputPathError, PoorExcitationWarning
+from m3t1r.errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
 from m3t1r.metrics import PoseErrors, rotation_angles
 from m3t1r.model.description import Mechanism
+from m3t1r.model.design import IDLE_CHAIN_JOINTS
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import declared_workspace
 
 __all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots", "check_plots_folder",
            "PassiveJointResiduals", "passive_joint_residuals", "IDLE_CHAIN_JOINTS"]
-
-# The hinges of the idle sub-branches B2 and B4 (paper section 2.4: the pair not used by its
-# two-chain model, "used for cross-validation").
-IDLE_CHAIN_JOINTS = ("q12_B2", "q22_B4")
+# check_plots_folder, the passive-joint residuals and IDLE_CHAIN_JOINTS live in modules without
+# matplotlib (`calibrate` imports this module only for --plots); they are named here too, as before.
 
 
 def measured_pose_errors(machine: Mechanism, measurements: PoseMeasurements,
@@ -121,14 +121,6 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
     return written
 
 
-def check_plots_folder(path: str | Path) -> Path:
-    """The plots' folder as a Path; OutputPathError naming it when it exists and is not a folder
-    (checked before any work, so that a file there is refused and left alone)."""
-    folder = Path(path)
-    if folder.exists() and not folder.is_dir():
-        raise OutputPathError(folder, "exists and is not a folder (the plots go into a folder)")
-    return folder
-
 def map_poses(mechanism: Mechanism, count: int, rng: np.random.Generator
               ) -> tuple[np.ndarray, np.ndarray, tuple[str, str]]:
     """Slider sets (M, k) drawn in the mechanism's declared workspace box (task or actuators) that
@@ -148,37 +140,3 @@ def map_poses(mechanism: Mechanism, count: int, rng: np.random.Generator
     units = ["m" if key in task.position else "rad" for key in task.box_keys[:2]]
     return sliders, where, (f"{task.frame} {task.box_keys[0]} [{units[0]}]",
                             f"{task.frame} {task.box_keys[1]} [{units[1]}]")
-
-
-@dataclass(frozen=True)
-class PassiveJointResiduals:
-    """Measured minus predicted passive-joint angles [rad] (or positions [m]) at the measured sliders.
-
-    An encoder's zero is not observable from platform poses (a rotation of a joint placement
-    about its own axis is absorbed by the next placement), so each joint's constant offset is
-    removed first: `offsets` (k,) is it, `residuals` (N, k) what is left, `rms` (k,) their RMS.
-    """
-
-    joints: tuple[str, ...]
-    offsets: np.ndarray
-    residuals: np.ndarray
-
-    @property
-    def rms(self) -> np.ndarray:
-        return np.sqrt(np.mean(self.residuals**2, axis=0))
-
-
-def passive_joint_residuals(machine: Mechanism, actuators: np.ndarray, joints: tuple[str, ...],
-                            readings: np.ndarray) -> PassiveJointResiduals:
-    """How well a machine model predicts passive-joint readings it was not fitted to.
-
-    With readings of the idle chains' hinges (IDLE_CHAIN_JOINTS) this is the paper's
-    cross-validation with the idle pair of branched chains: closed-loop FK of the model at each
-    slider set predicts those angles; a good model leaves only encoder noise.
-    """
-    model = machine.model
-    columns = [model.idx_qs[model.getJointId(name)] for name in joints]
-    predicted = assembled_from_home(machine, actuators).q[:, columns]
-    difference = np.asarray(readings, dtype=float) - predicted
-    offsets = difference.mean(axis=0)
-    return PassiveJointResiduals(tuple(joints), offsets, difference - offsets)

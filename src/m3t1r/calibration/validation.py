@@ -46,9 +46,8 @@ from typing import Literal
 import numpy as np
 import pinocchio as pin
 import scipy.special
-import scipy.stats
 
-from m3t1r.calibration.identification import OUTLIER_SIGMA
+from m3t1r.calibration.identification import OUTLIER_SIGMA, outlier_gate
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelFileError
 from m3t1r.io.poses import poses_from_table
@@ -239,8 +238,18 @@ def sigma_equivalent(d2: np.ndarray, dof: int) -> np.ndarray:
     underflows (d2 in the thousands), sqrt(d2) stands in (the two agree within a few percent there).
     """
     d2 = np.asarray(d2, dtype=float)
-    z = -scipy.special.ndtri_exp(scipy.stats.chi2.logsf(d2, dof) - math.log(2.0))
+    z = -scipy.special.ndtri_exp(_chi2_log_tail(d2, dof) - math.log(2.0))
     return np.where(np.isfinite(z), z, np.sqrt(d2))
+
+
+def _chi2_log_tail(d2: np.ndarray, dof: int) -> np.ndarray:
+    """log P(chi^2_dof > d2), as scipy.stats' chi2.logsf computes it (without importing scipy.stats):
+    the log of the upper tail above the median, log1p of minus the lower tail below it (where the
+    upper tail is near 1 and its log would lose digits)."""
+    median = 2.0 * scipy.special.gammaincinv(dof / 2.0, 0.5)
+    with np.errstate(divide="ignore"):  # a tail that underflows to 0 gives -inf: sigma_equivalent's sqrt(d2)
+        return np.where(d2 > median, np.log(scipy.special.chdtrc(dof, d2)),
+                        np.log1p(-scipy.special.chdtr(dof, d2)))
 
 
 def _predict_closed_loop(calibrated: Path, report: CalibrationReport, units: str, measurements: Path,
@@ -346,7 +355,7 @@ def validate(measurements: str | Path, calibrated: str | Path, report: str | Pat
     dof = whitened.shape[1]
     statistic = np.sum(whitened**2, axis=1)
     scale = math.sqrt(max(1.0, info.variance_factor or 1.0))
-    gate = float(scipy.stats.chi2.isf(2.0 * scipy.stats.norm.sf(OUTLIER_SIGMA), dof))
+    gate = outlier_gate(OUTLIER_SIGMA, dof)
     mask = statistic / scale**2 > gate
     heading = None if (info.kind != "closed_loop" or campaign.position_only) else \
         _heading_errors(info.setup, measured, platform[ok])

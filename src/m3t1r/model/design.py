@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["MechanismDesign", "WorkspaceBox", "NOMINAL", "build_urdf", "build_closures"]
+__all__ = ["MechanismDesign", "WorkspaceBox", "NOMINAL", "IDLE_CHAIN_JOINTS", "build_urdf", "build_closures"]
 
 
 @dataclass(frozen=True)
@@ -102,6 +102,10 @@ class MechanismDesign:
 
 
 NOMINAL = MechanismDesign()
+
+# The hinges of the idle sub-branches B2 and B4 (paper section 2.4: the pair not used by its
+# two-chain model, "used for cross-validation").
+IDLE_CHAIN_JOINTS = ("q12_B2", "q22_B4")
 
 # Visual style: one material per kind of body.
 _MATERIALS = {

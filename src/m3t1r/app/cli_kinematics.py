@@ -1,0 +1,195 @@
+"""The kinematics verbs: `m3t1r fk`, `m3t1r ik`, `m3t1r compensate` and `m3t1r evaluate`.
+
+`m3t1r.app.cli` imports this module only to run one of them (Pinocchio, SciPy's linear algebra and
+the kinematics stack, no calibration plots, no viewer).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, provenance, say
+from m3t1r.app.datasets import TARGET_COLUMNS, read_actuators, read_targets
+from m3t1r.calibration.validation import read_report
+from m3t1r.compensation import Compensator, compensate, joint_limit_violation
+from m3t1r.errors import InvalidInputError, KinematicsError
+from m3t1r.io.outputs import OutputSet
+from m3t1r.io.poses import POSE_COLUMNS, pose_rows
+from m3t1r.io.tables import table_text
+from m3t1r.model.kinematics import ClosedLoopSolver, require_square_task, yaw_of
+from m3t1r.model.workspace import workspace_actuators
+
+__all__ = ["cmd_fk", "cmd_ik", "cmd_compensate", "cmd_evaluate"]
+
+
+def cmd_fk(args: argparse.Namespace) -> None:
+    """`m3t1r fk`: platform poses of slider sets."""
+
+    mechanism = load_mechanism(args.model, args.closures)
+    outputs = OutputSet(inputs=(args.actuators, mechanism.urdf_path, mechanism.closures_path))
+    output = outputs.add(args.output, "-o")
+    outputs.check()
+    actuators, lines = read_actuators(args.actuators, mechanism)
+    with progress_bar("fk", 1) as progress:  # one vectorised solve, every row from home
+        batch = ClosedLoopSolver(mechanism).forward_batch(actuators)
+        progress.advance()
+    if batch.failures:
+        raise RowFailures(Path(args.actuators), [(int(lines[f.index]), f.reason) for f in batch.failures])
+    poses = [pin.SE3(pose) for pose in batch.poses]
+    comments = provenance(args) + ["platform frame pose in the base frame: m, unit quaternion"]
+    with outputs:
+        outputs.stage(output, table_text(POSE_COLUMNS, pose_rows(poses), comments))
+        outputs.commit()
+    say(outputs, f"wrote {len(poses)} poses to {output.name}")
+
+
+
+def cmd_ik(args: argparse.Namespace) -> None:
+    """`m3t1r ik`: slider sets of platform poses."""
+    mechanism = load_mechanism(args.model, args.closures)
+    outputs = OutputSet(inputs=(args.poses, mechanism.urdf_path, mechanism.closures_path))
+    output = outputs.add(args.output, "-o")
+    outputs.check()
+    targets, lines = read_targets(args.poses, mechanism.task)
+    solver = ClosedLoopSolver(mechanism)
+    solver.check_square_task()
+    if not isinstance(targets, np.ndarray):
+        targets = mechanism.task.coordinates(np.array([pose.homogeneous for pose in targets]))
+    with progress_bar("ik", 1) as progress:  # one vectorised solve, every row from home
+        batch = solver.inverse_batch(targets)
+        progress.advance()
+    failures = [(int(lines[f.index]), f.reason) for f in batch.failures]
+    for k, q in zip(batch.indices, batch.q):
+        violation = joint_limit_violation(mechanism.model, q)
+        if violation is not None:
+            failures.append((int(lines[k]), violation))
+    if failures:
+        raise RowFailures(Path(args.poses), sorted(failures))
+    rows = batch.actuators
+    max_tilt = float(np.abs(batch.tilt).max(initial=0.0))
+    with outputs:
+        outputs.stage(output, table_text(mechanism.actuated_joints, np.array(rows),
+                                         provenance(args) + ["actuator positions in m or rad"]))
+        outputs.commit()
+    tilt = "" if mechanism.task.rotation == "full" else f"; largest uncommandable tilt (roll/pitch) {max_tilt:.3g} rad"
+    say(outputs, f"wrote {len(rows)} actuator sets to {output.name}{tilt}")
+
+
+
+def cmd_compensate(args: argparse.Namespace) -> None:
+    """`m3t1r compensate`: corrected slider commands for target poses."""
+    nominal = load_mechanism(args.model, args.closures)
+    calibrated = load_mechanism(args.calibrated, args.calibrated_closures)
+    outputs = OutputSet(inputs=(args.targets, nominal.urdf_path, nominal.closures_path, calibrated.urdf_path,
+                                calibrated.closures_path, args.report))
+    output = outputs.add(args.output, "-o")
+    outputs.check()
+    targets, lines = read_targets(args.targets, calibrated.task)
+    require_square_task(calibrated)
+    if args.report:
+        targets = _targets_in_base(targets, args.report, args.targets, calibrated)
+    if args.unordered:  # every target from home, vectorised: no path order to follow
+        result = Compensator(nominal, calibrated).compensate_batch(targets)
+    else:
+        with progress_bar("compensate", len(lines)) as progress:
+            result = compensate(nominal, calibrated, targets, progress=progress.update)
+    if result.failures:
+        raise RowFailures(Path(args.targets), [(int(lines[f.index]), f.reason) for f in result.failures])
+    comments = provenance(args) + [f"calibrated model: {calibrated.urdf_path}"]
+    pose_note = "poses to send to a controller that knows only the nominal model (T_cp)"
+    if args.output_kind == "actuators":
+        text = table_text(calibrated.actuated_joints, result.actuators, comments + ["corrected actuator commands [m or rad]"])
+    elif isinstance(targets, np.ndarray):
+        text = table_text(calibrated.task.columns, result.command_targets, comments + [pose_note])
+    else:
+        text = table_text(POSE_COLUMNS, result.command_pose_rows, comments + [pose_note])
+    with outputs:
+        outputs.stage(output, text)
+        outputs.commit()
+    tilt = ("" if calibrated.task.rotation == "full" else
+            f"; largest uncommandable tilt (roll/pitch) of the calibrated machine {result.max_tilt:.3g} rad")
+    say(outputs, f"wrote {result.n_targets} compensated {args.output_kind} commands to {output.name}{tilt}")
+
+
+
+def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -> np.ndarray:
+    """Targets of the measured point (the reflector) in a calibration's measurement frame, to
+    platform targets (x, y, z, theta) in the calibrated base.
+
+    The measured point is commanded in position and heading (its yaw in the base, the platform's
+    plus the marker's); the platform's roll and pitch are not commandable, so the platform
+    position that puts the point on target depends on the tilt the machine takes there:
+    p_platform = p_target - R_platform(q) m, solved by fixed point with the calibrated IK
+    (the tilt varies slowly: 2-4 rounds to 1e-10 m).
+    """
+    if isinstance(targets, np.ndarray):
+        raise InvalidInputError(f"{targets_path}: with --report the targets are poses of the measured frame in the "
+                                "measurement frame, and need x,y,z,qx,qy,qz,qw")
+    if calibrated.task.columns != TARGET_COLUMNS or calibrated.task.frame != calibrated.platform_frame:
+        raise InvalidInputError(f"{targets_path}: targets of the measured point (--report) need a task commanding "
+                                "x, y, z and yaw of the platform frame (the M machine's); give task-frame targets")
+    setup = read_report(report_path).setup
+    solver, offset = ClosedLoopSolver(calibrated), setup.marker.translation
+    rows = []
+    for target in targets:
+        in_base = setup.frame.actInv(target)
+        row = np.r_[(in_base * setup.marker.inverse()).translation, yaw_of((in_base * setup.marker.inverse()).rotation)]
+        for _ in range(10):
+            try:
+                platform = solver.forward(solver.inverse(row).actuators).pose
+            except KinematicsError:
+                break  # compensate reports this target's failure itself
+            miss = platform.act(offset) - in_base.translation
+            row[:3] -= miss
+            if np.linalg.norm(miss) < 1e-10:
+                break
+        rows.append(row)
+    return np.array(rows)
+
+
+
+def cmd_evaluate(args: argparse.Namespace) -> None:
+    """`m3t1r evaluate`: nominal and calibrated machines against a (simulated) truth."""
+    nominal = load_mechanism(args.nominal, args.nominal_closures)
+    truth = load_mechanism(args.truth, None)
+    calibrated = load_mechanism(args.calibrated, None)
+    sliders = workspace_actuators(nominal, args.n, np.random.default_rng(args.seed))
+    machines = {"truth": truth, "nominal": nominal, "calibrated": calibrated}
+    solvers = {name: ClosedLoopSolver(machine) for name, machine in machines.items()}
+    errors: dict[str, list[tuple[float, float]]] = {"nominal": [], "calibrated": []}
+    failures: list[tuple[int, str]] = []
+    # One slider set that does not assemble on some machine is reported and skipped, not fatal.
+    with progress_bar("evaluate", len(sliders)) as progress:
+        for index, values in enumerate(sliders):
+            progress.advance()
+            poses = {}
+            for name, solver in solvers.items():
+                try:
+                    poses[name] = solver.forward(values).pose
+                except (KinematicsError, InvalidInputError) as exc:
+                    failures.append((index, f"{name} machine: {exc}"))
+                    solver.reset()
+                    break
+            else:
+                for name in errors:
+                    a, b = poses[name], poses["truth"]
+                    errors[name].append((float(np.linalg.norm(a.translation - b.translation)),
+                                         float(np.linalg.norm(pin.log3(a.rotation.T @ b.rotation)))))
+    for index, reason in failures:
+        print(f"m3t1r: slider set {index} ({', '.join(f'{v:.6g}' for v in sliders[index])} m) skipped: {reason}",
+              file=sys.stderr)
+    kept = args.n - len(failures)
+    if kept == 0:
+        raise InvalidInputError(f"none of the {args.n} slider sets assembles on every machine: nothing to evaluate")
+    skipped = f", {len(failures)} skipped (see stderr)" if failures else ""
+    print(f"held-out platform error over {kept} slider sets in the workspace (seed {args.seed}{skipped}):")
+    print(f"{'model':<12}{'position mean':>16}{'position max':>16}{'orientation mean':>19}{'orientation max':>18}")
+    for name, values in errors.items():
+        e = np.array(values)
+        print(f"{name:<12}{e[:, 0].mean():>14.3e} m{e[:, 0].max():>14.3e} m"
+              f"{e[:, 1].mean():>15.3e} rad{e[:, 1].max():>14.3e} rad")

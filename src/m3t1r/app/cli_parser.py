@@ -1,0 +1,207 @@
+"""The argument parser of every `m3t1r` verb: argparse alone, no numeric library.
+
+`m3t1r --help`, `m3t1r --version` and `m3t1r VERB --help` end here, before anything that computes
+is imported (`m3t1r.app.cli` imports a verb's module only to run it). Keep this module's imports to
+the standard library and the package's light ground (tests/test_startup.py checks what it loads).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from m3t1r._version import __version__
+from m3t1r.model.native_status import compiled_newton_status
+
+__all__ = ["build_parser", "add_campaign_options", "add_plan_parser", "add_validate_parser"]
+
+
+class _VersionAction(argparse.Action):
+    """`--version`: the version and the compiled loop's status, worked out only when asked."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        print(f"m3t1r {__version__} (compiled Newton loop: {compiled_newton_status()})", file=sys.stdout)
+        parser.exit()
+
+
+def _add_model_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", metavar="URDF", help="machine URDF (default: the packaged nominal model)")
+    parser.add_argument("--closures", metavar="YAML", help="its closures file (default: URDF stem + .closures.yaml)")
+
+
+def _add_noise_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--noise-pos", type=float, default=10e-6, metavar="M", help="tracker position noise [m]")
+    parser.add_argument("--noise-rot", type=float, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
+    parser.add_argument("--noise-act", type=float, default=1e-6, metavar="M", help="slider reading noise [m]")
+
+
+def build_parser(description: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser of every verb; the verb's name is `args.verb`."""
+    parser = argparse.ArgumentParser(prog="m3t1r", description=description)
+    parser.add_argument("--version", action=_VersionAction, nargs=0,
+                        help="show the version and whether the compiled Newton loop is in use, and exit")
+    verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
+
+    p = verbs.add_parser("fk", help="forward kinematics: slider sets -> platform poses")
+    p.add_argument("actuators", help="CSV with one column per actuated joint [m]")
+    p.add_argument("-o", "--output", required=True, help="poses CSV (x,y,z,qx,qy,qz,qw)")
+    _add_model_options(p)
+
+    p = verbs.add_parser("ik", help="inverse kinematics: task-frame poses -> actuator sets (the closures file's task)")
+    p.add_argument("poses", help="CSV with the task's columns (M machine: x,y,z,theta) or x,y,z,qx,qy,qz,qw")
+    p.add_argument("-o", "--output", required=True, help="slider CSV (columns named by actuated joint)")
+    _add_model_options(p)
+
+    p = verbs.add_parser("simulate", help="simulate an actual machine and its calibration measurements")
+    p.add_argument("-n", type=int, default=20, help="number of poses (default 20)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sigma-pos", type=float, default=1e-3, metavar="M", help="placement error std, translation [m]")
+    p.add_argument("--sigma-rot", type=float, default=1e-3, metavar="RAD", help="placement error std, rotation [rad]")
+    _add_noise_options(p)
+    p.add_argument("--noise-free", action="store_true", help="exact measurements")
+    p.add_argument("--position-only", action="store_true", help="a tracker without orientation")
+    p.add_argument("--tracker-frame", nargs=6, type=float, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
+                   help="the robot base in the tracker's frame [m, rad] (default: measured in the base frame)")
+    p.add_argument("--marker", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="the reflector in the platform frame [m] (default: the platform frame's origin)")
+    p.add_argument("--units", choices=("m", "mm"), default="m", help="length unit of the written file")
+    p.add_argument("--outliers", type=int, default=0, metavar="K", help="spoil K measurements with 3-5 mm gross errors")
+    p.add_argument("--with-passive", action="store_true",
+                   help="also record encoders on the idle chains' hinges (q12_B2, q22_B4) for cross-validation")
+    p.add_argument("-o", "--output", required=True, help="measurement CSV")
+    p.add_argument("--truth-urdf", metavar="URDF", help="also write the actual machine (and its closures file)")
+    _add_model_options(p)
+
+    p = verbs.add_parser("calibrate", help="identify the geometry from measurements; write a calibrated URDF")
+    p.add_argument("measurements", help="measurement CSV (sliders by joint name, x,y,z[,qx,qy,qz,qw])")
+    p.add_argument("-o", "--output", required=True, help="calibrated URDF (a .closures.yaml is written beside it)")
+    p.add_argument("--report", metavar="JSON", help="identified parameters, std, rank, RMS, input sha256")
+    p.add_argument("--plots", metavar="DIR", help="write error plots (PNG) into DIR")
+    p.add_argument("--serial", metavar="ROBOT_OR_URDF", help="calibrate a serial chain instead (ur5, ur10, panda or a URDF)")
+    p.add_argument("--base", metavar="FRAME", help="with --serial: base frame (default the model root)")
+    p.add_argument("--tool", metavar="FRAME", help="with --serial: the measured tool frame")
+    p.add_argument("--compliance", action="store_true",
+                   help="with --serial: joint compliance under gravity as candidate parameters")
+    add_campaign_options(p)
+    _add_noise_options(p)
+    _add_model_options(p)
+
+    p = verbs.add_parser("compensate", help="corrected commands for targets, from a calibrated model (paper sec. 7)")
+    p.add_argument("targets", help="CSV with the task's columns (M machine: x,y,z,theta) or x,y,z,qx,qy,qz,qw")
+    p.add_argument("--calibrated", required=True, metavar="URDF", help="calibrated URDF")
+    p.add_argument("--calibrated-closures", metavar="YAML", help="its closures (default: beside the URDF)")
+    p.add_argument("--report", metavar="JSON", help="targets are poses of the measured frame (the marker) in this "
+                                                    "calibration's measurement frame (the tracker's), not the base's")
+    p.add_argument("--output-kind", choices=("pose", "actuators"), default="pose",
+                   help="pose: T_cp for a controller with the nominal model; actuators: slider commands")
+    p.add_argument("--unordered", action="store_true",
+                   help="the targets are not a path (a grid, a map, unrelated poses): solve each from home, "
+                        "all at once, instead of warm-starting from the previous target")
+    p.add_argument("-o", "--output", required=True, help="commands CSV")
+    _add_model_options(p)
+
+    p = verbs.add_parser("view", help="meshcat scene of the nominal and calibrated machines")
+    p.add_argument("--nominal", metavar="URDF", help="nominal URDF (default: packaged)")
+    p.add_argument("--closures", metavar="YAML", help="nominal closures")
+    p.add_argument("--calibrated", metavar="URDF")
+    p.add_argument("--calibrated-closures", metavar="YAML")
+    p.add_argument("--pose", nargs="+", type=float, metavar="VALUE",
+                   help="command both machines to these task coordinates (the task's columns; M machine: "
+                        "x y z theta [m, m, m, rad]; default: home)")
+    p.add_argument("--measurements", metavar="CSV", help="show measured platform positions as markers")
+    p.add_argument("--html", metavar="PATH", help="write a self-contained static page instead of serving")
+
+    p = verbs.add_parser("demo", help="the main job: a simulated tracker campaign, plan to compensation (no input needed)")
+    p.add_argument("--out", default="demo_out", help="artifact folder (default demo_out)")
+
+    p = verbs.add_parser("paper", help="the paper's two-chain method: its simulation study, or on the closed chain")
+    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--noise", action="store_true", help="tracker, encoder and slider noise")
+    p.add_argument("--passive-from", choices=("sensor", "distance", "platform", "sliders"), default=None,
+                   help="lower cranks q13, q23: read (default), the paper's recursion (eq. 30), or a closure solve; "
+                        "not with --closed")
+    p.add_argument("--closed", action="store_true", help="run the method on the full closed-chain machine instead")
+
+    p = verbs.add_parser("evaluate", help="compare nominal and calibrated machines against a (simulated) truth")
+    p.add_argument("--truth", required=True, metavar="URDF")
+    p.add_argument("--calibrated", required=True, metavar="URDF")
+    p.add_argument("--nominal", metavar="URDF")
+    p.add_argument("--nominal-closures", metavar="YAML")
+    p.add_argument("-n", type=int, default=200)
+    p.add_argument("--seed", type=int, default=1)
+
+    add_plan_parser(verbs)
+    add_validate_parser(verbs)
+    # --quiet before or after the verb; the verb's copy must not reset the global one.
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress display on stderr")
+    for sub in verbs.choices.values():
+        sub.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                         help="no progress display on stderr")
+    return parser
+
+
+def add_campaign_options(parser: argparse.ArgumentParser) -> None:
+    """The measurement-setup, robustness and judgement options of `calibrate` (closed loop and serial)."""
+    parser.add_argument("--frame", choices=("base", "estimate"), default="base",
+                        help="base: data are in the robot base frame; estimate: in a tracker's own frame, "
+                             "estimated with the machine (default base)")
+    parser.add_argument("--marker", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                        help="nominal position of the measured point in the platform (serial: tool) frame [m]; "
+                             "estimated with the machine")
+    parser.add_argument("--units", choices=("m", "mm"), default="m",
+                        help="length unit of the file's length columns (x, y, z and prismatic joints)")
+    parser.add_argument("--outlier-sigma", type=_outlier_sigma, default=5.0, metavar="S",
+                        help="flag poses beyond S noise sigmas and leave them out (0: keep every pose; default 5)")
+    parser.add_argument("--select", choices=("loo", "none"), default="loo",
+                        help="model selection: keep the parameters that predict left-out poses (default loo)")
+    parser.add_argument("--fix", nargs="+", default=[], metavar="NAME",
+                        help="hold parameters (q12.dt[3]) or whole placements (q12) at nominal")
+    parser.add_argument("--prior", action="append", default=[], metavar="NAME=SIGMA",
+                        help="a prior toward nominal with this standard deviation [m or rad] (repeatable)")
+    parser.add_argument("--folds", type=_folds, default=5, help="cross-validation folds, at least 2 (default 5)")
+    parser.add_argument("--max-iterations", type=int, default=None, metavar="N", help="Levenberg-Marquardt cap")
+    parser.add_argument("--force", action="store_true", help="write a fit that is judged unsupported, with a warning")
+
+
+def _folds(text: str) -> int:
+    value = int(text)
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"at least 2 folds, got {value}")
+    return value
+
+
+def _outlier_sigma(text: str) -> float:
+    value = float(text)
+    if not (value == 0 or 1.0 <= value < 1e3):
+        raise argparse.ArgumentTypeError(f"0 (keep every pose) or a gate of 1 to 1000 sigmas, got {text}")
+    return value
+
+
+def add_plan_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add the `plan` verb to argparse's subparsers object `verbs`."""
+    p = verbs.add_parser("plan", help="choose calibration poses D-optimally, ordered for short travel")
+    p.add_argument("-n", type=int, required=True, help="number of poses to measure")
+    p.add_argument("-o", "--output", required=True, help="plan CSV (sliders, or joints with --serial, by joint name)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the candidate draw (default 0)")
+    p.add_argument("--candidates", type=int, metavar="K", help="candidates drawn in the workspace (default 20 n)")
+    p.add_argument("--position-only", action="store_true", help="a tracker without orientation")
+    p.add_argument("--noise-pos", type=float, default=10e-6, metavar="M", help="tracker position noise [m]")
+    p.add_argument("--noise-rot", type=float, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
+    p.add_argument("--model", metavar="URDF", help="machine URDF (default: the packaged nominal model)")
+    p.add_argument("--closures", metavar="YAML", help="its closures file (default: URDF stem + .closures.yaml)")
+    p.add_argument("--serial", metavar="ROBOT_OR_URDF", help="plan for a serial robot (ur3, ur5, ur10, panda or a URDF)")
+    p.add_argument("--base", metavar="FRAME", help="with --serial: base frame (default the model root)")
+    p.add_argument("--tool", metavar="FRAME", help="with --serial: the measured tool frame (default for example robots)")
+    return p
+
+
+def add_validate_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add the `validate` verb to argparse's subparsers object `verbs`."""
+    p = verbs.add_parser("validate", help="predict a measurement file with a calibrated model; per-row errors")
+    p.add_argument("measurements", help="measurement CSV (joints by name, x,y,z[,qx,qy,qz,qw])")
+    p.add_argument("--calibrated", required=True, metavar="URDF",
+                   help="calibrated URDF (M machine: its NAME.closures.yaml beside it)")
+    p.add_argument("--report", required=True, metavar="JSON", help="the calibration report (model kind, setup, noise)")
+    p.add_argument("--units", choices=("m", "mm"), help="length unit of the file (default: the calibration input's)")
+    p.add_argument("--predictions", metavar="CSV", help="write the predicted measurements, one row per input row")
+    return p
