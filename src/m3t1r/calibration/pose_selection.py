@@ -29,7 +29,7 @@ from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
-from m3t1r.calibration.identification import select_base_parameters
+from m3t1r.calibration.identification import IDENTIFIABILITY_TOLERANCE, best_index, select_base_parameters
 from m3t1r.calibration.measurements import TrackerNoise, assembled_from_home
 from m3t1r.errors import InvalidInputError
 from m3t1r.model.description import Mechanism
@@ -162,7 +162,7 @@ def select_poses(
     *,
     columns: Sequence[int] | None = None,
     initial: Sequence[int] | None = None,
-    rank_tolerance: float = 1e-9,
+    rank_tolerance: float = IDENTIFIABILITY_TOLERANCE,
     max_passes: int = 50,
 ) -> PoseSelection:
     """Choose `n_poses` of the candidates maximising log det of the information matrix.
@@ -208,7 +208,7 @@ def select_poses(
             log_det, factor = _log_det_chol(information)
             gains = _gains(factor, stacked, n_rows)
             gains[selected] = -np.inf
-            best = int(np.argmax(gains))
+            best = best_index(gains)  # ties (symmetric candidates) to the lower index
             selected.append(best)
             information += outer(best)
             history.append(log_det + float(gains[best]))
@@ -234,7 +234,7 @@ def select_poses(
                 continue  # the pose carries the only information on some direction: keep it
             gains = _gains(factor, stacked, n_rows)
             gains[selected] = -np.inf
-            best = int(np.argmax(gains))
+            best = best_index(gains)  # ties (symmetric candidates) to the lower index
             candidate = reduced_log_det + float(gains[best])
             if candidate > current + _MIN_GAIN:
                 selected[position] = best
