@@ -320,7 +320,8 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
                           *, setup: MeasurementSetup | None = None, estimate_frame: bool = False,
                           estimate_marker: bool = False, outlier_sigma: float | None = OUTLIER_SIGMA,
                           select: bool = False, fixed: Sequence[str] = (), priors: Mapping[str, float] | None = None,
-                          rank_tolerance: float = IDENTIFIABILITY_TOLERANCE, max_iterations: int | None = None, cost_tolerance: float = 1e-10,
+                          rank_tolerance: float = IDENTIFIABILITY_TOLERANCE, max_iterations: int | None = None,
+                          cost_tolerance: float = 1e-10,
                           absolute_cost_tolerance: float = 1e-6, step_significance: float = 0.01,
                           refine: bool = False, refine_rank_tolerance: float = 1e-7, refine_iterations: int = 400,
                           error_model: ClosedLoopErrorModel | None = None,
@@ -681,7 +682,8 @@ def _shortfall(base: BaseParameters, reference: BaseParameters, missing: Sequenc
         return (f"{head}: {listed} are barely identifiable on any poses (on poses spread over the whole "
                 f"workspace, within {_MARGINAL:g} times the rank tolerance), so more poses are unlikely to help: "
                 f"{fix}")
-    return f"{head}: these poses do not excite {listed}; poses that move them, over more of the workspace, would, or {fix}"
+    return (f"{head}: these poses do not excite {listed}; poses that move them, over more of the workspace, "
+            f"would, or {fix}")
 
 
 def _accumulated_parameters(error_model: ClosedLoopErrorModel, start: pin.Model, end: pin.Model) -> np.ndarray:

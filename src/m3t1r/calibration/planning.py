@@ -35,7 +35,7 @@ import pinocchio as pin
 from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
-from m3t1r.calibration.identification import unexcited_parameters
+from m3t1r.calibration.identification import select_base_parameters, unexcited_parameters
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.pose_selection import (
     PoseSelection,
@@ -227,7 +227,7 @@ class _Candidates:
     configurations: np.ndarray  # (K, n)
     blocks: np.ndarray  # (K, rows, P) whitened
     evaluation: np.ndarray  # (E, 6, P) un-whitened sensitivities at the evaluation poses
-    names: tuple[str, ...] = ()  # the P parameter names
+    names: tuple[str, ...]  # the P parameter names
 
 
 def _plan(kind: Literal["closed_loop", "serial"], columns: tuple[str, ...], candidates: _Candidates, n_poses: int,
@@ -261,9 +261,9 @@ def _shortfall(candidates: _Candidates, selection: PoseSelection, n_poses: int) 
     head = (f"{n_poses} poses cannot identify the {identifiable} parameters that the "
             f"{len(candidates.configurations)} candidates identify")
     chosen = candidates.blocks[list(selection.indices)].reshape(-1, candidates.blocks.shape[2])
-    missing = identifiable - int(np.linalg.matrix_rank(chosen[:, list(selection.columns)] * selection.column_scale))
-    names = candidates.names or tuple(f"p{k}" for k in range(candidates.blocks.shape[2]))
-    weak = unexcited_parameters(chosen, names, selection.columns, max(missing, 1))
+    columns = list(selection.columns)
+    kept = select_base_parameters(chosen[:, columns], [candidates.names[c] for c in columns], max_condition=math.inf)
+    weak = unexcited_parameters(chosen, candidates.names, columns, max(identifiable - kept.rank, 1))
     return (f"{head}: they leave {', '.join(weak[:8])}{' ...' if len(weak) > 8 else ''} unexcited; plan more "
             f"poses ({n_poses} give {n_poses * rows} rows for {identifiable} parameters)")
 

@@ -170,7 +170,8 @@ def select_poses(
     blocks: (n_candidates, rows, parameters) whitened Jacobian block of each candidate pose (rows
         per pose, e.g. 6 for a full pose); a 2-D array means one row per candidate.
     columns: the parameter columns to judge identifiability on; default: the base parameters of
-        all candidates stacked (column-pivoted QR, relative tolerance `rank_tolerance`).
+        all candidates stacked (column-pivoted QR, relative tolerance `rank_tolerance`, which also
+        decides whether the selected poses identify them: log det -inf otherwise).
     initial: a starting set of `n_poses` distinct candidates for the exchange search; default:
         the greedy forward selection.
     max_passes: cap on exchange passes (each tries every selected position once).
@@ -250,7 +251,9 @@ def select_poses(
     indices = tuple(sorted(selected))
     chosen = normalised[list(indices)].reshape(-1, m)
     singular = np.linalg.svd(chosen, compute_uv=False)
-    full_rank = singular.size == m and singular[-1] > 1e-12 * singular[0]
+    # The selection identifies the columns by the rule calibration applies to the same rows.
+    kept = select_base_parameters(chosen, [f"p{k}" for k in range(m)], rank_tolerance, max_condition=math.inf)
+    full_rank = kept.rank == m
     return PoseSelection(
         indices=indices,
         log_det=float(2.0 * np.sum(np.log(singular))) if full_rank else -math.inf,
