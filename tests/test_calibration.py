@@ -1,5 +1,8 @@
 """Closed-loop calibration: sensitivities, identifiability and reachable accuracy (docs/results.md)."""
 
+import re
+import warnings
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -16,6 +19,8 @@ from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assem
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors, simulate_study
 from m3t1r.errors import IdentificationError, InvalidInputError
 from m3t1r.metrics import pose_errors_between
+from m3t1r.model.description import Mechanism
+from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import workspace_actuators
 
@@ -183,8 +188,59 @@ def test_position_only_measurements(mechanism):
 
 def test_too_few_poses_is_refused(mechanism):
     study = simulate_study(mechanism, n_poses=5, n_holdout=0, seed=15)
-    with pytest.raises(IdentificationError, match="30 residual rows for 56 identifiable parameters and identify only 30"):
+    with pytest.raises(IdentificationError, match="30 residual rows for 56 identifiable parameters and identify only 30: "
+                                                  r"add poses \(each gives 6 rows\)"):
         calibrate_closed_loop(mechanism, study.measurements)
+
+
+def _advised_holding(message: str) -> list[str]:
+    held = re.search(r"\(--fix ([^)]+)\)$", message)
+    assert held is not None, message
+    return held.group(1).split()
+
+
+@pytest.mark.parametrize("files, leg", [(five_bar_files, ("motor_1", "elbow_1")),
+                                        (spherical_wrist_files, ("motor_1", "elbow_1", "wrist_1"))])
+def test_a_motor_that_never_moves_is_named_and_the_advice_works(files, leg, tmp_path):
+    """40 poses give rows to spare, but motor 1 never moves: the refusal names its leg's parameters
+    and asks for poses that move them, not for more poses like these; holding the parameters it
+    names at nominal then gives a calibration."""
+    machine = Mechanism.load(*files(tmp_path))
+    sliders = workspace_actuators(machine, 40, np.random.default_rng(0))
+    sliders[:, 0] = sliders[0, 0]
+    measurements = measure(machine, sliders)
+    with pytest.raises(IdentificationError) as refusal:
+        calibrate_closed_loop(machine, measurements)
+    message = str(refusal.value)
+    assert re.match(r"40 poses give 240 residual rows for (\d+) identifiable parameters and identify only (\d+): "
+                    r"these poses do not excite ", message), message
+    assert "add poses" not in message and "poses that move them, over more of the workspace" in message
+    held = _advised_holding(message)
+    assert held and all(name.split(".dt[")[0] in leg for name in held), held
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        calibration = calibrate_closed_loop(machine, measurements, fixed=held)
+    assert calibration.converged and not set(held) & set(calibration.base.names)
+
+
+def test_barely_identifiable_directions_are_not_answered_with_more_poses(mechanism):
+    """With positions only, the M machine has directions at 1.2e-4 of the strongest even on poses spread
+    over the whole workspace; at a rank tolerance of 1e-4 these 40 poses miss two of them. More poses
+    are no remedy, and the refusal says so; the parameters it says to hold make the fit go through."""
+    sliders = workspace_actuators(mechanism, 40, np.random.default_rng(1))
+    measurements = measure(mechanism, sliders, position_only=True)
+    with pytest.raises(IdentificationError) as refusal:
+        calibrate_closed_loop(mechanism, measurements, rank_tolerance=1e-4, outlier_sigma=None)
+    message = str(refusal.value)
+    assert message.startswith("40 poses give 120 residual rows for 53 identifiable parameters and identify only ")
+    assert "barely identifiable on any poses" in message and "more poses are unlikely to help" in message
+    assert "add poses" not in message
+    held = _advised_holding(message)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        calibration = calibrate_closed_loop(mechanism, measurements, fixed=held, rank_tolerance=1e-4,
+                                            outlier_sigma=None)
+    assert calibration.converged and not set(held) & set(calibration.base.names)
 
 
 def test_measurement_that_does_not_assemble_is_refused(mechanism):

@@ -251,7 +251,7 @@ def test_identifiable_count_on_the_reference_poses(mechanism, few_poses, monkeyp
     assert _structural_rank(positions, identity, [], 1e-8) == 53
     assert _structural_rank(positions, identity, [], 1e-3) == 47
     assert _structural_rank(positions, turned, [], 1e-3) == 48
-    assert len(cache) == 6 and sorted(cache.values()) == [47, 48, 52, 53, 56, 56]
+    assert len(cache) == 6 and sorted(base.rank for base in cache.values()) == [47, 48, 52, 53, 56, 56]
     assert _structural_rank(positions, identity, [], 1e-3) == 47 and len(cache) == 6
 
 

@@ -15,11 +15,14 @@ from m3t1r.calibration import identification
 from m3t1r.calibration.identification import (
     RecursiveLeastSquares,
     batch_least_squares,
+    best_index,
     forward_selection,
     levenberg_marquardt,
     outlier_poses,
     parameter_columns,
+    pivoted_qr,
     select_base_parameters,
+    unexcited_parameters,
 )
 from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
 
@@ -754,13 +757,50 @@ def _two_on_one_plane(d: float) -> np.ndarray:
     return J
 
 
-def test_ties_are_broken_by_a_relative_tilt_of_1e_9_by_column_order():
-    # Three candidate columns: tilts 1e-9, 0.5e-9 and 0; the second wins while it is shorter by less than 0.5e-9.
-    for d, kept in ((0.0, (0, 1)), (0.3e-9, (0, 1)), (0.75e-9, (0, 2)), (-0.3e-9, (0, 1))):
+def test_ties_within_1e_9_go_to_the_lower_column():
+    # After e1, column 2 is longer than column 1 by the relative amount d: it wins only beyond 1e-9.
+    for d, kept in ((0.0, (0, 1)), (0.5e-9, (0, 1)), (0.9e-9, (0, 1)), (2e-9, (0, 2)), (-2e-9, (0, 1))):
         assert select_base_parameters(_two_on_one_plane(d), "abc").indices == kept, d
-    # With the first column forced, two rest columns: tilts 1e-9 and 0.
-    for d, kept in ((0.0, (0, 1)), (0.75e-9, (0, 1)), (1.5e-9, (0, 2))):
         assert select_base_parameters(_two_on_one_plane(d), "abc", forced=[0]).indices == kept, d
+    # The twin listed first wins, whichever it is: the rule is about the original column order.
+    swapped = _two_on_one_plane(0.0)[:, [0, 2, 1]]
+    assert select_base_parameters(swapped, "abc").indices == (0, 1)
+
+
+def test_pivoted_qr_factors_the_permuted_matrix_and_pivots_on_the_largest_remaining_norm():
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(9, 6)) * [1.0, 3.0, 0.5, 2.0, 1.0, 0.1]
+    r, pivots = pivoted_qr(A)
+    np.testing.assert_allclose(r.T @ r, A[:, pivots].T @ A[:, pivots], rtol=1e-12, atol=1e-12)
+    assert np.array_equal(r, np.triu(r)) and sorted(pivots) == list(range(6))
+    assert np.all(np.diff(np.abs(np.diag(r))) <= 1e-12)  # each pivot the largest of what remains
+    assert pivots[0] == 1  # the longest column first
+    wide, wide_pivots = pivoted_qr(A.T)  # more columns than rows: min(rows, cols) rows of R
+    assert wide.shape == (6, 9)
+    np.testing.assert_allclose(wide.T @ wide, A[wide_pivots] @ A[wide_pivots].T, atol=1e-12)
+    zero, zero_pivots = pivoted_qr(np.zeros((3, 2)))  # nothing to reflect: no division by zero
+    assert np.all(zero == 0.0) and zero_pivots.tolist() == [0, 1]
+
+
+def test_unexcited_parameters_name_the_main_parts_of_the_weakest_directions():
+    """Weak means nearly dependent on the others once columns are normalised (as for the rank)."""
+    J = np.zeros((5, 4))
+    J[0, 0], J[1, 1], J[3, 3] = 1.0, 2.0, 3.0
+    J[:, 2] = J[:, 0] + 0.5 * J[:, 1] + [0, 0, 1e-9, 0, 0]  # c' ~ (a' + b') / sqrt2: (-0.71, -0.71, 1)
+    assert unexcited_parameters(J, "abcd", [0, 1, 2, 3], 1) == ("c", "a", "b")
+    J[:, 2] = J[:, 0] + 0.01 * J[:, 1]  # nearly a alone: b weighs 0.02 of the direction
+    assert unexcited_parameters(J, "abcd", [0, 1, 2], 1) == ("c", "a")
+    assert unexcited_parameters(J, "abcd", [0, 1, 3], 1) in {("a",), ("b",), ("d",)}  # orthogonal: any one
+    assert "d" in unexcited_parameters(J[:2], "abcd", [0, 1, 2, 3], 2)  # a zero column, fewer rows than columns
+
+
+def test_best_index_takes_the_lower_of_scores_within_1e_9():
+    assert best_index([1.0, 3.0, 3.0 * (1 + 0.5e-9), 2.0]) == 1
+    assert best_index([1.0, 3.0, 3.0 * (1 + 2e-9), 2.0]) == 2
+    assert best_index([-np.inf, -np.inf, 0.5]) == 2 and best_index([-np.inf, -np.inf]) == 0
+    assert best_index([4.0, 2.0, 2.0 * (1 - 0.5e-9)], largest=False) == 1
+    assert best_index([4.0, 2.0, 2.0 * (1 - 2e-9)], largest=False) == 2
+    assert best_index([np.inf, 5.0, np.inf], largest=False) == 1
 
 
 def test_r_diag_ratio_starts_at_exactly_one_and_ends_one_past_the_rank():

@@ -403,9 +403,12 @@ def test_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism):
     e = np.array([0.01, -0.02, 0.005, 0.01])
     offset = np.linspace(-0.01, 0.02, len(passive))  # q_prev - q_last on the passive joints
     _predictor_state(solver, sliders - e, passive + offset)
+    # lam = d.e / e.e carries the dot products' rounding (which BLAS kernels do differently): at
+    # lam = 0 it is 1e-19 or so, a term lam^2 |offset| of 1e-38; 'nothing' is below 1e-20 m, while
+    # the term wrongly kept at lam = 2 or -0.5 would be 0.25 |offset| or more.
     for lam, expected in ((0.5, 0.25), (1.0, 1.0), (1.5, 2.25), (0.0, 0.0), (2.0, 0.0), (2.5, 0.0), (-0.5, 0.0)):
         change = lam * e if lam else np.array([0.02, 0.01, 0.0, 0.0])  # (0.02, 0.01, 0, 0) . e = 0
-        np.testing.assert_allclose(solver._predict(change), expected * offset, rtol=1e-12, atol=0.0, err_msg=str(lam))
+        np.testing.assert_allclose(solver._predict(change), expected * offset, rtol=1e-12, atol=1e-20, err_msg=str(lam))
     _predictor_state(solver, sliders, passive + offset)  # the same sliders twice: e = 0
     np.testing.assert_array_equal(solver._predict(e), np.zeros(len(passive)))
 

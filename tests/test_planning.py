@@ -8,11 +8,14 @@ import argparse
 import contextlib
 import io
 import itertools
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from m3t1r.app.datasets import read_actuators
+from m3t1r.app.demo import DemoSettings
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.identification import select_base_parameters
@@ -23,6 +26,8 @@ from m3t1r.calibration.serial_robots import load_example_robot
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors
 from m3t1r.errors import InvalidInputError, M3t1rError
 from m3t1r.io.tables import read_table
+from m3t1r.model.description import Mechanism
+from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.poe import SerialChain
 from m3t1r.model.workspace import workspace_actuators
@@ -150,6 +155,33 @@ def test_serial_plan(tmp_path, capsys) -> None:
     assert plan.travel < plan.travel_selection_order and plan.column_units == ("rad",) * 6
 
 
+_PLAN_FIGURES = re.compile(r"chosen D-optimally among (\d+) candidates \(seed (\d+)\): log det ([-0-9.]+), "
+                           r"condition number ([0-9.e+-]+), (\d+) identifiable parameters")
+
+
+def test_the_demo_s_plan_prints_the_readme_s_figures(tmp_path, capsys) -> None:
+    """The README's demo output is what a fresh clone prints: `make demo`'s plan step, the same
+    command, gives its log det, condition number and identifiable count on any processor.
+
+    Tolerances: rounding moves log det by under 1e-9 nepers and the condition number by under 1e-9
+    relatively, while a selection that keeps one column of an interchangeable pair instead of the
+    other moved log det by 1.1 (1218.65 against 1217.55) and a different pose set moves it by
+    0.1 or more. Printing rounds to 0.01 nepers and 3 digits, so a value at a rounding boundary may
+    print one digit off: 0.02 and 1 % allow that and sit far below those changes."""
+    settings = DemoSettings()
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    command = f"$ m3t1r plan -n {settings.n_poses} --seed {settings.seed} -o plan.csv"
+    assert command in readme, "the README's demo output no longer shows the demo's plan command"
+    documented = _PLAN_FIGURES.search(readme, readme.index(command))
+    assert documented is not None
+    assert run(["plan", "-n", str(settings.n_poses), "--seed", str(settings.seed), "-o", str(tmp_path / "plan.csv")]) == 0
+    printed = _PLAN_FIGURES.search(capsys.readouterr().out)
+    assert printed is not None
+    assert printed.group(1, 2, 5) == documented.group(1, 2, 5)  # candidates, seed, identifiable count
+    assert float(printed.group(3)) == pytest.approx(float(documented.group(3)), abs=0.02)
+    assert float(printed.group(4)) == pytest.approx(float(documented.group(4)), rel=0.01)
+
+
 @pytest.mark.parametrize("argv, message", [
     (["-n", "0"], "must be >= 1"),
     (["-n", "10", "--candidates", "5"], "5 candidates"),
@@ -163,6 +195,33 @@ def test_plan_errors(tmp_path, capsys, argv, message) -> None:
     assert run(["plan", *argv, "-o", str(tmp_path / "plan.csv")]) == 2
     assert message in capsys.readouterr().out
     assert not (tmp_path / "plan.csv").exists()
+
+
+@pytest.mark.parametrize("files", [five_bar_files, spherical_wrist_files])
+def test_too_few_planned_poses_name_what_they_leave_unexcited(files, tmp_path) -> None:
+    """Three poses of a five-bar or the wrist cannot identify what the candidates identify: the
+    refusal names the parameters left unexcited and asks for more poses (the candidates identify
+    them, so more poses do help)."""
+    machine = Mechanism.load(*files(tmp_path))
+    with pytest.raises(InvalidInputError) as refusal:
+        plan_closed_loop(machine, 3, np.random.default_rng(0), n_evaluation=5)
+    message = str(refusal.value)
+    names = ClosedLoopErrorModel(machine).names
+    found = re.fullmatch(r"3 poses cannot identify the (\d+) parameters that the 60 candidates identify: they leave "
+                         r"(.+) unexcited; plan more poses \(3 give 18 rows for \1 parameters\)", message)
+    assert found is not None, message
+    assert set(found.group(2).removesuffix(" ...").split(", ")) <= set(names)
+    assert plan_closed_loop(machine, 12, np.random.default_rng(0), n_evaluation=5).n_poses == 12
+
+
+def test_plan_and_calibrate_count_the_same_identifiable_parameters(tmp_path) -> None:
+    """One identifiability decision: the count `plan` prints is the one `calibrate` reports on the
+    planned poses (the packaged five-bar and wrist, exact measurements)."""
+    for files in (five_bar_files, spherical_wrist_files):
+        machine = Mechanism.load(*files(tmp_path))
+        plan = plan_closed_loop(machine, 20, np.random.default_rng(3), n_evaluation=5)
+        calibration = calibrate_closed_loop(machine, measure(machine, plan.configurations), outlier_sigma=None)
+        assert len(plan.selection.columns) == calibration.base.rank
 
 
 def test_bad_counts_in_the_library(mechanism) -> None:

@@ -81,8 +81,7 @@ CHAIN_URDF = """<?xml version="1.0"?>
 @pytest.fixture(scope="module")
 def ur5_urdf() -> Path:
     path = Path(importlib.metadata.distribution("example-robot-data").locate_file(UR5_IN_PACKAGE))
-    if not path.is_file():
-        pytest.skip(f"example-robot-data does not ship {UR5_IN_PACKAGE}")
+    assert path.is_file(), f"example-robot-data (a dependency) does not ship {UR5_IN_PACKAGE}"
     return path
 
 

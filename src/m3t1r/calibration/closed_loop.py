@@ -32,6 +32,7 @@ import pinocchio as pin
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.error_model import ClosedLoopErrorModel, PlatformSensitivities
 from m3t1r.calibration.identification import (
+    IDENTIFIABILITY_TOLERANCE,
     OUTLIER_SIGMA,
     BaseParameters,
     LMResult,
@@ -42,6 +43,7 @@ from m3t1r.calibration.identification import (
     parameter_columns,
     select_base_parameters,
     triangular_factor,
+    unexcited_parameters,
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
@@ -318,7 +320,8 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
                           *, setup: MeasurementSetup | None = None, estimate_frame: bool = False,
                           estimate_marker: bool = False, outlier_sigma: float | None = OUTLIER_SIGMA,
                           select: bool = False, fixed: Sequence[str] = (), priors: Mapping[str, float] | None = None,
-                          rank_tolerance: float = 1e-8, max_iterations: int | None = None, cost_tolerance: float = 1e-10,
+                          rank_tolerance: float = IDENTIFIABILITY_TOLERANCE, max_iterations: int | None = None,
+                          cost_tolerance: float = 1e-10,
                           absolute_cost_tolerance: float = 1e-6, step_significance: float = 0.01,
                           refine: bool = False, refine_rank_tolerance: float = 1e-7, refine_iterations: int = 400,
                           error_model: ClosedLoopErrorModel | None = None,
@@ -371,11 +374,12 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     factor[:, fixed_columns] = 0.0
     forced = np.arange(error_model.n_parameters, len(everything))
     base = select_base_parameters(factor, problem.names, rank_tolerance=rank_tolerance, forced=forced)
-    identifiable = _structural_rank(problem, setup.marker, fixed_columns, rank_tolerance)
-    if base.rank < identifiable:
-        raise IdentificationError(
-            f"{len(measurements)} poses give {len(residual)} residual rows for {identifiable} identifiable "
-            f"parameters and identify only {base.rank}: add poses spread over the workspace")
+    reference = _reference_base(problem, setup.marker, fixed_columns, rank_tolerance)
+    if base.rank < reference.rank:
+        missing = unexcited_parameters(factor, problem.names, reference.indices, reference.rank - base.rank)
+        hold = _holding_that_identifies(problem, setup.marker, factor, fixed_columns, rank_tolerance, missing)
+        raise IdentificationError(_shortfall(base, reference, missing, hold, (len(measurements), len(residual)),
+                                             rank_tolerance))
     problem.columns = np.array(base.indices)
     state = replace(start, whitened=None)
     # Damping starts low: 1e-3 over-damps the weak directions (about twice the iterations).
@@ -579,8 +583,15 @@ _REFERENCE_POSES = 40  # a well-spread pose set on which the model's identifiabl
 def _structural_rank(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int],
                      rank_tolerance: float) -> int:
     """Number of identifiable parameters of the model and setup themselves, independent of the
-    user's poses: the base-parameter count on a fixed, seeded set of poses spread over the
-    workspace box. Cached (it depends on the starting geometry and the setup, not on the data)."""
+    user's poses (`_reference_base`)."""
+    return _reference_base(problem, marker, fixed_columns, rank_tolerance).rank
+
+
+def _reference_base(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int],
+                    rank_tolerance: float) -> BaseParameters:
+    """The base parameters on a fixed, seeded set of poses spread over the workspace box: what the
+    model and setup can identify, whatever the user's poses. Cached (it depends on the starting
+    geometry and the setup, not on the data)."""
     error_model = problem.error_model
     model = error_model.mechanism.model
     geometry = np.concatenate([np.ravel([p.homogeneous for p in model.jointPlacements]),
@@ -590,15 +601,20 @@ def _structural_rank(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns
     key = (geometry, error_model.placements, position_only, problem.names, tuple(sorted(fixed_columns)),
            float(problem.noise_weights[0] / problem.noise_weights[-1]), rank_tolerance)
     if key not in _STRUCTURAL_RANKS:
-        _STRUCTURAL_RANKS[key] = _count_identifiable(problem, marker, fixed_columns, rank_tolerance)
+        _STRUCTURAL_RANKS[key] = _reference_selection(problem, marker, fixed_columns, rank_tolerance)
     return _STRUCTURAL_RANKS[key]
 
 
-_STRUCTURAL_RANKS: dict[tuple, int] = {}
+_STRUCTURAL_RANKS: dict[tuple, BaseParameters] = {}
 
 
 def _count_identifiable(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int],
                         rank_tolerance: float) -> int:
+    return _reference_selection(problem, marker, fixed_columns, rank_tolerance).rank
+
+
+def _reference_selection(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int],
+                         rank_tolerance: float) -> BaseParameters:
     error_model = problem.error_model
     mechanism = error_model.mechanism
     actuators = workspace_actuators(mechanism, _REFERENCE_POSES, np.random.default_rng(2020))
@@ -617,7 +633,57 @@ def _count_identifiable(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_colu
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         forced = np.arange(error_model.n_parameters, len(names))
-        return select_base_parameters(jacobian, names, rank_tolerance, forced=forced).rank
+        return select_base_parameters(jacobian, names, rank_tolerance, forced=forced)
+
+
+#: A reference-set direction weaker than this many times the rank tolerance is barely identifiable
+#: on any poses: its |R_ii| is within two decades of the threshold that calls it redundant.
+_MARGINAL = 100.0
+
+
+def _holding_that_identifies(problem: _ClosedLoopProblem, marker: pin.SE3, factor: np.ndarray,
+                             fixed_columns: Sequence[int], rank_tolerance: float, missing: Sequence[str]
+                             ) -> tuple[str, ...]:
+    """Parameters to hold at nominal (`fixed`) so that the data identify all the model then can:
+    `missing` and, while interchangeable columns take their place, the parameters of what is still
+    unexcited, checked against the reference set; () when three rounds do not get there."""
+    held = list(missing)
+    forced = np.arange(problem.error_model.n_parameters, len(problem.names))
+    for _ in range(3):
+        columns = sorted(set(fixed_columns) | set(parameter_columns(problem.names, held, "fixed parameter")))
+        trial = factor.copy()
+        trial[:, columns] = 0.0
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            base = select_base_parameters(trial, problem.names, rank_tolerance, forced=forced)
+        reference = _reference_base(problem, marker, columns, rank_tolerance)
+        if base.rank >= reference.rank:
+            return tuple(held)
+        held += [n for n in unexcited_parameters(trial, problem.names, reference.indices, reference.rank - base.rank)
+                 if n not in held]
+    return ()
+
+
+def _shortfall(base: BaseParameters, reference: BaseParameters, missing: Sequence[str], hold: Sequence[str],
+               counts: tuple[int, int], rank_tolerance: float) -> str:
+    """Why the data identify fewer parameters than the model has (counts: poses, residual rows), and
+    the advice that can help: more poses only when there are fewer rows than parameters or the
+    reference set identifies the missing directions clearly; holding parameters at nominal (`hold`,
+    checked to work) when even a well-spread pose set barely identifies them."""
+    n_poses, n_rows = counts
+    head = (f"{n_poses} poses give {n_rows} residual rows for {reference.rank} identifiable parameters and "
+            f"identify only {base.rank}")
+    if n_rows < reference.rank:
+        return f"{head}: add poses (each gives {n_rows // max(n_poses, 1)} rows), spread over the workspace"
+    listed = ", ".join(missing[:8]) + (" ..." if len(missing) > 8 else "")
+    fix = f"hold them at nominal (--fix {' '.join(hold)})" if hold else "hold the weakest at nominal (--fix)"
+    marginal = int(np.count_nonzero(reference.r_diag_ratio[:reference.rank] < _MARGINAL * rank_tolerance))
+    if reference.rank - base.rank <= marginal:
+        return (f"{head}: {listed} are barely identifiable on any poses (on poses spread over the whole "
+                f"workspace, within {_MARGINAL:g} times the rank tolerance), so more poses are unlikely to help: "
+                f"{fix}")
+    return (f"{head}: these poses do not excite {listed}; poses that move them, over more of the workspace, "
+            f"would, or {fix}")
 
 
 def _accumulated_parameters(error_model: ClosedLoopErrorModel, start: pin.Model, end: pin.Model) -> np.ndarray:

@@ -12,6 +12,7 @@ are per-row inverse standard deviations (1/sigma, in the inverse units of the ro
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -26,6 +27,10 @@ from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationW
 
 __all__ = [
     "BaseParameters",
+    "IDENTIFIABILITY_TOLERANCE",
+    "TIE_TOLERANCE",
+    "best_index",
+    "pivoted_qr",
     "LMResult",
     "OUTLIER_SIGMA",
     "outlier_gate",
@@ -40,6 +45,7 @@ __all__ = [
     "levenberg_marquardt",
     "select_base_parameters",
     "triangular_factor",
+    "unexcited_parameters",
 ]
 
 #: Above this condition number of the kept, column-normalised Jacobian, a relative perturbation of
@@ -128,13 +134,66 @@ class BaseParameters:
     zero_columns: tuple[str, ...]
 
 
-_TIE_BREAK = 1e-9
+#: Two candidates of a rank-revealing choice (a pivot column, a pose, a parameter to add) whose scores
+#: agree to this relative tolerance are a tie, and the lower index wins. Interchangeable columns of a
+#: symmetric mechanism differ only by rounding (1e-16 relative, up to 1e-12 after the projections of
+#: a pivoted QR), which BLAS kernels do differently; genuine differences are far above 1e-9.
+TIE_TOLERANCE = 1e-9
+
+#: The one identifiability decision of `plan`, `calibrate` and the diagnosis: a parameter column is
+#: identifiable while |R_ii| > IDENTIFIABILITY_TOLERANCE |R_00| in the tie-ruled pivoted QR of the
+#: column-normalised whitened Jacobian. Redundant columns sit at 1e-13 and below; O(error^2) effects
+#: (1e-6 of a 1 mm error) and genuine weak directions at 1e-7 and above.
+IDENTIFIABILITY_TOLERANCE = 1e-8
+
+
+def best_index(scores: ArrayLike, *, largest: bool = True) -> int:
+    """Index of the best score (the largest, or the smallest with largest=False), the lower index
+    among those within TIE_TOLERANCE (relative to the best's magnitude) of it; -inf/inf never wins
+    over a finite score."""
+    values = np.asarray(scores, dtype=float)
+    if not largest:
+        values = -values
+    best = float(np.max(values))
+    if not math.isfinite(best):
+        return int(np.argmax(values))
+    return int(np.flatnonzero(values >= best - TIE_TOLERANCE * max(abs(best), 1e-300))[0])
+
+
+def pivoted_qr(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """R and pivots of A P = Q R (Householder, column pivoting on the largest remaining 2-norm).
+
+    Unlike LAPACK's dgeqp3, whose downdated column norms carry errors up to 1e-8 relative, every
+    remaining norm is recomputed at each step, and a tie (TIE_TOLERANCE) goes to the lower original
+    column: the same columns are chosen on any processor. O(p^3) for p columns: meant for the small
+    triangular factor of a tall matrix (`select_base_parameters`).
+    """
+    work = np.array(matrix, dtype=float)
+    rows, cols = work.shape
+    pivots = np.arange(cols)
+    for k in range(min(rows, cols)):
+        norms = np.sqrt(np.einsum("ij,ij->j", work[k:, k:], work[k:, k:]))
+        ties = np.flatnonzero(norms >= (1.0 - TIE_TOLERANCE) * norms.max())
+        j = k + int(ties[np.argmin(pivots[k + ties])])
+        work[:, [k, j]] = work[:, [j, k]]
+        pivots[[k, j]] = pivots[[j, k]]
+        column = work[k:, k].copy()
+        length = float(np.linalg.norm(column))
+        if length == 0.0:
+            continue
+        alpha = -length if column[0] >= 0.0 else length
+        column[0] -= alpha
+        column /= np.linalg.norm(column)
+        work[k:, k:] -= 2.0 * np.outer(column, column @ work[k:, k:])
+        work[k + 1:, k] = 0.0
+        work[k, k] = alpha
+    return np.triu(work[: min(rows, cols)]), pivots
 
 
 def select_base_parameters(
     jacobian: ArrayLike,
     names: Sequence[str],
-    rank_tolerance: float = 1e-9,
+    rank_tolerance: float = IDENTIFIABILITY_TOLERANCE,
     *,
     max_condition: float = POOR_EXCITATION_CONDITION,
     forced: Sequence[int] = (),
@@ -163,12 +222,10 @@ def select_base_parameters(
     # trailing blocks, which are invariant under the orthogonal factor, so pivoting its small
     # triangular factor picks the same columns at a fraction of the cost. Every spectrum below
     # then comes from triangular factors too (A P = Q R: equal singular values).
-    # Symmetric mechanisms give columns of equal norm at every pivot step; which of them wins would
-    # then depend on rounding, i.e. on how the Jacobian was evaluated. A relative tilt of 1e-9,
-    # far above rounding and far below any genuine difference, breaks such ties by column order.
-    tie_break = 1.0 + _TIE_BREAK * np.linspace(1.0, 0.0, candidates.size)
-    r0 = np.linalg.qr(matrix[:, candidates] * (tie_break / norms[candidates]), mode="r")
-    r, pivots = scipy.linalg.qr(r0, mode="r", pivoting=True)
+    # Symmetric mechanisms give columns of equal norm at a pivot step; which of them wins would then
+    # depend on rounding: `pivoted_qr` gives such ties to the lower column, on any processor.
+    r0 = np.linalg.qr(matrix[:, candidates] / norms[candidates], mode="r")
+    r, pivots = pivoted_qr(r0)
     diag = np.abs(np.diag(r))
     ratio = diag / diag[0]
     rank = int(np.count_nonzero(ratio > rank_tolerance))
@@ -231,9 +288,8 @@ def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rank_toleran
     rest = np.setdiff1d(np.flatnonzero(nonzero), forced)
     remainder = normalised[:, position[rest]]
     remainder = remainder - q_forced @ (q_forced.T @ remainder)
-    tie_break = 1.0 + _TIE_BREAK * np.linspace(1.0, 0.0, rest.size)
-    r0 = np.linalg.qr(remainder * tie_break, mode="r")
-    r, pivots = scipy.linalg.qr(r0, mode="r", pivoting=True)
+    r0 = np.linalg.qr(remainder, mode="r")
+    r, pivots = pivoted_qr(r0)
     diag = np.abs(np.diag(r))
     rank_rest = int(np.count_nonzero(diag > rank_tolerance))
     kept = np.sort(np.concatenate((forced, rest[pivots[:rank_rest]])))
@@ -256,6 +312,28 @@ def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rank_toleran
         r_diag_ratio=np.concatenate((forced_diag, diag[: min(rank_rest + 1, diag.size)])),
         zero_columns=tuple(names[i] for i in np.flatnonzero(~nonzero)),
     )
+
+
+def unexcited_parameters(jacobian: ArrayLike, names: Sequence[str], columns: Sequence[int], count: int
+                         ) -> tuple[str, ...]:
+    """The parameters among `columns` that make up the `count` least excited directions of the
+    column-normalised `jacobian` (rows, parameters): for each of its `count` smallest right singular
+    vectors over those columns, the parameters weighing at least half its largest component, the
+    largest first (each direction is a combination; these are its main parts). What a rank
+    shortfall of `count` leaves unidentified."""
+    matrix = _as_matrix(jacobian, "jacobian")[:, list(columns)]
+    norms = _column_norms_of(matrix)
+    factor = triangular_factor(matrix / np.where(norms > 0.0, norms, 1.0))
+    vt = np.linalg.svd(factor, full_matrices=True)[2]
+    found: list[str] = []
+    for direction in np.abs(vt[vt.shape[0] - count:][::-1]):
+        weight = np.round(direction / direction.max(), 9)  # equal weights (twins) in column order, on any processor
+        for position in np.argsort(-weight, kind="stable"):
+            if weight[position] < 0.5:
+                break
+            if names[columns[position]] not in found:
+                found.append(names[columns[position]])
+    return tuple(found)
 
 
 def parameter_columns(names: Sequence[str], wanted: Sequence[str], what: str) -> list[int]:
@@ -415,7 +493,7 @@ def forward_selection(jacobian: ArrayLike, residual: ArrayLike, rows_per_pose: i
             trial_fit = fitted.reshape(n, k) - u * np.einsum("cnk,nk->c", u, fitted.reshape(n, k))[:, None, None]
             trial_leverage = leverage + u[..., :, None] * u[..., None, :]
             scores[block] = _loo_press(trial_fit, trial_leverage).sum(axis=1)
-        best = int(np.argmin(scores))
+        best = best_index(scores, largest=False)
         u = projected[:, best] / lengths[best]
         fitted = fitted - u * (u @ fitted)
         leverage = leverage + np.einsum("ni,nj->nij", u.reshape(n, k), u.reshape(n, k))

@@ -35,6 +35,7 @@ import pinocchio as pin
 from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
+from m3t1r.calibration.identification import select_base_parameters, unexcited_parameters
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.pose_selection import (
     PoseSelection,
@@ -226,6 +227,7 @@ class _Candidates:
     configurations: np.ndarray  # (K, n)
     blocks: np.ndarray  # (K, rows, P) whitened
     evaluation: np.ndarray  # (E, 6, P) un-whitened sensitivities at the evaluation poses
+    names: tuple[str, ...]  # the P parameter names
 
 
 def _plan(kind: Literal["closed_loop", "serial"], columns: tuple[str, ...], candidates: _Candidates, n_poses: int,
@@ -234,7 +236,7 @@ def _plan(kind: Literal["closed_loop", "serial"], columns: tuple[str, ...], cand
     """Select, order and assess a plan from prepared candidates."""
     selection = select_poses(candidates.blocks, n_poses)
     if not math.isfinite(selection.log_det):
-        raise InvalidInputError(f"{n_poses} poses cannot identify every base parameter: plan more poses")
+        raise InvalidInputError(_shortfall(candidates, selection, n_poses))
     chosen = np.array(selection.indices, dtype=int)
     order = order_for_travel(candidates.configurations[chosen], start)
     information = base_information(candidates.blocks, chosen, selection.columns)
@@ -248,6 +250,22 @@ def _plan(kind: Literal["closed_loop", "serial"], columns: tuple[str, ...], cand
         travel=path_travel(ordered, start),
         travel_selection_order=path_travel(candidates.configurations[chosen], start),
         accuracy=accuracy, position_only=position_only, noise=noise, column_units=units)
+
+
+def _shortfall(candidates: _Candidates, selection: PoseSelection, n_poses: int) -> str:
+    """Why the selected poses cannot identify the candidates' base parameters: the candidates do
+    (that is how the base columns were chosen), so more poses help; which parameters they leave
+    unexcited, and how many poses give as many rows as parameters."""
+    rows = candidates.blocks.shape[1]
+    identifiable = len(selection.columns)
+    head = (f"{n_poses} poses cannot identify the {identifiable} parameters that the "
+            f"{len(candidates.configurations)} candidates identify")
+    chosen = candidates.blocks[list(selection.indices)].reshape(-1, candidates.blocks.shape[2])
+    columns = list(selection.columns)
+    kept = select_base_parameters(chosen[:, columns], [candidates.names[c] for c in columns], max_condition=math.inf)
+    weak = unexcited_parameters(chosen, candidates.names, columns, max(identifiable - kept.rank, 1))
+    return (f"{head}: they leave {', '.join(weak[:8])}{' ...' if len(weak) > 8 else ''} unexcited; plan more "
+            f"poses ({n_poses} give {n_poses * rows} rows for {identifiable} parameters)")
 
 
 def _check_counts(n_poses: int, n_candidates: int | None) -> int:
@@ -273,10 +291,10 @@ def plan_closed_loop(mechanism: Mechanism, n_poses: int, rng: np.random.Generato
     k = _check_counts(n_poses, n_candidates)
     noise = noise or TrackerNoise()
     sliders = workspace_actuators(mechanism, k, rng)
-    blocks, _ = closed_loop_candidate_blocks(mechanism, sliders, noise, position_only=position_only)
+    blocks, names = closed_loop_candidate_blocks(mechanism, sliders, noise, position_only=position_only)
     evaluation, _ = closed_loop_candidate_blocks(mechanism, workspace_actuators(mechanism, n_evaluation, rng), noise)
     scales = (noise.position, noise.rotation)
-    candidates = _Candidates(sliders, blocks, _unwhitened(evaluation, scales))
+    candidates = _Candidates(sliders, blocks, _unwhitened(evaluation, scales), names)
     home = mechanism.home[[mechanism.model.idx_qs[mechanism.model.getJointId(n)] for n in mechanism.actuated_joints]]
     units = tuple("m" for _ in mechanism.actuated_joints)  # the M machine's drives are sliders
     return _plan("closed_loop", mechanism.actuated_joints, candidates, n_poses, home, position_only, scales, units)
@@ -296,10 +314,10 @@ def plan_serial(model: pin.Model, chain: SerialChain, n_poses: int, rng: np.rand
     k = _check_counts(n_poses, n_candidates)
     noise = noise or TrackerNoise()
     configurations = sample_configurations(model, chain, k, rng)
-    blocks, _ = serial_candidate_blocks(model, chain, configurations, noise, position_only=position_only)
+    blocks, names = serial_candidate_blocks(model, chain, configurations, noise, position_only=position_only)
     evaluation, _ = serial_candidate_blocks(model, chain, sample_configurations(model, chain, n_evaluation, rng), noise)
     scales = (noise.position, noise.rotation)
-    candidates = _Candidates(configurations, blocks, _unwhitened(evaluation, scales))
+    candidates = _Candidates(configurations, blocks, _unwhitened(evaluation, scales), names)
     start = chain.chain_configuration(pin.neutral(model))
     units = tuple("rad" if np.any(twist[3:]) else "m" for twist in chain.twists)
     return _plan("serial", chain.joint_names, candidates, n_poses, start, position_only, scales, units)

@@ -29,7 +29,7 @@ from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
-from m3t1r.calibration.identification import select_base_parameters
+from m3t1r.calibration.identification import IDENTIFIABILITY_TOLERANCE, best_index, select_base_parameters
 from m3t1r.calibration.measurements import TrackerNoise, assembled_from_home
 from m3t1r.errors import InvalidInputError
 from m3t1r.model.description import Mechanism
@@ -162,7 +162,7 @@ def select_poses(
     *,
     columns: Sequence[int] | None = None,
     initial: Sequence[int] | None = None,
-    rank_tolerance: float = 1e-9,
+    rank_tolerance: float = IDENTIFIABILITY_TOLERANCE,
     max_passes: int = 50,
 ) -> PoseSelection:
     """Choose `n_poses` of the candidates maximising log det of the information matrix.
@@ -170,7 +170,8 @@ def select_poses(
     blocks: (n_candidates, rows, parameters) whitened Jacobian block of each candidate pose (rows
         per pose, e.g. 6 for a full pose); a 2-D array means one row per candidate.
     columns: the parameter columns to judge identifiability on; default: the base parameters of
-        all candidates stacked (column-pivoted QR, relative tolerance `rank_tolerance`).
+        all candidates stacked (column-pivoted QR, relative tolerance `rank_tolerance`, which also
+        decides whether the selected poses identify them: log det -inf otherwise).
     initial: a starting set of `n_poses` distinct candidates for the exchange search; default:
         the greedy forward selection.
     max_passes: cap on exchange passes (each tries every selected position once).
@@ -208,7 +209,7 @@ def select_poses(
             log_det, factor = _log_det_chol(information)
             gains = _gains(factor, stacked, n_rows)
             gains[selected] = -np.inf
-            best = int(np.argmax(gains))
+            best = best_index(gains)  # ties (symmetric candidates) to the lower index
             selected.append(best)
             information += outer(best)
             history.append(log_det + float(gains[best]))
@@ -234,7 +235,7 @@ def select_poses(
                 continue  # the pose carries the only information on some direction: keep it
             gains = _gains(factor, stacked, n_rows)
             gains[selected] = -np.inf
-            best = int(np.argmax(gains))
+            best = best_index(gains)  # ties (symmetric candidates) to the lower index
             candidate = reduced_log_det + float(gains[best])
             if candidate > current + _MIN_GAIN:
                 selected[position] = best
@@ -250,7 +251,9 @@ def select_poses(
     indices = tuple(sorted(selected))
     chosen = normalised[list(indices)].reshape(-1, m)
     singular = np.linalg.svd(chosen, compute_uv=False)
-    full_rank = singular.size == m and singular[-1] > 1e-12 * singular[0]
+    # The selection identifies the columns by the rule calibration applies to the same rows.
+    kept = select_base_parameters(chosen, [f"p{k}" for k in range(m)], rank_tolerance, max_condition=math.inf)
+    full_rank = kept.rank == m
     return PoseSelection(
         indices=indices,
         log_det=float(2.0 * np.sum(np.log(singular))) if full_rank else -math.inf,

@@ -35,6 +35,7 @@ from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.identification import (
+    IDENTIFIABILITY_TOLERANCE,
     OUTLIER_SIGMA,
     BaseParameters,
     LMResult,
@@ -664,7 +665,7 @@ def calibrate_serial(
     position_only: bool = False,
     noise: TrackerNoise = TrackerNoise(),
     joint_noise: float = 0.0,
-    rank_tolerance: float = 1e-9,
+    rank_tolerance: float = IDENTIFIABILITY_TOLERANCE,
     max_iterations: int = 30,
     absolute_cost_tolerance: float = 1e-6,
     setup: MeasurementSetup | None = None,
