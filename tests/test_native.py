@@ -18,6 +18,7 @@ from m3t1r.model.description import Mechanism
 from m3t1r.model.design import NOMINAL
 from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
+from m3t1r.model.newton_rules import NewtonRules
 
 
 def test_the_compiled_loop_is_built():
@@ -146,9 +147,8 @@ def test_failures_are_the_python_loop_s_typed_errors(mechanism):
 
 def test_a_singular_configuration_is_refused_with_its_class(mechanism, monkeypatch):
     """A threshold no configuration meets makes every converged solve singular, in both loops."""
-    monkeypatch.setattr("m3t1r.model.kinematics.SINGULAR_RCOND", 2.0)  # what the Python single solve reads
     for use in (True, False):
-        solver = ClosedLoopSolver(mechanism, native=use)
+        solver = ClosedLoopSolver(mechanism, native=use, rules=NewtonRules(singular_rcond=2.0))
         with pytest.raises(SingularConfigurationError):
             solver.forward(mechanism.home[mechanism.actuated_ids] + 1e-3)
 
@@ -212,14 +212,13 @@ def test_only_one_dof_revolute_and_prismatic_trees_are_compiled(mechanism):
     model = pin.Model()
     model.addJoint(0, pin.JointModelSpherical(), pin.SE3.Identity(), "ball")
     none = np.zeros(0, dtype=int)
-    assert native.NativeChain.of(model, (), none, none, [], 0, mechanism.task, none, np.zeros((0, 1)), none, 0.3,
-                                 0.05) is None
+    assert native.NativeChain.of(model, (), none, none, [], 0, mechanism.task, none, np.zeros((0, 1)), none) is None
     assert ClosedLoopSolver(mechanism, native=False).native is None
 
 
 def test_the_compiled_loop_refuses_buffers_of_the_wrong_size(mechanism):
     chain = ClosedLoopSolver(mechanism).native
-    limits, sliders = (1e-12, 60, 1e-10), np.zeros(4)
+    limits, sliders = NewtonRules().compiled(), np.zeros(4)
     with pytest.raises(ValueError, match="q"):
         chain.forward(np.zeros(3), sliders, 0, None, None, limits)
     with pytest.raises(ValueError, match="q"):
@@ -231,7 +230,7 @@ def test_the_compiled_loop_refuses_buffers_of_the_wrong_size(mechanism):
     with pytest.raises(ValueError, match="goal"):
         chain.inverse(mechanism.home.copy(), np.zeros(2), None, 0, None, None, limits)
     with pytest.raises(ValueError):
-        chain.forward_rows(np.zeros((2, 3)), None, 1e-4, 0, limits)
+        chain.forward_rows(np.zeros((2, 3)), None, 0, limits)
     q = mechanism.home.copy()
     chain.forward(q, mechanism.home[mechanism.actuated_ids], 0, None, None, limits)
     np.testing.assert_allclose(q, mechanism.home, atol=1e-12)  # nothing clipped or moved by the refusals
@@ -377,16 +376,16 @@ def test_labels_no_solution_can_have_fail_every_row_and_solve(mechanism):
     """Given labels are what rows and solves must end with: labels of another length, or 2 (labels
     are 0 or 1), fail them all with BranchChangeError (status 4); without labels they succeed."""
     solver = ClosedLoopSolver(mechanism)
-    chain, limits = solver.native, (1e-12, 60, 1e-10)
+    chain, limits = solver.native, NewtonRules().compiled()
     blocks = len(solver._branch_blocks)
     start = np.repeat(mechanism.home[None, :], 3, axis=0)
     start[:, solver.actuated] += np.linspace(0.0, 0.01, 3)[:, None]
-    assert list(chain.forward_rows(start.copy(), None, 1e-4, 0, limits)[0]) == [0, 0, 0]
-    assert list(chain.forward_rows(start.copy(), np.full(blocks, 2), 1e-4, 0, limits)[0]) == [4, 4, 4]
+    assert list(chain.forward_rows(start.copy(), None, 0, limits)[0]) == [0, 0, 0]
+    assert list(chain.forward_rows(start.copy(), np.full(blocks, 2), 0, limits)[0]) == [4, 4, 4]
     goals = np.ascontiguousarray(mechanism.task.coordinates(
         ClosedLoopSolver(mechanism).forward_batch(start[:, solver.actuated]).task_poses))
-    assert list(chain.inverse_rows(start.copy(), goals, None, None, 1e-4, 0, limits)[0]) == [0, 0, 0]
-    assert list(chain.inverse_rows(start.copy(), goals, None, np.full(blocks + 1, 2), 1e-4, 0, limits)[0]) == [4] * 3
+    assert list(chain.inverse_rows(start.copy(), goals, None, None, 0, limits)[0]) == [0, 0, 0]
+    assert list(chain.inverse_rows(start.copy(), goals, None, np.full(blocks + 1, 2), 0, limits)[0]) == [4] * 3
     sliders = start[1, solver.actuated]
     for labels in (b"\x01", bytes(blocks + 1), b"\x02" * blocks):
         assert chain.forward(mechanism.home.copy(), sliders, 0, None, labels, limits)[0] == 4
@@ -471,8 +470,6 @@ def test_failures_read_word_for_word_as_the_python_loop_s(mechanism, monkeypatch
         "singular (IK)": lambda s: s.inverse(np.array([0.5, 0.52, -0.1, 0.1]), q_init=mechanism.home),
     }
     for name, scenario in scenarios.items():
-        if name.startswith("singular"):
-            monkeypatch.setattr("m3t1r.model.kinematics.SINGULAR_RCOND", 2.0)  # what the Python single solve reads
         errors = []
         for use in (True, False):
             solver = ClosedLoopSolver(mechanism, native=use)
