@@ -946,3 +946,13 @@ def test_batch_task_poses_of_a_task_frame_on_another_joint(mechanism, tmp_path):
     for k, values in enumerate(sliders):
         single = ClosedLoopSolver(machine).forward(values, q_init=machine.home)
         np.testing.assert_allclose(batch.task_poses[k], single.task_pose.homogeneous, atol=1e-10)
+
+
+def test_a_singular_row_names_the_threshold_of_the_solver_s_rules(mechanism):
+    """Every converged row is singular under a threshold no configuration meets; the reason names it."""
+    for native in (True, False):
+        solver = ClosedLoopSolver(mechanism, native=native, rules=NewtonRules(singular_rcond=2.0))
+        batch = solver.forward_batch(mechanism.home[mechanism.actuated_ids][None, :] + 1e-3)
+        (failure,) = batch.failures
+        assert failure.error is SingularConfigurationError
+        assert "(reciprocal condition below 2)" in failure.reason

@@ -42,7 +42,7 @@ from m3t1r.errors import (
 )
 from m3t1r.model.description import Mechanism
 from m3t1r.model.native import available_cores
-from m3t1r.model.newton_rules import NewtonRules
+from m3t1r.model.newton_rules import DEFAULT_RULES, NewtonRules
 from m3t1r.model.poe import jlog3_batch, log3_batch, skew
 from m3t1r.model.task import TaskSpec
 
@@ -557,9 +557,12 @@ def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: 
     return out
 
 
-def failures_of(solved: _Solved, offset: int, what: str) -> list[RowFailure]:
-    """Typed failures of the rows of `solved` that did not converge (indices shifted by `offset`)."""
-    return [RowFailure(offset + int(i), f"{what}: {_REASONS[int(solved.status[i])]} (residual "
+def failures_of(solved: _Solved, offset: int, what: str,
+                singular_rcond: float = DEFAULT_RULES.singular_rcond) -> list[RowFailure]:
+    """Typed failures of the rows of `solved` that did not converge (indices shifted by `offset`);
+    singular rows name `singular_rcond`, the threshold they fell below."""
+    reasons = _REASONS | {3: f"singular configuration (reciprocal condition below {singular_rcond:g})"}
+    return [RowFailure(offset + int(i), f"{what}: {reasons[int(solved.status[i])]} (residual "
                        f"{solved.norm[i]:.3e} after {int(solved.iterations[i])} iterations)",
                        _FAILURES[int(solved.status[i])])
             for i in np.flatnonzero((solved.status != _CONVERGED) & (solved.status != _LIMIT))]
@@ -641,7 +644,7 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
             solved = newton_batch(start[chunk], kin.passive, system, lambda jac, sq: kin.signatures(jac),
                                   solver.rules, int(predicted), branch if predicted else None)
         failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
-                     for f in failures_of(solved, 0, "forward kinematics")]
+                     for f in failures_of(solved, 0, "forward kinematics", solver.singular_rcond)]
         parts.append((chunk, solved))
     return _forward_result(kin, len(values), parts, failures)
 
@@ -790,7 +793,7 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
                                        f"{sliders[i, k]:.6g} m, beyond its limit [{solver._act_lower[k]:.6g}, "
                                        f"{solver._act_upper[k]:.6g}]", OutOfWorkspaceError))
         failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
-                     for f in failures_of(solved, 0, "inverse kinematics")]
+                     for f in failures_of(solved, 0, "inverse kinematics", solver.singular_rcond)]
         parts.append((chunk, solved))
     fk = _forward_result(kin, len(goal), parts, failures)
     wanted = np.zeros(2) if goal_rot is None else rpy_batch(goal_rot[fk.indices])[:, :2]
