@@ -163,6 +163,8 @@ def _damped(smooth: _SmoothClosures, q: np.ndarray, passive: np.ndarray) -> tupl
         else:
             mu *= nu
             nu *= 2.0
+            if not mu < 1e300:  # no step shortens the residual: a local minimum, not an assembly
+                return q, iteration
     return q, _DAMPED_ITERATIONS
 
 
