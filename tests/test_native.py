@@ -12,7 +12,14 @@ from conftest import perturb_every_origin
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from m3t1r.errors import BranchChangeError, M3t1rError, OutOfWorkspaceError, SingularConfigurationError
+from m3t1r.errors import (
+    BranchChangeError,
+    InvalidInputError,
+    M3t1rError,
+    NotConvergedError,
+    OutOfWorkspaceError,
+    SingularConfigurationError,
+)
 from m3t1r.model import native
 from m3t1r.model.description import Mechanism
 from m3t1r.model.design import NOMINAL
@@ -532,3 +539,44 @@ def test_batches_of_no_rows_in_both_loops(mechanism, compiled):
     forward, inverse = solver.forward_batch(np.zeros((0, 4))), solver.inverse_batch(np.zeros((0, 4)))
     assert forward.n == inverse.n == 0 and forward.q.shape == inverse.q.shape == (0, mechanism.model.nq)
     assert forward.complete and inverse.complete and inverse.actuators.shape == (0, 4)
+
+
+def _class_and_steps(solve) -> tuple:
+    """(error class or None, iterations) of a solve."""
+    try:
+        return None, solve().iterations
+    except M3t1rError as error:
+        return type(error), error.iterations
+
+
+@pytest.mark.parametrize("rule", [{"max_step": 1e-5}, {"chord_below": 1.0, "chord_contraction": 0.999},
+                                  {"max_iterations": 1, "no_assembly": 1.0}, {"singular_rcond": 2.0},
+                                  {"tolerance": 1e-6}])
+def test_every_loop_obeys_every_newton_rule(mechanism, rule):
+    """One NewtonRules, read by the compiled and the Python single solves and by both batches: each
+    rule changed alone changes the outcome, and alike in every loop."""
+    far = mechanism.home[mechanism.actuated_ids] + np.array([0.02, -0.01, 0.015, -0.02])
+    outcomes = []
+    for rules in (NewtonRules(), NewtonRules(**rule)):
+        for use in (True, False):
+            solver = ClosedLoopSolver(mechanism, native=use, rules=rules)
+            single = _class_and_steps(lambda: solver.forward(far, q_init=mechanism.home))
+            batch = solver.forward_batch(far[None, :])  # from home, as forward(q_init=home)
+            # A batch row counts its predicted start as a step; the single solve does not.
+            rows = (None, int(batch.iterations[0]) - 1) if batch.complete else \
+                (batch.failures[0].error, int(batch.failures[0].reason.split(" after ")[1].split()[0]) - 1)
+            outcomes.append((single, rows))
+    default, changed = outcomes[:2], outcomes[2:]
+    assert default[0] == default[1] and changed[0] == changed[1], (default, changed)
+    assert default[0][0] == default[0][1]  # forward(q_init=home) is the batch's solve from home
+    assert changed[0] != default[0]
+    if "no_assembly" in rule:
+        assert changed[0][0][0] is NotConvergedError  # out of steps near enough: not "no assembly"
+
+
+def test_newton_rules_refuse_what_no_loop_could_obey():
+    for bad in ({"tolerance": 0.0}, {"tolerance": float("nan")}, {"max_iterations": -1}, {"max_iterations": 1.5},
+                {"singular_rcond": -1e-3}, {"chord_contraction": 1.0}, {"max_step": -0.1}, {"no_assembly": 0.0}):
+        with pytest.raises(InvalidInputError, match=f"Newton rules: {next(iter(bad))}"):
+            NewtonRules(**bad)
+    assert ClosedLoopSolver(Mechanism.load(), tolerance=1e-9).rules == NewtonRules(tolerance=1e-9)

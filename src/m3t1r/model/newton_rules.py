@@ -20,7 +20,7 @@ class NewtonRules:
     """How a closure Newton solve steps, converges and fails.
 
     tolerance: max |row| [m or rad] at which a solve has converged.
-    max_iterations: Newton steps allowed after the start (a predictor's step counts as one).
+    max_iterations: Newton steps allowed (a batch row counts its predicted start as one).
     singular_rcond: 1-norm reciprocal condition number of the square system (rows and unknowns
         scaled to unit length, `kinematics` module) below which a converged solve is refused as
         singular.
