@@ -234,3 +234,32 @@ def test_a_fresh_solver_s_first_forward_is_the_path_from_home(mechanism, tool_ma
                 assert q is None or path is not None, f"{name}, row {k}: a pose where the path from home has none"
             agreed += path is not None and all(q is not None for q in solves)
         assert agreed >= 8, name
+
+
+def test_a_task_coordinate_the_mechanism_cannot_move_is_refused_by_name(tmp_path):
+    """The five-bar moves in the x-y plane: a task (x, z) is square, but z never changes, so IK would
+    end 'singular' at every target it converges to. It is refused naming z, before any solve;
+    forward kinematics is unaffected, and the (x, y) task it can command solves."""
+    import yaml
+
+    from m3t1r.errors import InvalidInputError as Refused
+    from m3t1r.model.description import Mechanism
+    from m3t1r.model.examples import five_bar_files
+
+    urdf, closures = five_bar_files(tmp_path)
+    good = Mechanism.load(urdf, closures)
+    document = yaml.safe_load(closures.read_text())
+    document["task"]["position"] = ["x", "z"]
+    closures.write_text(yaml.safe_dump(document, sort_keys=False))
+    planar = Mechanism.load(urdf, closures)
+    solver = ClosedLoopSolver(planar)
+    assert solver.uncommandable_task_rows() == ("z",)
+    fk = solver.forward(planar.home[planar.actuated_ids] + 0.01)
+    target = fk.task_pose.translation[[0, 2]]
+    for solve in (lambda: solver.inverse(target), lambda: solver.inverse_batch(target[None, :])):
+        with pytest.raises(Refused, match=r"the task's z \(frame 'effector'\) cannot be commanded"):
+            solve()
+    commandable = ClosedLoopSolver(good)
+    assert commandable.uncommandable_task_rows() == ()
+    np.testing.assert_allclose(commandable.inverse(fk.task_pose.translation[:2]).actuators,
+                               planar.home[planar.actuated_ids] + 0.01, atol=1e-9)

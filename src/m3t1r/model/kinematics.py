@@ -639,8 +639,61 @@ class ClosedLoopSolver:
     # ----------------------------------------------------------------------------------------
     # Inverse kinematics
     def check_square_task(self) -> None:
-        """Raise InvalidInputError unless the task commands as many coordinates as there are actuators."""
+        """Raise InvalidInputError unless the task commands as many coordinates as there are actuators,
+        each of which the mechanism can move (`uncommandable_task_rows`)."""
         require_square_task(self.mechanism)
+        self._require_commandable_task()
+
+    def uncommandable_task_rows(self) -> tuple[str, ...]:
+        """Task rows (x, y, z, theta, or rx, ry, rz for a full rotation) that no motion the closures
+        allow changes, at home and near it: e.g. x for a five-bar that moves in the
+        y-z plane. An IK system with such a row is singular wherever it converges: not a singularity
+        of the mechanism but a task it cannot command. A row counts as unmoved when its rate along
+        every unit closure-compatible motion is below 1e-9 of the largest task row's (near home: 1e-3
+        along home's tangent, no solve)."""
+        if self._uncommandable is None:
+            home, reference = self.mechanism.home, self.home_reference()
+            configurations = [home]
+            for sign in ((1.0, -1.0) if reference is not None else ()):
+                # Near home along its solution manifold (first order: within 1e-6 of an assembly).
+                change = sign * 1e-3 * np.linspace(1.0, 0.5, len(self.actuated))
+                q = home.copy()
+                q[self.actuated] += change
+                q[self.passive] += reference[0].dot(change)
+                configurations.append(q)
+            unmoved = None
+            for q in configurations:
+                rows = self._unmoved_task_rows(q)
+                unmoved = rows if unmoved is None else unmoved & rows
+            task = self.mechanism.task
+            names = task.position + {"none": (), "yaw": ("theta",), "full": ("rx", "ry", "rz")}[task.rotation]
+            self._uncommandable = tuple(name for name, dead in zip(names, unmoved) if dead)
+        return self._uncommandable
+
+    _uncommandable: tuple[str, ...] | None = None
+
+    def _unmoved_task_rows(self, q: np.ndarray) -> np.ndarray:
+        """Mask of the task rows whose rate along every unit closure-compatible motion at q (the null
+        space of the closure rows over IK's unknowns) is below 1e-9 of the largest row's."""
+        self._system(q, False)
+        placement = pin.updateFramePlacement(self.model, self.data, self._task_frame)
+        jac = self._inverse_system(np.zeros(len(self.mechanism.task.columns)), placement.rotation)(q, True)[1]
+        jac = jac[:, self._unknown_columns]
+        closure, task = jac[:self.n_rows], jac[self.n_rows:]
+        singular, vt = np.linalg.svd(closure)[1:]
+        rank = int(np.sum(singular > max(closure.shape) * np.finfo(float).eps * singular[0])) if len(singular) else 0
+        rates = np.linalg.norm(task @ vt[rank:].T, axis=1)
+        return rates <= 1e-9 * max(float(rates.max(initial=0.0)), 1e-300)
+
+    def _require_commandable_task(self) -> None:
+        unmoved = self.uncommandable_task_rows()
+        if unmoved:
+            task = self.mechanism.task
+            raise InvalidInputError(
+                f"{self.mechanism.closures_path}: the task's {', '.join(unmoved)} (frame '{task.frame}') cannot be "
+                "commanded: no motion the closures allow changes it (at home and near it), so inverse kinematics "
+                "would be singular at every target; declare a task of coordinates the mechanism moves "
+                "(models/README.md)")
 
     def inverse(self, target: pin.SE3 | np.ndarray, q_init: np.ndarray | None = None) -> InverseResult:
         """Actuator values that put the task frame at the target (the mechanism's `task`).
@@ -653,7 +706,7 @@ class ClosedLoopSolver:
         InvalidInputError when the task is not square, OutOfWorkspaceError when no assembly reaches
         the target or an actuator would leave its limits (never clipped).
         """
-        if not self._square_task:
+        if not self._square_task or self._uncommandable != ():
             self.check_square_task()
         goal, goal_rotation, wanted_tilt = self._goal(target)
         warm = q_init is None
