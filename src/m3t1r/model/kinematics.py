@@ -463,11 +463,14 @@ class ClosedLoopSolver:
         return values
 
     def forward(self, actuators: np.ndarray, q_init: np.ndarray | None = None) -> ForwardResult:
-        """Platform pose for the given slider values, on the assembly branch of q_init.
+        """Platform pose for the given slider values, on the assembly mode of the start.
 
-        Newton on the enforced closure rows over the passive joints only (sliders locked):
-        J_c,passive dq_passive = -r_c. Starts from q_init (default: the last solution of this
-        solver, initially home). Raises InvalidInputError for bad actuators, NotConvergedError /
+        A continuation from the start, q_init or by default this solver's last solution (initially
+        home, and again after `reset`): the start moved along its tangent to the slider change (plus
+        a second-order term along the last step when warm), then Newton on the enforced closure rows
+        over the passive joints only (sliders locked), J_c,passive dq_passive = -r_c. The solution
+        must carry the start's branch labels: a new solver's first solve is `forward_batch`'s row.
+        Raises InvalidInputError for bad actuators, BranchChangeError / NotConvergedError /
         OutOfWorkspaceError / SingularConfigurationError (with the final residual) otherwise.
         """
         values = self.check_actuators(actuators)
