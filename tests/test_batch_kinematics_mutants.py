@@ -26,6 +26,7 @@ from m3t1r.model import batch_kinematics as bk
 from m3t1r.model.description import Mechanism
 from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.newton_rules import NewtonRules
 from m3t1r.model.task import TaskSpec
 
 ASSEMBLE = ("the closures cannot be assembled here (target out of the workspace or too far from the "
@@ -237,7 +238,7 @@ def test_newton_batch_statuses_iterations_and_calls():
     first step from 0.1, a NaN residual (out of workspace at once), an exactly singular start."""
     system = quadratic([1.0, 4.0, 1.0, np.nan, 1.0])
     q = np.array([[1.2, 0.0], [1.5, 3.0], [0.1, 0.0], [1.0, 0.0], [0.0, 0.0]])
-    out = bk.newton_batch(q, UNKNOWNS, system, sign_of_first, 1e-12, 60, 1e-10)
+    out = bk.newton_batch(q, UNKNOWNS, system, sign_of_first, NewtonRules())
     assert list(out.status) == [0, 0, 0, 1, 3]
     assert list(out.iterations) == [9, 6, 10, 0, 0]
     assert out.iterations.dtype.kind == "i" and out.norm.dtype == float and out.status.dtype.kind == "i"
@@ -258,7 +259,7 @@ def test_newton_batch_caps_the_step_and_sorts_out_unfinished_rows():
     one step from the tolerance is not converged (2); the step's largest component is capped at 0.3."""
     system = quadratic([1.0, 1.0, 1.0])
     q = np.array([[1.5, 0.0], [1.0 + 1e-4, 2.0], [1.0 + 1e-9, 2.0 + 2e-9]])
-    out = bk.newton_batch(q, UNKNOWNS, system, sign_of_first, 1e-12, 1, 1e-10)
+    out = bk.newton_batch(q, UNKNOWNS, system, sign_of_first, NewtonRules(max_iterations=1))
     assert list(out.status) == [1, 2, 0] and list(out.iterations) == [1, 1, 1]
     # Row 0: dq = J^-1 r = (1.25 / 3, -3 + 2.5 / 3), scaled by 0.3 / 2.1666...
     np.testing.assert_allclose(out.q[0], [1.5 - 0.3 * (1.25 / 3) / (3 - 2.5 / 3), 0.3], rtol=1e-14)
@@ -266,21 +267,21 @@ def test_newton_batch_caps_the_step_and_sorts_out_unfinished_rows():
     assert out.norm[0] == pytest.approx(abs(out.q[0, 1] - 2 * out.q[0, 0]), rel=1e-14)
     # Row 2 starts below 1e-4: a chord step, re-evaluated without a Jacobian; rows 0, 1 get Newton's.
     assert system.calls == [([0, 1, 2], True), ([2], False), ([0, 1], True)]
-    zero = bk.newton_batch(q, UNKNOWNS, quadratic([1.0, 1.0, 1.0]), sign_of_first, 1e-12, 0, 1e-10)
+    zero = bk.newton_batch(q, UNKNOWNS, quadratic([1.0, 1.0, 1.0]), sign_of_first, NewtonRules(max_iterations=0))
     assert list(zero.status) == [1, 1, 2] and list(zero.iterations) == [0, 0, 0]
 
 
 def test_newton_batch_counts_predictor_steps_and_checks_the_given_branch():
     system = quadratic([1.0, 1.0])
     q = np.array([[1.2, 0.0], [-1.2, 0.0]])
-    out = bk.newton_batch(q, UNKNOWNS, system, sign_of_first, 1e-12, 60, 1e-10, steps_taken=2,
+    out = bk.newton_batch(q, UNKNOWNS, system, sign_of_first, NewtonRules(), steps_taken=2,
                           branch=np.array([True]))
     assert list(out.status) == [0, 4] and list(out.iterations) == [11, 11]
     np.testing.assert_allclose(out.q, [[1.0, 2.0], [-1.0, -2.0]], atol=1e-12)
-    own = bk.newton_batch(q, UNKNOWNS, quadratic([1.0, 1.0]), sign_of_first, 1e-12, 60, 1e-10)
+    own = bk.newton_batch(q, UNKNOWNS, quadratic([1.0, 1.0]), sign_of_first, NewtonRules())
     assert list(own.status) == [0, 0] and list(own.iterations) == [9, 9]
     # The iteration budget counts from steps_taken: 9 more steps are needed, 8 allowed.
-    short = bk.newton_batch(q, UNKNOWNS, quadratic([1.0, 1.0]), sign_of_first, 1e-12, 8, 1e-10, steps_taken=5)
+    short = bk.newton_batch(q, UNKNOWNS, quadratic([1.0, 1.0]), sign_of_first, NewtonRules(max_iterations=8), steps_taken=5)
     assert list(short.status) == [2, 2] and list(short.iterations) == [13, 13]
 
 
@@ -295,7 +296,7 @@ def test_newton_batch_branch_change_when_a_capped_step_crosses_a_singularity():
         return r, jac, np.zeros((len(q), 3, 3)), np.zeros((len(q), 3))
 
     label = lambda jac, square: (square[:, 1, 0] > 0)[:, None]  # noqa: E731
-    out = bk.newton_batch(np.array([[-0.5, 0.25], [0.5, 0.25]]), UNKNOWNS, linear, label, 1e-12, 60, 1e-10)
+    out = bk.newton_batch(np.array([[-0.5, 0.25], [0.5, 0.25]]), UNKNOWNS, linear, label, NewtonRules())
     assert list(out.status) == [4, 0]
     np.testing.assert_allclose(out.q, [[1.0, 1.0], [1.0, 1.0]], atol=1e-12)
 
@@ -303,8 +304,7 @@ def test_newton_batch_branch_change_when_a_capped_step_crosses_a_singularity():
 @pytest.mark.parametrize("singular_rcond, status", [(1e-4, 3), (1e-5, 0)])
 def test_newton_batch_singular_at_the_solution(singular_rcond, status):
     """Root q0 = 1e-4: J = [[2e-4, 0], [-2, 1]] has 1-norm condition 2.0002 x 15000 (rcond 3.3e-5)."""
-    out = bk.newton_batch(np.array([[1e-4 + 1e-6, 2e-4]]), UNKNOWNS, quadratic([1e-8]), sign_of_first, 1e-12, 60,
-                          singular_rcond)
+    out = bk.newton_batch(np.array([[1e-4 + 1e-6, 2e-4]]), UNKNOWNS, quadratic([1e-8]), sign_of_first, NewtonRules(singular_rcond=singular_rcond))
     assert list(out.status) == [status]
     np.testing.assert_allclose(out.q[0, 0], 1e-4, rtol=1e-4)
 
@@ -361,8 +361,8 @@ def test_factors_refresh_rcond_labels_and_start():
 def test_newton_batch_singular_threshold_is_strict(factor, status):
     """Converged at the start with J = [[2, 0], [-2, 1]]: 1-norm condition 4 x 1.5 = 6 exactly; a
     threshold of exactly 1/6 is not above the reciprocal condition, so the row is not singular."""
-    out = bk.newton_batch(np.array([[1.0, 2.0]]), UNKNOWNS, quadratic([1.0]), sign_of_first, 1e-12, 60,
-                          (1.0 / 6.0) * factor)
+    out = bk.newton_batch(np.array([[1.0, 2.0]]), UNKNOWNS, quadratic([1.0]), sign_of_first,
+                          NewtonRules(singular_rcond=(1.0 / 6.0) * factor))
     assert list(out.status) == [status] and list(out.iterations) == [0]
 
 
@@ -382,7 +382,7 @@ def test_evaluate_rows_chooses_newton_or_chord_per_row():
     q = np.zeros((10, 2))
     q[active] = np.c_[new, -new / 2]
     factors = bk._Factors(10, 2)
-    residual, rot, pos, singular = bk._evaluate_rows(q, active, previous, 1e-12, identity, factors, UNKNOWNS,
+    residual, rot, pos, singular = bk._evaluate_rows(q, active, previous, NewtonRules(), identity, factors, UNKNOWNS,
                                                      sign_of_first)
     assert identity.calls == [([8, 7, 6, 5, 4, 3, 2], False), ([9, 6, 2], True)]
     np.testing.assert_array_equal(residual, q[active])
@@ -394,7 +394,7 @@ def test_evaluate_rows_chooses_newton_or_chord_per_row():
     # Every row above 1e-4: one call, with the Jacobian; singular rows reported.
     identity.calls = []
     q[9] = 0.0
-    residual, rot, pos, singular = bk._evaluate_rows(q, np.array([9, 1, 0]), np.full(3, 1.0), 1e-12, identity,
+    residual, rot, pos, singular = bk._evaluate_rows(q, np.array([9, 1, 0]), np.full(3, 1.0), NewtonRules(), identity,
                                                      bk._Factors(10, 2), UNKNOWNS, sign_of_first)
     assert identity.calls == [([9, 1, 0], True)] and list(singular) == [False, False, False]
     np.testing.assert_array_equal(rot, np.eye(3) * np.array([9, 1, 0])[:, None, None])
@@ -761,8 +761,8 @@ def test_inverse_batch_system_and_labels(monkeypatch, wrist):
     goals = np.array([pin.Quaternion(pin.exp3(np.array(v))).coeffs() for v in ([0.1, 0.2, 0.0], [0.0, -0.1, 0.3],
                                                                        [0.2, 0.0, 0.1])])
     solver.inverse_batch(goals)
-    (start, unknowns, system, signature, tolerance, max_iterations, rcond, steps, branch), = calls
-    assert (tolerance, max_iterations, rcond, steps, branch) == (1e-12, 60, 1e-10, 0, None)
+    (start, unknowns, system, signature, rules, steps, branch), = calls
+    assert (rules, steps, branch) == (solver.rules, 0, None) and rules == NewtonRules()
     np.testing.assert_array_equal(unknowns, np.arange(9))
     np.testing.assert_array_equal(start, np.repeat(wrist.home[None, :], 3, axis=0))
     q = wrist.home + np.random.default_rng(20).normal(0, 0.2, (2, 9))
@@ -798,8 +798,8 @@ def test_forward_batch_system_and_labels(monkeypatch, five_bar):
     kin = solver._batch_kinematics()
     calls = _recorded_newton(monkeypatch)
     solver.forward_batch(np.array([[2.4, 0.9], [2.3, 0.7]]))
-    (start, unknowns, system, signature, tolerance, max_iterations, rcond, steps, branch), = calls
-    assert (tolerance, max_iterations, rcond, steps) == (1e-12, 60, 1e-10, 1)
+    (start, unknowns, system, signature, rules, steps, branch), = calls
+    assert (rules, steps) == (solver.rules, 1) and rules == NewtonRules()
     np.testing.assert_array_equal(unknowns, kin.passive)
     np.testing.assert_array_equal(branch, kin.home_reference()[1])
     tangent = kin.home_reference()[0]
@@ -818,7 +818,7 @@ def test_forward_batch_system_and_labels(monkeypatch, five_bar):
     np.testing.assert_array_equal(signature(jac, jac[:, :, kin.passive]), kin.signatures(jac))
     calls.clear()
     solver.forward_batch(np.array([[2.4, 0.9]]), q_init=five_bar.home)
-    assert calls[0][7] == 0 and calls[0][8] is None
+    assert calls[0][5] == 0 and calls[0][6] is None
 
 
 def test_one_target_and_one_slider_set(mechanism, five_bar):
@@ -835,9 +835,9 @@ def test_newton_batch_boundaries_at_exact_residuals():
     t = q0 ** 2 - 1e-6
     q = np.array([[q0, 2 * q0]])
     assert (q0 ** 2 - t) == 1e-6
-    done = bk.newton_batch(q, UNKNOWNS, quadratic([t]), sign_of_first, 1e-6, 60, 1e-10)
+    done = bk.newton_batch(q, UNKNOWNS, quadratic([t]), sign_of_first, NewtonRules(tolerance=1e-6))
     assert list(done.status) == [0] and list(done.iterations) == [0] and done.norm[0] == 1e-6
-    left = bk.newton_batch(q, UNKNOWNS, quadratic([t]), sign_of_first, 1e-12, 0, 1e-10)
+    left = bk.newton_batch(q, UNKNOWNS, quadratic([t]), sign_of_first, NewtonRules(max_iterations=0))
     assert list(left.status) == [2] and left.norm[0] == 1e-6
 
 
@@ -857,7 +857,7 @@ def test_newton_batch_a_jacobian_singular_after_a_step_ends_the_row():
         return q[:, :1] + 10.0, jac, np.zeros((len(q), 3, 3)), np.zeros((len(q), 3))
 
     out = bk.newton_batch(np.zeros((1, 1)), np.array([0]), kink, lambda jac, square: np.ones((len(jac), 1), bool),
-                          1e-12, 60, 1e-10)
+                          NewtonRules())
     assert list(out.status) == [3] and list(out.iterations) == [1]
     np.testing.assert_allclose(out.q, [[-0.3]], rtol=1e-15)
 
@@ -877,13 +877,13 @@ def test_inverse_batch_of_a_yaw_task_on_a_frame_off_the_platform(monkeypatch, fi
     assert ik.complete and ik.n == 3 and list(ik.ok) == [True] * 3
     np.testing.assert_allclose(ik.actuators, sliders, atol=1e-10)
     np.testing.assert_allclose(ik.poses, fk.poses, atol=1e-10)  # the platform's poses
-    assert calls[0][7] == 1
+    assert calls[0][5] == 1
     start = np.repeat(machine.home[None, :], 3, axis=0)
     signature = calls[0][3]
-    np.testing.assert_array_equal(calls[0][8], bk._first_step_from_home(kin, start, np.arange(3), targets, signature))
+    np.testing.assert_array_equal(calls[0][6], bk._first_step_from_home(kin, start, np.arange(3), targets, signature))
     calls.clear()
     warm = solver.inverse_batch(targets, q_init=fk.q)
-    assert list(warm.iterations) == [0, 0, 0] and calls[0][7] == 0 and calls[0][8] is None
+    assert list(warm.iterations) == [0, 0, 0] and calls[0][5] == 0 and calls[0][6] is None
     np.testing.assert_array_equal(calls[0][0], fk.q)
 
 
@@ -946,3 +946,13 @@ def test_batch_task_poses_of_a_task_frame_on_another_joint(mechanism, tmp_path):
     for k, values in enumerate(sliders):
         single = ClosedLoopSolver(machine).forward(values, q_init=machine.home)
         np.testing.assert_allclose(batch.task_poses[k], single.task_pose.homogeneous, atol=1e-10)
+
+
+def test_a_singular_row_names_the_threshold_of_the_solver_s_rules(mechanism):
+    """Every converged row is singular under a threshold no configuration meets; the reason names it."""
+    for native in (True, False):
+        solver = ClosedLoopSolver(mechanism, native=native, rules=NewtonRules(singular_rcond=2.0))
+        batch = solver.forward_batch(mechanism.home[mechanism.actuated_ids][None, :] + 1e-3)
+        (failure,) = batch.failures
+        assert failure.error is SingularConfigurationError
+        assert "(reciprocal condition below 2)" in failure.reason

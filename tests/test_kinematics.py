@@ -173,3 +173,93 @@ def test_warm_path_through_a_singularity_is_loud(solver):
         for z in np.linspace(-0.1, -0.9, 400):
             result = solver.inverse([0.5, 0.5, z, 0.0])
             assert result.q[knee] > 0.0, f"crossed to the other assembly mode at z = {z}"
+
+
+def _path_from_home(mechanism, sliders: np.ndarray, steps: int = 10):
+    """FK at `sliders` by a warm path of `steps` equal slider steps from home: the continuation that
+    defines home's assembly mode (None where it fails)."""
+    path = ClosedLoopSolver(mechanism)
+    home = mechanism.home[mechanism.actuated_ids]
+    try:
+        for t in np.linspace(1.0 / steps, 1.0, steps):
+            result = path.forward(home + t * (sliders - home))
+    except KinematicsError:
+        return None
+    return result
+
+
+def _machines(mechanism, tool_machine, tmp_path):
+    from m3t1r.model.description import Mechanism
+    from m3t1r.model.examples import FiveBarGeometry, five_bar_files, spherical_wrist_files
+
+    # A five-bar whose motor box reaches to within a few degrees of its stretched-elbow singularity,
+    # where the two assembly modes are close: a start on the wrong side of it is easy to make.
+    stretched = FiveBarGeometry(distal=0.28)
+    return {"M machine": mechanism, "tool machine": tool_machine,  # (machine, half-width of the slider window)
+            "five-bar": Mechanism.load(*five_bar_files(tmp_path / "a")),
+            "stretched five-bar": Mechanism.load(*five_bar_files(tmp_path / "b", geometry=stretched)),
+            "spherical wrist": Mechanism.load(*spherical_wrist_files(tmp_path / "c"))}
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_a_fresh_solver_s_first_forward_is_the_path_from_home(mechanism, tool_machine, tmp_path, native):
+    """On every mechanism: the first forward of a new solver, of a reset one and of forward(q_init=home)
+    equal a warm path from home and forward_batch's row, on home's assembly mode; where the path
+    from home fails, none of them returns a pose on another mode."""
+    for name, machine in _machines(mechanism, tool_machine, tmp_path).items():
+        low, high = machine.joint_limits()
+        home = machine.home[machine.actuated_ids]
+        width = 0.5 if name == "stretched five-bar" else 0.25  # [m or rad]
+        low, high = np.maximum(low, home - width), np.minimum(high, home + width)
+        sliders = low + np.random.default_rng(3).random((16, len(low))) * (high - low)
+        batch = ClosedLoopSolver(machine, native=native).forward_batch(sliders)
+        reset = ClosedLoopSolver(machine, native=native)
+        agreed = 0
+        for k, values in enumerate(sliders):
+            path = _path_from_home(machine, values)
+            reset.forward(home + 0.01)
+            reset.reset()
+            solves = []
+            for solve in (lambda: ClosedLoopSolver(machine, native=native).forward(values), lambda: reset.forward(values),
+                          lambda: ClosedLoopSolver(machine, native=native).forward(values, q_init=machine.home)):
+                try:
+                    solves.append(solve().q)
+                except KinematicsError:
+                    solves.append(None)
+            if k in batch.indices:
+                solves.append(batch.q[list(batch.indices).index(k)])
+            for q in solves:
+                if q is not None and path is not None:
+                    np.testing.assert_allclose(q, path.q, atol=1e-9, err_msg=f"{name}, row {k}")
+                assert q is None or path is not None, f"{name}, row {k}: a pose where the path from home has none"
+            agreed += path is not None and all(q is not None for q in solves)
+        assert agreed >= 8, name
+
+
+def test_a_task_coordinate_the_mechanism_cannot_move_is_refused_by_name(tmp_path):
+    """The five-bar moves in the x-y plane: a task (x, z) is square, but z never changes, so IK would
+    end 'singular' at every target it converges to. It is refused naming z, before any solve;
+    forward kinematics is unaffected, and the (x, y) task it can command solves."""
+    import yaml
+
+    from m3t1r.errors import InvalidInputError as Refused
+    from m3t1r.model.description import Mechanism
+    from m3t1r.model.examples import five_bar_files
+
+    urdf, closures = five_bar_files(tmp_path)
+    good = Mechanism.load(urdf, closures)
+    document = yaml.safe_load(closures.read_text())
+    document["task"]["position"] = ["x", "z"]
+    closures.write_text(yaml.safe_dump(document, sort_keys=False))
+    planar = Mechanism.load(urdf, closures)
+    solver = ClosedLoopSolver(planar)
+    assert solver.uncommandable_task_rows() == ("z",)
+    fk = solver.forward(planar.home[planar.actuated_ids] + 0.01)
+    target = fk.task_pose.translation[[0, 2]]
+    for solve in (lambda: solver.inverse(target), lambda: solver.inverse_batch(target[None, :])):
+        with pytest.raises(Refused, match=r"the task's z \(frame 'effector'\) cannot be commanded"):
+            solve()
+    commandable = ClosedLoopSolver(good)
+    assert commandable.uncommandable_task_rows() == ()
+    np.testing.assert_allclose(commandable.inverse(fk.task_pose.translation[:2]).actuators,
+                               planar.home[planar.actuated_ids] + 0.01, atol=1e-9)

@@ -4,6 +4,7 @@ Each test pins one decision of `m3t1r.model.kinematics` that a plausible bug wou
 of IK targets beyond (-pi, pi], tolerance boundaries, and the typed errors of the solver.
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -167,9 +168,15 @@ def test_reset_forgets_every_warm_start(mechanism):
     solver.forward(solver.last_q[solver.actuated] + 0.01)
     solver.inverse(TARGET + [0.01, 0.0, 0.0, 0.05])
     solver.reset()
-    for name in ("_tangent", "_previous", "_last_branch", "_task_inverse", "_inverse_previous", "_last_goal", "_last_inverse_branch", "_last_task"):
+    for name in ("_previous", "_task_inverse", "_inverse_previous", "_last_goal", "_last_inverse_branch", "_last_task"):
         assert getattr(solver, name) is None, name
     np.testing.assert_array_equal(solver.last_q, mechanism.home)
+    # What is left is a new solver's start: home's tangent and branch, the batch's first step.
+    sliders = mechanism.home[solver.actuated] + 0.01
+    after_reset, fresh = solver.forward(sliders), ClosedLoopSolver(mechanism).forward(sliders)
+    np.testing.assert_allclose(after_reset.q, fresh.q, atol=1e-12)
+    assert after_reset.iterations == fresh.iterations
+    solver.reset()
     solver.last_q[0] += 1.0  # a copy: home itself is untouched
     assert mechanism.home[0] != solver.last_q[0]
 
@@ -400,17 +407,18 @@ def test_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism):
     a repeated slider set (e = 0) has no direction: nothing either."""
     solver = ClosedLoopSolver(mechanism)
     sliders, passive = solver.last_q[solver.actuated], solver.last_q[solver.passive]
-    e = np.array([0.01, -0.02, 0.005, 0.01])
+    e = np.array([2.0 ** -7, -2.0 ** -6, 2.0 ** -8, 2.0 ** -7])  # binary fractions: dot products without rounding
     offset = np.linspace(-0.01, 0.02, len(passive))  # q_prev - q_last on the passive joints
     _predictor_state(solver, sliders - e, passive + offset)
-    # lam = d.e / e.e carries the dot products' rounding (which BLAS kernels do differently): at
-    # lam = 0 it is 1e-19 or so, a term lam^2 |offset| of 1e-38; 'nothing' is below 1e-20 m, while
-    # the term wrongly kept at lam = 2 or -0.5 would be 0.25 |offset| or more.
+    # Binary fractions make lam = d.e / e.e exact on every BLAS kernel (with decimal steps its
+    # rounding left 1e-38 where 'nothing' is expected), so the expected terms hold exactly.
     for lam, expected in ((0.5, 0.25), (1.0, 1.0), (1.5, 2.25), (0.0, 0.0), (2.0, 0.0), (2.5, 0.0), (-0.5, 0.0)):
-        change = lam * e if lam else np.array([0.02, 0.01, 0.0, 0.0])  # (0.02, 0.01, 0, 0) . e = 0
-        np.testing.assert_allclose(solver._predict(change), expected * offset, rtol=1e-12, atol=1e-20, err_msg=str(lam))
+        change = lam * e if lam else np.array([2.0 ** -6, 2.0 ** -7, 0.0, 0.0])  # orthogonal to e, exactly
+        np.testing.assert_allclose(solver._predict(solver.last_q, change, solver._tangent, solver._previous),
+                                   expected * offset, rtol=1e-12, atol=0.0, err_msg=str(lam))
     _predictor_state(solver, sliders, passive + offset)  # the same sliders twice: e = 0
-    np.testing.assert_array_equal(solver._predict(e), np.zeros(len(passive)))
+    np.testing.assert_array_equal(solver._predict(solver.last_q, e, solver._tangent, solver._previous),
+                                  np.zeros(len(passive)))
 
 
 def test_batch_methods_pass_q_init_on(solver, mechanism):
@@ -564,9 +572,17 @@ def _label(jac, lu):
     return b"branch"
 
 
+def _chord_from_any_residual(solver):
+    """The stand-ins' residuals are of order 1: with chord steps allowed from any residual, the
+    contraction rule alone decides when the Jacobian is refreshed."""
+    solver.rules = dataclasses.replace(solver.rules, chord_below=math.inf)
+    return solver
+
+
 def test_newton_refreshes_the_jacobian_only_when_a_chord_step_contracts_too_little(solver):
     """Chord steps while |r| <= 0.05 |r_previous| (a contraction of exactly 0.05 is still enough);
     a refresh otherwise, and none once the tolerance is met (a residual exactly at it is converged)."""
+    _chord_from_any_residual(solver)
     solver.tolerance = 0.04
     # 1 -> 0.05 (exactly 0.05 of it: keep the factors) -> 0.04 (met).
     system = _Scripted([[1.0, 0.0], [0.05, 0.0], [0.04, 0.0]])
@@ -583,10 +599,17 @@ def test_newton_refreshes_the_jacobian_only_when_a_chord_step_contracts_too_litt
     outcome = solver._newton(np.zeros(2), None, system, _label)
     assert system.calls == [True, False, False, False] and outcome.iterations == 3
     np.testing.assert_array_equal(outcome.jacobian, np.eye(2))
+    # Under the default rules a step from a residual above chord_below (1e-4) gets a fresh Jacobian
+    # whatever its contraction; from 1e-4 itself, a chord step.
+    solver.rules = dataclasses.replace(solver.rules, chord_below=1e-4)
+    system = _Scripted([[1.0, 0.0], [1e-4, 0.0], [1e-9, 0.0], [0.0, 0.0]])
+    outcome = solver._newton(np.zeros(2), None, system, _label)
+    assert system.calls == [True, True, False, False] and outcome.iterations == 3
 
 
 def test_newton_stops_on_a_non_finite_residual_as_out_of_workspace(solver):
     """Wherever the nan is: after a larger entry too (BLAS idamax may skip a nan there)."""
+    _chord_from_any_residual(solver)
     for residual in ([np.nan, 0.0], [np.inf, 0.0], [5.0, np.nan], [0.5, -np.inf]):
         system = _Scripted([[1.0, 0.0], residual])
         with pytest.raises(OutOfWorkspaceError) as caught:
@@ -609,6 +632,7 @@ def test_newton_singular_verdict_uses_the_one_norm_and_is_word_for_word(solver):
 
 
 def test_newton_branch_change_is_word_for_word(solver):
+    _chord_from_any_residual(solver)
     from m3t1r.errors import BranchChangeError
 
     system = _Scripted([[1.0, 0.0], [0.5, 0.0], [0.5, 0.0], [2e-13, 0.0]])
@@ -632,14 +656,14 @@ def test_newton_far_or_near_after_the_last_step_at_exactly_1e_6(solver):
 
 @pytest.mark.parametrize("compiled", [False, True])
 def test_forward_records_the_predictor_history_and_the_branch(mechanism, compiled):
-    """After each FK: the branch label at the solution, and the solution before it only when this
-    one started from it (warm) or when there was none (so that a cold solve restarts the history).
-    The compiled loop keeps the same history as one array (sliders, then passive joints)."""
+    """After each FK: the branch label at the solution, and where it continued from: the solution
+    before it (warm) or q_init (a continuation from q_init). The compiled loop keeps the same
+    history as one array (sliders, then passive joints)."""
     solver = ClosedLoopSolver(mechanism, native=compiled)
     home_sliders = mechanism.home[mechanism.actuated_ids]
     history = []
     for change, start in ((0.01, mechanism.home), (0.02, None), (0.03, mechanism.home), (0.04, None)):
-        before = solver.last_q.copy()
+        before = solver.last_q.copy() if start is None else start
         result = solver.forward(home_sliders + change, q_init=start)
         assert solver._last_branch == solver._branch(solver.closure_jacobian(result.q))
         previous = solver._previous
@@ -650,7 +674,7 @@ def test_forward_records_the_predictor_history_and_the_branch(mechanism, compile
             np.testing.assert_array_equal(previous[1], before[solver.passive])
     np.testing.assert_array_equal(history[0], home_sliders)
     np.testing.assert_allclose(history[1], home_sliders + 0.01, atol=0.0)
-    assert history[2] is None  # a cold solve after a warm one: no history, so the next is first order
+    np.testing.assert_array_equal(history[2], home_sliders)  # continued from q_init = home
     np.testing.assert_allclose(history[3], home_sliders + 0.03, atol=0.0)
 
 
@@ -770,6 +794,7 @@ def test_newton_rcond_is_exact_and_its_inverse_is_returned(solver):
 
 def test_newton_labels_a_single_jacobian_once(solver):
     """A cold solve on one Jacobian computes its signature once and compares it with itself."""
+    _chord_from_any_residual(solver)
     calls = []
 
     def counted(jac, lu):

@@ -240,11 +240,43 @@ def test_welded_double_hinge_locks_the_gauge_joint(tmp_path):
     assert pose_errors(calibration.mechanism, study.truth, study.holdout_actuators).position_max < 1e-7
 
 
-def test_a_home_far_from_any_assembly_is_refused(tmp_path):
+def _loaded_with_home(urdf: Path, closures: Path, home: dict) -> Mechanism:
+    """The pair loaded with `home` (joint name: value) in place of the file's home."""
+    _edit_yaml(closures, lambda d: d.update(home=home))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ModelWarning)
+        return Mechanism.load(urdf, closures)
+
+
+def _effector(mechanism: Mechanism) -> np.ndarray:
+    data = mechanism.model.createData()
+    pin.framesForwardKinematics(mechanism.model, data, mechanism.home)
+    return data.oMf[mechanism.platform_frame_id].translation.copy()
+
+
+def test_rough_homes_assemble_to_the_assembly_mode_nearest_the_guess(tmp_path):
+    """The five-bar's two assembly modes at home's motors (the distal links meet on either side of
+    the line through the elbows): a home given a quarter-turn off either one assembles back to it,
+    the actuators held; given the motors alone (elbows at the URDF zero), to one of the two."""
     urdf, closures = five_bar_files(tmp_path)
-    _edit_yaml(closures, lambda d: d["home"].update(elbow_1=d["home"]["elbow_1"] + 0.5))
-    with pytest.raises(ModelFileError, match=r"home does not close: closure 'loop' .*moved a joint by"):
-        Mechanism.load(urdf, closures)
+    nominal = Mechanism.load(urdf, closures)
+    motors = {"motor_1": 2.33, "motor_2": 0.81}
+    elbows = {"elbow_1": -1.6508668956787065, "elbow_2": 1.6514519345972394}
+    mirrored = _loaded_with_home(urdf, closures, motors | {k: -v for k, v in elbows.items()})
+    modes = {"home": nominal, "mirrored": mirrored}
+    assert np.linalg.norm(_effector(mirrored) - _effector(nominal)) > 0.05  # two distinct assemblies
+    for name, mode in modes.items():
+        values = {j: float(mode.home[mode.model.idx_qs[mode.model.getJointId(j)]]) for j in elbows}
+        for offset in (0.25, -0.25):
+            guess = motors | {"elbow_1": values["elbow_1"] + offset, "elbow_2": values["elbow_2"] - offset}
+            loaded = _loaded_with_home(urdf, closures, guess)
+            np.testing.assert_allclose(loaded.home, mode.home, atol=1e-9, err_msg=f"{name} {offset}")
+            assert {j for j, _ in loaded.home_assembly.moved} == set(elbows)
+            assert loaded.home_assembly.largest_move == pytest.approx(0.25, abs=1e-6)
+            assert loaded.notes[0].startswith("home does not close: closure 'loop' residual ")
+    motors_only = _loaded_with_home(urdf, closures, motors)
+    assert motors_only.home_assembly.residual < 1e-12
+    assert min(np.abs(motors_only.home - mode.home).max() for mode in modes.values()) < 1e-9
 
 
 def test_a_task_that_is_not_square_is_refused_by_inverse_only(tmp_path):

@@ -12,12 +12,20 @@ from conftest import perturb_every_origin
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from m3t1r.errors import BranchChangeError, M3t1rError, OutOfWorkspaceError, SingularConfigurationError
+from m3t1r.errors import (
+    BranchChangeError,
+    InvalidInputError,
+    M3t1rError,
+    NotConvergedError,
+    OutOfWorkspaceError,
+    SingularConfigurationError,
+)
 from m3t1r.model import native
 from m3t1r.model.description import Mechanism
 from m3t1r.model.design import NOMINAL
 from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
+from m3t1r.model.newton_rules import NewtonRules
 
 
 def test_the_compiled_loop_is_built():
@@ -212,9 +220,8 @@ def test_failures_are_the_python_loop_s_typed_errors(mechanism):
 
 def test_a_singular_configuration_is_refused_with_its_class(mechanism, monkeypatch):
     """A threshold no configuration meets makes every converged solve singular, in both loops."""
-    monkeypatch.setattr("m3t1r.model.kinematics.SINGULAR_RCOND", 2.0)  # what the Python single solve reads
     for use in (True, False):
-        solver = ClosedLoopSolver(mechanism, native=use)
+        solver = ClosedLoopSolver(mechanism, native=use, rules=NewtonRules(singular_rcond=2.0))
         with pytest.raises(SingularConfigurationError):
             solver.forward(mechanism.home[mechanism.actuated_ids] + 1e-3)
 
@@ -278,14 +285,13 @@ def test_only_one_dof_revolute_and_prismatic_trees_are_compiled(mechanism):
     model = pin.Model()
     model.addJoint(0, pin.JointModelSpherical(), pin.SE3.Identity(), "ball")
     none = np.zeros(0, dtype=int)
-    assert native.NativeChain.of(model, (), none, none, [], 0, mechanism.task, none, np.zeros((0, 1)), none, 0.3,
-                                 0.05) is None
+    assert native.NativeChain.of(model, (), none, none, [], 0, mechanism.task, none, np.zeros((0, 1)), none) is None
     assert ClosedLoopSolver(mechanism, native=False).native is None
 
 
 def test_the_compiled_loop_refuses_buffers_of_the_wrong_size(mechanism):
     chain = ClosedLoopSolver(mechanism).native
-    limits, sliders = (1e-12, 60, 1e-10), np.zeros(4)
+    limits, sliders = NewtonRules().compiled(), np.zeros(4)
     with pytest.raises(ValueError, match="q"):
         chain.forward(np.zeros(3), sliders, 0, None, None, limits)
     with pytest.raises(ValueError, match="q"):
@@ -297,7 +303,7 @@ def test_the_compiled_loop_refuses_buffers_of_the_wrong_size(mechanism):
     with pytest.raises(ValueError, match="goal"):
         chain.inverse(mechanism.home.copy(), np.zeros(2), None, 0, None, None, limits)
     with pytest.raises(ValueError):
-        chain.forward_rows(np.zeros((2, 3)), None, 1e-4, 0, limits)
+        chain.forward_rows(np.zeros((2, 3)), None, 0, limits)
     q = mechanism.home.copy()
     chain.forward(q, mechanism.home[mechanism.actuated_ids], 0, None, None, limits)
     np.testing.assert_allclose(q, mechanism.home, atol=1e-12)  # nothing clipped or moved by the refusals
@@ -443,16 +449,16 @@ def test_labels_no_solution_can_have_fail_every_row_and_solve(mechanism):
     """Given labels are what rows and solves must end with: labels of another length, or 2 (labels
     are 0 or 1), fail them all with BranchChangeError (status 4); without labels they succeed."""
     solver = ClosedLoopSolver(mechanism)
-    chain, limits = solver.native, (1e-12, 60, 1e-10)
+    chain, limits = solver.native, NewtonRules().compiled()
     blocks = len(solver._branch_blocks)
     start = np.repeat(mechanism.home[None, :], 3, axis=0)
     start[:, solver.actuated] += np.linspace(0.0, 0.01, 3)[:, None]
-    assert list(chain.forward_rows(start.copy(), None, 1e-4, 0, limits)[0]) == [0, 0, 0]
-    assert list(chain.forward_rows(start.copy(), np.full(blocks, 2), 1e-4, 0, limits)[0]) == [4, 4, 4]
+    assert list(chain.forward_rows(start.copy(), None, 0, limits)[0]) == [0, 0, 0]
+    assert list(chain.forward_rows(start.copy(), np.full(blocks, 2), 0, limits)[0]) == [4, 4, 4]
     goals = np.ascontiguousarray(mechanism.task.coordinates(
         ClosedLoopSolver(mechanism).forward_batch(start[:, solver.actuated]).task_poses))
-    assert list(chain.inverse_rows(start.copy(), goals, None, None, 1e-4, 0, limits)[0]) == [0, 0, 0]
-    assert list(chain.inverse_rows(start.copy(), goals, None, np.full(blocks + 1, 2), 1e-4, 0, limits)[0]) == [4] * 3
+    assert list(chain.inverse_rows(start.copy(), goals, None, None, 0, limits)[0]) == [0, 0, 0]
+    assert list(chain.inverse_rows(start.copy(), goals, None, np.full(blocks + 1, 2), 0, limits)[0]) == [4] * 3
     sliders = start[1, solver.actuated]
     for labels in (b"\x01", bytes(blocks + 1), b"\x02" * blocks):
         assert chain.forward(mechanism.home.copy(), sliders, 0, None, labels, limits)[0] == 4
@@ -537,8 +543,6 @@ def test_failures_read_word_for_word_as_the_python_loop_s(mechanism, monkeypatch
         "singular (IK)": lambda s: s.inverse(np.array([0.5, 0.52, -0.1, 0.1]), q_init=mechanism.home),
     }
     for name, scenario in scenarios.items():
-        if name.startswith("singular"):
-            monkeypatch.setattr("m3t1r.model.kinematics.SINGULAR_RCOND", 2.0)  # what the Python single solve reads
         errors = []
         for use in (True, False):
             solver = ClosedLoopSolver(mechanism, native=use)
@@ -601,3 +605,44 @@ def test_batches_of_no_rows_in_both_loops(mechanism, compiled):
     forward, inverse = solver.forward_batch(np.zeros((0, 4))), solver.inverse_batch(np.zeros((0, 4)))
     assert forward.n == inverse.n == 0 and forward.q.shape == inverse.q.shape == (0, mechanism.model.nq)
     assert forward.complete and inverse.complete and inverse.actuators.shape == (0, 4)
+
+
+def _class_and_steps(solve) -> tuple:
+    """(error class or None, iterations) of a solve."""
+    try:
+        return None, solve().iterations
+    except M3t1rError as error:
+        return type(error), error.iterations
+
+
+@pytest.mark.parametrize("rule", [{"max_step": 1e-5}, {"chord_below": 1.0, "chord_contraction": 0.999},
+                                  {"max_iterations": 1, "no_assembly": 1.0}, {"singular_rcond": 2.0},
+                                  {"tolerance": 1e-6}])
+def test_every_loop_obeys_every_newton_rule(mechanism, rule):
+    """One NewtonRules, read by the compiled and the Python single solves and by both batches: each
+    rule changed alone changes the outcome, and alike in every loop."""
+    far = mechanism.home[mechanism.actuated_ids] + np.array([0.02, -0.01, 0.015, -0.02])
+    outcomes = []
+    for rules in (NewtonRules(), NewtonRules(**rule)):
+        for use in (True, False):
+            solver = ClosedLoopSolver(mechanism, native=use, rules=rules)
+            single = _class_and_steps(lambda: solver.forward(far, q_init=mechanism.home))
+            batch = solver.forward_batch(far[None, :])  # from home, as forward(q_init=home)
+            # A batch row counts its predicted start as a step; the single solve does not.
+            rows = (None, int(batch.iterations[0]) - 1) if batch.complete else \
+                (batch.failures[0].error, int(batch.failures[0].reason.split(" after ")[1].split()[0]) - 1)
+            outcomes.append((single, rows))
+    default, changed = outcomes[:2], outcomes[2:]
+    assert default[0] == default[1] and changed[0] == changed[1], (default, changed)
+    assert default[0][0] == default[0][1]  # forward(q_init=home) is the batch's solve from home
+    assert changed[0] != default[0]
+    if "no_assembly" in rule:
+        assert changed[0][0][0] is NotConvergedError  # out of steps near enough: not "no assembly"
+
+
+def test_newton_rules_refuse_what_no_loop_could_obey():
+    for bad in ({"tolerance": 0.0}, {"tolerance": float("nan")}, {"max_iterations": -1}, {"max_iterations": 1.5},
+                {"singular_rcond": -1e-3}, {"chord_contraction": 1.0}, {"max_step": -0.1}, {"no_assembly": 0.0}):
+        with pytest.raises(InvalidInputError, match=f"Newton rules: {next(iter(bad))}"):
+            NewtonRules(**bad)
+    assert ClosedLoopSolver(Mechanism.load(), tolerance=1e-9).rules == NewtonRules(tolerance=1e-9)

@@ -170,6 +170,13 @@ struct System {
   DenseLU lu;
 };
 
+// NewtonRules (m3t1r.model.newton_rules), passed with every call.
+struct Rules {
+  double tolerance = 0.0;
+  int max_iterations = 0;
+  double singular_rcond = 0.0, max_step = 0.0, contraction = 0.0, chord_below = 0.0, no_assembly = 0.0;
+};
+
 struct Chain {
   Model model;
   Data data;
@@ -181,8 +188,7 @@ struct Chain {
   Task task_spec;
   System fk, ik;
   int platform = 0, task = 0, rows = 0;
-  double tolerance = 0.0, singular_rcond = 0.0, max_step = 0.0, contraction = 0.0;  // the first two per call
-  int max_iterations = 0;
+  Rules rules;  // the current call's
   // Work buffers, allocated once: closure rows then task rows.
   Vector residual, step;
   Matrix jacobian;  // (rows + task rows) x nv
@@ -304,21 +310,21 @@ struct Outcome {
   double norm, rcond = 0.0;  // rcond: the reciprocal condition of a singular outcome (0: a zero pivot)
 };
 
-// Newton from q over the system's unknowns. `branch` holds the labels the solution must have when
-// `has_start`, else receives those at the first Jacobian. Chord steps only from residuals at or below
-// `chord_below` (inf: always, as the single solve). On convergence the system's `inverse_matrix`
-// holds the inverse of the last factorised system.
-Outcome newton(Chain & c, System & s, Vector & q, unsigned char * branch, bool has_start, double chord_below,
-               int steps_taken) {
+// Newton from q over the system's unknowns, under c.rules. `branch` holds the labels the solution must
+// have when `has_start`, else receives those at the first Jacobian. Chord steps only from residuals at
+// or below rules.chord_below. On convergence the system's `inverse_matrix` holds the inverse of the last
+// factorised system.
+Outcome newton(Chain & c, System & s, Vector & q, unsigned char * branch, bool has_start, int steps_taken) {
+  const Rules & rules = c.rules;
   evaluate(c, s, q, true);
   bool fresh = true;
   double previous = std::numeric_limits<double>::infinity(), norm = previous;
   int iteration = steps_taken;
   const size_t n_labels = c.blocks.size() + (s.inverse ? 1 : 0);
-  for (; iteration <= c.max_iterations + steps_taken; ++iteration) {
+  for (; iteration <= rules.max_iterations + steps_taken; ++iteration) {
     norm = max_abs(c.residual, s.rows);
     if (!std::isfinite(norm)) return {NO_ASSEMBLY, iteration, norm};
-    if (!fresh && norm > c.contraction * previous && norm > c.tolerance) {
+    if (!fresh && norm > rules.contraction * previous && norm > rules.tolerance) {
       evaluate(c, s, q, true);
       fresh = true;
     }
@@ -330,25 +336,25 @@ Outcome newton(Chain & c, System & s, Vector & q, unsigned char * branch, bool h
       }
       fresh = false;
     }
-    if (norm <= c.tolerance) {
+    if (norm <= rules.tolerance) {
       s.lu.inverse(s.inverse_matrix);
       const double rcond = 1.0 / (s.lu.one_norm() * s.inverse_matrix.cwiseAbs().colwise().sum().maxCoeff());
-      if (!(rcond >= c.singular_rcond)) return {SINGULAR, iteration, norm, rcond == rcond ? rcond : 0.0};
+      if (!(rcond >= rules.singular_rcond)) return {SINGULAR, iteration, norm, rcond == rcond ? rcond : 0.0};
       labels(c, s, c.now.data());
       if (std::memcmp(c.now.data(), branch, n_labels) != 0) return {BRANCH_CHANGE, iteration, norm};
       return {CONVERGED, iteration, norm};
     }
-    if (iteration == c.max_iterations + steps_taken) break;
+    if (iteration == rules.max_iterations + steps_taken) break;
     c.step.head(s.rows) = c.residual.head(s.rows);
     s.lu.solve(c.step.data());
     const double biggest = c.step.head(s.rows).cwiseAbs().maxCoeff();
-    if (biggest > c.max_step) c.step.head(s.rows) *= c.max_step / biggest;
+    if (biggest > rules.max_step) c.step.head(s.rows) *= rules.max_step / biggest;
     for (size_t j = 0; j < s.unknowns.size(); ++j) q[s.unknowns[j]] -= c.step[j];
     previous = norm;
-    fresh = previous > chord_below;
+    fresh = previous > rules.chord_below;
     evaluate(c, s, q, fresh);
   }
-  return {norm > 1e-6 || !std::isfinite(norm) ? NO_ASSEMBLY : NOT_CONVERGED, iteration, norm};
+  return {norm > rules.no_assembly || !std::isfinite(norm) ? NO_ASSEMBLY : NOT_CONVERGED, iteration, norm};
 }
 
 void write_pose(const SE3 & m, double * out) {

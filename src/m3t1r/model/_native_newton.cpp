@@ -81,14 +81,13 @@ Handle * handle_of(PyObject * capsule) {
 //       components (R,) int64, column_signs (C, nv) float, passive (P,), actuated (A,) int64,
 //       block_rows (P,), block_columns (P,), block_ends (B,), unknowns (U,) (IK's columns),
 //       task_axes (k,), task_columns (m,) int64 (joints moving the task frame),
-//       platform, task (frame indices), task_rotation (0 none, 1 yaw, 2 full): int, max_step, contraction: float)
+//       platform, task (frame indices), task_rotation (0 none, 1 yaw, 2 full): int)
 PyObject * build(PyObject *, PyObject * args) {
   PyObject * o[16];
   int platform, task, task_rotation;
-  double max_step, contraction;
-  if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOOiiidd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7],
+  if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOOiii", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7],
                         &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &platform, &task,
-                        &task_rotation, &max_step, &contraction))
+                        &task_rotation))
     return nullptr;
   Buffer joints, axes, placements, fparents, fplacements, closures, components, signs, passive, actuated,
       brows, bcols, bends, unknowns, taxes, tcols;
@@ -170,8 +169,6 @@ PyObject * build(PyObject *, PyObject * args) {
   }
   c->platform = platform;
   c->task = task;
-  c->max_step = max_step;
-  c->contraction = contraction;
   c->residual = Vector::Zero(c->ik.rows);
   c->jacobian = Matrix::Zero(c->ik.rows, nv);
   c->step = Vector::Zero(c->ik.rows);
@@ -179,39 +176,38 @@ PyObject * build(PyObject *, PyObject * args) {
   return PyCapsule_New(handle.release(), "m3t1r.Chain", destroy);
 }
 
-void set_limits(Chain * c, double tolerance, int max_iterations, double singular_rcond) {
-  c->tolerance = tolerance;
-  c->max_iterations = max_iterations;
-  c->singular_rcond = singular_rcond;
-}
+// The call's Newton rules (NewtonRules.compiled(): tolerance, max_iterations, singular_rcond, max_step,
+// chord_contraction, chord_below, no_assembly), the last seven arguments of every solve.
+#define RULES_FORMAT "diddddd"
+#define RULES_ARGS(r) &r.tolerance, &r.max_iterations, &r.singular_rcond, &r.max_step, &r.contraction, \
+    &r.chord_below, &r.no_assembly
 
-// The capsule's chain for a single solve: `lock` takes its lock for the call, and the call's limits are
+// The capsule's chain for a single solve: `lock` takes its lock for the call, and the call's rules are
 // set (nullptr, with the Python error set, when the capsule holds no chain).
-Chain * open_chain(PyObject * capsule, std::unique_lock<std::mutex> & lock, double tolerance, int max_iterations,
-                   double singular_rcond) {
+Chain * open_chain(PyObject * capsule, std::unique_lock<std::mutex> & lock, const Rules & rules) {
   Handle * handle = handle_of(capsule);
   if (handle == nullptr) return nullptr;
   lock = std::unique_lock<std::mutex>(handle->lock);
-  set_limits(&handle->chain, tolerance, max_iterations, singular_rcond);
+  handle->chain.rules = rules;
   return &handle->chain;
 }
 
 // forward(chain, q (nq,) in/out, sliders (A,), order, tangent (P*A,) in/out, previous (A+P,),
 //         branch (B,) uint8 in/out, has_start, platform (16,) out, task (16,) out,
-//         tolerance, max_iterations, singular_rcond) -> (status, residual, iterations, rcond of a singular end)
+//         rules (7, RULES_FORMAT)) -> (status, residual, iterations, rcond of a singular end)
 // q: the last solution; `order` 1 or 2 moves its passive joints by the predictor of
 // ClosedLoopSolver._predict (tangent T of the last success; order 2 adds lam^2 (p_prev - p + T e) with
 // e = a - a_prev, lam = (d . e) / (e . e), d the slider change, previous = (a_prev, p_prev)); then the
-// sliders are set and Newton runs with chord steps throughout. On success tangent = -J_passive^-1 J_actuated.
+// sliders are set and Newton runs under the rules. On success tangent = -J_passive^-1 J_actuated.
 PyObject * forward(PyObject *, PyObject * args) {
   PyObject *capsule, *oq, *osliders, *otangent, *oprevious, *obranch, *oplatform, *otask;
-  int order, has_start, max_iterations;
-  double tolerance, singular_rcond;
-  if (!PyArg_ParseTuple(args, "OOOiOOOpOOdid", &capsule, &oq, &osliders, &order, &otangent, &oprevious, &obranch,
-                        &has_start, &oplatform, &otask, &tolerance, &max_iterations, &singular_rcond))
+  int order, has_start;
+  Rules rules;
+  if (!PyArg_ParseTuple(args, "OOOiOOOpOO" RULES_FORMAT, &capsule, &oq, &osliders, &order, &otangent, &oprevious,
+                        &obranch, &has_start, &oplatform, &otask, RULES_ARGS(rules)))
     return nullptr;
   std::unique_lock<std::mutex> lock;
-  Chain * c = open_chain(capsule, lock, tolerance, max_iterations, singular_rcond);
+  Chain * c = open_chain(capsule, lock, rules);
   if (c == nullptr) return nullptr;
   const size_t n_passive = c->fk.unknowns.size(), n_act = c->actuated.size();
   Buffer bq, bsliders, btangent, bprevious, bbranch, bplatform, btask;
@@ -240,7 +236,7 @@ PyObject * forward(PyObject *, PyObject * args) {
     for (size_t j = 0; j < n_passive; ++j) q[c->fk.unknowns[j]] += step[j];
   }
   for (size_t j = 0; j < n_act; ++j) q[c->actuated[j]] = bsliders.d()[j];
-  const Outcome out = newton(*c, c->fk, q, bbranch.b(), has_start != 0, std::numeric_limits<double>::infinity(), 0);
+  const Outcome out = newton(*c, c->fk, q, bbranch.b(), has_start != 0, 0);
   qmap = q;
   if (out.status == CONVERGED) {
     for (size_t j = 0; j < n_act; ++j)
@@ -254,21 +250,20 @@ PyObject * forward(PyObject *, PyObject * args) {
 // inverse(chain, q (nq,) in/out, goal (task coordinates), goal_rotation (9,), order, task_inverse (U*T,) in/out,
 //         last_task (16,), previous_goal (task coordinates), previous_rotation (9,), previous_q (nq,),
 //         branch (B+1,) uint8 in/out, has_start, platform (16,) out, task (16,) out,
-//         tolerance, max_iterations, singular_rcond) -> (status, residual, iterations, rcond of a singular end)
+//         rules (7, RULES_FORMAT)) -> (status, residual, iterations, rcond of a singular end)
 // q: the last solution; `order` 1 or 2 moves its unknown joints by ClosedLoopSolver._inverse_step's
 // predictor (X the task columns of the last inverse, r the new goal's task rows at last_task; order 2
-// adds lam^2 (q_prev - q + X b), b the previous goal's rows, lam = -(r . b) / (b . b)). Chord steps
-// throughout; on success task_inverse = the task-row columns of the inverse of the last system.
+// adds lam^2 (q_prev - q + X b), b the previous goal's rows, lam = -(r . b) / (b . b)). Newton under the
+// rules; on success task_inverse = the task-row columns of the inverse of the last system.
 PyObject * inverse(PyObject *, PyObject * args) {
   PyObject *capsule, *oq, *ogoal, *orot, *oinverse, *olast, *opgoal, *oprot, *opq, *obranch, *oplatform, *otask;
-  int order, has_start, max_iterations;
-  double tolerance, singular_rcond;
-  if (!PyArg_ParseTuple(args, "OOOOiOOOOOOpOOdid", &capsule, &oq, &ogoal, &orot, &order, &oinverse, &olast, &opgoal,
-                        &oprot, &opq, &obranch, &has_start, &oplatform, &otask, &tolerance, &max_iterations,
-                        &singular_rcond))
+  int order, has_start;
+  Rules rules;
+  if (!PyArg_ParseTuple(args, "OOOOiOOOOOOpOO" RULES_FORMAT, &capsule, &oq, &ogoal, &orot, &order, &oinverse, &olast,
+                        &opgoal, &oprot, &opq, &obranch, &has_start, &oplatform, &otask, RULES_ARGS(rules)))
     return nullptr;
   std::unique_lock<std::mutex> lock;
-  Chain * c = open_chain(capsule, lock, tolerance, max_iterations, singular_rcond);
+  Chain * c = open_chain(capsule, lock, rules);
   if (c == nullptr) return nullptr;
   Task & t = c->task_spec;
   const size_t n_unknowns = c->ik.unknowns.size();
@@ -310,7 +305,7 @@ PyObject * inverse(PyObject *, PyObject * args) {
     }
     for (size_t j = 0; j < n_unknowns; ++j) q[c->ik.unknowns[j]] += step[j];
   }
-  const Outcome out = newton(*c, c->ik, q, bbranch.b(), has_start != 0, std::numeric_limits<double>::infinity(), 0);
+  const Outcome out = newton(*c, c->ik, q, bbranch.b(), has_start != 0, 0);
   qmap = q;
   if (out.status == CONVERGED) {
     task_inverse = c->ik.inverse_matrix.rightCols(t.rows);
@@ -328,7 +323,6 @@ struct Rows {
   const double * goals = nullptr;
   const double * rotations = nullptr;
   Py_ssize_t goal_width = 0;
-  double chord_below;
   int steps_taken;
   long long * status;
   double * norms;
@@ -352,7 +346,7 @@ void solve_rows(Chain & c, bool inverse, const Rows & r, Py_ssize_t begin, Py_ss
     }
     Eigen::Map<Vector> row(r.q + i * c.model.nq, c.model.nq);
     q = row;
-    const Outcome out = newton(c, s, q, branch.data(), r.given != nullptr, r.chord_below, r.steps_taken);
+    const Outcome out = newton(c, s, q, branch.data(), r.given != nullptr, r.steps_taken);
     row = q;
     r.status[i] = out.status;
     r.norms[i] = out.norm;
@@ -377,18 +371,17 @@ void solve_rows_threaded(Chain & c, bool inverse, const Rows & r, Py_ssize_t n, 
 }
 
 // rows(chain, inverse, q (n, nq) in/out, branch (B or B+1,) uint8 or empty (labels at each row's start),
-//      goals (n, g) and rotations (n, 9) (IK; empty for FK), chord_below, steps_taken, status (n,) int64 out,
+//      goals (n, g) and rotations (n, 9) (IK; empty for FK), steps_taken, status (n,) int64 out,
 //      residual (n,) out, iterations (n,) int64 out, platform (n, 16) out,
-//      tolerance, max_iterations, singular_rcond, threads):
+//      rules (7, RULES_FORMAT), threads):
 //   FK or IK Newton row by row, without predictor (the caller sets each start), tangent or inverse
 //   (the task frame's placements, where it is not the platform, come from the rows' q).
 PyObject * rows(PyObject *, PyObject * args) {
   PyObject *capsule, *oq, *obranch, *ogoals, *orots, *ostatus, *onorm, *oiter, *oplatform;
-  int inverse, steps_taken, max_iterations, threads;
-  double chord_below, tolerance, singular_rcond;
-  if (!PyArg_ParseTuple(args, "OpOOOOdiOOOOdidi", &capsule, &inverse, &oq, &obranch, &ogoals, &orots, &chord_below,
-                        &steps_taken, &ostatus, &onorm, &oiter, &oplatform, &tolerance, &max_iterations,
-                        &singular_rcond, &threads))
+  int inverse, steps_taken, threads;
+  Rules rules;
+  if (!PyArg_ParseTuple(args, "OpOOOOiOOOO" RULES_FORMAT "i", &capsule, &inverse, &oq, &obranch, &ogoals, &orots,
+                        &steps_taken, &ostatus, &onorm, &oiter, &oplatform, RULES_ARGS(rules), &threads))
     return nullptr;
   Handle * handle = handle_of(capsule);
   if (handle == nullptr) return nullptr;
@@ -411,12 +404,12 @@ PyObject * rows(PyObject *, PyObject * args) {
     if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "q, branch or goals: wrong size (or no square IK)");
     return nullptr;
   }
-  Rows r{bq.d(), bbranch.items() > 0 ? bbranch.b() : nullptr, bgoals.d(), brots.d(), width, chord_below, steps_taken,
+  Rows r{bq.d(), bbranch.items() > 0 ? bbranch.b() : nullptr, bgoals.d(), brots.d(), width, steps_taken,
          bstatus.q(), bnorm.d(), biter.q(), bplatform.d()};
   Py_BEGIN_ALLOW_THREADS
   {
     const std::lock_guard<std::mutex> guard(handle->lock);  // released before the GIL is taken back
-    set_limits(c, tolerance, max_iterations, singular_rcond);
+    c->rules = rules;
     solve_rows_threaded(*c, inverse != 0, r, n, threads);
   }
   Py_END_ALLOW_THREADS

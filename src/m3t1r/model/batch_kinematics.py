@@ -42,15 +42,13 @@ from m3t1r.errors import (
 )
 from m3t1r.model.description import Mechanism
 from m3t1r.model.native import available_cores
+from m3t1r.model.newton_rules import DEFAULT_RULES, NewtonRules
 from m3t1r.model.poe import jlog3_batch, log3_batch, skew
 from m3t1r.model.task import TaskSpec
 
 __all__ = ["RowFailure", "ForwardBatch", "InverseBatch", "StackedKinematics",
            "rpy_batch"]
 
-_MAX_STEP = 0.3  # [m or rad] cap on a Newton step component (as the single solve)
-_CHORD_CONTRACTION = 0.05  # re-evaluate a row's Jacobian when a chord step contracted less (as the single solve)
-_CHORD_BELOW = 1e-4  # [m or rad] chord steps only from residuals below this; above, Newton's quadratic rate pays
 _CHUNK = 2048  # rows solved together: bounds memory (about 40 MB of arrays per chunk)
 
 
@@ -386,13 +384,17 @@ class StackedKinematics:
             return (residual, None) + frames + (world,)
         return (residual, jac[self.enforced].transpose(2, 0, 1)) + frames + (world,)
 
-    def home_reference(self) -> tuple[np.ndarray, np.ndarray]:
+    def home_reference(self) -> tuple[np.ndarray, np.ndarray] | None:
         """At home: T = -J_passive^-1 J_actuated (passive x actuated), d q_passive / d a, and the branch
-        labels (blocks,) of the passive closure system (FK from home must end on that branch)."""
+        labels (blocks,) of the passive closure system (FK from home must end on that branch): the
+        solver's own (`ClosedLoopSolver.home_reference`), so that a batch row and a fresh single solve
+        take one first step. None when home is singular."""
         if self._home is None:
-            _, jac, _, _, _ = self.closures(self.solver.mechanism.home[None, :])
-            tangent = -np.linalg.solve(jac[0][:, self.passive], jac[0][:, self.actuated])
-            self._home = tangent, self.signatures(jac)[0]
+            reference = self.solver.home_reference()
+            if reference is None:
+                return None
+            tangent, branch = reference
+            self._home = tangent, np.frombuffer(branch, dtype=np.uint8).astype(bool)
         return self._home
 
     _home: tuple[np.ndarray, np.ndarray] | None = None
@@ -472,22 +474,22 @@ class _Factors:
         return singular
 
 
-def _evaluate_rows(q: np.ndarray, active: np.ndarray, previous: np.ndarray, tolerance: float, system,
+def _evaluate_rows(q: np.ndarray, active: np.ndarray, previous: np.ndarray, rules: NewtonRules, system,
                    factors: _Factors, unknowns: np.ndarray, signature) -> tuple:
     """Residual, platform pose and singular mask of the `active` rows after a step. Rows whose last
-    residual was above `_CHORD_BELOW` get a Jacobian (Newton); the others get the residual alone (chord),
-    and a Jacobian too when that step contracted by less than `_CHORD_CONTRACTION`."""
+    residual was above `rules.chord_below` get a Jacobian (Newton); the others get the residual alone
+    (chord), and a Jacobian too when that step contracted by less than `rules.chord_contraction`."""
     m = len(active)
     rot, pos, singular = np.empty((m, 3, 3)), np.empty((m, 3)), np.zeros(m, dtype=bool)
     residual: np.ndarray | None = None
-    stale = previous > _CHORD_BELOW
+    stale = previous > rules.chord_below
     near = np.flatnonzero(~stale)
     if len(near):
         near_residual, _, rot[near], pos[near] = system(q[active[near]], active[near], False)
         residual = np.empty((m, near_residual.shape[1]))
         residual[near] = near_residual
         norm = np.abs(near_residual).max(axis=1)
-        stale[near] = (norm > _CHORD_CONTRACTION * previous[near]) & (norm > tolerance) & np.isfinite(norm)
+        stale[near] = (norm > rules.chord_contraction * previous[near]) & (norm > rules.tolerance) & np.isfinite(norm)
     if stale.any():
         rows = active[stale]
         stale_residual, jac, rot[stale], pos[stale] = system(q[rows], rows, True)
@@ -498,20 +500,20 @@ def _evaluate_rows(q: np.ndarray, active: np.ndarray, previous: np.ndarray, tole
     return residual, rot, pos, singular
 
 
-def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, tolerance: float,
-                 max_iterations: int, singular_rcond: float, steps_taken: int = 0,
-                 branch: np.ndarray | None = None) -> _Solved:
+def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: NewtonRules,
+                 steps_taken: int = 0, branch: np.ndarray | None = None) -> _Solved:
     """Chord Newton on n independent square systems at once; rows leave the active set as they finish.
 
     system(q_rows, rows, with_jacobian) -> (residual (m, r), Jacobian (m, r, nv) or None, platform
-    rotation (m, 3, 3), position (m, 3)); signature(jac, square) -> (m, s) bool branch labels. A
-    step solves J[:, unknowns] dx = -r with the inverse of the row's last Jacobian, the largest
-    component capped at 0.3 (as `ClosedLoopSolver._newton`): the Jacobian is evaluated at the start
-    and again only for rows whose residual contracted by less than 0.05 in the last step. A row
-    converges when max|r| <= tolerance; it then fails if its last Jacobian has reciprocal 1-norm
-    condition < singular_rcond (singular) or branch labels other than at its first Jacobian
-    (branch change). Status codes: 0 converged, 1 out of workspace (no assembly: residual > 1e-6 or
-    non-finite), 2 not converged, 3 singular, 4 branch change. `steps_taken`: steps already taken
+    rotation (m, 3, 3), position (m, 3)); signature(jac, square) -> (m, s) bool branch labels. Under
+    `rules`, as `ClosedLoopSolver._newton`: a step solves J[:, unknowns] dx = -r with the inverse of the
+    row's last Jacobian, the largest component capped at rules.max_step; the Jacobian is evaluated at
+    the start, after steps from residuals above rules.chord_below, and for rows whose residual
+    contracted by less than rules.chord_contraction. A row converges when max|r| <= rules.tolerance;
+    it then fails if its last Jacobian has reciprocal 1-norm condition < rules.singular_rcond
+    (singular) or branch labels other than at its first Jacobian (branch change). Status codes:
+    0 converged, 1 out of workspace (no assembly: residual > rules.no_assembly or non-finite),
+    2 not converged, 3 singular, 4 branch change. `steps_taken`: steps already taken
     (a predictor), counted in the iterations; `branch`: (s,) labels every row must end with, instead
     of those at its first Jacobian (a predicted start is not a reference).
     """
@@ -525,6 +527,7 @@ def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, toleran
     singular = factors.refresh(active, jac, unknowns, signature)
     if branch is not None:
         factors.start[:] = branch
+    tolerance, max_iterations = rules.tolerance, rules.max_iterations
     for iteration in range(steps_taken, max_iterations + steps_taken + 1):
         norm = np.abs(residual).max(axis=1)
         out.norm[active], out.iterations[active] = norm, iteration
@@ -533,7 +536,7 @@ def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, toleran
         if done.any():
             rows = active[done]
             out.rotation[rows], out.position[rows] = rot[done], pos[done]
-            out.status[rows] = np.where(factors.rcond[rows] < singular_rcond, 3,
+            out.status[rows] = np.where(factors.rcond[rows] < rules.singular_rcond, 3,
                                         np.where((factors.labels[rows] != factors.start[rows]).any(axis=1), 4,
                                                  _CONVERGED))
         out.status[active[bad]] = 1
@@ -545,18 +548,21 @@ def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, toleran
         active, residual = active[keep], residual[keep]
         step = np.einsum("nij,nj->ni", factors.inverse[active], residual)
         biggest = np.abs(step).max(axis=1)
-        step *= np.minimum(1.0, _MAX_STEP / np.maximum(biggest, 1e-300))[:, None]
+        step *= np.minimum(1.0, rules.max_step / np.maximum(biggest, 1e-300))[:, None]
         q[active[:, None], unknowns[None, :]] -= step
-        residual, rot, pos, singular = _evaluate_rows(q, active, previous[active], tolerance, system,
+        residual, rot, pos, singular = _evaluate_rows(q, active, previous[active], rules, system,
                                                       factors, unknowns, signature)
     left = out.status == _ACTIVE
-    out.status[left] = np.where(out.norm[left] > 1e-6, 1, 2)
+    out.status[left] = np.where(out.norm[left] > rules.no_assembly, 1, 2)
     return out
 
 
-def failures_of(solved: _Solved, offset: int, what: str) -> list[RowFailure]:
-    """Typed failures of the rows of `solved` that did not converge (indices shifted by `offset`)."""
-    return [RowFailure(offset + int(i), f"{what}: {_REASONS[int(solved.status[i])]} (residual "
+def failures_of(solved: _Solved, offset: int, what: str,
+                singular_rcond: float = DEFAULT_RULES.singular_rcond) -> list[RowFailure]:
+    """Typed failures of the rows of `solved` that did not converge (indices shifted by `offset`);
+    singular rows name `singular_rcond`, the threshold they fell below."""
+    reasons = _REASONS | {3: f"singular configuration (reciprocal condition below {singular_rcond:g})"}
+    return [RowFailure(offset + int(i), f"{what}: {reasons[int(solved.status[i])]} (residual "
                        f"{solved.norm[i]:.3e} after {int(solved.iterations[i])} iterations)",
                        _FAILURES[int(solved.status[i])])
             for i in np.flatnonzero((solved.status != _CONVERGED) & (solved.status != _LIMIT))]
@@ -615,9 +621,10 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
                            f"{values[i, np.argmax(outside[i])]:.6g} is beyond its joint limit", InvalidInputError)
                 for i in np.flatnonzero(outside.any(axis=1))]
     rows = np.flatnonzero(~outside.any(axis=1))
-    predicted = q_init is None
-    if predicted:  # first-order predictor along home's solution manifold: dq_passive = T (a - a_home)
-        tangent, branch = kin.home_reference()
+    reference = kin.home_reference() if q_init is None else None
+    predicted = reference is not None
+    if reference is not None:  # first-order predictor along home's solution manifold: dq_passive = T (a - a_home)
+        tangent, branch = reference
         start[:, kin.passive] += (values - start[:, kin.actuated]) @ tangent.T
     start[:, kin.actuated] = values
 
@@ -632,14 +639,12 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
         if solver.native is not None:
             q = start[chunk]
             solved = _native_solved(q, solver.native.forward_rows(
-                q, branch if predicted else None, _CHORD_BELOW, int(predicted),
-                (solver.tolerance, solver.max_iterations, solver.singular_rcond), workers))
+                q, branch if predicted else None, int(predicted), solver.rules.compiled(), workers))
         else:
             solved = newton_batch(start[chunk], kin.passive, system, lambda jac, sq: kin.signatures(jac),
-                                  solver.tolerance, solver.max_iterations, solver.singular_rcond, int(predicted),
-                                  branch if predicted else None)
+                                  solver.rules, int(predicted), branch if predicted else None)
         failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
-                     for f in failures_of(solved, 0, "forward kinematics")]
+                     for f in failures_of(solved, 0, "forward kinematics", solver.singular_rcond)]
         parts.append((chunk, solved))
     return _forward_result(kin, len(values), parts, failures)
 
@@ -726,7 +731,7 @@ def _first_step_from_home(kin: StackedKinematics, start: np.ndarray, rows: np.nd
         return None
     residual = np.concatenate((np.broadcast_to(closure, (n, closure.shape[1])), task_residual), axis=1)
     step = residual @ inverse[0].T
-    step *= np.minimum(1.0, _MAX_STEP / np.maximum(np.abs(step).max(axis=1), 1e-300))[:, None]
+    step *= np.minimum(1.0, kin.solver.rules.max_step / np.maximum(np.abs(step).max(axis=1), 1e-300))[:, None]
     start[rows[:, None], kin.unknowns[None, :]] -= step
     return signature(full_jac, square)[0]
 
@@ -773,12 +778,11 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
         if solver.native is not None:
             q = start[chunk]
             solved = _native_solved(q, solver.native.inverse_rows(
-                q, goal[chunk], None if goal_rot is None else goal_rot[chunk], branch, _CHORD_BELOW,
-                int(branch is not None), (solver.tolerance, solver.max_iterations, solver.singular_rcond), workers))
+                q, goal[chunk], None if goal_rot is None else goal_rot[chunk], branch,
+                int(branch is not None), solver.rules.compiled(), workers))
         else:
             solved = newton_batch(start[chunk], every, lambda q, a, jacobian: system(q, chunk[a], jacobian),
-                                  signature, solver.tolerance, solver.max_iterations, solver.singular_rcond,
-                                  int(branch is not None), branch)
+                                  signature, solver.rules, int(branch is not None), branch)
         sliders = solved.q[:, kin.actuated]
         outside = ((sliders < solver._act_lower) | (sliders > solver._act_upper)) & \
             (solved.status == _CONVERGED)[:, None]
@@ -789,7 +793,7 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
                                        f"{sliders[i, k]:.6g} m, beyond its limit [{solver._act_lower[k]:.6g}, "
                                        f"{solver._act_upper[k]:.6g}]", OutOfWorkspaceError))
         failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
-                     for f in failures_of(solved, 0, "inverse kinematics")]
+                     for f in failures_of(solved, 0, "inverse kinematics", solver.singular_rcond)]
         parts.append((chunk, solved))
     fk = _forward_result(kin, len(goal), parts, failures)
     wanted = np.zeros(2) if goal_rot is None else rpy_batch(goal_rot[fk.indices])[:, :2]

@@ -23,7 +23,8 @@ from m3t1r.errors import ModelFileError, ModelWarning
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256, sha256_bytes
 from m3t1r.io.temporaries import pending_temporaries
-from m3t1r.model.closures import ASSEMBLY_MAX_CHANGE, ClosureSpec, ClosureSystem, without_rows
+from m3t1r.model.assembly import HomeAssembly, assemble_home, limits_violated
+from m3t1r.model.closures import ClosureSpec, ClosureSystem, without_rows
 from m3t1r.model.schema import SCHEMA_VERSIONS, read_description
 from m3t1r.model.task import TaskSpec, WorkspaceSpec
 from m3t1r.model.urdf_io import calibrated_urdf_bytes
@@ -54,7 +55,8 @@ class Mechanism:
     `task`: what inverse kinematics commands (schema v1 files: position and yaw of `platform_frame`);
     `workspace`: where simulations and plans sample (None: not declared, schema v1);
     `locked_joints`: passive joints found redundant at load (a gauge), held at their home value;
-    `notes`: what `load` changed or assumed (assembled home, locked joints, missing limits).
+    `notes`: what `load` changed or assumed (assembled home, locked joints, missing limits);
+    `home_assembly`: how the home was assembled when the file's did not close (None: it did).
     The visual geometry loads on first use of `visual_model` (kinematics never needs the meshes).
     """
 
@@ -73,6 +75,7 @@ class Mechanism:
     workspace: WorkspaceSpec | None = None
     locked_joints: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
+    home_assembly: HomeAssembly | None = None
     visual_cache: dict = field(default_factory=dict, repr=False, compare=False)
     """Holds the visual geometry once loaded; shared by the copies `with_model`/`with_home` make (same tree)."""
 
@@ -338,15 +341,10 @@ def _settled(mechanism: Mechanism) -> Mechanism:
     notes = list(_replace_missing_limits(mechanism))
     system = ClosureSystem(mechanism.model, mechanism.closures)
     passive = mechanism.passive_ids
-    home = mechanism.home
-    residual = np.abs(system.evaluate(home, False)[0])
-    if not residual.max(initial=0.0) <= HOME_TOLERANCE:  # NaN fails too
-        row = int(np.argmax(np.where(np.isfinite(residual), residual, np.inf)))
-        given = (f"home does not close: closure '{_row_names(mechanism.closures, (row,))[0].split('[')[0]}' "
-                 f"residual {residual[row]:.3e} > {HOME_TOLERANCE:g}")
-        home = _assembled_home(mechanism, system, passive, given)
-        notes.append(f"{given}; assembled by Newton from the given values (joints moved by up to "
-                     f"{np.abs(home - mechanism.home).max():.1e})")
+    home, assembly = mechanism.home, None
+    if not np.abs(system.evaluate(home, False)[0]).max(initial=0.0) <= HOME_TOLERANCE:  # NaN fails too
+        home, assembly = _assembled_home(mechanism, system, passive)
+        notes.append(assembly.note(HOME_TOLERANCE))
     redundancy, full_rank = system.redundancy(home, passive)
     if full_rank > redundancy.rank:
         raise ModelFileError(mechanism.closures_path,
@@ -369,7 +367,8 @@ def _settled(mechanism: Mechanism) -> Mechanism:
         closures = without_rows(closures, redundancy.dropped)
         notes.append(f"{len(redundancy.dropped)} closure row(s) dropped as dependent on the others: "
                      + ", ".join(_row_names(mechanism.closures, redundancy.dropped)))
-    return dataclasses.replace(mechanism, closures=closures, home=home, locked_joints=locked, notes=tuple(notes))
+    return dataclasses.replace(mechanism, closures=closures, home=home, locked_joints=locked, notes=tuple(notes),
+                               home_assembly=assembly)
 
 
 def _joint_name(model: pin.Model, velocity_index: int) -> str:
@@ -381,19 +380,23 @@ def _row_names(closures: tuple[ClosureSpec, ...], dropped: tuple[int, ...]) -> l
     return [names[k] for k in dropped]
 
 
-def _assembled_home(mechanism: Mechanism, system: ClosureSystem, passive: np.ndarray, given: str) -> np.ndarray:
-    """The home closed by least-squares Newton over the passive joints from the given values."""
-    home, worst = system.assemble(mechanism.home, passive, 1e-13)
-    change = float(np.abs(home - mechanism.home).max())
-    if not worst <= HOME_TOLERANCE:
+def _assembled_home(mechanism: Mechanism, system: ClosureSystem, passive: np.ndarray
+                    ) -> tuple[np.ndarray, HomeAssembly]:
+    """The assembly nearest the given home (`model.assembly`), or ModelFileError when there is none
+    near it or it leaves a joint's limits."""
+    home, assembly = assemble_home(mechanism.model, mechanism.closures, system, mechanism.home, passive)
+    given = (f"home does not close: closure '{assembly.worst}' residual {assembly.given_residual:.3e} > "
+             f"{HOME_TOLERANCE:g}")
+    if not assembly.residual <= HOME_TOLERANCE:
         raise ModelFileError(mechanism.closures_path,
-                             f"{given}, and Newton from the given values reached only {worst:.1e} "
+                             f"{given}, and Newton from the given values reached only {assembly.residual:.1e} "
                              "(give home values closer to an assembly)")
-    if change > ASSEMBLY_MAX_CHANGE:
+    for name, value, lower, upper in limits_violated(mechanism.model, home, passive)[:1]:
         raise ModelFileError(mechanism.closures_path,
-                             f"{given}; assembling it moved a joint by {change:.3g} (more than "
-                             f"{ASSEMBLY_MAX_CHANGE:g}), so the given values are not an approximate home")
-    return home
+                             f"{given}; the assembly nearest the given values puts joint '{name}' at {value:.6g}, "
+                             f"beyond its URDF limits [{lower:.6g}, {upper:.6g}] (give home values of the passive "
+                             "joints near the assembly mode wanted)")
+    return home, assembly
 
 
 def _replace_missing_limits(mechanism: Mechanism) -> list[str]:

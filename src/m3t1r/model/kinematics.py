@@ -18,6 +18,7 @@ C++ API when `model.native` is built (one call per solve); the Python ones here 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -41,6 +42,7 @@ from m3t1r.model.closures import ClosureSystem
 from m3t1r.model.description import Mechanism
 from m3t1r.model.native import CONVERGED as _native_converged
 from m3t1r.model.native import NativeChain
+from m3t1r.model.newton_rules import DEFAULT_RULES, NewtonRules
 
 __all__ = [
     "ForwardResult", "InverseResult", "ClosedLoopSolver",
@@ -48,9 +50,7 @@ __all__ = [
 ]
 
 MOBILITY_RANK_TOL = 1e-9  # singular values below this fraction of the largest count as zero
-SINGULAR_RCOND = 1e-10  # reciprocal condition number of the square system below which we call it singular
-_MAX_STEP = 0.3  # [m or rad] cap on a Newton step component, keeps a far start on its branch
-_CHORD_CONTRACTION = 0.05  # refresh the Jacobian when a reused factorisation contracts worse than this
+SINGULAR_RCOND = DEFAULT_RULES.singular_rcond  # the default rules' singular threshold (`NewtonRules`)
 
 
 def yaw_of(rotation: np.ndarray) -> float:
@@ -241,14 +241,18 @@ class ClosedLoopSolver:
     another thread makes single solves wait). All outputs are copies.
     """
 
-    def __init__(self, mechanism: Mechanism, tolerance: float = 1e-12, max_iterations: int = 60,
-                 native: bool = True) -> None:
+    def __init__(self, mechanism: Mechanism, tolerance: float | None = None, max_iterations: int | None = None,
+                 native: bool = True, rules: NewtonRules | None = None) -> None:
         self.mechanism = mechanism
         self.model = mechanism.model
         self._closure_system = ClosureSystem(self.model, mechanism.closures)
         self.data = self._closure_system.data  # one Data: every evaluation leaves it at the q evaluated
-        self.tolerance = float(tolerance)
-        self.max_iterations = int(max_iterations)
+        rules = DEFAULT_RULES if rules is None else rules
+        if tolerance is not None:
+            rules = dataclasses.replace(rules, tolerance=float(tolerance))
+        if max_iterations is not None:
+            rules = dataclasses.replace(rules, max_iterations=int(max_iterations))
+        self.rules = rules  # every Newton loop of this solver reads these, Python and compiled
         model = self.model
         nv = model.nv
 
@@ -316,17 +320,45 @@ class ClosedLoopSolver:
             _BLOCK_CACHE[key] = [(rows, self.passive[cols]) for rows, cols in diagonal_blocks(pattern)]
         self._branch_blocks = _BLOCK_CACHE[key]
         self._branch = _BranchSignature(self._branch_blocks, model.nv)
-        self.singular_rcond = SINGULAR_RCOND
         # FK's and IK's Newton loops compiled (`model.native`), when built and the joints allow; None: the Python loops.
         self.native = NativeChain.of(model, mechanism.closures, self.passive, self.actuated, self._branch_blocks,
                                      self._platform, mechanism.task,
                                      np.arange(nv) if self._unknowns is None else self._unknowns, np.array(signed),
-                                     np.flatnonzero(support_mask(self._task_frame)),
-                                     _MAX_STEP, _CHORD_CONTRACTION) if native else None
+                                     np.flatnonzero(support_mask(self._task_frame))) if native else None
         self._stacked = None  # batched kinematics, built on first use
         self._last_branch: bytes | None = None  # signature at this solver's last FK solution
         self._tangent: np.ndarray | None = None  # d q_passive / d sliders at the last factorisation
-        self.last_q = mechanism.home.copy()
+        self._home: tuple[np.ndarray, bytes] | None = None  # home's tangent and branch, once computed
+        self.last_q: np.ndarray = mechanism.home.copy()
+        self.reset()
+
+    # One rule set, replaced whole: a solver's loops never see two versions of it.
+    @property
+    def tolerance(self) -> float:
+        """[m or rad] max |row| at convergence (`rules.tolerance`)."""
+        return self.rules.tolerance
+
+    @tolerance.setter
+    def tolerance(self, value: float) -> None:
+        self.rules = dataclasses.replace(self.rules, tolerance=float(value))
+
+    @property
+    def max_iterations(self) -> int:
+        """Newton steps allowed (`rules.max_iterations`)."""
+        return self.rules.max_iterations
+
+    @max_iterations.setter
+    def max_iterations(self, value: int) -> None:
+        self.rules = dataclasses.replace(self.rules, max_iterations=int(value))
+
+    @property
+    def singular_rcond(self) -> float:
+        """Reciprocal condition below which a converged solve is singular (`rules.singular_rcond`)."""
+        return self.rules.singular_rcond
+
+    @singular_rcond.setter
+    def singular_rcond(self, value: float) -> None:
+        self.rules = dataclasses.replace(self.rules, singular_rcond=float(value))
 
     # ----------------------------------------------------------------------------------------
     # Residual and Jacobian
@@ -431,28 +463,35 @@ class ClosedLoopSolver:
         return values
 
     def forward(self, actuators: np.ndarray, q_init: np.ndarray | None = None) -> ForwardResult:
-        """Platform pose for the given slider values, on the assembly branch of q_init.
+        """Platform pose for the given slider values, on the assembly mode of the start.
 
-        Newton on the enforced closure rows over the passive joints only (sliders locked):
-        J_c,passive dq_passive = -r_c. Starts from q_init (default: the last solution of this
-        solver, initially home). Raises InvalidInputError for bad actuators, NotConvergedError /
+        A continuation from the start, q_init or by default this solver's last solution (initially
+        home, and again after `reset`): the start moved along its tangent to the slider change (plus
+        a second-order term along the last step when warm), then Newton on the enforced closure rows
+        over the passive joints only (sliders locked), J_c,passive dq_passive = -r_c. The solution
+        must carry the start's branch labels: a new solver's first solve is `forward_batch`'s row.
+        Raises InvalidInputError for bad actuators, BranchChangeError / NotConvergedError /
         OutOfWorkspaceError / SingularConfigurationError (with the final residual) otherwise.
         """
         values = self.check_actuators(actuators)
-        q = (self.last_q if q_init is None else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
-        warm = q_init is None
+        if q_init is None:  # a continuation from the last solution (initially home)
+            q, tangent, branch, previous = self.last_q.copy(), self._tangent, self._last_branch, self._previous
+        else:  # a continuation from q_init: its own tangent and branch
+            q = require_finite_vector(q_init, self.model.nq, "q_init").copy()
+            (tangent, branch), previous = self._continuation_from(q), None
+        start = q.copy()
+        self._tangent = self._previous = self._last_goal = self._inverse_previous = None  # until this succeeds
         if self.native is not None:
-            return self._forward_native(q, values, warm)
-        if warm and self._tangent is not None:
-            q[self.passive] += self._predict(values - q.take(self.actuated))
+            result = self._forward_native(q, values, tangent is not None, previous, branch)
+            self._previous = start.take(self._prior_columns)
+            return result
+        if tangent is not None:
+            q[self.passive] += self._predict(start, values - q.take(self.actuated), tangent, previous)
         q[self.actuated] = values
-        self._tangent, previous, self._previous = None, self._previous, None  # dropped until this solve succeeds
-        self._last_goal = self._inverse_previous = None  # last_q is about to be no IK solution
-        outcome = self._newton(q, self.passive, self._system, self._passive_branch,
-                               start_branch=self._last_branch if warm else None)
+        outcome = self._newton(q, self.passive, self._system, self._passive_branch, start_branch=branch)
         self._tangent = -outcome.inverse.dot(outcome.jacobian.take(self.actuated, axis=1))
-        if warm or previous is None:  # the solution this one started from, for the second-order predictor
-            self._previous = (self.last_q.take(self.actuated), self.last_q.take(self.passive))
+        # Where this solve continued from, for the second-order predictor of the next one.
+        self._previous = (start.take(self.actuated), start.take(self.passive))
         self._last_branch = outcome.branch
         self.last_q = outcome.q
         pose = self._platform_pose()
@@ -461,42 +500,74 @@ class ClosedLoopSolver:
     # (sliders, passive q) of the solution before last_q; with the compiled loop, the two concatenated
     _previous: tuple[np.ndarray, np.ndarray] | np.ndarray | None = None
 
-    def _forward_native(self, q: np.ndarray, values: np.ndarray, warm: bool) -> ForwardResult:
-        """`forward` in the compiled loop, predictor included (q: the start, solved in place); the same
-        bookkeeping, errors and result as the Python loop. `data` is not moved to the solution."""
-        native, previous = self.native, self._previous
-        order = (1 if previous is None else 2) if warm and self._tangent is not None else 0
-        self._tangent = self._previous = self._last_goal = self._inverse_previous = None  # until this succeeds
+    def _forward_native(self, q: np.ndarray, values: np.ndarray, predicted: bool, previous,
+                        branch: bytes | None) -> ForwardResult:
+        """`forward` in the compiled loop, predictor included (q: the start, solved in place; its tangent in
+        `native.tangent`); the same bookkeeping, errors and result as the Python loop. `data` is not moved
+        to the solution."""
+        native = self.native
+        order = (1 if previous is None else 2) if predicted else 0
         status, norm, iterations, rcond = native.forward(q, values, order, previous if order == 2 else None,
-                                                         self._last_branch if warm else None,
-                                                         (self.tolerance, self.max_iterations, self.singular_rcond))
+                                                         branch, self.rules.compiled())
         if status != _native_converged:
             raise _native_error(status, norm, iterations, rcond)
         self._tangent = native.tangent  # overwritten only by the next success, which reads it first
-        if warm or previous is None:
-            self._previous = self.last_q.take(self._prior_columns)
         self._last_branch = bytes(native.branch)
         self.last_q = q
         pose = pin.SE3(native.platform)
         return ForwardResult(pose, q.copy(), norm, iterations,
                              pose if self._task_frame == self._platform else pin.SE3(native.task))
 
-    def _predict(self, change: np.ndarray) -> np.ndarray:
-        """Passive-joint change [rad or m] for a slider change `change` [m] from the last solution.
+    def home_reference(self) -> tuple[np.ndarray, bytes] | None:
+        """(T, branch) at home: T = -J_passive^-1 J_actuated (passive x actuated), d q_passive / d a,
+        and home's branch labels, which define the assembly mode every solve from home keeps (None
+        when home is singular). Single, fresh, reset and batch solves take their first step from these."""
+        if self._home is None:
+            self._home = self._reference(self.mechanism.home)
+        return self._home
+
+    def _reference(self, q: np.ndarray) -> tuple[np.ndarray, bytes] | None:
+        """(tangent, branch labels) of the passive closure system at q, or None where it is singular."""
+        _, jac = self._system(q, True)
+        square = jac.take(self.passive, axis=1)
+        lu = lapack.dgetrf(square)[:2]
+        inverse, rcond = _inverse_and_rcond(lu, _one_norm(square))
+        if not rcond >= self.rules.singular_rcond:
+            return None
+        return -inverse.dot(jac.take(self.actuated, axis=1)), self._branch(jac)
+
+    def _continuation_from(self, q: np.ndarray) -> tuple[np.ndarray | None, bytes | None]:
+        """The warm-start state (`_tangent`, `_last_branch`) of a solve continuing from q: home's cached
+        reference at home, q's own elsewhere; (None, None) at a singular q (labels then at the start).
+        The compiled loop reads its tangent from `native.tangent`, which this fills."""
+        home = self.mechanism.home
+        reference = self.home_reference() if q is home or np.array_equal(q, home) else self._reference(q)
+        if reference is None:
+            return None, None
+        tangent, branch = reference
+        if self.native is None:
+            return tangent.copy(), branch
+        self.native.tangent[:] = tangent
+        return self.native.tangent, branch
+
+    def _predict(self, start: np.ndarray, change: np.ndarray, tangent: np.ndarray, previous) -> np.ndarray:
+        """Passive-joint change [rad or m] for a slider change `change` [m] from `start` (the last
+        solution, or q_init), along `tangent` (the start's) and `previous` (sliders, passive q) of the
+        solution before the start (None: first order only).
 
         First order: T d, T = -J_pas^-1 J_act the tangent of the solution manifold. Second order along
         the previous step e (sliders s_k - s_(k-1)): the previous solution gives
         1/2 H[e, e] ~= q_(k-1) - q_k + T e, applied as lam^2 1/2 H[e, e] with lam = (d . e) / (e . e),
         only while the path keeps going the same way (0 < lam < 2). Newton corrects whatever remains.
         """
-        step = self._tangent.dot(change)
-        if self._previous is not None:
-            last_sliders, last_passive = self._previous
-            e = self.last_q.take(self.actuated) - last_sliders
+        step = tangent.dot(change)
+        if previous is not None:
+            last_sliders, last_passive = previous
+            e = start.take(self.actuated) - last_sliders
             ee = float(e.dot(e))
             lam = float(change.dot(e)) / ee if ee > 0.0 else 0.0
             if 0.0 < lam < 2.0:
-                step += lam * lam * (last_passive - self.last_q.take(self.passive) + self._tangent.dot(e))
+                step += lam * lam * (last_passive - start.take(self.passive) + tangent.dot(e))
         return step
 
     def _passive_branch(self, jac: np.ndarray, lu: tuple) -> bytes:
@@ -513,21 +584,25 @@ class ClosedLoopSolver:
         return pin.updateFramePlacement(self.model, self.data, self._platform)
 
     def _newton(self, q: np.ndarray, unknowns: np.ndarray, system, signature, start_branch=None) -> _Outcome:
-        """Newton on a square system over the columns `unknowns` (None: every column), with chord steps.
+        """Newton on a square system over the columns `unknowns` (None: every column), with chord steps,
+        under `self.rules` (as the compiled loop and the batches).
 
-        The Jacobian is evaluated at the start; later steps reuse its LU factors while each
-        step still contracts the residual by `_CHORD_CONTRACTION`, and refresh it otherwise.
+        The Jacobian is evaluated at the start and after every step from a residual above
+        `rules.chord_below`; below it, later steps reuse the LU factors while each step still
+        contracts the residual by `rules.chord_contraction`, and refresh them otherwise.
         `signature(jac, lu)` labels the branch: its value at the last Jacobian must equal
         `start_branch` (default: its value at the first Jacobian), else BranchChangeError.
         """
+        rules = self.rules
+        tolerance, contraction, max_step = rules.tolerance, rules.chord_contraction, rules.max_step
         residual, jac = system(q, True)
         previous = norm = math.inf
         last_jac = square = label = lu = None  # label: the signature of last_jac, once computed
-        for iteration in range(self.max_iterations + 1):
+        for iteration in range(rules.max_iterations + 1):
             norm = _max_abs(residual)
             if not math.isfinite(norm):
                 break
-            if jac is None and norm > _CHORD_CONTRACTION * previous and norm > self.tolerance:
+            if jac is None and norm > contraction * previous and norm > tolerance:
                 residual, jac = system(q, True)
             if jac is not None:
                 square = jac if unknowns is None else jac.take(unknowns, axis=1)
@@ -536,10 +611,10 @@ class ClosedLoopSolver:
                 if start_branch is None:
                     start_branch = label = signature(jac, lu)
                 last_jac, jac = jac, None
-            if norm <= self.tolerance:
+            if norm <= tolerance:
                 # Conditioning and branch are judged at the last Jacobian only.
                 inverse, rcond = _inverse_and_rcond(lu, _one_norm(square))
-                if rcond < SINGULAR_RCOND:
+                if rcond < rules.singular_rcond:
                     raise SingularConfigurationError(f"singular configuration (reciprocal condition {rcond:.2e})",
                                                      norm, iteration)
                 branch = label if label is not None else signature(last_jac, lu)
@@ -547,19 +622,19 @@ class ClosedLoopSolver:
                     raise BranchChangeError("the solution lies on another assembly branch than the start "
                                             "(Newton crossed a singularity)", norm, iteration)
                 return _Outcome(q, norm, iteration, inverse, last_jac, branch)
-            if iteration == self.max_iterations:
+            if iteration == rules.max_iterations:
                 break
             step = lapack.dgetrs(lu[0], lu[1], residual)[0]
             biggest = abs(float(step[_idamax(step)]))  # nan entries make q nan: the next residual stops
-            if biggest > _MAX_STEP:
-                step *= _MAX_STEP / biggest
+            if biggest > max_step:
+                step *= max_step / biggest
             if unknowns is None:
                 q -= step
             else:
                 q[unknowns] -= step
             previous = norm
-            residual, _ = system(q, False)
-        if norm > 1e-6 or not math.isfinite(norm):
+            residual, jac = system(q, previous > rules.chord_below)
+        if norm > rules.no_assembly or not math.isfinite(norm):
             raise OutOfWorkspaceError("the closures cannot be assembled here (target out of the workspace "
                                       "or too far from the initial configuration's branch)", norm, iteration)
         raise NotConvergedError("Newton did not reach the tolerance", norm, iteration)
@@ -567,8 +642,61 @@ class ClosedLoopSolver:
     # ----------------------------------------------------------------------------------------
     # Inverse kinematics
     def check_square_task(self) -> None:
-        """Raise InvalidInputError unless the task commands as many coordinates as there are actuators."""
+        """Raise InvalidInputError unless the task commands as many coordinates as there are actuators,
+        each of which the mechanism can move (`uncommandable_task_rows`)."""
         require_square_task(self.mechanism)
+        self._require_commandable_task()
+
+    def uncommandable_task_rows(self) -> tuple[str, ...]:
+        """Task rows (x, y, z, theta, or rx, ry, rz for a full rotation) that no motion the closures
+        allow changes, at home and near it: e.g. x for a five-bar that moves in the
+        y-z plane. An IK system with such a row is singular wherever it converges: not a singularity
+        of the mechanism but a task it cannot command. A row counts as unmoved when its rate along
+        every unit closure-compatible motion is below 1e-9 of the largest task row's (near home: 1e-3
+        along home's tangent, no solve)."""
+        if self._uncommandable is None:
+            home, reference = self.mechanism.home, self.home_reference()
+            configurations = [home]
+            for sign in ((1.0, -1.0) if reference is not None else ()):
+                # Near home along its solution manifold (first order: within 1e-6 of an assembly).
+                change = sign * 1e-3 * np.linspace(1.0, 0.5, len(self.actuated))
+                q = home.copy()
+                q[self.actuated] += change
+                q[self.passive] += reference[0].dot(change)
+                configurations.append(q)
+            unmoved = None
+            for q in configurations:
+                rows = self._unmoved_task_rows(q)
+                unmoved = rows if unmoved is None else unmoved & rows
+            task = self.mechanism.task
+            names = task.position + {"none": (), "yaw": ("theta",), "full": ("rx", "ry", "rz")}[task.rotation]
+            self._uncommandable = tuple(name for name, dead in zip(names, unmoved) if dead)
+        return self._uncommandable
+
+    _uncommandable: tuple[str, ...] | None = None
+
+    def _unmoved_task_rows(self, q: np.ndarray) -> np.ndarray:
+        """Mask of the task rows whose rate along every unit closure-compatible motion at q (the null
+        space of the closure rows over IK's unknowns) is below 1e-9 of the largest row's."""
+        self._system(q, False)
+        placement = pin.updateFramePlacement(self.model, self.data, self._task_frame)
+        jac = self._inverse_system(np.zeros(len(self.mechanism.task.columns)), placement.rotation)(q, True)[1]
+        jac = jac[:, self._unknown_columns]
+        closure, task = jac[:self.n_rows], jac[self.n_rows:]
+        singular, vt = np.linalg.svd(closure)[1:]
+        rank = int(np.sum(singular > max(closure.shape) * np.finfo(float).eps * singular[0])) if len(singular) else 0
+        rates = np.linalg.norm(task @ vt[rank:].T, axis=1)
+        return rates <= 1e-9 * max(float(rates.max(initial=0.0)), 1e-300)
+
+    def _require_commandable_task(self) -> None:
+        unmoved = self.uncommandable_task_rows()
+        if unmoved:
+            task = self.mechanism.task
+            raise InvalidInputError(
+                f"{self.mechanism.closures_path}: the task's {', '.join(unmoved)} (frame '{task.frame}') cannot be "
+                "commanded: no motion the closures allow changes it (at home and near it), so inverse kinematics "
+                "would be singular at every target; declare a task of coordinates the mechanism moves "
+                "(models/README.md)")
 
     def inverse(self, target: pin.SE3 | np.ndarray, q_init: np.ndarray | None = None) -> InverseResult:
         """Actuator values that put the task frame at the target (the mechanism's `task`).
@@ -581,7 +709,7 @@ class ClosedLoopSolver:
         InvalidInputError when the task is not square, OutOfWorkspaceError when no assembly reaches
         the target or an actuator would leave its limits (never clipped).
         """
-        if not self._square_task:
+        if not self._square_task or self._uncommandable != ():
             self.check_square_task()
         goal, goal_rotation, wanted_tilt = self._goal(target)
         warm = q_init is None
@@ -631,8 +759,7 @@ class ClosedLoopSolver:
         as the Python loop gives them; `data` is not moved to the solution."""
         native = self.native
         status, residual, iterations, rcond = native.inverse(q, goal, goal_rotation, order, self._inverse_previous,
-                                                             start, (self.tolerance, self.max_iterations,
-                                                                     self.singular_rcond))
+                                                             start, self.rules.compiled())
         if status != _native_converged:
             raise _native_error(status, residual, iterations, rcond)
         return (q, residual, iterations, bytes(native.inverse_branch), native.task_inverse,
@@ -736,10 +863,10 @@ class ClosedLoopSolver:
     _last_task: pin.SE3 | None = None  # task frame placement at the last IK solution
 
     def reset(self) -> None:
-        """Forget the warm start and cached factorisations (next solve starts from home)."""
-        self._tangent = None
+        """Forget the warm start and cached factorisations: the next solve starts from home, as a new
+        solver's first and as every row of `forward_batch` (home's tangent predictor, home's branch)."""
         self._previous = None
-        self._last_branch = None
+        self._tangent, self._last_branch = self._continuation_from(self.mechanism.home)
         self._task_inverse = None
         self._inverse_previous = None
         self._last_goal = None

@@ -2,7 +2,8 @@
 
 `tools/build_native.py` (run by `make`) compiles it in place. It solves the problem of
 `ClosedLoopSolver._newton` (single solves) and `batch_kinematics.newton_batch` (rows), step for step:
-the same residual and exact Jacobian of the enforced rows, chord steps, step cap, convergence test,
+the same residual and exact Jacobian of the enforced rows, and the same `NewtonRules` (passed with
+every call: chord steps, step cap, convergence test, singular threshold, no-assembly threshold), the
 1-norm reciprocal condition and branch labels (signs of the diagonal blocks' determinants). It holds
 its own `pinocchio::Model`, rebuilt from the Python model's joints and placements, so a calibrated
 copy of a machine gets its own. Trees of 1-DoF revolute and prismatic joints only; anything else
@@ -83,8 +84,7 @@ class NativeChain:
     @classmethod
     def of(cls, model: pin.Model, closures: tuple[ClosureSpec, ...], passive: np.ndarray, actuated: np.ndarray,
            blocks: list[tuple[np.ndarray, np.ndarray]], platform_frame: int, task: TaskSpec, unknowns: np.ndarray,
-           column_signs: np.ndarray, task_columns: np.ndarray, max_step: float, contraction: float
-           ) -> NativeChain | None:
+           column_signs: np.ndarray, task_columns: np.ndarray) -> NativeChain | None:
         """The compiled chain, or None when the module is not built or a joint is not 1-DoF revolute/prismatic.
 
         unknowns: IK's columns (every joint but the locked ones); IK is square only when the task's
@@ -122,17 +122,17 @@ class NativeChain:
             np.concatenate([c for _, c in blocks]).astype(np.int64),
             np.cumsum([len(r) for r, _ in blocks]).astype(np.int64), ik_columns, ik_axes.astype(np.int64),
             np.asarray(task_columns, dtype=np.int64), len(frame_ids) - 2, len(frame_ids) - 1,
-            _ROTATION_CODES[task.rotation] if square else 0, float(max_step), float(contraction))
+            _ROTATION_CODES[task.rotation] if square else 0)
         return cls(handle, len(blocks), len(passive), len(actuated), len(ik_columns), task.dimension if square else 0)
 
     def forward(self, q: np.ndarray, sliders: np.ndarray, order: int, previous: np.ndarray | None,
-                start_branch: bytes | None, limits: tuple[float, int, float]) -> tuple[int, float, int, float]:
+                start_branch: bytes | None, rules: tuple) -> tuple[int, float, int, float]:
         """FK from the last solution q (nq, float64, solved in place) to `sliders` (float64).
 
         order: 0 no predictor, 1 first order along `tangent` (the last success's), 2 also second order
         with previous = (sliders, passive joints) of the solution before q, concatenated
         (`ClosedLoopSolver._predict`). start_branch: the labels the solution must have (None: those at
-        its start); limits: (tolerance [m or rad], max_iterations, singular_rcond). On success
+        its start); rules: `NewtonRules.compiled()`, what every loop obeys. On success
         `tangent`, `platform`, `task` and `branch` hold the solution's. Returns (status, max |row|,
         iterations, reciprocal condition of a singular end (0 for a zero pivot) or 0).
         """
@@ -140,10 +140,10 @@ class NativeChain:
             self.branch[:] = start_branch if len(start_branch) == self.n_blocks else b"\xff" * self.n_blocks
         return _native_newton.forward(self._handle, q, sliders, order, self.tangent,
                                       _EMPTY if previous is None else previous, self.branch,
-                                      start_branch is not None, self.platform, self.task, *limits)
+                                      start_branch is not None, self.platform, self.task, *rules)
 
     def inverse(self, q: np.ndarray, goal: np.ndarray, goal_rotation: np.ndarray | None, order: int,
-                previous: tuple | None, start_branch: bytes | None, limits: tuple[float, int, float]
+                previous: tuple | None, start_branch: bytes | None, rules: tuple
                 ) -> tuple[int, float, int, float]:
         """IK from the last solution q (solved in place) on [closure rows; task rows] with `goal` (task
         coordinates) and `goal_rotation` (3 x 3, a full-rotation task).
@@ -161,21 +161,20 @@ class NativeChain:
                                       order, self.task_inverse, self.inverse_task, last_goal,
                                       self._identity if last_rotation is None else last_rotation, last_q,
                                       self.inverse_branch, start_branch is not None, self.inverse_platform,
-                                      self.inverse_task, *limits)
+                                      self.inverse_task, *rules)
 
-    def forward_rows(self, q: np.ndarray, start_branch: np.ndarray | None, chord_below: float, steps_taken: int,
-                     limits: tuple[float, int, float], threads: int = 1
+    def forward_rows(self, q: np.ndarray, start_branch: np.ndarray | None, steps_taken: int,
+                     rules: tuple, threads: int = 1
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """FK's Newton for every row of q (n, nq) (solved in place, no predictor), chord steps only from
-        residuals at or below `chord_below`, iterations counted from `steps_taken`, rows shared among
+        """FK's Newton for every row of q (n, nq) (solved in place, no predictor) under `rules`
+        (`NewtonRules.compiled()`), iterations counted from `steps_taken`, rows shared among
         `threads` threads (at least 64 rows each; the results do not depend on it). start_branch: the
         labels every row must end with (None: each row's at its start). Returns per row (status,
         max |row|, iterations, platform (n, 4, 4)); poses are valid where status is 0."""
-        return self._rows(False, q, start_branch, _EMPTY, _EMPTY, chord_below, steps_taken, limits, threads)
+        return self._rows(False, q, start_branch, _EMPTY, _EMPTY, steps_taken, rules, threads)
 
     def inverse_rows(self, q: np.ndarray, goals: np.ndarray, rotations: np.ndarray | None,
-                     start_branch: np.ndarray | None, chord_below: float, steps_taken: int,
-                     limits: tuple[float, int, float], threads: int = 1
+                     start_branch: np.ndarray | None, steps_taken: int, rules: tuple, threads: int = 1
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """IK's Newton for every row of q (n, nq), row i toward goals[i] (task coordinates) and
         rotations[i] (3 x 3, a full-rotation task; None otherwise); as `forward_rows` otherwise, the
@@ -183,17 +182,17 @@ class NativeChain:
         n = len(q)
         turns = np.broadcast_to(self._identity, (n, 3, 3)) if rotations is None else rotations
         return self._rows(True, q, start_branch, np.ascontiguousarray(goals, dtype=float),
-                          np.ascontiguousarray(turns, dtype=float), chord_below, steps_taken, limits, threads)
+                          np.ascontiguousarray(turns, dtype=float), steps_taken, rules, threads)
 
     def _rows(self, inverse: bool, q: np.ndarray, start_branch: np.ndarray | None, goals: np.ndarray,
-              rotations: np.ndarray, chord_below: float, steps_taken: int, limits: tuple[float, int, float],
-              threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+              rotations: np.ndarray, steps_taken: int, rules: tuple, threads: int
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         n = len(q)
         status, norm, iterations = np.zeros(n, dtype=np.int64), np.zeros(n), np.zeros(n, dtype=np.int64)
         platform = np.zeros((n, 4, 4))
         branch = b"" if start_branch is None else np.asarray(start_branch, dtype=np.uint8).tobytes()
-        _native_newton.rows(self._handle, inverse, q, branch, goals, rotations, float(chord_below), int(steps_taken),
-                            status, norm, iterations, platform, *limits, int(threads))
+        _native_newton.rows(self._handle, inverse, q, branch, goals, rotations, int(steps_taken),
+                            status, norm, iterations, platform, *rules, int(threads))
         return status, norm, iterations, platform
 
 
