@@ -21,6 +21,7 @@ from m3t1r._version import __version__
 from m3t1r.app.cli_calibrate import add_campaign_options, parse_priors, run_closed_loop_calibration
 from m3t1r.app.cli_campaign import add_plan_parser, add_validate_parser
 from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, provenance, say
+from m3t1r.app.cli_noise import NOISE_AUTO_HELP, noise_or_auto
 from m3t1r.app.cli_serial import run_serial_calibration
 from m3t1r.app.datasets import TARGET_COLUMNS, measurement_table, read_actuators, read_measurements, read_targets
 from m3t1r.app.demo import run_demo
@@ -330,9 +331,10 @@ def _add_model_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--closures", metavar="YAML", help="its closures file (default: URDF stem + .closures.yaml)")
 
 
-def _add_noise_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--noise-pos", type=float, default=10e-6, metavar="M", help="tracker position noise [m]")
-    parser.add_argument("--noise-rot", type=float, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
+def _add_noise_options(parser: argparse.ArgumentParser, estimable: bool = False) -> None:
+    number, auto = (noise_or_auto, NOISE_AUTO_HELP) if estimable else (float, "")
+    parser.add_argument("--noise-pos", type=number, default=10e-6, metavar="M", help="tracker position noise [m]" + auto)
+    parser.add_argument("--noise-rot", type=number, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]" + auto)
     parser.add_argument("--noise-act", type=float, default=1e-6, metavar="M", help="slider reading noise [m]")
 
 
@@ -386,7 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--compliance", action="store_true",
                    help="with --serial: joint compliance under gravity as candidate parameters")
     add_campaign_options(p)
-    _add_noise_options(p)
+    _add_noise_options(p, estimable=True)
     _add_model_options(p)
     p.set_defaults(run=cmd_calibrate)
 
