@@ -21,6 +21,7 @@ from m3t1r._version import __version__
 from m3t1r.app.cli_calibrate import add_campaign_options, parse_priors, run_closed_loop_calibration
 from m3t1r.app.cli_campaign import add_plan_parser, add_validate_parser
 from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, provenance, say
+from m3t1r.app.cli_convert import add_convert_parser
 from m3t1r.app.cli_noise import NOISE_AUTO_HELP, noise_or_auto
 from m3t1r.app.cli_serial import run_serial_calibration
 from m3t1r.app.datasets import TARGET_COLUMNS, measurement_table, read_actuators, read_measurements, read_targets
@@ -442,6 +443,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=cmd_evaluate)
 
     add_plan_parser(verbs)
+    add_convert_parser(verbs)
     add_validate_parser(verbs)
     # --quiet before or after the verb; the verb's copy must not reset the global one.
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress display on stderr")

@@ -38,6 +38,7 @@ from m3t1r.calibration.serial import SerialCalibration, calibrate_serial
 from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
 from m3t1r.errors import InvalidInputError, PoorExcitationWarning
+from m3t1r.io.instruments.records import CONVERTED_COLUMNS
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import sha256_bytes
 from m3t1r.io.poses import poses_from_table
@@ -87,8 +88,8 @@ def read_campaign(path: str, chain: SerialChain, units: str) -> SerialCampaign:
     if units not in LENGTH_UNITS:
         raise InvalidInputError(f"--units {units}: expected one of {', '.join(LENGTH_UNITS)}")
     names = chain.joint_names
-    table = read_table(path, required=names + ("x", "y", "z"), optional_groups=(("qx", "qy", "qz", "qw"),),
-                       reject_duplicate_rows=True)
+    table = read_table(path, required=names + ("x", "y", "z"), optional=CONVERTED_COLUMNS,
+                       optional_groups=(("qx", "qy", "qz", "qw"),), reject_duplicate_rows=True)
     scale = LENGTH_UNITS[units]
     prismatic = ~np.any(chain.twists[:, 3:], axis=1)
     readings = np.column_stack([table.column(n) for n in names]) * np.where(prismatic, scale, 1.0)
@@ -231,8 +232,10 @@ def _print_summary(calibration: SerialCalibration, outlier_lines: list[int]) -> 
 def _print_judgement(validation: SerialCrossValidation, notes: list[str]) -> None:
     errors = validation.errors
     rotation = "" if np.isnan(errors.rotation_mean) else f", {errors.rotation_mean:.3e} rad"
+    rms = float(np.sqrt(np.mean(np.square(errors.position))))
     print(f"cross-validation ({validation.folds} folds): predicting held-back measurements "
-          f"{errors.position_mean:.3e} m{rotation} mean (noise included, as fresh measurements would show)")
+          f"{errors.position_mean:.3e} m{rotation} mean, {rms:.3e} m RMS (noise included, as fresh measurements "
+          "would show)")
     for note in notes:
         print(f"note: {note}")
 
@@ -262,7 +265,9 @@ def explain(calibration: SerialCalibration, warnings_seen: list[str] = ()) -> li
     notes.append(f"{undetermined} of {len(chain_names)} placement components are not separable with these data "
                  "(redundant with others or with the measurement setup) and stay nominal")
     moved = {n: float(v) for n, v in zip(calibration.names, calibration.values) if n in fitted and n in chain_names}
-    notes += fit_movement_notes(moved, calibration.residual_before.position, calibration.residual_after.position)
+    marker_estimated = any(n.startswith("marker.") for n in calibration.names)
+    notes += fit_movement_notes(moved, calibration.residual_before.position, calibration.residual_after.position,
+                                None if marker_estimated else calibration.chain.tool_frame)
     return notes
 
 

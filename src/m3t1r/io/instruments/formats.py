@@ -1,0 +1,64 @@
+"""Which reader a file needs: detected from its content, or named with `--format`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from m3t1r.errors import DataFileError, InvalidInputError
+from m3t1r.io.instruments.c3d import looks_c3d, read_c3d
+from m3t1r.io.instruments.delimited import ReadOptions, looks_delimited, read_delimited
+from m3t1r.io.instruments.optitrack import looks_motive, read_motive
+from m3t1r.io.instruments.records import TrackerRecord
+from m3t1r.io.instruments.robot_log import RobotLog, read_robot_csv
+from m3t1r.io.instruments.rosbag import looks_bag, read_bag_joints, read_bag_poses
+from m3t1r.io.instruments.spatial_analyzer import looks_spatial_analyzer, read_spatial_analyzer
+from m3t1r.io.instruments.text import numbered_lines
+from m3t1r.io.instruments.vicon import looks_vicon, read_vicon
+
+__all__ = ["FORMATS", "detect_format", "read_tracker", "read_robot_log"]
+
+Reader = Callable[[Path, ReadOptions, list[str]], TrackerRecord]
+
+#: Format name -> (reader, description).
+FORMATS: dict[str, tuple[Reader, str]] = {
+    "csv": (read_delimited, "delimited table: x,y,z or x1,y1,z1 ..., optional time, quaternion, joints"),
+    "motive": (read_motive, "OptiTrack Motive CSV export (rigid body or marker)"),
+    "vicon": (read_vicon, "Vicon CSV export (Objects, Segments or Trajectories block)"),
+    "c3d": (read_c3d, "C3D file (needs m3t1r[formats])"),
+    "spatial-analyzer": (read_spatial_analyzer, "SpatialAnalyzer ASCII point export"),
+    "rosbag": (read_bag_poses, "ROS 2 bag: PoseStamped, TransformStamped or /tf (needs m3t1r[formats])"),
+}
+
+
+def detect_format(path: Path) -> str:
+    """The format name of `path` from its content; DataFileError naming what it looks like otherwise."""
+    if not path.exists():
+        raise DataFileError(path, "no such file or directory")
+    if looks_bag(path):
+        return "rosbag"
+    if looks_c3d(path):
+        return "c3d"
+    lines = numbered_lines(path)
+    for name, looks in (("motive", looks_motive), ("vicon", looks_vicon), ("csv", looks_delimited),
+                        ("spatial-analyzer", looks_spatial_analyzer)):
+        if looks(lines):
+            return name
+    first = next((t.strip() for _, t in lines if t.strip()), "")
+    raise DataFileError(path, f"not a tracker export convert knows (first line '{first[:60]}'): "
+                              f"give --format ({', '.join(FORMATS)})")
+
+
+def read_tracker(path: Path, format_name: str | None, options: ReadOptions, notes: list[str]) -> TrackerRecord:
+    """The record of one body or marker, in the format named or detected."""
+    name = format_name or detect_format(path)
+    if name not in FORMATS:
+        raise InvalidInputError(f"--format {name}: expected one of {', '.join(FORMATS)}")
+    return FORMATS[name][0](path, options, notes)
+
+
+def read_robot_log(path: Path, joints: tuple[str, ...] | None, joint_degrees: tuple[str, ...]) -> RobotLog:
+    """The robot's joint log: a ROS 2 bag's JointState, or a CSV (`robot_log`)."""
+    if looks_bag(path):
+        return read_bag_joints(path, joints)
+    return read_robot_csv(path, joints, joint_degrees)
