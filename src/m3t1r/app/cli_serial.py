@@ -56,7 +56,8 @@ _EXAMPLE_ROBOTS = ("ur3", "ur5", "ur10", "panda")
 @dataclass(frozen=True)
 class SerialCampaign:
     """A measurement file read for a chain: readings (N, n) [rad, m], measured poses (SE3, m),
-    the file's data lines (for outliers) and sha256."""
+    the file's data lines (for outliers) and sha256; sources: the `source` column of a converted
+    file (where each pose is in the tracker's file), or None."""
 
     path: Path
     sha256: str
@@ -65,6 +66,7 @@ class SerialCampaign:
     lines: np.ndarray
     position_only: bool
     units: str
+    sources: np.ndarray | None = None
 
 
 def _robot(source: str, tool: str | None, base: str | None) -> tuple[pin.Model, SerialChain, Path | None]:
@@ -98,7 +100,8 @@ def read_campaign(path: str, chain: SerialChain, units: str) -> SerialCampaign:
     rotations = [np.eye(3)] * len(positions) if position_only else [g.rotation for g in poses_from_table(table)]
     poses = [pin.SE3(r, p) for r, p in zip(rotations, positions)]
     return SerialCampaign(Path(path), sha256_bytes(Path(path).read_bytes()), readings, poses,
-                          np.asarray(table.line_numbers), position_only, units)
+                          np.asarray(table.line_numbers), position_only, units,
+                          table.column("source").astype(int) if table.has_column("source") else None)
 
 
 def _nominal_frames(model: pin.Model, chain: SerialChain, marker: pin.SE3) -> Callable[[np.ndarray], np.ndarray]:
@@ -152,6 +155,9 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
     lines = [int(data.lines[i]) for i in calibration.outliers]
     print(choice.describe(data.position_only))
     _print_summary(calibration, lines)
+    if data.sources is not None and calibration.outliers:
+        print("outliers in the tracker's file (the source column): "
+              + ", ".join(str(int(data.sources[i])) for i in calibration.outliers))
     unexplained = _judge(args, calibration, choice, lambda: _diagnose(model, chain, data, marker, estimate_frame))
     validation = cross_validate_serial(calibration, folds=args.folds)
     notes = explain(calibration, [str(w.message) for w in caught])
@@ -162,6 +168,8 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
         print(f"m3t1r: warning: {warning}", file=sys.stderr)
     report = serial_calibration_report(calibration, data, args, noise, lines, validation, notes)
     report["noise_source"], report["warnings"] = choice.report(), warned
+    if data.sources is not None:
+        report["outlier_sources"] = [int(data.sources[i]) for i in calibration.outliers]
     with outputs:
         if urdf_output is not None:
             outputs.stage(urdf_output, calibrated_urdf_bytes(urdf, calibration.model))
