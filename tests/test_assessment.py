@@ -101,6 +101,11 @@ def test_a_residual_beyond_the_noise_that_no_cause_explains_is_accepted_with_a_w
     warning = unexplained_residual_warning(45.0, "1.34e-03 m", 3.4e-3)
     assert "6.71 times the stated noise (variance factor 45)" in warning
     assert "noise of 1.34e-03 m" in warning and "cross-validated error, 0.0034 m" in warning
+    # With the noise estimated from the residual the variance factor is ~1 by construction: a cause refuses.
+    assert check_fit(True, "cost", 7, 1.0, [], noise_estimated=True) is False
+    with pytest.raises(FitRejected, match="with the noise estimated from the residual") as caught:
+        check_fit(True, "cost", 7, 1.0, ["columns 'a' and 'b' look swapped"], noise_estimated=True)
+    assert caught.value.causes == ["columns 'a' and 'b' look swapped"]
 
 
 def test_an_unknown_marker_is_registered_before_naming_another_machine():

@@ -346,3 +346,11 @@ def test_convert_writes_a_table_that_calibrates_like_the_plain_csv(session, tmp_
     assert np.linalg.norm(frames[0].actInv(FRAME).translation) < 5e-3
     errors = [r["cross_validation"]["position_rms_m"] for r in reports.values()]
     assert errors[0] < 1e-4 and errors[1] < 1e-4  # both predict within a few noise sigmas
+
+
+def test_calibrate_names_an_export_and_the_command_that_converts_it(session, tmp_path, capsys) -> None:
+    take = motive_csv(tmp_path / "take.csv", session)
+    assert main(["calibrate", str(take), "--serial", "ur10", "-o", str(tmp_path / "c.urdf")]) == 2
+    err = capsys.readouterr().err
+    assert "export (OptiTrack Motive CSV export), not a measurement table" in err and "m3t1r convert" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["take.csv"]

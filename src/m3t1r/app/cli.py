@@ -37,6 +37,7 @@ from m3t1r.calibration.simulation import simulate_study
 from m3t1r.calibration.validation import read_report
 from m3t1r.compensation import Compensator, compensate, joint_limit_violation
 from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError
+from m3t1r.io.instruments.formats import export_hint
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows
 from m3t1r.io.progress import set_quiet
@@ -137,6 +138,8 @@ def cmd_simulate(args: argparse.Namespace) -> None:
 def cmd_calibrate(args: argparse.Namespace) -> None:
     """`m3t1r calibrate`: closed-loop or serial calibration from a measurement file."""
     args.prior = parse_priors(args.prior)
+    if (hint := export_hint(Path(args.measurements))) is not None:
+        raise InvalidInputError(hint)
     if args.serial:
         return run_serial_calibration(args)
     run_closed_loop_calibration(args, load_mechanism(args.model, args.closures))

@@ -16,7 +16,7 @@ from m3t1r.io.instruments.spatial_analyzer import looks_spatial_analyzer, read_s
 from m3t1r.io.instruments.text import numbered_lines
 from m3t1r.io.instruments.vicon import looks_vicon, read_vicon
 
-__all__ = ["FORMATS", "detect_format", "read_tracker", "read_robot_log"]
+__all__ = ["FORMATS", "detect_format", "export_hint", "read_tracker", "read_robot_log"]
 
 Reader = Callable[[Path, ReadOptions, list[str]], TrackerRecord]
 
@@ -62,3 +62,21 @@ def read_robot_log(path: Path, joints: tuple[str, ...] | None, joint_degrees: tu
     if looks_bag(path):
         return read_bag_joints(path, joints)
     return read_robot_csv(path, joints, joint_degrees)
+
+
+def export_hint(path: Path) -> str | None:
+    """When `path` is an instrument's export rather than a measurement table, the sentence saying
+    which and how to convert it; None for a measurement table (or a file no reader knows)."""
+    try:
+        name = detect_format(path)
+    except (DataFileError, InvalidInputError):
+        return None
+    if name == "csv":
+        header = next((t for _, t in numbered_lines(path) if t.strip() and not t.lstrip().startswith("#")), "")
+        names = {n.strip().lower() for n in header.replace(";", ",").replace("\t", ",").split(",")}
+        if ";" not in header and "\t" not in header and {"x", "y", "z"} <= names and not names & {"time", "x1"}:
+            return None
+    what = "table of tracker samples (several markers, a time column or ';' separators)" if name == "csv" \
+        else FORMATS[name][1].split(" (")[0].split(":")[0]
+    return (f"{path} is an instrument's export ({what}), not a measurement table: convert it first, "
+            f"`m3t1r convert {path} [--robot ROBOT_LOG] -o measurements.csv`")
