@@ -354,3 +354,22 @@ def test_calibrate_names_an_export_and_the_command_that_converts_it(session, tmp
     err = capsys.readouterr().err
     assert "export (OptiTrack Motive CSV export), not a measurement table" in err and "m3t1r convert" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["take.csv"]
+
+
+def test_three_markers_or_more_make_one_rigid_body(session, tmp_path) -> None:
+    offsets = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.02], [0.0, 0.12, 0.0], [0.05, 0.05, 0.09]])
+    bodies = session.bodies[::150][:12]  # one frame per dwell
+    clouds = bodies[:, None, :3, :3] @ offsets[None, :, :, None]
+    clouds = clouds[..., 0] + bodies[:, None, :3, 3]
+    columns = [f"{a}{k}" for k in range(1, 5) for a in "xyz"] + list(session.chain.joint_names)
+    path = tmp_path / "cluster.csv"
+    path.write_text(table_text(columns, np.hstack([clouds.reshape(len(bodies), 12), session.postures[:12]])))
+    rows = convert_campaign(path, None, ConversionOptions(read=ReadOptions(body="rigid"))).rows
+    assert np.allclose(rows[:, 6:9], clouds.mean(axis=1), atol=1e-12)
+    relative = Rotation.from_quat(rows[:, 9:13]).as_matrix()
+    assert np.allclose(relative, bodies[:, :3, :3] @ bodies[0, :3, :3].T, atol=1e-9)  # axes of the first sample
+    two = tmp_path / "two.csv"
+    two.write_text(table_text(columns[:6] + columns[12:], np.hstack([clouds[:, :2].reshape(12, 6),
+                                                                      session.postures[:12]])))
+    with pytest.raises(DataFileError, match="three markers or more"):
+        convert_campaign(two, None, ConversionOptions(read=ReadOptions(body="rigid")))

@@ -31,7 +31,8 @@ def add_convert_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentPa
     p.add_argument("-o", "--output", required=True, metavar="MEASUREMENTS.csv", help="measurement CSV to write")
     p.add_argument("--format", choices=tuple(FORMATS), help="the tracker file's format (default: from its content)")
     p.add_argument("--body", metavar="NAME", help="the rigid body, marker, label, group or topic to read "
-                                                  "(a marker number K for x1..xK columns)")
+                                                  "(a marker number K for x1..xK columns; rigid: those markers as "
+                                                  "one rigid body)")
     p.add_argument("--units", choices=("m", "mm", "cm", "in"), help="position unit when the file does not state it "
                                                                     "(default m for tables)")
     p.add_argument("--euler", metavar="SEQ", help="Euler convention of rotation columns (scipy's: xyz extrinsic, "

@@ -3,7 +3,10 @@
 Accepted: `,`, `;` (then a comma is a decimal comma) or tab separators, `#` comment lines, and
 columns recognised by name (any case):
 
-- positions `x, y, z`, or several markers `x1, y1, z1 ... xK, yK, zK` (`--body K` picks one);
+- positions `x, y, z`, or several markers `x1, y1, z1 ... xK, yK, zK` (`--body K` picks one;
+  `--body rigid` makes one rigid body of three or more: its origin the markers' centroid, its axes
+  those of the tracker at the first sample seeing every marker, each sample's orientation the
+  rotation that best carries the markers from that sample, by the SVD of their cross-covariance);
 - an orientation `qx, qy, qz, qw`, or Euler angles `roll, pitch, yaw` / `rx, ry, rz` read with the
   convention `--euler` names (scipy's: lowercase extrinsic, uppercase intrinsic) in radians, or
   degrees with `--degrees`;
@@ -83,10 +86,13 @@ def read_delimited(path: Path, options: ReadOptions, notes: list[str]) -> Tracke
             raise DataFileError(path, f"{len(fields)} fields, but the header has {len(names)} columns", row=line)
     lower = [n.lower() for n in names]
     columns = _Columns(path, header[0], names, lower, rows, delimiter == ";")
-    position_names, body = _position_columns(path, header[0], lower, options.body, notes)
     scale = length_scale(path, options.units or "m")
-    positions = np.column_stack([columns.values(c) for c in position_names]) * scale
-    quaternions = _orientation(columns, lower, options, path, header[0])
+    if options.body == "rigid":
+        positions, quaternions, body = _rigid_body(path, header[0], columns, lower, scale)
+    else:
+        position_names, body = _position_columns(path, header[0], lower, options.body, notes)
+        positions = np.column_stack([columns.values(c) for c in position_names]) * scale
+        quaternions = _orientation(columns, lower, options, path, header[0])
     times = columns.values(next(n for n in _TIME if n in lower)) if any(n in lower for n in _TIME) else None
     joint_names = _joint_columns(path, header[0], names, lower, columns, options, notes)
     joints = np.column_stack([columns.values(n.lower()) * (np.pi / 180.0 if n in options.joint_degrees or
@@ -119,8 +125,7 @@ class _Columns:
 
 def _position_columns(path: Path, header_line: int, lower: list[str], body: str | None,
                       notes: list[str]) -> tuple[list[str], str]:
-    markers = sorted({int(m.group(1)) for n in lower if (m := re.fullmatch(r"x(\d+)", n))
-                      and f"y{m.group(1)}" in lower and f"z{m.group(1)}" in lower})
+    markers = _marker_numbers(lower)
     if {"x", "y", "z"} <= set(lower) and body in (None, ""):
         return ["x", "y", "z"], "the point"
     if not markers:
@@ -135,6 +140,35 @@ def _position_columns(path: Path, header_line: int, lower: list[str], body: str 
         raise DataFileError(path, f"--body {body}: the file has markers {', '.join(map(str, markers))}",
                             row=header_line)
     return [f"x{chosen}", f"y{chosen}", f"z{chosen}"], f"marker {chosen}"
+
+
+def _rigid_body(path: Path, header_line: int, columns: _Columns, lower: list[str],
+                scale: float) -> tuple[np.ndarray, np.ndarray, str]:
+    """(centroids (N, 3) [m], quaternions (N, 4), name) of the markers as one rigid body (module
+    docstring); samples missing a marker are NaN."""
+    markers = _marker_numbers(lower)
+    if len(markers) < 3:
+        raise DataFileError(path, f"--body rigid needs three markers or more (x1, y1, z1 ...); the file has "
+                                  f"{len(markers)}", row=header_line)
+    clouds = np.stack([np.column_stack([columns.values(f"{a}{k}") for a in "xyz"]) for k in markers], axis=1) * scale
+    seen = np.all(np.isfinite(clouds.reshape(len(clouds), -1)), axis=1)
+    if not seen.any():
+        raise DataFileError(path, "no sample sees every marker: no rigid body to build")
+    reference = clouds[np.argmax(seen)] - clouds[np.argmax(seen)].mean(axis=0)
+    centroids = np.full((len(clouds), 3), np.nan)
+    quaternions = np.full((len(clouds), 4), np.nan)
+    centroids[seen] = clouds[seen].mean(axis=1)
+    moved = clouds[seen] - centroids[seen][:, None, :]
+    u, _, vt = np.linalg.svd(np.swapaxes(moved, 1, 2) @ reference)
+    sign = np.sign(np.linalg.det(u @ vt))
+    u[:, :, -1] *= sign[:, None]
+    quaternions[seen] = Rotation.from_matrix(u @ vt).as_quat()
+    return centroids, quaternions, f"markers {', '.join(map(str, markers))} as one rigid body"
+
+
+def _marker_numbers(lower: list[str]) -> list[int]:
+    return sorted({int(m.group(1)) for n in lower if (m := re.fullmatch(r"x(\d+)", n))
+                   and f"y{m.group(1)}" in lower and f"z{m.group(1)}" in lower})
 
 
 def _orientation(columns: _Columns, lower: list[str], options: ReadOptions, path: Path,
