@@ -173,3 +173,17 @@ def test_campaign_options_are_checked_before_any_work(tmp_path, capsys, option):
     with pytest.raises(SystemExit) as exited:
         main(["calibrate", str(path), "-o", str(tmp_path / "c.urdf"), *option])
     assert exited.value.code == 2 and option[0] in capsys.readouterr().err
+
+
+def test_auto_noise_finds_the_tracker_noise_and_keeps_the_outlier_gate(tmp_path, capsys):
+    """10 um / 20 urad of tracker noise and two gross errors, the noise left to the data: the estimate
+    is within 20 % of the truth, the gross readings are still flagged, and the report says so."""
+    study, path, options = _campaign(tmp_path, 6, False)
+    report_path = tmp_path / "cal.json"
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "cal.urdf"), "--report", str(report_path),
+                 "--frame", "estimate", "--noise-pos", "auto", "--noise-rot", "auto", *options]) == 0
+    report = json.loads(report_path.read_text())
+    assert report["noise_source"]["position"] == report["noise_source"]["rotation"] == "estimated"
+    assert 8e-6 < report["noise_model"]["position_m"] < 12e-6 and 16e-6 < report["noise_model"]["rotation_rad"] < 24e-6
+    assert report["outliers"] == [i + 2 for i in study.outliers] and report["warnings"] == []
+    assert "(estimated from the residual)" in capsys.readouterr().out

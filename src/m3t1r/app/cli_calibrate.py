@@ -25,6 +25,7 @@ from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise
 from m3t1r.app.datasets import MeasurementFile, read_measurements
 from m3t1r.app.reporting import check_plots_folder, passive_joint_residuals, write_calibration_plots
 from m3t1r.calibration.assessment import (
+    IMPLAUSIBLE_ROTATION,
     FitRejected,
     check_fit,
     check_start,
@@ -150,7 +151,8 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     lines = [int(data.lines[i]) for i in calibration.outliers]
     print(choice.describe(data.measurements.position_only))
     _print_summary(calibration, lines)
-    unexplained = _judge(args, calibration, choice, lambda: _fit_causes(args, nominal, data, marker, estimate_frame))
+    unexplained = _judge(args, calibration, choice,
+                         lambda: _fit_causes(args, nominal, data, marker, estimate_frame, calibration))
     with Progress(f"cross-validating ({args.folds} folds)", None) as progress:
         calibration.problem.on_evaluate = progress.advance
         validation = cross_validate(calibration, folds=args.folds)
@@ -231,11 +233,15 @@ def _judge(args: argparse.Namespace, calibration: ClosedLoopCalibration, choice:
 
 
 def _fit_causes(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, marker: pin.SE3,
-                estimate_frame: bool) -> list[str]:
+                estimate_frame: bool, calibration: ClosedLoopCalibration) -> list[str]:
     """Likely causes of a fit that does not explain the data: the data checks, and a measured frame
-    whose orientation is not the platform's while no marker was given to absorb it."""
+    whose orientation is not the platform's while no marker was given to absorb it (when the fit
+    left more than the stated noise, or, the noise being estimated, an orientation residual over
+    IMPLAUSIBLE_ROTATION / 10: beyond any tracker's)."""
     causes = _diagnose(nominal, data, marker, estimate_frame)
-    if args.marker is None and not data.measurements.position_only:
+    left = calibration.variance_factor > 9 or not calibration.converged or \
+        calibration.rms_after[1] > IMPLAUSIBLE_ROTATION / 10
+    if args.marker is None and not data.measurements.position_only and left:
         causes.append("the measured frame (a probe or a set of reflectors) is not the platform frame: give its "
                       "position with --marker X Y Z, and its orientation is estimated with it")
     return causes

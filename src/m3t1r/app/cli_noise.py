@@ -3,8 +3,8 @@
 A stated noise is used as given. An `auto` one is estimated from the fit's own residual
 (`assessment.noise_from_residual`: the mean square per coordinate, scaled for the degrees of
 freedom the fit used): a first fit with a provisional noise and no outlier gate gives the
-residual; the fit is repeated with the estimate and the gate, and once more if the inliers' residual
-moves the estimate by over 10 %. The report and the printout say which noise was stated and which
+residual; the fit is repeated with the estimate and the gate, and again (up to four times) while the
+inliers' residual moves the estimate by over 10 %. The report and the printout say which noise was stated and which
 estimated, and its value.
 """
 
@@ -28,8 +28,10 @@ NOISE_AUTO_HELP = ("; auto: estimated from the data, as the fit's RMS residual p
 #: The provisional noise of the first fit when a noise is estimated [m], [rad]: only the ratio of
 #: the two matters to that fit, and 1 mm per mrad weighs a metre-sized lever's errors alike.
 PROVISIONAL_POSITION, PROVISIONAL_ROTATION = 1e-3, 1e-3
-#: A refit when the inliers' residual moves the estimate by more than this fraction.
-REFIT_CHANGE = 0.1
+#: A refit when the inliers' residual moves the estimate by more than this fraction, at most
+#: MAX_REFITS times (gross readings that the first, ungated fit spread into the estimate are
+#: gated out one refit after another as the estimate shrinks).
+REFIT_CHANGE, MAX_REFITS = 0.1, 4
 
 Fit = TypeVar("Fit")
 
@@ -103,9 +105,11 @@ def fit_with_noise(position: float | str, rotation: float | str, base: TrackerNo
     result = fit(choice.noise, False)
     choice = replace(choice, noise=_estimate(choice, summary(result)))
     result = fit(choice.noise, True)
-    again = _estimate(choice, summary(result))
-    if max(abs(again.position / choice.noise.position - 1.0), abs(again.rotation / choice.noise.rotation - 1.0)) \
-            > REFIT_CHANGE:
+    for _ in range(MAX_REFITS):
+        again = _estimate(choice, summary(result))
+        if max(abs(again.position / choice.noise.position - 1.0),
+               abs(again.rotation / choice.noise.rotation - 1.0)) <= REFIT_CHANGE:
+            break
         choice = replace(choice, noise=again)
         result = fit(choice.noise, True)
     return result, choice
