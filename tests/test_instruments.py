@@ -373,3 +373,20 @@ def test_three_markers_or_more_make_one_rigid_body(session, tmp_path) -> None:
                                                                       session.postures[:12]])))
     with pytest.raises(DataFileError, match="three markers or more"):
         convert_campaign(two, None, ConversionOptions(read=ReadOptions(body="rigid")))
+
+
+def test_a_vicon_object_s_helical_angles_become_its_orientation(session, tmp_path) -> None:
+    rotvec = np.degrees(Rotation.from_matrix(session.bodies[:, :3, :3]).as_rotvec())
+    lines = ["Objects", f"{RATE:g}", ",,tool,,,,,", "Frame,Sub Frame,RX,RY,RZ,TX,TY,TZ", ",,deg,deg,deg,mm,mm,mm"]
+    for k in range(len(session.times)):
+        occluded = 200 <= k < 210
+        fields = [""] * 6 if occluded else [f"{v:.8f}" for v in rotvec[k]] + _mm(session.points[k])
+        lines.append(",".join([str(k + 1), "0", *fields]))
+    path = tmp_path / "tracker.csv"
+    path.write_text("\n".join(lines) + "\n")
+    conversion = convert_campaign(path, robot_log(tmp_path / "robot.csv", session), ConversionOptions())
+    assert conversion.format == "vicon" and len(conversion.rows) == len(session.postures)
+    dwell_middle = (np.arange(len(session.postures)) * (DWELL + MOVE) * RATE + 75).astype(int)
+    truth = session.bodies[dwell_middle, :3, :3]
+    found = Rotation.from_quat(conversion.rows[:, 9:13]).as_matrix()
+    assert max(np.linalg.norm(pin.log3(a.T @ b)) for a, b in zip(found, truth)) < 1e-6
