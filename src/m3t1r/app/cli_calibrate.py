@@ -138,9 +138,9 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     data = read_measurements(args.measurements, nominal, units=args.units)
     marker = MeasurementSetup.from_numbers(marker_xyz=args.marker).marker
     estimate_frame = args.frame == "estimate"
-    _precheck(nominal, data, marker, estimate_frame, args.measurements)
     print(f"calibrating from {len(data.measurements)} poses"
           + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
+    _precheck(nominal, data, marker, estimate_frame, args.measurements)
     with warnings.catch_warnings(record=True) as caught, Progress("calibrating", None) as progress:
         warnings.simplefilter("always", PoorExcitationWarning)
         calibration, choice = fit_with_noise(
