@@ -42,15 +42,18 @@ def read_motive(path: Path, options: ReadOptions, notes: list[str]) -> TrackerRe
     rotation_type = settings.get("rotation type", "Quaternion")
     scale = length_scale(path, settings.get("length units", options.units or "m"), 1)
     frame_index = next((k for k, (_, text) in enumerate(lines) if text.lower().startswith("frame,")), None)
-    if frame_index is None or frame_index < 3:
-        raise DataFileError(path, "no 'Frame,Time,...' header row under the asset rows: not a Motive CSV export")
-    header = [split_fields(text, ",") for _, text in lines[frame_index - 4:frame_index + 1]]
-    types, names, quantities, components = header[0], header[1], header[3], header[4]
+    header = [split_fields(text, ",") for _, text in lines[1:frame_index or 1]]
+    type_row = next((k for k, row in enumerate(header) if {"Rigid Body", "Marker"} & set(row)), None)
+    if frame_index is None or type_row is None or type_row + 2 > len(header) - 1:
+        raise DataFileError(path, "no asset rows (Rigid Body, Marker) above a 'Frame,Time,...' row: not a Motive "
+                                  "CSV export")
+    types, names, quantities = header[type_row], header[type_row + 1], header[-1]
+    components = split_fields(lines[frame_index][1], ",")
     width = len(components)
     types, names, quantities = (row + [""] * (width - len(row)) for row in (types, names, quantities))
     bodies = sorted({n for t, n in zip(types, names) if t == "Rigid Body"})
     markers = sorted({n for t, n in zip(types, names) if t == "Marker"})
-    body, is_body = _choose(path, lines[frame_index - 3][0], options.body, bodies, markers, notes)
+    body, is_body = _choose(path, lines[type_row + 2][0], options.body, bodies, markers)
     wanted = [("Position", c) for c in "XYZ"]
     if is_body:
         if rotation_type.lower() != "quaternion":
@@ -75,8 +78,7 @@ def read_motive(path: Path, options: ReadOptions, notes: list[str]) -> TrackerRe
                          np.array([line for line, _ in data]))
 
 
-def _choose(path: Path, line: int, wanted: str | None, bodies: list[str], markers: list[str],
-            notes: list[str]) -> tuple[str, bool]:
+def _choose(path: Path, line: int, wanted: str | None, bodies: list[str], markers: list[str]) -> tuple[str, bool]:
     """(asset name, whether it is a rigid body)."""
     if wanted is not None:
         if wanted in bodies:
