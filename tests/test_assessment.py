@@ -15,6 +15,8 @@ from m3t1r.calibration.assessment import (
     describe_parameter,
     fit_movement_notes,
     likely_causes,
+    register_with_offset,
+    unexplained_residual_warning,
 )
 from m3t1r.calibration.identification import forward_selection, outlier_poses, select_base_parameters
 from m3t1r.calibration.measurement_setup import (
@@ -88,9 +90,40 @@ def test_check_fit_refuses_unconverged_and_unexplained_fits_and_names_the_causes
         check_fit(False, "max_iterations", 60, 1.0, ["use --frame estimate"])
     assert caught.value.causes == ["use --frame estimate"] and isinstance(caught.value, IdentificationError)
     with pytest.raises(FitRejected, match="3.02 times the stated noise"):
-        check_fit(True, "cost", 7, 9.1)
+        check_fit(True, "cost", 7, 9.1, ["positions look like millimetres"])
     with pytest.raises(FitRejected, match="nan times"):
         check_fit(True, "cost", 7, float("nan"))
+
+
+def test_a_residual_beyond_the_noise_that_no_cause_explains_is_accepted_with_a_warning():
+    assert check_fit(True, "cost", 7, 8.99) is False
+    assert check_fit(True, "cost", 7, 45.0) is True  # unmodelled effects: the caller warns
+    warning = unexplained_residual_warning(45.0, "1.34e-03 m", 3.4e-3)
+    assert "6.71 times the stated noise (variance factor 45)" in warning
+    assert "noise of 1.34e-03 m" in warning and "cross-validated error, 0.0034 m" in warning
+    # With the noise estimated from the residual the variance factor is ~1 by construction: a cause refuses.
+    assert check_fit(True, "cost", 7, 1.0, [], noise_estimated=True) is False
+    with pytest.raises(FitRejected, match="with the noise estimated from the residual") as caught:
+        check_fit(True, "cost", 7, 1.0, ["columns 'a' and 'b' look swapped"], noise_estimated=True)
+    assert caught.value.causes == ["columns 'a' and 'b' look swapped"]
+
+
+def test_an_unknown_marker_is_registered_before_naming_another_machine():
+    """A point 70 mm off the model's measured frame, in another frame: no mistake once registered."""
+    rng = np.random.default_rng(8)
+    poses = np.array([pin.SE3(pin.exp3(rng.normal(size=3)), rng.uniform(-0.5, 0.5, 3)).homogeneous for _ in range(30)])
+    frame = pin.SE3(pin.exp3(np.array([0.2, -0.4, 2.5])), np.array([1.5, 0.3, -0.2]))
+    offset = np.array([0.05, -0.02, 0.045])
+    measured = (poses[:, :3, :3] @ offset + poses[:, :3, 3]) @ frame.rotation.T + frame.translation
+    found = register_with_offset(poses, measured)
+    assert found.rms < 1e-9 and np.allclose(found.offset, offset, atol=1e-9)
+    assert np.linalg.norm(pin.log6(found.frame.actInv(frame)).vector) < 1e-9
+    readings = np.arange(30)[:, None]
+    assert likely_causes(lambda r: poses[r[:, 0]], readings, measured, ("i",), frame_estimated=True) == []
+    positions_only = likely_causes(lambda r: poses[r[:, 0], :3, 3], readings, measured, ("i",), frame_estimated=True)
+    assert "another machine" in positions_only[-1]
+    fixed = register_with_offset(poses, measured, estimate_offset=False)
+    assert fixed.rms > 0.03 and not fixed.offset.any()
 
 
 def test_parameters_are_described_by_joint_and_component():

@@ -173,3 +173,32 @@ def test_campaign_options_are_checked_before_any_work(tmp_path, capsys, option):
     with pytest.raises(SystemExit) as exited:
         main(["calibrate", str(path), "-o", str(tmp_path / "c.urdf"), *option])
     assert exited.value.code == 2 and option[0] in capsys.readouterr().err
+
+
+def test_auto_noise_finds_the_tracker_noise_and_keeps_the_outlier_gate(tmp_path, capsys):
+    """10 um / 20 urad of tracker noise and two gross errors, the noise left to the data: the estimate
+    is within 20 % of the truth, the gross readings are still flagged, and the report says so."""
+    study, path, options = _campaign(tmp_path, 6, False)
+    report_path = tmp_path / "cal.json"
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "cal.urdf"), "--report", str(report_path),
+                 "--frame", "estimate", "--noise-pos", "auto", "--noise-rot", "auto", *options]) == 0
+    report = json.loads(report_path.read_text())
+    assert report["noise_source"]["position"] == report["noise_source"]["rotation"] == "estimated"
+    assert 8e-6 < report["noise_model"]["position_m"] < 12e-6 and 16e-6 < report["noise_model"]["rotation_rad"] < 24e-6
+    assert report["outliers"] == [i + 2 for i in study.outliers] and report["warnings"] == []
+    assert "(estimated from the residual)" in capsys.readouterr().out
+
+
+def test_a_noise_stated_too_small_gives_a_written_machine_and_a_warning(tmp_path, capsys):
+    """10 um of tracker noise stated as 2 um: nothing the checks know explains the residual, so the
+    machine is written, and the warning gives the variance factor and the noise the residual implies."""
+    study, path, options = _campaign(tmp_path, 7, True)
+    report_path = tmp_path / "cal.json"
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "cal.urdf"), "--report", str(report_path),
+                 "--frame", "estimate", "--noise-pos", "2e-6", *options]) == 0
+    report = json.loads(report_path.read_text())
+    assert report["variance_factor"] > 15 and len(report["warnings"]) == 1
+    implied = float(report["warnings"][0].split("imply a noise of ")[1].split(" m")[0])
+    assert 7e-6 < implied < 13e-6
+    assert "none of the usual mistakes explains it" in capsys.readouterr().err
+    assert (tmp_path / "cal.urdf").exists()

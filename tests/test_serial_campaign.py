@@ -226,3 +226,34 @@ def test_command_refuses_with_the_likely_cause(ur10, tmp_path, mistake: str, cau
     if mistake == "millimetres":  # the same file with --units mm is accepted
         run_serial_calibration(namespace(tmp_path, path, units="mm"))
         assert json.loads((tmp_path / "report.json").read_text())["input"]["units"] == "mm"
+
+
+def _noisy_campaign(ur10, tmp_path, noise: float):
+    model, chain = ur10
+    data, measured = campaign(model, chain, FRAMES["x90"], seed=9, n_poses=40)
+    rows = as_rows(measured)[:, :3] + np.random.default_rng(4).normal(0.0, noise, (40, 3))
+    path = tmp_path / "campaign.csv"
+    path.write_text(table_text(list(chain.joint_names) + ["x", "y", "z"], np.hstack([data.q_readings, rows])))
+    return path
+
+
+def test_a_residual_beyond_the_stated_noise_is_written_with_a_warning_and_auto_states_the_noise(
+        ur10, tmp_path, capsys) -> None:
+    """0.1 mm of tracker noise stated as 10 um: no mistake explains it, so the fit is written, with
+    the variance factor, the noise the residual implies and the cross-validated error; `auto`
+    estimates the noise from the residual instead, and the report says so."""
+    path = _noisy_campaign(ur10, tmp_path, 1e-4)
+    run_serial_calibration(namespace(tmp_path, path))
+    captured = capsys.readouterr()
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["variance_factor"] > 30 and len(report["warnings"]) == 1
+    implied = float(report["warnings"][0].split("imply a noise of ")[1].split(" m")[0])
+    assert 0.7e-4 < implied < 1.4e-4
+    assert "none of the usual mistakes explains it" in captured.err and "cross-validated error" in captured.err
+    assert report["noise_source"]["position"] == "stated"
+    run_serial_calibration(namespace(tmp_path, path, noise_pos="auto"))
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["noise_source"]["position"] == "estimated" and report["warnings"] == []
+    assert 0.7e-4 < report["noise_model"]["position_m"] < 1.4e-4
+    assert 0.7 < report["variance_factor"] < 1.4
+    assert "(estimated from the residual)" in capsys.readouterr().out

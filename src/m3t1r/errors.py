@@ -111,3 +111,7 @@ class PoorExcitationWarning(UserWarning):
 
 class ModelWarning(UserWarning):
     """`Mechanism.load` changed or assumed something about the files (see `Mechanism.notes`)."""
+
+
+class MissingExtraError(M3t1rError):
+    """An optional reader needs a package that is not installed; names the pip extra that brings it."""

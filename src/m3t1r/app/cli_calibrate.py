@@ -28,10 +28,12 @@ from m3t1r.app.cli_common import (
     parse_priors,
     selection_note,
 )
+from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise
 from m3t1r.app.cli_verbs import CALIBRATION_PLOTS, load
 from m3t1r.app.datasets import MeasurementFile, read_measurements
 from m3t1r.app.passive_joints import passive_joint_residuals
 from m3t1r.calibration.assessment import (
+    IMPLAUSIBLE_ROTATION,
     FitRejected,
     check_fit,
     check_start,
@@ -39,11 +41,13 @@ from m3t1r.calibration.assessment import (
     describe_parameter,
     fit_movement_notes,
     likely_causes,
+    unexplained_residual_warning,
 )
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, CrossValidation, calibrate_closed_loop, cross_validate
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
-from m3t1r.errors import PoorExcitationWarning
+from m3t1r.errors import InvalidInputError, PoorExcitationWarning
+from m3t1r.io.instruments.formats import export_hint
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.progress import Progress
 from m3t1r.model.description import Mechanism
@@ -61,13 +65,14 @@ def _nominal_points(nominal: Mechanism, marker: pin.SE3) -> Callable[[np.ndarray
     solver = ClosedLoopSolver(nominal)
 
     def predict(actuators: np.ndarray) -> np.ndarray:
-        """Marker positions [m] at each slider set, from home; NaN where it does not assemble."""
-        points = np.full((len(actuators), 3), np.nan)
+        """Marker frames (N, 4, 4) [m] at each slider set, from home; NaN where it does not assemble
+        (frames, not points: the checks register the marker's further offset, as the fit does)."""
+        frames = np.full((len(actuators), 4, 4), np.nan)
         if len(actuators) == 0:
-            return points
+            return frames
         solved = solver.forward_batch(actuators)
-        points[solved.indices] = solved.poses[:, :3, :3] @ marker.translation + solved.poses[:, :3, 3]
-        return points
+        frames[solved.indices] = solved.poses @ marker.homogeneous
+        return frames
     return predict
 
 
@@ -82,6 +87,8 @@ def _diagnose(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, frame_
 def cmd_calibrate(args: argparse.Namespace) -> None:
     """`m3t1r calibrate` without --serial: a closed-loop calibration from a measurement file."""
     args.prior = parse_priors(args.prior)
+    if (hint := export_hint(Path(args.measurements))) is not None:
+        raise InvalidInputError(hint)
     run_closed_loop_calibration(args, load_mechanism(args.model, args.closures))
 
 
@@ -94,30 +101,34 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     if args.plots:
         check_plots_folder(args.plots)
     data = read_measurements(args.measurements, nominal, units=args.units)
-    noise = TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
     marker = MeasurementSetup.from_numbers(marker_xyz=args.marker).marker
     estimate_frame = args.frame == "estimate"
     print(f"calibrating from {len(data.measurements)} poses"
           + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
+    _precheck(nominal, data, marker, estimate_frame, args.measurements)
     with warnings.catch_warnings(record=True) as caught, Progress("calibrating", None) as progress:
         warnings.simplefilter("always", PoorExcitationWarning)
-        calibration = _fit(args, nominal, data, noise, marker, estimate_frame, progress.advance)
+        calibration, choice = fit_with_noise(
+            args.noise_pos, args.noise_rot, TrackerNoise(actuator=args.noise_act),
+            lambda noise, gate: _fit(args, nominal, data, noise, marker, estimate_frame, progress.advance, gate),
+            lambda fitted: _left(fitted, data))
+    noise = choice.noise
     lines = [int(data.lines[i]) for i in calibration.outliers]
+    print(choice.describe(data.measurements.position_only))
     _print_summary(calibration, lines)
-    try:
-        check_fit(calibration.converged, calibration.lm.termination, calibration.lm.iterations,
-                  calibration.variance_factor, _fit_causes(args, nominal, data, marker, estimate_frame)
-                  if calibration.variance_factor > 9 or not calibration.converged else ())
-    except FitRejected as exc:
-        if not args.force:
-            raise
-        print(f"m3t1r: warning: writing anyway (--force): {exc.reason}", file=sys.stderr)
+    unexplained = _judge(args, calibration, choice,
+                         lambda: _fit_causes(args, nominal, data, marker, estimate_frame, calibration))
     with Progress(f"cross-validating ({args.folds} folds)", None) as progress:
         calibration.problem.on_evaluate = progress.advance
         validation = cross_validate(calibration, folds=args.folds)
     notes = explain(calibration, [str(w.message) for w in caught])
     _print_judgement(calibration, validation, notes)
+    warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
+                                           validation.errors.position_mean)] if unexplained else []
+    for warning in warned:
+        print(f"m3t1r: warning: {warning}", file=sys.stderr)
     report = calibration_report(calibration, data, nominal, noise, args, lines, validation, notes)
+    report["noise_source"], report["warnings"] = choice.report(), warned
     if data.passive_joints:
         report["passive_joint_cross_validation"] = _idle_chain_check(nominal, calibration, data)
     with outputs:
@@ -145,22 +156,57 @@ def _idle_chain_check(nominal: Mechanism, calibration: ClosedLoopCalibration, da
 
 
 def _fit(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, noise: TrackerNoise,
-         marker: pin.SE3, estimate_frame: bool, progress: Callable[[], None]) -> ClosedLoopCalibration:
-    """The fit, refused with the likely causes when the data cannot even be started from."""
-    _precheck(nominal, data, marker, estimate_frame, args.measurements)
+         marker: pin.SE3, estimate_frame: bool, progress: Callable[[], None], gate: bool = True
+         ) -> ClosedLoopCalibration:
+    """The fit (`gate`: with the --outlier-sigma gate), once `_precheck` has passed."""
     kwargs = {} if args.max_iterations is None else {"max_iterations": args.max_iterations}
     return calibrate_closed_loop(
         nominal, data.measurements, noise, setup=MeasurementSetup(marker=marker), estimate_frame=estimate_frame,
-        estimate_marker=args.marker is not None, outlier_sigma=args.outlier_sigma or None,
+        estimate_marker=args.marker is not None, outlier_sigma=(args.outlier_sigma or None) if gate else None,
         select=args.select == "loo", fixed=args.fix, priors=args.prior, progress=progress, **kwargs)
 
 
+def _left(calibration: ClosedLoopCalibration, data: MeasurementFile) -> ResidualSummary:
+    position, rotation = calibration.rms_after
+    measurements = data.measurements
+    return ResidualSummary(position, rotation, len(measurements) - len(calibration.outliers),
+                           measurements.rows_per_pose, len(calibration.fitted))
+
+
+def _implied_noise(calibration: ClosedLoopCalibration, noise: TrackerNoise) -> str:
+    """The noise the residual implies, stated noise times sqrt(variance factor), in words."""
+    factor = float(np.sqrt(calibration.variance_factor))
+    rotation = "" if calibration.problem.measurements.position_only else f" and {factor * noise.rotation:.3g} rad"
+    return f"{factor * noise.position:.3g} m{rotation}"
+
+
+def _judge(args: argparse.Namespace, calibration: ClosedLoopCalibration, choice: NoiseChoice,
+           causes: Callable[[], list[str]]) -> bool:
+    """check_fit with the likely causes (computed for a failing fit, or whenever the noise was
+    estimated); --force downgrades a refusal to a warning. Returns whether the residual is beyond
+    the noise for no nameable cause (the caller warns)."""
+    suspicious = calibration.variance_factor > 9 or not calibration.converged or choice.estimated
+    try:
+        return check_fit(calibration.converged, calibration.lm.termination, calibration.lm.iterations,
+                         calibration.variance_factor, causes() if suspicious else (),
+                         noise_estimated=choice.estimated)
+    except FitRejected as exc:
+        if not args.force:
+            raise
+        print(f"m3t1r: warning: writing anyway (--force): {exc.reason}", file=sys.stderr)
+        return False
+
+
 def _fit_causes(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, marker: pin.SE3,
-                estimate_frame: bool) -> list[str]:
+                estimate_frame: bool, calibration: ClosedLoopCalibration) -> list[str]:
     """Likely causes of a fit that does not explain the data: the data checks, and a measured frame
-    whose orientation is not the platform's while no marker was given to absorb it."""
+    whose orientation is not the platform's while no marker was given to absorb it (when the fit
+    left more than the stated noise, or, the noise being estimated, an orientation residual over
+    IMPLAUSIBLE_ROTATION / 10: beyond any tracker's)."""
     causes = _diagnose(nominal, data, marker, estimate_frame)
-    if args.marker is None and not data.measurements.position_only:
+    left = calibration.variance_factor > 9 or not calibration.converged or \
+        calibration.rms_after[1] > IMPLAUSIBLE_ROTATION / 10
+    if args.marker is None and not data.measurements.position_only and left:
         causes.append("the measured frame (a probe or a set of reflectors) is not the platform frame: give its "
                       "position with --marker X Y Z, and its orientation is estimated with it")
     return causes
@@ -172,13 +218,14 @@ def _precheck(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, estima
     name every line whose slider readings do not assemble on it (one batch solve of every row)."""
     measurements = data.measurements
     points = _nominal_points(nominal, marker)(measurements.actuators)
+    assembled = np.all(np.isfinite(points.reshape(len(points), -1)), axis=1)
     pick = np.linspace(0, len(measurements) - 1, min(len(measurements), _DIAGNOSIS_POSES)).astype(int)
     measured = np.array([measurements.poses[i].translation for i in pick])
-    valid = np.all(np.isfinite(points[pick]), axis=1)
+    valid = assembled[pick]
     if np.count_nonzero(valid) < 3:
         raise FitRejected("the slider readings do not assemble on the nominal machine",
                           _diagnose(nominal, data, marker, estimate_frame))
-    failed = np.flatnonzero(~np.all(np.isfinite(points), axis=1))
+    failed = np.flatnonzero(~assembled)
     if failed.size:
         raise RowFailures(Path(path), [(int(data.lines[i]), "the slider readings do not assemble on the nominal "
                                         "machine (from its home, on its branch)") for i in failed])

@@ -10,6 +10,8 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from m3t1r._version import __version__
 from m3t1r.calibration.assessment import describe_parameter
 from m3t1r.calibration.measurement_setup import MeasurementSetup, se3_to_report
@@ -110,6 +112,7 @@ def campaign_report_fields(setup: MeasurementSetup, estimated: Sequence[str], va
         "marker": {**se3_to_report(setup.marker), "estimated": any(n.startswith("marker.") for n in estimated)},
         "cross_validation": None if errors is None else {
             "position_mean_m": errors.position_mean, "rotation_mean_rad": errors.rotation_mean,
+            "position_rms_m": float(np.sqrt(np.mean(np.square(errors.position)))),
             "folds": validation.folds},
         "selection": {"method": "forward_loo" if selection else "none", "kept": list(fitted),
                       "press": selection.press if selection else None,

@@ -8,12 +8,21 @@ the standard library and the package's light ground (tests/test_startup.py check
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from m3t1r._version import __version__
+from m3t1r.io.instruments.names import FORMAT_DESCRIPTIONS
 from m3t1r.model.native_status import compiled_newton_status
 
-__all__ = ["build_parser", "add_campaign_options", "add_plan_parser", "add_validate_parser"]
+__all__ = ["build_parser", "add_campaign_options", "add_plan_parser", "add_validate_parser", "add_convert_parser",
+           "AUTO", "NOISE_AUTO_HELP", "noise_or_auto"]
+
+AUTO = "auto"
+NOISE_AUTO_HELP = ("; auto: estimated from the data, as the fit's RMS residual per coordinate scaled by "
+                   "rows / (rows - fitted parameters) for the degrees of freedom the fit used (refitted with "
+                   "the estimate and the outlier gate; the report says which noise was used)")
+
 
 
 class _VersionAction(argparse.Action):
@@ -29,9 +38,10 @@ def _add_model_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--closures", metavar="YAML", help="its closures file (default: URDF stem + .closures.yaml)")
 
 
-def _add_noise_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--noise-pos", type=float, default=10e-6, metavar="M", help="tracker position noise [m]")
-    parser.add_argument("--noise-rot", type=float, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
+def _add_noise_options(parser: argparse.ArgumentParser, estimable: bool = False) -> None:
+    number, auto = (noise_or_auto, NOISE_AUTO_HELP) if estimable else (float, "")
+    parser.add_argument("--noise-pos", type=number, default=10e-6, metavar="M", help="tracker position noise [m]" + auto)
+    parser.add_argument("--noise-rot", type=number, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]" + auto)
     parser.add_argument("--noise-act", type=float, default=1e-6, metavar="M", help="slider reading noise [m]")
 
 
@@ -83,7 +93,7 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--compliance", action="store_true",
                    help="with --serial: joint compliance under gravity as candidate parameters")
     add_campaign_options(p)
-    _add_noise_options(p)
+    _add_noise_options(p, estimable=True)
     _add_model_options(p)
 
     p = verbs.add_parser("compensate", help="corrected commands for targets, from a calibrated model (paper sec. 7)")
@@ -131,6 +141,7 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=1)
 
     add_plan_parser(verbs)
+    add_convert_parser(verbs)
     add_validate_parser(verbs)
     # --quiet before or after the verb; the verb's copy must not reset the global one.
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress display on stderr")
@@ -205,3 +216,55 @@ def add_validate_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentP
     p.add_argument("--units", choices=("m", "mm"), help="length unit of the file (default: the calibration input's)")
     p.add_argument("--predictions", metavar="CSV", help="write the predicted measurements, one row per input row")
     return p
+
+
+def noise_or_auto(text: str) -> float | str:
+    """argparse type of --noise-pos / --noise-rot in `calibrate`: a positive number, or `auto`."""
+    if text.strip().lower() == AUTO:
+        return AUTO
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a noise [m or rad] or '{AUTO}', got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"a positive noise [m or rad] or '{AUTO}', got {text!r}")
+    return value
+
+
+def add_convert_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add the `convert` verb to argparse's subparsers object `verbs`."""
+    p = verbs.add_parser("convert", help="a tracker's export (and the robot's log) -> measurement CSV",
+                         description="Formats: " + "; ".join(f"{name}: {text}" for name, text in FORMAT_DESCRIPTIONS.items()))
+    p.add_argument("tracker", metavar="TRACKER_FILE", help="the instrument's file (a bag: its folder or .db3/.mcap)")
+    p.add_argument("--robot", metavar="ROBOT_LOG", help="the robot's joint log: CSV (time or t_start,t_end, joints "
+                                                        "by name) or a ROS 2 bag with JointState")
+    p.add_argument("-o", "--output", required=True, metavar="MEASUREMENTS.csv", help="measurement CSV to write")
+    p.add_argument("--format", choices=tuple(FORMAT_DESCRIPTIONS), help="the tracker file's format (default: from its content)")
+    p.add_argument("--body", metavar="NAME", help="the rigid body, marker, label, group or topic to read "
+                                                  "(a marker number K for x1..xK columns; rigid: those markers as "
+                                                  "one rigid body)")
+    p.add_argument("--units", choices=("m", "mm", "cm", "in"), help="position unit when the file does not state it "
+                                                                    "(default m for tables)")
+    p.add_argument("--euler", metavar="SEQ", help="Euler convention of rotation columns (scipy's: xyz extrinsic, "
+                                                  "XYZ intrinsic)")
+    p.add_argument("--degrees", action="store_true", help="Euler angles in degrees")
+    p.add_argument("--joints", nargs="+", metavar="NAME", help="the joint columns (default: every other numeric "
+                                                               "column but times and counters)")
+    p.add_argument("--joint-degrees", nargs="+", default=[], metavar="NAME",
+                   help="joint columns in degrees ('all': every joint)")
+    p.add_argument("--still-speed", type=_positive, default=5e-3, metavar="M_PER_S",
+                   help="a tracker stream is still below this speed (default 5e-3 m/s)")
+    p.add_argument("--robot-still-speed", type=_positive, default=2e-3, metavar="RAD_PER_S",
+                   help="the robot log is still below this joint speed (default 2e-3 rad/s or m/s)")
+    p.add_argument("--min-dwell", type=_positive, default=0.5, metavar="S",
+                   help="shortest still stretch kept as a pose (default 0.5 s)")
+    p.add_argument("--pair", choices=("auto", "order", "time"), default="auto",
+                   help="pair poses with the robot's stops by clock (auto, when both have times) or by order")
+    return p
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"a positive number, got {text}")
+    return value

@@ -22,6 +22,7 @@ import pinocchio as pin
 
 from m3t1r._version import __version__
 from m3t1r.app.cli_common import campaign_report_fields, parse_priors, selection_note
+from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise
 from m3t1r.calibration.assessment import (
     FitRejected,
     check_fit,
@@ -29,6 +30,7 @@ from m3t1r.calibration.assessment import (
     describe_parameter,
     fit_movement_notes,
     likely_causes,
+    unexplained_residual_warning,
 )
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
@@ -36,6 +38,8 @@ from m3t1r.calibration.serial import SerialCalibration, calibrate_serial
 from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
 from m3t1r.errors import InvalidInputError, PoorExcitationWarning
+from m3t1r.io.instruments.formats import export_hint
+from m3t1r.io.instruments.records import CONVERTED_COLUMNS
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import sha256_bytes
 from m3t1r.io.poses import poses_from_table
@@ -53,7 +57,8 @@ _EXAMPLE_ROBOTS = ("ur3", "ur5", "ur10", "panda")
 @dataclass(frozen=True)
 class SerialCampaign:
     """A measurement file read for a chain: readings (N, n) [rad, m], measured poses (SE3, m),
-    the file's data lines (for outliers) and sha256."""
+    the file's data lines (for outliers) and sha256; sources: the `source` column of a converted
+    file (where each pose is in the tracker's file), or None."""
 
     path: Path
     sha256: str
@@ -62,6 +67,7 @@ class SerialCampaign:
     lines: np.ndarray
     position_only: bool
     units: str
+    sources: np.ndarray | None = None
 
 
 def _robot(source: str, tool: str | None, base: str | None) -> tuple[pin.Model, SerialChain, Path | None]:
@@ -85,8 +91,8 @@ def read_campaign(path: str, chain: SerialChain, units: str) -> SerialCampaign:
     if units not in LENGTH_UNITS:
         raise InvalidInputError(f"--units {units}: expected one of {', '.join(LENGTH_UNITS)}")
     names = chain.joint_names
-    table = read_table(path, required=names + ("x", "y", "z"), optional_groups=(("qx", "qy", "qz", "qw"),),
-                       reject_duplicate_rows=True)
+    table = read_table(path, required=names + ("x", "y", "z"), optional=CONVERTED_COLUMNS,
+                       optional_groups=(("qx", "qy", "qz", "qw"),), reject_duplicate_rows=True)
     scale = LENGTH_UNITS[units]
     prismatic = ~np.any(chain.twists[:, 3:], axis=1)
     readings = np.column_stack([table.column(n) for n in names]) * np.where(prismatic, scale, 1.0)
@@ -95,35 +101,39 @@ def read_campaign(path: str, chain: SerialChain, units: str) -> SerialCampaign:
     rotations = [np.eye(3)] * len(positions) if position_only else [g.rotation for g in poses_from_table(table)]
     poses = [pin.SE3(r, p) for r, p in zip(rotations, positions)]
     return SerialCampaign(Path(path), sha256_bytes(Path(path).read_bytes()), readings, poses,
-                          np.asarray(table.line_numbers), position_only, units)
+                          np.asarray(table.line_numbers), position_only, units,
+                          table.column("source").astype(int) if table.has_column("source") else None)
 
 
-def _nominal_points(model: pin.Model, chain: SerialChain, marker: pin.SE3) -> Callable[[np.ndarray], np.ndarray]:
-    """readings (N, n) -> the measured point (N, 3) the nominal robot predicts in its base [m]."""
+def _nominal_frames(model: pin.Model, chain: SerialChain, marker: pin.SE3) -> Callable[[np.ndarray], np.ndarray]:
+    """readings (N, n) -> the measured frame (N, 4, 4) the nominal robot predicts in its base [m]
+    (the given marker applied: the checks register the point's further offset, as the fit does)."""
     def predict(readings: np.ndarray) -> np.ndarray:
-        return (tool_poses(chain, model, readings) @ marker.homogeneous)[:, :3, 3]
+        return tool_poses(chain, model, readings) @ marker.homogeneous
     return predict
 
 
 def _diagnose(model: pin.Model, chain: SerialChain, data: SerialCampaign, marker: pin.SE3,
               frame_estimated: bool) -> list[str]:
     measured = np.array([g.translation for g in data.poses])
-    return likely_causes(_nominal_points(model, chain, marker), data.readings, measured, chain.joint_names,
+    return likely_causes(_nominal_frames(model, chain, marker), data.readings, measured, chain.joint_names,
                          frame_estimated=frame_estimated)
 
 
 def _precheck(model: pin.Model, chain: SerialChain, data: SerialCampaign, marker: pin.SE3,
               estimate_frame: bool) -> None:
     """Refuse at once when the nominal robot is further from the data than any build error."""
-    points = _nominal_points(model, chain, marker)(data.readings)
+    frames = _nominal_frames(model, chain, marker)(data.readings)
     measured = np.array([g.translation for g in data.poses])
-    check_start(points, measured, estimate_frame, lambda: _diagnose(model, chain, data, marker, estimate_frame),
+    check_start(frames, measured, estimate_frame, lambda: _diagnose(model, chain, data, marker, estimate_frame),
                 "robot")
 
 
 def cmd_calibrate_serial(args: argparse.Namespace) -> None:
     """`m3t1r calibrate --serial`: a serial robot's calibration from a measurement file."""
     args.prior = parse_priors(args.prior)
+    if (hint := export_hint(Path(args.measurements))) is not None:
+        raise InvalidInputError(hint)
     run_serial_calibration(args)
 
 
@@ -141,20 +151,34 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
     data = read_campaign(args.measurements, chain, args.units)
     marker = pin.SE3(np.eye(3), np.array(args.marker, dtype=float)) if args.marker is not None else pin.SE3.Identity()
     estimate_frame = args.frame == "estimate"
-    noise = TrackerNoise(args.noise_pos, args.noise_rot)
     _precheck(model, chain, data, marker, estimate_frame)
     print(f"calibrating chain {chain.joint_names[0]} .. {chain.tool_frame} from {len(data.poses)} poses"
           + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PoorExcitationWarning)
-        calibration = _fit(args, model, chain, data, noise, marker, estimate_frame)
+        calibration, choice = fit_with_noise(
+            args.noise_pos, args.noise_rot, TrackerNoise(),
+            lambda noise, gate: _fit(args, model, chain, data, noise, marker, estimate_frame, gate),
+            lambda fitted: _left(fitted, len(data.poses)))
+    noise = choice.noise
     lines = [int(data.lines[i]) for i in calibration.outliers]
+    print(choice.describe(data.position_only))
     _print_summary(calibration, lines)
-    _judge(args, calibration, lambda: _diagnose(model, chain, data, marker, estimate_frame))
+    if data.sources is not None and calibration.outliers:
+        print("outliers in the tracker's file (the source column): "
+              + ", ".join(str(int(data.sources[i])) for i in calibration.outliers))
+    unexplained = _judge(args, calibration, choice, lambda: _diagnose(model, chain, data, marker, estimate_frame))
     validation = cross_validate_serial(calibration, folds=args.folds)
     notes = explain(calibration, [str(w.message) for w in caught])
+    warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
+                                           validation.errors.position_mean)] if unexplained else []
     _print_judgement(validation, notes)
+    for warning in warned:
+        print(f"m3t1r: warning: {warning}", file=sys.stderr)
     report = serial_calibration_report(calibration, data, args, noise, lines, validation, notes)
+    report["noise_source"], report["warnings"] = choice.report(), warned
+    if data.sources is not None:
+        report["outlier_sources"] = [int(data.sources[i]) for i in calibration.outliers]
     with outputs:
         if urdf_output is not None:
             outputs.stage(urdf_output, calibrated_urdf_bytes(urdf, calibration.model))
@@ -165,26 +189,44 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
 
 
 def _fit(args: argparse.Namespace, model: pin.Model, chain: SerialChain, data: SerialCampaign,
-         noise: TrackerNoise, marker: pin.SE3, estimate_frame: bool) -> SerialCalibration:
+         noise: TrackerNoise, marker: pin.SE3, estimate_frame: bool, gate: bool = True) -> SerialCalibration:
     kwargs = {} if args.max_iterations is None else {"max_iterations": args.max_iterations}
     measured = np.array([g.translation for g in data.poses]) if data.position_only else data.poses
     return calibrate_serial(
         model, chain, data.readings, measured, position_only=data.position_only, noise=noise,
         setup=MeasurementSetup(marker=marker), estimate_frame=estimate_frame, estimate_marker=args.marker is not None,
-        outlier_sigma=args.outlier_sigma or None, select=args.select == "loo", compliance=bool(args.compliance),
-        fixed=list(args.fix or ()), priors=dict(args.prior or {}), **kwargs)
+        outlier_sigma=(args.outlier_sigma or None) if gate else None, select=args.select == "loo",
+        compliance=bool(args.compliance), fixed=list(args.fix or ()), priors=dict(args.prior or {}), **kwargs)
 
 
-def _judge(args: argparse.Namespace, calibration: SerialCalibration, causes: Callable[[], list[str]]) -> None:
-    """check_fit with the likely causes (computed only for a failing fit); --force downgrades to a warning."""
-    suspicious = not calibration.converged or not calibration.variance_factor <= 9.0
+def _left(calibration: SerialCalibration, poses: int) -> ResidualSummary:
+    after = calibration.residual_after
+    return ResidualSummary(after.position, after.rotation, poses - len(calibration.outliers),
+                           3 if calibration.position_only else 6, len(calibration.fitted))
+
+
+def _implied_noise(calibration: SerialCalibration, noise: TrackerNoise) -> str:
+    """The noise the residual implies, stated noise times sqrt(variance factor), in words."""
+    factor = float(np.sqrt(calibration.variance_factor))
+    rotation = "" if calibration.position_only else f" and {factor * noise.rotation:.3g} rad"
+    return f"{factor * noise.position:.3g} m{rotation}"
+
+
+def _judge(args: argparse.Namespace, calibration: SerialCalibration, choice: NoiseChoice,
+           causes: Callable[[], list[str]]) -> bool:
+    """check_fit with the likely causes (computed only for a failing fit, or whenever the noise was
+    estimated); --force downgrades a refusal to a warning. Returns whether the residual is beyond
+    the noise for no nameable cause (the caller warns)."""
+    suspicious = not calibration.converged or not calibration.variance_factor <= 9.0 or choice.estimated
     try:
-        check_fit(calibration.converged, calibration.termination, calibration.iterations,
-                  calibration.variance_factor, causes() if suspicious else ())
+        return check_fit(calibration.converged, calibration.termination, calibration.iterations,
+                         calibration.variance_factor, causes() if suspicious else (),
+                         noise_estimated=choice.estimated)
     except FitRejected as exc:
         if not args.force:
             raise
         print(f"m3t1r: warning: writing anyway (--force): {exc.reason}", file=sys.stderr)
+        return False
 
 
 def _print_summary(calibration: SerialCalibration, outlier_lines: list[int]) -> None:
@@ -207,8 +249,10 @@ def _print_summary(calibration: SerialCalibration, outlier_lines: list[int]) -> 
 def _print_judgement(validation: SerialCrossValidation, notes: list[str]) -> None:
     errors = validation.errors
     rotation = "" if np.isnan(errors.rotation_mean) else f", {errors.rotation_mean:.3e} rad"
+    rms = float(np.sqrt(np.mean(np.square(errors.position))))
     print(f"cross-validation ({validation.folds} folds): predicting held-back measurements "
-          f"{errors.position_mean:.3e} m{rotation} mean (noise included, as fresh measurements would show)")
+          f"{errors.position_mean:.3e} m{rotation} mean, {rms:.3e} m RMS (noise included, as fresh measurements "
+          "would show)")
     for note in notes:
         print(f"note: {note}")
 
@@ -238,7 +282,9 @@ def explain(calibration: SerialCalibration, warnings_seen: list[str] = ()) -> li
     notes.append(f"{undetermined} of {len(chain_names)} placement components are not separable with these data "
                  "(redundant with others or with the measurement setup) and stay nominal")
     moved = {n: float(v) for n, v in zip(calibration.names, calibration.values) if n in fitted and n in chain_names}
-    notes += fit_movement_notes(moved, calibration.residual_before.position, calibration.residual_after.position)
+    marker_estimated = any(n.startswith("marker.") for n in calibration.names)
+    notes += fit_movement_notes(moved, calibration.residual_before.position, calibration.residual_after.position,
+                                None if marker_estimated else calibration.chain.tool_frame)
     return notes
 
 

@@ -26,6 +26,7 @@ VERBS: dict[str, str] = {
     "evaluate": "m3t1r.app.cli_kinematics:cmd_evaluate",
     "plan": "m3t1r.app.cli_campaign:cmd_plan",
     "validate": "m3t1r.app.cli_campaign:cmd_validate",
+    "convert": "m3t1r.app.cli_convert:cmd_convert",
 }
 SERIAL_CALIBRATION = "m3t1r.app.cli_serial:cmd_calibrate_serial"  # calibrate --serial: no closed-loop stack
 CALIBRATION_PLOTS = "m3t1r.app.reporting:write_calibration_plots"  # matplotlib, for calibrate --plots only

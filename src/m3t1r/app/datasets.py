@@ -20,6 +20,7 @@ import pinocchio as pin
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS
 from m3t1r.calibration.measurements import PoseMeasurements
 from m3t1r.errors import DataFileError
+from m3t1r.io.instruments.records import CONVERTED_COLUMNS
 from m3t1r.io.paths import StrPath
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows, poses_from_table
 from m3t1r.io.tables import Table, read_table, write_table
@@ -162,7 +163,8 @@ def read_measurements(path: StrPath, mechanism: Mechanism, units: str = "m") -> 
     source = Path(path)
     model = mechanism.model
     passive_names = tuple(model.names[j] for j in range(1, model.njoints) if model.names[j] not in mechanism.actuated_joints)
-    table = read_table(source, required=mechanism.actuated_joints + ("x", "y", "z"), optional=passive_names,
+    table = read_table(source, required=mechanism.actuated_joints + ("x", "y", "z"),
+                       optional=(*passive_names, *CONVERTED_COLUMNS),
                        optional_groups=(_QUATERNION,), reject_duplicate_rows=True)
     _check_joint_columns(table, mechanism, mechanism.actuated_joints)
     scale = _length_scale(table, mechanism, units)

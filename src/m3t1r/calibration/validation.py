@@ -50,6 +50,7 @@ import scipy.special
 from m3t1r.calibration.identification import OUTLIER_SIGMA, outlier_gate
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelFileError
+from m3t1r.io.instruments.records import CONVERTED_COLUMNS
 from m3t1r.io.poses import poses_from_table
 from m3t1r.io.tables import read_table
 from m3t1r.metrics import PoseErrors, pose_errors_between
@@ -182,13 +183,14 @@ class Campaign:
 def read_campaign(path: str | Path, columns: Sequence[str], prismatic: Sequence[bool], units: str = "m",
                   optional: Sequence[str] = ()) -> Campaign:
     """Read a measurement CSV: the joint `columns`, optional columns (read and ignored, e.g. passive
-    joint encoders), x, y, z and optionally qx, qy, qz, qw. Lengths (x, y, z and the columns whose
-    `prismatic` flag is set) are in `units` and converted to m. Raises DataFileError naming the
+    joint encoders, and `m3t1r convert`'s source and position_std), x, y, z and optionally qx, qy,
+    qz, qw. Lengths (x, y, z and the columns whose `prismatic` flag is set) are in `units` and
+    converted to m. Raises DataFileError naming the
     file, line and column (missing file, unknown columns, non-numbers, non-unit quaternions)."""
     if units not in LENGTH_UNITS:
         raise InvalidInputError(f"units must be one of {sorted(LENGTH_UNITS)}, got {units!r}")
     scale = LENGTH_UNITS[units]
-    table = read_table(path, required=tuple(columns) + ("x", "y", "z"), optional=tuple(optional),
+    table = read_table(path, required=tuple(columns) + ("x", "y", "z"), optional=(*optional, *CONVERTED_COLUMNS),
                        optional_groups=(_QUATERNION,))
     readings = np.column_stack([table.column(n) * (scale if p else 1.0) for n, p in zip(columns, prismatic)])
     position_only = not table.has_column("qw")
