@@ -6,7 +6,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from m3t1r.errors import DataFileError, InvalidInputError
-from m3t1r.io.instruments.c3d import looks_c3d
+from m3t1r.io.instruments.c3d import looks_c3d, read_c3d
 from m3t1r.io.instruments.delimited import ReadOptions, looks_delimited, read_delimited
 from m3t1r.io.instruments.names import FORMAT_DESCRIPTIONS
 from m3t1r.io.instruments.optitrack import looks_motive, read_motive
