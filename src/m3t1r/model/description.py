@@ -26,7 +26,7 @@ from m3t1r.io.temporaries import pending_temporaries
 from m3t1r.model.closures import ASSEMBLY_MAX_CHANGE, ClosureSpec, ClosureSystem, without_rows
 from m3t1r.model.schema import SCHEMA_VERSIONS, read_description
 from m3t1r.model.task import TaskSpec, WorkspaceSpec
-from m3t1r.model.urdf_io import calibrated_urdf_bytes
+from m3t1r.model.urdf_io import calibrated_urdf_bytes, revolute_urdf_text
 
 __all__ = ["ClosureSpec", "Mechanism", "nominal_model_paths", "paired_closures", "HOME_TOLERANCE",
            "SCHEMA_VERSIONS"]
@@ -187,9 +187,11 @@ class Mechanism:
         doc = copy.deepcopy(self.closures_document) if self.closures_document is not None else \
             _parse_yaml(self.closures_path, _read_bytes(self.closures_path))
         doc["home"] = {self.model.names[j]: float(self.home[self.model.idx_qs[j]]) for j in range(1, self.model.njoints)}
+        _record_derived(doc, self)
         closures_path = paired_closures_path(urdf) if closures is None else Path(closures)
         header = (f"# Closures of {Path(urdf).name} (written with it as a pair; its URDF records this file's sha256); "
-                  "home re-assembled for its geometry. Schema: models/README.md\n")
+                  "home re-assembled for its geometry; rows and locked joints as load derived them. "
+                  "Schema: models/README.md\n")
         closures_bytes = (header + yaml.safe_dump(doc, sort_keys=False)).encode("utf-8")
         del closures_path
         return calibrated_urdf_bytes(self.urdf_path, self.model, sha256_bytes(closures_bytes)), closures_bytes
@@ -219,15 +221,31 @@ class Mechanism:
         return dataclasses.replace(self, home=np.array(home, dtype=float))
 
 
+def _record_derived(doc: dict, mechanism: Mechanism) -> None:
+    """Write into a closures document what load derived, so that the pair reloads as this machine:
+    each closure's enforced rows (dependent rows dropped) and the locked gauge joints. On another
+    geometry (a calibrated or perturbed copy) the dropped rows no longer hold by themselves and
+    the gauges are no longer exact, so re-deriving them there would describe another machine."""
+    entries = doc.get("closures")
+    if isinstance(entries, list) and len(entries) == len(mechanism.closures):
+        for entry, spec in zip(entries, mechanism.closures):
+            if isinstance(entry, dict):
+                entry["rows"] = list(spec.rows)
+    if mechanism.locked_joints:
+        doc["locked_joints"] = list(mechanism.locked_joints)
+
+
 def _load_urdf(path: Path) -> pin.Model:
+    """The URDF's tree, with its continuous joints built as revolute ones (`urdf_io.revolute_urdf_text`)."""
+    text = revolute_urdf_text(path, _read_bytes(path))
     try:
-        model = pin.buildModelFromUrdf(str(path))
+        model = pin.buildModelFromUrdf(str(path)) if text is None else pin.buildModelFromXML(text)
     except Exception as exc:  # Pinocchio raises bare RuntimeError/ValueError for bad XML
         raise ModelFileError(path, f"Pinocchio rejected the URDF: {exc}") from None
     for j in range(1, model.njoints):
         if model.nqs[j] != 1 or model.nvs[j] != 1:
-            raise ModelFileError(path, f"joint '{model.names[j]}' is not a 1-DoF revolute/prismatic joint "
-                                       f"(nq={model.nqs[j]}); continuous and multi-DoF joints are not supported")
+            raise ModelFileError(path, f"joint '{model.names[j]}' is not a 1-DoF revolute/prismatic/continuous "
+                                       f"joint (nq={model.nqs[j]}); multi-DoF joints are not supported")
     return model
 
 
@@ -329,13 +347,13 @@ def _build(model: pin.Model, doc: dict, urdf_path: Path, path: Path) -> Mechanis
     described = read_description(model, doc, urdf_path, path)
     return Mechanism(model, described.closures, described.actuated_joints, described.principal_chains,
                      described.platform_frame, described.home, urdf_path, path, task=described.task,
-                     workspace=described.workspace)
+                     workspace=described.workspace, locked_joints=described.locked_joints)
 
 
 def _settled(mechanism: Mechanism) -> Mechanism:
     """The mechanism with its actuator limits, home and closure system made usable, and notes on what
     that changed: missing limits replaced, an approximate home assembled, gauge joints locked."""
-    notes = list(_replace_missing_limits(mechanism))
+    notes = list(_replace_missing_limits(mechanism)) + _unbounded_passive_joints(mechanism)
     system = ClosureSystem(mechanism.model, mechanism.closures)
     passive = mechanism.passive_ids
     home = mechanism.home
@@ -362,14 +380,15 @@ def _settled(mechanism: Mechanism) -> Mechanism:
                                      f"can still move ({speed:.2g} per unit joint speed); rows or closures are missing")
     locked = tuple(_joint_name(mechanism.model, v) for v in redundancy.locked)
     closures = mechanism.closures
-    if locked:
+    if locked:  # joints the file declares locked are not noted again
         notes.append(f"passive joint(s) {', '.join(locked)} locked at their home value: their motion is "
                      "already spanned by the other passive joints (a gauge, e.g. a cut joint modelled twice)")
     if redundancy.dropped:
         closures = without_rows(closures, redundancy.dropped)
         notes.append(f"{len(redundancy.dropped)} closure row(s) dropped as dependent on the others: "
                      + ", ".join(_row_names(mechanism.closures, redundancy.dropped)))
-    return dataclasses.replace(mechanism, closures=closures, home=home, locked_joints=locked, notes=tuple(notes))
+    return dataclasses.replace(mechanism, closures=closures, home=home, locked_joints=mechanism.locked_joints + locked,
+                               notes=tuple(notes))
 
 
 def _joint_name(model: pin.Model, velocity_index: int) -> str:
@@ -413,6 +432,26 @@ def _replace_missing_limits(mechanism: Mechanism) -> list[str]:
         source = "the workspace box's" if name in intervals else "no"
         notes.append(f"actuator '{name}' has no usable URDF limits; {source} limits [{lo:g}, {hi:g}] used instead")
     return notes
+
+
+def _unbounded_passive_joints(mechanism: Mechanism) -> list[str]:
+    """Passive joints without usable URDF limits (an empty or absent `<limit>`, which Pinocchio reads
+    as [0, 0], or a continuous joint) made unbounded: published URDFs mean "not given", not "locked"."""
+    model = mechanism.model
+    actuated = set(mechanism.actuated_joints)
+    lower, upper = model.lowerPositionLimit.copy(), model.upperPositionLimit.copy()
+    unbounded = []
+    for j in range(1, model.njoints):
+        k = model.idx_qs[j]
+        if model.names[j] not in actuated and not lower[k] < upper[k]:
+            lower[k], upper[k] = -np.inf, np.inf
+            unbounded.append(model.names[j])
+    if not unbounded:
+        return []
+    model.lowerPositionLimit, model.upperPositionLimit = lower, upper
+    shown = ", ".join(unbounded[:6]) + (f" and {len(unbounded) - 6} more" if len(unbounded) > 6 else "")
+    return [f"{len(unbounded)} passive joint(s) without usable URDF limits ({shown}): taken as unbounded "
+            "(an empty <limit/> or a continuous joint gives no range)"]
 
 
 def closure_residual_by_closure(mechanism: Mechanism, q: np.ndarray) -> Iterator[tuple[ClosureSpec, np.ndarray]]:

@@ -33,6 +33,7 @@ class Description:
     home: np.ndarray
     task: TaskSpec
     workspace: WorkspaceSpec | None
+    locked_joints: tuple[str, ...] = ()
 
 
 def read_description(model: pin.Model, doc: dict, urdf_path: Path, path: Path) -> Description:
@@ -46,7 +47,8 @@ def read_description(model: pin.Model, doc: dict, urdf_path: Path, path: Path) -
     task = _task(model, doc.get("task"), platform, path)
     workspace = _workspace(doc.get("workspace"), actuated, task, path)
     return Description(_closures(model, doc["closures"], path), actuated, _chains(model, doc, path), platform,
-                       _home(model, doc["home"], path), task, workspace)
+                       _home(model, doc["home"], path), task, workspace,
+                       _locked(model, doc.get("locked_joints", []), actuated, path))
 
 
 def _frame_id(model: pin.Model, name: object, path: Path, where: str) -> int:
@@ -67,6 +69,20 @@ def _actuated(model: pin.Model, actuated: object, urdf_path: Path, path: Path) -
     if len(set(actuated)) != len(actuated):
         raise ModelFileError(path, "actuated_joints: a joint is listed twice")
     return tuple(actuated)
+
+
+def _locked(model: pin.Model, names: object, actuated: tuple[str, ...], path: Path) -> tuple[str, ...]:
+    """`locked_joints`: passive joints held at their home value (written by `Mechanism.save`)."""
+    if not isinstance(names, list) or not all(isinstance(name, str) for name in names):
+        raise ModelFileError(path, f"locked_joints must be a list of joint names, got {names!r}")
+    for name in names:
+        if not model.existJointName(name):
+            raise ModelFileError(path, f"locked_joints: joint '{name}' does not exist")
+        if name in actuated:
+            raise ModelFileError(path, f"locked_joints: '{name}' is an actuated joint")
+    if len(set(names)) != len(names):
+        raise ModelFileError(path, "locked_joints: a joint is listed twice")
+    return tuple(names)
 
 
 def _closures(model: pin.Model, entries: object, path: Path) -> tuple[ClosureSpec, ...]:
