@@ -109,7 +109,7 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     truth_output = outputs.add_machine(args.truth_urdf, "--truth-urdf")
     outputs.check()
     noise = None if args.noise_free else TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
-    passive = IDLE_CHAIN_JOINTS if args.with_passive else ()
+    passive = _recorded_passive_joints(nominal) if args.with_passive else ()
     setup = MeasurementSetup.from_numbers(args.tracker_frame, args.marker)
     study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only,
                            passive_joints=passive, setup=setup, outliers=args.outliers)
@@ -130,6 +130,14 @@ def cmd_simulate(args: argparse.Namespace) -> None:
                   f"{measurement_output.name}")
     if truth_output is not None:
         say(outputs, f"wrote the truth machine to {truth_output.name} and {truth_output.closures.name}")
+
+
+def _recorded_passive_joints(mechanism) -> tuple[str, ...]:
+    """`simulate --with-passive`: the idle chains' hinges on the M machine, else every joint the closures solve."""
+    model = mechanism.model
+    if all(model.existJointName(name) for name in IDLE_CHAIN_JOINTS):
+        return IDLE_CHAIN_JOINTS
+    return tuple(model.names[j] for j in range(1, model.njoints) if model.idx_vs[j] in set(mechanism.passive_ids))
 
 
 def cmd_calibrate(args: argparse.Namespace) -> None:
@@ -369,7 +377,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--units", choices=("m", "mm"), default="m", help="length unit of the written file")
     p.add_argument("--outliers", type=int, default=0, metavar="K", help="spoil K measurements with 3-5 mm gross errors")
     p.add_argument("--with-passive", action="store_true",
-                   help="also record encoders on the idle chains' hinges (q12_B2, q22_B4) for cross-validation")
+                   help="also record encoders on the idle chains' hinges (q12_B2, q22_B4) for cross-validation "
+                        "(another mechanism: on every passive joint the closures solve)")
     p.add_argument("-o", "--output", required=True, help="measurement CSV")
     p.add_argument("--truth-urdf", metavar="URDF", help="also write the actual machine (and its closures file)")
     _add_model_options(p)

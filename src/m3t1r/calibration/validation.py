@@ -51,7 +51,7 @@ import scipy.stats
 from m3t1r.calibration.identification import OUTLIER_SIGMA
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelFileError
-from m3t1r.io.poses import poses_from_table
+from m3t1r.io.poses import measurement_column, poses_from_table
 from m3t1r.io.tables import read_table
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
@@ -253,7 +253,8 @@ def _predict_closed_loop(calibrated: Path, report: CalibrationReport, units: str
     model = mechanism.model
     names = mechanism.actuated_joints
     passive = tuple(model.names[j] for j in range(1, model.njoints) if model.names[j] not in names)
-    campaign = read_campaign(measurements, names, [_is_prismatic(model, n) for n in names], units, passive)
+    campaign = read_campaign(measurements, tuple(map(measurement_column, names)),
+                             [_is_prismatic(model, n) for n in names], units, tuple(map(measurement_column, passive)))
     poses = np.full((len(campaign.lines), 4, 4), np.nan)
     failures: list[tuple[int, str]] = []
     if len(campaign.readings):
