@@ -48,8 +48,8 @@ def test_simulate_calibrate_evaluate(files, tmp_path, noise_free, capsys):
         report = json.loads((tmp_path / "cal.json").read_text())
         assert 0.5 < report["variance_factor"] < 1.5
     capsys.readouterr()
-    assert main(["evaluate", "--truth", str(truth_urdf), "--calibrated", str(calibrated), "--nominal", str(files[0]),
-                 "--nominal-closures", str(files[1]), "-n", "50"]) == 0
+    assert main(["evaluate", "--truth", str(truth_urdf), "--calibrated", str(calibrated), "--model", str(files[0]),
+                 "--closures", str(files[1]), "-n", "50"]) == 0
     assert "calibrated" in capsys.readouterr().out
 
 
@@ -73,7 +73,7 @@ def test_ik_fk_compensate_and_view_use_the_task_columns(files, tmp_path):
                  "--calibrated-closures", str(files[1]), "-o", str(tmp_path / "c.csv")]) == 0
     text = (tmp_path / "c.csv").read_text()
     assert ",".join(task.columns) in text.splitlines()[[line.startswith("#") for line in text.splitlines()].index(False)]
-    assert main(["view", "--nominal", str(files[0]), "--closures", str(files[1]), "--pose",
+    assert main(["view", "--model", str(files[0]), "--closures", str(files[1]), "--pose",
                  *map(str, task.coordinates(poses)[0]), "--html", str(tmp_path / "page.html")]) == 0
     assert "reached by IK on each machine" in (tmp_path / "page.html").read_text()
 

@@ -220,7 +220,7 @@ def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -
 
 def cmd_view(args: argparse.Namespace) -> None:
     """`m3t1r view`: the nominal and calibrated machines in meshcat."""
-    nominal = load_mechanism(args.nominal, args.closures)
+    nominal = load_mechanism(args.model, args.closures)
     calibrated = load_mechanism(args.calibrated, args.calibrated_closures) if args.calibrated else None
     outputs = OutputSet(inputs=(nominal.urdf_path, nominal.closures_path, args.measurements,
                                 *((calibrated.urdf_path, calibrated.closures_path) if calibrated else ())))
@@ -292,7 +292,7 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
     import pinocchio as pin
 
 
-    nominal = load_mechanism(args.nominal, args.nominal_closures)
+    nominal = load_mechanism(args.model, args.closures)
     truth = load_mechanism(args.truth, None)
     calibrated = load_mechanism(args.calibrated, None)
     sliders = workspace_actuators(nominal, args.n, np.random.default_rng(args.seed))
@@ -336,6 +336,19 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
 def _add_model_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", metavar="URDF", help="machine URDF (default: the packaged nominal model)")
     parser.add_argument("--closures", metavar="YAML", help="its closures file (default: URDF stem + .closures.yaml)")
+
+
+class _DeprecatedAlias(argparse.Action):
+    """An old spelling of an option: stores into the new option's destination, with a note on stderr."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        replacement = next(a.option_strings[0] for a in parser._actions if a.dest == self.dest and a is not self)
+        print(f"note: {option_string} is deprecated; use {replacement}", file=sys.stderr)
+        setattr(namespace, self.dest, values)
+
+
+def _add_deprecated_alias(parser: argparse.ArgumentParser, option: str, dest: str) -> None:
+    parser.add_argument(option, dest=dest, action=_DeprecatedAlias, metavar="PATH", help=argparse.SUPPRESS)
 
 
 def _add_noise_options(parser: argparse.ArgumentParser) -> None:
@@ -415,8 +428,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=cmd_compensate)
 
     p = verbs.add_parser("view", help="meshcat scene of the nominal and calibrated machines")
-    p.add_argument("--nominal", metavar="URDF", help="nominal URDF (default: packaged)")
-    p.add_argument("--closures", metavar="YAML", help="nominal closures")
+    _add_model_options(p)
+    _add_deprecated_alias(p, "--nominal", "model")
     p.add_argument("--calibrated", metavar="URDF")
     p.add_argument("--calibrated-closures", metavar="YAML")
     p.add_argument("--pose", nargs="+", type=float, metavar="VALUE",
@@ -442,8 +455,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = verbs.add_parser("evaluate", help="compare nominal and calibrated machines against a (simulated) truth")
     p.add_argument("--truth", required=True, metavar="URDF")
     p.add_argument("--calibrated", required=True, metavar="URDF")
-    p.add_argument("--nominal", metavar="URDF")
-    p.add_argument("--nominal-closures", metavar="YAML")
+    _add_model_options(p)
+    _add_deprecated_alias(p, "--nominal", "model")
+    _add_deprecated_alias(p, "--nominal-closures", "closures")
     p.add_argument("-n", type=int, default=200)
     p.add_argument("--seed", type=int, default=1)
     p.set_defaults(run=cmd_evaluate)
