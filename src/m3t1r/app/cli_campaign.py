@@ -97,7 +97,7 @@ def _make_plan(args: argparse.Namespace):
 
 def _plan_summary(plan, args: argparse.Namespace) -> list[str]:
     """Lines describing a plan: what was chosen, its travel and predicted accuracy (also the CSV comments)."""
-    what = "slider sets" if plan.kind == "closed_loop" else "joint configurations"
+    what = "actuator sets" if plan.kind == "closed_loop" else "joint configurations"
     unit = "/".join(sorted(set(plan.column_units)))
     std = plan.accuracy.std
     lines = [

@@ -167,6 +167,12 @@ class Mechanism:
         idx = [self.model.idx_qs[self.model.getJointId(n)] for n in names]
         return self.model.lowerPositionLimit[idx].copy(), self.model.upperPositionLimit[idx].copy()
 
+    def joint_units(self, names: tuple[str, ...] | None = None) -> tuple[str, ...]:
+        """"m" (prismatic) or "rad" (revolute) per named joint (default: actuated): the unit of its value."""
+        names = self.actuated_joints if names is None else names
+        return tuple("m" if self.model.joints[self.model.getJointId(n)].shortname().startswith("JointModelP") else "rad"
+                     for n in names)
+
     def configuration(self, values: dict[str, float]) -> np.ndarray:
         """Full configuration from {joint name: value}; unnamed joints take their home value."""
         q = self.home.copy()
