@@ -24,7 +24,7 @@ from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256, sha256_bytes
 from m3t1r.io.temporaries import pending_temporaries
 from m3t1r.model.closures import ASSEMBLY_MAX_CHANGE, ClosureSpec, ClosureSystem, without_rows
-from m3t1r.model.schema import SCHEMA_VERSIONS, read_description
+from m3t1r.model.schema import SCHEMA_VERSIONS, declared_frame_entries, read_description
 from m3t1r.model.task import TaskSpec, WorkspaceSpec
 from m3t1r.model.urdf_io import calibrated_urdf_bytes, revolute_urdf_text
 
@@ -229,7 +229,8 @@ class Mechanism:
 
 def _record_derived(doc: dict, mechanism: Mechanism) -> None:
     """Write into a closures document what load derived, so that the pair reloads as this machine:
-    each closure's enforced rows (dependent rows dropped) and the locked gauge joints. On another
+    each closure's enforced rows (dependent rows dropped), the locked gauge joints, and the declared
+    frames' placements (calibration identifies them; the URDF cannot hold them). On another
     geometry (a calibrated or perturbed copy) the dropped rows no longer hold by themselves and
     the gauges are no longer exact, so re-deriving them there would describe another machine."""
     entries = doc.get("closures")
@@ -239,6 +240,8 @@ def _record_derived(doc: dict, mechanism: Mechanism) -> None:
                 entry["rows"] = list(spec.rows)
     if mechanism.locked_joints:
         doc["locked_joints"] = list(mechanism.locked_joints)
+    if doc.get("frames"):
+        doc["frames"] = declared_frame_entries(mechanism.model, doc)
 
 
 def _load_urdf(path: Path) -> pin.Model:

@@ -17,7 +17,7 @@ from m3t1r.errors import InvalidInputError, ModelFileError
 from m3t1r.model.closures import ROW_COUNT, ClosureSpec
 from m3t1r.model.task import TaskSpec, WorkspaceSpec
 
-__all__ = ["Description", "read_description", "SCHEMA_VERSIONS"]
+__all__ = ["Description", "read_description", "add_declared_frames", "declared_frame_entries", "SCHEMA_VERSIONS"]
 
 SCHEMA_VERSIONS = (1, 2)
 
@@ -37,10 +37,12 @@ class Description:
 
 
 def read_description(model: pin.Model, doc: dict, urdf_path: Path, path: Path) -> Description:
-    """Check a parsed closures document against `model` (built from `urdf_path`)."""
+    """Check a parsed closures document against `model` (built from `urdf_path`), after adding to
+    `model` the frames the document declares (`frames`: `add_declared_frames`)."""
     version = doc.get("schema_version", 1)
     if version not in SCHEMA_VERSIONS:
         raise ModelFileError(path, f"schema_version {version!r} is not supported (known: 1, 2)")
+    add_declared_frames(model, doc.get("frames"), path)
     actuated = _actuated(model, doc["actuated_joints"], urdf_path, path)
     platform = doc["platform_frame"]
     _frame_id(model, platform, path, "platform_frame")
@@ -49,6 +51,46 @@ def read_description(model: pin.Model, doc: dict, urdf_path: Path, path: Path) -
     return Description(_closures(model, doc["closures"], path), actuated, _chains(model, doc, path), platform,
                        _home(model, doc["home"], path), task, workspace,
                        _locked(model, doc.get("locked_joints", []), actuated, path))
+
+
+def add_declared_frames(model: pin.Model, entries: object, path: Path) -> None:
+    """Add to `model` the closures file's `frames`: {name: {link: L, xyz: [x, y, z], rpy: [r, p, y]}},
+    each an operational frame at that placement in frame L (a link or any frame of the URDF) [m, rad;
+    rpy as URDF: R = Rz(y) Ry(p) Rx(r)]. For points a URDF does not name (a simulator's anchor)."""
+    if entries is None:
+        return
+    if not isinstance(entries, dict):
+        raise ModelFileError(path, "frames must map frame names to {link, xyz, rpy}")
+    for name, entry in entries.items():
+        where = f"frames.{name}"
+        if not isinstance(name, str) or model.existFrame(name):
+            raise ModelFileError(path, f"{where}: a frame of that name already exists in the URDF")
+        if not isinstance(entry, dict) or set(entry) - {"link", "xyz", "rpy"} or "link" not in entry:
+            raise ModelFileError(path, f"{where} must be a mapping with 'link' and optional 'xyz', 'rpy', got {entry!r}")
+        parent = model.frames[_frame_id(model, entry["link"], path, f"{where}.link")]
+        xyz, rpy = (_triple(entry.get(key, [0.0, 0.0, 0.0]), f"{where}.{key}", path) for key in ("xyz", "rpy"))
+        local = pin.SE3(pin.rpy.rpyToMatrix(*rpy), xyz)
+        model.addFrame(pin.Frame(name, parent.parentJoint, model.getFrameId(parent.name, parent.type),
+                                 parent.placement * local, pin.FrameType.OP_FRAME))
+
+
+def _triple(values: object, where: str, path: Path) -> np.ndarray:
+    if (not isinstance(values, list) or len(values) != 3
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in values)):
+        raise ModelFileError(path, f"{where} must be three finite numbers, got {values!r}")
+    return np.array(values, dtype=float)
+
+
+def declared_frame_entries(model: pin.Model, doc: dict) -> dict:
+    """The closures document's `frames` entries with `xyz`, `rpy` re-read from `model` (relative to
+    their link), for writing a model whose frame placements calibration changed."""
+    out = {}
+    for name, entry in (doc.get("frames") or {}).items():
+        parent = model.frames[model.getFrameId(entry["link"])]
+        local = parent.placement.actInv(model.frames[model.getFrameId(name, pin.FrameType.OP_FRAME)].placement)
+        out[name] = {"link": entry["link"], "xyz": [float(v) + 0.0 for v in local.translation],
+                     "rpy": [float(v) + 0.0 for v in pin.rpy.matrixToRpy(local.rotation)]}
+    return out
 
 
 def _frame_id(model: pin.Model, name: object, path: Path, where: str) -> int:
