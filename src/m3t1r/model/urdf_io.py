@@ -132,9 +132,14 @@ def revolute_urdf_text(urdf: StrPath, raw: bytes) -> str | None:
     Pinocchio builds a continuous joint as a unit-circle joint (nq = 2: cos, sin), a revolute one
     with nq = 1; the closure solvers take one coordinate per joint, and an unbounded revolute joint
     moves the same way. A `<limit>` without `lower`/`upper` reads as [0, 0], which `Mechanism.load`
-    takes as "not given" (unbounded). Raises ModelFileError if the file is not a URDF.
+    takes as "not given" (unbounded). None too for a file that is not a URDF: Pinocchio then says why.
     """
-    root = _parse(Path(urdf), raw)
+    if b"continuous" not in raw:
+        return None
+    try:
+        root = _parse(Path(urdf), raw)
+    except ModelFileError:
+        return None
     continuous = [joint for joint in root.iterchildren("joint") if joint.get("type") == "continuous"]
     if not continuous:
         return None
