@@ -139,3 +139,16 @@ def test_compensate_report_targets_of_the_measured_point_on_a_position_task(tmp_
                  "--output-kind", "actuators", "-o", str(out)]) == 0
     assert "tilt" not in capsys.readouterr().out
     np.testing.assert_allclose(read_actuators(out, nominal)[0], sliders, atol=1e-8)
+
+
+def test_a_stated_noise_below_the_models_floor_is_named_as_the_cause(tmp_path, capsys):
+    files = published_five_bar_files(tmp_path / "model")
+    measurements = tmp_path / "m.csv"
+    assert main(["simulate", *_model(files), "-n", "30", "--seed", "3", "--sigma-pos", "1e-4", "--sigma-rot", "1e-4",
+                 "--noise-free", "-o", str(measurements)]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(measurements), *_model(files), "-o", str(tmp_path / "cal.urdf"),
+                 "--noise-pos", "1e-15", "--noise-rot", "1e-15", "--noise-act", "1e-15"]) == 1
+    err = capsys.readouterr().err
+    assert "is below what the model can fit" in err and "--marker" not in err, err
+    assert not (tmp_path / "cal.urdf").exists()

@@ -47,6 +47,9 @@ __all__ = ["add_campaign_options", "parse_priors", "run_closed_loop_calibration"
 #: A fitted parameter whose standard deviation exceeds these is "weakly determined" [m], [rad].
 WEAK_TRANSLATION, WEAK_ROTATION = 1e-3, 1e-3
 _DIAGNOSIS_POSES = 200  # the likely-cause checks look at this many poses at most
+_MODEL_FLOOR_POSITION = 1e-6
+"""[m] A fitted position residual RMS below this is below any tracker's noise: what is left is the
+model's own floor (its linearisation, the parameters held at nominal), not a setup error."""
 
 
 def add_campaign_options(parser: argparse.ArgumentParser) -> None:
@@ -144,7 +147,8 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     _print_summary(calibration, lines)
     try:
         check_fit(calibration.converged, calibration.lm.termination, calibration.lm.iterations,
-                  calibration.variance_factor, _fit_causes(args, nominal, data, marker, estimate_frame)
+                  calibration.variance_factor, _fit_causes(args, nominal, data, marker, estimate_frame,
+                                                           calibration.rms_after)
                   if calibration.variance_factor > 9 or not calibration.converged else ())
     except FitRejected as exc:
         if not args.force:
@@ -194,9 +198,15 @@ def _fit(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, no
 
 
 def _fit_causes(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, marker: pin.SE3,
-                estimate_frame: bool) -> list[str]:
-    """Likely causes of a fit that does not explain the data: the data checks, and a measured frame
-    whose orientation is not the platform's while no marker was given to absorb it."""
+                estimate_frame: bool, rms_after: tuple[float, float]) -> list[str]:
+    """Likely causes of a fit that does not explain the data: a stated noise below the model's floor
+    (rms_after: the fit's position [m] and rotation [rad] residual RMS), else the data checks, and a
+    measured frame whose orientation is not the platform's while no marker was given to absorb it."""
+    if rms_after[0] < _MODEL_FLOOR_POSITION:
+        return [f"the stated noise ({args.noise_pos:g} m, {args.noise_rot:g} rad) is below what the model can fit: "
+                f"the residual ({rms_after[0]:.2g} m RMS) is already below any tracker's noise, the floor of the "
+                "model itself (its linearisation, the parameters held at nominal), which also flags sound rows "
+                "as outliers; state the tracker's real noise with --noise-pos and --noise-rot"]
     causes = _diagnose(nominal, data, marker, estimate_frame)
     if args.marker is None and not data.measurements.position_only:
         causes.append("the measured frame (a probe or a set of reflectors) is not the platform frame: give its "
