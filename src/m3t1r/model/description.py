@@ -50,10 +50,12 @@ class Mechanism:
     """A closed-chain machine: Pinocchio tree model, closures, actuation, task and workspace.
 
     `model` is the open tree (one chain per actuator from `base`); the closures make it a mechanism.
-    Joint values are Pinocchio configuration vectors (nq == nv, revolute/prismatic only).
+    Joint values are Pinocchio configuration vectors (nq == nv: revolute and prismatic joints, a
+    URDF's continuous joints built as revolute ones without limits).
     `task`: what inverse kinematics commands (schema v1 files: position and yaw of `platform_frame`);
     `workspace`: where simulations and plans sample (None: not declared, schema v1);
-    `locked_joints`: passive joints found redundant at load (a gauge), held at their home value;
+    `locked_joints`: passive joints held at their home value: declared by the closures file
+    (`locked_joints`, as `save` writes it), then those found redundant at load (a gauge);
     `notes`: what `load` changed or assumed (assembled home, locked joints, missing limits).
     The visual geometry loads on first use of `visual_model` (kinematics never needs the meshes).
     """
@@ -102,8 +104,8 @@ class Mechanism:
 
         Raises ModelFileError (naming the file and the field, joint or frame) when a file is
         missing, Pinocchio rejects the URDF, the two files are not a pair, the closures name
-        unknown frames or joints, an actuated joint is not a 1-DoF prismatic/revolute joint, or
-        the home pose does not close.
+        unknown frames or joints, a joint is not a 1-DoF prismatic, revolute or continuous joint,
+        or the home pose does not close.
         """
         if urdf is None:
             nominal_urdf, nominal_closures = nominal_model_paths()
@@ -188,7 +190,7 @@ class Mechanism:
         The URDF is this machine's source URDF with every joint `<origin>` rewritten from `model`
         (a calibrated tree keeps its visuals, limits and names) and a comment recording the
         closures bytes' sha256; the closures file is the source's with `home` replaced by this
-        machine's assembled home.
+        machine's assembled home and what load derived recorded (`_record_derived`).
         """
         doc = copy.deepcopy(self.closures_document) if self.closures_document is not None else \
             _parse_yaml(self.closures_path, _read_bytes(self.closures_path))

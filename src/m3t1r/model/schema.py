@@ -1,8 +1,10 @@
 """The closures file's fields, read and checked against the URDF's tree (schema: models/README.md).
 
 Version 1 has actuated_joints, closures, platform_frame, principal_chains and home; version 2 adds
-`task` (what inverse kinematics commands) and `workspace` (where simulations sample). Every error
-is a ModelFileError naming the file and the field, joint or frame at fault.
+`task` (what inverse kinematics commands) and `workspace` (where simulations sample). Either may
+declare `frames` (points the URDF does not name, added to the model as operational frames) and
+`locked_joints` (passive joints held at home, as `Mechanism.save` records them). Every error is a
+ModelFileError naming the file and the field, joint or frame at fault.
 """
 
 from __future__ import annotations
