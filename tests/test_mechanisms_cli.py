@@ -152,3 +152,13 @@ def test_a_stated_noise_below_the_models_floor_is_named_as_the_cause(tmp_path, c
     err = capsys.readouterr().err
     assert "is below what the model can fit" in err and "--marker" not in err, err
     assert not (tmp_path / "cal.urdf").exists()
+
+
+def test_view_draws_a_machine_published_without_its_meshes(tmp_path, capsys):
+    urdf, closures = rod_five_bar_files(tmp_path / "model")
+    urdf.write_text(urdf.read_text().replace('<link name="rod"/>', '<link name="rod"><visual><geometry>'
+                                             '<mesh filename="package://meshes/rod.stl"/></geometry></visual></link>'))
+    page = tmp_path / "page.html"
+    assert main(["view", "--model", str(urdf), "--closures", str(closures), "--html", str(page)]) == 0
+    assert "drawing rod_five_bar.urdf as spheres at its joints" in capsys.readouterr().err
+    assert page.stat().st_size > 0
