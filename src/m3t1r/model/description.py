@@ -240,6 +240,8 @@ def _record_derived(doc: dict, mechanism: Mechanism) -> None:
         for entry, spec in zip(entries, mechanism.closures):
             if isinstance(entry, dict):
                 entry["rows"] = list(spec.rows)
+        # A closure all of whose rows depended on the others constrains nothing: a file cannot say rows: [].
+        doc["closures"] = [entry for entry, spec in zip(entries, mechanism.closures) if spec.rows]
     if mechanism.locked_joints:
         doc["locked_joints"] = list(mechanism.locked_joints)
     if doc.get("frames"):
