@@ -135,10 +135,10 @@ def cmd_simulate(args: argparse.Namespace) -> None:
 
 def _recorded_passive_joints(mechanism) -> tuple[str, ...]:
     """`simulate --with-passive`: the idle chains' hinges on the M machine, else every joint the closures solve."""
-    model = mechanism.model
+    model, solved = mechanism.model, set(mechanism.passive_ids.tolist())
     if all(model.existJointName(name) for name in IDLE_CHAIN_JOINTS):
         return IDLE_CHAIN_JOINTS
-    return tuple(model.names[j] for j in range(1, model.njoints) if model.idx_vs[j] in set(mechanism.passive_ids))
+    return tuple(model.names[j] for j in range(1, model.njoints) if model.idx_vs[j] in solved)
 
 
 def cmd_calibrate(args: argparse.Namespace) -> None:
