@@ -226,13 +226,23 @@ def test_load_notes_point_at_the_caller_exactly(tmp_path):
     assert caught[0].filename == __file__
 
 
-def test_a_continuous_first_joint_is_refused(tmp_path):
+def test_a_continuous_first_joint_is_an_unbounded_revolute_one(tmp_path):
     urdf, closures = _five_bar(tmp_path)
     urdf.write_text(urdf.read_text().replace('<joint name="motor_1" type="revolute">',
                                              '<joint name="motor_1" type="continuous">'))
+    with pytest.warns(ModelWarning, match="actuator 'motor_1' has no usable URDF limits; the workspace box's"):
+        mechanism = Mechanism.load(urdf, closures)
+    assert (mechanism.model.nq, mechanism.model.nv) == (4, 4)
+    assert mechanism.joint_units() == ("rad", "rad")
+
+
+def test_a_multi_dof_joint_is_refused(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    urdf.write_text(urdf.read_text().replace('<joint name="elbow_2" type="revolute">',
+                                             '<joint name="elbow_2" type="floating">'))
     assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
-        f"{urdf}: joint 'motor_1' is not a 1-DoF revolute/prismatic joint (nq=2); continuous and multi-DoF "
-        "joints are not supported")
+        f"{urdf}: joint 'elbow_2' is not a 1-DoF revolute/prismatic/continuous joint (nq=7); multi-DoF joints "
+        "are not supported")
 
 
 def test_a_urdf_pinocchio_rejects_is_named(tmp_path):
@@ -331,7 +341,8 @@ def test_pair_bytes(tmp_path):
     urdf_bytes, closures_bytes = mechanism.pair_bytes(tmp_path / "out" / "machine.urdf")
     header, body = closures_bytes.decode("utf-8").split("\n", 1)
     assert header == ("# Closures of machine.urdf (written with it as a pair; its URDF records this file's sha256); "
-                      "home re-assembled for its geometry. Schema: models/README.md")
+                      "home re-assembled for its geometry; rows and locked joints as load derived them. "
+                      "Schema: models/README.md")
     document, source = yaml.safe_load(body), yaml.safe_load(source_closures.read_text())
     assert list(document) == list(source)  # the source's order, not sorted
     assert list(document["home"].items()) == [(name, float(mechanism.configuration({})[k]))

@@ -23,9 +23,10 @@ from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, pr
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.simulation import simulate_study
+from m3t1r.compensation import joint_limit_violation
 from m3t1r.errors import InvalidInputError, ModelFileError, ModelWarning
 from m3t1r.model.description import Mechanism, nominal_model_paths
-from m3t1r.model.examples import five_bar_files, spherical_wrist_files
+from m3t1r.model.examples import five_bar_files, published_five_bar_files, rod_five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.poe import Placement
 from m3t1r.model.workspace import workspace_actuators
@@ -406,3 +407,93 @@ def test_a_schema_1_file_samples_between_the_actuator_limits(tmp_path):
     with pytest.raises(ModelFileError, match=r"draws in the actuators' URDF limits \(no workspace declared: add a "
                                              r"`workspace:` box, models/README.md\) cannot be assembled from home"):
         workspace_actuators(Mechanism.load(urdf, closures), 200, np.random.default_rng(1))
+
+
+# ------------------------------------------------------------------------------------------------
+# Published traits: the forms URDFs take as people publish them (generated fixtures with each trait)
+
+PUBLISHED = {"published_five_bar": published_five_bar_files, "rod_five_bar": rod_five_bar_files}
+
+
+@pytest.fixture(scope="module", params=sorted(PUBLISHED))
+def published(request, tmp_path_factory) -> tuple[Path, Path]:
+    return PUBLISHED[request.param](tmp_path_factory.mktemp(request.param))
+
+
+def _quiet_load(*paths) -> Mechanism:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ModelWarning)
+        return Mechanism.load(*paths)
+
+
+def test_published_traits_load_with_notes_and_solve_as_the_plain_five_bar(published, tmp_path):
+    with pytest.warns(ModelWarning) as caught:
+        mechanism = Mechanism.load(*published)
+    notes = " | ".join(str(w.message) for w in caught)
+    assert "without usable URDF limits" in notes and "taken as unbounded" in notes, notes
+    lower, upper = mechanism.joint_limits(tuple(mechanism.model.names[j] for j in range(1, mechanism.model.njoints)
+                                                if mechanism.model.names[j] not in mechanism.actuated_joints))
+    assert np.all(lower == -np.inf) and np.all(upper == np.inf)  # an empty <limit/> is "not given", not [0, 0]
+    assert mechanism.model.nq == mechanism.model.nv and len(mechanism.locked_joints) == 1
+    plain = Mechanism.load(*five_bar_files(tmp_path / "plain"))
+    sliders = workspace_actuators(plain, 12, np.random.default_rng(2))
+    expected = ClosedLoopSolver(plain).forward_batch(sliders).task_poses[:, :2, 3]
+    solver = ClosedLoopSolver(mechanism)
+    np.testing.assert_allclose(solver.forward_batch(sliders).task_poses[:, :2, 3], expected, atol=1e-10)
+    inverse = solver.inverse_batch(expected)
+    assert not inverse.failures
+    np.testing.assert_allclose(inverse.actuators, sliders, atol=1e-8)
+    for q in inverse.q:  # passive values far outside [0, 0] are within their (absent) limits
+        assert joint_limit_violation(mechanism.model, q) is None
+
+
+def test_a_weld_of_coaxial_hinges_on_declared_frames_keeps_its_in_plane_rows(tmp_path):
+    mechanism = _quiet_load(*published_five_bar_files(tmp_path))
+    assert mechanism.closures[0].rows == (0, 1, 5)
+    assert mechanism.locked_joints[0] in ("cut_1", "cut_2")
+    weld = mechanism.model.frames[mechanism.model.getFrameId("weld_1")]
+    assert weld.type == pin.FrameType.OP_FRAME
+    np.testing.assert_allclose(weld.placement.translation, [0.0, 0.0, 0.02], atol=1e-15)  # on stub_1's joint
+
+
+def test_the_rods_idle_spin_is_locked(tmp_path):
+    mechanism = _quiet_load(*rod_five_bar_files(tmp_path))
+    assert len(mechanism.locked_joints) == 1 and mechanism.locked_joints[0] in ("x", "y", "z", "s2_x", "s2_y", "s2_z")
+    assert mechanism.closures[0].rows == (0, 1, 2, 3, 4, 5)
+
+
+def test_a_written_truth_and_calibrated_pair_reloads_as_the_machine_it_came_from(published, tmp_path):
+    nominal = _quiet_load(*published)
+    study = simulate_study(nominal, n_poses=30, n_holdout=20, seed=5, sigma_position=1e-4, sigma_rotation=1e-4)
+    calibrated = calibrate_closed_loop(nominal, study.measurements).mechanism
+    for name, machine in (("truth", study.truth), ("calibrated", calibrated)):
+        machine.save(tmp_path / f"{name}.urdf")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", ModelWarning)
+            reloaded = Mechanism.load(tmp_path / f"{name}.urdf")
+        # Nothing re-derived (the file says which rows and joints): only the limits the URDF keeps as published.
+        assert all("usable URDF limits" in str(w.message) for w in caught), [str(w.message) for w in caught]
+        assert reloaded.locked_joints == machine.locked_joints
+        assert [c.rows for c in reloaded.closures] == [c.rows for c in machine.closures]
+        errors = pose_errors(reloaded, machine, study.holdout_actuators)
+        assert errors.position_max < 1e-9 and errors.rotation_max < 1e-9, (name, errors.position_max)
+
+
+def test_a_continuous_joint_stays_continuous_in_the_written_urdf(tmp_path):
+    mechanism = _quiet_load(*published_five_bar_files(tmp_path))
+    mechanism.save(tmp_path / "copy.urdf")
+    assert 'name="motor_1" type="continuous"' in (tmp_path / "copy.urdf").read_text()
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d["frames"].update(weld_1={"link": "stub_1", "xyz": [0, 0]}), "frames.weld_1.xyz must be three"),
+    (lambda d: d["frames"].update(distal_1={"link": "stub_1"}), "frames.distal_1: a frame of that name already"),
+    (lambda d: d["frames"].update(weld_1={"link": "nowhere"}), "frames.weld_1.link: frame 'nowhere' does not exist"),
+    (lambda d: d.update(locked_joints=["motor_1"]), "locked_joints: 'motor_1' is an actuated joint"),
+    (lambda d: d.update(locked_joints=["cut_9"]), "locked_joints: joint 'cut_9' does not exist"),
+])
+def test_malformed_declared_frames_or_locked_joints_are_named(tmp_path, change, message):
+    urdf, closures = published_five_bar_files(tmp_path)
+    _edit_yaml(closures, change)
+    with pytest.raises(ModelFileError, match=re.escape(message)):
+        _quiet_load(urdf, closures)

@@ -1,28 +1,35 @@
 """The command line on mechanisms other than the M machine (`--model --closures`): a planar five-bar
-(task x, y) and a spherical wrist (task: full orientation), from simulation to compensation."""
+(task x, y), a spherical wrist (task: full orientation) and two five-bars with the traits of
+published models (continuous joints, joints named x, y, z, empty passive limits, a weld of coaxial
+hinges, a rod with a spherical joint at each end, declared frames), from simulation to compensation."""
 
 from __future__ import annotations
 
 import json
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from m3t1r.app.cli import main
 from m3t1r.app.datasets import read_actuators, read_poses
 from m3t1r.calibration.closed_loop import pose_errors
+from m3t1r.calibration.validation import read_report
 from m3t1r.model.description import Mechanism, nominal_model_paths
-from m3t1r.model.examples import spherical_wrist_files
+from m3t1r.model.examples import published_five_bar_files, rod_five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import workspace_actuators
 
+_WRITERS = {"spherical_wrist": spherical_wrist_files, "published_five_bar": published_five_bar_files,
+            "rod_five_bar": rod_five_bar_files}
 
-@pytest.fixture(params=["five_bar", "spherical_wrist"])
+
+@pytest.fixture(params=["five_bar", *_WRITERS])
 def files(request, tmp_path):
     if request.param == "five_bar":
         urdf = nominal_model_paths()[0].parent / "five_bar.urdf"
         return urdf, urdf.with_name("five_bar.closures.yaml")
-    return spherical_wrist_files(tmp_path / "model")
+    return _WRITERS[request.param](tmp_path / "model")
 
 
 def _model(files) -> list[str]:
@@ -48,8 +55,8 @@ def test_simulate_calibrate_evaluate(files, tmp_path, noise_free, capsys):
         report = json.loads((tmp_path / "cal.json").read_text())
         assert 0.5 < report["variance_factor"] < 1.5
     capsys.readouterr()
-    assert main(["evaluate", "--truth", str(truth_urdf), "--calibrated", str(calibrated), "--nominal", str(files[0]),
-                 "--nominal-closures", str(files[1]), "-n", "50"]) == 0
+    assert main(["evaluate", "--truth", str(truth_urdf), "--calibrated", str(calibrated), "--model", str(files[0]),
+                 "--closures", str(files[1]), "-n", "50"]) == 0
     assert "calibrated" in capsys.readouterr().out
 
 
@@ -73,7 +80,7 @@ def test_ik_fk_compensate_and_view_use_the_task_columns(files, tmp_path):
                  "--calibrated-closures", str(files[1]), "-o", str(tmp_path / "c.csv")]) == 0
     text = (tmp_path / "c.csv").read_text()
     assert ",".join(task.columns) in text.splitlines()[[line.startswith("#") for line in text.splitlines()].index(False)]
-    assert main(["view", "--nominal", str(files[0]), "--closures", str(files[1]), "--pose",
+    assert main(["view", "--model", str(files[0]), "--closures", str(files[1]), "--pose",
                  *map(str, task.coordinates(poses)[0]), "--html", str(tmp_path / "page.html")]) == 0
     assert "reached by IK on each machine" in (tmp_path / "page.html").read_text()
 
@@ -94,3 +101,64 @@ def test_plan_draws_in_the_declared_workspace(files, tmp_path):
     assert sliders.shape == (12, len(nominal.actuated_joints))
     lower, upper = nominal.workspace.bounds(nominal.actuated_joints)
     assert np.all(sliders >= lower) and np.all(sliders <= upper)
+
+
+@pytest.mark.parametrize("writer", [published_five_bar_files, rod_five_bar_files])
+def test_joints_named_like_pose_columns_are_recorded_and_read_back(writer, tmp_path, capsys):
+    files = writer(tmp_path / "model")
+    measurements = tmp_path / "m.csv"
+    assert main(["simulate", *_model(files), "-n", "30", "--seed", "2", "--sigma-pos", "1e-4", "--sigma-rot", "1e-4",
+                 "--with-passive", "-o", str(measurements)]) == 0
+    header = next(line for line in measurements.read_text().splitlines() if not line.startswith("#")).split(",")
+    assert "joint:x" in header and "joint:y" in header and header[-7:] == ["x", "y", "z", "qx", "qy", "qz", "qw"]
+    assert main(["calibrate", str(measurements), *_model(files), "-o", str(tmp_path / "cal.urdf"),
+                 "--report", str(tmp_path / "cal.json")]) == 0
+    assert "passive-joint readings" in capsys.readouterr().out
+    assert main(["validate", str(measurements), "--calibrated", str(tmp_path / "cal.urdf"),
+                 "--report", str(tmp_path / "cal.json")]) == 0
+    out = capsys.readouterr().out
+    assert "30 of 30 rows predicted" in out and "heading" not in out  # the task commands no yaw
+
+
+def test_compensate_report_targets_of_the_measured_point_on_a_position_task(tmp_path, capsys):
+    files = published_five_bar_files(tmp_path / "model")
+    measurements, calibrated, report = tmp_path / "m.csv", tmp_path / "cal.urdf", tmp_path / "cal.json"
+    assert main(["simulate", *_model(files), "-n", "30", "--seed", "3", "--sigma-pos", "1e-4", "--sigma-rot", "1e-4",
+                 "--marker", "0.01", "0.0", "0.005", "-o", str(measurements)]) == 0
+    assert main(["calibrate", str(measurements), *_model(files), "-o", str(calibrated), "--report", str(report),
+                 "--marker", "0.01", "0.0", "0.005"]) == 0
+    nominal, fitted = Mechanism.load(*files), Mechanism.load(calibrated)
+    sliders = workspace_actuators(nominal, 5, np.random.default_rng(4))
+    setup = read_report(report).setup
+    platform = ClosedLoopSolver(fitted).forward_batch(sliders).poses
+    points = [setup.frame.act(pin.SE3(pose).act(setup.marker.translation)) for pose in platform]  # tracker's view [m]
+    targets = tmp_path / "t.csv"
+    targets.write_text("x,y,z,qx,qy,qz,qw\n" + "".join(",".join(map(repr, map(float, p))) + ",0,0,0,1\n" for p in points))
+    out = tmp_path / "c.csv"
+    assert main(["compensate", str(targets), *_model(files), "--calibrated", str(calibrated), "--report", str(report),
+                 "--output-kind", "actuators", "-o", str(out)]) == 0
+    assert "tilt" not in capsys.readouterr().out
+    np.testing.assert_allclose(read_actuators(out, nominal)[0], sliders, atol=1e-8)
+
+
+def test_a_stated_noise_below_the_models_floor_is_named_as_the_cause(tmp_path, capsys):
+    files = published_five_bar_files(tmp_path / "model")
+    measurements = tmp_path / "m.csv"
+    assert main(["simulate", *_model(files), "-n", "30", "--seed", "3", "--sigma-pos", "1e-4", "--sigma-rot", "1e-4",
+                 "--noise-free", "-o", str(measurements)]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(measurements), *_model(files), "-o", str(tmp_path / "cal.urdf"),
+                 "--noise-pos", "1e-15", "--noise-rot", "1e-15", "--noise-act", "1e-15"]) == 1
+    err = capsys.readouterr().err
+    assert "is below what the model can fit" in err and "--marker" not in err, err
+    assert not (tmp_path / "cal.urdf").exists()
+
+
+def test_view_draws_a_machine_published_without_its_meshes(tmp_path, capsys):
+    urdf, closures = rod_five_bar_files(tmp_path / "model")
+    urdf.write_text(urdf.read_text().replace('<link name="rod"/>', '<link name="rod"><visual><geometry>'
+                                             '<mesh filename="package://meshes/rod.stl"/></geometry></visual></link>'))
+    page = tmp_path / "page.html"
+    assert main(["view", "--model", str(urdf), "--closures", str(closures), "--html", str(page)]) == 0
+    assert "drawing rod_five_bar.urdf as spheres at its joints" in capsys.readouterr().err
+    assert page.stat().st_size > 0

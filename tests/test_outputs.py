@@ -371,8 +371,8 @@ def test_evaluate_reports_a_failing_pose_and_goes_on(tmp_path, machines, capsys,
     truth = str(machines / "truth.urdf")
     assert main(["evaluate", "--truth", truth, "--calibrated", truth, "-n", "10"]) == 0
     out, err = capsys.readouterr()
-    assert "over 9 slider sets" in out and "1 skipped" in out
-    assert "slider set 1" in err and "does not assemble" in err
+    assert "over 9 actuator sets" in out and "1 skipped" in out
+    assert "actuator set 1" in err and "does not assemble" in err
 
 
 # ------------------------------------------------------------------------------------------------

@@ -59,6 +59,9 @@ __all__ = ["cmd_calibrate", "run_closed_loop_calibration", "calibration_report"]
 #: A fitted parameter whose standard deviation exceeds these is "weakly determined" [m], [rad].
 WEAK_TRANSLATION, WEAK_ROTATION = 1e-3, 1e-3
 _DIAGNOSIS_POSES = 200  # the likely-cause checks look at this many poses at most
+_MODEL_FLOOR_POSITION = 1e-6
+"""[m] A fitted position residual RMS below this is below any tracker's noise: what is left is the
+model's own floor (its linearisation, the parameters held at nominal), not a setup error."""
 
 
 def _nominal_points(nominal: Mechanism, marker: pin.SE3) -> Callable[[np.ndarray], np.ndarray]:
@@ -199,10 +202,16 @@ def _judge(args: argparse.Namespace, calibration: ClosedLoopCalibration, choice:
 
 def _fit_causes(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, marker: pin.SE3,
                 estimate_frame: bool, calibration: ClosedLoopCalibration) -> list[str]:
-    """Likely causes of a fit that does not explain the data: the data checks, and a measured frame
-    whose orientation is not the platform's while no marker was given to absorb it (when the fit
-    left more than the stated noise, or, the noise being estimated, an orientation residual over
+    """Likely causes of a fit that does not explain the data: a stated noise below the model's floor
+    (a residual below any tracker's noise), else the data checks, and a measured frame whose
+    orientation is not the platform's while no marker was given to absorb it (when the fit left more
+    than the stated noise, or, the noise being estimated, an orientation residual over
     IMPLAUSIBLE_ROTATION / 10: beyond any tracker's)."""
+    if calibration.rms_after[0] < _MODEL_FLOOR_POSITION:
+        return [f"the stated noise ({args.noise_pos:g} m, {args.noise_rot:g} rad) is below what the model can fit: "
+                f"the residual ({calibration.rms_after[0]:.2g} m RMS) is already below any tracker's noise, the floor "
+                "of the model itself (its linearisation, the parameters held at nominal), which also flags sound "
+                "rows as outliers; state the tracker's real noise with --noise-pos and --noise-rot"]
     causes = _diagnose(nominal, data, marker, estimate_frame)
     left = calibration.variance_factor > 9 or not calibration.converged or \
         calibration.rms_after[1] > IMPLAUSIBLE_ROTATION / 10

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 from typing import TextIO
 
@@ -25,7 +26,7 @@ from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.planning import plan_closed_loop, plan_serial
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
 from m3t1r.calibration.validation import validate
-from m3t1r.errors import InvalidInputError, ModelFileError
+from m3t1r.errors import InvalidInputError, ModelFileError, ModelWarning
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import paired_closures_path
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows
@@ -86,7 +87,7 @@ def _make_plan(args: argparse.Namespace):
 
 def _plan_summary(plan, args: argparse.Namespace) -> list[str]:
     """Lines describing a plan: what was chosen, its travel and predicted accuracy (also the CSV comments)."""
-    what = "slider sets" if plan.kind == "closed_loop" else "joint configurations"
+    what = "actuator sets" if plan.kind == "closed_loop" else "joint configurations"
     unit = "/".join(sorted(set(plan.column_units)))
     std = plan.accuracy.std
     lines = [
@@ -196,8 +197,11 @@ def cmd_validate(args: argparse.Namespace) -> None:
     output = outputs.add(args.predictions, "--predictions")
     outputs.check()
     out = sys.stderr if output is not None and output.path is None else sys.stdout
-    with progress_bar("validate", None) as progress:
+    with progress_bar("validate", None) as progress, warnings.catch_warnings(record=True) as notes:
+        warnings.simplefilter("always", ModelWarning)  # the calibrated machine's load notes, printed as notes
         result = validate(args.measurements, args.calibrated, args.report, args.units, progress=progress.update)
+    for note in dict.fromkeys(str(w.message) for w in notes if issubclass(w.category, ModelWarning)):
+        print(f"note: {note}", file=sys.stderr)
     _row_table(result, out)
     _summary(result, out)
     if output is None:

@@ -14,14 +14,14 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, provenance, say
-from m3t1r.app.datasets import TARGET_COLUMNS, read_actuators, read_targets
+from m3t1r.app.datasets import read_actuators, read_targets
 from m3t1r.calibration.validation import read_report
 from m3t1r.compensation import Compensator, compensate, joint_limit_violation
 from m3t1r.errors import InvalidInputError, KinematicsError
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows
 from m3t1r.io.tables import table_text
-from m3t1r.model.kinematics import ClosedLoopSolver, require_square_task, yaw_of
+from m3t1r.model.kinematics import ClosedLoopSolver, require_square_task
 from m3t1r.model.workspace import workspace_actuators
 
 __all__ = ["cmd_fk", "cmd_ik", "cmd_compensate", "cmd_evaluate"]
@@ -76,7 +76,8 @@ def cmd_ik(args: argparse.Namespace) -> None:
         outputs.stage(output, table_text(mechanism.actuated_joints, np.array(rows),
                                          provenance(args) + ["actuator positions in m or rad"]))
         outputs.commit()
-    tilt = "" if mechanism.task.rotation == "full" else f"; largest uncommandable tilt (roll/pitch) {max_tilt:.3g} rad"
+    # Roll and pitch are the uncommanded rotation of a yaw task only; a task without rotation has no tilt to speak of.
+    tilt = "" if mechanism.task.rotation != "yaw" else f"; largest uncommandable tilt (roll/pitch) {max_tilt:.3g} rad"
     say(outputs, f"wrote {len(rows)} actuator sets to {output.name}{tilt}")
 
 
@@ -107,46 +108,49 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     elif isinstance(targets, np.ndarray):
         text = table_text(calibrated.task.columns, result.command_targets, comments + [pose_note])
     else:
-        text = table_text(POSE_COLUMNS, result.command_pose_rows, comments + [pose_note])
+        text = table_text(POSE_COLUMNS, result.command_pose_rows(), comments + [pose_note])
     with outputs:
         outputs.stage(output, text)
         outputs.commit()
-    tilt = ("" if calibrated.task.rotation == "full" else
+    tilt = ("" if calibrated.task.rotation != "yaw" else
             f"; largest uncommandable tilt (roll/pitch) of the calibrated machine {result.max_tilt:.3g} rad")
     say(outputs, f"wrote {result.n_targets} compensated {args.output_kind} commands to {output.name}{tilt}")
 
 
 
 def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -> np.ndarray:
-    """Targets of the measured point (the reflector) in a calibration's measurement frame, to
-    platform targets (x, y, z, theta) in the calibrated base.
+    """Targets of the measured point (the reflector) in a calibration's measurement frame, to task
+    coordinates of the platform frame in the calibrated base.
 
-    The measured point is commanded in position and heading (its yaw in the base, the platform's
-    plus the marker's); the platform's roll and pitch are not commandable, so the platform
-    position that puts the point on target depends on the tilt the machine takes there:
-    p_platform = p_target - R_platform(q) m, solved by fixed point with the calibrated IK
-    (the tilt varies slowly: 2-4 rounds to 1e-10 m).
+    The measured point is commanded in the task's components (its position axes, and its yaw or
+    full rotation: the platform's composed with the marker's). Components the task leaves free
+    (roll and pitch of a yaw task, every rotation of a position task) are set by the machine, so
+    the platform position that puts the point on target depends on the rotation the machine takes
+    there: p_platform = p_target - R_platform(q) m, solved by fixed point with the calibrated IK
+    (the rotation varies slowly: 2-4 rounds to 1e-10 m).
     """
     if isinstance(targets, np.ndarray):
         raise InvalidInputError(f"{targets_path}: with --report the targets are poses of the measured frame in the "
                                 "measurement frame, and need x,y,z,qx,qy,qz,qw")
-    if calibrated.task.columns != TARGET_COLUMNS or calibrated.task.frame != calibrated.platform_frame:
-        raise InvalidInputError(f"{targets_path}: targets of the measured point (--report) need a task commanding "
-                                "x, y, z and yaw of the platform frame (the M machine's); give task-frame targets")
+    task = calibrated.task
+    if task.frame != calibrated.platform_frame:
+        raise InvalidInputError(f"{targets_path}: targets of the measured point (--report) need the task on the "
+                                f"measured platform frame '{calibrated.platform_frame}', not on '{task.frame}'; "
+                                "give task-frame targets")
     setup = read_report(report_path).setup
     solver, offset = ClosedLoopSolver(calibrated), setup.marker.translation
     rows = []
     for target in targets:
         in_base = setup.frame.actInv(target)
-        row = np.r_[(in_base * setup.marker.inverse()).translation, yaw_of((in_base * setup.marker.inverse()).rotation)]
+        row = task.coordinates((in_base * setup.marker.inverse()).homogeneous)[0]
         for _ in range(10):
             try:
                 platform = solver.forward(solver.inverse(row).actuators).pose
             except KinematicsError:
                 break  # compensate reports this target's failure itself
             miss = platform.act(offset) - in_base.translation
-            row[:3] -= miss
-            if np.linalg.norm(miss) < 1e-10:
+            row[:len(task.position)] -= miss[task.axes]
+            if np.linalg.norm(miss[task.axes]) < 1e-10:
                 break
         rows.append(row)
     return np.array(rows)
@@ -155,7 +159,7 @@ def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
     """`m3t1r evaluate`: nominal and calibrated machines against a (simulated) truth."""
-    nominal = load_mechanism(args.nominal, args.nominal_closures)
+    nominal = load_mechanism(args.model, args.closures)
     truth = load_mechanism(args.truth, None)
     calibrated = load_mechanism(args.calibrated, None)
     sliders = workspace_actuators(nominal, args.n, np.random.default_rng(args.seed))
@@ -181,13 +185,13 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
                     errors[name].append((float(np.linalg.norm(a.translation - b.translation)),
                                          float(np.linalg.norm(pin.log3(a.rotation.T @ b.rotation)))))
     for index, reason in failures:
-        print(f"m3t1r: slider set {index} ({', '.join(f'{v:.6g}' for v in sliders[index])} m) skipped: {reason}",
-              file=sys.stderr)
+        values = ", ".join(f"{v:.6g} {u}" for v, u in zip(sliders[index], nominal.joint_units()))
+        print(f"m3t1r: actuator set {index} ({values}) skipped: {reason}", file=sys.stderr)
     kept = args.n - len(failures)
     if kept == 0:
-        raise InvalidInputError(f"none of the {args.n} slider sets assembles on every machine: nothing to evaluate")
+        raise InvalidInputError(f"none of the {args.n} actuator sets assembles on every machine: nothing to evaluate")
     skipped = f", {len(failures)} skipped (see stderr)" if failures else ""
-    print(f"held-out platform error over {kept} slider sets in the workspace (seed {args.seed}{skipped}):")
+    print(f"held-out platform error over {kept} actuator sets in the workspace (seed {args.seed}{skipped}):")
     print(f"{'model':<12}{'position mean':>16}{'position max':>16}{'orientation mean':>19}{'orientation max':>18}")
     for name, values in errors.items():
         e = np.array(values)

@@ -33,6 +33,19 @@ class _VersionAction(argparse.Action):
         parser.exit()
 
 
+class _DeprecatedAlias(argparse.Action):
+    """An old spelling of an option: stores into the new option's destination, with a note on stderr."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        replacement = next(a.option_strings[0] for a in parser._actions if a.dest == self.dest and a is not self)
+        print(f"note: {option_string} is deprecated; use {replacement}", file=sys.stderr)
+        setattr(namespace, self.dest, values)
+
+
+def _add_deprecated_alias(parser: argparse.ArgumentParser, option: str, dest: str) -> None:
+    parser.add_argument(option, dest=dest, action=_DeprecatedAlias, metavar="PATH", help=argparse.SUPPRESS)
+
+
 def _add_model_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", metavar="URDF", help="machine URDF (default: the packaged nominal model)")
     parser.add_argument("--closures", metavar="YAML", help="its closures file (default: URDF stem + .closures.yaml)")
@@ -77,7 +90,8 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--units", choices=("m", "mm"), default="m", help="length unit of the written file")
     p.add_argument("--outliers", type=int, default=0, metavar="K", help="spoil K measurements with 3-5 mm gross errors")
     p.add_argument("--with-passive", action="store_true",
-                   help="also record encoders on the idle chains' hinges (q12_B2, q22_B4) for cross-validation")
+                   help="also record encoders on the idle chains' hinges (q12_B2, q22_B4) for cross-validation "
+                        "(another mechanism: on every passive joint the closures solve)")
     p.add_argument("-o", "--output", required=True, help="measurement CSV")
     p.add_argument("--truth-urdf", metavar="URDF", help="also write the actual machine (and its closures file)")
     _add_model_options(p)
@@ -111,8 +125,8 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     _add_model_options(p)
 
     p = verbs.add_parser("view", help="meshcat scene of the nominal and calibrated machines")
-    p.add_argument("--nominal", metavar="URDF", help="nominal URDF (default: packaged)")
-    p.add_argument("--closures", metavar="YAML", help="nominal closures")
+    _add_model_options(p)
+    _add_deprecated_alias(p, "--nominal", "model")
     p.add_argument("--calibrated", metavar="URDF")
     p.add_argument("--calibrated-closures", metavar="YAML")
     p.add_argument("--pose", nargs="+", type=float, metavar="VALUE",
@@ -135,8 +149,9 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     p = verbs.add_parser("evaluate", help="compare nominal and calibrated machines against a (simulated) truth")
     p.add_argument("--truth", required=True, metavar="URDF")
     p.add_argument("--calibrated", required=True, metavar="URDF")
-    p.add_argument("--nominal", metavar="URDF")
-    p.add_argument("--nominal-closures", metavar="YAML")
+    _add_model_options(p)
+    _add_deprecated_alias(p, "--nominal", "model")
+    _add_deprecated_alias(p, "--nominal-closures", "closures")
     p.add_argument("-n", type=int, default=200)
     p.add_argument("--seed", type=int, default=1)
 

@@ -31,7 +31,7 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     truth_output = outputs.add_machine(args.truth_urdf, "--truth-urdf")
     outputs.check()
     noise = None if args.noise_free else TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
-    passive = IDLE_CHAIN_JOINTS if args.with_passive else ()
+    passive = _recorded_passive_joints(nominal) if args.with_passive else ()
     setup = MeasurementSetup.from_numbers(args.tracker_frame, args.marker)
     study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only,
                            passive_joints=passive, setup=setup, outliers=args.outliers)
@@ -94,3 +94,11 @@ def cmd_paper(args: argparse.Namespace) -> None:
         print(row(f"held-out poses, chain {chain}: before", errors.before))
         if errors.after is not None:
             print(row(f"held-out poses, chain {chain}: after", errors.after))
+
+
+def _recorded_passive_joints(mechanism) -> tuple[str, ...]:
+    """`simulate --with-passive`: the idle chains' hinges on the M machine, else every joint the closures solve."""
+    model, solved = mechanism.model, set(mechanism.passive_ids.tolist())
+    if all(model.existJointName(name) for name in IDLE_CHAIN_JOINTS):
+        return IDLE_CHAIN_JOINTS
+    return tuple(model.names[j] for j in range(1, model.njoints) if model.idx_vs[j] in solved)

@@ -22,7 +22,7 @@ from m3t1r.calibration.measurements import PoseMeasurements
 from m3t1r.errors import DataFileError
 from m3t1r.io.instruments.records import CONVERTED_COLUMNS
 from m3t1r.io.paths import StrPath
-from m3t1r.io.poses import POSE_COLUMNS, pose_rows, poses_from_table
+from m3t1r.io.poses import POSE_COLUMNS, measurement_column, pose_rows, poses_from_table
 from m3t1r.io.tables import Table, read_table, write_table
 from m3t1r.model.description import Mechanism
 from m3t1r.model.task import TaskSpec
@@ -41,29 +41,23 @@ def sha256_of(path: StrPath) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def _check_joint_columns(table: Table, mechanism: Mechanism, names: Iterable[str]) -> None:
-    for name in names:
-        if not mechanism.model.existJointName(name):
-            raise DataFileError(table.path, f"column '{name}' names no joint of {mechanism.urdf_path.name}",
-                                column=name)
-
-
-def _check_limits(table: Table, mechanism: Mechanism, names: Sequence[str], scale: Mapping[str, float] | None = None
-                  ) -> None:
-    """Every value within its joint's limits, after `scale` (column -> metres per file unit)."""
+def _check_limits(table: Table, mechanism: Mechanism, names: Sequence[str], scale: Mapping[str, float] | None = None,
+                  columns: Sequence[str] | None = None) -> None:
+    """Every value within its joint's limits, after `scale` (column -> metres per file unit);
+    `columns`: the joints' columns (default their names)."""
     lower, upper = mechanism.joint_limits(tuple(names))
     scale = scale or {}
-    for k, name in enumerate(names):
-        values = table.column(name) * scale.get(name, 1.0)
+    for k, (name, column) in enumerate(zip(names, columns or names)):
+        values = table.column(column) * scale.get(column, 1.0)
         outside = np.flatnonzero((values < lower[k]) | (values > upper[k]))
         if outside.size:
             row = int(outside[0])
             hint = "(SI units: m for sliders, rad for hinges)"
             prismatic = name in _prismatic_joints(mechanism, names)
-            if prismatic and scale.get(name, 1.0) == 1.0 and np.all((values * 1e-3 >= lower[k]) & (values * 1e-3 <= upper[k])):
+            if prismatic and scale.get(column, 1.0) == 1.0 and np.all((values * 1e-3 >= lower[k]) & (values * 1e-3 <= upper[k])):
                 hint = "(every value of the column is within the limits in millimetres: use --units mm)"
             raise table.error(row, f"{values[row]:.6g} is beyond the joint limit [{lower[k]:.6g}, {upper[k]:.6g}] "
-                                   + hint, column=name)
+                                   + hint, column=column)
 
 
 def _prismatic_joints(mechanism: Mechanism, names: Iterable[str]) -> tuple[str, ...]:
@@ -73,12 +67,12 @@ def _prismatic_joints(mechanism: Mechanism, names: Iterable[str]) -> tuple[str, 
                  and model.joints[model.getJointId(n)].shortname().startswith("JointModelP"))
 
 
-def _length_scale(table: Table, mechanism: Mechanism, units: str) -> dict[str, float]:
-    """Column -> metres per file unit for the length columns (x, y, z and prismatic joints)."""
+def _length_scale(table: Table, mechanism: Mechanism, units: str, joints: Sequence[str]) -> dict[str, float]:
+    """Column -> metres per file unit for the length columns (x, y, z and the prismatic ones of `joints`)."""
     if units not in LENGTH_UNITS:
         raise DataFileError(table.path, f"unknown length unit '{units}' (one of {', '.join(LENGTH_UNITS)})")
     factor = LENGTH_UNITS[units]
-    lengths = ("x", "y", "z") + _prismatic_joints(mechanism, table.columns)
+    lengths = ("x", "y", "z") + tuple(measurement_column(n) for n in _prismatic_joints(mechanism, joints))
     return {name: factor for name in lengths if table.has_column(name)}
 
 
@@ -162,23 +156,24 @@ def read_measurements(path: StrPath, mechanism: Mechanism, units: str = "m") -> 
     """
     source = Path(path)
     model = mechanism.model
-    passive_names = tuple(model.names[j] for j in range(1, model.njoints) if model.names[j] not in mechanism.actuated_joints)
-    table = read_table(source, required=mechanism.actuated_joints + ("x", "y", "z"),
-                       optional=(*passive_names, *CONVERTED_COLUMNS),
+    actuated = mechanism.actuated_joints
+    passive_names = tuple(model.names[j] for j in range(1, model.njoints) if model.names[j] not in actuated)
+    actuator_columns = tuple(measurement_column(n) for n in actuated)
+    table = read_table(source, required=actuator_columns + ("x", "y", "z"),
+                       optional=(*(measurement_column(n) for n in passive_names), *CONVERTED_COLUMNS),
                        optional_groups=(_QUATERNION,), reject_duplicate_rows=True)
-    _check_joint_columns(table, mechanism, mechanism.actuated_joints)
-    scale = _length_scale(table, mechanism, units)
-    _check_limits(table, mechanism, mechanism.actuated_joints, scale)
+    scale = _length_scale(table, mechanism, units, actuated + passive_names)
+    _check_limits(table, mechanism, actuated, scale, actuator_columns)
     position_only = not table.has_column("qw")
     positions = np.column_stack([table.column(n) for n in ("x", "y", "z")]) * scale["x"]
     if position_only:
         poses = [pin.SE3(np.eye(3), row) for row in positions]
     else:
         poses = [pin.SE3(pose.rotation, position) for pose, position in zip(poses_from_table(table), positions)]
-    actuators = np.column_stack([table.column(n) * scale.get(n, 1.0) for n in mechanism.actuated_joints])
-    present = tuple(n for n in passive_names if table.has_column(n))
-    passive = (np.column_stack([table.column(n) * scale.get(n, 1.0) for n in present]) if present
-               else np.zeros((table.n_rows, 0)))
+    actuators = np.column_stack([table.column(c) * scale.get(c, 1.0) for c in actuator_columns])
+    present = tuple(n for n in passive_names if table.has_column(measurement_column(n)))
+    passive = (np.column_stack([table.column(c) * scale.get(c, 1.0) for c in map(measurement_column, present)])
+               if present else np.zeros((table.n_rows, 0)))
     return MeasurementFile(source, PoseMeasurements(actuators, tuple(poses), position_only), present, passive,
                            table.line_numbers, sha256_of(source))
 
@@ -195,7 +190,8 @@ def measurement_table(mechanism: Mechanism, measurements: PoseMeasurements, pass
     """Columns and rows of a measurement file, lengths (x, y, z, prismatic joints) in `units`."""
     if units not in LENGTH_UNITS:
         raise DataFileError("-", f"unknown length unit '{units}' (one of {', '.join(LENGTH_UNITS)})")
-    columns = list(mechanism.actuated_joints) + list(passive_joints)
+    joints = list(mechanism.actuated_joints) + list(passive_joints)
+    columns = [measurement_column(n) for n in joints]
     blocks = [measurements.actuators]
     if passive_joints:
         blocks.append(np.asarray(passive, dtype=float))
@@ -207,6 +203,6 @@ def measurement_table(mechanism: Mechanism, measurements: PoseMeasurements, pass
         columns += list(POSE_COLUMNS)
         blocks.append(rows)
     table = np.hstack(blocks)
-    lengths = set(_prismatic_joints(mechanism, columns)) | {"x", "y", "z"}
+    lengths = {measurement_column(n) for n in _prismatic_joints(mechanism, joints)} | {"x", "y", "z"}
     divide = np.array([LENGTH_UNITS[units] if c in lengths else 1.0 for c in columns])
     return columns, table / divide

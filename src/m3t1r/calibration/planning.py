@@ -281,7 +281,7 @@ def _check_counts(n_poses: int, n_candidates: int | None) -> int:
 def plan_closed_loop(mechanism: Mechanism, n_poses: int, rng: np.random.Generator, *,
                      n_candidates: int | None = None, noise: TrackerNoise | None = None, position_only: bool = False,
                      n_evaluation: int = DEFAULT_EVALUATION_POSES) -> MeasurementPlan:
-    """A plan of `n_poses` slider sets [m] for the M machine (module docstring).
+    """A plan of `n_poses` actuator sets [m or rad] for a closed-loop mechanism (module docstring).
 
     Candidates (default 20 n_poses) and evaluation poses are drawn uniformly in the design's
     workspace box and mapped to sliders by the nominal IK from home (`workspace_actuators`), so
@@ -296,7 +296,7 @@ def plan_closed_loop(mechanism: Mechanism, n_poses: int, rng: np.random.Generato
     scales = (noise.position, noise.rotation)
     candidates = _Candidates(sliders, blocks, _unwhitened(evaluation, scales), names)
     home = mechanism.home[[mechanism.model.idx_qs[mechanism.model.getJointId(n)] for n in mechanism.actuated_joints]]
-    units = tuple("m" for _ in mechanism.actuated_joints)  # the M machine's drives are sliders
+    units = mechanism.joint_units()
     return _plan("closed_loop", mechanism.actuated_joints, candidates, n_poses, home, position_only, scales, units)
 
 

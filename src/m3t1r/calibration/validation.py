@@ -12,7 +12,7 @@ branch the calibration used); for a serial robot, the POE forward kinematics of 
 (base frame to tool frame) on the calibrated URDF.
 
 Per row: position error |p_predicted - p_measured| [m], and when orientation was measured the
-rotation angle |log3(R_measured^T R_predicted)| [rad] and, for the M machine, the heading (yaw)
+rotation angle |log3(R_measured^T R_predicted)| [rad] and, for a task commanding a yaw, the heading (yaw)
 error of the platform implied by the measurement, yaw(R_f^T R_measured R_m^T) - yaw(R_platform)
 [rad, wrapped to (-pi, pi]].
 
@@ -51,7 +51,7 @@ from m3t1r.calibration.identification import OUTLIER_SIGMA, outlier_gate
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelFileError
 from m3t1r.io.instruments.records import CONVERTED_COLUMNS
-from m3t1r.io.poses import poses_from_table
+from m3t1r.io.poses import measurement_column, poses_from_table
 from m3t1r.io.tables import read_table
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
@@ -209,7 +209,7 @@ class Validation:
     measurement frame [m], NaN for a failed row; measured: the measured poses (N, 4, 4) [m];
     rows: indices of the rows that were predicted (M,), in file order; errors: their position and
     rotation errors (M,) (rotation NaN when position-only); heading: their heading (yaw) errors
-    (M,) [rad] for the M machine with orientation, else None; statistic: d^2 per predicted row (M,);
+    (M,) [rad] for a yaw task (the M machine) with orientation, else None; statistic: d^2 per predicted row (M,);
     sigmas: its sigma-equivalent z (M,); flagged: file lines of the rows beyond the gate;
     failures: (file line, reason) of the rows that could not be predicted; scale: the factor s
     (from the report's variance factor); gate: the chi^2_k quantile d^2 / s^2 is compared with; units: the file's length unit.
@@ -255,8 +255,10 @@ def _chi2_log_tail(d2: np.ndarray, dof: int) -> np.ndarray:
 
 
 def _predict_closed_loop(calibrated: Path, report: CalibrationReport, units: str, measurements: Path,
-                         progress: Callable[[int], None] | None) -> tuple[Campaign, np.ndarray, list[tuple[int, str]]]:
-    """Platform poses (N, 4, 4) of the calibrated M machine at each row's sliders (NaN where it fails)."""
+                         progress: Callable[[int], None] | None
+                         ) -> tuple[Campaign, np.ndarray, list[tuple[int, str]], bool]:
+    """Platform poses (N, 4, 4) of the calibrated machine at each row's actuators (NaN where it fails),
+    the rows that failed, and whether its task commands a yaw (then the heading error means something)."""
     mechanism = Mechanism.load(calibrated)
     if report.measured_frame not in (None, mechanism.platform_frame):
         raise InvalidInputError(f"{report.path}: report field 'measured_frame' is {report.measured_frame!r}, "
@@ -264,7 +266,8 @@ def _predict_closed_loop(calibrated: Path, report: CalibrationReport, units: str
     model = mechanism.model
     names = mechanism.actuated_joints
     passive = tuple(model.names[j] for j in range(1, model.njoints) if model.names[j] not in names)
-    campaign = read_campaign(measurements, names, [_is_prismatic(model, n) for n in names], units, passive)
+    campaign = read_campaign(measurements, tuple(map(measurement_column, names)),
+                             [_is_prismatic(model, n) for n in names], units, tuple(map(measurement_column, passive)))
     poses = np.full((len(campaign.lines), 4, 4), np.nan)
     failures: list[tuple[int, str]] = []
     if len(campaign.readings):
@@ -273,7 +276,7 @@ def _predict_closed_loop(calibrated: Path, report: CalibrationReport, units: str
         failures = [(int(campaign.lines[f.index]), f"{calibrated.name}: {f.reason}") for f in solved.failures]
     if progress is not None:
         progress(len(campaign.readings))
-    return campaign, poses, failures
+    return campaign, poses, failures, mechanism.task.rotation == "yaw"
 
 
 def _is_prismatic(model: pin.Model, joint: str) -> bool:
@@ -339,8 +342,10 @@ def validate(measurements: str | Path, calibrated: str | Path, report: str | Pat
     units = units or info.units or "m"
     calibrated = Path(calibrated)
     failures: list[tuple[int, str]] = []
+    yaw_task = False
     if info.kind == "closed_loop":
-        campaign, platform, failures = _predict_closed_loop(calibrated, info, units, Path(measurements), progress)
+        campaign, platform, failures, yaw_task = _predict_closed_loop(calibrated, info, units, Path(measurements),
+                                                                      progress)
     else:
         campaign, platform = _predict_serial(calibrated, info, units, Path(measurements))
     ok = np.flatnonzero(np.all(np.isfinite(platform), axis=(1, 2)))
@@ -359,7 +364,7 @@ def validate(measurements: str | Path, calibrated: str | Path, report: str | Pat
     scale = math.sqrt(max(1.0, info.variance_factor or 1.0))
     gate = outlier_gate(OUTLIER_SIGMA, dof)
     mask = statistic / scale**2 > gate
-    heading = None if (info.kind != "closed_loop" or campaign.position_only) else \
+    heading = None if (not yaw_task or campaign.position_only) else \
         _heading_errors(info.setup, measured, platform[ok])
     return Validation(
         path=campaign.path, kind=info.kind, lines=campaign.lines, predictions=predictions,

@@ -12,9 +12,17 @@ import pinocchio as pin
 from m3t1r.errors import DataFileError
 from m3t1r.io.tables import Table
 
-__all__ = ["POSE_COLUMNS", "pose_rows", "poses_from_table"]
+__all__ = ["POSE_COLUMNS", "JOINT_COLUMN_PREFIX", "measurement_column", "pose_rows", "poses_from_table"]
 
 POSE_COLUMNS: tuple[str, ...] = ("x", "y", "z", "qx", "qy", "qz", "qw")
+JOINT_COLUMN_PREFIX = "joint:"
+"""Prefix of a measurement file's column for a joint named like a pose column (x, y, z, qx, ...)."""
+
+
+def measurement_column(joint: str) -> str:
+    """The measurement-file column of a joint: its name, or `joint:NAME` when the name is a pose
+    column's (a joint named `x` would otherwise read as the measured x)."""
+    return JOINT_COLUMN_PREFIX + joint if joint in POSE_COLUMNS else joint
 """Columns of a pose: position in m, then the unit quaternion with its scalar part last."""
 
 

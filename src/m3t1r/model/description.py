@@ -25,9 +25,9 @@ from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256, sha
 from m3t1r.io.temporaries import pending_temporaries
 from m3t1r.model.assembly import HomeAssembly, assemble_home, limits_violated
 from m3t1r.model.closures import ClosureSpec, ClosureSystem, without_rows
-from m3t1r.model.schema import SCHEMA_VERSIONS, read_description
+from m3t1r.model.schema import SCHEMA_VERSIONS, declared_frame_entries, read_description
 from m3t1r.model.task import TaskSpec, WorkspaceSpec
-from m3t1r.model.urdf_io import calibrated_urdf_bytes
+from m3t1r.model.urdf_io import calibrated_urdf_bytes, revolute_urdf_text
 
 __all__ = ["ClosureSpec", "Mechanism", "nominal_model_paths", "paired_closures", "HOME_TOLERANCE",
            "SCHEMA_VERSIONS"]
@@ -51,10 +51,12 @@ class Mechanism:
     """A closed-chain machine: Pinocchio tree model, closures, actuation, task and workspace.
 
     `model` is the open tree (one chain per actuator from `base`); the closures make it a mechanism.
-    Joint values are Pinocchio configuration vectors (nq == nv, revolute/prismatic only).
+    Joint values are Pinocchio configuration vectors (nq == nv: revolute and prismatic joints, a
+    URDF's continuous joints built as revolute ones without limits).
     `task`: what inverse kinematics commands (schema v1 files: position and yaw of `platform_frame`);
     `workspace`: where simulations and plans sample (None: not declared, schema v1);
-    `locked_joints`: passive joints found redundant at load (a gauge), held at their home value;
+    `locked_joints`: passive joints held at their home value: declared by the closures file
+    (`locked_joints`, as `save` writes it), then those found redundant at load (a gauge);
     `notes`: what `load` changed or assumed (assembled home, locked joints, missing limits);
     `home_assembly`: how the home was assembled when the file's did not close (None: it did).
     The visual geometry loads on first use of `visual_model` (kinematics never needs the meshes).
@@ -105,8 +107,8 @@ class Mechanism:
 
         Raises ModelFileError (naming the file and the field, joint or frame) when a file is
         missing, Pinocchio rejects the URDF, the two files are not a pair, the closures name
-        unknown frames or joints, an actuated joint is not a 1-DoF prismatic/revolute joint, or
-        the home pose does not close.
+        unknown frames or joints, a joint is not a 1-DoF prismatic, revolute or continuous joint,
+        or the home pose does not close.
         """
         if urdf is None:
             nominal_urdf, nominal_closures = nominal_model_paths()
@@ -170,6 +172,12 @@ class Mechanism:
         idx = [self.model.idx_qs[self.model.getJointId(n)] for n in names]
         return self.model.lowerPositionLimit[idx].copy(), self.model.upperPositionLimit[idx].copy()
 
+    def joint_units(self, names: tuple[str, ...] | None = None) -> tuple[str, ...]:
+        """"m" (prismatic) or "rad" (revolute) per named joint (default: actuated): the unit of its value."""
+        names = self.actuated_joints if names is None else names
+        return tuple("m" if self.model.joints[self.model.getJointId(n)].shortname().startswith("JointModelP") else "rad"
+                     for n in names)
+
     def configuration(self, values: dict[str, float]) -> np.ndarray:
         """Full configuration from {joint name: value}; unnamed joints take their home value."""
         q = self.home.copy()
@@ -185,14 +193,16 @@ class Mechanism:
         The URDF is this machine's source URDF with every joint `<origin>` rewritten from `model`
         (a calibrated tree keeps its visuals, limits and names) and a comment recording the
         closures bytes' sha256; the closures file is the source's with `home` replaced by this
-        machine's assembled home.
+        machine's assembled home and what load derived recorded (`_record_derived`).
         """
         doc = copy.deepcopy(self.closures_document) if self.closures_document is not None else \
             _parse_yaml(self.closures_path, _read_bytes(self.closures_path))
         doc["home"] = {self.model.names[j]: float(self.home[self.model.idx_qs[j]]) for j in range(1, self.model.njoints)}
+        _record_derived(doc, self)
         closures_path = paired_closures_path(urdf) if closures is None else Path(closures)
         header = (f"# Closures of {Path(urdf).name} (written with it as a pair; its URDF records this file's sha256); "
-                  "home re-assembled for its geometry. Schema: models/README.md\n")
+                  "home re-assembled for its geometry; rows and locked joints as load derived them. "
+                  "Schema: models/README.md\n")
         closures_bytes = (header + yaml.safe_dump(doc, sort_keys=False)).encode("utf-8")
         del closures_path
         return calibrated_urdf_bytes(self.urdf_path, self.model, sha256_bytes(closures_bytes)), closures_bytes
@@ -222,15 +232,36 @@ class Mechanism:
         return dataclasses.replace(self, home=np.array(home, dtype=float))
 
 
+def _record_derived(doc: dict, mechanism: Mechanism) -> None:
+    """Write into a closures document what load derived, so that the pair reloads as this machine:
+    each closure's enforced rows (dependent rows dropped), the locked gauge joints, and the declared
+    frames' placements (calibration identifies them; the URDF cannot hold them). On another
+    geometry (a calibrated or perturbed copy) the dropped rows no longer hold by themselves and
+    the gauges are no longer exact, so re-deriving them there would describe another machine."""
+    entries = doc.get("closures")
+    if isinstance(entries, list) and len(entries) == len(mechanism.closures):
+        for entry, spec in zip(entries, mechanism.closures):
+            if isinstance(entry, dict):
+                entry["rows"] = list(spec.rows)
+        # A closure all of whose rows depended on the others constrains nothing: a file cannot say rows: [].
+        doc["closures"] = [entry for entry, spec in zip(entries, mechanism.closures) if spec.rows]
+    if mechanism.locked_joints:
+        doc["locked_joints"] = list(mechanism.locked_joints)
+    if doc.get("frames"):
+        doc["frames"] = declared_frame_entries(mechanism.model, doc)
+
+
 def _load_urdf(path: Path) -> pin.Model:
+    """The URDF's tree, with its continuous joints built as revolute ones (`urdf_io.revolute_urdf_text`)."""
+    text = revolute_urdf_text(path, _read_bytes(path))
     try:
-        model = pin.buildModelFromUrdf(str(path))
+        model = pin.buildModelFromUrdf(str(path)) if text is None else pin.buildModelFromXML(text)
     except Exception as exc:  # Pinocchio raises bare RuntimeError/ValueError for bad XML
         raise ModelFileError(path, f"Pinocchio rejected the URDF: {exc}") from None
     for j in range(1, model.njoints):
         if model.nqs[j] != 1 or model.nvs[j] != 1:
-            raise ModelFileError(path, f"joint '{model.names[j]}' is not a 1-DoF revolute/prismatic joint "
-                                       f"(nq={model.nqs[j]}); continuous and multi-DoF joints are not supported")
+            raise ModelFileError(path, f"joint '{model.names[j]}' is not a 1-DoF revolute/prismatic/continuous "
+                                       f"joint (nq={model.nqs[j]}); multi-DoF joints are not supported")
     return model
 
 
@@ -332,13 +363,13 @@ def _build(model: pin.Model, doc: dict, urdf_path: Path, path: Path) -> Mechanis
     described = read_description(model, doc, urdf_path, path)
     return Mechanism(model, described.closures, described.actuated_joints, described.principal_chains,
                      described.platform_frame, described.home, urdf_path, path, task=described.task,
-                     workspace=described.workspace)
+                     workspace=described.workspace, locked_joints=described.locked_joints)
 
 
 def _settled(mechanism: Mechanism) -> Mechanism:
     """The mechanism with its actuator limits, home and closure system made usable, and notes on what
     that changed: missing limits replaced, an approximate home assembled, gauge joints locked."""
-    notes = list(_replace_missing_limits(mechanism))
+    notes = list(_replace_missing_limits(mechanism)) + _unbounded_passive_joints(mechanism)
     system = ClosureSystem(mechanism.model, mechanism.closures)
     passive = mechanism.passive_ids
     home, assembly = mechanism.home, None
@@ -360,15 +391,15 @@ def _settled(mechanism: Mechanism) -> Mechanism:
                                      f"can still move ({speed:.2g} per unit joint speed); rows or closures are missing")
     locked = tuple(_joint_name(mechanism.model, v) for v in redundancy.locked)
     closures = mechanism.closures
-    if locked:
+    if locked:  # joints the file declares locked are not noted again
         notes.append(f"passive joint(s) {', '.join(locked)} locked at their home value: their motion is "
                      "already spanned by the other passive joints (a gauge, e.g. a cut joint modelled twice)")
     if redundancy.dropped:
         closures = without_rows(closures, redundancy.dropped)
         notes.append(f"{len(redundancy.dropped)} closure row(s) dropped as dependent on the others: "
                      + ", ".join(_row_names(mechanism.closures, redundancy.dropped)))
-    return dataclasses.replace(mechanism, closures=closures, home=home, locked_joints=locked, notes=tuple(notes),
-                               home_assembly=assembly)
+    return dataclasses.replace(mechanism, closures=closures, home=home, locked_joints=mechanism.locked_joints + locked,
+                               notes=tuple(notes), home_assembly=assembly)
 
 
 def _joint_name(model: pin.Model, velocity_index: int) -> str:
@@ -416,6 +447,26 @@ def _replace_missing_limits(mechanism: Mechanism) -> list[str]:
         source = "the workspace box's" if name in intervals else "no"
         notes.append(f"actuator '{name}' has no usable URDF limits; {source} limits [{lo:g}, {hi:g}] used instead")
     return notes
+
+
+def _unbounded_passive_joints(mechanism: Mechanism) -> list[str]:
+    """Passive joints without usable URDF limits (an empty or absent `<limit>`, which Pinocchio reads
+    as [0, 0], or a continuous joint) made unbounded: published URDFs mean "not given", not "locked"."""
+    model = mechanism.model
+    actuated = set(mechanism.actuated_joints)
+    lower, upper = model.lowerPositionLimit.copy(), model.upperPositionLimit.copy()
+    unbounded = []
+    for j in range(1, model.njoints):
+        k = model.idx_qs[j]
+        if model.names[j] not in actuated and not lower[k] < upper[k]:
+            lower[k], upper[k] = -np.inf, np.inf
+            unbounded.append(model.names[j])
+    if not unbounded:
+        return []
+    model.lowerPositionLimit, model.upperPositionLimit = lower, upper
+    shown = ", ".join(unbounded[:6]) + (f" and {len(unbounded) - 6} more" if len(unbounded) > 6 else "")
+    return [f"{len(unbounded)} passive joint(s) without usable URDF limits ({shown}): taken as unbounded "
+            "(an empty <limit/> or a continuous joint gives no range)"]
 
 
 def closure_residual_by_closure(mechanism: Mechanism, q: np.ndarray) -> Iterator[tuple[ClosureSpec, np.ndarray]]:

@@ -32,6 +32,8 @@ __all__ = [
     "SphericalWristGeometry",
     "five_bar_files",
     "five_bar_home",
+    "published_five_bar_files",
+    "rod_five_bar_files",
     "spherical_wrist_files",
     "spherical_wrist_home",
 ]
@@ -225,6 +227,102 @@ def five_bar_files(folder: Path, name: str = "five_bar",
     """
     return _write_pair(Path(folder), name, _five_bar_urdf(geometry, name),
                        _closures_text(_five_bar_closures(geometry), "five-bar"))
+
+
+# ---------------------------------------------------------------------------------------------
+# The five-bar as people publish mechanisms: the traits `Mechanism.load` must take as they come
+
+_EMPTY_LIMIT = '    <limit effort="1" velocity="2"/>\n'  # no lower/upper: Pinocchio reads [0, 0]
+
+
+def _joint(name: str, kind: str, parent: str, child: str, xyz: tuple, axis: tuple = (0.0, 0.0, 1.0),
+           limit: str = _EMPTY_LIMIT) -> str:
+    return (f'  <joint name="{name}" type="{kind}">\n    <parent link="{parent}"/>\n    <child link="{child}"/>\n'
+            f'    <origin xyz="{_vec(xyz)}" rpy="0 0 0"/>\n    <axis xyz="{_vec(axis)}"/>\n{limit}  </joint>\n')
+
+
+def _motor_limit(g: FiveBarGeometry, leg: int) -> str:
+    lo, hi = g.motor_box[leg - 1]
+    return (f'    <limit lower="{_num(round(lo - g.limit_margin, 12))}" upper="{_num(round(hi + g.limit_margin, 12))}" '
+            'effort="10" velocity="10"/>\n')
+
+
+def _published_closures(g: FiveBarGeometry, closures: list, task_frame: str, home: dict, **extra) -> dict:
+    return {"schema_version": 2, "actuated_joints": ["motor_1", "motor_2"], **extra, "closures": closures,
+            "platform_frame": task_frame, "task": {"frame": task_frame, "position": ["x", "y"], "rotation": "none"},
+            "workspace": {"actuators": {f"motor_{i}": [float(lo), float(hi)]
+                                        for i, (lo, hi) in enumerate(g.motor_box, start=1)}},
+            "home": home}
+
+
+def published_five_bar_files(folder: Path, name: str = "published_five_bar",
+                             geometry: FiveBarGeometry = FiveBarGeometry()) -> tuple[Path, Path]:
+    """Write a planar five-bar in the form published models take; return (URDF, closures) paths.
+
+    The five-bar of `five_bar_files`, with: `motor_1` a continuous joint (no limits: the workspace
+    box bounds it); elbows named `x` (chain 1) and `y` (chain 2), like the measured coordinates;
+    passive joints with an empty `<limit effort velocity/>`; the loop cut at the effector as a 6D
+    weld of two coaxial hinges `cut_1`, `cut_2` (a gauge, and three out-of-plane rows that hold
+    by themselves); the weld frames `weld_1`, `weld_2` 2 cm up the hinge axis and the `effector`
+    at the end of `distal_1`, declared in the closures file (`frames:`) since the URDF names no
+    frame there. Task: the effector's (x, y) [m].
+    """
+    g, five = geometry, five_bar_home(geometry)
+    parts = [f'<?xml version="1.0"?>\n<robot name="{name}">\n', _URDF_COMMENT.format(what="published five-bar"),
+             '  <link name="base"/>\n']
+    for leg, elbow in ((1, "x"), (2, "y")):
+        motor = _joint(f"motor_{leg}", "continuous" if leg == 1 else "revolute", "base", f"proximal_{leg}",
+                       (g.motor_position(leg)[0], 0.0, 0.0), limit="" if leg == 1 else _motor_limit(g, leg))
+        parts += [_link(f"proximal_{leg}"), _link(f"distal_{leg}"), _link(f"stub_{leg}"), motor,
+                  _joint(elbow, "revolute", f"proximal_{leg}", f"distal_{leg}", (g.proximal, 0.0, 0.0)),
+                  _joint(f"cut_{leg}", "revolute", f"distal_{leg}", f"stub_{leg}", (g.distal, 0.0, 0.0))]
+    parts.append("</robot>\n")
+    home = {"motor_1": five["motor_1"], "motor_2": five["motor_2"], "x": five["elbow_1"], "y": five["elbow_2"]}
+    for leg in (1, 2):  # the stubs point along base x, so that the two weld frames coincide
+        home[f"cut_{leg}"] = math.remainder(-five[f"motor_{leg}"] - five[f"elbow_{leg}"], 2.0 * math.pi)
+    frames = {f"weld_{leg}": {"link": f"stub_{leg}", "xyz": [0.0, 0.0, 0.02], "rpy": [0.0, 0.0, 0.0]} for leg in (1, 2)}
+    frames["effector"] = {"link": "distal_1", "xyz": [g.distal, 0.0, 0.0], "rpy": [0.0, 0.0, 0.0]}
+    closures = [{"name": "weld", "type": "6D", "frame_a": "weld_1", "frame_b": "weld_2"}]
+    document = _published_closures(g, closures, "effector", home, frames=frames)
+    return _write_pair(Path(folder), name, "".join(parts), _closures_text(document, "published five-bar"))
+
+
+def rod_five_bar_files(folder: Path, name: str = "rod_five_bar",
+                       geometry: FiveBarGeometry = FiveBarGeometry()) -> tuple[Path, Path]:
+    """Write a five-bar whose second distal link is a rod with a spherical joint at each end.
+
+    Each spherical joint is three revolutes about x, y, z: `x`, `y`, `z` at the elbow end (named
+    like the measured coordinates), `s2_x`, `s2_y`, `s2_z` at the effector end, all with empty
+    limits. The rod's spin about its own axis is idle (a gauge that load locks). The loop closes
+    by a 6D weld of the rod's end `tip_2` to chain 1's `effector`. Task: the effector's (x, y) [m].
+    """
+    g, five = geometry, five_bar_home(geometry)
+    parts = [f'<?xml version="1.0"?>\n<robot name="{name}">\n', _URDF_COMMENT.format(what="rod five-bar"),
+             '  <link name="base"/>\n']
+    for leg in (1, 2):
+        parts += [_link(f"proximal_{leg}"),
+                  _joint(f"motor_{leg}", "revolute", "base", f"proximal_{leg}", (g.motor_position(leg)[0], 0.0, 0.0),
+                         limit=_motor_limit(g, leg))]
+    parts += [_link("distal_1"), _link("effector"), _joint("elbow_1", "revolute", "proximal_1", "distal_1",
+                                                          (g.proximal, 0.0, 0.0)),
+              _fixed("effector_fixed", "distal_1", "effector", (g.distal, 0.0, 0.0))]
+    chain = [("x", "proximal_2", "ball_1a", (g.proximal, 0.0, 0.0), (1.0, 0.0, 0.0)),
+             ("y", "ball_1a", "ball_1b", (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+             ("z", "ball_1b", "rod", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+             ("s2_x", "rod", "ball_2a", (g.distal, 0.0, 0.0), (1.0, 0.0, 0.0)),
+             ("s2_y", "ball_2a", "ball_2b", (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+             ("s2_z", "ball_2b", "tip_2", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))]
+    for joint, parent, child, xyz, axis in chain:
+        parts += [_link(child), _joint(joint, "revolute", parent, child, xyz, axis)]
+    parts.append("</robot>\n")
+    heading_1 = five["motor_1"] + five["elbow_1"]
+    heading_2 = five["motor_2"] + five["elbow_2"]
+    home = {"motor_1": five["motor_1"], "motor_2": five["motor_2"], "elbow_1": five["elbow_1"],
+            "x": 0.0, "y": 0.0, "z": five["elbow_2"], "s2_x": 0.0, "s2_y": 0.0,
+            "s2_z": math.remainder(heading_1 - heading_2, 2.0 * math.pi)}
+    closures = [{"name": "rod_end", "type": "6D", "frame_a": "effector", "frame_b": "tip_2"}]
+    document = _published_closures(g, closures, "effector", home)
+    return _write_pair(Path(folder), name, "".join(parts), _closures_text(document, "rod five-bar"))
 
 
 # ---------------------------------------------------------------------------------------------

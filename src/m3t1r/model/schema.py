@@ -1,8 +1,10 @@
 """The closures file's fields, read and checked against the URDF's tree (schema: models/README.md).
 
 Version 1 has actuated_joints, closures, platform_frame, principal_chains and home; version 2 adds
-`task` (what inverse kinematics commands) and `workspace` (where simulations sample). Every error
-is a ModelFileError naming the file and the field, joint or frame at fault.
+`task` (what inverse kinematics commands) and `workspace` (where simulations sample). Either may
+declare `frames` (points the URDF does not name, added to the model as operational frames) and
+`locked_joints` (passive joints held at home, as `Mechanism.save` records them). Every error is a
+ModelFileError naming the file and the field, joint or frame at fault.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from m3t1r.errors import InvalidInputError, ModelFileError
 from m3t1r.model.closures import ROW_COUNT, ClosureSpec
 from m3t1r.model.task import TaskSpec, WorkspaceSpec
 
-__all__ = ["Description", "read_description", "SCHEMA_VERSIONS"]
+__all__ = ["Description", "read_description", "add_declared_frames", "declared_frame_entries", "SCHEMA_VERSIONS"]
 
 SCHEMA_VERSIONS = (1, 2)
 
@@ -33,20 +35,64 @@ class Description:
     home: np.ndarray
     task: TaskSpec
     workspace: WorkspaceSpec | None
+    locked_joints: tuple[str, ...] = ()
 
 
 def read_description(model: pin.Model, doc: dict, urdf_path: Path, path: Path) -> Description:
-    """Check a parsed closures document against `model` (built from `urdf_path`)."""
+    """Check a parsed closures document against `model` (built from `urdf_path`), after adding to
+    `model` the frames the document declares (`frames`: `add_declared_frames`)."""
     version = doc.get("schema_version", 1)
     if version not in SCHEMA_VERSIONS:
         raise ModelFileError(path, f"schema_version {version!r} is not supported (known: 1, 2)")
+    add_declared_frames(model, doc.get("frames"), path)
     actuated = _actuated(model, doc["actuated_joints"], urdf_path, path)
     platform = doc["platform_frame"]
     _frame_id(model, platform, path, "platform_frame")
     task = _task(model, doc.get("task"), platform, path)
     workspace = _workspace(doc.get("workspace"), actuated, task, path)
     return Description(_closures(model, doc["closures"], path), actuated, _chains(model, doc, path), platform,
-                       _home(model, doc["home"], path), task, workspace)
+                       _home(model, doc["home"], path), task, workspace,
+                       _locked(model, doc.get("locked_joints", []), actuated, path))
+
+
+def add_declared_frames(model: pin.Model, entries: object, path: Path) -> None:
+    """Add to `model` the closures file's `frames`: {name: {link: L, xyz: [x, y, z], rpy: [r, p, y]}},
+    each an operational frame at that placement in frame L (a link or any frame of the URDF) [m, rad;
+    rpy as URDF: R = Rz(y) Ry(p) Rx(r)]. For points a URDF does not name (a simulator's anchor)."""
+    if entries is None:
+        return
+    if not isinstance(entries, dict):
+        raise ModelFileError(path, "frames must map frame names to {link, xyz, rpy}")
+    for name, entry in entries.items():
+        where = f"frames.{name}"
+        if not isinstance(name, str) or model.existFrame(name):
+            raise ModelFileError(path, f"{where}: a frame of that name already exists in the URDF")
+        if not isinstance(entry, dict) or set(entry) - {"link", "xyz", "rpy"} or "link" not in entry:
+            raise ModelFileError(path, f"{where} must be a mapping with 'link' and optional 'xyz', 'rpy', got {entry!r}")
+        parent = model.frames[_frame_id(model, entry["link"], path, f"{where}.link")]
+        xyz, rpy = (_triple(entry.get(key, [0.0, 0.0, 0.0]), f"{where}.{key}", path) for key in ("xyz", "rpy"))
+        local = pin.SE3(pin.rpy.rpyToMatrix(*rpy), xyz)
+        model.addFrame(pin.Frame(name, parent.parentJoint, model.getFrameId(parent.name, parent.type),
+                                 parent.placement * local, pin.FrameType.OP_FRAME))
+
+
+def _triple(values: object, where: str, path: Path) -> np.ndarray:
+    if (not isinstance(values, list) or len(values) != 3
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in values)):
+        raise ModelFileError(path, f"{where} must be three finite numbers, got {values!r}")
+    return np.array(values, dtype=float)
+
+
+def declared_frame_entries(model: pin.Model, doc: dict) -> dict:
+    """The closures document's `frames` entries with `xyz`, `rpy` re-read from `model` (relative to
+    their link), for writing a model whose frame placements calibration changed."""
+    out = {}
+    for name, entry in (doc.get("frames") or {}).items():
+        parent = model.frames[model.getFrameId(entry["link"])]
+        local = parent.placement.actInv(model.frames[model.getFrameId(name, pin.FrameType.OP_FRAME)].placement)
+        out[name] = {"link": entry["link"], "xyz": [float(v) + 0.0 for v in local.translation],
+                     "rpy": [float(v) + 0.0 for v in pin.rpy.matrixToRpy(local.rotation)]}
+    return out
 
 
 def _frame_id(model: pin.Model, name: object, path: Path, where: str) -> int:
@@ -67,6 +113,20 @@ def _actuated(model: pin.Model, actuated: object, urdf_path: Path, path: Path) -
     if len(set(actuated)) != len(actuated):
         raise ModelFileError(path, "actuated_joints: a joint is listed twice")
     return tuple(actuated)
+
+
+def _locked(model: pin.Model, names: object, actuated: tuple[str, ...], path: Path) -> tuple[str, ...]:
+    """`locked_joints`: passive joints held at their home value (written by `Mechanism.save`)."""
+    if not isinstance(names, list) or not all(isinstance(name, str) for name in names):
+        raise ModelFileError(path, f"locked_joints must be a list of joint names, got {names!r}")
+    for name in names:
+        if not model.existJointName(name):
+            raise ModelFileError(path, f"locked_joints: joint '{name}' does not exist")
+        if name in actuated:
+            raise ModelFileError(path, f"locked_joints: '{name}' is an actuated joint")
+    if len(set(names)) != len(names):
+        raise ModelFileError(path, "locked_joints: a joint is listed twice")
+    return tuple(names)
 
 
 def _closures(model: pin.Model, entries: object, path: Path) -> tuple[ClosureSpec, ...]:

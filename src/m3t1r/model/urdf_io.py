@@ -126,6 +126,35 @@ def calibrated_urdf_bytes(nominal_urdf: StrPath, model: pin.Model, closures_sha2
     return with_closures_sha256(output, closures_sha256)
 
 
+def revolute_urdf_text(urdf: StrPath, raw: bytes) -> str | None:
+    """The URDF text with each continuous joint made a revolute one without limits, or None if it has none.
+
+    Pinocchio builds a continuous joint as a unit-circle joint (nq = 2: cos, sin), a revolute one
+    with nq = 1; the closure solvers take one coordinate per joint, and an unbounded revolute joint
+    moves the same way. A `<limit>` without `lower`/`upper` reads as [0, 0], which `Mechanism.load`
+    takes as "not given" (unbounded). None too for a file that is not a URDF: Pinocchio then says why.
+    """
+    if b"continuous" not in raw:
+        return None
+    try:
+        root = _parse(Path(urdf), raw)
+    except ModelFileError:
+        return None
+    continuous = [joint for joint in root.iterchildren("joint") if joint.get("type") == "continuous"]
+    if not continuous:
+        return None
+    for joint in continuous:
+        joint.set("type", "revolute")
+        limit = joint.find("limit")
+        if limit is None:
+            limit = etree.SubElement(joint, "limit")
+        for key in ("effort", "velocity"):
+            limit.set(key, limit.get(key, "0"))
+        for key in ("lower", "upper"):
+            limit.attrib.pop(key, None)
+    return etree.tostring(root, encoding="unicode")
+
+
 def max_placement_difference(model_a: pin.Model, model_b: pin.Model) -> float:
     """Largest difference between same-named placements of two models of the same structure.
 
