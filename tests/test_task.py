@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pinocchio as pin
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from m3t1r.errors import InvalidInputError
@@ -46,6 +46,9 @@ def test_jacobian_matches_finite_differences(task, values, goal_values):
     rotations = task.target_rotations(goal[None])
     goal_rotation = None if rotations is None else rotations[0]
     jacobian = task.jacobian(pose, np.eye(6), goal_rotation)
+    # The yaw row is a wrapped angle: at a heading error of +-pi (a target tilted past the vertical
+    # turns its heading by pi) the residual jumps by 2 pi and no derivative exists there.
+    assume(task.rotation != "yaw" or abs(task.residual(pose, goal, goal_rotation)[-1]) < math.pi - 0.1)
     step = 1e-6
     for k in range(6):
         twist = np.zeros(6)
