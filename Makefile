@@ -13,6 +13,7 @@ DEV_STAMP := $(VENV)/.installed-dev
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
+	@echo "installing m3t1r and its dependencies into $(VENV) (compiling the Newton loop when out of date: a few minutes)"
 	$(BIN)/python -m pip install --quiet -e '.[native]'
 	touch $(STAMP)
 
