@@ -3,7 +3,7 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 BIN := $(VENV)/bin
 # STAMP: the package and its runtime dependencies, with cmeel-eigen for `make native` (what `make demo` needs);
-# DEV_STAMP: also the test tools and Jupyter (`make test`).
+# DEV_STAMP: also the test tools, Jupyter and the instrument readers of `m3t1r convert` (`make test`).
 STAMP := $(VENV)/.installed
 DEV_STAMP := $(VENV)/.installed-dev
 
@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 $(DEV_STAMP): $(STAMP)
-	$(BIN)/python -m pip install --quiet -e '.[native,dev,notebooks]'
+	$(BIN)/python -m pip install --quiet -e '.[native,dev,notebooks,formats]'
 	touch $(DEV_STAMP)
 
 # The compiled Newton loop of FK and IK (src/m3t1r/model/_native_core.hpp and _native_newton.cpp; about a
