@@ -72,8 +72,9 @@ NOT_FOR = {
     "m3t1r.app.cli_studies": ("matplotlib", "meshcat", "pinocchio.visualize"),
     "m3t1r.app.cli_calibrate": ("matplotlib", "meshcat", "pinocchio.visualize"),
     "m3t1r.app.cli_view": ("matplotlib",),
-    # convert reads files: no solver, no fit, and the optional readers only for their formats
-    "m3t1r.app.cli_convert": ("matplotlib", "meshcat", "pinocchio.visualize", "m3t1r.calibration", "ezc3d", "rosbags"),
+    # convert reads files: no fit, and the optional readers only for their formats
+    "m3t1r.app.cli_convert": ("matplotlib", "meshcat", "pinocchio.visualize", "m3t1r.calibration.closed_loop",
+                              "m3t1r.calibration.serial", "ezc3d", "rosbags"),
     "m3t1r.app.cli": ("numpy",),  # the demo's own module is imported when it runs
 }
 
