@@ -20,7 +20,7 @@ from m3t1r.errors import (
     OutOfWorkspaceError,
     SingularConfigurationError,
 )
-from m3t1r.model import native
+from m3t1r.model import native, native_status
 from m3t1r.model.description import Mechanism
 from m3t1r.model.design import NOMINAL
 from m3t1r.model.examples import five_bar_files, spherical_wrist_files
@@ -493,8 +493,8 @@ def test_a_module_compiled_from_other_source_is_not_used(monkeypatch):
     import hashlib
     import importlib
 
-    assert [source.name for source in native._SOURCES] == ["_native_newton.cpp", "_native_core.hpp"]
-    sources = b"".join(source.read_bytes() for source in native._SOURCES)
+    assert [source.name for source in native_status.SOURCES] == ["_native_newton.cpp", "_native_core.hpp"]
+    sources = b"".join(source.read_bytes() for source in native_status.SOURCES)
     assert native._native_newton.source_sha256 == hashlib.sha256(sources).hexdigest()
     module = native._native_newton
     monkeypatch.setattr(module, "source_sha256", "0" * 64)

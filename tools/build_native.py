@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def sources(source: Path) -> list[Path]:
     """What the module is compiled from: `source` and the core header it includes (a revision from
-    before the header has the file alone). m3t1r.model.native hashes the same files, in this order."""
+    before the header has the file alone). m3t1r.model.native_status hashes the same files, in this order."""
     return [part for part in (source, source.with_name("_native_core.hpp")) if part.exists()]
 
 

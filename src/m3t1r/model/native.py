@@ -14,7 +14,6 @@ unless M3T1R_PURE_PYTHON is set; `status()` says in one line which loop runs and
 
 from __future__ import annotations
 
-import hashlib
 import os
 import warnings
 from pathlib import Path
@@ -22,27 +21,19 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-try:
-    from m3t1r.model import _native_newton  # type: ignore[attr-defined]
-except ImportError:  # not compiled: the pure-Python Newton runs
-    _native_newton = None
+from m3t1r.model.native_status import STALE, load_compiled
 
+_native_newton, _WHY_NOT = load_compiled()  # _WHY_NOT: why the Python loops run ("": they do not)
 # The variable that asks for the pure-Python package (tools/build_native.py, hatch_build.py): set, a
 # run without the compiled loop is what the user chose and goes without the warning.
 PURE_PYTHON_VARIABLE = "M3T1R_PURE_PYTHON"
-# What the module is compiled from, in the order tools/build_native.py hashes them into its stamp.
-_SOURCES = [Path(__file__).with_name(name) for name in ("_native_newton.cpp", "_native_core.hpp")]
-_WHY_NOT = "not built" if _native_newton is None else ""  # why the Python loops run ("": they do not)
-if _native_newton is not None and all(source.exists() for source in _SOURCES) and \
-        getattr(_native_newton, "source_sha256", "") != hashlib.sha256(b"".join(
-            source.read_bytes() for source in _SOURCES)).hexdigest():
+if _WHY_NOT == STALE:
     # Compiled from another version of the source (edited since, or an old build): its calls may not
     # match this module's. The Python loops run until `make native` rebuilds it.
     warnings.warn("_native_newton: the compiled Newton loop is older than its source; using "
                   "the Python loop (rebuild: make native, or python tools/build_native.py)", RuntimeWarning,
                   stacklevel=2)
-    _native_newton, _WHY_NOT = None, "older than its source"
-_warned = _WHY_NOT == "older than its source"  # that case has had its warning, above
+_warned = _WHY_NOT == STALE  # that case has had its warning, above
 
 if TYPE_CHECKING:
     import pinocchio as pin
