@@ -35,11 +35,12 @@ from m3t1r.calibration.simulation import simulate_study
 from m3t1r.calibration.validation import read_report
 from m3t1r.compensation import Compensator, compensate, joint_limit_violation
 from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError
-from m3t1r.io.outputs import OutputSet
+from m3t1r.io.outputs import OutputSet, interrupted_outputs
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows
 from m3t1r.io.progress import set_quiet
 from m3t1r.io.signals import Terminated, termination_as_exception
 from m3t1r.io.tables import table_text
+from m3t1r.io.temporaries import remove_live_temporaries
 from m3t1r.model.kinematics import ClosedLoopSolver, require_square_task, yaw_of
 from m3t1r.model.workspace import workspace_actuators
 from m3t1r.paper.closed_chain import closed_chain_study
@@ -463,14 +464,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (M3t1rError, OSError) as exc:
         print(f"m3t1r: error: {exc}", file=sys.stderr)
         return EXIT_ERROR
-    except KeyboardInterrupt:
-        print("m3t1r: interrupted; outputs not yet in place were not written", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        print(f"m3t1r: interrupted; {interrupted_outputs(exc)}", file=sys.stderr)
         return 130
     except Terminated as exc:
-        print(f"m3t1r: {exc}; outputs not yet in place were not written", file=sys.stderr)
+        print(f"m3t1r: {exc}; {interrupted_outputs(exc)}", file=sys.stderr)
         return 128 + exc.signum
     finally:
         set_quiet(False)
+        remove_live_temporaries()  # a failed command's claims, in this process too (tests, the demo)
     return 0
 
 

@@ -15,14 +15,15 @@ import sys
 import warnings
 from collections.abc import Callable
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 import pinocchio as pin
 
 from m3t1r._version import __version__
-from m3t1r.app.cli_common import RowFailures, campaign_report_fields, selection_note
+from m3t1r.app.cli_common import RowFailures, campaign_report_fields, selection_note, status_stream
 from m3t1r.app.datasets import MeasurementFile, read_measurements
-from m3t1r.app.reporting import check_plots_folder, passive_joint_residuals, write_calibration_plots
+from m3t1r.app.reporting import declare_plot_outputs, passive_joint_residuals, write_calibration_plots
 from m3t1r.calibration.assessment import (
     FitRejected,
     check_fit,
@@ -124,60 +125,63 @@ def _diagnose(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, frame_
 
 
 def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) -> None:
-    """The whole `calibrate` verb for a closed-loop machine (module docstring)."""
+    """The whole `calibrate` verb for a closed-loop machine (module docstring).
+
+    Every output (the pair, the report, the plots) is checked before the fit and written as one
+    unit after it: a failure anywhere, the plots' included, leaves every old file as it was.
+    """
     outputs = OutputSet(inputs=(args.measurements, nominal.urdf_path, nominal.closures_path))
     machine_output = outputs.add_machine(args.output, "-o")
     report_output = outputs.add(args.report, "--report")
-    outputs.check()
-    if args.plots:
-        check_plots_folder(args.plots)
-    data = read_measurements(args.measurements, nominal, units=args.units)
-    noise = TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
-    marker = MeasurementSetup.from_numbers(marker_xyz=args.marker).marker
-    estimate_frame = args.frame == "estimate"
-    print(f"calibrating from {len(data.measurements)} poses"
-          + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
-    with warnings.catch_warnings(record=True) as caught, Progress("calibrating", None) as progress:
-        warnings.simplefilter("always", PoorExcitationWarning)
-        calibration = _fit(args, nominal, data, noise, marker, estimate_frame, progress.advance)
-    lines = [int(data.lines[i]) for i in calibration.outliers]
-    _print_summary(calibration, lines)
-    try:
-        check_fit(calibration.converged, calibration.lm.termination, calibration.lm.iterations,
-                  calibration.variance_factor, _fit_causes(args, nominal, data, marker, estimate_frame)
-                  if calibration.variance_factor > 9 or not calibration.converged else ())
-    except FitRejected as exc:
-        if not args.force:
-            raise
-        print(f"m3t1r: warning: writing anyway (--force): {exc.reason}", file=sys.stderr)
-    with Progress(f"cross-validating ({args.folds} folds)", None) as progress:
-        calibration.problem.on_evaluate = progress.advance
-        validation = cross_validate(calibration, folds=args.folds)
-    notes = explain(calibration, [str(w.message) for w in caught])
-    _print_judgement(calibration, validation, notes)
-    report = calibration_report(calibration, data, nominal, noise, args, lines, validation, notes)
-    if data.passive_joints:
-        report["passive_joint_cross_validation"] = _idle_chain_check(nominal, calibration, data)
+    plots = declare_plot_outputs(outputs, args.plots) if args.plots else None
+    out = status_stream(outputs)  # stderr when the report goes to stdout
     with outputs:
+        outputs.check()
+        data = read_measurements(args.measurements, nominal, units=args.units)
+        noise = TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
+        marker = MeasurementSetup.from_numbers(marker_xyz=args.marker).marker
+        estimate_frame = args.frame == "estimate"
+        print(f"calibrating from {len(data.measurements)} poses"
+              + (" (measurement frame estimated)" if estimate_frame else "") + " ...", file=out, flush=True)
+        with warnings.catch_warnings(record=True) as caught, Progress("calibrating", None) as progress:
+            warnings.simplefilter("always", PoorExcitationWarning)
+            calibration = _fit(args, nominal, data, noise, marker, estimate_frame, progress.advance)
+        lines = [int(data.lines[i]) for i in calibration.outliers]
+        _print_summary(calibration, lines, out)
+        try:
+            check_fit(calibration.converged, calibration.lm.termination, calibration.lm.iterations,
+                      calibration.variance_factor, _fit_causes(args, nominal, data, marker, estimate_frame)
+                      if calibration.variance_factor > 9 or not calibration.converged else ())
+        except FitRejected as exc:
+            if not args.force:
+                raise
+            print(f"m3t1r: warning: writing anyway (--force): {exc.reason}", file=sys.stderr)
+        with Progress(f"cross-validating ({args.folds} folds)", None) as progress:
+            calibration.problem.on_evaluate = progress.advance
+            validation = cross_validate(calibration, folds=args.folds)
+        notes = explain(calibration, [str(w.message) for w in caught])
+        _print_judgement(calibration, validation, notes, out)
+        report = calibration_report(calibration, data, nominal, noise, args, lines, validation, notes)
+        if data.passive_joints:
+            report["passive_joint_cross_validation"] = _idle_chain_check(nominal, calibration, data, out)
         outputs.stage_machine(machine_output, calibration.mechanism)
         outputs.stage_json(report_output, report)
+        if plots is not None:
+            print("rendering plots (cross-validation recalibrates on subsets) ...", file=out, flush=True)
+            write_calibration_plots(nominal, calibration, plots, noise=noise, outputs=outputs)
         written = outputs.commit()
-    print("wrote " + ", ".join(written))
-    if args.plots:
-        print("writing plots (cross-validation recalibrates on subsets) ...", flush=True)
-        protect = (args.measurements, nominal.urdf_path, nominal.closures_path, *written)
-        for path in write_calibration_plots(nominal, calibration, Path(args.plots), protect, noise):
-            print(f"wrote {path}")
+    print("wrote " + ", ".join(written), file=out)
 
 
-def _idle_chain_check(nominal: Mechanism, calibration: ClosedLoopCalibration, data: MeasurementFile) -> dict:
+def _idle_chain_check(nominal: Mechanism, calibration: ClosedLoopCalibration, data: MeasurementFile,
+                      out: TextIO = sys.stdout) -> dict:
     """Passive-joint readings the fit did not use, predicted by the nominal and the calibrated model."""
     actuators = data.measurements.actuators
     before = passive_joint_residuals(nominal, actuators, data.passive_joints, data.passive)
     after = passive_joint_residuals(calibration.mechanism, actuators, data.passive_joints, data.passive)
-    print("passive-joint readings the fit did not use (RMS after removing each encoder's zero offset):")
+    print("passive-joint readings the fit did not use (RMS after removing each encoder's zero offset):", file=out)
     for k, name in enumerate(data.passive_joints):
-        print(f"  {name}: nominal {before.rms[k]:.3e}, calibrated {after.rms[k]:.3e}")
+        print(f"  {name}: nominal {before.rms[k]:.3e}, calibrated {after.rms[k]:.3e}", file=out)
     return {name: {"nominal_rms": float(before.rms[k]), "calibrated_rms": float(after.rms[k]),
                    "calibrated_offset": float(after.offsets[k])} for k, name in enumerate(data.passive_joints)}
 
@@ -224,30 +228,32 @@ def _precheck(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, estima
                 lambda: _diagnose(nominal, data, marker, estimate_frame))
 
 
-def _print_summary(calibration: ClosedLoopCalibration, outlier_lines: list[int]) -> None:
+def _print_summary(calibration: ClosedLoopCalibration, outlier_lines: list[int], out: TextIO = sys.stdout) -> None:
     before, after = calibration.rms_before, calibration.rms_after
     fitted = len(calibration.fitted)
     print(f"identified {calibration.base.rank} of {len(calibration.std)} parameters "
           f"(condition number {calibration.base.condition_number:.3g}); fitted {fitted} "
-          f"in {calibration.lm.iterations} iterations ({'converged' if calibration.converged else 'NOT converged'})")
+          f"in {calibration.lm.iterations} iterations ({'converged' if calibration.converged else 'NOT converged'})",
+          file=out)
     orientation = ("" if not (math.isfinite(before[1]) and math.isfinite(after[1])) else  # position-only data
                    f", orientation {before[1]:.3e} -> {after[1]:.3e} rad")
     print(f"residual RMS position {before[0]:.3e} -> {after[0]:.3e} m{orientation}; "
-          f"variance factor {calibration.variance_factor:.3g}")
+          f"variance factor {calibration.variance_factor:.3g}", file=out)
     if outlier_lines:
-        print(f"outliers (left out of the fit), file lines: {', '.join(map(str, outlier_lines))}")
+        print(f"outliers (left out of the fit), file lines: {', '.join(map(str, outlier_lines))}", file=out)
     else:
-        print("outliers: none")
+        print("outliers: none", file=out)
 
 
-def _print_judgement(calibration: ClosedLoopCalibration, validation: CrossValidation, notes: list[str]) -> None:
+def _print_judgement(calibration: ClosedLoopCalibration, validation: CrossValidation, notes: list[str],
+                     out: TextIO = sys.stdout) -> None:
     errors = validation.errors
     rotation = "" if np.isnan(errors.rotation_mean) else f", {errors.rotation_mean:.3e} rad"
     print(f"cross-validation ({validation.folds} folds): predicting held-back measurements "
           f"{errors.position_mean:.3e} m{rotation} mean (noise included: what `m3t1r validate` will show "
-          "on fresh measurements of the same quality)")
+          "on fresh measurements of the same quality)", file=out)
     for note in notes:
-        print(f"note: {note}")
+        print(f"note: {note}", file=out)
 
 
 def explain(calibration: ClosedLoopCalibration, warnings_seen: list[str] = ()) -> list[str]:

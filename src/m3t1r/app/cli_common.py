@@ -8,6 +8,7 @@ import sys
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TextIO
 
 from m3t1r._version import __version__
 from m3t1r.calibration.assessment import describe_parameter
@@ -17,7 +18,7 @@ from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256
 from m3t1r.io.progress import Progress
 from m3t1r.model.description import Mechanism
 
-__all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "progress_bar", "provenance"]
+__all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "status_stream", "progress_bar", "provenance"]
 
 
 class RowFailures(M3t1rError):
@@ -55,10 +56,16 @@ def closures_beside(urdf_out: Path) -> Path:
     return paired_closures_path(urdf_out)
 
 
-def say(outputs, message: str) -> None:
-    """A status line: stdout, or stderr when an output of the command is stdout (`-o -`)."""
+def status_stream(outputs) -> TextIO:
+    """Where status lines go: stdout, or stderr when an output of the command is stdout (`-o -`,
+    `--report -`), so that the output stays machine-readable."""
     to_stdout = outputs is None or all(o.path is not None for o in outputs.outputs)
-    print(message, file=sys.stdout if to_stdout else sys.stderr, flush=True)
+    return sys.stdout if to_stdout else sys.stderr
+
+
+def say(outputs, message: str) -> None:
+    """A status line on `status_stream(outputs)`."""
+    print(message, file=status_stream(outputs), flush=True)
 
 
 def progress_bar(label: str, total: int):
