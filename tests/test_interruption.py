@@ -170,3 +170,29 @@ def test_calibrate_killed_at_any_instant_leaves_a_loadable_pair(tmp_path, capsys
     assert terminated and not terminated[0]["leftovers"]
     print(f"{len(outcomes)} runs, {len(killed)} killed by SIGKILL, a run takes {result['duration']:.2f} s")
     assert result["final_leftovers"] == []
+
+
+def test_a_signal_during_the_renames_is_reported_with_every_output_written(tmp_path, capsys, monkeypatch):
+    """Ctrl-C while the outputs are renamed into place is held back until they all are, then stops the
+    command (status 130) saying so, where it said 'not written' of outputs that were all in place."""
+    import signal
+
+    sliders = tmp_path / "s.csv"
+    sliders.write_text("q11,q11_B2,q21,q21_B4\n0,0,0,0\n")
+    rename = os.replace
+    calls = []
+
+    def interrupted_rename(source, target):
+        if not calls:
+            signal.raise_signal(signal.SIGINT)  # arrives during the commit
+        calls.append(target)
+        rename(source, target)
+
+    monkeypatch.setattr(os, "replace", interrupted_rename)
+    assert main(["fk", str(sliders), "-o", str(tmp_path / "p.csv")]) == 130
+    monkeypatch.undo()
+    err = capsys.readouterr().err
+    assert (f"m3t1r: interrupted; it arrived while the outputs were renamed into place, and every one is "
+            f"written: {tmp_path / 'p.csv'}") in err
+    assert "x,y,z,qx,qy,qz,qw" in (tmp_path / "p.csv").read_text()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.csv", "s.csv"]
