@@ -14,13 +14,12 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-import pinocchio as pin
 
 from m3t1r._threads import single_blas_thread
 from m3t1r._version import __version__
 from m3t1r.app.cli_calibrate import add_campaign_options, parse_priors, run_closed_loop_calibration
 from m3t1r.app.cli_campaign import add_plan_parser, add_validate_parser
-from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, provenance, say
+from m3t1r.app.cli_common import RowFailures, load_mechanism, pose_table_text, progress_bar, provenance, say
 from m3t1r.app.cli_serial import run_serial_calibration
 from m3t1r.app.datasets import TARGET_COLUMNS, measurement_table, read_actuators, read_measurements, read_targets
 from m3t1r.app.demo import run_demo
@@ -36,8 +35,8 @@ from m3t1r.calibration.validation import read_report
 from m3t1r.compensation import Compensator, compensate, joint_limit_violation
 from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError
 from m3t1r.io.outputs import OutputSet, interrupted_outputs
-from m3t1r.io.poses import POSE_COLUMNS, pose_rows
-from m3t1r.io.progress import set_quiet
+from m3t1r.io.poses import POSE_COLUMNS
+from m3t1r.io.progress import Heartbeat, set_quiet
 from m3t1r.io.signals import Terminated, termination_as_exception
 from m3t1r.io.tables import table_text
 from m3t1r.io.temporaries import remove_live_temporaries
@@ -57,18 +56,14 @@ def cmd_fk(args: argparse.Namespace) -> None:
     outputs = OutputSet(inputs=(args.actuators, mechanism.urdf_path, mechanism.closures_path))
     output = outputs.add(args.output, "-o")
     outputs.check()
-    actuators, lines = read_actuators(args.actuators, mechanism)
-    with progress_bar("fk", 1) as progress:  # one vectorised solve, every row from home
-        batch = ClosedLoopSolver(mechanism).forward_batch(actuators)
-        progress.advance()
-    if batch.failures:
-        raise RowFailures(Path(args.actuators), [(int(lines[f.index]), f.reason) for f in batch.failures])
-    poses = [pin.SE3(pose) for pose in batch.poses]
+    with Heartbeat("reading", args.actuators):
+        actuators, lines = read_actuators(args.actuators, mechanism)
     comments = provenance(args) + ["platform frame pose in the base frame: m, unit quaternion"]
+    text = pose_table_text(ClosedLoopSolver(mechanism), actuators, lines, Path(args.actuators), comments)
     with outputs:
-        outputs.stage(output, table_text(POSE_COLUMNS, pose_rows(poses), comments))
+        outputs.stage(output, text)
         outputs.commit()
-    say(outputs, f"wrote {len(poses)} poses to {output.name}")
+    say(outputs, f"wrote {len(actuators)} poses to {output.name}")
 
 
 def cmd_ik(args: argparse.Namespace) -> None:
@@ -283,6 +278,7 @@ def cmd_paper(args: argparse.Namespace) -> None:
 def cmd_evaluate(args: argparse.Namespace) -> None:
     """`m3t1r evaluate`: nominal and calibrated machines against a (simulated) truth."""
     import pinocchio as pin
+
 
 
     nominal = load_mechanism(args.nominal, args.nominal_closures)
