@@ -107,8 +107,9 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     noise = None if args.noise_free else TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
     passive = IDLE_CHAIN_JOINTS if args.with_passive else ()
     setup = MeasurementSetup.from_numbers(args.tracker_frame, args.marker)
-    study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only,
-                           passive_joints=passive, setup=setup, outliers=args.outliers)
+    with Heartbeat("simulating", f"{args.n} poses"):  # one batch: no count to show
+        study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only,
+                               passive_joints=passive, setup=setup, outliers=args.outliers)
     comments = provenance(args) + [
         f"truth: {args.sigma_pos:g} m / {args.sigma_rot:g} rad errors on every joint placement and closure/platform frame, seed {args.seed}",
         "noise: none" if noise is None else f"noise: tracker {noise.position:g} m / {noise.rotation:g} rad, sliders {noise.actuator:g} m",
@@ -149,7 +150,8 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     if args.report:
         targets = _targets_in_base(targets, args.report, args.targets, calibrated)
     if args.unordered:  # every target from home, vectorised: no path order to follow
-        result = Compensator(nominal, calibrated).compensate_batch(targets)
+        with Heartbeat("compensate", f"{len(lines)} targets"):
+            result = Compensator(nominal, calibrated).compensate_batch(targets)
     else:
         with progress_bar("compensate", len(lines)) as progress:
             result = compensate(nominal, calibrated, targets, progress=progress.update)

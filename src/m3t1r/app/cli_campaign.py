@@ -15,7 +15,7 @@ from typing import TextIO
 
 import numpy as np
 
-from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, provenance, say
+from m3t1r.app.cli_common import RowFailures, load_mechanism, provenance, say
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.planning import plan_closed_loop, plan_serial
@@ -25,6 +25,7 @@ from m3t1r.errors import InvalidInputError, ModelFileError
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import paired_closures_path
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows
+from m3t1r.io.progress import Heartbeat
 from m3t1r.io.tables import table_text
 from m3t1r.model.poe import SerialChain
 
@@ -121,7 +122,8 @@ def cmd_plan(args: argparse.Namespace) -> None:
     output = outputs.add(args.output, "-o")
     outputs.check()
     print("planning ...", file=sys.stderr if output.path is None else sys.stdout, flush=True)
-    plan, inputs = _make_plan(args)
+    with Heartbeat("planning", f"choosing {args.n} poses"):  # the selection reports no count
+        plan, inputs = _make_plan(args)
     for path in inputs:
         outputs.add_input(path)
     outputs.check()
@@ -213,8 +215,8 @@ def cmd_validate(args: argparse.Namespace) -> None:
     output = outputs.add(args.predictions, "--predictions")
     outputs.check()
     out = sys.stderr if output is not None and output.path is None else sys.stdout
-    with progress_bar("validate", None) as progress:
-        result = validate(args.measurements, args.calibrated, args.report, args.units, progress=progress.update)
+    with Heartbeat("validate", args.measurements):  # its batch prediction reports rows only at the end
+        result = validate(args.measurements, args.calibrated, args.report, args.units)
     _row_table(result, out)
     _summary(result, out)
     if output is None:
