@@ -236,6 +236,26 @@ def test_leftovers_of_killed_runs_are_removed_and_live_ones_kept(tmp_path):
         writer.wait()
 
 
+_SECOND_WRITER = """
+import sys
+from m3t1r.errors import OutputPathError
+from m3t1r.io.outputs import OutputSet
+outputs = OutputSet(announce=None)
+outputs.add(sys.argv[1] + "/r.json", "--report")
+outputs.add_machine(sys.argv[1] + "/c.urdf")
+try:
+    outputs.check()
+    print("passed")
+except OutputPathError as exc:
+    print(exc)
+"""
+
+
+def _second_writer(folder: Path) -> str:
+    return subprocess.run([sys.executable, "-c", _SECOND_WRITER, str(folder)], capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}, check=True).stdout.strip()
+
+
 def test_a_second_writer_of_an_output_is_refused_before_any_work(tmp_path):
     """Two runs writing the same pair: the second is refused at its check, naming the folder and the
     first run, and the first run's pair lands whole, where both used to exit 0 leaving B's URDF
@@ -243,22 +263,29 @@ def test_a_second_writer_of_an_output_is_refused_before_any_work(tmp_path):
     first = OutputSet(announce=None)
     machine = first.add_machine(tmp_path / "c.urdf")
     first.check()
-    second = OutputSet(announce=None)
-    second.add(tmp_path / "r.json", "--report")
-    second.add_machine(tmp_path / "c.urdf")
-    with pytest.raises(OutputPathError) as caught:
-        second.check()
-    message = str(caught.value)
+    message = _second_writer(tmp_path)
     assert message.startswith(f"{tmp_path / 'c.urdf'}: -o: another m3t1r run is writing this file in {tmp_path} "
                               f"(pid {os.getpid()} on {socket.gethostname()}, started ")
     assert message.endswith("nothing was written: wait for it to finish, or write elsewhere")
-    assert not (tmp_path / "r.json").exists() and len([p for p in tmp_path.iterdir()]) == 2  # the first's claims
+    assert not (tmp_path / "r.json").exists() and len(list(tmp_path.iterdir())) == 2  # the first's claims
     with first:
         first.stage_machine(machine, Mechanism.load())
         first.commit()
     assert Mechanism.load(tmp_path / "c.urdf").model.nq == 20 and _no_temporaries(tmp_path)
-    with second:  # once the first is done, the second may write
-        second.check()
+    assert _second_writer(tmp_path) == "passed"  # once the first is done, the next may write
+
+
+def test_a_command_that_failed_before_its_commit_does_not_block_the_next_in_the_same_process(tmp_path):
+    failed = OutputSet(announce=None)
+    failed.add(tmp_path / "r.json")
+    failed.check()  # ... and its command stops here, without discarding
+    outputs = OutputSet(announce=None)
+    report = outputs.add(tmp_path / "r.json")
+    with outputs:
+        outputs.check()
+        outputs.stage(report, "{}")
+        outputs.commit()
+    assert (tmp_path / "r.json").read_text() == "{}" and _no_temporaries(tmp_path)
 
 
 def test_a_writer_in_another_process_is_refused_while_it_stages(tmp_path):

@@ -129,30 +129,30 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
     outputs = OutputSet(inputs=(args.measurements, urdf))
     urdf_output = outputs.add(args.output, "-o") if urdf is not None else None
     report_output = outputs.add(args.report, "--report")
-    outputs.check()
-    # Status lines go to stderr when the report is stdout (`--report -`): the JSON stays parseable.
-    with contextlib.redirect_stdout(status_stream(outputs)):
-        if urdf is None:
-            print(f"{args.serial} is an example-robot-data robot: no calibrated URDF is written "
-                  "(give its URDF path to --serial for one)" + (f"; -o {args.output} ignored" if args.output else ""))
-        data = read_campaign(args.measurements, chain, args.units)
-        marker = pin.SE3(np.eye(3), np.array(args.marker, dtype=float)) if args.marker is not None else pin.SE3.Identity()
-        estimate_frame = args.frame == "estimate"
-        noise = TrackerNoise(args.noise_pos, args.noise_rot)
-        _precheck(model, chain, data, marker, estimate_frame)
-        print(f"calibrating chain {chain.joint_names[0]} .. {chain.tool_frame} from {len(data.poses)} poses"
-              + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", PoorExcitationWarning)
-            calibration = _fit(args, model, chain, data, noise, marker, estimate_frame)
-        lines = [int(data.lines[i]) for i in calibration.outliers]
-        _print_summary(calibration, lines)
-        _judge(args, calibration, lambda: _diagnose(model, chain, data, marker, estimate_frame))
-        validation = cross_validate_serial(calibration, folds=args.folds)
-        notes = explain(calibration, [str(w.message) for w in caught])
-        _print_judgement(validation, notes)
-        report = serial_calibration_report(calibration, data, args, noise, lines, validation, notes)
-    with outputs:
+    with outputs:  # a failure anywhere removes every claimed temporary file
+        outputs.check()
+        # Status lines go to stderr when the report is stdout (`--report -`): the JSON stays parseable.
+        with contextlib.redirect_stdout(status_stream(outputs)):
+            if urdf is None:
+                print(f"{args.serial} is an example-robot-data robot: no calibrated URDF is written "
+                      "(give its URDF path to --serial for one)" + (f"; -o {args.output} ignored" if args.output else ""))
+            data = read_campaign(args.measurements, chain, args.units)
+            marker = pin.SE3(np.eye(3), np.array(args.marker, dtype=float)) if args.marker is not None else pin.SE3.Identity()
+            estimate_frame = args.frame == "estimate"
+            noise = TrackerNoise(args.noise_pos, args.noise_rot)
+            _precheck(model, chain, data, marker, estimate_frame)
+            print(f"calibrating chain {chain.joint_names[0]} .. {chain.tool_frame} from {len(data.poses)} poses"
+                  + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", PoorExcitationWarning)
+                calibration = _fit(args, model, chain, data, noise, marker, estimate_frame)
+            lines = [int(data.lines[i]) for i in calibration.outliers]
+            _print_summary(calibration, lines)
+            _judge(args, calibration, lambda: _diagnose(model, chain, data, marker, estimate_frame))
+            validation = cross_validate_serial(calibration, folds=args.folds)
+            notes = explain(calibration, [str(w.message) for w in caught])
+            _print_judgement(validation, notes)
+            report = serial_calibration_report(calibration, data, args, noise, lines, validation, notes)
         if urdf_output is not None:
             outputs.stage(urdf_output, calibrated_urdf_bytes(urdf, calibration.model))
         outputs.stage_json(report_output, report)

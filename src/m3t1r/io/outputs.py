@@ -28,6 +28,7 @@ from m3t1r.io.temporaries import (
     folder_lock,
     live_writer,
     print_notice,
+    release_stale_claims,
     release_temporary,
     sweep_locked,
     temporary_path,
@@ -118,7 +119,8 @@ class OutputSet:
     is writing (naming that run). It sweeps each output folder for temporary files left by killed
     runs (see `sweep`) and then claims every output: a temporary file beside each target, created
     and exclusively locked under the folder's lock, so that a second writer of the same file is
-    refused at its own `check` and no sweep mistakes this run's files for leftovers.
+    refused at its own `check` and no sweep mistakes this run's files for leftovers. (Within one
+    process the latest claim wins: a command that failed before its commit leaves no obstacle.)
 
     `stage*` writes each output's bytes to its temporary file at once (a full disk shows then,
     before anything is replaced). `commit` then renames them over their targets with catchable
@@ -246,7 +248,8 @@ class OutputSet:
                 notes += sweep_locked(folder)
             own = {o.temporary for o in self.outputs if o.temporary is not None}
             for output in unclaimed:
-                writer = live_writer(output.path, own)
+                release_stale_claims(output.path, own)
+                writer = live_writer(output.path)
                 if writer is not None:
                     raise OutputPathError(output.path, f"{output.label}: another m3t1r run is writing this file in "
                                                        f"{output.path.parent} ({writer}); nothing was written: "

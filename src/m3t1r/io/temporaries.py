@@ -29,7 +29,7 @@ except ImportError:  # Windows: no advisory locks, so no leftover is ever provab
     fcntl = None  # type: ignore[assignment]
 
 __all__ = ["pending_temporaries", "print_notice", "sweep", "temporary_path", "folder_lock", "live_writer",
-           "remove_live_temporaries"]
+           "remove_live_temporaries", "release_stale_claims"]
 
 # A temporary file is `.<final name>.m3t1r-<pid>-<random hex>.tmp` in the target's folder: hidden,
 # recognisable and on the target's filesystem (so the final rename is atomic). When that name would
@@ -187,14 +187,13 @@ def _holder(path: Path) -> bool | None:
         os.close(descriptor)  # releases the probe's lock, if taken
 
 
-def live_writer(target: StrPath, own: Collection[Path] = ()) -> str | None:
-    """Who is writing `target` now, if a live writer other than the files `own` is: its own
-    description (another OutputSet of this process counts too), or None.
+def live_writer(target: StrPath) -> str | None:
+    """Who is writing `target` now, if another live process is: its own description, or None.
 
     Call with `target`'s folder lock held (`folder_lock`), so that nobody claims it meanwhile.
     """
     for path in pending_temporaries(target):
-        if path in own or _holder(path) is not True:
+        if path in _LIVE_TEMPORARIES or _holder(path) is not True:
             continue
         try:
             with open(path, "rb") as stream:
@@ -206,6 +205,15 @@ def live_writer(target: StrPath, own: Collection[Path] = ()) -> str | None:
         match = _TEMPORARY.match(path.name)
         return f"pid {match['pid'] if match else '?'}, now renaming its outputs into place"
     return None
+
+
+def release_stale_claims(target: StrPath, own: Collection[Path]) -> None:
+    """Remove this process's claims on `target` other than `own`: left by an earlier command of the
+    same process that failed between its check and its commit (an API caller, a notebook). Within
+    one process the latest claim wins; two threads must not write the same file."""
+    for path in pending_temporaries(target):
+        if path in _LIVE_TEMPORARIES and path not in own:
+            release_temporary(path, _LIVE_DESCRIPTORS.get(path), remove=True)
 
 
 def claim_description() -> str:
