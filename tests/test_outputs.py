@@ -24,7 +24,7 @@ from m3t1r.app.cli import main
 from m3t1r.errors import ModelFileError, OutputPathError
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import paired_closures_path
-from m3t1r.io.progress import Progress, set_quiet
+from m3t1r.io.progress import Heartbeat, Progress, set_quiet
 from m3t1r.io.strict_json import json_text
 from m3t1r.io.temporaries import sweep, temporary_path
 from m3t1r.model.description import Mechanism
@@ -536,6 +536,27 @@ def test_progress_lines_and_quiet(tmp_path):
         quiet = io.StringIO()
         with Progress("calibrating", total=4, stream=quiet, delay=0.0, interval=0.0) as progress:
             progress.advance()
+        assert quiet.getvalue() == ""
+    finally:
+        set_quiet(False)
+
+
+def test_a_heartbeat_shows_a_step_without_a_count_while_it_runs(tmp_path):
+    """A long step that reports no count (a plan's selection, a batch solve) shows its elapsed time
+    from a background thread while the step runs, where such a step used to show nothing at all."""
+    import io
+    import time
+
+    stream = io.StringIO()
+    with Heartbeat("planning", "choosing 60 poses", stream=stream, delay=0.0, interval=0.05):
+        time.sleep(0.5)
+        during = stream.getvalue()
+    assert during.startswith("planning: working (0 s) choosing 60 poses\n")
+    set_quiet(True)
+    try:
+        quiet = io.StringIO()
+        with Heartbeat("planning", stream=quiet, delay=0.0, interval=0.05):
+            time.sleep(0.2)
         assert quiet.getvalue() == ""
     finally:
         set_quiet(False)
