@@ -130,17 +130,18 @@ def _lockable_descriptor(folder: Path) -> int | None:
     if fcntl is None:
         return None
     try:
-        descriptor = os.open(folder, os.O_RDONLY)
-    except OSError as exc:
-        raise OutputPathError(folder, f"cannot open the folder: {exc.strerror or exc}") from None
-    try:
-        fcntl.flock(descriptor, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        fcntl.flock(descriptor, fcntl.LOCK_UN)
-        return descriptor
-    except BlockingIOError:
-        return descriptor  # held by another run right now: lockable, _flock_within waits
+        descriptor: int | None = os.open(folder, os.O_RDONLY)
     except OSError:
-        os.close(descriptor)
+        descriptor = None  # a folder we may write but not read: its lock file instead
+    if descriptor is not None:
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            fcntl.flock(descriptor, fcntl.LOCK_UN)
+            return descriptor
+        except BlockingIOError:
+            return descriptor  # held by another run right now: lockable, _flock_within waits
+        except OSError:
+            os.close(descriptor)
     try:
         return os.open(folder / _FOLDER_LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o666)
     except OSError:
