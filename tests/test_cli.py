@@ -129,3 +129,59 @@ def test_too_few_poses(tmp_path, capsys):
 def test_paper_closed_refuses_a_passive_source_it_would_ignore(capsys):
     assert main(["paper", "--closed", "--passive-from", "distance"]) == 2
     assert "--passive-from applies to the two-chain study only" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def old_calibration(tmp_path_factory):
+    """30 simulated measurements and a finished calibration of them (pair and report) to protect."""
+    folder = tmp_path_factory.mktemp("old_calibration")
+    meas = folder / "m.csv"
+    assert main(["simulate", "-n", "30", "--seed", "4", "-o", str(meas)]) == 0
+    assert main(["calibrate", str(meas), "-o", str(folder / "c.urdf"), "--report", str(folder / "c.json")]) == 0
+    return folder
+
+
+def _contents(folder):
+    return {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
+
+
+def test_calibrate_plots_that_cannot_be_written_are_refused_before_the_fit(old_calibration, tmp_path, capsys):
+    """A plot file the plots folder cannot take (here a directory in its place) is refused before the
+    fit, like any output, where the pair and the report used to be replaced first and exit 2 follow."""
+    before = _contents(old_calibration)
+    plots = tmp_path / "plots"
+    (plots / "error_vs_poses.png").mkdir(parents=True)
+    capsys.readouterr()
+    assert main(["calibrate", str(old_calibration / "m.csv"), "-o", str(old_calibration / "c.urdf"),
+                 "--report", str(old_calibration / "c.json"), "--plots", str(plots)]) == 2
+    out, err = capsys.readouterr()
+    assert f"{plots / 'error_vs_poses.png'}: --plots is a directory, expected a file path" in err
+    assert "calibrating from" not in out and _contents(old_calibration) == before
+
+
+def test_calibrate_plots_failing_after_the_fit_leave_every_old_file(old_calibration, tmp_path, capsys, monkeypatch):
+    """A plot that fails to render or write after the fit (a full disk, say): nothing is written, the
+    old pair, report and plots folder stay as they were, and a new plots folder is removed again."""
+    from m3t1r.app import reporting
+    from m3t1r.errors import OutputPathError
+
+    def failing(*args, **kwargs):
+        raise OutputPathError(kwargs.get("path", "map.png"), "write failed, file left unchanged: No space left on device")
+
+    before = _contents(old_calibration)
+    monkeypatch.setattr(reporting, "plot_predicted_std_map", failing)
+    assert main(["calibrate", str(old_calibration / "m.csv"), "-o", str(old_calibration / "c.urdf"),
+                 "--report", str(old_calibration / "c.json"), "--plots", str(tmp_path / "new" / "plots")]) == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert _contents(old_calibration) == before and list(tmp_path.iterdir()) == []
+
+
+def test_calibrate_report_on_stdout_is_the_json_alone(old_calibration, tmp_path, capsys):
+    """`--report -`: stdout is the report and nothing else (status lines on stderr), where the status
+    lines used to come first on stdout and no JSON parser could read it."""
+    capsys.readouterr()
+    assert main(["calibrate", str(old_calibration / "m.csv"), "-o", str(tmp_path / "c.urdf"), "--report", "-"]) == 0
+    out, err = capsys.readouterr()
+    report = json.loads(out)
+    assert report["kind"] == "closed_loop" and report["input"]["poses"] == 30
+    assert "calibrating from 30 poses" in err and f"wrote {tmp_path / 'c.urdf'}" in err

@@ -369,10 +369,9 @@ def test_staging_path_is_a_registered_temporary_beside_the_target(tmp_path):
     assert first.parent == tmp_path and first.name.startswith(".plot.png.m3t1r-") and first.suffix == ".tmp"
     assert first in _LIVE_TEMPORARIES and outputs.output(target).temporary == first
     first.write_bytes(b"one")
-    second = outputs.staging_path(target)  # a second writer's file replaces the first
-    assert second != first and not first.exists() and first not in _LIVE_TEMPORARIES
-    assert second in _LIVE_TEMPORARIES
-    second.write_bytes(b"png")
+    second = outputs.staging_path(target)  # the same claimed (locked) file, emptied for the next writer
+    assert second == first and second.read_bytes() == b"" and second in _LIVE_TEMPORARIES
+    second.write_bytes(b"png")  # in place: the file's lock stays
     outputs.commit()
     assert target.read_bytes() == b"png" and second not in _LIVE_TEMPORARIES
 

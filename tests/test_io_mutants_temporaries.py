@@ -20,11 +20,13 @@ from m3t1r.io import temporaries
 from m3t1r.io.pairing import sha256_bytes, with_closures_sha256
 from m3t1r.io.temporaries import (
     _LIVE_TEMPORARIES,
-    _write_temporary,
+    claim_temporary,
+    folder_lock,
     pending_temporaries,
     print_notice,
     sweep,
     temporary_path,
+    write_claimed,
 )
 
 DEAD_PID = 2**22 + 1  # above any pid_max: never a live process
@@ -94,28 +96,41 @@ def test_a_leftover_that_cannot_be_removed_is_noted_and_announced(tmp_path):
     assert notes == [f"could not clean up {stuck}: Is a directory"] and announced == notes
 
 
-def test_files_of_live_processes_are_kept_and_not_signalled(tmp_path):
-    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+def _held_by_child(path: Path) -> subprocess.Popen:
+    """A child process that holds `path`'s flock, as a live writer does, until killed."""
+    child = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'rb+'); "
+                              "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)", str(path)],
+                             stdout=subprocess.PIPE, text=True)
+    assert child.stdout.readline().strip() == "held"
+    return child
+
+
+def test_files_whose_lock_is_held_are_kept_whatever_pid_they_name(tmp_path):
+    """Liveness is the writer's flock, not its pid: a file naming a pid that does not exist here (a
+    writer in another container or on another host) is kept while its lock is held, and one naming
+    this very process is removed when nobody holds it (a reused pid)."""
+    elsewhere = _leftover(tmp_path, "r.json", pid=DEAD_PID)
+    reused = _leftover(tmp_path, "s.json", pid=os.getpid())
+    child = _held_by_child(elsewhere)
     try:
-        live = _leftover(tmp_path, "r.json", pid=child.pid)
-        own = _leftover(tmp_path, "s.json", pid=os.getpid())
-        assert sweep(tmp_path, announce=None) == []
-        assert live.exists() and own.exists()
-        with pytest.raises(subprocess.TimeoutExpired):  # the liveness probe is signal 0, not a real signal
-            child.wait(timeout=0.2)
+        assert sweep(tmp_path, announce=None) == [f"removed {reused}, a temporary file left by an interrupted run"]
+        assert elsewhere.exists() and not reused.exists()
     finally:
         child.kill()
         child.wait()
+    sweep(tmp_path, announce=None)  # its writer gone, the lock with it
+    assert not elsewhere.exists()
 
 
-@pytest.mark.parametrize("error", [PermissionError(errno.EPERM, "Operation not permitted"), OSError(errno.EINVAL, "x")])
-def test_a_process_that_cannot_be_probed_counts_as_alive(tmp_path, monkeypatch, error):
-    def kill(pid, signal):
+@pytest.mark.parametrize("error", [OSError(errno.ENOLCK, "No locks available"), OSError(errno.EINVAL, "x")])
+def test_a_file_whose_lock_cannot_be_probed_is_kept(tmp_path, monkeypatch, error):
+    def flock(descriptor, operation):
         raise error
 
-    monkeypatch.setattr(temporaries.os, "kill", kill)
     leftover = _leftover(tmp_path, "r.json")
-    assert sweep(tmp_path, announce=None) == [] and leftover.exists()
+    with folder_lock(tmp_path):  # the folder's own lock first, then every probe fails
+        monkeypatch.setattr(temporaries.fcntl, "flock", flock)
+        assert temporaries.sweep_locked(tmp_path) == [] and leftover.exists()
 
 
 # -- temporary names and writes ---------------------------------------------------------------------
@@ -127,18 +142,40 @@ def test_temporary_name_is_hidden_and_names_the_process(tmp_path):
     assert re.fullmatch(rf"\.out\.csv\.m3t1r-{os.getpid()}-[0-9a-f]{{12}}\.tmp", path.name)
 
 
-def test_a_new_file_gets_the_umask_mode_and_is_registered(tmp_path):
+def test_a_temporary_name_fits_the_folders_name_limit(tmp_path):
+    limit = os.pathconf(tmp_path, "PC_NAME_MAX")
+    for name in ("é" * 100 + ".csv", "x" * (limit - 4) + ".csv"):  # bytes, not characters, count
+        path = temporary_path(tmp_path / name)
+        assert len(os.fsencode(path.name)) <= limit and path.name.startswith(".")
+        assert path.name[1:].encode()[:20] == name.encode()[:20]  # still recognisable by eye
+        path.write_bytes(b"")
+        assert pending_temporaries(tmp_path / name) == [path]
+        assert pending_temporaries(tmp_path / (name[:-5] + "y.csv")) == []  # same prefix, other name
+        path.unlink()
+
+
+def test_a_claimed_file_is_locked_registered_and_names_its_run(tmp_path):
+    temporary, descriptor = claim_temporary(tmp_path / "out.csv")
+    try:
+        assert temporary in _LIVE_TEMPORARIES and temporaries._holder(temporary) is True
+        assert temporaries.live_writer(tmp_path / "out.csv") is None  # this process's own claim
+        assert temporary.read_bytes().startswith(f"m3t1r run in progress: pid {os.getpid()} on ".encode())
+    finally:
+        temporaries.release_temporary(temporary, descriptor, remove=True)
+    assert not temporary.exists() and temporary not in _LIVE_TEMPORARIES
+
+
+def test_a_new_file_gets_the_umask_mode(tmp_path):
     previous = os.umask(0o022)
     try:
-        temporary = _write_temporary(tmp_path / "new.csv", b"data")
+        temporary, descriptor = claim_temporary(tmp_path / "new.csv")
     finally:
         os.umask(previous)
     try:
-        assert os.stat(temporary).st_mode & 0o777 == 0o644
-        assert temporary.read_bytes() == b"data" and temporary in _LIVE_TEMPORARIES
+        write_claimed(tmp_path / "new.csv", temporary, descriptor, b"data")
+        assert os.stat(temporary).st_mode & 0o777 == 0o644 and temporary.read_bytes() == b"data"
     finally:
-        temporary.unlink()
-        _LIVE_TEMPORARIES.discard(temporary)
+        temporaries.release_temporary(temporary, descriptor, remove=True)
 
 
 def test_an_existing_temporary_name_is_never_reused(tmp_path, monkeypatch):
@@ -146,32 +183,36 @@ def test_an_existing_temporary_name_is_never_reused(tmp_path, monkeypatch):
     taken.write_bytes(b"someone else's")
     monkeypatch.setattr(temporaries, "temporary_path", lambda target: taken)
     with pytest.raises(OutputPathError) as caught:
-        _write_temporary(tmp_path / "out.csv", b"mine")
+        claim_temporary(tmp_path / "out.csv")
     assert caught.value.path == str(tmp_path / "out.csv")
-    assert str(caught.value) == f"{tmp_path / 'out.csv'}: cannot create a temporary file in {tmp_path}: File exists"
+    assert str(caught.value) == (f"{tmp_path / 'out.csv'}: cannot create a file in {tmp_path}: File exists; "
+                                 "nothing was written")
     assert taken.read_bytes() == b"someone else's"
 
 
-def test_a_failed_write_removes_and_forgets_the_temporary(tmp_path, monkeypatch):
+def test_a_failed_write_empties_the_claimed_file(tmp_path, monkeypatch):
     def fsync(descriptor):
-        raise OSError(errno.EIO, "Input/output error")
+        raise OSError(errno.ENOSPC, "No space left on device")
 
+    temporary, descriptor = claim_temporary(tmp_path / "out.csv")
     monkeypatch.setattr(temporaries.os, "fsync", fsync)
-    before = set(_LIVE_TEMPORARIES)
-    with pytest.raises(OutputPathError) as caught:
-        _write_temporary(tmp_path / "out.csv", b"data")
-    assert str(caught.value) == f"{tmp_path / 'out.csv'}: write failed, file left unchanged: Input/output error"
-    assert list(tmp_path.iterdir()) == [] and set(_LIVE_TEMPORARIES) == before
+    try:
+        with pytest.raises(OutputPathError) as caught:
+            write_claimed(tmp_path / "out.csv", temporary, descriptor, b"data" * 1000)
+        assert str(caught.value) == f"{tmp_path / 'out.csv'}: write failed, file left unchanged: No space left on device"
+        assert temporary.stat().st_size == 0 and not (tmp_path / "out.csv").exists()
+    finally:
+        temporaries.release_temporary(temporary, descriptor, remove=True)
 
 
-def test_an_interrupted_write_removes_and_forgets_the_temporary(tmp_path, monkeypatch):
-    def fsync(descriptor):
+def test_an_interrupted_claim_removes_and_forgets_the_temporary(tmp_path, monkeypatch):
+    def write(descriptor, data):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(temporaries.os, "fsync", fsync)
+    monkeypatch.setattr(temporaries.os, "write", write)
     before = set(_LIVE_TEMPORARIES)
     with pytest.raises(KeyboardInterrupt):
-        _write_temporary(tmp_path / "out.csv", b"data")
+        claim_temporary(tmp_path / "out.csv")
     assert list(tmp_path.iterdir()) == [] and set(_LIVE_TEMPORARIES) == before
 
 

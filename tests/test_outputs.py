@@ -10,7 +10,10 @@ import json
 import math
 import os
 import shutil
+import socket
 import stat
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -21,7 +24,7 @@ from m3t1r.app.cli import main
 from m3t1r.errors import ModelFileError, OutputPathError
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import paired_closures_path
-from m3t1r.io.progress import Progress, set_quiet
+from m3t1r.io.progress import Heartbeat, Progress, set_quiet
 from m3t1r.io.strict_json import json_text
 from m3t1r.io.temporaries import sweep, temporary_path
 from m3t1r.model.description import Mechanism
@@ -203,16 +206,159 @@ def test_an_error_before_commit_removes_every_temporary_file(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def _locked_elsewhere(path: Path) -> subprocess.Popen:
+    """Another process holding `path`'s flock, as a live writer in another container or host would."""
+    child = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'rb+'); "
+                              "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)", str(path)],
+                             stdout=subprocess.PIPE, text=True)
+    assert child.stdout.readline().strip() == "held"
+    return child
+
+
 def test_leftovers_of_killed_runs_are_removed_and_live_ones_kept(tmp_path):
-    dead = tmp_path / f".r.json.m3t1r-{2**22 + 1}-0a.tmp"
-    live = temporary_path(tmp_path / "r.json")  # this process: alive
+    """A leftover is a temporary file nobody holds the lock of. A live writer's file names a pid
+    that means nothing here (2**22 + 1: in another PID namespace, or on another host sharing the
+    folder); it is kept because its lock is held, where the pid probe used to delete it."""
+    dead = tmp_path / f".r.json.m3t1r-{os.getpid()}-0a.tmp"  # a reused pid: this very process
+    live = tmp_path / f".r.json.m3t1r-{2**22 + 1}-0b.tmp"
     dead.write_text("{")
     live.write_text("{")
-    outputs = OutputSet(announce=None)
-    outputs.add(tmp_path / "r.json")
+    writer = _locked_elsewhere(live)
+    try:
+        outputs = OutputSet(announce=None)
+        outputs.add(tmp_path / "q.json")
+        with outputs:
+            outputs.check()
+            assert not dead.exists() and live.exists()
+        assert any("temporary file left by an interrupted run" in note for note in outputs.notes)
+    finally:
+        writer.kill()
+        writer.wait()
+
+
+_SECOND_WRITER = """
+import sys
+from m3t1r.errors import OutputPathError
+from m3t1r.io.outputs import OutputSet
+outputs = OutputSet(announce=None)
+outputs.add(sys.argv[1] + "/r.json", "--report")
+outputs.add_machine(sys.argv[1] + "/c.urdf")
+try:
     outputs.check()
-    assert not dead.exists() and live.exists()
-    assert any("temporary file left by an interrupted run" in note for note in outputs.notes)
+    print("passed")
+except OutputPathError as exc:
+    print(exc)
+"""
+
+
+def _second_writer(folder: Path) -> str:
+    return subprocess.run([sys.executable, "-c", _SECOND_WRITER, str(folder)], capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}, check=True).stdout.strip()
+
+
+def test_a_second_writer_of_an_output_is_refused_before_any_work(tmp_path):
+    """Two runs writing the same pair: the second is refused at its check, naming the folder and the
+    first run, and the first run's pair lands whole, where both used to exit 0 leaving B's URDF
+    with A's closures file."""
+    first = OutputSet(announce=None)
+    machine = first.add_machine(tmp_path / "c.urdf")
+    first.check()
+    message = _second_writer(tmp_path)
+    assert message.startswith(f"{tmp_path / 'c.urdf'}: -o: another m3t1r run is writing this file in {tmp_path} "
+                              f"(pid {os.getpid()} on {socket.gethostname()}, started ")
+    assert message.endswith("nothing was written: wait for it to finish, or write elsewhere")
+    assert not (tmp_path / "r.json").exists() and len(list(tmp_path.iterdir())) == 2  # the first's claims
+    with first:
+        first.stage_machine(machine, Mechanism.load())
+        first.commit()
+    assert Mechanism.load(tmp_path / "c.urdf").model.nq == 20 and _no_temporaries(tmp_path)
+    assert _second_writer(tmp_path) == "passed"  # once the first is done, the next may write
+
+
+def test_a_command_that_failed_before_its_commit_does_not_block_the_next_in_the_same_process(tmp_path):
+    failed = OutputSet(announce=None)
+    failed.add(tmp_path / "r.json")
+    failed.check()  # ... and its command stops here, without discarding
+    outputs = OutputSet(announce=None)
+    report = outputs.add(tmp_path / "r.json")
+    with outputs:
+        outputs.check()
+        outputs.stage(report, "{}")
+        outputs.commit()
+    assert (tmp_path / "r.json").read_text() == "{}" and _no_temporaries(tmp_path)
+
+
+def test_a_writer_in_another_process_is_refused_while_it_stages(tmp_path):
+    target = tmp_path / "p.csv"
+    script = ("import sys, time\nfrom m3t1r.io.outputs import OutputSet\n"
+              "outputs = OutputSet(); outputs.add(sys.argv[1]); outputs.check(); print('claimed', flush=True); "
+              "time.sleep(60)")
+    child = subprocess.Popen([sys.executable, "-c", script, str(target)], stdout=subprocess.PIPE, text=True,
+                             env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    try:
+        assert child.stdout.readline().strip() == "claimed"
+        outputs = OutputSet(announce=None)
+        outputs.add(target, "-o")
+        with pytest.raises(OutputPathError, match=f"another m3t1r run is writing this file in {tmp_path} "
+                                                  f"\\(pid {child.pid} on "):
+            outputs.check()
+    finally:
+        child.kill()
+        child.wait()
+    outputs.check()  # its writer killed: the claim is a leftover, swept
+    assert [note.startswith("removed ") for note in outputs.notes] == [True]
+    outputs.discard()
+
+
+def test_a_failed_rename_puts_back_the_outputs_already_renamed(tmp_path):
+    """The report is renamed before the pair; when the URDF's rename then fails, the report is put
+    back as it was: a failing commit leaves every old file, not a new report beside an old pair."""
+    (tmp_path / "r.json").write_text("old report")
+    outputs = OutputSet(announce=None)
+    report = outputs.add(tmp_path / "r.json", "--report")
+    machine = outputs.add_machine(tmp_path / "c.urdf")
+    with outputs:
+        outputs.check()
+        outputs.stage(report, "new report")
+        outputs.stage_machine(machine, Mechanism.load())
+        (tmp_path / "c.urdf").mkdir()  # appears between check and commit
+        (tmp_path / "c.urdf" / "inside").write_text("")
+        with pytest.raises(OutputPathError, match="could not move the new file into place: Is a directory; "
+                                                  "the 1 output\\(s\\) renamed before it were put back"):
+            outputs.commit()
+    assert (tmp_path / "r.json").read_text() == "old report" and not (tmp_path / "c.closures.yaml").exists()
+    assert _no_temporaries(tmp_path)
+
+
+def test_outputs_named_up_to_the_name_limit_are_written(tmp_path, capsys):
+    """Output names of 230 to 255 bytes, legal on the file system, where the temporary name (the
+    output's name plus 30 characters) used to fail with 'File name too long'."""
+    limit = os.pathconf(tmp_path, "PC_NAME_MAX")
+    sliders = tmp_path / "s.csv"
+    sliders.write_text("q11,q11_B2,q21,q21_B4\n0,0,0,0\n")
+    for length in (230, limit):
+        poses = tmp_path / ("p" * (length - 4) + ".csv")
+        assert main(["fk", str(sliders), "-o", str(poses)]) == 0
+        assert "x,y,z,qx,qy,qz,qw" in poses.read_text() and _no_temporaries(tmp_path)
+    urdf = tmp_path / ("m" * (limit - len(".closures.yaml")) + ".urdf")  # its closures file: 255 bytes
+    Mechanism.load().save(urdf)
+    assert Mechanism.load(urdf).model.nq == 20
+    capsys.readouterr()
+
+
+def test_a_long_named_pair_interrupted_between_its_renames_loads_and_is_completed(tmp_path, machines):
+    limit = os.pathconf(tmp_path, "PC_NAME_MAX")
+    urdf = tmp_path / ("m" * (limit - len(".closures.yaml")) + ".urdf")
+    Mechanism.load().save(urdf)
+    truth = Mechanism.load(machines / "truth.urdf")
+    urdf_bytes, closures_bytes = truth.pair_bytes(urdf)
+    urdf.write_bytes(urdf_bytes)  # the state a SIGKILL between the two renames leaves
+    staged = temporary_path(paired_closures_path(urdf))
+    assert len(os.fsencode(staged.name)) <= limit
+    staged.write_bytes(closures_bytes)
+    np.testing.assert_array_equal(Mechanism.load(urdf).home, truth.home)
+    assert any("completed the interrupted write" in note for note in sweep(tmp_path, announce=None))
+    assert paired_closures_path(urdf).read_bytes() == closures_bytes and not staged.exists()
 
 
 # ------------------------------------------------------------------------------------------------
@@ -390,6 +536,27 @@ def test_progress_lines_and_quiet(tmp_path):
         quiet = io.StringIO()
         with Progress("calibrating", total=4, stream=quiet, delay=0.0, interval=0.0) as progress:
             progress.advance()
+        assert quiet.getvalue() == ""
+    finally:
+        set_quiet(False)
+
+
+def test_a_heartbeat_shows_a_step_without_a_count_while_it_runs(tmp_path):
+    """A long step that reports no count (a plan's selection, a batch solve) shows its elapsed time
+    from a background thread while the step runs, where such a step used to show nothing at all."""
+    import io
+    import time
+
+    stream = io.StringIO()
+    with Heartbeat("planning", "choosing 60 poses", stream=stream, delay=0.0, interval=0.05):
+        time.sleep(0.5)
+        during = stream.getvalue()
+    assert during.startswith("planning: working (0 s) choosing 60 poses\n")
+    set_quiet(True)
+    try:
+        quiet = io.StringIO()
+        with Heartbeat("planning", stream=quiet, delay=0.0, interval=0.05):
+            time.sleep(0.2)
         assert quiet.getvalue() == ""
     finally:
         set_quiet(False)

@@ -195,7 +195,8 @@ def test_calibration_plots_title_the_map_by_what_it_shows(tmp_path, monkeypatch,
     maps = []
     monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
     monkeypatch.setattr(reporting, "plot_predicted_std_map",
-                        lambda targets, std, path, title, protect, plane: maps.append((targets, std, title)) or path)
+                        lambda targets, std, path, title, protect, plane, outputs:
+                        maps.append((targets, std, title)) or path)
     reporting.write_calibration_plots(mechanism, calibration, tmp_path)
     (targets, std, title), = maps
     assert 250 < len(targets) <= 300 and len(std.position) == len(targets)
@@ -248,7 +249,7 @@ def test_calibration_plots_of_other_mechanisms_map_their_own_workspace(tmp_path,
     calibration = calibrate_closed_loop(mechanism, study.measurements, TrackerNoise())
     maps = []
     monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
-    monkeypatch.setattr(reporting, "plot_predicted_std_map", lambda where, std, path, title, protect, plane:
+    monkeypatch.setattr(reporting, "plot_predicted_std_map", lambda where, std, path, title, protect, plane, outputs:
                         maps.append((where, std, plane)) or path)
     reporting.write_calibration_plots(mechanism, calibration, tmp_path / "plots")
     (where, std, plane), = maps

@@ -15,6 +15,7 @@ import sys
 import warnings
 from collections.abc import Callable
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 import pinocchio as pin
@@ -23,13 +24,13 @@ from m3t1r._version import __version__
 from m3t1r.app.cli_common import (
     RowFailures,
     campaign_report_fields,
-    check_plots_folder,
     load_mechanism,
     parse_priors,
     selection_note,
+    status_stream,
 )
 from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise
-from m3t1r.app.cli_verbs import CALIBRATION_PLOTS, load
+from m3t1r.app.cli_verbs import CALIBRATION_PLOTS, DECLARE_PLOTS, load
 from m3t1r.app.datasets import MeasurementFile, read_measurements
 from m3t1r.app.passive_joints import passive_joint_residuals
 from m3t1r.calibration.assessment import (
@@ -96,64 +97,67 @@ def cmd_calibrate(args: argparse.Namespace) -> None:
 
 
 def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) -> None:
-    """The whole `calibrate` verb for a closed-loop machine (module docstring)."""
+    """The whole `calibrate` verb for a closed-loop machine (module docstring).
+
+    Every output (the pair, the report, the plots) is checked before the fit and written as one
+    unit after it: a failure anywhere, the plots' included, leaves every old file as it was.
+    """
     outputs = OutputSet(inputs=(args.measurements, nominal.urdf_path, nominal.closures_path))
     machine_output = outputs.add_machine(args.output, "-o")
     report_output = outputs.add(args.report, "--report")
-    outputs.check()
-    if args.plots:
-        check_plots_folder(args.plots)
-    data = read_measurements(args.measurements, nominal, units=args.units)
-    marker = MeasurementSetup.from_numbers(marker_xyz=args.marker).marker
-    estimate_frame = args.frame == "estimate"
-    print(f"calibrating from {len(data.measurements)} poses"
-          + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
-    _precheck(nominal, data, marker, estimate_frame, args.measurements)
-    with warnings.catch_warnings(record=True) as caught, Progress("calibrating", None) as progress:
-        warnings.simplefilter("always", PoorExcitationWarning)
-        calibration, choice = fit_with_noise(
-            args.noise_pos, args.noise_rot, TrackerNoise(actuator=args.noise_act),
-            lambda noise, gate: _fit(args, nominal, data, noise, marker, estimate_frame, progress.advance, gate),
-            lambda fitted: _left(fitted, data))
-    noise = choice.noise
-    lines = [int(data.lines[i]) for i in calibration.outliers]
-    print(choice.describe(data.measurements.position_only))
-    _print_summary(calibration, lines)
-    unexplained = _judge(args, calibration, choice,
-                         lambda: _fit_causes(args, nominal, data, marker, estimate_frame, calibration))
-    with Progress(f"cross-validating ({args.folds} folds)", None) as progress:
-        calibration.problem.on_evaluate = progress.advance
-        validation = cross_validate(calibration, folds=args.folds)
-    notes = explain(calibration, [str(w.message) for w in caught])
-    _print_judgement(calibration, validation, notes)
-    warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
-                                           validation.errors.position_mean)] if unexplained else []
-    for warning in warned:
-        print(f"m3t1r: warning: {warning}", file=sys.stderr)
-    report = calibration_report(calibration, data, nominal, noise, args, lines, validation, notes)
-    report["noise_source"], report["warnings"] = choice.report(), warned
-    if data.passive_joints:
-        report["passive_joint_cross_validation"] = _idle_chain_check(nominal, calibration, data)
+    plots = load(DECLARE_PLOTS)(outputs, args.plots) if args.plots else None  # matplotlib with --plots only
+    out = status_stream(outputs)  # stderr when the report goes to stdout
     with outputs:
+        outputs.check()
+        data = read_measurements(args.measurements, nominal, units=args.units)
+        marker = MeasurementSetup.from_numbers(marker_xyz=args.marker).marker
+        estimate_frame = args.frame == "estimate"
+        print(f"calibrating from {len(data.measurements)} poses"
+              + (" (measurement frame estimated)" if estimate_frame else "") + " ...", file=out, flush=True)
+        _precheck(nominal, data, marker, estimate_frame, args.measurements)
+        with warnings.catch_warnings(record=True) as caught, Progress("calibrating", None) as progress:
+            warnings.simplefilter("always", PoorExcitationWarning)
+            calibration, choice = fit_with_noise(
+                args.noise_pos, args.noise_rot, TrackerNoise(actuator=args.noise_act),
+                lambda noise, gate: _fit(args, nominal, data, noise, marker, estimate_frame, progress.advance, gate),
+                lambda fitted: _left(fitted, data))
+        noise = choice.noise
+        lines = [int(data.lines[i]) for i in calibration.outliers]
+        print(choice.describe(data.measurements.position_only), file=out)
+        _print_summary(calibration, lines, out)
+        unexplained = _judge(args, calibration, choice,
+                             lambda: _fit_causes(args, nominal, data, marker, estimate_frame, calibration))
+        with Progress(f"cross-validating ({args.folds} folds)", None) as progress:
+            calibration.problem.on_evaluate = progress.advance
+            validation = cross_validate(calibration, folds=args.folds)
+        notes = explain(calibration, [str(w.message) for w in caught])
+        _print_judgement(calibration, validation, notes, out)
+        warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
+                                               validation.errors.position_mean)] if unexplained else []
+        for warning in warned:
+            print(f"m3t1r: warning: {warning}", file=sys.stderr)
+        report = calibration_report(calibration, data, nominal, noise, args, lines, validation, notes)
+        report["noise_source"], report["warnings"] = choice.report(), warned
+        if data.passive_joints:
+            report["passive_joint_cross_validation"] = _idle_chain_check(nominal, calibration, data, out)
         outputs.stage_machine(machine_output, calibration.mechanism)
         outputs.stage_json(report_output, report)
+        if plots is not None:
+            print("rendering plots (cross-validation recalibrates on subsets) ...", file=out, flush=True)
+            load(CALIBRATION_PLOTS)(nominal, calibration, plots, noise=noise, outputs=outputs)
         written = outputs.commit()
-    print("wrote " + ", ".join(written))
-    if args.plots:
-        print("writing plots (cross-validation recalibrates on subsets) ...", flush=True)
-        protect = (args.measurements, nominal.urdf_path, nominal.closures_path, *written)
-        for path in load(CALIBRATION_PLOTS)(nominal, calibration, Path(args.plots), protect, noise):
-            print(f"wrote {path}")
+    print("wrote " + ", ".join(written), file=out)
 
 
-def _idle_chain_check(nominal: Mechanism, calibration: ClosedLoopCalibration, data: MeasurementFile) -> dict:
+def _idle_chain_check(nominal: Mechanism, calibration: ClosedLoopCalibration, data: MeasurementFile,
+                      out: TextIO = sys.stdout) -> dict:
     """Passive-joint readings the fit did not use, predicted by the nominal and the calibrated model."""
     actuators = data.measurements.actuators
     before = passive_joint_residuals(nominal, actuators, data.passive_joints, data.passive)
     after = passive_joint_residuals(calibration.mechanism, actuators, data.passive_joints, data.passive)
-    print("passive-joint readings the fit did not use (RMS after removing each encoder's zero offset):")
+    print("passive-joint readings the fit did not use (RMS after removing each encoder's zero offset):", file=out)
     for k, name in enumerate(data.passive_joints):
-        print(f"  {name}: nominal {before.rms[k]:.3e}, calibrated {after.rms[k]:.3e}")
+        print(f"  {name}: nominal {before.rms[k]:.3e}, calibrated {after.rms[k]:.3e}", file=out)
     return {name: {"nominal_rms": float(before.rms[k]), "calibrated_rms": float(after.rms[k]),
                    "calibrated_offset": float(after.offsets[k])} for k, name in enumerate(data.passive_joints)}
 
@@ -242,30 +246,32 @@ def _precheck(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, estima
                 lambda: _diagnose(nominal, data, marker, estimate_frame))
 
 
-def _print_summary(calibration: ClosedLoopCalibration, outlier_lines: list[int]) -> None:
+def _print_summary(calibration: ClosedLoopCalibration, outlier_lines: list[int], out: TextIO = sys.stdout) -> None:
     before, after = calibration.rms_before, calibration.rms_after
     fitted = len(calibration.fitted)
     print(f"identified {calibration.base.rank} of {len(calibration.std)} parameters "
           f"(condition number {calibration.base.condition_number:.3g}); fitted {fitted} "
-          f"in {calibration.lm.iterations} iterations ({'converged' if calibration.converged else 'NOT converged'})")
+          f"in {calibration.lm.iterations} iterations ({'converged' if calibration.converged else 'NOT converged'})",
+          file=out)
     orientation = ("" if not (math.isfinite(before[1]) and math.isfinite(after[1])) else  # position-only data
                    f", orientation {before[1]:.3e} -> {after[1]:.3e} rad")
     print(f"residual RMS position {before[0]:.3e} -> {after[0]:.3e} m{orientation}; "
-          f"variance factor {calibration.variance_factor:.3g}")
+          f"variance factor {calibration.variance_factor:.3g}", file=out)
     if outlier_lines:
-        print(f"outliers (left out of the fit), file lines: {', '.join(map(str, outlier_lines))}")
+        print(f"outliers (left out of the fit), file lines: {', '.join(map(str, outlier_lines))}", file=out)
     else:
-        print("outliers: none")
+        print("outliers: none", file=out)
 
 
-def _print_judgement(calibration: ClosedLoopCalibration, validation: CrossValidation, notes: list[str]) -> None:
+def _print_judgement(calibration: ClosedLoopCalibration, validation: CrossValidation, notes: list[str],
+                     out: TextIO = sys.stdout) -> None:
     errors = validation.errors
     rotation = "" if np.isnan(errors.rotation_mean) else f", {errors.rotation_mean:.3e} rad"
     print(f"cross-validation ({validation.folds} folds): predicting held-back measurements "
           f"{errors.position_mean:.3e} m{rotation} mean (noise included: what `m3t1r validate` will show "
-          "on fresh measurements of the same quality)")
+          "on fresh measurements of the same quality)", file=out)
     for note in notes:
-        print(f"note: {note}")
+        print(f"note: {note}", file=out)
 
 
 def explain(calibration: ClosedLoopCalibration, warnings_seen: list[str] = ()) -> list[str]:

@@ -20,7 +20,7 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r.app import cli_parser
-from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, provenance, say
+from m3t1r.app.cli_common import RowFailures, load_mechanism, provenance, say
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.planning import plan_closed_loop, plan_serial
@@ -30,6 +30,7 @@ from m3t1r.errors import InvalidInputError, ModelFileError, ModelWarning
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import paired_closures_path
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows
+from m3t1r.io.progress import Heartbeat
 from m3t1r.io.tables import table_text
 from m3t1r.model.poe import SerialChain
 
@@ -111,7 +112,8 @@ def cmd_plan(args: argparse.Namespace) -> None:
     output = outputs.add(args.output, "-o")
     outputs.check()
     print("planning ...", file=sys.stderr if output.path is None else sys.stdout, flush=True)
-    plan, inputs = _make_plan(args)
+    with Heartbeat("planning", f"choosing {args.n} poses"):  # the selection reports no count
+        plan, inputs = _make_plan(args)
     for path in inputs:
         outputs.add_input(path)
     outputs.check()
@@ -197,9 +199,10 @@ def cmd_validate(args: argparse.Namespace) -> None:
     output = outputs.add(args.predictions, "--predictions")
     outputs.check()
     out = sys.stderr if output is not None and output.path is None else sys.stdout
-    with progress_bar("validate", None) as progress, warnings.catch_warnings(record=True) as notes:
+    # Its batch prediction reports rows only at the end: a heartbeat shows it is alive.
+    with Heartbeat("validate", args.measurements), warnings.catch_warnings(record=True) as notes:
         warnings.simplefilter("always", ModelWarning)  # the calibrated machine's load notes, printed as notes
-        result = validate(args.measurements, args.calibrated, args.report, args.units, progress=progress.update)
+        result = validate(args.measurements, args.calibrated, args.report, args.units)
     for note in dict.fromkeys(str(w.message) for w in notes if issubclass(w.category, ModelWarning)):
         print(f"note: {note}", file=sys.stderr)
     _row_table(result, out)

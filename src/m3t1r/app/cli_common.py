@@ -9,19 +9,23 @@ import sys
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
+import pinocchio as pin
 
 from m3t1r._version import __version__
 from m3t1r.calibration.assessment import describe_parameter
 from m3t1r.calibration.measurement_setup import MeasurementSetup, se3_to_report
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelWarning, OutputPathError
 from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256
+from m3t1r.io.poses import POSE_COLUMNS, pose_rows
 from m3t1r.io.progress import Progress
+from m3t1r.io.tables import table_text
 from m3t1r.model.description import Mechanism
 
-__all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "progress_bar", "provenance", "parse_priors",
-           "check_plots_folder"]
+__all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "status_stream", "progress_bar", "provenance",
+           "parse_priors", "check_plots_folder"]
 
 
 class RowFailures(M3t1rError):
@@ -59,10 +63,47 @@ def closures_beside(urdf_out: Path) -> Path:
     return paired_closures_path(urdf_out)
 
 
-def say(outputs, message: str) -> None:
-    """A status line: stdout, or stderr when an output of the command is stdout (`-o -`)."""
+def status_stream(outputs) -> TextIO:
+    """Where status lines go: stdout, or stderr when an output of the command is stdout (`-o -`,
+    `--report -`), so that the output stays machine-readable."""
     to_stdout = outputs is None or all(o.path is not None for o in outputs.outputs)
-    print(message, file=sys.stdout if to_stdout else sys.stderr, flush=True)
+    return sys.stdout if to_stdout else sys.stderr
+
+
+def say(outputs, message: str) -> None:
+    """A status line on `status_stream(outputs)`."""
+    print(message, file=status_stream(outputs), flush=True)
+
+
+#: Rows per call of a batch solver in the long verbs: a progress step, and a moment for a signal
+#: (Ctrl-C, SIGTERM) to act, every fraction of a second.
+BATCH_ROWS = 5000
+
+
+def table_chunk_text(columns: Sequence[str], rows, comments: Sequence[str] | None) -> str:
+    """`table_text` of one chunk of a table's rows: the whole head (comments, header) with the first
+    chunk (`comments` given, possibly empty), the data lines alone with a later one (None)."""
+    text = table_text(columns, rows, comments or ())
+    return text if comments is not None else text.split("\n", 1)[1]
+
+
+def pose_table_text(solver, actuators: np.ndarray, lines: np.ndarray, path: Path, comments: Sequence[str]) -> str:
+    """The poses table of `m3t1r fk`: each slider set's platform pose from home (`solver`, a
+    `ClosedLoopSolver`), solved `BATCH_ROWS` at a time with a progress display, which changes no
+    result since every row starts from home. Raises RowFailures naming every row that failed."""
+    pieces: list[str] = []
+    failures: list[tuple[int, str]] = []
+    with progress_bar("fk", len(actuators)) as progress:
+        for start in range(0, len(actuators), BATCH_ROWS):
+            batch = solver.forward_batch(actuators[start:start + BATCH_ROWS])
+            failures += [(int(lines[start + f.index]), f.reason) for f in batch.failures]
+            if not failures:
+                rows = pose_rows([pin.SE3(pose) for pose in batch.poses])
+                pieces.append(table_chunk_text(POSE_COLUMNS, rows, None if pieces else comments))
+            progress.update(min(start + BATCH_ROWS, len(actuators)))
+    if failures:
+        raise RowFailures(path, failures)
+    return "".join(pieces)
 
 
 def progress_bar(label: str, total: int):

@@ -13,13 +13,14 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, provenance, say
+from m3t1r.app.cli_common import RowFailures, load_mechanism, pose_table_text, progress_bar, provenance, say
 from m3t1r.app.datasets import read_actuators, read_targets
 from m3t1r.calibration.validation import read_report
 from m3t1r.compensation import Compensator, compensate, joint_limit_violation
 from m3t1r.errors import InvalidInputError, KinematicsError
 from m3t1r.io.outputs import OutputSet
-from m3t1r.io.poses import POSE_COLUMNS, pose_rows
+from m3t1r.io.poses import POSE_COLUMNS
+from m3t1r.io.progress import Heartbeat
 from m3t1r.io.tables import table_text
 from m3t1r.model.kinematics import ClosedLoopSolver, require_square_task
 from m3t1r.model.workspace import workspace_actuators
@@ -34,18 +35,14 @@ def cmd_fk(args: argparse.Namespace) -> None:
     outputs = OutputSet(inputs=(args.actuators, mechanism.urdf_path, mechanism.closures_path))
     output = outputs.add(args.output, "-o")
     outputs.check()
-    actuators, lines = read_actuators(args.actuators, mechanism)
-    with progress_bar("fk", 1) as progress:  # one vectorised solve, every row from home
-        batch = ClosedLoopSolver(mechanism).forward_batch(actuators)
-        progress.advance()
-    if batch.failures:
-        raise RowFailures(Path(args.actuators), [(int(lines[f.index]), f.reason) for f in batch.failures])
-    poses = [pin.SE3(pose) for pose in batch.poses]
+    with Heartbeat("reading", args.actuators):
+        actuators, lines = read_actuators(args.actuators, mechanism)
     comments = provenance(args) + ["platform frame pose in the base frame: m, unit quaternion"]
+    text = pose_table_text(ClosedLoopSolver(mechanism), actuators, lines, Path(args.actuators), comments)
     with outputs:
-        outputs.stage(output, table_text(POSE_COLUMNS, pose_rows(poses), comments))
+        outputs.stage(output, text)
         outputs.commit()
-    say(outputs, f"wrote {len(poses)} poses to {output.name}")
+    say(outputs, f"wrote {len(actuators)} poses to {output.name}")
 
 
 
@@ -95,7 +92,8 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     if args.report:
         targets = _targets_in_base(targets, args.report, args.targets, calibrated)
     if args.unordered:  # every target from home, vectorised: no path order to follow
-        result = Compensator(nominal, calibrated).compensate_batch(targets)
+        with Heartbeat("compensate", f"{len(lines)} targets"):
+            result = Compensator(nominal, calibrated).compensate_batch(targets)
     else:
         with progress_bar("compensate", len(lines)) as progress:
             result = compensate(nominal, calibrated, targets, progress=progress.update)

@@ -14,8 +14,10 @@ from m3t1r._threads import single_blas_thread
 from m3t1r.app.cli_common import RowFailures
 from m3t1r.calibration.assessment import FitRejected
 from m3t1r.errors import M3t1rError
+from m3t1r.io.outputs import interrupted_outputs
 from m3t1r.io.progress import set_quiet
 from m3t1r.io.signals import Terminated, termination_as_exception
+from m3t1r.io.temporaries import remove_live_temporaries
 
 __all__ = ["EXIT_ERROR", "EXIT_ROWS_FAILED", "run_verb"]
 
@@ -36,12 +38,13 @@ def run_verb(run: Callable[[argparse.Namespace], None], args: argparse.Namespace
     except (M3t1rError, OSError) as exc:
         print(f"m3t1r: error: {exc}", file=sys.stderr)
         return EXIT_ERROR
-    except KeyboardInterrupt:
-        print("m3t1r: interrupted; outputs not yet in place were not written", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        print(f"m3t1r: interrupted; {interrupted_outputs(exc)}", file=sys.stderr)
         return 130
     except Terminated as exc:
-        print(f"m3t1r: {exc}; outputs not yet in place were not written", file=sys.stderr)
+        print(f"m3t1r: {exc}; {interrupted_outputs(exc)}", file=sys.stderr)
         return 128 + exc.signum
     finally:
         set_quiet(False)
+        remove_live_temporaries()  # a failed command's claims, in this process too (tests, the demo)
     return 0

@@ -10,6 +10,7 @@ determine, and writes the calibrated URDF (the robot alone) and the report as a 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as _dt
 import sys
 import warnings
@@ -21,7 +22,7 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r._version import __version__
-from m3t1r.app.cli_common import campaign_report_fields, parse_priors, selection_note
+from m3t1r.app.cli_common import campaign_report_fields, parse_priors, selection_note, status_stream
 from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise
 from m3t1r.calibration.assessment import (
     FitRejected,
@@ -144,48 +145,50 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
     outputs = OutputSet(inputs=(args.measurements, urdf))
     urdf_output = outputs.add(args.output, "-o") if urdf is not None else None
     report_output = outputs.add(args.report, "--report")
-    outputs.check()
-    if urdf is None:
-        print(f"{args.serial} is an example-robot-data robot: no calibrated URDF is written "
-              "(give its URDF path to --serial for one)" + (f"; -o {args.output} ignored" if args.output else ""))
-    data = read_campaign(args.measurements, chain, args.units)
-    marker = pin.SE3(np.eye(3), np.array(args.marker, dtype=float)) if args.marker is not None else pin.SE3.Identity()
-    estimate_frame = args.frame == "estimate"
-    _precheck(model, chain, data, marker, estimate_frame)
-    print(f"calibrating chain {chain.joint_names[0]} .. {chain.tool_frame} from {len(data.poses)} poses"
-          + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", PoorExcitationWarning)
-        calibration, choice = fit_with_noise(
-            args.noise_pos, args.noise_rot, TrackerNoise(),
-            lambda noise, gate: _fit(args, model, chain, data, noise, marker, estimate_frame, gate),
-            lambda fitted: _left(fitted, len(data.poses)))
-    noise = choice.noise
-    lines = [int(data.lines[i]) for i in calibration.outliers]
-    print(choice.describe(data.position_only))
-    _print_summary(calibration, lines)
-    if data.sources is not None and calibration.outliers:
-        print("outliers in the tracker's file (the source column): "
-              + ", ".join(str(int(data.sources[i])) for i in calibration.outliers))
-    unexplained = _judge(args, calibration, choice, lambda: _diagnose(model, chain, data, marker, estimate_frame))
-    validation = cross_validate_serial(calibration, folds=args.folds)
-    notes = explain(calibration, [str(w.message) for w in caught])
-    warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
-                                           validation.errors.position_mean)] if unexplained else []
-    _print_judgement(validation, notes)
-    for warning in warned:
-        print(f"m3t1r: warning: {warning}", file=sys.stderr)
-    report = serial_calibration_report(calibration, data, args, noise, lines, validation, notes)
-    report["noise_source"], report["warnings"] = choice.report(), warned
-    if data.sources is not None:
-        report["outlier_sources"] = [int(data.sources[i]) for i in calibration.outliers]
-    with outputs:
+    with outputs:  # a failure anywhere removes every claimed temporary file
+        outputs.check()
+        # Status lines go to stderr when the report is stdout (`--report -`): the JSON stays parseable.
+        with contextlib.redirect_stdout(status_stream(outputs)):
+            if urdf is None:
+                print(f"{args.serial} is an example-robot-data robot: no calibrated URDF is written "
+                      "(give its URDF path to --serial for one)" + (f"; -o {args.output} ignored" if args.output else ""))
+            data = read_campaign(args.measurements, chain, args.units)
+            marker = pin.SE3(np.eye(3), np.array(args.marker, dtype=float)) if args.marker is not None else pin.SE3.Identity()
+            estimate_frame = args.frame == "estimate"
+            _precheck(model, chain, data, marker, estimate_frame)
+            print(f"calibrating chain {chain.joint_names[0]} .. {chain.tool_frame} from {len(data.poses)} poses"
+                  + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", PoorExcitationWarning)
+                calibration, choice = fit_with_noise(
+                    args.noise_pos, args.noise_rot, TrackerNoise(),
+                    lambda noise, gate: _fit(args, model, chain, data, noise, marker, estimate_frame, gate),
+                    lambda fitted: _left(fitted, len(data.poses)))
+            noise = choice.noise
+            lines = [int(data.lines[i]) for i in calibration.outliers]
+            print(choice.describe(data.position_only))
+            _print_summary(calibration, lines)
+            if data.sources is not None and calibration.outliers:
+                print("outliers in the tracker's file (the source column): "
+                      + ", ".join(str(int(data.sources[i])) for i in calibration.outliers))
+            unexplained = _judge(args, calibration, choice, lambda: _diagnose(model, chain, data, marker, estimate_frame))
+            validation = cross_validate_serial(calibration, folds=args.folds)
+            notes = explain(calibration, [str(w.message) for w in caught])
+            warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
+                                                   validation.errors.position_mean)] if unexplained else []
+            _print_judgement(validation, notes)
+            for warning in warned:
+                print(f"m3t1r: warning: {warning}", file=sys.stderr)
+            report = serial_calibration_report(calibration, data, args, noise, lines, validation, notes)
+            report["noise_source"], report["warnings"] = choice.report(), warned
+            if data.sources is not None:
+                report["outlier_sources"] = [int(data.sources[i]) for i in calibration.outliers]
         if urdf_output is not None:
             outputs.stage(urdf_output, calibrated_urdf_bytes(urdf, calibration.model))
         outputs.stage_json(report_output, report)
         written = outputs.commit()
     if written:
-        print("wrote " + ", ".join(written))
+        print("wrote " + ", ".join(written), file=status_stream(outputs))
 
 
 def _fit(args: argparse.Namespace, model: pin.Model, chain: SerialChain, data: SerialCampaign,

@@ -15,6 +15,7 @@ from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.errors import InvalidInputError
 from m3t1r.io.outputs import OutputSet
+from m3t1r.io.progress import Heartbeat
 from m3t1r.io.tables import table_text
 from m3t1r.model.design import IDLE_CHAIN_JOINTS
 from m3t1r.paper.closed_chain import closed_chain_study
@@ -33,8 +34,9 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     noise = None if args.noise_free else TrackerNoise(args.noise_pos, args.noise_rot, args.noise_act)
     passive = _recorded_passive_joints(nominal) if args.with_passive else ()
     setup = MeasurementSetup.from_numbers(args.tracker_frame, args.marker)
-    study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only,
-                           passive_joints=passive, setup=setup, outliers=args.outliers)
+    with Heartbeat("simulating", f"{args.n} poses"):  # one batch: no count to show
+        study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only,
+                               passive_joints=passive, setup=setup, outliers=args.outliers)
     comments = provenance(args) + [
         f"truth: {args.sigma_pos:g} m / {args.sigma_rot:g} rad errors on every joint placement and closure/platform frame, seed {args.seed}",
         "noise: none" if noise is None else f"noise: tracker {noise.position:g} m / {noise.rotation:g} rad, sliders {noise.actuator:g} m",

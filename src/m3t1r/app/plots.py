@@ -4,7 +4,9 @@ Figures are built on `matplotlib.figure.Figure` with an explicit Agg canvas: no 
 global backend switch, no display, and nothing to close (a figure without pyplot's registry is
 freed with its last reference). Each function renders to memory and writes through
 `io.atomic_write_bytes`: a reader sees the old file or the new one, never a half-written PNG,
-and a path in `protect` (an input file) is refused before anything is written.
+and a path in `protect` (an input file) is refused before anything is written. Given `outputs`
+(an `io.OutputSet` that declares the path), it stages the PNG there instead, to be written with
+the set's other outputs or not at all.
 
 Inputs are SI (m, rad); axes show readable units chosen from the data (m/mm/um/nm,
 rad/mrad/urad/nrad). Error plots use log scales, on which a zero cannot be drawn: such points are
@@ -26,7 +28,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FixedLocator, LogFormatter, NullFormatter
 
 from m3t1r.errors import InvalidInputError, OutputPathError
-from m3t1r.io.outputs import atomic_write_bytes
+from m3t1r.io.outputs import OutputSet, atomic_write_bytes
 from m3t1r.io.paths import StrPath, ensure_not_protected
 from m3t1r.metrics import PoseErrors
 
@@ -115,8 +117,12 @@ def _zero_note(count: int) -> str:
     return f" ({count} zero, not drawn on log scale)" if count else ""
 
 
-def _check_output(path: StrPath, protect: Iterable[StrPath]) -> None:
-    """The checks `atomic_write_bytes` makes, done before rendering (a figure takes ~0.3 s)."""
+def _check_output(path: StrPath, protect: Iterable[StrPath], outputs: OutputSet | None = None) -> None:
+    """The checks `atomic_write_bytes` makes, done before rendering (a figure takes ~0.3 s); an
+    output of an OutputSet was checked with the set's other outputs (and `outputs` names it)."""
+    if outputs is not None:
+        outputs.output(path)  # KeyError for a path the set does not declare: a caller bug
+        return
     target = Path(path)
     ensure_not_protected(target, protect)
     if target.is_dir():
@@ -125,21 +131,25 @@ def _check_output(path: StrPath, protect: Iterable[StrPath]) -> None:
         raise OutputPathError(target, f"directory {target.parent} does not exist")
 
 
-def _save(figure: Figure, path: StrPath, protect: Iterable[StrPath]) -> Path:
-    """Render to PNG in memory, then replace `path` atomically; returns the path."""
+def _save(figure: Figure, path: StrPath, protect: Iterable[StrPath], outputs: OutputSet | None = None) -> Path:
+    """Render to PNG in memory, then replace `path` atomically, or stage it in `outputs` (to land
+    with the set's other outputs at its commit); returns the path."""
     target = Path(path)
     protect = tuple(protect)
     FigureCanvasAgg(figure)
     buffer = _stdio.BytesIO()
     figure.savefig(buffer, format="png", dpi=_DPI)
-    atomic_write_bytes(target, buffer.getvalue(), protect=protect)
+    if outputs is not None:
+        outputs.stage(path, buffer.getvalue())
+    else:
+        atomic_write_bytes(target, buffer.getvalue(), protect=protect)
     return target
 
 
 # ------------------------------------------------------------------------------------------------
 def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: StrPath,
                                   title: str = "Platform pose error before and after calibration",
-                                  protect: Iterable[StrPath] = ()) -> Path:
+                                  protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
     """Paper Fig. 4: (a) orientation error and (b) position error per pose, before and after.
 
     before, after: errors of the nominal and of the calibrated model against the actual machine
@@ -160,7 +170,7 @@ def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: S
                                     "before and after must be at the same poses")
         panels.append((label, units, b, a))
 
-    _check_output(path, protect)
+    _check_output(path, protect, outputs)
     figure = Figure(figsize=(8.0, 6.5), layout="constrained")
     figure.suptitle(title)
     axes = np.atleast_1d(figure.subplots(len(panels), 1, sharex=True))
@@ -176,14 +186,14 @@ def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: S
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(loc="center right", fontsize="small")
     axes[-1].set_xlabel("pose index")
-    return _save(figure, path, protect)
+    return _save(figure, path, protect, outputs)
 
 
 def plot_error_vs_poses(n_poses: Sequence[int], position_errors: Sequence[float],
                         rotation_errors: Sequence[float] | None, path: StrPath,
                         predicted: tuple[Sequence[float], Sequence[float] | None] | None = None,
                         title: str = "Held-out error vs number of calibration poses",
-                        protect: Iterable[StrPath] = ()) -> Path:
+                        protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
     """Held-out platform error of the calibrated model against the number of calibration poses N.
 
     n_poses: N per study (>= 1); position_errors [m] and rotation_errors [rad] (None for
@@ -210,7 +220,7 @@ def plot_error_vs_poses(n_poses: Sequence[int], position_errors: Sequence[float]
                 raise InvalidInputError(f"predicted {name}: {len(prediction)} values for {len(n)} values of n_poses")
         checked.append((name, units, measured, prediction))
 
-    _check_output(path, protect)
+    _check_output(path, protect, outputs)
     figure = Figure(figsize=(5.0 * len(checked), 4.0), layout="constrained")
     figure.suptitle(title)
     axes = np.atleast_1d(figure.subplots(1, len(checked)))
@@ -227,7 +237,7 @@ def plot_error_vs_poses(n_poses: Sequence[int], position_errors: Sequence[float]
         ax.set_ylabel(name.lower())
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize="small")
-    return _save(figure, path, protect)
+    return _save(figure, path, protect, outputs)
 
 
 def _xy(targets: object, what: str) -> np.ndarray:
@@ -275,7 +285,7 @@ def _scatter_panels(figure: Figure, xy: np.ndarray, panels: list[tuple[str, np.n
 def plot_workspace_error_map(targets: object, errors_before: Sequence[float], errors_after: Sequence[float],
                              path: StrPath, kind: str = "position", shared_scale: bool = False,
                              title: str = "Error of the actual platform over the workspace",
-                             protect: Iterable[StrPath] = ()) -> Path:
+                             protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
     """Error of the actual platform at each target, without and with compensation, over x-y.
 
     targets: (N, >= 2) rows (x, y, ...) [m] (rows x, y, z, theta accepted; z and theta are
@@ -293,17 +303,18 @@ def plot_workspace_error_map(targets: object, errors_before: Sequence[float], er
     if not len(before) == len(after) == len(xy):
         raise InvalidInputError(f"{len(xy)} targets, {len(before)} errors before, {len(after)} after: "
                                 "one error of each per target")
-    _check_output(path, protect)
+    _check_output(path, protect, outputs)
     figure = Figure(figsize=(8.5, 6.0), layout="constrained")
     figure.suptitle(f"{title}\n({len(xy)} targets; z and theta projected onto x-y)")
     _scatter_panels(figure, xy, [("uncompensated", before), ("compensated", after)],
                     _LENGTH_UNITS if kind == "position" else _ANGLE_UNITS, f"{kind} error", shared_scale)
-    return _save(figure, path, protect)
+    return _save(figure, path, protect, outputs)
 
 
 def plot_predicted_std_map(targets: object, std: PoseErrors, path: StrPath,
                            title: str = "Predicted standard deviation of the calibrated platform pose",
-                           protect: Iterable[StrPath] = (), plane: tuple[str, str] = _PLATFORM_PLANE) -> Path:
+                           protect: Iterable[StrPath] = (), plane: tuple[str, str] = _PLATFORM_PLANE,
+                           outputs: OutputSet | None = None) -> Path:
     """Predicted pose uncertainty of the calibrated model over the workspace, drawn over a plane.
 
     targets: (N, >= 2) rows whose first two columns place each pose in the plane (default x, y [m];
@@ -317,10 +328,10 @@ def plot_predicted_std_map(targets: object, std: PoseErrors, path: StrPath,
     rotation = _nonnegative(_finite_array(std.rotation, "std.rotation"), "std.rotation")
     if not len(position) == len(rotation) == len(xy):
         raise InvalidInputError(f"{len(xy)} targets, {len(position)} position std, {len(rotation)} orientation std")
-    _check_output(path, protect)
+    _check_output(path, protect, outputs)
     figure = Figure(figsize=(8.5, 6.0), layout="constrained")
     figure.suptitle(f"{title}\n({len(xy)} poses; the other coordinates projected onto this plane)")
     left, right = figure.subfigures(1, 2)
     _scatter_panels(left, xy, [("position", position)], _LENGTH_UNITS, "predicted position std", False, plane)
     _scatter_panels(right, xy, [("orientation", rotation)], _ANGLE_UNITS, "predicted orientation std", False, plane)
-    return _save(figure, path, protect)
+    return _save(figure, path, protect, outputs)

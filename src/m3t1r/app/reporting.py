@@ -25,6 +25,7 @@ from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_close
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home
 from m3t1r.errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
+from m3t1r.io.outputs import OutputSet
 from m3t1r.metrics import PoseErrors, rotation_angles
 from m3t1r.model.description import Mechanism
 from m3t1r.model.design import IDLE_CHAIN_JOINTS
@@ -32,6 +33,7 @@ from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import declared_workspace
 
 __all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots", "check_plots_folder",
+           "declare_plot_outputs", "PLOT_NAMES",
            "PassiveJointResiduals", "passive_joint_residuals", "IDLE_CHAIN_JOINTS"]
 # check_plots_folder, the passive-joint residuals and IDLE_CHAIN_JOINTS live in modules without
 # matplotlib (`calibrate` imports this module only for --plots); they are named here too, as before.
@@ -81,31 +83,66 @@ def cross_validation_curve(nominal: Mechanism, measurements: PoseMeasurements, n
     return kept, position, rotation
 
 
+#: The files `write_calibration_plots` writes into its folder.
+PLOT_NAMES = ("pose_errors_before_after.png", "error_vs_poses.png", "predicted_error_map.png")
+
+
+def declare_plot_outputs(outputs: OutputSet, folder: str | Path) -> Path:
+    """Declare the calibration plots in `folder` as outputs of `outputs` (`--plots DIR`), so that
+    they are checked with the set's other outputs before any work (collisions, writability, other
+    writers) and written with them or not at all; a missing folder is created by the set's check.
+    Returns the folder."""
+    folder = check_plots_folder(folder)
+    for name in PLOT_NAMES:
+        outputs.add(folder / name, "--plots", create_folder=True)
+    return folder
+
+
 def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibration, out_dir: Path,
                             protect: Iterable[Path] = (), noise: TrackerNoise = TrackerNoise(),
-                            seed: int = 0) -> list[Path]:
-    """Write the three calibration plots (module docstring) into out_dir; return their paths.
-    The calibration's own inlier measurements and measurement setup are used throughout."""
+                            seed: int = 0, outputs: OutputSet | None = None) -> list[Path]:
+    """Write the calibration plots (module docstring) into out_dir as a unit; return their paths.
+
+    The calibration's own inlier measurements and measurement setup are used throughout. With
+    `outputs` (where `declare_plot_outputs(outputs, out_dir)` declared them) the plots are only
+    staged there, to be committed with the set's other outputs. A plot the data cannot give (the
+    error-vs-poses curve when no subset can be calibrated) is withdrawn and not written.
+    """
+    own = outputs is None
+    if outputs is None:
+        outputs = OutputSet(inputs=protect)
+        declare_plot_outputs(outputs, out_dir)
+    with outputs:
+        if own:
+            outputs.check()
+        written = _stage_calibration_plots(nominal, calibration, Path(out_dir), noise, seed, outputs)
+        for path in [Path(out_dir) / name for name in PLOT_NAMES]:
+            if not outputs.output(path).staged:
+                outputs.drop(path)
+        written = [path for path in written if path in (o.path for o in outputs.outputs)]
+        if own:
+            outputs.commit()
+    return written
+
+
+def _stage_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibration, out_dir: Path,
+                             noise: TrackerNoise, seed: int, outputs: OutputSet) -> list[Path]:
     problem, start = calibration.problem, calibration.start
     if problem is None or start is None:
         raise InvalidInputError("write_calibration_plots needs a calibration made by calibrate_closed_loop")
     measurements = _subset(problem.measurements, np.flatnonzero(problem.active))
-    out_dir = check_plots_folder(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    protect = tuple(protect)
     written = [plot_pose_errors_before_after(
         measured_pose_errors(nominal, measurements, start.setup),
         measured_pose_errors(calibration.mechanism, measurements, calibration.setup),
-        out_dir / "pose_errors_before_after.png", title="Calibration poses: model vs measured pose",
-        protect=protect)]
+        out_dir / PLOT_NAMES[0], title="Calibration poses: model vs measured pose", outputs=outputs)]
     fit_options = {"setup": MeasurementSetup(marker=start.setup.marker),
                    "estimate_frame": problem.frame_slot is not None, "estimate_marker": problem.marker_slot is not None}
     sizes, position, rotation = cross_validation_curve(nominal, measurements, noise, seed, **fit_options)
     if sizes:
         written.append(plot_error_vs_poses(sizes, position, None if measurements.position_only else rotation,
-                                           out_dir / "error_vs_poses.png",
+                                           out_dir / PLOT_NAMES[1],
                                            title="Cross-validated error vs number of calibration poses",
-                                           protect=protect))
+                                           outputs=outputs))
     sliders, where, plane = map_poses(calibration.mechanism, 300, np.random.default_rng(seed))
     # What the tracker would measure, in its own frame, with the setup's uncertainty: with an estimated
     # frame the platform's place in the machine's base is not observable (`predicted_measurement_std`),
@@ -116,8 +153,8 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
     title = ("Predicted error after compensation (1 sigma)" if plain else
              "Predicted error of the measured point in the measurement frame (1 sigma),\n"
              "for poses commanded in that frame after calibration")
-    written.append(plot_predicted_std_map(where, std, out_dir / "predicted_error_map.png", title=title,
-                                          protect=protect, plane=plane))
+    written.append(plot_predicted_std_map(where, std, out_dir / PLOT_NAMES[2], title=title, protect=(),
+                                          plane=plane, outputs=outputs))
     return written
 
 

@@ -21,18 +21,21 @@ Travel: the drives move concurrently, so the time of a move is set by its longes
 the distance between two configurations is the largest absolute joint difference (the L-infinity
 norm, m or rad), and a plan's travel is the sum over its moves, starting from the home
 configuration. Ordering is greedy nearest neighbour from home, then 2-opt (segment reversals)
-until no reversal shortens the path.
+until no reversal shortens the path; beyond `DENSE_ORDERING_MAX` poses, the nearest-neighbour path
+alone, found with a k-d tree in O(n) memory instead of an n x n distance matrix.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 import pinocchio as pin
 from numpy.typing import ArrayLike
+from scipy.spatial import cKDTree
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.identification import select_base_parameters, unexcited_parameters
@@ -116,6 +119,11 @@ class MeasurementPlan:
 # Travel ordering
 
 
+#: Up to this many poses the ordering uses a distance matrix (32 MB at 2000) and 2-opt; beyond, a
+#: nearest-neighbour scan on a k-d tree, O(n) memory, without the 2-opt (each of its passes is n^2).
+DENSE_ORDERING_MAX = 2000
+
+
 def _distances(points: np.ndarray) -> np.ndarray:
     """(n, n) largest absolute coordinate difference between every two rows [m or rad]."""
     return np.max(np.abs(points[:, None, :] - points[None, :, :]), axis=2)
@@ -167,16 +175,81 @@ def _two_opt(path: list[int], distance: np.ndarray, max_passes: int = 100) -> li
     return order.tolist()
 
 
-def order_for_travel(points: ArrayLike, start: ArrayLike | None = None) -> np.ndarray:
+_NEAR = 8  # neighbours of each row looked up at once by the large-set scan
+
+
+class _UnvisitedTree:
+    """A k-d tree (Chebyshev metric) over the rows of `nodes` not yet `visited`, rebuilt over the
+    unvisited ones whenever half of its rows have been visited (so that a query widens little)."""
+
+    def __init__(self, nodes: np.ndarray, visited: np.ndarray) -> None:
+        self.nodes, self.visited = nodes, visited
+        self._rebuild()
+
+    def _rebuild(self) -> None:
+        self.rows = np.flatnonzero(~self.visited)
+        self.unvisited = len(self.rows)
+        self.tree = cKDTree(self.nodes[self.rows]) if len(self.rows) else None
+
+    def visit(self) -> None:
+        """One more row (always one of this tree's: it was unvisited) is visited."""
+        self.unvisited -= 1
+
+    def nearest(self, point: np.ndarray) -> int:
+        """The unvisited row nearest `point` (at least one must be left)."""
+        if self.unvisited < len(self.rows) // 2:
+            self._rebuild()
+        width = _NEAR
+        while True:
+            _, found = self.tree.query(point, k=min(width, len(self.rows)), p=np.inf)
+            rows = self.rows[np.atleast_1d(found)]
+            free = rows[~self.visited[rows]]
+            if free.size:
+                return int(free[0])
+            width *= 2  # every row this close is visited: look further
+
+
+def _nearest_neighbour_scan(nodes: np.ndarray, progress: Callable[[int, int], None] | None = None) -> list[int]:
+    """Greedy path over rows 1..n-1 of `nodes` from row 0, as `_nearest_neighbour` on their L-inf
+    distances, without the matrix: each row's 8 nearest rows are looked up at once, and when all
+    of them are visited the nearest unvisited row comes from a k-d tree of the unvisited rows. A
+    query's rows come sorted by distance, so its first unvisited row is the nearest unvisited one.
+    O(n) memory; `progress(done, total)` every 1000 rows."""
+    n = len(nodes)
+    visited = np.zeros(n, dtype=bool)
+    _, near = cKDTree(nodes).query(nodes, k=min(_NEAR, n), p=np.inf)
+    near = np.asarray(near).reshape(n, -1)
+    visited[0] = True
+    unvisited = _UnvisitedTree(nodes, visited)
+    path, current = [0], 0
+    for step in range(1, n):
+        row = near[current]
+        free = row[~visited[row]]
+        current = int(free[0]) if free.size else unvisited.nearest(nodes[current])
+        visited[current] = True
+        unvisited.visit()
+        path.append(current)
+        if progress is not None and (step % 1000 == 0 or step == n - 1):
+            progress(step, n - 1)
+    return path
+
+
+def order_for_travel(points: ArrayLike, start: ArrayLike | None = None,
+                     progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """A visiting order (indices into the rows of `points` (n, d)) with short travel from `start`
-    (d,) (default: from the first row): greedy nearest neighbour, then 2-opt (module docstring)."""
+    (d,) (default: from the first row): greedy nearest neighbour, then 2-opt (module docstring);
+    beyond `DENSE_ORDERING_MAX` rows the nearest-neighbour path alone, found in O(n) memory.
+    `progress(done, total)`: rows placed so far, called by the large-set scan after each."""
     rows = np.atleast_2d(np.asarray(points, dtype=float))
     if rows.shape[0] == 0 or not np.all(np.isfinite(rows)):
         raise InvalidInputError(f"order_for_travel: expected finite points (n >= 1, d), got shape {rows.shape}")
     origin = rows[0] if start is None else np.asarray(start, dtype=float).reshape(-1)
     nodes = np.vstack((origin[None, :], rows))
-    distance = _distances(nodes)
-    path = _two_opt(_nearest_neighbour(distance), distance)
+    if len(nodes) > DENSE_ORDERING_MAX:
+        path = _nearest_neighbour_scan(nodes, progress)
+    else:
+        distance = _distances(nodes)
+        path = _two_opt(_nearest_neighbour(distance), distance)
     return np.array(path[1:], dtype=int) - 1
 
 

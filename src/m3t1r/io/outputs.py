@@ -12,24 +12,30 @@ import os
 import stat
 import sys
 from collections.abc import Iterable
+from contextlib import ExitStack
 from pathlib import Path
 
 from m3t1r.errors import OutputPathError
 from m3t1r.io.pairing import paired_closures_path
 from m3t1r.io.paths import STDOUT, StrPath, _identity, _same_identity
-from m3t1r.io.signals import _signals_held
+from m3t1r.io.signals import _deliver, _signals_deferred
 from m3t1r.io.strict_json import json_text
 from m3t1r.io.temporaries import (
     _LIVE_TEMPORARIES,
     _fsync_directory,
     _remove_quietly,
-    _write_temporary,
+    claim_temporary,
+    folder_lock,
+    live_writer,
     print_notice,
-    sweep,
+    release_stale_claims,
+    release_temporary,
+    sweep_locked,
     temporary_path,
+    write_claimed,
 )
 
-__all__ = ["Output", "OutputSet", "atomic_write_bytes", "atomic_write_text"]
+__all__ = ["Output", "OutputSet", "atomic_write_bytes", "atomic_write_text", "interrupted_outputs"]
 
 def atomic_write_bytes(path: StrPath, data: bytes, protect: Iterable[StrPath] = ()) -> None:
     """Replace the file at `path` with `data` in one step, or leave it untouched.
@@ -59,6 +65,15 @@ def atomic_write_text(path: StrPath, text: str, protect: Iterable[StrPath] = ())
     atomic_write_bytes(path, text.encode("utf-8"), protect=protect)
 
 
+def interrupted_outputs(exc: BaseException) -> str:
+    """What an interruption (Ctrl-C, SIGTERM) left written, in words: every output of a commit the
+    signal arrived during (`OutputSet.commit` names them on the exception), or none."""
+    written = getattr(exc, "outputs_written", None)
+    if written:
+        return f"it arrived while the outputs were renamed into place, and every one is written: {', '.join(written)}"
+    return "outputs not yet in place were not written"
+
+
 class Output:
     """One declared output of an `OutputSet`. `path` is as given; `label` names it in messages."""
 
@@ -68,7 +83,10 @@ class Output:
         self.pair_of = pair_of  # for a closures file: the URDF output it belongs with
         self.closures: Output | None = None  # for a machine URDF: its closures output
         self.kind = "stdout" if self.path is None else "file"  # "file", "stdout" or "special"
-        self.temporary: Path | None = None
+        self.temporary: Path | None = None  # claimed at check: this run's locked file beside the target
+        self.descriptor: int | None = None  # the temporary's open descriptor, which holds its lock
+        self.staged = False
+        self.create_folder = False  # a missing folder is created (a plots folder), removed again if unused
         self.data: bytes | None = None  # for stdout and special files, written at commit
 
     @property
@@ -87,27 +105,34 @@ class OutputSet:
         outputs = OutputSet(inputs=[measurements, nominal.urdf_path, nominal.closures_path])
         machine = outputs.add_machine(args.output, "-o")     # NAME.urdf and NAME.closures.yaml
         report = outputs.add(args.report, "--report")        # None when args.report is None
-        outputs.check()                                       # OutputPathError now, nothing written
-        ...compute...
-        outputs.stage_machine(machine, calibrated); outputs.stage_json(report, document)
-        outputs.commit()                                      # every output lands, or none changes
+        with outputs:
+            outputs.check()                                   # OutputPathError now, nothing written
+            ...compute...
+            outputs.stage_machine(machine, calibrated); outputs.stage_json(report, document)
+            outputs.commit()                                  # every output lands, or none changes
 
     `check` refuses (with `OutputPathError`, exit status 2 in the CLI): two outputs that are the
     same file, or an output that is an input, compared through symlinks and hard links; an output
     folder that does not exist or is not writable; an output that is a directory, a socket or a
-    block device; a machine URDF given as `-` or as a pipe or device (a machine is two files).
-    It also sweeps each output folder for temporary files left by killed runs (see `sweep`).
+    block device, or an existing file that cannot be replaced (immutable); a machine URDF given as
+    `-` or as a pipe or device (a machine is two files); and an output that another live m3t1r run
+    is writing (naming that run). It sweeps each output folder for temporary files left by killed
+    runs (see `sweep`) and then claims every output: a temporary file beside each target, created
+    and exclusively locked under the folder's lock, so that a second writer of the same file is
+    refused at its own `check` and no sweep mistakes this run's files for leftovers. (Within one
+    process the latest claim wins: a command that failed before its commit leaves no obstacle.)
 
-    `stage*` writes each output's bytes to a temporary file beside its target at once (a full
-    disk shows then, before anything is replaced). `commit` then renames them over their targets
-    with catchable signals held back, auxiliary outputs first and each machine URDF last but one:
-    the URDF rename is a pair's commit point, and its closures file is renamed right after. A
-    URDF records its closures file's sha256 and the loader also accepts the staged closures file
-    of that hash, so a kill at any instant leaves a loadable pair, old or new (models/README.md).
+    `stage*` writes each output's bytes to its temporary file at once (a full disk shows then,
+    before anything is replaced). `commit` then renames them over their targets with catchable
+    signals held back, auxiliary outputs first and each machine URDF last but one: the URDF rename
+    is a pair's commit point, and its closures file is renamed right after. A URDF records its
+    closures file's sha256 and the loader also accepts the staged closures file of that hash, so a
+    kill at any instant leaves a loadable pair, old or new (models/README.md). A rename that fails
+    puts back every output already renamed (each old file is kept as a hard link until the end).
     `-` (stdout) and existing pipes and character devices are written through at commit.
 
     Used as a context manager, an exception or caught signal inside the block removes every
-    temporary file; `discard()` does the same explicitly.
+    temporary file (and a folder `check` created); `discard()` does the same explicitly.
     """
 
     def __init__(self, inputs: Iterable[StrPath] = (), *, announce=print_notice) -> None:
@@ -116,6 +141,7 @@ class OutputSet:
         self.announce = announce
         self.notes: list[str] = []
         self.committed = False
+        self.created_folders: list[Path] = []  # by check, deepest last; removed by discard when empty
 
     # -- declaring --------------------------------------------------------------------------
     def add_input(self, path: StrPath | None) -> None:
@@ -123,11 +149,16 @@ class OutputSet:
         if path is not None and str(path) != STDOUT:
             self.inputs.append(Path(path))
 
-    def add(self, path: StrPath | None, label: str = "output") -> Output | None:
-        """Declare an output file (`-` is stdout); None gives None, for optional outputs."""
+    def add(self, path: StrPath | None, label: str = "output", *, create_folder: bool = False) -> Output | None:
+        """Declare an output file (`-` is stdout); None gives None, for optional outputs.
+
+        `create_folder`: a missing folder (and its missing parents) is created by `check`, once
+        every other check passed, and removed by `discard` if nothing landed in it.
+        """
         if path is None:
             return None
         output = Output(path, label)
+        output.create_folder = create_folder
         self.outputs.append(output)
         return output
 
@@ -147,6 +178,14 @@ class OutputSet:
         self.outputs += [machine, machine.closures]
         return machine
 
+    def drop(self, output: Output | StrPath) -> None:
+        """Withdraw a declared plain output that will not be written after all (its claim released)."""
+        output = self._resolve(output)
+        if output.closures is not None or output.pair_of is not None:
+            raise ValueError(f"{output.name} is half of a machine pair; a pair is written whole")
+        self._forget_temporary(output)
+        self.outputs.remove(output)
+
     def output(self, path: StrPath) -> Output:
         """The declared Output for `path` (as given)."""
         for output in self.outputs:
@@ -156,9 +195,11 @@ class OutputSet:
 
     # -- checking ---------------------------------------------------------------------------
     def check(self) -> None:
-        """Refuse collisions, missing or read-only folders and unusable special files; sweep leftovers.
+        """Refuse collisions, missing or read-only folders, unusable special files and outputs
+        another live run is writing; sweep leftovers; claim every output (class docstring).
 
         Raises OutputPathError naming the output, by its label, and what it collides with.
+        Calling it again (after `add_input`, say) checks again and claims only new outputs.
         """
         seen: list[tuple[Output, Path, tuple[int, int] | None]] = []
         folders: list[Path] = []
@@ -181,12 +222,60 @@ class OutputSet:
                                      "every output must be a different file")
             seen.append((output, resolved, inode))
             if output.kind == "file":
+                _check_replaceable(output)
                 folder = output.path.parent
                 if folder not in folders:
                     _check_folder(output, folder)
                     folders.append(folder)
-        for folder in folders:
-            self.notes += sweep(folder, announce=self.announce)
+        try:
+            self._claim(folders)
+        except BaseException:
+            self.discard()
+            raise
+
+    def _claim(self, folders: list[Path]) -> None:
+        """Create missing folders, then under every output folder's lock: sweep, refuse outputs a
+        live run is writing, and claim each unclaimed output."""
+        for output in self.outputs:
+            if output.create_folder and output.kind == "file" and not output.path.parent.is_dir():
+                self._create_folder(output)
+        unclaimed = [o for o in self.outputs if o.kind == "file" and o.descriptor is None]
+        notes: list[str] = []
+        with ExitStack() as locks:
+            for folder in sorted({_identity(f)[0]: f for f in folders}.items()):
+                locks.enter_context(folder_lock(folder[1]))  # in one global order: no two runs deadlock
+            for folder in folders:
+                notes += sweep_locked(folder)
+            own = {o.temporary for o in self.outputs if o.temporary is not None}
+            for output in unclaimed:
+                release_stale_claims(output.path, own)
+                writer = live_writer(output.path)
+                if writer is not None:
+                    raise OutputPathError(output.path, f"{output.label}: another m3t1r run is writing this file in "
+                                                       f"{output.path.parent} ({writer}); nothing was written: "
+                                                       "wait for it to finish, or write elsewhere")
+            for output in unclaimed:
+                output.temporary, output.descriptor = claim_temporary(output.path)
+        self.notes += notes
+        if self.announce is not None:
+            for note in notes:
+                self.announce(note)
+
+    def _create_folder(self, output: Output) -> None:
+        missing = []
+        folder = output.path.parent
+        while not folder.exists() and folder != folder.parent:
+            missing.append(folder)
+            folder = folder.parent
+        for folder in reversed(missing):
+            try:
+                folder.mkdir()
+            except FileExistsError:
+                continue
+            except OSError as exc:
+                raise OutputPathError(output.path, f"{output.label}: cannot create folder {folder}: "
+                                                   f"{exc.strerror or exc}; nothing was written") from None
+            self.created_folders.append(folder)
 
     def _classify(self, output: Output) -> None:
         path = output.path
@@ -222,8 +311,9 @@ class OutputSet:
         if output.kind != "file":
             output.data = payload
             return
-        self._forget_temporary(output)
-        output.temporary = _write_temporary(output.path, payload)
+        self._ensure_claimed(output)
+        write_claimed(output.path, output.temporary, output.descriptor, payload)
+        output.staged = True
 
     def stage_json(self, output: Output | StrPath | None, document: object) -> None:
         """Stage strict JSON (`json_text`); None output: nothing to do."""
@@ -240,59 +330,101 @@ class OutputSet:
         self.stage(output, urdf_bytes)
 
     def staging_path(self, output: Output | StrPath) -> Path:
-        """A temporary path to hand to a writer that needs a file name (a plot, say); renamed at commit.
+        """The output's temporary path, emptied, for a writer that needs a file name; renamed at commit.
 
-        Only for regular-file outputs. The name ends in `.tmp`: give the writer the format explicitly.
+        Only for regular-file outputs. The writer must write the file in place (open it for
+        writing), not replace it: the file's lock is what tells other runs it is being written. The
+        name ends in `.tmp`: give the writer the format explicitly.
         """
         output = self._resolve(output)
         if output.kind != "file":
             raise OutputPathError(output.name, f"{output.label}: a writer needing a file name cannot write to a "
                                                "pipe, device or standard output")
-        self._forget_temporary(output)
-        output.temporary = temporary_path(output.path)
-        _LIVE_TEMPORARIES.add(output.temporary)
+        self._ensure_claimed(output)
+        os.ftruncate(output.descriptor, 0)
+        output.staged = True
         return output.temporary
+
+    def _ensure_claimed(self, output: Output) -> None:
+        if output.descriptor is None:  # staged without check: claim it now, under the folder lock
+            with folder_lock(output.path.parent):
+                output.temporary, output.descriptor = claim_temporary(output.path)
 
     # -- committing -------------------------------------------------------------------------
     def commit(self) -> list[str]:
         """Move every staged output into place (order in the class docstring); return their names.
 
         Raises ValueError if an output was never staged (a caller bug), OutputPathError if a
-        rename fails; temporary files are removed on failure.
+        rename fails, after putting back every output it had already renamed; temporary files are
+        removed on failure. A SIGINT, SIGTERM or SIGHUP that arrives during the renames is raised
+        once every file is in place, with `outputs_written` (the names) set on the exception.
         """
-        missing = [o.name for o in self.outputs if o.kind == "file" and (o.temporary is None or not o.temporary.exists())]
+        missing = [o.name for o in self.outputs
+                   if o.kind == "file" and (not o.staged or o.temporary is None or not o.temporary.exists())]
         missing += [o.name for o in self.outputs if o.kind != "file" and o.data is None]
         if missing:
             self.discard()
             raise ValueError(f"outputs declared but never staged: {', '.join(missing)}")
         plain = [o for o in self.outputs if o.kind == "file" and o.closures is None and o.pair_of is None]
         machines = [o for o in self.outputs if o.closures is not None]
-        streams = [o for o in self.outputs if o.kind != "file"]
-        folders: list[Path] = []
+        order = [*plain, *(o for m in machines for o in (m, m.closures))]  # a URDF, then its closures file
+        folders = list(dict.fromkeys(o.path.parent for o in order))
+        with _signals_deferred() as pending:
+            try:
+                with ExitStack() as locks:
+                    for _, folder in sorted({_identity(f)[0]: f for f in folders}.items()):
+                        locks.enter_context(folder_lock(folder))
+                    self._rename_all(order)
+            except BaseException:
+                self.discard()
+                raise
+            self.committed = True
+            for folder in folders:
+                _fsync_directory(folder)
+        written = [o.name for o in order]
         try:
-            with _signals_held():
-                for output in plain:
-                    self._rename(output)
-                for machine in machines:
-                    self._rename(machine)  # the commit point of the pair
-                    self._rename(machine.closures)
-                for output in (*plain, *machines, *(m.closures for m in machines)):
-                    if output.path.parent not in folders:
-                        folders.append(output.path.parent)
-        except BaseException:
-            self.discard()
+            _deliver(pending)
+        except BaseException as exc:  # every file is in place: say so, whatever stops the streams
+            exc.outputs_written = written  # type: ignore[attr-defined]
             raise
-        for folder in folders:
-            _fsync_directory(folder)
-        for output in streams:
-            _write_through(output)
-        self.committed = True
+        for output in self.outputs:
+            if output.kind != "file":
+                _write_through(output)
         return [o.name for o in self.outputs]
 
+    def _rename_all(self, order: list[Output]) -> None:
+        """Rename every temporary over its target; on a failure, put the renamed ones back and raise."""
+        renamed: list[tuple[Output, Path | None | bool]] = []
+        backups: list[Path] = []
+        try:
+            for output in order:
+                backup = _keep_old(output.path)
+                if isinstance(backup, Path):
+                    backups.append(backup)
+                self._rename(output)
+                renamed.append((output, backup))
+        except OutputPathError as exc:
+            if not renamed:
+                raise
+            lost = _put_back(renamed)
+            restored = (f"the {len(renamed)} output(s) renamed before it were put back as they were" if not lost
+                        else f"could not put back the old {', '.join(lost)}")
+            raise OutputPathError(exc.path, f"{str(exc).removeprefix(f'{exc.path}: ')}; {restored}") from None
+        finally:
+            for backup in backups:
+                _remove_quietly(backup)
+                _LIVE_TEMPORARIES.discard(backup)
+
     def discard(self) -> None:
-        """Remove every temporary file not yet renamed."""
+        """Remove every temporary file not yet renamed, and every folder `check` created that is empty."""
         for output in self.outputs:
             self._forget_temporary(output)
+        for folder in reversed(self.created_folders):
+            try:
+                folder.rmdir()
+            except OSError:
+                pass  # not empty (something else landed there) or already gone: leave it
+        self.created_folders = []
 
     def __enter__(self) -> "OutputSet":
         return self
@@ -311,18 +443,68 @@ class OutputSet:
         except OSError as exc:
             raise OutputPathError(output.path, f"{output.label}: could not move the new file into place: "
                                                f"{exc.strerror or exc}") from None
-        _LIVE_TEMPORARIES.discard(output.temporary)
-        output.temporary = None
+        release_temporary(output.temporary, output.descriptor, remove=False)
+        output.temporary, output.descriptor = None, None
+        output.staged = False
 
     @staticmethod
     def _forget_temporary(output: Output) -> None:
         if output.temporary is not None:
-            _remove_quietly(output.temporary)
-            _LIVE_TEMPORARIES.discard(output.temporary)
-            output.temporary = None
+            release_temporary(output.temporary, output.descriptor, remove=True)
+            output.temporary, output.descriptor = None, None
+            output.staged = False
+
+
+def _keep_old(target: Path) -> Path | None | bool:
+    """A hard link to the file at `target` under a temporary name, to put it back if a later rename
+    fails: its path; None when there is no old file; False when it cannot be kept (no hard links)."""
+    if not os.path.lexists(target):
+        return None
+    backup = temporary_path(target)
+    try:
+        os.link(target, backup, follow_symlinks=False)
+    except OSError:
+        return False
+    _LIVE_TEMPORARIES.add(backup)  # removed at exit even if this process dies in the commit
+    return backup
+
+
+def _put_back(renamed: list[tuple[Output, Path | None | bool]]) -> list[str]:
+    """Undo renames, last first: the old file back from its link, a new one removed; what could not be."""
+    lost = []
+    for output, backup in reversed(renamed):
+        try:
+            if isinstance(backup, Path):
+                os.replace(backup, output.path)
+            elif backup is None:
+                os.unlink(output.path)
+            else:
+                lost.append(output.name)
+        except OSError:
+            lost.append(output.name)
+    return lost
+
+
+def _check_replaceable(output: Output) -> None:
+    """Refuse an existing regular file that no rename may replace: an immutable or append-only
+    file, or one on a read-only file system. Judged without opening it: write access denied
+    although the permission bits grant it (a read-only mode alone does not stop a rename)."""
+    path = output.path
+    try:
+        info = os.lstat(path)
+        if not stat.S_ISREG(info.st_mode) or os.access(path, os.W_OK, follow_symlinks=False):
+            return
+    except (OSError, NotImplementedError):
+        return
+    euid = os.geteuid() if hasattr(os, "geteuid") else -1
+    if euid == 0 or (info.st_uid == euid and info.st_mode & stat.S_IWUSR):
+        raise OutputPathError(path, f"{output.label}: cannot be replaced: write access denied by the file system "
+                                    "(an immutable or append-only file, or a read-only mount)")
 
 
 def _check_folder(output: Output, folder: Path) -> None:
+    if output.create_folder and not folder.exists():
+        folder = next(p for p in folder.parents if p.exists() or p == p.parent)
     if not folder.is_dir():
         what = "is not a folder" if folder.exists() else "does not exist"
         raise OutputPathError(output.path, f"{output.label}: folder {folder} {what}")

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 
-__all__ = ["Progress", "set_quiet"]
+__all__ = ["Progress", "Heartbeat", "set_quiet"]
 
 _QUIET = False
 
@@ -32,9 +33,10 @@ class Progress:
     """
 
     def __init__(self, label: str, total: int | None = None, *, stream=None, delay: float = 2.0,
-                 interval: float | None = None) -> None:
+                 interval: float | None = None, counted: bool = True) -> None:
         self.label = label
         self.total = total
+        self.counted = counted  # False: "working" in place of a count (a `Heartbeat`)
         self.stream = stream if stream is not None else sys.stderr
         self.delay = delay
         self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
@@ -76,6 +78,8 @@ class Progress:
             eta = f", about {elapsed / fraction - elapsed:.0f} s left" if 0 < fraction < 1 else ""
         else:
             fraction, count, eta = None, f"{self.done}", ""
+        if not self.counted:
+            count = "working"
         note = f" {self.note}" if self.note else ""
         try:
             if self.tty:
@@ -88,3 +92,36 @@ class Progress:
         except (OSError, ValueError):
             return
         self._shown = True
+
+
+class Heartbeat:
+    """Elapsed time of one long step that reports no count (a planning, a batch solve), shown by a
+    background thread in the manner of `Progress`: nothing during the first `delay` seconds, then
+    a line every few seconds (a tick on a terminal), and nothing under `--quiet`. Usage::
+
+        with Heartbeat("planning", note="selecting 60 of 1200 candidates"):
+            plan = plan_closed_loop(...)
+
+    The step itself runs in the calling thread, so signals (Ctrl-C, SIGTERM) act on it as before.
+    """
+
+    def __init__(self, label: str, note: str = "", *, stream=None, delay: float = 2.0,
+                 interval: float | None = None) -> None:
+        self.progress = Progress(label, None, stream=stream, delay=delay, interval=interval, counted=False)
+        self.progress.note = note
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat, name=f"heartbeat {label}", daemon=True)
+
+    def _beat(self) -> None:
+        tick = min(self.progress.interval, 1.0)
+        while not self._stop.wait(tick):
+            self.progress.update(0)
+
+    def __enter__(self) -> "Heartbeat":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.progress.close()

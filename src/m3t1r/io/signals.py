@@ -12,16 +12,25 @@ __all__ = ["Terminated", "termination_as_exception"]
 
 @contextmanager
 def _signals_held() -> Iterator[None]:
-    """Hold SIGINT, SIGTERM, SIGHUP back while renaming; they are delivered when the block ends.
+    """Hold SIGINT, SIGTERM, SIGHUP back while renaming; they are delivered when the block ends."""
+    with _signals_deferred() as pending:
+        yield
+    _deliver(pending)
+
+
+@contextmanager
+def _signals_deferred() -> Iterator[list[int]]:
+    """Hold SIGINT, SIGTERM, SIGHUP back within the block; yields the list of those that arrived,
+    for the caller to `_deliver` when it is ready (after recording what it completed, say).
 
     Deferred by Python-level handlers, not by a signal mask: a mask holds signals for the calling
     thread only, and a process-directed `kill` may be taken by any of numpy's threads, after which
     Python runs the handler in the main thread anyway.
     """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
     pending: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield pending
+        return
 
     def defer(signum, frame):
         pending.append(signum)
@@ -29,12 +38,16 @@ def _signals_held() -> Iterator[None]:
     held = dict.fromkeys((signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", signal.SIGTERM)))
     previous = {signum: signal.signal(signum, defer) for signum in held}
     try:
-        yield
+        yield pending
     finally:
         for signum, old in previous.items():
             signal.signal(signum, old)
-        for signum in dict.fromkeys(pending):
-            signal.raise_signal(signum)
+
+
+def _deliver(pending: list[int]) -> None:
+    """Raise the signals `_signals_deferred` held back, each once, in arrival order."""
+    for signum in dict.fromkeys(pending):
+        signal.raise_signal(signum)
 
 
 class Terminated(BaseException):
