@@ -129,3 +129,31 @@ def test_too_few_poses(tmp_path, capsys):
 def test_paper_closed_refuses_a_passive_source_it_would_ignore(capsys):
     assert main(["paper", "--closed", "--passive-from", "distance"]) == 2
     assert "--passive-from applies to the two-chain study only" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["plan", "-n", "5", "--seed", "-1", "-o", "p.csv"], "a seed is a whole number of at least 0, got -1"),
+    (["simulate", "--seed", "-1", "-o", "m.csv"], "a seed is a whole number of at least 0, got -1"),
+    (["evaluate", "--truth", "t.urdf", "--calibrated", "c.urdf", "--seed", "-1"], "a seed is a whole number"),
+    (["simulate", "--marker", "nan", "0", "0", "-o", "m.csv"], "--marker: expected a finite number, got 'nan'"),
+    (["calibrate", "m.csv", "-o", "c.urdf", "--marker", "0", "inf", "0"], "--marker: expected a finite number"),
+    (["calibrate", "m.csv", "-o", "c.urdf", "--marker", "0.1+1j", "0", "0"], "--marker: expected a number"),
+    (["calibrate", "m.csv", "-o", "c.urdf", "--max-iterations", "0"], "--max-iterations: expected at least 1"),
+    (["calibrate", "m.csv", "-o", "c.urdf", "--noise-pos", "0"], "--noise-pos: expected a number above 0"),
+    (["simulate", "-n", "0", "-o", "m.csv"], "-n: expected at least 1"),
+])
+def test_bad_arguments_are_refused_by_argparse_before_any_work(tmp_path, capsys, monkeypatch, argv, message):
+    """Seeds, noises, counts and the marker are checked as they are parsed: usage and exit 2, where a
+    negative seed was a ValueError traceback and `--marker nan` was refused later as a column mix-up."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_endless_or_huge_input_is_refused_by_size_not_read_into_memory(tmp_path, capsys):
+    assert main(["fk", "/dev/zero", "-o", str(tmp_path / "p.csv")]) == 2
+    assert "/dev/zero: larger than 256 MiB (or a device that never ends)" in capsys.readouterr().err
+    assert not (tmp_path / "p.csv").exists()

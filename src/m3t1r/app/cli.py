@@ -20,7 +20,19 @@ from m3t1r._threads import single_blas_thread
 from m3t1r._version import __version__
 from m3t1r.app.cli_calibrate import add_campaign_options, parse_priors, run_closed_loop_calibration
 from m3t1r.app.cli_campaign import add_plan_parser, add_validate_parser
-from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, provenance, say
+from m3t1r.app.cli_common import (
+    RowFailures,
+    count_number,
+    finite_number,
+    load_mechanism,
+    nonnegative_number,
+    positive_number,
+    progress_bar,
+    provenance,
+    say,
+    seed_number,
+    zero_or_count,
+)
 from m3t1r.app.cli_serial import run_serial_calibration
 from m3t1r.app.datasets import TARGET_COLUMNS, measurement_table, read_actuators, read_measurements, read_targets
 from m3t1r.app.demo import run_demo
@@ -331,9 +343,9 @@ def _add_model_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_noise_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--noise-pos", type=float, default=10e-6, metavar="M", help="tracker position noise [m]")
-    parser.add_argument("--noise-rot", type=float, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
-    parser.add_argument("--noise-act", type=float, default=1e-6, metavar="M", help="slider reading noise [m]")
+    parser.add_argument("--noise-pos", type=positive_number, default=10e-6, metavar="M", help="tracker position noise [m]")
+    parser.add_argument("--noise-rot", type=positive_number, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
+    parser.add_argument("--noise-act", type=nonnegative_number, default=1e-6, metavar="M", help="slider reading noise [m]")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -355,19 +367,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=cmd_ik)
 
     p = verbs.add_parser("simulate", help="simulate an actual machine and its calibration measurements")
-    p.add_argument("-n", type=int, default=20, help="number of poses (default 20)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--sigma-pos", type=float, default=1e-3, metavar="M", help="placement error std, translation [m]")
-    p.add_argument("--sigma-rot", type=float, default=1e-3, metavar="RAD", help="placement error std, rotation [rad]")
+    p.add_argument("-n", type=count_number, default=20, help="number of poses (default 20)")
+    p.add_argument("--seed", type=seed_number, default=0)
+    p.add_argument("--sigma-pos", type=nonnegative_number, default=1e-3, metavar="M", help="placement error std, translation [m]")
+    p.add_argument("--sigma-rot", type=nonnegative_number, default=1e-3, metavar="RAD", help="placement error std, rotation [rad]")
     _add_noise_options(p)
     p.add_argument("--noise-free", action="store_true", help="exact measurements")
     p.add_argument("--position-only", action="store_true", help="a tracker without orientation")
-    p.add_argument("--tracker-frame", nargs=6, type=float, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
+    p.add_argument("--tracker-frame", nargs=6, type=finite_number, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
                    help="the robot base in the tracker's frame [m, rad] (default: measured in the base frame)")
-    p.add_argument("--marker", nargs=3, type=float, metavar=("X", "Y", "Z"),
+    p.add_argument("--marker", nargs=3, type=finite_number, metavar=("X", "Y", "Z"),
                    help="the reflector in the platform frame [m] (default: the platform frame's origin)")
     p.add_argument("--units", choices=("m", "mm"), default="m", help="length unit of the written file")
-    p.add_argument("--outliers", type=int, default=0, metavar="K", help="spoil K measurements with 3-5 mm gross errors")
+    p.add_argument("--outliers", type=zero_or_count, default=0, metavar="K", help="spoil K measurements with 3-5 mm gross errors")
     p.add_argument("--with-passive", action="store_true",
                    help="also record encoders on the idle chains' hinges (q12_B2, q22_B4) for cross-validation")
     p.add_argument("-o", "--output", required=True, help="measurement CSV")
@@ -410,7 +422,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--closures", metavar="YAML", help="nominal closures")
     p.add_argument("--calibrated", metavar="URDF")
     p.add_argument("--calibrated-closures", metavar="YAML")
-    p.add_argument("--pose", nargs="+", type=float, metavar="VALUE",
+    p.add_argument("--pose", nargs="+", type=finite_number, metavar="VALUE",
                    help="command both machines to these task coordinates (the task's columns; M machine: "
                         "x y z theta [m, m, m, rad]; default: home)")
     p.add_argument("--measurements", metavar="CSV", help="show measured platform positions as markers")
@@ -422,7 +434,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=cmd_demo)
 
     p = verbs.add_parser("paper", help="the paper's two-chain method: its simulation study, or on the closed chain")
-    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--seed", type=seed_number, default=3)
     p.add_argument("--noise", action="store_true", help="tracker, encoder and slider noise")
     p.add_argument("--passive-from", choices=("sensor", "distance", "platform", "sliders"), default=None,
                    help="lower cranks q13, q23: read (default), the paper's recursion (eq. 30), or a closure solve; "
@@ -435,8 +447,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibrated", required=True, metavar="URDF")
     p.add_argument("--nominal", metavar="URDF")
     p.add_argument("--nominal-closures", metavar="YAML")
-    p.add_argument("-n", type=int, default=200)
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("-n", type=count_number, default=200)
+    p.add_argument("--seed", type=seed_number, default=1)
     p.set_defaults(run=cmd_evaluate)
 
     add_plan_parser(verbs)

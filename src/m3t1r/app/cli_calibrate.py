@@ -20,7 +20,7 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r._version import __version__
-from m3t1r.app.cli_common import RowFailures, campaign_report_fields, selection_note
+from m3t1r.app.cli_common import RowFailures, campaign_report_fields, count_number, finite_number, selection_note
 from m3t1r.app.datasets import MeasurementFile, read_measurements
 from m3t1r.app.reporting import check_plots_folder, passive_joint_residuals, write_calibration_plots
 from m3t1r.calibration.assessment import (
@@ -54,7 +54,7 @@ def add_campaign_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frame", choices=("base", "estimate"), default="base",
                         help="base: data are in the robot base frame; estimate: in a tracker's own frame, "
                              "estimated with the machine (default base)")
-    parser.add_argument("--marker", nargs=3, type=float, metavar=("X", "Y", "Z"),
+    parser.add_argument("--marker", nargs=3, type=finite_number, metavar=("X", "Y", "Z"),
                         help="nominal position of the measured point in the platform (serial: tool) frame [m]; "
                              "estimated with the machine")
     parser.add_argument("--units", choices=("m", "mm"), default="m",
@@ -68,7 +68,7 @@ def add_campaign_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prior", action="append", default=[], metavar="NAME=SIGMA",
                         help="a prior toward nominal with this standard deviation [m or rad] (repeatable)")
     parser.add_argument("--folds", type=_folds, default=5, help="cross-validation folds, at least 2 (default 5)")
-    parser.add_argument("--max-iterations", type=int, default=None, metavar="N", help="Levenberg-Marquardt cap")
+    parser.add_argument("--max-iterations", type=count_number, default=None, metavar="N", help="Levenberg-Marquardt cap")
     parser.add_argument("--force", action="store_true", help="write a fit that is judged unsupported, with a warning")
 
 

@@ -15,7 +15,16 @@ from typing import TextIO
 
 import numpy as np
 
-from m3t1r.app.cli_common import RowFailures, load_mechanism, progress_bar, provenance, say
+from m3t1r.app.cli_common import (
+    RowFailures,
+    count_number,
+    load_mechanism,
+    positive_number,
+    progress_bar,
+    provenance,
+    say,
+    seed_number,
+)
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.planning import plan_closed_loop, plan_serial
@@ -38,13 +47,13 @@ __all__ = ["add_plan_parser", "add_validate_parser", "cmd_plan", "cmd_validate"]
 def add_plan_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the `plan` verb to argparse's subparsers object `verbs`."""
     p = verbs.add_parser("plan", help="choose calibration poses D-optimally, ordered for short travel")
-    p.add_argument("-n", type=int, required=True, help="number of poses to measure")
+    p.add_argument("-n", type=count_number, required=True, help="number of poses to measure")
     p.add_argument("-o", "--output", required=True, help="plan CSV (sliders, or joints with --serial, by joint name)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the candidate draw (default 0)")
-    p.add_argument("--candidates", type=int, metavar="K", help="candidates drawn in the workspace (default 20 n)")
+    p.add_argument("--seed", type=seed_number, default=0, help="seed of the candidate draw (default 0)")
+    p.add_argument("--candidates", type=count_number, metavar="K", help="candidates drawn in the workspace (default 20 n)")
     p.add_argument("--position-only", action="store_true", help="a tracker without orientation")
-    p.add_argument("--noise-pos", type=float, default=10e-6, metavar="M", help="tracker position noise [m]")
-    p.add_argument("--noise-rot", type=float, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
+    p.add_argument("--noise-pos", type=positive_number, default=10e-6, metavar="M", help="tracker position noise [m]")
+    p.add_argument("--noise-rot", type=positive_number, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
     p.add_argument("--model", metavar="URDF", help="machine URDF (default: the packaged nominal model)")
     p.add_argument("--closures", metavar="YAML", help="its closures file (default: URDF stem + .closures.yaml)")
     p.add_argument("--serial", metavar="ROBOT_OR_URDF", help="plan for a serial robot (ur3, ur5, ur10, panda or a URDF)")

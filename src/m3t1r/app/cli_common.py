@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import math
 import sys
 import warnings
 from collections.abc import Sequence
@@ -14,10 +15,65 @@ from m3t1r.calibration.assessment import describe_parameter
 from m3t1r.calibration.measurement_setup import MeasurementSetup, se3_to_report
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelWarning
 from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256
+from m3t1r.io.paths import read_bounded
 from m3t1r.io.progress import Progress
 from m3t1r.model.description import Mechanism
 
-__all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "progress_bar", "provenance"]
+__all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "progress_bar", "provenance", "finite_number",
+           "positive_number", "nonnegative_number", "seed_number", "count_number", "zero_or_count"]
+
+
+# Argument types: argparse refuses a bad value with the usage line and exit status 2, never a traceback.
+def finite_number(text: str) -> float:
+    """A finite real number (argparse type): `nan`, `inf`, `1e999` and `0.1+1j` are refused."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def positive_number(text: str) -> float:
+    """A finite number above zero (argparse type), e.g. a noise standard deviation."""
+    value = finite_number(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a number above 0, got {text!r}")
+    return value
+
+
+def nonnegative_number(text: str) -> float:
+    """A finite number of at least zero (argparse type), e.g. a simulated error's standard deviation."""
+    value = finite_number(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a number of at least 0, got {text!r}")
+    return value
+
+
+def _whole(text: str, minimum: int, what: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"{what}, got {value}")
+    return value
+
+
+def seed_number(text: str) -> int:
+    """A random seed (argparse type): a whole number of at least 0."""
+    return _whole(text, 0, "a seed is a whole number of at least 0")
+
+
+def count_number(text: str) -> int:
+    """A count of at least 1 (argparse type): poses, iterations, candidates."""
+    return _whole(text, 1, "expected at least 1")
+
+
+def zero_or_count(text: str) -> int:
+    """A count of at least 0 (argparse type)."""
+    return _whole(text, 0, "expected at least 0")
 
 
 class RowFailures(M3t1rError):
@@ -34,7 +90,7 @@ def load_mechanism(urdf: str | None, closures: str | None):
     if urdf is not None and closures is None:
         sibling = paired_closures_path(urdf)
         try:
-            recorded = recorded_closures_sha256(Path(urdf).read_bytes())
+            recorded = recorded_closures_sha256(read_bounded(urdf) or b"")
         except (OSError, M3t1rError):
             recorded = None  # Mechanism.load names the problem with the URDF
         if recorded is None and not sibling.is_file() and Path(urdf).is_file():

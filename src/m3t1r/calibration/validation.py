@@ -51,6 +51,7 @@ import scipy.stats
 from m3t1r.calibration.identification import OUTLIER_SIGMA
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelFileError
+from m3t1r.io.paths import read_bounded, size_refusal
 from m3t1r.io.poses import poses_from_table
 from m3t1r.io.tables import read_table
 from m3t1r.metrics import PoseErrors, pose_errors_between
@@ -106,7 +107,10 @@ def _positive(document: Mapping, dotted: str, path: Path) -> float:
 
 def _load_json(path: Path) -> Mapping:
     try:
-        text = path.read_text(encoding="utf-8")
+        data = read_bounded(path)
+        if data is None:
+            raise InvalidInputError(f"{path}: {size_refusal()}")
+        text = data.decode("utf-8")
     except FileNotFoundError:
         raise InvalidInputError(f"{path}: calibration report not found") from None
     except (OSError, UnicodeDecodeError) as exc:
