@@ -279,7 +279,7 @@ class ClosedLoopSolver:
         starts = np.concatenate(([0], np.cumsum(sizes)[:-1]))
         self._n_full = int(sum(sizes))
         self._all_rows = np.arange(self._n_full)
-        self._enforced = np.concatenate([start + np.array(c.rows) for start, c in zip(starts, closures)])
+        self._enforced = np.concatenate([start + np.array(c.rows, dtype=int) for start, c in zip(starts, closures)])
         signed = [support_mask(c.frame_b_id) - support_mask(c.frame_a_id) for c in closures]
         full_row_mask = np.repeat(np.array(signed), sizes, axis=0)
         self._row_masks = {False: full_row_mask[self._enforced], True: full_row_mask}
