@@ -11,10 +11,14 @@ from hypothesis import strategies as st
 from m3t1r.calibration.assessment import (
     FitRejected,
     check_fit,
+    check_start,
     coverage_notes,
     describe_parameter,
     fit_movement_notes,
     likely_causes,
+    metres_as_millimetres_causes,
+    quaternion_order_causes,
+    residual_causes,
 )
 from m3t1r.calibration.identification import forward_selection, outlier_poses, select_base_parameters
 from m3t1r.calibration.measurement_setup import (
@@ -201,3 +205,64 @@ def test_forced_columns_are_kept_first_and_the_ones_they_explain_are_dropped():
     assert chosen.rank == 4 and {4, 5} <= set(chosen.indices) and 2 not in chosen.indices
     dependent = select_base_parameters(jacobian, names, forced=[2, 5])  # 5 duplicates 2: dropped
     assert 2 in dependent.indices and 5 not in dependent.indices and dependent.rank == 4
+
+
+def test_a_wrong_unit_is_named_alone_not_followed_by_frame_advice():
+    """--units mm on metre data was also told to use --frame estimate."""
+    readings = _readings()
+    causes = likely_causes(_predict, readings, _predict(readings) / 1000, ("a", "b"), frame_estimated=False)
+    assert causes == [causes[0]] and "drop --units mm" in causes[0]
+
+
+def test_metres_read_as_millimetres_are_named_when_the_readings_were_scaled_too():
+    readings = _readings()
+    causes = metres_as_millimetres_causes(_predict, readings / 1000, _predict(readings) / 1000, np.array([True, True]),
+                                          frame_estimated=False)
+    assert len(causes) == 1 and "drop --units mm" in causes[0]
+    assert metres_as_millimetres_causes(_predict, readings, _predict(readings), np.array([True, True]),
+                                        frame_estimated=False) == []
+
+
+def test_a_small_residual_is_blamed_on_the_stated_noise_not_on_the_marker():
+    """A noise stated ten times too small was answered with 'give --marker'."""
+    small = residual_causes(1.5e-5, 3e-5, 1e-6, 2e-6, marker_given=False, position_only=False)
+    assert len(small) == 1 and "state it with --noise-pos/--noise-rot" in small[0] and "--marker" not in small[0]
+    large = residual_causes(4e-3, 0.05, 1e-5, 2e-5, marker_given=False, position_only=False)
+    assert len(large) == 1 and "--marker X Y Z" in large[0]
+    assert residual_causes(4e-3, 0.05, 1e-5, 2e-5, marker_given=True, position_only=False) == []
+    assert "/ " not in residual_causes(2e-5, float("nan"), 1e-6, 2e-6, marker_given=False, position_only=True)[0]
+
+
+def _yawing_poses(n: int = 20) -> np.ndarray:
+    rng = np.random.default_rng(2)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    for pose in poses:
+        pose[:3, :3] = pin.exp3(np.r_[rng.normal(0, 0.02, 2), rng.uniform(-0.8, 0.8)])
+        pose[:3, 3] = rng.uniform(-0.3, 0.3, 3)
+    return poses
+
+
+@pytest.mark.parametrize("frame_estimated", [False, True])
+def test_quaternions_scalar_first_under_scalar_last_names_are_named(frame_estimated):
+    poses = _yawing_poses()
+    frame = pin.SE3(pin.exp3(np.array([0.1, -0.4, 2.0])), np.array([3.0, -1.0, 0.5])) if frame_estimated \
+        else pin.SE3.Identity()
+    marker = pin.exp3(np.array([0.3, 0.0, -0.2]))
+    measured = frame.homogeneous @ poses
+    rotations = measured[:, :3, :3] @ marker
+    assert quaternion_order_causes(poses, measured[:, :3, 3], rotations, frame_estimated=frame_estimated) == []
+    # The file holds w, x, y, z under qx, qy, qz, qw: the reader builds the quaternion (x=w, y=x, z=y, w=z).
+    wxyz = [pin.Quaternion(r) for r in rotations]
+    misread = np.array([pin.Quaternion(q.z, q.w, q.x, q.y).normalized().matrix() for q in wxyz])
+    causes = quaternion_order_causes(poses, measured[:, :3, 3], misread, frame_estimated=frame_estimated)
+    assert len(causes) == 1 and "look like w, x, y, z (scalar first)" in causes[0]
+
+
+def test_a_refusal_before_the_fit_does_not_offer_force():
+    """'--force writes it anyway' was printed where --force has nothing to write, even when it was given."""
+    with pytest.raises(FitRejected) as caught:
+        check_start(np.zeros((5, 3)), np.ones((5, 3)), False, lambda: [])
+    assert str(caught.value).endswith("nothing was written") and not caught.value.forceable
+    with pytest.raises(FitRejected) as caught:
+        check_fit(True, "cost", 7, 100.0)
+    assert str(caught.value).endswith("nothing was written (--force writes it anyway)") and caught.value.forceable

@@ -303,5 +303,7 @@ def test_exit_statuses_through_the_main_command_line(machine, tmp_path, mechanis
     assert main(["validate", str(tmp_path / "bad.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
                  str(folder / "report.json"), "--predictions", str(tmp_path / "bad_pred.csv")]) == 1
     assert not (tmp_path / "bad_pred.csv").exists()
-    assert main(["plan", "-n", "0", "-o", str(tmp_path / "plan.csv")]) == 2
     assert "m3t1r: error:" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:  # refused by argparse, with the usage line
+        main(["plan", "-n", "0", "-o", str(tmp_path / "plan.csv")])
+    assert exit_info.value.code == 2 and "argument -n: expected at least 1, got 0" in capsys.readouterr().err

@@ -58,6 +58,7 @@ from m3t1r.paper.closed_chain import closed_chain_study
 from m3t1r.paper.study import paper_study
 
 EXIT_ERROR, EXIT_ROWS_FAILED = 2, 1
+_FARTHEST_TARGET = 100.0  # [m] a target farther from the base is in another unit, not a place to reach
 
 
 # ------------------------------------------------------------------------------------------------
@@ -204,6 +205,11 @@ def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -
         raise InvalidInputError(f"{targets_path}: targets of the measured point (--report) need a task commanding "
                                 "x, y, z and yaw of the platform frame (the M machine's); give task-frame targets")
     setup = read_report(report_path).setup
+    far = max(float(np.linalg.norm(setup.frame.actInv(target).translation)) for target in targets)
+    if far > _FARTHEST_TARGET:
+        raise InvalidInputError(f"{targets_path}: a target {far:.3g} m from the machine's base; target files are in "
+                                "metres, whatever unit the calibration's measurements were in: these look like "
+                                "millimetres (divide x, y, z by 1000)")
     solver, offset = ClosedLoopSolver(calibrated), setup.marker.translation
     rows = []
     for target in targets:

@@ -28,9 +28,9 @@ from m3t1r.app.cli_common import (
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.planning import plan_closed_loop, plan_serial
-from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
+from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot, load_serial_urdf, serial_chain_of
 from m3t1r.calibration.validation import validate
-from m3t1r.errors import InvalidInputError, ModelFileError
+from m3t1r.errors import InvalidInputError
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import paired_closures_path
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows
@@ -65,19 +65,12 @@ def add_plan_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def _serial_robot(source: str, tool: str | None, base: str | None):
     """(model, chain) of `--serial` (an example robot name or a URDF path)."""
-    import pinocchio as pin
-
-
     path = Path(source)
     if path.suffix.lower() == ".urdf" or path.exists():
-        if not path.is_file():
-            raise ModelFileError(path, "file not found" if not path.exists() else "not a regular file")
-        try:
-            model = pin.buildModelFromUrdf(str(path))
-        except (RuntimeError, ValueError) as exc:
-            raise ModelFileError(path, f"Pinocchio cannot read this URDF: {exc}") from None
+        model, urdf = load_serial_urdf(path)
         if tool is None:
             raise InvalidInputError(f"--serial {source}: give the measured frame with --tool FRAME")
+        return model, serial_chain_of(model, urdf, path, tool, base)
     else:
         model = load_example_robot(source)
         tool = tool or example_tool_frame(source)

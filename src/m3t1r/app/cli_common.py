@@ -20,7 +20,7 @@ from m3t1r.io.progress import Progress
 from m3t1r.model.description import Mechanism
 
 __all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "progress_bar", "provenance", "finite_number",
-           "positive_number", "nonnegative_number", "seed_number", "count_number", "zero_or_count"]
+           "positive_number", "nonnegative_number", "checked_marker", "MAX_MARKER_DISTANCE", "seed_number", "count_number", "zero_or_count"]
 
 
 # Argument types: argparse refuses a bad value with the usage line and exit status 2, never a traceback.
@@ -69,6 +69,25 @@ def seed_number(text: str) -> int:
 def count_number(text: str) -> int:
     """A count of at least 1 (argparse type): poses, iterations, candidates."""
     return _whole(text, 1, "expected at least 1")
+
+
+#: A measured point farther than this from the platform (serial: tool) frame is not on it [m].
+MAX_MARKER_DISTANCE = 10.0
+
+
+def checked_marker(values: Sequence[float] | None) -> Sequence[float] | None:
+    """--marker X Y Z [m], refused (InvalidInputError) when the point is farther than
+    MAX_MARKER_DISTANCE from the frame it is fixed to: such numbers are millimetres, since --marker
+    is in metres whatever --units says."""
+    if values is None:
+        return None
+    distance = math.sqrt(sum(v * v for v in values))
+    if distance > MAX_MARKER_DISTANCE:
+        metres = " ".join(f"{v / 1000:g}" for v in values)
+        raise InvalidInputError(f"--marker {' '.join(f'{v:g}' for v in values)}: a point {distance:.3g} m from the "
+                                f"frame it is fixed to; --marker is in metres whatever --units says (in millimetres "
+                                f"these are --marker {metres})")
+    return values
 
 
 def zero_or_count(text: str) -> int:

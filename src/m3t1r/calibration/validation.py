@@ -50,6 +50,7 @@ import scipy.stats
 
 from m3t1r.calibration.identification import OUTLIER_SIGMA
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
+from m3t1r.calibration.serial_robots import load_serial_urdf, serial_chain_of
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelFileError
 from m3t1r.io.paths import read_bounded, size_refusal
 from m3t1r.io.poses import poses_from_table
@@ -57,7 +58,7 @@ from m3t1r.io.tables import read_table
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
-from m3t1r.model.poe import SerialChain, log3_batch, tool_poses
+from m3t1r.model.poe import log3_batch, tool_poses
 
 __all__ = ["CalibrationReport", "Campaign", "Validation", "read_report", "read_campaign", "validate", "sigma_equivalent"]
 
@@ -280,14 +281,9 @@ def _is_prismatic(model: pin.Model, joint: str) -> bool:
 def _predict_serial(calibrated: Path, report: CalibrationReport, units: str,
                     measurements: Path) -> tuple[Campaign, np.ndarray]:
     """Tool poses (N, 4, 4) in the chain's base frame of the calibrated serial robot at each row."""
-    if not calibrated.is_file():
-        raise ModelFileError(calibrated, "file not found" if not calibrated.exists() else "not a regular file")
+    model, urdf = load_serial_urdf(calibrated)
     try:
-        model = pin.buildModelFromUrdf(str(calibrated))
-    except (RuntimeError, ValueError) as exc:
-        raise ModelFileError(calibrated, f"Pinocchio cannot read this URDF: {exc}") from None
-    try:
-        chain = SerialChain.from_model(model, report.tool, report.base)
+        chain = serial_chain_of(model, urdf, calibrated, report.tool, report.base)
     except M3t1rError as exc:
         raise ModelFileError(calibrated, f"chain of report {report.path.name} (base {report.base}, tool "
                                          f"{report.tool}): {exc}") from None

@@ -26,7 +26,7 @@ from m3t1r.io.temporaries import pending_temporaries
 from m3t1r.model.closures import ASSEMBLY_MAX_CHANGE, ClosureSpec, ClosureSystem, without_rows
 from m3t1r.model.schema import SCHEMA_VERSIONS, load_closures_yaml, read_description
 from m3t1r.model.task import TaskSpec, WorkspaceSpec
-from m3t1r.model.urdf_io import calibrated_urdf_bytes
+from m3t1r.model.urdf_io import calibrated_urdf_bytes, refuse_mimic_joints
 
 __all__ = ["ClosureSpec", "Mechanism", "nominal_model_paths", "paired_closures", "HOME_TOLERANCE",
            "SCHEMA_VERSIONS"]
@@ -228,6 +228,7 @@ def _load_urdf(path: Path) -> pin.Model:
         if model.nqs[j] != 1 or model.nvs[j] != 1:
             raise ModelFileError(path, f"joint '{model.names[j]}' is not a 1-DoF revolute/prismatic joint "
                                        f"(nq={model.nqs[j]}); continuous and multi-DoF joints are not supported")
+    refuse_mimic_joints(path, _read_bytes(path), list(model.names)[1:])
     return model
 
 
