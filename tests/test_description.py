@@ -148,3 +148,18 @@ def test_a_pair_recorded_with_the_raw_bytes_sha256_still_loads(tmp_path):
     closures.write_bytes(data + b"# edited\n")  # the old digest pins the bytes: a comment breaks it
     with pytest.raises(ModelFileError, match="not the closures file of"):
         Mechanism.load(urdf)
+
+
+def test_a_mimic_joint_is_refused_by_name(tmp_path):
+    """Pinocchio reads a <mimic> joint as an independent one: the closures would solve it on its own
+    and a calibration would move it apart while the written URDF kept the tag."""
+    urdf, closures = five_bar_files(tmp_path)
+    text = urdf.read_text()
+    start = text.index('<joint name="elbow_1"')
+    end = text.index("</joint>", start)
+    urdf.write_text(text[:end] + '<mimic joint="motor_1" multiplier="1" offset="0"/>' + text[end:])
+    with pytest.raises(ModelFileError) as caught:
+        Mechanism.load(urdf, closures)
+    assert str(caught.value) == (f"{urdf}: joint 'elbow_1' mimics joint 'motor_1' (<mimic>): m3t1r moves and "
+                                 "calibrates every joint on its own, so a coupled joint is not supported; remove the "
+                                 "tag (an independent joint) or make the joint fixed")
