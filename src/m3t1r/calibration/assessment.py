@@ -23,7 +23,8 @@ from m3t1r.errors import IdentificationError
 
 __all__ = ["FitRejected", "MAX_NOISE_RATIO", "HOPELESS_RESIDUAL", "MAX_GROSS_SHARE", "SMALL_RESIDUAL", "StartCheck",
            "check_fit", "check_start", "gross_reading_reason", "likely_causes", "residual_causes",
-           "quaternion_order_causes", "metres_as_millimetres_causes", "describe_parameter", "fit_movement_notes", "coverage_notes"]
+           "quaternion_order_causes", "metres_as_millimetres_causes", "describe_parameter", "fit_movement_notes",
+           "coverage_notes"]
 
 #: A fit is accepted while its whitened residual RMS is at most this many times the stated noise
 #: (variance factor <= 9): a margin for small unmodelled effects, far below a wrong unit, frame,
