@@ -36,7 +36,6 @@ small against the noise.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -54,6 +53,7 @@ from m3t1r.calibration.serial_robots import load_serial_urdf, serial_chain_of
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelFileError
 from m3t1r.io.paths import read_bounded, size_refusal
 from m3t1r.io.poses import poses_from_table
+from m3t1r.io.strict_json import parse_strict_json
 from m3t1r.io.tables import read_table
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
@@ -117,8 +117,8 @@ def _load_json(path: Path) -> Mapping:
     except (OSError, UnicodeDecodeError) as exc:
         raise InvalidInputError(f"{path}: cannot read the calibration report: {exc}") from None
     try:
-        document = json.loads(text)
-    except json.JSONDecodeError as exc:
+        document = parse_strict_json(text)
+    except ValueError as exc:  # json.JSONDecodeError included
         raise InvalidInputError(f"{path}: not a JSON report ({exc})") from None
     if not isinstance(document, Mapping):
         raise InvalidInputError(f"{path}: a calibration report is a JSON object")
