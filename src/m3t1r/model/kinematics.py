@@ -242,7 +242,7 @@ class ClosedLoopSolver:
     """Newton solver for the closures of one `Mechanism` (keeps its own Pinocchio `Data`).
 
     tolerance: the largest closure row [m, rad] a solution may leave, in (0, MAX_TOLERANCE];
-    max_iterations: Newton's cap, at least 1. Other values raise InvalidInputError.
+    max_iterations: Newton's cap, a whole number of at least 0. Other values raise InvalidInputError.
 
     native=True (the default): FK, IK and the batches run their Newton loops compiled
     (`m3t1r.model.native`) when the module is built and the joints allow, with the same steps and
@@ -261,7 +261,8 @@ class ClosedLoopSolver:
         if self.tolerance > MAX_TOLERANCE:
             raise InvalidInputError(f"ClosedLoopSolver tolerance {tolerance!r}: at most {MAX_TOLERANCE:g} (m, rad of "
                                     "closure residual); a looser one returns open loops as solutions")
-        self.max_iterations = require_count(max_iterations, "ClosedLoopSolver max_iterations")
+        # 0 is a check of the start alone: it returns q_init only if that already closes.
+        self.max_iterations = require_count(max_iterations, "ClosedLoopSolver max_iterations", minimum=0)
         model = self.model
         nv = model.nv
 
