@@ -151,7 +151,6 @@ def test_serial_plan(tmp_path, capsys) -> None:
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["-n", "0"], "must be >= 1"),
     (["-n", "10", "--candidates", "5"], "5 candidates"),
     (["-n", "5"], "cannot identify"),
     (["-n", "10", "--serial", "ur5", "--model", "x.urdf"], "--model/--closures"),
@@ -162,6 +161,15 @@ def test_serial_plan(tmp_path, capsys) -> None:
 def test_plan_errors(tmp_path, capsys, argv, message) -> None:
     assert run(["plan", *argv, "-o", str(tmp_path / "plan.csv")]) == 2
     assert message in capsys.readouterr().out
+    assert not (tmp_path / "plan.csv").exists()
+
+
+@pytest.mark.parametrize("argv, message", [(["-n", "0"], "argument -n: expected at least 1, got 0"),
+                                           (["-n", "5", "--seed", "-1"], "a seed is a whole number of at least 0")])
+def test_plan_counts_and_seeds_are_refused_as_they_are_parsed(tmp_path, capsys, argv, message) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        run(["plan", *argv, "-o", str(tmp_path / "plan.csv")])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "plan.csv").exists()
 
 
