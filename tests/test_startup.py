@@ -69,6 +69,7 @@ NOT_FOR = {
     "m3t1r.app.cli_kinematics": ("matplotlib", "meshcat", "pinocchio.visualize", "m3t1r.calibration.closed_loop"),
     "m3t1r.app.cli_serial": ("matplotlib", "meshcat", "pinocchio.visualize", "m3t1r.calibration.closed_loop"),
     "m3t1r.app.cli_campaign": ("matplotlib", "meshcat", "pinocchio.visualize"),
+    "m3t1r.app.cli_convert": ("matplotlib", "meshcat", "pinocchio.visualize", "m3t1r.calibration.closed_loop"),
     "m3t1r.app.cli_studies": ("matplotlib", "meshcat", "pinocchio.visualize"),
     "m3t1r.app.cli_calibrate": ("matplotlib", "meshcat", "pinocchio.visualize"),
     "m3t1r.app.cli_view": ("matplotlib",),
