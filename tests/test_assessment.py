@@ -11,11 +11,15 @@ from hypothesis import strategies as st
 from m3t1r.calibration.assessment import (
     FitRejected,
     check_fit,
+    check_start,
     coverage_notes,
     describe_parameter,
     fit_movement_notes,
     likely_causes,
+    metres_as_millimetres_causes,
+    quaternion_order_causes,
     register_with_offset,
+    residual_causes,
     unexplained_residual_warning,
 )
 from m3t1r.calibration.identification import forward_selection, outlier_poses, select_base_parameters
@@ -126,6 +130,25 @@ def test_an_unknown_marker_is_registered_before_naming_another_machine():
     assert fixed.rms > 0.03 and not fixed.offset.any()
 
 
+def test_the_start_check_registers_frame_and_marker_on_the_poses_that_fit_and_names_a_gross_one():
+    """A point 70 mm off the predicted frames, in another frame, with one reading 1 km off: the
+    registration of frame and offset is robust to it, the typical pose is at the noise-free floor and
+    the gross pose alone is returned; registering the frame alone leaves the median pose tens of
+    millimetres off (the marker's lever), within any build error but far beyond the data's."""
+    rng = np.random.default_rng(8)
+    poses = np.array([pin.SE3(pin.exp3(rng.normal(size=3)), rng.uniform(-0.5, 0.5, 3)).homogeneous for _ in range(30)])
+    frame = pin.SE3(pin.exp3(np.array([0.2, -0.4, 2.5])), np.array([1.5, 0.3, -0.2]))
+    offset = np.array([0.05, -0.02, 0.045])
+    measured = (poses[:, :3, :3] @ offset + poses[:, :3, 3]) @ frame.rotation.T + frame.translation
+    measured[11] += np.array([0.0, 0.0, 1e3])
+    start = check_start(poses, measured, True, lambda: [])
+    assert start.gross == (11,) and start.typical < 1e-9 and abs(start.distances[11] - 1e3) < 1e-6
+    points_only = check_start(poses[:, :3, 3], measured, True, lambda: [])
+    assert points_only.gross == (11,) and 0.02 < points_only.typical < 0.1
+    with pytest.raises(FitRejected, match=r"\(median over the poses, after registering the frame and the marker\)"):
+        check_start(poses, measured + rng.uniform(-1.0, 1.0, measured.shape), True, lambda: [])
+
+
 def test_parameters_are_described_by_joint_and_component():
     assert describe_parameter("q22.dt[3]") == "q22 rotation about x"
     assert describe_parameter("marker.dt[2]") == "marker translation along z"
@@ -234,3 +257,70 @@ def test_forced_columns_are_kept_first_and_the_ones_they_explain_are_dropped():
     assert chosen.rank == 4 and {4, 5} <= set(chosen.indices) and 2 not in chosen.indices
     dependent = select_base_parameters(jacobian, names, forced=[2, 5])  # 5 duplicates 2: dropped
     assert 2 in dependent.indices and 5 not in dependent.indices and dependent.rank == 4
+
+
+def test_a_wrong_unit_is_named_alone_not_followed_by_frame_advice():
+    """--units mm on metre data was also told to use --frame estimate."""
+    readings = _readings()
+    causes = likely_causes(_predict, readings, _predict(readings) / 1000, ("a", "b"), frame_estimated=False)
+    assert causes == [causes[0]] and "drop --units mm" in causes[0]
+
+
+def test_metres_read_as_millimetres_are_named_when_the_readings_were_scaled_too():
+    readings = _readings()
+    causes = metres_as_millimetres_causes(_predict, readings / 1000, _predict(readings) / 1000, np.array([True, True]),
+                                          frame_estimated=False)
+    assert len(causes) == 1 and "drop --units mm" in causes[0]
+    assert metres_as_millimetres_causes(_predict, readings, _predict(readings), np.array([True, True]),
+                                        frame_estimated=False) == []
+
+
+def test_a_small_residual_names_no_mistake_and_a_large_one_names_the_marker():
+    """A noise stated ten times too small was answered with 'give --marker': a sub-millimetre
+    residual is the noise (or unmodelled effects), written with a warning, not a setup mistake."""
+    small = dict(marker_given=False, position_only=False)
+    assert residual_causes(1.5e-5, 3e-5, beyond_noise=True, **small) == []
+    large = residual_causes(4e-3, 0.05, beyond_noise=True, **small)
+    assert len(large) == 1 and "--marker X Y Z" in large[0]
+    assert residual_causes(4e-3, 0.05, beyond_noise=True, marker_given=True, position_only=False) == []
+    assert residual_causes(4e-3, float("nan"), beyond_noise=True, marker_given=False, position_only=True) == []
+    # Within the noise (as when it is estimated from the residual), only a rotation no tracker leaves.
+    assert residual_causes(4e-3, 2e-3, beyond_noise=False, **small) == []
+    assert len(residual_causes(4e-3, 0.05, beyond_noise=False, **small)) == 1
+    warning = unexplained_residual_warning(100.0, "1e-05 m and 2e-05 rad", 1.4e-5)
+    assert "a noisier tracker than stated" in warning and "--noise-pos auto" in warning and "--marker" not in warning
+
+
+def _yawing_poses(n: int = 20) -> np.ndarray:
+    rng = np.random.default_rng(2)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    for pose in poses:
+        pose[:3, :3] = pin.exp3(np.r_[rng.normal(0, 0.02, 2), rng.uniform(-0.8, 0.8)])
+        pose[:3, 3] = rng.uniform(-0.3, 0.3, 3)
+    return poses
+
+
+@pytest.mark.parametrize("frame_estimated", [False, True])
+def test_quaternions_scalar_first_under_scalar_last_names_are_named(frame_estimated):
+    poses = _yawing_poses()
+    frame = pin.SE3(pin.exp3(np.array([0.1, -0.4, 2.0])), np.array([3.0, -1.0, 0.5])) if frame_estimated \
+        else pin.SE3.Identity()
+    marker = pin.exp3(np.array([0.3, 0.0, -0.2]))
+    measured = frame.homogeneous @ poses
+    rotations = measured[:, :3, :3] @ marker
+    assert quaternion_order_causes(poses, measured[:, :3, 3], rotations, frame_estimated=frame_estimated) == []
+    # The file holds w, x, y, z under qx, qy, qz, qw: the reader builds the quaternion (x=w, y=x, z=y, w=z).
+    wxyz = [pin.Quaternion(r) for r in rotations]
+    misread = np.array([pin.Quaternion(q.z, q.w, q.x, q.y).normalized().matrix() for q in wxyz])
+    causes = quaternion_order_causes(poses, measured[:, :3, 3], misread, frame_estimated=frame_estimated)
+    assert len(causes) == 1 and "look like w, x, y, z (scalar first)" in causes[0]
+
+
+def test_a_refusal_before_the_fit_does_not_offer_force():
+    """'--force writes it anyway' was printed where --force has nothing to write, even when it was given."""
+    with pytest.raises(FitRejected) as caught:
+        check_start(np.zeros((5, 3)), np.ones((5, 3)), False, lambda: [])
+    assert str(caught.value).endswith("nothing was written") and not caught.value.forceable
+    with pytest.raises(FitRejected) as caught:
+        check_fit(True, "cost", 7, 100.0, ["positions look like millimetres"])  # a fit that ran, judged
+    assert str(caught.value).endswith("nothing was written (--force writes it anyway)") and caught.value.forceable

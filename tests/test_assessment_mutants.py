@@ -70,19 +70,25 @@ def _cloud(n: int = 10) -> np.ndarray:
     return np.random.default_rng(3).uniform(-0.5, 0.5, (n, 3)) + np.array([1.0, 2.0, 0.5])
 
 
-def test_check_start_measures_the_rms_distance_to_the_nominal_points() -> None:
+def test_check_start_measures_the_median_distance_to_the_nominal_points() -> None:
     points = _cloud()
     offsets = np.zeros_like(points)
-    offsets[:, 0] = 0.2 * np.where(np.arange(len(points)) % 2, 1.0, -1.0)  # RMS exactly 0.2 m
+    offsets[:, 0] = 0.2 * np.where(np.arange(len(points)) % 2, 1.0, -1.0)  # every pose 0.2 m off
     with pytest.raises(FitRejected) as info:
         check_start(points, points + offsets, False, lambda: ["cause"], what="robot")
-    assert info.value.reason == ("the nominal robot is 0.2 m RMS from the measurements, beyond any build error (0.1 m): "
-                                 "the fit was not attempted")
-    assert info.value.causes == ["cause"]
-    exact = np.zeros_like(points)  # RMS exactly HOPELESS_RESIDUAL (0.1 m) as computed: not beyond
+    assert info.value.reason == ("the nominal robot is 0.2 m from the measurements (median over the poses), beyond any "
+                                 "build error (0.1 m): the fit was not attempted")
+    assert info.value.causes == ["cause"] and not info.value.forceable
+    exact = np.zeros_like(points)  # exactly HOPELESS_RESIDUAL (0.1 m) as computed: not beyond
     exact[:, 0] = [0.1] * 7 + [np.nextafter(0.1, 0.0)] * 3
-    check_start(np.zeros_like(points), exact, False, lambda: [])
-    check_start(points, points + 0.05, False, lambda: [])  # 0.087 m RMS, large coordinates
+    assert check_start(np.zeros_like(points), exact, False, lambda: []).gross == ()
+    check_start(points, points + 0.05, False, lambda: [])  # 0.087 m, large coordinates
+    three = exact.copy()
+    three[:3, 0] = 0.5  # 3 of 10 beyond: more than MAX_GROSS_SHARE, the data as a whole
+    with pytest.raises(FitRejected, match="3 of 10 poses are beyond it"):
+        check_start(np.zeros_like(points), three, False, lambda: [])
+    three[2, 0] = 0.0
+    assert check_start(np.zeros_like(points), three, False, lambda: []).gross == (0, 1)
 
 
 def test_check_start_registers_the_frame_when_it_is_estimated() -> None:
@@ -95,8 +101,13 @@ def test_check_start_registers_the_frame_when_it_is_estimated() -> None:
     assert rms > 0.1
     with pytest.raises(FitRejected) as info:
         check_start(points, mirrored, True, lambda: [])
-    assert info.value.reason == (f"the nominal machine is {rms:.3g} m RMS from the measurements after registering the "
-                                 "frame, beyond any build error (0.1 m): the fit was not attempted")
+    assert info.value.reason.startswith("the nominal machine is ") and info.value.reason.endswith(
+        " m from the measurements (median over the poses, after registering the frame), beyond any build error "
+        "(0.1 m): the fit was not attempted")
+    gross = moved.copy()
+    gross[4] += np.array([0.0, 1e4, 0.0])  # 10 km off: moves a least-squares frame by 1 km
+    start = check_start(points, gross, True, lambda: [])
+    assert start.gross == (4,) and start.typical < 1e-9 and abs(start.distances[4] - 1e4) < 1e-6
 
 
 # --------------------------------------------------------------------------------------------------

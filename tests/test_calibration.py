@@ -271,3 +271,25 @@ def test_idle_chains_cross_validate_a_noise_free_calibration(mechanism, noise_fr
     after = passive_joint_residuals(calibration.mechanism, actuators, IDLE_CHAIN_JOINTS, study.passive_readings)
     assert np.all(after.rms < before.rms / 10)
     assert np.all(after.rms < 1e-4)
+
+
+@pytest.mark.parametrize("options,message", [
+    ({"outlier_sigma": -5.0}, "outlier_sigma: None or 0"),
+    ({"outlier_sigma": 0.5}, "outlier_sigma: None or 0"),
+    ({"outlier_sigma": float("nan")}, "outlier_sigma: expected a finite number"),
+    ({"fixed": "q12"}, r"fixed parameter: expected a list of names such as \['q12'\], got 'q12'"),
+    ({"max_iterations": 0}, "max_iterations: expected a whole number of at least 1"),
+])
+def test_calibration_options_are_checked_at_the_call(mechanism, options, message):
+    """A negative or NaN gate silently disabled outlier rejection; fixed="q12" was read letter by letter."""
+    study = simulate_study(mechanism, n_poses=12, n_holdout=0, seed=16)
+    with pytest.raises(InvalidInputError, match=message):
+        calibrate_closed_loop(mechanism, study.measurements, **options)
+
+
+def test_complex_readings_and_seeds_below_zero_are_refused(mechanism):
+    study = simulate_study(mechanism, n_poses=4, n_holdout=0, seed=16)
+    with pytest.raises(InvalidInputError, match="actuator readings: complex values given"):
+        PoseMeasurements(study.measurements.actuators + 1j, study.measurements.poses)
+    with pytest.raises(InvalidInputError, match="seed: expected a whole number of at least 0"):
+        simulate_study(mechanism, n_poses=4, n_holdout=0, seed=-1)

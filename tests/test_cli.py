@@ -10,6 +10,7 @@ from m3t1r.app.cli import main
 from m3t1r.app.datasets import read_actuators, read_poses
 from m3t1r.model.description import Mechanism, nominal_model_paths
 from m3t1r.model.design import NOMINAL
+from m3t1r.model.examples import five_bar_files
 from m3t1r.model.kinematics import yaw_of
 
 
@@ -185,3 +186,153 @@ def test_calibrate_report_on_stdout_is_the_json_alone(old_calibration, tmp_path,
     report = json.loads(out)
     assert report["kind"] == "closed_loop" and report["input"]["poses"] == 30
     assert "calibrating from 30 poses" in err and f"wrote {tmp_path / 'c.urdf'}" in err
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["plan", "-n", "5", "--seed", "-1", "-o", "p.csv"], "a seed is a whole number of at least 0, got -1"),
+    (["simulate", "--seed", "-1", "-o", "m.csv"], "a seed is a whole number of at least 0, got -1"),
+    (["evaluate", "--truth", "t.urdf", "--calibrated", "c.urdf", "--seed", "-1"], "a seed is a whole number"),
+    (["simulate", "--marker", "nan", "0", "0", "-o", "m.csv"], "--marker: expected a finite number, got 'nan'"),
+    (["calibrate", "m.csv", "-o", "c.urdf", "--marker", "0", "inf", "0"], "--marker: expected a finite number"),
+    (["calibrate", "m.csv", "-o", "c.urdf", "--marker", "0.1+1j", "0", "0"], "--marker: expected a number"),
+    (["calibrate", "m.csv", "-o", "c.urdf", "--max-iterations", "0"], "--max-iterations: expected at least 1"),
+    (["calibrate", "m.csv", "-o", "c.urdf", "--noise-pos", "0"], "--noise-pos: expected a number above 0"),
+    (["simulate", "-n", "0", "-o", "m.csv"], "-n: expected at least 1"),
+])
+def test_bad_arguments_are_refused_by_argparse_before_any_work(tmp_path, capsys, monkeypatch, argv, message):
+    """Seeds, noises, counts and the marker are checked as they are parsed: usage and exit 2, where a
+    negative seed was a ValueError traceback and `--marker nan` was refused later as a column mix-up."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_endless_or_huge_input_is_refused_by_size_not_read_into_memory(tmp_path, capsys):
+    assert main(["fk", "/dev/zero", "-o", str(tmp_path / "p.csv")]) == 2
+    assert "/dev/zero: larger than 256 MiB (or a device that never ends)" in capsys.readouterr().err
+    assert not (tmp_path / "p.csv").exists()
+
+
+def _moved_x(meas, data_row: int, value) -> int:
+    """Set column x of data row `data_row` (0-based) of a measurement file to value(x); its file line."""
+    lines = meas.read_text().splitlines()
+    header = next(k for k, line in enumerate(lines) if not line.startswith("#"))
+    fields = lines[header + 1 + data_row].split(",")
+    column = lines[header].split(",").index("x")
+    fields[column] = value(fields[column])
+    lines[header + 1 + data_row] = ",".join(fields)
+    meas.write_text("\n".join(lines) + "\n")
+    return header + 2 + data_row
+
+
+@pytest.mark.parametrize("value", [lambda x: repr(float(x) + 1.0), lambda x: "12345.6"])
+def test_one_gross_reading_is_an_outlier_named_by_line_not_a_verdict_on_the_machine(tmp_path, capsys, value):
+    """One row 1 m (or 12 km) off among 30 made the start check refuse the whole fit as 'data from
+    another machine, or the wrong model files', without naming the line."""
+    meas = tmp_path / "m.csv"
+    assert main(["simulate", "-n", "30", "--seed", "3", "-o", str(meas)]) == 0
+    line = _moved_x(meas, 12, value)
+    capsys.readouterr()
+    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--outlier-sigma", "0"]) == 1
+    err = capsys.readouterr().err
+    assert f"line {line}: the measured point is " in err and "a gross reading" in err and "another machine" not in err
+    assert not (tmp_path / "c.urdf").exists()
+    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--frame", "estimate", "--select", "none",
+                 "--report", str(tmp_path / "r.json")]) == 0
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["outliers"] == [line] and report["residual_rms"]["after"]["position_m"] < 3e-5
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_one_or_two_poses_are_too_few_not_readings_that_do_not_assemble(tmp_path, capsys, n):
+    meas = tmp_path / "m.csv"
+    assert main(["simulate", "-n", str(n), "-o", str(meas)]) == 0
+    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf")]) == 2
+    err = capsys.readouterr().err
+    assert f"{meas}: {n} pose(s) are far too few to calibrate" in err and "assemble" not in err
+
+
+def _scalar_first_under_scalar_last_names(meas):
+    lines = meas.read_text().splitlines()
+    header = next(k for k, line in enumerate(lines) if not line.startswith("#"))
+    columns = [lines[header].split(",").index(c) for c in ("qx", "qy", "qz", "qw")]
+    for k in range(header + 1, len(lines)):
+        fields = lines[k].split(",")
+        x, y, z, w = (fields[c] for c in columns)
+        for c, value in zip(columns, (w, x, y, z)):
+            fields[c] = value
+        lines[k] = ",".join(fields)
+    meas.write_text("\n".join(lines) + "\n")
+
+
+def test_a_refused_fit_names_the_quaternion_order_not_the_marker(tmp_path, capsys):
+    """Quaternions in w, x, y, z order were answered 'give its position with --marker X Y Z'."""
+    meas = tmp_path / "m.csv"
+    assert main(["simulate", "-n", "30", "--seed", "5", "-o", str(meas)]) == 0
+    _scalar_first_under_scalar_last_names(meas)
+    capsys.readouterr()
+    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--select", "none"]) == 1
+    err = capsys.readouterr().err
+    assert "the quaternion columns look like w, x, y, z (scalar first)" in err
+    assert "--marker X Y Z" not in err and not (tmp_path / "c.urdf").exists()
+
+
+def test_a_noise_stated_ten_times_too_small_is_blamed_on_the_noise_not_the_marker(tmp_path, capsys):
+    """It was refused with 'give its position with --marker X Y Z'. What the fit leaves is
+    sub-millimetre, no setup mistake: the machine is written, with a warning that names a noisier
+    tracker than stated and the noise the residual implies (the simulated 10 um / 20 urad)."""
+    meas = tmp_path / "m.csv"
+    assert main(["simulate", "-n", "30", "--seed", "5", "-o", str(meas)]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--select", "none",
+                 "--noise-pos", "1e-6", "--noise-rot", "2e-6"]) == 0
+    err = capsys.readouterr().err
+    assert "a noisier tracker than stated" in err and "--noise-pos auto" in err and "--marker X Y Z" not in err
+    implied = float(err.split("imply a noise of ")[1].split(" m")[0])
+    assert 7e-6 < implied < 13e-6 and (tmp_path / "c.urdf").exists()
+
+
+@pytest.mark.parametrize("frame", ["base", "estimate"])
+def test_metres_read_with_units_mm_are_told_to_drop_it(tmp_path, capsys, frame):
+    """--units mm on a metre file was told to use --frame estimate (or, estimating the frame, to add poses)."""
+    meas = tmp_path / "m.csv"
+    assert main(["simulate", "-n", "30", "--seed", "5", "-o", str(meas)]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--units", "mm", "--frame", frame]) in (1, 2)
+    err = capsys.readouterr().err
+    assert "drop --units mm" in err and "--frame estimate" not in err and "add poses" not in err
+    assert "--force" not in err
+
+
+def test_hinge_readings_in_degrees_are_told_to_be_radians(tmp_path, capsys):
+    urdf, closures = five_bar_files(tmp_path)
+    sliders = _write(tmp_path / "s.csv", "motor_1,motor_2\n133.5,46.4\n127.8,40.1\n")  # degrees of 2.33, 0.81 rad
+    assert main(["fk", str(sliders), "--model", str(urdf), "-o", str(tmp_path / "p.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "line 2, column 'motor_1': 133.5 is beyond the joint limit [1.83, 2.83]" in err
+    assert "within the limits in degrees: give radians" in err
+
+
+def test_a_marker_given_in_millimetres_is_refused_with_the_metres(tmp_path, capsys):
+    meas = tmp_path / "m.csv"
+    assert main(["simulate", "-n", "12", "-o", str(meas)]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--marker", "70.3", "-20.2", "30.2",
+                 "--units", "mm"]) == 2
+    assert ("--marker 70.3 -20.2 30.2: a point 79.1 m from the frame it is fixed to; --marker is in metres whatever "
+            "--units says (in millimetres these are --marker 0.0703 -0.0202 0.0302)") in capsys.readouterr().err
+
+
+def test_compensation_targets_in_millimetres_are_refused_with_the_unit(tmp_path, capsys):
+    meas, cal, report = tmp_path / "m.csv", tmp_path / "c.urdf", tmp_path / "r.json"
+    assert main(["simulate", "-n", "30", "--seed", "5", "-o", str(meas)]) == 0
+    assert main(["calibrate", str(meas), "-o", str(cal), "--report", str(report), "--select", "none"]) == 0
+    targets = _write(tmp_path / "t.csv", "x,y,z,qx,qy,qz,qw\n500.0,500.0,-100.0,0,0,0,1\n520.0,480.0,-90.0,0,0,0,1\n")
+    capsys.readouterr()
+    assert main(["compensate", str(targets), "--calibrated", str(cal), "--report", str(report),
+                 "-o", str(tmp_path / "out.csv")]) == 2
+    assert "look like millimetres (divide x, y, z by 1000)" in capsys.readouterr().err
+    assert not (tmp_path / "out.csv").exists()

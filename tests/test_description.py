@@ -9,6 +9,7 @@ import yaml
 import yourdfpy
 
 from m3t1r.errors import ModelFileError, ModelWarning
+from m3t1r.io.pairing import sha256_bytes, with_closures_sha256
 from m3t1r.model.description import Mechanism, nominal_model_paths
 from m3t1r.model.design import NOMINAL, build_closures, build_urdf
 from m3t1r.model.examples import five_bar_files
@@ -125,3 +126,49 @@ def test_configuration_by_name(mechanism):
     q = mechanism.configuration({"q11": 0.1})
     assert q[mechanism.model.idx_qs[mechanism.model.getJointId("q11")]] == 0.1
     assert np.count_nonzero(q != mechanism.home) == 1
+
+
+def _saved_five_bar_pair(folder):
+    """A five-bar pair written by `save` (its URDF records its closures file), and the closures bytes."""
+    Mechanism.load(*five_bar_files(folder / "source")).save(folder / "pair.urdf")
+    closures = folder / "pair.closures.yaml"
+    return folder / "pair.urdf", closures, closures.read_bytes()
+
+
+@pytest.mark.parametrize("edit", [
+    lambda data: b"# checked out on Windows, commented by hand\n" + data.replace(b"\n", b"\r\n"),
+    lambda data: data.replace(b"\n", b"  # a trailing comment\n", 3),
+    lambda data: yaml.safe_dump(yaml.safe_load(data), default_flow_style=True).encode(),  # re-laid out
+])
+def test_the_pair_survives_comments_line_ends_and_layout(tmp_path, edit):
+    """Only a change of meaning breaks a pair: these edits were refused as 'not the closures file'."""
+    urdf, closures, data = _saved_five_bar_pair(tmp_path)
+    expected = Mechanism.load(urdf)
+    closures.write_bytes(edit(data))
+    loaded = Mechanism.load(urdf)
+    assert loaded.closures == expected.closures and np.array_equal(loaded.home, expected.home)
+
+
+def test_a_pair_recorded_with_the_raw_bytes_sha256_still_loads(tmp_path):
+    """URDFs written before the digest covered the content record the bytes' sha256."""
+    urdf, closures, data = _saved_five_bar_pair(tmp_path)
+    urdf.write_bytes(with_closures_sha256(urdf.read_bytes(), sha256_bytes(data)))
+    assert Mechanism.load(urdf).closures_path == closures
+    closures.write_bytes(data + b"# edited\n")  # the old digest pins the bytes: a comment breaks it
+    with pytest.raises(ModelFileError, match="not the closures file of"):
+        Mechanism.load(urdf)
+
+
+def test_a_mimic_joint_is_refused_by_name(tmp_path):
+    """Pinocchio reads a <mimic> joint as an independent one: the closures would solve it on its own
+    and a calibration would move it apart while the written URDF kept the tag."""
+    urdf, closures = five_bar_files(tmp_path)
+    text = urdf.read_text()
+    start = text.index('<joint name="elbow_1"')
+    end = text.index("</joint>", start)
+    urdf.write_text(text[:end] + '<mimic joint="motor_1" multiplier="1" offset="0"/>' + text[end:])
+    with pytest.raises(ModelFileError) as caught:
+        Mechanism.load(urdf, closures)
+    assert str(caught.value) == (f"{urdf}: joint 'elbow_1' mimics joint 'motor_1' (<mimic>): m3t1r moves and "
+                                 "calibrates every joint on its own, so a coupled joint is not supported; remove the "
+                                 "tag (an independent joint) or make the joint fixed")

@@ -19,7 +19,7 @@ import yaml
 from test_mechanisms import _welded_double_hinge
 
 from m3t1r.errors import ModelFileError, ModelWarning, OutputPathError
-from m3t1r.io.pairing import recorded_closures_sha256, sha256_bytes
+from m3t1r.io.pairing import closures_sha256, recorded_closures_sha256
 from m3t1r.model import description
 from m3t1r.model.closures import ClosureSystem
 from m3t1r.model.description import (
@@ -144,7 +144,7 @@ def test_a_urdf_recording_two_digests_is_named(tmp_path):
 def test_a_paired_urdf_without_its_closures_file(tmp_path):
     urdf, closures, data = _saved_pair(tmp_path)
     closures.unlink()
-    digest = sha256_bytes(data)
+    digest = closures_sha256(data)
     expected = (f"{closures}: file not found: pair.urdf records closures sha256 {digest[:16]}..., "
                 "and no closures file with it is there")
     assert _refusal(lambda: Mechanism.load(urdf)) == expected
@@ -154,11 +154,17 @@ def test_a_paired_urdf_without_its_closures_file(tmp_path):
 def test_a_paired_urdf_with_another_closures_file(tmp_path):
     urdf, closures, data = _saved_pair(tmp_path)
     other = tmp_path / "other.closures.yaml"
-    other.write_bytes(data + b"# edited\n")
-    expected = (f"{other}: not the closures file of {urdf}: the URDF records closures sha256 {sha256_bytes(data)[:16]}..., "
-                f"this file has {sha256_bytes(other.read_bytes())[:16]}... The two files were not written together "
-                "(one was rewritten by another run, or copied from another machine); load the URDF with the "
-                "closures file written with it")
+    document = yaml.safe_load(data)
+    document["closures"][0]["rows"] = [0]  # a change of meaning
+    other.write_text(yaml.safe_dump(document))
+    expected = (f"{other}: not the closures file of {urdf}: the URDF records closures sha256 "
+                f"{closures_sha256(data)[:16]}..., this file's content has {closures_sha256(other.read_bytes())[:16]}... "
+                "The two files were not written together (one was rewritten by another run, or copied from another "
+                "machine, or its content edited: comments, layout and line ends do not count); load the URDF with the "
+                "closures file written with it; to pair these two deliberately, delete the line "
+                "`<!-- m3t1r pair: ... -->` from the URDF (it then loads with any closures file; saving records a "
+                "new pair)")
+
     assert _refusal(lambda: Mechanism.load(urdf, other)) == expected
     closures.write_bytes(other.read_bytes())
     assert _refusal(lambda: paired_closures(urdf)) == expected.replace(str(other), str(closures), 1)
@@ -348,7 +354,7 @@ def test_pair_bytes(tmp_path):
     assert list(document["home"].items()) == [(name, float(mechanism.configuration({})[k]))
                                               for k, name in enumerate(("motor_1", "elbow_1", "motor_2", "elbow_2"))]
     assert {k: v for k, v in document.items() if k != "home"} == {k: v for k, v in source.items() if k != "home"}
-    assert recorded_closures_sha256(urdf_bytes) == sha256_bytes(closures_bytes)
+    assert recorded_closures_sha256(urdf_bytes) == closures_sha256(closures_bytes)
     assert mechanism.pair_bytes("machine.urdf", "elsewhere.yaml") == (urdf_bytes, closures_bytes)
 
 
@@ -457,3 +463,4 @@ def test_the_locked_gauge_note_names_every_locked_joint(tmp_path):
     assert len(locked) == 2 and set(locked) < {"cut_1", "cut_2", "cut_3"}
     assert f"passive joint(s) {locked[0]}, {locked[1]} locked at their home value: their motion is already spanned " \
            "by the other passive joints (a gauge, e.g. a cut joint modelled twice)" in mechanism.notes
+

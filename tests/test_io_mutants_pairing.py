@@ -14,7 +14,7 @@ from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256, sha
 A = "a" * 64
 B = "b" * 64
 COMMENT = (b"<!-- m3t1r pair: closures sha256 " + A.encode()
-           + b" (this URDF loads only with the closures file of that sha256; models/README.md) -->\n")
+           + b" (this URDF loads only with the closures file of that content; models/README.md) -->\n")
 
 
 @pytest.mark.parametrize(("urdf", "closures"), [

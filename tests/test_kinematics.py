@@ -263,3 +263,25 @@ def test_a_task_coordinate_the_mechanism_cannot_move_is_refused_by_name(tmp_path
     assert commandable.uncommandable_task_rows() == ()
     np.testing.assert_allclose(commandable.inverse(fk.task_pose.translation[:2]).actuators,
                                planar.home[planar.actuated_ids] + 0.01, atol=1e-9)
+
+
+@pytest.mark.parametrize("values", [[0.1 + 1j, 0.0, 0.0, 0.0], np.array([0.1, 0.0, 0.0, 0.0]) + 0j])
+def test_a_complex_input_is_refused_not_read_as_its_real_part(solver, values):
+    with pytest.raises(InvalidInputError, match="complex values given"):
+        solver.forward(values)
+    with pytest.raises(InvalidInputError, match="complex values given"):
+        solver.forward_batch([values])
+
+
+@pytest.mark.parametrize("options,message", [
+    ({"tolerance": math.inf}, "tolerance: expected a finite number above 0"),
+    ({"tolerance": 1.0}, "at most 1e-06"),
+    ({"tolerance": 0.0}, "above 0"),
+    ({"tolerance": math.nan}, "finite number"),
+    ({"max_iterations": -1}, "max_iterations: expected a whole number of at least 0"),
+    ({"max_iterations": 2.5}, "whole number"),
+])
+def test_solver_options_that_would_pass_open_loops_as_solutions_are_refused(mechanism, options, message):
+    """tolerance=inf or 1.0 returned home's neighbours as 'solved' after 0 iterations, loops 0.5 open."""
+    with pytest.raises(InvalidInputError, match=message):
+        ClosedLoopSolver(mechanism, **options)

@@ -152,6 +152,12 @@ def test_a_stated_noise_below_the_models_floor_is_named_as_the_cause(tmp_path, c
     err = capsys.readouterr().err
     assert "is below what the model can fit" in err and "--marker" not in err, err
     assert not (tmp_path / "cal.urdf").exists()
+    # The rotation noise estimated (`auto`): the cause names the stated position noise alone, as a number.
+    assert main(["calibrate", str(measurements), *_model(files), "-o", str(tmp_path / "cal.urdf"),
+                 "--noise-pos", "1e-15", "--noise-rot", "auto"]) == 1
+    err = capsys.readouterr().err
+    assert "likely cause: the stated noise (1e-15 m) is below what the model can fit" in err, err
+    assert not (tmp_path / "cal.urdf").exists()
 
 
 def test_view_draws_a_machine_published_without_its_meshes(tmp_path, capsys):

@@ -23,7 +23,7 @@ import pytest
 from m3t1r.app.cli import main
 from m3t1r.errors import ModelFileError, OutputPathError
 from m3t1r.io.outputs import OutputSet
-from m3t1r.io.pairing import paired_closures_path
+from m3t1r.io.pairing import closures_sha256, paired_closures_path
 from m3t1r.io.progress import Heartbeat, Progress, set_quiet
 from m3t1r.io.strict_json import json_text
 from m3t1r.io.temporaries import sweep, temporary_path
@@ -94,10 +94,8 @@ def test_a_urdf_with_another_machines_closures_is_refused_by_name(tmp_path, mach
 
 
 def test_the_urdf_records_its_closures_sha256(tmp_path, machines):
-    import hashlib
-
     Mechanism.load(machines / "truth.urdf").save(tmp_path / "t.urdf")
-    digest = hashlib.sha256((tmp_path / "t.closures.yaml").read_bytes()).hexdigest()
+    digest = closures_sha256((tmp_path / "t.closures.yaml").read_bytes())
     assert f"closures sha256 {digest}" in (tmp_path / "t.urdf").read_text()
     # Saved again from a paired URDF: one pairing comment, the new one.
     Mechanism.load(tmp_path / "t.urdf").save(tmp_path / "u.urdf")

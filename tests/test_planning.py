@@ -183,7 +183,6 @@ def test_the_demo_s_plan_prints_the_readme_s_figures(tmp_path, capsys) -> None:
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["-n", "0"], "must be >= 1"),
     (["-n", "10", "--candidates", "5"], "5 candidates"),
     (["-n", "5"], "cannot identify"),
     (["-n", "10", "--serial", "ur5", "--model", "x.urdf"], "--model/--closures"),
@@ -222,6 +221,15 @@ def test_plan_and_calibrate_count_the_same_identifiable_parameters(tmp_path) -> 
         plan = plan_closed_loop(machine, 20, np.random.default_rng(3), n_evaluation=5)
         calibration = calibrate_closed_loop(machine, measure(machine, plan.configurations), outlier_sigma=None)
         assert len(plan.selection.columns) == calibration.base.rank
+
+
+@pytest.mark.parametrize("argv, message", [(["-n", "0"], "argument -n: expected at least 1, got 0"),
+                                           (["-n", "5", "--seed", "-1"], "a seed is a whole number of at least 0")])
+def test_plan_counts_and_seeds_are_refused_as_they_are_parsed(tmp_path, capsys, argv, message) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        run(["plan", *argv, "-o", str(tmp_path / "plan.csv")])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "plan.csv").exists()
 
 
 def test_bad_counts_in_the_library(mechanism) -> None:

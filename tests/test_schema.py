@@ -69,13 +69,13 @@ REFUSALS = [
     (lambda d: d["home"].update(motor_1="abc"), "home: joint 'motor_1' has non-numeric value 'abc'"),
     (lambda d: d["home"].update(motor_1=float("nan")), "home: joint 'motor_1' has non-finite value nan"),
     (_set("task", "xy"), "task must be a mapping with frame, position and rotation"),
-    (_task(speed=1), "task: unknown field 'speed' (known: frame, position, rotation)"),
     (_task(frame="nowhere"), "task.frame: frame 'nowhere' does not exist in the URDF"),
     (_task(position="xy"), "task.position must be a list of axes among x, y, z, got 'xy'"),
     (_task(rotation="roll"), "task rotation must be one of none, yaw, full, got 'roll'"),
     (lambda d: d.__setitem__("task", {}), "task: commands nothing (no position axis and rotation none)"),
     (_set("workspace", {}), "workspace must have exactly one of 'actuators' or 'task'"),
-    (_set("workspace", {"box": {}}), "workspace must have exactly one of 'actuators' or 'task'"),
+    (lambda d: d.__setitem__("workspace", {"actuators": d["workspace"]["actuators"], "task": {}}),
+     "workspace must have exactly one of 'actuators' or 'task'"),
     (lambda d: d["workspace"]["actuators"].pop("motor_2"),
      "workspace.actuators must give an interval [lo, hi] for each of motor_1, motor_2; got ['motor_1']"),
     (lambda d: d["workspace"].update(actuators="box"),
@@ -140,7 +140,7 @@ def _written(folder: Path, data: bytes) -> tuple[Path, Path]:
 READ_REFUSALS = [
     (b"a: 1\nb: \xff\n", "line 2: not UTF-8 text (byte 0xff)"),
     (b"\xef\xbb\xbfa: [1, 2\n", "line 2, column 1: not valid YAML: expected ',' or ']', but got '<stream end>'"),
-    (b"a: 2001-13-01\n", "cannot read closures YAML: ValueError: month must be in 1..12"),
+    (b"home: 2001-13-01\n", "cannot read closures YAML: ValueError: month must be in 1..12"),
     (b"- 1\n- 2\n", "closures file must be a YAML mapping"),
     (b"actuated_joints: [motor_1]\nclosures: []\nhome: {}\n", "missing field 'platform_frame'"),
     (b"closures: []\nplatform_frame: effector\nhome: {}\n", "missing field 'actuated_joints'"),
@@ -172,3 +172,55 @@ def test_missing_files_are_named(tmp_path):
     with pytest.raises(ModelFileError) as caught:
         Mechanism.load(tmp_path, closures)
     assert str(caught.value) == f"{tmp_path}: not a regular file"
+
+
+def _line_of(text: str, start: str, after: int = 0) -> int:
+    """1-based line of the first line starting with `start` after line `after`."""
+    return next(k for k, line in enumerate(text.splitlines(), start=1) if k > after and line.startswith(start))
+
+
+# (edit of the five-bar's closures text, start of the refused line, start of the first occurrence, message)
+KEY_REFUSALS = [
+    # A second `rows:` replaced the first; a `row:` typo fell back to every row; a second
+    # `workspace:` replaced the first; an unknown field was ignored.
+    (lambda t: t.replace("  rows: [0, 1]\n", "  rows: [0, 1]\n  rows: [0]\n", 1), "  rows: [0]", "  rows:",
+     "key 'rows' given twice (first on line {first}); YAML would keep only the last"),
+    (lambda t: t.replace("  rows: [0, 1]\n", "  row: [0, 1]\n", 1), "  row:", None,
+     "closure 'loop': unknown field 'row' (known: name, type, frame_a, frame_b, rows)"),
+    (lambda t: t + "workspace:\n  actuators: {motor_1: [2.0, 2.1], motor_2: [0.5, 0.6]}\n", "workspace:", "workspace:",
+     "key 'workspace' given twice (first on line {first}); YAML would keep only the last"),
+    (lambda t: t + "platfrom_frame: effector\n", "platfrom_frame", None,
+     "unknown field 'platfrom_frame' (known: schema_version, actuated_joints, closures, principal_chains, "
+     "platform_frame, task, workspace, home, frames, locked_joints)"),
+    (lambda t: t.replace("task:\n", "task:\n  speed: 1\n", 1), "  speed", None,
+     "task: unknown field 'speed' (known: frame, position, rotation)"),
+    (lambda t: t.replace("workspace:\n", "workspace:\n  box: {}\n", 1), "  box", None,
+     "workspace: unknown field 'box' (known: actuators, task)"),
+]
+
+
+@pytest.mark.parametrize("edit, refused, first, message", KEY_REFUSALS, ids=[m[:40] for *_, m in KEY_REFUSALS])
+def test_duplicate_and_unknown_keys_are_refused_with_their_line(tmp_path, edit, refused, first, message):
+    """Each of these edits used to load: as another mechanism (the closures' rows, the workspace) or
+    ignoring a typo."""
+    urdf, closures = five_bar_files(tmp_path)
+    edited = edit(closures.read_text())
+    assert edited != closures.read_text()
+    closures.write_text(edited)
+    first_line = _line_of(edited, first) if first else 0
+    line = _line_of(edited, refused, after=first_line)
+    with pytest.raises(ModelFileError) as caught:
+        Mechanism.load(urdf, closures)
+    column = len(refused) - len(refused.lstrip()) + 1
+    assert str(caught.value) == f"{closures}: line {line}, column {column}: " + message.format(first=first_line)
+
+
+def test_a_closure_of_a_frame_with_itself_is_refused_by_name(tmp_path):
+    """It made every row dependent and ended in an IndexError inside ClosedLoopSolver."""
+    urdf, closures = _edited(tmp_path, _closure(frame_b=yaml.safe_load(five_bar_files(tmp_path / "x")[1].read_text())
+                                                ["closures"][0]["frame_a"]))
+    frame = yaml.safe_load(closures.read_text())["closures"][0]["frame_a"]
+    with pytest.raises(ModelFileError) as caught:
+        Mechanism.load(urdf, closures)
+    assert str(caught.value) == (f"{closures}: closure 'loop': frame_a '{frame}' and frame_b '{frame}' are the same "
+                                 "frame: the closure constrains no joint")

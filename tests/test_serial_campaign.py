@@ -10,12 +10,14 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from m3t1r.app.cli_common import RowFailures
 from m3t1r.app.cli_serial import run_serial_calibration
 from m3t1r.calibration import serial as S
 from m3t1r.calibration import serial_evaluation, serial_robots, serial_simulation
 from m3t1r.calibration.assessment import FitRejected
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.errors import DataFileError, ModelFileError
 from m3t1r.io.tables import table_text
 from m3t1r.model.poe import SerialChain, perturb, tool_poses
 
@@ -257,3 +259,60 @@ def test_a_residual_beyond_the_stated_noise_is_written_with_a_warning_and_auto_s
     assert 0.7e-4 < report["noise_model"]["position_m"] < 1.4e-4
     assert 0.7 < report["variance_factor"] < 1.4
     assert "(estimated from the residual)" in capsys.readouterr().out
+
+
+def test_a_gross_reading_is_left_out_by_line_not_blamed_on_the_robot(ur10, tmp_path, capsys) -> None:
+    """One pose 1 m off among 40 made the start check refuse the whole fit as 'data from another machine'."""
+    model, chain = ur10
+    data, measured = campaign(model, chain, FRAMES["z180"], seed=6, n_poses=40)
+    rows = as_rows(measured)
+    rows[7, :3] += np.array([1.0, 0.0, 0.0])
+    path = tmp_path / "campaign.csv"
+    write_campaign(path, chain, data.q_readings, rows)
+    with pytest.raises(RowFailures, match=r"line 11: the measured point is 0.99\d m from the nominal prediction"):
+        run_serial_calibration(namespace(tmp_path, path, outlier_sigma=0.0))
+    run_serial_calibration(namespace(tmp_path, path))
+    assert "note: line 11: the measured point is 0.99" in capsys.readouterr().out
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["outliers"] == [11] and report["input"]["poses"] == 40
+    assert report["residual_rms"]["after"]["position_m"] < 3e-5
+
+
+def test_a_joint_reading_beyond_its_limits_is_refused_by_line(ur10, tmp_path) -> None:
+    """10 rad on a joint limited to 2 pi was read, and blocked the fit as a fault of the model."""
+    model, chain = ur10
+    data, measured = campaign(model, chain, FRAMES["z180"], seed=6, n_poses=12)
+    q = data.q_readings.copy()
+    q[4, 2] = 10.0
+    path = tmp_path / "campaign.csv"
+    write_campaign(path, chain, q, as_rows(measured))
+    with pytest.raises(DataFileError) as caught:
+        run_serial_calibration(namespace(tmp_path, path))
+    limit = float(model.upperPositionLimit[model.idx_qs[chain.joint_ids[2]]])
+    assert str(caught.value) == (f"{path}, line 8, column '{chain.joint_names[2]}': 10 rad is beyond the joint limit "
+                                 f"[{-limit:.6g}, {limit:.6g}] (SI units: rad)")
+    q = np.degrees(data.q_readings)  # a whole file in degrees
+    write_campaign(path, chain, q, as_rows(measured))
+    with pytest.raises(DataFileError, match="within the limits in degrees: give radians"):
+        run_serial_calibration(namespace(tmp_path, path))
+
+
+def test_a_serial_urdf_pinocchio_cannot_read_or_with_a_mimic_joint_is_refused_by_name(tmp_path) -> None:
+    broken = tmp_path / "broken.urdf"
+    broken.write_text("not xml at all\n")
+    with pytest.raises(ModelFileError, match=f"{broken}: Pinocchio cannot read this URDF"):
+        serial_robots.load_serial_urdf(broken)
+    mimic = tmp_path / "mimic.urdf"
+    limit = '<limit lower="-2.8" upper="2.8" effort="1" velocity="1"/>'
+    mimic.write_text(
+        '<robot name="m"><link name="base"/><link name="l1"/><link name="l2"/><link name="tool"/>'
+        f'<joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 0 1"/>{limit}</joint>'
+        f'<joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/><origin xyz="0.3 0 0"/>'
+        f'<axis xyz="0 1 0"/>{limit}<mimic joint="j1"/></joint>'
+        '<joint name="t" type="fixed"><parent link="l2"/><child link="tool"/><origin xyz="0.3 0 0"/></joint></robot>')
+    model, urdf = serial_robots.load_serial_urdf(mimic)
+    with pytest.raises(ModelFileError) as caught:
+        serial_robots.serial_chain_of(model, urdf, mimic, "tool", None)
+    assert str(caught.value) == (f"{mimic}: joint 'j2' mimics joint 'j1' (<mimic>): m3t1r moves and calibrates "
+                                 "every joint on its own, so a coupled joint is not supported; remove the tag (an "
+                                 "independent joint) or make the joint fixed")

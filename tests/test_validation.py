@@ -304,5 +304,22 @@ def test_exit_statuses_through_the_main_command_line(machine, tmp_path, mechanis
     assert main(["validate", str(tmp_path / "bad.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
                  str(folder / "report.json"), "--predictions", str(tmp_path / "bad_pred.csv")]) == 1
     assert not (tmp_path / "bad_pred.csv").exists()
-    assert main(["plan", "-n", "0", "-o", str(tmp_path / "plan.csv")]) == 2
     assert "m3t1r: error:" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:  # refused by argparse, with the usage line
+        main(["plan", "-n", "0", "-o", str(tmp_path / "plan.csv")])
+    assert exit_info.value.code == 2 and "argument -n: expected at least 1, got 0" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda text: text.replace('"kind": "closed_loop"', '"kind": "serial", "kind": "closed_loop"', 1),
+     "key 'kind' given twice in one object"),
+    (lambda text: text.replace('"variance_factor": ', '"variance_factor": NaN, "x": ', 1), "'NaN' is not JSON"),
+])
+def test_a_report_with_a_key_twice_or_nan_is_refused(machine, tmp_path, edit, message) -> None:
+    """Python's reader let the last of two keys win silently and read NaN."""
+    folder, *_ = machine
+    text = json.dumps(report_document())
+    assert edit(text) != text
+    (tmp_path / "bad.json").write_text(edit(text))
+    with pytest.raises(InvalidInputError, match=message):
+        validate(folder / "exact.csv", folder / "cal.urdf", tmp_path / "bad.json")

@@ -33,7 +33,7 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r._threads import on_one_blas_thread
-from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError, OutOfWorkspaceError
+from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError, OutOfWorkspaceError, real_array
 from m3t1r.io.poses import pose_rows
 from m3t1r.metrics import PoseErrors
 from m3t1r.model.description import Mechanism
@@ -167,10 +167,7 @@ def _validated_targets(targets: Targets, task: TaskSpec) -> list[np.ndarray] | l
         raise InvalidInputError(f"targets: mix of pin.SE3 and other rows; give all placements or an "
                                 f"(N, {len(task.columns)}) array")
     columns = task.columns
-    try:
-        array = np.asarray(targets, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"targets: not numeric rows ({', '.join(columns)}) ({exc})") from None
+    array = real_array(targets, "targets", f"numeric rows ({', '.join(columns)})")
     if array.ndim != 2 or array.shape[1] != len(columns):
         raise InvalidInputError(f"targets: shape {array.shape}, expected (N, {len(columns)}) rows ({', '.join(columns)})")
     if array.shape[0] == 0:

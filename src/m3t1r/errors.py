@@ -65,12 +65,25 @@ class IdentificationError(M3t1rError):
     """Identification cannot proceed: too few poses, rank-deficient data, divergence."""
 
 
-def require_finite_vector(values: object, length: int, what: str) -> np.ndarray:
-    """Return `values` as a float vector of `length`, or raise InvalidInputError naming `what`."""
+def real_array(values: object, what: str, expected: str = "numeric") -> np.ndarray:
+    """`values` as a float array, or InvalidInputError naming `what`. Complex values are refused,
+    not cut to their real part as numpy's float conversion does (0.1+1j would read as 0.1)."""
     try:
-        vector = np.asarray(values, dtype=float).reshape(-1)
+        complex_given = np.iscomplexobj(np.asarray(values))
+    except (TypeError, ValueError):
+        complex_given = False  # ragged or odd input: the float conversion below names it
+    if complex_given:
+        raise InvalidInputError(f"{what}: complex values given; joint values and coordinates are real numbers")
+    try:
+        return np.asarray(values, dtype=float)
     except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"{what}: not a numeric vector ({exc})") from None
+        raise InvalidInputError(f"{what}: not {expected} ({exc})") from None
+
+
+def require_finite_vector(values: object, length: int, what: str) -> np.ndarray:
+    """Return `values` as a float vector of `length`, or raise InvalidInputError naming `what`
+    (complex, NaN and infinite values refused)."""
+    vector = real_array(values, what, "a numeric vector").reshape(-1)
     if vector.size != length:
         raise InvalidInputError(f"{what}: expected {length} values, got {vector.size}")
     finite = np.isfinite(vector)
@@ -78,6 +91,30 @@ def require_finite_vector(values: object, length: int, what: str) -> np.ndarray:
         bad = np.flatnonzero(~finite)
         raise InvalidInputError(f"{what}: non-finite value {vector[bad[0]]} at index {bad[0]}")
     return vector
+
+
+def require_real(value: object, what: str, *, minimum: float = -np.inf, inclusive: bool = True) -> float:
+    """`value` as a finite float at least (or, not inclusive, above) `minimum`, else InvalidInputError
+    naming `what`. Booleans, complex numbers, NaN and infinities are refused."""
+    if isinstance(value, (bool, np.bool_, complex, np.complexfloating, str, bytes)):
+        raise InvalidInputError(f"{what}: expected a real number, got {value!r}")
+    try:
+        number = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{what}: expected a real number, got {value!r}") from None
+    if not np.isfinite(number) or number < minimum or (not inclusive and number == minimum):
+        bound = f"{'at least' if inclusive else 'above'} {minimum:g}" if np.isfinite(minimum) else "finite"
+        raise InvalidInputError(f"{what}: expected a finite number {bound}, got {value!r}")
+    return number
+
+
+def require_count(value: object, what: str, minimum: int = 1) -> int:
+    """`value` as an int of at least `minimum` (an integral float such as 3.0 is accepted), else
+    InvalidInputError naming `what`."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer, float, np.floating)) \
+            or not float(value).is_integer() or int(value) < minimum:
+        raise InvalidInputError(f"{what}: expected a whole number of at least {minimum}, got {value!r}")
+    return int(value)
 
 
 class OutputPathError(M3t1rError):

@@ -9,6 +9,8 @@ and writes the calibrated pair and the report as a unit.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import datetime as _dt
 import math
 import sys
@@ -24,6 +26,7 @@ from m3t1r._version import __version__
 from m3t1r.app.cli_common import (
     RowFailures,
     campaign_report_fields,
+    checked_marker,
     load_mechanism,
     parse_priors,
     selection_note,
@@ -34,20 +37,25 @@ from m3t1r.app.cli_verbs import CALIBRATION_PLOTS, DECLARE_PLOTS, load
 from m3t1r.app.datasets import MeasurementFile, read_measurements
 from m3t1r.app.passive_joints import passive_joint_residuals
 from m3t1r.calibration.assessment import (
-    IMPLAUSIBLE_ROTATION,
+    MAX_NOISE_RATIO,
     FitRejected,
+    StartCheck,
     check_fit,
     check_start,
     coverage_notes,
     describe_parameter,
     fit_movement_notes,
+    gross_reading_reason,
     likely_causes,
+    metres_as_millimetres_causes,
+    quaternion_order_causes,
+    residual_causes,
     unexplained_residual_warning,
 )
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, CrossValidation, calibrate_closed_loop, cross_validate
 from m3t1r.calibration.measurement_setup import MeasurementSetup
-from m3t1r.calibration.measurements import TrackerNoise
-from m3t1r.errors import InvalidInputError, PoorExcitationWarning
+from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
+from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.io.instruments.formats import export_hint
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.progress import Progress
@@ -80,10 +88,19 @@ def _nominal_points(nominal: Mechanism, marker: pin.SE3) -> Callable[[np.ndarray
     return predict
 
 
-def _diagnose(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, frame_estimated: bool) -> list[str]:
+def _diagnose(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, frame_estimated: bool,
+              units: str) -> list[str]:
     measurements = data.measurements
     pick = np.linspace(0, len(measurements) - 1, min(len(measurements), _DIAGNOSIS_POSES)).astype(int)
     measured = np.array([measurements.poses[i].translation for i in pick])
+    if units == "mm":
+        model = nominal.model
+        prismatic = np.array([model.joints[model.getJointId(n)].shortname().startswith("JointModelP")
+                              for n in nominal.actuated_joints])
+        metres = metres_as_millimetres_causes(_nominal_points(nominal, marker), measurements.actuators[pick], measured,
+                                              prismatic, frame_estimated=frame_estimated)
+        if metres:
+            return metres
     return likely_causes(_nominal_points(nominal, marker), measurements.actuators[pick], measured,
                          nominal.actuated_joints, frame_estimated=frame_estimated)
 
@@ -107,26 +124,29 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     report_output = outputs.add(args.report, "--report")
     plots = load(DECLARE_PLOTS)(outputs, args.plots) if args.plots else None  # matplotlib with --plots only
     out = status_stream(outputs)  # stderr when the report goes to stdout
-    with outputs:
+    # Every status line, the helpers' too, goes to `out`: with `--report -` stdout is the JSON alone.
+    with outputs, contextlib.redirect_stdout(out):
         outputs.check()
         data = read_measurements(args.measurements, nominal, units=args.units)
-        marker = MeasurementSetup.from_numbers(marker_xyz=args.marker).marker
+        marker = MeasurementSetup.from_numbers(marker_xyz=checked_marker(args.marker)).marker
         estimate_frame = args.frame == "estimate"
         print(f"calibrating from {len(data.measurements)} poses"
               + (" (measurement frame estimated)" if estimate_frame else "") + " ...", file=out, flush=True)
-        _precheck(nominal, data, marker, estimate_frame, args.measurements)
+        start = _precheck(nominal, data, marker, estimate_frame, args.measurements, args.units)
+        fitted_data = _without_gross_readings(args, data, start)
         with warnings.catch_warnings(record=True) as caught, Progress("calibrating", None) as progress:
             warnings.simplefilter("always", PoorExcitationWarning)
             calibration, choice = fit_with_noise(
                 args.noise_pos, args.noise_rot, TrackerNoise(actuator=args.noise_act),
-                lambda noise, gate: _fit(args, nominal, data, noise, marker, estimate_frame, progress.advance, gate),
-                lambda fitted: _left(fitted, data))
+                lambda noise, gate: _fit(args, nominal, fitted_data, noise, marker, estimate_frame, progress.advance, gate),
+                lambda fitted: _left(fitted, fitted_data))
         noise = choice.noise
-        lines = [int(data.lines[i]) for i in calibration.outliers]
+        lines = sorted([int(fitted_data.lines[i]) for i in calibration.outliers]
+                       + [int(data.lines[i]) for i in start.gross])
         print(choice.describe(data.measurements.position_only), file=out)
         _print_summary(calibration, lines, out)
         unexplained = _judge(args, calibration, choice,
-                             lambda: _fit_causes(args, nominal, data, marker, estimate_frame, calibration))
+                             lambda: _fit_causes(args, nominal, fitted_data, marker, estimate_frame, calibration, choice))
         with Progress(f"cross-validating ({args.folds} folds)", None) as progress:
             calibration.problem.on_evaluate = progress.advance
             validation = cross_validate(calibration, folds=args.folds)
@@ -165,7 +185,7 @@ def _idle_chain_check(nominal: Mechanism, calibration: ClosedLoopCalibration, da
 def _fit(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, noise: TrackerNoise,
          marker: pin.SE3, estimate_frame: bool, progress: Callable[[], None], gate: bool = True
          ) -> ClosedLoopCalibration:
-    """The fit (`gate`: with the --outlier-sigma gate), once `_precheck` has passed."""
+    """The fit of the data (`_precheck` judged them first; `gate`: with the --outlier-sigma gate)."""
     kwargs = {} if args.max_iterations is None else {"max_iterations": args.max_iterations}
     return calibrate_closed_loop(
         nominal, data.measurements, noise, setup=MeasurementSetup(marker=marker), estimate_frame=estimate_frame,
@@ -205,45 +225,96 @@ def _judge(args: argparse.Namespace, calibration: ClosedLoopCalibration, choice:
 
 
 def _fit_causes(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, marker: pin.SE3,
-                estimate_frame: bool, calibration: ClosedLoopCalibration) -> list[str]:
-    """Likely causes of a fit that does not explain the data: a stated noise below the model's floor
-    (a residual below any tracker's noise), else the data checks, and a measured frame whose
-    orientation is not the platform's while no marker was given to absorb it (when the fit left more
-    than the stated noise, or, the noise being estimated, an orientation residual over
-    IMPLAUSIBLE_ROTATION / 10: beyond any tracker's)."""
-    if calibration.rms_after[0] < _MODEL_FLOOR_POSITION:
-        return [f"the stated noise ({args.noise_pos:g} m, {args.noise_rot:g} rad) is below what the model can fit: "
-                f"the residual ({calibration.rms_after[0]:.2g} m RMS) is already below any tracker's noise, the floor "
-                "of the model itself (its linearisation, the parameters held at nominal), which also flags sound "
-                "rows as outliers; state the tracker's real noise with --noise-pos and --noise-rot"]
-    causes = _diagnose(nominal, data, marker, estimate_frame)
-    left = calibration.variance_factor > 9 or not calibration.converged or \
-        calibration.rms_after[1] > IMPLAUSIBLE_ROTATION / 10
-    if args.marker is None and not data.measurements.position_only and left:
-        causes.append("the measured frame (a probe or a set of reflectors) is not the platform frame: give its "
-                      "position with --marker X Y Z, and its orientation is estimated with it")
-    return causes
+                estimate_frame: bool, calibration: ClosedLoopCalibration, choice: NoiseChoice) -> list[str]:
+    """Likely causes of a fit that does not explain the data (`data`: the poses it was given): a
+    stated noise below the model's floor (a residual below any tracker's noise), else quaternion
+    columns in another order, else the data checks and, by the size of what the fit left
+    (`residual_causes`), a measured frame whose orientation is not the platform's while no marker
+    was given to absorb it."""
+    measurements = data.measurements
+    beyond_noise = calibration.variance_factor > MAX_NOISE_RATIO**2 or not calibration.converged
+    if calibration.rms_after[0] < _MODEL_FLOOR_POSITION and beyond_noise and not choice.position_estimated:
+        noise = choice.noise
+        stated = f"{noise.position:g} m" + ("" if measurements.position_only or choice.rotation_estimated
+                                            else f", {noise.rotation:g} rad")
+        return [f"the stated noise ({stated}) is below what the model can fit: the residual "
+                f"({calibration.rms_after[0]:.2g} m RMS) is already below any tracker's noise, the floor of the model "
+                "itself (its linearisation, the parameters held at nominal), which also flags sound rows as outliers; "
+                "state the tracker's real noise with --noise-pos and --noise-rot"]
+    if not measurements.position_only:
+        solved = ClosedLoopSolver(nominal).forward_batch(measurements.actuators)
+        poses = [measurements.poses[i] for i in solved.indices]
+        order = quaternion_order_causes(solved.poses @ marker.homogeneous, np.array([g.translation for g in poses]),
+                                        np.array([g.rotation for g in poses]), frame_estimated=estimate_frame)
+        if order:  # the whole story: every other check would read the scrambled orientations
+            return order
+    return _diagnose(nominal, data, marker, estimate_frame, args.units) + residual_causes(
+        *calibration.rms_after, beyond_noise=beyond_noise, marker_given=args.marker is not None,
+        position_only=measurements.position_only)
 
 
 def _precheck(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, estimate_frame: bool,
-              path: str) -> None:
+              path: str, units: str = "m") -> StartCheck:
     """Refuse at once when the nominal model is further from the data than any build error, and
-    name every line whose slider readings do not assemble on it (one batch solve of every row)."""
+    name every line whose slider readings do not assemble on it (one batch solve of every row).
+    Returns the start check of every pose: its `gross` readings are left out of the fit."""
     measurements = data.measurements
+    if len(measurements) < 3:
+        raise IdentificationError(f"{path}: {len(measurements)} pose(s) are far too few to calibrate (tens of poses "
+                                  "spread over the workspace are needed; `m3t1r plan` chooses them)")
+    if units == "mm":
+        _refuse_metres_read_as_millimetres(nominal, data, path)
     points = _nominal_points(nominal, marker)(measurements.actuators)
     assembled = np.all(np.isfinite(points.reshape(len(points), -1)), axis=1)
     pick = np.linspace(0, len(measurements) - 1, min(len(measurements), _DIAGNOSIS_POSES)).astype(int)
-    measured = np.array([measurements.poses[i].translation for i in pick])
     valid = assembled[pick]
     if np.count_nonzero(valid) < 3:
         raise FitRejected("the slider readings do not assemble on the nominal machine",
-                          _diagnose(nominal, data, marker, estimate_frame))
+                          _diagnose(nominal, data, marker, estimate_frame, units), forceable=False)
     failed = np.flatnonzero(~assembled)
     if failed.size:
         raise RowFailures(Path(path), [(int(data.lines[i]), "the slider readings do not assemble on the nominal "
                                         "machine (from its home, on its branch)") for i in failed])
-    check_start(points[pick][valid], measured[valid], estimate_frame,
-                lambda: _diagnose(nominal, data, marker, estimate_frame))
+    measured = np.array([pose.translation for pose in measurements.poses])
+    return check_start(points, measured, estimate_frame, lambda: _diagnose(nominal, data, marker, estimate_frame, units))
+
+
+def _refuse_metres_read_as_millimetres(nominal: Mechanism, data: MeasurementFile, path: str) -> None:
+    """Sliders of a metre file read with --units mm sit within a thousandth of their stroke around
+    zero, where the machine barely moves: a fit would only report unidentifiable parameters."""
+    model = nominal.model
+    lower, upper = nominal.joint_limits()
+    sliders = [k for k, name in enumerate(nominal.actuated_joints)
+               if model.joints[model.getJointId(name)].shortname().startswith("JointModelP")]
+    if not sliders:
+        return
+    for k in sliders:
+        values, stroke = data.measurements.actuators[:, k], upper[k] - lower[k]
+        if not np.isfinite(stroke) or np.ptp(values) >= 0.01 * stroke:
+            return
+        if not np.all((values * 1e3 >= lower[k]) & (values * 1e3 <= upper[k])):
+            return
+    raise InvalidInputError(f"{path}: read with --units mm, every slider spans under 1 % of its stroke, and in "
+                            "metres every value is within its limits: the file looks like metres; drop --units mm")
+
+
+def _without_gross_readings(args: argparse.Namespace, data: MeasurementFile, start: StartCheck) -> MeasurementFile:
+    """The data without the poses the start check found gross (they are outliers, reported by line);
+    with the outlier gate off (--outlier-sigma 0) such a pose is refused by line instead."""
+    if not start.gross:
+        return data
+    reasons = [(int(data.lines[i]), gross_reading_reason(start, i)) for i in start.gross]
+    if not args.outlier_sigma:
+        raise RowFailures(Path(args.measurements), [(line, reason + "; remove or re-measure the row, or let the "
+                                                     "outlier gate (--outlier-sigma) leave it out")
+                                                    for line, reason in reasons])
+    for line, reason in reasons:
+        print(f"note: line {line}: {reason}; left out as an outlier", flush=True)
+    keep = np.setdiff1d(np.arange(len(data.measurements)), start.gross)
+    measurements = data.measurements
+    kept = PoseMeasurements(measurements.actuators[keep], tuple(measurements.poses[i] for i in keep),
+                            measurements.position_only)
+    return dataclasses.replace(data, measurements=kept, passive=data.passive[keep], lines=data.lines[keep])
 
 
 def _print_summary(calibration: ClosedLoopCalibration, outlier_lines: list[int], out: TextIO = sys.stdout) -> None:

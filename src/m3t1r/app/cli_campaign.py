@@ -24,9 +24,9 @@ from m3t1r.app.cli_common import RowFailures, load_mechanism, provenance, say
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.planning import plan_closed_loop, plan_serial
-from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
+from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot, load_serial_urdf, serial_chain_of
 from m3t1r.calibration.validation import validate
-from m3t1r.errors import InvalidInputError, ModelFileError, ModelWarning
+from m3t1r.errors import InvalidInputError, ModelWarning
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import paired_closures_path
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows
@@ -52,18 +52,12 @@ def _serial_robot(source: str, tool: str | None, base: str | None):
     """(model, chain) of `--serial` (an example robot name or a URDF path)."""
     path = Path(source)
     if path.suffix.lower() == ".urdf" or path.exists():
-        if not path.is_file():
-            raise ModelFileError(path, "file not found" if not path.exists() else "not a regular file")
-        try:
-            model = pin.buildModelFromUrdf(str(path))
-        except (RuntimeError, ValueError) as exc:
-            raise ModelFileError(path, f"Pinocchio cannot read this URDF: {exc}") from None
+        model, urdf = load_serial_urdf(path)
         if tool is None:
             raise InvalidInputError(f"--serial {source}: give the measured frame with --tool FRAME")
-    else:
-        model = load_example_robot(source)
-        tool = tool or example_tool_frame(source)
-    return model, SerialChain.from_model(model, tool, base)
+        return model, serial_chain_of(model, urdf, path, tool, base)
+    model = load_example_robot(source)
+    return model, SerialChain.from_model(model, tool or example_tool_frame(source), base)
 
 
 def _make_plan(args: argparse.Namespace):
@@ -184,9 +178,6 @@ def _summary(result, out: TextIO) -> None:
 
 def _prediction_rows(result) -> np.ndarray:
     """(N, 3 or 7) rows x, y, z [file unit][, qx, qy, qz, qw] of the predictions."""
-    import pinocchio as pin
-
-
     rows = pose_rows([pin.SE3(p) for p in result.predictions])
     rows[:, :3] /= _unit_scale(result.units)
     return rows[:, :3] if result.position_only else rows

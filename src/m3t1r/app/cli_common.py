@@ -19,13 +19,33 @@ from m3t1r.calibration.assessment import describe_parameter
 from m3t1r.calibration.measurement_setup import MeasurementSetup, se3_to_report
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelWarning, OutputPathError
 from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256
+from m3t1r.io.paths import read_bounded
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows
 from m3t1r.io.progress import Progress
 from m3t1r.io.tables import table_text
 from m3t1r.model.description import Mechanism
 
 __all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "status_stream", "progress_bar", "provenance",
-           "parse_priors", "check_plots_folder"]
+           "parse_priors", "check_plots_folder", "checked_marker", "MAX_MARKER_DISTANCE"]
+
+
+#: A measured point farther than this from the platform (serial: tool) frame is not on it [m].
+MAX_MARKER_DISTANCE = 10.0
+
+
+def checked_marker(values: Sequence[float] | None) -> Sequence[float] | None:
+    """--marker X Y Z [m], refused (InvalidInputError) when the point is farther than
+    MAX_MARKER_DISTANCE from the frame it is fixed to: such numbers are millimetres, since --marker
+    is in metres whatever --units says."""
+    if values is None:
+        return None
+    distance = math.sqrt(sum(v * v for v in values))
+    if distance > MAX_MARKER_DISTANCE:
+        metres = " ".join(f"{v / 1000:g}" for v in values)
+        raise InvalidInputError(f"--marker {' '.join(f'{v:g}' for v in values)}: a point {distance:.3g} m from the "
+                                f"frame it is fixed to; --marker is in metres whatever --units says (in millimetres "
+                                f"these are --marker {metres})")
+    return values
 
 
 class RowFailures(M3t1rError):
@@ -42,7 +62,7 @@ def load_mechanism(urdf: str | None, closures: str | None):
     if urdf is not None and closures is None:
         sibling = paired_closures_path(urdf)
         try:
-            recorded = recorded_closures_sha256(Path(urdf).read_bytes())
+            recorded = recorded_closures_sha256(read_bounded(urdf) or b"")
         except (OSError, M3t1rError):
             recorded = None  # Mechanism.load names the problem with the URDF
         if recorded is None and not sibling.is_file() and Path(urdf).is_file():

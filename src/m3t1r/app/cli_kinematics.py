@@ -27,6 +27,8 @@ from m3t1r.model.workspace import workspace_actuators
 
 __all__ = ["cmd_fk", "cmd_ik", "cmd_compensate", "cmd_evaluate"]
 
+_FARTHEST_TARGET = 100.0  # [m] a target farther from the base is in another unit, not a place to reach
+
 
 def cmd_fk(args: argparse.Namespace) -> None:
     """`m3t1r fk`: platform poses of slider sets."""
@@ -115,7 +117,6 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     say(outputs, f"wrote {result.n_targets} compensated {args.output_kind} commands to {output.name}{tilt}")
 
 
-
 def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -> np.ndarray:
     """Targets of the measured point (the reflector) in a calibration's measurement frame, to task
     coordinates of the platform frame in the calibrated base.
@@ -136,6 +137,11 @@ def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -
                                 f"measured platform frame '{calibrated.platform_frame}', not on '{task.frame}'; "
                                 "give task-frame targets")
     setup = read_report(report_path).setup
+    far = max(float(np.linalg.norm(setup.frame.actInv(target).translation)) for target in targets)
+    if far > _FARTHEST_TARGET:
+        raise InvalidInputError(f"{targets_path}: a target {far:.3g} m from the machine's base; target files are in "
+                                "metres, whatever unit the calibration's measurements were in: these look like "
+                                "millimetres (divide x, y, z by 1000)")
     solver, offset = ClosedLoopSolver(calibrated), setup.marker.translation
     rows = []
     for target in targets:

@@ -8,10 +8,17 @@ the standard library and the package's light ground (tests/test_startup.py check
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 
 from m3t1r._version import __version__
+from m3t1r.app.cli_types import (
+    count_number,
+    finite_number,
+    nonnegative_number,
+    positive_number,
+    seed_number,
+    zero_or_count,
+)
 from m3t1r.io.instruments.names import FORMAT_DESCRIPTIONS
 from m3t1r.model.native_status import compiled_newton_status
 
@@ -52,10 +59,10 @@ def _add_model_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_noise_options(parser: argparse.ArgumentParser, estimable: bool = False) -> None:
-    number, auto = (noise_or_auto, NOISE_AUTO_HELP) if estimable else (float, "")
+    number, auto = (noise_or_auto, NOISE_AUTO_HELP) if estimable else (positive_number, "")
     parser.add_argument("--noise-pos", type=number, default=10e-6, metavar="M", help="tracker position noise [m]" + auto)
     parser.add_argument("--noise-rot", type=number, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]" + auto)
-    parser.add_argument("--noise-act", type=float, default=1e-6, metavar="M", help="slider reading noise [m]")
+    parser.add_argument("--noise-act", type=nonnegative_number, default=1e-6, metavar="M", help="slider reading noise [m]")
 
 
 def build_parser(description: str | None = None) -> argparse.ArgumentParser:
@@ -76,19 +83,19 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     _add_model_options(p)
 
     p = verbs.add_parser("simulate", help="simulate an actual machine and its calibration measurements")
-    p.add_argument("-n", type=int, default=20, help="number of poses (default 20)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--sigma-pos", type=float, default=1e-3, metavar="M", help="placement error std, translation [m]")
-    p.add_argument("--sigma-rot", type=float, default=1e-3, metavar="RAD", help="placement error std, rotation [rad]")
+    p.add_argument("-n", type=count_number, default=20, help="number of poses (default 20)")
+    p.add_argument("--seed", type=seed_number, default=0)
+    p.add_argument("--sigma-pos", type=nonnegative_number, default=1e-3, metavar="M", help="placement error std, translation [m]")
+    p.add_argument("--sigma-rot", type=nonnegative_number, default=1e-3, metavar="RAD", help="placement error std, rotation [rad]")
     _add_noise_options(p)
     p.add_argument("--noise-free", action="store_true", help="exact measurements")
     p.add_argument("--position-only", action="store_true", help="a tracker without orientation")
-    p.add_argument("--tracker-frame", nargs=6, type=float, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
+    p.add_argument("--tracker-frame", nargs=6, type=finite_number, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
                    help="the robot base in the tracker's frame [m, rad] (default: measured in the base frame)")
-    p.add_argument("--marker", nargs=3, type=float, metavar=("X", "Y", "Z"),
+    p.add_argument("--marker", nargs=3, type=finite_number, metavar=("X", "Y", "Z"),
                    help="the reflector in the platform frame [m] (default: the platform frame's origin)")
     p.add_argument("--units", choices=("m", "mm"), default="m", help="length unit of the written file")
-    p.add_argument("--outliers", type=int, default=0, metavar="K", help="spoil K measurements with 3-5 mm gross errors")
+    p.add_argument("--outliers", type=zero_or_count, default=0, metavar="K", help="spoil K measurements with 3-5 mm gross errors")
     p.add_argument("--with-passive", action="store_true",
                    help="also record encoders on the idle chains' hinges (q12_B2, q22_B4) for cross-validation "
                         "(another mechanism: on every passive joint the closures solve)")
@@ -129,7 +136,7 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     _add_deprecated_alias(p, "--nominal", "model")
     p.add_argument("--calibrated", metavar="URDF")
     p.add_argument("--calibrated-closures", metavar="YAML")
-    p.add_argument("--pose", nargs="+", type=float, metavar="VALUE",
+    p.add_argument("--pose", nargs="+", type=finite_number, metavar="VALUE",
                    help="command both machines to these task coordinates (the task's columns; M machine: "
                         "x y z theta [m, m, m, rad]; default: home)")
     p.add_argument("--measurements", metavar="CSV", help="show measured platform positions as markers")
@@ -139,7 +146,7 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--out", default="demo_out", help="artifact folder (default demo_out)")
 
     p = verbs.add_parser("paper", help="the paper's two-chain method: its simulation study, or on the closed chain")
-    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--seed", type=seed_number, default=3)
     p.add_argument("--noise", action="store_true", help="tracker, encoder and slider noise")
     p.add_argument("--passive-from", choices=("sensor", "distance", "platform", "sliders"), default=None,
                    help="lower cranks q13, q23: read (default), the paper's recursion (eq. 30), or a closure solve; "
@@ -152,8 +159,8 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     _add_model_options(p)
     _add_deprecated_alias(p, "--nominal", "model")
     _add_deprecated_alias(p, "--nominal-closures", "closures")
-    p.add_argument("-n", type=int, default=200)
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("-n", type=count_number, default=200)
+    p.add_argument("--seed", type=seed_number, default=1)
 
     add_plan_parser(verbs)
     add_convert_parser(verbs)
@@ -171,7 +178,7 @@ def add_campaign_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frame", choices=("base", "estimate"), default="base",
                         help="base: data are in the robot base frame; estimate: in a tracker's own frame, "
                              "estimated with the machine (default base)")
-    parser.add_argument("--marker", nargs=3, type=float, metavar=("X", "Y", "Z"),
+    parser.add_argument("--marker", nargs=3, type=finite_number, metavar=("X", "Y", "Z"),
                         help="nominal position of the measured point in the platform (serial: tool) frame [m]; "
                              "estimated with the machine")
     parser.add_argument("--units", choices=("m", "mm"), default="m",
@@ -185,7 +192,7 @@ def add_campaign_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prior", action="append", default=[], metavar="NAME=SIGMA",
                         help="a prior toward nominal with this standard deviation [m or rad] (repeatable)")
     parser.add_argument("--folds", type=_folds, default=5, help="cross-validation folds, at least 2 (default 5)")
-    parser.add_argument("--max-iterations", type=int, default=None, metavar="N", help="Levenberg-Marquardt cap")
+    parser.add_argument("--max-iterations", type=count_number, default=None, metavar="N", help="Levenberg-Marquardt cap")
     parser.add_argument("--force", action="store_true", help="write a fit that is judged unsupported, with a warning")
 
 
@@ -206,13 +213,13 @@ def _outlier_sigma(text: str) -> float:
 def add_plan_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the `plan` verb to argparse's subparsers object `verbs`."""
     p = verbs.add_parser("plan", help="choose calibration poses D-optimally, ordered for short travel")
-    p.add_argument("-n", type=int, required=True, help="number of poses to measure")
+    p.add_argument("-n", type=count_number, required=True, help="number of poses to measure")
     p.add_argument("-o", "--output", required=True, help="plan CSV (sliders, or joints with --serial, by joint name)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the candidate draw (default 0)")
-    p.add_argument("--candidates", type=int, metavar="K", help="candidates drawn in the workspace (default 20 n)")
+    p.add_argument("--seed", type=seed_number, default=0, help="seed of the candidate draw (default 0)")
+    p.add_argument("--candidates", type=count_number, metavar="K", help="candidates drawn in the workspace (default 20 n)")
     p.add_argument("--position-only", action="store_true", help="a tracker without orientation")
-    p.add_argument("--noise-pos", type=float, default=10e-6, metavar="M", help="tracker position noise [m]")
-    p.add_argument("--noise-rot", type=float, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
+    p.add_argument("--noise-pos", type=positive_number, default=10e-6, metavar="M", help="tracker position noise [m]")
+    p.add_argument("--noise-rot", type=positive_number, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
     p.add_argument("--model", metavar="URDF", help="machine URDF (default: the packaged nominal model)")
     p.add_argument("--closures", metavar="YAML", help="its closures file (default: URDF stem + .closures.yaml)")
     p.add_argument("--serial", metavar="ROBOT_OR_URDF", help="plan for a serial robot (ur3, ur5, ur10, panda or a URDF)")
@@ -234,16 +241,14 @@ def add_validate_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentP
 
 
 def noise_or_auto(text: str) -> float | str:
-    """argparse type of --noise-pos / --noise-rot in `calibrate`: a positive number, or `auto`."""
+    """argparse type of --noise-pos / --noise-rot in `calibrate`: a number above 0 (`positive_number`),
+    or `auto`."""
     if text.strip().lower() == AUTO:
         return AUTO
     try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"a noise [m or rad] or '{AUTO}', got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"a positive noise [m or rad] or '{AUTO}', got {text!r}")
-    return value
+        return positive_number(text)
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{exc} (a noise [m or rad] or '{AUTO}')") from None
 
 
 def add_convert_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentParser:

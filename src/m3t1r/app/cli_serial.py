@@ -15,36 +15,48 @@ import datetime as _dt
 import sys
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 
 from m3t1r._version import __version__
-from m3t1r.app.cli_common import campaign_report_fields, parse_priors, selection_note, status_stream
+from m3t1r.app.cli_common import (
+    RowFailures,
+    campaign_report_fields,
+    checked_marker,
+    parse_priors,
+    selection_note,
+    status_stream,
+)
 from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise
 from m3t1r.calibration.assessment import (
+    MAX_NOISE_RATIO,
     FitRejected,
+    StartCheck,
     check_fit,
     check_start,
     describe_parameter,
     fit_movement_notes,
+    gross_reading_reason,
     likely_causes,
+    quaternion_order_causes,
+    residual_causes,
     unexplained_residual_warning,
 )
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.serial import SerialCalibration, calibrate_serial
 from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial
-from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
-from m3t1r.errors import InvalidInputError, PoorExcitationWarning
+from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot, load_serial_urdf, serial_chain_of
+from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.io.instruments.formats import export_hint
 from m3t1r.io.instruments.records import CONVERTED_COLUMNS
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import sha256_bytes
 from m3t1r.io.poses import poses_from_table
-from m3t1r.io.tables import read_table
+from m3t1r.io.tables import Table, read_table
 from m3t1r.model.poe import SerialChain, tool_poses
 from m3t1r.model.urdf_io import calibrated_urdf_bytes
 
@@ -82,13 +94,14 @@ def _robot(source: str, tool: str | None, base: str | None) -> tuple[pin.Model, 
                                 "nor a URDF file")
     if not tool:
         raise InvalidInputError(f"--serial {source}: give the measured frame with --tool FRAME")
-    model = pin.buildModelFromUrdf(str(path))
-    return model, SerialChain.from_model(model, tool, base), path
+    model, urdf = load_serial_urdf(path)
+    return model, serial_chain_of(model, urdf, path, tool, base), path
 
 
-def read_campaign(path: str, chain: SerialChain, units: str) -> SerialCampaign:
+def read_campaign(path: str, chain: SerialChain, units: str, model: pin.Model | None = None) -> SerialCampaign:
     """Joint columns by joint name, x, y, z [, qx, qy, qz, qw]; lengths (x, y, z and prismatic
-    joints) in `units` ("m" or "mm", `LENGTH_UNITS`), converted to m."""
+    joints) in `units` ("m" or "mm", `LENGTH_UNITS`), converted to m. With `model`, a reading
+    beyond its joint's URDF limits is a DataFileError naming its line and column."""
     if units not in LENGTH_UNITS:
         raise InvalidInputError(f"--units {units}: expected one of {', '.join(LENGTH_UNITS)}")
     names = chain.joint_names
@@ -97,6 +110,8 @@ def read_campaign(path: str, chain: SerialChain, units: str) -> SerialCampaign:
     scale = LENGTH_UNITS[units]
     prismatic = ~np.any(chain.twists[:, 3:], axis=1)
     readings = np.column_stack([table.column(n) for n in names]) * np.where(prismatic, scale, 1.0)
+    if model is not None:
+        _check_joint_limits(table, model, names, readings, prismatic)
     positions = np.column_stack([table.column(c) for c in "xyz"]) * scale
     position_only = not table.has_column("qw")
     rotations = [np.eye(3)] * len(positions) if position_only else [g.rotation for g in poses_from_table(table)]
@@ -104,6 +119,28 @@ def read_campaign(path: str, chain: SerialChain, units: str) -> SerialCampaign:
     return SerialCampaign(Path(path), sha256_bytes(Path(path).read_bytes()), readings, poses,
                           np.asarray(table.line_numbers), position_only, units,
                           table.column("source").astype(int) if table.has_column("source") else None)
+
+
+def _check_joint_limits(table: Table, model: pin.Model, names: tuple[str, ...], readings: np.ndarray,
+                        prismatic: np.ndarray) -> None:
+    """Every reading within its joint's limits (joints with usable limits only)."""
+    for k, name in enumerate(names):
+        index = model.idx_qs[model.getJointId(name)]
+        lower, upper = float(model.lowerPositionLimit[index]), float(model.upperPositionLimit[index])
+        if not (np.isfinite(lower) and np.isfinite(upper) and lower < upper):
+            continue
+        values = readings[:, k]
+        outside = np.flatnonzero((values < lower) | (values > upper))
+        if outside.size:
+            row = int(outside[0])
+            unit = "m" if prismatic[k] else "rad"
+            hint = f"(SI units: {unit})"
+            # Degrees put most of a column beyond the limits, a bad reading one value.
+            if not prismatic[k] and 2 * outside.size > len(values) \
+                    and np.all((np.radians(values) >= lower) & (np.radians(values) <= upper)):
+                hint = "(every value of the column is within the limits in degrees: give radians)"
+            raise table.error(row, f"{values[row]:.6g} {unit} is beyond the joint limit [{lower:.6g}, {upper:.6g}] "
+                                   + hint, column=name)
 
 
 def _nominal_frames(model: pin.Model, chain: SerialChain, marker: pin.SE3) -> Callable[[np.ndarray], np.ndarray]:
@@ -121,13 +158,61 @@ def _diagnose(model: pin.Model, chain: SerialChain, data: SerialCampaign, marker
                          frame_estimated=frame_estimated)
 
 
+def _fit_causes(args: argparse.Namespace, model: pin.Model, chain: SerialChain, data: SerialCampaign,
+                marker: pin.SE3, estimate_frame: bool, calibration: SerialCalibration, choice: NoiseChoice
+                ) -> list[str]:
+    """Likely causes of a fit the noise does not explain (`data`: the poses it was given): quaternion
+    columns in another order, else the data checks and, by the size of the residual left
+    (`residual_causes`), a measured frame that is not the tool's while no marker was given."""
+    if not data.position_only:
+        predicted = tool_poses(chain, model, data.readings) @ marker.homogeneous
+        order = quaternion_order_causes(predicted, np.array([g.translation for g in data.poses]),
+                                        np.array([g.rotation for g in data.poses]), frame_estimated=estimate_frame)
+        if order:  # the whole story: every other check would read the scrambled orientations
+            return order
+    after = calibration.residual_after
+    beyond_noise = not calibration.converged or not calibration.variance_factor <= MAX_NOISE_RATIO**2
+    return _diagnose(model, chain, data, marker, estimate_frame) + residual_causes(
+        after.position, after.rotation, beyond_noise=beyond_noise, marker_given=args.marker is not None,
+        position_only=data.position_only)
+
+
 def _precheck(model: pin.Model, chain: SerialChain, data: SerialCampaign, marker: pin.SE3,
-              estimate_frame: bool) -> None:
-    """Refuse at once when the nominal robot is further from the data than any build error."""
+              estimate_frame: bool) -> StartCheck:
+    """Refuse at once when the nominal robot is further from the data than any build error; the
+    returned check's `gross` readings are left out of the fit."""
+    if len(data.poses) < 3:
+        raise IdentificationError(f"{data.path}: {len(data.poses)} pose(s) are far too few to calibrate (tens of "
+                                  "poses spread over the joint ranges are needed; `m3t1r plan --serial` chooses them)")
     frames = _nominal_frames(model, chain, marker)(data.readings)
     measured = np.array([g.translation for g in data.poses])
-    check_start(frames, measured, estimate_frame, lambda: _diagnose(model, chain, data, marker, estimate_frame),
-                "robot")
+    return check_start(frames, measured, estimate_frame,
+                       lambda: _diagnose(model, chain, data, marker, estimate_frame), "robot")
+
+
+def _without_gross_readings(args: argparse.Namespace, data: SerialCampaign, start: StartCheck) -> SerialCampaign:
+    """The campaign without the poses the start check found gross (outliers, reported by line); with
+    the outlier gate off (--outlier-sigma 0) such a pose is refused by line instead."""
+    if not start.gross:
+        return data
+    reasons = [(int(data.lines[i]), gross_reading_reason(start, i)) for i in start.gross]
+    if not args.outlier_sigma:
+        raise RowFailures(data.path, [(line, reason + "; remove or re-measure the row, or let the outlier gate "
+                                       "(--outlier-sigma) leave it out") for line, reason in reasons])
+    for line, reason in reasons:
+        print(f"note: line {line}: {reason}; left out as an outlier", flush=True)
+    keep = np.setdiff1d(np.arange(len(data.poses)), start.gross)
+    return replace(data, readings=data.readings[keep], poses=[data.poses[i] for i in keep], lines=data.lines[keep],
+                   sources=None if data.sources is None else data.sources[keep])
+
+
+def _outlier_sources(data: SerialCampaign, outlier_lines: list[int]) -> list[int]:
+    """The `source` value (the pose in the tracker's file) of each outlier's file line; none without
+    a `source` column."""
+    if data.sources is None:
+        return []
+    source_of_line = {int(line): int(source) for line, source in zip(data.lines, data.sources)}
+    return [source_of_line[line] for line in outlier_lines]
 
 
 def cmd_calibrate_serial(args: argparse.Namespace) -> None:
@@ -152,26 +237,29 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
             if urdf is None:
                 print(f"{args.serial} is an example-robot-data robot: no calibrated URDF is written "
                       "(give its URDF path to --serial for one)" + (f"; -o {args.output} ignored" if args.output else ""))
-            data = read_campaign(args.measurements, chain, args.units)
-            marker = pin.SE3(np.eye(3), np.array(args.marker, dtype=float)) if args.marker is not None else pin.SE3.Identity()
+            data = read_campaign(args.measurements, chain, args.units, model)
+            marker = MeasurementSetup.from_numbers(marker_xyz=checked_marker(args.marker)).marker
             estimate_frame = args.frame == "estimate"
-            _precheck(model, chain, data, marker, estimate_frame)
+            start = _precheck(model, chain, data, marker, estimate_frame)
             print(f"calibrating chain {chain.joint_names[0]} .. {chain.tool_frame} from {len(data.poses)} poses"
                   + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
+            fitted_data = _without_gross_readings(args, data, start)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", PoorExcitationWarning)
                 calibration, choice = fit_with_noise(
                     args.noise_pos, args.noise_rot, TrackerNoise(),
-                    lambda noise, gate: _fit(args, model, chain, data, noise, marker, estimate_frame, gate),
-                    lambda fitted: _left(fitted, len(data.poses)))
+                    lambda noise, gate: _fit(args, model, chain, fitted_data, noise, marker, estimate_frame, gate),
+                    lambda fitted: _left(fitted, len(fitted_data.poses)))
             noise = choice.noise
-            lines = [int(data.lines[i]) for i in calibration.outliers]
+            lines = sorted([int(fitted_data.lines[i]) for i in calibration.outliers] + [int(data.lines[i]) for i in start.gross])
             print(choice.describe(data.position_only))
             _print_summary(calibration, lines)
-            if data.sources is not None and calibration.outliers:
+            if data.sources is not None and lines:
                 print("outliers in the tracker's file (the source column): "
-                      + ", ".join(str(int(data.sources[i])) for i in calibration.outliers))
-            unexplained = _judge(args, calibration, choice, lambda: _diagnose(model, chain, data, marker, estimate_frame))
+                      + ", ".join(map(str, _outlier_sources(data, lines))))
+            unexplained = _judge(args, calibration, choice,
+                                 lambda: _fit_causes(args, model, chain, fitted_data, marker, estimate_frame, calibration,
+                                                     choice))
             validation = cross_validate_serial(calibration, folds=args.folds)
             notes = explain(calibration, [str(w.message) for w in caught])
             warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
@@ -182,7 +270,7 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
             report = serial_calibration_report(calibration, data, args, noise, lines, validation, notes)
             report["noise_source"], report["warnings"] = choice.report(), warned
             if data.sources is not None:
-                report["outlier_sources"] = [int(data.sources[i]) for i in calibration.outliers]
+                report["outlier_sources"] = _outlier_sources(data, lines)
         if urdf_output is not None:
             outputs.stage(urdf_output, calibrated_urdf_bytes(urdf, calibration.model))
         outputs.stage_json(report_output, report)

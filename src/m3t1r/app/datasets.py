@@ -56,6 +56,9 @@ def _check_limits(table: Table, mechanism: Mechanism, names: Sequence[str], scal
             prismatic = name in _prismatic_joints(mechanism, names)
             if prismatic and scale.get(column, 1.0) == 1.0 and np.all((values * 1e-3 >= lower[k]) & (values * 1e-3 <= upper[k])):
                 hint = "(every value of the column is within the limits in millimetres: use --units mm)"
+            elif not prismatic and 2 * outside.size > len(values) \
+                    and np.all((np.radians(values) >= lower[k]) & (np.radians(values) <= upper[k])):
+                hint = "(every value of the column is within the limits in degrees: give radians)"
             raise table.error(row, f"{values[row]:.6g} is beyond the joint limit [{lower[k]:.6g}, {upper[k]:.6g}] "
                                    + hint, column=column)
 

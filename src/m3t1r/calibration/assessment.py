@@ -10,6 +10,11 @@ Used by `m3t1r calibrate` for closed-loop and serial machines alike:
   machine. Each check compares the data with the model after a registration that estimates the
   measurement frame (when it is estimated) and the measured point's offset from the model's
   measured frame (an unknown marker, which any fit absorbs), so that neither is taken for a mistake;
+  `quaternion_order_causes`, `metres_as_millimetres_causes` and `residual_causes` name the mistakes
+  only the orientations, the unit of every length or the size of what a fit left can show;
+- `check_start` refuses a nominal model whose typical (median) pose is further from the data than
+  any build error, after the same registration made robust to a few gross readings, which it
+  returns to be left out of the fit as outliers;
 - `weak_parameters` and `fit_movement_notes` say in plain words what the data could not
   determine and when a fit barely moved or moved implausibly far.
 """
@@ -26,10 +31,10 @@ import pinocchio as pin
 from m3t1r.calibration.measurement_setup import register_frame
 from m3t1r.errors import IdentificationError
 
-__all__ = ["FitRejected", "MAX_NOISE_RATIO", "HOPELESS_RESIDUAL", "Registration", "check_fit", "check_start",
-           "likely_causes", "describe_parameter", "fit_movement_notes", "coverage_notes", "noise_from_residual",
-           "register_with_offset",
-           "unexplained_residual_warning"]
+__all__ = ["FitRejected", "MAX_NOISE_RATIO", "HOPELESS_RESIDUAL", "MAX_GROSS_SHARE", "SMALL_RESIDUAL", "Registration",
+           "StartCheck", "check_fit", "check_start", "gross_reading_reason", "likely_causes", "residual_causes",
+           "quaternion_order_causes", "metres_as_millimetres_causes", "describe_parameter", "fit_movement_notes",
+           "coverage_notes", "noise_from_residual", "register_with_offset", "unexplained_residual_warning"]
 
 #: A fit is accepted while its whitened residual RMS is at most this many times the stated noise
 #: (variance factor <= 9): a margin for small unmodelled effects, far below a wrong unit, frame,
@@ -48,13 +53,17 @@ HOPELESS_RESIDUAL = 0.1
 
 
 class FitRejected(IdentificationError):
-    """The fit is not supported by the data; `causes` lists the likely reasons, most likely first."""
+    """The fit is not supported by the data; `causes` lists the likely reasons, most likely first.
 
-    def __init__(self, reason: str, causes: Sequence[str] = ()) -> None:
+    forceable: whether `calibrate --force` would write something (a fit that ran and was judged);
+    a fit refused before it ran (`check_start`) has nothing to write, and the message says so."""
+
+    def __init__(self, reason: str, causes: Sequence[str] = (), forceable: bool = True) -> None:
         self.reason = reason
         self.causes = list(causes)
+        self.forceable = forceable
         lines = [reason] + [f"  likely cause: {cause}" for cause in self.causes]
-        lines.append("  nothing was written (--force writes it anyway)")
+        lines.append("  nothing was written" + (" (--force writes it anyway)" if forceable else ""))
         super().__init__("\n".join(lines))
 
 
@@ -158,22 +167,79 @@ def _registration_step(frame: pin.SE3, offset: np.ndarray, rotations: np.ndarray
     return np.linalg.lstsq(jacobian.reshape(3 * n, 9), -residual, rcond=1e-10)[0]
 
 
+#: More than this share of the poses beyond HOPELESS_RESIDUAL is no longer a few gross readings:
+#: the data as a whole do not fit the model.
+MAX_GROSS_SHARE = 0.25
+
+
+@dataclass(frozen=True)
+class StartCheck:
+    """How far the nominal model starts from the data: `distances` (N,) [m] from each predicted
+    point to its measured one (after a registration robust to gross readings when the frame is
+    estimated), their median `typical` [m], and `gross`: the poses beyond HOPELESS_RESIDUAL, which
+    no build error explains (a reading gone wrong), to be left out before the fit."""
+
+    distances: np.ndarray
+    typical: float
+    gross: tuple[int, ...]
+
+
 def check_start(points: np.ndarray, measured: np.ndarray, frame_estimated: bool,
-                causes: Callable[[], list[str]], what: str = "machine") -> None:
-    """Raise FitRejected, with `causes()`, when the nominal model's predicted points (N, 3) are
-    more than HOPELESS_RESIDUAL RMS from the measured ones, after a rigid registration when the
-    frame is estimated: no build error explains that, and a fit would only wander. Given the
-    predicted measured frames (N, 4, 4) instead, the registration also estimates the measured
-    point's offset in them (an unknown marker is no build error either)."""
+                causes: Callable[[], list[str]], what: str = "machine") -> StartCheck:
+    """Judge the nominal model's predictions against the measured points (N, 3) [m].
+
+    points: the predicted measured points (N, 3), or the predicted measured frames (N, 4, 4), whose
+    point's further offset in them is then registered too (an unknown marker is no build error).
+    Robust to a few gross readings: the typical (median) pose decides, and a pose far beyond any
+    build error is returned in `gross` rather than blamed on the model. Raises FitRejected, with
+    `causes()`, when the typical pose is more than HOPELESS_RESIDUAL away, or when more than
+    MAX_GROSS_SHARE of the poses are: no build error explains that, and a fit would only wander.
+    """
     poses, offset_free = _as_poses(points)
-    if frame_estimated or offset_free:
-        rms = register_with_offset(poses, measured, estimate_frame=frame_estimated, estimate_offset=offset_free).rms
-    else:
-        rms = float(np.sqrt(np.mean(np.sum((poses[:, :3, 3] - measured) ** 2, axis=1))))
-    if rms > HOPELESS_RESIDUAL:
-        raise FitRejected(f"the nominal {what} is {rms:.3g} m RMS from the measurements"
-                          + (" after registering the frame" if frame_estimated else "")
-                          + f", beyond any build error ({HOPELESS_RESIDUAL:g} m): the fit was not attempted", causes())
+    distances = _start_distances(poses, offset_free, measured, frame_estimated)
+    typical = float(np.median(distances))
+    gross = np.flatnonzero(distances > HOPELESS_RESIDUAL)
+    if typical > HOPELESS_RESIDUAL or len(gross) > MAX_GROSS_SHARE * len(distances):
+        share = "" if typical > HOPELESS_RESIDUAL else f"; {len(gross)} of {len(distances)} poses are beyond it"
+        registered = " and the ".join(name for name, done in (("frame", frame_estimated), ("marker", offset_free))
+                                      if done)
+        raise FitRejected(f"the nominal {what} is {typical:.3g} m from the measurements (median over the poses"
+                          + (f", after registering the {registered}" if registered else "")
+                          + f"), beyond any build error ({HOPELESS_RESIDUAL:g} m){share}: the fit was not attempted",
+                          causes(), forceable=False)
+    return StartCheck(distances, typical, tuple(int(i) for i in gross))
+
+
+def gross_reading_reason(check: StartCheck, index: int) -> str:
+    """Why pose `index` of `check.gross` is a gross reading, in plain words."""
+    return (f"the measured point is {check.distances[index]:.3g} m from the nominal prediction, where the "
+            f"median pose is {check.typical:.3g} m: a gross reading (beyond any build error, "
+            f"{HOPELESS_RESIDUAL:g} m), not a fault of the model")
+
+
+def _start_distances(poses: np.ndarray, offset_free: bool, measured: np.ndarray, frame_estimated: bool
+                     ) -> np.ndarray:
+    """Distances [m] of the predicted points (of `poses` (N, 4, 4), see `_as_poses`) to the measured
+    ones. With the frame estimated or the point's offset free, after `register_with_offset` on the
+    poses within three times the median distance, repeated until that set is stable (a reading 1 m
+    or 1 km off then moves the registration no more than any other pose)."""
+    if not (frame_estimated or offset_free):
+        return np.linalg.norm(poses[:, :3, 3] - measured, axis=1)
+    keep = np.ones(len(poses), dtype=bool)
+    for _ in range(10):
+        registration = _register(poses[keep], measured[keep], offset_free, frame=frame_estimated)
+        distances = np.linalg.norm(_registered_points(poses, registration) - measured, axis=1)
+        closest = distances <= 3.0 * np.median(distances)
+        if np.count_nonzero(closest) < 3 or np.array_equal(closest, keep):
+            break
+        keep = closest
+    return distances
+
+
+def _registered_points(poses: np.ndarray, registration: Registration) -> np.ndarray:
+    """The measured points (N, 3) [m] the registered model predicts: F (R_i o + p_i)."""
+    frame = registration.frame
+    return (poses[:, :3, :3] @ registration.offset + poses[:, :3, 3]) @ frame.rotation.T + frame.translation
 
 
 def describe_parameter(name: str) -> str:
@@ -215,14 +281,15 @@ def likely_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndar
         return ["the readings do not assemble on this machine: columns in another order or unit, or another machine"]
     poses, target = poses[valid], measured[valid]
     points = poses[:, :3, 3]
-    causes = []
     spread = float(np.sqrt(np.mean(np.sum((points - points.mean(0)) ** 2, axis=1))))
     measured_spread = float(np.sqrt(np.mean(np.sum((target - target.mean(0)) ** 2, axis=1))))
     ratio = measured_spread / max(spread, 1e-12)
+    # A wrong unit is the whole story: the frame and column checks below would only misread its scale.
     if 300.0 < ratio < 3000.0:
-        causes.append(f"positions look like millimetres (spread {ratio:.0f} times the model's): use --units mm")
-    elif 1 / 3000.0 < ratio < 1 / 300.0:
-        causes.append(f"positions look like metres (spread 1/{1 / ratio:.0f} of the model's): drop --units mm")
+        return [f"positions look like millimetres (spread {ratio:.0f} times the model's): use --units mm"]
+    if 1 / 3000.0 < ratio < 1 / 300.0:
+        return [f"positions look like metres (spread 1/{1 / ratio:.0f} of the model's): drop --units mm"]
+    causes = []
     registration = _register(poses, target, offset_free)
     registered = registration.rms
     direct = _register(poses, target, offset_free, frame=False).rms
@@ -239,6 +306,85 @@ def likely_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndar
         causes.append(f"the data do not fit this machine even after {registered_what} ({registered:.3g} m RMS): "
                       "data from another machine, or the wrong model files")
     return causes
+
+
+#: A fit leaving less than this RMS [m], [rad] fits the data to sub-millimetre: what is left is a
+#: noise larger than stated or small unmodelled effects, not a wrong setup.
+SMALL_RESIDUAL = 1e-3
+
+
+def residual_causes(position_rms: float, rotation_rms: float, *, beyond_noise: bool, marker_given: bool,
+                    position_only: bool) -> list[str]:
+    """Causes of what a fit left, judged by its size: position_rms [m], rotation_rms [rad] (NaN
+    with positions only); beyond_noise: the fit left more than the noise (or did not converge).
+
+    A small residual (at most SMALL_RESIDUAL in both) names no mistake, whatever the stated noise:
+    it is a noisier tracker than stated or small effects the geometric model does not hold, which
+    the caller writes with `unexplained_residual_warning`. A large one with orientation data and no
+    marker given is a measured frame that is not the platform's, when it is beyond the noise or its
+    rotation beyond any tracker's (IMPLAUSIBLE_ROTATION / 10, which also tells with the noise
+    estimated from the same residual)."""
+    rotation = rotation_rms if np.isfinite(rotation_rms) else 0.0
+    small = position_rms <= SMALL_RESIDUAL and rotation <= SMALL_RESIDUAL
+    if marker_given or position_only or small or not (beyond_noise or rotation > IMPLAUSIBLE_ROTATION / 10):
+        return []
+    return ["the measured frame (a probe or a set of reflectors) is not the platform frame: give its position with "
+            "--marker X Y Z, and its orientation is estimated with it"]
+
+
+def quaternion_order_causes(predicted_poses: np.ndarray, measured_positions: np.ndarray,
+                            measured_rotations: np.ndarray, *, frame_estimated: bool) -> list[str]:
+    """Whether the file's quaternion columns (qx, qy, qz, qw) hold w, x, y, z instead (scalar first).
+
+    predicted_poses (N, 4, 4): the measured frame as the nominal model puts it in its base;
+    measured_positions (N, 3) [m] and measured_rotations (N, 3, 3) as read. With the measurement
+    frame F (registered on the positions with the marker's offset, `register_with_offset`, when
+    estimated, else the identity), R_F^T R_measured,i = R_predicted,i R_marker: the same rotation
+    R_marker at every pose. Its spread over the poses is compared as read and with the four numbers
+    re-ordered."""
+    if len(predicted_poses) < 3:
+        return []
+    poses = np.asarray(predicted_poses, dtype=float)
+    frame = register_with_offset(poses, measured_positions).frame.rotation if frame_estimated else np.eye(3)
+    predicted = frame @ poses[:, :3, :3]
+
+    def spread(measured: np.ndarray) -> float:
+        marker = np.swapaxes(predicted, 1, 2) @ measured
+        u, _, vt = np.linalg.svd(marker.sum(axis=0))
+        mean = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        return float(np.mean([np.linalg.norm(pin.log3(mean.T @ m)) for m in marker]))
+
+    read = np.array([pin.Quaternion(r).coeffs() for r in measured_rotations])  # the file's four numbers
+    reordered = np.array([pin.Quaternion(w, x, y, z).normalized().matrix() for w, x, y, z in read])
+    as_read, fixed = spread(np.asarray(measured_rotations)), spread(reordered)
+    if as_read > 100 * SMALL_RESIDUAL and fixed < as_read / 5:
+        return [f"the quaternion columns look like w, x, y, z (scalar first) under the names qx, qy, qz, qw (scalar "
+                f"last): read in that order, the measured orientations follow the model's to {fixed:.2g} rad instead "
+                f"of {as_read:.2g} rad (mean); reorder the columns"]
+    return []
+
+
+def metres_as_millimetres_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndarray,
+                                  measured: np.ndarray, length_readings: np.ndarray, *, frame_estimated: bool
+                                  ) -> list[str]:
+    """Whether a file read with --units mm holds metres: `predict` as for `likely_causes` (points
+    or frames, whose point's offset is registered too), the readings (N, k) and measured points
+    (N, 3) [m] as read, `length_readings` (k,) the reading columns that --units scaled (prismatic
+    joints). With every length scaled back by 1000, does the nominal model explain the points far
+    better? (Sliders scaled too keep the spreads alike, which the spread test cannot see.)"""
+    def rms(predicted: np.ndarray, target: np.ndarray) -> float:
+        poses, offset_free = _as_poses(predicted)
+        valid = np.all(np.isfinite(poses.reshape(len(poses), -1)), axis=1)
+        if np.count_nonzero(valid) < max(4, 0.9 * len(poses)):
+            return float("inf")
+        return _register(poses[valid], target[valid], offset_free, frame=frame_estimated).rms
+
+    as_read = rms(predict(readings), measured)
+    in_metres = rms(predict(readings * np.where(length_readings, 1e3, 1.0)), measured * 1e3)
+    if in_metres < as_read / 5.0 and np.isfinite(in_metres):
+        return [f"the file looks like metres: read without --units mm, the nominal model explains the positions "
+                f"{as_read / max(in_metres, 1e-12):.0f} times better ({in_metres:.3g} m RMS); drop --units mm"]
+    return []
 
 
 def _swapped_position_columns(poses: np.ndarray, offset_free: bool, measured: np.ndarray, registered: float,

@@ -37,6 +37,7 @@ from m3t1r.calibration.identification import (
     BaseParameters,
     LMResult,
     ParameterSelection,
+    checked_outlier_sigma,
     forward_selection,
     levenberg_marquardt,
     outlier_poses,
@@ -47,7 +48,7 @@ from m3t1r.calibration.identification import (
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
-from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
+from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning, require_count
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
@@ -353,6 +354,9 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     not assemble. A fit that did not converge is returned with converged False: `m3t1r.assessment`
     judges it.
     """
+    outlier_sigma = checked_outlier_sigma(outlier_sigma)
+    if max_iterations is not None:
+        max_iterations = require_count(max_iterations, "max_iterations")
     error_model = error_model or ClosedLoopErrorModel(mechanism)
     setup = setup or MeasurementSetup()
     everything = np.arange(error_model.n_parameters + len(setup_parameter_names(
@@ -547,7 +551,7 @@ def cross_validate(calibration: ClosedLoopCalibration, folds: int = 5, seed: int
     inliers = np.flatnonzero(problem.active)
     if folds < 2 or len(inliers) < 2 * folds:
         raise InvalidInputError(f"cross-validation: {folds} folds need at least {2 * folds} inlier poses")
-    assignment = np.random.default_rng(seed).permutation(len(inliers)) % folds
+    assignment = np.random.default_rng(require_count(seed, "seed", minimum=0)).permutation(len(inliers)) % folds
     k = problem.measurements.rows_per_pose
     residuals = np.empty((len(inliers), k))
     if refit:

@@ -23,7 +23,7 @@ import scipy.linalg
 import scipy.special
 from numpy.typing import ArrayLike
 
-from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
+from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning, require_real
 
 __all__ = [
     "BaseParameters",
@@ -37,6 +37,7 @@ __all__ = [
     "ParameterSelection",
     "forward_selection",
     "outlier_poses",
+    "checked_outlier_sigma",
     "parameter_columns",
     "LeastSquaresProblem",
     "LinearFit",
@@ -340,6 +341,9 @@ def parameter_columns(names: Sequence[str], wanted: Sequence[str], what: str) ->
     """Columns named by `wanted`: a parameter name (`q12.dt[3]`, `compliance.elbow_joint`) or a
     placement's name (`q12`: every column named `q12.dt[k]`). InvalidInputError naming `what` and
     the unknown name otherwise, with an example taken from `names`."""
+    # A bare string would be read letter by letter ("q12" -> 'q', '1', '2').
+    if isinstance(wanted, (str, bytes)) or not all(isinstance(name, str) for name in wanted):
+        raise InvalidInputError(f"{what}: expected a list of names such as ['q12'], got {wanted!r}")
     index = {name: i for i, name in enumerate(names)}
     columns: list[int] = []
     for name in wanted:
@@ -370,6 +374,21 @@ def outlier_gate(sigma: float, dof: int) -> float:
     importing scipy.stats (a second of start-up for every command).
     """
     return float(scipy.special.chdtri(dof, 2.0 * scipy.special.ndtr(-sigma)))
+
+
+def checked_outlier_sigma(sigma: object) -> float | None:
+    """The outlier gate of a calibration call: None (or 0) keeps every pose; otherwise a finite
+    number of sigmas from 1 to 1000. Anything else (negative, NaN, 0.5: a gate that flags good
+    poses or none) raises InvalidInputError."""
+    if sigma is None:
+        return None
+    value = require_real(sigma, "outlier_sigma")
+    if value == 0.0:
+        return None
+    if not 1.0 <= value <= 1e3:
+        raise InvalidInputError(f"outlier_sigma: None or 0 (keep every pose) or a gate of 1 to 1000 noise sigmas, "
+                                f"got {sigma!r}")
+    return value
 
 
 def outlier_poses(whitened: ArrayLike, sigma: float = OUTLIER_SIGMA) -> tuple[np.ndarray, float]:

@@ -23,7 +23,7 @@ import pinocchio as pin
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
-from m3t1r.errors import IdentificationError, InvalidInputError
+from m3t1r.errors import IdentificationError, InvalidInputError, require_finite_vector
 
 __all__ = ["MeasurementSetup", "LENGTH_UNITS", "register_frame", "register_marker_rotation", "se3_from_report",
            "se3_to_report"]
@@ -68,11 +68,12 @@ class MeasurementSetup:
         platform's orientation; identity where None."""
         frame = pin.SE3.Identity()
         if frame_xyz_rpy is not None:
-            x, y, z, roll, pitch, yaw = np.asarray(frame_xyz_rpy, dtype=float).reshape(6)
+            x, y, z, roll, pitch, yaw = require_finite_vector(frame_xyz_rpy, 6, "measurement frame x, y, z, roll, "
+                                                              "pitch, yaw")
             frame = pin.SE3(pin.rpy.rpyToMatrix(roll, pitch, yaw), np.array([x, y, z]))
         marker = pin.SE3.Identity()
         if marker_xyz is not None:
-            marker = pin.SE3(np.eye(3), np.asarray(marker_xyz, dtype=float).reshape(3))
+            marker = pin.SE3(np.eye(3), require_finite_vector(marker_xyz, 3, "marker x, y, z"))
         return MeasurementSetup(frame, marker)
 
     def measured_poses(self, platform_poses: np.ndarray) -> np.ndarray:

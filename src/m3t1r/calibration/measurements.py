@@ -14,7 +14,7 @@ import pinocchio as pin
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.measurement_setup import MeasurementSetup
-from m3t1r.errors import InvalidInputError
+from m3t1r.errors import InvalidInputError, real_array
 from m3t1r.model.batch_kinematics import ForwardBatch
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
@@ -50,7 +50,7 @@ class PoseMeasurements:
     position_only: bool = False
 
     def __post_init__(self) -> None:
-        actuators = np.asarray(self.actuators, dtype=float)
+        actuators = real_array(self.actuators, "actuator readings")
         if actuators.ndim != 2 or actuators.shape[0] != len(self.poses):
             raise InvalidInputError(f"{actuators.shape} actuator rows for {len(self.poses)} poses")
         if not np.all(np.isfinite(actuators)):

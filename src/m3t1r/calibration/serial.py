@@ -41,6 +41,7 @@ from m3t1r.calibration.identification import (
     LMResult,
     ParameterSelection,
     batch_least_squares,
+    checked_outlier_sigma,
     forward_selection,
     levenberg_marquardt,
     outlier_poses,
@@ -50,7 +51,7 @@ from m3t1r.calibration.identification import (
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.serial_simulation import _checked_joint_noise, _readonly
-from m3t1r.errors import IdentificationError, InvalidInputError
+from m3t1r.errors import IdentificationError, InvalidInputError, real_array, require_count
 from m3t1r.model.poe import Placement, SerialChain, jlog3_batch, log3_batch, perturb, placement_poses, skew
 
 __all__ = ["PoseErrorRMS", "SerialCalibration", "calibrate_serial", "gravity_torques"]
@@ -450,7 +451,7 @@ class PoseErrorRMS:
 def _parse_measurements(
     chain: SerialChain, q_readings: ArrayLike, measured_poses: Sequence[pin.SE3] | ArrayLike, position_only: bool
 ) -> _Measurements:
-    q = np.asarray(q_readings, dtype=float)
+    q = real_array(q_readings, "q_readings")
     if q.ndim != 2 or q.shape[1] != chain.n_joints:
         raise InvalidInputError(f"q_readings: expected shape (N, {chain.n_joints}), got {q.shape}")
     if not np.all(np.isfinite(q)):
@@ -463,7 +464,7 @@ def _parse_measurements(
         positions = homogeneous[:, :3, 3].copy()
         rotations = np.ascontiguousarray(homogeneous[:, :3, :3])
     else:
-        array = np.asarray(measured_poses, dtype=float)
+        array = real_array(measured_poses, "measured_poses")
         if array.ndim != 2 or array.shape[1] not in (3, 7):
             raise InvalidInputError(
                 f"measured_poses: expected SE3 objects, (N, 7) [x, y, z, qx, qy, qz, qw] or (N, 3) positions, "
@@ -710,6 +711,8 @@ def calibrate_serial(
     then outliers, then selection. A fit that did not converge is returned with converged False.
     """
     chain.check_model(model)
+    outlier_sigma = checked_outlier_sigma(outlier_sigma)
+    max_iterations = require_count(max_iterations, "max_iterations")
     data = _parse_measurements(chain, q_readings, measured_poses, position_only)
     layout = _Layout(chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0, compliance)
     names = layout.names(chain)
@@ -723,7 +726,7 @@ def calibrate_serial(
     solve = functools.partial(levenberg_marquardt, max_iterations=max_iterations, initial_damping=_INITIAL_DAMPING,
                               absolute_cost_tolerance=absolute_cost_tolerance)
     base, result, iterations = _fit_base(problem, start, names, rank_tolerance, fixed_columns, solve)
-    if outlier_sigma is not None and outlier_sigma > 0.0:
+    if outlier_sigma is not None:
         result, more = _reject_outliers(problem, start, result, outlier_sigma, solve)
         iterations += more
     selection = None

@@ -13,7 +13,7 @@ from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.serial import SerialCalibration, _placement_rows, gravity_torques
-from m3t1r.errors import InvalidInputError
+from m3t1r.errors import InvalidInputError, require_count
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.poe import SerialChain, placement_poses, tool_poses
 
@@ -101,7 +101,7 @@ def cross_validate_serial(calibration: SerialCalibration, folds: int = 5, seed: 
     inliers = np.flatnonzero(problem.active)
     if folds < 2 or len(inliers) < 2 * folds:
         raise InvalidInputError(f"cross-validation: {folds} folds need at least {2 * folds} inlier poses")
-    fold_of = np.random.default_rng(seed).permutation(len(inliers)) % folds
+    fold_of = np.random.default_rng(require_count(seed, "seed", minimum=0)).permutation(len(inliers)) % folds
     residuals = np.empty((len(inliers), problem.model.data.rows_per_pose))
     fold_problem = copy.copy(problem)
     fold_problem.columns = np.array(calibration.fitted_indices, dtype=int)

@@ -13,8 +13,12 @@ from typing import Literal
 import pinocchio as pin
 
 from m3t1r.errors import InvalidInputError, ModelFileError
+from m3t1r.io.paths import read_bounded, size_refusal
+from m3t1r.model.poe import SerialChain
+from m3t1r.model.urdf_io import refuse_mimic_joints
 
-__all__ = ["RobotName", "example_robot_data_dir", "example_tool_frame", "load_example_robot"]
+__all__ = ["RobotName", "example_robot_data_dir", "example_tool_frame", "load_example_robot", "load_serial_urdf",
+           "serial_chain_of"]
 
 
 RobotName = Literal["ur3", "ur5", "ur10", "panda"]
@@ -93,4 +97,31 @@ def load_example_robot(name: RobotName) -> pin.Model:
         ids = [model.getJointId(joint) for joint in spec.locked_joints]
         model = pin.buildReducedModel(model, ids, pin.neutral(model))
     return model
+
+
+def load_serial_urdf(path: Path) -> tuple[pin.Model, bytes]:
+    """A robot's URDF file as a Pinocchio model, and its bytes. ModelFileError naming the file when
+    it is missing, too large or not a URDF Pinocchio reads (any XML, or none at all)."""
+    if not path.is_file():
+        raise ModelFileError(path, "file not found" if not path.exists() else "not a regular file")
+    try:
+        data = read_bounded(path)
+    except OSError as exc:
+        raise ModelFileError(path, f"cannot read: {exc.strerror or exc}") from None
+    if data is None:
+        raise ModelFileError(path, size_refusal())
+    try:
+        return pin.buildModelFromUrdf(str(path)), data
+    except Exception as exc:  # Pinocchio raises bare RuntimeError/ValueError (or worse) for a bad file
+        raise ModelFileError(path, f"Pinocchio cannot read this URDF: {exc}") from None
+
+
+def serial_chain_of(model: pin.Model, urdf: bytes | None, path: Path | None, tool: str, base: str | None
+                    ) -> SerialChain:
+    """The chain from `base` to `tool`, refused by joint name (ModelFileError) when the URDF makes a
+    joint of it a `<mimic>` of another (it would be fitted as independent)."""
+    chain = SerialChain.from_model(model, tool, base)
+    if urdf is not None and path is not None:
+        refuse_mimic_joints(path, urdf, chain.joint_names)
+    return chain
 

@@ -18,7 +18,7 @@ import pinocchio as pin
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
-from m3t1r.errors import InvalidInputError
+from m3t1r.errors import InvalidInputError, require_count
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import rehomed
 from m3t1r.model.workspace import workspace_actuators
@@ -139,7 +139,7 @@ def simulate_study(nominal: Mechanism, n_poses: int = 50, n_holdout: int = 200, 
     seed; `outliers` of the measurements get a 3-5 mm gross error (drawn last)."""
     if n_poses < 1 or n_holdout < 0:
         raise InvalidInputError(f"n_poses must be >= 1 and n_holdout >= 0, got {n_poses}, {n_holdout}")
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(require_count(seed, "seed", minimum=0))
     error_model = ClosedLoopErrorModel(nominal)
     errors = random_placement_errors(error_model, rng, sigma_position, sigma_rotation)
     truth = actual_machine(nominal, errors, error_model)

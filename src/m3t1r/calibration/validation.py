@@ -36,7 +36,6 @@ small against the noise.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -49,14 +48,17 @@ import scipy.special
 
 from m3t1r.calibration.identification import OUTLIER_SIGMA, outlier_gate
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
+from m3t1r.calibration.serial_robots import load_serial_urdf, serial_chain_of
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelFileError
 from m3t1r.io.instruments.records import CONVERTED_COLUMNS
+from m3t1r.io.paths import read_bounded, size_refusal
 from m3t1r.io.poses import measurement_column, poses_from_table
+from m3t1r.io.strict_json import parse_strict_json
 from m3t1r.io.tables import read_table
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
-from m3t1r.model.poe import SerialChain, log3_batch, tool_poses
+from m3t1r.model.poe import log3_batch, tool_poses
 
 __all__ = ["CalibrationReport", "Campaign", "Validation", "read_report", "read_campaign", "validate", "sigma_equivalent"]
 
@@ -106,14 +108,17 @@ def _positive(document: Mapping, dotted: str, path: Path) -> float:
 
 def _load_json(path: Path) -> Mapping:
     try:
-        text = path.read_text(encoding="utf-8")
+        data = read_bounded(path)
+        if data is None:
+            raise InvalidInputError(f"{path}: {size_refusal()}")
+        text = data.decode("utf-8")
     except FileNotFoundError:
         raise InvalidInputError(f"{path}: calibration report not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InvalidInputError(f"{path}: cannot read the calibration report: {exc}") from None
     try:
-        document = json.loads(text)
-    except json.JSONDecodeError as exc:
+        document = parse_strict_json(text)
+    except ValueError as exc:  # json.JSONDecodeError included
         raise InvalidInputError(f"{path}: not a JSON report ({exc})") from None
     if not isinstance(document, Mapping):
         raise InvalidInputError(f"{path}: a calibration report is a JSON object")
@@ -290,14 +295,9 @@ def _is_prismatic(model: pin.Model, joint: str) -> bool:
 def _predict_serial(calibrated: Path, report: CalibrationReport, units: str,
                     measurements: Path) -> tuple[Campaign, np.ndarray]:
     """Tool poses (N, 4, 4) in the chain's base frame of the calibrated serial robot at each row."""
-    if not calibrated.is_file():
-        raise ModelFileError(calibrated, "file not found" if not calibrated.exists() else "not a regular file")
+    model, urdf = load_serial_urdf(calibrated)
     try:
-        model = pin.buildModelFromUrdf(str(calibrated))
-    except (RuntimeError, ValueError) as exc:
-        raise ModelFileError(calibrated, f"Pinocchio cannot read this URDF: {exc}") from None
-    try:
-        chain = SerialChain.from_model(model, report.tool, report.base)
+        chain = serial_chain_of(model, urdf, calibrated, report.tool, report.base)
     except M3t1rError as exc:
         raise ModelFileError(calibrated, f"chain of report {report.path.name} (base {report.base}, tool "
                                          f"{report.tool}): {exc}") from None

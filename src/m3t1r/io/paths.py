@@ -10,13 +10,30 @@ from typing import TypeAlias
 
 from m3t1r.errors import OutputPathError
 
-__all__ = ["STDOUT", "StrPath", "ensure_not_protected"]
+__all__ = ["MAX_INPUT_BYTES", "STDOUT", "StrPath", "ensure_not_protected", "read_bounded", "size_refusal"]
 
 StrPath: TypeAlias = "str | os.PathLike[str]"
 
 
 STDOUT = "-"
 """The output path that means standard output (`-o -`)."""
+
+MAX_INPUT_BYTES = 256 * 2**20
+"""Largest input file read [bytes]: a million-row table is about 100 MB. Beyond it a read would
+only exhaust the memory (a device such as /dev/zero never ends)."""
+
+
+def read_bounded(path: StrPath, limit: int = MAX_INPUT_BYTES) -> bytes | None:
+    """The bytes of `path`, or None when it holds more than `limit` bytes (read no further).
+    OSError as `open` raises it (not found, a directory, no permission)."""
+    with open(path, "rb") as stream:
+        data = stream.read(limit + 1)
+    return None if len(data) > limit else data
+
+
+def size_refusal(limit: int = MAX_INPUT_BYTES) -> str:
+    """The message for an input over `limit` bytes (`read_bounded` gave None)."""
+    return f"larger than {limit / 2**20:g} MiB (or a device that never ends): not an input file of m3t1r"
 
 
 def ensure_not_protected(path: StrPath, protect: Iterable[StrPath]) -> None:

@@ -25,7 +25,7 @@ import numpy as np
 
 from m3t1r.errors import DataFileError, InvalidInputError
 from m3t1r.io.outputs import atomic_write_text
-from m3t1r.io.paths import StrPath
+from m3t1r.io.paths import StrPath, read_bounded, size_refusal
 
 __all__ = ["MAX_MAGNITUDE", "Table", "format_float", "read_table", "table_text", "write_table"]
 
@@ -217,13 +217,15 @@ _LINE_BREAK = re.compile(r"\r\n|\r|\n")
 
 def _read_text(source: Path) -> str:
     try:
-        raw = source.read_bytes()
+        raw = read_bounded(source)
     except FileNotFoundError:
         raise DataFileError(source, "file not found") from None
     except IsADirectoryError:
         raise DataFileError(source, "is a directory, expected a CSV file") from None
     except OSError as exc:
         raise DataFileError(source, f"cannot read: {exc.strerror or exc}") from None
+    if raw is None:
+        raise DataFileError(source, size_refusal())
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:

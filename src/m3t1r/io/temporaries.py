@@ -20,7 +20,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from m3t1r.errors import M3t1rError, OutputPathError
-from m3t1r.io.pairing import CLOSURES_SUFFIX, recorded_closures_sha256, sha256_bytes
+from m3t1r.io.pairing import CLOSURES_SUFFIX, closures_match, recorded_closures_sha256
 from m3t1r.io.paths import StrPath
 
 try:
@@ -286,10 +286,10 @@ def _completes_pair(leftover: Path, closures: Path) -> bool:
         recorded = recorded_closures_sha256(urdf.read_bytes())
     except (OSError, M3t1rError):
         return False
-    if recorded is None or sha256_bytes(leftover.read_bytes()) != recorded:
+    if recorded is None or not closures_match(leftover.read_bytes(), recorded):
         return False
     try:
-        return sha256_bytes(closures.read_bytes()) != recorded
+        return not closures_match(closures.read_bytes(), recorded)
     except OSError:
         return True
 

@@ -39,6 +39,7 @@ from m3t1r.errors import (
     OutOfWorkspaceError,
     SingularConfigurationError,
     UnsupportedJointError,
+    real_array,
 )
 from m3t1r.model.description import Mechanism
 from m3t1r.model.native import available_cores
@@ -573,7 +574,7 @@ def _starts(kin: StackedKinematics, n: int, q_init: np.ndarray | None) -> np.nda
     nq = kin.solver.model.nq
     if q_init is None:
         return np.repeat(kin.solver.mechanism.home[None, :], n, axis=0)
-    start = np.asarray(q_init, dtype=float)
+    start = real_array(q_init, "q_init")
     if start.shape == (nq,):
         start = np.repeat(start[None, :], n, axis=0)
     if start.shape != (n, nq) or not np.all(np.isfinite(start)):
@@ -583,10 +584,7 @@ def _starts(kin: StackedKinematics, n: int, q_init: np.ndarray | None) -> np.nda
 
 def _rows(values: object, width: int, what: str, columns: tuple[str, ...]) -> np.ndarray:
     """An (n, width) finite float array (n may be 0), or InvalidInputError naming the first bad row and column."""
-    try:
-        array = np.asarray(values, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"{what}: not numeric rows ({exc})") from None
+    array = real_array(values, what, "numeric rows")
     if array.ndim != 2 or array.shape[1] != width:
         raise InvalidInputError(f"{what}: shape {array.shape}, expected (n, {width}) rows {columns}")
     bad = np.argwhere(~np.isfinite(array))

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import hashlib
 import importlib.resources
 import warnings
 from dataclasses import dataclass, field
@@ -21,13 +20,14 @@ import yaml
 
 from m3t1r.errors import ModelFileError, ModelWarning
 from m3t1r.io.outputs import OutputSet
-from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256, sha256_bytes
+from m3t1r.io.pairing import closures_match, closures_sha256, paired_closures_path, recorded_closures_sha256
+from m3t1r.io.paths import read_bounded, size_refusal
 from m3t1r.io.temporaries import pending_temporaries
 from m3t1r.model.assembly import HomeAssembly, assemble_home, limits_violated
 from m3t1r.model.closures import ClosureSpec, ClosureSystem, without_rows
-from m3t1r.model.schema import SCHEMA_VERSIONS, declared_frame_entries, read_description
+from m3t1r.model.schema import SCHEMA_VERSIONS, declared_frame_entries, load_closures_yaml, read_description
 from m3t1r.model.task import TaskSpec, WorkspaceSpec
-from m3t1r.model.urdf_io import calibrated_urdf_bytes, revolute_urdf_text
+from m3t1r.model.urdf_io import calibrated_urdf_bytes, refuse_mimic_joints, revolute_urdf_text
 
 __all__ = ["ClosureSpec", "Mechanism", "nominal_model_paths", "paired_closures", "HOME_TOLERANCE",
            "SCHEMA_VERSIONS"]
@@ -205,7 +205,7 @@ class Mechanism:
                   "Schema: models/README.md\n")
         closures_bytes = (header + yaml.safe_dump(doc, sort_keys=False)).encode("utf-8")
         del closures_path
-        return calibrated_urdf_bytes(self.urdf_path, self.model, sha256_bytes(closures_bytes)), closures_bytes
+        return calibrated_urdf_bytes(self.urdf_path, self.model, closures_sha256(closures_bytes)), closures_bytes
 
     def save(self, urdf: str | Path, closures: str | Path | None = None, protect: tuple = ()) -> None:
         """Write this machine as a URDF + closures pair that `Mechanism.load(urdf)` reads back.
@@ -262,6 +262,7 @@ def _load_urdf(path: Path) -> pin.Model:
         if model.nqs[j] != 1 or model.nvs[j] != 1:
             raise ModelFileError(path, f"joint '{model.names[j]}' is not a 1-DoF revolute/prismatic/continuous "
                                        f"joint (nq={model.nqs[j]}); multi-DoF joints are not supported")
+    refuse_mimic_joints(path, _read_bytes(path), list(model.names)[1:])
     return model
 
 
@@ -303,37 +304,41 @@ def _recorded_sha256(urdf: Path) -> str | None:
 
 def _read_bytes(path: Path) -> bytes:
     try:
-        return path.read_bytes()
+        data = read_bounded(path)
     except FileNotFoundError:
         raise ModelFileError(path, "file not found") from None
     except IsADirectoryError:
         raise ModelFileError(path, "is a directory, expected a file") from None
     except OSError as exc:
         raise ModelFileError(path, f"cannot read: {exc.strerror or exc}") from None
+    if data is None:
+        raise ModelFileError(path, size_refusal())
+    return data
 
 
 def _closures_of(urdf: Path, closures: Path, recorded: str | None) -> tuple[Path, bytes]:
     data = None if not closures.exists() and recorded is not None else _read_bytes(closures)
     if recorded is None:
         return closures, data
-    if data is not None and hashlib.sha256(data).hexdigest() == recorded:
+    if data is not None and closures_match(data, recorded):
         return closures, data
     for pending in reversed(pending_temporaries(closures)):
         try:
             staged = pending.read_bytes()
         except OSError:
             continue
-        if hashlib.sha256(staged).hexdigest() == recorded:
+        if closures_match(staged, recorded):
             return closures, staged
     if data is None:
         raise ModelFileError(closures, f"file not found: {urdf.name} records closures sha256 {recorded[:16]}..., "
                                        "and no closures file with it is there")
-    actual = hashlib.sha256(data).hexdigest()
     raise ModelFileError(
         closures, f"not the closures file of {urdf}: the URDF records closures sha256 {recorded[:16]}..., "
-                  f"this file has {actual[:16]}... The two files were not written together (one was rewritten "
-                  "by another run, or copied from another machine); load the URDF with the closures file "
-                  "written with it")
+                  f"this file's content has {closures_sha256(data)[:16]}... The two files were not written "
+                  "together (one was rewritten by another run, or copied from another machine, or its content "
+                  "edited: comments, layout and line ends do not count); load the URDF with the closures file "
+                  "written with it; to pair these two deliberately, delete the line `<!-- m3t1r pair: ... -->` "
+                  "from the URDF (it then loads with any closures file; saving records a new pair)")
 
 
 def _parse_yaml(path: Path, data: bytes) -> dict:
@@ -343,7 +348,7 @@ def _parse_yaml(path: Path, data: bytes) -> dict:
         line = data[: exc.start].count(b"\n") + 1
         raise ModelFileError(path, f"line {line}: not UTF-8 text (byte 0x{data[exc.start]:02x})") from None
     try:
-        doc = yaml.safe_load(text)
+        doc = load_closures_yaml(text, path)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""

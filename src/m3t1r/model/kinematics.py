@@ -35,7 +35,9 @@ from m3t1r.errors import (
     NotConvergedError,
     OutOfWorkspaceError,
     SingularConfigurationError,
+    require_count,
     require_finite_vector,
+    require_real,
 )
 from m3t1r.model.batch_kinematics import _FAILURES, _REASONS, StackedKinematics, forward_batch, inverse_batch
 from m3t1r.model.closures import ClosureSystem
@@ -46,7 +48,7 @@ from m3t1r.model.newton_rules import DEFAULT_RULES, NewtonRules
 
 __all__ = [
     "ForwardResult", "InverseResult", "ClosedLoopSolver",
-    "yaw_of", "roll_pitch_of", "rehomed", "require_square_task", "MOBILITY_RANK_TOL", "SINGULAR_RCOND",
+    "yaw_of", "roll_pitch_of", "rehomed", "require_square_task", "MOBILITY_RANK_TOL", "SINGULAR_RCOND", "MAX_TOLERANCE",
 ]
 
 MOBILITY_RANK_TOL = 1e-9  # singular values below this fraction of the largest count as zero
@@ -231,8 +233,16 @@ class InverseResult:
     task_pose: pin.SE3
 
 
+#: The loosest Newton tolerance a solver accepts (max |closure row| [m, rad]): a micrometre, about
+#: a tracker's noise; beyond it "solved" poses would be open loops.
+MAX_TOLERANCE = 1e-6
+
+
 class ClosedLoopSolver:
     """Newton solver for the closures of one `Mechanism` (keeps its own Pinocchio `Data`).
+
+    tolerance: the largest closure row [m, rad] a solution may leave, in (0, MAX_TOLERANCE];
+    max_iterations: Newton's cap, a whole number of at least 0. Other values raise InvalidInputError.
 
     native=True (the default): FK, IK and the batches run their Newton loops compiled
     (`m3t1r.model.native`) when the module is built and the joints allow, with the same steps and
@@ -247,6 +257,14 @@ class ClosedLoopSolver:
         self.model = mechanism.model
         self._closure_system = ClosureSystem(self.model, mechanism.closures)
         self.data = self._closure_system.data  # one Data: every evaluation leaves it at the q evaluated
+        if tolerance is not None:
+            tolerance = require_real(tolerance, "ClosedLoopSolver tolerance", minimum=0.0, inclusive=False)
+            if tolerance > MAX_TOLERANCE:
+                raise InvalidInputError(f"ClosedLoopSolver tolerance {tolerance!r}: at most {MAX_TOLERANCE:g} (m, rad "
+                                        "of closure residual); a looser one returns open loops as solutions")
+        if max_iterations is not None:
+            # 0 is a check of the start alone: it returns q_init only if that already closes.
+            max_iterations = require_count(max_iterations, "ClosedLoopSolver max_iterations", minimum=0)
         rules = DEFAULT_RULES if rules is None else rules
         if tolerance is not None:
             rules = dataclasses.replace(rules, tolerance=float(tolerance))
@@ -270,7 +288,7 @@ class ClosedLoopSolver:
         starts = np.concatenate(([0], np.cumsum(sizes)[:-1]))
         self._n_full = int(sum(sizes))
         self._all_rows = np.arange(self._n_full)
-        self._enforced = np.concatenate([start + np.array(c.rows) for start, c in zip(starts, closures)])
+        self._enforced = np.concatenate([start + np.array(c.rows, dtype=int) for start, c in zip(starts, closures)])
         signed = [support_mask(c.frame_b_id) - support_mask(c.frame_a_id) for c in closures]
         full_row_mask = np.repeat(np.array(signed), sizes, axis=0)
         self._row_masks = {False: full_row_mask[self._enforced], True: full_row_mask}

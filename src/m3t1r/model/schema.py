@@ -14,14 +14,88 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
+import yaml
 
 from m3t1r.errors import InvalidInputError, ModelFileError
 from m3t1r.model.closures import ROW_COUNT, ClosureSpec
 from m3t1r.model.task import TaskSpec, WorkspaceSpec
 
-__all__ = ["Description", "read_description", "add_declared_frames", "declared_frame_entries", "SCHEMA_VERSIONS"]
+__all__ = ["Description", "read_description", "add_declared_frames", "declared_frame_entries", "load_closures_yaml",
+           "SCHEMA_VERSIONS", "FIELDS", "CLOSURE_FIELDS"]
 
 SCHEMA_VERSIONS = (1, 2)
+#: The fields of a closures file, of one closure entry, of `task` and of `workspace`: any other key
+#: is refused (a typo such as `row:` would otherwise fall back to a default silently).
+FIELDS = ("schema_version", "actuated_joints", "closures", "principal_chains", "platform_frame", "task",
+          "workspace", "home", "frames", "locked_joints")
+CLOSURE_FIELDS = ("name", "type", "frame_a", "frame_b", "rows")
+_NESTED_FIELDS = {"task": ("frame", "position", "rotation"), "workspace": ("actuators", "task")}
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+
+
+def load_closures_yaml(text: str, path: Path) -> object:
+    """The YAML document of a closures file, with every mapping's keys checked first: a key given
+    twice (a second `rows:` or `workspace:` would silently replace the first) and a field the
+    schema does not know are ModelFileErrors naming the key and its line. yaml.YAMLError as
+    PyYAML raises it for text that is not YAML."""
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _refuse_duplicate_keys(node, path, set())
+        _refuse_unknown_fields(node, path)
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
+def _where(node: yaml.Node) -> str:
+    return f"line {node.start_mark.line + 1}, column {node.start_mark.column + 1}"
+
+
+def _refuse_duplicate_keys(node: yaml.Node, path: Path, seen: set[int]) -> None:
+    if id(node) in seen:  # an alias: checked where its anchor is (and a recursive one ends here)
+        return
+    seen.add(id(node))
+    if isinstance(node, yaml.MappingNode):
+        first: dict[tuple[str, str], yaml.Node] = {}
+        for key, value in node.value:
+            if isinstance(key, yaml.ScalarNode) and key.tag != _MERGE_TAG:
+                earlier = first.setdefault((key.tag, key.value), key)
+                if earlier is not key:
+                    raise ModelFileError(path, f"{_where(key)}: key '{key.value}' given twice (first on line "
+                                               f"{earlier.start_mark.line + 1}); YAML would keep only the last")
+            _refuse_duplicate_keys(key, path, seen)
+            _refuse_duplicate_keys(value, path, seen)
+    elif isinstance(node, yaml.SequenceNode):
+        for item in node.value:
+            _refuse_duplicate_keys(item, path, seen)
+
+
+def _refuse_unknown_fields(root: yaml.Node, path: Path) -> None:
+    if not isinstance(root, yaml.MappingNode):
+        return  # `read_description` refuses a document that is not a mapping
+    _known_keys(root, FIELDS, "", path)
+    for key, value in root.value:
+        if not isinstance(key, yaml.ScalarNode):
+            continue
+        if key.value in _NESTED_FIELDS and isinstance(value, yaml.MappingNode):
+            _known_keys(value, _NESTED_FIELDS[key.value], f"{key.value}: ", path)
+        if key.value == "closures" and isinstance(value, yaml.SequenceNode):
+            for k, entry in enumerate(value.value):
+                if isinstance(entry, yaml.MappingNode):
+                    names = [v.value for n, v in entry.value if isinstance(v, yaml.ScalarNode) and n.value == "name"]
+                    _known_keys(entry, CLOSURE_FIELDS, f"closure '{names[0]}': " if names else f"closures[{k}]: ", path)
+
+
+def _known_keys(node: yaml.MappingNode, known: tuple[str, ...], where: str, path: Path) -> None:
+    for key, _ in node.value:
+        if key.tag == _MERGE_TAG:
+            continue
+        if not isinstance(key, yaml.ScalarNode) or key.value not in known:
+            name = key.value if isinstance(key, yaml.ScalarNode) else "a non-scalar key"
+            raise ModelFileError(path, f"{_where(key)}: {where}unknown field '{name}' (known: {', '.join(known)})")
 
 
 @dataclass(frozen=True)
@@ -146,6 +220,11 @@ def _closures(model: pin.Model, entries: object, path: Path) -> tuple[ClosureSpe
             raise ModelFileError(path, f"{where}: type must be 3D or 6D, got {kind!r}")
         ia = _frame_id(model, entry.get("frame_a"), path, where)
         ib = _frame_id(model, entry.get("frame_b"), path, where)
+        body = model.frames[ia].parentJoint
+        if body == model.frames[ib].parentJoint:
+            what = "the same frame" if ia == ib else f"both fixed to the body of joint '{model.names[body]}'"
+            raise ModelFileError(path, f"{where}: frame_a '{entry['frame_a']}' and frame_b '{entry['frame_b']}' are "
+                                       f"{what}: the closure constrains no joint")
         rows = entry.get("rows", list(range(ROW_COUNT[kind])))
         if (not isinstance(rows, list) or not rows or len(set(rows)) != len(rows)
                 or not all(isinstance(r, int) and 0 <= r < ROW_COUNT[kind] for r in rows)):

@@ -453,3 +453,25 @@ def _placement_distance(a: pin.SE3, b: pin.SE3) -> float:
     translation = float(np.linalg.norm(a.translation - b.translation))
     chord = float(np.linalg.norm(a.rotation - b.rotation)) / (2.0 * np.sqrt(2.0))
     return max(translation, 2.0 * float(np.arcsin(min(chord, 1.0))))
+
+
+def mimic_joints(urdf: bytes) -> dict[str, str]:
+    """{joint name: the joint it mimics} of the `<mimic>` tags of URDF bytes (empty when the bytes
+    do not parse: Pinocchio then names the problem). Pinocchio reads a mimic joint as an
+    independent one, which a fit would then move on its own while the written URDF keeps the tag."""
+    try:
+        root = etree.fromstring(urdf, _parser())
+    except etree.XMLSyntaxError:
+        return {}
+    return {str(joint.get("name")): str(mimic.get("joint")) for joint in root.iter("joint")
+            for mimic in joint.findall("mimic")}
+
+
+def refuse_mimic_joints(path: StrPath, urdf: bytes, joints: Iterable[str]) -> None:
+    """ModelFileError naming the first of `joints` that the URDF makes a `<mimic>` of another."""
+    mimics = mimic_joints(urdf)
+    for name in joints:
+        if name in mimics:
+            raise ModelFileError(path, f"joint '{name}' mimics joint '{mimics[name]}' (<mimic>): m3t1r moves and "
+                                       "calibrates every joint on its own, so a coupled joint is not supported; "
+                                       "remove the tag (an independent joint) or make the joint fixed")
