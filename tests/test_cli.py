@@ -336,3 +336,18 @@ def test_compensation_targets_in_millimetres_are_refused_with_the_unit(tmp_path,
                  "-o", str(tmp_path / "out.csv")]) == 2
     assert "look like millimetres (divide x, y, z by 1000)" in capsys.readouterr().err
     assert not (tmp_path / "out.csv").exists()
+
+
+def test_an_input_too_large_for_memory_is_refused_without_a_traceback(tmp_path, capsys, monkeypatch):
+    """numpy's MemoryError (a plan or file too large for the machine) ends as an error line, exit 2,
+    nothing written, where it used to end in a traceback."""
+    from m3t1r.app import cli_campaign
+
+    def too_large(*args, **kwargs):
+        raise MemoryError("Unable to allocate 1.16 TiB for an array")
+
+    monkeypatch.setattr(cli_campaign, "plan_closed_loop", too_large)
+    assert main(["plan", "-n", "20", "-o", str(tmp_path / "plan.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "m3t1r: error: plan: not enough memory" in err and "Traceback" not in err
+    assert not (tmp_path / "plan.csv").exists()
