@@ -32,7 +32,7 @@ from m3t1r.app.cli_common import (
     selection_note,
     status_stream,
 )
-from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise
+from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise, judge_fit
 from m3t1r.app.cli_verbs import CALIBRATION_PLOTS, DECLARE_PLOTS, load
 from m3t1r.app.datasets import MeasurementFile, read_measurements
 from m3t1r.app.passive_joints import passive_joint_residuals
@@ -40,7 +40,6 @@ from m3t1r.calibration.assessment import (
     MAX_NOISE_RATIO,
     FitRejected,
     StartCheck,
-    check_fit,
     check_start,
     coverage_notes,
     describe_parameter,
@@ -124,42 +123,45 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     report_output = outputs.add(args.report, "--report")
     plots = load(DECLARE_PLOTS)(outputs, args.plots) if args.plots else None  # matplotlib with --plots only
     out = status_stream(outputs)  # stderr when the report goes to stdout
-    # Every status line, the helpers' too, goes to `out`: with `--report -` stdout is the JSON alone.
-    with outputs, contextlib.redirect_stdout(out):
+    with outputs:
         outputs.check()
-        data = read_measurements(args.measurements, nominal, units=args.units)
-        marker = MeasurementSetup.from_numbers(marker_xyz=checked_marker(args.marker)).marker
-        estimate_frame = args.frame == "estimate"
-        print(f"calibrating from {len(data.measurements)} poses"
-              + (" (measurement frame estimated)" if estimate_frame else "") + " ...", file=out, flush=True)
-        start = _precheck(nominal, data, marker, estimate_frame, args.measurements, args.units)
-        fitted_data = _without_gross_readings(args, data, start)
-        with warnings.catch_warnings(record=True) as caught, Progress("calibrating", None) as progress:
-            warnings.simplefilter("always", PoorExcitationWarning)
-            calibration, choice = fit_with_noise(
-                args.noise_pos, args.noise_rot, TrackerNoise(actuator=args.noise_act),
-                lambda noise, gate: _fit(args, nominal, fitted_data, noise, marker, estimate_frame, progress.advance, gate),
-                lambda fitted: _left(fitted, fitted_data))
-        noise = choice.noise
-        lines = sorted([int(fitted_data.lines[i]) for i in calibration.outliers]
-                       + [int(data.lines[i]) for i in start.gross])
-        print(choice.describe(data.measurements.position_only), file=out)
-        _print_summary(calibration, lines, out)
-        unexplained = _judge(args, calibration, choice,
-                             lambda: _fit_causes(args, nominal, fitted_data, marker, estimate_frame, calibration, choice))
-        with Progress(f"cross-validating ({args.folds} folds)", None) as progress:
-            calibration.problem.on_evaluate = progress.advance
-            validation = cross_validate(calibration, folds=args.folds)
-        notes = explain(calibration, [str(w.message) for w in caught])
-        _print_judgement(calibration, validation, notes, out)
-        warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
-                                               validation.errors.position_mean)] if unexplained else []
-        for warning in warned:
-            print(f"m3t1r: warning: {warning}", file=sys.stderr)
-        report = calibration_report(calibration, data, nominal, noise, args, lines, validation, notes)
-        report["noise_source"], report["warnings"] = choice.report(), warned
-        if data.passive_joints:
-            report["passive_joint_cross_validation"] = _idle_chain_check(nominal, calibration, data, out)
+        # Every status line, the helpers' too, goes to `out`: with `--report -` stdout is the JSON alone.
+        with contextlib.redirect_stdout(out):
+            data = read_measurements(args.measurements, nominal, units=args.units)
+            marker = MeasurementSetup.from_numbers(marker_xyz=checked_marker(args.marker)).marker
+            estimate_frame = args.frame == "estimate"
+            print(f"calibrating from {len(data.measurements)} poses"
+                  + (" (measurement frame estimated)" if estimate_frame else "") + " ...", file=out, flush=True)
+            start = _precheck(nominal, data, marker, estimate_frame, args.measurements, args.units)
+            fitted_data = _without_gross_readings(args, data, start)
+            with warnings.catch_warnings(record=True) as caught, Progress("calibrating", None) as progress:
+                warnings.simplefilter("always", PoorExcitationWarning)
+                calibration, choice = fit_with_noise(
+                    args.noise_pos, args.noise_rot, TrackerNoise(actuator=args.noise_act),
+                    lambda noise, gate: _fit(args, nominal, fitted_data, noise, marker, estimate_frame, progress.advance, gate),
+                    lambda fitted: _left(fitted, fitted_data))
+            noise = choice.noise
+            lines = sorted([int(fitted_data.lines[i]) for i in calibration.outliers]
+                           + [int(data.lines[i]) for i in start.gross])
+            print(choice.describe(data.measurements.position_only), file=out)
+            _print_summary(calibration, lines, out)
+            unexplained = judge_fit(
+                calibration.converged, calibration.lm.termination, calibration.lm.iterations, calibration.variance_factor,
+                choice, lambda: _fit_causes(args, nominal, fitted_data, marker, estimate_frame, calibration, choice),
+                force=args.force)
+            with Progress(f"cross-validating ({args.folds} folds)", None) as progress:
+                calibration.problem.on_evaluate = progress.advance
+                validation = cross_validate(calibration, folds=args.folds)
+            notes = explain(calibration, [str(w.message) for w in caught])
+            _print_judgement(calibration, validation, notes, out)
+            warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
+                                                   validation.errors.position_mean)] if unexplained else []
+            for warning in warned:
+                print(f"m3t1r: warning: {warning}", file=sys.stderr)
+            report = calibration_report(calibration, data, nominal, noise, args, lines, validation, notes)
+            report["noise_source"], report["warnings"] = choice.report(), warned
+            if data.passive_joints:
+                report["passive_joint_cross_validation"] = _idle_chain_check(nominal, calibration, data, out)
         outputs.stage_machine(machine_output, calibration.mechanism)
         outputs.stage_json(report_output, report)
         if plots is not None:
@@ -206,22 +208,6 @@ def _implied_noise(calibration: ClosedLoopCalibration, noise: TrackerNoise) -> s
     rotation = "" if calibration.problem.measurements.position_only else f" and {factor * noise.rotation:.3g} rad"
     return f"{factor * noise.position:.3g} m{rotation}"
 
-
-def _judge(args: argparse.Namespace, calibration: ClosedLoopCalibration, choice: NoiseChoice,
-           causes: Callable[[], list[str]]) -> bool:
-    """check_fit with the likely causes (computed for a failing fit, or whenever the noise was
-    estimated); --force downgrades a refusal to a warning. Returns whether the residual is beyond
-    the noise for no nameable cause (the caller warns)."""
-    suspicious = calibration.variance_factor > 9 or not calibration.converged or choice.estimated
-    try:
-        return check_fit(calibration.converged, calibration.lm.termination, calibration.lm.iterations,
-                         calibration.variance_factor, causes() if suspicious else (),
-                         noise_estimated=choice.estimated)
-    except FitRejected as exc:
-        if not args.force:
-            raise
-        print(f"m3t1r: warning: writing anyway (--force): {exc.reason}", file=sys.stderr)
-        return False
 
 
 def _fit_causes(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, marker: pin.SE3,

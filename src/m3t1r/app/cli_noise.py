@@ -11,15 +11,16 @@ estimated, and its value.
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TypeVar
 
 from m3t1r.app.cli_parser import AUTO, NOISE_AUTO_HELP, noise_or_auto
-from m3t1r.calibration.assessment import noise_from_residual
+from m3t1r.calibration.assessment import FitRejected, check_fit, noise_from_residual
 from m3t1r.calibration.measurements import TrackerNoise
 
-__all__ = ["AUTO", "NOISE_AUTO_HELP", "NoiseChoice", "ResidualSummary", "fit_with_noise", "noise_or_auto"]
+__all__ = ["judge_fit", "AUTO", "NOISE_AUTO_HELP", "NoiseChoice", "ResidualSummary", "fit_with_noise", "noise_or_auto"]
 
 #: The provisional noise of the first fit when a noise is estimated [m], [rad]: only the ratio of
 #: the two matters to that fit, and 1 mm per mrad weighs a metre-sized lever's errors alike.
@@ -106,3 +107,20 @@ def _estimate(choice: NoiseChoice, left: ResidualSummary) -> TrackerNoise:
     return replace(noise, position=max(position, 1e-12) if choice.position_estimated else noise.position,
                    rotation=max(rotation, 1e-12) if choice.rotation_estimated and math.isfinite(rotation)
                    else noise.rotation)
+
+
+def judge_fit(converged: bool, termination: str, iterations: int, variance_factor: float, choice: NoiseChoice,
+              causes: Callable[[], list[str]], force: bool) -> bool:
+    """`check_fit` for a closed-loop or serial fit, with the likely causes computed only when they can
+    matter (a fit that did not converge or left more than 3 times the noise, or an estimated noise);
+    `force` downgrades a refusal to a warning on stderr. Returns whether the residual is beyond the
+    noise for no nameable cause (the caller writes the result with a warning)."""
+    suspicious = not converged or not variance_factor <= 9.0 or choice.estimated
+    try:
+        return check_fit(converged, termination, iterations, variance_factor, causes() if suspicious else (),
+                         noise_estimated=choice.estimated)
+    except FitRejected as exc:
+        if not force:
+            raise
+        print(f"m3t1r: warning: writing anyway (--force): {exc.reason}", file=sys.stderr)
+        return False

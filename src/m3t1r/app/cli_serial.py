@@ -30,12 +30,10 @@ from m3t1r.app.cli_common import (
     selection_note,
     status_stream,
 )
-from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise
+from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise, judge_fit
 from m3t1r.calibration.assessment import (
     MAX_NOISE_RATIO,
-    FitRejected,
     StartCheck,
-    check_fit,
     check_start,
     describe_parameter,
     fit_movement_notes,
@@ -257,9 +255,10 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
             if data.sources is not None and lines:
                 print("outliers in the tracker's file (the source column): "
                       + ", ".join(map(str, _outlier_sources(data, lines))))
-            unexplained = _judge(args, calibration, choice,
-                                 lambda: _fit_causes(args, model, chain, fitted_data, marker, estimate_frame, calibration,
-                                                     choice))
+            unexplained = judge_fit(
+                calibration.converged, calibration.termination, calibration.iterations, calibration.variance_factor,
+                choice, lambda: _fit_causes(args, model, chain, fitted_data, marker, estimate_frame, calibration, choice),
+                force=args.force)
             validation = cross_validate_serial(calibration, folds=args.folds)
             notes = explain(calibration, [str(w.message) for w in caught])
             warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
@@ -302,22 +301,6 @@ def _implied_noise(calibration: SerialCalibration, noise: TrackerNoise) -> str:
     rotation = "" if calibration.position_only else f" and {factor * noise.rotation:.3g} rad"
     return f"{factor * noise.position:.3g} m{rotation}"
 
-
-def _judge(args: argparse.Namespace, calibration: SerialCalibration, choice: NoiseChoice,
-           causes: Callable[[], list[str]]) -> bool:
-    """check_fit with the likely causes (computed only for a failing fit, or whenever the noise was
-    estimated); --force downgrades a refusal to a warning. Returns whether the residual is beyond
-    the noise for no nameable cause (the caller warns)."""
-    suspicious = not calibration.converged or not calibration.variance_factor <= 9.0 or choice.estimated
-    try:
-        return check_fit(calibration.converged, calibration.termination, calibration.iterations,
-                         calibration.variance_factor, causes() if suspicious else (),
-                         noise_estimated=choice.estimated)
-    except FitRejected as exc:
-        if not args.force:
-            raise
-        print(f"m3t1r: warning: writing anyway (--force): {exc.reason}", file=sys.stderr)
-        return False
 
 
 def _print_summary(calibration: SerialCalibration, outlier_lines: list[int]) -> None:
