@@ -756,7 +756,7 @@ class ClosedLoopSolver:
         outside = [k for k, value in enumerate(actuators.tolist()) if not lower[k] <= value <= upper[k]]
         for k in outside:
             raise OutOfWorkspaceError(
-                f"target needs actuator '{names[k]}' = {actuators[k]:.6g} m, beyond its limit "
+                f"target needs actuator '{names[k]}' = {actuators[k]:.6g} {self.mechanism.joint_units()[k]}, beyond its limit "
                 f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]", residual, iterations)
         # The second-order predictor's history: the solution this one started from, with its goal.
         self._inverse_previous = (self._last_goal, self.last_q) if warm and self._last_goal is not None else None
