@@ -560,10 +560,15 @@ def test_inverse_batch_limit_and_assembly_failures_word_for_word(five_bar, compi
     assert list(ik.indices) == [1, 3] and list(ik.iterations) == [3, 4]
     assert [(f.index, f.error) for f in ik.failures] == [(0, OutOfWorkspaceError), (2, OutOfWorkspaceError),
                                                           (4, OutOfWorkspaceError)]
-    assert ik.failures[0].reason == f"inverse kinematics: {ASSEMBLE} (residual 1.073e-01 after 61 iterations)"
-    assert ik.failures[1].reason == ("inverse kinematics: target needs actuator 'motor_2' = 0.0502313 m, beyond its "
+    # A Newton that cannot assemble ends wherever rounding takes it: its residual is checked as a
+    # number above the tolerance, not by its digits (which differ between BLAS kernels).
+    no_assembly = re.fullmatch(rf"inverse kinematics: {re.escape(ASSEMBLE)} \(residual (\S+) after 61 iterations\)",
+                               ik.failures[0].reason)
+    assert no_assembly is not None and float(no_assembly[1]) > 1e-6
+    # The five-bar's motors are revolute: their values and limits are in rad.
+    assert ik.failures[1].reason == ("inverse kinematics: target needs actuator 'motor_2' = 0.0502313 rad, beyond its "
                                      "limit [0.31, 1.31]")
-    assert ik.failures[2].reason == ("inverse kinematics: target needs actuator 'motor_1' = 3.20758 m, beyond its "
+    assert ik.failures[2].reason == ("inverse kinematics: target needs actuator 'motor_1' = 3.20758 rad, beyond its "
                                      "limit [1.83, 2.83]")
     np.testing.assert_allclose(ik.poses[:, :2, 3], targets[[1, 3]], atol=1e-12)
     np.testing.assert_array_equal(ik.actuators, ik.q[:, [0, 2]])
