@@ -193,7 +193,13 @@ def test_a_signal_during_the_renames_is_reported_with_every_output_written(tmp_p
         rename(source, target)
 
     monkeypatch.setattr(os, "replace", interrupted_rename)
-    assert main(["fk", str(sliders), "-o", str(tmp_path / "p.csv")]) == 130
+    # A process started in the background by a non-interactive shell (a CI runner, `cmd &`) inherits
+    # SIGINT ignored, and rightly goes on through a Ctrl-C: this test is of one that takes it.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        assert main(["fk", str(sliders), "-o", str(tmp_path / "p.csv")]) == 130
+    finally:
+        signal.signal(signal.SIGINT, previous)
     monkeypatch.undo()
     err = capsys.readouterr().err
     assert (f"m3t1r: interrupted; it arrived while the outputs were renamed into place, and every one is "
