@@ -49,6 +49,10 @@ def test_jacobian_matches_finite_differences(task, values, goal_values):
     # The yaw row is a wrapped angle: at a heading error of +-pi (a target tilted past the vertical
     # turns its heading by pi) the residual jumps by 2 pi and no derivative exists there.
     assume(task.rotation != "yaw" or abs(task.residual(pose, goal, goal_rotation)[-1]) < math.pi - 0.1)
+    # The heading atan2(R10, R00) has no derivative where the frame's x axis is vertical, and near it
+    # (pitch 1.5703 gave a yaw derivative of 2067) a central difference's error outgrows any fixed
+    # tolerance, and does so differently on each BLAS kernel: keep the x axis 3 degrees from vertical.
+    assume(task.rotation != "yaw" or math.hypot(pose.rotation[0, 0], pose.rotation[1, 0]) > 0.05)
     step = 1e-6
     for k in range(6):
         twist = np.zeros(6)
