@@ -297,6 +297,22 @@ def test_a_joint_reading_beyond_its_limits_is_refused_by_line(ur10, tmp_path) ->
         run_serial_calibration(namespace(tmp_path, path))
 
 
+def test_a_joint_reading_just_past_its_urdf_limit_is_kept_with_a_note(ur10, tmp_path, capsys) -> None:
+    """A real joint is read up to its stop, a hair past its nominal URDF limit (TIAGo's torso at
+    0.350181 m on [0, 0.35]): kept, with a note naming it, not refused as a bad reading."""
+    model, chain = ur10
+    data, measured = campaign(model, chain, FRAMES["z180"], seed=6, n_poses=12)
+    q = data.q_readings.copy()
+    limit = float(model.upperPositionLimit[model.idx_qs[chain.joint_ids[2]]])
+    q[4, 2] = limit + 1e-3
+    path = tmp_path / "campaign.csv"
+    write_campaign(path, chain, q, as_rows(measured))
+    run_serial_calibration(namespace(tmp_path, path))
+    out = capsys.readouterr().out
+    assert (f"note: column '{chain.joint_names[2]}': 1 reading(s) up to 0.001 rad beyond the URDF limit "
+            f"[{-limit:.6g}, {limit:.6g}] (file line 8 first), within 5% of its range: kept as read") in out
+
+
 def test_a_serial_urdf_pinocchio_cannot_read_or_with_a_mimic_joint_is_refused_by_name(tmp_path) -> None:
     broken = tmp_path / "broken.urdf"
     broken.write_text("not xml at all\n")

@@ -119,16 +119,31 @@ def read_campaign(path: str, chain: SerialChain, units: str, model: pin.Model | 
                           table.column("source").astype(int) if table.has_column("source") else None)
 
 
+#: A reading may pass its URDF limit by this share of the joint's range: a URDF's limits are nominal
+#: and a real joint is read up to its stop (TIAGo's torso at 0.350181 m on a [0, 0.35] limit); such a
+#: reading is kept, with a note. Beyond it, a reading is refused by line: a fault, not the machine.
+LIMIT_MARGIN = 0.05
+
+
 def _check_joint_limits(table: Table, model: pin.Model, names: tuple[str, ...], readings: np.ndarray,
                         prismatic: np.ndarray) -> None:
-    """Every reading within its joint's limits (joints with usable limits only)."""
+    """Every reading within its joint's limits, give or take LIMIT_MARGIN of the range (joints with
+    usable limits only)."""
     for k, name in enumerate(names):
         index = model.idx_qs[model.getJointId(name)]
         lower, upper = float(model.lowerPositionLimit[index]), float(model.upperPositionLimit[index])
         if not (np.isfinite(lower) and np.isfinite(upper) and lower < upper):
             continue
         values = readings[:, k]
-        outside = np.flatnonzero((values < lower) | (values > upper))
+        margin = LIMIT_MARGIN * (upper - lower)
+        outside = np.flatnonzero((values < lower - margin) | (values > upper + margin))
+        nearly = np.flatnonzero((values < lower) | (values > upper))
+        if nearly.size and not outside.size:
+            unit = "m" if prismatic[k] else "rad"
+            worst = float(np.max(np.maximum(lower - values, values - upper)))
+            print(f"note: column '{name}': {nearly.size} reading(s) up to {worst:.3g} {unit} beyond the URDF limit "
+                  f"[{lower:.6g}, {upper:.6g}] (file line {int(table.line_numbers[nearly[0]])} first), within "
+                  f"{LIMIT_MARGIN:.0%} of its range: kept as read", flush=True)
         if outside.size:
             row = int(outside[0])
             unit = "m" if prismatic[k] else "rad"
