@@ -5,20 +5,22 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 
 import numpy as np
 import pinocchio as pin
 import pytest
 
+from m3t1r.app.cli import main
 from m3t1r.app.cli_common import RowFailures
 from m3t1r.app.cli_serial import run_serial_calibration
 from m3t1r.calibration import serial as S
-from m3t1r.calibration import serial_evaluation, serial_robots, serial_simulation
+from m3t1r.calibration import serial_evaluation, serial_robots, serial_simulation, validation
 from m3t1r.calibration.assessment import FitRejected
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
-from m3t1r.errors import DataFileError, ModelFileError
-from m3t1r.io.tables import table_text
+from m3t1r.errors import DataFileError, IdentificationError, InvalidInputError, ModelFileError
+from m3t1r.io.tables import read_table, table_text
 from m3t1r.model.poe import SerialChain, perturb, tool_poses
 
 NOISE = TrackerNoise(position=1e-5, rotation=2e-5)  # 10 um / 20 urad tracker, exact joint readings
@@ -176,7 +178,7 @@ def namespace(tmp_path, measurements, **overrides) -> argparse.Namespace:
     values = dict(measurements=str(measurements), output=None, report=str(tmp_path / "report.json"), serial="ur10",
                   base=None, tool="tool0", noise_pos=1e-5, noise_rot=2e-5, frame="estimate",
                   marker=list(MARKER.translation + 3e-4), units="m", force=False, max_iterations=None, fix=[],
-                  prior={}, outlier_sigma=5.0, select="loo", compliance=False, folds=4)
+                  prior={}, outlier_sigma=5.0, select="loo", compliance=False, folds=4, joint={})
     values.update(overrides)
     return argparse.Namespace(**values)
 
@@ -332,3 +334,117 @@ def test_a_serial_urdf_pinocchio_cannot_read_or_with_a_mimic_joint_is_refused_by
     assert str(caught.value) == (f"{mimic}: joint 'j2' mimics joint 'j1' (<mimic>): m3t1r moves and calibrates "
                                  "every joint on its own, so a coupled joint is not supported; remove the tag (an "
                                  "independent joint) or make the joint fixed")
+
+
+# --------------------------------------------------------------------------------------------------
+# The fitted compliance, applied by validate and compensate; constant joints; what stays nominal
+
+UR10_URDF = serial_robots.example_robot_data_dir() / "ur_description" / "urdf" / "ur10_robot.urdf"
+SAGGING = 3 * COMPLIANCE  # a 2-4 mm sag at the tool: far beyond the tracker's 10 um
+
+
+def _sagging_campaign(model, chain, path, n: int, seed: int, constant: dict | None = None):
+    """A UR10 with small geometric errors and joints that comply under gravity, measured in its base
+    frame (tool0 itself, 10 um / 20 urad): (truth, q (n, 6))."""
+    rng = np.random.default_rng(seed)
+    truth = perturb(model, {p: rng.normal(0.0, 2e-4, 6) for p in chain.placements()})
+    q = rng.uniform(-np.pi, np.pi, (n, 6))
+    q[:, 1], q[:, 2] = rng.uniform(-2.5, -0.5, n), rng.uniform(0.5, 2.5, n)
+    for k, value in (constant or {}).items():
+        q[:, chain.joint_names.index(k)] = value
+    measured = tool_poses(chain, truth, q + SAGGING * S.gravity_torques(model, chain, q))
+    measured[:, :3, 3] += rng.normal(0.0, NOISE.position, (n, 3))
+    columns = [j for j in chain.joint_names if j not in (constant or {})]
+    logged = q[:, [chain.joint_names.index(j) for j in columns]]
+    path.write_text(table_text(columns + ["x", "y", "z", "qx", "qy", "qz", "qw"], np.hstack([logged, as_rows(measured)])))
+    return truth, q
+
+
+def test_the_fitted_compliance_is_applied_by_validate_and_compensate(ur10, tmp_path) -> None:
+    """calibrate --compliance fitted a 1.99 mm model that validate then predicted at 13.4 mm: the
+    compliance lives in the report, and validate and compensate apply it."""
+    model, chain = ur10
+    path, urdf, report_path = tmp_path / "campaign.csv", tmp_path / "ur10.urdf", tmp_path / "report.json"
+    truth, _ = _sagging_campaign(model, chain, path, 60, seed=3)
+    run_serial_calibration(namespace(tmp_path, path, serial=str(UR10_URDF), output=str(urdf), frame="base",
+                                     marker=None, noise_rot=1e-4, compliance=True))
+    report = json.loads(report_path.read_text())
+    assert {"shoulder_lift_joint", "elbow_joint"} <= set(report["compliance"])
+    fit = report["residual_rms"]["after"]["position_m"]
+    assert fit < 3e-5
+    validated = validation.validate(path, urdf, report_path)
+    assert validated.errors.position_rms == pytest.approx(fit, rel=0.1)  # the calibrate figure, not 7x it
+    report["compliance"] = {}  # what validate predicted before: the geometry without its compliance
+    (tmp_path / "rigid.json").write_text(json.dumps(report))
+    assert validation.validate(path, urdf, tmp_path / "rigid.json").errors.position_rms > 30 * fit
+    # compensate: a joint program's nominal tool poses, reached by the sagging robot to the fit's accuracy
+    program = np.random.default_rng(8).uniform([-3, -2.3, 0.6, -3, -3, -3], [3, -0.6, 2.4, 3, 3, 3], (15, 6))
+    (tmp_path / "program.csv").write_text(table_text(chain.joint_names, program))
+    assert main(["compensate", str(tmp_path / "program.csv"), "--calibrated", str(urdf), "--report", str(report_path),
+                 "--output-kind", "actuators", "-o", str(tmp_path / "commands.csv")]) == 0
+    table = read_table(tmp_path / "commands.csv", required=chain.joint_names)
+    commands = np.column_stack([table.column(j) for j in chain.joint_names])
+    target = tool_poses(chain, model, program)[:, :3, 3]
+
+    def reached(q: np.ndarray) -> np.ndarray:
+        return tool_poses(chain, truth, q + SAGGING * S.gravity_torques(model, chain, q))[:, :3, 3]
+
+    uncompensated = np.linalg.norm(reached(program) - target, axis=1).mean()
+    compensated = np.linalg.norm(reached(commands) - target, axis=1).mean()
+    assert uncompensated > 1e-3 and compensated < 5e-5  # measured: 3.9 mm -> 6 um
+
+
+def test_compliance_needs_the_links_masses_and_a_report(ur10, tmp_path) -> None:
+    """--compliance on a URDF without inertias did nothing, silently: gravity torques are zero there."""
+    model, chain = ur10
+    path = tmp_path / "campaign.csv"
+    _sagging_campaign(model, chain, path, 20, seed=4)
+    massless = tmp_path / "massless.urdf"
+    massless.write_text(re.sub(r"<inertial>.*?</inertial>", "", UR10_URDF.read_text(), flags=re.S))
+    with pytest.raises(InvalidInputError, match=r"--compliance with .*massless.urdf: the links that joints "
+                                                r"shoulder_pan_joint .. wrist_3_joint move have no mass"):
+        run_serial_calibration(namespace(tmp_path, path, serial=str(massless), frame="base", marker=None,
+                                         compliance=True))
+    assert main(["calibrate", "--serial", str(UR10_URDF), "--tool", "tool0", "--compliance", str(path),
+                 "-o", str(tmp_path / "c.urdf")]) == 2
+    assert not (tmp_path / "c.urdf").exists() and not (tmp_path / "report.json").exists()
+
+
+def test_a_chain_joint_that_is_not_logged_is_given_its_constant_value(ur10, tmp_path) -> None:
+    """A tool changer never moves and is not logged: 'missing required columns' named no way out."""
+    model, chain = ur10
+    path, report_path = tmp_path / "campaign.csv", tmp_path / "report.json"
+    _sagging_campaign(model, chain, path, 40, seed=5, constant={"wrist_3_joint": 0.3})
+    with pytest.raises(DataFileError, match=r"missing required columns: wrist_3_joint; a chain joint that never "
+                                            r"moves and is not logged \(a tool changer\) is given as "
+                                            r"--joint wrist_3_joint=VALUE"):
+        run_serial_calibration(namespace(tmp_path, path, serial=str(UR10_URDF), frame="base", marker=None))
+    urdf = tmp_path / "ur10.urdf"
+    assert main(["calibrate", "--serial", str(UR10_URDF), "--tool", "tool0", str(path), "--joint", "wrist_3_joint=0.3",
+                 "--compliance", "--noise-rot", "1e-4", "-o", str(urdf), "--report", str(report_path)]) == 0
+    report = json.loads(report_path.read_text())
+    assert report["constant_joints"] == {"wrist_3_joint": 0.3}
+    validated = validation.validate(path, urdf, report_path)  # the report's constant, the file without the column
+    assert validated.errors.position_rms == pytest.approx(report["residual_rms"]["after"]["position_m"], rel=0.1)
+    with pytest.raises(InvalidInputError, match="--joint tool_changer: not a joint of the chain"):
+        run_serial_calibration(namespace(tmp_path, path, joint={"tool_changer": 0.0}))
+
+
+def test_every_placement_fixed_says_so_instead_of_not_separable(ur10, tmp_path, capsys) -> None:
+    """'54 of 54 placement components are not separable' was printed when --fix held all of them."""
+    model, chain = ur10
+    data, measured = campaign(model, chain, FRAMES["z180"], seed=6, n_poses=30)
+    path = tmp_path / "campaign.csv"
+    write_campaign(path, chain, data.q_readings, as_rows(measured))
+    everything = [*chain.joint_names, chain.tool_frame]
+    run_serial_calibration(namespace(tmp_path, path, fix=everything, force=True))
+    out = capsys.readouterr().out
+    assert "note: every placement component (42) is held at nominal by --fix: only the measurement setup was " \
+           "fitted, and the calibrated URDF keeps the nominal geometry" in out
+    assert "not separable" not in out and "barely moved" not in out
+    run_serial_calibration(namespace(tmp_path, path, fix=everything[:2]))
+    assert "of 30 placement components left free (12 more are held at nominal by --fix) are not separable" \
+        in capsys.readouterr().out
+    _sagging_campaign(model, chain, path, 20, seed=4)  # in the base frame: with no marker, nothing left to fit
+    with pytest.raises(IdentificationError, match="all 42 candidate parameters are held fixed: nothing is left"):
+        run_serial_calibration(namespace(tmp_path, path, fix=everything, frame="base", marker=None))

@@ -107,6 +107,8 @@ def _diagnose(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, frame_
 def cmd_calibrate(args: argparse.Namespace) -> None:
     """`m3t1r calibrate` without --serial: a closed-loop calibration from a measurement file."""
     args.prior = parse_priors(args.prior)
+    if getattr(args, "compliance", False) or getattr(args, "joint", None):
+        raise InvalidInputError("--compliance and --joint apply to a serial robot (--serial) only")
     if (hint := export_hint(Path(args.measurements))) is not None:
         raise InvalidInputError(hint)
     run_closed_loop_calibration(args, load_mechanism(args.model, args.closures))

@@ -26,7 +26,7 @@ from m3t1r.io.tables import table_text
 from m3t1r.model.description import Mechanism
 
 __all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "status_stream", "progress_bar", "provenance",
-           "parse_priors", "check_plots_folder", "checked_marker", "MAX_MARKER_DISTANCE"]
+           "parse_priors", "parse_joint_values", "check_plots_folder", "checked_marker", "MAX_MARKER_DISTANCE"]
 
 
 #: A measured point farther than this from the platform (serial: tool) frame is not on it [m].
@@ -150,6 +150,24 @@ def parse_priors(entries: list[str]) -> dict[str, float]:
             raise InvalidInputError(f"--prior {entry}: expected NAME=SIGMA with SIGMA > 0 [m or rad]")
         priors[name] = sigma
     return priors
+
+
+def parse_joint_values(entries: list[str] | None) -> dict[str, float]:
+    """--joint ["tool_changer=0.5", ...] -> {"tool_changer": 0.5} [rad or m]; InvalidInputError naming
+    the entry otherwise."""
+    values: dict[str, float] = {}
+    for entry in entries or ():
+        name, _, text = entry.partition("=")
+        try:
+            value = float(text)
+        except ValueError:
+            value = float("nan")
+        if not name or not math.isfinite(value):
+            raise InvalidInputError(f"--joint {entry}: expected NAME=VALUE, the joint's constant value [rad or m]")
+        if name in values:
+            raise InvalidInputError(f"--joint {name}: given twice")
+        values[name] = value
+    return values
 
 
 def check_plots_folder(path: str | Path) -> Path:

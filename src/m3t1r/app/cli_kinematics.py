@@ -15,14 +15,17 @@ import pinocchio as pin
 
 from m3t1r.app.cli_common import RowFailures, load_mechanism, pose_table_text, progress_bar, provenance, say
 from m3t1r.app.datasets import read_actuators, read_targets
-from m3t1r.calibration.validation import read_report
+from m3t1r.calibration.serial_compensation import compensate_serial
+from m3t1r.calibration.serial_robots import load_example_robot, load_serial_urdf, serial_chain_of
+from m3t1r.calibration.validation import CalibrationReport, read_report
 from m3t1r.compensation import Compensator, compensate, joint_limit_violation
 from m3t1r.errors import InvalidInputError, KinematicsError
 from m3t1r.io.outputs import OutputSet
-from m3t1r.io.poses import POSE_COLUMNS
+from m3t1r.io.poses import POSE_COLUMNS, pose_rows
 from m3t1r.io.progress import Heartbeat
-from m3t1r.io.tables import table_text
+from m3t1r.io.tables import read_table, table_text
 from m3t1r.model.kinematics import ClosedLoopSolver, require_square_task
+from m3t1r.model.poe import SerialChain, tool_poses
 from m3t1r.model.workspace import workspace_actuators
 
 __all__ = ["cmd_fk", "cmd_ik", "cmd_compensate", "cmd_evaluate"]
@@ -82,7 +85,13 @@ def cmd_ik(args: argparse.Namespace) -> None:
 
 
 def cmd_compensate(args: argparse.Namespace) -> None:
-    """`m3t1r compensate`: corrected slider commands for target poses."""
+    """`m3t1r compensate`: corrected slider commands for target poses (a serial calibration's report:
+    corrected joint commands of a joint program)."""
+    if args.report:
+        report = read_report(args.report)
+        if report.kind == "serial":
+            _compensate_serial(args, report)
+            return
     nominal = load_mechanism(args.model, args.closures)
     calibrated = load_mechanism(args.calibrated, args.calibrated_closures)
     outputs = OutputSet(inputs=(args.targets, nominal.urdf_path, nominal.closures_path, calibrated.urdf_path,
@@ -115,6 +124,57 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     tilt = ("" if calibrated.task.rotation != "yaw" else
             f"; largest uncommandable tilt (roll/pitch) of the calibrated machine {result.max_tilt:.3g} rad")
     say(outputs, f"wrote {result.n_targets} compensated {args.output_kind} commands to {output.name}{tilt}")
+
+
+def _serial_robot(source: str | None, report: CalibrationReport) -> tuple[pin.Model, SerialChain]:
+    """The nominal serial robot of `compensate` (--model, else the report's) and its report chain."""
+    if source is None:
+        raise InvalidInputError(f"{report.path}: the report names no nominal robot; give its URDF with --model")
+    path = Path(source)
+    if path.is_file():
+        model, urdf = load_serial_urdf(path)
+        return model, serial_chain_of(model, urdf, path, report.tool or "", report.base)
+    if path.suffix.lower() == ".urdf" or path.exists():
+        raise InvalidInputError(f"nominal robot {source} ({'the report' if source == report.robot else '--model'}): "
+                                "no such URDF file; give the nominal URDF with --model")
+    model = load_example_robot(source)  # type: ignore[arg-type]  # an unknown name is refused with the known ones
+    return model, SerialChain.from_model(model, report.tool or "", report.base)
+
+
+def _compensate_serial(args: argparse.Namespace, report: CalibrationReport) -> None:
+    """`m3t1r compensate --report SERIAL.json`: the joint program (columns by joint name) compensated
+    with the calibrated geometry and the report's compliance (`serial_compensation`)."""
+    if args.closures or args.calibrated_closures:
+        raise InvalidInputError("--closures/--calibrated-closures describe a closed-loop machine; a serial "
+                                f"calibration ({report.path}) has none")
+    source = args.model or report.robot
+    outputs = OutputSet(inputs=[p for p in (args.targets, args.calibrated, args.report, source) if p and Path(p).exists()])
+    output = outputs.add(args.output, "-o")
+    outputs.check()
+    nominal, chain = _serial_robot(source, report)
+    calibrated, urdf = load_serial_urdf(Path(args.calibrated))
+    if serial_chain_of(calibrated, urdf, Path(args.calibrated), chain.tool_frame, chain.base_frame).joint_names \
+            != chain.joint_names or chain.joint_names != report.chain:
+        raise InvalidInputError(f"{args.calibrated}: its chain from {report.base} to {report.tool} is not the "
+                                f"report's {list(report.chain)}")
+    table = read_table(args.targets, required=chain.joint_names, optional=POSE_COLUMNS)
+    program = np.column_stack([table.column(name) for name in chain.joint_names])
+    with Heartbeat("compensate", f"{len(program)} configurations"):
+        result = compensate_serial(nominal, calibrated, chain, program, report.compliance, report.position_only)
+    if result.failures:
+        raise RowFailures(Path(args.targets), [(int(table.line_numbers[i]), reason) for i, reason in result.failures])
+    comments = provenance(args) + [f"calibrated model: {args.calibrated}, compliance of {args.report}: "
+                                   + (", ".join(f"{j} {c:.3g}" for j, c in report.compliance.items()) or "none")]
+    if args.output_kind == "actuators":
+        text = table_text(chain.joint_names, result.commands, comments + ["compensated joint commands [rad or m]"])
+    else:
+        poses = pose_rows([pin.SE3(g) for g in tool_poses(chain, nominal, result.commands)])
+        text = table_text(POSE_COLUMNS, poses, comments + [
+            f"tool poses ({chain.tool_frame} in the base frame) to send to a controller that knows only the nominal model"])
+    with outputs:
+        outputs.stage(output, text)
+        outputs.commit()
+    say(outputs, f"wrote {len(program)} compensated {args.output_kind} commands to {output.name}")
 
 
 def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -> np.ndarray:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from m3t1r._version import __version__
 from m3t1r.app.cli_types import (
@@ -49,6 +50,50 @@ class _DeprecatedAlias(argparse.Action):
         setattr(namespace, self.dest, values)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, which gives back a file swallowed by a list option (below)."""
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        namespace, extras = super().parse_known_args(args, namespace)
+        _give_back_positional(self, namespace)
+        return namespace, extras
+
+
+def _looks_like_file(value: str) -> bool:
+    """A path, not a parameter name (`q12.dt[3]`) or NAME=SIGMA: a separator, a table suffix, a file."""
+    return "/" in value or "\\" in value or value.lower().endswith((".csv", ".tsv", ".txt")) or Path(value).is_file()
+
+
+def _give_back_positional(parser: argparse.ArgumentParser, namespace: argparse.Namespace) -> None:
+    """`calibrate --fix A B meas.csv`: the list option took the measurement file as one of its values;
+    the file goes back to `measurements` (the last value that looks like a file), else the positional
+    is missing and argparse's own message says so."""
+    if getattr(namespace, "measurements", "") is not None or not hasattr(namespace, "fix"):
+        return
+    for dest in ("fix", "prior"):
+        values = getattr(namespace, dest)
+        if values and _looks_like_file(values[-1]):
+            namespace.measurements = values.pop()
+            return
+    parser.error("the following arguments are required: measurements")
+
+
+def _comma_list(text: str) -> list[str]:
+    """`--fix q12,q13.dt[3]`: a comma-separated list, each name stripped."""
+    values = [v.strip() for v in text.split(",") if v.strip()]
+    if not values:
+        raise argparse.ArgumentTypeError(f"expected one or more names, got {text!r}")
+    return values
+
+
+class _ExtendLists(argparse.Action):
+    """A repeatable list option: each occurrence takes one or more values, each a comma list."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        items = list(getattr(namespace, self.dest) or [])
+        setattr(namespace, self.dest, items + [v for group in values for v in group])
+
+
 def _add_deprecated_alias(parser: argparse.ArgumentParser, option: str, dest: str) -> None:
     parser.add_argument(option, dest=dest, action=_DeprecatedAlias, metavar="PATH", help=argparse.SUPPRESS)
 
@@ -67,7 +112,7 @@ def _add_noise_options(parser: argparse.ArgumentParser, estimable: bool = False)
 
 def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     """The argument parser of every verb; the verb's name is `args.verb`."""
-    parser = argparse.ArgumentParser(prog="m3t1r", description=description)
+    parser = _Parser(prog="m3t1r", description=description)
     parser.add_argument("--version", action=_VersionAction, nargs=0,
                         help="show the version and whether the compiled Newton loop is in use, and exit")
     verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
@@ -104,7 +149,7 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     _add_model_options(p)
 
     p = verbs.add_parser("calibrate", help="identify the geometry from measurements; write a calibrated URDF")
-    p.add_argument("measurements", help="measurement CSV (sliders by joint name, x,y,z[,qx,qy,qz,qw])")
+    p.add_argument("measurements", nargs="?", help="measurement CSV (sliders by joint name, x,y,z[,qx,qy,qz,qw])")
     p.add_argument("-o", "--output", required=True, help="calibrated URDF (a .closures.yaml is written beside it)")
     p.add_argument("--report", metavar="JSON", help="identified parameters, std, rank, RMS, input sha256")
     p.add_argument("--plots", metavar="DIR", help="write error plots (PNG) into DIR")
@@ -112,7 +157,11 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--base", metavar="FRAME", help="with --serial: base frame (default the model root)")
     p.add_argument("--tool", metavar="FRAME", help="with --serial: the measured tool frame")
     p.add_argument("--compliance", action="store_true",
-                   help="with --serial: joint compliance under gravity as candidate parameters")
+                   help="with --serial: joint compliance under gravity as candidate parameters (needs the URDF's "
+                        "inertias; kept in --report, which validate and compensate read)")
+    p.add_argument("--joint", action="append", default=[], metavar="NAME=VALUE",
+                   help="with --serial: a chain joint the file does not log, at this constant value [rad or m] "
+                        "(a tool changer; repeatable; kept in the report)")
     add_campaign_options(p)
     _add_noise_options(p, estimable=True)
     _add_model_options(p)
@@ -187,10 +236,12 @@ def add_campaign_options(parser: argparse.ArgumentParser) -> None:
                         help="flag poses beyond S noise sigmas and leave them out (0: keep every pose; default 5)")
     parser.add_argument("--select", choices=("loo", "none"), default="loo",
                         help="model selection: keep the parameters that predict left-out poses (default loo)")
-    parser.add_argument("--fix", nargs="+", default=[], metavar="NAME",
-                        help="hold parameters (q12.dt[3]) or whole placements (q12) at nominal")
-    parser.add_argument("--prior", action="append", default=[], metavar="NAME=SIGMA",
-                        help="a prior toward nominal with this standard deviation [m or rad] (repeatable)")
+    parser.add_argument("--fix", nargs="+", type=_comma_list, action=_ExtendLists, default=[], metavar="NAME",
+                        help="hold parameters (q12.dt[3]) or whole placements (q12) at nominal (repeatable, or a "
+                             "comma list: --fix q12 --fix q13,q14)")
+    parser.add_argument("--prior", nargs="+", type=_comma_list, action=_ExtendLists, default=[], metavar="NAME=SIGMA",
+                        help="a prior toward nominal with this standard deviation [m or rad] (repeatable, or a "
+                             "comma list)")
     parser.add_argument("--folds", type=_folds, default=5, help="cross-validation folds, at least 2 (default 5)")
     parser.add_argument("--max-iterations", type=count_number, default=None, metavar="N", help="Levenberg-Marquardt cap")
     parser.add_argument("--force", action="store_true", help="write a fit that is judged unsupported, with a warning")

@@ -14,7 +14,7 @@ import contextlib
 import datetime as _dt
 import sys
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -26,6 +26,7 @@ from m3t1r.app.cli_common import (
     RowFailures,
     campaign_report_fields,
     checked_marker,
+    parse_joint_values,
     parse_priors,
     selection_note,
     status_stream,
@@ -43,12 +44,13 @@ from m3t1r.calibration.assessment import (
     residual_causes,
     unexplained_residual_warning,
 )
+from m3t1r.calibration.identification import parameter_columns
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
-from m3t1r.calibration.serial import SerialCalibration, calibrate_serial
+from m3t1r.calibration.serial import SerialCalibration, calibrate_serial, require_gravity_load
 from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot, load_serial_urdf, serial_chain_of
-from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
+from m3t1r.errors import DataFileError, IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.io.instruments.formats import export_hint
 from m3t1r.io.instruments.records import CONVERTED_COLUMNS
 from m3t1r.io.outputs import OutputSet
@@ -96,18 +98,32 @@ def _robot(source: str, tool: str | None, base: str | None) -> tuple[pin.Model, 
     return model, serial_chain_of(model, urdf, path, tool, base), path
 
 
-def read_campaign(path: str, chain: SerialChain, units: str, model: pin.Model | None = None) -> SerialCampaign:
+def read_campaign(path: str, chain: SerialChain, units: str, model: pin.Model | None = None,
+                  constants: Mapping[str, float] | None = None) -> SerialCampaign:
     """Joint columns by joint name, x, y, z [, qx, qy, qz, qw]; lengths (x, y, z and prismatic
-    joints) in `units` ("m" or "mm", `LENGTH_UNITS`), converted to m. With `model`, a reading
-    beyond its joint's URDF limits is a DataFileError naming its line and column."""
+    joints) in `units` ("m" or "mm", `LENGTH_UNITS`), converted to m. `constants` {joint: value}
+    [rad, m]: chain joints the file does not log (`--joint NAME=VALUE`: a tool changer that never
+    moves), read as that value on every row. With `model`, a reading beyond its joint's URDF limits
+    is a DataFileError naming its line and column."""
     if units not in LENGTH_UNITS:
         raise InvalidInputError(f"--units {units}: expected one of {', '.join(LENGTH_UNITS)}")
-    names = chain.joint_names
-    table = read_table(path, required=names + ("x", "y", "z"), optional=CONVERTED_COLUMNS,
-                       optional_groups=(("qx", "qy", "qz", "qw"),), reject_duplicate_rows=True)
+    names, constants = chain.joint_names, dict(constants or {})
+    if unknown := sorted(set(constants) - set(names)):
+        raise InvalidInputError(f"--joint {unknown[0]}: not a joint of the chain ({', '.join(names)})")
+    try:
+        table = read_table(path, required=tuple(n for n in names if n not in constants) + ("x", "y", "z"),
+                           optional=(*constants, *CONVERTED_COLUMNS), optional_groups=(("qx", "qy", "qz", "qw"),),
+                           reject_duplicate_rows=True)
+    except DataFileError as exc:
+        if exc.column in names and "missing required columns" in str(exc):
+            raise DataFileError(path, f"{str(exc).partition(': ')[2]}; a chain joint that never moves and is not "
+                                      f"logged (a tool changer) is given as --joint {exc.column}=VALUE [rad or m]",
+                                row=exc.row, column=exc.column) from None
+        raise
     scale = LENGTH_UNITS[units]
     prismatic = ~np.any(chain.twists[:, 3:], axis=1)
-    readings = np.column_stack([table.column(n) for n in names]) * np.where(prismatic, scale, 1.0)
+    readings = np.column_stack([table.column(n) * (scale if p else 1.0) if table.has_column(n)
+                                else np.full(table.n_rows, constants[n]) for n, p in zip(names, prismatic)])
     if model is not None:
         _check_joint_limits(table, model, names, readings, prismatic)
     positions = np.column_stack([table.column(c) for c in "xyz"]) * scale
@@ -231,6 +247,10 @@ def _outlier_sources(data: SerialCampaign, outlier_lines: list[int]) -> list[int
 def cmd_calibrate_serial(args: argparse.Namespace) -> None:
     """`m3t1r calibrate --serial`: a serial robot's calibration from a measurement file."""
     args.prior = parse_priors(args.prior)
+    args.joint = parse_joint_values(args.joint)
+    if args.compliance and not args.report:
+        raise InvalidInputError("--compliance: the fitted compliance is kept in the report (a URDF cannot hold it) "
+                                "and validate and compensate read it there: give --report JSON")
     if (hint := export_hint(Path(args.measurements))) is not None:
         raise InvalidInputError(hint)
     run_serial_calibration(args)
@@ -240,6 +260,11 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
     """The whole `calibrate --serial` verb (module docstring). Raises FitRejected (exit 1) when the fit
     is not supported by the data, unless args.force."""
     model, chain, urdf = _robot(args.serial, args.tool, args.base)
+    if args.compliance:
+        try:
+            require_gravity_load(model, chain)
+        except InvalidInputError as exc:
+            raise InvalidInputError(f"--compliance with {args.serial}: {exc}") from None
     outputs = OutputSet(inputs=(args.measurements, urdf))
     urdf_output = outputs.add(args.output, "-o") if urdf is not None else None
     report_output = outputs.add(args.report, "--report")
@@ -250,7 +275,7 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
             if urdf is None:
                 print(f"{args.serial} is an example-robot-data robot: no calibrated URDF is written "
                       "(give its URDF path to --serial for one)" + (f"; -o {args.output} ignored" if args.output else ""))
-            data = read_campaign(args.measurements, chain, args.units, model)
+            data = read_campaign(args.measurements, chain, args.units, model, getattr(args, "joint", None))
             marker = MeasurementSetup.from_numbers(marker_xyz=checked_marker(args.marker)).marker
             estimate_frame = args.frame == "estimate"
             start = _precheck(model, chain, data, marker, estimate_frame)
@@ -275,7 +300,7 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
                 choice, lambda: _fit_causes(args, model, chain, fitted_data, marker, estimate_frame, calibration, choice),
                 force=args.force)
             validation = cross_validate_serial(calibration, folds=args.folds)
-            notes = explain(calibration, [str(w.message) for w in caught])
+            notes = explain(calibration, [str(w.message) for w in caught], list(args.fix or ()))
             warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
                                                    validation.errors.position_mean)] if unexplained else []
             _print_judgement(validation, notes)
@@ -350,8 +375,9 @@ def _is_translation(name: str) -> bool:
     return name.rpartition(".dt[")[2] in ("0]", "1]", "2]")
 
 
-def explain(calibration: SerialCalibration, warnings_seen: list[str] = ()) -> list[str]:
-    """Plain-word notes: the gauge, what selection dropped, weak parameters, how far the fit moved."""
+def explain(calibration: SerialCalibration, warnings_seen: list[str] = (), fixed: list[str] = ()) -> list[str]:
+    """Plain-word notes: the gauge, what selection dropped, weak parameters, what stays nominal (held
+    by `fixed`, the --fix names, or not separable), how far the fit moved."""
     notes = list(warnings_seen)
     base, fitted = set(calibration.base.names), set(calibration.fitted)
     chain_names = set(calibration.chain.parameter_names())
@@ -367,14 +393,29 @@ def explain(calibration: SerialCalibration, warnings_seen: list[str] = ()) -> li
         notes.append("weakly determined on their own (std over 1 mm / 1 mrad; their joint effect on the tool can "
                      "still be well determined): "
                      + ", ".join(f"{describe_parameter(n)} (std {std[n]:.2g})" for n in weak[:8]))
-    undetermined = len(chain_names) - len(base & chain_names)
-    notes.append(f"{undetermined} of {len(chain_names)} placement components are not separable with these data "
-                 "(redundant with others or with the measurement setup) and stay nominal")
+    held = {calibration.names[c] for c in parameter_columns(calibration.names, fixed, "--fix")} & chain_names
+    notes.append(_nominal_note(calibration, chain_names, held))
+    if held == chain_names:  # the machine could not move: how far it moved says nothing
+        return notes
     moved = {n: float(v) for n, v in zip(calibration.names, calibration.values) if n in fitted and n in chain_names}
     marker_estimated = any(n.startswith("marker.") for n in calibration.names)
     notes += fit_movement_notes(moved, calibration.residual_before.position, calibration.residual_after.position,
                                 None if marker_estimated else calibration.chain.tool_frame)
     return notes
+
+
+def _nominal_note(calibration: SerialCalibration, chain_names: set[str], held: set[str]) -> str:
+    """What stays nominal among the placement components: `held` by --fix, or not separable."""
+    free = chain_names - held
+    if not free:
+        return (f"every placement component ({len(chain_names)}) is held at nominal by --fix: only the measurement "
+                "setup" + (" and the compliance were" if calibration.compliance else " was") + " fitted, and the "
+                "calibrated URDF keeps the nominal geometry")
+    undetermined = len(free) - len(set(calibration.base.names) & free)
+    text = f"{undetermined} of {len(free)} placement components"
+    if held:
+        text += f" left free ({len(held)} more are held at nominal by --fix)"
+    return text + " are not separable with these data (redundant with others or with the measurement setup) and stay nominal"
 
 
 def serial_calibration_report(calibration: SerialCalibration, data: SerialCampaign, args: argparse.Namespace,
@@ -403,6 +444,7 @@ def serial_calibration_report(calibration: SerialCalibration, data: SerialCampai
         "identifiable": {"count": calibration.base.rank, "of": len(calibration.names),
                          "condition_number": calibration.base.condition_number, "names": list(calibration.base.names)},
         "compliance": dict(calibration.compliance),
+        "constant_joints": dict(getattr(args, "joint", None) or {}),
         "residual_rms": {"before": {"position_m": before.position, "rotation_rad": before.rotation},
                          "after": {"position_m": after.position, "rotation_rad": after.rotation}},
         "notes": list(notes),

@@ -439,16 +439,30 @@ def fit_movement_notes(moved: dict[str, float], rms_before: float, rms_after: fl
         translation = name.rpartition(".dt[")[2] in ("0]", "1]", "2]")
         limit = IMPLAUSIBLE_TRANSLATION if translation else IMPLAUSIBLE_ROTATION
         if abs(value) > limit:
-            far.append((abs(value) / limit, f"{describe_parameter(name)} {value:+.3g} {'m' if translation else 'rad'}"))
-    if far:
-        listed = ", ".join(text for _, text in sorted(far, reverse=True)[:3])
-        notes.append(f"the fit moved implausibly far for a machine built to drawing ({listed}): check the "
-                     "units, the measurement frame, the reading columns and that the model is this machine's")
-        frame_moved = [n for n, v in moved.items() if measured_frame and n.startswith(f"{measured_frame}.dt[")
-                       and n[-2] in "012" and abs(v) > IMPLAUSIBLE_TRANSLATION]
-        if frame_moved:
-            notes.append(f"the measured frame {measured_frame} itself moved: the measured point is probably a "
-                         "reflector off it, now baked into the machine; give its position with --marker X Y Z")
+            far.append((abs(value) / limit, name, f"{describe_parameter(name)} {value:+.3g} {'m' if translation else 'rad'}"))
+    if not far:
+        return notes + _barely_moved(rms_before, rms_after)
+    # The measured frame translating far is a reflector off it, taken for the machine's geometry: its
+    # own placement moves (translation and rotation), which says nothing of units or frames.
+    absorbed = bool(measured_frame) and any(
+        n.startswith(f"{measured_frame}.dt[") and n[-2] in "012" for _, n, _ in far)
+    others = [entry for entry in far if not (absorbed and entry[1].startswith(f"{measured_frame}."))]
+    listed = ", ".join(text for _, _, text in sorted(far, reverse=True)[:3])
+    if others:
+        cause = ("check the units, the measurement frame, the reading columns and that the model is this machine's"
+                 + (f" (the moves of {measured_frame} itself are the reflector below)" if absorbed else ""))
+    else:
+        cause = (f"only the measured frame {measured_frame} moved, by a reflector's offset: the units, the frame "
+                 "and the rest of the machine are not in question")
+    notes.append(f"the fit moved implausibly far for a machine built to drawing ({listed}): {cause}")
+    if absorbed:
+        notes.append(f"the measured frame {measured_frame} itself moved: the measured point is probably a "
+                     "reflector off it, now baked into the machine; give its position with --marker X Y Z")
+    return notes + _barely_moved(rms_before, rms_after)
+
+
+def _barely_moved(rms_before: float, rms_after: float) -> list[str]:
+    notes = []
     if rms_before > 0 and rms_after > 0.8 * rms_before:
         notes.append(f"the fit barely moved (residual RMS {rms_before:.3g} -> {rms_after:.3g} m): the nominal "
                      "model already explains the data, or the poses do not excite the errors")

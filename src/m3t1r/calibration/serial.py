@@ -54,7 +54,8 @@ from m3t1r.calibration.serial_simulation import _checked_joint_noise, _readonly
 from m3t1r.errors import IdentificationError, InvalidInputError, real_array, require_count
 from m3t1r.model.poe import Placement, SerialChain, jlog3_batch, log3_batch, perturb, placement_poses, skew
 
-__all__ = ["PoseErrorRMS", "SerialCalibration", "calibrate_serial", "gravity_torques"]
+__all__ = ["PoseErrorRMS", "SerialCalibration", "calibrate_serial", "compliant_readings", "gravity_torques", "moved_mass",
+           "require_gravity_load"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -423,6 +424,35 @@ def gravity_torques(model: pin.Model, chain: SerialChain, q_chain: ArrayLike) ->
     return out
 
 
+def moved_mass(model: pin.Model, chain: SerialChain) -> float:
+    """The mass [kg] of the bodies the chain's first joint moves (the URDF's <inertial> masses)."""
+    return float(sum(model.inertias[j].mass for j in model.subtrees[chain.joint_ids[0]]))
+
+
+def require_gravity_load(model: pin.Model, chain: SerialChain) -> None:
+    """InvalidInputError when the chain moves no mass: gravity torques are then zero everywhere, and a
+    compliance under gravity can neither be fitted nor applied."""
+    if moved_mass(model, chain) <= 0.0:
+        raise InvalidInputError(
+            f"the links that joints {chain.joint_names[0]} .. {chain.joint_names[-1]} move have no mass (the URDF "
+            "gives them no <inertial>): the gravity torques are zero in every posture, so joint compliance under "
+            "gravity cannot be fitted or applied; use a URDF with the links' inertial elements, or leave "
+            "out --compliance")
+
+
+def compliant_readings(model: pin.Model, chain: SerialChain, q_chain: ArrayLike,
+                       compliance: Mapping[str, float]) -> np.ndarray:
+    """q + c tau(q) (N, n): joint readings (N, n) [rad, m] moved by the compliances {joint: c}
+    [rad/Nm, m/N] under gravity, tau from `model`'s inertias (`gravity_torques`); q itself without
+    any. InvalidInputError (`require_gravity_load`) when the chain moves no mass."""
+    q = np.atleast_2d(np.asarray(q_chain, dtype=float))
+    if not compliance:
+        return q
+    require_gravity_load(model, chain)
+    c = np.array([compliance.get(joint, 0.0) for joint in chain.joint_names])
+    return q + c * gravity_torques(model, chain, q)
+
+
 
 # --------------------------------------------------------------------------------------------------
 # Calibration
@@ -717,8 +747,13 @@ def calibrate_serial(
     layout = _Layout(chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0, compliance)
     names = layout.names(chain)
     fixed_columns = parameter_columns(names, fixed, "fixed parameter")
+    if len(set(fixed_columns)) == layout.size:
+        raise IdentificationError(f"all {layout.size} candidate parameters are held fixed: nothing is left to fit "
+                                  "(estimate the measurement frame, a marker or compliance, or fix fewer)")
     start = _start_state(chain, model, data, setup or MeasurementSetup(), estimate_frame, estimate_marker,
                          compliance)
+    if compliance:
+        require_gravity_load(model, chain)
     torques = gravity_torques(model, chain, data.q) if compliance else None
     whitening = _whitening(chain, start, data, noise, _checked_joint_noise(joint_noise))
     residual = _SerialResidual(chain, data, whitening, layout, torques)

@@ -12,7 +12,7 @@ import pinocchio as pin
 from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
-from m3t1r.calibration.serial import SerialCalibration, _placement_rows, gravity_torques
+from m3t1r.calibration.serial import SerialCalibration, _placement_rows, compliant_readings, gravity_torques
 from m3t1r.errors import InvalidInputError, require_count
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.poe import SerialChain, placement_poses, tool_poses
@@ -32,11 +32,7 @@ def pose_errors(model: pin.Model, reference: pin.Model, chain: SerialChain, q_ch
 
 def _compliant_coordinates(calibration: SerialCalibration, q_chain: ArrayLike) -> np.ndarray:
     """q + c tau(q) (M, n) with the calibration's compliances (q itself without any)."""
-    q = np.atleast_2d(np.asarray(q_chain, dtype=float))
-    if not calibration.compliance:
-        return q
-    c = np.array([calibration.compliance.get(joint, 0.0) for joint in calibration.chain.joint_names])
-    return q + c * gravity_torques(calibration.model, calibration.chain, q)
+    return compliant_readings(calibration.model, calibration.chain, q_chain, calibration.compliance)
 
 
 def predict_measurements(calibration: SerialCalibration, q_readings: ArrayLike) -> np.ndarray:

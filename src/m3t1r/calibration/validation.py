@@ -9,7 +9,10 @@ with the model kind, the measured frame, the measurement frame and the marker ta
 calibration report (`m3t1r calibrate --report`): for the M machine, FK is the closed-loop forward
 kinematics of the calibrated URDF and its closures file, each slider set assembled from home (the
 branch the calibration used); for a serial robot, the POE forward kinematics of the report's chain
-(base frame to tool frame) on the calibrated URDF.
+(base frame to tool frame) on the calibrated URDF, at the readings moved by the joint compliance
+under gravity the report holds (`calibrate --serial --compliance`: q + c tau(q), tau from the
+calibrated URDF's inertias), and with the report's constant joints (`--joint NAME=VALUE`) where
+the file has no column for them.
 
 Per row: position error |p_predicted - p_measured| [m], and when orientation was measured the
 rotation angle |log3(R_measured^T R_predicted)| [rad] and, for a task commanding a yaw, the heading (yaw)
@@ -38,7 +41,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -48,6 +51,7 @@ import scipy.special
 
 from m3t1r.calibration.identification import OUTLIER_SIGMA, outlier_gate
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
+from m3t1r.calibration.serial import compliant_readings
 from m3t1r.calibration.serial_robots import load_serial_urdf, serial_chain_of
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelFileError
 from m3t1r.io.instruments.records import CONVERTED_COLUMNS
@@ -74,7 +78,11 @@ class CalibrationReport:
     ("m" or "mm"; None when the report does not say); measured_frame: the frame measured (the
     platform frame P_I, or the serial tool frame; None when absent); tool, base, chain: the serial
     chain (None / () for the M machine); variance_factor: the calibration's chi^2 per degree of
-    freedom (None when the report has none).
+    freedom (None when the report has none); compliance: {joint: c} [rad/Nm, m/N] fitted by
+    `calibrate --serial --compliance` (readings q -> q + c tau(q)); constant_joints: {joint: value}
+    [rad, m] of chain joints the calibration's file did not log (`--joint NAME=VALUE`); robot: the
+    nominal robot the serial calibration started from (a URDF path or an example robot's name, as
+    given); position_only: whether the calibration's tracker measured positions only.
     """
 
     path: Path
@@ -87,6 +95,10 @@ class CalibrationReport:
     base: str | None = None
     chain: tuple[str, ...] = ()
     variance_factor: float | None = None
+    compliance: Mapping[str, float] = field(default_factory=dict)
+    constant_joints: Mapping[str, float] = field(default_factory=dict)
+    robot: str | None = None
+    position_only: bool = False
 
 
 def _field(document: Mapping, dotted: str, path: Path) -> object:
@@ -157,7 +169,24 @@ def read_report(path: str | Path) -> CalibrationReport:
         raise InvalidInputError(f"{source}: report fields 'nominal_model.tool' / 'nominal_model.base' must be frame names")
     if not isinstance(chain, list) or not chain or not all(isinstance(n, str) for n in chain):
         raise InvalidInputError(f"{source}: report field 'nominal_model.chain' must be a list of joint names")
-    return CalibrationReport(source, "serial", setup, noise, units, measured, tool, base, tuple(chain), factor)
+    return CalibrationReport(source, "serial", setup, noise, units, measured, tool, base, tuple(chain), factor,
+                             _joint_numbers(document, "compliance", source, chain),
+                             _joint_numbers(document, "constant_joints", source, chain),
+                             robot if isinstance(robot := document["nominal_model"].get("robot"), str) else None,
+                             isinstance(document.get("input"), Mapping) and document["input"].get("position_only") is True)
+
+
+def _joint_numbers(document: Mapping, key: str, path: Path, chain: list[str]) -> dict[str, float]:
+    """The report's optional {joint: number} field `key`, every joint one of the chain's."""
+    value = document.get(key) or {}
+    if not isinstance(value, Mapping) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value.values()):
+        raise InvalidInputError(f"{path}: report field '{key}' must map joint names to numbers, got {value!r}")
+    unknown = sorted(set(value) - set(chain))
+    if unknown:
+        raise InvalidInputError(f"{path}: report field '{key}' names {', '.join(unknown)}, not in "
+                                "'nominal_model.chain'")
+    return {str(k): float(v) for k, v in value.items()}
 
 
 def _variance_factor(document: Mapping, path: Path) -> float | None:
@@ -186,18 +215,22 @@ class Campaign:
 
 
 def read_campaign(path: str | Path, columns: Sequence[str], prismatic: Sequence[bool], units: str = "m",
-                  optional: Sequence[str] = ()) -> Campaign:
+                  optional: Sequence[str] = (), constants: Mapping[str, float] | None = None) -> Campaign:
     """Read a measurement CSV: the joint `columns`, optional columns (read and ignored, e.g. passive
     joint encoders, and `m3t1r convert`'s source and position_std), x, y, z and optionally qx, qy,
     qz, qw. Lengths (x, y, z and the columns whose `prismatic` flag is set) are in `units` and
-    converted to m. Raises DataFileError naming the
+    converted to m. `constants` {column: value [SI]}: a column the file may lack, then read as that
+    value on every row. Raises DataFileError naming the
     file, line and column (missing file, unknown columns, non-numbers, non-unit quaternions)."""
     if units not in LENGTH_UNITS:
         raise InvalidInputError(f"units must be one of {sorted(LENGTH_UNITS)}, got {units!r}")
     scale = LENGTH_UNITS[units]
-    table = read_table(path, required=tuple(columns) + ("x", "y", "z"), optional=(*optional, *CONVERTED_COLUMNS),
+    constants = constants or {}
+    required = tuple(c for c in columns if c not in constants) + ("x", "y", "z")
+    table = read_table(path, required=required, optional=(*optional, *constants, *CONVERTED_COLUMNS),
                        optional_groups=(_QUATERNION,))
-    readings = np.column_stack([table.column(n) * (scale if p else 1.0) for n, p in zip(columns, prismatic)])
+    readings = np.column_stack([table.column(n) * (scale if p else 1.0) if table.has_column(n)
+                                else np.full(table.n_rows, constants[n]) for n, p in zip(columns, prismatic)])
     position_only = not table.has_column("qw")
     measured = np.tile(np.eye(4), (table.n_rows, 1, 1))
     if not position_only:
@@ -307,8 +340,13 @@ def _predict_serial(calibrated: Path, report: CalibrationReport, units: str,
     if chain.joint_names != report.chain:
         raise InvalidInputError(f"{report.path}: report field 'nominal_model.chain' lists {list(report.chain)}, but "
                                 f"{calibrated} has {list(chain.joint_names)} from {report.base} to {report.tool}")
-    campaign = read_campaign(measurements, chain.joint_names, [not np.any(s[3:]) for s in chain.twists], units)
-    return campaign, tool_poses(chain, model, campaign.readings)
+    campaign = read_campaign(measurements, chain.joint_names, [not np.any(s[3:]) for s in chain.twists], units,
+                             constants=report.constant_joints)
+    try:
+        q = compliant_readings(model, chain, campaign.readings, report.compliance)
+    except InvalidInputError as exc:
+        raise ModelFileError(calibrated, f"the compliance of report {report.path.name}: {exc}") from None
+    return campaign, tool_poses(chain, model, q)
 
 
 def _heading_errors(setup: MeasurementSetup, measured: np.ndarray, platform: np.ndarray) -> np.ndarray:
