@@ -324,3 +324,13 @@ def test_a_refusal_before_the_fit_does_not_offer_force():
     with pytest.raises(FitRejected) as caught:
         check_fit(True, "cost", 7, 100.0, ["positions look like millimetres"])  # a fit that ran, judged
     assert str(caught.value).endswith("nothing was written (--force writes it anyway)") and caught.value.forceable
+
+
+def test_a_reflector_the_measured_frame_absorbed_is_not_told_to_check_the_units() -> None:
+    """Without --marker the tool frame took up a 7 cm reflector: 'check the units' named a fault the
+    data do not show; the note names the measured frame instead, and other far moves keep the check."""
+    notes = fit_movement_notes({"tool.dt[2]": 0.07, "tool.dt[4]": 0.2, "q2.dt[0]": 1e-4}, 1e-2, 1e-5, "tool")
+    assert "check the units" not in notes[0] and "only the measured frame tool moved" in notes[0]
+    assert "reflector" in notes[1] and "--marker X Y Z" in notes[1]
+    mixed = fit_movement_notes({"tool.dt[2]": 0.07, "q2.dt[0]": 0.05}, 1e-2, 1e-5, "tool")
+    assert "check the units" in mixed[0] and "the moves of tool itself are the reflector below" in mixed[0]

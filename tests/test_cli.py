@@ -351,3 +351,22 @@ def test_an_input_too_large_for_memory_is_refused_without_a_traceback(tmp_path, 
     err = capsys.readouterr().err
     assert "m3t1r: error: plan: not enough memory" in err and "Traceback" not in err
     assert not (tmp_path / "plan.csv").exists()
+
+
+@pytest.mark.parametrize("argv", [["--fix", "q12", "q22.dt[5]", "m.csv"], ["--fix", "q12,q22.dt[5]", "m.csv"],
+                                  ["m.csv", "--fix", "q12", "q22.dt[5]"], ["--fix", "q12", "--fix", "q22.dt[5]", "m.csv"]])
+def test_fix_and_prior_lists_leave_the_measurement_file_to_its_argument(argv):
+    """`--fix A B file.csv` swallowed the file ('the following arguments are required: measurements')."""
+    from m3t1r.app.cli import build_parser
+
+    args = build_parser().parse_args(["calibrate", "-o", "c.urdf", "--prior", "q13=1e-4", "q23=2e-5", *argv])
+    assert args.measurements == "m.csv" and args.fix == ["q12", "q22.dt[5]"] and args.prior == ["q13=1e-4", "q23=2e-5"]
+    args = build_parser().parse_args(["calibrate", "-o", "c.urdf", "--prior", "q13=1e-4,q23=2e-5", "m.csv"])
+    assert args.measurements == "m.csv" and args.prior == ["q13=1e-4", "q23=2e-5"]
+
+
+def test_a_missing_measurement_file_is_still_a_usage_error(capsys):
+    with pytest.raises(SystemExit) as caught:
+        main(["calibrate", "-o", "c.urdf", "--fix", "q12", "q13"])
+    assert caught.value.code == 2
+    assert "the following arguments are required: measurements" in capsys.readouterr().err

@@ -390,3 +390,31 @@ def test_a_vicon_object_s_helical_angles_become_its_orientation(session, tmp_pat
     truth = session.bodies[dwell_middle, :3, :3]
     found = Rotation.from_quat(conversion.rows[:, 9:13]).as_matrix()
     assert max(np.linalg.norm(pin.log3(a.T @ b)) for a, b in zip(found, truth)) < 1e-6
+
+
+def test_rotation_vectors_and_matrices_convert_to_the_same_quaternions(tmp_path) -> None:
+    """Trackers and robot controllers log orientations as a rotation vector (UR's rx, ry, rz) or a
+    matrix: read by explicit flag or unambiguous names, as the quaternions they are."""
+    rotations = Rotation.random(6, random_state=2)
+    points = np.random.default_rng(1).normal(size=(6, 3))
+    joints = np.linspace(-1, 1, 6)[:, None]
+    files = {"rv": (["rx", "ry", "rz"], np.degrees(rotations.as_rotvec()), ["--rotation-vector", "--degrees"]),
+             "rvx": (["rvx", "rvy", "rvz"], rotations.as_rotvec(), []),
+             "matrix": ([f"r{i}{j}" for i in "123" for j in "123"], rotations.as_matrix().reshape(6, 9), [])}
+    for name, (columns, values, flags) in files.items():
+        source = tmp_path / f"{name}.csv"
+        source.write_text(table_text(["j1", "x", "y", "z", *columns], np.hstack([joints, points, values])))
+        assert main(["convert", str(source), *flags, "-o", str(tmp_path / f"{name}_q.csv")]) == 0
+        table = read_table(tmp_path / f"{name}_q.csv", required=("j1", "x", "y", "z", "qx", "qy", "qz", "qw"),
+                           optional=("source", "position_std"))
+        found = Rotation.from_quat(np.column_stack([table.column(c) for c in ("qx", "qy", "qz", "qw")]))
+        assert np.max((found.inv() * rotations).magnitude()) < 1e-9, name
+        assert np.allclose(table.column("j1"), joints[:, 0], atol=1e-12)
+    with pytest.raises(DataFileError, match="--rotation-vector"):  # rx, ry, rz alone: Euler or a vector, say which
+        convert_campaign(tmp_path / "rv.csv", None, ConversionOptions())
+    skewed = rotations.as_matrix().reshape(6, 9)
+    skewed[3, 0] += 0.01
+    (tmp_path / "bad.csv").write_text(table_text(["j1", "x", "y", "z", *files["matrix"][0]],
+                                                 np.hstack([joints, points, skewed])))
+    with pytest.raises(DataFileError, match=r"line 5: r11 ... r33 are not a rotation matrix"):
+        convert_campaign(tmp_path / "bad.csv", None, ConversionOptions())

@@ -448,3 +448,39 @@ def test_every_placement_fixed_says_so_instead_of_not_separable(ur10, tmp_path, 
     _sagging_campaign(model, chain, path, 20, seed=4)  # in the base frame: with no marker, nothing left to fit
     with pytest.raises(IdentificationError, match="all 42 candidate parameters are held fixed: nothing is left"):
         run_serial_calibration(namespace(tmp_path, path, fix=everything, frame="base", marker=None))
+
+
+def test_joint_readings_in_degrees_are_named_not_blamed_on_another_machine(ur10, tmp_path) -> None:
+    """On joints without usable limits (continuous), a log in degrees was refused as 'data from another
+    machine'; the radians file calibrates (a continuous joint's limits bound cos and sin, not the angle)."""
+    model, chain = ur10
+    continuous = tmp_path / "continuous.urdf"
+    continuous.write_text(UR10_URDF.read_text().replace('type="revolute"', 'type="continuous"'))
+    path = tmp_path / "campaign.csv"
+    _, q = _sagging_campaign(model, chain, path, 30, seed=6)
+    options = dict(serial=str(continuous), frame="base", marker=None, noise_rot=1e-4, compliance=True)
+    run_serial_calibration(namespace(tmp_path, path, **options))
+    table = read_table(path, required=(*chain.joint_names, "x", "y", "z", "qx", "qy", "qz", "qw"))
+    rows = np.column_stack([table.column(c) for c in ("x", "y", "z", "qx", "qy", "qz", "qw")])
+    write_campaign(path, chain, np.degrees(q), rows)
+    with pytest.raises(FitRejected) as caught:
+        run_serial_calibration(namespace(tmp_path, path, **options))
+    causes = " ".join(caught.value.causes)
+    assert "the joint readings look like degrees (columns 'shoulder_pan_joint'" in causes
+    assert "--joint-degrees all" in causes and "another machine" not in causes
+
+
+@pytest.mark.parametrize("columns, convert", [
+    (("roll", "pitch", "yaw"), "--euler SEQ [--degrees]"), (("rx", "ry", "rz"), "--rotation-vector"),
+    (tuple(f"r{i}{j}" for i in "123" for j in "123"), "-o measurements.csv")])
+def test_orientation_columns_other_than_a_quaternion_name_the_conversion(ur10, tmp_path, columns, convert) -> None:
+    model, chain = ur10
+    data, _ = campaign(model, chain, FRAMES["z180"], seed=6, n_poses=5)
+    path = tmp_path / "campaign.csv"
+    path.write_text(table_text([*chain.joint_names, "x", "y", "z", *columns],
+                               np.hstack([data.q_readings, np.zeros((5, 3 + len(columns)))])))
+    with pytest.raises(DataFileError) as caught:
+        run_serial_calibration(namespace(tmp_path, path))
+    message = str(caught.value)
+    assert "look like an orientation as" in message and f"`m3t1r convert {path} " in message and convert in message
+    assert "another model" not in message

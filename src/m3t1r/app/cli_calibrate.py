@@ -92,16 +92,16 @@ def _diagnose(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, frame_
     measurements = data.measurements
     pick = np.linspace(0, len(measurements) - 1, min(len(measurements), _DIAGNOSIS_POSES)).astype(int)
     measured = np.array([measurements.poses[i].translation for i in pick])
+    model = nominal.model
+    prismatic = np.array([model.joints[model.getJointId(n)].shortname().startswith("JointModelP")
+                          for n in nominal.actuated_joints])
     if units == "mm":
-        model = nominal.model
-        prismatic = np.array([model.joints[model.getJointId(n)].shortname().startswith("JointModelP")
-                              for n in nominal.actuated_joints])
         metres = metres_as_millimetres_causes(_nominal_points(nominal, marker), measurements.actuators[pick], measured,
                                               prismatic, frame_estimated=frame_estimated)
         if metres:
             return metres
     return likely_causes(_nominal_points(nominal, marker), measurements.actuators[pick], measured,
-                         nominal.actuated_joints, frame_estimated=frame_estimated)
+                         nominal.actuated_joints, frame_estimated=frame_estimated, angular=~prismatic)
 
 
 def cmd_calibrate(args: argparse.Namespace) -> None:

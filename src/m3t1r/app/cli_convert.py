@@ -28,7 +28,8 @@ def cmd_convert(args: argparse.Namespace) -> None:
     output = outputs.add(args.output, "-o")
     outputs.check()
     read = ReadOptions(body=args.body, units=args.units, euler=args.euler, degrees=args.degrees,
-                       joints=tuple(args.joints) if args.joints else None, joint_degrees=tuple(args.joint_degrees))
+                       joints=tuple(args.joints) if args.joints else None, joint_degrees=tuple(args.joint_degrees),
+                       rotation_vector=args.rotation_vector)
     conversion = convert_campaign(tracker, robot, ConversionOptions(
         format=args.format, read=read, still_speed=args.still_speed, robot_still_speed=args.robot_still_speed,
         min_dwell=args.min_dwell, pairing=args.pair))

@@ -318,7 +318,10 @@ def add_convert_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentPa
                                                                     "(default m for tables)")
     p.add_argument("--euler", metavar="SEQ", help="Euler convention of rotation columns (scipy's: xyz extrinsic, "
                                                   "XYZ intrinsic)")
-    p.add_argument("--degrees", action="store_true", help="Euler angles in degrees")
+    p.add_argument("--degrees", action="store_true", help="Euler angles (or a rotation vector) in degrees")
+    p.add_argument("--rotation-vector", action="store_true",
+                   help="rx, ry, rz are a rotation vector (axis times angle, as a UR controller logs), not Euler "
+                        "angles (rvx, rvy, rvz always are; r11 ... r33 are read as a rotation matrix)")
     p.add_argument("--joints", nargs="+", metavar="NAME", help="the joint columns (default: every other numeric "
                                                                "column but times and counters)")
     p.add_argument("--joint-degrees", nargs="+", default=[], metavar="NAME",

@@ -146,8 +146,10 @@ def _check_joint_limits(table: Table, model: pin.Model, names: tuple[str, ...], 
     """Every reading within its joint's limits, give or take LIMIT_MARGIN of the range (joints with
     usable limits only)."""
     for k, name in enumerate(names):
-        index = model.idx_qs[model.getJointId(name)]
-        lower, upper = float(model.lowerPositionLimit[index]), float(model.upperPositionLimit[index])
+        joint = model.joints[model.getJointId(name)]
+        if joint.nq != 1:  # a continuous joint (cos, sin): Pinocchio's limits bound those, not the angle
+            continue
+        lower, upper = float(model.lowerPositionLimit[joint.idx_q]), float(model.upperPositionLimit[joint.idx_q])
         if not (np.isfinite(lower) and np.isfinite(upper) and lower < upper):
             continue
         values = readings[:, k]
@@ -167,7 +169,8 @@ def _check_joint_limits(table: Table, model: pin.Model, names: tuple[str, ...], 
             # Degrees put most of a column beyond the limits, a bad reading one value.
             if not prismatic[k] and 2 * outside.size > len(values) \
                     and np.all((np.radians(values) >= lower) & (np.radians(values) <= upper)):
-                hint = "(every value of the column is within the limits in degrees: give radians)"
+                hint = ("(every value of the column is within the limits in degrees: give radians; `m3t1r convert "
+                        f"{table.path} --joint-degrees all -o measurements.csv` rewrites the file in radians)")
             raise table.error(row, f"{values[row]:.6g} {unit} is beyond the joint limit [{lower:.6g}, {upper:.6g}] "
                                    + hint, column=name)
 
@@ -184,7 +187,7 @@ def _diagnose(model: pin.Model, chain: SerialChain, data: SerialCampaign, marker
               frame_estimated: bool) -> list[str]:
     measured = np.array([g.translation for g in data.poses])
     return likely_causes(_nominal_frames(model, chain, marker), data.readings, measured, chain.joint_names,
-                         frame_estimated=frame_estimated)
+                         frame_estimated=frame_estimated, angular=np.any(chain.twists[:, 3:], axis=1))
 
 
 def _fit_causes(args: argparse.Namespace, model: pin.Model, chain: SerialChain, data: SerialCampaign,

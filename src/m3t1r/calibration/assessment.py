@@ -266,14 +266,15 @@ def _register(poses: np.ndarray, measured: np.ndarray, offset_free: bool, frame:
 
 
 def likely_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndarray, measured: np.ndarray,
-                  names: Sequence[str], *, frame_estimated: bool) -> list[str]:
+                  names: Sequence[str], *, frame_estimated: bool, angular: Sequence[bool] = ()) -> list[str]:
     """The usual mistakes, tested against the nominal model, most telling first.
 
     predict: readings (N, k) -> the measured points (N, 3) the nominal model predicts in its base
     frame, or the measured frames (N, 4, 4) (the given marker applied), whose point's further
     offset every check then registers too (NaN rows where a reading set does not assemble);
-    measured: (N, 3) [m] as read; names: the reading columns. Each check compares the data with
-    the model up to a rigid registration (and that offset).
+    measured: (N, 3) [m] as read; names: the reading columns; angular: (k,) which of them are
+    angles [rad] (revolute joints), tested for readings in degrees. Each check compares the data
+    with the model up to a rigid registration (and that offset).
     """
     poses, offset_free = _as_poses(predict(readings))
     valid = np.all(np.isfinite(poses.reshape(len(poses), -1)), axis=1)
@@ -289,9 +290,12 @@ def likely_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndar
         return [f"positions look like millimetres (spread {ratio:.0f} times the model's): use --units mm"]
     if 1 / 3000.0 < ratio < 1 / 300.0:
         return [f"positions look like metres (spread 1/{1 / ratio:.0f} of the model's): drop --units mm"]
-    causes = []
     registration = _register(poses, target, offset_free)
     registered = registration.rms
+    # Degrees are the whole story too: every other check would read the scrambled postures.
+    if degrees := _degrees_causes(predict, readings, measured, names, angular, registered):
+        return degrees
+    causes = []
     direct = _register(poses, target, offset_free, frame=False).rms
     if not frame_estimated and direct > 5.0 * registered and direct > 0.02:
         frame = registration.frame
@@ -406,6 +410,28 @@ def _swapped_position_columns(poses: np.ndarray, offset_free: bool, measured: np
             found.append((rms, f"the position columns look like they hold {names} in that order (the nominal model "
                                f"explains the data {direct / max(rms, 1e-12):.0f} times better read that way)"))
     return [text for _, text in sorted(found)[:1]]
+
+
+def _degrees_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndarray, measured: np.ndarray,
+                    names: Sequence[str], angular: Sequence[bool], registered: float) -> list[str]:
+    """Angle columns logged in degrees: read as degrees (times pi / 180), does the nominal model explain
+    the data far better (up to the same registration)?"""
+    angles = np.asarray(angular, dtype=bool)
+    if not angles.any() or registered <= SMALL_RESIDUAL:
+        return []
+    converted = readings.copy()
+    converted[:, angles] = np.radians(converted[:, angles])
+    poses, offset_free = _as_poses(predict(converted))
+    valid = np.all(np.isfinite(poses.reshape(len(poses), -1)), axis=1)
+    if np.count_nonzero(valid) < max(4, 0.9 * len(poses)):
+        return []
+    rms = _register(poses[valid], measured[valid], offset_free).rms
+    if rms >= registered / 5.0:
+        return []
+    columns = ", ".join(f"'{n}'" for n, a in zip(names, angles) if a)
+    return [f"the joint readings look like degrees (columns {columns}): read as degrees, the nominal model explains "
+            f"the data {registered / max(rms, 1e-12):.0f} times better ({rms:.3g} m RMS against {registered:.3g} m); "
+            "give radians (`m3t1r convert FILE --joint-degrees all -o measurements.csv` rewrites the file in radians)"]
 
 
 def _swapped_columns(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndarray, measured: np.ndarray,

@@ -257,6 +257,32 @@ def _check_schema(required: Sequence[str], optional: Sequence[str], groups: Sequ
         raise ValueError(f"table schema names {', '.join(repeated)} more than once")
 
 
+#: Orientation columns in another form than the quaternion a measurement table holds: the names
+#: (lowercase), what they are, and the `m3t1r convert` options that read them.
+_OTHER_ORIENTATIONS = (
+    (("roll", "pitch", "yaw"), "Euler angles", "--euler SEQ [--degrees]"),
+    (("rx", "ry", "rz"), "Euler angles or a rotation vector", "--euler SEQ (or --rotation-vector) [--degrees]"),
+    (("rvx", "rvy", "rvz"), "a rotation vector", "[--degrees]"),
+    (tuple(f"r{i}{j}" for i in "123" for j in "123"), "a rotation matrix", ""),
+)
+_QUATERNION = ("qx", "qy", "qz", "qw")
+
+
+def _orientation_hint(source: Path, unknown: Sequence[str], groups: Sequence[Sequence[str]]) -> str:
+    """For a table that takes a quaternion group: the sentence naming unknown columns that hold an
+    orientation in another form, and how to convert them (empty when there are none)."""
+    if not any(tuple(group) == _QUATERNION for group in groups):
+        return ""
+    lower = {name.lower() for name in unknown}
+    for names, what, options in _OTHER_ORIENTATIONS:
+        if set(names) <= lower:
+            listed = ", ".join(names) if len(names) < 9 else f"{names[0]} ... {names[-1]}"
+            return (f"; {listed} look like an orientation as {what}: this file takes a unit quaternion qx, qy, qz, "
+                    f"qw, and `m3t1r convert {source} {options + ' ' if options else ''}-o measurements.csv` "
+                    "converts the file (it keeps the joint columns)")
+    return ""
+
+
 def _check_header(
     source: Path,
     line: int,
@@ -279,16 +305,19 @@ def _check_header(
     missing = [name for name in required if name not in present]
     # A single header field holding ';' or a tab is a file with another separator.
     hint = " (fields must be separated by commas)" if len(header) == 1 and re.search(r"[;\t]", header[0]) else ""
+    orientation = _orientation_hint(source, unknown, groups)
+    hint += orientation
+    question = "" if orientation else " (is this file for another model?)"
     if missing:
         message = f"missing required columns: {', '.join(missing)}"
         if unknown:
-            message += f"; unknown columns: {', '.join(unknown)} (is this file for another model?)"
+            message += f"; unknown columns: {', '.join(unknown)}{question}"
         raise DataFileError(source, message + hint, row=line, column=missing[0])
     if unknown:
         expected = ", ".join([*required, *optional, *(name for group in groups for name in group)])
         raise DataFileError(
             source,
-            f"unknown columns: {', '.join(unknown)} (is this file for another model?); expected columns: {expected}"
+            f"unknown columns: {', '.join(unknown)}{question}; expected columns: {expected}"
             + hint,
             row=line,
             column=unknown[0],

@@ -9,7 +9,10 @@ columns recognised by name (any case):
   rotation that best carries the markers from that sample, by the SVD of their cross-covariance);
 - an orientation `qx, qy, qz, qw`, or Euler angles `roll, pitch, yaw` / `rx, ry, rz` read with the
   convention `--euler` names (scipy's: lowercase extrinsic, uppercase intrinsic) in radians, or
-  degrees with `--degrees`;
+  degrees with `--degrees`; or a rotation vector (axis times angle) `rvx, rvy, rvz`, or `rx, ry,
+  rz` with `--rotation-vector` (a UR controller's), in radians or degrees with `--degrees`; or a
+  rotation matrix `r11 ... r33` (r_ij: row i, column j), each made the nearest rotation and
+  refused by line when it is not one to 1e-3;
 - a time `time`, `t`, `timestamp` or `stamp` [s] (frames of a stream: still stretches are found);
 - a per-sample scatter `position_std` [m] or `*_std_mm` [mm];
 - joint readings: the columns `--joints` names, or else every other numeric column except
@@ -37,6 +40,9 @@ __all__ = ["ReadOptions", "read_delimited", "looks_delimited"]
 
 _TIME = ("time", "t", "timestamp", "stamp", "time_s")
 _EULER = (("roll", "pitch", "yaw"), ("rx", "ry", "rz"))
+_ROTATION_VECTOR = ("rvx", "rvy", "rvz")
+_MATRIX = tuple(f"r{i}{j}" for i in "123" for j in "123")
+_NOT_A_ROTATION = 1e-3  # a matrix farther from its nearest rotation (largest entry) is not one
 _QUATERNION = ("qx", "qy", "qz", "qw")
 
 
@@ -44,7 +50,8 @@ _QUATERNION = ("qx", "qy", "qz", "qw")
 class ReadOptions:
     """What a file does not say: body: marker number, rigid-body or label to read (None: the only
     one, or the first); units: position unit when the file does not state one; euler: scipy
-    convention of Euler columns; degrees: Euler angles in degrees; joints: the joint columns
+    convention of Euler columns; degrees: Euler angles (or a rotation vector) in degrees;
+    rotation_vector: rx, ry, rz are a rotation vector, not Euler angles; joints: the joint columns
     (None: every unrecognised numeric column); joint_degrees: joint columns in degrees."""
 
     body: str | None = None
@@ -53,6 +60,7 @@ class ReadOptions:
     degrees: bool = False
     joints: tuple[str, ...] | None = None
     joint_degrees: tuple[str, ...] = ()
+    rotation_vector: bool = False
 
 
 def looks_delimited(lines: Sequence[tuple[int, str]]) -> bool:
@@ -176,17 +184,46 @@ def _orientation(columns: _Columns, lower: list[str], options: ReadOptions, path
     if all(q in lower for q in _QUATERNION):
         quaternions = np.column_stack([columns.values(q) for q in _QUATERNION])
         return quaternions / np.linalg.norm(quaternions, axis=1, keepdims=True)
+    if all(r in lower for r in _MATRIX):
+        return _matrix_quaternions(columns, path)
+    vector = next((group for group in (_ROTATION_VECTOR, _EULER[1]) if all(e in lower for e in group)
+                   and (group == _ROTATION_VECTOR or options.rotation_vector)), None)
+    if vector is not None:
+        values = np.column_stack([columns.values(e) for e in vector])
+        quaternions = np.full((len(values), 4), np.nan)
+        seen = np.all(np.isfinite(values), axis=1)
+        quaternions[seen] = Rotation.from_rotvec(values[seen], degrees=options.degrees).as_quat()
+        return quaternions
     euler = next((group for group in _EULER if all(e in lower for e in group)), None)
     if euler is None:
         return None
     if not options.euler:
+        vector = " (or --rotation-vector: a rotation vector, as a UR controller logs)" if euler == _EULER[1] else ""
         raise DataFileError(path, f"Euler angle columns {', '.join(euler)}: give their convention with --euler "
-                                  "(e.g. xyz extrinsic, ZYX intrinsic) and --degrees if they are in degrees",
+                                  f"(e.g. xyz extrinsic, ZYX intrinsic){vector} and --degrees if they are in degrees",
                             row=header_line)
     angles = np.column_stack([columns.values(e) for e in euler])
     quaternions = np.full((len(angles), 4), np.nan)
     seen = np.all(np.isfinite(angles), axis=1)
     quaternions[seen] = Rotation.from_euler(options.euler, angles[seen], degrees=options.degrees).as_quat()
+    return quaternions
+
+
+def _matrix_quaternions(columns: _Columns, path: Path) -> np.ndarray:
+    """Quaternions (N, 4) of the rotation matrices r11 ... r33 (NaN where a cell is empty); a matrix
+    that is not a rotation (beyond _NOT_A_ROTATION, or a mirror) is refused by line."""
+    matrices = np.column_stack([columns.values(r) for r in _MATRIX]).reshape(-1, 3, 3)
+    quaternions = np.full((len(matrices), 4), np.nan)
+    seen = np.all(np.isfinite(matrices.reshape(len(matrices), -1)), axis=1)
+    u, _, vt = np.linalg.svd(matrices[seen])
+    nearest = u @ vt
+    off = np.max(np.abs(nearest - matrices[seen]), axis=(1, 2))
+    bad = np.flatnonzero((off > _NOT_A_ROTATION) | (np.linalg.det(nearest) < 0))
+    if bad.size:
+        line = columns.rows[int(np.flatnonzero(seen)[bad[0]])][0]
+        raise DataFileError(path, f"r11 ... r33 are not a rotation matrix (off by {off[bad[0]]:.3g}, or a mirror)",
+                            row=line)
+    quaternions[seen] = Rotation.from_matrix(nearest).as_quat()
     return quaternions
 
 
@@ -197,7 +234,8 @@ def _joint_columns(path: Path, header_line: int, names: list[str], lower: list[s
         if missing:
             raise DataFileError(path, f"no column {', '.join(missing)} (--joints)", row=header_line)
         return [names[lower.index(j.lower())] for j in options.joints]
-    recognised = set(_TIME) | set(_QUATERNION) | {e for group in _EULER for e in group} | {"position_std"}
+    recognised = set(_TIME) | set(_QUATERNION) | {e for group in _EULER for e in group} | {"position_std"} \
+        | set(_ROTATION_VECTOR) | set(_MATRIX)
     taken, ignored = [], []
     for name, low in zip(names, lower):
         if low in recognised or re.fullmatch(r"[xyz]\d*", low) or low.endswith("_std_mm"):
