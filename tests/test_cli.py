@@ -353,8 +353,9 @@ def test_an_input_too_large_for_memory_is_refused_without_a_traceback(tmp_path, 
     assert not (tmp_path / "plan.csv").exists()
 
 
-@pytest.mark.parametrize("argv", [["--fix", "q12", "q22.dt[5]", "m.csv"], ["--fix", "q12,q22.dt[5]", "m.csv"],
-                                  ["m.csv", "--fix", "q12", "q22.dt[5]"], ["--fix", "q12", "--fix", "q22.dt[5]", "m.csv"]])
+@pytest.mark.parametrize("argv", [
+    ["--fix", "q12", "q22.dt[5]", "m.csv"], ["--fix", "q12,q22.dt[5]", "m.csv"], ["m.csv", "--fix", "q12", "q22.dt[5]"],
+    ["--fix", "q12", "--fix", "q22.dt[5]", "m.csv"]])
 def test_fix_and_prior_lists_leave_the_measurement_file_to_its_argument(argv):
     """`--fix A B file.csv` swallowed the file ('the following arguments are required: measurements')."""
     from m3t1r.app.cli import build_parser

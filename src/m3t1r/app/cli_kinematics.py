@@ -148,7 +148,8 @@ def _compensate_serial(args: argparse.Namespace, report: CalibrationReport) -> N
         raise InvalidInputError("--closures/--calibrated-closures describe a closed-loop machine; a serial "
                                 f"calibration ({report.path}) has none")
     source = args.model or report.robot
-    outputs = OutputSet(inputs=[p for p in (args.targets, args.calibrated, args.report, source) if p and Path(p).exists()])
+    inputs = (args.targets, args.calibrated, args.report, source)
+    outputs = OutputSet(inputs=[p for p in inputs if p and Path(p).exists()])
     output = outputs.add(args.output, "-o")
     outputs.check()
     nominal, chain = _serial_robot(source, report)
@@ -169,8 +170,8 @@ def _compensate_serial(args: argparse.Namespace, report: CalibrationReport) -> N
         text = table_text(chain.joint_names, result.commands, comments + ["compensated joint commands [rad or m]"])
     else:
         poses = pose_rows([pin.SE3(g) for g in tool_poses(chain, nominal, result.commands)])
-        text = table_text(POSE_COLUMNS, poses, comments + [
-            f"tool poses ({chain.tool_frame} in the base frame) to send to a controller that knows only the nominal model"])
+        text = table_text(POSE_COLUMNS, poses, comments + [f"tool poses ({chain.tool_frame} in the base frame) to send "
+                                                           "to a controller that knows only the nominal model"])
     with outputs:
         outputs.stage(output, text)
         outputs.commit()

@@ -396,6 +396,11 @@ def explain(calibration: SerialCalibration, warnings_seen: list[str] = (), fixed
         notes.append("weakly determined on their own (std over 1 mm / 1 mrad; their joint effect on the tool can "
                      "still be well determined): "
                      + ", ".join(f"{describe_parameter(n)} (std {std[n]:.2g})" for n in weak[:8]))
+    against = {joint: c for joint, c in calibration.compliance.items() if c > 0}
+    if against:
+        notes.append("fitted compliance of the wrong sign (a joint giving way against gravity; a spring of stiffness "
+                     "k gives c = -1/k < 0): " + ", ".join(f"{j} {c:+.3g}" for j, c in against.items())
+                     + "; these columns stand for another effect that follows the gravity torque, not a stiffness")
     held = {calibration.names[c] for c in parameter_columns(calibration.names, fixed, "--fix")} & chain_names
     notes.append(_nominal_note(calibration, chain_names, held))
     if held == chain_names:  # the machine could not move: how far it moved says nothing
@@ -418,7 +423,8 @@ def _nominal_note(calibration: SerialCalibration, chain_names: set[str], held: s
     text = f"{undetermined} of {len(free)} placement components"
     if held:
         text += f" left free ({len(held)} more are held at nominal by --fix)"
-    return text + " are not separable with these data (redundant with others or with the measurement setup) and stay nominal"
+    return text + (" are not separable with these data (redundant with others or with the measurement setup) and "
+                   "stay nominal")
 
 
 def serial_calibration_report(calibration: SerialCalibration, data: SerialCampaign, args: argparse.Namespace,

@@ -465,7 +465,8 @@ def fit_movement_notes(moved: dict[str, float], rms_before: float, rms_after: fl
         translation = name.rpartition(".dt[")[2] in ("0]", "1]", "2]")
         limit = IMPLAUSIBLE_TRANSLATION if translation else IMPLAUSIBLE_ROTATION
         if abs(value) > limit:
-            far.append((abs(value) / limit, name, f"{describe_parameter(name)} {value:+.3g} {'m' if translation else 'rad'}"))
+            unit = "m" if translation else "rad"
+            far.append((abs(value) / limit, name, f"{describe_parameter(name)} {value:+.3g} {unit}"))
     if not far:
         return notes + _barely_moved(rms_before, rms_after)
     # The measured frame translating far is a reflector off it, taken for the machine's geometry: its

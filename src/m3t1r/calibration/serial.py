@@ -54,8 +54,8 @@ from m3t1r.calibration.serial_simulation import _checked_joint_noise, _readonly
 from m3t1r.errors import IdentificationError, InvalidInputError, real_array, require_count
 from m3t1r.model.poe import Placement, SerialChain, jlog3_batch, log3_batch, perturb, placement_poses, skew
 
-__all__ = ["PoseErrorRMS", "SerialCalibration", "calibrate_serial", "compliant_readings", "gravity_torques", "moved_mass",
-           "require_gravity_load"]
+__all__ = ["PoseErrorRMS", "SerialCalibration", "calibrate_serial", "compliant_readings", "gravity_torques",
+           "moved_mass", "require_gravity_load"]
 
 
 # --------------------------------------------------------------------------------------------------

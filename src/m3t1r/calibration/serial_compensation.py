@@ -14,8 +14,10 @@ target is g_nominal(q_nominal) and the compensated command q_c is found in two s
    converges because the deflection c tau changes far less than the deflection itself.
 
 With `position_only` (a calibration from a tracker without orientation) only the tool position
-is matched. A row that does not converge, or whose command is beyond a joint limit, is a failure
-(index and reason), not a command.
+is matched. A joint whose command falls beyond its limit is held at the limit while the other
+joints can still match the target (a redundant arm; TIAGo's torso at its stop). A row that does
+not converge, or whose command stays beyond a joint limit, is a failure (index and reason), not
+a command.
 """
 
 from __future__ import annotations
@@ -63,16 +65,17 @@ def _pose_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:
 
 
 def _reach(model: pin.Model, chain: SerialChain, target: np.ndarray, start: np.ndarray,
-           rows: slice) -> tuple[np.ndarray, float]:
-    """q with the tool of `model` at `target` (4, 4) in the compared `rows` of the error, from `start`."""
+           rows: slice, free: np.ndarray) -> tuple[np.ndarray, float]:
+    """q with the tool of `model` at `target` (4, 4) in the compared `rows` of the error, from `start`,
+    moving the `free` joints (n,) only."""
     data = model.createData()
     q = start.copy()
     error = _pose_error(target, tool_poses(chain, model, q)[0])[rows]
     for _ in range(_MAX_ITERATIONS):
         if np.linalg.norm(error) < _TOLERANCE:
             break
-        jacobian = _tool_jacobian(model, data, chain, q)[rows]
-        q = q + np.linalg.lstsq(jacobian, error, rcond=None)[0]
+        jacobian = _tool_jacobian(model, data, chain, q)[rows][:, free]
+        q[free] += np.linalg.lstsq(jacobian, error, rcond=None)[0]
         error = _pose_error(target, tool_poses(chain, model, q)[0])[rows]
     return q, float(np.linalg.norm(error))
 
@@ -90,6 +93,36 @@ def _command(calibrated: pin.Model, chain: SerialChain, actual: np.ndarray,
     return command
 
 
+def _compensate_one(calibrated: pin.Model, chain: SerialChain, target: np.ndarray, start: np.ndarray,
+                    compliance: Mapping[str, float], rows: slice, limits: tuple[np.ndarray, np.ndarray],
+                    tolerance: float) -> tuple[np.ndarray, float, str]:
+    """(command, residual, failure reason or "") of one configuration. A joint whose command falls
+    beyond its limit is held at that limit and the others solve again, while the chain has joints
+    to spare (a redundant arm, or a torso at its stop)."""
+    lower, upper = limits
+    free = np.ones(chain.n_joints, dtype=bool)
+    start = start.copy()
+    nan = np.full(chain.n_joints, np.nan)
+    while True:
+        actual, residual = _reach(calibrated, chain, target, start, rows, free)
+        if not residual <= tolerance:
+            return nan, residual, ("the calibrated robot does not reach the nominal tool pose near this "
+                                   f"configuration (error {residual:.3g} left)")
+        command = _command(calibrated, chain, actual, compliance)
+        bounded = lower < upper
+        # A held joint's command moves only with its deflection (micro-radians): clipped, not held again.
+        beyond = np.flatnonzero(free & bounded & ((command < lower - _TOLERANCE) | (command > upper + _TOLERANCE)))
+        if not beyond.size:
+            return np.clip(command, np.where(bounded, lower, -np.inf), np.where(bounded, upper, np.inf)), residual, ""
+        if np.count_nonzero(free) - beyond.size < rows.stop - rows.start:
+            k = int(beyond[0])
+            return nan, residual, (f"the compensated command puts joint '{chain.joint_names[k]}' at {command[k]:.6g}, "
+                                   f"beyond its limit [{lower[k]:.6g}, {upper[k]:.6g}]")
+        free[beyond] = False
+        start = actual.copy()  # held where its command is at the limit: the deflection stays as it was
+        start[beyond] = np.clip(command[beyond], lower[beyond], upper[beyond]) + actual[beyond] - command[beyond]
+
+
 def compensate_serial(nominal: pin.Model, calibrated: pin.Model, chain: SerialChain, program: np.ndarray,
                       compliance: Mapping[str, float], position_only: bool = False,
                       tolerance: float = 1e-9) -> SerialCompensation:
@@ -104,17 +137,8 @@ def compensate_serial(nominal: pin.Model, calibrated: pin.Model, chain: SerialCh
     residual = np.full(len(program), np.nan)
     failures: list[tuple[int, str]] = []
     for i, (target, start) in enumerate(zip(targets, program)):
-        actual, residual[i] = _reach(calibrated, chain, target, start, rows)
-        if not residual[i] <= tolerance:
-            failures.append((i, f"the calibrated robot does not reach the nominal tool pose near this "
-                                f"configuration (error {residual[i]:.3g} left)"))
-            continue
-        command = _command(calibrated, chain, actual, compliance)
-        beyond = [k for k in range(chain.n_joints) if lower[k] < upper[k] and not lower[k] <= command[k] <= upper[k]]
-        if beyond:
-            k = beyond[0]
-            failures.append((i, f"the compensated command puts joint '{chain.joint_names[k]}' at {command[k]:.6g}, "
-                                f"beyond its limit [{lower[k]:.6g}, {upper[k]:.6g}]"))
-            continue
-        commands[i] = command
+        commands[i], residual[i], reason = _compensate_one(calibrated, chain, target, start, compliance, rows,
+                                                           (lower, upper), tolerance)
+        if reason:
+            failures.append((i, reason))
     return SerialCompensation(commands, residual, tuple(failures))

@@ -169,11 +169,12 @@ def read_report(path: str | Path) -> CalibrationReport:
         raise InvalidInputError(f"{source}: report fields 'nominal_model.tool' / 'nominal_model.base' must be frame names")
     if not isinstance(chain, list) or not chain or not all(isinstance(n, str) for n in chain):
         raise InvalidInputError(f"{source}: report field 'nominal_model.chain' must be a list of joint names")
+    position_only = isinstance(document.get("input"), Mapping) and document["input"].get("position_only") is True
     return CalibrationReport(source, "serial", setup, noise, units, measured, tool, base, tuple(chain), factor,
                              _joint_numbers(document, "compliance", source, chain),
                              _joint_numbers(document, "constant_joints", source, chain),
                              robot if isinstance(robot := document["nominal_model"].get("robot"), str) else None,
-                             isinstance(document.get("input"), Mapping) and document["input"].get("position_only") is True)
+                             position_only)
 
 
 def _joint_numbers(document: Mapping, key: str, path: Path, chain: list[str]) -> dict[str, float]:
