@@ -335,3 +335,17 @@ def test_poses_need_all_pose_columns(tmp_path: Path) -> None:
     table = Table(path=tmp_path / "t.csv", columns=("x", "y", "z"), data=np.zeros((1, 3)), line_numbers=[2])
     with pytest.raises(DataFileError, match="missing pose columns: qx, qy, qz, qw"):
         poses_from_table(table)
+
+
+def test_orientation_columns_in_another_form_name_the_conversion(tmp_path):
+    """A measurement table with Euler angles was refused as 'unknown columns ... another model?'."""
+    path = tmp_path / "m.csv"
+    path.write_text("j1,x,y,z,roll,pitch,yaw\n0.1,1,2,3,0,0,0\n")
+    with pytest.raises(DataFileError) as caught:
+        read_table(path, required=("j1", "x", "y", "z"), optional_groups=(("qx", "qy", "qz", "qw"),))
+    message = str(caught.value)
+    assert "roll, pitch, yaw look like an orientation as Euler angles" in message
+    assert f"`m3t1r convert {path} --euler SEQ [--degrees] -o measurements.csv`" in message
+    assert "another model" not in message
+    with pytest.raises(DataFileError, match=r"another model\?\); expected columns: j1, x, y, z$"):
+        read_table(path, required=("j1", "x", "y", "z"))  # a table without orientation: no such hint

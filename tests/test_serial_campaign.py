@@ -440,6 +440,12 @@ def test_a_chain_joint_that_is_not_logged_is_given_its_constant_value(ur10, tmp_
     assert report["constant_joints"] == {"wrist_3_joint": 0.3}
     validated = validation.validate(path, urdf, report_path)  # the report's constant, the file without the column
     assert validated.errors.position_rms == pytest.approx(report["residual_rms"]["after"]["position_m"], rel=0.1)
+    program = tmp_path / "program.csv"  # the program does not list the tool changer either
+    program.write_text(table_text(chain.joint_names[:5], np.array([[0.3, -1.2, 1.4, -1.0, 1.1]])))
+    assert main(["compensate", str(program), "--calibrated", str(urdf), "--report", str(report_path),
+                 "--output-kind", "actuators", "-o", str(tmp_path / "commands.csv")]) == 0
+    commands = read_table(tmp_path / "commands.csv", required=chain.joint_names)
+    assert abs(commands.column("wrist_3_joint")[0] - 0.3) < 0.01  # the constant, corrected by milliradians
     with pytest.raises(InvalidInputError, match="--joint tool_changer: not a joint of the chain"):
         run_serial_calibration(namespace(tmp_path, path, joint={"tool_changer": 0.0}))
 

@@ -158,8 +158,11 @@ def _compensate_serial(args: argparse.Namespace, report: CalibrationReport) -> N
             != chain.joint_names or chain.joint_names != report.chain:
         raise InvalidInputError(f"{args.calibrated}: its chain from {report.base} to {report.tool} is not the "
                                 f"report's {list(report.chain)}")
-    table = read_table(args.targets, required=chain.joint_names, optional=POSE_COLUMNS)
-    program = np.column_stack([table.column(name) for name in chain.joint_names])
+    constants = report.constant_joints  # joints the calibration's file did not log (--joint NAME=VALUE)
+    table = read_table(args.targets, required=tuple(n for n in chain.joint_names if n not in constants),
+                       optional=(*constants, *POSE_COLUMNS))
+    program = np.column_stack([table.column(n) if table.has_column(n) else np.full(table.n_rows, constants[n])
+                               for n in chain.joint_names])
     with Heartbeat("compensate", f"{len(program)} configurations"):
         result = compensate_serial(nominal, calibrated, chain, program, report.compliance, report.position_only)
     if result.failures:
