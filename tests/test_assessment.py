@@ -332,5 +332,9 @@ def test_a_reflector_the_measured_frame_absorbed_is_not_told_to_check_the_units(
     notes = fit_movement_notes({"tool.dt[2]": 0.07, "tool.dt[4]": 0.2, "q2.dt[0]": 1e-4}, 1e-2, 1e-5, "tool")
     assert "check the units" not in notes[0] and "only the measured frame tool moved" in notes[0]
     assert "reflector" in notes[1] and "--marker X Y Z" in notes[1]
+    # TIAGo without --marker: the fit shared the 7 cm between the tool frame and the last joint's
+    # translation along its own axis, which moves the tool frame alike.
+    shared = fit_movement_notes({"tool.dt[2]": 0.0735, "q7.dt[2]": 0.0567}, 1e-2, 1e-5, "tool", ("q7.dt[2]",))
+    assert "check the units" not in shared[0] and "translations along the last joint's axis" in shared[0]
     mixed = fit_movement_notes({"tool.dt[2]": 0.07, "q2.dt[0]": 0.05}, 1e-2, 1e-5, "tool")
     assert "check the units" in mixed[0] and "the moves of tool itself are the reflector below" in mixed[0]

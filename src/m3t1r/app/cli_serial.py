@@ -408,8 +408,20 @@ def explain(calibration: SerialCalibration, warnings_seen: list[str] = (), fixed
     moved = {n: float(v) for n, v in zip(calibration.names, calibration.values) if n in fitted and n in chain_names}
     marker_estimated = any(n.startswith("marker.") for n in calibration.names)
     notes += fit_movement_notes(moved, calibration.residual_before.position, calibration.residual_after.position,
-                                None if marker_estimated else calibration.chain.tool_frame)
+                                None if marker_estimated else calibration.chain.tool_frame,
+                                _along_last_axis(calibration.chain))
     return notes
+
+
+def _along_last_axis(chain: SerialChain) -> tuple[str, ...]:
+    """The last joint's placement translations along its own axis (a revolute joint's axis through its
+    origin, along a coordinate axis): they commute with the joint, so they move the tool frame as a
+    translation of the tool frame would."""
+    linear, angular = chain.twists[-1, :3], chain.twists[-1, 3:]
+    axis = np.flatnonzero(np.abs(angular) > 1.0 - 1e-12)
+    if axis.size != 1 or np.any(linear):
+        return ()
+    return (f"{chain.joint_names[-1]}.dt[{int(axis[0])}]",)
 
 
 def _nominal_note(calibration: SerialCalibration, chain_names: set[str], held: set[str]) -> str:

@@ -452,13 +452,15 @@ def _swapped_columns(predict: Callable[[np.ndarray], np.ndarray], readings: np.n
 
 
 def fit_movement_notes(moved: dict[str, float], rms_before: float, rms_after: float,
-                       measured_frame: str | None = None) -> list[str]:
+                       measured_frame: str | None = None, same_as_frame: Sequence[str] = ()) -> list[str]:
     """Plain-word notes on how far the fit moved: implausibly far, or barely.
 
     moved: identified error per parameter name ([m] for translations, [rad] for rotations);
     rms_before / rms_after: position residual RMS [m] at the start and the end; measured_frame:
     the model frame the data measure, when no marker was estimated (its translating far means a
-    reflector off that frame was taken for the machine's geometry).
+    reflector off that frame was taken for the machine's geometry); same_as_frame: other parameters
+    that move the measured frame alike (a translation along the last joint's axis commutes with
+    the joint: the fit may share the reflector's offset with it).
     """
     notes, far = [], []
     for name, value in moved.items():
@@ -473,14 +475,17 @@ def fit_movement_notes(moved: dict[str, float], rms_before: float, rms_after: fl
     # own placement moves (translation and rotation), which says nothing of units or frames.
     absorbed = bool(measured_frame) and any(
         n.startswith(f"{measured_frame}.dt[") and n[-2] in "012" for _, n, _ in far)
-    others = [entry for entry in far if not (absorbed and entry[1].startswith(f"{measured_frame}."))]
+    others = [entry for entry in far
+              if not (absorbed and (entry[1].startswith(f"{measured_frame}.") or entry[1] in same_as_frame))]
     listed = ", ".join(text for _, _, text in sorted(far, reverse=True)[:3])
     if others:
         cause = ("check the units, the measurement frame, the reading columns and that the model is this machine's"
                  + (f" (the moves of {measured_frame} itself are the reflector below)" if absorbed else ""))
     else:
-        cause = (f"only the measured frame {measured_frame} moved, by a reflector's offset: the units, the frame "
-                 "and the rest of the machine are not in question")
+        alike = "" if len(far) == sum(e[1].startswith(f"{measured_frame}.") for e in far) else \
+            " (with translations along the last joint's axis, which move it alike)"
+        cause = (f"only the measured frame {measured_frame} moved{alike}, by a reflector's offset: the units, the "
+                 "frame and the rest of the machine are not in question")
     notes.append(f"the fit moved implausibly far for a machine built to drawing ({listed}): {cause}")
     if absorbed:
         notes.append(f"the measured frame {measured_frame} itself moved: the measured point is probably a "
