@@ -167,11 +167,14 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     _add_model_options(p)
 
     p = verbs.add_parser("compensate", help="corrected commands for targets, from a calibrated model (paper sec. 7)")
-    p.add_argument("targets", help="CSV with the task's columns (M machine: x,y,z,theta) or x,y,z,qx,qy,qz,qw")
+    p.add_argument("targets", help="CSV with the task's columns (M machine: x,y,z,theta) or x,y,z,qx,qy,qz,qw; "
+                                   "with a serial report, a joint program (columns by joint name)")
     p.add_argument("--calibrated", required=True, metavar="URDF", help="calibrated URDF")
     p.add_argument("--calibrated-closures", metavar="YAML", help="its closures (default: beside the URDF)")
     p.add_argument("--report", metavar="JSON", help="targets are poses of the measured frame (the marker) in this "
-                                                    "calibration's measurement frame (the tracker's), not the base's")
+                                                    "calibration's measurement frame (the tracker's), not the base's; "
+                                                    "a serial calibration's report: its chain and compliance, the "
+                                                    "targets a joint program")
     p.add_argument("--output-kind", choices=("pose", "actuators"), default="pose",
                    help="pose: T_cp for a controller with the nominal model; actuators: slider commands")
     p.add_argument("--unordered", action="store_true",
