@@ -32,7 +32,7 @@ def five_bar_mjcf(folder: Path, *, actuators: str | None = None, equality: str |
   <option gravity="0 -9.81 0"/>
   <worldbody>
     <body name="crank_l" pos="-{FIVE_BAR_BASE} 0 0">
-      <joint name="motor_l" type="hinge" axis="0 0 1" range="-1.5 1.5"/>
+      <joint name="motor_l" type="hinge" axis="0 0 1" range="-0.3 0.3"/>
       <geom type="capsule" fromto="0 0 0 0 {FIVE_BAR_CRANK} 0" size="0.01"/>
       <body name="rod_l" pos="0 {FIVE_BAR_CRANK} 0">
         <joint name="elbow_l" type="hinge" axis="0 0 1"/>
@@ -41,7 +41,7 @@ def five_bar_mjcf(folder: Path, *, actuators: str | None = None, equality: str |
       </body>
     </body>
     <body name="crank_r" pos="{FIVE_BAR_BASE} 0 0">
-      <joint name="motor_r" type="hinge" axis="0 0 1" range="-1.5 1.5"/>
+      <joint name="motor_r" type="hinge" axis="0 0 1" range="-0.3 0.3"/>
       <geom type="capsule" fromto="0 0 0 0 {FIVE_BAR_CRANK} 0" size="0.01"/>
       <body name="rod_r" pos="0 {FIVE_BAR_CRANK} 0">
         <joint name="elbow_r" type="hinge" axis="0 0 1"/>
