@@ -111,8 +111,11 @@ def test_a_keyframe_named_home_is_assembled_from_its_motor_values(tmp_path):
     assert np.abs(tip[:2] - _five_bar_tip(np.array([0.3, -0.2]))).max() < 1e-9
 
 
-def test_a_written_mjcf_machine_reloads_as_a_urdf_pair_of_the_same_machine(tmp_path):
-    mechanism = _load(five_bar_mjcf(tmp_path))
+@pytest.mark.parametrize("offset", ["0 0 0", "0.01 0.02 0"])
+def test_a_written_mjcf_machine_reloads_as_a_urdf_pair_of_the_same_machine(tmp_path, offset):
+    path = five_bar_mjcf(tmp_path)  # a hinge off its body's origin (MJCF joint pos) puts the body on a fixed joint
+    path.write_text(path.read_text().replace('name="elbow_l" type="hinge"', f'name="elbow_l" pos="{offset}" type="hinge"'))
+    mechanism = _load(path)
     mechanism.save(tmp_path / "five_bar.urdf")
     reloaded = _load(tmp_path / "five_bar.urdf")
     assert reloaded.source == "urdf" and reloaded.actuated_joints == mechanism.actuated_joints
@@ -139,6 +142,13 @@ def test_a_written_mjcf_machine_reloads_as_a_urdf_pair_of_the_same_machine(tmp_p
 def test_what_cannot_be_mapped_is_named_by_element_and_line(tmp_path, change, message):
     with pytest.raises(ModelFileError, match=message):
         Mechanism.load(five_bar_mjcf(tmp_path, **change))
+
+
+def test_a_file_cut_short_is_named_as_mjcf_with_its_line(tmp_path):
+    path = five_bar_mjcf(tmp_path)
+    path.write_text(path.read_text()[:200])
+    with pytest.raises(ModelFileError, match=r"five_bar.xml: not well-formed XML: .*line \d+"):
+        Mechanism.load(path)
 
 
 @pytest.mark.parametrize("old, new, message", [

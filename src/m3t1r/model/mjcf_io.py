@@ -22,6 +22,7 @@ platform frame is the file's only site.
 from __future__ import annotations
 
 import math
+import re
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +41,8 @@ SIDECAR_FIELDS = ("schema_version", "platform_frame", "task", "workspace", "home
 _ONE_DOF = ("hinge", "slide")
 _TRANSMISSIONS = ("joint", "jointinparent")
 _OTHER_TRANSMISSIONS = ("tendon", "site", "body", "cranksite", "slidersite", "refsite")
+#: What may precede the root element: a byte order mark, the XML declaration, comments, a doctype.
+_PROLOG = re.compile(rb"\A(?:\xef\xbb\xbf|\s+|<\?.*?\?>|<!--.*?-->|<!DOCTYPE[^>]*>)*", re.DOTALL)
 
 
 @dataclass(frozen=True)
@@ -60,14 +63,10 @@ class _Equality:
 
 
 def is_mjcf(data: bytes) -> bool:
-    """Whether file bytes are an MJCF document (root element `<mujoco>`)."""
-    head = data.lstrip()[:4096]
-    if b"<mujoco" not in head:
-        return False
-    try:
-        return etree.fromstring(data, _parser()).tag == "mujoco"
-    except etree.XMLSyntaxError:
-        return False
+    """Whether file bytes are meant as an MJCF document: their first element is `<mujoco>` (a file
+    cut short or malformed after it is still one, so that its reader names what is wrong)."""
+    head = _PROLOG.sub(b"", data[:65536])
+    return re.match(rb"\s*<mujoco[\s>/]", head) is not None
 
 
 def mjcf_sidecar_path(mjcf: Path) -> Path:
