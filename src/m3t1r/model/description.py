@@ -107,6 +107,8 @@ class Mechanism:
         file's sha256, and a closures file of another sha256 is refused, naming both files, so a
         URDF never loads with the closures of another machine. A URDF without a pair beside it and
         without a recorded sha256 gets the packaged nominal closures (a plain URDF of this machine).
+        An MJCF file (root `<mujoco>`) holds its own closures and actuators (`m3t1r.model.mjcf_io`);
+        `closures` then names its optional sidecar (default `NAME.closures.yaml` beside `NAME.xml`).
 
         Raises ModelFileError (naming the file and the field, joint or frame) when a file is
         missing, Pinocchio rejects the URDF, the two files are not a pair, the closures name

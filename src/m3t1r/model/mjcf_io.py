@@ -219,8 +219,9 @@ def _parse(path: Path, root: etree._Element) -> tuple[pin.Model, list, list]:
     if compiler is None:
         compiler = etree.Element("compiler")
         root.insert(0, compiler)
-    for key in ("meshdir", "texturedir", "assetdir"):
-        compiler.set(key, str(folder / compiler.get(key, "")) + "/")
+    assets = compiler.attrib.pop("assetdir", "")  # MJCF: the default of both folders below
+    for key in ("meshdir", "texturedir"):
+        compiler.set(key, str(folder / compiler.get(key, assets)) + "/")
     for include in root.iter("include"):
         include.set("file", str(folder / include.get("file", "")))
     with tempfile.TemporaryDirectory(prefix="m3t1r-mjcf-") as scratch:
