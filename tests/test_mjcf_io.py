@@ -92,10 +92,23 @@ def test_a_spatial_weld_closes_as_pinocchios_own_constraint_says(tmp_path):
         assert abs(q[0] - angle) < 1e-15
 
 
-def test_slide_ranges_are_metres_under_degree_angles(tmp_path):
-    mechanism = _load(slider_crank_mjcf(tmp_path))
-    lower, upper = mechanism.joint_limits(("slide", "pin"))
-    assert np.allclose(lower, [-0.05, -math.pi / 2]) and np.allclose(upper, [0.05, math.pi / 2])
+@pytest.mark.parametrize("refs", [False, True])
+def test_ranges_are_qpos_values_slides_in_metres_under_degree_angles(tmp_path, refs):
+    path = slider_crank_mjcf(tmp_path)
+    if refs:  # a reference position on each joint, and a range from a default class
+        text = path.read_text().replace('range="-0.05 0.05"', 'range="-0.05 0.05" ref="0.02"')
+        text = text.replace('range="-90 90"', 'range="-90 90" ref="10"').replace('<joint name="crank" type="hinge"',
+                                                                           '<joint name="crank" class="c" ref="5"')
+        text = text.replace('<joint name="slide" type="slide"', '<joint name="slide" class="s"').replace(
+            ' range="-0.05 0.05"', "")
+        path.write_text(text.replace("<worldbody>", '<default><default class="c"><joint type="hinge" range="-45 45"/>'
+                                                    '</default><default class="s"><joint type="slide" '
+                                                    'range="-0.05 0.05"/></default></default><worldbody>'))
+    mechanism = _load(path)
+    lower, upper = mechanism.joint_limits(("slide", "pin", "crank"))
+    crank = math.pi / 4 if refs else math.inf
+    assert np.allclose(lower, [-0.05, -math.pi / 2, -crank]) and np.allclose(upper, [0.05, math.pi / 2, crank])
+    assert np.allclose(mechanism.home, [0.02, math.radians(10), math.radians(5)] if refs else 0.0)
 
 
 def test_a_keyframe_named_home_is_assembled_from_its_motor_values(tmp_path):

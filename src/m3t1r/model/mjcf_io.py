@@ -91,7 +91,7 @@ def read_mjcf(path: Path, data: bytes, sidecar: dict | None, sidecar_path: Path)
     keyframe = _named_keyframes(root, path)
     _wrap_world(root)
     model, points, welds = _parse(path, root)
-    _fix_slide_limits(root, model)
+    _fix_limits(root, model)
     frames, closures = _closure_entries(model, equalities, points, welds, path)
     doc: dict = {"schema_version": 2, "actuated_joints": _actuated(root, model, path), "closures": closures,
                  "frames": frames, "home": _home(model, keyframe)}
@@ -237,16 +237,25 @@ def _parse(path: Path, root: etree._Element) -> tuple[pin.Model, list, list]:
     return model, list(points), list(welds)
 
 
-def _fix_slide_limits(root: etree._Element, model: pin.Model) -> None:
-    """Slide ranges are lengths: Pinocchio 4.1 scales them as angles under `<compiler angle="degree">`
-    (MJCF's default), which would turn a 0.1 m range into 1.7 mm."""
+def _fix_limits(root: etree._Element, model: pin.Model) -> None:
+    """The joints' limits as MJCF means them: `range` in qpos units (hinges in the compiler's angle
+    unit, slides in metres), unbounded where `limited="false"`. Pinocchio 4.1 stores a range given
+    on the joint minus its `ref`, and scales a slide's range as an angle under `<compiler
+    angle="degree">` (MJCF's default): a range on the joint is read as written, one inherited from
+    a default class (not shifted) is unscaled."""
     compiler = root.find("compiler")
-    if (compiler.get("angle", "degree") if compiler is not None else "degree") != "degree":
-        return
+    degrees = (compiler.get("angle", "degree") if compiler is not None else "degree") == "degree"
+    elements = {j.get("name"): j for j in root.iter("joint") if j.getparent().tag == "body" and j.get("name")}
     lower, upper = model.lowerPositionLimit.copy(), model.upperPositionLimit.copy()
     for j in range(1, model.njoints):
-        if model.joints[j].shortname().startswith("JointModelP"):
-            k = model.idx_qs[j]
+        k, slide = model.idx_qs[j], model.joints[j].shortname().startswith("JointModelP")
+        element = elements.get(model.names[j])
+        if element is not None and element.get("limited", "").strip().lower() == "false":
+            lower[k], upper[k] = -np.inf, np.inf
+        elif element is not None and element.get("range") is not None:
+            scale = math.pi / 180.0 if degrees and not slide else 1.0
+            lower[k], upper[k] = (float(v) * scale for v in element.get("range").split()[:2])
+        elif degrees and slide and np.isfinite(lower[k]) and np.isfinite(upper[k]):
             lower[k], upper[k] = lower[k] * 180.0 / math.pi, upper[k] * 180.0 / math.pi
     model.lowerPositionLimit, model.upperPositionLimit = lower, upper
 
