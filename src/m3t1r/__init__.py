@@ -56,6 +56,7 @@ if TYPE_CHECKING:  # the names as type checkers and editors see them; at run tim
         SingularConfigurationError,
     )
     from m3t1r.metrics import PoseErrors
+    from m3t1r.model.constraint_models import rigid_constraint_datas, rigid_constraint_models
     from m3t1r.model.description import ClosureSpec, Mechanism
     from m3t1r.model.design import NOMINAL
     from m3t1r.model.examples import five_bar_files, spherical_wrist_files
@@ -93,6 +94,7 @@ _MODULE_EXPORTS: dict[str, tuple[str, ...]] = {
         "PoorExcitationWarning", "SingularConfigurationError",
     ),
     "m3t1r.metrics": ("PoseErrors",),
+    "m3t1r.model.constraint_models": ("rigid_constraint_datas", "rigid_constraint_models"),
     "m3t1r.model.description": ("ClosureSpec", "Mechanism"),
     "m3t1r.model.design": ("NOMINAL",),
     "m3t1r.model.examples": ("five_bar_files", "spherical_wrist_files"),
@@ -128,7 +130,7 @@ __all__ = [
     # model
     "NOMINAL", "Mechanism", "ClosureSpec", "ClosedLoopSolver", "ForwardResult", "InverseResult", "SerialChain",
     "write_calibrated_urdf", "workspace_actuators", "declared_workspace", "TaskSpec", "WorkspaceSpec",
-    "five_bar_files", "spherical_wrist_files",
+    "five_bar_files", "spherical_wrist_files", "rigid_constraint_models", "rigid_constraint_datas",
     # calibration
     "PoseErrors", "TrackerNoise", "PoseMeasurements", "MeasurementSetup", "measure", "ClosedLoopErrorModel",
     "ClosedLoopCalibration", "calibrate_closed_loop", "pose_errors", "predicted_pose_std", "predicted_measurement_std",

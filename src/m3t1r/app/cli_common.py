@@ -24,6 +24,7 @@ from m3t1r.io.poses import POSE_COLUMNS, pose_rows
 from m3t1r.io.progress import Progress
 from m3t1r.io.tables import table_text
 from m3t1r.model.description import Mechanism
+from m3t1r.model.mjcf_io import is_mjcf
 
 __all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "status_stream", "progress_bar", "provenance",
            "parse_priors", "parse_joint_values", "check_plots_folder", "checked_marker", "MAX_MARKER_DISTANCE"]
@@ -59,7 +60,7 @@ class RowFailures(M3t1rError):
 
 def load_mechanism(urdf: str | None, closures: str | None):
     """Load a machine; a URDF without --closures loads with its pair NAME.closures.yaml (sha256-checked)."""
-    if urdf is not None and closures is None:
+    if urdf is not None and closures is None and not _is_mjcf_file(urdf):  # an MJCF holds its own closures
         sibling = paired_closures_path(urdf)
         try:
             recorded = recorded_closures_sha256(read_bounded(urdf) or b"")
@@ -73,6 +74,13 @@ def load_mechanism(urdf: str | None, closures: str | None):
     for note in mechanism.notes:
         print(f"note: {mechanism.closures_path.name}: {note}", file=sys.stderr)
     return mechanism
+
+
+def _is_mjcf_file(path: str) -> bool:
+    try:
+        return is_mjcf(read_bounded(path) or b"")
+    except OSError:
+        return False  # Mechanism.load names the problem
 
 
 def closures_beside(urdf_out: Path) -> Path:

@@ -99,7 +99,7 @@ def _add_deprecated_alias(parser: argparse.ArgumentParser, option: str, dest: st
 
 
 def _add_model_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", metavar="URDF", help="machine URDF (default: the packaged nominal model)")
+    parser.add_argument("--model", metavar="URDF", help="machine URDF or MJCF (default: the packaged nominal model)")
     parser.add_argument("--closures", metavar="YAML", help="its closures file (default: URDF stem + .closures.yaml)")
 
 
@@ -274,7 +274,7 @@ def add_plan_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--position-only", action="store_true", help="a tracker without orientation")
     p.add_argument("--noise-pos", type=positive_number, default=10e-6, metavar="M", help="tracker position noise [m]")
     p.add_argument("--noise-rot", type=positive_number, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]")
-    p.add_argument("--model", metavar="URDF", help="machine URDF (default: the packaged nominal model)")
+    p.add_argument("--model", metavar="URDF", help="machine URDF or MJCF (default: the packaged nominal model)")
     p.add_argument("--closures", metavar="YAML", help="its closures file (default: URDF stem + .closures.yaml)")
     p.add_argument("--serial", metavar="ROBOT_OR_URDF", help="plan for a serial robot (ur3, ur5, ur10, panda or a URDF)")
     p.add_argument("--base", metavar="FRAME", help="with --serial: base frame (default the model root)")

@@ -16,7 +16,8 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg
 
-__all__ = ["ClosureSpec", "ClosureSystem", "Redundancy", "ROW_COUNT", "ASSEMBLY_MAX_CHANGE", "without_rows"]
+__all__ = ["ClosureSpec", "ClosureSystem", "Redundancy", "ROW_COUNT", "ASSEMBLY_MAX_CHANGE", "without_rows",
+           "closure_rank"]
 
 ROW_COUNT = {"3D": 3, "6D": 6}
 ASSEMBLY_MAX_CHANGE = 0.1  # [rad or m] the most any joint may move when a home is assembled at load
@@ -140,6 +141,11 @@ class ClosureSystem:
             keep = _pivots(square.T, rank)
             dropped = tuple(r for r in range(square.shape[0]) if r not in keep)
         return Redundancy(locked, dropped, rank), _rank(jac)
+
+
+def closure_rank(matrix: np.ndarray) -> int:
+    """Rank of a closure Jacobian under the rule every load-time decision uses (`_rank`)."""
+    return _rank(matrix)
 
 
 def _rank(matrix: np.ndarray) -> int:

@@ -25,9 +25,10 @@ from m3t1r.io.paths import read_bounded, size_refusal
 from m3t1r.io.temporaries import pending_temporaries
 from m3t1r.model.assembly import HomeAssembly, assemble_home, limits_violated
 from m3t1r.model.closures import ClosureSpec, ClosureSystem, without_rows
+from m3t1r.model.mjcf_io import is_mjcf, mjcf_sidecar_path, read_mjcf
 from m3t1r.model.schema import SCHEMA_VERSIONS, declared_frame_entries, load_closures_yaml, read_description
 from m3t1r.model.task import TaskSpec, WorkspaceSpec
-from m3t1r.model.urdf_io import calibrated_urdf_bytes, refuse_mimic_joints, revolute_urdf_text
+from m3t1r.model.urdf_io import calibrated_urdf_bytes, refuse_mimic_joints, revolute_urdf_text, tree_urdf_bytes
 
 __all__ = ["ClosureSpec", "Mechanism", "nominal_model_paths", "paired_closures", "HOME_TOLERANCE",
            "SCHEMA_VERSIONS"]
@@ -78,6 +79,8 @@ class Mechanism:
     locked_joints: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
     home_assembly: HomeAssembly | None = None
+    source: str = "urdf"
+    """What `urdf_path` is: "urdf", or "mjcf" (tree and closures read from an MJCF file; `save` writes a URDF pair)."""
     visual_cache: dict = field(default_factory=dict, repr=False, compare=False)
     """Holds the visual geometry once loaded; shared by the copies `with_model`/`with_home` make (same tree)."""
 
@@ -104,6 +107,8 @@ class Mechanism:
         file's sha256, and a closures file of another sha256 is refused, naming both files, so a
         URDF never loads with the closures of another machine. A URDF without a pair beside it and
         without a recorded sha256 gets the packaged nominal closures (a plain URDF of this machine).
+        An MJCF file (root `<mujoco>`) holds its own closures and actuators (`m3t1r.model.mjcf_io`);
+        `closures` then names its optional sidecar (default `NAME.closures.yaml` beside `NAME.xml`).
 
         Raises ModelFileError (naming the file and the field, joint or frame) when a file is
         missing, Pinocchio rejects the URDF, the two files are not a pair, the closures name
@@ -117,6 +122,8 @@ class Mechanism:
         urdf_path = Path(urdf)
         if not urdf_path.is_file():
             raise ModelFileError(urdf_path, "file not found" if not urdf_path.exists() else "not a regular file")
+        if is_mjcf(_read_bytes(urdf_path)):
+            return _load_mjcf(urdf_path, None if closures is None else Path(closures))
         recorded = _recorded_sha256(urdf_path)
         if closures is None and recorded is None and not _paired_path(urdf_path).is_file():
             closures = nominal_model_paths()[1]
@@ -124,19 +131,7 @@ class Mechanism:
             closures_path, data = paired_closures(urdf_path, recorded=recorded)
         else:
             closures_path, data = _closures_of(urdf_path, Path(closures), recorded)
-        model = _load_urdf(urdf_path)
-        doc = _parse_yaml(closures_path, data)
-        try:
-            mechanism = _build(model, doc, urdf_path, closures_path)
-        except ModelFileError:
-            raise
-        except (TypeError, ValueError, AttributeError, OverflowError, KeyError) as exc:
-            # Safety net for a malformed cell the field checks above did not foresee.
-            raise ModelFileError(closures_path, f"malformed closures file: {type(exc).__name__}: {exc}") from None
-        mechanism = _settled(dataclasses.replace(mechanism, closures_document=copy.deepcopy(doc)))
-        for note in mechanism.notes:
-            warnings.warn(f"{mechanism.closures_path.name}: {note}", ModelWarning, stacklevel=2)
-        return mechanism
+        return _finish(_load_urdf(urdf_path), _parse_yaml(closures_path, data), urdf_path, closures_path)
 
     # Convenience views, all derived from the model (no duplicated state).
     @property
@@ -205,6 +200,10 @@ class Mechanism:
                   "Schema: models/README.md\n")
         closures_bytes = (header + yaml.safe_dump(doc, sort_keys=False)).encode("utf-8")
         del closures_path
+        if self.source == "mjcf":  # no URDF to rewrite: the tree itself, its declared frames left to the closures
+            urdf_bytes = tree_urdf_bytes(self.model, self.model.name or Path(urdf).stem, closures_sha256(closures_bytes),
+                                         skip_frames=tuple(doc.get("frames") or ()))
+            return urdf_bytes, closures_bytes
         return calibrated_urdf_bytes(self.urdf_path, self.model, closures_sha256(closures_bytes)), closures_bytes
 
     def save(self, urdf: str | Path, closures: str | Path | None = None, protect: tuple = ()) -> None:
@@ -230,6 +229,33 @@ class Mechanism:
     def with_home(self, home: np.ndarray) -> "Mechanism":
         """The same machine with another home configuration (nq) [m, rad]."""
         return dataclasses.replace(self, home=np.array(home, dtype=float))
+
+
+def _finish(model: pin.Model, doc: dict, urdf_path: Path, closures_path: Path, source: str = "urdf",
+            notes: tuple[str, ...] = ()) -> Mechanism:
+    """The Mechanism of a tree and its closures document, settled (`_settled`), its notes warned."""
+    try:
+        mechanism = _build(model, doc, urdf_path, closures_path)
+    except ModelFileError:
+        raise
+    except (TypeError, ValueError, AttributeError, OverflowError, KeyError) as exc:
+        # Safety net for a malformed cell the field checks did not foresee.
+        raise ModelFileError(closures_path, f"malformed closures file: {type(exc).__name__}: {exc}") from None
+    mechanism = _settled(dataclasses.replace(mechanism, closures_document=copy.deepcopy(doc), source=source))
+    mechanism = dataclasses.replace(mechanism, notes=notes + mechanism.notes)
+    for note in mechanism.notes:
+        warnings.warn(f"{mechanism.closures_path.name}: {note}", ModelWarning, stacklevel=3)
+    return mechanism
+
+
+def _load_mjcf(path: Path, closures: Path | None) -> Mechanism:
+    """An MJCF mechanism (`m3t1r.model.mjcf_io`), with its sidecar closures file when given or beside it."""
+    sidecar_path = closures if closures is not None else mjcf_sidecar_path(path)
+    sidecar = None
+    if closures is not None or sidecar_path.is_file():
+        sidecar = _parse_yaml(sidecar_path, _read_bytes(sidecar_path), required=())
+    tree = read_mjcf(path, _read_bytes(path), sidecar, sidecar_path)
+    return _finish(tree.model, tree.document, path, sidecar_path if sidecar is not None else path, "mjcf", tree.notes)
 
 
 def _record_derived(doc: dict, mechanism: Mechanism) -> None:
@@ -268,7 +294,11 @@ def _load_urdf(path: Path) -> pin.Model:
 
 def _load_visual(path: Path, model: pin.Model) -> pin.GeometryModel:
     try:
+        if is_mjcf(_read_bytes(path)):
+            raise ModelFileError(path, "the visual geometry of an MJCF model is not loaded")
         return pin.buildGeomFromUrdf(model, str(path), pin.GeometryType.VISUAL, package_dirs=[str(path.parent)])
+    except ModelFileError:
+        raise
     except Exception as exc:  # a mesh not found or unreadable
         raise ModelFileError(path, f"cannot load the visual geometry: {exc}") from None
 
@@ -341,7 +371,8 @@ def _closures_of(urdf: Path, closures: Path, recorded: str | None) -> tuple[Path
                   "from the URDF (it then loads with any closures file; saving records a new pair)")
 
 
-def _parse_yaml(path: Path, data: bytes) -> dict:
+def _parse_yaml(path: Path, data: bytes,
+                required: tuple[str, ...] = ("actuated_joints", "closures", "platform_frame", "home")) -> dict:
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -358,7 +389,7 @@ def _parse_yaml(path: Path, data: bytes) -> dict:
         raise ModelFileError(path, f"cannot read closures YAML: {type(exc).__name__}: {exc}") from None
     if not isinstance(doc, dict):
         raise ModelFileError(path, "closures file must be a YAML mapping")
-    for key in ("actuated_joints", "closures", "platform_frame", "home"):
+    for key in required:
         if key not in doc:
             raise ModelFileError(path, f"missing field '{key}'")
     return doc

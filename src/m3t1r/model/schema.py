@@ -162,7 +162,7 @@ def declared_frame_entries(model: pin.Model, doc: dict) -> dict:
     their link), for writing a model whose frame placements calibration changed."""
     out = {}
     for name, entry in (doc.get("frames") or {}).items():
-        parent = model.frames[model.getFrameId(entry["link"])]
+        parent = model.frames[_named_frame(model, entry["link"])]
         local = parent.placement.actInv(model.frames[model.getFrameId(name, pin.FrameType.OP_FRAME)].placement)
         out[name] = {"link": entry["link"], "xyz": [float(v) + 0.0 for v in local.translation],
                      "rpy": [float(v) + 0.0 for v in pin.rpy.matrixToRpy(local.rotation)]}
@@ -172,7 +172,13 @@ def declared_frame_entries(model: pin.Model, doc: dict) -> dict:
 def _frame_id(model: pin.Model, name: object, path: Path, where: str) -> int:
     if not isinstance(name, str) or not model.existFrame(name):
         raise ModelFileError(path, f"{where}: frame '{name}' does not exist in the URDF")
-    return model.getFrameId(name)
+    return _named_frame(model, name)
+
+
+def _named_frame(model: pin.Model, name: str) -> int:
+    """The frame of that name; the link (BODY frame) when a joint has the same name (MJCF bodies often do)."""
+    return model.getFrameId(name, pin.FrameType.BODY) if model.existFrame(name, pin.FrameType.BODY) else \
+        model.getFrameId(name)
 
 
 def _actuated(model: pin.Model, actuated: object, urdf_path: Path, path: Path) -> tuple[str, ...]:

@@ -475,3 +475,89 @@ def refuse_mimic_joints(path: StrPath, urdf: bytes, joints: Iterable[str]) -> No
             raise ModelFileError(path, f"joint '{name}' mimics joint '{mimics[name]}' (<mimic>): m3t1r moves and "
                                        "calibrates every joint on its own, so a coupled joint is not supported; "
                                        "remove the tag (an independent joint) or make the joint fixed")
+
+
+def tree_urdf_bytes(model: pin.Model, robot: str, closures_sha256: str | None = None,
+                    skip_frames: Iterable[str] = ()) -> bytes:
+    """A URDF of `model`'s tree, for a model that has no URDF of its own (one read from MJCF).
+
+    Each moving joint's child link is the BODY frame that sits on it (a link `<joint>_link` when
+    none does), its other BODY frames and its operational frames (MJCF sites) are fixed links named
+    as the frames, on fixed joints `<frame>_fixed`; `skip_frames` (the frames a closures file
+    declares) are left out. Revolute joints without limits are continuous; a prismatic joint
+    without limits gets `<limit>` without bounds, which `Mechanism.load` reads as unbounded.
+    The link inertias are the model's. Loaded back, the tree has the same joints, placements and
+    frame names.
+    """
+    skipped = set(skip_frames)
+    data = model.createData()
+    pin.forwardKinematics(model, data, pin.neutral(model))
+    links = _joint_links(model)
+    robot_element = etree.Element("robot", name=robot)
+    used = set(links.values())
+    etree.SubElement(robot_element, "link", name=links[0])
+    for j in range(1, model.njoints):
+        _inertial(etree.SubElement(robot_element, "link", name=links[j]), model.inertias[j])
+        _moving_joint(robot_element, model, data, j, links)
+    for frame in model.frames:
+        if frame.name in used or frame.name in skipped or frame.type not in (pin.FrameType.BODY, pin.FrameType.OP_FRAME):
+            continue
+        used.add(frame.name)
+        etree.SubElement(robot_element, "link", name=frame.name)
+        joint = etree.SubElement(robot_element, "joint", name=f"{frame.name}_fixed", type="fixed")
+        etree.SubElement(joint, "origin", **_origin_attributes(frame.placement))
+        etree.SubElement(joint, "parent", link=links[frame.parentJoint])
+        etree.SubElement(joint, "child", link=frame.name)
+    etree.indent(robot_element, space="  ")
+    text = etree.tostring(robot_element, xml_declaration=True, encoding="UTF-8") + b"\n"
+    return with_closures_sha256(text, closures_sha256)
+
+
+def _joint_links(model: pin.Model) -> dict[int, str]:
+    """The link of each joint: the BODY frame at the identity on it, else a new name."""
+    taken = {frame.name for frame in model.frames}
+    links = {}
+    for j in range(model.njoints):
+        on_joint = [f.name for f in model.frames if f.parentJoint == j and f.type == pin.FrameType.BODY
+                    and _placement_distance(f.placement, pin.SE3.Identity()) <= IDENTITY_TOLERANCE]
+        fallback = "world" if j == 0 else f"{model.names[j]}_link"
+        while not on_joint and fallback in taken:
+            fallback += "_"
+        links[j] = on_joint[0] if on_joint else fallback
+    return links
+
+
+def _moving_joint(robot: etree._Element, model: pin.Model, data: pin.Data, j: int, links: dict[int, str]) -> None:
+    subspace = np.asarray(data.joints[j].S).reshape(6)
+    prismatic = float(np.linalg.norm(subspace[:3])) > 0.5
+    k = model.idx_qs[j]
+    lower, upper = float(model.lowerPositionLimit[k]), float(model.upperPositionLimit[k])
+    bounded = np.isfinite(lower) and np.isfinite(upper) and lower < upper
+    kind = "prismatic" if prismatic else ("revolute" if bounded else "continuous")
+    joint = etree.SubElement(robot, "joint", name=model.names[j], type=kind)
+    etree.SubElement(joint, "origin", **_origin_attributes(model.jointPlacements[j]))
+    etree.SubElement(joint, "parent", link=links[model.parents[j]])
+    etree.SubElement(joint, "child", link=links[j])
+    axis = subspace[:3] if prismatic else subspace[3:]
+    etree.SubElement(joint, "axis", xyz=" ".join(format_float(float(v) + 0.0) for v in axis))
+
+    def finite(value: float) -> str:
+        return format_float(value) if np.isfinite(value) else "0"
+
+    limit = {"effort": finite(float(model.effortLimit[model.idx_vs[j]])),
+             "velocity": finite(float(model.velocityLimit[model.idx_vs[j]]))}
+    if bounded:
+        limit.update(lower=format_float(lower), upper=format_float(upper))
+    if kind != "continuous" or bounded:
+        etree.SubElement(joint, "limit", **limit)
+
+
+def _inertial(link: etree._Element, inertia: pin.Inertia) -> None:
+    if inertia.mass <= 0.0:
+        return
+    element = etree.SubElement(link, "inertial")
+    etree.SubElement(element, "origin", xyz=" ".join(format_float(float(v) + 0.0) for v in inertia.lever), rpy="0 0 0")
+    etree.SubElement(element, "mass", value=format_float(float(inertia.mass)))
+    matrix = np.asarray(inertia.inertia)
+    entries = {"ixx": (0, 0), "ixy": (0, 1), "ixz": (0, 2), "iyy": (1, 1), "iyz": (1, 2), "izz": (2, 2)}
+    etree.SubElement(element, "inertia", **{key: format_float(float(matrix[i, j]) + 0.0) for key, (i, j) in entries.items()})
