@@ -131,14 +131,17 @@ def _check_output(path: StrPath, protect: Iterable[StrPath], outputs: OutputSet 
         raise OutputPathError(target, f"directory {target.parent} does not exist")
 
 
-def _save(figure: Figure, path: StrPath, protect: Iterable[StrPath], outputs: OutputSet | None = None) -> Path:
+def _save(figure: Figure, path: StrPath, protect: Iterable[StrPath], outputs: OutputSet | None = None,
+          description: str | None = None) -> Path:
     """Render to PNG in memory, then replace `path` atomically, or stage it in `outputs` (to land
-    with the set's other outputs at its commit); returns the path."""
+    with the set's other outputs at its commit); returns the path. `description` goes into the PNG's
+    Description text chunk: what the figure marks, in words, for a reader without the image."""
     target = Path(path)
     protect = tuple(protect)
     FigureCanvasAgg(figure)
     buffer = _stdio.BytesIO()
-    figure.savefig(buffer, format="png", dpi=_DPI)
+    metadata = {"Description": description} if description else None
+    figure.savefig(buffer, format="png", dpi=_DPI, metadata=metadata)
     if outputs is not None:
         outputs.stage(path, buffer.getvalue())
     else:
@@ -149,13 +152,16 @@ def _save(figure: Figure, path: StrPath, protect: Iterable[StrPath], outputs: Ou
 # ------------------------------------------------------------------------------------------------
 def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: StrPath,
                                   title: str = "Platform pose error before and after calibration",
-                                  protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
+                                  protect: Iterable[StrPath] = (), outputs: OutputSet | None = None,
+                                  outliers: Sequence[int] = (), labels: Sequence[str] | None = None) -> Path:
     """Paper Fig. 4: (a) orientation error and (b) position error per pose, before and after.
 
     before, after: errors of the nominal and of the calibrated model against the actual machine
     at the same poses (`calibration.pose_errors`): position norm [m], rotation angle [rad]. Data
     without orientation (rotation NaN at every pose, before and after, as `measured_pose_errors`
     gives for a position-only tracker) get the position panel alone.
+    outliers: indices of the poses the fit left out, circled on both curves and named by `labels`
+    (one per pose, e.g. "line 12"; default the pose index); the legend means are over the others.
     Log y-scale, ticks and legend means in readable units. Returns the PNG path.
     """
     panels = []
@@ -169,24 +175,60 @@ def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: S
             raise InvalidInputError(f"before.{kind} has {len(b)} poses, after.{kind} {len(a)}: "
                                     "before and after must be at the same poses")
         panels.append((label, units, b, a))
+    left_out, names = _outlier_labels(outliers, labels, len(panels[0][2]))
 
     _check_output(path, protect, outputs)
     figure = Figure(figsize=(8.0, 6.5), layout="constrained")
     figure.suptitle(title)
     axes = np.atleast_1d(figure.subplots(len(panels), 1, sharex=True))
+    kept = np.setdiff1d(np.arange(len(panels[0][2])), left_out)
     for ax, (label, units, b, a) in zip(axes, panels):
         index = np.arange(1, len(b) + 1)
+        over = f" of {len(kept)} fitted poses" if len(left_out) else ""
         for values, name, style, colour in ((b, "before", "o-", "tab:red"), (a, "after", "s-", "tab:blue")):
             ax.semilogy(index, values, style, ms=3, lw=0.8, color=colour,
-                        label=f"{name}: mean {_readable(float(np.mean(values)), units)}"
+                        label=f"{name}: mean {_readable(float(np.mean(values[kept])), units)}{over}"
                               f"{_zero_note(int(np.sum(values == 0)))}")
+        if len(left_out):
+            _mark_outliers(ax, index[left_out], np.vstack([b[left_out], a[left_out]]), names)
         _readable_log_axis(ax.yaxis, units)
         ax.set_title(label, loc="left")
         ax.set_ylabel(label.split(") ", 1)[-1].lower())
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(loc="center right", fontsize="small")
+        ax.legend(loc="best", fontsize="small")
     axes[-1].set_xlabel("pose index")
-    return _save(figure, path, protect, outputs)
+    return _save(figure, path, protect, outputs, _outlier_description(names))
+
+
+_MAX_LABELS = 12  # more names than this cover the curves; the PNG's description lists them all
+
+
+def _outlier_labels(outliers: Sequence[int], labels: Sequence[str] | None, count: int
+                    ) -> tuple[np.ndarray, list[str]]:
+    """(sorted indices, their names) of the outliers among `count` poses, checked."""
+    index = np.unique(np.asarray(outliers, dtype=int))
+    if index.size and (index[0] < 0 or index[-1] >= count):
+        raise InvalidInputError(f"outliers: pose index {index[0] if index[0] < 0 else index[-1]} out of range "
+                                f"for {count} poses")
+    if labels is not None and len(labels) != count:
+        raise InvalidInputError(f"labels: {len(labels)} for {count} poses, one per pose")
+    return index, [str(labels[i]) if labels is not None else f"pose {i + 1}" for i in index]
+
+
+def _mark_outliers(ax, x: np.ndarray, values: np.ndarray, names: Sequence[str]) -> None:
+    """Circle each outlier on every curve (rows of `values`) and name it beside its highest point."""
+    for row in values:
+        shown = row > 0
+        ax.plot(x[shown], row[shown], "o", ms=9, mfc="none", mec="black", mew=1.2)
+    ax.plot([], [], "o", ms=9, mfc="none", mec="black", mew=1.2, label=f"outlier, left out of the fit ({len(x)})")
+    top = values.max(axis=0)
+    for k in range(min(len(x), _MAX_LABELS)):
+        if top[k] > 0:
+            ax.annotate(names[k], (x[k], top[k]), xytext=(4, 6), textcoords="offset points", fontsize="x-small")
+
+
+def _outlier_description(names: Sequence[str]) -> str:
+    return "outliers: " + (", ".join(names) if names else "none")
 
 
 def plot_error_vs_poses(n_poses: Sequence[int], position_errors: Sequence[float],

@@ -2,7 +2,8 @@
 
 Without a known truth, each plot uses what the data can show honestly:
 - per-pose error before/after (paper Fig. 4): the model's platform pose against the measured one
-  at the calibration poses (a fit residual, not an accuracy);
+  at the calibration poses (a fit residual, not an accuracy), the outliers the fit left out circled
+  and named;
 - error vs number of poses: cross-validation: calibrate on the first k of a shuffled pose set and
   measure the error on poses kept out of every fit;
 - workspace map: the standard deviation of what the tracker would measure, in its frame, predicted
@@ -14,7 +15,7 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -100,10 +101,13 @@ def declare_plot_outputs(outputs: OutputSet, folder: str | Path) -> Path:
 
 def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibration, out_dir: Path,
                             protect: Iterable[Path] = (), noise: TrackerNoise = TrackerNoise(),
-                            seed: int = 0, outputs: OutputSet | None = None) -> list[Path]:
+                            seed: int = 0, outputs: OutputSet | None = None,
+                            labels: Sequence[str] | None = None) -> list[Path]:
     """Write the calibration plots (module docstring) into out_dir as a unit; return their paths.
 
-    The calibration's own inlier measurements and measurement setup are used throughout. With
+    The calibration's own inlier measurements and measurement setup are used throughout, but for
+    the per-pose plot, which shows its outliers too, named by `labels` (one per pose the calibration
+    was given, e.g. "line 12"; default the pose number). With
     `outputs` (where `declare_plot_outputs(outputs, out_dir)` declared them) the plots are only
     staged there, to be committed with the set's other outputs. A plot the data cannot give (the
     error-vs-poses curve when no subset can be calibrated) is withdrawn and not written.
@@ -115,7 +119,7 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
     with outputs:
         if own:
             outputs.check()
-        written = _stage_calibration_plots(nominal, calibration, Path(out_dir), noise, seed, outputs)
+        written = _stage_calibration_plots(nominal, calibration, Path(out_dir), noise, seed, outputs, labels)
         for path in [Path(out_dir) / name for name in PLOT_NAMES]:
             if not outputs.output(path).staged:
                 outputs.drop(path)
@@ -126,15 +130,17 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
 
 
 def _stage_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibration, out_dir: Path,
-                             noise: TrackerNoise, seed: int, outputs: OutputSet) -> list[Path]:
+                             noise: TrackerNoise, seed: int, outputs: OutputSet,
+                             labels: Sequence[str] | None) -> list[Path]:
     problem, start = calibration.problem, calibration.start
     if problem is None or start is None:
         raise InvalidInputError("write_calibration_plots needs a calibration made by calibrate_closed_loop")
     measurements = _subset(problem.measurements, np.flatnonzero(problem.active))
     written = [plot_pose_errors_before_after(
-        measured_pose_errors(nominal, measurements, start.setup),
-        measured_pose_errors(calibration.mechanism, measurements, calibration.setup),
-        out_dir / PLOT_NAMES[0], title="Calibration poses: model vs measured pose", outputs=outputs)]
+        measured_pose_errors(nominal, problem.measurements, start.setup),
+        measured_pose_errors(calibration.mechanism, problem.measurements, calibration.setup),
+        out_dir / PLOT_NAMES[0], title="Calibration poses: model vs measured pose", outputs=outputs,
+        outliers=np.flatnonzero(~problem.active), labels=labels)]
     fit_options = {"setup": MeasurementSetup(marker=start.setup.marker),
                    "estimate_frame": problem.frame_slot is not None, "estimate_marker": problem.marker_slot is not None}
     sizes, position, rotation = cross_validation_curve(nominal, measurements, noise, seed, **fit_options)
