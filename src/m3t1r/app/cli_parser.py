@@ -241,6 +241,8 @@ def add_validate_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentP
     p.add_argument("--report", required=True, metavar="JSON", help="the calibration report (model kind, setup, noise)")
     p.add_argument("--units", choices=("m", "mm"), help="length unit of the file (default: the calibration input's)")
     p.add_argument("--predictions", metavar="CSV", help="write the predicted measurements, one row per input row")
+    p.add_argument("--plots", metavar="DIR", help="write plots (PNG) into DIR: error histograms and a QQ plot against "
+                                                 "the noise model, errors over the workspace, flagged rows named")
     return p
 
 

@@ -1,4 +1,5 @@
-"""Calibration plots from measurements alone (`m3t1r calibrate --plots DIR`).
+"""Calibration plots from measurements alone (`m3t1r calibrate --plots DIR`), and the plots of a
+validation (`m3t1r validate --plots DIR`, `write_validation_plots`).
 
 Without a known truth, each plot uses what the data can show honestly:
 - per-pose error before/after (paper Fig. 4): the model's platform pose against the measured one
@@ -15,13 +16,20 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np
 
 from m3t1r.app.cli_common import check_plots_folder
 from m3t1r.app.passive_joints import PassiveJointResiduals, passive_joint_residuals
-from m3t1r.app.plots import plot_error_vs_poses, plot_pose_errors_before_after, plot_predicted_std_map
+from m3t1r.app.plots import (
+    plot_error_vs_poses,
+    plot_errors_over_workspace,
+    plot_normalised_qq,
+    plot_pose_errors_before_after,
+    plot_predicted_std_map,
+    plot_validation_histogram,
+)
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_closed_loop, predicted_measurement_std
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home
@@ -33,8 +41,12 @@ from m3t1r.model.design import IDLE_CHAIN_JOINTS
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import declared_workspace
 
+if TYPE_CHECKING:
+    from m3t1r.calibration.validation import Validation
+
 __all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots", "check_plots_folder",
-           "declare_plot_outputs", "PLOT_NAMES",
+           "declare_plot_outputs", "PLOT_NAMES", "VALIDATION_PLOT_NAMES", "declare_validation_plot_outputs",
+           "write_validation_plots", "row_labels",
            "PassiveJointResiduals", "passive_joint_residuals", "IDLE_CHAIN_JOINTS"]
 # check_plots_folder, the passive-joint residuals and IDLE_CHAIN_JOINTS live in modules without
 # matplotlib (`calibrate` imports this module only for --plots); they are named here too, as before.
@@ -183,3 +195,47 @@ def map_poses(mechanism: Mechanism, count: int, rng: np.random.Generator
     units = ["m" if key in task.position else "rad" for key in task.box_keys[:2]]
     return sliders, where, (f"{task.frame} {task.box_keys[0]} [{units[0]}]",
                             f"{task.frame} {task.box_keys[1]} [{units[1]}]")
+
+
+#: The files `write_validation_plots` writes into its folder.
+VALIDATION_PLOT_NAMES = ("error_histogram.png", "normalised_errors_qq.png", "errors_over_workspace.png")
+
+
+def declare_validation_plot_outputs(outputs: OutputSet, folder: str | Path) -> Path:
+    """Declare the validation plots in `folder` as outputs of `outputs` (`validate --plots DIR`),
+    checked with the set's other outputs before any work and written with them; returns the folder."""
+    folder = check_plots_folder(folder)
+    for name in VALIDATION_PLOT_NAMES:
+        outputs.add(folder / name, "--plots", create_folder=True)
+    return folder
+
+
+def row_labels(result: Validation) -> list[str]:
+    """How each predicted row is named on the plots: by its `source` in the instrument's file when the
+    measurement file has that column (`m3t1r convert` writes it), with its line in the file."""
+    lines = result.lines[result.rows]
+    if result.sources is None:
+        return [f"line {int(line)}" for line in lines]
+    return [f"source {source:g} (line {int(line)})" for source, line in zip(result.sources[result.rows], lines)]
+
+
+def write_validation_plots(result: Validation, out_dir: Path, outputs: OutputSet) -> list[Path]:
+    """Stage the validation plots in `outputs` (where `declare_validation_plot_outputs` declared them):
+    the error histograms against the noise model, the normal QQ plot of the normalised residuals and
+    the errors over the measured positions, the rows beyond the gate named by `row_labels`."""
+    if result.residuals is None or result.noise is None:
+        raise InvalidInputError("write_validation_plots needs a validation made by `validate`")
+    flagged = np.isin(result.lines[result.rows], result.flagged)
+    labels = row_labels(result)
+    predicted = f"{len(result.rows)} of {len(result.lines)} rows of {result.path.name}"
+    folder = Path(out_dir)
+    rotation = None if result.position_only else result.errors.rotation
+    return [
+        plot_validation_histogram(result.errors.position, rotation, result.noise, result.scale, flagged, labels,
+                                  folder / VALIDATION_PLOT_NAMES[0], outputs=outputs,
+                                  title=f"Prediction errors of the calibrated model: {predicted}"),
+        plot_normalised_qq(result.residuals, result.scale, flagged, labels, folder / VALIDATION_PLOT_NAMES[1],
+                           outputs=outputs, title=f"Residuals / the report's noise model: {predicted}"),
+        plot_errors_over_workspace(result.measured[result.rows, :3, 3], result.errors.position, flagged, labels,
+                                   folder / VALIDATION_PLOT_NAMES[2], outputs=outputs),
+    ]
