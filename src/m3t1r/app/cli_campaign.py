@@ -214,7 +214,7 @@ def cmd_validate(args: argparse.Namespace) -> None:
     if output is not None:
         print(f"wrote {len(result.lines)} predicted measurements to {output.name}", file=out)
     if plots is not None:
-        print(f"wrote {', '.join(written)}", file=out)
+        print(f"wrote {', '.join(name for name in written if output is None or name != output.name)}", file=out)
 
 
 def _prediction_table(args: argparse.Namespace, result) -> tuple[tuple[str, ...], np.ndarray, list[str]]:
