@@ -390,7 +390,8 @@ def test_plots_of_a_position_only_file_without_sources(machine, tmp_path, mechan
     poses = np.array([p.homogeneous for p in noisy.poses])
     poses[4, :3, 3] += np.array([0.0, 2e-4, 0.0])
     write_campaign(tmp_path / "xyz.csv", mechanism.actuated_joints, sliders, poses, position_only=True)
-    line = read_table(tmp_path / "xyz.csv", required=mechanism.actuated_joints, optional=("x", "y", "z")).line_numbers[4]
+    table = read_table(tmp_path / "xyz.csv", required=mechanism.actuated_joints, optional=("x", "y", "z"))
+    line = table.line_numbers[4]
     assert run(["validate", str(tmp_path / "xyz.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
                 str(folder / "report.json"), "--plots", str(tmp_path / "plots")]) == 0
     for name in VALIDATION_PLOTS:

@@ -69,7 +69,8 @@ def cmd_view(args: argparse.Namespace) -> None:
             scene = build_scene(views, pose=args.pose, markers=markers, magnification=args.magnify)
             outputs.stage(output, scene_html(scene))
             outputs.commit()
-        magnified = "" if calibrated is None else f"; the calibrated machine's deviation drawn x{magnification_of(scene):g}"
+        factor = magnification_of(scene)
+        magnified = "" if calibrated is None else f"; the calibrated machine's deviation drawn x{factor:g}"
         say(outputs, f"wrote {output.name} (self-contained: open it in any browser, no network needed{magnified})")
         return
     with open_viewer(views, pose=args.pose, markers=markers, magnification=args.magnify) as viewer:

@@ -348,7 +348,7 @@ def plot_workspace_error_map(targets: object, errors_before: Sequence[float], er
                                 "one error of each per target")
     _check_output(path, protect, outputs)
     figure = Figure(figsize=(8.5, 6.0), layout="constrained")
-    planar = _finite_array(targets, "targets", ndim=2).shape[1] == 2  # a planar task (the five-bar's x, y): nothing projected
+    planar = _finite_array(targets, "targets", ndim=2).shape[1] == 2  # the five-bar's x, y: nothing projected
     figure.suptitle(f"{title}\n({len(xy)} targets{'' if planar else '; z and theta projected onto x-y'})")
     _scatter_panels(figure, xy, [("uncompensated", before), ("compensated", after)],
                     _LENGTH_UNITS if kind == "position" else _ANGLE_UNITS, f"{kind} error", shared_scale)

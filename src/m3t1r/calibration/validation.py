@@ -221,7 +221,7 @@ class Validation:
     (M,) [rad] for a yaw task (the M machine) with orientation, else None; statistic: d^2 per predicted row (M,);
     sigmas: its sigma-equivalent z (M,); flagged: file lines of the rows beyond the gate;
     failures: (file line, reason) of the rows that could not be predicted; scale: the factor s
-    (from the report's variance factor); gate: the chi^2_k quantile d^2 / s^2 is compared with; units: the file's length unit;
+    (from the report's variance factor); gate: the chi^2_k quantile d^2 / s^2 is compared with; units: the file's length unit.
     residuals: the predicted rows' residuals normalised by the report's noise model (M, 3 or 6),
     [dp / sigma_p, dr / sigma_r] (N(0, 1) under that model); noise: that model (sigma_p [m],
     sigma_r [rad]); sources: every input row's `source` (N,), or None when the file has no such column.
