@@ -431,7 +431,7 @@ def plot_validation_histogram(position: object, rotation: object | None, noise: 
     if not (math.isfinite(scale) and scale >= 1.0) or min(noise) <= 0:
         raise InvalidInputError(f"noise {noise} and scale {scale}: positive noise and a scale of at least 1")
     _check_output(path, protect, outputs)
-    figure = Figure(figsize=(5.0 * len(checked), 4.2), layout="constrained")
+    figure = Figure(figsize=(max(6.5, 5.0 * len(checked)), 4.2), layout="constrained")
     figure.suptitle(title)
     axes = np.atleast_1d(figure.subplots(1, len(checked)))
     for ax, (name, units, values, mask, sigma) in zip(axes, checked):
@@ -448,13 +448,22 @@ def plot_validation_histogram(position: object, rotation: object | None, noise: 
             ax.stairs(expected, edges, color="black", linestyle=style,
                       label=f"{text} ({_readable(sigma * factor, units)} per axis)")
         ax.set_xscale("log")
-        _readable_log_axis(ax.xaxis, units)
+        ax.xaxis.set_major_formatter(_ReadableLogFormatter(units))
+        ax.xaxis.set_minor_formatter(_two_and_five(units))  # every minor label would collide on this axis
         ax.set_xlabel(f"{name} (mean {_readable(float(values.mean()), units)}, "
                       f"RMS {_readable(float(np.sqrt(np.mean(values ** 2))), units)})")
         ax.set_ylabel("rows")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize="small")
     return _save(figure, path, protect, outputs, _flag_description(checked[0][3], labels))
+
+
+def _two_and_five(units: tuple[_Unit, ...]):
+    """Tick labels of a log axis at 2 and 5 times a power of ten only."""
+    def label(value: float, _: object) -> str:
+        mantissa = round(value / 10.0 ** math.floor(math.log10(value)), 6) if value > 0 else 0.0
+        return _readable(value, units) if mantissa in (2.0, 5.0) else ""
+    return label
 
 
 def _normal_quantiles(count: int) -> np.ndarray:
@@ -477,7 +486,7 @@ def plot_normalised_qq(residuals: object, scale: float, flagged: object, labels:
     _, mask = _validation_rows(np.zeros(len(z)), flagged, labels, "residual rows")
     _check_output(path, protect, outputs)
     panels = [("position", z[:, :3])] + ([("orientation", z[:, 3:])] if z.shape[1] == 6 else [])
-    figure = Figure(figsize=(5.0 * len(panels), 4.5), layout="constrained")
+    figure = Figure(figsize=(max(6.5, 5.0 * len(panels)), 4.5), layout="constrained")
     figure.suptitle(title)
     axes = np.atleast_1d(figure.subplots(1, len(panels)))
     for ax, (name, block) in zip(axes, panels):

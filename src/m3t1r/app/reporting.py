@@ -233,9 +233,9 @@ def write_validation_plots(result: Validation, out_dir: Path, outputs: OutputSet
     return [
         plot_validation_histogram(result.errors.position, rotation, result.noise, result.scale, flagged, labels,
                                   folder / VALIDATION_PLOT_NAMES[0], outputs=outputs,
-                                  title=f"Prediction errors of the calibrated model: {predicted}"),
+                                  title=f"Prediction errors of the calibrated model\n{predicted}"),
         plot_normalised_qq(result.residuals, result.scale, flagged, labels, folder / VALIDATION_PLOT_NAMES[1],
-                           outputs=outputs, title=f"Residuals / the report's noise model: {predicted}"),
+                           outputs=outputs, title=f"Residuals over the report's noise model\n{predicted}"),
         plot_errors_over_workspace(result.measured[result.rows, :3, 3], result.errors.position, flagged, labels,
                                    folder / VALIDATION_PLOT_NAMES[2], outputs=outputs),
     ]
