@@ -258,3 +258,64 @@ def test_calibration_plots_of_other_mechanisms_map_their_own_workspace(tmp_path,
                      (f"{frame} roll [rad]", f"{frame} pitch [rad]"))
     assert 250 < len(where) <= 300 and len(std.position) == len(where) and np.all(np.isfinite(where))
     assert np.ptp(where, axis=0).min() > 0.1  # spread over the workspace, not one point
+
+
+# ------------------------------------------------------------------------------------------------
+# Outliers shown, not dropped
+
+
+def png_description(path) -> str:
+    """The PNG's Description text chunk: what the figure marks, in words."""
+    from PIL import Image
+
+    with Image.open(path) as image:
+        return image.text.get("Description", "")
+
+
+def test_before_after_circles_and_names_the_outliers(tmp_path, errors):
+    before, after = errors
+    spoiled = PoseErrors(np.r_[after.position[:3], 4e-3, after.position[4:]], after.rotation)
+    labels = [f"line {k + 2}" for k in range(50)]
+    marked = plot_pose_errors_before_after(before, spoiled, tmp_path / "marked.png", outliers=[3], labels=labels)
+    assert_real_png(marked)
+    assert png_description(marked) == "outliers: line 5"
+    plain = plot_pose_errors_before_after(before, after, tmp_path / "plain.png")
+    assert png_description(plain) == "outliers: none"
+    with pytest.raises(InvalidInputError, match="pose index 50 out of range"):
+        plot_pose_errors_before_after(before, after, tmp_path / "bad.png", outliers=[50])
+    with pytest.raises(InvalidInputError, match="labels: 2 for 50 poses"):
+        plot_pose_errors_before_after(before, after, tmp_path / "bad.png", outliers=[1], labels=["a", "b"])
+    assert not (tmp_path / "bad.png").exists()
+
+
+def test_calibration_plots_show_the_outliers_the_fit_left_out(tmp_path, monkeypatch):
+    """Two measurements spoiled by 4 mm: the fit leaves them out, and the per-pose plot still draws them,
+    circled and named by the labels given (the file lines `calibrate --plots` passes)."""
+    import pinocchio as pin
+
+    from m3t1r.app import reporting
+    from m3t1r.calibration.closed_loop import calibrate_closed_loop
+    from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
+    from m3t1r.calibration.simulation import simulate_study
+    from m3t1r.model.description import Mechanism
+
+    mechanism = Mechanism.load()
+    study = simulate_study(mechanism, n_poses=40, n_holdout=0, seed=5, noise=TrackerNoise())
+    poses = list(study.measurements.poses)
+    for k in (7, 22):
+        poses[k] = pin.SE3(poses[k].rotation, poses[k].translation + np.array([4e-3, 0.0, 0.0]))
+    measurements = PoseMeasurements(study.measurements.actuators, tuple(poses))
+    calibration = calibrate_closed_loop(mechanism, measurements, TrackerNoise())
+    assert sorted(calibration.outliers) == [7, 22]
+    drawn = []
+    monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
+    original = reporting.plot_pose_errors_before_after
+    monkeypatch.setattr(reporting, "plot_pose_errors_before_after",
+                        lambda before, after, *args, **kwargs: drawn.append((before, after)) or
+                        original(before, after, *args, **kwargs))
+    labels = [f"line {k + 3}" for k in range(40)]
+    written = reporting.write_calibration_plots(mechanism, calibration, tmp_path, labels=labels)
+    assert png_description(written[0]) == "outliers: line 10, line 25"
+    (before, after), = drawn
+    assert len(after.position) == 40  # every pose drawn, the outliers' included
+    assert after.position[[7, 22]].min() > 3e-3 > 1e-4 > np.delete(after.position, [7, 22]).max()

@@ -18,7 +18,16 @@ import pytest
 
 import m3t1r
 from m3t1r.app.cli import build_parser, main
-from m3t1r.app.cli_verbs import CALIBRATION_PLOTS, DEMO, RUNNER, SERIAL_CALIBRATION, VERBS, load
+from m3t1r.app.cli_verbs import (
+    CALIBRATION_PLOTS,
+    DECLARE_VALIDATION_PLOTS,
+    DEMO,
+    RUNNER,
+    SERIAL_CALIBRATION,
+    VALIDATION_PLOTS,
+    VERBS,
+    load,
+)
 from m3t1r.model import native
 
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -82,7 +91,8 @@ NOT_FOR = {
 def test_every_verb_has_a_run_function_and_nothing_else_does() -> None:
     verbs = next(a for a in build_parser()._actions if a.dest == "verb").choices
     assert set(verbs) == set(VERBS)
-    for reference in [*VERBS.values(), SERIAL_CALIBRATION, CALIBRATION_PLOTS, RUNNER, DEMO]:
+    for reference in [*VERBS.values(), SERIAL_CALIBRATION, CALIBRATION_PLOTS, VALIDATION_PLOTS,
+                      DECLARE_VALIDATION_PLOTS, RUNNER, DEMO]:
         assert callable(load(reference)), reference
     for reference in [*VERBS.values(), SERIAL_CALIBRATION]:
         assert reference.partition(":")[0] in NOT_FOR, f"{reference}: say what its module may not import"

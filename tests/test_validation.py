@@ -323,3 +323,87 @@ def test_a_report_with_a_key_twice_or_nan_is_refused(machine, tmp_path, edit, me
     (tmp_path / "bad.json").write_text(edit(text))
     with pytest.raises(InvalidInputError, match=message):
         validate(folder / "exact.csv", folder / "cal.urdf", tmp_path / "bad.json")
+
+
+# ------------------------------------------------------------------------------------------
+# Plots (validate --plots DIR)
+
+VALIDATION_PLOTS = ("error_histogram.png", "normalised_errors_qq.png", "errors_over_workspace.png")
+
+
+def png_description(path: Path) -> str:
+    """The PNG's Description text chunk: what the figure marks, in words."""
+    from PIL import Image
+
+    with Image.open(path) as image:
+        assert image.format == "PNG" and image.size[0] > 400 and image.size[1] > 300
+        return image.text.get("Description", "")
+
+
+def write_converted_campaign(path: Path, columns, readings, poses: np.ndarray) -> None:
+    """A measurement CSV as `m3t1r convert` writes it: with the tracker file's `source` of every pose."""
+    rows = pose_rows([pin.SE3(p) for p in poses])
+    sources = 1000.0 + 5.0 * np.arange(len(rows))[:, None]
+    write_table(path, [*columns, *POSE_COLUMNS, "source"], np.hstack((readings, rows, sources)), ["converted"])
+
+
+def test_plots_name_the_flagged_rows_by_source_and_are_written_as_a_unit(machine, tmp_path, mechanism,
+                                                                        capsys) -> None:
+    folder, _, sliders, _, noisy = machine
+    poses = np.array([p.homogeneous for p in noisy.poses])
+    poses[[2, 7], :3, 3] += np.array([[2e-4, 0, 0], [0, 0, -3e-4]])
+    write_converted_campaign(tmp_path / "converted.csv", mechanism.actuated_joints, sliders, poses)
+    lines = read_table(tmp_path / "converted.csv", required=mechanism.actuated_joints,
+                       optional=(*POSE_COLUMNS, "source")).line_numbers
+    common = ["validate", str(tmp_path / "converted.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
+              str(folder / "report.json")]
+    assert run(common + ["--plots", str(tmp_path / "plots"), "--predictions", str(tmp_path / "pred.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "wrote 12 predicted measurements" in out and "error_histogram.png" in out
+    assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == sorted(VALIDATION_PLOTS)
+    named = f"flagged: source 1010 (line {lines[2]}), source 1035 (line {lines[7]})"
+    for name in VALIDATION_PLOTS:
+        assert png_description(tmp_path / "plots" / name) == named, name
+
+    result = validate(tmp_path / "converted.csv", folder / "cal.urdf", folder / "report.json")
+    assert result.sources == pytest.approx(1000.0 + 5.0 * np.arange(N_ROWS))
+    assert result.noise == (10e-6, 20e-6) and result.residuals.shape == (N_ROWS, 6)
+    np.testing.assert_allclose(np.sum(result.residuals**2, axis=1), result.statistic, rtol=1e-9)
+    sound = np.delete(result.residuals, [2, 7], axis=0)
+    assert 0.4 < np.mean(sound**2) < 2.0  # the simulated noise is the report's: N(0, 1) coordinates
+    assert np.abs(result.residuals[2, 0]) > 15 and np.abs(result.residuals[7, 2]) > 25
+
+    # A file that cannot be predicted whole refuses its predictions, and the plots with them.
+    bad = sliders.copy()
+    bad[3, 0] = 0.75  # beyond the slider limit
+    write_converted_campaign(tmp_path / "bad.csv", mechanism.actuated_joints, bad, poses)
+    common[1] = str(tmp_path / "bad.csv")
+    assert run(common + ["--plots", str(tmp_path / "again"), "--predictions", str(tmp_path / "bad_pred.csv")]) == 1
+    assert not (tmp_path / "bad_pred.csv").exists() and not list((tmp_path / "again").glob("*"))
+    # Without --predictions, the plots show the rows that were predicted.
+    assert run(common + ["--plots", str(tmp_path / "again")]) == 0
+    assert png_description(tmp_path / "again" / VALIDATION_PLOTS[0]).startswith("flagged: source 1010")
+
+
+def test_plots_of_a_position_only_file_without_sources(machine, tmp_path, mechanism) -> None:
+    folder, _, sliders, _, noisy = machine
+    poses = np.array([p.homogeneous for p in noisy.poses])
+    poses[4, :3, 3] += np.array([0.0, 2e-4, 0.0])
+    write_campaign(tmp_path / "xyz.csv", mechanism.actuated_joints, sliders, poses, position_only=True)
+    table = read_table(tmp_path / "xyz.csv", required=mechanism.actuated_joints, optional=("x", "y", "z"))
+    line = table.line_numbers[4]
+    assert run(["validate", str(tmp_path / "xyz.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
+                str(folder / "report.json"), "--plots", str(tmp_path / "plots")]) == 0
+    for name in VALIDATION_PLOTS:
+        assert png_description(tmp_path / "plots" / name) == f"flagged: line {line}", name
+    assert validate(tmp_path / "xyz.csv", folder / "cal.urdf", folder / "report.json").residuals.shape == (N_ROWS, 3)
+
+
+def test_plots_into_a_file_are_refused_before_any_work(machine, capsys) -> None:
+    folder, *_ = machine
+    inputs = {p: p.read_bytes() for p in folder.iterdir() if p.is_file()}
+    assert run(["validate", str(folder / "exact.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
+                str(folder / "report.json"), "--plots", str(folder / "exact.csv")]) == 2
+    out = capsys.readouterr().out
+    assert "exact.csv" in out and "rows predicted" not in out  # refused before the prediction
+    assert {p: p.read_bytes() for p in folder.iterdir() if p.is_file()} == inputs

@@ -19,6 +19,7 @@ import urllib.request
 from pathlib import Path
 
 import numpy as np
+import pinocchio as pin
 import pytest
 import umsgpack
 
@@ -121,11 +122,104 @@ def test_slider_mode_gives_the_same_sliders_and_different_poses(views):
 
 
 def test_scene_transforms_are_the_solved_configuration(views):
-    messages = page_messages(static_page.scene_html(static_page.build_scene(views, pose=POSE)))
+    messages = page_messages(static_page.scene_html(static_page.build_scene(views, pose=POSE, magnification=1)))
     last = {m["path"]: m["matrix"] for m in messages if m["type"] == "set_transform"}
     for machine in scene.pose_machines(views, pose=POSE):
         drawn = np.array(last[f"{machine.view.node}/platform_frame"]).reshape(4, 4).T
         assert drawn == pytest.approx(machine.platform.homogeneous, abs=1e-12)
+
+
+def drawn_joint_placements(messages: list[dict], view: scene.MachineView) -> dict[int, pin.SE3]:
+    """Joint placements the page draws, recovered from the last transform of each visual (its
+    mesh scale and its placement on the joint taken off)."""
+    last = {m["path"]: m["matrix"] for m in messages if m["type"] == "set_transform"}
+    joints = {}
+    for geometry in view.mechanism.visual_model.geometryObjects:
+        matrix = np.array(last[f"{view.node}/visuals/{geometry.name}"]).reshape(4, 4).T
+        matrix[:3, :3] /= np.asarray(geometry.meshScale)  # columns scaled by the mesh scale
+        joints[geometry.parentJoint] = pin.SE3(matrix) * geometry.placement.inverse()
+    return joints
+
+
+def true_joint_placements(machine: scene.PosedMachine) -> list[pin.SE3]:
+    model = machine.view.mechanism.model
+    data = model.createData()
+    pin.forwardKinematics(model, data, machine.q)
+    return [pin.SE3(placement) for placement in data.oMi]
+
+
+@pytest.mark.parametrize("factor", [1.0, 10.0, 100.0])
+def test_calibrated_machine_is_drawn_with_its_deviation_magnified(views, factor):
+    """Every body of the calibrated machine is drawn `factor` times as far from the nominal's, and turned
+    `factor` times as much; the nominal machine and the stated figures stay true."""
+    page = static_page.scene_html(static_page.build_scene(views, pose=POSE, magnification=factor))
+    messages = page_messages(page)
+    nominal, calibrated = scene.pose_machines(views, pose=POSE)
+    reference, actual = true_joint_placements(nominal), true_joint_placements(calibrated)
+    for joint, drawn in drawn_joint_placements(messages, views[0]).items():
+        assert drawn.translation == pytest.approx(reference[joint].translation, abs=1e-9)
+    drawn_joints = drawn_joint_placements(messages, views[1])
+    true_offsets = []
+    for joint, drawn in drawn_joints.items():
+        ref, true = reference[joint], actual[joint]
+        true_offsets.append(np.linalg.norm(true.translation - ref.translation))
+        assert drawn.translation - ref.translation == pytest.approx(factor * (true.translation - ref.translation),
+                                                                    abs=1e-9)
+        turned = pin.exp3(factor * pin.log3(ref.rotation.T @ true.rotation))  # the deviation's angle, times factor
+        assert ref.rotation.T @ drawn.rotation == pytest.approx(turned, abs=1e-9)
+    assert max(true_offsets) > 1e-3  # the study's errors move the bodies: the check above is not 0 = 0
+    assert f'data-magnification="{factor:g}"' in page
+    assert ("magnified &times;100" in page) == (factor == 100.0) and ("true scale" in page) == (factor == 1.0)
+    assert _fixed_mm(calibrated.platform.translation) in page  # the legend states the true platform
+
+
+def _fixed_mm(position: np.ndarray) -> str:
+    return ", ".join(f"{round(v * 1e3, 2) + 0.0:.2f}" for v in position)
+
+
+def test_default_magnification_draws_the_largest_offset_as_a_tenth_of_the_machine(mechanism):
+    """Chosen from the scene: a factor 1, 2 or 5 times a power of ten under which the largest joint offset
+    is drawn as 4 % to 10 % of the machine's size (or no joint turned beyond 0.3 rad), and stated."""
+    for sigma in (1e-4, 1e-3):
+        truth = simulate_study(mechanism, n_poses=8, n_holdout=0, seed=1, sigma_position=sigma,
+                               sigma_rotation=sigma).truth
+        views = scene.comparison_views(mechanism, truth)
+        recorded = static_page.build_scene(views)
+        factor = static_page.magnification_of(recorded)
+        nominal, calibrated = scene.pose_machines(views)
+        reference, actual = true_joint_placements(nominal)[1:], true_joint_placements(calibrated)[1:]
+        size = np.linalg.norm(np.ptp([m.translation for m in reference], axis=0))
+        offset = max(np.linalg.norm(a.translation - r.translation) for r, a in zip(reference, actual))
+        angle = max(np.linalg.norm(pin.log3(r.rotation.T @ a.rotation)) for r, a in zip(reference, actual))
+        mantissa = factor / 10 ** np.floor(np.log10(factor))
+        assert min(abs(mantissa - step) for step in (1, 2, 5)) < 1e-9
+        assert factor * offset <= 0.1 * size * (1 + 1e-9) and factor * angle <= 0.3 * (1 + 1e-9)
+        assert factor * offset > 0.04 * size or factor * angle > 0.12
+        assert f'data-magnification="{factor:g}"' in static_page.scene_html(recorded)
+        print(f"sigma {sigma:g}: factor {factor:g}, offset {offset:.2e} m of {size:.2f} m, angle {angle:.2e} rad")
+
+
+def test_magnification_bounds(views):
+    single = static_page.scene_html(static_page.build_scene(views[:1]))
+    assert "data-magnification" not in single  # one machine: nothing to magnify, nothing stated
+    for bad in (0.5, float("nan"), float("inf")):
+        with pytest.raises(InvalidInputError, match="magnification"):
+            static_page.build_scene(views, magnification=bad)
+
+
+def test_view_command_states_the_factor(views, study, tmp_path, capsys):
+    from m3t1r.app.cli import main
+
+    urdf = tmp_path / "calibrated.urdf"
+    study.truth.save(urdf, tmp_path / "calibrated.closures.yaml")
+    page = tmp_path / "scene.html"
+    assert main(["view", "--calibrated", str(urdf), "--html", str(page), "--magnify", "20"]) == 0
+    assert 'data-magnification="20"' in page.read_text(encoding="utf-8")
+    assert "deviation drawn x20" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as refused:
+        main(["view", "--calibrated", str(urdf), "--html", str(page), "--magnify", "0.5"])
+    assert refused.value.code == 2
+    assert "at least 1" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------------------------------

@@ -168,7 +168,8 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
         outputs.stage_json(report_output, report)
         if plots is not None:
             print("rendering plots (cross-validation recalibrates on subsets) ...", file=out, flush=True)
-            load(CALIBRATION_PLOTS)(nominal, calibration, plots, noise=noise, outputs=outputs)
+            load(CALIBRATION_PLOTS)(nominal, calibration, plots, noise=noise, outputs=outputs,
+                                    labels=[f"line {line}" for line in fitted_data.lines])
         written = outputs.commit()
     print("wrote " + ", ".join(written), file=out)
 

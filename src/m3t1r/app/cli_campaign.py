@@ -21,6 +21,7 @@ import pinocchio as pin
 
 from m3t1r.app import cli_parser
 from m3t1r.app.cli_common import RowFailures, load_mechanism, provenance, say
+from m3t1r.app.cli_verbs import DECLARE_VALIDATION_PLOTS, VALIDATION_PLOTS, load
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.planning import plan_closed_loop, plan_serial
@@ -184,10 +185,12 @@ def _prediction_rows(result) -> np.ndarray:
 
 
 def cmd_validate(args: argparse.Namespace) -> None:
-    """`m3t1r validate`: per-row errors and summary on stdout; PRED.csv only when every row was predicted."""
+    """`m3t1r validate`: per-row errors and summary on stdout; PRED.csv only when every row was predicted;
+    the plots of `--plots DIR` with it, as a unit."""
     outputs = OutputSet(inputs=(args.measurements, args.calibrated, paired_closures_path(args.calibrated),
                                 args.report))
     output = outputs.add(args.predictions, "--predictions")
+    plots = load(DECLARE_VALIDATION_PLOTS)(outputs, args.plots) if args.plots else None  # matplotlib with --plots only
     outputs.check()
     out = sys.stderr if output is not None and output.path is None else sys.stdout
     # Its batch prediction reports rows only at the end: a heartbeat shows it is alive.
@@ -198,16 +201,27 @@ def cmd_validate(args: argparse.Namespace) -> None:
         print(f"note: {note}", file=sys.stderr)
     _row_table(result, out)
     _summary(result, out)
-    if output is None:
+    if output is None and plots is None:
         return
-    if result.failures:
-        raise RowFailures(result.path, list(result.failures))
+    with outputs:  # leaving it by an error removes what `check` reserved
+        if output is not None and result.failures:
+            raise RowFailures(result.path, list(result.failures))
+        if output is not None:
+            outputs.stage(output, table_text(*_prediction_table(args, result)))
+        if plots is not None:
+            load(VALIDATION_PLOTS)(result, plots, outputs)
+        written = outputs.commit()
+    if output is not None:
+        print(f"wrote {len(result.lines)} predicted measurements to {output.name}", file=out)
+    if plots is not None:
+        print(f"wrote {', '.join(name for name in written if output is None or name != output.name)}", file=out)
+
+
+def _prediction_table(args: argparse.Namespace, result) -> tuple[tuple[str, ...], np.ndarray, list[str]]:
+    """Columns, rows and comments of the predictions file."""
     columns = POSE_COLUMNS[:3] if result.position_only else POSE_COLUMNS
     comments = provenance(args) + [
         f"predicted measurements of {args.measurements} by {args.calibrated}, with the measurement frame and "
         f"marker of {args.report}", f"position in {result.units}" + ("" if result.position_only else ", unit quaternion")
         + ", in the measurement file's frame; one row per input row, same order"]
-    with outputs:
-        outputs.stage(output, table_text(columns, _prediction_rows(result), comments))
-        outputs.commit()
-    print(f"wrote {len(result.lines)} predicted measurements to {output.name}", file=out)
+    return tuple(columns), _prediction_rows(result), comments

@@ -193,6 +193,10 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
                         "x y z theta [m, m, m, rad]; default: home)")
     p.add_argument("--measurements", metavar="CSV", help="show measured platform positions as markers")
     p.add_argument("--html", metavar="PATH", help="write a self-contained static page instead of serving")
+    p.add_argument("--magnify", type=_magnification, default=None, metavar="K",
+                   help="draw the calibrated machine's deviation from the nominal K times, stated on the page "
+                        "(1: true scale; default auto: the largest offset drawn as a tenth of the machine's size, "
+                        "1 mm as 0.1 m on a metre-sized machine)")
 
     p = verbs.add_parser("demo", help="the main job: a simulated tracker campaign, plan to compensation (no input needed)")
     p.add_argument("--out", default="demo_out", help="artifact folder (default demo_out)")
@@ -291,6 +295,8 @@ def add_validate_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentP
     p.add_argument("--report", required=True, metavar="JSON", help="the calibration report (model kind, setup, noise)")
     p.add_argument("--units", choices=("m", "mm"), help="length unit of the file (default: the calibration input's)")
     p.add_argument("--predictions", metavar="CSV", help="write the predicted measurements, one row per input row")
+    p.add_argument("--plots", metavar="DIR", help="write plots (PNG) into DIR: error histograms and a QQ plot against "
+                                                 "the noise model, errors over the workspace, flagged rows named")
     return p
 
 
@@ -338,6 +344,15 @@ def add_convert_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentPa
     p.add_argument("--pair", choices=("auto", "order", "time"), default="auto",
                    help="pair poses with the robot's stops by clock (auto, when both have times) or by order")
     return p
+
+
+def _magnification(text: str) -> float | None:
+    if text.strip().lower() == AUTO:
+        return None
+    value = finite_number(text)
+    if value < 1.0:
+        raise argparse.ArgumentTypeError(f"a factor of at least 1 (1: true scale), got {text}")
+    return value
 
 
 def _positive(text: str) -> float:

@@ -12,7 +12,8 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 
-__all__ = ["VERBS", "SERIAL_CALIBRATION", "CALIBRATION_PLOTS", "DECLARE_PLOTS", "RUNNER", "DEMO", "load"]
+__all__ = ["VERBS", "SERIAL_CALIBRATION", "CALIBRATION_PLOTS", "DECLARE_PLOTS", "VALIDATION_PLOTS",
+           "DECLARE_VALIDATION_PLOTS", "RUNNER", "DEMO", "load"]
 
 VERBS: dict[str, str] = {
     "fk": "m3t1r.app.cli_kinematics:cmd_fk",
@@ -31,6 +32,8 @@ VERBS: dict[str, str] = {
 SERIAL_CALIBRATION = "m3t1r.app.cli_serial:cmd_calibrate_serial"  # calibrate --serial: no closed-loop stack
 CALIBRATION_PLOTS = "m3t1r.app.reporting:write_calibration_plots"  # matplotlib, for calibrate --plots only
 DECLARE_PLOTS = "m3t1r.app.reporting:declare_plot_outputs"  # the same module: --plots is checked before the fit
+VALIDATION_PLOTS = "m3t1r.app.reporting:write_validation_plots"  # matplotlib, for validate --plots only
+DECLARE_VALIDATION_PLOTS = "m3t1r.app.reporting:declare_validation_plot_outputs"
 RUNNER = "m3t1r.app.cli_run:run_verb"  # exit statuses and signals: the errors, hence numpy
 DEMO = "m3t1r.app.demo:run_demo"
 

@@ -16,7 +16,7 @@ from m3t1r.app.cli_common import load_mechanism, say
 from m3t1r.app.datasets import read_measurements
 from m3t1r.app.live_viewer import open_viewer
 from m3t1r.app.scene import comparison_views
-from m3t1r.app.static_page import build_scene, scene_html
+from m3t1r.app.static_page import build_scene, magnification_of, scene_html
 from m3t1r.errors import M3t1rError
 from m3t1r.io.outputs import OutputSet
 
@@ -66,10 +66,13 @@ def cmd_view(args: argparse.Namespace) -> None:
         markers = read_measurements(args.measurements, nominal).measurements.poses
     if output is not None:
         with outputs:
-            outputs.stage(output, scene_html(build_scene(views, pose=args.pose, markers=markers)))
+            scene = build_scene(views, pose=args.pose, markers=markers, magnification=args.magnify)
+            outputs.stage(output, scene_html(scene))
             outputs.commit()
-        say(outputs, f"wrote {output.name} (self-contained: open it in any browser, no network needed)")
+        factor = magnification_of(scene)
+        magnified = "" if calibrated is None else f"; the calibrated machine's deviation drawn x{factor:g}"
+        say(outputs, f"wrote {output.name} (self-contained: open it in any browser, no network needed{magnified})")
         return
-    with open_viewer(views, pose=args.pose, markers=markers) as viewer:
+    with open_viewer(views, pose=args.pose, markers=markers, magnification=args.magnify) as viewer:
         print(f"meshcat viewer at {viewer.url} (Ctrl-C to stop)", flush=True)
         viewer.wait()

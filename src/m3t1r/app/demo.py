@@ -144,7 +144,8 @@ def run_demo(out_dir: Path, command: Command, settings: DemoSettings = DemoSetti
 
     step(f"validating on {settings.n_validation} fresh measurements")
     _run(command, ["validate", file("validation.csv"), "--calibrated", file("calibrated.urdf"), "--report",
-                   file("report.json"), "--predictions", file("predictions.csv")], out_dir, say,
+                   file("report.json"), "--predictions", file("predictions.csv"), "--plots", file("validation_plots")],
+         out_dir, say,
          keep=lambda line: not (line[:1] == " " and line.split()[0].isdigit()) and not line.lstrip().startswith("line "))
 
     step(f"compensating {settings.n_targets} targets given in the tracker's frame")

@@ -159,15 +159,18 @@ def _drain(stream: io.BufferedReader) -> None:
 
 def open_viewer(views: Sequence[MachineView], pose: Sequence[float] | None = None,
                 sliders: Sequence[float] | None = None, markers: Iterable[pin.SE3] | np.ndarray | None = None,
-                camera: Camera | None = DEFAULT_CAMERA) -> LiveViewer:
+                camera: Camera | None = DEFAULT_CAMERA, magnification: float | None = None) -> LiveViewer:
     """Start a meshcat server, draw the scene in it, and return it (url, visualizer, close()).
 
     The scene is solved and recorded before the server starts, so a bad command starts nothing.
-    Use as `with open_viewer(views) as live: print(live.url); live.wait()`.
+    Use as `with open_viewer(views) as live: print(live.url); live.wait()`. magnification: as in
+    `build_scene` (the deviation of every machine after the first from it, drawn this many times;
+    None: chosen from the scene).
 
     Raises what `build_scene` raises, and ViewerError when the server does not come up.
     """
-    recording = build_scene(views, pose=pose, sliders=sliders, markers=markers, camera=camera)
+    recording = build_scene(views, pose=pose, sliders=sliders, markers=markers, camera=camera,
+                            magnification=magnification)
     process, zmq_url, web_url = _start_server()
     try:
         with contextlib.redirect_stdout(io.StringIO()):  # meshcat prints the URL; the caller decides

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+import scipy.special
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
@@ -33,7 +34,7 @@ from m3t1r.io.paths import StrPath, ensure_not_protected
 from m3t1r.metrics import PoseErrors
 
 __all__ = ["plot_pose_errors_before_after", "plot_error_vs_poses", "plot_workspace_error_map",
-           "plot_predicted_std_map"]
+           "plot_predicted_std_map", "plot_validation_histogram", "plot_normalised_qq", "plot_errors_over_workspace"]
 
 _DPI = 120
 
@@ -131,14 +132,17 @@ def _check_output(path: StrPath, protect: Iterable[StrPath], outputs: OutputSet 
         raise OutputPathError(target, f"directory {target.parent} does not exist")
 
 
-def _save(figure: Figure, path: StrPath, protect: Iterable[StrPath], outputs: OutputSet | None = None) -> Path:
+def _save(figure: Figure, path: StrPath, protect: Iterable[StrPath], outputs: OutputSet | None = None,
+          description: str | None = None) -> Path:
     """Render to PNG in memory, then replace `path` atomically, or stage it in `outputs` (to land
-    with the set's other outputs at its commit); returns the path."""
+    with the set's other outputs at its commit); returns the path. `description` goes into the PNG's
+    Description text chunk: what the figure marks, in words, for a reader without the image."""
     target = Path(path)
     protect = tuple(protect)
     FigureCanvasAgg(figure)
     buffer = _stdio.BytesIO()
-    figure.savefig(buffer, format="png", dpi=_DPI)
+    metadata = {"Description": description} if description else None
+    figure.savefig(buffer, format="png", dpi=_DPI, metadata=metadata)
     if outputs is not None:
         outputs.stage(path, buffer.getvalue())
     else:
@@ -149,13 +153,16 @@ def _save(figure: Figure, path: StrPath, protect: Iterable[StrPath], outputs: Ou
 # ------------------------------------------------------------------------------------------------
 def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: StrPath,
                                   title: str = "Platform pose error before and after calibration",
-                                  protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
+                                  protect: Iterable[StrPath] = (), outputs: OutputSet | None = None,
+                                  outliers: Sequence[int] = (), labels: Sequence[str] | None = None) -> Path:
     """Paper Fig. 4: (a) orientation error and (b) position error per pose, before and after.
 
     before, after: errors of the nominal and of the calibrated model against the actual machine
     at the same poses (`calibration.pose_errors`): position norm [m], rotation angle [rad]. Data
     without orientation (rotation NaN at every pose, before and after, as `measured_pose_errors`
     gives for a position-only tracker) get the position panel alone.
+    outliers: indices of the poses the fit left out, circled on both curves and named by `labels`
+    (one per pose, e.g. "line 12"; default the pose index); the legend means are over the others.
     Log y-scale, ticks and legend means in readable units. Returns the PNG path.
     """
     panels = []
@@ -169,24 +176,60 @@ def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: S
             raise InvalidInputError(f"before.{kind} has {len(b)} poses, after.{kind} {len(a)}: "
                                     "before and after must be at the same poses")
         panels.append((label, units, b, a))
+    left_out, names = _outlier_labels(outliers, labels, len(panels[0][2]))
 
     _check_output(path, protect, outputs)
     figure = Figure(figsize=(8.0, 6.5), layout="constrained")
     figure.suptitle(title)
     axes = np.atleast_1d(figure.subplots(len(panels), 1, sharex=True))
+    kept = np.setdiff1d(np.arange(len(panels[0][2])), left_out)
     for ax, (label, units, b, a) in zip(axes, panels):
         index = np.arange(1, len(b) + 1)
+        over = f" of {len(kept)} fitted poses" if len(left_out) else ""
         for values, name, style, colour in ((b, "before", "o-", "tab:red"), (a, "after", "s-", "tab:blue")):
             ax.semilogy(index, values, style, ms=3, lw=0.8, color=colour,
-                        label=f"{name}: mean {_readable(float(np.mean(values)), units)}"
+                        label=f"{name}: mean {_readable(float(np.mean(values[kept])), units)}{over}"
                               f"{_zero_note(int(np.sum(values == 0)))}")
+        if len(left_out):
+            _mark_outliers(ax, index[left_out], np.vstack([b[left_out], a[left_out]]), names)
         _readable_log_axis(ax.yaxis, units)
         ax.set_title(label, loc="left")
         ax.set_ylabel(label.split(") ", 1)[-1].lower())
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(loc="center right", fontsize="small")
+        ax.legend(loc="best", fontsize="small")
     axes[-1].set_xlabel("pose index")
-    return _save(figure, path, protect, outputs)
+    return _save(figure, path, protect, outputs, _outlier_description(names))
+
+
+_MAX_LABELS = 12  # more names than this cover the curves; the PNG's description lists them all
+
+
+def _outlier_labels(outliers: Sequence[int], labels: Sequence[str] | None, count: int
+                    ) -> tuple[np.ndarray, list[str]]:
+    """(sorted indices, their names) of the outliers among `count` poses, checked."""
+    index = np.unique(np.asarray(outliers, dtype=int))
+    if index.size and (index[0] < 0 or index[-1] >= count):
+        raise InvalidInputError(f"outliers: pose index {index[0] if index[0] < 0 else index[-1]} out of range "
+                                f"for {count} poses")
+    if labels is not None and len(labels) != count:
+        raise InvalidInputError(f"labels: {len(labels)} for {count} poses, one per pose")
+    return index, [str(labels[i]) if labels is not None else f"pose {i + 1}" for i in index]
+
+
+def _mark_outliers(ax, x: np.ndarray, values: np.ndarray, names: Sequence[str]) -> None:
+    """Circle each outlier on every curve (rows of `values`) and name it beside its highest point."""
+    for row in values:
+        shown = row > 0
+        ax.plot(x[shown], row[shown], "o", ms=9, mfc="none", mec="black", mew=1.2)
+    ax.plot([], [], "o", ms=9, mfc="none", mec="black", mew=1.2, label=f"outlier, left out of the fit ({len(x)})")
+    top = values.max(axis=0)
+    for k in range(min(len(x), _MAX_LABELS)):
+        if top[k] > 0:
+            ax.annotate(names[k], (x[k], top[k]), xytext=(4, 6), textcoords="offset points", fontsize="x-small")
+
+
+def _outlier_description(names: Sequence[str]) -> str:
+    return "outliers: " + (", ".join(names) if names else "none")
 
 
 def plot_error_vs_poses(n_poses: Sequence[int], position_errors: Sequence[float],
@@ -305,7 +348,8 @@ def plot_workspace_error_map(targets: object, errors_before: Sequence[float], er
                                 "one error of each per target")
     _check_output(path, protect, outputs)
     figure = Figure(figsize=(8.5, 6.0), layout="constrained")
-    figure.suptitle(f"{title}\n({len(xy)} targets; z and theta projected onto x-y)")
+    planar = _finite_array(targets, "targets", ndim=2).shape[1] == 2  # the five-bar's x, y: nothing projected
+    figure.suptitle(f"{title}\n({len(xy)} targets{'' if planar else '; z and theta projected onto x-y'})")
     _scatter_panels(figure, xy, [("uncompensated", before), ("compensated", after)],
                     _LENGTH_UNITS if kind == "position" else _ANGLE_UNITS, f"{kind} error", shared_scale)
     return _save(figure, path, protect, outputs)
@@ -335,3 +379,170 @@ def plot_predicted_std_map(targets: object, std: PoseErrors, path: StrPath,
     _scatter_panels(left, xy, [("position", position)], _LENGTH_UNITS, "predicted position std", False, plane)
     _scatter_panels(right, xy, [("orientation", rotation)], _ANGLE_UNITS, "predicted orientation std", False, plane)
     return _save(figure, path, protect, outputs)
+
+
+# ------------------------------------------------------------------------------------------------
+# Validation of a calibrated model on a measurement file
+
+
+def _validation_rows(errors: object, flagged: object, labels: Sequence[str], what: str
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """(errors, flagged mask) checked against each other and the labels, one per predicted row."""
+    values = _nonnegative(_finite_array(errors, what), what)
+    mask = np.asarray(flagged, dtype=bool).reshape(-1)
+    if not len(mask) == len(labels) == len(values):
+        raise InvalidInputError(f"{len(values)} {what}, {len(mask)} flags, {len(labels)} labels: one of each per row")
+    return values, mask
+
+
+def _flag_description(mask: np.ndarray, labels: Sequence[str]) -> str:
+    return "flagged: " + (", ".join(labels[int(i)] for i in np.flatnonzero(mask)) or "none")
+
+
+def _name_flagged(ax, x: np.ndarray, y: np.ndarray, mask: np.ndarray, labels: Sequence[str]) -> None:
+    """Circle the flagged points in red and name the first `_MAX_LABELS` of them."""
+    ax.scatter(x[mask], y[mask], s=70, facecolors="none", edgecolors="tab:red", linewidths=1.2,
+               label=f"beyond the 5-sigma gate ({int(mask.sum())})")
+    for k in np.flatnonzero(mask)[:_MAX_LABELS]:
+        ax.annotate(labels[k], (x[k], y[k]), xytext=(4, 4), textcoords="offset points", fontsize="x-small",
+                    color="tab:red")
+
+
+def _chi3_cdf(radius: np.ndarray, sigma: float) -> np.ndarray:
+    """P(|e| <= radius) for a 3-D error with independent N(0, sigma^2) coordinates (Maxwell)."""
+    return scipy.special.gammainc(1.5, np.square(radius / sigma) / 2.0)
+
+
+def plot_validation_histogram(position: object, rotation: object | None, noise: tuple[float, float], scale: float,
+                              flagged: object, labels: Sequence[str], path: StrPath,
+                              title: str = "Prediction errors of the calibrated model",
+                              protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
+    """Histograms of the position [m] (and rotation [rad], or None) errors of validated rows, the rows
+    beyond the gate stacked in red, against the counts the noise model expects: a 3-D error of
+    independent N(0, sigma^2) coordinates, sigma = noise (sigma_p [m], sigma_r [rad]) times `scale`
+    (s, from the calibration's variance factor; the stated noise dashed when s > 1). Log-spaced bins
+    on a log axis: gross rows sit decades beyond the rest. flagged, labels: per row (the PNG's
+    description names the flagged rows). Returns the PNG path."""
+    series = [("position error", _LENGTH_UNITS, position, noise[0])]
+    if rotation is not None:
+        series.append(("rotation error", _ANGLE_UNITS, rotation, noise[1]))
+    checked = [(name, units, *_validation_rows(values, flagged, labels, name), sigma)
+               for name, units, values, sigma in series]
+    if not (math.isfinite(scale) and scale >= 1.0) or min(noise) <= 0:
+        raise InvalidInputError(f"noise {noise} and scale {scale}: positive noise and a scale of at least 1")
+    _check_output(path, protect, outputs)
+    figure = Figure(figsize=(max(6.5, 5.0 * len(checked)), 4.2), layout="constrained")
+    figure.suptitle(title)
+    axes = np.atleast_1d(figure.subplots(1, len(checked)))
+    for ax, (name, units, values, mask, sigma) in zip(axes, checked):
+        low = min(float(values[values > 0].min(initial=sigma * scale)), 0.1 * sigma)
+        high = max(float(values.max()), 5 * sigma * scale)
+        edges = np.geomspace(low, high * 1.001, 31)
+        ax.hist([values[~mask], values[mask]], bins=edges, stacked=True, color=["tab:blue", "tab:red"],
+                label=[f"rows within the gate ({int((~mask).sum())})", f"beyond the gate ({int(mask.sum())})"])
+        curves = [(1.0, "--", "noise as stated")]
+        if scale > 1.0:
+            curves.append((scale, "-", f"noise x s = {scale:.3g}"))
+        for factor, style, text in curves:
+            expected = len(values) * np.diff(_chi3_cdf(edges, sigma * factor))
+            ax.stairs(expected, edges, color="black", linestyle=style,
+                      label=f"{text} ({_readable(sigma * factor, units)} per axis)")
+        ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(_ReadableLogFormatter(units))
+        ax.xaxis.set_minor_formatter(_two_and_five(units))  # every minor label would collide on this axis
+        ax.set_xlabel(f"{name} (mean {_readable(float(values.mean()), units)}, "
+                      f"RMS {_readable(float(np.sqrt(np.mean(values ** 2))), units)})")
+        ax.set_ylabel("rows")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize="small")
+    return _save(figure, path, protect, outputs, _flag_description(checked[0][3], labels))
+
+
+def _two_and_five(units: tuple[_Unit, ...]):
+    """Tick labels of a log axis at 2 and 5 times a power of ten only."""
+    def label(value: float, _: object) -> str:
+        mantissa = round(value / 10.0 ** math.floor(math.log10(value)), 6) if value > 0 else 0.0
+        return _readable(value, units) if mantissa in (2.0, 5.0) else ""
+    return label
+
+
+def _normal_quantiles(count: int) -> np.ndarray:
+    """Expected order statistics of `count` standard normal draws (Blom's plotting positions)."""
+    return scipy.special.ndtri((np.arange(1, count + 1) - 0.375) / (count + 0.25))
+
+
+def plot_normalised_qq(residuals: object, scale: float, flagged: object, labels: Sequence[str], path: StrPath,
+                       title: str = "Normalised residuals against the noise model",
+                       protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
+    """Normal QQ plot of every residual coordinate divided by its stated noise: residuals (M, 3) or
+    (M, 6), [dp / sigma_p, dr / sigma_r] per validated row (`Validation.residuals`), one panel for
+    position and one for orientation. Under the noise model the points lie on y = x; on y = s x when
+    the noise is s times the stated (`scale`, drawn when above 1). Each flagged row's farthest
+    coordinate is circled and named by its label. Symmetric-log y axis: linear within a few sigmas.
+    Returns the PNG path."""
+    z = _finite_array(residuals, "residuals", ndim=2)
+    if z.shape[1] not in (3, 6):
+        raise InvalidInputError(f"residuals: shape {z.shape}, expected (rows, 3) or (rows, 6)")
+    _, mask = _validation_rows(np.zeros(len(z)), flagged, labels, "residual rows")
+    _check_output(path, protect, outputs)
+    panels = [("position", z[:, :3])] + ([("orientation", z[:, 3:])] if z.shape[1] == 6 else [])
+    figure = Figure(figsize=(max(6.5, 5.0 * len(panels)), 4.5), layout="constrained")
+    figure.suptitle(title)
+    axes = np.atleast_1d(figure.subplots(1, len(panels)))
+    for ax, (name, block) in zip(axes, panels):
+        values, rows = block.reshape(-1), np.repeat(np.arange(len(block)), block.shape[1])
+        order = np.argsort(values)
+        theory, values, rows = _normal_quantiles(len(values)), values[order], rows[order]
+        ax.plot(theory, values, ".", ms=3, color="tab:blue", label=f"{name} coordinates ({len(values)})")
+        span = np.array([theory[0], theory[-1]])
+        ax.plot(span, span, "--", color="black", lw=0.9, label="noise as stated")
+        if scale > 1.0:
+            ax.plot(span, scale * span, "-", color="black", lw=0.9, label=f"noise x s = {scale:.3g}")
+        farthest = np.zeros(len(values), dtype=bool)
+        for row in np.flatnonzero(mask):
+            at = np.flatnonzero(rows == row)
+            farthest[at[np.argmax(np.abs(values[at]))]] = True
+        _name_flagged(ax, theory, values, farthest, [labels[int(r)] for r in rows])
+        linear = max(3.0, 3.0 * scale)
+        if np.abs(values).max() > 10 * linear:  # gross rows: linear within a few sigmas, logarithmic beyond
+            ax.set_yscale("symlog", linthresh=linear)
+            ax.yaxis.set_major_formatter(lambda value, _: f"{value:g}")
+        ax.set_xlabel("standard normal quantile")
+        ax.set_ylabel(f"{name} residual / stated noise")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize="small", loc="upper left")
+    return _save(figure, path, protect, outputs, _flag_description(mask, labels))
+
+
+def plot_errors_over_workspace(positions: object, errors: object, flagged: object, labels: Sequence[str],
+                               path: StrPath, frame: str = "measurement frame",
+                               title: str = "Position error of the calibrated model where each row was measured",
+                               protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
+    """The measured positions (M, 3) [m] in `frame`, over x-y and x-z, coloured by each row's
+    position error [m] (log colour scale), the flagged rows circled and named by their label.
+    Returns the PNG path."""
+    xyz = _finite_array(positions, "positions", ndim=2)
+    if xyz.shape[1] != 3:
+        raise InvalidInputError(f"positions: shape {xyz.shape}, expected (rows, 3)")
+    values, mask = _validation_rows(errors, flagged, labels, "errors")
+    if len(values) != len(xyz):
+        raise InvalidInputError(f"{len(xyz)} positions for {len(values)} errors")
+    _check_output(path, protect, outputs)
+    figure = Figure(figsize=(10.0, 4.8), layout="constrained")
+    figure.suptitle(f"{title}\n(mean {_readable(float(values.mean()), _LENGTH_UNITS)}, "
+                    f"max {_readable(float(values.max()), _LENGTH_UNITS)})")
+    axes = figure.subplots(1, 2)
+    norm = _log_norm(values)
+    drawn = values > 0
+    for ax, (i, j) in zip(axes, ((0, 1), (0, 2))):
+        mappable = ax.scatter(xyz[drawn, i], xyz[drawn, j], c=values[drawn], norm=norm, cmap="viridis", s=18,
+                              edgecolors="none")
+        _name_flagged(ax, xyz[:, i], xyz[:, j], mask, labels)
+        ax.set_xlabel(f"{frame} {'xyz'[i]} [m]")
+        ax.set_ylabel(f"{frame} {'xyz'[j]} [m]")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(True, alpha=0.3)
+    axes[0].legend(fontsize="small")
+    colorbar = figure.colorbar(mappable, ax=list(axes), label="position error")
+    _readable_log_axis(colorbar.ax.yaxis, _LENGTH_UNITS)
+    return _save(figure, path, protect, outputs, _flag_description(mask, labels))

@@ -1,8 +1,10 @@
-"""Calibration plots from measurements alone (`m3t1r calibrate --plots DIR`).
+"""Calibration plots from measurements alone (`m3t1r calibrate --plots DIR`), and the plots of a
+validation (`m3t1r validate --plots DIR`, `write_validation_plots`).
 
 Without a known truth, each plot uses what the data can show honestly:
 - per-pose error before/after (paper Fig. 4): the model's platform pose against the measured one
-  at the calibration poses (a fit residual, not an accuracy);
+  at the calibration poses (a fit residual, not an accuracy), the outliers the fit left out circled
+  and named;
 - error vs number of poses: cross-validation: calibrate on the first k of a shuffled pose set and
   measure the error on poses kept out of every fit;
 - workspace map: the standard deviation of what the tracker would measure, in its frame, predicted
@@ -14,13 +16,20 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Iterable
+from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np
 
 from m3t1r.app.cli_common import check_plots_folder
 from m3t1r.app.passive_joints import PassiveJointResiduals, passive_joint_residuals
-from m3t1r.app.plots import plot_error_vs_poses, plot_pose_errors_before_after, plot_predicted_std_map
+from m3t1r.app.plots import (
+    plot_error_vs_poses,
+    plot_errors_over_workspace,
+    plot_normalised_qq,
+    plot_pose_errors_before_after,
+    plot_predicted_std_map,
+    plot_validation_histogram,
+)
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_closed_loop, predicted_measurement_std
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home
@@ -32,8 +41,12 @@ from m3t1r.model.design import IDLE_CHAIN_JOINTS
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import declared_workspace
 
+if TYPE_CHECKING:
+    from m3t1r.calibration.validation import Validation
+
 __all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots", "check_plots_folder",
-           "declare_plot_outputs", "PLOT_NAMES",
+           "declare_plot_outputs", "PLOT_NAMES", "VALIDATION_PLOT_NAMES", "declare_validation_plot_outputs",
+           "write_validation_plots", "row_labels",
            "PassiveJointResiduals", "passive_joint_residuals", "IDLE_CHAIN_JOINTS"]
 # check_plots_folder, the passive-joint residuals and IDLE_CHAIN_JOINTS live in modules without
 # matplotlib (`calibrate` imports this module only for --plots); they are named here too, as before.
@@ -100,10 +113,13 @@ def declare_plot_outputs(outputs: OutputSet, folder: str | Path) -> Path:
 
 def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibration, out_dir: Path,
                             protect: Iterable[Path] = (), noise: TrackerNoise = TrackerNoise(),
-                            seed: int = 0, outputs: OutputSet | None = None) -> list[Path]:
+                            seed: int = 0, outputs: OutputSet | None = None,
+                            labels: Sequence[str] | None = None) -> list[Path]:
     """Write the calibration plots (module docstring) into out_dir as a unit; return their paths.
 
-    The calibration's own inlier measurements and measurement setup are used throughout. With
+    The calibration's own inlier measurements and measurement setup are used throughout, but for
+    the per-pose plot, which shows its outliers too, named by `labels` (one per pose the calibration
+    was given, e.g. "line 12"; default the pose number). With
     `outputs` (where `declare_plot_outputs(outputs, out_dir)` declared them) the plots are only
     staged there, to be committed with the set's other outputs. A plot the data cannot give (the
     error-vs-poses curve when no subset can be calibrated) is withdrawn and not written.
@@ -115,7 +131,7 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
     with outputs:
         if own:
             outputs.check()
-        written = _stage_calibration_plots(nominal, calibration, Path(out_dir), noise, seed, outputs)
+        written = _stage_calibration_plots(nominal, calibration, Path(out_dir), noise, seed, outputs, labels)
         for path in [Path(out_dir) / name for name in PLOT_NAMES]:
             if not outputs.output(path).staged:
                 outputs.drop(path)
@@ -126,15 +142,17 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
 
 
 def _stage_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibration, out_dir: Path,
-                             noise: TrackerNoise, seed: int, outputs: OutputSet) -> list[Path]:
+                             noise: TrackerNoise, seed: int, outputs: OutputSet,
+                             labels: Sequence[str] | None) -> list[Path]:
     problem, start = calibration.problem, calibration.start
     if problem is None or start is None:
         raise InvalidInputError("write_calibration_plots needs a calibration made by calibrate_closed_loop")
     measurements = _subset(problem.measurements, np.flatnonzero(problem.active))
     written = [plot_pose_errors_before_after(
-        measured_pose_errors(nominal, measurements, start.setup),
-        measured_pose_errors(calibration.mechanism, measurements, calibration.setup),
-        out_dir / PLOT_NAMES[0], title="Calibration poses: model vs measured pose", outputs=outputs)]
+        measured_pose_errors(nominal, problem.measurements, start.setup),
+        measured_pose_errors(calibration.mechanism, problem.measurements, calibration.setup),
+        out_dir / PLOT_NAMES[0], title="Calibration poses: model vs measured pose", outputs=outputs,
+        outliers=np.flatnonzero(~problem.active), labels=labels)]
     fit_options = {"setup": MeasurementSetup(marker=start.setup.marker),
                    "estimate_frame": problem.frame_slot is not None, "estimate_marker": problem.marker_slot is not None}
     sizes, position, rotation = cross_validation_curve(nominal, measurements, noise, seed, **fit_options)
@@ -177,3 +195,47 @@ def map_poses(mechanism: Mechanism, count: int, rng: np.random.Generator
     units = ["m" if key in task.position else "rad" for key in task.box_keys[:2]]
     return sliders, where, (f"{task.frame} {task.box_keys[0]} [{units[0]}]",
                             f"{task.frame} {task.box_keys[1]} [{units[1]}]")
+
+
+#: The files `write_validation_plots` writes into its folder.
+VALIDATION_PLOT_NAMES = ("error_histogram.png", "normalised_errors_qq.png", "errors_over_workspace.png")
+
+
+def declare_validation_plot_outputs(outputs: OutputSet, folder: str | Path) -> Path:
+    """Declare the validation plots in `folder` as outputs of `outputs` (`validate --plots DIR`),
+    checked with the set's other outputs before any work and written with them; returns the folder."""
+    folder = check_plots_folder(folder)
+    for name in VALIDATION_PLOT_NAMES:
+        outputs.add(folder / name, "--plots", create_folder=True)
+    return folder
+
+
+def row_labels(result: Validation) -> list[str]:
+    """How each predicted row is named on the plots: by its `source` in the instrument's file when the
+    measurement file has that column (`m3t1r convert` writes it), with its line in the file."""
+    lines = result.lines[result.rows]
+    if result.sources is None:
+        return [f"line {int(line)}" for line in lines]
+    return [f"source {source:g} (line {int(line)})" for source, line in zip(result.sources[result.rows], lines)]
+
+
+def write_validation_plots(result: Validation, out_dir: Path, outputs: OutputSet) -> list[Path]:
+    """Stage the validation plots in `outputs` (where `declare_validation_plot_outputs` declared them):
+    the error histograms against the noise model, the normal QQ plot of the normalised residuals and
+    the errors over the measured positions, the rows beyond the gate named by `row_labels`."""
+    if result.residuals is None or result.noise is None:
+        raise InvalidInputError("write_validation_plots needs a validation made by `validate`")
+    flagged = np.isin(result.lines[result.rows], result.flagged)
+    labels = row_labels(result)
+    predicted = f"{len(result.rows)} of {len(result.lines)} rows of {result.path.name}"
+    folder = Path(out_dir)
+    rotation = None if result.position_only else result.errors.rotation
+    return [
+        plot_validation_histogram(result.errors.position, rotation, result.noise, result.scale, flagged, labels,
+                                  folder / VALIDATION_PLOT_NAMES[0], outputs=outputs,
+                                  title=f"Prediction errors of the calibrated model\n{predicted}"),
+        plot_normalised_qq(result.residuals, result.scale, flagged, labels, folder / VALIDATION_PLOT_NAMES[1],
+                           outputs=outputs, title=f"Residuals over the report's noise model\n{predicted}"),
+        plot_errors_over_workspace(result.measured[result.rows, :3, 3], result.errors.position, flagged, labels,
+                                   folder / VALIDATION_PLOT_NAMES[2], outputs=outputs),
+    ]

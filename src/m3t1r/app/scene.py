@@ -12,6 +12,14 @@ Every machine is drawn by Pinocchio's `MeshcatVisualizer` under its own scene no
 - neither: each machine at its own assembled `home` configuration.
 
 Roll and pitch cannot be commanded (3T1R): they are whatever each machine's geometry gives.
+
+A calibrated machine differs from its nominal by millimetres, invisible at the metre scale of the
+machine: every machine after the first is drawn with its deviation from the first magnified by a
+stated factor (`magnified_placement`): each body is drawn at its joint's nominal position plus
+`factor` times its offset, turned by `factor` times its rotation deviation. By default the factor is
+chosen from the scene (`automatic_magnification`: the largest offset drawn as a tenth of the
+machine's size, 1 mm as 0.1 m on a metre-sized machine). The poses and slider values the page's
+legend states are the true ones.
 The camera orbits the machine, not the base origin: meshcat 0.3.2 cannot move its orbit centre,
 so the scene (with the grid and axes) is shifted by -`Camera.target` instead; transforms below
 `/meshcat/m3t1r` are still base-frame placements.
@@ -24,6 +32,7 @@ server (`open_viewer`), whose process this module starts and stops itself.
 
 from __future__ import annotations
 
+import math
 import re
 import warnings
 from collections.abc import Iterable, Sequence
@@ -46,7 +55,8 @@ from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
 
 __all__ = ["ROOT_NODE", "MEASUREMENTS_NODE", "NOMINAL_COLOR", "CALIBRATED_COLOR", "MARKER_COLOR", "MachineView", "Camera",
-           "DEFAULT_CAMERA", "PosedMachine", "ViewerError", "comparison_views", "pose_machines"]
+           "DEFAULT_CAMERA", "PosedMachine", "ViewerError", "comparison_views", "pose_machines",
+           "magnified_placement", "check_magnification", "automatic_magnification"]
 
 
 Rgba: TypeAlias = "tuple[float, float, float, float]"
@@ -62,6 +72,9 @@ MARKER_COLOR: Rgba = (1.0, 0.8, 0.0, 1.0)
 MARKER_RADIUS = 0.012  # [m] visible at the whole-machine scale, small next to the 0.1 m platform
 TRIAD_LENGTH = 0.15  # [m] sticks out of the platform box so the axes stay visible
 TRIAD_THICKNESS = 0.008  # [m] WebGL ignores line widths, so the axes are thin boxes, not lines
+MAGNIFIED_SHARE = 0.1  # the largest offset drawn as this share of the machine's size
+MAGNIFIED_ANGLE = 0.3  # [rad] and no body turned further: beyond, the magnified machine is a tangle
+MAX_MAGNIFICATION = 1000.0  # 1 um drawn as 1 mm: below that a deviation is noise to look at
 _BACKGROUND = ((0.96, 0.96, 0.98), (0.74, 0.77, 0.82))  # light, so every material colour stands out
 _NAME = re.compile(r"[A-Za-z0-9_.-]+")  # one scene-node path element, safe in HTML too
 
@@ -235,6 +248,62 @@ def _check_views(views: Sequence[MachineView]) -> tuple[MachineView, ...]:
     return views
 
 
+def check_magnification(factor: float) -> float:
+    """`factor` as a float, or InvalidInputError when it is not a finite number of at least 1."""
+    value = float(require_finite_vector([factor], 1, "magnification")[0])
+    if value < 1.0:
+        raise InvalidInputError(f"magnification {value:g}: at least 1 (1 draws the machines at true scale)")
+    return value
+
+
+def magnified_placement(reference: pin.SE3, actual: pin.SE3, factor: float) -> pin.SE3:
+    """`actual` with its deviation from `reference` multiplied by `factor` (both in the base frame [m]).
+
+    Position: p_ref + factor (p - p_ref); rotation: R_ref exp(factor log(R_ref^T R)), the deviation
+    taken in the reference body's frame. factor 1 returns `actual`.
+    """
+    rotation = reference.rotation @ pin.exp3(factor * pin.log3(reference.rotation.T @ actual.rotation))
+    return pin.SE3(rotation, reference.translation + factor * (actual.translation - reference.translation))
+
+
+def automatic_magnification(posed: Sequence[PosedMachine]) -> float:
+    """The factor that draws the largest joint offset of the machines after the first from it as
+    `MAGNIFIED_SHARE` of the first machine's size (the diagonal of its joints' bounding box [m]), no
+    joint turned beyond `MAGNIFIED_ANGLE`: rounded down to 1, 2 or 5 times a power of ten, within
+    [1, `MAX_MAGNIFICATION`]. 1 for a single machine or machines that coincide."""
+    reference = _joint_placements(posed[0])
+    size = float(np.linalg.norm(np.ptp([m.translation for m in reference.values()], axis=0))) if reference else 0.0
+    offset = angle = 0.0
+    for machine in posed[1:]:
+        for name, placement in _joint_placements(machine).items():
+            offset = max(offset, float(np.linalg.norm(placement.translation - reference[name].translation)))
+            angle = max(angle, float(np.linalg.norm(pin.log3(reference[name].rotation.T @ placement.rotation))))
+    limits = [share / value for share, value in ((MAGNIFIED_SHARE * size, offset), (MAGNIFIED_ANGLE, angle))
+              if value > 0]
+    if not limits:
+        return 1.0
+    factor = min(min(limits), MAX_MAGNIFICATION)
+    decade = 10.0 ** math.floor(math.log10(factor))
+    return max(1.0, max(step * decade for step in (1.0, 2.0, 5.0) if step * decade <= factor * (1 + 1e-12)))
+
+
+def _joint_placements(machine: PosedMachine) -> dict[str, pin.SE3]:
+    """Every joint's placement in the base frame [m] at the machine's configuration, by joint name."""
+    model = machine.view.mechanism.model
+    data = model.createData()
+    pin.forwardKinematics(model, data, machine.q)
+    return {model.names[j]: pin.SE3(data.oMi[j]) for j in range(1, model.njoints)}
+
+
+def _magnified_joints(reference: PosedMachine, machine: PosedMachine, data: pin.Data, factor: float) -> None:
+    """Replace `data.oMi` (the machine's joint placements at its configuration) by their magnified
+    deviation from the reference machine's joints of the same names."""
+    joints = _joint_placements(reference)
+    model = machine.view.mechanism.model
+    for j in range(1, model.njoints):
+        data.oMi[j] = magnified_placement(joints[model.names[j]], data.oMi[j], factor)
+
+
 # --------------------------------------------------------------------------------------------
 # Scene
 # --------------------------------------------------------------------------------------------
@@ -253,7 +322,9 @@ class _Lowered:
 
 
 def _draw(viewer: meshcat.Visualizer, posed: Sequence[PosedMachine], points: np.ndarray,
-          camera: Camera | None) -> None:
+          camera: Camera | None, magnification: float = 1.0) -> None:
+    """Draw the machines (those after the first with their deviation from it magnified), the markers
+    as measured, and place the camera."""
     viewer["/Background"].set_property("top_color", list(_BACKGROUND[0]))
     viewer["/Background"].set_property("bottom_color", list(_BACKGROUND[1]))
     for machine in posed:
@@ -264,7 +335,12 @@ def _draw(viewer: meshcat.Visualizer, posed: Sequence[PosedMachine], points: np.
         drawer.loadViewerModel(rootNodeName=node,
                                visual_color=None if view.color is None else list(view.color))
         drawer.display(machine.q)
-        _draw_triad(viewer[f"{node}/platform_frame"], machine.platform)
+        platform = machine.platform
+        if machine is not posed[0] and magnification != 1.0:
+            _magnified_joints(posed[0], machine, drawer.data, magnification)
+            drawer.updatePlacements(pin.GeometryType.VISUAL)  # from data.oMi as magnified, no new FK
+            platform = magnified_placement(posed[0].platform, platform, magnification)
+        _draw_triad(viewer[f"{node}/platform_frame"], platform)
     for k, point in enumerate(points):
         marker = viewer[f"{MEASUREMENTS_NODE}/pose_{k:04d}"]
         marker.set_object(mg.Sphere(MARKER_RADIUS), _material(MARKER_COLOR))

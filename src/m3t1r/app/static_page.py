@@ -30,6 +30,8 @@ from m3t1r.app.scene import (
     ViewerError,
     _draw,
     _marker_positions,
+    automatic_magnification,
+    check_magnification,
     pose_machines,
 )
 from m3t1r.errors import InvalidInputError
@@ -37,7 +39,7 @@ from m3t1r.io.outputs import atomic_write_text
 from m3t1r.io.paths import ensure_not_protected
 from m3t1r.model.kinematics import yaw_of
 
-__all__ = ["build_scene", "scene_html", "write_static_html"]
+__all__ = ["build_scene", "scene_html", "magnification_of", "write_static_html"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -56,6 +58,7 @@ class _Recording:
     messages: list[dict[str, Any]] = field(default_factory=list)
     legend: str = ""
     title: str = "m3t1r"
+    magnification: float = 1.0  # the factor the scene was drawn with (the legend states it)
     web_url: str | None = None  # meshcat's Visualizer.url() reads it; there is no server
 
     def send(self, command: Any) -> None:
@@ -68,24 +71,29 @@ class _Recording:
 def build_scene(views: Sequence[MachineView], pose: Sequence[float] | None = None,
                 sliders: Sequence[float] | None = None, markers: Iterable[pin.SE3] | np.ndarray | None = None,
                 viewer: meshcat.Visualizer | None = None, camera: Camera | None = DEFAULT_CAMERA,
-                ) -> meshcat.Visualizer:
+                magnification: float | None = None) -> meshcat.Visualizer:
     """Draw every machine, posed at one command, into `viewer` and return it.
 
     views: the machines, drawn in order (put the translucent ones last so the opaque ones show
     through them); pose / sliders: the command (see `pose_machines`); markers: measured platform
     poses (pin.SE3) or an (n, 3) array of positions [m], drawn as spheres; viewer: a meshcat
     Visualizer to draw into (a live one, say), or None for an offline recording whose
-    `static_html()` is the shareable page; camera: the initial view, None to leave the viewer's.
+    `static_html()` is the shareable page; camera: the initial view, None to leave the viewer's;
+    magnification: every machine after the first is drawn with its deviation from the first
+    multiplied by this factor (>= 1; 1 for true scale; see `scene.magnified_placement`), None to
+    choose it from the scene (`scene.automatic_magnification`); the factor is stated in the page's
+    legend. Markers are drawn where they were measured.
 
     Every machine is solved before anything is drawn, so a failure leaves `viewer` untouched.
-    Raises what `pose_machines` raises, and InvalidInputError for malformed markers.
+    Raises what `pose_machines` raises, and InvalidInputError for malformed markers or magnification.
     """
     posed = pose_machines(views, pose, sliders)
+    magnification = automatic_magnification(posed) if magnification is None else check_magnification(magnification)
     points = _marker_positions(markers)
     if viewer is None:
-        viewer = meshcat.Visualizer(window=_Recording(legend=_legend(posed, pose, sliders),
-                                                      title=_title(posed)))
-    _draw(viewer, posed, points, camera)
+        viewer = meshcat.Visualizer(window=_Recording(legend=_legend(posed, pose, sliders, magnification),
+                                                      title=_title(posed), magnification=magnification))
+    _draw(viewer, posed, points, camera, magnification)
     return viewer
 
 
@@ -178,7 +186,8 @@ def _title(posed: Sequence[PosedMachine]) -> str:
     return "m3t1r: " + " vs ".join(machine.view.name for machine in posed)
 
 
-def _legend(posed: Sequence[PosedMachine], pose: Sequence[float] | None, sliders: Sequence[float] | None) -> str:
+def _legend(posed: Sequence[PosedMachine], pose: Sequence[float] | None, sliders: Sequence[float] | None,
+            magnification: float = 1.0) -> str:
     mechanism = posed[0].view.mechanism
     if pose is not None:
         command = f"task pose {_task_text(mechanism.task.columns, pose)} reached by IK on each machine"
@@ -188,6 +197,12 @@ def _legend(posed: Sequence[PosedMachine], pose: Sequence[float] | None, sliders
         command = "each machine at its home configuration"
     names = ", ".join(html.escape(name) for name in mechanism.actuated_joints)
     lines = [f"<div>{command}; actuators ({names}) in mm or &deg;</div>"]
+    if len(posed) > 1:
+        first = html.escape(posed[0].view.name)
+        scale = ("drawn at true scale" if magnification == 1.0 else
+                 f"drawn with their deviation from {first} magnified &times;{magnification:g} "
+                 f"(every body's offset and rotation; the figures below are true values)")
+        lines.append(f'<div data-magnification="{magnification:g}">machines after {first} {scale}</div>')
     for machine in posed:
         view = machine.view
         if view.color is None:  # a strip of the URDF's main material colours
@@ -216,10 +231,18 @@ def scene_html(viewer: meshcat.Visualizer) -> str:
     return viewer.window.get_scene()
 
 
+def magnification_of(viewer: meshcat.Visualizer) -> float:
+    """The factor a scene recorded offline by `build_scene(..., viewer=None)` magnifies deviations by."""
+    if not isinstance(viewer.window, _Recording):
+        raise InvalidInputError("magnification_of needs a scene built offline (build_scene with viewer=None)")
+    return viewer.window.magnification
+
+
 def write_static_html(views: Sequence[MachineView], path: str | os.PathLike[str],
                       pose: Sequence[float] | None = None, sliders: Sequence[float] | None = None,
                       markers: Iterable[pin.SE3] | np.ndarray | None = None, camera: Camera | None = DEFAULT_CAMERA,
-                      protect: Iterable[str | os.PathLike[str]] = ()) -> Path:
+                      protect: Iterable[str | os.PathLike[str]] = (),
+                      magnification: float | None = None) -> Path:
     """Write the scene as one shareable HTML file (opens offline, from file://) and return its path.
 
     No server is started. The model files of every machine are protected on top of `protect`,
@@ -234,6 +257,7 @@ def write_static_html(views: Sequence[MachineView], path: str | os.PathLike[str]
     protected = [*protect, *(p for v in views if isinstance(v, MachineView)
                              for p in (v.mechanism.urdf_path, v.mechanism.closures_path))]
     ensure_not_protected(target, protected)
-    viewer = build_scene(views, pose=pose, sliders=sliders, markers=markers, camera=camera)
+    viewer = build_scene(views, pose=pose, sliders=sliders, markers=markers, camera=camera,
+                         magnification=magnification)
     atomic_write_text(target, scene_html(viewer), protect=protected)
     return target

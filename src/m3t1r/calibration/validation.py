@@ -204,7 +204,9 @@ def _variance_factor(document: Mapping, path: Path) -> float | None:
 @dataclass(frozen=True)
 class Campaign:
     """Rows of a measurement file in SI units: readings (N, n) [m or rad] in `columns` order,
-    measured poses (N, 4, 4) [m] (identity rotation when position-only), and each row's file line."""
+    measured poses (N, 4, 4) [m] (identity rotation when position-only), each row's file line, and
+    its `source` (N,) (where `m3t1r convert` found the pose in the instrument's file; None without
+    that column)."""
 
     path: Path
     columns: tuple[str, ...]
@@ -213,6 +215,7 @@ class Campaign:
     position_only: bool
     lines: np.ndarray
     units: str
+    sources: np.ndarray | None = None
 
 
 def read_campaign(path: str | Path, columns: Sequence[str], prismatic: Sequence[bool], units: str = "m",
@@ -237,7 +240,8 @@ def read_campaign(path: str | Path, columns: Sequence[str], prismatic: Sequence[
     if not position_only:
         measured[:] = [pose.homogeneous for pose in poses_from_table(table)]
     measured[:, :3, 3] = np.column_stack([table.column(n) for n in ("x", "y", "z")]) * scale
-    return Campaign(table.path, tuple(columns), readings, measured, position_only, table.line_numbers, units)
+    sources = table.column("source") if table.has_column("source") else None
+    return Campaign(table.path, tuple(columns), readings, measured, position_only, table.line_numbers, units, sources)
 
 
 @dataclass(frozen=True, eq=False)
@@ -252,6 +256,9 @@ class Validation:
     sigmas: its sigma-equivalent z (M,); flagged: file lines of the rows beyond the gate;
     failures: (file line, reason) of the rows that could not be predicted; scale: the factor s
     (from the report's variance factor); gate: the chi^2_k quantile d^2 / s^2 is compared with; units: the file's length unit.
+    residuals: the predicted rows' residuals normalised by the report's noise model (M, 3 or 6),
+    [dp / sigma_p, dr / sigma_r] (N(0, 1) under that model); noise: that model (sigma_p [m],
+    sigma_r [rad]); sources: every input row's `source` (N,), or None when the file has no such column.
     """
 
     path: Path
@@ -270,6 +277,9 @@ class Validation:
     gate: float
     position_only: bool
     units: str
+    residuals: np.ndarray | None = None
+    noise: tuple[float, float] | None = None
+    sources: np.ndarray | None = None
 
 
 def sigma_equivalent(d2: np.ndarray, dof: int) -> np.ndarray:
@@ -411,4 +421,5 @@ def validate(measurements: str | Path, calibrated: str | Path, report: str | Pat
         sigmas=sigma_equivalent(statistic / scale**2, dof),
         flagged=tuple(int(campaign.lines[i]) for i in ok[mask]), failures=tuple(failures), scale=scale,
         gate=gate,
-        position_only=campaign.position_only, units=units)
+        position_only=campaign.position_only, units=units, residuals=whitened, noise=info.noise,
+        sources=campaign.sources)
