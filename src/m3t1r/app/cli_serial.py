@@ -373,7 +373,7 @@ def explain(calibration: SerialCalibration, warnings_seen: list[str] = ()) -> li
     moved = {n: float(v) for n, v in zip(calibration.names, calibration.values) if n in fitted and n in chain_names}
     marker_estimated = any(n.startswith("marker.") for n in calibration.names)
     notes += fit_movement_notes(moved, calibration.residual_before.position, calibration.residual_after.position,
-                                None if marker_estimated else calibration.chain.tool_frame)
+                                None if marker_estimated else calibration.chain.tool_frame, std)
     return notes
 
 

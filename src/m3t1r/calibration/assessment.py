@@ -42,6 +42,8 @@ __all__ = ["FitRejected", "MAX_NOISE_RATIO", "HOPELESS_RESIDUAL", "MAX_GROSS_SHA
 MAX_NOISE_RATIO = 3.0
 #: Beyond these a placement "moved implausibly far" for a machine built to drawing [m], [rad].
 IMPLAUSIBLE_TRANSLATION, IMPLAUSIBLE_ROTATION = 0.02, 0.1
+#: ... unless within this many of its own standard deviation (a weakly determined parameter's noise).
+PLAUSIBLE_SIGMAS = 3.0
 
 _COMPONENTS = ("translation along x", "translation along y", "translation along z",
                "rotation about x", "rotation about y", "rotation about z")
@@ -426,19 +428,22 @@ def _swapped_columns(predict: Callable[[np.ndarray], np.ndarray], readings: np.n
 
 
 def fit_movement_notes(moved: dict[str, float], rms_before: float, rms_after: float,
-                       measured_frame: str | None = None) -> list[str]:
+                       measured_frame: str | None = None, std: dict[str, float] | None = None) -> list[str]:
     """Plain-word notes on how far the fit moved: implausibly far, or barely.
 
     moved: identified error per parameter name ([m] for translations, [rad] for rotations);
     rms_before / rms_after: position residual RMS [m] at the start and the end; measured_frame:
     the model frame the data measure, when no marker was estimated (its translating far means a
-    reflector off that frame was taken for the machine's geometry).
+    reflector off that frame was taken for the machine's geometry); std: the parameters' standard
+    deviations (same units): a move within PLAUSIBLE_SIGMAS of its own std is what the noise allows
+    a weakly determined parameter, not a sign of wrong data, and is not called implausible.
     """
     notes, far = [], []
+    std = {} if std is None else std
     for name, value in moved.items():
         translation = name.rpartition(".dt[")[2] in ("0]", "1]", "2]")
         limit = IMPLAUSIBLE_TRANSLATION if translation else IMPLAUSIBLE_ROTATION
-        if abs(value) > limit:
+        if abs(value) > limit and not abs(value) <= PLAUSIBLE_SIGMAS * std.get(name, 0.0):
             far.append((abs(value) / limit, f"{describe_parameter(name)} {value:+.3g} {'m' if translation else 'rad'}"))
     if far:
         listed = ", ".join(text for _, text in sorted(far, reverse=True)[:3])
