@@ -6,7 +6,8 @@ the sequence a user would run, and one table per file is printed:
 
 - plan at 20, 40 and 60 poses (each must write its rows);
 - fk at the 40-pose plan against an independent solve (Pinocchio placements and a least-squares
-  continuation from home along the plan, sharing no code with m3t1r's solver): <= 1e-9 m;
+  continuation from home along the plan, sharing no code with m3t1r's solver; from a rough home,
+  continued from the assembled home of a closures file beside it): <= 1e-9 m;
 - ik of those poses' task coordinates back to the plan's actuators: <= 1e-8;
 - noise-free calibration of 0.1 mm / 0.1 mrad errors on every origin (`simulate --noise-free`),
   held out by `evaluate` against the truth: max <= 1e-7 m; the nominal's figure against the
@@ -119,7 +120,7 @@ def task_coordinates(poses: np.ndarray, position: list[str], rotation: str) -> t
 
 class IndependentSolver:
     """Closure rows from the closures file's frames (3D: R_a^T (p_b - p_a); 6D: log6(oMa^-1 oMb)),
-    solved by scipy's Levenberg-Marquardt over every joint but the actuators, continued from home."""
+    solved by scipy's least squares over every joint but the actuators, continued from home."""
 
     def __init__(self, urdf: Path, document: dict) -> None:
         self.model = pin.buildModelFromUrdf(str(urdf))
@@ -154,7 +155,10 @@ class IndependentSolver:
             step[self.free] = dv
             return pin.integrate(self.model, start, step)
 
-        fit = least_squares(lambda dv: self._residual(moved(dv)), np.zeros(len(self.free)), method="lm",
+        rows = len(self._residual(start))
+        # Levenberg-Marquardt needs as many rows as unknowns; idle spins (a rod's) leave fewer: trust region.
+        method = "lm" if rows >= len(self.free) else "trf"
+        fit = least_squares(lambda dv: self._residual(moved(dv)), np.zeros(len(self.free)), method=method,
                             xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=20000)
         return moved(fit.x)
 
@@ -206,6 +210,7 @@ class Mechanism:
     def __init__(self, urdf: Path, closures: Path) -> None:
         self.urdf, self.closures = urdf, closures
         self.document = yaml.safe_load(closures.read_text())
+        self.reference_home = _fullest_home(closures, self.document)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             loaded = Loaded.load(urdf, closures)
@@ -228,6 +233,21 @@ class Mechanism:
                     np.hstack((actuators, np.array(noisy))))
 
 
+def _fullest_home(closures: Path, document: dict) -> dict:
+    """The home to continue the independent solve from: the file's own, or where it gives only some
+    joints (a rough home), the fullest home of a closures file beside it with the same closures and
+    actuator values: an assembly the file's own rough values must lead m3t1r to."""
+    best = document["home"]
+    for other in sorted(closures.parent.glob("*.closures.yaml")):
+        sibling = yaml.safe_load(other.read_text())
+        same = (sibling.get("closures") == document.get("closures")
+                and all(sibling["home"].get(k) == v for k, v in document["home"].items()
+                        if k in document["actuated_joints"]))
+        if same and len(sibling["home"]) > len(best):
+            best = sibling["home"]
+    return best
+
+
 def check_plans_and_kinematics(m: Mechanism, run: Runner) -> list[Figure]:
     figures = []
     for n in (20, 40, 60):
@@ -238,7 +258,7 @@ def check_plans_and_kinematics(m: Mechanism, run: Runner) -> list[Figure]:
     actuators = columns(run.work / "plan40.csv", m.actuators)
     run("fk", "plan40.csv", *m.model_args, "-o", "poses.csv")
     poses = columns(run.work / "poses.csv", ["x", "y", "z", "qx", "qy", "qz", "qw"])
-    reference = IndependentSolver(m.urdf, m.document).platform_positions(actuators)
+    reference = IndependentSolver(m.urdf, {**m.document, "home": m.reference_home}).platform_positions(actuators)
     figures.append(_within("fk vs independent solve, max [m]", float(np.abs(poses[:, :3] - reference).max()),
                            None, 1e-9))
     names, targets = task_coordinates(poses, m.position, m.rotation)
@@ -349,7 +369,7 @@ def main(argv: list[str] | None = None) -> int:
             work = (args.work / Path(name).stem) if args.work else Path(scratch)
             work.mkdir(parents=True, exist_ok=True)
             figures = check(urdfs[0].resolve(), (args.folder / name).resolve(), Runner(shlex.split(args.m3t1r), work))
-        print(table(f"{args.folder.name}/{name}", figures) + "\n")
+        print(table(f"{args.folder.name}/{name}", figures) + "\n", flush=True)
         failed |= not all(f.passed for f in figures)
     return 1 if failed else 0
 
