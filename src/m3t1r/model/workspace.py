@@ -176,6 +176,8 @@ def workspace_actuators(nominal: Mechanism, n: int, rng: np.random.Generator) ->
     if batch.failures:
         first = batch.failures[0]
         where = (f"declared {workspace.kind} workspace box" if nominal.workspace is not None else
+                 "default box around home (no workspace declared: add a `workspace:` box, models/README.md)"
+                 if _DERIVED.get(nominal) is workspace else
                  "actuators' URDF limits (no workspace declared: add a `workspace:` box, models/README.md)")
         raise ModelFileError(nominal.closures_path, f"{len(batch.failures)} of {n} draws in the {where} cannot be "
                                                     f"assembled from home; first, draw {first.index}: {first.reason}")
