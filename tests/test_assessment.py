@@ -163,6 +163,15 @@ def test_movement_notes_flag_implausible_and_negligible_fits():
     assert fit_movement_notes({"q11.dt[0]": 0.019, "q12.dt[5]": 0.099}, 1e-2, 1e-5) == []
 
 
+def test_a_move_within_a_few_of_its_own_std_is_not_called_implausible():
+    moved = {"q11.dt[0]": 0.03, "q12.dt[4]": -0.3}
+    # 0.03 m with a std of 0.015 m (2 sigma) is what the noise allows; -0.3 rad with a std of 0.05 rad (6 sigma) is not.
+    notes = fit_movement_notes(moved, 1e-2, 1e-5, std={"q11.dt[0]": 0.015, "q12.dt[4]": 0.05})
+    assert len(notes) == 1 and "q12 rotation about y -0.3 rad" in notes[0] and "q11" not in notes[0]
+    assert fit_movement_notes(moved, 1e-2, 1e-5, std={"q11.dt[0]": 0.015, "q12.dt[4]": 0.2}) == []
+    assert "q11" in fit_movement_notes(moved, 1e-2, 1e-5, std={"q11.dt[0]": 0.005})[0]  # 6 sigma: implausible
+
+
 def test_coverage_names_the_poorly_covered_coordinates():
     values = np.column_stack([np.linspace(0, 1, 10), np.linspace(0, 0.1, 10)])
     notes = coverage_notes(values, {"x": (0.0, 1.0), "theta": (-0.5, 0.5)})

@@ -26,10 +26,17 @@ from m3t1r.calibration.simulation import simulate_study
 from m3t1r.compensation import joint_limit_violation
 from m3t1r.errors import InvalidInputError, ModelFileError, ModelWarning
 from m3t1r.model.description import Mechanism, nominal_model_paths
-from m3t1r.model.examples import five_bar_files, published_five_bar_files, rod_five_bar_files, spherical_wrist_files
+from m3t1r.model.examples import (
+    first_time_five_bar_files,
+    five_bar_files,
+    published_five_bar_files,
+    rod_five_bar_files,
+    spherical_wrist_files,
+)
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.poe import Placement
-from m3t1r.model.workspace import workspace_actuators
+from m3t1r.model.task import TaskSpec
+from m3t1r.model.workspace import declared_workspace, workspace_actuators
 
 KINDS = ("m_machine", "five_bar", "spherical_wrist")
 
@@ -407,6 +414,71 @@ def test_a_schema_1_file_samples_between_the_actuator_limits(tmp_path):
     with pytest.raises(ModelFileError, match=r"draws in the actuators' URDF limits \(no workspace declared: add a "
                                              r"`workspace:` box, models/README.md\) cannot be assembled from home"):
         workspace_actuators(Mechanism.load(urdf, closures), 200, np.random.default_rng(1))
+
+
+def test_a_first_time_file_gets_the_task_the_actuators_command_and_a_sound_workspace(tmp_path):
+    urdf, closures = first_time_five_bar_files(tmp_path)
+    with pytest.warns(ModelWarning) as caught:
+        mechanism = Mechanism.load(urdf, closures)
+    notes = " | ".join(str(w.message) for w in caught)
+    assert "no task declared" in notes and "x, y of frame 'effector'" in notes and "declare `task:`" in notes
+    assert mechanism.task == TaskSpec("effector", ("x", "y"), "none") and mechanism.workspace is None
+    assert np.all(np.isinf(mechanism.joint_limits()[0]))  # no actuator limits to sample between
+    with pytest.warns(ModelWarning, match=r"no workspace declared and no finite actuator limits: sampling in "
+                                          r"motor_1 \[\S+, \S+\] rad, motor_2"):
+        box = declared_workspace(mechanism)
+    lower, upper = box.bounds(mechanism.actuated_joints)
+    home = mechanism.home[mechanism.actuated_ids]
+    assert np.all(lower < home) and np.all(home < upper) and np.all(upper - lower > 0.2)
+    draws = workspace_actuators(mechanism, 60, np.random.default_rng(3))
+    solver = ClosedLoopSolver(mechanism)
+    forward = solver.forward_batch(draws)
+    # The independent solver (tests/reference_kinematics.py) on home's assembly and working mode everywhere
+    expected = np.array([reference.five_bar_forward(a) for a in draws])
+    np.testing.assert_allclose(forward.task_poses[:, :2, 3], expected, atol=1e-10)
+    inverse = solver.inverse_batch(forward.task_poses[:, :2, 3])
+    assert not inverse.failures
+    np.testing.assert_allclose(inverse.actuators, draws, atol=1e-8)
+
+
+def test_a_default_workspace_shrinks_near_a_singularity_and_keeps_every_draw_invertible(tmp_path):
+    # Home moved (+0.6, -0.6) rad toward where the five-bar's distal links fold into line: the box
+    # shrinks so that every draw stays on home's working mode (IK from home finds the draw again).
+    urdf, closures = first_time_five_bar_files(tmp_path)
+    mechanism = _quiet_load(urdf, closures)
+    wide = np.subtract(*declared_workspace(mechanism).bounds(mechanism.actuated_joints)[::-1])
+    sliders = mechanism.home[mechanism.actuated_ids] + np.array([0.6, -0.6])
+    shifted = mechanism.with_home(ClosedLoopSolver(mechanism).forward(sliders, q_init=mechanism.home).q)
+    with pytest.warns(ModelWarning, match="no workspace declared"):
+        lower, upper = declared_workspace(shifted).bounds(mechanism.actuated_joints)
+    assert np.all(upper - lower < 0.6 * wide) and np.all(lower < sliders) and np.all(sliders < upper)
+    solver = ClosedLoopSolver(shifted)
+    draws = workspace_actuators(shifted, 80, np.random.default_rng(4))
+    back = solver.inverse_batch(solver.forward_batch(draws).task_poses[:, :2, 3])
+    assert not back.failures
+    np.testing.assert_allclose(back.actuators, draws, atol=1e-8)
+
+
+def test_a_schema_1_file_of_four_actuators_keeps_position_and_yaw_without_a_note(tmp_path):
+    urdf, closures = nominal_model_paths()
+    folder_urdf = tmp_path / "m.urdf"
+    folder_urdf.write_bytes(urdf.read_bytes())
+    copy = tmp_path / "m.closures.yaml"
+    copy.write_bytes(closures.read_bytes())
+    _edit_yaml(copy, lambda d: [d.pop(key) for key in ("schema_version", "task")])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ModelWarning)
+        mechanism = Mechanism.load(folder_urdf, copy)
+    assert mechanism.task == TaskSpec("P_I", ("x", "y", "z"), "yaw")
+    assert not any("no task declared" in str(w.message) for w in caught)
+
+
+def test_a_derived_task_is_recorded_in_the_written_pair(tmp_path):
+    mechanism = _quiet_load(*first_time_five_bar_files(tmp_path / "model"))
+    mechanism.save(tmp_path / "copy.urdf")
+    written = yaml.safe_load((tmp_path / "copy.closures.yaml").read_text())
+    assert written["task"] == {"frame": "effector", "position": ["x", "y"], "rotation": "none"}
+    assert _quiet_load(tmp_path / "copy.urdf").task == mechanism.task
 
 
 # ------------------------------------------------------------------------------------------------

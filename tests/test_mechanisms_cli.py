@@ -5,7 +5,12 @@ hinges, a rod with a spherical joint at each end, declared frames), from simulat
 
 from __future__ import annotations
 
+import contextlib
+import importlib.util
+import io
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
@@ -16,10 +21,16 @@ from m3t1r.app.datasets import read_actuators, read_poses
 from m3t1r.calibration.closed_loop import pose_errors
 from m3t1r.calibration.validation import read_report
 from m3t1r.model.description import Mechanism, nominal_model_paths
-from m3t1r.model.examples import published_five_bar_files, rod_five_bar_files, spherical_wrist_files
+from m3t1r.model.examples import (
+    first_time_five_bar_files,
+    published_five_bar_files,
+    rod_five_bar_files,
+    spherical_wrist_files,
+)
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import workspace_actuators
 
+TOOLS = Path(__file__).resolve().parents[1] / "tools"
 _WRITERS = {"spherical_wrist": spherical_wrist_files, "published_five_bar": published_five_bar_files,
             "rod_five_bar": rod_five_bar_files}
 
@@ -168,3 +179,46 @@ def test_view_draws_a_machine_published_without_its_meshes(tmp_path, capsys):
     assert main(["view", "--model", str(urdf), "--closures", str(closures), "--html", str(page)]) == 0
     assert "drawing rod_five_bar.urdf as spheres at its joints" in capsys.readouterr().err
     assert page.stat().st_size > 0
+
+
+# ------------------------------------------------------------------------------------------------
+# tools/check_mechanism.py: every verb on a mechanism folder, judged against the done-when figures
+
+
+def _check_mechanism_tool():
+    spec = importlib.util.spec_from_file_location("check_mechanism", TOOLS / "check_mechanism.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses resolve their annotations there
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_check_mechanism_passes_every_verb_on_a_first_time_five_bar(tmp_path, monkeypatch):
+    tool = _check_mechanism_tool()
+    urdf, closures = first_time_five_bar_files(tmp_path / "model")
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+
+    class InProcess(tool.Runner):  # the same verbs through cli.main, without a Python start per command
+        def __call__(self, *args: str) -> str:
+            out, err = io.StringIO(), io.StringIO()
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                status = main(list(args))
+            if status != 0:
+                raise tool.CommandFailed(f"m3t1r {args[0]} exited {status}: {err.getvalue().strip()}")
+            return out.getvalue() + err.getvalue()
+
+    figures = tool.check(urdf, closures, InProcess([], work))
+    printed = tool.table("first_time_five_bar", figures)
+    assert len(figures) == 12 and all(f.passed for f in figures), printed
+    fk = next(f for f in figures if f.check.startswith("fk vs independent"))
+    assert fk.value <= 1e-9 and "pass" in printed and "FAIL" not in printed
+
+
+def test_check_mechanism_fails_a_figure_out_of_its_rule():
+    tool = _check_mechanism_tool()
+    assert not tool._within("held-out max [m]", 2e-7, None, 1e-7).passed
+    assert tool._within("ratio", 0.7, 0.67, 1.5).passed and not tool._within("ratio", 0.6, 0.67, 1.5).passed
+    assert not tool._within("nan", float("nan"), None, 1.0).passed
+    assert "FAIL" in tool.table("t", [tool.Figure("plan", None, "runs", False, "exited 2")])

@@ -113,7 +113,9 @@ def test_what_a_file_may_leave_out(tmp_path):
     urdf, closures = _edited(tmp_path, minimal)
     with pytest.warns(UserWarning):  # the z row holds by itself on a planar loop: dropped with a note
         mechanism = Mechanism.load(urdf, closures)
-    assert mechanism.task == TaskSpec("effector")  # schema 1: position and yaw of the platform frame
+    # No task: the platform frame's coordinates the two motors command at home (a planar five-bar's x, y)
+    assert mechanism.task == TaskSpec("effector", ("x", "y"), "none")
+    assert any("no task declared" in note for note in mechanism.notes)
     assert mechanism.workspace is None
     assert mechanism.closures[0].rows == (0, 1)
     assert (mechanism.closures[0].frame_a, mechanism.closures[0].frame_b) == ("effector", "tip_2")

@@ -355,7 +355,8 @@ def explain(calibration: ClosedLoopCalibration, warnings_seen: list[str] = ()) -
     machine = {n: v for n, v in calibration.parameters.items() if n in fitted}
     marker_estimated = any(n.startswith("marker.") for n in calibration.std)
     notes += fit_movement_notes(machine, calibration.rms_before[0], calibration.rms_after[0],
-                                None if marker_estimated else calibration.mechanism.platform_frame)
+                                None if marker_estimated else calibration.mechanism.platform_frame,
+                                std=calibration.std)
     if calibration.variance_factor < 0.05:
         notes.append(f"the residual is {np.sqrt(calibration.variance_factor):.2g} times the stated noise: the "
                      "measurements are more precise than stated, so the standard deviations above are pessimistic "

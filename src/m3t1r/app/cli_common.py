@@ -25,6 +25,7 @@ from m3t1r.io.progress import Progress
 from m3t1r.io.tables import table_text
 from m3t1r.model.description import Mechanism
 from m3t1r.model.mjcf_io import is_mjcf
+from m3t1r.model.workspace import default_workspace_notes
 
 __all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "status_stream", "progress_bar", "provenance",
            "parse_priors", "parse_joint_values", "check_plots_folder", "checked_marker", "MAX_MARKER_DISTANCE"]
@@ -71,7 +72,7 @@ def load_mechanism(urdf: str | None, closures: str | None):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ModelWarning)  # printed below as notes, once, without a traceback line
         mechanism = Mechanism.load(urdf, closures)
-    for note in mechanism.notes:
+    for note in mechanism.notes + tuple(default_workspace_notes(mechanism)):
         print(f"note: {mechanism.closures_path.name}: {note}", file=sys.stderr)
     return mechanism
 

@@ -409,7 +409,7 @@ def explain(calibration: SerialCalibration, warnings_seen: list[str] = (), fixed
     marker_estimated = any(n.startswith("marker.") for n in calibration.names)
     notes += fit_movement_notes(moved, calibration.residual_before.position, calibration.residual_after.position,
                                 None if marker_estimated else calibration.chain.tool_frame,
-                                _along_last_axis(calibration.chain))
+                                _along_last_axis(calibration.chain), std)
     return notes
 
 

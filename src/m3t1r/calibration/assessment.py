@@ -42,6 +42,8 @@ __all__ = ["FitRejected", "MAX_NOISE_RATIO", "HOPELESS_RESIDUAL", "MAX_GROSS_SHA
 MAX_NOISE_RATIO = 3.0
 #: Beyond these a placement "moved implausibly far" for a machine built to drawing [m], [rad].
 IMPLAUSIBLE_TRANSLATION, IMPLAUSIBLE_ROTATION = 0.02, 0.1
+#: ... unless within this many of its own standard deviation (a weakly determined parameter's noise).
+PLAUSIBLE_SIGMAS = 3.0
 
 _COMPONENTS = ("translation along x", "translation along y", "translation along z",
                "rotation about x", "rotation about y", "rotation about z")
@@ -452,7 +454,8 @@ def _swapped_columns(predict: Callable[[np.ndarray], np.ndarray], readings: np.n
 
 
 def fit_movement_notes(moved: dict[str, float], rms_before: float, rms_after: float,
-                       measured_frame: str | None = None, same_as_frame: Sequence[str] = ()) -> list[str]:
+                       measured_frame: str | None = None, same_as_frame: Sequence[str] = (),
+                       std: dict[str, float] | None = None) -> list[str]:
     """Plain-word notes on how far the fit moved: implausibly far, or barely.
 
     moved: identified error per parameter name ([m] for translations, [rad] for rotations);
@@ -460,13 +463,16 @@ def fit_movement_notes(moved: dict[str, float], rms_before: float, rms_after: fl
     the model frame the data measure, when no marker was estimated (its translating far means a
     reflector off that frame was taken for the machine's geometry); same_as_frame: other parameters
     that move the measured frame alike (a translation along the last joint's axis commutes with
-    the joint: the fit may share the reflector's offset with it).
+    the joint: the fit may share the reflector's offset with it); std: the parameters' standard
+    deviations (same units): a move within PLAUSIBLE_SIGMAS of its own std is what the noise allows
+    a weakly determined parameter, not a sign of wrong data, and is not called implausible.
     """
     notes, far = [], []
+    std = {} if std is None else std
     for name, value in moved.items():
         translation = name.rpartition(".dt[")[2] in ("0]", "1]", "2]")
         limit = IMPLAUSIBLE_TRANSLATION if translation else IMPLAUSIBLE_ROTATION
-        if abs(value) > limit:
+        if abs(value) > limit and not abs(value) <= PLAUSIBLE_SIGMAS * std.get(name, 0.0):
             unit = "m" if translation else "rad"
             far.append((abs(value) / limit, name, f"{describe_parameter(name)} {value:+.3g} {unit}"))
     if not far:

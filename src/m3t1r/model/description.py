@@ -25,6 +25,7 @@ from m3t1r.io.paths import read_bounded, size_refusal
 from m3t1r.io.temporaries import pending_temporaries
 from m3t1r.model.assembly import HomeAssembly, assemble_home, limits_violated
 from m3t1r.model.closures import ClosureSpec, ClosureSystem, without_rows
+from m3t1r.model.defaults import default_task, task_entry, task_words
 from m3t1r.model.mjcf_io import is_mjcf, mjcf_sidecar_path, read_mjcf
 from m3t1r.model.schema import SCHEMA_VERSIONS, declared_frame_entries, load_closures_yaml, read_description
 from m3t1r.model.task import TaskSpec, WorkspaceSpec
@@ -273,6 +274,8 @@ def _record_derived(doc: dict, mechanism: Mechanism) -> None:
         doc["closures"] = [entry for entry, spec in zip(entries, mechanism.closures) if spec.rows]
     if mechanism.locked_joints:
         doc["locked_joints"] = list(mechanism.locked_joints)
+    if "task" not in doc and mechanism.task is not None:  # derived at load: another geometry must not re-derive it
+        doc["task"] = task_entry(mechanism.task)
     if doc.get("frames"):
         doc["frames"] = declared_frame_entries(mechanism.model, doc)
 
@@ -434,8 +437,24 @@ def _settled(mechanism: Mechanism) -> Mechanism:
         closures = without_rows(closures, redundancy.dropped)
         notes.append(f"{len(redundancy.dropped)} closure row(s) dropped as dependent on the others: "
                      + ", ".join(_row_names(mechanism.closures, redundancy.dropped)))
-    return dataclasses.replace(mechanism, closures=closures, home=home, locked_joints=mechanism.locked_joints + locked,
-                               notes=tuple(notes), home_assembly=assembly)
+    settled = dataclasses.replace(mechanism, closures=closures, home=home,
+                                  locked_joints=mechanism.locked_joints + locked, home_assembly=assembly)
+    return dataclasses.replace(settled, task=_task_of(settled, notes), notes=tuple(notes))
+
+
+def _task_of(mechanism: Mechanism, notes: list[str]) -> TaskSpec | None:
+    """The declared task, or without one the task the actuators command at home (`model.defaults`),
+    with a note when that is not schema 1's position-and-yaw task."""
+    if mechanism.closures_document is None or "task" in mechanism.closures_document:
+        return mechanism.task
+    derived = default_task(ClosureSystem(mechanism.model, mechanism.closures), mechanism.home, mechanism.actuated_ids,
+                           mechanism.passive_ids, mechanism.platform_frame)
+    if derived is None or derived == mechanism.task:
+        return mechanism.task
+    notes.append(f"no task declared: inverse kinematics, plans and reports take the {task_words(derived)} "
+                 "(the coordinates the actuators command at home); declare `task:` to choose others "
+                 "(models/README.md)")
+    return derived
 
 
 def _joint_name(model: pin.Model, velocity_index: int) -> str:

@@ -31,6 +31,7 @@ __all__ = [
     "FiveBarGeometry",
     "SphericalWristGeometry",
     "five_bar_files",
+    "first_time_five_bar_files",
     "five_bar_home",
     "published_five_bar_files",
     "rod_five_bar_files",
@@ -267,24 +268,47 @@ def published_five_bar_files(folder: Path, name: str = "published_five_bar",
     at the end of `distal_1`, declared in the closures file (`frames:`) since the URDF names no
     frame there. Task: the effector's (x, y) [m].
     """
-    g, five = geometry, five_bar_home(geometry)
-    parts = [f'<?xml version="1.0"?>\n<robot name="{name}">\n', _URDF_COMMENT.format(what="published five-bar"),
+    urdf, (closures, home, frames) = _published_five_bar_urdf(geometry, name, "published five-bar", _motor_limit(
+        geometry, 2)), _published_five_bar_loop(geometry)
+    document = _published_closures(geometry, closures, "effector", home, frames=frames)
+    return _write_pair(Path(folder), name, urdf, _closures_text(document, "published five-bar"))
+
+
+def first_time_five_bar_files(folder: Path, name: str = "first_time_five_bar",
+                              geometry: FiveBarGeometry = FiveBarGeometry()) -> tuple[Path, Path]:
+    """Write the published five-bar as a first-time user's closures file gives it: schema 1 (no
+    `schema_version`), no `task`, no `workspace`, and no actuator limits (`motor_1` continuous,
+    `motor_2` with an empty `<limit/>`): load must derive the task, and sampling the workspace.
+    Otherwise as `published_five_bar_files`; return (URDF, closures) paths."""
+    urdf = _published_five_bar_urdf(geometry, name, "first-time five-bar", _EMPTY_LIMIT)
+    closures, home, frames = _published_five_bar_loop(geometry)
+    document = {"actuated_joints": ["motor_1", "motor_2"], "frames": frames, "closures": closures,
+                "platform_frame": "effector", "home": home}
+    return _write_pair(Path(folder), name, urdf, _closures_text(document, "first-time five-bar"))
+
+
+def _published_five_bar_urdf(g: FiveBarGeometry, name: str, what: str, motor_2_limit: str) -> str:
+    parts = [f'<?xml version="1.0"?>\n<robot name="{name}">\n', _URDF_COMMENT.format(what=what),
              '  <link name="base"/>\n']
     for leg, elbow in ((1, "x"), (2, "y")):
         motor = _joint(f"motor_{leg}", "continuous" if leg == 1 else "revolute", "base", f"proximal_{leg}",
-                       (g.motor_position(leg)[0], 0.0, 0.0), limit="" if leg == 1 else _motor_limit(g, leg))
+                       (g.motor_position(leg)[0], 0.0, 0.0), limit="" if leg == 1 else motor_2_limit)
         parts += [_link(f"proximal_{leg}"), _link(f"distal_{leg}"), _link(f"stub_{leg}"), motor,
                   _joint(elbow, "revolute", f"proximal_{leg}", f"distal_{leg}", (g.proximal, 0.0, 0.0)),
                   _joint(f"cut_{leg}", "revolute", f"distal_{leg}", f"stub_{leg}", (g.distal, 0.0, 0.0))]
     parts.append("</robot>\n")
+    return "".join(parts)
+
+
+def _published_five_bar_loop(g: FiveBarGeometry) -> tuple[list, dict, dict]:
+    """(closures, home, declared frames) of the published five-bar's closures file."""
+    five = five_bar_home(g)
     home = {"motor_1": five["motor_1"], "motor_2": five["motor_2"], "x": five["elbow_1"], "y": five["elbow_2"]}
     for leg in (1, 2):  # the stubs point along base x, so that the two weld frames coincide
         home[f"cut_{leg}"] = math.remainder(-five[f"motor_{leg}"] - five[f"elbow_{leg}"], 2.0 * math.pi)
     frames = {f"weld_{leg}": {"link": f"stub_{leg}", "xyz": [0.0, 0.0, 0.02], "rpy": [0.0, 0.0, 0.0]} for leg in (1, 2)}
     frames["effector"] = {"link": "distal_1", "xyz": [g.distal, 0.0, 0.0], "rpy": [0.0, 0.0, 0.0]}
-    closures = [{"name": "weld", "type": "6D", "frame_a": "weld_1", "frame_b": "weld_2"}]
-    document = _published_closures(g, closures, "effector", home, frames=frames)
-    return _write_pair(Path(folder), name, "".join(parts), _closures_text(document, "published five-bar"))
+    return [{"name": "weld", "type": "6D", "frame_a": "weld_1", "frame_b": "weld_2"}], home, frames
 
 
 def rod_five_bar_files(folder: Path, name: str = "rod_five_bar",
