@@ -171,10 +171,13 @@ def campaign_report_fields(setup: MeasurementSetup, estimated: Sequence[str], va
         "measurement_frame": {**se3_to_report(setup.frame),
                               "estimated": any(n.startswith("measurement_frame.") for n in estimated)},
         "marker": {**se3_to_report(setup.marker), "estimated": any(n.startswith("marker.") for n in estimated)},
+        **({"points": [list(p) for p in setup.points]} if setup.points else {}),
         "cross_validation": None if errors is None else {
             "position_mean_m": errors.position_mean, "rotation_mean_rad": errors.rotation_mean,
             "position_rms_m": float(np.sqrt(np.mean(np.square(errors.position)))),
-            "folds": validation.folds},
+            "rotation_rms_rad": None if np.all(np.isnan(errors.rotation)) else
+            float(np.sqrt(np.mean(np.square(errors.rotation)))),
+            "folds": validation.folds, "groups": getattr(validation, "groups", None) or None},
         "selection": {"method": "forward_loo" if selection else "none", "kept": list(fitted),
                       "press": selection.press if selection else None,
                       "press_all": selection.press_all if selection else None,
