@@ -26,6 +26,8 @@ from m3t1r.app.cli_common import (
     RowFailures,
     campaign_report_fields,
     checked_marker,
+    held_out_entry,
+    outlier_sources,
     parse_priors,
     selection_note,
     status_stream,
@@ -280,12 +282,8 @@ def _without_gross_readings(args: argparse.Namespace, data: SerialCampaign, star
 
 
 def _outlier_sources(data: SerialCampaign, outlier_lines: list[int]) -> list[int]:
-    """The `source` value (the pose in the tracker's file) of each outlier's file line; none without
-    a `source` column."""
-    if data.sources is None:
-        return []
-    source_of_line = {int(line): int(source) for line, source in zip(data.lines, data.sources)}
-    return [source_of_line[line] for line in outlier_lines]
+    """The `source` value of each outlier's file line (`outlier_sources`)."""
+    return outlier_sources(data.lines, data.sources, outlier_lines)
 
 
 def cmd_calibrate_serial(args: argparse.Namespace) -> None:
@@ -424,16 +422,8 @@ def _score_held_out(calibration: SerialCalibration, held_out: SerialCampaign) ->
     else:
         measured = np.array([g.homogeneous for g in held_out.poses])
     errors = held_out_errors(calibration, held_out.readings, measured, held_out.position_only)
-    rms = float(np.sqrt(np.mean(np.square(errors.position))))
-    rotation_rms = None if held_out.position_only else float(np.sqrt(np.mean(np.square(errors.rotation))))
-    per = "point" if held_out.points is not None else "pose"
-    rotation = "" if rotation_rms is None else f"; rotation {errors.rotation_mean:.3e} rad mean, {rotation_rms:.3e} rad RMS"
-    print(f"held-out file {held_out.path} ({len(held_out.poses)} poses): position error per {per} "
-          f"{errors.position_mean:.3e} m mean, {rms:.3e} m RMS, {float(np.max(errors.position)):.3e} m max{rotation}")
-    return {"path": str(held_out.path), "sha256": held_out.sha256, "poses": len(held_out.poses), "per": per,
-            "position_mean_m": errors.position_mean, "position_rms_m": rms,
-            "position_max_m": float(np.max(errors.position)),
-            "rotation_mean_rad": None if rotation_rms is None else errors.rotation_mean, "rotation_rms_rad": rotation_rms}
+    return held_out_entry(held_out.path, held_out.sha256, len(held_out.poses), errors, held_out.position_only,
+                          "point" if held_out.points is not None else "pose")
 
 
 def _is_translation(name: str) -> bool:

@@ -48,6 +48,7 @@ from m3t1r.calibration.identification import (
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
+from m3t1r.calibration.repeats import grouped_folds
 from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning, require_count
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
@@ -528,22 +529,25 @@ class CrossValidation:
     """k-fold prediction of held-back measurements (outliers excluded): each fold is refitted on
     the others (same parameters, same setup estimation) and predicts its poses' measurements.
     The errors include the measurement noise, as a fresh validation set of the same quality does.
-    errors: per inlier pose, position [m] and rotation [rad] (nan when position-only)."""
+    errors: per inlier pose, position [m] and rotation [rad] (nan when position-only). groups: how
+    many groups of repeats the inlier poses form (`m3t1r.calibration.repeats`), each held out whole."""
 
     errors: PoseErrors
     folds: int
+    groups: int = 0
 
 
 @on_one_blas_thread
 def cross_validate(calibration: ClosedLoopCalibration, folds: int = 5, seed: int = 0,
-                   refit: bool = False) -> CrossValidation:
+                   refit: bool = False, groups: np.ndarray | None = None) -> CrossValidation:
     """k-fold cross-validation of a calibration on its own inlier poses (`CrossValidation`).
 
     By default each fold's refit is the Gauss-Newton step from the estimate without the fold's
     rows, dx_F = -(A - J_F^T J_F)^+ (J^T r - J_F^T r_F) with A = J^T J (whitened), and its
     prediction of the fold r_F + J_F dx_F: one small solve per fold. refit=True runs the full
     nonlinear fit per fold instead (the same parameters, from the same start; as slow as k
-    calibrations), which the tests compare with.
+    calibrations), which the tests compare with. groups: (N,) a label per pose the calibration was
+    given (`repeats.pose_groups`); poses sharing one are held out together. None: each on its own.
     """
     problem, start = calibration.problem, calibration.start
     if problem is None or start is None:
@@ -551,7 +555,10 @@ def cross_validate(calibration: ClosedLoopCalibration, folds: int = 5, seed: int
     inliers = np.flatnonzero(problem.active)
     if folds < 2 or len(inliers) < 2 * folds:
         raise InvalidInputError(f"cross-validation: {folds} folds need at least {2 * folds} inlier poses")
-    assignment = np.random.default_rng(require_count(seed, "seed", minimum=0)).permutation(len(inliers)) % folds
+    labels = np.arange(len(problem.active)) if groups is None else np.asarray(groups)
+    if labels.shape != problem.active.shape:
+        raise InvalidInputError(f"cross-validation: {labels.shape} group labels for {len(problem.active)} poses")
+    assignment = grouped_folds(labels[inliers], folds, np.random.default_rng(require_count(seed, "seed", minimum=0)))
     k = problem.measurements.rows_per_pose
     residuals = np.empty((len(inliers), k))
     if refit:
@@ -571,7 +578,7 @@ def cross_validate(calibration: ClosedLoopCalibration, folds: int = 5, seed: int
             residuals[assignment == fold] = ((r[rows] + J[rows] @ step) / problem.weights[rows]).reshape(-1, k)
     position = np.linalg.norm(residuals[:, :3], axis=1)
     rotation = np.linalg.norm(residuals[:, 3:], axis=1) if k == 6 else np.full(len(inliers), np.nan)
-    return CrossValidation(PoseErrors(position, rotation), folds)
+    return CrossValidation(PoseErrors(position, rotation), folds, len(np.unique(labels[inliers])))
 
 
 def default_iterations(n_parameters: int) -> int:
