@@ -324,7 +324,7 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
                 calibration, choice = fit_with_noise(
                     args.noise_pos, args.noise_rot, TrackerNoise(),
                     lambda noise, gate: _fit(args, model, chain, fitted_data, noise, marker, estimate_frame, gate),
-                    lambda fitted: _left(fitted, len(fitted_data.poses)))
+                    lambda fitted: _left(fitted, fitted_data))
             noise = choice.noise
             lines = sorted([int(fitted_data.lines[i]) for i in calibration.outliers] + [int(data.lines[i]) for i in start.gross])
             print(choice.describe(data.position_only))
@@ -371,9 +371,14 @@ def _fit(args: argparse.Namespace, model: pin.Model, chain: SerialChain, data: S
         compliance=bool(args.compliance), fixed=list(args.fix or ()), priors=dict(args.prior or {}), **kwargs)
 
 
-def _left(calibration: SerialCalibration, poses: int) -> ResidualSummary:
+def _left(calibration: SerialCalibration, data: SerialCampaign) -> ResidualSummary:
+    """What the fit left; with several points per pose, each point seen counts as a 3-row measurement."""
     after = calibration.residual_after
-    return ResidualSummary(after.position, after.rotation, poses - len(calibration.outliers),
+    if data.points is not None:
+        inliers = np.setdiff1d(np.arange(len(data.points)), calibration.outliers)
+        seen = int(np.count_nonzero(np.isfinite(data.points[inliers, :, 0])))
+        return ResidualSummary(after.position, after.rotation, seen, 3, len(calibration.fitted))
+    return ResidualSummary(after.position, after.rotation, len(data.poses) - len(calibration.outliers),
                            3 if calibration.position_only else 6, len(calibration.fitted))
 
 
