@@ -122,7 +122,8 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     Every output (the pair, the report, the plots) is checked before the fit and written as one
     unit after it: a failure anywhere, the plots' included, leaves every old file as it was.
     """
-    outputs = OutputSet(inputs=(args.measurements, nominal.urdf_path, nominal.closures_path, args.validate))
+    held_out_path = getattr(args, "validate", None)  # --validate FILE (a namespace built in code may lack it)
+    outputs = OutputSet(inputs=(args.measurements, nominal.urdf_path, nominal.closures_path, held_out_path))
     machine_output = outputs.add_machine(args.output, "-o")
     report_output = outputs.add(args.report, "--report")
     plots = load(DECLARE_PLOTS)(outputs, args.plots) if args.plots else None  # matplotlib with --plots only
@@ -132,7 +133,7 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
         # Every status line, the helpers' too, goes to `out`: with `--report -` stdout is the JSON alone.
         with contextlib.redirect_stdout(out):
             data = read_measurements(args.measurements, nominal, units=args.units)
-            held_out = read_measurements(args.validate, nominal, units=args.units) if args.validate else None
+            held_out = read_measurements(held_out_path, nominal, units=args.units) if held_out_path else None
             marker = MeasurementSetup.from_numbers(marker_xyz=checked_marker(args.marker)).marker
             estimate_frame = args.frame == "estimate"
             print(f"calibrating from {len(data.measurements)} poses"

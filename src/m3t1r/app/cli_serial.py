@@ -298,7 +298,8 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
     """The whole `calibrate --serial` verb (module docstring). Raises FitRejected (exit 1) when the fit
     is not supported by the data, unless args.force."""
     model, chain, urdf = _robot(args.serial, args.tool, args.base)
-    outputs = OutputSet(inputs=(args.measurements, urdf, args.validate))
+    held_out_path = getattr(args, "validate", None)  # --validate FILE (a namespace built in code may lack it)
+    outputs = OutputSet(inputs=(args.measurements, urdf, held_out_path))
     urdf_output = outputs.add(args.output, "-o") if urdf is not None else None
     report_output = outputs.add(args.report, "--report")
     with outputs:  # a failure anywhere removes every claimed temporary file
@@ -312,7 +313,7 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
             if data.points is not None and args.marker is not None:
                 raise InvalidInputError(f"{args.measurements} holds {data.points.shape[1]} points per row, each "
                                         "point's offset on the tool is estimated: --marker (one point) does not apply")
-            held_out = read_campaign(args.validate, chain, args.units, model) if args.validate else None
+            held_out = read_campaign(held_out_path, chain, args.units, model) if held_out_path else None
             marker = MeasurementSetup.from_numbers(marker_xyz=checked_marker(args.marker)).marker
             estimate_frame = args.frame == "estimate"
             start = _precheck(model, chain, data, marker, estimate_frame)

@@ -125,7 +125,8 @@ def _static_poses(record: TrackerRecord, options: ConversionOptions, notes: list
         points = None if record.points is None else record.points[seen]
         return _Poses(record.positions[seen], quaternions, record.joints[seen], record.sources[seen], scatter, spans,
                       points)
-    stretches = stationary_stretches(record.times, record.positions, options.still_speed, options.min_dwell)
+    tracked = record.positions if record.points is None else record.points
+    stretches = stationary_stretches(record.times, tracked, options.still_speed, options.min_dwell)
     if not stretches:
         raise DataFileError(record.path, f"no still stretch of {options.min_dwell:g} s or more below "
                                          f"{options.still_speed:g} m/s (--still-speed, --min-dwell)")
@@ -134,12 +135,21 @@ def _static_poses(record: TrackerRecord, options: ConversionOptions, notes: list
         [average_quaternions(record.quaternions[s.start:s.stop]) for s in stretches])
     joints = np.array([record.joints[s.start:s.stop].mean(axis=0) for s in stretches])
     scatter = np.array([a[1] for a in averaged])
+    points = None
+    if record.points is not None:
+        points = np.array([_point_means(record.points[s.start:s.stop]) for s in stretches])
+        scatter = np.array([_point_scatter(record.points[s.start:s.stop], p) for s, p in zip(stretches, points)])
     notes.append(f"{len(stretches)} still stretches of {record.n_samples} frames averaged (median "
                  f"{int(np.median([a[2] for a in averaged]))} frames, median scatter {np.median(scatter):.3g} m)")
-    points = None if record.points is None else np.array([_point_means(record.points[s.start:s.stop])
-                                                               for s in stretches])
     return _Poses(np.array([a[0] for a in averaged]), quaternions, joints.reshape(len(stretches), -1),
                   record.sources[[s.start for s in stretches]], scatter, stretches, points)
+
+
+def _point_scatter(points: np.ndarray, means: np.ndarray) -> float:
+    """RMS distance [m] of every marker sample seen from its marker's mean (the centroid of the markers
+    seen jumps when one hides, so the centroid's scatter would not be the tracker's)."""
+    seen = np.isfinite(points).all(axis=2)
+    return float(np.sqrt(np.mean(np.sum((points - means[None]) ** 2, axis=2)[seen])))
 
 
 def _point_means(points: np.ndarray) -> np.ndarray:
