@@ -5,7 +5,8 @@ CSV format read by `read_table` and written by `write_table`:
 - UTF-8 (a byte-order mark is tolerated), comma-separated, SI units (m, rad);
 - a line whose first non-blank character is `#` is a comment; blank lines are ignored;
 - the first other line is the header of column names, every line after it is a data row;
-- every data field is a finite decimal number (`1`, `-0.25`, `3e-05`; no `nan`, `inf`, `1_000`).
+- every data field is a finite decimal number (`1`, `-0.25`, `3e-05`; no `nan`, `inf`, `1_000`), or empty
+  in a column the reader allows blank (a point the tracker did not see), read as NaN.
 
 Errors in a file are `DataFileError`s carrying the 1-based line number in the file (comments and
 blank lines counted, as an editor shows it) and the column name, so a user can go straight to
