@@ -17,6 +17,7 @@ from m3t1r.calibration import serial_evaluation, serial_robots, serial_simulatio
 from m3t1r.calibration.assessment import FitRejected
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.validation import validate
 from m3t1r.errors import DataFileError, InvalidInputError, ModelFileError
 from m3t1r.io.tables import table_text
 from m3t1r.model.poe import SerialChain, perturb, tool_poses
@@ -427,6 +428,8 @@ def test_the_command_reads_points_scores_a_held_out_file_and_holds_repeats_out_t
     held_out = report["held_out"]
     assert held_out["poses"] == 30 and held_out["per"] == "point" and held_out["position_rms_m"] < 5e-5
     assert held_out["position_mean_m"] <= held_out["position_rms_m"] <= held_out["position_max_m"]
+    with pytest.raises(InvalidInputError, match="fitted 4 points per pose; validate reads one measured frame"):
+        validate(held, tmp_path / "ur10.urdf", tmp_path / "report.json")
 
 
 def test_points_with_a_marker_or_a_partly_blank_point_are_refused(ur10, tmp_path) -> None:
