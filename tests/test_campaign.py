@@ -17,9 +17,10 @@ import pytest
 from m3t1r.app.cli import main
 from m3t1r.app.datasets import write_measurements
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, cross_validate
+from m3t1r.calibration.identification import forward_selection
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise, measure
-from m3t1r.calibration.repeats import grouped_folds, pose_groups
+from m3t1r.calibration.repeats import grouped_blocks, grouped_folds, pose_groups
 from m3t1r.calibration.simulation import SimulatedStudy, simulate_study
 from m3t1r.calibration.validation import validate
 from m3t1r.errors import InvalidInputError
@@ -286,3 +287,23 @@ def test_repeats_of_a_posture_share_a_group_and_a_fold():
         (np.random.default_rng(5).permutation(12) % 4).tolist()
     with pytest.raises(InvalidInputError, match="5 folds need at least 5 distinct poses"):
         grouped_folds(groups, 5, np.random.default_rng(0))
+
+
+def test_grouped_blocks_make_the_selection_score_leave_each_group_out_whole():
+    """Leave-one-block-out PRESS on the grouped, zero-padded rows equals refitting without each group:
+    sum over groups of |r_g + J_g dx_-g|^2, dx_-g the least-squares step of the other groups' rows."""
+    rng = np.random.default_rng(3)
+    k, n = 3, 14
+    jacobian, residual = rng.normal(size=(n * k, 4)), rng.normal(size=n * k)
+    groups = np.array([0, 1, 0, 2, 3, 3, 4, 5, 1, 6, 7, 8, 9, 9])
+    grouped_j, grouped_r, block = grouped_blocks(jacobian, residual, k, groups)
+    assert block == 2 * k and grouped_j.shape == (10 * 2 * k, 4)
+    press = forward_selection(grouped_j, grouped_r, block, [], [0, 1, 2, 3]).press
+    expected = 0.0
+    for g in range(10):
+        held = np.repeat(groups == g, k)
+        step = np.linalg.lstsq(jacobian[~held], -residual[~held], rcond=None)[0]
+        expected += float(np.sum((residual[held] + jacobian[held] @ step) ** 2))
+    assert press == pytest.approx(expected, rel=1e-9)
+    same = grouped_blocks(jacobian, residual, k, np.arange(n))
+    assert same[0] is jacobian and same[1] is residual and same[2] == k

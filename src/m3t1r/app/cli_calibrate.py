@@ -206,7 +206,8 @@ def _fit(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, no
     return calibrate_closed_loop(
         nominal, data.measurements, noise, setup=MeasurementSetup(marker=marker), estimate_frame=estimate_frame,
         estimate_marker=args.marker is not None, outlier_sigma=(args.outlier_sigma or None) if gate else None,
-        select=args.select == "loo", fixed=args.fix, priors=args.prior, progress=progress, **kwargs)
+        select=args.select == "loo", fixed=args.fix, priors=args.prior, progress=progress,
+        groups=pose_groups(data.measurements.actuators, data.sources), **kwargs)
 
 
 def _left(calibration: ClosedLoopCalibration, data: MeasurementFile) -> ResidualSummary:

@@ -369,7 +369,8 @@ def _fit(args: argparse.Namespace, model: pin.Model, chain: SerialChain, data: S
         model, chain, data.readings, measured, position_only=data.position_only, noise=noise,
         setup=MeasurementSetup(marker=marker), estimate_frame=estimate_frame, estimate_marker=args.marker is not None,
         outlier_sigma=(args.outlier_sigma or None) if gate else None, select=args.select == "loo",
-        compliance=bool(args.compliance), fixed=list(args.fix or ()), priors=dict(args.prior or {}), **kwargs)
+        compliance=bool(args.compliance), fixed=list(args.fix or ()), priors=dict(args.prior or {}),
+        groups=pose_groups(data.readings, data.sources), **kwargs)
 
 
 def _left(calibration: SerialCalibration, data: SerialCampaign) -> ResidualSummary:

@@ -48,7 +48,7 @@ from m3t1r.calibration.identification import (
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
-from m3t1r.calibration.repeats import grouped_folds
+from m3t1r.calibration.repeats import grouped_blocks, grouped_folds
 from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning, require_count
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
@@ -327,7 +327,8 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
                           absolute_cost_tolerance: float = 1e-6, step_significance: float = 0.01,
                           refine: bool = False, refine_rank_tolerance: float = 1e-7, refine_iterations: int = 400,
                           error_model: ClosedLoopErrorModel | None = None,
-                          progress: Callable[[], None] | None = None) -> ClosedLoopCalibration:
+                          progress: Callable[[], None] | None = None,
+                          groups: np.ndarray | None = None) -> ClosedLoopCalibration:
     """Identify the placement errors of every joint and closure/platform frame (module docstring),
     and the measurement setup where asked.
 
@@ -340,6 +341,8 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     base-parameter count). fixed: parameter or placement names held at nominal;
     priors: {name: sigma} adds a Tikhonov row x / sigma toward nominal ([m] or [rad]).
     progress: called once per Jacobian evaluation (here and in `cross_validate` of the result).
+    groups: (N,) a label per pose, repeats of one pose sharing one (`repeats.pose_groups`): model
+    selection then leaves each group out whole (`repeats.grouped_blocks`).
 
     LM stops when an accepted step lowers the whitened cost 1/2 chi^2 by less than
     step_significance * s^2, s^2 = chi^2 / (m - p) being the a-posteriori noise variance (m rows,
@@ -398,7 +401,7 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
         result = _reject_outliers(problem, state, result, outlier_sigma, options)
     selection = None
     if select:
-        selection, result = _select_parameters(problem, start, result, forced, options)
+        selection, result = _select_parameters(problem, start, result, forced, options, groups)
     if refine:
         result = _refine(problem, result, refine_rank_tolerance, refine_iterations)
     return replace(_calibration(mechanism, problem, start, result, base, selection), start=start, options=options)
@@ -454,7 +457,7 @@ def _release(state: _State) -> None:
 
 
 def _select_parameters(problem: _ClosedLoopProblem, start: _State, result: LMResult, forced: np.ndarray,
-                       options: dict) -> tuple[ParameterSelection, LMResult]:
+                       options: dict, groups: np.ndarray | None = None) -> tuple[ParameterSelection, LMResult]:
     """Forward selection by leave-one-pose-out PRESS on the fit linearised at the estimate
     (residual at the start ~ r - J dx); a smaller set is refitted from the start. (Resuming from
     the estimate with the dropped parameters reset saved one iteration in eight: not worth it.)"""
@@ -466,7 +469,9 @@ def _select_parameters(problem: _ClosedLoopProblem, start: _State, result: LMRes
     r0 = (r[:pose_rows] - J[:pose_rows] @ step)[keep]
     forced_positions = np.flatnonzero(np.isin(problem.columns, forced))
     pose_jacobian = J[:pose_rows] if keep.all() else J[:pose_rows][keep]  # a copy only with outliers
-    selection = forward_selection(pose_jacobian, r0, rows, range(len(problem.columns)), forced_positions)
+    pose_jacobian, r0, block = grouped_blocks(pose_jacobian, r0, rows, None if groups is None else
+                                              np.asarray(groups)[problem.active])
+    selection = forward_selection(pose_jacobian, r0, block, range(len(problem.columns)), forced_positions)
     if len(selection.indices) == len(problem.columns):
         return selection, result
     problem.columns = problem.columns[list(selection.indices)]

@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike
 
 from m3t1r.errors import InvalidInputError
 
-__all__ = ["REPEAT_TOLERANCE", "pose_groups", "grouped_folds"]
+__all__ = ["MAX_PADDING", "REPEAT_TOLERANCE", "grouped_blocks", "grouped_folds", "pose_groups"]
 
 #: Joint readings within this of each other in every joint [rad or m] are one posture: a robot's
 #: repeatability is well above it, and distinct postures of a calibration are far more than it apart.
@@ -72,3 +72,35 @@ def grouped_folds(groups: ArrayLike, folds: int, rng: np.random.Generator) -> np
         raise InvalidInputError(f"cross-validation: {folds} folds need at least {folds} distinct poses "
                                 f"(repeats of a pose count once), got {n_groups}")
     return (rng.permutation(n_groups) % folds)[labels]
+
+
+#: Grouped rows may grow by padding to at most this multiple of the rows; beyond, poses are left
+#: out one at a time (a campaign with one posture repeated hundreds of times among single ones).
+MAX_PADDING = 2.0
+
+
+def grouped_blocks(jacobian: np.ndarray, residual: np.ndarray, rows_per_pose: int,
+                   groups: ArrayLike | None) -> tuple[np.ndarray, np.ndarray, int]:
+    """The rows of N poses (N k rows of `jacobian` and `residual`, pose after pose) rearranged so that
+    each group of `groups` (N,) is one block, padded with zero rows to the largest group's size:
+    (jacobian, residual, rows per block) for a leave-one-block-out score (`forward_selection`),
+    which then leaves each group out whole. A zero row changes no fit and no leave-out residual.
+    The inputs are returned as they are when every pose is its own group, when `groups` is None, or
+    when padding would exceed MAX_PADDING times the rows."""
+    k = int(rows_per_pose)
+    if groups is None:
+        return jacobian, residual, k
+    labels = _first_seen_labels(np.asarray(groups).reshape(-1, 1))
+    counts = np.bincount(labels)
+    if counts.max() == 1 or len(counts) * counts.max() > MAX_PADDING * len(labels):
+        return jacobian, residual, k
+    size = int(counts.max())
+    order = np.argsort(labels, kind="stable")
+    slot = np.arange(len(labels)) - np.repeat(np.cumsum(counts) - counts, counts)  # position within its group
+    rows = (k * (labels[order] * size + slot))[:, None] + np.arange(k)
+    source = (k * order)[:, None] + np.arange(k)
+    out_j = np.zeros((len(counts) * size * k, jacobian.shape[1]))
+    out_r = np.zeros(len(counts) * size * k)
+    out_j[rows.reshape(-1)] = jacobian[source.reshape(-1)]
+    out_r[rows.reshape(-1)] = residual[source.reshape(-1)]
+    return out_j, out_r, size * k

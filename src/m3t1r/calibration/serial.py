@@ -50,6 +50,7 @@ from m3t1r.calibration.identification import (
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.repeats import grouped_blocks
 from m3t1r.calibration.serial_simulation import _checked_joint_noise, _readonly
 from m3t1r.errors import IdentificationError, InvalidInputError, real_array, require_count
 from m3t1r.model.poe import Placement, SerialChain, jlog3_batch, log3_batch, perturb, placement_poses, skew
@@ -751,8 +752,8 @@ def _reject_outliers(problem: _SerialProblem, start: _State, result: LMResult, s
     return result, iterations
 
 
-def _select_parameters(problem: _SerialProblem, start: _State, result: LMResult,
-                       solve: Callable[..., LMResult]) -> tuple[ParameterSelection, LMResult, int]:
+def _select_parameters(problem: _SerialProblem, start: _State, result: LMResult, solve: Callable[..., LMResult],
+                       groups: ArrayLike | None = None) -> tuple[ParameterSelection, LMResult, int]:
     """Forward selection by leave-one-pose-out PRESS of the fit linearised at the estimate (the
     residual at the start is about r - J x, x the accumulated step), the setup forced; a smaller
     set is refitted from the start."""
@@ -764,7 +765,9 @@ def _select_parameters(problem: _SerialProblem, start: _State, result: LMResult,
         result.state.accumulated[problem.columns]
     r0 = (r - J @ step)[keep]
     forced = np.flatnonzero(np.isin(problem.columns, problem.model.layout.setup_columns))
-    selection = forward_selection(J[keep], r0, rows, range(len(problem.columns)), forced)
+    labels = None if groups is None else np.asarray(groups)[problem.active]
+    jacobian, r0, block = grouped_blocks(J[keep], r0, rows, labels)
+    selection = forward_selection(jacobian, r0, block, range(len(problem.columns)), forced)
     if len(selection.indices) == len(problem.columns):
         return selection, result, 0
     problem.columns = problem.columns[list(selection.indices)]
@@ -793,6 +796,7 @@ def calibrate_serial(
     compliance: bool = False,
     fixed: Sequence[str] = (),
     priors: Mapping[str, float] | None = None,
+    groups: ArrayLike | None = None,
 ) -> SerialCalibration:
     """Identify the placement errors of `chain` (and the measurement setup, compliance) from measurements.
 
@@ -818,6 +822,8 @@ def calibrate_serial(
         `gravity_torques` (the model's inertias); chosen like the other parameters.
     fixed: parameter or placement names held at their start; priors: {name: sigma} adds a row
         x / sigma pulling the parameter toward its start (m, rad, rad/Nm).
+    groups: (N,) a label per pose, repeats of one posture sharing one (`repeats.pose_groups`): the
+        selection then leaves each group out whole (`repeats.grouped_blocks`).
     absolute_cost_tolerance: LM also stops once an accepted step lowers 1/2 chi^2 by less than
         this (a noise variance; 1e-6 moves the estimate by ~1e-3 of its std).
 
@@ -851,7 +857,7 @@ def calibrate_serial(
         iterations += more
     selection = None
     if select:
-        selection, result, more = _select_parameters(problem, start, result, solve)
+        selection, result, more = _select_parameters(problem, start, result, solve, groups)
         iterations += more
     return _result(model, problem, start, result, base, selection, iterations, solve)
 
