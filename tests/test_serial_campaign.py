@@ -391,7 +391,8 @@ def test_a_points_residual_jacobian_matches_finite_differences(ur10) -> None:
     layout = S._Layout(chain.n_joints, True, 12, True, 4)
     start = S._start_state(chain, model, measurements, MeasurementSetup(), True, True, True)
     whitening = S._whitening(chain, start, measurements, NOISE, 1e-5)
-    residual = S._SerialResidual(chain, measurements, whitening, layout, S.gravity_torques(model, chain, data.q_readings))
+    torques = S.gravity_torques(model, chain, data.q_readings)
+    residual = S._SerialResidual(chain, measurements, whitening, layout, torques)
     state = residual.retract(start, np.full(layout.size, 1e-3))
     r, J = residual.residual_and_jacobian(state)
     assert np.all(r.reshape(6, 12)[2, 3:6] == 0.0) and np.all(J.reshape(6, 12, -1)[2, 3:6] == 0.0)
@@ -400,8 +401,8 @@ def test_a_points_residual_jacobian_matches_finite_differences(ur10) -> None:
     for i in range(layout.size):
         dx = np.zeros(layout.size)
         dx[i] = step
-        numeric[:, i] = (residual.residual(residual.retract(state, dx)) - residual.residual(residual.retract(state, -dx))
-                         ) / (2 * step)
+        plus, minus = residual.retract(state, dx), residual.retract(state, -dx)
+        numeric[:, i] = (residual.residual(plus) - residual.residual(minus)) / (2 * step)
     assert np.linalg.norm(J - numeric) <= 1e-6 * np.linalg.norm(J)
 
 
@@ -439,6 +440,11 @@ def test_points_with_a_marker_or_a_partly_blank_point_are_refused(ur10, tmp_path
     write_points(path, chain, data.q_readings, points)
     with pytest.raises(InvalidInputError, match="each point's offset on the tool is estimated: --marker"):
         run_serial_calibration(namespace(tmp_path, path))
+    frames = tmp_path / "frames.csv"
+    write_campaign(frames, chain, data.q_readings, as_rows(campaign(model, chain, FRAMES["z180"], seed=11)[1][:20]))
+    with pytest.raises(InvalidInputError, match="one measured frame per row, but .* has 4 points per row"):
+        run_serial_calibration(namespace(tmp_path, path, marker=None, validate=str(frames)))
+    assert not (tmp_path / "report.json").exists()
     text = path.read_text().splitlines()
     fields = text[-1].split(",")
     fields[7] = ""  # y1 of the last row blank, x1 and z1 given

@@ -329,7 +329,8 @@ def _score_held_out(calibration: ClosedLoopCalibration, held_out: MeasurementFil
         raise InvalidInputError(f"--validate {held_out.path}: no row assembles on the calibrated machine")
     errors = pose_errors_between(calibration.setup.measured_poses(solved.poses), measured)
     failed = sorted(int(held_out.lines[f.index]) for f in solved.failures)
-    return held_out_entry(held_out.path, held_out.sha256, len(measurements), errors, measurements.position_only,
+    position_only = measurements.position_only or calibration.problem.measurements.position_only
+    return held_out_entry(held_out.path, held_out.sha256, len(measurements), errors, position_only,
                           failed_lines=failed)
 
 

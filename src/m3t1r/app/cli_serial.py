@@ -309,11 +309,7 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
             if urdf is None:
                 print(f"{args.serial} is an example-robot-data robot: no calibrated URDF is written "
                       "(give its URDF path to --serial for one)" + (f"; -o {args.output} ignored" if args.output else ""))
-            data = read_campaign(args.measurements, chain, args.units, model)
-            if data.points is not None and args.marker is not None:
-                raise InvalidInputError(f"{args.measurements} holds {data.points.shape[1]} points per row, each "
-                                        "point's offset on the tool is estimated: --marker (one point) does not apply")
-            held_out = read_campaign(held_out_path, chain, args.units, model) if held_out_path else None
+            data, held_out = _read_inputs(args, chain, model, held_out_path)
             marker = MeasurementSetup.from_numbers(marker_xyz=checked_marker(args.marker)).marker
             estimate_frame = args.frame == "estimate"
             start = _precheck(model, chain, data, marker, estimate_frame)
@@ -357,6 +353,22 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
         written = outputs.commit()
     if written:
         print("wrote " + ", ".join(written), file=status_stream(outputs))
+
+
+def _read_inputs(args: argparse.Namespace, chain: SerialChain, model: pin.Model, held_out_path: str | None
+                 ) -> tuple[SerialCampaign, SerialCampaign | None]:
+    """The measurement file and the --validate file, read alike before any work."""
+    data = read_campaign(args.measurements, chain, args.units, model)
+    if data.points is not None and args.marker is not None:
+        raise InvalidInputError(f"{args.measurements} holds {data.points.shape[1]} points per row, each "
+                                "point's offset on the tool is estimated: --marker (one point) does not apply")
+    held_out = read_campaign(held_out_path, chain, args.units, model) if held_out_path else None
+    if held_out is not None:
+        points = [0 if d.points is None else d.points.shape[1] for d in (data, held_out)]
+        if points[0] != points[1]:
+            what = [f"{p} points per row" if p else "one measured frame per row" for p in points]
+            raise InvalidInputError(f"--validate {held_out_path}: {what[1]}, but {args.measurements} has {what[0]}")
+    return data, held_out
 
 
 def _fit(args: argparse.Namespace, model: pin.Model, chain: SerialChain, data: SerialCampaign,
@@ -429,7 +441,8 @@ def _score_held_out(calibration: SerialCalibration, held_out: SerialCampaign) ->
     else:
         measured = np.array([g.homogeneous for g in held_out.poses])
     errors = held_out_errors(calibration, held_out.readings, measured, held_out.position_only)
-    return held_out_entry(held_out.path, held_out.sha256, len(held_out.poses), errors, held_out.position_only,
+    return held_out_entry(held_out.path, held_out.sha256, len(held_out.poses), errors,
+                          held_out.position_only or calibration.position_only,
                           "point" if held_out.points is not None else "pose")
 
 

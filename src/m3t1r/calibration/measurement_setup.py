@@ -92,7 +92,8 @@ class MeasurementSetup:
         return np.einsum("nij,pj->npi", seen[:, :3, :3], offsets) + seen[:, None, :3, 3]
 
     def to_report(self) -> dict[str, object]:
-        report: dict[str, object] = {"measurement_frame": se3_to_report(self.frame), "marker": se3_to_report(self.marker)}
+        report: dict[str, object] = {"measurement_frame": se3_to_report(self.frame),
+                                     "marker": se3_to_report(self.marker)}
         if self.points:
             report["points"] = [list(map(float, p)) for p in self.points]
         return report

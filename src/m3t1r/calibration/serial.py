@@ -253,7 +253,8 @@ class _SerialResidual:
             if e.points is not None:
                 # A point not seen gives a zero row (its whitening row is zero too).
                 seen = self.data.seen
-                e.residual = np.where(seen, e.points.reshape(seen.shape) - np.where(seen, self.data.positions, 0.0), 0.0)
+                measured = np.where(seen, self.data.positions, 0.0)
+                e.residual = np.where(seen, e.points.reshape(seen.shape) - measured, 0.0)
             elif self.data.rotations is None:
                 position = e.measured[:, :3, 3] - self.data.positions
                 e.residual = position
