@@ -17,9 +17,13 @@ import pytest
 from m3t1r.app.cli import main
 from m3t1r.app.datasets import write_measurements
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, cross_validate
+from m3t1r.calibration.identification import forward_selection
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise, measure
+from m3t1r.calibration.repeats import grouped_blocks, grouped_folds, pose_groups
 from m3t1r.calibration.simulation import SimulatedStudy, simulate_study
+from m3t1r.calibration.validation import validate
+from m3t1r.errors import InvalidInputError
 from m3t1r.metrics import pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.workspace import workspace_actuators
@@ -225,3 +229,81 @@ def test_a_noise_stated_too_small_gives_a_written_machine_and_a_warning(tmp_path
     assert 7e-6 < implied < 13e-6
     assert "none of the usual mistakes explains it" in capsys.readouterr().err
     assert (tmp_path / "cal.urdf").exists()
+
+
+def test_outliers_by_source_repeats_held_out_together_and_a_held_out_file_scored(tmp_path, capsys):
+    """The campaign as `convert` writes it (a source column), its first 10 poses measured twice (same
+    sliders, another tracker reading), its last 20 kept back and given to --validate: the outliers are
+    named by source too, the cross-validation deals whole postures to its folds, and the held-out
+    file is scored exactly as `m3t1r validate` scores it with the written pair and report."""
+    study, path, options = _campaign(tmp_path, 6, False)
+    lines = path.read_text().splitlines()
+    x = lines[0].split(",").index("x")
+
+    def reread(row: str) -> str:
+        fields = row.split(",")
+        fields[x] = repr(float(fields[x]) + 0.004)  # 4 um (mm file): the same posture read again
+        return ",".join(fields)
+
+    rows = [f"{row},{1000 + i}" for i, row in enumerate(lines[1:41])]
+    rows += [f"{reread(row)},{2000 + i}" for i, row in enumerate(lines[1:11])]
+    path.write_text("\n".join([lines[0] + ",source", *rows]) + "\n")
+    held = tmp_path / "held.csv"
+    held.write_text("\n".join([lines[0], *lines[41:]]) + "\n")
+    report_path, urdf = tmp_path / "cal.json", tmp_path / "cal.urdf"
+    assert main(["calibrate", str(path), "-o", str(urdf), "--report", str(report_path), "--frame", "estimate",
+                 "--validate", str(held), *options]) == 0
+    out = capsys.readouterr().out
+    report = json.loads(report_path.read_text())
+    fitted_outliers = sorted(i for i in study.outliers if i < 40)
+    assert fitted_outliers, "the seed spoils a fitted pose"
+    sources = [1000 + i for i in fitted_outliers] + [2000 + i for i in fitted_outliers if i < 10]
+    assert report["outlier_sources"] == sorted(sources)
+    assert "outliers in the tracker's file (the source column): " + ", ".join(map(str, sorted(sources))) in out
+    postures = 40 - len(fitted_outliers)
+    assert report["cross_validation"]["groups"] == postures
+    assert f"{postures} distinct poses, each held out whole" in out and " m RMS " in out
+    scored = validate(held, urdf, report_path)
+    entry = report["held_out"]
+    assert entry["poses"] == 20 and entry["failed_lines"] == []
+    assert entry["position_mean_m"] == pytest.approx(scored.errors.position_mean, rel=1e-6)
+    assert entry["position_rms_m"] == pytest.approx(float(np.sqrt(np.mean(scored.errors.position ** 2))), rel=1e-6)
+    assert entry["rotation_rms_rad"] == pytest.approx(float(np.sqrt(np.mean(scored.errors.rotation ** 2))), rel=1e-6)
+    assert f"held-out file {held} (20 poses): position error per pose" in out
+
+
+def test_repeats_of_a_posture_share_a_group_and_a_fold():
+    """Rows group by equal joint readings (within REPEAT_TOLERANCE) or by a shared source, transitively;
+    folds take whole groups, and with every row its own group they are the plain permutation's."""
+    q = np.array([[0.1, 0.2], [0.3, 0.4], [0.1 + 2e-6, 0.2 - 3e-6], [0.5, 0.6], [0.7, 0.8], [0.3, 0.4 + 0.01]])
+    assert pose_groups(q).tolist() == [0, 1, 0, 2, 3, 4]
+    # Rows 4 and 5 share row 1's source: one group of three.
+    groups = pose_groups(q, np.array([7, 8, 9, 10, 8, 8]))
+    assert groups.tolist() == [0, 1, 0, 2, 1, 1]
+    folds = grouped_folds(groups, 3, np.random.default_rng(0))
+    assert folds[0] == folds[2] and folds[1] == folds[4] == folds[5] and len(set(folds.tolist())) == 3
+    singletons = np.arange(12)
+    assert grouped_folds(singletons, 4, np.random.default_rng(5)).tolist() == \
+        (np.random.default_rng(5).permutation(12) % 4).tolist()
+    with pytest.raises(InvalidInputError, match="5 folds need at least 5 distinct poses"):
+        grouped_folds(groups, 5, np.random.default_rng(0))
+
+
+def test_grouped_blocks_make_the_selection_score_leave_each_group_out_whole():
+    """Leave-one-block-out PRESS on the grouped, zero-padded rows equals refitting without each group:
+    sum over groups of |r_g + J_g dx_-g|^2, dx_-g the least-squares step of the other groups' rows."""
+    rng = np.random.default_rng(3)
+    k, n = 3, 14
+    jacobian, residual = rng.normal(size=(n * k, 4)), rng.normal(size=n * k)
+    groups = np.array([0, 1, 0, 2, 3, 3, 4, 5, 1, 6, 7, 8, 9, 9])
+    grouped_j, grouped_r, block = grouped_blocks(jacobian, residual, k, groups)
+    assert block == 2 * k and grouped_j.shape == (10 * 2 * k, 4)
+    press = forward_selection(grouped_j, grouped_r, block, [], [0, 1, 2, 3]).press
+    expected = 0.0
+    for g in range(10):
+        held = np.repeat(groups == g, k)
+        step = np.linalg.lstsq(jacobian[~held], -residual[~held], rcond=None)[0]
+        expected += float(np.sum((residual[held] + jacobian[held] @ step) ** 2))
+    assert press == pytest.approx(expected, rel=1e-9)
+    same = grouped_blocks(jacobian, residual, k, np.arange(n))
+    assert same[0] is jacobian and same[1] is residual and same[2] == k

@@ -418,3 +418,42 @@ def test_rotation_vectors_and_matrices_convert_to_the_same_quaternions(tmp_path)
                                                  np.hstack([joints, points, skewed])))
     with pytest.raises(DataFileError, match=r"line 5: r11 ... r33 are not a rotation matrix"):
         convert_campaign(tmp_path / "bad.csv", None, ConversionOptions())
+
+
+def test_every_marker_of_a_stream_is_kept_as_points_and_calibrates(session, tmp_path, capsys) -> None:
+    """Three markers on the tool in a timed stream, one hidden for part of a dwell and another for a
+    whole dwell: `--body all` averages each marker over the frames that saw it and leaves a blank
+    where none did; the table calibrates with each marker's offset estimated."""
+    offsets = np.array([[0.0, 0.0, 0.0], [0.08, 0.0, 0.03], [0.0, 0.09, -0.02]])  # from the reflector, tool axes
+    tool = session.bodies.copy()
+    clouds = (tool[:, None, :3, :3] @ offsets[None, :, :, None])[..., 0] + tool[:, None, :3, 3]
+    clouds[300:420, 1] = np.nan  # marker 2 hidden for part of posture 1's dwell (frames 250 to 399)
+    dwell = slice(int(5 * (DWELL + MOVE) * RATE), int(5 * (DWELL + MOVE) * RATE + DWELL * RATE))
+    clouds[dwell, 2] = np.nan  # marker 3 never seen at posture 5
+    columns = ["time", *[f"{a}{k}" for k in range(1, 4) for a in "xyz"]]
+    stream = tmp_path / "stream.csv"
+    stream.write_text(table_text(columns, np.column_stack([session.times, clouds.reshape(len(clouds), 9)]),
+                                 blank_allowed=columns[1:]))
+    converted = tmp_path / "points.csv"
+    assert main(["convert", str(stream), "--robot", str(robot_log(tmp_path / "robot.csv", session)), "--body", "all",
+                 "-o", str(converted)]) == 0
+    assert "markers 1, 2, 3 as points" in capsys.readouterr().out
+    names = session.chain.joint_names
+    points = [f"{a}{k}" for k in range(1, 4) for a in "xyz"]
+    table = read_table(converted, required=(*names, *points, "source"), optional=("position_std",),
+                       blank_allowed=points)
+    assert table.n_rows == 24 and np.isnan(table.column("x3")[5]) and np.isfinite(table.column("x2")).all()
+    exact = (FRAME.homogeneous @ tool_poses(session.chain, serial_simulation.simulate_serial_measurements(
+        serial_robots.load_example_robot("ur10"), session.chain, 24, np.random.default_rng(11), noise=None).truth,
+        session.postures) @ BODY.homogeneous)
+    second = (exact[:, :3, :3] @ offsets[1] + exact[:, :3, 3])
+    assert np.max(np.abs(np.column_stack([table.column(c) for c in "x2 y2 z2".split()]) - second)) < 5 * NOISE
+    arguments = argparse.Namespace(
+        measurements=str(converted), output=None, report=str(tmp_path / "points.json"), serial="ur10", base=None,
+        tool="tool0", noise_pos=NOISE, noise_rot=1e-4, frame="estimate", marker=None, units="m", force=False,
+        max_iterations=None, fix=[], prior={}, outlier_sigma=5.0, select="loo", compliance=False, folds=4)
+    run_serial_calibration(arguments)
+    report = json.loads((tmp_path / "points.json").read_text())
+    found = np.array(report["points"])  # in the tool frame, up to the tool placement's 1 mm / 1 mrad (the gauge)
+    assert np.max(np.abs((found - found[0]) - (BODY.rotation @ offsets.T).T)) < 1e-3
+    assert report["input"]["points"] == 3 and report["cross_validation"]["position_rms_m"] < 1e-4

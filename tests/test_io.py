@@ -15,7 +15,7 @@ from m3t1r.errors import DataFileError, InvalidInputError, OutputPathError
 from m3t1r.io.outputs import atomic_write_bytes, atomic_write_text
 from m3t1r.io.paths import ensure_not_protected
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows, poses_from_table
-from m3t1r.io.tables import Table, read_table, write_table
+from m3t1r.io.tables import Table, read_header, read_table, table_text, write_table
 
 QUATERNION = ("qx", "qy", "qz", "qw")
 
@@ -349,3 +349,19 @@ def test_orientation_columns_in_another_form_name_the_conversion(tmp_path):
     assert "another model" not in message
     with pytest.raises(DataFileError, match=r"another model\?\); expected columns: j1, x, y, z$"):
         read_table(path, required=("j1", "x", "y", "z"))  # a table without orientation: no such hint
+
+
+def test_a_blank_allowed_column_reads_and_writes_an_unseen_point_as_nan(tmp_path: Path) -> None:
+    """Columns of points a tracker may not see: an empty field is NaN there and an error elsewhere,
+    and `table_text` writes NaN back as an empty field in those columns only."""
+    path = tmp_path / "points.csv"
+    path.write_text("q,x1,y1,z1\n0.5,,,\n0.25,1,2,3\n")
+    table = read_table(path, required=("q", "x1", "y1", "z1"), blank_allowed=("x1", "y1", "z1"))
+    assert np.isnan(table.data[0, 1:]).all() and table.data[1].tolist() == [0.25, 1.0, 2.0, 3.0]
+    assert read_header(path) == ("q", "x1", "y1", "z1")
+    with pytest.raises(DataFileError, match="line 2.*column 'x1'.*empty field"):
+        read_table(path, required=("q", "x1", "y1", "z1"))
+    text = table_text(table.columns, table.data, blank_allowed=("x1", "y1", "z1"))
+    assert text.splitlines()[1:] == ["0.5,,,", "0.25,1.0,2.0,3.0"]
+    with pytest.raises(InvalidInputError, match="column 'x1' is nan"):
+        table_text(table.columns, table.data, blank_allowed=("y1",))

@@ -19,6 +19,7 @@ from m3t1r.calibration import serial_evaluation, serial_robots, serial_simulatio
 from m3t1r.calibration.assessment import FitRejected
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.validation import validate
 from m3t1r.errors import DataFileError, IdentificationError, InvalidInputError, ModelFileError
 from m3t1r.io.tables import read_table, table_text
 from m3t1r.model.poe import SerialChain, perturb, tool_poses
@@ -504,3 +505,120 @@ def test_orientation_columns_other_than_a_quaternion_name_the_conversion(ur10, t
     message = str(caught.value)
     assert "look like an orientation as" in message and f"`m3t1r convert {path} " in message and convert in message
     assert "another model" not in message
+
+
+# Several points per pose (x1, y1, z1 ... xK, yK, zK), repeats held out together, a held-out file
+
+POINTS = np.array([[0.05, 0.0, 0.03], [-0.04, 0.05, 0.06], [0.0, -0.06, 0.09], [0.03, 0.04, -0.01]])  # tool frame [m]
+
+
+def point_campaign(model, chain, frame: pin.SE3, seed: int, n_poses: int = 50):
+    """A 1 mm / 1 mrad UR10 measured through POINTS with NOISE.position: (data, points (N, 4, 3) [m])."""
+    rng = np.random.default_rng(seed)
+    data = serial_simulation.simulate_serial_measurements(model, chain, n_poses, rng, noise=None)
+    tool = frame.homogeneous @ tool_poses(chain, data.truth, data.q_true)
+    exact = np.einsum("nij,pj->npi", tool[:, :3, :3], POINTS) + tool[:, None, :3, 3]
+    return data, exact + rng.normal(0.0, NOISE.position, exact.shape), exact
+
+
+def write_points(path, chain, q, points: np.ndarray, sources: np.ndarray | None = None) -> None:
+    columns = list(chain.joint_names) + [f"{a}{k}" for k in range(1, points.shape[1] + 1) for a in "xyz"]
+    blocks = [q, points.reshape(len(points), -1)]
+    if sources is not None:
+        columns.append("source")
+        blocks.append(sources[:, None].astype(float))
+    blank = [c for c in columns if c[0] in "xyz"]
+    path.write_text(table_text(columns, np.hstack(blocks), ["four markers on the tool"], blank_allowed=blank))
+
+
+def test_several_points_per_pose_calibrate_with_each_offset_and_predict_every_point(ur10) -> None:
+    model, chain = ur10
+    data, points, _ = point_campaign(model, chain, FRAMES["x90"], seed=8)
+    points[[3, 17, 30], [1, 0, 3]] = np.nan  # occluded markers
+    points[22, 2] += np.array([0.0, 3e-3, 0.0])  # a 3 mm gross reading of one marker
+    calibration = S.calibrate_serial(model, chain, data.q_readings, points, position_only=True, noise=NOISE,
+                                     estimate_frame=True)
+    assert calibration.converged and calibration.outliers == (22,)
+    assert 0.6 < calibration.variance_factor < 1.5
+    assert calibration.residual_before.position > 1e-3 and calibration.residual_after.position < 2e-5
+    assert len(calibration.setup.points) == 4
+    # The common part of the offsets is the tool placement's (the gauge); their differences are not.
+    offsets = np.array(calibration.setup.points)
+    assert np.max(np.abs((offsets - offsets[0]) - (POINTS - POINTS[0]))) < 2e-4
+    fresh, _, exact = point_campaign(model, chain, FRAMES["x90"], seed=8, n_poses=80)
+    predicted = serial_evaluation.predict_points(calibration, fresh.q_readings[50:])
+    assert np.max(np.linalg.norm(predicted - exact[50:], axis=2)) < 6e-5
+    validation = serial_evaluation.cross_validate_serial(calibration, folds=5)
+    assert validation.errors.position.shape == (49 * 4 - 3,)  # every inlier point seen
+    assert validation.errors.position_mean < 4e-5
+
+
+def test_a_points_residual_jacobian_matches_finite_differences(ur10) -> None:
+    # Placements, frame, offsets and compliance columns against central differences, a point missing.
+    model, chain = ur10
+    data, points, _ = point_campaign(model, chain, FRAMES["z180"], seed=9, n_poses=6)
+    points[2, 1] = np.nan
+    measurements = S._parse_measurements(chain, data.q_readings, points, True)
+    layout = S._Layout(chain.n_joints, True, 12, True, 4)
+    start = S._start_state(chain, model, measurements, MeasurementSetup(), True, True, True)
+    whitening = S._whitening(chain, start, measurements, NOISE, 1e-5)
+    torques = S.gravity_torques(model, chain, data.q_readings)
+    residual = S._SerialResidual(chain, measurements, whitening, layout, torques)
+    state = residual.retract(start, np.full(layout.size, 1e-3))
+    r, J = residual.residual_and_jacobian(state)
+    assert np.all(r.reshape(6, 12)[2, 3:6] == 0.0) and np.all(J.reshape(6, 12, -1)[2, 3:6] == 0.0)
+    step = 1e-7
+    numeric = np.empty_like(J)
+    for i in range(layout.size):
+        dx = np.zeros(layout.size)
+        dx[i] = step
+        plus, minus = residual.retract(state, dx), residual.retract(state, -dx)
+        numeric[:, i] = (residual.residual(plus) - residual.residual(minus)) / (2 * step)
+    assert np.linalg.norm(J - numeric) <= 1e-6 * np.linalg.norm(J)
+
+
+def test_the_command_reads_points_scores_a_held_out_file_and_holds_repeats_out_together(ur10, tmp_path, capsys):
+    model, chain = ur10
+    data, points, _ = point_campaign(model, chain, FRAMES["z180"], seed=10, n_poses=70)
+    # Each of the first 24 postures measured twice (fresh noise, same joint readings): 48 rows, 24 postures.
+    repeat = points[:24] + np.random.default_rng(1).normal(0.0, NOISE.position, points[:24].shape)
+    points[5, 2] = np.nan
+    points[12, 1] += np.array([4e-3, 0.0, 0.0])  # gross
+    q = np.vstack([data.q_readings[:24], data.q_readings[:24], data.q_readings[24:40]])
+    sources = np.arange(100, 100 + len(q))
+    path, held = tmp_path / "campaign.csv", tmp_path / "held.csv"
+    write_points(path, chain, q, np.vstack([points[:24], repeat, points[24:40]]), sources)
+    write_points(held, chain, data.q_readings[40:], points[40:])
+    run_serial_calibration(namespace(tmp_path, path, marker=None, validate=str(held)))
+    out = capsys.readouterr().out
+    assert "file lines: 15" in out and "outliers in the tracker's file (the source column): 112" in out
+    assert "40 distinct postures, each held out whole" in out and "per point (4 per pose)" in out
+    report = json.loads((tmp_path / "report.json").read_text(), parse_constant=pytest.fail)
+    assert report["input"]["points"] == 4 and len(report["points"]) == 4 and report["outlier_sources"] == [112]
+    assert report["cross_validation"]["groups"] == 40  # the outlier's repeat keeps its posture in
+    assert report["cross_validation"]["position_rms_m"] < 5e-5
+    held_out = report["held_out"]
+    assert held_out["poses"] == 30 and held_out["per"] == "point" and held_out["position_rms_m"] < 5e-5
+    assert held_out["position_mean_m"] <= held_out["position_rms_m"] <= held_out["position_max_m"]
+    with pytest.raises(InvalidInputError, match="fitted 4 points per pose; validate reads one measured frame"):
+        validate(held, tmp_path / "ur10.urdf", tmp_path / "report.json")
+
+
+def test_points_with_a_marker_or_a_partly_blank_point_are_refused(ur10, tmp_path) -> None:
+    model, chain = ur10
+    data, points, _ = point_campaign(model, chain, FRAMES["z180"], seed=11, n_poses=20)
+    path = tmp_path / "campaign.csv"
+    write_points(path, chain, data.q_readings, points)
+    with pytest.raises(InvalidInputError, match="each point's offset on the tool is estimated: --marker"):
+        run_serial_calibration(namespace(tmp_path, path))
+    frames = tmp_path / "frames.csv"
+    write_campaign(frames, chain, data.q_readings, as_rows(campaign(model, chain, FRAMES["z180"], seed=11)[1][:20]))
+    with pytest.raises(InvalidInputError, match="one measured frame per row, but .* has 4 points per row"):
+        run_serial_calibration(namespace(tmp_path, path, marker=None, validate=str(frames)))
+    assert not (tmp_path / "report.json").exists()
+    text = path.read_text().splitlines()
+    fields = text[-1].split(",")
+    fields[7] = ""  # y1 of the last row blank, x1 and z1 given
+    path.write_text("\n".join(text[:-1] + [",".join(fields)]) + "\n")
+    with pytest.raises(DataFileError, match=f"line {len(text)}.*y1.*point 1 has some coordinates blank"):
+        run_serial_calibration(namespace(tmp_path, path, marker=None))

@@ -27,7 +27,9 @@ from m3t1r.app.cli_common import (
     RowFailures,
     campaign_report_fields,
     checked_marker,
+    held_out_entry,
     load_mechanism,
+    outlier_sources,
     parse_priors,
     selection_note,
     status_stream,
@@ -54,10 +56,12 @@ from m3t1r.calibration.assessment import (
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, CrossValidation, calibrate_closed_loop, cross_validate
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
+from m3t1r.calibration.repeats import pose_groups
 from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.io.instruments.formats import export_hint
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.progress import Progress
+from m3t1r.metrics import pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import declared_workspace
@@ -120,7 +124,8 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     Every output (the pair, the report, the plots) is checked before the fit and written as one
     unit after it: a failure anywhere, the plots' included, leaves every old file as it was.
     """
-    outputs = OutputSet(inputs=(args.measurements, nominal.urdf_path, nominal.closures_path))
+    held_out_path = getattr(args, "validate", None)  # --validate FILE (a namespace built in code may lack it)
+    outputs = OutputSet(inputs=(args.measurements, nominal.urdf_path, nominal.closures_path, held_out_path))
     machine_output = outputs.add_machine(args.output, "-o")
     report_output = outputs.add(args.report, "--report")
     plots = load(DECLARE_PLOTS)(outputs, args.plots) if args.plots else None  # matplotlib with --plots only
@@ -130,6 +135,7 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
         # Every status line, the helpers' too, goes to `out`: with `--report -` stdout is the JSON alone.
         with contextlib.redirect_stdout(out):
             data = read_measurements(args.measurements, nominal, units=args.units)
+            held_out = read_measurements(held_out_path, nominal, units=args.units) if held_out_path else None
             marker = MeasurementSetup.from_numbers(marker_xyz=checked_marker(args.marker)).marker
             estimate_frame = args.frame == "estimate"
             print(f"calibrating from {len(data.measurements)} poses"
@@ -147,13 +153,17 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
                            + [int(data.lines[i]) for i in start.gross])
             print(choice.describe(data.measurements.position_only), file=out)
             _print_summary(calibration, lines, out)
+            sources = outlier_sources(data.lines, data.sources, lines)
+            if sources:
+                print("outliers in the tracker's file (the source column): " + ", ".join(map(str, sources)), file=out)
             unexplained = judge_fit(
                 calibration.converged, calibration.lm.termination, calibration.lm.iterations, calibration.variance_factor,
                 choice, lambda: _fit_causes(args, nominal, fitted_data, marker, estimate_frame, calibration, choice),
                 force=args.force)
             with Progress(f"cross-validating ({args.folds} folds)", None) as progress:
                 calibration.problem.on_evaluate = progress.advance
-                validation = cross_validate(calibration, folds=args.folds)
+                validation = cross_validate(calibration, folds=args.folds,
+                                            groups=pose_groups(fitted_data.measurements.actuators, fitted_data.sources))
             notes = explain(calibration, [str(w.message) for w in caught])
             _print_judgement(calibration, validation, notes, out)
             warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
@@ -162,6 +172,10 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
                 print(f"m3t1r: warning: {warning}", file=sys.stderr)
             report = calibration_report(calibration, data, nominal, noise, args, lines, validation, notes)
             report["noise_source"], report["warnings"] = choice.report(), warned
+            if data.sources is not None:
+                report["outlier_sources"] = sources
+            if held_out is not None:
+                report["held_out"] = _score_held_out(calibration, held_out)
             if data.passive_joints:
                 report["passive_joint_cross_validation"] = _idle_chain_check(nominal, calibration, data, out)
         outputs.stage_machine(machine_output, calibration.mechanism)
@@ -195,7 +209,8 @@ def _fit(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, no
     return calibrate_closed_loop(
         nominal, data.measurements, noise, setup=MeasurementSetup(marker=marker), estimate_frame=estimate_frame,
         estimate_marker=args.marker is not None, outlier_sigma=(args.outlier_sigma or None) if gate else None,
-        select=args.select == "loo", fixed=args.fix, priors=args.prior, progress=progress, **kwargs)
+        select=args.select == "loo", fixed=args.fix, priors=args.prior, progress=progress,
+        groups=pose_groups(data.measurements.actuators, data.sources), **kwargs)
 
 
 def _left(calibration: ClosedLoopCalibration, data: MeasurementFile) -> ResidualSummary:
@@ -303,7 +318,23 @@ def _without_gross_readings(args: argparse.Namespace, data: MeasurementFile, sta
     measurements = data.measurements
     kept = PoseMeasurements(measurements.actuators[keep], tuple(measurements.poses[i] for i in keep),
                             measurements.position_only)
-    return dataclasses.replace(data, measurements=kept, passive=data.passive[keep], lines=data.lines[keep])
+    return dataclasses.replace(data, measurements=kept, passive=data.passive[keep], lines=data.lines[keep],
+                               sources=None if data.sources is None else data.sources[keep])
+
+
+def _score_held_out(calibration: ClosedLoopCalibration, held_out: MeasurementFile) -> dict:
+    """Score a held-out measurement file (`--validate`): each row assembled from home on the calibrated
+    machine, seen through the fitted measurement frame and marker; rows that do not assemble are listed."""
+    measurements = held_out.measurements
+    solved = ClosedLoopSolver(calibration.mechanism).forward_batch(measurements.actuators)
+    measured = np.array([measurements.poses[i].homogeneous for i in solved.indices]).reshape(-1, 4, 4)
+    if not len(measured):
+        raise InvalidInputError(f"--validate {held_out.path}: no row assembles on the calibrated machine")
+    errors = pose_errors_between(calibration.setup.measured_poses(solved.poses), measured)
+    failed = sorted(int(held_out.lines[f.index]) for f in solved.failures)
+    position_only = measurements.position_only or calibration.problem.measurements.position_only
+    return held_out_entry(held_out.path, held_out.sha256, len(measurements), errors, position_only,
+                          failed_lines=failed)
 
 
 def _print_summary(calibration: ClosedLoopCalibration, outlier_lines: list[int], out: TextIO = sys.stdout) -> None:
@@ -327,9 +358,11 @@ def _print_judgement(calibration: ClosedLoopCalibration, validation: CrossValida
                      out: TextIO = sys.stdout) -> None:
     errors = validation.errors
     rotation = "" if np.isnan(errors.rotation_mean) else f", {errors.rotation_mean:.3e} rad"
-    print(f"cross-validation ({validation.folds} folds): predicting held-back measurements "
-          f"{errors.position_mean:.3e} m{rotation} mean (noise included: what `m3t1r validate` will show "
-          "on fresh measurements of the same quality)", file=out)
+    rms = float(np.sqrt(np.mean(np.square(errors.position))))
+    grouped = f"; {validation.groups} distinct poses, each held out whole" if validation.groups else ""
+    print(f"cross-validation ({validation.folds} folds{grouped}): predicting held-back measurements "
+          f"{errors.position_mean:.3e} m{rotation} mean, {rms:.3e} m RMS (noise included: what `m3t1r validate` will "
+          "show on fresh measurements of the same quality)", file=out)
     for note in notes:
         print(f"note: {note}", file=out)
 

@@ -198,10 +198,13 @@ def campaign_report_fields(setup: MeasurementSetup, estimated: Sequence[str], va
         "measurement_frame": {**se3_to_report(setup.frame),
                               "estimated": any(n.startswith("measurement_frame.") for n in estimated)},
         "marker": {**se3_to_report(setup.marker), "estimated": any(n.startswith("marker.") for n in estimated)},
+        **({"points": [list(p) for p in setup.points]} if setup.points else {}),
         "cross_validation": None if errors is None else {
             "position_mean_m": errors.position_mean, "rotation_mean_rad": errors.rotation_mean,
             "position_rms_m": float(np.sqrt(np.mean(np.square(errors.position)))),
-            "folds": validation.folds},
+            "rotation_rms_rad": None if np.all(np.isnan(errors.rotation)) else
+            float(np.sqrt(np.mean(np.square(errors.rotation)))),
+            "folds": validation.folds, "groups": getattr(validation, "groups", None) or None},
         "selection": {"method": "forward_loo" if selection else "none", "kept": list(fitted),
                       "press": selection.press if selection else None,
                       "press_all": selection.press_all if selection else None,
@@ -209,6 +212,36 @@ def campaign_report_fields(setup: MeasurementSetup, estimated: Sequence[str], va
         "fixed": list(getattr(args, "fix", None) or []), "priors": dict(getattr(args, "prior", None) or {}),
         "forced": bool(getattr(args, "force", False)),
     }
+
+
+def held_out_entry(path: Path, sha256: str, poses: int, errors, position_only: bool, per: str = "pose",
+                   failed_lines: Sequence[int] = ()) -> dict:
+    """Print the score of a held-out measurement file (`calibrate --validate`) and return its report
+    entry: position error mean, RMS and max [m], rotation mean and RMS [rad] unless position_only, per
+    pose (or per point); failed_lines: rows the calibrated model could not predict (not scored)."""
+    position = np.asarray(errors.position, dtype=float)
+    rms = float(np.sqrt(np.mean(np.square(position))))
+    rotation_rms = None if position_only else float(np.sqrt(np.mean(np.square(errors.rotation))))
+    rotation = "" if rotation_rms is None else \
+        f"; rotation {errors.rotation_mean:.3e} rad mean, {rotation_rms:.3e} rad RMS"
+    failed = f"; {len(failed_lines)} rows not predicted (lines {', '.join(map(str, failed_lines[:10]))})" \
+        if failed_lines else ""
+    print(f"held-out file {path} ({poses} poses): position error per {per} {errors.position_mean:.3e} m mean, "
+          f"{rms:.3e} m RMS, {float(np.max(position)):.3e} m max{rotation}{failed}")
+    return {"path": str(path), "sha256": sha256, "poses": poses, "per": per,
+            "position_mean_m": float(errors.position_mean), "position_rms_m": rms,
+            "position_max_m": float(np.max(position)),
+            "rotation_mean_rad": None if rotation_rms is None else float(errors.rotation_mean),
+            "rotation_rms_rad": rotation_rms, "failed_lines": [int(line) for line in failed_lines]}
+
+
+def outlier_sources(lines: Sequence[int], sources: Sequence[int] | None, outlier_lines: Sequence[int]) -> list[int]:
+    """The `source` value (the pose in the tracker's file) of each outlier's file line; none without
+    a `source` column."""
+    if sources is None:
+        return []
+    source_of_line = {int(line): int(source) for line, source in zip(lines, sources)}
+    return [source_of_line[line] for line in outlier_lines]
 
 
 def selection_note(dropped: Sequence[str], selection) -> list[str]:

@@ -9,6 +9,7 @@ metres and radians, with a `source` column naming where each pose is in the trac
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 
 from m3t1r.app.cli_common import provenance
@@ -41,7 +42,10 @@ def cmd_convert(args: argparse.Namespace) -> None:
         "source: the tracker file's line, frame or message of the pose's first sample; position_std [m]: its scatter"]
     if conversion.clock_offset is not None:
         comments.append(f"clock offset: robot clock = tracker clock {conversion.clock_offset:+.6f} s")
+    points = [c for c in conversion.columns if re.fullmatch(r"[xyz]\d+", c)]
+    if points:
+        comments.append("x1, y1, z1 ...: each marker's position, blank where the tracker did not see it")
     with outputs:
-        outputs.stage(output, table_text(conversion.columns, conversion.rows, comments))
+        outputs.stage(output, table_text(conversion.columns, conversion.rows, comments, blank_allowed=points))
         written = outputs.commit()
     print(f"wrote {len(conversion.rows)} poses to " + ", ".join(written))

@@ -249,7 +249,10 @@ def add_campaign_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prior", nargs="+", type=_comma_list, action=_ExtendLists, default=[], metavar="NAME=SIGMA",
                         help="a prior toward nominal with this standard deviation [m or rad] (repeatable, or a "
                              "comma list)")
-    parser.add_argument("--folds", type=_folds, default=5, help="cross-validation folds, at least 2 (default 5)")
+    parser.add_argument("--folds", type=_folds, default=5, help="cross-validation folds, at least 2 (default 5); "
+                        "repeats of a pose (same source or joint readings) are held out together")
+    parser.add_argument("--validate", metavar="FILE", help="a held-out measurement file (same columns and units) "
+                        "scored by the calibration in the same run")
     parser.add_argument("--max-iterations", type=count_number, default=None, metavar="N", help="Levenberg-Marquardt cap")
     parser.add_argument("--force", action="store_true", help="write a fit that is judged unsupported, with a warning")
 
@@ -321,8 +324,8 @@ def add_convert_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentPa
     p.add_argument("-o", "--output", required=True, metavar="MEASUREMENTS.csv", help="measurement CSV to write")
     p.add_argument("--format", choices=tuple(FORMAT_DESCRIPTIONS), help="the tracker file's format (default: from its content)")
     p.add_argument("--body", metavar="NAME", help="the rigid body, marker, label, group or topic to read "
-                                                  "(a marker number K for x1..xK columns; rigid: those markers as "
-                                                  "one rigid body)")
+                                                  "(a marker number K for x1..xK columns; all: every marker, as "
+                                                  "points of the tool; rigid: those markers as one rigid body)")
     p.add_argument("--units", choices=("m", "mm", "cm", "in"), help="position unit when the file does not state it "
                                                                     "(default m for tables)")
     p.add_argument("--euler", metavar="SEQ", help="Euler convention of rotation columns (scipy's: xyz extrinsic, "

@@ -26,6 +26,8 @@ from m3t1r.app.cli_common import (
     RowFailures,
     campaign_report_fields,
     checked_marker,
+    held_out_entry,
+    outlier_sources,
     parse_joint_values,
     parse_priors,
     selection_note,
@@ -47,8 +49,9 @@ from m3t1r.calibration.assessment import (
 from m3t1r.calibration.identification import parameter_columns
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.repeats import pose_groups
 from m3t1r.calibration.serial import SerialCalibration, calibrate_serial, require_gravity_load
-from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial
+from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial, held_out_errors
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot, load_serial_urdf, serial_chain_of
 from m3t1r.errors import DataFileError, IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.io.instruments.formats import export_hint
@@ -56,7 +59,7 @@ from m3t1r.io.instruments.records import CONVERTED_COLUMNS
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import sha256_bytes
 from m3t1r.io.poses import poses_from_table
-from m3t1r.io.tables import Table, read_table
+from m3t1r.io.tables import Table, read_header, read_table
 from m3t1r.model.poe import SerialChain, tool_poses
 from m3t1r.model.urdf_io import calibrated_urdf_bytes
 
@@ -71,7 +74,9 @@ _EXAMPLE_ROBOTS = ("ur3", "ur5", "ur10", "panda")
 class SerialCampaign:
     """A measurement file read for a chain: readings (N, n) [rad, m], measured poses (SE3, m),
     the file's data lines (for outliers) and sha256; sources: the `source` column of a converted
-    file (where each pose is in the tracker's file), or None."""
+    file (where each pose is in the tracker's file), or None. points: (N, P, 3) [m] of a file with P
+    points per row (x1, y1, z1 ... xP, yP, zP; NaN where a point was not seen), else None; `poses`
+    then hold the most-seen point (NaN where it was not seen), which the data checks read."""
 
     path: Path
     sha256: str
@@ -81,6 +86,19 @@ class SerialCampaign:
     position_only: bool
     units: str
     sources: np.ndarray | None = None
+    points: np.ndarray | None = None
+
+    def subset(self, keep: np.ndarray) -> SerialCampaign:
+        """The campaign of rows `keep` (indices)."""
+        return replace(self, readings=self.readings[keep], poses=[self.poses[i] for i in keep], lines=self.lines[keep],
+                       sources=None if self.sources is None else self.sources[keep],
+                       points=None if self.points is None else self.points[keep])
+
+
+def point_numbers(columns: tuple[str, ...]) -> list[int]:
+    """The point numbers k of a header with x1, y1, z1 ... columns (x_k, y_k, z_k all present), sorted."""
+    numbers = {int(c[1:]) for c in columns if len(c) > 1 and c[0] in "xyz" and c[1:].isdigit()}
+    return sorted(k for k in numbers if all(f"{a}{k}" in columns for a in "xyz"))
 
 
 def _robot(source: str, tool: str | None, base: str | None) -> tuple[pin.Model, SerialChain, Path | None]:
@@ -110,10 +128,15 @@ def read_campaign(path: str, chain: SerialChain, units: str, model: pin.Model | 
     names, constants = chain.joint_names, dict(constants or {})
     if unknown := sorted(set(constants) - set(names)):
         raise InvalidInputError(f"--joint {unknown[0]}: not a joint of the chain ({', '.join(names)})")
+    numbers = point_numbers(read_header(path))
+    point_columns = [f"{a}{k}" for k in numbers for a in "xyz"]
     try:
-        table = read_table(path, required=tuple(n for n in names if n not in constants) + ("x", "y", "z"),
-                           optional=(*constants, *CONVERTED_COLUMNS), optional_groups=(("qx", "qy", "qz", "qw"),),
-                           reject_duplicate_rows=True)
+        table = read_table(path, required=tuple(n for n in names if n not in constants) + (() if numbers else
+                                                                                            ("x", "y", "z")),
+                           optional=(*constants, *CONVERTED_COLUMNS),
+                           optional_groups=(tuple(tuple(f"{a}{k}" for a in "xyz") for k in numbers) if numbers
+                                            else (("qx", "qy", "qz", "qw"),)),
+                           reject_duplicate_rows=True, blank_allowed=point_columns)
     except DataFileError as exc:
         if exc.column in names and "missing required columns" in str(exc):
             raise DataFileError(path, f"{str(exc).partition(': ')[2]}; a chain joint that never moves and is not "
@@ -126,6 +149,8 @@ def read_campaign(path: str, chain: SerialChain, units: str, model: pin.Model | 
                                 else np.full(table.n_rows, constants[n]) for n, p in zip(names, prismatic)])
     if model is not None:
         _check_joint_limits(table, model, names, readings, prismatic)
+    if numbers:
+        return _points_campaign(path, table, readings, numbers, units)
     positions = np.column_stack([table.column(c) for c in "xyz"]) * scale
     position_only = not table.has_column("qw")
     rotations = [np.eye(3)] * len(positions) if position_only else [g.rotation for g in poses_from_table(table)]
@@ -133,6 +158,28 @@ def read_campaign(path: str, chain: SerialChain, units: str, model: pin.Model | 
     return SerialCampaign(Path(path), sha256_bytes(Path(path).read_bytes()), readings, poses,
                           np.asarray(table.line_numbers), position_only, units,
                           table.column("source").astype(int) if table.has_column("source") else None)
+
+
+def _points_campaign(path: str, table: Table, readings: np.ndarray, numbers: list[int], units: str
+                     ) -> SerialCampaign:
+    """`read_campaign`'s campaign of a file with several points per row, x_k, y_k, z_k (blank where not
+    seen)."""
+    columns = [f"{a}{k}" for k in numbers for a in "xyz"]
+    scale = LENGTH_UNITS[units]
+    points = np.column_stack([table.column(c) for c in columns]).reshape(table.n_rows, len(numbers), 3) * scale
+    finite = np.isfinite(points)
+    for row, point in np.argwhere(np.any(finite, axis=2) != np.all(finite, axis=2)):
+        raise table.error(int(row), f"point {numbers[point]} has some coordinates blank: give all three or none",
+                          column=columns[3 * point + int(np.argmin(finite[row, point]))])
+    for row in np.flatnonzero(~np.any(finite, axis=(1, 2))):
+        raise table.error(int(row), "no point seen on this row (every x_k, y_k, z_k blank)")
+    for point in np.flatnonzero(~np.any(finite[:, :, 0], axis=0)):
+        raise table.error(0, f"point {numbers[point]} is seen on no row", column=columns[3 * point])
+    reference = int(np.argmax(finite[:, :, 0].sum(axis=0)))
+    poses = [pin.SE3(np.eye(3), p) for p in points[:, reference]]
+    return SerialCampaign(Path(path), sha256_bytes(Path(path).read_bytes()), readings, poses,
+                          np.asarray(table.line_numbers), True, units,
+                          table.column("source").astype(int) if table.has_column("source") else None, points)
 
 
 #: A reading may pass its URDF limit by this share of the joint's range: a URDF's limits are nominal
@@ -183,8 +230,14 @@ def _nominal_frames(model: pin.Model, chain: SerialChain, marker: pin.SE3) -> Ca
     return predict
 
 
+def _checked_rows(data: SerialCampaign) -> np.ndarray:
+    """The rows the data checks read: every row, or with several points those seeing the most-seen one."""
+    return np.flatnonzero([np.all(np.isfinite(g.translation)) for g in data.poses])
+
+
 def _diagnose(model: pin.Model, chain: SerialChain, data: SerialCampaign, marker: pin.SE3,
               frame_estimated: bool) -> list[str]:
+    data = data.subset(_checked_rows(data)) if data.points is not None else data
     measured = np.array([g.translation for g in data.poses])
     return likely_causes(_nominal_frames(model, chain, marker), data.readings, measured, chain.joint_names,
                          frame_estimated=frame_estimated, angular=np.any(chain.twists[:, 3:], axis=1))
@@ -205,7 +258,8 @@ def _fit_causes(args: argparse.Namespace, model: pin.Model, chain: SerialChain, 
     after = calibration.residual_after
     beyond_noise = not calibration.converged or not calibration.variance_factor <= MAX_NOISE_RATIO**2
     return _diagnose(model, chain, data, marker, estimate_frame) + residual_causes(
-        after.position, after.rotation, beyond_noise=beyond_noise, marker_given=args.marker is not None,
+        after.position, after.rotation, beyond_noise=beyond_noise,
+        marker_given=args.marker is not None or data.points is not None,
         position_only=data.position_only)
 
 
@@ -216,10 +270,17 @@ def _precheck(model: pin.Model, chain: SerialChain, data: SerialCampaign, marker
     if len(data.poses) < 3:
         raise IdentificationError(f"{data.path}: {len(data.poses)} pose(s) are far too few to calibrate (tens of "
                                   "poses spread over the joint ranges are needed; `m3t1r plan --serial` chooses them)")
-    frames = _nominal_frames(model, chain, marker)(data.readings)
-    measured = np.array([g.translation for g in data.poses])
-    return check_start(frames, measured, estimate_frame,
-                       lambda: _diagnose(model, chain, data, marker, estimate_frame), "robot")
+    rows = _checked_rows(data)
+    checked = data.subset(rows) if len(rows) < len(data.poses) else data
+    frames = _nominal_frames(model, chain, marker)(checked.readings)
+    measured = np.array([g.translation for g in checked.poses])
+    check = check_start(frames, measured, estimate_frame,
+                        lambda: _diagnose(model, chain, data, marker, estimate_frame), "robot")
+    if checked is data:
+        return check
+    distances = np.full(len(data.poses), np.nan)
+    distances[rows] = check.distances
+    return StartCheck(distances, check.typical, tuple(int(rows[i]) for i in check.gross))
 
 
 def _without_gross_readings(args: argparse.Namespace, data: SerialCampaign, start: StartCheck) -> SerialCampaign:
@@ -233,18 +294,12 @@ def _without_gross_readings(args: argparse.Namespace, data: SerialCampaign, star
                                        "(--outlier-sigma) leave it out") for line, reason in reasons])
     for line, reason in reasons:
         print(f"note: line {line}: {reason}; left out as an outlier", flush=True)
-    keep = np.setdiff1d(np.arange(len(data.poses)), start.gross)
-    return replace(data, readings=data.readings[keep], poses=[data.poses[i] for i in keep], lines=data.lines[keep],
-                   sources=None if data.sources is None else data.sources[keep])
+    return data.subset(np.setdiff1d(np.arange(len(data.poses)), start.gross))
 
 
 def _outlier_sources(data: SerialCampaign, outlier_lines: list[int]) -> list[int]:
-    """The `source` value (the pose in the tracker's file) of each outlier's file line; none without
-    a `source` column."""
-    if data.sources is None:
-        return []
-    source_of_line = {int(line): int(source) for line, source in zip(data.lines, data.sources)}
-    return [source_of_line[line] for line in outlier_lines]
+    """The `source` value of each outlier's file line (`outlier_sources`)."""
+    return outlier_sources(data.lines, data.sources, outlier_lines)
 
 
 def cmd_calibrate_serial(args: argparse.Namespace) -> None:
@@ -268,7 +323,8 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
             require_gravity_load(model, chain)
         except InvalidInputError as exc:
             raise InvalidInputError(f"--compliance with {args.serial}: {exc}") from None
-    outputs = OutputSet(inputs=(args.measurements, urdf))
+    held_out_path = getattr(args, "validate", None)  # --validate FILE (a namespace built in code may lack it)
+    outputs = OutputSet(inputs=(args.measurements, urdf, held_out_path))
     urdf_output = outputs.add(args.output, "-o") if urdf is not None else None
     report_output = outputs.add(args.report, "--report")
     with outputs:  # a failure anywhere removes every claimed temporary file
@@ -278,7 +334,7 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
             if urdf is None:
                 print(f"{args.serial} is an example-robot-data robot: no calibrated URDF is written "
                       "(give its URDF path to --serial for one)" + (f"; -o {args.output} ignored" if args.output else ""))
-            data = read_campaign(args.measurements, chain, args.units, model, getattr(args, "joint", None))
+            data, held_out = _read_inputs(args, chain, model, held_out_path)
             marker = MeasurementSetup.from_numbers(marker_xyz=checked_marker(args.marker)).marker
             estimate_frame = args.frame == "estimate"
             start = _precheck(model, chain, data, marker, estimate_frame)
@@ -290,7 +346,7 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
                 calibration, choice = fit_with_noise(
                     args.noise_pos, args.noise_rot, TrackerNoise(),
                     lambda noise, gate: _fit(args, model, chain, fitted_data, noise, marker, estimate_frame, gate),
-                    lambda fitted: _left(fitted, len(fitted_data.poses)))
+                    lambda fitted: _left(fitted, fitted_data))
             noise = choice.noise
             lines = sorted([int(fitted_data.lines[i]) for i in calibration.outliers] + [int(data.lines[i]) for i in start.gross])
             print(choice.describe(data.position_only))
@@ -302,15 +358,18 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
                 calibration.converged, calibration.termination, calibration.iterations, calibration.variance_factor,
                 choice, lambda: _fit_causes(args, model, chain, fitted_data, marker, estimate_frame, calibration, choice),
                 force=args.force)
-            validation = cross_validate_serial(calibration, folds=args.folds)
+            validation = cross_validate_serial(calibration, folds=args.folds,
+                                               groups=pose_groups(fitted_data.readings, fitted_data.sources))
             notes = explain(calibration, [str(w.message) for w in caught], list(args.fix or ()))
             warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
                                                    validation.errors.position_mean)] if unexplained else []
-            _print_judgement(validation, notes)
+            _print_judgement(validation, notes, calibration.setup.points)
             for warning in warned:
                 print(f"m3t1r: warning: {warning}", file=sys.stderr)
             report = serial_calibration_report(calibration, data, args, noise, lines, validation, notes)
             report["noise_source"], report["warnings"] = choice.report(), warned
+            if held_out is not None:
+                report["held_out"] = _score_held_out(calibration, held_out)
             if data.sources is not None:
                 report["outlier_sources"] = _outlier_sources(data, lines)
         if urdf_output is not None:
@@ -321,20 +380,45 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
         print("wrote " + ", ".join(written), file=status_stream(outputs))
 
 
+def _read_inputs(args: argparse.Namespace, chain: SerialChain, model: pin.Model, held_out_path: str | None
+                 ) -> tuple[SerialCampaign, SerialCampaign | None]:
+    """The measurement file and the --validate file, read alike before any work."""
+    data = read_campaign(args.measurements, chain, args.units, model, getattr(args, "joint", None))
+    if data.points is not None and args.marker is not None:
+        raise InvalidInputError(f"{args.measurements} holds {data.points.shape[1]} points per row, each "
+                                "point's offset on the tool is estimated: --marker (one point) does not apply")
+    held_out = (read_campaign(held_out_path, chain, args.units, model, getattr(args, "joint", None))
+                if held_out_path else None)
+    if held_out is not None:
+        points = [0 if d.points is None else d.points.shape[1] for d in (data, held_out)]
+        if points[0] != points[1]:
+            what = [f"{p} points per row" if p else "one measured frame per row" for p in points]
+            raise InvalidInputError(f"--validate {held_out_path}: {what[1]}, but {args.measurements} has {what[0]}")
+    return data, held_out
+
+
 def _fit(args: argparse.Namespace, model: pin.Model, chain: SerialChain, data: SerialCampaign,
          noise: TrackerNoise, marker: pin.SE3, estimate_frame: bool, gate: bool = True) -> SerialCalibration:
     kwargs = {} if args.max_iterations is None else {"max_iterations": args.max_iterations}
     measured = np.array([g.translation for g in data.poses]) if data.position_only else data.poses
+    if data.points is not None:
+        measured = data.points
     return calibrate_serial(
         model, chain, data.readings, measured, position_only=data.position_only, noise=noise,
         setup=MeasurementSetup(marker=marker), estimate_frame=estimate_frame, estimate_marker=args.marker is not None,
         outlier_sigma=(args.outlier_sigma or None) if gate else None, select=args.select == "loo",
-        compliance=bool(args.compliance), fixed=list(args.fix or ()), priors=dict(args.prior or {}), **kwargs)
+        compliance=bool(args.compliance), fixed=list(args.fix or ()), priors=dict(args.prior or {}),
+        groups=pose_groups(data.readings, data.sources), **kwargs)
 
 
-def _left(calibration: SerialCalibration, poses: int) -> ResidualSummary:
+def _left(calibration: SerialCalibration, data: SerialCampaign) -> ResidualSummary:
+    """What the fit left; with several points per pose, each point seen counts as a 3-row measurement."""
     after = calibration.residual_after
-    return ResidualSummary(after.position, after.rotation, poses - len(calibration.outliers),
+    if data.points is not None:
+        inliers = np.setdiff1d(np.arange(len(data.points)), calibration.outliers)
+        seen = int(np.count_nonzero(np.isfinite(data.points[inliers, :, 0])))
+        return ResidualSummary(after.position, after.rotation, seen, 3, len(calibration.fitted))
+    return ResidualSummary(after.position, after.rotation, len(data.poses) - len(calibration.outliers),
                            3 if calibration.position_only else 6, len(calibration.fitted))
 
 
@@ -363,15 +447,29 @@ def _print_summary(calibration: SerialCalibration, outlier_lines: list[int]) -> 
           if outlier_lines else "outliers: none")
 
 
-def _print_judgement(validation: SerialCrossValidation, notes: list[str]) -> None:
+def _print_judgement(validation: SerialCrossValidation, notes: list[str], points: tuple = ()) -> None:
     errors = validation.errors
     rotation = "" if np.isnan(errors.rotation_mean) else f", {errors.rotation_mean:.3e} rad"
     rms = float(np.sqrt(np.mean(np.square(errors.position))))
-    print(f"cross-validation ({validation.folds} folds): predicting held-back measurements "
+    grouped = f"; {validation.groups} distinct postures, each held out whole" if validation.groups else ""
+    per = f" per point ({len(points)} per pose)" if points else ""
+    print(f"cross-validation ({validation.folds} folds{grouped}): predicting held-back measurements{per} "
           f"{errors.position_mean:.3e} m{rotation} mean, {rms:.3e} m RMS (noise included, as fresh measurements "
           "would show)")
     for note in notes:
         print(f"note: {note}")
+
+
+def _score_held_out(calibration: SerialCalibration, held_out: SerialCampaign) -> dict:
+    """Score a held-out measurement file (`--validate`) with the calibration, print it; its report entry."""
+    if held_out.points is not None:
+        measured: np.ndarray = held_out.points
+    else:
+        measured = np.array([g.homogeneous for g in held_out.poses])
+    errors = held_out_errors(calibration, held_out.readings, measured, held_out.position_only)
+    return held_out_entry(held_out.path, held_out.sha256, len(held_out.poses), errors,
+                          held_out.position_only or calibration.position_only,
+                          "point" if held_out.points is not None else "pose")
 
 
 def _is_translation(name: str) -> bool:
@@ -453,7 +551,8 @@ def serial_calibration_report(calibration: SerialCalibration, data: SerialCampai
         "created": _dt.datetime.now().isoformat(timespec="seconds"),
         "kind": "serial",
         "input": {"path": str(data.path), "sha256": data.sha256, "poses": len(data.poses),
-                  "position_only": data.position_only, "units": data.units},
+                  "position_only": data.position_only, "units": data.units,
+                  "points": 0 if data.points is None else int(data.points.shape[1])},
         "nominal_model": {"robot": str(args.serial), "base": chain.base_frame, "tool": chain.tool_frame,
                           "chain": list(chain.joint_names)},
         "measured_frame": chain.tool_frame,

@@ -137,7 +137,8 @@ class MeasurementFile:
 
     measurements: slider readings and measured platform poses (position-only when the file has no
     quaternion columns); passive: optional passive-joint readings (n x k) [rad or m] named by
-    `passive_joints` (paper section 4: encoders on passive joints); lines: file line per pose.
+    `passive_joints` (paper section 4: encoders on passive joints); lines: file line per pose;
+    sources: the `source` column of a converted file (where each pose is in the tracker's file), or None.
     """
 
     path: Path
@@ -146,6 +147,7 @@ class MeasurementFile:
     passive: np.ndarray
     lines: np.ndarray
     sha256: str
+    sources: np.ndarray | None = None
 
 
 def read_measurements(path: StrPath, mechanism: Mechanism, units: str = "m") -> MeasurementFile:
@@ -178,7 +180,8 @@ def read_measurements(path: StrPath, mechanism: Mechanism, units: str = "m") -> 
     passive = (np.column_stack([table.column(c) * scale.get(c, 1.0) for c in map(measurement_column, present)])
                if present else np.zeros((table.n_rows, 0)))
     return MeasurementFile(source, PoseMeasurements(actuators, tuple(poses), position_only), present, passive,
-                           table.line_numbers, sha256_of(source))
+                           table.line_numbers, sha256_of(source),
+                           table.column("source").astype(int) if table.has_column("source") else None)
 
 
 def write_measurements(path: StrPath, mechanism: Mechanism, measurements: PoseMeasurements,

@@ -48,6 +48,7 @@ from m3t1r.calibration.identification import (
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
+from m3t1r.calibration.repeats import grouped_blocks, grouped_folds
 from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning, require_count
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
@@ -326,7 +327,8 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
                           absolute_cost_tolerance: float = 1e-6, step_significance: float = 0.01,
                           refine: bool = False, refine_rank_tolerance: float = 1e-7, refine_iterations: int = 400,
                           error_model: ClosedLoopErrorModel | None = None,
-                          progress: Callable[[], None] | None = None) -> ClosedLoopCalibration:
+                          progress: Callable[[], None] | None = None,
+                          groups: np.ndarray | None = None) -> ClosedLoopCalibration:
     """Identify the placement errors of every joint and closure/platform frame (module docstring),
     and the measurement setup where asked.
 
@@ -339,6 +341,8 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     base-parameter count). fixed: parameter or placement names held at nominal;
     priors: {name: sigma} adds a Tikhonov row x / sigma toward nominal ([m] or [rad]).
     progress: called once per Jacobian evaluation (here and in `cross_validate` of the result).
+    groups: (N,) a label per pose, repeats of one pose sharing one (`repeats.pose_groups`): model
+    selection then leaves each group out whole (`repeats.grouped_blocks`).
 
     LM stops when an accepted step lowers the whitened cost 1/2 chi^2 by less than
     step_significance * s^2, s^2 = chi^2 / (m - p) being the a-posteriori noise variance (m rows,
@@ -397,7 +401,7 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
         result = _reject_outliers(problem, state, result, outlier_sigma, options)
     selection = None
     if select:
-        selection, result = _select_parameters(problem, start, result, forced, options)
+        selection, result = _select_parameters(problem, start, result, forced, options, groups)
     if refine:
         result = _refine(problem, result, refine_rank_tolerance, refine_iterations)
     return replace(_calibration(mechanism, problem, start, result, base, selection), start=start, options=options)
@@ -453,7 +457,7 @@ def _release(state: _State) -> None:
 
 
 def _select_parameters(problem: _ClosedLoopProblem, start: _State, result: LMResult, forced: np.ndarray,
-                       options: dict) -> tuple[ParameterSelection, LMResult]:
+                       options: dict, groups: np.ndarray | None = None) -> tuple[ParameterSelection, LMResult]:
     """Forward selection by leave-one-pose-out PRESS on the fit linearised at the estimate
     (residual at the start ~ r - J dx); a smaller set is refitted from the start. (Resuming from
     the estimate with the dropped parameters reset saved one iteration in eight: not worth it.)"""
@@ -465,7 +469,9 @@ def _select_parameters(problem: _ClosedLoopProblem, start: _State, result: LMRes
     r0 = (r[:pose_rows] - J[:pose_rows] @ step)[keep]
     forced_positions = np.flatnonzero(np.isin(problem.columns, forced))
     pose_jacobian = J[:pose_rows] if keep.all() else J[:pose_rows][keep]  # a copy only with outliers
-    selection = forward_selection(pose_jacobian, r0, rows, range(len(problem.columns)), forced_positions)
+    pose_jacobian, r0, block = grouped_blocks(pose_jacobian, r0, rows, None if groups is None else
+                                              np.asarray(groups)[problem.active])
+    selection = forward_selection(pose_jacobian, r0, block, range(len(problem.columns)), forced_positions)
     if len(selection.indices) == len(problem.columns):
         return selection, result
     problem.columns = problem.columns[list(selection.indices)]
@@ -528,22 +534,25 @@ class CrossValidation:
     """k-fold prediction of held-back measurements (outliers excluded): each fold is refitted on
     the others (same parameters, same setup estimation) and predicts its poses' measurements.
     The errors include the measurement noise, as a fresh validation set of the same quality does.
-    errors: per inlier pose, position [m] and rotation [rad] (nan when position-only)."""
+    errors: per inlier pose, position [m] and rotation [rad] (nan when position-only). groups: how
+    many groups of repeats the inlier poses form (`m3t1r.calibration.repeats`), each held out whole."""
 
     errors: PoseErrors
     folds: int
+    groups: int = 0
 
 
 @on_one_blas_thread
 def cross_validate(calibration: ClosedLoopCalibration, folds: int = 5, seed: int = 0,
-                   refit: bool = False) -> CrossValidation:
+                   refit: bool = False, groups: np.ndarray | None = None) -> CrossValidation:
     """k-fold cross-validation of a calibration on its own inlier poses (`CrossValidation`).
 
     By default each fold's refit is the Gauss-Newton step from the estimate without the fold's
     rows, dx_F = -(A - J_F^T J_F)^+ (J^T r - J_F^T r_F) with A = J^T J (whitened), and its
     prediction of the fold r_F + J_F dx_F: one small solve per fold. refit=True runs the full
     nonlinear fit per fold instead (the same parameters, from the same start; as slow as k
-    calibrations), which the tests compare with.
+    calibrations), which the tests compare with. groups: (N,) a label per pose the calibration was
+    given (`repeats.pose_groups`); poses sharing one are held out together. None: each on its own.
     """
     problem, start = calibration.problem, calibration.start
     if problem is None or start is None:
@@ -551,7 +560,10 @@ def cross_validate(calibration: ClosedLoopCalibration, folds: int = 5, seed: int
     inliers = np.flatnonzero(problem.active)
     if folds < 2 or len(inliers) < 2 * folds:
         raise InvalidInputError(f"cross-validation: {folds} folds need at least {2 * folds} inlier poses")
-    assignment = np.random.default_rng(require_count(seed, "seed", minimum=0)).permutation(len(inliers)) % folds
+    labels = np.arange(len(problem.active)) if groups is None else np.asarray(groups)
+    if labels.shape != problem.active.shape:
+        raise InvalidInputError(f"cross-validation: {labels.shape} group labels for {len(problem.active)} poses")
+    assignment = grouped_folds(labels[inliers], folds, np.random.default_rng(require_count(seed, "seed", minimum=0)))
     k = problem.measurements.rows_per_pose
     residuals = np.empty((len(inliers), k))
     if refit:
@@ -571,7 +583,7 @@ def cross_validate(calibration: ClosedLoopCalibration, folds: int = 5, seed: int
             residuals[assignment == fold] = ((r[rows] + J[rows] @ step) / problem.weights[rows]).reshape(-1, k)
     position = np.linalg.norm(residuals[:, :3], axis=1)
     rotation = np.linalg.norm(residuals[:, 3:], axis=1) if k == 6 else np.full(len(inliers), np.nan)
-    return CrossValidation(PoseErrors(position, rotation), folds)
+    return CrossValidation(PoseErrors(position, rotation), folds, len(np.unique(labels[inliers])))
 
 
 def default_iterations(n_parameters: int) -> int:

@@ -391,14 +391,17 @@ def checked_outlier_sigma(sigma: object) -> float | None:
     return value
 
 
-def outlier_poses(whitened: ArrayLike, sigma: float = OUTLIER_SIGMA) -> tuple[np.ndarray, float]:
+def outlier_poses(whitened: ArrayLike, sigma: float = OUTLIER_SIGMA,
+                  measured_rows: ArrayLike | None = None) -> tuple[np.ndarray, float]:
     """Flag poses whose whitened residual block (N, k) is beyond `sigma` noise sigmas.
 
     A pose's statistic d^2 = ||r_i||^2 is chi^2 with k degrees of freedom under the noise model; it
     is flagged when d^2 / s^2 exceeds the chi^2_k quantile with the two-sided normal tail
     probability of `sigma`. s^2 = max(1, median(d^2) / median(chi^2_k)) is a robust variance
     factor: unmodelled effects larger than the stated noise widen the gate instead of flagging
-    every pose, and the outliers themselves cannot widen it. Returns (mask (N,), s).
+    every pose, and the outliers themselves cannot widen it. measured_rows (N,): the rows of each
+    block that were measured (the others zero: a point not seen), its chi^2 degrees of freedom
+    (then s^2 = max(1, median(d^2 / median(chi^2_k_i)))); default k. Returns (mask (N,), s).
     """
     blocks = np.asarray(whitened, dtype=float)
     if blocks.ndim != 2 or blocks.shape[0] == 0:
@@ -407,9 +410,15 @@ def outlier_poses(whitened: ArrayLike, sigma: float = OUTLIER_SIGMA) -> tuple[np
         raise InvalidInputError("outlier_poses: non-finite residual")
     k = blocks.shape[1]
     d2 = np.sum(blocks**2, axis=1)
-    chi2_median = 2.0 * float(scipy.special.gammaincinv(k / 2.0, 0.5))
-    scale2 = max(1.0, float(np.median(d2)) / chi2_median)
-    return d2 / scale2 > outlier_gate(sigma, k), float(np.sqrt(scale2))
+    if measured_rows is None:
+        chi2_median = 2.0 * float(scipy.special.gammaincinv(k / 2.0, 0.5))
+        scale2 = max(1.0, float(np.median(d2)) / chi2_median)
+        return d2 / scale2 > outlier_gate(sigma, k), float(np.sqrt(scale2))
+    dof = np.asarray(measured_rows, dtype=int)
+    medians = 2.0 * scipy.special.gammaincinv(dof / 2.0, 0.5)
+    scale2 = max(1.0, float(np.median(d2 / medians)))
+    gates = np.array([outlier_gate(sigma, int(d)) for d in dof])
+    return d2 / scale2 > gates, float(np.sqrt(scale2))
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,8 @@ or a probe mounted on the platform (serial: on the tool), in its own frame:
 frame: the robot base in the measurement frame, p_measured = R p_base + t [m];
 marker: the measured frame in the platform (tool) frame [m]; a single reflector gives its
 position only, and the marker's orientation is then irrelevant.
+points: several reflectors rigidly attached to the platform (tool), each measured by its position
+alone: p_measured,k = frame . T_platform(q) . p_k, p_k [m] in the platform (tool) frame.
 
 Both belong to the measurement setup, not to the machine: a calibration estimates them together
 with the machine's geometry and reports them, and the calibrated URDF keeps the robot alone.
@@ -56,10 +58,13 @@ def se3_from_report(entry: Mapping[str, object], what: str) -> pin.SE3:
 @dataclass(frozen=True)
 class MeasurementSetup:
     """The measurement frame and the marker (module docstring); identity for both by default,
-    i.e. the platform frame itself measured in the robot's base frame."""
+    i.e. the platform frame itself measured in the robot's base frame. points: the offsets p_k (x, y,
+    z) [m] in the platform (tool) frame of several measured points, when each row holds several
+    (the marker is then unused); empty for one measured frame."""
 
     frame: pin.SE3 = field(default_factory=pin.SE3.Identity)
     marker: pin.SE3 = field(default_factory=pin.SE3.Identity)
+    points: tuple[tuple[float, float, float], ...] = ()
 
     @staticmethod
     def from_numbers(frame_xyz_rpy: ArrayLike | None = None, marker_xyz: ArrayLike | None = None) -> MeasurementSetup:
@@ -80,8 +85,18 @@ class MeasurementSetup:
         """frame . T_platform . marker for platform poses (N, 4, 4) in the base: (N, 4, 4)."""
         return self.frame.homogeneous @ np.asarray(platform_poses, dtype=float) @ self.marker.homogeneous
 
-    def to_report(self) -> dict[str, dict[str, list[float]]]:
-        return {"measurement_frame": se3_to_report(self.frame), "marker": se3_to_report(self.marker)}
+    def measured_points(self, platform_poses: np.ndarray) -> np.ndarray:
+        """frame . T_platform . p_k for platform poses (N, 4, 4) in the base: (N, P, 3) [m]."""
+        seen = self.frame.homogeneous @ np.asarray(platform_poses, dtype=float)
+        offsets = np.array(self.points, dtype=float).reshape(-1, 3)
+        return np.einsum("nij,pj->npi", seen[:, :3, :3], offsets) + seen[:, None, :3, 3]
+
+    def to_report(self) -> dict[str, object]:
+        report: dict[str, object] = {"measurement_frame": se3_to_report(self.frame),
+                                     "marker": se3_to_report(self.marker)}
+        if self.points:
+            report["points"] = [list(map(float, p)) for p in self.points]
+        return report
 
     @staticmethod
     def from_report(report: Mapping[str, object]) -> MeasurementSetup:
@@ -93,7 +108,21 @@ class MeasurementSetup:
             if not isinstance(value, Mapping):
                 raise InvalidInputError(f"report '{key}': expected an object")
             return se3_from_report(value, f"report '{key}'")
-        return MeasurementSetup(entry("measurement_frame"), entry("marker"))
+        return MeasurementSetup(entry("measurement_frame"), entry("marker"), _points_from_report(report))
+
+
+def _points_from_report(report: Mapping[str, object]) -> tuple[tuple[float, float, float], ...]:
+    """The `points` entry of a report (a list of [x, y, z] in m), () when absent."""
+    value = report.get("points")
+    if value is None:
+        return ()
+    try:
+        points = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        points = np.zeros(0)
+    if points.ndim != 2 or points.shape[1] != 3 or not len(points) or not np.all(np.isfinite(points)):
+        raise InvalidInputError("report 'points': expected a list of [x, y, z] offsets (m)")
+    return tuple((float(x), float(y), float(z)) for x, y, z in points)
 
 
 def register_frame(model_poses: ArrayLike, measured_positions: ArrayLike) -> pin.SE3:

@@ -50,6 +50,7 @@ from m3t1r.calibration.identification import (
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.repeats import grouped_blocks
 from m3t1r.calibration.serial_simulation import _checked_joint_noise, _readonly
 from m3t1r.errors import IdentificationError, InvalidInputError, real_array, require_count
 from m3t1r.model.poe import Placement, SerialChain, jlog3_batch, log3_batch, perturb, placement_poses, skew
@@ -97,12 +98,22 @@ def _placement_rows(frames: np.ndarray, orientation: bool, log_jacobians: np.nda
 @dataclass(frozen=True)
 class _Measurements:
     q: np.ndarray  # (N, n)
-    positions: np.ndarray  # (N, 3)
-    rotations: np.ndarray | None  # (N, 3, 3), None in position-only mode
+    positions: np.ndarray  # (N, 3); (N, 3 P) with P points per row, NaN where a point was not seen
+    rotations: np.ndarray | None  # (N, 3, 3), None in position-only mode (always with points)
+    n_points: int = 0  # 0: one measured frame per row; P: P points per row
 
     @property
     def rows_per_pose(self) -> int:
+        if self.n_points:
+            return 3 * self.n_points
         return 3 if self.rotations is None else 6
+
+    @functools.cached_property
+    def seen(self) -> np.ndarray:
+        """(N, rows_per_pose) whether each residual row was measured (False for a point not seen)."""
+        if self.n_points:
+            return np.isfinite(self.positions)
+        return np.ones((self.q.shape[0], self.rows_per_pose), dtype=bool)
 
 
 @dataclass(frozen=True)
@@ -114,8 +125,9 @@ class _Layout:
 
     n_joints: int
     frame: bool = False
-    marker: int = 0  # 0, 3 or 6 columns
+    marker: int = 0  # 0, 3 or 6 columns; 3 P for P points (each point's offset)
     compliance: bool = False
+    points: int = 0  # P points per row, whose offsets are the marker columns
 
     @property
     def n_chain(self) -> int:
@@ -146,7 +158,10 @@ class _Layout:
     def names(self, chain: SerialChain) -> tuple[str, ...]:
         names = chain.parameter_names()
         names += tuple(f"measurement_frame.dt[{k}]" for k in range(6)) if self.frame else ()
-        names += tuple(f"marker.dt[{k}]" for k in range(self.marker))
+        if self.points:
+            names += tuple(f"marker.p{k + 1}.dt[{j}]" for k in range(self.points) for j in range(3))
+        else:
+            names += tuple(f"marker.dt[{k}]" for k in range(self.marker))
         return names + (tuple(f"compliance.{joint}" for joint in chain.joint_names) if self.compliance else ())
 
 
@@ -162,6 +177,7 @@ class _State:
     measurement frame (4, 4); marker: K, the measured frame in the tool frame (4, 4).
     compliance: c (n,) with joint coordinates q + c tau(q), or None. accumulated: the sum of the
     steps taken since the start (layout order), which priors pull toward zero; None means zero.
+    points: the offsets (P, 3) [m] in the tool frame of the points measured, or None (one frame).
     """
 
     transforms: np.ndarray
@@ -169,21 +185,23 @@ class _State:
     marker: np.ndarray = field(default_factory=lambda: _IDENTITY)
     compliance: np.ndarray | None = None
     accumulated: np.ndarray | None = None
+    points: np.ndarray | None = None
 
     @property
     def plain(self) -> bool:
         """Identity frame and marker: the tool itself measured in the robot base."""
-        return np.array_equal(self.frame, _IDENTITY) and np.array_equal(self.marker, _IDENTITY)
+        return self.points is None and np.array_equal(self.frame, _IDENTITY) and np.array_equal(self.marker, _IDENTITY)
 
 
 class _Evaluation:
     """What one state gives, computed on demand: frames (N, n+1, 4, 4) in the robot base, the
-    measured frames M = F g K (N, 4, 4), raw residual (N, k), orientation logs and angles, whitened
-    residual and full whitened Jacobian."""
+    measured frames M = F g K (N, 4, 4) (F g with points, whose positions (N, P, 3) are `points`),
+    raw residual (N, k), orientation logs and angles, whitened residual and full whitened Jacobian."""
 
-    def __init__(self, frames: np.ndarray, measured: np.ndarray) -> None:
+    def __init__(self, frames: np.ndarray, measured: np.ndarray, points: np.ndarray | None = None) -> None:
         self.frames = frames
         self.measured = measured
+        self.points = points
         self.residual: np.ndarray | None = None
         self.logs: np.ndarray | None = None
         self.angles: np.ndarray | None = None
@@ -219,8 +237,13 @@ class _SerialResidual:
     def _evaluate(self, state: _State) -> _Evaluation:
         if state is not self._state or self._evaluation is None:
             frames = placement_poses(self.chain, state.transforms, self.joint_coordinates(state))
-            measured = frames[:, -1] if state.plain else state.frame @ frames[:, -1] @ state.marker
-            self._evaluation = _Evaluation(frames, measured)
+            if state.points is not None:
+                tool = state.frame @ frames[:, -1]
+                points = np.einsum("nij,pj->npi", tool[:, :3, :3], state.points) + tool[:, None, :3, 3]
+                self._evaluation = _Evaluation(frames, tool, points)
+            else:
+                measured = frames[:, -1] if state.plain else state.frame @ frames[:, -1] @ state.marker
+                self._evaluation = _Evaluation(frames, measured)
             self._state = state
         return self._evaluation
 
@@ -228,10 +251,16 @@ class _SerialResidual:
         """(N, k): p_model - p_meas (m, measurement frame) [, log3(R_meas^T R_model) (rad, measured frame)]."""
         e = self._evaluate(state)
         if e.residual is None:
-            position = e.measured[:, :3, 3] - self.data.positions
-            if self.data.rotations is None:
+            if e.points is not None:
+                # A point not seen gives a zero row (its whitening row is zero too).
+                seen = self.data.seen
+                measured = np.where(seen, self.data.positions, 0.0)
+                e.residual = np.where(seen, e.points.reshape(seen.shape) - measured, 0.0)
+            elif self.data.rotations is None:
+                position = e.measured[:, :3, 3] - self.data.positions
                 e.residual = position
             else:
+                position = e.measured[:, :3, 3] - self.data.positions
                 e.logs, e.angles = log3_batch(np.swapaxes(self.data.rotations, 1, 2) @ e.measured[:, :3, :3])
                 e.residual = np.concatenate([position, e.logs], axis=1)
             e.residual.flags.writeable = False  # cached: callers share it
@@ -264,6 +293,8 @@ class _SerialResidual:
         compliance column is d r / d q_j tau_j, with d r / d q_j = (placement j's rows) S_j because
         F_j exp6(S_j q_j) moves like F_j exp6(S_j dq) at fixed q_j (the twists commute).
         """
+        if state.points is not None:
+            return self._point_rows(state, e)
         layout, n_poses, n = self.layout, e.frames.shape[0], self.chain.n_joints
         orientation = self.data.rotations is not None
         k = 6 if orientation else 3
@@ -288,6 +319,29 @@ class _SerialResidual:
             out[:, :, layout.compliance_slice] = joint_rows * self.torques[:, None, :]
         return out
 
+    def _point_rows(self, state: _State, e: _Evaluation) -> np.ndarray:
+        """Unwhitened rows (N, 3 P, layout.size) of P points: point k is the endpoint F g T(p_k) of the
+        stack [F, F F_1 .. F F_P] as in `_rows`, and its own offset's columns are its translation rows."""
+        assert e.points is not None and state.points is not None
+        layout, n_poses, n = self.layout, e.frames.shape[0], self.chain.n_joints
+        out = np.zeros((n_poses, 3 * len(state.points), layout.size))
+        stack = np.concatenate([np.broadcast_to(state.frame, (n_poses, 1, 4, 4)), state.frame @ e.frames,
+                                e.measured[:, None]], axis=1)
+        for k in range(len(state.points)):
+            stack[:, -1, :3, 3] = e.points[:, k]
+            rows = _placement_rows(stack, False).reshape(n_poses, 3, n + 3, 6)
+            block = slice(3 * k, 3 * k + 3)
+            out[:, block, : layout.n_chain] = rows[:, :, 1 : n + 2].reshape(n_poses, 3, -1)
+            if layout.frame:
+                out[:, block, layout.frame_slice] = rows[:, :, 0]
+            if layout.marker:
+                start = layout.marker_slice.start + 3 * k
+                out[:, block, start : start + 3] = rows[:, :, -1, :3]
+            if layout.compliance:
+                joint_rows = np.einsum("nikj,kj->nik", rows[:, :, 1 : n + 1], self.chain.twists)
+                out[:, block, layout.compliance_slice] = joint_rows * self.torques[:, None, :]
+        return out
+
     def retract(self, state: _State, step: np.ndarray) -> _State:
         """T_j(0) <- T_j(0) exp6(dt_j) per placement (eq. 33), F <- F exp6(df), K <- K exp6(dk),
         c <- c + dc, for step = x in layout order."""
@@ -298,17 +352,19 @@ class _SerialResidual:
             if np.any(twist):
                 out[j] = out[j] @ pin.exp6(twist).homogeneous
         out.flags.writeable = False
-        frame, marker, compliance = state.frame, state.marker, state.compliance
+        frame, marker, compliance, points = state.frame, state.marker, state.compliance, state.points
         if layout.frame:
             frame = _readonly(frame @ pin.exp6(step[layout.frame_slice]).homogeneous)
-        if layout.marker:
+        if layout.marker and points is not None:
+            points = _readonly(points + step[layout.marker_slice].reshape(points.shape))
+        elif layout.marker:
             twist = np.zeros(6)
             twist[: layout.marker] = step[layout.marker_slice]
             marker = _readonly(marker @ pin.exp6(twist).homogeneous)
         if layout.compliance:
             compliance = _readonly((0.0 if compliance is None else compliance) + step[layout.compliance_slice])
         accumulated = _readonly(step if state.accumulated is None else state.accumulated + step)
-        return _State(out, frame, marker, compliance, accumulated)
+        return _State(out, frame, marker, compliance, accumulated, points)
 
 
 class _SerialProblem:
@@ -365,9 +421,9 @@ class _SerialProblem:
         return self._residual.retract(state, full)
 
     def degrees_of_freedom(self) -> int:
-        """Rows of the inliers and priors, less the fitted columns."""
+        """Measured rows of the inliers and priors, less the fitted columns."""
         picked = sum(1 for c in self.columns if c in self.priors)
-        return int(np.count_nonzero(self.active)) * self._residual.data.rows_per_pose + picked - len(self.columns)
+        return int(np.count_nonzero(self._residual.data.seen[self.active])) + picked - len(self.columns)
 
 
 def _readonly_state(chain: SerialChain, model: pin.Model, setup: MeasurementSetup | None = None) -> _State:
@@ -394,8 +450,9 @@ def _whitening(chain: SerialChain, state: _State, data: _Measurements, noise: Tr
     sigmas = np.full(k, noise.position)
     if data.rotations is not None:
         sigmas[3:] = noise.rotation
+    seen = data.seen
     if joint_noise == 0.0:
-        return np.broadcast_to(np.diag(1.0 / sigmas), (n_poses, k, k)).copy()
+        return np.diag(1.0 / sigmas)[None] * seen[:, :, None]
     unit = _SerialResidual(chain, data, np.broadcast_to(np.eye(k), (n_poses, k, k)))
     rows = unit.residual_and_jacobian(state)[1].reshape(n_poses, k, -1)
     n = chain.n_joints
@@ -403,7 +460,11 @@ def _whitening(chain: SerialChain, state: _State, data: _Measurements, noise: Tr
     # Ad(g_{B,k-1} T_{k-1,k}(0)) S_k = Ad(g_{B,k}) S_k because Ad(exp(S_k q_k)) S_k = S_k.
     joint_rows = np.einsum("nikj,kj->nik", rows[:, :, : 6 * n].reshape(n_poses, k, n, 6), chain.twists)
     covariance = np.diag(sigmas**2) + joint_noise**2 * joint_rows @ np.swapaxes(joint_rows, 1, 2)
-    return np.linalg.inv(np.linalg.cholesky(covariance))
+    # A point not seen is decoupled (unit variance, no covariance): the factor of the rows seen is then
+    # the one of their own covariance, and the unseen rows are zeroed.
+    pair = seen[:, :, None] & seen[:, None, :]
+    covariance = np.where(pair, covariance, np.eye(k)[None])
+    return np.linalg.inv(np.linalg.cholesky(covariance)) * seen[:, :, None]
 
 
 def gravity_torques(model: pin.Model, chain: SerialChain, q_chain: ArrayLike) -> np.ndarray:
@@ -478,6 +539,26 @@ class PoseErrorRMS:
 
 
 
+def _parse_points(q: np.ndarray, measured_points: ArrayLike) -> _Measurements:
+    """(N, P, 3) positions of P points per row [m], NaN where a point was not seen."""
+    points = np.array(measured_points, dtype=float)
+    if points.shape[2] != 3 or points.shape[1] < 1:
+        raise InvalidInputError(f"measured points: expected shape (N, P, 3), got {points.shape}")
+    if points.shape[0] != q.shape[0]:
+        raise InvalidInputError(f"{q.shape[0]} joint readings but {points.shape[0]} rows of measured points")
+    finite = np.isfinite(points)
+    partial = np.flatnonzero(np.any(finite, axis=2) != np.all(finite, axis=2))
+    if partial.size:
+        raise InvalidInputError(f"measured points: row {int(partial[0])} has a point with some coordinates missing")
+    blind = np.flatnonzero(~np.any(finite, axis=(1, 2)))
+    if blind.size:
+        raise InvalidInputError(f"measured points: row {int(blind[0])} sees no point")
+    unseen = np.flatnonzero(~np.any(finite[:, :, 0], axis=0))
+    if unseen.size:
+        raise InvalidInputError(f"measured points: point {int(unseen[0]) + 1} is seen in no row")
+    return _Measurements(q=q, positions=points.reshape(len(points), -1), rotations=None, n_points=points.shape[1])
+
+
 def _parse_measurements(
     chain: SerialChain, q_readings: ArrayLike, measured_poses: Sequence[pin.SE3] | ArrayLike, position_only: bool
 ) -> _Measurements:
@@ -486,6 +567,8 @@ def _parse_measurements(
         raise InvalidInputError(f"q_readings: expected shape (N, {chain.n_joints}), got {q.shape}")
     if not np.all(np.isfinite(q)):
         raise InvalidInputError(f"q_readings: non-finite value in row {int(np.flatnonzero(~np.isfinite(q).all(1))[0])}")
+    if isinstance(measured_poses, np.ndarray) and measured_poses.ndim == 3 and measured_poses.shape[1:] != (4, 4):
+        return _parse_points(q, measured_poses)
     if isinstance(measured_poses, Sequence) and any(isinstance(g, pin.SE3) for g in measured_poses):
         not_se3 = [i for i, g in enumerate(measured_poses) if not isinstance(g, pin.SE3)]
         if not_se3:
@@ -519,7 +602,11 @@ def _parse_measurements(
     return _Measurements(q=q, positions=positions, rotations=None if position_only else rotations)
 
 
-def _rms(residual: np.ndarray) -> PoseErrorRMS:
+def _rms(residual: np.ndarray, seen: np.ndarray | None = None) -> PoseErrorRMS:
+    """RMS of the pose errors of residual rows (N, k); with `seen` (N, 3 P), of every point seen."""
+    if seen is not None:
+        squared = np.sum(residual.reshape(len(residual), -1, 3) ** 2, axis=2)[seen[:, ::3]]
+        return PoseErrorRMS(float(np.sqrt(np.mean(squared))), np.nan)
     position = float(np.sqrt(np.mean(np.sum(residual[:, :3] ** 2, axis=1))))
     rotation = float(np.sqrt(np.mean(np.sum(residual[:, 3:] ** 2, axis=1)))) if residual.shape[1] == 6 else np.nan
     return PoseErrorRMS(position, rotation)
@@ -600,6 +687,8 @@ def _start_state(chain: SerialChain, model: pin.Model, data: _Measurements, setu
     """
     state = _readonly_state(chain, model, setup)
     tool = placement_poses(chain, state.transforms, data.q)[:, -1]
+    if data.n_points:
+        return _point_start(state, tool, data, estimate_frame, compliance)
     if estimate_frame:
         frame = register_frame(tool @ state.marker, data.positions)
         state = replace(state, frame=_readonly(frame.homogeneous))
@@ -610,6 +699,33 @@ def _start_state(chain: SerialChain, model: pin.Model, data: _Measurements, setu
         state = replace(state, marker=_readonly(marker))
     if compliance:
         state = replace(state, compliance=_readonly(np.zeros(chain.n_joints)))
+    return state
+
+
+# Alternations of the closed-form frame registration and point offsets that start a fit of points.
+_POINT_START_ROUNDS = 4
+
+
+def _point_start(state: _State, tool: np.ndarray, data: _Measurements, estimate_frame: bool,
+                 compliance: bool) -> _State:
+    """The start of a fit of P points: alternately F by `register_frame` of every point seen (at its
+    current offset) and each offset p_k in closed form given F, the mean over its rows of
+    R_g^T (F^-1 p_meas - t_g) (least squares, R_g orthonormal); from zero offsets."""
+    measured = data.positions.reshape(len(tool), data.n_points, 3)
+    rows, points = np.nonzero(data.seen[:, ::3])
+    offsets = np.zeros((data.n_points, 3))
+    frame = pin.SE3(state.frame)
+    for _ in range(_POINT_START_ROUNDS if estimate_frame else 1):
+        if estimate_frame:
+            model_points = tool[rows].copy()
+            model_points[:, :3, 3] += np.einsum("nij,nj->ni", tool[rows, :3, :3], offsets[points])
+            frame = register_frame(model_points, measured[rows, points])
+        in_base = (measured[rows, points] - frame.translation) @ frame.rotation  # F^-1 p, row by row
+        local = np.einsum("nji,nj->ni", tool[rows, :3, :3], in_base - tool[rows, :3, 3])
+        offsets = np.array([local[points == k].mean(axis=0) for k in range(data.n_points)])
+    state = replace(state, frame=_readonly(frame.homogeneous), points=_readonly(offsets))
+    if compliance:
+        state = replace(state, compliance=_readonly(np.zeros(data.q.shape[1])))
     return state
 
 
@@ -653,7 +769,9 @@ def _reject_outliers(problem: _SerialProblem, start: _State, result: LMResult, s
     iterations = 0
     rows = problem.model.data.rows_per_pose
     for _ in range(_MAX_OUTLIER_ROUNDS):
-        flagged, _scale = outlier_poses(problem.model.residual(result.state).reshape(-1, rows), sigma)
+        data = problem.model.data
+        flagged, _scale = outlier_poses(problem.model.residual(result.state).reshape(-1, rows), sigma,
+                                        data.seen.sum(axis=1) if data.n_points else None)
         if np.array_equal(~flagged, problem.active):
             break
         if np.count_nonzero(~flagged) * rows <= len(problem.columns):
@@ -665,8 +783,8 @@ def _reject_outliers(problem: _SerialProblem, start: _State, result: LMResult, s
     return result, iterations
 
 
-def _select_parameters(problem: _SerialProblem, start: _State, result: LMResult,
-                       solve: Callable[..., LMResult]) -> tuple[ParameterSelection, LMResult, int]:
+def _select_parameters(problem: _SerialProblem, start: _State, result: LMResult, solve: Callable[..., LMResult],
+                       groups: ArrayLike | None = None) -> tuple[ParameterSelection, LMResult, int]:
     """Forward selection by leave-one-pose-out PRESS of the fit linearised at the estimate (the
     residual at the start is about r - J x, x the accumulated step), the setup forced; a smaller
     set is refitted from the start."""
@@ -678,7 +796,9 @@ def _select_parameters(problem: _SerialProblem, start: _State, result: LMResult,
         result.state.accumulated[problem.columns]
     r0 = (r - J @ step)[keep]
     forced = np.flatnonzero(np.isin(problem.columns, problem.model.layout.setup_columns))
-    selection = forward_selection(J[keep], r0, rows, range(len(problem.columns)), forced)
+    labels = None if groups is None else np.asarray(groups)[problem.active]
+    jacobian, r0, block = grouped_blocks(J[keep], r0, rows, labels)
+    selection = forward_selection(jacobian, r0, block, range(len(problem.columns)), forced)
     if len(selection.indices) == len(problem.columns):
         return selection, result, 0
     problem.columns = problem.columns[list(selection.indices)]
@@ -707,6 +827,7 @@ def calibrate_serial(
     compliance: bool = False,
     fixed: Sequence[str] = (),
     priors: Mapping[str, float] | None = None,
+    groups: ArrayLike | None = None,
 ) -> SerialCalibration:
     """Identify the placement errors of `chain` (and the measurement setup, compliance) from measurements.
 
@@ -732,6 +853,8 @@ def calibrate_serial(
         `gravity_torques` (the model's inertias); chosen like the other parameters.
     fixed: parameter or placement names held at their start; priors: {name: sigma} adds a row
         x / sigma pulling the parameter toward its start (m, rad, rad/Nm).
+    groups: (N,) a label per pose, repeats of one posture sharing one (`repeats.pose_groups`): the
+        selection then leaves each group out whole (`repeats.grouped_blocks`).
     absolute_cost_tolerance: LM also stops once an accepted step lowers 1/2 chi^2 by less than
         this (a noise variance; 1e-6 moves the estimate by ~1e-3 of its std).
 
@@ -744,7 +867,11 @@ def calibrate_serial(
     outlier_sigma = checked_outlier_sigma(outlier_sigma)
     max_iterations = require_count(max_iterations, "max_iterations")
     data = _parse_measurements(chain, q_readings, measured_poses, position_only)
-    layout = _Layout(chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0, compliance)
+    if data.n_points:
+        layout = _Layout(chain.n_joints, estimate_frame, 3 * data.n_points, compliance, data.n_points)
+    else:
+        layout = _Layout(chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0,
+                         compliance)
     names = layout.names(chain)
     fixed_columns = parameter_columns(names, fixed, "fixed parameter")
     if len(set(fixed_columns)) == layout.size:
@@ -766,7 +893,7 @@ def calibrate_serial(
         iterations += more
     selection = None
     if select:
-        selection, result, more = _select_parameters(problem, start, result, solve)
+        selection, result, more = _select_parameters(problem, start, result, solve, groups)
         iterations += more
     return _result(model, problem, start, result, base, selection, iterations, solve)
 
@@ -784,6 +911,7 @@ def _result(model: pin.Model, problem: _SerialProblem, start: _State, result: LM
         covariance, std = fit.covariance, fit.std
     dof = problem.degrees_of_freedom()
     inliers = problem.active
+    seen = residual.data.seen[inliers] if residual.data.n_points else None
     # dt_j = log6(T_j(0)^-1 T_j,c(0)) per placement (for j = 1 with a base frame, the inverse base
     # placement cancels); the calibrated model is the nominal one perturbed by exactly these.
     deltas = {p: _readonly(pin.log6(pin.SE3(start.transforms[j]).actInv(pin.SE3(state.transforms[j]))).vector)
@@ -801,12 +929,20 @@ def _result(model: pin.Model, problem: _SerialProblem, start: _State, result: LM
         covariance=covariance, parameter_std=std,
         variance_factor=float(r @ r / dof) if dof > 0 else float("nan"),
         iterations=iterations, converged=result.converged,
-        residual_before=_rms(residual.raw_residual(start)[inliers]),
-        residual_after=_rms(residual.raw_residual(state)[inliers]),
+        residual_before=_rms(residual.raw_residual(start)[inliers], seen),
+        residual_after=_rms(residual.raw_residual(state)[inliers], seen),
         position_only=residual.data.rotations is None,
-        setup=MeasurementSetup(pin.SE3(state.frame), pin.SE3(state.marker)),
+        setup=_fitted_setup(state),
         termination=result.termination, outliers=tuple(int(i) for i in np.flatnonzero(~inliers)),
         fitted=tuple(names[c] for c in fitted), fitted_indices=fitted, names=names, values=_readonly(values),
         compliance=MappingProxyType(compliance), selection=selection, _problem=problem, _start=start, _solve=solve,
     )
 
+
+
+def _fitted_setup(state: _State) -> MeasurementSetup:
+    """The measurement setup of a state: F and K, or F and the points' offsets."""
+    if state.points is None:
+        return MeasurementSetup(pin.SE3(state.frame), pin.SE3(state.marker))
+    points = tuple((float(x), float(y), float(z)) for x, y, z in state.points)
+    return MeasurementSetup(pin.SE3(state.frame), pin.SE3.Identity(), points)

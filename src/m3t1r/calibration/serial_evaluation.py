@@ -12,12 +12,14 @@ import pinocchio as pin
 from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
+from m3t1r.calibration.repeats import grouped_folds
 from m3t1r.calibration.serial import SerialCalibration, _placement_rows, compliant_readings, gravity_torques
 from m3t1r.errors import InvalidInputError, require_count
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.poe import SerialChain, placement_poses, tool_poses
 
-__all__ = ["SerialCrossValidation", "cross_validate_serial", "pose_errors", "predict_measurements", "predicted_pose_std"]
+__all__ = ["SerialCrossValidation", "cross_validate_serial", "held_out_errors", "pose_errors", "predict_measurements",
+           "predict_points", "predicted_pose_std"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -41,6 +43,45 @@ def predict_measurements(calibration: SerialCalibration, q_readings: ArrayLike) 
     chain = calibration.chain
     g = tool_poses(chain, calibration.model, _compliant_coordinates(calibration, q_readings))
     return calibration.setup.frame.homogeneous @ g @ calibration.setup.marker.homogeneous
+
+
+def predict_points(calibration: SerialCalibration, q_readings: ArrayLike) -> np.ndarray:
+    """The measured points (M, P, 3) [m] a calibration of several points per pose predicts at joint
+    readings (M, n), in the measurement frame: F g_c(q + c tau(q)) p_k."""
+    if not calibration.setup.points:
+        raise InvalidInputError("predict_points: the calibration measured one frame per pose, not several points")
+    chain = calibration.chain
+    return calibration.setup.measured_points(tool_poses(chain, calibration.model,
+                                                        _compliant_coordinates(calibration, q_readings)))
+
+
+def held_out_errors(calibration: SerialCalibration, q_readings: ArrayLike, measured: ArrayLike,
+                    position_only: bool) -> PoseErrors:
+    """Errors of the calibration's predictions of measurements it was not fitted to.
+
+    measured: the measured frames (M, 4, 4) [m] in the measurement frame (their rotations unused
+    when position_only), or with several points per pose (M, P, 3) [m], NaN where not seen.
+    Returns per pose position |p_pred - p_meas| [m] and rotation angle [rad] (NaN when
+    position_only); with points, per point seen (rotation NaN). Raises InvalidInputError when the
+    file's kind (one frame or P points) is not the calibration's.
+    """
+    values = np.asarray(measured, dtype=float)
+    points = len(calibration.setup.points)
+    if values.ndim == 3 and values.shape[1:] != (4, 4):
+        if values.shape[1] != points:
+            raise InvalidInputError(f"the held-out file has {values.shape[1]} points per pose; the calibration "
+                                    + (f"measured {points}" if points else "measured one frame"))
+        predicted = predict_points(calibration, q_readings)
+        seen = np.all(np.isfinite(values), axis=2)
+        position = np.linalg.norm(predicted - np.where(seen[:, :, None], values, 0.0), axis=2)[seen]
+        return PoseErrors(position, np.full(len(position), np.nan))
+    if points:
+        raise InvalidInputError(f"the held-out file has one measured frame per pose; the calibration measured "
+                                f"{points} points")
+    errors = pose_errors_between(predict_measurements(calibration, q_readings), values)
+    if position_only or calibration.position_only:
+        return PoseErrors(errors.position, np.full(len(errors.position), np.nan))
+    return errors
 
 
 def predicted_pose_std(calibration: SerialCalibration, q_chain: ArrayLike) -> PoseErrors:
@@ -82,22 +123,32 @@ class SerialCrossValidation:
     others (same parameters, same setup estimation, from the same start) and predicts its poses'
     measurements in the measurement frame. The errors include the measurement noise, as a fresh
     validation set of the same quality would. errors: per inlier pose, position (m) and rotation
-    (rad, nan when position-only)."""
+    (rad, nan when position-only); with several points per pose, per point seen (position only).
+    groups: how many groups of repeats the inlier poses form (`m3t1r.calibration.repeats`), each
+    held out whole; the number of inlier poses when no groups were given."""
 
     errors: PoseErrors
     folds: int
+    groups: int = 0
 
 
 @on_one_blas_thread
-def cross_validate_serial(calibration: SerialCalibration, folds: int = 5, seed: int = 0) -> SerialCrossValidation:
-    """k-fold cross-validation of a serial calibration on its own inlier poses (`SerialCrossValidation`)."""
+def cross_validate_serial(calibration: SerialCalibration, folds: int = 5, seed: int = 0,
+                          groups: ArrayLike | None = None) -> SerialCrossValidation:
+    """k-fold cross-validation of a serial calibration on its own inlier poses (`SerialCrossValidation`).
+
+    groups: (N,) a label per pose the calibration was given (`repeats.pose_groups`); poses sharing
+    one are held out together. None: every pose on its own."""
     problem, start, solve = calibration._problem, calibration._start, calibration._solve
     if problem is None or start is None or solve is None:
         raise InvalidInputError("cross_validate_serial needs a calibration made by calibrate_serial")
     inliers = np.flatnonzero(problem.active)
     if folds < 2 or len(inliers) < 2 * folds:
         raise InvalidInputError(f"cross-validation: {folds} folds need at least {2 * folds} inlier poses")
-    fold_of = np.random.default_rng(require_count(seed, "seed", minimum=0)).permutation(len(inliers)) % folds
+    labels = np.arange(len(problem.active)) if groups is None else np.asarray(groups)
+    if labels.shape != problem.active.shape:
+        raise InvalidInputError(f"cross-validation: {labels.shape} group labels for {len(problem.active)} poses")
+    fold_of = grouped_folds(labels[inliers], folds, np.random.default_rng(require_count(seed, "seed", minimum=0)))
     residuals = np.empty((len(inliers), problem.model.data.rows_per_pose))
     fold_problem = copy.copy(problem)
     fold_problem.columns = np.array(calibration.fitted_indices, dtype=int)
@@ -107,7 +158,13 @@ def cross_validate_serial(calibration: SerialCalibration, folds: int = 5, seed: 
         fold_problem.active[held] = False
         result = solve(fold_problem, start)
         residuals[fold_of == fold] = problem.model.raw_residual(result.state)[held]
+    n_groups = len(np.unique(labels[inliers]))
+    data = problem.model.data
+    if data.n_points:
+        seen = data.seen[inliers][:, ::3]
+        position = np.linalg.norm(residuals.reshape(len(inliers), -1, 3), axis=2)[seen]
+        return SerialCrossValidation(PoseErrors(position, np.full(len(position), np.nan)), folds, n_groups)
     position = np.linalg.norm(residuals[:, :3], axis=1)
     rotation = (np.linalg.norm(residuals[:, 3:], axis=1) if residuals.shape[1] == 6
                 else np.full(len(inliers), np.nan))
-    return SerialCrossValidation(PoseErrors(position, rotation), folds)
+    return SerialCrossValidation(PoseErrors(position, rotation), folds, n_groups)

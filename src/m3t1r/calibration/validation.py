@@ -395,6 +395,10 @@ def validate(measurements: str | Path, calibrated: str | Path, report: str | Pat
     if info.kind == "closed_loop":
         campaign, platform, failures, yaw_task = _predict_closed_loop(calibrated, info, units, Path(measurements),
                                                                       progress)
+    elif info.setup.points:
+        raise InvalidInputError(f"{info.path}: the calibration fitted {len(info.setup.points)} points per pose; "
+                                "validate reads one measured frame per row: score a file of several points with "
+                                "`m3t1r calibrate ... --validate FILE`")
     else:
         campaign, platform = _predict_serial(calibrated, info, units, Path(measurements))
     ok = np.flatnonzero(np.all(np.isfinite(platform), axis=(1, 2)))

@@ -5,7 +5,8 @@ CSV format read by `read_table` and written by `write_table`:
 - UTF-8 (a byte-order mark is tolerated), comma-separated, SI units (m, rad);
 - a line whose first non-blank character is `#` is a comment; blank lines are ignored;
 - the first other line is the header of column names, every line after it is a data row;
-- every data field is a finite decimal number (`1`, `-0.25`, `3e-05`; no `nan`, `inf`, `1_000`).
+- every data field is a finite decimal number (`1`, `-0.25`, `3e-05`; no `nan`, `inf`, `1_000`), or empty
+  in a column the reader allows blank (a point the tracker did not see), read as NaN.
 
 Errors in a file are `DataFileError`s carrying the 1-based line number in the file (comments and
 blank lines counted, as an editor shows it) and the column name, so a user can go straight to
@@ -27,7 +28,7 @@ from m3t1r.errors import DataFileError, InvalidInputError
 from m3t1r.io.outputs import atomic_write_text
 from m3t1r.io.paths import StrPath, read_bounded, size_refusal
 
-__all__ = ["MAX_MAGNITUDE", "Table", "format_float", "read_table", "table_text", "write_table"]
+__all__ = ["MAX_MAGNITUDE", "Table", "format_float", "read_header", "read_table", "table_text", "write_table"]
 
 MAX_MAGNITUDE = 1e6
 """Largest magnitude accepted in a CSV field by default [m or rad]: 1000 km, far beyond any
@@ -95,6 +96,7 @@ def read_table(
     *,
     reject_duplicate_rows: bool = False,
     max_magnitude: float = MAX_MAGNITUDE,
+    blank_allowed: Sequence[str] = (),
 ) -> Table:
     """Read and validate a numeric CSV table (format in the module docstring).
 
@@ -109,6 +111,8 @@ def read_table(
         max_magnitude: refuse a value whose magnitude exceeds this (default `MAX_MAGNITUDE`):
             such a value is a unit or column mix-up, and would overflow later computations
             (1e300 squared is inf) far from the row that caused it.
+        blank_allowed: columns whose empty field is read as NaN (a point the tracker did not see);
+            anywhere else an empty field is an error.
 
     Any other column in the file is an error: a file written for another model or another
     command must not load with some of its columns silently ignored.
@@ -138,7 +142,8 @@ def read_table(
             raise DataFileError(
                 source, f"{len(fields)} fields, but the header has {len(columns)} columns", row=line, column=missing
             )
-        rows.append([_parse_number(source, line, name, field, max_magnitude) for name, field in zip(columns, fields)])
+        rows.append([math.nan if not field and name in blank_allowed else
+                     _parse_number(source, line, name, field, max_magnitude) for name, field in zip(columns, fields)])
         lines.append(line)
     if not rows:
         raise DataFileError(source, "no data rows after the header", row=header_line)
@@ -177,8 +182,10 @@ def write_table(
     atomic_write_text(path, table_text(columns, data, comments, what=f"table data for {path}"), protect=protect)
 
 
-def table_text(columns: Sequence[str], data: object, comments: Sequence[str] = (), what: str = "table data") -> str:
-    """The text `write_table` writes (same arguments and InvalidInputError), for an `OutputSet.stage`."""
+def table_text(columns: Sequence[str], data: object, comments: Sequence[str] = (), what: str = "table data",
+               blank_allowed: Sequence[str] = ()) -> str:
+    """The text `write_table` writes (same arguments and InvalidInputError), for an `OutputSet.stage`;
+    NaN in a `blank_allowed` column is written as an empty field (`read_table` reads it back as NaN)."""
     names = tuple(columns)
     _check_column_names(names)
     try:
@@ -189,7 +196,8 @@ def table_text(columns: Sequence[str], data: object, comments: Sequence[str] = (
         raise InvalidInputError(
             f"{what}: shape {array.shape}, expected (n_rows >= 1, {len(names)} columns)"
         )
-    bad = np.argwhere(~np.isfinite(array))
+    blank = np.isnan(array) & np.isin(np.array(names), list(blank_allowed))[None, :]
+    bad = np.argwhere(~np.isfinite(array) & ~blank)
     if bad.size:
         row, col = (int(i) for i in bad[0])
         raise InvalidInputError(
@@ -198,7 +206,8 @@ def table_text(columns: Sequence[str], data: object, comments: Sequence[str] = (
 
     lines = [_comment_line(part) for comment in comments for part in (comment.splitlines() or [""])]
     lines.append(",".join(names))
-    lines.extend(",".join(format_float(value) for value in row) for row in array.tolist())
+    lines.extend(",".join("" if value != value else format_float(value) for value in row)  # NaN: blank_allowed
+                 for row in array.tolist())
     return "\n".join(lines) + "\n"
 
 
@@ -213,6 +222,16 @@ _NON_FINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
 # Universal newlines, but only those: str.splitlines() also splits on form feeds and U+2028,
 # which would make our line numbers disagree with the user's editor.
 _LINE_BREAK = re.compile(r"\r\n|\r|\n")
+
+
+def read_header(path: StrPath) -> tuple[str, ...]:
+    """The column names of a CSV table (its first non-comment line), to choose the schema that
+    `read_table` then checks; DataFileError for a missing, unreadable or empty file."""
+    source = Path(path)
+    try:
+        return tuple(next(_records(source, _read_text(source)))[1])
+    except StopIteration:
+        raise DataFileError(source, "no header line: the file is empty or holds only comments") from None
 
 
 def _read_text(source: Path) -> str:

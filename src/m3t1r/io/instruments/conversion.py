@@ -3,7 +3,8 @@
 `convert_campaign` reads the tracker file in its format, turns a stream into static poses (still
 stretches, averaged: `dwells`), takes the joint readings from the same file or pairs the poses with
 the robot log's stops (by order, or by the clock offset it estimates) and returns the rows of a
-measurement CSV: joint columns by name, `x, y, z` [m], `qx, qy, qz, qw` when the tracker measured
+measurement CSV: joint columns by name, `x, y, z` [m] (or `x1, y1, z1 ... xK, yK, zK` for every
+marker with `--body all`, blank where a marker was not seen), `qx, qy, qz, qw` when the tracker measured
 orientations, `source` (the tracker file's line, frame or message number of each pose's first
 sample) and `position_std` [m] (each pose's scatter, when known).
 """
@@ -68,6 +69,7 @@ class _Poses:
     sources: np.ndarray
     scatter: np.ndarray | None
     spans: list[Stretch] | None
+    points: np.ndarray | None = None  # (n, K, 3) [m] every marker, NaN where not seen
 
 
 def convert_campaign(tracker: Path, robot: Path | None, options: ConversionOptions) -> Conversion:
@@ -86,8 +88,13 @@ def convert_campaign(tracker: Path, robot: Path | None, options: ConversionOptio
         poses = _subset(poses, keep)
     elif not joint_names:
         raise InvalidInputError(f"{tracker} holds no joint readings: give the robot's log with --robot ROBOT_LOG")
-    columns = list(joint_names) + ["x", "y", "z"]
-    blocks = [joints, poses.positions]
+    columns = list(joint_names)
+    if poses.points is not None:
+        columns += [f"{a}{k}" for k in record.point_numbers for a in "xyz"]
+        blocks = [joints, poses.points.reshape(len(poses.points), -1)]
+    else:
+        columns += ["x", "y", "z"]
+        blocks = [joints, poses.positions]
     if poses.quaternions is not None:
         columns += ["qx", "qy", "qz", "qw"]
         blocks.append(poses.quaternions)
@@ -115,8 +122,11 @@ def _static_poses(record: TrackerRecord, options: ConversionOptions, notes: list
         if record.times is not None:
             spans = [Stretch(int(k), int(k) + 1, float(t), float(t)) for k, t in zip(np.flatnonzero(seen),
                                                                                      record.times[seen])]
-        return _Poses(record.positions[seen], quaternions, record.joints[seen], record.sources[seen], scatter, spans)
-    stretches = stationary_stretches(record.times, record.positions, options.still_speed, options.min_dwell)
+        points = None if record.points is None else record.points[seen]
+        return _Poses(record.positions[seen], quaternions, record.joints[seen], record.sources[seen], scatter, spans,
+                      points)
+    tracked = record.positions if record.points is None else record.points
+    stretches = stationary_stretches(record.times, tracked, options.still_speed, options.min_dwell)
     if not stretches:
         raise DataFileError(record.path, f"no still stretch of {options.min_dwell:g} s or more below "
                                          f"{options.still_speed:g} m/s (--still-speed, --min-dwell)")
@@ -125,10 +135,29 @@ def _static_poses(record: TrackerRecord, options: ConversionOptions, notes: list
         [average_quaternions(record.quaternions[s.start:s.stop]) for s in stretches])
     joints = np.array([record.joints[s.start:s.stop].mean(axis=0) for s in stretches])
     scatter = np.array([a[1] for a in averaged])
+    points = None
+    if record.points is not None:
+        points = np.array([_point_means(record.points[s.start:s.stop]) for s in stretches])
+        scatter = np.array([_point_scatter(record.points[s.start:s.stop], p) for s, p in zip(stretches, points)])
     notes.append(f"{len(stretches)} still stretches of {record.n_samples} frames averaged (median "
                  f"{int(np.median([a[2] for a in averaged]))} frames, median scatter {np.median(scatter):.3g} m)")
     return _Poses(np.array([a[0] for a in averaged]), quaternions, joints.reshape(len(stretches), -1),
-                  record.sources[[s.start for s in stretches]], scatter, stretches)
+                  record.sources[[s.start for s in stretches]], scatter, stretches, points)
+
+
+def _point_scatter(points: np.ndarray, means: np.ndarray) -> float:
+    """RMS distance [m] of every marker sample seen from its marker's mean (the centroid of the markers
+    seen jumps when one hides, so the centroid's scatter would not be the tracker's)."""
+    seen = np.isfinite(points).all(axis=2)
+    return float(np.sqrt(np.mean(np.sum((points - means[None]) ** 2, axis=2)[seen])))
+
+
+def _point_means(points: np.ndarray) -> np.ndarray:
+    """(K, 3) the mean of each marker over the frames that saw it (NaN for one never seen) [m]."""
+    seen = np.isfinite(points).all(axis=2)
+    counts = seen.sum(axis=0)
+    sums = np.where(seen[:, :, None], points, 0.0).sum(axis=0)
+    return np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None], np.nan)
 
 
 def _is_stream(record: TrackerRecord) -> bool:
@@ -176,4 +205,5 @@ def _robot_stops(log: RobotLog, options: ConversionOptions) -> tuple[list[Stretc
 def _subset(poses: _Poses, keep: np.ndarray) -> _Poses:
     return _Poses(poses.positions[keep], None if poses.quaternions is None else poses.quaternions[keep],
                   poses.joints[keep], poses.sources[keep], None if poses.scatter is None else poses.scatter[keep],
-                  None if poses.spans is None else [poses.spans[k] for k in keep])
+                  None if poses.spans is None else [poses.spans[k] for k in keep],
+                  None if poses.points is None else poses.points[keep])

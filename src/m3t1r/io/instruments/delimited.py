@@ -4,6 +4,7 @@ Accepted: `,`, `;` (then a comma is a decimal comma) or tab separators, `#` comm
 columns recognised by name (any case):
 
 - positions `x, y, z`, or several markers `x1, y1, z1 ... xK, yK, zK` (`--body K` picks one;
+  `--body all` keeps every one, as several points of the tool, blank where not seen;
   `--body rigid` makes one rigid body of three or more: its origin the markers' centroid, its axes
   those of the tracker at the first sample seeing every marker, each sample's orientation the
   rotation that best carries the markers from that sample, by the SVD of their cross-covariance);
@@ -25,6 +26,7 @@ Positions are in `units` (default metres). An empty position cell is an occluded
 from __future__ import annotations
 
 import re
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -95,7 +97,14 @@ def read_delimited(path: Path, options: ReadOptions, notes: list[str]) -> Tracke
     lower = [n.lower() for n in names]
     columns = _Columns(path, header[0], names, lower, rows, delimiter == ";")
     scale = length_scale(path, options.units or "m")
-    if options.body == "rigid":
+    points, numbers = None, ()
+    if options.body == "all":
+        points, numbers = _all_markers(path, header[0], columns, lower, scale)
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a sample seeing no marker: NaN, left out later
+            positions = np.nanmean(points, axis=1)
+        quaternions, body = None, f"markers {', '.join(map(str, numbers))} as points"
+    elif options.body == "rigid":
         positions, quaternions, body = _rigid_body(path, header[0], columns, lower, scale)
     else:
         position_names, body = _position_columns(path, header[0], lower, options.body, notes)
@@ -110,7 +119,8 @@ def read_delimited(path: Path, options: ReadOptions, notes: list[str]) -> Tracke
         row, column = (int(i) for i in np.argwhere(~np.isfinite(joints))[0])
         raise DataFileError(path, "empty joint reading", row=rows[row][0], column=joint_names[column])
     return TrackerRecord(path, "csv", body, positions, quaternions, times, np.array([n for n, _ in rows]),
-                         joints=joints, joint_names=tuple(joint_names), scatter=_scatter(columns, lower))
+                         joints=joints, joint_names=tuple(joint_names), scatter=_scatter(columns, lower),
+                         points=points, point_numbers=numbers)
 
 
 class _Columns:
@@ -172,6 +182,16 @@ def _rigid_body(path: Path, header_line: int, columns: _Columns, lower: list[str
     u[:, :, -1] *= sign[:, None]
     quaternions[seen] = Rotation.from_matrix(u @ vt).as_quat()
     return centroids, quaternions, f"markers {', '.join(map(str, markers))} as one rigid body"
+
+
+def _all_markers(path: Path, header_line: int, columns: _Columns, lower: list[str],
+                 scale: float) -> tuple[np.ndarray, tuple[int, ...]]:
+    """(points (N, K, 3) [m], NaN where not seen, marker numbers) of every marker (`--body all`)."""
+    markers = _marker_numbers(lower)
+    if not markers:
+        raise DataFileError(path, "--body all reads markers x1, y1, z1 ...; the file has none", row=header_line)
+    points = np.stack([np.column_stack([columns.values(f"{a}{k}") for a in "xyz"]) for k in markers], axis=1)
+    return points * scale, tuple(markers)
 
 
 def _marker_numbers(lower: list[str]) -> list[int]:

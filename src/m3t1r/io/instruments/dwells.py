@@ -56,18 +56,23 @@ class ClockPairing:
 def stationary_stretches(times: np.ndarray, values: np.ndarray, speed_limit: float, min_duration: float,
                          window: float = 0.5) -> list[Stretch]:
     """The still stretches of a stream (module docstring). times (N,) [s], increasing; values (N, d)
-    [m or rad], NaN rows where nothing was seen (skipped; a gap over `window` ends a stretch);
-    speed_limit [m/s or rad/s]; min_duration, window [s]."""
+    [m or rad], NaN rows where nothing was seen (skipped; a gap over `window` ends a stretch), or
+    several markers (N, K, 3) [m], NaN where a marker was not seen: a frame is then still when every
+    marker seen at both ends of its window moved less than the limit (a marker coming into view
+    moves nothing); speed_limit [m/s or rad/s]; min_duration, window [s]."""
     if np.any(np.diff(times) <= 0):
         raise InvalidInputError("the sample times do not increase: cannot find still stretches")
-    seen = np.flatnonzero(np.all(np.isfinite(values), axis=1))
+    points = values if values.ndim == 3 else values[:, None, :]
+    seen = np.flatnonzero(np.any(np.all(np.isfinite(points), axis=2), axis=1))
     if len(seen) < 2:
         return []
-    t, x = times[seen], values[seen]
+    t, x = times[seen], points[seen]
     lo = np.searchsorted(t, t - window / 2, side="left")
     hi = np.minimum(np.searchsorted(t, t + window / 2, side="right") - 1, len(t) - 1)
     span = np.maximum(t[hi] - t[lo], 1e-12)
-    speed = np.linalg.norm(x[hi] - x[lo], axis=1) / span
+    moved = np.linalg.norm(x[hi] - x[lo], axis=2)  # (M, K), NaN where a marker is missing at an end
+    fastest = np.max(np.where(np.isfinite(moved), moved, -np.inf), axis=1)
+    speed = np.where(np.isfinite(fastest), fastest, np.inf) / span  # no marker seen at both ends: not still
     still = (speed < speed_limit) & (hi > lo)
     stretches, k = [], 0
     while k < len(t):

@@ -67,6 +67,12 @@ def read_robot_log(path: Path, joints: tuple[str, ...] | None, joint_degrees: tu
     return read_robot_csv(path, joints, joint_degrees)
 
 
+def _is_raw(column: str) -> bool:
+    """A column a measurement table never has, but a tracker's table does (times, counters, scatter in mm)."""
+    return ("time" in column or "stamp" in column or column.startswith("t_") or column.endswith("_std_mm")
+            or "row" in column or column in ("t", "frame", "index"))
+
+
 def export_hint(path: Path) -> str | None:
     """When `path` is an instrument's export rather than a measurement table, the sentence saying
     which and how to convert it; None for a measurement table (or a file no reader knows)."""
@@ -79,6 +85,8 @@ def export_hint(path: Path) -> str | None:
         names = {n.strip().lower() for n in header.replace(";", ",").replace("\t", ",").split(",")}
         if ";" not in header and "\t" not in header and {"x", "y", "z"} <= names and not names & {"time", "x1"}:
             return None
+        if ";" not in header and "\t" not in header and {"x1", "y1", "z1"} <= names and not any(map(_is_raw, names)):
+            return None  # several points per row, as `convert --body all` writes them
     what = "table of tracker samples (several markers, a time column or ';' separators)" if name == "csv" \
         else FORMATS[name][1].split(" (")[0].split(":")[0]
     return (f"{path} is an instrument's export ({what}), not a measurement table: convert it first, "

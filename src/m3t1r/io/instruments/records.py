@@ -49,6 +49,9 @@ class TrackerRecord:
         or an empty (N, 0) block.
     sources: (N,) where each sample is in the file; source_kind: "line", "frame" or "message".
     scatter: (N,) [m] a position scatter the file states per sample (a per-pose noise figure), or None.
+    points: (N, K, 3) [m] every marker of a sample, NaN where not seen, when all are kept (`--body
+        all`; `positions` is then the centroid of the markers seen, which finds the still stretches),
+        with `point_numbers` (K,) their numbers in the file; else None.
     """
 
     path: Path
@@ -62,6 +65,8 @@ class TrackerRecord:
     joints: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     joint_names: tuple[str, ...] = ()
     scatter: np.ndarray | None = None
+    points: np.ndarray | None = None
+    point_numbers: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.positions)
