@@ -15,7 +15,7 @@ import datetime as _dt
 import math
 import sys
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TextIO
 
@@ -150,6 +150,7 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
                 choice, lambda: _fit_causes(args, nominal, fitted_data, marker, estimate_frame, calibration, choice),
                 force=args.force)
             with Progress(f"cross-validating ({args.folds} folds)", None) as progress:
+                assert calibration.problem is not None, "calibrate_closed_loop keeps its problem"
                 calibration.problem.on_evaluate = progress.advance
                 validation = cross_validate(calibration, folds=args.folds)
             notes = explain(calibration, [str(w.message) for w in caught])
@@ -205,6 +206,7 @@ def _left(calibration: ClosedLoopCalibration, data: MeasurementFile) -> Residual
 def _implied_noise(calibration: ClosedLoopCalibration, noise: TrackerNoise) -> str:
     """The noise the residual implies, stated noise times sqrt(variance factor), in words."""
     factor = float(np.sqrt(calibration.variance_factor))
+    assert calibration.problem is not None, "calibrate_closed_loop keeps its problem"
     rotation = "" if calibration.problem.measurements.position_only else f" and {factor * noise.rotation:.3g} rad"
     return f"{factor * noise.position:.3g} m{rotation}"
 
@@ -331,7 +333,7 @@ def _print_judgement(calibration: ClosedLoopCalibration, validation: CrossValida
         print(f"note: {note}", file=out)
 
 
-def explain(calibration: ClosedLoopCalibration, warnings_seen: list[str] = ()) -> list[str]:
+def explain(calibration: ClosedLoopCalibration, warnings_seen: Sequence[str] = ()) -> list[str]:
     """Plain-word notes: what the data could not determine, and how far the fit moved."""
     notes = list(warnings_seen)
     base, fitted = set(calibration.base.names), set(calibration.fitted)
@@ -380,8 +382,9 @@ def _coverage(calibration: ClosedLoopCalibration, weak: bool) -> list[str]:
 
 
 def calibration_report(calibration: ClosedLoopCalibration, data: MeasurementFile, nominal: Mechanism,
-                       noise: TrackerNoise, args: argparse.Namespace | None = None, outlier_lines: list[int] = (),
-                       validation: CrossValidation | None = None, notes: list[str] = ()) -> dict:
+                       noise: TrackerNoise, args: argparse.Namespace | None = None,
+                       outlier_lines: Sequence[int] = (), validation: CrossValidation | None = None,
+                       notes: Sequence[str] = ()) -> dict:
     """The JSON report of a closed-loop calibration (models/README.md documents every field)."""
     base, fitted = set(calibration.base.names), set(calibration.fitted)
     setup, selection = calibration.setup, calibration.selection

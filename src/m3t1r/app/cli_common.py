@@ -162,7 +162,7 @@ def check_plots_folder(path: str | Path) -> Path:
 
 
 def campaign_report_fields(setup: MeasurementSetup, estimated: Sequence[str], validation, selection,
-                           fitted: Sequence[str], args: argparse.Namespace) -> dict:
+                           fitted: Sequence[str], args: argparse.Namespace | None) -> dict:
     """The report fields closed-loop and serial calibrations share (models/README.md): the
     measurement frame and marker (`estimated`: the setup parameter names that were estimated),
     the cross-validation, the selection, and the --fix / --prior / --force choices."""

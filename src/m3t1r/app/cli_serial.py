@@ -14,7 +14,7 @@ import contextlib
 import datetime as _dt
 import sys
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -285,7 +285,7 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
             report["noise_source"], report["warnings"] = choice.report(), warned
             if data.sources is not None:
                 report["outlier_sources"] = _outlier_sources(data, lines)
-        if urdf_output is not None:
+        if urdf_output is not None and urdf is not None:  # one is None when the other is
             outputs.stage(urdf_output, calibrated_urdf_bytes(urdf, calibration.model))
         outputs.stage_json(report_output, report)
         written = outputs.commit()
@@ -350,7 +350,7 @@ def _is_translation(name: str) -> bool:
     return name.rpartition(".dt[")[2] in ("0]", "1]", "2]")
 
 
-def explain(calibration: SerialCalibration, warnings_seen: list[str] = ()) -> list[str]:
+def explain(calibration: SerialCalibration, warnings_seen: Sequence[str] = ()) -> list[str]:
     """Plain-word notes: the gauge, what selection dropped, weak parameters, how far the fit moved."""
     notes = list(warnings_seen)
     base, fitted = set(calibration.base.names), set(calibration.fitted)
@@ -378,8 +378,8 @@ def explain(calibration: SerialCalibration, warnings_seen: list[str] = ()) -> li
 
 
 def serial_calibration_report(calibration: SerialCalibration, data: SerialCampaign, args: argparse.Namespace,
-                              noise: TrackerNoise, outlier_lines: list[int] = (),
-                              validation: SerialCrossValidation | None = None, notes: list[str] = ()) -> dict:
+                              noise: TrackerNoise, outlier_lines: Sequence[int] = (),
+                              validation: SerialCrossValidation | None = None, notes: Sequence[str] = ()) -> dict:
     """The JSON report of a serial calibration (strict JSON through io.json_text: NaN becomes null)."""
     chain, setup, selection = calibration.chain, calibration.setup, calibration.selection
     std, fitted = calibration.std(), set(calibration.fitted)

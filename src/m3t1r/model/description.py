@@ -12,7 +12,7 @@ import importlib.resources
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, cast
 
 import numpy as np
 import pinocchio as pin
@@ -73,7 +73,7 @@ class Mechanism:
 
     closures_document: dict | None = field(default=None, repr=False, compare=False)
     """The closures file as read (a YAML mapping), so that `save` never re-reads a file that may have changed."""
-    task: TaskSpec | None = None
+    task: TaskSpec = cast(TaskSpec, None)  # None: the platform frame's task, which __post_init__ sets
     workspace: WorkspaceSpec | None = None
     locked_joints: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()

@@ -524,6 +524,7 @@ class ClosedLoopSolver:
         `native.tangent`); the same bookkeeping, errors and result as the Python loop. `data` is not moved
         to the solution."""
         native = self.native
+        assert native is not None, "called only with the compiled loop"
         order = (1 if previous is None else 2) if predicted else 0
         status, norm, iterations, rcond = native.forward(q, values, order, previous if order == 2 else None,
                                                          branch, self.rules.compiled())
@@ -547,6 +548,7 @@ class ClosedLoopSolver:
     def _reference(self, q: np.ndarray) -> tuple[np.ndarray, bytes] | None:
         """(tangent, branch labels) of the passive closure system at q, or None where it is singular."""
         _, jac = self._system(q, True)
+        assert jac is not None, "asked with_jacobian"
         square = jac.take(self.passive, axis=1)
         lu = lapack.dgetrf(square)[:2]
         inverse, rcond = _inverse_and_rcond(lu, _one_norm(square))
@@ -601,7 +603,7 @@ class ClosedLoopSolver:
         `updateFramePlacement`'s placement by value), so the solver's data may move on."""
         return pin.updateFramePlacement(self.model, self.data, self._platform)
 
-    def _newton(self, q: np.ndarray, unknowns: np.ndarray, system, signature, start_branch=None) -> _Outcome:
+    def _newton(self, q: np.ndarray, unknowns: np.ndarray | None, system, signature, start_branch=None) -> _Outcome:
         """Newton on a square system over the columns `unknowns` (None: every column), with chord steps,
         under `self.rules` (as the compiled loop and the batches).
 
@@ -631,6 +633,7 @@ class ClosedLoopSolver:
                 last_jac, jac = jac, None
             if norm <= tolerance:
                 # Conditioning and branch are judged at the last Jacobian only.
+                assert lu is not None and square is not None and last_jac is not None, "the first pass sets them"
                 inverse, rcond = _inverse_and_rcond(lu, _one_norm(square))
                 if rcond < rules.singular_rcond:
                     raise SingularConfigurationError(f"singular configuration (reciprocal condition {rcond:.2e})",
@@ -642,6 +645,7 @@ class ClosedLoopSolver:
                 return _Outcome(q, norm, iteration, inverse, last_jac, branch)
             if iteration == rules.max_iterations:
                 break
+            assert lu is not None, "the first iteration factorises"
             step = lapack.dgetrs(lu[0], lu[1], residual)[0]
             biggest = abs(float(step[_idamax(step)]))  # nan entries make q nan: the next residual stops
             if biggest > max_step:
@@ -680,12 +684,14 @@ class ClosedLoopSolver:
                 change = sign * 1e-3 * np.linspace(1.0, 0.5, len(self.actuated))
                 q = home.copy()
                 q[self.actuated] += change
+                assert reference is not None, "the loop runs only with it"
                 q[self.passive] += reference[0].dot(change)
                 configurations.append(q)
             unmoved = None
             for q in configurations:
                 rows = self._unmoved_task_rows(q)
                 unmoved = rows if unmoved is None else unmoved & rows
+            assert unmoved is not None, "configurations holds home"
             task = self.mechanism.task
             names = task.position + {"none": (), "yaw": ("theta",), "full": ("rx", "ry", "rz")}[task.rotation]
             self._uncommandable = tuple(name for name, dead in zip(names, unmoved) if dead)
@@ -776,6 +782,7 @@ class ClosedLoopSolver:
         place): (q, residual, iterations, branch, task columns of the inverse, task frame, platform pose)
         as the Python loop gives them; `data` is not moved to the solution."""
         native = self.native
+        assert native is not None, "called only with the compiled loop"
         status, residual, iterations, rcond = native.inverse(q, goal, goal_rotation, order, self._inverse_previous,
                                                              start, self.rules.compiled())
         if status != _native_converged:
@@ -819,6 +826,7 @@ class ClosedLoopSolver:
         lam = -(r . b) / (b . b), only while the path keeps going the same way (0 < lam < 2).
         """
         task, task_inverse = self.mechanism.task, self._task_inverse
+        assert task_inverse is not None and self._last_task is not None, "called after an IK solution"
         rows = task.residual(self._last_task, goal, goal_rotation)
         step = -task_inverse.dot(rows)
         if self._inverse_previous is not None:
@@ -841,6 +849,7 @@ class ClosedLoopSolver:
             residual = np.concatenate((closure, task.residual(placement, goal, goal_rotation)))
             if not with_jacobian:
                 return residual, None
+            assert jac is not None, "asked with_jacobian"
             frame_jac = pin.getFrameJacobian(model, data, frame, pin.LOCAL_WORLD_ALIGNED)
             return residual, np.concatenate((jac, task.jacobian(placement, frame_jac, goal_rotation)))
         return system
