@@ -85,8 +85,8 @@ def _robot(source: str, tool: str | None, base: str | None) -> tuple[pin.Model, 
     """(model, chain, URDF path or None) of --serial: an example-robot-data name or a URDF path."""
     path = Path(source)
     if source in _EXAMPLE_ROBOTS and not path.exists():
-        model = load_example_robot(source)  # type: ignore[arg-type]
-        return model, SerialChain.from_model(model, tool or example_tool_frame(source), base), None  # type: ignore[arg-type]
+        model = load_example_robot(source)
+        return model, SerialChain.from_model(model, tool or example_tool_frame(source), base), None
     if not path.is_file():
         raise InvalidInputError(f"--serial {source}: neither an example robot ({', '.join(_EXAMPLE_ROBOTS)}) "
                                 "nor a URDF file")

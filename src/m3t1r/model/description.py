@@ -12,7 +12,7 @@ import importlib.resources
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, cast
+from typing import Iterator, Literal, cast
 
 import numpy as np
 import pinocchio as pin
@@ -273,7 +273,7 @@ def _load_visual(path: Path, model: pin.Model) -> pin.GeometryModel:
         raise ModelFileError(path, f"cannot load the visual geometry: {exc}") from None
 
 
-def paired_closures(urdf: str | Path, *, recorded: str | None | bool = False) -> tuple[Path, bytes]:
+def paired_closures(urdf: str | Path, *, recorded: str | None | Literal[False] = False) -> tuple[Path, bytes]:
     """The closures file that pairs with `urdf`, and its bytes, as read once.
 
     `NAME.urdf` pairs with `NAME.closures.yaml` (only the final `.urdf` replaced). If the URDF
@@ -317,9 +317,9 @@ def _read_bytes(path: Path) -> bytes:
 
 
 def _closures_of(urdf: Path, closures: Path, recorded: str | None) -> tuple[Path, bytes]:
-    data = None if not closures.exists() and recorded is not None else _read_bytes(closures)
     if recorded is None:
-        return closures, data
+        return closures, _read_bytes(closures)
+    data = None if not closures.exists() else _read_bytes(closures)
     if data is not None and closures_match(data, recorded):
         return closures, data
     for pending in reversed(pending_temporaries(closures)):

@@ -87,6 +87,7 @@ def read_delimited(path: Path, options: ReadOptions, notes: list[str]) -> Tracke
     lower = [n.lower() for n in names]
     columns = _Columns(path, header[0], names, lower, rows, delimiter == ";")
     scale = length_scale(path, options.units or "m")
+    quaternions: np.ndarray | None  # None: position-only
     if options.body == "rigid":
         positions, quaternions, body = _rigid_body(path, header[0], columns, lower, scale)
     else:
