@@ -38,7 +38,8 @@ def cmd_simulate(args: argparse.Namespace) -> None:
         study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only,
                                passive_joints=passive, setup=setup, outliers=args.outliers)
     comments = provenance(args) + [
-        f"truth: {args.sigma_pos:g} m / {args.sigma_rot:g} rad errors on every joint placement and closure/platform frame, seed {args.seed}",
+        f"truth: {args.sigma_pos:g} m / {args.sigma_rot:g} rad errors on every joint placement and "
+        f"closure/platform frame, seed {args.seed}",
         "noise: none" if noise is None else f"noise: tracker {noise.position:g} m / {noise.rotation:g} rad, sliders {noise.actuator:g} m",
         f"lengths in {args.units}; measured: tracker frame . platform . marker",
     ]

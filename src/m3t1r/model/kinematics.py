@@ -322,7 +322,8 @@ class ClosedLoopSolver:
         self._unknown_columns = slice(None) if self._unknowns is None else self._unknowns
         if self.n_rows != len(self.passive):
             raise InvalidInputError(
-                f"{mechanism.closures_path}: {self.n_rows} enforced closure rows for {len(self.passive)} passive joints; "
+                f"{mechanism.closures_path}: {self.n_rows} enforced closure rows for "
+                f"{len(self.passive)} passive joints; "
                 "forward kinematics needs a square system (one row per passive joint)")
         # Block-triangular structure of the passive system, from its pattern at a few generic q
         # (numerically zero entries at one q, e.g. by axis alignment at home, must not split blocks).
@@ -762,8 +763,8 @@ class ClosedLoopSolver:
         outside = [k for k, value in enumerate(actuators.tolist()) if not lower[k] <= value <= upper[k]]
         for k in outside:
             raise OutOfWorkspaceError(
-                f"target needs actuator '{names[k]}' = {actuators[k]:.6g} {self.mechanism.joint_units()[k]}, beyond its limit "
-                f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]", residual, iterations)
+                f"target needs actuator '{names[k]}' = {actuators[k]:.6g} {self.mechanism.joint_units()[k]}, "
+                f"beyond its limit [{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]", residual, iterations)
         # The second-order predictor's history: the solution this one started from, with its goal.
         self._inverse_previous = (self._last_goal, self.last_q) if warm and self._last_goal is not None else None
         # The FK warm start now follows this solution; its predictor tangent is from elsewhere.
