@@ -238,11 +238,27 @@ class InverseResult:
 MAX_TOLERANCE = 1e-6
 
 
+def _checked_tolerance(value: object) -> float:
+    """A solver's tolerance [m, rad], in (0, MAX_TOLERANCE], else InvalidInputError."""
+    tolerance = require_real(value, "ClosedLoopSolver tolerance", minimum=0.0, inclusive=False)
+    if tolerance > MAX_TOLERANCE:
+        raise InvalidInputError(f"ClosedLoopSolver tolerance {tolerance!r}: at most {MAX_TOLERANCE:g} (m, rad "
+                                "of closure residual); a looser one returns open loops as solutions")
+    return tolerance
+
+
+def _checked_max_iterations(value: object) -> int:
+    """A solver's Newton cap, a whole number >= 0 (0 checks the start alone: q_init is returned only
+    if it already closes), else InvalidInputError."""
+    return require_count(value, "ClosedLoopSolver max_iterations", minimum=0)
+
+
 class ClosedLoopSolver:
     """Newton solver for the closures of one `Mechanism` (keeps its own Pinocchio `Data`).
 
     tolerance: the largest closure row [m, rad] a solution may leave, in (0, MAX_TOLERANCE];
-    max_iterations: Newton's cap, a whole number of at least 0. Other values raise InvalidInputError.
+    max_iterations: Newton's cap, a whole number of at least 0. Other values raise InvalidInputError, given
+    here or set later (the `tolerance` and `max_iterations` properties).
 
     native=True (the default): FK, IK and the batches run their Newton loops compiled
     (`m3t1r.model.native`) when the module is built and the joints allow, with the same steps and
@@ -257,19 +273,11 @@ class ClosedLoopSolver:
         self.model = mechanism.model
         self._closure_system = ClosureSystem(self.model, mechanism.closures)
         self.data = self._closure_system.data  # one Data: every evaluation leaves it at the q evaluated
-        if tolerance is not None:
-            tolerance = require_real(tolerance, "ClosedLoopSolver tolerance", minimum=0.0, inclusive=False)
-            if tolerance > MAX_TOLERANCE:
-                raise InvalidInputError(f"ClosedLoopSolver tolerance {tolerance!r}: at most {MAX_TOLERANCE:g} (m, rad "
-                                        "of closure residual); a looser one returns open loops as solutions")
-        if max_iterations is not None:
-            # 0 is a check of the start alone: it returns q_init only if that already closes.
-            max_iterations = require_count(max_iterations, "ClosedLoopSolver max_iterations", minimum=0)
         rules = DEFAULT_RULES if rules is None else rules
         if tolerance is not None:
-            rules = dataclasses.replace(rules, tolerance=float(tolerance))
+            rules = dataclasses.replace(rules, tolerance=_checked_tolerance(tolerance))
         if max_iterations is not None:
-            rules = dataclasses.replace(rules, max_iterations=int(max_iterations))
+            rules = dataclasses.replace(rules, max_iterations=_checked_max_iterations(max_iterations))
         self.rules = rules  # every Newton loop of this solver reads these, Python and compiled
         model = self.model
         nv = model.nv
@@ -359,7 +367,7 @@ class ClosedLoopSolver:
 
     @tolerance.setter
     def tolerance(self, value: float) -> None:
-        self.rules = dataclasses.replace(self.rules, tolerance=float(value))
+        self.rules = dataclasses.replace(self.rules, tolerance=_checked_tolerance(value))
 
     @property
     def max_iterations(self) -> int:
@@ -368,7 +376,7 @@ class ClosedLoopSolver:
 
     @max_iterations.setter
     def max_iterations(self, value: int) -> None:
-        self.rules = dataclasses.replace(self.rules, max_iterations=int(value))
+        self.rules = dataclasses.replace(self.rules, max_iterations=_checked_max_iterations(value))
 
     @property
     def singular_rcond(self) -> float:
