@@ -31,6 +31,7 @@ from m3t1r.app.cli_common import (
     status_stream,
 )
 from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise, judge_fit
+from m3t1r.app.datasets import check_joint_readings
 from m3t1r.calibration.assessment import (
     MAX_NOISE_RATIO,
     StartCheck,
@@ -54,7 +55,7 @@ from m3t1r.io.instruments.records import CONVERTED_COLUMNS
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import sha256_bytes
 from m3t1r.io.poses import poses_from_table
-from m3t1r.io.tables import Table, read_table
+from m3t1r.io.tables import read_table
 from m3t1r.model.poe import SerialChain, tool_poses
 from m3t1r.model.urdf_io import calibrated_urdf_bytes
 
@@ -109,7 +110,11 @@ def read_campaign(path: str, chain: SerialChain, units: str, model: pin.Model | 
     prismatic = ~np.any(chain.twists[:, 3:], axis=1)
     readings = np.column_stack([table.column(n) for n in names]) * np.where(prismatic, scale, 1.0)
     if model is not None:
-        _check_joint_limits(table, model, names, readings, prismatic)
+        at = [model.idx_qs[model.getJointId(name)] for name in names]
+        lower, upper = model.lowerPositionLimit[at], model.upperPositionLimit[at]
+        for note in check_joint_readings(table, names, readings, lower, upper, prismatic,
+                                         scales=np.where(prismatic, scale, 1.0), margin=LIMIT_MARGIN):
+            print(f"note: {note}", flush=True)
     positions = np.column_stack([table.column(c) for c in "xyz"]) * scale
     position_only = not table.has_column("qw")
     rotations = [np.eye(3)] * len(positions) if position_only else [g.rotation for g in poses_from_table(table)]
@@ -123,37 +128,6 @@ def read_campaign(path: str, chain: SerialChain, units: str, model: pin.Model | 
 #: and a real joint is read up to its stop (TIAGo's torso at 0.350181 m on a [0, 0.35] limit); such a
 #: reading is kept, with a note. Beyond it, a reading is refused by line: a fault, not the machine.
 LIMIT_MARGIN = 0.05
-
-
-def _check_joint_limits(table: Table, model: pin.Model, names: tuple[str, ...], readings: np.ndarray,
-                        prismatic: np.ndarray) -> None:
-    """Every reading within its joint's limits, give or take LIMIT_MARGIN of the range (joints with
-    usable limits only)."""
-    for k, name in enumerate(names):
-        index = model.idx_qs[model.getJointId(name)]
-        lower, upper = float(model.lowerPositionLimit[index]), float(model.upperPositionLimit[index])
-        if not (np.isfinite(lower) and np.isfinite(upper) and lower < upper):
-            continue
-        values = readings[:, k]
-        margin = LIMIT_MARGIN * (upper - lower)
-        outside = np.flatnonzero((values < lower - margin) | (values > upper + margin))
-        nearly = np.flatnonzero((values < lower) | (values > upper))
-        if nearly.size and not outside.size:
-            unit = "m" if prismatic[k] else "rad"
-            worst = float(np.max(np.maximum(lower - values, values - upper)))
-            print(f"note: column '{name}': {nearly.size} reading(s) up to {worst:.3g} {unit} beyond the URDF limit "
-                  f"[{lower:.6g}, {upper:.6g}] (file line {int(table.line_numbers[nearly[0]])} first), within "
-                  f"{LIMIT_MARGIN:.0%} of its range: kept as read", flush=True)
-        if outside.size:
-            row = int(outside[0])
-            unit = "m" if prismatic[k] else "rad"
-            hint = f"(SI units: {unit})"
-            # Degrees put most of a column beyond the limits, a bad reading one value.
-            if not prismatic[k] and 2 * outside.size > len(values) \
-                    and np.all((np.radians(values) >= lower) & (np.radians(values) <= upper)):
-                hint = "(every value of the column is within the limits in degrees: give radians)"
-            raise table.error(row, f"{values[row]:.6g} {unit} is beyond the joint limit [{lower:.6g}, {upper:.6g}] "
-                                   + hint, column=name)
 
 
 def _nominal_frames(model: pin.Model, chain: SerialChain, marker: pin.SE3) -> Callable[[np.ndarray], np.ndarray]:
