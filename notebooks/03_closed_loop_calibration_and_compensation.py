@@ -254,9 +254,9 @@ print(f"{'':<24}{'pos mean [um]':>14}{'pos max [um]':>13}{'pos rms [um]':>13}"
       f"{'yaw mean [urad]':>16}{'yaw max [urad]':>15}")
 for label, e in (("nominal commands", accuracy.before), ("compensated commands", accuracy.after)):
     print(f"{label:<24}{e.position_mean * 1e6:14.1f}{e.position_max * 1e6:13.1f}{e.position_rms * 1e6:13.1f}"
-          f"{e.yaw_mean * 1e6:16.1f}{e.yaw_max * 1e6:15.1f}")
+          f"{e.rotation_mean * 1e6:16.1f}{e.rotation_max * 1e6:15.1f}")
 assert accuracy.after.position_mean < 50e-6 and accuracy.after.position_mean < accuracy.before.position_mean / 100
-assert accuracy.after.yaw_mean < 50e-6 and accuracy.after.yaw_mean < accuracy.before.yaw_mean / 100
+assert accuracy.after.rotation_mean < 50e-6 and accuracy.after.rotation_mean < accuracy.before.rotation_mean / 100
 
 # %% [markdown]
 # ## 6. Saving and reloading the calibrated machine

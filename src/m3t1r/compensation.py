@@ -435,16 +435,8 @@ class TrackingErrors(PoseErrors):
         return self.rotation
 
     @property
-    def yaw_mean(self) -> float:
-        return self.rotation_mean
-
-    @property
     def yaw_max(self) -> float:
         return self.rotation_max
-
-    @property
-    def yaw_rms(self) -> float:
-        return self.rotation_rms
 
 
 @dataclass(frozen=True, eq=False)

@@ -16,7 +16,7 @@ import pinocchio as pin
 
 from m3t1r._version import __version__
 from m3t1r.calibration.assessment import describe_parameter
-from m3t1r.calibration.measurement_setup import MeasurementSetup, se3_to_report
+from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelWarning, OutputPathError
 from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256
 from m3t1r.io.paths import read_bounded
@@ -25,7 +25,7 @@ from m3t1r.io.progress import Progress
 from m3t1r.io.tables import table_text
 from m3t1r.model.description import Mechanism
 
-__all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "status_stream", "progress_bar", "provenance",
+__all__ = ["RowFailures", "load_mechanism", "say", "status_stream", "progress_bar", "provenance",
            "parse_priors", "check_plots_folder", "checked_marker", "MAX_MARKER_DISTANCE"]
 
 
@@ -73,14 +73,6 @@ def load_mechanism(urdf: str | None, closures: str | None):
     for note in mechanism.notes:
         print(f"note: {mechanism.closures_path.name}: {note}", file=sys.stderr)
     return mechanism
-
-
-def closures_beside(urdf_out: Path) -> Path:
-    """calibrated.urdf -> calibrated.closures.yaml: a machine is always a pair of files.
-
-    Only the final .urdf is replaced: machine.v1.urdf -> machine.v1.closures.yaml.
-    """
-    return paired_closures_path(urdf_out)
 
 
 def status_stream(outputs) -> TextIO:
@@ -167,10 +159,11 @@ def campaign_report_fields(setup: MeasurementSetup, estimated: Sequence[str], va
     measurement frame and marker (`estimated`: the setup parameter names that were estimated),
     the cross-validation, the selection, and the --fix / --prior / --force choices."""
     errors = None if validation is None else validation.errors
+    placements = setup.to_report()
     return {
-        "measurement_frame": {**se3_to_report(setup.frame),
+        "measurement_frame": {**placements["measurement_frame"],
                               "estimated": any(n.startswith("measurement_frame.") for n in estimated)},
-        "marker": {**se3_to_report(setup.marker), "estimated": any(n.startswith("marker.") for n in estimated)},
+        "marker": {**placements["marker"], "estimated": any(n.startswith("marker.") for n in estimated)},
         "cross_validation": None if errors is None else {
             "position_mean_m": errors.position_mean, "rotation_mean_rad": errors.rotation_mean,
             "position_rms_m": float(np.sqrt(np.mean(np.square(errors.position)))),
