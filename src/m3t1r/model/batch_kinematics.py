@@ -796,7 +796,8 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
             solved.status[i] = _LIMIT
             failures.append(RowFailure(int(chunk[i]), f"inverse kinematics: target needs actuator '{names[k]}' = "
                                        f"{sliders[i, k]:.6g} {solver.mechanism.joint_units()[k]}, beyond its limit "
-                                       f"[{solver._act_lower[k]:.6g}, {solver._act_upper[k]:.6g}]", OutOfWorkspaceError))
+                                       f"[{solver._act_lower[k]:.6g}, {solver._act_upper[k]:.6g}]",
+                                       OutOfWorkspaceError))
         failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
                      for f in failures_of(solved, 0, "inverse kinematics", solver.singular_rcond)]
         parts.append((chunk, solved))
