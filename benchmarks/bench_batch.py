@@ -239,7 +239,8 @@ def main(argv: list[str] | None = None) -> int:
           + ", ".join(f"{name} {value:.2e} m" for name, value in agreement.items()) + ".")
     comp = results["compensation (path)"]
     print(f"compensation: {len(comp.indices)}/{args.n_path} targets; 4 kHz loop budget 250 us.")
-    print(f"SLSQP rows: {len(few)} timed; {excluded} left out (an SLSQP variant above 1e-10, or over 3x its median evaluations).")
+    print(f"SLSQP rows: {len(few)} timed; {excluded} left out "
+          "(an SLSQP variant above 1e-10, or over 3x its median evaluations).")
     for name in slsqp:
         theirs = per[f"{name} (FK from home)"]
         print(f"{name}: {fmt_time(theirs)} per FK from home; forward_batch is {theirs / per['forward_batch']:.1f}x "

@@ -171,8 +171,8 @@ for t in targets:
 # %%
 print(f"{'configuration':<26}{'J_c':>9}{'rank':>6}{'mobility':>9}{'J_c all rows':>14}{'rank':>6}{'mobility':>9}"
       f"{'sigma_16/sigma_1':>18}{'sigma_17/sigma_1':>18}")
-for label, t in [("home", None)] + [(str(t), t) for t in targets[1:3]]:
-    q = mech.home if t is None else solver.inverse(t, q_init=mech.home).q
+for label, goal in [("home", None)] + [(str(t), t) for t in targets[1:3]]:
+    q = mech.home if goal is None else solver.inverse(goal, q_init=mech.home).q
     J = solver.closure_jacobian(q)
     J_all = solver.closure_jacobian(q, all_rows=True)
     s = np.linalg.svd(J_all, compute_uv=False)
@@ -212,12 +212,12 @@ with threadpool_limits(limits=1, user_api="blas"):
         rows.append((t, ik.iterations, ik_cold.iterations, fk.iterations,
                      np.linalg.norm(fk.pose.translation - t[:3])))
 print(f"{'k':>3}  {'target x, y, z, theta':<34}{'warm IK':>8}{'cold IK':>8}{'warm FK':>8}{'FK vs target [m]':>18}")
-for k, (t, a, b, c, e) in enumerate(rows):
+for k, (t, warm_ik_steps, cold_ik_steps, warm_fk_steps, gap) in enumerate(rows):
     if k % 5 == 0 or k == 1:
-        print(f"{k:3d}  {str(np.round(t, 4)):<34}{a:8d}{b:8d}{c:8d}{e:18.1e}")
+        print(f"{k:3d}  {str(np.round(t, 4)):<34}{warm_ik_steps:8d}{cold_ik_steps:8d}{warm_fk_steps:8d}{gap:18.1e}")
 iterations = np.array([r[1:4] for r in rows])
-print(f"mean Newton steps (targets 1..40): warm IK {iterations[1:, 0].mean():.1f}, cold IK {iterations[1:, 1].mean():.1f}, "
-      f"warm FK {iterations[1:, 2].mean():.1f}")
+print(f"mean Newton steps (targets 1..40): warm IK {iterations[1:, 0].mean():.1f}, "
+      f"cold IK {iterations[1:, 1].mean():.1f}, warm FK {iterations[1:, 2].mean():.1f}")
 print("mean time per solve: " + ", ".join(f"{k} {v / len(path) * 1e6:.0f} us"
                                           for k, v in zip(("warm IK", "cold IK", "warm FK"), clock)))
 assert max(r[4] for r in rows) < 1e-9  # every warm FK lands on its target

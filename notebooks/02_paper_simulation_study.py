@@ -18,13 +18,16 @@
 # This notebook reproduces the calibration of Zhang et al. (*Symmetry* 2020) in simulation with `m3t1r.paper`,
 # one section of the paper at a time:
 #
-# | paper | what | `m3t1r.paper` |
-# |---|---|---|
-# | sec. 3, eq. (6), (11) | each principal chain as a serial local-POE chain; every error lumped into its initial poses $T(0)$ | `paper_chains` |
-# | eq. (18)-(21), (31) | $y_i = \log_6(g_{meas}\, g_i(q)^{-1}) = J_i x_i$, stacked over the poses | `two_chain_error_model`, `two_chain_identifiability` |
-# | sec. 5, eq. (32)-(33) | least squares, then $T(0) \leftarrow T(0)\exp_6(X)$, iterated until $\lVert X \rVert \to 0$ | `calibrate_two_chains` |
-# | sec. 4, eq. (22)-(30) | the lower-crank angles $q_{i3}$ from the foot distance $\lvert A_1A_2 \rvert = a$, instead of a sensor | `estimate_lower_crank_angles` |
-# | sec. 6, eq. (34)-(37), Table 1, Fig. 4 | preset errors $\delta t, \delta s, \delta q$; 20 poses; errors before and after | `preset_errors`, `actual_chain_poses`, `paper_study` |
+# - sec. 3, eq. (6), (11): each principal chain as a serial local-POE chain, every error lumped into its initial
+#   poses $T(0)$ (`paper_chains`);
+# - eq. (18)-(21), (31): $y_i = \log_6(g_{meas}\, g_i(q)^{-1}) = J_i x_i$, stacked over the poses
+#   (`two_chain_error_model`, `two_chain_identifiability`);
+# - sec. 5, eq. (32)-(33): least squares, then $T(0) \leftarrow T(0)\exp_6(X)$, iterated until
+#   $\lVert X \rVert \to 0$ (`calibrate_two_chains`);
+# - sec. 4, eq. (22)-(30): the lower-crank angles $q_{i3}$ from the foot distance $\lvert A_1A_2 \rvert = a$,
+#   instead of a sensor (`estimate_lower_crank_angles`);
+# - sec. 6, eq. (34)-(37), Table 1, Fig. 4: preset errors $\delta t, \delta s, \delta q$; 20 poses; errors before
+#   and after (`preset_errors`, `actual_chain_poses`, `paper_study`).
 #
 # The last section applies the same method to the full closed-chain machine, where only the sliders are
 # actuated and measured, and compares it with this project's closed-loop calibration (`calibrate_closed_loop`).
@@ -92,10 +95,10 @@ def row(label, e: PoseErrors) -> str:
 #
 # The paper calibrates the machine as two serial chains, B1 → P and B3 → P, each read by sensors on every joint.
 # `paper_chains` takes them from the description's `principal_chains`. Here each "equivalent" revolute joint
-# $q_{i2}$, $q_{i3}$ is a parallelogram, so the chain holds six joints: slider, upper crank with its coupling, lower crank
-# with its coupling, and platform hinge. Its seven initial poses $T_{0,1}(0), \dots, T_{6,P}(0)$ (eq. 6) each carry a
-# 6-vector error, which gives 42 parameters per chain. Chain B3 ends at `P_II`, a copy of the platform frame that the
-# 6D platform closure welds to `P_I`.
+# $q_{i2}$, $q_{i3}$ is a parallelogram, so the chain holds six joints: slider, upper crank with its coupling, lower
+# crank with its coupling, and platform hinge. Its seven initial poses $T_{0,1}(0), \dots, T_{6,P}(0)$ (eq. 6) each
+# carry a 6-vector error, which gives 42 parameters per chain. Chain B3 ends at `P_II`, a copy of the platform frame
+# that the 6D platform closure welds to `P_I`.
 
 # %%
 chains = paper.paper_chains(mech)
@@ -129,11 +132,13 @@ print(f"... {len(actuators)} slider sets, {q_true.shape[1]} joint values each")
 # Section 6 builds each "actual" chain with three kinds of errors:
 #
 # - $\delta t$ on every initial pose, $T^a(0) = T(0)\exp_6(\delta t)$ (eq. 34);
-# - $\delta s$ on every joint twist, re-orthonormalised so that each joint stays a pure rotation or translation (eq. 35);
+# - $\delta s$ on every joint twist, re-orthonormalised so that each joint stays a pure rotation or translation
+#   (eq. 35);
 # - $\delta q$ on every joint variable, $q^a = q + \delta q$ (eq. 36).
 #
 # The printed Table 1 is missing from the paper, so `PresetErrorScale` uses the orders of magnitude its text
-# implies: 1 mm, 1 mrad, $10^{-3}$ on the twists, and 1 mm or 1 mrad on the joint variables. Change `scale` to try others.
+# implies: 1 mm, 1 mrad, $10^{-3}$ on the twists, and 1 mm or 1 mrad on the joint variables. Change `scale` to try
+# others.
 
 # %%
 scale = paper.PresetErrorScale()
@@ -236,8 +241,8 @@ batch = paper.calibrate_two_chains(mech, q_true[fit], measured_fit, solver="batc
 d_dt = max(np.abs(batch.deltas[p] - cal.deltas[p]).max() for p in cal.deltas)
 d_pose = max(max(e.position.max(), e.rotation.max()) for e in
              (pose_differences(batch.predict(c.name, q_true[held]), cal.predict(c.name, q_true[held])) for c in chains))
-print(f"\nbatch vs recursive solver ({batch.iterations} vs {cal.iterations} iterations): held-out poses differ by at most "
-      f"{d_pose:.1e} (m or rad), the identified dt by at most {d_dt:.1e}")
+print(f"\nbatch vs recursive solver ({batch.iterations} vs {cal.iterations} iterations): "
+      f"held-out poses differ by at most {d_pose:.1e} (m or rad), the identified dt by at most {d_dt:.1e}")
 assert batch.converged and d_pose < 1e-12
 
 # %% [markdown]
@@ -273,16 +278,19 @@ for label, result in (("exact", exact), ("noisy", noisy)):
         print(f"{label}: calibration failed: {result.failure}")
         continue
     for name, errors in result.holdout_poses.items():
+        assert errors.after is not None  # calibrated (no failure)
         print(row(f"{label}, chain {name}, held-out, before", errors.before))
         print(row(f"{label}, chain {name}, held-out, after", errors.after))
 assert not exact.failure and not noisy.failure
 for name in exact.holdout_poses:
     e, n = exact.holdout_poses[name].after, noisy.holdout_poses[name].after
+    assert e is not None and n is not None
     assert max(e.position.max(), e.rotation.max()) < 1e-12  # the same as the cell above
     assert n.position_mean < 5e-5 and n.rotation_mean < 5e-5  # stops at the noise level (10 um, 20 urad)
 
 # %%
 b1 = noisy.calibration_poses["B1"]
+assert b1.after is not None
 figure = plot_pose_errors_before_after(b1.before, b1.after, OUT / "02_fig4_noisy.png",
                                        title="Chain B1, 20 noisy poses: pose error before and after calibration")
 display(Image(filename=str(figure), width=640))
@@ -297,7 +305,8 @@ display(Image(filename=str(figure), width=640))
 # initial guess, and not necessarily to the true angles. `estimate_lower_crank_angles` offers three methods:
 #
 # - `"distance"`: the paper's recursion, with the pseudo-inverse;
-# - `"platform"`: Gauss-Newton on the platform weld $P_I = P_{II}$ (4 enforced rows, 2 unknowns), from the same readings;
+# - `"platform"`: Gauss-Newton on the platform weld $P_I = P_{II}$ (4 enforced rows, 2 unknowns), from the same
+#   readings;
 # - `"sliders"`: the full closure solve (closed-loop FK) from the slider readings alone.
 #
 # Below, all three are compared with the true angles. On this nominal machine the true angles are the closure solve
@@ -325,8 +334,10 @@ for source in ("sensor", "distance", "platform"):
         if result.failure:
             print(f"{label:<46}calibration failed: {result.failure[:60]}")
         else:
-            print(row(f"{label}, B1 held-out after", result.holdout_poses["B1"].after))
-            after_by_source[source, noise is not None] = result.holdout_poses["B1"].after
+            b1_after = result.holdout_poses["B1"].after
+            assert b1_after is not None  # calibrated (no failure)
+            print(row(f"{label}, B1 held-out after", b1_after))
+            after_by_source[source, noise is not None] = b1_after
 for (source, noisy_data), e in after_by_source.items():
     if source == "distance":
         assert e.position_mean > 1e-3  # wrong crank angles spoil the calibration
@@ -344,9 +355,9 @@ for (source, noisy_data), e in after_by_source.items():
 # | row | what is predicted |
 # |---|---|
 # | `nominal` | the uncalibrated nominal machine (closed-loop FK) |
-# | `sensors_before/after` | the paper's chain B1 with *every* passive joint read by a sensor, before and after calibration |
-# | `second_chain_before/after` | the same for chain B3. Its end `P_II` does not follow `P_I` in roll and pitch on this machine |
-# | `sliders_only` | the calibrated chain B1 at the passive angles the nominal closure solve gives from the sliders, so no passive sensors |
+# | `sensors_before/after` | the paper's chain B1, *every* passive joint read by a sensor, before and after |
+# | `second_chain_before/after` | the same for chain B3 (its end `P_II` does not follow `P_I` in roll and pitch) |
+# | `sliders_only` | calibrated B1 at the passive angles the nominal closure solve gives from the sliders |
 # | `calibrated_tree` | chain B1's identified placements written into the tree, closed-loop FK |
 # | `closed_loop` | `calibrate_closed_loop` on the same slider readings and tracker poses |
 
@@ -358,22 +369,24 @@ fields = ("nominal", "sensors_before", "sensors_after", "second_chain_before", "
 print(f"{'held-out pose error, mean':<28}" + "".join(f"{k + ' pos [m]':>17}{k + ' rot [rad]':>17}" for k in studies))
 for name in fields:
     cells = []
-    for result in studies.values():
-        e = getattr(result, name)
+    for chain_study in studies.values():
+        e = getattr(chain_study, name)
         cells.append(f"{'n/a':>17}{'n/a':>17}" if e is None else f"{e.position_mean:17.2e}{e.rotation_mean:17.2e}")
     print(f"{name:<28}" + "".join(cells))
-for label, result in studies.items():
-    cl = result.closed_loop_calibration
-    print(f"{label}: both chains' calibrated placements assemble as one tree: {result.both_chains_assemble}; "
+for label, chain_study in studies.items():
+    cl = chain_study.closed_loop_calibration
+    assert cl is not None
+    print(f"{label}: both chains' calibrated placements assemble as one tree: {chain_study.both_chains_assemble}; "
           f"closed-loop calibration identified {cl.base.rank} of {len(cl.parameters)} parameters")
 print("lower-crank estimates at the held-out poses, max |error| [rad]: "
       + ", ".join(f"{m} {np.abs(e).max():.1e}" for m, e in studies["exact"].crank_error.items()))
-for label, result in studies.items():
-    nominal = result.nominal.position_mean
-    assert result.sensors_after.position_mean < (5e-5 if label == "noisy" else 1e-12)  # every passive joint read
-    assert result.sliders_only.position_mean > nominal / 2  # improves little on the nominal machine
-    assert result.calibrated_tree.position_mean > nominal / 2  # does not help either
-    assert result.closed_loop.position_mean < (1e-4 if label == "noisy" else 1e-5)  # the closed-loop model
+for label, chain_study in studies.items():
+    nominal = chain_study.nominal.position_mean
+    assert chain_study.calibrated_tree is not None and chain_study.closed_loop is not None
+    assert chain_study.sensors_after.position_mean < (5e-5 if label == "noisy" else 1e-12)  # every passive joint read
+    assert chain_study.sliders_only.position_mean > nominal / 2  # improves little on the nominal machine
+    assert chain_study.calibrated_tree.position_mean > nominal / 2  # does not help either
+    assert chain_study.closed_loop.position_mean < (1e-4 if label == "noisy" else 1e-5)  # the closed-loop model
 
 # %% [markdown]
 # The same closed-loop calibration, called directly. `simulate_study` with the same seed and size draws the same
@@ -390,7 +403,9 @@ print(HEADER)
 closed_errors = pose_errors(closed.mechanism, study.truth, study.holdout_actuators)
 print(row("nominal machine, held-out", pose_errors(mech, study.truth, study.holdout_actuators)))
 print(row("calibrate_closed_loop, held-out", closed_errors))
-assert abs(closed_errors.position_mean - studies["exact"].closed_loop.position_mean) < 1e-6  # the same fit
+exact_closed_loop = studies["exact"].closed_loop
+assert exact_closed_loop is not None
+assert abs(closed_errors.position_mean - exact_closed_loop.position_mean) < 1e-6  # the same fit
 
 # %% [markdown]
 # **Reading the tables.** Once every passive joint is read, the paper's serial model reproduces chain B1 of the

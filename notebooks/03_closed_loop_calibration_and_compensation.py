@@ -25,8 +25,9 @@
 #
 # **Sensitivity.** With the sliders fixed, the passive joints follow the closures. Implicit differentiation of
 # $r_c(q, p) = 0$ gives $\partial q_{passive}/\partial p = -J_{c,passive}^{-1}\,\partial r_c/\partial p$ (a
-# 16 × 16 solve). The platform twist is then $\partial \xi_P/\partial p = X_P + J_{P,passive}\,\partial q_{passive}/\partial p$
-# (WORLD). $X_P$ comes from Pinocchio's kinematic regressor, the columns of eq. (17).
+# 16 × 16 solve). The platform twist is then
+# $\partial \xi_P/\partial p = X_P + J_{P,passive}\,\partial q_{passive}/\partial p$ (WORLD). $X_P$ comes from
+# Pinocchio's kinematic regressor, the columns of eq. (17).
 #
 # **Residual** per pose: $e = [p_{model} - p_{meas};\ \log_3(R_{meas}^\top R_{model})]$. Position is in $B$ [m],
 # orientation in the platform frame [rad]. It is whitened by the tracker noise and minimised by Levenberg-Marquardt
@@ -88,7 +89,8 @@ study = simulate_study(mech, n_poses=N_POSES, n_holdout=N_HOLDOUT, seed=SEED, no
 measurements = study.measurements
 print(noise)
 print(f"{len(measurements)} calibration poses: slider readings {measurements.actuators.shape} [m] and "
-      f"{len(measurements.poses)} tracker poses of '{mech.platform_frame}'; {len(study.holdout_actuators)} held-out slider sets")
+      f"{len(measurements.poses)} tracker poses of '{mech.platform_frame}'; "
+      f"{len(study.holdout_actuators)} held-out slider sets")
 print(f"\n{'pose':>4}  {'slider readings [m]':<38}{'measured x, y, z [m]':<30}{'yaw [rad]':>10}")
 for k in range(4):
     g = measurements.poses[k]
@@ -99,7 +101,8 @@ for k in range(4):
 # ## 2. The parameters
 #
 # Placements: the 20 joint placements of the tree (each $T_{k-1,k}(0)$) plus the 14 frames that the 7 closures and
-# the measurement use. A parameter is named `placement.dt[k]`, with $k = 0..5$ for $v_x, v_y, v_z, \omega_x, \omega_y, \omega_z$.
+# the measurement use. A parameter is named `placement.dt[k]`, with $k = 0..5$ for
+# $v_x, v_y, v_z, \omega_x, \omega_y, \omega_z$.
 
 # %%
 error_model = ClosedLoopErrorModel(mech)
@@ -147,18 +150,18 @@ assert 0.7 < cal.rms_after[1] / (math.sqrt(3) * noise.rotation * shrink) < 1.5
 
 # %%
 LABELS = ("vx", "vy", "vz", "wx", "wy", "wz")
-kept = {}
+kept: dict[str, list[int]] = {}
 for name in cal.base.names:
-    placement, k = name[:-1].split(".dt[")
-    kept.setdefault(placement, []).append(int(k))
+    placement, component = name[:-1].split(".dt[")
+    kept.setdefault(placement, []).append(int(component))
 print(f"{'placement':<16}{'kind':<7}{'kept':>5}  components")
 for p in error_model.placements:
     components = kept.get(p.name, [])
     print(f"{p.name:<16}{p.kind:<7}{len(components):5d}  {' '.join(LABELS[k] for k in components)}")
 true_value = dict(zip(error_model.names, study.errors))  # the simulated machine's errors, same order
 print(f"\n{'largest identified':<20}{'value':>9}{'std':>9}{'truth':>9}   [mm or mrad]")
-for n in sorted(cal.base.names, key=lambda n: -abs(cal.parameters[n]))[:6]:
-    print(f"{n:<20}{cal.parameters[n] * 1e3:+9.2f}{cal.std[n] * 1e3:9.2f}{true_value[n] * 1e3:+9.2f}")
+for name in sorted(cal.base.names, key=lambda n: -abs(cal.parameters[n]))[:6]:
+    print(f"{name:<20}{cal.parameters[name] * 1e3:+9.2f}{cal.std[name] * 1e3:9.2f}{true_value[name] * 1e3:+9.2f}")
 
 # %% [markdown]
 # ## 4. Accuracy on held-out poses, and its predicted floor
@@ -186,7 +189,8 @@ for label, e in rows.items():
 after = rows["held-out poses, calibrated"]
 predicted = predicted_pose_std(cal, held)
 rms = lambda v: math.sqrt(np.mean(np.square(v)))
-print(f"\nheld-out RMS, actual vs predicted: position {rms(after.position) * 1e6:.1f} vs {rms(predicted.position) * 1e6:.1f} um, "
+print(f"\nheld-out RMS, actual vs predicted: "
+      f"position {rms(after.position) * 1e6:.1f} vs {rms(predicted.position) * 1e6:.1f} um, "
       f"rotation {rms(after.rotation) * 1e6:.1f} vs {rms(predicted.rotation) * 1e6:.1f} urad")
 assert after.position_mean < 50e-6 and after.position_mean < rows["held-out poses, nominal model"].position_mean / 100
 assert 0.5 < rms(after.position) / rms(predicted.position) < 2 and 0.5 < rms(after.rotation) / rms(predicted.rotation) < 2
@@ -246,12 +250,13 @@ assert len(commands.indices) == commands.n_targets and not commands.failures
 # %%
 accuracy = compensation_accuracy(mech, cal.mechanism, study.truth, targets)
 print(f"{len(accuracy.indices)} of {accuracy.n_targets} targets evaluated")
-print(f"{'':<24}{'pos mean [um]':>14}{'pos max [um]':>13}{'pos rms [um]':>13}{'yaw mean [urad]':>16}{'yaw max [urad]':>15}")
+print(f"{'':<24}{'pos mean [um]':>14}{'pos max [um]':>13}{'pos rms [um]':>13}"
+      f"{'yaw mean [urad]':>16}{'yaw max [urad]':>15}")
 for label, e in (("nominal commands", accuracy.before), ("compensated commands", accuracy.after)):
     print(f"{label:<24}{e.position_mean * 1e6:14.1f}{e.position_max * 1e6:13.1f}{e.position_rms * 1e6:13.1f}"
-          f"{e.yaw_mean * 1e6:16.1f}{e.yaw_max * 1e6:15.1f}")
+          f"{e.rotation_mean * 1e6:16.1f}{e.rotation_max * 1e6:15.1f}")
 assert accuracy.after.position_mean < 50e-6 and accuracy.after.position_mean < accuracy.before.position_mean / 100
-assert accuracy.after.yaw_mean < 50e-6 and accuracy.after.yaw_mean < accuracy.before.yaw_mean / 100
+assert accuracy.after.rotation_mean < 50e-6 and accuracy.after.rotation_mean < accuracy.before.rotation_mean / 100
 
 # %% [markdown]
 # ## 6. Saving and reloading the calibrated machine

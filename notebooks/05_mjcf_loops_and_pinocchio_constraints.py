@@ -69,6 +69,7 @@ mjcf.write_text(f"""<mujoco model="loop">
                                         "workspace: {actuators: {j1: [-0.3, 0.3]}}\n")
 loop = Mechanism.load(mjcf)
 print("closures:", [(c.name, c.type, c.rows) for c in loop.closures], "| actuated:", loop.actuated_joints)
+assert loop.closures_document is not None  # an MJCF machine keeps the closures document it was built from
 print("closure frames declared at the weld's ends:", loop.closures_document["frames"])
 assert [(c.type, len(c.rows)) for c in loop.closures] == [("6D", 6)] and loop.actuated_joints == ("j1",)
 
@@ -84,7 +85,7 @@ weld, data = welds[0], model.createData()
 solver = ClosedLoopSolver(loop)
 worst = 0.0
 for angle in np.linspace(-0.3, 0.3, 13):
-    q = solver.forward([angle]).q
+    q = solver.forward(np.array([angle])).q
     pin.forwardKinematics(model, data, q)
     relative = (data.oMi[weld.joint1_id] * weld.joint1_placement).actInv(data.oMi[weld.joint2_id] * weld.joint2_placement)
     worst = max(worst, float(np.abs(pin.log6(relative).vector).max()))
@@ -108,7 +109,7 @@ assert held_out.position_max < 1e-7
 constraints = rigid_constraint_models(calibrated)
 datas = rigid_constraint_datas(constraints)
 print([(c.name, c.type, c.joint1_id, c.joint2_id) for c in constraints])
-q = ClosedLoopSolver(calibrated).forward([0.2]).q
+q = ClosedLoopSolver(calibrated).forward(np.array([0.2])).q
 print(f"Pinocchio's constraint error at an assembled pose: {np.abs(constraint_residual(calibrated.model, constraints, q)).max():.1e}")
 
 # %% [markdown]

@@ -1,4 +1,5 @@
-"""Closed-form kinematics of the nominal machine (docs/design.md, "The mechanism"), an oracle independent of Pinocchio."""
+"""Closed-form kinematics of the nominal machine (docs/design.md, "The mechanism"), an oracle independent of
+Pinocchio."""
 
 from __future__ import annotations
 

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from m3t1r.app.cli import main
-from m3t1r.app.datasets import read_actuators, read_poses
+from m3t1r.app.datasets import check_joint_readings, read_actuators, read_poses
+from m3t1r.errors import DataFileError
+from m3t1r.io.tables import read_table
 from m3t1r.model.description import Mechanism, nominal_model_paths
 from m3t1r.model.design import NOMINAL
 from m3t1r.model.examples import five_bar_files
@@ -312,8 +314,51 @@ def test_hinge_readings_in_degrees_are_told_to_be_radians(tmp_path, capsys):
     sliders = _write(tmp_path / "s.csv", "motor_1,motor_2\n133.5,46.4\n127.8,40.1\n")  # degrees of 2.33, 0.81 rad
     assert main(["fk", str(sliders), "--model", str(urdf), "-o", str(tmp_path / "p.csv")]) == 2
     err = capsys.readouterr().err
-    assert "line 2, column 'motor_1': 133.5 is beyond the joint limit [1.83, 2.83]" in err
+    assert "line 2, column 'motor_1': 133.5 rad is beyond the joint limit [1.83, 2.83]" in err
     assert "within the limits in degrees: give radians" in err
+
+
+def _joint_table(tmp_path, rows: str):
+    table = read_table(_write(tmp_path / "joints.csv", "slide,hinge\n" + rows), required=["slide", "hinge"])
+    return table, np.column_stack([table.column("slide"), table.column("hinge")])
+
+
+def test_joint_readings_a_hair_past_a_limit_are_kept_with_a_note_only_within_the_margin(tmp_path):
+    """One check for closed-loop (no margin) and serial readings (a share of the range past a
+    nominal URDF limit is kept, with a note naming the column and its first line)."""
+    table, readings = _joint_table(tmp_path, "0.1,0.0\n0.352,0.5\n0.2,-0.1\n")
+    limits = np.array([0.0, -1.0]), np.array([0.35, 1.0])
+    with pytest.raises(DataFileError) as caught:
+        check_joint_readings(table, ("slide", "hinge"), readings, *limits, [True, False])
+    assert str(caught.value).endswith("line 3, column 'slide': 0.352 m is beyond the joint limit [0, 0.35] "
+                                      "(SI units: m)")
+    notes = check_joint_readings(table, ("slide", "hinge"), readings, *limits, [True, False], margin=0.05)
+    assert notes == ["column 'slide': 1 reading(s) up to 0.002 m beyond the URDF limit [0, 0.35] (file line 3 first), "
+                     "within 5% of its range: kept as read"]
+    with pytest.raises(DataFileError, match=r"line 3, column 'slide': 0.352 m is beyond the joint limit \[0, 0.3\]"):
+        check_joint_readings(table, ("slide", "hinge"), readings, np.array([0.0, -1.0]), np.array([0.3, 1.0]),
+                             [True, False], margin=0.05)
+
+
+def test_joint_limits_checked_are_the_usable_ones_and_the_hints_name_the_likely_unit(tmp_path):
+    table, readings = _joint_table(tmp_path, "120.0,40.0\n150.0,-20.0\n")
+    unbounded = np.array([-np.inf, 1.0]), np.array([np.inf, -1.0])  # no limits; an empty range is not checked
+    assert check_joint_readings(table, ("slide", "hinge"), readings, *unbounded, [True, False]) == []
+    with pytest.raises(DataFileError, match=r"line 2, column 'slide': 120 m is beyond the joint limit \[-inf, 0.1\]"):
+        check_joint_readings(table, ("slide", "hinge"), readings, np.array([-np.inf, -1.0]), np.array([0.1, 1.0]),
+                             [True, False])
+    millimetres = np.array([0.1, -1.0]), np.array([0.2, 1.0])
+    with pytest.raises(DataFileError, match=r"within the limits in millimetres: use --units mm\)$"):
+        check_joint_readings(table, ("slide", "hinge"), readings, *millimetres, [True, False])
+    with pytest.raises(DataFileError, match=r"0.12 m is beyond .* \(SI units: m\)$"):  # read as mm already
+        check_joint_readings(table, ("slide", "hinge"), readings * 1e-3, np.array([0.0, -1.0]), np.array([0.1, 1.0]),
+                             [True, False], scales=[1e-3, 1.0])
+    degrees = np.array([-np.inf, -1.0]), np.array([np.inf, 1.0])
+    with pytest.raises(DataFileError, match=r"column 'hinge': 40 rad .* in degrees: give radians\)$"):
+        check_joint_readings(table, ("slide", "hinge"), readings, *degrees, [True, False])
+    with pytest.raises(DataFileError, match=r"column 'hinge': 40 rad .* \(SI units: rad\)$"):  # one of three: a fault
+        table, readings = _joint_table(tmp_path, "0.0,40.0\n0.0,0.5\n0.0,-0.5\n")
+        check_joint_readings(table, ("slide", "hinge"), readings, *degrees, [True, False])
 
 
 def test_a_marker_given_in_millimetres_is_refused_with_the_metres(tmp_path, capsys):

@@ -63,9 +63,9 @@ def test_compensation_brings_millimetres_down_to_the_calibration_error(calibrate
     study, calibration = calibrated_study
     _, result = accuracy
     before, after = result.before, result.after
-    assert before.position_mean > 5e-3 and before.yaw_mean > 1e-2  # an uncalibrated machine: mm and tens of mrad
+    assert before.position_mean > 5e-3 and before.rotation_mean > 1e-2  # an uncalibrated machine: mm and tens of mrad
     assert after.position_mean < 2.5e-5 and after.position_max < 1e-4
-    assert after.yaw_mean < 2e-5 and after.yaw_max < 1e-4
+    assert after.rotation_mean < 2e-5 and after.rotation_max < 1e-4
     assert after.position_rms >= after.position_mean and after.position_max >= after.position_rms
     # With compensation the truth misses a target by exactly the calibrated model's own error at q^c,
     # because the calibrated model reaches the target's position and yaw exactly (to 1e-12).
@@ -75,9 +75,9 @@ def test_compensation_brings_millimetres_down_to_the_calibration_error(calibrate
     # ... and that error is the calibration's held-out error elsewhere in the workspace.
     held_out = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
     assert held_out.position_mean / 1.5 < after.position_mean < 1.5 * held_out.position_mean
-    assert after.yaw_mean < 1.5 * held_out.rotation_mean
+    assert after.rotation_mean < 1.5 * held_out.rotation_mean
     # A 100x improvement at least: the paper reports "at least 10 times".
-    assert before.position_mean > 100 * after.position_mean and before.yaw_mean > 100 * after.yaw_mean
+    assert before.position_mean > 100 * after.position_mean and before.rotation_mean > 100 * after.rotation_mean
 
 
 def test_batch_outputs_on_the_calibrated_model(calibrated_study, accuracy):
@@ -225,7 +225,7 @@ def test_compensation_accuracy_reports_failed_targets(mechanism):
     assert [f.index for f in result.failures] == [4] and result.failures[0].error is OutOfWorkspaceError
     assert result.n_targets == 8 and len(result.before.position) == len(result.after.yaw) == 7
     np.testing.assert_array_equal(result.indices, [0, 1, 2, 3, 5, 6, 7])
-    assert result.before.position_max < 1e-10 and result.after.yaw_max < 1e-10  # truth == nominal
+    assert result.before.position_max < 1e-10 and result.after.rotation_max < 1e-10  # truth == nominal
 
 
 def test_compensator_streams_one_target_at_a_time(calibrated_study):

@@ -99,7 +99,8 @@ def motive_csv(path: Path, session: Campaign, occluded: slice = slice(0, 0)) -> 
     lines = [f"Format Version,1.23,Take Name,calibration,Capture Frame Rate,{RATE:.6f},Export Frame Rate,{RATE:.6f},"
              f"Total Frames in Take,{n},Total Exported Frames,{n},Rotation Type,Quaternion,Length Units,Millimeters,"
              "Coordinate Space,Global", "",
-             ",,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Marker,Marker,Marker",
+             ",,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,"
+             "Marker,Marker,Marker",
              ",,tool,tool,tool,tool,tool,tool,tool,tool,spare,spare,spare",
              ",,1,1,1,1,1,1,1,1,2,2,2",
              ",,Rotation,Rotation,Rotation,Rotation,Position,Position,Position,Mean Marker Error,Position,Position,Position",

@@ -34,7 +34,8 @@ WORKER = textwrap.dedent(r'''
 
     from m3t1r.app import cli
     from m3t1r.model.description import Mechanism, nominal_model_paths
-    import m3t1r.calibration.closed_loop, m3t1r.app.datasets, m3t1r.model.urdf_io, m3t1r.model.kinematics  # imported before forking
+    # imported before forking
+    import m3t1r.calibration.closed_loop, m3t1r.app.datasets, m3t1r.model.urdf_io, m3t1r.model.kinematics
 
     config = json.loads(sys.argv[1])
     folder, measurements = Path(config["folder"]), Path(config["measurements"])
@@ -116,7 +117,8 @@ WORKER = textwrap.dedent(r'''
         version = "new" if urdf_bytes == new[urdf.name] else "old" if urdf_bytes == old[urdf.name] else None
         assert version is not None, f"{plan}: the URDF is neither the old nor the new one"
         closures_used = machine.closures_document
-        document = json.loads(report.read_bytes(), parse_constant=lambda token: (_ for _ in ()).throw(ValueError(token)))
+        refuse = lambda token: (_ for _ in ()).throw(ValueError(token))
+        document = json.loads(report.read_bytes(), parse_constant=refuse)
         assert document["input"]["sha256"] in (old_input, new_input), f"{plan}: the report is neither old nor new"
         leftovers = sorted(p.name for p in folder.iterdir() if p.name.endswith(".tmp"))
         killed = os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL

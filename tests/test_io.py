@@ -60,7 +60,8 @@ def test_values_are_written_in_shortest_exact_form(tmp_path: Path) -> None:
 
 def test_comments_blank_lines_and_line_endings(tmp_path: Path) -> None:
     path = tmp_path / "commented.csv"
-    text = "\ufeff# produced by a test\r\n\r\n   # indented comment\r\n x , y \r\n1,2\r\n\r\n# between rows\r\n 3 , 4e0 \r\n\n"
+    text = ("\ufeff# produced by a test\r\n\r\n   # indented comment\r\n x , y \r\n1,2\r\n\r\n"
+            "# between rows\r\n 3 , 4e0 \r\n\n")
     write(path, text)
 
     table = read_table(path, required=["x", "y"])

@@ -164,6 +164,27 @@ def test_yaw_convention():
     assert math.isclose(yaw_of(pin.rpy.rpyToMatrix(0.0, 0.0, 0.4)), 0.4)
 
 
+@pytest.mark.parametrize("name, value, message", [
+    ("tolerance", 2e-6, r"tolerance 2e-06: at most 1e-06 \(m, rad of closure residual\)"),
+    ("tolerance", 0.0, "tolerance: expected a finite number above 0, got 0.0"),
+    ("tolerance", float("nan"), "tolerance: expected a finite number above 0"),
+    ("max_iterations", -1, "max_iterations"),
+    ("max_iterations", 2.5, "max_iterations"),
+])
+def test_a_solver_refuses_the_same_settings_given_or_set_later(mechanism, name, value, message):
+    """A tolerance looser than MAX_TOLERANCE would return open loops as solutions, whether it is
+    given to the constructor or set afterwards; a refused setting leaves the solver as it was."""
+    with pytest.raises(InvalidInputError, match=message):
+        ClosedLoopSolver(mechanism, **{name: value})
+    solver = ClosedLoopSolver(mechanism)
+    before = getattr(solver, name)
+    with pytest.raises(InvalidInputError, match=message):
+        setattr(solver, name, value)
+    assert getattr(solver, name) == before
+    setattr(solver, name, 1e-9 if name == "tolerance" else 7)
+    assert getattr(solver, name) == (1e-9 if name == "tolerance" else 7)
+
+
 def test_warm_path_through_a_singularity_is_loud(solver):
     """Driving the knees down through the flat five-bar by small warm steps must not silently
     continue on the knees-below-the-rails branch."""

@@ -45,6 +45,8 @@ REFUSALS = [
     (_set("actuated_joints", ["motor_1", "motor_1"]), "actuated_joints: a joint is listed twice"),
     (_set("closures", []), "closures: at least one closure is required"),
     (_set("closures", ["loop"]), "closures[0]: expected a mapping"),
+    (_set("closures", 5), "closures must be a list of closures, got 5"),
+    (_set("closures", {"loop": None}), "closures must be a list of closures, got {'loop': None}"),
     (_closure(type="XD"), "closure 'loop': type must be 3D or 6D, got 'XD'"),
     (lambda d: d["closures"][0].pop("name") and _closure(type="2D")(d),
      "closure 'closures[0]': type must be 3D or 6D, got '2D'"),

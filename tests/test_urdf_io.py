@@ -323,7 +323,8 @@ def test_missing_origin_is_inserted_in_the_file_style(chain_urdf: Path, tmp_path
     write_calibrated_urdf(chain_urdf, model, out)
 
     text = out.read_text()
-    assert '<joint name="j3" type="continuous">\n    <origin xyz="0.0 0.125 0.0" rpy="0.0 0.0 0.0"/>\n    <parent link="l4"/>' in text
+    assert ('<joint name="j3" type="continuous">\n    <origin xyz="0.0 0.125 0.0" rpy="0.0 0.0 0.0"/>\n'
+            '    <parent link="l4"/>') in text
     assert re.search(r"<origin rpy='[-0-9. e]+' xyz='[-0-9. e]+' />", text)  # f2's quoting and spacing kept
     assert '<origin xyz="0.0 0.0 0.1" rpy="0.0 0.0 0.0"/>' in text  # f3 had no rpy
     assert text.startswith('<?xml version="1.0"?>\n<!-- synthetic chain for the URDF writer tests -->\n<robot name="chain">')

@@ -9,11 +9,12 @@ the same with `with single_blas_thread(): ...`.
 from __future__ import annotations
 
 import functools
-from typing import Callable, TypeVar
+from typing import Callable, ParamSpec, TypeVar
 
 from threadpoolctl import ThreadpoolController
 
-F = TypeVar("F", bound=Callable)
+P = ParamSpec("P")
+R = TypeVar("R")
 _controller: ThreadpoolController | None = None
 
 
@@ -29,12 +30,12 @@ def single_blas_thread():
     return _controller.limit(limits=1, user_api="blas")
 
 
-def on_one_blas_thread(func: F) -> F:
+def on_one_blas_thread(func: Callable[P, R]) -> Callable[P, R]:
     """Decorator: run `func` with BLAS limited to one thread."""
 
     @functools.wraps(func)
-    def wrapper(*args, **kwargs):
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
         with single_blas_thread():
             return func(*args, **kwargs)
 
-    return wrapper  # type: ignore[return-value]
+    return wrapper

@@ -381,8 +381,9 @@ class Compensator:
         task = self.calibrated.task
         rows = _validated_targets(targets, task)
         if isinstance(rows[0], pin.SE3):
-            wanted = np.array([roll_pitch_of(p.rotation) for p in rows])
-            rows = list(task.coordinates(np.array([p.homogeneous for p in rows])))
+            poses = [p for p in rows if isinstance(p, pin.SE3)]  # every row: `_validated_targets` gives one kind
+            wanted = np.array([roll_pitch_of(p.rotation) for p in poses])
+            rows = list(task.coordinates(np.array([p.homogeneous for p in poses])))
         else:
             wanted = np.zeros((len(rows), 2))
         if task.rotation == "full":
@@ -434,16 +435,8 @@ class TrackingErrors(PoseErrors):
         return self.rotation
 
     @property
-    def yaw_mean(self) -> float:
-        return self.rotation_mean
-
-    @property
     def yaw_max(self) -> float:
         return self.rotation_max
-
-    @property
-    def yaw_rms(self) -> float:
-        return self.rotation_rms
 
 
 @dataclass(frozen=True, eq=False)
@@ -451,9 +444,10 @@ class CompensationAccuracy:
     """Errors of the truth machine at the targets, driven without and with compensation.
 
     n_targets: N, targets given; indices: (M,) those where all four solves succeeded (nominal IK,
-    calibrated IK, truth FK at both slider sets), the rows of every array here; before: truth errors at the nominal-IK sliders (a controller that trusts
-    the nominal model); after: truth errors at the calibrated-IK sliders q^c; actuators_before /
-    actuators_after: (M, 4) those sliders [m]; failures: the other targets, by index and reason.
+    calibrated IK, truth FK at both slider sets), the rows of every array here; before: truth
+    errors at the nominal-IK sliders (a controller that trusts the nominal model); after: truth
+    errors at the calibrated-IK sliders q^c; actuators_before / actuators_after: (M, 4) those
+    sliders [m]; failures: the other targets, by index and reason.
     """
 
     n_targets: int
@@ -530,7 +524,7 @@ def workspace_targets(n: int, rng: np.random.Generator, box: WorkspaceBox = NOMI
     return box.sample(rng, n)
 
 
-def workspace_grid(counts: tuple[int, int, int, int], box: WorkspaceBox = NOMINAL.workspace) -> np.ndarray:
+def workspace_grid(counts: Sequence[int], box: WorkspaceBox = NOMINAL.workspace) -> np.ndarray:
     """A regular grid over the workspace box, as a path: (prod(counts), 4) rows (x, y, z, theta).
 
     counts: points per axis (x, y, z, theta), each >= 1 (1 puts the axis at the box centre).

@@ -8,7 +8,7 @@ a position array in m and a rotation array in rad, one entry per pose.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -100,7 +100,8 @@ def _as_homogeneous(poses: Sequence[pin.SE3] | ArrayLike, what: str) -> np.ndarr
     if isinstance(poses, np.ndarray):
         array = np.asarray(poses, dtype=float)
     else:
-        rows = [g.homogeneous if isinstance(g, pin.SE3) else np.asarray(g, dtype=float) for g in poses]
+        rows = ([g.homogeneous if isinstance(g, pin.SE3) else np.asarray(g, dtype=float) for g in poses]
+                if isinstance(poses, Iterable) else [np.asarray(poses, dtype=float)])  # a scalar: refused below
         array = np.array(rows) if rows else np.empty((0, 4, 4))
     if array.ndim != 3 or array.shape[1:] != (4, 4):
         raise InvalidInputError(f"{what}: expected pinocchio.SE3 objects or (M, 4, 4) homogeneous matrices, "

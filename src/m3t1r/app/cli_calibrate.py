@@ -15,7 +15,7 @@ import datetime as _dt
 import math
 import sys
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TextIO
 
@@ -161,6 +161,7 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
                 choice, lambda: _fit_causes(args, nominal, fitted_data, marker, estimate_frame, calibration, choice),
                 force=args.force)
             with Progress(f"cross-validating ({args.folds} folds)", None) as progress:
+                assert calibration.problem is not None, "calibrate_closed_loop keeps its problem"
                 calibration.problem.on_evaluate = progress.advance
                 validation = cross_validate(calibration, folds=args.folds,
                                             groups=pose_groups(fitted_data.measurements.actuators, fitted_data.sources))
@@ -223,6 +224,7 @@ def _left(calibration: ClosedLoopCalibration, data: MeasurementFile) -> Residual
 def _implied_noise(calibration: ClosedLoopCalibration, noise: TrackerNoise) -> str:
     """The noise the residual implies, stated noise times sqrt(variance factor), in words."""
     factor = float(np.sqrt(calibration.variance_factor))
+    assert calibration.problem is not None, "calibrate_closed_loop keeps its problem"
     rotation = "" if calibration.problem.measurements.position_only else f" and {factor * noise.rotation:.3g} rad"
     return f"{factor * noise.position:.3g} m{rotation}"
 
@@ -332,6 +334,7 @@ def _score_held_out(calibration: ClosedLoopCalibration, held_out: MeasurementFil
         raise InvalidInputError(f"--validate {held_out.path}: no row assembles on the calibrated machine")
     errors = pose_errors_between(calibration.setup.measured_poses(solved.poses), measured)
     failed = sorted(int(held_out.lines[f.index]) for f in solved.failures)
+    assert calibration.problem is not None, "a calibration made by calibrate_closed_loop keeps its problem"
     position_only = measurements.position_only or calibration.problem.measurements.position_only
     return held_out_entry(held_out.path, held_out.sha256, len(measurements), errors, position_only,
                           failed_lines=failed)
@@ -367,7 +370,7 @@ def _print_judgement(calibration: ClosedLoopCalibration, validation: CrossValida
         print(f"note: {note}", file=out)
 
 
-def explain(calibration: ClosedLoopCalibration, warnings_seen: list[str] = ()) -> list[str]:
+def explain(calibration: ClosedLoopCalibration, warnings_seen: Sequence[str] = ()) -> list[str]:
     """Plain-word notes: what the data could not determine, and how far the fit moved."""
     notes = list(warnings_seen)
     base, fitted = set(calibration.base.names), set(calibration.fitted)
@@ -417,8 +420,9 @@ def _coverage(calibration: ClosedLoopCalibration, weak: bool) -> list[str]:
 
 
 def calibration_report(calibration: ClosedLoopCalibration, data: MeasurementFile, nominal: Mechanism,
-                       noise: TrackerNoise, args: argparse.Namespace | None = None, outlier_lines: list[int] = (),
-                       validation: CrossValidation | None = None, notes: list[str] = ()) -> dict:
+                       noise: TrackerNoise, args: argparse.Namespace | None = None,
+                       outlier_lines: Sequence[int] = (), validation: CrossValidation | None = None,
+                       notes: Sequence[str] = ()) -> dict:
     """The JSON report of a closed-loop calibration (models/README.md documents every field)."""
     base, fitted = set(calibration.base.names), set(calibration.fitted)
     setup, selection = calibration.setup, calibration.selection

@@ -9,14 +9,14 @@ import sys
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TextIO
+from typing import TextIO, cast
 
 import numpy as np
 import pinocchio as pin
 
 from m3t1r._version import __version__
 from m3t1r.calibration.assessment import describe_parameter
-from m3t1r.calibration.measurement_setup import MeasurementSetup, se3_to_report
+from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelWarning, OutputPathError
 from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256
 from m3t1r.io.paths import read_bounded
@@ -27,7 +27,7 @@ from m3t1r.model.description import Mechanism
 from m3t1r.model.mjcf_io import is_mjcf
 from m3t1r.model.workspace import default_workspace_notes
 
-__all__ = ["RowFailures", "load_mechanism", "closures_beside", "say", "status_stream", "progress_bar", "provenance",
+__all__ = ["RowFailures", "load_mechanism", "say", "status_stream", "progress_bar", "provenance",
            "parse_priors", "parse_joint_values", "check_plots_folder", "checked_marker", "MAX_MARKER_DISTANCE"]
 
 
@@ -82,14 +82,6 @@ def _is_mjcf_file(path: str) -> bool:
         return is_mjcf(read_bounded(path) or b"")
     except OSError:
         return False  # Mechanism.load names the problem
-
-
-def closures_beside(urdf_out: Path) -> Path:
-    """calibrated.urdf -> calibrated.closures.yaml: a machine is always a pair of files.
-
-    Only the final .urdf is replaced: machine.v1.urdf -> machine.v1.closures.yaml.
-    """
-    return paired_closures_path(urdf_out)
 
 
 def status_stream(outputs) -> TextIO:
@@ -189,15 +181,16 @@ def check_plots_folder(path: str | Path) -> Path:
 
 
 def campaign_report_fields(setup: MeasurementSetup, estimated: Sequence[str], validation, selection,
-                           fitted: Sequence[str], args: argparse.Namespace) -> dict:
+                           fitted: Sequence[str], args: argparse.Namespace | None) -> dict:
     """The report fields closed-loop and serial calibrations share (models/README.md): the
     measurement frame and marker (`estimated`: the setup parameter names that were estimated),
     the cross-validation, the selection, and the --fix / --prior / --force choices."""
     errors = None if validation is None else validation.errors
+    placements = cast("dict[str, dict]", setup.to_report())
     return {
-        "measurement_frame": {**se3_to_report(setup.frame),
+        "measurement_frame": {**placements["measurement_frame"],
                               "estimated": any(n.startswith("measurement_frame.") for n in estimated)},
-        "marker": {**se3_to_report(setup.marker), "estimated": any(n.startswith("marker.") for n in estimated)},
+        "marker": {**placements["marker"], "estimated": any(n.startswith("marker.") for n in estimated)},
         **({"points": [list(p) for p in setup.points]} if setup.points else {}),
         "cross_validation": None if errors is None else {
             "position_mean_m": errors.position_mean, "rotation_mean_rad": errors.rotation_mean,
@@ -235,7 +228,8 @@ def held_out_entry(path: Path, sha256: str, poses: int, errors, position_only: b
             "rotation_rms_rad": rotation_rms, "failed_lines": [int(line) for line in failed_lines]}
 
 
-def outlier_sources(lines: Sequence[int], sources: Sequence[int] | None, outlier_lines: Sequence[int]) -> list[int]:
+def outlier_sources(lines: Sequence[int] | np.ndarray, sources: Sequence[int] | np.ndarray | None,
+                    outlier_lines: Sequence[int]) -> list[int]:
     """The `source` value (the pose in the tracker's file) of each outlier's file line; none without
     a `source` column."""
     if sources is None:

@@ -137,7 +137,7 @@ def _serial_robot(source: str | None, report: CalibrationReport) -> tuple[pin.Mo
     if path.suffix.lower() == ".urdf" or path.exists():
         raise InvalidInputError(f"nominal robot {source} ({'the report' if source == report.robot else '--model'}): "
                                 "no such URDF file; give the nominal URDF with --model")
-    model = load_example_robot(source)  # type: ignore[arg-type]  # an unknown name is refused with the known ones
+    model = load_example_robot(source)  # an unknown name is refused with the known ones
     return model, SerialChain.from_model(model, report.tool or "", report.base)
 
 

@@ -53,7 +53,7 @@ class _DeprecatedAlias(argparse.Action):
 class _Parser(argparse.ArgumentParser):
     """argparse's parser, which gives back a file swallowed by a list option (below)."""
 
-    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+    def parse_known_args(self, args=None, namespace=None):
         namespace, extras = super().parse_known_args(args, namespace)
         _give_back_positional(self, namespace)
         return namespace, extras

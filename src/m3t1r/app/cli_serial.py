@@ -14,7 +14,7 @@ import contextlib
 import datetime as _dt
 import sys
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -34,6 +34,7 @@ from m3t1r.app.cli_common import (
     status_stream,
 )
 from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise, judge_fit
+from m3t1r.app.datasets import check_joint_readings
 from m3t1r.calibration.assessment import (
     MAX_NOISE_RATIO,
     StartCheck,
@@ -105,8 +106,8 @@ def _robot(source: str, tool: str | None, base: str | None) -> tuple[pin.Model, 
     """(model, chain, URDF path or None) of --serial: an example-robot-data name or a URDF path."""
     path = Path(source)
     if source in _EXAMPLE_ROBOTS and not path.exists():
-        model = load_example_robot(source)  # type: ignore[arg-type]
-        return model, SerialChain.from_model(model, tool or example_tool_frame(source), base), None  # type: ignore[arg-type]
+        model = load_example_robot(source)
+        return model, SerialChain.from_model(model, tool or example_tool_frame(source), base), None
     if not path.is_file():
         raise InvalidInputError(f"--serial {source}: neither an example robot ({', '.join(_EXAMPLE_ROBOTS)}) "
                                 "nor a URDF file")
@@ -148,7 +149,13 @@ def read_campaign(path: str, chain: SerialChain, units: str, model: pin.Model | 
     readings = np.column_stack([table.column(n) * (scale if p else 1.0) if table.has_column(n)
                                 else np.full(table.n_rows, constants[n]) for n, p in zip(names, prismatic)])
     if model is not None:
-        _check_joint_limits(table, model, names, readings, prismatic)
+        # A continuous joint (cos, sin): Pinocchio's limits bound those, not the angle; not checked.
+        at = [model.joints[model.getJointId(name)] for name in names]
+        lower = np.array([model.lowerPositionLimit[j.idx_q] if j.nq == 1 else 0.0 for j in at])
+        upper = np.array([model.upperPositionLimit[j.idx_q] if j.nq == 1 else 0.0 for j in at])
+        for note in check_joint_readings(table, names, readings, lower, upper, prismatic,
+                                         scales=np.where(prismatic, scale, 1.0), margin=LIMIT_MARGIN):
+            print(f"note: {note}", flush=True)
     if numbers:
         return _points_campaign(path, table, readings, numbers, units)
     positions = np.column_stack([table.column(c) for c in "xyz"]) * scale
@@ -186,40 +193,6 @@ def _points_campaign(path: str, table: Table, readings: np.ndarray, numbers: lis
 #: and a real joint is read up to its stop (TIAGo's torso at 0.350181 m on a [0, 0.35] limit); such a
 #: reading is kept, with a note. Beyond it, a reading is refused by line: a fault, not the machine.
 LIMIT_MARGIN = 0.05
-
-
-def _check_joint_limits(table: Table, model: pin.Model, names: tuple[str, ...], readings: np.ndarray,
-                        prismatic: np.ndarray) -> None:
-    """Every reading within its joint's limits, give or take LIMIT_MARGIN of the range (joints with
-    usable limits only)."""
-    for k, name in enumerate(names):
-        joint = model.joints[model.getJointId(name)]
-        if joint.nq != 1:  # a continuous joint (cos, sin): Pinocchio's limits bound those, not the angle
-            continue
-        lower, upper = float(model.lowerPositionLimit[joint.idx_q]), float(model.upperPositionLimit[joint.idx_q])
-        if not (np.isfinite(lower) and np.isfinite(upper) and lower < upper):
-            continue
-        values = readings[:, k]
-        margin = LIMIT_MARGIN * (upper - lower)
-        outside = np.flatnonzero((values < lower - margin) | (values > upper + margin))
-        nearly = np.flatnonzero((values < lower) | (values > upper))
-        if nearly.size and not outside.size:
-            unit = "m" if prismatic[k] else "rad"
-            worst = float(np.max(np.maximum(lower - values, values - upper)))
-            print(f"note: column '{name}': {nearly.size} reading(s) up to {worst:.3g} {unit} beyond the URDF limit "
-                  f"[{lower:.6g}, {upper:.6g}] (file line {int(table.line_numbers[nearly[0]])} first), within "
-                  f"{LIMIT_MARGIN:.0%} of its range: kept as read", flush=True)
-        if outside.size:
-            row = int(outside[0])
-            unit = "m" if prismatic[k] else "rad"
-            hint = f"(SI units: {unit})"
-            # Degrees put most of a column beyond the limits, a bad reading one value.
-            if not prismatic[k] and 2 * outside.size > len(values) \
-                    and np.all((np.radians(values) >= lower) & (np.radians(values) <= upper)):
-                hint = ("(every value of the column is within the limits in degrees: give radians; `m3t1r convert "
-                        f"{table.path} --joint-degrees all -o measurements.csv` rewrites the file in radians)")
-            raise table.error(row, f"{values[row]:.6g} {unit} is beyond the joint limit [{lower:.6g}, {upper:.6g}] "
-                                   + hint, column=name)
 
 
 def _nominal_frames(model: pin.Model, chain: SerialChain, marker: pin.SE3) -> Callable[[np.ndarray], np.ndarray]:
@@ -372,7 +345,7 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
                 report["held_out"] = _score_held_out(calibration, held_out)
             if data.sources is not None:
                 report["outlier_sources"] = _outlier_sources(data, lines)
-        if urdf_output is not None:
+        if urdf_output is not None and urdf is not None:  # one is None when the other is
             outputs.stage(urdf_output, calibrated_urdf_bytes(urdf, calibration.model))
         outputs.stage_json(report_output, report)
         written = outputs.commit()
@@ -476,7 +449,7 @@ def _is_translation(name: str) -> bool:
     return name.rpartition(".dt[")[2] in ("0]", "1]", "2]")
 
 
-def explain(calibration: SerialCalibration, warnings_seen: list[str] = (), fixed: list[str] = ()) -> list[str]:
+def explain(calibration: SerialCalibration, warnings_seen: Sequence[str] = (), fixed: Sequence[str] = ()) -> list[str]:
     """Plain-word notes: the gauge, what selection dropped, weak parameters, what stays nominal (held
     by `fixed`, the --fix names, or not separable), how far the fit moved."""
     notes = list(warnings_seen)
@@ -538,8 +511,8 @@ def _nominal_note(calibration: SerialCalibration, chain_names: set[str], held: s
 
 
 def serial_calibration_report(calibration: SerialCalibration, data: SerialCampaign, args: argparse.Namespace,
-                              noise: TrackerNoise, outlier_lines: list[int] = (),
-                              validation: SerialCrossValidation | None = None, notes: list[str] = ()) -> dict:
+                              noise: TrackerNoise, outlier_lines: Sequence[int] = (),
+                              validation: SerialCrossValidation | None = None, notes: Sequence[str] = ()) -> dict:
     """The JSON report of a serial calibration (strict JSON through io.json_text: NaN becomes null)."""
     chain, setup, selection = calibration.chain, calibration.setup, calibration.selection
     std, fitted = calibration.std(), set(calibration.fitted)

@@ -19,7 +19,7 @@ from m3t1r.io.progress import Heartbeat
 from m3t1r.io.tables import table_text
 from m3t1r.model.design import IDLE_CHAIN_JOINTS
 from m3t1r.paper.closed_chain import closed_chain_study
-from m3t1r.paper.study import paper_study
+from m3t1r.paper.study import PassiveSource, paper_study
 
 __all__ = ["cmd_simulate", "cmd_paper"]
 
@@ -38,7 +38,8 @@ def cmd_simulate(args: argparse.Namespace) -> None:
         study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only,
                                passive_joints=passive, setup=setup, outliers=args.outliers)
     comments = provenance(args) + [
-        f"truth: {args.sigma_pos:g} m / {args.sigma_rot:g} rad errors on every joint placement and closure/platform frame, seed {args.seed}",
+        f"truth: {args.sigma_pos:g} m / {args.sigma_rot:g} rad errors on every joint placement and "
+        f"closure/platform frame, seed {args.seed}",
         "noise: none" if noise is None else f"noise: tracker {noise.position:g} m / {noise.rotation:g} rad, sliders {noise.actuator:g} m",
         f"lengths in {args.units}; measured: tracker frame . platform . marker",
     ]
@@ -62,7 +63,7 @@ def cmd_paper(args: argparse.Namespace) -> None:
     if args.closed and args.passive_from is not None:
         raise InvalidInputError("--closed runs every variant (passive joints read, sliders alone, closed loop); "
                                 "--passive-from applies to the two-chain study only")
-    passive_from = args.passive_from or "sensor"
+    passive_from: PassiveSource = args.passive_from or "sensor"  # argparse's choices are PassiveSource's
     noise = TrackerNoise() if args.noise else None
     label = "with noise (tracker 10 um / 20 urad, encoders 10 urad)" if args.noise else "noise-free"
 
@@ -85,14 +86,14 @@ def cmd_paper(args: argparse.Namespace) -> None:
         return
     print(f"the paper's simulation study (two serial chains, Table-1-like dt, ds, dq), seed {args.seed}, "
           f"lower cranks from {passive_from}, {label}:", flush=True)
-    result = paper_study(args.seed, noise=noise, passive_from=passive_from)
-    ident = result.identifiability
+    study = paper_study(args.seed, noise=noise, passive_from=passive_from)
+    ident = study.identifiability
     print(f"identifiable: {ident.rank_per_chain} per chain, {ident.rank_stacked} stacked "
           f"(the paper's bound for the whole machine: {ident.paper_bound})")
-    if result.failure:
-        print(f"identification failed: {result.failure}")
+    if study.failure:
+        print(f"identification failed: {study.failure}")
     print(header)
-    for chain, errors in result.holdout_poses.items():
+    for chain, errors in study.holdout_poses.items():
         print(row(f"held-out poses, chain {chain}: before", errors.before))
         if errors.after is not None:
             print(row(f"held-out poses, chain {chain}: after", errors.after))

@@ -30,8 +30,8 @@ def _skeleton_without_meshes(mechanism) -> None:
         mechanism.visual_model
         return
     except M3t1rError as exc:
-        print(f"note: {str(exc).rstrip('.')}; drawing {mechanism.urdf_path.name} as spheres at its joints and closure frames",
-              file=sys.stderr)
+        print(f"note: {str(exc).rstrip('.')}; drawing {mechanism.urdf_path.name} as spheres at its joints "
+              "and closure frames", file=sys.stderr)
     model = mechanism.model
     data = model.createData()
     pin.forwardKinematics(model, data, mechanism.home)

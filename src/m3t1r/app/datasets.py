@@ -28,7 +28,7 @@ from m3t1r.model.description import Mechanism
 from m3t1r.model.task import TaskSpec
 
 __all__ = [
-    "TARGET_COLUMNS", "read_actuators", "write_actuators", "read_poses", "write_poses", "read_targets",
+    "TARGET_COLUMNS", "check_joint_readings", "read_actuators", "read_poses", "read_targets",
     "MeasurementFile", "read_measurements", "write_measurements", "measurement_table", "sha256_of",
 ]
 
@@ -41,26 +41,64 @@ def sha256_of(path: StrPath) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def _check_limits(table: Table, mechanism: Mechanism, names: Sequence[str], scale: Mapping[str, float] | None = None,
-                  columns: Sequence[str] | None = None) -> None:
-    """Every value within its joint's limits, after `scale` (column -> metres per file unit);
-    `columns`: the joints' columns (default their names)."""
-    lower, upper = mechanism.joint_limits(tuple(names))
-    scale = scale or {}
-    for k, (name, column) in enumerate(zip(names, columns or names)):
-        values = table.column(column) * scale.get(column, 1.0)
-        outside = np.flatnonzero((values < lower[k]) | (values > upper[k]))
+def check_joint_readings(table: Table, columns: Sequence[str], readings: np.ndarray, lower: np.ndarray,
+                         upper: np.ndarray, prismatic: Sequence[bool] | np.ndarray, *,
+                         scales: Sequence[float] | np.ndarray | None = None, margin: float = 0.0) -> list[str]:
+    """Refuse a joint reading beyond its joint's limits: DataFileError naming the line and column,
+    with a hint when the whole column looks like millimetres or degrees. The closed-loop and the
+    serial readers both check their joint columns here.
+
+    readings: (N, k) [m or rad], column k of the table read in `columns[k]`; lower, upper: (k,)
+    limits [m or rad] (a joint with lower >= upper is not checked); prismatic: which joints are
+    lengths; scales: metres per file unit of each column (default 1: SI). margin: the share of a
+    joint's range a reading may pass a limit by and still be kept (nominal URDF limits); returns a
+    note per column with such readings.
+    """
+    notes = []
+    for k, column in enumerate(columns):
+        low, high, values = float(lower[k]), float(upper[k]), readings[:, k]
+        if not low < high:
+            continue
+        slack = margin * (high - low) if np.isfinite(high - low) else 0.0
+        outside = np.flatnonzero((values < low - slack) | (values > high + slack))
+        unit = "m" if prismatic[k] else "rad"
         if outside.size:
             row = int(outside[0])
-            hint = "(SI units: m for sliders, rad for hinges)"
-            prismatic = name in _prismatic_joints(mechanism, names)
-            if prismatic and scale.get(column, 1.0) == 1.0 and np.all((values * 1e-3 >= lower[k]) & (values * 1e-3 <= upper[k])):
-                hint = "(every value of the column is within the limits in millimetres: use --units mm)"
-            elif not prismatic and 2 * outside.size > len(values) \
-                    and np.all((np.radians(values) >= lower[k]) & (np.radians(values) <= upper[k])):
-                hint = "(every value of the column is within the limits in degrees: give radians)"
-            raise table.error(row, f"{values[row]:.6g} is beyond the joint limit [{lower[k]:.6g}, {upper[k]:.6g}] "
+            hint = _limit_hint(table, values, outside.size, low, high, prismatic[k],
+                               1.0 if scales is None else scales[k])
+            raise table.error(row, f"{values[row]:.6g} {unit} is beyond the joint limit [{low:.6g}, {high:.6g}] "
                                    + hint, column=column)
+        nearly = np.flatnonzero((values < low) | (values > high))
+        if nearly.size:
+            worst = float(np.max(np.maximum(low - values, values - high)))
+            notes.append(f"column '{column}': {nearly.size} reading(s) up to {worst:.3g} {unit} beyond the URDF "
+                         f"limit [{low:.6g}, {high:.6g}] (file line {int(table.line_numbers[nearly[0]])} first), "
+                         f"within {margin:.0%} of its range: kept as read")
+    return notes
+
+
+def _limit_hint(table: Table, values: np.ndarray, n_outside: int, lower: float, upper: float, prismatic: bool,
+                scale: float) -> str:
+    """What a column beyond its limits most likely is: millimetres in a metre file or degrees, when
+    most of the column is beyond (one bad reading is a fault, not a unit); else the SI unit it must be in."""
+    within = lambda converted: bool(np.all((converted >= lower) & (converted <= upper)))
+    if 2 * n_outside > len(values) and prismatic and scale == 1.0 and within(values * 1e-3):
+        return "(every value of the column is within the limits in millimetres: use --units mm)"
+    if 2 * n_outside > len(values) and not prismatic and within(np.radians(values)):
+        return ("(every value of the column is within the limits in degrees: give radians; `m3t1r convert "
+                f"{table.path} --joint-degrees all -o measurements.csv` rewrites the file in radians)")
+    return f"(SI units: {'m' if prismatic else 'rad'})"
+
+
+def _check_limits(table: Table, mechanism: Mechanism, names: Sequence[str], scale: Mapping[str, float] | None = None,
+                  columns: Sequence[str] | None = None) -> None:
+    """`check_joint_readings` of the joints `names` (their columns: `columns`, default the names) on
+    the mechanism's limits, after `scale` (column -> metres per file unit)."""
+    columns, scale = tuple(columns or names), scale or {}
+    readings = np.column_stack([table.column(c) * scale.get(c, 1.0) for c in columns])
+    prismatic = set(_prismatic_joints(mechanism, names))
+    check_joint_readings(table, columns, readings, *mechanism.joint_limits(tuple(names)),
+                         [n in prismatic for n in names], scales=[scale.get(c, 1.0) for c in columns])
 
 
 def _prismatic_joints(mechanism: Mechanism, names: Iterable[str]) -> tuple[str, ...]:
@@ -87,22 +125,10 @@ def read_actuators(path: StrPath, mechanism: Mechanism) -> tuple[np.ndarray, np.
     return np.column_stack([table.column(n) for n in names]), table.line_numbers
 
 
-def write_actuators(path: StrPath, mechanism: Mechanism, actuators: np.ndarray, comments: Sequence[str] = (),
-                    protect: Iterable[StrPath] = ()) -> None:
-    """Write slider sets as a CSV table with the machine's actuated joint names as columns."""
-    write_table(path, mechanism.actuated_joints, np.asarray(actuators, dtype=float), comments, protect)
-
-
 def read_poses(path: StrPath) -> tuple[list[pin.SE3], np.ndarray]:
     """Platform poses (x, y, z, qx, qy, qz, qw per row) and line numbers; quaternions checked unit."""
     table = read_table(path, required=POSE_COLUMNS)
     return poses_from_table(table), table.line_numbers
-
-
-def write_poses(path: StrPath, poses: Sequence[pin.SE3], comments: Sequence[str] = (),
-                protect: Iterable[StrPath] = ()) -> None:
-    """Write platform poses as a CSV table (m, unit quaternion)."""
-    write_table(path, POSE_COLUMNS, pose_rows(poses), comments, protect)
 
 
 def read_targets(path: StrPath, task: TaskSpec | None = None) -> tuple[list[pin.SE3] | np.ndarray, np.ndarray]:

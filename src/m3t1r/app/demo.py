@@ -196,7 +196,8 @@ def _truth_check(nominal: Mechanism, calibrated: Mechanism, estimated: Measureme
     seen = setup.measured_poses(_platform_poses(truth, holdout))
     cad = MeasurementSetup.from_numbers(marker_xyz=np.add(settings.marker, settings.marker_cad_error))
     registered = replace(cad, frame=register_frame(cad.measured_poses(_platform_poses(nominal, holdout)), seen[:, :3, 3]))
-    say(f"  the reflector as the tracker sees it vs the models' prediction, at {settings.n_holdout} held-out slider sets:")
+    say("  the reflector as the tracker sees it vs the models' prediction, "
+        f"at {settings.n_holdout} held-out slider sets:")
     say(_HEADER)
     summary = {}
     for name, model, model_setup in (("nominal model", nominal, registered), ("calibrated model", calibrated, estimated)):

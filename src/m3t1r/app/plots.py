@@ -19,7 +19,7 @@ import io as _stdio
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable, Sequence, cast
 
 import numpy as np
 import scipy.special
@@ -154,7 +154,7 @@ def _save(figure: Figure, path: StrPath, protect: Iterable[StrPath], outputs: Ou
 def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: StrPath,
                                   title: str = "Platform pose error before and after calibration",
                                   protect: Iterable[StrPath] = (), outputs: OutputSet | None = None,
-                                  outliers: Sequence[int] = (), labels: Sequence[str] | None = None) -> Path:
+                                  outliers: Sequence[int] | np.ndarray = (), labels: Sequence[str] | None = None) -> Path:
     """Paper Fig. 4: (a) orientation error and (b) position error per pose, before and after.
 
     before, after: errors of the nominal and of the calibrated model against the actual machine
@@ -166,6 +166,7 @@ def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: S
     Log y-scale, ticks and legend means in readable units. Returns the PNG path.
     """
     panels = []
+    kinds: tuple[tuple[str, tuple[_Unit, ...], str], ...]
     kinds = (("rotation", _ANGLE_UNITS, "(a) Orientation error"), ("position", _LENGTH_UNITS, "(b) Position error"))
     if all(np.isnan(np.asarray(errors.rotation, dtype=float)).all() for errors in (before, after)):
         kinds = (("position", _LENGTH_UNITS, "Position error"),)
@@ -204,7 +205,7 @@ def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: S
 _MAX_LABELS = 12  # more names than this cover the curves; the PNG's description lists them all
 
 
-def _outlier_labels(outliers: Sequence[int], labels: Sequence[str] | None, count: int
+def _outlier_labels(outliers: Sequence[int] | np.ndarray, labels: Sequence[str] | None, count: int
                     ) -> tuple[np.ndarray, list[str]]:
     """(sorted indices, their names) of the outliers among `count` poses, checked."""
     index = np.unique(np.asarray(outliers, dtype=int))
@@ -247,6 +248,7 @@ def plot_error_vs_poses(n_poses: Sequence[int], position_errors: Sequence[float]
     n = _finite_array(n_poses, "n_poses")
     if np.any(n < 1):
         raise InvalidInputError(f"n_poses: every N must be >= 1, got {n.min():g}")
+    series: list[tuple[str, tuple[_Unit, ...], np.ndarray, Sequence[float] | np.ndarray | None]]
     series = [("Position error", _LENGTH_UNITS, _finite_array(position_errors, "position_errors"),
                None if predicted is None else predicted[0])]
     if rotation_errors is not None:
@@ -273,7 +275,7 @@ def plot_error_vs_poses(n_poses: Sequence[int], position_errors: Sequence[float]
             ax.loglog(n, prediction, "--", color="tab:gray", label="predicted from covariance")
         _readable_log_axis(ax.yaxis, units)
         # The studied N are the meaningful x ticks; log-decade labels (2x10^1) would hide them.
-        ax.xaxis.set_major_locator(FixedLocator(n))
+        ax.xaxis.set_major_locator(FixedLocator(n.tolist()))
         ax.xaxis.set_major_formatter(lambda value, _: f"{value:g}")
         ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("number of calibration poses N")
@@ -325,7 +327,8 @@ def _scatter_panels(figure: Figure, xy: np.ndarray, panels: list[tuple[str, np.n
     axes[0].set_ylabel(plane[1])
 
 
-def plot_workspace_error_map(targets: object, errors_before: Sequence[float], errors_after: Sequence[float],
+def plot_workspace_error_map(targets: object, errors_before: Sequence[float] | np.ndarray,
+                             errors_after: Sequence[float] | np.ndarray,
                              path: StrPath, kind: str = "position", shared_scale: bool = False,
                              title: str = "Error of the actual platform over the workspace",
                              protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
@@ -375,7 +378,7 @@ def plot_predicted_std_map(targets: object, std: PoseErrors, path: StrPath,
     _check_output(path, protect, outputs)
     figure = Figure(figsize=(8.5, 6.0), layout="constrained")
     figure.suptitle(f"{title}\n({len(xy)} poses; the other coordinates projected onto this plane)")
-    left, right = figure.subfigures(1, 2)
+    left, right = cast(np.ndarray, figure.subfigures(1, 2))  # an array for more than one subfigure
     _scatter_panels(left, xy, [("position", position)], _LENGTH_UNITS, "predicted position std", False, plane)
     _scatter_panels(right, xy, [("orientation", rotation)], _ANGLE_UNITS, "predicted orientation std", False, plane)
     return _save(figure, path, protect, outputs)

@@ -153,9 +153,9 @@ def _stage_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrat
         measured_pose_errors(calibration.mechanism, problem.measurements, calibration.setup),
         out_dir / PLOT_NAMES[0], title="Calibration poses: model vs measured pose", outputs=outputs,
         outliers=np.flatnonzero(~problem.active), labels=labels)]
-    fit_options = {"setup": MeasurementSetup(marker=start.setup.marker),
-                   "estimate_frame": problem.frame_slot is not None, "estimate_marker": problem.marker_slot is not None}
-    sizes, position, rotation = cross_validation_curve(nominal, measurements, noise, seed, **fit_options)
+    sizes, position, rotation = cross_validation_curve(
+        nominal, measurements, noise, seed, setup=MeasurementSetup(marker=start.setup.marker),
+        estimate_frame=problem.frame_slot is not None, estimate_marker=problem.marker_slot is not None)
     if sizes:
         written.append(plot_error_vs_poses(sizes, position, None if measurements.position_only else rotation,
                                            out_dir / PLOT_NAMES[1],

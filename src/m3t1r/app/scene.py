@@ -364,7 +364,7 @@ def _draw_triad(node: meshcat.Visualizer, placement: pin.SE3) -> None:
         size[axis] = TRIAD_LENGTH
         offset = np.eye(4)
         offset[axis, 3] = TRIAD_LENGTH / 2  # the box starts at the frame origin
-        rgba = tuple(1.0 if i == axis else 0.0 for i in range(3)) + (1.0,)
+        rgba = (float(axis == 0), float(axis == 1), float(axis == 2), 1.0)
         node[name].set_object(mg.Box(size), _material(rgba))
         node[name].set_transform(offset)
 

@@ -174,7 +174,7 @@ def _task_text(columns: Sequence[str], values: Sequence[float]) -> str:
     return ", ".join(parts)
 
 
-def _actuator_text(mechanism, values: Sequence[float]) -> str:
+def _actuator_text(mechanism, values: Sequence[float] | np.ndarray) -> str:
     """Prismatic actuators in mm, revolute ones in degrees."""
     model = mechanism.model
     prismatic = [model.joints[model.getJointId(name)].shortname().startswith("JointModelP")

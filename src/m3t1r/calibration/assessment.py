@@ -268,7 +268,7 @@ def _register(poses: np.ndarray, measured: np.ndarray, offset_free: bool, frame:
 
 
 def likely_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndarray, measured: np.ndarray,
-                  names: Sequence[str], *, frame_estimated: bool, angular: Sequence[bool] = ()) -> list[str]:
+                  names: Sequence[str], *, frame_estimated: bool, angular: Sequence[bool] | np.ndarray = ()) -> list[str]:
     """The usual mistakes, tested against the nominal model, most telling first.
 
     predict: readings (N, k) -> the measured points (N, 3) the nominal model predicts in its base
@@ -415,7 +415,7 @@ def _swapped_position_columns(poses: np.ndarray, offset_free: bool, measured: np
 
 
 def _degrees_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndarray, measured: np.ndarray,
-                    names: Sequence[str], angular: Sequence[bool], registered: float) -> list[str]:
+                    names: Sequence[str], angular: Sequence[bool] | np.ndarray, registered: float) -> list[str]:
     """Angle columns logged in degrees: read as degrees (times pi / 180), does the nominal model explain
     the data far better (up to the same registration)?"""
     angles = np.asarray(angular, dtype=bool)
@@ -467,7 +467,8 @@ def fit_movement_notes(moved: dict[str, float], rms_before: float, rms_after: fl
     deviations (same units): a move within PLAUSIBLE_SIGMAS of its own std is what the noise allows
     a weakly determined parameter, not a sign of wrong data, and is not called implausible.
     """
-    notes, far = [], []
+    notes: list[str] = []
+    far: list[tuple[float, str, str]] = []
     std = {} if std is None else std
     for name, value in moved.items():
         translation = name.rpartition(".dt[")[2] in ("0]", "1]", "2]")

@@ -87,7 +87,7 @@ def _residual_rows_batch(poses: np.ndarray, measured_positions: np.ndarray, meas
     if measured_rotations is None:
         return position_error, rows
     logs, angles = log3_batch(np.swapaxes(measured_rotations, 1, 2) @ rotation)
-    if with_jacobian:
+    if rows is not None:
         rows[:, 3:, 3:] = jlog3_batch(logs, angles) @ np.swapaxes(rotation, 1, 2)
     return np.concatenate((position_error, logs), axis=1), rows
 
@@ -170,6 +170,7 @@ class _ClosedLoopProblem:
         jacobian = np.zeros((len(picked), len(self.columns)))
         values = np.zeros(len(picked))
         for row, (i, sigma) in enumerate(picked):
+            assert state.accumulated is not None, "an iterate with priors carries its accumulated steps"
             jacobian[row, i] = 1.0 / sigma
             values[row] = state.accumulated[self.columns[i]] / sigma
         return values, jacobian
@@ -254,6 +255,7 @@ class _ClosedLoopProblem:
         _release(state)
 
     def retract(self, state: _State, step: np.ndarray) -> _State:
+        assert state.accumulated is not None, "LM iterates come from `assemble`"
         vector = np.zeros(len(self.names))
         vector[self.columns] = step
         model = self.error_model.perturbed(state.model, vector[:self.n_machine])

@@ -48,7 +48,8 @@ class ClosedLoopErrorModel:
     """The placement parameters of a mechanism and the platform pose's sensitivity to them.
 
     placements: every joint of the tree (model order), then every closure frame and the platform
-    frame (each once, those with a placement of their own: `has_own_placement`). Parameter k of placement i is named f"{name}.dt[{k}]", [v; w] order.
+    frame (each once, those with a placement of their own: `has_own_placement`). Parameter k of
+    placement i is named f"{name}.dt[{k}]", [v; w] order.
     """
 
     def __init__(self, mechanism: Mechanism, placements: tuple[Placement, ...] | None = None) -> None:

@@ -16,7 +16,7 @@ import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Generic, Literal, Protocol, TypeVar
+from typing import Generic, Literal, Protocol, TypeVar, cast
 
 import numpy as np
 import scipy.linalg
@@ -101,7 +101,7 @@ def triangular_factor(matrix: np.ndarray, vector: np.ndarray | None = None,
         block = matrix[start:start + _FACTOR_ROWS]
         if vector is not None:
             block = np.column_stack((block, vector[start:start + _FACTOR_ROWS]))
-        factor = np.linalg.qr(np.vstack((factor, block)), mode="r")
+        factor = cast(np.ndarray, np.linalg.qr(np.vstack((factor, block)), mode="r"))  # numpy's stub: QRResult
     return factor
 
 
@@ -197,7 +197,7 @@ def select_base_parameters(
     rank_tolerance: float = IDENTIFIABILITY_TOLERANCE,
     *,
     max_condition: float = POOR_EXCITATION_CONDITION,
-    forced: Sequence[int] = (),
+    forced: Sequence[int] | np.ndarray = (),
 ) -> BaseParameters:
     """Choose a maximal set of linearly independent columns of the stacked Jacobian (m, p).
 
@@ -225,7 +225,7 @@ def select_base_parameters(
     # then comes from triangular factors too (A P = Q R: equal singular values).
     # Symmetric mechanisms give columns of equal norm at a pivot step; which of them wins would then
     # depend on rounding: `pivoted_qr` gives such ties to the lower column, on any processor.
-    r0 = np.linalg.qr(matrix[:, candidates] / norms[candidates], mode="r")
+    r0 = cast(np.ndarray, np.linalg.qr(matrix[:, candidates] / norms[candidates], mode="r"))  # the stub: QRResult
     r, pivots = pivoted_qr(r0)
     diag = np.abs(np.diag(r))
     ratio = diag / diag[0]
@@ -289,7 +289,7 @@ def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rank_toleran
     rest = np.setdiff1d(np.flatnonzero(nonzero), forced)
     remainder = normalised[:, position[rest]]
     remainder = remainder - q_forced @ (q_forced.T @ remainder)
-    r0 = np.linalg.qr(remainder, mode="r")
+    r0 = cast(np.ndarray, np.linalg.qr(remainder, mode="r"))  # mode "r" returns R; numpy's stub says QRResult
     r, pivots = pivoted_qr(r0)
     diag = np.abs(np.diag(r))
     rank_rest = int(np.count_nonzero(diag > rank_tolerance))
@@ -477,7 +477,7 @@ def _without_column(matrix: np.ndarray, column: int) -> np.ndarray:
 
 
 def forward_selection(jacobian: ArrayLike, residual: ArrayLike, rows_per_pose: int, candidates: Sequence[int],
-                      forced: Sequence[int] = (), *, rank_tolerance: float = 1e-9) -> ParameterSelection:
+                      forced: Sequence[int] | np.ndarray = (), *, rank_tolerance: float = 1e-9) -> ParameterSelection:
     """Greedy forward selection of columns of the whitened linear model r + J dx (m = N k rows).
 
     Starting from `forced`, each step adds the candidate column whose least-squares fit has the
@@ -830,7 +830,7 @@ def levenberg_marquardt(
                 nu = 2.0
                 if release is not None:
                     release(state)
-                J = None  # the superseded iterate's Jacobian, before the next one is built
+                del J  # the superseded iterate's Jacobian, before the next one is built
                 if J_trial is None:
                     r_trial, J_trial = problem.residual_and_jacobian(trial)
                 state, r, J, cost = trial, r_trial, J_trial, cost_trial

@@ -200,6 +200,7 @@ class _UnvisitedTree:
         if self.unvisited < len(self.rows) // 2:
             self._rebuild()
         width = _NEAR
+        assert self.tree is not None, "built while rows are left"
         while True:
             _, found = self.tree.query(point, k=min(width, len(self.rows)), p=np.inf)
             rows = self.rows[np.atleast_1d(found)]

@@ -279,7 +279,7 @@ class _SerialResidual:
         r = self.residual(state)
         e = self._evaluate(state)
         if e.jacobian is None:
-            log_jacobians = None if e.logs is None else jlog3_batch(e.logs, e.angles)
+            log_jacobians = None if e.logs is None or e.angles is None else jlog3_batch(e.logs, e.angles)
             e.jacobian = (self.whitening @ self._rows(state, e, log_jacobians)).reshape(r.size, -1)
             e.jacobian.flags.writeable = False
         return r, e.jacobian
@@ -311,10 +311,13 @@ class _SerialResidual:
         out = np.empty((n_poses, k, layout.size))
         out[:, :, : layout.n_chain] = placement.reshape(n_poses, k, -1)
         if layout.frame:
+            assert frame_rows is not None, "the stacked branch runs with a frame"
             out[:, :, layout.frame_slice] = frame_rows
         if layout.marker:
+            assert marker_rows is not None, "the stacked branch runs with a marker"
             out[:, :, layout.marker_slice] = marker_rows[:, :, : layout.marker]
         if layout.compliance:
+            assert self.torques is not None, "a compliance layout has its gravity torques"
             joint_rows = np.einsum("nikj,kj->nik", placement[:, :, :n], self.chain.twists)
             out[:, :, layout.compliance_slice] = joint_rows * self.torques[:, None, :]
         return out
@@ -338,6 +341,7 @@ class _SerialResidual:
                 start = layout.marker_slice.start + 3 * k
                 out[:, block, start : start + 3] = rows[:, :, -1, :3]
             if layout.compliance:
+                assert self.torques is not None, "compliance columns are laid out only with the gravity torques"
                 joint_rows = np.einsum("nikj,kj->nik", rows[:, :, 1 : n + 1], self.chain.twists)
                 out[:, block, layout.compliance_slice] = joint_rows * self.torques[:, None, :]
         return out
@@ -374,7 +378,7 @@ class _SerialProblem:
     row x_c / sigma (Tikhonov, toward the start) per column with a prior, sigma in m, rad or rad/Nm.
     """
 
-    def __init__(self, residual: _SerialResidual, columns: Sequence[int],
+    def __init__(self, residual: _SerialResidual, columns: Sequence[int] | np.ndarray,
                  priors: Mapping[int, float] | None = None) -> None:
         self._residual = residual
         self.columns = np.asarray(columns, dtype=int)
@@ -573,7 +577,7 @@ def _parse_measurements(
         not_se3 = [i for i, g in enumerate(measured_poses) if not isinstance(g, pin.SE3)]
         if not_se3:
             raise InvalidInputError(f"measured_poses: row {not_se3[0]} is not an SE3 like the others")
-        homogeneous = np.array([g.homogeneous for g in measured_poses])  # one conversion per pose
+        homogeneous = np.array([g.homogeneous for g in measured_poses if isinstance(g, pin.SE3)])  # all, as checked
         positions = homogeneous[:, :3, 3].copy()
         rotations = np.ascontiguousarray(homogeneous[:, :3, :3])
     else:

@@ -70,16 +70,16 @@ def example_robot_data_dir() -> Path:
         parts = file.parts
         for i in range(len(parts) - len(marker)):
             if parts[i : i + len(marker)] == marker:
-                return Path(dist.locate_file(Path(*parts[: i + len(marker)])))
+                return Path(str(dist.locate_file(Path(*parts[: i + len(marker)]))))
     raise ModelFileError("example-robot-data", "no share/example-robot-data/robots directory in the distribution")
 
 
-def example_tool_frame(name: RobotName) -> str:
+def example_tool_frame(name: RobotName | str) -> str:
     """The tool frame used for example robot `name` (e.g. 'tool0' for UR, 'panda_hand_tcp')."""
     return _example_robot(name).tool_frame
 
 
-def load_example_robot(name: RobotName) -> pin.Model:
+def load_example_robot(name: RobotName | str) -> pin.Model:
     """Kinematic model of an example-robot-data arm, offline, without geometry.
 
     Panda's two finger joints are locked at their neutral value (`pin.buildReducedModel`), leaving

@@ -255,7 +255,8 @@ class Validation:
     (M,) [rad] for a yaw task (the M machine) with orientation, else None; statistic: d^2 per predicted row (M,);
     sigmas: its sigma-equivalent z (M,); flagged: file lines of the rows beyond the gate;
     failures: (file line, reason) of the rows that could not be predicted; scale: the factor s
-    (from the report's variance factor); gate: the chi^2_k quantile d^2 / s^2 is compared with; units: the file's length unit.
+    (from the report's variance factor); gate: the chi^2_k quantile d^2 / s^2 is compared with;
+    units: the file's length unit.
     residuals: the predicted rows' residuals normalised by the report's noise model (M, 3 or 6),
     [dp / sigma_p, dr / sigma_r] (N(0, 1) under that model); noise: that model (sigma_p [m],
     sigma_r [rad]); sources: every input row's `source` (N,), or None when the file has no such column.
@@ -340,6 +341,7 @@ def _predict_serial(calibrated: Path, report: CalibrationReport, units: str,
                     measurements: Path) -> tuple[Campaign, np.ndarray]:
     """Tool poses (N, 4, 4) in the chain's base frame of the calibrated serial robot at each row."""
     model, urdf = load_serial_urdf(calibrated)
+    assert report.tool is not None, "read_report refuses a serial report without its tool"
     try:
         chain = serial_chain_of(model, urdf, calibrated, report.tool, report.base)
     except M3t1rError as exc:

@@ -14,6 +14,7 @@ import sys
 from collections.abc import Iterable
 from contextlib import ExitStack
 from pathlib import Path
+from typing import Protocol, overload
 
 from m3t1r.errors import OutputPathError
 from m3t1r.io.pairing import paired_closures_path
@@ -36,6 +37,13 @@ from m3t1r.io.temporaries import (
 )
 
 __all__ = ["Output", "OutputSet", "atomic_write_bytes", "atomic_write_text", "interrupted_outputs"]
+
+
+class _MachinePair(Protocol):
+    """What `stage_machine` writes: a `Mechanism` (named by its role, so io does not import model)."""
+
+    def pair_bytes(self, urdf: Path, closures: Path) -> tuple[bytes, bytes]: ...
+
 
 def atomic_write_bytes(path: StrPath, data: bytes, protect: Iterable[StrPath] = ()) -> None:
     """Replace the file at `path` with `data` in one step, or leave it untouched.
@@ -135,7 +143,7 @@ class OutputSet:
     temporary file (and a folder `check` created); `discard()` does the same explicitly.
     """
 
-    def __init__(self, inputs: Iterable[StrPath] = (), *, announce=print_notice) -> None:
+    def __init__(self, inputs: Iterable[StrPath | None] = (), *, announce=print_notice) -> None:
         self.inputs: list[Path] = [Path(p) for p in inputs if p is not None and str(p) != STDOUT]
         self.outputs: list[Output] = []
         self.announce = announce
@@ -149,6 +157,10 @@ class OutputSet:
         if path is not None and str(path) != STDOUT:
             self.inputs.append(Path(path))
 
+    @overload
+    def add(self, path: StrPath, label: str = ..., *, create_folder: bool = ...) -> Output: ...
+    @overload
+    def add(self, path: None, label: str = ..., *, create_folder: bool = ...) -> None: ...
     def add(self, path: StrPath | None, label: str = "output", *, create_folder: bool = False) -> Output | None:
         """Declare an output file (`-` is stdout); None gives None, for optional outputs.
 
@@ -162,6 +174,10 @@ class OutputSet:
         self.outputs.append(output)
         return output
 
+    @overload
+    def add_machine(self, urdf: StrPath, label: str = ..., closures: StrPath | None = ...) -> Output: ...
+    @overload
+    def add_machine(self, urdf: None, label: str = ..., closures: StrPath | None = ...) -> None: ...
     def add_machine(self, urdf: StrPath | None, label: str = "-o", closures: StrPath | None = None) -> Output | None:
         """Declare a machine: URDF `NAME.urdf` and its closures file (default `NAME.closures.yaml`).
 
@@ -237,25 +253,26 @@ class OutputSet:
         """Create missing folders, then under every output folder's lock: sweep, refuse outputs a
         live run is writing, and claim each unclaimed output."""
         for output in self.outputs:
-            if output.create_folder and output.kind == "file" and not output.path.parent.is_dir():
+            if output.create_folder and output.kind == "file" and not _target(output).parent.is_dir():
                 self._create_folder(output)
         unclaimed = [o for o in self.outputs if o.kind == "file" and o.descriptor is None]
         notes: list[str] = []
         with ExitStack() as locks:
-            for folder in sorted({_identity(f)[0]: f for f in folders}.items()):
-                locks.enter_context(folder_lock(folder[1]))  # in one global order: no two runs deadlock
+            for _, folder in sorted({_identity(f)[0]: f for f in folders}.items()):
+                locks.enter_context(folder_lock(folder))  # in one global order: no two runs deadlock
             for folder in folders:
                 notes += sweep_locked(folder)
             own = {o.temporary for o in self.outputs if o.temporary is not None}
             for output in unclaimed:
-                release_stale_claims(output.path, own)
-                writer = live_writer(output.path)
+                target = _target(output)
+                release_stale_claims(target, own)
+                writer = live_writer(target)
                 if writer is not None:
-                    raise OutputPathError(output.path, f"{output.label}: another m3t1r run is writing this file in "
-                                                       f"{output.path.parent} ({writer}); nothing was written: "
-                                                       "wait for it to finish, or write elsewhere")
+                    raise OutputPathError(target, f"{output.label}: another m3t1r run is writing this file in "
+                                                  f"{target.parent} ({writer}); nothing was written: "
+                                                  "wait for it to finish, or write elsewhere")
             for output in unclaimed:
-                output.temporary, output.descriptor = claim_temporary(output.path)
+                output.temporary, output.descriptor = claim_temporary(_target(output))
         self.notes += notes
         if self.announce is not None:
             for note in notes:
@@ -263,7 +280,7 @@ class OutputSet:
 
     def _create_folder(self, output: Output) -> None:
         missing = []
-        folder = output.path.parent
+        folder = _target(output).parent
         while not folder.exists() and folder != folder.parent:
             missing.append(folder)
             folder = folder.parent
@@ -278,7 +295,7 @@ class OutputSet:
             self.created_folders.append(folder)
 
     def _classify(self, output: Output) -> None:
-        path = output.path
+        path = _target(output)
         try:
             info = path.stat()  # follows a symlink: a link to a pipe is written through too
         except FileNotFoundError:
@@ -312,7 +329,8 @@ class OutputSet:
             output.data = payload
             return
         self._ensure_claimed(output)
-        write_claimed(output.path, output.temporary, output.descriptor, payload)
+        assert output.temporary is not None and output.descriptor is not None, "claimed above"
+        write_claimed(_target(output), output.temporary, output.descriptor, payload)
         output.staged = True
 
     def stage_json(self, output: Output | StrPath | None, document: object) -> None:
@@ -320,12 +338,12 @@ class OutputSet:
         if output is not None:
             self.stage(output, json_text(document))
 
-    def stage_machine(self, output: Output | StrPath, mechanism: object) -> None:
+    def stage_machine(self, output: Output | StrPath, mechanism: _MachinePair) -> None:
         """Stage a machine pair from `mechanism.pair_bytes(urdf_name)` (a `Mechanism`)."""
         output = self._resolve(output)
         if output.closures is None:
             raise ValueError(f"{output.name} was not declared with add_machine")
-        urdf_bytes, closures_bytes = mechanism.pair_bytes(output.path, output.closures.path)
+        urdf_bytes, closures_bytes = mechanism.pair_bytes(_target(output), _target(output.closures))
         self.stage(output.closures, closures_bytes)
         self.stage(output, urdf_bytes)
 
@@ -341,14 +359,15 @@ class OutputSet:
             raise OutputPathError(output.name, f"{output.label}: a writer needing a file name cannot write to a "
                                                "pipe, device or standard output")
         self._ensure_claimed(output)
+        assert output.temporary is not None and output.descriptor is not None, "claimed above"
         os.ftruncate(output.descriptor, 0)
         output.staged = True
         return output.temporary
 
     def _ensure_claimed(self, output: Output) -> None:
         if output.descriptor is None:  # staged without check: claim it now, under the folder lock
-            with folder_lock(output.path.parent):
-                output.temporary, output.descriptor = claim_temporary(output.path)
+            with folder_lock(_target(output).parent):
+                output.temporary, output.descriptor = claim_temporary(_target(output))
 
     # -- committing -------------------------------------------------------------------------
     def commit(self) -> list[str]:
@@ -366,9 +385,9 @@ class OutputSet:
             self.discard()
             raise ValueError(f"outputs declared but never staged: {', '.join(missing)}")
         plain = [o for o in self.outputs if o.kind == "file" and o.closures is None and o.pair_of is None]
-        machines = [o for o in self.outputs if o.closures is not None]
-        order = [*plain, *(o for m in machines for o in (m, m.closures))]  # a URDF, then its closures file
-        folders = list(dict.fromkeys(o.path.parent for o in order))
+        pairs = [(o, o.closures) for o in self.outputs if o.closures is not None]
+        order = [*plain, *(o for pair in pairs for o in pair)]  # a URDF, then its closures file
+        folders = list(dict.fromkeys(_target(o).parent for o in order))
         with _signals_deferred() as pending:
             try:
                 with ExitStack() as locks:
@@ -398,7 +417,7 @@ class OutputSet:
         backups: list[Path] = []
         try:
             for output in order:
-                backup = _keep_old(output.path)
+                backup = _keep_old(_target(output))
                 if isinstance(backup, Path):
                     backups.append(backup)
                 self._rename(output)
@@ -438,8 +457,9 @@ class OutputSet:
         return output if isinstance(output, Output) else self.output(output)
 
     def _rename(self, output: Output) -> None:
+        assert output.temporary is not None, "committed outputs are staged"
         try:
-            os.replace(output.temporary, output.path)
+            os.replace(output.temporary, _target(output))
         except OSError as exc:
             raise OutputPathError(output.path, f"{output.label}: could not move the new file into place: "
                                                f"{exc.strerror or exc}") from None
@@ -453,6 +473,12 @@ class OutputSet:
             release_temporary(output.temporary, output.descriptor, remove=True)
             output.temporary, output.descriptor = None, None
             output.staged = False
+
+
+def _target(output: Output) -> Path:
+    """The path of a file, pipe or device output: every output but standard output, which these steps skip."""
+    assert output.path is not None, f"{output.label} is standard output"
+    return output.path
 
 
 def _keep_old(target: Path) -> Path | None | bool:
@@ -475,9 +501,9 @@ def _put_back(renamed: list[tuple[Output, Path | None | bool]]) -> list[str]:
     for output, backup in reversed(renamed):
         try:
             if isinstance(backup, Path):
-                os.replace(backup, output.path)
+                os.replace(backup, _target(output))
             elif backup is None:
-                os.unlink(output.path)
+                os.unlink(_target(output))
             else:
                 lost.append(output.name)
         except OSError:
@@ -489,7 +515,7 @@ def _check_replaceable(output: Output) -> None:
     """Refuse an existing regular file that no rename may replace: an immutable or append-only
     file, or one on a read-only file system. Judged without opening it: write access denied
     although the permission bits grant it (a read-only mode alone does not stop a rename)."""
-    path = output.path
+    path = _target(output)
     try:
         info = os.lstat(path)
         if not stat.S_ISREG(info.st_mode) or os.access(path, os.W_OK, follow_symlinks=False):
@@ -513,6 +539,7 @@ def _check_folder(output: Output, folder: Path) -> None:
 
 
 def _write_through(output: Output) -> None:
+    assert output.data is not None, "commit checked every stream has its data"
     try:
         if output.path is None:
             stream = sys.stdout.buffer

@@ -62,10 +62,10 @@ class HomeAssembly:
         shown = ", ".join(f"{name} {change:+.3g}" for name, change in self.moved[:6])
         more = f" and {len(self.moved) - 6} more" if len(self.moved) > 6 else ""
         wraps = f"; {', '.join(self.wrapped)} wrapped by whole turns" if self.wrapped else ""
-        return (f"home does not close: closure '{self.worst}' residual {self.given_residual:.3e} > {tolerance:g}; assembled by "
-                f"Newton (damped, actuators held) at the assembly nearest the given values: passive joints moved "
-                f"by {shown or 'nothing'}{more} [rad or m]{wraps}. To choose another assembly mode, give "
-                f"approximate values of its passive joints in `home`")
+        return (f"home does not close: closure '{self.worst}' residual {self.given_residual:.3e} > {tolerance:g}; "
+                "assembled by Newton (damped, actuators held) at the assembly nearest the given values: "
+                f"passive joints moved by {shown or 'nothing'}{more} [rad or m]{wraps}. To choose another assembly "
+                "mode, give approximate values of its passive joints in `home`")
 
 
 def assemble_home(model: pin.Model, closures: tuple[ClosureSpec, ...], system: ClosureSystem, guess: np.ndarray,

@@ -15,8 +15,8 @@ origin, [v; w], as `pin.computeJointJacobians`) is [p_j x w_j; w_j] with w_j = R
 Layout: arrays are stored poses-last ((..., 3, 3, n)), so that a 3 x 3 product is a few
 multiply-adds over rows of n contiguous numbers instead of n small matrix products, each of which
 costs numpy about 100 ns of overhead; rows are solved in chunks of 2,048, which spreads the Python
-calls of a Newton step over many rows. Only the (closure, joint) pairs where a joint moves one closure frame and not the other are
-differentiated.
+calls of a Newton step over many rows. Only the (closure, joint) pairs where a joint moves one
+closure frame and not the other are differentiated.
 
 Newton runs on all rows together, with chord steps: a row's Jacobian is inverted (one batched
 `np.linalg.inv`) where it is evaluated and reused while the residual is small and contracts well.
@@ -109,8 +109,8 @@ class InverseBatch(ForwardBatch):
     not the command).
     """
 
-    actuators: np.ndarray = None  # type: ignore[assignment]
-    tilt: np.ndarray = None  # type: ignore[assignment]
+    actuators: np.ndarray
+    tilt: np.ndarray
 
 
 def rpy_batch(rotations: np.ndarray) -> np.ndarray:
@@ -297,19 +297,21 @@ class StackedKinematics:
         self.frame_parent = np.array([model.frames[f].parentJoint for f in frame_ids])
         self.frame_r = np.array([model.frames[f].placement.rotation for f in frame_ids])
         self.frame_p = np.array([model.frames[f].placement.translation for f in frame_ids])
-        self.point_a, self.point_b, self.point_slot, self.weld = [], [], [], []
+        point_a: list[int] = []
+        point_b: list[int] = []
+        self.point_slot, self.weld = [], []
         start = 0
         for c in mechanism.closures:
             if c.type == "3D":
-                self.point_a.append(where[c.frame_a_id])
-                self.point_b.append(where[c.frame_b_id])
+                point_a.append(where[c.frame_a_id])
+                point_b.append(where[c.frame_b_id])
                 self.point_slot.append(start)
                 start += 3
             else:
                 self.weld.append((start, where[c.frame_a_id], where[c.frame_b_id]))
                 start += 6
         self.point_rows = (np.array(self.point_slot, dtype=int)[:, None] + np.arange(3)).reshape(-1)
-        self.point_a, self.point_b = np.array(self.point_a, dtype=int), np.array(self.point_b, dtype=int)
+        self.point_a, self.point_b = np.array(point_a, dtype=int), np.array(point_b, dtype=int)
         self.enforced = solver._enforced
         self.n_full = start
         # The 3D closures' Jacobian entries, one (closure, column) pair at a time: the columns of the
@@ -369,19 +371,19 @@ class StackedKinematics:
         ra, pb = frot[self.point_a], fpos[self.point_b]
         full[self.point_rows] = _apply_transposed(ra, pb - fpos[self.point_a]).reshape(-1, n)
         jac = np.zeros((self.n_full, len(linear), n)) if with_jacobian else None
-        if with_jacobian and len(self.pair_point):
+        if jac is not None and len(self.pair_point):
             column = self.pair_column
             moved = linear[column] - _cross(pb[self.pair_point], angular[column])
             jac[self.pair_rows, column[:, None]] = self.pair_sign * _apply_transposed(ra[self.pair_point], moved)
         for (slot, ia, ib), (columns, sign, rows) in zip(self.weld, self.weld_pairs):
             full[slot:slot + 6], a, b = _weld_rows(frot[ia], fpos[ia], frot[ib], fpos[ib])
-            if with_jacobian:
+            if jac is not None:
                 v, w = linear[columns], angular[columns]
                 jac[rows, columns[:, None]] = sign * np.concatenate((_apply(a, v) + _apply(b, w), _apply(a, w)), axis=1)
         world = np.concatenate((linear, angular), axis=1).transpose(2, 1, 0)  # (n, 6, nv), a view
         frames = frot.transpose(3, 0, 1, 2), fpos.transpose(2, 0, 1)  # (n, F, 3, 3), (n, F, 3) views
         residual = full[self.enforced].T
-        if not with_jacobian:
+        if jac is None:
             return (residual, None) + frames + (world,)
         return (residual, jac[self.enforced].transpose(2, 0, 1)) + frames + (world,)
 
@@ -526,6 +528,7 @@ def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: 
     active = np.arange(n)
     residual, jac, rot, pos = system(q, active, True)
     singular = factors.refresh(active, jac, unknowns, signature)
+    assert factors.labels is not None and factors.start is not None, "the first refresh sets them"
     if branch is not None:
         factors.start[:] = branch
     tolerance, max_iterations = rules.tolerance, rules.max_iterations
@@ -670,17 +673,20 @@ def _forward_result(kin: StackedKinematics, n: int, parts: list, failures: list)
         good = solved.status == _CONVERGED
         pose = np.zeros((int(good.sum()), 4, 4))
         pose[:, :3, :3], pose[:, :3, 3], pose[:, 3, 3] = solved.rotation[good], solved.position[good], 1.0
-        indices.append(chunk[good]), poses.append(pose), qs.append(solved.q[good])
-        norms.append(solved.norm[good]), steps.append(solved.iterations[good])
+        indices.append(chunk[good])
+        poses.append(pose)
+        qs.append(solved.q[good])
+        norms.append(solved.norm[good])
+        steps.append(solved.iterations[good])
     cat = (lambda arrays, shape: np.concatenate(arrays) if arrays else np.zeros(shape))
     index = cat(indices, (0,)).astype(int)
     order = np.argsort(index, kind="stable")
     platform, q = _frozen(cat(poses, (0, 4, 4))[order]), _frozen(cat(qs, (0, kin.solver.model.nq))[order])
     task = platform if kin.platform_index == -1 else _frozen(kin.task_poses(q) if len(q) else np.zeros((0, 4, 4)))
-    fields = dict(n=n, indices=_frozen(index[order]), poses=platform, q=q, residuals=_frozen(cat(norms, (0,))[order]),
-                  iterations=_frozen(cat(steps, (0,)).astype(int)[order]),
-                  failures=tuple(sorted(failures, key=lambda f: f.index)), task_poses=task)
-    return ForwardBatch(**fields)
+    return ForwardBatch(n=n, indices=_frozen(index[order]), poses=platform, q=q,
+                        residuals=_frozen(cat(norms, (0,))[order]),
+                        iterations=_frozen(cat(steps, (0,)).astype(int)[order]),
+                        failures=tuple(sorted(failures, key=lambda f: f.index)), task_poses=task)
 
 
 def task_rows(task: TaskSpec, rot: np.ndarray, pos: np.ndarray, twist: np.ndarray, goal: np.ndarray,
@@ -701,6 +707,7 @@ def task_rows(task: TaskSpec, rot: np.ndarray, pos: np.ndarray, twist: np.ndarra
         row = np.stack([-c[:, 0] * c[:, 2], -c[:, 1] * c[:, 2], horizontal], axis=1) / horizontal[:, None]
         jacobian.append(np.einsum("nk,nkv->nv", row, twist[:, 3:])[:, None])
     elif task.rotation == "full":
+        assert goal_rot is not None, "a full-rotation goal has its rotations"
         logs, angles = log3_batch(goal_rot.transpose(0, 2, 1) @ rot)
         residual.append(logs)
         jacobian.append(jlog3_batch(logs, angles) @ rot.transpose(0, 2, 1) @ twist[:, 3:])
@@ -788,8 +795,9 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
             k = int(np.argmax(outside[i]))
             solved.status[i] = _LIMIT
             failures.append(RowFailure(int(chunk[i]), f"inverse kinematics: target needs actuator '{names[k]}' = "
-                                       f"{sliders[i, k]:.6g} {solver.mechanism.joint_units()[k]}, beyond its limit [{solver._act_lower[k]:.6g}, "
-                                       f"{solver._act_upper[k]:.6g}]", OutOfWorkspaceError))
+                                       f"{sliders[i, k]:.6g} {solver.mechanism.joint_units()[k]}, beyond its limit "
+                                       f"[{solver._act_lower[k]:.6g}, {solver._act_upper[k]:.6g}]",
+                                       OutOfWorkspaceError))
         failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
                      for f in failures_of(solved, 0, "inverse kinematics", solver.singular_rcond)]
         parts.append((chunk, solved))

@@ -10,7 +10,7 @@ Residual of a closure between frames a and b (both placements in the base frame)
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Literal, overload
 
 import numpy as np
 import pinocchio as pin
@@ -76,6 +76,10 @@ class ClosureSystem:
         self.enforced = np.concatenate([slots[i] + np.array(c.rows, dtype=int) for i, c in enumerate(closures)]
                                        + [np.zeros(0, dtype=int)])
 
+    @overload
+    def evaluate(self, q: np.ndarray, with_jacobian: Literal[True]) -> tuple[np.ndarray, np.ndarray]: ...
+    @overload
+    def evaluate(self, q: np.ndarray, with_jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]: ...
     def evaluate(self, q: np.ndarray, with_jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """Enforced rows at q and, optionally, their exact Jacobian (rows x nv). The constraint models'
         6D Jacobian is velocity-level (the relative twist of b in a's frame, a left perturbation of

@@ -16,6 +16,7 @@ The default workspace (`m3t1r.model.workspace`) is judged by the same Jacobian's
 from __future__ import annotations
 
 import itertools
+from typing import Literal
 
 import numpy as np
 import pinocchio as pin
@@ -25,7 +26,7 @@ from m3t1r.model.task import POSITION_AXES, TaskSpec
 
 __all__ = ["SCHEMA_1_TASK_ROTATION", "actuator_task_jacobian", "default_task", "task_entry", "task_words"]
 
-SCHEMA_1_TASK_ROTATION = "yaw"  # with all three position axes: the M machine's task, schema 1's default
+SCHEMA_1_TASK_ROTATION: Literal["none", "yaw", "full"] = "yaw"  # with all three position axes: the M machine's task, schema 1's default
 FULL_RANK = 1e-6  # smallest/largest singular value of the actuator-to-task Jacobian for a task to be taken
 
 

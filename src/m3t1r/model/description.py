@@ -12,7 +12,7 @@ import importlib.resources
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Literal, cast
 
 import numpy as np
 import pinocchio as pin
@@ -75,7 +75,7 @@ class Mechanism:
 
     closures_document: dict | None = field(default=None, repr=False, compare=False)
     """The closures file as read (a YAML mapping), so that `save` never re-reads a file that may have changed."""
-    task: TaskSpec | None = None
+    task: TaskSpec = cast(TaskSpec, None)  # None: the platform frame's task, which __post_init__ sets
     workspace: WorkspaceSpec | None = None
     locked_joints: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
@@ -306,7 +306,7 @@ def _load_visual(path: Path, model: pin.Model) -> pin.GeometryModel:
         raise ModelFileError(path, f"cannot load the visual geometry: {exc}") from None
 
 
-def paired_closures(urdf: str | Path, *, recorded: str | None | bool = False) -> tuple[Path, bytes]:
+def paired_closures(urdf: str | Path, *, recorded: str | None | Literal[False] = False) -> tuple[Path, bytes]:
     """The closures file that pairs with `urdf`, and its bytes, as read once.
 
     `NAME.urdf` pairs with `NAME.closures.yaml` (only the final `.urdf` replaced). If the URDF
@@ -350,9 +350,9 @@ def _read_bytes(path: Path) -> bytes:
 
 
 def _closures_of(urdf: Path, closures: Path, recorded: str | None) -> tuple[Path, bytes]:
-    data = None if not closures.exists() and recorded is not None else _read_bytes(closures)
     if recorded is None:
-        return closures, data
+        return closures, _read_bytes(closures)
+    data = None if not closures.exists() else _read_bytes(closures)
     if data is not None and closures_match(data, recorded):
         return closures, data
     for pending in reversed(pending_temporaries(closures)):
@@ -442,7 +442,7 @@ def _settled(mechanism: Mechanism) -> Mechanism:
     return dataclasses.replace(settled, task=_task_of(settled, notes), notes=tuple(notes))
 
 
-def _task_of(mechanism: Mechanism, notes: list[str]) -> TaskSpec | None:
+def _task_of(mechanism: Mechanism, notes: list[str]) -> TaskSpec:
     """The declared task, or without one the task the actuators command at home (`model.defaults`),
     with a note when that is not schema 1's position-and-yaw task."""
     if mechanism.closures_document is None or "task" in mechanism.closures_document:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -129,13 +130,13 @@ class _UrdfBuilder:
         for mat, rgba in _MATERIALS.items():
             ET.SubElement(ET.SubElement(self.root, "material", name=mat), "color", rgba=_fmt(rgba))
 
-    def link(self, name: str, visuals: list[tuple[str, dict[str, str], tuple, tuple, str]] = ()) -> None:
+    def link(self, name: str, visuals: Sequence[tuple[str, dict[str, str], tuple, tuple, str]] = ()) -> None:
         """visuals: (shape, shape attributes, xyz, rpy, material)."""
         link = ET.SubElement(self.root, "link", name=name)
         for shape, attrs, xyz, rpy, material in visuals:
             visual = ET.SubElement(link, "visual")
             ET.SubElement(visual, "origin", xyz=_fmt(xyz), rpy=_fmt(rpy))
-            ET.SubElement(ET.SubElement(visual, "geometry"), shape, **attrs)
+            ET.SubElement(ET.SubElement(visual, "geometry"), shape, attrs)
             ET.SubElement(visual, "material", name=material)
 
     def joint(self, name: str, kind: str, parent: str, child: str, xyz, rpy=(0.0, 0.0, 0.0),

@@ -238,11 +238,27 @@ class InverseResult:
 MAX_TOLERANCE = 1e-6
 
 
+def _checked_tolerance(value: object) -> float:
+    """A solver's tolerance [m, rad], in (0, MAX_TOLERANCE], else InvalidInputError."""
+    tolerance = require_real(value, "ClosedLoopSolver tolerance", minimum=0.0, inclusive=False)
+    if tolerance > MAX_TOLERANCE:
+        raise InvalidInputError(f"ClosedLoopSolver tolerance {tolerance!r}: at most {MAX_TOLERANCE:g} (m, rad "
+                                "of closure residual); a looser one returns open loops as solutions")
+    return tolerance
+
+
+def _checked_max_iterations(value: object) -> int:
+    """A solver's Newton cap, a whole number >= 0 (0 checks the start alone: q_init is returned only
+    if it already closes), else InvalidInputError."""
+    return require_count(value, "ClosedLoopSolver max_iterations", minimum=0)
+
+
 class ClosedLoopSolver:
     """Newton solver for the closures of one `Mechanism` (keeps its own Pinocchio `Data`).
 
     tolerance: the largest closure row [m, rad] a solution may leave, in (0, MAX_TOLERANCE];
-    max_iterations: Newton's cap, a whole number of at least 0. Other values raise InvalidInputError.
+    max_iterations: Newton's cap, a whole number of at least 0. Other values raise InvalidInputError, given
+    here or set later (the `tolerance` and `max_iterations` properties).
 
     native=True (the default): FK, IK and the batches run their Newton loops compiled
     (`m3t1r.model.native`) when the module is built and the joints allow, with the same steps and
@@ -257,19 +273,11 @@ class ClosedLoopSolver:
         self.model = mechanism.model
         self._closure_system = ClosureSystem(self.model, mechanism.closures)
         self.data = self._closure_system.data  # one Data: every evaluation leaves it at the q evaluated
-        if tolerance is not None:
-            tolerance = require_real(tolerance, "ClosedLoopSolver tolerance", minimum=0.0, inclusive=False)
-            if tolerance > MAX_TOLERANCE:
-                raise InvalidInputError(f"ClosedLoopSolver tolerance {tolerance!r}: at most {MAX_TOLERANCE:g} (m, rad "
-                                        "of closure residual); a looser one returns open loops as solutions")
-        if max_iterations is not None:
-            # 0 is a check of the start alone: it returns q_init only if that already closes.
-            max_iterations = require_count(max_iterations, "ClosedLoopSolver max_iterations", minimum=0)
         rules = DEFAULT_RULES if rules is None else rules
         if tolerance is not None:
-            rules = dataclasses.replace(rules, tolerance=float(tolerance))
+            rules = dataclasses.replace(rules, tolerance=_checked_tolerance(tolerance))
         if max_iterations is not None:
-            rules = dataclasses.replace(rules, max_iterations=int(max_iterations))
+            rules = dataclasses.replace(rules, max_iterations=_checked_max_iterations(max_iterations))
         self.rules = rules  # every Newton loop of this solver reads these, Python and compiled
         model = self.model
         nv = model.nv
@@ -322,7 +330,8 @@ class ClosedLoopSolver:
         self._unknown_columns = slice(None) if self._unknowns is None else self._unknowns
         if self.n_rows != len(self.passive):
             raise InvalidInputError(
-                f"{mechanism.closures_path}: {self.n_rows} enforced closure rows for {len(self.passive)} passive joints; "
+                f"{mechanism.closures_path}: {self.n_rows} enforced closure rows for "
+                f"{len(self.passive)} passive joints; "
                 "forward kinematics needs a square system (one row per passive joint)")
         # Block-triangular structure of the passive system, from its pattern at a few generic q
         # (numerically zero entries at one q, e.g. by axis alignment at home, must not split blocks).
@@ -358,7 +367,7 @@ class ClosedLoopSolver:
 
     @tolerance.setter
     def tolerance(self, value: float) -> None:
-        self.rules = dataclasses.replace(self.rules, tolerance=float(value))
+        self.rules = dataclasses.replace(self.rules, tolerance=_checked_tolerance(value))
 
     @property
     def max_iterations(self) -> int:
@@ -367,7 +376,7 @@ class ClosedLoopSolver:
 
     @max_iterations.setter
     def max_iterations(self, value: int) -> None:
-        self.rules = dataclasses.replace(self.rules, max_iterations=int(value))
+        self.rules = dataclasses.replace(self.rules, max_iterations=_checked_max_iterations(value))
 
     @property
     def singular_rcond(self) -> float:
@@ -524,6 +533,7 @@ class ClosedLoopSolver:
         `native.tangent`); the same bookkeeping, errors and result as the Python loop. `data` is not moved
         to the solution."""
         native = self.native
+        assert native is not None, "called only with the compiled loop"
         order = (1 if previous is None else 2) if predicted else 0
         status, norm, iterations, rcond = native.forward(q, values, order, previous if order == 2 else None,
                                                          branch, self.rules.compiled())
@@ -547,6 +557,7 @@ class ClosedLoopSolver:
     def _reference(self, q: np.ndarray) -> tuple[np.ndarray, bytes] | None:
         """(tangent, branch labels) of the passive closure system at q, or None where it is singular."""
         _, jac = self._system(q, True)
+        assert jac is not None, "asked with_jacobian"
         square = jac.take(self.passive, axis=1)
         lu = lapack.dgetrf(square)[:2]
         inverse, rcond = _inverse_and_rcond(lu, _one_norm(square))
@@ -601,7 +612,7 @@ class ClosedLoopSolver:
         `updateFramePlacement`'s placement by value), so the solver's data may move on."""
         return pin.updateFramePlacement(self.model, self.data, self._platform)
 
-    def _newton(self, q: np.ndarray, unknowns: np.ndarray, system, signature, start_branch=None) -> _Outcome:
+    def _newton(self, q: np.ndarray, unknowns: np.ndarray | None, system, signature, start_branch=None) -> _Outcome:
         """Newton on a square system over the columns `unknowns` (None: every column), with chord steps,
         under `self.rules` (as the compiled loop and the batches).
 
@@ -631,6 +642,7 @@ class ClosedLoopSolver:
                 last_jac, jac = jac, None
             if norm <= tolerance:
                 # Conditioning and branch are judged at the last Jacobian only.
+                assert lu is not None and square is not None and last_jac is not None, "the first pass sets them"
                 inverse, rcond = _inverse_and_rcond(lu, _one_norm(square))
                 if rcond < rules.singular_rcond:
                     raise SingularConfigurationError(f"singular configuration (reciprocal condition {rcond:.2e})",
@@ -642,6 +654,7 @@ class ClosedLoopSolver:
                 return _Outcome(q, norm, iteration, inverse, last_jac, branch)
             if iteration == rules.max_iterations:
                 break
+            assert lu is not None, "the first iteration factorises"
             step = lapack.dgetrs(lu[0], lu[1], residual)[0]
             biggest = abs(float(step[_idamax(step)]))  # nan entries make q nan: the next residual stops
             if biggest > max_step:
@@ -680,12 +693,14 @@ class ClosedLoopSolver:
                 change = sign * 1e-3 * np.linspace(1.0, 0.5, len(self.actuated))
                 q = home.copy()
                 q[self.actuated] += change
+                assert reference is not None, "the loop runs only with it"
                 q[self.passive] += reference[0].dot(change)
                 configurations.append(q)
             unmoved = None
             for q in configurations:
                 rows = self._unmoved_task_rows(q)
                 unmoved = rows if unmoved is None else unmoved & rows
+            assert unmoved is not None, "configurations holds home"
             task = self.mechanism.task
             names = task.position + {"none": (), "yaw": ("theta",), "full": ("rx", "ry", "rz")}[task.rotation]
             self._uncommandable = tuple(name for name, dead in zip(names, unmoved) if dead)
@@ -756,8 +771,8 @@ class ClosedLoopSolver:
         outside = [k for k, value in enumerate(actuators.tolist()) if not lower[k] <= value <= upper[k]]
         for k in outside:
             raise OutOfWorkspaceError(
-                f"target needs actuator '{names[k]}' = {actuators[k]:.6g} {self.mechanism.joint_units()[k]}, beyond its limit "
-                f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]", residual, iterations)
+                f"target needs actuator '{names[k]}' = {actuators[k]:.6g} {self.mechanism.joint_units()[k]}, "
+                f"beyond its limit [{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]", residual, iterations)
         # The second-order predictor's history: the solution this one started from, with its goal.
         self._inverse_previous = (self._last_goal, self.last_q) if warm and self._last_goal is not None else None
         # The FK warm start now follows this solution; its predictor tangent is from elsewhere.
@@ -776,6 +791,7 @@ class ClosedLoopSolver:
         place): (q, residual, iterations, branch, task columns of the inverse, task frame, platform pose)
         as the Python loop gives them; `data` is not moved to the solution."""
         native = self.native
+        assert native is not None, "called only with the compiled loop"
         status, residual, iterations, rcond = native.inverse(q, goal, goal_rotation, order, self._inverse_previous,
                                                              start, self.rules.compiled())
         if status != _native_converged:
@@ -819,6 +835,7 @@ class ClosedLoopSolver:
         lam = -(r . b) / (b . b), only while the path keeps going the same way (0 < lam < 2).
         """
         task, task_inverse = self.mechanism.task, self._task_inverse
+        assert task_inverse is not None and self._last_task is not None, "called after an IK solution"
         rows = task.residual(self._last_task, goal, goal_rotation)
         step = -task_inverse.dot(rows)
         if self._inverse_previous is not None:
@@ -841,6 +858,7 @@ class ClosedLoopSolver:
             residual = np.concatenate((closure, task.residual(placement, goal, goal_rotation)))
             if not with_jacobian:
                 return residual, None
+            assert jac is not None, "asked with_jacobian"
             frame_jac = pin.getFrameJacobian(model, data, frame, pin.LOCAL_WORLD_ALIGNED)
             return residual, np.concatenate((jac, task.jacobian(placement, frame_jac, goal_rotation)))
         return system

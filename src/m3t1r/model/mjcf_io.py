@@ -149,7 +149,9 @@ def _named_equalities(root: etree._Element, path: Path) -> tuple[list[_Equality]
     """
     bodies = {b.get("name") for b in root.iter("body")}
     sites = {s.get("name") for s in root.iter("site")}
-    found, notes, inactive = [], [], []
+    found: list = []
+    notes: list[str] = []
+    inactive: list = []
     for k, element in enumerate(e for eq in root.iter("equality") for e in eq if isinstance(e.tag, str)):
         for attribute, known in (("body1", bodies), ("body2", bodies), ("site1", sites), ("site2", sites)):
             value = element.get(attribute)

@@ -63,7 +63,8 @@ class NativeChain:
 
     def __init__(self, handle: object, n_blocks: int, n_passive: int, n_actuated: int, n_unknowns: int,
                  task_rows: int) -> None:
-        self._handle, self.n_blocks = handle, n_blocks
+        assert _native_newton is not None, "built by `of` only when the module is"
+        self._handle, self.n_blocks, self._module = handle, n_blocks, _native_newton
         self.tangent = np.zeros((n_passive, n_actuated))  # FK: -J_passive^-1 J_actuated at the last success
         self.task_inverse = np.zeros((n_unknowns, task_rows))  # IK: task-row columns of the last inverse
         self.platform, self.task = np.eye(4), np.eye(4)  # FK: their placements at the last success [m]
@@ -129,9 +130,9 @@ class NativeChain:
         """
         if start_branch is not None:  # labels are 0 or 1: a label of another length cannot be met
             self.branch[:] = start_branch if len(start_branch) == self.n_blocks else b"\xff" * self.n_blocks
-        return _native_newton.forward(self._handle, q, sliders, order, self.tangent,
-                                      _EMPTY if previous is None else previous, self.branch,
-                                      start_branch is not None, self.platform, self.task, *rules)
+        return self._module.forward(self._handle, q, sliders, order, self.tangent,
+                                    _EMPTY if previous is None else previous, self.branch,
+                                    start_branch is not None, self.platform, self.task, *rules)
 
     def inverse(self, q: np.ndarray, goal: np.ndarray, goal_rotation: np.ndarray | None, order: int,
                 previous: tuple | None, start_branch: bytes | None, rules: tuple
@@ -148,11 +149,11 @@ class NativeChain:
             count = self.n_blocks + 1
             self.inverse_branch[:] = start_branch if len(start_branch) == count else b"\xff" * count
         (last_goal, last_rotation), last_q = previous if previous is not None else ((_EMPTY, None), _EMPTY)
-        return _native_newton.inverse(self._handle, q, goal, self._identity if goal_rotation is None else goal_rotation,
-                                      order, self.task_inverse, self.inverse_task, last_goal,
-                                      self._identity if last_rotation is None else last_rotation, last_q,
-                                      self.inverse_branch, start_branch is not None, self.inverse_platform,
-                                      self.inverse_task, *rules)
+        return self._module.inverse(self._handle, q, goal, self._identity if goal_rotation is None else goal_rotation,
+                                    order, self.task_inverse, self.inverse_task, last_goal,
+                                    self._identity if last_rotation is None else last_rotation, last_q,
+                                    self.inverse_branch, start_branch is not None, self.inverse_platform,
+                                    self.inverse_task, *rules)
 
     def forward_rows(self, q: np.ndarray, start_branch: np.ndarray | None, steps_taken: int,
                      rules: tuple, threads: int = 1
@@ -182,8 +183,8 @@ class NativeChain:
         status, norm, iterations = np.zeros(n, dtype=np.int64), np.zeros(n), np.zeros(n, dtype=np.int64)
         platform = np.zeros((n, 4, 4))
         branch = b"" if start_branch is None else np.asarray(start_branch, dtype=np.uint8).tobytes()
-        _native_newton.rows(self._handle, inverse, q, branch, goals, rotations, int(steps_taken),
-                            status, norm, iterations, platform, *rules, int(threads))
+        self._module.rows(self._handle, inverse, q, branch, goals, rotations, int(steps_taken),
+                          status, norm, iterations, platform, *rules, int(threads))
         return status, norm, iterations, platform
 
 
@@ -191,7 +192,7 @@ def status() -> str:
     """One line saying whether the solvers run the compiled Newton loop, and if not why (for
     `m3t1r --version`). Cheap: it reads what this module found at import and imports nothing."""
     if _native_newton is not None:
-        return f"compiled Newton loop ({Path(_native_newton.__file__).name})"
+        return f"compiled Newton loop ({Path(str(_native_newton.__file__)).name})"
     chosen = f", as {PURE_PYTHON_VARIABLE} asks" if _pure_python_chosen() else ""
     return f"pure-Python Newton loop: the compiled one is {_WHY_NOT}{chosen} (4-6x slower; {_HOW_TO_BUILD})"
 

@@ -210,9 +210,11 @@ def _locked(model: pin.Model, names: object, actuated: tuple[str, ...], path: Pa
 
 
 def _closures(model: pin.Model, entries: object, path: Path) -> tuple[ClosureSpec, ...]:
+    if entries is not None and not isinstance(entries, list):
+        raise ModelFileError(path, f"closures must be a list of closures, got {entries!r}")
     closures = []
     seen = set()
-    for k, entry in enumerate(entries or []):  # type: ignore[arg-type]
+    for k, entry in enumerate(entries or []):
         where = f"closures[{k}]"
         if not isinstance(entry, dict):
             raise ModelFileError(path, f"{where}: expected a mapping")

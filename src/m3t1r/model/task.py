@@ -18,7 +18,7 @@ actuator count.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -46,6 +46,7 @@ class TaskSpec:
     frame: str
     position: tuple[str, ...] = POSITION_AXES
     rotation: Literal["none", "yaw", "full"] = "yaw"
+    _rows: slice | np.ndarray = field(init=False, repr=False, compare=False)  # set by __post_init__
 
     def __post_init__(self) -> None:
         if self.rotation not in ROTATIONS:
@@ -146,6 +147,7 @@ class TaskSpec:
             rotation = placement.rotation
             out[count] = math.remainder(math.atan2(rotation[1, 0], rotation[0, 0]) - goal[count], 2 * math.pi)
         elif self.rotation == "full":
+            assert goal_rotation is not None, "a full-rotation goal has its rotation"
             out[count:] = pin.log3(goal_rotation.T @ placement.rotation)
         return out
 
@@ -162,6 +164,7 @@ class TaskSpec:
             horizontal = c0 * c0 + c1 * c1
             out[count] = np.dot((-c0 * c2 / horizontal, -c1 * c2 / horizontal, 1.0), frame_jacobian[3:])
         elif self.rotation == "full":
+            assert goal_rotation is not None, "a full-rotation goal has its rotation"
             rotation = placement.rotation
             out[count:] = pin.Jlog3(goal_rotation.T @ rotation) @ (rotation.T @ frame_jacobian[3:])
         return out

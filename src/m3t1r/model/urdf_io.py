@@ -197,7 +197,7 @@ def _parse(nominal: Path, raw: bytes) -> etree._Element:
 
 
 def _urdf_joints(nominal: Path, root: etree._Element) -> list[_UrdfJoint]:
-    joints = []
+    joints: list[_UrdfJoint] = []
     for element in root.iterchildren("joint"):
         where = f"line {element.sourceline}: <joint name={element.get('name')!r}>"
         parent, child = element.find("parent"), element.find("child")
@@ -342,7 +342,7 @@ def _rewrite_origins(
         same = spliced is not None and _canonical(spliced) == etree.tostring(tree, method="c14n")
     except etree.C14NError:  # unexpanded entity references cannot be canonicalised: serialise the tree
         same = False
-    if same:
+    if same and spliced is not None:
         return spliced
     encoding = tree.docinfo.encoding or "UTF-8"
     return etree.tostring(tree, xml_declaration=True, encoding=encoding) + "\n".encode(encoding)
@@ -374,7 +374,9 @@ def _splice_origins(raw: bytes, attributes: list[dict[str, str]]) -> bytes | Non
     # From the end backwards, so that earlier offsets stay valid.
     for (after_joint_tag, origin_span), values in reversed(list(zip(joints, attributes))):
         if origin_span is None:
-            indent = _WHITESPACE.match(raw, after_joint_tag)[0]
+            whitespace = _WHITESPACE.match(raw, after_joint_tag)
+            assert whitespace is not None, "it matches the empty string"
+            indent = whitespace[0]
             tag = b"<origin" + b"".join(b' %s="%s"' % (k.encode(), v.encode()) for k, v in values.items()) + b"/>"
             output[after_joint_tag:after_joint_tag] = indent + tag
         else:
@@ -392,7 +394,9 @@ def _with_attribute(tag: bytes, name: bytes, value: bytes) -> bytes:
     replaced, count = pattern.subn(lambda m: m[1] + m[2] + value + m[2], tag, count=1)
     if count:
         return replaced
-    close = re.search(rb"\s*/?>$", tag).start()
+    end = re.search(rb"\s*/?>$", tag)
+    assert end is not None, "a start tag ends in >"
+    close = end.start()
     return tag[:close] + b' %s="%s"' % (name, value) + tag[close:]
 
 

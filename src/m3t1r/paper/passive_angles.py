@@ -175,9 +175,9 @@ def estimate_lower_crank_angles(
     cranks = [_joint_index(model, name) for name in joints]
     idx_q = (cranks[0][0], cranks[1][0])
     start = mechanism.home[list(idx_q)] if initial is None else np.asarray(initial, dtype=float)
-    start = np.broadcast_to(start, (n_poses, 2)) if start.shape in ((2,), (1, 2), (n_poses, 2)) else None
-    if start is None or not np.all(np.isfinite(start)):
+    if start.shape not in ((2,), (1, 2), (n_poses, 2)) or not np.all(np.isfinite(start)):
         raise InvalidInputError(f"initial: expected 2 or ({n_poses}, 2) finite angles")
+    start = np.broadcast_to(start, (n_poses, 2))
     angles = np.empty((n_poses, 2))
     iterations = np.zeros(n_poses, dtype=int)
     residual = np.empty(n_poses)

@@ -97,7 +97,9 @@ def read_delimited(path: Path, options: ReadOptions, notes: list[str]) -> Tracke
     lower = [n.lower() for n in names]
     columns = _Columns(path, header[0], names, lower, rows, delimiter == ";")
     scale = length_scale(path, options.units or "m")
-    points, numbers = None, ()
+    quaternions: np.ndarray | None  # None: position-only
+    points: np.ndarray | None = None
+    numbers: tuple[int, ...] = ()
     if options.body == "all":
         points, numbers = _all_markers(path, header[0], columns, lower, scale)
         with np.errstate(invalid="ignore"), warnings.catch_warnings():
@@ -218,9 +220,9 @@ def _orientation(columns: _Columns, lower: list[str], options: ReadOptions, path
     if euler is None:
         return None
     if not options.euler:
-        vector = " (or --rotation-vector: a rotation vector, as a UR controller logs)" if euler == _EULER[1] else ""
+        hint = " (or --rotation-vector: a rotation vector, as a UR controller logs)" if euler == _EULER[1] else ""
         raise DataFileError(path, f"Euler angle columns {', '.join(euler)}: give their convention with --euler "
-                                  f"(e.g. xyz extrinsic, ZYX intrinsic){vector} and --degrees if they are in degrees",
+                                  f"(e.g. xyz extrinsic, ZYX intrinsic){hint} and --degrees if they are in degrees",
                             row=header_line)
     angles = np.column_stack([columns.values(e) for e in euler])
     quaternions = np.full((len(angles), 4), np.nan)
