@@ -354,7 +354,7 @@ def test_joint_limits_checked_are_the_usable_ones_and_the_hints_name_the_likely_
         check_joint_readings(table, ("slide", "hinge"), readings * 1e-3, np.array([0.0, -1.0]), np.array([0.1, 1.0]),
                              [True, False], scales=[1e-3, 1.0])
     degrees = np.array([-np.inf, -1.0]), np.array([np.inf, 1.0])
-    with pytest.raises(DataFileError, match=r"column 'hinge': 40 rad .* in degrees: give radians\)$"):
+    with pytest.raises(DataFileError, match=r"column 'hinge': 40 rad .* in degrees: give radians; `m3t1r convert .* --joint-degrees all"):
         check_joint_readings(table, ("slide", "hinge"), readings, *degrees, [True, False])
     with pytest.raises(DataFileError, match=r"column 'hinge': 40 rad .* \(SI units: rad\)$"):  # one of three: a fault
         table, readings = _joint_table(tmp_path, "0.0,40.0\n0.0,0.5\n0.0,-0.5\n")
