@@ -1,6 +1,9 @@
-"""The measurement setup's own tests (docs/mutation.md): exact refusals, the quaternion-norm
-tolerance from both sides, the collinearity threshold from both sides, reports round trips, and
-the registrations in closed form, including reflections and a marker turned by more than pi/2."""
+"""The measurement setup (`m3t1r.calibration.measurement_setup`): tracker frame and marker.
+
+Exact refusals, the quaternion-norm tolerance from both sides, the collinearity threshold from both
+sides, reports round trips, and the registrations in closed form, including reflections and a marker
+turned by more than pi/2.
+"""
 
 from __future__ import annotations
 

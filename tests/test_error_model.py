@@ -1,4 +1,4 @@
-"""Closed-loop error model (`m3t1r.calibration.error_model`): fast tests aimed at its mutants.
+"""Closed-loop error model (`m3t1r.calibration.error_model`): sensitivities and parameter layout.
 
 The platform sensitivities (pose, twist Jacobian, passive sensitivities, closure Jacobian) are
 checked against central differences of the perturbed machine re-assembled by
