@@ -357,19 +357,30 @@ def test_a_failed_warm_start_is_retried_from_home(mechanism):
 
 def test_a_failed_cold_start_is_not_retried(mechanism):
     path = _PathSolver(mechanism)
-    path.solver.forward, calls = _failing_warm_solves(path.solver.forward, [True])
+    failures = [True]
+    path.solver.forward, calls = _failing_warm_solves(path.solver.forward, failures)
     with pytest.raises(NotConvergedError, match="forced"):
         path.forward(np.zeros(4))
     assert calls == [None]  # home was the start already: nothing to retry from
-    path.reset()
-    assert not path._warm
+    path.forward(np.zeros(4))  # now warm
+    path.reset()  # cold again: a failure is not retried
+    failures.append(True)
+    with pytest.raises(NotConvergedError, match="forced"):
+        path.forward(np.zeros(4))
+    assert calls == [None, None, None]
 
 
-def test_compensator_recovers_from_a_forced_warm_failure_in_a_batch(mechanism):
+def test_compensator_recovers_from_a_forced_warm_failure_in_a_batch(mechanism, monkeypatch):
     compensator = Compensator(mechanism, mechanism)
     compensator.compensate(PATH[:1])
     failures = [True]
-    compensator._inverse.solver.inverse, _ = _failing_warm_solves(compensator._inverse.solver.inverse, failures)
+    inverse = ClosedLoopSolver.inverse
+
+    def failing_once_when_warm(solver, target, q_init=None):
+        wrapped, _ = _failing_warm_solves(lambda *a, **k: inverse(solver, *a, **k), failures)
+        return wrapped(target, q_init=q_init)
+
+    monkeypatch.setattr(ClosedLoopSolver, "inverse", failing_once_when_warm)
     batch = compensator.compensate(PATH[1:])
     assert batch.complete and not failures
     np.testing.assert_allclose(batch.command_targets, PATH[1:], atol=1e-9)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import fcntl
 import math
 import os
 import re
@@ -837,10 +838,22 @@ def test_a_temporary_name_fits_the_folders_name_limit(tmp_path):
         path.unlink()
 
 
+def _flock_is_held(path: Path) -> bool:
+    """Whether another open file holds `path`'s exclusive flock (what a second writer would see)."""
+    descriptor = os.open(path, os.O_RDONLY)
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return False
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(descriptor)
+
+
 def test_a_claimed_file_is_locked_registered_and_names_its_run(tmp_path):
     temporary, descriptor = claim_temporary(tmp_path / "out.csv")
     try:
-        assert temporary in _LIVE_TEMPORARIES and temporaries._holder(temporary) is True
+        assert temporary in _LIVE_TEMPORARIES and _flock_is_held(temporary)
         assert temporaries.live_writer(tmp_path / "out.csv") is None  # this process's own claim
         assert temporary.read_bytes().startswith(f"m3t1r run in progress: pid {os.getpid()} on ".encode())
     finally:
