@@ -132,19 +132,19 @@ def test_compensate_batch_agrees_with_the_path_compensation(mechanism):
 @pytest.mark.parametrize("kind", ["m_machine", "five_bar", "spherical_wrist"])
 def test_stacked_closures_match_the_single_evaluation(kind, tmp_path):
     """Residual and exact Jacobian of every enforced row (3D points and the 6D weld, far from assembly
-    so that the rotation terms of Jlog6 matter) equal `ClosedLoopSolver._evaluate`'s, pose by pose."""
+    so that the rotation terms of Jlog6 matter) equal `ClosedLoopSolver.closure_sensitivity`'s, pose by pose."""
     from m3t1r.model.description import Mechanism, nominal_model_paths
     from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 
     files = {"m_machine": nominal_model_paths, "five_bar": lambda: five_bar_files(tmp_path),
              "spherical_wrist": lambda: spherical_wrist_files(tmp_path)}[kind]()
     solver = ClosedLoopSolver(Mechanism.load(*files))
-    kin = solver._batch_kinematics()
+    kin = bk.StackedKinematics(solver)
     q = solver.mechanism.home + np.random.default_rng(4).normal(0, 0.4, (7, solver.model.nq))
     residual, jac, frot, fpos, world = kin.closures(q)
     assert residual.shape == (7, solver.n_rows) and jac.shape == (7, solver.n_rows, solver.model.nv)
     for i in range(len(q)):
-        expected, expected_jac, _ = solver._evaluate(q[i], with_jacobian=True)
+        expected, expected_jac, _ = solver.closure_sensitivity(q[i])
         np.testing.assert_allclose(residual[i], expected, atol=1e-13)
         np.testing.assert_allclose(jac[i], expected_jac, atol=1e-12)
         np.testing.assert_allclose(world[i], solver.data.J, atol=1e-13)
@@ -574,8 +574,8 @@ def test_task_frame_other_than_the_platform(five_bar):
     the task rows follow the tool, moved by chain 1's joints only."""
     moved = with_tool(five_bar)
     solver = ClosedLoopSolver(moved)
-    kin = solver._batch_kinematics()
-    assert kin.platform_index == -2 and ClosedLoopSolver(five_bar)._batch_kinematics().platform_index == -1
+    kin = bk.StackedKinematics(solver)
+    assert kin.platform_index == -2 and bk.StackedKinematics(ClosedLoopSolver(five_bar)).platform_index == -1
     np.testing.assert_array_equal(kin.task_support, [1.0, 1.0, 0.0, 0.0])
     q = five_bar.home + np.random.default_rng(17).normal(0, 0.3, (3, 4))
     _, _, frot, fpos, world = kin.closures(q)
@@ -651,8 +651,8 @@ def test_forward_batch_predictor_from_home_and_given_starts(five_bar, compiled):
     rows = solver.forward_batch(sliders, q_init=per_row)
     assert list(rows.iterations) == [7, 0, 0]
     np.testing.assert_array_equal(per_row[2], plain.q[1])
-    kin = solver._batch_kinematics()
-    _, jac, _ = solver._evaluate(five_bar.home, with_jacobian=True)
+    kin = bk.StackedKinematics(solver)
+    _, jac, _ = solver.closure_sensitivity(five_bar.home)
     tangent, branch = kin.home_reference()
     np.testing.assert_allclose(tangent, -np.linalg.solve(jac[:, kin.passive], jac[:, kin.actuated]), atol=1e-14)
     np.testing.assert_array_equal(branch, kin.signatures(jac[None])[0])
@@ -745,21 +745,21 @@ def test_first_step_from_home_is_one_newton_step_of_the_whole_system(machine, me
         targets = np.array([[0.05, 0.45], [0.0, 0.4], [0.3, 0.2], [0.01, 0.44]])
     elif machine == "tool_yaw":
         mechanism = with_tool(five_bar, TOOL_YAW)
-        home = ClosedLoopSolver(mechanism)._batch_kinematics().closures(mechanism.home[None, :])
+        home = bk.StackedKinematics(ClosedLoopSolver(mechanism)).closures(mechanism.home[None, :])
         x, yaw = home[3][0, -1, 0], np.arctan2(home[2][0, -1, 1, 0], home[2][0, -1, 0, 0])
         targets = np.array([[x + 0.01, yaw + 0.02], [x, yaw], [x + 0.2, yaw + 1.0], [x + 1e-3, yaw - 1e-3]])
     else:
         targets = np.array([[0.55, 0.60, -0.10, 0.3], [0.5, 0.5, -0.1, 0.0], [0.3, 0.9, 0.0, -2.5],
                             [0.6, 0.6, -0.1, 0.1]])
     solver = ClosedLoopSolver(mechanism)
-    kin = solver._batch_kinematics()
+    kin = bk.StackedKinematics(solver)
     task = mechanism.task
     start = np.repeat(mechanism.home[None, :], 4, axis=0)
     rows = np.array([0, 2, 3])
     signature = lambda jac, square: np.concatenate(  # noqa: E731
         (kin.signatures(jac), (np.linalg.slogdet(square)[0] > 0)[:, None]), axis=1)
     labels = bk._first_step_from_home(kin, start, rows, targets, signature)
-    closure, closure_jac, _ = solver._evaluate(mechanism.home, with_jacobian=True)
+    closure, closure_jac, _ = solver.closure_sensitivity(mechanism.home)
     data = solver.data
     frame = mechanism.model.getFrameId(task.frame)
     pin.framesForwardKinematics(solver.model, data, mechanism.home)
@@ -783,7 +783,7 @@ def test_first_step_from_a_singular_home_is_skipped(mechanism):
     """Home judged singular (threshold just above its reciprocal 1-norm condition): start untouched,
     no reference; just below the threshold the step is taken."""
     solver = ClosedLoopSolver(mechanism)
-    kin = solver._batch_kinematics()
+    kin = bk.StackedKinematics(solver)
     targets = np.array([[0.5, 0.5, -0.1, 0.0]] * 2)
     home = np.repeat(mechanism.home[None, :], 2, axis=0)
     _, jac, frot, fpos, world = kin.closures(mechanism.home[None, :])
@@ -848,7 +848,7 @@ def test_bad_targets_and_starts_are_refused_word_for_word(five_bar):
         with pytest.raises(InvalidInputError) as caught:
             solver.forward_batch(sliders, q_init=q_init)
         assert str(caught.value) == f"q_init: expected finite (4,) or (2, 4) values, got shape {shape}"
-    kin = solver._batch_kinematics()
+    kin = bk.StackedKinematics(solver)
     starts = bk._starts(kin, 3, None)
     np.testing.assert_array_equal(starts, np.repeat(five_bar.home[None, :], 3, axis=0))
     starts[0, 0] = 9.0
@@ -895,7 +895,7 @@ def test_inverse_batch_system_and_labels(monkeypatch, wrist):
     """The IK system is [closure rows; task rows] at the platform (task) frame with the goals of the
     rows asked for; its labels are the closure blocks plus sign(det) of the whole square system."""
     solver = ClosedLoopSolver(wrist, native=False)  # the numpy Newton (the compiled one never calls newton_batch)
-    kin = solver._batch_kinematics()
+    kin = bk.StackedKinematics(solver)
     calls = _recorded_newton(monkeypatch)
     goals = np.array([pin.Quaternion(pin.exp3(np.array(v))).coeffs() for v in ([0.1, 0.2, 0.0], [0.0, -0.1, 0.3],
                                                                        [0.2, 0.0, 0.1])])
@@ -908,7 +908,7 @@ def test_inverse_batch_system_and_labels(monkeypatch, wrist):
     rows = np.array([2, 0])
     residual, jac, rot, pos = system(q, rows, True)
     for k, i in enumerate(rows):
-        closure, closure_jac, _ = solver._evaluate(q[k], with_jacobian=True)
+        closure, closure_jac, _ = solver.closure_sensitivity(q[k])
         placement = solver.data.oMf[wrist.platform_frame_id]
         frame_jac = pin.computeFrameJacobian(solver.model, solver.data, q[k], wrist.platform_frame_id,
                                              pin.LOCAL_WORLD_ALIGNED)
@@ -934,7 +934,7 @@ def test_inverse_batch_system_and_labels(monkeypatch, wrist):
 
 def test_forward_batch_system_and_labels(monkeypatch, five_bar):
     solver = ClosedLoopSolver(five_bar, native=False)  # the numpy Newton (the compiled one never calls newton_batch)
-    kin = solver._batch_kinematics()
+    kin = bk.StackedKinematics(solver)
     calls = _recorded_newton(monkeypatch)
     solver.forward_batch(np.array([[2.4, 0.9], [2.3, 0.7]]))
     (start, unknowns, system, signature, rules, steps, branch), = calls
@@ -949,7 +949,7 @@ def test_forward_batch_system_and_labels(monkeypatch, five_bar):
     q = five_bar.home + np.random.default_rng(21).normal(0, 0.2, (2, 4))
     residual, jac, rot, pos = system(q, np.array([1, 0]), True)
     for k in range(2):
-        closure, closure_jac, _ = solver._evaluate(q[k], with_jacobian=True)
+        closure, closure_jac, _ = solver.closure_sensitivity(q[k])
         np.testing.assert_allclose(residual[k], closure, atol=1e-14)
         np.testing.assert_allclose(jac[k], closure_jac, atol=1e-14)
         np.testing.assert_allclose(pos[k], solver.data.oMf[five_bar.platform_frame_id].translation, atol=1e-14)
@@ -1006,7 +1006,7 @@ def test_inverse_batch_of_a_yaw_task_on_a_frame_off_the_platform(monkeypatch, fi
     step batched, branch labels of home) and from given starts (no step, labels at the start)."""
     machine = with_tool(five_bar, TOOL_YAW)
     solver = ClosedLoopSolver(machine, native=False)  # the numpy Newton's calls are recorded
-    kin = solver._batch_kinematics()
+    kin = bk.StackedKinematics(solver)
     sliders = five_bar.home[[0, 2]] + np.array([[0.0, 0.0], [0.05, 0.05], [-0.1, 0.2]])
     fk = solver.forward_batch(sliders)
     _, _, frot, fpos, _ = kin.closures(fk.q)
