@@ -38,8 +38,6 @@ from mutmut.utils.format_utils import orig_function_and_class_names_from_key
 
 ROOT = Path(__file__).resolve().parents[1]
 KILLED = {"killed", "timeout", "caught by type check"}
-
-
 LINE_BREAK = " ⏎ "  # joins the lines of a change that spans several
 
 
@@ -92,13 +90,14 @@ def equivalent_changes(text: str | None = None) -> dict[MutantChange, str]:
     return changes
 
 
-def mutant_changes(module: str) -> dict[str, MutantChange]:
-    """Every mutant mutmut generates for `module` (by its generated name) and what it changes.
+def mutant_changes(module: str, root: Path = ROOT) -> dict[str, MutantChange]:
+    """Every mutant mutmut generates for `module` of the tree at `root` (by its generated name) and
+    what it changes.
 
-    Generated here from the checkout's source with mutmut's own mutator, the same as `mutmut run`'s;
-    the mutated file is parsed once and each mutant diffed against the function's original copy."""
+    Generated with mutmut's own mutator, the same as `mutmut run`'s; the mutated file is parsed once
+    and each mutant diffed against the function's original copy."""
     path = module_path(module)
-    mutated = mutate_file_contents(path, (ROOT / path).read_text(encoding="utf-8"))
+    mutated = mutate_file_contents(path, (root / path).read_text(encoding="utf-8"))
     functions = generated_functions(mutated.code)
     changes = {}
     for generated in mutated.mutant_names:
@@ -171,7 +170,7 @@ def run_module(module: str, tests: list[str], max_children: int, workdir: Path) 
         subprocess.run(["nice", "-n", "10", sys.executable, "-m", "mutmut", "run", "--max-children", str(max_children)],
                        cwd=copy, check=True, stdout=output, stderr=subprocess.STDOUT)
     statuses = results(copy)
-    changes = mutant_changes(module)
+    changes = mutant_changes(module, copy)  # the copy's source: the checkout may change during the run
     equivalent = {change for change in equivalent_changes() if change.module == module}
     counted = {name: status for name, status in statuses.items() if changes[name] not in equivalent}
     counts = Counter(counted.values())
