@@ -1,27 +1,46 @@
 """Closed-loop calibration: sensitivities, identifiability and reachable accuracy (docs/results.md)."""
 
+import copy
+import dataclasses
 import re
 import warnings
+from types import SimpleNamespace
 
 import numpy as np
 import pinocchio as pin
 import pytest
 
+from m3t1r.calibration import closed_loop
 from m3t1r.calibration.closed_loop import (
+    _ClosedLoopProblem,
+    _refine,
+    _registered_setup,
+    _reject_outliers,
+    _residual_rows_batch,
+    _rms,
+    _select_parameters,
+    _State,
+    _structural_rank,
     calibrate_closed_loop,
+    cross_validate,
+    default_iterations,
     pose_errors,
     predicted_measurement_std,
     predicted_pose_std,
+    setup_parameter_names,
 )
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
+from m3t1r.calibration.identification import forward_selection, select_base_parameters
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors, simulate_study
-from m3t1r.errors import IdentificationError, InvalidInputError
+from m3t1r.errors import BranchChangeError, IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.metrics import pose_errors_between
+from m3t1r.model.batch_kinematics import RowFailure
 from m3t1r.model.description import Mechanism
 from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.poe import Placement
 from m3t1r.model.workspace import workspace_actuators
 
 
@@ -293,3 +312,835 @@ def test_complex_readings_and_seeds_below_zero_are_refused(mechanism):
         PoseMeasurements(study.measurements.actuators + 1j, study.measurements.poses)
     with pytest.raises(InvalidInputError, match="seed: expected a whole number of at least 0"):
         simulate_study(mechanism, n_poses=4, n_holdout=0, seed=-1)
+
+
+# ==================================================================================================
+# Fit pieces, refusals and the predicted standard deviation, exactly
+#
+# The predicted pose standard deviation is checked against finite differences of the calibrated machine
+# (exact) and against the held-out error from both sides (statistical); the LM stop rule is checked on the
+# iteration that fired it.
+# ==================================================================================================
+
+
+NOISE = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
+
+
+@pytest.fixture(scope="module")
+def noisy(mechanism):
+    study = simulate_study(mechanism, n_poses=50, n_holdout=100, seed=13, noise=NOISE)
+    return study, calibrate_closed_loop(mechanism, study.measurements, NOISE)
+
+
+def _fitted_names(calibration) -> tuple[str, ...]:
+    """Names of the covariance's rows and columns."""
+    fitted = getattr(calibration, "fitted", None)
+    return tuple(fitted) if fitted is not None else tuple(calibration.base.names)
+
+
+def _finite_difference_pose_std(calibration, sliders):
+    """sqrt(trace(J C J^T)) for position and orientation, J from central differences of the
+    calibrated machine's FK over its fitted machine parameters (of its own error model)."""
+    mechanism = calibration.mechanism
+    error_model = ClosedLoopErrorModel(mechanism, calibration.error_model.placements)
+    index = {name: i for i, name in enumerate(error_model.names)}
+    names = _fitted_names(calibration)
+    machine = [k for k, name in enumerate(names) if name in index]
+    covariance = np.asarray(calibration.covariance)[np.ix_(machine, machine)]
+    reference = ClosedLoopSolver(mechanism)
+    starts = [reference.forward(s).q for s in sliders]
+    eps = 1e-7
+    position_rows = np.zeros((len(sliders), 3, len(machine)))
+    rotation_rows = np.zeros((len(sliders), 3, len(machine)))
+    for column, k in enumerate(machine):
+        moved = []
+        for sign in (1.0, -1.0):
+            vector = np.zeros(error_model.n_parameters)
+            vector[index[names[k]]] = sign * eps
+            solver = ClosedLoopSolver(mechanism.with_model(error_model.perturbed(mechanism.model, vector)))
+            moved.append([solver.forward(s, q_init=q).pose for s, q in zip(sliders, starts)])
+        for i, (plus, minus) in enumerate(zip(*moved)):
+            position_rows[i, :, column] = (plus.translation - minus.translation) / (2 * eps)
+            rotation_rows[i, :, column] = pin.log3(minus.rotation.T @ plus.rotation) / (2 * eps)
+    return (np.sqrt(np.einsum("nij,jk,nik->n", position_rows, covariance, position_rows)),
+            np.sqrt(np.einsum("nij,jk,nik->n", rotation_rows, covariance, rotation_rows)))
+
+
+def test_predicted_pose_std_is_the_covariance_through_finite_differences(noisy):
+    """sqrt(trace(J C J^T)) with J from central differences of the calibrated machine's FK."""
+    study, calibration = noisy
+    sliders = study.holdout_actuators[:3]
+    expected_position, expected_rotation = _finite_difference_pose_std(calibration, sliders)
+    predicted = predicted_pose_std(calibration, sliders)
+    np.testing.assert_allclose(predicted.position, expected_position, rtol=1e-3)
+    np.testing.assert_allclose(predicted.rotation, expected_rotation, rtol=1e-3)
+    # No slider set: nothing predicted; a set beyond a limit: refused, naming it.
+    empty = predicted_pose_std(calibration, np.zeros((0, 4)))
+    assert empty.position.shape == empty.rotation.shape == (0,)
+    with pytest.raises(InvalidInputError, match=r"^slider set 1 .* does not assemble on the machine from its home: "
+                                                r"actuator 'q11' = 9 is beyond its joint limit"):
+        predicted_pose_std(calibration, np.vstack((sliders[:1], [[9.0, 0.0, 0.0, 0.0]])))
+    with pytest.raises(InvalidInputError) as error:
+        predicted_pose_std(dataclasses.replace(calibration, problem=None), sliders)
+    assert str(error.value) == "a predicted std needs a calibration made by calibrate_closed_loop"
+
+
+def test_predicted_std_of_a_fit_with_its_own_placements(noisy):
+    """A fit over the joint placements alone, listed last joint first (a custom error model whose
+    columns are not the default model's): both predictions propagate its own parameters, as finite
+    differences of its FK say."""
+    study, _ = noisy
+    mechanism = study.nominal
+    joints_only = ClosedLoopErrorModel(mechanism, tuple(Placement.joint(mechanism.model.names[j])
+                                                         for j in reversed(range(1, mechanism.model.njoints))))
+    calibration = calibrate_closed_loop(mechanism, study.measurements, NOISE, error_model=joints_only)
+    sliders = study.holdout_actuators[:2]
+    expected_position, expected_rotation = _finite_difference_pose_std(calibration, sliders)
+    for predicted in (predicted_pose_std(calibration, sliders), predicted_measurement_std(calibration, sliders)):
+        np.testing.assert_allclose(predicted.position, expected_position, rtol=1e-3)
+        np.testing.assert_allclose(predicted.rotation, expected_rotation, rtol=1e-3)
+
+def test_predicted_pose_std_in_blocks_is_the_one_block_result(noisy, monkeypatch):
+    """Blocks of 2 poses (5 poses: a partial last block) give what one block gives."""
+    study, calibration = noisy
+    sliders = study.holdout_actuators[:5]
+    whole = predicted_pose_std(calibration, sliders)
+    monkeypatch.setattr(closed_loop, "_BLOCK", 2)
+    blocks = predicted_pose_std(calibration, sliders)
+    np.testing.assert_allclose(blocks.position, whole.position, rtol=1e-12)
+    np.testing.assert_allclose(blocks.rotation, whole.rotation, rtol=1e-12)
+    assert np.all(whole.position > 0) and np.all(whole.rotation > 0)
+
+
+def test_held_out_error_matches_the_prediction_from_both_sides(noisy):
+    """One draw of the parameter error: RMS ratio held-out / predicted in (0.6, 1.6), not just <= 1.3."""
+    study, calibration = noisy
+    after = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
+    predicted = predicted_pose_std(calibration, study.holdout_actuators)
+    assert 0.6 < after.position_rms / predicted.position_rms < 1.6
+    assert 0.6 < after.rotation_rms / predicted.rotation_rms < 1.6
+    assert 2e-6 < predicted.position_rms < 2e-5 and 2e-6 < predicted.rotation_rms < 4e-5
+
+
+def test_lm_stops_on_the_statistical_significance_rule(noisy):
+    """The last accepted step lowered 1/2 chi^2 by at most step_significance * s^2 (0.01 s^2)."""
+    study, calibration = noisy
+    lm = calibration.lm
+    assert lm.converged and lm.termination == "cost"
+    history = np.array(lm.cost_history)
+    rows = 6 * len(study.measurements)
+    dof = rows - len(_fitted_names(calibration))
+    s2_before = 2.0 * history[:-1] / dof  # a-posteriori variance before each accepted step
+    decrease = history[:-1] - history[1:]
+    assert decrease[-1] <= 0.01 * s2_before[-1]
+    assert np.all(decrease[:-1] > 0.01 * s2_before[:-1])  # and it did not fire earlier
+    assert 6 <= lm.iterations <= 30
+    # The fit sits at the noise: chi^2 / dof near one, from both sides.
+    assert 0.7 < 2.0 * history[-1] / dof < 1.4
+
+
+# --------------------------------------------------------------------------------------------------
+# Small pieces, without a fit: names, residual rows, iteration cap, refusals before the fit
+
+
+def test_setup_parameter_names():
+    frame = tuple(f"measurement_frame.dt[{k}]" for k in range(6))
+    marker = tuple(f"marker.dt[{k}]" for k in range(6))
+    assert setup_parameter_names(False, False, False) == () and setup_parameter_names(False, False, True) == ()
+    assert setup_parameter_names(True, False, False) == frame == setup_parameter_names(True, False, True)
+    assert setup_parameter_names(False, True, False) == marker
+    assert setup_parameter_names(False, True, True) == marker[:3]
+    assert setup_parameter_names(True, True, False) == frame + marker
+    assert setup_parameter_names(True, True, True) == frame + marker[:3]
+
+
+@pytest.mark.parametrize("position_only", [False, True])
+def test_residual_rows_are_the_derivatives_for_spatial_twists(position_only):
+    """e = [p - p_meas; log3(R_meas^T R)] and de/dxi for pose <- exp6(xi) pose, by central differences."""
+    rng = np.random.default_rng(60)
+    poses = np.array([pin.SE3.Random().homogeneous for _ in range(3)])
+    measured = poses @ np.array([pin.exp6(rng.normal(0.0, 0.1, 6)).homogeneous for _ in range(3)])
+    rotations = None if position_only else measured[:, :3, :3]
+    residual, rows = _residual_rows_batch(poses, measured[:, :3, 3], rotations)
+    k = 3 if position_only else 6
+    assert residual.shape == (3, k) and rows.shape == (3, k, 6)
+    np.testing.assert_allclose(residual[:, :3], poses[:, :3, 3] - measured[:, :3, 3], atol=1e-15)
+    if not position_only:
+        expected = [pin.log3(m[:3, :3].T @ p[:3, :3]) for p, m in zip(poses, measured)]
+        np.testing.assert_allclose(residual[:, 3:], expected, atol=1e-12)
+    numeric = np.empty_like(rows)
+    for j in range(6):
+        xi = np.zeros(6)
+        xi[j] = 1e-7
+        plus = _residual_rows_batch(pin.exp6(xi).homogeneous @ poses, measured[:, :3, 3], rotations, False)
+        minus = _residual_rows_batch(pin.exp6(-xi).homogeneous @ poses, measured[:, :3, 3], rotations, False)
+        assert plus[1] is None and minus[1] is None
+        numeric[:, :, j] = (plus[0] - minus[0]) / 2e-7
+    np.testing.assert_allclose(rows, numeric, atol=1e-7)
+    again, none = _residual_rows_batch(poses, measured[:, :3, 3], rotations, with_jacobian=False)
+    assert none is None
+    np.testing.assert_array_equal(again, residual)
+
+
+def test_iteration_cap_is_60_or_5_per_parameter():
+    assert [default_iterations(n) for n in (0, 11, 12, 13, 56, 100)] == [60, 60, 60, 65, 280, 500]
+
+
+def test_rms():
+    residual = np.array([[3.0, 4.0, 0.0, 1.0, 2.0, 2.0], [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    assert _rms(residual) == pytest.approx((np.sqrt(12.5), np.sqrt(4.5)), rel=1e-15)
+    position, rotation = _rms(residual[:, :3])
+    assert position == pytest.approx(np.sqrt(12.5), rel=1e-15) and np.isnan(rotation) and type(rotation) is float
+
+
+@pytest.fixture(scope="module")
+def few_poses(mechanism):
+    actuators = workspace_actuators(mechanism, 4, np.random.default_rng(61))
+    return measure(mechanism, actuators)
+
+
+def test_names_and_priors_are_checked_before_any_fit(mechanism, few_poses):
+    for sigma in (0.0, -1.0, float("inf"), float("nan")):
+        with pytest.raises(InvalidInputError) as error:
+            calibrate_closed_loop(mechanism, few_poses, priors={"q11.dt[0]": sigma})
+        assert str(error.value) == "a prior's sigma must be a positive number [m or rad]"
+    with pytest.raises(InvalidInputError, match=r"^prior: 'nope' is neither a parameter \(e.g. q11.dt\[0\]\)"):
+        calibrate_closed_loop(mechanism, few_poses, priors={"nope": 1.0})
+    with pytest.raises(InvalidInputError, match=r"^fixed parameter: 'nope' is neither a parameter"):
+        calibrate_closed_loop(mechanism, few_poses, fixed=["nope"])
+
+
+def test_identifiable_count_on_the_reference_poses(mechanism, few_poses, monkeypatch):
+    """`_structural_rank` from an empty cache (a fit would find it filled by earlier fits), hence
+    `_count_identifiable`: 56 of 204 with full poses (docs/results.md), 53 with positions only, fewer
+    with fixed columns or a looser tolerance; the marker's rotation shows at a loose tolerance.
+    Each distinct key is counted once."""
+    cache = {}
+    monkeypatch.setattr(closed_loop, "_STRUCTURAL_RANKS", cache)
+    error_model = ClosedLoopErrorModel(mechanism)
+    full = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(204))
+    positions = _ClosedLoopProblem(error_model, measure(mechanism, few_poses.actuators, position_only=True), NOISE,
+                                   np.arange(204))
+    identity, turned = pin.SE3.Identity(), pin.SE3(pin.utils.rotate("x", 0.5), np.array([0.0, 0.0, 0.05]))
+    assert _structural_rank(full, identity, [], 1e-8) == 56
+    assert _structural_rank(full, identity, list(range(12)), 1e-8) == 52
+    with_setup = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(216), estimate_frame=True,
+                                    estimate_marker=True)
+    assert _structural_rank(with_setup, turned, [], 1e-8) == 56
+    assert _structural_rank(positions, identity, [], 1e-8) == 53
+    assert _structural_rank(positions, identity, [], 1e-3) == 47
+    assert _structural_rank(positions, turned, [], 1e-3) == 48
+    assert len(cache) == 6 and sorted(base.rank for base in cache.values()) == [47, 48, 52, 53, 56, 56]
+    assert _structural_rank(positions, identity, [], 1e-3) == 47 and len(cache) == 6
+
+
+def test_selection_scores_the_fit_linearised_at_the_estimate(noisy):
+    """Forward selection on r - J x at the estimate over the inliers; all kept: the same fit."""
+    _, calibration = noisy
+    problem = copy.copy(calibration.problem)
+    state = calibration.lm.state
+    r, J = problem.residual_and_jacobian(state)
+    rows = len(problem.weights)
+    keep = np.repeat(problem.active, 6)
+    columns = problem.columns.copy()
+    expected = forward_selection(J[:rows][keep], (r[:rows] - J[:rows] @ state.accumulated[columns])[keep], 6,
+                                 range(len(columns)), np.flatnonzero(columns < 12))
+    selection, result = _select_parameters(problem, calibration.start, calibration.lm, np.arange(12),
+                                           calibration.options)
+    assert selection == expected
+    if len(selection.indices) == len(columns):
+        assert result is calibration.lm
+    else:
+        np.testing.assert_array_equal(problem.columns, columns[list(selection.indices)])
+        assert result.state.model is not None and result is not calibration.lm
+
+
+def test_refine_reselects_at_the_estimate_and_continues(noisy):
+    """At the estimate more directions are identifiable: the columns grow and LM continues from the
+    estimate (capped here at 2 iterations); a tolerance that finds no more returns the fit as is."""
+    _, calibration = noisy
+    problem = copy.copy(calibration.problem)
+    problem.active = problem.active.copy()
+    problem.active[0] = False  # an outlier's rows: zero weights in the re-selection
+    assert _refine(problem, calibration.lm, 0.5, 2) is calibration.lm
+    problem.active = calibration.problem.active
+    np.testing.assert_array_equal(problem.columns, calibration.problem.columns)
+    before = len(problem.columns)
+    # The iterate's setup is carried into the refit (here a marker 0.1 mm off: a higher cost).
+    moved = MeasurementSetup(marker=pin.SE3(np.eye(3), np.array([1e-4, 0.0, 0.0])))
+    start = dataclasses.replace(calibration.lm, state=dataclasses.replace(calibration.lm.state, setup=moved))
+    refined = _refine(problem, start, 1e-7, 2)
+    assert len(problem.columns) > before and refined.iterations <= 2
+    shifted = problem.residual(dataclasses.replace(calibration.lm.state, setup=moved))
+    assert refined.cost_history[0] == pytest.approx(0.5 * shifted @ shifted, rel=1e-9)
+    assert refined.cost_history[0] > 10 * calibration.lm.cost_history[-1]
+    np.testing.assert_array_equal(refined.state.accumulated[:204] != 0.0,
+                                  np.isin(np.arange(204), problem.columns) | (calibration.lm.state.accumulated[:204] != 0))
+
+
+def test_prior_rows_and_a_trial_that_does_not_assemble(mechanism, few_poses):
+    """Prior rows x_c / sigma_c in the columns' order; a trial step whose model did not assemble
+    (model None, nothing accumulated) is all infinite, prior rows included (it used to raise
+    TypeError with priors)."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    problem = _ClosedLoopProblem(error_model, few_poses, NOISE, np.array([0, 5, 7]), priors={5: 0.5, 7: 2e-3, 100: 1.0})
+    accumulated = np.zeros(204)
+    accumulated[[0, 5, 7]] = [1.0, 1e-3, -4e-3]
+    values, jacobian = problem._prior_rows(_State(mechanism.model, np.zeros((0, 20)), np.zeros((0, 4, 4)),
+                                                  accumulated=accumulated))
+    np.testing.assert_allclose(values, [1e-3 / 0.5, -4e-3 / 2e-3], rtol=1e-15)
+    np.testing.assert_array_equal(jacobian, [[0.0, 2.0, 0.0], [0.0, 0.0, 500.0]])
+    failed = _State(None, np.zeros((0, 20)), np.zeros((0, 4, 4)))
+    residual = problem.residual(failed)
+    assert residual.shape == (4 * 6 + 2,) and np.all(residual == np.inf)
+    r, J = problem.residual_and_jacobian(failed)
+    assert r.shape == (26,) and np.all(r == np.inf)
+    np.testing.assert_array_equal(J, np.zeros((26, 3)))
+    plain = _ClosedLoopProblem(error_model, few_poses, NOISE, np.array([0, 5, 7]))
+    assert plain.residual(failed).shape == (24,)
+
+
+def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
+    """One fit with every option: the frame and marker estimated (the setup's 12 columns kept),
+    one gross outlier flagged, a placement held, a prior, progress reported; then cross-validation
+    and its refusals."""
+    frame = pin.SE3(pin.utils.rotate("z", 2.0), np.array([1.5, -0.8, 0.3]))
+    marker = pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.01, 0.0, 0.05]))
+    study = simulate_study(mechanism, n_poses=40, n_holdout=0, seed=17, noise=NOISE,
+                           setup=MeasurementSetup(frame, marker), outliers=1)
+    calls = []
+    calibration = calibrate_closed_loop(
+        mechanism, study.measurements, NOISE, setup=MeasurementSetup(marker=pin.SE3(np.eye(3), marker.translation)),
+        estimate_frame=True, estimate_marker=True, fixed=["q11"], priors={"q12.dt[0]": 1e-3}, select=True,
+        progress=lambda: calls.append(1))
+    assert calibration.selection is not None and len(calibration.selection.indices) == len(calibration.fitted)
+    assert calibration.outliers == tuple(study.outliers) and len(calibration.outliers) == 1
+    assert calibration.converged is bool(calibration.lm.converged) is True
+    setup_names = setup_parameter_names(True, True, False)
+    assert set(setup_names[:6]) <= set(calibration.fitted) and len(set(setup_names) & set(calibration.fitted)) >= 11
+    assert not any(name.startswith("q11.") for name in calibration.fitted)
+    assert all(calibration.parameters[f"q11.dt[{k}]"] == 0.0 for k in range(6))
+    assert list(calibration.parameters) == list(calibration.error_model.names)
+    assert list(calibration.std) == list(calibration.error_model.names) + list(setup_names)
+    assert all(calibration.std[name] > 0.0 for name in calibration.fitted)
+    assert 0.6 < calibration.variance_factor < 1.6
+    assert calibration.rms_after[0] < 3e-5 < 1e-3 < calibration.rms_before[0]
+    assert len(calls) >= calibration.lm.iterations + 1
+    for estimate, truth in ((calibration.setup.frame, frame), (calibration.setup.marker, marker)):
+        difference = truth.actInv(estimate)
+        assert np.linalg.norm(difference.translation) < 1e-2 and np.linalg.norm(pin.log3(difference.rotation)) < 1e-2
+    validation = cross_validate(calibration, folds=3)
+    assert validation.folds == 3 and validation.errors.position.shape == (39,)
+    assert validation.errors.position_mean < 5e-5 and validation.errors.rotation_mean < 1e-4
+    with pytest.raises(InvalidInputError) as error:
+        cross_validate(calibration, folds=20)
+    assert str(error.value) == "cross-validation: 20 folds need at least 40 inlier poses"
+    with pytest.raises(InvalidInputError, match="^cross-validation: 1 folds need at least 2 inlier poses$"):
+        cross_validate(calibration, folds=1)
+    with pytest.raises(InvalidInputError) as error:
+        cross_validate(dataclasses.replace(calibration, problem=None))
+    assert str(error.value) == "cross_validate needs a calibration made by calibrate_closed_loop"
+
+
+def test_pose_errors_name_the_first_set_that_does_not_assemble(mechanism, few_poses):
+    good = few_poses.actuators[:2]
+    bad = np.vstack((good, [[-0.3, 0.3, 0.0, 0.0]], good))  # the five-bar cannot close at row 2
+    with pytest.raises(InvalidInputError, match=rf"^pose_errors: actuator set 2 does not assemble on "
+                                                rf"{mechanism.urdf_path.name}: "):
+        pose_errors(mechanism, mechanism, bad)
+    same = pose_errors(mechanism, mechanism, good)
+    assert same.position.shape == (2,) and np.all(same.position == 0.0) and np.all(same.rotation == 0.0)
+    empty = pose_errors(mechanism, mechanism, np.zeros((0, 4)))
+    assert empty.position.shape == (0,) and empty.rotation.shape == (0,)
+
+
+def test_registered_setup_is_exact_on_the_nominal_machine(mechanism):
+    frame = pin.SE3(pin.utils.rotate("z", 2.0) @ pin.utils.rotate("x", 0.3), np.array([1.5, -0.8, 0.3]))
+    marker = pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.01, 0.0, 0.05]))
+    actuators = workspace_actuators(mechanism, 6, np.random.default_rng(62))
+    error_model = ClosedLoopErrorModel(mechanism)
+    axes_unknown = pin.SE3(np.eye(3), marker.translation)
+    for position_only in (False, True):
+        measurements = measure(mechanism, actuators, position_only=position_only, setup=MeasurementSetup(frame, marker))
+        problem = _ClosedLoopProblem(error_model, measurements, NOISE, np.arange(204), estimate_frame=True,
+                                     estimate_marker=True)
+        start = problem.assemble(mechanism.model, None)
+        both = _registered_setup(problem, start, MeasurementSetup(marker=axes_unknown), True, True)
+        np.testing.assert_allclose(both.frame.homogeneous, frame.homogeneous, atol=1e-9)
+        expected_marker = axes_unknown if position_only else marker  # no orientation data: axes as given
+        np.testing.assert_allclose(both.marker.homogeneous, expected_marker.homogeneous, atol=1e-9)
+        frame_only = _registered_setup(problem, start, MeasurementSetup(marker=axes_unknown), True, False)
+        np.testing.assert_allclose(frame_only.frame.homogeneous, frame.homogeneous, atol=1e-9)
+        assert frame_only.marker == axes_unknown
+        given = MeasurementSetup(frame, axes_unknown)
+        marker_only = _registered_setup(problem, start, given, False, True)
+        assert marker_only.frame == frame
+        np.testing.assert_allclose(marker_only.marker.homogeneous, expected_marker.homogeneous, atol=1e-9)
+        assert _registered_setup(problem, start, given, False, False) == given
+
+
+def test_outlier_rounds_and_too_few_poses_left(mechanism):
+    """4 exact poses of the nominal machine, one 1 m off: with 18 columns the 3 left are too few
+    (18 rows), with 17 the pose is dropped and the fit restarted from the start."""
+    actuators = workspace_actuators(mechanism, 4, np.random.default_rng(63))
+    exact = measure(mechanism, actuators)
+    poses = list(exact.poses)
+    poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
+    measurements = PoseMeasurements(exact.actuators, tuple(poses))
+    problem = _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), measurements, NOISE, np.arange(18))
+    start = problem.assemble(mechanism.model, None)
+    fit = SimpleNamespace(state=start)
+    with pytest.raises(IdentificationError) as error:
+        _reject_outliers(problem, start, fit, 5.0, {"max_iterations": 1})
+    assert str(error.value) == "1 of 4 poses are outliers: too few poses are left to fit the model"
+    assert problem.active.all()
+    problem.columns = np.arange(17)
+    result = _reject_outliers(problem, start, fit, 5.0, {"max_iterations": 1})
+    np.testing.assert_array_equal(problem.active, [True, False, True, True])
+    assert result is not fit and result.iterations <= 1 and result.state.model is not None
+    assert _reject_outliers(problem, start, result, 1e9, {"max_iterations": 1}).state is not None  # gate: none
+    np.testing.assert_array_equal(problem.active, [True, True, True, True])
+
+
+def test_covariance_std_and_variance_factor_from_the_final_jacobian(noisy):
+    """(J^T J)^-1 of the whitened Jacobian at the solution, its diagonal's square root per fitted
+    name (zero for the others), and chi^2 over rows less fitted columns."""
+    _, calibration = noisy
+    problem = calibration.problem
+    r, J = problem.residual_and_jacobian(calibration.lm.state)
+    covariance = np.linalg.inv(J.T @ J)
+    np.testing.assert_allclose(calibration.covariance, covariance, rtol=1e-6, atol=1e-6 * np.abs(covariance).max())
+    std = np.array([calibration.std[name] for name in calibration.fitted])
+    np.testing.assert_allclose(std, np.sqrt(np.diag(covariance)), rtol=1e-6)
+    assert all(calibration.std[name] == 0.0 for name in set(problem.names) - set(calibration.fitted))
+    assert calibration.variance_factor == pytest.approx(r @ r / (len(r) - len(problem.columns)), rel=1e-12)
+
+
+# --------------------------------------------------------------------------------------------------
+# Fast pieces of the fit, each on a few exact poses or a stand-in problem (kept small: a module's
+# mutation run reruns every test that reaches a changed function)
+
+
+class _Recorder:
+    """Stands in for `levenberg_marquardt`: records its call and returns a given result."""
+
+    def __init__(self, result):
+        self.result, self.calls = result, []
+
+    def __call__(self, problem, state, **options):
+        self.calls.append((problem, state, options))
+        return self.result
+
+
+def test_fit_passes_its_options_and_refuses_a_model_that_does_not_assemble(monkeypatch):
+    problem, state = object(), object()
+    options = {"max_iterations": 7, "initial_damping": 1e-6, "cost_tolerance": 0.25}
+    good = SimpleNamespace(state=SimpleNamespace(model="a model"))
+    recorder = _Recorder(good)
+    monkeypatch.setattr(closed_loop, "levenberg_marquardt", recorder)
+    assert closed_loop._fit(problem, state, options) is good
+    assert len(recorder.calls) == 1
+    called_problem, called_state, called_options = recorder.calls[0]
+    assert called_problem is problem and called_state is state and called_options == options
+    recorder.result = SimpleNamespace(state=SimpleNamespace(model=None))
+    with pytest.raises(IdentificationError) as error:
+        closed_loop._fit(problem, state, options)
+    assert str(error.value) == "calibration ended on a model that does not assemble"
+
+
+def test_refine_options_weights_and_an_equal_rank(mechanism, few_poses, monkeypatch):
+    """_refine re-selects on the whitened Jacobian of every parameter at the iterate (zero rows
+    for outliers), keeps the fit when no more columns are identifiable (equal count included), and
+    otherwise continues with damped LM (1e-9, cost tolerance 1e-14) from the iterate's model,
+    assembly, setup and accumulated steps; the weak-excitation warning is silenced."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    problem = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(3))
+    problem.active = np.array([True, False, True, True])
+    setup = MeasurementSetup(marker=pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.02])))
+    accumulated = np.linspace(-1e-4, 1e-4, 204)
+    state = problem.assemble(mechanism.model, None, setup=setup, accumulated=accumulated)
+    _, jacobian = problem.evaluate(state, np.arange(204))  # whitened, zero rows for the outlier
+    assert np.all(jacobian[6:12] == 0.0) and np.any(jacobian[:6] != 0.0)
+    expected = select_base_parameters(jacobian, problem.names, rank_tolerance=1e-3)
+    assert 3 < expected.rank < 24
+    result = SimpleNamespace(state=state)
+    recorder = _Recorder("continued")
+    monkeypatch.setattr(closed_loop, "levenberg_marquardt", recorder)
+    problem.columns = np.arange(expected.rank)  # as many as identifiable: the fit is kept
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _refine(problem, result, 1e-3, 5) is result
+        assert recorder.calls == [] and len(problem.columns) == expected.rank
+        problem.columns = np.arange(3)
+        assert _refine(problem, result, 1e-3, 5) == "continued"
+    np.testing.assert_array_equal(problem.columns, expected.indices)
+    (called_problem, continued, options), = recorder.calls
+    assert called_problem is problem
+    assert options == {"max_iterations": 5, "initial_damping": 1e-9, "cost_tolerance": 1e-14}
+    assert continued.model is state.model and continued.setup is setup and continued.accumulated is accumulated
+    for q, q0 in zip(continued.configurations, state.configurations):
+        np.testing.assert_allclose(q, q0, atol=1e-12)
+    assert continued.whitened is None
+    # Orientation weighted 1e5 below position: the re-selection warns of weak excitation, which
+    # _refine silences.
+    weak = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=1.0), np.arange(3))
+    with pytest.warns(PoorExcitationWarning):
+        select_base_parameters(weak.evaluate(state, np.arange(204))[1], weak.names, rank_tolerance=1e-9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _refine(weak, result, 1e-9, 5) == "continued"
+
+
+def test_select_parameters_scores_the_pose_rows_only(mechanism, few_poses, monkeypatch):
+    """With priors the residual has prior rows after the pose rows; the selection sees the pose
+    rows of the inliers, at r - J x."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    columns = np.array([0, 1, 2, 6, 7, 8])
+    problem = _ClosedLoopProblem(error_model, few_poses, NOISE, columns, priors={1: 1e-3, 7: 2e-3})
+    problem.active = np.array([True, True, False, True])
+    accumulated = np.zeros(204)
+    accumulated[columns] = [1e-5, -2e-5, 3e-5, 1e-5, 0.0, -1e-5]
+    state = problem.assemble(mechanism.model, None, accumulated=accumulated)
+    r, J = problem.residual_and_jacobian(dataclasses.replace(state))
+    assert len(r) == 24 + 2
+    keep = np.repeat(problem.active, 6)
+    expected = forward_selection(J[:24][keep], (r[:24] - J[:24] @ accumulated[columns])[keep], 6, range(6), [0, 1])
+    fits = []
+    fit = closed_loop._fit
+    monkeypatch.setattr(closed_loop, "_fit", lambda *args: fits.append(args[1]) or fit(*args))
+    start = dataclasses.replace(state)
+    problem.residual_and_jacobian(start)  # the start's Jacobian cached over every column
+    selection, result = _select_parameters(problem, start, SimpleNamespace(state=state), np.arange(2),
+                                           {"max_iterations": 1})
+    assert selection == expected
+    np.testing.assert_array_equal(problem.columns, columns[list(selection.indices)])
+    assert len(selection.indices) < len(columns)
+    (refit_start,) = fits  # a smaller set is refitted from the start, its Jacobian evaluated afresh
+    assert refit_start is not start and refit_start.whitened is None and start.whitened is not None
+
+
+def _problem_with_a_1_m_outlier(mechanism, columns: np.ndarray) -> _ClosedLoopProblem:
+    """Four exact poses of the nominal machine, pose 1 moved 1 m along x, fitting `columns`."""
+    exact = measure(mechanism, workspace_actuators(mechanism, 4, np.random.default_rng(63)))
+    poses = list(exact.poses)
+    poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
+    return _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), PoseMeasurements(exact.actuators, tuple(poses)),
+                              NOISE, columns)
+
+
+def test_outlier_refit_starts_from_a_fresh_jacobian(mechanism):
+    """The start's whitened residual and Jacobian, cached by the first fit with every pose, are not
+    reused by the refit without the outlier: its first cost is that of the inliers."""
+    problem = _problem_with_a_1_m_outlier(mechanism, np.arange(17))
+    start = problem.assemble(mechanism.model, None)
+    problem.residual_and_jacobian(start)  # cached with the outlier's rows
+    fit = SimpleNamespace(state=dataclasses.replace(start))  # the first fit's final iterate (released)
+    result = _reject_outliers(problem, start, fit, 5.0, {"max_iterations": 1})
+    np.testing.assert_array_equal(problem.active, [True, False, True, True])
+    assert fit.state.whitened is None and start.whitened is not None
+    inliers = problem.residual(start)
+    assert result.cost_history[0] == pytest.approx(0.5 * inliers @ inliers, rel=1e-12)
+    assert result.cost_history[0] < 1.0
+
+
+class _StandInProblem:
+    """The parts of `_ClosedLoopProblem` that `_calibration` reads, with a chosen final Jacobian."""
+
+    def __init__(self, error_model, residual, jacobian, weights, columns, active, pose_residuals):
+        self.error_model, self.weights, self.columns, self.active = error_model, weights, columns, active
+        self.names = error_model.names + setup_parameter_names(True, False, False)
+        self._final, self._pose_residuals = (residual, jacobian), pose_residuals
+
+    def residual_and_jacobian(self, state):
+        return self._final
+
+    def pose_residuals(self, state):
+        return self._pose_residuals[id(state)]
+
+
+def test_calibration_result_from_a_known_final_jacobian(mechanism):
+    """Covariance V S^-2 V^T over the singular values above 1e-12 of the largest (a 5e-10 one of 1e3
+    is dropped, 0.5 is kept), std per fitted name and zero elsewhere, chi^2 / (active rows + prior
+    rows - columns) and nan when that is not positive, the inliers' RMS before and after, the
+    outliers, the identified machine errors; the result carries the fit's pieces as given."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    rng = np.random.default_rng(64)
+    u, _ = np.linalg.qr(rng.normal(size=(14, 3)))
+    v, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    singular = np.array([1e3, 0.5, 5e-10])
+    jacobian = (u * singular) @ v.T
+    residual = rng.normal(size=14)
+    errors = np.zeros(204)
+    errors[[3, 40, 100]] = [2e-5, -1e-5, 3e-5]
+    model = error_model.perturbed(mechanism.model, errors)
+    setup = MeasurementSetup(frame=pin.SE3(np.eye(3), np.array([0.1, 0.0, 0.0])))
+    end = _State(model, np.zeros((0, 20)), np.zeros((0, 4, 4)), setup)
+    start = _State(mechanism.model, np.zeros((0, 20)), np.zeros((0, 4, 4)))
+    before = np.arange(12.0).reshape(2, 6)
+    after = before / 1000
+    columns = np.array([3, 40, 205])
+    base, selection = object(), object()
+    lm = SimpleNamespace(state=end)
+    outcomes, problems = {}, {}
+    for active_rows in (8, 3, 2, 1):  # 2 prior rows, 3 columns: dof 7, 2, 1, 0
+        weights = np.zeros(12)
+        weights[:active_rows] = 1.0
+        problems[active_rows] = _StandInProblem(error_model, residual, jacobian, weights, columns,
+                                                np.array([True, False]), {id(start): before, id(end): after})
+        outcomes[active_rows] = closed_loop._calibration(mechanism, problems[active_rows], start, lm, base, selection)
+    calibration = outcomes[8]
+    expected = (v[:, :2] / singular[:2] ** 2) @ v[:, :2].T
+    np.testing.assert_allclose(calibration.covariance, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
+    std = np.array([calibration.std[name] for name in calibration.problem.names])
+    expected_std = np.zeros(210)
+    expected_std[columns] = np.sqrt(np.diag(expected))
+    np.testing.assert_allclose(std, expected_std, rtol=1e-9)
+    assert list(calibration.std) == list(error_model.names) + list(setup_parameter_names(True, False, False))
+    assert calibration.fitted == ("q11.dt[3]", error_model.names[40], "measurement_frame.dt[1]")
+    assert calibration.variance_factor == pytest.approx(residual @ residual / 7, rel=1e-12)
+    assert outcomes[3].variance_factor == pytest.approx(residual @ residual / 2, rel=1e-12)
+    assert outcomes[2].variance_factor == pytest.approx(residual @ residual, rel=1e-12)
+    assert np.isnan(outcomes[1].variance_factor) and type(outcomes[1].variance_factor) is float
+    assert calibration.rms_before == _rms(before[:1]) and calibration.rms_after == _rms(after[:1])
+    assert calibration.outliers == (1,) and type(calibration.outliers[0]) is int
+    assert list(calibration.parameters) == list(error_model.names)
+    np.testing.assert_allclose([calibration.parameters[name] for name in error_model.names], errors, atol=1e-12)
+    assert calibration.setup is setup and calibration.error_model is error_model
+    assert calibration.base is base and calibration.selection is selection and calibration.lm is lm
+    assert calibration.problem is problems[8]
+    for placement, expected_placement in zip(calibration.mechanism.model.jointPlacements, model.jointPlacements):
+        np.testing.assert_allclose(placement.homogeneous, expected_placement.homogeneous, atol=1e-15)
+
+
+def test_identifiable_count_weights_fixed_columns_and_the_setup_gauge(mechanism, few_poses):
+    """`_count_identifiable` whitens the reference Jacobian with the problem's own noise weights
+    (orientation 1e5 times less trusted than position: 56 still), zeroes the fixed columns (all but
+    4 machine columns fixed: 8 with the frame), and keeps the setup's columns first: 29 at a
+    tolerance of 1e-5 with position 1e5 times less trusted than orientation (30 without that gauge)."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    identity, turned = pin.SE3.Identity(), pin.SE3(pin.utils.rotate("x", 0.5), np.array([0.0, 0.0, 0.05]))
+    skewed = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=1.0), np.arange(204))
+    assert closed_loop._count_identifiable(skewed, identity, [], 1e-8) == 56
+    frame = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(210), estimate_frame=True)
+    assert closed_loop._count_identifiable(frame, identity, list(range(200)), 1e-8) == 8
+    both = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1.0, rotation=1e-5), np.arange(216),
+                              estimate_frame=True, estimate_marker=True)
+    assert closed_loop._count_identifiable(both, turned, [], 1e-5) == 29
+
+
+def test_problem_layout_weights_and_measured_frames(mechanism, few_poses):
+    """Names, setup slots, per-row noise weights, the measured positions and rotations, and the
+    defaults (no setup columns, every pose active, no progress hook)."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    plain = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=4e-5), np.arange(204))
+    assert plain.names == error_model.names and plain.frame_slot is None and plain.marker_slot is None
+    assert plain.n_machine == 204 and plain.priors == {} and plain.on_evaluate is None
+    assert plain.active.dtype == bool and plain.active.tolist() == [True] * 4
+    np.testing.assert_array_equal(plain.noise_weights, np.tile([1 / 1e-5] * 3 + [1 / 4e-5] * 3, 4))
+    np.testing.assert_array_equal(plain.weights, plain.noise_weights)
+    measured = np.array([pose.homogeneous for pose in few_poses.poses])
+    np.testing.assert_array_equal(plain._measured_positions, measured[:, :3, 3])
+    np.testing.assert_array_equal(plain._measured_rotations, measured[:, :3, :3])
+    positions = measure(mechanism, few_poses.actuators[:1], position_only=True)
+    marker = _ClosedLoopProblem(error_model, positions, NOISE, np.arange(207), estimate_marker=True)
+    assert marker.names == error_model.names + ("marker.dt[0]", "marker.dt[1]", "marker.dt[2]")
+    assert marker.frame_slot is None and marker.marker_slot == 204 and marker._measured_rotations is None
+    np.testing.assert_array_equal(marker.noise_weights, [1 / NOISE.position] * 3)
+    np.testing.assert_array_equal(marker._measured_positions, [positions.poses[0].translation])
+    both = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(216), estimate_frame=True, estimate_marker=True,
+                              priors={3: 0.5})
+    assert both.frame_slot == 204 and both.marker_slot == 210 and len(both.names) == 216 and both.priors == {3: 0.5}
+    frame = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(210), estimate_frame=True)
+    assert frame.frame_slot == 204 and frame.marker_slot is None and len(frame.names) == 210
+    both.active = np.array([True, False, True, True])
+    np.testing.assert_array_equal(both.weights, np.tile([1 / NOISE.position] * 3 + [1 / NOISE.rotation] * 3, 4)
+                                  * np.repeat(both.active, 6))
+
+
+class _FakeSolver:
+    """Stands in for ClosedLoopSolver: records forward_batch's arguments, returns q = start + 1
+    (start: q_init, or zeros from home), poses filled with each row's first slider, and the
+    failures set on the class."""
+
+    calls: list = []
+    failures: tuple = ()
+
+    def __init__(self, mechanism):
+        self.mechanism = mechanism
+
+    def forward_batch(self, actuators, q_init=None):
+        _FakeSolver.calls.append((actuators, q_init))
+        start = np.zeros((len(actuators), 20)) if q_init is None else q_init
+        return SimpleNamespace(q=start + 1.0, poses=actuators[:, :1, None] * np.ones((1, 4, 4)),
+                               failures=_FakeSolver.failures)
+
+
+def test_assemble_solves_every_pose_in_one_batch_from_its_start(mechanism, few_poses, monkeypatch):
+    problem = _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), few_poses, NOISE, np.arange(204))
+    monkeypatch.setattr(closed_loop, "ClosedLoopSolver", _FakeSolver)
+    _FakeSolver.calls, _FakeSolver.failures = [], ()
+    starts = np.repeat(np.arange(4.0)[:, None], 20, axis=1)
+    state = problem.assemble(mechanism.model, starts)
+    (actuators, q_init), = _FakeSolver.calls
+    assert actuators is few_poses.actuators and q_init is starts
+    assert state.model is mechanism.model and state.setup == MeasurementSetup()
+    np.testing.assert_array_equal(state.configurations, starts + 1.0)
+    np.testing.assert_array_equal(state.poses[:, 2, 3], few_poses.actuators[:, 0])
+    np.testing.assert_array_equal(state.accumulated, np.zeros(204))
+    assert state.whitened is None
+    setup, accumulated = MeasurementSetup(marker=pin.SE3(np.eye(3), np.ones(3))), np.ones(204)
+    state = problem.assemble(mechanism.model, None, setup, accumulated)
+    assert _FakeSolver.calls[-1][1] is None and state.setup is setup and state.accumulated is accumulated
+    # The first failing pose named; a slider beyond its limit stays an input error; no state is made.
+    _FakeSolver.failures = (RowFailure(2, "forward kinematics: branch change", BranchChangeError),
+                            RowFailure(3, "actuator 'q11' = 9 is beyond its joint limit", InvalidInputError))
+    with pytest.raises(IdentificationError) as error:
+        problem.assemble(mechanism.model, starts)
+    assert str(error.value) == "measured pose 2 (0-based) does not assemble: forward kinematics: branch change"
+    _FakeSolver.failures = _FakeSolver.failures[1:]
+    with pytest.raises(InvalidInputError, match=r"^measured pose 3 \(0-based\) does not assemble: actuator 'q11' = 9 is"):
+        problem.assemble(mechanism.model, starts)
+    _FakeSolver.failures = ()
+
+
+def test_retract_moves_model_and_setup_and_assembles_from_the_iterate(mechanism, few_poses, monkeypatch):
+    """A step on machine, frame and marker columns: the model perturbed by the machine part, the
+    frame and marker right-multiplied by exp6 of theirs (3 marker components with positions
+    only), the steps accumulated; assembly starts from the iterate's configurations; a model that
+    does not assemble gives a state without model or poses."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    positions = measure(mechanism, few_poses.actuators, position_only=True)
+    columns = np.array([2, 30, 204, 209, 210, 212])
+    problem = _ClosedLoopProblem(error_model, positions, NOISE, columns, estimate_frame=True, estimate_marker=True)
+    frame = pin.SE3(pin.utils.rotate("z", 0.3), np.array([0.1, 0.2, 0.3]))
+    marker = pin.SE3(pin.utils.rotate("x", 0.2), np.array([0.0, 0.0, 0.05]))
+    configurations = np.repeat(0.01 * np.arange(4.0)[:, None], 20, axis=1)
+    accumulated = np.linspace(0.0, 1.0, 213)
+    state = _State("model", configurations, np.ones((4, 4, 4)), MeasurementSetup(frame, marker), accumulated)
+    step = np.array([1e-3, -2e-3, 0.01, 0.02, 0.03, -0.04])
+    calls = []
+    monkeypatch.setattr(error_model, "perturbed", lambda model, vector: ("perturbed", model, vector.copy()))
+    monkeypatch.setattr(problem, "assemble", lambda *args: calls.append(args) or "assembled")
+    assert problem.retract(state, step) == "assembled"
+    (model, start, setup, total), = calls
+    vector = np.zeros(213)
+    vector[columns] = step
+    assert model[:2] == ("perturbed", "model")
+    np.testing.assert_array_equal(model[2], vector[:204])
+    assert start is configurations
+    np.testing.assert_allclose(setup.frame.homogeneous, (frame * pin.exp6(vector[204:210])).homogeneous, atol=1e-15)
+    dm = np.r_[0.03, 0.0, -0.04, 0.0, 0.0, 0.0]
+    np.testing.assert_allclose(setup.marker.homogeneous, (marker * pin.exp6(dm)).homogeneous, atol=1e-15)
+    np.testing.assert_array_equal(total, accumulated + vector)
+    # No setup columns: the setup is carried as is.
+    machine_only = _ClosedLoopProblem(error_model, positions, NOISE, np.array([2, 30]))
+    monkeypatch.setattr(machine_only, "assemble", lambda *args: calls.append(args) or "assembled")
+    calls.clear()
+    machine_only.retract(dataclasses.replace(state, accumulated=np.zeros(204)), step[:2])
+    assert calls[0][2] is state.setup
+
+    def fails(*args):
+        raise IdentificationError("no assembly")
+
+    monkeypatch.setattr(problem, "assemble", fails)
+    failed = problem.retract(state, step)
+    assert failed.model is None and failed.configurations is configurations and failed.poses.shape == (0, 4, 4)
+    np.testing.assert_allclose(failed.setup.frame.homogeneous, setup.frame.homogeneous, atol=1e-15)
+    np.testing.assert_allclose(failed.setup.marker.homogeneous, setup.marker.homogeneous, atol=1e-15)
+    np.testing.assert_array_equal(failed.accumulated, accumulated + vector)
+
+
+def test_evaluate_in_blocks_reduced_with_extra_rows_and_progress(mechanism, few_poses, monkeypatch):
+    """Blocks of 3 poses give what one block gives: the whitened residual and Jacobian (zero rows
+    for an outlier); extra rows are appended for the caller; reduce=True gives R with
+    R^T R = J^T J; each evaluation calls the progress hook once."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    measurements = measure(mechanism, np.vstack((few_poses.actuators, few_poses.actuators[:3])))
+    columns = np.array([0, 7, 33, 100, 203, 204, 209, 210, 215])
+    problem = _ClosedLoopProblem(error_model, measurements, NOISE, columns, estimate_frame=True, estimate_marker=True)
+    problem.active = np.array([True, True, False, True, True, True, True])
+    calls = []
+    problem.on_evaluate = lambda: calls.append(1)
+    setup = MeasurementSetup(pin.SE3(pin.utils.rotate("z", 0.4), np.array([0.2, 0.0, 0.1])),
+                             pin.SE3(pin.utils.rotate("y", 0.2), np.array([0.0, 0.01, 0.05])))
+    state = problem.assemble(mechanism.model, None, setup=setup)
+    whole = problem.evaluate(state, columns)
+    assert len(calls) == 1 and whole[1].shape == (42, 9)
+    monkeypatch.setattr(closed_loop, "_BLOCK", 3)
+    blocks = problem.evaluate(state, columns, extra_rows=2)
+    assert len(calls) == 2 and blocks[0].shape == (44,) and blocks[1].shape == (44, 9)
+    np.testing.assert_array_equal(blocks[0][:42], whole[0])
+    np.testing.assert_array_equal(blocks[1][:42], whole[1])
+    # The sensitivities' own FK pass against the batch assembly's poses: equal to rounding.
+    np.testing.assert_allclose(whole[0], problem.pose_residuals(state).reshape(-1) * problem.weights, rtol=1e-12, atol=1e-9)
+    assert np.all(whole[1][12:18] == 0.0) and np.all(whole[1][:12].any(axis=0))
+    residual, factor = problem.evaluate(state, columns, reduce=True)
+    assert len(calls) == 3
+    np.testing.assert_array_equal(residual, whole[0])
+    assert factor.shape == (9, 9)
+    # One pose, 6 rows for 9 columns: a factor of 6 rows (nothing stacked on an empty start).
+    one = _ClosedLoopProblem(error_model, measure(mechanism, few_poses.actuators[:1]), NOISE, columns,
+                             estimate_frame=True, estimate_marker=True)
+    assert one.evaluate(one.assemble(mechanism.model, None, setup=setup), columns, reduce=True)[1].shape == (6, 9)
+    np.testing.assert_allclose(factor.T @ factor, whole[1].T @ whole[1], rtol=1e-9,
+                               atol=1e-9 * np.abs(whole[1]).max() ** 2)
+
+
+def test_outlier_rounds_refit_only_when_the_flagged_set_changes(mechanism, monkeypatch):
+    """One refit when the flagged set changes (then it is stable), none when it is stable from the
+    start; a set that never settles stops after _MAX_OUTLIER_ROUNDS (5) refits."""
+    problem = _problem_with_a_1_m_outlier(mechanism, np.arange(3))
+    start = problem.assemble(mechanism.model, None)
+    fits = []
+    fit = closed_loop._fit
+    monkeypatch.setattr(closed_loop, "_fit", lambda *args: fits.append((args[1], args[1].whitened)) or fit(*args))
+    first = _reject_outliers(problem, start, SimpleNamespace(state=dataclasses.replace(start)), 5.0,
+                             {"max_iterations": 1})
+    assert len(fits) == 1 and fits[0][0] is not start and fits[0][1] is None
+    np.testing.assert_array_equal(problem.active, [True, False, True, True])
+    assert _reject_outliers(problem, start, first, 5.0, {"max_iterations": 1}) is first and len(fits) == 1
+    flips = iter([[False, False, False, False], [False, True, False, False]] * 3)
+    monkeypatch.setattr(closed_loop, "outlier_poses", lambda blocks, sigma: (np.array(next(flips)), 1.0))
+    _reject_outliers(problem, start, first, 5.0, {"max_iterations": 1})
+    assert len(fits) == 1 + 5 and closed_loop._MAX_OUTLIER_ROUNDS == 5
+
+
+def test_structural_rank_cache_keys_on_the_noise_ratio_and_the_data_kind(mechanism, few_poses, monkeypatch):
+    """Orientation trusted 1e5 times less than position (56) or more (52): different entries though
+    the weights' product is the same; positions only (53) and full poses (56) with equal sigmas:
+    different entries though the weight ratio is the same."""
+    monkeypatch.setattr(closed_loop, "_STRUCTURAL_RANKS", {})
+    error_model = ClosedLoopErrorModel(mechanism)
+    identity = pin.SE3.Identity()
+    positions = measure(mechanism, few_poses.actuators, position_only=True)
+    counts = [_structural_rank(_ClosedLoopProblem(error_model, measurements, noise, np.arange(204)), identity, [], 1e-8)
+              for measurements, noise in ((few_poses, TrackerNoise(position=1e-5, rotation=1.0)),
+                                          (few_poses, TrackerNoise(position=1.0, rotation=1e-5)),
+                                          (few_poses, TrackerNoise(position=1e-5, rotation=1e-5)),
+                                          (positions, TrackerNoise(position=1e-5, rotation=1e-5)))]
+    assert counts == [56, 52, 56, 53]
+
+
+@pytest.mark.parametrize("position_only", [False, True])
+def test_jacobian_is_the_derivative_of_the_residual_along_retract(mechanism, few_poses, position_only):
+    """Every column of evaluate's Jacobian (machine, measurement frame, marker) against central
+    differences of the pose residual along retract's update of that parameter."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    measurements = measure(mechanism, few_poses.actuators[:3], position_only=position_only)
+    n_names = 204 + 6 + (3 if position_only else 6)
+    columns = np.array([1, 40, 150, 203] + list(range(204, n_names)))
+    problem = _ClosedLoopProblem(error_model, measurements, NOISE, columns, estimate_frame=True, estimate_marker=True)
+    setup = MeasurementSetup(pin.SE3(pin.utils.rotate("z", 0.4) @ pin.utils.rotate("x", 0.2), np.array([0.2, -0.1, 0.1])),
+                             pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.01, 0.02, 0.05])))
+    state = problem.assemble(mechanism.model, None, setup=setup)
+    residual, jacobian = problem.evaluate(state, columns)
+    np.testing.assert_allclose(residual, problem.pose_residuals(state).reshape(-1) * problem.weights, rtol=1e-12, atol=1e-9)
+    jacobian = jacobian / problem.weights[:, None]  # every weight positive here
+    eps = 1e-6
+    numeric = np.empty_like(jacobian)
+    for j in range(len(columns)):
+        step = np.zeros(len(columns))
+        step[j] = eps
+        plus, minus = problem.retract(state, step), problem.retract(state, -step)
+        numeric[:, j] = (problem.pose_residuals(plus) - problem.pose_residuals(minus)).reshape(-1) / (2 * eps)
+    np.testing.assert_allclose(jacobian, numeric, atol=1e-6)

@@ -1,19 +1,35 @@
 """The model files: generated consistently, loadable by Pinocchio and yourdfpy, validated on load."""
 
+import importlib.resources
+import os
+import re
 import shutil
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 import pytest
 import yaml
 import yourdfpy
+from test_mechanisms import _welded_double_hinge
 
-from m3t1r.errors import ModelFileError, ModelWarning
-from m3t1r.io.pairing import sha256_bytes, with_closures_sha256
-from m3t1r.model.description import Mechanism, nominal_model_paths
+from m3t1r.errors import ModelFileError, ModelWarning, OutputPathError
+from m3t1r.io.pairing import closures_sha256, recorded_closures_sha256, sha256_bytes, with_closures_sha256
+from m3t1r.model import description
+from m3t1r.model.closures import ClosureSystem
+from m3t1r.model.description import (
+    HOME_TOLERANCE,
+    Mechanism,
+    _joint_name,
+    _settled,
+    nominal_model_paths,
+    paired_closures,
+)
 from m3t1r.model.design import NOMINAL, build_closures, build_urdf
 from m3t1r.model.examples import five_bar_files
 from m3t1r.model.kinematics import ClosedLoopSolver
+from m3t1r.model.task import TaskSpec
 
 
 def test_committed_model_files_match_the_generator():
@@ -172,3 +188,444 @@ def test_a_mimic_joint_is_refused_by_name(tmp_path):
     assert str(caught.value) == (f"{urdf}: joint 'elbow_1' mimics joint 'motor_1' (<mimic>): m3t1r moves and "
                                  "calibrates every joint on its own, so a coupled joint is not supported; remove the "
                                  "tag (an independent joint) or make the joint fixed")
+
+
+# ==================================================================================================
+# Home closure checks and every refusal of the files, word for word
+#
+# The home-closure check must look at every enforced row (a bad home that breaks only the last one is
+# caught), at no unenforced row, and at HOME_TOLERANCE exactly. Then the files: every refusal of reading,
+# pairing, assembling and checking word for word with the file named, the nominal files' lookup, and the
+# bytes `pair_bytes` and `save` write.
+# ==================================================================================================
+
+
+def _with_closure_frame_moved(mechanism: Mechanism, closure: str, row: int, amount: float) -> Mechanism:
+    """frame_b of `closure` moved so that only component `row` of its residual changes, by `amount`
+    (3D: R_a^T (p_b - p_a); 6D: log6(aMb), rows 3-5 a rotation about frame_a's axes)."""
+    spec = next(c for c in mechanism.closures if c.name == closure)
+    model = mechanism.model.copy()
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, mechanism.home)
+    oMa, oMb = data.oMf[spec.frame_a_id], data.oMf[spec.frame_b_id]
+    frame = model.frames[spec.frame_b_id]
+    axis = np.zeros(3)
+    axis[row % 3] = amount
+    if row < 3:  # translate b along frame_a's axis `row`, in b's parent-joint coordinates
+        parent = data.oMi[frame.parentJoint]
+        shift = parent.rotation.T @ (oMa.rotation @ axis)
+        frame.placement = pin.SE3(frame.placement.rotation, frame.placement.translation + shift)
+    else:  # rotate b about frame_a's axis, i.e. about R_b^T R_a axis in b's own frame
+        frame.placement = frame.placement * pin.SE3(pin.exp3(oMb.rotation.T @ oMa.rotation @ axis), np.zeros(3))
+    model.frames[spec.frame_b_id] = frame
+    return replace(mechanism, model=model)
+
+
+@pytest.mark.parametrize("closure, rows", [("upper_parallelogram_I", (1, 2)), ("lower_parallelogram_II", (0, 2)),
+                                           ("platform", (0, 1, 2, 5))])
+def test_home_check_sees_every_enforced_row_alone(mechanism, closure, rows):
+    spec = next(c for c in mechanism.closures if c.name == closure)
+    assert spec.rows == rows
+    for row in rows:
+        broken = _with_closure_frame_moved(mechanism, closure, row, 1e-6)
+        notes = _settled(broken).notes
+        assert len(notes) == 1 and notes[0].startswith(f"home does not close: closure '{closure}' residual 1.000e-06")
+        assert "assembled by Newton" in notes[0]
+
+
+@pytest.mark.parametrize("closure, row", [("upper_parallelogram_I", 0), ("lower_parallelogram_II", 1),
+                                          ("platform", 3), ("platform", 4)])
+def test_home_check_ignores_unenforced_rows(mechanism, closure, row):
+    assert _settled(_with_closure_frame_moved(mechanism, closure, row, 1e-3)).notes == ()
+
+
+@pytest.mark.parametrize("amount, refused", [(1e-8, True), (2e-9, True), (5e-10, False)])
+def test_home_tolerance_boundary(mechanism, amount, refused):
+    assert HOME_TOLERANCE == 1e-9  # the documented value; the amounts straddle it
+    moved = _with_closure_frame_moved(mechanism, "five_bar_I", 2, amount)
+    notes = _settled(moved).notes
+    assert (len(notes) == 1 and notes[0].startswith("home does not close")) == refused
+
+
+# ----------------------------------------------------------------------------------------------
+# Files, pairing and saving: every refusal word for word with the file named, on the five-bar.
+
+def _five_bar(folder: Path) -> tuple[Path, Path]:
+    folder.mkdir(parents=True, exist_ok=True)
+    return five_bar_files(folder)
+
+
+def _edit_yaml(path: Path, change) -> None:
+    document = yaml.safe_load(path.read_text())
+    change(document)
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
+
+
+def _refusal(call) -> str:
+    with pytest.raises(ModelFileError) as caught:
+        call()
+    return str(caught.value)
+
+
+def _saved_pair(folder: Path) -> tuple[Path, Path, bytes]:
+    """A five-bar pair written by `save`: its URDF records the closures file's sha256."""
+    mechanism = Mechanism.load(*_five_bar(folder / "source"))
+    urdf = folder / "pair.urdf"
+    mechanism.save(urdf)
+    closures = folder / "pair.closures.yaml"
+    return urdf, closures, closures.read_bytes()
+
+
+def test_a_yaml_error_without_a_position_gives_the_reader_message(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    closures.write_bytes(b"a: \x07\n")
+    assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
+        f"{closures}: not valid YAML: unacceptable character #x0007: special characters are not allowed\n"
+        '  in "<unicode string>", position 3')
+
+
+def test_an_unreadable_closures_path_is_named(tmp_path):
+    urdf, _ = _five_bar(tmp_path)
+    below_a_file = urdf / "five_bar.closures.yaml"
+    assert _refusal(lambda: Mechanism.load(urdf, below_a_file)) == f"{below_a_file}: cannot read: Not a directory"
+
+
+def test_an_unreadable_urdf_is_named_once(tmp_path):
+    """paired_closures reads the URDF for its recorded sha256: its read errors name it once, even
+    when the path holds ": " (it used to be split there, repeating part of the path)."""
+    below_a_file = _five_bar(tmp_path)[0] / "m.urdf"
+    assert _refusal(lambda: paired_closures(below_a_file)) == f"{below_a_file}: cannot read: Not a directory"
+    odd = tmp_path / "run: 2"
+    odd.mkdir()
+    assert _refusal(lambda: paired_closures(odd / "m.urdf")) == f"{odd / 'm.urdf'}: file not found"
+
+
+def test_a_urdf_recording_two_digests_is_named(tmp_path):
+    urdf, closures = _five_bar(tmp_path / "run: 1")
+    comment = "<!-- m3t1r pair: closures sha256 {} -->\n"
+    urdf.write_text(urdf.read_text().replace("<robot", comment.format("a" * 64) + comment.format("b" * 64) + "<robot"))
+    assert _refusal(lambda: Mechanism.load(urdf, closures)) == f"{urdf}: records two different closures sha256 digests"
+
+
+def test_a_paired_urdf_without_its_closures_file(tmp_path):
+    urdf, closures, data = _saved_pair(tmp_path)
+    closures.unlink()
+    digest = closures_sha256(data)
+    expected = (f"{closures}: file not found: pair.urdf records closures sha256 {digest[:16]}..., "
+                "and no closures file with it is there")
+    assert _refusal(lambda: Mechanism.load(urdf)) == expected
+    assert _refusal(lambda: Mechanism.load(urdf, closures)) == expected
+
+
+def test_a_paired_urdf_with_another_closures_file(tmp_path):
+    urdf, closures, data = _saved_pair(tmp_path)
+    other = tmp_path / "other.closures.yaml"
+    document = yaml.safe_load(data)
+    document["closures"][0]["rows"] = [0]  # a change of meaning
+    other.write_text(yaml.safe_dump(document))
+    expected = (f"{other}: not the closures file of {urdf}: the URDF records closures sha256 "
+                f"{closures_sha256(data)[:16]}..., this file's content has {closures_sha256(other.read_bytes())[:16]}... "
+                "The two files were not written together (one was rewritten by another run, or copied from another "
+                "machine, or its content edited: comments, layout and line ends do not count); load the URDF with the "
+                "closures file written with it; to pair these two deliberately, delete the line "
+                "`<!-- m3t1r pair: ... -->` from the URDF (it then loads with any closures file; saving records a "
+                "new pair)")
+
+    assert _refusal(lambda: Mechanism.load(urdf, other)) == expected
+    closures.write_bytes(other.read_bytes())
+    assert _refusal(lambda: paired_closures(urdf)) == expected.replace(str(other), str(closures), 1)
+
+
+def test_paired_closures_reads_the_recorded_sha256_itself(tmp_path):
+    urdf, closures, data = _saved_pair(tmp_path)
+    assert paired_closures(urdf) == (closures, data)
+    assert paired_closures(urdf, recorded=None) == (closures, data)
+
+
+def test_a_staged_closures_file_of_an_interrupted_write_is_found(tmp_path):
+    """The newest readable temporary with the recorded sha256 wins; an unreadable one is skipped."""
+    urdf, closures, data = _saved_pair(tmp_path)
+    closures.unlink()
+    staged = tmp_path / ".pair.closures.yaml.m3t1r-11-aa.tmp"
+    staged.write_bytes(data)
+    unreadable = tmp_path / ".pair.closures.yaml.m3t1r-12-bb.tmp"
+    unreadable.mkdir()
+    os.utime(staged, (1_000_000, 1_000_000))
+    os.utime(unreadable, (2_000_000, 2_000_000))
+    assert paired_closures(urdf) == (closures, data)
+    loaded = Mechanism.load(urdf)
+    assert loaded.closures_path == closures and loaded.closures_document == yaml.safe_load(data)
+
+
+def test_a_plain_urdf_alone_gets_the_nominal_closures(tmp_path):
+    urdf = tmp_path / "alone.urdf"
+    urdf.write_bytes(nominal_model_paths()[0].read_bytes())
+    assert Mechanism.load(urdf).closures_path == nominal_model_paths()[1]
+
+
+def test_the_nominal_urdf_with_given_closures(tmp_path):
+    closures = tmp_path / "copy.yaml"
+    closures.write_bytes(nominal_model_paths()[1].read_bytes())
+    loaded = Mechanism.load(None, closures)
+    assert (loaded.urdf_path, loaded.closures_path) == (nominal_model_paths()[0], closures)
+    assert Mechanism.load().closures_path == nominal_model_paths()[1]
+
+
+def test_a_cell_no_field_check_foresaw_is_refused_naming_the_file(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    _edit_yaml(closures, lambda d: d["home"].update(motor_1=10**400))
+    assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
+        f"{closures}: malformed closures file: OverflowError: int too large to convert to float")
+
+
+def test_load_notes_are_warnings_attributed_to_the_caller(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0, 1, 2]))
+    with pytest.warns(ModelWarning) as caught:
+        Mechanism.load(urdf, closures)
+    assert [str(w.message) for w in caught] == [
+        "five_bar.closures.yaml: 1 closure row(s) dropped as dependent on the others: loop[2]"]
+    assert Path(caught[0].filename).name != Path(description.__file__).name
+
+
+@pytest.mark.skipif("/mutants/" in description.__file__,
+                    reason="mutmut's trampoline adds a frame between the caller and the warning")
+def test_load_notes_point_at_the_caller_exactly(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0, 1, 2]))
+    with pytest.warns(ModelWarning) as caught:
+        Mechanism.load(urdf, closures)
+    assert caught[0].filename == __file__
+
+
+def test_a_continuous_first_joint_is_an_unbounded_revolute_one(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    urdf.write_text(urdf.read_text().replace('<joint name="motor_1" type="revolute">',
+                                             '<joint name="motor_1" type="continuous">'))
+    with pytest.warns(ModelWarning, match="actuator 'motor_1' has no usable URDF limits; the workspace box's"):
+        mechanism = Mechanism.load(urdf, closures)
+    assert (mechanism.model.nq, mechanism.model.nv) == (4, 4)
+    assert mechanism.joint_units() == ("rad", "rad")
+
+
+def test_a_multi_dof_joint_is_refused(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    urdf.write_text(urdf.read_text().replace('<joint name="elbow_2" type="revolute">',
+                                             '<joint name="elbow_2" type="floating">'))
+    assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
+        f"{urdf}: joint 'elbow_2' is not a 1-DoF revolute/prismatic/continuous joint (nq=7); multi-DoF joints "
+        "are not supported")
+
+
+def test_a_urdf_pinocchio_rejects_is_named(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    urdf.write_text("<robot name='x'><link name='a'/><joint name='j' type='revolute'>")
+    assert _refusal(lambda: Mechanism.load(urdf, closures)).startswith(f"{urdf}: Pinocchio rejected the URDF: ")
+
+
+_TRIANGLE_STL = ("solid t\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 0.01 0 0\nvertex 0 0.01 0\n"
+                 "endloop\nendfacet\nendsolid t\n")
+
+
+def test_visual_meshes_resolve_next_to_the_urdf(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    (tmp_path / "fb_meshes").mkdir()
+    mesh = tmp_path / "fb_meshes" / "tri.stl"
+    mesh.write_text(_TRIANGLE_STL)
+    urdf.write_text(urdf.read_text().replace('<geometry><sphere radius="0.01"/></geometry>',
+                                             '<geometry><mesh filename="package://fb_meshes/tri.stl"/></geometry>'))
+    mechanism = Mechanism.load(urdf, closures)
+    assert [g.meshPath for g in mechanism.visual_model.geometryObjects].count(str(mesh)) == 1
+    mesh.unlink()
+    assert _refusal(lambda: Mechanism.load(urdf, closures).visual_model) == (
+        f"{urdf}: cannot load the visual geometry: Mesh package://fb_meshes/tri.stl could not be found.")
+
+
+def test_nominal_model_paths_prefers_the_installed_package(tmp_path, monkeypatch):
+    installed = tmp_path / "site" / "m3t1r"
+    (installed / "models").mkdir(parents=True)
+    checkout = tmp_path / "checkout"
+    (checkout / "models").mkdir(parents=True)
+    names = ("m3t1r.urdf", "m3t1r.closures.yaml")
+    for name in names:
+        (checkout / "models" / name).write_text("checkout")
+    monkeypatch.setattr(importlib.resources, "files", lambda package: installed if package == "m3t1r" else None)
+    monkeypatch.setattr(description, "__file__", str(checkout / "src" / "m3t1r" / "model" / "description.py"))
+    assert nominal_model_paths() == tuple(checkout / "models" / name for name in names)
+    (installed / "models" / names[0]).write_text("installed")  # a URDF alone is not a model
+    assert nominal_model_paths() == tuple(checkout / "models" / name for name in names)
+    (installed / "models" / names[1]).write_text("installed")
+    assert nominal_model_paths() == tuple(installed / "models" / name for name in names)
+    for name in names:
+        (installed / "models" / name).unlink()
+        (checkout / "models" / name).unlink()
+    assert _refusal(nominal_model_paths) == f"{checkout / 'models'}: the packaged nominal model files are missing"
+
+
+def test_an_actuator_without_limits_and_no_workspace_is_unbounded(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    urdf.write_text(re.sub(r'(<joint name="motor_2" type="revolute">(?:(?!</joint>).)*?)<limit[^>]*/>',
+                           r'\1<limit effort="10" velocity="10"/>', urdf.read_text(), flags=re.S))
+    _edit_yaml(closures, lambda d: d.pop("workspace"))
+    with pytest.warns(ModelWarning) as caught:
+        mechanism = Mechanism.load(urdf, closures)
+    assert [str(w.message) for w in caught] == [
+        "five_bar.closures.yaml: actuator 'motor_2' has no usable URDF limits; no limits [-inf, inf] used instead"]
+    lower, upper = mechanism.joint_limits()
+    assert lower.tolist() == [1.83, -np.inf] and upper.tolist() == [2.83, np.inf]
+
+
+def test_joint_limits_and_configuration_by_name(mechanism):
+    model = mechanism.model
+    k = model.idx_qs[model.getJointId("q12")]
+    lower, upper = mechanism.joint_limits(("q12",))
+    assert (lower.tolist(), upper.tolist()) == ([model.lowerPositionLimit[k]], [model.upperPositionLimit[k]])
+    assert mechanism.joint_limits(())[0].shape == (0,)
+    with pytest.raises(KeyError) as caught:
+        mechanism.configuration({"nope": 0.0})
+    assert caught.value.args == (f"no joint named 'nope' in {mechanism.urdf_path}",)
+
+
+def test_a_mechanism_made_directly_commands_its_platform_frame(mechanism):
+    made = Mechanism(mechanism.model, mechanism.closures, mechanism.actuated_joints, mechanism.principal_chains,
+                     mechanism.platform_frame, mechanism.home, mechanism.urdf_path, mechanism.closures_path)
+    assert made.task == TaskSpec("P_I")
+
+
+def test_with_home_and_with_model_copy_the_home(mechanism):
+    moved = mechanism.with_home([0] * mechanism.model.nq)
+    assert moved.home.dtype == np.float64 and moved.home.tolist() == [0.0] * mechanism.model.nq
+    other = mechanism.with_model(mechanism.model.copy())
+    assert other.home is not mechanism.home and np.array_equal(other.home, mechanism.home)
+    other.home[0] += 1.0
+    assert other.home[0] != mechanism.home[0]
+
+
+def test_joint_name_of_a_velocity_index(mechanism):
+    assert _joint_name(mechanism.model, 0) == mechanism.model.names[1]
+    assert _joint_name(mechanism.model, 1) == mechanism.model.names[2]
+
+
+def test_pair_bytes(tmp_path):
+    source_urdf, source_closures = _five_bar(tmp_path)
+    mechanism = Mechanism.load(source_urdf, source_closures).with_home(
+        Mechanism.load(source_urdf, source_closures).home + 0.25)
+    urdf_bytes, closures_bytes = mechanism.pair_bytes(tmp_path / "out" / "machine.urdf")
+    header, body = closures_bytes.decode("utf-8").split("\n", 1)
+    assert header == ("# Closures of machine.urdf (written with it as a pair; its URDF records this file's sha256); "
+                      "home re-assembled for its geometry; rows and locked joints as load derived them. "
+                      "Schema: models/README.md")
+    document, source = yaml.safe_load(body), yaml.safe_load(source_closures.read_text())
+    assert list(document) == list(source)  # the source's order, not sorted
+    assert list(document["home"].items()) == [(name, float(mechanism.configuration({})[k]))
+                                              for k, name in enumerate(("motor_1", "elbow_1", "motor_2", "elbow_2"))]
+    assert {k: v for k, v in document.items() if k != "home"} == {k: v for k, v in source.items() if k != "home"}
+    assert recorded_closures_sha256(urdf_bytes) == closures_sha256(closures_bytes)
+    assert mechanism.pair_bytes("machine.urdf", "elsewhere.yaml") == (urdf_bytes, closures_bytes)
+
+
+def test_pair_bytes_use_the_document_read_at_load(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    mechanism = Mechanism.load(urdf, closures)
+    expected = mechanism.pair_bytes("m.urdf")
+    assert replace(mechanism, closures_document=None).pair_bytes("m.urdf") == expected  # read again: same file
+    closures.write_text("schema_version: [\n")  # rewritten after the load
+    assert mechanism.pair_bytes("m.urdf") == expected
+    assert _refusal(lambda: replace(mechanism, closures_document=None).pair_bytes("m.urdf")) == (
+        f"{closures}: line 2, column 1: not valid YAML: expected the node content, but found '<stream end>'")
+
+
+def test_save_writes_the_pair_where_asked(tmp_path):
+    mechanism = Mechanism.load(*_five_bar(tmp_path / "source"))
+    urdf, closures = tmp_path / "out.urdf", tmp_path / "out.yaml"
+    mechanism.save(urdf, closures)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.urdf", "out.yaml", "source"]
+    assert (urdf.read_bytes(), closures.read_bytes()) == mechanism.pair_bytes(urdf, closures)
+    assert Mechanism.load(urdf, closures).closures_path == closures
+
+
+def test_save_refuses_to_overwrite_its_sources(tmp_path):
+    mechanism = Mechanism.load(*_five_bar(tmp_path))
+    with pytest.raises(OutputPathError) as caught:
+        mechanism.save(mechanism.urdf_path)
+    assert str(caught.value) == f"{mechanism.urdf_path}: URDF: refusing to overwrite the input file {mechanism.urdf_path}"
+    with pytest.raises(OutputPathError) as caught:
+        mechanism.save(tmp_path / "new.urdf", mechanism.closures_path)
+    assert str(caught.value) == (f"{mechanism.closures_path}: closures file of URDF: refusing to overwrite the input "
+                                 f"file {mechanism.closures_path}")
+
+
+# Home assembly and the closure checks, refused naming the closures file.
+
+def test_a_home_newton_cannot_close_is_refused(mechanism):
+    broken = _with_closure_frame_moved(mechanism, "five_bar_I", 2, 5.0)
+    message = _refusal(lambda: _settled(broken))
+    # Newton diverges here: the residual it stops at depends on rounding (4.4 or 4.6 on different
+    # BLAS kernels), so only that it is a number that did not close is checked, not its digits.
+    prefix = (f"{mechanism.closures_path}: home does not close: closure 'five_bar_I' residual 5.000e+00 > 1e-09, "
+              "and Newton from the given values reached only ")
+    suffix = " (give home values closer to an assembly)"
+    assert message.startswith(prefix) and message.endswith(suffix), message
+    assert float(message[len(prefix):-len(suffix)]) > 1e-9
+
+
+def test_a_home_far_from_an_assembly_is_assembled(mechanism):
+    """Half a metre off: no refusal for being far; the loops close with the actuators held."""
+    broken = _with_closure_frame_moved(mechanism, "five_bar_I", 2, 0.5)
+    settled = _settled(broken)
+    assert np.abs(ClosureSystem(settled.model, settled.closures).evaluate(settled.home, False)[0]).max() < 1e-12
+    np.testing.assert_array_equal(settled.home[settled.actuated_ids], broken.home[broken.actuated_ids])
+    assert settled.home_assembly.largest_move > 0.1
+
+
+def test_the_assembly_note_gives_every_move_largest_first(mechanism):
+    broken = _with_closure_frame_moved(mechanism, "five_bar_I", 2, 0.05)
+    settled = _settled(broken)
+    change = settled.home - broken.home
+    report = settled.home_assembly
+    assert report.largest_move == pytest.approx(np.abs(change).max(), abs=1e-15)
+    sizes = [abs(move) for _, move in report.moved]
+    assert sizes == sorted(sizes, reverse=True) and len(sizes) == np.count_nonzero(np.abs(change) > 1e-9)
+    name, move = report.moved[0]
+    assert move == pytest.approx(change[settled.model.idx_qs[settled.model.getJointId(name)]], abs=1e-15)
+    assert settled.notes == (report.note(1e-9),)
+    assert settled.notes[0].startswith(f"home does not close: closure 'five_bar_I' residual 5.000e-02 > 1e-09; "
+                                       f"assembled by Newton (damped, actuators held) at the assembly nearest the "
+                                       f"given values: passive joints moved by {name} {move:+.3g}, ")
+
+
+def test_a_nan_residual_names_its_closure(mechanism):
+    spec = next(c for c in mechanism.closures if c.name == "platform")
+    model = mechanism.model.copy()
+    frame = model.frames[spec.frame_b_id]
+    frame.placement = pin.SE3(frame.placement.rotation, np.array([np.nan, 0.0, 0.0]))
+    model.frames[spec.frame_b_id] = frame
+    assert _refusal(lambda: _settled(replace(mechanism, model=model))).startswith(
+        f"{mechanism.closures_path}: home does not close: closure 'platform' residual nan > 1e-09, and Newton")
+
+
+def test_missing_rows_are_refused_naming_the_file(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0]))
+    assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
+        f"{closures}: the closures leave 1 degree(s) of freedom beyond the actuators: with the actuators held, "
+        "frame 'effector' can still move (1 per unit joint speed); rows or closures are missing")
+
+
+_THIRD_CUT_JOINT = """<joint name="cut_3" type="revolute"><parent link="cut_link_1"/><child link="cut_link_3"/>
+    <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="0 0 1"/><limit lower="-4" upper="4" effort="1" velocity="1"/></joint>
+  <link name="cut_link_3"/>
+</robot>"""
+
+
+def test_the_locked_gauge_note_names_every_locked_joint(tmp_path):
+    """The five-bar's distal hinge modelled three times (two in series on chain 1): two gauges."""
+    urdf, closures = _welded_double_hinge(tmp_path)
+    urdf.write_text(urdf.read_text().replace("</robot>", _THIRD_CUT_JOINT))
+    _edit_yaml(closures, lambda d: d["home"].update(cut_3=0.0) or d["closures"][0].update(frame_a="cut_link_3"))
+    with pytest.warns(ModelWarning):
+        mechanism = Mechanism.load(urdf, closures)
+    locked = mechanism.locked_joints
+    assert len(locked) == 2 and set(locked) < {"cut_1", "cut_2", "cut_3"}
+    assert f"passive joint(s) {locked[0]}, {locked[1]} locked at their home value: their motion is already spanned " \
+           "by the other passive joints (a gauge, e.g. a cut joint modelled twice)" in mechanism.notes

@@ -19,14 +19,17 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import signal
 import subprocess
 import sys
 import textwrap
+import threading
 from pathlib import Path
 
 import pytest
 
 from m3t1r.app.cli import main
+from m3t1r.io.signals import Terminated, _signals_held, termination_as_exception
 
 WORKER = textwrap.dedent(r'''
     import hashlib, itertools, json, os, random, signal, sys, time
@@ -243,3 +246,48 @@ def test_fk_on_many_rows_shows_progress_and_stops_soon_after_sigterm(tmp_path):
         child.wait()
     assert "terminated by signal SIGTERM; outputs not yet in place were not written" in child.stderr.read()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv"]
+
+
+# ==================================================================================================
+# Signals in process: Terminated, termination_as_exception and held signals
+#
+# The tests above kill real subprocesses; these run in the test process: `Terminated` carries its signal,
+# `termination_as_exception` raises it and restores the previous handlers, and a signal held during a
+# block of renames is delivered when the block ends.
+# ==================================================================================================
+
+
+@pytest.mark.parametrize(("signum", "name"), [(signal.SIGTERM, "SIGTERM"), (signal.SIGHUP, "SIGHUP")])
+def test_terminated_names_its_signal(signum, name):
+    error = Terminated(signum)
+    assert error.signum == signum
+    assert str(error) == f"terminated by signal {name}"
+    assert isinstance(error, BaseException) and not isinstance(error, Exception)
+
+
+def test_termination_raises_inside_the_block_and_restores_handlers():
+    before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGHUP)
+    with pytest.raises(Terminated) as caught:
+        with termination_as_exception():
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):  # the handler runs between bytecodes
+                pass
+    assert caught.value.signum == signal.SIGTERM
+    assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGHUP)) == before
+
+
+def test_a_signal_held_during_the_renames_arrives_after_them():
+    events: list[str] = []
+    with pytest.raises(Terminated):
+        with termination_as_exception():
+            with _signals_held():
+                # Directed at this thread: the mask is per thread, and a process-directed signal
+                # may go to a thread that does not block it (numpy's BLAS threads).
+                signal.pthread_kill(threading.main_thread().ident, signal.SIGHUP)
+                for _ in range(1000):
+                    pass
+                events.append("renamed")
+            for _ in range(1000):
+                pass
+            events.append("not reached")
+    assert events == ["renamed"]

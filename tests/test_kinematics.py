@@ -1,5 +1,6 @@
 """Closed-loop kinematics against the closed form of docs/design.md, on nominal and perturbed machines."""
 
+import dataclasses
 import math
 
 import closed_form
@@ -8,7 +9,7 @@ import pinocchio as pin
 import pytest
 from conftest import perturb_every_origin
 
-from m3t1r.errors import BranchChangeError, InvalidInputError, KinematicsError, OutOfWorkspaceError
+from m3t1r.errors import BranchChangeError, InvalidInputError, KinematicsError, NotConvergedError, OutOfWorkspaceError
 from m3t1r.model.design import NOMINAL
 from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 
@@ -306,3 +307,924 @@ def test_solver_options_that_would_pass_open_loops_as_solutions_are_refused(mech
     """tolerance=inf or 1.0 returned home's neighbours as 'solved' after 0 iterations, loops 0.5 open."""
     with pytest.raises(InvalidInputError, match=message):
         ClosedLoopSolver(mechanism, **options)
+
+
+# ==================================================================================================
+# Yaw wrap, tolerance boundaries, warm starts and the solver's typed errors
+# ==================================================================================================
+
+
+TARGET = np.array([0.55, 0.60, -0.10, 0.3])
+
+
+@pytest.mark.parametrize("turns", [1, -1, 2])
+def test_inverse_wraps_a_yaw_target_beyond_pi(mechanism, turns):
+    """theta + 2 k pi is the same heading: cold IK lands on the same sliders, not OutOfWorkspaceError."""
+    reference = ClosedLoopSolver(mechanism).inverse(TARGET)
+    wrapped = ClosedLoopSolver(mechanism).inverse(TARGET + [0.0, 0.0, 0.0, 2 * math.pi * turns])
+    np.testing.assert_allclose(wrapped.actuators, reference.actuators, atol=1e-10)
+    assert yaw_of(wrapped.pose.rotation) == pytest.approx(0.3, abs=1e-10)
+    assert wrapped.residual <= 1e-12
+
+
+def test_warm_inverse_predictor_wraps_the_yaw_change(mechanism):
+    """The warm predictor steps by the wrapped yaw change: 0.3 -> 0.35 + 2 pi is a 0.05 rad move."""
+    solver = ClosedLoopSolver(mechanism)
+    solver.inverse(TARGET)
+    warm = solver.inverse(TARGET + [0.01, 0.0, 0.0, 0.05 + 2 * math.pi])
+    cold = ClosedLoopSolver(mechanism).inverse(TARGET + [0.01, 0.0, 0.0, 0.05])
+    np.testing.assert_allclose(warm.actuators, cold.actuators, atol=1e-10)
+    assert warm.iterations <= 3  # the predictor did its job: a neighbour, not a 2 pi jump
+
+
+def test_se3_target_with_nan_is_refused(solver):
+    target = pin.SE3(np.eye(3), np.array([0.5, 0.5, np.nan]))
+    with pytest.raises(InvalidInputError, match="non-finite"):
+        solver.inverse(target)
+
+
+def test_forward_tolerance_is_met_and_iterations_are_bounded(mechanism):
+    solver = ClosedLoopSolver(mechanism, tolerance=1e-12)
+    ik = ClosedLoopSolver(mechanism).inverse(TARGET)
+    fk = solver.forward(ik.actuators, q_init=mechanism.home)
+    assert 0 < fk.iterations <= 10 and fk.residual <= 1e-12
+    np.testing.assert_allclose(fk.pose.translation, TARGET[:3], atol=1e-10)
+
+
+def test_too_few_iterations_is_not_converged_not_out_of_workspace(mechanism):
+    """Newton stopped early close to a solution (residual <= 1e-6) is NotConverged, far is OutOfWorkspace."""
+    ik = ClosedLoopSolver(mechanism).inverse(TARGET)
+    with pytest.raises(OutOfWorkspaceError):
+        ClosedLoopSolver(mechanism, max_iterations=0).forward(ik.actuators, q_init=mechanism.home)
+    # Start within a micrometre of the solution: one Newton step short of the tolerance.
+    start = ik.q.copy()
+    start[mechanism.passive_ids] += 1e-8
+    with pytest.raises(NotConvergedError) as caught:
+        ClosedLoopSolver(mechanism, tolerance=1e-300, max_iterations=1).forward(ik.actuators, q_init=start)
+    assert caught.value.residual <= 1e-6
+
+
+# --------------------------------------------------------------------------------------------------
+# Block patterns, quadratic convergence of a cold inverse, closure sizes, named bad configurations
+
+
+def test_diagonal_blocks_of_a_block_triangular_pattern():
+    """Rows/columns permuted lower block-triangular pattern: blocks {0, 2} (2 x 2) and {1} (1 x 1)."""
+    from m3t1r.model.kinematics import diagonal_blocks
+
+    pattern = np.array([[1, 0, 1], [1, 1, 0], [1, 0, 1]], dtype=bool)
+    blocks = sorted((sorted(r.tolist()), sorted(c.tolist())) for r, c in diagonal_blocks(pattern))
+    assert blocks == [([0, 2], [0, 2]), ([1], [1])]
+    # Each row's matched column is one of its own non-zeros.
+    for rows, cols in diagonal_blocks(pattern):
+        assert pattern[np.ix_(rows, cols)].any(axis=1).all()
+    from m3t1r.errors import SingularConfigurationError
+    with pytest.raises(SingularConfigurationError, match="structurally singular"):
+        diagonal_blocks(np.array([[1, 1], [0, 0]], dtype=bool))
+
+
+@pytest.mark.parametrize("target, most", [((0.55, 0.6, -0.1, 0.3), 6), ((0.45, 0.3, -0.2, -0.6), 8),
+                                          ((0.58, 0.8, -0.02, 0.7), 7)])
+def test_cold_inverse_converges_quadratically(mechanism, target, most):
+    """Exact Newton from home: a wrong yaw-row Jacobian still converges, but in more steps."""
+    assert ClosedLoopSolver(mechanism).inverse(target).iterations <= most
+
+
+def test_closure_residual_by_closure_sizes(mechanism):
+    from m3t1r.model.description import closure_residual_by_closure
+
+    sizes = {spec.name: residual.shape for spec, residual in closure_residual_by_closure(mechanism, mechanism.home)}
+    assert sizes["platform"] == (6,) and sizes["five_bar_I"] == (3,)
+    solver = ClosedLoopSolver(mechanism)
+    full = np.concatenate([r for _, r in closure_residual_by_closure(mechanism, mechanism.home + 0.01)])
+    np.testing.assert_allclose(solver.closure_residual(mechanism.home + 0.01, all_rows=True), full, atol=1e-15)
+
+
+def test_bad_configuration_is_named(solver, mechanism):
+    with pytest.raises(InvalidInputError, match="configuration q"):
+        solver.closure_residual(np.full(mechanism.model.nq, np.nan))
+    with pytest.raises(InvalidInputError, match="configuration q"):
+        solver.closure_jacobian(np.zeros(3))
+    assert solver.mobility(mechanism.home, all_rows=True) == 4
+
+
+# ------------------------------------------------------------------------------------------------
+# Rehoming, the batch methods and the pieces the calibration relies on
+def test_rehomed_assembles_home_at_the_given_sliders_and_keeps_everything_else(mechanism):
+
+    from m3t1r.model.kinematics import rehomed
+
+    perturbed = mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(3), 1e-3, 1e-3))
+    assert np.linalg.norm(ClosedLoopSolver(perturbed).closure_residual(perturbed.home)) > 1e-5
+    for sliders in (None, mechanism.home[mechanism.actuated_ids] + [0.01, -0.01, 0.02, 0.0]):
+        moved = rehomed(perturbed, sliders)
+        expected = perturbed.home[perturbed.actuated_ids] if sliders is None else sliders
+        np.testing.assert_allclose(moved.home[moved.actuated_ids], expected, atol=0.0)
+        assert np.linalg.norm(ClosedLoopSolver(moved).closure_residual(moved.home)) < 1e-12
+        assert moved.model is perturbed.model and moved.visual_model is perturbed.visual_model
+        assert moved.closures == perturbed.closures and moved.actuated_joints == perturbed.actuated_joints
+        assert moved.principal_chains == perturbed.principal_chains
+        assert moved.platform_frame == perturbed.platform_frame
+        assert (moved.urdf_path, moved.closures_path) == (perturbed.urdf_path, perturbed.closures_path)
+    # On the branch of the old home: the passive joints move by about the perturbation, not a flip.
+    assert np.max(np.abs(rehomed(perturbed).home - perturbed.home)) < 0.2
+
+
+def test_closure_sensitivity_is_the_residual_jacobian_and_row_operator(solver, mechanism):
+    q = ClosedLoopSolver(mechanism).forward(mechanism.home[mechanism.actuated_ids] + 0.02).q
+    residual, jacobian, operator = solver.closure_sensitivity(q)
+    np.testing.assert_array_equal(residual, solver.closure_residual(q))
+    np.testing.assert_allclose(jacobian, solver.closure_jacobian(q), atol=1e-15)
+    assert operator.shape == (len(residual), 6)
+    start = 0  # each closure's rows: the operator on the relative spatial twist of its two frames
+    for closure in mechanism.closures:
+        frame_b, frame_a = (pin.getFrameJacobian(solver.model, solver.data, f, pin.WORLD)
+                            for f in (closure.frame_b_id, closure.frame_a_id))
+        rows = slice(start, start + len(closure.rows))
+        np.testing.assert_allclose(operator[rows] @ (frame_b - frame_a), jacobian[rows], atol=1e-15)
+        start = rows.stop
+    assert start == len(residual)
+    with pytest.raises(InvalidInputError, match=r"configuration q: expected \d+ values, got 3"):
+        solver.closure_sensitivity(np.zeros(3))
+
+
+def test_batch_solves_equal_the_solves_from_home(mechanism):
+    solver = ClosedLoopSolver(mechanism)
+    targets = np.array([TARGET, TARGET + [0.02, -0.03, 0.01, -0.2], TARGET + [0.04, 0.05, -0.02, 0.4]])
+    inverse = solver.inverse_batch(targets)
+    np.testing.assert_array_equal(inverse.indices, [0, 1, 2])
+    for k, target in enumerate(targets):
+        single = ClosedLoopSolver(mechanism).inverse(target, q_init=mechanism.home)
+        np.testing.assert_allclose(inverse.actuators[k], single.actuators, atol=1e-10)
+    forward = solver.forward_batch(inverse.actuators)
+    for k, actuators in enumerate(inverse.actuators):
+        single = ClosedLoopSolver(mechanism).forward(actuators, q_init=mechanism.home)
+        np.testing.assert_allclose(forward.poses[k], single.pose.homogeneous, atol=1e-10)
+    # Explicit starts are used: a start at the first solution gives the same answers.
+    start = ClosedLoopSolver(mechanism).inverse(targets[0]).q
+    np.testing.assert_allclose(solver.inverse_batch(targets, q_init=start).actuators, inverse.actuators, atol=1e-10)
+    np.testing.assert_allclose(solver.forward_batch(inverse.actuators, q_init=start).poses, forward.poses, atol=1e-10)
+    np.testing.assert_array_equal(solver.last_q, mechanism.home)  # the warm start is left alone
+
+
+def test_reset_forgets_every_warm_start(mechanism):
+    solver = ClosedLoopSolver(mechanism)
+    solver.inverse(TARGET)
+    solver.forward(solver.last_q[solver.actuated] + 0.01)
+    solver.inverse(TARGET + [0.01, 0.0, 0.0, 0.05])
+    solver.reset()
+    for name in ("_previous", "_task_inverse", "_inverse_previous", "_last_goal", "_last_inverse_branch", "_last_task"):
+        assert getattr(solver, name) is None, name
+    np.testing.assert_array_equal(solver.last_q, mechanism.home)
+    # What is left is a new solver's start: home's tangent and branch, the batch's first step.
+    sliders = mechanism.home[solver.actuated] + 0.01
+    after_reset, fresh = solver.forward(sliders), ClosedLoopSolver(mechanism).forward(sliders)
+    np.testing.assert_allclose(after_reset.q, fresh.q, atol=1e-12)
+    assert after_reset.iterations == fresh.iterations
+    solver.reset()
+    solver.last_q[0] += 1.0  # a copy: home itself is untouched
+    assert mechanism.home[0] != solver.last_q[0]
+
+
+def test_diagonal_blocks_follow_the_matched_columns_not_the_rows():
+    """The only perfect matching is the cycle r0->c1, r1->c2, r2->c0 (and r3->c3), no cycle among
+    the rows: four 1 x 1 blocks, each on its own matched entry."""
+    from m3t1r.errors import SingularConfigurationError
+    from m3t1r.model.kinematics import diagonal_blocks
+
+    pattern = np.array([[0, 1, 0, 0], [0, 1, 1, 0], [1, 0, 1, 0], [1, 0, 0, 1]], dtype=bool)
+    blocks = sorted((r.tolist(), c.tolist()) for r, c in diagonal_blocks(pattern))
+    assert blocks == [([0], [1]), ([1], [2]), ([2], [0]), ([3], [3])]
+    with pytest.raises(SingularConfigurationError) as caught:
+        diagonal_blocks(np.array([[1, 1], [0, 0]], dtype=bool))
+    assert str(caught.value) == "the closure system is structurally singular (residual nan after 0 iterations)"
+
+
+def test_det_sign_from_lu_factors():
+    from scipy.linalg import lapack
+
+    from m3t1r.model.kinematics import _det_sign
+
+    rng = np.random.default_rng(4)
+    signs = []
+    for n in (3, 4, 5, 6):
+        for _ in range(6):
+            matrix = rng.normal(size=(n, n))
+            signs.append(np.linalg.det(matrix) > 0)
+            assert _det_sign(lapack.dgetrf(matrix)) == signs[-1]
+    assert any(signs) and not all(signs)
+    assert _det_sign(lapack.dgetrf(np.eye(4))) is True
+
+
+def test_mobility_counts_rows_and_singular_values_as_documented(mechanism):
+
+    from m3t1r.model.kinematics import rehomed
+
+    perturbed = rehomed(mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(3), 1e-3, 1e-3)))
+    solver = ClosedLoopSolver(perturbed)
+    assert solver.mobility(perturbed.home) == 4  # enforced rows by default
+    assert solver.mobility(perturbed.home, all_rows=True) == 0  # the redundant rows no longer are
+    nominal = ClosedLoopSolver(mechanism)
+    singular = np.linalg.svd(nominal.closure_jacobian(mechanism.home), compute_uv=False)
+    for rank_tolerance in (0.1, 0.28):
+        expected = mechanism.model.nv - int(np.sum(singular > rank_tolerance * singular[0]))
+        assert nominal.mobility(mechanism.home, rank_tolerance=rank_tolerance) == expected
+
+
+def test_check_actuators_limits_are_inclusive_and_a_copy(solver):
+    lower, upper = (np.array(limit, dtype=float) for limit in solver.mechanism.joint_limits())
+    for values in (lower, upper):
+        checked = solver.check_actuators(values)
+        np.testing.assert_array_equal(checked, values)
+        assert checked is not values
+        checked[0] += 1.0
+        assert checked[0] != values[0]  # a copy, not a view of the caller's array
+        np.testing.assert_array_equal(solver.check_actuators(values.tolist()), values)
+    beyond = upper.copy()
+    beyond[2] = np.nextafter(upper[2], np.inf)
+    for given in (beyond, beyond.tolist()):
+        with pytest.raises(InvalidInputError) as caught:
+            solver.check_actuators(given)
+        assert str(caught.value) == (f"actuator 'q21' = {beyond[2]:.6g} is beyond its joint limit "
+                                     f"[{lower[2]:.6g}, {upper[2]:.6g}] (SI units: metres for sliders)")
+    with pytest.raises(InvalidInputError) as caught:
+        solver.check_actuators([0.1, 0.2])
+    assert str(caught.value) == "actuator values: expected 4 values, got 2"
+
+
+def test_refusals_name_their_argument_word_for_word(solver, mechanism):
+    nq = mechanism.model.nq
+    for call in (solver.closure_residual, solver.closure_jacobian):
+        with pytest.raises(InvalidInputError) as caught:
+            call(np.zeros(3))
+        assert str(caught.value) == f"configuration q: expected {nq} values, got 3"
+    sliders = mechanism.home[mechanism.actuated_ids]
+    for call, argument in ((solver.forward, sliders), (solver.inverse, TARGET)):
+        with pytest.raises(InvalidInputError) as caught:
+            call(argument, q_init=np.zeros(3))
+        assert str(caught.value) == f"q_init: expected {nq} values, got 3"
+    with pytest.raises(InvalidInputError) as caught:
+        solver.inverse(pin.SE3(np.eye(3), np.array([0.5, 0.5, np.nan])))
+    assert str(caught.value) == "target pose: non-finite value"
+    with pytest.raises(InvalidInputError) as caught:
+        solver.inverse(TARGET[:3])
+    assert str(caught.value) == "target (x, y, z, theta): expected 4 values, got 3"
+
+
+def test_an_explicit_start_at_the_solution_needs_no_step(mechanism):
+    solver = ClosedLoopSolver(mechanism)
+    solution = solver.inverse(TARGET)
+    solver.inverse(TARGET + [0.05, 0.05, 0.0, 0.2])
+    assert solver.inverse(TARGET, q_init=solution.q).iterations == 0
+    forward = solver.forward(solution.actuators)
+    solver.forward(solution.actuators + 0.02)
+    assert solver.forward(solution.actuators, q_init=forward.q).iterations == 0
+
+
+def test_warm_forward_along_a_curved_path_uses_the_second_order_predictor(mechanism):
+    """Measured: 29 Newton steps over the path (39 with a first-order predictor only, 57 without
+    any): a slack of 2 for rounding."""
+    start = mechanism.home[mechanism.actuated_ids]
+    solver = ClosedLoopSolver(mechanism)
+    steps = []
+    for k in range(12):
+        sliders = start + 0.01 * k * np.array([1.0, 0.8, -0.6, 0.4]) + 0.002 * k * k * np.array([1.0, -1.0, 0.5, 0.2])
+        result = solver.forward(sliders)
+        steps.append(result.iterations)
+        cold = ClosedLoopSolver(mechanism).forward(sliders, q_init=mechanism.home)
+        np.testing.assert_allclose(result.q, cold.q, atol=1e-9)
+    assert sum(steps) <= 31, steps
+
+
+def test_warm_inverse_along_a_curved_path_reuses_its_factors(mechanism):
+    """Measured: 30 Newton steps over the path (40 with a first-order predictor only, 75 without the
+    last solution's factors): a slack of 2."""
+    solver = ClosedLoopSolver(mechanism)
+    steps = []
+    for k in range(12):
+        target = TARGET + 0.002 * k * np.array([2.0, 1.5, -1.0, 10.0]) + 0.0005 * k * k * np.array([1.0, -1.0, 0.5, 2.0])
+        result = solver.inverse(target)
+        steps.append(result.iterations)
+        np.testing.assert_allclose(result.actuators, ClosedLoopSolver(mechanism).inverse(target).actuators, atol=1e-9)
+    assert sum(steps) <= 32, steps
+
+
+@pytest.mark.parametrize("target, most", [((0.55, 0.6, -0.1, 0.3), 9), ((0.45, 0.3, -0.2, -0.6), 8),
+                                          ((0.58, 0.8, -0.02, 0.7), 8)])
+def test_cold_inverse_of_a_tilting_machine_converges_quadratically(mechanism, target, most):
+    """A perturbed machine tilts its platform by 0.05-0.14 rad: the yaw row's Jacobian terms in the
+    tilt (c_z) count. Measured 8, 7, 7 steps; one of slack."""
+
+    from m3t1r.model.kinematics import rehomed
+
+    tilting = rehomed(mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(5), 2e-3, 2e-2)))
+    result = ClosedLoopSolver(tilting).inverse(np.array(target))
+    assert result.residual <= 1e-12 and max(abs(t) for t in result.tilt) > 0.05
+    assert result.iterations <= most
+
+
+def test_newton_failures_say_why_word_for_word(mechanism):
+    with pytest.raises(OutOfWorkspaceError) as caught:
+        ClosedLoopSolver(mechanism).inverse(np.array([3.0, 3.0, 1.0, 0.0]))
+    assert str(caught.value).startswith(
+        "the closures cannot be assembled here (target out of the workspace or too far from the initial "
+        "configuration's branch) (residual ")
+    assert caught.value.iterations == 60 and caught.value.residual > 1.0
+    ik = ClosedLoopSolver(mechanism).inverse(TARGET)
+    start = ik.q.copy()
+    start[mechanism.passive_ids] += 1e-8
+    with pytest.raises(NotConvergedError) as caught:
+        ClosedLoopSolver(mechanism, tolerance=1e-300, max_iterations=1).forward(ik.actuators, q_init=start)
+    assert str(caught.value).startswith("Newton did not reach the tolerance (residual ")
+    assert caught.value.iterations == 1 and 0.0 < caught.value.residual <= 1e-6
+
+
+def test_block_structure_of_the_passive_system_from_a_cold_cache(mechanism):
+    """The five-bars and the platform loop: four 2 x 2 blocks and one 8 x 8, found from scratch."""
+    from m3t1r.model import kinematics
+
+    key = (mechanism.closures, mechanism.actuated_joints, tuple(mechanism.model.names))
+    saved = kinematics._BLOCK_CACHE.pop(key, None)
+    try:
+        blocks = ClosedLoopSolver(mechanism)._branch_blocks
+    finally:
+        if saved is not None:
+            kinematics._BLOCK_CACHE[key] = saved
+    found = sorted((sorted(r.tolist()), sorted(c.tolist())) for r, c in blocks)
+    assert found == [([0, 1], [2, 7]), ([2, 3], [1, 9]), ([4, 5, 10, 11, 12, 13, 14, 15], [3, 4, 5, 6, 13, 14, 15, 16]),
+                     ([6, 7], [12, 17]), ([8, 9], [11, 19])]
+
+
+def test_returned_poses_do_not_move_with_later_solves(mechanism):
+    """FK and IK hand out their own placements: the solver's next solves leave them as they were."""
+    solver = ClosedLoopSolver(mechanism)
+    sliders = mechanism.home[mechanism.actuated_ids]
+    forward = solver.forward(sliders + 0.01)
+    inverse = solver.inverse(TARGET)
+    kept = forward.pose.homogeneous.copy(), inverse.pose.homogeneous.copy()
+    solver.forward(sliders - 0.02)
+    solver.inverse(TARGET + [0.02, 0.0, 0.0, 0.1])
+    np.testing.assert_array_equal(forward.pose.homogeneous, kept[0])
+    np.testing.assert_array_equal(inverse.pose.homogeneous, kept[1])
+
+
+def test_branch_signature_reads_every_block_by_its_size():
+    """A 1 x 1 block by its sign, a 2 x 2 by its closed-form determinant, larger ones by LU."""
+    from m3t1r.model.kinematics import _BranchSignature
+
+    blocks = [(np.array([0]), np.array([0])), (np.array([1, 2]), np.array([1, 2])),
+              (np.array([3, 4, 5]), np.array([3, 4, 5]))]
+    signature = _BranchSignature(blocks, 6)
+    jac = np.eye(6)
+    jac[0, 0] = 0.5
+    jac[1:3, 1:3] = [[1.0, 2.0], [3.0, 4.0]]  # det -2 (1 * 4 - 2 / 3 would be positive)
+    jac[3:, 3:] = [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 2.0]]  # det -2, needs a pivot
+    assert signature(jac) == b"\x01\x00\x00"
+    jac[0, 0], jac[1:3, 1:3], jac[5, 5] = -0.5, [[4.0, 1.0], [3.0, 2.0]], -2.0  # every sign flipped
+    assert signature(jac) == b"\x00\x01\x01"
+
+
+def test_a_failed_inverse_leaves_a_usable_warm_start(mechanism):
+    """A failed solve drops its factors and branch: the next warm solve starts from the last good one."""
+    solver = ClosedLoopSolver(mechanism)
+    solver.inverse(TARGET)
+    with pytest.raises(OutOfWorkspaceError):
+        solver.inverse(np.array([3.0, 3.0, 1.0, 0.0]))
+    near = TARGET + [0.01, 0.0, 0.0, 0.05]
+    np.testing.assert_allclose(solver.inverse(near).actuators, ClosedLoopSolver(mechanism).inverse(near).actuators,
+                               atol=1e-10)
+
+
+# ------------------------------------------------------------------------------------------------
+# The predictor's bounds, the batch methods' q_init
+
+
+def _predictor_state(solver, previous_sliders, previous_passive):
+    """A solver whose last solution is home, with a zero tangent and the given solution before it."""
+    solver._tangent = np.zeros((len(solver.passive), len(solver.actuated)))
+    solver._previous = (np.asarray(previous_sliders, dtype=float), np.asarray(previous_passive, dtype=float))
+
+
+def test_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism):
+    """With T = 0 the prediction is lam^2 (q_prev - q_last) exactly while 0 < lam < 2, else nothing;
+    a repeated slider set (e = 0) has no direction: nothing either."""
+    solver = ClosedLoopSolver(mechanism)
+    sliders, passive = solver.last_q[solver.actuated], solver.last_q[solver.passive]
+    e = np.array([2.0 ** -7, -2.0 ** -6, 2.0 ** -8, 2.0 ** -7])  # binary fractions: dot products without rounding
+    offset = np.linspace(-0.01, 0.02, len(passive))  # q_prev - q_last on the passive joints
+    _predictor_state(solver, sliders - e, passive + offset)
+    # Binary fractions make lam = d.e / e.e exact on every BLAS kernel (with decimal steps its
+    # rounding left 1e-38 where 'nothing' is expected), so the expected terms hold exactly.
+    for lam, expected in ((0.5, 0.25), (1.0, 1.0), (1.5, 2.25), (0.0, 0.0), (2.0, 0.0), (2.5, 0.0), (-0.5, 0.0)):
+        change = lam * e if lam else np.array([2.0 ** -6, 2.0 ** -7, 0.0, 0.0])  # orthogonal to e, exactly
+        np.testing.assert_allclose(solver._predict(solver.last_q, change, solver._tangent, solver._previous),
+                                   expected * offset, rtol=1e-12, atol=0.0, err_msg=str(lam))
+    _predictor_state(solver, sliders, passive + offset)  # the same sliders twice: e = 0
+    np.testing.assert_array_equal(solver._predict(solver.last_q, e, solver._tangent, solver._previous),
+                                  np.zeros(len(passive)))
+
+
+def test_batch_methods_pass_q_init_on(solver, mechanism):
+    """An explicit start reaches the batch solvers: a wrong one is refused there, by shape."""
+    sliders = mechanism.home[mechanism.actuated_ids][None, :]
+    nq = mechanism.model.nq
+    for call, rows in ((solver.forward_batch, sliders), (solver.inverse_batch, TARGET[None, :])):
+        with pytest.raises(InvalidInputError) as caught:
+            call(rows, q_init=np.zeros(3))
+        assert str(caught.value) == f"q_init: expected finite ({nq},) or (1, {nq}) values, got shape (3,)"
+
+
+def test_inverse_of_a_full_rotation_task_commands_roll_and_pitch(tmp_path):
+    """The spherical wrist's task is the full orientation (qx, qy, qz, qw): IK meets the goal's
+    rotation, so nothing is left uncommanded (tilt 0), whether the goal is a quaternion or an SE3."""
+    from m3t1r.model.description import Mechanism
+    from m3t1r.model.examples import spherical_wrist_files
+
+    wrist = Mechanism.load(*spherical_wrist_files(tmp_path))
+    solver = ClosedLoopSolver(wrist)
+    sliders = wrist.home[wrist.actuated_ids] + np.array([0.2, 0.1, -0.2])
+    fk = ClosedLoopSolver(wrist).forward(sliders, q_init=wrist.home)
+    assert min(abs(angle) for angle in fk.roll_pitch) > 0.15  # the goal has roll and pitch
+    quaternion = pin.Quaternion(fk.pose.rotation).coeffs()
+    for target in (quaternion, pin.SE3(fk.pose)):
+        ik = solver.inverse(target, q_init=wrist.home)
+        np.testing.assert_allclose(ik.actuators, sliders, atol=1e-10)
+        np.testing.assert_allclose(ik.pose.rotation, fk.pose.rotation, atol=1e-10)
+        np.testing.assert_allclose(ik.tilt, 0.0, atol=1e-10)
+    # Warm: the predictor's task rows are those of the new goal rotation at the last pose reached.
+    nearby = ClosedLoopSolver(wrist).forward(sliders + 0.02, q_init=wrist.home)
+    warm = solver.inverse(pin.Quaternion(nearby.pose.rotation).coeffs())
+    np.testing.assert_allclose(warm.actuators, sliders + 0.02, atol=1e-10)
+    assert warm.iterations <= 3
+    # Warm again: the second-order term reads the previous goal's rotation at the last pose.
+    further = ClosedLoopSolver(wrist).forward(sliders + 0.04, q_init=wrist.home)
+    again = solver.inverse(pin.Quaternion(further.pose.rotation).coeffs())
+    np.testing.assert_allclose(again.actuators, sliders + 0.04, atol=1e-10)
+    # A quaternion goal is checked and renormalised: norm 2 is refused, norm 1 + 1e-7 is the unit one.
+    with pytest.raises(InvalidInputError, match="norm"):
+        solver.inverse(2.0 * quaternion, q_init=wrist.home)
+    scaled = solver.inverse((1.0 + 1e-7) * quaternion, q_init=wrist.home)
+    np.testing.assert_allclose(scaled.actuators, sliders, atol=1e-10)
+
+
+def test_warm_inverse_with_a_locked_joint_steps_the_unlocked_columns(tmp_path):
+    """The welded double hinge locks one joint: IK's unknowns are the other columns, and the warm
+    predictor's step goes to those columns only."""
+    import warnings
+
+    from test_mechanisms import _welded_double_hinge
+
+    from m3t1r.model.description import Mechanism
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        hinge = Mechanism.load(*_welded_double_hinge(tmp_path))
+    assert len(hinge.locked_joints) == 1
+    solver = ClosedLoopSolver(hinge)
+    assert solver._unknowns is not None and len(solver._unknowns) == hinge.model.nv - 1
+    sliders = hinge.home[hinge.actuated_ids]
+    for change in (0.05, 0.1):
+        target = ClosedLoopSolver(hinge).forward(sliders + change, q_init=hinge.home).pose.translation[:2]
+        warm = solver.inverse(target)
+        np.testing.assert_allclose(warm.actuators, sliders + change, atol=1e-9)
+        assert warm.q[hinge.locked_ids] == hinge.home[hinge.locked_ids]
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_an_explicit_start_takes_its_own_branch_not_the_warm_one(mechanism, compiled):
+    """With q_init the branch is labelled at that start: the warm solve's branch is not asked for
+    (here one no solve can have), in IK as in FK, in both Newton loops."""
+    solver = ClosedLoopSolver(mechanism, native=compiled)
+    solution = solver.inverse(TARGET)
+    solver._last_inverse_branch = b"\x02"
+    assert solver.inverse(TARGET, q_init=mechanism.home).residual <= 1e-12
+    solver._last_branch = b"\x02"  # after the IK, which sets it
+    assert solver.forward(solution.actuators, q_init=mechanism.home).residual <= 1e-12
+
+
+@pytest.mark.parametrize("slider, bound", [(0, "upper"), (1, "lower")])
+def test_inverse_accepts_an_actuator_exactly_at_its_limit(mechanism, slider, bound):
+    """IK's limit check is inclusive, as `check_actuators`: a start at a solution with a slider
+    exactly at its limit takes no step and is accepted."""
+    solver = ClosedLoopSolver(mechanism)
+    sliders = mechanism.home[mechanism.actuated_ids].copy()
+    sliders[slider] = mechanism.joint_limits()[1 if bound == "upper" else 0][slider]
+    fk = ClosedLoopSolver(mechanism).forward(sliders, q_init=mechanism.home)
+    ik = solver.inverse(np.r_[fk.pose.translation, fk.yaw], q_init=fk.q)
+    assert ik.iterations == 0
+    np.testing.assert_array_equal(ik.actuators, sliders)
+
+
+def test_warm_forward_keeps_the_last_solution_s_branch(mechanism):
+    """Without q_init, FK must end on the branch of the last solution: a label no solve can have
+    (set by hand here) makes it refuse the solution it finds."""
+    from m3t1r.errors import BranchChangeError
+
+    solver = ClosedLoopSolver(mechanism)
+    sliders = solver.forward(mechanism.home[mechanism.actuated_ids] + 0.01).q[mechanism.actuated_ids]
+    solver._last_branch = b"\x02"
+    with pytest.raises(BranchChangeError):
+        solver.forward(sliders + 0.01)
+
+
+def test_a_task_that_is_not_square_is_refused_word_for_word(tmp_path):
+    from test_mechanisms import _edit_yaml
+
+    from m3t1r.model.description import Mechanism
+    from m3t1r.model.examples import five_bar_files
+
+    urdf, closures = five_bar_files(tmp_path)
+    _edit_yaml(closures, lambda d: d["task"].update(position=["x", "y", "z"]))
+    solver = ClosedLoopSolver(Mechanism.load(urdf, closures))
+    with pytest.raises(InvalidInputError) as caught:
+        solver.inverse(np.zeros(3))
+    assert str(caught.value) == (
+        f"{closures}: inverse kinematics needs as many task coordinates as actuators; the task (x, y, z of "
+        "frame 'effector') commands 3 for 2 actuators (declare the task in the closures file: models/README.md)")
+
+
+def _recording(solver):
+    """Wrap the solver's `_system`: the list of its with_jacobian arguments, one per evaluation."""
+    calls, system = [], solver._system
+
+    def recorded(q, with_jacobian):
+        calls.append(with_jacobian)
+        return system(q, with_jacobian)
+    solver._system = recorded
+    return calls
+
+
+# ------------------------------------------------------------------------------------------------
+# `_newton` on stand-in systems: every evaluation recorded, residuals scripted
+
+
+class _Scripted:
+    """A 2 x 2 stand-in system: the k-th evaluation returns residuals[k] (whatever q is), and the
+    Jacobian `jacobian` when asked. `calls` records each with_jacobian argument."""
+
+    def __init__(self, residuals, jacobian=np.eye(2)):
+        self.residuals, self.jacobian, self.calls = [np.asarray(r, dtype=float) for r in residuals], jacobian, []
+
+    def __call__(self, q, with_jacobian):
+        self.calls.append(with_jacobian)
+        residual = self.residuals[min(len(self.calls), len(self.residuals)) - 1]
+        return residual, (self.jacobian.copy() if with_jacobian else None)
+
+
+def _label(jac, lu):
+    return b"branch"
+
+
+def _chord_from_any_residual(solver):
+    """The stand-ins' residuals are of order 1: with chord steps allowed from any residual, the
+    contraction rule alone decides when the Jacobian is refreshed."""
+    solver.rules = dataclasses.replace(solver.rules, chord_below=math.inf)
+    return solver
+
+
+def test_newton_refreshes_the_jacobian_only_when_a_chord_step_contracts_too_little(solver):
+    """Chord steps while |r| <= 0.05 |r_previous| (a contraction of exactly 0.05 is still enough);
+    a refresh otherwise, and none once the tolerance is met (a residual exactly at it is converged)."""
+    _chord_from_any_residual(solver)
+    solver.rules = dataclasses.replace(solver.rules, tolerance=0.04)  # the stand-ins' residuals are of order 1
+    # 1 -> 0.05 (exactly 0.05 of it: keep the factors) -> 0.04 (met).
+    system = _Scripted([[1.0, 0.0], [0.05, 0.0], [0.04, 0.0]])
+    outcome = solver._newton(np.zeros(2), None, system, _label)
+    assert system.calls == [True, False, False] and outcome.iterations == 2 and outcome.residual == 0.04
+    assert outcome.branch == b"branch"
+    # 1 -> 0.5 (too little: refresh) -> 0.04 = tolerance, 0.04 > 0.05 * 0.5: met all the same, no refresh.
+    system = _Scripted([[1.0, 0.0], [0.5, 0.0], [0.5, 0.0], [0.04, 0.0]])
+    outcome = solver._newton(np.zeros(2), None, system, _label)
+    assert system.calls == [True, False, True, False] and outcome.iterations == 2 and outcome.branch == b"branch"
+    # The first evaluation has the Jacobian, then chord steps while they contract.
+    solver.tolerance = 1e-12
+    system = _Scripted([[1.0, 0.0], [0.01, 0.0], [1e-4, 0.0], [0.0, 0.0]])
+    outcome = solver._newton(np.zeros(2), None, system, _label)
+    assert system.calls == [True, False, False, False] and outcome.iterations == 3
+    np.testing.assert_array_equal(outcome.jacobian, np.eye(2))
+    # Under the default rules a step from a residual above chord_below (1e-4) gets a fresh Jacobian
+    # whatever its contraction; from 1e-4 itself, a chord step.
+    solver.rules = dataclasses.replace(solver.rules, chord_below=1e-4)
+    system = _Scripted([[1.0, 0.0], [1e-4, 0.0], [1e-9, 0.0], [0.0, 0.0]])
+    outcome = solver._newton(np.zeros(2), None, system, _label)
+    assert system.calls == [True, True, False, False] and outcome.iterations == 3
+
+
+def test_newton_stops_on_a_non_finite_residual_as_out_of_workspace(solver):
+    """Wherever the nan is: after a larger entry too (BLAS idamax may skip a nan there)."""
+    _chord_from_any_residual(solver)
+    for residual in ([np.nan, 0.0], [np.inf, 0.0], [5.0, np.nan], [0.5, -np.inf]):
+        system = _Scripted([[1.0, 0.0], residual])
+        with pytest.raises(OutOfWorkspaceError) as caught:
+            solver._newton(np.zeros(2), None, system, _label)
+        assert caught.value.iterations == 1 and system.calls == [True, False]
+        assert not math.isfinite(caught.value.residual)
+
+
+def test_newton_singular_verdict_uses_the_one_norm_and_is_word_for_word(solver):
+    """J = [[1, 1], [0, 1e-11]]: 1-norm 1, |J^-1|_1 = 2e11, so rcond = 5e-12 (the infinity norm,
+    2, would give 2.5e-12)."""
+    from m3t1r.errors import SingularConfigurationError
+
+    system = _Scripted([[1.0, 0.0], [3e-13, 0.0]], jacobian=np.array([[1.0, 1.0], [0.0, 1e-11]]))
+    solver.tolerance = 1e-12
+    with pytest.raises(SingularConfigurationError) as caught:
+        solver._newton(np.zeros(2), None, system, _label)
+    assert str(caught.value) == "singular configuration (reciprocal condition 5.00e-12) (residual 3.000e-13 after 1 iterations)"
+    assert caught.value.residual == 3e-13 and caught.value.iterations == 1
+
+
+def test_newton_branch_change_is_word_for_word(solver):
+    _chord_from_any_residual(solver)
+    from m3t1r.errors import BranchChangeError
+
+    system = _Scripted([[1.0, 0.0], [0.5, 0.0], [0.5, 0.0], [2e-13, 0.0]])
+    labels = iter([b"start", b"other", b"other"])
+    with pytest.raises(BranchChangeError) as caught:
+        solver._newton(np.zeros(2), None, system, lambda jac, lu: next(labels))
+    assert str(caught.value) == ("the solution lies on another assembly branch than the start (Newton crossed a "
+                                 "singularity) (residual 2.000e-13 after 2 iterations)")
+    assert caught.value.residual == 2e-13 and caught.value.iterations == 2
+
+
+def test_newton_far_or_near_after_the_last_step_at_exactly_1e_6(solver):
+    """Stopped by max_iterations: a residual of exactly 1e-6 is near (NotConverged), above it far."""
+    solver.max_iterations = 1
+    for last, error in ((1e-6, NotConvergedError), (np.nextafter(1e-6, 1.0), OutOfWorkspaceError)):
+        system = _Scripted([[1.0, 0.0], [last, 0.0]])
+        with pytest.raises(error) as caught:
+            solver._newton(np.zeros(2), None, system, _label)
+        assert caught.value.residual == last and caught.value.iterations == 1
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_forward_records_the_predictor_history_and_the_branch(mechanism, compiled):
+    """After each FK: the branch label at the solution, and where it continued from: the solution
+    before it (warm) or q_init (a continuation from q_init). The compiled loop keeps the same
+    history as one array (sliders, then passive joints)."""
+    solver = ClosedLoopSolver(mechanism, native=compiled)
+    home_sliders = mechanism.home[mechanism.actuated_ids]
+    history = []
+    for change, start in ((0.01, mechanism.home), (0.02, None), (0.03, mechanism.home), (0.04, None)):
+        before = solver.last_q.copy() if start is None else start
+        result = solver.forward(home_sliders + change, q_init=start)
+        assert solver._last_branch == solver._branch(solver.closure_jacobian(result.q))
+        previous = solver._previous
+        if compiled and previous is not None:
+            previous = (previous[:len(home_sliders)], previous[len(home_sliders):])
+        history.append(None if previous is None else previous[0].copy())
+        if previous is not None:
+            np.testing.assert_array_equal(previous[1], before[solver.passive])
+    np.testing.assert_array_equal(history[0], home_sliders)
+    np.testing.assert_allclose(history[1], home_sliders + 0.01, atol=0.0)
+    np.testing.assert_array_equal(history[2], home_sliders)  # continued from q_init = home
+    np.testing.assert_allclose(history[3], home_sliders + 0.03, atol=0.0)
+
+
+def test_inverse_beyond_an_actuator_limit_reports_the_converged_solve(mechanism):
+    """The assembly exists but needs q21 = 0.656 m: refused with the solve's own residual and steps."""
+    with pytest.raises(OutOfWorkspaceError) as caught:
+        ClosedLoopSolver(mechanism).inverse(TARGET + [0.0, 0.5, 0.0, 0.0])
+    assert str(caught.value).startswith("target needs actuator 'q21' = 0.656167 m, beyond its limit [-0.6, 0.6] "
+                                        "(residual ")
+    assert caught.value.residual <= 1e-12 and 3 <= caught.value.iterations <= 20
+
+
+def test_a_closure_system_that_is_not_square_is_refused_word_for_word(mechanism):
+    from dataclasses import replace
+
+    from m3t1r.model.closures import without_rows
+
+    short = replace(mechanism, closures=without_rows(mechanism.closures, (0,)))
+    with pytest.raises(InvalidInputError) as caught:
+        ClosedLoopSolver(short)
+    assert str(caught.value) == (
+        f"{mechanism.closures_path}: 15 enforced closure rows for 16 passive joints; forward kinematics needs a "
+        "square system (one row per passive joint)")
+
+
+def test_a_half_open_stroke_still_refuses_an_infinite_slider(mechanism):
+    """Limits finite below, infinite above: the fast path (which trusts the limits to reject inf)
+    is off, so +inf is refused as non-finite instead of passing as 'inside'."""
+    model = mechanism.model.copy()
+    upper = model.upperPositionLimit.copy()
+    upper[model.idx_qs[model.getJointId(mechanism.actuated_joints[0])]] = np.inf
+    model.upperPositionLimit = upper
+    solver = ClosedLoopSolver(mechanism.with_model(model))
+    lower, upper = solver.mechanism.joint_limits()
+    assert np.isinf(upper[0]) and np.all(np.isfinite(lower))
+    sliders = mechanism.home[mechanism.actuated_ids].copy()
+    sliders[0] = np.inf
+    with pytest.raises(InvalidInputError, match="actuator values"):
+        solver.check_actuators(sliders)
+
+
+def test_the_block_cache_is_per_topology(mechanism, tmp_path):
+    """A five-bar built after the M machine gets its own blocks (two 1 x 1), not the machine's."""
+    from m3t1r.model.description import Mechanism
+    from m3t1r.model.examples import five_bar_files
+
+    ClosedLoopSolver(mechanism)
+    five_bar = Mechanism.load(*five_bar_files(tmp_path))
+    solver = ClosedLoopSolver(five_bar)
+    found = sorted((r.tolist(), c.tolist()) for r, c in solver._branch_blocks)
+    assert sorted(sum((c for _, c in found), [])) == sorted(solver.passive.tolist())
+    assert sorted(sum((r for r, _ in found), [])) == list(range(solver.n_rows))
+    result = solver.forward(five_bar.home[five_bar.actuated_ids] + 0.01)
+    assert result.residual <= 1e-12
+
+
+# ------------------------------------------------------------------------------------------------
+# The block order the one-LU signature relies on, its fallback, the exact rcond
+
+
+def test_diagonal_blocks_come_in_upper_block_triangular_order():
+    """Rows 0, 1, 2 on their own unknowns; row 0 also uses unknown 1 and row 2 unknown 0: block {2}
+    must come before {0}, and {0} before {1}, so that no row uses an unknown of an earlier block."""
+    from m3t1r.model.kinematics import diagonal_blocks
+
+    pattern = np.array([[1, 1, 0], [0, 1, 0], [1, 0, 1]], dtype=bool)
+    blocks = diagonal_blocks(pattern)
+    assert [(r.tolist(), c.tolist()) for r, c in blocks] == [([2], [2]), ([0], [0]), ([1], [1])]
+    # The machine's blocks, in the solver's order, leave zeros below the diagonal blocks.
+    from m3t1r.model.description import Mechanism
+
+    solver = ClosedLoopSolver(Mechanism.load())
+    jac = solver.closure_jacobian(solver.mechanism.home + 0.05)
+    order = solver._branch_blocks
+    for later, (rows, _) in enumerate(order):
+        for _, columns in order[:later]:
+            assert not jac[np.ix_(rows, columns)].any()
+
+
+def test_branch_signature_factors_each_block_when_a_pivot_comes_from_below():
+    """An entry the block structure says is zero (row 1, column 0) but is not, and larger than the
+    block's own: the LU takes its pivot from the next block, so each block is factored on its own."""
+    from m3t1r.model.kinematics import _BranchSignature
+
+    signature = _BranchSignature([(np.array([0]), np.array([0])), (np.array([1]), np.array([1]))], 2)
+    assert signature(np.array([[0.1, 0.0], [5.0, -1.0]])) == b"\x01\x00"
+    assert signature(np.array([[0.1, 0.0], [0.0, -1.0]])) == b"\x01\x00"  # the same from the one LU
+    assert signature(np.array([[-0.1, 3.0], [0.0, -1.0]])) == b"\x00\x00"
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the steps on these factors are nan
+@pytest.mark.parametrize("jacobian", [np.array([[1.0, 1.0], [1.0, 1.0]]), np.array([[1.0, np.nan], [0.0, 1.0]])],
+                         ids=["zero pivot", "nan"])
+def test_newton_calls_a_zero_pivot_or_a_nan_inverse_singular(solver, jacobian):
+    """rcond is 0 when U has a zero pivot (no inverse) or the inverse is nan, never accepted."""
+    from m3t1r.errors import SingularConfigurationError
+
+    system = _Scripted([[1.0, 0.0], [0.0, 0.0]], jacobian=jacobian)
+    with pytest.raises(SingularConfigurationError) as caught:
+        solver._newton(np.zeros(2), None, system, _label)
+    assert str(caught.value).startswith("singular configuration (reciprocal condition 0.00e+00)")
+
+
+def test_newton_rcond_is_exact_and_its_inverse_is_returned(solver):
+    """rcond = 1 / (|J|_1 |J^-1|_1): J = [[2, 1], [0, 4]] has |J|_1 = 5, J^-1 = [[0.5, -0.125], [0, 0.25]],
+    |J^-1|_1 = 0.5: 0.4, reported with the inverse (FK's tangent uses it)."""
+    from m3t1r.model.kinematics import _inverse_and_rcond
+
+    jacobian = np.array([[2.0, 1.0], [0.0, 4.0]])
+    system = _Scripted([[1.0, 0.0], [0.0, 0.0]], jacobian=jacobian)
+    outcome = solver._newton(np.zeros(2), None, system, _label)
+    np.testing.assert_allclose(outcome.inverse, np.linalg.inv(jacobian), rtol=1e-15)
+    from scipy.linalg import lapack
+
+    inverse, rcond = _inverse_and_rcond(lapack.dgetrf(jacobian)[:2], 5.0)
+    assert rcond == pytest.approx(0.4, rel=1e-15)
+
+
+def test_newton_labels_a_single_jacobian_once(solver):
+    """A cold solve on one Jacobian computes its signature once and compares it with itself."""
+    _chord_from_any_residual(solver)
+    calls = []
+
+    def counted(jac, lu):
+        calls.append(1)
+        return b"branch"
+    system = _Scripted([[1.0, 0.0], [0.01, 0.0], [0.0, 0.0]])
+    outcome = solver._newton(np.zeros(2), None, system, counted)
+    assert len(calls) == 1 and outcome.branch == b"branch" and system.calls == [True, False, False]
+
+
+def _inverse_predictor_state(solver, task_inverse, last_goal, last_q):
+    """A solver whose last IK solution is last_q at a pose with coordinates about (0.5, 0.625, -0.125, 0.2),
+    returned exactly (binary fractions and the pose's own yaw: task rows without rounding)."""
+    solver._last_task = pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, 0.2), np.array([0.5, 0.625, -0.125]))
+    solver._task_inverse = task_inverse
+    solver._inverse_previous = None if last_goal is None else ((np.asarray(last_goal, dtype=float), None), last_q)
+    return np.array([0.5, 0.625, -0.125, yaw_of(solver._last_task.rotation)])
+
+
+def test_inverse_predictor_first_order_is_minus_x_times_the_task_rows(mechanism):
+    solver = ClosedLoopSolver(mechanism)
+    x = np.random.default_rng(2).normal(size=(mechanism.model.nv, 4))
+    here = _inverse_predictor_state(solver, x, None, None)
+    goal = here + [0.01, -0.02, 0.005, 0.03]
+    np.testing.assert_allclose(solver._inverse_step(goal, None), -(x @ (here - goal)), rtol=1e-12)
+
+
+def test_inverse_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism):
+    """With X = 0 the prediction is lam^2 (q_prev - q_last) exactly while 0 < lam < 2, else nothing;
+    lam is the new goal change along the last one, e (task rows of the previous goal at the last pose)."""
+    solver = ClosedLoopSolver(mechanism)
+    offset = np.linspace(-0.01, 0.02, mechanism.model.nv)  # q_prev - q_last
+    e = np.array([2.0 ** -7, -2.0 ** -6, 2.0 ** -8, 0.0])
+    here = _inverse_predictor_state(solver, np.zeros((mechanism.model.nv, 4)), None, None)
+    _inverse_predictor_state(solver, np.zeros((mechanism.model.nv, 4)), here - e, solver.last_q + offset)
+    for lam, expected in ((0.5, 0.25), (1.0, 1.0), (1.5, 2.25), (0.0, 0.0), (2.0, 0.0), (2.5, 0.0), (-0.5, 0.0)):
+        goal = here + (lam * e if lam else np.array([2.0 ** -6, 2.0 ** -7, 0.0, 0.0]))  # at right angles to e
+        np.testing.assert_allclose(solver._inverse_step(goal, None), expected * offset, rtol=1e-9, atol=1e-17,
+                                   err_msg=str(lam))
+    _inverse_predictor_state(solver, np.zeros((mechanism.model.nv, 4)), here, solver.last_q + offset)  # e = 0
+    np.testing.assert_array_equal(solver._inverse_step(here + e, None), np.zeros(mechanism.model.nv))
+
+
+def test_inverse_records_the_predictor_history_and_forward_drops_it(mechanism):
+    """After a warm IK: the previous solution and its goal; after a cold one or an FK: none."""
+    solver = ClosedLoopSolver(mechanism)
+    first = solver.inverse(TARGET)
+    assert solver._inverse_previous is None  # home is no IK solution
+    np.testing.assert_array_equal(solver._last_goal[0], TARGET)
+    second = TARGET + [0.01, 0.0, 0.0, 0.02]
+    solver.inverse(second)
+    (goal, rotation), q = solver._inverse_previous
+    np.testing.assert_array_equal(goal, TARGET)
+    assert rotation is None and q is not solver.last_q
+    np.testing.assert_array_equal(q, first.q)
+    solver.inverse(TARGET, q_init=mechanism.home)
+    assert solver._inverse_previous is None
+    solver.inverse(second)
+    solver.forward(solver.last_q[solver.actuated])
+    assert solver._inverse_previous is None and solver._last_goal is None
+    solver.inverse(TARGET)
+    assert solver._inverse_previous is None
+
+
+def test_inverse_keeps_its_own_copy_of_the_goal(mechanism):
+    """The caller's target array may be reused for the next target: the kept goal does not move."""
+    solver = ClosedLoopSolver(mechanism)
+    target = TARGET.copy()
+    solver.inverse(target)
+    target[0] += 0.01
+    np.testing.assert_array_equal(solver._last_goal[0], TARGET)
+
+
+# ------------------------------------------------------------------------------------------------
+# The task frame and the input fast path
+
+
+def test_the_task_pose_is_the_platform_pose_when_the_task_is_on_the_platform(mechanism):
+    solver = ClosedLoopSolver(mechanism)
+    forward = solver.forward(mechanism.home[mechanism.actuated_ids] + 0.01)
+    inverse = solver.inverse(np.array([0.5, 0.5, -0.1, 0.1]))
+    assert forward.task_pose is forward.pose and inverse.task_pose is inverse.pose
+
+
+def test_a_tool_task_frame_is_reported_apart_from_the_platform(tool_machine):
+    """IK puts the tool, not the platform, on the target; FK and IK report both frames at q."""
+    from conftest import frame_coordinates
+
+    solver = ClosedLoopSolver(tool_machine)
+    target = frame_coordinates(tool_machine, tool_machine.home, "tool") + [0.01, -0.02, 0.01, 0.05]
+    inverse = solver.inverse(target)
+    np.testing.assert_allclose(tool_machine.task.coordinates(inverse.task_pose.homogeneous[None])[0], target,
+                               atol=1e-12)
+    np.testing.assert_allclose(frame_coordinates(tool_machine, inverse.q, "P_I"),
+                               tool_machine.task.coordinates(inverse.pose.homogeneous[None])[0], atol=1e-12)
+    forward = solver.forward(inverse.actuators)
+    np.testing.assert_allclose(forward.task_pose.homogeneous, inverse.task_pose.homogeneous, atol=1e-12)
+    np.testing.assert_allclose(forward.pose.homogeneous, inverse.pose.homogeneous, atol=1e-12)
+    assert np.linalg.norm(forward.pose.translation - forward.task_pose.translation) > 0.1
+
+
+def test_slider_arrays_of_every_dtype_are_checked(solver, mechanism):
+    """Integer sliders are converted; an object array holding a word is refused as not numeric, not
+    with numpy's ValueError (float arrays take a fast path, the others the general one)."""
+    home = mechanism.home[mechanism.actuated_ids]
+    reference = ClosedLoopSolver(mechanism).forward(home)
+    as_list = ClosedLoopSolver(mechanism).forward(home.tolist())
+    np.testing.assert_allclose(as_list.pose.homogeneous, reference.pose.homogeneous, atol=1e-12)
+    assert solver.check_actuators(np.zeros(4, dtype=int)).dtype == np.float64
+    with pytest.raises(InvalidInputError, match="not a numeric vector"):
+        solver.forward(np.array([0.0, 0.0, 0.0, "x"], dtype=object))
+    values = np.zeros(4)
+    assert solver.check_actuators(values) is not values  # a copy
+
+def test_targets_of_every_kind_give_the_same_solve(mechanism):
+    """An array, a list and a wrong-dtype array of the same target: the same sliders and tilt (the
+    array takes a fast input path, the others the general one); a NaN in an array is refused."""
+    array = TARGET.copy()
+    reference = ClosedLoopSolver(mechanism).inverse(array)
+    for other in (TARGET.tolist(), TARGET.astype(np.longdouble), (TARGET * 1.0).reshape(1, 4)):
+        result = ClosedLoopSolver(mechanism).inverse(other)
+        np.testing.assert_allclose(result.actuators, reference.actuators, atol=1e-12)
+        np.testing.assert_allclose(result.tilt, reference.tilt, atol=1e-12)
+    np.testing.assert_array_equal(array, TARGET)  # the caller's array is left alone
+    for bad in (np.array([0.5, np.nan, -0.1, 0.0]), np.array([0.5, 0.5, np.inf, 0.0])):
+        with pytest.raises(InvalidInputError, match="non-finite"):
+            ClosedLoopSolver(mechanism).inverse(bad)
+    with pytest.raises(InvalidInputError, match="not a numeric vector"):  # not a float array: the general path
+        ClosedLoopSolver(mechanism).inverse(np.array([0.5, 0.5, -0.1, "x"], dtype=object))

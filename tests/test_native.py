@@ -450,7 +450,7 @@ def test_labels_no_solution_can_have_fail_every_row_and_solve(mechanism):
     are 0 or 1), fail them all with BranchChangeError (status 4); without labels they succeed."""
     solver = ClosedLoopSolver(mechanism)
     chain, limits = solver.native, NewtonRules().compiled()
-    blocks = len(solver._branch_blocks)
+    blocks = len(solver.home_reference()[1])
     start = np.repeat(mechanism.home[None, :], 3, axis=0)
     start[:, solver.actuated] += np.linspace(0.0, 0.01, 3)[:, None]
     assert list(chain.forward_rows(start.copy(), None, 0, limits)[0]) == [0, 0, 0]
@@ -585,10 +585,10 @@ def test_a_warm_inverse_keeps_the_last_solution_s_branch(mechanism, compiled):
     solver = ClosedLoopSolver(mechanism, native=compiled)
     targets = _targets(mechanism, 3, 12)
     solver.inverse(targets[0])
-    solver._last_inverse_branch = b"\x02" * (len(solver._branch_blocks) + 1)
+    solver._last_inverse_branch = b"\x02" * (len(solver.home_reference()[1]) + 1)
     with pytest.raises(BranchChangeError):
         solver.inverse(targets[1])
-    solver._last_inverse_branch = b"\x02" * (len(solver._branch_blocks) + 1)
+    solver._last_inverse_branch = b"\x02" * (len(solver.home_reference()[1]) + 1)
     assert solver.inverse(targets[2], q_init=mechanism.home).residual <= 1e-12
 
 

@@ -2,20 +2,25 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+from types import SimpleNamespace
+
 import numpy as np
 import pinocchio as pin
 import pytest
 
 from m3t1r.calibration import serial, serial_evaluation
-from m3t1r.calibration.identification import select_base_parameters
+from m3t1r.calibration import serial as S
+from m3t1r.calibration.identification import forward_selection, levenberg_marquardt, select_base_parameters
+from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.serial import calibrate_serial
 from m3t1r.calibration.serial_evaluation import pose_errors, predicted_pose_std
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
-from m3t1r.calibration.serial_simulation import sample_configurations, simulate_serial_measurements
-from m3t1r.errors import InvalidInputError
+from m3t1r.calibration.serial_simulation import _readonly, sample_configurations, simulate_serial_measurements
+from m3t1r.errors import IdentificationError, InvalidInputError
 from m3t1r.metrics import PoseErrors
-from m3t1r.model.poe import SerialChain, forward_and_error_jacobians, perturb, tool_poses
+from m3t1r.model.poe import Placement, SerialChain, forward_and_error_jacobians, perturb, tool_poses
 
 # 10 um / 20 urad tracker, 1e-5 rad encoders: the test setting of the brief.
 NOISE = TrackerNoise(position=1e-5, rotation=2e-5)
@@ -268,3 +273,686 @@ def test_evaluations_return_the_shared_pose_errors_type() -> None:
     predicted = predicted_pose_std(calibration, q)
     assert isinstance(predicted, PoseErrors) and predicted.position.shape == (5,)
     assert serial_evaluation.PoseErrors is PoseErrors
+
+
+# ==================================================================================================
+# Whitening, the column layout, outlier rounds and selection
+#
+# Whitening without joint noise is checked against the true noise (variance factor near one from both
+# sides, parameter std against the scatter of repeated experiments), and the quaternion norm tolerance of
+# array input at its boundary. Then, on small problems: the column layout and names, every column's
+# Jacobian (placements, frame, marker, compliance) against finite differences, retraction, whitening with
+# joint noise against its covariance, gravity torques, outlier masks and prior rows, the start's frame and
+# marker registration, re-selection of the base at the estimate, outlier rounds, forward selection and the
+# result's fields.
+# ==================================================================================================
+
+
+TRACKER = TrackerNoise(position=1e-5, rotation=2e-5)  # and exact joint readings (joint_noise 0, the default)
+
+
+@pytest.fixture(scope="module")
+def ur5():
+    model = load_example_robot("ur5")
+    return model, SerialChain.from_model(model, "tool0")
+
+
+def _calibrate(model, chain, seed: int, n_poses: int = 40):
+    data = simulate_serial_measurements(model, chain, n_poses, np.random.default_rng(seed), noise=TRACKER)
+    calibration = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=TRACKER)
+    return data, calibration
+
+
+def test_whitening_without_joint_noise_gives_a_variance_factor_near_one(ur5):
+    """Whitened by 1/sigma (not 1/sigma^2): chi^2 / dof is about 1 when the noise model is the truth."""
+    model, chain = ur5
+    factors = [_calibrate(model, chain, seed)[1].variance_factor for seed in (0, 1, 2)]
+    assert all(0.75 < f < 1.3 for f in factors), factors
+    assert 0.85 < np.mean(factors) < 1.15
+
+
+def test_parameter_std_matches_the_scatter_of_repeated_experiments(ur5):
+    """The same truth measured 12 times: the reported std of each estimate matches its scatter."""
+    model, chain = ur5
+    estimates, stds = [], []
+    truth_rng_seed = 5
+    for k in range(12):
+        rng = np.random.default_rng(truth_rng_seed)  # same truth and configurations every time ...
+        data = simulate_serial_measurements(model, chain, 40, rng, noise=None)
+        noise_rng = np.random.default_rng(100 + k)  # ... fresh tracker noise
+        measured = [pin.SE3(g.rotation @ pin.exp3(noise_rng.normal(0.0, TRACKER.rotation, 3)),
+                            g.translation + noise_rng.normal(0.0, TRACKER.position, 3))
+                    for g in data.measured_poses]
+        calibration = calibrate_serial(model, chain, data.q_readings, measured, noise=TRACKER)
+        estimates.append(np.concatenate([calibration.deltas[p] for p in chain.placements()])[list(calibration.base.indices)])
+        stds.append(calibration.parameter_std)
+    scatter = np.std(np.array(estimates), axis=0, ddof=1)
+    ratio = scatter / np.mean(np.array(stds), axis=0)
+    # 12 draws: the sample std is within a factor ~2 of the true one; the median ratio much closer.
+    assert 0.7 < np.median(ratio) < 1.3, np.median(ratio)
+    assert np.all((ratio > 0.3) & (ratio < 2.5))
+
+
+def test_predicted_pose_std_without_joint_noise_is_micrometres(ur5):
+    model, chain = ur5
+    _, calibration = _calibrate(model, chain, 3)
+    predicted = predicted_pose_std(calibration, sample_configurations(model, chain, 20, np.random.default_rng(4)))
+    assert 2e-6 < predicted.position_rms < 2e-5 and 2e-6 < predicted.rotation_rms < 4e-5
+
+
+@pytest.mark.parametrize("norm_error, refused", [(1e-4, True), (2e-6, True), (5e-7, False), (-5e-7, False)])
+def test_quaternion_norm_tolerance_is_1e_6(ur5, norm_error, refused):
+    model, chain = ur5
+    data = simulate_serial_measurements(model, chain, 12, np.random.default_rng(7), noise=TRACKER)
+    xyzquat = np.array([pin.SE3ToXYZQUAT(g) for g in data.measured_poses])
+    xyzquat[5, 3:] *= 1.0 + norm_error
+    if refused:
+        with pytest.raises(InvalidInputError, match="quaternion of row 5 has norm"):
+            calibrate_serial(model, chain, data.q_readings, xyzquat, noise=TRACKER)
+    else:
+        calibration = calibrate_serial(model, chain, data.q_readings, xyzquat, noise=TRACKER)
+        assert calibration.converged
+
+
+# --------------------------------------------------------------------------------------------------
+# Internals: layout, Jacobian of every column, whitening, gravity torques, priors (fast, no fit)
+
+MARKER = pin.SE3(pin.utils.rotate("y", 0.3) @ pin.utils.rotate("x", -0.2), np.array([0.01, 0.02, 0.067]))
+FRAME = pin.SE3(pin.utils.rotate("z", 2.0) @ pin.utils.rotate("x", 0.4), np.array([2.0, -1.0, 0.3]))
+
+
+def _measurements(model, chain, position_only: bool = False, n_poses: int = 6, seed: int = 40):
+    data = simulate_serial_measurements(model, chain, n_poses, np.random.default_rng(seed), noise=TRACKER)
+    measured = FRAME.homogeneous @ np.array([g.homogeneous for g in data.measured_poses]) @ MARKER.homogeneous
+    return S._parse_measurements(chain, data.q_readings, [pin.SE3(m) for m in measured], position_only)
+
+
+def test_layout_columns_and_names(ur5):
+    _, chain = ur5
+    layout = S._Layout(6, frame=True, marker=3, compliance=True)
+    assert (layout.n_chain, layout.size) == (42, 42 + 6 + 3 + 6)
+    assert layout.frame_slice == slice(42, 48) and layout.marker_slice == slice(48, 51)
+    assert layout.compliance_slice == slice(51, 57)
+    np.testing.assert_array_equal(layout.setup_columns, np.arange(42, 51))
+    names = layout.names(chain)
+    assert names[:42] == chain.parameter_names()
+    assert names[42:] == tuple(f"measurement_frame.dt[{k}]" for k in range(6)) + (
+        "marker.dt[0]", "marker.dt[1]", "marker.dt[2]") + tuple(f"compliance.{j}" for j in chain.joint_names)
+    plain = S._Layout(6)
+    assert plain.size == 42 and plain.frame_slice == slice(42, 42) and plain.compliance_slice == slice(42, 42)
+    assert plain.setup_columns.size == 0 and plain.names(chain) == chain.parameter_names()
+    marker_only = S._Layout(6, marker=6)
+    assert marker_only.marker_slice == slice(42, 48) and marker_only.size == 48
+    assert S._Layout(6, compliance=True).compliance_slice == slice(42, 48)
+
+
+@pytest.mark.parametrize("position_only", [False, True])
+def test_jacobian_of_every_column_matches_finite_differences(ur5, position_only):
+    """Placements, frame, marker and compliance columns at a non-nominal state with F, K and c set."""
+    model, chain = ur5
+    data = _measurements(model, chain, position_only)
+    layout = S._Layout(6, frame=True, marker=3 if position_only else 6, compliance=True)
+    torques = S.gravity_torques(model, chain, data.q)
+    rng = np.random.default_rng(41)
+    whitening = np.linalg.inv(np.linalg.cholesky(  # any SPD covariance: the whitening is applied as a matrix
+        np.array([np.eye(data.rows_per_pose) + 0.3 * (a @ a.T) for a in rng.normal(size=(6, data.rows_per_pose, 2))])))
+    residual = S._SerialResidual(chain, data, whitening, layout, torques)
+    start = S._readonly_state(chain, perturb(model, {p: np.full(6, 2e-3) for p in chain.placements()}),
+                              MeasurementSetup(FRAME, MARKER))
+    state = residual.retract(start, np.r_[np.zeros(42), rng.normal(0.0, 1e-3, layout.size - 42 - 6),
+                                          rng.normal(0.0, 1e-4, 6)])
+    np.testing.assert_array_equal(state.accumulated[:42], 0.0)
+    assert state.compliance is not None and np.all(state.compliance != 0.0)
+    r, J = residual.residual_and_jacobian(state)
+    assert J.shape == (6 * data.rows_per_pose, layout.size)
+    raw = residual.raw_residual(state)
+    np.testing.assert_allclose(r, (whitening @ raw[:, :, None]).reshape(-1), rtol=1e-12, atol=1e-15)
+    # The measured frame M = F g(q + c tau) K, as the raw residual's position part.
+    g = tool_poses(chain, perturb(model, {p: np.full(6, 2e-3) for p in chain.placements()}),
+                   data.q + state.compliance * torques)
+    predicted = state.frame @ g @ state.marker
+    np.testing.assert_allclose(raw[:, :3], predicted[:, :3, 3] - data.positions, atol=1e-12)
+    step = 1e-7
+    numeric = np.empty_like(J)
+    for i in range(layout.size):
+        dx = np.zeros(layout.size)
+        dx[i] = step if i < layout.compliance_slice.start else 1e-9
+        numeric[:, i] = (residual.residual(residual.retract(state, dx)) -
+                         residual.residual(residual.retract(state, -dx))) / (2 * dx[i])
+    for block in (slice(0, 42), layout.frame_slice, layout.marker_slice, layout.compliance_slice):
+        assert np.linalg.norm(J[:, block] - numeric[:, block]) <= 1e-6 * np.linalg.norm(J[:, block]), block
+
+
+def test_retract_accumulates_the_steps_in_layout_order(ur5):
+    model, chain = ur5
+    data = _measurements(model, chain)
+    layout = S._Layout(6, frame=True, marker=6, compliance=True)
+    residual = S._SerialResidual(chain, data, np.broadcast_to(np.eye(6), (6, 6, 6)), layout,
+                                 S.gravity_torques(model, chain, data.q))
+    start = S._readonly_state(chain, model)
+    assert start.accumulated is None and start.compliance is None and start.plain
+    a, b = np.linspace(1e-3, 2e-3, layout.size), np.linspace(-1e-3, 5e-4, layout.size)
+    one = residual.retract(start, a)
+    two = residual.retract(one, b)
+    np.testing.assert_array_equal(one.accumulated, a)
+    np.testing.assert_allclose(two.accumulated, a + b, rtol=0, atol=1e-18)
+    np.testing.assert_allclose(two.compliance, a[layout.compliance_slice] + b[layout.compliance_slice], atol=1e-18)
+    for j in range(7):
+        expected = start.transforms[j] @ pin.exp6(a[6 * j: 6 * j + 6]).homogeneous @ pin.exp6(b[6 * j: 6 * j + 6]).homogeneous
+        np.testing.assert_allclose(two.transforms[j], expected, atol=1e-14)
+    np.testing.assert_allclose(two.frame, pin.exp6(a[42:48]).homogeneous @ pin.exp6(b[42:48]).homogeneous, atol=1e-14)
+    np.testing.assert_allclose(two.marker, pin.exp6(a[48:54]).homogeneous @ pin.exp6(b[48:54]).homogeneous, atol=1e-14)
+    assert not (two.transforms.flags.writeable or two.frame.flags.writeable or two.marker.flags.writeable)
+    assert not (two.compliance.flags.writeable or two.accumulated.flags.writeable)
+    # A zero twist leaves a placement's pose bit for bit; a 3-column marker moves the translation only.
+    partial = residual.retract(start, np.r_[np.zeros(6), a[6:]])
+    np.testing.assert_array_equal(partial.transforms[0], start.transforms[0])
+    three = S._SerialResidual(chain, data, residual.whitening, S._Layout(6, marker=3))
+    moved = three.retract(start, np.r_[np.zeros(42), 1e-3, 2e-3, 3e-3])
+    np.testing.assert_allclose(moved.marker, pin.exp6(np.r_[1e-3, 2e-3, 3e-3, 0, 0, 0]).homogeneous, atol=1e-15)
+    np.testing.assert_array_equal(moved.frame, np.eye(4))
+    assert moved.compliance is None
+
+
+@pytest.mark.parametrize("position_only", [False, True])
+def test_whitening_is_the_inverse_cholesky_factor_of_the_covariance(ur5, position_only):
+    """Cov = diag(sigma^2) + sigma_q^2 J_q J_q^T, J_q by finite differences over the readings."""
+    model, chain = ur5
+    data = _measurements(model, chain, position_only)
+    k, sigma_q = data.rows_per_pose, 3e-5
+    state = S._readonly_state(chain, model, MeasurementSetup(FRAME, MARKER))
+    sigmas = np.array([1e-5, 1e-5, 1e-5, 2e-5, 2e-5, 2e-5])[:k]
+    exact = S._whitening(chain, state, data, TRACKER, 0.0)
+    np.testing.assert_array_equal(exact, np.broadcast_to(np.diag(1.0 / sigmas), (6, k, k)))
+    assert exact.flags.writeable
+    whitening = S._whitening(chain, replace(state, compliance=np.zeros(6)), data, TRACKER, sigma_q)
+    assert np.abs(np.tril(S._whitening(chain, state, data, TRACKER, 1.0), -1)).max() > 0.0
+    # The joint Jacobian of the residual at the state, F and K included.
+    joint_jacobian = np.empty((6, k, 6))
+    for j in range(6):
+        shifted = []
+        for h in (1e-7, -1e-7):
+            q = data.q.copy()
+            q[:, j] += h
+            moved = S._SerialResidual(chain, replace(data, q=q), np.broadcast_to(np.eye(k), (6, k, k)))
+            shifted.append(moved.raw_residual(state))
+        joint_jacobian[:, :, j] = (shifted[0] - shifted[1]) / 2e-7
+    covariance = np.diag(sigmas**2) + sigma_q**2 * joint_jacobian @ np.swapaxes(joint_jacobian, 1, 2)
+    inverse = np.linalg.inv(whitening)
+    np.testing.assert_allclose(inverse @ np.swapaxes(inverse, 1, 2), covariance, rtol=1e-6, atol=1e-16)
+    assert np.abs(np.triu(whitening, 1)).max() < 1e-9 * np.abs(whitening).max()  # lower triangular: Cholesky's
+
+
+def test_gravity_torques_are_pinocchios_on_the_chain_joints(ur5):
+    model, chain = ur5
+    q = sample_configurations(model, chain, 3, np.random.default_rng(42))
+    torques = S.gravity_torques(model, chain, q)
+    data = model.createData()
+    for row, tau in zip(q, torques):
+        np.testing.assert_array_equal(tau, pin.computeGeneralizedGravity(model, data, row))
+    assert np.abs(torques).max() > 1.0
+    single = S.gravity_torques(model, chain, list(q[1]))
+    assert single.shape == (1, 6)
+    np.testing.assert_array_equal(single[0], torques[1])
+
+
+def _plain_problem(model, chain, n_poses: int = 5, position_only: bool = False):
+    data = _measurements(model, chain, position_only, n_poses=n_poses)
+    state = S._readonly_state(chain, model, MeasurementSetup(FRAME, MARKER))
+    residual = S._SerialResidual(chain, data, S._whitening(chain, state, data, TRACKER, 0.0))
+    return residual, state
+
+
+def test_problem_masks_outlier_poses_and_appends_prior_rows(ur5):
+    model, chain = ur5
+    residual, state = _plain_problem(model, chain)  # 5 poses, 6 rows each
+    plain = S._SerialProblem(residual, [3.0, 7.0])
+    assert plain.columns.dtype.kind == "i" and plain.priors == {}
+    assert plain.active.dtype == bool and plain.active.shape == (5,) and plain.active.all()
+    r_full, J_full = residual.residual_and_jacobian(state)
+    assert not (r_full.flags.writeable or J_full.flags.writeable or residual.raw_residual(state).flags.writeable)
+    assert not S._readonly_state(chain, model).transforms.flags.writeable
+    assert plain.residual(state) is r_full  # every pose, no prior: the residual itself
+    r, J = plain.residual_and_jacobian(state)
+    assert r is r_full
+    np.testing.assert_array_equal(J, J_full[:, [3, 7]])
+    assert plain.degrees_of_freedom() == 5 * 6 - 2
+
+    priors = {7: 0.5, 20: 2e-3, 41: 1.0}  # column 41 is not fitted: no row
+    problem = S._SerialProblem(residual, np.array([3, 7, 8, 20]), priors)
+    assert problem.priors == priors and problem.priors is not priors
+    r, J = problem.residual_and_jacobian(state)  # no step yet: the prior rows are zero
+    assert r.shape == (32,) and J.shape == (32, 4)
+    np.testing.assert_array_equal(r, np.r_[r_full, 0.0, 0.0])
+    np.testing.assert_array_equal(J[:30], J_full[:, [3, 7, 8, 20]])
+    np.testing.assert_array_equal(J[30:], [[0.0, 2.0, 0.0, 0.0], [0.0, 0.0, 0.0, 500.0]])
+    np.testing.assert_array_equal(problem.residual(state), r)
+    assert problem.degrees_of_freedom() == 30 + 2 - 4
+
+    moved = problem.retract(state, np.array([1e-3, 2e-3, -1e-3, 4e-3]))
+    expected_step = np.zeros(42)
+    expected_step[[3, 7, 8, 20]] = [1e-3, 2e-3, -1e-3, 4e-3]
+    np.testing.assert_array_equal(moved.accumulated, expected_step)
+    r_moved, J_moved = residual.residual_and_jacobian(moved)
+    np.testing.assert_allclose(problem.residual(moved)[30:], [2e-3 / 0.5, 4e-3 / 2e-3], rtol=1e-15)
+
+    problem.active = np.array([True, False, True, True, False])
+    mask = np.repeat(problem.active, 6)
+    r, J = problem.residual_and_jacobian(moved)
+    np.testing.assert_array_equal(r[:30], np.where(mask, r_moved, 0.0))
+    np.testing.assert_array_equal(J[:30], np.where(mask[:, None], J_moved[:, [3, 7, 8, 20]], 0.0))
+    np.testing.assert_allclose(r[30:], [2e-3 / 0.5, 4e-3 / 2e-3], rtol=1e-15)
+    np.testing.assert_array_equal(J[30:], [[0.0, 2.0, 0.0, 0.0], [0.0, 0.0, 0.0, 500.0]])
+    np.testing.assert_array_equal(problem.residual(moved), r)
+    assert problem.degrees_of_freedom() == 3 * 6 + 2 - 4
+
+    plain.active = problem.active.copy()  # outliers, no prior
+    r, J = plain.residual_and_jacobian(moved)
+    np.testing.assert_array_equal(r, np.where(mask, r_moved, 0.0))
+    np.testing.assert_array_equal(J, np.where(mask[:, None], J_moved[:, [3, 7]], 0.0))
+    np.testing.assert_array_equal(plain.residual(moved), r)
+
+
+def test_rms_of_positions_and_rotations():
+    residual = np.array([[3.0, 4.0, 0.0, 1.0, 2.0, 2.0], [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    rms = S._rms(residual)
+    assert rms.position == pytest.approx(np.sqrt(12.5), rel=1e-15)
+    assert rms.rotation == pytest.approx(np.sqrt(4.5), rel=1e-15)
+    positions = S._rms(residual[:, :3])
+    assert positions.position == pytest.approx(np.sqrt(12.5), rel=1e-15) and np.isnan(positions.rotation)
+
+
+def test_prior_columns_by_parameter_or_placement(ur5):
+    _, chain = ur5
+    names = S._Layout(6, compliance=True).names(chain)
+    columns = S._prior_columns(names, {"shoulder_pan_joint": 1e-3, "compliance.elbow_joint": 0.5,
+                                       "wrist_1_joint.dt[4]": 2})
+    assert columns == {**{c: 1e-3 for c in range(6)}, 44: 0.5, 22: 2.0}
+    assert all(type(sigma) is float for sigma in columns.values())
+    assert S._prior_columns(names, None) == {} and S._prior_columns(names, {}) == {}
+    for sigma in (0.0, -1e-3, float("inf"), float("nan")):
+        with pytest.raises(InvalidInputError) as error:
+            S._prior_columns(names, {"elbow_joint": sigma})
+        assert str(error.value) == "prior of 'elbow_joint': sigma must be a positive number (m, rad or rad/Nm)"
+    with pytest.raises(InvalidInputError, match=r"^prior: 'nope' is neither a parameter \(e.g. shoulder_pan_joint.dt\[0\]\)"):
+        S._prior_columns(names, {"nope": 1.0})
+
+
+def _exact_setup_data(model, chain, position_only: bool = False, n_poses: int = 8):
+    """Measurements of the nominal robot through FRAME and MARKER, without noise."""
+    q = sample_configurations(model, chain, n_poses, np.random.default_rng(43))
+    measured = FRAME.homogeneous @ tool_poses(chain, model, q) @ MARKER.homogeneous
+    return S._parse_measurements(chain, q, [pin.SE3(m) for m in measured], position_only)
+
+
+def test_start_state_registers_the_frame_and_the_marker_rotation(ur5):
+    model, chain = ur5
+    data = _exact_setup_data(model, chain)
+    given = S._start_state(chain, model, data, MeasurementSetup(FRAME, MARKER), False, False, False)
+    np.testing.assert_array_equal(given.frame, FRAME.homogeneous)
+    np.testing.assert_array_equal(given.marker, MARKER.homogeneous)
+    np.testing.assert_array_equal(given.transforms, chain.initial_transforms(model))
+    assert given.compliance is None and given.accumulated is None
+    # The marker's position known, its axes not: the frame from the positions, then the rotation.
+    axes_unknown = MeasurementSetup(marker=pin.SE3(np.eye(3), MARKER.translation))
+    both = S._start_state(chain, model, data, axes_unknown, True, True, False)
+    np.testing.assert_allclose(both.frame, FRAME.homogeneous, atol=1e-9)
+    np.testing.assert_allclose(both.marker, MARKER.homogeneous, atol=1e-9)
+    assert not (both.frame.flags.writeable or both.marker.flags.writeable)
+    frame_only = S._start_state(chain, model, data, axes_unknown, True, False, True)
+    np.testing.assert_array_equal(frame_only.marker, axes_unknown.marker.homogeneous)
+    np.testing.assert_array_equal(frame_only.compliance, np.zeros(6))
+    assert not frame_only.compliance.flags.writeable
+    marker_only = S._start_state(chain, model, data, MeasurementSetup(FRAME, pin.SE3(np.eye(3), MARKER.translation)),
+                                 False, True, False)
+    np.testing.assert_array_equal(marker_only.frame, FRAME.homogeneous)
+    np.testing.assert_allclose(marker_only.marker, MARKER.homogeneous, atol=1e-9)
+    # Positions only: no rotation to register the marker's axes with.
+    positions = _exact_setup_data(model, chain, position_only=True)
+    kept = S._start_state(chain, model, positions, axes_unknown, True, True, False)
+    np.testing.assert_array_equal(kept.marker, axes_unknown.marker.homogeneous)
+    np.testing.assert_allclose(kept.frame, FRAME.homogeneous, atol=1e-9)
+
+
+def _lm(calls):
+    def solve(problem, state):
+        result = levenberg_marquardt(problem, state, max_iterations=30, initial_damping=1e-6,
+                                     absolute_cost_tolerance=1e-6)
+        calls.append((len(problem.columns), state, result))
+        return result
+    return solve
+
+
+def _problem(model, chain, data, layout, setup=MeasurementSetup()):
+    start = S._start_state(chain, model, data, setup, layout.frame, bool(layout.marker), layout.compliance)
+    torques = S.gravity_torques(model, chain, data.q) if layout.compliance else None
+    residual = S._SerialResidual(chain, data, S._whitening(chain, start, data, TRACKER, 0.0), layout, torques)
+    return S._SerialProblem(residual, np.arange(layout.size)), start
+
+
+@pytest.mark.parametrize("compliance", [False, True])
+def test_fit_base_reselects_at_the_estimate_while_the_rank_grows(ur5, compliance):
+    """Positions only: the nominal UR5's tool on the last axis hides 2 parameters; one re-selection
+    at the estimate finds them, a second one finds no more and stops."""
+    model, chain = ur5
+    simulated = simulate_serial_measurements(model, chain, 40, np.random.default_rng(44), noise=TRACKER)
+    data = S._parse_measurements(chain, simulated.q_readings, simulated.measured_poses, True)
+    layout = S._Layout(6, compliance=compliance)
+    problem, start = _problem(model, chain, data, layout)
+    calls = []
+    base, result, iterations = S._fit_base(problem, start, layout.names(chain), 1e-9, [], _lm(calls))
+    extra = 3 if compliance else 0  # compliances seen from these poses (none for the vertical base axis)
+    assert [c[0] for c in calls] == [25 + extra, 27 + extra]
+    assert calls[0][1] is start and calls[1][1] is calls[0][2].state and result is calls[1][2]
+    assert base.rank == chain.rank_bound(True) + extra
+    assert iterations == calls[0][2].iterations + calls[1][2].iterations
+    np.testing.assert_array_equal(problem.columns, base.indices)
+
+
+def test_select_base_keeps_the_setup_first_and_leaves_fixed_columns_out(ur5):
+    model, chain = ur5
+    data = _exact_setup_data(model, chain, n_poses=20)
+    layout = S._Layout(6, frame=True, marker=6)
+    problem, start = _problem(model, chain, data, layout, MeasurementSetup(FRAME, MARKER))
+    names = layout.names(chain)
+    base = S._select_base(problem, start, names, 1e-9, [])
+    assert set(range(42, 54)) <= set(base.indices) and base.rank == 4 * 6 + 6
+    assert not set(base.indices) & (set(range(6)) | set(range(36, 42)))  # first and tool placements: the gauge
+    elbow = list(range(12, 18))
+    fixed = S._select_base(problem, start, names, 1e-9, elbow)
+    assert not set(fixed.indices) & set(elbow)
+    assert fixed.rank < base.rank
+    assert np.all(np.abs(problem.model.residual_and_jacobian(start)[1][:, elbow]).max(axis=0) > 0.0)  # not zeroed
+    loose = S._select_base(problem, start, names, float(np.median(base.r_diag_ratio)), [])
+    assert loose.rank < base.rank  # the tolerance is passed on
+
+
+class _Fixed:
+    """A solver stand-in returning given states in turn, with given iteration counts."""
+
+    def __init__(self, states, iterations):
+        self.outcomes = [SimpleNamespace(state=s, iterations=i) for s, i in zip(states, iterations)]
+        self.calls = []
+
+    def __call__(self, problem, state):
+        self.calls.append((problem.active.copy(), state))
+        return self.outcomes[len(self.calls) - 1]
+
+
+def _outlier_problem(model, chain, errors: dict[int, float], n_poses: int = 10):
+    """Positions of the nominal robot, exact but for `errors` {pose: m along x}; 27 columns."""
+    q = sample_configurations(model, chain, n_poses, np.random.default_rng(45))
+    positions = tool_poses(chain, model, q)[:, :3, 3]
+    for pose, error in errors.items():
+        positions[pose, 0] += error
+    data = S._parse_measurements(chain, q, positions, True)
+    start = S._readonly_state(chain, model)
+    residual = S._SerialResidual(chain, data, S._whitening(chain, start, data, TRACKER, 0.0))
+    return S._SerialProblem(residual, np.arange(27)), start
+
+
+def test_outliers_are_judged_at_the_fit_and_refitted_from_the_start(ur5):
+    model, chain = ur5
+    problem, start = _outlier_problem(model, chain, {2: 1.0, 5: 1.5e-4}, 20)  # 1 m and 15 sigma
+    # At a state whose marker is 0.1 mm off every pose is 10 sigma off: the robust scale widens the
+    # gate, and the 15-sigma pose passes.
+    shifted = replace(start, marker=_readonly(pin.SE3(np.eye(3), np.array([0.0, 0.0, 1e-4])).homogeneous))
+    solve = _Fixed([shifted, shifted], [7, 4])
+    result, iterations = S._reject_outliers(problem, start, SimpleNamespace(state=start), 5.0, solve)
+    flagged_first = np.isin(np.arange(20), [2, 5])
+    assert [c[1] is start for c in solve.calls] == [True, True]
+    np.testing.assert_array_equal(solve.calls[0][0], ~flagged_first)
+    np.testing.assert_array_equal(solve.calls[1][0], np.arange(20) != 2)
+    np.testing.assert_array_equal(problem.active, np.arange(20) != 2)
+    assert result is solve.outcomes[1] and iterations == 11
+    # The gate in sigmas is the caller's: at 20 sigma the 15-sigma pose stays; once stable, no refit.
+    problem, start = _outlier_problem(model, chain, {2: 1.0, 5: 1.5e-4}, 20)
+    solve = _Fixed([start], [3])
+    result, iterations = S._reject_outliers(problem, start, SimpleNamespace(state=start), 20.0, solve)
+    np.testing.assert_array_equal(problem.active, np.arange(20) != 2)
+    assert len(solve.calls) == 1 and result is solve.outcomes[0] and iterations == 3
+    problem, start = _outlier_problem(model, chain, {}, 20)
+    given = SimpleNamespace(state=start)
+    assert S._reject_outliers(problem, start, given, 5.0, _Fixed([], [])) == (given, 0)
+
+
+def test_too_few_poses_left_after_the_outliers(ur5):
+    model, chain = ur5
+    # 10 poses of 3 rows: 9 left give 27 rows, too few for 27 columns, enough for 26.
+    problem, start = _outlier_problem(model, chain, {1: 1.0})
+    with pytest.raises(IdentificationError) as error:
+        S._reject_outliers(problem, start, SimpleNamespace(state=start), 5.0, _Fixed([], []))
+    assert str(error.value) == "1 of 10 poses are outliers: too few poses are left to fit the model"
+    assert problem.active.all()
+    problem.columns = np.arange(26)
+    solve = _Fixed([start], [1])
+    S._reject_outliers(problem, start, SimpleNamespace(state=start), 5.0, solve)
+    assert len(solve.calls) == 1
+    np.testing.assert_array_equal(problem.active, np.arange(10) != 1)
+
+
+def test_selection_scores_the_fit_linearised_at_the_estimate(ur5):
+    """Forward selection of the columns by PRESS of r - J x at the estimate, the frame forced, one pose
+    left out; a smaller set is refitted from the start."""
+    model, chain = ur5
+    truth = perturb(model, {Placement.joint("elbow_joint"): np.array([1e-3, 0, 0, 0, 2e-3, 0])})
+    q = sample_configurations(model, chain, 15, np.random.default_rng(46))
+    rng = np.random.default_rng(47)
+    measured = FRAME.homogeneous @ tool_poses(chain, truth, q) @ MARKER.homogeneous
+    measured[:, :3, 3] += rng.normal(0.0, TRACKER.position, (15, 3))
+    data = S._parse_measurements(chain, q, [pin.SE3(m) for m in measured], True)
+    layout = S._Layout(6, frame=True)
+    problem, start = _problem(model, chain, data, layout, MeasurementSetup(marker=MARKER))
+    calls = []
+    base, fit, _ = S._fit_base(problem, start, layout.names(chain), 1e-9, [], _lm(calls))
+    problem.active[3] = False
+    columns = problem.columns.copy()
+    r, J = problem.model.residual_and_jacobian(fit.state)
+    keep = np.repeat(problem.active, 3)
+    forced = np.flatnonzero(columns >= 42)
+    assert forced.size == 6
+    expected = forward_selection(J[keep][:, columns], (r - J[:, columns] @ fit.state.accumulated[columns])[keep], 3,
+                                 range(len(columns)), forced)
+    calls.clear()
+    selection, refit, iterations = S._select_parameters(problem, start, fit, _lm(calls))
+    assert selection == expected
+    assert 6 < len(selection.indices) < len(columns)
+    np.testing.assert_array_equal(problem.columns, columns[list(selection.indices)])
+    assert len(calls) == 1 and calls[0][1] is start and refit is calls[0][2] and iterations == refit.iterations
+    # Every column kept: no refit.
+    problem.columns = columns[list(selection.indices)]
+    again, same, none = S._select_parameters(problem, start, refit, _lm(calls))
+    assert len(again.indices) == len(problem.columns) and same is refit and none == 0 and len(calls) == 1
+
+
+def test_result_reports_every_candidate_and_the_fitted_ones(ur5):
+    model, chain = ur5
+    rng = np.random.default_rng(48)
+    truth = perturb(model, {p: rng.normal(0.0, 5e-4, 6) for p in chain.placements()})
+    q = sample_configurations(model, chain, 30, rng)
+    compliance = np.array([0.0, 2e-4, 3e-4, 0.0, 0.0, 0.0])  # rad/Nm, large enough to be seen
+    measured = FRAME.homogeneous @ tool_poses(chain, truth, q + compliance * S.gravity_torques(model, chain, q)) \
+        @ MARKER.homogeneous
+    measured[:, :3, 3] += rng.normal(0.0, TRACKER.position, (30, 3))
+    calibration = calibrate_serial(model, chain, q, [pin.SE3(m) for m in measured], noise=TRACKER,
+                                   setup=MeasurementSetup(marker=MARKER), estimate_frame=True, compliance=True,
+                                   fixed=["wrist_3_joint"], priors={"elbow_joint": 1e-2})
+    layout = S._Layout(6, frame=True, compliance=True)
+    names = layout.names(chain)
+    assert calibration.names == names and calibration.outliers == ()
+    assert calibration.fitted == tuple(names[i] for i in calibration.fitted_indices)
+    assert calibration.fitted_indices == tuple(int(c) for c in calibration._problem.columns)
+    assert all(type(i) is int for i in calibration.fitted_indices)
+    assert not set(calibration.fitted_indices) & set(range(30, 36))  # wrist_3_joint held
+    assert calibration.converged and calibration.termination in ("gradient", "step", "cost")
+    values = calibration.values
+    assert values.shape == (layout.size,) and not values.flags.writeable
+    np.testing.assert_array_equal(values[:42], np.concatenate([calibration.deltas[p] for p in chain.placements()]))
+    fitted_compliance = {names[i].removeprefix("compliance.") for i in calibration.fitted_indices if i >= 48}
+    assert set(calibration.compliance) == fitted_compliance and {"shoulder_lift_joint", "elbow_joint"} <= fitted_compliance
+    for k, joint in enumerate(chain.joint_names):
+        assert values[48 + k] == calibration.compliance.get(joint, 0.0)
+    assert calibration.compliance["shoulder_lift_joint"] == pytest.approx(2e-4, rel=0.05)
+    # The frame's value: the sum of its steps, the change from the registered start to first order.
+    start_frame = pin.SE3(calibration._start.frame)
+    change = pin.log6(start_frame.actInv(calibration.setup.frame)).vector
+    assert np.abs(change).max() > 1e-4
+    np.testing.assert_allclose(values[42:48], change, atol=1e-6 + 1e-2 * np.abs(change).max())
+    np.testing.assert_array_equal(calibration.setup.marker.homogeneous, MARKER.homogeneous)
+    assert np.abs(pin.log6(FRAME.actInv(calibration.setup.frame)).vector).max() < 1e-2
+    std = calibration.std()
+    assert list(std) == list(calibration.fitted) and all(type(s) is float for s in std.values())
+    np.testing.assert_array_equal(list(std.values()), calibration.parameter_std)
+
+
+def test_covariance_is_the_noise_models_not_the_residuals(ur5):
+    """Twice the stated noise: four times the covariance, a quarter of the variance factor."""
+    model, chain = ur5
+    data = simulate_serial_measurements(model, chain, 20, np.random.default_rng(49), noise=TRACKER)
+    one = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=TRACKER)
+    two = calibrate_serial(model, chain, data.q_readings, data.measured_poses,
+                           noise=TrackerNoise(2 * TRACKER.position, 2 * TRACKER.rotation))
+    assert one.fitted == two.fitted
+    np.testing.assert_allclose(two.covariance, 4.0 * one.covariance, rtol=1e-6)
+    np.testing.assert_allclose(two.parameter_std, 2.0 * one.parameter_std, rtol=1e-6)
+    assert two.variance_factor == pytest.approx(one.variance_factor / 4.0, rel=1e-6)
+
+
+def test_exact_nominal_measurements_take_no_step(ur5):
+    model, chain = ur5
+    q = sample_configurations(model, chain, 12, np.random.default_rng(50))
+    calibration = calibrate_serial(model, chain, q, [pin.SE3(g) for g in tool_poses(chain, model, q)], noise=TRACKER)
+    assert calibration.iterations == 0 and calibration.converged
+    np.testing.assert_array_equal(calibration.values, np.zeros(42))
+    assert calibration.compliance == {} and calibration.residual_after.position < 1e-12
+
+
+def test_measurement_parsing_and_its_exact_refusals(ur5):
+    model, chain = ur5
+    data = simulate_serial_measurements(model, chain, 4, np.random.default_rng(51), noise=TRACKER)
+    q, poses = data.q_readings, list(data.measured_poses)
+    homogeneous = np.array([g.homogeneous for g in poses])
+    rows = np.array([pin.SE3ToXYZQUAT(g) for g in poses])
+
+    def refused(message, q_readings, measured, position_only=False):
+        with pytest.raises(InvalidInputError) as error:
+            S._parse_measurements(chain, q_readings, measured, position_only)
+        assert str(error.value) == message
+
+    from_se3 = S._parse_measurements(chain, q.tolist(), poses, False)
+    assert from_se3.q.dtype == float and from_se3.rows_per_pose == 6
+    np.testing.assert_array_equal(from_se3.q, q)
+    np.testing.assert_array_equal(from_se3.positions, homogeneous[:, :3, 3])
+    np.testing.assert_array_equal(from_se3.rotations, homogeneous[:, :3, :3])
+    assert from_se3.positions.flags.c_contiguous and from_se3.rotations.flags.c_contiguous
+    from_rows = S._parse_measurements(chain, q, rows, False)
+    np.testing.assert_array_equal(from_rows.positions, rows[:, :3])
+    np.testing.assert_allclose(from_rows.rotations, homogeneous[:, :3, :3], atol=1e-15)
+    from_lists = S._parse_measurements(chain, q, rows.tolist(), False)  # a Sequence, but of rows
+    np.testing.assert_array_equal(from_lists.rotations, from_rows.rotations)
+    for measured in (poses, rows, rows[:, :3]):
+        positions_only = S._parse_measurements(chain, q, measured, True)
+        assert positions_only.rotations is None and positions_only.rows_per_pose == 3
+        np.testing.assert_allclose(positions_only.positions, homogeneous[:, :3, 3], atol=1e-15)
+    integers = S._parse_measurements(chain, q.astype(int), rows.round().astype(int)[:, :3], True)
+    assert integers.q.dtype == float and integers.positions.dtype == float
+
+    refused("q_readings: expected shape (N, 6), got (6,)", q[0], rows[:1])
+    refused("q_readings: expected shape (N, 6), got (4, 5)", q[:, :5], rows)
+    bad_q = q.copy()
+    bad_q[2, 4] = np.inf
+    refused("q_readings: non-finite value in row 2", bad_q, rows)
+    refused("measured_poses: row 1 is not an SE3 like the others", q, [poses[0], rows[1], *poses[2:]])
+    expected = "measured_poses: expected SE3 objects, (N, 7) [x, y, z, qx, qy, qz, qw] or (N, 3) positions, got shape "
+    refused(expected + "(4, 6)", q, rows[:, :6])
+    refused(expected + "(28,)", q, rows.reshape(-1))
+    bad_rows = rows.copy()
+    bad_rows[3, 0] = np.nan
+    refused("measured_poses: non-finite value in row 3", q, bad_rows)
+    refused("measured_poses: positions only (N, 3) need position_only=True", q, rows[:, :3])
+    refused("4 joint readings but 3 measured poses", q, rows[:3])
+    refused("4 joint readings but 3 measured poses", q, poses[:3])
+    twice = rows.copy()
+    twice[1, 3:] *= 2.0
+    refused(f"measured_poses: quaternion of row 1 has norm {np.linalg.norm(twice[1, 3:]):.6g}", q, twice)
+
+
+@pytest.mark.parametrize("layout", [S._Layout(6, frame=True), S._Layout(6, marker=6), S._Layout(6, frame=True, marker=6)])
+def test_setup_columns_at_the_identity_setup(ur5, layout):
+    """An identity frame and marker (a plain state) still give the setup's columns."""
+    model, chain = ur5
+    data = S._parse_measurements(chain, *(lambda d: (d.q_readings, d.measured_poses))(
+        simulate_serial_measurements(model, chain, 5, np.random.default_rng(52), noise=TRACKER)), False)
+    residual = S._SerialResidual(chain, data, np.broadcast_to(np.eye(6), (5, 6, 6)), layout)
+    state = S._readonly_state(chain, model)
+    assert state.plain
+    _, J = residual.residual_and_jacobian(state)
+    columns = np.arange(42, layout.size)
+    numeric = np.empty((30, columns.size))
+    for i, c in enumerate(columns):
+        dx = np.zeros(layout.size)
+        dx[c] = 1e-7
+        numeric[:, i] = (residual.residual(residual.retract(state, dx)) -
+                         residual.residual(residual.retract(state, -dx))) / 2e-7
+    assert np.linalg.norm(J[:, columns] - numeric) <= 1e-6 * np.linalg.norm(numeric)
+
+
+def test_gravity_torques_of_a_chain_shorter_than_the_model(ur5):
+    model, _ = ur5
+    chain = SerialChain.from_model(model, "forearm_link")  # 3 of the 6 joints; the others at neutral
+    q = np.array([[0.1, -1.0, 0.5], [0.0, -0.3, 1.2]])
+    torques = S.gravity_torques(model, chain, q)
+    assert torques.shape == (2, 3)
+    data = model.createData()
+    for row, tau in zip(q, torques):
+        np.testing.assert_array_equal(tau, pin.computeGeneralizedGravity(model, data, np.r_[row, 0.0, 0.0, 0.0])[:3])
+
+
+def test_degrees_of_freedom_zero_gives_no_variance_factor(ur5):
+    """Positions only, 9 poses for 27 base parameters: no redundancy (nan); a prior adds one row."""
+    model, chain = ur5
+    data = simulate_serial_measurements(model, chain, 9, np.random.default_rng(53), noise=TRACKER)
+    rows = np.array([g.translation for g in data.measured_poses])
+    exact = calibrate_serial(model, chain, data.q_readings, rows, position_only=True, noise=TRACKER, outlier_sigma=None)
+    assert len(exact.fitted) == 27 and np.isnan(exact.variance_factor)
+    one = calibrate_serial(model, chain, data.q_readings, rows, position_only=True, noise=TRACKER, outlier_sigma=None,
+                           priors={"elbow_joint.dt[0]": 1e-3})
+    assert len(one.fitted) == 27 and np.isfinite(one.variance_factor) and one.variance_factor > 0.0
+
+
+def test_selection_and_outliers_reach_the_result(ur5):
+    model, chain = ur5
+    data = simulate_serial_measurements(model, chain, 20, np.random.default_rng(54), noise=TRACKER)
+    measured = list(data.measured_poses)
+    measured[7] = pin.SE3(measured[7].rotation, measured[7].translation + np.array([5e-3, 0.0, 0.0]))
+    calibration = calibrate_serial(model, chain, data.q_readings, measured, noise=TRACKER, select=True)
+    assert calibration.outliers == (7,)
+    assert calibration.selection is not None
+    assert len(calibration.selection.indices) == len(calibration.fitted)
+    refit = calibration._solve(calibration._problem, calibration._start)  # the solver cross-validation reruns
+    assert refit.converged
+
+
+def test_selection_at_the_start_scores_the_residual_itself(ur5):
+    """No step taken yet (accumulated None): the linearised residual is the residual."""
+    model, chain = ur5
+    simulated = simulate_serial_measurements(model, chain, 15, np.random.default_rng(55), noise=TRACKER)
+    data = S._parse_measurements(chain, simulated.q_readings, simulated.measured_poses, False)
+    problem, start = _problem(model, chain, data, S._Layout(6))
+    problem.columns = np.arange(0, 42, 2)
+    r, J = problem.model.residual_and_jacobian(start)
+    expected = forward_selection(J[:, problem.columns], r, 6, range(21), np.array([], dtype=int))
+    selection, _, _ = S._select_parameters(problem, start, SimpleNamespace(state=start, iterations=0),
+                                           _Fixed([start], [0]))
+    assert selection == expected
+
+
+def test_orientation_residual_near_a_half_turn(ur5):
+    """A marker whose axes are off by nearly pi: log3's fallback near pi, on the 3 x 3 rotation."""
+    model, chain = ur5
+    q = sample_configurations(model, chain, 3, np.random.default_rng(56))
+    turned = tool_poses(chain, model, q) @ pin.SE3(pin.utils.rotate("x", 3.1), np.zeros(3)).homogeneous
+    data = S._parse_measurements(chain, q, [pin.SE3(m) for m in turned], False)
+    residual = S._SerialResidual(chain, data, np.broadcast_to(np.eye(6), (3, 6, 6)))
+    raw = residual.raw_residual(S._readonly_state(chain, model))
+    np.testing.assert_allclose(raw, np.tile([0.0, 0.0, 0.0, -3.1, 0.0, 0.0], (3, 1)), atol=1e-12)

@@ -1,6 +1,9 @@
-"""The measurement setup's own tests (docs/mutation.md): exact refusals, the quaternion-norm
-tolerance from both sides, the collinearity threshold from both sides, reports round trips, and
-the registrations in closed form, including reflections and a marker turned by more than pi/2."""
+"""The measurement setup (`m3t1r.calibration.measurement_setup`): tracker frame and marker.
+
+Exact refusals, the quaternion-norm tolerance from both sides, the collinearity threshold from both
+sides, reports round trips, and the registrations in closed form, including reflections and a marker
+turned by more than pi/2.
+"""
 
 from __future__ import annotations
 
@@ -194,3 +197,16 @@ def test_setup_from_command_line_numbers():
     assert Setup.from_numbers().frame.isIdentity() and Setup.from_numbers().marker.isIdentity()
     as_text = Setup.from_numbers(["1", "-2", "0.5", "0.1", "-0.2", "0.3"], ["0.07", "-0.02", "0.03"])  # argv strings
     assert as_text.frame.isApprox(setup.frame, 1e-15) and as_text.marker.isApprox(setup.marker, 1e-15)
+
+
+@pytest.mark.parametrize("frame, marker, message", [
+    ([1.0, 2.0, 3.0], None, "measurement frame x, y, z, roll, pitch, yaw: expected 6 values, got 3"),
+    ([0.0, 0.0, 0.0, 0.0, 0.0, np.nan], None,
+     "measurement frame x, y, z, roll, pitch, yaw: non-finite value nan at index 5"),
+    (None, [1.0, 2.0], "marker x, y, z: expected 3 values, got 2"),
+])
+def test_setup_numbers_are_refused_naming_what_they_are(frame, marker, message):
+    """A wrong count or a non-finite value of the command-line numbers is refused naming the numbers."""
+    with pytest.raises(InvalidInputError) as caught:
+        MeasurementSetup.from_numbers(frame, marker)
+    assert str(caught.value) == message

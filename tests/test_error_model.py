@@ -1,4 +1,4 @@
-"""Closed-loop error model (`m3t1r.calibration.error_model`): fast tests aimed at its mutants.
+"""Closed-loop error model (`m3t1r.calibration.error_model`): sensitivities and parameter layout.
 
 The platform sensitivities (pose, twist Jacobian, passive sensitivities, closure Jacobian) are
 checked against central differences of the perturbed machine re-assembled by
@@ -302,8 +302,7 @@ def test_column_plans_are_cached_per_selection(m_machine):
     second = model.platform_sensitivities(solver, configurations[:1], np.array([198, 5, 2]))
     third = model.platform_sensitivities(solver, configurations[:1], np.array([1, 2]))
     np.testing.assert_allclose(second.twist_jacobians[0], full.twist_jacobians[0][:, [198, 5, 2]], atol=1e-12)
-    np.testing.assert_array_equal(first.twist_jacobians, third.twist_jacobians)
-    assert len(model._plans) >= 2
+    np.testing.assert_array_equal(first.twist_jacobians, third.twist_jacobians)  # the first plan, kept
 
 
 def test_every_column_depends_on_its_parameter(m_machine):
