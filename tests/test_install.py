@@ -7,6 +7,7 @@ gives a pure-Python package. A real compile takes minutes: tools/check_installs.
 install paths (pip install, --force-reinstall, pip wheel, editable) in fresh virtual environments.
 """
 
+import importlib.util
 import os
 import shutil
 import subprocess
@@ -115,3 +116,20 @@ def test_a_missing_header_tree_is_named_with_the_distribution_to_install(monkeyp
     with pytest.raises(SystemExit, match=r"Eigen's headers not found: no installed no-such-eigen distribution "
                                          r"ships include/eigen3/Eigen/Core \(pip install no-such-eigen\)"):
         build_native.include_dirs()
+
+
+def test_a_module_is_up_to_date_by_its_sources_stamp_not_by_file_times(tmp_path):
+    """A module copied into a checkout (or sources checked out after a build) has any file time: the
+    build trusts the stamp the module carries, the hash m3t1r checks at import."""
+    tree = _tree(tmp_path, with_module=True)
+    spec = importlib.util.spec_from_file_location("build_native_in_tree", tree / "tools" / "build_native.py")
+    build_native = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(build_native)
+    (module,) = (tree / "src" / "m3t1r" / "model").glob(MODULE_GLOB)
+    assert build_native.up_to_date(module)
+    os.utime(module, (0, 0))  # older than its sources: still the module they build
+    assert build_native.up_to_date(module)
+    header = tree / "src" / "m3t1r" / "model" / "_native_core.hpp"
+    header.write_text(header.read_text() + "\n// an edit\n")
+    os.utime(module, None)  # newer than the edited header, and stale all the same
+    assert not build_native.up_to_date(module)

@@ -78,13 +78,23 @@ def _header_tree(what: str, names: tuple[str, ...], include: str, probe: str) ->
 
 
 def up_to_date(out: Path) -> bool:
-    """Whether the module `out` exists and is newer than every file it is compiled from."""
-    return out.exists() and out.stat().st_mtime >= max(p.stat().st_mtime for p in sources(SOURCE))
+    """Whether the module `out` exists and was compiled from today's sources: the stamp it carries
+    (`source_sha256`) is the hash of the files it is compiled from, as m3t1r checks at import. File
+    times decide nothing: a module copied in, or sources checked out after the build, have any."""
+    if not out.exists():
+        return False
+    expected = hashlib.sha256(b"".join(p.read_bytes() for p in sources(SOURCE))).hexdigest()
+    # Read in a child process: this one may overwrite the file next, which must not be mapped here.
+    probe = ("import importlib.util, sys; spec = importlib.util.spec_from_file_location('m3t1r.model._native_newton', "
+             "sys.argv[1]); module = importlib.util.module_from_spec(spec); spec.loader.exec_module(module); "
+             "print(getattr(module, 'source_sha256', ''))")
+    found = subprocess.run([sys.executable, "-c", probe, str(out)], capture_output=True, text=True, check=False)
+    return found.returncode == 0 and found.stdout.strip() == expected
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--force", action="store_true", help="rebuild even when the module is newer than its source")
+    parser.add_argument("--force", action="store_true", help="rebuild even when the module carries its sources' stamp")
     args = parser.parse_args(argv)
     out = target()
     if pure_python_requested():
