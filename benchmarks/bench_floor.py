@@ -106,11 +106,12 @@ def main(argv: list[str] | None = None) -> int:
         rows.append([name, fmt_time(per[name]), f"{per[name] / unit:.2f}", f"{spread[name][0]:.2f}-{spread[name][1]:.2f}",
                      "-" if goal is None else f"<= {goal:g}",
                      "-" if goal is None else ("met" if per[name] / unit <= goal else "not met"),
-                     "-" if floor is None else f"{floor[0]:.2f} + {floor[1]:.2f} x {res_unit:.2f}"])
+                     "-" if floor is None else f"{floor[0]:.2f} + {floor[1]:.2f} x {res_unit:.2f} = "
+                     f"{floor[0] + floor[1] * res_unit:.2f}"])
     print(f"Unit (computeJointJacobians + updateFramePlacements): {fmt_time(unit)}; median of {args.repeats} "
           f"interleaved rounds; {available_cores()} cores for 'every core'.\n")
     print(table(["operation", "time per pose / solve / target", "units (median)", "units (min-max)", "goal",
-                 "", "floor: Jacobian + residual evaluations x cost"], rows))
+                 "", "floor [units]: Jacobian + residual evaluations x their cost"], rows))
     print(f"\nforward_batch: {len(batch.indices)}/{len(cloud_sliders)} rows converged, mean "
           f"{batch.iterations.mean():.2f} Newton steps per row from home (the predicted start counts as one), "
           f"max closure residual {batch.residuals.max():.1e}.")

@@ -59,14 +59,16 @@ struct Closure {
 // signs of U's diagonal and the count of row swaps, as the Python loops' `_det_sign`). It replaces
 // Eigen's PartialPivLU and inverse(), whose blocking and packing are made for large matrices: over 300
 // warm FK solves of the M machine (callgrind, -O2) their factorisations took 6.1M instructions against
-// 3.5M here, factorisations and inverses together 15.9M against 12.2M. Zero multipliers are skipped:
-// the closure Jacobians are block-triangular, mostly zeros.
+// 3.5M here, factorisations and inverses together 15.9M against 12.2M. Zero multipliers and the zeros
+// of each pivot row are skipped (the same arithmetic on every entry that changes): the closure
+// Jacobians are block-triangular, mostly zeros (the M machine's FK system: 64 nonzeros of 256).
 class DenseLU {
  public:
   void resize(int n) {
     n_ = n;
     f_.setZero(n, n);
     pivot_.assign(static_cast<size_t>(n), 0);
+    nonzero_.assign(static_cast<size_t>(n), 0);
   }
   double & operator()(int i, int j) { return f_(i, j); }  // fill A here, then factor()
 
@@ -91,11 +93,14 @@ class DenseLU {
         odd_ = !odd_;
       }
       const double * pivot_row = a + k * n_;
+      int count = 0;  // the pivot row's nonzero entries right of k: the only ones an update changes
+      for (int j = k + 1; j < n_; ++j)
+        if (pivot_row[j] != 0.0) nonzero_[count++] = j;
       for (int i = k + 1; i < n_; ++i) {
         double * row = a + i * n_;
         if (row[k] == 0.0) continue;
         const double l = row[k] /= pivot_row[k];
-        for (int j = k + 1; j < n_; ++j) row[j] -= l * pivot_row[j];
+        for (int c = 0; c < count; ++c) row[nonzero_[c]] -= l * pivot_row[nonzero_[c]];
       }
     }
     return true;
@@ -104,11 +109,17 @@ class DenseLU {
   void solve(double * b) const {  // b := A^-1 b
     const double * a = f_.data();
     for (int k = 0; k < n_; ++k) std::swap(b[k], b[pivot_[k]]);
-    for (int i = 1; i < n_; ++i)
-      for (int j = 0; j < i; ++j) b[i] -= a[i * n_ + j] * b[j];
+    // Each entry summed in a local (in the same order): written through b, every term would wait
+    // for the store of the one before, b possibly aliasing the factors.
+    for (int i = 1; i < n_; ++i) {
+      double sum = b[i];
+      for (int j = 0; j < i; ++j) sum -= a[i * n_ + j] * b[j];
+      b[i] = sum;
+    }
     for (int i = n_ - 1; i >= 0; --i) {
-      for (int j = i + 1; j < n_; ++j) b[i] -= a[i * n_ + j] * b[j];
-      b[i] /= a[i * n_ + i];
+      double sum = b[i];
+      for (int j = i + 1; j < n_; ++j) sum -= a[i * n_ + j] * b[j];
+      b[i] = sum / a[i * n_ + i];
     }
   }
 
@@ -165,6 +176,7 @@ class DenseLU {
   int n_ = 0;
   Matrix f_;  // A, then its factors: unit L strictly below the diagonal, U on and above
   std::vector<int> pivot_;  // the row swapped with row k at step k
+  std::vector<int> nonzero_;  // factor's work list of columns
   mutable std::vector<double> bound_;  // inverse_one_norm_bound's work vector
   bool odd_ = false;  // an odd count of swaps
 };
