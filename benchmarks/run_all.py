@@ -19,7 +19,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-BENCHMARKS = ("kinematics", "batch", "identification", "scaling", "memory", "pose_selection", "uncertainty",
+BENCHMARKS = ("kinematics", "batch", "floor", "identification", "scaling", "memory", "pose_selection", "uncertainty",
               "campaign", "startup")
 
 

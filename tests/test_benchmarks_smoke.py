@@ -15,6 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 TITLES = (
     "## Closed-loop kinematics",
     "## Kinematics in units of one Pinocchio pass",
+    "## Kinematics against the evaluation floor",
     "## Serial identification",
     "## Scaling",
     "## Calibration memory by pose count",

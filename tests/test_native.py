@@ -226,6 +226,29 @@ def test_a_singular_configuration_is_refused_with_its_class(mechanism, monkeypat
             solver.forward(mechanism.home[mechanism.actuated_ids] + 1e-3)
 
 
+@pytest.mark.parametrize("side", [-1.0, 1.0])
+def test_a_threshold_beside_the_exact_reciprocal_condition_decides_as_the_python_loop(mechanism, side):
+    """The compiled loop clears most solves by a cheap lower bound on the reciprocal condition; a
+    threshold a hair below or above the exact value (where the bound cannot decide) must still end as
+    the Python loop's exact test does: single FK, FK from home, and forward_batch rows."""
+    sliders = mechanism.home[mechanism.actuated_ids] + np.array([0.02, -0.01, 0.015, -0.02])
+    q = ClosedLoopSolver(mechanism, native=False).forward(sliders, q_init=mechanism.home).q
+    reference = ClosedLoopSolver(mechanism, native=False)
+    exact = 1.0 / np.linalg.cond(reference.closure_jacobian(q)[:, reference.passive], 1)
+    assert 1e-6 < exact < 1.0
+    rules = NewtonRules(singular_rcond=exact * (1.0 + side * 1e-6))
+    for use in (True, False):
+        solver = ClosedLoopSolver(mechanism, native=use, rules=rules)
+        batch = solver.forward_batch(np.array([sliders, sliders]))
+        if side < 0:
+            np.testing.assert_allclose(solver.forward(sliders, q_init=mechanism.home).q, q, atol=1e-11)
+            assert batch.complete
+        else:
+            with pytest.raises(SingularConfigurationError, match="reciprocal condition"):
+                solver.forward(sliders, q_init=mechanism.home)
+            assert [f.error for f in batch.failures] == [SingularConfigurationError] * 2
+
+
 def test_tolerance_and_iteration_limits_are_read_at_each_solve(mechanism):
     solver = ClosedLoopSolver(mechanism)
     far = mechanism.home[mechanism.actuated_ids] + np.array([0.02, -0.01, 0.015, -0.02])

@@ -8,9 +8,12 @@
 // (single warm solves), and m3t1r.model.batch_kinematics.newton_batch (rows). FK solves the enforced
 // closure rows over the passive joints; IK the closure rows and the task rows over every unlocked
 // joint. Each Newton step: residual and exact Jacobian, chord steps on one LU until contraction
-// slows, the largest step component capped; at convergence the exact 1-norm reciprocal condition and
+// slows, the largest step component capped; at convergence the 1-norm reciprocal condition test and
 // the branch labels (signs of the loop blocks' determinants, plus the whole system's for IK) of the
-// last factorised system. Python keeps input checks, limits and the result objects.
+// last factorised system. The test decides as the exact reciprocal condition would, which is computed
+// (from the explicit inverse) only where an O(n^2) lower bound does not clear the threshold; FK's
+// tangent and IK's task columns of the inverse are solves with the last factors. Python keeps input
+// checks, limits and the result objects.
 //
 // Residual of a closure between frames a and b (placements in the base frame):
 //   "3D": R_a^T (p_b - p_a), derivative R_a^T [I, -[p_b]] (xi_b - xi_a);
@@ -56,20 +59,21 @@ struct Closure {
 // signs of U's diagonal and the count of row swaps, as the Python loops' `_det_sign`). It replaces
 // Eigen's PartialPivLU and inverse(), whose blocking and packing are made for large matrices: over 300
 // warm FK solves of the M machine (callgrind, -O2) their factorisations took 6.1M instructions against
-// 3.5M here, factorisations and inverses together 15.9M against 12.2M. Zero multipliers are skipped:
-// the closure Jacobians are block-triangular, mostly zeros.
+// 3.5M here, factorisations and inverses together 15.9M against 12.2M. Zero multipliers and the zeros
+// of each pivot row are skipped (the same arithmetic on every entry that changes): the closure
+// Jacobians are block-triangular, mostly zeros (the M machine's FK system: 64 nonzeros of 256).
 class DenseLU {
  public:
   void resize(int n) {
     n_ = n;
     f_.setZero(n, n);
     pivot_.assign(static_cast<size_t>(n), 0);
+    nonzero_.assign(static_cast<size_t>(n), 0);
   }
   double & operator()(int i, int j) { return f_(i, j); }  // fill A here, then factor()
 
-  // Factors A in place; false at a zero (or NaN) pivot. Keeps |A|_1, the largest column sum of |A|.
+  // Factors A in place; false at a zero (or NaN) pivot.
   bool factor() {
-    one_norm_ = f_.cwiseAbs().colwise().sum().maxCoeff();
     odd_ = false;
     double * a = f_.data();
     for (int k = 0; k < n_; ++k) {
@@ -89,11 +93,14 @@ class DenseLU {
         odd_ = !odd_;
       }
       const double * pivot_row = a + k * n_;
+      int count = 0;  // the pivot row's nonzero entries right of k: the only ones an update changes
+      for (int j = k + 1; j < n_; ++j)
+        if (pivot_row[j] != 0.0) nonzero_[count++] = j;
       for (int i = k + 1; i < n_; ++i) {
         double * row = a + i * n_;
         if (row[k] == 0.0) continue;
         const double l = row[k] /= pivot_row[k];
-        for (int j = k + 1; j < n_; ++j) row[j] -= l * pivot_row[j];
+        for (int c = 0; c < count; ++c) row[nonzero_[c]] -= l * pivot_row[nonzero_[c]];
       }
     }
     return true;
@@ -102,11 +109,17 @@ class DenseLU {
   void solve(double * b) const {  // b := A^-1 b
     const double * a = f_.data();
     for (int k = 0; k < n_; ++k) std::swap(b[k], b[pivot_[k]]);
-    for (int i = 1; i < n_; ++i)
-      for (int j = 0; j < i; ++j) b[i] -= a[i * n_ + j] * b[j];
+    // Each entry summed in a local (in the same order): written through b, every term would wait
+    // for the store of the one before, b possibly aliasing the factors.
+    for (int i = 1; i < n_; ++i) {
+      double sum = b[i];
+      for (int j = 0; j < i; ++j) sum -= a[i * n_ + j] * b[j];
+      b[i] = sum;
+    }
     for (int i = n_ - 1; i >= 0; --i) {
-      for (int j = i + 1; j < n_; ++j) b[i] -= a[i * n_ + j] * b[j];
-      b[i] /= a[i * n_ + i];
+      double sum = b[i];
+      for (int j = i + 1; j < n_; ++j) sum -= a[i * n_ + j] * b[j];
+      b[i] = sum / a[i * n_ + i];
     }
   }
 
@@ -124,13 +137,36 @@ class DenseLU {
     }
   }
 
+  // An upper bound on |A^-1|_1 in O(n^2), where the inverse costs O(n^3): |A^-1| = |U^-1 L^-1 P| <=
+  // M(U)^-1 M(L)^-1 entry by entry (M(T): |diagonal|, -|off-diagonal|; its inverse is nonnegative),
+  // whose 1-norm is the largest entry of M(L)^-T M(U)^-T e, two triangular solves of sums of
+  // nonnegative terms (no cancellation). Pessimistic by 10-2,000 on the M machine's systems.
+  double inverse_one_norm_bound() const {
+    const double * a = f_.data();
+    bound_.assign(static_cast<size_t>(n_), 1.0);
+    double * y = bound_.data();
+    for (int i = 0; i < n_; ++i) {  // M(U)^T y = e: forward, U's column i above the diagonal
+      double sum = 1.0;
+      for (int k = 0; k < i; ++k) sum += std::fabs(a[k * n_ + i]) * y[k];
+      y[i] = sum / std::fabs(a[i * n_ + i]);
+    }
+    double biggest = 0.0;
+    for (int i = n_ - 1; i >= 0; --i) {  // M(L)^T z = y: backward, L's column i below the diagonal
+      double sum = y[i];
+      for (int k = i + 1; k < n_; ++k) sum += std::fabs(a[k * n_ + i]) * y[k];
+      y[i] = sum;
+      if (std::isnan(sum)) return sum;
+      if (sum > biggest) biggest = sum;
+    }
+    return biggest;
+  }
+
   bool positive_determinant() const {
     bool positive = !odd_;
     for (int k = 0; k < n_; ++k)
       if (f_(k, k) < 0.0) positive = !positive;
     return positive;
   }
-  double one_norm() const { return one_norm_; }
 
  private:
   void subtract_row(double * x, int i, int j, double factor) const {  // row i of x -= factor row j
@@ -140,8 +176,9 @@ class DenseLU {
   int n_ = 0;
   Matrix f_;  // A, then its factors: unit L strictly below the diagonal, U on and above
   std::vector<int> pivot_;  // the row swapped with row k at step k
+  std::vector<int> nonzero_;  // factor's work list of columns
+  mutable std::vector<double> bound_;  // inverse_one_norm_bound's work vector
   bool odd_ = false;  // an odd count of swaps
-  double one_norm_ = 0.0;
 };
 
 struct Block {
@@ -299,6 +336,19 @@ void labels(Chain & c, const System & s, unsigned char * out) {
   if (s.inverse) out[c.blocks.size()] = s.lu.positive_determinant() ? 1 : 0;
 }
 
+// |A|_1 (the largest column sum of |A|) of the system at the last Jacobian, which the buffer still holds
+// after chord steps (residual-only evaluations leave it alone): needed at convergence only.
+double one_norm(const Chain & c, const System & s) {
+  double biggest = 0.0;
+  for (size_t j = 0; j < s.unknowns.size(); ++j) {
+    double sum = 0.0;
+    for (int i = 0; i < s.rows; ++i) sum += std::fabs(c.jacobian(i, s.unknowns[j]));
+    if (std::isnan(sum)) return sum;
+    if (sum > biggest) biggest = sum;
+  }
+  return biggest;
+}
+
 bool factor(Chain & c, System & s) {
   for (int i = 0; i < s.rows; ++i)
     for (size_t j = 0; j < s.unknowns.size(); ++j) s.lu(i, static_cast<int>(j)) = c.jacobian(i, s.unknowns[j]);
@@ -312,7 +362,7 @@ struct Outcome {
 
 // Newton from q over the system's unknowns, under c.rules. `branch` holds the labels the solution must
 // have when `has_start`, else receives those at the first Jacobian. Chord steps only from residuals at
-// or below rules.chord_below. On convergence the system's `inverse_matrix` holds the inverse of the last
+// or below rules.chord_below. On convergence the system's `lu` holds the factors of the last
 // factorised system.
 Outcome newton(Chain & c, System & s, Vector & q, unsigned char * branch, bool has_start, int steps_taken) {
   const Rules & rules = c.rules;
@@ -337,9 +387,15 @@ Outcome newton(Chain & c, System & s, Vector & q, unsigned char * branch, bool h
       fresh = false;
     }
     if (norm <= rules.tolerance) {
-      s.lu.inverse(s.inverse_matrix);
-      const double rcond = 1.0 / (s.lu.one_norm() * s.inverse_matrix.cwiseAbs().colwise().sum().maxCoeff());
-      if (!(rcond >= rules.singular_rcond)) return {SINGULAR, iteration, norm, rcond == rcond ? rcond : 0.0};
+      // The exact reciprocal condition decides only where its lower bound from
+      // inverse_one_norm_bound does not already clear the threshold (with a margin for rounding).
+      const double norm_a = one_norm(c, s);
+      const double lower = 1.0 / (norm_a * s.lu.inverse_one_norm_bound() * (1.0 + 1e-9));
+      if (!(lower >= rules.singular_rcond)) {
+        s.lu.inverse(s.inverse_matrix);
+        const double rcond = 1.0 / (norm_a * s.inverse_matrix.cwiseAbs().colwise().sum().maxCoeff());
+        if (!(rcond >= rules.singular_rcond)) return {SINGULAR, iteration, norm, rcond == rcond ? rcond : 0.0};
+      }
       labels(c, s, c.now.data());
       if (std::memcmp(c.now.data(), branch, n_labels) != 0) return {BRANCH_CHANGE, iteration, norm};
       return {CONVERGED, iteration, norm};

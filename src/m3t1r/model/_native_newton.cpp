@@ -239,8 +239,11 @@ PyObject * forward(PyObject *, PyObject * args) {
   const Outcome out = newton(*c, c->fk, q, bbranch.b(), has_start != 0, 0);
   qmap = q;
   if (out.status == CONVERGED) {
-    for (size_t j = 0; j < n_act; ++j)
-      tangent.col(j) = -c->fk.inverse_matrix * c->jacobian.col(c->actuated[j]).head(c->rows);
+    for (size_t j = 0; j < n_act; ++j) {  // -J_passive^-1 J_actuated by solves with the last factors
+      c->step.head(c->rows) = -c->jacobian.col(c->actuated[j]).head(c->rows);
+      c->fk.lu.solve(c->step.data());
+      tangent.col(j) = c->step.head(c->rows);
+    }
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
   }
@@ -308,7 +311,12 @@ PyObject * inverse(PyObject *, PyObject * args) {
   const Outcome out = newton(*c, c->ik, q, bbranch.b(), has_start != 0, 0);
   qmap = q;
   if (out.status == CONVERGED) {
-    task_inverse = c->ik.inverse_matrix.rightCols(t.rows);
+    for (int k = 0; k < t.rows; ++k) {  // the task rows' columns of the inverse: solves of unit vectors
+      c->step.setZero();
+      c->step[c->rows + k] = 1.0;
+      c->ik.lu.solve(c->step.data());
+      task_inverse.col(k) = c->step.head(static_cast<Eigen::Index>(n_unknowns));
+    }
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
   }

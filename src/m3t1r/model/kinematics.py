@@ -65,9 +65,14 @@ def yaw_of(rotation: np.ndarray) -> float:
 
 
 def roll_pitch_of(rotation: np.ndarray) -> tuple[float, float]:
-    """Roll and pitch [rad] of a rotation, from Pinocchio's ZYX (yaw-pitch-roll) RPY convention."""
-    rpy = pin.rpy.matrixToRpy(rotation)
-    return float(rpy[0]), float(rpy[1])
+    """Roll and pitch [rad] of a rotation (3 x 3, or a 4 x 4 placement's), from Pinocchio's ZYX
+    (yaw-pitch-roll) RPY convention: pitch = atan2(-R20, |(R21, R22)|), roll = atan2(R21, R22)."""
+    r20, r21, r22 = rotation[2, :3].tolist()
+    pitch = math.atan2(-r20, math.sqrt(r21 * r21 + r22 * r22))
+    if abs(abs(pitch) - 0.5 * math.pi) < 1e-2:  # near gimbal lock Pinocchio moves the heading into roll
+        rpy = pin.rpy.matrixToRpy(np.asarray(rotation)[:3, :3])
+        return float(rpy[0]), float(rpy[1])
+    return math.atan2(r21, r22), pitch
 
 
 # Batched skew matrices: [p]x[r, c] = sign * p[src] for the six off-diagonal entries.
@@ -361,6 +366,16 @@ class ClosedLoopSolver:
 
     # One rule set, replaced whole: a solver's loops never see two versions of it.
     @property
+    def rules(self) -> NewtonRules:
+        """What every Newton loop of this solver obeys, Python and compiled (`NewtonRules`)."""
+        return self._rules
+
+    @rules.setter
+    def rules(self, value: NewtonRules) -> None:
+        # The compiled loop's argument tuple, built once per rule set rather than once per solve.
+        self._rules, self._compiled_rules = value, value.compiled()
+
+    @property
     def tolerance(self) -> float:
         """[m or rad] max |row| at convergence (`rules.tolerance`)."""
         return self.rules.tolerance
@@ -506,12 +521,13 @@ class ClosedLoopSolver:
         else:  # a continuation from q_init: its own tangent and branch
             q = require_finite_vector(q_init, self.model.nq, "q_init").copy()
             (tangent, branch), previous = self._continuation_from(q), None
-        start = q.copy()
         self._tangent = self._previous = self._last_goal = self._inverse_previous = None  # until this succeeds
         if self.native is not None:
+            before = q.take(self._prior_columns)  # where this solve continues from, for the next one
             result = self._forward_native(q, values, tangent is not None, previous, branch)
-            self._previous = start.take(self._prior_columns)
+            self._previous = before
             return result
+        start = q.copy()
         if tangent is not None:
             q[self.passive] += self._predict(start, values - q.take(self.actuated), tangent, previous)
         q[self.actuated] = values
@@ -536,7 +552,7 @@ class ClosedLoopSolver:
         assert native is not None, "called only with the compiled loop"
         order = (1 if previous is None else 2) if predicted else 0
         status, norm, iterations, rcond = native.forward(q, values, order, previous if order == 2 else None,
-                                                         branch, self.rules.compiled())
+                                                         branch, self._compiled_rules)
         if status != _native_converged:
             raise _native_error(status, norm, iterations, rcond)
         self._tangent = native.tangent  # overwritten only by the next success, which reads it first
@@ -758,6 +774,7 @@ class ClosedLoopSolver:
             order = (1 if self._inverse_previous is None else 2) if predicted else 0
             q, residual, iterations, branch, task_inverse, last_task, pose = self._inverse_native(
                 q, start, goal, goal_rotation, order)
+            tilt = roll_pitch_of(self.native.inverse_task)
         else:
             outcome = self._newton(q, self._unknowns, self._inverse_system(goal, goal_rotation),
                                    lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]), start_branch=start)
@@ -765,6 +782,7 @@ class ClosedLoopSolver:
             task_inverse = outcome.inverse[:, self.n_rows:]
             last_task = pin.updateFramePlacement(self.model, self.data, self._task_frame)  # a copy
             pose = self._platform_pose()
+            tilt = roll_pitch_of(last_task.rotation)
         actuators = q.take(self.actuated)
         names = self.mechanism.actuated_joints
         lower, upper = self._limit_lists
@@ -780,24 +798,26 @@ class ClosedLoopSolver:
         self._task_inverse, self._last_inverse_branch = task_inverse, branch
         self._last_goal = (goal, goal_rotation)
         self._last_task = last_task
-        roll, pitch = roll_pitch_of(last_task.rotation)
-        task_pose = pose if self._task_frame == self._platform else pin.SE3(last_task)
+        task_pose = pose if self._task_frame == self._platform else pin.SE3(last_task)  # a copy either way
         return InverseResult(actuators, q.copy(), pose, residual, iterations,
-                             (roll - wanted_tilt[0], pitch - wanted_tilt[1]), task_pose)
+                             (tilt[0] - wanted_tilt[0], tilt[1] - wanted_tilt[1]), task_pose)
 
     def _inverse_native(self, q: np.ndarray, start: bytes | None, goal: np.ndarray, goal_rotation: np.ndarray | None,
                         order: int):
         """IK in the compiled loop, predictor of the given order included (q: the last solution, solved in
-        place): (q, residual, iterations, branch, task columns of the inverse, task frame, platform pose)
+        place): (q, residual, iterations, branch, task columns of the inverse, task frame (the compiled
+        call's 4 x 4 buffer), platform pose)
         as the Python loop gives them; `data` is not moved to the solution."""
         native = self.native
         assert native is not None, "called only with the compiled loop"
         status, residual, iterations, rcond = native.inverse(q, goal, goal_rotation, order, self._inverse_previous,
-                                                             start, self.rules.compiled())
+                                                             start, self._compiled_rules)
         if status != _native_converged:
             raise _native_error(status, residual, iterations, rcond)
-        return (q, residual, iterations, bytes(native.inverse_branch), native.task_inverse,
-                pin.SE3(native.inverse_task), pin.SE3(native.inverse_platform))
+        # The task frame's placement stays in the compiled call's buffer, which the next warm solve
+        # reads: no SE3 of it unless the result needs one (a task frame other than the platform).
+        return (q, residual, iterations, bytes(native.inverse_branch), native.task_inverse, native.inverse_task,
+                pin.SE3(native.inverse_platform))
 
     def _goal(self, target: pin.SE3 | np.ndarray) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float]]:
         """(task goal, goal rotation for a full-rotation task else None, requested (roll, pitch))."""
@@ -896,7 +916,8 @@ class ClosedLoopSolver:
     _inverse_previous: tuple | None = None  # ((goal, goal rotation), q) of the IK solution before last_q
     _last_goal: tuple | None = None  # (goal, goal rotation) of last_q when it is an IK solution
     _last_inverse_branch: bytes | None = None  # signature at the last IK solution
-    _last_task: pin.SE3 | None = None  # task frame placement at the last IK solution
+    # Task frame placement at the last IK solution (with the compiled loop: its 4 x 4 buffer, [m])
+    _last_task: pin.SE3 | np.ndarray | None = None
 
     def reset(self) -> None:
         """Forget the warm start and cached factorisations: the next solve starts from home, as a new
