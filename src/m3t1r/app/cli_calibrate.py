@@ -290,8 +290,8 @@ def _fit_causes(args: argparse.Namespace, nominal: Mechanism, data: MeasurementF
         if order:  # the whole story: every other check would read the scrambled orientations
             return order
     return _diagnose(nominal, data, marker, estimate_frame, args.units) + residual_causes(
-        *calibration.rms_after, beyond_noise=beyond_noise, marker_given=args.marker is not None,
-        position_only=measurements.position_only)
+        *calibration.rms_after, beyond_noise=beyond_noise,
+        marker_given=args.marker is not None or measurements.n_points > 0, position_only=measurements.position_only)
 
 
 def _precheck(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, estimate_frame: bool,

@@ -517,7 +517,9 @@ def _reject_outliers(problem: _ClosedLoopProblem, start: _State, result: LMResul
     set is stable. Resuming from the estimate instead stalls: the outliers pull it into a curved
     valley of the weak directions, where LM then creeps for tens of iterations."""
     for _ in range(_MAX_OUTLIER_ROUNDS):
-        flagged, _scale = outlier_poses(_whitened_blocks(problem, result.state), sigma, _measured_rows(problem))
+        blocks, measured_rows = _whitened_blocks(problem, result.state), _measured_rows(problem)
+        flagged, _scale = (outlier_poses(blocks, sigma) if measured_rows is None
+                           else outlier_poses(blocks, sigma, measured_rows))
         if np.array_equal(~flagged, problem.active):
             break
         if np.count_nonzero(problem.seen[~flagged]) <= len(problem.columns):
@@ -589,7 +591,8 @@ def _calibration(mechanism: Mechanism, problem: _ClosedLoopProblem, start: _Stat
     active_rows = np.count_nonzero(problem.weights) + len(final_residual) - len(problem.weights)
     dof = active_rows - len(problem.columns)
     inliers = problem.active
-    points_seen = int(np.count_nonzero(problem.seen[inliers])) // 3 if problem.n_points else None
+    # (getattr: `_calibration` reads only a few of the problem's parts; one of points has `n_points`)
+    points_seen = int(np.count_nonzero(problem.seen[inliers])) // 3 if getattr(problem, "n_points", 0) else None
     return ClosedLoopCalibration(
         mechanism=rehomed(mechanism.with_model(result.state.model)),
         error_model=error_model,
