@@ -382,7 +382,9 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     setup: the measurement frame and marker (default: identity, i.e. the platform frame measured
     in the base frame). estimate_frame: estimate the frame, started by rigid registration of the
     nominal model's predictions to the measurements (any rotation, metres away); estimate_marker:
-    estimate the marker (its position only with position-only data). outlier_sigma: the gate for
+    estimate the marker (its position only with position-only data); with several points per pose
+    (`PoseMeasurements.points`) every point's offset in the platform frame is estimated instead, and
+    only the points seen count (residual rows, degrees of freedom, outlier gate). outlier_sigma: the gate for
     outlier poses in noise sigmas (None: keep every pose). select: model selection by
     leave-one-pose-out prediction. max_iterations: LM's cap (default `default_iterations` of the
     base-parameter count). fixed: parameter or placement names held at nominal;
