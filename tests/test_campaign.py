@@ -383,7 +383,8 @@ def _write_points(path: Path, mechanism: Mechanism, actuators: np.ndarray, point
 def test_calibrate_a_file_of_three_points_per_pose(mechanism, points_truth, tmp_path, capsys):
     """End to end: x1,y1,z1 ... x3,y3,z3 with blanks, the frame estimated, a 3 mm gross error on one
     point named by line, --validate scoring a held-out file per point, the report recording the
-    points; --marker, a held-out file of one frame per row and a half-blank point are refused."""
+    points, --noise-pos auto finding the 10 um from the points seen; --marker, a held-out file of
+    one frame per row and a half-blank point are refused."""
     truth, frame = points_truth
     rng = np.random.default_rng(3)
     actuators, points = _points_campaign(mechanism, truth, frame, 60, rng, 10e-6)
@@ -403,6 +404,9 @@ def test_calibrate_a_file_of_three_points_per_pose(mechanism, points_truth, tmp_
     np.testing.assert_allclose(distances(report["points"]), distances(_POINT_OFFSETS), atol=1e-4)
     assert report["held_out"]["per"] == "point" and report["held_out"]["position_rms_m"] < 2.5e-5
     assert "position error per point" in out
+    auto = ["-o", str(tmp_path / "auto.urdf"), "--frame", "estimate", "--noise-pos", "auto"]
+    assert main(["calibrate", str(path), *auto, "--report", str(report_path)]) == 0
+    assert json.loads(report_path.read_text())["noise_model"]["position_m"] == pytest.approx(10e-6, rel=0.2)
     assert main(["calibrate", str(path), *common, "--marker", "0", "0", "0.1"]) == 2
     assert "3 points per row" in capsys.readouterr().err
     single = tmp_path / "single.csv"
