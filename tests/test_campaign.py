@@ -8,6 +8,7 @@ position is known to 0.5 mm; two measurements are spoiled by 3-5 mm gross errors
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,13 +18,16 @@ import pytest
 from m3t1r.app.cli import main
 from m3t1r.app.datasets import write_measurements
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, cross_validate
+from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.identification import forward_selection
 from m3t1r.calibration.measurement_setup import MeasurementSetup
-from m3t1r.calibration.measurements import TrackerNoise, measure
+from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
 from m3t1r.calibration.repeats import grouped_blocks, grouped_folds, pose_groups
-from m3t1r.calibration.simulation import SimulatedStudy, simulate_study
+from m3t1r.calibration.simulation import SimulatedStudy, actual_machine, random_placement_errors, simulate_study
 from m3t1r.calibration.validation import validate
 from m3t1r.errors import InvalidInputError
+from m3t1r.io.poses import measurement_column
+from m3t1r.io.tables import table_text
 from m3t1r.metrics import pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.workspace import workspace_actuators
@@ -307,3 +311,112 @@ def test_grouped_blocks_make_the_selection_score_leave_each_group_out_whole():
     assert press == pytest.approx(expected, rel=1e-9)
     same = grouped_blocks(jacobian, residual, k, np.arange(n))
     assert same[0] is jacobian and same[1] is residual and same[2] == k
+
+
+_POINT_OFFSETS = ((0.05, -0.02, 0.03), (-0.04, 0.03, 0.02), (0.01, 0.05, -0.01))  # [m] on the platform
+
+
+def _points_campaign(mechanism: Mechanism, truth: Mechanism, setup: MeasurementSetup, n: int,
+                     rng: np.random.Generator, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sliders (n, 4) and the three points (n, 3, 3) [m] a tracker sees through `setup`, a fifth of
+    the sightings hidden (NaN; every row sees one point at least)."""
+    actuators = workspace_actuators(mechanism, n, rng)
+    platform = assembled_from_home(truth, actuators).poses
+    points = replace(setup, points=_POINT_OFFSETS).measured_points(platform) + rng.normal(0.0, sigma, (n, 3, 3))
+    hidden = rng.random((n, 3)) < 0.2
+    hidden[np.all(hidden, axis=1), 0] = False
+    points[hidden] = np.nan
+    return actuators, points
+
+
+@pytest.fixture(scope="module")
+def points_truth(mechanism):
+    rng = np.random.default_rng(1)
+    truth = actual_machine(mechanism, random_placement_errors(ClosedLoopErrorModel(mechanism), rng, 1e-3, 1e-3))
+    return truth, MeasurementSetup(pin.SE3(pin.rpy.rpyToMatrix(0.1, -0.2, 2.0), np.array([3.0, -1.0, 0.5])))
+
+
+def test_three_points_on_the_platform_calibrate_the_machine_a_single_marker_does(mechanism, points_truth):
+    """A tracker 3 m away sees three reflectors on the platform, each hidden on a fifth of 60 poses;
+    the fit estimates the frame and each reflector's offset with the machine. At 200 held-out slider
+    sets it predicts what the tracker sees of reflector 1 as well as the fit of a campaign of
+    reflector 1 alone (marker estimated from a 1 cm wrong guess), both within the 10 um noise;
+    only the points seen count: the degrees of freedom (variance factor about 1) and the
+    cross-validation (one error per point seen, the linearised folds agreeing with refits)."""
+    truth, frame = points_truth
+    noise, rng = TrackerNoise(10e-6, 20e-6), np.random.default_rng(2)
+    actuators, points = _points_campaign(mechanism, truth, frame, 60, rng, noise.position)
+    seen = np.isfinite(points[:, :, 0])
+    first = [pin.SE3(np.eye(3), row[np.isfinite(row[:, 0])][0]) for row in points]
+    several = calibrate_closed_loop(mechanism, PoseMeasurements(actuators, tuple(first), True, points), noise,
+                                    estimate_frame=True)
+    marker = pin.SE3(np.eye(3), np.array(_POINT_OFFSETS[0]))
+    single = measure(truth, actuators, rng, noise, position_only=True, setup=replace(frame, marker=marker))
+    guess = MeasurementSetup(marker=pin.SE3(np.eye(3), np.array(_POINT_OFFSETS[0]) + [0.01, 0.0, 0.0]))
+    alone = calibrate_closed_loop(mechanism, single, noise, setup=guess, estimate_frame=True, estimate_marker=True)
+    assert several.converged and alone.converged and several.outliers == ()
+    assert 0.7 < several.variance_factor < 1.4
+    assert [n for n in several.fitted if n.startswith("marker.")][:3] == [f"marker.p1.dt[{k}]" for k in range(3)]
+    held_out = workspace_actuators(mechanism, 200, np.random.default_rng(5))
+    actual = replace(frame, points=_POINT_OFFSETS).measured_points(assembled_from_home(truth, held_out).poses)
+    predicted = several.setup.measured_points(assembled_from_home(several.mechanism, held_out).poses)
+    reflector = replace(alone.setup, points=(tuple(alone.setup.marker.translation),))
+    predicted_alone = reflector.measured_points(assembled_from_home(alone.mechanism, held_out).poses)[:, 0]
+    error = np.linalg.norm(predicted - actual, axis=2).mean(axis=0)
+    assert np.all(error < 1.5e-5)
+    assert np.linalg.norm(predicted_alone - actual[:, 0], axis=1).mean() < 2e-5
+    assert np.linalg.norm(predicted[:, 0] - predicted_alone, axis=1).mean() < 2.5e-5
+    validation = cross_validate(several)
+    assert len(validation.errors.position) == np.count_nonzero(seen)
+    assert 1e-5 < validation.errors.position_mean < 3e-5
+    refitted = cross_validate(several, refit=True)
+    assert refitted.errors.position_mean == pytest.approx(validation.errors.position_mean, rel=0.05)
+
+
+def _write_points(path: Path, mechanism: Mechanism, actuators: np.ndarray, points: np.ndarray) -> Path:
+    columns = [measurement_column(j) for j in mechanism.actuated_joints] + [f"{a}{k}" for k in (1, 2, 3) for a in "xyz"]
+    path.write_text(table_text(columns, np.hstack([actuators, points.reshape(len(points), -1)]),
+                               blank_allowed=columns[4:]))
+    return path
+
+
+def test_calibrate_a_file_of_three_points_per_pose(mechanism, points_truth, tmp_path, capsys):
+    """End to end: x1,y1,z1 ... x3,y3,z3 with blanks, the frame estimated, a 3 mm gross error on one
+    point named by line, --validate scoring a held-out file per point, the report recording the
+    points, --noise-pos auto finding the 10 um from the points seen; --marker, a held-out file of
+    one frame per row and a half-blank point are refused."""
+    truth, frame = points_truth
+    rng = np.random.default_rng(3)
+    actuators, points = _points_campaign(mechanism, truth, frame, 60, rng, 10e-6)
+    row = int(np.flatnonzero(np.isfinite(points[:, 1, 0]))[5])
+    points[row, 1, 0] += 3e-3
+    path = _write_points(tmp_path / "points.csv", mechanism, actuators, points)
+    held = _write_points(tmp_path / "held.csv", mechanism, *_points_campaign(mechanism, truth, frame, 30, rng, 10e-6))
+    report_path = tmp_path / "cal.json"
+    common = ["-o", str(tmp_path / "cal.urdf"), "--frame", "estimate", "--noise-pos", "1e-5"]
+    assert main(["calibrate", str(path), *common, "--report", str(report_path), "--validate", str(held)]) == 0
+    out = capsys.readouterr().out
+    report = json.loads(report_path.read_text())
+    assert report["input"]["points"] == 3 and report["outliers"] == [row + 2]
+    assert 0.7 < report["variance_factor"] < 1.4
+    distances = lambda p: np.linalg.norm(np.subtract(p, np.roll(p, 1, axis=0)), axis=1)  # noqa: E731
+    # The offsets share the platform frame's build error; the distances between the points do not.
+    np.testing.assert_allclose(distances(report["points"]), distances(_POINT_OFFSETS), atol=1e-4)
+    assert report["held_out"]["per"] == "point" and report["held_out"]["position_rms_m"] < 2.5e-5
+    assert "position error per point" in out
+    auto = ["-o", str(tmp_path / "auto.urdf"), "--frame", "estimate", "--noise-pos", "auto"]
+    assert main(["calibrate", str(path), *auto, "--report", str(report_path)]) == 0
+    assert json.loads(report_path.read_text())["noise_model"]["position_m"] == pytest.approx(10e-6, rel=0.2)
+    assert main(["calibrate", str(path), *common, "--marker", "0", "0", "0.1"]) == 2
+    assert "3 points per row" in capsys.readouterr().err
+    single = tmp_path / "single.csv"
+    single.write_text("q11,q11_B2,q21,q21_B4,x,y,z\n0,0,0,0,1,2,3\n")
+    assert main(["calibrate", str(path), *common, "--validate", str(single)]) == 2
+    assert "one measured frame per row, but" in capsys.readouterr().err
+    lines = path.read_text().splitlines()
+    fields = lines[3].split(",")
+    fields[5] = ""
+    path.write_text("\n".join([*lines[:3], ",".join(fields), *lines[4:]]) + "\n")
+    assert main(["calibrate", str(path), *common]) == 2
+    err = capsys.readouterr().err
+    assert "line 4" in err and "y1" in err and "some coordinates blank" in err

@@ -55,13 +55,13 @@ from m3t1r.calibration.assessment import (
 )
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, CrossValidation, calibrate_closed_loop, cross_validate
 from m3t1r.calibration.measurement_setup import MeasurementSetup
-from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
+from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.repeats import pose_groups
 from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.io.instruments.formats import export_hint
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.progress import Progress
-from m3t1r.metrics import pose_errors_between
+from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import declared_workspace
@@ -91,9 +91,22 @@ def _nominal_points(nominal: Mechanism, marker: pin.SE3) -> Callable[[np.ndarray
     return predict
 
 
+def _checked_rows(data: MeasurementFile) -> np.ndarray:
+    """The rows the data checks read: every row, or with several points those seeing the most-seen one
+    (the measurements' `poses`)."""
+    return np.flatnonzero([np.all(np.isfinite(g.translation)) for g in data.measurements.poses])
+
+
+def _checked(data: MeasurementFile) -> MeasurementFile:
+    if data.measurements.points is None:
+        return data
+    keep = _checked_rows(data)
+    return dataclasses.replace(data, measurements=data.measurements.subset(keep), lines=data.lines[keep])
+
+
 def _diagnose(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, frame_estimated: bool,
               units: str) -> list[str]:
-    measurements = data.measurements
+    measurements = _checked(data).measurements
     pick = np.linspace(0, len(measurements) - 1, min(len(measurements), _DIAGNOSIS_POSES)).astype(int)
     measured = np.array([measurements.poses[i].translation for i in pick])
     model = nominal.model
@@ -136,6 +149,7 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
         with contextlib.redirect_stdout(out):
             data = read_measurements(args.measurements, nominal, units=args.units)
             held_out = read_measurements(held_out_path, nominal, units=args.units) if held_out_path else None
+            _check_points(args, data, held_out)
             marker = MeasurementSetup.from_numbers(marker_xyz=checked_marker(args.marker)).marker
             estimate_frame = args.frame == "estimate"
             print(f"calibrating from {len(data.measurements)} poses"
@@ -189,6 +203,22 @@ def run_closed_loop_calibration(args: argparse.Namespace, nominal: Mechanism) ->
     print("wrote " + ", ".join(written), file=out)
 
 
+def _check_points(args: argparse.Namespace, data: MeasurementFile, held_out: MeasurementFile | None) -> None:
+    """Refuse --marker on a file of several points (each point's offset is estimated), and a
+    --validate file whose points per row differ from the measurement file's."""
+    points = data.measurements.n_points
+    if points and args.marker is not None:
+        raise InvalidInputError(f"{args.measurements} holds {points} points per row, each point's offset on the "
+                                "platform is estimated: --marker (one point) does not apply")
+    if points and getattr(args, "plots", None):
+        raise InvalidInputError(f"{args.measurements} holds {points} points per row: --plots draws one measured "
+                                "frame per pose; calibrate without --plots")
+    if held_out is not None and held_out.measurements.n_points != points:
+        what = [f"{p} points per row" if p else "one measured frame per row"
+                for p in (points, held_out.measurements.n_points)]
+        raise InvalidInputError(f"--validate {held_out.path}: {what[1]}, but {args.measurements} has {what[0]}")
+
+
 def _idle_chain_check(nominal: Mechanism, calibration: ClosedLoopCalibration, data: MeasurementFile,
                       out: TextIO = sys.stdout) -> dict:
     """Passive-joint readings the fit did not use, predicted by the nominal and the calibrated model."""
@@ -215,8 +245,13 @@ def _fit(args: argparse.Namespace, nominal: Mechanism, data: MeasurementFile, no
 
 
 def _left(calibration: ClosedLoopCalibration, data: MeasurementFile) -> ResidualSummary:
+    """What the fit left; with several points per pose, each point seen counts as a 3-row measurement."""
     position, rotation = calibration.rms_after
     measurements = data.measurements
+    if measurements.points is not None:
+        inliers = np.setdiff1d(np.arange(len(measurements)), calibration.outliers)
+        seen = int(np.count_nonzero(np.isfinite(measurements.points[inliers, :, 0])))
+        return ResidualSummary(position, rotation, seen, 3, len(calibration.fitted))
     return ResidualSummary(position, rotation, len(measurements) - len(calibration.outliers),
                            measurements.rows_per_pose, len(calibration.fitted))
 
@@ -255,8 +290,8 @@ def _fit_causes(args: argparse.Namespace, nominal: Mechanism, data: MeasurementF
         if order:  # the whole story: every other check would read the scrambled orientations
             return order
     return _diagnose(nominal, data, marker, estimate_frame, args.units) + residual_causes(
-        *calibration.rms_after, beyond_noise=beyond_noise, marker_given=args.marker is not None,
-        position_only=measurements.position_only)
+        *calibration.rms_after, beyond_noise=beyond_noise,
+        marker_given=args.marker is not None or measurements.n_points > 0, position_only=measurements.position_only)
 
 
 def _precheck(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, estimate_frame: bool,
@@ -281,8 +316,15 @@ def _precheck(nominal: Mechanism, data: MeasurementFile, marker: pin.SE3, estima
     if failed.size:
         raise RowFailures(Path(path), [(int(data.lines[i]), "the slider readings do not assemble on the nominal "
                                         "machine (from its home, on its branch)") for i in failed])
-    measured = np.array([pose.translation for pose in measurements.poses])
-    return check_start(points, measured, estimate_frame, lambda: _diagnose(nominal, data, marker, estimate_frame, units))
+    rows = _checked_rows(data)
+    measured = np.array([measurements.poses[i].translation for i in rows])
+    check = check_start(points[rows], measured, estimate_frame,
+                        lambda: _diagnose(nominal, data, marker, estimate_frame, units))
+    if len(rows) == len(measurements):
+        return check
+    distances = np.full(len(measurements), np.nan)
+    distances[rows] = check.distances
+    return StartCheck(distances, check.typical, tuple(int(rows[i]) for i in check.gross))
 
 
 def _refuse_metres_read_as_millimetres(nominal: Mechanism, data: MeasurementFile, path: str) -> None:
@@ -317,10 +359,7 @@ def _without_gross_readings(args: argparse.Namespace, data: MeasurementFile, sta
     for line, reason in reasons:
         print(f"note: line {line}: {reason}; left out as an outlier", flush=True)
     keep = np.setdiff1d(np.arange(len(data.measurements)), start.gross)
-    measurements = data.measurements
-    kept = PoseMeasurements(measurements.actuators[keep], tuple(measurements.poses[i] for i in keep),
-                            measurements.position_only)
-    return dataclasses.replace(data, measurements=kept, passive=data.passive[keep], lines=data.lines[keep],
+    return dataclasses.replace(data, measurements=data.measurements.subset(keep), passive=data.passive[keep], lines=data.lines[keep],
                                sources=None if data.sources is None else data.sources[keep])
 
 
@@ -329,11 +368,17 @@ def _score_held_out(calibration: ClosedLoopCalibration, held_out: MeasurementFil
     machine, seen through the fitted measurement frame and marker; rows that do not assemble are listed."""
     measurements = held_out.measurements
     solved = ClosedLoopSolver(calibration.mechanism).forward_batch(measurements.actuators)
-    measured = np.array([measurements.poses[i].homogeneous for i in solved.indices]).reshape(-1, 4, 4)
-    if not len(measured):
+    if not len(solved.indices):
         raise InvalidInputError(f"--validate {held_out.path}: no row assembles on the calibrated machine")
-    errors = pose_errors_between(calibration.setup.measured_poses(solved.poses), measured)
     failed = sorted(int(held_out.lines[f.index]) for f in solved.failures)
+    if measurements.points is not None:  # one error per point seen
+        difference = calibration.setup.measured_points(solved.poses) - measurements.points[solved.indices]
+        position = np.linalg.norm(difference, axis=2)
+        position = position[np.isfinite(position)]
+        return held_out_entry(held_out.path, held_out.sha256, len(measurements),
+                              PoseErrors(position, np.full(len(position), np.nan)), True, "point", failed)
+    measured = np.array([measurements.poses[i].homogeneous for i in solved.indices]).reshape(-1, 4, 4)
+    errors = pose_errors_between(calibration.setup.measured_poses(solved.poses), measured)
     assert calibration.problem is not None, "a calibration made by calibrate_closed_loop keeps its problem"
     position_only = measurements.position_only or calibration.problem.measurements.position_only
     return held_out_entry(held_out.path, held_out.sha256, len(measurements), errors, position_only,
@@ -431,7 +476,8 @@ def calibration_report(calibration: ClosedLoopCalibration, data: MeasurementFile
         "created": _dt.datetime.now().isoformat(timespec="seconds"),
         "kind": "closed_loop",
         "input": {"path": str(data.path), "sha256": data.sha256, "poses": len(data.measurements),
-                  "position_only": data.measurements.position_only, "units": getattr(args, "units", "m")},
+                  "position_only": data.measurements.position_only, "units": getattr(args, "units", "m"),
+                  "points": data.measurements.n_points},
         "nominal_model": {"urdf": str(nominal.urdf_path), "closures": str(nominal.closures_path)},
         "measured_frame": nominal.platform_frame,
         **campaign_report_fields(setup, list(calibration.std), validation, selection, calibration.fitted, args),

@@ -34,7 +34,7 @@ from m3t1r.app.cli_common import (
     status_stream,
 )
 from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise, judge_fit
-from m3t1r.app.datasets import check_joint_readings
+from m3t1r.app.datasets import check_joint_readings, measured_points, point_numbers
 from m3t1r.calibration.assessment import (
     MAX_NOISE_RATIO,
     StartCheck,
@@ -94,12 +94,6 @@ class SerialCampaign:
         return replace(self, readings=self.readings[keep], poses=[self.poses[i] for i in keep], lines=self.lines[keep],
                        sources=None if self.sources is None else self.sources[keep],
                        points=None if self.points is None else self.points[keep])
-
-
-def point_numbers(columns: tuple[str, ...]) -> list[int]:
-    """The point numbers k of a header with x1, y1, z1 ... columns (x_k, y_k, z_k all present), sorted."""
-    numbers = {int(c[1:]) for c in columns if len(c) > 1 and c[0] in "xyz" and c[1:].isdigit()}
-    return sorted(k for k in numbers if all(f"{a}{k}" in columns for a in "xyz"))
 
 
 def _robot(source: str, tool: str | None, base: str | None) -> tuple[pin.Model, SerialChain, Path | None]:
@@ -171,17 +165,8 @@ def _points_campaign(path: str, table: Table, readings: np.ndarray, numbers: lis
                      ) -> SerialCampaign:
     """`read_campaign`'s campaign of a file with several points per row, x_k, y_k, z_k (blank where not
     seen)."""
-    columns = [f"{a}{k}" for k in numbers for a in "xyz"]
-    scale = LENGTH_UNITS[units]
-    points = np.column_stack([table.column(c) for c in columns]).reshape(table.n_rows, len(numbers), 3) * scale
+    points = measured_points(table, numbers, LENGTH_UNITS[units])
     finite = np.isfinite(points)
-    for row, point in np.argwhere(np.any(finite, axis=2) != np.all(finite, axis=2)):
-        raise table.error(int(row), f"point {numbers[point]} has some coordinates blank: give all three or none",
-                          column=columns[3 * point + int(np.argmin(finite[row, point]))])
-    for row in np.flatnonzero(~np.any(finite, axis=(1, 2))):
-        raise table.error(int(row), "no point seen on this row (every x_k, y_k, z_k blank)")
-    for point in np.flatnonzero(~np.any(finite[:, :, 0], axis=0)):
-        raise table.error(0, f"point {numbers[point]} is seen on no row", column=columns[3 * point])
     reference = int(np.argmax(finite[:, :, 0].sum(axis=0)))
     poses = [pin.SE3(np.eye(3), p) for p in points[:, reference]]
     return SerialCampaign(Path(path), sha256_bytes(Path(path).read_bytes()), readings, poses,

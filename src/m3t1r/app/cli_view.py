@@ -63,7 +63,9 @@ def cmd_view(args: argparse.Namespace) -> None:
     views = comparison_views(nominal, calibrated)
     markers = None
     if args.measurements:
-        markers = read_measurements(args.measurements, nominal).measurements.poses
+        measured = read_measurements(args.measurements, nominal).measurements
+        markers = measured.poses if measured.points is None else tuple(  # several points: every one seen
+            pin.SE3(np.eye(3), point) for point in measured.points[np.isfinite(measured.points[:, :, 0])])
     if output is not None:
         with outputs:
             scene = build_scene(views, pose=args.pose, markers=markers, magnification=args.magnify)

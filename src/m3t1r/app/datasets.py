@@ -23,13 +23,14 @@ from m3t1r.errors import DataFileError
 from m3t1r.io.instruments.records import CONVERTED_COLUMNS
 from m3t1r.io.paths import StrPath
 from m3t1r.io.poses import POSE_COLUMNS, measurement_column, pose_rows, poses_from_table
-from m3t1r.io.tables import Table, read_table, write_table
+from m3t1r.io.tables import Table, read_header, read_table, write_table
 from m3t1r.model.description import Mechanism
 from m3t1r.model.task import TaskSpec
 
 __all__ = [
     "TARGET_COLUMNS", "check_joint_readings", "read_actuators", "read_poses", "read_targets",
-    "MeasurementFile", "read_measurements", "write_measurements", "measurement_table", "sha256_of",
+    "MeasurementFile", "read_measurements", "point_numbers", "measured_points", "write_measurements",
+    "measurement_table", "sha256_of",
 ]
 
 TARGET_COLUMNS = TaskSpec("platform").columns  # the M machine's: platform position [m] and yaw [rad]
@@ -176,9 +177,33 @@ class MeasurementFile:
     sources: np.ndarray | None = None
 
 
+def point_numbers(columns: tuple[str, ...]) -> list[int]:
+    """The point numbers k of a header with x1, y1, z1 ... columns (x_k, y_k, z_k all present), sorted."""
+    numbers = {int(c[1:]) for c in columns if len(c) > 1 and c[0] in "xyz" and c[1:].isdigit()}
+    return sorted(k for k in numbers if all(f"{a}{k}" in columns for a in "xyz"))
+
+
+def measured_points(table: Table, numbers: Sequence[int], scale: float) -> np.ndarray:
+    """The points x_k, y_k, z_k of every row (N, K, 3) [m], NaN where not seen (all three blank);
+    DataFileError naming the line and column of a point partly blank, a row seeing none, a point never seen."""
+    columns = [f"{a}{k}" for k in numbers for a in "xyz"]
+    points = np.column_stack([table.column(c) for c in columns]).reshape(table.n_rows, len(numbers), 3) * scale
+    finite = np.isfinite(points)
+    for row, point in np.argwhere(np.any(finite, axis=2) != np.all(finite, axis=2)):
+        raise table.error(int(row), f"point {numbers[int(point)]} has some coordinates blank: give all three or none",
+                          column=columns[3 * point + int(np.argmin(finite[row, point]))])
+    for row in np.flatnonzero(~np.any(finite, axis=(1, 2))):
+        raise table.error(int(row), "no point seen on this row (every x_k, y_k, z_k blank)")
+    for point in np.flatnonzero(~np.any(finite[:, :, 0], axis=0)):
+        raise table.error(0, f"point {numbers[int(point)]} is seen on no row", column=columns[3 * point])
+    return points
+
+
 def read_measurements(path: StrPath, mechanism: Mechanism, units: str = "m") -> MeasurementFile:
     """Read a measurement CSV: actuator columns (named by the actuated joints), optional passive
-    joint columns (named by joint), x, y, z and optionally qx, qy, qz, qw.
+    joint columns (named by joint), x, y, z and optionally qx, qy, qz, qw; or, for K points rigidly
+    attached to the platform, x1, y1, z1 ... xK, yK, zK (blank where a point was not seen: the
+    measurements' `points`, their `poses` the most-seen point, NaN where it was not seen).
 
     units: the length unit of the file's length columns (x, y, z and prismatic joints), "m" or
     "mm"; everything returned is in SI units. Raises DataFileError naming file, line and column
@@ -190,13 +215,20 @@ def read_measurements(path: StrPath, mechanism: Mechanism, units: str = "m") -> 
     actuated = mechanism.actuated_joints
     passive_names = tuple(model.names[j] for j in range(1, model.njoints) if model.names[j] not in actuated)
     actuator_columns = tuple(measurement_column(n) for n in actuated)
-    table = read_table(source, required=actuator_columns + ("x", "y", "z"),
+    numbers = point_numbers(read_header(source))
+    point_columns = tuple(f"{a}{k}" for k in numbers for a in "xyz")
+    table = read_table(source, required=actuator_columns + (() if numbers else ("x", "y", "z")),
                        optional=(*(measurement_column(n) for n in passive_names), *CONVERTED_COLUMNS),
-                       optional_groups=(_QUATERNION,), reject_duplicate_rows=True)
+                       optional_groups=(tuple(point_columns[3 * k:3 * k + 3] for k in range(len(numbers))) if numbers
+                                        else (_QUATERNION,)), reject_duplicate_rows=True, blank_allowed=point_columns)
     scale = _length_scale(table, mechanism, units, actuated + passive_names)
     _check_limits(table, mechanism, actuated, scale, actuator_columns)
     position_only = not table.has_column("qw")
-    positions = np.column_stack([table.column(n) for n in ("x", "y", "z")]) * scale["x"]
+    points = measured_points(table, numbers, LENGTH_UNITS[units]) if numbers else None
+    if points is not None:
+        positions = points[:, int(np.argmax(np.isfinite(points[:, :, 0]).sum(axis=0)))]
+    else:
+        positions = np.column_stack([table.column(n) for n in ("x", "y", "z")]) * scale["x"]
     if position_only:
         poses = [pin.SE3(np.eye(3), row) for row in positions]
     else:
@@ -205,7 +237,7 @@ def read_measurements(path: StrPath, mechanism: Mechanism, units: str = "m") -> 
     present = tuple(n for n in passive_names if table.has_column(measurement_column(n)))
     passive = (np.column_stack([table.column(c) * scale.get(c, 1.0) for c in map(measurement_column, present)])
                if present else np.zeros((table.n_rows, 0)))
-    return MeasurementFile(source, PoseMeasurements(actuators, tuple(poses), position_only), present, passive,
+    return MeasurementFile(source, PoseMeasurements(actuators, tuple(poses), position_only, points), present, passive,
                            table.line_numbers, sha256_of(source),
                            table.column("source").astype(int) if table.has_column("source") else None)
 

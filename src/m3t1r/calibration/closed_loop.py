@@ -63,11 +63,15 @@ __all__ = ["ClosedLoopCalibration", "calibrate_closed_loop", "pose_errors", "pre
 _MAX_OUTLIER_ROUNDS = 5
 
 
-def setup_parameter_names(estimate_frame: bool, estimate_marker: bool, position_only: bool) -> tuple[str, ...]:
+def setup_parameter_names(estimate_frame: bool, estimate_marker: bool, position_only: bool,
+                          points: int = 0) -> tuple[str, ...]:
     """Names of the measurement setup's parameters, right-multiplied [v; w] errors like the machine's:
-    measurement_frame.dt[0..5], then marker.dt[0..5] (marker.dt[0..2] for position-only data)."""
+    measurement_frame.dt[0..5], then marker.dt[0..5] (marker.dt[0..2] for position-only data), or with
+    P points marker.p1.dt[0..2] ... marker.pP.dt[0..2] (each point's offset in the platform frame)."""
     names = tuple(f"measurement_frame.dt[{k}]" for k in range(6)) if estimate_frame else ()
-    if estimate_marker:
+    if points:
+        names += tuple(f"marker.p{k + 1}.dt[{j}]" for k in range(points) for j in range(3))
+    elif estimate_marker:
         names += tuple(f"marker.dt[{k}]" for k in range(3 if position_only else 6))
     return names
 
@@ -121,19 +125,29 @@ class _ClosedLoopProblem:
         self.measurements = measurements
         self.columns = columns
         self.n_machine = error_model.n_parameters
+        self.n_points = measurements.n_points
+        estimate_marker = estimate_marker or self.n_points > 0  # the points' offsets are always estimated
         self.names = error_model.names + setup_parameter_names(estimate_frame, estimate_marker,
-                                                               measurements.position_only)
+                                                               measurements.position_only, self.n_points)
         self.frame_slot = self.n_machine if estimate_frame else None
         self.marker_slot = self.n_machine + (6 if estimate_frame else 0) if estimate_marker else None
         self.priors = dict(priors or {})
         rows = measurements.rows_per_pose
-        self.noise_weights = np.tile(np.r_[np.full(3, 1 / noise.position), np.full(3, 1 / noise.rotation)][:rows],
-                                     len(measurements))
+        # 1/sigma of one pose's rows (every point seen): [position; orientation], or positions alone
+        self.row_weights = np.r_[np.full(3, 1 / noise.position), np.full(3, 1 / noise.rotation)][:rows]
+        if self.n_points:
+            self.row_weights = np.full(rows, 1 / noise.position)
+        self.seen = (np.ones((len(measurements), rows), dtype=bool) if measurements.points is None
+                     else np.repeat(np.isfinite(measurements.points[:, :, 0]), 3, axis=1))
+        self.noise_weights = (np.tile(self.row_weights, len(measurements)) * self.seen.reshape(-1))
         self.active = np.ones(len(measurements), dtype=bool)
         self.on_evaluate: Callable[[], None] | None = None  # progress: called once per Jacobian evaluation
         measured = np.array([pose.homogeneous for pose in measurements.poses]).reshape(-1, 4, 4)
         self._measured_positions = measured[:, :3, 3]
         self._measured_rotations = None if measurements.position_only else measured[:, :3, :3]
+        self._measured_points = (None if measurements.points is None
+                                 else np.nan_to_num(measurements.points, nan=0.0).reshape(len(measurements), -1))
+        self.point_offsets = np.zeros((self.n_points, 3))  # the registered start's, for the reference rank
 
     @property
     def weights(self) -> np.ndarray:
@@ -160,7 +174,10 @@ class _ClosedLoopProblem:
         return state.setup.measured_poses(state.poses)
 
     def pose_residuals(self, state: _State) -> np.ndarray:
-        """Unwhitened residual blocks (N, k) of every pose, outliers included."""
+        """Unwhitened residual blocks (N, k) of every pose, outliers included (zeros where a point was not seen)."""
+        if self._measured_points is not None:
+            predicted = state.setup.measured_points(state.poses).reshape(len(state.poses), -1)
+            return np.where(self.seen, predicted - self._measured_points, 0.0)
         residual, _ = _residual_rows_batch(self.measured_frames(state), self._measured_positions,
                                            self._measured_rotations, with_jacobian=False)
         return residual
@@ -216,11 +233,30 @@ class _ClosedLoopProblem:
     def _block_rows(self, state: _State, block: slice, columns: np.ndarray,
                     sensitivities: PlatformSensitivities) -> tuple[np.ndarray, np.ndarray]:
         """Residual rows and Jacobian rows of the poses in `block` (measurement-frame twists)."""
+        if self._measured_points is not None:
+            return self._point_rows(state, block, columns, sensitivities)
         measured, twists = self.measured_frame_twists(state.setup, columns, sensitivities)
         residual, rows = _residual_rows_batch(measured, self._measured_positions[block],
                                               None if self._measured_rotations is None
                                               else self._measured_rotations[block])
         return residual.reshape(-1), (rows @ twists).reshape(residual.size, -1)
+
+    def _point_rows(self, state: _State, block: slice, columns: np.ndarray,
+                    sensitivities: PlatformSensitivities) -> tuple[np.ndarray, np.ndarray]:
+        """`_block_rows` of P points: point k at F T_platform p_k moves by v + w x p_k under the
+        platform's twist (v, w) in the measurement frame, and by R_(F T_platform) along its own offset."""
+        assert self._measured_points is not None and self.marker_slot is not None, "a problem of points"
+        setup = replace(state.setup, marker=pin.SE3.Identity())
+        platform, twists = self.measured_frame_twists(setup, columns, sensitivities)
+        n, n_points = len(platform), self.n_points
+        points = setup.measured_points(sensitivities.poses)  # (n, P, 3)
+        rows = (twists[:, None, :3] - skew(points.reshape(-1, 3)).reshape(n, n_points, 3, 3) @ twists[:, None, 3:])
+        for i in np.flatnonzero(columns >= self.marker_slot):
+            point, axis = divmod(int(columns[i] - self.marker_slot), 3)
+            rows[:, point, :, i] = platform[:, :3, axis]
+        seen = self.seen[block]
+        residual = np.where(seen, points.reshape(n, -1) - self._measured_points[block], 0.0)
+        return residual.reshape(-1), rows.reshape(n * 3 * n_points, -1)
 
     def measured_frame_twists(self, setup: MeasurementSetup, columns: np.ndarray,
                               sensitivities: PlatformSensitivities) -> tuple[np.ndarray, np.ndarray]:
@@ -234,6 +270,8 @@ class _ClosedLoopProblem:
         for c in columns[columns >= self.n_machine]:
             if self.frame_slot is not None and self.frame_slot <= c < self.frame_slot + 6:
                 blocks.append(np.broadcast_to(frame_adjoint[:, c - self.frame_slot, None], (len(measured), 6, 1)))
+            elif self.n_points:  # a point's offset does not move the platform frame (`_point_rows` moves the point)
+                blocks.append(np.zeros((len(measured), 6, 1)))
             else:
                 blocks.append(adjoint_matrices(measured)[:, :, c - self.marker_slot, None])
         return measured, np.concatenate(blocks, axis=2)
@@ -262,7 +300,10 @@ class _ClosedLoopProblem:
         setup = state.setup
         if self.frame_slot is not None:
             setup = replace(setup, frame=setup.frame * pin.exp6(vector[self.frame_slot:self.frame_slot + 6]))
-        if self.marker_slot is not None:
+        if self.marker_slot is not None and self.n_points:
+            moved = np.array(setup.points).reshape(-1, 3) + vector[self.marker_slot:].reshape(-1, 3)
+            setup = replace(setup, points=tuple((float(x), float(y), float(z)) for x, y, z in moved))
+        elif self.marker_slot is not None:
             dm = np.zeros(6)
             size = len(self.names) - self.marker_slot
             dm[:size] = vector[self.marker_slot:]
@@ -313,7 +354,11 @@ class ClosedLoopCalibration:
         return bool(self.lm.converged)
 
 
-def _rms(residual: np.ndarray) -> tuple[float, float]:
+def _rms(residual: np.ndarray, points_seen: int | None = None) -> tuple[float, float]:
+    """Position [m] and orientation [rad] RMS of residual blocks (N, k); with points, the position RMS
+    over the `points_seen` points (the blocks' other rows are zero) and no orientation."""
+    if points_seen is not None:
+        return float(np.sqrt(np.sum(residual**2) / max(points_seen, 1))), float("nan")
     position = float(np.sqrt(np.mean(np.sum(residual[:, :3] ** 2, axis=1))))
     rotation = float(np.sqrt(np.mean(np.sum(residual[:, 3:] ** 2, axis=1)))) if residual.shape[1] == 6 else float("nan")
     return position, rotation
@@ -337,7 +382,9 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     setup: the measurement frame and marker (default: identity, i.e. the platform frame measured
     in the base frame). estimate_frame: estimate the frame, started by rigid registration of the
     nominal model's predictions to the measurements (any rotation, metres away); estimate_marker:
-    estimate the marker (its position only with position-only data). outlier_sigma: the gate for
+    estimate the marker (its position only with position-only data); with several points per pose
+    (`PoseMeasurements.points`) every point's offset in the platform frame is estimated instead, and
+    only the points seen count (residual rows, degrees of freedom, outlier gate). outlier_sigma: the gate for
     outlier poses in noise sigmas (None: keep every pose). select: model selection by
     leave-one-pose-out prediction. max_iterations: LM's cap (default `default_iterations` of the
     base-parameter count). fixed: parameter or placement names held at nominal;
@@ -365,10 +412,9 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
         max_iterations = require_count(max_iterations, "max_iterations")
     error_model = error_model or ClosedLoopErrorModel(mechanism)
     setup = setup or MeasurementSetup()
-    everything = np.arange(error_model.n_parameters + len(setup_parameter_names(
-        estimate_frame, estimate_marker, measurements.position_only)))
-    problem = _ClosedLoopProblem(error_model, measurements, noise, everything, estimate_frame=estimate_frame,
-                                 estimate_marker=estimate_marker)
+    problem = _ClosedLoopProblem(error_model, measurements, noise, np.zeros(0, dtype=int),
+                                 estimate_frame=estimate_frame, estimate_marker=estimate_marker)
+    everything = problem.columns = np.arange(len(problem.names))
     problem.on_evaluate = progress
     fixed_columns = parameter_columns(problem.names, fixed, "fixed parameter")
     problem.priors = {c: sigma for name, sigma in (priors or {}).items()
@@ -379,7 +425,8 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
         start = problem.assemble(mechanism.model, None, setup=setup)
     except IdentificationError as exc:
         raise IdentificationError(f"on the starting model, {exc}") from None
-    start.setup = _registered_setup(problem, start, setup, estimate_frame, estimate_marker)
+    start.setup = (_registered_points(problem, start, setup, estimate_frame) if problem.n_points
+                   else _registered_setup(problem, start, setup, estimate_frame, estimate_marker))
     residual, factor = problem.evaluate(start, everything, reduce=True)
     factor[:, fixed_columns] = 0.0
     forced = np.arange(error_model.n_parameters, len(everything))
@@ -423,6 +470,33 @@ def _registered_setup(problem: _ClosedLoopProblem, start: _State, setup: Measure
     return setup
 
 
+_POINT_REGISTRATION_ROUNDS = 5  # alternations of frame and offsets: the start LM refines
+
+
+def _registered_points(problem: _ClosedLoopProblem, start: _State, setup: MeasurementSetup,
+                       estimate_frame: bool) -> MeasurementSetup:
+    """The setup LM starts from with P points: alternately the frame by rigid registration of every
+    point seen (with the current offsets, zero at first) and each point's offset as the mean of its
+    sightings mapped into the platform frame, (F T_platform)^-1 p_measured."""
+    assert problem.measurements.points is not None, "a problem of points"
+    measured = problem.measurements.points
+    rows, points = np.nonzero(np.isfinite(measured[:, :, 0]))
+    platform = start.poses[rows]
+    offsets = np.zeros((problem.n_points, 3))
+    frame = setup.frame
+    for _ in range(_POINT_REGISTRATION_ROUNDS if estimate_frame else 1):
+        if estimate_frame:
+            model_points = platform.copy()
+            model_points[:, :3, 3] += np.einsum("nij,nj->ni", platform[:, :3, :3], offsets[points])
+            frame = register_frame(model_points, measured[rows, points])
+        seen = frame.homogeneous @ platform
+        local = np.einsum("nji,nj->ni", seen[:, :3, :3], measured[rows, points] - seen[:, :3, 3])
+        offsets = np.array([local[points == k].mean(axis=0) for k in range(problem.n_points)])
+    problem.point_offsets = offsets
+    return replace(setup, frame=frame, marker=pin.SE3.Identity(),
+                   points=tuple((float(x), float(y), float(z)) for x, y, z in offsets))
+
+
 def _fit(problem: _ClosedLoopProblem, state: _State, options: dict) -> LMResult:
     result = levenberg_marquardt(problem, state, **options)
     if result.state.model is None:
@@ -434,16 +508,23 @@ def _whitened_blocks(problem: _ClosedLoopProblem, state: _State) -> np.ndarray:
     return problem.pose_residuals(state) * problem.noise_weights.reshape(len(problem.measurements), -1)
 
 
+def _measured_rows(problem: _ClosedLoopProblem) -> np.ndarray | None:
+    """Rows measured per pose (3 per point seen) with points, None otherwise (every row)."""
+    return problem.seen.sum(axis=1) if problem.n_points else None
+
+
 def _reject_outliers(problem: _ClosedLoopProblem, start: _State, result: LMResult, sigma: float,
                      options: dict) -> LMResult:
     """Flag poses beyond `sigma`, refit without them from the start, re-judge every pose; until the
     set is stable. Resuming from the estimate instead stalls: the outliers pull it into a curved
     valley of the weak directions, where LM then creeps for tens of iterations."""
     for _ in range(_MAX_OUTLIER_ROUNDS):
-        flagged, _scale = outlier_poses(_whitened_blocks(problem, result.state), sigma)
+        blocks, measured_rows = _whitened_blocks(problem, result.state), _measured_rows(problem)
+        flagged, _scale = (outlier_poses(blocks, sigma) if measured_rows is None
+                           else outlier_poses(blocks, sigma, measured_rows))
         if np.array_equal(~flagged, problem.active):
             break
-        if np.count_nonzero(~flagged) * problem.measurements.rows_per_pose <= len(problem.columns):
+        if np.count_nonzero(problem.seen[~flagged]) <= len(problem.columns):
             raise IdentificationError(f"{np.count_nonzero(flagged)} of {len(flagged)} poses are outliers: "
                                       "too few poses are left to fit the model")
         problem.active = ~flagged
@@ -512,6 +593,8 @@ def _calibration(mechanism: Mechanism, problem: _ClosedLoopProblem, start: _Stat
     active_rows = np.count_nonzero(problem.weights) + len(final_residual) - len(problem.weights)
     dof = active_rows - len(problem.columns)
     inliers = problem.active
+    # (getattr: `_calibration` reads only a few of the problem's parts; one of points has `n_points`)
+    points_seen = int(np.count_nonzero(problem.seen[inliers])) // 3 if getattr(problem, "n_points", 0) else None
     return ClosedLoopCalibration(
         mechanism=rehomed(mechanism.with_model(result.state.model)),
         error_model=error_model,
@@ -520,8 +603,8 @@ def _calibration(mechanism: Mechanism, problem: _ClosedLoopProblem, start: _Stat
         std=dict(zip(problem.names, std)),
         base=base,
         fitted=tuple(problem.names[c] for c in problem.columns),
-        rms_before=_rms(problem.pose_residuals(start)[inliers]),
-        rms_after=_rms(problem.pose_residuals(result.state)[inliers]),
+        rms_before=_rms(problem.pose_residuals(start)[inliers], points_seen),
+        rms_after=_rms(problem.pose_residuals(result.state)[inliers], points_seen),
         variance_factor=float(final_residual @ final_residual / dof) if dof > 0 else float("nan"),
         outliers=tuple(int(i) for i in np.flatnonzero(~inliers)),
         covariance=covariance,
@@ -536,7 +619,8 @@ class CrossValidation:
     """k-fold prediction of held-back measurements (outliers excluded): each fold is refitted on
     the others (same parameters, same setup estimation) and predicts its poses' measurements.
     The errors include the measurement noise, as a fresh validation set of the same quality does.
-    errors: per inlier pose, position [m] and rotation [rad] (nan when position-only). groups: how
+    errors: per inlier pose, position [m] and rotation [rad] (nan when position-only); with several
+    points per pose, per point seen on an inlier pose (position only). groups: how
     many groups of repeats the inlier poses form (`m3t1r.calibration.repeats`), each held out whole."""
 
     errors: PoseErrors
@@ -582,7 +666,13 @@ def cross_validate(calibration: ClosedLoopCalibration, folds: int = 5, seed: int
         for fold in range(folds):
             rows = (k * inliers[assignment == fold, None] + np.arange(k)).reshape(-1)
             step = -np.linalg.lstsq(information - J[rows].T @ J[rows], gradient - J[rows].T @ r[rows], rcond=None)[0]
-            residuals[assignment == fold] = ((r[rows] + J[rows] @ step) / problem.weights[rows]).reshape(-1, k)
+            weights = problem.weights[rows]
+            predicted = np.divide(r[rows] + J[rows] @ step, weights, out=np.zeros(len(rows)), where=weights != 0)
+            residuals[assignment == fold] = predicted.reshape(-1, k)
+    if problem.n_points:  # one error per point seen
+        position = np.linalg.norm(residuals.reshape(len(inliers), -1, 3), axis=2)[problem.seen[inliers][:, ::3]]
+        return CrossValidation(PoseErrors(position, np.full(len(position), np.nan)), folds,
+                               len(np.unique(labels[inliers])))
     position = np.linalg.norm(residuals[:, :3], axis=1)
     rotation = np.linalg.norm(residuals[:, 3:], axis=1) if k == 6 else np.full(len(inliers), np.nan)
     return CrossValidation(PoseErrors(position, rotation), folds, len(np.unique(labels[inliers])))
@@ -614,10 +704,10 @@ def _reference_base(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns:
     model = error_model.mechanism.model
     geometry = np.concatenate([np.ravel([p.homogeneous for p in model.jointPlacements]),
                                np.ravel([f.placement.homogeneous for f in model.frames]),
-                               np.ravel(marker.homogeneous)]).tobytes()
+                               np.ravel(marker.homogeneous), np.ravel(problem.point_offsets)]).tobytes()
     position_only = problem.measurements.position_only
     key = (geometry, error_model.placements, position_only, problem.names, tuple(sorted(fixed_columns)),
-           float(problem.noise_weights[0] / problem.noise_weights[-1]), rank_tolerance)
+           float(problem.row_weights[0] / problem.row_weights[-1]), rank_tolerance)
     if key not in _STRUCTURAL_RANKS:
         _STRUCTURAL_RANKS[key] = _reference_selection(problem, marker, fixed_columns, rank_tolerance)
     return _STRUCTURAL_RANKS[key]
@@ -637,15 +727,21 @@ def _reference_selection(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_col
     mechanism = error_model.mechanism
     actuators = workspace_actuators(mechanism, _REFERENCE_POSES, np.random.default_rng(2020))
     reference = measure(mechanism, actuators, position_only=problem.measurements.position_only)
-    reference = PoseMeasurements(reference.actuators, tuple(pose * marker for pose in reference.poses),
-                                 reference.position_only)
+    offsets = tuple((float(x), float(y), float(z)) for x, y, z in problem.point_offsets)
+    if problem.n_points:  # the points at the fit's start offsets, every one seen
+        platform = np.array([pose.homogeneous for pose in reference.poses])
+        reference = PoseMeasurements(reference.actuators, reference.poses, True,
+                                     MeasurementSetup(points=offsets).measured_points(platform))
+    else:
+        reference = PoseMeasurements(reference.actuators, tuple(pose * marker for pose in reference.poses),
+                                     reference.position_only)
     names = problem.names
     everything = np.arange(len(names))
     twin = _ClosedLoopProblem(error_model, reference, TrackerNoise(), everything,
                               estimate_frame=problem.frame_slot is not None,
                               estimate_marker=problem.marker_slot is not None)
-    twin.noise_weights = np.tile(problem.noise_weights[:reference.rows_per_pose], len(reference))
-    state = twin.assemble(mechanism.model, None, setup=MeasurementSetup(marker=marker))
+    twin.noise_weights = np.tile(problem.row_weights, len(reference))
+    state = twin.assemble(mechanism.model, None, setup=MeasurementSetup(marker=marker, points=offsets))
     _, jacobian = twin.evaluate(state, everything)
     jacobian[:, list(fixed_columns)] = 0.0
     with warnings.catch_warnings():

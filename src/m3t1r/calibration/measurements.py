@@ -43,11 +43,14 @@ class TrackerNoise:
 @dataclass(frozen=True)
 class PoseMeasurements:
     """N calibration poses: slider readings (N x n_act) [m] and measured platform poses in the base
-    frame (orientation ignored when position_only)."""
+    frame (orientation ignored when position_only). points: (N, P, 3) [m] positions of P points rigidly
+    attached to the platform, NaN where a point was not seen (position-only; `poses` then holds one
+    seen point per row, for the data checks), or None: one measured frame per row."""
 
     actuators: np.ndarray
     poses: tuple[pin.SE3, ...]
     position_only: bool = False
+    points: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         actuators = real_array(self.actuators, "actuator readings")
@@ -56,10 +59,32 @@ class PoseMeasurements:
         if not np.all(np.isfinite(actuators)):
             raise InvalidInputError("non-finite actuator reading")
         object.__setattr__(self, "actuators", actuators)
+        if self.points is not None:
+            points = np.asarray(self.points, dtype=float)
+            if points.ndim != 3 or points.shape[0] != len(self.poses) or points.shape[2] != 3 or not self.position_only:
+                raise InvalidInputError(f"measured points: expected position-only (N, P, 3) points for "
+                                        f"{len(self.poses)} poses, got shape {points.shape}")
+            seen = np.isfinite(points)
+            if np.any(np.any(seen, axis=2) != np.all(seen, axis=2)) or not np.all(np.any(seen[:, :, 0], axis=1)):
+                raise InvalidInputError("measured points: a point with some coordinates missing, or a row seeing none")
+            object.__setattr__(self, "points", points)
+
+    @property
+    def n_points(self) -> int:
+        """P points per row, 0 for one measured frame per row."""
+        return 0 if self.points is None else int(self.points.shape[1])
 
     @property
     def rows_per_pose(self) -> int:
+        """Residual rows per pose: 6, 3 (position only) or 3 P (P points; a point not seen gives zeros)."""
+        if self.points is not None:
+            return 3 * self.n_points
         return 3 if self.position_only else 6
+
+    def subset(self, keep: np.ndarray) -> PoseMeasurements:
+        """The poses at the indices `keep`, in that order."""
+        return PoseMeasurements(self.actuators[keep], tuple(self.poses[i] for i in keep), self.position_only,
+                                None if self.points is None else self.points[keep])
 
     def __len__(self) -> int:
         return len(self.poses)
