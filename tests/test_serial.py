@@ -398,7 +398,7 @@ def test_jacobian_of_every_column_matches_finite_differences(ur5, position_only)
         np.array([np.eye(data.rows_per_pose) + 0.3 * (a @ a.T) for a in rng.normal(size=(6, data.rows_per_pose, 2))])))
     residual = S._SerialResidual(chain, data, whitening, layout, torques)
     start = S.nominal_state(chain, perturb(model, {p: np.full(6, 2e-3) for p in chain.placements()}),
-                              MeasurementSetup(FRAME, MARKER))
+                            MeasurementSetup(FRAME, MARKER))
     state = residual.retract(start, np.r_[np.zeros(42), rng.normal(0.0, 1e-3, layout.size - 42 - 6),
                                           rng.normal(0.0, 1e-4, 6)])
     np.testing.assert_array_equal(state.accumulated[:42], 0.0)
@@ -566,7 +566,7 @@ def test_prior_columns_by_parameter_or_placement(ur5):
     _, chain = ur5
     names = S._Layout(6, compliance=True).names(chain)
     columns = S.prior_columns(names, {"shoulder_pan_joint": 1e-3, "compliance.elbow_joint": 0.5,
-                                       "wrist_1_joint.dt[4]": 2})
+                                      "wrist_1_joint.dt[4]": 2})
     assert columns == {**{c: 1e-3 for c in range(6)}, 44: 0.5, 22: 2.0}
     assert all(type(sigma) is float for sigma in columns.values())
     assert S.prior_columns(names, None) == {} and S.prior_columns(names, {}) == {}
@@ -604,7 +604,7 @@ def test_start_state_registers_the_frame_and_the_marker_rotation(ur5):
     np.testing.assert_array_equal(frame_only.compliance, np.zeros(6))
     assert not frame_only.compliance.flags.writeable
     marker_only = S.start_state(chain, model, data, MeasurementSetup(FRAME, pin.SE3(np.eye(3), MARKER.translation)),
-                                 False, True, False)
+                                False, True, False)
     np.testing.assert_array_equal(marker_only.frame, FRAME.homogeneous)
     np.testing.assert_allclose(marker_only.marker, MARKER.homogeneous, atol=1e-9)
     # Positions only: no rotation to register the marker's axes with.
@@ -944,7 +944,7 @@ def test_selection_at_the_start_scores_the_residual_itself(ur5):
     r, J = problem.model.residual_and_jacobian(start)
     expected = forward_selection(J[:, problem.columns], r, 6, range(21), np.array([], dtype=int))
     selection, _, _ = S.select_parameters(problem, start, SimpleNamespace(state=start, iterations=0),
-                                           _Fixed([start], [0]))
+                                          _Fixed([start], [0]))
     assert selection == expected
 
 

@@ -886,7 +886,7 @@ def calibrate_serial(
         raise IdentificationError(f"all {layout.size} candidate parameters are held fixed: nothing is left to fit "
                                   "(estimate the measurement frame, a marker or compliance, or fix fewer)")
     start = start_state(chain, model, data, setup or MeasurementSetup(), estimate_frame, estimate_marker,
-                         compliance)
+                        compliance)
     if compliance:
         require_gravity_load(model, chain)
     torques = gravity_torques(model, chain, data.q) if compliance else None
