@@ -646,7 +646,7 @@ def test_block_structure_of_the_passive_system_from_a_cold_cache(mechanism):
     key = (mechanism.closures, mechanism.actuated_joints, tuple(mechanism.model.names))
     saved = kinematics._BLOCK_CACHE.pop(key, None)
     try:
-        blocks = ClosedLoopSolver(mechanism)._branch_blocks
+        blocks = ClosedLoopSolver(mechanism).branch_blocks
     finally:
         if saved is not None:
             kinematics._BLOCK_CACHE[key] = saved
@@ -699,12 +699,6 @@ def test_a_failed_inverse_leaves_a_usable_warm_start(mechanism):
 # The predictor's bounds, the batch methods' q_init
 
 
-def _predictor_state(solver, previous_sliders, previous_passive):
-    """A solver whose last solution is home, with a zero tangent and the given solution before it."""
-    solver._tangent = np.zeros((len(solver.passive), len(solver.actuated)))
-    solver._previous = (np.asarray(previous_sliders, dtype=float), np.asarray(previous_passive, dtype=float))
-
-
 def test_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism):
     """With T = 0 the prediction is lam^2 (q_prev - q_last) exactly while 0 < lam < 2, else nothing;
     a repeated slider set (e = 0) has no direction: nothing either."""
@@ -712,15 +706,17 @@ def test_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism):
     sliders, passive = solver.last_q[solver.actuated], solver.last_q[solver.passive]
     e = np.array([2.0 ** -7, -2.0 ** -6, 2.0 ** -8, 2.0 ** -7])  # binary fractions: dot products without rounding
     offset = np.linspace(-0.01, 0.02, len(passive))  # q_prev - q_last on the passive joints
-    _predictor_state(solver, sliders - e, passive + offset)
+    tangent = np.zeros((len(passive), len(sliders)))
+    previous = (sliders - e, passive + offset)  # the solution before the start, home
     # Binary fractions make lam = d.e / e.e exact on every BLAS kernel (with decimal steps its
     # rounding left 1e-38 where 'nothing' is expected), so the expected terms hold exactly.
     for lam, expected in ((0.5, 0.25), (1.0, 1.0), (1.5, 2.25), (0.0, 0.0), (2.0, 0.0), (2.5, 0.0), (-0.5, 0.0)):
         change = lam * e if lam else np.array([2.0 ** -6, 2.0 ** -7, 0.0, 0.0])  # orthogonal to e, exactly
-        np.testing.assert_allclose(solver._predict(solver.last_q, change, solver._tangent, solver._previous),
+        np.testing.assert_allclose(solver.predict(solver.last_q, change, tangent, previous),
                                    expected * offset, rtol=1e-12, atol=0.0, err_msg=str(lam))
-    _predictor_state(solver, sliders, passive + offset)  # the same sliders twice: e = 0
-    np.testing.assert_array_equal(solver._predict(solver.last_q, e, solver._tangent, solver._previous),
+    np.testing.assert_allclose(solver.predict(solver.last_q, e, tangent, None), np.zeros(len(passive)), atol=0.0)
+    # The same sliders twice: e = 0, no direction.
+    np.testing.assert_array_equal(solver.predict(solver.last_q, e, tangent, (sliders, passive + offset)),
                                   np.zeros(len(passive)))
 
 
@@ -781,7 +777,6 @@ def test_warm_inverse_with_a_locked_joint_steps_the_unlocked_columns(tmp_path):
         hinge = Mechanism.load(*_welded_double_hinge(tmp_path))
     assert len(hinge.locked_joints) == 1
     solver = ClosedLoopSolver(hinge)
-    assert solver._unknowns is not None and len(solver._unknowns) == hinge.model.nv - 1
     sliders = hinge.home[hinge.actuated_ids]
     for change in (0.05, 0.1):
         target = ClosedLoopSolver(hinge).forward(sliders + change, q_init=hinge.home).pose.translation[:2]
@@ -843,19 +838,8 @@ def test_a_task_that_is_not_square_is_refused_word_for_word(tmp_path):
         "frame 'effector') commands 3 for 2 actuators (declare the task in the closures file: models/README.md)")
 
 
-def _recording(solver):
-    """Wrap the solver's `_system`: the list of its with_jacobian arguments, one per evaluation."""
-    calls, system = [], solver._system
-
-    def recorded(q, with_jacobian):
-        calls.append(with_jacobian)
-        return system(q, with_jacobian)
-    solver._system = recorded
-    return calls
-
-
 # ------------------------------------------------------------------------------------------------
-# `_newton` on stand-in systems: every evaluation recorded, residuals scripted
+# `newton` on stand-in systems: every evaluation recorded, residuals scripted
 
 
 class _Scripted:
@@ -889,24 +873,24 @@ def test_newton_refreshes_the_jacobian_only_when_a_chord_step_contracts_too_litt
     solver.rules = dataclasses.replace(solver.rules, tolerance=0.04)  # the stand-ins' residuals are of order 1
     # 1 -> 0.05 (exactly 0.05 of it: keep the factors) -> 0.04 (met).
     system = _Scripted([[1.0, 0.0], [0.05, 0.0], [0.04, 0.0]])
-    outcome = solver._newton(np.zeros(2), None, system, _label)
+    outcome = solver.newton(np.zeros(2), None, system, _label)
     assert system.calls == [True, False, False] and outcome.iterations == 2 and outcome.residual == 0.04
     assert outcome.branch == b"branch"
     # 1 -> 0.5 (too little: refresh) -> 0.04 = tolerance, 0.04 > 0.05 * 0.5: met all the same, no refresh.
     system = _Scripted([[1.0, 0.0], [0.5, 0.0], [0.5, 0.0], [0.04, 0.0]])
-    outcome = solver._newton(np.zeros(2), None, system, _label)
+    outcome = solver.newton(np.zeros(2), None, system, _label)
     assert system.calls == [True, False, True, False] and outcome.iterations == 2 and outcome.branch == b"branch"
     # The first evaluation has the Jacobian, then chord steps while they contract.
     solver.tolerance = 1e-12
     system = _Scripted([[1.0, 0.0], [0.01, 0.0], [1e-4, 0.0], [0.0, 0.0]])
-    outcome = solver._newton(np.zeros(2), None, system, _label)
+    outcome = solver.newton(np.zeros(2), None, system, _label)
     assert system.calls == [True, False, False, False] and outcome.iterations == 3
     np.testing.assert_array_equal(outcome.jacobian, np.eye(2))
     # Under the default rules a step from a residual above chord_below (1e-4) gets a fresh Jacobian
     # whatever its contraction; from 1e-4 itself, a chord step.
     solver.rules = dataclasses.replace(solver.rules, chord_below=1e-4)
     system = _Scripted([[1.0, 0.0], [1e-4, 0.0], [1e-9, 0.0], [0.0, 0.0]])
-    outcome = solver._newton(np.zeros(2), None, system, _label)
+    outcome = solver.newton(np.zeros(2), None, system, _label)
     assert system.calls == [True, True, False, False] and outcome.iterations == 3
 
 
@@ -916,7 +900,7 @@ def test_newton_stops_on_a_non_finite_residual_as_out_of_workspace(solver):
     for residual in ([np.nan, 0.0], [np.inf, 0.0], [5.0, np.nan], [0.5, -np.inf]):
         system = _Scripted([[1.0, 0.0], residual])
         with pytest.raises(OutOfWorkspaceError) as caught:
-            solver._newton(np.zeros(2), None, system, _label)
+            solver.newton(np.zeros(2), None, system, _label)
         assert caught.value.iterations == 1 and system.calls == [True, False]
         assert not math.isfinite(caught.value.residual)
 
@@ -929,7 +913,7 @@ def test_newton_singular_verdict_uses_the_one_norm_and_is_word_for_word(solver):
     system = _Scripted([[1.0, 0.0], [3e-13, 0.0]], jacobian=np.array([[1.0, 1.0], [0.0, 1e-11]]))
     solver.tolerance = 1e-12
     with pytest.raises(SingularConfigurationError) as caught:
-        solver._newton(np.zeros(2), None, system, _label)
+        solver.newton(np.zeros(2), None, system, _label)
     assert str(caught.value) == "singular configuration (reciprocal condition 5.00e-12) (residual 3.000e-13 after 1 iterations)"
     assert caught.value.residual == 3e-13 and caught.value.iterations == 1
 
@@ -941,7 +925,7 @@ def test_newton_branch_change_is_word_for_word(solver):
     system = _Scripted([[1.0, 0.0], [0.5, 0.0], [0.5, 0.0], [2e-13, 0.0]])
     labels = iter([b"start", b"other", b"other"])
     with pytest.raises(BranchChangeError) as caught:
-        solver._newton(np.zeros(2), None, system, lambda jac, lu: next(labels))
+        solver.newton(np.zeros(2), None, system, lambda jac, lu: next(labels))
     assert str(caught.value) == ("the solution lies on another assembly branch than the start (Newton crossed a "
                                  "singularity) (residual 2.000e-13 after 2 iterations)")
     assert caught.value.residual == 2e-13 and caught.value.iterations == 2
@@ -953,7 +937,7 @@ def test_newton_far_or_near_after_the_last_step_at_exactly_1e_6(solver):
     for last, error in ((1e-6, NotConvergedError), (np.nextafter(1e-6, 1.0), OutOfWorkspaceError)):
         system = _Scripted([[1.0, 0.0], [last, 0.0]])
         with pytest.raises(error) as caught:
-            solver._newton(np.zeros(2), None, system, _label)
+            solver.newton(np.zeros(2), None, system, _label)
         assert caught.value.residual == last and caught.value.iterations == 1
 
 
@@ -1027,7 +1011,7 @@ def test_the_block_cache_is_per_topology(mechanism, tmp_path):
     ClosedLoopSolver(mechanism)
     five_bar = Mechanism.load(*five_bar_files(tmp_path))
     solver = ClosedLoopSolver(five_bar)
-    found = sorted((r.tolist(), c.tolist()) for r, c in solver._branch_blocks)
+    found = sorted((r.tolist(), c.tolist()) for r, c in solver.branch_blocks)
     assert sorted(sum((c for _, c in found), [])) == sorted(solver.passive.tolist())
     assert sorted(sum((r for r, _ in found), [])) == list(range(solver.n_rows))
     result = solver.forward(five_bar.home[five_bar.actuated_ids] + 0.01)
@@ -1051,7 +1035,7 @@ def test_diagonal_blocks_come_in_upper_block_triangular_order():
 
     solver = ClosedLoopSolver(Mechanism.load())
     jac = solver.closure_jacobian(solver.mechanism.home + 0.05)
-    order = solver._branch_blocks
+    order = solver.branch_blocks
     for later, (rows, _) in enumerate(order):
         for _, columns in order[:later]:
             assert not jac[np.ix_(rows, columns)].any()
@@ -1077,7 +1061,7 @@ def test_newton_calls_a_zero_pivot_or_a_nan_inverse_singular(solver, jacobian):
 
     system = _Scripted([[1.0, 0.0], [0.0, 0.0]], jacobian=jacobian)
     with pytest.raises(SingularConfigurationError) as caught:
-        solver._newton(np.zeros(2), None, system, _label)
+        solver.newton(np.zeros(2), None, system, _label)
     assert str(caught.value).startswith("singular configuration (reciprocal condition 0.00e+00)")
 
 
@@ -1088,7 +1072,7 @@ def test_newton_rcond_is_exact_and_its_inverse_is_returned(solver):
 
     jacobian = np.array([[2.0, 1.0], [0.0, 4.0]])
     system = _Scripted([[1.0, 0.0], [0.0, 0.0]], jacobian=jacobian)
-    outcome = solver._newton(np.zeros(2), None, system, _label)
+    outcome = solver.newton(np.zeros(2), None, system, _label)
     np.testing.assert_allclose(outcome.inverse, np.linalg.inv(jacobian), rtol=1e-15)
     from scipy.linalg import lapack
 
@@ -1105,7 +1089,7 @@ def test_newton_labels_a_single_jacobian_once(solver):
         calls.append(1)
         return b"branch"
     system = _Scripted([[1.0, 0.0], [0.01, 0.0], [0.0, 0.0]])
-    outcome = solver._newton(np.zeros(2), None, system, counted)
+    outcome = solver.newton(np.zeros(2), None, system, counted)
     assert len(calls) == 1 and outcome.branch == b"branch" and system.calls == [True, False, False]
 
 

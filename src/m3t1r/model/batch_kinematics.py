@@ -331,7 +331,7 @@ class StackedKinematics:
             self.weld_pairs.append((columns, full_mask[slot, columns][:, None, None],
                                     slot + np.arange(6)[None, :] + 0 * columns[:, None]))
         self.passive, self.actuated = solver.passive, solver.actuated
-        self.blocks = [(np.asarray(r), np.asarray(c)) for r, c in solver._branch_blocks]
+        self.blocks = [(np.asarray(r), np.asarray(c)) for r, c in solver.branch_blocks]
         support = np.zeros(model.nv)
         for j in model.supports[model.frames[task_frame].parentJoint][1:]:
             support[model.idx_vs[j]] = 1.0
@@ -511,7 +511,7 @@ def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: 
 
     system(q_rows, rows, with_jacobian) -> (residual (m, r), Jacobian (m, r, nv) or None, platform
     rotation (m, 3, 3), position (m, 3)); signature(jac, square) -> (m, s) bool branch labels. Under
-    `rules`, as `ClosedLoopSolver._newton`: a step solves J[:, unknowns] dx = -r with the inverse of the
+    `rules`, as `ClosedLoopSolver.newton`: a step solves J[:, unknowns] dx = -r with the inverse of the
     row's last Jacobian, the largest component capped at rules.max_step; the Jacobian is evaluated at
     the start, after steps from residuals above rules.chord_below, and for rows whose residual
     contracted by less than rules.chord_contraction. A row converges when max|r| <= rules.tolerance;

@@ -147,7 +147,7 @@ class _BranchSignature:
 
 
 def _native_error(status: int, norm: float, iterations: int, rcond: float) -> Exception:
-    """The typed error of a compiled solve's status, worded as `_newton`'s (and the batches')."""
+    """The typed error of a compiled solve's status, worded as `newton`'s (and the batches')."""
     reason = f"singular configuration (reciprocal condition {rcond:.2e})" if status == 3 else _REASONS[status]
     return _FAILURES[status](reason, norm, iterations)
 
@@ -265,6 +265,9 @@ class ClosedLoopSolver:
     results as the Python loops that native=False runs (`self.native` is None then). Compiled solves
     do not move `data` to their solution. Not thread-safe: one solver per thread (a batch running in
     another thread makes single solves wait). All outputs are copies.
+
+    branch_blocks: the diagonal blocks (closure rows, passive joint columns) of the passive closure
+    Jacobian, in upper block-triangular order (`diagonal_blocks`); branch labels: each block's determinant sign.
     """
 
     def __init__(self, mechanism: Mechanism, tolerance: float | None = None, max_iterations: int | None = None,
@@ -345,10 +348,10 @@ class ClosedLoopSolver:
                 jac = self._evaluate(q, with_jacobian=True)[1][:, self.passive]
                 pattern |= np.abs(jac) > 1e-9 * np.max(np.abs(jac))
             _BLOCK_CACHE[key] = [(rows, self.passive[cols]) for rows, cols in diagonal_blocks(pattern)]
-        self._branch_blocks = _BLOCK_CACHE[key]
-        self._branch = _BranchSignature(self._branch_blocks, model.nv)
+        self.branch_blocks = _BLOCK_CACHE[key]
+        self._branch = _BranchSignature(self.branch_blocks, model.nv)
         # FK's and IK's Newton loops compiled (`model.native`), when built and the joints allow; None: the Python loops.
-        self.native = NativeChain.of(model, mechanism.closures, self.passive, self.actuated, self._branch_blocks,
+        self.native = NativeChain.of(model, mechanism.closures, self.passive, self.actuated, self.branch_blocks,
                                      self._platform, mechanism.task,
                                      np.arange(nv) if self._unknowns is None else self._unknowns, np.array(signed),
                                      np.flatnonzero(support_mask(self._task_frame))) if native else None
@@ -513,9 +516,9 @@ class ClosedLoopSolver:
             self._previous = start.take(self._prior_columns)
             return result
         if tangent is not None:
-            q[self.passive] += self._predict(start, values - q.take(self.actuated), tangent, previous)
+            q[self.passive] += self.predict(start, values - q.take(self.actuated), tangent, previous)
         q[self.actuated] = values
-        outcome = self._newton(q, self.passive, self._system, self._passive_branch, start_branch=branch)
+        outcome = self.newton(q, self.passive, self._system, self._passive_branch, start_branch=branch)
         self._tangent = -outcome.inverse.dot(outcome.jacobian.take(self.actuated, axis=1))
         # Where this solve continued from, for the second-order predictor of the next one.
         self._previous = (start.take(self.actuated), start.take(self.passive))
@@ -579,7 +582,7 @@ class ClosedLoopSolver:
         self.native.tangent[:] = tangent
         return self.native.tangent, branch
 
-    def _predict(self, start: np.ndarray, change: np.ndarray, tangent: np.ndarray, previous) -> np.ndarray:
+    def predict(self, start: np.ndarray, change: np.ndarray, tangent: np.ndarray, previous) -> np.ndarray:
         """Passive-joint change [rad or m] for a slider change `change` [m] from `start` (the last
         solution, or q_init), along `tangent` (the start's) and `previous` (sliders, passive q) of the
         solution before the start (None: first order only).
@@ -612,7 +615,7 @@ class ClosedLoopSolver:
         `updateFramePlacement`'s placement by value), so the solver's data may move on."""
         return pin.updateFramePlacement(self.model, self.data, self._platform)
 
-    def _newton(self, q: np.ndarray, unknowns: np.ndarray | None, system, signature, start_branch=None) -> _Outcome:
+    def newton(self, q: np.ndarray, unknowns: np.ndarray | None, system, signature, start_branch=None) -> _Outcome:
         """Newton on a square system over the columns `unknowns` (None: every column), with chord steps,
         under `self.rules` (as the compiled loop and the batches).
 
@@ -759,7 +762,7 @@ class ClosedLoopSolver:
             q, residual, iterations, branch, task_inverse, last_task, pose = self._inverse_native(
                 q, start, goal, goal_rotation, order)
         else:
-            outcome = self._newton(q, self._unknowns, self._inverse_system(goal, goal_rotation),
+            outcome = self.newton(q, self._unknowns, self._inverse_system(goal, goal_rotation),
                                    lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]), start_branch=start)
             q, residual, iterations, branch = outcome.q, outcome.residual, outcome.iterations, outcome.branch
             task_inverse = outcome.inverse[:, self.n_rows:]
@@ -830,7 +833,7 @@ class ClosedLoopSolver:
 
         First order: -X [0; r], X the inverse of the last IK system (at its last Jacobian), r the task
         rows of the new goal at the last pose reached (the closure rows vanish there). Second order as
-        FK's `_predict`, along the previous goal change: the task rows b of the previous goal at the
+        FK's `predict`, along the previous goal change: the task rows b of the previous goal at the
         last pose give 1/2 H[e, e] ~= q_(k-1) - q_k + X [0; b], applied as lam^2 1/2 H[e, e] with
         lam = -(r . b) / (b . b), only while the path keeps going the same way (0 < lam < 2).
         """
@@ -849,7 +852,7 @@ class ClosedLoopSolver:
         return step
 
     def _inverse_system(self, goal: np.ndarray, goal_rotation: np.ndarray | None):
-        """IK's square system for `_newton`: (q, with_jacobian) -> ([closure rows; task rows], Jacobian)."""
+        """IK's square system for `newton`: (q, with_jacobian) -> ([closure rows; task rows], Jacobian)."""
         model, data, frame, task = self.model, self.data, self._task_frame, self.mechanism.task
 
         def system(qk: np.ndarray, with_jacobian: bool):
