@@ -116,8 +116,7 @@ def _compare_paths(machine: Mechanism, sliders: np.ndarray) -> None:
         assert abs(a.residual - b.residual) <= 1e-13
         on_platform = machine.task.frame == machine.model.frames[machine.platform_frame_id].name
         assert (a.task_pose is a.pose) == on_platform and (b.task_pose is b.pose) == on_platform
-        assert compiled._last_branch == python._last_branch
-        np.testing.assert_allclose(compiled._tangent, python._tangent, atol=1e-10)
+        # The warm state (branch, tangent, history) shows in the next solve: its iterations and q.
     assert not np.shares_memory(a.q, compiled.last_q)
 
 
@@ -210,11 +209,11 @@ def test_failures_are_the_python_loop_s_typed_errors(mechanism):
             solver.forward(far, q_init=mechanism.home)
         kinds.add((type(caught.value), caught.value.iterations))
         solver.forward(mechanism.home[mechanism.actuated_ids])
-        solver._last_branch = bytes(1 - b for b in solver._last_branch)  # a branch the next solve cannot keep
+        # A branch the next solve cannot keep: set by hand, as no public call leaves a solver on one.
+        solver._last_branch = bytes(1 - b for b in solver._last_branch)
         with pytest.raises(BranchChangeError) as caught:
             solver.forward(mechanism.home[mechanism.actuated_ids] + 1e-3)
         kinds.add((type(caught.value), caught.value.iterations))
-        assert solver._tangent is None  # the warm start is dropped with the failed solve
     assert len(kinds) == 2
 
 
@@ -330,9 +329,13 @@ def _compare_inverse(machine: Mechanism, targets: np.ndarray) -> None:
         np.testing.assert_allclose(a.task_pose.homogeneous, b.task_pose.homogeneous, atol=1e-12)
         np.testing.assert_allclose(a.tilt, b.tilt, atol=1e-12)
         assert a.iterations == b.iterations and a.residual <= 1e-12
-        assert compiled._last_inverse_branch == python._last_inverse_branch
-        np.testing.assert_allclose(compiled._task_inverse, python._task_inverse, atol=1e-9)
-    assert a.task_pose is not compiled._last_task and a.q is not compiled.last_q
+    # What a caller does to the results does not reach the warm start of the next solve.
+    for result in (a, b):
+        result.task_pose.translation = result.task_pose.translation + 0.1
+        result.q[:] += 0.1
+    again, expected = compiled.inverse(targets[-1]), python.inverse(targets[-1])
+    np.testing.assert_allclose(again.q, expected.q, atol=1e-12)
+    assert again.iterations == expected.iterations
 
 
 def test_warm_inverse_path_matches_the_python_loop(mechanism):
@@ -361,7 +364,6 @@ def test_inverse_failures_are_the_python_loop_s(mechanism):
             with pytest.raises(M3t1rError) as caught:
                 solver.inverse(np.array(target), q_init=mechanism.home)
             kinds.append((type(caught.value), caught.value.iterations))
-            assert solver._task_inverse is None
     assert kinds[:3] == kinds[3:]
     assert [kind for kind, _ in kinds[:3]] == [OutOfWorkspaceError, BranchChangeError, OutOfWorkspaceError]
 
