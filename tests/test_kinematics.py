@@ -1093,21 +1093,18 @@ def test_newton_labels_a_single_jacobian_once(solver):
     assert len(calls) == 1 and outcome.branch == b"branch" and system.calls == [True, False, False]
 
 
-def _inverse_predictor_state(solver, task_inverse, last_goal, last_q):
-    """A solver whose last IK solution is last_q at a pose with coordinates about (0.5, 0.625, -0.125, 0.2),
-    returned exactly (binary fractions and the pose's own yaw: task rows without rounding)."""
-    solver._last_task = pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, 0.2), np.array([0.5, 0.625, -0.125]))
-    solver._task_inverse = task_inverse
-    solver._inverse_previous = None if last_goal is None else ((np.asarray(last_goal, dtype=float), None), last_q)
-    return np.array([0.5, 0.625, -0.125, yaw_of(solver._last_task.rotation)])
+# The last IK task pose of the predictor tests: coordinates about (0.5, 0.625, -0.125, 0.2), returned
+# exactly (binary fractions and the pose's own yaw: task rows without rounding).
+_LAST_TASK = pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, 0.2), np.array([0.5, 0.625, -0.125]))
+_HERE = np.array([0.5, 0.625, -0.125, yaw_of(_LAST_TASK.rotation)])
 
 
 def test_inverse_predictor_first_order_is_minus_x_times_the_task_rows(mechanism):
     solver = ClosedLoopSolver(mechanism)
     x = np.random.default_rng(2).normal(size=(mechanism.model.nv, 4))
-    here = _inverse_predictor_state(solver, x, None, None)
-    goal = here + [0.01, -0.02, 0.005, 0.03]
-    np.testing.assert_allclose(solver._inverse_step(goal, None), -(x @ (here - goal)), rtol=1e-12)
+    goal = _HERE + [0.01, -0.02, 0.005, 0.03]
+    np.testing.assert_allclose(solver.inverse_predict(goal, None, x, _LAST_TASK, None), -(x @ (_HERE - goal)),
+                               rtol=1e-12)
 
 
 def test_inverse_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism):
@@ -1116,14 +1113,15 @@ def test_inverse_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism
     solver = ClosedLoopSolver(mechanism)
     offset = np.linspace(-0.01, 0.02, mechanism.model.nv)  # q_prev - q_last
     e = np.array([2.0 ** -7, -2.0 ** -6, 2.0 ** -8, 0.0])
-    here = _inverse_predictor_state(solver, np.zeros((mechanism.model.nv, 4)), None, None)
-    _inverse_predictor_state(solver, np.zeros((mechanism.model.nv, 4)), here - e, solver.last_q + offset)
+    zero = np.zeros((mechanism.model.nv, 4))
+    previous = ((_HERE - e, None), solver.last_q + offset)
     for lam, expected in ((0.5, 0.25), (1.0, 1.0), (1.5, 2.25), (0.0, 0.0), (2.0, 0.0), (2.5, 0.0), (-0.5, 0.0)):
-        goal = here + (lam * e if lam else np.array([2.0 ** -6, 2.0 ** -7, 0.0, 0.0]))  # at right angles to e
-        np.testing.assert_allclose(solver._inverse_step(goal, None), expected * offset, rtol=1e-9, atol=1e-17,
-                                   err_msg=str(lam))
-    _inverse_predictor_state(solver, np.zeros((mechanism.model.nv, 4)), here, solver.last_q + offset)  # e = 0
-    np.testing.assert_array_equal(solver._inverse_step(here + e, None), np.zeros(mechanism.model.nv))
+        goal = _HERE + (lam * e if lam else np.array([2.0 ** -6, 2.0 ** -7, 0.0, 0.0]))  # at right angles to e
+        np.testing.assert_allclose(solver.inverse_predict(goal, None, zero, _LAST_TASK, previous), expected * offset,
+                                   rtol=1e-9, atol=1e-17, err_msg=str(lam))
+    same_goal = ((_HERE, None), solver.last_q + offset)  # e = 0
+    np.testing.assert_array_equal(solver.inverse_predict(_HERE + e, None, zero, _LAST_TASK, same_goal),
+                                  np.zeros(mechanism.model.nv))
 
 
 def test_inverse_records_the_predictor_history_and_forward_drops_it(mechanism):

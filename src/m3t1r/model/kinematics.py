@@ -752,7 +752,9 @@ class ClosedLoopSolver:
         q = (self.last_q if warm else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
         predicted = warm and self._task_inverse is not None and self._last_task is not None
         if predicted and self.native is None:
-            q[self._unknown_columns] += self._inverse_step(goal, goal_rotation)
+            assert self._task_inverse is not None and self._last_task is not None, "as `predicted` says"
+            q[self._unknown_columns] += self.inverse_predict(goal, goal_rotation, self._task_inverse, self._last_task,
+                                                             self._inverse_previous)
         self._task_inverse = None  # dropped until this solve succeeds
         # A warm solve must stay on the previous solution's branch (assembly and working mode).
         start = self._last_inverse_branch if warm else None
@@ -828,22 +830,24 @@ class ClosedLoopSolver:
             wanted_tilt = roll_pitch_of(goal_rotation)
         return goal, goal_rotation, wanted_tilt
 
-    def _inverse_step(self, goal: np.ndarray, goal_rotation: np.ndarray | None) -> np.ndarray:
-        """Change of the unknown joints [rad or m] from the last IK solution toward a new goal.
+    def inverse_predict(self, goal: np.ndarray, goal_rotation: np.ndarray | None, task_inverse: np.ndarray,
+                        last_task: pin.SE3, previous: tuple | None) -> np.ndarray:
+        """Change of the unknown joints [rad or m] from the last IK solution (`last_q`) toward a new goal.
 
-        First order: -X [0; r], X the inverse of the last IK system (at its last Jacobian), r the task
-        rows of the new goal at the last pose reached (the closure rows vanish there). Second order as
-        FK's `predict`, along the previous goal change: the task rows b of the previous goal at the
-        last pose give 1/2 H[e, e] ~= q_(k-1) - q_k + X [0; b], applied as lam^2 1/2 H[e, e] with
-        lam = -(r . b) / (b . b), only while the path keeps going the same way (0 < lam < 2).
+        First order: -X [0; r], X the inverse of the last IK system (at its last Jacobian; `task_inverse`
+        its task-row columns), r the task rows of the new goal at the last task pose reached, `last_task`
+        (the closure rows vanish there). Second order as FK's `predict`, along the previous goal change
+        (`previous`: ((goal, goal rotation), q) of the IK solution before last_q; None: first order only):
+        the task rows b of the previous goal at the last pose give 1/2 H[e, e] ~= q_(k-1) - q_k + X [0; b],
+        applied as lam^2 1/2 H[e, e] with lam = -(r . b) / (b . b), only while the path keeps going the same
+        way (0 < lam < 2).
         """
-        task, task_inverse = self.mechanism.task, self._task_inverse
-        assert task_inverse is not None and self._last_task is not None, "called after an IK solution"
-        rows = task.residual(self._last_task, goal, goal_rotation)
+        task = self.mechanism.task
+        rows = task.residual(last_task, goal, goal_rotation)
         step = -task_inverse.dot(rows)
-        if self._inverse_previous is not None:
-            (last_goal, last_rotation), last_q = self._inverse_previous
-            back = task.residual(self._last_task, last_goal, last_rotation)
+        if previous is not None:
+            (last_goal, last_rotation), last_q = previous
+            back = task.residual(last_task, last_goal, last_rotation)
             bb = float(back.dot(back))
             lam = -float(rows.dot(back)) / bb if bb > 0.0 else 0.0
             if 0.0 < lam < 2.0:

@@ -142,7 +142,7 @@ class NativeChain:
 
         order: 0 no predictor, 1 first order from `task_inverse` and `inverse_task` (the last IK
         success's), 2 also second order with previous = ((goal, goal rotation), q) of the IK solution
-        before (`ClosedLoopSolver._inverse_step`). On success `task_inverse`, `inverse_platform`,
+        before (`ClosedLoopSolver.inverse_predict`). On success `task_inverse`, `inverse_platform`,
         `inverse_task` and `inverse_branch` hold the solution's; otherwise as `forward`.
         """
         if start_branch is not None:
