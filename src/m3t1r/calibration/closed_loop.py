@@ -58,7 +58,7 @@ from m3t1r.model.workspace import workspace_actuators
 
 __all__ = ["ClosedLoopCalibration", "calibrate_closed_loop", "pose_errors", "predicted_pose_std",
            "predicted_measurement_std", "setup_parameter_names",
-           "CrossValidation", "cross_validate"]
+           "CrossValidation", "cross_validate", "calibration_result", "fit_assembled", "structural_rank"]
 
 _MAX_OUTLIER_ROUNDS = 5
 
@@ -500,6 +500,8 @@ def _refine(problem: _ClosedLoopProblem, result: LMResult, rank_tolerance: float
 
 def calibration_result(mechanism: Mechanism, problem: _ClosedLoopProblem, start: _State, result: LMResult,
                        base: BaseParameters, selection: ParameterSelection | None) -> ClosedLoopCalibration:
+    """The calibration a fit ended on: covariance and std from its final whitened Jacobian, the variance
+    factor, the inliers' RMS before and after, the outliers and the identified model."""
     final_residual, final_jacobian = problem.residual_and_jacobian(result.state)
     # Covariance of the fitted parameters from the noise model: (J^T W J)^-1 with whitened J.
     # From the SVD of J (of its triangular factor: the same singular values and right vectors, in
