@@ -217,7 +217,7 @@ def test_residual_jacobian_matches_finite_differences(position_only: bool) -> No
     measurements = serial.parse_measurements(chain, data.q_readings, data.measured_poses, position_only)
     state = serial.nominal_state(chain, perturb(model, {p: np.full(6, 2e-3) for p in chain.placements()}))
     whitening = serial.pose_whitening(chain, state, measurements, NOISE, JOINT_NOISE)
-    residual = serial._SerialResidual(chain, measurements, whitening)
+    residual = serial.SerialResidual(chain, measurements, whitening)
     r, J = residual.residual_and_jacobian(state)
     np.testing.assert_array_equal(residual.residual(state), r)
     step = 1e-7
@@ -369,7 +369,7 @@ def _measurements(model, chain, position_only: bool = False, n_poses: int = 6, s
 
 def test_layout_columns_and_names(ur5):
     _, chain = ur5
-    layout = S._Layout(6, frame=True, marker=3, compliance=True)
+    layout = S.SerialLayout(6, frame=True, marker=3, compliance=True)
     assert (layout.n_chain, layout.size) == (42, 42 + 6 + 3 + 6)
     assert layout.frame_slice == slice(42, 48) and layout.marker_slice == slice(48, 51)
     assert layout.compliance_slice == slice(51, 57)
@@ -378,12 +378,12 @@ def test_layout_columns_and_names(ur5):
     assert names[:42] == chain.parameter_names()
     assert names[42:] == tuple(f"measurement_frame.dt[{k}]" for k in range(6)) + (
         "marker.dt[0]", "marker.dt[1]", "marker.dt[2]") + tuple(f"compliance.{j}" for j in chain.joint_names)
-    plain = S._Layout(6)
+    plain = S.SerialLayout(6)
     assert plain.size == 42 and plain.frame_slice == slice(42, 42) and plain.compliance_slice == slice(42, 42)
     assert plain.setup_columns.size == 0 and plain.names(chain) == chain.parameter_names()
-    marker_only = S._Layout(6, marker=6)
+    marker_only = S.SerialLayout(6, marker=6)
     assert marker_only.marker_slice == slice(42, 48) and marker_only.size == 48
-    assert S._Layout(6, compliance=True).compliance_slice == slice(42, 48)
+    assert S.SerialLayout(6, compliance=True).compliance_slice == slice(42, 48)
 
 
 @pytest.mark.parametrize("position_only", [False, True])
@@ -391,12 +391,12 @@ def test_jacobian_of_every_column_matches_finite_differences(ur5, position_only)
     """Placements, frame, marker and compliance columns at a non-nominal state with F, K and c set."""
     model, chain = ur5
     data = _measurements(model, chain, position_only)
-    layout = S._Layout(6, frame=True, marker=3 if position_only else 6, compliance=True)
+    layout = S.SerialLayout(6, frame=True, marker=3 if position_only else 6, compliance=True)
     torques = S.gravity_torques(model, chain, data.q)
     rng = np.random.default_rng(41)
     whitening = np.linalg.inv(np.linalg.cholesky(  # any SPD covariance: the whitening is applied as a matrix
         np.array([np.eye(data.rows_per_pose) + 0.3 * (a @ a.T) for a in rng.normal(size=(6, data.rows_per_pose, 2))])))
-    residual = S._SerialResidual(chain, data, whitening, layout, torques)
+    residual = S.SerialResidual(chain, data, whitening, layout, torques)
     start = S.nominal_state(chain, perturb(model, {p: np.full(6, 2e-3) for p in chain.placements()}),
                             MeasurementSetup(FRAME, MARKER))
     state = residual.retract(start, np.r_[np.zeros(42), rng.normal(0.0, 1e-3, layout.size - 42 - 6),
@@ -426,9 +426,9 @@ def test_jacobian_of_every_column_matches_finite_differences(ur5, position_only)
 def test_retract_accumulates_the_steps_in_layout_order(ur5):
     model, chain = ur5
     data = _measurements(model, chain)
-    layout = S._Layout(6, frame=True, marker=6, compliance=True)
-    residual = S._SerialResidual(chain, data, np.broadcast_to(np.eye(6), (6, 6, 6)), layout,
-                                 S.gravity_torques(model, chain, data.q))
+    layout = S.SerialLayout(6, frame=True, marker=6, compliance=True)
+    residual = S.SerialResidual(chain, data, np.broadcast_to(np.eye(6), (6, 6, 6)), layout,
+                                S.gravity_torques(model, chain, data.q))
     start = S.nominal_state(chain, model)
     assert start.accumulated is None and start.compliance is None and start.plain
     a, b = np.linspace(1e-3, 2e-3, layout.size), np.linspace(-1e-3, 5e-4, layout.size)
@@ -447,7 +447,7 @@ def test_retract_accumulates_the_steps_in_layout_order(ur5):
     # A zero twist leaves a placement's pose bit for bit; a 3-column marker moves the translation only.
     partial = residual.retract(start, np.r_[np.zeros(6), a[6:]])
     np.testing.assert_array_equal(partial.transforms[0], start.transforms[0])
-    three = S._SerialResidual(chain, data, residual.whitening, S._Layout(6, marker=3))
+    three = S.SerialResidual(chain, data, residual.whitening, S.SerialLayout(6, marker=3))
     moved = three.retract(start, np.r_[np.zeros(42), 1e-3, 2e-3, 3e-3])
     np.testing.assert_allclose(moved.marker, pin.exp6(np.r_[1e-3, 2e-3, 3e-3, 0, 0, 0]).homogeneous, atol=1e-15)
     np.testing.assert_array_equal(moved.frame, np.eye(4))
@@ -474,7 +474,7 @@ def test_whitening_is_the_inverse_cholesky_factor_of_the_covariance(ur5, positio
         for h in (1e-7, -1e-7):
             q = data.q.copy()
             q[:, j] += h
-            moved = S._SerialResidual(chain, replace(data, q=q), np.broadcast_to(np.eye(k), (6, k, k)))
+            moved = S.SerialResidual(chain, replace(data, q=q), np.broadcast_to(np.eye(k), (6, k, k)))
             shifted.append(moved.raw_residual(state))
         joint_jacobian[:, :, j] = (shifted[0] - shifted[1]) / 2e-7
     covariance = np.diag(sigmas**2) + sigma_q**2 * joint_jacobian @ np.swapaxes(joint_jacobian, 1, 2)
@@ -499,14 +499,14 @@ def test_gravity_torques_are_pinocchios_on_the_chain_joints(ur5):
 def _plain_problem(model, chain, n_poses: int = 5, position_only: bool = False):
     data = _measurements(model, chain, position_only, n_poses=n_poses)
     state = S.nominal_state(chain, model, MeasurementSetup(FRAME, MARKER))
-    residual = S._SerialResidual(chain, data, S.pose_whitening(chain, state, data, TRACKER, 0.0))
+    residual = S.SerialResidual(chain, data, S.pose_whitening(chain, state, data, TRACKER, 0.0))
     return residual, state
 
 
 def test_problem_masks_outlier_poses_and_appends_prior_rows(ur5):
     model, chain = ur5
     residual, state = _plain_problem(model, chain)  # 5 poses, 6 rows each
-    plain = S._SerialProblem(residual, [3.0, 7.0])
+    plain = S.SerialProblem(residual, [3.0, 7.0])
     assert plain.columns.dtype.kind == "i" and plain.priors == {}
     assert plain.active.dtype == bool and plain.active.shape == (5,) and plain.active.all()
     r_full, J_full = residual.residual_and_jacobian(state)
@@ -519,7 +519,7 @@ def test_problem_masks_outlier_poses_and_appends_prior_rows(ur5):
     assert plain.degrees_of_freedom() == 5 * 6 - 2
 
     priors = {7: 0.5, 20: 2e-3, 41: 1.0}  # column 41 is not fitted: no row
-    problem = S._SerialProblem(residual, np.array([3, 7, 8, 20]), priors)
+    problem = S.SerialProblem(residual, np.array([3, 7, 8, 20]), priors)
     assert problem.priors == priors and problem.priors is not priors
     r, J = problem.residual_and_jacobian(state)  # no step yet: the prior rows are zero
     assert r.shape == (32,) and J.shape == (32, 4)
@@ -564,7 +564,7 @@ def test_rms_of_positions_and_rotations():
 
 def test_prior_columns_by_parameter_or_placement(ur5):
     _, chain = ur5
-    names = S._Layout(6, compliance=True).names(chain)
+    names = S.SerialLayout(6, compliance=True).names(chain)
     columns = S.prior_columns(names, {"shoulder_pan_joint": 1e-3, "compliance.elbow_joint": 0.5,
                                       "wrist_1_joint.dt[4]": 2})
     assert columns == {**{c: 1e-3 for c in range(6)}, 44: 0.5, 22: 2.0}
@@ -626,8 +626,8 @@ def _lm(calls):
 def _problem(model, chain, data, layout, setup=MeasurementSetup()):
     start = S.start_state(chain, model, data, setup, layout.frame, bool(layout.marker), layout.compliance)
     torques = S.gravity_torques(model, chain, data.q) if layout.compliance else None
-    residual = S._SerialResidual(chain, data, S.pose_whitening(chain, start, data, TRACKER, 0.0), layout, torques)
-    return S._SerialProblem(residual, np.arange(layout.size)), start
+    residual = S.SerialResidual(chain, data, S.pose_whitening(chain, start, data, TRACKER, 0.0), layout, torques)
+    return S.SerialProblem(residual, np.arange(layout.size)), start
 
 
 @pytest.mark.parametrize("compliance", [False, True])
@@ -637,7 +637,7 @@ def test_fit_base_reselects_at_the_estimate_while_the_rank_grows(ur5, compliance
     model, chain = ur5
     simulated = simulate_serial_measurements(model, chain, 40, np.random.default_rng(44), noise=TRACKER)
     data = S.parse_measurements(chain, simulated.q_readings, simulated.measured_poses, True)
-    layout = S._Layout(6, compliance=compliance)
+    layout = S.SerialLayout(6, compliance=compliance)
     problem, start = _problem(model, chain, data, layout)
     calls = []
     base, result, iterations = S.fit_base(problem, start, layout.names(chain), 1e-9, [], _lm(calls))
@@ -652,7 +652,7 @@ def test_fit_base_reselects_at_the_estimate_while_the_rank_grows(ur5, compliance
 def test_select_base_keeps_the_setup_first_and_leaves_fixed_columns_out(ur5):
     model, chain = ur5
     data = _exact_setup_data(model, chain, n_poses=20)
-    layout = S._Layout(6, frame=True, marker=6)
+    layout = S.SerialLayout(6, frame=True, marker=6)
     problem, start = _problem(model, chain, data, layout, MeasurementSetup(FRAME, MARKER))
     names = layout.names(chain)
     base = S.select_base(problem, start, names, 1e-9, [])
@@ -687,8 +687,8 @@ def _outlier_problem(model, chain, errors: dict[int, float], n_poses: int = 10):
         positions[pose, 0] += error
     data = S.parse_measurements(chain, q, positions, True)
     start = S.nominal_state(chain, model)
-    residual = S._SerialResidual(chain, data, S.pose_whitening(chain, start, data, TRACKER, 0.0))
-    return S._SerialProblem(residual, np.arange(27)), start
+    residual = S.SerialResidual(chain, data, S.pose_whitening(chain, start, data, TRACKER, 0.0))
+    return S.SerialProblem(residual, np.arange(27)), start
 
 
 def test_outliers_are_judged_at_the_fit_and_refitted_from_the_start(ur5):
@@ -741,7 +741,7 @@ def test_selection_scores_the_fit_linearised_at_the_estimate(ur5):
     measured = FRAME.homogeneous @ tool_poses(chain, truth, q) @ MARKER.homogeneous
     measured[:, :3, 3] += rng.normal(0.0, TRACKER.position, (15, 3))
     data = S.parse_measurements(chain, q, [pin.SE3(m) for m in measured], True)
-    layout = S._Layout(6, frame=True)
+    layout = S.SerialLayout(6, frame=True)
     problem, start = _problem(model, chain, data, layout, MeasurementSetup(marker=MARKER))
     calls = []
     base, fit, _ = S.fit_base(problem, start, layout.names(chain), 1e-9, [], _lm(calls))
@@ -777,7 +777,7 @@ def test_result_reports_every_candidate_and_the_fitted_ones(ur5):
     calibration = calibrate_serial(model, chain, q, [pin.SE3(m) for m in measured], noise=TRACKER,
                                    setup=MeasurementSetup(marker=MARKER), estimate_frame=True, compliance=True,
                                    fixed=["wrist_3_joint"], priors={"elbow_joint": 1e-2})
-    layout = S._Layout(6, frame=True, compliance=True)
+    layout = S.SerialLayout(6, frame=True, compliance=True)
     names = layout.names(chain)
     assert calibration.names == names and calibration.outliers == ()
     assert calibration.fitted == tuple(names[i] for i in calibration.fitted_indices)
@@ -877,13 +877,13 @@ def test_measurement_parsing_and_its_exact_refusals(ur5):
     refused(f"measured_poses: quaternion of row 1 has norm {np.linalg.norm(twice[1, 3:]):.6g}", q, twice)
 
 
-@pytest.mark.parametrize("layout", [S._Layout(6, frame=True), S._Layout(6, marker=6), S._Layout(6, frame=True, marker=6)])
+@pytest.mark.parametrize("layout", [S.SerialLayout(6, frame=True), S.SerialLayout(6, marker=6), S.SerialLayout(6, frame=True, marker=6)])
 def test_setup_columns_at_the_identity_setup(ur5, layout):
     """An identity frame and marker (a plain state) still give the setup's columns."""
     model, chain = ur5
     data = S.parse_measurements(chain, *(lambda d: (d.q_readings, d.measured_poses))(
         simulate_serial_measurements(model, chain, 5, np.random.default_rng(52), noise=TRACKER)), False)
-    residual = S._SerialResidual(chain, data, np.broadcast_to(np.eye(6), (5, 6, 6)), layout)
+    residual = S.SerialResidual(chain, data, np.broadcast_to(np.eye(6), (5, 6, 6)), layout)
     state = S.nominal_state(chain, model)
     assert state.plain
     _, J = residual.residual_and_jacobian(state)
@@ -939,7 +939,7 @@ def test_selection_at_the_start_scores_the_residual_itself(ur5):
     model, chain = ur5
     simulated = simulate_serial_measurements(model, chain, 15, np.random.default_rng(55), noise=TRACKER)
     data = S.parse_measurements(chain, simulated.q_readings, simulated.measured_poses, False)
-    problem, start = _problem(model, chain, data, S._Layout(6))
+    problem, start = _problem(model, chain, data, S.SerialLayout(6))
     problem.columns = np.arange(0, 42, 2)
     r, J = problem.model.residual_and_jacobian(start)
     expected = forward_selection(J[:, problem.columns], r, 6, range(21), np.array([], dtype=int))
@@ -954,6 +954,6 @@ def test_orientation_residual_near_a_half_turn(ur5):
     q = sample_configurations(model, chain, 3, np.random.default_rng(56))
     turned = tool_poses(chain, model, q) @ pin.SE3(pin.utils.rotate("x", 3.1), np.zeros(3)).homogeneous
     data = S.parse_measurements(chain, q, [pin.SE3(m) for m in turned], False)
-    residual = S._SerialResidual(chain, data, np.broadcast_to(np.eye(6), (3, 6, 6)))
+    residual = S.SerialResidual(chain, data, np.broadcast_to(np.eye(6), (3, 6, 6)))
     raw = residual.raw_residual(S.nominal_state(chain, model))
     np.testing.assert_allclose(raw, np.tile([0.0, 0.0, 0.0, -3.1, 0.0, 0.0], (3, 1)), atol=1e-12)

@@ -57,7 +57,8 @@ from m3t1r.model.poe import Placement, SerialChain, jlog3_batch, log3_batch, per
 
 __all__ = ["PoseErrorRMS", "SerialCalibration", "calibrate_serial", "compliant_readings", "fit_base", "gravity_torques",
            "moved_mass", "nominal_state", "parse_measurements", "pose_error_rms", "pose_whitening", "prior_columns",
-           "reject_outliers", "require_gravity_load", "select_base", "select_parameters", "start_state"]
+           "reject_outliers", "require_gravity_load", "select_base", "select_parameters", "start_state",
+           "SerialLayout", "SerialProblem", "SerialResidual"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -118,7 +119,7 @@ class _Measurements:
 
 
 @dataclass(frozen=True)
-class _Layout:
+class SerialLayout:
     """The columns of the parameter vector x, in this order: the chain's 6 (n + 1) placement errors
     (`SerialChain.parameter_names`), the measurement frame's right-multiplied error F <- F exp6(df)
     (6, m and rad), the marker's K <- K exp6(dk) (6, or its 3 translations with positions only), and
@@ -210,7 +211,7 @@ class _Evaluation:
         self.jacobian: np.ndarray | None = None
 
 
-class _SerialResidual:
+class SerialResidual:
     """The whitened residual of every parameter of `layout`, as a function of the state (`_State`).
 
     Pose i is predicted as M_i = F g(q_i + c tau_i) K (module docstring); its residual is
@@ -220,11 +221,11 @@ class _SerialResidual:
     """
 
     def __init__(self, chain: SerialChain, data: _Measurements, whitening: np.ndarray,
-                 layout: _Layout | None = None, torques: np.ndarray | None = None) -> None:
+                 layout: SerialLayout | None = None, torques: np.ndarray | None = None) -> None:
         self.chain = chain
         self.data = data
         self.whitening = whitening  # (N, k, k): inverse Cholesky factor of each pose's covariance
-        self.layout = layout or _Layout(chain.n_joints)
+        self.layout = layout or SerialLayout(chain.n_joints)
         self.torques = torques  # (N, n) gravity torques tau(q) (Nm or N), for the compliance columns
         self._state: _State | None = None
         self._evaluation: _Evaluation | None = None
@@ -372,14 +373,14 @@ class _SerialResidual:
         return _State(out, frame, marker, compliance, accumulated, points)
 
 
-class _SerialProblem:
+class SerialProblem:
     """The whitened calibration residual over some columns, for `levenberg_marquardt`.
 
     active: (N,) poses that count (flagged outliers are zero rows); priors: {column: sigma} add a
     row x_c / sigma (Tikhonov, toward the start) per column with a prior, sigma in m, rad or rad/Nm.
     """
 
-    def __init__(self, residual: _SerialResidual, columns: Sequence[int] | np.ndarray,
+    def __init__(self, residual: SerialResidual, columns: Sequence[int] | np.ndarray,
                  priors: Mapping[int, float] | None = None) -> None:
         self._residual = residual
         self.columns = np.asarray(columns, dtype=int)
@@ -387,7 +388,7 @@ class _SerialProblem:
         self.active = np.ones(residual.data.q.shape[0], dtype=bool)
 
     @property
-    def model(self) -> _SerialResidual:
+    def model(self) -> SerialResidual:
         return self._residual
 
     def _mask(self) -> np.ndarray | None:
@@ -458,7 +459,7 @@ def pose_whitening(chain: SerialChain, state: _State, data: _Measurements, noise
     seen = data.seen
     if joint_noise == 0.0:
         return np.diag(1.0 / sigmas)[None] * seen[:, :, None]
-    unit = _SerialResidual(chain, data, np.broadcast_to(np.eye(k), (n_poses, k, k)))
+    unit = SerialResidual(chain, data, np.broadcast_to(np.eye(k), (n_poses, k, k)))
     rows = unit.residual_and_jacobian(state)[1].reshape(n_poses, k, -1)
     n = chain.n_joints
     # Column k of the joint Jacobian is block k of the error Jacobian applied to S_k:
@@ -629,7 +630,7 @@ class SerialCalibration:
     deltas: identified dt = log6(T(0)^-1 T_c(0)) per placement of `chain.placements()` ([v; w], m, rad).
     setup: the measurement frame and marker, estimated or as given.
     compliance: {joint: c} (rad/Nm, m/N) of the joints whose compliance was fitted; q -> q + c tau(q).
-    names: every candidate parameter (`_Layout`: placements, setup, compliance); values: each one's
+    names: every candidate parameter (`SerialLayout`: placements, setup, compliance); values: each one's
         identified change from the start (zero where not fitted).
     base: the identifiable parameters (column-pivoted QR, the setup's kept first: the gauge);
         fitted: the names finally fitted (base, or fewer after model selection), fitted_indices
@@ -664,7 +665,7 @@ class SerialCalibration:
     values: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     compliance: Mapping[str, float] = field(default_factory=dict)
     selection: ParameterSelection | None = field(default=None, repr=False)
-    _problem: _SerialProblem | None = field(default=None, repr=False)
+    _problem: SerialProblem | None = field(default=None, repr=False)
     _start: _State | None = field(default=None, repr=False)
     _solve: Callable[..., LMResult] | None = field(default=None, repr=False)
 
@@ -737,7 +738,7 @@ def _point_start(state: _State, tool: np.ndarray, data: _Measurements, estimate_
     return state
 
 
-def select_base(problem: _SerialProblem, state: _State, names: Sequence[str], rank_tolerance: float,
+def select_base(problem: SerialProblem, state: _State, names: Sequence[str], rank_tolerance: float,
                 fixed: Sequence[int]) -> BaseParameters:
     """Base parameters of the whitened Jacobian at `state`, fixed columns zeroed, setup kept first."""
     J = problem.model.residual_and_jacobian(state)[1]
@@ -747,7 +748,7 @@ def select_base(problem: _SerialProblem, state: _State, names: Sequence[str], ra
     return select_base_parameters(J, names, rank_tolerance, forced=problem.model.layout.setup_columns)
 
 
-def fit_base(problem: _SerialProblem, start: _State, names: Sequence[str], rank_tolerance: float, fixed: Sequence[int],
+def fit_base(problem: SerialProblem, start: _State, names: Sequence[str], rank_tolerance: float, fixed: Sequence[int],
              solve: Callable[..., LMResult]) -> tuple[BaseParameters, LMResult, int]:
     """Select the base parameters at the start, fit them; while the rank is below the structural
     bound, re-select at the estimate and resume (nominal CAD geometry can hide parameters, e.g.
@@ -770,7 +771,7 @@ def fit_base(problem: _SerialProblem, start: _State, names: Sequence[str], rank_
     return base, result, iterations
 
 
-def reject_outliers(problem: _SerialProblem, start: _State, result: LMResult, sigma: float,
+def reject_outliers(problem: SerialProblem, start: _State, result: LMResult, sigma: float,
                     solve: Callable[..., LMResult]) -> tuple[LMResult, int]:
     """Flag poses beyond `sigma` noise sigmas (`outlier_poses`), refit from the start without them,
     re-judge every pose; until the flagged set is stable (at most _MAX_OUTLIER_ROUNDS refits)."""
@@ -791,7 +792,7 @@ def reject_outliers(problem: _SerialProblem, start: _State, result: LMResult, si
     return result, iterations
 
 
-def select_parameters(problem: _SerialProblem, start: _State, result: LMResult, solve: Callable[..., LMResult],
+def select_parameters(problem: SerialProblem, start: _State, result: LMResult, solve: Callable[..., LMResult],
                       groups: ArrayLike | None = None) -> tuple[ParameterSelection, LMResult, int]:
     """Forward selection by leave-one-pose-out PRESS of the fit linearised at the estimate (the
     residual at the start is about r - J x, x the accumulated step), the setup forced; a smaller
@@ -876,10 +877,10 @@ def calibrate_serial(
     max_iterations = require_count(max_iterations, "max_iterations")
     data = parse_measurements(chain, q_readings, measured_poses, position_only)
     if data.n_points:
-        layout = _Layout(chain.n_joints, estimate_frame, 3 * data.n_points, compliance, data.n_points)
+        layout = SerialLayout(chain.n_joints, estimate_frame, 3 * data.n_points, compliance, data.n_points)
     else:
-        layout = _Layout(chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0,
-                         compliance)
+        layout = SerialLayout(chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0,
+                              compliance)
     names = layout.names(chain)
     fixed_columns = parameter_columns(names, fixed, "fixed parameter")
     if len(set(fixed_columns)) == layout.size:
@@ -891,8 +892,8 @@ def calibrate_serial(
         require_gravity_load(model, chain)
     torques = gravity_torques(model, chain, data.q) if compliance else None
     whitening = pose_whitening(chain, start, data, noise, _checked_joint_noise(joint_noise))
-    residual = _SerialResidual(chain, data, whitening, layout, torques)
-    problem = _SerialProblem(residual, np.arange(layout.size), prior_columns(names, priors))
+    residual = SerialResidual(chain, data, whitening, layout, torques)
+    problem = SerialProblem(residual, np.arange(layout.size), prior_columns(names, priors))
     solve = functools.partial(levenberg_marquardt, max_iterations=max_iterations, initial_damping=_INITIAL_DAMPING,
                               absolute_cost_tolerance=absolute_cost_tolerance)
     base, result, iterations = fit_base(problem, start, names, rank_tolerance, fixed_columns, solve)
@@ -906,7 +907,7 @@ def calibrate_serial(
     return _result(model, problem, start, result, base, selection, iterations, solve)
 
 
-def _result(model: pin.Model, problem: _SerialProblem, start: _State, result: LMResult, base: BaseParameters,
+def _result(model: pin.Model, problem: SerialProblem, start: _State, result: LMResult, base: BaseParameters,
             selection: ParameterSelection | None, iterations: int, solve: Callable[..., LMResult]) -> SerialCalibration:
     residual, state = problem.model, result.state
     chain, layout = residual.chain, residual.layout
