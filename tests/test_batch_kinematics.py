@@ -445,8 +445,9 @@ def test_newton_batch_singular_at_the_solution(singular_rcond, status):
 
 def test_failures_of_reasons_and_error_classes():
     n = 6
-    solved = bk._Solved(np.zeros((n, 2)), np.array([0, 1, 2, 3, 4, 5]), np.array([0.0, 0.5, 2e-7, 1e-13, 3e-14, 0.0]),
-                        np.array([3, 0, 60, 7, 8, 2]), np.zeros((n, 3, 3)), np.zeros((n, 3)))
+    solved = bk.SolvedRows(np.zeros((n, 2)), np.array([0, 1, 2, 3, 4, 5]),
+                           np.array([0.0, 0.5, 2e-7, 1e-13, 3e-14, 0.0]), np.array([3, 0, 60, 7, 8, 2]),
+                           np.zeros((n, 3, 3)), np.zeros((n, 3)))
     failures = bk.failures_of(solved, 10, "what")
     assert [(f.index, f.error) for f in failures] == [(11, OutOfWorkspaceError), (12, NotConvergedError),
                                                        (13, SingularConfigurationError), (14, BranchChangeError)]
@@ -471,7 +472,7 @@ def test_inverses_of_a_stack_with_a_singular_matrix():
 
 
 def test_factors_refresh_rcond_labels_and_start():
-    factors = bk._Factors(4, 2)
+    factors = bk.RowFactors(4, 2)
     jac = np.array([[[1.0, 3.0, 9.0], [0.0, 2.0, 9.0]], [[1.0, 2.0, 9.0], [2.0, 4.0, 9.0]], [[-2.0, 0.0, 9.0],
                                                                                            [0.0, 1.0, 9.0]]])
     with warnings.catch_warnings():
@@ -515,7 +516,7 @@ def test_evaluate_rows_chooses_newton_or_chord_per_row():
     active = np.array([9, 8, 7, 6, 5, 4, 3, 2])
     q = np.zeros((10, 2))
     q[active] = np.c_[new, -new / 2]
-    factors = bk._Factors(10, 2)
+    factors = bk.RowFactors(10, 2)
     residual, rot, pos, singular = bk.evaluate_rows(q, active, previous, NewtonRules(), identity, factors, UNKNOWNS,
                                                     sign_of_first)
     assert identity.calls == [([8, 7, 6, 5, 4, 3, 2], False), ([9, 6, 2], True)]
@@ -529,7 +530,7 @@ def test_evaluate_rows_chooses_newton_or_chord_per_row():
     identity.calls = []
     q[9] = 0.0
     residual, rot, pos, singular = bk.evaluate_rows(q, np.array([9, 1, 0]), np.full(3, 1.0), NewtonRules(), identity,
-                                                    bk._Factors(10, 2), UNKNOWNS, sign_of_first)
+                                                    bk.RowFactors(10, 2), UNKNOWNS, sign_of_first)
     assert identity.calls == [([9, 1, 0], True)] and list(singular) == [False, False, False]
     np.testing.assert_array_equal(rot, np.eye(3) * np.array([9, 1, 0])[:, None, None])
 

@@ -511,8 +511,8 @@ def test_names_and_priors_are_checked_before_any_fit(mechanism, few_poses):
 
 def test_identifiable_count_on_the_reference_poses(mechanism, few_poses, monkeypatch):
     """`structural_rank` from an empty cache (a fit would find it filled by earlier fits): 56 of 204
-    with full poses (docs/results.md), 53 with positions only, fewer with fixed columns or a looser tolerance; the marker's rotation shows at a loose tolerance.
-    Each distinct key is counted once."""
+    with full poses (docs/results.md), 53 with positions only, fewer with fixed columns or a looser
+    tolerance; the marker's rotation shows at a loose tolerance. Each distinct key is counted once."""
     cache = {}
     monkeypatch.setattr(closed_loop, "_STRUCTURAL_RANKS", cache)
     error_model = ClosedLoopErrorModel(mechanism)
@@ -885,7 +885,8 @@ def test_calibration_result_from_a_known_final_jacobian(mechanism):
         weights[:active_rows] = 1.0
         problems[active_rows] = _StandInProblem(error_model, residual, jacobian, weights, columns,
                                                 np.array([True, False]), {id(start): before, id(end): after})
-        outcomes[active_rows] = closed_loop.calibration_result(mechanism, problems[active_rows], start, lm, base, selection)
+        outcomes[active_rows] = closed_loop.calibration_result(mechanism, problems[active_rows], start, lm, base,
+                                                               selection)
     calibration = outcomes[8]
     expected = (v[:, :2] / singular[:2] ** 2) @ v[:, :2].T
     np.testing.assert_allclose(calibration.covariance, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
@@ -1086,12 +1087,13 @@ def test_evaluate_in_blocks_reduced_with_extra_rows_and_progress(mechanism, few_
 
 def test_outlier_rounds_refit_only_when_the_flagged_set_changes(mechanism, monkeypatch):
     """One refit when the flagged set changes (then it is stable), none when it is stable from the
-    start; a set that never settles stops after _MAX_OUTLIER_ROUNDS (5) refits."""
+    start; a set that never settles stops after 5 refits."""
     problem = _problem_with_a_1_m_outlier(mechanism, np.arange(3))
     start = problem.assemble(mechanism.model, None)
     fits = []
     fit = closed_loop.fit_assembled
-    monkeypatch.setattr(closed_loop, "fit_assembled", lambda *args: fits.append((args[1], args[1].whitened)) or fit(*args))
+    monkeypatch.setattr(closed_loop, "fit_assembled",
+                        lambda *args: fits.append((args[1], args[1].whitened)) or fit(*args))
     first = _reject_outliers(problem, start, SimpleNamespace(state=dataclasses.replace(start)), 5.0,
                              {"max_iterations": 1})
     assert len(fits) == 1 and fits[0][0] is not start and fits[0][1] is None
@@ -1100,7 +1102,7 @@ def test_outlier_rounds_refit_only_when_the_flagged_set_changes(mechanism, monke
     flips = iter([[False, False, False, False], [False, True, False, False]] * 3)
     monkeypatch.setattr(closed_loop, "outlier_poses", lambda blocks, sigma: (np.array(next(flips)), 1.0))
     _reject_outliers(problem, start, first, 5.0, {"max_iterations": 1})
-    assert len(fits) == 1 + 5 and closed_loop._MAX_OUTLIER_ROUNDS == 5
+    assert len(fits) == 1 + 5
 
 
 def test_structural_rank_cache_keys_on_the_noise_ratio_and_the_data_kind(mechanism, few_poses, monkeypatch):

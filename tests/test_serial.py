@@ -877,7 +877,8 @@ def test_measurement_parsing_and_its_exact_refusals(ur5):
     refused(f"measured_poses: quaternion of row 1 has norm {np.linalg.norm(twice[1, 3:]):.6g}", q, twice)
 
 
-@pytest.mark.parametrize("layout", [S.SerialLayout(6, frame=True), S.SerialLayout(6, marker=6), S.SerialLayout(6, frame=True, marker=6)])
+@pytest.mark.parametrize("layout", [S.SerialLayout(6, frame=True), S.SerialLayout(6, marker=6),
+                                    S.SerialLayout(6, frame=True, marker=6)])
 def test_setup_columns_at_the_identity_setup(ur5, layout):
     """An identity frame and marker (a plain state) still give the setup's columns."""
     model, chain = ur5

@@ -49,7 +49,7 @@ from m3t1r.model.task import TaskSpec
 
 __all__ = ["RowFailure", "ForwardBatch", "InverseBatch", "StackedKinematics", "apply_last", "apply_transposed_last",
            "cross_last", "evaluate_rows", "first_step_from_home", "jlog3_coefficients", "rpy_batch", "skew_last",
-           "stack_inverses", "start_configurations", "times_last", "weld_rows"]
+           "stack_inverses", "start_configurations", "times_last", "weld_rows", "RowFactors", "SolvedRows"]
 
 _CHUNK = 2048  # rows solved together: bounds memory (about 40 MB of arrays per chunk)
 
@@ -444,7 +444,7 @@ def stack_inverses(square: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @dataclass
-class _Solved:
+class SolvedRows:
     """Raw outcome of a batched Newton solve: per row q, status code, residual, steps, platform pose."""
 
     q: np.ndarray
@@ -455,7 +455,7 @@ class _Solved:
     position: np.ndarray
 
 
-class _Factors:
+class RowFactors:
     """Per-row inverse Jacobians (chord steps reuse them), their 1-norm reciprocal condition and
     branch labels at the last Jacobian, and the labels at the first one."""
 
@@ -480,7 +480,7 @@ class _Factors:
 
 
 def evaluate_rows(q: np.ndarray, active: np.ndarray, previous: np.ndarray, rules: NewtonRules, system,
-                  factors: _Factors, unknowns: np.ndarray, signature) -> tuple:
+                  factors: RowFactors, unknowns: np.ndarray, signature) -> tuple:
     """Residual, platform pose and singular mask of the `active` rows after a step. Rows whose last
     residual was above `rules.chord_below` get a Jacobian (Newton); the others get the residual alone
     (chord), and a Jacobian too when that step contracted by less than `rules.chord_contraction`."""
@@ -506,7 +506,7 @@ def evaluate_rows(q: np.ndarray, active: np.ndarray, previous: np.ndarray, rules
 
 
 def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: NewtonRules,
-                 steps_taken: int = 0, branch: np.ndarray | None = None) -> _Solved:
+                 steps_taken: int = 0, branch: np.ndarray | None = None) -> SolvedRows:
     """Chord Newton on n independent square systems at once; rows leave the active set as they finish.
 
     system(q_rows, rows, with_jacobian) -> (residual (m, r), Jacobian (m, r, nv) or None, platform
@@ -524,9 +524,9 @@ def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: 
     """
     n = len(q)
     q = q.copy()
-    out = _Solved(q, np.full(n, _ACTIVE), np.full(n, np.inf), np.zeros(n, dtype=int),
-                  np.zeros((n, 3, 3)), np.zeros((n, 3)))
-    factors, previous = _Factors(n, len(unknowns)), np.full(n, np.inf)
+    out = SolvedRows(q, np.full(n, _ACTIVE), np.full(n, np.inf), np.zeros(n, dtype=int),
+                     np.zeros((n, 3, 3)), np.zeros((n, 3)))
+    factors, previous = RowFactors(n, len(unknowns)), np.full(n, np.inf)
     active = np.arange(n)
     residual, jac, rot, pos = system(q, active, True)
     singular = factors.refresh(active, jac, unknowns, signature)
@@ -563,7 +563,7 @@ def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: 
     return out
 
 
-def failures_of(solved: _Solved, offset: int, what: str,
+def failures_of(solved: SolvedRows, offset: int, what: str,
                 singular_rcond: float = DEFAULT_RULES.singular_rcond) -> list[RowFailure]:
     """Typed failures of the rows of `solved` that did not converge (indices shifted by `offset`);
     singular rows name `singular_rcond`, the threshold they fell below."""
@@ -652,10 +652,10 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
     return _forward_result(kin, len(values), parts, failures)
 
 
-def _native_solved(q: np.ndarray, outcome: tuple) -> _Solved:
+def _native_solved(q: np.ndarray, outcome: tuple) -> SolvedRows:
     """A compiled row solve of q (`NativeChain.forward_rows` / `inverse_rows`) as `newton_batch`'s result."""
     status, norm, iterations, platform = outcome
-    return _Solved(q, status, norm, iterations, platform[:, :3, :3], platform[:, :3, 3])
+    return SolvedRows(q, status, norm, iterations, platform[:, :3, :3], platform[:, :3, 3])
 
 
 def _thread_count(threads: int | None) -> int:
