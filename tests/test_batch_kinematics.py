@@ -205,17 +205,17 @@ def _b_closed(a):
 
 def test_jlog3_t_series_and_closed_form_values():
     small = np.array([0.0, 1e-4, 3e-3, 0.0099])
-    b, db_over_a = bk._jlog3_t_series(small)
+    b, db_over_a = bk.jlog3_coefficients(small)
     np.testing.assert_allclose(b, _b_series(small), rtol=1e-15, atol=0)
     np.testing.assert_allclose(db_over_a, _db_over_a_series(small), rtol=1e-10, atol=0)
     large = np.array([0.3, 0.7, 1.3, 2.1, 2.9])
-    b, db_over_a = bk._jlog3_t_series(large)
+    b, db_over_a = bk.jlog3_coefficients(large)
     np.testing.assert_allclose(b, _b_closed(large), rtol=1e-13)
     h = 1e-30  # complex step: the derivative to rounding, no cancellation
     db = np.imag(_b_closed(large + 1j * h)) / h
     np.testing.assert_allclose(db_over_a, db / large, rtol=1e-9)  # the closed form cancels to ~2e-11 at 0.3
     # Just above the switch the closed form is used: close to the series (its cancellation ~1e-6).
-    b, db_over_a = bk._jlog3_t_series(np.array([0.0101, 0.02]))
+    b, db_over_a = bk.jlog3_coefficients(np.array([0.0101, 0.02]))
     np.testing.assert_allclose(b, _b_series(np.array([0.0101, 0.02])), rtol=1e-8)
     np.testing.assert_allclose(db_over_a, _db_over_a_series(np.array([0.0101, 0.02])), rtol=1e-4)
 
@@ -224,9 +224,9 @@ def test_jlog3_t_series_at_zero_rotation_is_quiet():
     """At a = 0 the closed form (discarded there) is evaluated at a = 1, not 0: no division by zero."""
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        b, db_over_a = bk._jlog3_t_series(np.zeros(3))
+        b, db_over_a = bk.jlog3_coefficients(np.zeros(3))
         identity = (np.eye(3)[..., None], np.zeros((3, 1)))
-        bk._weld_rows(*identity, *identity)
+        bk.weld_rows(*identity, *identity)
     np.testing.assert_array_equal(b, 1 / 12)
     np.testing.assert_array_equal(db_over_a, 1 / 360)
 
@@ -235,15 +235,15 @@ def test_jlog3_t_series_at_zero_rotation_is_quiet():
     ((1e-6, 1e-6, 1e-2, 1e-2), 1e-9),  # pin.Jlog6's shorter small-angle series is about 1e-10 off there
     ((0.05, 0.4, 1.1, 2.0, 2.9), 1e-12)])
 def test_weld_rows_match_pinocchio_from_small_angles_to_near_pi(angles, tolerance):
-    """With frame a at the base origin, _weld_rows is log6(oMb) and Jlog6(oMb) Ad(oMb^-1): both
+    """With frame a at the base origin, weld_rows is log6(oMb) and Jlog6(oMb) Ad(oMb^-1): both
     branches of the Jlog3 series against Pinocchio."""
     rng = np.random.default_rng(11)
     unit = (lambda u: u / np.linalg.norm(u))
     omb = [pin.exp6(np.r_[rng.normal(0, 0.5, 3), unit(rng.normal(size=3)) * a]) for a in angles]
     n = len(omb)
-    residual, a, b = bk._weld_rows(np.repeat(np.eye(3)[..., None], n, axis=2), np.zeros((3, n)),
-                                   np.moveaxis(np.array([m.rotation for m in omb]), 0, -1),
-                                   np.moveaxis(np.array([m.translation for m in omb]), 0, -1))
+    residual, a, b = bk.weld_rows(np.repeat(np.eye(3)[..., None], n, axis=2), np.zeros((3, n)),
+                                  np.moveaxis(np.array([m.rotation for m in omb]), 0, -1),
+                                  np.moveaxis(np.array([m.translation for m in omb]), 0, -1))
     assert residual.shape == (6, n) and a.shape == b.shape == (3, 3, n)
     for i, m in enumerate(omb):
         np.testing.assert_allclose(residual[:, i], pin.log6(m).vector, atol=1e-13)
@@ -256,27 +256,27 @@ def test_poses_last_products_and_cross_products():
     a, b, v, w = rng.normal(size=(2, 3, 3, 4)), rng.normal(size=(2, 3, 3, 4)), rng.normal(size=(2, 3, 4)), \
         rng.normal(size=(2, 3, 4))
     first = lambda x: np.moveaxis(x, -1, 1)  # noqa: E731  (2, n, ...) poses first
-    np.testing.assert_allclose(first(bk._times(a, b)), first(a) @ first(b), atol=1e-14)
-    np.testing.assert_allclose(first(bk._apply(a, v)), np.einsum("knij,knj->kni", first(a), first(v)), atol=1e-14)
-    np.testing.assert_allclose(first(bk._apply_transposed(a, v)), np.einsum("knji,knj->kni", first(a), first(v)),
+    np.testing.assert_allclose(first(bk.times_last(a, b)), first(a) @ first(b), atol=1e-14)
+    np.testing.assert_allclose(first(bk.apply_last(a, v)), np.einsum("knij,knj->kni", first(a), first(v)), atol=1e-14)
+    np.testing.assert_allclose(first(bk.apply_transposed_last(a, v)), np.einsum("knji,knj->kni", first(a), first(v)),
                                atol=1e-14)
-    np.testing.assert_allclose(first(bk._cross(v, w)), np.cross(first(v), first(w)), atol=1e-14)
+    np.testing.assert_allclose(first(bk.cross_last(v, w)), np.cross(first(v), first(w)), atol=1e-14)
     one = v[0, :, :1]  # (3, 1): one vector against n, either side
-    np.testing.assert_allclose(bk._cross(one, w[0]), np.cross(one.T, w[0].T).T, atol=1e-14)
-    np.testing.assert_allclose(bk._cross(w[0], one), np.cross(w[0].T, one.T).T, atol=1e-14)
-    skew = bk._skew_last(v[0])
+    np.testing.assert_allclose(bk.cross_last(one, w[0]), np.cross(one.T, w[0].T).T, atol=1e-14)
+    np.testing.assert_allclose(bk.cross_last(w[0], one), np.cross(w[0].T, one.T).T, atol=1e-14)
+    skew = bk.skew_last(v[0])
     assert skew.shape == (3, 3, 4)
     np.testing.assert_allclose(np.einsum("ijn,jn->in", skew, w[0]), np.cross(v[0].T, w[0].T).T, atol=1e-14)
 
 
 def test_weld_rows_match_log6_and_the_world_operator():
-    """_weld_rows: log6(aMb) and Jlog6(aMb) Ad(oMb^-1) = [[A, B], [0, A]] on WORLD twists, pose by pose."""
+    """weld_rows: log6(aMb) and Jlog6(aMb) Ad(oMb^-1) = [[A, B], [0, A]] on WORLD twists, pose by pose."""
     rng = np.random.default_rng(13)
     oma = [pin.exp6(rng.normal(0, 0.8, 6)) for _ in range(4)]
     omb = [pin.exp6(rng.normal(0, 0.8, 6)) for _ in range(4)]
     last = lambda ms, f: np.moveaxis(np.array([f(m) for m in ms]), 0, -1)  # noqa: E731
-    residual, a, b = bk._weld_rows(last(oma, lambda m: m.rotation), last(oma, lambda m: m.translation),
-                                   last(omb, lambda m: m.rotation), last(omb, lambda m: m.translation))
+    residual, a, b = bk.weld_rows(last(oma, lambda m: m.rotation), last(oma, lambda m: m.translation),
+                                  last(omb, lambda m: m.rotation), last(omb, lambda m: m.translation))
     for i in range(4):
         amb = oma[i].actInv(omb[i])
         np.testing.assert_allclose(residual[:, i], pin.log6(amb).vector, atol=1e-13)
@@ -445,8 +445,9 @@ def test_newton_batch_singular_at_the_solution(singular_rcond, status):
 
 def test_failures_of_reasons_and_error_classes():
     n = 6
-    solved = bk._Solved(np.zeros((n, 2)), np.array([0, 1, 2, 3, 4, 5]), np.array([0.0, 0.5, 2e-7, 1e-13, 3e-14, 0.0]),
-                        np.array([3, 0, 60, 7, 8, 2]), np.zeros((n, 3, 3)), np.zeros((n, 3)))
+    solved = bk.SolvedRows(np.zeros((n, 2)), np.array([0, 1, 2, 3, 4, 5]),
+                           np.array([0.0, 0.5, 2e-7, 1e-13, 3e-14, 0.0]), np.array([3, 0, 60, 7, 8, 2]),
+                           np.zeros((n, 3, 3)), np.zeros((n, 3)))
     failures = bk.failures_of(solved, 10, "what")
     assert [(f.index, f.error) for f in failures] == [(11, OutOfWorkspaceError), (12, NotConvergedError),
                                                        (13, SingularConfigurationError), (14, BranchChangeError)]
@@ -460,18 +461,18 @@ def test_failures_of_reasons_and_error_classes():
 
 def test_inverses_of_a_stack_with_a_singular_matrix():
     stack = np.array([[[2.0, 1.0], [0.0, 4.0]], [[1.0, 2.0], [2.0, 4.0]], [[0.0, 1.0], [1.0, 0.0]]])
-    inverse, singular = bk._inverses(stack)
+    inverse, singular = bk.stack_inverses(stack)
     assert list(singular) == [False, True, False]
     np.testing.assert_allclose(inverse[0], [[0.5, -0.125], [0.0, 0.25]])
     np.testing.assert_array_equal(inverse[1], 0.0)
     np.testing.assert_allclose(inverse[2], [[0.0, 1.0], [1.0, 0.0]])
-    inverse, singular = bk._inverses(stack[[0, 2]])
+    inverse, singular = bk.stack_inverses(stack[[0, 2]])
     assert list(singular) == [False, False] and singular.dtype == bool
     np.testing.assert_allclose(inverse[0], [[0.5, -0.125], [0.0, 0.25]])
 
 
 def test_factors_refresh_rcond_labels_and_start():
-    factors = bk._Factors(4, 2)
+    factors = bk.RowFactors(4, 2)
     jac = np.array([[[1.0, 3.0, 9.0], [0.0, 2.0, 9.0]], [[1.0, 2.0, 9.0], [2.0, 4.0, 9.0]], [[-2.0, 0.0, 9.0],
                                                                                            [0.0, 1.0, 9.0]]])
     with warnings.catch_warnings():
@@ -515,9 +516,9 @@ def test_evaluate_rows_chooses_newton_or_chord_per_row():
     active = np.array([9, 8, 7, 6, 5, 4, 3, 2])
     q = np.zeros((10, 2))
     q[active] = np.c_[new, -new / 2]
-    factors = bk._Factors(10, 2)
-    residual, rot, pos, singular = bk._evaluate_rows(q, active, previous, NewtonRules(), identity, factors, UNKNOWNS,
-                                                     sign_of_first)
+    factors = bk.RowFactors(10, 2)
+    residual, rot, pos, singular = bk.evaluate_rows(q, active, previous, NewtonRules(), identity, factors, UNKNOWNS,
+                                                    sign_of_first)
     assert identity.calls == [([8, 7, 6, 5, 4, 3, 2], False), ([9, 6, 2], True)]
     np.testing.assert_array_equal(residual, q[active])
     np.testing.assert_array_equal(rot, np.eye(3) * active[:, None, None])
@@ -528,8 +529,8 @@ def test_evaluate_rows_chooses_newton_or_chord_per_row():
     # Every row above 1e-4: one call, with the Jacobian; singular rows reported.
     identity.calls = []
     q[9] = 0.0
-    residual, rot, pos, singular = bk._evaluate_rows(q, np.array([9, 1, 0]), np.full(3, 1.0), NewtonRules(), identity,
-                                                     bk._Factors(10, 2), UNKNOWNS, sign_of_first)
+    residual, rot, pos, singular = bk.evaluate_rows(q, np.array([9, 1, 0]), np.full(3, 1.0), NewtonRules(), identity,
+                                                    bk.RowFactors(10, 2), UNKNOWNS, sign_of_first)
     assert identity.calls == [([9, 1, 0], True)] and list(singular) == [False, False, False]
     np.testing.assert_array_equal(rot, np.eye(3) * np.array([9, 1, 0])[:, None, None])
 
@@ -758,7 +759,7 @@ def test_first_step_from_home_is_one_newton_step_of_the_whole_system(machine, me
     rows = np.array([0, 2, 3])
     signature = lambda jac, square: np.concatenate(  # noqa: E731
         (kin.signatures(jac), (np.linalg.slogdet(square)[0] > 0)[:, None]), axis=1)
-    labels = bk._first_step_from_home(kin, start, rows, targets, signature)
+    labels = bk.first_step_from_home(kin, start, rows, targets, signature)
     closure, closure_jac, _ = solver.closure_sensitivity(mechanism.home)
     data = solver.data
     frame = mechanism.model.getFrameId(task.frame)
@@ -795,7 +796,7 @@ def test_first_step_from_a_singular_home_is_skipped(mechanism):
     for threshold, skipped in ((rcond * (1 + 1e-9), True), (rcond * (1 - 1e-9), False), (exact, False)):
         solver.singular_rcond = threshold  # skipped below the threshold, not at it
         start = home.copy()
-        labels = bk._first_step_from_home(kin, start, np.array([0, 1]), targets, lambda jac, square: np.ones((1, 1)))
+        labels = bk.first_step_from_home(kin, start, np.array([0, 1]), targets, lambda jac, square: np.ones((1, 1)))
         assert (labels is None) is skipped
         assert np.array_equal(start, home) is skipped
 
@@ -849,16 +850,16 @@ def test_bad_targets_and_starts_are_refused_word_for_word(five_bar):
             solver.forward_batch(sliders, q_init=q_init)
         assert str(caught.value) == f"q_init: expected finite (4,) or (2, 4) values, got shape {shape}"
     kin = bk.StackedKinematics(solver)
-    starts = bk._starts(kin, 3, None)
+    starts = bk.start_configurations(kin, 3, None)
     np.testing.assert_array_equal(starts, np.repeat(five_bar.home[None, :], 3, axis=0))
     starts[0, 0] = 9.0
-    np.testing.assert_array_equal(bk._starts(kin, 3, None)[0], five_bar.home)
+    np.testing.assert_array_equal(bk.start_configurations(kin, 3, None)[0], five_bar.home)
     given = np.arange(8.0).reshape(2, 4)
-    start = bk._starts(kin, 2, given)
+    start = bk.start_configurations(kin, 2, given)
     start[0, 0] = 9.0
     assert given[0, 0] == 0.0  # a copy
-    np.testing.assert_array_equal(bk._starts(kin, 2, [1, 2, 3, 4]), [[1, 2, 3, 4], [1, 2, 3, 4]])
-    assert bk._starts(kin, 2, [1, 2, 3, 4]).dtype == float
+    np.testing.assert_array_equal(bk.start_configurations(kin, 2, [1, 2, 3, 4]), [[1, 2, 3, 4], [1, 2, 3, 4]])
+    assert bk.start_configurations(kin, 2, [1, 2, 3, 4]).dtype == float
 
 
 def test_m_machine_iteration_counts_from_home(mechanism):
@@ -1019,7 +1020,7 @@ def test_inverse_batch_of_a_yaw_task_on_a_frame_off_the_platform(monkeypatch, fi
     assert calls[0][5] == 1
     start = np.repeat(machine.home[None, :], 3, axis=0)
     signature = calls[0][3]
-    np.testing.assert_array_equal(calls[0][6], bk._first_step_from_home(kin, start, np.arange(3), targets, signature))
+    np.testing.assert_array_equal(calls[0][6], bk.first_step_from_home(kin, start, np.arange(3), targets, signature))
     calls.clear()
     warm = solver.inverse_batch(targets, q_init=fk.q)
     assert list(warm.iterations) == [0, 0, 0] and calls[0][5] == 0 and calls[0][6] is None

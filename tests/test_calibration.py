@@ -20,7 +20,6 @@ from m3t1r.calibration.closed_loop import (
     _rms,
     _select_parameters,
     _State,
-    _structural_rank,
     calibrate_closed_loop,
     cross_validate,
     default_iterations,
@@ -102,7 +101,7 @@ def test_joint_twists_are_pinocchio_regressors(mechanism, error_model):
     q = solver.forward([0.1, 0.05, -0.05, 0.1]).q
     solver.closure_sensitivity(q)
     joints = np.array([[placement.homogeneous for placement in solver.data.oMi.tolist()]])
-    G = error_model._joint_twist_matrices(solver.model, joints)[0]
+    G = error_model.joint_twist_matrices(solver.model, joints)[0]
     for frame in ("P_I", "P_II", "fivebar_tip_I", "lower_tip_II"):
         fid = solver.model.getFrameId(frame)
         regressor = pin.computeFrameKinematicRegressor(solver.model, solver.data, fid, pin.WORLD)
@@ -511,10 +510,9 @@ def test_names_and_priors_are_checked_before_any_fit(mechanism, few_poses):
 
 
 def test_identifiable_count_on_the_reference_poses(mechanism, few_poses, monkeypatch):
-    """`_structural_rank` from an empty cache (a fit would find it filled by earlier fits), hence
-    `_count_identifiable`: 56 of 204 with full poses (docs/results.md), 53 with positions only, fewer
-    with fixed columns or a looser tolerance; the marker's rotation shows at a loose tolerance.
-    Each distinct key is counted once."""
+    """`structural_rank` from an empty cache (a fit would find it filled by earlier fits): 56 of 204
+    with full poses (docs/results.md), 53 with positions only, fewer with fixed columns or a looser
+    tolerance; the marker's rotation shows at a loose tolerance. Each distinct key is counted once."""
     cache = {}
     monkeypatch.setattr(closed_loop, "_STRUCTURAL_RANKS", cache)
     error_model = ClosedLoopErrorModel(mechanism)
@@ -522,16 +520,16 @@ def test_identifiable_count_on_the_reference_poses(mechanism, few_poses, monkeyp
     positions = _ClosedLoopProblem(error_model, measure(mechanism, few_poses.actuators, position_only=True), NOISE,
                                    np.arange(204))
     identity, turned = pin.SE3.Identity(), pin.SE3(pin.utils.rotate("x", 0.5), np.array([0.0, 0.0, 0.05]))
-    assert _structural_rank(full, identity, [], 1e-8) == 56
-    assert _structural_rank(full, identity, list(range(12)), 1e-8) == 52
+    assert closed_loop.structural_rank(full, identity, [], 1e-8) == 56
+    assert closed_loop.structural_rank(full, identity, list(range(12)), 1e-8) == 52
     with_setup = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(216), estimate_frame=True,
                                     estimate_marker=True)
-    assert _structural_rank(with_setup, turned, [], 1e-8) == 56
-    assert _structural_rank(positions, identity, [], 1e-8) == 53
-    assert _structural_rank(positions, identity, [], 1e-3) == 47
-    assert _structural_rank(positions, turned, [], 1e-3) == 48
+    assert closed_loop.structural_rank(with_setup, turned, [], 1e-8) == 56
+    assert closed_loop.structural_rank(positions, identity, [], 1e-8) == 53
+    assert closed_loop.structural_rank(positions, identity, [], 1e-3) == 47
+    assert closed_loop.structural_rank(positions, turned, [], 1e-3) == 48
     assert len(cache) == 6 and sorted(base.rank for base in cache.values()) == [47, 48, 52, 53, 56, 56]
-    assert _structural_rank(positions, identity, [], 1e-3) == 47 and len(cache) == 6
+    assert closed_loop.structural_rank(positions, identity, [], 1e-3) == 47 and len(cache) == 6
 
 
 def test_selection_scores_the_fit_linearised_at_the_estimate(noisy):
@@ -586,7 +584,7 @@ def test_prior_rows_and_a_trial_that_does_not_assemble(mechanism, few_poses):
     problem = _ClosedLoopProblem(error_model, few_poses, NOISE, np.array([0, 5, 7]), priors={5: 0.5, 7: 2e-3, 100: 1.0})
     accumulated = np.zeros(204)
     accumulated[[0, 5, 7]] = [1.0, 1e-3, -4e-3]
-    values, jacobian = problem._prior_rows(_State(mechanism.model, np.zeros((0, 20)), np.zeros((0, 4, 4)),
+    values, jacobian = problem.prior_rows(_State(mechanism.model, np.zeros((0, 20)), np.zeros((0, 4, 4)),
                                                   accumulated=accumulated))
     np.testing.assert_allclose(values, [1e-3 / 0.5, -4e-3 / 2e-3], rtol=1e-15)
     np.testing.assert_array_equal(jacobian, [[0.0, 2.0, 0.0], [0.0, 0.0, 500.0]])
@@ -738,13 +736,13 @@ def test_fit_passes_its_options_and_refuses_a_model_that_does_not_assemble(monke
     good = SimpleNamespace(state=SimpleNamespace(model="a model"))
     recorder = _Recorder(good)
     monkeypatch.setattr(closed_loop, "levenberg_marquardt", recorder)
-    assert closed_loop._fit(problem, state, options) is good
+    assert closed_loop.fit_assembled(problem, state, options) is good
     assert len(recorder.calls) == 1
     called_problem, called_state, called_options = recorder.calls[0]
     assert called_problem is problem and called_state is state and called_options == options
     recorder.result = SimpleNamespace(state=SimpleNamespace(model=None))
     with pytest.raises(IdentificationError) as error:
-        closed_loop._fit(problem, state, options)
+        closed_loop.fit_assembled(problem, state, options)
     assert str(error.value) == "calibration ended on a model that does not assemble"
 
 
@@ -806,8 +804,8 @@ def test_select_parameters_scores_the_pose_rows_only(mechanism, few_poses, monke
     keep = np.repeat(problem.active, 6)
     expected = forward_selection(J[:24][keep], (r[:24] - J[:24] @ accumulated[columns])[keep], 6, range(6), [0, 1])
     fits = []
-    fit = closed_loop._fit
-    monkeypatch.setattr(closed_loop, "_fit", lambda *args: fits.append(args[1]) or fit(*args))
+    fit = closed_loop.fit_assembled
+    monkeypatch.setattr(closed_loop, "fit_assembled", lambda *args: fits.append(args[1]) or fit(*args))
     start = dataclasses.replace(state)
     problem.residual_and_jacobian(start)  # the start's Jacobian cached over every column
     selection, result = _select_parameters(problem, start, SimpleNamespace(state=state), np.arange(2),
@@ -844,18 +842,18 @@ def test_outlier_refit_starts_from_a_fresh_jacobian(mechanism):
 
 
 class _StandInProblem:
-    """The parts of `_ClosedLoopProblem` that `_calibration` reads, with a chosen final Jacobian."""
+    """The parts of `_ClosedLoopProblem` that `calibration_result` reads, with a chosen final Jacobian."""
 
     def __init__(self, error_model, residual, jacobian, weights, columns, active, pose_residuals):
         self.error_model, self.weights, self.columns, self.active = error_model, weights, columns, active
         self.names = error_model.names + setup_parameter_names(True, False, False)
-        self._final, self._pose_residuals = (residual, jacobian), pose_residuals
+        self.final_rows, self.residuals_by_state = (residual, jacobian), pose_residuals
 
     def residual_and_jacobian(self, state):
-        return self._final
+        return self.final_rows
 
     def pose_residuals(self, state):
-        return self._pose_residuals[id(state)]
+        return self.residuals_by_state[id(state)]
 
 
 def test_calibration_result_from_a_known_final_jacobian(mechanism):
@@ -887,7 +885,8 @@ def test_calibration_result_from_a_known_final_jacobian(mechanism):
         weights[:active_rows] = 1.0
         problems[active_rows] = _StandInProblem(error_model, residual, jacobian, weights, columns,
                                                 np.array([True, False]), {id(start): before, id(end): after})
-        outcomes[active_rows] = closed_loop._calibration(mechanism, problems[active_rows], start, lm, base, selection)
+        outcomes[active_rows] = closed_loop.calibration_result(mechanism, problems[active_rows], start, lm, base,
+                                                               selection)
     calibration = outcomes[8]
     expected = (v[:, :2] / singular[:2] ** 2) @ v[:, :2].T
     np.testing.assert_allclose(calibration.covariance, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
@@ -913,19 +912,19 @@ def test_calibration_result_from_a_known_final_jacobian(mechanism):
 
 
 def test_identifiable_count_weights_fixed_columns_and_the_setup_gauge(mechanism, few_poses):
-    """`_count_identifiable` whitens the reference Jacobian with the problem's own noise weights
+    """`structural_rank` whitens the reference Jacobian with the problem's own noise weights
     (orientation 1e5 times less trusted than position: 56 still), zeroes the fixed columns (all but
     4 machine columns fixed: 8 with the frame), and keeps the setup's columns first: 29 at a
     tolerance of 1e-5 with position 1e5 times less trusted than orientation (30 without that gauge)."""
     error_model = ClosedLoopErrorModel(mechanism)
     identity, turned = pin.SE3.Identity(), pin.SE3(pin.utils.rotate("x", 0.5), np.array([0.0, 0.0, 0.05]))
     skewed = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=1.0), np.arange(204))
-    assert closed_loop._count_identifiable(skewed, identity, [], 1e-8) == 56
+    assert closed_loop.structural_rank(skewed, identity, [], 1e-8) == 56
     frame = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(210), estimate_frame=True)
-    assert closed_loop._count_identifiable(frame, identity, list(range(200)), 1e-8) == 8
+    assert closed_loop.structural_rank(frame, identity, list(range(200)), 1e-8) == 8
     both = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1.0, rotation=1e-5), np.arange(216),
                               estimate_frame=True, estimate_marker=True)
-    assert closed_loop._count_identifiable(both, turned, [], 1e-5) == 29
+    assert closed_loop.structural_rank(both, turned, [], 1e-5) == 29
 
 
 def test_problem_layout_weights_and_measured_frames(mechanism, few_poses):
@@ -939,14 +938,14 @@ def test_problem_layout_weights_and_measured_frames(mechanism, few_poses):
     np.testing.assert_array_equal(plain.noise_weights, np.tile([1 / 1e-5] * 3 + [1 / 4e-5] * 3, 4))
     np.testing.assert_array_equal(plain.weights, plain.noise_weights)
     measured = np.array([pose.homogeneous for pose in few_poses.poses])
-    np.testing.assert_array_equal(plain._measured_positions, measured[:, :3, 3])
-    np.testing.assert_array_equal(plain._measured_rotations, measured[:, :3, :3])
+    np.testing.assert_array_equal(plain.measured_positions, measured[:, :3, 3])
+    np.testing.assert_array_equal(plain.measured_rotations, measured[:, :3, :3])
     positions = measure(mechanism, few_poses.actuators[:1], position_only=True)
     marker = _ClosedLoopProblem(error_model, positions, NOISE, np.arange(207), estimate_marker=True)
     assert marker.names == error_model.names + ("marker.dt[0]", "marker.dt[1]", "marker.dt[2]")
-    assert marker.frame_slot is None and marker.marker_slot == 204 and marker._measured_rotations is None
+    assert marker.frame_slot is None and marker.marker_slot == 204 and marker.measured_rotations is None
     np.testing.assert_array_equal(marker.noise_weights, [1 / NOISE.position] * 3)
-    np.testing.assert_array_equal(marker._measured_positions, [positions.poses[0].translation])
+    np.testing.assert_array_equal(marker.measured_positions, [positions.poses[0].translation])
     both = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(216), estimate_frame=True, estimate_marker=True,
                               priors={3: 0.5})
     assert both.frame_slot == 204 and both.marker_slot == 210 and len(both.names) == 216 and both.priors == {3: 0.5}
@@ -1088,12 +1087,13 @@ def test_evaluate_in_blocks_reduced_with_extra_rows_and_progress(mechanism, few_
 
 def test_outlier_rounds_refit_only_when_the_flagged_set_changes(mechanism, monkeypatch):
     """One refit when the flagged set changes (then it is stable), none when it is stable from the
-    start; a set that never settles stops after _MAX_OUTLIER_ROUNDS (5) refits."""
+    start; a set that never settles stops after 5 refits."""
     problem = _problem_with_a_1_m_outlier(mechanism, np.arange(3))
     start = problem.assemble(mechanism.model, None)
     fits = []
-    fit = closed_loop._fit
-    monkeypatch.setattr(closed_loop, "_fit", lambda *args: fits.append((args[1], args[1].whitened)) or fit(*args))
+    fit = closed_loop.fit_assembled
+    monkeypatch.setattr(closed_loop, "fit_assembled",
+                        lambda *args: fits.append((args[1], args[1].whitened)) or fit(*args))
     first = _reject_outliers(problem, start, SimpleNamespace(state=dataclasses.replace(start)), 5.0,
                              {"max_iterations": 1})
     assert len(fits) == 1 and fits[0][0] is not start and fits[0][1] is None
@@ -1102,7 +1102,7 @@ def test_outlier_rounds_refit_only_when_the_flagged_set_changes(mechanism, monke
     flips = iter([[False, False, False, False], [False, True, False, False]] * 3)
     monkeypatch.setattr(closed_loop, "outlier_poses", lambda blocks, sigma: (np.array(next(flips)), 1.0))
     _reject_outliers(problem, start, first, 5.0, {"max_iterations": 1})
-    assert len(fits) == 1 + 5 and closed_loop._MAX_OUTLIER_ROUNDS == 5
+    assert len(fits) == 1 + 5
 
 
 def test_structural_rank_cache_keys_on_the_noise_ratio_and_the_data_kind(mechanism, few_poses, monkeypatch):
@@ -1113,7 +1113,8 @@ def test_structural_rank_cache_keys_on_the_noise_ratio_and_the_data_kind(mechani
     error_model = ClosedLoopErrorModel(mechanism)
     identity = pin.SE3.Identity()
     positions = measure(mechanism, few_poses.actuators, position_only=True)
-    counts = [_structural_rank(_ClosedLoopProblem(error_model, measurements, noise, np.arange(204)), identity, [], 1e-8)
+    rank = closed_loop.structural_rank
+    counts = [rank(_ClosedLoopProblem(error_model, measurements, noise, np.arange(204)), identity, [], 1e-8)
               for measurements, noise in ((few_poses, TrackerNoise(position=1e-5, rotation=1.0)),
                                           (few_poses, TrackerNoise(position=1.0, rotation=1e-5)),
                                           (few_poses, TrackerNoise(position=1e-5, rotation=1e-5)),

@@ -317,7 +317,7 @@ def test_joint_twist_matrices_are_pinocchio_regressors(m_machine):
     model = ClosedLoopErrorModel(mechanism)
     solver.closure_sensitivity(configurations[0])
     joints = np.array([[m.homogeneous for m in solver.data.oMi.tolist()]] * 2)
-    G = model._joint_twist_matrices(solver.model, joints)
+    G = model.joint_twist_matrices(solver.model, joints)
     assert G.shape == (2, 6, 120)
     for frame in ("P_I", "P_II", "fivebar_tip_I", "lower_tip_II", "D_I"):
         fid = solver.model.getFrameId(frame)

@@ -1250,20 +1250,19 @@ def test_triangular_factor_over_several_row_blocks_with_a_vector_and_a_previous_
 
 
 def test_in_place_projection_and_column_removal_over_several_column_blocks():
-    # Private helpers on purpose: done a few columns at a time to bound memory, which no result of
-    # forward_selection shows (every block size gives the same numbers), so only a direct call checks
-    # the blocks past the first.
+    # Done a few columns at a time to bound memory, which no result of forward_selection shows (every
+    # block size gives the same numbers), so only a direct call checks the blocks past the first.
     rng = np.random.default_rng(22)
     matrix = np.asfortranarray(rng.normal(size=(30, 21)))
     basis = np.linalg.qr(rng.normal(size=(30, 2)))[0]
     expected = matrix - basis @ (basis.T @ matrix)
-    identification._project_out(matrix, basis)
+    identification.project_out(matrix, basis)
     np.testing.assert_allclose(matrix, expected, atol=1e-13)
-    identification._project_out(matrix, np.zeros((30, 0)))  # an empty basis changes nothing
+    identification.project_out(matrix, np.zeros((30, 0)))  # an empty basis changes nothing
     np.testing.assert_allclose(matrix, expected, atol=1e-13)
-    removed = identification._without_column(matrix, 2)
+    removed = identification.without_column(matrix, 2)
     np.testing.assert_array_equal(removed, np.delete(expected, 2, axis=1))
-    np.testing.assert_array_equal(identification._without_column(removed, 19), np.delete(expected, [2, 20], axis=1))
+    np.testing.assert_array_equal(identification.without_column(removed, 19), np.delete(expected, [2, 20], axis=1))
 
 
 def test_forward_selection_with_more_candidates_than_one_update_block_matches_refits():

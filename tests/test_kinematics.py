@@ -648,7 +648,7 @@ def test_block_structure_of_the_passive_system_from_a_cold_cache(mechanism):
     key = (mechanism.closures, mechanism.actuated_joints, tuple(mechanism.model.names))
     saved = kinematics._BLOCK_CACHE.pop(key, None)
     try:
-        blocks = ClosedLoopSolver(mechanism)._branch_blocks
+        blocks = ClosedLoopSolver(mechanism).branch_blocks
     finally:
         if saved is not None:
             kinematics._BLOCK_CACHE[key] = saved
@@ -701,12 +701,6 @@ def test_a_failed_inverse_leaves_a_usable_warm_start(mechanism):
 # The predictor's bounds, the batch methods' q_init
 
 
-def _predictor_state(solver, previous_sliders, previous_passive):
-    """A solver whose last solution is home, with a zero tangent and the given solution before it."""
-    solver._tangent = np.zeros((len(solver.passive), len(solver.actuated)))
-    solver._previous = (np.asarray(previous_sliders, dtype=float), np.asarray(previous_passive, dtype=float))
-
-
 def test_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism):
     """With T = 0 the prediction is lam^2 (q_prev - q_last) exactly while 0 < lam < 2, else nothing;
     a repeated slider set (e = 0) has no direction: nothing either."""
@@ -714,15 +708,17 @@ def test_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism):
     sliders, passive = solver.last_q[solver.actuated], solver.last_q[solver.passive]
     e = np.array([2.0 ** -7, -2.0 ** -6, 2.0 ** -8, 2.0 ** -7])  # binary fractions: dot products without rounding
     offset = np.linspace(-0.01, 0.02, len(passive))  # q_prev - q_last on the passive joints
-    _predictor_state(solver, sliders - e, passive + offset)
+    tangent = np.zeros((len(passive), len(sliders)))
+    previous = (sliders - e, passive + offset)  # the solution before the start, home
     # Binary fractions make lam = d.e / e.e exact on every BLAS kernel (with decimal steps its
     # rounding left 1e-38 where 'nothing' is expected), so the expected terms hold exactly.
     for lam, expected in ((0.5, 0.25), (1.0, 1.0), (1.5, 2.25), (0.0, 0.0), (2.0, 0.0), (2.5, 0.0), (-0.5, 0.0)):
         change = lam * e if lam else np.array([2.0 ** -6, 2.0 ** -7, 0.0, 0.0])  # orthogonal to e, exactly
-        np.testing.assert_allclose(solver._predict(solver.last_q, change, solver._tangent, solver._previous),
+        np.testing.assert_allclose(solver.predict(solver.last_q, change, tangent, previous),
                                    expected * offset, rtol=1e-12, atol=0.0, err_msg=str(lam))
-    _predictor_state(solver, sliders, passive + offset)  # the same sliders twice: e = 0
-    np.testing.assert_array_equal(solver._predict(solver.last_q, e, solver._tangent, solver._previous),
+    np.testing.assert_allclose(solver.predict(solver.last_q, e, tangent, None), np.zeros(len(passive)), atol=0.0)
+    # The same sliders twice: e = 0, no direction.
+    np.testing.assert_array_equal(solver.predict(solver.last_q, e, tangent, (sliders, passive + offset)),
                                   np.zeros(len(passive)))
 
 
@@ -783,7 +779,6 @@ def test_warm_inverse_with_a_locked_joint_steps_the_unlocked_columns(tmp_path):
         hinge = Mechanism.load(*_welded_double_hinge(tmp_path))
     assert len(hinge.locked_joints) == 1
     solver = ClosedLoopSolver(hinge)
-    assert solver._unknowns is not None and len(solver._unknowns) == hinge.model.nv - 1
     sliders = hinge.home[hinge.actuated_ids]
     for change in (0.05, 0.1):
         target = ClosedLoopSolver(hinge).forward(sliders + change, q_init=hinge.home).pose.translation[:2]
@@ -798,6 +793,7 @@ def test_an_explicit_start_takes_its_own_branch_not_the_warm_one(mechanism, comp
     (here one no solve can have), in IK as in FK, in both Newton loops."""
     solver = ClosedLoopSolver(mechanism, native=compiled)
     solution = solver.inverse(TARGET)
+    # Labels set by hand: no public call leaves a solver's warm start on a branch no solve can have.
     solver._last_inverse_branch = b"\x02"
     assert solver.inverse(TARGET, q_init=mechanism.home).residual <= 1e-12
     solver._last_branch = b"\x02"  # after the IK, which sets it
@@ -845,19 +841,8 @@ def test_a_task_that_is_not_square_is_refused_word_for_word(tmp_path):
         "frame 'effector') commands 3 for 2 actuators (declare the task in the closures file: models/README.md)")
 
 
-def _recording(solver):
-    """Wrap the solver's `_system`: the list of its with_jacobian arguments, one per evaluation."""
-    calls, system = [], solver._system
-
-    def recorded(q, with_jacobian):
-        calls.append(with_jacobian)
-        return system(q, with_jacobian)
-    solver._system = recorded
-    return calls
-
-
 # ------------------------------------------------------------------------------------------------
-# `_newton` on stand-in systems: every evaluation recorded, residuals scripted
+# `newton` on stand-in systems: every evaluation recorded, residuals scripted
 
 
 class _Scripted:
@@ -891,24 +876,24 @@ def test_newton_refreshes_the_jacobian_only_when_a_chord_step_contracts_too_litt
     solver.rules = dataclasses.replace(solver.rules, tolerance=0.04)  # the stand-ins' residuals are of order 1
     # 1 -> 0.05 (exactly 0.05 of it: keep the factors) -> 0.04 (met).
     system = _Scripted([[1.0, 0.0], [0.05, 0.0], [0.04, 0.0]])
-    outcome = solver._newton(np.zeros(2), None, system, _label)
+    outcome = solver.newton(np.zeros(2), None, system, _label)
     assert system.calls == [True, False, False] and outcome.iterations == 2 and outcome.residual == 0.04
     assert outcome.branch == b"branch"
     # 1 -> 0.5 (too little: refresh) -> 0.04 = tolerance, 0.04 > 0.05 * 0.5: met all the same, no refresh.
     system = _Scripted([[1.0, 0.0], [0.5, 0.0], [0.5, 0.0], [0.04, 0.0]])
-    outcome = solver._newton(np.zeros(2), None, system, _label)
+    outcome = solver.newton(np.zeros(2), None, system, _label)
     assert system.calls == [True, False, True, False] and outcome.iterations == 2 and outcome.branch == b"branch"
     # The first evaluation has the Jacobian, then chord steps while they contract.
     solver.tolerance = 1e-12
     system = _Scripted([[1.0, 0.0], [0.01, 0.0], [1e-4, 0.0], [0.0, 0.0]])
-    outcome = solver._newton(np.zeros(2), None, system, _label)
+    outcome = solver.newton(np.zeros(2), None, system, _label)
     assert system.calls == [True, False, False, False] and outcome.iterations == 3
     np.testing.assert_array_equal(outcome.jacobian, np.eye(2))
     # Under the default rules a step from a residual above chord_below (1e-4) gets a fresh Jacobian
     # whatever its contraction; from 1e-4 itself, a chord step.
     solver.rules = dataclasses.replace(solver.rules, chord_below=1e-4)
     system = _Scripted([[1.0, 0.0], [1e-4, 0.0], [1e-9, 0.0], [0.0, 0.0]])
-    outcome = solver._newton(np.zeros(2), None, system, _label)
+    outcome = solver.newton(np.zeros(2), None, system, _label)
     assert system.calls == [True, True, False, False] and outcome.iterations == 3
 
 
@@ -918,7 +903,7 @@ def test_newton_stops_on_a_non_finite_residual_as_out_of_workspace(solver):
     for residual in ([np.nan, 0.0], [np.inf, 0.0], [5.0, np.nan], [0.5, -np.inf]):
         system = _Scripted([[1.0, 0.0], residual])
         with pytest.raises(OutOfWorkspaceError) as caught:
-            solver._newton(np.zeros(2), None, system, _label)
+            solver.newton(np.zeros(2), None, system, _label)
         assert caught.value.iterations == 1 and system.calls == [True, False]
         assert not math.isfinite(caught.value.residual)
 
@@ -931,7 +916,7 @@ def test_newton_singular_verdict_uses_the_one_norm_and_is_word_for_word(solver):
     system = _Scripted([[1.0, 0.0], [3e-13, 0.0]], jacobian=np.array([[1.0, 1.0], [0.0, 1e-11]]))
     solver.tolerance = 1e-12
     with pytest.raises(SingularConfigurationError) as caught:
-        solver._newton(np.zeros(2), None, system, _label)
+        solver.newton(np.zeros(2), None, system, _label)
     assert str(caught.value) == "singular configuration (reciprocal condition 5.00e-12) (residual 3.000e-13 after 1 iterations)"
     assert caught.value.residual == 3e-13 and caught.value.iterations == 1
 
@@ -943,7 +928,7 @@ def test_newton_branch_change_is_word_for_word(solver):
     system = _Scripted([[1.0, 0.0], [0.5, 0.0], [0.5, 0.0], [2e-13, 0.0]])
     labels = iter([b"start", b"other", b"other"])
     with pytest.raises(BranchChangeError) as caught:
-        solver._newton(np.zeros(2), None, system, lambda jac, lu: next(labels))
+        solver.newton(np.zeros(2), None, system, lambda jac, lu: next(labels))
     assert str(caught.value) == ("the solution lies on another assembly branch than the start (Newton crossed a "
                                  "singularity) (residual 2.000e-13 after 2 iterations)")
     assert caught.value.residual == 2e-13 and caught.value.iterations == 2
@@ -955,22 +940,24 @@ def test_newton_far_or_near_after_the_last_step_at_exactly_1e_6(solver):
     for last, error in ((1e-6, NotConvergedError), (np.nextafter(1e-6, 1.0), OutOfWorkspaceError)):
         system = _Scripted([[1.0, 0.0], [last, 0.0]])
         with pytest.raises(error) as caught:
-            solver._newton(np.zeros(2), None, system, _label)
+            solver.newton(np.zeros(2), None, system, _label)
         assert caught.value.residual == last and caught.value.iterations == 1
 
 
 @pytest.mark.parametrize("compiled", [False, True])
 def test_forward_records_the_predictor_history_and_the_branch(mechanism, compiled):
-    """After each FK: the branch label at the solution, and where it continued from: the solution
-    before it (warm) or q_init (a continuation from q_init). The compiled loop keeps the same
-    history as one array (sliders, then passive joints)."""
+    """After each FK, where it continued from: the solution before it (warm) or q_init (a continuation
+    from q_init). The compiled loop keeps the same history as one array (sliders, then passive joints).
+    (The branch label at the solution shows in the warm solves here, which must keep it.)"""
     solver = ClosedLoopSolver(mechanism, native=compiled)
     home_sliders = mechanism.home[mechanism.actuated_ids]
     history = []
     for change, start in ((0.01, mechanism.home), (0.02, None), (0.03, mechanism.home), (0.04, None)):
         before = solver.last_q.copy() if start is None else start
         result = solver.forward(home_sliders + change, q_init=start)
-        assert solver._last_branch == solver._branch(solver.closure_jacobian(result.q))
+        assert result.residual <= 1e-12
+        # Read directly: publicly the history only shapes the next start's second-order term; this pins
+        # what it holds, exactly, in both loops.
         previous = solver._previous
         if compiled and previous is not None:
             previous = (previous[:len(home_sliders)], previous[len(home_sliders):])
@@ -1029,7 +1016,7 @@ def test_the_block_cache_is_per_topology(mechanism, tmp_path):
     ClosedLoopSolver(mechanism)
     five_bar = Mechanism.load(*five_bar_files(tmp_path))
     solver = ClosedLoopSolver(five_bar)
-    found = sorted((r.tolist(), c.tolist()) for r, c in solver._branch_blocks)
+    found = sorted((r.tolist(), c.tolist()) for r, c in solver.branch_blocks)
     assert sorted(sum((c for _, c in found), [])) == sorted(solver.passive.tolist())
     assert sorted(sum((r for r, _ in found), [])) == list(range(solver.n_rows))
     result = solver.forward(five_bar.home[five_bar.actuated_ids] + 0.01)
@@ -1053,7 +1040,7 @@ def test_diagonal_blocks_come_in_upper_block_triangular_order():
 
     solver = ClosedLoopSolver(Mechanism.load())
     jac = solver.closure_jacobian(solver.mechanism.home + 0.05)
-    order = solver._branch_blocks
+    order = solver.branch_blocks
     for later, (rows, _) in enumerate(order):
         for _, columns in order[:later]:
             assert not jac[np.ix_(rows, columns)].any()
@@ -1079,7 +1066,7 @@ def test_newton_calls_a_zero_pivot_or_a_nan_inverse_singular(solver, jacobian):
 
     system = _Scripted([[1.0, 0.0], [0.0, 0.0]], jacobian=jacobian)
     with pytest.raises(SingularConfigurationError) as caught:
-        solver._newton(np.zeros(2), None, system, _label)
+        solver.newton(np.zeros(2), None, system, _label)
     assert str(caught.value).startswith("singular configuration (reciprocal condition 0.00e+00)")
 
 
@@ -1090,7 +1077,7 @@ def test_newton_rcond_is_exact_and_its_inverse_is_returned(solver):
 
     jacobian = np.array([[2.0, 1.0], [0.0, 4.0]])
     system = _Scripted([[1.0, 0.0], [0.0, 0.0]], jacobian=jacobian)
-    outcome = solver._newton(np.zeros(2), None, system, _label)
+    outcome = solver.newton(np.zeros(2), None, system, _label)
     np.testing.assert_allclose(outcome.inverse, np.linalg.inv(jacobian), rtol=1e-15)
     from scipy.linalg import lapack
 
@@ -1107,25 +1094,22 @@ def test_newton_labels_a_single_jacobian_once(solver):
         calls.append(1)
         return b"branch"
     system = _Scripted([[1.0, 0.0], [0.01, 0.0], [0.0, 0.0]])
-    outcome = solver._newton(np.zeros(2), None, system, counted)
+    outcome = solver.newton(np.zeros(2), None, system, counted)
     assert len(calls) == 1 and outcome.branch == b"branch" and system.calls == [True, False, False]
 
 
-def _inverse_predictor_state(solver, task_inverse, last_goal, last_q):
-    """A solver whose last IK solution is last_q at a pose with coordinates about (0.5, 0.625, -0.125, 0.2),
-    returned exactly (binary fractions and the pose's own yaw: task rows without rounding)."""
-    solver._last_task = pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, 0.2), np.array([0.5, 0.625, -0.125]))
-    solver._task_inverse = task_inverse
-    solver._inverse_previous = None if last_goal is None else ((np.asarray(last_goal, dtype=float), None), last_q)
-    return np.array([0.5, 0.625, -0.125, yaw_of(solver._last_task.rotation)])
+# The last IK task pose of the predictor tests: coordinates about (0.5, 0.625, -0.125, 0.2), returned
+# exactly (binary fractions and the pose's own yaw: task rows without rounding).
+_LAST_TASK = pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, 0.2), np.array([0.5, 0.625, -0.125]))
+_HERE = np.array([0.5, 0.625, -0.125, yaw_of(_LAST_TASK.rotation)])
 
 
 def test_inverse_predictor_first_order_is_minus_x_times_the_task_rows(mechanism):
     solver = ClosedLoopSolver(mechanism)
     x = np.random.default_rng(2).normal(size=(mechanism.model.nv, 4))
-    here = _inverse_predictor_state(solver, x, None, None)
-    goal = here + [0.01, -0.02, 0.005, 0.03]
-    np.testing.assert_allclose(solver._inverse_step(goal, None), -(x @ (here - goal)), rtol=1e-12)
+    goal = _HERE + [0.01, -0.02, 0.005, 0.03]
+    np.testing.assert_allclose(solver.inverse_predict(goal, None, x, _LAST_TASK, None), -(x @ (_HERE - goal)),
+                               rtol=1e-12)
 
 
 def test_inverse_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism):
@@ -1134,44 +1118,65 @@ def test_inverse_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism
     solver = ClosedLoopSolver(mechanism)
     offset = np.linspace(-0.01, 0.02, mechanism.model.nv)  # q_prev - q_last
     e = np.array([2.0 ** -7, -2.0 ** -6, 2.0 ** -8, 0.0])
-    here = _inverse_predictor_state(solver, np.zeros((mechanism.model.nv, 4)), None, None)
-    _inverse_predictor_state(solver, np.zeros((mechanism.model.nv, 4)), here - e, solver.last_q + offset)
+    zero = np.zeros((mechanism.model.nv, 4))
+    previous = ((_HERE - e, None), solver.last_q + offset)
     for lam, expected in ((0.5, 0.25), (1.0, 1.0), (1.5, 2.25), (0.0, 0.0), (2.0, 0.0), (2.5, 0.0), (-0.5, 0.0)):
-        goal = here + (lam * e if lam else np.array([2.0 ** -6, 2.0 ** -7, 0.0, 0.0]))  # at right angles to e
-        np.testing.assert_allclose(solver._inverse_step(goal, None), expected * offset, rtol=1e-9, atol=1e-17,
-                                   err_msg=str(lam))
-    _inverse_predictor_state(solver, np.zeros((mechanism.model.nv, 4)), here, solver.last_q + offset)  # e = 0
-    np.testing.assert_array_equal(solver._inverse_step(here + e, None), np.zeros(mechanism.model.nv))
+        goal = _HERE + (lam * e if lam else np.array([2.0 ** -6, 2.0 ** -7, 0.0, 0.0]))  # at right angles to e
+        np.testing.assert_allclose(solver.inverse_predict(goal, None, zero, _LAST_TASK, previous), expected * offset,
+                                   rtol=1e-9, atol=1e-17, err_msg=str(lam))
+    same_goal = ((_HERE, None), solver.last_q + offset)  # e = 0
+    np.testing.assert_array_equal(solver.inverse_predict(_HERE + e, None, zero, _LAST_TASK, same_goal),
+                                  np.zeros(mechanism.model.nv))
+
+
+def _start_residual(solver, target):
+    """The residual [m, rad] where a warm IK starts, its prediction: Newton allowed no step reports it."""
+    limit, solver.max_iterations = solver.max_iterations, 0
+    try:
+        with pytest.raises((NotConvergedError, OutOfWorkspaceError)) as caught:
+            solver.inverse(target)
+    finally:
+        solver.max_iterations = limit
+    return caught.value.residual
 
 
 def test_inverse_records_the_predictor_history_and_forward_drops_it(mechanism):
-    """After a warm IK: the previous solution and its goal; after a cold one or an FK: none."""
-    solver = ClosedLoopSolver(mechanism)
-    first = solver.inverse(TARGET)
-    assert solver._inverse_previous is None  # home is no IK solution
-    np.testing.assert_array_equal(solver._last_goal[0], TARGET)
-    second = TARGET + [0.01, 0.0, 0.0, 0.02]
-    solver.inverse(second)
-    (goal, rotation), q = solver._inverse_previous
-    np.testing.assert_array_equal(goal, TARGET)
-    assert rotation is None and q is not solver.last_q
-    np.testing.assert_array_equal(q, first.q)
-    solver.inverse(TARGET, q_init=mechanism.home)
-    assert solver._inverse_previous is None
-    solver.inverse(second)
-    solver.forward(solver.last_q[solver.actuated])
-    assert solver._inverse_previous is None and solver._last_goal is None
-    solver.inverse(TARGET)
-    assert solver._inverse_previous is None
+    """After a warm IK the next one predicts to second order from the solution before it and its goal
+    (on a straight path of goals, far closer than the first order); after a cold one (q_init) or an
+    FK, to first order only."""
+    step = np.array([0.01, 0.0, 0.0, 0.02])
+    second, third = TARGET + step, TARGET + 2 * step
+    warm = ClosedLoopSolver(mechanism)
+    first = warm.inverse(TARGET)
+    warm.inverse(second)
+    cold = ClosedLoopSolver(mechanism)
+    cold.inverse(TARGET)
+    cold.inverse(second, q_init=first.q)
+    moved = ClosedLoopSolver(mechanism)
+    moved.inverse(TARGET)
+    moved.inverse(second)
+    moved.forward(moved.last_q[moved.actuated])
+    second_order, first_order = _start_residual(warm, third), _start_residual(cold, third)
+    assert second_order < 0.1 * first_order
+    assert _start_residual(moved, third) == pytest.approx(first_order, rel=1e-6)
+    # A warm IK after a cold one from home has no history either: one solution, no step between two.
+    home_first = ClosedLoopSolver(mechanism)
+    home_first.inverse(second, q_init=mechanism.home)
+    assert _start_residual(home_first, third) > 10 * second_order
 
 
 def test_inverse_keeps_its_own_copy_of_the_goal(mechanism):
-    """The caller's target array may be reused for the next target: the kept goal does not move."""
-    solver = ClosedLoopSolver(mechanism)
+    """The caller's target array may be reused for the next target: the kept goal, the next
+    prediction's history, does not move with it."""
+    step = np.array([0.01, 0.0, 0.0, 0.02])
+    reused, kept = ClosedLoopSolver(mechanism), ClosedLoopSolver(mechanism)
     target = TARGET.copy()
-    solver.inverse(target)
-    target[0] += 0.01
-    np.testing.assert_array_equal(solver._last_goal[0], TARGET)
+    reused.inverse(target)
+    target[0] += 0.05
+    reused.inverse(TARGET + step)
+    kept.inverse(TARGET.copy())
+    kept.inverse(TARGET + step)
+    assert _start_residual(reused, TARGET + 2 * step) == _start_residual(kept, TARGET + 2 * step)
 
 
 # ------------------------------------------------------------------------------------------------

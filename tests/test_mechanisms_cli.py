@@ -218,7 +218,7 @@ def test_check_mechanism_passes_every_verb_on_a_first_time_five_bar(tmp_path, mo
 
 def test_check_mechanism_fails_a_figure_out_of_its_rule():
     tool = _check_mechanism_tool()
-    assert not tool._within("held-out max [m]", 2e-7, None, 1e-7).passed
-    assert tool._within("ratio", 0.7, 0.67, 1.5).passed and not tool._within("ratio", 0.6, 0.67, 1.5).passed
-    assert not tool._within("nan", float("nan"), None, 1.0).passed
+    assert not tool.within("held-out max [m]", 2e-7, None, 1e-7).passed
+    assert tool.within("ratio", 0.7, 0.67, 1.5).passed and not tool.within("ratio", 0.6, 0.67, 1.5).passed
+    assert not tool.within("nan", float("nan"), None, 1.0).passed
     assert "FAIL" in tool.table("t", [tool.Figure("plan", None, "runs", False, "exited 2")])

@@ -558,12 +558,12 @@ def test_a_points_residual_jacobian_matches_finite_differences(ur10) -> None:
     model, chain = ur10
     data, points, _ = point_campaign(model, chain, FRAMES["z180"], seed=9, n_poses=6)
     points[2, 1] = np.nan
-    measurements = S._parse_measurements(chain, data.q_readings, points, True)
-    layout = S._Layout(chain.n_joints, True, 12, True, 4)
-    start = S._start_state(chain, model, measurements, MeasurementSetup(), True, True, True)
-    whitening = S._whitening(chain, start, measurements, NOISE, 1e-5)
+    measurements = S.parse_measurements(chain, data.q_readings, points, True)
+    layout = S.SerialLayout(chain.n_joints, True, 12, True, 4)
+    start = S.start_state(chain, model, measurements, MeasurementSetup(), True, True, True)
+    whitening = S.pose_whitening(chain, start, measurements, NOISE, 1e-5)
     torques = S.gravity_torques(model, chain, data.q_readings)
-    residual = S._SerialResidual(chain, measurements, whitening, layout, torques)
+    residual = S.SerialResidual(chain, measurements, whitening, layout, torques)
     state = residual.retract(start, np.full(layout.size, 1e-3))
     r, J = residual.residual_and_jacobian(state)
     assert np.all(r.reshape(6, 12)[2, 3:6] == 0.0) and np.all(J.reshape(6, 12, -1)[2, 3:6] == 0.0)

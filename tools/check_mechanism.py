@@ -199,7 +199,8 @@ def _number(pattern: str, text: str) -> float:
     return float(found.group(1))
 
 
-def _within(check: str, value: float, low: float | None, high: float, unit: str = "") -> Figure:
+def within(check: str, value: float, low: float | None, high: float, unit: str = "") -> Figure:
+    """The figure of `value` against its rule: at most `high` (in `unit`), or a ratio in [low, high]; NaN fails."""
     rule = f"<= {high:g}{unit}" if low is None else f"{low:g}-{high:g}x"
     passed = bool(np.isfinite(value) and value <= high and (low is None or value >= low))
     return Figure(check, value, rule, passed)
@@ -260,13 +261,13 @@ def check_plans_and_kinematics(m: Mechanism, run: Runner) -> list[Figure]:
     run("fk", "plan40.csv", *m.model_args, "-o", "poses.csv")
     poses = columns(run.work / "poses.csv", ["x", "y", "z", "qx", "qy", "qz", "qw"])
     reference = IndependentSolver(m.urdf, {**m.document, "home": m.reference_home}).platform_positions(actuators)
-    figures.append(_within("fk vs independent solve, max [m]", float(np.abs(poses[:, :3] - reference).max()),
-                           None, 1e-9))
+    figures.append(within("fk vs independent solve, max [m]", float(np.abs(poses[:, :3] - reference).max()),
+                          None, 1e-9))
     names, targets = task_coordinates(poses, m.position, m.rotation)
     write_table(run.work / "targets.csv", names, targets)
     run("ik", "targets.csv", *m.model_args, "-o", "back.csv")
     back = columns(run.work / "back.csv", m.actuators)
-    figures.append(_within("ik round trip, max [m or rad]", float(np.abs(back - actuators).max()), None, 1e-8))
+    figures.append(within("ik round trip, max [m or rad]", float(np.abs(back - actuators).max()), None, 1e-8))
     return figures
 
 
@@ -282,9 +283,9 @@ def check_noise_free(m: Mechanism, run: Runner) -> list[Figure]:
     truth = columns(run.work / "truth_poses.csv", ["x", "y", "z"])
     ours = columns(run.work / "poses.csv", ["x", "y", "z"])
     own = float(np.linalg.norm(truth - ours, axis=1).mean())
-    held_out = _within("noise-free calibration, held-out max [m]", calibrated, None, 1e-7)
+    held_out = within("noise-free calibration, held-out max [m]", calibrated, None, 1e-7)
     return [dataclasses.replace(held_out, detail=f"mean {calibrated_mean:.3g}"),
-            _within("evaluate nominal mean / truth's own at the plan", nominal / own, 0.5, 2.0)]
+            within("evaluate nominal mean / truth's own at the plan", nominal / own, 0.5, 2.0)]
 
 
 def check_noisy(m: Mechanism, run: Runner) -> list[Figure]:
@@ -322,7 +323,7 @@ def check_compensation_and_view(m: Mechanism, run: Runner) -> list[Figure]:
         reached = columns(run.work / f"reached{len(extra)}.csv", ["x", "y", "z"])
         positions = [k for k, n in enumerate(names) if n in ("x", "y", "z")]
         error = np.abs(reached[:, ["xyz".index(names[k]) for k in positions]] - targets[:, positions]).max()
-        figures.append(_within(f"{label}: truth reaches targets, max [m]", float(error), None, 1e-7))
+        figures.append(within(f"{label}: truth reaches targets, max [m]", float(error), None, 1e-7))
     run("view", *m.model_args, "--calibrated", "cal.urdf", "--html", "view.html")
     size = (run.work / "view.html").stat().st_size
     figures.append(Figure("view --html: page written [bytes]", size, "> 0", size > 0))

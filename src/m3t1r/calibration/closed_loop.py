@@ -58,7 +58,7 @@ from m3t1r.model.workspace import workspace_actuators
 
 __all__ = ["ClosedLoopCalibration", "calibrate_closed_loop", "pose_errors", "predicted_pose_std",
            "predicted_measurement_std", "setup_parameter_names",
-           "CrossValidation", "cross_validate"]
+           "CrossValidation", "cross_validate", "calibration_result", "fit_assembled", "structural_rank"]
 
 _MAX_OUTLIER_ROUNDS = 5
 
@@ -143,8 +143,8 @@ class _ClosedLoopProblem:
         self.active = np.ones(len(measurements), dtype=bool)
         self.on_evaluate: Callable[[], None] | None = None  # progress: called once per Jacobian evaluation
         measured = np.array([pose.homogeneous for pose in measurements.poses]).reshape(-1, 4, 4)
-        self._measured_positions = measured[:, :3, 3]
-        self._measured_rotations = None if measurements.position_only else measured[:, :3, :3]
+        self.measured_positions = measured[:, :3, 3]
+        self.measured_rotations = None if measurements.position_only else measured[:, :3, :3]
         self._measured_points = (None if measurements.points is None
                                  else np.nan_to_num(measurements.points, nan=0.0).reshape(len(measurements), -1))
         self.point_offsets = np.zeros((self.n_points, 3))  # the registered start's, for the reference rank
@@ -178,11 +178,13 @@ class _ClosedLoopProblem:
         if self._measured_points is not None:
             predicted = state.setup.measured_points(state.poses).reshape(len(state.poses), -1)
             return np.where(self.seen, predicted - self._measured_points, 0.0)
-        residual, _ = _residual_rows_batch(self.measured_frames(state), self._measured_positions,
-                                           self._measured_rotations, with_jacobian=False)
+        residual, _ = _residual_rows_batch(self.measured_frames(state), self.measured_positions,
+                                           self.measured_rotations, with_jacobian=False)
         return residual
 
-    def _prior_rows(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
+    def prior_rows(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
+        """The prior rows x_c / sigma_c of the fitted columns with a prior, in the columns' order, and their
+        Jacobian (rows, fitted columns) [1/sigma]."""
         picked = [(i, self.priors[c]) for i, c in enumerate(self.columns) if c in self.priors]
         jacobian = np.zeros((len(picked), len(self.columns)))
         values = np.zeros(len(picked))
@@ -196,7 +198,7 @@ class _ClosedLoopProblem:
         """Whitened residual from the assembled poses alone (LM trial steps)."""
         if state.model is None:  # a trial that did not assemble: every row infinite, prior rows too
             return np.full(len(self.weights) + sum(1 for c in self.columns if c in self.priors), np.inf)
-        return np.concatenate((self.pose_residuals(state).reshape(-1) * self.weights, self._prior_rows(state)[0]))
+        return np.concatenate((self.pose_residuals(state).reshape(-1) * self.weights, self.prior_rows(state)[0]))
 
     def evaluate(self, state: _State, columns: np.ndarray, reduce: bool = False, extra_rows: int = 0
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -236,9 +238,9 @@ class _ClosedLoopProblem:
         if self._measured_points is not None:
             return self._point_rows(state, block, columns, sensitivities)
         measured, twists = self.measured_frame_twists(state.setup, columns, sensitivities)
-        residual, rows = _residual_rows_batch(measured, self._measured_positions[block],
-                                              None if self._measured_rotations is None
-                                              else self._measured_rotations[block])
+        residual, rows = _residual_rows_batch(measured, self.measured_positions[block],
+                                              None if self.measured_rotations is None
+                                              else self.measured_rotations[block])
         return residual.reshape(-1), (rows @ twists).reshape(residual.size, -1)
 
     def _point_rows(self, state: _State, block: slice, columns: np.ndarray,
@@ -281,7 +283,7 @@ class _ClosedLoopProblem:
             n = len(self.residual(state))
             return np.full(n, np.inf), np.zeros((n, len(self.columns)))
         if state.whitened is None:
-            prior_values, prior_jacobian = self._prior_rows(state)
+            prior_values, prior_jacobian = self.prior_rows(state)
             residual, jacobian = self.evaluate(state, self.columns, extra_rows=len(prior_values))
             pose_rows = len(self.weights)
             residual[pose_rows:], jacobian[pose_rows:] = prior_values, prior_jacobian
@@ -445,7 +447,7 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
         max_iterations = default_iterations(base.rank)
     options = dict(max_iterations=max_iterations, initial_damping=1e-6, absolute_cost_tolerance=absolute_cost_tolerance,
                    cost_tolerance=max(cost_tolerance, 2.0 * step_significance / degrees_of_freedom))
-    result = _fit(problem, state, options)
+    result = fit_assembled(problem, state, options)
     if outlier_sigma is not None:
         result = _reject_outliers(problem, state, result, outlier_sigma, options)
     selection = None
@@ -453,7 +455,7 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
         selection, result = _select_parameters(problem, start, result, forced, options, groups)
     if refine:
         result = _refine(problem, result, refine_rank_tolerance, refine_iterations)
-    return replace(_calibration(mechanism, problem, start, result, base, selection), start=start, options=options)
+    return replace(calibration_result(mechanism, problem, start, result, base, selection), start=start, options=options)
 
 
 def _registered_setup(problem: _ClosedLoopProblem, start: _State, setup: MeasurementSetup, estimate_frame: bool,
@@ -463,9 +465,9 @@ def _registered_setup(problem: _ClosedLoopProblem, start: _State, setup: Measure
     platform = start.poses
     if estimate_frame:
         setup = replace(setup, frame=register_frame(MeasurementSetup(marker=setup.marker).measured_poses(platform),
-                                                    problem._measured_positions))
-    if estimate_marker and problem._measured_rotations is not None:
-        rotation = register_marker_rotation(setup.frame, platform, problem._measured_rotations)
+                                                    problem.measured_positions))
+    if estimate_marker and problem.measured_rotations is not None:
+        rotation = register_marker_rotation(setup.frame, platform, problem.measured_rotations)
         setup = replace(setup, marker=pin.SE3(rotation, setup.marker.translation))
     return setup
 
@@ -497,7 +499,8 @@ def _registered_points(problem: _ClosedLoopProblem, start: _State, setup: Measur
                    points=tuple((float(x), float(y), float(z)) for x, y, z in offsets))
 
 
-def _fit(problem: _ClosedLoopProblem, state: _State, options: dict) -> LMResult:
+def fit_assembled(problem: _ClosedLoopProblem, state: _State, options: dict) -> LMResult:
+    """`levenberg_marquardt` with `options`; IdentificationError when it ends on a model that does not assemble."""
     result = levenberg_marquardt(problem, state, **options)
     if result.state.model is None:
         raise IdentificationError("calibration ended on a model that does not assemble")
@@ -529,7 +532,7 @@ def _reject_outliers(problem: _ClosedLoopProblem, start: _State, result: LMResul
                                       "too few poses are left to fit the model")
         problem.active = ~flagged
         _release(result.state)
-        result = _fit(problem, replace(start, whitened=None), options)
+        result = fit_assembled(problem, replace(start, whitened=None), options)
     return result
 
 
@@ -559,7 +562,7 @@ def _select_parameters(problem: _ClosedLoopProblem, start: _State, result: LMRes
         return selection, result
     problem.columns = problem.columns[list(selection.indices)]
     _release(result.state)
-    return selection, _fit(problem, replace(start, whitened=None), options)
+    return selection, fit_assembled(problem, replace(start, whitened=None), options)
 
 
 def _refine(problem: _ClosedLoopProblem, result: LMResult, rank_tolerance: float, iterations: int) -> LMResult:
@@ -576,8 +579,10 @@ def _refine(problem: _ClosedLoopProblem, result: LMResult, rank_tolerance: float
     return levenberg_marquardt(problem, state, max_iterations=iterations, initial_damping=1e-9, cost_tolerance=1e-14)
 
 
-def _calibration(mechanism: Mechanism, problem: _ClosedLoopProblem, start: _State, result: LMResult,
-                 base: BaseParameters, selection: ParameterSelection | None) -> ClosedLoopCalibration:
+def calibration_result(mechanism: Mechanism, problem: _ClosedLoopProblem, start: _State, result: LMResult,
+                       base: BaseParameters, selection: ParameterSelection | None) -> ClosedLoopCalibration:
+    """The calibration a fit ended on: covariance and std from its final whitened Jacobian, the variance
+    factor, the inliers' RMS before and after, the outliers and the identified model."""
     final_residual, final_jacobian = problem.residual_and_jacobian(result.state)
     # Covariance of the fitted parameters from the noise model: (J^T W J)^-1 with whitened J.
     # From the SVD of J (of its triangular factor: the same singular values and right vectors, in
@@ -658,7 +663,7 @@ def cross_validate(calibration: ClosedLoopCalibration, folds: int = 5, seed: int
             held = inliers[assignment == fold]
             fold_problem.active = problem.active.copy()
             fold_problem.active[held] = False
-            result = _fit(fold_problem, replace(start, whitened=None), calibration.options)
+            result = fit_assembled(fold_problem, replace(start, whitened=None), calibration.options)
             residuals[assignment == fold] = fold_problem.pose_residuals(result.state)[held]
     else:
         r, J = problem.residual_and_jacobian(calibration.lm.state)
@@ -688,8 +693,8 @@ def default_iterations(n_parameters: int) -> int:
 _REFERENCE_POSES = 40  # a well-spread pose set on which the model's identifiable count is measured
 
 
-def _structural_rank(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int],
-                     rank_tolerance: float) -> int:
+def structural_rank(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int],
+                    rank_tolerance: float) -> int:
     """Number of identifiable parameters of the model and setup themselves, independent of the
     user's poses (`_reference_base`)."""
     return _reference_base(problem, marker, fixed_columns, rank_tolerance).rank
@@ -714,11 +719,6 @@ def _reference_base(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns:
 
 
 _STRUCTURAL_RANKS: dict[tuple, BaseParameters] = {}
-
-
-def _count_identifiable(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int],
-                        rank_tolerance: float) -> int:
-    return _reference_selection(problem, marker, fixed_columns, rank_tolerance).rank
 
 
 def _reference_selection(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int],

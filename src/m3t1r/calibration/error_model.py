@@ -134,7 +134,7 @@ class ClosedLoopErrorModel:
         """A copy of `model` with the parameter vector applied (eq. 33)."""
         return perturb(model, self.deltas(vector))
 
-    def _joint_twist_matrices(self, model: pin.Model, joints: np.ndarray) -> np.ndarray:
+    def joint_twist_matrices(self, model: pin.Model, joints: np.ndarray) -> np.ndarray:
         """G (N, 6, 6 n_joints): spatial twist (WORLD) per unit joint-placement error (eq. 17), from
         the joint placements oMi (N, njoints, 4, 4): block j = Ad(oMi[parent(j)] jointPlacements[j]),
         the columns of Pinocchio's WORLD kinematic regressor."""
@@ -177,7 +177,7 @@ class ClosedLoopErrorModel:
         placements = np.array([model.frames[f].placement.homogeneous for f in self._adjoint_frames])
         frames = joints[:, self._adjoint_joints] @ placements
         plan = self._column_plan(np.arange(self.n_parameters) if columns is None else np.asarray(columns, dtype=int))
-        G = self._joint_twist_matrices(model, joints)[:, :, plan.g_columns]
+        G = self.joint_twist_matrices(model, joints)[:, :, plan.g_columns]
         adjoints = adjoint_matrices(frames)
         dr_dp = np.zeros((n, solver.n_rows, plan.size))
         dr_dp[:, :, plan.joint_slots] = (operator @ G) * plan.row_masks

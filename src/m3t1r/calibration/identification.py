@@ -31,6 +31,7 @@ __all__ = [
     "TIE_TOLERANCE",
     "best_index",
     "pivoted_qr",
+    "project_out",
     "LMResult",
     "OUTLIER_SIGMA",
     "outlier_gate",
@@ -47,6 +48,7 @@ __all__ = [
     "select_base_parameters",
     "triangular_factor",
     "unexcited_parameters",
+    "without_column",
 ]
 
 #: Above this condition number of the kept, column-normalised Jacobian, a relative perturbation of
@@ -458,7 +460,7 @@ def _column_norms_of(matrix: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("ij,ij->j", matrix, matrix))
 
 
-def _project_out(matrix: np.ndarray, basis: np.ndarray) -> None:
+def project_out(matrix: np.ndarray, basis: np.ndarray) -> None:
     """matrix -= basis basis^T matrix, in place, a few columns at a time (orthonormal basis columns)."""
     if basis.shape[1] == 0:
         return
@@ -467,7 +469,7 @@ def _project_out(matrix: np.ndarray, basis: np.ndarray) -> None:
         block -= basis @ (basis.T @ block)
 
 
-def _without_column(matrix: np.ndarray, column: int) -> np.ndarray:
+def without_column(matrix: np.ndarray, column: int) -> np.ndarray:
     """`matrix` without `column`: the later columns shifted left in place, a few at a time, and a view
     of the first p - 1 returned (np.delete would copy the whole matrix)."""
     for start in range(column, matrix.shape[1] - 1, _UPDATE_COLUMNS):
@@ -504,7 +506,7 @@ def forward_selection(jacobian: ArrayLike, residual: ArrayLike, rows_per_pose: i
         projected[:, position] = J[:, column]
     norms = np.zeros(J.shape[1])
     norms[remaining] = _column_norms_of(projected)  # as the lengths below: a column is never longer than itself
-    _project_out(projected, basis)
+    project_out(projected, basis)
     chunk = max(1, int(2e6 // max(1, n * k * k)))  # candidates per batch: about 16 MB per (c, N, k, k) stack
     while remaining:
         lengths = _column_norms_of(projected)
@@ -527,8 +529,8 @@ def forward_selection(jacobian: ArrayLike, residual: ArrayLike, rows_per_pose: i
         leverage = leverage + np.einsum("ni,nj->nij", u.reshape(n, k), u.reshape(n, k))
         per_pose.append(_loo_press(fitted.reshape(n, k), leverage))
         chosen.append(remaining.pop(best))
-        projected = _without_column(projected, best)
-        _project_out(projected, u[:, None])
+        projected = without_column(projected, best)
+        project_out(projected, u[:, None])
     path = np.array([p.sum() for p in per_pose])
     best_size = int(np.argmin(path))
     differences = np.array(per_pose) - per_pose[best_size]

@@ -55,8 +55,10 @@ from m3t1r.calibration.serial_simulation import _checked_joint_noise, _readonly
 from m3t1r.errors import IdentificationError, InvalidInputError, real_array, require_count
 from m3t1r.model.poe import Placement, SerialChain, jlog3_batch, log3_batch, perturb, placement_poses, skew
 
-__all__ = ["PoseErrorRMS", "SerialCalibration", "calibrate_serial", "compliant_readings", "gravity_torques",
-           "moved_mass", "require_gravity_load"]
+__all__ = ["PoseErrorRMS", "SerialCalibration", "calibrate_serial", "compliant_readings", "fit_base", "gravity_torques",
+           "moved_mass", "nominal_state", "parse_measurements", "pose_error_rms", "pose_whitening", "prior_columns",
+           "reject_outliers", "require_gravity_load", "select_base", "select_parameters", "start_state",
+           "SerialLayout", "SerialProblem", "SerialResidual"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -117,7 +119,7 @@ class _Measurements:
 
 
 @dataclass(frozen=True)
-class _Layout:
+class SerialLayout:
     """The columns of the parameter vector x, in this order: the chain's 6 (n + 1) placement errors
     (`SerialChain.parameter_names`), the measurement frame's right-multiplied error F <- F exp6(df)
     (6, m and rad), the marker's K <- K exp6(dk) (6, or its 3 translations with positions only), and
@@ -209,7 +211,7 @@ class _Evaluation:
         self.jacobian: np.ndarray | None = None
 
 
-class _SerialResidual:
+class SerialResidual:
     """The whitened residual of every parameter of `layout`, as a function of the state (`_State`).
 
     Pose i is predicted as M_i = F g(q_i + c tau_i) K (module docstring); its residual is
@@ -219,11 +221,11 @@ class _SerialResidual:
     """
 
     def __init__(self, chain: SerialChain, data: _Measurements, whitening: np.ndarray,
-                 layout: _Layout | None = None, torques: np.ndarray | None = None) -> None:
+                 layout: SerialLayout | None = None, torques: np.ndarray | None = None) -> None:
         self.chain = chain
         self.data = data
         self.whitening = whitening  # (N, k, k): inverse Cholesky factor of each pose's covariance
-        self.layout = layout or _Layout(chain.n_joints)
+        self.layout = layout or SerialLayout(chain.n_joints)
         self.torques = torques  # (N, n) gravity torques tau(q) (Nm or N), for the compliance columns
         self._state: _State | None = None
         self._evaluation: _Evaluation | None = None
@@ -371,14 +373,14 @@ class _SerialResidual:
         return _State(out, frame, marker, compliance, accumulated, points)
 
 
-class _SerialProblem:
+class SerialProblem:
     """The whitened calibration residual over some columns, for `levenberg_marquardt`.
 
     active: (N,) poses that count (flagged outliers are zero rows); priors: {column: sigma} add a
     row x_c / sigma (Tikhonov, toward the start) per column with a prior, sigma in m, rad or rad/Nm.
     """
 
-    def __init__(self, residual: _SerialResidual, columns: Sequence[int] | np.ndarray,
+    def __init__(self, residual: SerialResidual, columns: Sequence[int] | np.ndarray,
                  priors: Mapping[int, float] | None = None) -> None:
         self._residual = residual
         self.columns = np.asarray(columns, dtype=int)
@@ -386,7 +388,7 @@ class _SerialProblem:
         self.active = np.ones(residual.data.q.shape[0], dtype=bool)
 
     @property
-    def model(self) -> _SerialResidual:
+    def model(self) -> SerialResidual:
         return self._residual
 
     def _mask(self) -> np.ndarray | None:
@@ -430,7 +432,7 @@ class _SerialProblem:
         return int(np.count_nonzero(self._residual.data.seen[self.active])) + picked - len(self.columns)
 
 
-def _readonly_state(chain: SerialChain, model: pin.Model, setup: MeasurementSetup | None = None) -> _State:
+def nominal_state(chain: SerialChain, model: pin.Model, setup: MeasurementSetup | None = None) -> _State:
     """The starting state: `model`'s initial poses, and the setup's frame and marker (default identity)."""
     transforms = chain.initial_transforms(model)
     transforms.flags.writeable = False
@@ -439,8 +441,8 @@ def _readonly_state(chain: SerialChain, model: pin.Model, setup: MeasurementSetu
     return _State(transforms, _readonly(setup.frame.homogeneous), _readonly(setup.marker.homogeneous))
 
 
-def _whitening(chain: SerialChain, state: _State, data: _Measurements, noise: TrackerNoise,
-               joint_noise: float) -> np.ndarray:
+def pose_whitening(chain: SerialChain, state: _State, data: _Measurements, noise: TrackerNoise,
+                   joint_noise: float) -> np.ndarray:
     """Inverse Cholesky factors (N, k, k) of the residual covariance of each pose.
 
     Cov = diag(sigma_p^2 I3 [, sigma_R^2 I3]) + J_q sigma_q^2 J_q^T, with sigma_p, sigma_R the
@@ -457,7 +459,7 @@ def _whitening(chain: SerialChain, state: _State, data: _Measurements, noise: Tr
     seen = data.seen
     if joint_noise == 0.0:
         return np.diag(1.0 / sigmas)[None] * seen[:, :, None]
-    unit = _SerialResidual(chain, data, np.broadcast_to(np.eye(k), (n_poses, k, k)))
+    unit = SerialResidual(chain, data, np.broadcast_to(np.eye(k), (n_poses, k, k)))
     rows = unit.residual_and_jacobian(state)[1].reshape(n_poses, k, -1)
     n = chain.n_joints
     # Column k of the joint Jacobian is block k of the error Jacobian applied to S_k:
@@ -563,9 +565,11 @@ def _parse_points(q: np.ndarray, measured_points: ArrayLike) -> _Measurements:
     return _Measurements(q=q, positions=points.reshape(len(points), -1), rotations=None, n_points=points.shape[1])
 
 
-def _parse_measurements(
+def parse_measurements(
     chain: SerialChain, q_readings: ArrayLike, measured_poses: Sequence[pin.SE3] | ArrayLike, position_only: bool
 ) -> _Measurements:
+    """The checked measurements: joint readings (N, n) [rad or m] and SE3 poses, (N, 7) [x, y, z, qx, qy, qz, qw]
+    rows [m], (N, 3) positions [m] (with `position_only`) or (N, P, 3) points; InvalidInputError names the row."""
     q = real_array(q_readings, "q_readings")
     if q.ndim != 2 or q.shape[1] != chain.n_joints:
         raise InvalidInputError(f"q_readings: expected shape (N, {chain.n_joints}), got {q.shape}")
@@ -606,7 +610,7 @@ def _parse_measurements(
     return _Measurements(q=q, positions=positions, rotations=None if position_only else rotations)
 
 
-def _rms(residual: np.ndarray, seen: np.ndarray | None = None) -> PoseErrorRMS:
+def pose_error_rms(residual: np.ndarray, seen: np.ndarray | None = None) -> PoseErrorRMS:
     """RMS of the pose errors of residual rows (N, k); with `seen` (N, 3 P), of every point seen."""
     if seen is not None:
         squared = np.sum(residual.reshape(len(residual), -1, 3) ** 2, axis=2)[seen[:, ::3]]
@@ -626,7 +630,7 @@ class SerialCalibration:
     deltas: identified dt = log6(T(0)^-1 T_c(0)) per placement of `chain.placements()` ([v; w], m, rad).
     setup: the measurement frame and marker, estimated or as given.
     compliance: {joint: c} (rad/Nm, m/N) of the joints whose compliance was fitted; q -> q + c tau(q).
-    names: every candidate parameter (`_Layout`: placements, setup, compliance); values: each one's
+    names: every candidate parameter (`SerialLayout`: placements, setup, compliance); values: each one's
         identified change from the start (zero where not fitted).
     base: the identifiable parameters (column-pivoted QR, the setup's kept first: the gauge);
         fitted: the names finally fitted (base, or fewer after model selection), fitted_indices
@@ -661,7 +665,7 @@ class SerialCalibration:
     values: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     compliance: Mapping[str, float] = field(default_factory=dict)
     selection: ParameterSelection | None = field(default=None, repr=False)
-    _problem: _SerialProblem | None = field(default=None, repr=False)
+    _problem: SerialProblem | None = field(default=None, repr=False)
     _start: _State | None = field(default=None, repr=False)
     _solve: Callable[..., LMResult] | None = field(default=None, repr=False)
 
@@ -670,7 +674,8 @@ class SerialCalibration:
         return dict(zip(self.fitted, map(float, self.parameter_std)))
 
 
-def _prior_columns(names: Sequence[str], priors: Mapping[str, float] | None) -> dict[int, float]:
+def prior_columns(names: Sequence[str], priors: Mapping[str, float] | None) -> dict[int, float]:
+    """The column of each parameter a prior of sigma (m, rad or rad/Nm) names, by parameter or placement."""
     out: dict[int, float] = {}
     for name, sigma in (priors or {}).items():
         if not (np.isfinite(sigma) and sigma > 0.0):
@@ -679,8 +684,8 @@ def _prior_columns(names: Sequence[str], priors: Mapping[str, float] | None) -> 
     return out
 
 
-def _start_state(chain: SerialChain, model: pin.Model, data: _Measurements, setup: MeasurementSetup,
-                 estimate_frame: bool, estimate_marker: bool, compliance: bool) -> _State:
+def start_state(chain: SerialChain, model: pin.Model, data: _Measurements, setup: MeasurementSetup,
+                estimate_frame: bool, estimate_marker: bool, compliance: bool) -> _State:
     """The nominal robot with the given setup, and closed-form starts for what is estimated.
 
     estimate_frame: F from the rigid registration of the nominal predictions g(q) K to the measured
@@ -689,7 +694,7 @@ def _start_state(chain: SerialChain, model: pin.Model, data: _Measurements, setu
     projection) to sum_i (R_F R_g,i)^T R_meas,i, so that a marker given by its position alone
     (unknown axes) starts right too.
     """
-    state = _readonly_state(chain, model, setup)
+    state = nominal_state(chain, model, setup)
     tool = placement_poses(chain, state.transforms, data.q)[:, -1]
     if data.n_points:
         return _point_start(state, tool, data, estimate_frame, compliance)
@@ -733,8 +738,8 @@ def _point_start(state: _State, tool: np.ndarray, data: _Measurements, estimate_
     return state
 
 
-def _select_base(problem: _SerialProblem, state: _State, names: Sequence[str], rank_tolerance: float,
-                 fixed: Sequence[int]) -> BaseParameters:
+def select_base(problem: SerialProblem, state: _State, names: Sequence[str], rank_tolerance: float,
+                fixed: Sequence[int]) -> BaseParameters:
     """Base parameters of the whitened Jacobian at `state`, fixed columns zeroed, setup kept first."""
     J = problem.model.residual_and_jacobian(state)[1]
     if len(fixed):
@@ -743,12 +748,12 @@ def _select_base(problem: _SerialProblem, state: _State, names: Sequence[str], r
     return select_base_parameters(J, names, rank_tolerance, forced=problem.model.layout.setup_columns)
 
 
-def _fit_base(problem: _SerialProblem, start: _State, names: Sequence[str], rank_tolerance: float, fixed: Sequence[int],
-              solve: Callable[..., LMResult]) -> tuple[BaseParameters, LMResult, int]:
+def fit_base(problem: SerialProblem, start: _State, names: Sequence[str], rank_tolerance: float, fixed: Sequence[int],
+             solve: Callable[..., LMResult]) -> tuple[BaseParameters, LMResult, int]:
     """Select the base parameters at the start, fit them; while the rank is below the structural
     bound, re-select at the estimate and resume (nominal CAD geometry can hide parameters, e.g.
     UR's tool point on the last joint axis hides two from position measurements)."""
-    base = _select_base(problem, start, names, rank_tolerance, fixed)
+    base = select_base(problem, start, names, rank_tolerance, fixed)
     problem.columns = np.array(base.indices)
     result = solve(problem, start)
     iterations = result.iterations
@@ -756,7 +761,7 @@ def _fit_base(problem: _SerialProblem, start: _State, names: Sequence[str], rank
     bound = problem.model.chain.rank_bound(problem.model.data.rotations is None) + (
         layout.n_joints if layout.compliance else 0)
     for _ in range(_MAX_RESELECTIONS if base.rank < bound else 0):
-        candidate = _select_base(problem, result.state, names, rank_tolerance, fixed)
+        candidate = select_base(problem, result.state, names, rank_tolerance, fixed)
         if candidate.rank <= base.rank:
             break
         base = candidate
@@ -766,8 +771,8 @@ def _fit_base(problem: _SerialProblem, start: _State, names: Sequence[str], rank
     return base, result, iterations
 
 
-def _reject_outliers(problem: _SerialProblem, start: _State, result: LMResult, sigma: float,
-                     solve: Callable[..., LMResult]) -> tuple[LMResult, int]:
+def reject_outliers(problem: SerialProblem, start: _State, result: LMResult, sigma: float,
+                    solve: Callable[..., LMResult]) -> tuple[LMResult, int]:
     """Flag poses beyond `sigma` noise sigmas (`outlier_poses`), refit from the start without them,
     re-judge every pose; until the flagged set is stable (at most _MAX_OUTLIER_ROUNDS refits)."""
     iterations = 0
@@ -787,8 +792,8 @@ def _reject_outliers(problem: _SerialProblem, start: _State, result: LMResult, s
     return result, iterations
 
 
-def _select_parameters(problem: _SerialProblem, start: _State, result: LMResult, solve: Callable[..., LMResult],
-                       groups: ArrayLike | None = None) -> tuple[ParameterSelection, LMResult, int]:
+def select_parameters(problem: SerialProblem, start: _State, result: LMResult, solve: Callable[..., LMResult],
+                      groups: ArrayLike | None = None) -> tuple[ParameterSelection, LMResult, int]:
     """Forward selection by leave-one-pose-out PRESS of the fit linearised at the estimate (the
     residual at the start is about r - J x, x the accumulated step), the setup forced; a smaller
     set is refitted from the start."""
@@ -870,39 +875,39 @@ def calibrate_serial(
     chain.check_model(model)
     outlier_sigma = checked_outlier_sigma(outlier_sigma)
     max_iterations = require_count(max_iterations, "max_iterations")
-    data = _parse_measurements(chain, q_readings, measured_poses, position_only)
+    data = parse_measurements(chain, q_readings, measured_poses, position_only)
     if data.n_points:
-        layout = _Layout(chain.n_joints, estimate_frame, 3 * data.n_points, compliance, data.n_points)
+        layout = SerialLayout(chain.n_joints, estimate_frame, 3 * data.n_points, compliance, data.n_points)
     else:
-        layout = _Layout(chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0,
-                         compliance)
+        layout = SerialLayout(chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0,
+                              compliance)
     names = layout.names(chain)
     fixed_columns = parameter_columns(names, fixed, "fixed parameter")
     if len(set(fixed_columns)) == layout.size:
         raise IdentificationError(f"all {layout.size} candidate parameters are held fixed: nothing is left to fit "
                                   "(estimate the measurement frame, a marker or compliance, or fix fewer)")
-    start = _start_state(chain, model, data, setup or MeasurementSetup(), estimate_frame, estimate_marker,
-                         compliance)
+    start = start_state(chain, model, data, setup or MeasurementSetup(), estimate_frame, estimate_marker,
+                        compliance)
     if compliance:
         require_gravity_load(model, chain)
     torques = gravity_torques(model, chain, data.q) if compliance else None
-    whitening = _whitening(chain, start, data, noise, _checked_joint_noise(joint_noise))
-    residual = _SerialResidual(chain, data, whitening, layout, torques)
-    problem = _SerialProblem(residual, np.arange(layout.size), _prior_columns(names, priors))
+    whitening = pose_whitening(chain, start, data, noise, _checked_joint_noise(joint_noise))
+    residual = SerialResidual(chain, data, whitening, layout, torques)
+    problem = SerialProblem(residual, np.arange(layout.size), prior_columns(names, priors))
     solve = functools.partial(levenberg_marquardt, max_iterations=max_iterations, initial_damping=_INITIAL_DAMPING,
                               absolute_cost_tolerance=absolute_cost_tolerance)
-    base, result, iterations = _fit_base(problem, start, names, rank_tolerance, fixed_columns, solve)
+    base, result, iterations = fit_base(problem, start, names, rank_tolerance, fixed_columns, solve)
     if outlier_sigma is not None:
-        result, more = _reject_outliers(problem, start, result, outlier_sigma, solve)
+        result, more = reject_outliers(problem, start, result, outlier_sigma, solve)
         iterations += more
     selection = None
     if select:
-        selection, result, more = _select_parameters(problem, start, result, solve, groups)
+        selection, result, more = select_parameters(problem, start, result, solve, groups)
         iterations += more
     return _result(model, problem, start, result, base, selection, iterations, solve)
 
 
-def _result(model: pin.Model, problem: _SerialProblem, start: _State, result: LMResult, base: BaseParameters,
+def _result(model: pin.Model, problem: SerialProblem, start: _State, result: LMResult, base: BaseParameters,
             selection: ParameterSelection | None, iterations: int, solve: Callable[..., LMResult]) -> SerialCalibration:
     residual, state = problem.model, result.state
     chain, layout = residual.chain, residual.layout
@@ -933,8 +938,8 @@ def _result(model: pin.Model, problem: _SerialProblem, start: _State, result: LM
         covariance=covariance, parameter_std=std,
         variance_factor=float(r @ r / dof) if dof > 0 else float("nan"),
         iterations=iterations, converged=result.converged,
-        residual_before=_rms(residual.raw_residual(start)[inliers], seen),
-        residual_after=_rms(residual.raw_residual(state)[inliers], seen),
+        residual_before=pose_error_rms(residual.raw_residual(start)[inliers], seen),
+        residual_after=pose_error_rms(residual.raw_residual(state)[inliers], seen),
         position_only=residual.data.rotations is None,
         setup=_fitted_setup(state),
         termination=result.termination, outliers=tuple(int(i) for i in np.flatnonzero(~inliers)),

@@ -47,8 +47,9 @@ from m3t1r.model.newton_rules import DEFAULT_RULES, NewtonRules
 from m3t1r.model.poe import jlog3_batch, log3_batch, skew
 from m3t1r.model.task import TaskSpec
 
-__all__ = ["RowFailure", "ForwardBatch", "InverseBatch", "StackedKinematics",
-           "rpy_batch"]
+__all__ = ["RowFailure", "ForwardBatch", "InverseBatch", "StackedKinematics", "apply_last", "apply_transposed_last",
+           "cross_last", "evaluate_rows", "first_step_from_home", "jlog3_coefficients", "rpy_batch", "skew_last",
+           "stack_inverses", "start_configurations", "times_last", "weld_rows", "RowFactors", "SolvedRows"]
 
 _CHUNK = 2048  # rows solved together: bounds memory (about 40 MB of arrays per chunk)
 
@@ -123,7 +124,7 @@ def rpy_batch(rotations: np.ndarray) -> np.ndarray:
                      np.arctan2(r[..., 1, 0], r[..., 0, 0])], axis=-1)
 
 
-def _jlog3_t_series(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def jlog3_coefficients(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """b(a) = 1/a^2 - 1/(2 a tan(a/2)) and b'(a)/a, with their series below a = 1e-2."""
     small = angles < 1e-2
     a = np.where(small, 1.0, angles)
@@ -154,22 +155,22 @@ def _joint_axis(joint, joint_name: str) -> tuple[np.ndarray, bool]:
                                             "(1-DoF revolute or prismatic joints only)")
 
 
-def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def times_last(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Products of 3 x 3 matrices stored poses-last, (..., 3, 3, n) @ (..., 3, 3, n or 1)."""
     return np.einsum("...ijn,...jkn->...ikn", a, b)
 
 
-def _apply(a: np.ndarray, v: np.ndarray) -> np.ndarray:
+def apply_last(a: np.ndarray, v: np.ndarray) -> np.ndarray:
     """a v for 3 x 3 matrices (..., 3, 3, n) and vectors (..., 3, n or 1) stored poses-last."""
     return a[..., :, 0, :] * v[..., 0:1, :] + a[..., :, 1, :] * v[..., 1:2, :] + a[..., :, 2, :] * v[..., 2:3, :]
 
 
-def _apply_transposed(a: np.ndarray, v: np.ndarray) -> np.ndarray:
+def apply_transposed_last(a: np.ndarray, v: np.ndarray) -> np.ndarray:
     """a^T v for 3 x 3 matrices (..., 3, 3, n) and vectors (..., 3, n) stored poses-last."""
     return a[..., 0, :, :] * v[..., 0:1, :] + a[..., 1, :, :] * v[..., 1:2, :] + a[..., 2, :, :] * v[..., 2:3, :]
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross_last(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a x b for vectors (..., 3, n) stored poses-last."""
     out = np.empty(np.broadcast_shapes(a.shape, b.shape))
     out[..., 0, :] = a[..., 1, :] * b[..., 2, :] - a[..., 2, :] * b[..., 1, :]
@@ -178,7 +179,7 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-def _skew_last(v: np.ndarray) -> np.ndarray:
+def skew_last(v: np.ndarray) -> np.ndarray:
     """Cross-product matrices [v] (3, 3, n) of vectors (3, n) stored poses-last."""
     out = np.zeros((3, 3) + v.shape[1:])
     out[0, 1], out[0, 2], out[1, 2] = -v[2], v[1], -v[0]
@@ -186,8 +187,8 @@ def _skew_last(v: np.ndarray) -> np.ndarray:
     return out
 
 
-def _weld_rows(rotation_a: np.ndarray, position_a: np.ndarray, rotation_b: np.ndarray,
-               position_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def weld_rows(rotation_a: np.ndarray, position_a: np.ndarray, rotation_b: np.ndarray,
+              position_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A 6D closure between frames a and b (poses last): residual log6(aMb) = [v; w] (6, n) and the
     operator Jlog6(aMb) Ad(oMb^-1) = [[A, B]; [0, A]] on WORLD twists, as A, B (3, 3, n).
 
@@ -195,19 +196,19 @@ def _weld_rows(rotation_a: np.ndarray, position_a: np.ndarray, rotation_b: np.nd
     X = d v / d w = 1/2 [p] + (b'(a)/a) ([w]^2 p) w^T - b(a) ([w x p] + [w][p]):
     A = Jl R_b^T, B = X A - A [p_b].
     """
-    rotation = _times(rotation_a.transpose(1, 0, 2), rotation_b)
-    p = _apply_transposed(rotation_a, position_b - position_a)
+    rotation = times_last(rotation_a.transpose(1, 0, 2), rotation_b)
+    p = apply_transposed_last(rotation_a, position_b - position_a)
     logs, angles = log3_batch(rotation.transpose(2, 0, 1))
     w = logs.T
-    b, db_over_a = _jlog3_t_series(angles)
-    w_skew, p_skew = _skew_last(w), _skew_last(p)
-    w_skew2 = _times(w_skew, w_skew)
+    b, db_over_a = jlog3_coefficients(angles)
+    w_skew, p_skew = skew_last(w), skew_last(p)
+    w_skew2 = times_last(w_skew, w_skew)
     jlog3 = np.eye(3)[..., None] + 0.5 * w_skew + b * w_skew2
-    v = _apply_transposed(jlog3, p)
-    x = 0.5 * p_skew + db_over_a * _apply(w_skew2, p)[:, None, :] * w[None, :, :] \
-        - b * (_skew_last(_cross(w, p)) + _times(w_skew, p_skew))
-    a = _times(jlog3, rotation_b.transpose(1, 0, 2))
-    return np.concatenate((v, w)), a, _times(x, a) - _times(a, _skew_last(position_b))
+    v = apply_transposed_last(jlog3, p)
+    x = 0.5 * p_skew + db_over_a * apply_last(w_skew2, p)[:, None, :] * w[None, :, :] \
+        - b * (skew_last(cross_last(w, p)) + times_last(w_skew, p_skew))
+    a = times_last(jlog3, rotation_b.transpose(1, 0, 2))
+    return np.concatenate((v, w)), a, times_last(x, a) - times_last(a, skew_last(position_b))
 
 
 class StackedTree:
@@ -256,17 +257,17 @@ class StackedTree:
         for level in self.levels:
             parent = self.parent[level - 1]
             parent_r = rot[parent]
-            rot[level] = _times(parent_r, local_r[level - 1])
-            pos[level] = pos[parent] + _apply(parent_r, local_p[level - 1])
+            rot[level] = times_last(parent_r, local_r[level - 1])
+            pos[level] = pos[parent] + apply_last(parent_r, local_p[level - 1])
         return rot, pos
 
     def twists(self, rot: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Columns of the WORLD joint Jacobian (`pin.computeJointJacobians`), poses last: linear
         (nv, 3, n) and angular (nv, 3, n) parts. Joint j's column is [p_j x w_j; w_j] (revolute) or
         [w_j; 0] (prismatic), w_j = R_j a_j."""
-        w = _apply(rot[1:], self.axes_last)
+        w = apply_last(rot[1:], self.axes_last)
         linear, angular = np.empty_like(w), np.zeros_like(w)
-        linear[self.q_index] = np.where(self.revolute[:, None, None], _cross(pos[1:], w), w)
+        linear[self.q_index] = np.where(self.revolute[:, None, None], cross_last(pos[1:], w), w)
         angular[self.q_index[self.revolute]] = w[self.revolute]
         return linear, angular
 
@@ -330,7 +331,7 @@ class StackedKinematics:
             self.weld_pairs.append((columns, full_mask[slot, columns][:, None, None],
                                     slot + np.arange(6)[None, :] + 0 * columns[:, None]))
         self.passive, self.actuated = solver.passive, solver.actuated
-        self.blocks = [(np.asarray(r), np.asarray(c)) for r, c in solver._branch_blocks]
+        self.blocks = [(np.asarray(r), np.asarray(c)) for r, c in solver.branch_blocks]
         support = np.zeros(model.nv)
         for j in model.supports[model.frames[task_frame].parentJoint][1:]:
             support[model.idx_vs[j]] = 1.0
@@ -352,8 +353,8 @@ class StackedKinematics:
         Jacobian columns, linear (nv, 3, n) and angular (nv, 3, n): all poses last."""
         rot, pos = self.tree.joints(q)
         parent_r = rot[self.frame_parent]
-        frot = _times(parent_r, self.frame_r[..., None])
-        fpos = pos[self.frame_parent] + _apply(parent_r, self.frame_p[..., None])
+        frot = times_last(parent_r, self.frame_r[..., None])
+        fpos = pos[self.frame_parent] + apply_last(parent_r, self.frame_p[..., None])
         return (frot, fpos) + self.tree.twists(rot, pos)
 
     def closures(self, q: np.ndarray, with_jacobian: bool = True) -> tuple:
@@ -369,17 +370,18 @@ class StackedKinematics:
         n = len(q)
         full = np.empty((self.n_full, n))
         ra, pb = frot[self.point_a], fpos[self.point_b]
-        full[self.point_rows] = _apply_transposed(ra, pb - fpos[self.point_a]).reshape(-1, n)
+        full[self.point_rows] = apply_transposed_last(ra, pb - fpos[self.point_a]).reshape(-1, n)
         jac = np.zeros((self.n_full, len(linear), n)) if with_jacobian else None
         if jac is not None and len(self.pair_point):
             column = self.pair_column
-            moved = linear[column] - _cross(pb[self.pair_point], angular[column])
-            jac[self.pair_rows, column[:, None]] = self.pair_sign * _apply_transposed(ra[self.pair_point], moved)
+            moved = linear[column] - cross_last(pb[self.pair_point], angular[column])
+            jac[self.pair_rows, column[:, None]] = self.pair_sign * apply_transposed_last(ra[self.pair_point], moved)
         for (slot, ia, ib), (columns, sign, rows) in zip(self.weld, self.weld_pairs):
-            full[slot:slot + 6], a, b = _weld_rows(frot[ia], fpos[ia], frot[ib], fpos[ib])
+            full[slot:slot + 6], a, b = weld_rows(frot[ia], fpos[ia], frot[ib], fpos[ib])
             if jac is not None:
                 v, w = linear[columns], angular[columns]
-                jac[rows, columns[:, None]] = sign * np.concatenate((_apply(a, v) + _apply(b, w), _apply(a, w)), axis=1)
+                moved_rows = (apply_last(a, v) + apply_last(b, w), apply_last(a, w))
+                jac[rows, columns[:, None]] = sign * np.concatenate(moved_rows, axis=1)
         world = np.concatenate((linear, angular), axis=1).transpose(2, 1, 0)  # (n, 6, nv), a view
         frames = frot.transpose(3, 0, 1, 2), fpos.transpose(2, 0, 1)  # (n, F, 3, 3), (n, F, 3) views
         residual = full[self.enforced].T
@@ -426,7 +428,7 @@ _REASONS = {1: "the closures cannot be assembled here (target out of the workspa
             4: "the solution lies on another assembly branch than the start (Newton crossed a singularity)"}
 
 
-def _inverses(square: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def stack_inverses(square: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Inverses (m, k, k) of a stack and a mask of the exactly singular matrices (inverse left zero):
     one singular row must not fail the whole stack."""
     try:
@@ -442,7 +444,7 @@ def _inverses(square: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @dataclass
-class _Solved:
+class SolvedRows:
     """Raw outcome of a batched Newton solve: per row q, status code, residual, steps, platform pose."""
 
     q: np.ndarray
@@ -453,7 +455,7 @@ class _Solved:
     position: np.ndarray
 
 
-class _Factors:
+class RowFactors:
     """Per-row inverse Jacobians (chord steps reuse them), their 1-norm reciprocal condition and
     branch labels at the last Jacobian, and the labels at the first one."""
 
@@ -465,7 +467,7 @@ class _Factors:
     def refresh(self, rows: np.ndarray, jac: np.ndarray, unknowns: np.ndarray, signature) -> np.ndarray:
         """Factor the Jacobians of `rows` (ids); returns the mask of exactly singular ones."""
         square = jac[:, :, unknowns]
-        inverse, singular = _inverses(square)
+        inverse, singular = stack_inverses(square)
         labels = signature(jac, square)
         if self.labels is None:
             self.labels = np.zeros((len(self.rcond), labels.shape[1]), dtype=bool)
@@ -477,8 +479,8 @@ class _Factors:
         return singular
 
 
-def _evaluate_rows(q: np.ndarray, active: np.ndarray, previous: np.ndarray, rules: NewtonRules, system,
-                   factors: _Factors, unknowns: np.ndarray, signature) -> tuple:
+def evaluate_rows(q: np.ndarray, active: np.ndarray, previous: np.ndarray, rules: NewtonRules, system,
+                  factors: RowFactors, unknowns: np.ndarray, signature) -> tuple:
     """Residual, platform pose and singular mask of the `active` rows after a step. Rows whose last
     residual was above `rules.chord_below` get a Jacobian (Newton); the others get the residual alone
     (chord), and a Jacobian too when that step contracted by less than `rules.chord_contraction`."""
@@ -504,12 +506,12 @@ def _evaluate_rows(q: np.ndarray, active: np.ndarray, previous: np.ndarray, rule
 
 
 def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: NewtonRules,
-                 steps_taken: int = 0, branch: np.ndarray | None = None) -> _Solved:
+                 steps_taken: int = 0, branch: np.ndarray | None = None) -> SolvedRows:
     """Chord Newton on n independent square systems at once; rows leave the active set as they finish.
 
     system(q_rows, rows, with_jacobian) -> (residual (m, r), Jacobian (m, r, nv) or None, platform
     rotation (m, 3, 3), position (m, 3)); signature(jac, square) -> (m, s) bool branch labels. Under
-    `rules`, as `ClosedLoopSolver._newton`: a step solves J[:, unknowns] dx = -r with the inverse of the
+    `rules`, as `ClosedLoopSolver.newton`: a step solves J[:, unknowns] dx = -r with the inverse of the
     row's last Jacobian, the largest component capped at rules.max_step; the Jacobian is evaluated at
     the start, after steps from residuals above rules.chord_below, and for rows whose residual
     contracted by less than rules.chord_contraction. A row converges when max|r| <= rules.tolerance;
@@ -522,9 +524,9 @@ def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: 
     """
     n = len(q)
     q = q.copy()
-    out = _Solved(q, np.full(n, _ACTIVE), np.full(n, np.inf), np.zeros(n, dtype=int),
-                  np.zeros((n, 3, 3)), np.zeros((n, 3)))
-    factors, previous = _Factors(n, len(unknowns)), np.full(n, np.inf)
+    out = SolvedRows(q, np.full(n, _ACTIVE), np.full(n, np.inf), np.zeros(n, dtype=int),
+                     np.zeros((n, 3, 3)), np.zeros((n, 3)))
+    factors, previous = RowFactors(n, len(unknowns)), np.full(n, np.inf)
     active = np.arange(n)
     residual, jac, rot, pos = system(q, active, True)
     singular = factors.refresh(active, jac, unknowns, signature)
@@ -554,14 +556,14 @@ def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: 
         biggest = np.abs(step).max(axis=1)
         step *= np.minimum(1.0, rules.max_step / np.maximum(biggest, 1e-300))[:, None]
         q[active[:, None], unknowns[None, :]] -= step
-        residual, rot, pos, singular = _evaluate_rows(q, active, previous[active], rules, system,
-                                                      factors, unknowns, signature)
+        residual, rot, pos, singular = evaluate_rows(q, active, previous[active], rules, system,
+                                                     factors, unknowns, signature)
     left = out.status == _ACTIVE
     out.status[left] = np.where(out.norm[left] > rules.no_assembly, 1, 2)
     return out
 
 
-def failures_of(solved: _Solved, offset: int, what: str,
+def failures_of(solved: SolvedRows, offset: int, what: str,
                 singular_rcond: float = DEFAULT_RULES.singular_rcond) -> list[RowFailure]:
     """Typed failures of the rows of `solved` that did not converge (indices shifted by `offset`);
     singular rows name `singular_rcond`, the threshold they fell below."""
@@ -572,7 +574,7 @@ def failures_of(solved: _Solved, offset: int, what: str,
             for i in np.flatnonzero((solved.status != _CONVERGED) & (solved.status != _LIMIT))]
 
 
-def _starts(kin: StackedKinematics, n: int, q_init: np.ndarray | None) -> np.ndarray:
+def start_configurations(kin: StackedKinematics, n: int, q_init: np.ndarray | None) -> np.ndarray:
     """Start configurations (n, nq): home by default, one nq vector for every row, or one per row."""
     nq = kin.solver.model.nq
     if q_init is None:
@@ -616,7 +618,7 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
     workers = _thread_count(threads)
     names = solver.mechanism.actuated_joints
     values = _rows(sliders, len(names), "actuator values", names)
-    start = _starts(kin, len(values), q_init)
+    start = start_configurations(kin, len(values), q_init)
     outside = (values < solver._act_lower) | (values > solver._act_upper)
     failures = [RowFailure(int(i), f"actuator '{names[int(np.argmax(outside[i]))]}' = "
                            f"{values[i, np.argmax(outside[i])]:.6g} is beyond its joint limit", InvalidInputError)
@@ -650,10 +652,10 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
     return _forward_result(kin, len(values), parts, failures)
 
 
-def _native_solved(q: np.ndarray, outcome: tuple) -> _Solved:
+def _native_solved(q: np.ndarray, outcome: tuple) -> SolvedRows:
     """A compiled row solve of q (`NativeChain.forward_rows` / `inverse_rows`) as `newton_batch`'s result."""
     status, norm, iterations, platform = outcome
-    return _Solved(q, status, norm, iterations, platform[:, :3, :3], platform[:, :3, 3])
+    return SolvedRows(q, status, norm, iterations, platform[:, :3, :3], platform[:, :3, 3])
 
 
 def _thread_count(threads: int | None) -> int:
@@ -714,8 +716,8 @@ def task_rows(task: TaskSpec, rot: np.ndarray, pos: np.ndarray, twist: np.ndarra
     return np.concatenate(residual, axis=1), np.concatenate(jacobian, axis=1)
 
 
-def _first_step_from_home(kin: StackedKinematics, start: np.ndarray, rows: np.ndarray, goal: np.ndarray,
-                          signature) -> np.ndarray | None:
+def first_step_from_home(kin: StackedKinematics, start: np.ndarray, rows: np.ndarray, goal: np.ndarray,
+                         signature) -> np.ndarray | None:
     """Newton's first IK step from home for `rows` at once, in place on `start` (n, nq); returns the
     branch labels at home (the rows' reference), or None (start untouched) if home is singular.
 
@@ -731,7 +733,7 @@ def _first_step_from_home(kin: StackedKinematics, start: np.ndarray, rows: np.nd
                                         np.broadcast_to(world * kin.task_support, (n,) + world.shape[1:]), goal[rows], None)
     full_jac = np.concatenate((jac, task_jac[:1]), axis=1)
     square = full_jac[:, :, kin.unknowns]
-    inverse, singular = _inverses(square)
+    inverse, singular = stack_inverses(square)
     if singular[0] or 1.0 / (np.abs(square).sum(axis=1).max() * np.abs(inverse).sum(axis=1).max()) < kin.solver.singular_rcond:
         return None
     residual = np.concatenate((np.broadcast_to(closure, (n, closure.shape[1])), task_residual), axis=1)
@@ -757,7 +759,7 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
     solver.check_square_task()
     goal = task.goals(_rows(targets, len(task.columns), "targets", task.columns))
     goal_rot = task.target_rotations(goal)
-    start = _starts(kin, len(goal), q_init)
+    start = start_configurations(kin, len(goal), q_init)
     every = kin.unknowns
 
     def system(q: np.ndarray, active: np.ndarray, with_jacobian: bool):
@@ -779,7 +781,7 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
     for chunk in np.array_split(np.arange(len(goal)), max(1, -(-len(goal) // size))) if len(goal) else []:
         branch = None
         if q_init is None and task.rotation != "full":
-            branch = _first_step_from_home(kin, start, chunk, goal, signature)
+            branch = first_step_from_home(kin, start, chunk, goal, signature)
         if solver.native is not None:
             q = start[chunk]
             solved = _native_solved(q, solver.native.inverse_rows(

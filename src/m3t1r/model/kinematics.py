@@ -152,7 +152,7 @@ class _BranchSignature:
 
 
 def _native_error(status: int, norm: float, iterations: int, rcond: float) -> Exception:
-    """The typed error of a compiled solve's status, worded as `_newton`'s (and the batches')."""
+    """The typed error of a compiled solve's status, worded as `newton`'s (and the batches')."""
     reason = f"singular configuration (reciprocal condition {rcond:.2e})" if status == 3 else _REASONS[status]
     return _FAILURES[status](reason, norm, iterations)
 
@@ -270,6 +270,9 @@ class ClosedLoopSolver:
     results as the Python loops that native=False runs (`self.native` is None then). Compiled solves
     do not move `data` to their solution. Not thread-safe: one solver per thread (a batch running in
     another thread makes single solves wait). All outputs are copies.
+
+    branch_blocks: the diagonal blocks (closure rows, passive joint columns) of the passive closure
+    Jacobian, in upper block-triangular order (`diagonal_blocks`); branch labels: each block's determinant sign.
     """
 
     def __init__(self, mechanism: Mechanism, tolerance: float | None = None, max_iterations: int | None = None,
@@ -350,10 +353,10 @@ class ClosedLoopSolver:
                 jac = self._evaluate(q, with_jacobian=True)[1][:, self.passive]
                 pattern |= np.abs(jac) > 1e-9 * np.max(np.abs(jac))
             _BLOCK_CACHE[key] = [(rows, self.passive[cols]) for rows, cols in diagonal_blocks(pattern)]
-        self._branch_blocks = _BLOCK_CACHE[key]
-        self._branch = _BranchSignature(self._branch_blocks, model.nv)
+        self.branch_blocks = _BLOCK_CACHE[key]
+        self._branch = _BranchSignature(self.branch_blocks, model.nv)
         # FK's and IK's Newton loops compiled (`model.native`), when built and the joints allow; None: the Python loops.
-        self.native = NativeChain.of(model, mechanism.closures, self.passive, self.actuated, self._branch_blocks,
+        self.native = NativeChain.of(model, mechanism.closures, self.passive, self.actuated, self.branch_blocks,
                                      self._platform, mechanism.task,
                                      np.arange(nv) if self._unknowns is None else self._unknowns, np.array(signed),
                                      np.flatnonzero(support_mask(self._task_frame))) if native else None
@@ -529,9 +532,9 @@ class ClosedLoopSolver:
             return result
         start = q.copy()
         if tangent is not None:
-            q[self.passive] += self._predict(start, values - q.take(self.actuated), tangent, previous)
+            q[self.passive] += self.predict(start, values - q.take(self.actuated), tangent, previous)
         q[self.actuated] = values
-        outcome = self._newton(q, self.passive, self._system, self._passive_branch, start_branch=branch)
+        outcome = self.newton(q, self.passive, self._system, self._passive_branch, start_branch=branch)
         self._tangent = -outcome.inverse.dot(outcome.jacobian.take(self.actuated, axis=1))
         # Where this solve continued from, for the second-order predictor of the next one.
         self._previous = (start.take(self.actuated), start.take(self.passive))
@@ -595,7 +598,7 @@ class ClosedLoopSolver:
         self.native.tangent[:] = tangent
         return self.native.tangent, branch
 
-    def _predict(self, start: np.ndarray, change: np.ndarray, tangent: np.ndarray, previous) -> np.ndarray:
+    def predict(self, start: np.ndarray, change: np.ndarray, tangent: np.ndarray, previous) -> np.ndarray:
         """Passive-joint change [rad or m] for a slider change `change` [m] from `start` (the last
         solution, or q_init), along `tangent` (the start's) and `previous` (sliders, passive q) of the
         solution before the start (None: first order only).
@@ -628,7 +631,7 @@ class ClosedLoopSolver:
         `updateFramePlacement`'s placement by value), so the solver's data may move on."""
         return pin.updateFramePlacement(self.model, self.data, self._platform)
 
-    def _newton(self, q: np.ndarray, unknowns: np.ndarray | None, system, signature, start_branch=None) -> _Outcome:
+    def newton(self, q: np.ndarray, unknowns: np.ndarray | None, system, signature, start_branch=None) -> _Outcome:
         """Newton on a square system over the columns `unknowns` (None: every column), with chord steps,
         under `self.rules` (as the compiled loop and the batches).
 
@@ -765,7 +768,9 @@ class ClosedLoopSolver:
         q = (self.last_q if warm else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
         predicted = warm and self._task_inverse is not None and self._last_task is not None
         if predicted and self.native is None:
-            q[self._unknown_columns] += self._inverse_step(goal, goal_rotation)
+            assert self._task_inverse is not None and self._last_task is not None, "as `predicted` says"
+            q[self._unknown_columns] += self.inverse_predict(goal, goal_rotation, self._task_inverse, self._last_task,
+                                                             self._inverse_previous)
         self._task_inverse = None  # dropped until this solve succeeds
         # A warm solve must stay on the previous solution's branch (assembly and working mode).
         start = self._last_inverse_branch if warm else None
@@ -776,7 +781,7 @@ class ClosedLoopSolver:
                 q, start, goal, goal_rotation, order)
             tilt = roll_pitch_of(self.native.inverse_task)
         else:
-            outcome = self._newton(q, self._unknowns, self._inverse_system(goal, goal_rotation),
+            outcome = self.newton(q, self._unknowns, self._inverse_system(goal, goal_rotation),
                                    lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]), start_branch=start)
             q, residual, iterations, branch = outcome.q, outcome.residual, outcome.iterations, outcome.branch
             task_inverse = outcome.inverse[:, self.n_rows:]
@@ -845,22 +850,24 @@ class ClosedLoopSolver:
             wanted_tilt = roll_pitch_of(goal_rotation)
         return goal, goal_rotation, wanted_tilt
 
-    def _inverse_step(self, goal: np.ndarray, goal_rotation: np.ndarray | None) -> np.ndarray:
-        """Change of the unknown joints [rad or m] from the last IK solution toward a new goal.
+    def inverse_predict(self, goal: np.ndarray, goal_rotation: np.ndarray | None, task_inverse: np.ndarray,
+                        last_task: pin.SE3, previous: tuple | None) -> np.ndarray:
+        """Change of the unknown joints [rad or m] from the last IK solution (`last_q`) toward a new goal.
 
-        First order: -X [0; r], X the inverse of the last IK system (at its last Jacobian), r the task
-        rows of the new goal at the last pose reached (the closure rows vanish there). Second order as
-        FK's `_predict`, along the previous goal change: the task rows b of the previous goal at the
-        last pose give 1/2 H[e, e] ~= q_(k-1) - q_k + X [0; b], applied as lam^2 1/2 H[e, e] with
-        lam = -(r . b) / (b . b), only while the path keeps going the same way (0 < lam < 2).
+        First order: -X [0; r], X the inverse of the last IK system (at its last Jacobian; `task_inverse`
+        its task-row columns), r the task rows of the new goal at the last task pose reached, `last_task`
+        (the closure rows vanish there). Second order as FK's `predict`, along the previous goal change
+        (`previous`: ((goal, goal rotation), q) of the IK solution before last_q; None: first order only):
+        the task rows b of the previous goal at the last pose give 1/2 H[e, e] ~= q_(k-1) - q_k + X [0; b],
+        applied as lam^2 1/2 H[e, e] with lam = -(r . b) / (b . b), only while the path keeps going the same
+        way (0 < lam < 2).
         """
-        task, task_inverse = self.mechanism.task, self._task_inverse
-        assert task_inverse is not None and self._last_task is not None, "called after an IK solution"
-        rows = task.residual(self._last_task, goal, goal_rotation)
+        task = self.mechanism.task
+        rows = task.residual(last_task, goal, goal_rotation)
         step = -task_inverse.dot(rows)
-        if self._inverse_previous is not None:
-            (last_goal, last_rotation), last_q = self._inverse_previous
-            back = task.residual(self._last_task, last_goal, last_rotation)
+        if previous is not None:
+            (last_goal, last_rotation), last_q = previous
+            back = task.residual(last_task, last_goal, last_rotation)
             bb = float(back.dot(back))
             lam = -float(rows.dot(back)) / bb if bb > 0.0 else 0.0
             if 0.0 < lam < 2.0:
@@ -869,7 +876,7 @@ class ClosedLoopSolver:
         return step
 
     def _inverse_system(self, goal: np.ndarray, goal_rotation: np.ndarray | None):
-        """IK's square system for `_newton`: (q, with_jacobian) -> ([closure rows; task rows], Jacobian)."""
+        """IK's square system for `newton`: (q, with_jacobian) -> ([closure rows; task rows], Jacobian)."""
         model, data, frame, task = self.model, self.data, self._task_frame, self.mechanism.task
 
         def system(qk: np.ndarray, with_jacobian: bool):

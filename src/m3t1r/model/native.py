@@ -1,7 +1,7 @@
 """The compiled Newton loop of closed-loop FK (`_native_newton`, C++ on Pinocchio), when it is built.
 
 `tools/build_native.py` (run by `make`) compiles it in place. It solves the problem of
-`ClosedLoopSolver._newton` (single solves) and `batch_kinematics.newton_batch` (rows), step for step:
+`ClosedLoopSolver.newton` (single solves) and `batch_kinematics.newton_batch` (rows), step for step:
 the same residual and exact Jacobian of the enforced rows, and the same `NewtonRules` (passed with
 every call: chord steps, step cap, convergence test, singular threshold, no-assembly threshold), the
 1-norm reciprocal condition and branch labels (signs of the diagonal blocks' determinants). It holds
@@ -123,7 +123,7 @@ class NativeChain:
 
         order: 0 no predictor, 1 first order along `tangent` (the last success's), 2 also second order
         with previous = (sliders, passive joints) of the solution before q, concatenated
-        (`ClosedLoopSolver._predict`). start_branch: the labels the solution must have (None: those at
+        (`ClosedLoopSolver.predict`). start_branch: the labels the solution must have (None: those at
         its start); rules: `NewtonRules.compiled()`, what every loop obeys. On success
         `tangent`, `platform`, `task` and `branch` hold the solution's. Returns (status, max |row|,
         iterations, reciprocal condition of a singular end (0 for a zero pivot) or 0).
@@ -142,7 +142,7 @@ class NativeChain:
 
         order: 0 no predictor, 1 first order from `task_inverse` and `inverse_task` (the last IK
         success's), 2 also second order with previous = ((goal, goal rotation), q) of the IK solution
-        before (`ClosedLoopSolver._inverse_step`). On success `task_inverse`, `inverse_platform`,
+        before (`ClosedLoopSolver.inverse_predict`). On success `task_inverse`, `inverse_platform`,
         `inverse_task` and `inverse_branch` hold the solution's; otherwise as `forward`.
         """
         if start_branch is not None:

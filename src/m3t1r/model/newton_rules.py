@@ -1,6 +1,6 @@
 """The rules every closed-loop Newton loop obeys, in one frozen object.
 
-Single solves (`ClosedLoopSolver._newton`), the numpy batches (`batch_kinematics.newton_batch`) and
+Single solves (`ClosedLoopSolver.newton`), the numpy batches (`batch_kinematics.newton_batch`) and
 the compiled loop (`model.native`) all read one `NewtonRules`: where they once kept their own copies
 of these numbers, one of them could (and did) drift from the others.
 """
