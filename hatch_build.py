@@ -28,8 +28,10 @@ class CustomBuildHook(BuildHookInterface):
             return
         build_native = _load_build_native(Path(self.root))
         if build_native.pure_python_requested():
-            self.app.display_warning(f"m3t1r: {build_native.PURE_PYTHON} is set: building without the compiled "
-                                     "Newton loop (the solvers run their pure-Python loop)")
+            self.app.display_warning(
+                f"m3t1r: {build_native.PURE_PYTHON} is set: building without the compiled "
+                "Newton loop (the solvers run their pure-Python loop)"
+            )
             return
         try:
             if version == "editable":
@@ -37,8 +39,9 @@ class CustomBuildHook(BuildHookInterface):
             else:
                 self._compile_into_wheel(build_native, build_data)
         except SystemExit as failure:  # build_native's way of naming the cause
-            raise SystemExit(f"m3t1r: cannot build the compiled Newton loop.\n{failure}\n"
-                             f"m3t1r: {build_native.WITHOUT_IT}") from None
+            raise SystemExit(
+                f"m3t1r: cannot build the compiled Newton loop.\n{failure}\nm3t1r: {build_native.WITHOUT_IT}"
+            ) from None
 
     def _compile_in_place(self, build_native: ModuleType) -> None:
         out = build_native.target()

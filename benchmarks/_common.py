@@ -68,14 +68,17 @@ def table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
     """A markdown (pipe) table with columns padded for reading as plain text too."""
     cells = [[str(h) for h in headers]] + [[str(c) for c in row] for row in rows]
     widths = [max(len(r[k]) for r in cells) for k in range(len(headers))]
-    lines = ["| " + " | ".join(c.ljust(w) for c, w in zip(cells[0], widths)) + " |",
-             "|" + "|".join("-" * (w + 2) for w in widths) + "|"]
+    lines = [
+        "| " + " | ".join(c.ljust(w) for c, w in zip(cells[0], widths)) + " |",
+        "|" + "|".join("-" * (w + 2) for w in widths) + "|",
+    ]
     lines += ["| " + " | ".join(c.ljust(w) for c, w in zip(r, widths)) + " |" for r in cells[1:]]
     return "\n".join(lines)
 
 
-def interleaved_times(runs: dict[str, Callable[[], object]], repeats: int,
-                      results: dict[str, object] | None = None) -> dict[str, list[float]]:
+def interleaved_times(
+    runs: dict[str, Callable[[], object]], repeats: int, results: dict[str, object] | None = None
+) -> dict[str, list[float]]:
     """Wall times [s] of each callable, `repeats` rounds, the callables alternating within a round
     so that a burst of load from other processes hits all of them rather than one. When `results`
     is given, it receives each callable's last return value (so the timed runs double as the

@@ -49,14 +49,19 @@ ROOT = Path(__file__).resolve().parents[1]
 def extract_revision(revision: str, folder: Path) -> tuple[str, Path]:
     """The package of `revision` under `folder` as an importable, renamed package; returns its name
     and the revision's models folder."""
-    found = subprocess.run(["git", "rev-parse", "--short", "--verify", "--quiet", f"{revision}^{{commit}}"], cwd=ROOT,
-                           capture_output=True, text=True)
+    found = subprocess.run(
+        ["git", "rev-parse", "--short", "--verify", "--quiet", f"{revision}^{{commit}}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
     if found.returncode != 0:
         raise SystemExit(f"bench_against: {revision!r} is not a revision of {ROOT}")
     short = found.stdout.strip()
     name = f"m3t1r_at_{short}"
-    archive = subprocess.run(["git", "archive", revision, "src/m3t1r", "models"], cwd=ROOT, check=True,
-                             capture_output=True).stdout
+    archive = subprocess.run(
+        ["git", "archive", revision, "src/m3t1r", "models"], cwd=ROOT, check=True, capture_output=True
+    ).stdout
     with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
         tar.extractall(folder, filter="data")
     package = folder / name
@@ -94,8 +99,13 @@ def runners(package: str, models: Path, targets: np.ndarray, sliders: np.ndarray
         def compensate():
             return np.asarray(compensator.compensate(targets).actuators)
 
-        return {"FK warm (path)": fk, "IK warm (path)": ik, "compensation (path)": compensate,
-                "forward_batch": lambda: solver.forward_batch(cloud).poses}
+        return {
+            "FK warm (path)": fk,
+            "IK warm (path)": ik,
+            "compensation (path)": compensate,
+            "forward_batch": lambda: solver.forward_batch(cloud).poses,
+        }
+
     return build
 
 
@@ -115,8 +125,10 @@ def main(argv: list[str] | None = None) -> int:
         targets = workspace_path(n_path)
         sliders = np.array([ClosedLoopSolver(mechanism).inverse(t).actuators for t in targets])
         cloud = workspace_actuators(mechanism, n_batch, np.random.default_rng(0))
-        factories = {"tree": runners("m3t1r", ROOT / "models", targets, sliders, cloud),
-                     "revision": runners(name, models, targets, sliders, cloud)}
+        factories = {
+            "tree": runners("m3t1r", ROOT / "models", targets, sliders, cloud),
+            "revision": runners(name, models, targets, sliders, cloud),
+        }
         times: dict[tuple[str, str], list[float]] = {}
         results: dict[tuple[str, str], object] = {}
         base = unit_runner(mechanism, 2000)
@@ -130,19 +142,40 @@ def main(argv: list[str] | None = None) -> int:
                     start = time.perf_counter()
                     results[operation, side] = sides[side][operation]()
                     times.setdefault((operation, side), []).append(time.perf_counter() - start)
-    counts = {"FK warm (path)": n_path, "IK warm (path)": n_path, "compensation (path)": n_path,
-              "forward_batch": n_batch}
+    counts = {
+        "FK warm (path)": n_path,
+        "IK warm (path)": n_path,
+        "compensation (path)": n_path,
+        "forward_batch": n_batch,
+    }
     unit_time = median(times["unit", ""])
     rows = []
     for operation, count in counts.items():
         theirs, ours = median(times[operation, "revision"]) / count, median(times[operation, "tree"]) / count
-        agree = float(np.max(np.abs(np.asarray(results[operation, "revision"]) - np.asarray(results[operation, "tree"]))))
-        rows.append([operation, fmt_time(theirs), f"{theirs / unit_time:.1f}", fmt_time(ours),
-                     f"{ours / unit_time:.1f}", f"{theirs / ours:.2f}x", f"{agree:.1e}"])
-    print(f"Unit (computeJointJacobians + updateFramePlacements): {fmt_time(unit_time)}; medians of {rounds} "
-          "interleaved rounds, new solvers each round; per solve / target / pose.\n")
-    print(table(["operation", f"{args.revision}: time", "units", "tree: time", "units", "speed-up",
-                 "largest difference"], rows))
+        agree = float(
+            np.max(np.abs(np.asarray(results[operation, "revision"]) - np.asarray(results[operation, "tree"])))
+        )
+        rows.append(
+            [
+                operation,
+                fmt_time(theirs),
+                f"{theirs / unit_time:.1f}",
+                fmt_time(ours),
+                f"{ours / unit_time:.1f}",
+                f"{theirs / ours:.2f}x",
+                f"{agree:.1e}",
+            ]
+        )
+    print(
+        f"Unit (computeJointJacobians + updateFramePlacements): {fmt_time(unit_time)}; medians of {rounds} "
+        "interleaved rounds, new solvers each round; per solve / target / pose.\n"
+    )
+    print(
+        table(
+            ["operation", f"{args.revision}: time", "units", "tree: time", "units", "speed-up", "largest difference"],
+            rows,
+        )
+    )
     return 0
 
 

@@ -60,6 +60,7 @@ def unit_runner(mechanism: Mechanism, count: int):
         for _ in range(count):
             pin.computeJointJacobians(model, data, q)
             pin.updateFramePlacements(model, data)
+
     return run
 
 
@@ -79,11 +80,13 @@ def path_runners(mechanism: Mechanism, calibrated: Mechanism, targets: np.ndarra
             solver.reset()
             for target in targets:
                 solver.inverse(target)
+
         runs.update({f"FK warm (path){suffix}": fk, f"IK warm (path){suffix}": ik})
 
     def compensation():
         compensator.reset()
         return compensator.compensate(targets)
+
     runs["compensation (path)"] = compensation
     return runs
 
@@ -98,6 +101,7 @@ def evaluations_per_solve(mechanism: Mechanism, targets: np.ndarray, sliders: np
     def counted(q, with_jacobian):
         counts["jac" if with_jacobian else "res"] += 1
         return original(q, with_jacobian)
+
     solver._system = counted
     out = {}
     for name, items, solve in (("FK", sliders, solver.forward), ("IK", targets, solver.inverse)):
@@ -115,6 +119,7 @@ def residual_cost(mechanism: Mechanism, count: int):
     def run() -> None:
         for _ in range(count):
             pin.forwardKinematics(model, data, q)
+
     return run
 
 
@@ -131,18 +136,23 @@ def batch_agreement(solver: ClosedLoopSolver, sliders: np.ndarray, batch, rows: 
     finer_batch = finer.forward_batch(sliders[batch.indices[picked]])
     if len(finer_batch.indices) != len(picked):
         raise SystemExit(f"bench_batch: {len(finer_batch.failures)} rows failed at tolerance=1e-13")
-    worst = {"forward_batch - forward": 0.0, "forward_batch - reference": 0.0, "forward - reference": 0.0,
-             "both at tolerance=1e-13: forward_batch - forward": 0.0}
+    worst = {
+        "forward_batch - forward": 0.0,
+        "forward_batch - reference": 0.0,
+        "forward - reference": 0.0,
+        "both at tolerance=1e-13: forward_batch - forward": 0.0,
+    }
     for row, k in enumerate(picked):
         values = sliders[batch.indices[k]]
         single = solver.forward(values, q_init=home).pose.translation
         exact = tight.forward(values, q_init=batch.q[k]).pose.translation
         finer_single = finer.forward(values, q_init=home).pose.translation
-        for name, (a, b) in {"forward_batch - forward": (batch.poses[k, :3, 3], single),
-                             "forward_batch - reference": (batch.poses[k, :3, 3], exact),
-                             "forward - reference": (single, exact),
-                             "both at tolerance=1e-13: forward_batch - forward":
-                                 (finer_batch.poses[row, :3, 3], finer_single)}.items():
+        for name, (a, b) in {
+            "forward_batch - forward": (batch.poses[k, :3, 3], single),
+            "forward_batch - reference": (batch.poses[k, :3, 3], exact),
+            "forward - reference": (single, exact),
+            "both at tolerance=1e-13: forward_batch - forward": (finer_batch.poses[row, :3, 3], finer_single),
+        }.items():
             worst[name] = max(worst[name], float(np.linalg.norm(a - b)))
     return worst
 
@@ -161,6 +171,7 @@ def slsqp_converged_rows(solver: ClosedLoopSolver, slsqp: dict, sliders: np.ndar
             def counted(q, calls=calls):
                 calls[0] += 1
                 return original(q)
+
             baseline._closure = counted
             q = baseline.forward(values, solver.mechanism.home)
             baseline._closure = original
@@ -204,10 +215,15 @@ def main(argv: list[str] | None = None) -> int:
         sliders = np.array([solver.inverse(t).actuators for t in targets])
         cloud = NOMINAL.workspace.sample(np.random.default_rng(0), args.n_batch)
         cloud_sliders = solver.inverse_batch(cloud).actuators
-        slsqp = {name: SlsqpKinematics(mechanism, analytic) for name, analytic in
-                 (("SLSQP exact Jacobians", True), ("SLSQP finite differences", False))}
-        few, excluded = slsqp_converged_rows(solver, slsqp, cloud_sliders[:args.n_slsqp])
-        runs = {"unit": unit_runner(mechanism, 2000), "residual pass (forwardKinematics)": residual_cost(mechanism, 2000)}
+        slsqp = {
+            name: SlsqpKinematics(mechanism, analytic)
+            for name, analytic in (("SLSQP exact Jacobians", True), ("SLSQP finite differences", False))
+        }
+        few, excluded = slsqp_converged_rows(solver, slsqp, cloud_sliders[: args.n_slsqp])
+        runs = {
+            "unit": unit_runner(mechanism, 2000),
+            "residual pass (forwardKinematics)": residual_cost(mechanism, 2000),
+        }
         runs.update(path_runners(mechanism, calibrated, targets, sliders))
         runs["forward_batch"] = lambda: solver.forward_batch(cloud_sliders)
         runs["forward_batch, 1 thread"] = lambda: solver.forward_batch(cloud_sliders, threads=1)
@@ -215,43 +231,64 @@ def main(argv: list[str] | None = None) -> int:
         runs["forward_batch, numpy loop"] = lambda: numpy_solver.forward_batch(cloud_sliders)
         runs["inverse_batch"] = lambda: solver.inverse_batch(cloud)
         for name, baseline in slsqp.items():
-            runs[f"{name} (FK from home)"] = (lambda b=baseline: [b.forward(a, mechanism.home) for a in few])
+            runs[f"{name} (FK from home)"] = lambda b=baseline: [b.forward(a, mechanism.home) for a in few]
         results: dict = {}
         times = interleaved_times(runs, args.repeats, results)
         evaluations = evaluations_per_solve(mechanism, targets, sliders)
         agreement = batch_agreement(solver, cloud_sliders, results["forward_batch"], 200)
         memory = peak_memory(solver, cloud_sliders, args.memory_sizes)
-    counts = {"unit": 2000, "residual pass (forwardKinematics)": 2000, "compensation (path)": args.n_path,
-              "inverse_batch": args.n_batch}
+    counts = {
+        "unit": 2000,
+        "residual pass (forwardKinematics)": 2000,
+        "compensation (path)": args.n_path,
+        "inverse_batch": args.n_batch,
+    }
     counts.update({name: args.n_path for name in runs if name.startswith(("FK warm", "IK warm"))})
     counts.update({name: args.n_batch for name in runs if name.startswith("forward_batch")})
     counts.update({f"{name} (FK from home)": len(few) for name in slsqp})
     unit = median(times["unit"]) / 2000
     per = {name: median(t) / counts[name] for name, t in times.items()}
     rows = [[name, fmt_time(per[name]), f"{per[name] / unit:.1f}"] for name in runs]
-    print(f"Unit (computeJointJacobians + updateFramePlacements): {fmt_time(unit)}; median of {args.repeats} "
-          "interleaved rounds.\n")
+    print(
+        f"Unit (computeJointJacobians + updateFramePlacements): {fmt_time(unit)}; median of {args.repeats} "
+        "interleaved rounds.\n"
+    )
     print(table(["operation", "time per solve / pose / target", "units"], rows))
     batch = results["forward_batch"]
-    print(f"\nforward_batch: {len(batch.indices)}/{args.n_batch} rows converged, max closure residual "
-          f"{batch.residuals.max():.1e}, mean {batch.iterations.mean():.2f} Newton steps from home. Largest "
-          "platform differences over 200 rows (reference: the closures solved to 1e-15): "
-          + ", ".join(f"{name} {value:.2e} m" for name, value in agreement.items()) + ".")
+    print(
+        f"\nforward_batch: {len(batch.indices)}/{args.n_batch} rows converged, max closure residual "
+        f"{batch.residuals.max():.1e}, mean {batch.iterations.mean():.2f} Newton steps from home. Largest "
+        "platform differences over 200 rows (reference: the closures solved to 1e-15): "
+        + ", ".join(f"{name} {value:.2e} m" for name, value in agreement.items())
+        + "."
+    )
     comp = results["compensation (path)"]
     print(f"compensation: {len(comp.indices)}/{args.n_path} targets; 4 kHz loop budget 250 us.")
-    print(f"SLSQP rows: {len(few)} timed; {excluded} left out "
-          "(an SLSQP variant above 1e-10, or over 3x its median evaluations).")
+    print(
+        f"SLSQP rows: {len(few)} timed; {excluded} left out "
+        "(an SLSQP variant above 1e-10, or over 3x its median evaluations)."
+    )
     for name in slsqp:
         theirs = per[f"{name} (FK from home)"]
-        print(f"{name}: {fmt_time(theirs)} per FK from home; forward_batch is {theirs / per['forward_batch']:.1f}x "
-              "faster per pose (both to <= 1e-10 closure residual).")
+        print(
+            f"{name}: {fmt_time(theirs)} per FK from home; forward_batch is {theirs / per['forward_batch']:.1f}x "
+            "faster per pose (both to <= 1e-10 closure residual)."
+        )
     res_unit = per["residual pass (forwardKinematics)"] / unit
-    print("\nPinocchio evaluations per warm solve (counted) and the floor they set (a C++ Newton loop pays "
-          "at least these passes):\n")
-    print(table(["solve", "Jacobian evaluations", "residual evaluations", "floor [units]"],
-                [[name, f"{j:.2f}", f"{r:.2f}", f"{j + r * res_unit:.1f}"] for name, (j, r) in evaluations.items()]))
-    print(f"\nPeak traced memory of forward_batch (numpy arrays; the numpy loop solves rows in chunks of "
-          f"{batch_kinematics._CHUNK:,}):\n")
+    print(
+        "\nPinocchio evaluations per warm solve (counted) and the floor they set (a C++ Newton loop pays "
+        "at least these passes):\n"
+    )
+    print(
+        table(
+            ["solve", "Jacobian evaluations", "residual evaluations", "floor [units]"],
+            [[name, f"{j:.2f}", f"{r:.2f}", f"{j + r * res_unit:.1f}"] for name, (j, r) in evaluations.items()],
+        )
+    )
+    print(
+        f"\nPeak traced memory of forward_batch (numpy arrays; the numpy loop solves rows in chunks of "
+        f"{batch_kinematics._CHUNK:,}):\n"
+    )
     print(table(["poses", "peak memory", "time"], memory))
     return 0
 

@@ -38,8 +38,10 @@ NOISE = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
 
 def _setup(rng: np.random.Generator) -> MeasurementSetup:
     axis, direction, offset = rng.normal(size=3), rng.normal(size=3), rng.normal(size=3)
-    frame = pin.SE3(pin.exp3(axis / np.linalg.norm(axis) * rng.uniform(0.5, np.pi)),
-                    direction / np.linalg.norm(direction) * rng.uniform(1.0, 5.0))
+    frame = pin.SE3(
+        pin.exp3(axis / np.linalg.norm(axis) * rng.uniform(0.5, np.pi)),
+        direction / np.linalg.norm(direction) * rng.uniform(1.0, 5.0),
+    )
     marker = pin.SE3(pin.exp3(rng.normal(size=3)), offset / np.linalg.norm(offset) * rng.uniform(0.05, 0.1))
     return MeasurementSetup(frame, marker)
 
@@ -47,8 +49,9 @@ def _setup(rng: np.random.Generator) -> MeasurementSetup:
 def _variants(nominal, study, given):
     base = dict(setup=MeasurementSetup(marker=given), estimate_frame=True, estimate_marker=True)
     return {
-        "plain least squares": lambda: calibrate_closed_loop(nominal, study.measurements, NOISE, outlier_sigma=None,
-                                                             **base),
+        "plain least squares": lambda: calibrate_closed_loop(
+            nominal, study.measurements, NOISE, outlier_sigma=None, **base
+        ),
         "outlier gate (5 sigma)": lambda: calibrate_closed_loop(nominal, study.measurements, NOISE, **base),
         "gate + LOO selection": lambda: calibrate_closed_loop(nominal, study.measurements, NOISE, select=True, **base),
     }
@@ -69,12 +72,31 @@ def run_case(nominal: Mechanism, seed: int, poses: int, outliers: int, repeats: 
         predicted = measure(calibration.mechanism, study.holdout_actuators, setup=calibration.setup).poses
         errors = pose_errors_between(predicted, truth)
         found = "exact" if calibration.outliers == study.outliers else f"{len(calibration.outliers)} flagged"
-        rows.append([seed, outliers, name, fmt_time(median(times[name])), f"{median(times[name]) / plain:.2f}x",
-                     f"{errors.position_mean * 1e6:.1f} um", f"{errors.rotation_mean * 1e6:.1f} urad",
-                     found if outliers else f"{len(calibration.outliers)} flagged"])
+        rows.append(
+            [
+                seed,
+                outliers,
+                name,
+                fmt_time(median(times[name])),
+                f"{median(times[name]) / plain:.2f}x",
+                f"{errors.position_mean * 1e6:.1f} um",
+                f"{errors.rotation_mean * 1e6:.1f} urad",
+                found if outliers else f"{len(calibration.outliers)} flagged",
+            ]
+        )
     cv_times = interleaved_times({"cv": lambda: cross_validate(results["gate + LOO selection"])}, repeats)
-    rows.append([seed, outliers, "5-fold cross-validation (after the fit)", fmt_time(median(cv_times["cv"])),
-                 f"{median(cv_times['cv']) / plain:.2f}x", "", "", ""])
+    rows.append(
+        [
+            seed,
+            outliers,
+            "5-fold cross-validation (after the fit)",
+            fmt_time(median(cv_times["cv"])),
+            f"{median(cv_times['cv']) / plain:.2f}x",
+            "",
+            "",
+            "",
+        ]
+    )
     return rows
 
 
@@ -95,8 +117,21 @@ def main(argv: list[str] | None = None) -> int:
         for seed in args.seeds:
             for outliers in (0, 2):
                 rows += run_case(nominal, seed, args.poses, outliers, args.repeats)
-    print(table(["seed", "outliers", "fit", "time", "vs plain", "held-out position mean", "orientation mean",
-                 "outliers found"], rows))
+    print(
+        table(
+            [
+                "seed",
+                "outliers",
+                "fit",
+                "time",
+                "vs plain",
+                "held-out position mean",
+                "orientation mean",
+                "outliers found",
+            ],
+            rows,
+        )
+    )
     return 0
 
 

@@ -28,12 +28,15 @@ def main() -> None:
             study = simulate_study(nominal, 50, 200, seed)
             for label, refine in (("base parameters (default)", False), ("refined at the estimate", True)):
                 start = time.perf_counter()
-                calibration = calibrate_closed_loop(nominal, study.measurements, refine=refine,
-                                                    refine_iterations=args.iterations)
+                calibration = calibrate_closed_loop(
+                    nominal, study.measurements, refine=refine, refine_iterations=args.iterations
+                )
                 seconds = time.perf_counter() - start
                 errors = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
-                print(f"{seed:>4} {label:<28}{calibration.base.rank:>7}{errors.position_mean:>19.2e}"
-                      f"{errors.position.max():>11.2e}{seconds:>10.1f}")
+                print(
+                    f"{seed:>4} {label:<28}{calibration.base.rank:>7}{errors.position_mean:>19.2e}"
+                    f"{errors.position.max():>11.2e}{seconds:>10.1f}"
+                )
     print("reference implementation (docs/results.md): 1.7e-07 mean, 1.3e-06 max")
 
 

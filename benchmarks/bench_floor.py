@@ -38,8 +38,12 @@ from m3t1r.model.design import NOMINAL  # noqa: E402
 from m3t1r.model.kinematics import ClosedLoopSolver  # noqa: E402
 from m3t1r.model.native import available_cores  # noqa: E402
 
-GOALS = {"forward_batch, 1 thread": 4.0, "forward_batch, every core": 2.5, "IK warm (path)": 8.0,
-         "compensation (path)": 15.0}
+GOALS = {
+    "forward_batch, 1 thread": 4.0,
+    "forward_batch, every core": 2.5,
+    "IK warm (path)": 8.0,
+    "compensation (path)": 15.0,
+}
 _UNITS = 2000  # unit passes per timed round
 
 
@@ -61,10 +65,16 @@ def runners(mechanism: Mechanism, targets: np.ndarray, sliders: np.ndarray, clou
     def compensation():
         compensator.reset()
         return compensator.compensate(targets)
-    return {"unit": unit_runner(mechanism, _UNITS), "residual pass (forwardKinematics)": residual_cost(mechanism, _UNITS),
-            "forward_batch, 1 thread": lambda: solver.forward_batch(cloud_sliders, threads=1),
-            "forward_batch, every core": lambda: solver.forward_batch(cloud_sliders),
-            "FK warm (path)": fk, "IK warm (path)": ik, "compensation (path)": compensation}
+
+    return {
+        "unit": unit_runner(mechanism, _UNITS),
+        "residual pass (forwardKinematics)": residual_cost(mechanism, _UNITS),
+        "forward_batch, 1 thread": lambda: solver.forward_batch(cloud_sliders, threads=1),
+        "forward_batch, every core": lambda: solver.forward_batch(cloud_sliders),
+        "FK warm (path)": fk,
+        "IK warm (path)": ik,
+        "compensation (path)": compensation,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -88,8 +98,13 @@ def main(argv: list[str] | None = None) -> int:
         results: dict = {}
         times = interleaved_times(runs, args.repeats, results)
         evaluations = evaluations_per_solve(mechanism, targets, sliders)
-    counts = {"unit": _UNITS, "residual pass (forwardKinematics)": _UNITS, "FK warm (path)": args.n_path,
-              "IK warm (path)": args.n_path, "compensation (path)": args.n_path}
+    counts = {
+        "unit": _UNITS,
+        "residual pass (forwardKinematics)": _UNITS,
+        "FK warm (path)": args.n_path,
+        "IK warm (path)": args.n_path,
+        "compensation (path)": args.n_path,
+    }
     counts.update({name: len(cloud_sliders) for name in runs if name.startswith("forward_batch")})
     unit = median(times["unit"]) / _UNITS
     per = {name: median(t) / counts[name] for name, t in times.items()}
@@ -103,18 +118,42 @@ def main(argv: list[str] | None = None) -> int:
             continue
         goal = GOALS.get(name)
         floor = floors.get(name)
-        rows.append([name, fmt_time(per[name]), f"{per[name] / unit:.2f}", f"{spread[name][0]:.2f}-{spread[name][1]:.2f}",
-                     "-" if goal is None else f"<= {goal:g}",
-                     "-" if goal is None else ("met" if per[name] / unit <= goal else "not met"),
-                     "-" if floor is None else f"{floor[0]:.2f} + {floor[1]:.2f} x {res_unit:.2f} = "
-                     f"{floor[0] + floor[1] * res_unit:.2f}"])
-    print(f"Unit (computeJointJacobians + updateFramePlacements): {fmt_time(unit)}; median of {args.repeats} "
-          f"interleaved rounds; {available_cores()} cores for 'every core'.\n")
-    print(table(["operation", "time per pose / solve / target", "units (median)", "units (min-max)", "goal",
-                 "", "floor [units]: Jacobian + residual evaluations x their cost"], rows))
-    print(f"\nforward_batch: {len(batch.indices)}/{len(cloud_sliders)} rows converged, mean "
-          f"{batch.iterations.mean():.2f} Newton steps per row from home (the predicted start counts as one), "
-          f"max closure residual {batch.residuals.max():.1e}.")
+        rows.append(
+            [
+                name,
+                fmt_time(per[name]),
+                f"{per[name] / unit:.2f}",
+                f"{spread[name][0]:.2f}-{spread[name][1]:.2f}",
+                "-" if goal is None else f"<= {goal:g}",
+                "-" if goal is None else ("met" if per[name] / unit <= goal else "not met"),
+                "-"
+                if floor is None
+                else f"{floor[0]:.2f} + {floor[1]:.2f} x {res_unit:.2f} = {floor[0] + floor[1] * res_unit:.2f}",
+            ]
+        )
+    print(
+        f"Unit (computeJointJacobians + updateFramePlacements): {fmt_time(unit)}; median of {args.repeats} "
+        f"interleaved rounds; {available_cores()} cores for 'every core'.\n"
+    )
+    print(
+        table(
+            [
+                "operation",
+                "time per pose / solve / target",
+                "units (median)",
+                "units (min-max)",
+                "goal",
+                "",
+                "floor [units]: Jacobian + residual evaluations x their cost",
+            ],
+            rows,
+        )
+    )
+    print(
+        f"\nforward_batch: {len(batch.indices)}/{len(cloud_sliders)} rows converged, mean "
+        f"{batch.iterations.mean():.2f} Newton steps per row from home (the predicted start counts as one), "
+        f"max closure residual {batch.residuals.max():.1e}."
+    )
     comp = results["compensation (path)"]
     print(f"compensation: {len(comp.indices)}/{args.n_path} targets, mean {comp.iterations.mean():.2f} IK steps.")
     return 0

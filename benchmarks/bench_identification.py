@@ -47,8 +47,15 @@ NOISE = TrackerNoise(position=10e-6, rotation=20e-6)  # tracker 10 um / 20 urad;
 class FiniteDifferenceCalibration:
     """Whitened pose residual over the base parameters for MINPACK's LM with difference quotients."""
 
-    def __init__(self, model: pin.Model, chain: SerialChain, q_chain: np.ndarray, measured: tuple[pin.SE3, ...],
-                 base_indices: tuple[int, ...], noise: TrackerNoise) -> None:
+    def __init__(
+        self,
+        model: pin.Model,
+        chain: SerialChain,
+        q_chain: np.ndarray,
+        measured: tuple[pin.SE3, ...],
+        base_indices: tuple[int, ...],
+        noise: TrackerNoise,
+    ) -> None:
         self.model, self.chain = model, chain
         self.configurations = [chain.model_configuration(model, q) for q in q_chain]
         self.positions = np.array([g.translation for g in measured])
@@ -60,7 +67,7 @@ class FiniteDifferenceCalibration:
     def model_at(self, x: np.ndarray) -> pin.Model:
         full = np.zeros(self.chain.n_parameters)
         full[self.base] = x
-        return perturb(self.model, {p: full[6 * k:6 * k + 6] for k, p in enumerate(self.placements)})
+        return perturb(self.model, {p: full[6 * k : 6 * k + 6] for k, p in enumerate(self.placements)})
 
     def residual(self, x: np.ndarray) -> np.ndarray:
         model = self.model_at(x)
@@ -105,16 +112,31 @@ def main(argv: list[str] | None = None) -> int:
             ours_t, fd_t, ours_err, fd_err, nfevs = [], [], [], [], []
             for seed in range(args.datasets):
                 rng = np.random.default_rng(100 + seed)
-                data = simulate_serial_measurements(model, chain, N_POSES, rng, translation_error=1e-3,
-                                                    rotation_error=1e-3, joint_offset=1e-3, noise=NOISE)
+                data = simulate_serial_measurements(
+                    model,
+                    chain,
+                    N_POSES,
+                    rng,
+                    translation_error=1e-3,
+                    rotation_error=1e-3,
+                    joint_offset=1e-3,
+                    noise=NOISE,
+                )
                 held_out = sample_configurations(model, chain, N_HELD_OUT, rng)
                 ours = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=NOISE)
-                baseline = FiniteDifferenceCalibration(model, chain, data.q_readings, data.measured_poses,
-                                                       ours.base.indices, NOISE)
+                baseline = FiniteDifferenceCalibration(
+                    model, chain, data.q_readings, data.measured_poses, ours.base.indices, NOISE
+                )
                 fd_model, nfev = baseline.solve()
-                times = interleaved_times({
-                    "ours": lambda: calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=NOISE),
-                    "fd": baseline.solve}, args.repeats)
+                times = interleaved_times(
+                    {
+                        "ours": lambda: calibrate_serial(
+                            model, chain, data.q_readings, data.measured_poses, noise=NOISE
+                        ),
+                        "fd": baseline.solve,
+                    },
+                    args.repeats,
+                )
                 ours_t.append(median(times["ours"]))
                 fd_t.append(median(times["fd"]))
                 e_ours = pose_errors(ours.model, data.truth, chain, held_out)
@@ -123,24 +145,71 @@ def main(argv: list[str] | None = None) -> int:
                 ours_err.append((e_ours.position_rms, e_ours.rotation_rms))
                 fd_err.append((e_fd.position_rms, e_fd.rotation_rms))
                 nfevs.append(nfev)
-                detail.append([robot, seed, ours.base.rank, f"{before.position_rms * 1e3:.2f} mm",
-                               f"{e_ours.position_rms * 1e6:.2f} / {e_fd.position_rms * 1e6:.2f}",
-                               f"{e_ours.rotation_rms * 1e6:.2f} / {e_fd.rotation_rms * 1e6:.2f}",
-                               f"{ours.iterations} / {nfev}", fmt_time(ours_t[-1]), fmt_time(fd_t[-1])])
+                detail.append(
+                    [
+                        robot,
+                        seed,
+                        ours.base.rank,
+                        f"{before.position_rms * 1e3:.2f} mm",
+                        f"{e_ours.position_rms * 1e6:.2f} / {e_fd.position_rms * 1e6:.2f}",
+                        f"{e_ours.rotation_rms * 1e6:.2f} / {e_fd.rotation_rms * 1e6:.2f}",
+                        f"{ours.iterations} / {nfev}",
+                        fmt_time(ours_t[-1]),
+                        fmt_time(fd_t[-1]),
+                    ]
+                )
             ratio = median(fd_t) / median(ours_t)
             o, f = np.mean(ours_err, axis=0), np.mean(fd_err, axis=0)
-            rows.append([robot, args.datasets, fmt_time(median(ours_t)), fmt_time(median(fd_t)), f"{ratio:.1f}x",
-                         f"{o[0] * 1e6:.2f} / {f[0] * 1e6:.2f}", f"{o[1] * 1e6:.2f} / {f[1] * 1e6:.2f}",
-                         f"{np.mean(nfevs):.0f}"])
-    print(f"{N_POSES} poses per dataset, truth errors 1 mm / 1 mrad per placement and 1 mrad joint offsets, tracker "
-          f"noise {NOISE.position * 1e6:g} um / {NOISE.rotation * 1e6:g} urad, held-out RMS over {N_HELD_OUT} "
-          f"configurations. Times: median over datasets of the per-dataset median of {args.repeats} interleaved "
-          "repeat(s).\n")
-    print(table(["robot", "datasets", "ours", "FD-LM", "speed-up", "held-out pos. RMS um (ours / FD)",
-                 "held-out rot. RMS urad (ours / FD)", "FD residual evals"], rows))
+            rows.append(
+                [
+                    robot,
+                    args.datasets,
+                    fmt_time(median(ours_t)),
+                    fmt_time(median(fd_t)),
+                    f"{ratio:.1f}x",
+                    f"{o[0] * 1e6:.2f} / {f[0] * 1e6:.2f}",
+                    f"{o[1] * 1e6:.2f} / {f[1] * 1e6:.2f}",
+                    f"{np.mean(nfevs):.0f}",
+                ]
+            )
+    print(
+        f"{N_POSES} poses per dataset, truth errors 1 mm / 1 mrad per placement and 1 mrad joint offsets, tracker "
+        f"noise {NOISE.position * 1e6:g} um / {NOISE.rotation * 1e6:g} urad, held-out RMS over {N_HELD_OUT} "
+        f"configurations. Times: median over datasets of the per-dataset median of {args.repeats} interleaved "
+        "repeat(s).\n"
+    )
+    print(
+        table(
+            [
+                "robot",
+                "datasets",
+                "ours",
+                "FD-LM",
+                "speed-up",
+                "held-out pos. RMS um (ours / FD)",
+                "held-out rot. RMS urad (ours / FD)",
+                "FD residual evals",
+            ],
+            rows,
+        )
+    )
     print("\nPer dataset:\n")
-    print(table(["robot", "seed", "base params", "error before", "pos. RMS um (ours / FD)",
-                 "rot. RMS urad (ours / FD)", "LM iterations / FD evals", "ours", "FD-LM"], detail))
+    print(
+        table(
+            [
+                "robot",
+                "seed",
+                "base params",
+                "error before",
+                "pos. RMS um (ours / FD)",
+                "rot. RMS urad (ours / FD)",
+                "LM iterations / FD evals",
+                "ours",
+                "FD-LM",
+            ],
+            detail,
+        )
+    )
     print("\nGoal: >= 20x faster than finite-difference LM with the same or better held-out accuracy.")
     return 0
 

@@ -54,8 +54,10 @@ def workspace_path(n: int, margin: float = 0.9) -> np.ndarray:
     t = np.linspace(0.0, 1.0, n, endpoint=False)
     bounds = np.array([box.x, box.y, box.z, box.theta])
     centre, half = bounds.mean(axis=1), margin * np.diff(bounds, axis=1)[:, 0] / 2
-    waves = np.stack([np.sin(2 * np.pi * t), np.sin(4 * np.pi * t + 0.5), np.sin(6 * np.pi * t + 1.0),
-                      np.sin(2 * np.pi * t + 2.0)], axis=1)
+    waves = np.stack(
+        [np.sin(2 * np.pi * t), np.sin(4 * np.pi * t + 0.5), np.sin(6 * np.pi * t + 1.0), np.sin(2 * np.pi * t + 2.0)],
+        axis=1,
+    )
     return centre + half * waves
 
 
@@ -109,8 +111,14 @@ class SlsqpKinematics:
         if self.analytic:
             spec["jac"] = constraint_jacobian
         objective_jac = (lambda x: x - x0) if self.analytic else None
-        result = minimize(lambda x: 0.5 * float((x - x0) @ (x - x0)), x0.copy(), jac=objective_jac, method="SLSQP",
-                          constraints=[spec], options={"ftol": SLSQP_FTOL, "maxiter": 200})
+        result = minimize(
+            lambda x: 0.5 * float((x - x0) @ (x - x0)),
+            x0.copy(),
+            jac=objective_jac,
+            method="SLSQP",
+            constraints=[spec],
+            options={"ftol": SLSQP_FTOL, "maxiter": 200},
+        )
         return result.x
 
     def forward(self, sliders: np.ndarray, q_start: np.ndarray) -> np.ndarray:
@@ -121,8 +129,11 @@ class SlsqpKinematics:
             q[self.passive] = x
             return q
 
-        x = self._minimize(q[self.passive].copy(), lambda x: self._closure(full(x))[0],
-                           lambda x: self._closure(full(x))[1][:, self.passive])
+        x = self._minimize(
+            q[self.passive].copy(),
+            lambda x: self._closure(full(x))[0],
+            lambda x: self._closure(full(x))[1][:, self.passive],
+        )
         return full(x).copy()
 
     def inverse(self, target: np.ndarray, q_start: np.ndarray) -> np.ndarray:
@@ -151,8 +162,10 @@ def _closure_error(solver: ClosedLoopSolver, q: np.ndarray) -> float:
 def _task_error(solver: ClosedLoopSolver, q: np.ndarray, target: np.ndarray) -> float:
     solver.closure_residual(q)  # leaves the frame placements at q
     oMp = solver.data.oMf[solver.mechanism.platform_frame_id]
-    return max(float(np.max(np.abs(oMp.translation - target[:3]))),
-               abs(math.remainder(yaw_of(oMp.rotation) - target[3], 2 * math.pi)))
+    return max(
+        float(np.max(np.abs(oMp.translation - target[:3]))),
+        abs(math.remainder(yaw_of(oMp.rotation) - target[3], 2 * math.pi)),
+    )
 
 
 def run_ours_fk(solver: ClosedLoopSolver, sliders: np.ndarray, warm: bool) -> Run:
@@ -176,8 +189,13 @@ def run_ours_ik(solver: ClosedLoopSolver, targets: np.ndarray, warm: bool) -> Ru
         solutions.append(solver.inverse(target, q_init=None if warm else home).q)
     seconds = time.perf_counter() - start
     check = ClosedLoopSolver(solver.mechanism)
-    return Run(seconds, len(solutions), max(_closure_error(check, q) for q in solutions),
-               max(_task_error(check, q, t) for q, t in zip(solutions, targets)), solutions)
+    return Run(
+        seconds,
+        len(solutions),
+        max(_closure_error(check, q) for q in solutions),
+        max(_task_error(check, q, t) for q, t in zip(solutions, targets)),
+        solutions,
+    )
 
 
 def run_slsqp(baseline: SlsqpKinematics, problems: np.ndarray, kind: str, warm: bool) -> Run:
@@ -193,8 +211,10 @@ def run_slsqp(baseline: SlsqpKinematics, problems: np.ndarray, kind: str, warm: 
     check = ClosedLoopSolver(baseline.mechanism)
     residuals = [_closure_error(check, s) for s in solutions]
     tasks = [_task_error(check, s, t) for s, t in zip(solutions, problems)] if kind == "ik" else [math.nan]
-    solved = sum(r <= ACCURACY and (kind == "fk" or e <= ACCURACY) for r, e in
-                 zip(residuals, tasks if kind == "ik" else [0.0] * len(residuals)))
+    solved = sum(
+        r <= ACCURACY and (kind == "fk" or e <= ACCURACY)
+        for r, e in zip(residuals, tasks if kind == "ik" else [0.0] * len(residuals))
+    )
     return Run(seconds, solved, max(residuals), max(tasks), solutions)
 
 
@@ -243,9 +263,9 @@ def main(argv: list[str] | None = None) -> int:
                 run_ours = run_ours_fk if kind == "fk" else run_ours_ik
                 problems = sliders if kind == "fk" else targets
                 ours_runs[case].append(run_ours(solver, problems, warm))
-                ours_sub[case].append(run_ours(solver, problems[:args.n_slsqp], warm))
+                ours_sub[case].append(run_ours(solver, problems[: args.n_slsqp], warm))
                 for name, baseline in baselines.items():
-                    their_runs[case, name].append(run_slsqp(baseline, problems[:args.n_slsqp], kind, warm))
+                    their_runs[case, name].append(run_slsqp(baseline, problems[: args.n_slsqp], kind, warm))
 
     rows_ours, rows_cmp = [], []
     for case in cases:
@@ -253,32 +273,68 @@ def main(argv: list[str] | None = None) -> int:
         label = f"{name} {'warm (path)' if warm else 'cold (home)'}"
         runs = ours_runs[case]
         per = median([r.seconds for r in runs]) / args.n_path
-        rows_ours.append([label, args.n_path, f"{min(r.solved for r in runs)}/{args.n_path}", fmt_time(per),
-                          fmt_rate(1.0 / per), f"{max(r.max_residual for r in runs):.1e}",
-                          "-" if kind == "fk" else f"{max(r.max_task_error for r in runs):.1e}"])
+        rows_ours.append(
+            [
+                label,
+                args.n_path,
+                f"{min(r.solved for r in runs)}/{args.n_path}",
+                fmt_time(per),
+                fmt_rate(1.0 / per),
+                f"{max(r.max_residual for r in runs):.1e}",
+                "-" if kind == "fk" else f"{max(r.max_task_error for r in runs):.1e}",
+            ]
+        )
         ours_per = median([r.seconds for r in ours_sub[case]]) / args.n_slsqp
         for baseline in baselines:
             runs = their_runs[case, baseline]
             theirs_per = median([r.seconds for r in runs]) / args.n_slsqp
             last = runs[-1]
-            rows_cmp.append([label, baseline, fmt_time(ours_per), fmt_time(theirs_per),
-                             f"{theirs_per / ours_per:.1f}x", f"{last.solved}/{args.n_slsqp}",
-                             f"{last.max_residual:.1e}", "-" if kind == "fk" else f"{last.max_task_error:.1e}",
-                             f"{_difference(mechanism, ours_sub[case][-1].solutions, last.solutions, kind):.1e}"])
+            rows_cmp.append(
+                [
+                    label,
+                    baseline,
+                    fmt_time(ours_per),
+                    fmt_time(theirs_per),
+                    f"{theirs_per / ours_per:.1f}x",
+                    f"{last.solved}/{args.n_slsqp}",
+                    f"{last.max_residual:.1e}",
+                    "-" if kind == "fk" else f"{last.max_task_error:.1e}",
+                    f"{_difference(mechanism, ours_sub[case][-1].solutions, last.solutions, kind):.1e}",
+                ]
+            )
     step = np.median(np.linalg.norm(np.diff(targets[:, :3], axis=0), axis=1))
-    print(f"Path: closed Lissajous curve through 90 % of the workspace box, {args.n_path} targets "
-          f"({step * 1e3:.1f} mm apart); warm = each solve starts from the previous solution, cold = from "
-          f"home. Median of {args.repeats} repeat(s).\n")
+    print(
+        f"Path: closed Lissajous curve through 90 % of the workspace box, {args.n_path} targets "
+        f"({step * 1e3:.1f} mm apart); warm = each solve starts from the previous solution, cold = from "
+        f"home. Median of {args.repeats} repeat(s).\n"
+    )
     print("### Ours\n")
-    print(table(["case", "solves", "converged", "time/solve", "solves/s", "max closure res.", "max task err."],
-                rows_ours))
+    print(
+        table(["case", "solves", "converged", "time/solve", "solves/s", "max closure res.", "max task err."], rows_ours)
+    )
     print(f"\n### Ours vs SLSQP on the first {args.n_slsqp} targets (same starts, interleaved)\n")
-    print(table(["case", "baseline", "ours/solve", "SLSQP/solve", "speed-up", f"SLSQP at <= {ACCURACY:g}",
-                 "SLSQP max closure res.", "SLSQP max task err.", "max diff vs ours"], rows_cmp))
-    print(f"\nOurs stops at 1e-12 on the closure rows, SLSQP at ftol {SLSQP_FTOL:g}; both must end below "
-          f"{ACCURACY:g} for the times to compare. 'max diff vs ours': platform position [m] (FK) or slider "
-          "[m] (IK) difference between the two solutions (both found the same assembly). Goals: warm FK and IK "
-          ">= 5,000 solves/s each on one core; >= 20x faster than SLSQP at equal accuracy.")
+    print(
+        table(
+            [
+                "case",
+                "baseline",
+                "ours/solve",
+                "SLSQP/solve",
+                "speed-up",
+                f"SLSQP at <= {ACCURACY:g}",
+                "SLSQP max closure res.",
+                "SLSQP max task err.",
+                "max diff vs ours",
+            ],
+            rows_cmp,
+        )
+    )
+    print(
+        f"\nOurs stops at 1e-12 on the closure rows, SLSQP at ftol {SLSQP_FTOL:g}; both must end below "
+        f"{ACCURACY:g} for the times to compare. 'max diff vs ours': platform position [m] (FK) or slider "
+        "[m] (IK) difference between the two solutions (both found the same assembly). Goals: warm FK and IK "
+        ">= 5,000 solves/s each on one core; >= 20x faster than SLSQP at equal accuracy."
+    )
     return 0
 
 

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import fmt_time, header, table  # noqa: E402
 
-GIB = 1024 ** 3
+GIB = 1024**3
 
 
 def _child(argv: list[str]) -> None:
@@ -49,8 +49,13 @@ def _child(argv: list[str]) -> None:
 
 
 def _measure(argv: list[str]) -> dict:
-    completed = subprocess.run([sys.executable, __file__, "--child", *argv], capture_output=True, text=True,
-                               check=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+    completed = subprocess.run(
+        [sys.executable, __file__, "--child", *argv],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+    )
     return json.loads(completed.stdout.strip().splitlines()[-1])
 
 
@@ -73,9 +78,16 @@ def main(argv: list[str] | None = None) -> int:
             _measure(["simulate", "-n", str(n), "-o", str(data), "-q"])
             result = _measure(["calibrate", str(data), "-o", str(machine), "-q"])
             above = result["peak"] - baseline["peak"]
-            rows.append([f"{n:,} poses", f"{result['peak'] / GIB:.3f} GiB", f"{above / GIB:.3f} GiB",
-                         f"{above / n / 1024:.1f} kB", fmt_time(result["seconds"]),
-                         f"{1e3 * result['seconds'] / n:.2f} ms"])
+            rows.append(
+                [
+                    f"{n:,} poses",
+                    f"{result['peak'] / GIB:.3f} GiB",
+                    f"{above / GIB:.3f} GiB",
+                    f"{above / n / 1024:.1f} kB",
+                    fmt_time(result["seconds"]),
+                    f"{1e3 * result['seconds'] / n:.2f} ms",
+                ]
+            )
     print(table(["run", "peak RSS", "above the baseline", "per pose", "wall time", "time per pose"], rows))
     print()
     print("Goals: peak at most 1 GiB at 20,000 poses and 1.5 GiB at 100,000 (issue 12).")

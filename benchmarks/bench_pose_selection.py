@@ -42,8 +42,9 @@ from m3t1r.model.workspace import workspace_actuators  # noqa: E402
 NOISE = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
 
 
-def held_out_error(nominal: Mechanism, truth: Mechanism, actuators: np.ndarray, holdout: np.ndarray,
-                   rng: np.random.Generator) -> tuple[float, float] | None:
+def held_out_error(
+    nominal: Mechanism, truth: Mechanism, actuators: np.ndarray, holdout: np.ndarray, rng: np.random.Generator
+) -> tuple[float, float] | None:
     """Mean held-out position [m] and orientation [rad] error after calibrating on `actuators`;
     None when the set cannot identify the base parameters."""
     measurements = measure(truth, actuators, rng, NOISE)
@@ -79,8 +80,10 @@ def main(argv: list[str] | None = None) -> int:
         selection = select_poses(blocks, args.poses)
         select_time = time.perf_counter() - start
         kept = blocks[:, :, list(selection.columns)] * selection.column_scale
-        random_sets = [[rng.choice(args.candidates, args.poses, replace=False) for _ in range(args.draws)]
-                       for _ in range(args.truths)]
+        random_sets = [
+            [rng.choice(args.candidates, args.poses, replace=False) for _ in range(args.draws)]
+            for _ in range(args.truths)
+        ]
         rows, summary = [], {"selected": [], "random": []}
         for t in range(args.truths):
             truth_rng = np.random.default_rng(500 + t)
@@ -92,30 +95,75 @@ def main(argv: list[str] | None = None) -> int:
             random_mean = np.mean(ok, axis=0) if ok else (np.nan, np.nan)
             summary["selected"].append(chosen if chosen is not None else (np.nan, np.nan))
             summary["random"].append(random_mean)
-            rows.append([t, f"{chosen[0] * 1e6:.1f}" if chosen else "failed",
-                         f"{random_mean[0] * 1e6:.1f}" + (f" ({len(drawn) - len(ok)} failed)" if len(ok) < len(drawn) else ""),
-                         f"{random_mean[0] / chosen[0]:.2f}x" if chosen else "-",
-                         f"{chosen[1] * 1e6:.1f}" if chosen else "failed", f"{random_mean[1] * 1e6:.1f}",
-                         f"{random_mean[1] / chosen[1]:.2f}x" if chosen else "-"])
+            rows.append(
+                [
+                    t,
+                    f"{chosen[0] * 1e6:.1f}" if chosen else "failed",
+                    f"{random_mean[0] * 1e6:.1f}"
+                    + (f" ({len(drawn) - len(ok)} failed)" if len(ok) < len(drawn) else ""),
+                    f"{random_mean[0] / chosen[0]:.2f}x" if chosen else "-",
+                    f"{chosen[1] * 1e6:.1f}" if chosen else "failed",
+                    f"{random_mean[1] * 1e6:.1f}",
+                    f"{random_mean[1] / chosen[1]:.2f}x" if chosen else "-",
+                ]
+            )
     random_log_dets = [information_log_det(kept, s) for sets in random_sets for s in sets]
     finite = [v for v in random_log_dets if np.isfinite(v)]
-    random_o1 = [observability_index(kept[s].reshape(-1, kept.shape[2]), args.poses) for sets in random_sets for s in sets]
+    random_o1 = [
+        observability_index(kept[s].reshape(-1, kept.shape[2]), args.poses) for sets in random_sets for s in sets
+    ]
     selected_mean, random_mean = np.nanmean(summary["selected"], axis=0), np.nanmean(summary["random"], axis=0)
-    print(f"{args.candidates} candidates in the workspace box; {args.poses} poses chosen; {args.truths} truth machine(s) "
-          f"x {args.draws} random draw(s); held-out mean error over {args.holdout} poses. Blocks for all "
-          f"candidates: {fmt_time(block_time)}; selection: {fmt_time(select_time)} ({selection.n_exchanges} exchanges, "
-          f"{selection.passes} passes).\n")
-    print(table(["set", "log det (normalised)", "observability O1", "condition number"], [
-        ["D-optimal", f"{selection.log_det:.1f}", f"{selection.observability_index:.3g}",
-         f"{selection.condition_number:.3g}"],
-        ["random (mean of draws)", f"{np.mean(finite):.1f}" if finite else "-inf",
-         f"{np.mean(random_o1):.3g}", f"{len(random_log_dets) - len(finite)} of {len(random_log_dets)} rank deficient"]]))
+    print(
+        f"{args.candidates} candidates in the workspace box; {args.poses} poses chosen; {args.truths} truth machine(s) "
+        f"x {args.draws} random draw(s); held-out mean error over {args.holdout} poses. Blocks for all "
+        f"candidates: {fmt_time(block_time)}; selection: {fmt_time(select_time)} ({selection.n_exchanges} exchanges, "
+        f"{selection.passes} passes).\n"
+    )
+    print(
+        table(
+            ["set", "log det (normalised)", "observability O1", "condition number"],
+            [
+                [
+                    "D-optimal",
+                    f"{selection.log_det:.1f}",
+                    f"{selection.observability_index:.3g}",
+                    f"{selection.condition_number:.3g}",
+                ],
+                [
+                    "random (mean of draws)",
+                    f"{np.mean(finite):.1f}" if finite else "-inf",
+                    f"{np.mean(random_o1):.3g}",
+                    f"{len(random_log_dets) - len(finite)} of {len(random_log_dets)} rank deficient",
+                ],
+            ],
+        )
+    )
     print()
-    print(table(["truth", "pos. um D-opt", "pos. um random", "random / D-opt", "rot. urad D-opt", "rot. urad random",
-                 "random / D-opt"], rows + [[
-                     "mean", f"{selected_mean[0] * 1e6:.1f}", f"{random_mean[0] * 1e6:.1f}",
-                     f"{random_mean[0] / selected_mean[0]:.2f}x", f"{selected_mean[1] * 1e6:.1f}",
-                     f"{random_mean[1] * 1e6:.1f}", f"{random_mean[1] / selected_mean[1]:.2f}x"]]))
+    print(
+        table(
+            [
+                "truth",
+                "pos. um D-opt",
+                "pos. um random",
+                "random / D-opt",
+                "rot. urad D-opt",
+                "rot. urad random",
+                "random / D-opt",
+            ],
+            rows
+            + [
+                [
+                    "mean",
+                    f"{selected_mean[0] * 1e6:.1f}",
+                    f"{random_mean[0] * 1e6:.1f}",
+                    f"{random_mean[0] / selected_mean[0]:.2f}x",
+                    f"{selected_mean[1] * 1e6:.1f}",
+                    f"{random_mean[1] * 1e6:.1f}",
+                    f"{random_mean[1] / selected_mean[1]:.2f}x",
+                ]
+            ],
+        )
+    )
     print("\nGoal: the selected poses beat random ones (ratio random / D-opt > 1).")
     return 0
 

@@ -116,8 +116,9 @@ class FiniteDifferenceClosedLoop:
         return rehomed(self.nominal.with_model(model)), calls[0]
 
 
-def closed_loop_section(nominal: Mechanism, sizes: list[int], fd_sizes: list[int], repeats: int,
-                        memory: bool) -> tuple[str, dict]:
+def closed_loop_section(
+    nominal: Mechanism, sizes: list[int], fd_sizes: list[int], repeats: int, memory: bool
+) -> tuple[str, dict]:
     rows, fd_rows, timings = [], [], {}
     for n in sizes:
         study = simulate_study(nominal, n_poses=n, n_holdout=100, seed=7 + n, noise=NOISE)
@@ -139,32 +140,76 @@ def closed_loop_section(nominal: Mechanism, sizes: list[int], fd_sizes: list[int
         peak = peak_memory(run) if memory else float("nan")
         errors = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
         goal = GOALS.get(n)
-        verdict = "-" if goal is None else (f"met ({goal:g} s)" if seconds < goal else
-                                            f"MISSED by {seconds / goal:.1f}x ({goal:g} s)")
-        rows.append([n, fmt_time(seconds), f"{seconds / n * 1e3:.1f} ms", calibration.lm.iterations,
-                     calibration.lm.termination, f"{peak / 2**20:.1f} MiB" if memory else "-",
-                     f"{errors.position_mean * 1e6:.1f}", f"{errors.rotation_mean * 1e6:.1f}", verdict])
+        verdict = (
+            "-"
+            if goal is None
+            else (f"met ({goal:g} s)" if seconds < goal else f"MISSED by {seconds / goal:.1f}x ({goal:g} s)")
+        )
+        rows.append(
+            [
+                n,
+                fmt_time(seconds),
+                f"{seconds / n * 1e3:.1f} ms",
+                calibration.lm.iterations,
+                calibration.lm.termination,
+                f"{peak / 2**20:.1f} MiB" if memory else "-",
+                f"{errors.position_mean * 1e6:.1f}",
+                f"{errors.rotation_mean * 1e6:.1f}",
+                verdict,
+            ]
+        )
         if "fd" in results:
             fd_model, fd_calls = results["fd"]
             fd_seconds = median(times["fd"])
             fd_errors = pose_errors(fd_model, study.truth, study.holdout_actuators)
-            fd_rows.append([n, fmt_time(seconds), fmt_time(fd_seconds), f"{fd_seconds / seconds:.1f}x", fd_calls,
-                            f"{errors.position_mean * 1e6:.1f} / {fd_errors.position_mean * 1e6:.1f}"])
-    text = [table(["poses", "time", "per pose", "LM iter.", "stop", "peak mem.", "held-out pos. mean um",
-                   "held-out rot. mean urad", "goal"], rows)]
+            fd_rows.append(
+                [
+                    n,
+                    fmt_time(seconds),
+                    fmt_time(fd_seconds),
+                    f"{fd_seconds / seconds:.1f}x",
+                    fd_calls,
+                    f"{errors.position_mean * 1e6:.1f} / {fd_errors.position_mean * 1e6:.1f}",
+                ]
+            )
+    text = [
+        table(
+            [
+                "poses",
+                "time",
+                "per pose",
+                "LM iter.",
+                "stop",
+                "peak mem.",
+                "held-out pos. mean um",
+                "held-out rot. mean urad",
+                "goal",
+            ],
+            rows,
+        )
+    ]
     largest = max(sizes)
     if 10000 not in sizes and largest >= 1000:
-        text.append(f"\n10,000 poses not run: extrapolated linearly from {largest} poses, "
-                    f"~{timings[largest] / largest * 10000:.0f} s (the per-pose FK and sensitivity work and "
-                    "the LM QR are all linear in the pose count; the iteration count is assumed unchanged).")
+        text.append(
+            f"\n10,000 poses not run: extrapolated linearly from {largest} poses, "
+            f"~{timings[largest] / largest * 10000:.0f} s (the per-pose FK and sensitivity work and "
+            "the LM QR are all linear in the pose count; the iteration count is assumed unchanged)."
+        )
     if 50 in timings:
-        text.append(f"\nReference implementation at 50 poses: {REFERENCE_50_POSES} s; ours "
-                    f"{timings[50]:.2f} s ({REFERENCE_50_POSES / timings[50]:.1f}x faster, different machine).")
+        text.append(
+            f"\nReference implementation at 50 poses: {REFERENCE_50_POSES} s; ours "
+            f"{timings[50]:.2f} s ({REFERENCE_50_POSES / timings[50]:.1f}x faster, different machine)."
+        )
     if fd_rows:
-        text.append("\nFinite-difference LM on the same data and base parameters (one run, alternating with "
-                    "ours' first):\n")
-        text.append(table(["poses", "ours", "FD-LM", "speed-up", "FD residual evals",
-                           "held-out pos. mean um (ours / FD)"], fd_rows))
+        text.append(
+            "\nFinite-difference LM on the same data and base parameters (one run, alternating with ours' first):\n"
+        )
+        text.append(
+            table(
+                ["poses", "ours", "FD-LM", "speed-up", "FD residual evals", "held-out pos. mean um (ours / FD)"],
+                fd_rows,
+            )
+        )
     return "\n".join(text), timings
 
 
@@ -189,7 +234,7 @@ def rls_section(nominal: Mechanism, n_poses: int) -> str:
         update_times.append(time.perf_counter() - start)
         if k + 1 >= 10 and (k + 1) % max(1, n_poses // 20) == 0:  # the batch baseline at a few sizes
             start = time.perf_counter()
-            batch_least_squares(A[:k + 1].reshape(-1, A.shape[2]), y[:k + 1].ravel())
+            batch_least_squares(A[: k + 1].reshape(-1, A.shape[2]), y[: k + 1].ravel())
             batch_times.append((k + 1, time.perf_counter() - start))
     final = batch_least_squares(A.reshape(-1, A.shape[2]), y.ravel())
     agreement = float(np.max(np.abs(rls.estimate - final.x)) / np.max(np.abs(final.x)))
@@ -198,8 +243,10 @@ def rls_section(nominal: Mechanism, n_poses: int) -> str:
     shown = sorted(set(range(0, len(batch_times), max(1, len(batch_times) // 4))) | {len(batch_times) - 1})
     for count, seconds in (batch_times[i] for i in shown):
         rows.append([f"batch re-solve at {count} poses", fmt_time(seconds), f"{seconds / update:.0f}x the update"])
-    return (table(["operation (6 rows, %d base parameters)" % A.shape[2], "time", "rate / ratio"], rows)
-            + f"\n\nRLS estimate after {n_poses} poses vs batch solution: max relative difference {agreement:.1e}.")
+    return (
+        table(["operation (6 rows, %d base parameters)" % A.shape[2], "time", "rate / ratio"], rows)
+        + f"\n\nRLS estimate after {n_poses} poses vs batch solution: max relative difference {agreement:.1e}."
+    )
 
 
 def serial_section(sizes: list[int], fd_sizes: list[int], repeats: int, memory: bool) -> str:
@@ -219,16 +266,25 @@ def serial_section(sizes: list[int], fd_sizes: list[int], repeats: int, memory: 
         run = lambda: calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=SERIAL_NOISE)  # noqa: E731
         runs = {"ours": run}
         if n in fd_sizes:
-            runs["fd"] = FiniteDifferenceCalibration(model, chain, data.q_readings, data.measured_poses,
-                                                     run().base.indices, SERIAL_NOISE).solve
+            runs["fd"] = FiniteDifferenceCalibration(
+                model, chain, data.q_readings, data.measured_poses, run().base.indices, SERIAL_NOISE
+            ).solve
         results: dict = {}
         times = interleaved_times(runs, repeats if n <= 1000 else 1, results)
         result = results["ours"]
         seconds = median(times["ours"])
         peak = peak_memory(run) if memory else float("nan")
         fd = f"{fmt_time(median(times['fd']))} ({median(times['fd']) / seconds:.1f}x)" if "fd" in times else "-"
-        rows.append([n, fmt_time(seconds), f"{seconds / n * 1e6:.0f} us", result.iterations,
-                     f"{peak / 2**20:.1f} MiB" if memory else "-", fd])
+        rows.append(
+            [
+                n,
+                fmt_time(seconds),
+                f"{seconds / n * 1e6:.0f} us",
+                result.iterations,
+                f"{peak / 2**20:.1f} MiB" if memory else "-",
+                fd,
+            ]
+        )
     return table(["poses", "ours", "per pose", "LM iter.", "peak mem.", "FD-LM (ratio)"], rows)
 
 
@@ -242,8 +298,9 @@ def compensation_section(nominal: Mechanism, n_targets: int, repeats: int) -> st
     except ImportError:
         return "m3t1r.compensation not available: not measured."
     error_model = ClosedLoopErrorModel(nominal)
-    calibrated = actual_machine(nominal, random_placement_errors(error_model, np.random.default_rng(5), 1e-3, 1e-3),
-                                error_model)  # any perturbed machine: the speed does not depend on which
+    calibrated = actual_machine(
+        nominal, random_placement_errors(error_model, np.random.default_rng(5), 1e-3, 1e-3), error_model
+    )  # any perturbed machine: the speed does not depend on which
     targets = workspace_path(n_targets)
     compensator = Compensator(nominal, calibrated)
 
@@ -259,17 +316,26 @@ def compensation_section(nominal: Mechanism, n_targets: int, repeats: int) -> st
 
     times = interleaved_times({"warm": warm, "cold": cold}, repeats)
     w, c = median(times["warm"]) / n_targets, median(times["cold"]) / n_targets
-    return table(["compensation (calibrated IK + nominal FK)", "time/target", "targets/s"],
-                 [[f"warm-started along the path ({n_targets} targets)", fmt_time(w), fmt_rate(1 / w)],
-                  ["each target from home (baseline)", fmt_time(c), fmt_rate(1 / c)],
-                  ["speed-up of warm starts", f"{c / w:.1f}x", "-"]])
+    return table(
+        ["compensation (calibrated IK + nominal FK)", "time/target", "targets/s"],
+        [
+            [f"warm-started along the path ({n_targets} targets)", fmt_time(w), fmt_rate(1 / w)],
+            ["each target from home (baseline)", fmt_time(c), fmt_rate(1 / c)],
+            ["speed-up of warm starts", f"{c / w:.1f}x", "-"],
+        ],
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[20, 50, 100, 1000])
-    parser.add_argument("--fd-sizes", type=int, nargs="*", default=[20, 50],
-                        help="closed-loop sizes at which finite-difference LM also runs (slow)")
+    parser.add_argument(
+        "--fd-sizes",
+        type=int,
+        nargs="*",
+        default=[20, 50],
+        help="closed-loop sizes at which finite-difference LM also runs (slow)",
+    )
     parser.add_argument("--serial-sizes", type=int, nargs="+", default=[20, 50, 100, 1000, 10000])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-memory", action="store_true", help="skip the tracemalloc runs")
@@ -282,19 +348,26 @@ def main(argv: list[str] | None = None) -> int:
     print(header("Scaling: calibration time and memory, RLS updates, compensation throughput", __file__, argv))
     nominal = Mechanism.load()
     with single_blas_thread():
-        print(f"### Closed-loop calibration (noisy: {NOISE.position * 1e6:g} um / {NOISE.rotation * 1e6:g} urad; "
-              f"median of {args.repeats} run(s) up to 100 poses, 1 above)\n")
+        print(
+            f"### Closed-loop calibration (noisy: {NOISE.position * 1e6:g} um / {NOISE.rotation * 1e6:g} urad; "
+            f"median of {args.repeats} run(s) up to 100 poses, 1 above)\n"
+        )
         text, _ = closed_loop_section(nominal, sorted(args.sizes), args.fd_sizes, args.repeats, not args.no_memory)
         print(text)
         print("\n### Recursive least squares, per pose\n")
         print(rls_section(nominal, 60 if args.quick else 1000))
         print("\n### Serial calibration, UR10 (50 % of the rows are orientation)\n")
-        print(serial_section(sorted(args.serial_sizes), [n for n in args.serial_sizes if n <= 100],
-                             args.repeats, not args.no_memory))
+        print(
+            serial_section(
+                sorted(args.serial_sizes), [n for n in args.serial_sizes if n <= 100], args.repeats, not args.no_memory
+            )
+        )
         print("\n### Compensation throughput\n")
         print(compensation_section(nominal, n_targets, args.repeats))
-    print("\nGoals: 50-pose closed-loop calibration < 0.5 s and 1,000 poses < 5 s on one core. Peak memory is "
-          "what tracemalloc sees (numpy and Python objects), not Pinocchio's C++ heap.")
+    print(
+        "\nGoals: 50-pose closed-loop calibration < 0.5 s and 1,000 poses < 5 s on one core. Peak memory is "
+        "what tracemalloc sees (numpy and Python objects), not Pinocchio's C++ heap."
+    )
     return 0
 
 

@@ -45,13 +45,24 @@ COMMANDS = (
     ("m3t1r --version", [*CLI, "--version"], r"^m3t1r \S+( \(compiled Newton loop: (yes|no: .+)\))?\n$", 0),
     ("m3t1r --help", [*CLI, "--help"], r"^usage: m3t1r", 0),
     ("m3t1r calibrate --help", [*CLI, "calibrate", "--help"], r"^usage: m3t1r calibrate", 0),
-    ("m3t1r fk (missing file: start-up, the M machine loaded)", [*CLI, "fk", MISSING, "-o", "out.csv"],
-     MISSING + ": file not found", 2),
-    ("m3t1r calibrate --serial ur5 (missing file: start-up, the UR5 loaded)",
-     [*CLI, "calibrate", MISSING, "--serial", "ur5", "-o", "ur5.urdf"], MISSING + ": file not found", 2),
-    (f"m3t1r calibrate --serial ur5 on {POSTURES} postures (the whole command)",
-     [*CLI, "-q", "calibrate", "ur5.csv", "--serial", "ur5", "-o", "ur5.urdf", "--report", "report.json"],
-     "wrote report.json", 0),
+    (
+        "m3t1r fk (missing file: start-up, the M machine loaded)",
+        [*CLI, "fk", MISSING, "-o", "out.csv"],
+        MISSING + ": file not found",
+        2,
+    ),
+    (
+        "m3t1r calibrate --serial ur5 (missing file: start-up, the UR5 loaded)",
+        [*CLI, "calibrate", MISSING, "--serial", "ur5", "-o", "ur5.urdf"],
+        MISSING + ": file not found",
+        2,
+    ),
+    (
+        f"m3t1r calibrate --serial ur5 on {POSTURES} postures (the whole command)",
+        [*CLI, "-q", "calibrate", "ur5.csv", "--serial", "ur5", "-o", "ur5.urdf", "--report", "report.json"],
+        "wrote report.json",
+        0,
+    ),
 )
 BASELINE = "python -c 'import numpy' (baseline)"
 
@@ -67,8 +78,9 @@ def run_once(arguments: list[str], expected: str, status: int, env: dict[str, st
     done = subprocess.run([sys.executable, *arguments], capture_output=True, text=True, env=env, cwd=cwd)
     wall = time.perf_counter() - start
     if done.returncode != status or not re.search(expected, done.stdout + done.stderr):
-        raise RuntimeError(f"python {' '.join(arguments)}: status {done.returncode}, output "
-                           f"{(done.stdout + done.stderr)[-300:]!r}")
+        raise RuntimeError(
+            f"python {' '.join(arguments)}: status {done.returncode}, output {(done.stdout + done.stderr)[-300:]!r}"
+        )
     return wall, _child_cpu() - cpu
 
 
@@ -82,22 +94,33 @@ def write_serial_campaign(path: Path, seed: int = 3) -> None:
     turns = [pin.exp3(rng.normal(0.0, 20e-6, 3)) for _ in range(POSTURES)]
     measured = [pin.SE3(g[:3, :3] @ turn, g[:3, 3] + rng.normal(0.0, 10e-6, 3)) for g, turn in zip(exact, turns)]
     rows = np.hstack([data.q_true, [pin.SE3ToXYZQUAT(g) for g in measured]])
-    write_table(path, list(chain.joint_names) + ["x", "y", "z", "qx", "qy", "qz", "qw"], rows,
-                [f"{POSTURES} simulated UR5 postures"])
+    write_table(
+        path,
+        list(chain.joint_names) + ["x", "y", "z", "qx", "qy", "qz", "qw"],
+        rows,
+        [f"{POSTURES} simulated UR5 postures"],
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=15, help="timed rounds (default 15)")
-    parser.add_argument("--src", type=Path, default=SRC,
-                        help="the package tree to time (default: this checkout's src/; another checkout's "
-                             "src/ gives the figures of another revision)")
+    parser.add_argument(
+        "--src",
+        type=Path,
+        default=SRC,
+        help="the package tree to time (default: this checkout's src/; another checkout's "
+        "src/ gives the figures of another revision)",
+    )
     parser.add_argument("--quick", action="store_true", help="one round, for a smoke test")
     args = parser.parse_args(argv)
     repeats = 1 if args.quick else args.repeats
     # The tree's package, whatever is installed; one BLAS thread, as every benchmark here.
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(args.src), os.environ.get("PYTHONPATH")])),
-           "OPENBLAS_NUM_THREADS": "1"}
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(args.src), os.environ.get("PYTHONPATH")])),
+        "OPENBLAS_NUM_THREADS": "1",
+    }
     times: dict[str, list[tuple[float, float]]] = {label: [] for label, *_ in COMMANDS}
     with tempfile.TemporaryDirectory() as folder:  # the verbs' working folder: their data, no MISSING
         write_serial_campaign(Path(folder) / "ur5.csv")
@@ -108,11 +131,21 @@ def main(argv: list[str] | None = None) -> int:
                     times[label].append(measured)
     walls = {label: median([w for w, _ in values]) for label, values in times.items()}
     cpus = {label: median([c for _, c in values]) for label, values in times.items()}
-    rows = [[label, fmt_time(walls[label]), fmt_time(cpus[label]), f"{walls[label] / walls[BASELINE]:.2f}",
-             f"{cpus[label] / cpus[BASELINE]:.2f}"] for label, *_ in COMMANDS]
+    rows = [
+        [
+            label,
+            fmt_time(walls[label]),
+            fmt_time(cpus[label]),
+            f"{walls[label] / walls[BASELINE]:.2f}",
+            f"{cpus[label] / cpus[BASELINE]:.2f}",
+        ]
+        for label, *_ in COMMANDS
+    ]
     print(header("Start-up of the command line and the package", __file__, argv))
-    print(f"Package: {args.src}. Fresh interpreters, medians of {repeats} interleaved rounds; ratios to "
-          "`import numpy` of the same run.\n")
+    print(
+        f"Package: {args.src}. Fresh interpreters, medians of {repeats} interleaved rounds; ratios to "
+        "`import numpy` of the same run.\n"
+    )
     print(table(["command", "wall", "CPU (user + sys)", "wall / numpy", "CPU / numpy"], rows))
     return 0
 

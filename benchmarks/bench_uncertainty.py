@@ -43,7 +43,7 @@ def grid_actuators(nominal: Mechanism, nx: int, ny: int) -> tuple[np.ndarray, np
     solver = ClosedLoopSolver(nominal)
     rows = []
     for k, y in enumerate(ys):  # serpentine: each solve starts next to the previous one
-        for x in (xs if k % 2 == 0 else xs[::-1]):
+        for x in xs if k % 2 == 0 else xs[::-1]:
             rows.append((x, y, solver.inverse((x, y, z, 0.0)).actuators))
     order = sorted(range(len(rows)), key=lambda i: (rows[i][1], rows[i][0]))
     return np.array([rows[i][2] for i in order]), xs, ys
@@ -58,10 +58,19 @@ def draw_map(path: Path, xs: np.ndarray, ys: np.ndarray, predicted: np.ndarray, 
     fig, axes = plt.subplots(1, 2, figsize=(10, 5), sharey=True, constrained_layout=True)
     top = float(max(predicted.max(), actual.max())) * 1e6
     extent = (xs[0], xs[-1], ys[0], ys[-1])
-    for ax, values, title in ((axes[0], predicted, "predicted position std (um)"),
-                              (axes[1], actual, "actual position error (um)")):
-        image = ax.imshow(values.reshape(len(ys), len(xs)) * 1e6, origin="lower", extent=extent, aspect="auto",
-                          vmin=0.0, vmax=top, cmap="viridis")
+    for ax, values, title in (
+        (axes[0], predicted, "predicted position std (um)"),
+        (axes[1], actual, "actual position error (um)"),
+    ):
+        image = ax.imshow(
+            values.reshape(len(ys), len(xs)) * 1e6,
+            origin="lower",
+            extent=extent,
+            aspect="auto",
+            vmin=0.0,
+            vmax=top,
+            cmap="viridis",
+        )
         ax.set_title(title)
         ax.set_xlabel("x (m)")
     axes[0].set_ylabel("y (m)")
@@ -93,27 +102,54 @@ def main(argv: list[str] | None = None) -> int:
             calibration = calibrate_closed_loop(nominal, study.measurements, NOISE)
             predicted = predicted_pose_std(calibration, study.holdout_actuators)
             actual = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
-            p_rms = math.sqrt(np.mean(predicted.position ** 2))
-            a_rms = math.sqrt(np.mean(actual.position ** 2))
-            r_p = math.sqrt(np.mean(predicted.rotation ** 2))
-            r_a = math.sqrt(np.mean(actual.rotation ** 2))
+            p_rms = math.sqrt(np.mean(predicted.position**2))
+            a_rms = math.sqrt(np.mean(actual.position**2))
+            r_p = math.sqrt(np.mean(predicted.rotation**2))
+            r_a = math.sqrt(np.mean(actual.rotation**2))
             correlation = float(np.corrcoef(predicted.position, actual.position)[0, 1])
             ratios.append((a_rms / p_rms, r_a / r_p))
-            rows.append([t, f"{p_rms * 1e6:.2f}", f"{a_rms * 1e6:.2f}", f"{a_rms / p_rms:.2f}",
-                         f"{r_p * 1e6:.2f}", f"{r_a * 1e6:.2f}", f"{r_a / r_p:.2f}", f"{correlation:.2f}"])
+            rows.append(
+                [
+                    t,
+                    f"{p_rms * 1e6:.2f}",
+                    f"{a_rms * 1e6:.2f}",
+                    f"{a_rms / p_rms:.2f}",
+                    f"{r_p * 1e6:.2f}",
+                    f"{r_a * 1e6:.2f}",
+                    f"{r_a / r_p:.2f}",
+                    f"{correlation:.2f}",
+                ]
+            )
             if t == 0:
                 grid_predicted = predicted_pose_std(calibration, grid).position
                 grid_actual = pose_errors(calibration.mechanism, study.truth, grid).position
     mean = np.mean(ratios, axis=0)
     rows.append(["mean", "", "", f"{mean[0]:.2f}", "", "", f"{mean[1]:.2f}", ""])
     draw_map(args.out, xs, ys, grid_predicted, grid_actual)
-    print(f"{args.poses} calibration poses, tracker noise {NOISE.position * 1e6:g} um / {NOISE.rotation * 1e6:g} urad, "
-          f"1 mm / 1 mrad truth errors; RMS over {args.holdout} held-out poses per truth machine.\n")
-    print(table(["truth", "pred. pos. RMS um", "actual pos. RMS um", "actual / pred.", "pred. rot. RMS urad",
-                 "actual rot. RMS urad", "actual / pred.", "per-pose corr. (pos.)"], rows))
+    print(
+        f"{args.poses} calibration poses, tracker noise {NOISE.position * 1e6:g} um / {NOISE.rotation * 1e6:g} urad, "
+        f"1 mm / 1 mrad truth errors; RMS over {args.holdout} held-out poses per truth machine.\n"
+    )
+    print(
+        table(
+            [
+                "truth",
+                "pred. pos. RMS um",
+                "actual pos. RMS um",
+                "actual / pred.",
+                "pred. rot. RMS urad",
+                "actual rot. RMS urad",
+                "actual / pred.",
+                "per-pose corr. (pos.)",
+            ],
+            rows,
+        )
+    )
     print(f"\nMap ({args.grid[0]} x {args.grid[1]} grid, first truth machine): {args.out}")
-    print("Expected (docs/results.md): the covariance predicts the held-out error within about 30 % for N >= 50, "
-          "i.e. actual / predicted in [0.7, 1.3].")
+    print(
+        "Expected (docs/results.md): the covariance predicts the held-out error within about 30 % for N >= 50, "
+        "i.e. actual / predicted in [0.7, 1.3]."
+    )
     return 0
 
 

@@ -19,16 +19,30 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-BENCHMARKS = ("kinematics", "batch", "floor", "identification", "scaling", "memory", "pose_selection", "uncertainty",
-              "campaign", "startup")
+BENCHMARKS = (
+    "kinematics",
+    "batch",
+    "floor",
+    "identification",
+    "scaling",
+    "memory",
+    "pose_selection",
+    "uncertainty",
+    "campaign",
+    "startup",
+)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
     parser.add_argument("--only", nargs="+", choices=BENCHMARKS, default=list(BENCHMARKS))
-    parser.add_argument("--out-dir", type=Path, default=Path(tempfile.gettempdir()),
-                        help="where figures (the uncertainty map) are written")
+    parser.add_argument(
+        "--out-dir",
+        type=Path,
+        default=Path(tempfile.gettempdir()),
+        help="where figures (the uncertainty map) are written",
+    )
     args = parser.parse_args(argv)
     failures = []
     for name in args.only:

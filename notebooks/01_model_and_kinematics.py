@@ -61,8 +61,10 @@ mech = Mechanism.load()
 model = mech.model
 print(f"URDF      : {mech.urdf_path}")
 print(f"closures  : {mech.closures_path}")
-print(f"joints    : nq = nv = {model.nv} (1-DoF each), {len(mech.actuated_joints)} actuated, "
-      f"{len(mech.passive_ids)} passive")
+print(
+    f"joints    : nq = nv = {model.nv} (1-DoF each), {len(mech.actuated_joints)} actuated, "
+    f"{len(mech.passive_ids)} passive"
+)
 print(f"closures  : {len(mech.closures)} loops, {mech.n_constraints} enforced residual rows")
 print(f"actuated  : {mech.actuated_joints}")
 print(f"platform  : frame '{mech.platform_frame}'")
@@ -99,8 +101,10 @@ print(f"{'closure':<24}{'type':<5}{'frame_a':<15}{'frame_b':<15}enforced rows")
 for c in mech.closures:
     enforced = ", ".join(LABELS[c.type][r] for r in c.rows)
     print(f"{c.name:<24}{c.type:<5}{c.frame_a:<15}{c.frame_b:<15}{enforced}")
-print(f"\n{mech.n_constraints} enforced rows on {model.nv} joints -> {model.nv - mech.n_constraints} degrees of freedom "
-      "expected (3 translations + yaw)")
+print(
+    f"\n{mech.n_constraints} enforced rows on {model.nv} joints -> {model.nv - mech.n_constraints} degrees of freedom "
+    "expected (3 translations + yaw)"
+)
 assert (len(mech.closures), mech.n_constraints) == (7, 16)
 
 # %% [markdown]
@@ -125,14 +129,18 @@ for name, items in mech.principal_chains.items():
 solver = ClosedLoopSolver(mech)
 home_sliders = mech.home[mech.actuated_ids]
 slider_sets = [home_sliders, [0.05, 0.05, 0.05, 0.05], [0.05, 0.0, 0.0, 0.05], [0.10, 0.05, 0.15, 0.12]]
-print(f"{'sliders q11, q11_B2, q21, q21_B4 [m]':<38}{'x':>8}{'y':>8}{'z':>8}{'yaw':>8}"
-      f"{'roll':>10}{'pitch':>10}{'iters':>6}{'residual':>10}")
+print(
+    f"{'sliders q11, q11_B2, q21, q21_B4 [m]':<38}{'x':>8}{'y':>8}{'z':>8}{'yaw':>8}"
+    f"{'roll':>10}{'pitch':>10}{'iters':>6}{'residual':>10}"
+)
 for s in slider_sets:
     fk = solver.forward(np.asarray(s, dtype=float), q_init=mech.home)
     roll, pitch = fk.roll_pitch
     x, y, z = fk.pose.translation
-    print(f"{str(np.round(s, 3)):<38}{x:8.4f}{y:8.4f}{z:8.4f}{fk.yaw:8.4f}{roll:10.1e}{pitch:10.1e}"
-          f"{fk.iterations:6d}{fk.residual:10.1e}")
+    print(
+        f"{str(np.round(s, 3)):<38}{x:8.4f}{y:8.4f}{z:8.4f}{fk.yaw:8.4f}{roll:10.1e}{pitch:10.1e}"
+        f"{fk.iterations:6d}{fk.residual:10.1e}"
+    )
     assert fk.residual < 1e-10 and max(abs(roll), abs(pitch)) < 1e-12  # closed, and level to rounding
 
 # %% [markdown]
@@ -154,8 +162,9 @@ for t in targets:
     ik = solver.inverse(t, q_init=mech.home)
     fk = solver.forward(ik.actuators, q_init=mech.home)
     back = np.linalg.norm(fk.pose.translation - np.array(t[:3])) + abs(fk.yaw - t[3])
-    print(f"{str(t):<30}{str(np.round(ik.actuators, 4)):<40}{ik.iterations:6d}"
-          f"{max(map(abs, ik.tilt)):>22.1e}{back:19.1e}")
+    print(
+        f"{str(t):<30}{str(np.round(ik.actuators, 4)):<40}{ik.iterations:6d}{max(map(abs, ik.tilt)):>22.1e}{back:19.1e}"
+    )
     assert max(map(abs, ik.tilt)) < 1e-12 and back < 1e-9
 
 # %% [markdown]
@@ -169,16 +178,20 @@ for t in targets:
 # rank decision is.
 
 # %%
-print(f"{'configuration':<26}{'J_c':>9}{'rank':>6}{'mobility':>9}{'J_c all rows':>14}{'rank':>6}{'mobility':>9}"
-      f"{'sigma_16/sigma_1':>18}{'sigma_17/sigma_1':>18}")
+print(
+    f"{'configuration':<26}{'J_c':>9}{'rank':>6}{'mobility':>9}{'J_c all rows':>14}{'rank':>6}{'mobility':>9}"
+    f"{'sigma_16/sigma_1':>18}{'sigma_17/sigma_1':>18}"
+)
 for label, goal in [("home", None)] + [(str(t), t) for t in targets[1:3]]:
     q = mech.home if goal is None else solver.inverse(goal, q_init=mech.home).q
     J = solver.closure_jacobian(q)
     J_all = solver.closure_jacobian(q, all_rows=True)
     s = np.linalg.svd(J_all, compute_uv=False)
     rank, rank_all = model.nv - solver.mobility(q), model.nv - solver.mobility(q, all_rows=True)
-    print(f"{label:<26}{str(J.shape):>9}{rank:6d}{solver.mobility(q):9d}{str(J_all.shape):>14}{rank_all:6d}"
-          f"{solver.mobility(q, all_rows=True):9d}{s[15] / s[0]:18.2e}{s[16] / s[0]:18.2e}")
+    print(
+        f"{label:<26}{str(J.shape):>9}{rank:6d}{solver.mobility(q):9d}{str(J_all.shape):>14}{rank_all:6d}"
+        f"{solver.mobility(q, all_rows=True):9d}{s[15] / s[0]:18.2e}{s[16] / s[0]:18.2e}"
+    )
     assert rank == rank_all == 16 and s[15] / s[0] > 1e-3 and s[16] / s[0] < 1e-12  # a sharp rank decision
 
 # %% [markdown]
@@ -209,17 +222,20 @@ with threadpool_limits(limits=1, user_api="blas"):
         fk = warm_fk.forward(ik.actuators)
         t3 = time.perf_counter()
         clock += (t1 - t0, t2 - t1, t3 - t2)
-        rows.append((t, ik.iterations, ik_cold.iterations, fk.iterations,
-                     np.linalg.norm(fk.pose.translation - t[:3])))
+        rows.append((t, ik.iterations, ik_cold.iterations, fk.iterations, np.linalg.norm(fk.pose.translation - t[:3])))
 print(f"{'k':>3}  {'target x, y, z, theta':<34}{'warm IK':>8}{'cold IK':>8}{'warm FK':>8}{'FK vs target [m]':>18}")
 for k, (t, warm_ik_steps, cold_ik_steps, warm_fk_steps, gap) in enumerate(rows):
     if k % 5 == 0 or k == 1:
         print(f"{k:3d}  {str(np.round(t, 4)):<34}{warm_ik_steps:8d}{cold_ik_steps:8d}{warm_fk_steps:8d}{gap:18.1e}")
 iterations = np.array([r[1:4] for r in rows])
-print(f"mean Newton steps (targets 1..40): warm IK {iterations[1:, 0].mean():.1f}, "
-      f"cold IK {iterations[1:, 1].mean():.1f}, warm FK {iterations[1:, 2].mean():.1f}")
-print("mean time per solve: " + ", ".join(f"{k} {v / len(path) * 1e6:.0f} us"
-                                          for k, v in zip(("warm IK", "cold IK", "warm FK"), clock)))
+print(
+    f"mean Newton steps (targets 1..40): warm IK {iterations[1:, 0].mean():.1f}, "
+    f"cold IK {iterations[1:, 1].mean():.1f}, warm FK {iterations[1:, 2].mean():.1f}"
+)
+print(
+    "mean time per solve: "
+    + ", ".join(f"{k} {v / len(path) * 1e6:.0f} us" for k, v in zip(("warm IK", "cold IK", "warm FK"), clock))
+)
 assert max(r[4] for r in rows) < 1e-9  # every warm FK lands on its target
 assert iterations[1:, 0].mean() < iterations[1:, 1].mean()  # warm IK takes fewer Newton steps than cold IK
 
@@ -247,20 +263,26 @@ print(f"{len(dt)} placements perturbed: RMS |v| = {rms_v * 1e3:.2f} mm, RMS |w| 
 assert 1e-3 < rms_v < 2.5e-3 and 1e-3 < rms_w < 2.5e-3  # sqrt(3) x 1 mm (1 mrad), give or take the draw
 
 nominal_solver, truth_solver = ClosedLoopSolver(mech), ClosedLoopSolver(truth)
-print(f"\n{'sliders [m]':<38}{'|dp| [mm]':>10}{'d yaw [mrad]':>14}{'roll [mrad]':>13}{'pitch [mrad]':>14}"
-      f"{'iters':>6}{'max other row':>15}")
+print(
+    f"\n{'sliders [m]':<38}{'|dp| [mm]':>10}{'d yaw [mrad]':>14}{'roll [mrad]':>13}{'pitch [mrad]':>14}"
+    f"{'iters':>6}{'max other row':>15}"
+)
 for s in study.measurements.actuators:
     n, a = nominal_solver.forward(s, q_init=mech.home), truth_solver.forward(s, q_init=truth.home)
     roll, pitch = a.roll_pitch
     unenforced = np.abs(truth_solver.closure_residual(a.q, all_rows=True)).max()
-    print(f"{str(np.round(s, 3)):<38}{np.linalg.norm(a.pose.translation - n.pose.translation) * 1e3:10.2f}"
-          f"{(a.yaw - n.yaw) * 1e3:14.1f}{roll * 1e3:13.1f}{pitch * 1e3:14.1f}{a.iterations:6d}{unenforced:15.2e}")
+    print(
+        f"{str(np.round(s, 3)):<38}{np.linalg.norm(a.pose.translation - n.pose.translation) * 1e3:10.2f}"
+        f"{(a.yaw - n.yaw) * 1e3:14.1f}{roll * 1e3:13.1f}{pitch * 1e3:14.1f}{a.iterations:6d}{unenforced:15.2e}"
+    )
     # the enforced rows close; the platform tilts and the other rows stay open
     assert a.residual < 1e-10 and max(abs(roll), abs(pitch)) > 1e-3 and unenforced > 1e-3
 
 ik = truth_solver.inverse((0.5, 0.6, -0.1, 0.3), q_init=truth.home)
-print(f"\nIK on the actual machine at (0.5, 0.6, -0.1, 0.3): sliders {np.round(ik.actuators, 4)}, "
-      f"residual tilt roll/pitch = {ik.tilt[0] * 1e3:.1f} / {ik.tilt[1] * 1e3:.1f} mrad")
+print(
+    f"\nIK on the actual machine at (0.5, 0.6, -0.1, 0.3): sliders {np.round(ik.actuators, 4)}, "
+    f"residual tilt roll/pitch = {ik.tilt[0] * 1e3:.1f} / {ik.tilt[1] * 1e3:.1f} mrad"
+)
 assert max(map(abs, ik.tilt)) > 1e-3
 
 # %% [markdown]
@@ -282,7 +304,9 @@ for k, name in enumerate(error_model.names):
     vector[k] = 1e-3
     one = actual_machine(mech, vector, error_model)
     fk = ClosedLoopSolver(one).forward(home_sliders, q_init=one.home)
-    effects.append((abs(fk.yaw - reference.yaw), np.linalg.norm(fk.pose.translation - reference.pose.translation), name))
+    effects.append(
+        (abs(fk.yaw - reference.yaw), np.linalg.norm(fk.pose.translation - reference.pose.translation), name)
+    )
 effects.sort(reverse=True)
 print(f"{error_model.n_parameters} parameters; largest effects of a single 1e-3 error at the home sliders:")
 print(f"{'parameter':<22}{'|d yaw| [mrad]':>16}{'|dp| [mm]':>11}")
@@ -310,9 +334,12 @@ from m3t1r.app.scene import CALIBRATED_COLOR, MachineView, comparison_views
 from m3t1r.app.static_page import write_static_html
 
 views = comparison_views(mech) + (MachineView("actual", truth, CALIBRATED_COLOR),)
-page = write_static_html(views, OUT / "01_nominal_vs_actual.html", pose=(0.5, 0.6, -0.1, 0.3),
-                         markers=study.measurements.poses)
+page = write_static_html(
+    views, OUT / "01_nominal_vs_actual.html", pose=(0.5, 0.6, -0.1, 0.3), markers=study.measurements.poses
+)
 print(f"wrote {page} ({page.stat().st_size / 1e6:.1f} MB); open it in a browser")
 assert page.stat().st_size > 100_000  # the viewer's JavaScript is inlined
 # inline view in Jupyter: the page itself, embedded (the temporary folder is not served)
-HTML(f'<iframe srcdoc="{escape(page.read_text(encoding="utf-8"))}" width="100%" height="480" style="border: 0"></iframe>')
+HTML(
+    f'<iframe srcdoc="{escape(page.read_text(encoding="utf-8"))}" width="100%" height="480" style="border: 0"></iframe>'
+)

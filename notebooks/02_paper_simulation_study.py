@@ -66,7 +66,7 @@ OUT = Path(tempfile.mkdtemp(prefix="m3t1r-notebook-02-"))
 print(f"files written by this notebook: {OUT}")
 np.set_printoptions(precision=4, suppress=True, linewidth=110)
 
-SEED, N_POSES, N_HOLDOUT = 0, 20, 50   # the paper uses 20 calibration poses
+SEED, N_POSES, N_HOLDOUT = 0, 20, 50  # the paper uses 20 calibration poses
 mech = Mechanism.load()
 
 
@@ -86,8 +86,9 @@ HEADER = f"{'':<46}{'pos mean [m]':>13}{'pos max [m]':>13}{'rot mean [rad]':>15}
 
 
 def row(label, e: PoseErrors) -> str:
-    return (f"{label:<46}{e.position.mean():13.2e}{e.position.max():13.2e}"
-            f"{e.rotation.mean():15.2e}{e.rotation.max():14.2e}")
+    return (
+        f"{label:<46}{e.position.mean():13.2e}{e.position.max():13.2e}{e.rotation.mean():15.2e}{e.rotation.max():14.2e}"
+    )
 
 
 # %% [markdown]
@@ -103,9 +104,11 @@ def row(label, e: PoseErrors) -> str:
 # %%
 chains = paper.paper_chains(mech)
 for c in chains:
-    print(f"chain {c.name}: slider {c.slider} | upper crank {c.upper_crank} + {c.upper_coupling} | lower crank "
-          f"{c.lower_crank} + {c.lower_coupling} | hinge {c.platform_hinge} | tool {c.tool_frame} "
-          f"| {c.n_parameters} parameters")
+    print(
+        f"chain {c.name}: slider {c.slider} | upper crank {c.upper_crank} + {c.upper_coupling} | lower crank "
+        f"{c.lower_crank} + {c.lower_coupling} | hinge {c.platform_hinge} | tool {c.tool_frame} "
+        f"| {c.n_parameters} parameters"
+    )
     assert c.n_parameters == 42  # 7 initial poses x 6
 
 # %% [markdown]
@@ -123,7 +126,7 @@ q_true = np.array([fk.forward(a, q_init=mech.home).q for a in actuators])
 fit, held = slice(0, N_POSES), slice(N_POSES, None)
 print(f"{'pose':>4}  {'sliders [m]':<36}chain B1 coordinates (m, rad)")
 for k in range(4):
-    print(f"{k:4d}  {str(np.round(actuators[k], 4)):<36}{np.round(chains[0].coordinates(q_true[k:k + 1])[0], 4)}")
+    print(f"{k:4d}  {str(np.round(actuators[k], 4)):<36}{np.round(chains[0].coordinates(q_true[k : k + 1])[0], 4)}")
 print(f"... {len(actuators)} slider sets, {q_true.shape[1]} joint values each")
 
 # %% [markdown]
@@ -164,7 +167,12 @@ for name, ds in preset.twist_error.items():
 truth = {c.name: paper.actual_chain_poses(c, mech.model, preset, q_true) for c in chains}
 print(HEADER)
 for c in chains:
-    print(row(f"nominal chain {c.name} vs actual chain {c.name}", pose_differences(chain_poses(c, mech.model, q_true), truth[c.name])))
+    print(
+        row(
+            f"nominal chain {c.name} vs actual chain {c.name}",
+            pose_differences(chain_poses(c, mech.model, q_true), truth[c.name]),
+        )
+    )
 print(row("actual chain B1 vs actual chain B3", pose_differences(truth["B1"], truth["B3"])))
 assert pose_differences(truth["B1"], truth["B3"]).position.min() > 1e-4  # independent errors: the ends disagree
 
@@ -191,17 +199,25 @@ assert pose_differences(truth["B1"], truth["B3"]).position.min() > 1e-4  # indep
 # %%
 measured_fit = {c.name: truth[c.name][fit] for c in chains}
 system = paper.two_chain_error_model(mech.model, chains, q_true[fit], [measured_fit[c.name] for c in chains])
-print(f"y: {system.y.shape} (poses x [v1; w1; v2; w2]), J: {system.jacobian.shape}, "
-      f"{len(system.parameter_names)} parameters, e.g. {system.parameter_names[:2]}")
+print(
+    f"y: {system.y.shape} (poses x [v1; w1; v2; w2]), J: {system.jacobian.shape}, "
+    f"{len(system.parameter_names)} parameters, e.g. {system.parameter_names[:2]}"
+)
 print("first poses, |v| [m] and |w| [rad] of y_1, y_2:")
 for k in range(3):
     y = system.y[k].reshape(2, 2, 3)
-    print(f"  pose {k}: " + "  ".join(f"|v{i + 1}| {np.linalg.norm(y[i, 0]):.2e} |w{i + 1}| {np.linalg.norm(y[i, 1]):.2e}"
-                                      for i in range(2)))
+    print(
+        f"  pose {k}: "
+        + "  ".join(
+            f"|v{i + 1}| {np.linalg.norm(y[i, 0]):.2e} |w{i + 1}| {np.linalg.norm(y[i, 1]):.2e}" for i in range(2)
+        )
+    )
 
 ident = paper.two_chain_identifiability(mech, q_true[fit])
-print(f"\nparameters {ident.n_parameters}; rank per chain {dict(ident.rank_per_chain)}; stacked {ident.rank_stacked}; "
-      f"literal eq. (21) {ident.rank_literal_eq21}; paper's bound 4r + 2p + 6 = {ident.paper_bound}")
+print(
+    f"\nparameters {ident.n_parameters}; rank per chain {dict(ident.rank_per_chain)}; stacked {ident.rank_stacked}; "
+    f"literal eq. (21) {ident.rank_literal_eq21}; paper's bound 4r + 2p + 6 = {ident.paper_bound}"
+)
 assert dict(ident.rank_per_chain) == {"B1": 24, "B3": 24} and ident.rank_stacked == 48 and ident.paper_bound == 34
 
 # %% [markdown]
@@ -239,10 +255,14 @@ assert cal.converged and cal.base.rank == 56  # 48, plus 4 per chain visible onc
 
 batch = paper.calibrate_two_chains(mech, q_true[fit], measured_fit, solver="batch")
 d_dt = max(np.abs(batch.deltas[p] - cal.deltas[p]).max() for p in cal.deltas)
-d_pose = max(max(e.position.max(), e.rotation.max()) for e in
-             (pose_differences(batch.predict(c.name, q_true[held]), cal.predict(c.name, q_true[held])) for c in chains))
-print(f"\nbatch vs recursive solver ({batch.iterations} vs {cal.iterations} iterations): "
-      f"held-out poses differ by at most {d_pose:.1e} (m or rad), the identified dt by at most {d_dt:.1e}")
+d_pose = max(
+    max(e.position.max(), e.rotation.max())
+    for e in (pose_differences(batch.predict(c.name, q_true[held]), cal.predict(c.name, q_true[held])) for c in chains)
+)
+print(
+    f"\nbatch vs recursive solver ({batch.iterations} vs {cal.iterations} iterations): "
+    f"held-out poses differ by at most {d_pose:.1e} (m or rad), the identified dt by at most {d_dt:.1e}"
+)
 assert batch.converged and d_pose < 1e-12
 
 # %% [markdown]
@@ -255,8 +275,12 @@ assert batch.converged and d_pose < 1e-12
 # plot below is for chain B1 (log scale).
 
 # %%
-figure = plot_pose_errors_before_after(cal.residual_before["B1"], cal.residual_after["B1"], OUT / "02_fig4_exact.png",
-                                       title="Chain B1, exact data: pose error before and after calibration")
+figure = plot_pose_errors_before_after(
+    cal.residual_before["B1"],
+    cal.residual_after["B1"],
+    OUT / "02_fig4_exact.png",
+    title="Chain B1, exact data: pose error before and after calibration",
+)
 display(Image(filename=str(figure), width=640))
 
 # %% [markdown]
@@ -291,8 +315,12 @@ for name in exact.holdout_poses:
 # %%
 b1 = noisy.calibration_poses["B1"]
 assert b1.after is not None
-figure = plot_pose_errors_before_after(b1.before, b1.after, OUT / "02_fig4_noisy.png",
-                                       title="Chain B1, 20 noisy poses: pose error before and after calibration")
+figure = plot_pose_errors_before_after(
+    b1.before,
+    b1.after,
+    OUT / "02_fig4_noisy.png",
+    title="Chain B1, 20 noisy poses: pose error before and after calibration",
+)
 display(Image(filename=str(figure), width=640))
 
 # %% [markdown]
@@ -315,7 +343,9 @@ display(Image(filename=str(figure), width=640))
 # %%
 model = mech.model
 q_fit = q_true[fit]
-print(f"{'method':<10}{'max |err q13| [rad]':>20}{'max |err q23| [rad]':>20}{'mean iterations':>17}{'max residual':>14}")
+print(
+    f"{'method':<10}{'max |err q13| [rad]':>20}{'max |err q23| [rad]':>20}{'mean iterations':>17}{'max residual':>14}"
+)
 for method in ("distance", "platform", "sliders"):
     est = paper.estimate_lower_crank_angles(mech, q_fit, method=method)
     true = q_fit[:, [model.idx_qs[model.getJointId(j)] for j in est.joints]]
@@ -362,10 +392,20 @@ for (source, noisy_data), e in after_by_source.items():
 # | `closed_loop` | `calibrate_closed_loop` on the same slider readings and tracker poses |
 
 # %%
-studies = {"exact": paper.closed_chain_study(SEED, n_poses=N_POSES, n_holdout=N_HOLDOUT),
-           "noisy": paper.closed_chain_study(SEED, n_poses=N_POSES, n_holdout=N_HOLDOUT, noise=TrackerNoise())}
-fields = ("nominal", "sensors_before", "sensors_after", "second_chain_before", "second_chain_after",
-          "sliders_only", "calibrated_tree", "closed_loop")
+studies = {
+    "exact": paper.closed_chain_study(SEED, n_poses=N_POSES, n_holdout=N_HOLDOUT),
+    "noisy": paper.closed_chain_study(SEED, n_poses=N_POSES, n_holdout=N_HOLDOUT, noise=TrackerNoise()),
+}
+fields = (
+    "nominal",
+    "sensors_before",
+    "sensors_after",
+    "second_chain_before",
+    "second_chain_after",
+    "sliders_only",
+    "calibrated_tree",
+    "closed_loop",
+)
 print(f"{'held-out pose error, mean':<28}" + "".join(f"{k + ' pos [m]':>17}{k + ' rot [rad]':>17}" for k in studies))
 for name in fields:
     cells = []
@@ -376,10 +416,14 @@ for name in fields:
 for label, chain_study in studies.items():
     cl = chain_study.closed_loop_calibration
     assert cl is not None
-    print(f"{label}: both chains' calibrated placements assemble as one tree: {chain_study.both_chains_assemble}; "
-          f"closed-loop calibration identified {cl.base.rank} of {len(cl.parameters)} parameters")
-print("lower-crank estimates at the held-out poses, max |error| [rad]: "
-      + ", ".join(f"{m} {np.abs(e).max():.1e}" for m, e in studies["exact"].crank_error.items()))
+    print(
+        f"{label}: both chains' calibrated placements assemble as one tree: {chain_study.both_chains_assemble}; "
+        f"closed-loop calibration identified {cl.base.rank} of {len(cl.parameters)} parameters"
+    )
+print(
+    "lower-crank estimates at the held-out poses, max |error| [rad]: "
+    + ", ".join(f"{m} {np.abs(e).max():.1e}" for m, e in studies["exact"].crank_error.items())
+)
 for label, chain_study in studies.items():
     nominal = chain_study.nominal.position_mean
     assert chain_study.calibrated_tree is not None and chain_study.closed_loop is not None

@@ -71,8 +71,10 @@ HEADER = f"{'':<40}{'pos mean [um]':>14}{'pos max [um]':>13}{'rot mean [urad]':>
 
 
 def row(label, position, rotation) -> str:
-    return (f"{label:<40}{np.mean(position) * 1e6:14.1f}{np.max(position) * 1e6:13.1f}"
-            f"{np.mean(rotation) * 1e6:16.1f}{np.max(rotation) * 1e6:15.1f}")
+    return (
+        f"{label:<40}{np.mean(position) * 1e6:14.1f}{np.max(position) * 1e6:13.1f}"
+        f"{np.mean(rotation) * 1e6:16.1f}{np.max(rotation) * 1e6:15.1f}"
+    )
 
 
 # %% [markdown]
@@ -88,14 +90,18 @@ noise = TrackerNoise()
 study = simulate_study(mech, n_poses=N_POSES, n_holdout=N_HOLDOUT, seed=SEED, noise=noise)
 measurements = study.measurements
 print(noise)
-print(f"{len(measurements)} calibration poses: slider readings {measurements.actuators.shape} [m] and "
-      f"{len(measurements.poses)} tracker poses of '{mech.platform_frame}'; "
-      f"{len(study.holdout_actuators)} held-out slider sets")
+print(
+    f"{len(measurements)} calibration poses: slider readings {measurements.actuators.shape} [m] and "
+    f"{len(measurements.poses)} tracker poses of '{mech.platform_frame}'; "
+    f"{len(study.holdout_actuators)} held-out slider sets"
+)
 print(f"\n{'pose':>4}  {'slider readings [m]':<38}{'measured x, y, z [m]':<30}{'yaw [rad]':>10}")
 for k in range(4):
     g = measurements.poses[k]
-    print(f"{k:4d}  {str(np.round(measurements.actuators[k], 5)):<38}{str(np.round(g.translation, 5)):<30}"
-          f"{math.atan2(g.rotation[1, 0], g.rotation[0, 0]):10.4f}")
+    print(
+        f"{k:4d}  {str(np.round(measurements.actuators[k], 5)):<38}{str(np.round(g.translation, 5)):<30}"
+        f"{math.atan2(g.rotation[1, 0], g.rotation[0, 0]):10.4f}"
+    )
 
 # %% [markdown]
 # ## 2. The parameters
@@ -127,13 +133,19 @@ t0 = time.perf_counter()
 cal = calibrate_closed_loop(mech, measurements, noise)
 seconds = time.perf_counter() - t0
 shrink = math.sqrt(1 - cal.base.rank / (6 * len(measurements)))
-print(f"{seconds:.2f} s; Levenberg-Marquardt: {cal.lm.iterations} iterations, stopped by its '{cal.lm.termination}' test")
-print(f"identifiable (base) parameters: {cal.base.rank} of {len(cal.parameters)}, condition number "
-      f"{cal.base.condition_number:.2g}; {len(cal.base.zero_columns)} parameters have no effect on the measurements")
+print(
+    f"{seconds:.2f} s; Levenberg-Marquardt: {cal.lm.iterations} iterations, stopped by its '{cal.lm.termination}' test"
+)
+print(
+    f"identifiable (base) parameters: {cal.base.rank} of {len(cal.parameters)}, condition number "
+    f"{cal.base.condition_number:.2g}; {len(cal.base.zero_columns)} parameters have no effect on the measurements"
+)
 print(f"residual RMS before: {cal.rms_before[0] * 1e6:9.1f} um {cal.rms_before[1] * 1e6:9.1f} urad")
 print(f"residual RMS after : {cal.rms_after[0] * 1e6:9.1f} um {cal.rms_after[1] * 1e6:9.1f} urad")
-print(f"noise floor (approx): {math.sqrt(3) * noise.position * shrink * 1e6:8.1f} um "
-      f"{math.sqrt(3) * noise.rotation * shrink * 1e6:9.1f} urad")
+print(
+    f"noise floor (approx): {math.sqrt(3) * noise.position * shrink * 1e6:8.1f} um "
+    f"{math.sqrt(3) * noise.rotation * shrink * 1e6:9.1f} urad"
+)
 # the model fits down to the noise: the residual lands near the floor, not above it
 assert 0.7 < cal.rms_after[0] / (math.sqrt(3) * noise.position * shrink) < 1.5
 assert 0.7 < cal.rms_after[1] / (math.sqrt(3) * noise.rotation * shrink) < 1.5
@@ -189,15 +201,23 @@ for label, e in rows.items():
 after = rows["held-out poses, calibrated"]
 predicted = predicted_pose_std(cal, held)
 rms = lambda v: math.sqrt(np.mean(np.square(v)))
-print(f"\nheld-out RMS, actual vs predicted: "
-      f"position {rms(after.position) * 1e6:.1f} vs {rms(predicted.position) * 1e6:.1f} um, "
-      f"rotation {rms(after.rotation) * 1e6:.1f} vs {rms(predicted.rotation) * 1e6:.1f} urad")
+print(
+    f"\nheld-out RMS, actual vs predicted: "
+    f"position {rms(after.position) * 1e6:.1f} vs {rms(predicted.position) * 1e6:.1f} um, "
+    f"rotation {rms(after.rotation) * 1e6:.1f} vs {rms(predicted.rotation) * 1e6:.1f} urad"
+)
 assert after.position_mean < 50e-6 and after.position_mean < rows["held-out poses, nominal model"].position_mean / 100
-assert 0.5 < rms(after.position) / rms(predicted.position) < 2 and 0.5 < rms(after.rotation) / rms(predicted.rotation) < 2
+assert (
+    0.5 < rms(after.position) / rms(predicted.position) < 2 and 0.5 < rms(after.rotation) / rms(predicted.rotation) < 2
+)
 
 # %%
-figure = plot_pose_errors_before_after(rows["held-out poses, nominal model"], after, OUT / "03_holdout_before_after.png",
-                                       title="Held-out poses: platform error vs the actual machine")
+figure = plot_pose_errors_before_after(
+    rows["held-out poses, nominal model"],
+    after,
+    OUT / "03_holdout_before_after.png",
+    title="Held-out poses: platform error vs the actual machine",
+)
 display(Image(filename=str(figure), width=640))
 
 # %% [markdown]
@@ -214,8 +234,10 @@ for n in (20, 30, 40, N_POSES):
     e = pose_errors(fitted.mechanism, study.truth, held[:50])
     std = predicted_pose_std(fitted, held[:50])
     flagged = any(issubclass(w.category, PoorExcitationWarning) for w in caught)
-    print(f"{n:5d}{e.position_mean * 1e6:24.1f}{rms(std.position) * 1e6:20.1f}{fitted.base.condition_number:12.2g}  "
-          f"{'poor excitation' if flagged else ''}")
+    print(
+        f"{n:5d}{e.position_mean * 1e6:24.1f}{rms(std.position) * 1e6:20.1f}{fitted.base.condition_number:12.2g}  "
+        f"{'poor excitation' if flagged else ''}"
+    )
 
 # %% [markdown]
 # ## 5. Compensation (paper section 7, Fig. 6)
@@ -234,12 +256,16 @@ for n in (20, 30, 40, N_POSES):
 # %%
 targets = workspace_targets(100, np.random.default_rng(SEED + 1))
 commands = compensate(mech, cal.mechanism, targets)
-print(f"{commands.n_targets} targets, {len(commands.indices)} compensated, {len(commands.failures)} failed; "
-      f"max |tilt| {commands.max_tilt * 1e3:.1f} mrad; mean IK steps {commands.iterations.mean():.1f}")
+print(
+    f"{commands.n_targets} targets, {len(commands.indices)} compensated, {len(commands.failures)} failed; "
+    f"max |tilt| {commands.max_tilt * 1e3:.1f} mrad; mean IK steps {commands.iterations.mean():.1f}"
+)
 print(f"\n{'target T_co x, y, z, theta':<36}{'q^c sliders [m]':<40}{'T_cp x, y, z, theta':<36}{'tilt [mrad]':<16}")
 for k in range(5):
-    print(f"{str(np.round(targets[commands.indices[k]], 4)):<36}{str(np.round(commands.actuators[k], 4)):<40}"
-          f"{str(np.round(commands.command_targets[k], 4)):<36}{str(np.round(commands.tilt[k] * 1e3, 1)):<16}")
+    print(
+        f"{str(np.round(targets[commands.indices[k]], 4)):<36}{str(np.round(commands.actuators[k], 4)):<40}"
+        f"{str(np.round(commands.command_targets[k], 4)):<36}{str(np.round(commands.tilt[k] * 1e3, 1)):<16}"
+    )
 assert len(commands.indices) == commands.n_targets and not commands.failures
 
 # %% [markdown]
@@ -250,11 +276,15 @@ assert len(commands.indices) == commands.n_targets and not commands.failures
 # %%
 accuracy = compensation_accuracy(mech, cal.mechanism, study.truth, targets)
 print(f"{len(accuracy.indices)} of {accuracy.n_targets} targets evaluated")
-print(f"{'':<24}{'pos mean [um]':>14}{'pos max [um]':>13}{'pos rms [um]':>13}"
-      f"{'yaw mean [urad]':>16}{'yaw max [urad]':>15}")
+print(
+    f"{'':<24}{'pos mean [um]':>14}{'pos max [um]':>13}{'pos rms [um]':>13}"
+    f"{'yaw mean [urad]':>16}{'yaw max [urad]':>15}"
+)
 for label, e in (("nominal commands", accuracy.before), ("compensated commands", accuracy.after)):
-    print(f"{label:<24}{e.position_mean * 1e6:14.1f}{e.position_max * 1e6:13.1f}{e.position_rms * 1e6:13.1f}"
-          f"{e.rotation_mean * 1e6:16.1f}{e.rotation_max * 1e6:15.1f}")
+    print(
+        f"{label:<24}{e.position_mean * 1e6:14.1f}{e.position_max * 1e6:13.1f}{e.position_rms * 1e6:13.1f}"
+        f"{e.rotation_mean * 1e6:16.1f}{e.rotation_max * 1e6:15.1f}"
+    )
 assert accuracy.after.position_mean < 50e-6 and accuracy.after.position_mean < accuracy.before.position_mean / 100
 assert accuracy.after.rotation_mean < 50e-6 and accuracy.after.rotation_mean < accuracy.before.rotation_mean / 100
 
@@ -275,13 +305,17 @@ cal.mechanism.save(urdf, closures)
 reloaded = Mechanism.load(urdf, closures)
 check = pose_errors(cal.mechanism, reloaded, held[:50])
 print(f"wrote {urdf} and {closures}")
-print(f"reloaded vs in-memory calibrated model: max platform difference {check.position.max():.1e} m, "
-      f"{check.rotation.max():.1e} rad")
+print(
+    f"reloaded vs in-memory calibrated model: max platform difference {check.position.max():.1e} m, "
+    f"{check.rotation.max():.1e} rad"
+)
 assert check.position.max() < 1e-9 and check.rotation.max() < 1e-9  # the files hold the calibrated machine
+
 
 def origin(path, joint):
     element = ET.parse(path).getroot().find(f"joint[@name='{joint}']/origin")
     return element.get("xyz"), element.get("rpy")
+
 
 print(f"\n{'joint':<8}{'file':<11}{'origin xyz [m]':<52}rpy [rad]")
 for joint in ("q12", "q14"):
@@ -298,12 +332,18 @@ for joint in ("q12", "q14"):
 # positions appear as yellow spheres.
 
 # %%
-page = write_static_html(comparison_views(mech, cal.mechanism), OUT / "03_nominal_vs_calibrated.html",
-                         pose=(0.5, 0.6, -0.1, 0.3), markers=study.measurements.poses)
+page = write_static_html(
+    comparison_views(mech, cal.mechanism),
+    OUT / "03_nominal_vs_calibrated.html",
+    pose=(0.5, 0.6, -0.1, 0.3),
+    markers=study.measurements.poses,
+)
 print(f"wrote {page} ({page.stat().st_size / 1e6:.1f} MB); open it in a browser")
 assert page.stat().st_size > 100_000  # the viewer's JavaScript is inlined
 # inline view in Jupyter: the page itself, embedded (the temporary folder is not served)
-HTML(f'<iframe srcdoc="{escape(page.read_text(encoding="utf-8"))}" width="100%" height="480" style="border: 0"></iframe>')
+HTML(
+    f'<iframe srcdoc="{escape(page.read_text(encoding="utf-8"))}" width="100%" height="480" style="border: 0"></iframe>'
+)
 
 # %% [markdown]
 # **Things to try.** Change `SEED`, `N_POSES` or the `TrackerNoise` values. Pass `position_only=True` to

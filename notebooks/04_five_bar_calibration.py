@@ -70,8 +70,10 @@ forward = solver.forward_batch(motors)
 targets = five_bar.task.coordinates(forward.poses)
 inverse = solver.inverse_batch(targets)
 round_trip = np.abs(inverse.actuators - motors).max()
-print(f"500 poses: effector x in [{targets[:, 0].min():.3f}, {targets[:, 0].max():.3f}] m, "
-      f"y in [{targets[:, 1].min():.3f}, {targets[:, 1].max():.3f}] m; IK(FK(q)) - q: {round_trip:.1e} rad")
+print(
+    f"500 poses: effector x in [{targets[:, 0].min():.3f}, {targets[:, 0].max():.3f}] m, "
+    f"y in [{targets[:, 1].min():.3f}, {targets[:, 1].max():.3f}] m; IK(FK(q)) - q: {round_trip:.1e} rad"
+)
 assert forward.complete and inverse.complete and round_trip < 1e-8
 
 # %% [markdown]
@@ -83,19 +85,26 @@ assert forward.complete and inverse.complete and round_trip < 1e-8
 
 # %%
 noise = TrackerNoise(position=1e-5, rotation=2e-5, actuator=1e-6)
-study = simulate_study(five_bar, n_poses=40, n_holdout=300, seed=1, sigma_position=1e-4, sigma_rotation=1e-4,
-                       noise=noise)
+study = simulate_study(
+    five_bar, n_poses=40, n_holdout=300, seed=1, sigma_position=1e-4, sigma_rotation=1e-4, noise=noise
+)
 calibration = calibrate_closed_loop(five_bar, study.measurements, noise)
 before = pose_errors(five_bar, study.truth, study.holdout_actuators)
 after = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
 floor = predicted_pose_std(calibration, study.holdout_actuators)
-print(f"identified {len(calibration.base.names)} of {calibration.error_model.n_parameters} parameters, "
-      f"LM {calibration.lm.termination} after {calibration.lm.iterations} iterations, "
-      f"variance factor {calibration.variance_factor:.2f}")
-print(f"held-out position RMS: nominal {before.position_rms * 1e6:.1f} µm -> calibrated {after.position_rms * 1e6:.2f} µm"
-      f" (predicted {floor.position_rms * 1e6:.2f} µm)")
-print(f"held-out rotation RMS: nominal {before.rotation_rms * 1e6:.0f} µrad -> calibrated "
-      f"{after.rotation_rms * 1e6:.2f} µrad (predicted {floor.rotation_rms * 1e6:.2f} µrad)")
+print(
+    f"identified {len(calibration.base.names)} of {calibration.error_model.n_parameters} parameters, "
+    f"LM {calibration.lm.termination} after {calibration.lm.iterations} iterations, "
+    f"variance factor {calibration.variance_factor:.2f}"
+)
+print(
+    f"held-out position RMS: nominal {before.position_rms * 1e6:.1f} µm -> calibrated {after.position_rms * 1e6:.2f} µm"
+    f" (predicted {floor.position_rms * 1e6:.2f} µm)"
+)
+print(
+    f"held-out rotation RMS: nominal {before.rotation_rms * 1e6:.0f} µrad -> calibrated "
+    f"{after.rotation_rms * 1e6:.2f} µrad (predicted {floor.rotation_rms * 1e6:.2f} µrad)"
+)
 assert calibration.lm.converged and 0.5 < calibration.variance_factor < 1.5
 assert after.position_rms < 0.05 * before.position_rms
 assert 0.5 < after.position_rms / floor.position_rms < 2.0
@@ -108,10 +117,14 @@ assert 0.5 < after.position_rms / floor.position_rms < 2.0
 # calibration left.
 
 # %%
-grid = five_bar.task.coordinates(solver.forward_batch(workspace_actuators(five_bar, 200, np.random.default_rng(2))).poses)
+grid = five_bar.task.coordinates(
+    solver.forward_batch(workspace_actuators(five_bar, 200, np.random.default_rng(2))).poses
+)
 accuracy = compensation_accuracy(five_bar, calibration.mechanism, study.truth, grid)
-print(f"effector error at 200 targets: nominal commands {accuracy.before.position_rms * 1e6:.1f} µm RMS, "
-      f"compensated {accuracy.after.position_rms * 1e6:.2f} µm RMS")
+print(
+    f"effector error at 200 targets: nominal commands {accuracy.before.position_rms * 1e6:.1f} µm RMS, "
+    f"compensated {accuracy.after.position_rms * 1e6:.2f} µm RMS"
+)
 assert not accuracy.failures and accuracy.after.position_rms < 0.05 * accuracy.before.position_rms
 
 # %% [markdown]
@@ -122,12 +135,20 @@ assert not accuracy.failures and accuracy.after.position_rms < 0.05 * accuracy.b
 # plane of the task, commanded through the nominal model and through the calibrated one.
 
 # %%
-figure = plot_pose_errors_before_after(before, after, OUT / "04_holdout_before_after.png",
-                                       title="Five-bar, 300 held-out poses: effector error vs the actual machine")
+figure = plot_pose_errors_before_after(
+    before,
+    after,
+    OUT / "04_holdout_before_after.png",
+    title="Five-bar, 300 held-out poses: effector error vs the actual machine",
+)
 display(Image(filename=str(figure), width=640))
-error_map = plot_workspace_error_map(grid[accuracy.indices], accuracy.before.position, accuracy.after.position,
-                                     OUT / "04_compensation_map.png",
-                                     title="Five-bar: effector error at the targets, without and with compensation")
+error_map = plot_workspace_error_map(
+    grid[accuracy.indices],
+    accuracy.before.position,
+    accuracy.after.position,
+    OUT / "04_compensation_map.png",
+    title="Five-bar: effector error at the targets, without and with compensation",
+)
 display(Image(filename=str(error_map), width=640))
 assert figure.stat().st_size > 15_000 and error_map.stat().st_size > 15_000
 
@@ -140,7 +161,9 @@ assert figure.stat().st_size > 15_000 and error_map.stat().st_size > 15_000
 saved = OUT / "five_bar_calibrated.urdf"
 calibration.mechanism.save(saved)
 reloaded = Mechanism.load(saved)
-difference = np.abs(ClosedLoopSolver(reloaded).forward_batch(motors[:50]).poses
-                    - ClosedLoopSolver(calibration.mechanism).forward_batch(motors[:50]).poses).max()
+difference = np.abs(
+    ClosedLoopSolver(reloaded).forward_batch(motors[:50]).poses
+    - ClosedLoopSolver(calibration.mechanism).forward_batch(motors[:50]).poses
+).max()
 print(f"wrote {saved.name} and {saved.with_suffix('').name}.closures.yaml; reloaded poses differ by {difference:.1e}")
 assert reloaded.task == five_bar.task and difference < 1e-9

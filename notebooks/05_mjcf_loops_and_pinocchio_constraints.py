@@ -50,14 +50,22 @@ print("files written by this notebook go to", OUT)
 # (a `weld` without `relpose`, as in MuJoCo). One motor: 7 joints - 6 weld rows = 1 degree of freedom.
 
 # %%
-LINKS = [("0 0 0.1", "0 0 0", "0 0 1"), ("0.2 0 0", "20 0 0", "0 1 0"), ("0.15 0.05 0", "0 15 30", "1 0 0.3"),
-         ("0.1 0.1 0.05", "10 0 0", "0 0 1"), ("0 0.15 0", "0 -20 0", "0.2 1 0"), ("-0.1 0.1 0", "0 0 25", "1 0 0"),
-         ("-0.05 0 -0.1", "15 10 0", "0 0.3 1")]
+LINKS = [
+    ("0 0 0.1", "0 0 0", "0 0 1"),
+    ("0.2 0 0", "20 0 0", "0 1 0"),
+    ("0.15 0.05 0", "0 15 30", "1 0 0.3"),
+    ("0.1 0.1 0.05", "10 0 0", "0 0 1"),
+    ("0 0.15 0", "0 -20 0", "0.2 1 0"),
+    ("-0.1 0.1 0", "0 0 25", "1 0 0"),
+    ("-0.05 0 -0.1", "15 10 0", "0 0.3 1"),
+]
 body = ""
 for k, (pos, euler, axis) in reversed(list(enumerate(LINKS, start=1))):
     site = '<site name="platform" pos="0.02 0.03 0"/>' if k == 4 else ""
-    body = (f'<body name="link{k}" pos="{pos}" euler="{euler}"><joint name="j{k}" axis="{axis}"/>'
-            f'<geom type="sphere" size="0.02" mass="0.2"/>{site}{body}</body>')
+    body = (
+        f'<body name="link{k}" pos="{pos}" euler="{euler}"><joint name="j{k}" axis="{axis}"/>'
+        f'<geom type="sphere" size="0.02" mass="0.2"/>{site}{body}</body>'
+    )
 mjcf = OUT / "loop.xml"
 mjcf.write_text(f"""<mujoco model="loop">
   <worldbody><body name="base">{body}</body></worldbody>
@@ -65,8 +73,9 @@ mjcf.write_text(f"""<mujoco model="loop">
   <actuator><motor name="drive" joint="j1"/></actuator>
 </mujoco>
 """)
-(OUT / "loop.closures.yaml").write_text("platform_frame: platform\ntask: {position: [x]}\n"
-                                        "workspace: {actuators: {j1: [-0.3, 0.3]}}\n")
+(OUT / "loop.closures.yaml").write_text(
+    "platform_frame: platform\ntask: {position: [x]}\nworkspace: {actuators: {j1: [-0.3, 0.3]}}\n"
+)
 loop = Mechanism.load(mjcf)
 print("closures:", [(c.name, c.type, c.rows) for c in loop.closures], "| actuated:", loop.actuated_joints)
 assert loop.closures_document is not None  # an MJCF machine keeps the closures document it was built from
@@ -87,7 +96,9 @@ worst = 0.0
 for angle in np.linspace(-0.3, 0.3, 13):
     q = solver.forward(np.array([angle])).q
     pin.forwardKinematics(model, data, q)
-    relative = (data.oMi[weld.joint1_id] * weld.joint1_placement).actInv(data.oMi[weld.joint2_id] * weld.joint2_placement)
+    relative = (data.oMi[weld.joint1_id] * weld.joint1_placement).actInv(
+        data.oMi[weld.joint2_id] * weld.joint2_placement
+    )
     worst = max(worst, float(np.abs(pin.log6(relative).vector).max()))
 print(f"largest weld error of Pinocchio's MJCF constraint at 13 solutions: {worst:.1e}")
 assert worst < 1e-9
@@ -110,7 +121,8 @@ constraints = rigid_constraint_models(calibrated)
 datas = rigid_constraint_datas(constraints)
 print([(c.name, c.type, c.joint1_id, c.joint2_id) for c in constraints])
 q = ClosedLoopSolver(calibrated).forward(np.array([0.2])).q
-print(f"Pinocchio's constraint error at an assembled pose: {np.abs(constraint_residual(calibrated.model, constraints, q)).max():.1e}")
+constraint_error = np.abs(constraint_residual(calibrated.model, constraints, q)).max()
+print(f"Pinocchio's constraint error at an assembled pose: {constraint_error:.1e}")
 
 # %% [markdown]
 # ## Constrained dynamics keeps the calibrated loop closed

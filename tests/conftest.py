@@ -28,8 +28,10 @@ def tool_machine(mechanism, tmp_path_factory) -> Mechanism:
     import yaml
 
     folder = tmp_path_factory.mktemp("tool_machine")
-    joint = ('<link name="tool"/><joint name="tool_joint" type="fixed"><parent link="P_I"/><child link="tool"/>'
-             '<origin xyz="0.05 0.02 -0.1" rpy="0 0 0.3"/></joint></robot>')
+    joint = (
+        '<link name="tool"/><joint name="tool_joint" type="fixed"><parent link="P_I"/><child link="tool"/>'
+        '<origin xyz="0.05 0.02 -0.1" rpy="0 0 0.3"/></joint></robot>'
+    )
     (folder / "m.urdf").write_text(mechanism.urdf_path.read_text().replace("</robot>", joint))
     closures = yaml.safe_load(mechanism.closures_path.read_text())
     closures["task"]["frame"] = "tool"

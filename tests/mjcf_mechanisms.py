@@ -20,12 +20,21 @@ FIVE_BAR_ROD = (0.1, 0.15)  # [m] the left rod's tip in its frame; the right rod
 FIVE_BAR_BASE = 0.1  # [m] half the distance between the motors
 
 
-def five_bar_mjcf(folder: Path, *, actuators: str | None = None, equality: str | None = None,
-                  keyframe: str = "", name: str = "five_bar") -> Path:
+def five_bar_mjcf(
+    folder: Path,
+    *,
+    actuators: str | None = None,
+    equality: str | None = None,
+    keyframe: str = "",
+    name: str = "five_bar",
+) -> Path:
     """Write the five-bar MJCF into `folder`; `actuators`/`equality` replace the blocks' content."""
     x, y = FIVE_BAR_ROD
-    actuators = ('<position name="left" joint="motor_l"/><motor name="right" joint="motor_r"/>'
-                 if actuators is None else actuators)
+    actuators = (
+        '<position name="left" joint="motor_l"/><motor name="right" joint="motor_r"/>'
+        if actuators is None
+        else actuators
+    )
     equality = f'<connect name="tip" body1="rod_l" body2="rod_r" anchor="{x} {y} 0"/>' if equality is None else equality
     text = f"""<mujoco model="{name}">
   <compiler angle="radian"/>
@@ -77,8 +86,10 @@ def spatial_loop_mjcf(folder: Path, name: str = "spatial_loop") -> Path:
     for k, (pos, euler, axis) in reversed(list(enumerate(_SPATIAL_LINKS, start=1))):
         extra = '<site name="platform" pos="0.02 0.03 0"/>' if k == 4 else ""
         limit = ' range="-120 120"' if k == 1 else ""
-        body = (f'<body name="link{k}" pos="{pos}" euler="{euler}"><joint name="j{k}" type="hinge" axis="{axis}"'
-                f'{limit}/><geom type="sphere" size="0.02" mass="0.2"/>{extra}{body}</body>')
+        body = (
+            f'<body name="link{k}" pos="{pos}" euler="{euler}"><joint name="j{k}" type="hinge" axis="{axis}"'
+            f'{limit}/><geom type="sphere" size="0.02" mass="0.2"/>{extra}{body}</body>'
+        )
     text = f"""<mujoco model="{name}">
   <worldbody>
     <body name="base">{body}</body>

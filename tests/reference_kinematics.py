@@ -80,8 +80,10 @@ def five_bar_anchors(g: FiveBarGeometry = FIVE_BAR) -> tuple[np.ndarray, np.ndar
 
 def five_bar_elbows(motors: np.ndarray, g: FiveBarGeometry = FIVE_BAR) -> tuple[np.ndarray, np.ndarray]:
     a1, a2 = five_bar_anchors(g)
-    return (a1 + g.proximal * np.array([math.cos(motors[0]), math.sin(motors[0])]),
-            a2 + g.proximal * np.array([math.cos(motors[1]), math.sin(motors[1])]))
+    return (
+        a1 + g.proximal * np.array([math.cos(motors[0]), math.sin(motors[0])]),
+        a2 + g.proximal * np.array([math.cos(motors[1]), math.sin(motors[1])]),
+    )
 
 
 def five_bar_forward(motors: np.ndarray, g: FiveBarGeometry = FIVE_BAR) -> np.ndarray:
@@ -140,13 +142,20 @@ def wrist_platform_axis(leg: int, g: SphericalWristGeometry = WRIST) -> np.ndarr
 
 def wrist_conditions(rotation: np.ndarray, motors: np.ndarray, g: SphericalWristGeometry = WRIST) -> np.ndarray:
     """w_i . R p_i - cos(distal angle), i = 1..3: zero when every leg closes."""
-    return np.array([wrist_elbow_axis(leg, motors[leg - 1], g) @ rotation @ wrist_platform_axis(leg, g)
-                     for leg in (1, 2, 3)]) - math.cos(g.distal_angle)
+    return np.array(
+        [wrist_elbow_axis(leg, motors[leg - 1], g) @ rotation @ wrist_platform_axis(leg, g) for leg in (1, 2, 3)]
+    ) - math.cos(g.distal_angle)
 
 
 def _solve_near(rotation: np.ndarray, motors: np.ndarray, g: SphericalWristGeometry) -> np.ndarray:
-    fit = least_squares(lambda r: wrist_conditions(exp_so3(r) @ rotation, motors, g), np.zeros(3),
-                        method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    fit = least_squares(
+        lambda r: wrist_conditions(exp_so3(r) @ rotation, motors, g),
+        np.zeros(3),
+        method="lm",
+        xtol=1e-15,
+        ftol=1e-15,
+        gtol=1e-15,
+    )
     return exp_so3(fit.x) @ rotation
 
 
@@ -181,8 +190,9 @@ def wrist_inverse(rotation: np.ndarray, g: SphericalWristGeometry = WRIST, branc
     return np.array(motors)
 
 
-def wrist_singularity_measures(motors: np.ndarray, rotation: np.ndarray,
-                               g: SphericalWristGeometry = WRIST) -> tuple[float, list[float]]:
+def wrist_singularity_measures(
+    motors: np.ndarray, rotation: np.ndarray, g: SphericalWristGeometry = WRIST
+) -> tuple[float, list[float]]:
     """(parallel, [serial per leg]): det of the unit normals of the planes (w_i, v_i), and det[u_i w_i v_i]."""
     normals, serial = [], []
     for leg in (1, 2, 3):

@@ -61,8 +61,9 @@ def test_another_frame_is_named_only_when_the_frame_is_not_estimated():
     readings = _readings()
     frame = pin.SE3(pin.exp3(np.array([0.3, -1.2, 2.0])), np.array([2.0, -1.0, 0.5]))
     measured = _predict(readings) @ frame.rotation.T + frame.translation
-    assert any("--frame estimate" in c for c in likely_causes(_predict, readings, measured, ("a", "b"),
-                                                              frame_estimated=False))
+    assert any(
+        "--frame estimate" in c for c in likely_causes(_predict, readings, measured, ("a", "b"), frame_estimated=False)
+    )
     assert likely_causes(_predict, readings, measured, ("a", "b"), frame_estimated=True) == []
 
 
@@ -183,6 +184,7 @@ def test_coverage_names_the_poorly_covered_coordinates():
 # ------------------------------------------------------------------------------------------------
 # The measurement setup
 
+
 @settings(max_examples=25, deadline=None)
 @given(st.lists(st.floats(-4, 4), min_size=3, max_size=3), st.lists(st.floats(-5, 5), min_size=3, max_size=3))
 def test_registration_finds_any_rotation_and_translation(rotation_vector, translation):
@@ -204,15 +206,18 @@ def test_marker_rotation_is_found_in_closed_form():
     rng = np.random.default_rng(3)
     frame = pin.SE3(pin.exp3(rng.normal(size=3)), rng.normal(size=3))
     marker = pin.exp3(rng.normal(size=3))
-    platform = np.array([pin.SE3(pin.exp3(np.array([0, 0, t])), rng.normal(size=3)).homogeneous
-                         for t in np.linspace(-0.7, 0.7, 12)])
+    platform = np.array(
+        [pin.SE3(pin.exp3(np.array([0, 0, t])), rng.normal(size=3)).homogeneous for t in np.linspace(-0.7, 0.7, 12)]
+    )
     measured = frame.rotation @ platform[:, :3, :3] @ marker
     assert np.allclose(register_marker_rotation(frame, platform, measured), marker, atol=1e-12)
 
 
 def test_setup_round_trips_through_the_report_and_refuses_bad_entries():
-    setup = MeasurementSetup(pin.SE3(pin.exp3(np.array([0.1, 2.0, -0.3])), np.array([3.0, -1.0, 0.5])),
-                             pin.SE3(pin.exp3(np.array([0.0, 0.5, 0.0])), np.array([0.07, 0.0, 0.02])))
+    setup = MeasurementSetup(
+        pin.SE3(pin.exp3(np.array([0.1, 2.0, -0.3])), np.array([3.0, -1.0, 0.5])),
+        pin.SE3(pin.exp3(np.array([0.0, 0.5, 0.0])), np.array([0.07, 0.0, 0.02])),
+    )
     again = MeasurementSetup.from_report(setup.to_report())
     assert np.allclose(again.frame.homogeneous, setup.frame.homogeneous)
     assert np.allclose(again.marker.homogeneous, setup.marker.homogeneous)
@@ -227,6 +232,7 @@ def test_setup_round_trips_through_the_report_and_refuses_bad_entries():
 
 # ------------------------------------------------------------------------------------------------
 # Outliers and selection
+
 
 def test_outliers_are_flagged_at_the_5_sigma_gate_and_the_gate_widens_with_unmodelled_effects():
     rng = np.random.default_rng(0)
@@ -254,7 +260,7 @@ def test_forward_selection_keeps_the_parameters_that_predict_and_its_press_is_a_
     for i in range(n):
         keep = np.r_[np.arange(0, i * k), np.arange((i + 1) * k, n * k)]
         x = np.linalg.lstsq(jacobian[keep][:, columns], -residual[keep], rcond=None)[0]
-        press += float(np.sum((residual[i * k:(i + 1) * k] + jacobian[i * k:(i + 1) * k, columns] @ x) ** 2))
+        press += float(np.sum((residual[i * k : (i + 1) * k] + jacobian[i * k : (i + 1) * k, columns] @ x) ** 2))
     assert selection.press == pytest.approx(press, rel=1e-9)
     assert selection.path[len(columns)] == pytest.approx(selection.press) and selection.press <= selection.press_all
 
@@ -279,11 +285,16 @@ def test_a_wrong_unit_is_named_alone_not_followed_by_frame_advice():
 
 def test_metres_read_as_millimetres_are_named_when_the_readings_were_scaled_too():
     readings = _readings()
-    causes = metres_as_millimetres_causes(_predict, readings / 1000, _predict(readings) / 1000, np.array([True, True]),
-                                          frame_estimated=False)
+    causes = metres_as_millimetres_causes(
+        _predict, readings / 1000, _predict(readings) / 1000, np.array([True, True]), frame_estimated=False
+    )
     assert len(causes) == 1 and "drop --units mm" in causes[0]
-    assert metres_as_millimetres_causes(_predict, readings, _predict(readings), np.array([True, True]),
-                                        frame_estimated=False) == []
+    assert (
+        metres_as_millimetres_causes(
+            _predict, readings, _predict(readings), np.array([True, True]), frame_estimated=False
+        )
+        == []
+    )
 
 
 def test_a_small_residual_names_no_mistake_and_a_large_one_names_the_marker():
@@ -314,8 +325,11 @@ def _yawing_poses(n: int = 20) -> np.ndarray:
 @pytest.mark.parametrize("frame_estimated", [False, True])
 def test_quaternions_scalar_first_under_scalar_last_names_are_named(frame_estimated):
     poses = _yawing_poses()
-    frame = pin.SE3(pin.exp3(np.array([0.1, -0.4, 2.0])), np.array([3.0, -1.0, 0.5])) if frame_estimated \
+    frame = (
+        pin.SE3(pin.exp3(np.array([0.1, -0.4, 2.0])), np.array([3.0, -1.0, 0.5]))
+        if frame_estimated
         else pin.SE3.Identity()
+    )
     marker = pin.exp3(np.array([0.3, 0.0, -0.2]))
     measured = frame.homogeneous @ poses
     rotations = measured[:, :3, :3] @ marker
@@ -381,21 +395,26 @@ def times_better(cause: str) -> float:
 def test_fit_rejected_lists_the_causes_and_what_was_not_written() -> None:
     error = FitRejected("the reason", ["one", "two"])
     assert error.reason == "the reason" and error.causes == ["one", "two"]
-    assert str(error) == ("the reason\n  likely cause: one\n  likely cause: two\n"
-                          "  nothing was written (--force writes it anyway)")
+    assert str(error) == (
+        "the reason\n  likely cause: one\n  likely cause: two\n  nothing was written (--force writes it anyway)"
+    )
 
 
 def test_check_fit_messages_and_the_accepted_boundary() -> None:
     check_fit(True, "cost", 7, 9.0)  # exactly 3 times the noise: accepted
     with pytest.raises(FitRejected) as info:
         check_fit(False, "max_iterations", 60, 1.0, ["c"])
-    assert info.value.reason == ("the fit did not converge (max_iterations after 60 iterations; "
-                                 "--max-iterations raises the cap)")
+    assert info.value.reason == (
+        "the fit did not converge (max_iterations after 60 iterations; --max-iterations raises the cap)"
+    )
     assert info.value.causes == ["c"]
     assert check_fit(True, "cost", 7, 16.0) is True  # beyond the noise, no cause: accepted, to be warned of
     with pytest.raises(FitRejected) as info:
         check_fit(True, "cost", 7, 16.0, ["given"])
-    assert info.value.reason == "the residual is 4 times the stated noise (accepted up to 3): the model does not explain the data"
+    assert (
+        info.value.reason
+        == "the residual is 4 times the stated noise (accepted up to 3): the model does not explain the data"
+    )
     assert info.value.causes == ["given"]
     with pytest.raises(FitRejected) as info:
         check_fit(True, "cost", 7, float("inf"))
@@ -413,8 +432,10 @@ def test_check_start_measures_the_median_distance_to_the_nominal_points() -> Non
     offsets[:, 0] = 0.2 * np.where(np.arange(len(points)) % 2, 1.0, -1.0)  # every pose 0.2 m off
     with pytest.raises(FitRejected) as info:
         check_start(points, points + offsets, False, lambda: ["cause"], what="robot")
-    assert info.value.reason == ("the nominal robot is 0.2 m from the measurements (median over the poses), beyond any "
-                                 "build error (0.1 m): the fit was not attempted")
+    assert info.value.reason == (
+        "the nominal robot is 0.2 m from the measurements (median over the poses), beyond any "
+        "build error (0.1 m): the fit was not attempted"
+    )
     assert info.value.causes == ["cause"] and not info.value.forceable
     exact = np.zeros_like(points)  # exactly HOPELESS_RESIDUAL (0.1 m) as computed: not beyond
     exact[:, 0] = [0.1] * 7 + [np.nextafter(0.1, 0.0)] * 3
@@ -440,7 +461,8 @@ def test_check_start_registers_the_frame_when_it_is_estimated() -> None:
         check_start(points, mirrored, True, lambda: [])
     assert info.value.reason.startswith("the nominal machine is ") and info.value.reason.endswith(
         " m from the measurements (median over the poses, after registering the frame), beyond any build error "
-        "(0.1 m): the fit was not attempted")
+        "(0.1 m): the fit was not attempted"
+    )
     gross = moved.copy()
     gross[4] += np.array([0.0, 1e4, 0.0])  # 10 km off: moves a least-squares frame by 1 km
     start = check_start(points, gross, True, lambda: [])
@@ -451,16 +473,19 @@ def test_check_start_registers_the_frame_when_it_is_estimated() -> None:
 # describe_parameter, coverage_notes
 
 
-@pytest.mark.parametrize(("name", "described"), [
-    ("q.dt[5]", "q rotation about z"),
-    ("q.dt[05]", "q rotation about z"),
-    ("a.dt[3].dt[0]", "a.dt[3] translation along x"),
-    ("q.dt[6]", "q.dt[6]"),
-    ("q.dt[12]", "q.dt[12]"),
-    ("q.dt[3a]", "q.dt[3a]"),
-    ("q.dt[34", "q.dt[34"),
-    (".dt[3]", ".dt[3]"),
-])
+@pytest.mark.parametrize(
+    ("name", "described"),
+    [
+        ("q.dt[5]", "q rotation about z"),
+        ("q.dt[05]", "q rotation about z"),
+        ("a.dt[3].dt[0]", "a.dt[3] translation along x"),
+        ("q.dt[6]", "q.dt[6]"),
+        ("q.dt[12]", "q.dt[12]"),
+        ("q.dt[3a]", "q.dt[3a]"),
+        ("q.dt[34", "q.dt[34"),
+        (".dt[3]", ".dt[3]"),
+    ],
+)
 def test_describe_parameter_reads_only_well_formed_names(name: str, described: str) -> None:
     assert describe_parameter(name) == described
 
@@ -482,7 +507,8 @@ def test_the_three_farthest_moves_are_listed_by_their_ratio_to_the_limit() -> No
     assert notes == [
         "the fit moved implausibly far for a machine built to drawing (q2 rotation about y +0.3 rad, "
         "q1 translation along y +0.05 m, q3 translation along z -0.03 m): check the units, the measurement frame, "
-        "the reading columns and that the model is this machine's"]
+        "the reading columns and that the model is this machine's"
+    ]
 
 
 def test_the_last_dt_index_of_a_name_decides_translation_or_rotation() -> None:
@@ -491,18 +517,21 @@ def test_the_last_dt_index_of_a_name_decides_translation_or_rotation() -> None:
 
 
 def test_the_measured_frame_moving_far_names_a_reflector() -> None:
-    note = ("the measured frame tool itself moved: the measured point is probably a reflector off it, now baked into "
-            "the machine; give its position with --marker X Y Z")
+    note = (
+        "the measured frame tool itself moved: the measured point is probably a reflector off it, now baked into "
+        "the machine; give its position with --marker X Y Z"
+    )
     assert fit_movement_notes({"tool.dt[1]": 0.05}, 1e-2, 1e-5, "tool")[1] == note
     # Another parameter far, the frame's own translation at the limit or its rotation: no reflector note.
-    for moved in ({"q1.dt[0]": 0.05, "tool.dt[1]": 0.02}, {"q1.dt[0]": 0.05, "tool.dt[4]": 0.5},
-                  {"q1.dt[0]": 0.05}):
+    for moved in ({"q1.dt[0]": 0.05, "tool.dt[1]": 0.02}, {"q1.dt[0]": 0.05, "tool.dt[4]": 0.5}, {"q1.dt[0]": 0.05}):
         assert len(fit_movement_notes(moved, 1e-2, 1e-5, "tool")) == 1
 
 
 def test_barely_moved_boundaries() -> None:
-    note = ("the fit barely moved (residual RMS 1 -> 0.9 m): the nominal model already explains the data, or the "
-            "poses do not excite the errors")
+    note = (
+        "the fit barely moved (residual RMS 1 -> 0.9 m): the nominal model already explains the data, or the "
+        "poses do not excite the errors"
+    )
     assert fit_movement_notes({}, 1.0, 0.9) == [note]
     assert fit_movement_notes({}, 1.0, 0.8) == []  # exactly 80 %: it moved enough
     assert fit_movement_notes({}, 0.0, 1e-3) == []  # no residual before: nothing to compare
@@ -525,21 +554,25 @@ def test_too_few_assembling_readings_are_named_exactly() -> None:
     points = predict(readings)
     points[3] = np.nan
     assert likely_causes(lambda r: points, readings, measured, NAMES, frame_estimated=False) == [
-        "the readings do not assemble on this machine: columns in another order or unit, or another machine"]
+        "the readings do not assemble on this machine: columns in another order or unit, or another machine"
+    ]
 
 
-@pytest.mark.parametrize(("scale", "cause"), [
-    (1000.0, "positions look like millimetres (spread 1000 times the model's): use --units mm"),
-    (300.5, "positions look like millimetres (spread 300 times the model's): use --units mm"),
-    (2999.0, "positions look like millimetres (spread 2999 times the model's): use --units mm"),
-    (3000.5, None),
-    (299.0, None),
-    (1e-3, "positions look like metres (spread 1/1000 of the model's): drop --units mm"),
-    (1 / 2000.0, "positions look like metres (spread 1/2000 of the model's): drop --units mm"),
-    (1 / 300.5, "positions look like metres (spread 1/300 of the model's): drop --units mm"),
-    (1 / 3000.5, None),
-    (1 / 200.0, None),
-])
+@pytest.mark.parametrize(
+    ("scale", "cause"),
+    [
+        (1000.0, "positions look like millimetres (spread 1000 times the model's): use --units mm"),
+        (300.5, "positions look like millimetres (spread 300 times the model's): use --units mm"),
+        (2999.0, "positions look like millimetres (spread 2999 times the model's): use --units mm"),
+        (3000.5, None),
+        (299.0, None),
+        (1e-3, "positions look like metres (spread 1/1000 of the model's): drop --units mm"),
+        (1 / 2000.0, "positions look like metres (spread 1/2000 of the model's): drop --units mm"),
+        (1 / 300.5, "positions look like metres (spread 1/300 of the model's): drop --units mm"),
+        (1 / 3000.5, None),
+        (1 / 200.0, None),
+    ],
+)
 def test_unit_mistakes_are_named_within_their_spread_ratios(scale: float, cause: str | None) -> None:
     readings = _readings()
     causes = likely_causes(_predict, readings, scale * _predict(readings), NAMES, frame_estimated=True)
@@ -553,7 +586,9 @@ def test_another_frame_is_named_from_a_2_cm_rms_offset_and_5_times_the_registere
     causes = likely_causes(_predict, readings, points + np.array([0.5, 0.0, 0.0]), NAMES, frame_estimated=False)
     frame = [c for c in causes if "--frame estimate" in c]
     assert len(frame) == 1
-    assert frame[0].startswith("the data look like they are in another frame (a rigid registration moves them 0.5 m and ")
+    assert frame[0].startswith(
+        "the data look like they are in another frame (a rigid registration moves them 0.5 m and "
+    )
     assert frame[0].endswith(" m RMS): use --frame estimate")
     assert likely_causes(_predict, readings, points + np.array([0.01, 0.0, 0.0]), NAMES, frame_estimated=False) == []
     # Registered residual r, offset such that the direct RMS is 5.5 r: named (the rule is 5 r).
@@ -561,8 +596,9 @@ def test_another_frame_is_named_from_a_2_cm_rms_offset_and_5_times_the_registere
     noise -= noise.mean(0)
     registered = kabsch_rms(points, points + noise)
     shift = np.sqrt((5.5 * registered) ** 2 - np.mean(np.sum(noise**2, axis=1)))
-    causes = likely_causes(_predict, readings, points + noise + np.array([0.0, shift, 0.0]), NAMES,
-                           frame_estimated=False)
+    causes = likely_causes(
+        _predict, readings, points + noise + np.array([0.0, shift, 0.0]), NAMES, frame_estimated=False
+    )
     assert any("--frame estimate" in c for c in causes)
 
 
@@ -571,8 +607,10 @@ def test_another_machine_is_named_with_its_registered_residual() -> None:
     measured = _predict(np.random.default_rng(5).uniform(-1.0, 1.0, readings.shape))
     causes = likely_causes(_predict, readings, measured, NAMES, frame_estimated=True)
     rms = kabsch_rms(_predict(readings), measured)
-    assert causes == [f"the data do not fit this machine even after a rigid registration ({rms:.3g} m RMS): data from "
-                      "another machine, or the wrong model files"]
+    assert causes == [
+        f"the data do not fit this machine even after a rigid registration ({rms:.3g} m RMS): data from "
+        "another machine, or the wrong model files"
+    ]
 
 
 def test_swapped_position_columns_report_how_much_better_they_fit() -> None:
@@ -602,7 +640,9 @@ def test_only_the_best_column_order_is_reported() -> None:
         return points
 
     measured = predict(readings)[:, [1, 0, 2]]
-    base = [c for c in likely_causes(predict, readings, measured, NAMES, frame_estimated=False) if "position columns" in c]
+    base = [
+        c for c in likely_causes(predict, readings, measured, NAMES, frame_estimated=False) if "position columns" in c
+    ]
     assert len(base) == 1 and "hold y, x, z" in base[0]
 
 
@@ -616,7 +656,9 @@ def test_no_column_order_is_named_for_data_that_fit_or_fit_no_order() -> None:
 
     assert likely_causes(predict, readings, predict(readings), NAMES, frame_estimated=False) == []
     other = _predict(np.random.default_rng(5).uniform(-1.0, 1.0, readings.shape))
-    assert not [c for c in likely_causes(_predict, readings, other, NAMES, frame_estimated=False) if "position columns" in c]
+    assert not [
+        c for c in likely_causes(_predict, readings, other, NAMES, frame_estimated=False) if "position columns" in c
+    ]
 
 
 def _partial_predict(limit: float):
@@ -624,6 +666,7 @@ def _partial_predict(limit: float):
         points = _predict(r)
         points[r[:, 0] > limit] = np.nan
         return points
+
     return predict
 
 
@@ -678,8 +721,11 @@ def test_each_swap_rule_is_5_times_better_not_6() -> None:
     noise = np.random.default_rng(13).normal(size=points.shape)
 
     swapped_points = _predict(readings[:, ::-1])
-    scale = _noise_scale_for_ratio(lambda s: kabsch_rms(points, swapped_points + s * noise)
-                                   / kabsch_rms(swapped_points, swapped_points + s * noise))
+    scale = _noise_scale_for_ratio(
+        lambda s: (
+            kabsch_rms(points, swapped_points + s * noise) / kabsch_rms(swapped_points, swapped_points + s * noise)
+        )
+    )
     causes = likely_causes(_predict, readings, swapped_points + scale * noise, NAMES, frame_estimated=True)
     assert any("'a' and 'b' look swapped" in c for c in causes)
 
@@ -687,12 +733,15 @@ def test_each_swap_rule_is_5_times_better_not_6() -> None:
         return float(np.sqrt(np.mean(np.sum((points - measured) ** 2, axis=1))))
 
     permuted = points[:, [1, 0, 2]]
-    scale = _noise_scale_for_ratio(lambda s: direct(permuted + s * noise) / direct((permuted + s * noise)[:, [1, 0, 2]]))
+    scale = _noise_scale_for_ratio(
+        lambda s: direct(permuted + s * noise) / direct((permuted + s * noise)[:, [1, 0, 2]])
+    )
     causes = likely_causes(_predict, readings, permuted + scale * noise, NAMES, frame_estimated=False)
     assert any("hold y, x, z in that order" in c for c in causes)
 
-    scale = _noise_scale_for_ratio(lambda s: kabsch_rms(points, permuted + s * noise)
-                                   / kabsch_rms(points, (permuted + s * noise)[:, [1, 0, 2]]))
+    scale = _noise_scale_for_ratio(
+        lambda s: kabsch_rms(points, permuted + s * noise) / kabsch_rms(points, (permuted + s * noise)[:, [1, 0, 2]])
+    )
     causes = likely_causes(_predict, readings, permuted + scale * noise, NAMES, frame_estimated=True)
     assert any("mirror image" in c for c in causes)
 

@@ -55,8 +55,11 @@ def test_rpy_batch_matches_pinocchio():
 
 @pytest.mark.parametrize("seed", [None, 0])
 def test_forward_batch_agrees_with_forward(mechanism, seed):
-    machine = mechanism if seed is None else mechanism.with_model(
-        perturb_every_origin(mechanism.model, np.random.default_rng(seed), 1e-3, 1e-3))
+    machine = (
+        mechanism
+        if seed is None
+        else mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(seed), 1e-3, 1e-3))
+    )
     solver = ClosedLoopSolver(machine)
     sliders = np.array([closed_form.inverse(p) for p in workspace_poses(40, 3)])
     batch = solver.forward_batch(sliders)
@@ -115,8 +118,10 @@ def test_unsupported_joint_is_a_typed_error():
 
 def test_compensate_batch_agrees_with_the_path_compensation(mechanism):
     from m3t1r.compensation import Compensator
+
     calibrated = mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(7), 1e-3, 1e-3))
     from m3t1r.model.kinematics import rehomed
+
     calibrated = rehomed(calibrated)
     targets = workspace_poses(30, 8)
     targets[4] = [0.5, 1.2, -0.1, 0.0]  # unreachable: reported, excluded
@@ -136,8 +141,11 @@ def test_stacked_closures_match_the_single_evaluation(kind, tmp_path):
     from m3t1r.model.description import Mechanism, nominal_model_paths
     from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 
-    files = {"m_machine": nominal_model_paths, "five_bar": lambda: five_bar_files(tmp_path),
-             "spherical_wrist": lambda: spherical_wrist_files(tmp_path)}[kind]()
+    files = {
+        "m_machine": nominal_model_paths,
+        "five_bar": lambda: five_bar_files(tmp_path),
+        "spherical_wrist": lambda: spherical_wrist_files(tmp_path),
+    }[kind]()
     solver = ClosedLoopSolver(Mechanism.load(*files))
     kin = bk.StackedKinematics(solver)
     q = solver.mechanism.home + np.random.default_rng(4).normal(0, 0.4, (7, solver.model.nq))
@@ -163,8 +171,10 @@ def test_stacked_closures_match_the_single_evaluation(kind, tmp_path):
 # ==================================================================================================
 
 
-ASSEMBLE = ("the closures cannot be assembled here (target out of the workspace or too far from the "
-            "initial configuration's branch)")
+ASSEMBLE = (
+    "the closures cannot be assembled here (target out of the workspace or too far from the "
+    "initial configuration's branch)"
+)
 
 
 @pytest.fixture(scope="module")
@@ -192,15 +202,15 @@ def test_rpy_batch_keeps_leading_axes_and_matches_pinocchio():
 
 def _b_series(a):
     """b(a) = 1/a^2 - 1/(2 a tan(a/2)) from five terms of x cot x (x = a/2)."""
-    return 1 / 12 + a ** 2 / 720 + a ** 4 / 30240 + a ** 6 / 1209600 + a ** 8 / 47900160
+    return 1 / 12 + a**2 / 720 + a**4 / 30240 + a**6 / 1209600 + a**8 / 47900160
 
 
 def _db_over_a_series(a):
-    return 1 / 360 + a ** 2 / 7560 + a ** 4 / 201600 + a ** 6 / 5987520
+    return 1 / 360 + a**2 / 7560 + a**4 / 201600 + a**6 / 5987520
 
 
 def _b_closed(a):
-    return 1 / a ** 2 - (1 + np.cos(a)) / (2 * a * np.sin(a))
+    return 1 / a**2 - (1 + np.cos(a)) / (2 * a * np.sin(a))
 
 
 def test_jlog3_t_series_and_closed_form_values():
@@ -231,19 +241,26 @@ def test_jlog3_t_series_at_zero_rotation_is_quiet():
     np.testing.assert_array_equal(db_over_a, 1 / 360)
 
 
-@pytest.mark.parametrize("angles, tolerance", [
-    ((1e-6, 1e-6, 1e-2, 1e-2), 1e-9),  # pin.Jlog6's shorter small-angle series is about 1e-10 off there
-    ((0.05, 0.4, 1.1, 2.0, 2.9), 1e-12)])
+@pytest.mark.parametrize(
+    "angles, tolerance",
+    [
+        ((1e-6, 1e-6, 1e-2, 1e-2), 1e-9),  # pin.Jlog6's shorter small-angle series is about 1e-10 off there
+        ((0.05, 0.4, 1.1, 2.0, 2.9), 1e-12),
+    ],
+)
 def test_weld_rows_match_pinocchio_from_small_angles_to_near_pi(angles, tolerance):
     """With frame a at the base origin, weld_rows is log6(oMb) and Jlog6(oMb) Ad(oMb^-1): both
     branches of the Jlog3 series against Pinocchio."""
     rng = np.random.default_rng(11)
-    unit = (lambda u: u / np.linalg.norm(u))
+    unit = lambda u: u / np.linalg.norm(u)
     omb = [pin.exp6(np.r_[rng.normal(0, 0.5, 3), unit(rng.normal(size=3)) * a]) for a in angles]
     n = len(omb)
-    residual, a, b = bk.weld_rows(np.repeat(np.eye(3)[..., None], n, axis=2), np.zeros((3, n)),
-                                  np.moveaxis(np.array([m.rotation for m in omb]), 0, -1),
-                                  np.moveaxis(np.array([m.translation for m in omb]), 0, -1))
+    residual, a, b = bk.weld_rows(
+        np.repeat(np.eye(3)[..., None], n, axis=2),
+        np.zeros((3, n)),
+        np.moveaxis(np.array([m.rotation for m in omb]), 0, -1),
+        np.moveaxis(np.array([m.translation for m in omb]), 0, -1),
+    )
     assert residual.shape == (6, n) and a.shape == b.shape == (3, 3, n)
     for i, m in enumerate(omb):
         np.testing.assert_allclose(residual[:, i], pin.log6(m).vector, atol=1e-13)
@@ -253,13 +270,18 @@ def test_weld_rows_match_pinocchio_from_small_angles_to_near_pi(angles, toleranc
 
 def test_poses_last_products_and_cross_products():
     rng = np.random.default_rng(12)
-    a, b, v, w = rng.normal(size=(2, 3, 3, 4)), rng.normal(size=(2, 3, 3, 4)), rng.normal(size=(2, 3, 4)), \
-        rng.normal(size=(2, 3, 4))
+    a, b, v, w = (
+        rng.normal(size=(2, 3, 3, 4)),
+        rng.normal(size=(2, 3, 3, 4)),
+        rng.normal(size=(2, 3, 4)),
+        rng.normal(size=(2, 3, 4)),
+    )
     first = lambda x: np.moveaxis(x, -1, 1)  # noqa: E731  (2, n, ...) poses first
     np.testing.assert_allclose(first(bk.times_last(a, b)), first(a) @ first(b), atol=1e-14)
     np.testing.assert_allclose(first(bk.apply_last(a, v)), np.einsum("knij,knj->kni", first(a), first(v)), atol=1e-14)
-    np.testing.assert_allclose(first(bk.apply_transposed_last(a, v)), np.einsum("knji,knj->kni", first(a), first(v)),
-                               atol=1e-14)
+    np.testing.assert_allclose(
+        first(bk.apply_transposed_last(a, v)), np.einsum("knji,knj->kni", first(a), first(v)), atol=1e-14
+    )
     np.testing.assert_allclose(first(bk.cross_last(v, w)), np.cross(first(v), first(w)), atol=1e-14)
     one = v[0, :, :1]  # (3, 1): one vector against n, either side
     np.testing.assert_allclose(bk.cross_last(one, w[0]), np.cross(one.T, w[0].T).T, atol=1e-14)
@@ -275,8 +297,12 @@ def test_weld_rows_match_log6_and_the_world_operator():
     oma = [pin.exp6(rng.normal(0, 0.8, 6)) for _ in range(4)]
     omb = [pin.exp6(rng.normal(0, 0.8, 6)) for _ in range(4)]
     last = lambda ms, f: np.moveaxis(np.array([f(m) for m in ms]), 0, -1)  # noqa: E731
-    residual, a, b = bk.weld_rows(last(oma, lambda m: m.rotation), last(oma, lambda m: m.translation),
-                                  last(omb, lambda m: m.rotation), last(omb, lambda m: m.translation))
+    residual, a, b = bk.weld_rows(
+        last(oma, lambda m: m.rotation),
+        last(oma, lambda m: m.translation),
+        last(omb, lambda m: m.rotation),
+        last(omb, lambda m: m.translation),
+    )
     for i in range(4):
         amb = oma[i].actInv(omb[i])
         np.testing.assert_allclose(residual[:, i], pin.log6(amb).vector, atol=1e-13)
@@ -292,13 +318,21 @@ def test_weld_rows_match_log6_and_the_world_operator():
 
 
 def _every_joint_type_model() -> pin.Model:
-    """A branching tree with every supported joint type (unit unaligned axes: Pinocchio takes them as given), random placements."""
+    """A branching tree with every supported joint type (unit unaligned axes: Pinocchio takes them as
+    given), random placements."""
     rng = np.random.default_rng(14)
     model = pin.Model()
     place = lambda: pin.exp6(rng.normal(0, 0.6, 6))  # noqa: E731
-    joints = [pin.JointModelRX(), pin.JointModelPY(), pin.JointModelRY(), pin.JointModelPZ(), pin.JointModelRZ(),
-              pin.JointModelPX(), pin.JointModelRevoluteUnaligned(np.array([0.3, -1.2, 0.5]) / 1.3341664064126333),
-              pin.JointModelPrismaticUnaligned(np.array([-0.4, 0.1, 2.0]) / 2.0420577856662137)]
+    joints = [
+        pin.JointModelRX(),
+        pin.JointModelPY(),
+        pin.JointModelRY(),
+        pin.JointModelPZ(),
+        pin.JointModelRZ(),
+        pin.JointModelPX(),
+        pin.JointModelRevoluteUnaligned(np.array([0.3, -1.2, 0.5]) / 1.3341664064126333),
+        pin.JointModelPrismaticUnaligned(np.array([-0.4, 0.1, 2.0]) / 2.0420577856662137),
+    ]
     parents = [0, 1, 1, 0, 4, 2, 6, 3]  # joint k + 1's parent: two roots, branches, levels out of order
     for k, (joint, parent) in enumerate(zip(joints, parents)):
         joint_id = model.addJoint(parent, joint, place(), f"j{k + 1}")
@@ -329,8 +363,10 @@ def test_unsupported_joint_error_names_the_joint_word_for_word():
     model.addJoint(1, pin.JointModelRUBZ(), pin.SE3.Identity(), "wheel")
     with pytest.raises(UnsupportedJointError) as caught:
         bk.StackedTree(model)
-    assert str(caught.value) == ("joint 'wheel': joint type JointModelRUBZ is not supported by the batched "
-                                 "kinematics (1-DoF revolute or prismatic joints only)")
+    assert str(caught.value) == (
+        "joint 'wheel': joint type JointModelRUBZ is not supported by the batched "
+        "kinematics (1-DoF revolute or prismatic joints only)"
+    )
     assert caught.value.joint == "wheel"
 
 
@@ -343,7 +379,7 @@ def quadratic(targets, first=None):
     third Jacobian column (7.0) that is not solved for; the 'platform' of row i is (1 + i) I at
     (q0, q1, i). `first` (q0 -> (value, slope)) replaces q0^2. Every call is recorded in `.calls`."""
     targets = np.asarray(targets, dtype=float)
-    first = first or (lambda x: (x ** 2, 2 * x))
+    first = first or (lambda x: (x**2, 2 * x))
 
     def call(q, rows, with_jacobian):
         call.calls.append((rows.tolist(), with_jacobian))
@@ -385,7 +421,13 @@ def test_newton_batch_statuses_iterations_and_calls():
     np.testing.assert_array_equal(out.rotation[3:], 0.0)
     np.testing.assert_array_equal(out.position[3:], 0.0)
     assert system.calls == [([0, 1, 2, 3, 4], True)] + [([0, 1, 2], True)] * 5 + [
-        ([1], False), ([0, 2], True), ([0, 2], True), ([0, 2], True), ([0, 2], False), ([2], False)]
+        ([1], False),
+        ([0, 2], True),
+        ([0, 2], True),
+        ([0, 2], True),
+        ([0, 2], False),
+        ([2], False),
+    ]
 
 
 def test_newton_batch_caps_the_step_and_sorts_out_unfinished_rows():
@@ -408,19 +450,21 @@ def test_newton_batch_caps_the_step_and_sorts_out_unfinished_rows():
 def test_newton_batch_counts_predictor_steps_and_checks_the_given_branch():
     system = quadratic([1.0, 1.0])
     q = np.array([[1.2, 0.0], [-1.2, 0.0]])
-    out = bk.newton_batch(q, UNKNOWNS, system, sign_of_first, NewtonRules(), steps_taken=2,
-                          branch=np.array([True]))
+    out = bk.newton_batch(q, UNKNOWNS, system, sign_of_first, NewtonRules(), steps_taken=2, branch=np.array([True]))
     assert list(out.status) == [0, 4] and list(out.iterations) == [11, 11]
     np.testing.assert_allclose(out.q, [[1.0, 2.0], [-1.0, -2.0]], atol=1e-12)
     own = bk.newton_batch(q, UNKNOWNS, quadratic([1.0, 1.0]), sign_of_first, NewtonRules())
     assert list(own.status) == [0, 0] and list(own.iterations) == [9, 9]
     # The iteration budget counts from steps_taken: 9 more steps are needed, 8 allowed.
-    short = bk.newton_batch(q, UNKNOWNS, quadratic([1.0, 1.0]), sign_of_first, NewtonRules(max_iterations=8), steps_taken=5)
+    short = bk.newton_batch(
+        q, UNKNOWNS, quadratic([1.0, 1.0]), sign_of_first, NewtonRules(max_iterations=8), steps_taken=5
+    )
     assert list(short.status) == [2, 2] and list(short.iterations) == [13, 13]
 
 
 def test_newton_batch_branch_change_when_a_capped_step_crosses_a_singularity():
     """r0 = q0 - 1 from q0 = -0.5 with the label sign(d r1 / d q0), r1 = q1 - q0^2 ... crossing q0 = 0."""
+
     def linear(q, rows, with_jacobian):
         r = np.stack([q[:, 0] - 1.0, q[:, 1] - q[:, 0] ** 2], axis=1)
         jac = None
@@ -438,25 +482,41 @@ def test_newton_batch_branch_change_when_a_capped_step_crosses_a_singularity():
 @pytest.mark.parametrize("singular_rcond, status", [(1e-4, 3), (1e-5, 0)])
 def test_newton_batch_singular_at_the_solution(singular_rcond, status):
     """Root q0 = 1e-4: J = [[2e-4, 0], [-2, 1]] has 1-norm condition 2.0002 x 15000 (rcond 3.3e-5)."""
-    out = bk.newton_batch(np.array([[1e-4 + 1e-6, 2e-4]]), UNKNOWNS, quadratic([1e-8]), sign_of_first, NewtonRules(singular_rcond=singular_rcond))
+    out = bk.newton_batch(
+        np.array([[1e-4 + 1e-6, 2e-4]]),
+        UNKNOWNS,
+        quadratic([1e-8]),
+        sign_of_first,
+        NewtonRules(singular_rcond=singular_rcond),
+    )
     assert list(out.status) == [status]
     np.testing.assert_allclose(out.q[0, 0], 1e-4, rtol=1e-4)
 
 
 def test_failures_of_reasons_and_error_classes():
     n = 6
-    solved = bk.SolvedRows(np.zeros((n, 2)), np.array([0, 1, 2, 3, 4, 5]),
-                           np.array([0.0, 0.5, 2e-7, 1e-13, 3e-14, 0.0]), np.array([3, 0, 60, 7, 8, 2]),
-                           np.zeros((n, 3, 3)), np.zeros((n, 3)))
+    solved = bk.SolvedRows(
+        np.zeros((n, 2)),
+        np.array([0, 1, 2, 3, 4, 5]),
+        np.array([0.0, 0.5, 2e-7, 1e-13, 3e-14, 0.0]),
+        np.array([3, 0, 60, 7, 8, 2]),
+        np.zeros((n, 3, 3)),
+        np.zeros((n, 3)),
+    )
     failures = bk.failures_of(solved, 10, "what")
-    assert [(f.index, f.error) for f in failures] == [(11, OutOfWorkspaceError), (12, NotConvergedError),
-                                                       (13, SingularConfigurationError), (14, BranchChangeError)]
+    assert [(f.index, f.error) for f in failures] == [
+        (11, OutOfWorkspaceError),
+        (12, NotConvergedError),
+        (13, SingularConfigurationError),
+        (14, BranchChangeError),
+    ]
     assert [f.reason for f in failures] == [
         f"what: {ASSEMBLE} (residual 5.000e-01 after 0 iterations)",
         "what: Newton did not reach the tolerance (residual 2.000e-07 after 60 iterations)",
         "what: singular configuration (reciprocal condition below 1e-10) (residual 1.000e-13 after 7 iterations)",
         "what: the solution lies on another assembly branch than the start (Newton crossed a singularity) "
-        "(residual 3.000e-14 after 8 iterations)"]
+        "(residual 3.000e-14 after 8 iterations)",
+    ]
 
 
 def test_inverses_of_a_stack_with_a_singular_matrix():
@@ -473,15 +533,17 @@ def test_inverses_of_a_stack_with_a_singular_matrix():
 
 def test_factors_refresh_rcond_labels_and_start():
     factors = bk.RowFactors(4, 2)
-    jac = np.array([[[1.0, 3.0, 9.0], [0.0, 2.0, 9.0]], [[1.0, 2.0, 9.0], [2.0, 4.0, 9.0]], [[-2.0, 0.0, 9.0],
-                                                                                           [0.0, 1.0, 9.0]]])
+    jac = np.array(
+        [[[1.0, 3.0, 9.0], [0.0, 2.0, 9.0]], [[1.0, 2.0, 9.0], [2.0, 4.0, 9.0]], [[-2.0, 0.0, 9.0], [0.0, 1.0, 9.0]]]
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the singular row divides by nothing
         singular = factors.refresh(np.array([0, 2, 3]), jac, UNKNOWNS, sign_of_first)
     assert list(singular) == [False, True, False]
     square = jac[[0, 2], :, :2]
-    np.testing.assert_allclose(factors.rcond, [1 / np.linalg.cond(square[0], 1), 0.0, 0.0,
-                                               1 / np.linalg.cond(square[1], 1)], rtol=1e-14)
+    np.testing.assert_allclose(
+        factors.rcond, [1 / np.linalg.cond(square[0], 1), 0.0, 0.0, 1 / np.linalg.cond(square[1], 1)], rtol=1e-14
+    )
     # 1-norms (largest column sum): 5 and 2 (inverse [[1, -1.5], [0, 0.5]]); the row sums would give 4 and 2.5.
     assert factors.rcond[0] == pytest.approx(1 / 10, rel=1e-15)
     assert factors.labels.tolist() == [[True], [False], [True], [False]]
@@ -496,19 +558,29 @@ def test_factors_refresh_rcond_labels_and_start():
 def test_newton_batch_singular_threshold_is_strict(factor, status):
     """Converged at the start with J = [[2, 0], [-2, 1]]: 1-norm condition 4 x 1.5 = 6 exactly; a
     threshold of exactly 1/6 is not above the reciprocal condition, so the row is not singular."""
-    out = bk.newton_batch(np.array([[1.0, 2.0]]), UNKNOWNS, quadratic([1.0]), sign_of_first,
-                          NewtonRules(singular_rcond=(1.0 / 6.0) * factor))
+    out = bk.newton_batch(
+        np.array([[1.0, 2.0]]),
+        UNKNOWNS,
+        quadratic([1.0]),
+        sign_of_first,
+        NewtonRules(singular_rcond=(1.0 / 6.0) * factor),
+    )
     assert list(out.status) == [status] and list(out.iterations) == [0]
 
 
 def test_evaluate_rows_chooses_newton_or_chord_per_row():
     """Rows above 1e-4 get a Jacobian; the others a residual first, and a Jacobian only when it
     contracted by less than 0.05, is above the tolerance and finite (the boundaries are strict)."""
+
     def identity(q, rows, with_jacobian):
         identity.calls.append((rows.tolist(), with_jacobian))
         jac = np.broadcast_to(np.eye(2) * (1.0 + rows)[:, None, None], (len(q), 2, 2)).copy() if with_jacobian else None
-        return q[:, :2].copy(), jac, np.broadcast_to(np.eye(3), (len(q), 3, 3)) * rows[:, None, None], \
-            np.stack([q[:, 0], q[:, 1], rows.astype(float)], axis=1)
+        return (
+            q[:, :2].copy(),
+            jac,
+            np.broadcast_to(np.eye(3), (len(q), 3, 3)) * rows[:, None, None],
+            np.stack([q[:, 0], q[:, 1], rows.astype(float)], axis=1),
+        )
 
     identity.calls = []
     previous = np.array([2e-4, 1e-4, 1e-5, 1e-5, 1e-5, 2e-12, 1e-5, 3e-12])
@@ -517,8 +589,9 @@ def test_evaluate_rows_chooses_newton_or_chord_per_row():
     q = np.zeros((10, 2))
     q[active] = np.c_[new, -new / 2]
     factors = bk.RowFactors(10, 2)
-    residual, rot, pos, singular = bk.evaluate_rows(q, active, previous, NewtonRules(), identity, factors, UNKNOWNS,
-                                                    sign_of_first)
+    residual, rot, pos, singular = bk.evaluate_rows(
+        q, active, previous, NewtonRules(), identity, factors, UNKNOWNS, sign_of_first
+    )
     assert identity.calls == [([8, 7, 6, 5, 4, 3, 2], False), ([9, 6, 2], True)]
     np.testing.assert_array_equal(residual, q[active])
     np.testing.assert_array_equal(rot, np.eye(3) * active[:, None, None])
@@ -529,8 +602,9 @@ def test_evaluate_rows_chooses_newton_or_chord_per_row():
     # Every row above 1e-4: one call, with the Jacobian; singular rows reported.
     identity.calls = []
     q[9] = 0.0
-    residual, rot, pos, singular = bk.evaluate_rows(q, np.array([9, 1, 0]), np.full(3, 1.0), NewtonRules(), identity,
-                                                    bk.RowFactors(10, 2), UNKNOWNS, sign_of_first)
+    residual, rot, pos, singular = bk.evaluate_rows(
+        q, np.array([9, 1, 0]), np.full(3, 1.0), NewtonRules(), identity, bk.RowFactors(10, 2), UNKNOWNS, sign_of_first
+    )
     assert identity.calls == [([9, 1, 0], True)] and list(singular) == [False, False, False]
     np.testing.assert_array_equal(rot, np.eye(3) * np.array([9, 1, 0])[:, None, None])
 
@@ -542,8 +616,11 @@ def test_evaluate_rows_chooses_newton_or_chord_per_row():
 def test_signatures_of_one_two_and_larger_blocks(five_bar):
     kin = bk.StackedKinematics(ClosedLoopSolver(five_bar))
     jac = np.random.default_rng(16).normal(size=(40, 5, 6))
-    kin.blocks = [(np.array([3]), np.array([4])), (np.array([1, 0]), np.array([5, 2])),
-                  (np.array([0, 2, 4]), np.array([1, 3, 0]))]
+    kin.blocks = [
+        (np.array([3]), np.array([4])),
+        (np.array([1, 0]), np.array([5, 2])),
+        (np.array([0, 2, 4]), np.array([1, 3, 0])),
+    ]
     signs = kin.signatures(jac)
     assert signs.shape == (40, 3) and signs.dtype == bool
     for k, (rows, cols) in enumerate(kin.blocks):
@@ -562,8 +639,15 @@ def with_tool(five_bar: Mechanism, task: TaskSpec = TaskSpec("tool", ("x", "y"),
     model = five_bar.model.copy()
     effector = model.frames[model.getFrameId("effector")]
     offset = pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, 0.4), np.array([0.03, 0.04, 0.0]))
-    model.addFrame(pin.Frame("tool", effector.parentJoint, model.getFrameId("effector"), effector.placement * offset,
-                             pin.FrameType.OP_FRAME))
+    model.addFrame(
+        pin.Frame(
+            "tool",
+            effector.parentJoint,
+            model.getFrameId("effector"),
+            effector.placement * offset,
+            pin.FrameType.OP_FRAME,
+        )
+    )
     return dataclasses.replace(five_bar.with_model(model), task=task)
 
 
@@ -615,7 +699,8 @@ def test_forward_batch_slider_limits_are_inclusive_and_named(five_bar):
     assert [(f.index, f.reason, f.error) for f in batch.failures] == [
         (0, "actuator 'motor_2' = 0.3 is beyond its joint limit", InvalidInputError),
         (1, "actuator 'motor_2' = 1.4 is beyond its joint limit", InvalidInputError),
-        (2, "actuator 'motor_1' = 1.7 is beyond its joint limit", InvalidInputError)]
+        (2, "actuator 'motor_1' = 1.7 is beyond its joint limit", InvalidInputError),
+    ]
     assert list(batch.ok) == [False, False, False, True, True, True] and not batch.complete
     np.testing.assert_allclose(batch.q[:, [0, 2]], sliders[3:], atol=0)
     np.testing.assert_allclose(batch.poses[:, 3], [[0, 0, 0, 1]] * 3, atol=0)
@@ -669,8 +754,11 @@ def test_forward_batch_failures_sorted_by_row(mechanism, compiled):
     batch = solver.forward_batch(sliders)
     assert [(f.index, f.error) for f in batch.failures] == [(0, OutOfWorkspaceError), (1, InvalidInputError)]
     assert batch.failures[1].reason == "actuator 'q11_B2' = 0.7 is beyond its joint limit"
-    assert re.fullmatch(rf"forward kinematics: {re.escape(ASSEMBLE)} \(residual \d\.\d{{3}}e[-+]\d\d after \d+ "
-                        r"iterations\)", batch.failures[0].reason)
+    assert re.fullmatch(
+        rf"forward kinematics: {re.escape(ASSEMBLE)} \(residual \d\.\d{{3}}e[-+]\d\d after \d+ "
+        r"iterations\)",
+        batch.failures[0].reason,
+    )
 
 
 def test_forward_batch_in_chunks(five_bar, monkeypatch):
@@ -693,18 +781,24 @@ def test_inverse_batch_limit_and_assembly_failures_word_for_word(five_bar, compi
     targets = np.array([[0.0, 0.7], [0.0, 0.40], [0.15, 0.3], [0.0, 0.3], [-0.2, 0.3]])
     ik = solver.inverse_batch(targets)
     assert list(ik.indices) == [1, 3] and list(ik.iterations) == [3, 4]
-    assert [(f.index, f.error) for f in ik.failures] == [(0, OutOfWorkspaceError), (2, OutOfWorkspaceError),
-                                                          (4, OutOfWorkspaceError)]
+    assert [(f.index, f.error) for f in ik.failures] == [
+        (0, OutOfWorkspaceError),
+        (2, OutOfWorkspaceError),
+        (4, OutOfWorkspaceError),
+    ]
     # A Newton that cannot assemble ends wherever rounding takes it: its residual is checked as a
     # number above the tolerance, not by its digits (which differ between BLAS kernels).
-    no_assembly = re.fullmatch(rf"inverse kinematics: {re.escape(ASSEMBLE)} \(residual (\S+) after 61 iterations\)",
-                               ik.failures[0].reason)
+    no_assembly = re.fullmatch(
+        rf"inverse kinematics: {re.escape(ASSEMBLE)} \(residual (\S+) after 61 iterations\)", ik.failures[0].reason
+    )
     assert no_assembly is not None and float(no_assembly[1]) > 1e-6
     # The five-bar's motors are revolute: their values and limits are in rad.
-    assert ik.failures[1].reason == ("inverse kinematics: target needs actuator 'motor_2' = 0.0502313 rad, beyond its "
-                                     "limit [0.31, 1.31]")
-    assert ik.failures[2].reason == ("inverse kinematics: target needs actuator 'motor_1' = 3.20758 rad, beyond its "
-                                     "limit [1.83, 2.83]")
+    assert ik.failures[1].reason == (
+        "inverse kinematics: target needs actuator 'motor_2' = 0.0502313 rad, beyond its limit [0.31, 1.31]"
+    )
+    assert ik.failures[2].reason == (
+        "inverse kinematics: target needs actuator 'motor_1' = 3.20758 rad, beyond its limit [1.83, 2.83]"
+    )
     np.testing.assert_allclose(ik.poses[:, :2, 3], targets[[1, 3]], atol=1e-12)
     np.testing.assert_array_equal(ik.actuators, ik.q[:, [0, 2]])
     np.testing.assert_array_equal(ik.tilt, 0.0)  # a planar machine: no roll or pitch
@@ -717,8 +811,15 @@ def _task_placement_jacobian(rot, pos, twist):
     return np.concatenate((twist[:3] + np.cross(twist[3:].T, pos).T, twist[3:]))
 
 
-@pytest.mark.parametrize("task", [TaskSpec("f", ("x", "y", "z"), "yaw"), TaskSpec("f", ("x", "z"), "none"),
-                                  TaskSpec("f", ("y",), "full"), TaskSpec("f", (), "full")])
+@pytest.mark.parametrize(
+    "task",
+    [
+        TaskSpec("f", ("x", "y", "z"), "yaw"),
+        TaskSpec("f", ("x", "z"), "none"),
+        TaskSpec("f", ("y",), "full"),
+        TaskSpec("f", (), "full"),
+    ],
+)
 def test_task_rows_match_the_single_task_residual_and_jacobian(task):
     rng = np.random.default_rng(19)
     n, nv = 5, 4
@@ -750,15 +851,17 @@ def test_first_step_from_home_is_one_newton_step_of_the_whole_system(machine, me
         x, yaw = home[3][0, -1, 0], np.arctan2(home[2][0, -1, 1, 0], home[2][0, -1, 0, 0])
         targets = np.array([[x + 0.01, yaw + 0.02], [x, yaw], [x + 0.2, yaw + 1.0], [x + 1e-3, yaw - 1e-3]])
     else:
-        targets = np.array([[0.55, 0.60, -0.10, 0.3], [0.5, 0.5, -0.1, 0.0], [0.3, 0.9, 0.0, -2.5],
-                            [0.6, 0.6, -0.1, 0.1]])
+        targets = np.array(
+            [[0.55, 0.60, -0.10, 0.3], [0.5, 0.5, -0.1, 0.0], [0.3, 0.9, 0.0, -2.5], [0.6, 0.6, -0.1, 0.1]]
+        )
     solver = ClosedLoopSolver(mechanism)
     kin = bk.StackedKinematics(solver)
     task = mechanism.task
     start = np.repeat(mechanism.home[None, :], 4, axis=0)
     rows = np.array([0, 2, 3])
     signature = lambda jac, square: np.concatenate(  # noqa: E731
-        (kin.signatures(jac), (np.linalg.slogdet(square)[0] > 0)[:, None]), axis=1)
+        (kin.signatures(jac), (np.linalg.slogdet(square)[0] > 0)[:, None]), axis=1
+    )
     labels = bk.first_step_from_home(kin, start, rows, targets, signature)
     closure, closure_jac, _ = solver.closure_sensitivity(mechanism.home)
     data = solver.data
@@ -819,16 +922,22 @@ def test_inverse_batch_with_a_full_rotation_task(wrist):
     np.testing.assert_allclose(ik.tilt[2], single.tilt, atol=1e-12)
 
 
-@pytest.mark.parametrize("values, message", [
-    ([["a", 1.0]], "actuator values: not numeric rows (could not convert string to float: 'a')"),
-    (object(), "actuator values: not numeric rows (float() argument must be a string or a real number, not 'object')"),
-    ([[1.0, 2.0, 3.0]], "actuator values: shape (1, 3), expected (n, 2) rows ('motor_1', 'motor_2')"),
-    ([1.0, 2.0], "actuator values: shape (2,), expected (n, 2) rows ('motor_1', 'motor_2')"),
-    (np.zeros((0, 3)), "actuator values: shape (0, 3), expected (n, 2) rows ('motor_1', 'motor_2')"),
-    (np.zeros((1, 2, 1)), "actuator values: shape (1, 2, 1), expected (n, 2) rows ('motor_1', 'motor_2')"),
-    ([[1.0, 2.0], [1.0, np.inf]], "actuator values: row 1 (0-based): motor_2 = inf, not finite"),
-    ([[2.0, 1.0], [np.nan, np.inf]], "actuator values: row 1 (0-based): motor_1 = nan, not finite"),
-])
+@pytest.mark.parametrize(
+    "values, message",
+    [
+        ([["a", 1.0]], "actuator values: not numeric rows (could not convert string to float: 'a')"),
+        (
+            object(),
+            "actuator values: not numeric rows (float() argument must be a string or a real number, not 'object')",
+        ),
+        ([[1.0, 2.0, 3.0]], "actuator values: shape (1, 3), expected (n, 2) rows ('motor_1', 'motor_2')"),
+        ([1.0, 2.0], "actuator values: shape (2,), expected (n, 2) rows ('motor_1', 'motor_2')"),
+        (np.zeros((0, 3)), "actuator values: shape (0, 3), expected (n, 2) rows ('motor_1', 'motor_2')"),
+        (np.zeros((1, 2, 1)), "actuator values: shape (1, 2, 1), expected (n, 2) rows ('motor_1', 'motor_2')"),
+        ([[1.0, 2.0], [1.0, np.inf]], "actuator values: row 1 (0-based): motor_2 = inf, not finite"),
+        ([[2.0, 1.0], [np.nan, np.inf]], "actuator values: row 1 (0-based): motor_1 = nan, not finite"),
+    ],
+)
 def test_bad_slider_rows_are_refused_word_for_word(five_bar, values, message):
     with pytest.raises(InvalidInputError) as caught:
         ClosedLoopSolver(five_bar).forward_batch(values)
@@ -844,8 +953,13 @@ def test_bad_targets_and_starts_are_refused_word_for_word(five_bar):
         solver.inverse_batch([[0.0, 0.4], [0.0, np.nan]])
     assert str(caught.value) == "targets: row 1 (0-based): y = nan, not finite"
     sliders = [[2.33, 0.81], [2.33, 0.81]]
-    for q_init, shape in ((np.zeros(3), "(3,)"), (np.zeros((3, 4)), "(3, 4)"), ([[0.0] * 4], "(1, 4)"),
-                          (np.r_[np.nan, 0.0, 0.0, 0.0], "(2, 4)"), (np.full((2, 4), np.inf), "(2, 4)")):
+    for q_init, shape in (
+        (np.zeros(3), "(3,)"),
+        (np.zeros((3, 4)), "(3, 4)"),
+        ([[0.0] * 4], "(1, 4)"),
+        (np.r_[np.nan, 0.0, 0.0, 0.0], "(2, 4)"),
+        (np.full((2, 4), np.inf), "(2, 4)"),
+    ):
         with pytest.raises(InvalidInputError) as caught:
             solver.forward_batch(sliders, q_init=q_init)
         assert str(caught.value) == f"q_init: expected finite (4,) or (2, 4) values, got shape {shape}"
@@ -898,10 +1012,11 @@ def test_inverse_batch_system_and_labels(monkeypatch, wrist):
     solver = ClosedLoopSolver(wrist, native=False)  # the numpy Newton (the compiled one never calls newton_batch)
     kin = bk.StackedKinematics(solver)
     calls = _recorded_newton(monkeypatch)
-    goals = np.array([pin.Quaternion(pin.exp3(np.array(v))).coeffs() for v in ([0.1, 0.2, 0.0], [0.0, -0.1, 0.3],
-                                                                       [0.2, 0.0, 0.1])])
+    goals = np.array(
+        [pin.Quaternion(pin.exp3(np.array(v))).coeffs() for v in ([0.1, 0.2, 0.0], [0.0, -0.1, 0.3], [0.2, 0.0, 0.1])]
+    )
     solver.inverse_batch(goals)
-    (start, unknowns, system, signature, rules, steps, branch), = calls
+    ((start, unknowns, system, signature, rules, steps, branch),) = calls
     assert (rules, steps, branch) == (solver.rules, 0, None) and rules == NewtonRules()
     np.testing.assert_array_equal(unknowns, np.arange(9))
     np.testing.assert_array_equal(start, np.repeat(wrist.home[None, :], 3, axis=0))
@@ -911,20 +1026,28 @@ def test_inverse_batch_system_and_labels(monkeypatch, wrist):
     for k, i in enumerate(rows):
         closure, closure_jac, _ = solver.closure_sensitivity(q[k])
         placement = solver.data.oMf[wrist.platform_frame_id]
-        frame_jac = pin.computeFrameJacobian(solver.model, solver.data, q[k], wrist.platform_frame_id,
-                                             pin.LOCAL_WORLD_ALIGNED)
+        frame_jac = pin.computeFrameJacobian(
+            solver.model, solver.data, q[k], wrist.platform_frame_id, pin.LOCAL_WORLD_ALIGNED
+        )
         goal_rot = pin.Quaternion(*goals[i][[3, 0, 1, 2]]).matrix()
-        np.testing.assert_allclose(residual[k], np.r_[closure, wrist.task.residual(placement, goals[i], goal_rot)],
-                                   atol=1e-12)
-        np.testing.assert_allclose(jac[k], np.vstack((closure_jac, wrist.task.jacobian(placement, frame_jac, goal_rot))),
-                                   atol=1e-12)
+        np.testing.assert_allclose(
+            residual[k], np.r_[closure, wrist.task.residual(placement, goals[i], goal_rot)], atol=1e-12
+        )
+        np.testing.assert_allclose(
+            jac[k], np.vstack((closure_jac, wrist.task.jacobian(placement, frame_jac, goal_rot))), atol=1e-12
+        )
         np.testing.assert_allclose(rot[k], placement.rotation, atol=1e-14)
         np.testing.assert_allclose(pos[k], placement.translation, atol=1e-14)
     no_jac = system(q, rows, False)
     assert no_jac[1] is None
     np.testing.assert_array_equal(no_jac[0], residual)
-    square = np.array([np.diag([2.0, 1, 1, 1, 1, 1, 1, 1, 1]), np.diag([-0.5, 1, 1, 1, 1, 1, 1, 1, 1]),
-                       np.diag([0.5, 1, 1, 1, 1, 1, 1, 1, 1])])
+    square = np.array(
+        [
+            np.diag([2.0, 1, 1, 1, 1, 1, 1, 1, 1]),
+            np.diag([-0.5, 1, 1, 1, 1, 1, 1, 1, 1]),
+            np.diag([0.5, 1, 1, 1, 1, 1, 1, 1, 1]),
+        ]
+    )
     full = np.zeros((3, 9, 9))
     full[:] = jac[0]
     full[:, 6:] = square[:, 6:]
@@ -938,7 +1061,7 @@ def test_forward_batch_system_and_labels(monkeypatch, five_bar):
     kin = bk.StackedKinematics(solver)
     calls = _recorded_newton(monkeypatch)
     solver.forward_batch(np.array([[2.4, 0.9], [2.3, 0.7]]))
-    (start, unknowns, system, signature, rules, steps, branch), = calls
+    ((start, unknowns, system, signature, rules, steps, branch),) = calls
     assert (rules, steps) == (solver.rules, 1) and rules == NewtonRules()
     np.testing.assert_array_equal(unknowns, kin.passive)
     np.testing.assert_array_equal(branch, kin.home_reference()[1])
@@ -971,10 +1094,10 @@ def test_one_target_and_one_slider_set(mechanism, five_bar):
 def test_newton_batch_boundaries_at_exact_residuals():
     """Residual exactly 1e-6 (2^-20 - (2^-20 - 1e-6) is exact): converged at a tolerance of 1e-6, and
     with no step allowed below a tolerance, 'not converged' (not out of workspace: <= 1e-6)."""
-    q0 = 2.0 ** -10
-    t = q0 ** 2 - 1e-6
+    q0 = 2.0**-10
+    t = q0**2 - 1e-6
     q = np.array([[q0, 2 * q0]])
-    assert (q0 ** 2 - t) == 1e-6
+    assert (q0**2 - t) == 1e-6
     done = bk.newton_batch(q, UNKNOWNS, quadratic([t]), sign_of_first, NewtonRules(tolerance=1e-6))
     assert list(done.status) == [0] and list(done.iterations) == [0] and done.norm[0] == 1e-6
     left = bk.newton_batch(q, UNKNOWNS, quadratic([t]), sign_of_first, NewtonRules(max_iterations=0))
@@ -985,19 +1108,20 @@ def test_batch_results_are_typed_arrays(five_bar):
     batch = ClosedLoopSolver(five_bar).forward_batch([[2.4, 0.9], [2.3, 0.7]])
     assert batch.residuals.dtype == float and batch.iterations.dtype.kind == "i" and batch.q.dtype == float
     assert batch.poses.dtype == float and batch.indices.dtype.kind == "i"
-    assert all(not a.flags.writeable for a in (batch.indices, batch.poses, batch.q, batch.residuals,
-                                                 batch.iterations))
+    assert all(not a.flags.writeable for a in (batch.indices, batch.poses, batch.q, batch.residuals, batch.iterations))
 
 
 def test_newton_batch_a_jacobian_singular_after_a_step_ends_the_row():
     """r = q + 10 with J = 1 at q = 0 and exactly 0 elsewhere: after the capped first step (q = -0.3)
     the refreshed Jacobian is singular, and the row stops there as singular (3), not after 60 steps."""
+
     def kink(q, rows, with_jacobian):
         jac = np.where(q[:, 0] == 0.0, 1.0, 0.0)[:, None, None] if with_jacobian else None
         return q[:, :1] + 10.0, jac, np.zeros((len(q), 3, 3)), np.zeros((len(q), 3))
 
-    out = bk.newton_batch(np.zeros((1, 1)), np.array([0]), kink, lambda jac, square: np.ones((len(jac), 1), bool),
-                          NewtonRules())
+    out = bk.newton_batch(
+        np.zeros((1, 1)), np.array([0]), kink, lambda jac, square: np.ones((len(jac), 1), bool), NewtonRules()
+    )
     assert list(out.status) == [3] and list(out.iterations) == [1]
     np.testing.assert_allclose(out.q, [[-0.3]], rtol=1e-15)
 
@@ -1040,8 +1164,9 @@ def test_batch_task_poses_of_a_tool_frame_are_the_single_solves(tool_machine):
     """forward_batch and inverse_batch report the platform in `poses` and the tool in `task_poses`, as
     the single solves do; the batch IK's tilt is the tool's."""
     solver = ClosedLoopSolver(tool_machine)
-    home_tool = tool_machine.task.coordinates(solver.forward(tool_machine.home[tool_machine.actuated_ids]).task_pose
-                                              .homogeneous[None])[0]
+    home_tool = tool_machine.task.coordinates(
+        solver.forward(tool_machine.home[tool_machine.actuated_ids]).task_pose.homogeneous[None]
+    )[0]
     targets = home_tool + np.array([[0.0, 0.0, 0.0, 0.0], [0.02, -0.03, 0.01, 0.1], [-0.02, 0.05, -0.02, -0.2]])
     inverse = solver.inverse_batch(targets)
     assert list(inverse.indices) == [0, 1, 2]

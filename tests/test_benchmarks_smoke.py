@@ -31,7 +31,11 @@ def quick_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[subprocess.Comp
     out_dir = tmp_path_factory.mktemp("bench")
     completed = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "run_all.py"), "--quick", "--out-dir", str(out_dir)],
-        capture_output=True, text=True, timeout=300, cwd=ROOT)
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+    )
     return completed, out_dir
 
 
@@ -58,11 +62,20 @@ def test_uncertainty_map_is_written(quick_run) -> None:
 def test_bench_against_an_earlier_revision_runs_in_one_process() -> None:
     """`bench_against.py REV` imports the revision's package beside the tree's and times both; against
     HEAD itself the results agree to rounding."""
-    completed = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_against.py"), "HEAD", "--quick"],
-                               capture_output=True, text=True, timeout=300, cwd=ROOT)
+    completed = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_against.py"), "HEAD", "--quick"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+    )
     assert completed.returncode == 0, completed.stdout[-3000:] + completed.stderr[-3000:]
     rows = [line for line in completed.stdout.splitlines() if line.startswith("| ") and "operation" not in line]
-    assert [row.split("|")[1].strip() for row in rows] == ["FK warm (path)", "IK warm (path)", "compensation (path)",
-                                                           "forward_batch"]
+    assert [row.split("|")[1].strip() for row in rows] == [
+        "FK warm (path)",
+        "IK warm (path)",
+        "compensation (path)",
+        "forward_batch",
+    ]
     for row in rows:
         assert float(row.split("|")[-2]) <= 1e-12  # the same code on both sides

@@ -81,8 +81,9 @@ def test_batched_sensitivities_equal_the_full_computation_column_by_column(mecha
     the batch equals pose-by-pose calls, and passive_sensitivities equals -J_c,pas^-1 dr_c/dp."""
     truth = simulate_study(mechanism, n_poses=1, n_holdout=0, seed=4).truth
     solver = ClosedLoopSolver(truth)
-    configurations = [solver.forward(s, q_init=truth.home).q
-                      for s in workspace_actuators(mechanism, 3, np.random.default_rng(8))]
+    configurations = [
+        solver.forward(s, q_init=truth.home).q for s in workspace_actuators(mechanism, 3, np.random.default_rng(8))
+    ]
     full = error_model.platform_sensitivities(solver, configurations)
     columns = np.random.default_rng(9).choice(error_model.n_parameters, 70, replace=False)
     part = error_model.platform_sensitivities(solver, configurations, columns)
@@ -165,15 +166,20 @@ def test_predicted_measurement_std_is_the_tracker_frame_error_of_a_frame_estimat
     placement is the gauge that the estimated frame leaves free."""
     rng = np.random.default_rng(1)
     truth = actual_machine(mechanism, random_placement_errors(error_model, rng, 1e-3, 1e-3))
-    setup = MeasurementSetup(pin.SE3(pin.rpy.rpyToMatrix(0.1, -0.2, 2.0), np.array([3.0, -1.0, 0.5])),
-                             pin.SE3(np.eye(3), np.array([0.05, -0.02, 0.03])))
+    setup = MeasurementSetup(
+        pin.SE3(pin.rpy.rpyToMatrix(0.1, -0.2, 2.0), np.array([3.0, -1.0, 0.5])),
+        pin.SE3(np.eye(3), np.array([0.05, -0.02, 0.03])),
+    )
     noise = TrackerNoise(10e-6, 20e-6)
     measured = measure(truth, workspace_actuators(mechanism, 60, rng), rng, noise, setup=setup)
-    calibration = calibrate_closed_loop(mechanism, measured, noise, setup=MeasurementSetup(marker=setup.marker),
-                                        estimate_frame=True)
+    calibration = calibrate_closed_loop(
+        mechanism, measured, noise, setup=MeasurementSetup(marker=setup.marker), estimate_frame=True
+    )
     held_out = workspace_actuators(mechanism, 300, np.random.default_rng(101))
-    actual = pose_errors_between(calibration.setup.measured_poses(assembled_from_home(calibration.mechanism, held_out).poses),
-                                 setup.measured_poses(assembled_from_home(truth, held_out).poses))
+    actual = pose_errors_between(
+        calibration.setup.measured_poses(assembled_from_home(calibration.mechanism, held_out).poses),
+        setup.measured_poses(assembled_from_home(truth, held_out).poses),
+    )
     predicted = predicted_measurement_std(calibration, held_out)
     rms = lambda values: float(np.sqrt(np.mean(values**2)))  # noqa: E731
     assert 0.8 < rms(actual.position) / rms(predicted.position) < 1.5
@@ -193,6 +199,7 @@ def test_predicted_measurement_std_without_a_setup_is_the_platform_std(mechanism
     empty = predicted_measurement_std(calibration, np.zeros((0, 4)))
     assert empty.position.shape == (0,) and empty.rotation.shape == (0,)
 
+
 def test_position_only_measurements(mechanism):
     noise = TrackerNoise(position=10e-6, rotation=20e-6)
     study = simulate_study(mechanism, n_poses=60, n_holdout=100, seed=14, noise=noise, position_only=True)
@@ -206,8 +213,11 @@ def test_position_only_measurements(mechanism):
 
 def test_too_few_poses_is_refused(mechanism):
     study = simulate_study(mechanism, n_poses=5, n_holdout=0, seed=15)
-    with pytest.raises(IdentificationError, match="30 residual rows for 56 identifiable parameters and identify only 30: "
-                                                  r"add poses \(each gives 6 rows\)"):
+    with pytest.raises(
+        IdentificationError,
+        match="30 residual rows for 56 identifiable parameters and identify only 30: "
+        r"add poses \(each gives 6 rows\)",
+    ):
         calibrate_closed_loop(mechanism, study.measurements)
 
 
@@ -217,8 +227,9 @@ def _advised_holding(message: str) -> list[str]:
     return held.group(1).split()
 
 
-@pytest.mark.parametrize("files, leg", [(five_bar_files, ("motor_1", "elbow_1")),
-                                        (spherical_wrist_files, ("motor_1", "elbow_1", "wrist_1"))])
+@pytest.mark.parametrize(
+    "files, leg", [(five_bar_files, ("motor_1", "elbow_1")), (spherical_wrist_files, ("motor_1", "elbow_1", "wrist_1"))]
+)
 def test_a_motor_that_never_moves_is_named_and_the_advice_works(files, leg, tmp_path):
     """40 poses give rows to spare, but motor 1 never moves: the refusal names its leg's parameters
     and asks for poses that move them, not for more poses like these; holding the parameters it
@@ -230,8 +241,11 @@ def test_a_motor_that_never_moves_is_named_and_the_advice_works(files, leg, tmp_
     with pytest.raises(IdentificationError) as refusal:
         calibrate_closed_loop(machine, measurements)
     message = str(refusal.value)
-    assert re.match(r"40 poses give 240 residual rows for (\d+) identifiable parameters and identify only (\d+): "
-                    r"these poses do not excite ", message), message
+    assert re.match(
+        r"40 poses give 240 residual rows for (\d+) identifiable parameters and identify only (\d+): "
+        r"these poses do not excite ",
+        message,
+    ), message
     assert "add poses" not in message and "poses that move them, over more of the workspace" in message
     held = _advised_holding(message)
     assert held and all(name.split(".dt[")[0] in leg for name in held), held
@@ -256,8 +270,9 @@ def test_barely_identifiable_directions_are_not_answered_with_more_poses(mechani
     held = _advised_holding(message)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        calibration = calibrate_closed_loop(mechanism, measurements, fixed=held, rank_tolerance=1e-4,
-                                            outlier_sigma=None)
+        calibration = calibrate_closed_loop(
+            mechanism, measurements, fixed=held, rank_tolerance=1e-4, outlier_sigma=None
+        )
     assert calibration.converged and not set(held) & set(calibration.base.names)
 
 
@@ -291,13 +306,16 @@ def test_idle_chains_cross_validate_a_noise_free_calibration(mechanism, noise_fr
     assert np.all(after.rms < 1e-4)
 
 
-@pytest.mark.parametrize("options,message", [
-    ({"outlier_sigma": -5.0}, "outlier_sigma: None or 0"),
-    ({"outlier_sigma": 0.5}, "outlier_sigma: None or 0"),
-    ({"outlier_sigma": float("nan")}, "outlier_sigma: expected a finite number"),
-    ({"fixed": "q12"}, r"fixed parameter: expected a list of names such as \['q12'\], got 'q12'"),
-    ({"max_iterations": 0}, "max_iterations: expected a whole number of at least 1"),
-])
+@pytest.mark.parametrize(
+    "options,message",
+    [
+        ({"outlier_sigma": -5.0}, "outlier_sigma: None or 0"),
+        ({"outlier_sigma": 0.5}, "outlier_sigma: None or 0"),
+        ({"outlier_sigma": float("nan")}, "outlier_sigma: expected a finite number"),
+        ({"fixed": "q12"}, r"fixed parameter: expected a list of names such as \['q12'\], got 'q12'"),
+        ({"max_iterations": 0}, "max_iterations: expected a whole number of at least 1"),
+    ],
+)
 def test_calibration_options_are_checked_at_the_call(mechanism, options, message):
     """A negative or NaN gate silently disabled outlier rejection; fixed="q12" was read letter by letter."""
     study = simulate_study(mechanism, n_poses=12, n_holdout=0, seed=16)
@@ -361,8 +379,10 @@ def _finite_difference_pose_std(calibration, sliders):
         for i, (plus, minus) in enumerate(zip(*moved)):
             position_rows[i, :, column] = (plus.translation - minus.translation) / (2 * eps)
             rotation_rows[i, :, column] = pin.log3(minus.rotation.T @ plus.rotation) / (2 * eps)
-    return (np.sqrt(np.einsum("nij,jk,nik->n", position_rows, covariance, position_rows)),
-            np.sqrt(np.einsum("nij,jk,nik->n", rotation_rows, covariance, rotation_rows)))
+    return (
+        np.sqrt(np.einsum("nij,jk,nik->n", position_rows, covariance, position_rows)),
+        np.sqrt(np.einsum("nij,jk,nik->n", rotation_rows, covariance, rotation_rows)),
+    )
 
 
 def test_predicted_pose_std_is_the_covariance_through_finite_differences(noisy):
@@ -376,8 +396,11 @@ def test_predicted_pose_std_is_the_covariance_through_finite_differences(noisy):
     # No slider set: nothing predicted; a set beyond a limit: refused, naming it.
     empty = predicted_pose_std(calibration, np.zeros((0, 4)))
     assert empty.position.shape == empty.rotation.shape == (0,)
-    with pytest.raises(InvalidInputError, match=r"^slider set 1 .* does not assemble on the machine from its home: "
-                                                r"actuator 'q11' = 9 is beyond its joint limit"):
+    with pytest.raises(
+        InvalidInputError,
+        match=r"^slider set 1 .* does not assemble on the machine from its home: "
+        r"actuator 'q11' = 9 is beyond its joint limit",
+    ):
         predicted_pose_std(calibration, np.vstack((sliders[:1], [[9.0, 0.0, 0.0, 0.0]])))
     with pytest.raises(InvalidInputError) as error:
         predicted_pose_std(dataclasses.replace(calibration, problem=None), sliders)
@@ -390,14 +413,16 @@ def test_predicted_std_of_a_fit_with_its_own_placements(noisy):
     differences of its FK say."""
     study, _ = noisy
     mechanism = study.nominal
-    joints_only = ClosedLoopErrorModel(mechanism, tuple(Placement.joint(mechanism.model.names[j])
-                                                         for j in reversed(range(1, mechanism.model.njoints))))
+    joints_only = ClosedLoopErrorModel(
+        mechanism, tuple(Placement.joint(mechanism.model.names[j]) for j in reversed(range(1, mechanism.model.njoints)))
+    )
     calibration = calibrate_closed_loop(mechanism, study.measurements, NOISE, error_model=joints_only)
     sliders = study.holdout_actuators[:2]
     expected_position, expected_rotation = _finite_difference_pose_std(calibration, sliders)
     for predicted in (predicted_pose_std(calibration, sliders), predicted_measurement_std(calibration, sliders)):
         np.testing.assert_allclose(predicted.position, expected_position, rtol=1e-3)
         np.testing.assert_allclose(predicted.rotation, expected_rotation, rtol=1e-3)
+
 
 def test_predicted_pose_std_in_blocks_is_the_one_block_result(noisy, monkeypatch):
     """Blocks of 2 poses (5 poses: a partial last block) give what one block gives."""
@@ -517,13 +542,15 @@ def test_identifiable_count_on_the_reference_poses(mechanism, few_poses, monkeyp
     monkeypatch.setattr(closed_loop, "_STRUCTURAL_RANKS", cache)
     error_model = ClosedLoopErrorModel(mechanism)
     full = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(204))
-    positions = _ClosedLoopProblem(error_model, measure(mechanism, few_poses.actuators, position_only=True), NOISE,
-                                   np.arange(204))
+    positions = _ClosedLoopProblem(
+        error_model, measure(mechanism, few_poses.actuators, position_only=True), NOISE, np.arange(204)
+    )
     identity, turned = pin.SE3.Identity(), pin.SE3(pin.utils.rotate("x", 0.5), np.array([0.0, 0.0, 0.05]))
     assert closed_loop.structural_rank(full, identity, [], 1e-8) == 56
     assert closed_loop.structural_rank(full, identity, list(range(12)), 1e-8) == 52
-    with_setup = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(216), estimate_frame=True,
-                                    estimate_marker=True)
+    with_setup = _ClosedLoopProblem(
+        error_model, few_poses, NOISE, np.arange(216), estimate_frame=True, estimate_marker=True
+    )
     assert closed_loop.structural_rank(with_setup, turned, [], 1e-8) == 56
     assert closed_loop.structural_rank(positions, identity, [], 1e-8) == 53
     assert closed_loop.structural_rank(positions, identity, [], 1e-3) == 47
@@ -541,10 +568,16 @@ def test_selection_scores_the_fit_linearised_at_the_estimate(noisy):
     rows = len(problem.weights)
     keep = np.repeat(problem.active, 6)
     columns = problem.columns.copy()
-    expected = forward_selection(J[:rows][keep], (r[:rows] - J[:rows] @ state.accumulated[columns])[keep], 6,
-                                 range(len(columns)), np.flatnonzero(columns < 12))
-    selection, result = _select_parameters(problem, calibration.start, calibration.lm, np.arange(12),
-                                           calibration.options)
+    expected = forward_selection(
+        J[:rows][keep],
+        (r[:rows] - J[:rows] @ state.accumulated[columns])[keep],
+        6,
+        range(len(columns)),
+        np.flatnonzero(columns < 12),
+    )
+    selection, result = _select_parameters(
+        problem, calibration.start, calibration.lm, np.arange(12), calibration.options
+    )
     assert selection == expected
     if len(selection.indices) == len(columns):
         assert result is calibration.lm
@@ -572,8 +605,10 @@ def test_refine_reselects_at_the_estimate_and_continues(noisy):
     shifted = problem.residual(dataclasses.replace(calibration.lm.state, setup=moved))
     assert refined.cost_history[0] == pytest.approx(0.5 * shifted @ shifted, rel=1e-9)
     assert refined.cost_history[0] > 10 * calibration.lm.cost_history[-1]
-    np.testing.assert_array_equal(refined.state.accumulated[:204] != 0.0,
-                                  np.isin(np.arange(204), problem.columns) | (calibration.lm.state.accumulated[:204] != 0))
+    np.testing.assert_array_equal(
+        refined.state.accumulated[:204] != 0.0,
+        np.isin(np.arange(204), problem.columns) | (calibration.lm.state.accumulated[:204] != 0),
+    )
 
 
 def test_prior_rows_and_a_trial_that_does_not_assemble(mechanism, few_poses):
@@ -584,8 +619,9 @@ def test_prior_rows_and_a_trial_that_does_not_assemble(mechanism, few_poses):
     problem = _ClosedLoopProblem(error_model, few_poses, NOISE, np.array([0, 5, 7]), priors={5: 0.5, 7: 2e-3, 100: 1.0})
     accumulated = np.zeros(204)
     accumulated[[0, 5, 7]] = [1.0, 1e-3, -4e-3]
-    values, jacobian = problem.prior_rows(_State(mechanism.model, np.zeros((0, 20)), np.zeros((0, 4, 4)),
-                                                  accumulated=accumulated))
+    values, jacobian = problem.prior_rows(
+        _State(mechanism.model, np.zeros((0, 20)), np.zeros((0, 4, 4)), accumulated=accumulated)
+    )
     np.testing.assert_allclose(values, [1e-3 / 0.5, -4e-3 / 2e-3], rtol=1e-15)
     np.testing.assert_array_equal(jacobian, [[0.0, 2.0, 0.0], [0.0, 0.0, 500.0]])
     failed = _State(None, np.zeros((0, 20)), np.zeros((0, 4, 4)))
@@ -604,13 +640,22 @@ def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
     and its refusals."""
     frame = pin.SE3(pin.utils.rotate("z", 2.0), np.array([1.5, -0.8, 0.3]))
     marker = pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.01, 0.0, 0.05]))
-    study = simulate_study(mechanism, n_poses=40, n_holdout=0, seed=17, noise=NOISE,
-                           setup=MeasurementSetup(frame, marker), outliers=1)
+    study = simulate_study(
+        mechanism, n_poses=40, n_holdout=0, seed=17, noise=NOISE, setup=MeasurementSetup(frame, marker), outliers=1
+    )
     calls = []
     calibration = calibrate_closed_loop(
-        mechanism, study.measurements, NOISE, setup=MeasurementSetup(marker=pin.SE3(np.eye(3), marker.translation)),
-        estimate_frame=True, estimate_marker=True, fixed=["q11"], priors={"q12.dt[0]": 1e-3}, select=True,
-        progress=lambda: calls.append(1))
+        mechanism,
+        study.measurements,
+        NOISE,
+        setup=MeasurementSetup(marker=pin.SE3(np.eye(3), marker.translation)),
+        estimate_frame=True,
+        estimate_marker=True,
+        fixed=["q11"],
+        priors={"q12.dt[0]": 1e-3},
+        select=True,
+        progress=lambda: calls.append(1),
+    )
     assert calibration.selection is not None and len(calibration.selection.indices) == len(calibration.fitted)
     assert calibration.outliers == tuple(study.outliers) and len(calibration.outliers) == 1
     assert calibration.converged is bool(calibration.lm.converged) is True
@@ -643,8 +688,11 @@ def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
 def test_pose_errors_name_the_first_set_that_does_not_assemble(mechanism, few_poses):
     good = few_poses.actuators[:2]
     bad = np.vstack((good, [[-0.3, 0.3, 0.0, 0.0]], good))  # the five-bar cannot close at row 2
-    with pytest.raises(InvalidInputError, match=rf"^pose_errors: actuator set 2 does not assemble on "
-                                                rf"{mechanism.urdf_path.name}: "):
+    with pytest.raises(
+        InvalidInputError,
+        match=rf"^pose_errors: actuator set 2 does not assemble on "
+        rf"{mechanism.urdf_path.name}: ",
+    ):
         pose_errors(mechanism, mechanism, bad)
     same = pose_errors(mechanism, mechanism, good)
     assert same.position.shape == (2,) and np.all(same.position == 0.0) and np.all(same.rotation == 0.0)
@@ -660,8 +708,9 @@ def test_registered_setup_is_exact_on_the_nominal_machine(mechanism):
     axes_unknown = pin.SE3(np.eye(3), marker.translation)
     for position_only in (False, True):
         measurements = measure(mechanism, actuators, position_only=position_only, setup=MeasurementSetup(frame, marker))
-        problem = _ClosedLoopProblem(error_model, measurements, NOISE, np.arange(204), estimate_frame=True,
-                                     estimate_marker=True)
+        problem = _ClosedLoopProblem(
+            error_model, measurements, NOISE, np.arange(204), estimate_frame=True, estimate_marker=True
+        )
         start = problem.assemble(mechanism.model, None)
         both = _registered_setup(problem, start, MeasurementSetup(marker=axes_unknown), True, True)
         np.testing.assert_allclose(both.frame.homogeneous, frame.homogeneous, atol=1e-9)
@@ -772,7 +821,7 @@ def test_refine_options_weights_and_an_equal_rank(mechanism, few_poses, monkeypa
         problem.columns = np.arange(3)
         assert _refine(problem, result, 1e-3, 5) == "continued"
     np.testing.assert_array_equal(problem.columns, expected.indices)
-    (called_problem, continued, options), = recorder.calls
+    ((called_problem, continued, options),) = recorder.calls
     assert called_problem is problem
     assert options == {"max_iterations": 5, "initial_damping": 1e-9, "cost_tolerance": 1e-14}
     assert continued.model is state.model and continued.setup is setup and continued.accumulated is accumulated
@@ -808,8 +857,9 @@ def test_select_parameters_scores_the_pose_rows_only(mechanism, few_poses, monke
     monkeypatch.setattr(closed_loop, "fit_assembled", lambda *args: fits.append(args[1]) or fit(*args))
     start = dataclasses.replace(state)
     problem.residual_and_jacobian(start)  # the start's Jacobian cached over every column
-    selection, result = _select_parameters(problem, start, SimpleNamespace(state=state), np.arange(2),
-                                           {"max_iterations": 1})
+    selection, result = _select_parameters(
+        problem, start, SimpleNamespace(state=state), np.arange(2), {"max_iterations": 1}
+    )
     assert selection == expected
     np.testing.assert_array_equal(problem.columns, columns[list(selection.indices)])
     assert len(selection.indices) < len(columns)
@@ -822,8 +872,9 @@ def _problem_with_a_1_m_outlier(mechanism, columns: np.ndarray) -> _ClosedLoopPr
     exact = measure(mechanism, workspace_actuators(mechanism, 4, np.random.default_rng(63)))
     poses = list(exact.poses)
     poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
-    return _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), PoseMeasurements(exact.actuators, tuple(poses)),
-                              NOISE, columns)
+    return _ClosedLoopProblem(
+        ClosedLoopErrorModel(mechanism), PoseMeasurements(exact.actuators, tuple(poses)), NOISE, columns
+    )
 
 
 def test_outlier_refit_starts_from_a_fresh_jacobian(mechanism):
@@ -883,10 +934,18 @@ def test_calibration_result_from_a_known_final_jacobian(mechanism):
     for active_rows in (8, 3, 2, 1):  # 2 prior rows, 3 columns: dof 7, 2, 1, 0
         weights = np.zeros(12)
         weights[:active_rows] = 1.0
-        problems[active_rows] = _StandInProblem(error_model, residual, jacobian, weights, columns,
-                                                np.array([True, False]), {id(start): before, id(end): after})
-        outcomes[active_rows] = closed_loop.calibration_result(mechanism, problems[active_rows], start, lm, base,
-                                                               selection)
+        problems[active_rows] = _StandInProblem(
+            error_model,
+            residual,
+            jacobian,
+            weights,
+            columns,
+            np.array([True, False]),
+            {id(start): before, id(end): after},
+        )
+        outcomes[active_rows] = closed_loop.calibration_result(
+            mechanism, problems[active_rows], start, lm, base, selection
+        )
     calibration = outcomes[8]
     expected = (v[:, :2] / singular[:2] ** 2) @ v[:, :2].T
     np.testing.assert_allclose(calibration.covariance, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
@@ -922,8 +981,14 @@ def test_identifiable_count_weights_fixed_columns_and_the_setup_gauge(mechanism,
     assert closed_loop.structural_rank(skewed, identity, [], 1e-8) == 56
     frame = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(210), estimate_frame=True)
     assert closed_loop.structural_rank(frame, identity, list(range(200)), 1e-8) == 8
-    both = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1.0, rotation=1e-5), np.arange(216),
-                              estimate_frame=True, estimate_marker=True)
+    both = _ClosedLoopProblem(
+        error_model,
+        few_poses,
+        TrackerNoise(position=1.0, rotation=1e-5),
+        np.arange(216),
+        estimate_frame=True,
+        estimate_marker=True,
+    )
     assert closed_loop.structural_rank(both, turned, [], 1e-5) == 29
 
 
@@ -946,14 +1011,16 @@ def test_problem_layout_weights_and_measured_frames(mechanism, few_poses):
     assert marker.frame_slot is None and marker.marker_slot == 204 and marker.measured_rotations is None
     np.testing.assert_array_equal(marker.noise_weights, [1 / NOISE.position] * 3)
     np.testing.assert_array_equal(marker.measured_positions, [positions.poses[0].translation])
-    both = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(216), estimate_frame=True, estimate_marker=True,
-                              priors={3: 0.5})
+    both = _ClosedLoopProblem(
+        error_model, few_poses, NOISE, np.arange(216), estimate_frame=True, estimate_marker=True, priors={3: 0.5}
+    )
     assert both.frame_slot == 204 and both.marker_slot == 210 and len(both.names) == 216 and both.priors == {3: 0.5}
     frame = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(210), estimate_frame=True)
     assert frame.frame_slot == 204 and frame.marker_slot is None and len(frame.names) == 210
     both.active = np.array([True, False, True, True])
-    np.testing.assert_array_equal(both.weights, np.tile([1 / NOISE.position] * 3 + [1 / NOISE.rotation] * 3, 4)
-                                  * np.repeat(both.active, 6))
+    np.testing.assert_array_equal(
+        both.weights, np.tile([1 / NOISE.position] * 3 + [1 / NOISE.rotation] * 3, 4) * np.repeat(both.active, 6)
+    )
 
 
 class _FakeSolver:
@@ -970,8 +1037,9 @@ class _FakeSolver:
     def forward_batch(self, actuators, q_init=None):
         _FakeSolver.calls.append((actuators, q_init))
         start = np.zeros((len(actuators), 20)) if q_init is None else q_init
-        return SimpleNamespace(q=start + 1.0, poses=actuators[:, :1, None] * np.ones((1, 4, 4)),
-                               failures=_FakeSolver.failures)
+        return SimpleNamespace(
+            q=start + 1.0, poses=actuators[:, :1, None] * np.ones((1, 4, 4)), failures=_FakeSolver.failures
+        )
 
 
 def test_assemble_solves_every_pose_in_one_batch_from_its_start(mechanism, few_poses, monkeypatch):
@@ -980,7 +1048,7 @@ def test_assemble_solves_every_pose_in_one_batch_from_its_start(mechanism, few_p
     _FakeSolver.calls, _FakeSolver.failures = [], ()
     starts = np.repeat(np.arange(4.0)[:, None], 20, axis=1)
     state = problem.assemble(mechanism.model, starts)
-    (actuators, q_init), = _FakeSolver.calls
+    ((actuators, q_init),) = _FakeSolver.calls
     assert actuators is few_poses.actuators and q_init is starts
     assert state.model is mechanism.model and state.setup == MeasurementSetup()
     np.testing.assert_array_equal(state.configurations, starts + 1.0)
@@ -991,13 +1059,17 @@ def test_assemble_solves_every_pose_in_one_batch_from_its_start(mechanism, few_p
     state = problem.assemble(mechanism.model, None, setup, accumulated)
     assert _FakeSolver.calls[-1][1] is None and state.setup is setup and state.accumulated is accumulated
     # The first failing pose named; a slider beyond its limit stays an input error; no state is made.
-    _FakeSolver.failures = (RowFailure(2, "forward kinematics: branch change", BranchChangeError),
-                            RowFailure(3, "actuator 'q11' = 9 is beyond its joint limit", InvalidInputError))
+    _FakeSolver.failures = (
+        RowFailure(2, "forward kinematics: branch change", BranchChangeError),
+        RowFailure(3, "actuator 'q11' = 9 is beyond its joint limit", InvalidInputError),
+    )
     with pytest.raises(IdentificationError) as error:
         problem.assemble(mechanism.model, starts)
     assert str(error.value) == "measured pose 2 (0-based) does not assemble: forward kinematics: branch change"
     _FakeSolver.failures = _FakeSolver.failures[1:]
-    with pytest.raises(InvalidInputError, match=r"^measured pose 3 \(0-based\) does not assemble: actuator 'q11' = 9 is"):
+    with pytest.raises(
+        InvalidInputError, match=r"^measured pose 3 \(0-based\) does not assemble: actuator 'q11' = 9 is"
+    ):
         problem.assemble(mechanism.model, starts)
     _FakeSolver.failures = ()
 
@@ -1021,7 +1093,7 @@ def test_retract_moves_model_and_setup_and_assembles_from_the_iterate(mechanism,
     monkeypatch.setattr(error_model, "perturbed", lambda model, vector: ("perturbed", model, vector.copy()))
     monkeypatch.setattr(problem, "assemble", lambda *args: calls.append(args) or "assembled")
     assert problem.retract(state, step) == "assembled"
-    (model, start, setup, total), = calls
+    ((model, start, setup, total),) = calls
     vector = np.zeros(213)
     vector[columns] = step
     assert model[:2] == ("perturbed", "model")
@@ -1060,8 +1132,10 @@ def test_evaluate_in_blocks_reduced_with_extra_rows_and_progress(mechanism, few_
     problem.active = np.array([True, True, False, True, True, True, True])
     calls = []
     problem.on_evaluate = lambda: calls.append(1)
-    setup = MeasurementSetup(pin.SE3(pin.utils.rotate("z", 0.4), np.array([0.2, 0.0, 0.1])),
-                             pin.SE3(pin.utils.rotate("y", 0.2), np.array([0.0, 0.01, 0.05])))
+    setup = MeasurementSetup(
+        pin.SE3(pin.utils.rotate("z", 0.4), np.array([0.2, 0.0, 0.1])),
+        pin.SE3(pin.utils.rotate("y", 0.2), np.array([0.0, 0.01, 0.05])),
+    )
     state = problem.assemble(mechanism.model, None, setup=setup)
     whole = problem.evaluate(state, columns)
     assert len(calls) == 1 and whole[1].shape == (42, 9)
@@ -1071,18 +1145,27 @@ def test_evaluate_in_blocks_reduced_with_extra_rows_and_progress(mechanism, few_
     np.testing.assert_array_equal(blocks[0][:42], whole[0])
     np.testing.assert_array_equal(blocks[1][:42], whole[1])
     # The sensitivities' own FK pass against the batch assembly's poses: equal to rounding.
-    np.testing.assert_allclose(whole[0], problem.pose_residuals(state).reshape(-1) * problem.weights, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(
+        whole[0], problem.pose_residuals(state).reshape(-1) * problem.weights, rtol=1e-12, atol=1e-9
+    )
     assert np.all(whole[1][12:18] == 0.0) and np.all(whole[1][:12].any(axis=0))
     residual, factor = problem.evaluate(state, columns, reduce=True)
     assert len(calls) == 3
     np.testing.assert_array_equal(residual, whole[0])
     assert factor.shape == (9, 9)
     # One pose, 6 rows for 9 columns: a factor of 6 rows (nothing stacked on an empty start).
-    one = _ClosedLoopProblem(error_model, measure(mechanism, few_poses.actuators[:1]), NOISE, columns,
-                             estimate_frame=True, estimate_marker=True)
+    one = _ClosedLoopProblem(
+        error_model,
+        measure(mechanism, few_poses.actuators[:1]),
+        NOISE,
+        columns,
+        estimate_frame=True,
+        estimate_marker=True,
+    )
     assert one.evaluate(one.assemble(mechanism.model, None, setup=setup), columns, reduce=True)[1].shape == (6, 9)
-    np.testing.assert_allclose(factor.T @ factor, whole[1].T @ whole[1], rtol=1e-9,
-                               atol=1e-9 * np.abs(whole[1]).max() ** 2)
+    np.testing.assert_allclose(
+        factor.T @ factor, whole[1].T @ whole[1], rtol=1e-9, atol=1e-9 * np.abs(whole[1]).max() ** 2
+    )
 
 
 def test_outlier_rounds_refit_only_when_the_flagged_set_changes(mechanism, monkeypatch):
@@ -1092,10 +1175,12 @@ def test_outlier_rounds_refit_only_when_the_flagged_set_changes(mechanism, monke
     start = problem.assemble(mechanism.model, None)
     fits = []
     fit = closed_loop.fit_assembled
-    monkeypatch.setattr(closed_loop, "fit_assembled",
-                        lambda *args: fits.append((args[1], args[1].whitened)) or fit(*args))
-    first = _reject_outliers(problem, start, SimpleNamespace(state=dataclasses.replace(start)), 5.0,
-                             {"max_iterations": 1})
+    monkeypatch.setattr(
+        closed_loop, "fit_assembled", lambda *args: fits.append((args[1], args[1].whitened)) or fit(*args)
+    )
+    first = _reject_outliers(
+        problem, start, SimpleNamespace(state=dataclasses.replace(start)), 5.0, {"max_iterations": 1}
+    )
     assert len(fits) == 1 and fits[0][0] is not start and fits[0][1] is None
     np.testing.assert_array_equal(problem.active, [True, False, True, True])
     assert _reject_outliers(problem, start, first, 5.0, {"max_iterations": 1}) is first and len(fits) == 1
@@ -1114,11 +1199,15 @@ def test_structural_rank_cache_keys_on_the_noise_ratio_and_the_data_kind(mechani
     identity = pin.SE3.Identity()
     positions = measure(mechanism, few_poses.actuators, position_only=True)
     rank = closed_loop.structural_rank
-    counts = [rank(_ClosedLoopProblem(error_model, measurements, noise, np.arange(204)), identity, [], 1e-8)
-              for measurements, noise in ((few_poses, TrackerNoise(position=1e-5, rotation=1.0)),
-                                          (few_poses, TrackerNoise(position=1.0, rotation=1e-5)),
-                                          (few_poses, TrackerNoise(position=1e-5, rotation=1e-5)),
-                                          (positions, TrackerNoise(position=1e-5, rotation=1e-5)))]
+    counts = [
+        rank(_ClosedLoopProblem(error_model, measurements, noise, np.arange(204)), identity, [], 1e-8)
+        for measurements, noise in (
+            (few_poses, TrackerNoise(position=1e-5, rotation=1.0)),
+            (few_poses, TrackerNoise(position=1.0, rotation=1e-5)),
+            (few_poses, TrackerNoise(position=1e-5, rotation=1e-5)),
+            (positions, TrackerNoise(position=1e-5, rotation=1e-5)),
+        )
+    ]
     assert counts == [56, 52, 56, 53]
 
 
@@ -1131,11 +1220,15 @@ def test_jacobian_is_the_derivative_of_the_residual_along_retract(mechanism, few
     n_names = 204 + 6 + (3 if position_only else 6)
     columns = np.array([1, 40, 150, 203] + list(range(204, n_names)))
     problem = _ClosedLoopProblem(error_model, measurements, NOISE, columns, estimate_frame=True, estimate_marker=True)
-    setup = MeasurementSetup(pin.SE3(pin.utils.rotate("z", 0.4) @ pin.utils.rotate("x", 0.2), np.array([0.2, -0.1, 0.1])),
-                             pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.01, 0.02, 0.05])))
+    setup = MeasurementSetup(
+        pin.SE3(pin.utils.rotate("z", 0.4) @ pin.utils.rotate("x", 0.2), np.array([0.2, -0.1, 0.1])),
+        pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.01, 0.02, 0.05])),
+    )
     state = problem.assemble(mechanism.model, None, setup=setup)
     residual, jacobian = problem.evaluate(state, columns)
-    np.testing.assert_allclose(residual, problem.pose_residuals(state).reshape(-1) * problem.weights, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(
+        residual, problem.pose_residuals(state).reshape(-1) * problem.weights, rtol=1e-12, atol=1e-9
+    )
     jacobian = jacobian / problem.weights[:, None]  # every weight positive here
     eps = 1e-6
     numeric = np.empty_like(jacobian)

@@ -47,8 +47,9 @@ def _campaign(tmp_path: Path, seed: int, position_only: bool) -> tuple[Simulated
     nominal = Mechanism.load()
     rng = np.random.default_rng(1000 + seed)
     setup = _random_setup(rng)
-    study = simulate_study(nominal, 60, 200, seed, noise=TrackerNoise(), position_only=position_only, setup=setup,
-                           outliers=2)
+    study = simulate_study(
+        nominal, 60, 200, seed, noise=TrackerNoise(), position_only=position_only, setup=setup, outliers=2
+    )
     path = tmp_path / "campaign.csv"
     write_measurements(path, nominal, study.measurements, units="mm")
     given = setup.marker.translation + rng.normal(size=3) * 0.5e-3 / np.sqrt(3)  # the CAD's marker, 0.5 mm off
@@ -59,8 +60,10 @@ def _campaign(tmp_path: Path, seed: int, position_only: bool) -> tuple[Simulated
 def test_tracker_campaign_is_calibrated_in_the_tracker_frame(tmp_path, capsys, seed, position_only):
     study, path, options = _campaign(tmp_path, seed, position_only)
     urdf, report_path = tmp_path / "cal.urdf", tmp_path / "cal.json"
-    assert main(["calibrate", str(path), "-o", str(urdf), "--report", str(report_path), "--frame", "estimate",
-                 *options]) == 0
+    assert (
+        main(["calibrate", str(path), "-o", str(urdf), "--report", str(report_path), "--frame", "estimate", *options])
+        == 0
+    )
     report = json.loads(report_path.read_text(), parse_constant=lambda c: pytest.fail(f"{c} is not JSON"))
     assert report["outliers"] == [i + 2 for i in study.outliers]  # line 1 is the header
     assert report["converged"] and 0.5 < report["variance_factor"] < 1.5
@@ -84,8 +87,10 @@ def test_tracker_campaign_is_calibrated_in_the_tracker_frame(tmp_path, capsys, s
 def test_calibrated_urdf_holds_the_machine_alone(tmp_path):
     study, path, options = _campaign(tmp_path, 2, False)
     urdf, report_path = tmp_path / "cal.urdf", tmp_path / "cal.json"
-    assert main(["calibrate", str(path), "-o", str(urdf), "--report", str(report_path), "--frame", "estimate",
-                 *options]) == 0
+    assert (
+        main(["calibrate", str(path), "-o", str(urdf), "--report", str(report_path), "--frame", "estimate", *options])
+        == 0
+    )
     calibrated = Mechanism.load(urdf)
     # The platform frame stays the platform (the reflector's 50-100 mm went to the marker) and the
     # base stays the base (the tracker's metres went to the frame): placements move by build errors.
@@ -102,11 +107,14 @@ def test_calibrated_urdf_holds_the_machine_alone(tmp_path):
     assert np.linalg.norm(marker[:2] - study.setup.marker.translation[:2]) < 5e-3
 
 
-@pytest.mark.parametrize("mistake, cause, status", [
-    ("frame base", "--frame estimate", 1),
-    ("millimetres read as metres", "--units mm", 2),
-    ("slider columns swapped", "'q11' and 'q21' look swapped", 1),
-])
+@pytest.mark.parametrize(
+    "mistake, cause, status",
+    [
+        ("frame base", "--frame estimate", 1),
+        ("millimetres read as metres", "--units mm", 2),
+        ("slider columns swapped", "'q11' and 'q21' look swapped", 1),
+    ],
+)
 def test_mistakes_are_refused_with_their_likely_cause(tmp_path, capsys, mistake, cause, status):
     study, path, options = _campaign(tmp_path, 3, False)
     arguments = ["calibrate", str(path), "-o", str(tmp_path / "cal.urdf"), "--report", str(tmp_path / "r.json")]
@@ -146,8 +154,29 @@ def test_linearised_cross_validation_agrees_with_refitting_every_fold():
 def test_fixed_and_prior_parameters_are_honoured_and_reported(tmp_path):
     study, path, options = _campaign(tmp_path, 4, False)
     urdf, report_path = tmp_path / "cal.urdf", tmp_path / "cal.json"
-    assert main(["calibrate", str(path), "-o", str(urdf), "--report", str(report_path), "--frame", "estimate",
-                 "--fix", "q12", "q22.dt[5]", "--prior", "q13=1e-4", "--prior", "q23.dt[0]=1e-5", *options]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(path),
+                "-o",
+                str(urdf),
+                "--report",
+                str(report_path),
+                "--frame",
+                "estimate",
+                "--fix",
+                "q12",
+                "q22.dt[5]",
+                "--prior",
+                "q13=1e-4",
+                "--prior",
+                "q23.dt[0]=1e-5",
+                *options,
+            ]
+        )
+        == 0
+    )
     report = json.loads(report_path.read_text())
     assert report["fixed"] == ["q12", "q22.dt[5]"] and report["priors"] == {"q13": 1e-4, "q23.dt[0]": 1e-5}
     values = {p["name"]: p for p in report["parameters"]}
@@ -155,8 +184,9 @@ def test_fixed_and_prior_parameters_are_honoured_and_reported(tmp_path):
     assert values["q22.dt[5]"]["value"] == 0.0
     assert abs(values["q23.dt[0]"]["value"]) < 5e-5  # held within a few sigmas of nominal by its prior
     for bad in (["--fix", "q99"], ["--prior", "q13=-1"], ["--prior", "q13"]):
-        assert main(["calibrate", str(path), "-o", str(tmp_path / "x.urdf"), "--frame", "estimate", *bad,
-                     *options]) == 2
+        assert (
+            main(["calibrate", str(path), "-o", str(tmp_path / "x.urdf"), "--frame", "estimate", *bad, *options]) == 2
+        )
     assert not (tmp_path / "x.urdf").exists()
 
 
@@ -188,8 +218,26 @@ def test_auto_noise_finds_the_tracker_noise_and_keeps_the_outlier_gate(tmp_path,
     is within 20 % of the truth, the gross readings are still flagged, and the report says so."""
     study, path, options = _campaign(tmp_path, 6, False)
     report_path = tmp_path / "cal.json"
-    assert main(["calibrate", str(path), "-o", str(tmp_path / "cal.urdf"), "--report", str(report_path),
-                 "--frame", "estimate", "--noise-pos", "auto", "--noise-rot", "auto", *options]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(path),
+                "-o",
+                str(tmp_path / "cal.urdf"),
+                "--report",
+                str(report_path),
+                "--frame",
+                "estimate",
+                "--noise-pos",
+                "auto",
+                "--noise-rot",
+                "auto",
+                *options,
+            ]
+        )
+        == 0
+    )
     report = json.loads(report_path.read_text())
     assert report["noise_source"]["position"] == report["noise_source"]["rotation"] == "estimated"
     assert 8e-6 < report["noise_model"]["position_m"] < 12e-6 and 16e-6 < report["noise_model"]["rotation_rad"] < 24e-6
@@ -211,8 +259,26 @@ def test_a_gross_reading_is_left_out_before_the_noise_is_estimated(tmp_path, cap
     lines[1 + row] = ",".join(fields)
     path.write_text("\n".join(lines) + "\n")
     report_path = tmp_path / "cal.json"
-    assert main(["calibrate", str(path), "-o", str(tmp_path / "cal.urdf"), "--report", str(report_path),
-                 "--frame", "estimate", "--noise-pos", "auto", "--noise-rot", "auto", *options]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(path),
+                "-o",
+                str(tmp_path / "cal.urdf"),
+                "--report",
+                str(report_path),
+                "--frame",
+                "estimate",
+                "--noise-pos",
+                "auto",
+                "--noise-rot",
+                "auto",
+                *options,
+            ]
+        )
+        == 0
+    )
     assert f"note: line {row + 2}: the measured point is " in capsys.readouterr().out
     report = json.loads(report_path.read_text())
     assert report["outliers"] == sorted([i + 2 for i in study.outliers] + [row + 2])
@@ -225,8 +291,24 @@ def test_a_noise_stated_too_small_gives_a_written_machine_and_a_warning(tmp_path
     machine is written, and the warning gives the variance factor and the noise the residual implies."""
     study, path, options = _campaign(tmp_path, 7, True)
     report_path = tmp_path / "cal.json"
-    assert main(["calibrate", str(path), "-o", str(tmp_path / "cal.urdf"), "--report", str(report_path),
-                 "--frame", "estimate", "--noise-pos", "2e-6", *options]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(path),
+                "-o",
+                str(tmp_path / "cal.urdf"),
+                "--report",
+                str(report_path),
+                "--frame",
+                "estimate",
+                "--noise-pos",
+                "2e-6",
+                *options,
+            ]
+        )
+        == 0
+    )
     report = json.loads(report_path.read_text())
     assert report["variance_factor"] > 15 and len(report["warnings"]) == 1
     implied = float(report["warnings"][0].split("imply a noise of ")[1].split(" m")[0])
@@ -255,8 +337,24 @@ def test_outliers_by_source_repeats_held_out_together_and_a_held_out_file_scored
     held = tmp_path / "held.csv"
     held.write_text("\n".join([lines[0], *lines[41:]]) + "\n")
     report_path, urdf = tmp_path / "cal.json", tmp_path / "cal.urdf"
-    assert main(["calibrate", str(path), "-o", str(urdf), "--report", str(report_path), "--frame", "estimate",
-                 "--validate", str(held), *options]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(path),
+                "-o",
+                str(urdf),
+                "--report",
+                str(report_path),
+                "--frame",
+                "estimate",
+                "--validate",
+                str(held),
+                *options,
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     report = json.loads(report_path.read_text())
     fitted_outliers = sorted(i for i in study.outliers if i < 40)
@@ -271,8 +369,8 @@ def test_outliers_by_source_repeats_held_out_together_and_a_held_out_file_scored
     entry = report["held_out"]
     assert entry["poses"] == 20 and entry["failed_lines"] == []
     assert entry["position_mean_m"] == pytest.approx(scored.errors.position_mean, rel=1e-6)
-    assert entry["position_rms_m"] == pytest.approx(float(np.sqrt(np.mean(scored.errors.position ** 2))), rel=1e-6)
-    assert entry["rotation_rms_rad"] == pytest.approx(float(np.sqrt(np.mean(scored.errors.rotation ** 2))), rel=1e-6)
+    assert entry["position_rms_m"] == pytest.approx(float(np.sqrt(np.mean(scored.errors.position**2))), rel=1e-6)
+    assert entry["rotation_rms_rad"] == pytest.approx(float(np.sqrt(np.mean(scored.errors.rotation**2))), rel=1e-6)
     assert f"held-out file {held} (20 poses): position error per pose" in out
 
 
@@ -287,8 +385,10 @@ def test_repeats_of_a_posture_share_a_group_and_a_fold():
     folds = grouped_folds(groups, 3, np.random.default_rng(0))
     assert folds[0] == folds[2] and folds[1] == folds[4] == folds[5] and len(set(folds.tolist())) == 3
     singletons = np.arange(12)
-    assert grouped_folds(singletons, 4, np.random.default_rng(5)).tolist() == \
-        (np.random.default_rng(5).permutation(12) % 4).tolist()
+    assert (
+        grouped_folds(singletons, 4, np.random.default_rng(5)).tolist()
+        == (np.random.default_rng(5).permutation(12) % 4).tolist()
+    )
     with pytest.raises(InvalidInputError, match="5 folds need at least 5 distinct poses"):
         grouped_folds(groups, 5, np.random.default_rng(0))
 
@@ -316,8 +416,9 @@ def test_grouped_blocks_make_the_selection_score_leave_each_group_out_whole():
 _POINT_OFFSETS = ((0.05, -0.02, 0.03), (-0.04, 0.03, 0.02), (0.01, 0.05, -0.01))  # [m] on the platform
 
 
-def _points_campaign(mechanism: Mechanism, truth: Mechanism, setup: MeasurementSetup, n: int,
-                     rng: np.random.Generator, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+def _points_campaign(
+    mechanism: Mechanism, truth: Mechanism, setup: MeasurementSetup, n: int, rng: np.random.Generator, sigma: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Sliders (n, 4) and the three points (n, 3, 3) [m] a tracker sees through `setup`, a fifth of
     the sightings hidden (NaN; every row sees one point at least)."""
     actuators = workspace_actuators(mechanism, n, rng)
@@ -348,8 +449,9 @@ def test_three_points_on_the_platform_calibrate_the_machine_a_single_marker_does
     actuators, points = _points_campaign(mechanism, truth, frame, 60, rng, noise.position)
     seen = np.isfinite(points[:, :, 0])
     first = [pin.SE3(np.eye(3), row[np.isfinite(row[:, 0])][0]) for row in points]
-    several = calibrate_closed_loop(mechanism, PoseMeasurements(actuators, tuple(first), True, points), noise,
-                                    estimate_frame=True)
+    several = calibrate_closed_loop(
+        mechanism, PoseMeasurements(actuators, tuple(first), True, points), noise, estimate_frame=True
+    )
     marker = pin.SE3(np.eye(3), np.array(_POINT_OFFSETS[0]))
     single = measure(truth, actuators, rng, noise, position_only=True, setup=replace(frame, marker=marker))
     guess = MeasurementSetup(marker=pin.SE3(np.eye(3), np.array(_POINT_OFFSETS[0]) + [0.01, 0.0, 0.0]))
@@ -375,8 +477,9 @@ def test_three_points_on_the_platform_calibrate_the_machine_a_single_marker_does
 
 def _write_points(path: Path, mechanism: Mechanism, actuators: np.ndarray, points: np.ndarray) -> Path:
     columns = [measurement_column(j) for j in mechanism.actuated_joints] + [f"{a}{k}" for k in (1, 2, 3) for a in "xyz"]
-    path.write_text(table_text(columns, np.hstack([actuators, points.reshape(len(points), -1)]),
-                               blank_allowed=columns[4:]))
+    path.write_text(
+        table_text(columns, np.hstack([actuators, points.reshape(len(points), -1)]), blank_allowed=columns[4:])
+    )
     return path
 
 

@@ -92,7 +92,6 @@ def test_calibrate_never_overwrites_its_inputs(tmp_path, capsys):
     assert meas.read_bytes() == before and nominal_urdf.read_bytes() == nominal_bytes
 
 
-
 def test_calibrate_refuses_a_plots_folder_that_is_a_file_before_writing_anything(tmp_path, capsys):
     """`--plots` naming an existing file (here the measurements): refused by name before the fit, the
     file and everything else left alone, where it failed with 'File exists' after writing the fit."""
@@ -103,12 +102,16 @@ def test_calibrate_refuses_a_plots_folder_that_is_a_file_before_writing_anything
     assert f"{meas}: exists and is not a folder (the plots go into a folder)" in capsys.readouterr().err
     assert meas.read_bytes() == before and not (tmp_path / "c.urdf").exists()
 
-@pytest.mark.parametrize("mutate,message", [
-    (lambda rows: rows.__setitem__(2, rows[2].replace(rows[2].split(",")[4], "nan", 1)), "is not finite"),
-    (lambda rows: rows.insert(3, rows[2]), "row repeats line"),
-    (lambda rows: rows.__setitem__(2, ",".join(rows[2].split(",")[:-1] + ["0.5"])), "quaternion"),
-    (lambda rows: rows.__setitem__(1, rows[1].replace("q21_B4", "q99")), "q99"),
-])
+
+@pytest.mark.parametrize(
+    "mutate,message",
+    [
+        (lambda rows: rows.__setitem__(2, rows[2].replace(rows[2].split(",")[4], "nan", 1)), "is not finite"),
+        (lambda rows: rows.insert(3, rows[2]), "row repeats line"),
+        (lambda rows: rows.__setitem__(2, ",".join(rows[2].split(",")[:-1] + ["0.5"])), "quaternion"),
+        (lambda rows: rows.__setitem__(1, rows[1].replace("q21_B4", "q99")), "q99"),
+    ],
+)
 def test_bad_measurement_files_write_nothing(tmp_path, capsys, mutate, message):
     meas = tmp_path / "m.csv"
     assert main(["simulate", "-n", "12", "-o", str(meas)]) == 0
@@ -155,8 +158,21 @@ def test_calibrate_plots_that_cannot_be_written_are_refused_before_the_fit(old_c
     plots = tmp_path / "plots"
     (plots / "error_vs_poses.png").mkdir(parents=True)
     capsys.readouterr()
-    assert main(["calibrate", str(old_calibration / "m.csv"), "-o", str(old_calibration / "c.urdf"),
-                 "--report", str(old_calibration / "c.json"), "--plots", str(plots)]) == 2
+    assert (
+        main(
+            [
+                "calibrate",
+                str(old_calibration / "m.csv"),
+                "-o",
+                str(old_calibration / "c.urdf"),
+                "--report",
+                str(old_calibration / "c.json"),
+                "--plots",
+                str(plots),
+            ]
+        )
+        == 2
+    )
     out, err = capsys.readouterr()
     assert f"{plots / 'error_vs_poses.png'}: --plots is a directory, expected a file path" in err
     assert "calibrating from" not in out and _contents(old_calibration) == before
@@ -169,12 +185,27 @@ def test_calibrate_plots_failing_after_the_fit_leave_every_old_file(old_calibrat
     from m3t1r.errors import OutputPathError
 
     def failing(*args, **kwargs):
-        raise OutputPathError(kwargs.get("path", "map.png"), "write failed, file left unchanged: No space left on device")
+        raise OutputPathError(
+            kwargs.get("path", "map.png"), "write failed, file left unchanged: No space left on device"
+        )
 
     before = _contents(old_calibration)
     monkeypatch.setattr(reporting, "plot_predicted_std_map", failing)
-    assert main(["calibrate", str(old_calibration / "m.csv"), "-o", str(old_calibration / "c.urdf"),
-                 "--report", str(old_calibration / "c.json"), "--plots", str(tmp_path / "new" / "plots")]) == 2
+    assert (
+        main(
+            [
+                "calibrate",
+                str(old_calibration / "m.csv"),
+                "-o",
+                str(old_calibration / "c.urdf"),
+                "--report",
+                str(old_calibration / "c.json"),
+                "--plots",
+                str(tmp_path / "new" / "plots"),
+            ]
+        )
+        == 2
+    )
     assert "No space left on device" in capsys.readouterr().err
     assert _contents(old_calibration) == before and list(tmp_path.iterdir()) == []
 
@@ -190,17 +221,20 @@ def test_calibrate_report_on_stdout_is_the_json_alone(old_calibration, tmp_path,
     assert "calibrating from 30 poses" in err and f"wrote {tmp_path / 'c.urdf'}" in err
 
 
-@pytest.mark.parametrize("argv,message", [
-    (["plan", "-n", "5", "--seed", "-1", "-o", "p.csv"], "a seed is a whole number of at least 0, got -1"),
-    (["simulate", "--seed", "-1", "-o", "m.csv"], "a seed is a whole number of at least 0, got -1"),
-    (["evaluate", "--truth", "t.urdf", "--calibrated", "c.urdf", "--seed", "-1"], "a seed is a whole number"),
-    (["simulate", "--marker", "nan", "0", "0", "-o", "m.csv"], "--marker: expected a finite number, got 'nan'"),
-    (["calibrate", "m.csv", "-o", "c.urdf", "--marker", "0", "inf", "0"], "--marker: expected a finite number"),
-    (["calibrate", "m.csv", "-o", "c.urdf", "--marker", "0.1+1j", "0", "0"], "--marker: expected a number"),
-    (["calibrate", "m.csv", "-o", "c.urdf", "--max-iterations", "0"], "--max-iterations: expected at least 1"),
-    (["calibrate", "m.csv", "-o", "c.urdf", "--noise-pos", "0"], "--noise-pos: expected a number above 0"),
-    (["simulate", "-n", "0", "-o", "m.csv"], "-n: expected at least 1"),
-])
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["plan", "-n", "5", "--seed", "-1", "-o", "p.csv"], "a seed is a whole number of at least 0, got -1"),
+        (["simulate", "--seed", "-1", "-o", "m.csv"], "a seed is a whole number of at least 0, got -1"),
+        (["evaluate", "--truth", "t.urdf", "--calibrated", "c.urdf", "--seed", "-1"], "a seed is a whole number"),
+        (["simulate", "--marker", "nan", "0", "0", "-o", "m.csv"], "--marker: expected a finite number, got 'nan'"),
+        (["calibrate", "m.csv", "-o", "c.urdf", "--marker", "0", "inf", "0"], "--marker: expected a finite number"),
+        (["calibrate", "m.csv", "-o", "c.urdf", "--marker", "0.1+1j", "0", "0"], "--marker: expected a number"),
+        (["calibrate", "m.csv", "-o", "c.urdf", "--max-iterations", "0"], "--max-iterations: expected at least 1"),
+        (["calibrate", "m.csv", "-o", "c.urdf", "--noise-pos", "0"], "--noise-pos: expected a number above 0"),
+        (["simulate", "-n", "0", "-o", "m.csv"], "-n: expected at least 1"),
+    ],
+)
 def test_bad_arguments_are_refused_by_argparse_before_any_work(tmp_path, capsys, monkeypatch, argv, message):
     """Seeds, noises, counts and the marker are checked as they are parsed: usage and exit 2, where a
     negative seed was a ValueError traceback and `--marker nan` was refused later as a column mix-up."""
@@ -242,8 +276,23 @@ def test_one_gross_reading_is_an_outlier_named_by_line_not_a_verdict_on_the_mach
     err = capsys.readouterr().err
     assert f"line {line}: the measured point is " in err and "a gross reading" in err and "another machine" not in err
     assert not (tmp_path / "c.urdf").exists()
-    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--frame", "estimate", "--select", "none",
-                 "--report", str(tmp_path / "r.json")]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(meas),
+                "-o",
+                str(tmp_path / "c.urdf"),
+                "--frame",
+                "estimate",
+                "--select",
+                "none",
+                "--report",
+                str(tmp_path / "r.json"),
+            ]
+        )
+        == 0
+    )
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["outliers"] == [line] and report["residual_rms"]["after"]["position_m"] < 3e-5
 
@@ -289,8 +338,23 @@ def test_a_noise_stated_ten_times_too_small_is_blamed_on_the_noise_not_the_marke
     meas = tmp_path / "m.csv"
     assert main(["simulate", "-n", "30", "--seed", "5", "-o", str(meas)]) == 0
     capsys.readouterr()
-    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--select", "none",
-                 "--noise-pos", "1e-6", "--noise-rot", "2e-6"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(meas),
+                "-o",
+                str(tmp_path / "c.urdf"),
+                "--select",
+                "none",
+                "--noise-pos",
+                "1e-6",
+                "--noise-rot",
+                "2e-6",
+            ]
+        )
+        == 0
+    )
     err = capsys.readouterr().err
     assert "a noisier tracker than stated" in err and "--noise-pos auto" in err and "--marker X Y Z" not in err
     implied = float(err.split("imply a noise of ")[1].split(" m")[0])
@@ -330,14 +394,18 @@ def test_joint_readings_a_hair_past_a_limit_are_kept_with_a_note_only_within_the
     limits = np.array([0.0, -1.0]), np.array([0.35, 1.0])
     with pytest.raises(DataFileError) as caught:
         check_joint_readings(table, ("slide", "hinge"), readings, *limits, [True, False])
-    assert str(caught.value).endswith("line 3, column 'slide': 0.352 m is beyond the joint limit [0, 0.35] "
-                                      "(SI units: m)")
+    assert str(caught.value).endswith(
+        "line 3, column 'slide': 0.352 m is beyond the joint limit [0, 0.35] (SI units: m)"
+    )
     notes = check_joint_readings(table, ("slide", "hinge"), readings, *limits, [True, False], margin=0.05)
-    assert notes == ["column 'slide': 1 reading(s) up to 0.002 m beyond the URDF limit [0, 0.35] (file line 3 first), "
-                     "within 5% of its range: kept as read"]
+    assert notes == [
+        "column 'slide': 1 reading(s) up to 0.002 m beyond the URDF limit [0, 0.35] (file line 3 first), "
+        "within 5% of its range: kept as read"
+    ]
     with pytest.raises(DataFileError, match=r"line 3, column 'slide': 0.352 m is beyond the joint limit \[0, 0.3\]"):
-        check_joint_readings(table, ("slide", "hinge"), readings, np.array([0.0, -1.0]), np.array([0.3, 1.0]),
-                             [True, False], margin=0.05)
+        check_joint_readings(
+            table, ("slide", "hinge"), readings, np.array([0.0, -1.0]), np.array([0.3, 1.0]), [True, False], margin=0.05
+        )
 
 
 def test_joint_limits_checked_are_the_usable_ones_and_the_hints_name_the_likely_unit(tmp_path):
@@ -345,16 +413,27 @@ def test_joint_limits_checked_are_the_usable_ones_and_the_hints_name_the_likely_
     unbounded = np.array([-np.inf, 1.0]), np.array([np.inf, -1.0])  # no limits; an empty range is not checked
     assert check_joint_readings(table, ("slide", "hinge"), readings, *unbounded, [True, False]) == []
     with pytest.raises(DataFileError, match=r"line 2, column 'slide': 120 m is beyond the joint limit \[-inf, 0.1\]"):
-        check_joint_readings(table, ("slide", "hinge"), readings, np.array([-np.inf, -1.0]), np.array([0.1, 1.0]),
-                             [True, False])
+        check_joint_readings(
+            table, ("slide", "hinge"), readings, np.array([-np.inf, -1.0]), np.array([0.1, 1.0]), [True, False]
+        )
     millimetres = np.array([0.1, -1.0]), np.array([0.2, 1.0])
     with pytest.raises(DataFileError, match=r"within the limits in millimetres: use --units mm\)$"):
         check_joint_readings(table, ("slide", "hinge"), readings, *millimetres, [True, False])
     with pytest.raises(DataFileError, match=r"0.12 m is beyond .* \(SI units: m\)$"):  # read as mm already
-        check_joint_readings(table, ("slide", "hinge"), readings * 1e-3, np.array([0.0, -1.0]), np.array([0.1, 1.0]),
-                             [True, False], scales=[1e-3, 1.0])
+        check_joint_readings(
+            table,
+            ("slide", "hinge"),
+            readings * 1e-3,
+            np.array([0.0, -1.0]),
+            np.array([0.1, 1.0]),
+            [True, False],
+            scales=[1e-3, 1.0],
+        )
     degrees = np.array([-np.inf, -1.0]), np.array([np.inf, 1.0])
-    with pytest.raises(DataFileError, match=r"column 'hinge': 40 rad .* in degrees: give radians; `m3t1r convert .* --joint-degrees all"):
+    with pytest.raises(
+        DataFileError,
+        match=r"column 'hinge': 40 rad .* in degrees: give radians; `m3t1r convert .* --joint-degrees all",
+    ):
         check_joint_readings(table, ("slide", "hinge"), readings, *degrees, [True, False])
     with pytest.raises(DataFileError, match=r"column 'hinge': 40 rad .* \(SI units: rad\)$"):  # one of three: a fault
         table, readings = _joint_table(tmp_path, "0.0,40.0\n0.0,0.5\n0.0,-0.5\n")
@@ -365,10 +444,27 @@ def test_a_marker_given_in_millimetres_is_refused_with_the_metres(tmp_path, caps
     meas = tmp_path / "m.csv"
     assert main(["simulate", "-n", "12", "-o", str(meas)]) == 0
     capsys.readouterr()
-    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--marker", "70.3", "-20.2", "30.2",
-                 "--units", "mm"]) == 2
-    assert ("--marker 70.3 -20.2 30.2: a point 79.1 m from the frame it is fixed to; --marker is in metres whatever "
-            "--units says (in millimetres these are --marker 0.0703 -0.0202 0.0302)") in capsys.readouterr().err
+    assert (
+        main(
+            [
+                "calibrate",
+                str(meas),
+                "-o",
+                str(tmp_path / "c.urdf"),
+                "--marker",
+                "70.3",
+                "-20.2",
+                "30.2",
+                "--units",
+                "mm",
+            ]
+        )
+        == 2
+    )
+    assert (
+        "--marker 70.3 -20.2 30.2: a point 79.1 m from the frame it is fixed to; --marker is in metres whatever "
+        "--units says (in millimetres these are --marker 0.0703 -0.0202 0.0302)"
+    ) in capsys.readouterr().err
 
 
 def test_compensation_targets_in_millimetres_are_refused_with_the_unit(tmp_path, capsys):
@@ -377,8 +473,21 @@ def test_compensation_targets_in_millimetres_are_refused_with_the_unit(tmp_path,
     assert main(["calibrate", str(meas), "-o", str(cal), "--report", str(report), "--select", "none"]) == 0
     targets = _write(tmp_path / "t.csv", "x,y,z,qx,qy,qz,qw\n500.0,500.0,-100.0,0,0,0,1\n520.0,480.0,-90.0,0,0,0,1\n")
     capsys.readouterr()
-    assert main(["compensate", str(targets), "--calibrated", str(cal), "--report", str(report),
-                 "-o", str(tmp_path / "out.csv")]) == 2
+    assert (
+        main(
+            [
+                "compensate",
+                str(targets),
+                "--calibrated",
+                str(cal),
+                "--report",
+                str(report),
+                "-o",
+                str(tmp_path / "out.csv"),
+            ]
+        )
+        == 2
+    )
     assert "look like millimetres (divide x, y, z by 1000)" in capsys.readouterr().err
     assert not (tmp_path / "out.csv").exists()
 
@@ -398,9 +507,15 @@ def test_an_input_too_large_for_memory_is_refused_without_a_traceback(tmp_path, 
     assert not (tmp_path / "plan.csv").exists()
 
 
-@pytest.mark.parametrize("argv", [
-    ["--fix", "q12", "q22.dt[5]", "m.csv"], ["--fix", "q12,q22.dt[5]", "m.csv"], ["m.csv", "--fix", "q12", "q22.dt[5]"],
-    ["--fix", "q12", "--fix", "q22.dt[5]", "m.csv"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--fix", "q12", "q22.dt[5]", "m.csv"],
+        ["--fix", "q12,q22.dt[5]", "m.csv"],
+        ["m.csv", "--fix", "q12", "q22.dt[5]"],
+        ["--fix", "q12", "--fix", "q22.dt[5]", "m.csv"],
+    ],
+)
 def test_fix_and_prior_lists_leave_the_measurement_file_to_its_argument(argv):
     """`--fix A B file.csv` swallowed the file ('the following arguments are required: measurements')."""
     from m3t1r.app.cli import build_parser

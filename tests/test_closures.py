@@ -41,7 +41,7 @@ def test_rank_rule():
     assert _rank(np.diag([1e9, 1.0])) == 2
     null = _null_space(np.array([[1.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))
     assert null.shape == (3, 1)
-    np.testing.assert_allclose(np.abs(null[:, 0]), [2 ** -0.5, 2 ** -0.5, 0.0], atol=1e-15)
+    np.testing.assert_allclose(np.abs(null[:, 0]), [2**-0.5, 2**-0.5, 0.0], atol=1e-15)
     np.testing.assert_array_equal(_null_space(np.zeros((0, 2))), np.eye(2))
     np.testing.assert_allclose(np.abs(_null_space(np.array([[1.0, 0.0]]))), [[0.0], [1.0]], atol=1e-15)
 
@@ -49,6 +49,7 @@ def test_rank_rule():
 def test_without_rows_counts_positions_across_closures():
     def spec(name: str, rows: tuple[int, ...]) -> ClosureSpec:
         return ClosureSpec(name, "6D", "a", "b", rows, 1, 2)
+
     closures = (spec("one", (0, 1, 5)), spec("two", (0, 1, 2)), spec("three", (3, 4)))
     kept = without_rows(closures, (1, 3, 7))  # one[1], two[0], three[4]
     assert [c.rows for c in kept] == [(0, 5), (1, 2), (3,)]
@@ -65,6 +66,8 @@ def test_a_home_that_overflows_is_refused_by_name(tmp_path):
     closures.write_text(yaml.safe_dump(document, sort_keys=False))
     with pytest.raises(ModelFileError) as caught:
         Mechanism.load(urdf, closures)
-    assert str(caught.value) == (f"{closures}: home does not close: closure 'five_bar_I' residual inf > 1e-09, and "
-                                 "Newton from the given values reached only inf (give home values closer to an "
-                                 "assembly)")
+    assert str(caught.value) == (
+        f"{closures}: home does not close: closure 'five_bar_I' residual inf > 1e-09, and "
+        "Newton from the given values reached only inf (give home values closer to an "
+        "assembly)"
+    )

@@ -297,15 +297,17 @@ def test_a_tool_task_frame_is_what_ik_reaches_and_compensation_commands(tool_mac
     np.testing.assert_allclose(fk.pose.homogeneous, ik.pose.homogeneous, atol=1e-12)
     command = Compensator(nominal, calibrated).command(target)
     expected = frame_coordinates(nominal, ClosedLoopSolver(nominal).forward(command.actuators).q, "tool")
-    np.testing.assert_allclose(nominal.task.coordinates(command.command_pose.homogeneous[None])[0], expected,
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        nominal.task.coordinates(command.command_pose.homogeneous[None])[0], expected, atol=1e-12
+    )
     path = Compensator(nominal, calibrated).compensate(np.array([target]))
     batch = Compensator(nominal, calibrated).compensate_batch(np.array([target]))
     for result in (path, batch):
         np.testing.assert_allclose(result.command_targets[0], expected, atol=1e-10)
         np.testing.assert_allclose(result.tilt[0], ik.tilt, atol=1e-10)
-        np.testing.assert_allclose(calibrated.task.coordinates(result.reached_poses[0].homogeneous[None])[0], target,
-                                   atol=1e-10)
+        np.testing.assert_allclose(
+            calibrated.task.coordinates(result.reached_poses[0].homogeneous[None])[0], target, atol=1e-10
+        )
     inverse = ClosedLoopSolver(calibrated).inverse_batch(np.array([target]))
     np.testing.assert_allclose(inverse.task_poses[0], ik.task_pose.homogeneous, atol=1e-10)
     np.testing.assert_allclose(inverse.poses[0], ik.pose.homogeneous, atol=1e-10)
@@ -423,7 +425,10 @@ def test_sliders_beyond_the_nominal_stroke_fail_one_target_not_the_batch(mechani
     assert [f.index for f in batch.failures] == [2]
     failure = batch.failures[0]
     assert failure.error is InvalidInputError
-    assert failure.reason.startswith("forward kinematics of the nominal model") and "beyond its joint limit" in failure.reason
+    assert (
+        failure.reason.startswith("forward kinematics of the nominal model")
+        and "beyond its joint limit" in failure.reason
+    )
     np.testing.assert_array_equal(batch.indices, [0, 1, 3])
     with pytest.raises(InvalidInputError):
         compensate(mechanism, wide, targets, strict=True)
@@ -460,8 +465,10 @@ def test_incompatible_models_are_refused_word_for_word(mechanism):
     renamed = dataclasses.replace(mechanism, actuated_joints=("a", "b", "c", "d"))
     with pytest.raises(InvalidInputError) as caught:
         Compensator(mechanism, renamed)
-    assert str(caught.value) == (f"calibrated model actuates ('a', 'b', 'c', 'd'), the nominal one "
-                                 f"{mechanism.actuated_joints}: not the same machine")
+    assert str(caught.value) == (
+        f"calibrated model actuates ('a', 'b', 'c', 'd'), the nominal one "
+        f"{mechanism.actuated_joints}: not the same machine"
+    )
     other_frame = dataclasses.replace(mechanism, platform_frame="tool")
     with pytest.raises(InvalidInputError) as caught:
         Compensator(mechanism, other_frame)
@@ -475,8 +482,10 @@ def test_incompatible_models_are_refused_word_for_word(mechanism):
 def test_malformed_targets_are_refused_word_for_word(mechanism):
     cases = [
         (pin.SE3.Identity(), "targets: a single pin.SE3; give a sequence of them (or use Compensator.command)"),
-        ([[0.5, 0.5, -0.1, 0.0], pin.SE3.Identity()],
-         "targets: mix of pin.SE3 and other rows; give all placements or an (N, 4) array"),
+        (
+            [[0.5, 0.5, -0.1, 0.0], pin.SE3.Identity()],
+            "targets: mix of pin.SE3 and other rows; give all placements or an (N, 4) array",
+        ),
         (np.zeros((0, 4)), "targets: no rows"),
     ]
     for targets, message in cases:
@@ -517,8 +526,9 @@ def test_joint_limits_are_inclusive_and_a_violation_names_the_joint(mechanism):
     q[0] = upper[0] + 1e-3  # the first joint, q11
     with pytest.raises(OutOfWorkspaceError) as caught:
         check_joint_limits(mechanism, _solved(q))
-    assert str(caught.value) == ("target puts joint 'q11' at 0.601, beyond its limit [-0.6, 0.6] "
-                                 "(residual 1.000e-13 after 4 iterations)")
+    assert str(caught.value) == (
+        "target puts joint 'q11' at 0.601, beyond its limit [-0.6, 0.6] (residual 1.000e-13 after 4 iterations)"
+    )
     assert (caught.value.residual, caught.value.iterations) == (1e-13, 4)
 
 
@@ -576,8 +586,10 @@ def test_a_violation_names_a_joint_after_the_first(mechanism):
     q[k] = model.upperPositionLimit[k] + 0.25
     name = model.names[1 + list(model.idx_qs[1:]).index(k)]
     assert name != model.names[1 - list(model.idx_qs[1:]).index(k)]
-    assert joint_limit_violation(model, q) == (f"target puts joint '{name}' at {q[k]:.6g}, beyond its limit "
-                                               f"[{model.lowerPositionLimit[k]:.6g}, {model.upperPositionLimit[k]:.6g}]")
+    assert joint_limit_violation(model, q) == (
+        f"target puts joint '{name}' at {q[k]:.6g}, beyond its limit "
+        f"[{model.lowerPositionLimit[k]:.6g}, {model.upperPositionLimit[k]:.6g}]"
+    )
 
 
 def test_models_with_different_tasks_are_refused_word_for_word(mechanism):
@@ -585,8 +597,9 @@ def test_models_with_different_tasks_are_refused_word_for_word(mechanism):
 
     from m3t1r.model.task import TaskSpec
 
-    other = dataclasses.replace(mechanism, task=TaskSpec(frame=mechanism.task.frame, position=("x", "y", "z"),
-                                                         rotation="none"))
+    other = dataclasses.replace(
+        mechanism, task=TaskSpec(frame=mechanism.task.frame, position=("x", "y", "z"), rotation="none")
+    )
     with pytest.raises(InvalidInputError) as caught:
         Compensator(mechanism, other)
     assert str(caught.value) == f"calibrated model's task {other.task} differs from the nominal {mechanism.task}"
@@ -606,8 +619,10 @@ def test_tracking_errors_of_a_full_rotation_task():
     task = TaskSpec(frame="tool", position=("x",), rotation="full")
     goal_rotation = pin.rpy.rpyToMatrix(0.1, -0.2, 0.3)
     target = pin.SE3(goal_rotation, np.array([0.4, 0.0, 0.0]))
-    reached = [pin.SE3(goal_rotation @ pin.exp3(np.array([0.0, 0.02, 0.0])), np.array([0.43, 1.0, 2.0])),
-               pin.SE3(goal_rotation, np.array([0.4, 5.0, 5.0]))]
+    reached = [
+        pin.SE3(goal_rotation @ pin.exp3(np.array([0.0, 0.02, 0.0])), np.array([0.43, 1.0, 2.0])),
+        pin.SE3(goal_rotation, np.array([0.4, 5.0, 5.0])),
+    ]
     errors = _tracking_errors(task, target, reached)
     np.testing.assert_allclose(errors, [(0.03, 0.02), (0.0, 0.0)], atol=1e-12)
     as_row = task.coordinates(target.homogeneous)[0]
@@ -633,8 +648,10 @@ def test_a_passive_hinge_past_its_stop_fails_the_target_in_every_compensation(me
         assert [f.index for f in batch.failures] == failing
         for failure in batch.failures:
             assert failure.error is OutOfWorkspaceError
-            assert failure.reason.startswith("inverse kinematics of the calibrated model: target puts joint 'q13' "
-                                             f"at {angles[failure.index]:.6g}, beyond its limit [-0.523599, 1.05]")
+            assert failure.reason.startswith(
+                "inverse kinematics of the calibrated model: target puts joint 'q13' "
+                f"at {angles[failure.index]:.6g}, beyond its limit [-0.523599, 1.05]"
+            )
     compensator.reset()
     with pytest.raises(OutOfWorkspaceError, match="target puts joint 'q13' at 1.075"):
         compensator.command(PATH[failing[0]])

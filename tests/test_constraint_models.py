@@ -46,7 +46,7 @@ MECHANISMS = {
 
 
 def _null_projector(matrix: np.ndarray) -> np.ndarray:
-    basis = np.linalg.svd(matrix)[2][closure_rank(matrix):].T
+    basis = np.linalg.svd(matrix)[2][closure_rank(matrix) :].T
     return basis @ basis.T
 
 
@@ -69,8 +69,9 @@ def test_pinocchios_constraints_close_at_our_poses_with_our_null_space(kind, tmp
     mechanism = MECHANISMS[kind](tmp_path)
     models = rigid_constraint_models(mechanism)
     assert [c.name for c in models] == [c.name for c in mechanism.closures]
-    assert [c.type for c in models] == [pin.ContactType.CONTACT_3D if c.type == "3D" else pin.ContactType.CONTACT_6D
-                                        for c in mechanism.closures]
+    assert [c.type for c in models] == [
+        pin.ContactType.CONTACT_3D if c.type == "3D" else pin.ContactType.CONTACT_6D for c in mechanism.closures
+    ]
     system = ClosureSystem(mechanism.model, mechanism.closures)
     for q in _assembled_poses(mechanism, 8):
         assert np.abs(constraint_residual(mechanism.model, models, q)).max() < 1e-9
@@ -80,8 +81,9 @@ def test_pinocchios_constraints_close_at_our_poses_with_our_null_space(kind, tmp
         assert np.abs(_null_projector(ours) - _null_projector(theirs)).max() < 1e-8
 
 
-def _reduced_dynamics(mechanism: Mechanism, q: np.ndarray, v: np.ndarray, tau: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _reduced_dynamics(
+    mechanism: Mechanism, q: np.ndarray, v: np.ndarray, tau: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Joint accelerations under m3t1r's enforced closure rows (KKT system), with those rows'
     Jacobian J and drift dJ/dt v (central difference along v): the reference for Pinocchio's."""
     model, data = mechanism.model, mechanism.model.createData()
@@ -96,7 +98,7 @@ def _reduced_dynamics(mechanism: Mechanism, q: np.ndarray, v: np.ndarray, tau: n
     rows = jacobian.shape[0]
     kkt = np.block([[mass, jacobian.T], [jacobian, np.zeros((rows, rows))]])
     solution = np.linalg.solve(kkt, np.concatenate([tau - bias, -drift]))
-    return solution[:model.nv], jacobian, drift
+    return solution[: model.nv], jacobian, drift
 
 
 def test_constraint_dynamics_on_a_calibrated_machine_keeps_its_loop_closed(tmp_path):

@@ -110,14 +110,18 @@ def test_home_that_does_not_close_is_assembled_at_the_nearest_assembly(tmp_path,
     and `home_assembly` say which joint moved and by how much."""
     urdf, closures = _copy_model(tmp_path)
     _edit_closures(closures, lambda d: d["home"].update(q13=0.7))
-    with pytest.warns(ModelWarning, match="home does not close: closure 'platform' residual 2.105e-01 > 1e-09; "
-                                          "assembled by Newton .* moved by q13 -?\\+?0.347"):
+    with pytest.warns(
+        ModelWarning,
+        match="home does not close: closure 'platform' residual 2.105e-01 > 1e-09; "
+        "assembled by Newton .* moved by q13 -?\\+?0.347",
+    ):
         loaded = Mechanism.load(urdf, closures)
     assert np.abs(loaded.home - mechanism.home).max() < 1e-9
     report = loaded.home_assembly
     assert [name for name, _ in report.moved] == ["q13"] and report.residual < 1e-12
-    assert report.moved[0][1] == pytest.approx(mechanism.home[loaded.model.idx_qs[loaded.model.getJointId("q13")]] - 0.7,
-                                               abs=1e-9)
+    assert report.moved[0][1] == pytest.approx(
+        mechanism.home[loaded.model.idx_qs[loaded.model.getJointId("q13")]] - 0.7, abs=1e-9
+    )
     assert Mechanism.load().home_assembly is None  # a home that closes is taken as given
 
 
@@ -151,11 +155,14 @@ def _saved_five_bar_pair(folder):
     return folder / "pair.urdf", closures, closures.read_bytes()
 
 
-@pytest.mark.parametrize("edit", [
-    lambda data: b"# checked out on Windows, commented by hand\n" + data.replace(b"\n", b"\r\n"),
-    lambda data: data.replace(b"\n", b"  # a trailing comment\n", 3),
-    lambda data: yaml.safe_dump(yaml.safe_load(data), default_flow_style=True).encode(),  # re-laid out
-])
+@pytest.mark.parametrize(
+    "edit",
+    [
+        lambda data: b"# checked out on Windows, commented by hand\n" + data.replace(b"\n", b"\r\n"),
+        lambda data: data.replace(b"\n", b"  # a trailing comment\n", 3),
+        lambda data: yaml.safe_dump(yaml.safe_load(data), default_flow_style=True).encode(),  # re-laid out
+    ],
+)
 def test_the_pair_survives_comments_line_ends_and_layout(tmp_path, edit):
     """Only a change of meaning breaks a pair: these edits were refused as 'not the closures file'."""
     urdf, closures, data = _saved_five_bar_pair(tmp_path)
@@ -185,9 +192,11 @@ def test_a_mimic_joint_is_refused_by_name(tmp_path):
     urdf.write_text(text[:end] + '<mimic joint="motor_1" multiplier="1" offset="0"/>' + text[end:])
     with pytest.raises(ModelFileError) as caught:
         Mechanism.load(urdf, closures)
-    assert str(caught.value) == (f"{urdf}: joint 'elbow_1' mimics joint 'motor_1' (<mimic>): m3t1r moves and "
-                                 "calibrates every joint on its own, so a coupled joint is not supported; remove the "
-                                 "tag (an independent joint) or make the joint fixed")
+    assert str(caught.value) == (
+        f"{urdf}: joint 'elbow_1' mimics joint 'motor_1' (<mimic>): m3t1r moves and "
+        "calibrates every joint on its own, so a coupled joint is not supported; remove the "
+        "tag (an independent joint) or make the joint fixed"
+    )
 
 
 # ==================================================================================================
@@ -221,8 +230,9 @@ def _with_closure_frame_moved(mechanism: Mechanism, closure: str, row: int, amou
     return replace(mechanism, model=model)
 
 
-@pytest.mark.parametrize("closure, rows", [("upper_parallelogram_I", (1, 2)), ("lower_parallelogram_II", (0, 2)),
-                                           ("platform", (0, 1, 2, 5))])
+@pytest.mark.parametrize(
+    "closure, rows", [("upper_parallelogram_I", (1, 2)), ("lower_parallelogram_II", (0, 2)), ("platform", (0, 1, 2, 5))]
+)
 def test_home_check_sees_every_enforced_row_alone(mechanism, closure, rows):
     spec = next(c for c in mechanism.closures if c.name == closure)
     assert spec.rows == rows
@@ -233,8 +243,9 @@ def test_home_check_sees_every_enforced_row_alone(mechanism, closure, rows):
         assert "assembled by Newton" in notes[0]
 
 
-@pytest.mark.parametrize("closure, row", [("upper_parallelogram_I", 0), ("lower_parallelogram_II", 1),
-                                          ("platform", 3), ("platform", 4)])
+@pytest.mark.parametrize(
+    "closure, row", [("upper_parallelogram_I", 0), ("lower_parallelogram_II", 1), ("platform", 3), ("platform", 4)]
+)
 def test_home_check_ignores_unenforced_rows(mechanism, closure, row):
     assert _settled(_with_closure_frame_moved(mechanism, closure, row, 1e-3)).notes == ()
 
@@ -249,6 +260,7 @@ def test_home_tolerance_boundary(mechanism, amount, refused):
 
 # ----------------------------------------------------------------------------------------------
 # Files, pairing and saving: every refusal word for word with the file named, on the five-bar.
+
 
 def _five_bar(folder: Path) -> tuple[Path, Path]:
     folder.mkdir(parents=True, exist_ok=True)
@@ -281,7 +293,8 @@ def test_a_yaml_error_without_a_position_gives_the_reader_message(tmp_path):
     closures.write_bytes(b"a: \x07\n")
     assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
         f"{closures}: not valid YAML: unacceptable character #x0007: special characters are not allowed\n"
-        '  in "<unicode string>", position 3')
+        '  in "<unicode string>", position 3'
+    )
 
 
 def test_an_unreadable_closures_path_is_named(tmp_path):
@@ -311,8 +324,10 @@ def test_a_paired_urdf_without_its_closures_file(tmp_path):
     urdf, closures, data = _saved_pair(tmp_path)
     closures.unlink()
     digest = closures_sha256(data)
-    expected = (f"{closures}: file not found: pair.urdf records closures sha256 {digest[:16]}..., "
-                "and no closures file with it is there")
+    expected = (
+        f"{closures}: file not found: pair.urdf records closures sha256 {digest[:16]}..., "
+        "and no closures file with it is there"
+    )
     assert _refusal(lambda: Mechanism.load(urdf)) == expected
     assert _refusal(lambda: Mechanism.load(urdf, closures)) == expected
 
@@ -323,13 +338,15 @@ def test_a_paired_urdf_with_another_closures_file(tmp_path):
     document = yaml.safe_load(data)
     document["closures"][0]["rows"] = [0]  # a change of meaning
     other.write_text(yaml.safe_dump(document))
-    expected = (f"{other}: not the closures file of {urdf}: the URDF records closures sha256 "
-                f"{closures_sha256(data)[:16]}..., this file's content has {closures_sha256(other.read_bytes())[:16]}... "
-                "The two files were not written together (one was rewritten by another run, or copied from another "
-                "machine, or its content edited: comments, layout and line ends do not count); load the URDF with the "
-                "closures file written with it; to pair these two deliberately, delete the line "
-                "`<!-- m3t1r pair: ... -->` from the URDF (it then loads with any closures file; saving records a "
-                "new pair)")
+    expected = (
+        f"{other}: not the closures file of {urdf}: the URDF records closures sha256 "
+        f"{closures_sha256(data)[:16]}..., this file's content has {closures_sha256(other.read_bytes())[:16]}... "
+        "The two files were not written together (one was rewritten by another run, or copied from another "
+        "machine, or its content edited: comments, layout and line ends do not count); load the URDF with the "
+        "closures file written with it; to pair these two deliberately, delete the line "
+        "`<!-- m3t1r pair: ... -->` from the URDF (it then loads with any closures file; saving records a "
+        "new pair)"
+    )
 
     assert _refusal(lambda: Mechanism.load(urdf, other)) == expected
     closures.write_bytes(other.read_bytes())
@@ -375,7 +392,8 @@ def test_a_cell_no_field_check_foresaw_is_refused_naming_the_file(tmp_path):
     urdf, closures = _five_bar(tmp_path)
     _edit_yaml(closures, lambda d: d["home"].update(motor_1=10**400))
     assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
-        f"{closures}: malformed closures file: OverflowError: int too large to convert to float")
+        f"{closures}: malformed closures file: OverflowError: int too large to convert to float"
+    )
 
 
 def test_load_notes_are_warnings_attributed_to_the_caller(tmp_path):
@@ -384,12 +402,14 @@ def test_load_notes_are_warnings_attributed_to_the_caller(tmp_path):
     with pytest.warns(ModelWarning) as caught:
         Mechanism.load(urdf, closures)
     assert [str(w.message) for w in caught] == [
-        "five_bar.closures.yaml: 1 closure row(s) dropped as dependent on the others: loop[2]"]
+        "five_bar.closures.yaml: 1 closure row(s) dropped as dependent on the others: loop[2]"
+    ]
     assert Path(caught[0].filename).name != Path(description.__file__).name
 
 
-@pytest.mark.skipif("/mutants/" in description.__file__,
-                    reason="mutmut's trampoline adds a frame between the caller and the warning")
+@pytest.mark.skipif(
+    "/mutants/" in description.__file__, reason="mutmut's trampoline adds a frame between the caller and the warning"
+)
 def test_load_notes_point_at_the_caller_exactly(tmp_path):
     urdf, closures = _five_bar(tmp_path)
     _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0, 1, 2]))
@@ -400,8 +420,9 @@ def test_load_notes_point_at_the_caller_exactly(tmp_path):
 
 def test_a_continuous_first_joint_is_an_unbounded_revolute_one(tmp_path):
     urdf, closures = _five_bar(tmp_path)
-    urdf.write_text(urdf.read_text().replace('<joint name="motor_1" type="revolute">',
-                                             '<joint name="motor_1" type="continuous">'))
+    urdf.write_text(
+        urdf.read_text().replace('<joint name="motor_1" type="revolute">', '<joint name="motor_1" type="continuous">')
+    )
     with pytest.warns(ModelWarning, match="actuator 'motor_1' has no usable URDF limits; the workspace box's"):
         mechanism = Mechanism.load(urdf, closures)
     assert (mechanism.model.nq, mechanism.model.nv) == (4, 4)
@@ -410,11 +431,13 @@ def test_a_continuous_first_joint_is_an_unbounded_revolute_one(tmp_path):
 
 def test_a_multi_dof_joint_is_refused(tmp_path):
     urdf, closures = _five_bar(tmp_path)
-    urdf.write_text(urdf.read_text().replace('<joint name="elbow_2" type="revolute">',
-                                             '<joint name="elbow_2" type="floating">'))
+    urdf.write_text(
+        urdf.read_text().replace('<joint name="elbow_2" type="revolute">', '<joint name="elbow_2" type="floating">')
+    )
     assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
         f"{urdf}: joint 'elbow_2' is not a 1-DoF revolute/prismatic/continuous joint (nq=7); multi-DoF joints "
-        "are not supported")
+        "are not supported"
+    )
 
 
 def test_a_urdf_pinocchio_rejects_is_named(tmp_path):
@@ -423,8 +446,10 @@ def test_a_urdf_pinocchio_rejects_is_named(tmp_path):
     assert _refusal(lambda: Mechanism.load(urdf, closures)).startswith(f"{urdf}: Pinocchio rejected the URDF: ")
 
 
-_TRIANGLE_STL = ("solid t\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 0.01 0 0\nvertex 0 0.01 0\n"
-                 "endloop\nendfacet\nendsolid t\n")
+_TRIANGLE_STL = (
+    "solid t\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 0.01 0 0\nvertex 0 0.01 0\n"
+    "endloop\nendfacet\nendsolid t\n"
+)
 
 
 def test_visual_meshes_resolve_next_to_the_urdf(tmp_path):
@@ -432,13 +457,18 @@ def test_visual_meshes_resolve_next_to_the_urdf(tmp_path):
     (tmp_path / "fb_meshes").mkdir()
     mesh = tmp_path / "fb_meshes" / "tri.stl"
     mesh.write_text(_TRIANGLE_STL)
-    urdf.write_text(urdf.read_text().replace('<geometry><sphere radius="0.01"/></geometry>',
-                                             '<geometry><mesh filename="package://fb_meshes/tri.stl"/></geometry>'))
+    urdf.write_text(
+        urdf.read_text().replace(
+            '<geometry><sphere radius="0.01"/></geometry>',
+            '<geometry><mesh filename="package://fb_meshes/tri.stl"/></geometry>',
+        )
+    )
     mechanism = Mechanism.load(urdf, closures)
     assert [g.meshPath for g in mechanism.visual_model.geometryObjects].count(str(mesh)) == 1
     mesh.unlink()
     assert _refusal(lambda: Mechanism.load(urdf, closures).visual_model) == (
-        f"{urdf}: cannot load the visual geometry: Mesh package://fb_meshes/tri.stl could not be found.")
+        f"{urdf}: cannot load the visual geometry: Mesh package://fb_meshes/tri.stl could not be found."
+    )
 
 
 def test_nominal_model_paths_prefers_the_installed_package(tmp_path, monkeypatch):
@@ -464,13 +494,20 @@ def test_nominal_model_paths_prefers_the_installed_package(tmp_path, monkeypatch
 
 def test_an_actuator_without_limits_and_no_workspace_is_unbounded(tmp_path):
     urdf, closures = _five_bar(tmp_path)
-    urdf.write_text(re.sub(r'(<joint name="motor_2" type="revolute">(?:(?!</joint>).)*?)<limit[^>]*/>',
-                           r'\1<limit effort="10" velocity="10"/>', urdf.read_text(), flags=re.S))
+    urdf.write_text(
+        re.sub(
+            r'(<joint name="motor_2" type="revolute">(?:(?!</joint>).)*?)<limit[^>]*/>',
+            r'\1<limit effort="10" velocity="10"/>',
+            urdf.read_text(),
+            flags=re.S,
+        )
+    )
     _edit_yaml(closures, lambda d: d.pop("workspace"))
     with pytest.warns(ModelWarning) as caught:
         mechanism = Mechanism.load(urdf, closures)
     assert [str(w.message) for w in caught] == [
-        "five_bar.closures.yaml: actuator 'motor_2' has no usable URDF limits; no limits [-inf, inf] used instead"]
+        "five_bar.closures.yaml: actuator 'motor_2' has no usable URDF limits; no limits [-inf, inf] used instead"
+    ]
     lower, upper = mechanism.joint_limits()
     assert lower.tolist() == [1.83, -np.inf] and upper.tolist() == [2.83, np.inf]
 
@@ -487,8 +524,16 @@ def test_joint_limits_and_configuration_by_name(mechanism):
 
 
 def test_a_mechanism_made_directly_commands_its_platform_frame(mechanism):
-    made = Mechanism(mechanism.model, mechanism.closures, mechanism.actuated_joints, mechanism.principal_chains,
-                     mechanism.platform_frame, mechanism.home, mechanism.urdf_path, mechanism.closures_path)
+    made = Mechanism(
+        mechanism.model,
+        mechanism.closures,
+        mechanism.actuated_joints,
+        mechanism.principal_chains,
+        mechanism.platform_frame,
+        mechanism.home,
+        mechanism.urdf_path,
+        mechanism.closures_path,
+    )
     assert made.task == TaskSpec("P_I")
 
 
@@ -509,16 +554,21 @@ def test_joint_name_of_a_velocity_index(mechanism):
 def test_pair_bytes(tmp_path):
     source_urdf, source_closures = _five_bar(tmp_path)
     mechanism = Mechanism.load(source_urdf, source_closures).with_home(
-        Mechanism.load(source_urdf, source_closures).home + 0.25)
+        Mechanism.load(source_urdf, source_closures).home + 0.25
+    )
     urdf_bytes, closures_bytes = mechanism.pair_bytes(tmp_path / "out" / "machine.urdf")
     header, body = closures_bytes.decode("utf-8").split("\n", 1)
-    assert header == ("# Closures of machine.urdf (written with it as a pair; its URDF records this file's sha256); "
-                      "home re-assembled for its geometry; rows and locked joints as load derived them. "
-                      "Schema: models/README.md")
+    assert header == (
+        "# Closures of machine.urdf (written with it as a pair; its URDF records this file's sha256); "
+        "home re-assembled for its geometry; rows and locked joints as load derived them. "
+        "Schema: models/README.md"
+    )
     document, source = yaml.safe_load(body), yaml.safe_load(source_closures.read_text())
     assert list(document) == list(source)  # the source's order, not sorted
-    assert list(document["home"].items()) == [(name, float(mechanism.configuration({})[k]))
-                                              for k, name in enumerate(("motor_1", "elbow_1", "motor_2", "elbow_2"))]
+    assert list(document["home"].items()) == [
+        (name, float(mechanism.configuration({})[k]))
+        for k, name in enumerate(("motor_1", "elbow_1", "motor_2", "elbow_2"))
+    ]
     assert {k: v for k, v in document.items() if k != "home"} == {k: v for k, v in source.items() if k != "home"}
     assert recorded_closures_sha256(urdf_bytes) == closures_sha256(closures_bytes)
     assert mechanism.pair_bytes("machine.urdf", "elsewhere.yaml") == (urdf_bytes, closures_bytes)
@@ -532,7 +582,8 @@ def test_pair_bytes_use_the_document_read_at_load(tmp_path):
     closures.write_text("schema_version: [\n")  # rewritten after the load
     assert mechanism.pair_bytes("m.urdf") == expected
     assert _refusal(lambda: replace(mechanism, closures_document=None).pair_bytes("m.urdf")) == (
-        f"{closures}: line 2, column 1: not valid YAML: expected the node content, but found '<stream end>'")
+        f"{closures}: line 2, column 1: not valid YAML: expected the node content, but found '<stream end>'"
+    )
 
 
 def test_save_writes_the_pair_where_asked(tmp_path):
@@ -548,25 +599,32 @@ def test_save_refuses_to_overwrite_its_sources(tmp_path):
     mechanism = Mechanism.load(*_five_bar(tmp_path))
     with pytest.raises(OutputPathError) as caught:
         mechanism.save(mechanism.urdf_path)
-    assert str(caught.value) == f"{mechanism.urdf_path}: URDF: refusing to overwrite the input file {mechanism.urdf_path}"
+    assert (
+        str(caught.value) == f"{mechanism.urdf_path}: URDF: refusing to overwrite the input file {mechanism.urdf_path}"
+    )
     with pytest.raises(OutputPathError) as caught:
         mechanism.save(tmp_path / "new.urdf", mechanism.closures_path)
-    assert str(caught.value) == (f"{mechanism.closures_path}: closures file of URDF: refusing to overwrite the input "
-                                 f"file {mechanism.closures_path}")
+    assert str(caught.value) == (
+        f"{mechanism.closures_path}: closures file of URDF: refusing to overwrite the input "
+        f"file {mechanism.closures_path}"
+    )
 
 
 # Home assembly and the closure checks, refused naming the closures file.
+
 
 def test_a_home_newton_cannot_close_is_refused(mechanism):
     broken = _with_closure_frame_moved(mechanism, "five_bar_I", 2, 5.0)
     message = _refusal(lambda: _settled(broken))
     # Newton diverges here: the residual it stops at depends on rounding (4.4 or 4.6 on different
     # BLAS kernels), so only that it is a number that did not close is checked, not its digits.
-    prefix = (f"{mechanism.closures_path}: home does not close: closure 'five_bar_I' residual 5.000e+00 > 1e-09, "
-              "and Newton from the given values reached only ")
+    prefix = (
+        f"{mechanism.closures_path}: home does not close: closure 'five_bar_I' residual 5.000e+00 > 1e-09, "
+        "and Newton from the given values reached only "
+    )
     suffix = " (give home values closer to an assembly)"
     assert message.startswith(prefix) and message.endswith(suffix), message
-    assert float(message[len(prefix):-len(suffix)]) > 1e-9
+    assert float(message[len(prefix) : -len(suffix)]) > 1e-9
 
 
 def test_a_home_far_from_an_assembly_is_assembled(mechanism):
@@ -589,9 +647,11 @@ def test_the_assembly_note_gives_every_move_largest_first(mechanism):
     name, move = report.moved[0]
     assert move == pytest.approx(change[settled.model.idx_qs[settled.model.getJointId(name)]], abs=1e-15)
     assert settled.notes == (report.note(1e-9),)
-    assert settled.notes[0].startswith(f"home does not close: closure 'five_bar_I' residual 5.000e-02 > 1e-09; "
-                                       f"assembled by Newton (damped, actuators held) at the assembly nearest the "
-                                       f"given values: passive joints moved by {name} {move:+.3g}, ")
+    assert settled.notes[0].startswith(
+        f"home does not close: closure 'five_bar_I' residual 5.000e-02 > 1e-09; "
+        f"assembled by Newton (damped, actuators held) at the assembly nearest the "
+        f"given values: passive joints moved by {name} {move:+.3g}, "
+    )
 
 
 def test_a_nan_residual_names_its_closure(mechanism):
@@ -601,7 +661,8 @@ def test_a_nan_residual_names_its_closure(mechanism):
     frame.placement = pin.SE3(frame.placement.rotation, np.array([np.nan, 0.0, 0.0]))
     model.frames[spec.frame_b_id] = frame
     assert _refusal(lambda: _settled(replace(mechanism, model=model))).startswith(
-        f"{mechanism.closures_path}: home does not close: closure 'platform' residual nan > 1e-09, and Newton")
+        f"{mechanism.closures_path}: home does not close: closure 'platform' residual nan > 1e-09, and Newton"
+    )
 
 
 def test_missing_rows_are_refused_naming_the_file(tmp_path):
@@ -609,7 +670,8 @@ def test_missing_rows_are_refused_naming_the_file(tmp_path):
     _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0]))
     assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
         f"{closures}: the closures leave 1 degree(s) of freedom beyond the actuators: with the actuators held, "
-        "frame 'effector' can still move (1 per unit joint speed); rows or closures are missing")
+        "frame 'effector' can still move (1 per unit joint speed); rows or closures are missing"
+    )
 
 
 _THIRD_CUT_JOINT = """<joint name="cut_3" type="revolute"><parent link="cut_link_1"/><child link="cut_link_3"/>
@@ -627,5 +689,7 @@ def test_the_locked_gauge_note_names_every_locked_joint(tmp_path):
         mechanism = Mechanism.load(urdf, closures)
     locked = mechanism.locked_joints
     assert len(locked) == 2 and set(locked) < {"cut_1", "cut_2", "cut_3"}
-    assert f"passive joint(s) {locked[0]}, {locked[1]} locked at their home value: their motion is already spanned " \
-           "by the other passive joints (a gauge, e.g. a cut joint modelled twice)" in mechanism.notes
+    assert (
+        f"passive joint(s) {locked[0]}, {locked[1]} locked at their home value: their motion is already spanned "
+        "by the other passive joints (a gauge, e.g. a cut joint modelled twice)" in mechanism.notes
+    )

@@ -50,8 +50,7 @@ def _differences(machine: Mechanism, placements, sliders, starts, direction: np.
     for sign in (1.0, -1.0):
         solver = ClosedLoopSolver(_perturbed(machine, placements, sign * STEP * direction))
         results.append([solver.forward(s, q_init=q) for s, q in zip(sliders, starts)])
-    twists = np.array([pin.log6(plus.pose * minus.pose.inverse()).vector
-                       for plus, minus in zip(*results)]) / (2 * STEP)
+    twists = np.array([pin.log6(plus.pose * minus.pose.inverse()).vector for plus, minus in zip(*results)]) / (2 * STEP)
     passive_q = np.array([plus.q[passive] - minus.q[passive] for plus, minus in zip(*results)]) / (2 * STEP)
     return twists, passive_q
 
@@ -114,39 +113,79 @@ def _five_bar(files, variant: str):
 def test_m_machine_parameter_layout(m_machine):
     mechanism = m_machine[0]
     model = ClosedLoopErrorModel(mechanism)
-    frames = ["upper_tip_I", "upper_pt_I", "fivebar_tip_I", "D_I", "lower_tip_I", "lower_pt_I",
-              "upper_tip_II", "upper_pt_II", "fivebar_tip_II", "D_II", "lower_tip_II", "lower_pt_II", "P_I", "P_II"]
+    frames = [
+        "upper_tip_I",
+        "upper_pt_I",
+        "fivebar_tip_I",
+        "D_I",
+        "lower_tip_I",
+        "lower_pt_I",
+        "upper_tip_II",
+        "upper_pt_II",
+        "fivebar_tip_II",
+        "D_II",
+        "lower_tip_II",
+        "lower_pt_II",
+        "P_I",
+        "P_II",
+    ]
     joints = [mechanism.model.names[j] for j in range(1, mechanism.model.njoints)]
     assert model.placements == tuple(Placement.joint(n) for n in joints) + tuple(Placement.frame(n) for n in frames)
     assert model.n_parameters == 204 == len(model.names)
-    assert model.names[:7] == ("q11.dt[0]", "q11.dt[1]", "q11.dt[2]", "q11.dt[3]", "q11.dt[4]", "q11.dt[5]",
-                               "q12.dt[0]")
+    assert model.names[:7] == (
+        "q11.dt[0]",
+        "q11.dt[1]",
+        "q11.dt[2]",
+        "q11.dt[3]",
+        "q11.dt[4]",
+        "q11.dt[5]",
+        "q12.dt[0]",
+    )
     assert model.names[-1] == "P_II.dt[5]" and model.mechanism is mechanism
 
 
 def test_five_bar_parameter_layout(five_bar_files_pair):
     mechanism = Mechanism.load(*five_bar_files_pair)
     model = ClosedLoopErrorModel(mechanism)
-    assert model.placements == (Placement.joint("motor_1"), Placement.joint("elbow_1"), Placement.joint("motor_2"),
-                                Placement.joint("elbow_2"), Placement.frame("effector"), Placement.frame("tip_2"))
+    assert model.placements == (
+        Placement.joint("motor_1"),
+        Placement.joint("elbow_1"),
+        Placement.joint("motor_2"),
+        Placement.joint("elbow_2"),
+        Placement.frame("effector"),
+        Placement.frame("tip_2"),
+    )
     assert model.n_parameters == 36
 
 
 def test_has_own_placement_on_every_kind_of_frame(m_machine):
     model = m_machine[0].model
-    kinds = {"q11": False, "slider_B1": False, "platform": False, "D_I_fixed": True, "D_I": True,
-             "P_I": True, "universe": True, "base": True, "q14": False}
+    kinds = {
+        "q11": False,
+        "slider_B1": False,
+        "platform": False,
+        "D_I_fixed": True,
+        "D_I": True,
+        "P_I": True,
+        "universe": True,
+        "base": True,
+        "q14": False,
+    }
     for name, expected in kinds.items():
         assert has_own_placement(model, model.getFrameId(name)) is expected, name
     extra = model.copy()
-    under_joint = extra.addFrame(pin.Frame("tool_on_joint", 6, extra.getFrameId("q14"), pin.SE3.Identity(),
-                                           pin.FrameType.OP_FRAME))
-    under_body = extra.addFrame(pin.Frame("tool_on_body", 6, extra.getFrameId("platform"), pin.SE3.Identity(),
-                                          pin.FrameType.OP_FRAME))
-    body_under_fixed = extra.addFrame(pin.Frame("link_on_fixed", 6, extra.getFrameId("P_I_fixed"),
-                                                pin.SE3.Identity(), pin.FrameType.BODY))
-    body_under_body = extra.addFrame(pin.Frame("link_on_body", 6, extra.getFrameId("platform"),
-                                               pin.SE3.Identity(), pin.FrameType.BODY))
+    under_joint = extra.addFrame(
+        pin.Frame("tool_on_joint", 6, extra.getFrameId("q14"), pin.SE3.Identity(), pin.FrameType.OP_FRAME)
+    )
+    under_body = extra.addFrame(
+        pin.Frame("tool_on_body", 6, extra.getFrameId("platform"), pin.SE3.Identity(), pin.FrameType.OP_FRAME)
+    )
+    body_under_fixed = extra.addFrame(
+        pin.Frame("link_on_fixed", 6, extra.getFrameId("P_I_fixed"), pin.SE3.Identity(), pin.FrameType.BODY)
+    )
+    body_under_body = extra.addFrame(
+        pin.Frame("link_on_body", 6, extra.getFrameId("platform"), pin.SE3.Identity(), pin.FrameType.BODY)
+    )
     assert has_own_placement(extra, under_joint) and has_own_placement(extra, under_body)
     assert has_own_placement(extra, body_under_fixed) and has_own_placement(extra, body_under_body)
 
@@ -154,8 +193,13 @@ def test_has_own_placement_on_every_kind_of_frame(m_machine):
 def test_explicit_placements_map_to_the_same_columns(m_machine):
     mechanism, _, solver, _, configurations = m_machine
     model, full = _full(m_machine)
-    chosen = (Placement.frame("P_I"), Placement.joint("q12"), Placement.frame("upper_tip_I"), Placement.joint("q11"),
-              Placement.frame("D_II"))
+    chosen = (
+        Placement.frame("P_I"),
+        Placement.joint("q12"),
+        Placement.frame("upper_tip_I"),
+        Placement.joint("q11"),
+        Placement.frame("D_II"),
+    )
     small = ClosedLoopErrorModel(mechanism, chosen)
     assert small.placements == chosen and small.n_parameters == 30
     assert small.names[:2] == ("P_I.dt[0]", "P_I.dt[1]") and small.names[6] == "q12.dt[0]"
@@ -211,8 +255,7 @@ def test_m_machine_sensitivities_along_random_directions(m_machine):
     passive = full.passive_sensitivities()
     for _ in range(2):
         direction = rng.normal(size=model.n_parameters)
-        twists, passive_q = _differences(machine, model.placements, sliders, configurations, direction,
-                                         solver.passive)
+        twists, passive_q = _differences(machine, model.placements, sliders, configurations, direction, solver.passive)
         np.testing.assert_allclose(full.twist_jacobians @ direction, twists, atol=2e-7)
         np.testing.assert_allclose(passive @ direction, passive_q, atol=2e-7)
         # dr_c/dp at fixed joints: the perturbed closures at the same q.
@@ -231,8 +274,7 @@ def test_five_bar_sensitivities_column_by_column(five_bar_files_pair, variant):
     for k in range(model.n_parameters):
         direction = np.zeros(model.n_parameters)
         direction[k] = 1.0
-        twists, passive_q = _differences(machine, model.placements, sliders, configurations, direction,
-                                         solver.passive)
+        twists, passive_q = _differences(machine, model.placements, sliders, configurations, direction, solver.passive)
         np.testing.assert_allclose(full.twist_jacobians[:, :, k], twists, atol=1e-7, err_msg=model.names[k])
         np.testing.assert_allclose(passive[:, :, k], passive_q, atol=1e-7, err_msg=model.names[k])
 
@@ -278,9 +320,22 @@ def test_column_subsets_equal_the_full_computation(m_machine, selection):
     columns = {
         "random": rng.permutation(204)[:90],
         "frames": np.arange(203, 119, -1),
-        "partial_frames": np.array([index[n] for n in ("P_I.dt[4]", "upper_tip_I.dt[1]", "D_I.dt[5]", "P_II.dt[0]",
-                                                       "q13.dt[2]", "P_II.dt[3]", "upper_pt_II.dt[3]",
-                                                       "lower_tip_II.dt[0]", "P_I.dt[1]")]),
+        "partial_frames": np.array(
+            [
+                index[n]
+                for n in (
+                    "P_I.dt[4]",
+                    "upper_tip_I.dt[1]",
+                    "D_I.dt[5]",
+                    "P_II.dt[0]",
+                    "q13.dt[2]",
+                    "P_II.dt[3]",
+                    "upper_pt_II.dt[3]",
+                    "lower_tip_II.dt[0]",
+                    "P_I.dt[1]",
+                )
+            ]
+        ),
         "joints": np.arange(0, 120, 2),
         "single": np.array([index["P_I.dt[2]"]]),
         "platform": np.array([index["P_I.dt[5]"], index["P_I.dt[0]"], index["q14.dt[3]"]]),

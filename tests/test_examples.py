@@ -105,7 +105,9 @@ def test_motor_limits_are_wider_than_the_box_and_home_is_its_middle(mechanisms, 
 @pytest.mark.parametrize("name", WRITERS)
 def test_home_closes_every_row_and_the_mobility_is_the_actuator_count(mechanisms, name):
     mechanism = mechanisms[name]
-    worst = max(float(np.max(np.abs(residual))) for _, residual in closure_residual_by_closure(mechanism, mechanism.home))
+    worst = max(
+        float(np.max(np.abs(residual))) for _, residual in closure_residual_by_closure(mechanism, mechanism.home)
+    )
     assert worst < 1e-13
     solver = ClosedLoopSolver(mechanism)
     assert solver.mobility(mechanism.home) == len(mechanism.actuated_joints)

@@ -261,8 +261,9 @@ def _decreases(result):
 
 def test_relative_cost_rule_stops_at_the_first_small_decrease():
     tolerance = 1e-7
-    result = levenberg_marquardt(ExponentialFit(), X_FAR, cost_tolerance=tolerance, step_tolerance=0.0,
-                                 gradient_tolerance=0.0)
+    result = levenberg_marquardt(
+        ExponentialFit(), X_FAR, cost_tolerance=tolerance, step_tolerance=0.0, gradient_tolerance=0.0
+    )
     assert result.converged and result.termination == "cost"
     decrease, before = _decreases(result)
     assert decrease[-1] <= tolerance * before[-1]  # the rule that fired
@@ -273,8 +274,14 @@ def test_relative_cost_rule_stops_at_the_first_small_decrease():
 
 def test_absolute_cost_rule_stops_at_the_first_small_decrease():
     absolute = 1e-10  # the cost is 1.5e-3: decreases of 4e-9 (step 5) then 1e-14 (step 6)
-    result = levenberg_marquardt(ExponentialFit(), X_FAR, cost_tolerance=0.0, step_tolerance=0.0,
-                                 gradient_tolerance=0.0, absolute_cost_tolerance=absolute)
+    result = levenberg_marquardt(
+        ExponentialFit(),
+        X_FAR,
+        cost_tolerance=0.0,
+        step_tolerance=0.0,
+        gradient_tolerance=0.0,
+        absolute_cost_tolerance=absolute,
+    )
     assert result.termination == "cost"
     decrease, _ = _decreases(result)
     assert decrease[-1] <= absolute and np.all(decrease[:-1] > absolute)
@@ -282,8 +289,9 @@ def test_absolute_cost_rule_stops_at_the_first_small_decrease():
 
 
 def test_without_cost_rules_the_step_rule_stops():
-    result = levenberg_marquardt(ExponentialFit(), X0, cost_tolerance=0.0, step_tolerance=1e-10,
-                                 gradient_tolerance=0.0, max_iterations=200)
+    result = levenberg_marquardt(
+        ExponentialFit(), X0, cost_tolerance=0.0, step_tolerance=1e-10, gradient_tolerance=0.0, max_iterations=200
+    )
     assert result.converged and result.termination == "step" and result.step_norm <= 1e-10
     # The step rule stops before the step is accepted: the iteration count includes that last solve.
     assert result.iterations == len(result.cost_history)
@@ -297,8 +305,7 @@ def test_gradient_rule_on_a_zero_residual_problem():
         def retract(self, x, step):
             return x + step
 
-    result = levenberg_marquardt(Line(), np.zeros(2), gradient_tolerance=1e-8, cost_tolerance=0.0,
-                                 step_tolerance=0.0)
+    result = levenberg_marquardt(Line(), np.zeros(2), gradient_tolerance=1e-8, cost_tolerance=0.0, step_tolerance=0.0)
     assert result.termination == "gradient" and result.converged
     np.testing.assert_allclose(result.state, [1.0, -3.0], atol=1e-8)
     assert result.iterations == len(result.cost_history) - 1 and result.iterations <= 4
@@ -308,8 +315,9 @@ def test_gradient_rule_on_a_zero_residual_problem():
 
 
 def test_max_iterations_is_reported_not_converged():
-    result = levenberg_marquardt(ExponentialFit(), X0, cost_tolerance=0.0, step_tolerance=0.0,
-                                 gradient_tolerance=0.0, max_iterations=2)
+    result = levenberg_marquardt(
+        ExponentialFit(), X0, cost_tolerance=0.0, step_tolerance=0.0, gradient_tolerance=0.0, max_iterations=2
+    )
     assert result.termination == "max_iterations" and not result.converged and result.iterations == 2
 
 
@@ -400,15 +408,15 @@ NAMES = ("q1.dt[0]", "q1.dt[1]", "q2.dt[0]", "tool.x")
 def test_parameter_columns_by_name_and_by_placement_in_the_order_asked():
     assert parameter_columns(NAMES, ["q2.dt[0]", "q1", "tool.x"], "--fix") == [2, 0, 1, 3]
     assert parameter_columns(NAMES, [], "--fix") == []
-    message = ("--fix: 'q3' is neither a parameter (e.g. q1.dt[0]) nor a placement "
-               "(e.g. q1: all its components)")
+    message = "--fix: 'q3' is neither a parameter (e.g. q1.dt[0]) nor a placement (e.g. q1: all its components)"
     with pytest.raises(InvalidInputError) as error:
         parameter_columns(NAMES, ["q1", "q3"], "--fix")
     assert str(error.value) == message
     with pytest.raises(InvalidInputError) as error:
         parameter_columns((), ["q3"], "--prior")
-    assert str(error.value) == ("--prior: 'q3' is neither a parameter (e.g. q12.dt[3]) nor a placement "
-                                "(e.g. q12: all its components)")
+    assert str(error.value) == (
+        "--prior: 'q3' is neither a parameter (e.g. q12.dt[3]) nor a placement (e.g. q12: all its components)"
+    )
     with pytest.raises(InvalidInputError):
         parameter_columns(NAMES, ["q1.dt"], "--fix")  # only the part before ".dt[" names a placement
 
@@ -487,8 +495,9 @@ def test_forward_selection_path_press_order_and_ties_against_refits(forced):
     r = -(J @ np.r_[1.0, -0.6, 0.3, 0.0, 0.0, 0.0, 0.0]) + rng.normal(size=n * k)
     selection = forward_selection(J, r, k, range(p), forced=forced)
     assert set(selection.order).isdisjoint(forced) and sorted(selection.order + tuple(forced)) == list(range(p))
-    per_pose = [_loo_reference(J, r, k, list(forced) + list(selection.order[:size]))
-                for size in range(p - len(forced) + 1)]
+    per_pose = [
+        _loo_reference(J, r, k, list(forced) + list(selection.order[:size])) for size in range(p - len(forced) + 1)
+    ]
     path = np.array([pp.sum() for pp in per_pose])
     np.testing.assert_allclose(selection.path, path, rtol=1e-8)
     best = int(np.argmin(path))
@@ -594,7 +603,8 @@ def test_linear_solvers_refuse_bad_input_with_exact_messages():
     weights = np.ones(6)
     weights[2] = 0.0
     assert _message(lambda: batch_least_squares(A, y, weights)) == (
-        "weights: must be positive inverse standard deviations")
+        "weights: must be positive inverse standard deviations"
+    )
     weights[2] = -1e-300
     assert "weights: must be positive" in _message(lambda: batch_least_squares(A, y, weights))
     weights[2] = 1e-300  # tiny but positive is a weight
@@ -606,7 +616,8 @@ def test_linear_solvers_refuse_bad_input_with_exact_messages():
     assert _message(lambda: batch_least_squares(A_bad, y)) == "A: non-finite value at row 3, column 1"
     assert _message(lambda: batch_least_squares(np.zeros((6, 2)), y)) == "batch_least_squares: A is identically zero"
     assert _message(lambda: batch_least_squares(np.ones((2, 2)) * [1.0, 2.0] + np.eye(2), y[:2])) == (
-        "batch_least_squares: no redundancy to estimate the noise from residuals")
+        "batch_least_squares: no redundancy to estimate the noise from residuals"
+    )
     # Integer input is read as float (a list of ints gives a float solution).
     fit = batch_least_squares([[1, 0], [0, 1], [1, 1]], [1, 2, 4])
     np.testing.assert_allclose(fit.x, [4 / 3, 7 / 3])
@@ -641,16 +652,20 @@ def test_recursive_least_squares_refusals_with_exact_messages():
     RecursiveLeastSquares(1)
     for std in (0.0, -1.0, np.inf, np.nan, [1.0, 0.0]):
         assert _message(lambda std=std: RecursiveLeastSquares(2, prior_std=std)) == (
-            "RecursiveLeastSquares: prior_std must be positive and finite")
+            "RecursiveLeastSquares: prior_std must be positive and finite"
+        )
     assert _message(lambda: RecursiveLeastSquares(2, prior_mean=[1.0, 2.0])) == (
-        "RecursiveLeastSquares: prior_mean needs prior_std")
+        "RecursiveLeastSquares: prior_mean needs prior_std"
+    )
     assert _message(lambda: RecursiveLeastSquares(2, prior_std=1.0, prior_mean=[1.0])) == (
-        "prior_mean: expected 2 values, got 1")
+        "prior_mean: expected 2 values, got 1"
+    )
     rls = RecursiveLeastSquares(2)
     assert _message(lambda: rls.update(np.ones((2, 3)), np.ones(2))) == "A_k: expected 2 columns, got 3"
     assert _message(lambda: rls.update(np.ones((2, 2)), np.ones(3))) == "y_k: expected 2 values, got 3"
     assert _message(lambda: rls.update(np.ones((2, 2)), np.ones(2), [1.0, 0.0])) == (
-        "weights_k: must be positive inverse standard deviations")
+        "weights_k: must be positive inverse standard deviations"
+    )
     assert _message(lambda: rls.update([[1.0, np.nan]], [1.0])) == "A_k: non-finite value at row 0, column 1"
     # One row as a 1-D array, integers accepted.
     np.testing.assert_allclose(rls.update([1, 0], [2]), [2.0, 0.0])
@@ -717,8 +732,15 @@ def _reference_steps(problem, x, mu, iterations):
 def test_trial_steps_follow_the_marquardt_nielsen_schedule(damping):
     problem = Recorded()
     start = np.array([0.1, 6.0])  # far: the first undamped steps overshoot and are rejected
-    result = levenberg_marquardt(problem, start, initial_damping=damping, max_iterations=6, cost_tolerance=0.0,
-                                 step_tolerance=0.0, gradient_tolerance=0.0)
+    result = levenberg_marquardt(
+        problem,
+        start,
+        initial_damping=damping,
+        max_iterations=6,
+        cost_tolerance=0.0,
+        step_tolerance=0.0,
+        gradient_tolerance=0.0,
+    )
     assert result.termination == "max_iterations" and result.iterations == 6
     reference = _reference_steps(ExponentialFit(), start, damping, 6)
     assert len(problem.steps) == len(reference)
@@ -728,10 +750,16 @@ def test_trial_steps_follow_the_marquardt_nielsen_schedule(damping):
 
 def test_rejections_happen_in_the_schedule_test():
     problem = Recorded()
-    levenberg_marquardt(problem, np.array([0.1, 6.0]), initial_damping=1e-9, max_iterations=6, cost_tolerance=0.0,
-                        step_tolerance=0.0, gradient_tolerance=0.0)
+    levenberg_marquardt(
+        problem,
+        np.array([0.1, 6.0]),
+        initial_damping=1e-9,
+        max_iterations=6,
+        cost_tolerance=0.0,
+        step_tolerance=0.0,
+        gradient_tolerance=0.0,
+    )
     assert len(problem.steps) >= 6 + 3  # several rejected trials in a row: nu doubles
-
 
 
 # --------------------------------------------------------------------------------------------------
@@ -771,8 +799,9 @@ def test_cost_rules_at_their_exact_tolerance_and_every_field_of_the_result():
     assert relative.termination == "cost" and relative.converged is True and relative.iterations == 1
     assert relative.cost == 0.0 and relative.cost_history == (0.28125, 0.0) and relative.step_norm == 0.75
     np.testing.assert_array_equal(relative.state, [0.75])
-    absolute = levenberg_marquardt(Linear(), np.zeros(1), initial_damping=0.0, cost_tolerance=0.0,
-                                   absolute_cost_tolerance=0.28125)
+    absolute = levenberg_marquardt(
+        Linear(), np.zeros(1), initial_damping=0.0, cost_tolerance=0.0, absolute_cost_tolerance=0.28125
+    )
     assert absolute.termination == "cost" and absolute.iterations == 1 and absolute.cost == 0.0
     # Just below: the cost rules let the step through and the gradient rule stops one iteration on.
     for tolerances in ({"cost_tolerance": 1.0 - 1e-12}, {"cost_tolerance": 0.0, "absolute_cost_tolerance": 0.28}):
@@ -877,8 +906,9 @@ def test_residual_only_trials_and_release_of_superseded_iterates():
 
     problem = Hooked()
     start = np.array([0.1, 6.0])  # far: several trials are rejected
-    result = levenberg_marquardt(problem, start, max_iterations=6, cost_tolerance=0.0, step_tolerance=0.0,
-                                 gradient_tolerance=0.0)
+    result = levenberg_marquardt(
+        problem, start, max_iterations=6, cost_tolerance=0.0, step_tolerance=0.0, gradient_tolerance=0.0
+    )
     accepted = len(result.cost_history) - 1
     assert accepted == 6 and problem.trials > accepted  # rejected trials cost no Jacobian
     assert problem.calls == 1 + accepted  # one Jacobian per accepted step, plus the start
@@ -906,8 +936,14 @@ def test_steps_are_invariant_under_a_scaling_of_the_residual_even_with_a_vanishi
     runs = []
     for c in (1.0, 1e-3, 1e3):
         problem = Scaled(c)
-        levenberg_marquardt(problem, np.array([3.0, 0.0]), max_iterations=3, gradient_tolerance=0.0,
-                            cost_tolerance=0.0, step_tolerance=0.0)
+        levenberg_marquardt(
+            problem,
+            np.array([3.0, 0.0]),
+            max_iterations=3,
+            gradient_tolerance=0.0,
+            cost_tolerance=0.0,
+            step_tolerance=0.0,
+        )
         runs.append(np.array(problem.steps))
     assert runs[0].shape == (3, 2)
     np.testing.assert_allclose(runs[1], runs[0], rtol=1e-9)
@@ -931,8 +967,9 @@ def test_an_accepted_step_with_a_predicted_decrease_of_zero_doubles_the_damping(
             return x + step
 
     problem = Blind()
-    result = levenberg_marquardt(problem, np.zeros(1), max_iterations=2, gradient_tolerance=0.0, cost_tolerance=0.0,
-                                 step_tolerance=0.0)
+    result = levenberg_marquardt(
+        problem, np.zeros(1), max_iterations=2, gradient_tolerance=0.0, cost_tolerance=0.0, step_tolerance=0.0
+    )
     assert result.cost_history[:2] == (0.5, 0.125)
     # Step k is -r_1 / (1e-100 (1 + mu)): mu = 1e-3 first, then 2e-3 (rho taken as 0: mu x 2).
     assert problem.steps[0] / -1e-70 == pytest.approx(1.0 / 1.001, rel=1e-12)
@@ -1076,15 +1113,17 @@ def test_poor_excitation_warning_text_caller_and_exact_boundary(forced):
     with pytest.warns(PoorExcitationWarning) as record:
         select_base_parameters(J, "abc", forced=forced, max_condition=100.0)
     assert len(record) == 1
-    assert str(record[0].message) == (f"kept 3 parameters with condition number {condition:.3g} > 100: "
-                                      "add or spread out poses")
+    assert str(record[0].message) == (
+        f"kept 3 parameters with condition number {condition:.3g} > 100: add or spread out poses"
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         select_base_parameters(J, "abc", forced=forced, max_condition=condition)  # not above itself
 
 
-@pytest.mark.skipif("/mutants/" in identification.__file__,
-                    reason="mutmut's trampoline adds frames between the caller and the warning")
+@pytest.mark.skipif(
+    "/mutants/" in identification.__file__, reason="mutmut's trampoline adds frames between the caller and the warning"
+)
 @pytest.mark.parametrize("forced", [(), (2,)])
 def test_poor_excitation_warning_points_at_the_caller(forced):
     with pytest.warns(PoorExcitationWarning) as record:
@@ -1106,15 +1145,18 @@ def test_float32_and_exact_python_numbers_are_computed_in_double_precision():
     fit32, fit64 = batch_least_squares(A, y), batch_least_squares(A.astype(float), y.astype(float))
     np.testing.assert_array_equal(fit32.x, fit64.x)
     assert fit32.variance_factor == fit64.variance_factor
-    exact = batch_least_squares([[Fraction(1), Fraction(0)], [Fraction(0), Decimal(1)], [1, 1]],
-                                [Fraction(1, 2), Decimal("2"), 4])
+    exact = batch_least_squares(
+        [[Fraction(1), Fraction(0)], [Fraction(0), Decimal(1)], [1, 1]], [Fraction(1, 2), Decimal("2"), 4]
+    )
     np.testing.assert_allclose(exact.x, batch_least_squares([[1, 0], [0, 1], [1, 1]], [0.5, 2.0, 4.0]).x, rtol=1e-15)
     blocks = (rng.normal(size=(9, 3)) * 3).astype(np.float32)
     assert outlier_poses(blocks)[1] == outlier_poses(blocks.astype(float))[1] > 1.0
     assert outlier_poses([[Fraction(1, 2)], [Decimal(3)]])[1] == outlier_poses([[0.5], [3.0]])[1]
     std = np.float32(0.3)
-    np.testing.assert_array_equal(RecursiveLeastSquares(2, prior_std=std).information_factor,
-                                  RecursiveLeastSquares(2, prior_std=float(std)).information_factor)
+    np.testing.assert_array_equal(
+        RecursiveLeastSquares(2, prior_std=std).information_factor,
+        RecursiveLeastSquares(2, prior_std=float(std)).information_factor,
+    )
 
 
 def test_batch_least_squares_one_column_one_redundant_row_and_no_column():
@@ -1154,8 +1196,10 @@ def test_placement_is_everything_before_the_last_dt():
     assert parameter_columns(names, ["arm"], "--fix") == [2]
     with pytest.raises(InvalidInputError) as error:
         parameter_columns(names, ["leg"], "--fix")
-    assert str(error.value) == ("--fix: 'leg' is neither a parameter (e.g. arm.dt[1].dt[0]) nor a placement "
-                                "(e.g. arm.dt[1]: all its components)")
+    assert str(error.value) == (
+        "--fix: 'leg' is neither a parameter (e.g. arm.dt[1].dt[0]) nor a placement "
+        "(e.g. arm.dt[1]: all its components)"
+    )
 
 
 def test_rls_prior_without_mean_and_estimate_before_any_row():
@@ -1165,8 +1209,9 @@ def test_rls_prior_without_mean_and_estimate_before_any_row():
     assert rls.weighted_residual_sum_of_squares == 0.0 and rls.n_rows == 0
     np.testing.assert_array_equal(RecursiveLeastSquares(3).estimate, np.zeros(3))
     # With a prior mean and no row yet, the estimate is the prior mean.
-    np.testing.assert_allclose(RecursiveLeastSquares(2, prior_std=[0.5, 2.0], prior_mean=[1.0, -4.0]).estimate,
-                               [1.0, -4.0], rtol=1e-15)
+    np.testing.assert_allclose(
+        RecursiveLeastSquares(2, prior_std=[0.5, 2.0], prior_mean=[1.0, -4.0]).estimate, [1.0, -4.0], rtol=1e-15
+    )
 
 
 # --------------------------------------------------------------------------------------------------

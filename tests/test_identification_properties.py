@@ -29,7 +29,7 @@ def test_recursive_equals_batch_for_any_order_and_grouping(seed, order, group):
     rls = RecursiveLeastSquares(4)
     order = list(order)
     for start in range(0, len(order), group):
-        pick = order[start:start + group]
+        pick = order[start : start + group]
         rls.update(A[pick].reshape(-1, 4), y[pick].reshape(-1), w[pick].reshape(-1))
     np.testing.assert_allclose(rls.estimate, batch.x, rtol=1e-8, atol=1e-12)
     np.testing.assert_allclose(rls.covariance, batch.covariance, rtol=1e-7, atol=1e-18)

@@ -37,6 +37,7 @@ def _tree(tmp_path: Path, with_module: bool = False) -> Path:
 def _build(tree: Path, kind: str, pure_python: bool) -> tuple[subprocess.CompletedProcess, Path]:
     """hatchling's build_wheel or build_editable in `tree`, with no C++ compiler; (process, output folder)."""
     import hatchling  # noqa: F401  (the build backend, a dev dependency: missing, these tests fail, not skip)
+
     out = tree.parent / "dist"
     out.mkdir(exist_ok=True)
     env = {**os.environ, "CXX": "no-such-compiler"}
@@ -44,8 +45,9 @@ def _build(tree: Path, kind: str, pure_python: bool) -> tuple[subprocess.Complet
     if pure_python:
         env["M3T1R_PURE_PYTHON"] = "1"
     code = f"import sys, hatchling.build as backend; print(backend.build_{kind}(sys.argv[1]))"
-    process = subprocess.run([sys.executable, "-c", code, str(out)], cwd=tree, env=env, capture_output=True,
-                             text=True, timeout=120)
+    process = subprocess.run(
+        [sys.executable, "-c", code, str(out)], cwd=tree, env=env, capture_output=True, text=True, timeout=120
+    )
     return process, out
 
 
@@ -113,8 +115,11 @@ def test_the_header_trees_are_found_in_the_installed_distributions_files():
 def test_a_missing_header_tree_is_named_with_the_distribution_to_install(monkeypatch):
     build_native = _build_native()
     monkeypatch.setitem(build_native.HEADER_TREES, "Eigen", (("no-such-eigen",), "include/eigen3", "Eigen/Core"))
-    with pytest.raises(SystemExit, match=r"Eigen's headers not found: no installed no-such-eigen distribution "
-                                         r"ships include/eigen3/Eigen/Core \(pip install no-such-eigen\)"):
+    with pytest.raises(
+        SystemExit,
+        match=r"Eigen's headers not found: no installed no-such-eigen distribution "
+        r"ships include/eigen3/Eigen/Core \(pip install no-such-eigen\)",
+    ):
         build_native.include_dirs()
 
 

@@ -96,15 +96,18 @@ def _mm(values: np.ndarray) -> list[str]:
 def motive_csv(path: Path, session: Campaign, occluded: slice = slice(0, 0)) -> Path:
     """A Motive take: rigid body 'tool' (quaternion X, Y, Z, W, position) and a marker, mm."""
     n = len(session.times)
-    lines = [f"Format Version,1.23,Take Name,calibration,Capture Frame Rate,{RATE:.6f},Export Frame Rate,{RATE:.6f},"
-             f"Total Frames in Take,{n},Total Exported Frames,{n},Rotation Type,Quaternion,Length Units,Millimeters,"
-             "Coordinate Space,Global", "",
-             ",,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,"
-             "Marker,Marker,Marker",
-             ",,tool,tool,tool,tool,tool,tool,tool,tool,spare,spare,spare",
-             ",,1,1,1,1,1,1,1,1,2,2,2",
-             ",,Rotation,Rotation,Rotation,Rotation,Position,Position,Position,Mean Marker Error,Position,Position,Position",
-             "Frame,Time (Seconds),X,Y,Z,W,X,Y,Z,,X,Y,Z"]
+    lines = [
+        f"Format Version,1.23,Take Name,calibration,Capture Frame Rate,{RATE:.6f},Export Frame Rate,{RATE:.6f},"
+        f"Total Frames in Take,{n},Total Exported Frames,{n},Rotation Type,Quaternion,Length Units,Millimeters,"
+        "Coordinate Space,Global",
+        "",
+        ",,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,"
+        "Marker,Marker,Marker",
+        ",,tool,tool,tool,tool,tool,tool,tool,tool,spare,spare,spare",
+        ",,1,1,1,1,1,1,1,1,2,2,2",
+        ",,Rotation,Rotation,Rotation,Rotation,Position,Position,Position,Mean Marker Error,Position,Position,Position",
+        "Frame,Time (Seconds),X,Y,Z,W,X,Y,Z,,X,Y,Z",
+    ]
     quaternions = Rotation.from_matrix(session.bodies[:, :3, :3]).as_quat()
     hidden = np.zeros(n, bool)
     hidden[occluded] = True
@@ -117,7 +120,13 @@ def motive_csv(path: Path, session: Campaign, occluded: slice = slice(0, 0)) -> 
 
 def vicon_csv(path: Path, session: Campaign) -> Path:
     """A Nexus export: a Trajectories block with two markers of subject 'robot', mm."""
-    lines = ["Trajectories", f"{RATE:g}", ",,robot:BL,,,robot:TR,,", "Frame,Sub Frame,X,Y,Z,X,Y,Z", ",,mm,mm,mm,mm,mm,mm"]
+    lines = [
+        "Trajectories",
+        f"{RATE:g}",
+        ",,robot:BL,,,robot:TR,,",
+        "Frame,Sub Frame,X,Y,Z,X,Y,Z",
+        ",,mm,mm,mm,mm,mm,mm",
+    ]
     for k in range(len(session.times)):
         lines.append(",".join([str(k + 1), "0", *_mm(session.points[k]), *_mm(session.points[k] + 0.05)]))
     path.write_text("\n".join(lines + [""]) + "\n")
@@ -161,8 +170,17 @@ def test_a_motive_take_with_a_clock_offset_converts_to_one_pose_per_dwell(sessio
     conversion = convert_campaign(take, log, ConversionOptions())
     assert conversion.format == "motive" and conversion.clock_offset == pytest.approx(CLOCK_OFFSET, abs=0.02)
     columns = conversion.columns
-    assert columns[:6] == session.chain.joint_names and columns[6:] == ("x", "y", "z", "qx", "qy", "qz", "qw",
-                                                                        "source", "position_std")
+    assert columns[:6] == session.chain.joint_names and columns[6:] == (
+        "x",
+        "y",
+        "z",
+        "qx",
+        "qy",
+        "qz",
+        "qw",
+        "source",
+        "position_std",
+    )
     rows = conversion.rows
     assert len(rows) == len(session.postures)
     assert np.allclose(rows[:, :6], session.postures, atol=1e-9)  # each stop's joints, not mid-move
@@ -190,10 +208,18 @@ def test_a_vicon_trajectory_and_a_semicolon_log_give_the_same_poses(session, tmp
 
 def test_several_markers_in_figaroh_s_layout_are_read_one_at_a_time(session, tmp_path) -> None:
     names = list(session.chain.joint_names)
-    columns = [f"{a}{k}" for k in range(1, 5) for a in "xyz"] + names + ["shipped_row", "t_start_robot", "marker_std_mm"]
-    values = np.hstack([session.exact + 0.01 * k for k in range(4)] + [session.postures,
-                       np.arange(len(session.postures))[:, None], 1e9 + np.arange(len(session.postures))[:, None],
-                       np.full((len(session.postures), 1), 0.2)])
+    columns = (
+        [f"{a}{k}" for k in range(1, 5) for a in "xyz"] + names + ["shipped_row", "t_start_robot", "marker_std_mm"]
+    )
+    values = np.hstack(
+        [session.exact + 0.01 * k for k in range(4)]
+        + [
+            session.postures,
+            np.arange(len(session.postures))[:, None],
+            1e9 + np.arange(len(session.postures))[:, None],
+            np.full((len(session.postures), 1), 0.2),
+        ]
+    )
     path = tmp_path / "figaroh.csv"
     path.write_text(table_text(columns, values))
     first = convert_campaign(path, None, ConversionOptions())
@@ -268,8 +294,9 @@ def test_a_c3d_file_converts_with_its_units(session, tmp_path) -> None:
     c3d.add_parameter("POINT", "UNITS", ["mm"])
     path = tmp_path / "session.c3d"
     c3d.write(str(path))
-    conversion = convert_campaign(path, robot_log(tmp_path / "robot.csv", session),
-                                  ConversionOptions(read=ReadOptions(body="BL")))
+    conversion = convert_campaign(
+        path, robot_log(tmp_path / "robot.csv", session), ConversionOptions(read=ReadOptions(body="BL"))
+    )
     assert conversion.format == "c3d" and conversion.clock_offset == pytest.approx(CLOCK_OFFSET, abs=0.02)
     assert np.allclose(conversion.rows[:, 6:9], session.exact, atol=5e-5)
 
@@ -281,8 +308,11 @@ def test_a_ros2_bag_of_poses_and_joint_states_converts(session, tmp_path) -> Non
     store = get_typestore(Stores.ROS2_HUMBLE)
     types = store.types
     Time, Header = types["builtin_interfaces/msg/Time"], types["std_msgs/msg/Header"]
-    Pose, Point, Quaternion = types["geometry_msgs/msg/Pose"], types["geometry_msgs/msg/Point"], \
-        types["geometry_msgs/msg/Quaternion"]
+    Pose, Point, Quaternion = (
+        types["geometry_msgs/msg/Pose"],
+        types["geometry_msgs/msg/Point"],
+        types["geometry_msgs/msg/Quaternion"],
+    )
     PoseStamped, JointState = types["geometry_msgs/msg/PoseStamped"], types["sensor_msgs/msg/JointState"]
 
     def header(t: float) -> object:
@@ -297,11 +327,18 @@ def test_a_ros2_bag_of_poses_and_joint_states_converts(session, tmp_path) -> Non
             i = 2 * k
             x, y, z = session.points[i]
             qx, qy, qz, qw = quaternions[i]
-            pose = PoseStamped(header=header(100.0 + t), pose=Pose(position=Point(x=x, y=y, z=z),
-                                                                  orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)))
+            pose = PoseStamped(
+                header=header(100.0 + t),
+                pose=Pose(position=Point(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
+            )
             writer.write(poses, int((100.0 + t) * 1e9), store.serialize_cdr(pose, PoseStamped.__msgtype__))
-            state = JointState(header=header(100.0 + t + CLOCK_OFFSET), name=list(session.chain.joint_names),
-                               position=session.joints[i].copy(), velocity=np.zeros(0), effort=np.zeros(0))
+            state = JointState(
+                header=header(100.0 + t + CLOCK_OFFSET),
+                name=list(session.chain.joint_names),
+                position=session.joints[i].copy(),
+                velocity=np.zeros(0),
+                effort=np.zeros(0),
+            )
             writer.write(states, int((100.0 + t) * 1e9), store.serialize_cdr(state, JointState.__msgtype__))
     conversion = convert_campaign(bag, bag, ConversionOptions())
     assert conversion.format == "rosbag" and conversion.clock_offset == pytest.approx(CLOCK_OFFSET, abs=0.03)
@@ -320,29 +357,63 @@ def test_convert_writes_a_table_that_calibrates_like_the_plain_csv(session, tmp_
         lines[k] = ",".join(fields)
     take.write_text("\n".join(lines) + "\n")
     converted = tmp_path / "converted.csv"
-    assert main(["convert", str(take), "--robot", str(robot_log(tmp_path / "robot.csv", session)), "--body", "tool",
-                 "-o", str(converted)]) == 0
+    assert (
+        main(
+            [
+                "convert",
+                str(take),
+                "--robot",
+                str(robot_log(tmp_path / "robot.csv", session)),
+                "--body",
+                "tool",
+                "-o",
+                str(converted),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "clock offset: robot clock = tracker clock +0.8" in out and "wrote 24 poses" in out
-    table = read_table(converted, required=("x", "y", "z", "source"), optional=(*session.chain.joint_names,
-                                                                               "qx", "qy", "qz", "qw", "position_std"))
+    table = read_table(
+        converted,
+        required=("x", "y", "z", "source"),
+        optional=(*session.chain.joint_names, "qx", "qy", "qz", "qw", "position_std"),
+    )
     assert table.n_rows == 24 and np.all(np.diff(table.column("source")) > 0)
     plain = plain_csv(tmp_path / "plain.csv", session)
     reports = {}
     for name, path in (("plain", plain), ("converted", converted)):
         arguments = argparse.Namespace(
-            measurements=str(path), output=None, report=str(tmp_path / f"{name}.json"), serial="ur10", base=None,
-            tool="tool0", noise_pos=NOISE, noise_rot=1e-4, frame="estimate", marker=[0.0, 0.0, 0.0], units="m",
-            force=False, max_iterations=None, fix=[], prior={}, outlier_sigma=5.0, select="loo", compliance=False,
-            folds=4)
+            measurements=str(path),
+            output=None,
+            report=str(tmp_path / f"{name}.json"),
+            serial="ur10",
+            base=None,
+            tool="tool0",
+            noise_pos=NOISE,
+            noise_rot=1e-4,
+            frame="estimate",
+            marker=[0.0, 0.0, 0.0],
+            units="m",
+            force=False,
+            max_iterations=None,
+            fix=[],
+            prior={},
+            outlier_sigma=5.0,
+            select="loo",
+            compliance=False,
+            folds=4,
+        )
         run_serial_calibration(arguments)
         reports[name] = json.loads((tmp_path / f"{name}.json").read_text())
     out = capsys.readouterr().out
     gross = int(table.column("source")[12])
     assert reports["converted"]["outlier_sources"] == [gross]
     assert f"outliers in the tracker's file (the source column): {gross}" in out
-    frames = [pin.XYZQUATToSE3(np.r_[r["measurement_frame"]["translation"], r["measurement_frame"]["quaternion"]])
-              for r in reports.values()]
+    frames = [
+        pin.XYZQUATToSE3(np.r_[r["measurement_frame"]["translation"], r["measurement_frame"]["quaternion"]])
+        for r in reports.values()
+    ]
     assert np.linalg.norm(frames[0].actInv(frames[1]).translation) < 2e-3  # the same frame, within the noise
     assert np.linalg.norm(frames[0].actInv(FRAME).translation) < 5e-3
     errors = [r["cross_validation"]["position_rms_m"] for r in reports.values()]
@@ -370,8 +441,9 @@ def test_three_markers_or_more_make_one_rigid_body(session, tmp_path) -> None:
     relative = Rotation.from_quat(rows[:, 9:13]).as_matrix()
     assert np.allclose(relative, bodies[:, :3, :3] @ bodies[0, :3, :3].T, atol=1e-9)  # axes of the first sample
     two = tmp_path / "two.csv"
-    two.write_text(table_text(columns[:6] + columns[12:], np.hstack([clouds[:, :2].reshape(12, 6),
-                                                                      session.postures[:12]])))
+    two.write_text(
+        table_text(columns[:6] + columns[12:], np.hstack([clouds[:, :2].reshape(12, 6), session.postures[:12]]))
+    )
     with pytest.raises(DataFileError, match="three markers or more"):
         convert_campaign(two, None, ConversionOptions(read=ReadOptions(body="rigid")))
 
@@ -399,15 +471,20 @@ def test_rotation_vectors_and_matrices_convert_to_the_same_quaternions(tmp_path)
     rotations = Rotation.random(6, random_state=2)
     points = np.random.default_rng(1).normal(size=(6, 3))
     joints = np.linspace(-1, 1, 6)[:, None]
-    files = {"rv": (["rx", "ry", "rz"], np.degrees(rotations.as_rotvec()), ["--rotation-vector", "--degrees"]),
-             "rvx": (["rvx", "rvy", "rvz"], rotations.as_rotvec(), []),
-             "matrix": ([f"r{i}{j}" for i in "123" for j in "123"], rotations.as_matrix().reshape(6, 9), [])}
+    files = {
+        "rv": (["rx", "ry", "rz"], np.degrees(rotations.as_rotvec()), ["--rotation-vector", "--degrees"]),
+        "rvx": (["rvx", "rvy", "rvz"], rotations.as_rotvec(), []),
+        "matrix": ([f"r{i}{j}" for i in "123" for j in "123"], rotations.as_matrix().reshape(6, 9), []),
+    }
     for name, (columns, values, flags) in files.items():
         source = tmp_path / f"{name}.csv"
         source.write_text(table_text(["j1", "x", "y", "z", *columns], np.hstack([joints, points, values])))
         assert main(["convert", str(source), *flags, "-o", str(tmp_path / f"{name}_q.csv")]) == 0
-        table = read_table(tmp_path / f"{name}_q.csv", required=("j1", "x", "y", "z", "qx", "qy", "qz", "qw"),
-                           optional=("source", "position_std"))
+        table = read_table(
+            tmp_path / f"{name}_q.csv",
+            required=("j1", "x", "y", "z", "qx", "qy", "qz", "qw"),
+            optional=("source", "position_std"),
+        )
         found = Rotation.from_quat(np.column_stack([table.column(c) for c in ("qx", "qy", "qz", "qw")]))
         assert np.max((found.inv() * rotations).magnitude()) < 1e-9, name
         assert np.allclose(table.column("j1"), joints[:, 0], atol=1e-12)
@@ -415,8 +492,9 @@ def test_rotation_vectors_and_matrices_convert_to_the_same_quaternions(tmp_path)
         convert_campaign(tmp_path / "rv.csv", None, ConversionOptions())
     skewed = rotations.as_matrix().reshape(6, 9)
     skewed[3, 0] += 0.01
-    (tmp_path / "bad.csv").write_text(table_text(["j1", "x", "y", "z", *files["matrix"][0]],
-                                                 np.hstack([joints, points, skewed])))
+    (tmp_path / "bad.csv").write_text(
+        table_text(["j1", "x", "y", "z", *files["matrix"][0]], np.hstack([joints, points, skewed]))
+    )
     with pytest.raises(DataFileError, match=r"line 5: r11 ... r33 are not a rotation matrix"):
         convert_campaign(tmp_path / "bad.csv", None, ConversionOptions())
 
@@ -433,26 +511,66 @@ def test_every_marker_of_a_stream_is_kept_as_points_and_calibrates(session, tmp_
     clouds[dwell, 2] = np.nan  # marker 3 never seen at posture 5
     columns = ["time", *[f"{a}{k}" for k in range(1, 4) for a in "xyz"]]
     stream = tmp_path / "stream.csv"
-    stream.write_text(table_text(columns, np.column_stack([session.times, clouds.reshape(len(clouds), 9)]),
-                                 blank_allowed=columns[1:]))
+    stream.write_text(
+        table_text(columns, np.column_stack([session.times, clouds.reshape(len(clouds), 9)]), blank_allowed=columns[1:])
+    )
     converted = tmp_path / "points.csv"
-    assert main(["convert", str(stream), "--robot", str(robot_log(tmp_path / "robot.csv", session)), "--body", "all",
-                 "-o", str(converted)]) == 0
+    assert (
+        main(
+            [
+                "convert",
+                str(stream),
+                "--robot",
+                str(robot_log(tmp_path / "robot.csv", session)),
+                "--body",
+                "all",
+                "-o",
+                str(converted),
+            ]
+        )
+        == 0
+    )
     assert "markers 1, 2, 3 as points" in capsys.readouterr().out
     names = session.chain.joint_names
     points = [f"{a}{k}" for k in range(1, 4) for a in "xyz"]
-    table = read_table(converted, required=(*names, *points, "source"), optional=("position_std",),
-                       blank_allowed=points)
+    table = read_table(
+        converted, required=(*names, *points, "source"), optional=("position_std",), blank_allowed=points
+    )
     assert table.n_rows == 24 and np.isnan(table.column("x3")[5]) and np.isfinite(table.column("x2")).all()
-    exact = (FRAME.homogeneous @ tool_poses(session.chain, serial_simulation.simulate_serial_measurements(
-        serial_robots.load_example_robot("ur10"), session.chain, 24, np.random.default_rng(11), noise=None).truth,
-        session.postures) @ BODY.homogeneous)
-    second = (exact[:, :3, :3] @ offsets[1] + exact[:, :3, 3])
+    exact = (
+        FRAME.homogeneous
+        @ tool_poses(
+            session.chain,
+            serial_simulation.simulate_serial_measurements(
+                serial_robots.load_example_robot("ur10"), session.chain, 24, np.random.default_rng(11), noise=None
+            ).truth,
+            session.postures,
+        )
+        @ BODY.homogeneous
+    )
+    second = exact[:, :3, :3] @ offsets[1] + exact[:, :3, 3]
     assert np.max(np.abs(np.column_stack([table.column(c) for c in "x2 y2 z2".split()]) - second)) < 5 * NOISE
     arguments = argparse.Namespace(
-        measurements=str(converted), output=None, report=str(tmp_path / "points.json"), serial="ur10", base=None,
-        tool="tool0", noise_pos=NOISE, noise_rot=1e-4, frame="estimate", marker=None, units="m", force=False,
-        max_iterations=None, fix=[], prior={}, outlier_sigma=5.0, select="loo", compliance=False, folds=4)
+        measurements=str(converted),
+        output=None,
+        report=str(tmp_path / "points.json"),
+        serial="ur10",
+        base=None,
+        tool="tool0",
+        noise_pos=NOISE,
+        noise_rot=1e-4,
+        frame="estimate",
+        marker=None,
+        units="m",
+        force=False,
+        max_iterations=None,
+        fix=[],
+        prior={},
+        outlier_sigma=5.0,
+        select="loo",
+        compliance=False,
+        folds=4,
+    )
     run_serial_calibration(arguments)
     report = json.loads((tmp_path / "points.json").read_text())
     found = np.array(report["points"])  # in the tool frame, up to the tool placement's 1 mm / 1 mrad (the gauge)

@@ -31,7 +31,7 @@ import pytest
 from m3t1r.app.cli import main
 from m3t1r.io.signals import Terminated, _signals_held, termination_as_exception
 
-WORKER = textwrap.dedent(r'''
+WORKER = textwrap.dedent(r"""
     import hashlib, itertools, json, os, random, signal, sys, time
     from pathlib import Path
 
@@ -135,7 +135,7 @@ WORKER = textwrap.dedent(r'''
     assert run({}) == 0
     final_leftovers = sorted(p.name for p in folder.iterdir() if p.name.endswith(".tmp"))
     print(json.dumps({"duration": duration, "outcomes": outcomes, "final_leftovers": final_leftovers}))
-''')
+""")
 
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
@@ -146,16 +146,34 @@ def test_calibrate_killed_at_any_instant_leaves_a_loadable_pair(tmp_path, capsys
     assert main(["simulate", "-n", "20", "--seed", "0", "-o", str(measurements)]) == 0
     assert main(["simulate", "-n", "20", "--seed", "1", "-o", str(old_measurements)]) == 0
     # The old outputs: the same command on other data.
-    assert main(["calibrate", str(old_measurements), "-o", str(folder / "c.urdf"), "--report",
-                 str(folder / "c.json"), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(old_measurements),
+                "-o",
+                str(folder / "c.urdf"),
+                "--report",
+                str(folder / "c.json"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
 
-    config = {"folder": str(folder), "measurements": str(measurements), "seed": 10, "random_kills": 14,
-              "max_random_runs": 40,
-              "old_input_sha256": hashlib.sha256(old_measurements.read_bytes()).hexdigest()}
+    config = {
+        "folder": str(folder),
+        "measurements": str(measurements),
+        "seed": 10,
+        "random_kills": 14,
+        "max_random_runs": 40,
+        "old_input_sha256": hashlib.sha256(old_measurements.read_bytes()).hexdigest(),
+    }
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    done = subprocess.run([sys.executable, "-c", WORKER, json.dumps(config)], capture_output=True, text=True,
-                          env=env, timeout=300)
+    done = subprocess.run(
+        [sys.executable, "-c", WORKER, json.dumps(config)], capture_output=True, text=True, env=env, timeout=300
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout.strip().splitlines()[-1])
     outcomes = result["outcomes"]
@@ -207,8 +225,10 @@ def test_a_signal_during_the_renames_is_reported_with_every_output_written(tmp_p
         signal.signal(signal.SIGINT, previous)
     monkeypatch.undo()
     err = capsys.readouterr().err
-    assert (f"m3t1r: interrupted; it arrived while the outputs were renamed into place, and every one is "
-            f"written: {tmp_path / 'p.csv'}") in err
+    assert (
+        f"m3t1r: interrupted; it arrived while the outputs were renamed into place, and every one is "
+        f"written: {tmp_path / 'p.csv'}"
+    ) in err
     assert "x,y,z,qx,qy,qz,qw" in (tmp_path / "p.csv").read_text()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.csv", "s.csv"]
 
@@ -229,9 +249,13 @@ def test_fk_on_many_rows_shows_progress_and_stops_soon_after_sigterm(tmp_path):
     sliders = np.tile(workspace_actuators(mechanism, 500, np.random.default_rng(0)), (480, 1))
     source = tmp_path / "s.csv"
     np.savetxt(source, sliders, delimiter=",", header=",".join(mechanism.actuated_joints), comments="", fmt="%.17g")
-    child = subprocess.Popen([sys.executable, "-m", "m3t1r.app.cli", "fk", str(source), "-o", str(tmp_path / "p.csv")],
-                             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
-                             env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    child = subprocess.Popen(
+        [sys.executable, "-m", "m3t1r.app.cli", "fk", str(source), "-o", str(tmp_path / "p.csv")],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
+        text=True,
+        env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)},
+    )
     try:
         seen = [child.stderr.readline()]
         while seen[-1] and not seen[-1].startswith("fk: "):

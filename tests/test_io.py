@@ -55,8 +55,12 @@ def bits(array: np.ndarray) -> np.ndarray:
 def test_write_then_read_is_bit_exact(tmp_path: Path) -> None:
     rng = np.random.default_rng(7)
     awkward = [0.1, 1 / 3, -0.0, 5e-324, 2.2250738585072014e-308, 1.7976931348623157e308, -123456789.12345679, np.pi]
-    data = np.vstack([rng.normal(scale=10.0, size=(50, 4)) * 10.0 ** rng.integers(-12, 12, size=(50, 4)),
-                      np.reshape(awkward, (2, 4))])
+    data = np.vstack(
+        [
+            rng.normal(scale=10.0, size=(50, 4)) * 10.0 ** rng.integers(-12, 12, size=(50, 4)),
+            np.reshape(awkward, (2, 4)),
+        ]
+    )
     path = tmp_path / "table.csv"
     write_table(path, ["a", "b", "c", "d"], data, comments=["units: m", "two\nlines"])
 
@@ -77,8 +81,10 @@ def test_values_are_written_in_shortest_exact_form(tmp_path: Path) -> None:
 
 def test_comments_blank_lines_and_line_endings(tmp_path: Path) -> None:
     path = tmp_path / "commented.csv"
-    text = ("\ufeff# produced by a test\r\n\r\n   # indented comment\r\n x , y \r\n1,2\r\n\r\n"
-            "# between rows\r\n 3 , 4e0 \r\n\n")
+    text = (
+        "\ufeff# produced by a test\r\n\r\n   # indented comment\r\n x , y \r\n1,2\r\n\r\n"
+        "# between rows\r\n 3 , 4e0 \r\n\n"
+    )
     write(path, text)
 
     table = read_table(path, required=["x", "y"])
@@ -339,7 +345,9 @@ def test_quaternion_norm_checked_with_its_line(tmp_path: Path) -> None:
     )
     table = read_table(path, required=POSE_COLUMNS)
 
-    with pytest.raises(DataFileError, match=r"quaternion \(qx, qy, qz, qw\) norm 0.98 is not 1 \(tolerance 1e-06\)") as caught:
+    with pytest.raises(
+        DataFileError, match=r"quaternion \(qx, qy, qz, qw\) norm 0.98 is not 1 \(tolerance 1e-06\)"
+    ) as caught:
         poses_from_table(table)
     assert caught.value.row == 5
 
@@ -500,11 +508,14 @@ def test_non_utf8_names_the_file_and_line(tmp_path):
 # -- read_table: schema and header --------------------------------------------------------------
 
 
-@pytest.mark.parametrize("schema", [
-    {"required": "xy"},
-    {"required": ["x"], "optional": "yz"},
-    {"required": ["x"], "optional_groups": ["yz"]},
-])
+@pytest.mark.parametrize(
+    "schema",
+    [
+        {"required": "xy"},
+        {"required": ["x"], "optional": "yz"},
+        {"required": ["x"], "optional_groups": ["yz"]},
+    ],
+)
 def test_a_column_list_given_as_a_string_is_refused(tmp_path, schema):
     path = _csv(tmp_path, "x\n1\n")
     with pytest.raises(ValueError, match=r"^column lists must be sequences of names, not strings$"):
@@ -527,21 +538,25 @@ def test_separator_hint_only_for_a_single_field_with_a_semicolon_or_tab(tmp_path
     semicolons = _csv(tmp_path, "x;y\n1;2\n", "semi.csv")
     assert str(_read_error(semicolons, ["x", "y"])) == (
         f"{semicolons}, line 1, column 'x': missing required columns: x, y; unknown columns: x;y "
-        "(is this file for another model?) (fields must be separated by commas)")
+        "(is this file for another model?) (fields must be separated by commas)"
+    )
     # One field without a separator, and two fields one of which holds a ';': no hint.
     single = _csv(tmp_path, "x\n1\n", "single.csv")
     assert str(_read_error(single, ["x", "y"])) == f"{single}, line 1, column 'y': missing required columns: y"
     two = _csv(tmp_path, "x,a;b\n1,2\n", "two.csv")
     assert str(_read_error(two, ["x"])) == (
-        f"{two}, line 1, column 'a;b': unknown columns: a;b (is this file for another model?); expected columns: x")
+        f"{two}, line 1, column 'a;b': unknown columns: a;b (is this file for another model?); expected columns: x"
+    )
 
 
 def test_unknown_columns_list_them_and_the_expected_ones(tmp_path):
     path = _csv(tmp_path, "x,u,v\n1,2,3\n")
     error = _read_error(path, ["x"], ["y"], [("qa", "qb")])
     assert error.column == "u"
-    assert str(error) == (f"{path}, line 1, column 'u': unknown columns: u, v (is this file for another model?); "
-                          "expected columns: x, y, qa, qb")
+    assert str(error) == (
+        f"{path}, line 1, column 'u': unknown columns: u, v (is this file for another model?); "
+        "expected columns: x, y, qa, qb"
+    )
 
 
 def test_a_partial_group_lists_the_absent_columns(tmp_path):
@@ -575,8 +590,10 @@ def test_default_magnitude_bound_is_inclusive_at_1e6(tmp_path):
     beyond = _csv(tmp_path, "# units: m\nx,y\n0,1000000.0000001\n", "beyond.csv")
     error = _read_error(beyond, ["x", "y"])
     assert (error.path, error.row, error.column) == (str(beyond), 3, "y")
-    assert str(error) == (f"{beyond}, line 3, column 'y': value 1000000.0000001 is implausibly large: |value| > 1e+06 "
-                          "(SI units: m, rad); it would overflow the computation")
+    assert str(error) == (
+        f"{beyond}, line 3, column 'y': value 1000000.0000001 is implausibly large: |value| > 1e+06 "
+        "(SI units: m, rad); it would overflow the computation"
+    )
 
 
 def test_explicit_magnitude_bound(tmp_path):
@@ -598,8 +615,10 @@ def test_duplicate_rows_name_the_file_and_both_lines(tmp_path):
 
 @pytest.mark.parametrize("name", ["a,b", 'a"b', "a\nb", "", " a", "a "])
 def test_bad_column_names_are_refused_with_the_rule(name):
-    with pytest.raises(InvalidInputError, match=re.escape(
-            f"column name {name!r}: must be non-empty, unpadded, without , \" or line breaks")):
+    with pytest.raises(
+        InvalidInputError,
+        match=re.escape(f'column name {name!r}: must be non-empty, unpadded, without , " or line breaks'),
+    ):
         table_text(["x", name], [[1.0, 2.0]])
 
 
@@ -614,7 +633,9 @@ def test_repeated_column_names_are_listed():
 
 
 def test_table_text_refuses_zero_rows_and_names_the_default_what():
-    with pytest.raises(InvalidInputError, match=re.escape("table data: shape (0, 2), expected (n_rows >= 1, 2 columns)")):
+    with pytest.raises(
+        InvalidInputError, match=re.escape("table data: shape (0, 2), expected (n_rows >= 1, 2 columns)")
+    ):
         table_text(["a", "b"], np.empty((0, 2)))
     with pytest.raises(InvalidInputError, match=r"^table data: row 0, column 'b' is nan, not a finite number$"):
         table_text(["a", "b"], [[1.0, np.nan]])
@@ -678,12 +699,15 @@ def test_missing_pose_column_names_the_file_and_the_first_missing(tmp_path):
     assert str(caught.value).endswith("missing pose columns: qy, qz, qw")
 
 
-@pytest.mark.parametrize(("quaternion", "canonical"), [
-    ((0.6, 0.8, 0.0, 0.0), (0.6, 0.8, 0.0, 0.0)),
-    ((-0.6, 0.8, 0.0, 0.0), (0.6, -0.8, 0.0, 0.0)),
-    ((0.0, -0.6, 0.8, 0.0), (0.0, 0.6, -0.8, 0.0)),
-    ((0.0, 0.0, 0.6, 0.0), (0.0, 0.0, 1.0, 0.0)),
-])
+@pytest.mark.parametrize(
+    ("quaternion", "canonical"),
+    [
+        ((0.6, 0.8, 0.0, 0.0), (0.6, 0.8, 0.0, 0.0)),
+        ((-0.6, 0.8, 0.0, 0.0), (0.6, -0.8, 0.0, 0.0)),
+        ((0.0, -0.6, 0.8, 0.0), (0.0, 0.6, -0.8, 0.0)),
+        ((0.0, 0.0, 0.6, 0.0), (0.0, 0.0, 1.0, 0.0)),
+    ],
+)
 def test_half_turn_sign_is_fixed_by_the_first_non_zero_component(quaternion, canonical):
     x, y, z, w = quaternion
     rotation = pin.Quaternion(w, x, y, z).normalized().toRotationMatrix()
@@ -813,9 +837,17 @@ def test_a_leftover_that_cannot_be_removed_is_noted_and_announced(tmp_path):
 
 def _held_by_child(path: Path) -> subprocess.Popen:
     """A child process that holds `path`'s flock, as a live writer does, until killed."""
-    child = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'rb+'); "
-                              "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)", str(path)],
-                             stdout=subprocess.PIPE, text=True)
+    child = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import fcntl, sys, time; f = open(sys.argv[1], 'rb+'); "
+            "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)",
+            str(path),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     assert child.stdout.readline().strip() == "held"
     return child
 
@@ -912,8 +944,9 @@ def test_an_existing_temporary_name_is_never_reused(tmp_path, monkeypatch):
     with pytest.raises(OutputPathError) as caught:
         claim_temporary(tmp_path / "out.csv")
     assert caught.value.path == str(tmp_path / "out.csv")
-    assert str(caught.value) == (f"{tmp_path / 'out.csv'}: cannot create a file in {tmp_path}: File exists; "
-                                 "nothing was written")
+    assert str(caught.value) == (
+        f"{tmp_path / 'out.csv'}: cannot create a file in {tmp_path}: File exists; nothing was written"
+    )
     assert taken.read_bytes() == b"someone else's"
 
 
@@ -926,7 +959,9 @@ def test_a_failed_write_empties_the_claimed_file(tmp_path, monkeypatch):
     try:
         with pytest.raises(OutputPathError) as caught:
             write_claimed(tmp_path / "out.csv", temporary, descriptor, b"data" * 1000)
-        assert str(caught.value) == f"{tmp_path / 'out.csv'}: write failed, file left unchanged: No space left on device"
+        assert (
+            str(caught.value) == f"{tmp_path / 'out.csv'}: write failed, file left unchanged: No space left on device"
+        )
         assert temporary.stat().st_size == 0 and not (tmp_path / "out.csv").exists()
     finally:
         temporaries.release_temporary(temporary, descriptor, remove=True)
@@ -962,11 +997,17 @@ def test_pending_temporaries_skip_an_entry_that_vanished(tmp_path, monkeypatch):
                 raise FileNotFoundError(errno.ENOENT, "gone")
             return os.stat_result((0, 0, 0, 0, 0, 0, 0, 0, self.mtime, 0))
 
-    entries = [Entry(".out.csv.m3t1r-1-0a.tmp", 2.0), Entry(".out.csv.m3t1r-2-0b.tmp", None),
-               Entry(".out.csv.m3t1r-3-0c.tmp", 1.0), Entry("out.csv", 0.0)]
+    entries = [
+        Entry(".out.csv.m3t1r-1-0a.tmp", 2.0),
+        Entry(".out.csv.m3t1r-2-0b.tmp", None),
+        Entry(".out.csv.m3t1r-3-0c.tmp", 1.0),
+        Entry("out.csv", 0.0),
+    ]
     monkeypatch.setattr(temporaries.os, "scandir", lambda folder: iter(entries))
-    assert pending_temporaries(tmp_path / "out.csv") == [tmp_path / ".out.csv.m3t1r-3-0c.tmp",
-                                                          tmp_path / ".out.csv.m3t1r-1-0a.tmp"]
+    assert pending_temporaries(tmp_path / "out.csv") == [
+        tmp_path / ".out.csv.m3t1r-3-0c.tmp",
+        tmp_path / ".out.csv.m3t1r-1-0a.tmp",
+    ]
 
 
 # -- print_notice --------------------------------------------------------------------------------------

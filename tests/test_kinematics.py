@@ -99,8 +99,12 @@ def test_closure_jacobian_matches_central_differences(solver):
             fd[:, k] = (solver.closure_residual(q + e) - solver.closure_residual(q - e)) / 2e-6
         assert np.max(np.abs(jac - fd)) <= 1e-6 * np.max(np.abs(jac))
         full = solver.closure_jacobian(q, all_rows=True)
-        fd_full = np.array([(solver.closure_residual(q + e, True) - solver.closure_residual(q - e, True)) / 2e-6
-                            for e in np.eye(20) * 1e-6]).T
+        fd_full = np.array(
+            [
+                (solver.closure_residual(q + e, True) - solver.closure_residual(q - e, True)) / 2e-6
+                for e in np.eye(20) * 1e-6
+            ]
+        ).T
         assert np.max(np.abs(full - fd_full)) <= 1e-6 * np.max(np.abs(full))
 
 
@@ -118,12 +122,15 @@ def test_perturbed_machines_assemble_across_the_workspace(mechanism):
         assert redundant > 1e-5, "with errors the redundant rows cannot all hold"
 
 
-@pytest.mark.parametrize("bad,message", [
-    ([0.0, 0.0, np.nan, 0.0], "non-finite value nan at index 2"),
-    ([0.0, 0.0, 0.0], "expected 4 values, got 3"),
-    ([0.0, 700.0, 0.0, 0.0], r"actuator 'q11_B2' = 700 is beyond its joint limit \[-0.6, 0.6\]"),
-    (["a", 0, 0, 0], "not a numeric vector"),
-])
+@pytest.mark.parametrize(
+    "bad,message",
+    [
+        ([0.0, 0.0, np.nan, 0.0], "non-finite value nan at index 2"),
+        ([0.0, 0.0, 0.0], "expected 4 values, got 3"),
+        ([0.0, 700.0, 0.0, 0.0], r"actuator 'q11_B2' = 700 is beyond its joint limit \[-0.6, 0.6\]"),
+        (["a", 0, 0, 0], "not a numeric vector"),
+    ],
+)
 def test_forward_rejects_bad_actuators(solver, bad, message):
     with pytest.raises(InvalidInputError, match=message):
         solver.forward(bad)
@@ -165,13 +172,16 @@ def test_yaw_convention():
     assert math.isclose(yaw_of(pin.rpy.rpyToMatrix(0.0, 0.0, 0.4)), 0.4)
 
 
-@pytest.mark.parametrize("name, value, message", [
-    ("tolerance", 2e-6, r"tolerance 2e-06: at most 1e-06 \(m, rad of closure residual\)"),
-    ("tolerance", 0.0, "tolerance: expected a finite number above 0, got 0.0"),
-    ("tolerance", float("nan"), "tolerance: expected a finite number above 0"),
-    ("max_iterations", -1, "max_iterations"),
-    ("max_iterations", 2.5, "max_iterations"),
-])
+@pytest.mark.parametrize(
+    "name, value, message",
+    [
+        ("tolerance", 2e-6, r"tolerance 2e-06: at most 1e-06 \(m, rad of closure residual\)"),
+        ("tolerance", 0.0, "tolerance: expected a finite number above 0, got 0.0"),
+        ("tolerance", float("nan"), "tolerance: expected a finite number above 0"),
+        ("max_iterations", -1, "max_iterations"),
+        ("max_iterations", 2.5, "max_iterations"),
+    ],
+)
 def test_a_solver_refuses_the_same_settings_given_or_set_later(mechanism, name, value, message):
     """A tolerance looser than MAX_TOLERANCE would return open loops as solutions, whether it is
     given to the constructor or set afterwards; a refused setting leaves the solver as it was."""
@@ -217,10 +227,13 @@ def _machines(mechanism, tool_machine, tmp_path):
     # A five-bar whose motor box reaches to within a few degrees of its stretched-elbow singularity,
     # where the two assembly modes are close: a start on the wrong side of it is easy to make.
     stretched = FiveBarGeometry(distal=0.28)
-    return {"M machine": mechanism, "tool machine": tool_machine,  # (machine, half-width of the slider window)
-            "five-bar": Mechanism.load(*five_bar_files(tmp_path / "a")),
-            "stretched five-bar": Mechanism.load(*five_bar_files(tmp_path / "b", geometry=stretched)),
-            "spherical wrist": Mechanism.load(*spherical_wrist_files(tmp_path / "c"))}
+    return {
+        "M machine": mechanism,
+        "tool machine": tool_machine,  # (machine, half-width of the slider window)
+        "five-bar": Mechanism.load(*five_bar_files(tmp_path / "a")),
+        "stretched five-bar": Mechanism.load(*five_bar_files(tmp_path / "b", geometry=stretched)),
+        "spherical wrist": Mechanism.load(*spherical_wrist_files(tmp_path / "c")),
+    }
 
 
 @pytest.mark.parametrize("native", [True, False])
@@ -242,8 +255,11 @@ def test_a_fresh_solver_s_first_forward_is_the_path_from_home(mechanism, tool_ma
             reset.forward(home + 0.01)
             reset.reset()
             solves = []
-            for solve in (lambda: ClosedLoopSolver(machine, native=native).forward(values), lambda: reset.forward(values),
-                          lambda: ClosedLoopSolver(machine, native=native).forward(values, q_init=machine.home)):
+            for solve in (
+                lambda: ClosedLoopSolver(machine, native=native).forward(values),
+                lambda: reset.forward(values),
+                lambda: ClosedLoopSolver(machine, native=native).forward(values, q_init=machine.home),
+            ):
                 try:
                     solves.append(solve().q)
                 except KinematicsError:
@@ -283,8 +299,9 @@ def test_a_task_coordinate_the_mechanism_cannot_move_is_refused_by_name(tmp_path
             solve()
     commandable = ClosedLoopSolver(good)
     assert commandable.uncommandable_task_rows() == ()
-    np.testing.assert_allclose(commandable.inverse(fk.task_pose.translation[:2]).actuators,
-                               planar.home[planar.actuated_ids] + 0.01, atol=1e-9)
+    np.testing.assert_allclose(
+        commandable.inverse(fk.task_pose.translation[:2]).actuators, planar.home[planar.actuated_ids] + 0.01, atol=1e-9
+    )
 
 
 @pytest.mark.parametrize("values", [[0.1 + 1j, 0.0, 0.0, 0.0], np.array([0.1, 0.0, 0.0, 0.0]) + 0j])
@@ -295,14 +312,17 @@ def test_a_complex_input_is_refused_not_read_as_its_real_part(solver, values):
         solver.forward_batch([values])
 
 
-@pytest.mark.parametrize("options,message", [
-    ({"tolerance": math.inf}, "tolerance: expected a finite number above 0"),
-    ({"tolerance": 1.0}, "at most 1e-06"),
-    ({"tolerance": 0.0}, "above 0"),
-    ({"tolerance": math.nan}, "finite number"),
-    ({"max_iterations": -1}, "max_iterations: expected a whole number of at least 0"),
-    ({"max_iterations": 2.5}, "whole number"),
-])
+@pytest.mark.parametrize(
+    "options,message",
+    [
+        ({"tolerance": math.inf}, "tolerance: expected a finite number above 0"),
+        ({"tolerance": 1.0}, "at most 1e-06"),
+        ({"tolerance": 0.0}, "above 0"),
+        ({"tolerance": math.nan}, "finite number"),
+        ({"max_iterations": -1}, "max_iterations: expected a whole number of at least 0"),
+        ({"max_iterations": 2.5}, "whole number"),
+    ],
+)
 def test_solver_options_that_would_pass_open_loops_as_solutions_are_refused(mechanism, options, message):
     """tolerance=inf or 1.0 returned home's neighbours as 'solved' after 0 iterations, loops 0.5 open."""
     with pytest.raises(InvalidInputError, match=message):
@@ -381,12 +401,14 @@ def test_diagonal_blocks_of_a_block_triangular_pattern():
     for rows, cols in diagonal_blocks(pattern):
         assert pattern[np.ix_(rows, cols)].any(axis=1).all()
     from m3t1r.errors import SingularConfigurationError
+
     with pytest.raises(SingularConfigurationError, match="structurally singular"):
         diagonal_blocks(np.array([[1, 1], [0, 0]], dtype=bool))
 
 
-@pytest.mark.parametrize("target, most", [((0.55, 0.6, -0.1, 0.3), 6), ((0.45, 0.3, -0.2, -0.6), 8),
-                                          ((0.58, 0.8, -0.02, 0.7), 7)])
+@pytest.mark.parametrize(
+    "target, most", [((0.55, 0.6, -0.1, 0.3), 6), ((0.45, 0.3, -0.2, -0.6), 8), ((0.58, 0.8, -0.02, 0.7), 7)]
+)
 def test_cold_inverse_converges_quadratically(mechanism, target, most):
     """Exact Newton from home: a wrong yaw-row Jacobian still converges, but in more steps."""
     assert ClosedLoopSolver(mechanism).inverse(target).iterations <= most
@@ -440,8 +462,10 @@ def test_closure_sensitivity_is_the_residual_jacobian_and_row_operator(solver, m
     assert operator.shape == (len(residual), 6)
     start = 0  # each closure's rows: the operator on the relative spatial twist of its two frames
     for closure in mechanism.closures:
-        frame_b, frame_a = (pin.getFrameJacobian(solver.model, solver.data, f, pin.WORLD)
-                            for f in (closure.frame_b_id, closure.frame_a_id))
+        frame_b, frame_a = (
+            pin.getFrameJacobian(solver.model, solver.data, f, pin.WORLD)
+            for f in (closure.frame_b_id, closure.frame_a_id)
+        )
         rows = slice(start, start + len(closure.rows))
         np.testing.assert_allclose(operator[rows] @ (frame_b - frame_a), jacobian[rows], atol=1e-15)
         start = rows.stop
@@ -522,7 +546,9 @@ def test_mobility_counts_rows_and_singular_values_as_documented(mechanism):
 
     from m3t1r.model.kinematics import rehomed
 
-    perturbed = rehomed(mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(3), 1e-3, 1e-3)))
+    perturbed = rehomed(
+        mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(3), 1e-3, 1e-3))
+    )
     solver = ClosedLoopSolver(perturbed)
     assert solver.mobility(perturbed.home) == 4  # enforced rows by default
     assert solver.mobility(perturbed.home, all_rows=True) == 0  # the redundant rows no longer are
@@ -547,8 +573,10 @@ def test_check_actuators_limits_are_inclusive_and_a_copy(solver):
     for given in (beyond, beyond.tolist()):
         with pytest.raises(InvalidInputError) as caught:
             solver.check_actuators(given)
-        assert str(caught.value) == (f"actuator 'q21' = {beyond[2]:.6g} is beyond its joint limit "
-                                     f"[{lower[2]:.6g}, {upper[2]:.6g}] (SI units: metres for sliders)")
+        assert str(caught.value) == (
+            f"actuator 'q21' = {beyond[2]:.6g} is beyond its joint limit "
+            f"[{lower[2]:.6g}, {upper[2]:.6g}] (SI units: metres for sliders)"
+        )
     with pytest.raises(InvalidInputError) as caught:
         solver.check_actuators([0.1, 0.2])
     assert str(caught.value) == "actuator values: expected 4 values, got 2"
@@ -604,15 +632,18 @@ def test_warm_inverse_along_a_curved_path_reuses_its_factors(mechanism):
     solver = ClosedLoopSolver(mechanism)
     steps = []
     for k in range(12):
-        target = TARGET + 0.002 * k * np.array([2.0, 1.5, -1.0, 10.0]) + 0.0005 * k * k * np.array([1.0, -1.0, 0.5, 2.0])
+        target = (
+            TARGET + 0.002 * k * np.array([2.0, 1.5, -1.0, 10.0]) + 0.0005 * k * k * np.array([1.0, -1.0, 0.5, 2.0])
+        )
         result = solver.inverse(target)
         steps.append(result.iterations)
         np.testing.assert_allclose(result.actuators, ClosedLoopSolver(mechanism).inverse(target).actuators, atol=1e-9)
     assert sum(steps) <= 32, steps
 
 
-@pytest.mark.parametrize("target, most", [((0.55, 0.6, -0.1, 0.3), 9), ((0.45, 0.3, -0.2, -0.6), 8),
-                                          ((0.58, 0.8, -0.02, 0.7), 8)])
+@pytest.mark.parametrize(
+    "target, most", [((0.55, 0.6, -0.1, 0.3), 9), ((0.45, 0.3, -0.2, -0.6), 8), ((0.58, 0.8, -0.02, 0.7), 8)]
+)
 def test_cold_inverse_of_a_tilting_machine_converges_quadratically(mechanism, target, most):
     """A perturbed machine tilts its platform by 0.05-0.14 rad: the yaw row's Jacobian terms in the
     tilt (c_z) count. Measured 8, 7, 7 steps; one of slack."""
@@ -630,7 +661,8 @@ def test_newton_failures_say_why_word_for_word(mechanism):
         ClosedLoopSolver(mechanism).inverse(np.array([3.0, 3.0, 1.0, 0.0]))
     assert str(caught.value).startswith(
         "the closures cannot be assembled here (target out of the workspace or too far from the initial "
-        "configuration's branch) (residual ")
+        "configuration's branch) (residual "
+    )
     assert caught.value.iterations == 60 and caught.value.residual > 1.0
     ik = ClosedLoopSolver(mechanism).inverse(TARGET)
     start = ik.q.copy()
@@ -653,8 +685,13 @@ def test_block_structure_of_the_passive_system_from_a_cold_cache(mechanism):
         if saved is not None:
             kinematics._BLOCK_CACHE[key] = saved
     found = sorted((sorted(r.tolist()), sorted(c.tolist())) for r, c in blocks)
-    assert found == [([0, 1], [2, 7]), ([2, 3], [1, 9]), ([4, 5, 10, 11, 12, 13, 14, 15], [3, 4, 5, 6, 13, 14, 15, 16]),
-                     ([6, 7], [12, 17]), ([8, 9], [11, 19])]
+    assert found == [
+        ([0, 1], [2, 7]),
+        ([2, 3], [1, 9]),
+        ([4, 5, 10, 11, 12, 13, 14, 15], [3, 4, 5, 6, 13, 14, 15, 16]),
+        ([6, 7], [12, 17]),
+        ([8, 9], [11, 19]),
+    ]
 
 
 def test_returned_poses_do_not_move_with_later_solves(mechanism):
@@ -674,8 +711,11 @@ def test_branch_signature_reads_every_block_by_its_size():
     """A 1 x 1 block by its sign, a 2 x 2 by its closed-form determinant, larger ones by LU."""
     from m3t1r.model.kinematics import _BranchSignature
 
-    blocks = [(np.array([0]), np.array([0])), (np.array([1, 2]), np.array([1, 2])),
-              (np.array([3, 4, 5]), np.array([3, 4, 5]))]
+    blocks = [
+        (np.array([0]), np.array([0])),
+        (np.array([1, 2]), np.array([1, 2])),
+        (np.array([3, 4, 5]), np.array([3, 4, 5])),
+    ]
     signature = _BranchSignature(blocks, 6)
     jac = np.eye(6)
     jac[0, 0] = 0.5
@@ -693,8 +733,9 @@ def test_a_failed_inverse_leaves_a_usable_warm_start(mechanism):
     with pytest.raises(OutOfWorkspaceError):
         solver.inverse(np.array([3.0, 3.0, 1.0, 0.0]))
     near = TARGET + [0.01, 0.0, 0.0, 0.05]
-    np.testing.assert_allclose(solver.inverse(near).actuators, ClosedLoopSolver(mechanism).inverse(near).actuators,
-                               atol=1e-10)
+    np.testing.assert_allclose(
+        solver.inverse(near).actuators, ClosedLoopSolver(mechanism).inverse(near).actuators, atol=1e-10
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -706,20 +747,26 @@ def test_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism):
     a repeated slider set (e = 0) has no direction: nothing either."""
     solver = ClosedLoopSolver(mechanism)
     sliders, passive = solver.last_q[solver.actuated], solver.last_q[solver.passive]
-    e = np.array([2.0 ** -7, -2.0 ** -6, 2.0 ** -8, 2.0 ** -7])  # binary fractions: dot products without rounding
+    e = np.array([2.0**-7, -(2.0**-6), 2.0**-8, 2.0**-7])  # binary fractions: dot products without rounding
     offset = np.linspace(-0.01, 0.02, len(passive))  # q_prev - q_last on the passive joints
     tangent = np.zeros((len(passive), len(sliders)))
     previous = (sliders - e, passive + offset)  # the solution before the start, home
     # Binary fractions make lam = d.e / e.e exact on every BLAS kernel (with decimal steps its
     # rounding left 1e-38 where 'nothing' is expected), so the expected terms hold exactly.
     for lam, expected in ((0.5, 0.25), (1.0, 1.0), (1.5, 2.25), (0.0, 0.0), (2.0, 0.0), (2.5, 0.0), (-0.5, 0.0)):
-        change = lam * e if lam else np.array([2.0 ** -6, 2.0 ** -7, 0.0, 0.0])  # orthogonal to e, exactly
-        np.testing.assert_allclose(solver.predict(solver.last_q, change, tangent, previous),
-                                   expected * offset, rtol=1e-12, atol=0.0, err_msg=str(lam))
+        change = lam * e if lam else np.array([2.0**-6, 2.0**-7, 0.0, 0.0])  # orthogonal to e, exactly
+        np.testing.assert_allclose(
+            solver.predict(solver.last_q, change, tangent, previous),
+            expected * offset,
+            rtol=1e-12,
+            atol=0.0,
+            err_msg=str(lam),
+        )
     np.testing.assert_allclose(solver.predict(solver.last_q, e, tangent, None), np.zeros(len(passive)), atol=0.0)
     # The same sliders twice: e = 0, no direction.
-    np.testing.assert_array_equal(solver.predict(solver.last_q, e, tangent, (sliders, passive + offset)),
-                                  np.zeros(len(passive)))
+    np.testing.assert_array_equal(
+        solver.predict(solver.last_q, e, tangent, (sliders, passive + offset)), np.zeros(len(passive))
+    )
 
 
 def test_batch_methods_pass_q_init_on(solver, mechanism):
@@ -838,7 +885,8 @@ def test_a_task_that_is_not_square_is_refused_word_for_word(tmp_path):
         solver.inverse(np.zeros(3))
     assert str(caught.value) == (
         f"{closures}: inverse kinematics needs as many task coordinates as actuators; the task (x, y, z of "
-        "frame 'effector') commands 3 for 2 actuators (declare the task in the closures file: models/README.md)")
+        "frame 'effector') commands 3 for 2 actuators (declare the task in the closures file: models/README.md)"
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -917,7 +965,10 @@ def test_newton_singular_verdict_uses_the_one_norm_and_is_word_for_word(solver):
     solver.tolerance = 1e-12
     with pytest.raises(SingularConfigurationError) as caught:
         solver.newton(np.zeros(2), None, system, _label)
-    assert str(caught.value) == "singular configuration (reciprocal condition 5.00e-12) (residual 3.000e-13 after 1 iterations)"
+    assert (
+        str(caught.value)
+        == "singular configuration (reciprocal condition 5.00e-12) (residual 3.000e-13 after 1 iterations)"
+    )
     assert caught.value.residual == 3e-13 and caught.value.iterations == 1
 
 
@@ -929,8 +980,10 @@ def test_newton_branch_change_is_word_for_word(solver):
     labels = iter([b"start", b"other", b"other"])
     with pytest.raises(BranchChangeError) as caught:
         solver.newton(np.zeros(2), None, system, lambda jac, lu: next(labels))
-    assert str(caught.value) == ("the solution lies on another assembly branch than the start (Newton crossed a "
-                                 "singularity) (residual 2.000e-13 after 2 iterations)")
+    assert str(caught.value) == (
+        "the solution lies on another assembly branch than the start (Newton crossed a "
+        "singularity) (residual 2.000e-13 after 2 iterations)"
+    )
     assert caught.value.residual == 2e-13 and caught.value.iterations == 2
 
 
@@ -960,7 +1013,7 @@ def test_forward_records_the_predictor_history_and_the_branch(mechanism, compile
         # what it holds, exactly, in both loops.
         previous = solver._previous
         if compiled and previous is not None:
-            previous = (previous[:len(home_sliders)], previous[len(home_sliders):])
+            previous = (previous[: len(home_sliders)], previous[len(home_sliders) :])
         history.append(None if previous is None else previous[0].copy())
         if previous is not None:
             np.testing.assert_array_equal(previous[1], before[solver.passive])
@@ -974,8 +1027,9 @@ def test_inverse_beyond_an_actuator_limit_reports_the_converged_solve(mechanism)
     """The assembly exists but needs q21 = 0.656 m: refused with the solve's own residual and steps."""
     with pytest.raises(OutOfWorkspaceError) as caught:
         ClosedLoopSolver(mechanism).inverse(TARGET + [0.0, 0.5, 0.0, 0.0])
-    assert str(caught.value).startswith("target needs actuator 'q21' = 0.656167 m, beyond its limit [-0.6, 0.6] "
-                                        "(residual ")
+    assert str(caught.value).startswith(
+        "target needs actuator 'q21' = 0.656167 m, beyond its limit [-0.6, 0.6] (residual "
+    )
     assert caught.value.residual <= 1e-12 and 3 <= caught.value.iterations <= 20
 
 
@@ -989,7 +1043,8 @@ def test_a_closure_system_that_is_not_square_is_refused_word_for_word(mechanism)
         ClosedLoopSolver(short)
     assert str(caught.value) == (
         f"{mechanism.closures_path}: 15 enforced closure rows for 16 passive joints; forward kinematics needs a "
-        "square system (one row per passive joint)")
+        "square system (one row per passive joint)"
+    )
 
 
 def test_a_half_open_stroke_still_refuses_an_infinite_slider(mechanism):
@@ -1058,8 +1113,9 @@ def test_branch_signature_factors_each_block_when_a_pivot_comes_from_below():
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the steps on these factors are nan
-@pytest.mark.parametrize("jacobian", [np.array([[1.0, 1.0], [1.0, 1.0]]), np.array([[1.0, np.nan], [0.0, 1.0]])],
-                         ids=["zero pivot", "nan"])
+@pytest.mark.parametrize(
+    "jacobian", [np.array([[1.0, 1.0], [1.0, 1.0]]), np.array([[1.0, np.nan], [0.0, 1.0]])], ids=["zero pivot", "nan"]
+)
 def test_newton_calls_a_zero_pivot_or_a_nan_inverse_singular(solver, jacobian):
     """rcond is 0 when U has a zero pivot (no inverse) or the inverse is nan, never accepted."""
     from m3t1r.errors import SingularConfigurationError
@@ -1093,6 +1149,7 @@ def test_newton_labels_a_single_jacobian_once(solver):
     def counted(jac, lu):
         calls.append(1)
         return b"branch"
+
     system = _Scripted([[1.0, 0.0], [0.01, 0.0], [0.0, 0.0]])
     outcome = solver.newton(np.zeros(2), None, system, counted)
     assert len(calls) == 1 and outcome.branch == b"branch" and system.calls == [True, False, False]
@@ -1108,8 +1165,9 @@ def test_inverse_predictor_first_order_is_minus_x_times_the_task_rows(mechanism)
     solver = ClosedLoopSolver(mechanism)
     x = np.random.default_rng(2).normal(size=(mechanism.model.nv, 4))
     goal = _HERE + [0.01, -0.02, 0.005, 0.03]
-    np.testing.assert_allclose(solver.inverse_predict(goal, None, x, _LAST_TASK, None), -(x @ (_HERE - goal)),
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        solver.inverse_predict(goal, None, x, _LAST_TASK, None), -(x @ (_HERE - goal)), rtol=1e-12
+    )
 
 
 def test_inverse_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism):
@@ -1117,16 +1175,22 @@ def test_inverse_predictor_second_order_term_only_for_0_lt_lambda_lt_2(mechanism
     lam is the new goal change along the last one, e (task rows of the previous goal at the last pose)."""
     solver = ClosedLoopSolver(mechanism)
     offset = np.linspace(-0.01, 0.02, mechanism.model.nv)  # q_prev - q_last
-    e = np.array([2.0 ** -7, -2.0 ** -6, 2.0 ** -8, 0.0])
+    e = np.array([2.0**-7, -(2.0**-6), 2.0**-8, 0.0])
     zero = np.zeros((mechanism.model.nv, 4))
     previous = ((_HERE - e, None), solver.last_q + offset)
     for lam, expected in ((0.5, 0.25), (1.0, 1.0), (1.5, 2.25), (0.0, 0.0), (2.0, 0.0), (2.5, 0.0), (-0.5, 0.0)):
-        goal = _HERE + (lam * e if lam else np.array([2.0 ** -6, 2.0 ** -7, 0.0, 0.0]))  # at right angles to e
-        np.testing.assert_allclose(solver.inverse_predict(goal, None, zero, _LAST_TASK, previous), expected * offset,
-                                   rtol=1e-9, atol=1e-17, err_msg=str(lam))
+        goal = _HERE + (lam * e if lam else np.array([2.0**-6, 2.0**-7, 0.0, 0.0]))  # at right angles to e
+        np.testing.assert_allclose(
+            solver.inverse_predict(goal, None, zero, _LAST_TASK, previous),
+            expected * offset,
+            rtol=1e-9,
+            atol=1e-17,
+            err_msg=str(lam),
+        )
     same_goal = ((_HERE, None), solver.last_q + offset)  # e = 0
-    np.testing.assert_array_equal(solver.inverse_predict(_HERE + e, None, zero, _LAST_TASK, same_goal),
-                                  np.zeros(mechanism.model.nv))
+    np.testing.assert_array_equal(
+        solver.inverse_predict(_HERE + e, None, zero, _LAST_TASK, same_goal), np.zeros(mechanism.model.nv)
+    )
 
 
 def _start_residual(solver, target):
@@ -1197,10 +1261,14 @@ def test_a_tool_task_frame_is_reported_apart_from_the_platform(tool_machine):
     solver = ClosedLoopSolver(tool_machine)
     target = frame_coordinates(tool_machine, tool_machine.home, "tool") + [0.01, -0.02, 0.01, 0.05]
     inverse = solver.inverse(target)
-    np.testing.assert_allclose(tool_machine.task.coordinates(inverse.task_pose.homogeneous[None])[0], target,
-                               atol=1e-12)
-    np.testing.assert_allclose(frame_coordinates(tool_machine, inverse.q, "P_I"),
-                               tool_machine.task.coordinates(inverse.pose.homogeneous[None])[0], atol=1e-12)
+    np.testing.assert_allclose(
+        tool_machine.task.coordinates(inverse.task_pose.homogeneous[None])[0], target, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        frame_coordinates(tool_machine, inverse.q, "P_I"),
+        tool_machine.task.coordinates(inverse.pose.homogeneous[None])[0],
+        atol=1e-12,
+    )
     forward = solver.forward(inverse.actuators)
     np.testing.assert_allclose(forward.task_pose.homogeneous, inverse.task_pose.homogeneous, atol=1e-12)
     np.testing.assert_allclose(forward.pose.homogeneous, inverse.pose.homogeneous, atol=1e-12)
@@ -1219,6 +1287,7 @@ def test_slider_arrays_of_every_dtype_are_checked(solver, mechanism):
         solver.forward(np.array([0.0, 0.0, 0.0, "x"], dtype=object))
     values = np.zeros(4)
     assert solver.check_actuators(values) is not values  # a copy
+
 
 def test_targets_of_every_kind_give_the_same_solve(mechanism):
     """An array, a list and a wrong-dtype array of the same target: the same sliders and tilt (the

@@ -48,5 +48,7 @@ def test_closure_jacobian_matches_central_differences(mechanism, solvers, offset
     for k in range(mechanism.model.nv):
         step = np.zeros(mechanism.model.nv)
         step[k] = eps
-        numeric[:, k] = (solver.closure_residual(q + step, all_rows) - solver.closure_residual(q - step, all_rows)) / (2 * eps)
+        numeric[:, k] = (solver.closure_residual(q + step, all_rows) - solver.closure_residual(q - step, all_rows)) / (
+            2 * eps
+        )
     np.testing.assert_allclose(jacobian, numeric, atol=1e-7)

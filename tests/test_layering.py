@@ -119,15 +119,19 @@ def test_no_arrow_points_up_the_layers():
     for module, imports in GRAPH.items():
         for target, line, _ in imports:
             if _layer(target) > _layer(module):
-                upward.append(f"{module}:{line} ({LAYERS[_layer(module)][0]}) imports {target} "
-                              f"({LAYERS[_layer(target)][0]})")
+                upward.append(
+                    f"{module}:{line} ({LAYERS[_layer(module)][0]}) imports {target} ({LAYERS[_layer(target)][0]})"
+                )
     assert not upward, "\n".join(upward)
 
 
 def test_no_function_level_imports_of_package_modules():
-    hidden = [f"{module}:{line} imports {target} inside a function"
-              for module, imports in GRAPH.items() for target, line, inside in imports
-              if inside and (module, target) not in ALLOWED_FUNCTION_LEVEL]
+    hidden = [
+        f"{module}:{line} imports {target} inside a function"
+        for module, imports in GRAPH.items()
+        for target, line, inside in imports
+        if inside and (module, target) not in ALLOWED_FUNCTION_LEVEL
+    ]
     assert not hidden, "\n".join(hidden)
 
 
@@ -140,8 +144,13 @@ def test_nothing_inside_imports_the_facade():
 
 
 def test_nothing_inside_imports_a_subpackage_facade():
-    found = [f"{module}:{line} imports {target}" for module, imports in GRAPH.items() if module not in FACADES
-             for target, line, _ in imports if target in FACADES]
+    found = [
+        f"{module}:{line} imports {target}"
+        for module, imports in GRAPH.items()
+        if module not in FACADES
+        for target, line, _ in imports
+        if target in FACADES
+    ]
     assert found == []
 
 

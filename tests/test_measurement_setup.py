@@ -38,24 +38,31 @@ def test_report_entry_is_translation_then_xyzw_quaternion_as_floats():
     back = se3_from_report(se3_to_report(FRAME), "frame")
     np.testing.assert_allclose(back.homogeneous, FRAME.homogeneous, atol=1e-15)
     # Integers and lists are read as floats.
-    np.testing.assert_allclose(se3_from_report({"translation": [1, 2, 3], "quaternion": [0, 0, 0, 1]}, "x")
-                               .translation, [1.0, 2.0, 3.0])
+    np.testing.assert_allclose(
+        se3_from_report({"translation": [1, 2, 3], "quaternion": [0, 0, 0, 1]}, "x").translation, [1.0, 2.0, 3.0]
+    )
 
 
-@pytest.mark.parametrize("entry, detail", [
-    ({"quaternion": [0, 0, 0, 1]}, "('translation')"),
-    ({"translation": [1, 2, 3]}, "('quaternion')"),
-    ({"translation": [1, 2], "quaternion": [0, 0, 0, 1]}, "(cannot reshape array of size 2 into shape (3,))"),
-    ({"translation": [1, 2, 3], "quaternion": [0, 0, 1]}, "(cannot reshape array of size 3 into shape (4,))"),
-    ({"translation": ["a", 2, 3], "quaternion": [0, 0, 0, 1]}, "(could not convert string to float: 'a')"),
-    ({"translation": [1, 2, 3], "quaternion": [0, 0, "a", 1]}, "(could not convert string to float: 'a')"),
-    ({"translation": [1, 2, 3], "quaternion": None}, "(cannot reshape array of size 1 into shape (4,))"),
-    ({"translation": object(), "quaternion": [0, 0, 0, 1]}, "(float() argument must be a string or a real number, "
-                                                            "not 'object')"),
-])
+@pytest.mark.parametrize(
+    "entry, detail",
+    [
+        ({"quaternion": [0, 0, 0, 1]}, "('translation')"),
+        ({"translation": [1, 2, 3]}, "('quaternion')"),
+        ({"translation": [1, 2], "quaternion": [0, 0, 0, 1]}, "(cannot reshape array of size 2 into shape (3,))"),
+        ({"translation": [1, 2, 3], "quaternion": [0, 0, 1]}, "(cannot reshape array of size 3 into shape (4,))"),
+        ({"translation": ["a", 2, 3], "quaternion": [0, 0, 0, 1]}, "(could not convert string to float: 'a')"),
+        ({"translation": [1, 2, 3], "quaternion": [0, 0, "a", 1]}, "(could not convert string to float: 'a')"),
+        ({"translation": [1, 2, 3], "quaternion": None}, "(cannot reshape array of size 1 into shape (4,))"),
+        (
+            {"translation": object(), "quaternion": [0, 0, 0, 1]},
+            "(float() argument must be a string or a real number, not 'object')",
+        ),
+    ],
+)
 def test_malformed_entry_is_refused_naming_what_and_why(entry, detail):
     assert _message(lambda: se3_from_report(entry, "report 'marker'")) == (
-        "report 'marker': expected translation [x, y, z] and quaternion [qx, qy, qz, qw] " + detail)
+        "report 'marker': expected translation [x, y, z] and quaternion [qx, qy, qz, qw] " + detail
+    )
 
 
 @pytest.mark.parametrize("key, index", [("translation", 0), ("translation", 2), ("quaternion", 1), ("quaternion", 3)])
@@ -76,7 +83,8 @@ def test_quaternion_norm_tolerance_is_1e_6_from_both_sides(sign):
     np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
     outside = {"translation": [0, 0, 0], "quaternion": list(quaternion * (1 + sign * 1.1e-6))}
     assert _message(lambda: se3_from_report(outside, "marker")) == (
-        f"marker: quaternion norm {1 + sign * 1.1e-6:.6g} is not 1")
+        f"marker: quaternion norm {1 + sign * 1.1e-6:.6g} is not 1"
+    )
 
 
 def test_measured_poses_compose_frame_platform_marker_in_that_order():
@@ -102,9 +110,12 @@ def test_setup_report_keys_round_trip_and_refusals():
     only_marker = MeasurementSetup.from_report({"marker": se3_to_report(MARKER), "measurement_frame": None})
     np.testing.assert_array_equal(only_marker.frame.homogeneous, np.eye(4))
     np.testing.assert_allclose(only_marker.marker.homogeneous, MARKER.homogeneous, atol=1e-15)
-    assert _message(lambda: MeasurementSetup.from_report({"marker": [1, 2, 3]})) == "report 'marker': expected an object"
+    assert (
+        _message(lambda: MeasurementSetup.from_report({"marker": [1, 2, 3]})) == "report 'marker': expected an object"
+    )
     assert _message(lambda: MeasurementSetup.from_report({"measurement_frame": "identity"})) == (
-        "report 'measurement_frame': expected an object")
+        "report 'measurement_frame': expected an object"
+    )
     bad = {"measurement_frame": {"translation": [0, 0, np.nan], "quaternion": [0, 0, 0, 1]}}
     assert _message(lambda: MeasurementSetup.from_report(bad)) == "report 'measurement_frame': non-finite value"
 
@@ -157,12 +168,17 @@ def test_registration_refuses_two_points_and_collinear_ones_at_the_documented_th
 
 def test_marker_rotation_beyond_pi_over_2_and_the_nearest_rotation_with_noise():
     rng = np.random.default_rng(3)
-    platform = np.array([pin.SE3(pin.exp3(np.array([0.2 * t, 0, t])), rng.normal(size=3)).homogeneous
-                         for t in np.linspace(-2.5, 2.5, 9)])
+    platform = np.array(
+        [
+            pin.SE3(pin.exp3(np.array([0.2 * t, 0, t])), rng.normal(size=3)).homogeneous
+            for t in np.linspace(-2.5, 2.5, 9)
+        ]
+    )
     measured = FRAME.rotation @ platform[:, :3, :3] @ MARKER.rotation
     np.testing.assert_allclose(register_marker_rotation(FRAME, platform, measured), MARKER.rotation, atol=1e-12)
-    np.testing.assert_allclose(register_marker_rotation(FRAME, platform.tolist(), measured.tolist()),
-                               MARKER.rotation, atol=1e-12)
+    np.testing.assert_allclose(
+        register_marker_rotation(FRAME, platform.tolist(), measured.tolist()), MARKER.rotation, atol=1e-12
+    )
     # Noisy estimates: a proper rotation (det +1, not a reflection) close to the truth.
     noisy = np.array([m @ pin.exp3(rng.normal(0.0, 0.05, 3)) for m in measured])
     found = register_marker_rotation(FRAME, platform, noisy)
@@ -181,9 +197,14 @@ def test_setup_from_command_line_numbers():
     from m3t1r.calibration.measurement_setup import MeasurementSetup as Setup
 
     setup = Setup.from_numbers([1.0, -2.0, 0.5, 0.1, -0.2, 0.3], (0.07, -0.02, 0.03))
-    rz, ry, rx = (pin.AngleAxis(a, axis).matrix() for a, axis in ((0.3, np.array([0.0, 0.0, 1.0])),
-                                                                  (-0.2, np.array([0.0, 1.0, 0.0])),
-                                                                  (0.1, np.array([1.0, 0.0, 0.0]))))
+    rz, ry, rx = (
+        pin.AngleAxis(a, axis).matrix()
+        for a, axis in (
+            (0.3, np.array([0.0, 0.0, 1.0])),
+            (-0.2, np.array([0.0, 1.0, 0.0])),
+            (0.1, np.array([1.0, 0.0, 0.0])),
+        )
+    )
     np.testing.assert_allclose(setup.frame.rotation, rz @ ry @ rx, atol=1e-15)
     np.testing.assert_array_equal(setup.frame.translation, [1.0, -2.0, 0.5])
     np.testing.assert_array_equal(setup.marker.rotation, np.eye(3))
@@ -199,12 +220,18 @@ def test_setup_from_command_line_numbers():
     assert as_text.frame.isApprox(setup.frame, 1e-15) and as_text.marker.isApprox(setup.marker, 1e-15)
 
 
-@pytest.mark.parametrize("frame, marker, message", [
-    ([1.0, 2.0, 3.0], None, "measurement frame x, y, z, roll, pitch, yaw: expected 6 values, got 3"),
-    ([0.0, 0.0, 0.0, 0.0, 0.0, np.nan], None,
-     "measurement frame x, y, z, roll, pitch, yaw: non-finite value nan at index 5"),
-    (None, [1.0, 2.0], "marker x, y, z: expected 3 values, got 2"),
-])
+@pytest.mark.parametrize(
+    "frame, marker, message",
+    [
+        ([1.0, 2.0, 3.0], None, "measurement frame x, y, z, roll, pitch, yaw: expected 6 values, got 3"),
+        (
+            [0.0, 0.0, 0.0, 0.0, 0.0, np.nan],
+            None,
+            "measurement frame x, y, z, roll, pitch, yaw: non-finite value nan at index 5",
+        ),
+        (None, [1.0, 2.0], "marker x, y, z: expected 3 values, got 2"),
+    ],
+)
 def test_setup_numbers_are_refused_naming_what_they_are(frame, marker, message):
     """A wrong count or a non-finite value of the command-line numbers is refused naming the numbers."""
     with pytest.raises(InvalidInputError) as caught:

@@ -109,9 +109,13 @@ def test_batches_of_no_rows_return_empty_results(mechanism):
     with pytest.raises(InvalidInputError, match="shape"):
         solver.forward_batch(np.zeros(0))  # no rows and no width: not a batch
 
+
 def test_task_columns_name_what_is_commanded(mechanism):
-    expected = {"m_machine": ("x", "y", "z", "theta"), "five_bar": ("x", "y"),
-                "spherical_wrist": ("qx", "qy", "qz", "qw")}[_kind(mechanism)]
+    expected = {
+        "m_machine": ("x", "y", "z", "theta"),
+        "five_bar": ("x", "y"),
+        "spherical_wrist": ("qx", "qy", "qz", "qw"),
+    }[_kind(mechanism)]
     assert mechanism.task.columns == expected
     assert mechanism.task.dimension == len(mechanism.actuated_joints)
     with pytest.raises(InvalidInputError, match=re.escape(f"expected {len(expected)} values")):
@@ -122,8 +126,9 @@ def test_task_columns_name_what_is_commanded(mechanism):
 def test_closed_loop_calibration_of_every_origin(mechanism, noisy):
     """0.1 mm / 0.1 mrad errors on every joint and frame origin; 60 poses, judged on 150 held out."""
     noise = TrackerNoise() if noisy else None
-    study = simulate_study(mechanism, n_poses=60, n_holdout=150, seed=11, sigma_position=1e-4,
-                           sigma_rotation=1e-4, noise=noise)
+    study = simulate_study(
+        mechanism, n_poses=60, n_holdout=150, seed=11, sigma_position=1e-4, sigma_rotation=1e-4, noise=noise
+    )
     calibration = calibrate_closed_loop(mechanism, study.measurements, noise or TrackerNoise())
     assert calibration.lm.converged
     held_out = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
@@ -159,13 +164,22 @@ def test_urdf_without_actuator_limits_takes_the_workspace_box(tmp_path):
     urdf, closures = five_bar_files(tmp_path)
     # A <limit> with effort and velocity only (URDF requires the element on a revolute joint): Pinocchio
     # then reads the position limits as [0, 0].
-    _edit(urdf, lambda text: re.sub(r'(<joint name="motor_\d" type="revolute">(?:(?!</joint>).)*?)<limit[^>]*/>',
-                                    r'\1<limit effort="10" velocity="10"/>', text, flags=re.S))
+    _edit(
+        urdf,
+        lambda text: re.sub(
+            r'(<joint name="motor_\d" type="revolute">(?:(?!</joint>).)*?)<limit[^>]*/>',
+            r'\1<limit effort="10" velocity="10"/>',
+            text,
+            flags=re.S,
+        ),
+    )
     with pytest.warns(ModelWarning) as caught:
         mechanism = Mechanism.load(urdf, closures)
     assert [str(w.message) for w in caught] == [
         f"five_bar.closures.yaml: actuator 'motor_{k}' has no usable URDF limits; the workspace box's limits "
-        f"[{lo}, {hi}] used instead" for k, lo, hi in ((1, 1.93, 2.73), (2, 0.41, 1.21))]
+        f"[{lo}, {hi}] used instead"
+        for k, lo, hi in ((1, 1.93, 2.73), (2, 0.41, 1.21))
+    ]
     lower, upper = mechanism.joint_limits()
     np.testing.assert_array_equal(lower, [1.93, 0.41])
     np.testing.assert_array_equal(upper, [2.73, 1.21])
@@ -176,8 +190,12 @@ def test_urdf_without_actuator_limits_takes_the_workspace_box(tmp_path):
 def test_home_off_by_1e_5_is_assembled(tmp_path):
     urdf, closures = spherical_wrist_files(tmp_path)
     exact = Mechanism.load(urdf, closures).home
-    _edit_yaml(closures, lambda d: d["home"].update({name: value + 1e-5 for name, value in d["home"].items()
-                                                     if not name.startswith("motor")}))
+    _edit_yaml(
+        closures,
+        lambda d: d["home"].update(
+            {name: value + 1e-5 for name, value in d["home"].items() if not name.startswith("motor")}
+        ),
+    )
     mechanism = _load_noting(urdf, closures, "home does not close: .* assembled by Newton")
     np.testing.assert_allclose(mechanism.home, exact, atol=1e-10)
     assert ClosedLoopSolver(mechanism).mobility(mechanism.home, all_rows=True) == 3
@@ -195,8 +213,11 @@ def test_closure_on_a_joint_frame(tmp_path):
         mechanism = Mechanism.load(urdf, closures)
     nominal = Mechanism.load()
     sliders = workspace_actuators(nominal, 5, np.random.default_rng(0))
-    np.testing.assert_allclose(ClosedLoopSolver(mechanism).forward_batch(sliders).poses,
-                               ClosedLoopSolver(nominal).forward_batch(sliders).poses, atol=1e-12)
+    np.testing.assert_allclose(
+        ClosedLoopSolver(mechanism).forward_batch(sliders).poses,
+        ClosedLoopSolver(nominal).forward_batch(sliders).poses,
+        atol=1e-12,
+    )
     study = simulate_study(mechanism, n_poses=40, n_holdout=50, seed=2, sigma_position=1e-4, sigma_rotation=1e-4)
     calibration = calibrate_closed_loop(mechanism, study.measurements)
     assert "D_I.dt[0]" not in calibration.error_model.names  # the joint's own placement carries it
@@ -223,6 +244,7 @@ def _welded_double_hinge(folder: Path) -> tuple[Path, Path]:
         heading_1, heading_2 = home["motor_1"] + home["elbow_1"], home["motor_2"] + home["elbow_2"]
         home.update(cut_1=0.0, cut_2=heading_1 - heading_2 + 1e-5)  # approximate, as from a CAD export
         document["closures"] = [{"name": "cut", "type": "6D", "frame_a": "cut_link_1", "frame_b": "cut_link_2"}]
+
     _edit_yaml(closures, weld)
     return urdf, closures
 
@@ -239,8 +261,9 @@ def test_welded_double_hinge_locks_the_gauge_joint(tmp_path):
     plain = Mechanism.load(*five_bar_files(tmp_path / "plain"))
     solver, plain_solver = ClosedLoopSolver(mechanism), ClosedLoopSolver(plain)
     sliders = workspace_actuators(plain, 10, np.random.default_rng(5))
-    np.testing.assert_allclose(solver.forward_batch(sliders).poses[:, :2, 3],
-                               plain_solver.forward_batch(sliders).poses[:, :2, 3], atol=1e-12)
+    np.testing.assert_allclose(
+        solver.forward_batch(sliders).poses[:, :2, 3], plain_solver.forward_batch(sliders).poses[:, :2, 3], atol=1e-12
+    )
     targets = plain.task.coordinates(plain_solver.forward_batch(sliders).poses)
     np.testing.assert_allclose(solver.inverse_batch(targets).actuators, sliders, atol=1e-8)
     study = simulate_study(mechanism, n_poses=50, n_holdout=50, seed=3, sigma_position=1e-4, sigma_rotation=1e-4)
@@ -325,7 +348,9 @@ def test_a_frame_error_moves_the_closure_frames_attached_to_it(tmp_path):
 
 def test_kinematics_do_not_need_the_meshes(tmp_path):
     urdf, closures = five_bar_files(tmp_path)
-    _edit(urdf, lambda text: text.replace('<sphere radius="0.01"/>', '<mesh filename="package://gone/effector.stl"/>', 1))
+    _edit(
+        urdf, lambda text: text.replace('<sphere radius="0.01"/>', '<mesh filename="package://gone/effector.stl"/>', 1)
+    )
     assert "gone/effector.stl" in urdf.read_text()
     mechanism = Mechanism.load(urdf, closures)
     ClosedLoopSolver(mechanism).forward(mechanism.home[mechanism.actuated_ids])
@@ -333,21 +358,40 @@ def test_kinematics_do_not_need_the_meshes(tmp_path):
         mechanism.visual_model  # noqa: B018  (the viewer's first access)
 
 
-@pytest.mark.parametrize("change, message", [
-    (lambda d: d.update(schema_version=3), "schema_version 3 is not supported"),
-    (lambda d: d["task"].update(rotation="roll"), "task rotation must be one of none, yaw, full, got 'roll'"),
-    (lambda d: d["task"].update(position=["x", "w"]), r"task position must be distinct axes among x, y, z"),
-    (lambda d: d["task"].update(frame="nowhere"), "task.frame: frame 'nowhere' does not exist"),
-    (lambda d: d["task"].update(speed=1), "task: unknown field 'speed'"),
-    (lambda d: d["task"].update(position=[], rotation="none"), "task: commands nothing"),
-    (lambda d: d["workspace"]["actuators"].pop("motor_2"), r"workspace.actuators must give an interval \[lo, hi\] "
-                                                           "for each of motor_1, motor_2"),
-    (lambda d: d["workspace"]["actuators"].update(motor_1=[2.0, 1.0]), "interval of 'motor_1' must be finite with lo <= hi"),
-    (lambda d: d["workspace"]["actuators"].update(motor_1=["a", 1.0]), r"workspace.actuators.motor_1 must be \[lo, hi\]"),
-    (lambda d: d.update(workspace={"task": {"x": [0, 1]}, "actuators": {}}), "exactly one of 'actuators' or 'task'"),
-    (lambda d: d.update(workspace={"task": {"x": [-0.1, 0.1], "y": [0.3, 0.5]}}) or d["task"].update(
-        rotation="yaw"), "the task commands 3 coordinates for 2 actuators"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda d: d.update(schema_version=3), "schema_version 3 is not supported"),
+        (lambda d: d["task"].update(rotation="roll"), "task rotation must be one of none, yaw, full, got 'roll'"),
+        (lambda d: d["task"].update(position=["x", "w"]), r"task position must be distinct axes among x, y, z"),
+        (lambda d: d["task"].update(frame="nowhere"), "task.frame: frame 'nowhere' does not exist"),
+        (lambda d: d["task"].update(speed=1), "task: unknown field 'speed'"),
+        (lambda d: d["task"].update(position=[], rotation="none"), "task: commands nothing"),
+        (
+            lambda d: d["workspace"]["actuators"].pop("motor_2"),
+            r"workspace.actuators must give an interval \[lo, hi\] "
+            "for each of motor_1, motor_2",
+        ),
+        (
+            lambda d: d["workspace"]["actuators"].update(motor_1=[2.0, 1.0]),
+            "interval of 'motor_1' must be finite with lo <= hi",
+        ),
+        (
+            lambda d: d["workspace"]["actuators"].update(motor_1=["a", 1.0]),
+            r"workspace.actuators.motor_1 must be \[lo, hi\]",
+        ),
+        (
+            lambda d: d.update(workspace={"task": {"x": [0, 1]}, "actuators": {}}),
+            "exactly one of 'actuators' or 'task'",
+        ),
+        (
+            lambda d: (
+                d.update(workspace={"task": {"x": [-0.1, 0.1], "y": [0.3, 0.5]}}) or d["task"].update(rotation="yaw")
+            ),
+            "the task commands 3 coordinates for 2 actuators",
+        ),
+    ],
+)
 def test_malformed_task_or_workspace_is_named(tmp_path, change, message):
     urdf, closures = five_bar_files(tmp_path)
     _edit_yaml(closures, change)
@@ -367,8 +411,11 @@ def test_missing_closure_rows_are_not_taken_for_a_gauge(tmp_path):
     """With only the x row of the five-bar's loop, the effector keeps a free motion: an error, not a lock."""
     urdf, closures = five_bar_files(tmp_path)
     _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0]))
-    with pytest.raises(ModelFileError, match="leave 1 degree.* of freedom beyond the actuators: with the actuators "
-                                             "held, frame 'effector' can still move"):
+    with pytest.raises(
+        ModelFileError,
+        match="leave 1 degree.* of freedom beyond the actuators: with the actuators "
+        "held, frame 'effector' can still move",
+    ):
         Mechanism.load(urdf, closures)
 
 
@@ -386,21 +433,38 @@ def test_closures_that_hold_the_actuators_are_refused(tmp_path):
     data = mechanism.model.createData()
     pin.framesForwardKinematics(mechanism.model, data, mechanism.home)
     x, y, _ = (float(v) for v in data.oMf[mechanism.model.getFrameId("effector")].translation)
-    _edit(urdf, lambda text: text.replace("</robot>", f'<joint name="anchor_fixed" type="fixed"><parent link="base"/>'
-                                                      f'<child link="anchor"/><origin xyz="{x!r} {y!r} 0" rpy="0 0 0"/>'
-                                                      '</joint><link name="anchor"/></robot>'))
-    _edit_yaml(closures, lambda d: d["closures"].append({"name": "pin", "type": "3D", "frame_a": "anchor",
-                                                         "frame_b": "effector", "rows": [0, 1]}))
+    _edit(
+        urdf,
+        lambda text: text.replace(
+            "</robot>",
+            f'<joint name="anchor_fixed" type="fixed"><parent link="base"/>'
+            f'<child link="anchor"/><origin xyz="{x!r} {y!r} 0" rpy="0 0 0"/>'
+            '</joint><link name="anchor"/></robot>',
+        ),
+    )
+    _edit_yaml(
+        closures,
+        lambda d: d["closures"].append(
+            {"name": "pin", "type": "3D", "frame_a": "anchor", "frame_b": "effector", "rows": [0, 1]}
+        ),
+    )
     with pytest.raises(ModelFileError) as caught:
         Mechanism.load(urdf, closures)
-    assert str(caught.value) == (f"{closures}: the closures hold the actuators: the rows have rank 4 over every joint "
-                                 "but 2 over the passive ones (the actuators are not independent inputs)")
+    assert str(caught.value) == (
+        f"{closures}: the closures hold the actuators: the rows have rank 4 over every joint "
+        "but 2 over the passive ones (the actuators are not independent inputs)"
+    )
 
 
 def test_a_schema_1_file_samples_between_the_actuator_limits(tmp_path):
     urdf, closures = five_bar_files(tmp_path)
-    _edit_yaml(closures, lambda d: [d.pop(key) for key in ("schema_version", "workspace")] and d.update(
-        task={"frame": "effector", "position": ["x", "y"], "rotation": "none"}))
+    _edit_yaml(
+        closures,
+        lambda d: (
+            [d.pop(key) for key in ("schema_version", "workspace")]
+            and d.update(task={"frame": "effector", "position": ["x", "y"], "rotation": "none"})
+        ),
+    )
     mechanism = Mechanism.load(urdf, closures)
     assert mechanism.workspace is None
     lower, upper = mechanism.joint_limits()
@@ -411,8 +475,11 @@ def test_a_schema_1_file_samples_between_the_actuator_limits(tmp_path):
     _edit(urdf, lambda text: text.replace('lower="1.83" upper="2.83"', 'lower="0.5" upper="3.5"'))
     assert len(workspace_actuators(Mechanism.load(urdf, closures), 200, np.random.default_rng(1))) == 200
     _edit(urdf, lambda text: text.replace('lower="0.5" upper="3.5"', 'lower="0.2" upper="4.0"'))
-    with pytest.raises(ModelFileError, match=r"draws in the actuators' URDF limits \(no workspace declared: add a "
-                                             r"`workspace:` box, models/README.md\) cannot be assembled from home"):
+    with pytest.raises(
+        ModelFileError,
+        match=r"draws in the actuators' URDF limits \(no workspace declared: add a "
+        r"`workspace:` box, models/README.md\) cannot be assembled from home",
+    ):
         workspace_actuators(Mechanism.load(urdf, closures), 200, np.random.default_rng(1))
 
 
@@ -424,8 +491,11 @@ def test_a_first_time_file_gets_the_task_the_actuators_command_and_a_sound_works
     assert "no task declared" in notes and "x, y of frame 'effector'" in notes and "declare `task:`" in notes
     assert mechanism.task == TaskSpec("effector", ("x", "y"), "none") and mechanism.workspace is None
     assert np.all(np.isinf(mechanism.joint_limits()[0]))  # no actuator limits to sample between
-    with pytest.warns(ModelWarning, match=r"no workspace declared and no finite actuator limits: sampling in "
-                                          r"motor_1 \[\S+, \S+\] rad, motor_2"):
+    with pytest.warns(
+        ModelWarning,
+        match=r"no workspace declared and no finite actuator limits: sampling in "
+        r"motor_1 \[\S+, \S+\] rad, motor_2",
+    ):
         box = declared_workspace(mechanism)
     lower, upper = box.bounds(mechanism.actuated_joints)
     home = mechanism.home[mechanism.actuated_ids]
@@ -503,8 +573,13 @@ def test_published_traits_load_with_notes_and_solve_as_the_plain_five_bar(publis
         mechanism = Mechanism.load(*published)
     notes = " | ".join(str(w.message) for w in caught)
     assert "without usable URDF limits" in notes and "taken as unbounded" in notes, notes
-    lower, upper = mechanism.joint_limits(tuple(mechanism.model.names[j] for j in range(1, mechanism.model.njoints)
-                                                if mechanism.model.names[j] not in mechanism.actuated_joints))
+    lower, upper = mechanism.joint_limits(
+        tuple(
+            mechanism.model.names[j]
+            for j in range(1, mechanism.model.njoints)
+            if mechanism.model.names[j] not in mechanism.actuated_joints
+        )
+    )
     assert np.all(lower == -np.inf) and np.all(upper == np.inf)  # an empty <limit/> is "not given", not [0, 0]
     assert mechanism.model.nq == mechanism.model.nv and len(mechanism.locked_joints) == 1
     plain = Mechanism.load(*five_bar_files(tmp_path / "plain"))
@@ -557,13 +632,19 @@ def test_a_continuous_joint_stays_continuous_in_the_written_urdf(tmp_path):
     assert 'name="motor_1" type="continuous"' in (tmp_path / "copy.urdf").read_text()
 
 
-@pytest.mark.parametrize("change, message", [
-    (lambda d: d["frames"].update(weld_1={"link": "stub_1", "xyz": [0, 0]}), "frames.weld_1.xyz must be three"),
-    (lambda d: d["frames"].update(distal_1={"link": "stub_1"}), "frames.distal_1: a frame of that name already"),
-    (lambda d: d["frames"].update(weld_1={"link": "nowhere"}), "frames.weld_1.link: frame 'nowhere' does not exist"),
-    (lambda d: d.update(locked_joints=["motor_1"]), "locked_joints: 'motor_1' is an actuated joint"),
-    (lambda d: d.update(locked_joints=["cut_9"]), "locked_joints: joint 'cut_9' does not exist"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda d: d["frames"].update(weld_1={"link": "stub_1", "xyz": [0, 0]}), "frames.weld_1.xyz must be three"),
+        (lambda d: d["frames"].update(distal_1={"link": "stub_1"}), "frames.distal_1: a frame of that name already"),
+        (
+            lambda d: d["frames"].update(weld_1={"link": "nowhere"}),
+            "frames.weld_1.link: frame 'nowhere' does not exist",
+        ),
+        (lambda d: d.update(locked_joints=["motor_1"]), "locked_joints: 'motor_1' is an actuated joint"),
+        (lambda d: d.update(locked_joints=["cut_9"]), "locked_joints: joint 'cut_9' does not exist"),
+    ],
+)
 def test_malformed_declared_frames_or_locked_joints_are_named(tmp_path, change, message):
     urdf, closures = published_five_bar_files(tmp_path)
     _edit_yaml(closures, change)

@@ -31,8 +31,11 @@ from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import workspace_actuators
 
 TOOLS = Path(__file__).resolve().parents[1] / "tools"
-_WRITERS = {"spherical_wrist": spherical_wrist_files, "published_five_bar": published_five_bar_files,
-            "rod_five_bar": rod_five_bar_files}
+_WRITERS = {
+    "spherical_wrist": spherical_wrist_files,
+    "published_five_bar": published_five_bar_files,
+    "rod_five_bar": rod_five_bar_files,
+}
 
 
 @pytest.fixture(params=["five_bar", *_WRITERS])
@@ -51,10 +54,42 @@ def _model(files) -> list[str]:
 def test_simulate_calibrate_evaluate(files, tmp_path, noise_free, capsys):
     measurements, truth_urdf, calibrated = tmp_path / "m.csv", tmp_path / "truth.urdf", tmp_path / "cal.urdf"
     noise = ["--noise-free"] if noise_free else []
-    assert main(["simulate", *_model(files), "-n", "50", "--seed", "4", "--sigma-pos", "1e-4", "--sigma-rot", "1e-4",
-                 *noise, "-o", str(measurements), "--truth-urdf", str(truth_urdf)]) == 0
-    assert main(["calibrate", str(measurements), *_model(files), "-o", str(calibrated),
-                 "--report", str(tmp_path / "cal.json")]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                *_model(files),
+                "-n",
+                "50",
+                "--seed",
+                "4",
+                "--sigma-pos",
+                "1e-4",
+                "--sigma-rot",
+                "1e-4",
+                *noise,
+                "-o",
+                str(measurements),
+                "--truth-urdf",
+                str(truth_urdf),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "calibrate",
+                str(measurements),
+                *_model(files),
+                "-o",
+                str(calibrated),
+                "--report",
+                str(tmp_path / "cal.json"),
+            ]
+        )
+        == 0
+    )
     nominal, truth, fitted = Mechanism.load(*files), Mechanism.load(truth_urdf), Mechanism.load(calibrated)
     holdout = workspace_actuators(nominal, 100, np.random.default_rng(9))
     before, after = pose_errors(nominal, truth, holdout), pose_errors(fitted, truth, holdout)
@@ -66,8 +101,24 @@ def test_simulate_calibrate_evaluate(files, tmp_path, noise_free, capsys):
         report = json.loads((tmp_path / "cal.json").read_text())
         assert 0.5 < report["variance_factor"] < 1.5
     capsys.readouterr()
-    assert main(["evaluate", "--truth", str(truth_urdf), "--calibrated", str(calibrated), "--model", str(files[0]),
-                 "--closures", str(files[1]), "-n", "50"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--truth",
+                str(truth_urdf),
+                "--calibrated",
+                str(calibrated),
+                "--model",
+                str(files[0]),
+                "--closures",
+                str(files[1]),
+                "-n",
+                "50",
+            ]
+        )
+        == 0
+    )
     assert "calibrated" in capsys.readouterr().out
 
 
@@ -78,8 +129,12 @@ def test_ik_fk_compensate_and_view_use_the_task_columns(files, tmp_path):
     sliders = workspace_actuators(nominal, 6, np.random.default_rng(1))
     poses = solver.forward_batch(sliders).poses
     targets = tmp_path / "targets.csv"
-    targets.write_text(",".join(task.columns) + "\n" + "\n".join(
-        ",".join(repr(float(v)) for v in row) for row in task.coordinates(poses)) + "\n")
+    targets.write_text(
+        ",".join(task.columns)
+        + "\n"
+        + "\n".join(",".join(repr(float(v)) for v in row) for row in task.coordinates(poses))
+        + "\n"
+    )
     assert main(["ik", str(targets), *_model(files), "-o", str(tmp_path / "s.csv")]) == 0
     read_sliders, _ = read_actuators(tmp_path / "s.csv", nominal)
     np.testing.assert_allclose(read_sliders, sliders, atol=1e-8)
@@ -87,12 +142,42 @@ def test_ik_fk_compensate_and_view_use_the_task_columns(files, tmp_path):
     back = np.array([p.homogeneous for p in read_poses(tmp_path / "p.csv")[0]])
     np.testing.assert_allclose(task.coordinates(back), task.coordinates(poses), atol=1e-9)
     # Compensating with the nominal model as "calibrated" changes nothing; the header names the task.
-    assert main(["compensate", str(targets), *_model(files), "--calibrated", str(files[0]),
-                 "--calibrated-closures", str(files[1]), "-o", str(tmp_path / "c.csv")]) == 0
+    assert (
+        main(
+            [
+                "compensate",
+                str(targets),
+                *_model(files),
+                "--calibrated",
+                str(files[0]),
+                "--calibrated-closures",
+                str(files[1]),
+                "-o",
+                str(tmp_path / "c.csv"),
+            ]
+        )
+        == 0
+    )
     text = (tmp_path / "c.csv").read_text()
-    assert ",".join(task.columns) in text.splitlines()[[line.startswith("#") for line in text.splitlines()].index(False)]
-    assert main(["view", "--model", str(files[0]), "--closures", str(files[1]), "--pose",
-                 *map(str, task.coordinates(poses)[0]), "--html", str(tmp_path / "page.html")]) == 0
+    assert (
+        ",".join(task.columns) in text.splitlines()[[line.startswith("#") for line in text.splitlines()].index(False)]
+    )
+    assert (
+        main(
+            [
+                "view",
+                "--model",
+                str(files[0]),
+                "--closures",
+                str(files[1]),
+                "--pose",
+                *map(str, task.coordinates(poses)[0]),
+                "--html",
+                str(tmp_path / "page.html"),
+            ]
+        )
+        == 0
+    )
     assert "reached by IK on each machine" in (tmp_path / "page.html").read_text()
 
 
@@ -118,15 +203,56 @@ def test_plan_draws_in_the_declared_workspace(files, tmp_path):
 def test_joints_named_like_pose_columns_are_recorded_and_read_back(writer, tmp_path, capsys):
     files = writer(tmp_path / "model")
     measurements = tmp_path / "m.csv"
-    assert main(["simulate", *_model(files), "-n", "30", "--seed", "2", "--sigma-pos", "1e-4", "--sigma-rot", "1e-4",
-                 "--with-passive", "-o", str(measurements)]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                *_model(files),
+                "-n",
+                "30",
+                "--seed",
+                "2",
+                "--sigma-pos",
+                "1e-4",
+                "--sigma-rot",
+                "1e-4",
+                "--with-passive",
+                "-o",
+                str(measurements),
+            ]
+        )
+        == 0
+    )
     header = next(line for line in measurements.read_text().splitlines() if not line.startswith("#")).split(",")
     assert "joint:x" in header and "joint:y" in header and header[-7:] == ["x", "y", "z", "qx", "qy", "qz", "qw"]
-    assert main(["calibrate", str(measurements), *_model(files), "-o", str(tmp_path / "cal.urdf"),
-                 "--report", str(tmp_path / "cal.json")]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(measurements),
+                *_model(files),
+                "-o",
+                str(tmp_path / "cal.urdf"),
+                "--report",
+                str(tmp_path / "cal.json"),
+            ]
+        )
+        == 0
+    )
     assert "passive-joint readings" in capsys.readouterr().out
-    assert main(["validate", str(measurements), "--calibrated", str(tmp_path / "cal.urdf"),
-                 "--report", str(tmp_path / "cal.json")]) == 0
+    assert (
+        main(
+            [
+                "validate",
+                str(measurements),
+                "--calibrated",
+                str(tmp_path / "cal.urdf"),
+                "--report",
+                str(tmp_path / "cal.json"),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "30 of 30 rows predicted" in out and "heading" not in out  # the task commands no yaw
 
@@ -134,20 +260,75 @@ def test_joints_named_like_pose_columns_are_recorded_and_read_back(writer, tmp_p
 def test_compensate_report_targets_of_the_measured_point_on_a_position_task(tmp_path, capsys):
     files = published_five_bar_files(tmp_path / "model")
     measurements, calibrated, report = tmp_path / "m.csv", tmp_path / "cal.urdf", tmp_path / "cal.json"
-    assert main(["simulate", *_model(files), "-n", "30", "--seed", "3", "--sigma-pos", "1e-4", "--sigma-rot", "1e-4",
-                 "--marker", "0.01", "0.0", "0.005", "-o", str(measurements)]) == 0
-    assert main(["calibrate", str(measurements), *_model(files), "-o", str(calibrated), "--report", str(report),
-                 "--marker", "0.01", "0.0", "0.005"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                *_model(files),
+                "-n",
+                "30",
+                "--seed",
+                "3",
+                "--sigma-pos",
+                "1e-4",
+                "--sigma-rot",
+                "1e-4",
+                "--marker",
+                "0.01",
+                "0.0",
+                "0.005",
+                "-o",
+                str(measurements),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "calibrate",
+                str(measurements),
+                *_model(files),
+                "-o",
+                str(calibrated),
+                "--report",
+                str(report),
+                "--marker",
+                "0.01",
+                "0.0",
+                "0.005",
+            ]
+        )
+        == 0
+    )
     nominal, fitted = Mechanism.load(*files), Mechanism.load(calibrated)
     sliders = workspace_actuators(nominal, 5, np.random.default_rng(4))
     setup = read_report(report).setup
     platform = ClosedLoopSolver(fitted).forward_batch(sliders).poses
     points = [setup.frame.act(pin.SE3(pose).act(setup.marker.translation)) for pose in platform]  # tracker's view [m]
     targets = tmp_path / "t.csv"
-    targets.write_text("x,y,z,qx,qy,qz,qw\n" + "".join(",".join(map(repr, map(float, p))) + ",0,0,0,1\n" for p in points))
+    targets.write_text(
+        "x,y,z,qx,qy,qz,qw\n" + "".join(",".join(map(repr, map(float, p))) + ",0,0,0,1\n" for p in points)
+    )
     out = tmp_path / "c.csv"
-    assert main(["compensate", str(targets), *_model(files), "--calibrated", str(calibrated), "--report", str(report),
-                 "--output-kind", "actuators", "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "compensate",
+                str(targets),
+                *_model(files),
+                "--calibrated",
+                str(calibrated),
+                "--report",
+                str(report),
+                "--output-kind",
+                "actuators",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert "tilt" not in capsys.readouterr().out
     np.testing.assert_allclose(read_actuators(out, nominal)[0], sliders, atol=1e-8)
 
@@ -155,17 +336,65 @@ def test_compensate_report_targets_of_the_measured_point_on_a_position_task(tmp_
 def test_a_stated_noise_below_the_models_floor_is_named_as_the_cause(tmp_path, capsys):
     files = published_five_bar_files(tmp_path / "model")
     measurements = tmp_path / "m.csv"
-    assert main(["simulate", *_model(files), "-n", "30", "--seed", "3", "--sigma-pos", "1e-4", "--sigma-rot", "1e-4",
-                 "--noise-free", "-o", str(measurements)]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                *_model(files),
+                "-n",
+                "30",
+                "--seed",
+                "3",
+                "--sigma-pos",
+                "1e-4",
+                "--sigma-rot",
+                "1e-4",
+                "--noise-free",
+                "-o",
+                str(measurements),
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
-    assert main(["calibrate", str(measurements), *_model(files), "-o", str(tmp_path / "cal.urdf"),
-                 "--noise-pos", "1e-15", "--noise-rot", "1e-15", "--noise-act", "1e-15"]) == 1
+    assert (
+        main(
+            [
+                "calibrate",
+                str(measurements),
+                *_model(files),
+                "-o",
+                str(tmp_path / "cal.urdf"),
+                "--noise-pos",
+                "1e-15",
+                "--noise-rot",
+                "1e-15",
+                "--noise-act",
+                "1e-15",
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert "is below what the model can fit" in err and "--marker" not in err, err
     assert not (tmp_path / "cal.urdf").exists()
     # The rotation noise estimated (`auto`): the cause names the stated position noise alone, as a number.
-    assert main(["calibrate", str(measurements), *_model(files), "-o", str(tmp_path / "cal.urdf"),
-                 "--noise-pos", "1e-15", "--noise-rot", "auto"]) == 1
+    assert (
+        main(
+            [
+                "calibrate",
+                str(measurements),
+                *_model(files),
+                "-o",
+                str(tmp_path / "cal.urdf"),
+                "--noise-pos",
+                "1e-15",
+                "--noise-rot",
+                "auto",
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert "likely cause: the stated noise (1e-15 m) is below what the model can fit" in err, err
     assert not (tmp_path / "cal.urdf").exists()
@@ -173,8 +402,12 @@ def test_a_stated_noise_below_the_models_floor_is_named_as_the_cause(tmp_path, c
 
 def test_view_draws_a_machine_published_without_its_meshes(tmp_path, capsys):
     urdf, closures = rod_five_bar_files(tmp_path / "model")
-    urdf.write_text(urdf.read_text().replace('<link name="rod"/>', '<link name="rod"><visual><geometry>'
-                                             '<mesh filename="package://meshes/rod.stl"/></geometry></visual></link>'))
+    urdf.write_text(
+        urdf.read_text().replace(
+            '<link name="rod"/>',
+            '<link name="rod"><visual><geometry><mesh filename="package://meshes/rod.stl"/></geometry></visual></link>',
+        )
+    )
     page = tmp_path / "page.html"
     assert main(["view", "--model", str(urdf), "--closures", str(closures), "--html", str(page)]) == 0
     assert "drawing rod_five_bar.urdf as spheres at its joints" in capsys.readouterr().err

@@ -58,16 +58,16 @@ def test_pose_errors_between_known_poses() -> None:
     angles = np.array([0.0, 1e-9, 1e-5, 0.7, 3.0, np.pi - 1e-7, np.pi])
     shifts = rng.normal(scale=1e-3, size=(len(angles), 3))
     reference = [pin.SE3(pin.exp3(rng.normal(size=3)), rng.normal(size=3)) for _ in angles]
-    moved = [
-        pin.SE3(g.rotation @ pin.exp3(a * axis), g.translation + d) for g, a, d in zip(reference, angles, shifts)
-    ]
+    moved = [pin.SE3(g.rotation @ pin.exp3(a * axis), g.translation + d) for g, a, d in zip(reference, angles, shifts)]
     errors = pose_errors_between(moved, reference)
     np.testing.assert_allclose(errors.position, np.linalg.norm(shifts, axis=1), rtol=1e-12)
     # Down to 1e-9 rad (where the rounding of the matrices themselves is the limit) and up to pi:
     # an arccos of the trace would be off by ~1e-8 rad at any angle below that.
     np.testing.assert_allclose(errors.rotation, angles, rtol=1e-7, atol=1e-15)
     # Same answer from homogeneous arrays, and symmetric in its arguments.
-    as_arrays = pose_errors_between(np.array([g.homogeneous for g in moved]), np.array([g.homogeneous for g in reference]))
+    as_arrays = pose_errors_between(
+        np.array([g.homogeneous for g in moved]), np.array([g.homogeneous for g in reference])
+    )
     np.testing.assert_array_equal(as_arrays.position, errors.position)
     np.testing.assert_array_equal(as_arrays.rotation, errors.rotation)
     swapped = pose_errors_between(reference, moved)
@@ -107,12 +107,15 @@ EXPECTED_ROTATION = [np.linalg.norm(pin.log3(a.rotation.T @ b.rotation)) for a, 
 EXPECTED_POSITION = [np.linalg.norm(a.translation - b.translation) for a, b in zip(A, B)]
 
 
-@pytest.mark.parametrize("as_input", [
-    lambda poses: poses,                                   # list of SE3
-    lambda poses: [g.homogeneous for g in poses],          # list of arrays
-    lambda poses: [g.homogeneous.tolist() for g in poses],  # list of nested lists
-    lambda poses: np.array([g.homogeneous for g in poses]),
-])
+@pytest.mark.parametrize(
+    "as_input",
+    [
+        lambda poses: poses,  # list of SE3
+        lambda poses: [g.homogeneous for g in poses],  # list of arrays
+        lambda poses: [g.homogeneous.tolist() for g in poses],  # list of nested lists
+        lambda poses: np.array([g.homogeneous for g in poses]),
+    ],
+)
 def test_every_documented_input_form_gives_the_same_errors(as_input):
     errors = pose_errors_between(as_input(A), as_input(B))
     np.testing.assert_allclose(errors.rotation, EXPECTED_ROTATION, atol=1e-12)
@@ -125,12 +128,14 @@ def test_refusals_name_the_argument():
     good = np.array([g.homogeneous for g in A])
     with pytest.raises(InvalidInputError) as error:
         pose_errors_between(good[:, :3, :3], good)
-    assert str(error.value) == ("poses_a: expected pinocchio.SE3 objects or (M, 4, 4) homogeneous matrices, "
-                                "got shape (3, 3, 3)")
+    assert str(error.value) == (
+        "poses_a: expected pinocchio.SE3 objects or (M, 4, 4) homogeneous matrices, got shape (3, 3, 3)"
+    )
     with pytest.raises(InvalidInputError) as error:
         pose_errors_between(good, [np.eye(3)])
-    assert str(error.value) == ("poses_b: expected pinocchio.SE3 objects or (M, 4, 4) homogeneous matrices, "
-                                "got shape (1, 3, 3)")
+    assert str(error.value) == (
+        "poses_b: expected pinocchio.SE3 objects or (M, 4, 4) homogeneous matrices, got shape (1, 3, 3)"
+    )
     with pytest.raises(InvalidInputError) as error:
         pose_errors_between(good, good[:2])
     assert str(error.value) == "pose_errors_between: 3 poses against 2"

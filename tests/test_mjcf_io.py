@@ -38,12 +38,18 @@ def _five_bar_tip(actuators: np.ndarray) -> np.ndarray:
     """The five-bar's effector from two circles: centres at the crank tips, radius the rod's tip
     distance, the intersection of larger y (the mode of the reference configuration)."""
     radius = math.hypot(*FIVE_BAR_ROD)
-    centres = [np.array([side * FIVE_BAR_BASE - FIVE_BAR_CRANK * math.sin(angle), FIVE_BAR_CRANK * math.cos(angle)])
-               for side, angle in zip((-1, 1), actuators)]
+    centres = [
+        np.array([side * FIVE_BAR_BASE - FIVE_BAR_CRANK * math.sin(angle), FIVE_BAR_CRANK * math.cos(angle)])
+        for side, angle in zip((-1, 1), actuators)
+    ]
     half = (centres[1] - centres[0]) / 2
     normal = np.array([-half[1], half[0]]) / np.linalg.norm(half)
     tip = centres[0] + half + normal * math.sqrt(radius**2 - half @ half)
-    return tip if tip[1] > (centres[0] + half - normal)[1] else centres[0] + half - normal * math.sqrt(radius**2 - half @ half)
+    return (
+        tip
+        if tip[1] > (centres[0] + half - normal)[1]
+        else centres[0] + half - normal * math.sqrt(radius**2 - half @ half)
+    )
 
 
 def test_a_five_bar_connect_loads_as_a_3d_closure_with_motors_limits_and_home(tmp_path):
@@ -86,8 +92,9 @@ def test_a_spatial_weld_closes_as_pinocchios_own_constraint_says(tmp_path):
     for angle in np.linspace(-0.3, 0.3, 7):
         q = solver.forward([angle]).q
         pin.forwardKinematics(model, data, q)
-        placement = (data.oMi[weld.joint1_id] * weld.joint1_placement).actInv(data.oMi[weld.joint2_id] *
-                                                                             weld.joint2_placement)
+        placement = (data.oMi[weld.joint1_id] * weld.joint1_placement).actInv(
+            data.oMi[weld.joint2_id] * weld.joint2_placement
+        )
         assert np.abs(pin.log6(placement).vector).max() < 1e-9
         assert abs(q[0] - angle) < 1e-15
 
@@ -97,13 +104,20 @@ def test_ranges_are_qpos_values_slides_in_metres_under_degree_angles(tmp_path, r
     path = slider_crank_mjcf(tmp_path)
     if refs:  # a reference position on each joint, and a range from a default class
         text = path.read_text().replace('range="-0.05 0.05"', 'range="-0.05 0.05" ref="0.02"')
-        text = text.replace('range="-90 90"', 'range="-90 90" ref="10"').replace('<joint name="crank" type="hinge"',
-                                                                           '<joint name="crank" class="c" ref="5"')
+        text = text.replace('range="-90 90"', 'range="-90 90" ref="10"').replace(
+            '<joint name="crank" type="hinge"', '<joint name="crank" class="c" ref="5"'
+        )
         text = text.replace('<joint name="slide" type="slide"', '<joint name="slide" class="s"').replace(
-            ' range="-0.05 0.05"', "")
-        path.write_text(text.replace("<worldbody>", '<default><default class="c"><joint type="hinge" range="-45 45"/>'
-                                                    '</default><default class="s"><joint type="slide" '
-                                                    'range="-0.05 0.05"/></default></default><worldbody>'))
+            ' range="-0.05 0.05"', ""
+        )
+        path.write_text(
+            text.replace(
+                "<worldbody>",
+                '<default><default class="c"><joint type="hinge" range="-45 45"/>'
+                '</default><default class="s"><joint type="slide" '
+                'range="-0.05 0.05"/></default></default><worldbody>',
+            )
+        )
     mechanism = _load(path)
     lower, upper = mechanism.joint_limits(("slide", "pin", "crank"))
     crank = math.pi / 4 if refs else math.inf
@@ -127,7 +141,9 @@ def test_a_keyframe_named_home_is_assembled_from_its_motor_values(tmp_path):
 @pytest.mark.parametrize("offset", ["0 0 0", "0.01 0.02 0"])
 def test_a_written_mjcf_machine_reloads_as_a_urdf_pair_of_the_same_machine(tmp_path, offset):
     path = five_bar_mjcf(tmp_path)  # a hinge off its body's origin (MJCF joint pos) puts the body on a fixed joint
-    path.write_text(path.read_text().replace('name="elbow_l" type="hinge"', f'name="elbow_l" pos="{offset}" type="hinge"'))
+    path.write_text(
+        path.read_text().replace('name="elbow_l" type="hinge"', f'name="elbow_l" pos="{offset}" type="hinge"')
+    )
     mechanism = _load(path)
     mechanism.save(tmp_path / "five_bar.urdf")
     reloaded = _load(tmp_path / "five_bar.urdf")
@@ -138,20 +154,34 @@ def test_a_written_mjcf_machine_reloads_as_a_urdf_pair_of_the_same_machine(tmp_p
     assert errors.position_max < 1e-12 and errors.rotation_max < 1e-12
     assert np.allclose(reloaded.joint_limits()[0], -0.3)
     assert [reloaded.model.inertias[j].mass for j in range(1, 5)] == pytest.approx(
-        [mechanism.model.inertias[j].mass for j in range(1, 5)], rel=1e-12)
+        [mechanism.model.inertias[j].mass for j in range(1, 5)], rel=1e-12
+    )
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"actuators": ""}, r"no <actuator> on a joint"),
-    ({"actuators": '<motor joint="motor_x"/>'}, r"line \d+: <motor>: joint 'motor_x' is not a joint of the file"),
-    ({"actuators": '<motor tendon="belt"/>'}, r"line \d+: <motor>: a tendon transmission"),
-    ({"equality": '<connect name="tip" body1="rod_l" body2="rod_x" anchor="0 0 0"/>'},
-     r"line \d+: <connect name='tip'>: body2 'rod_x' is not a body of the file"),
-    ({"equality": '<tendon name="belt" tendon1="t"/>'}, r"line \d+: <tendon name='belt'>: a tendon equality has no closure"),
-    ({"equality": '<connect body1="rod_l" body2="rod_r" anchor="0.1 0.15 0" active="false"/>'},
-     r"no active <equality> connect or weld"),
-    ({"keyframe": '<keyframe><key qpos="0 0"/></keyframe>'}, r"line \d+: <key>: qpos has 2 values for the file's 4"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"actuators": ""}, r"no <actuator> on a joint"),
+        ({"actuators": '<motor joint="motor_x"/>'}, r"line \d+: <motor>: joint 'motor_x' is not a joint of the file"),
+        ({"actuators": '<motor tendon="belt"/>'}, r"line \d+: <motor>: a tendon transmission"),
+        (
+            {"equality": '<connect name="tip" body1="rod_l" body2="rod_x" anchor="0 0 0"/>'},
+            r"line \d+: <connect name='tip'>: body2 'rod_x' is not a body of the file",
+        ),
+        (
+            {"equality": '<tendon name="belt" tendon1="t"/>'},
+            r"line \d+: <tendon name='belt'>: a tendon equality has no closure",
+        ),
+        (
+            {"equality": '<connect body1="rod_l" body2="rod_r" anchor="0.1 0.15 0" active="false"/>'},
+            r"no active <equality> connect or weld",
+        ),
+        (
+            {"keyframe": '<keyframe><key qpos="0 0"/></keyframe>'},
+            r"line \d+: <key>: qpos has 2 values for the file's 4",
+        ),
+    ],
+)
 def test_what_cannot_be_mapped_is_named_by_element_and_line(tmp_path, change, message):
     with pytest.raises(ModelFileError, match=message):
         Mechanism.load(five_bar_mjcf(tmp_path, **change))
@@ -164,14 +194,26 @@ def test_a_file_cut_short_is_named_as_mjcf_with_its_line(tmp_path):
         Mechanism.load(path)
 
 
-@pytest.mark.parametrize("old, new, message", [
-    ('<joint name="elbow_l" type="hinge" axis="0 0 1"/>', '<joint name="elbow_l" type="ball"/>',
-     r"line \d+: <joint name='elbow_l'>: a ball joint"),
-    ('<joint name="elbow_l" type="hinge" axis="0 0 1"/>', '<freejoint name="loose"/>', r"<freejoint .*a free joint"),
-    ('<joint name="elbow_l" type="hinge" axis="0 0 1"/>',
-     '<joint name="elbow_l" type="hinge" axis="0 0 1"/><joint name="twist" type="hinge" axis="1 0 0"/>',
-     r"line \d+: <body name='rod_l'>: 2 joints on one body"),
-])
+@pytest.mark.parametrize(
+    "old, new, message",
+    [
+        (
+            '<joint name="elbow_l" type="hinge" axis="0 0 1"/>',
+            '<joint name="elbow_l" type="ball"/>',
+            r"line \d+: <joint name='elbow_l'>: a ball joint",
+        ),
+        (
+            '<joint name="elbow_l" type="hinge" axis="0 0 1"/>',
+            '<freejoint name="loose"/>',
+            r"<freejoint .*a free joint",
+        ),
+        (
+            '<joint name="elbow_l" type="hinge" axis="0 0 1"/>',
+            '<joint name="elbow_l" type="hinge" axis="0 0 1"/><joint name="twist" type="hinge" axis="1 0 0"/>',
+            r"line \d+: <body name='rod_l'>: 2 joints on one body",
+        ),
+    ],
+)
 def test_joints_without_a_one_dof_form_are_refused(tmp_path, old, new, message):
     path = five_bar_mjcf(tmp_path)
     path.write_text(path.read_text().replace(old, new))

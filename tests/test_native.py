@@ -86,8 +86,11 @@ def test_without_the_module_the_pure_python_variable_keeps_it_quiet(mechanism, m
             solver = ClosedLoopSolver(mechanism)
         assert solver.native is None
         values = mechanism.home[solver.actuated]
-        assert np.allclose(solver.forward(values).pose.translation,
-                           ClosedLoopSolver(mechanism, native=False).forward(values).pose.translation, atol=1e-12)
+        assert np.allclose(
+            solver.forward(values).pose.translation,
+            ClosedLoopSolver(mechanism, native=False).forward(values).pose.translation,
+            atol=1e-12,
+        )
     finally:
         _with_the_module(monkeypatch)
 
@@ -97,8 +100,12 @@ def _path(solver: ClosedLoopSolver, n: int = 200) -> np.ndarray:
     t = np.linspace(0.0, 2.0 * np.pi, n)
     centre = solver.forward(solver.mechanism.home[solver.actuated]).pose
     solver.reset()
-    targets = np.c_[centre.translation[0] + 0.04 * np.sin(t), centre.translation[1] + 0.03 * np.sin(2 * t),
-                    centre.translation[2] + 0.02 * np.cos(t), 0.15 * np.sin(t)]
+    targets = np.c_[
+        centre.translation[0] + 0.04 * np.sin(t),
+        centre.translation[1] + 0.03 * np.sin(2 * t),
+        centre.translation[2] + 0.02 * np.cos(t),
+        0.15 * np.sin(t),
+    ]
     sliders = np.array([solver.inverse(target).actuators for target in targets])
     solver.reset()
     return sliders
@@ -138,8 +145,9 @@ def test_a_tool_task_frame_is_returned_as_the_python_loop_does(tool_machine):
     result = ClosedLoopSolver(tool_machine).forward(tool_machine.home[tool_machine.actuated_ids])
     data = tool_machine.model.createData()
     pin.framesForwardKinematics(tool_machine.model, data, result.q)
-    np.testing.assert_allclose(result.task_pose.homogeneous, data.oMf[tool_machine.model.getFrameId("tool")].homogeneous,
-                               atol=1e-13)
+    np.testing.assert_allclose(
+        result.task_pose.homogeneous, data.oMf[tool_machine.model.getFrameId("tool")].homogeneous, atol=1e-13
+    )
 
 
 @pytest.mark.parametrize("files", [five_bar_files, spherical_wrist_files])
@@ -278,8 +286,9 @@ def test_forward_batch_matches_the_numpy_newton(mechanism):
     np.testing.assert_array_equal(compiled.iterations, numpy_batch.iterations)
     assert [(f.index, f.error) for f in compiled.failures] == [(f.index, f.error) for f in numpy_batch.failures]
     assert len(compiled.failures) >= 1 and not compiled.poses.flags.writeable
-    assert [f.reason.split(" (residual")[0] for f in compiled.failures] == \
-        [f.reason.split(" (residual")[0] for f in numpy_batch.failures]
+    assert [f.reason.split(" (residual")[0] for f in compiled.failures] == [
+        f.reason.split(" (residual")[0] for f in numpy_batch.failures
+    ]
     short = []
     for use in (True, False):  # three steps at most: some rows stop unconverged, counted alike
         solver = ClosedLoopSolver(mechanism, native=use)
@@ -336,8 +345,9 @@ def _targets(machine: Mechanism, n: int, seed: int) -> np.ndarray:
     solver = ClosedLoopSolver(machine, native=False)
     low, high = machine.joint_limits()
     rng = np.random.default_rng(seed)
-    sliders = machine.home[machine.actuated_ids] + np.cumsum(rng.uniform(-1, 1, (n, len(low))) * 0.004 * (high - low),
-                                                             axis=0)
+    sliders = machine.home[machine.actuated_ids] + np.cumsum(
+        rng.uniform(-1, 1, (n, len(low))) * 0.004 * (high - low), axis=0
+    )
     poses = [solver.forward(values).task_pose.homogeneous for values in np.clip(sliders, low, high)]
     return machine.task.coordinates(np.array(poses))
 
@@ -480,8 +490,9 @@ def test_labels_no_solution_can_have_fail_every_row_and_solve(mechanism):
     start[:, solver.actuated] += np.linspace(0.0, 0.01, 3)[:, None]
     assert list(chain.forward_rows(start.copy(), None, 0, limits)[0]) == [0, 0, 0]
     assert list(chain.forward_rows(start.copy(), np.full(blocks, 2), 0, limits)[0]) == [4, 4, 4]
-    goals = np.ascontiguousarray(mechanism.task.coordinates(
-        ClosedLoopSolver(mechanism).forward_batch(start[:, solver.actuated]).task_poses))
+    goals = np.ascontiguousarray(
+        mechanism.task.coordinates(ClosedLoopSolver(mechanism).forward_batch(start[:, solver.actuated]).task_poses)
+    )
     assert list(chain.inverse_rows(start.copy(), goals, None, None, 0, limits)[0]) == [0, 0, 0]
     assert list(chain.inverse_rows(start.copy(), goals, None, np.full(blocks + 1, 2), 0, limits)[0]) == [4] * 3
     sliders = start[1, solver.actuated]
@@ -640,9 +651,16 @@ def _class_and_steps(solve) -> tuple:
         return type(error), error.iterations
 
 
-@pytest.mark.parametrize("rule", [{"max_step": 1e-5}, {"chord_below": 1.0, "chord_contraction": 0.999},
-                                  {"max_iterations": 1, "no_assembly": 1.0}, {"singular_rcond": 2.0},
-                                  {"tolerance": 1e-6}])
+@pytest.mark.parametrize(
+    "rule",
+    [
+        {"max_step": 1e-5},
+        {"chord_below": 1.0, "chord_contraction": 0.999},
+        {"max_iterations": 1, "no_assembly": 1.0},
+        {"singular_rcond": 2.0},
+        {"tolerance": 1e-6},
+    ],
+)
 def test_every_loop_obeys_every_newton_rule(mechanism, rule):
     """One NewtonRules, read by the compiled and the Python single solves and by both batches: each
     rule changed alone changes the outcome, and alike in every loop."""
@@ -654,8 +672,11 @@ def test_every_loop_obeys_every_newton_rule(mechanism, rule):
             single = _class_and_steps(lambda: solver.forward(far, q_init=mechanism.home))
             batch = solver.forward_batch(far[None, :])  # from home, as forward(q_init=home)
             # A batch row counts its predicted start as a step; the single solve does not.
-            rows = (None, int(batch.iterations[0]) - 1) if batch.complete else \
-                (batch.failures[0].error, int(batch.failures[0].reason.split(" after ")[1].split()[0]) - 1)
+            rows = (
+                (None, int(batch.iterations[0]) - 1)
+                if batch.complete
+                else (batch.failures[0].error, int(batch.failures[0].reason.split(" after ")[1].split()[0]) - 1)
+            )
             outcomes.append((single, rows))
     default, changed = outcomes[:2], outcomes[2:]
     assert default[0] == default[1] and changed[0] == changed[1], (default, changed)
@@ -666,8 +687,16 @@ def test_every_loop_obeys_every_newton_rule(mechanism, rule):
 
 
 def test_newton_rules_refuse_what_no_loop_could_obey():
-    for bad in ({"tolerance": 0.0}, {"tolerance": float("nan")}, {"max_iterations": -1}, {"max_iterations": 1.5},
-                {"singular_rcond": -1e-3}, {"chord_contraction": 1.0}, {"max_step": -0.1}, {"no_assembly": 0.0}):
+    for bad in (
+        {"tolerance": 0.0},
+        {"tolerance": float("nan")},
+        {"max_iterations": -1},
+        {"max_iterations": 1.5},
+        {"singular_rcond": -1e-3},
+        {"chord_contraction": 1.0},
+        {"max_step": -0.1},
+        {"no_assembly": 0.0},
+    ):
         with pytest.raises(InvalidInputError, match=f"Newton rules: {next(iter(bad))}"):
             NewtonRules(**bad)
     assert ClosedLoopSolver(Mechanism.load(), tolerance=1e-9).rules == NewtonRules(tolerance=1e-9)

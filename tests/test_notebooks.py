@@ -64,8 +64,9 @@ def _untracked() -> set[str] | None:
     or None outside a git checkout. Ignored files (.gitignore) are not listed."""
     if shutil.which("git") is None:
         return None
-    done = subprocess.run(["git", "status", "--porcelain", "--untracked-files=all", "-z"], cwd=ROOT,
-                          capture_output=True, check=False)
+    done = subprocess.run(
+        ["git", "status", "--porcelain", "--untracked-files=all", "-z"], cwd=ROOT, capture_output=True, check=False
+    )
     if done.returncode != 0:
         return None
     return {entry[3:].decode() for entry in done.stdout.split(b"\0") if entry.startswith(b"?? ")}
@@ -73,8 +74,11 @@ def _untracked() -> set[str] | None:
 
 def test_there_are_notebooks():
     names = {path.stem for path in NOTEBOOKS}
-    assert {"01_model_and_kinematics", "02_paper_simulation_study",
-            "03_closed_loop_calibration_and_compensation"} <= names
+    assert {
+        "01_model_and_kinematics",
+        "02_paper_simulation_study",
+        "03_closed_loop_calibration_and_compensation",
+    } <= names
     assert names == {path.stem for path in SCRIPTS}, "every notebook has its jupytext script and vice versa"
 
 
@@ -84,8 +88,10 @@ def test_notebook_matches_its_script(script):
     committed = nbformat.read(script.with_suffix(".ipynb"), as_version=4)
     expected = [(cell.cell_type, cell.source) for cell in generated.cells]
     found = [(cell.cell_type, cell.source) for cell in committed.cells]
-    assert found == expected, (f"{script.with_suffix('.ipynb').name} is out of date: "
-                               f"run `jupytext --to ipynb notebooks/{script.name}` (or `make notebooks`)")
+    assert found == expected, (
+        f"{script.with_suffix('.ipynb').name} is out of date: "
+        f"run `jupytext --to ipynb notebooks/{script.name}` (or `make notebooks`)"
+    )
     assert committed.metadata.get("kernelspec") == generated.metadata.get("kernelspec")
 
 
@@ -95,8 +101,10 @@ def test_committed_notebook_is_stripped(path):
     nbformat.validate(nb)
     for index, cell in enumerate(nb.cells):
         if cell.cell_type == "code":
-            assert cell.outputs == [], (f"{path.name} cell {index} has outputs: regenerate it with "
-                                        f"`jupytext --to ipynb notebooks/{path.stem}.py`")
+            assert cell.outputs == [], (
+                f"{path.name} cell {index} has outputs: regenerate it with "
+                f"`jupytext --to ipynb notebooks/{path.stem}.py`"
+            )
             assert cell.execution_count is None, f"{path.name} cell {index} has an execution count"
 
 
@@ -106,8 +114,13 @@ def test_notebook_runs_and_leaves_no_file(path, kernel_name, tmp_path, monkeypat
     # One extra cell, on the executed copy only: which interpreter did the kernel run?
     nb.cells.append(nbformat.v4.new_code_cell("import sys\nprint(sys.prefix)\nprint(sys.executable)"))
     monkeypatch.setenv("TMPDIR", str(tmp_path))  # the kernel's tempfile.mkdtemp() lands here
-    client = nbclient.NotebookClient(nb, kernel_name=kernel_name, timeout=CELL_TIMEOUT, allow_errors=False,
-                                     resources={"metadata": {"path": str(NOTEBOOK_DIR)}})
+    client = nbclient.NotebookClient(
+        nb,
+        kernel_name=kernel_name,
+        timeout=CELL_TIMEOUT,
+        allow_errors=False,
+        resources={"metadata": {"path": str(NOTEBOOK_DIR)}},
+    )
     before = _untracked()
     start = time.perf_counter()
     try:

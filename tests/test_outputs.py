@@ -87,8 +87,9 @@ def test_versions_of_a_machine_do_not_share_a_closures_file(tmp_path, machines):
 
 def test_cli_derives_v2_from_v1(tmp_path, machines, capsys):
     Mechanism.load(machines / "truth.urdf").save(tmp_path / "machine.v1.urdf")
-    code = main(["ik", str(_targets(tmp_path)), "--model", str(tmp_path / "machine.v1.urdf"), "-o",
-                 str(tmp_path / "s.csv")])
+    code = main(
+        ["ik", str(_targets(tmp_path)), "--model", str(tmp_path / "machine.v1.urdf"), "-o", str(tmp_path / "s.csv")]
+    )
     assert code == 0, capsys.readouterr().err
 
 
@@ -187,8 +188,17 @@ def test_cli_refuses_a_missing_output_folder_before_computing(tmp_path, capsys):
 
 def test_calibrate_report_onto_its_own_urdf_or_closures_is_refused(tmp_path, machines, capsys):
     for report in ("c.urdf", "c.closures.yaml", "nodir/r.json"):
-        code = main(["calibrate", str(machines / "m.csv"), "-o", str(tmp_path / "c.urdf"), "--report",
-                     str(tmp_path / report), "--quiet"])
+        code = main(
+            [
+                "calibrate",
+                str(machines / "m.csv"),
+                "-o",
+                str(tmp_path / "c.urdf"),
+                "--report",
+                str(tmp_path / report),
+                "--quiet",
+            ]
+        )
         assert code == 2, report
         assert not (tmp_path / "c.urdf").exists() and not (tmp_path / "c.closures.yaml").exists(), report
     capsys.readouterr()
@@ -216,9 +226,17 @@ def test_an_error_before_commit_removes_every_temporary_file(tmp_path):
 
 def _locked_elsewhere(path: Path) -> subprocess.Popen:
     """Another process holding `path`'s flock, as a live writer in another container or host would."""
-    child = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'rb+'); "
-                              "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)", str(path)],
-                             stdout=subprocess.PIPE, text=True)
+    child = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import fcntl, sys, time; f = open(sys.argv[1], 'rb+'); "
+            "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)",
+            str(path),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     assert child.stdout.readline().strip() == "held"
     return child
 
@@ -260,8 +278,13 @@ except OutputPathError as exc:
 
 
 def _second_writer(folder: Path) -> str:
-    return subprocess.run([sys.executable, "-c", _SECOND_WRITER, str(folder)], capture_output=True, text=True,
-                          env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}, check=True).stdout.strip()
+    return subprocess.run(
+        [sys.executable, "-c", _SECOND_WRITER, str(folder)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)},
+        check=True,
+    ).stdout.strip()
 
 
 def test_a_second_writer_of_an_output_is_refused_before_any_work(tmp_path):
@@ -272,8 +295,10 @@ def test_a_second_writer_of_an_output_is_refused_before_any_work(tmp_path):
     machine = first.add_machine(tmp_path / "c.urdf")
     first.check()
     message = _second_writer(tmp_path)
-    assert message.startswith(f"{tmp_path / 'c.urdf'}: -o: another m3t1r run is writing this file in {tmp_path} "
-                              f"(pid {os.getpid()} on {socket.gethostname()}, started ")
+    assert message.startswith(
+        f"{tmp_path / 'c.urdf'}: -o: another m3t1r run is writing this file in {tmp_path} "
+        f"(pid {os.getpid()} on {socket.gethostname()}, started "
+    )
     assert message.endswith("nothing was written: wait for it to finish, or write elsewhere")
     assert not (tmp_path / "r.json").exists() and len(list(tmp_path.iterdir())) == 2  # the first's claims
     with first:
@@ -298,17 +323,24 @@ def test_a_command_that_failed_before_its_commit_does_not_block_the_next_in_the_
 
 def test_a_writer_in_another_process_is_refused_while_it_stages(tmp_path):
     target = tmp_path / "p.csv"
-    script = ("import sys, time\nfrom m3t1r.io.outputs import OutputSet\n"
-              "outputs = OutputSet(); outputs.add(sys.argv[1]); outputs.check(); print('claimed', flush=True); "
-              "time.sleep(60)")
-    child = subprocess.Popen([sys.executable, "-c", script, str(target)], stdout=subprocess.PIPE, text=True,
-                             env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    script = (
+        "import sys, time\nfrom m3t1r.io.outputs import OutputSet\n"
+        "outputs = OutputSet(); outputs.add(sys.argv[1]); outputs.check(); print('claimed', flush=True); "
+        "time.sleep(60)"
+    )
+    child = subprocess.Popen(
+        [sys.executable, "-c", script, str(target)],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)},
+    )
     try:
         assert child.stdout.readline().strip() == "claimed"
         outputs = OutputSet(announce=None)
         outputs.add(target, "-o")
-        with pytest.raises(OutputPathError, match=f"another m3t1r run is writing this file in {tmp_path} "
-                                                  f"\\(pid {child.pid} on "):
+        with pytest.raises(
+            OutputPathError, match=f"another m3t1r run is writing this file in {tmp_path} \\(pid {child.pid} on "
+        ):
             outputs.check()
     finally:
         child.kill()
@@ -331,8 +363,11 @@ def test_a_failed_rename_puts_back_the_outputs_already_renamed(tmp_path):
         outputs.stage_machine(machine, Mechanism.load())
         (tmp_path / "c.urdf").mkdir()  # appears between check and commit
         (tmp_path / "c.urdf" / "inside").write_text("")
-        with pytest.raises(OutputPathError, match="could not move the new file into place: Is a directory; "
-                                                  "the 1 output\\(s\\) renamed before it were put back"):
+        with pytest.raises(
+            OutputPathError,
+            match="could not move the new file into place: Is a directory; "
+            "the 1 output\\(s\\) renamed before it were put back",
+        ):
             outputs.commit()
     assert (tmp_path / "r.json").read_text() == "old report" and not (tmp_path / "c.closures.yaml").exists()
     assert _no_temporaries(tmp_path)
@@ -425,8 +460,10 @@ def test_json_text_is_strict():
 def test_position_only_calibration_report_is_strict_json(tmp_path, capsys):
     meas = tmp_path / "m.csv"
     assert main(["simulate", "-n", "20", "--position-only", "-o", str(meas)]) == 0
-    assert main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--report", str(tmp_path / "r.json"),
-                 "--quiet"]) == 0
+    assert (
+        main(["calibrate", str(meas), "-o", str(tmp_path / "c.urdf"), "--report", str(tmp_path / "r.json"), "--quiet"])
+        == 0
+    )
     _strict_json((tmp_path / "r.json").read_text())
     capsys.readouterr()
 
@@ -482,7 +519,9 @@ def test_compensate_refuses_a_hinge_beyond_its_limit_by_row(tmp_path, machines, 
     err = capsys.readouterr().err
     assert code == 1 and not out.exists()
     assert "t.csv, line 3" in err and "beyond its limit" in err and "line 2" not in err
-    code = main(["compensate", str(targets), "--unordered", "--calibrated", str(machines / "truth.urdf"), "-o", str(out)])
+    code = main(
+        ["compensate", str(targets), "--unordered", "--calibrated", str(machines / "truth.urdf"), "-o", str(out)]
+    )
     err = capsys.readouterr().err
     assert code == 1 and not out.exists()
     assert "t.csv, line 3" in err and "beyond its limit" in err and "line 2" not in err
@@ -492,15 +531,35 @@ def test_compensate_unordered_targets_gives_the_path_commands(tmp_path, machines
     """--unordered solves every target from home in one batch: the same commands as the path
     (warm-started) solve to 1e-9 m, for targets in no particular order."""
     rng = np.random.default_rng(5)
-    rows = np.column_stack((rng.uniform(0.3, 0.7, 12), rng.uniform(0.3, 0.7, 12), rng.uniform(-0.15, -0.05, 12),
-                            rng.uniform(-0.4, 0.4, 12)))
+    rows = np.column_stack(
+        (
+            rng.uniform(0.3, 0.7, 12),
+            rng.uniform(0.3, 0.7, 12),
+            rng.uniform(-0.15, -0.05, 12),
+            rng.uniform(-0.4, 0.4, 12),
+        )
+    )
     targets = tmp_path / "t.csv"
     targets.write_text("x,y,z,theta\n" + "\n".join(",".join(f"{v:.6f}" for v in row) for row in rows) + "\n")
     outputs = []
     for extra in ([], ["--unordered"]):
         out = tmp_path / f"c{len(extra)}.csv"
-        assert main(["compensate", str(targets), *extra, "--output-kind", "actuators", "--calibrated",
-                     str(machines / "truth.urdf"), "-o", str(out)]) == 0
+        assert (
+            main(
+                [
+                    "compensate",
+                    str(targets),
+                    *extra,
+                    "--output-kind",
+                    "actuators",
+                    "--calibrated",
+                    str(machines / "truth.urdf"),
+                    "-o",
+                    str(out),
+                ]
+            )
+            == 0
+        )
         data = [line for line in out.read_text().splitlines() if not line.startswith("#")]
         assert data[0] == "q11,q11_B2,q21,q21_B4"
         outputs.append(np.array([[float(v) for v in line.split(",")] for line in data[1:]]))
@@ -613,11 +672,22 @@ def _leftover(folder: Path, name: str) -> Path:
 
 def test_a_new_output_is_a_file_or_stdout_with_nothing_staged(tmp_path):
     output = Output(tmp_path / "a.csv", "--out")
-    assert (output.kind, output.temporary, output.data, output.closures, output.pair_of) == ("file", None, None, None, None)
+    assert (output.kind, output.temporary, output.data, output.closures, output.pair_of) == (
+        "file",
+        None,
+        None,
+        None,
+        None,
+    )
     assert output.path == tmp_path / "a.csv" and output.label == "--out"
     stdout = Output("-", "--report")
     assert (stdout.kind, stdout.path, stdout.temporary, stdout.data, stdout.name) == (
-        "stdout", None, None, None, "standard output")
+        "stdout",
+        None,
+        None,
+        None,
+        "standard output",
+    )
 
 
 # -- declaring and looking up ---------------------------------------------------------------------
@@ -665,8 +735,9 @@ def test_add_machine_labels_and_explicit_closures(tmp_path):
     with pytest.raises(OutputPathError) as caught:
         outputs.add_machine("-", "--machine")
     assert caught.value.path == "-"
-    assert str(caught.value) == ("-: --machine: a machine is a URDF and its closures file; "
-                                 "it cannot be written to standard output")
+    assert str(caught.value) == (
+        "-: --machine: a machine is a URDF and its closures file; it cannot be written to standard output"
+    )
 
 
 def test_output_finds_each_declared_output_by_its_path(tmp_path):
@@ -711,8 +782,10 @@ def test_same_file_refusal_names_both(tmp_path):
     outputs.add(tmp_path / "a.csv", "--report")
     error = _refusal(outputs)
     assert error.path == str(tmp_path / "a.csv")
-    assert str(error) == (f"{tmp_path / 'a.csv'}: --report is the same file as -o ({tmp_path / 'a.csv'}): "
-                          "every output must be a different file")
+    assert str(error) == (
+        f"{tmp_path / 'a.csv'}: --report is the same file as -o ({tmp_path / 'a.csv'}): "
+        "every output must be a different file"
+    )
 
 
 def test_a_new_file_is_classified_as_a_file(tmp_path):
@@ -746,19 +819,24 @@ def test_check_folder_tells_a_file_from_a_missing_folder(tmp_path):
     with pytest.raises(OutputPathError) as caught:
         outputs_module._check_folder(output, plain)
     assert (caught.value.path, str(caught.value)) == (
-        str(plain / "r.json"), f"{plain / 'r.json'}: --report: folder {plain} is not a folder")
+        str(plain / "r.json"),
+        f"{plain / 'r.json'}: --report: folder {plain} is not a folder",
+    )
 
 
 @pytest.mark.parametrize("denied", [os.W_OK, os.X_OK])
 def test_a_folder_without_write_or_search_permission_is_refused(tmp_path, monkeypatch, denied):
     real_access = os.access
-    monkeypatch.setattr(outputs_module.os, "access",
-                        lambda path, mode: False if mode & denied else real_access(path, mode))
+    monkeypatch.setattr(
+        outputs_module.os, "access", lambda path, mode: False if mode & denied else real_access(path, mode)
+    )
     outputs = OutputSet()
     outputs.add(tmp_path / "r.json", "--report")
     error = _refusal(outputs)
     assert (error.path, str(error)) == (
-        str(tmp_path / "r.json"), f"{tmp_path / 'r.json'}: --report: folder {tmp_path} is not writable")
+        str(tmp_path / "r.json"),
+        f"{tmp_path / 'r.json'}: --report: folder {tmp_path} is not writable",
+    )
 
 
 def test_check_sweeps_every_folder_and_announces(tmp_path):
@@ -818,8 +896,9 @@ def test_a_machine_on_a_pipe_or_a_device_is_refused_by_kind(tmp_path):
     os.mkfifo(closures_fifo)
     outputs = OutputSet()
     outputs.add_machine(tmp_path / "m.urdf", closures=closures_fifo)
-    assert str(_refusal(outputs)) == (f"{closures_fifo}: closures file of -o is a named pipe; "
-                                      "a machine is a pair of regular files")
+    assert str(_refusal(outputs)) == (
+        f"{closures_fifo}: closures file of -o is a named pipe; a machine is a pair of regular files"
+    )
 
 
 def test_a_socket_is_refused(tmp_path):
@@ -855,7 +934,9 @@ def test_a_full_device_reports_the_write_failure():
     with pytest.raises(OutputPathError) as caught:
         outputs.commit()
     assert (caught.value.path, str(caught.value)) == (
-        "/dev/full", "/dev/full: --report: write failed: No space left on device")
+        "/dev/full",
+        "/dev/full: --report: write failed: No space left on device",
+    )
 
 
 class _FailingStdout:
@@ -870,10 +951,13 @@ class _FailingStdout:
         pass
 
 
-@pytest.mark.parametrize(("error", "message"), [
-    (BrokenPipeError(errno.EPIPE, "Broken pipe"), "--report: the reader closed the pipe"),
-    (OSError(errno.EIO, "Input/output error"), "--report: write failed: Input/output error"),
-])
+@pytest.mark.parametrize(
+    ("error", "message"),
+    [
+        (BrokenPipeError(errno.EPIPE, "Broken pipe"), "--report: the reader closed the pipe"),
+        (OSError(errno.EIO, "Input/output error"), "--report: write failed: Input/output error"),
+    ],
+)
 def test_stdout_write_failures_name_standard_output(monkeypatch, error, message):
     monkeypatch.setattr(outputs_module.sys, "stdout", _FailingStdout(error))
     outputs = OutputSet()
@@ -956,7 +1040,8 @@ def test_staging_path_refuses_streams():
         outputs.staging_path("-")
     assert (caught.value.path, str(caught.value)) == (
         "standard output",
-        "standard output: --plot: a writer needing a file name cannot write to a pipe, device or standard output")
+        "standard output: --plot: a writer needing a file name cannot write to a pipe, device or standard output",
+    )
 
 
 def test_discard_forgets_every_temporary(tmp_path):
@@ -978,8 +1063,10 @@ def test_commit_lists_every_output_never_staged(tmp_path):
     outputs.add(tmp_path / "b.csv")
     outputs.add("-")
     outputs.check()
-    with pytest.raises(ValueError, match=(f"^outputs declared but never staged: {tmp_path / 'a.csv'}, "
-                                          f"{tmp_path / 'b.csv'}, standard output$")):
+    with pytest.raises(
+        ValueError,
+        match=(f"^outputs declared but never staged: {tmp_path / 'a.csv'}, {tmp_path / 'b.csv'}, standard output$"),
+    ):
         outputs.commit()
 
 
@@ -1055,17 +1142,23 @@ def test_a_dangling_or_looping_symlink_is_replaced_not_followed(tmp_path, loop):
 
 A = "a" * 64
 B = "b" * 64
-COMMENT = (b"<!-- m3t1r pair: closures sha256 " + A.encode()
-           + b" (this URDF loads only with the closures file of that content; models/README.md) -->\n")
+COMMENT = (
+    b"<!-- m3t1r pair: closures sha256 "
+    + A.encode()
+    + b" (this URDF loads only with the closures file of that content; models/README.md) -->\n"
+)
 
 
-@pytest.mark.parametrize(("urdf", "closures"), [
-    ("m.urdf", "m.closures.yaml"),
-    ("dir/M.URDF", "dir/M.closures.yaml"),
-    (".urdf", ".urdf.closures.yaml"),  # nothing before the suffix: not a suffix
-    ("machine.xml", "machine.xml.closures.yaml"),
-    ("urdf", "urdf.closures.yaml"),
-])
+@pytest.mark.parametrize(
+    ("urdf", "closures"),
+    [
+        ("m.urdf", "m.closures.yaml"),
+        ("dir/M.URDF", "dir/M.closures.yaml"),
+        (".urdf", ".urdf.closures.yaml"),  # nothing before the suffix: not a suffix
+        ("machine.xml", "machine.xml.closures.yaml"),
+        ("urdf", "urdf.closures.yaml"),
+    ],
+)
 def test_pair_names(urdf, closures):
     assert paired_closures_path(urdf) == Path(closures)
 
@@ -1084,9 +1177,13 @@ def test_comment_without_a_declaration_goes_first():
 
 
 def test_comment_after_a_declaration_with_and_without_its_newline():
-    assert with_closures_sha256(b'<?xml version="1.0"?>\n<robot/>', A) == b'<?xml version="1.0"?>\n' + COMMENT + b"<robot/>"
+    assert (
+        with_closures_sha256(b'<?xml version="1.0"?>\n<robot/>', A)
+        == b'<?xml version="1.0"?>\n' + COMMENT + b"<robot/>"
+    )
     assert with_closures_sha256(b'<?xml version="1.0"?><robot/>', A) == (
-        b'<?xml version="1.0"?>\n' + COMMENT + b"<robot/>")
+        b'<?xml version="1.0"?>\n' + COMMENT + b"<robot/>"
+    )
 
 
 def test_comment_is_replaced_and_removed():
@@ -1120,7 +1217,9 @@ def test_booleans_stay_booleans():
 
 def test_paths_become_their_string():
     assert json.loads(json_text({"file": Path("/tmp/a.csv"), "pure": PurePosixPath("b/c.urdf")})) == {
-        "file": "/tmp/a.csv", "pure": "b/c.urdf"}
+        "file": "/tmp/a.csv",
+        "pure": "b/c.urdf",
+    }
 
 
 def test_non_finite_values_everywhere_become_null():

@@ -59,8 +59,14 @@ def test_chains_are_the_principal_chains_with_roles_by_position(mechanism, chain
     first, second = chains
     assert (first.name, second.name) == ("B1", "B3")
     assert first.serial.joint_names == mechanism.principal_chains["B1"][:-1]
-    assert (first.slider, first.upper_crank, first.lower_crank, first.lower_coupling, first.platform_hinge,
-            first.tool_frame) == ("q11", "q12", "q13", "q13_pa", "q14", "P_I")
+    assert (
+        first.slider,
+        first.upper_crank,
+        first.lower_crank,
+        first.lower_coupling,
+        first.platform_hinge,
+        first.tool_frame,
+    ) == ("q11", "q12", "q13", "q13_pa", "q14", "P_I")
     assert (second.lower_crank, second.lower_coupling, second.tool_frame) == ("q23", "q23_pa", "P_II")
     assert first.n_parameters == second.n_parameters == 42  # 7 placements x 6
 
@@ -70,7 +76,9 @@ def test_a_principal_chain_that_is_not_the_tree_path_is_rejected(mechanism):
     swapped["B1"] = ("q11", "q12_pa", "q12", "q13", "q13_pa", "q14", "P_I")
     with pytest.raises(ModelFileError, match="tree path"):
         paper_chains(dataclasses.replace(mechanism, principal_chains=swapped))
-    with pytest.raises(ModelFileError, match="specific to the M machine.s structure and needs its 2 principal chains, found 1"):
+    with pytest.raises(
+        ModelFileError, match="specific to the M machine.s structure and needs its 2 principal chains, found 1"
+    ):
         paper_chains(dataclasses.replace(mechanism, principal_chains={"B1": mechanism.principal_chains["B1"]}))
 
 
@@ -80,8 +88,10 @@ def test_y_is_the_log_of_eq_18_and_tool_point_rows_are_displacements(mechanism, 
     nominal = two_chain_error_model(mechanism.model, chains, q, (identity, identity))
     twist = np.array([1e-3, -2e-3, 0.5e-3, 2e-3, -1e-3, 3e-3])
     shift = np.array([1e-3, 2e-3, -3e-3])
-    measured = (tuple(pin.exp6(twist) * g for g in nominal.poses[0]),
-                tuple(pin.SE3(g.rotation, g.translation + shift) for g in nominal.poses[1]))
+    measured = (
+        tuple(pin.exp6(twist) * g for g in nominal.poses[0]),
+        tuple(pin.SE3(g.rotation, g.translation + shift) for g in nominal.poses[1]),
+    )
     system = two_chain_error_model(mechanism.model, chains, q, measured)
     np.testing.assert_allclose(system.y[:, :6], np.tile(twist, (5, 1)), atol=1e-15)  # g_meas = exp(y) g
     y, _ = system.at_tool_points()
@@ -109,10 +119,13 @@ def test_error_jacobian_matches_finite_differences_and_is_block_diagonal(mechani
             poses.append(moved.poses)
         for c in range(2):
             for k in range(len(q)):
-                fd = (pin.log6(poses[0][c][k] * system.poses[c][k].inverse()).vector
-                      - pin.log6(poses[1][c][k] * system.poses[c][k].inverse()).vector) / (2 * step)
-                np.testing.assert_allclose(system.jacobian[k, 6 * c:6 * c + 6, column], fd, atol=2e-9,
-                                           err_msg=system.parameter_names[column])
+                fd = (
+                    pin.log6(poses[0][c][k] * system.poses[c][k].inverse()).vector
+                    - pin.log6(poses[1][c][k] * system.poses[c][k].inverse()).vector
+                ) / (2 * step)
+                np.testing.assert_allclose(
+                    system.jacobian[k, 6 * c : 6 * c + 6, column], fd, atol=2e-9, err_msg=system.parameter_names[column]
+                )
 
 
 def test_identifiable_parameter_counts(mechanism, nominal_configurations):
@@ -140,15 +153,24 @@ def test_recursive_least_squares_equals_batch(mechanism, nominal_configurations,
     _, truth = exact_data
     q = nominal_configurations[:20]
     measured = {name: poses[:20] for name, poses in truth.items()}
-    one = {solver: calibrate_two_chains(mechanism, q, measured, solver=solver, max_iterations=1)
-           for solver in ("batch", "recursive")}
+    one = {
+        solver: calibrate_two_chains(mechanism, q, measured, solver=solver, max_iterations=1)
+        for solver in ("batch", "recursive")
+    }
     difference = max(np.abs(one["batch"].deltas[p] - one["recursive"].deltas[p]).max() for p in one["batch"].deltas)
     assert difference <= 1e-12  # measured 1.7e-16 on a step of norm 1.1e-2
     # Whole calibrations over the 48 structural combinations (condition 1e3): same parameters.
-    structural = {solver: calibrate_two_chains(mechanism, q, measured, solver=solver, rank_tolerance=NOISY_READINGS_REL_TOL)
-                  for solver in ("batch", "recursive")}
-    assert max(np.abs(structural["batch"].deltas[p] - structural["recursive"].deltas[p]).max()
-               for p in structural["batch"].deltas) <= 1e-9  # measured 1.1e-14
+    structural = {
+        solver: calibrate_two_chains(mechanism, q, measured, solver=solver, rank_tolerance=NOISY_READINGS_REL_TOL)
+        for solver in ("batch", "recursive")
+    }
+    assert (
+        max(
+            np.abs(structural["batch"].deltas[p] - structural["recursive"].deltas[p]).max()
+            for p in structural["batch"].deltas
+        )
+        <= 1e-9
+    )  # measured 1.1e-14
     # With the second-order combinations re-selected (condition 1e9) the two solvers' rounding
     # moves the parameters apart along them (measured 1.6e-3) but not the poses (measured 5.6e-16).
     full = {solver: calibrate_two_chains(mechanism, q, measured, solver=solver) for solver in ("batch", "recursive")}
@@ -162,19 +184,25 @@ def test_local_poe_model_absorbs_twist_and_offset_errors_exactly(mechanism, nomi
     """Noise-free, every joint read: calibrated chains reproduce the actual chains (eq. 37)."""
     _, truth = exact_data
     fit, held = slice(0, 20), slice(20, None)
-    calibration = calibrate_two_chains(mechanism, nominal_configurations[fit],
-                                       {name: poses[fit] for name, poses in truth.items()})
+    calibration = calibrate_two_chains(
+        mechanism, nominal_configurations[fit], {name: poses[fit] for name, poses in truth.items()}
+    )
     assert calibration.converged
     assert calibration.step_norms[0] > 1e-2  # millimetre-size errors moved
     for name, poses in truth.items():
         predicted = calibration.predict(name, nominal_configurations[held])
-        worst = max(max(np.linalg.norm(a.translation - b.translation),
-                        np.linalg.norm(pin.log3(a.rotation.T @ b.rotation))) for a, b in zip(predicted, poses[held]))
+        worst = max(
+            max(np.linalg.norm(a.translation - b.translation), np.linalg.norm(pin.log3(a.rotation.T @ b.rotation)))
+            for a, b in zip(predicted, poses[held])
+        )
         assert worst <= 1e-12  # measured 1.3e-15 m, 6.8e-16 rad
     # Minimum-norm steps over all 84 parameters fit as well, without choosing a base.
-    minimum_norm = calibrate_two_chains(mechanism, nominal_configurations[fit],
-                                        {name: poses[fit] for name, poses in truth.items()},
-                                        unidentifiable="minimum_norm")
+    minimum_norm = calibrate_two_chains(
+        mechanism,
+        nominal_configurations[fit],
+        {name: poses[fit] for name, poses in truth.items()},
+        unidentifiable="minimum_norm",
+    )
     assert all(_worst(e) <= 1e-12 for e in minimum_norm.residual_after.values())  # measured 1.1e-15
 
 
@@ -196,8 +224,9 @@ def test_why_twists_need_no_parameters_conjugation(chains, exact_data):
             rotation = pin.exp3(axis / np.linalg.norm(axis) * np.arctan2(np.linalg.norm(axis), w @ w_a))
             C = pin.SE3(rotation, point)
             for q in (-0.7, 0.3, 1.9):
-                np.testing.assert_allclose(pin.exp6(actual * q).homogeneous,
-                                           (C * pin.exp6(s * q) * C.inverse()).homogeneous, atol=1e-14)
+                np.testing.assert_allclose(
+                    pin.exp6(actual * q).homogeneous, (C * pin.exp6(s * q) * C.inverse()).homogeneous, atol=1e-14
+                )
 
 
 def test_typed_errors_name_the_culprit(mechanism, nominal_configurations, exact_data):
@@ -233,8 +262,9 @@ def _foot_distance(model, q, chains):
     return float(np.linalg.norm(data.oMi[feet[1]].translation - data.oMi[feet[0]].translation))
 
 
-def test_distance_recursion_converges_to_the_constraint_but_not_to_the_angles(mechanism, chains,
-                                                                               nominal_configurations):
+def test_distance_recursion_converges_to_the_constraint_but_not_to_the_angles(
+    mechanism, chains, nominal_configurations
+):
     q = nominal_configurations
     estimate = estimate_lower_crank_angles(mechanism, q, method="distance")
     assert estimate.joints == ("q13", "q23")
@@ -252,15 +282,18 @@ def test_distance_recursion_is_a_minimum_norm_update(mechanism, chains, nominal_
     """Started on the truth it stays; started off along the curve's tangent it stays off."""
     q = nominal_configurations[0]
     truth = q[[mechanism.model.idx_qs[mechanism.model.getJointId(n)] for n in ("q13", "q23")]]
-    assert np.abs(estimate_lower_crank_angles(mechanism, q[None], method="distance", initial=truth).angles
-                  - truth).max() <= 1e-15
+    assert (
+        np.abs(estimate_lower_crank_angles(mechanism, q[None], method="distance", initial=truth).angles - truth).max()
+        <= 1e-15
+    )
     gradient = np.empty(2)
     for k, index in enumerate(mechanism.model.idx_qs[mechanism.model.getJointId(n)] for n in ("q13", "q23")):
         plus, minus = q.copy(), q.copy()
         plus[index] += 1e-7
         minus[index] -= 1e-7
-        gradient[k] = (_foot_distance(mechanism.model, plus, chains)
-                       - _foot_distance(mechanism.model, minus, chains)) / 2e-7
+        gradient[k] = (
+            _foot_distance(mechanism.model, plus, chains) - _foot_distance(mechanism.model, minus, chains)
+        ) / 2e-7
     tangent = np.array([-gradient[1], gradient[0]]) / np.linalg.norm(gradient)
     offset = 0.02
     estimate = estimate_lower_crank_angles(mechanism, q[None], method="distance", initial=truth + offset * tangent)
@@ -328,8 +361,9 @@ def test_paper_study_with_cranks_from_the_platform_weld_is_as_good_as_sensors():
     assert all(min(e.reduction) >= 50 for e in noisy.holdout_poses.values())  # measured 269-727x
 
 
-def test_the_sensors_read_with_the_tracker_noise_and_the_passive_encoder_noise(mechanism, chains,
-                                                                               nominal_configurations):
+def test_the_sensors_read_with_the_tracker_noise_and_the_passive_encoder_noise(
+    mechanism, chains, nominal_configurations
+):
     """Sliders with TrackerNoise.actuator, the chains' other joints with passive_encoder_noise,
     joints of no chain exact; noise=None reads everything exactly."""
     q = np.repeat(nominal_configurations, 100, axis=0)

@@ -73,8 +73,10 @@ def test_plan_of_40_calibrates_to_the_noise_level(plan_file, mechanism) -> None:
     calibration = calibrate_closed_loop(mechanism, measure(truth, sliders, rng, noise), noise)
     held_out = workspace_actuators(mechanism, 200, np.random.default_rng(12))
     errors = pose_errors(calibration.mechanism, truth, held_out)
-    print(f"held-out after plan -n 40: {errors.position_mean * 1e6:.2f} um mean, {errors.position_max * 1e6:.2f} um "
-          f"max, {errors.rotation_mean * 1e6:.2f} urad mean")
+    print(
+        f"held-out after plan -n 40: {errors.position_mean * 1e6:.2f} um mean, {errors.position_max * 1e6:.2f} um "
+        f"max, {errors.rotation_mean * 1e6:.2f} urad mean"
+    )
     assert errors.position_mean <= 10e-6
     assert errors.rotation_mean <= 20e-6
     # The printed prediction is what the calibration itself predicts on those poses.
@@ -104,8 +106,7 @@ def test_plan_is_d_better_than_random_slider_sets(plan_file, mechanism) -> None:
     rng = np.random.default_rng(5)
     random_sets = [workspace_actuators(mechanism, 40, rng) for _ in range(3)]
     blocks, names = closed_loop_candidate_blocks(mechanism, np.vstack([planned, *random_sets]))
-    columns = list(select_base_parameters(blocks.reshape(-1, len(names)), names, 1e-9,
-                                          max_condition=np.inf).indices)
+    columns = list(select_base_parameters(blocks.reshape(-1, len(names)), names, 1e-9, max_condition=np.inf).indices)
     planned_value = information_log_det(blocks[:, :, columns], range(40))
     random_values = [information_log_det(blocks[:, :, columns], range(40 * k, 40 * k + 40)) for k in (1, 2, 3)]
     print(f"log det: plan {planned_value:.1f}, random {', '.join(f'{v:.1f}' for v in random_values)}")
@@ -136,8 +137,9 @@ def test_library_plan_travel_and_accuracy(mechanism) -> None:
     assert plan.accuracy.n == 30 and np.all(plan.accuracy.std.position > 0)
     home = mechanism.home[[mechanism.model.idx_qs[mechanism.model.getJointId(n)] for n in mechanism.actuated_joints]]
     np.testing.assert_allclose(plan.start, home)
-    position_only = plan_closed_loop(mechanism, 25, np.random.default_rng(1), n_candidates=150, n_evaluation=30,
-                                     position_only=True)
+    position_only = plan_closed_loop(
+        mechanism, 25, np.random.default_rng(1), n_candidates=150, n_evaluation=30, position_only=True
+    )
     assert np.all(np.isnan(position_only.accuracy.std.rotation)) and position_only.accuracy.std.position_mean > 0
 
 
@@ -155,8 +157,10 @@ def test_serial_plan(tmp_path, capsys) -> None:
     assert plan.travel < plan.travel_selection_order and plan.column_units == ("rad",) * 6
 
 
-_PLAN_FIGURES = re.compile(r"chosen D-optimally among (\d+) candidates \(seed (\d+)\): log det ([-0-9.]+), "
-                           r"condition number ([0-9.e+-]+), (\d+) identifiable parameters")
+_PLAN_FIGURES = re.compile(
+    r"chosen D-optimally among (\d+) candidates \(seed (\d+)\): log det ([-0-9.]+), "
+    r"condition number ([0-9.e+-]+), (\d+) identifiable parameters"
+)
 
 
 def test_the_demo_s_plan_prints_the_readme_s_figures(tmp_path, capsys) -> None:
@@ -174,7 +178,9 @@ def test_the_demo_s_plan_prints_the_readme_s_figures(tmp_path, capsys) -> None:
     assert command in readme, "the README's demo output no longer shows the demo's plan command"
     documented = _PLAN_FIGURES.search(readme, readme.index(command))
     assert documented is not None
-    assert run(["plan", "-n", str(settings.n_poses), "--seed", str(settings.seed), "-o", str(tmp_path / "plan.csv")]) == 0
+    assert (
+        run(["plan", "-n", str(settings.n_poses), "--seed", str(settings.seed), "-o", str(tmp_path / "plan.csv")]) == 0
+    )
     printed = _PLAN_FIGURES.search(capsys.readouterr().out)
     assert printed is not None
     assert printed.group(1, 2, 5) == documented.group(1, 2, 5)  # candidates, seed, identifiable count
@@ -182,14 +188,17 @@ def test_the_demo_s_plan_prints_the_readme_s_figures(tmp_path, capsys) -> None:
     assert float(printed.group(4)) == pytest.approx(float(documented.group(4)), rel=0.01)
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["-n", "10", "--candidates", "5"], "5 candidates"),
-    (["-n", "5"], "cannot identify"),
-    (["-n", "10", "--serial", "ur5", "--model", "x.urdf"], "--model/--closures"),
-    (["-n", "10", "--tool", "tool0"], "--serial only"),
-    (["-n", "10", "--serial", "nowhere.urdf"], "nowhere.urdf: file not found"),
-    (["-n", "10", "--serial", "ur5", "--tool", "no_frame"], "no_frame"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["-n", "10", "--candidates", "5"], "5 candidates"),
+        (["-n", "5"], "cannot identify"),
+        (["-n", "10", "--serial", "ur5", "--model", "x.urdf"], "--model/--closures"),
+        (["-n", "10", "--tool", "tool0"], "--serial only"),
+        (["-n", "10", "--serial", "nowhere.urdf"], "nowhere.urdf: file not found"),
+        (["-n", "10", "--serial", "ur5", "--tool", "no_frame"], "no_frame"),
+    ],
+)
 def test_plan_errors(tmp_path, capsys, argv, message) -> None:
     assert run(["plan", *argv, "-o", str(tmp_path / "plan.csv")]) == 2
     assert message in capsys.readouterr().out
@@ -206,8 +215,11 @@ def test_too_few_planned_poses_name_what_they_leave_unexcited(files, tmp_path) -
         plan_closed_loop(machine, 3, np.random.default_rng(0), n_evaluation=5)
     message = str(refusal.value)
     names = ClosedLoopErrorModel(machine).names
-    found = re.fullmatch(r"3 poses cannot identify the (\d+) parameters that the 60 candidates identify: they leave "
-                         r"(.+) unexcited; plan more poses \(3 give 18 rows for \1 parameters\)", message)
+    found = re.fullmatch(
+        r"3 poses cannot identify the (\d+) parameters that the 60 candidates identify: they leave "
+        r"(.+) unexcited; plan more poses \(3 give 18 rows for \1 parameters\)",
+        message,
+    )
     assert found is not None, message
     assert set(found.group(2).removesuffix(" ...").split(", ")) <= set(names)
     assert plan_closed_loop(machine, 12, np.random.default_rng(0), n_evaluation=5).n_poses == 12
@@ -223,8 +235,13 @@ def test_plan_and_calibrate_count_the_same_identifiable_parameters(tmp_path) -> 
         assert len(plan.selection.columns) == calibration.base.rank
 
 
-@pytest.mark.parametrize("argv, message", [(["-n", "0"], "argument -n: expected at least 1, got 0"),
-                                           (["-n", "5", "--seed", "-1"], "a seed is a whole number of at least 0")])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["-n", "0"], "argument -n: expected at least 1, got 0"),
+        (["-n", "5", "--seed", "-1"], "a seed is a whole number of at least 0"),
+    ],
+)
 def test_plan_counts_and_seeds_are_refused_as_they_are_parsed(tmp_path, capsys, argv, message) -> None:
     with pytest.raises(SystemExit) as exit_info:
         run(["plan", *argv, "-o", str(tmp_path / "plan.csv")])

@@ -84,14 +84,17 @@ def test_position_only_errors_get_the_position_panel_alone(tmp_path, errors):
     one panel; a NaN among measured rotations is still refused."""
     before, after = errors
     nan = np.full(len(before.position), np.nan)
-    out = plot_pose_errors_before_after(PoseErrors(before.position, nan), PoseErrors(after.position, nan),
-                                        tmp_path / "position.png")
+    out = plot_pose_errors_before_after(
+        PoseErrors(before.position, nan), PoseErrors(after.position, nan), tmp_path / "position.png"
+    )
     assert_real_png(out)
     with pytest.raises(InvalidInputError, match="before.rotation: non-finite"):
-        plot_pose_errors_before_after(PoseErrors(before.position, np.r_[before.rotation[:-1], np.nan]), after,
-                                      tmp_path / "x.png")
+        plot_pose_errors_before_after(
+            PoseErrors(before.position, np.r_[before.rotation[:-1], np.nan]), after, tmp_path / "x.png"
+        )
     with pytest.raises(InvalidInputError, match="before.rotation: non-finite"):  # orientation after but not before
         plot_pose_errors_before_after(PoseErrors(before.position, nan), after, tmp_path / "x.png")
+
 
 def test_error_vs_poses_with_and_without_prediction(tmp_path):
     n = [20, 50, 100, 200]
@@ -109,8 +112,9 @@ def test_workspace_error_map_and_predicted_std_map(tmp_path, errors, workspace_p
     before = np.linspace(5e-3, 2e-2, 120)
     after = np.linspace(1e-6, 4e-5, 120)
     map_path = plot_workspace_error_map(workspace_points, before, after, tmp_path / "map.png")
-    yaw_path = plot_workspace_error_map(workspace_points, before * 5, after, tmp_path / "yaw.png", kind="yaw",
-                                        shared_scale=True)
+    yaw_path = plot_workspace_error_map(
+        workspace_points, before * 5, after, tmp_path / "yaw.png", kind="yaw", shared_scale=True
+    )
     std = PoseErrors(np.linspace(4e-6, 2e-5, 120), np.linspace(8e-6, 3e-5, 120))
     std_path = plot_predicted_std_map(workspace_points, std, tmp_path / "std.png")
     for path in (map_path, yaw_path, std_path):
@@ -127,8 +131,9 @@ def test_refuses_to_overwrite_a_protected_input(tmp_path, errors, workspace_poin
         lambda p: plot_pose_errors_before_after(*errors, p, protect=[measurements]),
         lambda p: plot_error_vs_poses([10, 20], [1e-5, 5e-6], [2e-5, 1e-5], p, protect=[measurements]),
         lambda p: plot_workspace_error_map(workspace_points, np.ones(120), np.ones(120), p, protect=[measurements]),
-        lambda p: plot_predicted_std_map(workspace_points, PoseErrors(np.ones(120), np.ones(120)), p,
-                                         protect=[measurements]),
+        lambda p: plot_predicted_std_map(
+            workspace_points, PoseErrors(np.ones(120), np.ones(120)), p, protect=[measurements]
+        ),
     ]
     for call in calls:
         for path in (measurements, alias):
@@ -189,16 +194,19 @@ def test_calibration_plots_title_the_map_by_what_it_shows(tmp_path, monkeypatch,
 
     mechanism = Mechanism.load()
     frame = pin.SE3(pin.utils.rotate("z", 2.0), np.array([1.5, -0.8, 0.3])) if estimate_frame else pin.SE3.Identity()
-    study = simulate_study(mechanism, n_poses=40, n_holdout=0, seed=5, noise=TrackerNoise(),
-                           setup=MeasurementSetup(frame))
+    study = simulate_study(
+        mechanism, n_poses=40, n_holdout=0, seed=5, noise=TrackerNoise(), setup=MeasurementSetup(frame)
+    )
     calibration = calibrate_closed_loop(mechanism, study.measurements, TrackerNoise(), estimate_frame=estimate_frame)
     maps = []
     monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
-    monkeypatch.setattr(reporting, "plot_predicted_std_map",
-                        lambda targets, std, path, title, protect, plane, outputs:
-                        maps.append((targets, std, title)) or path)
+    monkeypatch.setattr(
+        reporting,
+        "plot_predicted_std_map",
+        lambda targets, std, path, title, protect, plane, outputs: maps.append((targets, std, title)) or path,
+    )
     reporting.write_calibration_plots(mechanism, calibration, tmp_path)
-    (targets, std, title), = maps
+    ((targets, std, title),) = maps
     assert 250 < len(targets) <= 300 and len(std.position) == len(targets)
     if estimate_frame:
         assert title.startswith("Predicted error of the measured point in the measurement frame (1 sigma)")
@@ -221,8 +229,9 @@ def test_calibration_plots_of_a_position_only_tracker(tmp_path, monkeypatch):
 
     mechanism = Mechanism.load()
     setup = MeasurementSetup(pin.SE3(pin.utils.rotate("z", -1.0), np.array([1.5, 2.0, -0.3])))
-    study = simulate_study(mechanism, n_poses=40, n_holdout=0, seed=6, noise=TrackerNoise(), position_only=True,
-                           setup=setup)
+    study = simulate_study(
+        mechanism, n_poses=40, n_holdout=0, seed=6, noise=TrackerNoise(), position_only=True, setup=setup
+    )
     calibration = calibrate_closed_loop(mechanism, study.measurements, TrackerNoise(), estimate_frame=True)
     monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
     written = reporting.write_calibration_plots(mechanism, calibration, tmp_path)
@@ -249,13 +258,17 @@ def test_calibration_plots_of_other_mechanisms_map_their_own_workspace(tmp_path,
     calibration = calibrate_closed_loop(mechanism, study.measurements, TrackerNoise())
     maps = []
     monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
-    monkeypatch.setattr(reporting, "plot_predicted_std_map", lambda where, std, path, title, protect, plane, outputs:
-                        maps.append((where, std, plane)) or path)
+    monkeypatch.setattr(
+        reporting,
+        "plot_predicted_std_map",
+        lambda where, std, path, title, protect, plane, outputs: maps.append((where, std, plane)) or path,
+    )
     reporting.write_calibration_plots(mechanism, calibration, tmp_path / "plots")
-    (where, std, plane), = maps
+    ((where, std, plane),) = maps
     frame = mechanism.task.frame
-    assert plane == ((f"{frame} x [m]", f"{frame} y [m]") if kind == "five_bar" else
-                     (f"{frame} roll [rad]", f"{frame} pitch [rad]"))
+    assert plane == (
+        (f"{frame} x [m]", f"{frame} y [m]") if kind == "five_bar" else (f"{frame} roll [rad]", f"{frame} pitch [rad]")
+    )
     assert 250 < len(where) <= 300 and len(std.position) == len(where) and np.all(np.isfinite(where))
     assert np.ptp(where, axis=0).min() > 0.1  # spread over the workspace, not one point
 
@@ -310,12 +323,16 @@ def test_calibration_plots_show_the_outliers_the_fit_left_out(tmp_path, monkeypa
     drawn = []
     monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
     original = reporting.plot_pose_errors_before_after
-    monkeypatch.setattr(reporting, "plot_pose_errors_before_after",
-                        lambda before, after, *args, **kwargs: drawn.append((before, after)) or
-                        original(before, after, *args, **kwargs))
+    monkeypatch.setattr(
+        reporting,
+        "plot_pose_errors_before_after",
+        lambda before, after, *args, **kwargs: (
+            drawn.append((before, after)) or original(before, after, *args, **kwargs)
+        ),
+    )
     labels = [f"line {k + 3}" for k in range(40)]
     written = reporting.write_calibration_plots(mechanism, calibration, tmp_path, labels=labels)
     assert png_description(written[0]) == "outliers: line 10, line 25"
-    (before, after), = drawn
+    ((before, after),) = drawn
     assert len(after.position) == 40  # every pose drawn, the outliers' included
     assert after.position[[7, 22]].min() > 3e-3 > 1e-4 > np.delete(after.position, [7, 22]).max()

@@ -440,7 +440,9 @@ def test_rank_bound_is_the_rank_of_the_stacked_error_jacobian(robot: str, ur5: p
 
 
 def test_a_joint_frame_is_not_a_placement_nor_a_tool(ur5: pin.Model) -> None:
-    expected = "frame 'elbow_joint': is the JOINT frame of a joint; use Placement.joint(...) to perturb the joint placement"
+    expected = (
+        "frame 'elbow_joint': is the JOINT frame of a joint; use Placement.joint(...) to perturb the joint placement"
+    )
     for call in (
         lambda: placement_of(ur5, Placement.frame("elbow_joint")),
         lambda: perturb(ur5, {Placement.frame("elbow_joint"): np.zeros(6)}),
@@ -549,7 +551,9 @@ def test_perturb_refusals_are_exact(ur5: pin.Model) -> None:
         perturb(ur5, {Placement.joint("elbow_joint"): np.zeros(5)})
     assert str(info.value) == "error twist of joint 'elbow_joint': expected 6 values, got 5"
     with pytest.raises(InvalidInputError) as info:
-        perturb(ur5, {Placement.frame("tool0"): np.zeros(6), Placement.frame("wrist_3_link-tool0_fixed_joint"): np.zeros(6)})
+        perturb(
+            ur5, {Placement.frame("tool0"): np.zeros(6), Placement.frame("wrist_3_link-tool0_fixed_joint"): np.zeros(6)}
+        )
     assert str(info.value) == (
         "perturb: frame 'wrist_3_link-tool0_fixed_joint' and frame 'tool0' name the same physical placement"
     )
@@ -645,8 +649,9 @@ def test_chain_configurations_accept_any_real_numbers(ur5: pin.Model) -> None:
     mixed = mixed_joint_model()
     mixed_chain = SerialChain.from_model(mixed, "tool")
     full = mixed_chain.model_configuration(mixed, np.linspace(-1.0, 1.0, 7))
-    np.testing.assert_array_equal(mixed_chain.chain_configuration([Decimal(str(v)) for v in full]),
-                                  mixed_chain.chain_configuration(full))
+    np.testing.assert_array_equal(
+        mixed_chain.chain_configuration([Decimal(str(v)) for v in full]), mixed_chain.chain_configuration(full)
+    )
 
 
 def test_poe_forward_names_the_chain_configuration(ur5: pin.Model) -> None:
@@ -706,9 +711,15 @@ def test_joint_motions_of_a_general_screw_equal_exp6(ur5: pin.Model) -> None:
     twists = np.vstack([rng.normal(size=(3, 6)), [[0.3, -0.2, 0.9, 0.0, 0.0, 0.0]]])
     template = SerialChain.from_model(ur5, "tool0")
     chain = SerialChain(
-        joint_ids=template.joint_ids[:4], joint_names=template.joint_names[:4], tool_frame_id=template.tool_frame_id,
-        tool_frame=template.tool_frame, base_frame_id=None, base_frame=None, idx_q=template.idx_q[:4],
-        nq_per_joint=(1, 1, 1, 1), twists=twists,
+        joint_ids=template.joint_ids[:4],
+        joint_names=template.joint_names[:4],
+        tool_frame_id=template.tool_frame_id,
+        tool_frame=template.tool_frame,
+        base_frame_id=None,
+        base_frame=None,
+        idx_q=template.idx_q[:4],
+        nq_per_joint=(1, 1, 1, 1),
+        twists=twists,
     )
     q = rng.uniform(-2.0, 2.0, size=(5, 4))
     motions = chain.joint_motions(q)
@@ -783,14 +794,17 @@ def test_frames_moved_by_a_frame_error_are_the_frames_perturb_moves() -> None:
 
     before = world_frames(model)
     names = [f.name for f in model.frames if f.type != pin.FrameType.JOINT]
-    base = next(f.name for f in model.frames if f.parentJoint == 0 and f.type == pin.FrameType.BODY and f.name != "universe")
+    base = next(
+        f.name for f in model.frames if f.parentJoint == 0 and f.type == pin.FrameType.BODY and f.name != "universe"
+    )
     chosen = {base, "P_I", "slider_B1", names[len(names) // 2]}
     for name in chosen:
         frame_id = model.getFrameId(name)
         anchor, moved = frames_moved_by_frame_error(model, frame_id)
         perturbed = perturb(model, {Placement("frame", name): np.full(6, 1e-3)})
         after = world_frames(perturbed)
-        changed = {i for i in range(model.nframes)
-                   if np.linalg.norm(pin.log6(before[i].actInv(after[i])).vector) > 1e-12}
+        changed = {
+            i for i in range(model.nframes) if np.linalg.norm(pin.log6(before[i].actInv(after[i])).vector) > 1e-12
+        }
         assert moved == changed, name
         assert anchor in moved and frame_id in moved

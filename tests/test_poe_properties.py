@@ -108,8 +108,11 @@ def test_error_jacobian_matches_finite_differences(ur5, q, column):
     for sign in (1.0, -1.0):
         error = np.zeros(6)
         error[column % 6] = sign * eps
-        twists.append(pin.log6(poe_forward(chain, perturb(model, {placement: error}), q)
-                               * poe_forward(chain, model, q).inverse()).vector)
+        twists.append(
+            pin.log6(
+                poe_forward(chain, perturb(model, {placement: error}), q) * poe_forward(chain, model, q).inverse()
+            ).vector
+        )
     np.testing.assert_allclose((twists[0] - twists[1]) / (2 * eps), jacobian[:, column], atol=1e-6)
 
 

@@ -130,8 +130,9 @@ def test_serial_blocks_selection_beats_random() -> None:
     assert blocks.shape == (200, 6, chain.n_parameters) and len(names) == chain.n_parameters
     selection = select_poses(blocks, 8)
     rng = np.random.default_rng(13)
-    random_values = [information_log_det(blocks[:, :, list(selection.columns)], rng.choice(200, 8, replace=False))
-                     for _ in range(50)]
+    random_values = [
+        information_log_det(blocks[:, :, list(selection.columns)], rng.choice(200, 8, replace=False)) for _ in range(50)
+    ]
     assert information_log_det(blocks[:, :, list(selection.columns)], selection.indices) > max(random_values)
 
 
@@ -151,12 +152,12 @@ def test_closed_loop_blocks_match_the_calibration_jacobian(mechanism) -> None:
     problem = _ClosedLoopProblem(error_model, measurements, noise, np.arange(error_model.n_parameters))
     state = problem.assemble(mechanism.model, None)
     _, jacobian = problem.evaluate(state, problem.columns)
-    np.testing.assert_allclose(blocks.reshape(-1, error_model.n_parameters), jacobian,
-                               atol=1e-6 * np.abs(blocks).max())
+    np.testing.assert_allclose(blocks.reshape(-1, error_model.n_parameters), jacobian, atol=1e-6 * np.abs(blocks).max())
     # 56 base parameters at the nominal geometry (docs/design.md); 20 poses identify them.
     selection = select_poses(blocks, 20)
     assert np.isfinite(selection.log_det) and len(selection.columns) == 56
     rng = np.random.default_rng(15)
     kept = blocks[:, :, list(selection.columns)]
     assert information_log_det(kept, selection.indices) > max(
-        information_log_det(kept, rng.choice(40, 20, replace=False)) for _ in range(20))
+        information_log_det(kept, rng.choice(40, 20, replace=False)) for _ in range(20)
+    )

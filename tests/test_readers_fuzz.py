@@ -32,9 +32,33 @@ COLUMNS = [*NOMINAL.actuated_joints, "x", "y", "z", "qx", "qy", "qz", "qw", "the
 CELL = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True).map(repr),
     st.floats(min_value=-0.5, max_value=0.5).map(repr),
-    st.integers(min_value=-10**400, max_value=10**400).map(str),
-    st.sampled_from(["", " ", "nan", "-inf", "Infinity", "1e300", "-1e309", "1_000", "0x10", "1,5", '"1"', '"',
-                     "1e", ".", "-", "+.5", "\u00a01", "１", "1\r2", "# 1", "\ufeff0.1", "0.1\t"]),
+    st.integers(min_value=-(10**400), max_value=10**400).map(str),
+    st.sampled_from(
+        [
+            "",
+            " ",
+            "nan",
+            "-inf",
+            "Infinity",
+            "1e300",
+            "-1e309",
+            "1_000",
+            "0x10",
+            "1,5",
+            '"1"',
+            '"',
+            "1e",
+            ".",
+            "-",
+            "+.5",
+            "\u00a01",
+            "１",
+            "1\r2",
+            "# 1",
+            "\ufeff0.1",
+            "0.1\t",
+        ]
+    ),
     st.text(max_size=6),
 )
 
@@ -55,10 +79,12 @@ def _csv(header: list[str], rows: list[list[str]], newline: str) -> bytes:
 def test_csv_reader_on_random_bytes(data):
     with tempfile.TemporaryDirectory() as folder:
         path = _write(folder, "t.csv", data)
-        for read in (lambda: read_table(path, required=["a"], optional=["b"]),
-                     lambda: read_actuators(path, NOMINAL),
-                     lambda: read_targets(path),
-                     lambda: read_measurements(path, NOMINAL)):
+        for read in (
+            lambda: read_table(path, required=["a"], optional=["b"]),
+            lambda: read_actuators(path, NOMINAL),
+            lambda: read_targets(path),
+            lambda: read_measurements(path, NOMINAL),
+        ):
             try:
                 read()
             except DataFileError as exc:
@@ -82,8 +108,11 @@ def test_csv_readers_on_random_cells(header, rows, newline, valid_prefix):
         return
     with tempfile.TemporaryDirectory() as folder:
         path = _write(folder, "m.csv", data)
-        for read in (lambda: read_measurements(path, NOMINAL), lambda: read_targets(path),
-                     lambda: read_actuators(path, NOMINAL)):
+        for read in (
+            lambda: read_measurements(path, NOMINAL),
+            lambda: read_targets(path),
+            lambda: read_actuators(path, NOMINAL),
+        ):
             try:
                 result = read()
             except DataFileError as exc:
@@ -106,8 +135,12 @@ def test_closures_reader_on_random_bytes(data):
 
 
 YAML_VALUE = st.recursive(
-    st.none() | st.booleans() | st.integers(min_value=-10**30, max_value=10**30) | st.floats()
-    | st.text(max_size=8) | st.sampled_from(["P_I", "q11", "3D", "6D", "base", "platform"]),
+    st.none()
+    | st.booleans()
+    | st.integers(min_value=-(10**30), max_value=10**30)
+    | st.floats()
+    | st.text(max_size=8)
+    | st.sampled_from(["P_I", "q11", "3D", "6D", "base", "platform"]),
     lambda children: st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=5), children, max_size=3),
     max_leaves=8,
 )

@@ -39,8 +39,10 @@ REFUSALS = [
     (_set("platform_frame", "nowhere"), "platform_frame: frame 'nowhere' does not exist in the URDF"),
     (_set("actuated_joints", []), "actuated_joints must be a non-empty list of joint names"),
     (_set("actuated_joints", "motor_1"), "actuated_joints must be a non-empty list of joint names"),
-    (_set("actuated_joints", ["effector_fixed", "motor_2"]),
-     "actuated_joints: 'effector_fixed' is a fixed joint, not prismatic or revolute"),
+    (
+        _set("actuated_joints", ["effector_fixed", "motor_2"]),
+        "actuated_joints: 'effector_fixed' is a fixed joint, not prismatic or revolute",
+    ),
     (_set("actuated_joints", ["motor_1", "nope"]), "actuated_joints: joint 'nope' does not exist in five_bar.urdf"),
     (_set("actuated_joints", ["motor_1", "motor_1"]), "actuated_joints: a joint is listed twice"),
     (_set("closures", []), "closures: at least one closure is required"),
@@ -48,8 +50,10 @@ REFUSALS = [
     (_set("closures", 5), "closures must be a list of closures, got 5"),
     (_set("closures", {"loop": None}), "closures must be a list of closures, got {'loop': None}"),
     (_closure(type="XD"), "closure 'loop': type must be 3D or 6D, got 'XD'"),
-    (lambda d: d["closures"][0].pop("name") and _closure(type="2D")(d),
-     "closure 'closures[0]': type must be 3D or 6D, got '2D'"),
+    (
+        lambda d: d["closures"][0].pop("name") and _closure(type="2D")(d),
+        "closure 'closures[0]': type must be 3D or 6D, got '2D'",
+    ),
     (lambda d: d["closures"].append(dict(d["closures"][0])), "closure 'loop': duplicate closure name"),
     (_closure(frame_a="nowhere"), "closure 'loop': frame 'nowhere' does not exist in the URDF"),
     (_closure(frame_b="nowhere"), "closure 'loop': frame 'nowhere' does not exist in the URDF"),
@@ -60,12 +64,22 @@ REFUSALS = [
     (_closure(type="6D", rows=[0, 6]), "closure 'loop': rows must be distinct indices in 0..5, got [0, 6]"),
     (_set("principal_chains", {"B": ["motor_1"]}), "principal_chains.B: expected joint names then a frame name"),
     (_set("principal_chains", {"B": "motor_1"}), "principal_chains.B: expected joint names then a frame name"),
-    (_set("principal_chains", {"B": ["motor_1", "nope", "effector"]}), "principal_chains.B: joint 'nope' does not exist"),
-    (_set("principal_chains", {"B": ["nope", "motor_1", "effector"]}), "principal_chains.B: joint 'nope' does not exist"),
-    (_set("principal_chains", {"B": ["motor_1", "nowhere"]}),
-     "principal_chains.B: frame 'nowhere' does not exist in the URDF"),
-    (_set("principal_chains", {"B": ["motor_1", "elbow_1", "nowhere"]}),
-     "principal_chains.B: frame 'nowhere' does not exist in the URDF"),
+    (
+        _set("principal_chains", {"B": ["motor_1", "nope", "effector"]}),
+        "principal_chains.B: joint 'nope' does not exist",
+    ),
+    (
+        _set("principal_chains", {"B": ["nope", "motor_1", "effector"]}),
+        "principal_chains.B: joint 'nope' does not exist",
+    ),
+    (
+        _set("principal_chains", {"B": ["motor_1", "nowhere"]}),
+        "principal_chains.B: frame 'nowhere' does not exist in the URDF",
+    ),
+    (
+        _set("principal_chains", {"B": ["motor_1", "elbow_1", "nowhere"]}),
+        "principal_chains.B: frame 'nowhere' does not exist in the URDF",
+    ),
     (_set("home", [1.0]), "home must map joint names to values"),
     (lambda d: d["home"].update(nope=0.0), "home: joint 'nope' does not exist"),
     (lambda d: d["home"].update(motor_1="abc"), "home: joint 'motor_1' has non-numeric value 'abc'"),
@@ -76,25 +90,43 @@ REFUSALS = [
     (_task(rotation="roll"), "task rotation must be one of none, yaw, full, got 'roll'"),
     (lambda d: d.__setitem__("task", {}), "task: commands nothing (no position axis and rotation none)"),
     (_set("workspace", {}), "workspace must have exactly one of 'actuators' or 'task'"),
-    (lambda d: d.__setitem__("workspace", {"actuators": d["workspace"]["actuators"], "task": {}}),
-     "workspace must have exactly one of 'actuators' or 'task'"),
-    (lambda d: d["workspace"]["actuators"].pop("motor_2"),
-     "workspace.actuators must give an interval [lo, hi] for each of motor_1, motor_2; got ['motor_1']"),
-    (lambda d: d["workspace"].update(actuators="box"),
-     "workspace.actuators must give an interval [lo, hi] for each of motor_1, motor_2; got 'box'"),
-    (lambda d: d["workspace"]["actuators"].update(motor_1=[1, 2, 3]),
-     "workspace.actuators.motor_1 must be [lo, hi] numbers, got [1, 2, 3]"),
-    (lambda d: d["workspace"]["actuators"].update(motor_1="12"),
-     "workspace.actuators.motor_1 must be [lo, hi] numbers, got '12'"),
-    (lambda d: d["workspace"]["actuators"].update(motor_1=[True, 2]),
-     "workspace.actuators.motor_1 must be [lo, hi] numbers, got [True, 2]"),
-    (lambda d: d["workspace"]["actuators"].update(motor_1=[2.0, 1.0]),
-     "workspace: interval of 'motor_1' must be finite with lo <= hi, got [2.0, 1.0]"),
-    (_set("workspace", {"task": {"x": [-0.1, 0.1]}}),
-     "workspace.task must give an interval [lo, hi] for each of x, y; got ['x']"),
-    (lambda d: _task(rotation="yaw")(d) or d.__setitem__("workspace", {"task": {"x": [0, 1], "y": [0, 1]}}),
-     "workspace.task: the task commands 3 coordinates for 2 actuators; sample a task box only when they match "
-     "(give an actuators box)"),
+    (
+        lambda d: d.__setitem__("workspace", {"actuators": d["workspace"]["actuators"], "task": {}}),
+        "workspace must have exactly one of 'actuators' or 'task'",
+    ),
+    (
+        lambda d: d["workspace"]["actuators"].pop("motor_2"),
+        "workspace.actuators must give an interval [lo, hi] for each of motor_1, motor_2; got ['motor_1']",
+    ),
+    (
+        lambda d: d["workspace"].update(actuators="box"),
+        "workspace.actuators must give an interval [lo, hi] for each of motor_1, motor_2; got 'box'",
+    ),
+    (
+        lambda d: d["workspace"]["actuators"].update(motor_1=[1, 2, 3]),
+        "workspace.actuators.motor_1 must be [lo, hi] numbers, got [1, 2, 3]",
+    ),
+    (
+        lambda d: d["workspace"]["actuators"].update(motor_1="12"),
+        "workspace.actuators.motor_1 must be [lo, hi] numbers, got '12'",
+    ),
+    (
+        lambda d: d["workspace"]["actuators"].update(motor_1=[True, 2]),
+        "workspace.actuators.motor_1 must be [lo, hi] numbers, got [True, 2]",
+    ),
+    (
+        lambda d: d["workspace"]["actuators"].update(motor_1=[2.0, 1.0]),
+        "workspace: interval of 'motor_1' must be finite with lo <= hi, got [2.0, 1.0]",
+    ),
+    (
+        _set("workspace", {"task": {"x": [-0.1, 0.1]}}),
+        "workspace.task must give an interval [lo, hi] for each of x, y; got ['x']",
+    ),
+    (
+        lambda d: _task(rotation="yaw")(d) or d.__setitem__("workspace", {"task": {"x": [0, 1], "y": [0, 1]}}),
+        "workspace.task: the task commands 3 coordinates for 2 actuators; sample a task box only when they match "
+        "(give an actuators box)",
+    ),
 ]
 
 
@@ -112,6 +144,7 @@ def test_what_a_file_may_leave_out(tmp_path):
             document.pop(key)
         document["closures"][0].pop("rows")
         document["closures"][0]["type"] = "3D"
+
     urdf, closures = _edited(tmp_path, minimal)
     with pytest.warns(UserWarning):  # the z row holds by itself on a planar loop: dropped with a note
         mechanism = Mechanism.load(urdf, closures)
@@ -128,6 +161,7 @@ def test_task_defaults_and_the_chains_read(tmp_path):
         document["task"] = {"position": ["y", "x"]}  # frame: the platform frame; rotation: none
         document["principal_chains"] = {"B1": ["motor_1", "elbow_1", "effector"], "B2": ["motor_2", "tip_2"]}
         document["workspace"] = {"task": {"x": [-0.05, 0.05], "y": [0.35, 0.45]}}
+
     mechanism = Mechanism.load(*_edited(tmp_path, change))
     assert mechanism.task == TaskSpec("effector", ("x", "y"), "none")
     assert mechanism.principal_chains == {"B1": ("motor_1", "elbow_1", "effector"), "B2": ("motor_2", "tip_2")}
@@ -187,19 +221,43 @@ def _line_of(text: str, start: str, after: int = 0) -> int:
 KEY_REFUSALS = [
     # A second `rows:` replaced the first; a `row:` typo fell back to every row; a second
     # `workspace:` replaced the first; an unknown field was ignored.
-    (lambda t: t.replace("  rows: [0, 1]\n", "  rows: [0, 1]\n  rows: [0]\n", 1), "  rows: [0]", "  rows:",
-     "key 'rows' given twice (first on line {first}); YAML would keep only the last"),
-    (lambda t: t.replace("  rows: [0, 1]\n", "  row: [0, 1]\n", 1), "  row:", None,
-     "closure 'loop': unknown field 'row' (known: name, type, frame_a, frame_b, rows)"),
-    (lambda t: t + "workspace:\n  actuators: {motor_1: [2.0, 2.1], motor_2: [0.5, 0.6]}\n", "workspace:", "workspace:",
-     "key 'workspace' given twice (first on line {first}); YAML would keep only the last"),
-    (lambda t: t + "platfrom_frame: effector\n", "platfrom_frame", None,
-     "unknown field 'platfrom_frame' (known: schema_version, actuated_joints, closures, principal_chains, "
-     "platform_frame, task, workspace, home, frames, locked_joints)"),
-    (lambda t: t.replace("task:\n", "task:\n  speed: 1\n", 1), "  speed", None,
-     "task: unknown field 'speed' (known: frame, position, rotation)"),
-    (lambda t: t.replace("workspace:\n", "workspace:\n  box: {}\n", 1), "  box", None,
-     "workspace: unknown field 'box' (known: actuators, task)"),
+    (
+        lambda t: t.replace("  rows: [0, 1]\n", "  rows: [0, 1]\n  rows: [0]\n", 1),
+        "  rows: [0]",
+        "  rows:",
+        "key 'rows' given twice (first on line {first}); YAML would keep only the last",
+    ),
+    (
+        lambda t: t.replace("  rows: [0, 1]\n", "  row: [0, 1]\n", 1),
+        "  row:",
+        None,
+        "closure 'loop': unknown field 'row' (known: name, type, frame_a, frame_b, rows)",
+    ),
+    (
+        lambda t: t + "workspace:\n  actuators: {motor_1: [2.0, 2.1], motor_2: [0.5, 0.6]}\n",
+        "workspace:",
+        "workspace:",
+        "key 'workspace' given twice (first on line {first}); YAML would keep only the last",
+    ),
+    (
+        lambda t: t + "platfrom_frame: effector\n",
+        "platfrom_frame",
+        None,
+        "unknown field 'platfrom_frame' (known: schema_version, actuated_joints, closures, principal_chains, "
+        "platform_frame, task, workspace, home, frames, locked_joints)",
+    ),
+    (
+        lambda t: t.replace("task:\n", "task:\n  speed: 1\n", 1),
+        "  speed",
+        None,
+        "task: unknown field 'speed' (known: frame, position, rotation)",
+    ),
+    (
+        lambda t: t.replace("workspace:\n", "workspace:\n  box: {}\n", 1),
+        "  box",
+        None,
+        "workspace: unknown field 'box' (known: actuators, task)",
+    ),
 ]
 
 
@@ -221,10 +279,14 @@ def test_duplicate_and_unknown_keys_are_refused_with_their_line(tmp_path, edit, 
 
 def test_a_closure_of_a_frame_with_itself_is_refused_by_name(tmp_path):
     """It made every row dependent and ended in an IndexError inside ClosedLoopSolver."""
-    urdf, closures = _edited(tmp_path, _closure(frame_b=yaml.safe_load(five_bar_files(tmp_path / "x")[1].read_text())
-                                                ["closures"][0]["frame_a"]))
+    urdf, closures = _edited(
+        tmp_path,
+        _closure(frame_b=yaml.safe_load(five_bar_files(tmp_path / "x")[1].read_text())["closures"][0]["frame_a"]),
+    )
     frame = yaml.safe_load(closures.read_text())["closures"][0]["frame_a"]
     with pytest.raises(ModelFileError) as caught:
         Mechanism.load(urdf, closures)
-    assert str(caught.value) == (f"{closures}: closure 'loop': frame_a '{frame}' and frame_b '{frame}' are the same "
-                                 "frame: the closure constrains no joint")
+    assert str(caught.value) == (
+        f"{closures}: closure 'loop': frame_a '{frame}' and frame_b '{frame}' are the same "
+        "frame: the closure constrains no joint"
+    )

@@ -77,10 +77,12 @@ def run_calibration(
 ):
     """Simulated with SENSORS' noise (exact: none at all), fitted assuming SENSORS' noise."""
     rng = np.random.default_rng(seed)
-    data = simulate_serial_measurements(model, chain, N_POSES, rng, noise=None if exact else NOISE,
-                                        joint_noise=0.0 if exact else JOINT_NOISE)
-    calibration = calibrate_serial(model, chain, data.q_readings, data.measured_poses, position_only=position_only,
-                                   **SENSORS)
+    data = simulate_serial_measurements(
+        model, chain, N_POSES, rng, noise=None if exact else NOISE, joint_noise=0.0 if exact else JOINT_NOISE
+    )
+    calibration = calibrate_serial(
+        model, chain, data.q_readings, data.measured_poses, position_only=position_only, **SENSORS
+    )
     held_out = sample_configurations(model, chain, N_HELD_OUT, rng)
     before = pose_errors(model, data.truth, chain, held_out)
     after = pose_errors(calibration.model, data.truth, chain, held_out)
@@ -193,8 +195,9 @@ def test_serial_simulation_takes_the_tracker_noise_and_a_joint_noise() -> None:
     assert np.array_equal(exact.q_readings, exact.q_true)
     truth = [pin.SE3(g) for g in tool_poses(chain, exact.truth, exact.q_true)]
     assert max(np.linalg.norm(pin.log6(g.actInv(m)).vector) for g, m in zip(truth, exact.measured_poses)) < 1e-12
-    noisy = simulate_serial_measurements(model, chain, 400, np.random.default_rng(19), noise=TrackerNoise(1e-4, 3e-4),
-                                         joint_noise=2e-4)
+    noisy = simulate_serial_measurements(
+        model, chain, 400, np.random.default_rng(19), noise=TrackerNoise(1e-4, 3e-4), joint_noise=2e-4
+    )
     assert noisy.noise == TrackerNoise(1e-4, 3e-4) and noisy.joint_noise == 2e-4
     assert np.std(noisy.q_readings - noisy.q_true) == pytest.approx(2e-4, rel=0.05)
     truth = [pin.SE3(g) for g in tool_poses(chain, noisy.truth, noisy.q_true)]
@@ -253,8 +256,9 @@ def test_stopping_one_iteration_earlier_changes_nothing() -> None:
     noise = TrackerNoise(position=1e-5, rotation=2e-5)  # exact joint readings
     data = simulate_serial_measurements(model, chain, N_POSES, np.random.default_rng(33), noise=noise)
     default = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=noise)
-    exhaustive = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=noise,
-                                  absolute_cost_tolerance=0.0)
+    exhaustive = calibrate_serial(
+        model, chain, data.q_readings, data.measured_poses, noise=noise, absolute_cost_tolerance=0.0
+    )
     assert default.converged and exhaustive.converged
     assert default.iterations <= exhaustive.iterations <= default.iterations + 1
     q = sample_configurations(model, chain, N_HELD_OUT, np.random.default_rng(34))
@@ -320,11 +324,17 @@ def test_parameter_std_matches_the_scatter_of_repeated_experiments(ur5):
         rng = np.random.default_rng(truth_rng_seed)  # same truth and configurations every time ...
         data = simulate_serial_measurements(model, chain, 40, rng, noise=None)
         noise_rng = np.random.default_rng(100 + k)  # ... fresh tracker noise
-        measured = [pin.SE3(g.rotation @ pin.exp3(noise_rng.normal(0.0, TRACKER.rotation, 3)),
-                            g.translation + noise_rng.normal(0.0, TRACKER.position, 3))
-                    for g in data.measured_poses]
+        measured = [
+            pin.SE3(
+                g.rotation @ pin.exp3(noise_rng.normal(0.0, TRACKER.rotation, 3)),
+                g.translation + noise_rng.normal(0.0, TRACKER.position, 3),
+            )
+            for g in data.measured_poses
+        ]
         calibration = calibrate_serial(model, chain, data.q_readings, measured, noise=TRACKER)
-        estimates.append(np.concatenate([calibration.deltas[p] for p in chain.placements()])[list(calibration.base.indices)])
+        estimates.append(
+            np.concatenate([calibration.deltas[p] for p in chain.placements()])[list(calibration.base.indices)]
+        )
         stds.append(calibration.parameter_std)
     scatter = np.std(np.array(estimates), axis=0, ddof=1)
     ratio = scatter / np.mean(np.array(stds), axis=0)
@@ -377,7 +387,10 @@ def test_layout_columns_and_names(ur5):
     names = layout.names(chain)
     assert names[:42] == chain.parameter_names()
     assert names[42:] == tuple(f"measurement_frame.dt[{k}]" for k in range(6)) + (
-        "marker.dt[0]", "marker.dt[1]", "marker.dt[2]") + tuple(f"compliance.{j}" for j in chain.joint_names)
+        "marker.dt[0]",
+        "marker.dt[1]",
+        "marker.dt[2]",
+    ) + tuple(f"compliance.{j}" for j in chain.joint_names)
     plain = S.SerialLayout(6)
     assert plain.size == 42 and plain.frame_slice == slice(42, 42) and plain.compliance_slice == slice(42, 42)
     assert plain.setup_columns.size == 0 and plain.names(chain) == chain.parameter_names()
@@ -394,13 +407,20 @@ def test_jacobian_of_every_column_matches_finite_differences(ur5, position_only)
     layout = S.SerialLayout(6, frame=True, marker=3 if position_only else 6, compliance=True)
     torques = S.gravity_torques(model, chain, data.q)
     rng = np.random.default_rng(41)
-    whitening = np.linalg.inv(np.linalg.cholesky(  # any SPD covariance: the whitening is applied as a matrix
-        np.array([np.eye(data.rows_per_pose) + 0.3 * (a @ a.T) for a in rng.normal(size=(6, data.rows_per_pose, 2))])))
+    whitening = np.linalg.inv(
+        np.linalg.cholesky(  # any SPD covariance: the whitening is applied as a matrix
+            np.array(
+                [np.eye(data.rows_per_pose) + 0.3 * (a @ a.T) for a in rng.normal(size=(6, data.rows_per_pose, 2))]
+            )
+        )
+    )
     residual = S.SerialResidual(chain, data, whitening, layout, torques)
-    start = S.nominal_state(chain, perturb(model, {p: np.full(6, 2e-3) for p in chain.placements()}),
-                            MeasurementSetup(FRAME, MARKER))
-    state = residual.retract(start, np.r_[np.zeros(42), rng.normal(0.0, 1e-3, layout.size - 42 - 6),
-                                          rng.normal(0.0, 1e-4, 6)])
+    start = S.nominal_state(
+        chain, perturb(model, {p: np.full(6, 2e-3) for p in chain.placements()}), MeasurementSetup(FRAME, MARKER)
+    )
+    state = residual.retract(
+        start, np.r_[np.zeros(42), rng.normal(0.0, 1e-3, layout.size - 42 - 6), rng.normal(0.0, 1e-4, 6)]
+    )
     np.testing.assert_array_equal(state.accumulated[:42], 0.0)
     assert state.compliance is not None and np.all(state.compliance != 0.0)
     r, J = residual.residual_and_jacobian(state)
@@ -408,8 +428,9 @@ def test_jacobian_of_every_column_matches_finite_differences(ur5, position_only)
     raw = residual.raw_residual(state)
     np.testing.assert_allclose(r, (whitening @ raw[:, :, None]).reshape(-1), rtol=1e-12, atol=1e-15)
     # The measured frame M = F g(q + c tau) K, as the raw residual's position part.
-    g = tool_poses(chain, perturb(model, {p: np.full(6, 2e-3) for p in chain.placements()}),
-                   data.q + state.compliance * torques)
+    g = tool_poses(
+        chain, perturb(model, {p: np.full(6, 2e-3) for p in chain.placements()}), data.q + state.compliance * torques
+    )
     predicted = state.frame @ g @ state.marker
     np.testing.assert_allclose(raw[:, :3], predicted[:, :3, 3] - data.positions, atol=1e-12)
     step = 1e-7
@@ -417,8 +438,9 @@ def test_jacobian_of_every_column_matches_finite_differences(ur5, position_only)
     for i in range(layout.size):
         dx = np.zeros(layout.size)
         dx[i] = step if i < layout.compliance_slice.start else 1e-9
-        numeric[:, i] = (residual.residual(residual.retract(state, dx)) -
-                         residual.residual(residual.retract(state, -dx))) / (2 * dx[i])
+        numeric[:, i] = (
+            residual.residual(residual.retract(state, dx)) - residual.residual(residual.retract(state, -dx))
+        ) / (2 * dx[i])
     for block in (slice(0, 42), layout.frame_slice, layout.marker_slice, layout.compliance_slice):
         assert np.linalg.norm(J[:, block] - numeric[:, block]) <= 1e-6 * np.linalg.norm(J[:, block]), block
 
@@ -427,8 +449,9 @@ def test_retract_accumulates_the_steps_in_layout_order(ur5):
     model, chain = ur5
     data = _measurements(model, chain)
     layout = S.SerialLayout(6, frame=True, marker=6, compliance=True)
-    residual = S.SerialResidual(chain, data, np.broadcast_to(np.eye(6), (6, 6, 6)), layout,
-                                S.gravity_torques(model, chain, data.q))
+    residual = S.SerialResidual(
+        chain, data, np.broadcast_to(np.eye(6), (6, 6, 6)), layout, S.gravity_torques(model, chain, data.q)
+    )
     start = S.nominal_state(chain, model)
     assert start.accumulated is None and start.compliance is None and start.plain
     a, b = np.linspace(1e-3, 2e-3, layout.size), np.linspace(-1e-3, 5e-4, layout.size)
@@ -438,7 +461,11 @@ def test_retract_accumulates_the_steps_in_layout_order(ur5):
     np.testing.assert_allclose(two.accumulated, a + b, rtol=0, atol=1e-18)
     np.testing.assert_allclose(two.compliance, a[layout.compliance_slice] + b[layout.compliance_slice], atol=1e-18)
     for j in range(7):
-        expected = start.transforms[j] @ pin.exp6(a[6 * j: 6 * j + 6]).homogeneous @ pin.exp6(b[6 * j: 6 * j + 6]).homogeneous
+        expected = (
+            start.transforms[j]
+            @ pin.exp6(a[6 * j : 6 * j + 6]).homogeneous
+            @ pin.exp6(b[6 * j : 6 * j + 6]).homogeneous
+        )
         np.testing.assert_allclose(two.transforms[j], expected, atol=1e-14)
     np.testing.assert_allclose(two.frame, pin.exp6(a[42:48]).homogeneous @ pin.exp6(b[42:48]).homogeneous, atol=1e-14)
     np.testing.assert_allclose(two.marker, pin.exp6(a[48:54]).homogeneous @ pin.exp6(b[48:54]).homogeneous, atol=1e-14)
@@ -565,8 +592,9 @@ def test_rms_of_positions_and_rotations():
 def test_prior_columns_by_parameter_or_placement(ur5):
     _, chain = ur5
     names = S.SerialLayout(6, compliance=True).names(chain)
-    columns = S.prior_columns(names, {"shoulder_pan_joint": 1e-3, "compliance.elbow_joint": 0.5,
-                                      "wrist_1_joint.dt[4]": 2})
+    columns = S.prior_columns(
+        names, {"shoulder_pan_joint": 1e-3, "compliance.elbow_joint": 0.5, "wrist_1_joint.dt[4]": 2}
+    )
     assert columns == {**{c: 1e-3 for c in range(6)}, 44: 0.5, 22: 2.0}
     assert all(type(sigma) is float for sigma in columns.values())
     assert S.prior_columns(names, None) == {} and S.prior_columns(names, {}) == {}
@@ -574,7 +602,9 @@ def test_prior_columns_by_parameter_or_placement(ur5):
         with pytest.raises(InvalidInputError) as error:
             S.prior_columns(names, {"elbow_joint": sigma})
         assert str(error.value) == "prior of 'elbow_joint': sigma must be a positive number (m, rad or rad/Nm)"
-    with pytest.raises(InvalidInputError, match=r"^prior: 'nope' is neither a parameter \(e.g. shoulder_pan_joint.dt\[0\]\)"):
+    with pytest.raises(
+        InvalidInputError, match=r"^prior: 'nope' is neither a parameter \(e.g. shoulder_pan_joint.dt\[0\]\)"
+    ):
         S.prior_columns(names, {"nope": 1.0})
 
 
@@ -603,8 +633,9 @@ def test_start_state_registers_the_frame_and_the_marker_rotation(ur5):
     np.testing.assert_array_equal(frame_only.marker, axes_unknown.marker.homogeneous)
     np.testing.assert_array_equal(frame_only.compliance, np.zeros(6))
     assert not frame_only.compliance.flags.writeable
-    marker_only = S.start_state(chain, model, data, MeasurementSetup(FRAME, pin.SE3(np.eye(3), MARKER.translation)),
-                                False, True, False)
+    marker_only = S.start_state(
+        chain, model, data, MeasurementSetup(FRAME, pin.SE3(np.eye(3), MARKER.translation)), False, True, False
+    )
     np.testing.assert_array_equal(marker_only.frame, FRAME.homogeneous)
     np.testing.assert_allclose(marker_only.marker, MARKER.homogeneous, atol=1e-9)
     # Positions only: no rotation to register the marker's axes with.
@@ -616,10 +647,12 @@ def test_start_state_registers_the_frame_and_the_marker_rotation(ur5):
 
 def _lm(calls):
     def solve(problem, state):
-        result = levenberg_marquardt(problem, state, max_iterations=30, initial_damping=1e-6,
-                                     absolute_cost_tolerance=1e-6)
+        result = levenberg_marquardt(
+            problem, state, max_iterations=30, initial_damping=1e-6, absolute_cost_tolerance=1e-6
+        )
         calls.append((len(problem.columns), state, result))
         return result
+
     return solve
 
 
@@ -751,8 +784,9 @@ def test_selection_scores_the_fit_linearised_at_the_estimate(ur5):
     keep = np.repeat(problem.active, 3)
     forced = np.flatnonzero(columns >= 42)
     assert forced.size == 6
-    expected = forward_selection(J[keep][:, columns], (r - J[:, columns] @ fit.state.accumulated[columns])[keep], 3,
-                                 range(len(columns)), forced)
+    expected = forward_selection(
+        J[keep][:, columns], (r - J[:, columns] @ fit.state.accumulated[columns])[keep], 3, range(len(columns)), forced
+    )
     calls.clear()
     selection, refit, iterations = S.select_parameters(problem, start, fit, _lm(calls))
     assert selection == expected
@@ -771,12 +805,24 @@ def test_result_reports_every_candidate_and_the_fitted_ones(ur5):
     truth = perturb(model, {p: rng.normal(0.0, 5e-4, 6) for p in chain.placements()})
     q = sample_configurations(model, chain, 30, rng)
     compliance = np.array([0.0, 2e-4, 3e-4, 0.0, 0.0, 0.0])  # rad/Nm, large enough to be seen
-    measured = FRAME.homogeneous @ tool_poses(chain, truth, q + compliance * S.gravity_torques(model, chain, q)) \
+    measured = (
+        FRAME.homogeneous
+        @ tool_poses(chain, truth, q + compliance * S.gravity_torques(model, chain, q))
         @ MARKER.homogeneous
+    )
     measured[:, :3, 3] += rng.normal(0.0, TRACKER.position, (30, 3))
-    calibration = calibrate_serial(model, chain, q, [pin.SE3(m) for m in measured], noise=TRACKER,
-                                   setup=MeasurementSetup(marker=MARKER), estimate_frame=True, compliance=True,
-                                   fixed=["wrist_3_joint"], priors={"elbow_joint": 1e-2})
+    calibration = calibrate_serial(
+        model,
+        chain,
+        q,
+        [pin.SE3(m) for m in measured],
+        noise=TRACKER,
+        setup=MeasurementSetup(marker=MARKER),
+        estimate_frame=True,
+        compliance=True,
+        fixed=["wrist_3_joint"],
+        priors={"elbow_joint": 1e-2},
+    )
     layout = S.SerialLayout(6, frame=True, compliance=True)
     names = layout.names(chain)
     assert calibration.names == names and calibration.outliers == ()
@@ -788,7 +834,9 @@ def test_result_reports_every_candidate_and_the_fitted_ones(ur5):
     assert values.shape == (layout.size,) and not values.flags.writeable
     np.testing.assert_array_equal(values[:42], np.concatenate([calibration.deltas[p] for p in chain.placements()]))
     fitted_compliance = {names[i].removeprefix("compliance.") for i in calibration.fitted_indices if i >= 48}
-    assert set(calibration.compliance) == fitted_compliance and {"shoulder_lift_joint", "elbow_joint"} <= fitted_compliance
+    assert (
+        set(calibration.compliance) == fitted_compliance and {"shoulder_lift_joint", "elbow_joint"} <= fitted_compliance
+    )
     for k, joint in enumerate(chain.joint_names):
         assert values[48 + k] == calibration.compliance.get(joint, 0.0)
     assert calibration.compliance["shoulder_lift_joint"] == pytest.approx(2e-4, rel=0.05)
@@ -810,8 +858,13 @@ def test_covariance_is_the_noise_models_not_the_residuals(ur5):
     model, chain = ur5
     data = simulate_serial_measurements(model, chain, 20, np.random.default_rng(49), noise=TRACKER)
     one = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=TRACKER)
-    two = calibrate_serial(model, chain, data.q_readings, data.measured_poses,
-                           noise=TrackerNoise(2 * TRACKER.position, 2 * TRACKER.rotation))
+    two = calibrate_serial(
+        model,
+        chain,
+        data.q_readings,
+        data.measured_poses,
+        noise=TrackerNoise(2 * TRACKER.position, 2 * TRACKER.rotation),
+    )
     assert one.fitted == two.fitted
     np.testing.assert_allclose(two.covariance, 4.0 * one.covariance, rtol=1e-6)
     np.testing.assert_allclose(two.parameter_std, 2.0 * one.parameter_std, rtol=1e-6)
@@ -877,13 +930,19 @@ def test_measurement_parsing_and_its_exact_refusals(ur5):
     refused(f"measured_poses: quaternion of row 1 has norm {np.linalg.norm(twice[1, 3:]):.6g}", q, twice)
 
 
-@pytest.mark.parametrize("layout", [S.SerialLayout(6, frame=True), S.SerialLayout(6, marker=6),
-                                    S.SerialLayout(6, frame=True, marker=6)])
+@pytest.mark.parametrize(
+    "layout", [S.SerialLayout(6, frame=True), S.SerialLayout(6, marker=6), S.SerialLayout(6, frame=True, marker=6)]
+)
 def test_setup_columns_at_the_identity_setup(ur5, layout):
     """An identity frame and marker (a plain state) still give the setup's columns."""
     model, chain = ur5
-    data = S.parse_measurements(chain, *(lambda d: (d.q_readings, d.measured_poses))(
-        simulate_serial_measurements(model, chain, 5, np.random.default_rng(52), noise=TRACKER)), False)
+    data = S.parse_measurements(
+        chain,
+        *(lambda d: (d.q_readings, d.measured_poses))(
+            simulate_serial_measurements(model, chain, 5, np.random.default_rng(52), noise=TRACKER)
+        ),
+        False,
+    )
     residual = S.SerialResidual(chain, data, np.broadcast_to(np.eye(6), (5, 6, 6)), layout)
     state = S.nominal_state(chain, model)
     assert state.plain
@@ -893,8 +952,9 @@ def test_setup_columns_at_the_identity_setup(ur5, layout):
     for i, c in enumerate(columns):
         dx = np.zeros(layout.size)
         dx[c] = 1e-7
-        numeric[:, i] = (residual.residual(residual.retract(state, dx)) -
-                         residual.residual(residual.retract(state, -dx))) / 2e-7
+        numeric[:, i] = (
+            residual.residual(residual.retract(state, dx)) - residual.residual(residual.retract(state, -dx))
+        ) / 2e-7
     assert np.linalg.norm(J[:, columns] - numeric) <= 1e-6 * np.linalg.norm(numeric)
 
 
@@ -916,8 +976,16 @@ def test_degrees_of_freedom_zero_gives_no_variance_factor(ur5):
     rows = np.array([g.translation for g in data.measured_poses])
     exact = calibrate_serial(model, chain, data.q_readings, rows, position_only=True, noise=TRACKER, outlier_sigma=None)
     assert len(exact.fitted) == 27 and np.isnan(exact.variance_factor)
-    one = calibrate_serial(model, chain, data.q_readings, rows, position_only=True, noise=TRACKER, outlier_sigma=None,
-                           priors={"elbow_joint.dt[0]": 1e-3})
+    one = calibrate_serial(
+        model,
+        chain,
+        data.q_readings,
+        rows,
+        position_only=True,
+        noise=TRACKER,
+        outlier_sigma=None,
+        priors={"elbow_joint.dt[0]": 1e-3},
+    )
     assert len(one.fitted) == 27 and np.isfinite(one.variance_factor) and one.variance_factor > 0.0
 
 
@@ -944,8 +1012,9 @@ def test_selection_at_the_start_scores_the_residual_itself(ur5):
     problem.columns = np.arange(0, 42, 2)
     r, J = problem.model.residual_and_jacobian(start)
     expected = forward_selection(J[:, problem.columns], r, 6, range(21), np.array([], dtype=int))
-    selection, _, _ = S.select_parameters(problem, start, SimpleNamespace(state=start, iterations=0),
-                                          _Fixed([start], [0]))
+    selection, _, _ = S.select_parameters(
+        problem, start, SimpleNamespace(state=start, iterations=0), _Fixed([start], [0])
+    )
     assert selection == expected
 
 

@@ -45,8 +45,9 @@ def campaign(model, chain, frame: pin.SE3, seed: int, n_poses: int = 60):
     exact = frame.homogeneous @ tool_poses(chain, data.truth, data.q_true) @ MARKER.homogeneous
     measured = exact.copy()
     measured[:, :3, 3] += rng.normal(0.0, NOISE.position, (n_poses, 3))
-    measured[:, :3, :3] = exact[:, :3, :3] @ np.array([pin.exp3(rng.normal(0.0, NOISE.rotation, 3))
-                                                      for _ in range(n_poses)])
+    measured[:, :3, :3] = exact[:, :3, :3] @ np.array(
+        [pin.exp3(rng.normal(0.0, NOISE.rotation, 3)) for _ in range(n_poses)]
+    )
     return data, measured
 
 
@@ -71,8 +72,16 @@ def test_frame_and_marker_are_recovered_up_to_the_robot_gauge(ur10, turn: str) -
     frame = FRAMES[turn]
     data, measured = campaign(model, chain, frame, seed=3)
     given = MeasurementSetup(marker=MARKER * pin.SE3(np.eye(3), np.array([3e-4, -3e-4, 3e-4])))  # 0.5 mm off
-    calibration = S.calibrate_serial(model, chain, data.q_readings, as_rows(measured), noise=NOISE, setup=given,
-                                     estimate_frame=True, estimate_marker=True)
+    calibration = S.calibrate_serial(
+        model,
+        chain,
+        data.q_readings,
+        as_rows(measured),
+        noise=NOISE,
+        setup=given,
+        estimate_frame=True,
+        estimate_marker=True,
+    )
     assert calibration.converged and calibration.termination in ("cost", "step", "gradient")
     assert 0.7 < calibration.variance_factor < 1.4 and calibration.outliers == ()
     # The robot alone: the first placement (all of whose errors the frame takes) and the tool
@@ -84,8 +93,9 @@ def test_frame_and_marker_are_recovered_up_to_the_robot_gauge(ur10, turn: str) -
     # up to what commutes with joint 1 (rotation about, translation along its axis), which placement
     # 2 may take instead. Off that 2-D set the match is at the noise level (measured ~2 um / 2 urad).
     j1 = chain.joint_ids[0]
-    d_frame = pin.log6((frame * data.truth.jointPlacements[j1]).actInv(
-        calibration.setup.frame * model.jointPlacements[j1])).vector
+    d_frame = pin.log6(
+        (frame * data.truth.jointPlacements[j1]).actInv(calibration.setup.frame * model.jointPlacements[j1])
+    ).vector
     assert np.abs(off_gauge(d_frame, commuting(chain.twists[0]))).max() < 2e-5
     # Likewise the marker carries the tool placement's error, up to what commutes with joint 6.
     tool_nominal = model.frames[chain.tool_frame_id].placement
@@ -110,8 +120,16 @@ def test_gross_outliers_are_flagged_exactly(ur10) -> None:
     data, measured = campaign(model, chain, FRAMES["z180"], seed=5)
     rows = as_rows(measured)
     rows[[11, 42], :3] += np.array([[3e-3, 0.0, 0.0], [0.0, -2.5e-3, 3e-3]])  # 3 and 3.9 mm
-    calibration = S.calibrate_serial(model, chain, data.q_readings, rows, noise=NOISE, setup=MeasurementSetup(
-        marker=MARKER), estimate_frame=True, estimate_marker=True)
+    calibration = S.calibrate_serial(
+        model,
+        chain,
+        data.q_readings,
+        rows,
+        noise=NOISE,
+        setup=MeasurementSetup(marker=MARKER),
+        estimate_frame=True,
+        estimate_marker=True,
+    )
     assert calibration.outliers == (11, 42)
     assert calibration.converged and calibration.variance_factor < 1.4
     validation = serial_evaluation.cross_validate_serial(calibration, folds=4)
@@ -129,8 +147,9 @@ def compliant_campaign(model, chain, rng, q: np.ndarray, truth: pin.Model, frame
     measured = frame.homogeneous @ g @ MARKER.homogeneous
     if noisy:
         measured[:, :3, 3] += rng.normal(0.0, NOISE.position, (len(q), 3))
-        measured[:, :3, :3] = measured[:, :3, :3] @ np.array([pin.exp3(rng.normal(0.0, NOISE.rotation, 3))
-                                                              for _ in range(len(q))])
+        measured[:, :3, :3] = measured[:, :3, :3] @ np.array(
+            [pin.exp3(rng.normal(0.0, NOISE.rotation, 3)) for _ in range(len(q))]
+        )
     return measured
 
 
@@ -150,16 +169,26 @@ def test_selection_with_compliance_predicts_outside_the_training_postures(ur10) 
     train, test = postures(rng, 60, True), postures(rng, 200, False)
     measured = compliant_campaign(model, chain, rng, train, truth, frame, noisy=True)
     exact = compliant_campaign(model, chain, rng, test, truth, frame, noisy=False)
-    sag = tool_poses(chain, truth, test + COMPLIANCE * S.gravity_torques(model, chain, test))[:, :3, 3] - \
-        tool_poses(chain, truth, test)[:, :3, 3]
+    sag = (
+        tool_poses(chain, truth, test + COMPLIANCE * S.gravity_torques(model, chain, test))[:, :3, 3]
+        - tool_poses(chain, truth, test)[:, :3, 3]
+    )
     assert 5e-4 < np.linalg.norm(sag, axis=1).mean() < 1e-3  # the compliance effect: 0.5 - 1 mm
     everything = list(chain.joint_names) + [chain.tool_frame]
     variants = {"registration": dict(fixed=everything), "full": dict(), "selected": dict(select=True, compliance=True)}
     mean_error = {}
     for name, options in variants.items():
-        calibration = S.calibrate_serial(model, chain, train, as_rows(measured), noise=NOISE,
-                                         setup=MeasurementSetup(marker=MARKER), estimate_frame=True,
-                                         estimate_marker=True, **options)
+        calibration = S.calibrate_serial(
+            model,
+            chain,
+            train,
+            as_rows(measured),
+            noise=NOISE,
+            setup=MeasurementSetup(marker=MARKER),
+            estimate_frame=True,
+            estimate_marker=True,
+            **options,
+        )
         predicted = serial_evaluation.predict_measurements(calibration, test)
         mean_error[name] = np.linalg.norm(predicted[:, :3, 3] - exact[:, :3, 3], axis=1).mean()
         if name == "selected":
@@ -176,10 +205,28 @@ def test_selection_with_compliance_predicts_outside_the_training_postures(ur10) 
 
 
 def namespace(tmp_path, measurements, **overrides) -> argparse.Namespace:
-    values = dict(measurements=str(measurements), output=None, report=str(tmp_path / "report.json"), serial="ur10",
-                  base=None, tool="tool0", noise_pos=1e-5, noise_rot=2e-5, frame="estimate",
-                  marker=list(MARKER.translation + 3e-4), units="m", force=False, max_iterations=None, fix=[],
-                  prior={}, outlier_sigma=5.0, select="loo", compliance=False, folds=4, joint={})
+    values = dict(
+        measurements=str(measurements),
+        output=None,
+        report=str(tmp_path / "report.json"),
+        serial="ur10",
+        base=None,
+        tool="tool0",
+        noise_pos=1e-5,
+        noise_rot=2e-5,
+        frame="estimate",
+        marker=list(MARKER.translation + 3e-4),
+        units="m",
+        force=False,
+        max_iterations=None,
+        fix=[],
+        prior={},
+        outlier_sigma=5.0,
+        select="loo",
+        compliance=False,
+        folds=4,
+        joint={},
+    )
     values.update(overrides)
     return argparse.Namespace(**values)
 
@@ -204,7 +251,9 @@ def test_command_writes_a_strict_report_and_names_outlier_lines(ur10, tmp_path, 
     assert report["kind"] == "serial" and report["outliers"] == [11] and report["converged"] is True
     assert report["nominal_model"]["tool"] == "tool0" and report["nominal_model"]["base"] is None
     assert report["measurement_frame"]["estimated"] and report["marker"]["estimated"]
-    frame = pin.XYZQUATToSE3(np.r_[report["measurement_frame"]["translation"], report["measurement_frame"]["quaternion"]])
+    frame = pin.XYZQUATToSE3(
+        np.r_[report["measurement_frame"]["translation"], report["measurement_frame"]["quaternion"]]
+    )
     assert np.linalg.norm(FRAMES["z180"].actInv(frame).translation) < 1e-2
     assert report["input"]["sha256"] and report["cross_validation"]["folds"] == 4
     assert report["residual_rms"]["after"]["position_m"] < 3e-5 and report["selection"]["method"] == "forward_loo"
@@ -243,7 +292,8 @@ def _noisy_campaign(ur10, tmp_path, noise: float):
 
 
 def test_a_residual_beyond_the_stated_noise_is_written_with_a_warning_and_auto_states_the_noise(
-        ur10, tmp_path, capsys) -> None:
+    ur10, tmp_path, capsys
+) -> None:
     """0.1 mm of tracker noise stated as 10 um: no mistake explains it, so the fit is written, with
     the variance factor, the noise the residual implies and the cross-validated error; `auto`
     estimates the noise from the residual instead, and the report says so."""
@@ -292,8 +342,10 @@ def test_a_joint_reading_beyond_its_limits_is_refused_by_line(ur10, tmp_path) ->
     with pytest.raises(DataFileError) as caught:
         run_serial_calibration(namespace(tmp_path, path))
     limit = float(model.upperPositionLimit[model.idx_qs[chain.joint_ids[2]]])
-    assert str(caught.value) == (f"{path}, line 8, column '{chain.joint_names[2]}': 10 rad is beyond the joint limit "
-                                 f"[{-limit:.6g}, {limit:.6g}] (SI units: rad)")
+    assert str(caught.value) == (
+        f"{path}, line 8, column '{chain.joint_names[2]}': 10 rad is beyond the joint limit "
+        f"[{-limit:.6g}, {limit:.6g}] (SI units: rad)"
+    )
     q = np.degrees(data.q_readings)  # a whole file in degrees
     write_campaign(path, chain, q, as_rows(measured))
     with pytest.raises(DataFileError, match="within the limits in degrees: give radians"):
@@ -312,8 +364,10 @@ def test_a_joint_reading_just_past_its_urdf_limit_is_kept_with_a_note(ur10, tmp_
     write_campaign(path, chain, q, as_rows(measured))
     run_serial_calibration(namespace(tmp_path, path))
     out = capsys.readouterr().out
-    assert (f"note: column '{chain.joint_names[2]}': 1 reading(s) up to 0.001 rad beyond the URDF limit "
-            f"[{-limit:.6g}, {limit:.6g}] (file line 8 first), within 5% of its range: kept as read") in out
+    assert (
+        f"note: column '{chain.joint_names[2]}': 1 reading(s) up to 0.001 rad beyond the URDF limit "
+        f"[{-limit:.6g}, {limit:.6g}] (file line 8 first), within 5% of its range: kept as read"
+    ) in out
 
 
 def test_a_serial_urdf_pinocchio_cannot_read_or_with_a_mimic_joint_is_refused_by_name(tmp_path) -> None:
@@ -328,13 +382,16 @@ def test_a_serial_urdf_pinocchio_cannot_read_or_with_a_mimic_joint_is_refused_by
         f'<joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 0 1"/>{limit}</joint>'
         f'<joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/><origin xyz="0.3 0 0"/>'
         f'<axis xyz="0 1 0"/>{limit}<mimic joint="j1"/></joint>'
-        '<joint name="t" type="fixed"><parent link="l2"/><child link="tool"/><origin xyz="0.3 0 0"/></joint></robot>')
+        '<joint name="t" type="fixed"><parent link="l2"/><child link="tool"/><origin xyz="0.3 0 0"/></joint></robot>'
+    )
     model, urdf = serial_robots.load_serial_urdf(mimic)
     with pytest.raises(ModelFileError) as caught:
         serial_robots.serial_chain_of(model, urdf, mimic, "tool", None)
-    assert str(caught.value) == (f"{mimic}: joint 'j2' mimics joint 'j1' (<mimic>): m3t1r moves and calibrates "
-                                 "every joint on its own, so a coupled joint is not supported; remove the tag (an "
-                                 "independent joint) or make the joint fixed")
+    assert str(caught.value) == (
+        f"{mimic}: joint 'j2' mimics joint 'j1' (<mimic>): m3t1r moves and calibrates "
+        "every joint on its own, so a coupled joint is not supported; remove the tag (an "
+        "independent joint) or make the joint fixed"
+    )
 
 
 # --------------------------------------------------------------------------------------------------
@@ -368,8 +425,18 @@ def test_the_fitted_compliance_is_applied_by_validate_and_compensate(ur10, tmp_p
     model, chain = ur10
     path, urdf, report_path = tmp_path / "campaign.csv", tmp_path / "ur10.urdf", tmp_path / "report.json"
     truth, _ = _sagging_campaign(model, chain, path, 60, seed=3)
-    run_serial_calibration(namespace(tmp_path, path, serial=str(UR10_URDF), output=str(urdf), frame="base",
-                                     marker=None, noise_rot=1e-4, compliance=True))
+    run_serial_calibration(
+        namespace(
+            tmp_path,
+            path,
+            serial=str(UR10_URDF),
+            output=str(urdf),
+            frame="base",
+            marker=None,
+            noise_rot=1e-4,
+            compliance=True,
+        )
+    )
     report = json.loads(report_path.read_text())
     assert {"shoulder_lift_joint", "elbow_joint"} <= set(report["compliance"])
     fit = report["residual_rms"]["after"]["position_m"]
@@ -382,8 +449,23 @@ def test_the_fitted_compliance_is_applied_by_validate_and_compensate(ur10, tmp_p
     # compensate: a joint program's nominal tool poses, reached by the sagging robot to the fit's accuracy
     program = np.random.default_rng(8).uniform([-3, -2.3, 0.6, -3, -3, -3], [3, -0.6, 2.4, 3, 3, 3], (15, 6))
     (tmp_path / "program.csv").write_text(table_text(chain.joint_names, program))
-    assert main(["compensate", str(tmp_path / "program.csv"), "--calibrated", str(urdf), "--report", str(report_path),
-                 "--output-kind", "actuators", "-o", str(tmp_path / "commands.csv")]) == 0
+    assert (
+        main(
+            [
+                "compensate",
+                str(tmp_path / "program.csv"),
+                "--calibrated",
+                str(urdf),
+                "--report",
+                str(report_path),
+                "--output-kind",
+                "actuators",
+                "-o",
+                str(tmp_path / "commands.csv"),
+            ]
+        )
+        == 0
+    )
     table = read_table(tmp_path / "commands.csv", required=chain.joint_names)
     commands = np.column_stack([table.column(j) for j in chain.joint_names])
     target = tool_poses(chain, model, program)[:, :3, 3]
@@ -402,8 +484,9 @@ def test_a_compliance_of_the_wrong_sign_is_not_called_a_stiffness(ur10, tmp_path
     model, chain = ur10
     path = tmp_path / "campaign.csv"
     _sagging_campaign(model, chain, path, 40, seed=3, compliance=-SAGGING)
-    run_serial_calibration(namespace(tmp_path, path, serial=str(UR10_URDF), frame="base", marker=None,
-                                     noise_rot=1e-4, compliance=True))
+    run_serial_calibration(
+        namespace(tmp_path, path, serial=str(UR10_URDF), frame="base", marker=None, noise_rot=1e-4, compliance=True)
+    )
     out = capsys.readouterr().out
     assert "fitted compliance of the wrong sign" in out and "elbow_joint +" in out
     assert any("not a stiffness" in note for note in json.loads((tmp_path / "report.json").read_text())["notes"])
@@ -416,12 +499,30 @@ def test_compliance_needs_the_links_masses_and_a_report(ur10, tmp_path) -> None:
     _sagging_campaign(model, chain, path, 20, seed=4)
     massless = tmp_path / "massless.urdf"
     massless.write_text(re.sub(r"<inertial>.*?</inertial>", "", UR10_URDF.read_text(), flags=re.S))
-    with pytest.raises(InvalidInputError, match=r"--compliance with .*massless.urdf: the links that joints "
-                                                r"shoulder_pan_joint .. wrist_3_joint move have no mass"):
-        run_serial_calibration(namespace(tmp_path, path, serial=str(massless), frame="base", marker=None,
-                                         compliance=True))
-    assert main(["calibrate", "--serial", str(UR10_URDF), "--tool", "tool0", "--compliance", str(path),
-                 "-o", str(tmp_path / "c.urdf")]) == 2
+    with pytest.raises(
+        InvalidInputError,
+        match=r"--compliance with .*massless.urdf: the links that joints "
+        r"shoulder_pan_joint .. wrist_3_joint move have no mass",
+    ):
+        run_serial_calibration(
+            namespace(tmp_path, path, serial=str(massless), frame="base", marker=None, compliance=True)
+        )
+    assert (
+        main(
+            [
+                "calibrate",
+                "--serial",
+                str(UR10_URDF),
+                "--tool",
+                "tool0",
+                "--compliance",
+                str(path),
+                "-o",
+                str(tmp_path / "c.urdf"),
+            ]
+        )
+        == 2
+    )
     assert not (tmp_path / "c.urdf").exists() and not (tmp_path / "report.json").exists()
 
 
@@ -430,21 +531,59 @@ def test_a_chain_joint_that_is_not_logged_is_given_its_constant_value(ur10, tmp_
     model, chain = ur10
     path, report_path = tmp_path / "campaign.csv", tmp_path / "report.json"
     _sagging_campaign(model, chain, path, 40, seed=5, constant={"wrist_3_joint": 0.3})
-    with pytest.raises(DataFileError, match=r"missing required columns: wrist_3_joint; a chain joint that never "
-                                            r"moves and is not logged \(a tool changer\) is given as "
-                                            r"--joint wrist_3_joint=VALUE"):
+    with pytest.raises(
+        DataFileError,
+        match=r"missing required columns: wrist_3_joint; a chain joint that never "
+        r"moves and is not logged \(a tool changer\) is given as "
+        r"--joint wrist_3_joint=VALUE",
+    ):
         run_serial_calibration(namespace(tmp_path, path, serial=str(UR10_URDF), frame="base", marker=None))
     urdf = tmp_path / "ur10.urdf"
-    assert main(["calibrate", "--serial", str(UR10_URDF), "--tool", "tool0", str(path), "--joint", "wrist_3_joint=0.3",
-                 "--compliance", "--noise-rot", "1e-4", "-o", str(urdf), "--report", str(report_path)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--serial",
+                str(UR10_URDF),
+                "--tool",
+                "tool0",
+                str(path),
+                "--joint",
+                "wrist_3_joint=0.3",
+                "--compliance",
+                "--noise-rot",
+                "1e-4",
+                "-o",
+                str(urdf),
+                "--report",
+                str(report_path),
+            ]
+        )
+        == 0
+    )
     report = json.loads(report_path.read_text())
     assert report["constant_joints"] == {"wrist_3_joint": 0.3}
     validated = validation.validate(path, urdf, report_path)  # the report's constant, the file without the column
     assert validated.errors.position_rms == pytest.approx(report["residual_rms"]["after"]["position_m"], rel=0.1)
     program = tmp_path / "program.csv"  # the program does not list the tool changer either
     program.write_text(table_text(chain.joint_names[:5], np.array([[0.3, -1.2, 1.4, -1.0, 1.1]])))
-    assert main(["compensate", str(program), "--calibrated", str(urdf), "--report", str(report_path),
-                 "--output-kind", "actuators", "-o", str(tmp_path / "commands.csv")]) == 0
+    assert (
+        main(
+            [
+                "compensate",
+                str(program),
+                "--calibrated",
+                str(urdf),
+                "--report",
+                str(report_path),
+                "--output-kind",
+                "actuators",
+                "-o",
+                str(tmp_path / "commands.csv"),
+            ]
+        )
+        == 0
+    )
     commands = read_table(tmp_path / "commands.csv", required=chain.joint_names)
     assert abs(commands.column("wrist_3_joint")[0] - 0.3) < 0.01  # the constant, corrected by milliradians
     with pytest.raises(InvalidInputError, match="--joint tool_changer: not a joint of the chain"):
@@ -460,12 +599,16 @@ def test_every_placement_fixed_says_so_instead_of_not_separable(ur10, tmp_path, 
     everything = [*chain.joint_names, chain.tool_frame]
     run_serial_calibration(namespace(tmp_path, path, fix=everything, force=True))
     out = capsys.readouterr().out
-    assert "note: every placement component (42) is held at nominal by --fix: only the measurement setup was " \
-           "fitted, and the calibrated URDF keeps the nominal geometry" in out
+    assert (
+        "note: every placement component (42) is held at nominal by --fix: only the measurement setup was "
+        "fitted, and the calibrated URDF keeps the nominal geometry" in out
+    )
     assert "not separable" not in out and "barely moved" not in out
     run_serial_calibration(namespace(tmp_path, path, fix=everything[:2]))
-    assert "of 30 placement components left free (12 more are held at nominal by --fix) are not separable" \
+    assert (
+        "of 30 placement components left free (12 more are held at nominal by --fix) are not separable"
         in capsys.readouterr().out
+    )
     _sagging_campaign(model, chain, path, 20, seed=4)  # in the base frame: with no marker, nothing left to fit
     with pytest.raises(IdentificationError, match="all 42 candidate parameters are held fixed: nothing is left"):
         run_serial_calibration(namespace(tmp_path, path, fix=everything, frame="base", marker=None))
@@ -491,15 +634,23 @@ def test_joint_readings_in_degrees_are_named_not_blamed_on_another_machine(ur10,
     assert "--joint-degrees all" in causes and "another machine" not in causes
 
 
-@pytest.mark.parametrize("columns, convert", [
-    (("roll", "pitch", "yaw"), "--euler SEQ [--degrees]"), (("rx", "ry", "rz"), "--rotation-vector"),
-    (tuple(f"r{i}{j}" for i in "123" for j in "123"), "-o measurements.csv")])
+@pytest.mark.parametrize(
+    "columns, convert",
+    [
+        (("roll", "pitch", "yaw"), "--euler SEQ [--degrees]"),
+        (("rx", "ry", "rz"), "--rotation-vector"),
+        (tuple(f"r{i}{j}" for i in "123" for j in "123"), "-o measurements.csv"),
+    ],
+)
 def test_orientation_columns_other_than_a_quaternion_name_the_conversion(ur10, tmp_path, columns, convert) -> None:
     model, chain = ur10
     data, _ = campaign(model, chain, FRAMES["z180"], seed=6, n_poses=5)
     path = tmp_path / "campaign.csv"
-    path.write_text(table_text([*chain.joint_names, "x", "y", "z", *columns],
-                               np.hstack([data.q_readings, np.zeros((5, 3 + len(columns)))])))
+    path.write_text(
+        table_text(
+            [*chain.joint_names, "x", "y", "z", *columns], np.hstack([data.q_readings, np.zeros((5, 3 + len(columns)))])
+        )
+    )
     with pytest.raises(DataFileError) as caught:
         run_serial_calibration(namespace(tmp_path, path))
     message = str(caught.value)
@@ -536,8 +687,9 @@ def test_several_points_per_pose_calibrate_with_each_offset_and_predict_every_po
     data, points, _ = point_campaign(model, chain, FRAMES["x90"], seed=8)
     points[[3, 17, 30], [1, 0, 3]] = np.nan  # occluded markers
     points[22, 2] += np.array([0.0, 3e-3, 0.0])  # a 3 mm gross reading of one marker
-    calibration = S.calibrate_serial(model, chain, data.q_readings, points, position_only=True, noise=NOISE,
-                                     estimate_frame=True)
+    calibration = S.calibrate_serial(
+        model, chain, data.q_readings, points, position_only=True, noise=NOISE, estimate_frame=True
+    )
     assert calibration.converged and calibration.outliers == (22,)
     assert 0.6 < calibration.variance_factor < 1.5
     assert calibration.residual_before.position > 1e-3 and calibration.residual_after.position < 2e-5

@@ -47,8 +47,13 @@ def test_closed_loop_calibration_absorbs_twist_and_offset_errors(mechanism):
     rng = np.random.default_rng(2)
     error_model = ClosedLoopErrorModel(mechanism)
     names = [mechanism.model.names[j] for j in range(1, mechanism.model.njoints)]
-    truth = actual_machine(mechanism, rng.normal(0, 1e-3, error_model.n_parameters), error_model,
-                           {n: rng.normal(0, 1e-3, 6) for n in names}, {n: rng.normal(0, 1e-3) for n in names})
+    truth = actual_machine(
+        mechanism,
+        rng.normal(0, 1e-3, error_model.n_parameters),
+        error_model,
+        {n: rng.normal(0, 1e-3, 6) for n in names},
+        {n: rng.normal(0, 1e-3) for n in names},
+    )
     actuators = workspace_actuators(mechanism, 250, rng)
     calibration = calibrate_closed_loop(mechanism, measure(truth, actuators[:50]))
     after = pose_errors(calibration.mechanism, truth, actuators[50:])

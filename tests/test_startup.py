@@ -37,11 +37,11 @@ NUMERIC = ("numpy", "scipy", "pinocchio", "matplotlib", "meshcat", "yaml", "lxml
 
 def _loaded_after(code: str, modules: tuple[str, ...]) -> tuple[list[str], str]:
     """(the `modules` loaded after running `code` in a fresh interpreter, its stdout)."""
-    probe = (f"import json, sys\n{code}\n"
-             f"print(json.dumps([m for m in {list(modules)!r} if m in sys.modules]))")
+    probe = f"import json, sys\n{code}\nprint(json.dumps([m for m in {list(modules)!r} if m in sys.modules]))"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(SRC), *filter(None, [os.environ.get("PYTHONPATH")])])}
-    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env, timeout=300,
-                          check=True)
+    done = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, env=env, timeout=300, check=True
+    )
     *output, last = done.stdout.strip().splitlines()
     return json.loads(last), "\n".join(output)
 
@@ -82,8 +82,15 @@ NOT_FOR = {
     "m3t1r.app.cli_calibrate": ("matplotlib", "meshcat", "pinocchio.visualize"),
     "m3t1r.app.cli_view": ("matplotlib",),
     # convert reads files: no fit, and the optional readers only for their formats
-    "m3t1r.app.cli_convert": ("matplotlib", "meshcat", "pinocchio.visualize", "m3t1r.calibration.closed_loop",
-                              "m3t1r.calibration.serial", "ezc3d", "rosbags"),
+    "m3t1r.app.cli_convert": (
+        "matplotlib",
+        "meshcat",
+        "pinocchio.visualize",
+        "m3t1r.calibration.closed_loop",
+        "m3t1r.calibration.serial",
+        "ezc3d",
+        "rosbags",
+    ),
     "m3t1r.app.cli": ("numpy",),  # the demo's own module is imported when it runs
 }
 
@@ -91,8 +98,15 @@ NOT_FOR = {
 def test_every_verb_has_a_run_function_and_nothing_else_does() -> None:
     verbs = next(a for a in build_parser()._actions if a.dest == "verb").choices
     assert set(verbs) == set(VERBS)
-    for reference in [*VERBS.values(), SERIAL_CALIBRATION, CALIBRATION_PLOTS, VALIDATION_PLOTS,
-                      DECLARE_VALIDATION_PLOTS, RUNNER, DEMO]:
+    for reference in [
+        *VERBS.values(),
+        SERIAL_CALIBRATION,
+        CALIBRATION_PLOTS,
+        VALIDATION_PLOTS,
+        DECLARE_VALIDATION_PLOTS,
+        RUNNER,
+        DEMO,
+    ]:
         assert callable(load(reference)), reference
     for reference in [*VERBS.values(), SERIAL_CALIBRATION]:
         assert reference.partition(":")[0] in NOT_FOR, f"{reference}: say what its module may not import"
@@ -107,8 +121,9 @@ def test_a_verb_imports_only_its_own_stack(module: str) -> None:
 def test_calibrate_serial_runs_without_the_closed_loop_calibration(tmp_path, capsys) -> None:
     """`calibrate --serial` goes to its own run function, which reads the robot before the data."""
     argv = ["calibrate", str(tmp_path / "missing.csv"), "--serial", "ur5", "-o", str(tmp_path / "ur5.urdf")]
-    loaded, _ = _loaded_after(_command_line(argv), ("m3t1r.app.cli_calibrate", "m3t1r.calibration.closed_loop",
-                                                    "matplotlib"))
+    loaded, _ = _loaded_after(
+        _command_line(argv), ("m3t1r.app.cli_calibrate", "m3t1r.calibration.closed_loop", "matplotlib")
+    )
     assert loaded == []
     assert main(argv) == 2
     captured = capsys.readouterr()
@@ -127,6 +142,8 @@ def test_the_facade_loads_a_name_on_first_use_and_lists_every_name() -> None:
     assert public <= set(dir(m3t1r))
     with pytest.raises(AttributeError, match="no attribute 'no_such_name'"):
         m3t1r.no_such_name
-    loaded, output = _loaded_after("from m3t1r import TrackerNoise\nprint(TrackerNoise().position)",
-                                   ("matplotlib", "meshcat", "scipy.stats", "m3t1r.calibration.closed_loop"))
+    loaded, output = _loaded_after(
+        "from m3t1r import TrackerNoise\nprint(TrackerNoise().position)",
+        ("matplotlib", "meshcat", "scipy.stats", "m3t1r.calibration.closed_loop"),
+    )
     assert loaded == [] and float(output) > 0

@@ -13,8 +13,13 @@ from hypothesis import strategies as st
 from m3t1r.errors import InvalidInputError
 from m3t1r.model.task import QUATERNION_NORM_TOLERANCE, TaskSpec, WorkspaceSpec
 
-TASKS = [TaskSpec("f"), TaskSpec("f", ("x", "y"), "none"), TaskSpec("f", (), "full"), TaskSpec("f", ("z",), "yaw"),
-         TaskSpec("f", ("y", "x", "z"), "full")]
+TASKS = [
+    TaskSpec("f"),
+    TaskSpec("f", ("x", "y"), "none"),
+    TaskSpec("f", (), "full"),
+    TaskSpec("f", ("z",), "yaw"),
+    TaskSpec("f", ("y", "x", "z"), "full"),
+]
 angles = st.floats(-3.0, 3.0)
 
 
@@ -36,8 +41,9 @@ def test_a_pose_has_zero_residual_at_its_own_coordinates(task, values):
 
 @pytest.mark.parametrize("task", TASKS, ids=str)
 @settings(max_examples=15, deadline=None)
-@given(values=st.lists(angles, min_size=6, max_size=6), goal_values=st.lists(st.floats(-0.3, 0.3), min_size=6,
-                                                                             max_size=6))
+@given(
+    values=st.lists(angles, min_size=6, max_size=6), goal_values=st.lists(st.floats(-0.3, 0.3), min_size=6, max_size=6)
+)
 def test_jacobian_matches_finite_differences(task, values, goal_values):
     """d(rows)/d(twist) for a frame moving by dR = [w]x R, dp = v (LOCAL_WORLD_ALIGNED), against differences."""
     pose = _pose(values)
@@ -61,7 +67,8 @@ def test_jacobian_matches_finite_differences(task, values, goal_values):
         def moved(sign: float) -> pin.SE3:
             delta = sign * twist
             return pin.SE3(pin.exp3(delta[3:]) @ pose.rotation, pose.translation + delta[:3])
-        difference = (task.residual(moved(1.0), goal, goal_rotation) - task.residual(moved(-1.0), goal, goal_rotation))
+
+        difference = task.residual(moved(1.0), goal, goal_rotation) - task.residual(moved(-1.0), goal, goal_rotation)
         np.testing.assert_allclose(difference / (2 * step), jacobian[:, k], atol=2e-6)
 
 
@@ -74,10 +81,15 @@ def test_columns_and_box_keys_name_the_commanded_components():
     assert [t.dimension for t in TASKS] == [4, 2, 3, 2, 6]
 
 
-@pytest.mark.parametrize("position, rotation, message", [
-    (("x", "x"), "none", "distinct axes"), (("w",), "none", "distinct axes"), ((), "none", "commands nothing"),
-    (("x",), "pitch", "must be one of none, yaw, full"),
-])
+@pytest.mark.parametrize(
+    "position, rotation, message",
+    [
+        (("x", "x"), "none", "distinct axes"),
+        (("w",), "none", "distinct axes"),
+        ((), "none", "commands nothing"),
+        (("x",), "pitch", "must be one of none, yaw, full"),
+    ],
+)
 def test_malformed_tasks_are_refused(position, rotation, message):
     with pytest.raises(InvalidInputError, match=message):
         TaskSpec("P", position, rotation)
@@ -108,8 +120,9 @@ def test_workspace_boxes():
     draws = box.task_poses(task, np.random.default_rng(0), 200)
     assert draws.shape == (200, 5)
     np.testing.assert_allclose(np.linalg.norm(draws[:, 1:], axis=1), 1.0)
-    poses = np.array([pin.SE3(pin.Quaternion(*row[[4, 1, 2, 3]]).matrix(), np.r_[row[0], 0, 0]).homogeneous
-                      for row in draws])
+    poses = np.array(
+        [pin.SE3(pin.Quaternion(*row[[4, 1, 2, 3]]).matrix(), np.r_[row[0], 0, 0]).homogeneous for row in draws]
+    )
     coordinates = task.box_coordinates(poses)
     lo, hi = box.bounds(task.box_keys)
     assert np.all(coordinates >= lo - 1e-12) and np.all(coordinates <= hi + 1e-12)
@@ -127,19 +140,22 @@ def test_position_rows_for_every_axis_subset(axes, rotation):
     pose = pin.SE3(pin.rpy.rpyToMatrix(0.1, -0.2, 0.3), np.array([1.0, 2.0, 3.0]))
     index = [("x", "y", "z").index(a) for a in axes]
     goal = task.coordinates(np.stack([pose.homogeneous, pose.homogeneous]))[1].copy()
-    goal[:len(axes)] -= 0.5
+    goal[: len(axes)] -= 0.5
     rotations = task.target_rotations(goal[None])
     rows = task.residual(pose, goal, None if rotations is None else rotations[0])
-    np.testing.assert_allclose(rows[:len(axes)], 0.5, atol=1e-15)
+    np.testing.assert_allclose(rows[: len(axes)], 0.5, atol=1e-15)
     frame_jacobian = np.arange(6 * 5, dtype=float).reshape(6, 5)
-    np.testing.assert_array_equal(task.jacobian(pose, frame_jacobian, None if rotations is None else rotations[0])
-                                  [:len(axes)], frame_jacobian[index])
+    np.testing.assert_array_equal(
+        task.jacobian(pose, frame_jacobian, None if rotations is None else rotations[0])[: len(axes)],
+        frame_jacobian[index],
+    )
 
 
 def test_coordinates_of_several_poses_and_a_single_goal_vector():
     task = TaskSpec("P", ("x",), "full")
-    poses = np.stack([pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, a), np.array([a, 0.0, 0.0])).homogeneous
-                      for a in (0.1, 0.2, 0.3)])
+    poses = np.stack(
+        [pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, a), np.array([a, 0.0, 0.0])).homogeneous for a in (0.1, 0.2, 0.3)]
+    )
     coordinates = task.coordinates(poses)
     assert coordinates.shape == (3, 5)
     np.testing.assert_allclose(coordinates[:, 0], [0.1, 0.2, 0.3])
@@ -168,7 +184,9 @@ def test_messages_and_bounds():
         TaskSpec("P", (), "none")
     with pytest.raises(InvalidInputError, match=r"^workspace: give exactly one box, 'actuators' or 'task'$"):
         WorkspaceSpec(actuators=(("m", 0.0, 1.0),), task=(("x", 0.0, 1.0),))
-    with pytest.raises(InvalidInputError, match=r"^targets: shape \(2, 3\), expected rows of 2 task coordinates \(x, y\)$"):
+    with pytest.raises(
+        InvalidInputError, match=r"^targets: shape \(2, 3\), expected rows of 2 task coordinates \(x, y\)$"
+    ):
         TaskSpec("P", ("x", "y"), "none").goals(np.zeros((2, 3)))
     box = WorkspaceSpec(actuators=(("a", -1.0, 2.0), ("b", 0.5, 0.5)))  # a fixed value is an interval too
     lower, upper = box.bounds(("b", "a"))

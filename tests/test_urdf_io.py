@@ -101,7 +101,9 @@ def chain_urdf(tmp_path: Path) -> Path:
 def small_motion(rng: np.random.Generator, translation: float = 1e-3, rotation: float = 1e-3) -> pin.SE3:
     """A placement `translation` m and `rotation` rad away from the identity, in random directions."""
     linear, angular = rng.normal(size=3), rng.normal(size=3)
-    return pin.exp6(pin.Motion(linear / np.linalg.norm(linear) * translation, angular / np.linalg.norm(angular) * rotation))
+    return pin.exp6(
+        pin.Motion(linear / np.linalg.norm(linear) * translation, angular / np.linalg.norm(angular) * rotation)
+    )
 
 
 def set_link_frame(model: pin.Model, link: str, placement: pin.SE3) -> None:
@@ -215,7 +217,9 @@ def test_ur5_written_file_agrees_with_an_independent_parser(ur5_urdf: Path, tmp_
 
     robot = yourdfpy.URDF.load(str(out), build_scene_graph=True, load_meshes=False)
     v = rng.uniform(-np.pi, np.pi, calibrated.nv)
-    robot.update_cfg({name: v[calibrated.joints[calibrated.getJointId(name)].idx_v] for name in robot.actuated_joint_names})
+    robot.update_cfg(
+        {name: v[calibrated.joints[calibrated.getJointId(name)].idx_v] for name in robot.actuated_joint_names}
+    )
     poses = frame_poses(calibrated, v)
     base = poses[(robot.base_link, pin.FrameType.BODY)]
     for link in robot.link_map:
@@ -290,8 +294,14 @@ def test_moving_a_link_with_rigid_descendants_changes_only_its_own_origin(chain_
     l2 = pin.SE3(model.frames[model.getFrameId("l2", pin.FrameType.BODY)].placement)
     moved = l2 * small_motion(np.random.default_rng(1), 2e-3, 2e-3)
     carry = moved * l2.inverse()
-    for name, kind in [("l2", pin.FrameType.BODY), ("f1", pin.FrameType.FIXED_JOINT), ("l3", pin.FrameType.BODY),
-                       ("f2", pin.FrameType.FIXED_JOINT), ("sensor", pin.FrameType.BODY), ("f4", pin.FrameType.FIXED_JOINT)]:
+    for name, kind in [
+        ("l2", pin.FrameType.BODY),
+        ("f1", pin.FrameType.FIXED_JOINT),
+        ("l3", pin.FrameType.BODY),
+        ("f2", pin.FrameType.FIXED_JOINT),
+        ("sensor", pin.FrameType.BODY),
+        ("f4", pin.FrameType.FIXED_JOINT),
+    ]:
         frame = model.frames[model.getFrameId(name, kind)]
         frame.placement = carry * pin.SE3(frame.placement)
     j2 = model.getJointId("j2")
@@ -329,15 +339,21 @@ def test_missing_origin_is_inserted_in_the_file_style(chain_urdf: Path, tmp_path
     write_calibrated_urdf(chain_urdf, model, out)
 
     text = out.read_text()
-    assert ('<joint name="j3" type="continuous">\n    <origin xyz="0.0 0.125 0.0" rpy="0.0 0.0 0.0"/>\n'
-            '    <parent link="l4"/>') in text
+    assert (
+        '<joint name="j3" type="continuous">\n    <origin xyz="0.0 0.125 0.0" rpy="0.0 0.0 0.0"/>\n'
+        '    <parent link="l4"/>'
+    ) in text
     assert re.search(r"<origin rpy='[-0-9. e]+' xyz='[-0-9. e]+' />", text)  # f2's quoting and spacing kept
     assert '<origin xyz="0.0 0.0 0.1" rpy="0.0 0.0 0.0"/>' in text  # f3 had no rpy
-    assert text.startswith('<?xml version="1.0"?>\n<!-- synthetic chain for the URDF writer tests -->\n<robot name="chain">')
+    assert text.startswith(
+        '<?xml version="1.0"?>\n<!-- synthetic chain for the URDF writer tests -->\n<robot name="chain">'
+    )
     assert max_placement_difference(model, pin.buildModelFromUrdf(str(out))) < 1e-15
 
 
-def test_fallback_serialization_is_equivalent(chain_urdf: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_fallback_serialization_is_equivalent(
+    chain_urdf: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # If the byte splice were wrong, the canonical-XML check must catch it and lxml write the tree.
     monkeypatch.setattr(urdf_io, "_splice_origins", lambda raw, attributes: raw)
     calibrated = calibrate_randomly(pin.buildModelFromUrdf(str(chain_urdf)), np.random.default_rng(4))
@@ -376,9 +392,7 @@ def test_never_writes_onto_the_nominal_or_a_protected_file(chain_urdf: Path, tmp
     [("l4", pin.FrameType.BODY), ("base", pin.FrameType.BODY), ("j2", pin.FrameType.JOINT)],
     ids=["moving-joint child", "root link", "joint frame"],
 )
-def test_link_frame_off_its_joint_is_refused(
-    chain_urdf: Path, tmp_path: Path, link: str, kind: pin.FrameType
-) -> None:
+def test_link_frame_off_its_joint_is_refused(chain_urdf: Path, tmp_path: Path, link: str, kind: pin.FrameType) -> None:
     model = pin.buildModelFromUrdf(str(chain_urdf))
     frame = model.frames[model.getFrameId(link, kind)]
     frame.placement = pin.SE3(np.eye(3), np.array([1e-4, 0.0, 0.0]))
@@ -390,7 +404,9 @@ def test_link_frame_off_its_joint_is_refused(
 
 
 def test_model_of_another_urdf_is_refused(chain_urdf: Path, ur5_urdf: Path, tmp_path: Path) -> None:
-    with pytest.raises(ModelFileError, match="the model has joints the URDF does not: shoulder_pan_joint, shoulder_lift_joint"):
+    with pytest.raises(
+        ModelFileError, match="the model has joints the URDF does not: shoulder_pan_joint, shoulder_lift_joint"
+    ):
         write_calibrated_urdf(chain_urdf, pin.buildModelFromUrdf(str(ur5_urdf)), tmp_path / "x.urdf")
 
     other = tmp_path / "other.urdf"
@@ -430,16 +446,23 @@ def test_max_placement_difference_refuses_different_structures(chain_urdf: Path,
 
     renamed = chain.copy()
     renamed.frames[renamed.getFrameId("sensor", pin.FrameType.BODY)].name = "sensor2"
-    with pytest.raises(InvalidInputError, match=r"only in the first: sensor \(BODY\); only in the second: sensor2 \(BODY\)"):
+    with pytest.raises(
+        InvalidInputError, match=r"only in the first: sensor \(BODY\); only in the second: sensor2 \(BODY\)"
+    ):
         max_placement_difference(chain, renamed)
 
 
 def test_a_urdf_with_entity_references_is_written(tmp_path):
     """lxml cannot canonicalise unexpanded entities (C14NError): the writer serialises the tree instead."""
     urdf, closures = five_bar_files(tmp_path)
-    urdf.write_text(urdf.read_text().replace(
-        '<robot name="five_bar">', '<!DOCTYPE robot [<!ENTITY maker "m3t1r tests">]>\n<robot name="five_bar">\n'
-        '  <description>&maker;</description>', 1))
+    urdf.write_text(
+        urdf.read_text().replace(
+            '<robot name="five_bar">',
+            '<!DOCTYPE robot [<!ENTITY maker "m3t1r tests">]>\n<robot name="five_bar">\n'
+            "  <description>&maker;</description>",
+            1,
+        )
+    )
     mechanism = Mechanism.load(urdf, closures)
     model = pin.Model(mechanism.model)
     model.jointPlacements[2] = pin.SE3(model.jointPlacements[2].rotation, model.jointPlacements[2].translation + 1e-4)
@@ -480,7 +503,7 @@ def _refusal(nominal: Path, model: pin.Model) -> str:
     assert caught.value.path == str(nominal)
     prefix = f"{nominal}: "
     assert str(caught.value).startswith(prefix)
-    return str(caught.value)[len(prefix):]
+    return str(caught.value)[len(prefix) :]
 
 
 # -- the nominal file ----------------------------------------------------------------------------------
@@ -495,25 +518,46 @@ def test_unreadable_malformed_and_non_urdf_files(tmp_path, chain):
     assert _refusal(_file(tmp_path, "<sdf/>"), model) == "root element is <sdf>, a URDF has <robot>"
 
 
-@pytest.mark.parametrize(("joint", "message"), [
-    ('<joint name="a"><parent link="base"/><child link="x"/></joint>', "line 3: <joint name='a'> lacks a name or a type"),
-    ('<joint type="fixed"><parent link="base"/><child link="x"/></joint>', "line 3: <joint name=None> lacks a name or a type"),
-    ('<joint name="a" type="fixed"><child link="x"/></joint>',
-     "line 3: <joint name='a'> lacks <parent link=...> or <child link=...>"),
-    ('<joint name="a" type="fixed"><parent link="base"/></joint>',
-     "line 3: <joint name='a'> lacks <parent link=...> or <child link=...>"),
-    ('<joint name="a" type="fixed"><parent/><child link="x"/></joint>',
-     "line 3: <joint name='a'> lacks <parent link=...> or <child link=...>"),
-    ('<joint name="a" type="fixed"><parent link="base"/><child/></joint>',
-     "line 3: <joint name='a'> lacks <parent link=...> or <child link=...>"),
-    ('<joint name="a" type="fixed"><parent link="base"/><child link="x"/><origin/><origin/></joint>',
-     "line 3: <joint name='a'> has more than one <origin>"),
-    ('<joint name="j1" type="fixed"><parent link="base"/><child link="x"/></joint>',
-     "line 5: <joint name='j1'>: a joint of that name appears earlier"),
-])
+@pytest.mark.parametrize(
+    ("joint", "message"),
+    [
+        (
+            '<joint name="a"><parent link="base"/><child link="x"/></joint>',
+            "line 3: <joint name='a'> lacks a name or a type",
+        ),
+        (
+            '<joint type="fixed"><parent link="base"/><child link="x"/></joint>',
+            "line 3: <joint name=None> lacks a name or a type",
+        ),
+        (
+            '<joint name="a" type="fixed"><child link="x"/></joint>',
+            "line 3: <joint name='a'> lacks <parent link=...> or <child link=...>",
+        ),
+        (
+            '<joint name="a" type="fixed"><parent link="base"/></joint>',
+            "line 3: <joint name='a'> lacks <parent link=...> or <child link=...>",
+        ),
+        (
+            '<joint name="a" type="fixed"><parent/><child link="x"/></joint>',
+            "line 3: <joint name='a'> lacks <parent link=...> or <child link=...>",
+        ),
+        (
+            '<joint name="a" type="fixed"><parent link="base"/><child/></joint>',
+            "line 3: <joint name='a'> lacks <parent link=...> or <child link=...>",
+        ),
+        (
+            '<joint name="a" type="fixed"><parent link="base"/><child link="x"/><origin/><origin/></joint>',
+            "line 3: <joint name='a'> has more than one <origin>",
+        ),
+        (
+            '<joint name="j1" type="fixed"><parent link="base"/><child link="x"/></joint>',
+            "line 5: <joint name='j1'>: a joint of that name appears earlier",
+        ),
+    ],
+)
 def test_malformed_joints_are_named_by_line(tmp_path, chain, joint, message):
     _, model = chain
-    text = CHAIN_URDF.replace("<link name=\"sensor\"/>\n", "<link name=\"sensor\"/>\n" + joint + "\n")
+    text = CHAIN_URDF.replace('<link name="sensor"/>\n', '<link name="sensor"/>\n' + joint + "\n")
     text = text.replace('<robot name="chain">\n', '<robot name="chain">' + joint + "\n", 1)
     # The joint is now on line 3 (the first after <robot>) and again at the end.
     assert _refusal(_file(tmp_path, text), model) == message
@@ -530,30 +574,40 @@ def test_another_models_joints(tmp_path, chain):
 
 def test_a_moving_joint_missing_from_the_model(tmp_path, chain):
     _, model = chain
-    extra = ('<joint name="j4" type="revolute"><parent link="l5"/><child link="l6"/><axis xyz="0 0 1"/></joint>'
-             '<link name="l6"/>')
+    extra = (
+        '<joint name="j4" type="revolute"><parent link="l5"/><child link="l6"/><axis xyz="0 0 1"/></joint>'
+        '<link name="l6"/>'
+    )
     nominal = _file(tmp_path, CHAIN_URDF.replace("</robot>", extra + "</robot>"))
     assert _refusal(nominal, model) == "revolute joint 'j4' is not in the model"
 
 
 def test_a_joint_hanging_off_another_link(tmp_path, chain):
     _, model = chain
-    text = CHAIN_URDF.replace('<parent link="l4"/>\n    <child link="l5"/>', '<parent link="l3"/>\n    <child link="l5"/>')
+    text = CHAIN_URDF.replace(
+        '<parent link="l4"/>\n    <child link="l5"/>', '<parent link="l3"/>\n    <child link="l5"/>'
+    )
     assert _refusal(_file(tmp_path, text), model) == (
-        "joint 'j3' hangs off joint 'j2' in the model, but its URDF parent link 'l3' is on joint 'j1'")
+        "joint 'j3' hangs off joint 'j2' in the model, but its URDF parent link 'l3' is on joint 'j1'"
+    )
 
 
 def test_a_joint_whose_child_another_joint_moves(tmp_path, chain):
     _, model = chain
-    text = CHAIN_URDF.replace('<parent link="l4"/>\n    <child link="l5"/>', '<parent link="l4"/>\n    <child link="sensor"/>')
+    text = CHAIN_URDF.replace(
+        '<parent link="l4"/>\n    <child link="l5"/>', '<parent link="l4"/>\n    <child link="sensor"/>'
+    )
     assert _refusal(_file(tmp_path, text), model) == "link 'sensor' is not moved by joint 'j3' in the model"
 
 
 def test_a_fixed_joint_between_links_on_different_joints(tmp_path, chain):
     _, model = chain
-    text = CHAIN_URDF.replace('<parent link="l5"/>\n    <child link="tool"/>', '<parent link="l4"/>\n    <child link="tool"/>')
+    text = CHAIN_URDF.replace(
+        '<parent link="l5"/>\n    <child link="tool"/>', '<parent link="l4"/>\n    <child link="tool"/>'
+    )
     assert _refusal(_file(tmp_path, text), model) == (
-        "fixed joint 'f3': the model puts link 'l4' on joint 'j2' and link 'tool' on joint 'j3'")
+        "fixed joint 'f3': the model puts link 'l4' on joint 'j2' and link 'tool' on joint 'j3'"
+    )
 
 
 @pytest.mark.parametrize("link", ["base", "l3", "l4", "tool"])
@@ -570,17 +624,21 @@ def test_a_frame_of_another_type_does_not_stand_for_a_link(chain):
     assert _refusal(nominal, model) == "link 'l3' has no BODY frame in the model: was it built from this file?"
 
 
-@pytest.mark.parametrize(("name", "kind", "what", "joint"), [
-    ("base", pin.FrameType.BODY, "root link 'base'", "universe"),
-    ("l4", pin.FrameType.BODY, "link 'l4'", "j2"),
-    ("j2", pin.FrameType.JOINT, "JOINT frame 'j2'", "j2"),
-])
+@pytest.mark.parametrize(
+    ("name", "kind", "what", "joint"),
+    [
+        ("base", pin.FrameType.BODY, "root link 'base'", "universe"),
+        ("l4", pin.FrameType.BODY, "link 'l4'", "j2"),
+        ("j2", pin.FrameType.JOINT, "JOINT frame 'j2'", "j2"),
+    ],
+)
 def test_offset_link_frames_name_the_frame_and_the_joint(chain, name, kind, what, joint):
     nominal, model = chain
     model.frames[model.getFrameId(name, kind)].placement = pin.SE3(np.eye(3), np.array([0.0, 2e-4, 0.0]))
     assert _refusal(nominal, model) == (
         f"{what}: its frame is 0.0002 m or rad away from joint '{joint}'; "
-        "a URDF link frame coincides with its joint frame, so this offset cannot be written")
+        "a URDF link frame coincides with its joint frame, so this offset cannot be written"
+    )
 
 
 def test_identity_tolerance_is_inclusive(chain):
@@ -625,8 +683,10 @@ def test_pairing_comment_is_written_when_asked(chain):
 
 def test_a_multiline_origin_attribute_is_spliced_in_place(tmp_path, chain):
     _, model = chain
-    text = CHAIN_URDF.replace('<origin xyz="0.1 0.2 0.3" rpy="0.1 -0.2 0.3"/>',
-                              "<origin xyz=\"0.1\n      0.2 0.3\" rpy=\"0.1 -0.2 0.3\" note=\" rpy='1'\"/>")
+    text = CHAIN_URDF.replace(
+        '<origin xyz="0.1 0.2 0.3" rpy="0.1 -0.2 0.3"/>',
+        '<origin xyz="0.1\n      0.2 0.3" rpy="0.1 -0.2 0.3" note=" rpy=\'1\'"/>',
+    )
     output = calibrated_urdf_bytes(_file(tmp_path, text), model)
     # The splice keeps the prolog and the comment as they were; lxml's fallback would not.
     assert output.startswith(b'<?xml version="1.0"?>\n<!-- synthetic chain for the URDF writer tests -->\n')
@@ -636,7 +696,9 @@ def test_a_multiline_origin_attribute_is_spliced_in_place(tmp_path, chain):
 def test_fallback_serialization_keeps_comments_cdata_and_encoding(tmp_path, chain, monkeypatch):
     _, model = chain
     text = CHAIN_URDF.replace('<?xml version="1.0"?>', '<?xml version="1.0" encoding="ISO-8859-1"?>')
-    text = text.replace('<link name="tool"/>', '<link name="tool"><!-- caf\u00e9 --><data><![CDATA[a<b]]></data></link>')
+    text = text.replace(
+        '<link name="tool"/>', '<link name="tool"><!-- caf\u00e9 --><data><![CDATA[a<b]]></data></link>'
+    )
     nominal = _file(tmp_path, text.encode("latin-1"))
     monkeypatch.setattr(urdf_io, "_splice_origins", lambda raw, attributes: None)
     output = calibrated_urdf_bytes(nominal, model)
@@ -675,13 +737,21 @@ def test_structure_differences_are_listed(chain):
     extra = model.copy()
     for name in ("mark_b", "mark_a"):
         extra.addFrame(pin.Frame(name, 1, 0, pin.SE3.Identity(), pin.FrameType.OP_FRAME))
-    with pytest.raises(InvalidInputError, match=(
+    with pytest.raises(
+        InvalidInputError,
+        match=(
             r"^models differ in frames: only in the first: none; only in the second: mark_a \(OP_FRAME\), "
-            r"mark_b \(OP_FRAME\)$")):
+            r"mark_b \(OP_FRAME\)$"
+        ),
+    ):
         max_placement_difference(model, extra)
-    with pytest.raises(InvalidInputError, match=(
+    with pytest.raises(
+        InvalidInputError,
+        match=(
             r"^models differ in frames: only in the first: mark_a \(OP_FRAME\), mark_b \(OP_FRAME\); "
-            r"only in the second: none$")):
+            r"only in the second: none$"
+        ),
+    ):
         max_placement_difference(extra, model)
 
 
@@ -690,8 +760,10 @@ def test_parents_that_differ_are_listed(chain):
     moved = model.copy()
     for name in ("tool", "sensor"):
         moved.frames[moved.getFrameId(name, pin.FrameType.BODY)].parentJoint = 2
-    with pytest.raises(InvalidInputError, match=(
-            r"^frames on different parent joints in the two models: sensor \(BODY\), tool \(BODY\)$")):
+    with pytest.raises(
+        InvalidInputError,
+        match=(r"^frames on different parent joints in the two models: sensor \(BODY\), tool \(BODY\)$"),
+    ):
         max_placement_difference(model, moved)
     rehung = model.copy()
     rehung.parents[3] = 1

@@ -27,8 +27,10 @@ from m3t1r.model.poe import SerialChain, tool_poses
 from m3t1r.model.workspace import workspace_actuators
 
 N_ROWS = 12
-SETUP = MeasurementSetup(pin.SE3(pin.utils.rpyToMatrix(0.1, -0.2, 2.5), np.array([3.0, -1.5, 0.8])),
-                         pin.SE3(pin.utils.rpyToMatrix(0.3, 0.0, -0.4), np.array([0.05, -0.02, 0.11])))
+SETUP = MeasurementSetup(
+    pin.SE3(pin.utils.rpyToMatrix(0.1, -0.2, 2.5), np.array([3.0, -1.5, 0.8])),
+    pin.SE3(pin.utils.rpyToMatrix(0.3, 0.0, -0.4), np.array([0.05, -0.02, 0.11])),
+)
 
 
 def run(argv: list[str]) -> int:
@@ -53,19 +55,30 @@ def run(argv: list[str]) -> int:
 
 
 def report_document(kind: str = "closed_loop", units: str = "m", **nominal) -> dict:
-    return {"kind": kind, "input": {"path": "cal.csv", "sha256": "0" * 64, "poses": 40, "position_only": False,
-                                    "units": units},
-            "nominal_model": nominal or {"urdf": "nominal.urdf", "closures": "nominal.closures.yaml"},
-            "measured_frame": "P_I" if kind == "closed_loop" else nominal.get("tool"),
-            "measurement_frame": {**se3_to_report(SETUP.frame), "estimated": True},
-            "marker": {**se3_to_report(SETUP.marker), "estimated": True},
-            "noise_model": {"position_m": 10e-6, "rotation_rad": 20e-6, "actuator_m": 1e-6},
-            "converged": True, "variance_factor": 1.0, "outliers": [],
-            "cross_validation": {"position_mean_m": 1e-5, "rotation_mean_rad": 2e-5, "folds": 5}}
+    return {
+        "kind": kind,
+        "input": {"path": "cal.csv", "sha256": "0" * 64, "poses": 40, "position_only": False, "units": units},
+        "nominal_model": nominal or {"urdf": "nominal.urdf", "closures": "nominal.closures.yaml"},
+        "measured_frame": "P_I" if kind == "closed_loop" else nominal.get("tool"),
+        "measurement_frame": {**se3_to_report(SETUP.frame), "estimated": True},
+        "marker": {**se3_to_report(SETUP.marker), "estimated": True},
+        "noise_model": {"position_m": 10e-6, "rotation_rad": 20e-6, "actuator_m": 1e-6},
+        "converged": True,
+        "variance_factor": 1.0,
+        "outliers": [],
+        "cross_validation": {"position_mean_m": 1e-5, "rotation_mean_rad": 2e-5, "folds": 5},
+    }
 
 
-def write_campaign(path: Path, columns, readings, poses: np.ndarray, scale: float = 1.0, position_only: bool = False,
-                   extra: dict[int, str] | None = None) -> None:
+def write_campaign(
+    path: Path,
+    columns,
+    readings,
+    poses: np.ndarray,
+    scale: float = 1.0,
+    position_only: bool = False,
+    extra: dict[int, str] | None = None,
+) -> None:
     """A measurement CSV: readings (N, n) and poses (N, 4, 4) [m], lengths divided by `scale` (1e-3: mm)."""
     rows = pose_rows([pin.SE3(p) for p in poses])
     rows[:, :3] /= scale
@@ -92,14 +105,28 @@ def machine(tmp_path_factory, mechanism):
 
 def test_noise_free_rows_are_predicted_exactly_through_frame_and_marker(machine, capsys) -> None:
     folder, _, _, poses, _ = machine
-    assert run(["validate", str(folder / "exact.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
-                str(folder / "report.json"), "--predictions", str(folder / "pred.csv")]) == 0
+    assert (
+        run(
+            [
+                "validate",
+                str(folder / "exact.csv"),
+                "--calibrated",
+                str(folder / "cal.urdf"),
+                "--report",
+                str(folder / "report.json"),
+                "--predictions",
+                str(folder / "pred.csv"),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "position [m]" in out and "heading |yaw| [rad]" in out and "rows beyond 5 sigma" in out
     assert "FLAGGED" not in out
     table = read_table(folder / "pred.csv", required=POSE_COLUMNS)
-    np.testing.assert_allclose(np.column_stack([table.column(c) for c in POSE_COLUMNS]),
-                               pose_rows([pin.SE3(p) for p in poses]), atol=1e-9)
+    np.testing.assert_allclose(
+        np.column_stack([table.column(c) for c in POSE_COLUMNS]), pose_rows([pin.SE3(p) for p in poses]), atol=1e-9
+    )
     result = validate(folder / "exact.csv", folder / "cal.urdf", folder / "report.json")
     assert result.predictions.shape == (N_ROWS, 4, 4) and result.failures == () and result.flagged == ()
     assert result.errors.position_max < 1e-9 and result.errors.rotation_max < 1e-9
@@ -126,8 +153,23 @@ def test_millimetre_file_gives_the_same_errors_and_predictions_in_mm(machine, tm
     in_mm = validate(tmp_path / "mm.csv", folder / "cal.urdf", folder / "report.json", units="mm")
     np.testing.assert_allclose(in_mm.errors.position, in_m.errors.position, rtol=1e-6, atol=1e-12)
     assert 3e-6 < in_m.errors.position_mean < 4e-5 and 5e-6 < in_m.errors.rotation_mean < 8e-5  # ~1.6 sigma
-    assert run(["validate", str(tmp_path / "mm.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
-                str(folder / "report.json"), "--units", "mm", "--predictions", str(tmp_path / "pred.csv")]) == 0
+    assert (
+        run(
+            [
+                "validate",
+                str(tmp_path / "mm.csv"),
+                "--calibrated",
+                str(folder / "cal.urdf"),
+                "--report",
+                str(folder / "report.json"),
+                "--units",
+                "mm",
+                "--predictions",
+                str(tmp_path / "pred.csv"),
+            ]
+        )
+        == 0
+    )
     assert "position [mm]" in capsys.readouterr().out
     table = read_table(tmp_path / "pred.csv", required=POSE_COLUMNS)
     np.testing.assert_allclose(table.column("x"), poses[:, 0, 3] * 1e3, atol=1e-6)
@@ -143,8 +185,19 @@ def test_gross_errors_are_flagged_by_line_and_exit_status_stays_zero(machine, tm
     poses = np.array([p.homogeneous for p in noisy.poses])
     poses[[2, 7], :3, 3] += np.array([[2e-4, 0, 0], [0, 0, -3e-4]])
     write_campaign(tmp_path / "spoiled.csv", mechanism.actuated_joints, sliders, poses)
-    assert run(["validate", str(tmp_path / "spoiled.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
-                str(folder / "report.json")]) == 0
+    assert (
+        run(
+            [
+                "validate",
+                str(tmp_path / "spoiled.csv"),
+                "--calibrated",
+                str(folder / "cal.urdf"),
+                "--report",
+                str(folder / "report.json"),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     lines = read_table(tmp_path / "spoiled.csv", required=mechanism.actuated_joints, optional=POSE_COLUMNS).line_numbers
     assert out.count("FLAGGED") == 2
@@ -170,10 +223,17 @@ def test_rows_that_do_not_assemble_are_listed_and_the_rest_assessed(machine, tmp
     bad = sliders.copy()
     bad[3, 0] = 0.75  # beyond the slider limit 0.6 m
     write_campaign(tmp_path / "bad.csv", mechanism.actuated_joints, bad, poses)
-    line = int(read_table(tmp_path / "bad.csv", required=mechanism.actuated_joints,
-                          optional=POSE_COLUMNS).line_numbers[3])
-    common = ["validate", str(tmp_path / "bad.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
-              str(folder / "report.json")]
+    line = int(
+        read_table(tmp_path / "bad.csv", required=mechanism.actuated_joints, optional=POSE_COLUMNS).line_numbers[3]
+    )
+    common = [
+        "validate",
+        str(tmp_path / "bad.csv"),
+        "--calibrated",
+        str(folder / "cal.urdf"),
+        "--report",
+        str(folder / "report.json"),
+    ]
     assert run(common) == 0
     out = capsys.readouterr().out
     assert f"line {line} not predicted" in out and f"{N_ROWS - 1} of {N_ROWS} rows predicted" in out
@@ -197,16 +257,19 @@ def test_the_reports_variance_factor_widens_the_gate(machine, tmp_path, mechanis
     assert wide.scale == pytest.approx(3.0) and wide.flagged == ()
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda d: d.update(kind="paper"), "'kind'"),
-    (lambda d: d.pop("kind"), "'kind' is missing"),
-    (lambda d: d["noise_model"].pop("position_m"), "'noise_model.position_m' is missing"),
-    (lambda d: d["noise_model"].update(rotation_rad=-1), "'noise_model.rotation_rad' must be a positive"),
-    (lambda d: d.pop("marker"), "'marker' is missing"),
-    (lambda d: d["measurement_frame"].update(quaternion=[0, 0, 0, 2]), "measurement_frame"),
-    (lambda d: d.update(measured_frame="tool0"), "'measured_frame'"),
-    (lambda d: d.update(variance_factor="big"), "'variance_factor'"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda d: d.update(kind="paper"), "'kind'"),
+        (lambda d: d.pop("kind"), "'kind' is missing"),
+        (lambda d: d["noise_model"].pop("position_m"), "'noise_model.position_m' is missing"),
+        (lambda d: d["noise_model"].update(rotation_rad=-1), "'noise_model.rotation_rad' must be a positive"),
+        (lambda d: d.pop("marker"), "'marker' is missing"),
+        (lambda d: d["measurement_frame"].update(quaternion=[0, 0, 0, 2]), "measurement_frame"),
+        (lambda d: d.update(measured_frame="tool0"), "'measured_frame'"),
+        (lambda d: d.update(variance_factor="big"), "'variance_factor'"),
+    ],
+)
 def test_bad_reports_are_refused_naming_file_and_field(machine, tmp_path, edit, message, capsys) -> None:
     folder, *_ = machine
     document = report_document()
@@ -215,8 +278,19 @@ def test_bad_reports_are_refused_naming_file_and_field(machine, tmp_path, edit, 
     with pytest.raises(InvalidInputError, match=message) as caught:
         validate(folder / "exact.csv", folder / "cal.urdf", tmp_path / "bad.json")
     assert "bad.json" in str(caught.value)
-    assert run(["validate", str(folder / "exact.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
-                str(tmp_path / "bad.json")]) == 2
+    assert (
+        run(
+            [
+                "validate",
+                str(folder / "exact.csv"),
+                "--calibrated",
+                str(folder / "cal.urdf"),
+                "--report",
+                str(tmp_path / "bad.json"),
+            ]
+        )
+        == 2
+    )
 
 
 def test_missing_files_are_typed_errors_naming_the_file(machine, tmp_path) -> None:
@@ -235,8 +309,21 @@ def test_missing_files_are_typed_errors_naming_the_file(machine, tmp_path) -> No
 def test_predictions_never_overwrite_an_input(machine, capsys) -> None:
     folder, *_ = machine
     before = (folder / "exact.csv").read_bytes()
-    assert run(["validate", str(folder / "exact.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
-                str(folder / "report.json"), "--predictions", str(folder / "exact.csv")]) == 2
+    assert (
+        run(
+            [
+                "validate",
+                str(folder / "exact.csv"),
+                "--calibrated",
+                str(folder / "cal.urdf"),
+                "--report",
+                str(folder / "report.json"),
+                "--predictions",
+                str(folder / "exact.csv"),
+            ]
+        )
+        == 2
+    )
     assert (folder / "exact.csv").read_bytes() == before
     assert "refusing to overwrite the input" in capsys.readouterr().out
 
@@ -259,8 +346,21 @@ def test_serial_rows_are_predicted_through_the_reports_chain(serial_robot, tmp_p
     result = validate(tmp_path / "ur5.csv", urdf, tmp_path / "report.json")
     assert result.kind == "serial" and result.heading is None
     assert result.errors.position_max < 1e-9 and result.errors.rotation_max < 1e-9
-    assert run(["validate", str(tmp_path / "ur5.csv"), "--calibrated", str(urdf), "--report",
-                str(tmp_path / "report.json"), "--predictions", str(tmp_path / "pred.csv")]) == 0
+    assert (
+        run(
+            [
+                "validate",
+                str(tmp_path / "ur5.csv"),
+                "--calibrated",
+                str(urdf),
+                "--report",
+                str(tmp_path / "report.json"),
+                "--predictions",
+                str(tmp_path / "pred.csv"),
+            ]
+        )
+        == 0
+    )
     assert "heading" not in capsys.readouterr().out
     table = read_table(tmp_path / "pred.csv", required=POSE_COLUMNS)
     np.testing.assert_allclose(table.column("z"), measured[:, 2, 3] * 1e3, atol=1e-6)
@@ -301,8 +401,21 @@ def test_exit_statuses_through_the_main_command_line(machine, tmp_path, mechanis
     bad = sliders.copy()
     bad[0, 0] = 0.75
     write_campaign(tmp_path / "bad.csv", mechanism.actuated_joints, bad, poses)
-    assert main(["validate", str(tmp_path / "bad.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
-                 str(folder / "report.json"), "--predictions", str(tmp_path / "bad_pred.csv")]) == 1
+    assert (
+        main(
+            [
+                "validate",
+                str(tmp_path / "bad.csv"),
+                "--calibrated",
+                str(folder / "cal.urdf"),
+                "--report",
+                str(folder / "report.json"),
+                "--predictions",
+                str(tmp_path / "bad_pred.csv"),
+            ]
+        )
+        == 1
+    )
     assert not (tmp_path / "bad_pred.csv").exists()
     assert "m3t1r: error:" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exit_info:  # refused by argparse, with the usage line
@@ -310,11 +423,16 @@ def test_exit_statuses_through_the_main_command_line(machine, tmp_path, mechanis
     assert exit_info.value.code == 2 and "argument -n: expected at least 1, got 0" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda text: text.replace('"kind": "closed_loop"', '"kind": "serial", "kind": "closed_loop"', 1),
-     "key 'kind' given twice in one object"),
-    (lambda text: text.replace('"variance_factor": ', '"variance_factor": NaN, "x": ', 1), "'NaN' is not JSON"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (
+            lambda text: text.replace('"kind": "closed_loop"', '"kind": "serial", "kind": "closed_loop"', 1),
+            "key 'kind' given twice in one object",
+        ),
+        (lambda text: text.replace('"variance_factor": ', '"variance_factor": NaN, "x": ', 1), "'NaN' is not JSON"),
+    ],
+)
 def test_a_report_with_a_key_twice_or_nan_is_refused(machine, tmp_path, edit, message) -> None:
     """Python's reader let the last of two keys win silently and read NaN."""
     folder, *_ = machine
@@ -347,16 +465,22 @@ def write_converted_campaign(path: Path, columns, readings, poses: np.ndarray) -
     write_table(path, [*columns, *POSE_COLUMNS, "source"], np.hstack((readings, rows, sources)), ["converted"])
 
 
-def test_plots_name_the_flagged_rows_by_source_and_are_written_as_a_unit(machine, tmp_path, mechanism,
-                                                                        capsys) -> None:
+def test_plots_name_the_flagged_rows_by_source_and_are_written_as_a_unit(machine, tmp_path, mechanism, capsys) -> None:
     folder, _, sliders, _, noisy = machine
     poses = np.array([p.homogeneous for p in noisy.poses])
     poses[[2, 7], :3, 3] += np.array([[2e-4, 0, 0], [0, 0, -3e-4]])
     write_converted_campaign(tmp_path / "converted.csv", mechanism.actuated_joints, sliders, poses)
-    lines = read_table(tmp_path / "converted.csv", required=mechanism.actuated_joints,
-                       optional=(*POSE_COLUMNS, "source")).line_numbers
-    common = ["validate", str(tmp_path / "converted.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
-              str(folder / "report.json")]
+    lines = read_table(
+        tmp_path / "converted.csv", required=mechanism.actuated_joints, optional=(*POSE_COLUMNS, "source")
+    ).line_numbers
+    common = [
+        "validate",
+        str(tmp_path / "converted.csv"),
+        "--calibrated",
+        str(folder / "cal.urdf"),
+        "--report",
+        str(folder / "report.json"),
+    ]
     assert run(common + ["--plots", str(tmp_path / "plots"), "--predictions", str(tmp_path / "pred.csv")]) == 0
     out = capsys.readouterr().out
     assert "wrote 12 predicted measurements" in out and "error_histogram.png" in out
@@ -392,8 +516,21 @@ def test_plots_of_a_position_only_file_without_sources(machine, tmp_path, mechan
     write_campaign(tmp_path / "xyz.csv", mechanism.actuated_joints, sliders, poses, position_only=True)
     table = read_table(tmp_path / "xyz.csv", required=mechanism.actuated_joints, optional=("x", "y", "z"))
     line = table.line_numbers[4]
-    assert run(["validate", str(tmp_path / "xyz.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
-                str(folder / "report.json"), "--plots", str(tmp_path / "plots")]) == 0
+    assert (
+        run(
+            [
+                "validate",
+                str(tmp_path / "xyz.csv"),
+                "--calibrated",
+                str(folder / "cal.urdf"),
+                "--report",
+                str(folder / "report.json"),
+                "--plots",
+                str(tmp_path / "plots"),
+            ]
+        )
+        == 0
+    )
     for name in VALIDATION_PLOTS:
         assert png_description(tmp_path / "plots" / name) == f"flagged: line {line}", name
     assert validate(tmp_path / "xyz.csv", folder / "cal.urdf", folder / "report.json").residuals.shape == (N_ROWS, 3)
@@ -402,8 +539,21 @@ def test_plots_of_a_position_only_file_without_sources(machine, tmp_path, mechan
 def test_plots_into_a_file_are_refused_before_any_work(machine, capsys) -> None:
     folder, *_ = machine
     inputs = {p: p.read_bytes() for p in folder.iterdir() if p.is_file()}
-    assert run(["validate", str(folder / "exact.csv"), "--calibrated", str(folder / "cal.urdf"), "--report",
-                str(folder / "report.json"), "--plots", str(folder / "exact.csv")]) == 2
+    assert (
+        run(
+            [
+                "validate",
+                str(folder / "exact.csv"),
+                "--calibrated",
+                str(folder / "cal.urdf"),
+                "--report",
+                str(folder / "report.json"),
+                "--plots",
+                str(folder / "exact.csv"),
+            ]
+        )
+        == 2
+    )
     out = capsys.readouterr().out
     assert "exact.csv" in out and "rows predicted" not in out  # refused before the prediction
     assert {p: p.read_bytes() for p in folder.iterdir() if p.is_file()} == inputs

@@ -163,8 +163,9 @@ def test_calibrated_machine_is_drawn_with_its_deviation_magnified(views, factor)
     for joint, drawn in drawn_joints.items():
         ref, true = reference[joint], actual[joint]
         true_offsets.append(np.linalg.norm(true.translation - ref.translation))
-        assert drawn.translation - ref.translation == pytest.approx(factor * (true.translation - ref.translation),
-                                                                    abs=1e-9)
+        assert drawn.translation - ref.translation == pytest.approx(
+            factor * (true.translation - ref.translation), abs=1e-9
+        )
         turned = pin.exp3(factor * pin.log3(ref.rotation.T @ true.rotation))  # the deviation's angle, times factor
         assert ref.rotation.T @ drawn.rotation == pytest.approx(turned, abs=1e-9)
     assert max(true_offsets) > 1e-3  # the study's errors move the bodies: the check above is not 0 = 0
@@ -181,8 +182,9 @@ def test_default_magnification_draws_the_largest_offset_as_a_tenth_of_the_machin
     """Chosen from the scene: a factor 1, 2 or 5 times a power of ten under which the largest joint offset
     is drawn as 4 % to 10 % of the machine's size (or no joint turned beyond 0.3 rad), and stated."""
     for sigma in (1e-4, 1e-3):
-        truth = simulate_study(mechanism, n_poses=8, n_holdout=0, seed=1, sigma_position=sigma,
-                               sigma_rotation=sigma).truth
+        truth = simulate_study(
+            mechanism, n_poses=8, n_holdout=0, seed=1, sigma_position=sigma, sigma_rotation=sigma
+        ).truth
         views = scene.comparison_views(mechanism, truth)
         recorded = static_page.build_scene(views)
         factor = static_page.magnification_of(recorded)
@@ -322,7 +324,8 @@ def test_calibrated_machine_loaded_from_files(mechanism, study, tmp_path):
     assert "(calibrated.urdf)" in page
     paths = object_paths(page_messages(page))
     assert sum(p.startswith("/meshcat/m3t1r/calibrated/visuals/") for p in paths) == len(
-        views[1].mechanism.visual_model.geometryObjects)
+        views[1].mechanism.visual_model.geometryObjects
+    )
     with pytest.raises(OutputPathError, match="refusing"):
         static_page.write_static_html(views, closures)  # every machine's model files are protected
 
@@ -366,9 +369,14 @@ def test_server_exits_when_its_owner_is_killed(tmp_path):
         "from m3t1r.app import live_viewer, scene\n"
         "live = live_viewer.open_viewer(scene.comparison_views(Mechanism.load()))\n"
         "print(live.pid, flush=True)\n"
-        "time.sleep(60)\n")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        filter(None, [str(Path(scene.__file__).parents[2]), os.environ.get("PYTHONPATH")]))}
+        "time.sleep(60)\n"
+    )
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(
+            filter(None, [str(Path(scene.__file__).parents[2]), os.environ.get("PYTHONPATH")])
+        ),
+    }
     owner = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=env)
     try:
         server = int(owner.stdout.readline())
@@ -387,11 +395,19 @@ def test_server_exits_when_its_owner_is_killed(tmp_path):
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMIUM_FLAGS = (
-    "--headless", "--no-sandbox", "--disable-gpu",
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
     "--enable-unsafe-swiftshader",  # WebGL on the CPU; without it Chromium warns and may stop falling back
-    "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update",
-    "--disable-sync", "--host-resolver-rules=MAP * ~NOTFOUND",  # no name resolves: the page must be offline
-    "--window-size=1024,768", "--virtual-time-budget=2500", "--hide-scrollbars",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--host-resolver-rules=MAP * ~NOTFOUND",  # no name resolves: the page must be offline
+    "--window-size=1024,768",
+    "--virtual-time-budget=2500",
+    "--hide-scrollbars",
 )
 
 
@@ -404,10 +420,16 @@ def screenshots(pages: dict[str, Path], folder: Path) -> dict[str, np.ndarray]:
 
     running = {}
     for label, page in pages.items():
-        command = [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={folder / ('profile-' + label)}",
-                   f"--screenshot={folder / (label + '.png')}", page.as_uri()]
-        running[label] = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                          start_new_session=True)
+        command = [
+            CHROMIUM,
+            *CHROMIUM_FLAGS,
+            f"--user-data-dir={folder / ('profile-' + label)}",
+            f"--screenshot={folder / (label + '.png')}",
+            page.as_uri(),
+        ]
+        running[label] = subprocess.Popen(
+            command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
+        )
     outputs = {}
     try:
         for label, process in running.items():
@@ -436,9 +458,12 @@ def magenta_pixels(rgb: np.ndarray) -> int:
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed: apt-get install chromium (.ci/run does)")
 def test_page_renders_both_machines(views, study, tmp_path):
     started = time.monotonic()
-    pages = {label: static_page.write_static_html(shown, tmp_path / f"{label}.html", pose=POSE,
-                                          markers=study.measurements.poses)
-             for label, shown in (("nominal", views[:1]), ("both", views))}
+    pages = {
+        label: static_page.write_static_html(
+            shown, tmp_path / f"{label}.html", pose=POSE, markers=study.measurements.poses
+        )
+        for label, shown in (("nominal", views[:1]), ("both", views))
+    }
     # Above the HTML legend only: its swatches are colours too.
     scenes = {label: rgb[: int(rgb.shape[0] * 0.78)] for label, rgb in screenshots(pages, tmp_path).items()}
     nominal, both = scenes["nominal"], scenes["both"]

@@ -27,12 +27,19 @@ from pathlib import Path
 
 SOURCE = Path(__file__).resolve().parents[1] / "src" / "m3t1r" / "model" / "_native_newton.cpp"
 # Pinocchio's CMake targets set these (its joint variant needs more than Boost.MPL's default 20 types).
-DEFINES = ["BOOST_MPL_LIMIT_LIST_SIZE=30", "BOOST_MPL_LIMIT_VECTOR_SIZE=30", "BOOST_MPL_CFG_NO_PREPROCESSED_HEADERS",
-           "BOOST_FUSION_INVOKE_MAX_ARITY=12", "NDEBUG"]
+DEFINES = [
+    "BOOST_MPL_LIMIT_LIST_SIZE=30",
+    "BOOST_MPL_LIMIT_VECTOR_SIZE=30",
+    "BOOST_MPL_CFG_NO_PREPROCESSED_HEADERS",
+    "BOOST_FUSION_INVOKE_MAX_ARITY=12",
+    "NDEBUG",
+]
 # The environment variable that asks for a package without the compiled loop (hatch_build.py, `make native`).
 PURE_PYTHON = "M3T1R_PURE_PYTHON"
-WITHOUT_IT = (f"fix the cause, or set {PURE_PYTHON}=1 to go without the compiled loop (the solvers then run "
-              "their pure-Python loop, four to six times slower)")
+WITHOUT_IT = (
+    f"fix the cause, or set {PURE_PYTHON}=1 to go without the compiled loop (the solvers then run "
+    "their pure-Python loop, four to six times slower)"
+)
 # Each header tree: the distributions that may ship it (first found wins) and one file of it, below
 # the include directory to pass to the compiler.
 HEADER_TREES = {
@@ -72,9 +79,11 @@ def _header_tree(what: str, names: tuple[str, ...], include: str, probe: str) ->
             for file in dist.files or ():
                 path = file.as_posix()
                 if path.endswith(f"{include}/{probe}") and Path(dist.locate_file(file)).exists():
-                    return Path(dist.locate_file(path[:-len(probe) - 1])).resolve()
-    raise SystemExit(f"build_native: {what}'s headers not found: no installed {' or '.join(names)} "
-                     f"distribution ships {include}/{probe} (pip install {names[0]})")
+                    return Path(dist.locate_file(path[: -len(probe) - 1])).resolve()
+    raise SystemExit(
+        f"build_native: {what}'s headers not found: no installed {' or '.join(names)} "
+        f"distribution ships {include}/{probe} (pip install {names[0]})"
+    )
 
 
 def up_to_date(out: Path) -> bool:
@@ -85,9 +94,11 @@ def up_to_date(out: Path) -> bool:
         return False
     expected = hashlib.sha256(b"".join(p.read_bytes() for p in sources(SOURCE))).hexdigest()
     # Read in a child process: this one may overwrite the file next, which must not be mapped here.
-    probe = ("import importlib.util, sys; spec = importlib.util.spec_from_file_location('m3t1r.model._native_newton', "
-             "sys.argv[1]); module = importlib.util.module_from_spec(spec); spec.loader.exec_module(module); "
-             "print(getattr(module, 'source_sha256', ''))")
+    probe = (
+        "import importlib.util, sys; spec = importlib.util.spec_from_file_location('m3t1r.model._native_newton', "
+        "sys.argv[1]); module = importlib.util.module_from_spec(spec); spec.loader.exec_module(module); "
+        "print(getattr(module, 'source_sha256', ''))"
+    )
     found = subprocess.run([sys.executable, "-c", probe, str(out)], capture_output=True, text=True, check=False)
     return found.returncode == 0 and found.stdout.strip() == expected
 
@@ -128,9 +139,22 @@ def compile_module(source: Path, out: Path) -> None:
     digest = hashlib.sha256(b"".join(part.read_bytes() for part in sources(source))).hexdigest()
     # -O3: it vectorises the dense LU's row operations (no fast-math: the same rounding as -O2);
     # forward_batch about 10 % faster than with -O2 (benchmarks/README.md).
-    command = [*compiler, "-O3", "-std=c++17", "-shared", "-fPIC", "-pthread", "-fvisibility=hidden", "-w",
-               *(f"-D{d}" for d in DEFINES), f'-DM3T1R_SOURCE_SHA256="{digest}"',
-               *(f"-I{d}" for d in includes), str(source), "-o", str(partial)]
+    command = [
+        *compiler,
+        "-O3",
+        "-std=c++17",
+        "-shared",
+        "-fPIC",
+        "-pthread",
+        "-fvisibility=hidden",
+        "-w",
+        *(f"-D{d}" for d in DEFINES),
+        f'-DM3T1R_SOURCE_SHA256="{digest}"',
+        *(f"-I{d}" for d in includes),
+        str(source),
+        "-o",
+        str(partial),
+    ]
     print("build_native: compiling", source, "(about a minute)", flush=True)
     if subprocess.run(command).returncode != 0:
         partial.unlink(missing_ok=True)

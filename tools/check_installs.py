@@ -47,8 +47,9 @@ def new_venv(python: str, folder: Path) -> Path:
 
 
 def uses_the_compiled_loop(bin_dir: Path) -> bool:
-    found = subprocess.run([str(bin_dir / "python"), "-c", CHECK], cwd="/", env=_environment(),
-                           capture_output=True, text=True)
+    found = subprocess.run(
+        [str(bin_dir / "python"), "-c", CHECK], cwd="/", env=_environment(), capture_output=True, text=True
+    )
     print("  status:", (found.stdout + found.stderr).strip().splitlines()[-1:] or ["(nothing)"])
     return found.returncode == 0
 
@@ -73,9 +74,12 @@ def main(argv: list[str] | None = None) -> int:
 def check_all(python: str, work: Path, tree: Path) -> dict[str, tuple[bool, float]]:
     results: dict[str, tuple[bool, float]] = {}
     first = new_venv(python, work / "venv-install")
-    results["pip install ."] = _timed(lambda: run([first / "pip", "install", "."], tree) or uses_the_compiled_loop(first))
+    results["pip install ."] = _timed(
+        lambda: run([first / "pip", "install", "."], tree) or uses_the_compiled_loop(first)
+    )
     results["pip install --force-reinstall ."] = _timed(
-        lambda: run([first / "pip", "install", "--force-reinstall", "."], tree) or uses_the_compiled_loop(first))
+        lambda: run([first / "pip", "install", "--force-reinstall", "."], tree) or uses_the_compiled_loop(first)
+    )
     wheels = work / "wheels"
     shutil.rmtree(wheels, ignore_errors=True)
 

@@ -130,8 +130,10 @@ class IndependentSolver:
             offset = pin.SE3(pin.rpy.rpyToMatrix(*entry.get("rpy", [0.0, 0.0, 0.0])), np.array(entry["xyz"], float))
             self.model.addFrame(pin.Frame(name, parent.parentJoint, parent.placement * offset, pin.OP_FRAME))
         self.data = self.model.createData()
-        self.closures = [(self.model.getFrameId(c["frame_a"]), self.model.getFrameId(c["frame_b"]), c["type"],
-                          c.get("rows")) for c in document["closures"]]
+        self.closures = [
+            (self.model.getFrameId(c["frame_a"]), self.model.getFrameId(c["frame_b"]), c["type"], c.get("rows"))
+            for c in document["closures"]
+        ]
         self.actuated = [self.model.joints[self.model.getJointId(n)] for n in document["actuated_joints"]]
         self.free = [v for v in range(self.model.nv) if v not in [j.idx_v for j in self.actuated]]
         self.platform = self.model.getFrameId(document["platform_frame"])
@@ -145,8 +147,11 @@ class IndependentSolver:
         rows = []
         for a, b, kind, chosen in self.closures:
             oma, omb = self.data.oMf[a], self.data.oMf[b]
-            full = (oma.rotation.T @ (omb.translation - oma.translation) if kind == "3D"
-                    else pin.log6(oma.actInv(omb)).vector)
+            full = (
+                oma.rotation.T @ (omb.translation - oma.translation)
+                if kind == "3D"
+                else pin.log6(oma.actInv(omb)).vector
+            )
             rows.append(full if chosen is None else full[list(chosen)])
         return np.concatenate(rows)
 
@@ -159,8 +164,15 @@ class IndependentSolver:
         rows = len(self._residual(start))
         # Levenberg-Marquardt needs as many rows as unknowns; idle spins (a rod's) leave fewer: trust region.
         method = "lm" if rows >= len(self.free) else "trf"
-        fit = least_squares(lambda dv: self._residual(moved(dv)), np.zeros(len(self.free)), method=method,
-                            xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=20000)
+        fit = least_squares(
+            lambda dv: self._residual(moved(dv)),
+            np.zeros(len(self.free)),
+            method=method,
+            xtol=1e-15,
+            ftol=1e-15,
+            gtol=1e-15,
+            max_nfev=20000,
+        )
         return moved(fit.x)
 
     def platform_positions(self, actuators: np.ndarray, substeps: int = 4) -> np.ndarray:
@@ -179,7 +191,7 @@ class IndependentSolver:
 
 def _set(q: np.ndarray, joint, value: float) -> None:
     if joint.nq == 2:  # a continuous joint: (cos, sin)
-        q[joint.idx_q:joint.idx_q + 2] = (np.cos(value), np.sin(value))
+        q[joint.idx_q : joint.idx_q + 2] = (np.cos(value), np.sin(value))
     else:
         q[joint.idx_q] = value
 
@@ -231,8 +243,11 @@ class Mechanism:
             quaternion = pin.Quaternion(rotation).coeffs()
             noisy.append(np.concatenate((row[:3] + rng.normal(0.0, NOISE_POS, 3), quaternion)))
         actuators = columns(run.work / plan, self.actuators)
-        write_table(run.work / out, self.actuators + ["x", "y", "z", "qx", "qy", "qz", "qw"],
-                    np.hstack((actuators, np.array(noisy))))
+        write_table(
+            run.work / out,
+            self.actuators + ["x", "y", "z", "qx", "qy", "qz", "qw"],
+            np.hstack((actuators, np.array(noisy))),
+        )
 
 
 def _fullest_home(closures: Path, document: dict) -> dict:
@@ -242,9 +257,9 @@ def _fullest_home(closures: Path, document: dict) -> dict:
     best = document["home"]
     for other in sorted(closures.parent.glob("*.closures.yaml")):
         sibling = yaml.safe_load(other.read_text())
-        same = (sibling.get("closures") == document.get("closures")
-                and all(sibling["home"].get(k) == v for k, v in document["home"].items()
-                        if k in document["actuated_joints"]))
+        same = sibling.get("closures") == document.get("closures") and all(
+            sibling["home"].get(k) == v for k, v in document["home"].items() if k in document["actuated_joints"]
+        )
         if same and len(sibling["home"]) > len(best):
             best = sibling["home"]
     return best
@@ -261,8 +276,9 @@ def check_plans_and_kinematics(m: Mechanism, run: Runner) -> list[Figure]:
     run("fk", "plan40.csv", *m.model_args, "-o", "poses.csv")
     poses = columns(run.work / "poses.csv", ["x", "y", "z", "qx", "qy", "qz", "qw"])
     reference = IndependentSolver(m.urdf, {**m.document, "home": m.reference_home}).platform_positions(actuators)
-    figures.append(within("fk vs independent solve, max [m]", float(np.abs(poses[:, :3] - reference).max()),
-                          None, 1e-9))
+    figures.append(
+        within("fk vs independent solve, max [m]", float(np.abs(poses[:, :3] - reference).max()), None, 1e-9)
+    )
     names, targets = task_coordinates(poses, m.position, m.rotation)
     write_table(run.work / "targets.csv", names, targets)
     run("ik", "targets.csv", *m.model_args, "-o", "back.csv")
@@ -272,8 +288,23 @@ def check_plans_and_kinematics(m: Mechanism, run: Runner) -> list[Figure]:
 
 
 def check_noise_free(m: Mechanism, run: Runner) -> list[Figure]:
-    run("simulate", *m.model_args, "-n", "40", "--sigma-pos", ERRORS[0], "--sigma-rot", ERRORS[1], "--noise-free",
-        "--seed", "1", "-o", "exact.csv", "--truth-urdf", "truth.urdf")
+    run(
+        "simulate",
+        *m.model_args,
+        "-n",
+        "40",
+        "--sigma-pos",
+        ERRORS[0],
+        "--sigma-rot",
+        ERRORS[1],
+        "--noise-free",
+        "--seed",
+        "1",
+        "-o",
+        "exact.csv",
+        "--truth-urdf",
+        "truth.urdf",
+    )
     run("calibrate", "exact.csv", *m.model_args, "-o", "cal.urdf", "--report", "cal.json")
     text = run("evaluate", *m.model_args, "--truth", "truth.urdf", "--calibrated", "cal.urdf")
     calibrated = _number(r"calibrated\s+\S+ m\s+(\S+) m", text)
@@ -284,8 +315,10 @@ def check_noise_free(m: Mechanism, run: Runner) -> list[Figure]:
     ours = columns(run.work / "poses.csv", ["x", "y", "z"])
     own = float(np.linalg.norm(truth - ours, axis=1).mean())
     held_out = within("noise-free calibration, held-out max [m]", calibrated, None, 1e-7)
-    return [dataclasses.replace(held_out, detail=f"mean {calibrated_mean:.3g}"),
-            within("evaluate nominal mean / truth's own at the plan", nominal / own, 0.5, 2.0)]
+    return [
+        dataclasses.replace(held_out, detail=f"mean {calibrated_mean:.3g}"),
+        within("evaluate nominal mean / truth's own at the plan", nominal / own, 0.5, 2.0),
+    ]
 
 
 def check_noisy(m: Mechanism, run: Runner) -> list[Figure]:
@@ -294,17 +327,32 @@ def check_noisy(m: Mechanism, run: Runner) -> list[Figure]:
     floor = _number(r"position\s+mean (\S+) m", text)
     m.noisy_measurements(run, "plan_noisy.csv", "truth.urdf", "noisy.csv", seed=3)
     run("calibrate", "noisy.csv", *m.model_args, *noise, "-o", "caln.urdf", "--report", "caln.json")
-    held_out = _number(r"calibrated\s+(\S+) m", run("evaluate", *m.model_args, "--truth", "truth.urdf",
-                                                     "--calibrated", "caln.urdf"))
+    held_out = _number(
+        r"calibrated\s+(\S+) m", run("evaluate", *m.model_args, "--truth", "truth.urdf", "--calibrated", "caln.urdf")
+    )
     run("plan", *m.model_args, "-n", "40", "--seed", "7", "-o", "fresh_plan.csv")
     m.noisy_measurements(run, "fresh_plan.csv", "truth.urdf", "fresh.csv", seed=4)
-    validated = _number(r"position \[m\]\s+([-+.0-9eE]+)\s", run("validate", "fresh.csv", "--calibrated", "caln.urdf",
-                                                         "--report", "caln.json"))
+    validated = _number(
+        r"position \[m\]\s+([-+.0-9eE]+)\s",
+        run("validate", "fresh.csv", "--calibrated", "caln.urdf", "--report", "caln.json"),
+    )
     cross = json.loads((run.work / "caln.json").read_text())["cross_validation"]["position_mean_m"]
-    return [Figure("noisy: held-out mean [m] / plan's predicted floor", held_out / floor, "0.5-2x",
-                   0.5 <= held_out / floor <= 2.0, f"{held_out:.3g} / {floor:.3g}"),
-            Figure("validate mean / cross-validation mean", validated / cross, "0.67-1.5x",
-                   0.67 <= validated / cross <= 1.5, f"{validated:.3g} / {cross:.3g}")]
+    return [
+        Figure(
+            "noisy: held-out mean [m] / plan's predicted floor",
+            held_out / floor,
+            "0.5-2x",
+            0.5 <= held_out / floor <= 2.0,
+            f"{held_out:.3g} / {floor:.3g}",
+        ),
+        Figure(
+            "validate mean / cross-validation mean",
+            validated / cross,
+            "0.67-1.5x",
+            0.67 <= validated / cross <= 1.5,
+            f"{validated:.3g} / {cross:.3g}",
+        ),
+    ]
 
 
 def check_compensation_and_view(m: Mechanism, run: Runner) -> list[Figure]:
@@ -317,8 +365,18 @@ def check_compensation_and_view(m: Mechanism, run: Runner) -> list[Figure]:
     figures = []
     for label, extra in (("compensate", []), ("compensate --report", ["--report", "cal.json"])):
         out = f"commands{len(extra)}.csv"
-        run("compensate", "comp_poses.csv" if extra else "comp_targets.csv", *m.model_args, "--calibrated",
-            "cal.urdf", "--output-kind", "actuators", *extra, "-o", out)
+        run(
+            "compensate",
+            "comp_poses.csv" if extra else "comp_targets.csv",
+            *m.model_args,
+            "--calibrated",
+            "cal.urdf",
+            "--output-kind",
+            "actuators",
+            *extra,
+            "-o",
+            out,
+        )
         run("fk", out, "--model", "truth.urdf", "-o", f"reached{len(extra)}.csv")
         reached = columns(run.work / f"reached{len(extra)}.csv", ["x", "y", "z"])
         positions = [k for k, n in enumerate(names) if n in ("x", "y", "z")]
@@ -341,8 +399,15 @@ def check(urdf: Path, closures: Path, runner: Runner) -> list[Figure]:
         try:
             figures += group(mechanism, runner)
         except (CommandFailed, ValueError, KeyError, FileNotFoundError, IndexError) as exc:
-            figures.append(Figure(group.__name__.removeprefix("check_").replace("_", " "), None, "runs", False,
-                                  str(exc).splitlines()[0]))
+            figures.append(
+                Figure(
+                    group.__name__.removeprefix("check_").replace("_", " "),
+                    None,
+                    "runs",
+                    False,
+                    str(exc).splitlines()[0],
+                )
+            )
     return figures
 
 
@@ -350,8 +415,10 @@ def table(title: str, figures: list[Figure]) -> str:
     lines = [title, f"{'check':<52} {'value':>11}  {'rule':<10} result"]
     for f in figures:
         value = "-" if f.value is None else f"{f.value:.3g}"
-        lines.append(f"{f.check:<52} {value:>11}  {f.rule:<10} {'pass' if f.passed else 'FAIL'}"
-                     + (f"  ({f.detail})" if f.detail else ""))
+        lines.append(
+            f"{f.check:<52} {value:>11}  {f.rule:<10} {'pass' if f.passed else 'FAIL'}"
+            + (f"  ({f.detail})" if f.detail else "")
+        )
     return "\n".join(lines)
 
 
@@ -360,8 +427,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("folder", type=Path, help="a folder with one URDF and its closures file(s)")
     parser.add_argument("--closures", nargs="+", help="closures files to check (default: every *.closures.yaml)")
     parser.add_argument("--work", type=Path, help="scratch folder kept afterwards (default: a temporary one)")
-    parser.add_argument("--m3t1r", default=f"{shlex.quote(sys.executable)} -m m3t1r.app.cli",
-                        help="the command line to run (default: this Python's m3t1r)")
+    parser.add_argument(
+        "--m3t1r",
+        default=f"{shlex.quote(sys.executable)} -m m3t1r.app.cli",
+        help="the command line to run (default: this Python's m3t1r)",
+    )
     args = parser.parse_args(argv)
     urdfs = sorted(args.folder.glob("*.urdf"))
     if len(urdfs) != 1:

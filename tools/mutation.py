@@ -120,14 +120,19 @@ def generated_functions(code: str) -> dict[str, str]:
     for node in ast.parse(code).body:
         for function in node.body if isinstance(node, ast.ClassDef) else [node]:
             if isinstance(function, ast.FunctionDef | ast.AsyncFunctionDef):
-                text = "".join(lines[function.lineno - 1:function.end_lineno])
+                text = "".join(lines[function.lineno - 1 : function.end_lineno])
                 bodies[function.name] = text.replace(f"def {function.name}(", "def (", 1)
     return bodies
 
 
 def copy_tree(destination: Path) -> None:
-    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "src", "tests", "models", "pyproject.toml"],
-                           cwd=ROOT, check=True, capture_output=True, text=True).stdout.split()
+    files = subprocess.run(
+        ["git", "ls-files", "-co", "--exclude-standard", "src", "tests", "models", "pyproject.toml"],
+        cwd=ROOT,
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout.split()
     # The compiled Newton loop is built, not tracked: the copy's tests run the same solver as the checkout's.
     files += [str(p.relative_to(ROOT)) for p in (ROOT / "src" / "m3t1r" / "model").glob("_native_newton*.so")]
     if destination.exists():
@@ -150,14 +155,23 @@ def configure(copy: Path, module: str, tests: list[str]) -> None:
     text = path.read_text(encoding="utf-8")
     as_toml = lambda items: "[" + ", ".join(f'"{item}"' for item in items) + "]"  # noqa: E731
     text = re.sub(r"^only_mutate = .*$", f"only_mutate = {as_toml([module_path(module)])}", text, flags=re.MULTILINE)
-    text = re.sub(r"^pytest_add_cli_args_test_selection = .*$",
-                  f"pytest_add_cli_args_test_selection = {as_toml(tests)}", text, flags=re.MULTILINE)
+    text = re.sub(
+        r"^pytest_add_cli_args_test_selection = .*$",
+        f"pytest_add_cli_args_test_selection = {as_toml(tests)}",
+        text,
+        flags=re.MULTILINE,
+    )
     path.write_text(text, encoding="utf-8")
 
 
 def results(copy: Path) -> dict[str, str]:
-    output = subprocess.run([sys.executable, "-m", "mutmut", "results", "--all", "true"], cwd=copy, check=True,
-                            capture_output=True, text=True).stdout
+    output = subprocess.run(
+        [sys.executable, "-m", "mutmut", "results", "--all", "true"],
+        cwd=copy,
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
     return dict(line.strip().rsplit(": ", 1) for line in output.splitlines() if ": " in line)
 
 
@@ -167,8 +181,13 @@ def run_module(module: str, tests: list[str], max_children: int, workdir: Path) 
     configure(copy, module, tests)
     log = workdir / f"{module}.log"  # mutmut's output: why a run failed (e.g. its clean test run)
     with log.open("w") as output:
-        subprocess.run(["nice", "-n", "10", sys.executable, "-m", "mutmut", "run", "--max-children", str(max_children)],
-                       cwd=copy, check=True, stdout=output, stderr=subprocess.STDOUT)
+        subprocess.run(
+            ["nice", "-n", "10", sys.executable, "-m", "mutmut", "run", "--max-children", str(max_children)],
+            cwd=copy,
+            check=True,
+            stdout=output,
+            stderr=subprocess.STDOUT,
+        )
     statuses = results(copy)
     changes = mutant_changes(module, copy)  # the copy's source: the checkout may change during the run
     equivalent = {change for change in equivalent_changes() if change.module == module}
@@ -179,7 +198,8 @@ def run_module(module: str, tests: list[str], max_children: int, workdir: Path) 
     stale = equivalent - {changes[name] for name in statuses}
     (workdir / f"{module}.survivors.txt").write_text(
         "".join(f"{changes[n].row(counted[n])}\n" for n in survivors)
-        + "".join(f"stale row, no such mutant: {change.row()}\n" for change in sorted(stale, key=str)))
+        + "".join(f"stale row, no such mutant: {change.row()}\n" for change in sorted(stale, key=str))
+    )
     return killed, len(counted), len(statuses) - len(counted), counts
 
 
@@ -200,8 +220,10 @@ def main() -> int:
         killed, counted, equivalent, counts = run_module(module, config[module], args.max_children, args.workdir)
         total_killed, total = total_killed + killed, total + counted
         other = ", ".join(f"{s} {n}" for s, n in sorted(counts.items()) if s not in KILLED)
-        print(f"{module:<16} {killed:>7} {counted:>8} {equivalent:>11} {100 * killed / max(counted, 1):>6.1f}%  {other}",
-              flush=True)
+        print(
+            f"{module:<16} {killed:>7} {counted:>8} {equivalent:>11} {100 * killed / max(counted, 1):>6.1f}%  {other}",
+            flush=True,
+        )
     print(f"{'total':<16} {total_killed:>7} {total:>8} {'':>11} {100 * total_killed / max(total, 1):>6.1f}%")
     print(f"survivors (and stale rows of docs/mutation.md) listed in {args.workdir}/<module>.survivors.txt")
     return 0

@@ -42,8 +42,18 @@ from m3t1r.model.kinematics import ClosedLoopSolver, ForwardResult, InverseResul
 from m3t1r.model.task import TaskSpec
 
 __all__ = [
-    "Targets", "TargetFailure", "CompensatedCommand", "Compensation", "Compensator", "compensate", "check_joint_limits",
-    "TrackingErrors", "CompensationAccuracy", "compensation_accuracy", "workspace_targets", "workspace_grid",
+    "Targets",
+    "TargetFailure",
+    "CompensatedCommand",
+    "Compensation",
+    "Compensator",
+    "compensate",
+    "check_joint_limits",
+    "TrackingErrors",
+    "CompensationAccuracy",
+    "compensation_accuracy",
+    "workspace_targets",
+    "workspace_grid",
     "joint_limit_violation",
 ]
 
@@ -164,19 +174,21 @@ def _validated_targets(targets: Targets, task: TaskSpec) -> list[np.ndarray] | l
                 raise InvalidInputError(f"target {index} (0-based): rotation matrix is not orthonormal")
         return poses
     if not isinstance(targets, np.ndarray) and any(isinstance(t, pin.SE3) for t in targets):
-        raise InvalidInputError(f"targets: mix of pin.SE3 and other rows; give all placements or an "
-                                f"(N, {len(task.columns)}) array")
+        raise InvalidInputError(
+            f"targets: mix of pin.SE3 and other rows; give all placements or an (N, {len(task.columns)}) array"
+        )
     columns = task.columns
     array = real_array(targets, "targets", f"numeric rows ({', '.join(columns)})")
     if array.ndim != 2 or array.shape[1] != len(columns):
-        raise InvalidInputError(f"targets: shape {array.shape}, expected (N, {len(columns)}) rows ({', '.join(columns)})")
+        raise InvalidInputError(
+            f"targets: shape {array.shape}, expected (N, {len(columns)}) rows ({', '.join(columns)})"
+        )
     if array.shape[0] == 0:
         raise InvalidInputError("targets: no rows")
     bad = np.argwhere(~np.isfinite(array))
     if bad.size:
         row, col = (int(i) for i in bad[0])
-        raise InvalidInputError(
-            f"target {row} (0-based): {columns[col]} = {array[row, col]}, not a finite number")
+        raise InvalidInputError(f"target {row} (0-based): {columns[col]} = {array[row, col]}, not a finite number")
     return list(task.goals(array))
 
 
@@ -184,11 +196,15 @@ def _check_compatible(nominal: Mechanism, calibrated: Mechanism) -> None:
     # Slider commands and platform poses only carry over between two models that name the same
     # joints and frame; anything else is a wrong file pair, not a geometry difference.
     if nominal.actuated_joints != calibrated.actuated_joints:
-        raise InvalidInputError(f"calibrated model actuates {calibrated.actuated_joints}, "
-                                f"the nominal one {nominal.actuated_joints}: not the same machine")
+        raise InvalidInputError(
+            f"calibrated model actuates {calibrated.actuated_joints}, "
+            f"the nominal one {nominal.actuated_joints}: not the same machine"
+        )
     if nominal.platform_frame != calibrated.platform_frame:
-        raise InvalidInputError(f"calibrated platform frame '{calibrated.platform_frame}' differs from the "
-                                f"nominal '{nominal.platform_frame}'")
+        raise InvalidInputError(
+            f"calibrated platform frame '{calibrated.platform_frame}' differs from the "
+            f"nominal '{nominal.platform_frame}'"
+        )
     if nominal.task != calibrated.task:
         raise InvalidInputError(f"calibrated model's task {calibrated.task} differs from the nominal {nominal.task}")
     if nominal.model.nq != calibrated.model.nq:
@@ -266,7 +282,7 @@ def check_joint_limits(mechanism: Mechanism, result: InverseResult) -> None:
 
 
 def joint_limit_violation(model: pin.Model, q: np.ndarray) -> str | None:
-    """"target puts joint 'NAME' at V, beyond its limit [LO, HI]" for the first joint of a configuration
+    """ "target puts joint 'NAME' at V, beyond its limit [LO, HI]" for the first joint of a configuration
     (model order) outside its URDF limits (NaN counts as outside), or None when every joint is inside."""
     lower, upper = model.lowerPositionLimit, model.upperPositionLimit
     inside = (q >= lower) & (q <= upper)
@@ -364,9 +380,9 @@ class Compensator:
             reached_poses=reached_poses,
             tilt=_frozen(np.array(tilt).reshape(-1, 2)),
             iterations=_frozen(np.array(iterations, dtype=int)),
-            failures=tuple(failures), task=self.calibrated.task,
+            failures=tuple(failures),
+            task=self.calibrated.task,
         )
-
 
     @on_one_blas_thread
     def compensate_batch(self, targets: Targets) -> Compensation:
@@ -389,28 +405,44 @@ class Compensator:
         if task.rotation == "full":
             wanted[:] = 0.0  # the batch IK's tilt is already relative to a full-rotation goal
         ik = self._inverse.solver.inverse_batch(np.array(rows))
-        failures = [TargetFailure(f.index, f"inverse kinematics of the calibrated model: {f.reason}", f.error)
-                    for f in ik.failures]
+        failures = [
+            TargetFailure(f.index, f"inverse kinematics of the calibrated model: {f.reason}", f.error)
+            for f in ik.failures
+        ]
         violations = [self._limits.violation(q) for q in ik.q]
-        failures += [TargetFailure(int(index), f"inverse kinematics of the calibrated model: {violation}",
-                                   OutOfWorkspaceError)
-                     for index, violation in zip(ik.indices, violations) if violation is not None]
+        failures += [
+            TargetFailure(int(index), f"inverse kinematics of the calibrated model: {violation}", OutOfWorkspaceError)
+            for index, violation in zip(ik.indices, violations)
+            if violation is not None
+        ]
         keep = np.array([violation is None for violation in violations], dtype=bool)
         fk = self._forward.solver.forward_batch(ik.actuators[keep])
-        failures += [TargetFailure(int(ik.indices[keep][f.index]), "forward kinematics of the nominal model at the "
-                                   f"compensated sliders: {f.reason}", f.error) for f in fk.failures]
+        failures += [
+            TargetFailure(
+                int(ik.indices[keep][f.index]),
+                f"forward kinematics of the nominal model at the compensated sliders: {f.reason}",
+                f.error,
+            )
+            for f in fk.failures
+        ]
         good = np.flatnonzero(keep)[fk.indices]  # rows of `ik` with a command
         return Compensation(
-            n_targets=len(rows), actuated_joints=self.calibrated.actuated_joints,
-            indices=_frozen(ik.indices[good]), actuators=_frozen(ik.actuators[good]),
+            n_targets=len(rows),
+            actuated_joints=self.calibrated.actuated_joints,
+            indices=_frozen(ik.indices[good]),
+            actuators=_frozen(ik.actuators[good]),
             command_poses=tuple(pin.SE3(h) for h in fk.task_poses),
             reached_poses=tuple(pin.SE3(h) for h in ik.task_poses[good]),
-            tilt=_frozen(ik.tilt[good] - wanted[ik.indices[good]]), iterations=_frozen(ik.iterations[good]),
-            failures=tuple(sorted(failures, key=lambda f: f.index)), task=task)
+            tilt=_frozen(ik.tilt[good] - wanted[ik.indices[good]]),
+            iterations=_frozen(ik.iterations[good]),
+            failures=tuple(sorted(failures, key=lambda f: f.index)),
+            task=task,
+        )
 
 
-def compensate(nominal: Mechanism, calibrated: Mechanism, targets: Targets, *, strict: bool = False,
-               progress=None) -> Compensation:
+def compensate(
+    nominal: Mechanism, calibrated: Mechanism, targets: Targets, *, strict: bool = False, progress=None
+) -> Compensation:
     """Compensated commands (paper section 7, Fig. 6) for a batch of targets; see `Compensator.compensate`.
 
     The first target starts from home on both models, each next one from the previous solution.
@@ -459,7 +491,9 @@ class CompensationAccuracy:
     failures: tuple[TargetFailure, ...]
 
 
-def _tracking_errors(task: TaskSpec, target: np.ndarray | pin.SE3, poses: Sequence[pin.SE3]) -> list[tuple[float, float]]:
+def _tracking_errors(
+    task: TaskSpec, target: np.ndarray | pin.SE3, poses: Sequence[pin.SE3]
+) -> list[tuple[float, float]]:
     """(|commanded position error| [m], |commanded rotation error| [rad]) of each reached pose: the
     norms of the position rows and of the rotation rows (wrapped yaw, or log3 angle) of the task."""
     goal = task.coordinates(target.homogeneous)[0] if isinstance(target, pin.SE3) else np.asarray(target)
@@ -473,8 +507,9 @@ def _tracking_errors(task: TaskSpec, target: np.ndarray | pin.SE3, poses: Sequen
 
 
 @on_one_blas_thread
-def compensation_accuracy(nominal: Mechanism, calibrated: Mechanism, truth: Mechanism,
-                          targets: Targets) -> CompensationAccuracy:
+def compensation_accuracy(
+    nominal: Mechanism, calibrated: Mechanism, truth: Mechanism, targets: Targets
+) -> CompensationAccuracy:
     """Simulate commanding `truth` at the targets with nominal-IK and with calibrated-IK sliders.
 
     With compensation the truth's error at a target equals the calibrated model's own error at
@@ -488,8 +523,10 @@ def compensation_accuracy(nominal: Mechanism, calibrated: Mechanism, truth: Mech
     rows = _validated_targets(targets, task)
     # Two command streams, each with its own IK solver and its own truth FK solver, so that both
     # warm-start along the target path.
-    streams = (("uncompensated", _PathSolver(nominal), "nominal", _PathSolver(truth)),
-               ("compensated", _PathSolver(calibrated), "calibrated", _PathSolver(truth)))
+    streams = (
+        ("uncompensated", _PathSolver(nominal), "nominal", _PathSolver(truth)),
+        ("compensated", _PathSolver(calibrated), "calibrated", _PathSolver(truth)),
+    )
     indices, sliders, achieved, failures = [], [], [], []
     for index, target in enumerate(rows):
         commands, poses, stage = [], [], ""
@@ -511,8 +548,15 @@ def compensation_accuracy(nominal: Mechanism, calibrated: Mechanism, truth: Mech
         return TrackingErrors(_frozen(pairs[:, 0]), _frozen(pairs[:, 1]))
 
     stacked = np.array(sliders, dtype=float).reshape(-1, 2, len(nominal.actuated_joints))
-    return CompensationAccuracy(len(rows), _frozen(np.array(indices, dtype=int)), errors(0), errors(1),
-                                _frozen(stacked[:, 0]), _frozen(stacked[:, 1]), tuple(failures))
+    return CompensationAccuracy(
+        len(rows),
+        _frozen(np.array(indices, dtype=int)),
+        errors(0),
+        errors(1),
+        _frozen(stacked[:, 0]),
+        _frozen(stacked[:, 1]),
+        tuple(failures),
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -541,7 +585,8 @@ def workspace_grid(counts: Sequence[int], box: WorkspaceBox = NOMINAL.workspace)
     # other step of the next-slower axis, so block ends meet at the same inner point.
     order = np.arange(counts[3])[:, None]
     for axis in (2, 1, 0):
-        blocks = [np.column_stack((np.full(len(order), i), order if i % 2 == 0 else order[::-1]))
-                  for i in range(counts[axis])]
+        blocks = [
+            np.column_stack((np.full(len(order), i), order if i % 2 == 0 else order[::-1])) for i in range(counts[axis])
+        ]
         order = np.concatenate(blocks)
     return np.column_stack([axes[k][order[:, k]] for k in range(4)])

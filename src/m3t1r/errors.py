@@ -111,8 +111,12 @@ def require_real(value: object, what: str, *, minimum: float = -np.inf, inclusiv
 def require_count(value: object, what: str, minimum: int = 1) -> int:
     """`value` as an int of at least `minimum` (an integral float such as 3.0 is accepted), else
     InvalidInputError naming `what`."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer, float, np.floating)) \
-            or not float(value).is_integer() or int(value) < minimum:
+    if (
+        isinstance(value, (bool, np.bool_))
+        or not isinstance(value, (int, np.integer, float, np.floating))
+        or not float(value).is_integer()
+        or int(value) < minimum
+    ):
         raise InvalidInputError(f"{what}: expected a whole number of at least {minimum}, got {value!r}")
     return int(value)
 

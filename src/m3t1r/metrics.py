@@ -100,18 +100,20 @@ def _as_homogeneous(poses: Sequence[pin.SE3] | ArrayLike, what: str) -> np.ndarr
     if isinstance(poses, np.ndarray):
         array = np.asarray(poses, dtype=float)
     else:
-        rows = ([g.homogeneous if isinstance(g, pin.SE3) else np.asarray(g, dtype=float) for g in poses]
-                if isinstance(poses, Iterable) else [np.asarray(poses, dtype=float)])  # a scalar: refused below
+        rows = (
+            [g.homogeneous if isinstance(g, pin.SE3) else np.asarray(g, dtype=float) for g in poses]
+            if isinstance(poses, Iterable)
+            else [np.asarray(poses, dtype=float)]
+        )  # a scalar: refused below
         array = np.array(rows) if rows else np.empty((0, 4, 4))
     if array.ndim != 3 or array.shape[1:] != (4, 4):
-        raise InvalidInputError(f"{what}: expected pinocchio.SE3 objects or (M, 4, 4) homogeneous matrices, "
-                                f"got shape {array.shape}")
+        raise InvalidInputError(
+            f"{what}: expected pinocchio.SE3 objects or (M, 4, 4) homogeneous matrices, got shape {array.shape}"
+        )
     return array
 
 
-def pose_errors_between(
-    poses_a: Sequence[pin.SE3] | ArrayLike, poses_b: Sequence[pin.SE3] | ArrayLike
-) -> PoseErrors:
+def pose_errors_between(poses_a: Sequence[pin.SE3] | ArrayLike, poses_b: Sequence[pin.SE3] | ArrayLike) -> PoseErrors:
     """Pose by pose: position distance |p_a - p_b| (m) and rotation angle |log3(R_a^T R_b)| (rad).
 
     poses_a, poses_b: M poses each, as pinocchio.SE3 objects or (M, 4, 4) homogeneous matrices,

@@ -69,15 +69,22 @@ def _make_plan(args: argparse.Namespace):
             raise InvalidInputError("--model/--closures describe the M machine; with --serial give the robot only")
         model, chain = _serial_robot(args.serial, args.tool, args.base)
         noise = TrackerNoise(args.noise_pos, args.noise_rot)
-        plan = plan_serial(model, chain, args.n, rng, n_candidates=args.candidates, noise=noise,
-                           position_only=args.position_only)
+        plan = plan_serial(
+            model, chain, args.n, rng, n_candidates=args.candidates, noise=noise, position_only=args.position_only
+        )
         return plan, [args.serial] if Path(args.serial).exists() else []
     if args.tool or args.base:
         raise InvalidInputError("--tool/--base apply to --serial only")
 
     mechanism = load_mechanism(args.model, args.closures)
-    plan = plan_closed_loop(mechanism, args.n, rng, n_candidates=args.candidates,
-                            noise=TrackerNoise(args.noise_pos, args.noise_rot), position_only=args.position_only)
+    plan = plan_closed_loop(
+        mechanism,
+        args.n,
+        rng,
+        n_candidates=args.candidates,
+        noise=TrackerNoise(args.noise_pos, args.noise_rot),
+        position_only=args.position_only,
+    )
     return plan, [mechanism.urdf_path, mechanism.closures_path]
 
 
@@ -114,8 +121,12 @@ def cmd_plan(args: argparse.Namespace) -> None:
     outputs.check()
     summary = _plan_summary(plan, args)
     unit = ", ".join(f"{name} [{u}]" for name, u in zip(plan.columns, plan.column_units))
-    comments = provenance(args) + ["measurement plan: " + summary[0], summary[1], *summary[2:],
-                                    f"columns {unit}; one row per pose, in measuring order"]
+    comments = provenance(args) + [
+        "measurement plan: " + summary[0],
+        summary[1],
+        *summary[2:],
+        f"columns {unit}; one row per pose, in measuring order",
+    ]
     with outputs:
         outputs.stage(output, table_text(plan.columns, plan.configurations, comments))
         outputs.commit()
@@ -160,19 +171,27 @@ def _summary(result, out: TextIO) -> None:
     """Mean, RMS and max of each error, the flag count and the failed rows."""
     scale = 1.0 / _unit_scale(result.units)
     e = result.errors
-    print(f"{len(result.rows)} of {len(result.lines)} rows predicted; errors:{'':>10}mean{'':>10}RMS{'':>10}max",
-          file=out)
-    print(f"  position [{result.units}]{'':<{12 - len(result.units)}}{e.position_mean * scale:>12.4e}"
-          f"{e.position_rms * scale:>13.4e}{e.position_max * scale:>13.4e}", file=out)
+    print(
+        f"{len(result.rows)} of {len(result.lines)} rows predicted; errors:{'':>10}mean{'':>10}RMS{'':>10}max", file=out
+    )
+    print(
+        f"  position [{result.units}]{'':<{12 - len(result.units)}}{e.position_mean * scale:>12.4e}"
+        f"{e.position_rms * scale:>13.4e}{e.position_max * scale:>13.4e}",
+        file=out,
+    )
     if not result.position_only:
-        print(f"  rotation [rad]{'':<9}{e.rotation_mean:>12.4e}{e.rotation_rms:>13.4e}{e.rotation_max:>13.4e}", file=out)
+        print(
+            f"  rotation [rad]{'':<9}{e.rotation_mean:>12.4e}{e.rotation_rms:>13.4e}{e.rotation_max:>13.4e}", file=out
+        )
     if result.heading is not None:
         h = np.abs(result.heading)
-        print(f"  heading |yaw| [rad]{'':<4}{h.mean():>12.4e}{np.sqrt(np.mean(h**2)):>13.4e}{h.max():>13.4e}",
-              file=out)
+        print(f"  heading |yaw| [rad]{'':<4}{h.mean():>12.4e}{np.sqrt(np.mean(h**2)):>13.4e}{h.max():>13.4e}", file=out)
     flags = ", ".join(map(str, result.flagged)) or "none"
-    print(f"rows beyond 5 sigma (chi-square gate on the report's noise model x {result.scale:.3g}, the square root "
-          f"of its variance factor): {flags}", file=out)
+    print(
+        f"rows beyond 5 sigma (chi-square gate on the report's noise model x {result.scale:.3g}, the square root "
+        f"of its variance factor): {flags}",
+        file=out,
+    )
     for line, reason in result.failures:
         print(f"  {result.path}, line {line} not predicted: {reason}", file=out)
 
@@ -187,8 +206,7 @@ def _prediction_rows(result) -> np.ndarray:
 def cmd_validate(args: argparse.Namespace) -> None:
     """`m3t1r validate`: per-row errors and summary on stdout; PRED.csv only when every row was predicted;
     the plots of `--plots DIR` with it, as a unit."""
-    outputs = OutputSet(inputs=(args.measurements, args.calibrated, paired_closures_path(args.calibrated),
-                                args.report))
+    outputs = OutputSet(inputs=(args.measurements, args.calibrated, paired_closures_path(args.calibrated), args.report))
     output = outputs.add(args.predictions, "--predictions")
     plots = load(DECLARE_VALIDATION_PLOTS)(outputs, args.plots) if args.plots else None  # matplotlib with --plots only
     outputs.check()
@@ -222,6 +240,9 @@ def _prediction_table(args: argparse.Namespace, result) -> tuple[tuple[str, ...]
     columns = POSE_COLUMNS[:3] if result.position_only else POSE_COLUMNS
     comments = provenance(args) + [
         f"predicted measurements of {args.measurements} by {args.calibrated}, with the measurement frame and "
-        f"marker of {args.report}", f"position in {result.units}" + ("" if result.position_only else ", unit quaternion")
-        + ", in the measurement file's frame; one row per input row, same order"]
+        f"marker of {args.report}",
+        f"position in {result.units}"
+        + ("" if result.position_only else ", unit quaternion")
+        + ", in the measurement file's frame; one row per input row, same order",
+    ]
     return tuple(columns), _prediction_rows(result), comments

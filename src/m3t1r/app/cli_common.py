@@ -27,8 +27,19 @@ from m3t1r.model.description import Mechanism
 from m3t1r.model.mjcf_io import is_mjcf
 from m3t1r.model.workspace import default_workspace_notes
 
-__all__ = ["RowFailures", "load_mechanism", "say", "status_stream", "progress_bar", "provenance",
-           "parse_priors", "parse_joint_values", "check_plots_folder", "checked_marker", "MAX_MARKER_DISTANCE"]
+__all__ = [
+    "RowFailures",
+    "load_mechanism",
+    "say",
+    "status_stream",
+    "progress_bar",
+    "provenance",
+    "parse_priors",
+    "parse_joint_values",
+    "check_plots_folder",
+    "checked_marker",
+    "MAX_MARKER_DISTANCE",
+]
 
 
 #: A measured point farther than this from the platform (serial: tool) frame is not on it [m].
@@ -44,9 +55,11 @@ def checked_marker(values: Sequence[float] | None) -> Sequence[float] | None:
     distance = math.sqrt(sum(v * v for v in values))
     if distance > MAX_MARKER_DISTANCE:
         metres = " ".join(f"{v / 1000:g}" for v in values)
-        raise InvalidInputError(f"--marker {' '.join(f'{v:g}' for v in values)}: a point {distance:.3g} m from the "
-                                f"frame it is fixed to; --marker is in metres whatever --units says (in millimetres "
-                                f"these are --marker {metres})")
+        raise InvalidInputError(
+            f"--marker {' '.join(f'{v:g}' for v in values)}: a point {distance:.3g} m from the "
+            f"frame it is fixed to; --marker is in metres whatever --units says (in millimetres "
+            f"these are --marker {metres})"
+        )
     return values
 
 
@@ -116,7 +129,7 @@ def pose_table_text(solver, actuators: np.ndarray, lines: np.ndarray, path: Path
     failures: list[tuple[int, str]] = []
     with progress_bar("fk", len(actuators)) as progress:
         for start in range(0, len(actuators), BATCH_ROWS):
-            batch = solver.forward_batch(actuators[start:start + BATCH_ROWS])
+            batch = solver.forward_batch(actuators[start : start + BATCH_ROWS])
             failures += [(int(lines[start + f.index]), f.reason) for f in batch.failures]
             if not failures:
                 rows = pose_rows([pin.SE3(pose) for pose in batch.poses])
@@ -134,8 +147,10 @@ def progress_bar(label: str, total: int):
 
 def provenance(args: argparse.Namespace) -> list[str]:
     """Comment lines naming the version, the time and the command that wrote a file."""
-    return [f"written by m3t1r {__version__} on {_dt.datetime.now().isoformat(timespec='seconds')}",
-            "command: m3t1r " + " ".join(sys.argv[1:]) if sys.argv[1:] else "command: m3t1r (API)"]
+    return [
+        f"written by m3t1r {__version__} on {_dt.datetime.now().isoformat(timespec='seconds')}",
+        "command: m3t1r " + " ".join(sys.argv[1:]) if sys.argv[1:] else "command: m3t1r (API)",
+    ]
 
 
 def parse_priors(entries: list[str]) -> dict[str, float]:
@@ -180,56 +195,95 @@ def check_plots_folder(path: str | Path) -> Path:
     return folder
 
 
-def campaign_report_fields(setup: MeasurementSetup, estimated: Sequence[str], validation, selection,
-                           fitted: Sequence[str], args: argparse.Namespace | None) -> dict:
+def campaign_report_fields(
+    setup: MeasurementSetup,
+    estimated: Sequence[str],
+    validation,
+    selection,
+    fitted: Sequence[str],
+    args: argparse.Namespace | None,
+) -> dict:
     """The report fields closed-loop and serial calibrations share (models/README.md): the
     measurement frame and marker (`estimated`: the setup parameter names that were estimated),
     the cross-validation, the selection, and the --fix / --prior / --force choices."""
     errors = None if validation is None else validation.errors
     placements = cast("dict[str, dict]", setup.to_report())
     return {
-        "measurement_frame": {**placements["measurement_frame"],
-                              "estimated": any(n.startswith("measurement_frame.") for n in estimated)},
+        "measurement_frame": {
+            **placements["measurement_frame"],
+            "estimated": any(n.startswith("measurement_frame.") for n in estimated),
+        },
         "marker": {**placements["marker"], "estimated": any(n.startswith("marker.") for n in estimated)},
         **({"points": [list(p) for p in setup.points]} if setup.points else {}),
-        "cross_validation": None if errors is None else {
-            "position_mean_m": errors.position_mean, "rotation_mean_rad": errors.rotation_mean,
+        "cross_validation": None
+        if errors is None
+        else {
+            "position_mean_m": errors.position_mean,
+            "rotation_mean_rad": errors.rotation_mean,
             "position_rms_m": float(np.sqrt(np.mean(np.square(errors.position)))),
-            "rotation_rms_rad": None if np.all(np.isnan(errors.rotation)) else
-            float(np.sqrt(np.mean(np.square(errors.rotation)))),
-            "folds": validation.folds, "groups": getattr(validation, "groups", None) or None},
-        "selection": {"method": "forward_loo" if selection else "none", "kept": list(fitted),
-                      "press": selection.press if selection else None,
-                      "press_all": selection.press_all if selection else None,
-                      "tied": selection.tied if selection else None},
-        "fixed": list(getattr(args, "fix", None) or []), "priors": dict(getattr(args, "prior", None) or {}),
+            "rotation_rms_rad": None
+            if np.all(np.isnan(errors.rotation))
+            else float(np.sqrt(np.mean(np.square(errors.rotation)))),
+            "folds": validation.folds,
+            "groups": getattr(validation, "groups", None) or None,
+        },
+        "selection": {
+            "method": "forward_loo" if selection else "none",
+            "kept": list(fitted),
+            "press": selection.press if selection else None,
+            "press_all": selection.press_all if selection else None,
+            "tied": selection.tied if selection else None,
+        },
+        "fixed": list(getattr(args, "fix", None) or []),
+        "priors": dict(getattr(args, "prior", None) or {}),
         "forced": bool(getattr(args, "force", False)),
     }
 
 
-def held_out_entry(path: Path, sha256: str, poses: int, errors, position_only: bool, per: str = "pose",
-                   failed_lines: Sequence[int] = ()) -> dict:
+def held_out_entry(
+    path: Path,
+    sha256: str,
+    poses: int,
+    errors,
+    position_only: bool,
+    per: str = "pose",
+    failed_lines: Sequence[int] = (),
+) -> dict:
     """Print the score of a held-out measurement file (`calibrate --validate`) and return its report
     entry: position error mean, RMS and max [m], rotation mean and RMS [rad] unless position_only, per
     pose (or per point); failed_lines: rows the calibrated model could not predict (not scored)."""
     position = np.asarray(errors.position, dtype=float)
     rms = float(np.sqrt(np.mean(np.square(position))))
     rotation_rms = None if position_only else float(np.sqrt(np.mean(np.square(errors.rotation))))
-    rotation = "" if rotation_rms is None else \
-        f"; rotation {errors.rotation_mean:.3e} rad mean, {rotation_rms:.3e} rad RMS"
-    failed = f"; {len(failed_lines)} rows not predicted (lines {', '.join(map(str, failed_lines[:10]))})" \
-        if failed_lines else ""
-    print(f"held-out file {path} ({poses} poses): position error per {per} {errors.position_mean:.3e} m mean, "
-          f"{rms:.3e} m RMS, {float(np.max(position)):.3e} m max{rotation}{failed}")
-    return {"path": str(path), "sha256": sha256, "poses": poses, "per": per,
-            "position_mean_m": float(errors.position_mean), "position_rms_m": rms,
-            "position_max_m": float(np.max(position)),
-            "rotation_mean_rad": None if rotation_rms is None else float(errors.rotation_mean),
-            "rotation_rms_rad": rotation_rms, "failed_lines": [int(line) for line in failed_lines]}
+    rotation = (
+        "" if rotation_rms is None else f"; rotation {errors.rotation_mean:.3e} rad mean, {rotation_rms:.3e} rad RMS"
+    )
+    failed = (
+        f"; {len(failed_lines)} rows not predicted (lines {', '.join(map(str, failed_lines[:10]))})"
+        if failed_lines
+        else ""
+    )
+    print(
+        f"held-out file {path} ({poses} poses): position error per {per} {errors.position_mean:.3e} m mean, "
+        f"{rms:.3e} m RMS, {float(np.max(position)):.3e} m max{rotation}{failed}"
+    )
+    return {
+        "path": str(path),
+        "sha256": sha256,
+        "poses": poses,
+        "per": per,
+        "position_mean_m": float(errors.position_mean),
+        "position_rms_m": rms,
+        "position_max_m": float(np.max(position)),
+        "rotation_mean_rad": None if rotation_rms is None else float(errors.rotation_mean),
+        "rotation_rms_rad": rotation_rms,
+        "failed_lines": [int(line) for line in failed_lines],
+    }
 
 
-def outlier_sources(lines: Sequence[int] | np.ndarray, sources: Sequence[int] | np.ndarray | None,
-                    outlier_lines: Sequence[int]) -> list[int]:
+def outlier_sources(
+    lines: Sequence[int] | np.ndarray, sources: Sequence[int] | np.ndarray | None, outlier_lines: Sequence[int]
+) -> list[int]:
     """The `source` value (the pose in the tracker's file) of each outlier's file line; none without
     a `source` column."""
     if sources is None:
@@ -243,6 +297,9 @@ def selection_note(dropped: Sequence[str], selection) -> list[str]:
     if not dropped:
         return []
     tied = f"; {selection.tied} other set sizes score within one standard error" if selection else ""
-    return [f"{len(dropped)} identifiable parameters held at nominal because they did not predict left-out poses "
-            f"better (leave-one-pose-out{tied}): " + ", ".join(describe_parameter(n) for n in dropped[:8])
-            + (" ..." if len(dropped) > 8 else "")]
+    return [
+        f"{len(dropped)} identifiable parameters held at nominal because they did not predict left-out poses "
+        f"better (leave-one-pose-out{tied}): "
+        + ", ".join(describe_parameter(n) for n in dropped[:8])
+        + (" ..." if len(dropped) > 8 else "")
+    ]

@@ -28,18 +28,34 @@ def cmd_convert(args: argparse.Namespace) -> None:
     outputs = OutputSet(inputs=(tracker, robot))
     output = outputs.add(args.output, "-o")
     outputs.check()
-    read = ReadOptions(body=args.body, units=args.units, euler=args.euler, degrees=args.degrees,
-                       joints=tuple(args.joints) if args.joints else None, joint_degrees=tuple(args.joint_degrees),
-                       rotation_vector=args.rotation_vector)
-    conversion = convert_campaign(tracker, robot, ConversionOptions(
-        format=args.format, read=read, still_speed=args.still_speed, robot_still_speed=args.robot_still_speed,
-        min_dwell=args.min_dwell, pairing=args.pair))
+    read = ReadOptions(
+        body=args.body,
+        units=args.units,
+        euler=args.euler,
+        degrees=args.degrees,
+        joints=tuple(args.joints) if args.joints else None,
+        joint_degrees=tuple(args.joint_degrees),
+        rotation_vector=args.rotation_vector,
+    )
+    conversion = convert_campaign(
+        tracker,
+        robot,
+        ConversionOptions(
+            format=args.format,
+            read=read,
+            still_speed=args.still_speed,
+            robot_still_speed=args.robot_still_speed,
+            min_dwell=args.min_dwell,
+            pairing=args.pair,
+        ),
+    )
     for note in conversion.notes:
         print(note)
     comments = provenance(args) + [
         f"converted from {tracker} ({conversion.format})" + (f" and {robot}" if robot else ""),
         "lengths m, angles rad; x, y, z [, qx, qy, qz, qw]: the tracked point in the tracker's frame; "
-        "source: the tracker file's line, frame or message of the pose's first sample; position_std [m]: its scatter"]
+        "source: the tracker file's line, frame or message of the pose's first sample; position_std [m]: its scatter",
+    ]
     if conversion.clock_offset is not None:
         comments.append(f"clock offset: robot clock = tracker clock {conversion.clock_offset:+.6f} s")
     points = [c for c in conversion.columns if re.fullmatch(r"[xyz]\d+", c)]

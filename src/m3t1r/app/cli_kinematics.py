@@ -50,7 +50,6 @@ def cmd_fk(args: argparse.Namespace) -> None:
     say(outputs, f"wrote {len(actuators)} poses to {output.name}")
 
 
-
 def cmd_ik(args: argparse.Namespace) -> None:
     """`m3t1r ik`: slider sets of platform poses."""
     mechanism = load_mechanism(args.model, args.closures)
@@ -75,13 +74,16 @@ def cmd_ik(args: argparse.Namespace) -> None:
     rows = batch.actuators
     max_tilt = float(np.abs(batch.tilt).max(initial=0.0))
     with outputs:
-        outputs.stage(output, table_text(mechanism.actuated_joints, np.array(rows),
-                                         provenance(args) + ["actuator positions in m or rad"]))
+        outputs.stage(
+            output,
+            table_text(
+                mechanism.actuated_joints, np.array(rows), provenance(args) + ["actuator positions in m or rad"]
+            ),
+        )
         outputs.commit()
     # Roll and pitch are the uncommanded rotation of a yaw task only; a task without rotation has no tilt to speak of.
     tilt = "" if mechanism.task.rotation != "yaw" else f"; largest uncommandable tilt (roll/pitch) {max_tilt:.3g} rad"
     say(outputs, f"wrote {len(rows)} actuator sets to {output.name}{tilt}")
-
 
 
 def cmd_compensate(args: argparse.Namespace) -> None:
@@ -94,8 +96,16 @@ def cmd_compensate(args: argparse.Namespace) -> None:
             return
     nominal = load_mechanism(args.model, args.closures)
     calibrated = load_mechanism(args.calibrated, args.calibrated_closures)
-    outputs = OutputSet(inputs=(args.targets, nominal.urdf_path, nominal.closures_path, calibrated.urdf_path,
-                                calibrated.closures_path, args.report))
+    outputs = OutputSet(
+        inputs=(
+            args.targets,
+            nominal.urdf_path,
+            nominal.closures_path,
+            calibrated.urdf_path,
+            calibrated.closures_path,
+            args.report,
+        )
+    )
     output = outputs.add(args.output, "-o")
     outputs.check()
     targets, lines = read_targets(args.targets, calibrated.task)
@@ -113,7 +123,9 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     comments = provenance(args) + [f"calibrated model: {calibrated.urdf_path}"]
     pose_note = "poses to send to a controller that knows only the nominal model (T_cp)"
     if args.output_kind == "actuators":
-        text = table_text(calibrated.actuated_joints, result.actuators, comments + ["corrected actuator commands [m or rad]"])
+        text = table_text(
+            calibrated.actuated_joints, result.actuators, comments + ["corrected actuator commands [m or rad]"]
+        )
     elif isinstance(targets, np.ndarray):
         text = table_text(calibrated.task.columns, result.command_targets, comments + [pose_note])
     else:
@@ -121,8 +133,11 @@ def cmd_compensate(args: argparse.Namespace) -> None:
     with outputs:
         outputs.stage(output, text)
         outputs.commit()
-    tilt = ("" if calibrated.task.rotation != "yaw" else
-            f"; largest uncommandable tilt (roll/pitch) of the calibrated machine {result.max_tilt:.3g} rad")
+    tilt = (
+        ""
+        if calibrated.task.rotation != "yaw"
+        else f"; largest uncommandable tilt (roll/pitch) of the calibrated machine {result.max_tilt:.3g} rad"
+    )
     say(outputs, f"wrote {result.n_targets} compensated {args.output_kind} commands to {output.name}{tilt}")
 
 
@@ -135,8 +150,10 @@ def _serial_robot(source: str | None, report: CalibrationReport) -> tuple[pin.Mo
         model, urdf = load_serial_urdf(path)
         return model, serial_chain_of(model, urdf, path, report.tool or "", report.base)
     if path.suffix.lower() == ".urdf" or path.exists():
-        raise InvalidInputError(f"nominal robot {source} ({'the report' if source == report.robot else '--model'}): "
-                                "no such URDF file; give the nominal URDF with --model")
+        raise InvalidInputError(
+            f"nominal robot {source} ({'the report' if source == report.robot else '--model'}): "
+            "no such URDF file; give the nominal URDF with --model"
+        )
     model = load_example_robot(source)  # an unknown name is refused with the known ones
     return model, SerialChain.from_model(model, report.tool or "", report.base)
 
@@ -145,8 +162,10 @@ def _compensate_serial(args: argparse.Namespace, report: CalibrationReport) -> N
     """`m3t1r compensate --report SERIAL.json`: the joint program (columns by joint name) compensated
     with the calibrated geometry and the report's compliance (`serial_compensation`)."""
     if args.closures or args.calibrated_closures:
-        raise InvalidInputError("--closures/--calibrated-closures describe a closed-loop machine; a serial "
-                                f"calibration ({report.path}) has none")
+        raise InvalidInputError(
+            "--closures/--calibrated-closures describe a closed-loop machine; a serial "
+            f"calibration ({report.path}) has none"
+        )
     source = args.model or report.robot
     inputs = (args.targets, args.calibrated, args.report, source)
     outputs = OutputSet(inputs=[p for p in inputs if p and Path(p).exists()])
@@ -154,27 +173,44 @@ def _compensate_serial(args: argparse.Namespace, report: CalibrationReport) -> N
     outputs.check()
     nominal, chain = _serial_robot(source, report)
     calibrated, urdf = load_serial_urdf(Path(args.calibrated))
-    if serial_chain_of(calibrated, urdf, Path(args.calibrated), chain.tool_frame, chain.base_frame).joint_names \
-            != chain.joint_names or chain.joint_names != report.chain:
-        raise InvalidInputError(f"{args.calibrated}: its chain from {report.base} to {report.tool} is not the "
-                                f"report's {list(report.chain)}")
+    if (
+        serial_chain_of(calibrated, urdf, Path(args.calibrated), chain.tool_frame, chain.base_frame).joint_names
+        != chain.joint_names
+        or chain.joint_names != report.chain
+    ):
+        raise InvalidInputError(
+            f"{args.calibrated}: its chain from {report.base} to {report.tool} is not the report's {list(report.chain)}"
+        )
     constants = report.constant_joints  # joints the calibration's file did not log (--joint NAME=VALUE)
-    table = read_table(args.targets, required=tuple(n for n in chain.joint_names if n not in constants),
-                       optional=(*constants, *POSE_COLUMNS))
-    program = np.column_stack([table.column(n) if table.has_column(n) else np.full(table.n_rows, constants[n])
-                               for n in chain.joint_names])
+    table = read_table(
+        args.targets,
+        required=tuple(n for n in chain.joint_names if n not in constants),
+        optional=(*constants, *POSE_COLUMNS),
+    )
+    program = np.column_stack(
+        [table.column(n) if table.has_column(n) else np.full(table.n_rows, constants[n]) for n in chain.joint_names]
+    )
     with Heartbeat("compensate", f"{len(program)} configurations"):
         result = compensate_serial(nominal, calibrated, chain, program, report.compliance, report.position_only)
     if result.failures:
         raise RowFailures(Path(args.targets), [(int(table.line_numbers[i]), reason) for i, reason in result.failures])
-    comments = provenance(args) + [f"calibrated model: {args.calibrated}, compliance of {args.report}: "
-                                   + (", ".join(f"{j} {c:.3g}" for j, c in report.compliance.items()) or "none")]
+    comments = provenance(args) + [
+        f"calibrated model: {args.calibrated}, compliance of {args.report}: "
+        + (", ".join(f"{j} {c:.3g}" for j, c in report.compliance.items()) or "none")
+    ]
     if args.output_kind == "actuators":
         text = table_text(chain.joint_names, result.commands, comments + ["compensated joint commands [rad or m]"])
     else:
         poses = pose_rows([pin.SE3(g) for g in tool_poses(chain, nominal, result.commands)])
-        text = table_text(POSE_COLUMNS, poses, comments + [f"tool poses ({chain.tool_frame} in the base frame) to send "
-                                                           "to a controller that knows only the nominal model"])
+        text = table_text(
+            POSE_COLUMNS,
+            poses,
+            comments
+            + [
+                f"tool poses ({chain.tool_frame} in the base frame) to send "
+                "to a controller that knows only the nominal model"
+            ],
+        )
     with outputs:
         outputs.stage(output, text)
         outputs.commit()
@@ -193,19 +229,25 @@ def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -
     (the rotation varies slowly: 2-4 rounds to 1e-10 m).
     """
     if isinstance(targets, np.ndarray):
-        raise InvalidInputError(f"{targets_path}: with --report the targets are poses of the measured frame in the "
-                                "measurement frame, and need x,y,z,qx,qy,qz,qw")
+        raise InvalidInputError(
+            f"{targets_path}: with --report the targets are poses of the measured frame in the "
+            "measurement frame, and need x,y,z,qx,qy,qz,qw"
+        )
     task = calibrated.task
     if task.frame != calibrated.platform_frame:
-        raise InvalidInputError(f"{targets_path}: targets of the measured point (--report) need the task on the "
-                                f"measured platform frame '{calibrated.platform_frame}', not on '{task.frame}'; "
-                                "give task-frame targets")
+        raise InvalidInputError(
+            f"{targets_path}: targets of the measured point (--report) need the task on the "
+            f"measured platform frame '{calibrated.platform_frame}', not on '{task.frame}'; "
+            "give task-frame targets"
+        )
     setup = read_report(report_path).setup
     far = max(float(np.linalg.norm(setup.frame.actInv(target).translation)) for target in targets)
     if far > _FARTHEST_TARGET:
-        raise InvalidInputError(f"{targets_path}: a target {far:.3g} m from the machine's base; target files are in "
-                                "metres, whatever unit the calibration's measurements were in: these look like "
-                                "millimetres (divide x, y, z by 1000)")
+        raise InvalidInputError(
+            f"{targets_path}: a target {far:.3g} m from the machine's base; target files are in "
+            "metres, whatever unit the calibration's measurements were in: these look like "
+            "millimetres (divide x, y, z by 1000)"
+        )
     solver, offset = ClosedLoopSolver(calibrated), setup.marker.translation
     rows = []
     for target in targets:
@@ -217,12 +259,11 @@ def _targets_in_base(targets, report_path: str, targets_path: str, calibrated) -
             except KinematicsError:
                 break  # compensate reports this target's failure itself
             miss = platform.act(offset) - in_base.translation
-            row[:len(task.position)] -= miss[task.axes]
+            row[: len(task.position)] -= miss[task.axes]
             if np.linalg.norm(miss[task.axes]) < 1e-10:
                 break
         rows.append(row)
     return np.array(rows)
-
 
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
@@ -250,8 +291,12 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
             else:
                 for name in errors:
                     a, b = poses[name], poses["truth"]
-                    errors[name].append((float(np.linalg.norm(a.translation - b.translation)),
-                                         float(np.linalg.norm(pin.log3(a.rotation.T @ b.rotation)))))
+                    errors[name].append(
+                        (
+                            float(np.linalg.norm(a.translation - b.translation)),
+                            float(np.linalg.norm(pin.log3(a.rotation.T @ b.rotation))),
+                        )
+                    )
     for index, reason in failures:
         values = ", ".join(f"{v:.6g} {u}" for v, u in zip(sliders[index], nominal.joint_units()))
         print(f"m3t1r: actuator set {index} ({values}) skipped: {reason}", file=sys.stderr)
@@ -263,5 +308,7 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
     print(f"{'model':<12}{'position mean':>16}{'position max':>16}{'orientation mean':>19}{'orientation max':>18}")
     for name, values in errors.items():
         e = np.array(values)
-        print(f"{name:<12}{e[:, 0].mean():>14.3e} m{e[:, 0].max():>14.3e} m"
-              f"{e[:, 1].mean():>15.3e} rad{e[:, 1].max():>14.3e} rad")
+        print(
+            f"{name:<12}{e[:, 0].mean():>14.3e} m{e[:, 0].max():>14.3e} m"
+            f"{e[:, 1].mean():>15.3e} rad{e[:, 1].max():>14.3e} rad"
+        )

@@ -62,28 +62,44 @@ class NoiseChoice:
 
     def describe(self, position_only: bool) -> str:
         """'tracker noise 1.1e-03 m (estimated from the residual), 2e-05 rad (stated)'."""
-        parts = [f"{self.noise.position:.3g} m ({'estimated from the residual' if self.position_estimated else 'stated'})"]
+        parts = [
+            f"{self.noise.position:.3g} m ({'estimated from the residual' if self.position_estimated else 'stated'})"
+        ]
         if not position_only:
-            parts.append(f"{self.noise.rotation:.3g} rad "
-                         f"({'estimated from the residual' if self.rotation_estimated else 'stated'})")
+            parts.append(
+                f"{self.noise.rotation:.3g} rad "
+                f"({'estimated from the residual' if self.rotation_estimated else 'stated'})"
+            )
         return "tracker noise " + ", ".join(parts)
 
     def report(self) -> dict[str, object]:
         """The report's `noise_source` field (the values are in `noise_model`)."""
-        return {"position": "estimated" if self.position_estimated else "stated",
-                "rotation": "estimated" if self.rotation_estimated else "stated",
-                "method": "fit residual per coordinate, scaled by rows / (rows - fitted)" if self.estimated else None}
+        return {
+            "position": "estimated" if self.position_estimated else "stated",
+            "rotation": "estimated" if self.rotation_estimated else "stated",
+            "method": "fit residual per coordinate, scaled by rows / (rows - fitted)" if self.estimated else None,
+        }
 
 
-def fit_with_noise(position: float | str, rotation: float | str, base: TrackerNoise,
-                   fit: Callable[[TrackerNoise, bool], Fit], summary: Callable[[Fit], ResidualSummary]
-                   ) -> tuple[Fit, NoiseChoice]:
+def fit_with_noise(
+    position: float | str,
+    rotation: float | str,
+    base: TrackerNoise,
+    fit: Callable[[TrackerNoise, bool], Fit],
+    summary: Callable[[Fit], ResidualSummary],
+) -> tuple[Fit, NoiseChoice]:
     """The calibration `fit(noise, outlier_gate)` with the noise stated or estimated (module
     docstring). position, rotation: the options' values (a number or AUTO); base: the other
     noise figures (the actuators')."""
-    choice = NoiseChoice(replace(base, position=PROVISIONAL_POSITION if position == AUTO else float(position),
-                                 rotation=PROVISIONAL_ROTATION if rotation == AUTO else float(rotation)),
-                         position == AUTO, rotation == AUTO)
+    choice = NoiseChoice(
+        replace(
+            base,
+            position=PROVISIONAL_POSITION if position == AUTO else float(position),
+            rotation=PROVISIONAL_ROTATION if rotation == AUTO else float(rotation),
+        ),
+        position == AUTO,
+        rotation == AUTO,
+    )
     if not choice.estimated:
         return fit(choice.noise, True), choice
     result = fit(choice.noise, False)
@@ -91,8 +107,10 @@ def fit_with_noise(position: float | str, rotation: float | str, base: TrackerNo
     result = fit(choice.noise, True)
     for _ in range(MAX_REFITS):
         again = _estimate(choice, summary(result))
-        if max(abs(again.position / choice.noise.position - 1.0),
-               abs(again.rotation / choice.noise.rotation - 1.0)) <= REFIT_CHANGE:
+        if (
+            max(abs(again.position / choice.noise.position - 1.0), abs(again.rotation / choice.noise.rotation - 1.0))
+            <= REFIT_CHANGE
+        ):
             break
         choice = replace(choice, noise=again)
         result = fit(choice.noise, True)
@@ -101,24 +119,40 @@ def fit_with_noise(position: float | str, rotation: float | str, base: TrackerNo
 
 def _estimate(choice: NoiseChoice, left: ResidualSummary) -> TrackerNoise:
     """The noise with its estimated parts taken from the residual (floored at 1e-12: exact data)."""
-    position, rotation = noise_from_residual(left.position_rms, left.rotation_rms, left.poses,
-                                             left.rows_per_pose, left.fitted)
+    position, rotation = noise_from_residual(
+        left.position_rms, left.rotation_rms, left.poses, left.rows_per_pose, left.fitted
+    )
     noise = choice.noise
-    return replace(noise, position=max(position, 1e-12) if choice.position_estimated else noise.position,
-                   rotation=max(rotation, 1e-12) if choice.rotation_estimated and math.isfinite(rotation)
-                   else noise.rotation)
+    return replace(
+        noise,
+        position=max(position, 1e-12) if choice.position_estimated else noise.position,
+        rotation=max(rotation, 1e-12) if choice.rotation_estimated and math.isfinite(rotation) else noise.rotation,
+    )
 
 
-def judge_fit(converged: bool, termination: str, iterations: int, variance_factor: float, choice: NoiseChoice,
-              causes: Callable[[], list[str]], force: bool) -> bool:
+def judge_fit(
+    converged: bool,
+    termination: str,
+    iterations: int,
+    variance_factor: float,
+    choice: NoiseChoice,
+    causes: Callable[[], list[str]],
+    force: bool,
+) -> bool:
     """`check_fit` for a closed-loop or serial fit, with the likely causes computed only when they can
     matter (a fit that did not converge or left more than 3 times the noise, or an estimated noise);
     `force` downgrades a refusal to a warning on stderr. Returns whether the residual is beyond the
     noise for no nameable cause (the caller writes the result with a warning)."""
     suspicious = not converged or not variance_factor <= 9.0 or choice.estimated
     try:
-        return check_fit(converged, termination, iterations, variance_factor, causes() if suspicious else (),
-                         noise_estimated=choice.estimated)
+        return check_fit(
+            converged,
+            termination,
+            iterations,
+            variance_factor,
+            causes() if suspicious else (),
+            noise_estimated=choice.estimated,
+        )
     except FitRejected as exc:
         if not force:
             raise

@@ -41,8 +41,11 @@ def run_verb(run: Callable[[argparse.Namespace], None], args: argparse.Namespace
     except MemoryError:
         # numpy raises it for one array too large for this machine (a plan of 10^5 poses, a huge read):
         # the run is refused like any other input it cannot take, with nothing written.
-        print(f"m3t1r: error: {args.verb}: not enough memory for this input on this machine; nothing was written "
-              "(split the input, or ask for fewer poses or candidates)", file=sys.stderr)
+        print(
+            f"m3t1r: error: {args.verb}: not enough memory for this input on this machine; nothing was written "
+            "(split the input, or ask for fewer poses or candidates)",
+            file=sys.stderr,
+        )
         return EXIT_ERROR
     except KeyboardInterrupt as exc:
         print(f"m3t1r: interrupted; {interrupted_outputs(exc)}", file=sys.stderr)

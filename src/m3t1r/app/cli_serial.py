@@ -91,9 +91,14 @@ class SerialCampaign:
 
     def subset(self, keep: np.ndarray) -> SerialCampaign:
         """The campaign of rows `keep` (indices)."""
-        return replace(self, readings=self.readings[keep], poses=[self.poses[i] for i in keep], lines=self.lines[keep],
-                       sources=None if self.sources is None else self.sources[keep],
-                       points=None if self.points is None else self.points[keep])
+        return replace(
+            self,
+            readings=self.readings[keep],
+            poses=[self.poses[i] for i in keep],
+            lines=self.lines[keep],
+            sources=None if self.sources is None else self.sources[keep],
+            points=None if self.points is None else self.points[keep],
+        )
 
 
 def _robot(source: str, tool: str | None, base: str | None) -> tuple[pin.Model, SerialChain, Path | None]:
@@ -103,16 +108,22 @@ def _robot(source: str, tool: str | None, base: str | None) -> tuple[pin.Model, 
         model = load_example_robot(source)
         return model, SerialChain.from_model(model, tool or example_tool_frame(source), base), None
     if not path.is_file():
-        raise InvalidInputError(f"--serial {source}: neither an example robot ({', '.join(_EXAMPLE_ROBOTS)}) "
-                                "nor a URDF file")
+        raise InvalidInputError(
+            f"--serial {source}: neither an example robot ({', '.join(_EXAMPLE_ROBOTS)}) nor a URDF file"
+        )
     if not tool:
         raise InvalidInputError(f"--serial {source}: give the measured frame with --tool FRAME")
     model, urdf = load_serial_urdf(path)
     return model, serial_chain_of(model, urdf, path, tool, base), path
 
 
-def read_campaign(path: str, chain: SerialChain, units: str, model: pin.Model | None = None,
-                  constants: Mapping[str, float] | None = None) -> SerialCampaign:
+def read_campaign(
+    path: str,
+    chain: SerialChain,
+    units: str,
+    model: pin.Model | None = None,
+    constants: Mapping[str, float] | None = None,
+) -> SerialCampaign:
     """Joint columns by joint name, x, y, z [, qx, qy, qz, qw]; lengths (x, y, z and prismatic
     joints) in `units` ("m" or "mm", `LENGTH_UNITS`), converted to m. `constants` {joint: value}
     [rad, m]: chain joints the file does not log (`--joint NAME=VALUE`: a tool changer that never
@@ -126,29 +137,42 @@ def read_campaign(path: str, chain: SerialChain, units: str, model: pin.Model | 
     numbers = point_numbers(read_header(path))
     point_columns = [f"{a}{k}" for k in numbers for a in "xyz"]
     try:
-        table = read_table(path, required=tuple(n for n in names if n not in constants) + (() if numbers else
-                                                                                            ("x", "y", "z")),
-                           optional=(*constants, *CONVERTED_COLUMNS),
-                           optional_groups=(tuple(tuple(f"{a}{k}" for a in "xyz") for k in numbers) if numbers
-                                            else (("qx", "qy", "qz", "qw"),)),
-                           reject_duplicate_rows=True, blank_allowed=point_columns)
+        table = read_table(
+            path,
+            required=tuple(n for n in names if n not in constants) + (() if numbers else ("x", "y", "z")),
+            optional=(*constants, *CONVERTED_COLUMNS),
+            optional_groups=(
+                tuple(tuple(f"{a}{k}" for a in "xyz") for k in numbers) if numbers else (("qx", "qy", "qz", "qw"),)
+            ),
+            reject_duplicate_rows=True,
+            blank_allowed=point_columns,
+        )
     except DataFileError as exc:
         if exc.column in names and "missing required columns" in str(exc):
-            raise DataFileError(path, f"{str(exc).partition(': ')[2]}; a chain joint that never moves and is not "
-                                      f"logged (a tool changer) is given as --joint {exc.column}=VALUE [rad or m]",
-                                row=exc.row, column=exc.column) from None
+            raise DataFileError(
+                path,
+                f"{str(exc).partition(': ')[2]}; a chain joint that never moves and is not "
+                f"logged (a tool changer) is given as --joint {exc.column}=VALUE [rad or m]",
+                row=exc.row,
+                column=exc.column,
+            ) from None
         raise
     scale = LENGTH_UNITS[units]
     prismatic = ~np.any(chain.twists[:, 3:], axis=1)
-    readings = np.column_stack([table.column(n) * (scale if p else 1.0) if table.has_column(n)
-                                else np.full(table.n_rows, constants[n]) for n, p in zip(names, prismatic)])
+    readings = np.column_stack(
+        [
+            table.column(n) * (scale if p else 1.0) if table.has_column(n) else np.full(table.n_rows, constants[n])
+            for n, p in zip(names, prismatic)
+        ]
+    )
     if model is not None:
         # A continuous joint (cos, sin): Pinocchio's limits bound those, not the angle; not checked.
         at = [model.joints[model.getJointId(name)] for name in names]
         lower = np.array([model.lowerPositionLimit[j.idx_q] if j.nq == 1 else 0.0 for j in at])
         upper = np.array([model.upperPositionLimit[j.idx_q] if j.nq == 1 else 0.0 for j in at])
-        for note in check_joint_readings(table, names, readings, lower, upper, prismatic,
-                                         scales=np.where(prismatic, scale, 1.0), margin=LIMIT_MARGIN):
+        for note in check_joint_readings(
+            table, names, readings, lower, upper, prismatic, scales=np.where(prismatic, scale, 1.0), margin=LIMIT_MARGIN
+        ):
             print(f"note: {note}", flush=True)
     if numbers:
         return _points_campaign(path, table, readings, numbers, units)
@@ -156,22 +180,36 @@ def read_campaign(path: str, chain: SerialChain, units: str, model: pin.Model | 
     position_only = not table.has_column("qw")
     rotations = [np.eye(3)] * len(positions) if position_only else [g.rotation for g in poses_from_table(table)]
     poses = [pin.SE3(r, p) for r, p in zip(rotations, positions)]
-    return SerialCampaign(Path(path), sha256_bytes(Path(path).read_bytes()), readings, poses,
-                          np.asarray(table.line_numbers), position_only, units,
-                          table.column("source").astype(int) if table.has_column("source") else None)
+    return SerialCampaign(
+        Path(path),
+        sha256_bytes(Path(path).read_bytes()),
+        readings,
+        poses,
+        np.asarray(table.line_numbers),
+        position_only,
+        units,
+        table.column("source").astype(int) if table.has_column("source") else None,
+    )
 
 
-def _points_campaign(path: str, table: Table, readings: np.ndarray, numbers: list[int], units: str
-                     ) -> SerialCampaign:
+def _points_campaign(path: str, table: Table, readings: np.ndarray, numbers: list[int], units: str) -> SerialCampaign:
     """`read_campaign`'s campaign of a file with several points per row, x_k, y_k, z_k (blank where not
     seen)."""
     points = measured_points(table, numbers, LENGTH_UNITS[units])
     finite = np.isfinite(points)
     reference = int(np.argmax(finite[:, :, 0].sum(axis=0)))
     poses = [pin.SE3(np.eye(3), p) for p in points[:, reference]]
-    return SerialCampaign(Path(path), sha256_bytes(Path(path).read_bytes()), readings, poses,
-                          np.asarray(table.line_numbers), True, units,
-                          table.column("source").astype(int) if table.has_column("source") else None, points)
+    return SerialCampaign(
+        Path(path),
+        sha256_bytes(Path(path).read_bytes()),
+        readings,
+        poses,
+        np.asarray(table.line_numbers),
+        True,
+        units,
+        table.column("source").astype(int) if table.has_column("source") else None,
+        points,
+    )
 
 
 #: A reading may pass its URDF limit by this share of the joint's range: a URDF's limits are nominal
@@ -183,8 +221,10 @@ LIMIT_MARGIN = 0.05
 def _nominal_frames(model: pin.Model, chain: SerialChain, marker: pin.SE3) -> Callable[[np.ndarray], np.ndarray]:
     """readings (N, n) -> the measured frame (N, 4, 4) the nominal robot predicts in its base [m]
     (the given marker applied: the checks register the point's further offset, as the fit does)."""
+
     def predict(readings: np.ndarray) -> np.ndarray:
         return tool_poses(chain, model, readings) @ marker.homogeneous
+
     return predict
 
 
@@ -193,47 +233,72 @@ def _checked_rows(data: SerialCampaign) -> np.ndarray:
     return np.flatnonzero([np.all(np.isfinite(g.translation)) for g in data.poses])
 
 
-def _diagnose(model: pin.Model, chain: SerialChain, data: SerialCampaign, marker: pin.SE3,
-              frame_estimated: bool) -> list[str]:
+def _diagnose(
+    model: pin.Model, chain: SerialChain, data: SerialCampaign, marker: pin.SE3, frame_estimated: bool
+) -> list[str]:
     data = data.subset(_checked_rows(data)) if data.points is not None else data
     measured = np.array([g.translation for g in data.poses])
-    return likely_causes(_nominal_frames(model, chain, marker), data.readings, measured, chain.joint_names,
-                         frame_estimated=frame_estimated, angular=np.any(chain.twists[:, 3:], axis=1))
+    return likely_causes(
+        _nominal_frames(model, chain, marker),
+        data.readings,
+        measured,
+        chain.joint_names,
+        frame_estimated=frame_estimated,
+        angular=np.any(chain.twists[:, 3:], axis=1),
+    )
 
 
-def _fit_causes(args: argparse.Namespace, model: pin.Model, chain: SerialChain, data: SerialCampaign,
-                marker: pin.SE3, estimate_frame: bool, calibration: SerialCalibration, choice: NoiseChoice
-                ) -> list[str]:
+def _fit_causes(
+    args: argparse.Namespace,
+    model: pin.Model,
+    chain: SerialChain,
+    data: SerialCampaign,
+    marker: pin.SE3,
+    estimate_frame: bool,
+    calibration: SerialCalibration,
+    choice: NoiseChoice,
+) -> list[str]:
     """Likely causes of a fit the noise does not explain (`data`: the poses it was given): quaternion
     columns in another order, else the data checks and, by the size of the residual left
     (`residual_causes`), a measured frame that is not the tool's while no marker was given."""
     if not data.position_only:
         predicted = tool_poses(chain, model, data.readings) @ marker.homogeneous
-        order = quaternion_order_causes(predicted, np.array([g.translation for g in data.poses]),
-                                        np.array([g.rotation for g in data.poses]), frame_estimated=estimate_frame)
+        order = quaternion_order_causes(
+            predicted,
+            np.array([g.translation for g in data.poses]),
+            np.array([g.rotation for g in data.poses]),
+            frame_estimated=estimate_frame,
+        )
         if order:  # the whole story: every other check would read the scrambled orientations
             return order
     after = calibration.residual_after
     beyond_noise = not calibration.converged or not calibration.variance_factor <= MAX_NOISE_RATIO**2
     return _diagnose(model, chain, data, marker, estimate_frame) + residual_causes(
-        after.position, after.rotation, beyond_noise=beyond_noise,
+        after.position,
+        after.rotation,
+        beyond_noise=beyond_noise,
         marker_given=args.marker is not None or data.points is not None,
-        position_only=data.position_only)
+        position_only=data.position_only,
+    )
 
 
-def _precheck(model: pin.Model, chain: SerialChain, data: SerialCampaign, marker: pin.SE3,
-              estimate_frame: bool) -> StartCheck:
+def _precheck(
+    model: pin.Model, chain: SerialChain, data: SerialCampaign, marker: pin.SE3, estimate_frame: bool
+) -> StartCheck:
     """Refuse at once when the nominal robot is further from the data than any build error; the
     returned check's `gross` readings are left out of the fit."""
     if len(data.poses) < 3:
-        raise IdentificationError(f"{data.path}: {len(data.poses)} pose(s) are far too few to calibrate (tens of "
-                                  "poses spread over the joint ranges are needed; `m3t1r plan --serial` chooses them)")
+        raise IdentificationError(
+            f"{data.path}: {len(data.poses)} pose(s) are far too few to calibrate (tens of "
+            "poses spread over the joint ranges are needed; `m3t1r plan --serial` chooses them)"
+        )
     rows = _checked_rows(data)
     checked = data.subset(rows) if len(rows) < len(data.poses) else data
     frames = _nominal_frames(model, chain, marker)(checked.readings)
     measured = np.array([g.translation for g in checked.poses])
-    check = check_start(frames, measured, estimate_frame,
-                        lambda: _diagnose(model, chain, data, marker, estimate_frame), "robot")
+    check = check_start(
+        frames, measured, estimate_frame, lambda: _diagnose(model, chain, data, marker, estimate_frame), "robot"
+    )
     if checked is data:
         return check
     distances = np.full(len(data.poses), np.nan)
@@ -248,8 +313,16 @@ def _without_gross_readings(args: argparse.Namespace, data: SerialCampaign, star
         return data
     reasons = [(int(data.lines[i]), gross_reading_reason(start, i)) for i in start.gross]
     if not args.outlier_sigma:
-        raise RowFailures(data.path, [(line, reason + "; remove or re-measure the row, or let the outlier gate "
-                                       "(--outlier-sigma) leave it out") for line, reason in reasons])
+        raise RowFailures(
+            data.path,
+            [
+                (
+                    line,
+                    reason + "; remove or re-measure the row, or let the outlier gate (--outlier-sigma) leave it out",
+                )
+                for line, reason in reasons
+            ],
+        )
     for line, reason in reasons:
         print(f"note: line {line}: {reason}; left out as an outlier", flush=True)
     return data.subset(np.setdiff1d(np.arange(len(data.poses)), start.gross))
@@ -265,8 +338,10 @@ def cmd_calibrate_serial(args: argparse.Namespace) -> None:
     args.prior = parse_priors(args.prior)
     args.joint = parse_joint_values(args.joint)
     if args.compliance and not args.report:
-        raise InvalidInputError("--compliance: the fitted compliance is kept in the report (a URDF cannot hold it) "
-                                "and validate and compensate read it there: give --report JSON")
+        raise InvalidInputError(
+            "--compliance: the fitted compliance is kept in the report (a URDF cannot hold it) "
+            "and validate and compensate read it there: give --report JSON"
+        )
     if (hint := export_hint(Path(args.measurements))) is not None:
         raise InvalidInputError(hint)
     run_serial_calibration(args)
@@ -290,37 +365,63 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
         # Status lines go to stderr when the report is stdout (`--report -`): the JSON stays parseable.
         with contextlib.redirect_stdout(status_stream(outputs)):
             if urdf is None:
-                print(f"{args.serial} is an example-robot-data robot: no calibrated URDF is written "
-                      "(give its URDF path to --serial for one)" + (f"; -o {args.output} ignored" if args.output else ""))
+                print(
+                    f"{args.serial} is an example-robot-data robot: no calibrated URDF is written "
+                    "(give its URDF path to --serial for one)" + (f"; -o {args.output} ignored" if args.output else "")
+                )
             data, held_out = _read_inputs(args, chain, model, held_out_path)
             marker = MeasurementSetup.from_numbers(marker_xyz=checked_marker(args.marker)).marker
             estimate_frame = args.frame == "estimate"
             start = _precheck(model, chain, data, marker, estimate_frame)
-            print(f"calibrating chain {chain.joint_names[0]} .. {chain.tool_frame} from {len(data.poses)} poses"
-                  + (" (measurement frame estimated)" if estimate_frame else "") + " ...", flush=True)
+            print(
+                f"calibrating chain {chain.joint_names[0]} .. {chain.tool_frame} from {len(data.poses)} poses"
+                + (" (measurement frame estimated)" if estimate_frame else "")
+                + " ...",
+                flush=True,
+            )
             fitted_data = _without_gross_readings(args, data, start)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", PoorExcitationWarning)
                 calibration, choice = fit_with_noise(
-                    args.noise_pos, args.noise_rot, TrackerNoise(),
+                    args.noise_pos,
+                    args.noise_rot,
+                    TrackerNoise(),
                     lambda noise, gate: _fit(args, model, chain, fitted_data, noise, marker, estimate_frame, gate),
-                    lambda fitted: _left(fitted, fitted_data))
+                    lambda fitted: _left(fitted, fitted_data),
+                )
             noise = choice.noise
-            lines = sorted([int(fitted_data.lines[i]) for i in calibration.outliers] + [int(data.lines[i]) for i in start.gross])
+            lines = sorted(
+                [int(fitted_data.lines[i]) for i in calibration.outliers] + [int(data.lines[i]) for i in start.gross]
+            )
             print(choice.describe(data.position_only))
             _print_summary(calibration, lines)
             if data.sources is not None and lines:
-                print("outliers in the tracker's file (the source column): "
-                      + ", ".join(map(str, _outlier_sources(data, lines))))
+                print(
+                    "outliers in the tracker's file (the source column): "
+                    + ", ".join(map(str, _outlier_sources(data, lines)))
+                )
             unexplained = judge_fit(
-                calibration.converged, calibration.termination, calibration.iterations, calibration.variance_factor,
-                choice, lambda: _fit_causes(args, model, chain, fitted_data, marker, estimate_frame, calibration, choice),
-                force=args.force)
-            validation = cross_validate_serial(calibration, folds=args.folds,
-                                               groups=pose_groups(fitted_data.readings, fitted_data.sources))
+                calibration.converged,
+                calibration.termination,
+                calibration.iterations,
+                calibration.variance_factor,
+                choice,
+                lambda: _fit_causes(args, model, chain, fitted_data, marker, estimate_frame, calibration, choice),
+                force=args.force,
+            )
+            validation = cross_validate_serial(
+                calibration, folds=args.folds, groups=pose_groups(fitted_data.readings, fitted_data.sources)
+            )
             notes = explain(calibration, [str(w.message) for w in caught], list(args.fix or ()))
-            warned = [unexplained_residual_warning(calibration.variance_factor, _implied_noise(calibration, noise),
-                                                   validation.errors.position_mean)] if unexplained else []
+            warned = (
+                [
+                    unexplained_residual_warning(
+                        calibration.variance_factor, _implied_noise(calibration, noise), validation.errors.position_mean
+                    )
+                ]
+                if unexplained
+                else []
+            )
             _print_judgement(validation, notes, calibration.setup.points)
             for warning in warned:
                 print(f"m3t1r: warning: {warning}", file=sys.stderr)
@@ -338,15 +439,19 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
         print("wrote " + ", ".join(written), file=status_stream(outputs))
 
 
-def _read_inputs(args: argparse.Namespace, chain: SerialChain, model: pin.Model, held_out_path: str | None
-                 ) -> tuple[SerialCampaign, SerialCampaign | None]:
+def _read_inputs(
+    args: argparse.Namespace, chain: SerialChain, model: pin.Model, held_out_path: str | None
+) -> tuple[SerialCampaign, SerialCampaign | None]:
     """The measurement file and the --validate file, read alike before any work."""
     data = read_campaign(args.measurements, chain, args.units, model, getattr(args, "joint", None))
     if data.points is not None and args.marker is not None:
-        raise InvalidInputError(f"{args.measurements} holds {data.points.shape[1]} points per row, each "
-                                "point's offset on the tool is estimated: --marker (one point) does not apply")
-    held_out = (read_campaign(held_out_path, chain, args.units, model, getattr(args, "joint", None))
-                if held_out_path else None)
+        raise InvalidInputError(
+            f"{args.measurements} holds {data.points.shape[1]} points per row, each "
+            "point's offset on the tool is estimated: --marker (one point) does not apply"
+        )
+    held_out = (
+        read_campaign(held_out_path, chain, args.units, model, getattr(args, "joint", None)) if held_out_path else None
+    )
     if held_out is not None:
         points = [0 if d.points is None else d.points.shape[1] for d in (data, held_out)]
         if points[0] != points[1]:
@@ -355,18 +460,38 @@ def _read_inputs(args: argparse.Namespace, chain: SerialChain, model: pin.Model,
     return data, held_out
 
 
-def _fit(args: argparse.Namespace, model: pin.Model, chain: SerialChain, data: SerialCampaign,
-         noise: TrackerNoise, marker: pin.SE3, estimate_frame: bool, gate: bool = True) -> SerialCalibration:
+def _fit(
+    args: argparse.Namespace,
+    model: pin.Model,
+    chain: SerialChain,
+    data: SerialCampaign,
+    noise: TrackerNoise,
+    marker: pin.SE3,
+    estimate_frame: bool,
+    gate: bool = True,
+) -> SerialCalibration:
     kwargs = {} if args.max_iterations is None else {"max_iterations": args.max_iterations}
     measured = np.array([g.translation for g in data.poses]) if data.position_only else data.poses
     if data.points is not None:
         measured = data.points
     return calibrate_serial(
-        model, chain, data.readings, measured, position_only=data.position_only, noise=noise,
-        setup=MeasurementSetup(marker=marker), estimate_frame=estimate_frame, estimate_marker=args.marker is not None,
-        outlier_sigma=(args.outlier_sigma or None) if gate else None, select=args.select == "loo",
-        compliance=bool(args.compliance), fixed=list(args.fix or ()), priors=dict(args.prior or {}),
-        groups=pose_groups(data.readings, data.sources), **kwargs)
+        model,
+        chain,
+        data.readings,
+        measured,
+        position_only=data.position_only,
+        noise=noise,
+        setup=MeasurementSetup(marker=marker),
+        estimate_frame=estimate_frame,
+        estimate_marker=args.marker is not None,
+        outlier_sigma=(args.outlier_sigma or None) if gate else None,
+        select=args.select == "loo",
+        compliance=bool(args.compliance),
+        fixed=list(args.fix or ()),
+        priors=dict(args.prior or {}),
+        groups=pose_groups(data.readings, data.sources),
+        **kwargs,
+    )
 
 
 def _left(calibration: SerialCalibration, data: SerialCampaign) -> ResidualSummary:
@@ -376,8 +501,13 @@ def _left(calibration: SerialCalibration, data: SerialCampaign) -> ResidualSumma
         inliers = np.setdiff1d(np.arange(len(data.points)), calibration.outliers)
         seen = int(np.count_nonzero(np.isfinite(data.points[inliers, :, 0])))
         return ResidualSummary(after.position, after.rotation, seen, 3, len(calibration.fitted))
-    return ResidualSummary(after.position, after.rotation, len(data.poses) - len(calibration.outliers),
-                           3 if calibration.position_only else 6, len(calibration.fitted))
+    return ResidualSummary(
+        after.position,
+        after.rotation,
+        len(data.poses) - len(calibration.outliers),
+        3 if calibration.position_only else 6,
+        len(calibration.fitted),
+    )
 
 
 def _implied_noise(calibration: SerialCalibration, noise: TrackerNoise) -> str:
@@ -387,22 +517,31 @@ def _implied_noise(calibration: SerialCalibration, noise: TrackerNoise) -> str:
     return f"{factor * noise.position:.3g} m{rotation}"
 
 
-
 def _print_summary(calibration: SerialCalibration, outlier_lines: list[int]) -> None:
     before, after = calibration.residual_before, calibration.residual_after
-    print(f"identified {calibration.base.rank} of {len(calibration.names)} parameters "
-          f"(condition number {calibration.base.condition_number:.3g}); fitted {len(calibration.fitted)} in "
-          f"{calibration.iterations} iterations ({'converged' if calibration.converged else 'NOT converged'}: "
-          f"{calibration.termination})")
-    orientation = "" if calibration.position_only else \
-        f", orientation {before.rotation:.3e} -> {after.rotation:.3e} rad"
-    print(f"residual RMS position {before.position:.3e} -> {after.position:.3e} m{orientation}; "
-          f"variance factor {calibration.variance_factor:.3g}")
+    print(
+        f"identified {calibration.base.rank} of {len(calibration.names)} parameters "
+        f"(condition number {calibration.base.condition_number:.3g}); fitted {len(calibration.fitted)} in "
+        f"{calibration.iterations} iterations ({'converged' if calibration.converged else 'NOT converged'}: "
+        f"{calibration.termination})"
+    )
+    orientation = (
+        "" if calibration.position_only else f", orientation {before.rotation:.3e} -> {after.rotation:.3e} rad"
+    )
+    print(
+        f"residual RMS position {before.position:.3e} -> {after.position:.3e} m{orientation}; "
+        f"variance factor {calibration.variance_factor:.3g}"
+    )
     if calibration.compliance:
-        print("joint compliance under gravity: " + ", ".join(f"{j} {c:.3g} rad/Nm"
-                                                               for j, c in calibration.compliance.items()))
-    print(f"outliers (left out of the fit), file lines: {', '.join(map(str, outlier_lines))}"
-          if outlier_lines else "outliers: none")
+        print(
+            "joint compliance under gravity: "
+            + ", ".join(f"{j} {c:.3g} rad/Nm" for j, c in calibration.compliance.items())
+        )
+    print(
+        f"outliers (left out of the fit), file lines: {', '.join(map(str, outlier_lines))}"
+        if outlier_lines
+        else "outliers: none"
+    )
 
 
 def _print_judgement(validation: SerialCrossValidation, notes: list[str], points: tuple = ()) -> None:
@@ -411,9 +550,11 @@ def _print_judgement(validation: SerialCrossValidation, notes: list[str], points
     rms = float(np.sqrt(np.mean(np.square(errors.position))))
     grouped = f"; {validation.groups} distinct postures, each held out whole" if validation.groups else ""
     per = f" per point ({len(points)} per pose)" if points else ""
-    print(f"cross-validation ({validation.folds} folds{grouped}): predicting held-back measurements{per} "
-          f"{errors.position_mean:.3e} m{rotation} mean, {rms:.3e} m RMS (noise included, as fresh measurements "
-          "would show)")
+    print(
+        f"cross-validation ({validation.folds} folds{grouped}): predicting held-back measurements{per} "
+        f"{errors.position_mean:.3e} m{rotation} mean, {rms:.3e} m RMS (noise included, as fresh measurements "
+        "would show)"
+    )
     for note in notes:
         print(f"note: {note}")
 
@@ -425,9 +566,14 @@ def _score_held_out(calibration: SerialCalibration, held_out: SerialCampaign) ->
     else:
         measured = np.array([g.homogeneous for g in held_out.poses])
     errors = held_out_errors(calibration, held_out.readings, measured, held_out.position_only)
-    return held_out_entry(held_out.path, held_out.sha256, len(held_out.poses), errors,
-                          held_out.position_only or calibration.position_only,
-                          "point" if held_out.points is not None else "pose")
+    return held_out_entry(
+        held_out.path,
+        held_out.sha256,
+        len(held_out.poses),
+        errors,
+        held_out.position_only or calibration.position_only,
+        "point" if held_out.points is not None else "pose",
+    )
 
 
 def _is_translation(name: str) -> bool:
@@ -441,31 +587,45 @@ def explain(calibration: SerialCalibration, warnings_seen: Sequence[str] = (), f
     base, fitted = set(calibration.base.names), set(calibration.fitted)
     chain_names = set(calibration.chain.parameter_names())
     if any(n.startswith("measurement_frame.") for n in calibration.names):
-        notes.append("the measurement frame takes up the robot's base placement errors (the first joint's "
-                     "placement stays nominal, so the calibrated URDF's base is the robot's base)")
+        notes.append(
+            "the measurement frame takes up the robot's base placement errors (the first joint's "
+            "placement stays nominal, so the calibrated URDF's base is the robot's base)"
+        )
     dropped = sorted((base - fitted) & (chain_names | {n for n in calibration.names if n.startswith("compliance.")}))
     notes += selection_note(dropped, calibration.selection)
     std = calibration.std()
-    weak = [n for n in calibration.fitted if n in chain_names
-            and std[n] > (WEAK_TRANSLATION if _is_translation(n) else WEAK_ROTATION)]
+    weak = [
+        n
+        for n in calibration.fitted
+        if n in chain_names and std[n] > (WEAK_TRANSLATION if _is_translation(n) else WEAK_ROTATION)
+    ]
     if weak:
-        notes.append("weakly determined on their own (std over 1 mm / 1 mrad; their joint effect on the tool can "
-                     "still be well determined): "
-                     + ", ".join(f"{describe_parameter(n)} (std {std[n]:.2g})" for n in weak[:8]))
+        notes.append(
+            "weakly determined on their own (std over 1 mm / 1 mrad; their joint effect on the tool can "
+            "still be well determined): " + ", ".join(f"{describe_parameter(n)} (std {std[n]:.2g})" for n in weak[:8])
+        )
     against = {joint: c for joint, c in calibration.compliance.items() if c > 0}
     if against:
-        notes.append("fitted compliance of the wrong sign (a joint giving way against gravity; a spring of stiffness "
-                     "k gives c = -1/k < 0): " + ", ".join(f"{j} {c:+.3g}" for j, c in against.items())
-                     + "; these columns stand for another effect that follows the gravity torque, not a stiffness")
+        notes.append(
+            "fitted compliance of the wrong sign (a joint giving way against gravity; a spring of stiffness "
+            "k gives c = -1/k < 0): "
+            + ", ".join(f"{j} {c:+.3g}" for j, c in against.items())
+            + "; these columns stand for another effect that follows the gravity torque, not a stiffness"
+        )
     held = {calibration.names[c] for c in parameter_columns(calibration.names, fixed, "--fix")} & chain_names
     notes.append(_nominal_note(calibration, chain_names, held))
     if held == chain_names:  # the machine could not move: how far it moved says nothing
         return notes
     moved = {n: float(v) for n, v in zip(calibration.names, calibration.values) if n in fitted and n in chain_names}
     marker_estimated = any(n.startswith("marker.") for n in calibration.names)
-    notes += fit_movement_notes(moved, calibration.residual_before.position, calibration.residual_after.position,
-                                None if marker_estimated else calibration.chain.tool_frame,
-                                _along_last_axis(calibration.chain), std)
+    notes += fit_movement_notes(
+        moved,
+        calibration.residual_before.position,
+        calibration.residual_after.position,
+        None if marker_estimated else calibration.chain.tool_frame,
+        _along_last_axis(calibration.chain),
+        std,
+    )
     return notes
 
 
@@ -484,20 +644,29 @@ def _nominal_note(calibration: SerialCalibration, chain_names: set[str], held: s
     """What stays nominal among the placement components: `held` by --fix, or not separable."""
     free = chain_names - held
     if not free:
-        return (f"every placement component ({len(chain_names)}) is held at nominal by --fix: only the measurement "
-                "setup" + (" and the compliance were" if calibration.compliance else " was") + " fitted, and the "
-                "calibrated URDF keeps the nominal geometry")
+        return (
+            f"every placement component ({len(chain_names)}) is held at nominal by --fix: only the measurement "
+            "setup" + (" and the compliance were" if calibration.compliance else " was") + " fitted, and the "
+            "calibrated URDF keeps the nominal geometry"
+        )
     undetermined = len(free) - len(set(calibration.base.names) & free)
     text = f"{undetermined} of {len(free)} placement components"
     if held:
         text += f" left free ({len(held)} more are held at nominal by --fix)"
-    return text + (" are not separable with these data (redundant with others or with the measurement setup) and "
-                   "stay nominal")
+    return text + (
+        " are not separable with these data (redundant with others or with the measurement setup) and stay nominal"
+    )
 
 
-def serial_calibration_report(calibration: SerialCalibration, data: SerialCampaign, args: argparse.Namespace,
-                              noise: TrackerNoise, outlier_lines: Sequence[int] = (),
-                              validation: SerialCrossValidation | None = None, notes: Sequence[str] = ()) -> dict:
+def serial_calibration_report(
+    calibration: SerialCalibration,
+    data: SerialCampaign,
+    args: argparse.Namespace,
+    noise: TrackerNoise,
+    outlier_lines: Sequence[int] = (),
+    validation: SerialCrossValidation | None = None,
+    notes: Sequence[str] = (),
+) -> dict:
     """The JSON report of a serial calibration (strict JSON through io.json_text: NaN becomes null)."""
     chain, setup, selection = calibration.chain, calibration.setup, calibration.selection
     std, fitted = calibration.std(), set(calibration.fitted)
@@ -508,24 +677,43 @@ def serial_calibration_report(calibration: SerialCalibration, data: SerialCampai
         "tool": f"m3t1r {__version__}",
         "created": _dt.datetime.now().isoformat(timespec="seconds"),
         "kind": "serial",
-        "input": {"path": str(data.path), "sha256": data.sha256, "poses": len(data.poses),
-                  "position_only": data.position_only, "units": data.units,
-                  "points": 0 if data.points is None else int(data.points.shape[1])},
-        "nominal_model": {"robot": str(args.serial), "base": chain.base_frame, "tool": chain.tool_frame,
-                          "chain": list(chain.joint_names)},
+        "input": {
+            "path": str(data.path),
+            "sha256": data.sha256,
+            "poses": len(data.poses),
+            "position_only": data.position_only,
+            "units": data.units,
+            "points": 0 if data.points is None else int(data.points.shape[1]),
+        },
+        "nominal_model": {
+            "robot": str(args.serial),
+            "base": chain.base_frame,
+            "tool": chain.tool_frame,
+            "chain": list(chain.joint_names),
+        },
         "measured_frame": chain.tool_frame,
         **campaign_report_fields(setup, calibration.names, validation, selection, calibration.fitted, args),
         "noise_model": {"position_m": noise.position, "rotation_rad": noise.rotation, "joint_rad": 0.0},
-        "converged": calibration.converged, "termination": calibration.termination,
-        "iterations": calibration.iterations, "variance_factor": calibration.variance_factor,
+        "converged": calibration.converged,
+        "termination": calibration.termination,
+        "iterations": calibration.iterations,
+        "variance_factor": calibration.variance_factor,
         "outliers": list(outlier_lines),
-        "identifiable": {"count": calibration.base.rank, "of": len(calibration.names),
-                         "condition_number": calibration.base.condition_number, "names": list(calibration.base.names)},
+        "identifiable": {
+            "count": calibration.base.rank,
+            "of": len(calibration.names),
+            "condition_number": calibration.base.condition_number,
+            "names": list(calibration.base.names),
+        },
         "compliance": dict(calibration.compliance),
         "constant_joints": dict(getattr(args, "joint", None) or {}),
-        "residual_rms": {"before": {"position_m": before.position, "rotation_rad": before.rotation},
-                         "after": {"position_m": after.position, "rotation_rad": after.rotation}},
+        "residual_rms": {
+            "before": {"position_m": before.position, "rotation_rad": before.rotation},
+            "after": {"position_m": after.position, "rotation_rad": after.rotation},
+        },
         "notes": list(notes),
-        "parameters": [{"name": n, "value": float(values[n]) if n in fitted else 0.0, "std": std.get(n),
-                        "fitted": n in fitted} for n in robot_parameters],
+        "parameters": [
+            {"name": n, "value": float(values[n]) if n in fitted else 0.0, "std": std.get(n), "fitted": n in fitted}
+            for n in robot_parameters
+        ],
     }

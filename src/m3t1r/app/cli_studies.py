@@ -35,12 +35,25 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     passive = _recorded_passive_joints(nominal) if args.with_passive else ()
     setup = MeasurementSetup.from_numbers(args.tracker_frame, args.marker)
     with Heartbeat("simulating", f"{args.n} poses"):  # one batch: no count to show
-        study = simulate_study(nominal, args.n, 0, args.seed, args.sigma_pos, args.sigma_rot, noise, args.position_only,
-                               passive_joints=passive, setup=setup, outliers=args.outliers)
+        study = simulate_study(
+            nominal,
+            args.n,
+            0,
+            args.seed,
+            args.sigma_pos,
+            args.sigma_rot,
+            noise,
+            args.position_only,
+            passive_joints=passive,
+            setup=setup,
+            outliers=args.outliers,
+        )
     comments = provenance(args) + [
         f"truth: {args.sigma_pos:g} m / {args.sigma_rot:g} rad errors on every joint placement and "
         f"closure/platform frame, seed {args.seed}",
-        "noise: none" if noise is None else f"noise: tracker {noise.position:g} m / {noise.rotation:g} rad, sliders {noise.actuator:g} m",
+        "noise: none"
+        if noise is None
+        else f"noise: tracker {noise.position:g} m / {noise.rotation:g} rad, sliders {noise.actuator:g} m",
         f"lengths in {args.units}; measured: tracker frame . platform . marker",
     ]
     if study.outliers:
@@ -51,25 +64,30 @@ def cmd_simulate(args: argparse.Namespace) -> None:
         if truth_output is not None:
             outputs.stage_machine(truth_output, study.truth)
         outputs.commit()
-    say(outputs, f"wrote {args.n} {'position-only ' if args.position_only else ''}measurements to "
-                  f"{measurement_output.name}")
+    say(
+        outputs,
+        f"wrote {args.n} {'position-only ' if args.position_only else ''}measurements to {measurement_output.name}",
+    )
     if truth_output is not None:
         say(outputs, f"wrote the truth machine to {truth_output.name} and {truth_output.closures.name}")
-
 
 
 def cmd_paper(args: argparse.Namespace) -> None:
     """`m3t1r paper`: the paper's simulation study, or its method on the closed chain."""
     if args.closed and args.passive_from is not None:
-        raise InvalidInputError("--closed runs every variant (passive joints read, sliders alone, closed loop); "
-                                "--passive-from applies to the two-chain study only")
+        raise InvalidInputError(
+            "--closed runs every variant (passive joints read, sliders alone, closed loop); "
+            "--passive-from applies to the two-chain study only"
+        )
     passive_from: PassiveSource = args.passive_from or "sensor"  # argparse's choices are PassiveSource's
     noise = TrackerNoise() if args.noise else None
     label = "with noise (tracker 10 um / 20 urad, encoders 10 urad)" if args.noise else "noise-free"
 
     def row(name, errors) -> str:
-        return (f"{name:<46}{errors.position_mean:>14.3e}{errors.position.max():>14.3e}"
-                f"{errors.rotation_mean:>16.3e}{errors.rotation.max():>15.3e}")
+        return (
+            f"{name:<46}{errors.position_mean:>14.3e}{errors.position.max():>14.3e}"
+            f"{errors.rotation_mean:>16.3e}{errors.rotation.max():>15.3e}"
+        )
 
     header = f"{'':<46}{'pos mean [m]':>14}{'pos max [m]':>14}{'rot mean [rad]':>16}{'rot max [rad]':>15}"
     if args.closed:
@@ -84,12 +102,17 @@ def cmd_paper(args: argparse.Namespace) -> None:
         if result.closed_loop is not None:
             print(row("closed-loop calibration (m3t1r.calibration)", result.closed_loop))
         return
-    print(f"the paper's simulation study (two serial chains, Table-1-like dt, ds, dq), seed {args.seed}, "
-          f"lower cranks from {passive_from}, {label}:", flush=True)
+    print(
+        f"the paper's simulation study (two serial chains, Table-1-like dt, ds, dq), seed {args.seed}, "
+        f"lower cranks from {passive_from}, {label}:",
+        flush=True,
+    )
     study = paper_study(args.seed, noise=noise, passive_from=passive_from)
     ident = study.identifiability
-    print(f"identifiable: {ident.rank_per_chain} per chain, {ident.rank_stacked} stacked "
-          f"(the paper's bound for the whole machine: {ident.paper_bound})")
+    print(
+        f"identifiable: {ident.rank_per_chain} per chain, {ident.rank_stacked} stacked "
+        f"(the paper's bound for the whole machine: {ident.paper_bound})"
+    )
     if study.failure:
         print(f"identification failed: {study.failure}")
     print(header)

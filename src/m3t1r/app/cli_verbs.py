@@ -12,8 +12,17 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 
-__all__ = ["VERBS", "SERIAL_CALIBRATION", "CALIBRATION_PLOTS", "DECLARE_PLOTS", "VALIDATION_PLOTS",
-           "DECLARE_VALIDATION_PLOTS", "RUNNER", "DEMO", "load"]
+__all__ = [
+    "VERBS",
+    "SERIAL_CALIBRATION",
+    "CALIBRATION_PLOTS",
+    "DECLARE_PLOTS",
+    "VALIDATION_PLOTS",
+    "DECLARE_VALIDATION_PLOTS",
+    "RUNNER",
+    "DEMO",
+    "load",
+]
 
 VERBS: dict[str, str] = {
     "fk": "m3t1r.app.cli_kinematics:cmd_fk",

@@ -30,8 +30,11 @@ def _skeleton_without_meshes(mechanism) -> None:
         mechanism.visual_model
         return
     except M3t1rError as exc:
-        print(f"note: {str(exc).rstrip('.')}; drawing {mechanism.urdf_path.name} as spheres at its joints "
-              "and closure frames", file=sys.stderr)
+        print(
+            f"note: {str(exc).rstrip('.')}; drawing {mechanism.urdf_path.name} as spheres at its joints "
+            "and closure frames",
+            file=sys.stderr,
+        )
     model = mechanism.model
     data = model.createData()
     pin.forwardKinematics(model, data, mechanism.home)
@@ -39,12 +42,15 @@ def _skeleton_without_meshes(mechanism) -> None:
     radius = max(0.01 * reach, 1e-3)  # [m] visible at the scale of the machine
     geometry = pin.GeometryModel()
     for j in range(1, model.njoints):
-        geometry.addGeometryObject(pin.GeometryObject(f"joint:{model.names[j]}", j, pin.SE3.Identity(),
-                                                      pin.coal.Sphere(radius)))
+        geometry.addGeometryObject(
+            pin.GeometryObject(f"joint:{model.names[j]}", j, pin.SE3.Identity(), pin.coal.Sphere(radius))
+        )
     frames = [spec.frame_a_id for spec in mechanism.closures] + [spec.frame_b_id for spec in mechanism.closures]
     for frame_id in dict.fromkeys(frames + [mechanism.platform_frame_id]):
         frame = model.frames[frame_id]
-        sphere = pin.GeometryObject(f"frame:{frame.name}", frame.parentJoint, frame.placement, pin.coal.Sphere(1.5 * radius))
+        sphere = pin.GeometryObject(
+            f"frame:{frame.name}", frame.parentJoint, frame.placement, pin.coal.Sphere(1.5 * radius)
+        )
         sphere.meshColor[:] = (0.8, 0.15, 0.15, 1.0)
         geometry.addGeometryObject(sphere)
     mechanism.visual_cache["geometry"] = geometry
@@ -56,16 +62,27 @@ def cmd_view(args: argparse.Namespace) -> None:
     calibrated = load_mechanism(args.calibrated, args.calibrated_closures) if args.calibrated else None
     for machine in (nominal, calibrated) if calibrated is not None else (nominal,):
         _skeleton_without_meshes(machine)
-    outputs = OutputSet(inputs=(nominal.urdf_path, nominal.closures_path, args.measurements,
-                                *((calibrated.urdf_path, calibrated.closures_path) if calibrated else ())))
+    outputs = OutputSet(
+        inputs=(
+            nominal.urdf_path,
+            nominal.closures_path,
+            args.measurements,
+            *((calibrated.urdf_path, calibrated.closures_path) if calibrated else ()),
+        )
+    )
     output = outputs.add(args.html, "--html")
     outputs.check()
     views = comparison_views(nominal, calibrated)
     markers = None
     if args.measurements:
         measured = read_measurements(args.measurements, nominal).measurements
-        markers = measured.poses if measured.points is None else tuple(  # several points: every one seen
-            pin.SE3(np.eye(3), point) for point in measured.points[np.isfinite(measured.points[:, :, 0])])
+        markers = (
+            measured.poses
+            if measured.points is None
+            else tuple(  # several points: every one seen
+                pin.SE3(np.eye(3), point) for point in measured.points[np.isfinite(measured.points[:, :, 0])]
+            )
+        )
     if output is not None:
         with outputs:
             scene = build_scene(views, pose=args.pose, markers=markers, magnification=args.magnify)

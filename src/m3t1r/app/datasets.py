@@ -28,9 +28,18 @@ from m3t1r.model.description import Mechanism
 from m3t1r.model.task import TaskSpec
 
 __all__ = [
-    "TARGET_COLUMNS", "check_joint_readings", "read_actuators", "read_poses", "read_targets",
-    "MeasurementFile", "read_measurements", "point_numbers", "measured_points", "write_measurements",
-    "measurement_table", "sha256_of",
+    "TARGET_COLUMNS",
+    "check_joint_readings",
+    "read_actuators",
+    "read_poses",
+    "read_targets",
+    "MeasurementFile",
+    "read_measurements",
+    "point_numbers",
+    "measured_points",
+    "write_measurements",
+    "measurement_table",
+    "sha256_of",
 ]
 
 TARGET_COLUMNS = TaskSpec("platform").columns  # the M machine's: platform position [m] and yaw [rad]
@@ -42,9 +51,17 @@ def sha256_of(path: StrPath) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def check_joint_readings(table: Table, columns: Sequence[str], readings: np.ndarray, lower: np.ndarray,
-                         upper: np.ndarray, prismatic: Sequence[bool] | np.ndarray, *,
-                         scales: Sequence[float] | np.ndarray | None = None, margin: float = 0.0) -> list[str]:
+def check_joint_readings(
+    table: Table,
+    columns: Sequence[str],
+    readings: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    prismatic: Sequence[bool] | np.ndarray,
+    *,
+    scales: Sequence[float] | np.ndarray | None = None,
+    margin: float = 0.0,
+) -> list[str]:
     """Refuse a joint reading beyond its joint's limits: DataFileError naming the line and column,
     with a hint when the whole column looks like millimetres or degrees. The closed-loop and the
     serial readers both check their joint columns here.
@@ -65,48 +82,71 @@ def check_joint_readings(table: Table, columns: Sequence[str], readings: np.ndar
         unit = "m" if prismatic[k] else "rad"
         if outside.size:
             row = int(outside[0])
-            hint = _limit_hint(table, values, outside.size, low, high, prismatic[k],
-                               1.0 if scales is None else scales[k])
-            raise table.error(row, f"{values[row]:.6g} {unit} is beyond the joint limit [{low:.6g}, {high:.6g}] "
-                                   + hint, column=column)
+            hint = _limit_hint(
+                table, values, outside.size, low, high, prismatic[k], 1.0 if scales is None else scales[k]
+            )
+            raise table.error(
+                row,
+                f"{values[row]:.6g} {unit} is beyond the joint limit [{low:.6g}, {high:.6g}] " + hint,
+                column=column,
+            )
         nearly = np.flatnonzero((values < low) | (values > high))
         if nearly.size:
             worst = float(np.max(np.maximum(low - values, values - high)))
-            notes.append(f"column '{column}': {nearly.size} reading(s) up to {worst:.3g} {unit} beyond the URDF "
-                         f"limit [{low:.6g}, {high:.6g}] (file line {int(table.line_numbers[nearly[0]])} first), "
-                         f"within {margin:.0%} of its range: kept as read")
+            notes.append(
+                f"column '{column}': {nearly.size} reading(s) up to {worst:.3g} {unit} beyond the URDF "
+                f"limit [{low:.6g}, {high:.6g}] (file line {int(table.line_numbers[nearly[0]])} first), "
+                f"within {margin:.0%} of its range: kept as read"
+            )
     return notes
 
 
-def _limit_hint(table: Table, values: np.ndarray, n_outside: int, lower: float, upper: float, prismatic: bool,
-                scale: float) -> str:
+def _limit_hint(
+    table: Table, values: np.ndarray, n_outside: int, lower: float, upper: float, prismatic: bool, scale: float
+) -> str:
     """What a column beyond its limits most likely is: millimetres in a metre file or degrees, when
     most of the column is beyond (one bad reading is a fault, not a unit); else the SI unit it must be in."""
     within = lambda converted: bool(np.all((converted >= lower) & (converted <= upper)))
     if 2 * n_outside > len(values) and prismatic and scale == 1.0 and within(values * 1e-3):
         return "(every value of the column is within the limits in millimetres: use --units mm)"
     if 2 * n_outside > len(values) and not prismatic and within(np.radians(values)):
-        return ("(every value of the column is within the limits in degrees: give radians; `m3t1r convert "
-                f"{table.path} --joint-degrees all -o measurements.csv` rewrites the file in radians)")
+        return (
+            "(every value of the column is within the limits in degrees: give radians; `m3t1r convert "
+            f"{table.path} --joint-degrees all -o measurements.csv` rewrites the file in radians)"
+        )
     return f"(SI units: {'m' if prismatic else 'rad'})"
 
 
-def _check_limits(table: Table, mechanism: Mechanism, names: Sequence[str], scale: Mapping[str, float] | None = None,
-                  columns: Sequence[str] | None = None) -> None:
+def _check_limits(
+    table: Table,
+    mechanism: Mechanism,
+    names: Sequence[str],
+    scale: Mapping[str, float] | None = None,
+    columns: Sequence[str] | None = None,
+) -> None:
     """`check_joint_readings` of the joints `names` (their columns: `columns`, default the names) on
     the mechanism's limits, after `scale` (column -> metres per file unit)."""
     columns, scale = tuple(columns or names), scale or {}
     readings = np.column_stack([table.column(c) * scale.get(c, 1.0) for c in columns])
     prismatic = set(_prismatic_joints(mechanism, names))
-    check_joint_readings(table, columns, readings, *mechanism.joint_limits(tuple(names)),
-                         [n in prismatic for n in names], scales=[scale.get(c, 1.0) for c in columns])
+    check_joint_readings(
+        table,
+        columns,
+        readings,
+        *mechanism.joint_limits(tuple(names)),
+        [n in prismatic for n in names],
+        scales=[scale.get(c, 1.0) for c in columns],
+    )
 
 
 def _prismatic_joints(mechanism: Mechanism, names: Iterable[str]) -> tuple[str, ...]:
     """The prismatic joints among `names`: their readings are lengths, scaled by --units."""
     model = mechanism.model
-    return tuple(n for n in names if model.existJointName(n)
-                 and model.joints[model.getJointId(n)].shortname().startswith("JointModelP"))
+    return tuple(
+        n
+        for n in names
+        if model.existJointName(n) and model.joints[model.getJointId(n)].shortname().startswith("JointModelP")
+    )
 
 
 def _length_scale(table: Table, mechanism: Mechanism, units: str, joints: Sequence[str]) -> dict[str, float]:
@@ -154,8 +194,12 @@ def read_targets(path: StrPath, task: TaskSpec | None = None) -> tuple[list[pin.
     if full_pose:
         return poses_from_table(table), table.line_numbers
     missing = [c for c in columns if not table.has_column(c)]
-    raise DataFileError(table.path, f"a target file needs the task's columns {', '.join(columns)} or a full pose "
-                                    f"{', '.join(POSE_COLUMNS)}; missing {', '.join(missing)}", column=missing[0])
+    raise DataFileError(
+        table.path,
+        f"a target file needs the task's columns {', '.join(columns)} or a full pose "
+        f"{', '.join(POSE_COLUMNS)}; missing {', '.join(missing)}",
+        column=missing[0],
+    )
 
 
 @dataclass(frozen=True)
@@ -190,8 +234,11 @@ def measured_points(table: Table, numbers: Sequence[int], scale: float) -> np.nd
     points = np.column_stack([table.column(c) for c in columns]).reshape(table.n_rows, len(numbers), 3) * scale
     finite = np.isfinite(points)
     for row, point in np.argwhere(np.any(finite, axis=2) != np.all(finite, axis=2)):
-        raise table.error(int(row), f"point {numbers[int(point)]} has some coordinates blank: give all three or none",
-                          column=columns[3 * point + int(np.argmin(finite[row, point]))])
+        raise table.error(
+            int(row),
+            f"point {numbers[int(point)]} has some coordinates blank: give all three or none",
+            column=columns[3 * point + int(np.argmin(finite[row, point]))],
+        )
     for row in np.flatnonzero(~np.any(finite, axis=(1, 2))):
         raise table.error(int(row), "no point seen on this row (every x_k, y_k, z_k blank)")
     for point in np.flatnonzero(~np.any(finite[:, :, 0], axis=0)):
@@ -217,10 +264,16 @@ def read_measurements(path: StrPath, mechanism: Mechanism, units: str = "m") -> 
     actuator_columns = tuple(measurement_column(n) for n in actuated)
     numbers = point_numbers(read_header(source))
     point_columns = tuple(f"{a}{k}" for k in numbers for a in "xyz")
-    table = read_table(source, required=actuator_columns + (() if numbers else ("x", "y", "z")),
-                       optional=(*(measurement_column(n) for n in passive_names), *CONVERTED_COLUMNS),
-                       optional_groups=(tuple(point_columns[3 * k:3 * k + 3] for k in range(len(numbers))) if numbers
-                                        else (_QUATERNION,)), reject_duplicate_rows=True, blank_allowed=point_columns)
+    table = read_table(
+        source,
+        required=actuator_columns + (() if numbers else ("x", "y", "z")),
+        optional=(*(measurement_column(n) for n in passive_names), *CONVERTED_COLUMNS),
+        optional_groups=(
+            tuple(point_columns[3 * k : 3 * k + 3] for k in range(len(numbers))) if numbers else (_QUATERNION,)
+        ),
+        reject_duplicate_rows=True,
+        blank_allowed=point_columns,
+    )
     scale = _length_scale(table, mechanism, units, actuated + passive_names)
     _check_limits(table, mechanism, actuated, scale, actuator_columns)
     position_only = not table.has_column("qw")
@@ -235,22 +288,43 @@ def read_measurements(path: StrPath, mechanism: Mechanism, units: str = "m") -> 
         poses = [pin.SE3(pose.rotation, position) for pose, position in zip(poses_from_table(table), positions)]
     actuators = np.column_stack([table.column(c) * scale.get(c, 1.0) for c in actuator_columns])
     present = tuple(n for n in passive_names if table.has_column(measurement_column(n)))
-    passive = (np.column_stack([table.column(c) * scale.get(c, 1.0) for c in map(measurement_column, present)])
-               if present else np.zeros((table.n_rows, 0)))
-    return MeasurementFile(source, PoseMeasurements(actuators, tuple(poses), position_only, points), present, passive,
-                           table.line_numbers, sha256_of(source),
-                           table.column("source").astype(int) if table.has_column("source") else None)
+    passive = (
+        np.column_stack([table.column(c) * scale.get(c, 1.0) for c in map(measurement_column, present)])
+        if present
+        else np.zeros((table.n_rows, 0))
+    )
+    return MeasurementFile(
+        source,
+        PoseMeasurements(actuators, tuple(poses), position_only, points),
+        present,
+        passive,
+        table.line_numbers,
+        sha256_of(source),
+        table.column("source").astype(int) if table.has_column("source") else None,
+    )
 
 
-def write_measurements(path: StrPath, mechanism: Mechanism, measurements: PoseMeasurements,
-                       passive_joints: Sequence[str] = (), passive: np.ndarray | None = None,
-                       comments: Sequence[str] = (), protect: Iterable[StrPath] = (), units: str = "m") -> None:
+def write_measurements(
+    path: StrPath,
+    mechanism: Mechanism,
+    measurements: PoseMeasurements,
+    passive_joints: Sequence[str] = (),
+    passive: np.ndarray | None = None,
+    comments: Sequence[str] = (),
+    protect: Iterable[StrPath] = (),
+    units: str = "m",
+) -> None:
     """Write measurements in the format `read_measurements` reads (atomically), lengths in `units`."""
     write_table(path, *measurement_table(mechanism, measurements, passive_joints, passive, units), comments, protect)
 
 
-def measurement_table(mechanism: Mechanism, measurements: PoseMeasurements, passive_joints: Sequence[str] = (),
-                      passive: np.ndarray | None = None, units: str = "m") -> tuple[list[str], np.ndarray]:
+def measurement_table(
+    mechanism: Mechanism,
+    measurements: PoseMeasurements,
+    passive_joints: Sequence[str] = (),
+    passive: np.ndarray | None = None,
+    units: str = "m",
+) -> tuple[list[str], np.ndarray]:
     """Columns and rows of a measurement file, lengths (x, y, z, prismatic joints) in `units`."""
     if units not in LENGTH_UNITS:
         raise DataFileError("-", f"unknown length unit '{units}' (one of {', '.join(LENGTH_UNITS)})")

@@ -75,16 +75,25 @@ class _Steps:
 
 
 def _row(label: str, position: np.ndarray, rotation: np.ndarray) -> str:
-    return (f"  {label:<36}{np.mean(position) * 1e6:>10.1f}{np.max(position) * 1e6:>10.1f}"
-            f"{np.mean(rotation) * 1e6:>11.1f}{np.max(rotation) * 1e6:>10.1f}")
+    return (
+        f"  {label:<36}{np.mean(position) * 1e6:>10.1f}{np.max(position) * 1e6:>10.1f}"
+        f"{np.mean(rotation) * 1e6:>11.1f}{np.max(rotation) * 1e6:>10.1f}"
+    )
 
 
-_HEADER = (f"  {'':<36}{'pos mean':>10}{'pos max':>10}{'rot mean':>11}{'rot max':>10}\n"
-           f"  {'':<36}{'[um]':>10}{'[um]':>10}{'[urad]':>11}{'[urad]':>10}")
+_HEADER = (
+    f"  {'':<36}{'pos mean':>10}{'pos max':>10}{'rot mean':>11}{'rot max':>10}\n"
+    f"  {'':<36}{'[um]':>10}{'[um]':>10}{'[urad]':>11}{'[urad]':>10}"
+)
 
 
-def _run(command: Command, arguments: list[str], out_dir: Path, say: Callable[[str], None],
-         keep: Callable[[str], bool] = lambda line: True) -> None:
+def _run(
+    command: Command,
+    arguments: list[str],
+    out_dir: Path,
+    say: Callable[[str], None],
+    keep: Callable[[str], bool] = lambda line: True,
+) -> None:
     """Run one `m3t1r` command as a user would, show it and the lines `keep` selects; the whole
     output goes to out_dir/<verb>.log. A failing step stops the demo."""
     shown = ["m3t1r"] + [a if not a.startswith(str(out_dir)) else Path(a).name for a in arguments]
@@ -102,8 +111,9 @@ def _run(command: Command, arguments: list[str], out_dir: Path, say: Callable[[s
 
 
 @on_one_blas_thread
-def run_demo(out_dir: Path, command: Command, settings: DemoSettings = DemoSettings(),
-             say: Callable[[str], None] = print) -> dict:
+def run_demo(
+    out_dir: Path, command: Command, settings: DemoSettings = DemoSettings(), say: Callable[[str], None] = print
+) -> dict:
     """Run the campaign; `command` runs one `m3t1r` command line (the CLI's `main`).
     Returns the summary written to out_dir/summary.json."""
     out_dir = Path(out_dir)
@@ -115,56 +125,125 @@ def run_demo(out_dir: Path, command: Command, settings: DemoSettings = DemoSetti
     file = lambda name: str(out_dir / name)  # noqa: E731
 
     step(f"planning {settings.n_poses} measurement poses (D-optimal, ordered for short travel)")
-    _run(command, ["plan", "-n", str(settings.n_poses), "--seed", str(settings.seed), "-o", file("plan.csv")], out_dir,
-         say)
+    _run(
+        command,
+        ["plan", "-n", str(settings.n_poses), "--seed", str(settings.seed), "-o", file("plan.csv")],
+        out_dir,
+        say,
+    )
 
-    step(f"measuring an actual machine ({settings.sigma_position * 1e3:g} mm / {settings.sigma_rotation * 1e3:g} mrad "
-         "errors) with a tracker 3 m away, in mm, through a 70 mm reflector, with two gross errors")
+    step(
+        f"measuring an actual machine ({settings.sigma_position * 1e3:g} mm / {settings.sigma_rotation * 1e3:g} mrad "
+        "errors) with a tracker 3 m away, in mm, through a 70 mm reflector, with two gross errors"
+    )
     error_model = ClosedLoopErrorModel(nominal)
-    truth = actual_machine(nominal, random_placement_errors(error_model, rng, settings.sigma_position,
-                                                            settings.sigma_rotation), error_model)
+    truth = actual_machine(
+        nominal,
+        random_placement_errors(error_model, rng, settings.sigma_position, settings.sigma_rotation),
+        error_model,
+    )
     planned, _ = read_actuators(out_dir / "plan.csv", nominal)
-    campaign, spoiled = with_outliers(measure(truth, planned, rng, settings.noise, setup=setup), rng,
-                                      settings.n_outliers)
+    campaign, spoiled = with_outliers(
+        measure(truth, planned, rng, settings.noise, setup=setup), rng, settings.n_outliers
+    )
     fresh = measure(truth, workspace_actuators(nominal, settings.n_validation, rng), rng, settings.noise, setup=setup)
     comments = [f"m3t1r {__version__} demo: simulated tracker, lengths in mm"]
     write_measurements(out_dir / "measurements.csv", nominal, campaign, comments=comments, units="mm")
     write_measurements(out_dir / "validation.csv", nominal, fresh, comments=comments, units="mm")
     truth.save(out_dir / "truth.urdf", out_dir / "truth.closures.yaml")
-    say(f"  wrote measurements.csv ({len(campaign)} poses; gross errors on data rows "
+    say(
+        f"  wrote measurements.csv ({len(campaign)} poses; gross errors on data rows "
         f"{', '.join(str(i + 1) for i in spoiled)}, i.e. file lines {', '.join(str(i + 3) for i in spoiled)}) "
-        f"and validation.csv ({len(fresh)} fresh poses)")
+        f"and validation.csv ({len(fresh)} fresh poses)"
+    )
 
     step("calibrating: machine, tracker frame and reflector together; outliers flagged; the fit judged")
     cad_marker = np.array(settings.marker) + np.array(settings.marker_cad_error)
-    _run(command, ["calibrate", file("measurements.csv"), "-o", file("calibrated.urdf"), "--report",
-                   file("report.json"), "--frame", "estimate", "--marker", *(f"{v:g}" for v in cad_marker),
-                   "--units", "mm", "--plots", file("plots")], out_dir, say,
-         keep=lambda line: not line.startswith("wrote") or "urdf" in line)
+    _run(
+        command,
+        [
+            "calibrate",
+            file("measurements.csv"),
+            "-o",
+            file("calibrated.urdf"),
+            "--report",
+            file("report.json"),
+            "--frame",
+            "estimate",
+            "--marker",
+            *(f"{v:g}" for v in cad_marker),
+            "--units",
+            "mm",
+            "--plots",
+            file("plots"),
+        ],
+        out_dir,
+        say,
+        keep=lambda line: not line.startswith("wrote") or "urdf" in line,
+    )
 
     step(f"validating on {settings.n_validation} fresh measurements")
-    _run(command, ["validate", file("validation.csv"), "--calibrated", file("calibrated.urdf"), "--report",
-                   file("report.json"), "--predictions", file("predictions.csv"), "--plots", file("validation_plots")],
-         out_dir, say,
-         keep=lambda line: not (line[:1] == " " and line.split()[0].isdigit()) and not line.lstrip().startswith("line "))
+    _run(
+        command,
+        [
+            "validate",
+            file("validation.csv"),
+            "--calibrated",
+            file("calibrated.urdf"),
+            "--report",
+            file("report.json"),
+            "--predictions",
+            file("predictions.csv"),
+            "--plots",
+            file("validation_plots"),
+        ],
+        out_dir,
+        say,
+        keep=lambda line: not (line[:1] == " " and line.split()[0].isdigit()) and not line.lstrip().startswith("line "),
+    )
 
     step(f"compensating {settings.n_targets} targets given in the tracker's frame")
     calibrated = Mechanism.load(out_dir / "calibrated.urdf")
     estimated = MeasurementSetup.from_report(json.loads((out_dir / "report.json").read_text()))
     targets = _tracker_targets(calibrated, estimated, settings)
-    write_table(out_dir / "targets.csv", POSE_COLUMNS, pose_rows(targets),
-                ["where the tracker should see the reflector: x, y, z [m] and orientation, in the tracker's frame"])
-    _run(command, ["compensate", file("targets.csv"), "--calibrated", file("calibrated.urdf"), "--report",
-                   file("report.json"), "--output-kind", "actuators", "-o", file("commands.csv")], out_dir, say)
+    write_table(
+        out_dir / "targets.csv",
+        POSE_COLUMNS,
+        pose_rows(targets),
+        ["where the tracker should see the reflector: x, y, z [m] and orientation, in the tracker's frame"],
+    )
+    _run(
+        command,
+        [
+            "compensate",
+            file("targets.csv"),
+            "--calibrated",
+            file("calibrated.urdf"),
+            "--report",
+            file("report.json"),
+            "--output-kind",
+            "actuators",
+            "-o",
+            file("commands.csv"),
+        ],
+        out_dir,
+        say,
+    )
 
     step("checking against the truth (possible only in simulation)")
     commands, _ = read_actuators(out_dir / "commands.csv", nominal)
     summary = _truth_check(nominal, calibrated, estimated, truth, setup, targets, commands, rng, settings, say)
     write_static_html(comparison_views(nominal, calibrated), out_dir / "scene.html", pose=(0.5, 0.6, -0.1, 0.3))
     report = json.loads((out_dir / "report.json").read_text())
-    summary.update({"version": __version__, "seed": settings.seed, "outlier_lines_flagged": report["outliers"],
-                    "outlier_lines_true": [i + 3 for i in spoiled],
-                    "cross_validation_position_mean_m": report["cross_validation"]["position_mean_m"]})
+    summary.update(
+        {
+            "version": __version__,
+            "seed": settings.seed,
+            "outlier_lines_flagged": report["outliers"],
+            "outlier_lines_true": [i + 3 for i in spoiled],
+            "cross_validation_position_mean_m": report["cross_validation"]["position_mean_m"],
+        }
+    )
     atomic_write_text(out_dir / "summary.json", json_text(summary))
 
     step("done")
@@ -176,14 +255,24 @@ def _tracker_targets(calibrated: Mechanism, estimated: MeasurementSetup, setting
     """Workspace targets as a user with a tracker writes them: where the tracker should see the
     reflector (pose in the tracker's frame); drawn as platform poses of the calibrated machine."""
     platform = workspace_targets(settings.n_targets, np.random.default_rng(settings.seed + 1))
-    poses = np.array([pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, theta), np.array([x, y, z])).homogeneous
-                      for x, y, z, theta in platform])
+    poses = np.array(
+        [pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, theta), np.array([x, y, z])).homogeneous for x, y, z, theta in platform]
+    )
     return [pin.SE3(pose) for pose in estimated.measured_poses(poses)]
 
 
-def _truth_check(nominal: Mechanism, calibrated: Mechanism, estimated: MeasurementSetup, truth: Mechanism,
-                 setup: MeasurementSetup, targets: list[pin.SE3], commands: np.ndarray, rng: np.random.Generator,
-                 settings: DemoSettings, say: Callable[[str], None]) -> dict:
+def _truth_check(
+    nominal: Mechanism,
+    calibrated: Mechanism,
+    estimated: MeasurementSetup,
+    truth: Mechanism,
+    setup: MeasurementSetup,
+    targets: list[pin.SE3],
+    commands: np.ndarray,
+    rng: np.random.Generator,
+    settings: DemoSettings,
+    say: Callable[[str], None],
+) -> dict:
     """What the tracker would see, predicted by each model, against the truth: at held-out slider
     sets, and when the truth is driven with nominal and with compensated commands to the targets.
 
@@ -195,19 +284,32 @@ def _truth_check(nominal: Mechanism, calibrated: Mechanism, estimated: Measureme
     holdout = workspace_actuators(nominal, settings.n_holdout, rng)
     seen = setup.measured_poses(_platform_poses(truth, holdout))
     cad = MeasurementSetup.from_numbers(marker_xyz=np.add(settings.marker, settings.marker_cad_error))
-    registered = replace(cad, frame=register_frame(cad.measured_poses(_platform_poses(nominal, holdout)), seen[:, :3, 3]))
-    say("  the reflector as the tracker sees it vs the models' prediction, "
-        f"at {settings.n_holdout} held-out slider sets:")
+    registered = replace(
+        cad, frame=register_frame(cad.measured_poses(_platform_poses(nominal, holdout)), seen[:, :3, 3])
+    )
+    say(
+        "  the reflector as the tracker sees it vs the models' prediction, "
+        f"at {settings.n_holdout} held-out slider sets:"
+    )
     say(_HEADER)
     summary = {}
-    for name, model, model_setup in (("nominal model", nominal, registered), ("calibrated model", calibrated, estimated)):
+    for name, model, model_setup in (
+        ("nominal model", nominal, registered),
+        ("calibrated model", calibrated, estimated),
+    ):
         errors = pose_errors_between(model_setup.measured_poses(_platform_poses(model, holdout)), seen)
         say(_row(name, errors.position, errors.rotation))
         summary[name] = {"position_mean_m": errors.position_mean, "rotation_mean_rad": errors.rotation_mean}
-    nominal_commands = np.array([ClosedLoopSolver(nominal).inverse(registered.frame.actInv(t) * cad.marker.inverse())
-                                 .actuators for t in targets])
-    say(f"  where the tracker sees the reflector when the machine is commanded to {len(targets)} targets "
-        "(rotation: heading):")
+    nominal_commands = np.array(
+        [
+            ClosedLoopSolver(nominal).inverse(registered.frame.actInv(t) * cad.marker.inverse()).actuators
+            for t in targets
+        ]
+    )
+    say(
+        f"  where the tracker sees the reflector when the machine is commanded to {len(targets)} targets "
+        "(rotation: heading):"
+    )
     say(_HEADER)
     for name, sliders in (("nominal commands", nominal_commands), ("compensated commands", commands)):
         reached = setup.measured_poses(_platform_poses(truth, sliders))

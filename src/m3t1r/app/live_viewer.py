@@ -116,9 +116,13 @@ def _start_server() -> tuple[subprocess.Popen, str, str]:
     and waits for its announcement with no timeout.
     """
     # Its own session: a Ctrl-C meant for the CLI reaches us, and we stop the server cleanly.
-    process = subprocess.Popen([sys.executable, "-u", "-c", _SERVER_MAIN],
-                               stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                               start_new_session=True)
+    process = subprocess.Popen(
+        [sys.executable, "-u", "-c", _SERVER_MAIN],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     announced: dict[str, str] = {}
     pending = b""
     deadline = time.monotonic() + _SERVER_START_TIMEOUT
@@ -136,8 +140,10 @@ def _start_server() -> tuple[subprocess.Popen, str, str]:
             chunk = os.read(descriptor, 4096)
             if not chunk:
                 process.wait(timeout=_SERVER_STOP_TIMEOUT)
-                raise ViewerError(f"the meshcat server exited with code {process.returncode} "
-                                        f"(run `{sys.executable} -m meshcat.servers.zmqserver` to see why)")
+                raise ViewerError(
+                    f"the meshcat server exited with code {process.returncode} "
+                    f"(run `{sys.executable} -m meshcat.servers.zmqserver` to see why)"
+                )
             *lines, pending = (pending + chunk).split(b"\n")
             for line in lines:
                 key, _, value = line.decode("utf-8", "replace").strip().partition("=")
@@ -157,9 +163,14 @@ def _drain(stream: io.BufferedReader) -> None:
             pass
 
 
-def open_viewer(views: Sequence[MachineView], pose: Sequence[float] | None = None,
-                sliders: Sequence[float] | None = None, markers: Iterable[pin.SE3] | np.ndarray | None = None,
-                camera: Camera | None = DEFAULT_CAMERA, magnification: float | None = None) -> LiveViewer:
+def open_viewer(
+    views: Sequence[MachineView],
+    pose: Sequence[float] | None = None,
+    sliders: Sequence[float] | None = None,
+    markers: Iterable[pin.SE3] | np.ndarray | None = None,
+    camera: Camera | None = DEFAULT_CAMERA,
+    magnification: float | None = None,
+) -> LiveViewer:
     """Start a meshcat server, draw the scene in it, and return it (url, visualizer, close()).
 
     The scene is solved and recorded before the server starts, so a bad command starts nothing.
@@ -169,8 +180,9 @@ def open_viewer(views: Sequence[MachineView], pose: Sequence[float] | None = Non
 
     Raises what `build_scene` raises, and ViewerError when the server does not come up.
     """
-    recording = build_scene(views, pose=pose, sliders=sliders, markers=markers, camera=camera,
-                            magnification=magnification)
+    recording = build_scene(
+        views, pose=pose, sliders=sliders, markers=markers, camera=camera, magnification=magnification
+    )
     process, zmq_url, web_url = _start_server()
     try:
         with contextlib.redirect_stdout(io.StringIO()):  # meshcat prints the URL; the caller decides

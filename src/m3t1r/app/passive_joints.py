@@ -34,8 +34,9 @@ class PassiveJointResiduals:
         return np.sqrt(np.mean(self.residuals**2, axis=0))
 
 
-def passive_joint_residuals(machine: Mechanism, actuators: np.ndarray, joints: tuple[str, ...],
-                            readings: np.ndarray) -> PassiveJointResiduals:
+def passive_joint_residuals(
+    machine: Mechanism, actuators: np.ndarray, joints: tuple[str, ...], readings: np.ndarray
+) -> PassiveJointResiduals:
     """How well a machine model predicts passive-joint readings it was not fitted to.
 
     With readings of the idle chains' hinges (IDLE_CHAIN_JOINTS) this is the paper's

@@ -33,8 +33,15 @@ from m3t1r.io.outputs import OutputSet, atomic_write_bytes
 from m3t1r.io.paths import StrPath, ensure_not_protected
 from m3t1r.metrics import PoseErrors
 
-__all__ = ["plot_pose_errors_before_after", "plot_error_vs_poses", "plot_workspace_error_map",
-           "plot_predicted_std_map", "plot_validation_histogram", "plot_normalised_qq", "plot_errors_over_workspace"]
+__all__ = [
+    "plot_pose_errors_before_after",
+    "plot_error_vs_poses",
+    "plot_workspace_error_map",
+    "plot_predicted_std_map",
+    "plot_validation_histogram",
+    "plot_normalised_qq",
+    "plot_errors_over_workspace",
+]
 
 _DPI = 120
 
@@ -103,7 +110,9 @@ def _finite_array(values: object, what: str, ndim: int = 1) -> np.ndarray:
         raise InvalidInputError(f"{what}: shape {array.shape}, expected {ndim}-D with at least one row")
     bad = np.argwhere(~np.isfinite(array))
     if bad.size:
-        raise InvalidInputError(f"{what}: non-finite value {array[tuple(bad[0])]} at index {tuple(int(i) for i in bad[0])}")
+        raise InvalidInputError(
+            f"{what}: non-finite value {array[tuple(bad[0])]} at index {tuple(int(i) for i in bad[0])}"
+        )
     return array
 
 
@@ -132,8 +141,13 @@ def _check_output(path: StrPath, protect: Iterable[StrPath], outputs: OutputSet 
         raise OutputPathError(target, f"directory {target.parent} does not exist")
 
 
-def _save(figure: Figure, path: StrPath, protect: Iterable[StrPath], outputs: OutputSet | None = None,
-          description: str | None = None) -> Path:
+def _save(
+    figure: Figure,
+    path: StrPath,
+    protect: Iterable[StrPath],
+    outputs: OutputSet | None = None,
+    description: str | None = None,
+) -> Path:
     """Render to PNG in memory, then replace `path` atomically, or stage it in `outputs` (to land
     with the set's other outputs at its commit); returns the path. `description` goes into the PNG's
     Description text chunk: what the figure marks, in words, for a reader without the image."""
@@ -151,10 +165,16 @@ def _save(figure: Figure, path: StrPath, protect: Iterable[StrPath], outputs: Ou
 
 
 # ------------------------------------------------------------------------------------------------
-def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: StrPath,
-                                  title: str = "Platform pose error before and after calibration",
-                                  protect: Iterable[StrPath] = (), outputs: OutputSet | None = None,
-                                  outliers: Sequence[int] | np.ndarray = (), labels: Sequence[str] | None = None) -> Path:
+def plot_pose_errors_before_after(
+    before: PoseErrors,
+    after: PoseErrors,
+    path: StrPath,
+    title: str = "Platform pose error before and after calibration",
+    protect: Iterable[StrPath] = (),
+    outputs: OutputSet | None = None,
+    outliers: Sequence[int] | np.ndarray = (),
+    labels: Sequence[str] | None = None,
+) -> Path:
     """Paper Fig. 4: (a) orientation error and (b) position error per pose, before and after.
 
     before, after: errors of the nominal and of the calibrated model against the actual machine
@@ -174,8 +194,9 @@ def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: S
         b = _nonnegative(_finite_array(getattr(before, kind), f"before.{kind}"), f"before.{kind}")
         a = _nonnegative(_finite_array(getattr(after, kind), f"after.{kind}"), f"after.{kind}")
         if len(a) != len(b):
-            raise InvalidInputError(f"before.{kind} has {len(b)} poses, after.{kind} {len(a)}: "
-                                    "before and after must be at the same poses")
+            raise InvalidInputError(
+                f"before.{kind} has {len(b)} poses, after.{kind} {len(a)}: before and after must be at the same poses"
+            )
         panels.append((label, units, b, a))
     left_out, names = _outlier_labels(outliers, labels, len(panels[0][2]))
 
@@ -188,9 +209,16 @@ def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: S
         index = np.arange(1, len(b) + 1)
         over = f" of {len(kept)} fitted poses" if len(left_out) else ""
         for values, name, style, colour in ((b, "before", "o-", "tab:red"), (a, "after", "s-", "tab:blue")):
-            ax.semilogy(index, values, style, ms=3, lw=0.8, color=colour,
-                        label=f"{name}: mean {_readable(float(np.mean(values[kept])), units)}{over}"
-                              f"{_zero_note(int(np.sum(values == 0)))}")
+            ax.semilogy(
+                index,
+                values,
+                style,
+                ms=3,
+                lw=0.8,
+                color=colour,
+                label=f"{name}: mean {_readable(float(np.mean(values[kept])), units)}{over}"
+                f"{_zero_note(int(np.sum(values == 0)))}",
+            )
         if len(left_out):
             _mark_outliers(ax, index[left_out], np.vstack([b[left_out], a[left_out]]), names)
         _readable_log_axis(ax.yaxis, units)
@@ -205,13 +233,15 @@ def plot_pose_errors_before_after(before: PoseErrors, after: PoseErrors, path: S
 _MAX_LABELS = 12  # more names than this cover the curves; the PNG's description lists them all
 
 
-def _outlier_labels(outliers: Sequence[int] | np.ndarray, labels: Sequence[str] | None, count: int
-                    ) -> tuple[np.ndarray, list[str]]:
+def _outlier_labels(
+    outliers: Sequence[int] | np.ndarray, labels: Sequence[str] | None, count: int
+) -> tuple[np.ndarray, list[str]]:
     """(sorted indices, their names) of the outliers among `count` poses, checked."""
     index = np.unique(np.asarray(outliers, dtype=int))
     if index.size and (index[0] < 0 or index[-1] >= count):
-        raise InvalidInputError(f"outliers: pose index {index[0] if index[0] < 0 else index[-1]} out of range "
-                                f"for {count} poses")
+        raise InvalidInputError(
+            f"outliers: pose index {index[0] if index[0] < 0 else index[-1]} out of range for {count} poses"
+        )
     if labels is not None and len(labels) != count:
         raise InvalidInputError(f"labels: {len(labels)} for {count} poses, one per pose")
     return index, [str(labels[i]) if labels is not None else f"pose {i + 1}" for i in index]
@@ -233,11 +263,16 @@ def _outlier_description(names: Sequence[str]) -> str:
     return "outliers: " + (", ".join(names) if names else "none")
 
 
-def plot_error_vs_poses(n_poses: Sequence[int], position_errors: Sequence[float],
-                        rotation_errors: Sequence[float] | None, path: StrPath,
-                        predicted: tuple[Sequence[float], Sequence[float] | None] | None = None,
-                        title: str = "Held-out error vs number of calibration poses",
-                        protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
+def plot_error_vs_poses(
+    n_poses: Sequence[int],
+    position_errors: Sequence[float],
+    rotation_errors: Sequence[float] | None,
+    path: StrPath,
+    predicted: tuple[Sequence[float], Sequence[float] | None] | None = None,
+    title: str = "Held-out error vs number of calibration poses",
+    protect: Iterable[StrPath] = (),
+    outputs: OutputSet | None = None,
+) -> Path:
     """Held-out platform error of the calibrated model against the number of calibration poses N.
 
     n_poses: N per study (>= 1); position_errors [m] and rotation_errors [rad] (None for
@@ -249,11 +284,23 @@ def plot_error_vs_poses(n_poses: Sequence[int], position_errors: Sequence[float]
     if np.any(n < 1):
         raise InvalidInputError(f"n_poses: every N must be >= 1, got {n.min():g}")
     series: list[tuple[str, tuple[_Unit, ...], np.ndarray, Sequence[float] | np.ndarray | None]]
-    series = [("Position error", _LENGTH_UNITS, _finite_array(position_errors, "position_errors"),
-               None if predicted is None else predicted[0])]
+    series = [
+        (
+            "Position error",
+            _LENGTH_UNITS,
+            _finite_array(position_errors, "position_errors"),
+            None if predicted is None else predicted[0],
+        )
+    ]
     if rotation_errors is not None:
-        series.append(("Orientation error", _ANGLE_UNITS, _finite_array(rotation_errors, "rotation_errors"),
-                       None if predicted is None else predicted[1]))
+        series.append(
+            (
+                "Orientation error",
+                _ANGLE_UNITS,
+                _finite_array(rotation_errors, "rotation_errors"),
+                None if predicted is None else predicted[1],
+            )
+        )
     checked = []
     for name, units, measured, prediction in series:
         _nonnegative(measured, name)
@@ -270,7 +317,9 @@ def plot_error_vs_poses(n_poses: Sequence[int], position_errors: Sequence[float]
     figure.suptitle(title)
     axes = np.atleast_1d(figure.subplots(1, len(checked)))
     for ax, (name, units, measured, prediction) in zip(axes, checked):
-        ax.loglog(n, measured, "o-", color="tab:blue", label=f"measured (held out){_zero_note(int(np.sum(measured == 0)))}")
+        ax.loglog(
+            n, measured, "o-", color="tab:blue", label=f"measured (held out){_zero_note(int(np.sum(measured == 0)))}"
+        )
         if prediction is not None:
             ax.loglog(n, prediction, "--", color="tab:gray", label="predicted from covariance")
         _readable_log_axis(ax.yaxis, units)
@@ -303,21 +352,31 @@ def _log_norm(values: np.ndarray) -> LogNorm:
 _PLATFORM_PLANE = ("platform x [m]", "platform y [m]")
 
 
-def _scatter_panels(figure: Figure, xy: np.ndarray, panels: list[tuple[str, np.ndarray]], units: tuple[_Unit, ...],
-                    quantity: str, shared_scale: bool, plane: tuple[str, str] = _PLATFORM_PLANE) -> None:
+def _scatter_panels(
+    figure: Figure,
+    xy: np.ndarray,
+    panels: list[tuple[str, np.ndarray]],
+    units: tuple[_Unit, ...],
+    quantity: str,
+    shared_scale: bool,
+    plane: tuple[str, str] = _PLATFORM_PLANE,
+) -> None:
     """Side-by-side scatters over a plane (axis labels `plane`) of SI magnitudes on log colour scales,
     shared or one per panel."""
     axes = np.atleast_1d(figure.subplots(1, len(panels), sharex=True, sharey=True))
     shared = _log_norm(np.concatenate([v for _, v in panels])) if shared_scale else None
     for ax, (label, v) in zip(axes, panels):
         drawn = v > 0
-        mappable = ax.scatter(xy[drawn, 0], xy[drawn, 1], c=v[drawn], norm=shared or _log_norm(v), cmap="viridis",
-                              s=16, edgecolors="none")
+        mappable = ax.scatter(
+            xy[drawn, 0], xy[drawn, 1], c=v[drawn], norm=shared or _log_norm(v), cmap="viridis", s=16, edgecolors="none"
+        )
         if not drawn.all():
             ax.scatter(xy[~drawn, 0], xy[~drawn, 1], marker="x", s=16, color="k", label="exactly 0")
             ax.legend(fontsize="small")
-        ax.set_title(f"{label}\nmean {_readable(float(np.mean(v)), units)}, max {_readable(float(np.max(v)), units)}",
-                     fontsize="medium")
+        ax.set_title(
+            f"{label}\nmean {_readable(float(np.mean(v)), units)}, max {_readable(float(np.max(v)), units)}",
+            fontsize="medium",
+        )
         ax.set_xlabel(plane[0])
         ax.set_aspect("equal", adjustable="box")
         ax.grid(True, alpha=0.3)
@@ -327,11 +386,17 @@ def _scatter_panels(figure: Figure, xy: np.ndarray, panels: list[tuple[str, np.n
     axes[0].set_ylabel(plane[1])
 
 
-def plot_workspace_error_map(targets: object, errors_before: Sequence[float] | np.ndarray,
-                             errors_after: Sequence[float] | np.ndarray,
-                             path: StrPath, kind: str = "position", shared_scale: bool = False,
-                             title: str = "Error of the actual platform over the workspace",
-                             protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
+def plot_workspace_error_map(
+    targets: object,
+    errors_before: Sequence[float] | np.ndarray,
+    errors_after: Sequence[float] | np.ndarray,
+    path: StrPath,
+    kind: str = "position",
+    shared_scale: bool = False,
+    title: str = "Error of the actual platform over the workspace",
+    protect: Iterable[StrPath] = (),
+    outputs: OutputSet | None = None,
+) -> Path:
     """Error of the actual platform at each target, without and with compensation, over x-y.
 
     targets: (N, >= 2) rows (x, y, ...) [m] (rows x, y, z, theta accepted; z and theta are
@@ -347,21 +412,33 @@ def plot_workspace_error_map(targets: object, errors_before: Sequence[float] | n
     before = _nonnegative(_finite_array(errors_before, "errors_before"), "errors_before")
     after = _nonnegative(_finite_array(errors_after, "errors_after"), "errors_after")
     if not len(before) == len(after) == len(xy):
-        raise InvalidInputError(f"{len(xy)} targets, {len(before)} errors before, {len(after)} after: "
-                                "one error of each per target")
+        raise InvalidInputError(
+            f"{len(xy)} targets, {len(before)} errors before, {len(after)} after: one error of each per target"
+        )
     _check_output(path, protect, outputs)
     figure = Figure(figsize=(8.5, 6.0), layout="constrained")
     planar = _finite_array(targets, "targets", ndim=2).shape[1] == 2  # the five-bar's x, y: nothing projected
     figure.suptitle(f"{title}\n({len(xy)} targets{'' if planar else '; z and theta projected onto x-y'})")
-    _scatter_panels(figure, xy, [("uncompensated", before), ("compensated", after)],
-                    _LENGTH_UNITS if kind == "position" else _ANGLE_UNITS, f"{kind} error", shared_scale)
+    _scatter_panels(
+        figure,
+        xy,
+        [("uncompensated", before), ("compensated", after)],
+        _LENGTH_UNITS if kind == "position" else _ANGLE_UNITS,
+        f"{kind} error",
+        shared_scale,
+    )
     return _save(figure, path, protect, outputs)
 
 
-def plot_predicted_std_map(targets: object, std: PoseErrors, path: StrPath,
-                           title: str = "Predicted standard deviation of the calibrated platform pose",
-                           protect: Iterable[StrPath] = (), plane: tuple[str, str] = _PLATFORM_PLANE,
-                           outputs: OutputSet | None = None) -> Path:
+def plot_predicted_std_map(
+    targets: object,
+    std: PoseErrors,
+    path: StrPath,
+    title: str = "Predicted standard deviation of the calibrated platform pose",
+    protect: Iterable[StrPath] = (),
+    plane: tuple[str, str] = _PLATFORM_PLANE,
+    outputs: OutputSet | None = None,
+) -> Path:
     """Predicted pose uncertainty of the calibrated model over the workspace, drawn over a plane.
 
     targets: (N, >= 2) rows whose first two columns place each pose in the plane (default x, y [m];
@@ -388,8 +465,9 @@ def plot_predicted_std_map(targets: object, std: PoseErrors, path: StrPath,
 # Validation of a calibrated model on a measurement file
 
 
-def _validation_rows(errors: object, flagged: object, labels: Sequence[str], what: str
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def _validation_rows(
+    errors: object, flagged: object, labels: Sequence[str], what: str
+) -> tuple[np.ndarray, np.ndarray]:
     """(errors, flagged mask) checked against each other and the labels, one per predicted row."""
     values = _nonnegative(_finite_array(errors, what), what)
     mask = np.asarray(flagged, dtype=bool).reshape(-1)
@@ -404,11 +482,19 @@ def _flag_description(mask: np.ndarray, labels: Sequence[str]) -> str:
 
 def _name_flagged(ax, x: np.ndarray, y: np.ndarray, mask: np.ndarray, labels: Sequence[str]) -> None:
     """Circle the flagged points in red and name the first `_MAX_LABELS` of them."""
-    ax.scatter(x[mask], y[mask], s=70, facecolors="none", edgecolors="tab:red", linewidths=1.2,
-               label=f"beyond the 5-sigma gate ({int(mask.sum())})")
+    ax.scatter(
+        x[mask],
+        y[mask],
+        s=70,
+        facecolors="none",
+        edgecolors="tab:red",
+        linewidths=1.2,
+        label=f"beyond the 5-sigma gate ({int(mask.sum())})",
+    )
     for k in np.flatnonzero(mask)[:_MAX_LABELS]:
-        ax.annotate(labels[k], (x[k], y[k]), xytext=(4, 4), textcoords="offset points", fontsize="x-small",
-                    color="tab:red")
+        ax.annotate(
+            labels[k], (x[k], y[k]), xytext=(4, 4), textcoords="offset points", fontsize="x-small", color="tab:red"
+        )
 
 
 def _chi3_cdf(radius: np.ndarray, sigma: float) -> np.ndarray:
@@ -416,10 +502,18 @@ def _chi3_cdf(radius: np.ndarray, sigma: float) -> np.ndarray:
     return scipy.special.gammainc(1.5, np.square(radius / sigma) / 2.0)
 
 
-def plot_validation_histogram(position: object, rotation: object | None, noise: tuple[float, float], scale: float,
-                              flagged: object, labels: Sequence[str], path: StrPath,
-                              title: str = "Prediction errors of the calibrated model",
-                              protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
+def plot_validation_histogram(
+    position: object,
+    rotation: object | None,
+    noise: tuple[float, float],
+    scale: float,
+    flagged: object,
+    labels: Sequence[str],
+    path: StrPath,
+    title: str = "Prediction errors of the calibrated model",
+    protect: Iterable[StrPath] = (),
+    outputs: OutputSet | None = None,
+) -> Path:
     """Histograms of the position [m] (and rotation [rad], or None) errors of validated rows, the rows
     beyond the gate stacked in red, against the counts the noise model expects: a 3-D error of
     independent N(0, sigma^2) coordinates, sigma = noise (sigma_p [m], sigma_r [rad]) times `scale`
@@ -429,8 +523,9 @@ def plot_validation_histogram(position: object, rotation: object | None, noise: 
     series = [("position error", _LENGTH_UNITS, position, noise[0])]
     if rotation is not None:
         series.append(("rotation error", _ANGLE_UNITS, rotation, noise[1]))
-    checked = [(name, units, *_validation_rows(values, flagged, labels, name), sigma)
-               for name, units, values, sigma in series]
+    checked = [
+        (name, units, *_validation_rows(values, flagged, labels, name), sigma) for name, units, values, sigma in series
+    ]
     if not (math.isfinite(scale) and scale >= 1.0) or min(noise) <= 0:
         raise InvalidInputError(f"noise {noise} and scale {scale}: positive noise and a scale of at least 1")
     _check_output(path, protect, outputs)
@@ -441,20 +536,32 @@ def plot_validation_histogram(position: object, rotation: object | None, noise: 
         low = min(float(values[values > 0].min(initial=sigma * scale)), 0.1 * sigma)
         high = max(float(values.max()), 5 * sigma * scale)
         edges = np.geomspace(low, high * 1.001, 31)
-        ax.hist([values[~mask], values[mask]], bins=edges, stacked=True, color=["tab:blue", "tab:red"],
-                label=[f"rows within the gate ({int((~mask).sum())})", f"beyond the gate ({int(mask.sum())})"])
+        ax.hist(
+            [values[~mask], values[mask]],
+            bins=edges,
+            stacked=True,
+            color=["tab:blue", "tab:red"],
+            label=[f"rows within the gate ({int((~mask).sum())})", f"beyond the gate ({int(mask.sum())})"],
+        )
         curves = [(1.0, "--", "noise as stated")]
         if scale > 1.0:
             curves.append((scale, "-", f"noise x s = {scale:.3g}"))
         for factor, style, text in curves:
             expected = len(values) * np.diff(_chi3_cdf(edges, sigma * factor))
-            ax.stairs(expected, edges, color="black", linestyle=style,
-                      label=f"{text} ({_readable(sigma * factor, units)} per axis)")
+            ax.stairs(
+                expected,
+                edges,
+                color="black",
+                linestyle=style,
+                label=f"{text} ({_readable(sigma * factor, units)} per axis)",
+            )
         ax.set_xscale("log")
         ax.xaxis.set_major_formatter(_ReadableLogFormatter(units))
         ax.xaxis.set_minor_formatter(_two_and_five(units))  # every minor label would collide on this axis
-        ax.set_xlabel(f"{name} (mean {_readable(float(values.mean()), units)}, "
-                      f"RMS {_readable(float(np.sqrt(np.mean(values ** 2))), units)})")
+        ax.set_xlabel(
+            f"{name} (mean {_readable(float(values.mean()), units)}, "
+            f"RMS {_readable(float(np.sqrt(np.mean(values**2))), units)})"
+        )
         ax.set_ylabel("rows")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize="small")
@@ -463,9 +570,11 @@ def plot_validation_histogram(position: object, rotation: object | None, noise: 
 
 def _two_and_five(units: tuple[_Unit, ...]):
     """Tick labels of a log axis at 2 and 5 times a power of ten only."""
+
     def label(value: float, _: object) -> str:
         mantissa = round(value / 10.0 ** math.floor(math.log10(value)), 6) if value > 0 else 0.0
         return _readable(value, units) if mantissa in (2.0, 5.0) else ""
+
     return label
 
 
@@ -474,9 +583,16 @@ def _normal_quantiles(count: int) -> np.ndarray:
     return scipy.special.ndtri((np.arange(1, count + 1) - 0.375) / (count + 0.25))
 
 
-def plot_normalised_qq(residuals: object, scale: float, flagged: object, labels: Sequence[str], path: StrPath,
-                       title: str = "Normalised residuals against the noise model",
-                       protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
+def plot_normalised_qq(
+    residuals: object,
+    scale: float,
+    flagged: object,
+    labels: Sequence[str],
+    path: StrPath,
+    title: str = "Normalised residuals against the noise model",
+    protect: Iterable[StrPath] = (),
+    outputs: OutputSet | None = None,
+) -> Path:
     """Normal QQ plot of every residual coordinate divided by its stated noise: residuals (M, 3) or
     (M, 6), [dp / sigma_p, dr / sigma_r] per validated row (`Validation.residuals`), one panel for
     position and one for orientation. Under the noise model the points lie on y = x; on y = s x when
@@ -517,10 +633,17 @@ def plot_normalised_qq(residuals: object, scale: float, flagged: object, labels:
     return _save(figure, path, protect, outputs, _flag_description(mask, labels))
 
 
-def plot_errors_over_workspace(positions: object, errors: object, flagged: object, labels: Sequence[str],
-                               path: StrPath, frame: str = "measurement frame",
-                               title: str = "Position error of the calibrated model where each row was measured",
-                               protect: Iterable[StrPath] = (), outputs: OutputSet | None = None) -> Path:
+def plot_errors_over_workspace(
+    positions: object,
+    errors: object,
+    flagged: object,
+    labels: Sequence[str],
+    path: StrPath,
+    frame: str = "measurement frame",
+    title: str = "Position error of the calibrated model where each row was measured",
+    protect: Iterable[StrPath] = (),
+    outputs: OutputSet | None = None,
+) -> Path:
     """The measured positions (M, 3) [m] in `frame`, over x-y and x-z, coloured by each row's
     position error [m] (log colour scale), the flagged rows circled and named by their label.
     Returns the PNG path."""
@@ -532,14 +655,17 @@ def plot_errors_over_workspace(positions: object, errors: object, flagged: objec
         raise InvalidInputError(f"{len(xyz)} positions for {len(values)} errors")
     _check_output(path, protect, outputs)
     figure = Figure(figsize=(10.0, 4.8), layout="constrained")
-    figure.suptitle(f"{title}\n(mean {_readable(float(values.mean()), _LENGTH_UNITS)}, "
-                    f"max {_readable(float(values.max()), _LENGTH_UNITS)})")
+    figure.suptitle(
+        f"{title}\n(mean {_readable(float(values.mean()), _LENGTH_UNITS)}, "
+        f"max {_readable(float(values.max()), _LENGTH_UNITS)})"
+    )
     axes = figure.subplots(1, 2)
     norm = _log_norm(values)
     drawn = values > 0
     for ax, (i, j) in zip(axes, ((0, 1), (0, 2))):
-        mappable = ax.scatter(xyz[drawn, i], xyz[drawn, j], c=values[drawn], norm=norm, cmap="viridis", s=18,
-                              edgecolors="none")
+        mappable = ax.scatter(
+            xyz[drawn, i], xyz[drawn, j], c=values[drawn], norm=norm, cmap="viridis", s=18, edgecolors="none"
+        )
         _name_flagged(ax, xyz[:, i], xyz[:, j], mask, labels)
         ax.set_xlabel(f"{frame} {'xyz'[i]} [m]")
         ax.set_ylabel(f"{frame} {'xyz'[j]} [m]")

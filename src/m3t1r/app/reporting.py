@@ -44,34 +44,55 @@ from m3t1r.model.workspace import declared_workspace
 if TYPE_CHECKING:
     from m3t1r.calibration.validation import Validation
 
-__all__ = ["measured_pose_errors", "cross_validation_curve", "write_calibration_plots", "check_plots_folder",
-           "declare_plot_outputs", "PLOT_NAMES", "VALIDATION_PLOT_NAMES", "declare_validation_plot_outputs",
-           "write_validation_plots", "row_labels",
-           "PassiveJointResiduals", "passive_joint_residuals", "IDLE_CHAIN_JOINTS"]
+__all__ = [
+    "measured_pose_errors",
+    "cross_validation_curve",
+    "write_calibration_plots",
+    "check_plots_folder",
+    "declare_plot_outputs",
+    "PLOT_NAMES",
+    "VALIDATION_PLOT_NAMES",
+    "declare_validation_plot_outputs",
+    "write_validation_plots",
+    "row_labels",
+    "PassiveJointResiduals",
+    "passive_joint_residuals",
+    "IDLE_CHAIN_JOINTS",
+]
 # check_plots_folder, the passive-joint residuals and IDLE_CHAIN_JOINTS live in modules without
 # matplotlib (`calibrate` imports this module only for --plots); they are named here too, as before.
 
 
-def measured_pose_errors(machine: Mechanism, measurements: PoseMeasurements,
-                         setup: MeasurementSetup = MeasurementSetup()) -> PoseErrors:
+def measured_pose_errors(
+    machine: Mechanism, measurements: PoseMeasurements, setup: MeasurementSetup = MeasurementSetup()
+) -> PoseErrors:
     """Model prediction (setup.frame . platform . setup.marker) vs measured pose at the measured
     sliders: position norm [m], rotation angle [rad] (NaN rotation for position-only data)."""
     predicted = setup.measured_poses(assembled_from_home(machine, measurements.actuators).poses)
     measured = np.array([pose.homogeneous for pose in measurements.poses]).reshape(-1, 4, 4)
     position = np.linalg.norm(predicted[:, :3, 3] - measured[:, :3, 3], axis=1)
-    rotation = (np.full(len(position), np.nan) if measurements.position_only
-                else rotation_angles(measured[:, :3, :3], predicted[:, :3, :3]))
+    rotation = (
+        np.full(len(position), np.nan)
+        if measurements.position_only
+        else rotation_angles(measured[:, :3, :3], predicted[:, :3, :3])
+    )
     return PoseErrors(position, rotation)
 
 
 def _subset(measurements: PoseMeasurements, indices: np.ndarray) -> PoseMeasurements:
-    return PoseMeasurements(measurements.actuators[indices], tuple(measurements.poses[i] for i in indices),
-                            measurements.position_only)
+    return PoseMeasurements(
+        measurements.actuators[indices], tuple(measurements.poses[i] for i in indices), measurements.position_only
+    )
 
 
-def cross_validation_curve(nominal: Mechanism, measurements: PoseMeasurements, noise: TrackerNoise,
-                           seed: int = 0, test_fraction: float = 0.2, **fit_options
-                           ) -> tuple[list[int], list[float], list[float]]:
+def cross_validation_curve(
+    nominal: Mechanism,
+    measurements: PoseMeasurements,
+    noise: TrackerNoise,
+    seed: int = 0,
+    test_fraction: float = 0.2,
+    **fit_options,
+) -> tuple[list[int], list[float], list[float]]:
     """(training sizes, mean position error [m], mean rotation error [rad]) on held-back poses.
 
     fit_options go to `calibrate_closed_loop` (e.g. the measurement setup to estimate). Sizes too
@@ -111,10 +132,16 @@ def declare_plot_outputs(outputs: OutputSet, folder: str | Path) -> Path:
     return folder
 
 
-def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibration, out_dir: Path,
-                            protect: Iterable[Path] = (), noise: TrackerNoise = TrackerNoise(),
-                            seed: int = 0, outputs: OutputSet | None = None,
-                            labels: Sequence[str] | None = None) -> list[Path]:
+def write_calibration_plots(
+    nominal: Mechanism,
+    calibration: ClosedLoopCalibration,
+    out_dir: Path,
+    protect: Iterable[Path] = (),
+    noise: TrackerNoise = TrackerNoise(),
+    seed: int = 0,
+    outputs: OutputSet | None = None,
+    labels: Sequence[str] | None = None,
+) -> list[Path]:
     """Write the calibration plots (module docstring) into out_dir as a unit; return their paths.
 
     The calibration's own inlier measurements and measurement setup are used throughout, but for
@@ -141,43 +168,78 @@ def write_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibrati
     return written
 
 
-def _stage_calibration_plots(nominal: Mechanism, calibration: ClosedLoopCalibration, out_dir: Path,
-                             noise: TrackerNoise, seed: int, outputs: OutputSet,
-                             labels: Sequence[str] | None) -> list[Path]:
+def _stage_calibration_plots(
+    nominal: Mechanism,
+    calibration: ClosedLoopCalibration,
+    out_dir: Path,
+    noise: TrackerNoise,
+    seed: int,
+    outputs: OutputSet,
+    labels: Sequence[str] | None,
+) -> list[Path]:
     problem, start = calibration.problem, calibration.start
     if problem is None or start is None:
         raise InvalidInputError("write_calibration_plots needs a calibration made by calibrate_closed_loop")
     measurements = _subset(problem.measurements, np.flatnonzero(problem.active))
-    written = [plot_pose_errors_before_after(
-        measured_pose_errors(nominal, problem.measurements, start.setup),
-        measured_pose_errors(calibration.mechanism, problem.measurements, calibration.setup),
-        out_dir / PLOT_NAMES[0], title="Calibration poses: model vs measured pose", outputs=outputs,
-        outliers=np.flatnonzero(~problem.active), labels=labels)]
+    written = [
+        plot_pose_errors_before_after(
+            measured_pose_errors(nominal, problem.measurements, start.setup),
+            measured_pose_errors(calibration.mechanism, problem.measurements, calibration.setup),
+            out_dir / PLOT_NAMES[0],
+            title="Calibration poses: model vs measured pose",
+            outputs=outputs,
+            outliers=np.flatnonzero(~problem.active),
+            labels=labels,
+        )
+    ]
     sizes, position, rotation = cross_validation_curve(
-        nominal, measurements, noise, seed, setup=MeasurementSetup(marker=start.setup.marker),
-        estimate_frame=problem.frame_slot is not None, estimate_marker=problem.marker_slot is not None)
+        nominal,
+        measurements,
+        noise,
+        seed,
+        setup=MeasurementSetup(marker=start.setup.marker),
+        estimate_frame=problem.frame_slot is not None,
+        estimate_marker=problem.marker_slot is not None,
+    )
     if sizes:
-        written.append(plot_error_vs_poses(sizes, position, None if measurements.position_only else rotation,
-                                           out_dir / PLOT_NAMES[1],
-                                           title="Cross-validated error vs number of calibration poses",
-                                           outputs=outputs))
+        written.append(
+            plot_error_vs_poses(
+                sizes,
+                position,
+                None if measurements.position_only else rotation,
+                out_dir / PLOT_NAMES[1],
+                title="Cross-validated error vs number of calibration poses",
+                outputs=outputs,
+            )
+        )
     sliders, where, plane = map_poses(calibration.mechanism, 300, np.random.default_rng(seed))
     # What the tracker would measure, in its own frame, with the setup's uncertainty: with an estimated
     # frame the platform's place in the machine's base is not observable (`predicted_measurement_std`),
     # so a map of the platform in the base would show the gauge, not the accuracy of a command.
     std = predicted_measurement_std(calibration, sliders)
-    plain = calibration.setup.frame.isIdentity() and calibration.setup.marker.isIdentity() and \
-        problem.frame_slot is None and problem.marker_slot is None
-    title = ("Predicted error after compensation (1 sigma)" if plain else
-             "Predicted error of the measured point in the measurement frame (1 sigma),\n"
-             "for poses commanded in that frame after calibration")
-    written.append(plot_predicted_std_map(where, std, out_dir / PLOT_NAMES[2], title=title, protect=(),
-                                          plane=plane, outputs=outputs))
+    plain = (
+        calibration.setup.frame.isIdentity()
+        and calibration.setup.marker.isIdentity()
+        and problem.frame_slot is None
+        and problem.marker_slot is None
+    )
+    title = (
+        "Predicted error after compensation (1 sigma)"
+        if plain
+        else "Predicted error of the measured point in the measurement frame (1 sigma),\n"
+        "for poses commanded in that frame after calibration"
+    )
+    written.append(
+        plot_predicted_std_map(
+            where, std, out_dir / PLOT_NAMES[2], title=title, protect=(), plane=plane, outputs=outputs
+        )
+    )
     return written
 
 
-def map_poses(mechanism: Mechanism, count: int, rng: np.random.Generator
-              ) -> tuple[np.ndarray, np.ndarray, tuple[str, str]]:
+def map_poses(
+    mechanism: Mechanism, count: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, tuple[str, str]]:
     """Slider sets (M, k) drawn in the mechanism's declared workspace box (task or actuators) that
     assemble from home, their place in a plane (M, 2) and the plane's axis labels: the task frame's
     first two box coordinates (M machine and five-bar: x, y [m]; an orientation task: roll, pitch
@@ -193,8 +255,11 @@ def map_poses(mechanism: Mechanism, count: int, rng: np.random.Generator
         return sliders, batch.poses[:, :2, 3], ("platform x [m]", "platform y [m]")
     where = task.box_coordinates(batch.task_poses)[:, :2]
     units = ["m" if key in task.position else "rad" for key in task.box_keys[:2]]
-    return sliders, where, (f"{task.frame} {task.box_keys[0]} [{units[0]}]",
-                            f"{task.frame} {task.box_keys[1]} [{units[1]}]")
+    return (
+        sliders,
+        where,
+        (f"{task.frame} {task.box_keys[0]} [{units[0]}]", f"{task.frame} {task.box_keys[1]} [{units[1]}]"),
+    )
 
 
 #: The files `write_validation_plots` writes into its folder.
@@ -231,11 +296,32 @@ def write_validation_plots(result: Validation, out_dir: Path, outputs: OutputSet
     folder = Path(out_dir)
     rotation = None if result.position_only else result.errors.rotation
     return [
-        plot_validation_histogram(result.errors.position, rotation, result.noise, result.scale, flagged, labels,
-                                  folder / VALIDATION_PLOT_NAMES[0], outputs=outputs,
-                                  title=f"Prediction errors of the calibrated model\n{predicted}"),
-        plot_normalised_qq(result.residuals, result.scale, flagged, labels, folder / VALIDATION_PLOT_NAMES[1],
-                           outputs=outputs, title=f"Residuals over the report's noise model\n{predicted}"),
-        plot_errors_over_workspace(result.measured[result.rows, :3, 3], result.errors.position, flagged, labels,
-                                   folder / VALIDATION_PLOT_NAMES[2], outputs=outputs),
+        plot_validation_histogram(
+            result.errors.position,
+            rotation,
+            result.noise,
+            result.scale,
+            flagged,
+            labels,
+            folder / VALIDATION_PLOT_NAMES[0],
+            outputs=outputs,
+            title=f"Prediction errors of the calibrated model\n{predicted}",
+        ),
+        plot_normalised_qq(
+            result.residuals,
+            result.scale,
+            flagged,
+            labels,
+            folder / VALIDATION_PLOT_NAMES[1],
+            outputs=outputs,
+            title=f"Residuals over the report's noise model\n{predicted}",
+        ),
+        plot_errors_over_workspace(
+            result.measured[result.rows, :3, 3],
+            result.errors.position,
+            flagged,
+            labels,
+            folder / VALIDATION_PLOT_NAMES[2],
+            outputs=outputs,
+        ),
     ]

@@ -54,9 +54,23 @@ from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError, require
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
 
-__all__ = ["ROOT_NODE", "MEASUREMENTS_NODE", "NOMINAL_COLOR", "CALIBRATED_COLOR", "MARKER_COLOR", "MachineView", "Camera",
-           "DEFAULT_CAMERA", "PosedMachine", "ViewerError", "comparison_views", "pose_machines",
-           "magnified_placement", "check_magnification", "automatic_magnification"]
+__all__ = [
+    "ROOT_NODE",
+    "MEASUREMENTS_NODE",
+    "NOMINAL_COLOR",
+    "CALIBRATED_COLOR",
+    "MARKER_COLOR",
+    "MachineView",
+    "Camera",
+    "DEFAULT_CAMERA",
+    "PosedMachine",
+    "ViewerError",
+    "comparison_views",
+    "pose_machines",
+    "magnified_placement",
+    "check_magnification",
+    "automatic_magnification",
+]
 
 
 Rgba: TypeAlias = "tuple[float, float, float, float]"
@@ -98,8 +112,9 @@ class MachineView:
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
-            raise InvalidInputError(f"machine name {self.name!r}: use letters, digits, '_', '.' or '-' "
-                                    "(it becomes a meshcat scene node)")
+            raise InvalidInputError(
+                f"machine name {self.name!r}: use letters, digits, '_', '.' or '-' (it becomes a meshcat scene node)"
+            )
         if self.name == MEASUREMENTS_NODE.rsplit("/", 1)[1]:
             raise InvalidInputError(f"machine name '{self.name}' is reserved for the measured poses")
         if not isinstance(self.mechanism, Mechanism):
@@ -107,8 +122,9 @@ class MachineView:
         if self.color is not None:
             rgba = require_finite_vector(self.color, 4, f"colour of machine '{self.name}' (r, g, b, a)")
             if np.any((rgba < 0.0) | (rgba > 1.0)):
-                raise InvalidInputError(f"colour of machine '{self.name}': components must be in [0, 1], "
-                                        f"got {tuple(rgba)}")
+                raise InvalidInputError(
+                    f"colour of machine '{self.name}': components must be in [0, 1], got {tuple(rgba)}"
+                )
             object.__setattr__(self, "color", tuple(float(c) for c in rgba))
 
     @property
@@ -170,8 +186,9 @@ def comparison_views(nominal: Mechanism, calibrated: Mechanism | None = None) ->
 # --------------------------------------------------------------------------------------------
 
 
-def pose_machines(views: Sequence[MachineView], pose: Sequence[float] | None = None,
-                  sliders: Sequence[float] | None = None) -> tuple[PosedMachine, ...]:
+def pose_machines(
+    views: Sequence[MachineView], pose: Sequence[float] | None = None, sliders: Sequence[float] | None = None
+) -> tuple[PosedMachine, ...]:
     """Assemble every machine at one command (see the module docstring for the three modes).
 
     pose: task coordinates (`TaskSpec.columns`; the M machine's x, y, z, theta [m, m, m, rad]),
@@ -187,9 +204,16 @@ def pose_machines(views: Sequence[MachineView], pose: Sequence[float] | None = N
     if pose is not None and sliders is not None:
         raise InvalidInputError("give the platform pose or the slider values, not both")
     task = views[0].mechanism.task
-    target = None if pose is None else require_finite_vector(pose, len(task.columns), f"task pose ({', '.join(task.columns)})")
-    inputs = None if sliders is None else require_finite_vector(
-        sliders, len(views[0].mechanism.actuated_joints), "slider values")
+    target = (
+        None
+        if pose is None
+        else require_finite_vector(pose, len(task.columns), f"task pose ({', '.join(task.columns)})")
+    )
+    inputs = (
+        None
+        if sliders is None
+        else require_finite_vector(sliders, len(views[0].mechanism.actuated_joints), "slider values")
+    )
     posed = []
     for view in views:
         mechanism = view.mechanism
@@ -239,12 +263,14 @@ def _check_views(views: Sequence[MachineView]) -> tuple[MachineView, ...]:
                 f"machines '{first.name}' and '{view.name}' have different joints: "
                 f"only in '{first.name}': {', '.join(missing) or 'none'}; "
                 f"only in '{view.name}': {', '.join(extra) or 'none'} "
-                f"({first.mechanism.urdf_path} vs {view.mechanism.urdf_path})")
+                f"({first.mechanism.urdf_path} vs {view.mechanism.urdf_path})"
+            )
         if view.mechanism.actuated_joints != first.mechanism.actuated_joints:
             # The same slider vector must mean the same joints on every machine.
             raise InvalidInputError(
                 f"machines '{first.name}' and '{view.name}' actuate different joints: "
-                f"{', '.join(first.mechanism.actuated_joints)} vs {', '.join(view.mechanism.actuated_joints)}")
+                f"{', '.join(first.mechanism.actuated_joints)} vs {', '.join(view.mechanism.actuated_joints)}"
+            )
     return views
 
 
@@ -278,8 +304,9 @@ def automatic_magnification(posed: Sequence[PosedMachine]) -> float:
         for name, placement in _joint_placements(machine).items():
             offset = max(offset, float(np.linalg.norm(placement.translation - reference[name].translation)))
             angle = max(angle, float(np.linalg.norm(pin.log3(reference[name].rotation.T @ placement.rotation))))
-    limits = [share / value for share, value in ((MAGNIFIED_SHARE * size, offset), (MAGNIFIED_ANGLE, angle))
-              if value > 0]
+    limits = [
+        share / value for share, value in ((MAGNIFIED_SHARE * size, offset), (MAGNIFIED_ANGLE, angle)) if value > 0
+    ]
     if not limits:
         return 1.0
     factor = min(min(limits), MAX_MAGNIFICATION)
@@ -321,8 +348,13 @@ class _Lowered:
         return self.message
 
 
-def _draw(viewer: meshcat.Visualizer, posed: Sequence[PosedMachine], points: np.ndarray,
-          camera: Camera | None, magnification: float = 1.0) -> None:
+def _draw(
+    viewer: meshcat.Visualizer,
+    posed: Sequence[PosedMachine],
+    points: np.ndarray,
+    camera: Camera | None,
+    magnification: float = 1.0,
+) -> None:
     """Draw the machines (those after the first with their deviation from it magnified), the markers
     as measured, and place the camera."""
     viewer["/Background"].set_property("top_color", list(_BACKGROUND[0]))
@@ -332,8 +364,7 @@ def _draw(viewer: meshcat.Visualizer, posed: Sequence[PosedMachine], points: np.
         drawer = MeshcatVisualizer(mechanism.model, None, mechanism.visual_model)
         drawer.initViewer(viewer=viewer)
         node = f"{ROOT_NODE}/{view.name}"
-        drawer.loadViewerModel(rootNodeName=node,
-                               visual_color=None if view.color is None else list(view.color))
+        drawer.loadViewerModel(rootNodeName=node, visual_color=None if view.color is None else list(view.color))
         drawer.display(machine.q)
         platform = machine.platform
         if machine is not posed[0] and magnification != 1.0:
@@ -382,7 +413,8 @@ def _place_camera(viewer: meshcat.Visualizer, camera: Camera) -> None:
     # an offset (dx, dy, dz) from the target reads (dx, dz, -dy).
     offset = position - target
     viewer["/Cameras/default/rotated/<object>"].set_property(
-        "position", [float(offset[0]), float(offset[2]), float(-offset[1])])
+        "position", [float(offset[0]), float(offset[2]), float(-offset[1])]
+    )
 
 
 def _marker_positions(markers: Iterable[pin.SE3] | np.ndarray | None) -> np.ndarray:
@@ -402,4 +434,3 @@ def _marker_positions(markers: Iterable[pin.SE3] | np.ndarray | None) -> np.ndar
     if bad.size:
         raise InvalidInputError(f"markers: non-finite position at index {bad[0]}: {points[bad[0]]}")
     return points
-

@@ -68,10 +68,15 @@ class _Recording:
         return _page(self.messages, self.title, self.legend)
 
 
-def build_scene(views: Sequence[MachineView], pose: Sequence[float] | None = None,
-                sliders: Sequence[float] | None = None, markers: Iterable[pin.SE3] | np.ndarray | None = None,
-                viewer: meshcat.Visualizer | None = None, camera: Camera | None = DEFAULT_CAMERA,
-                magnification: float | None = None) -> meshcat.Visualizer:
+def build_scene(
+    views: Sequence[MachineView],
+    pose: Sequence[float] | None = None,
+    sliders: Sequence[float] | None = None,
+    markers: Iterable[pin.SE3] | np.ndarray | None = None,
+    viewer: meshcat.Visualizer | None = None,
+    camera: Camera | None = DEFAULT_CAMERA,
+    magnification: float | None = None,
+) -> meshcat.Visualizer:
     """Draw every machine, posed at one command, into `viewer` and return it.
 
     views: the machines, drawn in order (put the translucent ones last so the opaque ones show
@@ -91,8 +96,11 @@ def build_scene(views: Sequence[MachineView], pose: Sequence[float] | None = Non
     magnification = automatic_magnification(posed) if magnification is None else check_magnification(magnification)
     points = _marker_positions(markers)
     if viewer is None:
-        viewer = meshcat.Visualizer(window=_Recording(legend=_legend(posed, pose, sliders, magnification),
-                                                      title=_title(posed), magnification=magnification))
+        viewer = meshcat.Visualizer(
+            window=_Recording(
+                legend=_legend(posed, pose, sliders, magnification), title=_title(posed), magnification=magnification
+            )
+        )
     _draw(viewer, posed, points, camera, magnification)
     return viewer
 
@@ -118,8 +126,12 @@ def _page(messages: Sequence[dict[str, Any]], title: str, legend: str) -> str:
     # Commands are msgpack, base64-encoded and decoded synchronously in order: no fetch(), not
     # even of data: URLs, so the page works from file:// and offline in any browser.
     encoded = [base64.b64encode(umsgpack.packb(message)).decode("ascii") for message in messages]
-    return _PAGE.format(title=html.escape(title), legend=legend, viewer=_viewer_script(),
-                        commands=json.dumps(encoded, separators=(",", ":")))
+    return _PAGE.format(
+        title=html.escape(title),
+        legend=legend,
+        viewer=_viewer_script(),
+        commands=json.dumps(encoded, separators=(",", ":")),
+    )
 
 
 _PAGE = """<!DOCTYPE html>
@@ -177,8 +189,9 @@ def _task_text(columns: Sequence[str], values: Sequence[float]) -> str:
 def _actuator_text(mechanism, values: Sequence[float] | np.ndarray) -> str:
     """Prismatic actuators in mm, revolute ones in degrees."""
     model = mechanism.model
-    prismatic = [model.joints[model.getJointId(name)].shortname().startswith("JointModelP")
-                 for name in mechanism.actuated_joints]
+    prismatic = [
+        model.joints[model.getJointId(name)].shortname().startswith("JointModelP") for name in mechanism.actuated_joints
+    ]
     return ", ".join(_fixed(v * 1e3, 2) if slide else _fixed(math.degrees(v), 3) for v, slide in zip(values, prismatic))
 
 
@@ -186,8 +199,12 @@ def _title(posed: Sequence[PosedMachine]) -> str:
     return "m3t1r: " + " vs ".join(machine.view.name for machine in posed)
 
 
-def _legend(posed: Sequence[PosedMachine], pose: Sequence[float] | None, sliders: Sequence[float] | None,
-            magnification: float = 1.0) -> str:
+def _legend(
+    posed: Sequence[PosedMachine],
+    pose: Sequence[float] | None,
+    sliders: Sequence[float] | None,
+    magnification: float = 1.0,
+) -> str:
     mechanism = posed[0].view.mechanism
     if pose is not None:
         command = f"task pose {_task_text(mechanism.task.columns, pose)} reached by IK on each machine"
@@ -199,9 +216,12 @@ def _legend(posed: Sequence[PosedMachine], pose: Sequence[float] | None, sliders
     lines = [f"<div>{command}; actuators ({names}) in mm or &deg;</div>"]
     if len(posed) > 1:
         first = html.escape(posed[0].view.name)
-        scale = ("drawn at true scale" if magnification == 1.0 else
-                 f"drawn with their deviation from {first} magnified &times;{magnification:g} "
-                 f"(every body's offset and rotation; the figures below are true values)")
+        scale = (
+            "drawn at true scale"
+            if magnification == 1.0
+            else f"drawn with their deviation from {first} magnified &times;{magnification:g} "
+            f"(every body's offset and rotation; the figures below are true values)"
+        )
         lines.append(f'<div data-magnification="{magnification:g}">machines after {first} {scale}</div>')
     for machine in posed:
         view = machine.view
@@ -215,7 +235,8 @@ def _legend(posed: Sequence[PosedMachine], pose: Sequence[float] | None, sliders
             f'<div data-node="{html.escape(view.node)}"><span class="swatch" style="{swatch}"></span>'
             f"<b>{html.escape(view.name)}</b> ({html.escape(view.mechanism.urdf_path.name)}): "
             f"platform {', '.join(p)} mm, yaw {_fixed(math.degrees(yaw_of(machine.platform.rotation)), 3)}&deg;; "
-            f"actuators {_actuator_text(view.mechanism, machine.sliders)}</div>")
+            f"actuators {_actuator_text(view.mechanism, machine.sliders)}</div>"
+        )
     return "\n".join(lines)
 
 
@@ -238,11 +259,16 @@ def magnification_of(viewer: meshcat.Visualizer) -> float:
     return viewer.window.magnification
 
 
-def write_static_html(views: Sequence[MachineView], path: str | os.PathLike[str],
-                      pose: Sequence[float] | None = None, sliders: Sequence[float] | None = None,
-                      markers: Iterable[pin.SE3] | np.ndarray | None = None, camera: Camera | None = DEFAULT_CAMERA,
-                      protect: Iterable[str | os.PathLike[str]] = (),
-                      magnification: float | None = None) -> Path:
+def write_static_html(
+    views: Sequence[MachineView],
+    path: str | os.PathLike[str],
+    pose: Sequence[float] | None = None,
+    sliders: Sequence[float] | None = None,
+    markers: Iterable[pin.SE3] | np.ndarray | None = None,
+    camera: Camera | None = DEFAULT_CAMERA,
+    protect: Iterable[str | os.PathLike[str]] = (),
+    magnification: float | None = None,
+) -> Path:
     """Write the scene as one shareable HTML file (opens offline, from file://) and return its path.
 
     No server is started. The model files of every machine are protected on top of `protect`,
@@ -254,10 +280,11 @@ def write_static_html(views: Sequence[MachineView], path: str | os.PathLike[str]
     """
     target = Path(path)
     views = tuple(views)
-    protected = [*protect, *(p for v in views if isinstance(v, MachineView)
-                             for p in (v.mechanism.urdf_path, v.mechanism.closures_path))]
+    protected = [
+        *protect,
+        *(p for v in views if isinstance(v, MachineView) for p in (v.mechanism.urdf_path, v.mechanism.closures_path)),
+    ]
     ensure_not_protected(target, protected)
-    viewer = build_scene(views, pose=pose, sliders=sliders, markers=markers, camera=camera,
-                         magnification=magnification)
+    viewer = build_scene(views, pose=pose, sliders=sliders, markers=markers, camera=camera, magnification=magnification)
     atomic_write_text(target, scene_html(viewer), protect=protected)
     return target

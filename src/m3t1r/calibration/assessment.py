@@ -31,10 +31,28 @@ import pinocchio as pin
 from m3t1r.calibration.measurement_setup import register_frame
 from m3t1r.errors import IdentificationError
 
-__all__ = ["FitRejected", "MAX_NOISE_RATIO", "HOPELESS_RESIDUAL", "MAX_GROSS_SHARE", "SMALL_RESIDUAL", "Registration",
-           "StartCheck", "check_fit", "check_start", "gross_reading_reason", "likely_causes", "residual_causes",
-           "quaternion_order_causes", "metres_as_millimetres_causes", "describe_parameter", "fit_movement_notes",
-           "coverage_notes", "noise_from_residual", "register_with_offset", "unexplained_residual_warning"]
+__all__ = [
+    "FitRejected",
+    "MAX_NOISE_RATIO",
+    "HOPELESS_RESIDUAL",
+    "MAX_GROSS_SHARE",
+    "SMALL_RESIDUAL",
+    "Registration",
+    "StartCheck",
+    "check_fit",
+    "check_start",
+    "gross_reading_reason",
+    "likely_causes",
+    "residual_causes",
+    "quaternion_order_causes",
+    "metres_as_millimetres_causes",
+    "describe_parameter",
+    "fit_movement_notes",
+    "coverage_notes",
+    "noise_from_residual",
+    "register_with_offset",
+    "unexplained_residual_warning",
+]
 
 #: A fit is accepted while its whitened residual RMS is at most this many times the stated noise
 #: (variance factor <= 9): a margin for small unmodelled effects, far below a wrong unit, frame,
@@ -45,8 +63,14 @@ IMPLAUSIBLE_TRANSLATION, IMPLAUSIBLE_ROTATION = 0.02, 0.1
 #: ... unless within this many of its own standard deviation (a weakly determined parameter's noise).
 PLAUSIBLE_SIGMAS = 3.0
 
-_COMPONENTS = ("translation along x", "translation along y", "translation along z",
-               "rotation about x", "rotation about y", "rotation about z")
+_COMPONENTS = (
+    "translation along x",
+    "translation along y",
+    "translation along z",
+    "rotation about x",
+    "rotation about y",
+    "rotation about z",
+)
 
 
 #: The nominal model this far from the data (RMS, after the frame registration when estimated) is
@@ -69,9 +93,16 @@ class FitRejected(IdentificationError):
         super().__init__("\n".join(lines))
 
 
-def check_fit(converged: bool, termination: str, iterations: int, variance_factor: float,
-              causes: Sequence[str] = (), max_noise_ratio: float = MAX_NOISE_RATIO, *,
-              noise_estimated: bool = False) -> bool:
+def check_fit(
+    converged: bool,
+    termination: str,
+    iterations: int,
+    variance_factor: float,
+    causes: Sequence[str] = (),
+    max_noise_ratio: float = MAX_NOISE_RATIO,
+    *,
+    noise_estimated: bool = False,
+) -> bool:
     """Raise FitRejected when LM did not converge, when the variance factor is not finite, or when
     the residual is beyond `max_noise_ratio` times the noise and `causes` names why. With the noise
     estimated from the same residual (`noise_estimated`) the variance factor tests nothing, so any
@@ -82,19 +113,29 @@ def check_fit(converged: bool, termination: str, iterations: int, variance_facto
     `unexplained_residual_warning`.
     """
     if not converged:
-        raise FitRejected(f"the fit did not converge ({termination} after {iterations} iterations; "
-                          "--max-iterations raises the cap)", causes)
+        raise FitRejected(
+            f"the fit did not converge ({termination} after {iterations} iterations; --max-iterations raises the cap)",
+            causes,
+        )
     if not np.isfinite(variance_factor):
-        raise FitRejected("the residual is nan times the stated noise: the model does not explain the data",
-                          list(causes) or ["a reading or measurement the model cannot evaluate"])
+        raise FitRejected(
+            "the residual is nan times the stated noise: the model does not explain the data",
+            list(causes) or ["a reading or measurement the model cannot evaluate"],
+        )
     if noise_estimated and causes:
-        raise FitRejected("the nominal model does not fit the data for a nameable reason (with the noise "
-                          "estimated from the residual, the residual alone cannot tell)", causes)
+        raise FitRejected(
+            "the nominal model does not fit the data for a nameable reason (with the noise "
+            "estimated from the residual, the residual alone cannot tell)",
+            causes,
+        )
     if variance_factor <= max_noise_ratio**2:
         return False
     if causes:
-        raise FitRejected(f"the residual is {np.sqrt(variance_factor):.3g} times the stated noise (accepted up to "
-                          f"{max_noise_ratio:g}): the model does not explain the data", causes)
+        raise FitRejected(
+            f"the residual is {np.sqrt(variance_factor):.3g} times the stated noise (accepted up to "
+            f"{max_noise_ratio:g}): the model does not explain the data",
+            causes,
+        )
     return True
 
 
@@ -102,12 +143,14 @@ def unexplained_residual_warning(variance_factor: float, implied_noise: str, val
     """The warning written with a fit whose residual is beyond the stated noise for no nameable
     cause. implied_noise: the noise the residuals imply, in words with units (the stated noise
     times sqrt(variance_factor)); validation_error: the cross-validated position error [m]."""
-    return (f"the residual is {np.sqrt(variance_factor):.3g} times the stated noise (variance factor "
-            f"{variance_factor:.3g}) and none of the usual mistakes explains it: effects the geometric model "
-            f"does not hold (compliance, thermal drift) or a noisier tracker than stated. The residuals imply a "
-            f"noise of {implied_noise}; the parameters' standard deviations assume the stated noise. Judge the "
-            f"result by its cross-validated error, {validation_error:.3g} m (--noise-pos auto states the noise "
-            "the data show)")
+    return (
+        f"the residual is {np.sqrt(variance_factor):.3g} times the stated noise (variance factor "
+        f"{variance_factor:.3g}) and none of the usual mistakes explains it: effects the geometric model "
+        f"does not hold (compliance, thermal drift) or a noisier tracker than stated. The residuals imply a "
+        f"noise of {implied_noise}; the parameters' standard deviations assume the stated noise. Judge the "
+        f"result by its cross-validated error, {validation_error:.3g} m (--noise-pos auto states the noise "
+        "the data show)"
+    )
 
 
 @dataclass(frozen=True)
@@ -123,8 +166,14 @@ class Registration:
     rms: float
 
 
-def register_with_offset(poses: np.ndarray, measured: np.ndarray, *, estimate_frame: bool = True,
-                         estimate_offset: bool = True, iterations: int = 30) -> Registration:
+def register_with_offset(
+    poses: np.ndarray,
+    measured: np.ndarray,
+    *,
+    estimate_frame: bool = True,
+    estimate_offset: bool = True,
+    iterations: int = 30,
+) -> Registration:
     """Least-squares registration of the model's measured frames `poses` (N, 4, 4) onto the
     measured positions (N, 3) [m]: the frame F (any rotation, from the closed-form start
     `register_frame`) and the offset o of the measured point in the measured frame, minimising
@@ -148,14 +197,21 @@ def register_with_offset(poses: np.ndarray, measured: np.ndarray, *, estimate_fr
     return Registration(frame, offset, float(np.sqrt(cost / max(len(measured), 1))))
 
 
-def _registration_cost(frame: pin.SE3, offset: np.ndarray, rotations: np.ndarray, positions: np.ndarray,
-                       measured: np.ndarray) -> float:
+def _registration_cost(
+    frame: pin.SE3, offset: np.ndarray, rotations: np.ndarray, positions: np.ndarray, measured: np.ndarray
+) -> float:
     points = (rotations @ offset + positions) @ frame.rotation.T + frame.translation
     return float(np.sum((points - measured) ** 2))
 
 
-def _registration_step(frame: pin.SE3, offset: np.ndarray, rotations: np.ndarray, positions: np.ndarray,
-                       measured: np.ndarray, estimate_frame: bool) -> np.ndarray:
+def _registration_step(
+    frame: pin.SE3,
+    offset: np.ndarray,
+    rotations: np.ndarray,
+    positions: np.ndarray,
+    measured: np.ndarray,
+    estimate_frame: bool,
+) -> np.ndarray:
     """The Gauss-Newton step [d_rotation (left, rad); d_translation; d_offset] (9,), frame part zero
     when the frame is fixed."""
     in_frame = (rotations @ offset + positions) @ frame.rotation.T
@@ -186,8 +242,13 @@ class StartCheck:
     gross: tuple[int, ...]
 
 
-def check_start(points: np.ndarray, measured: np.ndarray, frame_estimated: bool,
-                causes: Callable[[], list[str]], what: str = "machine") -> StartCheck:
+def check_start(
+    points: np.ndarray,
+    measured: np.ndarray,
+    frame_estimated: bool,
+    causes: Callable[[], list[str]],
+    what: str = "machine",
+) -> StartCheck:
     """Judge the nominal model's predictions against the measured points (N, 3) [m].
 
     points: the predicted measured points (N, 3), or the predicted measured frames (N, 4, 4), whose
@@ -203,24 +264,29 @@ def check_start(points: np.ndarray, measured: np.ndarray, frame_estimated: bool,
     gross = np.flatnonzero(distances > HOPELESS_RESIDUAL)
     if typical > HOPELESS_RESIDUAL or len(gross) > MAX_GROSS_SHARE * len(distances):
         share = "" if typical > HOPELESS_RESIDUAL else f"; {len(gross)} of {len(distances)} poses are beyond it"
-        registered = " and the ".join(name for name, done in (("frame", frame_estimated), ("marker", offset_free))
-                                      if done)
-        raise FitRejected(f"the nominal {what} is {typical:.3g} m from the measurements (median over the poses"
-                          + (f", after registering the {registered}" if registered else "")
-                          + f"), beyond any build error ({HOPELESS_RESIDUAL:g} m){share}: the fit was not attempted",
-                          causes(), forceable=False)
+        registered = " and the ".join(
+            name for name, done in (("frame", frame_estimated), ("marker", offset_free)) if done
+        )
+        raise FitRejected(
+            f"the nominal {what} is {typical:.3g} m from the measurements (median over the poses"
+            + (f", after registering the {registered}" if registered else "")
+            + f"), beyond any build error ({HOPELESS_RESIDUAL:g} m){share}: the fit was not attempted",
+            causes(),
+            forceable=False,
+        )
     return StartCheck(distances, typical, tuple(int(i) for i in gross))
 
 
 def gross_reading_reason(check: StartCheck, index: int) -> str:
     """Why pose `index` of `check.gross` is a gross reading, in plain words."""
-    return (f"the measured point is {check.distances[index]:.3g} m from the nominal prediction, where the "
-            f"median pose is {check.typical:.3g} m: a gross reading (beyond any build error, "
-            f"{HOPELESS_RESIDUAL:g} m), not a fault of the model")
+    return (
+        f"the measured point is {check.distances[index]:.3g} m from the nominal prediction, where the "
+        f"median pose is {check.typical:.3g} m: a gross reading (beyond any build error, "
+        f"{HOPELESS_RESIDUAL:g} m), not a fault of the model"
+    )
 
 
-def _start_distances(poses: np.ndarray, offset_free: bool, measured: np.ndarray, frame_estimated: bool
-                     ) -> np.ndarray:
+def _start_distances(poses: np.ndarray, offset_free: bool, measured: np.ndarray, frame_estimated: bool) -> np.ndarray:
     """Distances [m] of the predicted points (of `poses` (N, 4, 4), see `_as_poses`) to the measured
     ones. With the frame estimated or the point's offset free, after `register_with_offset` on the
     poses within three times the median distance, repeated until that set is stable (a reading 1 m
@@ -267,8 +333,15 @@ def _register(poses: np.ndarray, measured: np.ndarray, offset_free: bool, frame:
     return register_with_offset(poses, measured, estimate_frame=frame, estimate_offset=offset_free)
 
 
-def likely_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndarray, measured: np.ndarray,
-                  names: Sequence[str], *, frame_estimated: bool, angular: Sequence[bool] | np.ndarray = ()) -> list[str]:
+def likely_causes(
+    predict: Callable[[np.ndarray], np.ndarray],
+    readings: np.ndarray,
+    measured: np.ndarray,
+    names: Sequence[str],
+    *,
+    frame_estimated: bool,
+    angular: Sequence[bool] | np.ndarray = (),
+) -> list[str]:
     """The usual mistakes, tested against the nominal model, most telling first.
 
     predict: readings (N, k) -> the measured points (N, 3) the nominal model predicts in its base
@@ -302,15 +375,19 @@ def likely_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndar
     if not frame_estimated and direct > 5.0 * registered and direct > 0.02:
         frame = registration.frame
         angle = np.degrees(np.linalg.norm(pin.log3(frame.rotation)))
-        causes.append(f"the data look like they are in another frame (a rigid registration moves them "
-                      f"{np.linalg.norm(frame.translation):.3g} m and {angle:.3g} deg and leaves {registered:.3g} m "
-                      "RMS): use --frame estimate")
+        causes.append(
+            f"the data look like they are in another frame (a rigid registration moves them "
+            f"{np.linalg.norm(frame.translation):.3g} m and {angle:.3g} deg and leaves {registered:.3g} m "
+            "RMS): use --frame estimate"
+        )
     causes += _swapped_position_columns(poses, offset_free, target, registered, direct, frame_estimated)
     causes += _swapped_columns(predict, readings, measured, names, registered)
     if not causes and registered > 0.02:
         registered_what = "registering the frame and the marker" if offset_free else "a rigid registration"
-        causes.append(f"the data do not fit this machine even after {registered_what} ({registered:.3g} m RMS): "
-                      "data from another machine, or the wrong model files")
+        causes.append(
+            f"the data do not fit this machine even after {registered_what} ({registered:.3g} m RMS): "
+            "data from another machine, or the wrong model files"
+        )
     return causes
 
 
@@ -319,8 +396,9 @@ def likely_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndar
 SMALL_RESIDUAL = 1e-3
 
 
-def residual_causes(position_rms: float, rotation_rms: float, *, beyond_noise: bool, marker_given: bool,
-                    position_only: bool) -> list[str]:
+def residual_causes(
+    position_rms: float, rotation_rms: float, *, beyond_noise: bool, marker_given: bool, position_only: bool
+) -> list[str]:
     """Causes of what a fit left, judged by its size: position_rms [m], rotation_rms [rad] (NaN
     with positions only); beyond_noise: the fit left more than the noise (or did not converge).
 
@@ -334,12 +412,19 @@ def residual_causes(position_rms: float, rotation_rms: float, *, beyond_noise: b
     small = position_rms <= SMALL_RESIDUAL and rotation <= SMALL_RESIDUAL
     if marker_given or position_only or small or not (beyond_noise or rotation > IMPLAUSIBLE_ROTATION / 10):
         return []
-    return ["the measured frame (a probe or a set of reflectors) is not the platform frame: give its position with "
-            "--marker X Y Z, and its orientation is estimated with it"]
+    return [
+        "the measured frame (a probe or a set of reflectors) is not the platform frame: give its position with "
+        "--marker X Y Z, and its orientation is estimated with it"
+    ]
 
 
-def quaternion_order_causes(predicted_poses: np.ndarray, measured_positions: np.ndarray,
-                            measured_rotations: np.ndarray, *, frame_estimated: bool) -> list[str]:
+def quaternion_order_causes(
+    predicted_poses: np.ndarray,
+    measured_positions: np.ndarray,
+    measured_rotations: np.ndarray,
+    *,
+    frame_estimated: bool,
+) -> list[str]:
     """Whether the file's quaternion columns (qx, qy, qz, qw) hold w, x, y, z instead (scalar first).
 
     predicted_poses (N, 4, 4): the measured frame as the nominal model puts it in its base;
@@ -364,20 +449,28 @@ def quaternion_order_causes(predicted_poses: np.ndarray, measured_positions: np.
     reordered = np.array([pin.Quaternion(w, x, y, z).normalized().matrix() for w, x, y, z in read])
     as_read, fixed = spread(np.asarray(measured_rotations)), spread(reordered)
     if as_read > 100 * SMALL_RESIDUAL and fixed < as_read / 5:
-        return [f"the quaternion columns look like w, x, y, z (scalar first) under the names qx, qy, qz, qw (scalar "
-                f"last): read in that order, the measured orientations follow the model's to {fixed:.2g} rad instead "
-                f"of {as_read:.2g} rad (mean); reorder the columns"]
+        return [
+            f"the quaternion columns look like w, x, y, z (scalar first) under the names qx, qy, qz, qw (scalar "
+            f"last): read in that order, the measured orientations follow the model's to {fixed:.2g} rad instead "
+            f"of {as_read:.2g} rad (mean); reorder the columns"
+        ]
     return []
 
 
-def metres_as_millimetres_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndarray,
-                                  measured: np.ndarray, length_readings: np.ndarray, *, frame_estimated: bool
-                                  ) -> list[str]:
+def metres_as_millimetres_causes(
+    predict: Callable[[np.ndarray], np.ndarray],
+    readings: np.ndarray,
+    measured: np.ndarray,
+    length_readings: np.ndarray,
+    *,
+    frame_estimated: bool,
+) -> list[str]:
     """Whether a file read with --units mm holds metres: `predict` as for `likely_causes` (points
     or frames, whose point's offset is registered too), the readings (N, k) and measured points
     (N, 3) [m] as read, `length_readings` (k,) the reading columns that --units scaled (prismatic
     joints). With every length scaled back by 1000, does the nominal model explain the points far
     better? (Sliders scaled too keep the spreads alike, which the spread test cannot see.)"""
+
     def rms(predicted: np.ndarray, target: np.ndarray) -> float:
         poses, offset_free = _as_poses(predicted)
         valid = np.all(np.isfinite(poses.reshape(len(poses), -1)), axis=1)
@@ -388,34 +481,50 @@ def metres_as_millimetres_causes(predict: Callable[[np.ndarray], np.ndarray], re
     as_read = rms(predict(readings), measured)
     in_metres = rms(predict(readings * np.where(length_readings, 1e3, 1.0)), measured * 1e3)
     if in_metres < as_read / 5.0 and np.isfinite(in_metres):
-        return [f"the file looks like metres: read without --units mm, the nominal model explains the positions "
-                f"{as_read / max(in_metres, 1e-12):.0f} times better ({in_metres:.3g} m RMS); drop --units mm"]
+        return [
+            f"the file looks like metres: read without --units mm, the nominal model explains the positions "
+            f"{as_read / max(in_metres, 1e-12):.0f} times better ({in_metres:.3g} m RMS); drop --units mm"
+        ]
     return []
 
 
-def _swapped_position_columns(poses: np.ndarray, offset_free: bool, measured: np.ndarray, registered: float,
-                              direct: float, frame_estimated: bool) -> list[str]:
+def _swapped_position_columns(
+    poses: np.ndarray, offset_free: bool, measured: np.ndarray, registered: float, direct: float, frame_estimated: bool
+) -> list[str]:
     """x, y, z columns in another order. In the base frame the order itself is tested. Against an
     estimated frame only a mirror shows (a swap mirrors the points, which no rigid frame undoes;
     every swap is the same mirror up to a rotation, so which two columns cannot be told)."""
     if frame_estimated:
         rms = _register(poses, measured[:, [1, 0, 2]], offset_free).rms
         if rms < registered / 5.0:
-            return [f"two of the x, y, z columns look swapped (the data are a mirror image of the model's; read "
-                    f"mirrored, the nominal model explains them {registered / max(rms, 1e-12):.0f} times better)"]
+            return [
+                f"two of the x, y, z columns look swapped (the data are a mirror image of the model's; read "
+                f"mirrored, the nominal model explains them {registered / max(rms, 1e-12):.0f} times better)"
+            ]
         return []
     found = []
     for order in itertools.permutations(range(3)):
         rms = _register(poses, measured[:, list(order)], offset_free, frame=False).rms
         if order != (0, 1, 2) and rms < direct / 5.0:
             names = ", ".join("xyz"[k] for k in order)
-            found.append((rms, f"the position columns look like they hold {names} in that order (the nominal model "
-                               f"explains the data {direct / max(rms, 1e-12):.0f} times better read that way)"))
+            found.append(
+                (
+                    rms,
+                    f"the position columns look like they hold {names} in that order (the nominal model "
+                    f"explains the data {direct / max(rms, 1e-12):.0f} times better read that way)",
+                )
+            )
     return [text for _, text in sorted(found)[:1]]
 
 
-def _degrees_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndarray, measured: np.ndarray,
-                    names: Sequence[str], angular: Sequence[bool] | np.ndarray, registered: float) -> list[str]:
+def _degrees_causes(
+    predict: Callable[[np.ndarray], np.ndarray],
+    readings: np.ndarray,
+    measured: np.ndarray,
+    names: Sequence[str],
+    angular: Sequence[bool] | np.ndarray,
+    registered: float,
+) -> list[str]:
     """Angle columns logged in degrees: read as degrees (times pi / 180), does the nominal model explain
     the data far better (up to the same registration)?"""
     angles = np.asarray(angular, dtype=bool)
@@ -431,13 +540,20 @@ def _degrees_causes(predict: Callable[[np.ndarray], np.ndarray], readings: np.nd
     if rms >= registered / 5.0:
         return []
     columns = ", ".join(f"'{n}'" for n, a in zip(names, angles) if a)
-    return [f"the joint readings look like degrees (columns {columns}): read as degrees, the nominal model explains "
-            f"the data {registered / max(rms, 1e-12):.0f} times better ({rms:.3g} m RMS against {registered:.3g} m); "
-            "give radians (`m3t1r convert FILE --joint-degrees all -o measurements.csv` rewrites the file in radians)"]
+    return [
+        f"the joint readings look like degrees (columns {columns}): read as degrees, the nominal model explains "
+        f"the data {registered / max(rms, 1e-12):.0f} times better ({rms:.3g} m RMS against {registered:.3g} m); "
+        "give radians (`m3t1r convert FILE --joint-degrees all -o measurements.csv` rewrites the file in radians)"
+    ]
 
 
-def _swapped_columns(predict: Callable[[np.ndarray], np.ndarray], readings: np.ndarray, measured: np.ndarray,
-                     names: Sequence[str], registered: float) -> list[str]:
+def _swapped_columns(
+    predict: Callable[[np.ndarray], np.ndarray],
+    readings: np.ndarray,
+    measured: np.ndarray,
+    names: Sequence[str],
+    registered: float,
+) -> list[str]:
     found = []
     for a, b in itertools.combinations(range(readings.shape[1]), 2):
         swapped = readings.copy()
@@ -448,14 +564,24 @@ def _swapped_columns(predict: Callable[[np.ndarray], np.ndarray], readings: np.n
             continue
         rms = _register(poses[valid], measured[valid], offset_free).rms
         if rms < registered / 5.0:
-            found.append((rms, f"columns '{names[a]}' and '{names[b]}' look swapped (with them exchanged the "
-                               f"nominal model explains the data {registered / max(rms, 1e-12):.0f} times better)"))
+            found.append(
+                (
+                    rms,
+                    f"columns '{names[a]}' and '{names[b]}' look swapped (with them exchanged the "
+                    f"nominal model explains the data {registered / max(rms, 1e-12):.0f} times better)",
+                )
+            )
     return [text for _, text in sorted(found)]
 
 
-def fit_movement_notes(moved: dict[str, float], rms_before: float, rms_after: float,
-                       measured_frame: str | None = None, same_as_frame: Sequence[str] = (),
-                       std: dict[str, float] | None = None) -> list[str]:
+def fit_movement_notes(
+    moved: dict[str, float],
+    rms_before: float,
+    rms_after: float,
+    measured_frame: str | None = None,
+    same_as_frame: Sequence[str] = (),
+    std: dict[str, float] | None = None,
+) -> list[str]:
     """Plain-word notes on how far the fit moved: implausibly far, or barely.
 
     moved: identified error per parameter name ([m] for translations, [rad] for rotations);
@@ -480,31 +606,43 @@ def fit_movement_notes(moved: dict[str, float], rms_before: float, rms_after: fl
         return notes + _barely_moved(rms_before, rms_after)
     # The measured frame translating far is a reflector off it, taken for the machine's geometry: its
     # own placement moves (translation and rotation), which says nothing of units or frames.
-    absorbed = bool(measured_frame) and any(
-        n.startswith(f"{measured_frame}.dt[") and n[-2] in "012" for _, n, _ in far)
-    others = [entry for entry in far
-              if not (absorbed and (entry[1].startswith(f"{measured_frame}.") or entry[1] in same_as_frame))]
+    absorbed = bool(measured_frame) and any(n.startswith(f"{measured_frame}.dt[") and n[-2] in "012" for _, n, _ in far)
+    others = [
+        entry
+        for entry in far
+        if not (absorbed and (entry[1].startswith(f"{measured_frame}.") or entry[1] in same_as_frame))
+    ]
     listed = ", ".join(text for _, _, text in sorted(far, reverse=True)[:3])
     if others:
-        cause = ("check the units, the measurement frame, the reading columns and that the model is this machine's"
-                 + (f" (the moves of {measured_frame} itself are the reflector below)" if absorbed else ""))
+        cause = "check the units, the measurement frame, the reading columns and that the model is this machine's" + (
+            f" (the moves of {measured_frame} itself are the reflector below)" if absorbed else ""
+        )
     else:
-        alike = "" if len(far) == sum(e[1].startswith(f"{measured_frame}.") for e in far) else \
-            " (with translations along the last joint's axis, which move it alike)"
-        cause = (f"only the measured frame {measured_frame} moved{alike}, by a reflector's offset: the units, the "
-                 "frame and the rest of the machine are not in question")
+        alike = (
+            ""
+            if len(far) == sum(e[1].startswith(f"{measured_frame}.") for e in far)
+            else " (with translations along the last joint's axis, which move it alike)"
+        )
+        cause = (
+            f"only the measured frame {measured_frame} moved{alike}, by a reflector's offset: the units, the "
+            "frame and the rest of the machine are not in question"
+        )
     notes.append(f"the fit moved implausibly far for a machine built to drawing ({listed}): {cause}")
     if absorbed:
-        notes.append(f"the measured frame {measured_frame} itself moved: the measured point is probably a "
-                     "reflector off it, now baked into the machine; give its position with --marker X Y Z")
+        notes.append(
+            f"the measured frame {measured_frame} itself moved: the measured point is probably a "
+            "reflector off it, now baked into the machine; give its position with --marker X Y Z"
+        )
     return notes + _barely_moved(rms_before, rms_after)
 
 
 def _barely_moved(rms_before: float, rms_after: float) -> list[str]:
     notes = []
     if rms_before > 0 and rms_after > 0.8 * rms_before:
-        notes.append(f"the fit barely moved (residual RMS {rms_before:.3g} -> {rms_after:.3g} m): the nominal "
-                     "model already explains the data, or the poses do not excite the errors")
+        notes.append(
+            f"the fit barely moved (residual RMS {rms_before:.3g} -> {rms_after:.3g} m): the nominal "
+            "model already explains the data, or the poses do not excite the errors"
+        )
     return notes
 
 
@@ -516,13 +654,16 @@ def coverage_notes(values: np.ndarray, bounds: dict[str, tuple[float, float]], t
     for k, (name, (low, high)) in enumerate(bounds.items()):
         span = float(np.ptp(values[:, k]))
         if high > low and span < threshold * (high - low):
-            notes.append(f"{name} spans {values[:, k].min():.3g} .. {values[:, k].max():.3g} "
-                         f"({100 * span / (high - low):.0f} % of the workspace's {low:.3g} .. {high:.3g})")
+            notes.append(
+                f"{name} spans {values[:, k].min():.3g} .. {values[:, k].max():.3g} "
+                f"({100 * span / (high - low):.0f} % of the workspace's {low:.3g} .. {high:.3g})"
+            )
     return notes
 
 
-def noise_from_residual(position_rms: float, rotation_rms: float, poses: int, rows_per_pose: int,
-                        fitted: int) -> tuple[float, float]:
+def noise_from_residual(
+    position_rms: float, rotation_rms: float, poses: int, rows_per_pose: int, fitted: int
+) -> tuple[float, float]:
     """The tracker noise the fit's residual implies: (position [m], rotation [rad]) standard
     deviations per coordinate (rotation nan when orientations were not measured).
 
@@ -534,8 +675,10 @@ def noise_from_residual(position_rms: float, rotation_rms: float, poses: int, ro
     """
     rows = poses * rows_per_pose
     if rows <= fitted:
-        raise IdentificationError(f"{poses} poses give {rows} residual rows for {fitted} fitted parameters: "
-                                  "too few to estimate the noise (state it with --noise-pos/--noise-rot)")
+        raise IdentificationError(
+            f"{poses} poses give {rows} residual rows for {fitted} fitted parameters: "
+            "too few to estimate the noise (state it with --noise-pos/--noise-rot)"
+        )
     scale = rows / (rows - fitted)
     rotation = float(np.sqrt(rotation_rms**2 / 3.0 * scale)) if rows_per_pose == 6 else float("nan")
     return float(np.sqrt(position_rms**2 / 3.0 * scale)), rotation

@@ -56,15 +56,26 @@ from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
 from m3t1r.model.poe import adjoint_matrices, jlog3_batch, log3_batch, placement_of, skew
 from m3t1r.model.workspace import workspace_actuators
 
-__all__ = ["ClosedLoopCalibration", "calibrate_closed_loop", "pose_errors", "predicted_pose_std",
-           "predicted_measurement_std", "setup_parameter_names",
-           "CrossValidation", "cross_validate", "calibration_result", "fit_assembled", "structural_rank"]
+__all__ = [
+    "ClosedLoopCalibration",
+    "calibrate_closed_loop",
+    "pose_errors",
+    "predicted_pose_std",
+    "predicted_measurement_std",
+    "setup_parameter_names",
+    "CrossValidation",
+    "cross_validate",
+    "calibration_result",
+    "fit_assembled",
+    "structural_rank",
+]
 
 _MAX_OUTLIER_ROUNDS = 5
 
 
-def setup_parameter_names(estimate_frame: bool, estimate_marker: bool, position_only: bool,
-                          points: int = 0) -> tuple[str, ...]:
+def setup_parameter_names(
+    estimate_frame: bool, estimate_marker: bool, position_only: bool, points: int = 0
+) -> tuple[str, ...]:
     """Names of the measurement setup's parameters, right-multiplied [v; w] errors like the machine's:
     measurement_frame.dt[0..5], then marker.dt[0..5] (marker.dt[0..2] for position-only data), or with
     P points marker.p1.dt[0..2] ... marker.pP.dt[0..2] (each point's offset in the platform frame)."""
@@ -76,8 +87,9 @@ def setup_parameter_names(estimate_frame: bool, estimate_marker: bool, position_
     return names
 
 
-def _residual_rows_batch(poses: np.ndarray, measured_positions: np.ndarray, measured_rotations: np.ndarray | None,
-                         with_jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+def _residual_rows_batch(
+    poses: np.ndarray, measured_positions: np.ndarray, measured_rotations: np.ndarray | None, with_jacobian: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Residuals e = [p_model - p_meas; log3(R_meas^T R_model)] (N, k) of N model poses (N, 4, 4)
     and de/dxi (N, k, 6) for spatial twists xi of the measured frame: [I, -[p]x] and
     [0, Jlog3 R_model^T]. k = 6, or 3 when measured_rotations is None (position only)."""
@@ -118,17 +130,26 @@ class _ClosedLoopProblem:
     protocol). Columns index the machine's parameters, then the setup's (`setup_parameter_names`);
     priors add one row x_c / sigma_c per parameter c with a prior."""
 
-    def __init__(self, error_model: ClosedLoopErrorModel, measurements: PoseMeasurements, noise: TrackerNoise,
-                 columns: np.ndarray, *, estimate_frame: bool = False, estimate_marker: bool = False,
-                 priors: Mapping[int, float] | None = None) -> None:
+    def __init__(
+        self,
+        error_model: ClosedLoopErrorModel,
+        measurements: PoseMeasurements,
+        noise: TrackerNoise,
+        columns: np.ndarray,
+        *,
+        estimate_frame: bool = False,
+        estimate_marker: bool = False,
+        priors: Mapping[int, float] | None = None,
+    ) -> None:
         self.error_model = error_model
         self.measurements = measurements
         self.columns = columns
         self.n_machine = error_model.n_parameters
         self.n_points = measurements.n_points
         estimate_marker = estimate_marker or self.n_points > 0  # the points' offsets are always estimated
-        self.names = error_model.names + setup_parameter_names(estimate_frame, estimate_marker,
-                                                               measurements.position_only, self.n_points)
+        self.names = error_model.names + setup_parameter_names(
+            estimate_frame, estimate_marker, measurements.position_only, self.n_points
+        )
         self.frame_slot = self.n_machine if estimate_frame else None
         self.marker_slot = self.n_machine + (6 if estimate_frame else 0) if estimate_marker else None
         self.priors = dict(priors or {})
@@ -137,16 +158,22 @@ class _ClosedLoopProblem:
         self.row_weights = np.r_[np.full(3, 1 / noise.position), np.full(3, 1 / noise.rotation)][:rows]
         if self.n_points:
             self.row_weights = np.full(rows, 1 / noise.position)
-        self.seen = (np.ones((len(measurements), rows), dtype=bool) if measurements.points is None
-                     else np.repeat(np.isfinite(measurements.points[:, :, 0]), 3, axis=1))
-        self.noise_weights = (np.tile(self.row_weights, len(measurements)) * self.seen.reshape(-1))
+        self.seen = (
+            np.ones((len(measurements), rows), dtype=bool)
+            if measurements.points is None
+            else np.repeat(np.isfinite(measurements.points[:, :, 0]), 3, axis=1)
+        )
+        self.noise_weights = np.tile(self.row_weights, len(measurements)) * self.seen.reshape(-1)
         self.active = np.ones(len(measurements), dtype=bool)
         self.on_evaluate: Callable[[], None] | None = None  # progress: called once per Jacobian evaluation
         measured = np.array([pose.homogeneous for pose in measurements.poses]).reshape(-1, 4, 4)
         self.measured_positions = measured[:, :3, 3]
         self.measured_rotations = None if measurements.position_only else measured[:, :3, :3]
-        self._measured_points = (None if measurements.points is None
-                                 else np.nan_to_num(measurements.points, nan=0.0).reshape(len(measurements), -1))
+        self._measured_points = (
+            None
+            if measurements.points is None
+            else np.nan_to_num(measurements.points, nan=0.0).reshape(len(measurements), -1)
+        )
         self.point_offsets = np.zeros((self.n_points, 3))  # the registered start's, for the reference rank
 
     @property
@@ -154,8 +181,13 @@ class _ClosedLoopProblem:
         """Per-row 1/sigma of the pose rows; zero on the rows of flagged outliers."""
         return self.noise_weights * np.repeat(self.active, self.measurements.rows_per_pose)
 
-    def assemble(self, model: pin.Model, start: np.ndarray | None, setup: MeasurementSetup = MeasurementSetup(),
-                 accumulated: np.ndarray | None = None) -> _State:
+    def assemble(
+        self,
+        model: pin.Model,
+        start: np.ndarray | None,
+        setup: MeasurementSetup = MeasurementSetup(),
+        accumulated: np.ndarray | None = None,
+    ) -> _State:
         """Assemble every measured pose on `model` in one vectorised solve (`forward_batch`): each
         from its row of `start` (N, nq) and on that row's branch, or from home (None) on home's.
         The first pose that fails is named in an IdentificationError (InvalidInputError for a slider
@@ -178,8 +210,9 @@ class _ClosedLoopProblem:
         if self._measured_points is not None:
             predicted = state.setup.measured_points(state.poses).reshape(len(state.poses), -1)
             return np.where(self.seen, predicted - self._measured_points, 0.0)
-        residual, _ = _residual_rows_batch(self.measured_frames(state), self.measured_positions,
-                                           self.measured_rotations, with_jacobian=False)
+        residual, _ = _residual_rows_batch(
+            self.measured_frames(state), self.measured_positions, self.measured_rotations, with_jacobian=False
+        )
         return residual
 
     def prior_rows(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
@@ -200,8 +233,9 @@ class _ClosedLoopProblem:
             return np.full(len(self.weights) + sum(1 for c in self.columns if c in self.priors), np.inf)
         return np.concatenate((self.pose_residuals(state).reshape(-1) * self.weights, self.prior_rows(state)[0]))
 
-    def evaluate(self, state: _State, columns: np.ndarray, reduce: bool = False, extra_rows: int = 0
-                 ) -> tuple[np.ndarray, np.ndarray]:
+    def evaluate(
+        self, state: _State, columns: np.ndarray, reduce: bool = False, extra_rows: int = 0
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Whitened pose residual (6N or 3N rows, times `weights`) and its whitened Jacobian over
         `columns`, each followed by `extra_rows` rows left for the caller to fill (priors).
 
@@ -232,19 +266,23 @@ class _ClosedLoopProblem:
                 jacobian[rows] = block_jacobian
         return residual, jacobian
 
-    def _block_rows(self, state: _State, block: slice, columns: np.ndarray,
-                    sensitivities: PlatformSensitivities) -> tuple[np.ndarray, np.ndarray]:
+    def _block_rows(
+        self, state: _State, block: slice, columns: np.ndarray, sensitivities: PlatformSensitivities
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Residual rows and Jacobian rows of the poses in `block` (measurement-frame twists)."""
         if self._measured_points is not None:
             return self._point_rows(state, block, columns, sensitivities)
         measured, twists = self.measured_frame_twists(state.setup, columns, sensitivities)
-        residual, rows = _residual_rows_batch(measured, self.measured_positions[block],
-                                              None if self.measured_rotations is None
-                                              else self.measured_rotations[block])
+        residual, rows = _residual_rows_batch(
+            measured,
+            self.measured_positions[block],
+            None if self.measured_rotations is None else self.measured_rotations[block],
+        )
         return residual.reshape(-1), (rows @ twists).reshape(residual.size, -1)
 
-    def _point_rows(self, state: _State, block: slice, columns: np.ndarray,
-                    sensitivities: PlatformSensitivities) -> tuple[np.ndarray, np.ndarray]:
+    def _point_rows(
+        self, state: _State, block: slice, columns: np.ndarray, sensitivities: PlatformSensitivities
+    ) -> tuple[np.ndarray, np.ndarray]:
         """`_block_rows` of P points: point k at F T_platform p_k moves by v + w x p_k under the
         platform's twist (v, w) in the measurement frame, and by R_(F T_platform) along its own offset."""
         assert self._measured_points is not None and self.marker_slot is not None, "a problem of points"
@@ -252,7 +290,7 @@ class _ClosedLoopProblem:
         platform, twists = self.measured_frame_twists(setup, columns, sensitivities)
         n, n_points = len(platform), self.n_points
         points = setup.measured_points(sensitivities.poses)  # (n, P, 3)
-        rows = (twists[:, None, :3] - skew(points.reshape(-1, 3)).reshape(n, n_points, 3, 3) @ twists[:, None, 3:])
+        rows = twists[:, None, :3] - skew(points.reshape(-1, 3)).reshape(n, n_points, 3, 3) @ twists[:, None, 3:]
         for i in np.flatnonzero(columns >= self.marker_slot):
             point, axis = divmod(int(columns[i] - self.marker_slot), 3)
             rows[:, point, :, i] = platform[:, :3, axis]
@@ -260,8 +298,9 @@ class _ClosedLoopProblem:
         residual = np.where(seen, points.reshape(n, -1) - self._measured_points[block], 0.0)
         return residual.reshape(-1), rows.reshape(n * 3 * n_points, -1)
 
-    def measured_frame_twists(self, setup: MeasurementSetup, columns: np.ndarray,
-                              sensitivities: PlatformSensitivities) -> tuple[np.ndarray, np.ndarray]:
+    def measured_frame_twists(
+        self, setup: MeasurementSetup, columns: np.ndarray, sensitivities: PlatformSensitivities
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The measured frames (N, 4, 4) in the measurement frame, and their spatial twists there per
         unit of each column (N, 6, len(columns)), machine columns first (`sensitivities` holds
         theirs, in base-frame twists), then the setup's in `columns` order: a frame error moves
@@ -298,17 +337,17 @@ class _ClosedLoopProblem:
         assert state.accumulated is not None, "LM iterates come from `assemble`"
         vector = np.zeros(len(self.names))
         vector[self.columns] = step
-        model = self.error_model.perturbed(state.model, vector[:self.n_machine])
+        model = self.error_model.perturbed(state.model, vector[: self.n_machine])
         setup = state.setup
         if self.frame_slot is not None:
-            setup = replace(setup, frame=setup.frame * pin.exp6(vector[self.frame_slot:self.frame_slot + 6]))
+            setup = replace(setup, frame=setup.frame * pin.exp6(vector[self.frame_slot : self.frame_slot + 6]))
         if self.marker_slot is not None and self.n_points:
-            moved = np.array(setup.points).reshape(-1, 3) + vector[self.marker_slot:].reshape(-1, 3)
+            moved = np.array(setup.points).reshape(-1, 3) + vector[self.marker_slot :].reshape(-1, 3)
             setup = replace(setup, points=tuple((float(x), float(y), float(z)) for x, y, z in moved))
         elif self.marker_slot is not None:
             dm = np.zeros(6)
             size = len(self.names) - self.marker_slot
-            dm[:size] = vector[self.marker_slot:]
+            dm[:size] = vector[self.marker_slot :]
             setup = replace(setup, marker=setup.marker * pin.exp6(dm))
         try:  # from the iterate's assembly, which the batch's chord Newton corrects in a few steps
             return self.assemble(model, state.configurations, setup, state.accumulated + vector)
@@ -367,17 +406,30 @@ def _rms(residual: np.ndarray, points_seen: int | None = None) -> tuple[float, f
 
 
 @on_one_blas_thread
-def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, noise: TrackerNoise = TrackerNoise(),
-                          *, setup: MeasurementSetup | None = None, estimate_frame: bool = False,
-                          estimate_marker: bool = False, outlier_sigma: float | None = OUTLIER_SIGMA,
-                          select: bool = False, fixed: Sequence[str] = (), priors: Mapping[str, float] | None = None,
-                          rank_tolerance: float = IDENTIFIABILITY_TOLERANCE, max_iterations: int | None = None,
-                          cost_tolerance: float = 1e-10,
-                          absolute_cost_tolerance: float = 1e-6, step_significance: float = 0.01,
-                          refine: bool = False, refine_rank_tolerance: float = 1e-7, refine_iterations: int = 400,
-                          error_model: ClosedLoopErrorModel | None = None,
-                          progress: Callable[[], None] | None = None,
-                          groups: np.ndarray | None = None) -> ClosedLoopCalibration:
+def calibrate_closed_loop(
+    mechanism: Mechanism,
+    measurements: PoseMeasurements,
+    noise: TrackerNoise = TrackerNoise(),
+    *,
+    setup: MeasurementSetup | None = None,
+    estimate_frame: bool = False,
+    estimate_marker: bool = False,
+    outlier_sigma: float | None = OUTLIER_SIGMA,
+    select: bool = False,
+    fixed: Sequence[str] = (),
+    priors: Mapping[str, float] | None = None,
+    rank_tolerance: float = IDENTIFIABILITY_TOLERANCE,
+    max_iterations: int | None = None,
+    cost_tolerance: float = 1e-10,
+    absolute_cost_tolerance: float = 1e-6,
+    step_significance: float = 0.01,
+    refine: bool = False,
+    refine_rank_tolerance: float = 1e-7,
+    refine_iterations: int = 400,
+    error_model: ClosedLoopErrorModel | None = None,
+    progress: Callable[[], None] | None = None,
+    groups: np.ndarray | None = None,
+) -> ClosedLoopCalibration:
     """Identify the placement errors of every joint and closure/platform frame (module docstring),
     and the measurement setup where asked.
 
@@ -414,21 +466,31 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
         max_iterations = require_count(max_iterations, "max_iterations")
     error_model = error_model or ClosedLoopErrorModel(mechanism)
     setup = setup or MeasurementSetup()
-    problem = _ClosedLoopProblem(error_model, measurements, noise, np.zeros(0, dtype=int),
-                                 estimate_frame=estimate_frame, estimate_marker=estimate_marker)
+    problem = _ClosedLoopProblem(
+        error_model,
+        measurements,
+        noise,
+        np.zeros(0, dtype=int),
+        estimate_frame=estimate_frame,
+        estimate_marker=estimate_marker,
+    )
     everything = problem.columns = np.arange(len(problem.names))
     problem.on_evaluate = progress
     fixed_columns = parameter_columns(problem.names, fixed, "fixed parameter")
-    problem.priors = {c: sigma for name, sigma in (priors or {}).items()
-                      for c in parameter_columns(problem.names, [name], "prior")}
+    problem.priors = {
+        c: sigma for name, sigma in (priors or {}).items() for c in parameter_columns(problem.names, [name], "prior")
+    }
     if any(not (math.isfinite(s) and s > 0) for s in problem.priors.values()):
         raise InvalidInputError("a prior's sigma must be a positive number [m or rad]")
     try:
         start = problem.assemble(mechanism.model, None, setup=setup)
     except IdentificationError as exc:
         raise IdentificationError(f"on the starting model, {exc}") from None
-    start.setup = (_registered_points(problem, start, setup, estimate_frame) if problem.n_points
-                   else _registered_setup(problem, start, setup, estimate_frame, estimate_marker))
+    start.setup = (
+        _registered_points(problem, start, setup, estimate_frame)
+        if problem.n_points
+        else _registered_setup(problem, start, setup, estimate_frame, estimate_marker)
+    )
     residual, factor = problem.evaluate(start, everything, reduce=True)
     factor[:, fixed_columns] = 0.0
     forced = np.arange(error_model.n_parameters, len(everything))
@@ -437,16 +499,21 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     if base.rank < reference.rank:
         missing = unexcited_parameters(factor, problem.names, reference.indices, reference.rank - base.rank)
         hold = _holding_that_identifies(problem, setup.marker, factor, fixed_columns, rank_tolerance, missing)
-        raise IdentificationError(_shortfall(base, reference, missing, hold, (len(measurements), len(residual)),
-                                             rank_tolerance))
+        raise IdentificationError(
+            _shortfall(base, reference, missing, hold, (len(measurements), len(residual)), rank_tolerance)
+        )
     problem.columns = np.array(base.indices)
     state = replace(start, whitened=None)
     # Damping starts low: 1e-3 over-damps the weak directions (about twice the iterations).
     degrees_of_freedom = max(len(residual) - base.rank, 1)
     if max_iterations is None:
         max_iterations = default_iterations(base.rank)
-    options = dict(max_iterations=max_iterations, initial_damping=1e-6, absolute_cost_tolerance=absolute_cost_tolerance,
-                   cost_tolerance=max(cost_tolerance, 2.0 * step_significance / degrees_of_freedom))
+    options = dict(
+        max_iterations=max_iterations,
+        initial_damping=1e-6,
+        absolute_cost_tolerance=absolute_cost_tolerance,
+        cost_tolerance=max(cost_tolerance, 2.0 * step_significance / degrees_of_freedom),
+    )
     result = fit_assembled(problem, state, options)
     if outlier_sigma is not None:
         result = _reject_outliers(problem, state, result, outlier_sigma, options)
@@ -458,14 +525,19 @@ def calibrate_closed_loop(mechanism: Mechanism, measurements: PoseMeasurements, 
     return replace(calibration_result(mechanism, problem, start, result, base, selection), start=start, options=options)
 
 
-def _registered_setup(problem: _ClosedLoopProblem, start: _State, setup: MeasurementSetup, estimate_frame: bool,
-                      estimate_marker: bool) -> MeasurementSetup:
+def _registered_setup(
+    problem: _ClosedLoopProblem, start: _State, setup: MeasurementSetup, estimate_frame: bool, estimate_marker: bool
+) -> MeasurementSetup:
     """The setup LM starts from: the frame by rigid registration of the nominal predictions
     (positions), then, with orientation data, the marker's orientation in closed form."""
     platform = start.poses
     if estimate_frame:
-        setup = replace(setup, frame=register_frame(MeasurementSetup(marker=setup.marker).measured_poses(platform),
-                                                    problem.measured_positions))
+        setup = replace(
+            setup,
+            frame=register_frame(
+                MeasurementSetup(marker=setup.marker).measured_poses(platform), problem.measured_positions
+            ),
+        )
     if estimate_marker and problem.measured_rotations is not None:
         rotation = register_marker_rotation(setup.frame, platform, problem.measured_rotations)
         setup = replace(setup, marker=pin.SE3(rotation, setup.marker.translation))
@@ -475,8 +547,9 @@ def _registered_setup(problem: _ClosedLoopProblem, start: _State, setup: Measure
 _POINT_REGISTRATION_ROUNDS = 5  # alternations of frame and offsets: the start LM refines
 
 
-def _registered_points(problem: _ClosedLoopProblem, start: _State, setup: MeasurementSetup,
-                       estimate_frame: bool) -> MeasurementSetup:
+def _registered_points(
+    problem: _ClosedLoopProblem, start: _State, setup: MeasurementSetup, estimate_frame: bool
+) -> MeasurementSetup:
     """The setup LM starts from with P points: alternately the frame by rigid registration of every
     point seen (with the current offsets, zero at first) and each point's offset as the mean of its
     sightings mapped into the platform frame, (F T_platform)^-1 p_measured."""
@@ -495,8 +568,12 @@ def _registered_points(problem: _ClosedLoopProblem, start: _State, setup: Measur
         local = np.einsum("nji,nj->ni", seen[:, :3, :3], measured[rows, points] - seen[:, :3, 3])
         offsets = np.array([local[points == k].mean(axis=0) for k in range(problem.n_points)])
     problem.point_offsets = offsets
-    return replace(setup, frame=frame, marker=pin.SE3.Identity(),
-                   points=tuple((float(x), float(y), float(z)) for x, y, z in offsets))
+    return replace(
+        setup,
+        frame=frame,
+        marker=pin.SE3.Identity(),
+        points=tuple((float(x), float(y), float(z)) for x, y, z in offsets),
+    )
 
 
 def fit_assembled(problem: _ClosedLoopProblem, state: _State, options: dict) -> LMResult:
@@ -516,20 +593,24 @@ def _measured_rows(problem: _ClosedLoopProblem) -> np.ndarray | None:
     return problem.seen.sum(axis=1) if problem.n_points else None
 
 
-def _reject_outliers(problem: _ClosedLoopProblem, start: _State, result: LMResult, sigma: float,
-                     options: dict) -> LMResult:
+def _reject_outliers(
+    problem: _ClosedLoopProblem, start: _State, result: LMResult, sigma: float, options: dict
+) -> LMResult:
     """Flag poses beyond `sigma`, refit without them from the start, re-judge every pose; until the
     set is stable. Resuming from the estimate instead stalls: the outliers pull it into a curved
     valley of the weak directions, where LM then creeps for tens of iterations."""
     for _ in range(_MAX_OUTLIER_ROUNDS):
         blocks, measured_rows = _whitened_blocks(problem, result.state), _measured_rows(problem)
-        flagged, _scale = (outlier_poses(blocks, sigma) if measured_rows is None
-                           else outlier_poses(blocks, sigma, measured_rows))
+        flagged, _scale = (
+            outlier_poses(blocks, sigma) if measured_rows is None else outlier_poses(blocks, sigma, measured_rows)
+        )
         if np.array_equal(~flagged, problem.active):
             break
         if np.count_nonzero(problem.seen[~flagged]) <= len(problem.columns):
-            raise IdentificationError(f"{np.count_nonzero(flagged)} of {len(flagged)} poses are outliers: "
-                                      "too few poses are left to fit the model")
+            raise IdentificationError(
+                f"{np.count_nonzero(flagged)} of {len(flagged)} poses are outliers: "
+                "too few poses are left to fit the model"
+            )
         problem.active = ~flagged
         _release(result.state)
         result = fit_assembled(problem, replace(start, whitened=None), options)
@@ -542,8 +623,14 @@ def _release(state: _State) -> None:
     state.whitened = None
 
 
-def _select_parameters(problem: _ClosedLoopProblem, start: _State, result: LMResult, forced: np.ndarray,
-                       options: dict, groups: np.ndarray | None = None) -> tuple[ParameterSelection, LMResult]:
+def _select_parameters(
+    problem: _ClosedLoopProblem,
+    start: _State,
+    result: LMResult,
+    forced: np.ndarray,
+    options: dict,
+    groups: np.ndarray | None = None,
+) -> tuple[ParameterSelection, LMResult]:
     """Forward selection by leave-one-pose-out PRESS on the fit linearised at the estimate
     (residual at the start ~ r - J dx); a smaller set is refitted from the start. (Resuming from
     the estimate with the dropped parameters reset saved one iteration in eight: not worth it.)"""
@@ -555,8 +642,9 @@ def _select_parameters(problem: _ClosedLoopProblem, start: _State, result: LMRes
     r0 = (r[:pose_rows] - J[:pose_rows] @ step)[keep]
     forced_positions = np.flatnonzero(np.isin(problem.columns, forced))
     pose_jacobian = J[:pose_rows] if keep.all() else J[:pose_rows][keep]  # a copy only with outliers
-    pose_jacobian, r0, block = grouped_blocks(pose_jacobian, r0, rows, None if groups is None else
-                                              np.asarray(groups)[problem.active])
+    pose_jacobian, r0, block = grouped_blocks(
+        pose_jacobian, r0, rows, None if groups is None else np.asarray(groups)[problem.active]
+    )
     selection = forward_selection(pose_jacobian, r0, block, range(len(problem.columns)), forced_positions)
     if len(selection.indices) == len(problem.columns):
         return selection, result
@@ -574,13 +662,20 @@ def _refine(problem: _ClosedLoopProblem, result: LMResult, rank_tolerance: float
     if refined.rank <= len(problem.columns):
         return result
     problem.columns = np.array(refined.indices)
-    state = problem.assemble(result.state.model, result.state.configurations, result.state.setup,
-                             result.state.accumulated)
+    state = problem.assemble(
+        result.state.model, result.state.configurations, result.state.setup, result.state.accumulated
+    )
     return levenberg_marquardt(problem, state, max_iterations=iterations, initial_damping=1e-9, cost_tolerance=1e-14)
 
 
-def calibration_result(mechanism: Mechanism, problem: _ClosedLoopProblem, start: _State, result: LMResult,
-                       base: BaseParameters, selection: ParameterSelection | None) -> ClosedLoopCalibration:
+def calibration_result(
+    mechanism: Mechanism,
+    problem: _ClosedLoopProblem,
+    start: _State,
+    result: LMResult,
+    base: BaseParameters,
+    selection: ParameterSelection | None,
+) -> ClosedLoopCalibration:
     """The calibration a fit ended on: covariance and std from its final whitened Jacobian, the variance
     factor, the inliers' RMS before and after, the outliers and the identified model."""
     final_residual, final_jacobian = problem.residual_and_jacobian(result.state)
@@ -634,8 +729,13 @@ class CrossValidation:
 
 
 @on_one_blas_thread
-def cross_validate(calibration: ClosedLoopCalibration, folds: int = 5, seed: int = 0,
-                   refit: bool = False, groups: np.ndarray | None = None) -> CrossValidation:
+def cross_validate(
+    calibration: ClosedLoopCalibration,
+    folds: int = 5,
+    seed: int = 0,
+    refit: bool = False,
+    groups: np.ndarray | None = None,
+) -> CrossValidation:
     """k-fold cross-validation of a calibration on its own inlier poses (`CrossValidation`).
 
     By default each fold's refit is the Gauss-Newton step from the estimate without the fold's
@@ -676,8 +776,9 @@ def cross_validate(calibration: ClosedLoopCalibration, folds: int = 5, seed: int
             residuals[assignment == fold] = predicted.reshape(-1, k)
     if problem.n_points:  # one error per point seen
         position = np.linalg.norm(residuals.reshape(len(inliers), -1, 3), axis=2)[problem.seen[inliers][:, ::3]]
-        return CrossValidation(PoseErrors(position, np.full(len(position), np.nan)), folds,
-                               len(np.unique(labels[inliers])))
+        return CrossValidation(
+            PoseErrors(position, np.full(len(position), np.nan)), folds, len(np.unique(labels[inliers]))
+        )
     position = np.linalg.norm(residuals[:, :3], axis=1)
     rotation = np.linalg.norm(residuals[:, 3:], axis=1) if k == 6 else np.full(len(inliers), np.nan)
     return CrossValidation(PoseErrors(position, rotation), folds, len(np.unique(labels[inliers])))
@@ -693,26 +794,40 @@ def default_iterations(n_parameters: int) -> int:
 _REFERENCE_POSES = 40  # a well-spread pose set on which the model's identifiable count is measured
 
 
-def structural_rank(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int],
-                    rank_tolerance: float) -> int:
+def structural_rank(
+    problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
+) -> int:
     """Number of identifiable parameters of the model and setup themselves, independent of the
     user's poses (`_reference_base`)."""
     return _reference_base(problem, marker, fixed_columns, rank_tolerance).rank
 
 
-def _reference_base(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int],
-                    rank_tolerance: float) -> BaseParameters:
+def _reference_base(
+    problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
+) -> BaseParameters:
     """The base parameters on a fixed, seeded set of poses spread over the workspace box: what the
     model and setup can identify, whatever the user's poses. Cached (it depends on the starting
     geometry and the setup, not on the data)."""
     error_model = problem.error_model
     model = error_model.mechanism.model
-    geometry = np.concatenate([np.ravel([p.homogeneous for p in model.jointPlacements]),
-                               np.ravel([f.placement.homogeneous for f in model.frames]),
-                               np.ravel(marker.homogeneous), np.ravel(problem.point_offsets)]).tobytes()
+    geometry = np.concatenate(
+        [
+            np.ravel([p.homogeneous for p in model.jointPlacements]),
+            np.ravel([f.placement.homogeneous for f in model.frames]),
+            np.ravel(marker.homogeneous),
+            np.ravel(problem.point_offsets),
+        ]
+    ).tobytes()
     position_only = problem.measurements.position_only
-    key = (geometry, error_model.placements, position_only, problem.names, tuple(sorted(fixed_columns)),
-           float(problem.row_weights[0] / problem.row_weights[-1]), rank_tolerance)
+    key = (
+        geometry,
+        error_model.placements,
+        position_only,
+        problem.names,
+        tuple(sorted(fixed_columns)),
+        float(problem.row_weights[0] / problem.row_weights[-1]),
+        rank_tolerance,
+    )
     if key not in _STRUCTURAL_RANKS:
         _STRUCTURAL_RANKS[key] = _reference_selection(problem, marker, fixed_columns, rank_tolerance)
     return _STRUCTURAL_RANKS[key]
@@ -721,8 +836,9 @@ def _reference_base(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns:
 _STRUCTURAL_RANKS: dict[tuple, BaseParameters] = {}
 
 
-def _reference_selection(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int],
-                         rank_tolerance: float) -> BaseParameters:
+def _reference_selection(
+    problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
+) -> BaseParameters:
     error_model = problem.error_model
     mechanism = error_model.mechanism
     actuators = workspace_actuators(mechanism, _REFERENCE_POSES, np.random.default_rng(2020))
@@ -730,16 +846,23 @@ def _reference_selection(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_col
     offsets = tuple((float(x), float(y), float(z)) for x, y, z in problem.point_offsets)
     if problem.n_points:  # the points at the fit's start offsets, every one seen
         platform = np.array([pose.homogeneous for pose in reference.poses])
-        reference = PoseMeasurements(reference.actuators, reference.poses, True,
-                                     MeasurementSetup(points=offsets).measured_points(platform))
+        reference = PoseMeasurements(
+            reference.actuators, reference.poses, True, MeasurementSetup(points=offsets).measured_points(platform)
+        )
     else:
-        reference = PoseMeasurements(reference.actuators, tuple(pose * marker for pose in reference.poses),
-                                     reference.position_only)
+        reference = PoseMeasurements(
+            reference.actuators, tuple(pose * marker for pose in reference.poses), reference.position_only
+        )
     names = problem.names
     everything = np.arange(len(names))
-    twin = _ClosedLoopProblem(error_model, reference, TrackerNoise(), everything,
-                              estimate_frame=problem.frame_slot is not None,
-                              estimate_marker=problem.marker_slot is not None)
+    twin = _ClosedLoopProblem(
+        error_model,
+        reference,
+        TrackerNoise(),
+        everything,
+        estimate_frame=problem.frame_slot is not None,
+        estimate_marker=problem.marker_slot is not None,
+    )
     twin.noise_weights = np.tile(problem.row_weights, len(reference))
     state = twin.assemble(mechanism.model, None, setup=MeasurementSetup(marker=marker, points=offsets))
     _, jacobian = twin.evaluate(state, everything)
@@ -755,9 +878,14 @@ def _reference_selection(problem: _ClosedLoopProblem, marker: pin.SE3, fixed_col
 _MARGINAL = 100.0
 
 
-def _holding_that_identifies(problem: _ClosedLoopProblem, marker: pin.SE3, factor: np.ndarray,
-                             fixed_columns: Sequence[int], rank_tolerance: float, missing: Sequence[str]
-                             ) -> tuple[str, ...]:
+def _holding_that_identifies(
+    problem: _ClosedLoopProblem,
+    marker: pin.SE3,
+    factor: np.ndarray,
+    fixed_columns: Sequence[int],
+    rank_tolerance: float,
+    missing: Sequence[str],
+) -> tuple[str, ...]:
     """Parameters to hold at nominal (`fixed`) so that the data identify all the model then can:
     `missing` and, while interchangeable columns take their place, the parameters of what is still
     unexcited, checked against the reference set; () when three rounds do not get there."""
@@ -773,31 +901,45 @@ def _holding_that_identifies(problem: _ClosedLoopProblem, marker: pin.SE3, facto
         reference = _reference_base(problem, marker, columns, rank_tolerance)
         if base.rank >= reference.rank:
             return tuple(held)
-        held += [n for n in unexcited_parameters(trial, problem.names, reference.indices, reference.rank - base.rank)
-                 if n not in held]
+        held += [
+            n
+            for n in unexcited_parameters(trial, problem.names, reference.indices, reference.rank - base.rank)
+            if n not in held
+        ]
     return ()
 
 
-def _shortfall(base: BaseParameters, reference: BaseParameters, missing: Sequence[str], hold: Sequence[str],
-               counts: tuple[int, int], rank_tolerance: float) -> str:
+def _shortfall(
+    base: BaseParameters,
+    reference: BaseParameters,
+    missing: Sequence[str],
+    hold: Sequence[str],
+    counts: tuple[int, int],
+    rank_tolerance: float,
+) -> str:
     """Why the data identify fewer parameters than the model has (counts: poses, residual rows), and
     the advice that can help: more poses only when there are fewer rows than parameters or the
     reference set identifies the missing directions clearly; holding parameters at nominal (`hold`,
     checked to work) when even a well-spread pose set barely identifies them."""
     n_poses, n_rows = counts
-    head = (f"{n_poses} poses give {n_rows} residual rows for {reference.rank} identifiable parameters and "
-            f"identify only {base.rank}")
+    head = (
+        f"{n_poses} poses give {n_rows} residual rows for {reference.rank} identifiable parameters and "
+        f"identify only {base.rank}"
+    )
     if n_rows < reference.rank:
         return f"{head}: add poses (each gives {n_rows // max(n_poses, 1)} rows), spread over the workspace"
     listed = ", ".join(missing[:8]) + (" ..." if len(missing) > 8 else "")
     fix = f"hold them at nominal (--fix {' '.join(hold)})" if hold else "hold the weakest at nominal (--fix)"
-    marginal = int(np.count_nonzero(reference.r_diag_ratio[:reference.rank] < _MARGINAL * rank_tolerance))
+    marginal = int(np.count_nonzero(reference.r_diag_ratio[: reference.rank] < _MARGINAL * rank_tolerance))
     if reference.rank - base.rank <= marginal:
-        return (f"{head}: {listed} are barely identifiable on any poses (on poses spread over the whole "
-                f"workspace, within {_MARGINAL:g} times the rank tolerance), so more poses are unlikely to help: "
-                f"{fix}")
-    return (f"{head}: these poses do not excite {listed}; poses that move them, over more of the workspace, "
-            f"would, or {fix}")
+        return (
+            f"{head}: {listed} are barely identifiable on any poses (on poses spread over the whole "
+            f"workspace, within {_MARGINAL:g} times the rank tolerance), so more poses are unlikely to help: "
+            f"{fix}"
+        )
+    return (
+        f"{head}: these poses do not excite {listed}; poses that move them, over more of the workspace, would, or {fix}"
+    )
 
 
 def _accumulated_parameters(error_model: ClosedLoopErrorModel, start: pin.Model, end: pin.Model) -> np.ndarray:
@@ -822,8 +964,9 @@ def pose_errors(machine_a: Mechanism, machine_b: Mechanism, actuators: np.ndarra
         batch = ClosedLoopSolver(machine).forward_batch(actuators) if len(actuators) else None
         if batch is not None and batch.failures:
             first = batch.failures[0]
-            raise InvalidInputError(f"pose_errors: actuator set {first.index} does not assemble on "
-                                    f"{machine.urdf_path.name}: {first.reason}")
+            raise InvalidInputError(
+                f"pose_errors: actuator set {first.index} does not assemble on {machine.urdf_path.name}: {first.reason}"
+            )
         poses.append(np.zeros((0, 4, 4)) if batch is None else batch.poses)
     return pose_errors_between(*poses)
 
@@ -852,12 +995,14 @@ def predicted_pose_std(calibration: ClosedLoopCalibration, actuators: np.ndarray
     setup's uncertainty is not the machine's): `predicted_measurement_std` with no frame and no
     marker. Position [m] and orientation [rad], the latter in the platform's axes."""
     machine = set(calibration.error_model.names)
-    return _predicted_std(calibration, actuators, MeasurementSetup(),
-                          tuple(name for name in calibration.fitted if name in machine))
+    return _predicted_std(
+        calibration, actuators, MeasurementSetup(), tuple(name for name in calibration.fitted if name in machine)
+    )
 
 
-def _predicted_std(calibration: ClosedLoopCalibration, actuators: np.ndarray, setup: MeasurementSetup,
-                   names: tuple[str, ...]) -> PoseErrors:
+def _predicted_std(
+    calibration: ClosedLoopCalibration, actuators: np.ndarray, setup: MeasurementSetup, names: tuple[str, ...]
+) -> PoseErrors:
     """Std of setup.frame . T_platform . setup.marker at the sliders from the covariance of the fitted
     parameters `names` (a subset of `calibration.fitted`), in blocks of `_BLOCK` poses."""
     problem = calibration.problem

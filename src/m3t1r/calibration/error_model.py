@@ -60,8 +60,9 @@ class ClosedLoopErrorModel:
             for spec in mechanism.closures:
                 frame_ids += [spec.frame_a_id, spec.frame_b_id]
             frame_ids.append(mechanism.platform_frame_id)
-            frames = tuple(Placement.frame(model.frames[i].name) for i in dict.fromkeys(frame_ids)
-                           if has_own_placement(model, i))
+            frames = tuple(
+                Placement.frame(model.frames[i].name) for i in dict.fromkeys(frame_ids) if has_own_placement(model, i)
+            )
             placements = joints + frames
         self.mechanism = mechanism
         self.placements = placements
@@ -73,7 +74,7 @@ class ClosedLoopErrorModel:
         for i, placement in enumerate(placements):
             if placement.kind == "joint":
                 j = model.getJointId(placement.name)
-                self._joint_columns[6 * (j - 1):6 * j] = np.arange(6 * i, 6 * i + 6)
+                self._joint_columns[6 * (j - 1) : 6 * j] = np.arange(6 * i, 6 * i + 6)
             else:
                 self._frame_block[model.getFrameId(placement.name)] = 6 * i
         self._joint_targets = np.flatnonzero(self._joint_columns >= 0)
@@ -86,8 +87,9 @@ class ClosedLoopErrorModel:
         # Every frame's regressor is one matrix G (per-joint blocks Ad(oMi[parent] jointPlacement),
         # WORLD) masked by the frame's support; a closure sees the signed mask support(b) - support(a).
         self._closure_frames = [(spec.frame_a_id, spec.frame_b_id, len(spec.rows)) for spec in mechanism.closures]
-        self._row_masks = np.vstack([np.tile(support(fb) - support(fa), (count, 1))
-                                     for fa, fb, count in self._closure_frames])
+        self._row_masks = np.vstack(
+            [np.tile(support(fb) - support(fa), (count, 1)) for fa, fb, count in self._closure_frames]
+        )
         self._platform = mechanism.platform_frame_id
         self._platform_mask = support(self._platform)
         # Rows seeing frame parameters: a frame error moves its anchor and everything rigidly attached
@@ -113,8 +115,11 @@ class ClosedLoopErrorModel:
             if rows:
                 self._own_terms.append((np.array(rows), np.array(slots), np.array(columns), sign))
         # The platform frame moves with its own parameters and with any frame's it is attached to.
-        self._platform_terms = tuple((self._frame_block[owner], slot) for slot, (owner, (_, family))
-                                     in enumerate(zip(self._own_frame_ids, moved)) if self._platform in family)
+        self._platform_terms = tuple(
+            (self._frame_block[owner], slot)
+            for slot, (owner, (_, family)) in enumerate(zip(self._own_frame_ids, moved))
+            if self._platform in family
+        )
         # Batched sensitivities: the parent of each joint (G's blocks are Ad(oMi[parent] jointPlacement)),
         # the platform's support per velocity column, and the frames whose own adjoints are needed.
         self._parents = np.array(model.parents[1:], dtype=int)
@@ -142,8 +147,9 @@ class ClosedLoopErrorModel:
         blocks = adjoint_matrices(joints[:, self._parents] @ placements)  # (N, n_joints, 6, 6)
         return blocks.transpose(0, 2, 1, 3).reshape(len(joints), 6, 6 * len(placements))  # also for no pose
 
-    def platform_sensitivity(self, solver: ClosedLoopSolver, q: np.ndarray, columns: np.ndarray | None = None
-                             ) -> tuple[pin.SE3, np.ndarray, np.ndarray]:
+    def platform_sensitivity(
+        self, solver: ClosedLoopSolver, q: np.ndarray, columns: np.ndarray | None = None
+    ) -> tuple[pin.SE3, np.ndarray, np.ndarray]:
         """Platform pose at an assembled q, d xi_P / dp (6 x P, spatial twist in WORLD) and
         dq_passive / dp (n_passive x P), for the parameter `columns` (default all).
 
@@ -153,8 +159,9 @@ class ClosedLoopErrorModel:
         batch = self.platform_sensitivities(solver, [q], columns)
         return pin.SE3(batch.poses[0]), batch.twist_jacobians[0], batch.passive_sensitivities()[0]
 
-    def platform_sensitivities(self, solver: ClosedLoopSolver, configurations,
-                               columns: np.ndarray | None = None) -> PlatformSensitivities:
+    def platform_sensitivities(
+        self, solver: ClosedLoopSolver, configurations, columns: np.ndarray | None = None
+    ) -> PlatformSensitivities:
         """`platform_sensitivity` at N assembled configurations at once, for the parameter `columns`.
 
         Only the Pinocchio passes run per pose; the algebra (eq. 17 blocks Ad(oMi[parent]
@@ -191,7 +198,9 @@ class ClosedLoopErrorModel:
             xi[:, :, slots] += adjoints[:, adjoint][:, :, components]
         square = jac_q[:, :, solver.passive]
         platform_jacobian = (joint_jacobian * self._platform_v_mask)[:, :, solver.passive]  # WORLD frame Jacobian
-        through_passive = np.swapaxes(np.linalg.solve(np.swapaxes(square, 1, 2), np.swapaxes(platform_jacobian, 1, 2)), 1, 2)
+        through_passive = np.swapaxes(
+            np.linalg.solve(np.swapaxes(square, 1, 2), np.swapaxes(platform_jacobian, 1, 2)), 1, 2
+        )
         return PlatformSensitivities(frames[:, -1], xi - through_passive @ dr_dp, square, dr_dp)
 
     def _column_plan(self, columns: np.ndarray) -> _ColumnPlan:
@@ -249,9 +258,15 @@ class _ColumnPlan:
                 own_terms.append((rows, slots, sign, pick, row_index, slot_of[blocks][pick]))
         platform_terms = []
         for block, adjoint in model._platform_terms:
-            wanted = slot_of[block:block + 6] >= 0
+            wanted = slot_of[block : block + 6] >= 0
             if wanted.any():
-                platform_terms.append((slot_of[block:block + 6][wanted], np.flatnonzero(wanted), adjoint))
-        return _ColumnPlan(len(columns), joint_slots, g_columns, model._row_masks[:, g_columns],
-                           model._platform_mask[g_columns], tuple(own_terms), tuple(platform_terms))
-
+                platform_terms.append((slot_of[block : block + 6][wanted], np.flatnonzero(wanted), adjoint))
+        return _ColumnPlan(
+            len(columns),
+            joint_slots,
+            g_columns,
+            model._row_masks[:, g_columns],
+            model._platform_mask[g_columns],
+            tuple(own_terms),
+            tuple(platform_terms),
+        )

@@ -88,8 +88,9 @@ def _as_weights(values: ArrayLike | None, n_rows: int, what: str) -> np.ndarray 
 _FACTOR_ROWS = 4096
 
 
-def triangular_factor(matrix: np.ndarray, vector: np.ndarray | None = None,
-                      previous: np.ndarray | None = None) -> np.ndarray:
+def triangular_factor(
+    matrix: np.ndarray, vector: np.ndarray | None = None, previous: np.ndarray | None = None
+) -> np.ndarray:
     """Upper-triangular R with R^T R = P^T P + M^T M for M = [matrix, vector] (the vector, when
     given, as a last column) and P = `previous`: the R of a QR of [P; M], taken over blocks of rows.
 
@@ -100,9 +101,9 @@ def triangular_factor(matrix: np.ndarray, vector: np.ndarray | None = None,
     width = matrix.shape[1] + (vector is not None)
     factor = np.zeros((0, width)) if previous is None else previous
     for start in range(0, matrix.shape[0], _FACTOR_ROWS):
-        block = matrix[start:start + _FACTOR_ROWS]
+        block = matrix[start : start + _FACTOR_ROWS]
         if vector is not None:
-            block = np.column_stack((block, vector[start:start + _FACTOR_ROWS]))
+            block = np.column_stack((block, vector[start : start + _FACTOR_ROWS]))
         factor = cast(np.ndarray, np.linalg.qr(np.vstack((factor, block)), mode="r"))  # numpy's stub: QRResult
     return factor
 
@@ -188,7 +189,7 @@ def pivoted_qr(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         column[0] -= alpha
         column /= np.linalg.norm(column)
         work[k:, k:] -= 2.0 * np.outer(column, column @ work[k:, k:])
-        work[k + 1:, k] = 0.0
+        work[k + 1 :, k] = 0.0
         work[k, k] = alpha
     return np.triu(work[: min(rows, cols)]), pivots
 
@@ -215,8 +216,9 @@ def select_base_parameters(
     ones explain is dropped; the rest is chosen on the remainder after projecting them out.
     """
     if len(forced):
-        return _select_with_forced(_as_matrix(jacobian, "jacobian"), tuple(names), rank_tolerance, max_condition,
-                                   np.asarray(forced, dtype=int))
+        return _select_with_forced(
+            _as_matrix(jacobian, "jacobian"), tuple(names), rank_tolerance, max_condition, np.asarray(forced, dtype=int)
+        )
     matrix = _as_matrix(jacobian, "jacobian")
     names = tuple(names)
     norms, nonzero = _column_norms(matrix, names, rank_tolerance)
@@ -270,8 +272,9 @@ def _column_norms(matrix: np.ndarray, names: tuple[str, ...], rank_tolerance: fl
     return norms, norms > rank_tolerance * largest
 
 
-def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rank_tolerance: float, max_condition: float,
-                        forced: np.ndarray) -> BaseParameters:
+def _select_with_forced(
+    matrix: np.ndarray, names: tuple[str, ...], rank_tolerance: float, max_condition: float, forced: np.ndarray
+) -> BaseParameters:
     norms, nonzero = _column_norms(matrix, names, rank_tolerance)
     normalised = matrix[:, nonzero] / norms[nonzero]
     position = np.full(matrix.shape[1], -1)
@@ -300,9 +303,13 @@ def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rank_toleran
     kept_singular = np.linalg.svd(r_kept, compute_uv=False)
     condition = float(kept_singular[0] / kept_singular[-1])
     if condition > max_condition:
-        warnings.warn(PoorExcitationWarning(
-            f"kept {kept.size} parameters with condition number {condition:.3g} > {max_condition:.3g}: "
-            "add or spread out poses"), stacklevel=3)
+        warnings.warn(
+            PoorExcitationWarning(
+                f"kept {kept.size} parameters with condition number {condition:.3g} > {max_condition:.3g}: "
+                "add or spread out poses"
+            ),
+            stacklevel=3,
+        )
     singular_values = np.zeros(min(matrix.shape))
     spectrum = np.linalg.svd(np.linalg.qr(normalised, mode="r"), compute_uv=False)
     singular_values[: spectrum.size] = spectrum
@@ -317,8 +324,9 @@ def _select_with_forced(matrix: np.ndarray, names: tuple[str, ...], rank_toleran
     )
 
 
-def unexcited_parameters(jacobian: ArrayLike, names: Sequence[str], columns: Sequence[int], count: int
-                         ) -> tuple[str, ...]:
+def unexcited_parameters(
+    jacobian: ArrayLike, names: Sequence[str], columns: Sequence[int], count: int
+) -> tuple[str, ...]:
     """The parameters among `columns` that make up the `count` least excited directions of the
     column-normalised `jacobian` (rows, parameters): for each of its `count` smallest right singular
     vectors over those columns, the parameters weighing at least half its largest component, the
@@ -329,7 +337,7 @@ def unexcited_parameters(jacobian: ArrayLike, names: Sequence[str], columns: Seq
     factor = triangular_factor(matrix / np.where(norms > 0.0, norms, 1.0))
     vt = np.linalg.svd(factor, full_matrices=True)[2]
     found: list[str] = []
-    for direction in np.abs(vt[vt.shape[0] - count:][::-1]):
+    for direction in np.abs(vt[vt.shape[0] - count :][::-1]):
         weight = np.round(direction / direction.max(), 9)  # equal weights (twins) in column order, on any processor
         for position in np.argsort(-weight, kind="stable"):
             if weight[position] < 0.5:
@@ -355,8 +363,10 @@ def parameter_columns(names: Sequence[str], wanted: Sequence[str], what: str) ->
         group = [i for i, n in enumerate(names) if n.rsplit(".dt[", 1)[0] == name]
         if not group:
             example = names[0] if names else "q12.dt[3]"
-            raise InvalidInputError(f"{what}: '{name}' is neither a parameter (e.g. {example}) nor a placement "
-                                    f"(e.g. {example.rsplit('.dt[', 1)[0]}: all its components)")
+            raise InvalidInputError(
+                f"{what}: '{name}' is neither a parameter (e.g. {example}) nor a placement "
+                f"(e.g. {example.rsplit('.dt[', 1)[0]}: all its components)"
+            )
         columns += group
     return columns
 
@@ -388,13 +398,15 @@ def checked_outlier_sigma(sigma: object) -> float | None:
     if value == 0.0:
         return None
     if not 1.0 <= value <= 1e3:
-        raise InvalidInputError(f"outlier_sigma: None or 0 (keep every pose) or a gate of 1 to 1000 noise sigmas, "
-                                f"got {sigma!r}")
+        raise InvalidInputError(
+            f"outlier_sigma: None or 0 (keep every pose) or a gate of 1 to 1000 noise sigmas, got {sigma!r}"
+        )
     return value
 
 
-def outlier_poses(whitened: ArrayLike, sigma: float = OUTLIER_SIGMA,
-                  measured_rows: ArrayLike | None = None) -> tuple[np.ndarray, float]:
+def outlier_poses(
+    whitened: ArrayLike, sigma: float = OUTLIER_SIGMA, measured_rows: ArrayLike | None = None
+) -> tuple[np.ndarray, float]:
     """Flag poses whose whitened residual block (N, k) is beyond `sigma` noise sigmas.
 
     A pose's statistic d^2 = ||r_i||^2 is chi^2 with k degrees of freedom under the noise model; it
@@ -465,7 +477,7 @@ def project_out(matrix: np.ndarray, basis: np.ndarray) -> None:
     if basis.shape[1] == 0:
         return
     for start in range(0, matrix.shape[1], _UPDATE_COLUMNS):
-        block = matrix[:, start:start + _UPDATE_COLUMNS]
+        block = matrix[:, start : start + _UPDATE_COLUMNS]
         block -= basis @ (basis.T @ block)
 
 
@@ -474,12 +486,19 @@ def without_column(matrix: np.ndarray, column: int) -> np.ndarray:
     of the first p - 1 returned (np.delete would copy the whole matrix)."""
     for start in range(column, matrix.shape[1] - 1, _UPDATE_COLUMNS):
         stop = min(start + _UPDATE_COLUMNS, matrix.shape[1] - 1)
-        matrix[:, start:stop] = matrix[:, start + 1:stop + 1].copy()
+        matrix[:, start:stop] = matrix[:, start + 1 : stop + 1].copy()
     return matrix[:, :-1]
 
 
-def forward_selection(jacobian: ArrayLike, residual: ArrayLike, rows_per_pose: int, candidates: Sequence[int],
-                      forced: Sequence[int] | np.ndarray = (), *, rank_tolerance: float = 1e-9) -> ParameterSelection:
+def forward_selection(
+    jacobian: ArrayLike,
+    residual: ArrayLike,
+    rows_per_pose: int,
+    candidates: Sequence[int],
+    forced: Sequence[int] | np.ndarray = (),
+    *,
+    rank_tolerance: float = 1e-9,
+) -> ParameterSelection:
     """Greedy forward selection of columns of the whitened linear model r + J dx (m = N k rows).
 
     Starting from `forced`, each step adds the candidate column whose least-squares fit has the
@@ -536,7 +555,7 @@ def forward_selection(jacobian: ArrayLike, residual: ArrayLike, rows_per_pose: i
     differences = np.array(per_pose) - per_pose[best_size]
     standard_error = differences.std(axis=1, ddof=1) * np.sqrt(n) if n > 1 else np.zeros(len(path))
     tied = int(np.count_nonzero(path - path[best_size] <= standard_error)) - 1
-    added = tuple(chosen[len(forced):])
+    added = tuple(chosen[len(forced) :])
     return ParameterSelection(
         indices=tuple(sorted(chosen[: len(forced) + best_size])),
         press=float(path[best_size]),

@@ -27,8 +27,14 @@ from scipy.spatial.transform import Rotation
 
 from m3t1r.errors import IdentificationError, InvalidInputError, require_finite_vector
 
-__all__ = ["MeasurementSetup", "LENGTH_UNITS", "register_frame", "register_marker_rotation", "se3_from_report",
-           "se3_to_report"]
+__all__ = [
+    "MeasurementSetup",
+    "LENGTH_UNITS",
+    "register_frame",
+    "register_marker_rotation",
+    "se3_from_report",
+    "se3_to_report",
+]
 
 #: Length units a measurement file may use, in metres per unit (command-line lengths stay in m).
 LENGTH_UNITS: Mapping[str, float] = {"m": 1.0, "mm": 1e-3}
@@ -46,8 +52,9 @@ def se3_from_report(entry: Mapping[str, object], what: str) -> pin.SE3:
         translation = np.asarray(entry["translation"], dtype=float).reshape(3)
         quaternion = np.asarray(entry["quaternion"], dtype=float).reshape(4)
     except (KeyError, TypeError, ValueError) as exc:
-        raise InvalidInputError(f"{what}: expected translation [x, y, z] and quaternion [qx, qy, qz, qw] ({exc})") \
-            from None
+        raise InvalidInputError(
+            f"{what}: expected translation [x, y, z] and quaternion [qx, qy, qz, qw] ({exc})"
+        ) from None
     if not (np.all(np.isfinite(translation)) and np.all(np.isfinite(quaternion))):
         raise InvalidInputError(f"{what}: non-finite value")
     if abs(np.linalg.norm(quaternion) - 1.0) > 1e-6:
@@ -73,8 +80,9 @@ class MeasurementSetup:
         platform's orientation; identity where None."""
         frame = pin.SE3.Identity()
         if frame_xyz_rpy is not None:
-            x, y, z, roll, pitch, yaw = require_finite_vector(frame_xyz_rpy, 6, "measurement frame x, y, z, roll, "
-                                                              "pitch, yaw")
+            x, y, z, roll, pitch, yaw = require_finite_vector(
+                frame_xyz_rpy, 6, "measurement frame x, y, z, roll, pitch, yaw"
+            )
             frame = pin.SE3(pin.rpy.rpyToMatrix(roll, pitch, yaw), np.array([x, y, z]))
         marker = pin.SE3.Identity()
         if marker_xyz is not None:
@@ -92,8 +100,10 @@ class MeasurementSetup:
         return np.einsum("nij,pj->npi", seen[:, :3, :3], offsets) + seen[:, None, :3, 3]
 
     def to_report(self) -> dict[str, object]:
-        report: dict[str, object] = {"measurement_frame": se3_to_report(self.frame),
-                                     "marker": se3_to_report(self.marker)}
+        report: dict[str, object] = {
+            "measurement_frame": se3_to_report(self.frame),
+            "marker": se3_to_report(self.marker),
+        }
         if self.points:
             report["points"] = [list(map(float, p)) for p in self.points]
         return report
@@ -101,6 +111,7 @@ class MeasurementSetup:
     @staticmethod
     def from_report(report: Mapping[str, object]) -> MeasurementSetup:
         """The setup a calibration report recorded (identity for a missing entry)."""
+
         def entry(key: str) -> pin.SE3:
             value = report.get(key)
             if value is None:
@@ -108,6 +119,7 @@ class MeasurementSetup:
             if not isinstance(value, Mapping):
                 raise InvalidInputError(f"report '{key}': expected an object")
             return se3_from_report(value, f"report '{key}'")
+
         return MeasurementSetup(entry("measurement_frame"), entry("marker"), _points_from_report(report))
 
 

@@ -62,8 +62,10 @@ class PoseMeasurements:
         if self.points is not None:
             points = np.asarray(self.points, dtype=float)
             if points.ndim != 3 or points.shape[0] != len(self.poses) or points.shape[2] != 3 or not self.position_only:
-                raise InvalidInputError(f"measured points: expected position-only (N, P, 3) points for "
-                                        f"{len(self.poses)} poses, got shape {points.shape}")
+                raise InvalidInputError(
+                    f"measured points: expected position-only (N, P, 3) points for "
+                    f"{len(self.poses)} poses, got shape {points.shape}"
+                )
             seen = np.isfinite(points)
             if np.any(np.any(seen, axis=2) != np.all(seen, axis=2)) or not np.all(np.any(seen[:, :, 0], axis=1)):
                 raise InvalidInputError("measured points: a point with some coordinates missing, or a row seeing none")
@@ -83,17 +85,26 @@ class PoseMeasurements:
 
     def subset(self, keep: np.ndarray) -> PoseMeasurements:
         """The poses at the indices `keep`, in that order."""
-        return PoseMeasurements(self.actuators[keep], tuple(self.poses[i] for i in keep), self.position_only,
-                                None if self.points is None else self.points[keep])
+        return PoseMeasurements(
+            self.actuators[keep],
+            tuple(self.poses[i] for i in keep),
+            self.position_only,
+            None if self.points is None else self.points[keep],
+        )
 
     def __len__(self) -> int:
         return len(self.poses)
 
 
 @on_one_blas_thread
-def measure(machine: Mechanism, actuators: np.ndarray, rng: np.random.Generator | None = None,
-            noise: TrackerNoise | None = None, position_only: bool = False,
-            setup: MeasurementSetup | None = None) -> PoseMeasurements:
+def measure(
+    machine: Mechanism,
+    actuators: np.ndarray,
+    rng: np.random.Generator | None = None,
+    noise: TrackerNoise | None = None,
+    position_only: bool = False,
+    setup: MeasurementSetup | None = None,
+) -> PoseMeasurements:
     """What a tracker sees on `machine` driven at `actuators`, and what the slider encoders read.
 
     The tracker sees setup.frame . T_platform . setup.marker (default: the platform frame in the
@@ -108,8 +119,13 @@ def measure(machine: Mechanism, actuators: np.ndarray, rng: np.random.Generator 
     if noise is not None:
         if rng is None:
             raise InvalidInputError("measure: noise needs a random generator")
-        poses = [pin.SE3(p.rotation @ pin.exp3(rng.normal(0.0, noise.rotation, 3)),
-                         p.translation + rng.normal(0.0, noise.position, 3)) for p in poses]
+        poses = [
+            pin.SE3(
+                p.rotation @ pin.exp3(rng.normal(0.0, noise.rotation, 3)),
+                p.translation + rng.normal(0.0, noise.position, 3),
+            )
+            for p in poses
+        ]
         readings = readings + rng.normal(0.0, noise.actuator, readings.shape)
     return PoseMeasurements(readings, tuple(poses), position_only)
 
@@ -122,11 +138,21 @@ def assembled_from_home(machine: Mechanism, actuators: np.ndarray) -> ForwardBat
     values = np.asarray(actuators, dtype=float)
     if len(values) == 0:
         empty = np.zeros(0)
-        return ForwardBatch(0, empty.astype(int), np.zeros((0, 4, 4)), np.zeros((0, machine.model.nq)), empty,
-                            empty.astype(int), (), np.zeros((0, 4, 4)))
+        return ForwardBatch(
+            0,
+            empty.astype(int),
+            np.zeros((0, 4, 4)),
+            np.zeros((0, machine.model.nq)),
+            empty,
+            empty.astype(int),
+            (),
+            np.zeros((0, 4, 4)),
+        )
     solved = ClosedLoopSolver(machine).forward_batch(values.reshape(len(values), -1))
     if solved.failures:
         first = solved.failures[0]
-        raise InvalidInputError(f"slider set {first.index} ({values[first.index]}) does not assemble on the machine "
-                                f"from its home: {first.reason}")
+        raise InvalidInputError(
+            f"slider set {first.index} ({values[first.index]}) does not assemble on the machine "
+            f"from its home: {first.reason}"
+        )
     return solved

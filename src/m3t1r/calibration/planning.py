@@ -54,8 +54,16 @@ from m3t1r.model.poe import SerialChain
 from m3t1r.model.workspace import workspace_actuators
 
 __all__ = [
-    "MeasurementPlan", "PredictedAccuracy", "plan_closed_loop", "plan_serial", "order_for_travel", "path_travel",
-    "predicted_accuracy", "base_information", "DEFAULT_CANDIDATES_PER_POSE", "DEFAULT_EVALUATION_POSES",
+    "MeasurementPlan",
+    "PredictedAccuracy",
+    "plan_closed_loop",
+    "plan_serial",
+    "order_for_travel",
+    "path_travel",
+    "predicted_accuracy",
+    "base_information",
+    "DEFAULT_CANDIDATES_PER_POSE",
+    "DEFAULT_EVALUATION_POSES",
 ]
 
 #: Candidates drawn per planned pose when the caller does not say (K = 20 N).
@@ -168,7 +176,7 @@ def _two_opt(path: list[int], distance: np.ndarray, max_passes: int = 100) -> li
             gain = distance[before_i, at_i] + tail_old - distance[before_i, at_j] - tail_new
             best = int(np.argmax(gain))
             if gain[best] > tolerance:
-                order[i:j[best] + 1] = order[i:j[best] + 1][::-1].copy()
+                order[i : j[best] + 1] = order[i : j[best] + 1][::-1].copy()
                 improved = True
         if not improved:
             break
@@ -235,8 +243,9 @@ def _nearest_neighbour_scan(nodes: np.ndarray, progress: Callable[[int, int], No
     return path
 
 
-def order_for_travel(points: ArrayLike, start: ArrayLike | None = None,
-                     progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+def order_for_travel(
+    points: ArrayLike, start: ArrayLike | None = None, progress: Callable[[int, int], None] | None = None
+) -> np.ndarray:
     """A visiting order (indices into the rows of `points` (n, d)) with short travel from `start`
     (d,) (default: from the first row): greedy nearest neighbour, then 2-opt (module docstring);
     beyond `DENSE_ORDERING_MAX` rows the nearest-neighbour path alone, found in O(n) memory.
@@ -265,8 +274,9 @@ def base_information(blocks: np.ndarray, indices: ArrayLike, columns: ArrayLike)
     return stacked.T @ stacked
 
 
-def predicted_accuracy(information: np.ndarray, sensitivities: np.ndarray, position_only: bool = False
-                       ) -> PredictedAccuracy:
+def predicted_accuracy(
+    information: np.ndarray, sensitivities: np.ndarray, position_only: bool = False
+) -> PredictedAccuracy:
     """Pose std at evaluation poses from an information matrix (m, m) over base parameters and the
     un-whitened pose sensitivities (n, 6, m) to them (position [m], then orientation [rad] rows).
 
@@ -304,9 +314,16 @@ class _Candidates:
     names: tuple[str, ...]  # the P parameter names
 
 
-def _plan(kind: Literal["closed_loop", "serial"], columns: tuple[str, ...], candidates: _Candidates, n_poses: int,
-          start: np.ndarray, position_only: bool, noise: tuple[float, float], units: tuple[str, ...]
-          ) -> MeasurementPlan:
+def _plan(
+    kind: Literal["closed_loop", "serial"],
+    columns: tuple[str, ...],
+    candidates: _Candidates,
+    n_poses: int,
+    start: np.ndarray,
+    position_only: bool,
+    noise: tuple[float, float],
+    units: tuple[str, ...],
+) -> MeasurementPlan:
     """Select, order and assess a plan from prepared candidates."""
     selection = select_poses(candidates.blocks, n_poses)
     if not math.isfinite(selection.log_det):
@@ -318,12 +335,21 @@ def _plan(kind: Literal["closed_loop", "serial"], columns: tuple[str, ...], cand
     accuracy = predicted_accuracy(information, candidates.evaluation[:, :, list(selection.columns)], position_only)
     ordered = candidates.configurations[chosen[order]]
     return MeasurementPlan(
-        kind=kind, columns=columns, configurations=ordered, candidate_indices=tuple(int(i) for i in chosen[order]),
-        n_candidates=len(candidates.configurations), selection=selection,
-        log_det=float(log_det) if sign > 0 else -math.inf, start=np.asarray(start, dtype=float),
+        kind=kind,
+        columns=columns,
+        configurations=ordered,
+        candidate_indices=tuple(int(i) for i in chosen[order]),
+        n_candidates=len(candidates.configurations),
+        selection=selection,
+        log_det=float(log_det) if sign > 0 else -math.inf,
+        start=np.asarray(start, dtype=float),
         travel=path_travel(ordered, start),
         travel_selection_order=path_travel(candidates.configurations[chosen], start),
-        accuracy=accuracy, position_only=position_only, noise=noise, column_units=units)
+        accuracy=accuracy,
+        position_only=position_only,
+        noise=noise,
+        column_units=units,
+    )
 
 
 def _shortfall(candidates: _Candidates, selection: PoseSelection, n_poses: int) -> str:
@@ -332,14 +358,18 @@ def _shortfall(candidates: _Candidates, selection: PoseSelection, n_poses: int) 
     unexcited, and how many poses give as many rows as parameters."""
     rows = candidates.blocks.shape[1]
     identifiable = len(selection.columns)
-    head = (f"{n_poses} poses cannot identify the {identifiable} parameters that the "
-            f"{len(candidates.configurations)} candidates identify")
+    head = (
+        f"{n_poses} poses cannot identify the {identifiable} parameters that the "
+        f"{len(candidates.configurations)} candidates identify"
+    )
     chosen = candidates.blocks[list(selection.indices)].reshape(-1, candidates.blocks.shape[2])
     columns = list(selection.columns)
     kept = select_base_parameters(chosen[:, columns], [candidates.names[c] for c in columns], max_condition=math.inf)
     weak = unexcited_parameters(chosen, candidates.names, columns, max(identifiable - kept.rank, 1))
-    return (f"{head}: they leave {', '.join(weak[:8])}{' ...' if len(weak) > 8 else ''} unexcited; plan more "
-            f"poses ({n_poses} give {n_poses * rows} rows for {identifiable} parameters)")
+    return (
+        f"{head}: they leave {', '.join(weak[:8])}{' ...' if len(weak) > 8 else ''} unexcited; plan more "
+        f"poses ({n_poses} give {n_poses * rows} rows for {identifiable} parameters)"
+    )
 
 
 def _check_counts(n_poses: int, n_candidates: int | None) -> int:
@@ -352,9 +382,16 @@ def _check_counts(n_poses: int, n_candidates: int | None) -> int:
 
 
 @on_one_blas_thread
-def plan_closed_loop(mechanism: Mechanism, n_poses: int, rng: np.random.Generator, *,
-                     n_candidates: int | None = None, noise: TrackerNoise | None = None, position_only: bool = False,
-                     n_evaluation: int = DEFAULT_EVALUATION_POSES) -> MeasurementPlan:
+def plan_closed_loop(
+    mechanism: Mechanism,
+    n_poses: int,
+    rng: np.random.Generator,
+    *,
+    n_candidates: int | None = None,
+    noise: TrackerNoise | None = None,
+    position_only: bool = False,
+    n_evaluation: int = DEFAULT_EVALUATION_POSES,
+) -> MeasurementPlan:
     """A plan of `n_poses` actuator sets [m or rad] for a closed-loop mechanism (module docstring).
 
     Candidates (default 20 n_poses) and evaluation poses are drawn uniformly in the design's
@@ -375,9 +412,17 @@ def plan_closed_loop(mechanism: Mechanism, n_poses: int, rng: np.random.Generato
 
 
 @on_one_blas_thread
-def plan_serial(model: pin.Model, chain: SerialChain, n_poses: int, rng: np.random.Generator, *,
-                n_candidates: int | None = None, noise: TrackerNoise | None = None, position_only: bool = False,
-                n_evaluation: int = DEFAULT_EVALUATION_POSES) -> MeasurementPlan:
+def plan_serial(
+    model: pin.Model,
+    chain: SerialChain,
+    n_poses: int,
+    rng: np.random.Generator,
+    *,
+    n_candidates: int | None = None,
+    noise: TrackerNoise | None = None,
+    position_only: bool = False,
+    n_evaluation: int = DEFAULT_EVALUATION_POSES,
+) -> MeasurementPlan:
     """A plan of `n_poses` joint configurations [rad or m] of a serial chain (module docstring).
 
     Candidates and evaluation configurations are uniform within the joint limits shrunk by 5 % on

@@ -96,8 +96,10 @@ def _as_blocks(blocks: ArrayLike) -> np.ndarray:
     if array.ndim != 3 or 0 in array.shape:
         raise InvalidInputError(f"candidate blocks: expected shape (n_candidates, rows, parameters), got {array.shape}")
     if not np.all(np.isfinite(array)):
-        raise InvalidInputError(f"candidate blocks: non-finite value in candidate "
-                                f"{int(np.flatnonzero(~np.isfinite(array).all(axis=(1, 2)))[0])}")
+        raise InvalidInputError(
+            f"candidate blocks: non-finite value in candidate "
+            f"{int(np.flatnonzero(~np.isfinite(array).all(axis=(1, 2)))[0])}"
+        )
     return array
 
 
@@ -185,7 +187,9 @@ def select_poses(
         raise InvalidInputError(f"select_poses: n_poses must be in [1, {n_candidates}], got {n_poses}")
     if columns is None:
         names = [f"p{k}" for k in range(n_parameters)]
-        columns = select_base_parameters(array.reshape(-1, n_parameters), names, rank_tolerance, max_condition=math.inf).indices
+        columns = select_base_parameters(
+            array.reshape(-1, n_parameters), names, rank_tolerance, max_condition=math.inf
+        ).indices
     chosen_columns = np.asarray(columns, dtype=int)
     if chosen_columns.size == 0 or chosen_columns.min() < 0 or chosen_columns.max() >= n_parameters:
         raise InvalidInputError(f"select_poses: columns must index the {n_parameters} parameters")
@@ -215,8 +219,12 @@ def select_poses(
             history.append(log_det + float(gains[best]))
     else:
         selected = [int(i) for i in initial]
-        if len(selected) != n_poses or len(set(selected)) != n_poses or min(selected) < 0 \
-                or max(selected) >= n_candidates:
+        if (
+            len(selected) != n_poses
+            or len(set(selected)) != n_poses
+            or min(selected) < 0
+            or max(selected) >= n_candidates
+        ):
             raise InvalidInputError(f"select_poses: initial must be {n_poses} distinct candidate indices")
         information = ridge + outer(selected)
         history.append(_log_det_chol(information)[0])
@@ -271,8 +279,9 @@ def select_poses(
 # Blocks for the two kinds of machine
 
 
-def _pose_residual_rows(position: np.ndarray, rotation: np.ndarray, twist_rows: np.ndarray,
-                        position_only: bool) -> np.ndarray:
+def _pose_residual_rows(
+    position: np.ndarray, rotation: np.ndarray, twist_rows: np.ndarray, position_only: bool
+) -> np.ndarray:
     """Residual rows of the calibration (position in WORLD, orientation in the tool frame) per
     unit parameter, at a pose where model and measurement agree (Jlog3 = I there)."""
     point = twist_rows[:3] + np.cross(twist_rows[3:], position[:, None], axis=0)  # dp = v + w x p
@@ -282,9 +291,14 @@ def _pose_residual_rows(position: np.ndarray, rotation: np.ndarray, twist_rows: 
 
 
 @on_one_blas_thread
-def closed_loop_candidate_blocks(mechanism: Mechanism, actuators: ArrayLike, noise: TrackerNoise | None = None, *,
-                                 position_only: bool = False, error_model: ClosedLoopErrorModel | None = None
-                                 ) -> tuple[np.ndarray, tuple[str, ...]]:
+def closed_loop_candidate_blocks(
+    mechanism: Mechanism,
+    actuators: ArrayLike,
+    noise: TrackerNoise | None = None,
+    *,
+    position_only: bool = False,
+    error_model: ClosedLoopErrorModel | None = None,
+) -> tuple[np.ndarray, tuple[str, ...]]:
     """Whitened identification blocks (n, rows, P) of the closed-loop machine at slider sets (n, 4) [m].
 
     Rows are those `calibrate_closed_loop` fits (position [m] then orientation [rad], each divided
@@ -301,14 +315,23 @@ def closed_loop_candidate_blocks(mechanism: Mechanism, actuators: ArrayLike, noi
     sliders = np.atleast_2d(np.asarray(actuators, dtype=float))
     configurations = list(assembled_from_home(mechanism, sliders).q)
     sensitivities = error_model.platform_sensitivities(solver, configurations)
-    blocks = np.array([_pose_residual_rows(pose[:3, 3], pose[:3, :3], dxi, position_only)
-                       for pose, dxi in zip(sensitivities.poses, sensitivities.twist_jacobians)])
+    blocks = np.array(
+        [
+            _pose_residual_rows(pose[:3, 3], pose[:3, :3], dxi, position_only)
+            for pose, dxi in zip(sensitivities.poses, sensitivities.twist_jacobians)
+        ]
+    )
     return blocks * weights[:rows, None], error_model.names
 
 
-def serial_candidate_blocks(model: pin.Model, chain: SerialChain, q_chain: ArrayLike,
-                            noise: TrackerNoise | None = None, *,
-                            position_only: bool = False) -> tuple[np.ndarray, tuple[str, ...]]:
+def serial_candidate_blocks(
+    model: pin.Model,
+    chain: SerialChain,
+    q_chain: ArrayLike,
+    noise: TrackerNoise | None = None,
+    *,
+    position_only: bool = False,
+) -> tuple[np.ndarray, tuple[str, ...]]:
     """Whitened identification blocks (n, rows, 6(joints+1)) of a serial chain at configurations (n, joints).
 
     Same rows as `calibrate_serial` with exact joint readings: tool position [m] in the base frame
@@ -320,5 +343,7 @@ def serial_candidate_blocks(model: pin.Model, chain: SerialChain, q_chain: Array
     poses, jacobians = forward_and_error_jacobians(chain, model, q_chain)
     weights = np.r_[np.full(3, 1.0 / noise.position), np.full(3, 1.0 / noise.rotation)]
     rows = 3 if position_only else 6
-    blocks = np.array([_pose_residual_rows(g.translation, g.rotation, j, position_only) for g, j in zip(poses, jacobians)])
+    blocks = np.array(
+        [_pose_residual_rows(g.translation, g.rotation, j, position_only) for g, j in zip(poses, jacobians)]
+    )
     return blocks * weights[:rows, None], chain.parameter_names()

@@ -28,8 +28,9 @@ def _first_seen_labels(keys: np.ndarray) -> np.ndarray:
     return np.argsort(np.argsort(first))[inverse.reshape(-1)]
 
 
-def pose_groups(readings: ArrayLike, sources: ArrayLike | None = None,
-                tolerance: float = REPEAT_TOLERANCE) -> np.ndarray:
+def pose_groups(
+    readings: ArrayLike, sources: ArrayLike | None = None, tolerance: float = REPEAT_TOLERANCE
+) -> np.ndarray:
     """(N,) group label of each row (module docstring), numbered 0, 1, ... in order of first appearance.
 
     readings: (N, n) joint readings [rad or m]; sources: (N,) the rows' `source` values, or None.
@@ -69,8 +70,10 @@ def grouped_folds(groups: ArrayLike, folds: int, rng: np.random.Generator) -> np
     labels = _first_seen_labels(np.asarray(groups).reshape(-1, 1))
     n_groups = int(labels.max()) + 1 if len(labels) else 0
     if n_groups < folds:
-        raise InvalidInputError(f"cross-validation: {folds} folds need at least {folds} distinct poses "
-                                f"(repeats of a pose count once), got {n_groups}")
+        raise InvalidInputError(
+            f"cross-validation: {folds} folds need at least {folds} distinct poses "
+            f"(repeats of a pose count once), got {n_groups}"
+        )
     return (rng.permutation(n_groups) % folds)[labels]
 
 
@@ -79,8 +82,9 @@ def grouped_folds(groups: ArrayLike, folds: int, rng: np.random.Generator) -> np
 MAX_PADDING = 2.0
 
 
-def grouped_blocks(jacobian: np.ndarray, residual: np.ndarray, rows_per_pose: int,
-                   groups: ArrayLike | None) -> tuple[np.ndarray, np.ndarray, int]:
+def grouped_blocks(
+    jacobian: np.ndarray, residual: np.ndarray, rows_per_pose: int, groups: ArrayLike | None
+) -> tuple[np.ndarray, np.ndarray, int]:
     """The rows of N poses (N k rows of `jacobian` and `residual`, pose after pose) rearranged so that
     each group of `groups` (N,) is one block, padded with zero rows to the largest group's size:
     (jacobian, residual, rows per block) for a leave-one-block-out score (`forward_selection`),

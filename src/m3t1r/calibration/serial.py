@@ -55,10 +55,28 @@ from m3t1r.calibration.serial_simulation import _checked_joint_noise, _readonly
 from m3t1r.errors import IdentificationError, InvalidInputError, real_array, require_count
 from m3t1r.model.poe import Placement, SerialChain, jlog3_batch, log3_batch, perturb, placement_poses, skew
 
-__all__ = ["PoseErrorRMS", "SerialCalibration", "calibrate_serial", "compliant_readings", "fit_base", "gravity_torques",
-           "moved_mass", "nominal_state", "parse_measurements", "pose_error_rms", "pose_whitening", "prior_columns",
-           "reject_outliers", "require_gravity_load", "select_base", "select_parameters", "start_state",
-           "SerialLayout", "SerialProblem", "SerialResidual"]
+__all__ = [
+    "PoseErrorRMS",
+    "SerialCalibration",
+    "calibrate_serial",
+    "compliant_readings",
+    "fit_base",
+    "gravity_torques",
+    "moved_mass",
+    "nominal_state",
+    "parse_measurements",
+    "pose_error_rms",
+    "pose_whitening",
+    "prior_columns",
+    "reject_outliers",
+    "require_gravity_load",
+    "select_base",
+    "select_parameters",
+    "start_state",
+    "SerialLayout",
+    "SerialProblem",
+    "SerialResidual",
+]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -69,6 +87,7 @@ __all__ = ["PoseErrorRMS", "SerialCalibration", "calibrate_serial", "compliant_r
 # T(0) <- T(0) exp6(dx) (eq. 33) then costs n + 1 small products instead of a model copy, and forward
 # kinematics of all poses is one batched pass (`placement_poses`); beside them, the measurement frame
 # F and marker K (4 x 4) and the joint compliances. The calibrated model is built once, at the end.
+
 
 def _placement_rows(frames: np.ndarray, orientation: bool, log_jacobians: np.ndarray | None = None) -> np.ndarray:
     """Residual rows (N, k, 6 (n + 1)) per unit placement error, from `placement_poses` frames F.
@@ -220,8 +239,14 @@ class SerialResidual:
     residual and, once accepted, for its Jacobian at the same state.
     """
 
-    def __init__(self, chain: SerialChain, data: _Measurements, whitening: np.ndarray,
-                 layout: SerialLayout | None = None, torques: np.ndarray | None = None) -> None:
+    def __init__(
+        self,
+        chain: SerialChain,
+        data: _Measurements,
+        whitening: np.ndarray,
+        layout: SerialLayout | None = None,
+        torques: np.ndarray | None = None,
+    ) -> None:
         self.chain = chain
         self.data = data
         self.whitening = whitening  # (N, k, k): inverse Cholesky factor of each pose's covariance
@@ -304,8 +329,9 @@ class SerialResidual:
             placement = _placement_rows(e.frames, orientation, log_jacobians).reshape(n_poses, k, n + 1, 6)
             frame_rows = marker_rows = None
         else:
-            stack = np.concatenate([np.broadcast_to(state.frame, (n_poses, 1, 4, 4)), state.frame @ e.frames,
-                                    e.measured[:, None]], axis=1)
+            stack = np.concatenate(
+                [np.broadcast_to(state.frame, (n_poses, 1, 4, 4)), state.frame @ e.frames, e.measured[:, None]], axis=1
+            )
             rows = _placement_rows(stack, orientation, log_jacobians).reshape(n_poses, k, n + 3, 6)
             placement, frame_rows, marker_rows = rows[:, :, 1 : n + 2], rows[:, :, 0], rows[:, :, -1]
         if layout.size == layout.n_chain:
@@ -330,8 +356,9 @@ class SerialResidual:
         assert e.points is not None and state.points is not None
         layout, n_poses, n = self.layout, e.frames.shape[0], self.chain.n_joints
         out = np.zeros((n_poses, 3 * len(state.points), layout.size))
-        stack = np.concatenate([np.broadcast_to(state.frame, (n_poses, 1, 4, 4)), state.frame @ e.frames,
-                                e.measured[:, None]], axis=1)
+        stack = np.concatenate(
+            [np.broadcast_to(state.frame, (n_poses, 1, 4, 4)), state.frame @ e.frames, e.measured[:, None]], axis=1
+        )
         for k in range(len(state.points)):
             stack[:, -1, :3, 3] = e.points[:, k]
             rows = _placement_rows(stack, False).reshape(n_poses, 3, n + 3, 6)
@@ -380,8 +407,9 @@ class SerialProblem:
     row x_c / sigma (Tikhonov, toward the start) per column with a prior, sigma in m, rad or rad/Nm.
     """
 
-    def __init__(self, residual: SerialResidual, columns: Sequence[int] | np.ndarray,
-                 priors: Mapping[int, float] | None = None) -> None:
+    def __init__(
+        self, residual: SerialResidual, columns: Sequence[int] | np.ndarray, priors: Mapping[int, float] | None = None
+    ) -> None:
         self._residual = residual
         self.columns = np.asarray(columns, dtype=int)
         self.priors = dict(priors or {})
@@ -441,8 +469,9 @@ def nominal_state(chain: SerialChain, model: pin.Model, setup: MeasurementSetup 
     return _State(transforms, _readonly(setup.frame.homogeneous), _readonly(setup.marker.homogeneous))
 
 
-def pose_whitening(chain: SerialChain, state: _State, data: _Measurements, noise: TrackerNoise,
-                   joint_noise: float) -> np.ndarray:
+def pose_whitening(
+    chain: SerialChain, state: _State, data: _Measurements, noise: TrackerNoise, joint_noise: float
+) -> np.ndarray:
     """Inverse Cholesky factors (N, k, k) of the residual covariance of each pose.
 
     Cov = diag(sigma_p^2 I3 [, sigma_R^2 I3]) + J_q sigma_q^2 J_q^T, with sigma_p, sigma_R the
@@ -504,11 +533,13 @@ def require_gravity_load(model: pin.Model, chain: SerialChain) -> None:
             f"the links that joints {chain.joint_names[0]} .. {chain.joint_names[-1]} move have no mass (the URDF "
             "gives them no <inertial>): the gravity torques are zero in every posture, so joint compliance under "
             "gravity cannot be fitted or applied; use a URDF with the links' inertial elements, or leave "
-            "out --compliance")
+            "out --compliance"
+        )
 
 
-def compliant_readings(model: pin.Model, chain: SerialChain, q_chain: ArrayLike,
-                       compliance: Mapping[str, float]) -> np.ndarray:
+def compliant_readings(
+    model: pin.Model, chain: SerialChain, q_chain: ArrayLike, compliance: Mapping[str, float]
+) -> np.ndarray:
     """q + c tau(q) (N, n): joint readings (N, n) [rad, m] moved by the compliances {joint: c}
     [rad/Nm, m/N] under gravity, tau from `model`'s inertias (`gravity_torques`); q itself without
     any. InvalidInputError (`require_gravity_load`) when the chain moves no mass."""
@@ -518,7 +549,6 @@ def compliant_readings(model: pin.Model, chain: SerialChain, q_chain: ArrayLike,
     require_gravity_load(model, chain)
     c = np.array([compliance.get(joint, 0.0) for joint in chain.joint_names])
     return q + c * gravity_torques(model, chain, q)
-
 
 
 # --------------------------------------------------------------------------------------------------
@@ -541,8 +571,6 @@ class PoseErrorRMS:
 
     position: float
     rotation: float
-
-
 
 
 def _parse_points(q: np.ndarray, measured_points: ArrayLike) -> _Measurements:
@@ -620,7 +648,6 @@ def pose_error_rms(residual: np.ndarray, seen: np.ndarray | None = None) -> Pose
     return PoseErrorRMS(position, rotation)
 
 
-
 @dataclass(frozen=True)
 class SerialCalibration:
     """Result of `calibrate_serial`.
@@ -684,8 +711,15 @@ def prior_columns(names: Sequence[str], priors: Mapping[str, float] | None) -> d
     return out
 
 
-def start_state(chain: SerialChain, model: pin.Model, data: _Measurements, setup: MeasurementSetup,
-                estimate_frame: bool, estimate_marker: bool, compliance: bool) -> _State:
+def start_state(
+    chain: SerialChain,
+    model: pin.Model,
+    data: _Measurements,
+    setup: MeasurementSetup,
+    estimate_frame: bool,
+    estimate_marker: bool,
+    compliance: bool,
+) -> _State:
     """The nominal robot with the given setup, and closed-form starts for what is estimated.
 
     estimate_frame: F from the rigid registration of the nominal predictions g(q) K to the measured
@@ -715,8 +749,9 @@ def start_state(chain: SerialChain, model: pin.Model, data: _Measurements, setup
 _POINT_START_ROUNDS = 4
 
 
-def _point_start(state: _State, tool: np.ndarray, data: _Measurements, estimate_frame: bool,
-                 compliance: bool) -> _State:
+def _point_start(
+    state: _State, tool: np.ndarray, data: _Measurements, estimate_frame: bool, compliance: bool
+) -> _State:
     """The start of a fit of P points: alternately F by `register_frame` of every point seen (at its
     current offset) and each offset p_k in closed form given F, the mean over its rows of
     R_g^T (F^-1 p_meas - t_g) (least squares, R_g orthonormal); from zero offsets."""
@@ -738,8 +773,9 @@ def _point_start(state: _State, tool: np.ndarray, data: _Measurements, estimate_
     return state
 
 
-def select_base(problem: SerialProblem, state: _State, names: Sequence[str], rank_tolerance: float,
-                fixed: Sequence[int]) -> BaseParameters:
+def select_base(
+    problem: SerialProblem, state: _State, names: Sequence[str], rank_tolerance: float, fixed: Sequence[int]
+) -> BaseParameters:
     """Base parameters of the whitened Jacobian at `state`, fixed columns zeroed, setup kept first."""
     J = problem.model.residual_and_jacobian(state)[1]
     if len(fixed):
@@ -748,8 +784,14 @@ def select_base(problem: SerialProblem, state: _State, names: Sequence[str], ran
     return select_base_parameters(J, names, rank_tolerance, forced=problem.model.layout.setup_columns)
 
 
-def fit_base(problem: SerialProblem, start: _State, names: Sequence[str], rank_tolerance: float, fixed: Sequence[int],
-             solve: Callable[..., LMResult]) -> tuple[BaseParameters, LMResult, int]:
+def fit_base(
+    problem: SerialProblem,
+    start: _State,
+    names: Sequence[str],
+    rank_tolerance: float,
+    fixed: Sequence[int],
+    solve: Callable[..., LMResult],
+) -> tuple[BaseParameters, LMResult, int]:
     """Select the base parameters at the start, fit them; while the rank is below the structural
     bound, re-select at the estimate and resume (nominal CAD geometry can hide parameters, e.g.
     UR's tool point on the last joint axis hides two from position measurements)."""
@@ -759,7 +801,8 @@ def fit_base(problem: SerialProblem, start: _State, names: Sequence[str], rank_t
     iterations = result.iterations
     layout = problem.model.layout
     bound = problem.model.chain.rank_bound(problem.model.data.rotations is None) + (
-        layout.n_joints if layout.compliance else 0)
+        layout.n_joints if layout.compliance else 0
+    )
     for _ in range(_MAX_RESELECTIONS if base.rank < bound else 0):
         candidate = select_base(problem, result.state, names, rank_tolerance, fixed)
         if candidate.rank <= base.rank:
@@ -771,29 +814,40 @@ def fit_base(problem: SerialProblem, start: _State, names: Sequence[str], rank_t
     return base, result, iterations
 
 
-def reject_outliers(problem: SerialProblem, start: _State, result: LMResult, sigma: float,
-                    solve: Callable[..., LMResult]) -> tuple[LMResult, int]:
+def reject_outliers(
+    problem: SerialProblem, start: _State, result: LMResult, sigma: float, solve: Callable[..., LMResult]
+) -> tuple[LMResult, int]:
     """Flag poses beyond `sigma` noise sigmas (`outlier_poses`), refit from the start without them,
     re-judge every pose; until the flagged set is stable (at most _MAX_OUTLIER_ROUNDS refits)."""
     iterations = 0
     rows = problem.model.data.rows_per_pose
     for _ in range(_MAX_OUTLIER_ROUNDS):
         data = problem.model.data
-        flagged, _scale = outlier_poses(problem.model.residual(result.state).reshape(-1, rows), sigma,
-                                        data.seen.sum(axis=1) if data.n_points else None)
+        flagged, _scale = outlier_poses(
+            problem.model.residual(result.state).reshape(-1, rows),
+            sigma,
+            data.seen.sum(axis=1) if data.n_points else None,
+        )
         if np.array_equal(~flagged, problem.active):
             break
         if np.count_nonzero(~flagged) * rows <= len(problem.columns):
-            raise IdentificationError(f"{np.count_nonzero(flagged)} of {len(flagged)} poses are outliers: "
-                                      "too few poses are left to fit the model")
+            raise IdentificationError(
+                f"{np.count_nonzero(flagged)} of {len(flagged)} poses are outliers: "
+                "too few poses are left to fit the model"
+            )
         problem.active = ~flagged
         result = solve(problem, start)
         iterations += result.iterations
     return result, iterations
 
 
-def select_parameters(problem: SerialProblem, start: _State, result: LMResult, solve: Callable[..., LMResult],
-                      groups: ArrayLike | None = None) -> tuple[ParameterSelection, LMResult, int]:
+def select_parameters(
+    problem: SerialProblem,
+    start: _State,
+    result: LMResult,
+    solve: Callable[..., LMResult],
+    groups: ArrayLike | None = None,
+) -> tuple[ParameterSelection, LMResult, int]:
     """Forward selection by leave-one-pose-out PRESS of the fit linearised at the estimate (the
     residual at the start is about r - J x, x the accumulated step), the setup forced; a smaller
     set is refitted from the start."""
@@ -801,8 +855,11 @@ def select_parameters(problem: SerialProblem, start: _State, result: LMResult, s
     r, J = problem.model.residual_and_jacobian(result.state)
     J = J[:, problem.columns]
     keep = np.repeat(problem.active, rows)
-    step = np.zeros(len(problem.columns)) if result.state.accumulated is None else \
-        result.state.accumulated[problem.columns]
+    step = (
+        np.zeros(len(problem.columns))
+        if result.state.accumulated is None
+        else result.state.accumulated[problem.columns]
+    )
     r0 = (r - J @ step)[keep]
     forced = np.flatnonzero(np.isin(problem.columns, problem.model.layout.setup_columns))
     labels = None if groups is None else np.asarray(groups)[problem.active]
@@ -879,23 +936,29 @@ def calibrate_serial(
     if data.n_points:
         layout = SerialLayout(chain.n_joints, estimate_frame, 3 * data.n_points, compliance, data.n_points)
     else:
-        layout = SerialLayout(chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0,
-                              compliance)
+        layout = SerialLayout(
+            chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0, compliance
+        )
     names = layout.names(chain)
     fixed_columns = parameter_columns(names, fixed, "fixed parameter")
     if len(set(fixed_columns)) == layout.size:
-        raise IdentificationError(f"all {layout.size} candidate parameters are held fixed: nothing is left to fit "
-                                  "(estimate the measurement frame, a marker or compliance, or fix fewer)")
-    start = start_state(chain, model, data, setup or MeasurementSetup(), estimate_frame, estimate_marker,
-                        compliance)
+        raise IdentificationError(
+            f"all {layout.size} candidate parameters are held fixed: nothing is left to fit "
+            "(estimate the measurement frame, a marker or compliance, or fix fewer)"
+        )
+    start = start_state(chain, model, data, setup or MeasurementSetup(), estimate_frame, estimate_marker, compliance)
     if compliance:
         require_gravity_load(model, chain)
     torques = gravity_torques(model, chain, data.q) if compliance else None
     whitening = pose_whitening(chain, start, data, noise, _checked_joint_noise(joint_noise))
     residual = SerialResidual(chain, data, whitening, layout, torques)
     problem = SerialProblem(residual, np.arange(layout.size), prior_columns(names, priors))
-    solve = functools.partial(levenberg_marquardt, max_iterations=max_iterations, initial_damping=_INITIAL_DAMPING,
-                              absolute_cost_tolerance=absolute_cost_tolerance)
+    solve = functools.partial(
+        levenberg_marquardt,
+        max_iterations=max_iterations,
+        initial_damping=_INITIAL_DAMPING,
+        absolute_cost_tolerance=absolute_cost_tolerance,
+    )
     base, result, iterations = fit_base(problem, start, names, rank_tolerance, fixed_columns, solve)
     if outlier_sigma is not None:
         result, more = reject_outliers(problem, start, result, outlier_sigma, solve)
@@ -907,8 +970,16 @@ def calibrate_serial(
     return _result(model, problem, start, result, base, selection, iterations, solve)
 
 
-def _result(model: pin.Model, problem: SerialProblem, start: _State, result: LMResult, base: BaseParameters,
-            selection: ParameterSelection | None, iterations: int, solve: Callable[..., LMResult]) -> SerialCalibration:
+def _result(
+    model: pin.Model,
+    problem: SerialProblem,
+    start: _State,
+    result: LMResult,
+    base: BaseParameters,
+    selection: ParameterSelection | None,
+    iterations: int,
+    solve: Callable[..., LMResult],
+) -> SerialCalibration:
     residual, state = problem.model, result.state
     chain, layout = residual.chain, residual.layout
     r, J = problem.residual_and_jacobian(state)
@@ -923,30 +994,47 @@ def _result(model: pin.Model, problem: SerialProblem, start: _State, result: LMR
     seen = residual.data.seen[inliers] if residual.data.n_points else None
     # dt_j = log6(T_j(0)^-1 T_j,c(0)) per placement (for j = 1 with a base frame, the inverse base
     # placement cancels); the calibrated model is the nominal one perturbed by exactly these.
-    deltas = {p: _readonly(pin.log6(pin.SE3(start.transforms[j]).actInv(pin.SE3(state.transforms[j]))).vector)
-              for j, p in enumerate(chain.placements())}
+    deltas = {
+        p: _readonly(pin.log6(pin.SE3(start.transforms[j]).actInv(pin.SE3(state.transforms[j]))).vector)
+        for j, p in enumerate(chain.placements())
+    }
     values = np.zeros(layout.size) if state.accumulated is None else state.accumulated.copy()
     values[: layout.n_chain] = np.concatenate(list(deltas.values()))
     fitted = tuple(int(c) for c in problem.columns)
     names = layout.names(chain)
     compliance = {}
     if layout.compliance and state.compliance is not None:
-        compliance = {joint: float(state.compliance[k]) for k, joint in enumerate(chain.joint_names)
-                      if layout.compliance_slice.start + k in fitted}
+        compliance = {
+            joint: float(state.compliance[k])
+            for k, joint in enumerate(chain.joint_names)
+            if layout.compliance_slice.start + k in fitted
+        }
     return SerialCalibration(
-        model=perturb(model, deltas), chain=chain, deltas=MappingProxyType(deltas), base=base,
-        covariance=covariance, parameter_std=std,
+        model=perturb(model, deltas),
+        chain=chain,
+        deltas=MappingProxyType(deltas),
+        base=base,
+        covariance=covariance,
+        parameter_std=std,
         variance_factor=float(r @ r / dof) if dof > 0 else float("nan"),
-        iterations=iterations, converged=result.converged,
+        iterations=iterations,
+        converged=result.converged,
         residual_before=pose_error_rms(residual.raw_residual(start)[inliers], seen),
         residual_after=pose_error_rms(residual.raw_residual(state)[inliers], seen),
         position_only=residual.data.rotations is None,
         setup=_fitted_setup(state),
-        termination=result.termination, outliers=tuple(int(i) for i in np.flatnonzero(~inliers)),
-        fitted=tuple(names[c] for c in fitted), fitted_indices=fitted, names=names, values=_readonly(values),
-        compliance=MappingProxyType(compliance), selection=selection, _problem=problem, _start=start, _solve=solve,
+        termination=result.termination,
+        outliers=tuple(int(i) for i in np.flatnonzero(~inliers)),
+        fitted=tuple(names[c] for c in fitted),
+        fitted_indices=fitted,
+        names=names,
+        values=_readonly(values),
+        compliance=MappingProxyType(compliance),
+        selection=selection,
+        _problem=problem,
+        _start=start,
+        _solve=solve,
     )
-
 
 
 def _fitted_setup(state: _State) -> MeasurementSetup:

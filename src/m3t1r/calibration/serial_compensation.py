@@ -64,8 +64,9 @@ def _pose_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:
     return np.concatenate((target[:3, 3] - current[:3, 3], rotation))
 
 
-def _reach(model: pin.Model, chain: SerialChain, target: np.ndarray, start: np.ndarray,
-           rows: slice, free: np.ndarray) -> tuple[np.ndarray, float]:
+def _reach(
+    model: pin.Model, chain: SerialChain, target: np.ndarray, start: np.ndarray, rows: slice, free: np.ndarray
+) -> tuple[np.ndarray, float]:
     """q with the tool of `model` at `target` (4, 4) in the compared `rows` of the error, from `start`,
     moving the `free` joints (n,) only."""
     data = model.createData()
@@ -80,8 +81,9 @@ def _reach(model: pin.Model, chain: SerialChain, target: np.ndarray, start: np.n
     return q, float(np.linalg.norm(error))
 
 
-def _command(calibrated: pin.Model, chain: SerialChain, actual: np.ndarray,
-             compliance: Mapping[str, float]) -> np.ndarray:
+def _command(
+    calibrated: pin.Model, chain: SerialChain, actual: np.ndarray, compliance: Mapping[str, float]
+) -> np.ndarray:
     """q_c with q_c + c tau(q_c) = actual (module docstring, step 2)."""
     command = actual.copy()
     for _ in range(_MAX_ITERATIONS):
@@ -93,9 +95,16 @@ def _command(calibrated: pin.Model, chain: SerialChain, actual: np.ndarray,
     return command
 
 
-def _compensate_one(calibrated: pin.Model, chain: SerialChain, target: np.ndarray, start: np.ndarray,
-                    compliance: Mapping[str, float], rows: slice, limits: tuple[np.ndarray, np.ndarray],
-                    tolerance: float) -> tuple[np.ndarray, float, str]:
+def _compensate_one(
+    calibrated: pin.Model,
+    chain: SerialChain,
+    target: np.ndarray,
+    start: np.ndarray,
+    compliance: Mapping[str, float],
+    rows: slice,
+    limits: tuple[np.ndarray, np.ndarray],
+    tolerance: float,
+) -> tuple[np.ndarray, float, str]:
     """(command, residual, failure reason or "") of one configuration. A joint whose command falls
     beyond its limit is held at that limit and the others solve again, while the chain has joints
     to spare (a redundant arm, or a torso at its stop)."""
@@ -106,8 +115,14 @@ def _compensate_one(calibrated: pin.Model, chain: SerialChain, target: np.ndarra
     while True:
         actual, residual = _reach(calibrated, chain, target, start, rows, free)
         if not residual <= tolerance:
-            return nan, residual, ("the calibrated robot does not reach the nominal tool pose near this "
-                                   f"configuration (error {residual:.3g} left)")
+            return (
+                nan,
+                residual,
+                (
+                    "the calibrated robot does not reach the nominal tool pose near this "
+                    f"configuration (error {residual:.3g} left)"
+                ),
+            )
         command = _command(calibrated, chain, actual, compliance)
         bounded = lower < upper
         # A held joint's command moves only with its deflection (micro-radians): clipped, not held again.
@@ -116,16 +131,28 @@ def _compensate_one(calibrated: pin.Model, chain: SerialChain, target: np.ndarra
             return np.clip(command, np.where(bounded, lower, -np.inf), np.where(bounded, upper, np.inf)), residual, ""
         if np.count_nonzero(free) - beyond.size < rows.stop - rows.start:
             k = int(beyond[0])
-            return nan, residual, (f"the compensated command puts joint '{chain.joint_names[k]}' at {command[k]:.6g}, "
-                                   f"beyond its limit [{lower[k]:.6g}, {upper[k]:.6g}]")
+            return (
+                nan,
+                residual,
+                (
+                    f"the compensated command puts joint '{chain.joint_names[k]}' at {command[k]:.6g}, "
+                    f"beyond its limit [{lower[k]:.6g}, {upper[k]:.6g}]"
+                ),
+            )
         free[beyond] = False
         start = actual.copy()  # held where its command is at the limit: the deflection stays as it was
         start[beyond] = np.clip(command[beyond], lower[beyond], upper[beyond]) + actual[beyond] - command[beyond]
 
 
-def compensate_serial(nominal: pin.Model, calibrated: pin.Model, chain: SerialChain, program: np.ndarray,
-                      compliance: Mapping[str, float], position_only: bool = False,
-                      tolerance: float = 1e-9) -> SerialCompensation:
+def compensate_serial(
+    nominal: pin.Model,
+    calibrated: pin.Model,
+    chain: SerialChain,
+    program: np.ndarray,
+    compliance: Mapping[str, float],
+    position_only: bool = False,
+    tolerance: float = 1e-9,
+) -> SerialCompensation:
     """The commands that put the calibrated robot's tool where the nominal one puts it at each
     configuration of `program` (N, n) [rad, m] (module docstring). compliance: {joint: c}
     [rad/Nm, m/N]; a row whose tool pose error stays above `tolerance` [m + rad] fails as unreachable."""
@@ -137,8 +164,9 @@ def compensate_serial(nominal: pin.Model, calibrated: pin.Model, chain: SerialCh
     residual = np.full(len(program), np.nan)
     failures: list[tuple[int, str]] = []
     for i, (target, start) in enumerate(zip(targets, program)):
-        commands[i], residual[i], reason = _compensate_one(calibrated, chain, target, start, compliance, rows,
-                                                           (lower, upper), tolerance)
+        commands[i], residual[i], reason = _compensate_one(
+            calibrated, chain, target, start, compliance, rows, (lower, upper), tolerance
+        )
         if reason:
             failures.append((i, reason))
     return SerialCompensation(commands, residual, tuple(failures))

@@ -18,8 +18,15 @@ from m3t1r.errors import InvalidInputError, require_count
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.poe import SerialChain, placement_poses, tool_poses
 
-__all__ = ["SerialCrossValidation", "cross_validate_serial", "held_out_errors", "pose_errors", "predict_measurements",
-           "predict_points", "predicted_pose_std"]
+__all__ = [
+    "SerialCrossValidation",
+    "cross_validate_serial",
+    "held_out_errors",
+    "pose_errors",
+    "predict_measurements",
+    "predict_points",
+    "predicted_pose_std",
+]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -51,12 +58,14 @@ def predict_points(calibration: SerialCalibration, q_readings: ArrayLike) -> np.
     if not calibration.setup.points:
         raise InvalidInputError("predict_points: the calibration measured one frame per pose, not several points")
     chain = calibration.chain
-    return calibration.setup.measured_points(tool_poses(chain, calibration.model,
-                                                        _compliant_coordinates(calibration, q_readings)))
+    return calibration.setup.measured_points(
+        tool_poses(chain, calibration.model, _compliant_coordinates(calibration, q_readings))
+    )
 
 
-def held_out_errors(calibration: SerialCalibration, q_readings: ArrayLike, measured: ArrayLike,
-                    position_only: bool) -> PoseErrors:
+def held_out_errors(
+    calibration: SerialCalibration, q_readings: ArrayLike, measured: ArrayLike, position_only: bool
+) -> PoseErrors:
     """Errors of the calibration's predictions of measurements it was not fitted to.
 
     measured: the measured frames (M, 4, 4) [m] in the measurement frame (their rotations unused
@@ -69,15 +78,18 @@ def held_out_errors(calibration: SerialCalibration, q_readings: ArrayLike, measu
     points = len(calibration.setup.points)
     if values.ndim == 3 and values.shape[1:] != (4, 4):
         if values.shape[1] != points:
-            raise InvalidInputError(f"the held-out file has {values.shape[1]} points per pose; the calibration "
-                                    + (f"measured {points}" if points else "measured one frame"))
+            raise InvalidInputError(
+                f"the held-out file has {values.shape[1]} points per pose; the calibration "
+                + (f"measured {points}" if points else "measured one frame")
+            )
         predicted = predict_points(calibration, q_readings)
         seen = np.all(np.isfinite(values), axis=2)
         position = np.linalg.norm(predicted - np.where(seen[:, :, None], values, 0.0), axis=2)[seen]
         return PoseErrors(position, np.full(len(position), np.nan))
     if points:
-        raise InvalidInputError(f"the held-out file has one measured frame per pose; the calibration measured "
-                                f"{points} points")
+        raise InvalidInputError(
+            f"the held-out file has one measured frame per pose; the calibration measured {points} points"
+        )
     errors = pose_errors_between(predict_measurements(calibration, q_readings), values)
     if position_only or calibration.position_only:
         return PoseErrors(errors.position, np.full(len(errors.position), np.nan))
@@ -133,8 +145,9 @@ class SerialCrossValidation:
 
 
 @on_one_blas_thread
-def cross_validate_serial(calibration: SerialCalibration, folds: int = 5, seed: int = 0,
-                          groups: ArrayLike | None = None) -> SerialCrossValidation:
+def cross_validate_serial(
+    calibration: SerialCalibration, folds: int = 5, seed: int = 0, groups: ArrayLike | None = None
+) -> SerialCrossValidation:
     """k-fold cross-validation of a serial calibration on its own inlier poses (`SerialCrossValidation`).
 
     groups: (N,) a label per pose the calibration was given (`repeats.pose_groups`); poses sharing
@@ -165,6 +178,5 @@ def cross_validate_serial(calibration: SerialCalibration, folds: int = 5, seed: 
         position = np.linalg.norm(residuals.reshape(len(inliers), -1, 3), axis=2)[seen]
         return SerialCrossValidation(PoseErrors(position, np.full(len(position), np.nan)), folds, n_groups)
     position = np.linalg.norm(residuals[:, :3], axis=1)
-    rotation = (np.linalg.norm(residuals[:, 3:], axis=1) if residuals.shape[1] == 6
-                else np.full(len(inliers), np.nan))
+    rotation = np.linalg.norm(residuals[:, 3:], axis=1) if residuals.shape[1] == 6 else np.full(len(inliers), np.nan)
     return SerialCrossValidation(PoseErrors(position, rotation), folds, n_groups)

@@ -17,8 +17,14 @@ from m3t1r.io.paths import read_bounded, size_refusal
 from m3t1r.model.poe import SerialChain
 from m3t1r.model.urdf_io import refuse_mimic_joints
 
-__all__ = ["RobotName", "example_robot_data_dir", "example_tool_frame", "load_example_robot", "load_serial_urdf",
-           "serial_chain_of"]
+__all__ = [
+    "RobotName",
+    "example_robot_data_dir",
+    "example_tool_frame",
+    "load_example_robot",
+    "load_serial_urdf",
+    "serial_chain_of",
+]
 
 
 RobotName = Literal["ur3", "ur5", "ur10", "panda"]
@@ -116,12 +122,12 @@ def load_serial_urdf(path: Path) -> tuple[pin.Model, bytes]:
         raise ModelFileError(path, f"Pinocchio cannot read this URDF: {exc}") from None
 
 
-def serial_chain_of(model: pin.Model, urdf: bytes | None, path: Path | None, tool: str, base: str | None
-                    ) -> SerialChain:
+def serial_chain_of(
+    model: pin.Model, urdf: bytes | None, path: Path | None, tool: str, base: str | None
+) -> SerialChain:
     """The chain from `base` to `tool`, refused by joint name (ModelFileError) when the URDF makes a
     joint of it a `<mimic>` of another (it would be fitted as independent)."""
     chain = SerialChain.from_model(model, tool, base)
     if urdf is not None and path is not None:
         refuse_mimic_joints(path, urdf, chain.joint_names)
     return chain
-

@@ -23,20 +23,32 @@ from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import rehomed
 from m3t1r.model.workspace import workspace_actuators
 
-__all__ = ["SimulatedStudy", "random_placement_errors", "actual_machine", "with_joint_errors", "orthonormal_twist",
-           "simulate_study", "with_outliers"]
+__all__ = [
+    "SimulatedStudy",
+    "random_placement_errors",
+    "actual_machine",
+    "with_joint_errors",
+    "orthonormal_twist",
+    "simulate_study",
+    "with_outliers",
+]
 
 
-def random_placement_errors(error_model: ClosedLoopErrorModel, rng: np.random.Generator,
-                            sigma_position: float, sigma_rotation: float) -> np.ndarray:
+def random_placement_errors(
+    error_model: ClosedLoopErrorModel, rng: np.random.Generator, sigma_position: float, sigma_rotation: float
+) -> np.ndarray:
     """Gaussian errors dt = [v; w] for every parameter: sigma_position [m] on v, sigma_rotation [rad] on w."""
     scale = np.tile(np.r_[np.full(3, sigma_position), np.full(3, sigma_rotation)], len(error_model.placements))
     return rng.normal(0.0, 1.0, error_model.n_parameters) * scale
 
 
-def actual_machine(nominal: Mechanism, errors: np.ndarray, error_model: ClosedLoopErrorModel | None = None,
-                   twist_errors: Mapping[str, np.ndarray] | None = None,
-                   joint_offsets: Mapping[str, float] | None = None) -> Mechanism:
+def actual_machine(
+    nominal: Mechanism,
+    errors: np.ndarray,
+    error_model: ClosedLoopErrorModel | None = None,
+    twist_errors: Mapping[str, np.ndarray] | None = None,
+    joint_offsets: Mapping[str, float] | None = None,
+) -> Mechanism:
     """The nominal machine with placement errors dt (eq. 34), and optionally twist errors ds
     (eq. 35) and joint offsets dq (eq. 36) per joint name, with its home re-assembled."""
     error_model = error_model or ClosedLoopErrorModel(nominal)
@@ -56,8 +68,9 @@ def orthonormal_twist(twist: np.ndarray, error: np.ndarray) -> np.ndarray:
     return np.r_[v - (w @ v) * w, w]
 
 
-def with_joint_errors(model: pin.Model, twist_errors: Mapping[str, np.ndarray],
-                      joint_offsets: Mapping[str, float]) -> pin.Model:
+def with_joint_errors(
+    model: pin.Model, twist_errors: Mapping[str, np.ndarray], joint_offsets: Mapping[str, float]
+) -> pin.Model:
     """A copy of `model` whose joints move along actual twists s^a = orthonormal(s + ds) with
     actual values q + dq, expressed through placements only (the local POE model's claim).
 
@@ -91,8 +104,9 @@ def with_joint_errors(model: pin.Model, twist_errors: Mapping[str, np.ndarray],
     return out
 
 
-def with_outliers(measurements: PoseMeasurements, rng: np.random.Generator, count: int,
-                  size: tuple[float, float] = (3e-3, 5e-3)) -> tuple[PoseMeasurements, tuple[int, ...]]:
+def with_outliers(
+    measurements: PoseMeasurements, rng: np.random.Generator, count: int, size: tuple[float, float] = (3e-3, 5e-3)
+) -> tuple[PoseMeasurements, tuple[int, ...]]:
     """`count` poses moved by a gross error of uniform length in `size` [m] in a random direction
     (a broken beam, a reflector not seated); returns the measurements and the spoiled indices."""
     if not 0 <= count <= len(measurements):
@@ -129,11 +143,20 @@ class SimulatedStudy:
     outliers: tuple[int, ...] = ()
 
 
-def simulate_study(nominal: Mechanism, n_poses: int = 50, n_holdout: int = 200, seed: int = 0,
-                   sigma_position: float = 1e-3, sigma_rotation: float = 1e-3, noise: TrackerNoise | None = None,
-                   position_only: bool = False, passive_joints: tuple[str, ...] = (),
-                   encoder_noise: float = 1e-5, setup: MeasurementSetup | None = None,
-                   outliers: int = 0) -> SimulatedStudy:
+def simulate_study(
+    nominal: Mechanism,
+    n_poses: int = 50,
+    n_holdout: int = 200,
+    seed: int = 0,
+    sigma_position: float = 1e-3,
+    sigma_rotation: float = 1e-3,
+    noise: TrackerNoise | None = None,
+    position_only: bool = False,
+    passive_joints: tuple[str, ...] = (),
+    encoder_noise: float = 1e-5,
+    setup: MeasurementSetup | None = None,
+    outliers: int = 0,
+) -> SimulatedStudy:
     """Draw a truth machine (errors on every joint and closure/platform frame), n_poses noisy (or
     exact, noise=None) measurements taken with `setup` and n_holdout other slider sets, all from one
     seed; `outliers` of the measurements get a 3-5 mm gross error (drawn last)."""
@@ -156,5 +179,6 @@ def simulate_study(nominal: Mechanism, n_poses: int = 50, n_holdout: int = 200, 
     spoiled: tuple[int, ...] = ()
     if outliers:
         measurements, spoiled = with_outliers(measurements, rng, outliers)
-    return SimulatedStudy(nominal, truth, errors, measurements, actuators[n_poses:], seed, tuple(passive_joints),
-                          readings, setup, spoiled)
+    return SimulatedStudy(
+        nominal, truth, errors, measurements, actuators[n_poses:], seed, tuple(passive_joints), readings, setup, spoiled
+    )

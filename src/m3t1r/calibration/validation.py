@@ -64,7 +64,15 @@ from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.poe import log3_batch, tool_poses
 
-__all__ = ["CalibrationReport", "Campaign", "Validation", "read_report", "read_campaign", "validate", "sigma_equivalent"]
+__all__ = [
+    "CalibrationReport",
+    "Campaign",
+    "Validation",
+    "read_report",
+    "read_campaign",
+    "validate",
+    "sigma_equivalent",
+]
 
 _QUATERNION = ("qx", "qy", "qz", "qw")
 
@@ -148,17 +156,24 @@ def read_report(path: str | Path) -> CalibrationReport:
     document = _load_json(source)
     kind = _field(document, "kind", source)
     if kind not in ("closed_loop", "serial"):
-        raise InvalidInputError(f"{source}: report field 'kind' is {kind!r}; validation reads 'closed_loop' or 'serial'")
+        raise InvalidInputError(
+            f"{source}: report field 'kind' is {kind!r}; validation reads 'closed_loop' or 'serial'"
+        )
     for key in ("measurement_frame", "marker"):
         _field(document, key, source)
     try:
         setup = MeasurementSetup.from_report(document)
     except InvalidInputError as exc:
         raise InvalidInputError(f"{source}: {exc}") from None
-    noise = (_positive(document, "noise_model.position_m", source), _positive(document, "noise_model.rotation_rad", source))
+    noise = (
+        _positive(document, "noise_model.position_m", source),
+        _positive(document, "noise_model.rotation_rad", source),
+    )
     units = document.get("input", {}).get("units") if isinstance(document.get("input"), Mapping) else None
     if units is not None and units not in LENGTH_UNITS:
-        raise InvalidInputError(f"{source}: report field 'input.units' is {units!r}; expected one of {sorted(LENGTH_UNITS)}")
+        raise InvalidInputError(
+            f"{source}: report field 'input.units' is {units!r}; expected one of {sorted(LENGTH_UNITS)}"
+        )
     measured = document.get("measured_frame")
     factor = _variance_factor(document, source)
     if kind == "closed_loop":
@@ -166,27 +181,42 @@ def read_report(path: str | Path) -> CalibrationReport:
     tool, chain = _field(document, "nominal_model.tool", source), _field(document, "nominal_model.chain", source)
     base = document["nominal_model"].get("base")
     if not isinstance(tool, str) or not (base is None or isinstance(base, str)):
-        raise InvalidInputError(f"{source}: report fields 'nominal_model.tool' / 'nominal_model.base' must be frame names")
+        raise InvalidInputError(
+            f"{source}: report fields 'nominal_model.tool' / 'nominal_model.base' must be frame names"
+        )
     if not isinstance(chain, list) or not chain or not all(isinstance(n, str) for n in chain):
         raise InvalidInputError(f"{source}: report field 'nominal_model.chain' must be a list of joint names")
     position_only = isinstance(document.get("input"), Mapping) and document["input"].get("position_only") is True
-    return CalibrationReport(source, "serial", setup, noise, units, measured, tool, base, tuple(chain), factor,
-                             _joint_numbers(document, "compliance", source, chain),
-                             _joint_numbers(document, "constant_joints", source, chain),
-                             robot if isinstance(robot := document["nominal_model"].get("robot"), str) else None,
-                             position_only)
+    return CalibrationReport(
+        source,
+        "serial",
+        setup,
+        noise,
+        units,
+        measured,
+        tool,
+        base,
+        tuple(chain),
+        factor,
+        _joint_numbers(document, "compliance", source, chain),
+        _joint_numbers(document, "constant_joints", source, chain),
+        robot if isinstance(robot := document["nominal_model"].get("robot"), str) else None,
+        position_only,
+    )
 
 
 def _joint_numbers(document: Mapping, key: str, path: Path, chain: list[str]) -> dict[str, float]:
     """The report's optional {joint: number} field `key`, every joint one of the chain's."""
     value = document.get(key) or {}
     if not isinstance(value, Mapping) or not all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value.values()):
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value.values()
+    ):
         raise InvalidInputError(f"{path}: report field '{key}' must map joint names to numbers, got {value!r}")
     unknown = sorted(set(value) - set(chain))
     if unknown:
-        raise InvalidInputError(f"{path}: report field '{key}' names {', '.join(unknown)}, not in "
-                                "'nominal_model.chain'")
+        raise InvalidInputError(
+            f"{path}: report field '{key}' names {', '.join(unknown)}, not in 'nominal_model.chain'"
+        )
     return {str(k): float(v) for k, v in value.items()}
 
 
@@ -196,8 +226,9 @@ def _variance_factor(document: Mapping, path: Path) -> float | None:
     if value is None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
-        raise InvalidInputError(f"{path}: report field 'variance_factor' must be a non-negative number or null, "
-                                f"got {value!r}")
+        raise InvalidInputError(
+            f"{path}: report field 'variance_factor' must be a non-negative number or null, got {value!r}"
+        )
     return float(value)
 
 
@@ -218,8 +249,14 @@ class Campaign:
     sources: np.ndarray | None = None
 
 
-def read_campaign(path: str | Path, columns: Sequence[str], prismatic: Sequence[bool], units: str = "m",
-                  optional: Sequence[str] = (), constants: Mapping[str, float] | None = None) -> Campaign:
+def read_campaign(
+    path: str | Path,
+    columns: Sequence[str],
+    prismatic: Sequence[bool],
+    units: str = "m",
+    optional: Sequence[str] = (),
+    constants: Mapping[str, float] | None = None,
+) -> Campaign:
     """Read a measurement CSV: the joint `columns`, optional columns (read and ignored, e.g. passive
     joint encoders, and `m3t1r convert`'s source and position_std), x, y, z and optionally qx, qy,
     qz, qw. Lengths (x, y, z and the columns whose `prismatic` flag is set) are in `units` and
@@ -231,10 +268,15 @@ def read_campaign(path: str | Path, columns: Sequence[str], prismatic: Sequence[
     scale = LENGTH_UNITS[units]
     constants = constants or {}
     required = tuple(c for c in columns if c not in constants) + ("x", "y", "z")
-    table = read_table(path, required=required, optional=(*optional, *constants, *CONVERTED_COLUMNS),
-                       optional_groups=(_QUATERNION,))
-    readings = np.column_stack([table.column(n) * (scale if p else 1.0) if table.has_column(n)
-                                else np.full(table.n_rows, constants[n]) for n, p in zip(columns, prismatic)])
+    table = read_table(
+        path, required=required, optional=(*optional, *constants, *CONVERTED_COLUMNS), optional_groups=(_QUATERNION,)
+    )
+    readings = np.column_stack(
+        [
+            table.column(n) * (scale if p else 1.0) if table.has_column(n) else np.full(table.n_rows, constants[n])
+            for n, p in zip(columns, prismatic)
+        ]
+    )
     position_only = not table.has_column("qw")
     measured = np.tile(np.eye(4), (table.n_rows, 1, 1))
     if not position_only:
@@ -300,24 +342,30 @@ def _chi2_log_tail(d2: np.ndarray, dof: int) -> np.ndarray:
     upper tail is near 1 and its log would lose digits)."""
     median = 2.0 * scipy.special.gammaincinv(dof / 2.0, 0.5)
     with np.errstate(divide="ignore"):  # a tail that underflows to 0 gives -inf: sigma_equivalent's sqrt(d2)
-        return np.where(d2 > median, np.log(scipy.special.chdtrc(dof, d2)),
-                        np.log1p(-scipy.special.chdtr(dof, d2)))
+        return np.where(d2 > median, np.log(scipy.special.chdtrc(dof, d2)), np.log1p(-scipy.special.chdtr(dof, d2)))
 
 
-def _predict_closed_loop(calibrated: Path, report: CalibrationReport, units: str, measurements: Path,
-                         progress: Callable[[int], None] | None
-                         ) -> tuple[Campaign, np.ndarray, list[tuple[int, str]], bool]:
+def _predict_closed_loop(
+    calibrated: Path, report: CalibrationReport, units: str, measurements: Path, progress: Callable[[int], None] | None
+) -> tuple[Campaign, np.ndarray, list[tuple[int, str]], bool]:
     """Platform poses (N, 4, 4) of the calibrated machine at each row's actuators (NaN where it fails),
     the rows that failed, and whether its task commands a yaw (then the heading error means something)."""
     mechanism = Mechanism.load(calibrated)
     if report.measured_frame not in (None, mechanism.platform_frame):
-        raise InvalidInputError(f"{report.path}: report field 'measured_frame' is {report.measured_frame!r}, "
-                                f"but {calibrated} measures its platform frame '{mechanism.platform_frame}'")
+        raise InvalidInputError(
+            f"{report.path}: report field 'measured_frame' is {report.measured_frame!r}, "
+            f"but {calibrated} measures its platform frame '{mechanism.platform_frame}'"
+        )
     model = mechanism.model
     names = mechanism.actuated_joints
     passive = tuple(model.names[j] for j in range(1, model.njoints) if model.names[j] not in names)
-    campaign = read_campaign(measurements, tuple(map(measurement_column, names)),
-                             [_is_prismatic(model, n) for n in names], units, tuple(map(measurement_column, passive)))
+    campaign = read_campaign(
+        measurements,
+        tuple(map(measurement_column, names)),
+        [_is_prismatic(model, n) for n in names],
+        units,
+        tuple(map(measurement_column, passive)),
+    )
     poses = np.full((len(campaign.lines), 4, 4), np.nan)
     failures: list[tuple[int, str]] = []
     if len(campaign.readings):
@@ -337,24 +385,35 @@ def _is_prismatic(model: pin.Model, joint: str) -> bool:
     return not np.any(np.asarray(data.S)[3:])
 
 
-def _predict_serial(calibrated: Path, report: CalibrationReport, units: str,
-                    measurements: Path) -> tuple[Campaign, np.ndarray]:
+def _predict_serial(
+    calibrated: Path, report: CalibrationReport, units: str, measurements: Path
+) -> tuple[Campaign, np.ndarray]:
     """Tool poses (N, 4, 4) in the chain's base frame of the calibrated serial robot at each row."""
     model, urdf = load_serial_urdf(calibrated)
     assert report.tool is not None, "read_report refuses a serial report without its tool"
     try:
         chain = serial_chain_of(model, urdf, calibrated, report.tool, report.base)
     except M3t1rError as exc:
-        raise ModelFileError(calibrated, f"chain of report {report.path.name} (base {report.base}, tool "
-                                         f"{report.tool}): {exc}") from None
+        raise ModelFileError(
+            calibrated, f"chain of report {report.path.name} (base {report.base}, tool {report.tool}): {exc}"
+        ) from None
     if report.measured_frame not in (None, report.tool):
-        raise InvalidInputError(f"{report.path}: report field 'measured_frame' is {report.measured_frame!r}, but "
-                                f"'nominal_model.tool' is {report.tool!r}")
+        raise InvalidInputError(
+            f"{report.path}: report field 'measured_frame' is {report.measured_frame!r}, but "
+            f"'nominal_model.tool' is {report.tool!r}"
+        )
     if chain.joint_names != report.chain:
-        raise InvalidInputError(f"{report.path}: report field 'nominal_model.chain' lists {list(report.chain)}, but "
-                                f"{calibrated} has {list(chain.joint_names)} from {report.base} to {report.tool}")
-    campaign = read_campaign(measurements, chain.joint_names, [not np.any(s[3:]) for s in chain.twists], units,
-                             constants=report.constant_joints)
+        raise InvalidInputError(
+            f"{report.path}: report field 'nominal_model.chain' lists {list(report.chain)}, but "
+            f"{calibrated} has {list(chain.joint_names)} from {report.base} to {report.tool}"
+        )
+    campaign = read_campaign(
+        measurements,
+        chain.joint_names,
+        [not np.any(s[3:]) for s in chain.twists],
+        units,
+        constants=report.constant_joints,
+    )
     try:
         q = compliant_readings(model, chain, campaign.readings, report.compliance)
     except InvalidInputError as exc:
@@ -369,8 +428,9 @@ def _heading_errors(setup: MeasurementSetup, measured: np.ndarray, platform: np.
     return np.angle(np.exp(1j * (yaw(implied) - yaw(platform[:, :3, :3]))))
 
 
-def _whitened(predicted: np.ndarray, measured: np.ndarray, noise: tuple[float, float], position_only: bool
-              ) -> np.ndarray:
+def _whitened(
+    predicted: np.ndarray, measured: np.ndarray, noise: tuple[float, float], position_only: bool
+) -> np.ndarray:
     """Per-row residual [dp / sigma_p, dr / sigma_r] (M, 3 or 6), dr = log3(R_measured^T R_predicted)."""
     position = (predicted[:, :3, 3] - measured[:, :3, 3]) / noise[0]
     if position_only:
@@ -379,8 +439,13 @@ def _whitened(predicted: np.ndarray, measured: np.ndarray, noise: tuple[float, f
     return np.hstack((position, logs / noise[1]))
 
 
-def validate(measurements: str | Path, calibrated: str | Path, report: str | Path, units: str | None = None,
-             progress: Callable[[int], None] | None = None) -> Validation:
+def validate(
+    measurements: str | Path,
+    calibrated: str | Path,
+    report: str | Path,
+    units: str | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> Validation:
     """Predict every row of a measurement file with a calibrated model and compare (module docstring).
 
     units: the file's length unit, "m" or "mm" (default: the unit of the calibration's input, as
@@ -395,18 +460,22 @@ def validate(measurements: str | Path, calibrated: str | Path, report: str | Pat
     failures: list[tuple[int, str]] = []
     yaw_task = False
     if info.kind == "closed_loop":
-        campaign, platform, failures, yaw_task = _predict_closed_loop(calibrated, info, units, Path(measurements),
-                                                                      progress)
+        campaign, platform, failures, yaw_task = _predict_closed_loop(
+            calibrated, info, units, Path(measurements), progress
+        )
     elif info.setup.points:
-        raise InvalidInputError(f"{info.path}: the calibration fitted {len(info.setup.points)} points per pose; "
-                                "validate reads one measured frame per row: score a file of several points with "
-                                "`m3t1r calibrate ... --validate FILE`")
+        raise InvalidInputError(
+            f"{info.path}: the calibration fitted {len(info.setup.points)} points per pose; "
+            "validate reads one measured frame per row: score a file of several points with "
+            "`m3t1r calibrate ... --validate FILE`"
+        )
     else:
         campaign, platform = _predict_serial(calibrated, info, units, Path(measurements))
     ok = np.flatnonzero(np.all(np.isfinite(platform), axis=(1, 2)))
     if ok.size == 0:
-        raise InvalidInputError(f"{campaign.path}: no row could be predicted; first failure, line "
-                                f"{failures[0][0]}: {failures[0][1]}")
+        raise InvalidInputError(
+            f"{campaign.path}: no row could be predicted; first failure, line {failures[0][0]}: {failures[0][1]}"
+        )
     predictions = np.full_like(platform, np.nan)
     predictions[ok] = info.setup.measured_poses(platform[ok])
     measured = campaign.measured[ok]
@@ -419,13 +488,25 @@ def validate(measurements: str | Path, calibrated: str | Path, report: str | Pat
     scale = math.sqrt(max(1.0, info.variance_factor or 1.0))
     gate = outlier_gate(OUTLIER_SIGMA, dof)
     mask = statistic / scale**2 > gate
-    heading = None if (not yaw_task or campaign.position_only) else \
-        _heading_errors(info.setup, measured, platform[ok])
+    heading = None if (not yaw_task or campaign.position_only) else _heading_errors(info.setup, measured, platform[ok])
     return Validation(
-        path=campaign.path, kind=info.kind, lines=campaign.lines, predictions=predictions,
-        measured=campaign.measured, rows=ok, errors=errors, heading=heading, statistic=statistic,
+        path=campaign.path,
+        kind=info.kind,
+        lines=campaign.lines,
+        predictions=predictions,
+        measured=campaign.measured,
+        rows=ok,
+        errors=errors,
+        heading=heading,
+        statistic=statistic,
         sigmas=sigma_equivalent(statistic / scale**2, dof),
-        flagged=tuple(int(campaign.lines[i]) for i in ok[mask]), failures=tuple(failures), scale=scale,
+        flagged=tuple(int(campaign.lines[i]) for i in ok[mask]),
+        failures=tuple(failures),
+        scale=scale,
         gate=gate,
-        position_only=campaign.position_only, units=units, residuals=whitened, noise=info.noise,
-        sources=campaign.sources)
+        position_only=campaign.position_only,
+        units=units,
+        residuals=whitened,
+        noise=info.noise,
+        sources=campaign.sources,
+    )

@@ -186,11 +186,13 @@ class OutputSet:
         if urdf is None:
             return None
         if str(urdf) == STDOUT:
-            raise OutputPathError(STDOUT, f"{label}: a machine is a URDF and its closures file; "
-                                          "it cannot be written to standard output")
+            raise OutputPathError(
+                STDOUT, f"{label}: a machine is a URDF and its closures file; it cannot be written to standard output"
+            )
         machine = Output(urdf, label)
-        machine.closures = Output(paired_closures_path(urdf) if closures is None else closures,
-                                  f"closures file of {label}", pair_of=machine)
+        machine.closures = Output(
+            paired_closures_path(urdf) if closures is None else closures, f"closures file of {label}", pair_of=machine
+        )
         self.outputs += [machine, machine.closures]
         return machine
 
@@ -223,19 +225,25 @@ class OutputSet:
         for output in self.outputs:
             if output.path is None:
                 if stdout_user is not None:
-                    raise OutputPathError(STDOUT, f"{output.label} and {stdout_user.label} both write to standard output")
+                    raise OutputPathError(
+                        STDOUT, f"{output.label} and {stdout_user.label} both write to standard output"
+                    )
                 stdout_user = output
                 continue
             self._classify(output)
             resolved, inode = _identity(output.path)
             for protected in self.inputs:
                 if _same_identity(resolved, inode, *_identity(protected)):
-                    raise OutputPathError(output.path, f"{output.label}: refusing to overwrite the input file {protected}")
+                    raise OutputPathError(
+                        output.path, f"{output.label}: refusing to overwrite the input file {protected}"
+                    )
             for other, other_resolved, other_inode in seen:
                 if _same_identity(resolved, inode, other_resolved, other_inode):
                     raise OutputPathError(
-                        output.path, f"{output.label} is the same file as {other.label} ({other.path}): "
-                                     "every output must be a different file")
+                        output.path,
+                        f"{output.label} is the same file as {other.label} ({other.path}): "
+                        "every output must be a different file",
+                    )
             seen.append((output, resolved, inode))
             if output.kind == "file":
                 _check_replaceable(output)
@@ -268,9 +276,12 @@ class OutputSet:
                 release_stale_claims(target, own)
                 writer = live_writer(target)
                 if writer is not None:
-                    raise OutputPathError(target, f"{output.label}: another m3t1r run is writing this file in "
-                                                  f"{target.parent} ({writer}); nothing was written: "
-                                                  "wait for it to finish, or write elsewhere")
+                    raise OutputPathError(
+                        target,
+                        f"{output.label}: another m3t1r run is writing this file in "
+                        f"{target.parent} ({writer}); nothing was written: "
+                        "wait for it to finish, or write elsewhere",
+                    )
             for output in unclaimed:
                 output.temporary, output.descriptor = claim_temporary(_target(output))
         self.notes += notes
@@ -290,8 +301,10 @@ class OutputSet:
             except FileExistsError:
                 continue
             except OSError as exc:
-                raise OutputPathError(output.path, f"{output.label}: cannot create folder {folder}: "
-                                                   f"{exc.strerror or exc}; nothing was written") from None
+                raise OutputPathError(
+                    output.path,
+                    f"{output.label}: cannot create folder {folder}: {exc.strerror or exc}; nothing was written",
+                ) from None
             self.created_folders.append(folder)
 
     def _classify(self, output: Output) -> None:
@@ -313,8 +326,11 @@ class OutputSet:
             raise OutputPathError(path, f"{output.label} is a directory, expected a file path")
         elif stat.S_ISFIFO(mode) or stat.S_ISCHR(mode):
             if output.closures is not None or output.pair_of is not None:
-                raise OutputPathError(path, f"{output.label} is a {'named pipe' if stat.S_ISFIFO(mode) else 'device'}; "
-                                            "a machine is a pair of regular files")
+                raise OutputPathError(
+                    path,
+                    f"{output.label} is a {'named pipe' if stat.S_ISFIFO(mode) else 'device'}; "
+                    "a machine is a pair of regular files",
+                )
             output.kind = "special"
         else:
             what = "block device" if stat.S_ISBLK(mode) else "socket" if stat.S_ISSOCK(mode) else "special file"
@@ -356,8 +372,10 @@ class OutputSet:
         """
         output = self._resolve(output)
         if output.kind != "file":
-            raise OutputPathError(output.name, f"{output.label}: a writer needing a file name cannot write to a "
-                                               "pipe, device or standard output")
+            raise OutputPathError(
+                output.name,
+                f"{output.label}: a writer needing a file name cannot write to a pipe, device or standard output",
+            )
         self._ensure_claimed(output)
         assert output.temporary is not None and output.descriptor is not None, "claimed above"
         os.ftruncate(output.descriptor, 0)
@@ -378,8 +396,11 @@ class OutputSet:
         removed on failure. A SIGINT, SIGTERM or SIGHUP that arrives during the renames is raised
         once every file is in place, with `outputs_written` (the names) set on the exception.
         """
-        missing = [o.name for o in self.outputs
-                   if o.kind == "file" and (not o.staged or o.temporary is None or not o.temporary.exists())]
+        missing = [
+            o.name
+            for o in self.outputs
+            if o.kind == "file" and (not o.staged or o.temporary is None or not o.temporary.exists())
+        ]
         missing += [o.name for o in self.outputs if o.kind != "file" and o.data is None]
         if missing:
             self.discard()
@@ -426,8 +447,11 @@ class OutputSet:
             if not renamed:
                 raise
             lost = _put_back(renamed)
-            restored = (f"the {len(renamed)} output(s) renamed before it were put back as they were" if not lost
-                        else f"could not put back the old {', '.join(lost)}")
+            restored = (
+                f"the {len(renamed)} output(s) renamed before it were put back as they were"
+                if not lost
+                else f"could not put back the old {', '.join(lost)}"
+            )
             raise OutputPathError(exc.path, f"{str(exc).removeprefix(f'{exc.path}: ')}; {restored}") from None
         finally:
             for backup in backups:
@@ -461,8 +485,9 @@ class OutputSet:
         try:
             os.replace(output.temporary, _target(output))
         except OSError as exc:
-            raise OutputPathError(output.path, f"{output.label}: could not move the new file into place: "
-                                               f"{exc.strerror or exc}") from None
+            raise OutputPathError(
+                output.path, f"{output.label}: could not move the new file into place: {exc.strerror or exc}"
+            ) from None
         release_temporary(output.temporary, output.descriptor, remove=False)
         output.temporary, output.descriptor = None, None
         output.staged = False
@@ -524,8 +549,11 @@ def _check_replaceable(output: Output) -> None:
         return
     euid = os.geteuid() if hasattr(os, "geteuid") else -1
     if euid == 0 or (info.st_uid == euid and info.st_mode & stat.S_IWUSR):
-        raise OutputPathError(path, f"{output.label}: cannot be replaced: write access denied by the file system "
-                                    "(an immutable or append-only file, or a read-only mount)")
+        raise OutputPathError(
+            path,
+            f"{output.label}: cannot be replaced: write access denied by the file system "
+            "(an immutable or append-only file, or a read-only mount)",
+        )
 
 
 def _check_folder(output: Output, folder: Path) -> None:

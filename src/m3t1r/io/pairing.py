@@ -70,8 +70,9 @@ def closures_match(data: bytes, recorded: str) -> bool:
 def _canonical_content(data: bytes) -> bytes | None:
     try:
         document = yaml.safe_load(data.decode("utf-8-sig"))
-        return json.dumps(document, sort_keys=True, separators=(",", ":"), ensure_ascii=False,
-                          default=repr).encode("utf-8")
+        return json.dumps(document, sort_keys=True, separators=(",", ":"), ensure_ascii=False, default=repr).encode(
+            "utf-8"
+        )
     except (UnicodeDecodeError, yaml.YAMLError, TypeError, ValueError, RecursionError):
         return None  # not a document the loader would read: only the raw bytes can match
 
@@ -102,8 +103,11 @@ def with_closures_sha256(urdf: bytes, digest: str | None) -> bytes:
         return stripped
     if not re.fullmatch(r"[0-9a-f]{64}", digest):
         raise ValueError(f"not a sha256 hex digest: {digest!r}")
-    comment = (b"<!-- m3t1r pair: closures sha256 " + digest.encode("ascii")
-               + b" (this URDF loads only with the closures file of that content; models/README.md) -->\n")
+    comment = (
+        b"<!-- m3t1r pair: closures sha256 "
+        + digest.encode("ascii")
+        + b" (this URDF loads only with the closures file of that content; models/README.md) -->\n"
+    )
     declaration = _DECLARATION.match(stripped)
     at = declaration.end() if declaration else 0
     if declaration and not stripped[:at].endswith(b"\n"):

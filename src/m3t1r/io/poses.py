@@ -23,6 +23,8 @@ def measurement_column(joint: str) -> str:
     """The measurement-file column of a joint: its name, or `joint:NAME` when the name is a pose
     column's (a joint named `x` would otherwise read as the measured x)."""
     return JOINT_COLUMN_PREFIX + joint if joint in POSE_COLUMNS else joint
+
+
 """Columns of a pose: position in m, then the unit quaternion with its scalar part last."""
 
 

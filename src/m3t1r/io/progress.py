@@ -32,8 +32,16 @@ class Progress:
     `total=None` shows a count without a bar. Cheap to call every step: output is rate-limited.
     """
 
-    def __init__(self, label: str, total: int | None = None, *, stream=None, delay: float = 2.0,
-                 interval: float | None = None, counted: bool = True) -> None:
+    def __init__(
+        self,
+        label: str,
+        total: int | None = None,
+        *,
+        stream=None,
+        delay: float = 2.0,
+        interval: float | None = None,
+        counted: bool = True,
+    ) -> None:
         self.label = label
         self.total = total
         self.counted = counted  # False: "working" in place of a count (a `Heartbeat`)
@@ -83,7 +91,9 @@ class Progress:
         note = f" {self.note}" if self.note else ""
         try:
             if self.tty:
-                bar = "" if fraction is None else "[" + "#" * int(24 * fraction) + "-" * (24 - int(24 * fraction)) + "] "
+                bar = (
+                    "" if fraction is None else "[" + "#" * int(24 * fraction) + "-" * (24 - int(24 * fraction)) + "] "
+                )
                 line = f"\r{self.label}: {bar}{count} ({elapsed:.0f} s{eta}){note}"
                 self.stream.write(line[:200].ljust(80) + ("\n" if final else ""))
             else:
@@ -105,8 +115,9 @@ class Heartbeat:
     The step itself runs in the calling thread, so signals (Ctrl-C, SIGTERM) act on it as before.
     """
 
-    def __init__(self, label: str, note: str = "", *, stream=None, delay: float = 2.0,
-                 interval: float | None = None) -> None:
+    def __init__(
+        self, label: str, note: str = "", *, stream=None, delay: float = 2.0, interval: float | None = None
+    ) -> None:
         self.progress = Progress(label, None, stream=stream, delay=delay, interval=interval, counted=False)
         self.progress.note = note
         self._stop = threading.Event()

@@ -10,6 +10,7 @@ from contextlib import contextmanager
 
 __all__ = ["Terminated", "termination_as_exception"]
 
+
 @contextmanager
 def _signals_held() -> Iterator[None]:
     """Hold SIGINT, SIGTERM, SIGHUP back while renaming; they are delivered when the block ends."""

@@ -15,6 +15,7 @@ def parse_strict_json(text: str) -> object:
     """The document of JSON `text`, refusing what Python's reader lets through: a key given twice
     in an object (the last would silently win) and the non-standard NaN and Infinity. Raises
     json.JSONDecodeError (a ValueError) for bad syntax, ValueError naming the key or constant."""
+
     def pairs(items: list[tuple[str, object]]) -> dict:
         document: dict = {}
         for key, value in items:
@@ -27,6 +28,7 @@ def parse_strict_json(text: str) -> object:
         raise ValueError(f"'{name}' is not JSON (a strict report writes null)")
 
     return json.loads(text, object_pairs_hook=pairs, parse_constant=constant)
+
 
 def json_text(document: object) -> str:
     """Strict JSON of `document`: NaN and infinities become `null`, numpy scalars and arrays plain.

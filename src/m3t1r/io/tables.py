@@ -142,8 +142,14 @@ def read_table(
             raise DataFileError(
                 source, f"{len(fields)} fields, but the header has {len(columns)} columns", row=line, column=missing
             )
-        rows.append([math.nan if not field and name in blank_allowed else
-                     _parse_number(source, line, name, field, max_magnitude) for name, field in zip(columns, fields)])
+        rows.append(
+            [
+                math.nan
+                if not field and name in blank_allowed
+                else _parse_number(source, line, name, field, max_magnitude)
+                for name, field in zip(columns, fields)
+            ]
+        )
         lines.append(line)
     if not rows:
         raise DataFileError(source, "no data rows after the header", row=header_line)
@@ -182,8 +188,13 @@ def write_table(
     atomic_write_text(path, table_text(columns, data, comments, what=f"table data for {path}"), protect=protect)
 
 
-def table_text(columns: Sequence[str], data: object, comments: Sequence[str] = (), what: str = "table data",
-               blank_allowed: Sequence[str] = ()) -> str:
+def table_text(
+    columns: Sequence[str],
+    data: object,
+    comments: Sequence[str] = (),
+    what: str = "table data",
+    blank_allowed: Sequence[str] = (),
+) -> str:
     """The text `write_table` writes (same arguments and InvalidInputError), for an `OutputSet.stage`;
     NaN in a `blank_allowed` column is written as an empty field (`read_table` reads it back as NaN)."""
     names = tuple(columns)
@@ -193,21 +204,19 @@ def table_text(columns: Sequence[str], data: object, comments: Sequence[str] = (
     except (TypeError, ValueError) as exc:
         raise InvalidInputError(f"{what}: not numeric ({exc})") from None
     if array.ndim != 2 or array.shape[1] != len(names) or array.shape[0] == 0:
-        raise InvalidInputError(
-            f"{what}: shape {array.shape}, expected (n_rows >= 1, {len(names)} columns)"
-        )
+        raise InvalidInputError(f"{what}: shape {array.shape}, expected (n_rows >= 1, {len(names)} columns)")
     blank = np.isnan(array) & np.isin(np.array(names), list(blank_allowed))[None, :]
     bad = np.argwhere(~np.isfinite(array) & ~blank)
     if bad.size:
         row, col = (int(i) for i in bad[0])
-        raise InvalidInputError(
-            f"{what}: row {row}, column '{names[col]}' is {array[row, col]}, not a finite number"
-        )
+        raise InvalidInputError(f"{what}: row {row}, column '{names[col]}' is {array[row, col]}, not a finite number")
 
     lines = [_comment_line(part) for comment in comments for part in (comment.splitlines() or [""])]
     lines.append(",".join(names))
-    lines.extend(",".join("" if value != value else format_float(value) for value in row)  # NaN: blank_allowed
-                 for row in array.tolist())
+    lines.extend(
+        ",".join("" if value != value else format_float(value) for value in row)  # NaN: blank_allowed
+        for row in array.tolist()
+    )
     return "\n".join(lines) + "\n"
 
 
@@ -296,9 +305,11 @@ def _orientation_hint(source: Path, unknown: Sequence[str], groups: Sequence[Seq
     for names, what, options in _OTHER_ORIENTATIONS:
         if set(names) <= lower:
             listed = ", ".join(names) if len(names) < 9 else f"{names[0]} ... {names[-1]}"
-            return (f"; {listed} look like an orientation as {what}: this file takes a unit quaternion qx, qy, qz, "
-                    f"qw, and `m3t1r convert {source} {options + ' ' if options else ''}-o measurements.csv` "
-                    "converts the file (it keeps the joint columns)")
+            return (
+                f"; {listed} look like an orientation as {what}: this file takes a unit quaternion qx, qy, qz, "
+                f"qw, and `m3t1r convert {source} {options + ' ' if options else ''}-o measurements.csv` "
+                "converts the file (it keeps the joint columns)"
+            )
     return ""
 
 
@@ -336,8 +347,7 @@ def _check_header(
         expected = ", ".join([*required, *optional, *(name for group in groups for name in group)])
         raise DataFileError(
             source,
-            f"unknown columns: {', '.join(unknown)}{question}; expected columns: {expected}"
-            + hint,
+            f"unknown columns: {', '.join(unknown)}{question}; expected columns: {expected}" + hint,
             row=line,
             column=unknown[0],
         )
@@ -360,8 +370,13 @@ def _parse_number(source: Path, line: int, column: str, field: str, max_magnitud
         if not math.isfinite(value):
             raise DataFileError(source, f"value {field} is too large for a double", row=line, column=column)
         if abs(value) > max_magnitude:
-            raise DataFileError(source, f"value {field} is implausibly large: |value| > {max_magnitude:g} "
-                                        "(SI units: m, rad); it would overflow the computation", row=line, column=column)
+            raise DataFileError(
+                source,
+                f"value {field} is implausibly large: |value| > {max_magnitude:g} "
+                "(SI units: m, rad); it would overflow the computation",
+                row=line,
+                column=column,
+            )
         return value
     if not field:
         message = "empty field"
@@ -384,7 +399,7 @@ def _reject_duplicate_rows(table: Table) -> None:
 def _check_column_names(names: tuple[str, ...]) -> None:
     for name in names:
         if not isinstance(name, str) or not name or name != name.strip() or re.search(r"[,\"\r\n]", name):
-            raise InvalidInputError(f"column name {name!r}: must be non-empty, unpadded, without , \" or line breaks")
+            raise InvalidInputError(f'column name {name!r}: must be non-empty, unpadded, without , " or line breaks')
         if name.startswith("#"):
             raise InvalidInputError(f"column name {name!r}: a header starting with '#' would read as a comment")
     repeated = sorted({name for name in names if names.count(name) > 1})

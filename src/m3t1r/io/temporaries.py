@@ -28,8 +28,16 @@ try:
 except ImportError:  # Windows: no advisory locks, so no leftover is ever provably abandoned
     fcntl = None  # type: ignore[assignment]
 
-__all__ = ["pending_temporaries", "print_notice", "sweep", "temporary_path", "folder_lock", "live_writer",
-           "remove_live_temporaries", "release_stale_claims"]
+__all__ = [
+    "pending_temporaries",
+    "print_notice",
+    "sweep",
+    "temporary_path",
+    "folder_lock",
+    "live_writer",
+    "remove_live_temporaries",
+    "release_stale_claims",
+]
 
 # A temporary file is `.<final name>.m3t1r-<pid>-<random hex>.tmp` in the target's folder: hidden,
 # recognisable and on the target's filesystem (so the final rename is atomic). When that name would
@@ -39,8 +47,7 @@ __all__ = ["pending_temporaries", "print_notice", "sweep", "temporary_path", "fo
 # from creation to rename, and a file is another run's leftover only when that lock can be taken.
 # A pid cannot say that: pids repeat, and a run in another container or on another host sharing
 # the folder has a pid that means nothing here, while a flock lives exactly as long as its holder.
-_TEMPORARY = re.compile(
-    r"^\.(?P<name>.*)\.m3t1r-(?P<pid>\d+)-(?P<token>[0-9a-f]+)(?:~(?P<digest>[0-9a-f]{16}))?\.tmp$")
+_TEMPORARY = re.compile(r"^\.(?P<name>.*)\.m3t1r-(?P<pid>\d+)-(?P<token>[0-9a-f]+)(?:~(?P<digest>[0-9a-f]{16}))?\.tmp$")
 _DEFAULT_NAME_MAX = 255
 _CLAIM_PREFIX = b"m3t1r run in progress: "
 _FOLDER_LOCK_NAME = ".m3t1r.lock"  # only where a folder itself cannot be flocked (NFS)
@@ -156,8 +163,9 @@ def _flock_within(descriptor: int, folder: Path, timeout: float) -> None:
             return
         except BlockingIOError:
             if time.monotonic() > deadline:
-                raise OutputPathError(folder, f"another m3t1r run has held this folder's lock for over {timeout:g} s; "
-                                              "nothing was written") from None
+                raise OutputPathError(
+                    folder, f"another m3t1r run has held this folder's lock for over {timeout:g} s; nothing was written"
+                ) from None
             time.sleep(0.01)
         except OSError:
             return  # the filesystem refuses locks after all: unlocked, as on Windows
@@ -202,7 +210,7 @@ def live_writer(target: StrPath) -> str | None:
         except OSError:
             head = b""
         if head.startswith(_CLAIM_PREFIX):
-            return head[len(_CLAIM_PREFIX):].split(b"\n", 1)[0].decode("utf-8", errors="replace")
+            return head[len(_CLAIM_PREFIX) :].split(b"\n", 1)[0].decode("utf-8", errors="replace")
         match = _TEMPORARY.match(path.name)
         return f"pid {match['pid'] if match else '?'}, now renaming its outputs into place"
     return None
@@ -306,8 +314,9 @@ def claim_temporary(target: Path) -> tuple[Path, int]:
     try:
         descriptor = os.open(temporary, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
     except OSError as exc:
-        raise OutputPathError(target, f"cannot create a file in {target.parent}: {exc.strerror or exc}; "
-                                      "nothing was written") from None
+        raise OutputPathError(
+            target, f"cannot create a file in {target.parent}: {exc.strerror or exc}; nothing was written"
+        ) from None
     _LIVE_TEMPORARIES.add(temporary)
     _LIVE_DESCRIPTORS[temporary] = descriptor
     try:
@@ -320,8 +329,9 @@ def claim_temporary(target: Path) -> tuple[Path, int]:
     except BaseException as exc:
         release_temporary(temporary, descriptor, remove=True)
         if isinstance(exc, OSError):
-            raise OutputPathError(target, f"cannot write in {target.parent}: {exc.strerror or exc}; "
-                                          "nothing was written") from None
+            raise OutputPathError(
+                target, f"cannot write in {target.parent}: {exc.strerror or exc}; nothing was written"
+            ) from None
         raise
     return temporary, descriptor
 
@@ -365,7 +375,7 @@ def release_temporary(temporary: Path, descriptor: int | None, *, remove: bool) 
 def _write_all(descriptor: int, data: bytes) -> None:
     view = memoryview(data)
     while view:
-        view = view[os.write(descriptor, view):]
+        view = view[os.write(descriptor, view) :]
 
 
 @atexit.register

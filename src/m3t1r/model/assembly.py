@@ -62,14 +62,17 @@ class HomeAssembly:
         shown = ", ".join(f"{name} {change:+.3g}" for name, change in self.moved[:6])
         more = f" and {len(self.moved) - 6} more" if len(self.moved) > 6 else ""
         wraps = f"; {', '.join(self.wrapped)} wrapped by whole turns" if self.wrapped else ""
-        return (f"home does not close: closure '{self.worst}' residual {self.given_residual:.3e} > {tolerance:g}; "
-                "assembled by Newton (damped, actuators held) at the assembly nearest the given values: "
-                f"passive joints moved by {shown or 'nothing'}{more} [rad or m]{wraps}. To choose another assembly "
-                "mode, give approximate values of its passive joints in `home`")
+        return (
+            f"home does not close: closure '{self.worst}' residual {self.given_residual:.3e} > {tolerance:g}; "
+            "assembled by Newton (damped, actuators held) at the assembly nearest the given values: "
+            f"passive joints moved by {shown or 'nothing'}{more} [rad or m]{wraps}. To choose another assembly "
+            "mode, give approximate values of its passive joints in `home`"
+        )
 
 
-def assemble_home(model: pin.Model, closures: tuple[ClosureSpec, ...], system: ClosureSystem, guess: np.ndarray,
-                  passive: np.ndarray) -> tuple[np.ndarray, HomeAssembly]:
+def assemble_home(
+    model: pin.Model, closures: tuple[ClosureSpec, ...], system: ClosureSystem, guess: np.ndarray, passive: np.ndarray
+) -> tuple[np.ndarray, HomeAssembly]:
     """The assembly nearest `guess` (nq) over the `passive` velocity indices, the others held.
 
     Returns (home, report). The caller judges `report.residual` (no assembly near the guess leaves it
@@ -94,8 +97,11 @@ def limits_violated(model: pin.Model, q: np.ndarray, joints: np.ndarray) -> list
     """(joint, value, lower, upper) of the joints (velocity indices) outside usable URDF limits
     (lower < upper; lower >= upper is how Pinocchio reads an absent limit)."""
     lower, upper = model.lowerPositionLimit, model.upperPositionLimit
-    return [(_joint_name(model, int(v)), float(q[v]), float(lower[v]), float(upper[v])) for v in joints
-            if lower[v] < upper[v] and not lower[v] - 1e-12 <= q[v] <= upper[v] + 1e-12]
+    return [
+        (_joint_name(model, int(v)), float(q[v]), float(lower[v]), float(upper[v]))
+        for v in joints
+        if lower[v] < upper[v] and not lower[v] - 1e-12 <= q[v] <= upper[v] + 1e-12
+    ]
 
 
 class _SmoothClosures:
@@ -108,8 +114,11 @@ class _SmoothClosures:
         # The length that makes a unit of R_b - R_a weigh as much as a metre of p_b - p_a: the tree's scale.
         self.length = max(float(np.linalg.norm(placements, axis=1).sum()) / max(len(placements), 1), 1e-3)
         starts = np.cumsum([0] + [len(spec.rows) for spec in closures])
-        self.partial = [(spec, np.arange(starts[k], starts[k + 1])) for k, spec in enumerate(closures)
-                        if len(spec.rows) != (3 if spec.type == "3D" else 6)]
+        self.partial = [
+            (spec, np.arange(starts[k], starts[k + 1]))
+            for k, spec in enumerate(closures)
+            if len(spec.rows) != (3 if spec.type == "3D" else 6)
+        ]
 
     def evaluate(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         model, data = self.model, self.data

@@ -47,9 +47,26 @@ from m3t1r.model.newton_rules import DEFAULT_RULES, NewtonRules
 from m3t1r.model.poe import jlog3_batch, log3_batch, skew
 from m3t1r.model.task import TaskSpec
 
-__all__ = ["RowFailure", "ForwardBatch", "InverseBatch", "StackedKinematics", "apply_last", "apply_transposed_last",
-           "cross_last", "evaluate_rows", "first_step_from_home", "jlog3_coefficients", "rpy_batch", "skew_last",
-           "stack_inverses", "start_configurations", "times_last", "weld_rows", "RowFactors", "SolvedRows"]
+__all__ = [
+    "RowFailure",
+    "ForwardBatch",
+    "InverseBatch",
+    "StackedKinematics",
+    "apply_last",
+    "apply_transposed_last",
+    "cross_last",
+    "evaluate_rows",
+    "first_step_from_home",
+    "jlog3_coefficients",
+    "rpy_batch",
+    "skew_last",
+    "stack_inverses",
+    "start_configurations",
+    "times_last",
+    "weld_rows",
+    "RowFactors",
+    "SolvedRows",
+]
 
 _CHUNK = 2048  # rows solved together: bounds memory (about 40 MB of arrays per chunk)
 
@@ -119,20 +136,25 @@ def rpy_batch(rotations: np.ndarray) -> np.ndarray:
     away from pitch = +-pi/2: yaw = atan2(R10, R00), pitch = atan2(-R20, hypot(R21, R22)),
     roll = atan2(R21, R22)."""
     r = rotations
-    return np.stack([np.arctan2(r[..., 2, 1], r[..., 2, 2]),
-                     np.arctan2(-r[..., 2, 0], np.hypot(r[..., 2, 1], r[..., 2, 2])),
-                     np.arctan2(r[..., 1, 0], r[..., 0, 0])], axis=-1)
+    return np.stack(
+        [
+            np.arctan2(r[..., 2, 1], r[..., 2, 2]),
+            np.arctan2(-r[..., 2, 0], np.hypot(r[..., 2, 1], r[..., 2, 2])),
+            np.arctan2(r[..., 1, 0], r[..., 0, 0]),
+        ],
+        axis=-1,
+    )
 
 
 def jlog3_coefficients(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """b(a) = 1/a^2 - 1/(2 a tan(a/2)) and b'(a)/a, with their series below a = 1e-2."""
     small = angles < 1e-2
     a = np.where(small, 1.0, angles)
-    sq = angles ** 2
-    b = np.where(small, 1 / 12 + sq / 720 + sq ** 2 / 30240, 1 / a ** 2 - 1 / (2 * a * np.tan(a / 2)))
+    sq = angles**2
+    b = np.where(small, 1 / 12 + sq / 720 + sq**2 / 30240, 1 / a**2 - 1 / (2 * a * np.tan(a / 2)))
     # b'(a) = -2/a^3 + (tan(a/2) + a / (2 cos^2(a/2))) / (2 a^2 tan^2(a/2))
     t = np.tan(a / 2)
-    db = -2 / a ** 3 + (t + a / (2 * np.cos(a / 2) ** 2)) / (2 * a ** 2 * t ** 2)
+    db = -2 / a**3 + (t + a / (2 * np.cos(a / 2) ** 2)) / (2 * a**2 * t**2)
     db_over_a = np.where(small, 1 / 360 + sq / 7560, db / a)
     return b, db_over_a
 
@@ -151,8 +173,10 @@ def _joint_axis(joint, joint_name: str) -> tuple[np.ndarray, bool]:
     if name in ("JointModelRevoluteUnaligned", "JointModelPrismaticUnaligned"):
         axis = np.array(joint.extract().axis, dtype=float)
         return axis / np.linalg.norm(axis), name.startswith("JointModelRevolute")
-    raise UnsupportedJointError(joint_name, f"joint type {name} is not supported by the batched kinematics "
-                                            "(1-DoF revolute or prismatic joints only)")
+    raise UnsupportedJointError(
+        joint_name,
+        f"joint type {name} is not supported by the batched kinematics (1-DoF revolute or prismatic joints only)",
+    )
 
 
 def times_last(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -187,8 +211,9 @@ def skew_last(v: np.ndarray) -> np.ndarray:
     return out
 
 
-def weld_rows(rotation_a: np.ndarray, position_a: np.ndarray, rotation_b: np.ndarray,
-              position_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def weld_rows(
+    rotation_a: np.ndarray, position_a: np.ndarray, rotation_b: np.ndarray, position_b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A 6D closure between frames a and b (poses last): residual log6(aMb) = [v; w] (6, n) and the
     operator Jlog6(aMb) Ad(oMb^-1) = [[A, B]; [0, A]] on WORLD twists, as A, B (3, 3, n).
 
@@ -205,8 +230,11 @@ def weld_rows(rotation_a: np.ndarray, position_a: np.ndarray, rotation_b: np.nda
     w_skew2 = times_last(w_skew, w_skew)
     jlog3 = np.eye(3)[..., None] + 0.5 * w_skew + b * w_skew2
     v = apply_transposed_last(jlog3, p)
-    x = 0.5 * p_skew + db_over_a * apply_last(w_skew2, p)[:, None, :] * w[None, :, :] \
+    x = (
+        0.5 * p_skew
+        + db_over_a * apply_last(w_skew2, p)[:, None, :] * w[None, :, :]
         - b * (skew_last(cross_last(w, p)) + times_last(w_skew, p_skew))
+    )
     a = times_last(jlog3, rotation_b.transpose(1, 0, 2))
     return np.concatenate((v, w)), a, times_last(x, a) - times_last(a, skew_last(position_b))
 
@@ -318,8 +346,11 @@ class StackedKinematics:
         # The 3D closures' Jacobian entries, one (closure, column) pair at a time: the columns of the
         # joints that move frame b but not frame a (sign +1) or a but not b (-1); every other entry is 0.
         full_mask = solver._row_masks[True]
-        pairs = [(k, v, full_mask[slot, v]) for k, slot in enumerate(self.point_slot)
-                 for v in np.flatnonzero(full_mask[slot])]
+        pairs = [
+            (k, v, full_mask[slot, v])
+            for k, slot in enumerate(self.point_slot)
+            for v in np.flatnonzero(full_mask[slot])
+        ]
         self.pair_point = np.array([k for k, _, _ in pairs], dtype=int)
         self.pair_column = np.array([v for _, v, _ in pairs], dtype=int)
         self.pair_sign = np.array([sign for _, _, sign in pairs], dtype=float)[:, None, None]
@@ -328,8 +359,9 @@ class StackedKinematics:
         self.weld_pairs = []
         for slot, _, _ in self.weld:
             columns = np.flatnonzero(full_mask[slot])
-            self.weld_pairs.append((columns, full_mask[slot, columns][:, None, None],
-                                    slot + np.arange(6)[None, :] + 0 * columns[:, None]))
+            self.weld_pairs.append(
+                (columns, full_mask[slot, columns][:, None, None], slot + np.arange(6)[None, :] + 0 * columns[:, None])
+            )
         self.passive, self.actuated = solver.passive, solver.actuated
         self.blocks = [(np.asarray(r), np.asarray(c)) for r, c in solver.branch_blocks]
         support = np.zeros(model.nv)
@@ -377,7 +409,7 @@ class StackedKinematics:
             moved = linear[column] - cross_last(pb[self.pair_point], angular[column])
             jac[self.pair_rows, column[:, None]] = self.pair_sign * apply_transposed_last(ra[self.pair_point], moved)
         for (slot, ia, ib), (columns, sign, rows) in zip(self.weld, self.weld_pairs):
-            full[slot:slot + 6], a, b = weld_rows(frot[ia], fpos[ia], frot[ib], fpos[ib])
+            full[slot : slot + 6], a, b = weld_rows(frot[ia], fpos[ia], frot[ib], fpos[ib])
             if jac is not None:
                 v, w = linear[columns], angular[columns]
                 moved_rows = (apply_last(a, v) + apply_last(b, w), apply_last(a, w))
@@ -421,11 +453,13 @@ class StackedKinematics:
 
 _CONVERGED, _ACTIVE, _LIMIT = 0, -1, 5  # _LIMIT: converged, but a slider is beyond its limit
 _FAILURES = {1: OutOfWorkspaceError, 2: NotConvergedError, 3: SingularConfigurationError, 4: BranchChangeError}
-_REASONS = {1: "the closures cannot be assembled here (target out of the workspace or too far from the "
-               "initial configuration's branch)",
-            2: "Newton did not reach the tolerance",
-            3: "singular configuration (reciprocal condition below 1e-10)",
-            4: "the solution lies on another assembly branch than the start (Newton crossed a singularity)"}
+_REASONS = {
+    1: "the closures cannot be assembled here (target out of the workspace or too far from the "
+    "initial configuration's branch)",
+    2: "Newton did not reach the tolerance",
+    3: "singular configuration (reciprocal condition below 1e-10)",
+    4: "the solution lies on another assembly branch than the start (Newton crossed a singularity)",
+}
 
 
 def stack_inverses(square: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -479,8 +513,16 @@ class RowFactors:
         return singular
 
 
-def evaluate_rows(q: np.ndarray, active: np.ndarray, previous: np.ndarray, rules: NewtonRules, system,
-                  factors: RowFactors, unknowns: np.ndarray, signature) -> tuple:
+def evaluate_rows(
+    q: np.ndarray,
+    active: np.ndarray,
+    previous: np.ndarray,
+    rules: NewtonRules,
+    system,
+    factors: RowFactors,
+    unknowns: np.ndarray,
+    signature,
+) -> tuple:
     """Residual, platform pose and singular mask of the `active` rows after a step. Rows whose last
     residual was above `rules.chord_below` get a Jacobian (Newton); the others get the residual alone
     (chord), and a Jacobian too when that step contracted by less than `rules.chord_contraction`."""
@@ -505,8 +547,15 @@ def evaluate_rows(q: np.ndarray, active: np.ndarray, previous: np.ndarray, rules
     return residual, rot, pos, singular
 
 
-def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: NewtonRules,
-                 steps_taken: int = 0, branch: np.ndarray | None = None) -> SolvedRows:
+def newton_batch(
+    q: np.ndarray,
+    unknowns: np.ndarray,
+    system,
+    signature,
+    rules: NewtonRules,
+    steps_taken: int = 0,
+    branch: np.ndarray | None = None,
+) -> SolvedRows:
     """Chord Newton on n independent square systems at once; rows leave the active set as they finish.
 
     system(q_rows, rows, with_jacobian) -> (residual (m, r), Jacobian (m, r, nv) or None, platform
@@ -524,8 +573,9 @@ def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: 
     """
     n = len(q)
     q = q.copy()
-    out = SolvedRows(q, np.full(n, _ACTIVE), np.full(n, np.inf), np.zeros(n, dtype=int),
-                     np.zeros((n, 3, 3)), np.zeros((n, 3)))
+    out = SolvedRows(
+        q, np.full(n, _ACTIVE), np.full(n, np.inf), np.zeros(n, dtype=int), np.zeros((n, 3, 3)), np.zeros((n, 3))
+    )
     factors, previous = RowFactors(n, len(unknowns)), np.full(n, np.inf)
     active = np.arange(n)
     residual, jac, rot, pos = system(q, active, True)
@@ -542,9 +592,11 @@ def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: 
         if done.any():
             rows = active[done]
             out.rotation[rows], out.position[rows] = rot[done], pos[done]
-            out.status[rows] = np.where(factors.rcond[rows] < rules.singular_rcond, 3,
-                                        np.where((factors.labels[rows] != factors.start[rows]).any(axis=1), 4,
-                                                 _CONVERGED))
+            out.status[rows] = np.where(
+                factors.rcond[rows] < rules.singular_rcond,
+                3,
+                np.where((factors.labels[rows] != factors.start[rows]).any(axis=1), 4, _CONVERGED),
+            )
         out.status[active[bad]] = 1
         out.status[active[singular & ~done & ~bad]] = 3
         keep = ~(done | bad | singular)
@@ -556,22 +608,29 @@ def newton_batch(q: np.ndarray, unknowns: np.ndarray, system, signature, rules: 
         biggest = np.abs(step).max(axis=1)
         step *= np.minimum(1.0, rules.max_step / np.maximum(biggest, 1e-300))[:, None]
         q[active[:, None], unknowns[None, :]] -= step
-        residual, rot, pos, singular = evaluate_rows(q, active, previous[active], rules, system,
-                                                     factors, unknowns, signature)
+        residual, rot, pos, singular = evaluate_rows(
+            q, active, previous[active], rules, system, factors, unknowns, signature
+        )
     left = out.status == _ACTIVE
     out.status[left] = np.where(out.norm[left] > rules.no_assembly, 1, 2)
     return out
 
 
-def failures_of(solved: SolvedRows, offset: int, what: str,
-                singular_rcond: float = DEFAULT_RULES.singular_rcond) -> list[RowFailure]:
+def failures_of(
+    solved: SolvedRows, offset: int, what: str, singular_rcond: float = DEFAULT_RULES.singular_rcond
+) -> list[RowFailure]:
     """Typed failures of the rows of `solved` that did not converge (indices shifted by `offset`);
     singular rows name `singular_rcond`, the threshold they fell below."""
     reasons = _REASONS | {3: f"singular configuration (reciprocal condition below {singular_rcond:g})"}
-    return [RowFailure(offset + int(i), f"{what}: {reasons[int(solved.status[i])]} (residual "
-                       f"{solved.norm[i]:.3e} after {int(solved.iterations[i])} iterations)",
-                       _FAILURES[int(solved.status[i])])
-            for i in np.flatnonzero((solved.status != _CONVERGED) & (solved.status != _LIMIT))]
+    return [
+        RowFailure(
+            offset + int(i),
+            f"{what}: {reasons[int(solved.status[i])]} (residual "
+            f"{solved.norm[i]:.3e} after {int(solved.iterations[i])} iterations)",
+            _FAILURES[int(solved.status[i])],
+        )
+        for i in np.flatnonzero((solved.status != _CONVERGED) & (solved.status != _LIMIT))
+    ]
 
 
 def start_configurations(kin: StackedKinematics, n: int, q_init: np.ndarray | None) -> np.ndarray:
@@ -599,8 +658,9 @@ def _rows(values: object, width: int, what: str, columns: tuple[str, ...]) -> np
     return array
 
 
-def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarray | None = None,
-                  threads: int | None = None) -> ForwardBatch:
+def forward_batch(
+    kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarray | None = None, threads: int | None = None
+) -> ForwardBatch:
     """Platform poses for n slider sets (n, k) [m], each solved from q_init, in chunks.
 
     Default (q_init None): every row starts from home moved along home's solution manifold to first
@@ -620,9 +680,15 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
     values = _rows(sliders, len(names), "actuator values", names)
     start = start_configurations(kin, len(values), q_init)
     outside = (values < solver._act_lower) | (values > solver._act_upper)
-    failures = [RowFailure(int(i), f"actuator '{names[int(np.argmax(outside[i]))]}' = "
-                           f"{values[i, np.argmax(outside[i])]:.6g} is beyond its joint limit", InvalidInputError)
-                for i in np.flatnonzero(outside.any(axis=1))]
+    failures = [
+        RowFailure(
+            int(i),
+            f"actuator '{names[int(np.argmax(outside[i]))]}' = "
+            f"{values[i, np.argmax(outside[i])]:.6g} is beyond its joint limit",
+            InvalidInputError,
+        )
+        for i in np.flatnonzero(outside.any(axis=1))
+    ]
     rows = np.flatnonzero(~outside.any(axis=1))
     reference = kin.home_reference() if q_init is None else None
     predicted = reference is not None
@@ -641,13 +707,26 @@ def forward_batch(kin: StackedKinematics, sliders: np.ndarray, q_init: np.ndarra
     for chunk in np.array_split(rows, max(1, -(-len(rows) // size))) if len(rows) else []:
         if solver.native is not None:
             q = start[chunk]
-            solved = _native_solved(q, solver.native.forward_rows(
-                q, branch if predicted else None, int(predicted), solver.rules.compiled(), workers))
+            solved = _native_solved(
+                q,
+                solver.native.forward_rows(
+                    q, branch if predicted else None, int(predicted), solver.rules.compiled(), workers
+                ),
+            )
         else:
-            solved = newton_batch(start[chunk], kin.passive, system, lambda jac, sq: kin.signatures(jac),
-                                  solver.rules, int(predicted), branch if predicted else None)
-        failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
-                     for f in failures_of(solved, 0, "forward kinematics", solver.singular_rcond)]
+            solved = newton_batch(
+                start[chunk],
+                kin.passive,
+                system,
+                lambda jac, sq: kin.signatures(jac),
+                solver.rules,
+                int(predicted),
+                branch if predicted else None,
+            )
+        failures += [
+            RowFailure(int(chunk[f.index]), f.reason, f.error)
+            for f in failures_of(solved, 0, "forward kinematics", solver.singular_rcond)
+        ]
         parts.append((chunk, solved))
     return _forward_result(kin, len(values), parts, failures)
 
@@ -680,19 +759,26 @@ def _forward_result(kin: StackedKinematics, n: int, parts: list, failures: list)
         qs.append(solved.q[good])
         norms.append(solved.norm[good])
         steps.append(solved.iterations[good])
-    cat = (lambda arrays, shape: np.concatenate(arrays) if arrays else np.zeros(shape))
+    cat = lambda arrays, shape: np.concatenate(arrays) if arrays else np.zeros(shape)
     index = cat(indices, (0,)).astype(int)
     order = np.argsort(index, kind="stable")
     platform, q = _frozen(cat(poses, (0, 4, 4))[order]), _frozen(cat(qs, (0, kin.solver.model.nq))[order])
     task = platform if kin.platform_index == -1 else _frozen(kin.task_poses(q) if len(q) else np.zeros((0, 4, 4)))
-    return ForwardBatch(n=n, indices=_frozen(index[order]), poses=platform, q=q,
-                        residuals=_frozen(cat(norms, (0,))[order]),
-                        iterations=_frozen(cat(steps, (0,)).astype(int)[order]),
-                        failures=tuple(sorted(failures, key=lambda f: f.index)), task_poses=task)
+    return ForwardBatch(
+        n=n,
+        indices=_frozen(index[order]),
+        poses=platform,
+        q=q,
+        residuals=_frozen(cat(norms, (0,))[order]),
+        iterations=_frozen(cat(steps, (0,)).astype(int)[order]),
+        failures=tuple(sorted(failures, key=lambda f: f.index)),
+        task_poses=task,
+    )
 
 
-def task_rows(task: TaskSpec, rot: np.ndarray, pos: np.ndarray, twist: np.ndarray, goal: np.ndarray,
-              goal_rot: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def task_rows(
+    task: TaskSpec, rot: np.ndarray, pos: np.ndarray, twist: np.ndarray, goal: np.ndarray, goal_rot: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
     """Task residual rows (n, d) and their Jacobian (n, d, nv), batched as `TaskSpec.residual`/`jacobian`.
 
     rot, pos: the task frame (n, 3, 3), (n, 3); twist: the WORLD Jacobian columns that move it
@@ -716,8 +802,9 @@ def task_rows(task: TaskSpec, rot: np.ndarray, pos: np.ndarray, twist: np.ndarra
     return np.concatenate(residual, axis=1), np.concatenate(jacobian, axis=1)
 
 
-def first_step_from_home(kin: StackedKinematics, start: np.ndarray, rows: np.ndarray, goal: np.ndarray,
-                         signature) -> np.ndarray | None:
+def first_step_from_home(
+    kin: StackedKinematics, start: np.ndarray, rows: np.ndarray, goal: np.ndarray, signature
+) -> np.ndarray | None:
     """Newton's first IK step from home for `rows` at once, in place on `start` (n, nq); returns the
     branch labels at home (the rows' reference), or None (start untouched) if home is singular.
 
@@ -728,13 +815,21 @@ def first_step_from_home(kin: StackedKinematics, start: np.ndarray, rows: np.nda
     home = kin.solver.mechanism.home
     closure, jac, frot, fpos, world = kin.closures(home[None, :])
     n = len(rows)
-    task_residual, task_jac = task_rows(kin.solver.mechanism.task, np.broadcast_to(frot[:, -1], (n, 3, 3)),
-                                        np.broadcast_to(fpos[:, -1], (n, 3)),
-                                        np.broadcast_to(world * kin.task_support, (n,) + world.shape[1:]), goal[rows], None)
+    task_residual, task_jac = task_rows(
+        kin.solver.mechanism.task,
+        np.broadcast_to(frot[:, -1], (n, 3, 3)),
+        np.broadcast_to(fpos[:, -1], (n, 3)),
+        np.broadcast_to(world * kin.task_support, (n,) + world.shape[1:]),
+        goal[rows],
+        None,
+    )
     full_jac = np.concatenate((jac, task_jac[:1]), axis=1)
     square = full_jac[:, :, kin.unknowns]
     inverse, singular = stack_inverses(square)
-    if singular[0] or 1.0 / (np.abs(square).sum(axis=1).max() * np.abs(inverse).sum(axis=1).max()) < kin.solver.singular_rcond:
+    if (
+        singular[0]
+        or 1.0 / (np.abs(square).sum(axis=1).max() * np.abs(inverse).sum(axis=1).max()) < kin.solver.singular_rcond
+    ):
         return None
     residual = np.concatenate((np.broadcast_to(closure, (n, closure.shape[1])), task_residual), axis=1)
     step = residual @ inverse[0].T
@@ -743,8 +838,9 @@ def first_step_from_home(kin: StackedKinematics, start: np.ndarray, rows: np.nda
     return signature(full_jac, square)[0]
 
 
-def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarray | None = None,
-                  threads: int | None = None) -> InverseBatch:
+def inverse_batch(
+    kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarray | None = None, threads: int | None = None
+) -> InverseBatch:
     """Slider values for n targets, rows of task coordinates (`TaskSpec.columns`, e.g. x, y, z, theta)
     [m, rad], each from q_init (default home).
 
@@ -765,11 +861,15 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
     def system(q: np.ndarray, active: np.ndarray, with_jacobian: bool):
         closure, jac, frot, fpos, world = kin.closures(q, with_jacobian)
         rot, pos = frot[:, -1], fpos[:, -1]
-        rows, rows_jac = task_rows(task, rot, pos, world * kin.task_support, goal[active],
-                                   None if goal_rot is None else goal_rot[active])
-        return (np.concatenate((closure, rows), axis=1),
-                np.concatenate((jac, rows_jac), axis=1) if with_jacobian else None,
-                frot[:, kin.platform_index], fpos[:, kin.platform_index])
+        rows, rows_jac = task_rows(
+            task, rot, pos, world * kin.task_support, goal[active], None if goal_rot is None else goal_rot[active]
+        )
+        return (
+            np.concatenate((closure, rows), axis=1),
+            np.concatenate((jac, rows_jac), axis=1) if with_jacobian else None,
+            frot[:, kin.platform_index],
+            fpos[:, kin.platform_index],
+        )
 
     def signature(jac: np.ndarray, square: np.ndarray) -> np.ndarray:
         return np.concatenate((kin.signatures(jac), (np.linalg.slogdet(square)[0] > 0)[:, None]), axis=1)
@@ -784,28 +884,56 @@ def inverse_batch(kin: StackedKinematics, targets: np.ndarray, q_init: np.ndarra
             branch = first_step_from_home(kin, start, chunk, goal, signature)
         if solver.native is not None:
             q = start[chunk]
-            solved = _native_solved(q, solver.native.inverse_rows(
-                q, goal[chunk], None if goal_rot is None else goal_rot[chunk], branch,
-                int(branch is not None), solver.rules.compiled(), workers))
+            solved = _native_solved(
+                q,
+                solver.native.inverse_rows(
+                    q,
+                    goal[chunk],
+                    None if goal_rot is None else goal_rot[chunk],
+                    branch,
+                    int(branch is not None),
+                    solver.rules.compiled(),
+                    workers,
+                ),
+            )
         else:
-            solved = newton_batch(start[chunk], every, lambda q, a, jacobian: system(q, chunk[a], jacobian),
-                                  signature, solver.rules, int(branch is not None), branch)
+            solved = newton_batch(
+                start[chunk],
+                every,
+                lambda q, a, jacobian: system(q, chunk[a], jacobian),
+                signature,
+                solver.rules,
+                int(branch is not None),
+                branch,
+            )
         sliders = solved.q[:, kin.actuated]
-        outside = ((sliders < solver._act_lower) | (sliders > solver._act_upper)) & \
-            (solved.status == _CONVERGED)[:, None]
+        outside = ((sliders < solver._act_lower) | (sliders > solver._act_upper)) & (solved.status == _CONVERGED)[
+            :, None
+        ]
         for i in np.flatnonzero(outside.any(axis=1)):
             k = int(np.argmax(outside[i]))
             solved.status[i] = _LIMIT
-            failures.append(RowFailure(int(chunk[i]), f"inverse kinematics: target needs actuator '{names[k]}' = "
-                                       f"{sliders[i, k]:.6g} {solver.mechanism.joint_units()[k]}, beyond its limit "
-                                       f"[{solver._act_lower[k]:.6g}, {solver._act_upper[k]:.6g}]",
-                                       OutOfWorkspaceError))
-        failures += [RowFailure(int(chunk[f.index]), f.reason, f.error)
-                     for f in failures_of(solved, 0, "inverse kinematics", solver.singular_rcond)]
+            failures.append(
+                RowFailure(
+                    int(chunk[i]),
+                    f"inverse kinematics: target needs actuator '{names[k]}' = "
+                    f"{sliders[i, k]:.6g} {solver.mechanism.joint_units()[k]}, beyond its limit "
+                    f"[{solver._act_lower[k]:.6g}, {solver._act_upper[k]:.6g}]",
+                    OutOfWorkspaceError,
+                )
+            )
+        failures += [
+            RowFailure(int(chunk[f.index]), f.reason, f.error)
+            for f in failures_of(solved, 0, "inverse kinematics", solver.singular_rcond)
+        ]
         parts.append((chunk, solved))
     fk = _forward_result(kin, len(goal), parts, failures)
     wanted = np.zeros(2) if goal_rot is None else rpy_batch(goal_rot[fk.indices])[:, :2]
-    return InverseBatch(**{f: getattr(fk, f) for f in ("n", "indices", "poses", "q", "residuals", "iterations",
-                                                       "failures", "task_poses")},
-                        actuators=_frozen(fk.q[:, kin.actuated]),
-                        tilt=_frozen(rpy_batch(fk.task_poses[:, :3, :3])[:, :2] - wanted))
+    return InverseBatch(
+        **{
+            f: getattr(fk, f)
+            for f in ("n", "indices", "poses", "q", "residuals", "iterations", "failures", "task_poses")
+        },
+        actuators=_frozen(fk.q[:, kin.actuated]),
+        tilt=_frozen(rpy_batch(fk.task_poses[:, :3, :3])[:, :2] - wanted),
+    )

@@ -16,8 +16,15 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg
 
-__all__ = ["ClosureSpec", "ClosureSystem", "Redundancy", "ROW_COUNT", "ASSEMBLY_MAX_CHANGE", "without_rows",
-           "closure_rank"]
+__all__ = [
+    "ClosureSpec",
+    "ClosureSystem",
+    "Redundancy",
+    "ROW_COUNT",
+    "ASSEMBLY_MAX_CHANGE",
+    "without_rows",
+    "closure_rank",
+]
 
 ROW_COUNT = {"3D": 3, "6D": 6}
 ASSEMBLY_MAX_CHANGE = 0.1  # [rad or m] the most any joint may move when a home is assembled at load
@@ -73,8 +80,9 @@ class ClosureSystem:
         self.errors = [d.constraint_position_error for d in inner]  # live views, refreshed by `calc`
         slots = np.concatenate(([0], np.cumsum([ROW_COUNT[c.type] for c in closures]))).astype(int)
         self.welds = [(int(slots[i]), d) for i, d in enumerate(inner) if closures[i].type == "6D"]
-        self.enforced = np.concatenate([slots[i] + np.array(c.rows, dtype=int) for i, c in enumerate(closures)]
-                                       + [np.zeros(0, dtype=int)])
+        self.enforced = np.concatenate(
+            [slots[i] + np.array(c.rows, dtype=int) for i, c in enumerate(closures)] + [np.zeros(0, dtype=int)]
+        )
 
     @overload
     def evaluate(self, q: np.ndarray, with_jacobian: Literal[True]) -> tuple[np.ndarray, np.ndarray]: ...
@@ -98,7 +106,7 @@ class ClosureSystem:
             return residual, None
         jac = pin.getConstraintsJacobian(model, data, self.constraints, self.constraint_data)
         for slot, cdata in self.welds:
-            jac[slot:slot + 6] = pin.Jlog6(cdata.c1Mc2.inverse()).dot(jac[slot:slot + 6])
+            jac[slot : slot + 6] = pin.Jlog6(cdata.c1Mc2.inverse()).dot(jac[slot : slot + 6])
         return residual, jac.take(self.enforced, axis=0)
 
     def assemble(self, q: np.ndarray, free: np.ndarray, tolerance: float) -> tuple[np.ndarray, float]:
@@ -165,7 +173,7 @@ def _null_space(matrix: np.ndarray) -> np.ndarray:
     if matrix.shape[0] == 0:
         return np.eye(matrix.shape[1])
     vt = np.linalg.svd(matrix)[2]
-    return vt[_rank(matrix):].T
+    return vt[_rank(matrix) :].T
 
 
 def _pivots(matrix: np.ndarray, count: int) -> set[int]:

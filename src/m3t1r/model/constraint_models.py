@@ -36,8 +36,9 @@ if TYPE_CHECKING:
 __all__ = ["rigid_constraint_models", "rigid_constraint_datas", "constraint_residual", "rows_left_out_that_move"]
 
 
-def rigid_constraint_models(mechanism: Mechanism, reference: np.ndarray | None = None, *,
-                            left_out_rows: Literal["refuse", "hold"] = "refuse") -> pin.StdVec_RigidConstraintModel:
+def rigid_constraint_models(
+    mechanism: Mechanism, reference: np.ndarray | None = None, *, left_out_rows: Literal["refuse", "hold"] = "refuse"
+) -> pin.StdVec_RigidConstraintModel:
     """The closures of `mechanism` as Pinocchio constraint models, each named as its closure.
 
     `reference`: an assembled configuration (nq) [m, rad] at which the rows m3t1r does not enforce
@@ -55,7 +56,8 @@ def rigid_constraint_models(mechanism: Mechanism, reference: np.ndarray | None =
                 f"{mechanism.closures_path}: closure(s) {', '.join(moving)}: the rows m3t1r leaves out do not hold by "
                 "themselves on this machine (its errors make them independent of the enforced rows), so a rigid "
                 "Pinocchio constraint would lock motion the machine has; left_out_rows='hold' hands them over "
-                "held at the reference pose anyway")
+                "held at the reference pose anyway"
+            )
     data = model.createData()
     pin.framesForwardKinematics(model, data, q)
     models = pin.StdVec_RigidConstraintModel()
@@ -65,8 +67,15 @@ def rigid_constraint_models(mechanism: Mechanism, reference: np.ndarray | None =
         if len(spec.rows) < ROW_COUNT[spec.type]:
             placement_b = placement_b * data.oMf[spec.frame_a_id].actInv(data.oMf[spec.frame_b_id]).inverse()
         kind = pin.ContactType.CONTACT_3D if spec.type == "3D" else pin.ContactType.CONTACT_6D
-        constraint = pin.RigidConstraintModel(kind, model, frame_a.parentJoint, frame_a.placement,
-                                              frame_b.parentJoint, placement_b, pin.ReferenceFrame.LOCAL)
+        constraint = pin.RigidConstraintModel(
+            kind,
+            model,
+            frame_a.parentJoint,
+            frame_a.placement,
+            frame_b.parentJoint,
+            placement_b,
+            pin.ReferenceFrame.LOCAL,
+        )
         constraint.name = spec.name
         models.append(constraint)
     return models

@@ -26,12 +26,15 @@ from m3t1r.model.task import POSITION_AXES, TaskSpec
 
 __all__ = ["SCHEMA_1_TASK_ROTATION", "actuator_task_jacobian", "default_task", "task_entry", "task_words"]
 
-SCHEMA_1_TASK_ROTATION: Literal["none", "yaw", "full"] = "yaw"  # with all three position axes: the M machine's task, schema 1's default
+SCHEMA_1_TASK_ROTATION: Literal["none", "yaw", "full"] = (
+    "yaw"  # with all three position axes: the M machine's task, schema 1's default
+)
 FULL_RANK = 1e-6  # smallest/largest singular value of the actuator-to-task Jacobian for a task to be taken
 
 
-def actuator_task_jacobian(system: ClosureSystem, q: np.ndarray, actuated: np.ndarray, passive: np.ndarray,
-                           task: TaskSpec) -> np.ndarray | None:
+def actuator_task_jacobian(
+    system: ClosureSystem, q: np.ndarray, actuated: np.ndarray, passive: np.ndarray, task: TaskSpec
+) -> np.ndarray | None:
     """d(task rows)/d(actuators) at an assembled q (task.dimension x actuators) [m or rad per m or rad],
     the passive joints (velocity indices `passive`; the locked ones left out) following the closures:
     J_t,act - J_t,pas J_c,pas^-1 J_c,act. None where the passive closure block is singular (the
@@ -60,8 +63,12 @@ def _candidates(frame: str, count: int) -> list[list[TaskSpec]]:
     for rotation, rows in (("none", 0), ("yaw", 1), ("full", 3)):
         size = count - rows
         if 0 <= size <= 3 and count > 0:
-            groups.append([TaskSpec(frame, axes, rotation)  # type: ignore[arg-type]
-                           for axes in itertools.combinations(POSITION_AXES, size)])
+            groups.append(
+                [
+                    TaskSpec(frame, axes, rotation)  # type: ignore[arg-type]
+                    for axes in itertools.combinations(POSITION_AXES, size)
+                ]
+            )
     return groups
 
 
@@ -72,14 +79,17 @@ def _conditioning(jacobian: np.ndarray | None) -> float:
     return float(singular[-1] / singular[0]) if singular[0] > 0.0 else 0.0
 
 
-def default_task(system: ClosureSystem, home: np.ndarray, actuated: np.ndarray, passive: np.ndarray,
-                 platform_frame: str) -> TaskSpec | None:
+def default_task(
+    system: ClosureSystem, home: np.ndarray, actuated: np.ndarray, passive: np.ndarray, platform_frame: str
+) -> TaskSpec | None:
     """The task of the platform frame that the actuators (velocity indices `actuated`) command at an
     assembled home (module docstring), or None when no candidate has full rank there (or the
     passive joints are not fixed at home)."""
     for group in _candidates(platform_frame, len(actuated)):
-        scored = [(_conditioning(actuator_task_jacobian(system, home, actuated, passive, task)), k, task)
-                  for k, task in enumerate(group)]
+        scored = [
+            (_conditioning(actuator_task_jacobian(system, home, actuated, passive, task)), k, task)
+            for k, task in enumerate(group)
+        ]
         best, _, task = max(scored, key=lambda item: (item[0], -item[1]))
         if best > FULL_RANK:
             return task

@@ -31,8 +31,7 @@ from m3t1r.model.schema import SCHEMA_VERSIONS, declared_frame_entries, load_clo
 from m3t1r.model.task import TaskSpec, WorkspaceSpec
 from m3t1r.model.urdf_io import calibrated_urdf_bytes, refuse_mimic_joints, revolute_urdf_text, tree_urdf_bytes
 
-__all__ = ["ClosureSpec", "Mechanism", "nominal_model_paths", "paired_closures", "HOME_TOLERANCE",
-           "SCHEMA_VERSIONS"]
+__all__ = ["ClosureSpec", "Mechanism", "nominal_model_paths", "paired_closures", "HOME_TOLERANCE", "SCHEMA_VERSIONS"]
 
 HOME_TOLERANCE = 1e-9  # max |closure residual| accepted at the home pose (after assembly)
 
@@ -169,10 +168,12 @@ class Mechanism:
         return self.model.lowerPositionLimit[idx].copy(), self.model.upperPositionLimit[idx].copy()
 
     def joint_units(self, names: tuple[str, ...] | None = None) -> tuple[str, ...]:
-        """"m" (prismatic) or "rad" (revolute) per named joint (default: actuated): the unit of its value."""
+        """ "m" (prismatic) or "rad" (revolute) per named joint (default: actuated): the unit of its value."""
         names = self.actuated_joints if names is None else names
-        return tuple("m" if self.model.joints[self.model.getJointId(n)].shortname().startswith("JointModelP") else "rad"
-                     for n in names)
+        return tuple(
+            "m" if self.model.joints[self.model.getJointId(n)].shortname().startswith("JointModelP") else "rad"
+            for n in names
+        )
 
     def configuration(self, values: dict[str, float]) -> np.ndarray:
         """Full configuration from {joint name: value}; unnamed joints take their home value."""
@@ -191,19 +192,30 @@ class Mechanism:
         closures bytes' sha256; the closures file is the source's with `home` replaced by this
         machine's assembled home and what load derived recorded (`_record_derived`).
         """
-        doc = copy.deepcopy(self.closures_document) if self.closures_document is not None else \
-            _parse_yaml(self.closures_path, _read_bytes(self.closures_path))
-        doc["home"] = {self.model.names[j]: float(self.home[self.model.idx_qs[j]]) for j in range(1, self.model.njoints)}
+        doc = (
+            copy.deepcopy(self.closures_document)
+            if self.closures_document is not None
+            else _parse_yaml(self.closures_path, _read_bytes(self.closures_path))
+        )
+        doc["home"] = {
+            self.model.names[j]: float(self.home[self.model.idx_qs[j]]) for j in range(1, self.model.njoints)
+        }
         _record_derived(doc, self)
         closures_path = paired_closures_path(urdf) if closures is None else Path(closures)
-        header = (f"# Closures of {Path(urdf).name} (written with it as a pair; its URDF records this file's sha256); "
-                  "home re-assembled for its geometry; rows and locked joints as load derived them. "
-                  "Schema: models/README.md\n")
+        header = (
+            f"# Closures of {Path(urdf).name} (written with it as a pair; its URDF records this file's sha256); "
+            "home re-assembled for its geometry; rows and locked joints as load derived them. "
+            "Schema: models/README.md\n"
+        )
         closures_bytes = (header + yaml.safe_dump(doc, sort_keys=False)).encode("utf-8")
         del closures_path
         if self.source == "mjcf":  # no URDF to rewrite: the tree itself, its declared frames left to the closures
-            urdf_bytes = tree_urdf_bytes(self.model, self.model.name or Path(urdf).stem, closures_sha256(closures_bytes),
-                                         skip_frames=tuple(doc.get("frames") or ()))
+            urdf_bytes = tree_urdf_bytes(
+                self.model,
+                self.model.name or Path(urdf).stem,
+                closures_sha256(closures_bytes),
+                skip_frames=tuple(doc.get("frames") or ()),
+            )
             return urdf_bytes, closures_bytes
         return calibrated_urdf_bytes(self.urdf_path, self.model, closures_sha256(closures_bytes)), closures_bytes
 
@@ -232,8 +244,9 @@ class Mechanism:
         return dataclasses.replace(self, home=np.array(home, dtype=float))
 
 
-def _finish(model: pin.Model, doc: dict, urdf_path: Path, closures_path: Path, source: str = "urdf",
-            notes: tuple[str, ...] = ()) -> Mechanism:
+def _finish(
+    model: pin.Model, doc: dict, urdf_path: Path, closures_path: Path, source: str = "urdf", notes: tuple[str, ...] = ()
+) -> Mechanism:
     """The Mechanism of a tree and its closures document, settled (`_settled`), its notes warned."""
     try:
         mechanism = _build(model, doc, urdf_path, closures_path)
@@ -289,8 +302,11 @@ def _load_urdf(path: Path) -> pin.Model:
         raise ModelFileError(path, f"Pinocchio rejected the URDF: {exc}") from None
     for j in range(1, model.njoints):
         if model.nqs[j] != 1 or model.nvs[j] != 1:
-            raise ModelFileError(path, f"joint '{model.names[j]}' is not a 1-DoF revolute/prismatic/continuous "
-                                       f"joint (nq={model.nqs[j]}); multi-DoF joints are not supported")
+            raise ModelFileError(
+                path,
+                f"joint '{model.names[j]}' is not a 1-DoF revolute/prismatic/continuous "
+                f"joint (nq={model.nqs[j]}); multi-DoF joints are not supported",
+            )
     refuse_mimic_joints(path, _read_bytes(path), list(model.names)[1:])
     return model
 
@@ -363,19 +379,25 @@ def _closures_of(urdf: Path, closures: Path, recorded: str | None) -> tuple[Path
         if closures_match(staged, recorded):
             return closures, staged
     if data is None:
-        raise ModelFileError(closures, f"file not found: {urdf.name} records closures sha256 {recorded[:16]}..., "
-                                       "and no closures file with it is there")
+        raise ModelFileError(
+            closures,
+            f"file not found: {urdf.name} records closures sha256 {recorded[:16]}..., "
+            "and no closures file with it is there",
+        )
     raise ModelFileError(
-        closures, f"not the closures file of {urdf}: the URDF records closures sha256 {recorded[:16]}..., "
-                  f"this file's content has {closures_sha256(data)[:16]}... The two files were not written "
-                  "together (one was rewritten by another run, or copied from another machine, or its content "
-                  "edited: comments, layout and line ends do not count); load the URDF with the closures file "
-                  "written with it; to pair these two deliberately, delete the line `<!-- m3t1r pair: ... -->` "
-                  "from the URDF (it then loads with any closures file; saving records a new pair)")
+        closures,
+        f"not the closures file of {urdf}: the URDF records closures sha256 {recorded[:16]}..., "
+        f"this file's content has {closures_sha256(data)[:16]}... The two files were not written "
+        "together (one was rewritten by another run, or copied from another machine, or its content "
+        "edited: comments, layout and line ends do not count); load the URDF with the closures file "
+        "written with it; to pair these two deliberately, delete the line `<!-- m3t1r pair: ... -->` "
+        "from the URDF (it then loads with any closures file; saving records a new pair)",
+    )
 
 
-def _parse_yaml(path: Path, data: bytes,
-                required: tuple[str, ...] = ("actuated_joints", "closures", "platform_frame", "home")) -> dict:
+def _parse_yaml(
+    path: Path, data: bytes, required: tuple[str, ...] = ("actuated_joints", "closures", "platform_frame", "home")
+) -> dict:
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -400,9 +422,19 @@ def _parse_yaml(path: Path, data: bytes,
 
 def _build(model: pin.Model, doc: dict, urdf_path: Path, path: Path) -> Mechanism:
     described = read_description(model, doc, urdf_path, path)
-    return Mechanism(model, described.closures, described.actuated_joints, described.principal_chains,
-                     described.platform_frame, described.home, urdf_path, path, task=described.task,
-                     workspace=described.workspace, locked_joints=described.locked_joints)
+    return Mechanism(
+        model,
+        described.closures,
+        described.actuated_joints,
+        described.principal_chains,
+        described.platform_frame,
+        described.home,
+        urdf_path,
+        path,
+        task=described.task,
+        workspace=described.workspace,
+        locked_joints=described.locked_joints,
+    )
 
 
 def _settled(mechanism: Mechanism) -> Mechanism:
@@ -417,28 +449,37 @@ def _settled(mechanism: Mechanism) -> Mechanism:
         notes.append(assembly.note(HOME_TOLERANCE))
     redundancy, full_rank = system.redundancy(home, passive)
     if full_rank > redundancy.rank:
-        raise ModelFileError(mechanism.closures_path,
-                             f"the closures hold the actuators: the rows have rank {full_rank} over every joint but "
-                             f"{redundancy.rank} over the passive ones (the actuators are not independent inputs)")
+        raise ModelFileError(
+            mechanism.closures_path,
+            f"the closures hold the actuators: the rows have rank {full_rank} over every joint but "
+            f"{redundancy.rank} over the passive ones (the actuators are not independent inputs)",
+        )
     if redundancy.locked:
         for frame in dict.fromkeys((mechanism.platform_frame_id, mechanism.model.getFrameId(mechanism.task.frame))):
             speed = system.free_motion(home, passive, frame)
             if speed > 1e-9:
-                raise ModelFileError(mechanism.closures_path,
-                                     f"the closures leave {len(redundancy.locked)} degree(s) of freedom beyond the "
-                                     f"actuators: with the actuators held, frame '{mechanism.model.frames[frame].name}' "
-                                     f"can still move ({speed:.2g} per unit joint speed); rows or closures are missing")
+                raise ModelFileError(
+                    mechanism.closures_path,
+                    f"the closures leave {len(redundancy.locked)} degree(s) of freedom beyond the "
+                    f"actuators: with the actuators held, frame '{mechanism.model.frames[frame].name}' "
+                    f"can still move ({speed:.2g} per unit joint speed); rows or closures are missing",
+                )
     locked = tuple(_joint_name(mechanism.model, v) for v in redundancy.locked)
     closures = mechanism.closures
     if locked:  # joints the file declares locked are not noted again
-        notes.append(f"passive joint(s) {', '.join(locked)} locked at their home value: their motion is "
-                     "already spanned by the other passive joints (a gauge, e.g. a cut joint modelled twice)")
+        notes.append(
+            f"passive joint(s) {', '.join(locked)} locked at their home value: their motion is "
+            "already spanned by the other passive joints (a gauge, e.g. a cut joint modelled twice)"
+        )
     if redundancy.dropped:
         closures = without_rows(closures, redundancy.dropped)
-        notes.append(f"{len(redundancy.dropped)} closure row(s) dropped as dependent on the others: "
-                     + ", ".join(_row_names(mechanism.closures, redundancy.dropped)))
-    settled = dataclasses.replace(mechanism, closures=closures, home=home,
-                                  locked_joints=mechanism.locked_joints + locked, home_assembly=assembly)
+        notes.append(
+            f"{len(redundancy.dropped)} closure row(s) dropped as dependent on the others: "
+            + ", ".join(_row_names(mechanism.closures, redundancy.dropped))
+        )
+    settled = dataclasses.replace(
+        mechanism, closures=closures, home=home, locked_joints=mechanism.locked_joints + locked, home_assembly=assembly
+    )
     return dataclasses.replace(settled, task=_task_of(settled, notes), notes=tuple(notes))
 
 
@@ -447,13 +488,20 @@ def _task_of(mechanism: Mechanism, notes: list[str]) -> TaskSpec:
     with a note when that is not schema 1's position-and-yaw task."""
     if mechanism.closures_document is None or "task" in mechanism.closures_document:
         return mechanism.task
-    derived = default_task(ClosureSystem(mechanism.model, mechanism.closures), mechanism.home, mechanism.actuated_ids,
-                           mechanism.passive_ids, mechanism.platform_frame)
+    derived = default_task(
+        ClosureSystem(mechanism.model, mechanism.closures),
+        mechanism.home,
+        mechanism.actuated_ids,
+        mechanism.passive_ids,
+        mechanism.platform_frame,
+    )
     if derived is None or derived == mechanism.task:
         return mechanism.task
-    notes.append(f"no task declared: inverse kinematics, plans and reports take the {task_words(derived)} "
-                 "(the coordinates the actuators command at home); declare `task:` to choose others "
-                 "(models/README.md)")
+    notes.append(
+        f"no task declared: inverse kinematics, plans and reports take the {task_words(derived)} "
+        "(the coordinates the actuators command at home); declare `task:` to choose others "
+        "(models/README.md)"
+    )
     return derived
 
 
@@ -466,22 +514,28 @@ def _row_names(closures: tuple[ClosureSpec, ...], dropped: tuple[int, ...]) -> l
     return [names[k] for k in dropped]
 
 
-def _assembled_home(mechanism: Mechanism, system: ClosureSystem, passive: np.ndarray
-                    ) -> tuple[np.ndarray, HomeAssembly]:
+def _assembled_home(
+    mechanism: Mechanism, system: ClosureSystem, passive: np.ndarray
+) -> tuple[np.ndarray, HomeAssembly]:
     """The assembly nearest the given home (`model.assembly`), or ModelFileError when there is none
     near it or it leaves a joint's limits."""
     home, assembly = assemble_home(mechanism.model, mechanism.closures, system, mechanism.home, passive)
-    given = (f"home does not close: closure '{assembly.worst}' residual {assembly.given_residual:.3e} > "
-             f"{HOME_TOLERANCE:g}")
+    given = (
+        f"home does not close: closure '{assembly.worst}' residual {assembly.given_residual:.3e} > {HOME_TOLERANCE:g}"
+    )
     if not assembly.residual <= HOME_TOLERANCE:
-        raise ModelFileError(mechanism.closures_path,
-                             f"{given}, and Newton from the given values reached only {assembly.residual:.1e} "
-                             "(give home values closer to an assembly)")
+        raise ModelFileError(
+            mechanism.closures_path,
+            f"{given}, and Newton from the given values reached only {assembly.residual:.1e} "
+            "(give home values closer to an assembly)",
+        )
     for name, value, lower, upper in limits_violated(mechanism.model, home, passive)[:1]:
-        raise ModelFileError(mechanism.closures_path,
-                             f"{given}; the assembly nearest the given values puts joint '{name}' at {value:.6g}, "
-                             f"beyond its URDF limits [{lower:.6g}, {upper:.6g}] (give home values of the passive "
-                             "joints near the assembly mode wanted)")
+        raise ModelFileError(
+            mechanism.closures_path,
+            f"{given}; the assembly nearest the given values puts joint '{name}' at {value:.6g}, "
+            f"beyond its URDF limits [{lower:.6g}, {upper:.6g}] (give home values of the passive "
+            "joints near the assembly mode wanted)",
+        )
     return home, assembly
 
 
@@ -520,8 +574,10 @@ def _unbounded_passive_joints(mechanism: Mechanism) -> list[str]:
         return []
     model.lowerPositionLimit, model.upperPositionLimit = lower, upper
     shown = ", ".join(unbounded[:6]) + (f" and {len(unbounded) - 6} more" if len(unbounded) > 6 else "")
-    return [f"{len(unbounded)} passive joint(s) without usable URDF limits ({shown}): taken as unbounded "
-            "(an empty <limit/> or a continuous joint gives no range)"]
+    return [
+        f"{len(unbounded)} passive joint(s) without usable URDF limits ({shown}): taken as unbounded "
+        "(an empty <limit/> or a continuous joint gives no range)"
+    ]
 
 
 def closure_residual_by_closure(mechanism: Mechanism, q: np.ndarray) -> Iterator[tuple[ClosureSpec, np.ndarray]]:

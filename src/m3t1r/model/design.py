@@ -94,11 +94,20 @@ class MechanismDesign:
         for side, roman in ((1, "I"), (2, "II")):
             s = str(side)
             lower = self.beta if side == 1 else math.pi - self.beta
-            q.update({
-                f"q{s}1": 0.0, f"q{s}2": self.alpha, f"q{s}2_pa": 0.0, f"q{s}2_bar": self.alpha,
-                f"q{s}3": lower, f"q{s}3_pa": 0.0, f"q{s}3_bar": lower, f"q{s}4": 0.0,
-                f"q{s}1_B{2 * side}": 0.0, f"q{s}2_B{2 * side}": math.pi - self.alpha,
-            })
+            q.update(
+                {
+                    f"q{s}1": 0.0,
+                    f"q{s}2": self.alpha,
+                    f"q{s}2_pa": 0.0,
+                    f"q{s}2_bar": self.alpha,
+                    f"q{s}3": lower,
+                    f"q{s}3_pa": 0.0,
+                    f"q{s}3_bar": lower,
+                    f"q{s}4": 0.0,
+                    f"q{s}1_B{2 * side}": 0.0,
+                    f"q{s}2_B{2 * side}": math.pi - self.alpha,
+                }
+            )
         return q
 
 
@@ -139,8 +148,17 @@ class _UrdfBuilder:
             ET.SubElement(ET.SubElement(visual, "geometry"), shape, attrs)
             ET.SubElement(visual, "material", name=material)
 
-    def joint(self, name: str, kind: str, parent: str, child: str, xyz, rpy=(0.0, 0.0, 0.0),
-              axis=None, limits: tuple[float, float] | None = None) -> None:
+    def joint(
+        self,
+        name: str,
+        kind: str,
+        parent: str,
+        child: str,
+        xyz,
+        rpy=(0.0, 0.0, 0.0),
+        axis=None,
+        limits: tuple[float, float] | None = None,
+    ) -> None:
         joint = ET.SubElement(self.root, "joint", name=name, type=kind)
         ET.SubElement(joint, "parent", link=parent)
         ET.SubElement(joint, "child", link=child)
@@ -148,8 +166,7 @@ class _UrdfBuilder:
         if axis is not None:
             ET.SubElement(joint, "axis", xyz=_fmt(axis))
         if limits is not None:
-            ET.SubElement(joint, "limit", lower=_fmt(limits[:1]), upper=_fmt(limits[1:]),
-                          effort="1000", velocity="3")
+            ET.SubElement(joint, "limit", lower=_fmt(limits[:1]), upper=_fmt(limits[1:]), effort="1000", velocity="3")
 
     def point(self, name: str, parent: str, xyz, rpy=(0.0, 0.0, 0.0)) -> None:
         """A massless, geometry-free link on a fixed joint: a named frame for closures and measurements."""
@@ -164,10 +181,20 @@ class _UrdfBuilder:
 def _bar_visual(length: float, along: str, material: str, radius: float = 0.012):
     """A cylinder from the frame origin to `length` along local `along` (URDF cylinders lie along z)."""
     if along == "y":
-        return ("cylinder", {"radius": _fmt((radius,)), "length": _fmt((length,))},
-                (0.0, length / 2, 0.0), (-math.pi / 2, 0.0, 0.0), material)
-    return ("cylinder", {"radius": _fmt((radius,)), "length": _fmt((length,))},
-            (length / 2, 0.0, 0.0), (0.0, math.pi / 2, 0.0), material)
+        return (
+            "cylinder",
+            {"radius": _fmt((radius,)), "length": _fmt((length,))},
+            (0.0, length / 2, 0.0),
+            (-math.pi / 2, 0.0, 0.0),
+            material,
+        )
+    return (
+        "cylinder",
+        {"radius": _fmt((radius,)), "length": _fmt((length,))},
+        (length / 2, 0.0, 0.0),
+        (0.0, math.pi / 2, 0.0),
+        material,
+    )
 
 
 def _box(size, material: str, xyz=(0.0, 0.0, 0.0)):
@@ -186,10 +213,13 @@ def build_urdf(design: MechanismDesign = NOMINAL) -> str:
     u = _UrdfBuilder("m3t1r")
     half_pi = math.pi / 2
     rail_len = 2 * d.slider_limit + d.b2_rail_y + 0.2
-    u.link("base", [
-        _box((0.04, rail_len, 0.04), "rail", (0.0, d.b2_rail_y / 2 + d.rail_y0 / 2, 0.0)),
-        _box((0.04, rail_len, 0.04), "rail", (d.b, d.b2_rail_y / 2 + d.rail_y0 / 2, 0.0)),
-    ])
+    u.link(
+        "base",
+        [
+            _box((0.04, rail_len, 0.04), "rail", (0.0, d.b2_rail_y / 2 + d.rail_y0 / 2, 0.0)),
+            _box((0.04, rail_len, 0.04), "rail", (d.b, d.b2_rail_y / 2 + d.rail_y0 / 2, 0.0)),
+        ],
+    )
     for side, roman in ((1, "I"), (2, "II")):
         s = str(side)
         x_rail = 0.0 if side == 1 else d.b
@@ -200,7 +230,12 @@ def build_urdf(design: MechanismDesign = NOMINAL) -> str:
         slider_limits = (-d.slider_limit, d.slider_limit)
 
         # Principal chain B1 (B3).
-        slider, upper, knee, upper2 = f"slider_B{2 * side - 1}", f"upper_bar_{roman}", f"knee_{roman}", f"upper_bar2_{roman}"
+        slider, upper, knee, upper2 = (
+            f"slider_B{2 * side - 1}",
+            f"upper_bar_{roman}",
+            f"knee_{roman}",
+            f"upper_bar2_{roman}",
+        )
         lower, foot, lower2 = f"lower_bar_{roman}", f"foot_{roman}", f"lower_bar2_{roman}"
         platform = "platform" if side == 1 else "platform_II"
         o_u = d.upper_offset_vector()
@@ -208,23 +243,65 @@ def build_urdf(design: MechanismDesign = NOMINAL) -> str:
         u.link(slider, [_box((0.08, 0.12, 0.06), "slider")])
         u.joint(f"q{s}1", "prismatic", "base", slider, (x_rail, d.rail_y0, 0.0), axis=(0, 1, 0), limits=slider_limits)
         u.link(upper, [_bar_visual(d.l_u, "y", "upper")])
-        u.joint(f"q{s}2", "revolute", slider, upper, (0, 0, 0), axis=(1, 0, 0), limits=(d.alpha - half_pi, d.alpha + half_pi))
+        u.joint(
+            f"q{s}2",
+            "revolute",
+            slider,
+            upper,
+            (0, 0, 0),
+            axis=(1, 0, 0),
+            limits=(d.alpha - half_pi, d.alpha + half_pi),
+        )
         u.link(knee, [_box((0.06, 0.06, 0.06), "joint")])
-        u.joint(f"q{s}2_pa", "revolute", upper, knee, (0.0, d.l_u, 0.0), (-d.alpha, 0.0, 0.0), axis=(1, 0, 0),
-                limits=(-half_pi, half_pi))
+        u.joint(
+            f"q{s}2_pa",
+            "revolute",
+            upper,
+            knee,
+            (0.0, d.l_u, 0.0),
+            (-d.alpha, 0.0, 0.0),
+            axis=(1, 0, 0),
+            limits=(-half_pi, half_pi),
+        )
         u.link(upper2, [_bar_visual(d.l_u, "y", "upper", radius=0.008)])
-        u.joint(f"q{s}2_bar", "revolute", slider, upper2, o_u, axis=(1, 0, 0), limits=(d.alpha - half_pi, d.alpha + half_pi))
+        u.joint(
+            f"q{s}2_bar", "revolute", slider, upper2, o_u, axis=(1, 0, 0), limits=(d.alpha - half_pi, d.alpha + half_pi)
+        )
         u.point(f"upper_tip_{roman}", upper2, (0.0, d.l_u, 0.0), (-d.alpha, 0.0, 0.0))
         u.point(f"upper_pt_{roman}", knee, o_u)
         u.point(f"D_{roman}", knee, (0.0, 0.0, 0.0))
 
         u.link(lower, [_bar_visual(d.l_d, "x", "lower")])
-        u.joint(f"q{s}3", "revolute", knee, lower, (0, 0, 0), axis=(0, 1, 0), limits=(lower_home - half_pi, lower_home + half_pi))
+        u.joint(
+            f"q{s}3",
+            "revolute",
+            knee,
+            lower,
+            (0, 0, 0),
+            axis=(0, 1, 0),
+            limits=(lower_home - half_pi, lower_home + half_pi),
+        )
         u.link(foot, [_box((0.05, 0.05, 0.05), "joint")])
-        u.joint(f"q{s}3_pa", "revolute", lower, foot, (d.l_d, 0.0, 0.0), (0.0, lower_tip_pitch, 0.0), axis=(0, 1, 0),
-                limits=(-half_pi, half_pi))
+        u.joint(
+            f"q{s}3_pa",
+            "revolute",
+            lower,
+            foot,
+            (d.l_d, 0.0, 0.0),
+            (0.0, lower_tip_pitch, 0.0),
+            axis=(0, 1, 0),
+            limits=(-half_pi, half_pi),
+        )
         u.link(lower2, [_bar_visual(d.l_d, "x", "lower", radius=0.008)])
-        u.joint(f"q{s}3_bar", "revolute", knee, lower2, o_d, axis=(0, 1, 0), limits=(lower_home - half_pi, lower_home + half_pi))
+        u.joint(
+            f"q{s}3_bar",
+            "revolute",
+            knee,
+            lower2,
+            o_d,
+            axis=(0, 1, 0),
+            limits=(lower_home - half_pi, lower_home + half_pi),
+        )
         u.point(f"lower_tip_{roman}", lower2, (d.l_d, 0.0, 0.0), (0.0, lower_tip_pitch, 0.0))
         u.point(f"lower_pt_{roman}", foot, o_d)
 
@@ -236,11 +313,25 @@ def build_urdf(design: MechanismDesign = NOMINAL) -> str:
         # Sub-branch B2 (B4): a plain link from its slider to the knee, one side of the five-bar.
         slider_b, link_b = f"slider_B{2 * side}", f"link_B{2 * side}"
         u.link(slider_b, [_box((0.08, 0.12, 0.06), "slider")])
-        u.joint(f"q{s}1_B{2 * side}", "prismatic", "base", slider_b, (x_rail, d.b2_rail_y, 0.0), axis=(0, 1, 0),
-                limits=slider_limits)
+        u.joint(
+            f"q{s}1_B{2 * side}",
+            "prismatic",
+            "base",
+            slider_b,
+            (x_rail, d.b2_rail_y, 0.0),
+            axis=(0, 1, 0),
+            limits=slider_limits,
+        )
         u.link(link_b, [_bar_visual(d.l_u, "y", "upper")])
-        u.joint(f"q{s}2_B{2 * side}", "revolute", slider_b, link_b, (0, 0, 0), axis=(1, 0, 0),
-                limits=(math.pi - d.alpha - half_pi, math.pi - d.alpha + half_pi))
+        u.joint(
+            f"q{s}2_B{2 * side}",
+            "revolute",
+            slider_b,
+            link_b,
+            (0, 0, 0),
+            axis=(1, 0, 0),
+            limits=(math.pi - d.alpha - half_pi, math.pi - d.alpha + half_pi),
+        )
         u.point(f"fivebar_tip_{roman}", link_b, (0.0, d.l_u, 0.0), (-(math.pi - d.alpha), 0.0, 0.0))
     return u.text()
 
@@ -255,12 +346,27 @@ def build_closures(design: MechanismDesign = NOMINAL) -> dict:
     closures = []
     for roman in ("I", "II"):
         closures += [
-            {"name": f"upper_parallelogram_{roman}", "type": "3D", "frame_a": f"upper_tip_{roman}",
-             "frame_b": f"upper_pt_{roman}", "rows": [1, 2]},
-            {"name": f"five_bar_{roman}", "type": "3D", "frame_a": f"fivebar_tip_{roman}",
-             "frame_b": f"D_{roman}", "rows": [1, 2]},
-            {"name": f"lower_parallelogram_{roman}", "type": "3D", "frame_a": f"lower_tip_{roman}",
-             "frame_b": f"lower_pt_{roman}", "rows": [0, 2]},
+            {
+                "name": f"upper_parallelogram_{roman}",
+                "type": "3D",
+                "frame_a": f"upper_tip_{roman}",
+                "frame_b": f"upper_pt_{roman}",
+                "rows": [1, 2],
+            },
+            {
+                "name": f"five_bar_{roman}",
+                "type": "3D",
+                "frame_a": f"fivebar_tip_{roman}",
+                "frame_b": f"D_{roman}",
+                "rows": [1, 2],
+            },
+            {
+                "name": f"lower_parallelogram_{roman}",
+                "type": "3D",
+                "frame_a": f"lower_tip_{roman}",
+                "frame_b": f"lower_pt_{roman}",
+                "rows": [0, 2],
+            },
         ]
     closures.append({"name": "platform", "type": "6D", "frame_a": "P_I", "frame_b": "P_II", "rows": [0, 1, 2, 5]})
     box = design.workspace

@@ -174,8 +174,10 @@ def _circle_intersection(c1: np.ndarray, r1: float, c2: np.ndarray, r2: float, l
 def five_bar_home(geometry: FiveBarGeometry = FiveBarGeometry()) -> dict[str, float]:
     """Joint values [rad] of the assembled five-bar at the middle of its motor box (closed form)."""
     motors = geometry.home_motors()
-    elbows = [geometry.motor_position(i + 1) + geometry.proximal * np.array([math.cos(m), math.sin(m)])
-              for i, m in enumerate(motors)]
+    elbows = [
+        geometry.motor_position(i + 1) + geometry.proximal * np.array([math.cos(m), math.sin(m)])
+        for i, m in enumerate(motors)
+    ]
     effector = _circle_intersection(elbows[0], geometry.distal, elbows[1], geometry.distal, left=True)
     home = {}
     for i, (motor, elbow) in enumerate(zip(motors, elbows), start=1):
@@ -187,20 +189,28 @@ def five_bar_home(geometry: FiveBarGeometry = FiveBarGeometry()) -> dict[str, fl
 
 def _five_bar_urdf(g: FiveBarGeometry, name: str) -> str:
     """The five-bar's URDF text: two chains from `base`, each motor -> elbow -> distal tip frame."""
-    parts = [f'<?xml version="1.0"?>\n<robot name="{name}">\n', _URDF_COMMENT.format(what="five-bar"),
-             _material("link", "0.2 0.4 0.8 1"), _material("effector", "0.8 0.15 0.15 1"),
-             '  <link name="base"/>\n']
+    parts = [
+        f'<?xml version="1.0"?>\n<robot name="{name}">\n',
+        _URDF_COMMENT.format(what="five-bar"),
+        _material("link", "0.2 0.4 0.8 1"),
+        _material("effector", "0.8 0.15 0.15 1"),
+        '  <link name="base"/>\n',
+    ]
     for leg, tip in ((1, "effector"), (2, "tip_2")):
         lo, hi = g.motor_box[leg - 1]
         limits = (round(lo - g.limit_margin, 12), round(hi + g.limit_margin, 12))
         x = g.motor_position(leg)[0]
-        parts += [_link(f"proximal_{leg}", _rod(g.proximal)), _link(f"distal_{leg}", _rod(g.distal)),
-                  _revolute(f"motor_{leg}", "base", f"proximal_{leg}", (x, 0.0, 0.0), limits),
-                  _revolute(f"elbow_{leg}", f"proximal_{leg}", f"distal_{leg}", (g.proximal, 0.0, 0.0),
-                            (-math.pi, math.pi)),
-                  _fixed(f"{tip}_fixed", f"distal_{leg}", tip, (g.distal, 0.0, 0.0))]
-    ball = (f'    <visual>\n      <geometry><sphere radius="{_num(g.effector_radius)}"/></geometry>\n'
-            '      <material name="effector"/>\n    </visual>\n')
+        parts += [
+            _link(f"proximal_{leg}", _rod(g.proximal)),
+            _link(f"distal_{leg}", _rod(g.distal)),
+            _revolute(f"motor_{leg}", "base", f"proximal_{leg}", (x, 0.0, 0.0), limits),
+            _revolute(f"elbow_{leg}", f"proximal_{leg}", f"distal_{leg}", (g.proximal, 0.0, 0.0), (-math.pi, math.pi)),
+            _fixed(f"{tip}_fixed", f"distal_{leg}", tip, (g.distal, 0.0, 0.0)),
+        ]
+    ball = (
+        f'    <visual>\n      <geometry><sphere radius="{_num(g.effector_radius)}"/></geometry>\n'
+        '      <material name="effector"/>\n    </visual>\n'
+    )
     parts += [_link("effector", ball), _link("tip_2"), "</robot>\n"]
     return "".join(parts)
 
@@ -213,21 +223,24 @@ def _five_bar_closures(g: FiveBarGeometry) -> dict:
         "closures": [{"name": "loop", "type": "3D", "frame_a": "effector", "frame_b": "tip_2", "rows": [0, 1]}],
         "platform_frame": "effector",
         "task": {"frame": "effector", "position": ["x", "y"], "rotation": "none"},
-        "workspace": {"actuators": {f"motor_{i}": [float(lo), float(hi)]
-                                    for i, (lo, hi) in enumerate(g.motor_box, start=1)}},
+        "workspace": {
+            "actuators": {f"motor_{i}": [float(lo), float(hi)] for i, (lo, hi) in enumerate(g.motor_box, start=1)}
+        },
         "home": five_bar_home(g),
     }
 
 
-def five_bar_files(folder: Path, name: str = "five_bar",
-                   geometry: FiveBarGeometry = FiveBarGeometry()) -> tuple[Path, Path]:
+def five_bar_files(
+    folder: Path, name: str = "five_bar", geometry: FiveBarGeometry = FiveBarGeometry()
+) -> tuple[Path, Path]:
     """Write the five-bar pair `folder/NAME.urdf`, `folder/NAME.closures.yaml`; return their paths.
 
     Motors `motor_1`, `motor_2` [rad]; passive `elbow_1`, `elbow_2`; one 3D closure between the
     frames `effector` (tip of chain 1) and `tip_2` (tip of chain 2), rows x and y.
     """
-    return _write_pair(Path(folder), name, _five_bar_urdf(geometry, name),
-                       _closures_text(_five_bar_closures(geometry), "five-bar"))
+    return _write_pair(
+        Path(folder), name, _five_bar_urdf(geometry, name), _closures_text(_five_bar_closures(geometry), "five-bar")
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -236,28 +249,41 @@ def five_bar_files(folder: Path, name: str = "five_bar",
 _EMPTY_LIMIT = '    <limit effort="1" velocity="2"/>\n'  # no lower/upper: Pinocchio reads [0, 0]
 
 
-def _joint(name: str, kind: str, parent: str, child: str, xyz: tuple, axis: tuple = (0.0, 0.0, 1.0),
-           limit: str = _EMPTY_LIMIT) -> str:
-    return (f'  <joint name="{name}" type="{kind}">\n    <parent link="{parent}"/>\n    <child link="{child}"/>\n'
-            f'    <origin xyz="{_vec(xyz)}" rpy="0 0 0"/>\n    <axis xyz="{_vec(axis)}"/>\n{limit}  </joint>\n')
+def _joint(
+    name: str, kind: str, parent: str, child: str, xyz: tuple, axis: tuple = (0.0, 0.0, 1.0), limit: str = _EMPTY_LIMIT
+) -> str:
+    return (
+        f'  <joint name="{name}" type="{kind}">\n    <parent link="{parent}"/>\n    <child link="{child}"/>\n'
+        f'    <origin xyz="{_vec(xyz)}" rpy="0 0 0"/>\n    <axis xyz="{_vec(axis)}"/>\n{limit}  </joint>\n'
+    )
 
 
 def _motor_limit(g: FiveBarGeometry, leg: int) -> str:
     lo, hi = g.motor_box[leg - 1]
-    return (f'    <limit lower="{_num(round(lo - g.limit_margin, 12))}" upper="{_num(round(hi + g.limit_margin, 12))}" '
-            'effort="10" velocity="10"/>\n')
+    return (
+        f'    <limit lower="{_num(round(lo - g.limit_margin, 12))}" upper="{_num(round(hi + g.limit_margin, 12))}" '
+        'effort="10" velocity="10"/>\n'
+    )
 
 
 def _published_closures(g: FiveBarGeometry, closures: list, task_frame: str, home: dict, **extra) -> dict:
-    return {"schema_version": 2, "actuated_joints": ["motor_1", "motor_2"], **extra, "closures": closures,
-            "platform_frame": task_frame, "task": {"frame": task_frame, "position": ["x", "y"], "rotation": "none"},
-            "workspace": {"actuators": {f"motor_{i}": [float(lo), float(hi)]
-                                        for i, (lo, hi) in enumerate(g.motor_box, start=1)}},
-            "home": home}
+    return {
+        "schema_version": 2,
+        "actuated_joints": ["motor_1", "motor_2"],
+        **extra,
+        "closures": closures,
+        "platform_frame": task_frame,
+        "task": {"frame": task_frame, "position": ["x", "y"], "rotation": "none"},
+        "workspace": {
+            "actuators": {f"motor_{i}": [float(lo), float(hi)] for i, (lo, hi) in enumerate(g.motor_box, start=1)}
+        },
+        "home": home,
+    }
 
 
-def published_five_bar_files(folder: Path, name: str = "published_five_bar",
-                             geometry: FiveBarGeometry = FiveBarGeometry()) -> tuple[Path, Path]:
+def published_five_bar_files(
+    folder: Path, name: str = "published_five_bar", geometry: FiveBarGeometry = FiveBarGeometry()
+) -> tuple[Path, Path]:
     """Write a planar five-bar in the form published models take; return (URDF, closures) paths.
 
     The five-bar of `five_bar_files`, with: `motor_1` a continuous joint (no limits: the workspace
@@ -268,34 +294,56 @@ def published_five_bar_files(folder: Path, name: str = "published_five_bar",
     at the end of `distal_1`, declared in the closures file (`frames:`) since the URDF names no
     frame there. Task: the effector's (x, y) [m].
     """
-    urdf, (closures, home, frames) = _published_five_bar_urdf(geometry, name, "published five-bar", _motor_limit(
-        geometry, 2)), _published_five_bar_loop(geometry)
+    urdf, (closures, home, frames) = (
+        _published_five_bar_urdf(geometry, name, "published five-bar", _motor_limit(geometry, 2)),
+        _published_five_bar_loop(geometry),
+    )
     document = _published_closures(geometry, closures, "effector", home, frames=frames)
     return _write_pair(Path(folder), name, urdf, _closures_text(document, "published five-bar"))
 
 
-def first_time_five_bar_files(folder: Path, name: str = "first_time_five_bar",
-                              geometry: FiveBarGeometry = FiveBarGeometry()) -> tuple[Path, Path]:
+def first_time_five_bar_files(
+    folder: Path, name: str = "first_time_five_bar", geometry: FiveBarGeometry = FiveBarGeometry()
+) -> tuple[Path, Path]:
     """Write the published five-bar as a first-time user's closures file gives it: schema 1 (no
     `schema_version`), no `task`, no `workspace`, and no actuator limits (`motor_1` continuous,
     `motor_2` with an empty `<limit/>`): load must derive the task, and sampling the workspace.
     Otherwise as `published_five_bar_files`; return (URDF, closures) paths."""
     urdf = _published_five_bar_urdf(geometry, name, "first-time five-bar", _EMPTY_LIMIT)
     closures, home, frames = _published_five_bar_loop(geometry)
-    document = {"actuated_joints": ["motor_1", "motor_2"], "frames": frames, "closures": closures,
-                "platform_frame": "effector", "home": home}
+    document = {
+        "actuated_joints": ["motor_1", "motor_2"],
+        "frames": frames,
+        "closures": closures,
+        "platform_frame": "effector",
+        "home": home,
+    }
     return _write_pair(Path(folder), name, urdf, _closures_text(document, "first-time five-bar"))
 
 
 def _published_five_bar_urdf(g: FiveBarGeometry, name: str, what: str, motor_2_limit: str) -> str:
-    parts = [f'<?xml version="1.0"?>\n<robot name="{name}">\n', _URDF_COMMENT.format(what=what),
-             '  <link name="base"/>\n']
+    parts = [
+        f'<?xml version="1.0"?>\n<robot name="{name}">\n',
+        _URDF_COMMENT.format(what=what),
+        '  <link name="base"/>\n',
+    ]
     for leg, elbow in ((1, "x"), (2, "y")):
-        motor = _joint(f"motor_{leg}", "continuous" if leg == 1 else "revolute", "base", f"proximal_{leg}",
-                       (g.motor_position(leg)[0], 0.0, 0.0), limit="" if leg == 1 else motor_2_limit)
-        parts += [_link(f"proximal_{leg}"), _link(f"distal_{leg}"), _link(f"stub_{leg}"), motor,
-                  _joint(elbow, "revolute", f"proximal_{leg}", f"distal_{leg}", (g.proximal, 0.0, 0.0)),
-                  _joint(f"cut_{leg}", "revolute", f"distal_{leg}", f"stub_{leg}", (g.distal, 0.0, 0.0))]
+        motor = _joint(
+            f"motor_{leg}",
+            "continuous" if leg == 1 else "revolute",
+            "base",
+            f"proximal_{leg}",
+            (g.motor_position(leg)[0], 0.0, 0.0),
+            limit="" if leg == 1 else motor_2_limit,
+        )
+        parts += [
+            _link(f"proximal_{leg}"),
+            _link(f"distal_{leg}"),
+            _link(f"stub_{leg}"),
+            motor,
+            _joint(elbow, "revolute", f"proximal_{leg}", f"distal_{leg}", (g.proximal, 0.0, 0.0)),
+            _joint(f"cut_{leg}", "revolute", f"distal_{leg}", f"stub_{leg}", (g.distal, 0.0, 0.0)),
+        ]
     parts.append("</robot>\n")
     return "".join(parts)
 
@@ -311,8 +359,9 @@ def _published_five_bar_loop(g: FiveBarGeometry) -> tuple[list, dict, dict]:
     return [{"name": "weld", "type": "6D", "frame_a": "weld_1", "frame_b": "weld_2"}], home, frames
 
 
-def rod_five_bar_files(folder: Path, name: str = "rod_five_bar",
-                       geometry: FiveBarGeometry = FiveBarGeometry()) -> tuple[Path, Path]:
+def rod_five_bar_files(
+    folder: Path, name: str = "rod_five_bar", geometry: FiveBarGeometry = FiveBarGeometry()
+) -> tuple[Path, Path]:
     """Write a five-bar whose second distal link is a rod with a spherical joint at each end.
 
     Each spherical joint is three revolutes about x, y, z: `x`, `y`, `z` at the elbow end (named
@@ -321,29 +370,53 @@ def rod_five_bar_files(folder: Path, name: str = "rod_five_bar",
     by a 6D weld of the rod's end `tip_2` to chain 1's `effector`. Task: the effector's (x, y) [m].
     """
     g, five = geometry, five_bar_home(geometry)
-    parts = [f'<?xml version="1.0"?>\n<robot name="{name}">\n', _URDF_COMMENT.format(what="rod five-bar"),
-             '  <link name="base"/>\n']
+    parts = [
+        f'<?xml version="1.0"?>\n<robot name="{name}">\n',
+        _URDF_COMMENT.format(what="rod five-bar"),
+        '  <link name="base"/>\n',
+    ]
     for leg in (1, 2):
-        parts += [_link(f"proximal_{leg}"),
-                  _joint(f"motor_{leg}", "revolute", "base", f"proximal_{leg}", (g.motor_position(leg)[0], 0.0, 0.0),
-                         limit=_motor_limit(g, leg))]
-    parts += [_link("distal_1"), _link("effector"), _joint("elbow_1", "revolute", "proximal_1", "distal_1",
-                                                          (g.proximal, 0.0, 0.0)),
-              _fixed("effector_fixed", "distal_1", "effector", (g.distal, 0.0, 0.0))]
-    chain = [("x", "proximal_2", "ball_1a", (g.proximal, 0.0, 0.0), (1.0, 0.0, 0.0)),
-             ("y", "ball_1a", "ball_1b", (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
-             ("z", "ball_1b", "rod", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
-             ("s2_x", "rod", "ball_2a", (g.distal, 0.0, 0.0), (1.0, 0.0, 0.0)),
-             ("s2_y", "ball_2a", "ball_2b", (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
-             ("s2_z", "ball_2b", "tip_2", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))]
+        parts += [
+            _link(f"proximal_{leg}"),
+            _joint(
+                f"motor_{leg}",
+                "revolute",
+                "base",
+                f"proximal_{leg}",
+                (g.motor_position(leg)[0], 0.0, 0.0),
+                limit=_motor_limit(g, leg),
+            ),
+        ]
+    parts += [
+        _link("distal_1"),
+        _link("effector"),
+        _joint("elbow_1", "revolute", "proximal_1", "distal_1", (g.proximal, 0.0, 0.0)),
+        _fixed("effector_fixed", "distal_1", "effector", (g.distal, 0.0, 0.0)),
+    ]
+    chain = [
+        ("x", "proximal_2", "ball_1a", (g.proximal, 0.0, 0.0), (1.0, 0.0, 0.0)),
+        ("y", "ball_1a", "ball_1b", (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+        ("z", "ball_1b", "rod", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+        ("s2_x", "rod", "ball_2a", (g.distal, 0.0, 0.0), (1.0, 0.0, 0.0)),
+        ("s2_y", "ball_2a", "ball_2b", (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+        ("s2_z", "ball_2b", "tip_2", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+    ]
     for joint, parent, child, xyz, axis in chain:
         parts += [_link(child), _joint(joint, "revolute", parent, child, xyz, axis)]
     parts.append("</robot>\n")
     heading_1 = five["motor_1"] + five["elbow_1"]
     heading_2 = five["motor_2"] + five["elbow_2"]
-    home = {"motor_1": five["motor_1"], "motor_2": five["motor_2"], "elbow_1": five["elbow_1"],
-            "x": 0.0, "y": 0.0, "z": five["elbow_2"], "s2_x": 0.0, "s2_y": 0.0,
-            "s2_z": math.remainder(heading_1 - heading_2, 2.0 * math.pi)}
+    home = {
+        "motor_1": five["motor_1"],
+        "motor_2": five["motor_2"],
+        "elbow_1": five["elbow_1"],
+        "x": 0.0,
+        "y": 0.0,
+        "z": five["elbow_2"],
+        "s2_x": 0.0,
+        "s2_y": 0.0,
+        "s2_z": math.remainder(heading_1 - heading_2, 2.0 * math.pi),
+    }
     closures = [{"name": "rod_end", "type": "6D", "frame_a": "effector", "frame_b": "tip_2"}]
     document = _published_closures(g, closures, "effector", home)
     return _write_pair(Path(folder), name, "".join(parts), _closures_text(document, "rod five-bar"))
@@ -396,40 +469,81 @@ def spherical_wrist_home(geometry: SphericalWristGeometry = SphericalWristGeomet
         wrist = math.atan2(spin[1, 0], spin[0, 0])
         error = _angle_of((distal @ _rot_z(wrist)).T @ rotation @ attachment)
         if not error < _HOME_TOLERANCE:
-            raise InvalidInputError(f"the wrist does not assemble at motors {motors}: leg {leg} misses by {error:.2e} rad")
+            raise InvalidInputError(
+                f"the wrist does not assemble at motors {motors}: leg {leg} misses by {error:.2e} rad"
+            )
         home.update({f"motor_{leg}": float(motor), f"elbow_{leg}": elbow, f"wrist_{leg}": wrist})
-    return {name: home[name] for kind in ("motor", "elbow", "wrist") for name in
-            (f"{kind}_1", f"{kind}_2", f"{kind}_3")}
+    return {
+        name: home[name] for kind in ("motor", "elbow", "wrist") for name in (f"{kind}_1", f"{kind}_2", f"{kind}_3")
+    }
 
 
 def _spherical_wrist_urdf(g: SphericalWristGeometry, name: str) -> str:
     """The wrist's URDF text: three legs from `base`; leg 1 carries the platform."""
-    parts = [f'<?xml version="1.0"?>\n<robot name="{name}">\n', _URDF_COMMENT.format(what="spherical wrist"),
-             _material("platform", "0.8 0.15 0.15 1"), '  <link name="base"/>\n']
+    parts = [
+        f'<?xml version="1.0"?>\n<robot name="{name}">\n',
+        _URDF_COMMENT.format(what="spherical wrist"),
+        _material("platform", "0.8 0.15 0.15 1"),
+        '  <link name="base"/>\n',
+    ]
     lo, hi = round(g.motor_box[0] - g.limit_margin, 12), round(g.motor_box[1] + g.limit_margin, 12)
     twist = _rot_x(g.distal_angle)
     for leg in (1, 2, 3):
         last = "platform" if leg == 1 else f"distal_{leg}"
         motor_rpy = (0.0, g.base_cone, g.azimuth(leg))
-        parts += [_link(f"proximal_{leg}"), _link(f"elbow_link_{leg}"),
-                  _revolute(f"motor_{leg}", "base", f"proximal_{leg}", g.centre, (lo, hi), motor_rpy),
-                  _revolute(f"elbow_{leg}", f"proximal_{leg}", f"elbow_link_{leg}", (0.0, 0.0, 0.0),
-                            (-math.pi, math.pi), (g.proximal_angle, 0.0, 0.0))]
+        parts += [
+            _link(f"proximal_{leg}"),
+            _link(f"elbow_link_{leg}"),
+            _revolute(f"motor_{leg}", "base", f"proximal_{leg}", g.centre, (lo, hi), motor_rpy),
+            _revolute(
+                f"elbow_{leg}",
+                f"proximal_{leg}",
+                f"elbow_link_{leg}",
+                (0.0, 0.0, 0.0),
+                (-math.pi, math.pi),
+                (g.proximal_angle, 0.0, 0.0),
+            ),
+        ]
         if leg == 1:  # the platform frame: E_dist Rz(wrist) A_1^T = E_dist A_1^T Rot(p_1, wrist)
             attachment = g.attachment_rotation(1)
             rpy = tuple(float(a) for a in pin.rpy.matrixToRpy(twist @ attachment.T))
-            parts.append(_revolute("wrist_1", "elbow_link_1", last, (0.0, 0.0, 0.0), (-math.pi, math.pi),
-                                   rpy, axis=tuple(attachment[:, 2])))
+            parts.append(
+                _revolute(
+                    "wrist_1",
+                    "elbow_link_1",
+                    last,
+                    (0.0, 0.0, 0.0),
+                    (-math.pi, math.pi),
+                    rpy,
+                    axis=tuple(attachment[:, 2]),
+                )
+            )
         else:
-            parts += [_link(last), _link(f"tip_{leg}"),
-                      _revolute(f"wrist_{leg}", f"elbow_link_{leg}", last, (0.0, 0.0, 0.0), (-math.pi, math.pi),
-                                (g.distal_angle, 0.0, 0.0)),
-                      _fixed(f"tip_{leg}_fixed", last, f"tip_{leg}", (0.0, 0.0, 0.0)),
-                      _fixed(f"attach_{leg}_fixed", "platform", f"attach_{leg}", (0.0, 0.0, 0.0),
-                             (0.0, g.platform_cone, g.azimuth(leg) + g.platform_twist)),
-                      _link(f"attach_{leg}")]
-    disc = (f'    <visual>\n      <geometry><cylinder radius="{_num(g.platform_radius)}" length="0.005"/></geometry>\n'
-            '      <material name="platform"/>\n    </visual>\n')
+            parts += [
+                _link(last),
+                _link(f"tip_{leg}"),
+                _revolute(
+                    f"wrist_{leg}",
+                    f"elbow_link_{leg}",
+                    last,
+                    (0.0, 0.0, 0.0),
+                    (-math.pi, math.pi),
+                    (g.distal_angle, 0.0, 0.0),
+                ),
+                _fixed(f"tip_{leg}_fixed", last, f"tip_{leg}", (0.0, 0.0, 0.0)),
+                _fixed(
+                    f"attach_{leg}_fixed",
+                    "platform",
+                    f"attach_{leg}",
+                    (0.0, 0.0, 0.0),
+                    (0.0, g.platform_cone, g.azimuth(leg) + g.platform_twist),
+                ),
+                _link(f"attach_{leg}"),
+            ]
+    disc = (
+        f'    <visual>\n      <geometry><cylinder radius="{_num(g.platform_radius)}" length="0.005"/></geometry>\n'
+        '      <material name="platform"/>\n    </visual>\n'
+    )
     parts += [_link("platform", disc), "</robot>\n"]
     return "".join(parts)
 
@@ -440,8 +554,10 @@ def _spherical_wrist_closures(g: SphericalWristGeometry) -> dict:
     return {
         "schema_version": 2,
         "actuated_joints": ["motor_1", "motor_2", "motor_3"],
-        "closures": [{"name": f"leg_{leg}", "type": "6D", "frame_a": f"attach_{leg}", "frame_b": f"tip_{leg}",
-                      "rows": [3, 4, 5]} for leg in (2, 3)],
+        "closures": [
+            {"name": f"leg_{leg}", "type": "6D", "frame_a": f"attach_{leg}", "frame_b": f"tip_{leg}", "rows": [3, 4, 5]}
+            for leg in (2, 3)
+        ],
         "platform_frame": "platform",
         "task": {"frame": "platform", "position": [], "rotation": "full"},
         "workspace": {"actuators": {f"motor_{leg}": [lo, hi] for leg in (1, 2, 3)}},
@@ -449,8 +565,9 @@ def _spherical_wrist_closures(g: SphericalWristGeometry) -> dict:
     }
 
 
-def spherical_wrist_files(folder: Path, name: str = "spherical_wrist",
-                          geometry: SphericalWristGeometry = SphericalWristGeometry()) -> tuple[Path, Path]:
+def spherical_wrist_files(
+    folder: Path, name: str = "spherical_wrist", geometry: SphericalWristGeometry = SphericalWristGeometry()
+) -> tuple[Path, Path]:
     """Write the spherical wrist pair `folder/NAME.urdf`, `folder/NAME.closures.yaml`; return their paths.
 
     Motors `motor_1..3` [rad]; passive `elbow_1..3`, `wrist_1..3`. `wrist_1`'s child is the link
@@ -458,8 +575,12 @@ def spherical_wrist_files(folder: Path, name: str = "spherical_wrist",
     3..5) to the platform's `attach_2`, `attach_3`. Every frame origin is at the centre, so the
     translation rows vanish identically.
     """
-    return _write_pair(Path(folder), name, _spherical_wrist_urdf(geometry, name),
-                       _closures_text(_spherical_wrist_closures(geometry), "spherical wrist"))
+    return _write_pair(
+        Path(folder),
+        name,
+        _spherical_wrist_urdf(geometry, name),
+        _closures_text(_spherical_wrist_closures(geometry), "spherical wrist"),
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -485,22 +606,35 @@ def _link(name: str, visuals: str = "") -> str:
 
 def _rod(length: float) -> str:
     """A thin cylinder along a link's x axis, from its origin to `length` [m]."""
-    return (f'    <visual>\n      <origin xyz="{_num(length / 2)} 0 0" rpy="0 {_num(math.pi / 2)} 0"/>\n'
-            f'      <geometry><cylinder radius="0.005" length="{_num(length)}"/></geometry>\n'
-            '      <material name="link"/>\n    </visual>\n')
+    return (
+        f'    <visual>\n      <origin xyz="{_num(length / 2)} 0 0" rpy="0 {_num(math.pi / 2)} 0"/>\n'
+        f'      <geometry><cylinder radius="0.005" length="{_num(length)}"/></geometry>\n'
+        '      <material name="link"/>\n    </visual>\n'
+    )
 
 
-def _revolute(name: str, parent: str, child: str, xyz: tuple, limits: tuple[float, float],
-              rpy: tuple = (0.0, 0.0, 0.0), axis: tuple = (0.0, 0.0, 1.0)) -> str:
-    return (f'  <joint name="{name}" type="revolute">\n    <parent link="{parent}"/>\n    <child link="{child}"/>\n'
-            f'    <origin xyz="{_vec(xyz)}" rpy="{_vec(rpy)}"/>\n    <axis xyz="{_vec(axis)}"/>\n'
-            f'    <limit lower="{_num(limits[0])}" upper="{_num(limits[1])}" effort="10" velocity="10"/>\n'
-            '  </joint>\n')
+def _revolute(
+    name: str,
+    parent: str,
+    child: str,
+    xyz: tuple,
+    limits: tuple[float, float],
+    rpy: tuple = (0.0, 0.0, 0.0),
+    axis: tuple = (0.0, 0.0, 1.0),
+) -> str:
+    return (
+        f'  <joint name="{name}" type="revolute">\n    <parent link="{parent}"/>\n    <child link="{child}"/>\n'
+        f'    <origin xyz="{_vec(xyz)}" rpy="{_vec(rpy)}"/>\n    <axis xyz="{_vec(axis)}"/>\n'
+        f'    <limit lower="{_num(limits[0])}" upper="{_num(limits[1])}" effort="10" velocity="10"/>\n'
+        "  </joint>\n"
+    )
 
 
 def _fixed(name: str, parent: str, child: str, xyz: tuple, rpy: tuple = (0.0, 0.0, 0.0)) -> str:
-    return (f'  <joint name="{name}" type="fixed">\n    <parent link="{parent}"/>\n    <child link="{child}"/>\n'
-            f'    <origin xyz="{_vec(xyz)}" rpy="{_vec(rpy)}"/>\n  </joint>\n')
+    return (
+        f'  <joint name="{name}" type="fixed">\n    <parent link="{parent}"/>\n    <child link="{child}"/>\n'
+        f'    <origin xyz="{_vec(xyz)}" rpy="{_vec(rpy)}"/>\n  </joint>\n'
+    )
 
 
 def _closures_text(document: dict, what: str) -> str:

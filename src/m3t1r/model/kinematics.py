@@ -47,8 +47,16 @@ from m3t1r.model.native import NativeChain
 from m3t1r.model.newton_rules import DEFAULT_RULES, NewtonRules
 
 __all__ = [
-    "ForwardResult", "InverseResult", "ClosedLoopSolver",
-    "yaw_of", "roll_pitch_of", "rehomed", "require_square_task", "MOBILITY_RANK_TOL", "SINGULAR_RCOND", "MAX_TOLERANCE",
+    "ForwardResult",
+    "InverseResult",
+    "ClosedLoopSolver",
+    "yaw_of",
+    "roll_pitch_of",
+    "rehomed",
+    "require_square_task",
+    "MOBILITY_RANK_TOL",
+    "SINGULAR_RCOND",
+    "MAX_TOLERANCE",
 ]
 
 MOBILITY_RANK_TOL = 1e-9  # singular values below this fraction of the largest count as zero
@@ -83,7 +91,7 @@ _SKEW_SRC, _SKEW_SIGN = np.array([2, 1, 2, 0, 1, 0]), np.array([-1.0, 1.0, 1.0, 
 def _det_sign(lu: tuple) -> bool:
     """Whether det(A) > 0, from LAPACK getrf factors (0-based pivots)."""
     factors, pivots = lu[0], lu[1]
-    flips = np.count_nonzero(factors.diagonal() < 0) + np.count_nonzero(pivots != _ARANGE[:len(pivots)])
+    flips = np.count_nonzero(factors.diagonal() < 0) + np.count_nonzero(pivots != _ARANGE[: len(pivots)])
     return bool(flips % 2 == 0)
 
 
@@ -109,8 +117,13 @@ def diagonal_blocks(pattern: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     before[labels[row], labels[used]] = True
     order: list[int] = []
     while len(order) < count:  # the blocks form a DAG: one of them is never used by the others left
-        order.append(next(b for b in range(count) if b not in order
-                          and not any(before[a, b] for a in range(count) if a != b and a not in order)))
+        order.append(
+            next(
+                b
+                for b in range(count)
+                if b not in order and not any(before[a, b] for a in range(count) if a != b and a not in order)
+            )
+        )
     return [(rows, match[rows]) for rows in (np.flatnonzero(labels == b) for b in order)]
 
 
@@ -144,8 +157,9 @@ class _BranchSignature:
             flips = 0
             for k in range(start, end):
                 if swaps[k] >= end:  # a pivot from below the block: its structural zeros are not
-                    return b"".join(b"\x01" if _det_sign(lapack.dgetrf(square[a:b, a:b])) else b"\x00"
-                                    for a, b in self._spans)
+                    return b"".join(
+                        b"\x01" if _det_sign(lapack.dgetrf(square[a:b, a:b])) else b"\x00" for a, b in self._spans
+                    )
                 flips += (diagonal[k] < 0.0) + (swaps[k] != k)
             signs.append(flips % 2 == 0)
         return bytes(signs)
@@ -247,8 +261,10 @@ def _checked_tolerance(value: object) -> float:
     """A solver's tolerance [m, rad], in (0, MAX_TOLERANCE], else InvalidInputError."""
     tolerance = require_real(value, "ClosedLoopSolver tolerance", minimum=0.0, inclusive=False)
     if tolerance > MAX_TOLERANCE:
-        raise InvalidInputError(f"ClosedLoopSolver tolerance {tolerance!r}: at most {MAX_TOLERANCE:g} (m, rad "
-                                "of closure residual); a looser one returns open loops as solutions")
+        raise InvalidInputError(
+            f"ClosedLoopSolver tolerance {tolerance!r}: at most {MAX_TOLERANCE:g} (m, rad "
+            "of closure residual); a looser one returns open loops as solutions"
+        )
     return tolerance
 
 
@@ -275,8 +291,14 @@ class ClosedLoopSolver:
     Jacobian, in upper block-triangular order (`diagonal_blocks`); branch labels: each block's determinant sign.
     """
 
-    def __init__(self, mechanism: Mechanism, tolerance: float | None = None, max_iterations: int | None = None,
-                 native: bool = True, rules: NewtonRules | None = None) -> None:
+    def __init__(
+        self,
+        mechanism: Mechanism,
+        tolerance: float | None = None,
+        max_iterations: int | None = None,
+        native: bool = True,
+        rules: NewtonRules | None = None,
+    ) -> None:
         self.mechanism = mechanism
         self.model = mechanism.model
         self._closure_system = ClosureSystem(self.model, mechanism.closures)
@@ -316,8 +338,11 @@ class ClosedLoopSolver:
         self._p_a = np.array([position[c.frame_a_id] for _, c in points], dtype=int)
         self._p_b = np.array([position[c.frame_b_id] for _, c in points], dtype=int)
         self._p_slots = np.array([start + np.arange(3) for start, _ in points], dtype=int).reshape(-1)
-        self._w_frames = [(int(start), position[c.frame_a_id], position[c.frame_b_id])
-                          for start, c in zip(starts, closures) if c.type == "6D"]
+        self._w_frames = [
+            (int(start), position[c.frame_a_id], position[c.frame_b_id])
+            for start, c in zip(starts, closures)
+            if c.type == "6D"
+        ]
         self.n_rows = len(self._enforced)
 
         self.actuated = mechanism.actuated_ids
@@ -340,7 +365,8 @@ class ClosedLoopSolver:
             raise InvalidInputError(
                 f"{mechanism.closures_path}: {self.n_rows} enforced closure rows for "
                 f"{len(self.passive)} passive joints; "
-                "forward kinematics needs a square system (one row per passive joint)")
+                "forward kinematics needs a square system (one row per passive joint)"
+            )
         # Block-triangular structure of the passive system, from its pattern at a few generic q
         # (numerically zero entries at one q, e.g. by axis alignment at home, must not split blocks).
         # It depends on the topology only, so calibrated copies of a machine share it.
@@ -356,10 +382,22 @@ class ClosedLoopSolver:
         self.branch_blocks = _BLOCK_CACHE[key]
         self._branch = _BranchSignature(self.branch_blocks, model.nv)
         # FK's and IK's Newton loops compiled (`model.native`), when built and the joints allow; None: the Python loops.
-        self.native = NativeChain.of(model, mechanism.closures, self.passive, self.actuated, self.branch_blocks,
-                                     self._platform, mechanism.task,
-                                     np.arange(nv) if self._unknowns is None else self._unknowns, np.array(signed),
-                                     np.flatnonzero(support_mask(self._task_frame))) if native else None
+        self.native = (
+            NativeChain.of(
+                model,
+                mechanism.closures,
+                self.passive,
+                self.actuated,
+                self.branch_blocks,
+                self._platform,
+                mechanism.task,
+                np.arange(nv) if self._unknowns is None else self._unknowns,
+                np.array(signed),
+                np.flatnonzero(support_mask(self._task_frame)),
+            )
+            if native
+            else None
+        )
         self._stacked = None  # batched kinematics, built on first use
         self._last_branch: bytes | None = None  # signature at this solver's last FK solution
         self._tangent: np.ndarray | None = None  # d q_passive / d sliders at the last factorisation
@@ -441,7 +479,7 @@ class ClosedLoopSolver:
         welds = []
         for slot, ia, ib in self._w_frames:
             aMb = frames[ia].actInv(frames[ib])
-            full[slot:slot + 6] = pin.log6(aMb).vector
+            full[slot : slot + 6] = pin.log6(aMb).vector
             welds.append((slot, aMb, frames[ib]))
         rows = self._all_rows if all_rows else self._enforced
         residual = full[rows]
@@ -454,7 +492,7 @@ class ClosedLoopSolver:
         operator[self._p_slots.reshape(-1, 3)] = np.concatenate((Ra_T, -(Ra_T @ skew_pb)), axis=2)
         for slot, aMb, oMb in welds:
             # d log6(aMb) = Jlog6(aMb) Ad(oMb^-1) (relative spatial twist)
-            operator[slot:slot + 6] = pin.Jlog6(aMb) @ oMb.inverse().action
+            operator[slot : slot + 6] = pin.Jlog6(aMb) @ oMb.inverse().action
         operator = operator[rows]
         return residual, (operator @ data.J) * self._row_masks[all_rows], operator
 
@@ -491,12 +529,18 @@ class ClosedLoopSolver:
     # Forward kinematics
     def check_actuators(self, actuators: np.ndarray) -> np.ndarray:
         """Validate slider values [m]: finite, right count, within the URDF limits (no clipping)."""
-        if type(actuators) is np.ndarray and actuators.dtype == _FLOAT and actuators.shape == self._act_lower.shape \
-                and self._finite_limits:
+        if (
+            type(actuators) is np.ndarray
+            and actuators.dtype == _FLOAT
+            and actuators.shape == self._act_lower.shape
+            and self._finite_limits
+        ):
             values = actuators.copy()
             # A loop over a handful of floats costs less than the numpy calls; False for NaN.
-            if all(low <= value <= high for low, value, high in zip(self._limit_lists[0], values.tolist(),
-                                                                     self._limit_lists[1])):
+            if all(
+                low <= value <= high
+                for low, value, high in zip(self._limit_lists[0], values.tolist(), self._limit_lists[1])
+            ):
                 return values
         values = require_finite_vector(actuators, len(self.actuated), "actuator values")
         names = self.mechanism.actuated_joints
@@ -504,7 +548,8 @@ class ClosedLoopSolver:
         for k in np.flatnonzero(outside) if outside.any() else ():
             raise InvalidInputError(
                 f"actuator '{names[k]}' = {values[k]:.6g} is beyond its joint limit "
-                f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}] (SI units: metres for sliders)")
+                f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}] (SI units: metres for sliders)"
+            )
         return values
 
     def forward(self, actuators: np.ndarray, q_init: np.ndarray | None = None) -> ForwardResult:
@@ -546,24 +591,27 @@ class ClosedLoopSolver:
     # (sliders, passive q) of the solution before last_q; with the compiled loop, the two concatenated
     _previous: tuple[np.ndarray, np.ndarray] | np.ndarray | None = None
 
-    def _forward_native(self, q: np.ndarray, values: np.ndarray, predicted: bool, previous,
-                        branch: bytes | None) -> ForwardResult:
+    def _forward_native(
+        self, q: np.ndarray, values: np.ndarray, predicted: bool, previous, branch: bytes | None
+    ) -> ForwardResult:
         """`forward` in the compiled loop, predictor included (q: the start, solved in place; its tangent in
         `native.tangent`); the same bookkeeping, errors and result as the Python loop. `data` is not moved
         to the solution."""
         native = self.native
         assert native is not None, "called only with the compiled loop"
         order = (1 if previous is None else 2) if predicted else 0
-        status, norm, iterations, rcond = native.forward(q, values, order, previous if order == 2 else None,
-                                                         branch, self._compiled_rules)
+        status, norm, iterations, rcond = native.forward(
+            q, values, order, previous if order == 2 else None, branch, self._compiled_rules
+        )
         if status != _native_converged:
             raise _native_error(status, norm, iterations, rcond)
         self._tangent = native.tangent  # overwritten only by the next success, which reads it first
         self._last_branch = bytes(native.branch)
         self.last_q = q
         pose = pin.SE3(native.platform)
-        return ForwardResult(pose, q.copy(), norm, iterations,
-                             pose if self._task_frame == self._platform else pin.SE3(native.task))
+        return ForwardResult(
+            pose, q.copy(), norm, iterations, pose if self._task_frame == self._platform else pin.SE3(native.task)
+        )
 
     def home_reference(self) -> tuple[np.ndarray, bytes] | None:
         """(T, branch) at home: T = -J_passive^-1 J_actuated (passive x actuated), d q_passive / d a,
@@ -623,8 +671,11 @@ class ClosedLoopSolver:
 
     def _task_pose(self, platform: pin.SE3) -> pin.SE3:
         """The task frame at the configuration last evaluated (a copy), or `platform` when they are one frame."""
-        return platform if self._task_frame == self._platform else pin.updateFramePlacement(self.model, self.data,
-                                                                                           self._task_frame)
+        return (
+            platform
+            if self._task_frame == self._platform
+            else pin.updateFramePlacement(self.model, self.data, self._task_frame)
+        )
 
     def _platform_pose(self) -> pin.SE3:
         """The platform frame at the configuration last evaluated: a copy (the binding returns
@@ -664,12 +715,16 @@ class ClosedLoopSolver:
                 assert lu is not None and square is not None and last_jac is not None, "the first pass sets them"
                 inverse, rcond = _inverse_and_rcond(lu, _one_norm(square))
                 if rcond < rules.singular_rcond:
-                    raise SingularConfigurationError(f"singular configuration (reciprocal condition {rcond:.2e})",
-                                                     norm, iteration)
+                    raise SingularConfigurationError(
+                        f"singular configuration (reciprocal condition {rcond:.2e})", norm, iteration
+                    )
                 branch = label if label is not None else signature(last_jac, lu)
                 if branch != start_branch:
-                    raise BranchChangeError("the solution lies on another assembly branch than the start "
-                                            "(Newton crossed a singularity)", norm, iteration)
+                    raise BranchChangeError(
+                        "the solution lies on another assembly branch than the start (Newton crossed a singularity)",
+                        norm,
+                        iteration,
+                    )
                 return _Outcome(q, norm, iteration, inverse, last_jac, branch)
             if iteration == rules.max_iterations:
                 break
@@ -685,8 +740,12 @@ class ClosedLoopSolver:
             previous = norm
             residual, jac = system(q, previous > rules.chord_below)
         if norm > rules.no_assembly or not math.isfinite(norm):
-            raise OutOfWorkspaceError("the closures cannot be assembled here (target out of the workspace "
-                                      "or too far from the initial configuration's branch)", norm, iteration)
+            raise OutOfWorkspaceError(
+                "the closures cannot be assembled here (target out of the workspace "
+                "or too far from the initial configuration's branch)",
+                norm,
+                iteration,
+            )
         raise NotConvergedError("Newton did not reach the tolerance", norm, iteration)
 
     # ----------------------------------------------------------------------------------------
@@ -707,7 +766,7 @@ class ClosedLoopSolver:
         if self._uncommandable is None:
             home, reference = self.mechanism.home, self.home_reference()
             configurations = [home]
-            for sign in ((1.0, -1.0) if reference is not None else ()):
+            for sign in (1.0, -1.0) if reference is not None else ():
                 # Near home along its solution manifold (first order: within 1e-6 of an assembly).
                 change = sign * 1e-3 * np.linspace(1.0, 0.5, len(self.actuated))
                 q = home.copy()
@@ -734,7 +793,7 @@ class ClosedLoopSolver:
         placement = pin.updateFramePlacement(self.model, self.data, self._task_frame)
         jac = self._inverse_system(np.zeros(len(self.mechanism.task.columns)), placement.rotation)(q, True)[1]
         jac = jac[:, self._unknown_columns]
-        closure, task = jac[:self.n_rows], jac[self.n_rows:]
+        closure, task = jac[: self.n_rows], jac[self.n_rows :]
         singular, vt = np.linalg.svd(closure)[1:]
         rank = int(np.sum(singular > max(closure.shape) * np.finfo(float).eps * singular[0])) if len(singular) else 0
         rates = np.linalg.norm(task @ vt[rank:].T, axis=1)
@@ -748,7 +807,8 @@ class ClosedLoopSolver:
                 f"{self.mechanism.closures_path}: the task's {', '.join(unmoved)} (frame '{task.frame}') cannot be "
                 "commanded: no motion the closures allow changes it (at home and near it), so inverse kinematics "
                 "would be singular at every target; declare a task of coordinates the mechanism moves "
-                "(models/README.md)")
+                "(models/README.md)"
+            )
 
     def inverse(self, target: pin.SE3 | np.ndarray, q_init: np.ndarray | None = None) -> InverseResult:
         """Actuator values that put the task frame at the target (the mechanism's `task`).
@@ -769,8 +829,9 @@ class ClosedLoopSolver:
         predicted = warm and self._task_inverse is not None and self._last_task is not None
         if predicted and self.native is None:
             assert self._task_inverse is not None and self._last_task is not None, "as `predicted` says"
-            q[self._unknown_columns] += self.inverse_predict(goal, goal_rotation, self._task_inverse, self._last_task,
-                                                             self._inverse_previous)
+            q[self._unknown_columns] += self.inverse_predict(
+                goal, goal_rotation, self._task_inverse, self._last_task, self._inverse_previous
+            )
         self._task_inverse = None  # dropped until this solve succeeds
         # A warm solve must stay on the previous solution's branch (assembly and working mode).
         start = self._last_inverse_branch if warm else None
@@ -778,13 +839,19 @@ class ClosedLoopSolver:
         if self.native is not None:
             order = (1 if self._inverse_previous is None else 2) if predicted else 0
             q, residual, iterations, branch, task_inverse, last_task, pose = self._inverse_native(
-                q, start, goal, goal_rotation, order)
+                q, start, goal, goal_rotation, order
+            )
             tilt = roll_pitch_of(self.native.inverse_task)
         else:
-            outcome = self.newton(q, self._unknowns, self._inverse_system(goal, goal_rotation),
-                                   lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]), start_branch=start)
+            outcome = self.newton(
+                q,
+                self._unknowns,
+                self._inverse_system(goal, goal_rotation),
+                lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]),
+                start_branch=start,
+            )
             q, residual, iterations, branch = outcome.q, outcome.residual, outcome.iterations, outcome.branch
-            task_inverse = outcome.inverse[:, self.n_rows:]
+            task_inverse = outcome.inverse[:, self.n_rows :]
             last_task = pin.updateFramePlacement(self.model, self.data, self._task_frame)  # a copy
             pose = self._platform_pose()
             tilt = roll_pitch_of(last_task.rotation)
@@ -795,7 +862,10 @@ class ClosedLoopSolver:
         for k in outside:
             raise OutOfWorkspaceError(
                 f"target needs actuator '{names[k]}' = {actuators[k]:.6g} {self.mechanism.joint_units()[k]}, "
-                f"beyond its limit [{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]", residual, iterations)
+                f"beyond its limit [{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]",
+                residual,
+                iterations,
+            )
         # The second-order predictor's history: the solution this one started from, with its goal.
         self._inverse_previous = (self._last_goal, self.last_q) if warm and self._last_goal is not None else None
         # The FK warm start now follows this solution; its predictor tangent is from elsewhere.
@@ -804,31 +874,51 @@ class ClosedLoopSolver:
         self._last_goal = (goal, goal_rotation)
         self._last_task = last_task
         task_pose = pose if self._task_frame == self._platform else pin.SE3(last_task)  # a copy either way
-        return InverseResult(actuators, q.copy(), pose, residual, iterations,
-                             (tilt[0] - wanted_tilt[0], tilt[1] - wanted_tilt[1]), task_pose)
+        return InverseResult(
+            actuators,
+            q.copy(),
+            pose,
+            residual,
+            iterations,
+            (tilt[0] - wanted_tilt[0], tilt[1] - wanted_tilt[1]),
+            task_pose,
+        )
 
-    def _inverse_native(self, q: np.ndarray, start: bytes | None, goal: np.ndarray, goal_rotation: np.ndarray | None,
-                        order: int):
+    def _inverse_native(
+        self, q: np.ndarray, start: bytes | None, goal: np.ndarray, goal_rotation: np.ndarray | None, order: int
+    ):
         """IK in the compiled loop, predictor of the given order included (q: the last solution, solved in
         place): (q, residual, iterations, branch, task columns of the inverse, task frame (the compiled
         call's 4 x 4 buffer), platform pose)
         as the Python loop gives them; `data` is not moved to the solution."""
         native = self.native
         assert native is not None, "called only with the compiled loop"
-        status, residual, iterations, rcond = native.inverse(q, goal, goal_rotation, order, self._inverse_previous,
-                                                             start, self._compiled_rules)
+        status, residual, iterations, rcond = native.inverse(
+            q, goal, goal_rotation, order, self._inverse_previous, start, self._compiled_rules
+        )
         if status != _native_converged:
             raise _native_error(status, residual, iterations, rcond)
         # The task frame's placement stays in the compiled call's buffer, which the next warm solve
         # reads: no SE3 of it unless the result needs one (a task frame other than the platform).
-        return (q, residual, iterations, bytes(native.inverse_branch), native.task_inverse, native.inverse_task,
-                pin.SE3(native.inverse_platform))
+        return (
+            q,
+            residual,
+            iterations,
+            bytes(native.inverse_branch),
+            native.task_inverse,
+            native.inverse_task,
+            pin.SE3(native.inverse_platform),
+        )
 
     def _goal(self, target: pin.SE3 | np.ndarray) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float]]:
         """(task goal, goal rotation for a full-rotation task else None, requested (roll, pitch))."""
         task = self.mechanism.task
-        if type(target) is np.ndarray and target.dtype == _FLOAT and target.shape == self._goal_shape \
-                and task.rotation != "full":
+        if (
+            type(target) is np.ndarray
+            and target.dtype == _FLOAT
+            and target.shape == self._goal_shape
+            and task.rotation != "full"
+        ):
             goal = target.copy()  # kept for the next warm solve
             total = _dasum(goal)
             if total - total == 0.0:  # every entry finite (else the checks below name the bad one)
@@ -850,8 +940,14 @@ class ClosedLoopSolver:
             wanted_tilt = roll_pitch_of(goal_rotation)
         return goal, goal_rotation, wanted_tilt
 
-    def inverse_predict(self, goal: np.ndarray, goal_rotation: np.ndarray | None, task_inverse: np.ndarray,
-                        last_task: pin.SE3, previous: tuple | None) -> np.ndarray:
+    def inverse_predict(
+        self,
+        goal: np.ndarray,
+        goal_rotation: np.ndarray | None,
+        task_inverse: np.ndarray,
+        last_task: pin.SE3,
+        previous: tuple | None,
+    ) -> np.ndarray:
         """Change of the unknown joints [rad or m] from the last IK solution (`last_q`) toward a new goal.
 
         First order: -X [0; r], X the inverse of the last IK system (at its last Jacobian; `task_inverse`
@@ -888,6 +984,7 @@ class ClosedLoopSolver:
             assert jac is not None, "asked with_jacobian"
             frame_jac = pin.getFrameJacobian(model, data, frame, pin.LOCAL_WORLD_ALIGNED)
             return residual, np.concatenate((jac, task.jacobian(placement, frame_jac, goal_rotation)))
+
         return system
 
     # ----------------------------------------------------------------------------------------
@@ -947,7 +1044,8 @@ def require_square_task(mechanism: Mechanism) -> None:
         raise InvalidInputError(
             f"{mechanism.closures_path}: inverse kinematics needs as many task coordinates as actuators; "
             f"the task ({', '.join(task.columns)} of frame '{task.frame}') commands {task.dimension} for "
-            f"{count} actuators (declare the task in the closures file: models/README.md)")
+            f"{count} actuators (declare the task in the closures file: models/README.md)"
+        )
 
 
 def rehomed(mechanism: Mechanism, sliders: np.ndarray | None = None) -> Mechanism:

@@ -36,8 +36,16 @@ from m3t1r.errors import ModelFileError
 __all__ = ["MjcfTree", "is_mjcf", "read_mjcf", "mjcf_sidecar_path", "SIDECAR_FIELDS"]
 
 #: Fields a sidecar closures file of an MJCF may give; the others come from the MJCF itself.
-SIDECAR_FIELDS = ("schema_version", "platform_frame", "task", "workspace", "home", "frames", "principal_chains",
-                  "locked_joints")
+SIDECAR_FIELDS = (
+    "schema_version",
+    "platform_frame",
+    "task",
+    "workspace",
+    "home",
+    "frames",
+    "principal_chains",
+    "locked_joints",
+)
 _ONE_DOF = ("hinge", "slide")
 _TRANSMISSIONS = ("joint", "jointinparent")
 _OTHER_TRANSMISSIONS = ("tendon", "site", "body", "cranksite", "slidersite", "refsite")
@@ -93,8 +101,13 @@ def read_mjcf(path: Path, data: bytes, sidecar: dict | None, sidecar_path: Path)
     model, points, welds = _parse(path, root)
     _fix_limits(root, model)
     frames, closures = _closure_entries(model, equalities, points, welds, path)
-    doc: dict = {"schema_version": 2, "actuated_joints": _actuated(root, model, path), "closures": closures,
-                 "frames": frames, "home": _home(model, keyframe)}
+    doc: dict = {
+        "schema_version": 2,
+        "actuated_joints": _actuated(root, model, path),
+        "closures": closures,
+        "frames": frames,
+        "home": _home(model, keyframe),
+    }
     notes += _merge_sidecar(doc, sidecar, sidecar_path, root, path)
     return MjcfTree(model, doc, tuple(notes))
 
@@ -114,31 +127,44 @@ def _refuse_unmappable(root: etree._Element, path: Path) -> None:
     if worldbody is None or worldbody.find("body") is None:
         raise ModelFileError(path, "the MJCF has no <worldbody> with a <body>: there is no mechanism")
     for element in root.iter("freejoint"):
-        raise ModelFileError(path, f"{_where(element)}: a free joint; m3t1r models fixed-base mechanisms of "
-                                   "1-DoF joints (hinge, slide)")
+        raise ModelFileError(
+            path, f"{_where(element)}: a free joint; m3t1r models fixed-base mechanisms of 1-DoF joints (hinge, slide)"
+        )
     for element in root.iter("joint"):
         kind = element.get("type", "hinge")
         if element.getparent().tag == "body" and kind not in _ONE_DOF:
-            raise ModelFileError(path, f"{_where(element)}: a {kind} joint; m3t1r models 1-DoF joints only "
-                                       "(hinge, slide): write a ball joint as three hinges with intersecting axes")
+            raise ModelFileError(
+                path,
+                f"{_where(element)}: a {kind} joint; m3t1r models 1-DoF joints only "
+                "(hinge, slide): write a ball joint as three hinges with intersecting axes",
+            )
     for body in root.iter("body"):
         joints = body.findall("joint")
         if len(joints) > 1:
-            raise ModelFileError(path, f"{_where(body)}: {len(joints)} joints on one body; m3t1r takes one joint per "
-                                       "body (put each joint on a body of its own)")
+            raise ModelFileError(
+                path,
+                f"{_where(body)}: {len(joints)} joints on one body; m3t1r takes one joint per "
+                "body (put each joint on a body of its own)",
+            )
     for equality in root.iter("equality"):
         for element in equality:
             if isinstance(element.tag, str) and element.tag not in ("connect", "weld"):
-                raise ModelFileError(path, f"{_where(element)}: a {element.tag} equality has no closure form "
-                                           "(m3t1r maps connect to a 3D closure and weld to a 6D one)")
+                raise ModelFileError(
+                    path,
+                    f"{_where(element)}: a {element.tag} equality has no closure form "
+                    "(m3t1r maps connect to a 3D closure and weld to a 6D one)",
+                )
     for actuator in root.iter("actuator"):
         for element in actuator:
             if not isinstance(element.tag, str):
                 continue
             other = [key for key in _OTHER_TRANSMISSIONS if element.get(key) is not None]
             if other:
-                raise ModelFileError(path, f"{_where(element)}: a {other[0]} transmission; m3t1r actuates joints "
-                                           "(an actuator with joint=\"...\")")
+                raise ModelFileError(
+                    path,
+                    f"{_where(element)}: a {other[0]} transmission; m3t1r actuates joints "
+                    '(an actuator with joint="...")',
+                )
 
 
 def _named_equalities(root: etree._Element, path: Path) -> tuple[list[_Equality], list[str]]:
@@ -171,10 +197,13 @@ def _named_equalities(root: etree._Element, path: Path) -> tuple[list[_Equality]
         found.append(_Equality(key, name, element.tag, element.sourceline or 0))
         element.set("name", key)
     if inactive:
-        notes.append(f"inactive equality constraint(s) {', '.join(inactive)} (active=\"false\") left out")
+        notes.append(f'inactive equality constraint(s) {", ".join(inactive)} (active="false") left out')
     if not found:
-        raise ModelFileError(path, "the MJCF has no active <equality> connect or weld: no loop to close "
-                                   "(a serial robot is calibrated with --serial)")
+        raise ModelFileError(
+            path,
+            "the MJCF has no active <equality> connect or weld: no loop to close "
+            "(a serial robot is calibrated with --serial)",
+        )
     return found, notes
 
 
@@ -202,8 +231,9 @@ def _wrap_world(root: etree._Element) -> None:
     body of the world (and drops the world's own sites); a body without a joint is welded to the world."""
     worldbody = root.find("worldbody")
     children = [c for c in worldbody if isinstance(c.tag, str)]
-    if len([c for c in children if c.tag == "body"]) == 1 and all(c.tag in ("body", "light", "camera")
-                                                                  for c in children):
+    if len([c for c in children if c.tag == "body"]) == 1 and all(
+        c.tag in ("body", "light", "camera") for c in children
+    ):
         return
     names = {b.get("name") for b in root.iter("body")}
     name = next(n for n in ("base", "world_base", *(f"base_{k}" for k in range(len(names) + 1))) if n not in names)
@@ -262,30 +292,45 @@ def _fix_limits(root: etree._Element, model: pin.Model) -> None:
     model.lowerPositionLimit, model.upperPositionLimit = lower, upper
 
 
-def _closure_entries(model: pin.Model, equalities: list[_Equality], points: list, welds: list,
-                     path: Path) -> tuple[dict, list]:
+def _closure_entries(
+    model: pin.Model, equalities: list[_Equality], points: list, welds: list, path: Path
+) -> tuple[dict, list]:
     """Declared frames at both ends of each constraint, and the closures between them, in file order."""
     connects = sorted((e for e in equalities if e.kind == "connect"), key=lambda e: e.key)
     weld_elements = sorted((e for e in equalities if e.kind == "weld"), key=lambda e: e.key)
     if len(connects) != len(points) or len(weld_elements) != len(welds):
-        raise ModelFileError(path, f"Pinocchio's parser made {len(points)} point and {len(welds)} frame constraints "
-                                   f"of {len(connects)} connect and {len(weld_elements)} weld elements")
+        raise ModelFileError(
+            path,
+            f"Pinocchio's parser made {len(points)} point and {len(welds)} frame constraints "
+            f"of {len(connects)} connect and {len(weld_elements)} weld elements",
+        )
     by_key = {e.key: c for e, c in zip(connects + weld_elements, points + welds)}
     frames: dict = {}
     closures = []
     for equality in equalities:
         constraint = by_key[equality.key]
         ends = []
-        for suffix, joint, placement in (("a", constraint.joint1_id, constraint.joint1_placement),
-                                         ("b", constraint.joint2_id, constraint.joint2_placement)):
+        for suffix, joint, placement in (
+            ("a", constraint.joint1_id, constraint.joint1_placement),
+            ("b", constraint.joint2_id, constraint.joint2_placement),
+        ):
             name = _free_name(model, frames, f"{equality.name}_{suffix}")
             frames[name] = _frame_entry(model, joint, placement)
             ends.append(name)
         if constraint.joint1_id == constraint.joint2_id:
-            raise ModelFileError(path, f"line {equality.line}: <{equality.kind} name='{equality.name}'> joins two "
-                                       "points of one rigid body: it constrains no joint")
-        closures.append({"name": equality.name, "type": "3D" if equality.kind == "connect" else "6D",
-                         "frame_a": ends[0], "frame_b": ends[1]})
+            raise ModelFileError(
+                path,
+                f"line {equality.line}: <{equality.kind} name='{equality.name}'> joins two "
+                "points of one rigid body: it constrains no joint",
+            )
+        closures.append(
+            {
+                "name": equality.name,
+                "type": "3D" if equality.kind == "connect" else "6D",
+                "frame_a": ends[0],
+                "frame_b": ends[1],
+            }
+        )
     return frames, closures
 
 
@@ -301,8 +346,11 @@ def _frame_entry(model: pin.Model, joint: int, placement: pin.SE3) -> dict:
     bodies = [f for f in model.frames if f.parentJoint == joint and f.type == pin.FrameType.BODY]
     link = bodies[0] if bodies else model.frames[model.getFrameId("universe", pin.FrameType.FIXED_JOINT)]
     local = link.placement.actInv(placement)
-    return {"link": link.name, "xyz": [float(v) + 0.0 for v in local.translation],
-            "rpy": [float(v) + 0.0 for v in pin.rpy.matrixToRpy(local.rotation)]}
+    return {
+        "link": link.name,
+        "xyz": [float(v) + 0.0 for v in local.translation],
+        "rpy": [float(v) + 0.0 for v in pin.rpy.matrixToRpy(local.rotation)],
+    }
 
 
 def _actuated(root: etree._Element, model: pin.Model, path: Path) -> list[str]:
@@ -313,15 +361,18 @@ def _actuated(root: etree._Element, model: pin.Model, path: Path) -> list[str]:
                 continue
             joint = next((element.get(key) for key in _TRANSMISSIONS if element.get(key) is not None), None)
             if joint is None:
-                raise ModelFileError(path, f"{_where(element)}: names no joint (joint=\"...\")")
+                raise ModelFileError(path, f'{_where(element)}: names no joint (joint="...")')
             if not model.existJointName(joint):
                 raise ModelFileError(path, f"{_where(element)}: joint '{joint}' is not a joint of the file")
             if joint in names:
                 raise ModelFileError(path, f"{_where(element)}: joint '{joint}' is actuated twice")
             names.append(joint)
     if not names:
-        raise ModelFileError(path, "the MJCF has no <actuator> on a joint: m3t1r needs the actuated joints "
-                                   "(add <actuator><motor joint=\"...\"/></actuator>, one per motor)")
+        raise ModelFileError(
+            path,
+            "the MJCF has no <actuator> on a joint: m3t1r needs the actuated joints "
+            '(add <actuator><motor joint="..."/></actuator>, one per motor)',
+        )
     return names
 
 
@@ -331,15 +382,16 @@ def _home(model: pin.Model, keyframe: str) -> dict:
     return {model.names[j]: float(q[model.idx_qs[j]]) for j in range(1, model.njoints)}
 
 
-def _merge_sidecar(doc: dict, sidecar: dict | None, sidecar_path: Path, root: etree._Element,
-                   path: Path) -> list[str]:
+def _merge_sidecar(doc: dict, sidecar: dict | None, sidecar_path: Path, root: etree._Element, path: Path) -> list[str]:
     """The sidecar's fields added to `doc` (its `home` values over the file's), or the platform frame
     defaulted to the file's only site."""
     sidecar = sidecar or {}
     for key in sidecar:
         if key not in SIDECAR_FIELDS:
-            raise ModelFileError(sidecar_path, f"'{key}' comes from {path.name} for an MJCF model "
-                                               f"(a sidecar gives: {', '.join(SIDECAR_FIELDS)})")
+            raise ModelFileError(
+                sidecar_path,
+                f"'{key}' comes from {path.name} for an MJCF model (a sidecar gives: {', '.join(SIDECAR_FIELDS)})",
+            )
     frames = sidecar.get("frames") or {}
     if not isinstance(frames, dict):
         raise ModelFileError(sidecar_path, "frames must map frame names to {link, xyz, rpy}")
@@ -356,10 +408,14 @@ def _merge_sidecar(doc: dict, sidecar: dict | None, sidecar_path: Path, root: et
         return []
     sites = [s.get("name") for s in root.iter("site") if s.get("name")]
     if len(sites) != 1:
-        raise ModelFileError(path, f"name the platform frame (a site or body of the file: {', '.join(sites[:8])}"
-                                   f"{' ...' if len(sites) > 8 else ''}) in {sidecar_path.name} beside it: "
-                                   "`platform_frame: NAME`" if sites else
-                                   f"the file has no site to measure: name a body as `platform_frame: NAME` in "
-                                   f"{sidecar_path.name} beside it")
+        raise ModelFileError(
+            path,
+            f"name the platform frame (a site or body of the file: {', '.join(sites[:8])}"
+            f"{' ...' if len(sites) > 8 else ''}) in {sidecar_path.name} beside it: "
+            "`platform_frame: NAME`"
+            if sites
+            else f"the file has no site to measure: name a body as `platform_frame: NAME` in "
+            f"{sidecar_path.name} beside it",
+        )
     doc["platform_frame"] = sites[0]
     return [f"platform frame: site '{sites[0]}', the file's only site (no {sidecar_path.name} names one)"]

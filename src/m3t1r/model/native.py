@@ -30,9 +30,12 @@ PURE_PYTHON_VARIABLE = "M3T1R_PURE_PYTHON"
 if _WHY_NOT == STALE:
     # Compiled from another version of the source (edited since, or an old build): its calls may not
     # match this module's. The Python loops run until `make native` rebuilds it.
-    warnings.warn("_native_newton: the compiled Newton loop is older than its source; using "
-                  "the Python loop (rebuild: make native, or python tools/build_native.py)", RuntimeWarning,
-                  stacklevel=2)
+    warnings.warn(
+        "_native_newton: the compiled Newton loop is older than its source; using "
+        "the Python loop (rebuild: make native, or python tools/build_native.py)",
+        RuntimeWarning,
+        stacklevel=2,
+    )
 _warned = _WHY_NOT == STALE  # that case has had its warning, above
 
 if TYPE_CHECKING:
@@ -49,8 +52,16 @@ CONVERGED = 0  # status codes 1-4 as batch_kinematics' rows: no assembly, not co
 
 # Joint types the compiled model rebuilds, by Pinocchio's short name: the code `joint_of` reads.
 _ROTATION_CODES = {"none": 0, "yaw": 1, "full": 2}
-_KINDS = {"JointModelRX": 0, "JointModelRY": 1, "JointModelRZ": 2, "JointModelRevoluteUnaligned": 3,
-          "JointModelPX": 4, "JointModelPY": 5, "JointModelPZ": 6, "JointModelPrismaticUnaligned": 7}
+_KINDS = {
+    "JointModelRX": 0,
+    "JointModelRY": 1,
+    "JointModelRZ": 2,
+    "JointModelRevoluteUnaligned": 3,
+    "JointModelPX": 4,
+    "JointModelPY": 5,
+    "JointModelPZ": 6,
+    "JointModelPrismaticUnaligned": 7,
+}
 
 
 class NativeChain:
@@ -61,8 +72,9 @@ class NativeChain:
     into their typed errors.
     """
 
-    def __init__(self, handle: object, n_blocks: int, n_passive: int, n_actuated: int, n_unknowns: int,
-                 task_rows: int) -> None:
+    def __init__(
+        self, handle: object, n_blocks: int, n_passive: int, n_actuated: int, n_unknowns: int, task_rows: int
+    ) -> None:
         assert _native_newton is not None, "built by `of` only when the module is"
         self._handle, self.n_blocks, self._module = handle, n_blocks, _native_newton
         self.tangent = np.zeros((n_passive, n_actuated))  # FK: -J_passive^-1 J_actuated at the last success
@@ -74,9 +86,19 @@ class NativeChain:
         self._identity = np.eye(3)
 
     @classmethod
-    def of(cls, model: pin.Model, closures: tuple[ClosureSpec, ...], passive: np.ndarray, actuated: np.ndarray,
-           blocks: list[tuple[np.ndarray, np.ndarray]], platform_frame: int, task: TaskSpec, unknowns: np.ndarray,
-           column_signs: np.ndarray, task_columns: np.ndarray) -> NativeChain | None:
+    def of(
+        cls,
+        model: pin.Model,
+        closures: tuple[ClosureSpec, ...],
+        passive: np.ndarray,
+        actuated: np.ndarray,
+        blocks: list[tuple[np.ndarray, np.ndarray]],
+        platform_frame: int,
+        task: TaskSpec,
+        unknowns: np.ndarray,
+        column_signs: np.ndarray,
+        task_columns: np.ndarray,
+    ) -> NativeChain | None:
         """The compiled chain, or None when the module is not built or a joint is not 1-DoF revolute/prismatic.
 
         unknowns: IK's columns (every joint but the locked ones); IK is square only when the task's
@@ -98,27 +120,49 @@ class NativeChain:
         frame_ids += [platform_frame, task_frame]
         where = {f: k for k, f in enumerate(frame_ids)}
         rows = np.cumsum([0] + [len(c.rows) for c in closures])
-        spec = np.array([[3 if c.type == "3D" else 6, where[c.frame_a_id], where[c.frame_b_id], rows[k]]
-                         for k, c in enumerate(closures)], dtype=np.int64).reshape(-1, 4)
+        spec = np.array(
+            [
+                [3 if c.type == "3D" else 6, where[c.frame_a_id], where[c.frame_b_id], rows[k]]
+                for k, c in enumerate(closures)
+            ],
+            dtype=np.int64,
+        ).reshape(-1, 4)
         components = np.array([r for c in closures for r in c.rows], dtype=np.int64)
         square = int(rows[-1]) + task.dimension == len(unknowns)
         ik_columns = np.asarray(unknowns if square else passive, dtype=np.int64)  # FK only: a square stand-in
         ik_axes = task.axes if square else np.zeros(0, dtype=int)
         handle = _native_newton.build(
-            joints, np.ascontiguousarray(axes, dtype=float), np.ascontiguousarray(placements),
+            joints,
+            np.ascontiguousarray(axes, dtype=float),
+            np.ascontiguousarray(placements),
             np.array([model.frames[f].parentJoint for f in frame_ids], dtype=np.int64),
-            np.array([model.frames[f].placement.homogeneous for f in frame_ids]), spec, components,
+            np.array([model.frames[f].placement.homogeneous for f in frame_ids]),
+            spec,
+            components,
             np.ascontiguousarray(np.reshape(column_signs, (len(closures), model.nv)), dtype=float),
             np.asarray(passive, dtype=np.int64),
-            np.asarray(actuated, dtype=np.int64), np.concatenate([r for r, _ in blocks]).astype(np.int64),
+            np.asarray(actuated, dtype=np.int64),
+            np.concatenate([r for r, _ in blocks]).astype(np.int64),
             np.concatenate([c for _, c in blocks]).astype(np.int64),
-            np.cumsum([len(r) for r, _ in blocks]).astype(np.int64), ik_columns, ik_axes.astype(np.int64),
-            np.asarray(task_columns, dtype=np.int64), len(frame_ids) - 2, len(frame_ids) - 1,
-            _ROTATION_CODES[task.rotation] if square else 0)
+            np.cumsum([len(r) for r, _ in blocks]).astype(np.int64),
+            ik_columns,
+            ik_axes.astype(np.int64),
+            np.asarray(task_columns, dtype=np.int64),
+            len(frame_ids) - 2,
+            len(frame_ids) - 1,
+            _ROTATION_CODES[task.rotation] if square else 0,
+        )
         return cls(handle, len(blocks), len(passive), len(actuated), len(ik_columns), task.dimension if square else 0)
 
-    def forward(self, q: np.ndarray, sliders: np.ndarray, order: int, previous: np.ndarray | None,
-                start_branch: bytes | None, rules: tuple) -> tuple[int, float, int, float]:
+    def forward(
+        self,
+        q: np.ndarray,
+        sliders: np.ndarray,
+        order: int,
+        previous: np.ndarray | None,
+        start_branch: bytes | None,
+        rules: tuple,
+    ) -> tuple[int, float, int, float]:
         """FK from the last solution q (nq, float64, solved in place) to `sliders` (float64).
 
         order: 0 no predictor, 1 first order along `tangent` (the last success's), 2 also second order
@@ -130,13 +174,30 @@ class NativeChain:
         """
         if start_branch is not None:  # labels are 0 or 1: a label of another length cannot be met
             self.branch[:] = start_branch if len(start_branch) == self.n_blocks else b"\xff" * self.n_blocks
-        return self._module.forward(self._handle, q, sliders, order, self.tangent,
-                                    _EMPTY if previous is None else previous, self.branch,
-                                    start_branch is not None, self.platform, self.task, *rules)
+        return self._module.forward(
+            self._handle,
+            q,
+            sliders,
+            order,
+            self.tangent,
+            _EMPTY if previous is None else previous,
+            self.branch,
+            start_branch is not None,
+            self.platform,
+            self.task,
+            *rules,
+        )
 
-    def inverse(self, q: np.ndarray, goal: np.ndarray, goal_rotation: np.ndarray | None, order: int,
-                previous: tuple | None, start_branch: bytes | None, rules: tuple
-                ) -> tuple[int, float, int, float]:
+    def inverse(
+        self,
+        q: np.ndarray,
+        goal: np.ndarray,
+        goal_rotation: np.ndarray | None,
+        order: int,
+        previous: tuple | None,
+        start_branch: bytes | None,
+        rules: tuple,
+    ) -> tuple[int, float, int, float]:
         """IK from the last solution q (solved in place) on [closure rows; task rows] with `goal` (task
         coordinates) and `goal_rotation` (3 x 3, a full-rotation task).
 
@@ -149,15 +210,27 @@ class NativeChain:
             count = self.n_blocks + 1
             self.inverse_branch[:] = start_branch if len(start_branch) == count else b"\xff" * count
         (last_goal, last_rotation), last_q = previous if previous is not None else ((_EMPTY, None), _EMPTY)
-        return self._module.inverse(self._handle, q, goal, self._identity if goal_rotation is None else goal_rotation,
-                                    order, self.task_inverse, self.inverse_task, last_goal,
-                                    self._identity if last_rotation is None else last_rotation, last_q,
-                                    self.inverse_branch, start_branch is not None, self.inverse_platform,
-                                    self.inverse_task, *rules)
+        return self._module.inverse(
+            self._handle,
+            q,
+            goal,
+            self._identity if goal_rotation is None else goal_rotation,
+            order,
+            self.task_inverse,
+            self.inverse_task,
+            last_goal,
+            self._identity if last_rotation is None else last_rotation,
+            last_q,
+            self.inverse_branch,
+            start_branch is not None,
+            self.inverse_platform,
+            self.inverse_task,
+            *rules,
+        )
 
-    def forward_rows(self, q: np.ndarray, start_branch: np.ndarray | None, steps_taken: int,
-                     rules: tuple, threads: int = 1
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def forward_rows(
+        self, q: np.ndarray, start_branch: np.ndarray | None, steps_taken: int, rules: tuple, threads: int = 1
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """FK's Newton for every row of q (n, nq) (solved in place, no predictor) under `rules`
         (`NewtonRules.compiled()`), iterations counted from `steps_taken`, rows shared among
         `threads` threads (at least 64 rows each; the results do not depend on it). start_branch: the
@@ -165,26 +238,62 @@ class NativeChain:
         max |row|, iterations, platform (n, 4, 4)); poses are valid where status is 0."""
         return self._rows(False, q, start_branch, _EMPTY, _EMPTY, steps_taken, rules, threads)
 
-    def inverse_rows(self, q: np.ndarray, goals: np.ndarray, rotations: np.ndarray | None,
-                     start_branch: np.ndarray | None, steps_taken: int, rules: tuple, threads: int = 1
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def inverse_rows(
+        self,
+        q: np.ndarray,
+        goals: np.ndarray,
+        rotations: np.ndarray | None,
+        start_branch: np.ndarray | None,
+        steps_taken: int,
+        rules: tuple,
+        threads: int = 1,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """IK's Newton for every row of q (n, nq), row i toward goals[i] (task coordinates) and
         rotations[i] (3 x 3, a full-rotation task; None otherwise); as `forward_rows` otherwise, the
         labels being the blocks' then sign(det) of the whole system."""
         n = len(q)
         turns = np.broadcast_to(self._identity, (n, 3, 3)) if rotations is None else rotations
-        return self._rows(True, q, start_branch, np.ascontiguousarray(goals, dtype=float),
-                          np.ascontiguousarray(turns, dtype=float), steps_taken, rules, threads)
+        return self._rows(
+            True,
+            q,
+            start_branch,
+            np.ascontiguousarray(goals, dtype=float),
+            np.ascontiguousarray(turns, dtype=float),
+            steps_taken,
+            rules,
+            threads,
+        )
 
-    def _rows(self, inverse: bool, q: np.ndarray, start_branch: np.ndarray | None, goals: np.ndarray,
-              rotations: np.ndarray, steps_taken: int, rules: tuple, threads: int
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _rows(
+        self,
+        inverse: bool,
+        q: np.ndarray,
+        start_branch: np.ndarray | None,
+        goals: np.ndarray,
+        rotations: np.ndarray,
+        steps_taken: int,
+        rules: tuple,
+        threads: int,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         n = len(q)
         status, norm, iterations = np.zeros(n, dtype=np.int64), np.zeros(n), np.zeros(n, dtype=np.int64)
         platform = np.zeros((n, 4, 4))
         branch = b"" if start_branch is None else np.asarray(start_branch, dtype=np.uint8).tobytes()
-        self._module.rows(self._handle, inverse, q, branch, goals, rotations, int(steps_taken),
-                          status, norm, iterations, platform, *rules, int(threads))
+        self._module.rows(
+            self._handle,
+            inverse,
+            q,
+            branch,
+            goals,
+            rotations,
+            int(steps_taken),
+            status,
+            norm,
+            iterations,
+            platform,
+            *rules,
+            int(threads),
+        )
         return status, norm, iterations, platform
 
 
@@ -210,9 +319,12 @@ def _warn_once_without_module() -> None:
     if _warned or _pure_python_chosen():
         return
     _warned = True
-    warnings.warn(f"m3t1r: the compiled Newton loop is {_WHY_NOT}: the solvers run their pure-Python loop, "
-                  f"four to six times slower ({_HOW_TO_BUILD}; {PURE_PYTHON_VARIABLE}=1 silences this)",
-                  RuntimeWarning, stacklevel=4)  # at the code that made the solver
+    warnings.warn(
+        f"m3t1r: the compiled Newton loop is {_WHY_NOT}: the solvers run their pure-Python loop, "
+        f"four to six times slower ({_HOW_TO_BUILD}; {PURE_PYTHON_VARIABLE}=1 silences this)",
+        RuntimeWarning,
+        stacklevel=4,
+    )  # at the code that made the solver
 
 
 def available_cores() -> int:

@@ -41,7 +41,7 @@ def load_compiled() -> tuple[ModuleType | None, str]:
 
 
 def compiled_newton_status() -> str:
-    """"yes" when the compiled Newton loop is built, loads and matches its sources, else "no: <why>"."""
+    """ "yes" when the compiled Newton loop is built, loads and matches its sources, else "no: <why>"."""
     module, why = load_compiled()
     if module is not None:
         return "yes"

@@ -42,22 +42,37 @@ class NewtonRules:
     no_assembly: float = 1e-6
 
     def __post_init__(self) -> None:
-        positive = {"tolerance": self.tolerance, "max_step": self.max_step, "chord_below": self.chord_below,
-                    "no_assembly": self.no_assembly}
+        positive = {
+            "tolerance": self.tolerance,
+            "max_step": self.max_step,
+            "chord_below": self.chord_below,
+            "no_assembly": self.no_assembly,
+        }
         for name, value in positive.items():
             if not (isinstance(value, (int, float)) and value > 0.0) or math.isnan(value):
                 raise InvalidInputError(f"Newton rules: {name} must be a number > 0, got {value!r}")
         if not (isinstance(self.singular_rcond, (int, float)) and self.singular_rcond >= 0.0):
             raise InvalidInputError(f"Newton rules: singular_rcond must be a number >= 0, got {self.singular_rcond!r}")
         if not 0.0 < self.chord_contraction < 1.0:
-            raise InvalidInputError(f"Newton rules: chord_contraction must be in (0, 1), got {self.chord_contraction!r}")
+            raise InvalidInputError(
+                f"Newton rules: chord_contraction must be in (0, 1), got {self.chord_contraction!r}"
+            )
         if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int) or self.max_iterations < 0:
-            raise InvalidInputError(f"Newton rules: max_iterations must be an integer >= 0, got {self.max_iterations!r}")
+            raise InvalidInputError(
+                f"Newton rules: max_iterations must be an integer >= 0, got {self.max_iterations!r}"
+            )
 
     def compiled(self) -> tuple[float, int, float, float, float, float, float]:
         """The rules in the order the compiled loop takes them (`_native_newton`'s `rules` arguments)."""
-        return (float(self.tolerance), int(self.max_iterations), float(self.singular_rcond), float(self.max_step),
-                float(self.chord_contraction), float(self.chord_below), float(self.no_assembly))
+        return (
+            float(self.tolerance),
+            int(self.max_iterations),
+            float(self.singular_rcond),
+            float(self.max_step),
+            float(self.chord_contraction),
+            float(self.chord_below),
+            float(self.no_assembly),
+        )
 
 
 DEFAULT_RULES = NewtonRules()

@@ -616,8 +616,11 @@ def jlog3_batch(logs: np.ndarray, angles: np.ndarray) -> np.ndarray:
     small = angles < 1e-2
     safe = np.where(small, 1.0, angles)
     squared = angles**2
-    b = np.where(small, 1.0 / 12.0 + squared / 720.0 + squared**2 / 30240.0,
-                 1.0 / safe**2 - 1.0 / (2.0 * safe * np.tan(0.5 * safe)))
+    b = np.where(
+        small,
+        1.0 / 12.0 + squared / 720.0 + squared**2 / 30240.0,
+        1.0 / safe**2 - 1.0 / (2.0 * safe * np.tan(0.5 * safe)),
+    )
     w = skew(logs)
     return np.eye(3) + 0.5 * w + b[:, None, None] * (w @ w)
 
@@ -672,9 +675,7 @@ def error_jacobian_world(chain: SerialChain, model: pin.Model, q_chain: ArrayLik
     return forward_and_error_jacobians(chain, model, np.reshape(q_chain, (1, -1)))[1][0]
 
 
-def express_error_jacobian(
-    jacobian_world: np.ndarray, pose: pin.SE3, frame: pin.ReferenceFrame
-) -> np.ndarray:
+def express_error_jacobian(jacobian_world: np.ndarray, pose: pin.SE3, frame: pin.ReferenceFrame) -> np.ndarray:
     """Re-express the rows of a WORLD error Jacobian (6, m) at the tool pose `pose` = g_{B,P}.
 
     LOCAL: y = log6(g^-1 g_actual), the error in the tool frame.

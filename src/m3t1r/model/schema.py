@@ -20,14 +20,32 @@ from m3t1r.errors import InvalidInputError, ModelFileError
 from m3t1r.model.closures import ROW_COUNT, ClosureSpec
 from m3t1r.model.task import TaskSpec, WorkspaceSpec
 
-__all__ = ["Description", "read_description", "add_declared_frames", "declared_frame_entries", "load_closures_yaml",
-           "SCHEMA_VERSIONS", "FIELDS", "CLOSURE_FIELDS"]
+__all__ = [
+    "Description",
+    "read_description",
+    "add_declared_frames",
+    "declared_frame_entries",
+    "load_closures_yaml",
+    "SCHEMA_VERSIONS",
+    "FIELDS",
+    "CLOSURE_FIELDS",
+]
 
 SCHEMA_VERSIONS = (1, 2)
 #: The fields of a closures file, of one closure entry, of `task` and of `workspace`: any other key
 #: is refused (a typo such as `row:` would otherwise fall back to a default silently).
-FIELDS = ("schema_version", "actuated_joints", "closures", "principal_chains", "platform_frame", "task",
-          "workspace", "home", "frames", "locked_joints")
+FIELDS = (
+    "schema_version",
+    "actuated_joints",
+    "closures",
+    "principal_chains",
+    "platform_frame",
+    "task",
+    "workspace",
+    "home",
+    "frames",
+    "locked_joints",
+)
 CLOSURE_FIELDS = ("name", "type", "frame_a", "frame_b", "rows")
 _NESTED_FIELDS = {"task": ("frame", "position", "rotation"), "workspace": ("actuators", "task")}
 _MERGE_TAG = "tag:yaml.org,2002:merge"
@@ -64,8 +82,11 @@ def _refuse_duplicate_keys(node: yaml.Node, path: Path, seen: set[int]) -> None:
             if isinstance(key, yaml.ScalarNode) and key.tag != _MERGE_TAG:
                 earlier = first.setdefault((key.tag, key.value), key)
                 if earlier is not key:
-                    raise ModelFileError(path, f"{_where(key)}: key '{key.value}' given twice (first on line "
-                                               f"{earlier.start_mark.line + 1}); YAML would keep only the last")
+                    raise ModelFileError(
+                        path,
+                        f"{_where(key)}: key '{key.value}' given twice (first on line "
+                        f"{earlier.start_mark.line + 1}); YAML would keep only the last",
+                    )
             _refuse_duplicate_keys(key, path, seen)
             _refuse_duplicate_keys(value, path, seen)
     elif isinstance(node, yaml.SequenceNode):
@@ -124,9 +145,16 @@ def read_description(model: pin.Model, doc: dict, urdf_path: Path, path: Path) -
     _frame_id(model, platform, path, "platform_frame")
     task = _task(model, doc.get("task"), platform, path)
     workspace = _workspace(doc.get("workspace"), actuated, task, path)
-    return Description(_closures(model, doc["closures"], path), actuated, _chains(model, doc, path), platform,
-                       _home(model, doc["home"], path), task, workspace,
-                       _locked(model, doc.get("locked_joints", []), actuated, path))
+    return Description(
+        _closures(model, doc["closures"], path),
+        actuated,
+        _chains(model, doc, path),
+        platform,
+        _home(model, doc["home"], path),
+        task,
+        workspace,
+        _locked(model, doc.get("locked_joints", []), actuated, path),
+    )
 
 
 def add_declared_frames(model: pin.Model, entries: object, path: Path) -> None:
@@ -142,17 +170,29 @@ def add_declared_frames(model: pin.Model, entries: object, path: Path) -> None:
         if not isinstance(name, str) or model.existFrame(name):
             raise ModelFileError(path, f"{where}: a frame of that name already exists in the URDF")
         if not isinstance(entry, dict) or set(entry) - {"link", "xyz", "rpy"} or "link" not in entry:
-            raise ModelFileError(path, f"{where} must be a mapping with 'link' and optional 'xyz', 'rpy', got {entry!r}")
+            raise ModelFileError(
+                path, f"{where} must be a mapping with 'link' and optional 'xyz', 'rpy', got {entry!r}"
+            )
         parent = model.frames[_frame_id(model, entry["link"], path, f"{where}.link")]
         xyz, rpy = (_triple(entry.get(key, [0.0, 0.0, 0.0]), f"{where}.{key}", path) for key in ("xyz", "rpy"))
         local = pin.SE3(pin.rpy.rpyToMatrix(*rpy), xyz)
-        model.addFrame(pin.Frame(name, parent.parentJoint, model.getFrameId(parent.name, parent.type),
-                                 parent.placement * local, pin.FrameType.OP_FRAME))
+        model.addFrame(
+            pin.Frame(
+                name,
+                parent.parentJoint,
+                model.getFrameId(parent.name, parent.type),
+                parent.placement * local,
+                pin.FrameType.OP_FRAME,
+            )
+        )
 
 
 def _triple(values: object, where: str, path: Path) -> np.ndarray:
-    if (not isinstance(values, list) or len(values) != 3
-            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in values)):
+    if (
+        not isinstance(values, list)
+        or len(values) != 3
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in values)
+    ):
         raise ModelFileError(path, f"{where} must be three finite numbers, got {values!r}")
     return np.array(values, dtype=float)
 
@@ -164,8 +204,11 @@ def declared_frame_entries(model: pin.Model, doc: dict) -> dict:
     for name, entry in (doc.get("frames") or {}).items():
         parent = model.frames[_named_frame(model, entry["link"])]
         local = parent.placement.actInv(model.frames[model.getFrameId(name, pin.FrameType.OP_FRAME)].placement)
-        out[name] = {"link": entry["link"], "xyz": [float(v) + 0.0 for v in local.translation],
-                     "rpy": [float(v) + 0.0 for v in pin.rpy.matrixToRpy(local.rotation)]}
+        out[name] = {
+            "link": entry["link"],
+            "xyz": [float(v) + 0.0 for v in local.translation],
+            "rpy": [float(v) + 0.0 for v in pin.rpy.matrixToRpy(local.rotation)],
+        }
     return out
 
 
@@ -177,8 +220,11 @@ def _frame_id(model: pin.Model, name: object, path: Path, where: str) -> int:
 
 def _named_frame(model: pin.Model, name: str) -> int:
     """The frame of that name; the link (BODY frame) when a joint has the same name (MJCF bodies often do)."""
-    return model.getFrameId(name, pin.FrameType.BODY) if model.existFrame(name, pin.FrameType.BODY) else \
-        model.getFrameId(name)
+    return (
+        model.getFrameId(name, pin.FrameType.BODY)
+        if model.existFrame(name, pin.FrameType.BODY)
+        else model.getFrameId(name)
+    )
 
 
 def _actuated(model: pin.Model, actuated: object, urdf_path: Path, path: Path) -> tuple[str, ...]:
@@ -231,12 +277,21 @@ def _closures(model: pin.Model, entries: object, path: Path) -> tuple[ClosureSpe
         body = model.frames[ia].parentJoint
         if body == model.frames[ib].parentJoint:
             what = "the same frame" if ia == ib else f"both fixed to the body of joint '{model.names[body]}'"
-            raise ModelFileError(path, f"{where}: frame_a '{entry['frame_a']}' and frame_b '{entry['frame_b']}' are "
-                                       f"{what}: the closure constrains no joint")
+            raise ModelFileError(
+                path,
+                f"{where}: frame_a '{entry['frame_a']}' and frame_b '{entry['frame_b']}' are "
+                f"{what}: the closure constrains no joint",
+            )
         rows = entry.get("rows", list(range(ROW_COUNT[kind])))
-        if (not isinstance(rows, list) or not rows or len(set(rows)) != len(rows)
-                or not all(isinstance(r, int) and 0 <= r < ROW_COUNT[kind] for r in rows)):
-            raise ModelFileError(path, f"{where}: rows must be distinct indices in 0..{ROW_COUNT[kind] - 1}, got {rows!r}")
+        if (
+            not isinstance(rows, list)
+            or not rows
+            or len(set(rows)) != len(rows)
+            or not all(isinstance(r, int) and 0 <= r < ROW_COUNT[kind] for r in rows)
+        ):
+            raise ModelFileError(
+                path, f"{where}: rows must be distinct indices in 0..{ROW_COUNT[kind] - 1}, got {rows!r}"
+            )
         closures.append(ClosureSpec(name, kind, entry["frame_a"], entry["frame_b"], tuple(sorted(rows)), ia, ib))
     if not closures:
         raise ModelFileError(path, "closures: at least one closure is required")
@@ -295,13 +350,17 @@ def _task(model: pin.Model, entry: object, platform: str, path: Path) -> TaskSpe
 def _intervals(entry: object, names: tuple[str, ...], where: str, path: Path) -> tuple[tuple[str, float, float], ...]:
     if not isinstance(entry, dict) or set(entry) != set(names):
         given = sorted(entry) if isinstance(entry, dict) else entry
-        raise ModelFileError(path, f"{where} must give an interval [lo, hi] for each of {', '.join(names)}; "
-                                   f"got {given!r}")
+        raise ModelFileError(
+            path, f"{where} must give an interval [lo, hi] for each of {', '.join(names)}; got {given!r}"
+        )
     out = []
     for name in names:
         interval = entry[name]
-        if (not isinstance(interval, list) or len(interval) != 2
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in interval)):
+        if (
+            not isinstance(interval, list)
+            or len(interval) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in interval)
+        ):
             raise ModelFileError(path, f"{where}.{name} must be [lo, hi] numbers, got {interval!r}")
         out.append((name, float(interval[0]), float(interval[1])))
     return tuple(out)
@@ -317,9 +376,12 @@ def _workspace(entry: object, actuated: tuple[str, ...], task: TaskSpec, path: P
         if kind == "actuators":
             return WorkspaceSpec(actuators=_intervals(box, actuated, "workspace.actuators", path))
         if task.dimension != len(actuated):
-            raise ModelFileError(path, f"workspace.task: the task commands {task.dimension} coordinates for "
-                                       f"{len(actuated)} actuators; sample a task box only when they match "
-                                       "(give an actuators box)")
+            raise ModelFileError(
+                path,
+                f"workspace.task: the task commands {task.dimension} coordinates for "
+                f"{len(actuated)} actuators; sample a task box only when they match "
+                "(give an actuators box)",
+            )
         return WorkspaceSpec(task=_intervals(box, task.box_keys, "workspace.task", path))
     except InvalidInputError as exc:
         raise ModelFileError(path, str(exc)) from None

@@ -51,7 +51,7 @@ class TaskSpec:
     def __post_init__(self) -> None:
         if self.rotation not in ROTATIONS:
             raise InvalidInputError(f"task rotation must be one of {', '.join(ROTATIONS)}, got {self.rotation!r}")
-        if (len(set(self.position)) != len(self.position) or any(a not in POSITION_AXES for a in self.position)):
+        if len(set(self.position)) != len(self.position) or any(a not in POSITION_AXES for a in self.position):
             raise InvalidInputError(f"task position must be distinct axes among x, y, z, got {list(self.position)}")
         ordered = tuple(a for a in POSITION_AXES if a in self.position)
         object.__setattr__(self, "position", ordered)
@@ -59,7 +59,9 @@ class TaskSpec:
         # indexing costs a fraction of fancy indexing in the IK's inner loop.
         indices = [POSITION_AXES.index(a) for a in ordered]
         contiguous = bool(indices) and indices == list(range(indices[0], indices[0] + len(indices)))
-        object.__setattr__(self, "_rows", slice(indices[0], indices[-1] + 1) if contiguous else np.array(indices, dtype=int))
+        object.__setattr__(
+            self, "_rows", slice(indices[0], indices[-1] + 1) if contiguous else np.array(indices, dtype=int)
+        )
         if self.dimension == 0:
             raise InvalidInputError("task: commands nothing (no position axis and rotation none)")
 
@@ -115,8 +117,10 @@ class TaskSpec:
             array = array.reshape(1, -1)
         width = len(self.columns)
         if array.ndim != 2 or array.shape[1] != width:
-            raise InvalidInputError(f"targets: shape {np.shape(coordinates)}, expected rows of {width} "
-                                    f"task coordinates ({', '.join(self.columns)})")
+            raise InvalidInputError(
+                f"targets: shape {np.shape(coordinates)}, expected rows of {width} "
+                f"task coordinates ({', '.join(self.columns)})"
+            )
         bad = ~np.isfinite(array).all(axis=1)
         if bad.any():
             raise InvalidInputError(f"targets: row {int(np.flatnonzero(bad)[0])} has a non-finite value")
@@ -125,8 +129,10 @@ class TaskSpec:
             off = np.abs(norms - 1.0) > QUATERNION_NORM_TOLERANCE
             if off.any():
                 row = int(np.flatnonzero(off)[0])
-                raise InvalidInputError(f"targets: row {row}: quaternion (qx, qy, qz, qw) has norm {norms[row]:.9g}, "
-                                        f"not 1 (tolerance {QUATERNION_NORM_TOLERANCE:g})")
+                raise InvalidInputError(
+                    f"targets: row {row}: quaternion (qx, qy, qz, qw) has norm {norms[row]:.9g}, "
+                    f"not 1 (tolerance {QUATERNION_NORM_TOLERANCE:g})"
+                )
             array[:, -4:] /= norms[:, None]
         return array
 
@@ -186,7 +192,9 @@ class WorkspaceSpec:
             raise InvalidInputError("workspace: give exactly one box, 'actuators' or 'task'")
         for name, lo, hi in self.actuators + self.task:
             if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
-                raise InvalidInputError(f"workspace: interval of '{name}' must be finite with lo <= hi, got [{lo}, {hi}]")
+                raise InvalidInputError(
+                    f"workspace: interval of '{name}' must be finite with lo <= hi, got [{lo}, {hi}]"
+                )
 
     @property
     def kind(self) -> Literal["actuators", "task"]:

@@ -271,7 +271,10 @@ def _moving_origin(nominal: Path, model: pin.Model, joint: _UrdfJoint) -> pin.SE
     _require_on_joint(nominal, model, child, f"link '{joint.child}'")
     if model.existFrame(joint.name, pin.FrameType.JOINT):
         _require_on_joint(
-            nominal, model, model.frames[model.getFrameId(joint.name, pin.FrameType.JOINT)], f"JOINT frame '{joint.name}'"
+            nominal,
+            model,
+            model.frames[model.getFrameId(joint.name, pin.FrameType.JOINT)],
+            f"JOINT frame '{joint.name}'",
         )
     return parent.placement.actInv(model.jointPlacements[index])
 
@@ -416,9 +419,7 @@ _Placements = dict[object, tuple[str, pin.SE3]]
 
 
 def _joint_placements(model: pin.Model) -> _Placements:
-    return {
-        model.names[j]: (model.names[model.parents[j]], model.jointPlacements[j]) for j in range(1, model.njoints)
-    }
+    return {model.names[j]: (model.names[model.parents[j]], model.jointPlacements[j]) for j in range(1, model.njoints)}
 
 
 def _frame_placements(model: pin.Model) -> _Placements:
@@ -467,8 +468,11 @@ def mimic_joints(urdf: bytes) -> dict[str, str]:
         root = etree.fromstring(urdf, _parser())
     except etree.XMLSyntaxError:
         return {}
-    return {str(joint.get("name")): str(mimic.get("joint")) for joint in root.iter("joint")
-            for mimic in joint.findall("mimic")}
+    return {
+        str(joint.get("name")): str(mimic.get("joint"))
+        for joint in root.iter("joint")
+        for mimic in joint.findall("mimic")
+    }
 
 
 def refuse_mimic_joints(path: StrPath, urdf: bytes, joints: Iterable[str]) -> None:
@@ -476,13 +480,17 @@ def refuse_mimic_joints(path: StrPath, urdf: bytes, joints: Iterable[str]) -> No
     mimics = mimic_joints(urdf)
     for name in joints:
         if name in mimics:
-            raise ModelFileError(path, f"joint '{name}' mimics joint '{mimics[name]}' (<mimic>): m3t1r moves and "
-                                       "calibrates every joint on its own, so a coupled joint is not supported; "
-                                       "remove the tag (an independent joint) or make the joint fixed")
+            raise ModelFileError(
+                path,
+                f"joint '{name}' mimics joint '{mimics[name]}' (<mimic>): m3t1r moves and "
+                "calibrates every joint on its own, so a coupled joint is not supported; "
+                "remove the tag (an independent joint) or make the joint fixed",
+            )
 
 
-def tree_urdf_bytes(model: pin.Model, robot: str, closures_sha256: str | None = None,
-                    skip_frames: Iterable[str] = ()) -> bytes:
+def tree_urdf_bytes(
+    model: pin.Model, robot: str, closures_sha256: str | None = None, skip_frames: Iterable[str] = ()
+) -> bytes:
     """A URDF of `model`'s tree, for a model that has no URDF of its own (one read from MJCF).
 
     Each moving joint's child link is the BODY frame that sits on it (a link `<joint>_link` when
@@ -504,7 +512,11 @@ def tree_urdf_bytes(model: pin.Model, robot: str, closures_sha256: str | None = 
         _inertial(etree.SubElement(robot_element, "link", name=links[j]), model.inertias[j])
         _moving_joint(robot_element, model, data, j, links)
     for frame in model.frames:
-        if frame.name in used or frame.name in skipped or frame.type not in (pin.FrameType.BODY, pin.FrameType.OP_FRAME):
+        if (
+            frame.name in used
+            or frame.name in skipped
+            or frame.type not in (pin.FrameType.BODY, pin.FrameType.OP_FRAME)
+        ):
             continue
         used.add(frame.name)
         etree.SubElement(robot_element, "link", name=frame.name)
@@ -522,8 +534,13 @@ def _joint_links(model: pin.Model) -> dict[int, str]:
     taken = {frame.name for frame in model.frames}
     links = {}
     for j in range(model.njoints):
-        on_joint = [f.name for f in model.frames if f.parentJoint == j and f.type == pin.FrameType.BODY
-                    and _placement_distance(f.placement, pin.SE3.Identity()) <= IDENTITY_TOLERANCE]
+        on_joint = [
+            f.name
+            for f in model.frames
+            if f.parentJoint == j
+            and f.type == pin.FrameType.BODY
+            and _placement_distance(f.placement, pin.SE3.Identity()) <= IDENTITY_TOLERANCE
+        ]
         fallback = "world" if j == 0 else f"{model.names[j]}_link"
         while not on_joint and fallback in taken:
             fallback += "_"
@@ -548,8 +565,10 @@ def _moving_joint(robot: etree._Element, model: pin.Model, data: pin.Data, j: in
     def finite(value: float) -> str:
         return format_float(value) if np.isfinite(value) else "0"
 
-    limit = {"effort": finite(float(model.effortLimit[model.idx_vs[j]])),
-             "velocity": finite(float(model.velocityLimit[model.idx_vs[j]]))}
+    limit = {
+        "effort": finite(float(model.effortLimit[model.idx_vs[j]])),
+        "velocity": finite(float(model.velocityLimit[model.idx_vs[j]])),
+    }
     if bounded:
         limit.update(lower=format_float(lower), upper=format_float(upper))
     if kind != "continuous" or bounded:
@@ -564,4 +583,6 @@ def _inertial(link: etree._Element, inertia: pin.Inertia) -> None:
     etree.SubElement(element, "mass", value=format_float(float(inertia.mass)))
     matrix = np.asarray(inertia.inertia)
     entries = {"ixx": (0, 0), "ixy": (0, 1), "ixz": (0, 2), "iyy": (1, 1), "iyz": (1, 2), "izz": (2, 2)}
-    etree.SubElement(element, "inertia", **{key: format_float(float(matrix[i, j]) + 0.0) for key, (i, j) in entries.items()})
+    etree.SubElement(
+        element, "inertia", **{key: format_float(float(matrix[i, j]) + 0.0) for key, (i, j) in entries.items()}
+    )

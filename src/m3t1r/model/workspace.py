@@ -19,7 +19,13 @@ from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.task import WorkspaceSpec
 
-__all__ = ["workspace_actuators", "declared_workspace", "default_workspace", "default_workspace_notes", "DEFAULT_CONDITIONING"]
+__all__ = [
+    "workspace_actuators",
+    "declared_workspace",
+    "default_workspace",
+    "default_workspace_notes",
+    "DEFAULT_CONDITIONING",
+]
 
 
 def declared_workspace(mechanism: Mechanism) -> WorkspaceSpec:
@@ -34,8 +40,11 @@ def declared_workspace(mechanism: Mechanism) -> WorkspaceSpec:
         return mechanism.workspace
     lower, upper = mechanism.joint_limits()
     if np.all(np.isfinite(lower)) and np.all(np.isfinite(upper)) and np.all(lower < upper):
-        return WorkspaceSpec(actuators=tuple((name, float(lo), float(hi)) for name, lo, hi in
-                                             zip(mechanism.actuated_joints, lower, upper)))
+        return WorkspaceSpec(
+            actuators=tuple(
+                (name, float(lo), float(hi)) for name, lo, hi in zip(mechanism.actuated_joints, lower, upper)
+            )
+        )
     if mechanism not in _DERIVED:
         _DERIVED[mechanism] = default_workspace(mechanism)
         note = f"{mechanism.closures_path.name}: {_derived_note(mechanism, _DERIVED[mechanism])}"
@@ -65,9 +74,11 @@ def default_workspace_notes(mechanism: Mechanism) -> list[str]:
 def _derived_note(mechanism: Mechanism, workspace: WorkspaceSpec) -> str:
     units = mechanism.joint_units()
     box = ", ".join(f"{name} [{lo:.4g}, {hi:.4g}] {unit}" for (name, lo, hi), unit in zip(workspace.actuators, units))
-    return (f"no workspace declared and no finite actuator limits: sampling in {box}, the box around home that "
-            f"assembles from home on its mode with the task Jacobian at least {DEFAULT_CONDITIONING:g} as well "
-            "conditioned as at home; declare `workspace:` to choose another (models/README.md)")
+    return (
+        f"no workspace declared and no finite actuator limits: sampling in {box}, the box around home that "
+        f"assembles from home on its mode with the task Jacobian at least {DEFAULT_CONDITIONING:g} as well "
+        "conditioned as at home; declare `workspace:` to choose another (models/README.md)"
+    )
 
 
 _DERIVED: "weakref.WeakKeyDictionary[Mechanism, WorkspaceSpec]" = weakref.WeakKeyDictionary()
@@ -95,9 +106,11 @@ def default_workspace(mechanism: Mechanism) -> WorkspaceSpec:
     home = mechanism.home[mechanism.actuated_ids]
     reference = _conditioning(mechanism, system, mechanism.home)
     if reference is None:
-        raise InvalidInputError(f"{mechanism.closures_path}: no workspace declared, no finite actuator limits, and "
-                                "home is singular (no box around it keeps one assembly and working mode); add a "
-                                "`workspace:` box (models/README.md)")
+        raise InvalidInputError(
+            f"{mechanism.closures_path}: no workspace declared, no finite actuator limits, and "
+            "home is singular (no box around it keeps one assembly and working mode); add a "
+            "`workspace:` box (models/README.md)"
+        )
     lower, upper = mechanism.joint_limits()
     reach = _largest_reach(mechanism)
     pattern = _test_pattern(len(home))
@@ -109,13 +122,21 @@ def default_workspace(mechanism: Mechanism) -> WorkspaceSpec:
         if batch.failures:
             continue
         measures = [_conditioning(mechanism, system, q) for q in batch.q]
-        if all(m is not None and m[2] == reference[2] and m[0] >= DEFAULT_CONDITIONING * reference[0]
-               and m[1] >= DEFAULT_CONDITIONING * reference[1] for m in measures):
-            return WorkspaceSpec(actuators=tuple((name, float(a), float(b)) for name, a, b in
-                                                 zip(mechanism.actuated_joints, lo, hi)))
-    raise InvalidInputError(f"{mechanism.closures_path}: no workspace declared, no finite actuator limits, and no "
-                            f"box around home down to {reach.min() * _SHRINK**(_TRIALS - 1):.3g} keeps home's "
-                            "assembly mode and conditioning; add a `workspace:` box (models/README.md)")
+        if all(
+            m is not None
+            and m[2] == reference[2]
+            and m[0] >= DEFAULT_CONDITIONING * reference[0]
+            and m[1] >= DEFAULT_CONDITIONING * reference[1]
+            for m in measures
+        ):
+            return WorkspaceSpec(
+                actuators=tuple((name, float(a), float(b)) for name, a, b in zip(mechanism.actuated_joints, lo, hi))
+            )
+    raise InvalidInputError(
+        f"{mechanism.closures_path}: no workspace declared, no finite actuator limits, and no "
+        f"box around home down to {reach.min() * _SHRINK ** (_TRIALS - 1):.3g} keeps home's "
+        "assembly mode and conditioning; add a `workspace:` box (models/README.md)"
+    )
 
 
 def _largest_reach(mechanism: Mechanism) -> np.ndarray:
@@ -175,10 +196,16 @@ def workspace_actuators(nominal: Mechanism, n: int, rng: np.random.Generator) ->
         batch = solver.forward_batch(actuators)
     if batch.failures:
         first = batch.failures[0]
-        where = (f"declared {workspace.kind} workspace box" if nominal.workspace is not None else
-                 "default box around home (no workspace declared: add a `workspace:` box, models/README.md)"
-                 if _DERIVED.get(nominal) is workspace else
-                 "actuators' URDF limits (no workspace declared: add a `workspace:` box, models/README.md)")
-        raise ModelFileError(nominal.closures_path, f"{len(batch.failures)} of {n} draws in the {where} cannot be "
-                                                    f"assembled from home; first, draw {first.index}: {first.reason}")
+        where = (
+            f"declared {workspace.kind} workspace box"
+            if nominal.workspace is not None
+            else "default box around home (no workspace declared: add a `workspace:` box, models/README.md)"
+            if _DERIVED.get(nominal) is workspace
+            else "actuators' URDF limits (no workspace declared: add a `workspace:` box, models/README.md)"
+        )
+        raise ModelFileError(
+            nominal.closures_path,
+            f"{len(batch.failures)} of {n} draws in the {where} cannot be "
+            f"assembled from home; first, draw {first.index}: {first.reason}",
+        )
     return np.array(actuators).reshape(n, len(nominal.actuated_joints))

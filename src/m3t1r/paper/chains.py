@@ -74,9 +74,12 @@ def paper_chains(mechanism: Mechanism) -> tuple[PaperChain, PaperChain]:
     entries = mechanism.principal_chains
     where = mechanism.closures_path
     if len(entries) != 2:
-        raise ModelFileError(where, f"principal_chains: the paper's two-chain method is specific to the M machine's "
-                                    f"structure and needs its 2 principal chains, found {len(entries)}; other "
-                                    "mechanisms calibrate with the closed-loop method (`m3t1r calibrate`)")
+        raise ModelFileError(
+            where,
+            f"principal_chains: the paper's two-chain method is specific to the M machine's "
+            f"structure and needs its 2 principal chains, found {len(entries)}; other "
+            "mechanisms calibrate with the closed-loop method (`m3t1r calibrate`)",
+        )
     chains = []
     for name, items in entries.items():
         if len(items) != _CHAIN_LENGTH:
@@ -84,8 +87,10 @@ def paper_chains(mechanism: Mechanism) -> tuple[PaperChain, PaperChain]:
         serial = SerialChain.from_model(mechanism.model, items[-1])
         if serial.joint_names != tuple(items[:-1]):
             raise ModelFileError(
-                where, f"principal_chains.{name}: the tree path to '{items[-1]}' is {serial.joint_names}, "
-                       f"not the listed {tuple(items[:-1])}")
+                where,
+                f"principal_chains.{name}: the tree path to '{items[-1]}' is {serial.joint_names}, "
+                f"not the listed {tuple(items[:-1])}",
+            )
         chains.append(PaperChain(name, serial, *items))
     return chains[0], chains[1]
 
@@ -116,12 +121,14 @@ def _as_configurations(mechanism: Mechanism, readings: ArrayLike | Mapping[str, 
     return q
 
 
-def _per_chain_poses(chains: Sequence[PaperChain], measured: Sequence[pin.SE3] | Mapping[str, Sequence[pin.SE3]],
-                     n_poses: int) -> tuple[tuple[pin.SE3, ...], ...]:
+def _per_chain_poses(
+    chains: Sequence[PaperChain], measured: Sequence[pin.SE3] | Mapping[str, Sequence[pin.SE3]], n_poses: int
+) -> tuple[tuple[pin.SE3, ...], ...]:
     if isinstance(measured, Mapping):
         if set(measured) != {c.name for c in chains}:
-            raise InvalidInputError(f"measured_poses: keys {sorted(measured)} are not the chains "
-                                    f"{[c.name for c in chains]}")
+            raise InvalidInputError(
+                f"measured_poses: keys {sorted(measured)} are not the chains {[c.name for c in chains]}"
+            )
         per_chain = [tuple(measured[c.name]) for c in chains]
     else:
         per_chain = [tuple(measured)] * len(chains)

@@ -82,8 +82,9 @@ class ClosedChainStudyResult:
     crank_error: Mapping[str, np.ndarray] = field(repr=False)
 
 
-def _calibrated_trees(nominal: Mechanism, truth: Mechanism, calibration: PaperCalibration, first: PaperChain,
-                      actuators: np.ndarray) -> tuple[PoseErrors | None, bool]:
+def _calibrated_trees(
+    nominal: Mechanism, truth: Mechanism, calibration: PaperCalibration, first: PaperChain, actuators: np.ndarray
+) -> tuple[PoseErrors | None, bool]:
     """(held-out errors of the tree with chain `first`'s calibrated placements, None if it does not
     assemble; whether the tree with both chains' calibrated placements assembles)."""
     calibrated_tree: PoseErrors | None = None
@@ -143,8 +144,15 @@ def closed_chain_study(
     """
     nominal = Mechanism.load() if mechanism is None else mechanism
     chains = paper_chains(nominal)
-    study = simulate_study(nominal, n_poses=n_poses, n_holdout=n_holdout, seed=seed,
-                           sigma_position=sigma_position, sigma_rotation=sigma_rotation, noise=None)
+    study = simulate_study(
+        nominal,
+        n_poses=n_poses,
+        n_holdout=n_holdout,
+        seed=seed,
+        sigma_position=sigma_position,
+        sigma_rotation=sigma_rotation,
+        noise=None,
+    )
     truth = study.truth
     rng = np.random.default_rng([seed, 1])  # the noise, independent of the machine's draw
     truth_solver = ClosedLoopSolver(truth)
@@ -170,8 +178,9 @@ def closed_chain_study(
     nominal_solver = ClosedLoopSolver(nominal)
     q_nominal = np.array([nominal_solver.forward(a, q_init=nominal.home).q for a in study.holdout_actuators])
     sliders_only = _pose_differences(calibration.predict(first.name, q_nominal), held_truth)
-    calibrated_tree, both_chains_assemble = _calibrated_trees(nominal, truth, calibration, first,
-                                                              study.holdout_actuators)
+    calibrated_tree, both_chains_assemble = _calibrated_trees(
+        nominal, truth, calibration, first, study.holdout_actuators
+    )
 
     closed_loop = closed_loop_errors = None
     if compare_closed_loop:

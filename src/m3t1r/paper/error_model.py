@@ -82,8 +82,9 @@ class TwoChainErrorModel:
         return y, jacobian
 
 
-def two_chain_error_model(model: pin.Model, chains: Sequence[PaperChain], configurations: np.ndarray,
-                          measured: Sequence[Sequence[pin.SE3]]) -> TwoChainErrorModel:
+def two_chain_error_model(
+    model: pin.Model, chains: Sequence[PaperChain], configurations: np.ndarray, measured: Sequence[Sequence[pin.SE3]]
+) -> TwoChainErrorModel:
     """The stacked error model of `model` at configurations (N, nq) against each chain's
     measured tool poses (`measured[i]`, N SE3 in {B}). See `TwoChainErrorModel`."""
     n_poses = configurations.shape[0]
@@ -96,7 +97,7 @@ def two_chain_error_model(model: pin.Model, chains: Sequence[PaperChain], config
         poses, J = forward_and_error_jacobians(chain.serial, model, chain.coordinates(configurations))
         rows = slice(_TWIST * c, _TWIST * (c + 1))
         y[:, rows] = [pin.log6(target * g.inverse()).vector for target, g in zip(targets, poses)]
-        jacobian[:, rows, column:column + chain.n_parameters] = J
+        jacobian[:, rows, column : column + chain.n_parameters] = J
         column += chain.n_parameters
         poses_per_chain.append(tuple(poses))
     names = tuple(name for chain in chains for name in chain.serial.parameter_names())
@@ -155,9 +156,14 @@ def _numerical_rank(matrix: np.ndarray, rank_tolerance: float) -> int:
 
 
 @on_one_blas_thread
-def two_chain_identifiability(mechanism: Mechanism, readings: ArrayLike | Mapping[str, ArrayLike], *,
-                              noise: TrackerNoise = TrackerNoise(), rank_tolerance: float = 1e-9,
-                              model: pin.Model | None = None) -> Identifiability:
+def two_chain_identifiability(
+    mechanism: Mechanism,
+    readings: ArrayLike | Mapping[str, ArrayLike],
+    *,
+    noise: TrackerNoise = TrackerNoise(),
+    rank_tolerance: float = 1e-9,
+    model: pin.Model | None = None,
+) -> Identifiability:
     """Rank analysis of the stacked model at the given readings (N, nq) (measured poses do not
     enter the Jacobian). `model` defaults to the mechanism's (nominal) tree model."""
     model = mechanism.model if model is None else model
@@ -171,13 +177,13 @@ def two_chain_identifiability(mechanism: Mechanism, readings: ArrayLike | Mappin
     ranks = {}
     column = 0
     for c, chain in enumerate(chains):
-        block = weighted[:, _TWIST * c:_TWIST * (c + 1), column:column + chain.n_parameters]
+        block = weighted[:, _TWIST * c : _TWIST * (c + 1), column : column + chain.n_parameters]
         ranks[chain.name] = _numerical_rank(block.reshape(-1, chain.n_parameters), rank_tolerance)
         column += chain.n_parameters
     # Eq. (21) as printed: one 6-row error per pose explained by [J_1, J_2]. Row changes within a
     # pose do not change a rank, so WORLD rows do.
-    literal = system.jacobian[:, :_TWIST, :chains[0].n_parameters]
-    literal = np.concatenate([literal, system.jacobian[:, _TWIST:, chains[0].n_parameters:]], axis=2)
+    literal = system.jacobian[:, :_TWIST, : chains[0].n_parameters]
+    literal = np.concatenate([literal, system.jacobian[:, _TWIST:, chains[0].n_parameters :]], axis=2)
     return Identifiability(
         n_parameters=len(system.parameter_names),
         rank_per_chain=MappingProxyType(ranks),

@@ -89,8 +89,9 @@ class PaperCalibration:
     def predict(self, chain_name: str, configurations: np.ndarray) -> tuple[pin.SE3, ...]:
         """Calibrated tool poses g_i(q) in {B} of chain `chain_name` at configurations (N, nq)."""
         chain = self.chain(chain_name)
-        poses, _ = forward_and_error_jacobians(chain.serial, self.model,
-                                               chain.coordinates(np.atleast_2d(configurations)))
+        poses, _ = forward_and_error_jacobians(
+            chain.serial, self.model, chain.coordinates(np.atleast_2d(configurations))
+        )
         return tuple(poses)
 
 
@@ -113,8 +114,9 @@ def _check_options(solver: Solver, unidentifiable: Unidentifiable, tolerance: fl
         raise InvalidInputError(f"need tolerance > 0 and max_iterations >= 1, got {tolerance}, {max_iterations}")
 
 
-def _accumulated_deltas(start: pin.Model, current: pin.Model,
-                        placements: Sequence[Placement]) -> dict[Placement, np.ndarray]:
+def _accumulated_deltas(
+    start: pin.Model, current: pin.Model, placements: Sequence[Placement]
+) -> dict[Placement, np.ndarray]:
     """dt = log6(T(0)^-1 T_c(0)) per placement, read-only."""
     deltas = {p: pin.log6(placement_of(start, p).actInv(placement_of(current, p))).vector for p in placements}
     for value in deltas.values():
@@ -193,8 +195,9 @@ def calibrate_two_chains(
     def select(A: np.ndarray, names: tuple[str, ...]) -> BaseParameters:
         return select_base_parameters((A * weights[None, :, None]).reshape(-1, A.shape[2]), names, rank_tolerance)
 
-    def iterate(model_now: pin.Model, system: TwoChainErrorModel, y: np.ndarray, A: np.ndarray,
-                base: BaseParameters) -> tuple[pin.Model, TwoChainErrorModel, np.ndarray, np.ndarray, bool]:
+    def iterate(
+        model_now: pin.Model, system: TwoChainErrorModel, y: np.ndarray, A: np.ndarray, base: BaseParameters
+    ) -> tuple[pin.Model, TwoChainErrorModel, np.ndarray, np.ndarray, bool]:
         """Eq. (32)-(33) until the stopping test; returns the last linearisation."""
         if y.size < base.rank:
             raise IdentificationError(f"{q.shape[0]} poses give {y.size} rows for {base.rank} identifiable parameters")
@@ -207,7 +210,7 @@ def calibrate_two_chains(
             step_norms.append(norm)
             if not math.isfinite(norm) or norm > _DIVERGENCE * max(step_norms[0], tolerance):
                 raise IdentificationError(f"the iteration of eq. (33) diverges: ||X|| = {norm:.3e}")
-            model_now = perturb(model_now, {p: step[_TWIST * k:_TWIST * (k + 1)] for k, p in enumerate(placements)})
+            model_now = perturb(model_now, {p: step[_TWIST * k : _TWIST * (k + 1)] for k, p in enumerate(placements)})
             system, y, A = linearised(model_now)
             if norm < tolerance or pose_change < tolerance:
                 return model_now, system, y, A, True

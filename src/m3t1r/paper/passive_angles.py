@@ -72,9 +72,16 @@ def _platform_weld(mechanism: Mechanism, chains: Sequence[PaperChain]) -> tuple[
     raise ModelFileError(mechanism.closures_path, f"no 6D closure welds the chains' tool frames {sorted(tools)}")
 
 
-def _foot_distance_newton(model: pin.Model, data: pin.Data, q: np.ndarray, cranks: Sequence[tuple[int, int]],
-                          feet: Sequence[int], distance: float, tolerance: float,
-                          max_iterations: int) -> tuple[int, float]:
+def _foot_distance_newton(
+    model: pin.Model,
+    data: pin.Data,
+    q: np.ndarray,
+    cranks: Sequence[tuple[int, int]],
+    feet: Sequence[int],
+    distance: float,
+    tolerance: float,
+    max_iterations: int,
+) -> tuple[int, float]:
     """Eq. (25)-(30) on one configuration q (modified in place): q_3 <- q_3 + J^+ dd.
 
     J (1 x 2) = [-u . dP_1/dq_13, u . dP_2/dq_23] with u the unit vector A1 -> A2 and dP_i/dq_i3
@@ -101,8 +108,14 @@ def _foot_distance_newton(model: pin.Model, data: pin.Data, q: np.ndarray, crank
     raise NotConvergedError("the foot-distance recursion of eq. (30) did not converge", abs(error), max_iterations)
 
 
-def _platform_newton(solver: ClosedLoopSolver, rows: slice, q: np.ndarray, cranks: Sequence[tuple[int, int]],
-                     tolerance: float, max_iterations: int) -> tuple[int, float]:
+def _platform_newton(
+    solver: ClosedLoopSolver,
+    rows: slice,
+    q: np.ndarray,
+    cranks: Sequence[tuple[int, int]],
+    tolerance: float,
+    max_iterations: int,
+) -> tuple[int, float]:
     """Gauss-Newton on the platform weld P_I = P_II (its enforced rows) over the two cranks."""
     columns = [v for _, v in cranks]
     indices = [i for i, _ in cranks]
@@ -114,8 +127,9 @@ def _platform_newton(solver: ClosedLoopSolver, rows: slice, q: np.ndarray, crank
         q[indices] -= step
         if float(np.max(np.abs(step))) <= tolerance:
             return iteration + 1, float(np.max(np.abs(solver.closure_residual(q)[rows])))
-    raise NotConvergedError("the platform-weld Gauss-Newton did not converge", float(np.max(np.abs(residual))),
-                            max_iterations)
+    raise NotConvergedError(
+        "the platform-weld Gauss-Newton did not converge", float(np.max(np.abs(residual))), max_iterations
+    )
 
 
 @on_one_blas_thread
@@ -190,8 +204,9 @@ def estimate_lower_crank_angles(
         for k in range(n_poses):
             q = q_all[k].copy()
             q[list(idx_q)] = start[k]
-            iterations[k], residual[k] = _foot_distance_newton(model, data, q, cranks, feet, foot_distance,
-                                                               tolerance, max_iterations)
+            iterations[k], residual[k] = _foot_distance_newton(
+                model, data, q, cranks, feet, foot_distance, tolerance, max_iterations
+            )
             angles[k] = q[list(idx_q)]
     elif method == "platform":
         _, rows = _platform_weld(mechanism, chains)

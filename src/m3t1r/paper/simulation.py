@@ -82,8 +82,9 @@ def _orthonormal_twist(twist: np.ndarray, error: np.ndarray) -> np.ndarray:
     return np.r_[v - (w @ v) * w, w]  # zero pitch: a pure rotation
 
 
-def preset_errors(chains: Sequence[PaperChain], rng: np.random.Generator,
-                  scale: PresetErrorScale = PresetErrorScale()) -> PresetErrors:
+def preset_errors(
+    chains: Sequence[PaperChain], rng: np.random.Generator, scale: PresetErrorScale = PresetErrorScale()
+) -> PresetErrors:
     """Draw Table 1: Gaussian dt, ds, dq with the standard deviations of `scale`."""
     placement: dict[Placement, np.ndarray] = {}
     twist: dict[str, np.ndarray] = {}
@@ -99,12 +100,18 @@ def preset_errors(chains: Sequence[PaperChain], rng: np.random.Generator,
             offset[name] = float(rng.normal(0.0, scale.joint_offset))
     for value in (*placement.values(), *twist.values(), *twist_error.values()):
         value.flags.writeable = False
-    return PresetErrors(MappingProxyType(placement), MappingProxyType(twist), MappingProxyType(twist_error),
-                        MappingProxyType(offset), scale)
+    return PresetErrors(
+        MappingProxyType(placement),
+        MappingProxyType(twist),
+        MappingProxyType(twist_error),
+        MappingProxyType(offset),
+        scale,
+    )
 
 
-def actual_chain_poses(chain: PaperChain, model: pin.Model, preset: PresetErrors,
-                       configurations: np.ndarray) -> tuple[pin.SE3, ...]:
+def actual_chain_poses(
+    chain: PaperChain, model: pin.Model, preset: PresetErrors, configurations: np.ndarray
+) -> tuple[pin.SE3, ...]:
     """Tool poses of the actual chain i (eq. 37) at the true joint values of configurations (N, nq):
 
         g_i = T^a_B,1(0) exp(s^a_1 q^a_1) T^a_1,2(0) ... exp(s^a_n q^a_n) T^a_n,P(0)
@@ -138,8 +145,14 @@ def _checked_passive_encoder_noise(passive_encoder_noise: float) -> float:
     return value
 
 
-def _read(mechanism: Mechanism, chains: Sequence[PaperChain], configurations: np.ndarray,
-          noise: TrackerNoise | None, passive_encoder_noise: float, rng: np.random.Generator) -> np.ndarray:
+def _read(
+    mechanism: Mechanism,
+    chains: Sequence[PaperChain],
+    configurations: np.ndarray,
+    noise: TrackerNoise | None,
+    passive_encoder_noise: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
     """What the sensors of both chains read: sliders with the slider noise (`noise.actuator`) and
     every other chain joint with `passive_encoder_noise` (rad); exact readings with noise=None."""
     readings = configurations.copy()
@@ -157,5 +170,10 @@ def _observe(poses: Sequence[pin.SE3], noise: TrackerNoise | None, rng: np.rando
     """Tracker measurements: position noise in {B}, rotation noise right-multiplied (m, rad)."""
     if noise is None:
         return tuple(poses)
-    return tuple(pin.SE3(g.rotation @ pin.exp3(rng.normal(0.0, noise.rotation, 3)),
-                         g.translation + rng.normal(0.0, noise.position, 3)) for g in poses)
+    return tuple(
+        pin.SE3(
+            g.rotation @ pin.exp3(rng.normal(0.0, noise.rotation, 3)),
+            g.translation + rng.normal(0.0, noise.position, 3),
+        )
+        for g in poses
+    )

@@ -48,8 +48,9 @@ __all__ = ["ChainErrors", "PassiveSource", "PaperStudyResult", "paper_study"]
 PassiveSource = Literal["sensor", "distance", "platform", "sliders"]
 
 
-def _with_passive(mechanism: Mechanism, readings: np.ndarray, source: PassiveSource,
-                  model: pin.Model) -> tuple[np.ndarray, LowerCrankEstimate | None]:
+def _with_passive(
+    mechanism: Mechanism, readings: np.ndarray, source: PassiveSource, model: pin.Model
+) -> tuple[np.ndarray, LowerCrankEstimate | None]:
     if source == "sensor":
         return readings, None
     if source not in ("distance", "platform", "sliders"):
@@ -71,8 +72,10 @@ class ChainErrors:
         """(position, orientation) ratio of mean errors before / after (nan without `after`)."""
         if self.after is None:
             return math.nan, math.nan
-        return (self.before.position_mean / self.after.position_mean,
-                self.before.rotation_mean / self.after.rotation_mean)
+        return (
+            self.before.position_mean / self.after.position_mean,
+            self.before.rotation_mean / self.after.rotation_mean,
+        )
 
 
 @dataclass(frozen=True)
@@ -106,14 +109,22 @@ class PaperStudyResult:
     crank_error: np.ndarray | None = field(repr=False)
 
 
-def _paper_chain_errors(chains: Sequence[PaperChain], before: pin.Model, after: pin.Model | None,
-                        configurations: np.ndarray, truth: Sequence[Sequence[pin.SE3]]) -> dict[str, ChainErrors]:
+def _paper_chain_errors(
+    chains: Sequence[PaperChain],
+    before: pin.Model,
+    after: pin.Model | None,
+    configurations: np.ndarray,
+    truth: Sequence[Sequence[pin.SE3]],
+) -> dict[str, ChainErrors]:
     def errors(model: pin.Model, chain: PaperChain, reference: Sequence[pin.SE3]) -> PoseErrors:
         return _pose_differences(_chain_poses(chain, model, configurations), reference)
 
-    return {chain.name: ChainErrors(errors(before, chain, reference),
-                                    None if after is None else errors(after, chain, reference))
-            for chain, reference in zip(chains, truth)}
+    return {
+        chain.name: ChainErrors(
+            errors(before, chain, reference), None if after is None else errors(after, chain, reference)
+        )
+        for chain, reference in zip(chains, truth)
+    }
 
 
 @on_one_blas_thread
@@ -171,7 +182,9 @@ def paper_study(
     calibration: PaperCalibration | None = None
     failure = None
     try:
-        calibration = calibrate_two_chains(nominal, readings, measured, noise=tracker, solver=solver, rank_tolerance=rank_tolerance)
+        calibration = calibrate_two_chains(
+            nominal, readings, measured, noise=tracker, solver=solver, rank_tolerance=rank_tolerance
+        )
     except IdentificationError as exc:
         failure = str(exc)
     calibrated = None if calibration is None else calibration.model
@@ -191,9 +204,11 @@ def paper_study(
         calibration=calibration,
         failure=failure,
         identifiability=identifiability,
-        calibration_poses=MappingProxyType(_paper_chain_errors(
-            chains, nominal.model, calibrated, readings, [poses[fit] for poses in truth])),
-        holdout_poses=MappingProxyType(_paper_chain_errors(
-            chains, nominal.model, calibrated, holdout, [poses[held] for poses in truth])),
+        calibration_poses=MappingProxyType(
+            _paper_chain_errors(chains, nominal.model, calibrated, readings, [poses[fit] for poses in truth])
+        ),
+        holdout_poses=MappingProxyType(
+            _paper_chain_errors(chains, nominal.model, calibrated, holdout, [poses[held] for poses in truth])
+        ),
         crank_error=crank_error,
     )

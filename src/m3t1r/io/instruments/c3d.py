@@ -53,8 +53,11 @@ def read_c3d(path: Path, options: ReadOptions, notes: list[str]) -> TrackerRecor
     label = options.body if options.body is not None else labels[0]
     if label not in labels:
         raise DataFileError(path, f"--body {label}: the points are {', '.join(labels)}")
-    unit = (list(parameters["UNITS"]["value"]) or [options.units or "mm"])[0] if "UNITS" in parameters else \
-        options.units or "mm"
+    unit = (
+        (list(parameters["UNITS"]["value"]) or [options.units or "mm"])[0]
+        if "UNITS" in parameters
+        else options.units or "mm"
+    )
     k = labels.index(label)
     points = np.array(c3d["data"]["points"][:3, k, :], dtype=float).T * length_scale(path, str(unit))
     residuals = c3d["data"]["meta_points"].get("residuals")

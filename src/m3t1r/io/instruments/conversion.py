@@ -114,35 +114,55 @@ def _static_poses(record: TrackerRecord, options: ConversionOptions, notes: list
     if record.times is None or record.format == "csv" and not _is_stream(record):
         seen = np.all(np.isfinite(record.positions), axis=1)
         if not seen.all():
-            notes.append(f"{np.count_nonzero(~seen)} samples not seen (empty cells) left out: {record.source_kind}s "
-                         + ", ".join(str(s) for s in record.sources[~seen][:10]))
+            notes.append(
+                f"{np.count_nonzero(~seen)} samples not seen (empty cells) left out: {record.source_kind}s "
+                + ", ".join(str(s) for s in record.sources[~seen][:10])
+            )
         quaternions = None if record.quaternions is None else record.quaternions[seen]
         scatter = None if record.scatter is None else record.scatter[seen]
         spans = None
         if record.times is not None:
-            spans = [Stretch(int(k), int(k) + 1, float(t), float(t)) for k, t in zip(np.flatnonzero(seen),
-                                                                                     record.times[seen])]
+            spans = [
+                Stretch(int(k), int(k) + 1, float(t), float(t))
+                for k, t in zip(np.flatnonzero(seen), record.times[seen])
+            ]
         points = None if record.points is None else record.points[seen]
-        return _Poses(record.positions[seen], quaternions, record.joints[seen], record.sources[seen], scatter, spans,
-                      points)
+        return _Poses(
+            record.positions[seen], quaternions, record.joints[seen], record.sources[seen], scatter, spans, points
+        )
     tracked = record.positions if record.points is None else record.points
     stretches = stationary_stretches(record.times, tracked, options.still_speed, options.min_dwell)
     if not stretches:
-        raise DataFileError(record.path, f"no still stretch of {options.min_dwell:g} s or more below "
-                                         f"{options.still_speed:g} m/s (--still-speed, --min-dwell)")
-    averaged = [average_positions(record.positions[s.start:s.stop]) for s in stretches]
-    quaternions = None if record.quaternions is None else np.array(
-        [average_quaternions(record.quaternions[s.start:s.stop]) for s in stretches])
-    joints = np.array([record.joints[s.start:s.stop].mean(axis=0) for s in stretches])
+        raise DataFileError(
+            record.path,
+            f"no still stretch of {options.min_dwell:g} s or more below "
+            f"{options.still_speed:g} m/s (--still-speed, --min-dwell)",
+        )
+    averaged = [average_positions(record.positions[s.start : s.stop]) for s in stretches]
+    quaternions = (
+        None
+        if record.quaternions is None
+        else np.array([average_quaternions(record.quaternions[s.start : s.stop]) for s in stretches])
+    )
+    joints = np.array([record.joints[s.start : s.stop].mean(axis=0) for s in stretches])
     scatter = np.array([a[1] for a in averaged])
     points = None
     if record.points is not None:
-        points = np.array([_point_means(record.points[s.start:s.stop]) for s in stretches])
-        scatter = np.array([_point_scatter(record.points[s.start:s.stop], p) for s, p in zip(stretches, points)])
-    notes.append(f"{len(stretches)} still stretches of {record.n_samples} frames averaged (median "
-                 f"{int(np.median([a[2] for a in averaged]))} frames, median scatter {np.median(scatter):.3g} m)")
-    return _Poses(np.array([a[0] for a in averaged]), quaternions, joints.reshape(len(stretches), -1),
-                  record.sources[[s.start for s in stretches]], scatter, stretches, points)
+        points = np.array([_point_means(record.points[s.start : s.stop]) for s in stretches])
+        scatter = np.array([_point_scatter(record.points[s.start : s.stop], p) for s, p in zip(stretches, points)])
+    notes.append(
+        f"{len(stretches)} still stretches of {record.n_samples} frames averaged (median "
+        f"{int(np.median([a[2] for a in averaged]))} frames, median scatter {np.median(scatter):.3g} m)"
+    )
+    return _Poses(
+        np.array([a[0] for a in averaged]),
+        quaternions,
+        joints.reshape(len(stretches), -1),
+        record.sources[[s.start for s in stretches]],
+        scatter,
+        stretches,
+        points,
+    )
 
 
 def _point_scatter(points: np.ndarray, means: np.ndarray) -> float:
@@ -165,8 +185,9 @@ def _is_stream(record: TrackerRecord) -> bool:
     return record.times is not None and len(record.times) > 1 and float(np.median(np.diff(record.times))) < 0.2
 
 
-def _pair(poses: _Poses, log: RobotLog, options: ConversionOptions,
-          notes: list[str]) -> tuple[np.ndarray, np.ndarray, float | None]:
+def _pair(
+    poses: _Poses, log: RobotLog, options: ConversionOptions, notes: list[str]
+) -> tuple[np.ndarray, np.ndarray, float | None]:
     """(joints (k, J) of the paired stops, indices of the poses kept, clock offset or None)."""
     stops, values = _robot_stops(log, options)
     timed = poses.spans is not None and stops is not None
@@ -178,15 +199,23 @@ def _pair(poses: _Poses, log: RobotLog, options: ConversionOptions,
     else:
         assert poses.spans is not None and stops is not None
         pairing = pair_by_clock(poses.spans, stops)
-        notes.append(f"clock offset: robot clock = tracker clock {pairing.offset:+.3f} s; paired {pairing.paired} "
-                     f"of {len(poses.spans)} tracker dwells with {len(stops)} robot stops")
+        notes.append(
+            f"clock offset: robot clock = tracker clock {pairing.offset:+.3f} s; paired {pairing.paired} "
+            f"of {len(poses.spans)} tracker dwells with {len(stops)} robot stops"
+        )
     keep = np.array([k for k, p in enumerate(pairing.pairs) if p >= 0], dtype=int)
     unpaired = len(pairing.pairs) - len(keep)
     if unpaired:
-        notes.append(f"{unpaired} tracker dwells without a robot stop left out (sources "
-                     + ", ".join(str(poses.sources[k]) for k, p in enumerate(pairing.pairs) if p < 0)[:200] + ")")
-    return values[[pairing.pairs[k] for k in keep]], keep, pairing.offset if options.pairing != "order" and timed \
-        else None
+        notes.append(
+            f"{unpaired} tracker dwells without a robot stop left out (sources "
+            + ", ".join(str(poses.sources[k]) for k, p in enumerate(pairing.pairs) if p < 0)[:200]
+            + ")"
+        )
+    return (
+        values[[pairing.pairs[k] for k in keep]],
+        keep,
+        pairing.offset if options.pairing != "order" and timed else None,
+    )
 
 
 def _robot_stops(log: RobotLog, options: ConversionOptions) -> tuple[list[Stretch] | None, np.ndarray]:
@@ -197,13 +226,21 @@ def _robot_stops(log: RobotLog, options: ConversionOptions) -> tuple[list[Stretc
         return None, log.values
     stops = stationary_stretches(log.times, log.values, options.robot_still_speed, options.min_dwell)
     if not stops:
-        raise DataFileError(log.path, f"the robot never stops for {options.min_dwell:g} s (below "
-                                      f"{options.robot_still_speed:g} rad/s: --robot-still-speed, --min-dwell)")
-    return stops, np.array([log.values[s.start:s.stop].mean(axis=0) for s in stops])
+        raise DataFileError(
+            log.path,
+            f"the robot never stops for {options.min_dwell:g} s (below "
+            f"{options.robot_still_speed:g} rad/s: --robot-still-speed, --min-dwell)",
+        )
+    return stops, np.array([log.values[s.start : s.stop].mean(axis=0) for s in stops])
 
 
 def _subset(poses: _Poses, keep: np.ndarray) -> _Poses:
-    return _Poses(poses.positions[keep], None if poses.quaternions is None else poses.quaternions[keep],
-                  poses.joints[keep], poses.sources[keep], None if poses.scatter is None else poses.scatter[keep],
-                  None if poses.spans is None else [poses.spans[k] for k in keep],
-                  None if poses.points is None else poses.points[keep])
+    return _Poses(
+        poses.positions[keep],
+        None if poses.quaternions is None else poses.quaternions[keep],
+        poses.joints[keep],
+        poses.sources[keep],
+        None if poses.scatter is None else poses.scatter[keep],
+        None if poses.spans is None else [poses.spans[k] for k in keep],
+        None if poses.points is None else poses.points[keep],
+    )

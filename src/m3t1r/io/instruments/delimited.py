@@ -87,8 +87,11 @@ def read_delimited(path: Path, options: ReadOptions, notes: list[str]) -> Tracke
         raise DataFileError(path, "no header line: the file is empty or holds only comments")
     delimiter = detect_delimiter(header[1])
     names = split_fields(header[1], delimiter)
-    rows = [(n, split_fields(t, delimiter)) for n, t in lines if n > header[0] and t.strip()
-            and not t.lstrip().startswith("#")]
+    rows = [
+        (n, split_fields(t, delimiter))
+        for n, t in lines
+        if n > header[0] and t.strip() and not t.lstrip().startswith("#")
+    ]
     if not rows:
         raise DataFileError(path, "no data rows after the header", row=header[0])
     for line, fields in rows:
@@ -114,37 +117,65 @@ def read_delimited(path: Path, options: ReadOptions, notes: list[str]) -> Tracke
         quaternions = _orientation(columns, lower, options, path, header[0])
     times = columns.values(next(n for n in _TIME if n in lower)) if any(n in lower for n in _TIME) else None
     joint_names = _joint_columns(path, header[0], names, lower, columns, options, notes)
-    joints = np.column_stack([columns.values(n.lower()) * (np.pi / 180.0 if n in options.joint_degrees or
-                                                           "all" in options.joint_degrees else 1.0)
-                              for n in joint_names]) if joint_names else np.zeros((len(rows), 0))
+    joints = (
+        np.column_stack(
+            [
+                columns.values(n.lower())
+                * (np.pi / 180.0 if n in options.joint_degrees or "all" in options.joint_degrees else 1.0)
+                for n in joint_names
+            ]
+        )
+        if joint_names
+        else np.zeros((len(rows), 0))
+    )
     if joints.size and not np.all(np.isfinite(joints)):
         row, column = (int(i) for i in np.argwhere(~np.isfinite(joints))[0])
         raise DataFileError(path, "empty joint reading", row=rows[row][0], column=joint_names[column])
-    return TrackerRecord(path, "csv", body, positions, quaternions, times, np.array([n for n, _ in rows]),
-                         joints=joints, joint_names=tuple(joint_names), scatter=_scatter(columns, lower),
-                         points=points, point_numbers=numbers)
+    return TrackerRecord(
+        path,
+        "csv",
+        body,
+        positions,
+        quaternions,
+        times,
+        np.array([n for n, _ in rows]),
+        joints=joints,
+        joint_names=tuple(joint_names),
+        scatter=_scatter(columns, lower),
+        points=points,
+        point_numbers=numbers,
+    )
 
 
 class _Columns:
     """Numeric columns of the rows, parsed on demand (errors name the line and column)."""
 
-    def __init__(self, path: Path, header_line: int, names: list[str], lower: list[str],
-                 rows: list[tuple[int, list[str]]], decimal_comma: bool) -> None:
+    def __init__(
+        self,
+        path: Path,
+        header_line: int,
+        names: list[str],
+        lower: list[str],
+        rows: list[tuple[int, list[str]]],
+        decimal_comma: bool,
+    ) -> None:
         self.path, self.header_line, self.names, self.lower = path, header_line, names, lower
         self.rows, self.decimal_comma = rows, decimal_comma
 
     def values(self, lower_name: str) -> np.ndarray:
         k = self.lower.index(lower_name)
-        return np.array([parse_number(self.path, line, self.names[k], fields[k], self.decimal_comma)
-                         for line, fields in self.rows])
+        return np.array(
+            [parse_number(self.path, line, self.names[k], fields[k], self.decimal_comma) for line, fields in self.rows]
+        )
 
     def numeric(self, lower_name: str) -> bool:
         k = self.lower.index(lower_name)
         return all(is_number(fields[k]) or not fields[k] for _, fields in self.rows[:50])
 
 
-def _position_columns(path: Path, header_line: int, lower: list[str], body: str | None,
-                      notes: list[str]) -> tuple[list[str], str]:
+def _position_columns(
+    path: Path, header_line: int, lower: list[str], body: str | None, notes: list[str]
+) -> tuple[list[str], str]:
     markers = _marker_numbers(lower)
     if {"x", "y", "z"} <= set(lower) and body in (None, ""):
         return ["x", "y", "z"], "the point"
@@ -157,19 +188,24 @@ def _position_columns(path: Path, header_line: int, lower: list[str], body: str 
     elif body.isdigit() and int(body) in markers:
         chosen = int(body)
     else:
-        raise DataFileError(path, f"--body {body}: the file has markers {', '.join(map(str, markers))}",
-                            row=header_line)
+        raise DataFileError(
+            path, f"--body {body}: the file has markers {', '.join(map(str, markers))}", row=header_line
+        )
     return [f"x{chosen}", f"y{chosen}", f"z{chosen}"], f"marker {chosen}"
 
 
-def _rigid_body(path: Path, header_line: int, columns: _Columns, lower: list[str],
-                scale: float) -> tuple[np.ndarray, np.ndarray, str]:
+def _rigid_body(
+    path: Path, header_line: int, columns: _Columns, lower: list[str], scale: float
+) -> tuple[np.ndarray, np.ndarray, str]:
     """(centroids (N, 3) [m], quaternions (N, 4), name) of the markers as one rigid body (module
     docstring); samples missing a marker are NaN."""
     markers = _marker_numbers(lower)
     if len(markers) < 3:
-        raise DataFileError(path, f"--body rigid needs three markers or more (x1, y1, z1 ...); the file has "
-                                  f"{len(markers)}", row=header_line)
+        raise DataFileError(
+            path,
+            f"--body rigid needs three markers or more (x1, y1, z1 ...); the file has {len(markers)}",
+            row=header_line,
+        )
     clouds = np.stack([np.column_stack([columns.values(f"{a}{k}") for a in "xyz"]) for k in markers], axis=1) * scale
     seen = np.all(np.isfinite(clouds.reshape(len(clouds), -1)), axis=1)
     if not seen.any():
@@ -186,8 +222,9 @@ def _rigid_body(path: Path, header_line: int, columns: _Columns, lower: list[str
     return centroids, quaternions, f"markers {', '.join(map(str, markers))} as one rigid body"
 
 
-def _all_markers(path: Path, header_line: int, columns: _Columns, lower: list[str],
-                 scale: float) -> tuple[np.ndarray, tuple[int, ...]]:
+def _all_markers(
+    path: Path, header_line: int, columns: _Columns, lower: list[str], scale: float
+) -> tuple[np.ndarray, tuple[int, ...]]:
     """(points (N, K, 3) [m], NaN where not seen, marker numbers) of every marker (`--body all`)."""
     markers = _marker_numbers(lower)
     if not markers:
@@ -197,19 +234,31 @@ def _all_markers(path: Path, header_line: int, columns: _Columns, lower: list[st
 
 
 def _marker_numbers(lower: list[str]) -> list[int]:
-    return sorted({int(m.group(1)) for n in lower if (m := re.fullmatch(r"x(\d+)", n))
-                   and f"y{m.group(1)}" in lower and f"z{m.group(1)}" in lower})
+    return sorted(
+        {
+            int(m.group(1))
+            for n in lower
+            if (m := re.fullmatch(r"x(\d+)", n)) and f"y{m.group(1)}" in lower and f"z{m.group(1)}" in lower
+        }
+    )
 
 
-def _orientation(columns: _Columns, lower: list[str], options: ReadOptions, path: Path,
-                 header_line: int) -> np.ndarray | None:
+def _orientation(
+    columns: _Columns, lower: list[str], options: ReadOptions, path: Path, header_line: int
+) -> np.ndarray | None:
     if all(q in lower for q in _QUATERNION):
         quaternions = np.column_stack([columns.values(q) for q in _QUATERNION])
         return quaternions / np.linalg.norm(quaternions, axis=1, keepdims=True)
     if all(r in lower for r in _MATRIX):
         return _matrix_quaternions(columns, path)
-    vector = next((group for group in (_ROTATION_VECTOR, _EULER[1]) if all(e in lower for e in group)
-                   and (group == _ROTATION_VECTOR or options.rotation_vector)), None)
+    vector = next(
+        (
+            group
+            for group in (_ROTATION_VECTOR, _EULER[1])
+            if all(e in lower for e in group) and (group == _ROTATION_VECTOR or options.rotation_vector)
+        ),
+        None,
+    )
     if vector is not None:
         values = np.column_stack([columns.values(e) for e in vector])
         quaternions = np.full((len(values), 4), np.nan)
@@ -221,9 +270,12 @@ def _orientation(columns: _Columns, lower: list[str], options: ReadOptions, path
         return None
     if not options.euler:
         hint = " (or --rotation-vector: a rotation vector, as a UR controller logs)" if euler == _EULER[1] else ""
-        raise DataFileError(path, f"Euler angle columns {', '.join(euler)}: give their convention with --euler "
-                                  f"(e.g. xyz extrinsic, ZYX intrinsic){hint} and --degrees if they are in degrees",
-                            row=header_line)
+        raise DataFileError(
+            path,
+            f"Euler angle columns {', '.join(euler)}: give their convention with --euler "
+            f"(e.g. xyz extrinsic, ZYX intrinsic){hint} and --degrees if they are in degrees",
+            row=header_line,
+        )
     angles = np.column_stack([columns.values(e) for e in euler])
     quaternions = np.full((len(angles), 4), np.nan)
     seen = np.all(np.isfinite(angles), axis=1)
@@ -243,21 +295,35 @@ def _matrix_quaternions(columns: _Columns, path: Path) -> np.ndarray:
     bad = np.flatnonzero((off > _NOT_A_ROTATION) | (np.linalg.det(nearest) < 0))
     if bad.size:
         line = columns.rows[int(np.flatnonzero(seen)[bad[0]])][0]
-        raise DataFileError(path, f"r11 ... r33 are not a rotation matrix (off by {off[bad[0]]:.3g}, or a mirror)",
-                            row=line)
+        raise DataFileError(
+            path, f"r11 ... r33 are not a rotation matrix (off by {off[bad[0]]:.3g}, or a mirror)", row=line
+        )
     quaternions[seen] = Rotation.from_matrix(nearest).as_quat()
     return quaternions
 
 
-def _joint_columns(path: Path, header_line: int, names: list[str], lower: list[str], columns: _Columns,
-                   options: ReadOptions, notes: list[str]) -> list[str]:
+def _joint_columns(
+    path: Path,
+    header_line: int,
+    names: list[str],
+    lower: list[str],
+    columns: _Columns,
+    options: ReadOptions,
+    notes: list[str],
+) -> list[str]:
     if options.joints is not None:
         missing = [j for j in options.joints if j.lower() not in lower]
         if missing:
             raise DataFileError(path, f"no column {', '.join(missing)} (--joints)", row=header_line)
         return [names[lower.index(j.lower())] for j in options.joints]
-    recognised = set(_TIME) | set(_QUATERNION) | {e for group in _EULER for e in group} | {"position_std"} \
-        | set(_ROTATION_VECTOR) | set(_MATRIX)
+    recognised = (
+        set(_TIME)
+        | set(_QUATERNION)
+        | {e for group in _EULER for e in group}
+        | {"position_std"}
+        | set(_ROTATION_VECTOR)
+        | set(_MATRIX)
+    )
     taken, ignored = [], []
     for name, low in zip(names, lower):
         if low in recognised or re.fullmatch(r"[xyz]\d*", low) or low.endswith("_std_mm"):
@@ -272,8 +338,7 @@ def _joint_columns(path: Path, header_line: int, names: list[str], lower: list[s
 
 
 def _is_meta(name: str) -> bool:
-    return (name.startswith("t_") or "time" in name or "stamp" in name or name in ("frame", "index")
-            or "row" in name)
+    return name.startswith("t_") or "time" in name or "stamp" in name or name in ("frame", "index") or "row" in name
 
 
 def _scatter(columns: _Columns, lower: list[str]) -> np.ndarray | None:

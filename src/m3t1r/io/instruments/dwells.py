@@ -20,8 +20,15 @@ import numpy as np
 
 from m3t1r.errors import InvalidInputError
 
-__all__ = ["Stretch", "ClockPairing", "stationary_stretches", "average_positions", "average_quaternions",
-           "pair_by_clock", "pair_by_order"]
+__all__ = [
+    "Stretch",
+    "ClockPairing",
+    "stationary_stretches",
+    "average_positions",
+    "average_quaternions",
+    "pair_by_clock",
+    "pair_by_order",
+]
 
 
 @dataclass(frozen=True)
@@ -53,8 +60,9 @@ class ClockPairing:
         return sum(1 for p in self.pairs if p >= 0)
 
 
-def stationary_stretches(times: np.ndarray, values: np.ndarray, speed_limit: float, min_duration: float,
-                         window: float = 0.5) -> list[Stretch]:
+def stationary_stretches(
+    times: np.ndarray, values: np.ndarray, speed_limit: float, min_duration: float, window: float = 0.5
+) -> list[Stretch]:
     """The still stretches of a stream (module docstring). times (N,) [s], increasing; values (N, d)
     [m or rad], NaN rows where nothing was seen (skipped; a gap over `window` ends a stretch), or
     several markers (N, K, 3) [m], NaN where a marker was not seen: a frame is then still when every
@@ -113,9 +121,11 @@ def pair_by_order(n_tracker: int, n_robot: int) -> ClockPairing:
     """Dwell k with stop k; InvalidInputError when the counts differ (pairing by order would shift
     every pose after the first extra one)."""
     if n_tracker != n_robot:
-        raise InvalidInputError(f"{n_tracker} tracker dwells but {n_robot} robot stops: they cannot be paired by "
-                                "order (give both clocks, so that convert pairs them by time, or tune --still-speed "
-                                "and --min-dwell)")
+        raise InvalidInputError(
+            f"{n_tracker} tracker dwells but {n_robot} robot stops: they cannot be paired by "
+            "order (give both clocks, so that convert pairs them by time, or tune --still-speed "
+            "and --min-dwell)"
+        )
     return ClockPairing(tuple(range(n_tracker)), 0.0)
 
 
@@ -141,8 +151,10 @@ def pair_by_clock(tracker: list[Stretch], robot: list[Stretch]) -> ClockPairing:
     pairs = _inside(mid_t + offset, starts, ends)
     pairs = _unique(pairs, mid_t + offset, mid_r)
     if np.count_nonzero(pairs >= 0) < max(1, len(tracker) // 2):
-        raise InvalidInputError(f"no clock offset pairs half of the {len(tracker)} tracker dwells with the "
-                                f"{len(robot)} robot stops: the logs may not be of the same session")
+        raise InvalidInputError(
+            f"no clock offset pairs half of the {len(tracker)} tracker dwells with the "
+            f"{len(robot)} robot stops: the logs may not be of the same session"
+        )
     return ClockPairing(tuple(int(p) for p in pairs), offset)
 
 

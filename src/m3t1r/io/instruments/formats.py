@@ -43,13 +43,18 @@ def detect_format(path: Path) -> str:
     if looks_c3d(path):
         return "c3d"
     lines = numbered_lines(path)
-    for name, looks in (("motive", looks_motive), ("vicon", looks_vicon), ("csv", looks_delimited),
-                        ("spatial-analyzer", looks_spatial_analyzer)):
+    for name, looks in (
+        ("motive", looks_motive),
+        ("vicon", looks_vicon),
+        ("csv", looks_delimited),
+        ("spatial-analyzer", looks_spatial_analyzer),
+    ):
         if looks(lines):
             return name
     first = next((t.strip() for _, t in lines if t.strip()), "")
-    raise DataFileError(path, f"not a tracker export convert knows (first line '{first[:60]}'): "
-                              f"give --format ({', '.join(FORMATS)})")
+    raise DataFileError(
+        path, f"not a tracker export convert knows (first line '{first[:60]}'): give --format ({', '.join(FORMATS)})"
+    )
 
 
 def read_tracker(path: Path, format_name: str | None, options: ReadOptions, notes: list[str]) -> TrackerRecord:
@@ -69,8 +74,14 @@ def read_robot_log(path: Path, joints: tuple[str, ...] | None, joint_degrees: tu
 
 def _is_raw(column: str) -> bool:
     """A column a measurement table never has, but a tracker's table does (times, counters, scatter in mm)."""
-    return ("time" in column or "stamp" in column or column.startswith("t_") or column.endswith("_std_mm")
-            or "row" in column or column in ("t", "frame", "index"))
+    return (
+        "time" in column
+        or "stamp" in column
+        or column.startswith("t_")
+        or column.endswith("_std_mm")
+        or "row" in column
+        or column in ("t", "frame", "index")
+    )
 
 
 def export_hint(path: Path) -> str | None:
@@ -87,7 +98,12 @@ def export_hint(path: Path) -> str | None:
             return None
         if ";" not in header and "\t" not in header and {"x1", "y1", "z1"} <= names and not any(map(_is_raw, names)):
             return None  # several points per row, as `convert --body all` writes them
-    what = "table of tracker samples (several markers, a time column or ';' separators)" if name == "csv" \
+    what = (
+        "table of tracker samples (several markers, a time column or ';' separators)"
+        if name == "csv"
         else FORMATS[name][1].split(" (")[0].split(":")[0]
-    return (f"{path} is an instrument's export ({what}), not a measurement table: convert it first, "
-            f"`m3t1r convert {path} [--robot ROBOT_LOG] -o measurements.csv`")
+    )
+    return (
+        f"{path} is an instrument's export ({what}), not a measurement table: convert it first, "
+        f"`m3t1r convert {path} [--robot ROBOT_LOG] -o measurements.csv`"
+    )

@@ -42,11 +42,12 @@ def read_motive(path: Path, options: ReadOptions, notes: list[str]) -> TrackerRe
     rotation_type = settings.get("rotation type", "Quaternion")
     scale = length_scale(path, settings.get("length units", options.units or "m"), 1)
     frame_index = next((k for k, (_, text) in enumerate(lines) if text.lower().startswith("frame,")), None)
-    header = [split_fields(text, ",") for _, text in lines[1:frame_index or 1]]
+    header = [split_fields(text, ",") for _, text in lines[1 : frame_index or 1]]
     type_row = next((k for k, row in enumerate(header) if {"Rigid Body", "Marker"} & set(row)), None)
     if frame_index is None or type_row is None or type_row + 2 > len(header) - 1:
-        raise DataFileError(path, "no asset rows (Rigid Body, Marker) above a 'Frame,Time,...' row: not a Motive "
-                                  "CSV export")
+        raise DataFileError(
+            path, "no asset rows (Rigid Body, Marker) above a 'Frame,Time,...' row: not a Motive CSV export"
+        )
     types, names, quantities = header[type_row], header[type_row + 1], header[-1]
     components = split_fields(lines[frame_index][1], ",")
     width = len(components)
@@ -57,25 +58,44 @@ def read_motive(path: Path, options: ReadOptions, notes: list[str]) -> TrackerRe
     wanted = [("Position", c) for c in "XYZ"]
     if is_body:
         if rotation_type.lower() != "quaternion":
-            raise DataFileError(path, f"rotation type '{rotation_type}': export the take with quaternions "
-                                      "(Motive's Rotation Type: Quaternion)", row=1)
+            raise DataFileError(
+                path,
+                f"rotation type '{rotation_type}': export the take with quaternions "
+                "(Motive's Rotation Type: Quaternion)",
+                row=1,
+            )
         wanted = [("Rotation", c) for c in "XYZW"] + wanted
     kind = "Rigid Body" if is_body else "Marker"
     index = []
     for quantity, component in wanted:
-        matches = [k for k in range(width) if types[k] == kind and names[k] == body and quantities[k] == quantity
-                   and components[k].upper() == component]
+        matches = [
+            k
+            for k in range(width)
+            if types[k] == kind
+            and names[k] == body
+            and quantities[k] == quantity
+            and components[k].upper() == component
+        ]
         if not matches:
-            raise DataFileError(path, f"{kind} '{body}' has no {quantity} {component} column",
-                                row=lines[frame_index][0])
+            raise DataFileError(
+                path, f"{kind} '{body}' has no {quantity} {component} column", row=lines[frame_index][0]
+            )
         index.append(matches[0])
-    data = [(line, split_fields(text, ",")) for line, text in lines[frame_index + 1:] if text.strip()]
-    values = np.array([[parse_number(path, line, f"{quantities[k]} {components[k]}", fields[k] if k < len(fields)
-                                     else "") for k in index + [1]] for line, fields in data])
+    data = [(line, split_fields(text, ",")) for line, text in lines[frame_index + 1 :] if text.strip()]
+    values = np.array(
+        [
+            [
+                parse_number(path, line, f"{quantities[k]} {components[k]}", fields[k] if k < len(fields) else "")
+                for k in index + [1]
+            ]
+            for line, fields in data
+        ]
+    )
     positions = values[:, -4:-1] * scale
     quaternions = values[:, :4] if is_body else None
-    return TrackerRecord(path, "motive", body, positions, quaternions, values[:, -1],
-                         np.array([line for line, _ in data]))
+    return TrackerRecord(
+        path, "motive", body, positions, quaternions, values[:, -1], np.array([line for line, _ in data])
+    )
 
 
 def _choose(path: Path, line: int, wanted: str | None, bodies: list[str], markers: list[str]) -> tuple[str, bool]:
@@ -85,11 +105,19 @@ def _choose(path: Path, line: int, wanted: str | None, bodies: list[str], marker
             return wanted, True
         if wanted in markers:
             return wanted, False
-        raise DataFileError(path, f"--body {wanted}: the take has rigid bodies {', '.join(bodies) or 'none'} "
-                                  f"and markers {', '.join(markers) or 'none'}", row=line)
+        raise DataFileError(
+            path,
+            f"--body {wanted}: the take has rigid bodies {', '.join(bodies) or 'none'} "
+            f"and markers {', '.join(markers) or 'none'}",
+            row=line,
+        )
     if len(bodies) == 1:
         return bodies[0], True
     if not bodies and len(markers) == 1:
         return markers[0], False
-    raise DataFileError(path, f"choose the tracked asset with --body NAME: rigid bodies {', '.join(bodies) or 'none'}, "
-                              f"markers {', '.join(markers) or 'none'}", row=line)
+    raise DataFileError(
+        path,
+        f"choose the tracked asset with --body NAME: rigid bodies {', '.join(bodies) or 'none'}, "
+        f"markers {', '.join(markers) or 'none'}",
+        row=line,
+    )

@@ -23,10 +23,24 @@ __all__ = ["CONVERTED_COLUMNS", "TrackerRecord", "LENGTH_SCALES", "length_scale"
 CONVERTED_COLUMNS = ("source", "position_std")
 
 #: Length units as instruments name them, in metres per unit.
-LENGTH_SCALES = {"m": 1.0, "meter": 1.0, "meters": 1.0, "metre": 1.0, "metres": 1.0,
-                 "mm": 1e-3, "millimeter": 1e-3, "millimeters": 1e-3, "millimetre": 1e-3, "millimetres": 1e-3,
-                 "cm": 1e-2, "centimeter": 1e-2, "centimeters": 1e-2,
-                 "in": 0.0254, "inch": 0.0254, "inches": 0.0254}
+LENGTH_SCALES = {
+    "m": 1.0,
+    "meter": 1.0,
+    "meters": 1.0,
+    "metre": 1.0,
+    "metres": 1.0,
+    "mm": 1e-3,
+    "millimeter": 1e-3,
+    "millimeters": 1e-3,
+    "millimetre": 1e-3,
+    "millimetres": 1e-3,
+    "cm": 1e-2,
+    "centimeter": 1e-2,
+    "centimeters": 1e-2,
+    "in": 0.0254,
+    "inch": 0.0254,
+    "inches": 0.0254,
+}
 
 
 def length_scale(path: Path, unit: str, line: int | None = None) -> float:

@@ -47,8 +47,9 @@ def read_robot_csv(path: Path, joints: tuple[str, ...] | None = None, joint_degr
     chosen = list(joints) if joints is not None else [n for n, low in zip(names, lower) if low not in timing]
     missing = [j for j in chosen if j not in names]
     if missing or not chosen:
-        raise DataFileError(path, f"no joint column {', '.join(missing)}" if missing else "no joint columns",
-                            row=lines[0][0])
+        raise DataFileError(
+            path, f"no joint column {', '.join(missing)}" if missing else "no joint columns", row=lines[0][0]
+        )
     rows = []
     for line, text in lines[1:]:
         fields = split_fields(text, delimiter)
@@ -64,11 +65,13 @@ def read_robot_csv(path: Path, joints: tuple[str, ...] | None = None, joint_degr
             raise DataFileError(path, "empty field", row=rows[int(bad[0])][0], column=name)
         return values
 
-    values = np.column_stack([column(j) * (np.pi / 180.0 if j in joint_degrees or "all" in joint_degrees else 1.0)
-                              for j in chosen])
+    values = np.column_stack(
+        [column(j) * (np.pi / 180.0 if j in joint_degrees or "all" in joint_degrees else 1.0) for j in chosen]
+    )
     time = next((names[lower.index(t)] for t in _TIME if t in lower), None)
     spans = None
     if "t_start" in lower and "t_end" in lower:
         spans = np.column_stack([column(names[lower.index("t_start")]), column(names[lower.index("t_end")])])
-    return RobotLog(path, tuple(chosen), values, None if time is None else column(time), spans,
-                    np.array([line for line, _ in rows]))
+    return RobotLog(
+        path, tuple(chosen), values, None if time is None else column(time), spans, np.array([line for line, _ in rows])
+    )

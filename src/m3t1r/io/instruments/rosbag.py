@@ -40,8 +40,10 @@ def _messages(path: Path, msgtypes: tuple[str, ...]) -> list[tuple[str, str, Any
     try:
         with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
             connections = [c for c in reader.connections if c.msgtype in msgtypes]
-            return [(c.topic, c.msgtype, reader.deserialize(raw, c.msgtype))
-                    for c, _, raw in reader.messages(connections=connections)]
+            return [
+                (c.topic, c.msgtype, reader.deserialize(raw, c.msgtype))
+                for c, _, raw in reader.messages(connections=connections)
+            ]
     except Exception as exc:  # rosbags raises its own error types for every broken bag
         if isinstance(exc, MissingExtraError):
             raise
@@ -58,10 +60,11 @@ def read_bag_poses(path: Path, options: ReadOptions, notes: list[str]) -> Tracke
     for topic, msgtype, message in _messages(path, (_POSE, _TRANSFORM, _TF)):
         if msgtype == _POSE:
             samples.setdefault(topic, []).append((_stamp(message), message.pose.position, message.pose.orientation))
-        for transform in (message.transforms if msgtype == _TF else [message] if msgtype == _TRANSFORM else []):
+        for transform in message.transforms if msgtype == _TF else [message] if msgtype == _TRANSFORM else []:
             key = transform.child_frame_id if msgtype == _TF else topic
-            samples.setdefault(key, []).append((_stamp(transform), transform.transform.translation,
-                                                transform.transform.rotation))
+            samples.setdefault(key, []).append(
+                (_stamp(transform), transform.transform.translation, transform.transform.rotation)
+            )
     if not samples:
         raise DataFileError(path, "no PoseStamped, TransformStamped or /tf messages in the bag")
     if options.body is None and len(samples) != 1:
@@ -72,8 +75,16 @@ def read_bag_poses(path: Path, options: ReadOptions, notes: list[str]) -> Tracke
     chosen = samples[body]
     positions = np.array([[p.x, p.y, p.z] for _, p, _ in chosen], dtype=float)
     quaternions = np.array([[q.x, q.y, q.z, q.w] for _, _, q in chosen], dtype=float)
-    return TrackerRecord(path, "rosbag", body, positions, quaternions, np.array([t for t, _, _ in chosen]),
-                         np.arange(1, len(chosen) + 1), source_kind="message")
+    return TrackerRecord(
+        path,
+        "rosbag",
+        body,
+        positions,
+        quaternions,
+        np.array([t for t, _, _ in chosen]),
+        np.arange(1, len(chosen) + 1),
+        source_kind="message",
+    )
 
 
 def read_bag_joints(path: Path, joints: tuple[str, ...] | None = None) -> RobotLog:
@@ -92,5 +103,11 @@ def read_bag_joints(path: Path, joints: tuple[str, ...] | None = None) -> RobotL
         if missing:
             raise DataFileError(path, f"JointState message {k} has no {', '.join(missing)}")
         rows.append([float(by_name[n]) for n in names])
-    return RobotLog(path, names, np.array(rows), np.array([_stamp(m) for _, _, m in messages]), None,
-                    np.arange(1, len(messages) + 1))
+    return RobotLog(
+        path,
+        names,
+        np.array(rows),
+        np.array([_stamp(m) for _, _, m in messages]),
+        None,
+        np.arange(1, len(messages) + 1),
+    )

@@ -26,8 +26,11 @@ _UNITS = re.compile(r"units?\s*[:=]\s*([A-Za-z]+)", re.IGNORECASE)
 
 
 def _fields(text: str) -> list[str]:
-    return [f.strip().strip('"') for f in re.split(r"[,\t]" if re.search(r"[,\t]", text) else r"\s+", text.strip())
-            if f.strip()]
+    return [
+        f.strip().strip('"')
+        for f in re.split(r"[,\t]" if re.search(r"[,\t]", text) else r"\s+", text.strip())
+        if f.strip()
+    ]
 
 
 def _data(lines: Sequence[tuple[int, str]]) -> list[tuple[int, list[str]]]:
@@ -35,8 +38,12 @@ def _data(lines: Sequence[tuple[int, str]]) -> list[tuple[int, list[str]]]:
 
 
 def _is_point(fields: list[str]) -> bool:
-    return 4 <= len(fields) and not is_number(fields[0]) and all(is_number(f) for f in fields[-3:]) and \
-        sum(1 for f in fields if not is_number(f)) <= 3
+    return (
+        4 <= len(fields)
+        and not is_number(fields[0])
+        and all(is_number(f) for f in fields[-3:])
+        and sum(1 for f in fields if not is_number(f)) <= 3
+    )
 
 
 def looks_spatial_analyzer(lines: Sequence[tuple[int, str]]) -> bool:
@@ -48,8 +55,9 @@ def looks_spatial_analyzer(lines: Sequence[tuple[int, str]]) -> bool:
 def read_spatial_analyzer(path: Path, options: ReadOptions, notes: list[str]) -> TrackerRecord:
     """The points of a SpatialAnalyzer ASCII export (module docstring), in metres."""
     lines = numbered_lines(path)
-    stated = next((m.group(1) for _, t in lines if t.lstrip().startswith(("//", "#")) and (m := _UNITS.search(t))),
-                  None)
+    stated = next(
+        (m.group(1) for _, t in lines if t.lstrip().startswith(("//", "#")) and (m := _UNITS.search(t))), None
+    )
     unit = stated or options.units
     if unit is None:
         raise DataFileError(path, "the export does not state its length unit (a '// Units: mm' comment): give --units")
@@ -64,5 +72,12 @@ def read_spatial_analyzer(path: Path, options: ReadOptions, notes: list[str]) ->
             rows.append((line, [parse_number(path, line, axis, fields[-3 + k]) for k, axis in enumerate("XYZ")]))
     if not rows:
         raise DataFileError(path, f"no points of group {options.body}" if options.body else "no points")
-    return TrackerRecord(path, "spatial-analyzer", options.body or "the points", np.array([p for _, p in rows]) * scale,
-                         None, None, np.array([line for line, _ in rows]))
+    return TrackerRecord(
+        path,
+        "spatial-analyzer",
+        options.body or "the points",
+        np.array([p for _, p in rows]) * scale,
+        None,
+        None,
+        np.array([line for line, _ in rows]),
+    )

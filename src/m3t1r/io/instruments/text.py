@@ -22,8 +22,9 @@ def numbered_lines(path: Path) -> list[tuple[int, str]]:
     except OSError as exc:
         raise DataFileError(path, f"cannot read: {exc.strerror or exc}") from None
     if b"\x00" in raw[:4096]:
-        raise DataFileError(path, "a binary file, not a text export (C3D files and ROS 2 bags are read with "
-                                  "--format c3d / rosbag)")
+        raise DataFileError(
+            path, "a binary file, not a text export (C3D files and ROS 2 bags are read with --format c3d / rosbag)"
+        )
     for encoding in ("utf-8-sig", "cp1252"):
         try:
             text = raw.decode(encoding)

@@ -48,27 +48,44 @@ def read_vicon(path: Path, options: ReadOptions, notes: list[str]) -> TrackerRec
     wanted = ["TX", "TY", "TZ", "RX", "RY", "RZ"] if kind != "Trajectories" else ["X", "Y", "Z"]
     index = []
     for component in wanted:
-        k = next((k for k in range(start, min(start + len(wanted), len(components))) if components[k] == component),
-                 None)
+        k = next(
+            (k for k in range(start, min(start + len(wanted), len(components))) if components[k] == component), None
+        )
         if k is None:
             raise DataFileError(path, f"{kind} '{name}' has no {component} column")
         index.append(k)
-    values = np.array([[parse_number(path, line, f"{name} {components[k]}", fields[k] if k < len(fields) else "")
-                        for k in index] for line, fields in rows])
+    values = np.array(
+        [
+            [parse_number(path, line, f"{name} {components[k]}", fields[k] if k < len(fields) else "") for k in index]
+            for line, fields in rows
+        ]
+    )
     frames = np.array([parse_number(path, line, "Frame", fields[0]) for line, fields in rows])
-    sub = np.array([parse_number(path, line, "Sub Frame", fields[1]) if len(fields) > 1 and fields[1] else 0.0
-                    for line, fields in rows])
+    sub = np.array(
+        [
+            parse_number(path, line, "Sub Frame", fields[1]) if len(fields) > 1 and fields[1] else 0.0
+            for line, fields in rows
+        ]
+    )
     positions = values[:, :3] * length_scale(path, units[index[0]] or options.units or "mm")
     quaternions = None
     if kind != "Trajectories":
         angles = values[:, 3:] * _ANGLE_UNITS.get(units[index[3]].lower(), 1.0)
         quaternions = np.full((len(angles), 4), np.nan)
         seen = np.all(np.isfinite(angles), axis=1)
-        rotation = (Rotation.from_euler(options.euler, angles[seen]) if options.euler
-                    else Rotation.from_rotvec(angles[seen]))
+        rotation = (
+            Rotation.from_euler(options.euler, angles[seen]) if options.euler else Rotation.from_rotvec(angles[seen])
+        )
         quaternions[seen] = rotation.as_quat()
-    return TrackerRecord(path, "vicon", name, positions, quaternions, (frames - frames[0] + sub) / rate,
-                         np.array([line for line, _ in rows]))
+    return TrackerRecord(
+        path,
+        "vicon",
+        name,
+        positions,
+        quaternions,
+        (frames - frames[0] + sub) / rate,
+        np.array([line for line, _ in rows]),
+    )
 
 
 _Block = tuple[dict[str, int], float, list[str], list[str], list[tuple[int, list[str]]]]
@@ -104,8 +121,9 @@ def _blocks(path: Path, lines: Sequence[tuple[int, str]]) -> dict[str, _Block]:
     return blocks
 
 
-def _choose(path: Path, wanted: str | None, bodies: list[tuple[str, str]],
-            markers: list[tuple[str, str]]) -> tuple[str, str]:
+def _choose(
+    path: Path, wanted: str | None, bodies: list[tuple[str, str]], markers: list[tuple[str, str]]
+) -> tuple[str, str]:
     every = bodies + markers
     if wanted is not None:
         found = [b for b in every if b[1] == wanted]
@@ -116,5 +134,12 @@ def _choose(path: Path, wanted: str | None, bodies: list[tuple[str, str]],
     elif not bodies and len(markers) == 1:
         return markers[0]
     listed = ", ".join(f"{name} ({kind})" for kind, name in every)
-    raise DataFileError(path, (f"--body {wanted}: not in the file; it has " if wanted else
-                               "choose the tracked subject or marker with --body NAME: ") + listed)
+    raise DataFileError(
+        path,
+        (
+            f"--body {wanted}: not in the file; it has "
+            if wanted
+            else "choose the tracked subject or marker with --body NAME: "
+        )
+        + listed,
+    )
