@@ -1,3 +1,4 @@
+import subprocess
 import sys
 from pathlib import Path
 
@@ -56,3 +57,21 @@ def perturb_every_origin(model: pin.Model, rng: np.random.Generator, sigma_m: fl
         if frame.type in (pin.FrameType.BODY, pin.FrameType.OP_FRAME) and frame.parentFrame != 0:
             frame.placement = frame.placement * pin.exp6(rng.normal(0, 1, 6) * scale)
     return out
+
+
+def process_holding_flock(path: Path) -> subprocess.Popen:
+    """A child process that holds `path`'s flock, as a live writer (here, in another container or on
+    another host) does, until killed."""
+    child = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import fcntl, sys, time; f = open(sys.argv[1], 'rb+'); "
+            "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)",
+            str(path),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert child.stdout.readline().strip() == "held"
+    return child

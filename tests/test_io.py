@@ -8,13 +8,13 @@ import math
 import os
 import re
 import stat
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import process_holding_flock
 
 from m3t1r.errors import DataFileError, InvalidInputError, OutputPathError
 from m3t1r.io import temporaries
@@ -835,30 +835,13 @@ def test_a_leftover_that_cannot_be_removed_is_noted_and_announced(tmp_path):
     assert notes == [f"could not clean up {stuck}: Is a directory"] and announced == notes
 
 
-def _held_by_child(path: Path) -> subprocess.Popen:
-    """A child process that holds `path`'s flock, as a live writer does, until killed."""
-    child = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            "import fcntl, sys, time; f = open(sys.argv[1], 'rb+'); "
-            "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)",
-            str(path),
-        ],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    assert child.stdout.readline().strip() == "held"
-    return child
-
-
 def test_files_whose_lock_is_held_are_kept_whatever_pid_they_name(tmp_path):
     """Liveness is the writer's flock, not its pid: a file naming a pid that does not exist here (a
     writer in another container or on another host) is kept while its lock is held, and one naming
     this very process is removed when nobody holds it (a reused pid)."""
     elsewhere = _leftover(tmp_path, "r.json", pid=DEAD_PID)
     reused = _leftover(tmp_path, "s.json", pid=os.getpid())
-    child = _held_by_child(elsewhere)
+    child = process_holding_flock(elsewhere)
     try:
         assert sweep(tmp_path, announce=None) == [f"removed {reused}, a temporary file left by an interrupted run"]
         assert elsewhere.exists() and not reused.exists()

@@ -21,6 +21,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 import pytest
+from conftest import process_holding_flock
 
 from m3t1r.app.cli import main
 from m3t1r.errors import ModelFileError, OutputPathError
@@ -224,23 +225,6 @@ def test_an_error_before_commit_removes_every_temporary_file(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def _locked_elsewhere(path: Path) -> subprocess.Popen:
-    """Another process holding `path`'s flock, as a live writer in another container or host would."""
-    child = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            "import fcntl, sys, time; f = open(sys.argv[1], 'rb+'); "
-            "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)",
-            str(path),
-        ],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    assert child.stdout.readline().strip() == "held"
-    return child
-
-
 def test_leftovers_of_killed_runs_are_removed_and_live_ones_kept(tmp_path):
     """A leftover is a temporary file nobody holds the lock of. A live writer's file names a pid
     that means nothing here (2**22 + 1: in another PID namespace, or on another host sharing the
@@ -249,7 +233,7 @@ def test_leftovers_of_killed_runs_are_removed_and_live_ones_kept(tmp_path):
     live = tmp_path / f".r.json.m3t1r-{2**22 + 1}-0b.tmp"
     dead.write_text("{")
     live.write_text("{")
-    writer = _locked_elsewhere(live)
+    writer = process_holding_flock(live)
     try:
         outputs = OutputSet(announce=None)
         outputs.add(tmp_path / "q.json")
