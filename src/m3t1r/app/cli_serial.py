@@ -34,7 +34,7 @@ from m3t1r.app.cli_common import (
     status_stream,
 )
 from m3t1r.app.cli_noise import NoiseChoice, ResidualSummary, fit_with_noise, judge_fit
-from m3t1r.app.datasets import check_joint_readings, measured_points, point_numbers
+from m3t1r.app.datasets import check_joint_readings, measured_points, most_seen_point, point_numbers
 from m3t1r.calibration.assessment import (
     MAX_NOISE_RATIO,
     StartCheck,
@@ -60,7 +60,7 @@ from m3t1r.io.instruments.records import CONVERTED_COLUMNS
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import sha256_bytes
 from m3t1r.io.poses import poses_from_table
-from m3t1r.io.tables import Table, read_header, read_table
+from m3t1r.io.tables import read_header, read_table
 from m3t1r.model.poe import SerialChain, tool_poses
 from m3t1r.model.urdf_io import calibrated_urdf_bytes
 
@@ -174,38 +174,19 @@ def read_campaign(
             table, names, readings, lower, upper, prismatic, scales=np.where(prismatic, scale, 1.0), margin=LIMIT_MARGIN
         ):
             print(f"note: {note}", flush=True)
-    if numbers:
-        return _points_campaign(path, table, readings, numbers, units)
-    positions = np.column_stack([table.column(c) for c in "xyz"]) * scale
-    position_only = not table.has_column("qw")
+    points = measured_points(table, numbers, scale) if numbers else None
+    position_only = points is not None or not table.has_column("qw")
+    positions = (
+        most_seen_point(points) if points is not None else np.column_stack([table.column(c) for c in "xyz"]) * scale
+    )
     rotations = [np.eye(3)] * len(positions) if position_only else [g.rotation for g in poses_from_table(table)]
-    poses = [pin.SE3(r, p) for r, p in zip(rotations, positions)]
     return SerialCampaign(
         Path(path),
         sha256_bytes(Path(path).read_bytes()),
         readings,
-        poses,
+        [pin.SE3(r, p) for r, p in zip(rotations, positions)],
         np.asarray(table.line_numbers),
         position_only,
-        units,
-        table.column("source").astype(int) if table.has_column("source") else None,
-    )
-
-
-def _points_campaign(path: str, table: Table, readings: np.ndarray, numbers: list[int], units: str) -> SerialCampaign:
-    """`read_campaign`'s campaign of a file with several points per row, x_k, y_k, z_k (blank where not
-    seen)."""
-    points = measured_points(table, numbers, LENGTH_UNITS[units])
-    finite = np.isfinite(points)
-    reference = int(np.argmax(finite[:, :, 0].sum(axis=0)))
-    poses = [pin.SE3(np.eye(3), p) for p in points[:, reference]]
-    return SerialCampaign(
-        Path(path),
-        sha256_bytes(Path(path).read_bytes()),
-        readings,
-        poses,
-        np.asarray(table.line_numbers),
-        True,
         units,
         table.column("source").astype(int) if table.has_column("source") else None,
         points,
@@ -328,11 +309,6 @@ def _without_gross_readings(args: argparse.Namespace, data: SerialCampaign, star
     return data.subset(np.setdiff1d(np.arange(len(data.poses)), start.gross))
 
 
-def _outlier_sources(data: SerialCampaign, outlier_lines: list[int]) -> list[int]:
-    """The `source` value of each outlier's file line (`outlier_sources`)."""
-    return outlier_sources(data.lines, data.sources, outlier_lines)
-
-
 def cmd_calibrate_serial(args: argparse.Namespace) -> None:
     """`m3t1r calibrate --serial`: a serial robot's calibration from a measurement file."""
     args.prior = parse_priors(args.prior)
@@ -395,11 +371,9 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
             )
             print(choice.describe(data.position_only))
             _print_summary(calibration, lines)
-            if data.sources is not None and lines:
-                print(
-                    "outliers in the tracker's file (the source column): "
-                    + ", ".join(map(str, _outlier_sources(data, lines)))
-                )
+            sources = outlier_sources(data.lines, data.sources, lines)
+            if sources:
+                print("outliers in the tracker's file (the source column): " + ", ".join(map(str, sources)))
             unexplained = judge_fit(
                 calibration.converged,
                 calibration.termination,
@@ -430,7 +404,7 @@ def run_serial_calibration(args: argparse.Namespace) -> None:
             if held_out is not None:
                 report["held_out"] = _score_held_out(calibration, held_out)
             if data.sources is not None:
-                report["outlier_sources"] = _outlier_sources(data, lines)
+                report["outlier_sources"] = sources
         if urdf_output is not None and urdf is not None:  # one is None when the other is
             outputs.stage(urdf_output, calibrated_urdf_bytes(urdf, calibration.model))
         outputs.stage_json(report_output, report)

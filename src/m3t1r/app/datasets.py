@@ -37,6 +37,7 @@ __all__ = [
     "read_measurements",
     "point_numbers",
     "measured_points",
+    "most_seen_point",
     "write_measurements",
     "measurement_table",
     "sha256_of",
@@ -246,6 +247,13 @@ def measured_points(table: Table, numbers: Sequence[int], scale: float) -> np.nd
     return points
 
 
+def most_seen_point(points: np.ndarray) -> np.ndarray:
+    """The positions (N, 3) [m] of the point seen on the most rows of `points` (N, K, 3), NaN where it
+    was not seen: what stands for a row of several points where one position is read (the data
+    checks, `poses`)."""
+    return points[:, int(np.argmax(np.isfinite(points[:, :, 0]).sum(axis=0)))]
+
+
 def read_measurements(path: StrPath, mechanism: Mechanism, units: str = "m") -> MeasurementFile:
     """Read a measurement CSV: actuator columns (named by the actuated joints), optional passive
     joint columns (named by joint), x, y, z and optionally qx, qy, qz, qw; or, for K points rigidly
@@ -279,7 +287,7 @@ def read_measurements(path: StrPath, mechanism: Mechanism, units: str = "m") -> 
     position_only = not table.has_column("qw")
     points = measured_points(table, numbers, LENGTH_UNITS[units]) if numbers else None
     if points is not None:
-        positions = points[:, int(np.argmax(np.isfinite(points[:, :, 0]).sum(axis=0)))]
+        positions = most_seen_point(points)
     else:
         positions = np.column_stack([table.column(n) for n in ("x", "y", "z")]) * scale["x"]
     if position_only:
