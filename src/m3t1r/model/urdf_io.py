@@ -43,7 +43,7 @@ import numpy as np
 import pinocchio as pin
 from lxml import etree
 
-from m3t1r.errors import InvalidInputError, ModelFileError
+from m3t1r.errors import ModelFileError
 from m3t1r.io.outputs import atomic_write_bytes
 from m3t1r.io.pairing import with_closures_sha256
 from m3t1r.io.paths import StrPath, ensure_not_protected
@@ -153,27 +153,6 @@ def revolute_urdf_text(urdf: StrPath, raw: bytes) -> str | None:
         for key in ("lower", "upper"):
             limit.attrib.pop(key, None)
     return etree.tostring(root, encoding="unicode")
-
-
-def max_placement_difference(model_a: pin.Model, model_b: pin.Model) -> float:
-    """Largest difference between same-named placements of two models of the same structure.
-
-    Compares every joint placement and every frame placement, each relative to its parent
-    joint, matching joints by name and frames by name and type. The difference between two
-    placements is the larger of the distance between their origins (m) and the angle between
-    their orientations (rad), so a result of 1e-9 means every placement agrees to 1 nm and 1 nrad.
-
-    Raises:
-        InvalidInputError: the models do not have the same joints and frames on the same
-            parent joints; placements of different structures are not comparable.
-    """
-    joints_a, joints_b = _joint_placements(model_a), _joint_placements(model_b)
-    frames_a, frames_b = _frame_placements(model_a), _frame_placements(model_b)
-    _require_same_structure("joints", joints_a, joints_b)
-    _require_same_structure("frames", frames_a, frames_b)
-    pairs = [(joints_a[key][1], joints_b[key][1]) for key in joints_a]
-    pairs += [(frames_a[key][1], frames_b[key][1]) for key in frames_a]
-    return max((_placement_distance(a, b) for a, b in pairs), default=0.0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -408,44 +387,6 @@ def _canonical(document: bytes) -> bytes | None:
         return etree.tostring(etree.fromstring(document, _parser()).getroottree(), method="c14n")
     except etree.XMLSyntaxError:
         return None
-
-
-# --------------------------------------------------------------------------------------------
-# Comparing models
-# --------------------------------------------------------------------------------------------
-
-_Placements = dict[object, tuple[str, pin.SE3]]
-"""Key (joint name, or frame name and type) -> (parent joint name, placement relative to it)."""
-
-
-def _joint_placements(model: pin.Model) -> _Placements:
-    return {model.names[j]: (model.names[model.parents[j]], model.jointPlacements[j]) for j in range(1, model.njoints)}
-
-
-def _frame_placements(model: pin.Model) -> _Placements:
-    placements: _Placements = {}
-    for frame in model.frames:
-        key = (frame.name, frame.type)
-        if key in placements:
-            raise InvalidInputError(f"model has two {frame.type.name} frames named '{frame.name}'")
-        placements[key] = (model.names[frame.parentJoint], frame.placement)
-    return placements
-
-
-def _require_same_structure(what: str, a: _Placements, b: _Placements) -> None:
-    def label(key: object) -> str:
-        return f"{key[0]} ({key[1].name})" if isinstance(key, tuple) else str(key)
-
-    only_a = sorted(label(key) for key in a.keys() - b.keys())
-    only_b = sorted(label(key) for key in b.keys() - a.keys())
-    if only_a or only_b:
-        raise InvalidInputError(
-            f"models differ in {what}: only in the first: {', '.join(only_a) or 'none'}; "
-            f"only in the second: {', '.join(only_b) or 'none'}"
-        )
-    moved = sorted(label(key) for key in a if a[key][0] != b[key][0])
-    if moved:
-        raise InvalidInputError(f"{what} on different parent joints in the two models: {', '.join(moved)}")
 
 
 def _placement_distance(a: pin.SE3, b: pin.SE3) -> float:
