@@ -1001,33 +1001,6 @@ def test_stage_machine_passes_both_paths(tmp_path):
     assert (tmp_path / "c.yaml").read_bytes() == b"closures" and (tmp_path / "m.urdf").read_bytes() == b"<robot/>"
 
 
-def test_staging_path_is_a_registered_temporary_beside_the_target(tmp_path):
-    outputs = OutputSet()
-    target = tmp_path / "plot.png"
-    outputs.add(target, "--plot")
-    outputs.check()
-    first = outputs.staging_path(str(target))
-    assert first.parent == tmp_path and first.name.startswith(".plot.png.m3t1r-") and first.suffix == ".tmp"
-    assert first in _LIVE_TEMPORARIES and outputs.output(target).temporary == first
-    first.write_bytes(b"one")
-    second = outputs.staging_path(target)  # the same claimed (locked) file, emptied for the next writer
-    assert second == first and second.read_bytes() == b"" and second in _LIVE_TEMPORARIES
-    second.write_bytes(b"png")  # in place: the file's lock stays
-    outputs.commit()
-    assert target.read_bytes() == b"png" and second not in _LIVE_TEMPORARIES
-
-
-def test_staging_path_refuses_streams():
-    outputs = OutputSet()
-    outputs.add("-", "--plot")
-    with pytest.raises(OutputPathError) as caught:
-        outputs.staging_path("-")
-    assert (caught.value.path, str(caught.value)) == (
-        "standard output",
-        "standard output: --plot: a writer needing a file name cannot write to a pipe, device or standard output",
-    )
-
-
 def test_discard_forgets_every_temporary(tmp_path):
     outputs = OutputSet()
     output = outputs.add(tmp_path / "a.csv")

@@ -363,25 +363,6 @@ class OutputSet:
         self.stage(output.closures, closures_bytes)
         self.stage(output, urdf_bytes)
 
-    def staging_path(self, output: Output | StrPath) -> Path:
-        """The output's temporary path, emptied, for a writer that needs a file name; renamed at commit.
-
-        Only for regular-file outputs. The writer must write the file in place (open it for
-        writing), not replace it: the file's lock is what tells other runs it is being written. The
-        name ends in `.tmp`: give the writer the format explicitly.
-        """
-        output = self._resolve(output)
-        if output.kind != "file":
-            raise OutputPathError(
-                output.name,
-                f"{output.label}: a writer needing a file name cannot write to a pipe, device or standard output",
-            )
-        self._ensure_claimed(output)
-        assert output.temporary is not None and output.descriptor is not None, "claimed above"
-        os.ftruncate(output.descriptor, 0)
-        output.staged = True
-        return output.temporary
-
     def _ensure_claimed(self, output: Output) -> None:
         if output.descriptor is None:  # staged without check: claim it now, under the folder lock
             with folder_lock(_target(output).parent):
