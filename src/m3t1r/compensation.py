@@ -48,7 +48,6 @@ __all__ = [
     "Compensation",
     "Compensator",
     "compensate",
-    "check_joint_limits",
     "TrackingErrors",
     "CompensationAccuracy",
     "compensation_accuracy",
@@ -266,19 +265,14 @@ class _JointLimits:
         return joint_limit_violation(self._model, q)  # names the joint; NaN counts as outside there too
 
     def check(self, result: InverseResult) -> None:
-        """`check_joint_limits` of a solved configuration."""
+        """Raise OutOfWorkspaceError if any joint of the solved configuration is beyond its URDF limit.
+
+        The solver keeps the sliders within their limits but not the passive hinges (models/README.md):
+        a target reachable only with, say, the platform hinge past its stop is not a command to send.
+        """
         violation = self.violation(result.q)
         if violation is not None:
             raise OutOfWorkspaceError(violation, result.residual, result.iterations)
-
-
-def check_joint_limits(mechanism: Mechanism, result: InverseResult) -> None:
-    """Raise OutOfWorkspaceError if any joint of the solved configuration is beyond its URDF limit.
-
-    The solver keeps the sliders within their limits but not the passive hinges (models/README.md):
-    a target reachable only with, say, the platform hinge past its stop is not a command to send.
-    """
-    _JointLimits(mechanism.model).check(result)
 
 
 def joint_limit_violation(model: pin.Model, q: np.ndarray) -> str | None:
@@ -457,18 +451,10 @@ class TrackingErrors(PoseErrors):
     """How far a machine ends up from the commanded targets, per target.
 
     position: |p_achieved - p_target| over the task's commanded axes [m]; rotation: the commanded
-    rotation error [rad]: |yaw_achieved - theta_target| wrapped to [0, pi] (yaw by `yaw_of`, also
-    readable as `yaw`) for a yaw task, the log3 angle for a full rotation, 0 for none. Uncommanded
-    components (roll and pitch of the M machine) are not counted here.
+    rotation error [rad]: |yaw_achieved - theta_target| wrapped to [0, pi] (yaw by `yaw_of`) for a
+    yaw task, the log3 angle for a full rotation, 0 for none. Uncommanded components (roll and pitch
+    of the M machine) are not counted here.
     """
-
-    @property
-    def yaw(self) -> np.ndarray:
-        return self.rotation
-
-    @property
-    def yaw_max(self) -> float:
-        return self.rotation_max
 
 
 @dataclass(frozen=True, eq=False)
