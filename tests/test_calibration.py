@@ -62,7 +62,8 @@ def test_platform_sensitivity_matches_finite_differences_through_the_closures(me
     sliders = workspace_actuators(mechanism, 1, rng)[0]
     solver = ClosedLoopSolver(truth)
     q = solver.forward(sliders, q_init=truth.home).q
-    pose, dxi, _ = error_model.platform_sensitivity(solver, q)
+    one = error_model.platform_sensitivities(solver, [q])
+    pose, dxi = pin.SE3(one.poses[0]), one.twist_jacobians[0]
     step = 1e-6
     columns = rng.choice(error_model.n_parameters, 60, replace=False)
     for k in columns:
@@ -90,11 +91,13 @@ def test_batched_sensitivities_equal_the_full_computation_column_by_column(mecha
     np.testing.assert_allclose(part.twist_jacobians, full.twist_jacobians[:, :, columns], atol=1e-12)
     np.testing.assert_allclose(part.closure_jacobians, full.closure_jacobians[:, :, columns], atol=1e-12)
     for i, q in enumerate(configurations):
-        pose, dxi, dq_dp = error_model.platform_sensitivity(solver, q, columns)
-        np.testing.assert_allclose(pose.homogeneous, part.poses[i], atol=1e-15)
-        np.testing.assert_allclose(dxi, part.twist_jacobians[i], atol=1e-12)
+        alone = error_model.platform_sensitivities(solver, [q], columns)
+        np.testing.assert_allclose(alone.poses[0], part.poses[i], atol=1e-15)
+        np.testing.assert_allclose(alone.twist_jacobians[0], part.twist_jacobians[i], atol=1e-12)
         step = np.linspace(-1e-3, 1e-3, len(columns))
-        np.testing.assert_allclose(part.passive_sensitivities()[i] @ step, dq_dp @ step, atol=1e-12)
+        np.testing.assert_allclose(
+            part.passive_sensitivities()[i] @ step, alone.passive_sensitivities()[0] @ step, atol=1e-12
+        )
 
 
 def test_joint_twists_are_pinocchio_regressors(mechanism, error_model):

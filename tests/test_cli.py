@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from m3t1r.app.cli import main
-from m3t1r.app.datasets import check_joint_readings, read_actuators, read_poses
+from m3t1r.app.datasets import check_joint_readings, read_actuators
 from m3t1r.errors import DataFileError
+from m3t1r.io.poses import POSE_COLUMNS, poses_from_table
 from m3t1r.io.tables import read_table
 from m3t1r.model.description import Mechanism, nominal_model_paths
 from m3t1r.model.design import NOMINAL
@@ -35,7 +36,7 @@ def test_ik_then_fk_round_trip(tmp_path):
     targets = _write(tmp_path / "targets.csv", "\n".join(lines) + "\n")
     assert main(["ik", str(targets), "-o", str(tmp_path / "sliders.csv")]) == 0
     assert main(["fk", str(tmp_path / "sliders.csv"), "-o", str(tmp_path / "poses.csv")]) == 0
-    reached, _ = read_poses(tmp_path / "poses.csv")
+    reached = poses_from_table(read_table(tmp_path / "poses.csv", POSE_COLUMNS))
     np.testing.assert_allclose([p.translation for p in reached], poses[:, :3], atol=1e-10)
     np.testing.assert_allclose([yaw_of(p.rotation) for p in reached], poses[:, 3], atol=1e-10)
     sliders, _ = read_actuators(tmp_path / "sliders.csv", Mechanism.load())

@@ -633,7 +633,7 @@ def test_a_home_far_from_an_assembly_is_assembled(mechanism):
     settled = _settled(broken)
     assert np.abs(ClosureSystem(settled.model, settled.closures).evaluate(settled.home, False)[0]).max() < 1e-12
     np.testing.assert_array_equal(settled.home[settled.actuated_ids], broken.home[broken.actuated_ids])
-    assert settled.home_assembly.largest_move > 0.1
+    assert max(abs(move) for _, move in settled.home_assembly.moved) > 0.1
 
 
 def test_the_assembly_note_gives_every_move_largest_first(mechanism):
@@ -641,8 +641,8 @@ def test_the_assembly_note_gives_every_move_largest_first(mechanism):
     settled = _settled(broken)
     change = settled.home - broken.home
     report = settled.home_assembly
-    assert report.largest_move == pytest.approx(np.abs(change).max(), abs=1e-15)
     sizes = [abs(move) for _, move in report.moved]
+    assert sizes[0] == pytest.approx(np.abs(change).max(), abs=1e-15)
     assert sizes == sorted(sizes, reverse=True) and len(sizes) == np.count_nonzero(np.abs(change) > 1e-9)
     name, move = report.moved[0]
     assert move == pytest.approx(change[settled.model.idx_qs[settled.model.getJointId(name)]], abs=1e-15)

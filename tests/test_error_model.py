@@ -295,99 +295,13 @@ def test_passive_and_closure_jacobians(m_machine):
     np.testing.assert_array_equal([m.homogeneous for m in solver.data.oMf.tolist()], last)
 
 
-def test_platform_sensitivity_is_one_pose_of_the_batch(m_machine):
-    _, _, solver, sliders, configurations = m_machine
-    model, full = _full(m_machine)
-    columns = np.array([200, 3, 150, 7, 199])
-    part = model.platform_sensitivities(solver, configurations, columns)
-    for i, q in enumerate(configurations):
-        pose, dxi, dq_dp = model.platform_sensitivity(solver, q, columns)
-        assert isinstance(pose, pin.SE3)
-        np.testing.assert_allclose(pose.homogeneous, full.poses[i], atol=1e-15)
-        np.testing.assert_allclose(dxi, part.twist_jacobians[i], atol=1e-15)
-        np.testing.assert_allclose(dq_dp, part.passive_sensitivities()[i], atol=1e-15)
-        every = model.platform_sensitivity(solver, q)
-        np.testing.assert_allclose(every[1], full.twist_jacobians[i], atol=1e-15)
-        np.testing.assert_allclose(every[2], full.passive_sensitivities()[i], atol=1e-15)
-
-
-@pytest.mark.parametrize("selection", ["random", "frames", "partial_frames", "joints", "single", "platform"])
-def test_column_subsets_equal_the_full_computation(m_machine, selection):
-    _, _, solver, _, configurations = m_machine
-    model, full = _full(m_machine)
-    rng = np.random.default_rng(3)
-    index = {name: k for k, name in enumerate(model.names)}
-    columns = {
-        "random": rng.permutation(204)[:90],
-        "frames": np.arange(203, 119, -1),
-        "partial_frames": np.array(
-            [
-                index[n]
-                for n in (
-                    "P_I.dt[4]",
-                    "upper_tip_I.dt[1]",
-                    "D_I.dt[5]",
-                    "P_II.dt[0]",
-                    "q13.dt[2]",
-                    "P_II.dt[3]",
-                    "upper_pt_II.dt[3]",
-                    "lower_tip_II.dt[0]",
-                    "P_I.dt[1]",
-                )
-            ]
-        ),
-        "joints": np.arange(0, 120, 2),
-        "single": np.array([index["P_I.dt[2]"]]),
-        "platform": np.array([index["P_I.dt[5]"], index["P_I.dt[0]"], index["q14.dt[3]"]]),
-    }[selection]
-    part = model.platform_sensitivities(solver, configurations, columns)
-    assert part.twist_jacobians.shape == (2, 6, len(columns))
-    np.testing.assert_allclose(part.twist_jacobians, full.twist_jacobians[:, :, columns], atol=1e-12)
-    np.testing.assert_allclose(part.closure_jacobians, full.closure_jacobians[:, :, columns], atol=1e-12)
-    np.testing.assert_allclose(part.passive_sensitivities(), full.passive_sensitivities()[:, :, columns], atol=1e-10)
-    np.testing.assert_array_equal(part.passive_jacobians, full.passive_jacobians)
-    again = model.platform_sensitivities(solver, configurations, list(columns))
-    np.testing.assert_array_equal(again.twist_jacobians, part.twist_jacobians)
-
-
-def test_column_plans_are_cached_per_selection(m_machine):
-    _, _, solver, _, configurations = m_machine
-    model, full = _full(m_machine)
-    first = model.platform_sensitivities(solver, configurations[:1], np.array([1, 2]))
-    second = model.platform_sensitivities(solver, configurations[:1], np.array([198, 5, 2]))
-    third = model.platform_sensitivities(solver, configurations[:1], np.array([1, 2]))
-    np.testing.assert_allclose(second.twist_jacobians[0], full.twist_jacobians[0][:, [198, 5, 2]], atol=1e-12)
-    np.testing.assert_array_equal(first.twist_jacobians, third.twist_jacobians)  # the first plan, kept
-
-
-def test_every_column_depends_on_its_parameter(m_machine):
-    """No all-zero column where a parameter moves the platform or a closure (no parameter dropped)."""
-    model, full = _full(m_machine)
-    moves = np.abs(full.twist_jacobians).max(axis=(0, 1)) + np.abs(full.closure_jacobians).max(axis=(0, 1))
-    assert (moves > 1e-6).sum() >= 150
-
-
-def test_joint_twist_matrices_are_pinocchio_regressors(m_machine):
-    mechanism, _, solver, _, configurations = m_machine
-    model = ClosedLoopErrorModel(mechanism)
-    solver.closure_sensitivity(configurations[0])
-    joints = np.array([[m.homogeneous for m in solver.data.oMi.tolist()]] * 2)
-    G = model.joint_twist_matrices(solver.model, joints)
-    assert G.shape == (2, 6, 120)
-    for frame in ("P_I", "P_II", "fivebar_tip_I", "lower_tip_II", "D_I"):
-        fid = solver.model.getFrameId(frame)
-        regressor = pin.computeFrameKinematicRegressor(solver.model, solver.data, fid, pin.WORLD)
-        support = np.abs(regressor).sum(axis=0) > 0
-        np.testing.assert_allclose(G[1][:, support], regressor[:, support], atol=1e-14)
-
-
 def test_invalid_configuration_is_refused(m_machine):
     mechanism, _, solver, _, configurations = m_machine
     model = ClosedLoopErrorModel(mechanism)
     with pytest.raises(InvalidInputError):
         model.platform_sensitivities(solver, [configurations[0][:-1]])
     with pytest.raises(InvalidInputError):
-        model.platform_sensitivity(solver, np.full_like(configurations[0], np.nan))
+        model.platform_sensitivities(solver, [np.full_like(configurations[0], np.nan)])
 
 
 def test_columns_are_read_as_integers(m_machine):

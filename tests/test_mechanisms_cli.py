@@ -17,9 +17,11 @@ import pinocchio as pin
 import pytest
 
 from m3t1r.app.cli import main
-from m3t1r.app.datasets import read_actuators, read_poses
+from m3t1r.app.datasets import read_actuators
 from m3t1r.calibration.closed_loop import pose_errors
 from m3t1r.calibration.validation import read_report
+from m3t1r.io.poses import POSE_COLUMNS, poses_from_table
+from m3t1r.io.tables import read_table
 from m3t1r.model.description import Mechanism, nominal_model_paths
 from m3t1r.model.examples import (
     first_time_five_bar_files,
@@ -139,7 +141,7 @@ def test_ik_fk_compensate_and_view_use_the_task_columns(files, tmp_path):
     read_sliders, _ = read_actuators(tmp_path / "s.csv", nominal)
     np.testing.assert_allclose(read_sliders, sliders, atol=1e-8)
     assert main(["fk", str(tmp_path / "s.csv"), *_model(files), "-o", str(tmp_path / "p.csv")]) == 0
-    back = np.array([p.homogeneous for p in read_poses(tmp_path / "p.csv")[0]])
+    back = np.array([p.homogeneous for p in poses_from_table(read_table(tmp_path / "p.csv", POSE_COLUMNS))])
     np.testing.assert_allclose(task.coordinates(back), task.coordinates(poses), atol=1e-9)
     # Compensating with the nominal model as "calibrated" changes nothing; the header names the task.
     assert (

@@ -16,8 +16,6 @@ from m3t1r.model.poe import (
     SerialChain,
     _JointMotionTerms,
     adjoint_matrices,
-    error_jacobian_world,
-    express_error_jacobian,
     forward_and_error_jacobians,
     jlog3_batch,
     log3_batch,
@@ -148,9 +146,9 @@ def test_initial_poses_and_placements(ur5: pin.Model) -> None:
 
 
 def finite_difference_jacobian(
-    model: pin.Model, chain: SerialChain, q_chain: np.ndarray, step: float = 1e-6, frame: str = "world"
+    model: pin.Model, chain: SerialChain, q_chain: np.ndarray, step: float = 1e-6
 ) -> np.ndarray:
-    """Central differences of y = log6(g(x) g^-1) (eq. 18) or log6(g^-1 g(x)) through `perturb`."""
+    """Central differences of y = log6(g(x) g^-1) (eq. 18) through `perturb`."""
     nominal = poe_forward(chain, model, q_chain)
     placements = chain.placements()
     columns = []
@@ -161,8 +159,7 @@ def finite_difference_jacobian(
                 dt = np.zeros(6)
                 dt[i] = sign * step
                 g = poe_forward(chain, perturb(model, {placement: dt}), q_chain)
-                error = g * nominal.inverse() if frame == "world" else nominal.inverse() * g
-                twists.append(pin.log6(error).vector)
+                twists.append(pin.log6(g * nominal.inverse()).vector)
             columns.append((twists[0] - twists[1]) / (2 * step))
     return np.array(columns).T
 
@@ -175,22 +172,10 @@ def test_error_jacobian_matches_finite_differences(robot: str, request: pytest.F
         model, tool = request.getfixturevalue(robot), example_tool_frame(robot)
     chain = SerialChain.from_model(model, tool)
     for q_chain in random_chain_configurations(model, chain, 3, seed=4):
-        jacobian = error_jacobian_world(chain, model, q_chain)
+        jacobian = forward_and_error_jacobians(chain, model, q_chain[None])[1][0]
         numeric = finite_difference_jacobian(model, chain, q_chain)
         assert jacobian.shape == (6, chain.n_parameters)
         assert np.linalg.norm(jacobian - numeric) <= 1e-6 * np.linalg.norm(jacobian)
-
-
-def test_local_error_jacobian_matches_finite_differences(panda: pin.Model) -> None:
-    chain = SerialChain.from_model(panda, "panda_hand_tcp")
-    q_chain = random_chain_configurations(panda, chain, 1, seed=5)[0]
-    poses, jacobians = forward_and_error_jacobians(chain, panda, q_chain[None])
-    local = express_error_jacobian(jacobians[0], poses[0], pin.LOCAL)
-    numeric = finite_difference_jacobian(panda, chain, q_chain, frame="local")
-    assert np.linalg.norm(local - numeric) <= 1e-6 * np.linalg.norm(local)
-    # LOCAL_WORLD_ALIGNED linear rows are the tool origin displacement in WORLD.
-    aligned = express_error_jacobian(jacobians[0], poses[0], pin.LOCAL_WORLD_ALIGNED)
-    np.testing.assert_allclose(aligned[:3], poses[0].rotation @ local[:3], atol=1e-12)
 
 
 @pytest.mark.parametrize("robot", ["ur5", "panda"])
@@ -203,7 +188,7 @@ def test_error_jacobian_matches_pinocchio_regressor(robot: str, request: pytest.
         pin.forwardKinematics(model, data, q)
         pin.updateFramePlacements(model, data)
         regressor = pin.computeFrameKinematicRegressor(model, data, chain.tool_frame_id, pin.WORLD)
-        jacobian = error_jacobian_world(chain, model, q_chain)
+        jacobian = forward_and_error_jacobians(chain, model, q_chain[None])[1][0]
         for k, j in enumerate(chain.joint_ids):
             np.testing.assert_allclose(jacobian[:, 6 * k : 6 * k + 6], regressor[:, 6 * (j - 1) : 6 * j], atol=1e-12)
         np.testing.assert_allclose(jacobian[:, -6:], data.oMf[chain.tool_frame_id].action, atol=1e-12)
@@ -726,15 +711,6 @@ def test_joint_motions_of_a_general_screw_equal_exp6(ur5: pin.Model) -> None:
     for k in range(4):
         for i in range(5):
             np.testing.assert_allclose(motions[k, i], pin.exp6(twists[k] * q[i, k]).homogeneous, atol=1e-13)
-
-
-def test_express_error_jacobian_in_world_is_the_identity_and_refuses_other_frames() -> None:
-    jacobian = np.random.default_rng(2).normal(size=(6, 12))
-    pose = pin.SE3(pin.exp3(np.array([0.2, 0.1, -0.3])), np.array([0.4, -0.2, 0.1]))
-    np.testing.assert_array_equal(express_error_jacobian(jacobian, pose, pin.WORLD), jacobian)
-    with pytest.raises(InvalidInputError) as info:
-        express_error_jacobian(jacobian, pose, "tool")  # type: ignore[arg-type]
-    assert str(info.value) == "unknown reference frame 'tool'"
 
 
 def test_jlog3_small_angle_series_is_exact_to_rounding() -> None:

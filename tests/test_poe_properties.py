@@ -16,7 +16,7 @@ from m3t1r.model.poe import (
     Placement,
     SerialChain,
     adjoint_matrices,
-    error_jacobian_world,
+    forward_and_error_jacobians,
     jlog3_batch,
     log3_batch,
     perturb,
@@ -102,7 +102,7 @@ def test_error_jacobian_matches_finite_differences(ur5, q, column):
     """Column k of the WORLD error Jacobian is log6(g(x + eps e_k) g(x)^-1) / eps (eq. 18)."""
     model, chain = ur5
     placement = chain.placements()[column // 6]
-    jacobian = error_jacobian_world(chain, model, q)
+    jacobian = forward_and_error_jacobians(chain, model, q[None])[1][0]
     eps = 1e-7
     twists = []
     for sign in (1.0, -1.0):

@@ -31,7 +31,6 @@ __all__ = [
     "TARGET_COLUMNS",
     "check_joint_readings",
     "read_actuators",
-    "read_poses",
     "read_targets",
     "MeasurementFile",
     "read_measurements",
@@ -165,12 +164,6 @@ def read_actuators(path: StrPath, mechanism: Mechanism) -> tuple[np.ndarray, np.
     table = read_table(path, required=names)
     _check_limits(table, mechanism, names)
     return np.column_stack([table.column(n) for n in names]), table.line_numbers
-
-
-def read_poses(path: StrPath) -> tuple[list[pin.SE3], np.ndarray]:
-    """Platform poses (x, y, z, qx, qy, qz, qw per row) and line numbers; quaternions checked unit."""
-    table = read_table(path, required=POSE_COLUMNS)
-    return poses_from_table(table), table.line_numbers
 
 
 def read_targets(path: StrPath, task: TaskSpec | None = None) -> tuple[list[pin.SE3] | np.ndarray, np.ndarray]:

@@ -147,23 +147,13 @@ class ClosedLoopErrorModel:
         blocks = adjoint_matrices(joints[:, self._parents] @ placements)  # (N, n_joints, 6, 6)
         return blocks.transpose(0, 2, 1, 3).reshape(len(joints), 6, 6 * len(placements))  # also for no pose
 
-    def platform_sensitivity(
-        self, solver: ClosedLoopSolver, q: np.ndarray, columns: np.ndarray | None = None
-    ) -> tuple[pin.SE3, np.ndarray, np.ndarray]:
-        """Platform pose at an assembled q, d xi_P / dp (6 x P, spatial twist in WORLD) and
-        dq_passive / dp (n_passive x P), for the parameter `columns` (default all).
-
-        Sliders held fixed; the passive joints move with the parameters through the closures.
-        One pose of `platform_sensitivities`.
-        """
-        batch = self.platform_sensitivities(solver, [q], columns)
-        return pin.SE3(batch.poses[0]), batch.twist_jacobians[0], batch.passive_sensitivities()[0]
-
     def platform_sensitivities(
         self, solver: ClosedLoopSolver, configurations, columns: np.ndarray | None = None
     ) -> PlatformSensitivities:
-        """`platform_sensitivity` at N assembled configurations at once, for the parameter `columns`.
+        """Platform poses at N assembled configurations, d xi_P / dp (spatial twists in WORLD) and
+        dq_passive / dp at each, for the parameter `columns` (default all).
 
+        Sliders held fixed; the passive joints move with the parameters through the closures.
         Only the Pinocchio passes run per pose; the algebra (eq. 17 blocks Ad(oMi[parent]
         jointPlacement), closure rows, the implicit passive solve) runs on stacks, restricted to the
         requested columns. d xi_P / dp = X_P - (J_P,pas J_c,pas^-1) dr_c/dp: the passive solve has

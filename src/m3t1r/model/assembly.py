@@ -51,11 +51,6 @@ class HomeAssembly:
     wrapped: tuple[str, ...]
     iterations: int
 
-    @property
-    def largest_move(self) -> float:
-        """[rad or m] the largest |assembled - given| of a joint (0 when none moved)."""
-        return max((abs(change) for _, change in self.moved), default=0.0)
-
     def note(self, tolerance: float) -> str:
         """One line for the user: what did not close (above `tolerance`), which assembly was chosen and
         how far each joint moved."""

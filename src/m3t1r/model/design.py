@@ -45,10 +45,6 @@ class WorkspaceBox:
         hi = np.array([self.x[1], self.y[1], self.z[1], self.theta[1]])
         return lo + (hi - lo) * rng.random((n, 4))
 
-    def contains(self, x: float, y: float, z: float, theta: float, margin: float = 0.0) -> bool:
-        bounds = (self.x, self.y, self.z, self.theta)
-        return all(lo - margin <= v <= hi + margin for v, (lo, hi) in zip((x, y, z, theta), bounds))
-
 
 @dataclass(frozen=True)
 class MechanismDesign:

@@ -39,8 +39,6 @@ __all__ = [
     "Placement",
     "SerialChain",
     "adjoint_matrices",
-    "error_jacobian_world",
-    "express_error_jacobian",
     "forward_and_error_jacobians",
     "jlog3_batch",
     "log3_batch",
@@ -373,7 +371,7 @@ class SerialChain:
         return tuple(Placement.joint(name) for name in self.joint_names) + (Placement.frame(self.tool_frame),)
 
     def parameter_names(self) -> tuple[str, ...]:
-        """Column names of `error_jacobian_world`, 6 per placement."""
+        """Column names of the error Jacobian (`forward_and_error_jacobians`), 6 per placement."""
         return tuple(name for p in self.placements() for name in p.parameter_names())
 
     def rank_bound(self, position_only: bool = False) -> int:
@@ -649,21 +647,8 @@ def forward_and_error_jacobians(
 ) -> tuple[list[pin.SE3], np.ndarray]:
     """Tool poses and WORLD error Jacobians at a batch of chain configurations.
 
-    q_chain: (N, n). Returns ([g_1 .. g_N], J of shape (N, 6, 6(n+1))); see `error_jacobian_world`
-    for the meaning of J. Both come from one batched pass along the chain (`placement_poses`); use
-    that function directly to stay in arrays.
-    """
-    chain.check_model(model)
-    frames = placement_poses(chain, chain.initial_transforms(model), q_chain)
-    n_poses, n_blocks = frames.shape[:2]
-    # (N, n+1, 6, 6) -> (N, 6, n+1, 6): block k holds the 6 columns of placement k.
-    jacobians = np.swapaxes(adjoint_matrices(frames), 1, 2).reshape(n_poses, 6, 6 * n_blocks)
-    return [pin.SE3(g) for g in frames[:, -1]], jacobians
-
-
-def error_jacobian_world(chain: SerialChain, model: pin.Model, q_chain: ArrayLike) -> np.ndarray:
-    """Error Jacobian J (6, 6(n+1)) of eq. (17)-(20), WORLD (spatial) convention.
-
+    q_chain: (N, n). Returns ([g_1 .. g_N], J of shape (N, 6, 6(n+1))), J the error Jacobian of
+    eq. (17)-(20) in the WORLD (spatial) convention at each configuration:
     J = [Ad(T_{B,1}(0)), Ad(g_{B,1} T_{1,2}(0)), ..., Ad(g_{B,n-1} T_{n-1,n}(0)), Ad(g_{B,n} T_{n,P}(0))]
     with g_{B,k} the pose of joint k after its motion. Columns follow `chain.parameter_names()`:
     the stacked right-multiplied placement errors x = [dt_1; ...; dt_n; dt_P] ([v; w], m and rad,
@@ -671,23 +656,12 @@ def error_jacobian_world(chain: SerialChain, model: pin.Model, q_chain: ArrayLik
     y = log6(g_actual g^-1) = [v; w] expressed in {B} (eq. 18), to first order y = J x.
     Without a base frame, the joint blocks equal those of
     `pin.computeFrameKinematicRegressor(model, data, tool, pin.WORLD)` and the tool block is Ad(oMf).
+    Both come from one batched pass along the chain (`placement_poses`); use that function
+    directly to stay in arrays.
     """
-    return forward_and_error_jacobians(chain, model, np.reshape(q_chain, (1, -1)))[1][0]
-
-
-def express_error_jacobian(jacobian_world: np.ndarray, pose: pin.SE3, frame: pin.ReferenceFrame) -> np.ndarray:
-    """Re-express the rows of a WORLD error Jacobian (6, m) at the tool pose `pose` = g_{B,P}.
-
-    LOCAL: y = log6(g^-1 g_actual), the error in the tool frame.
-    LOCAL_WORLD_ALIGNED: [dp; w], the tool origin displacement and rotation, both on {B}'s axes.
-    """
-    if frame == pin.WORLD:
-        transform = np.eye(6)
-    elif frame == pin.LOCAL:
-        transform = pose.inverse().action
-    elif frame == pin.LOCAL_WORLD_ALIGNED:
-        # v + w x p: the velocity of the point at the tool origin rather than at {B}'s origin.
-        transform = pin.SE3(np.eye(3), -pose.translation).action
-    else:
-        raise InvalidInputError(f"unknown reference frame {frame!r}")
-    return transform @ jacobian_world
+    chain.check_model(model)
+    frames = placement_poses(chain, chain.initial_transforms(model), q_chain)
+    n_poses, n_blocks = frames.shape[:2]
+    # (N, n+1, 6, 6) -> (N, 6, n+1, 6): block k holds the 6 columns of placement k.
+    jacobians = np.swapaxes(adjoint_matrices(frames), 1, 2).reshape(n_poses, 6, 6 * n_blocks)
+    return [pin.SE3(g) for g in frames[:, -1]], jacobians

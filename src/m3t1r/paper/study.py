@@ -5,7 +5,6 @@ kinematics, calibrated by `calibrate_two_chains` and judged on held-out poses (t
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -66,16 +65,6 @@ class ChainErrors:
 
     before: PoseErrors
     after: PoseErrors | None
-
-    @property
-    def reduction(self) -> tuple[float, float]:
-        """(position, orientation) ratio of mean errors before / after (nan without `after`)."""
-        if self.after is None:
-            return math.nan, math.nan
-        return (
-            self.before.position_mean / self.after.position_mean,
-            self.before.rotation_mean / self.after.rotation_mean,
-        )
 
 
 @dataclass(frozen=True)
