@@ -209,12 +209,12 @@ def campaign_report_fields(
     errors = None if validation is None else validation.errors
     placements = cast("dict[str, dict]", setup.to_report())
     return {
+        **placements,  # measurement_frame, marker, and the points when the setup has some
         "measurement_frame": {
             **placements["measurement_frame"],
             "estimated": any(n.startswith("measurement_frame.") for n in estimated),
         },
         "marker": {**placements["marker"], "estimated": any(n.startswith("marker.") for n in estimated)},
-        **({"points": [list(p) for p in setup.points]} if setup.points else {}),
         "cross_validation": None
         if errors is None
         else {

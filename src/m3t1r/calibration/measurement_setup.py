@@ -100,6 +100,9 @@ class MeasurementSetup:
         return np.einsum("nij,pj->npi", seen[:, :3, :3], offsets) + seen[:, None, :3, 3]
 
     def to_report(self) -> dict[str, object]:
+        """The report's entries for this setup (models/README.md): `measurement_frame` and `marker`
+        as `se3_to_report` placements, and `points` ([x, y, z] in m, in the platform frame) when the
+        setup has some; `from_report` reads them back."""
         report: dict[str, object] = {
             "measurement_frame": se3_to_report(self.frame),
             "marker": se3_to_report(self.marker),
