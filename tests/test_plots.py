@@ -5,12 +5,9 @@ import struct
 import matplotlib.image
 import numpy as np
 import pytest
+from matplotlib.figure import Figure
 
 from m3t1r.app.plots import (
-    _ANGLE_UNITS,
-    _LENGTH_UNITS,
-    _readable,
-    _unit_for,
     plot_error_vs_poses,
     plot_pose_errors_before_after,
     plot_predicted_std_map,
@@ -166,15 +163,22 @@ def test_malformed_data_is_refused_and_nothing_written(tmp_path, errors, workspa
     assert_only(tmp_path)
 
 
-def test_units_follow_the_data():
-    # Before (mm) and after (um) together: the middle of the range reads in micrometres.
-    assert _unit_for(np.array([2e-2, 1e-6]), _LENGTH_UNITS).label == "µm"
-    assert _unit_for(np.array([5e-3, 1e-2]), _LENGTH_UNITS).label == "mm"
-    assert _unit_for(np.array([0.1, 0.05]), _ANGLE_UNITS).label == "mrad"
-    assert _unit_for(np.array([0.0, 0.0]), _ANGLE_UNITS).label == "rad"
-    # Tick and legend text: each value in its own unit.
-    assert _readable(0.0235, _LENGTH_UNITS) == "23.5 mm" and _readable(1e-5, _LENGTH_UNITS) == "10 µm"
-    assert _readable(0.14, _ANGLE_UNITS) == "140 mrad" and _readable(3e-10, _LENGTH_UNITS) == "0.3 nm"
+def test_legends_and_ticks_give_each_value_in_its_own_unit(tmp_path, monkeypatch):
+    """Errors span decades: each legend mean and each tick label reads in the unit that suits it."""
+    drawn: list[Figure] = []
+    savefig = Figure.savefig
+    monkeypatch.setattr(Figure, "savefig", lambda figure, *a, **k: (drawn.append(figure), savefig(figure, *a, **k)))
+    before = PoseErrors(np.full(5, 0.0235), np.full(5, 0.14))
+    after = PoseErrors(np.full(5, 1e-5), np.full(5, 3e-10))
+    plot_pose_errors_before_after(before, after, tmp_path / "e.png")
+    (figure,) = drawn
+    legends = [[t.get_text() for t in ax.get_legend().get_texts()] for ax in figure.axes]
+    assert legends == [
+        ["before: mean 140 mrad", "after: mean 0.3 nrad"],
+        ["before: mean 23.5 mm", "after: mean 10 µm"],
+    ]
+    ticks = {t.get_text() for t in figure.axes[1].yaxis.get_ticklabels() if t.get_text()}
+    assert {"10 µm", "1 mm", "10 mm"} <= ticks
 
 
 @pytest.mark.parametrize("estimate_frame", [False, True])
