@@ -14,7 +14,6 @@ from m3t1r.errors import InvalidInputError, UnknownNameError, UnsupportedJointEr
 from m3t1r.model.poe import (
     Placement,
     SerialChain,
-    _JointMotionTerms,
     adjoint_matrices,
     forward_and_error_jacobians,
     jlog3_batch,
@@ -738,18 +737,30 @@ def test_log3_and_jlog3_of_zero_rotations_raise_no_warning() -> None:
                 np.testing.assert_array_equal(jlog3_batch(logs, angles), np.repeat(np.eye(3)[None], n, axis=0))
 
 
-def test_prismatic_motion_terms_are_finite_whatever_the_memory() -> None:
-    twists = np.zeros((3, 6))
-    twists[:, :3] = np.eye(3)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        for _ in range(5):
-            for n in (1, 3):
+def test_prismatic_joint_motions_are_exact_whatever_the_memory() -> None:
+    """Chains of prismatic joints only (no rotation rate to divide by) move by exactly exp6 of their
+    twists, without a floating point warning, whatever the memory numpy hands out."""
+    for n in (1, 3):
+        model = pin.Model()
+        parent = 0
+        for k in range(n):
+            parent = model.addJoint(
+                parent, (pin.JointModelPX(), pin.JointModelPY(), pin.JointModelPZ())[k], pin.SE3.Identity(), f"p{k}"
+            )
+        model.addFrame(pin.Frame("tool", parent, pin.SE3.Identity(), pin.OP_FRAME))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            for _ in range(5):
                 poison = [np.full(n, np.nan) for _ in range(16)]
                 del poison
-                terms = _JointMotionTerms.from_twists(twists[:n])
-                assert np.all(np.isfinite(terms.basis))
-                np.testing.assert_array_equal(terms.rate, np.zeros(n))
+                chain = SerialChain.from_model(model, "tool")  # a new chain: its motion terms computed anew
+                q = np.linspace(-0.3, 0.4, 2 * n).reshape(2, n)
+                motions = chain.joint_motions(q)
+                assert np.all(np.isfinite(motions))
+                for k in range(n):
+                    for i in range(2):
+                        expected = pin.exp6(chain.twists[k] * q[i, k]).homogeneous
+                        np.testing.assert_allclose(motions[k, i], expected, atol=1e-15)
 
 
 def test_frames_moved_by_a_frame_error_are_the_frames_perturb_moves() -> None:
