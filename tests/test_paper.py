@@ -17,7 +17,7 @@ from m3t1r.paper.closed_chain import closed_chain_study
 from m3t1r.paper.error_model import PAPER_IDENTIFIABLE_BOUND, two_chain_error_model, two_chain_identifiability
 from m3t1r.paper.identification import NOISY_READINGS_REL_TOL, calibrate_two_chains
 from m3t1r.paper.passive_angles import estimate_lower_crank_angles
-from m3t1r.paper.simulation import PASSIVE_ENCODER_NOISE, _read, actual_chain_poses, preset_errors
+from m3t1r.paper.simulation import PASSIVE_ENCODER_NOISE, actual_chain_poses, preset_errors, sensor_readings
 from m3t1r.paper.study import paper_study
 
 # The re-selected base of an exact fit keeps second-order combinations on purpose (see
@@ -376,7 +376,7 @@ def test_the_sensors_read_with_the_tracker_noise_and_the_passive_encoder_noise(
     joints of no chain exact; noise=None reads everything exactly."""
     q = np.repeat(nominal_configurations, 100, axis=0)
     noise = TrackerNoise(actuator=2e-6)
-    readings = _read(mechanism, chains, q, noise, 3e-5, np.random.default_rng(0))
+    readings = sensor_readings(mechanism, chains, q, noise, 3e-5, np.random.default_rng(0))
     model = mechanism.model
     sliders = {model.idx_qs[model.getJointId(n)] for n in mechanism.actuated_joints}
     read = {i for c in chains for i in c.serial.idx_q}
@@ -384,7 +384,7 @@ def test_the_sensors_read_with_the_tracker_noise_and_the_passive_encoder_noise(
     for index in range(model.nq):
         expected = 0.0 if index not in read else noise.actuator if index in sliders else 3e-5
         assert error[index] == pytest.approx(expected, rel=0.05)
-    assert np.array_equal(_read(mechanism, chains, q, None, 3e-5, np.random.default_rng(0)), q)
+    assert np.array_equal(sensor_readings(mechanism, chains, q, None, 3e-5, np.random.default_rng(0)), q)
     with pytest.raises(InvalidInputError, match="passive_encoder_noise must be finite and >= 0"):
         paper_study(3, noise=noise, passive_encoder_noise=-1e-5, mechanism=mechanism)
 

@@ -32,7 +32,7 @@ from m3t1r.paper.identification import (
     calibrate_two_chains,
 )
 from m3t1r.paper.passive_angles import estimate_lower_crank_angles
-from m3t1r.paper.simulation import PASSIVE_ENCODER_NOISE, _checked_passive_encoder_noise, _observe, _read
+from m3t1r.paper.simulation import PASSIVE_ENCODER_NOISE, _checked_passive_encoder_noise, _observe, sensor_readings
 
 __all__ = ["ClosedChainStudyResult", "closed_chain_study"]
 
@@ -163,7 +163,7 @@ def closed_chain_study(
     held_truth = tuple(r.pose for r in held_forward)
 
     passive_encoder_noise = _checked_passive_encoder_noise(passive_encoder_noise) if noise is not None else 0.0
-    readings = _read(nominal, chains, q_fit, noise, passive_encoder_noise, rng)
+    readings = sensor_readings(nominal, chains, q_fit, noise, passive_encoder_noise, rng)
     measured = _observe([r.pose for r in fit_forward], noise, rng)
     tracker = noise if noise is not None else TrackerNoise()
     if rank_tolerance is None:

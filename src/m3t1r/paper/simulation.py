@@ -19,7 +19,14 @@ from m3t1r.model.description import Mechanism
 from m3t1r.model.poe import Placement
 from m3t1r.paper.chains import _TWIST, PaperChain
 
-__all__ = ["PASSIVE_ENCODER_NOISE", "PresetErrorScale", "PresetErrors", "actual_chain_poses", "preset_errors"]
+__all__ = [
+    "PASSIVE_ENCODER_NOISE",
+    "PresetErrorScale",
+    "PresetErrors",
+    "actual_chain_poses",
+    "preset_errors",
+    "sensor_readings",
+]
 
 #: Standard deviation [rad] of the rotary encoders on the chains' passive joints, which the paper's
 #: method reads (every joint of both chains), in a study with noise. The tracker and the slider
@@ -145,7 +152,7 @@ def _checked_passive_encoder_noise(passive_encoder_noise: float) -> float:
     return value
 
 
-def _read(
+def sensor_readings(
     mechanism: Mechanism,
     chains: Sequence[PaperChain],
     configurations: np.ndarray,
@@ -153,8 +160,9 @@ def _read(
     passive_encoder_noise: float,
     rng: np.random.Generator,
 ) -> np.ndarray:
-    """What the sensors of both chains read: sliders with the slider noise (`noise.actuator`) and
-    every other chain joint with `passive_encoder_noise` (rad); exact readings with noise=None."""
+    """What the sensors of both chains read at `configurations` (N, nq) [m, rad]: sliders with the
+    slider noise (`noise.actuator`, m) and every other chain joint with `passive_encoder_noise`
+    (rad); joints of no chain, and every joint with noise=None, read exactly. (N, nq)."""
     readings = configurations.copy()
     if noise is None:
         return readings

@@ -36,9 +36,9 @@ from m3t1r.paper.simulation import (
     PresetErrorScale,
     _checked_passive_encoder_noise,
     _observe,
-    _read,
     actual_chain_poses,
     preset_errors,
+    sensor_readings,
 )
 
 __all__ = ["ChainErrors", "PassiveSource", "PaperStudyResult", "paper_study"]
@@ -162,7 +162,7 @@ def paper_study(
 
     fit, held = slice(0, n_poses), slice(n_poses, None)
     passive_encoder_noise = _checked_passive_encoder_noise(passive_encoder_noise) if noise is not None else 0.0
-    readings = _read(nominal, chains, q_true[fit], noise, passive_encoder_noise, rng)
+    readings = sensor_readings(nominal, chains, q_true[fit], noise, passive_encoder_noise, rng)
     readings, fit_estimate = _with_passive(nominal, readings, passive_from, nominal.model)
     measured = {chain.name: _observe(poses[fit], noise, rng) for chain, poses in zip(chains, truth)}
     tracker = noise if noise is not None else TrackerNoise()
