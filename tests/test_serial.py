@@ -17,7 +17,7 @@ from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.serial import calibrate_serial
 from m3t1r.calibration.serial_evaluation import pose_errors, predicted_pose_std
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
-from m3t1r.calibration.serial_simulation import _readonly, sample_configurations, simulate_serial_measurements
+from m3t1r.calibration.serial_simulation import sample_configurations, simulate_serial_measurements
 from m3t1r.errors import IdentificationError, InvalidInputError
 from m3t1r.metrics import PoseErrors
 from m3t1r.model.poe import Placement, SerialChain, forward_and_error_jacobians, perturb, tool_poses
@@ -729,7 +729,9 @@ def test_outliers_are_judged_at_the_fit_and_refitted_from_the_start(ur5):
     problem, start = _outlier_problem(model, chain, {2: 1.0, 5: 1.5e-4}, 20)  # 1 m and 15 sigma
     # At a state whose marker is 0.1 mm off every pose is 10 sigma off: the robust scale widens the
     # gate, and the 15-sigma pose passes.
-    shifted = replace(start, marker=_readonly(pin.SE3(np.eye(3), np.array([0.0, 0.0, 1e-4])).homogeneous))
+    marker = pin.SE3(np.eye(3), np.array([0.0, 0.0, 1e-4])).homogeneous
+    marker.flags.writeable = False  # as the states' arrays are
+    shifted = replace(start, marker=marker)
     solve = _Fixed([shifted, shifted], [7, 4])
     result, iterations = S.reject_outliers(problem, start, SimpleNamespace(state=start), 5.0, solve)
     flagged_first = np.isin(np.arange(20), [2, 5])
