@@ -29,7 +29,7 @@ from pathlib import Path
 import pytest
 
 from m3t1r.app.cli import main
-from m3t1r.io.signals import Terminated, _signals_held, termination_as_exception
+from m3t1r.io.signals import Terminated, deliver_signals, signals_deferred, termination_as_exception
 
 WORKER = textwrap.dedent(r"""
     import hashlib, itertools, json, os, random, signal, sys, time
@@ -304,13 +304,13 @@ def test_a_signal_held_during_the_renames_arrives_after_them():
     events: list[str] = []
     with pytest.raises(Terminated):
         with termination_as_exception():
-            with _signals_held():
-                # Directed at this thread: the mask is per thread, and a process-directed signal
-                # may go to a thread that does not block it (numpy's BLAS threads).
+            with signals_deferred() as pending:
                 signal.pthread_kill(threading.main_thread().ident, signal.SIGHUP)
                 for _ in range(1000):
                     pass
                 events.append("renamed")
+            assert pending == [signal.SIGHUP]
+            deliver_signals(pending)
             for _ in range(1000):
                 pass
             events.append("not reached")

@@ -19,7 +19,7 @@ from typing import Protocol, overload
 from m3t1r.errors import OutputPathError
 from m3t1r.io.pairing import paired_closures_path
 from m3t1r.io.paths import STDOUT, StrPath, _identity, _same_identity
-from m3t1r.io.signals import _deliver, _signals_deferred
+from m3t1r.io.signals import deliver_signals, signals_deferred
 from m3t1r.io.strict_json import json_text
 from m3t1r.io.temporaries import (
     _LIVE_TEMPORARIES,
@@ -390,7 +390,7 @@ class OutputSet:
         pairs = [(o, o.closures) for o in self.outputs if o.closures is not None]
         order = [*plain, *(o for pair in pairs for o in pair)]  # a URDF, then its closures file
         folders = list(dict.fromkeys(_target(o).parent for o in order))
-        with _signals_deferred() as pending:
+        with signals_deferred() as pending:
             try:
                 with ExitStack() as locks:
                     for _, folder in sorted({_identity(f)[0]: f for f in folders}.items()):
@@ -404,7 +404,7 @@ class OutputSet:
                 _fsync_directory(folder)
         written = [o.name for o in order]
         try:
-            _deliver(pending)
+            deliver_signals(pending)
         except BaseException as exc:  # every file is in place: say so, whatever stops the streams
             exc.outputs_written = written  # type: ignore[attr-defined]
             raise

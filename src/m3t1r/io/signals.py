@@ -8,21 +8,13 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-__all__ = ["Terminated", "termination_as_exception"]
+__all__ = ["Terminated", "deliver_signals", "signals_deferred", "termination_as_exception"]
 
 
 @contextmanager
-def _signals_held() -> Iterator[None]:
-    """Hold SIGINT, SIGTERM, SIGHUP back while renaming; they are delivered when the block ends."""
-    with _signals_deferred() as pending:
-        yield
-    _deliver(pending)
-
-
-@contextmanager
-def _signals_deferred() -> Iterator[list[int]]:
+def signals_deferred() -> Iterator[list[int]]:
     """Hold SIGINT, SIGTERM, SIGHUP back within the block; yields the list of those that arrived,
-    for the caller to `_deliver` when it is ready (after recording what it completed, say).
+    for the caller to `deliver_signals` when it is ready (after recording what it completed, say).
 
     Deferred by Python-level handlers, not by a signal mask: a mask holds signals for the calling
     thread only, and a process-directed `kill` may be taken by any of numpy's threads, after which
@@ -45,8 +37,8 @@ def _signals_deferred() -> Iterator[list[int]]:
             signal.signal(signum, old)
 
 
-def _deliver(pending: list[int]) -> None:
-    """Raise the signals `_signals_deferred` held back, each once, in arrival order."""
+def deliver_signals(pending: list[int]) -> None:
+    """Raise the signals `signals_deferred` held back, each once, in arrival order."""
     for signum in dict.fromkeys(pending):
         signal.raise_signal(signum)
 
