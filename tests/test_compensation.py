@@ -2,11 +2,12 @@
 
 import math
 import re
+import warnings
 
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import frame_coordinates
+from conftest import frame_coordinates, perturb_every_origin
 
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors
 from m3t1r.calibration.measurements import TrackerNoise
@@ -20,7 +21,9 @@ from m3t1r.compensation import (
     workspace_targets,
 )
 from m3t1r.errors import BranchChangeError, InvalidInputError, NotConvergedError, OutOfWorkspaceError
+from m3t1r.model.description import Mechanism
 from m3t1r.model.design import NOMINAL
+from m3t1r.model.examples import spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver, roll_pitch_of, yaw_of
 
 N_TARGETS = 240
@@ -602,22 +605,30 @@ def test_a_wrong_target_width_names_every_column(mechanism):
     assert str(caught.value) == "targets: shape (2, 3), expected (N, 4) rows (x, y, z, theta)"
 
 
-def test_tracking_errors_of_a_full_rotation_task():
-    """Position rows then the log3 angle of the target rotation's error, per reached pose."""
-    from m3t1r.compensation import _tracking_errors
-    from m3t1r.model.task import TaskSpec
-
-    task = TaskSpec(frame="tool", position=("x",), rotation="full")
-    goal_rotation = pin.rpy.rpyToMatrix(0.1, -0.2, 0.3)
-    target = pin.SE3(goal_rotation, np.array([0.4, 0.0, 0.0]))
-    reached = [
-        pin.SE3(goal_rotation @ pin.exp3(np.array([0.0, 0.02, 0.0])), np.array([0.43, 1.0, 2.0])),
-        pin.SE3(goal_rotation, np.array([0.4, 5.0, 5.0])),
-    ]
-    errors = _tracking_errors(task, target, reached)
-    np.testing.assert_allclose(errors, [(0.03, 0.02), (0.0, 0.0)], atol=1e-12)
-    as_row = task.coordinates(target.homogeneous)[0]
-    np.testing.assert_allclose(_tracking_errors(task, as_row, reached), errors, atol=1e-12)
+def test_tracking_errors_of_a_full_rotation_task(tmp_path):
+    """On the spherical wrist (task: the platform's full orientation) the rotation error of a target is
+    the log3 angle between the target's rotation and the truth's reached one, given as a pose or as
+    its quaternion row; no position is commanded, so none is counted."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        wrist = Mechanism.load(*spherical_wrist_files(tmp_path))
+    truth = wrist.with_model(perturb_every_origin(wrist.model, np.random.default_rng(3), 1e-3, 1e-3))
+    home = ClosedLoopSolver(wrist).forward(wrist.home[wrist.actuated_ids]).task_pose
+    turns = ([0.05, 0.0, 0.0], [0.0, -0.04, 0.03], [0.02, 0.02, -0.05])
+    targets = [pin.SE3(home.rotation @ pin.exp3(np.array(turn)), home.translation) for turn in turns]
+    result = compensation_accuracy(wrist, wrist, truth, targets)
+    assert not result.failures
+    solver = ClosedLoopSolver(truth)
+    expected = []
+    for target, sliders in zip(targets, result.actuators_before):
+        reached = solver.forward(sliders, q_init=truth.home).task_pose.rotation
+        expected.append(np.linalg.norm(pin.log3(target.rotation.T @ reached)))
+    assert min(expected) > 1e-4  # the truth's millimetre and milliradian errors show
+    np.testing.assert_allclose(result.before.rotation, expected, rtol=1e-9)
+    np.testing.assert_array_equal(result.before.position, 0.0)
+    rows = wrist.task.coordinates(np.array([t.homogeneous for t in targets]))
+    from_rows = compensation_accuracy(wrist, wrist, truth, rows)
+    np.testing.assert_allclose(from_rows.before.rotation, result.before.rotation, rtol=1e-9)
 
 
 def test_a_passive_hinge_past_its_stop_fails_the_target_in_every_compensation(mechanism):
