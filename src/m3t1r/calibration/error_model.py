@@ -206,18 +206,14 @@ class PlatformSensitivities:
 
     poses: platform frames (N, 4, 4) in the base frame; twist_jacobians: d xi_P / dp (N, 6, P),
     spatial twists in WORLD; passive_jacobians: J_c,passive (N, n_pas, n_pas); closure_jacobians:
-    dr_c / dp (N, n_pas, P) at fixed joints.
+    dr_c / dp (N, n_pas, P) at fixed joints (so that dq_passive / dp = -J_c,passive^-1 dr_c/dp, the
+    module docstring's implicit differentiation).
     """
 
     poses: np.ndarray
     twist_jacobians: np.ndarray
     passive_jacobians: np.ndarray
     closure_jacobians: np.ndarray
-
-    def passive_sensitivities(self) -> np.ndarray:
-        """dq_passive / dp (N, n_pas, P) [rad or m per parameter unit], sliders held fixed:
-        -J_c,passive^-1 dr_c/dp."""
-        return -np.linalg.solve(self.passive_jacobians, self.closure_jacobians)
 
 
 @dataclass(frozen=True, eq=False)
