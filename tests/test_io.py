@@ -29,7 +29,7 @@ from m3t1r.io.temporaries import (
     folder_lock,
     pending_temporaries,
     print_notice,
-    sweep,
+    sweep_locked,
     temporary_path,
     write_claimed,
 )
@@ -786,11 +786,17 @@ def _urdf_recording(folder: Path, data: bytes, name: str = "m.urdf") -> Path:
 # -- sweep and pair completion ------------------------------------------------------------------------
 
 
+def _swept(folder: Path) -> list[str]:
+    """The notes of a sweep of `folder` under its lock, as `OutputSet.check` runs it."""
+    with folder_lock(folder):
+        return sweep_locked(folder)
+
+
 def test_a_staged_closures_file_named_by_its_urdf_completes_the_commit(tmp_path):
     _urdf_recording(tmp_path, b"new")
     (tmp_path / "m.closures.yaml").write_bytes(b"old")
     leftover = _leftover(tmp_path, "m.closures.yaml", b"new")
-    notes = sweep(tmp_path, announce=None)
+    notes = _swept(tmp_path)
     assert (tmp_path / "m.closures.yaml").read_bytes() == b"new" and not leftover.exists()
     assert notes == [f"completed the interrupted write of {tmp_path / 'm.closures.yaml'} (its URDF already named it)"]
 
@@ -798,7 +804,7 @@ def test_a_staged_closures_file_named_by_its_urdf_completes_the_commit(tmp_path)
 def test_a_staged_closures_file_completes_a_pair_whose_closures_file_is_missing(tmp_path):
     _urdf_recording(tmp_path, b"new")
     _leftover(tmp_path, "m.closures.yaml", b"new")
-    sweep(tmp_path, announce=None)
+    _swept(tmp_path)
     assert (tmp_path / "m.closures.yaml").read_bytes() == b"new"
 
 
@@ -812,7 +818,7 @@ def test_other_closures_leftovers_are_removed(tmp_path, case):
         _urdf_recording(tmp_path, b"new")
     (tmp_path / "m.closures.yaml").write_bytes(b"new" if case == "already in place" else b"old")
     leftover = _leftover(tmp_path, "m.closures.yaml", b"new")
-    notes = sweep(tmp_path, announce=None)
+    notes = _swept(tmp_path)
     assert not leftover.exists()
     assert (tmp_path / "m.closures.yaml").read_bytes() == (b"new" if case == "already in place" else b"old")
     assert notes == [f"removed {leftover}, a temporary file left by an interrupted run"]
@@ -823,16 +829,14 @@ def test_only_closures_files_are_ever_completed(tmp_path):
     # the leftover, a report's leftover is removed.
     _urdf_recording(tmp_path, b"new", name=".urdf")
     leftover = _leftover(tmp_path, "r.json", b"new")
-    sweep(tmp_path, announce=None)
+    _swept(tmp_path)
     assert not leftover.exists() and not (tmp_path / "r.json").exists()
 
 
-def test_a_leftover_that_cannot_be_removed_is_noted_and_announced(tmp_path):
+def test_a_leftover_that_cannot_be_removed_is_noted(tmp_path):
     stuck = tmp_path / f".r.json.m3t1r-{DEAD_PID}-0b.tmp"
     stuck.mkdir()  # unlink of a directory fails
-    announced: list[str] = []
-    notes = sweep(tmp_path, announce=announced.append)
-    assert notes == [f"could not clean up {stuck}: Is a directory"] and announced == notes
+    assert _swept(tmp_path) == [f"could not clean up {stuck}: Is a directory"] and stuck.is_dir()
 
 
 def test_files_whose_lock_is_held_are_kept_whatever_pid_they_name(tmp_path):
@@ -843,12 +847,12 @@ def test_files_whose_lock_is_held_are_kept_whatever_pid_they_name(tmp_path):
     reused = _leftover(tmp_path, "s.json", pid=os.getpid())
     child = process_holding_flock(elsewhere)
     try:
-        assert sweep(tmp_path, announce=None) == [f"removed {reused}, a temporary file left by an interrupted run"]
+        assert _swept(tmp_path) == [f"removed {reused}, a temporary file left by an interrupted run"]
         assert elsewhere.exists() and not reused.exists()
     finally:
         child.kill()
         child.wait()
-    sweep(tmp_path, announce=None)  # its writer gone, the lock with it
+    _swept(tmp_path)  # its writer gone, the lock with it
     assert not elsewhere.exists()
 
 
@@ -860,7 +864,7 @@ def test_a_file_whose_lock_cannot_be_probed_is_kept(tmp_path, monkeypatch, error
     leftover = _leftover(tmp_path, "r.json")
     with folder_lock(tmp_path):  # the folder's own lock first, then every probe fails
         monkeypatch.setattr(temporaries.fcntl, "flock", flock)
-        assert temporaries.sweep_locked(tmp_path) == [] and leftover.exists()
+        assert sweep_locked(tmp_path) == [] and leftover.exists()
 
 
 # -- temporary names and writes ---------------------------------------------------------------------

@@ -37,7 +37,7 @@ from m3t1r.io.pairing import (
 )
 from m3t1r.io.progress import Heartbeat, Progress, set_quiet
 from m3t1r.io.strict_json import json_text
-from m3t1r.io.temporaries import _LIVE_TEMPORARIES, sweep, temporary_path
+from m3t1r.io.temporaries import _LIVE_TEMPORARIES, folder_lock, sweep_locked, temporary_path
 from m3t1r.model.description import Mechanism
 
 
@@ -125,7 +125,8 @@ def test_staged_closures_of_an_interrupted_commit_load_and_are_completed_by_the_
     staged.write_bytes(closures_bytes)
     np.testing.assert_array_equal(Mechanism.load(tmp_path / "c.urdf").home, truth.home)
     assert (tmp_path / "c.closures.yaml").read_bytes() == old_closures
-    notes = sweep(tmp_path, announce=None)
+    with folder_lock(tmp_path):
+        notes = sweep_locked(tmp_path)
     assert any("completed the interrupted write" in note for note in notes)
     assert (tmp_path / "c.closures.yaml").read_bytes() == closures_bytes and not staged.exists()
 
@@ -384,7 +385,8 @@ def test_a_long_named_pair_interrupted_between_its_renames_loads_and_is_complete
     assert len(os.fsencode(staged.name)) <= limit
     staged.write_bytes(closures_bytes)
     np.testing.assert_array_equal(Mechanism.load(urdf).home, truth.home)
-    assert any("completed the interrupted write" in note for note in sweep(tmp_path, announce=None))
+    with folder_lock(tmp_path):
+        assert any("completed the interrupted write" in note for note in sweep_locked(tmp_path))
     assert paired_closures_path(urdf).read_bytes() == closures_bytes and not staged.exists()
 
 

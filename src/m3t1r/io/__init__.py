@@ -2,7 +2,7 @@
 
 - `paths`: `StrPath`, `STDOUT` (`-`), `ensure_not_protected` (an output is never an input file);
 - `pairing`: a URDF and its closures file: `paired_closures_path`, the sha256 a URDF records;
-- `temporaries`: recognisable temporary files, their cleanup at exit, `sweep` of a killed run's leftovers;
+- `temporaries`: recognisable temporary files, their cleanup at exit, `sweep_locked` of a killed run's leftovers;
 - `signals`: signals held during renames, `Terminated` and `termination_as_exception`;
 - `strict_json`: `json_text`, JSON that any strict parser reads back;
 - `outputs`: `OutputSet` (every output of a command checked first, committed as a unit),

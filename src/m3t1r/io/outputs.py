@@ -125,7 +125,7 @@ class OutputSet:
     block device, or an existing file that cannot be replaced (immutable); a machine URDF given as
     `-` or as a pipe or device (a machine is two files); and an output that another live m3t1r run
     is writing (naming that run). It sweeps each output folder for temporary files left by killed
-    runs (see `sweep`) and then claims every output: a temporary file beside each target, created
+    runs (see `temporaries.sweep_locked`) and then claims every output: a temporary file beside each target, created
     and exclusively locked under the folder's lock, so that a second writer of the same file is
     refused at its own `check` and no sweep mistakes this run's files for leftovers. (Within one
     process the latest claim wins: a command that failed before its commit leaves no obstacle.)

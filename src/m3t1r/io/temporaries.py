@@ -31,7 +31,6 @@ except ImportError:  # Windows: no advisory locks, so no leftover is ever provab
 __all__ = [
     "pending_temporaries",
     "print_notice",
-    "sweep",
     "temporary_path",
     "folder_lock",
     "live_writer",
@@ -60,7 +59,7 @@ _LIVE_DESCRIPTORS: dict[Path, int] = {}
 
 
 def print_notice(message: str) -> None:
-    """Default `announce` of OutputSet and `sweep`: `m3t1r: <message>` on stderr."""
+    """Default `announce` of OutputSet: `m3t1r: <message>` on stderr."""
     print(f"m3t1r: {message}", file=sys.stderr, flush=True)
 
 
@@ -236,26 +235,17 @@ _STARTED = time.time()
 
 
 # -- sweeping ---------------------------------------------------------------------------------------
-def sweep(folder: StrPath, announce=print_notice) -> list[str]:
+def sweep_locked(folder: Path) -> list[str]:
     """Deal with temporary files left in `folder` by killed m3t1r runs; return what was done.
 
-    A leftover is a recognisable temporary file whose writer's lock can be taken: no live process,
+    Call with `folder_lock(folder)` held (`OutputSet.check` does, and announces the notes). A
+    leftover is a recognisable temporary file whose writer's lock can be taken: no live process,
     in this container or another, on this host or another sharing the folder, holds it. A
     staged closures file whose URDF (`NAME.urdf` beside it) records its sha256 while
     `NAME.closures.yaml` does not match is the second half of an interrupted pair commit: it is
     renamed into place, completing that commit. Every other leftover is removed. Files of
     running processes, and files whose lock cannot be probed, are left alone.
     """
-    with folder_lock(folder):
-        notes = sweep_locked(Path(folder))
-    if announce is not None:
-        for note in notes:
-            announce(note)
-    return notes
-
-
-def sweep_locked(folder: Path) -> list[str]:
-    """`sweep` for a caller that holds `folder_lock(folder)`; returns the notes, announces nothing."""
     notes: list[str] = []
     try:
         names = sorted(entry.name for entry in os.scandir(folder))
