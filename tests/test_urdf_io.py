@@ -684,14 +684,19 @@ def test_a_multiline_origin_attribute_is_spliced_in_place(tmp_path, chain):
     assert re.search(rb"<origin xyz=\"0\.1 0\.2 0\.3\" rpy=\"[-0-9. e]+\" note=\" rpy='1'\"/>", output)
 
 
-def test_fallback_serialization_keeps_comments_cdata_and_encoding(tmp_path, chain, monkeypatch):
+def test_fallback_serialization_keeps_comments_cdata_and_encoding(tmp_path, chain):
+    """An entity reference sends the writer to lxml's serialisation (see above), which keeps the
+    declared encoding, comments and CDATA."""
     _, model = chain
-    text = CHAIN_URDF.replace('<?xml version="1.0"?>', '<?xml version="1.0" encoding="ISO-8859-1"?>')
+    text = CHAIN_URDF.replace(
+        '<?xml version="1.0"?>',
+        '<?xml version="1.0" encoding="ISO-8859-1"?>\n<!DOCTYPE robot [<!ENTITY maker "m3t1r tests">]>',
+    )
     text = text.replace(
-        '<link name="tool"/>', '<link name="tool"><!-- caf\u00e9 --><data><![CDATA[a<b]]></data></link>'
+        '<link name="tool"/>',
+        '<link name="tool"><!-- caf\u00e9 --><data><![CDATA[a<b]]></data><maker>&maker;</maker></link>',
     )
     nominal = _file(tmp_path, text.encode("latin-1"))
-    monkeypatch.setattr(urdf_io, "_splice_origins", lambda raw, attributes: None)
     output = calibrated_urdf_bytes(nominal, model)
     assert output.startswith(b"<?xml version='1.0' encoding='ISO-8859-1'?>\n")
     assert "<!-- caf\u00e9 --><data><![CDATA[a<b]]></data>".encode("latin-1") in output
