@@ -4,6 +4,7 @@ and no text points outside the repository."""
 
 from __future__ import annotations
 
+import ast
 import io
 import re
 import tokenize
@@ -25,6 +26,7 @@ _CITED = re.compile(
     r"(?<![\w./-])((?:%s)/(?:[\w.*/-]|%s)*(?:[\w*]|%s))" % ("|".join(TOP_FOLDERS + PACKAGE_FOLDERS), _FIELD, _FIELD)
 )
 _LINK = re.compile(r"\]\((?!https?:|mailto:|#)([^)#\s]+)")
+_TEST_ID = re.compile(r"(?:tests/)?(test_\w+\.py)::(\w+)|(?<=`)::(\w+)")  # `::name`: in the file cited last
 _OUTSIDE = re.compile(r"shared/design|/work/|/tmp/wt/|\.\./\.\./")
 
 
@@ -82,6 +84,28 @@ def test_every_relative_link_of_a_document_resolves_inside_the_repository(docume
     assert not broken, "links to nothing in the repository:\n" + "\n".join(broken)
 
 
+def _test_functions(file_name: str) -> set[str]:
+    path = ROOT / "tests" / file_name
+    if not path.is_file():
+        return set()
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    return {node.name for node in ast.walk(tree) if isinstance(node, ast.FunctionDef)}
+
+
+def test_every_cited_test_exists():
+    """A document citing a test by its id (`test_io.py::test_x`, or `::test_y` after it) names a test
+    function of that file: a renamed or removed test leaves no dangling reference."""
+    missing = []
+    for path, line, text in _texts():
+        cited_file = None
+        for m in _TEST_ID.finditer(text):
+            cited_file = m.group(1) or cited_file
+            name = m.group(2) or m.group(3)
+            if cited_file is None or name not in _test_functions(cited_file):
+                missing.append(f"{path.relative_to(ROOT)}:{_line(text, m.start(), line)}: {cited_file}::{name}")
+    assert not missing, "cited tests that do not exist:\n" + "\n".join(missing)
+
+
 def test_no_text_points_outside_the_repository():
     outside = [
         f"{path.relative_to(ROOT)}:{_line(text, m.start(), line)}: {m.group(0)}"
@@ -102,3 +126,6 @@ def test_the_scan_reads_what_it_claims_to():
     assert [_exists(c) for c in cited] == [True, True, True, True, False]
     assert _exists("notebooks/NAME.py") and _exists("benchmarks/bench_*.py") and not _exists("tools/bench_*.py")
     assert not _CITED.findall("https://example.org/docs/x.md ../docs/x.md /usr/src/x.py")
+    ids = [(m.group(1), m.group(2) or m.group(3)) for m in _TEST_ID.finditer("`test_docs.py::test_x`, `::test_y`")]
+    assert ids == [("test_docs.py", "test_x"), (None, "test_y")]
+    assert "test_every_cited_test_exists" in _test_functions("test_docs.py") and not _test_functions("test_none.py")
