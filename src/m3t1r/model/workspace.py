@@ -48,8 +48,7 @@ def declared_workspace(mechanism: Mechanism) -> WorkspaceSpec:
     if mechanism not in _DERIVED:
         _DERIVED[mechanism] = default_workspace(mechanism)
         note = f"{mechanism.closures_path.name}: {_derived_note(mechanism, _DERIVED[mechanism])}"
-        if note not in _NOTED:  # copies of one machine (rehomed, calibrated) derive the same box: said once
-            _NOTED.add(note)
+        if _noted(mechanism, note):  # copies of one machine (rehomed, calibrated) derive the same box: said once
             warnings.warn(note, ModelWarning, stacklevel=2)
     return _DERIVED[mechanism]
 
@@ -67,8 +66,17 @@ def default_workspace_notes(mechanism: Mechanism) -> list[str]:
         except InvalidInputError:
             return []
     note = _derived_note(mechanism, _DERIVED[mechanism])
-    _NOTED.add(f"{mechanism.closures_path.name}: {note}")  # the caller says it: no warning later
+    _noted(mechanism, f"{mechanism.closures_path.name}: {note}")  # the caller says it: no warning later
     return [note]
+
+
+def _noted(mechanism: Mechanism, note: str) -> bool:
+    """Record a derived-box note; True the first time this process sees it for this closures file.
+    Keyed by the file's full path, so that another file of the same name (another folder) is told too."""
+    key = (str(mechanism.closures_path.resolve()), note)
+    first = key not in _NOTED
+    _NOTED.add(key)
+    return first
 
 
 def _derived_note(mechanism: Mechanism, workspace: WorkspaceSpec) -> str:
@@ -82,7 +90,7 @@ def _derived_note(mechanism: Mechanism, workspace: WorkspaceSpec) -> str:
 
 
 _DERIVED: "weakref.WeakKeyDictionary[Mechanism, WorkspaceSpec]" = weakref.WeakKeyDictionary()
-_NOTED: set[str] = set()  # the derived-box notes given in this process
+_NOTED: set[tuple[str, str]] = set()  # (closures file, note) pairs said in this process
 DEFAULT_CONDITIONING = 0.25  # a default box keeps this fraction of home's actuator-to-task conditioning
 _REACH_RAD = 0.5  # the largest half-width tried for a revolute actuator [rad]
 _REACH_LENGTH = 0.25  # ... for a prismatic one, as a fraction of the task frame's distance from the base origin
