@@ -28,6 +28,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pinocchio as pin
+import scipy.special
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.error_model import ClosedLoopErrorModel, PlatformSensitivities
@@ -520,6 +521,7 @@ def calibrate_closed_loop(
     selection = None
     if select:
         selection, result = _select_parameters(problem, start, result, forced, options, groups)
+    result = _fit_at_generic_rank(problem, result, base.rank, fixed_columns, forced, rank_tolerance, options)
     if refine:
         result = _refine(problem, result, refine_rank_tolerance, refine_iterations)
     return replace(calibration_result(mechanism, problem, start, result, base, selection), start=start, options=options)
@@ -666,6 +668,59 @@ def _refine(problem: _ClosedLoopProblem, result: LMResult, rank_tolerance: float
         result.state.model, result.state.configurations, result.state.setup, result.state.accumulated
     )
     return levenberg_marquardt(problem, state, max_iterations=iterations, initial_damping=1e-9, cost_tolerance=1e-14)
+
+
+#: The F test's p-value below which `_fit_at_generic_rank` keeps its refit: a drop in chi^2 that fitting
+#: noise with that many more parameters gives once in a thousand fits.
+_GENERIC_RANK_SIGNIFICANCE = 1e-3
+
+
+def _fit_at_generic_rank(
+    problem: _ClosedLoopProblem,
+    result: LMResult,
+    nominal_rank: int,
+    fixed_columns: Sequence[int],
+    forced: np.ndarray,
+    rank_tolerance: float,
+    options: dict,
+) -> LMResult:
+    """The fit over every parameter with an effect, where the estimate identifies more than the nominal.
+
+    A nominal of special geometry (exact parallelograms, a plane) moves the platform only at second
+    order along some placement errors, which a machine with errors moves at first order: base
+    parameters chosen at the nominal are then too few to follow the curved set of machines that
+    explain the data, and the fit stalls at a residual of order error^2. When the rank at the estimate
+    exceeds `nominal_rank`, LM resumes from it over every column with an effect there, damped in
+    the parameters' own units (`unit_damping`: combinations the data do not determine keep their
+    values rather than being driven along that set). The refit is kept when it converged and its drop
+    in chi^2 is significant (F test: per extra identifiable parameter, against its own residual
+    variance; p below `_GENERIC_RANK_SIGNIFICANCE`): on noisy data the extra directions fit noise,
+    and the base fit stays.
+    """
+    everything = np.arange(len(problem.names))
+    _, factor = problem.evaluate(result.state, everything, reduce=True)
+    factor[:, fixed_columns] = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoorExcitationWarning)  # the extra directions are weak by nature
+        rank = select_base_parameters(factor, problem.names, rank_tolerance=rank_tolerance, forced=forced).rank
+    if rank <= nominal_rank:
+        return result
+    base_columns = problem.columns
+    norms = np.linalg.norm(factor, axis=0)
+    problem.columns = everything[norms > rank_tolerance * norms.max()]
+    state = result.state
+    state = problem.assemble(state.model, state.configurations, state.setup, state.accumulated)
+    refit = levenberg_marquardt(
+        problem, state, **{**options, "max_iterations": default_iterations(rank)}, unit_damping=True
+    )
+    extra, dof = rank - len(base_columns), np.count_nonzero(problem.weights) - rank
+    if refit.converged and extra > 0 and dof > 0:
+        ratio = (result.cost - refit.cost) / extra / max(refit.cost / dof, 1e-300)
+        if scipy.special.fdtrc(extra, dof, ratio) < _GENERIC_RANK_SIGNIFICANCE:
+            _release(result.state)
+            return refit
+    problem.columns = base_columns
+    return result
 
 
 def calibration_result(
