@@ -15,7 +15,10 @@ the measurement frame makes redundant stay nominal). Then, in that order:
   re-judged each round, until the flagged set is stable;
 - model selection: forward selection of the base parameters scored by leave-one-pose-out
   prediction (PRESS, `identification.forward_selection`); if fewer predict better, they alone are
-  refitted from the start.
+  refitted from the start;
+- generic rank: where the estimate identifies more than the nominal (a nominal of special
+  geometry) and the added directions explain the residual significantly, the fit continues over
+  every parameter with an effect (`_fit_at_generic_rank`).
 """
 
 from __future__ import annotations
