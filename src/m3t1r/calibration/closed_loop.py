@@ -700,12 +700,14 @@ def _fit_at_generic_rank(
     A nominal of special geometry (exact parallelograms, a plane) moves the platform only at second
     order along some placement errors, which a machine with errors moves at first order: base
     parameters chosen at the nominal are then too few to follow the curved set of machines that
-    explain the data, and the fit stalls at a residual of order error^2. When the rank at the estimate
-    exceeds `nominal_rank` and the directions it adds explain the residual significantly (`_significant`,
-    linearised at the estimate), LM resumes from it over every column with an effect there, damped in
-    the parameters' own units (`unit_damping`: combinations the data do not determine keep their
-    values rather than being driven along that set). The refit is kept when it converged and its own
-    drop in chi^2 passes the same test. On noisy data the added directions explain noise: no refit.
+    explain the data, and the fit stalls at a residual of order error^2. When the base fit is within the
+    stated noise (chi^2 at most its degrees of freedom: a fit beyond it has a model error, not a rank
+    cap), the rank at the estimate exceeds `nominal_rank` and the directions it adds explain the
+    residual significantly (`_significant`, linearised at the estimate), LM resumes from it over
+    every column with an effect there, damped in the parameters' own units (`unit_damping`:
+    combinations the data do not determine keep their values rather than being driven along that set).
+    The refit is kept when it converged and its own drop in chi^2 passes the same test. On noisy data
+    the added directions explain noise: no refit.
     """
     everything = np.arange(len(problem.names))
     residual, augmented = problem.evaluate(result.state, everything, reduce=True, with_residual=True)
@@ -714,9 +716,14 @@ def _fit_at_generic_rank(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)  # the added directions are weak by nature
         here = select_base_parameters(factor, problem.names, rank_tolerance=rank_tolerance, forced=forced)
-    chi2 = float(residual @ residual)
-    extra, dof = here.rank - len(problem.columns), np.count_nonzero(problem.weights) - here.rank
-    if here.rank <= nominal_rank or not _significant(chi2, chi2 - _explained(factor, rotated, here), extra, dof):
+    chi2, rows = float(residual @ residual), np.count_nonzero(problem.weights)
+    extra, dof = here.rank - len(problem.columns), rows - here.rank
+    # A base fit beyond the stated noise is not capped by the rank: a model error is (a frame, a marker),
+    # which the added weak directions must not absorb into implausible placements.
+    within_noise = chi2 <= rows - len(problem.columns)
+    if not within_noise or here.rank <= nominal_rank:
+        return result
+    if not _significant(chi2, chi2 - _explained(factor, rotated, here), extra, dof):
         return result
     base_columns = problem.columns
     norms = np.linalg.norm(factor, axis=0)
