@@ -529,6 +529,13 @@ def _print_summary(calibration: ClosedLoopCalibration, outlier_lines: list[int],
         f"in {calibration.lm.iterations} iterations ({'converged' if calibration.converged else 'NOT converged'})",
         file=out,
     )
+    if fitted > calibration.base.rank:
+        print(
+            f"note: fitted more than the {calibration.base.rank} parameters the nominal identifies: the estimate "
+            "identifies more (the nominal is a special geometry, e.g. planar or with exact parallelograms), "
+            "and the data determine them",
+            file=out,
+        )
     orientation = (
         ""
         if not (math.isfinite(before[1]) and math.isfinite(after[1]))

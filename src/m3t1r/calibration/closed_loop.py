@@ -15,7 +15,10 @@ the measurement frame makes redundant stay nominal). Then, in that order:
   re-judged each round, until the flagged set is stable;
 - model selection: forward selection of the base parameters scored by leave-one-pose-out
   prediction (PRESS, `identification.forward_selection`); if fewer predict better, they alone are
-  refitted from the start.
+  refitted from the start;
+- generic rank: where the estimate identifies more than the nominal (a nominal of special
+  geometry) and the added directions explain the residual significantly, the fit continues over
+  every parameter with an effect (`_fit_at_generic_rank`).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pinocchio as pin
+import scipy.special
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.error_model import ClosedLoopErrorModel, PlatformSensitivities
@@ -234,7 +238,12 @@ class _ClosedLoopProblem:
         return np.concatenate((self.pose_residuals(state).reshape(-1) * self.weights, self.prior_rows(state)[0]))
 
     def evaluate(
-        self, state: _State, columns: np.ndarray, reduce: bool = False, extra_rows: int = 0
+        self,
+        state: _State,
+        columns: np.ndarray,
+        reduce: bool = False,
+        extra_rows: int = 0,
+        with_residual: bool = False,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Whitened pose residual (6N or 3N rows, times `weights`) and its whitened Jacobian over
         `columns`, each followed by `extra_rows` rows left for the caller to fill (priors).
@@ -243,7 +252,8 @@ class _ClosedLoopProblem:
         for one block at a time: memory grows with the pose count only by the Jacobian returned.
         reduce=True returns instead of the Jacobian its triangular factor R (R^T R = J^T J, same
         column norms, at most `len(columns)` rows; no extra rows): enough to choose base
-        parameters, in memory independent of the pose count.
+        parameters, in memory independent of the pose count. With with_residual too, the factor of
+        [J r] (`triangular_factor`: its last column holds Q^T r, what a linear fit can explain).
         """
         if self.on_evaluate is not None:
             self.on_evaluate()
@@ -252,7 +262,9 @@ class _ClosedLoopProblem:
         n, k = len(state.configurations), self.measurements.rows_per_pose
         weights = self.weights
         residual = np.empty(n * k + extra_rows)
-        jacobian = np.zeros((0, len(columns))) if reduce else np.empty((n * k + extra_rows, len(columns)))
+        jacobian = (
+            np.zeros((0, len(columns) + with_residual)) if reduce else np.empty((n * k + extra_rows, len(columns)))
+        )
         for start in range(0, n, _BLOCK):
             block = slice(start, min(start + _BLOCK, n))
             sensitivities = self.error_model.platform_sensitivities(solver, state.configurations[block], machine)
@@ -261,7 +273,7 @@ class _ClosedLoopProblem:
             residual[rows] = block_residual * weights[rows]
             block_jacobian *= weights[rows, None]
             if reduce:
-                jacobian = triangular_factor(block_jacobian, previous=jacobian)
+                jacobian = triangular_factor(block_jacobian, residual[rows] if with_residual else None, jacobian)
             else:
                 jacobian[rows] = block_jacobian
         return residual, jacobian
@@ -520,6 +532,7 @@ def calibrate_closed_loop(
     selection = None
     if select:
         selection, result = _select_parameters(problem, start, result, forced, options, groups)
+    result = _fit_at_generic_rank(problem, result, base.rank, fixed_columns, forced, rank_tolerance, options)
     if refine:
         result = _refine(problem, result, refine_rank_tolerance, refine_iterations)
     return replace(calibration_result(mechanism, problem, start, result, base, selection), start=start, options=options)
@@ -666,6 +679,84 @@ def _refine(problem: _ClosedLoopProblem, result: LMResult, rank_tolerance: float
         result.state.model, result.state.configurations, result.state.setup, result.state.accumulated
     )
     return levenberg_marquardt(problem, state, max_iterations=iterations, initial_damping=1e-9, cost_tolerance=1e-14)
+
+
+#: The F test's p-value below which `_fit_at_generic_rank` refits and keeps the refit: a drop in chi^2 that
+#: fitting noise with that many more parameters gives once in a thousand fits.
+_GENERIC_RANK_SIGNIFICANCE = 1e-3
+
+
+def _fit_at_generic_rank(
+    problem: _ClosedLoopProblem,
+    result: LMResult,
+    nominal_rank: int,
+    fixed_columns: Sequence[int],
+    forced: np.ndarray,
+    rank_tolerance: float,
+    options: dict,
+) -> LMResult:
+    """The fit over every parameter with an effect, where the estimate identifies more than the nominal.
+
+    A nominal of special geometry (exact parallelograms, a plane) moves the platform only at second
+    order along some placement errors, which a machine with errors moves at first order: base
+    parameters chosen at the nominal are then too few to follow the curved set of machines that
+    explain the data, and the fit stalls at a residual of order error^2. When the base fit is within the
+    stated noise (chi^2 at most its degrees of freedom: a fit beyond it has a model error, not a rank
+    cap), the rank at the estimate exceeds `nominal_rank` and the directions it adds explain the
+    residual significantly (`_significant`, linearised at the estimate), LM resumes from it over
+    every column with an effect there, damped in the parameters' own units (`unit_damping`:
+    combinations the data do not determine keep their values rather than being driven along that set).
+    The refit is kept when it converged and its own drop in chi^2 passes the same test. On noisy data
+    the added directions explain noise: no refit.
+    """
+    everything = np.arange(len(problem.names))
+    residual, augmented = problem.evaluate(result.state, everything, reduce=True, with_residual=True)
+    factor, rotated = augmented[:, :-1], augmented[:, -1]  # R and Q^T r of the whitened pose rows
+    factor[:, fixed_columns] = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoorExcitationWarning)  # the added directions are weak by nature
+        here = select_base_parameters(factor, problem.names, rank_tolerance=rank_tolerance, forced=forced)
+    chi2, rows = float(residual @ residual), np.count_nonzero(problem.weights)
+    extra, dof = here.rank - len(problem.columns), rows - here.rank
+    # A base fit beyond the stated noise is not capped by the rank: a model error is (a frame, a marker),
+    # which the added weak directions must not absorb into implausible placements.
+    within_noise = chi2 <= rows - len(problem.columns)
+    if not within_noise or here.rank <= nominal_rank:
+        return result
+    if not _significant(chi2, chi2 - _explained(factor, rotated, here), extra, dof):
+        return result
+    base_columns = problem.columns
+    norms = np.linalg.norm(factor, axis=0)
+    problem.columns = everything[norms > rank_tolerance * norms.max()]
+    state = result.state
+    state = problem.assemble(state.model, state.configurations, state.setup, state.accumulated)
+    refit = levenberg_marquardt(
+        problem, state, **{**options, "max_iterations": default_iterations(here.rank)}, unit_damping=True
+    )
+    if refit.converged and _significant(2.0 * result.cost, 2.0 * refit.cost, extra, dof):
+        _release(result.state)
+        return refit
+    problem.columns = base_columns
+    return result
+
+
+def _explained(factor: np.ndarray, rotated: np.ndarray, base: BaseParameters) -> float:
+    """The part of |r|^2 a linear fit over the base columns explains, from the triangular factor R of the
+    whitened Jacobian and Q^T r (`evaluate` with_residual): |P Q^T r|^2, P projecting on R's base columns."""
+    columns = factor[:, list(base.indices)]
+    columns = columns / np.linalg.norm(columns, axis=0)
+    fitted = columns @ np.linalg.lstsq(columns, rotated, rcond=None)[0]
+    return float(fitted @ fitted)
+
+
+def _significant(before: float, after: float, extra: int, dof: int) -> bool:
+    """Whether chi^2 dropping from `before` to `after` with `extra` more parameters is beyond what fitting
+    noise gives: the F test of the drop per parameter against the residual's own variance after / dof,
+    at p < `_GENERIC_RANK_SIGNIFICANCE`."""
+    if extra <= 0 or dof <= 0 or not after < before:
+        return False
+    ratio = (before - after) / extra / max(after / dof, 1e-300)
+    return bool(scipy.special.fdtrc(extra, dof, ratio) < _GENERIC_RANK_SIGNIFICANCE)
 
 
 def calibration_result(

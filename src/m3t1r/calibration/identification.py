@@ -792,11 +792,15 @@ def levenberg_marquardt(
     gradient_tolerance: float = 1e-12,
     initial_damping: float = 1e-3,
     absolute_cost_tolerance: float = 0.0,
+    unit_damping: bool = False,
 ) -> LMResult[State]:
     """Minimise 1/2 ||r||^2 with Levenberg-Marquardt steps applied through `problem.retract`.
 
     Step: argmin ||r + J dx||^2 + mu ||D dx||^2 with D^2 = diag(J^T J) (Marquardt's scaling, so mu
-    is unit free), solved through a QR of J and a small QR of [R; sqrt(mu) D] per damping value.
+    is unit free), or with unit_damping D = max_j ||J_j|| I: damped in the parameters' own units, so
+    that among nearly equivalent directions the step is the shortest, and a direction the data
+    barely see is not scaled up and driven far (along a curved set of equivalent models). Solved
+    through a QR of J and a small QR of [R; sqrt(mu) D] per damping value.
     Damping follows Nielsen: on acceptance (actual decrease > 0) mu *= max(1/3, 1 - (2 rho - 1)^3),
     on rejection mu *= nu and nu doubles, rho being actual over predicted decrease.
     Stops when ||J^T r||_inf <= gradient_tolerance, when a step has ||dx|| <= step_tolerance
@@ -828,6 +832,8 @@ def levenberg_marquardt(
         rj, qtr = augmented_factor[:size, :-1], augmented_factor[:size, -1]
         scale = _column_norms_of(J)
         scale = np.maximum(scale, 1e-12 * max(scale.max(), 1e-300))
+        if unit_damping:
+            scale = np.full_like(scale, scale.max(initial=1.0))
         p = J.shape[1]
         while True:
             augmented = np.vstack([rj, np.sqrt(mu) * np.diag(scale)])
