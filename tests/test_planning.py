@@ -20,7 +20,14 @@ from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, pr
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.identification import select_base_parameters
 from m3t1r.calibration.measurements import TrackerNoise, measure
-from m3t1r.calibration.planning import order_for_travel, path_travel, plan_closed_loop, plan_serial
+from m3t1r.calibration.planning import (
+    order_for_travel,
+    path_travel,
+    plan_closed_loop,
+    plan_serial,
+    predicted_accuracy,
+    predicted_accuracy_of_rows,
+)
 from m3t1r.calibration.pose_selection import closed_loop_candidate_blocks, information_log_det
 from m3t1r.calibration.serial_robots import load_example_robot
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors
@@ -223,6 +230,33 @@ def test_too_few_planned_poses_name_what_they_leave_unexcited(files, tmp_path) -
     assert found is not None, message
     assert set(found.group(2).removesuffix(" ...").split(", ")) <= set(names)
     assert plan_closed_loop(machine, 12, np.random.default_rng(0), n_evaluation=5).n_poses == 12
+
+
+def test_predicted_accuracy_holds_for_parameters_the_rule_keeps_however_weak() -> None:
+    """A base parameter identified only just above the rank tolerance (R's diagonal 3e-8 of its
+    largest, as a leg's rod joints give: cassie-like legs planned at 40 and 60 poses were refused)
+    squares to a condition number near 1e16 in A^T A; the accuracy from the rows' own factor is
+    the covariance's, checked against an SVD of the rows, and agrees with the information-matrix
+    route where that one is well conditioned."""
+    rng = np.random.default_rng(5)
+    rows = rng.normal(size=(240, 4)) * [1.0, 1e3, 1e-2, 1.0]  # mixed units, as m and rad columns
+    rows[:, 3] = rows[:, 0] + 3e-8 * rng.normal(size=240)  # barely independent of column 0
+    assert select_base_parameters(rows, list("abcd"), max_condition=np.inf).rank == 4
+    sensitivities = rng.normal(size=(7, 6, 4))
+    accuracy = predicted_accuracy_of_rows(rows, sensitivities)
+    _, singular, vt = np.linalg.svd(rows, full_matrices=False)
+    covariance = vt.T @ np.diag(singular**-2.0) @ vt
+    variance = np.einsum("nrp,pq,nrq->nr", sensitivities, covariance, sensitivities)
+    np.testing.assert_allclose(accuracy.std.position, np.sqrt(variance[:, :3].sum(axis=1)), rtol=1e-4)
+    np.testing.assert_allclose(accuracy.std.rotation, np.sqrt(variance[:, 3:].sum(axis=1)), rtol=1e-4)
+    sound = rows[:, :3]
+    np.testing.assert_allclose(
+        predicted_accuracy_of_rows(sound, sensitivities[:, :, :3]).std.position,
+        predicted_accuracy(sound.T @ sound, sensitivities[:, :, :3]).std.position,
+        rtol=1e-9,
+    )
+    with pytest.raises(InvalidInputError, match="does not identify every base parameter"):
+        predicted_accuracy_of_rows(np.zeros((12, 2)), sensitivities[:, :, :2])
 
 
 def test_plan_and_calibrate_count_the_same_identifiable_parameters(tmp_path) -> None:

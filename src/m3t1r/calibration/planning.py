@@ -30,10 +30,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 import pinocchio as pin
+import scipy.linalg
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
@@ -61,6 +62,7 @@ __all__ = [
     "order_for_travel",
     "path_travel",
     "predicted_accuracy",
+    "predicted_accuracy_of_rows",
     "base_information",
     "DEFAULT_CANDIDATES_PER_POSE",
     "DEFAULT_EVALUATION_POSES",
@@ -281,7 +283,8 @@ def predicted_accuracy(
     un-whitened pose sensitivities (n, 6, m) to them (position [m], then orientation [rad] rows).
 
     The covariance M^-1 is formed with M scaled to a unit diagonal (its entries mix m and rad
-    units over many decades). Rotation is NaN when `position_only`.
+    units over many decades). Rotation is NaN when `position_only`. Forming M squares the
+    condition number of the rows: `predicted_accuracy_of_rows` avoids that where the rows are at hand.
     """
     scale = 1.0 / np.sqrt(np.diag(information))
     try:
@@ -289,8 +292,30 @@ def predicted_accuracy(
     except np.linalg.LinAlgError:
         raise InvalidInputError("the plan does not identify every base parameter: add poses or candidates") from None
     # J Cov J^T = (J S L^-T)(J S L^-T)^T with Cov = S (L L^T)^-1 S.
+    return _accuracy(factor, scale, sensitivities, position_only)
+
+
+def predicted_accuracy_of_rows(
+    rows: np.ndarray, sensitivities: np.ndarray, position_only: bool = False
+) -> PredictedAccuracy:
+    """`predicted_accuracy` of the information M = A^T A of whitened rows A (k, m), from the
+    triangular factor of A itself: M = R^T R without forming M, so base parameters that the rows
+    identify only weakly (R's diagonal down to 1e-8 of its largest, as the identifiability rule
+    allows) do not make a singular M in floating point."""
+    norms = np.linalg.norm(rows, axis=0)
+    triangular = cast(np.ndarray, np.linalg.qr(rows / np.where(norms > 0.0, norms, 1.0), mode="r"))
+    if not (np.all(norms > 0.0) and np.all(np.abs(np.diag(triangular)) > 0.0)):
+        raise InvalidInputError("the plan does not identify every base parameter: add poses or candidates")
+    scale = 1.0 / norms
+    return _accuracy(triangular.T, scale, sensitivities, position_only)
+
+
+def _accuracy(
+    lower: np.ndarray, scale: np.ndarray, sensitivities: np.ndarray, position_only: bool
+) -> PredictedAccuracy:
+    """Pose std from L (m, m) lower triangular with L L^T = S M S, S = diag(scale)."""
     rows = np.asarray(sensitivities, dtype=float) * scale
-    flat = np.linalg.solve(factor, rows.reshape(-1, rows.shape[2]).T).T.reshape(rows.shape)
+    flat = scipy.linalg.solve_triangular(lower, rows.reshape(-1, rows.shape[2]).T, lower=True).T.reshape(rows.shape)
     variance = np.sum(flat**2, axis=2)  # (n, 6) per row
     position = np.sqrt(variance[:, :3].sum(axis=1))
     rotation = np.full(len(position), np.nan) if position_only else np.sqrt(variance[:, 3:].sum(axis=1))
@@ -330,9 +355,10 @@ def _plan(
         raise InvalidInputError(_shortfall(candidates, selection, n_poses))
     chosen = np.array(selection.indices, dtype=int)
     order = order_for_travel(candidates.configurations[chosen], start)
-    information = base_information(candidates.blocks, chosen, selection.columns)
-    sign, log_det = np.linalg.slogdet(information)
-    accuracy = predicted_accuracy(information, candidates.evaluation[:, :, list(selection.columns)], position_only)
+    rows = candidates.blocks[chosen][:, :, list(selection.columns)].reshape(-1, len(selection.columns))
+    accuracy = predicted_accuracy_of_rows(rows, candidates.evaluation[:, :, list(selection.columns)], position_only)
+    # log det M = 2 sum log |R_ii| (A = QR): finite wherever the accuracy is, unlike slogdet of M.
+    log_det = 2.0 * float(np.sum(np.log(np.abs(np.diag(cast(np.ndarray, np.linalg.qr(rows, mode="r")))))))
     ordered = candidates.configurations[chosen[order]]
     return MeasurementPlan(
         kind=kind,
@@ -341,7 +367,7 @@ def _plan(
         candidate_indices=tuple(int(i) for i in chosen[order]),
         n_candidates=len(candidates.configurations),
         selection=selection,
-        log_det=float(log_det) if sign > 0 else -math.inf,
+        log_det=log_det,
         start=np.asarray(start, dtype=float),
         travel=path_travel(ordered, start),
         travel_selection_order=path_travel(candidates.configurations[chosen], start),
