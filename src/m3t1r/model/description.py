@@ -550,8 +550,8 @@ def _assembled_home(
     if not assembly.residual <= HOME_TOLERANCE:
         raise ModelFileError(
             mechanism.closures_path,
-            f"{given}, and Newton from the given values reached only {assembly.residual:.1e} "
-            "(give home values closer to an assembly)",
+            f"{given}, and Newton from the given values reached only {assembly.residual:.1e}; "
+            + _with_actuators_free(mechanism, system),
         )
     for name, value, lower, upper in limits_violated(mechanism.model, home, passive)[:1]:
         raise ModelFileError(
@@ -561,6 +561,36 @@ def _assembled_home(
             "joints near the assembly mode wanted)",
         )
     return home, assembly
+
+
+def _with_actuators_free(mechanism: Mechanism, system: ClosureSystem) -> str:
+    """Advice for a home that does not assemble with the actuators held: the same solve with every
+    joint free either closes within the joint limits (then the actuator values it needed are given)
+    or does not (then the closures may not hold on this tree at all)."""
+    model = mechanism.model
+    every = np.arange(model.nv)
+    home, assembly = assemble_home(model, mechanism.closures, system, mechanism.home, every)
+    beyond = limits_violated(model, home, every)[:1]
+    if assembly.residual <= HOME_TOLERANCE and not beyond:
+        values = ", ".join(
+            f"{name}: {home[model.idx_qs[model.getJointId(name)]] + 0.0:.4g}" for name in mechanism.actuated_joints
+        )
+        return (
+            f"with the actuators free too, it closes with them at {{{values}}}: give actuator home values "
+            "near those, a little inside the actuators' reach (the nearest values that close are often at "
+            "its edge, where the loops are singular)"
+        )
+    found = (
+        f"with every joint free it closes only with joint '{beyond[0][0]}' at {beyond[0][1]:.4g}, beyond its "
+        f"URDF limits [{beyond[0][2]:.4g}, {beyond[0][3]:.4g}]"
+        if assembly.residual <= HOME_TOLERANCE
+        else f"even with every joint free it reaches only {assembly.residual:.1e} from the given values"
+    )
+    return (
+        f"{found}: the closures may not all hold on this URDF (check each closure's type, 3D or 6D, its rows "
+        "and frames, and that the URDF's joints are the mechanism's: a ball joint given as one revolute, say), "
+        "or the given values are far from any assembly"
+    )
 
 
 def _replace_missing_limits(mechanism: Mechanism) -> list[str]:
