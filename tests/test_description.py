@@ -625,7 +625,7 @@ def test_a_home_newton_cannot_close_is_refused(mechanism):
     )
     found = re.fullmatch(
         re.escape(prefix) + r"(\S+); with every joint free it closes only with joint '(\w+)' at (\S+), beyond its "
-        r"URDF limits \[(\S+), (\S+)\]: the closures may not all hold on this URDF \(check each closure's type, "
+        r"URDF limits \[(\S+), (\S+)\]: the closures may not all hold on this model \(check each closure's type, "
         r"3D or 6D, its rows and frames, .*\), or the given values are far from any assembly",
         message,
     )

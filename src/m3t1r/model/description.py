@@ -587,8 +587,8 @@ def _with_actuators_free(mechanism: Mechanism, system: ClosureSystem) -> str:
         else f"even with every joint free it reaches only {assembly.residual:.1e} from the given values"
     )
     return (
-        f"{found}: the closures may not all hold on this URDF (check each closure's type, 3D or 6D, its rows "
-        "and frames, and that the URDF's joints are the mechanism's: a ball joint given as one revolute, say), "
+        f"{found}: the closures may not all hold on this model (check each closure's type, 3D or 6D, its rows "
+        "and frames, and that the model's joints are the mechanism's: a ball joint given as one revolute, say), "
         "or the given values are far from any assembly"
     )
 
