@@ -829,6 +829,7 @@ def _reference_base(
         tuple(sorted(fixed_columns)),
         float(problem.row_weights[0] / problem.row_weights[-1]),
         rank_tolerance,
+        repr(error_model.mechanism.workspace),  # the reference poses are drawn in it
     )
     if key not in _STRUCTURAL_RANKS:
         _STRUCTURAL_RANKS[key] = _reference_selection(problem, marker, fixed_columns, rank_tolerance)
