@@ -39,7 +39,12 @@ from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from m3t1r._threads import on_one_blas_thread
-from m3t1r.calibration.identification import select_base_parameters, unexcited_parameters
+from m3t1r.calibration.identification import (
+    REFERENCE_POSES,
+    REFERENCE_SEED,
+    select_base_parameters,
+    unexcited_parameters,
+)
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.pose_selection import (
     PoseSelection,
@@ -348,11 +353,13 @@ def _plan(
     position_only: bool,
     noise: tuple[float, float],
     units: tuple[str, ...],
+    base_columns: tuple[int, ...] | None = None,
 ) -> MeasurementPlan:
-    """Select, order and assess a plan from prepared candidates."""
-    selection = select_poses(candidates.blocks, n_poses)
+    """Select, order and assess a plan from prepared candidates (over `base_columns`, default the
+    candidates' own base parameters)."""
+    selection = select_poses(candidates.blocks, n_poses, columns=base_columns)
     if not math.isfinite(selection.log_det):
-        raise InvalidInputError(_shortfall(candidates, selection, n_poses))
+        raise InvalidInputError(_shortfall(candidates, selection, n_poses, base_columns is not None))
     chosen = np.array(selection.indices, dtype=int)
     order = order_for_travel(candidates.configurations[chosen], start)
     rows = candidates.blocks[chosen][:, :, list(selection.columns)].reshape(-1, len(selection.columns))
@@ -378,24 +385,31 @@ def _plan(
     )
 
 
-def _shortfall(candidates: _Candidates, selection: PoseSelection, n_poses: int) -> str:
-    """Why the selected poses cannot identify the candidates' base parameters: the candidates do
-    (that is how the base columns were chosen), so more poses help; which parameters they leave
-    unexcited, and how many poses give as many rows as parameters."""
+def _shortfall(candidates: _Candidates, selection: PoseSelection, n_poses: int, reference: bool) -> str:
+    """Why the selected poses cannot identify the base parameters (the candidates', or with
+    `reference` those of calibrate's reference pose set): which parameters they leave unexcited,
+    and how many poses give as many rows as parameters."""
     rows = candidates.blocks.shape[1]
     identifiable = len(selection.columns)
-    head = (
-        f"{n_poses} poses cannot identify the {identifiable} parameters that the "
-        f"{len(candidates.configurations)} candidates identify"
+    source = (
+        f"the {REFERENCE_POSES} reference poses calibrate judges by"
+        if reference
+        else f"the {len(candidates.configurations)} candidates"
     )
+    head = f"{n_poses} poses cannot identify the {identifiable} parameters that {source} identify"
     chosen = candidates.blocks[list(selection.indices)].reshape(-1, candidates.blocks.shape[2])
     columns = list(selection.columns)
     kept = select_base_parameters(chosen[:, columns], [candidates.names[c] for c in columns], max_condition=math.inf)
     weak = unexcited_parameters(chosen, candidates.names, columns, max(identifiable - kept.rank, 1))
-    return (
-        f"{head}: they leave {', '.join(weak[:8])}{' ...' if len(weak) > 8 else ''} unexcited; plan more "
-        f"poses ({n_poses} give {n_poses * rows} rows for {identifiable} parameters)"
-    )
+    listed = f"{', '.join(weak[:8])}{' ...' if len(weak) > 8 else ''}"
+    if reference and n_poses * rows >= identifiable:
+        return (
+            f"{head}: they leave {listed} unexcited, parameters barely identifiable on any poses (the "
+            "reference poses and the candidates disagree on them), so more poses are unlikely to help: a "
+            f"larger workspace box may, or calibrate will hold them at nominal (--fix {' '.join(weak)})"
+        )
+    counts = f"{n_poses} give {n_poses * rows} rows for {identifiable} parameters"
+    return f"{head}: they leave {listed} unexcited; plan more poses ({counts})"
 
 
 def _check_counts(n_poses: int, n_candidates: int | None) -> int:
@@ -434,7 +448,28 @@ def plan_closed_loop(
     candidates = _Candidates(sliders, blocks, _unwhitened(evaluation, scales), names)
     home = mechanism.home[[mechanism.model.idx_qs[mechanism.model.getJointId(n)] for n in mechanism.actuated_joints]]
     units = mechanism.joint_units()
-    return _plan("closed_loop", mechanism.actuated_joints, candidates, n_poses, home, position_only, scales, units)
+    base = _reference_columns(mechanism, blocks, noise, position_only)
+    return _plan(
+        "closed_loop", mechanism.actuated_joints, candidates, n_poses, home, position_only, scales, units, base
+    )
+
+
+def _reference_columns(
+    mechanism: Mechanism, blocks: np.ndarray, noise: TrackerNoise, position_only: bool
+) -> tuple[int, ...] | None:
+    """The base parameters a plan must identify: those of calibrate's reference pose set
+    (`REFERENCE_POSES`, `REFERENCE_SEED`) where the candidates identify another number (a direction
+    barely above the rank tolerance on one pose set and below it on the other: a leg's rod joints),
+    so that plan and calibrate ask the same of the poses; None (the candidates' own choice) otherwise."""
+    stacked = blocks.reshape(-1, blocks.shape[2])
+    names = [f"p{k}" for k in range(blocks.shape[2])]
+    candidates = select_base_parameters(stacked, names, max_condition=math.inf)
+    draws = workspace_actuators(mechanism, REFERENCE_POSES, np.random.default_rng(REFERENCE_SEED))
+    reference_blocks, _ = closed_loop_candidate_blocks(mechanism, draws, noise, position_only=position_only)
+    reference = select_base_parameters(
+        reference_blocks.reshape(-1, reference_blocks.shape[2]), names, max_condition=math.inf
+    )
+    return reference.indices if reference.rank != candidates.rank else None
 
 
 @on_one_blas_thread
