@@ -471,6 +471,18 @@ def test_check_mechanism_from_actuator_values_alone_checks_the_home_then_every_v
     assert figures[0].check.startswith("home by m3t1r") and figures[0].value <= 1e-9
 
 
+def test_check_mechanism_reports_a_file_that_does_not_load_as_a_failed_line(tmp_path):
+    """A closures file the verbs refuse (the first-time five-bar's loop cut to its x row, which leaves
+    the effector free) is one failed `load` line with the refusal, not a traceback of the tool."""
+    tool = _check_mechanism_tool()
+    urdf, closures = first_time_five_bar_files(tmp_path / "model")
+    document = yaml.safe_load(closures.read_text())
+    document["closures"][0]["rows"] = [0]
+    closures.write_text(yaml.safe_dump(document, sort_keys=False))
+    (figure,) = tool.check(urdf, closures, _in_process(tool, tmp_path))
+    assert (figure.check, figure.passed) == ("load", False) and "degree(s) of freedom" in figure.detail
+
+
 def test_check_mechanism_fails_a_figure_out_of_its_rule():
     tool = _check_mechanism_tool()
     assert not tool.within("held-out max [m]", 2e-7, None, 1e-7).passed

@@ -49,6 +49,7 @@ import pinocchio as pin
 import yaml
 from scipy.optimize import least_squares
 
+from m3t1r.errors import M3t1rError
 from m3t1r.model.description import Mechanism as Loaded  # for the task the verbs take (declared or derived)
 
 NOISE_POS, NOISE_ROT = 1e-5, 2e-5  # [m], [rad] per axis, the tracker noise of the noisy runs
@@ -182,12 +183,15 @@ class IndependentSolver:
         )
         return moved(fit.x)
 
-    def platform_positions(self, actuators: np.ndarray, substeps: int = 4) -> np.ndarray:
-        """Platform frame positions (N, 3) [m] at actuator rows taken as a path from home."""
+    def platform_positions(self, actuators: np.ndarray, substeps: int = 4, stride: float = 0.02) -> np.ndarray:
+        """Platform frame positions (N, 3) [m] at actuator rows taken as a path from home, each move in
+        at least `substeps` steps of at most `stride` [m or rad] per actuator (longer steps of a leg's
+        plan, 0.05 of its 0.3 rad moves, let the least squares jump to another assembly mode)."""
         out, q = [], self.q.copy()
         for row in actuators:
             first = np.array([_get(q, joint) for joint in self.actuated])
-            for t in np.linspace(1.0 / substeps, 1.0, substeps):
+            steps = max(substeps, int(np.ceil(np.abs(row - first).max(initial=0.0) / stride)))
+            for t in np.linspace(1.0 / steps, 1.0, steps):
                 for joint, value in zip(self.actuated, first + t * (row - first)):
                     _set(q, joint, value)
                 q = self._solve(q)
@@ -438,7 +442,10 @@ CHECKS = (check_home, check_plans_and_kinematics, check_noise_free, check_noisy,
 
 def check(urdf: Path, closures: Path, runner: Runner) -> list[Figure]:
     """Every check on one closures file; a failed command fails its group, the next groups still run."""
-    mechanism = Mechanism(urdf, closures)
+    try:
+        mechanism = Mechanism(urdf, closures)
+    except M3t1rError as exc:  # what every verb would print first
+        return [Figure("load", None, "runs", False, str(exc).splitlines()[0])]
     figures: list[Figure] = []
     for group in CHECKS:
         try:
