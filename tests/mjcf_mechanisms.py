@@ -9,6 +9,9 @@
 - `slider_crank_mjcf`: a slider (slide joint, range in metres under degree angles) driving a
   crank through a rod, closed by a `connect`.
 Both close at their reference configuration qpos0, as MuJoCo models do.
+- `straight_four_bar_mjcf`: a crank-rocker four-bar published as such files often are, every link
+  laid along x at qpos0 and the loop closed by a site-to-site `connect` (the sites `STRAIGHT_GAP`
+  apart there), no keyframe: qpos0 is a singular configuration, not an assembly.
 """
 
 from __future__ import annotations
@@ -128,4 +131,40 @@ def slider_crank_mjcf(folder: Path, name: str = "slider_crank") -> Path:
 """
     path = folder / f"{name}.xml"
     path.write_text(text)
+    return path
+
+
+STRAIGHT_FOUR_BAR = (0.1, 0.03, 0.08, 0.07)  # [m] ground, crank, coupler, rocker
+STRAIGHT_GAP = STRAIGHT_FOUR_BAR[1] + STRAIGHT_FOUR_BAR[2] - (STRAIGHT_FOUR_BAR[0] - STRAIGHT_FOUR_BAR[3])  # [m]
+
+
+def straight_four_bar_mjcf(folder: Path, name: str = "straight_four_bar") -> Path:
+    """Write the four-bar laid straight into `folder`: motor `crank`, passive `knee` and `rocker`,
+    the effector a site `tracer` at the coupler's far end (its cut site `coupler_end`)."""
+    ground, crank, coupler, rocker = STRAIGHT_FOUR_BAR
+    text = f"""<mujoco model="{name}">
+  <worldbody>
+    <body name="crank_link">
+      <joint name="crank" type="hinge" axis="0 0 1"/>
+      <geom type="capsule" fromto="0 0 0 {crank} 0 0" size="0.003"/>
+      <body name="coupler_link" pos="{crank} 0 0">
+        <joint name="knee" type="hinge" axis="0 0 1"/>
+        <geom type="capsule" fromto="0 0 0 {coupler} 0 0" size="0.003"/>
+        <site name="coupler_end" pos="{coupler} 0 0"/>
+        <site name="tracer" pos="{coupler} 0 0"/>
+      </body>
+    </body>
+    <body name="rocker_link" pos="{ground} 0 0">
+      <joint name="rocker" type="hinge" axis="0 0 1"/>
+      <geom type="capsule" fromto="0 0 0 {-rocker} 0 0" size="0.003"/>
+      <site name="rocker_end" pos="{-rocker} 0 0"/>
+    </body>
+  </worldbody>
+  <equality><connect name="loop" site1="coupler_end" site2="rocker_end"/></equality>
+  <actuator><position name="drive" joint="crank"/></actuator>
+</mujoco>
+"""
+    path = folder / f"{name}.xml"
+    path.write_text(text)
+    (folder / f"{name}.closures.yaml").write_text("platform_frame: tracer\n")
     return path

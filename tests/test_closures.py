@@ -68,6 +68,8 @@ def test_a_home_that_overflows_is_refused_by_name(tmp_path):
         Mechanism.load(urdf, closures)
     assert str(caught.value) == (
         f"{closures}: home does not close: closure 'five_bar_I' residual inf > 1e-09, and "
-        "Newton from the given values reached only inf (give home values closer to an "
-        "assembly)"
+        "Newton from the given values reached only inf; even with every joint free it reaches only inf from "
+        "the given values: the closures may not all hold on this model (check each closure's type, 3D or 6D, its "
+        "rows and frames, and that the model's joints are the mechanism's: a ball joint given as one revolute, "
+        "say), or the given values are far from any assembly"
     )

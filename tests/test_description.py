@@ -632,9 +632,41 @@ def test_a_home_newton_cannot_close_is_refused(mechanism, tmp_path):
         f"{closures}: home does not close: closure 'five_bar_I' residual 5.000e+00 > 1e-09, "
         "and Newton from the given values reached only "
     )
-    suffix = " (give home values closer to an assembly)"
-    assert message.startswith(prefix) and message.endswith(suffix), message
-    assert float(message[len(prefix) : -len(suffix)]) > 1e-9
+    found = re.fullmatch(
+        re.escape(prefix) + r"(\S+); with every joint free it closes only with joint '(\w+)' at (\S+), beyond its "
+        r"URDF limits \[(\S+), (\S+)\]: the closures may not all hold on this model \(check each closure's type, "
+        r"3D or 6D, its rows and frames, .*\), or the given values are far from any assembly",
+        message,
+    )
+    assert found is not None, message
+    assert float(found.group(1)) > 1e-9  # 5 m off: only a slider beyond its 0.6 m would close the loop
+    assert not float(found.group(4)) <= float(found.group(3)) <= float(found.group(5))
+
+
+def test_a_home_whose_actuator_values_cannot_close_says_which_would(tmp_path):
+    """The M machine with slider q11_B2 0.5 m from q11, farther than side I's five-bar link can span:
+    with the actuators held no assembly exists, and the refusal gives actuator values, within the
+    sliders' limits, that close every loop; a little inside them (towards the nominal home), the
+    file loads."""
+    source_urdf, source_closures = nominal_model_paths()
+    urdf, closures = tmp_path / "m.urdf", tmp_path / "m.closures.yaml"
+    urdf.write_bytes(source_urdf.read_bytes())
+    closures.write_bytes(source_closures.read_bytes())
+    home = yaml.safe_load(closures.read_text())["home"]
+    _edit_yaml(closures, lambda d: d["home"].update(q11_B2=home["q11"] + 0.5))
+    message = _refusal(lambda: Mechanism.load(urdf, closures))
+    found = re.search(
+        r"with the actuators free too, it closes with them at \{(.*)\}: give actuator home values", message
+    )
+    assert found is not None, message
+    given = dict(entry.split(": ") for entry in found.group(1).split(", "))
+    assert list(given) == ["q11", "q11_B2", "q21", "q21_B4"]
+    inside = {name: 0.95 * float(value) + 0.05 * home[name] for name, value in given.items()}
+    _edit_yaml(closures, lambda d: d["home"].update(inside))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ModelWarning)
+        loaded = Mechanism.load(urdf, closures)
+    assert loaded.home_assembly is not None and loaded.home_assembly.residual <= 1e-9
 
 
 def test_a_home_far_from_an_assembly_is_assembled(mechanism, tmp_path):
@@ -684,7 +716,8 @@ def test_missing_rows_are_refused_naming_the_file(tmp_path):
     _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0]))
     assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
         f"{closures}: the closures leave 1 degree(s) of freedom beyond the actuators: with the actuators held, "
-        "frame 'effector' can still move (1 per unit joint speed); rows or closures are missing"
+        "frame 'effector' can still move along 1 of them (1 per unit joint speed; mostly joints elbow_1, elbow_2); "
+        "rows or closures are missing"
     )
 
 

@@ -442,6 +442,26 @@ def test_missing_closure_rows_are_not_taken_for_a_gauge(tmp_path):
         Mechanism.load(urdf, closures)
 
 
+def test_a_free_motion_beside_an_idle_spin_is_counted_apart_and_named(tmp_path):
+    """A rod with a spherical joint at each end (an idle spin) whose weld leaves out the slide along
+    the effector's x (a free motion of the effector): of the 2 degrees of freedom the closures leave,
+    the refusal says 1 moves the effector, names the joints that move most along it, and counts the
+    other as an idle spin, where a published leg's refusal counted 3 and said nothing of which."""
+    urdf, closures = rod_five_bar_files(tmp_path)
+    _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[1, 2, 3, 4, 5]))
+    with pytest.raises(ModelFileError) as refusal:
+        Mechanism.load(urdf, closures)
+    found = re.search(
+        r"leave 2 degree\(s\) of freedom beyond the actuators: with the actuators held, frame 'effector' can "
+        r"still move along 1 of them \((\S+) per unit joint speed; mostly joints (\S+), (\S+), (\S+)\), and 1 "
+        r"move\(s\) only passive joints \(idle spins: load locks those when alone\); rows or closures are missing",
+        str(refusal.value),
+    )
+    assert found is not None, str(refusal.value)
+    assert float(found.group(1)) > 1e-3
+    assert "elbow_1" in found.group(2, 3, 4)  # chain 1's elbow swings with the effector
+
+
 def test_a_row_that_holds_by_itself_is_dropped_with_a_note(tmp_path):
     urdf, closures = five_bar_files(tmp_path)
     _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0, 1, 2]))  # z: the plane's normal, always 0

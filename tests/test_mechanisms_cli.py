@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
+import yaml
 
 from m3t1r.app.cli import main
 from m3t1r.app.datasets import read_actuators
@@ -428,13 +429,7 @@ def _check_mechanism_tool():
     return module
 
 
-def test_check_mechanism_passes_every_verb_on_a_first_time_five_bar(tmp_path, monkeypatch):
-    tool = _check_mechanism_tool()
-    urdf, closures = first_time_five_bar_files(tmp_path / "model")
-    work = tmp_path / "work"
-    work.mkdir()
-    monkeypatch.chdir(work)
-
+def _in_process(tool, work: Path):
     class InProcess(tool.Runner):  # the same verbs through cli.main, without a Python start per command
         def __call__(self, *args: str) -> str:
             out, err = io.StringIO(), io.StringIO()
@@ -444,11 +439,50 @@ def test_check_mechanism_passes_every_verb_on_a_first_time_five_bar(tmp_path, mo
                 raise tool.CommandFailed(f"m3t1r {args[0]} exited {status}: {err.getvalue().strip()}")
             return out.getvalue() + err.getvalue()
 
-    figures = tool.check(urdf, closures, InProcess([], work))
+    return InProcess([], work)
+
+
+def test_check_mechanism_passes_every_verb_on_a_first_time_five_bar(tmp_path, monkeypatch):
+    tool = _check_mechanism_tool()
+    urdf, closures = first_time_five_bar_files(tmp_path / "model")
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    figures = tool.check(urdf, closures, _in_process(tool, work))
     printed = tool.table("first_time_five_bar", figures)
     assert len(figures) == 12 and all(f.passed for f in figures), printed
     fk = next(f for f in figures if f.check.startswith("fk vs independent"))
     assert fk.value <= 1e-9 and "pass" in printed and "FAIL" not in printed
+
+
+def test_check_mechanism_from_actuator_values_alone_checks_the_home_then_every_verb(tmp_path, monkeypatch):
+    """A closures file whose home gives only the actuators, with no assembled one beside it: the
+    tool checks the home m3t1r assembled (it closes under the independent rows, and is no farther
+    from the given values than a least-squares assembly), then every verb from it."""
+    tool = _check_mechanism_tool()
+    urdf, closures = first_time_five_bar_files(tmp_path / "model")
+    document = yaml.safe_load(closures.read_text())
+    document["home"] = {name: document["home"][name] for name in document["actuated_joints"]}
+    closures.write_text(yaml.safe_dump(document, sort_keys=False))
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    figures = tool.check(urdf, closures, _in_process(tool, work))
+    printed = tool.table("rough five_bar", figures)
+    assert len(figures) == 14 and all(f.passed for f in figures), printed
+    assert figures[0].check.startswith("home by m3t1r") and figures[0].value <= 1e-9
+
+
+def test_check_mechanism_reports_a_file_that_does_not_load_as_a_failed_line(tmp_path):
+    """A closures file the verbs refuse (the first-time five-bar's loop cut to its x row, which leaves
+    the effector free) is one failed `load` line with the refusal, not a traceback of the tool."""
+    tool = _check_mechanism_tool()
+    urdf, closures = first_time_five_bar_files(tmp_path / "model")
+    document = yaml.safe_load(closures.read_text())
+    document["closures"][0]["rows"] = [0]
+    closures.write_text(yaml.safe_dump(document, sort_keys=False))
+    (figure,) = tool.check(urdf, closures, _in_process(tool, tmp_path))
+    assert (figure.check, figure.passed) == ("load", False) and "degree(s) of freedom" in figure.detail
 
 
 def test_check_mechanism_fails_a_figure_out_of_its_rule():

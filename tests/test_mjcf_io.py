@@ -16,9 +16,12 @@ from mjcf_mechanisms import (
     FIVE_BAR_BASE,
     FIVE_BAR_CRANK,
     FIVE_BAR_ROD,
+    STRAIGHT_FOUR_BAR,
+    STRAIGHT_GAP,
     five_bar_mjcf,
     slider_crank_mjcf,
     spatial_loop_mjcf,
+    straight_four_bar_mjcf,
 )
 
 from m3t1r.app.cli import main
@@ -74,6 +77,29 @@ def test_the_five_bar_solves_as_two_circles_intersect(tmp_path):
         pose = solver.forward(actuators).pose
         assert np.abs(pose.translation[:2] - _five_bar_tip(actuators)).max() < 1e-9
         assert abs(pose.translation[2]) < 1e-12
+
+
+def test_a_linkage_published_stretched_straight_assembles(tmp_path):
+    """Every link on one line at qpos0 (the cut sites 4 cm apart along it): no joint motion shortens
+    the gap at first order, so a solve from there stalls; load restarts from small offsets, and the
+    home it reaches closes. Forward kinematics then gives a tracer at the coupler's length from the
+    crank tip and the rocker's from its pivot, on one side of the line for every crank angle."""
+    ground, crank, coupler, rocker = STRAIGHT_FOUR_BAR
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ModelWarning)
+        mechanism = Mechanism.load(straight_four_bar_mjcf(tmp_path))
+    notes = [str(w.message) for w in caught]
+    assert any(f"closure 'loop' residual {STRAIGHT_GAP:.3e} > 1e-09; assembled" in n for n in notes), notes
+    solver = ClosedLoopSolver(mechanism)
+    sides = set()
+    for angle in np.linspace(-0.4, 0.4, 9):
+        tracer = solver.forward(np.array([angle])).pose.translation
+        tip = crank * np.array([math.cos(angle), math.sin(angle), 0.0])
+        assert np.linalg.norm(tracer - tip) == pytest.approx(coupler, abs=1e-12)
+        assert np.linalg.norm(tracer - [ground, 0.0, 0.0]) == pytest.approx(rocker, abs=1e-12)
+        arm, reach = tip[:2] - [ground, 0.0], tracer[:2] - [ground, 0.0]
+        sides.add(bool(arm[0] * reach[1] - arm[1] * reach[0] > 0.0))
+    assert len(sides) == 1
 
 
 def test_a_spatial_weld_closes_as_pinocchios_own_constraint_says(tmp_path):

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from m3t1r.app.datasets import read_actuators
 from m3t1r.app.demo import DemoSettings
@@ -20,11 +21,18 @@ from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, pr
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.identification import select_base_parameters
 from m3t1r.calibration.measurements import TrackerNoise, measure
-from m3t1r.calibration.planning import order_for_travel, path_travel, plan_closed_loop, plan_serial
+from m3t1r.calibration.planning import (
+    order_for_travel,
+    path_travel,
+    plan_closed_loop,
+    plan_serial,
+    predicted_accuracy,
+    predicted_accuracy_of_rows,
+)
 from m3t1r.calibration.pose_selection import closed_loop_candidate_blocks, information_log_det
 from m3t1r.calibration.serial_robots import load_example_robot
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors
-from m3t1r.errors import InvalidInputError, M3t1rError
+from m3t1r.errors import IdentificationError, InvalidInputError, M3t1rError
 from m3t1r.io.tables import read_table
 from m3t1r.model.description import Mechanism
 from m3t1r.model.examples import five_bar_files, spherical_wrist_files
@@ -225,6 +233,33 @@ def test_too_few_planned_poses_name_what_they_leave_unexcited(files, tmp_path) -
     assert plan_closed_loop(machine, 12, np.random.default_rng(0), n_evaluation=5).n_poses == 12
 
 
+def test_predicted_accuracy_holds_for_parameters_the_rule_keeps_however_weak() -> None:
+    """A base parameter identified only just above the rank tolerance (R's diagonal 3e-8 of its
+    largest, as a leg's rod joints give: cassie-like legs planned at 40 and 60 poses were refused)
+    squares to a condition number near 1e16 in A^T A; the accuracy from the rows' own factor is
+    the covariance's, checked against an SVD of the rows, and agrees with the information-matrix
+    route where that one is well conditioned."""
+    rng = np.random.default_rng(5)
+    rows = rng.normal(size=(240, 4)) * [1.0, 1e3, 1e-2, 1.0]  # mixed units, as m and rad columns
+    rows[:, 3] = rows[:, 0] + 3e-8 * rng.normal(size=240)  # barely independent of column 0
+    assert select_base_parameters(rows, list("abcd"), max_condition=np.inf).rank == 4
+    sensitivities = rng.normal(size=(7, 6, 4))
+    accuracy = predicted_accuracy_of_rows(rows, sensitivities)
+    _, singular, vt = np.linalg.svd(rows, full_matrices=False)
+    covariance = vt.T @ np.diag(singular**-2.0) @ vt
+    variance = np.einsum("nrp,pq,nrq->nr", sensitivities, covariance, sensitivities)
+    np.testing.assert_allclose(accuracy.std.position, np.sqrt(variance[:, :3].sum(axis=1)), rtol=1e-4)
+    np.testing.assert_allclose(accuracy.std.rotation, np.sqrt(variance[:, 3:].sum(axis=1)), rtol=1e-4)
+    sound = rows[:, :3]
+    np.testing.assert_allclose(
+        predicted_accuracy_of_rows(sound, sensitivities[:, :, :3]).std.position,
+        predicted_accuracy(sound.T @ sound, sensitivities[:, :, :3]).std.position,
+        rtol=1e-9,
+    )
+    with pytest.raises(InvalidInputError, match="does not identify every base parameter"):
+        predicted_accuracy_of_rows(np.zeros((12, 2)), sensitivities[:, :, :2])
+
+
 def test_plan_and_calibrate_count_the_same_identifiable_parameters(tmp_path) -> None:
     """One identifiability decision: the count `plan` prints is the one `calibrate` reports on the
     planned poses (the packaged five-bar and wrist, exact measurements)."""
@@ -233,6 +268,46 @@ def test_plan_and_calibrate_count_the_same_identifiable_parameters(tmp_path) -> 
         plan = plan_closed_loop(machine, 20, np.random.default_rng(3), n_evaluation=5)
         calibration = calibrate_closed_loop(machine, measure(machine, plan.configurations), outlier_sigma=None)
         assert len(plan.selection.columns) == calibration.base.rank
+
+
+def test_a_direction_at_the_rank_tolerance_is_decided_as_calibrate_decides(tmp_path):
+    """The five-bar in a box of +-0.35 mrad about home: its two weakest parameters sit at the rank
+    tolerance (|R_ii| / |R_00| ~ 1e-8, from the box's curvature), identifiable on calibrate's 40
+    reference poses (1.03e-8) and not on the plan's 400 candidates (0.97e-8). The plan asks of its
+    poses what calibrate will: the reference's 18, and refuses as calibrate refuses, naming the same
+    two and not advising more poses; at +-1 mrad both count 18 and the plan is calibrated."""
+    urdf, closures = five_bar_files(tmp_path)
+
+    def boxed(half: float) -> Mechanism:
+        document = yaml.safe_load(closures.read_text())
+        home = document["home"]
+        document["workspace"] = {
+            "actuators": {a: [home[a] - half, home[a] + half] for a in document["actuated_joints"]}
+        }
+        closures.write_text(yaml.safe_dump(document, sort_keys=False))
+        return Mechanism.load(urdf, closures)
+
+    narrow = boxed(3.5e-4)
+    with pytest.raises(InvalidInputError) as refusal:
+        plan_closed_loop(narrow, 20, np.random.default_rng(0), n_evaluation=5)
+    planned = re.search(
+        r"cannot identify the (\d+) parameters that the 40 reference poses calibrate judges by "
+        r"identify: they leave (.+) unexcited, .* more poses are unlikely to help",
+        str(refusal.value),
+    )
+    assert planned is not None, str(refusal.value)
+    poses = workspace_actuators(narrow, 20, np.random.default_rng(4))
+    with pytest.raises(IdentificationError) as calibrated:
+        calibrate_closed_loop(narrow, measure(narrow, poses), outlier_sigma=None)
+    named = re.search(
+        r"for (\d+) identifiable parameters and identify only \d+: (.+) are barely", str(calibrated.value)
+    )
+    assert named is not None, str(calibrated.value)
+    assert planned.group(1) == named.group(1) == "18" and planned.group(2) == named.group(2)
+    wide = boxed(1e-3)
+    plan = plan_closed_loop(wide, 20, np.random.default_rng(0), n_evaluation=5)
+    calibration = calibrate_closed_loop(wide, measure(wide, plan.configurations), outlier_sigma=None)
+    assert len(plan.selection.columns) == calibration.base.rank == 18
 
 
 @pytest.mark.parametrize(

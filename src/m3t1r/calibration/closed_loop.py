@@ -38,6 +38,8 @@ from m3t1r.calibration.error_model import ClosedLoopErrorModel, PlatformSensitiv
 from m3t1r.calibration.identification import (
     IDENTIFIABILITY_TOLERANCE,
     OUTLIER_SIGMA,
+    REFERENCE_POSES,
+    REFERENCE_SEED,
     BaseParameters,
     LMResult,
     ParameterSelection,
@@ -882,7 +884,7 @@ def default_iterations(n_parameters: int) -> int:
     return max(60, 5 * n_parameters)
 
 
-_REFERENCE_POSES = 40  # a well-spread pose set on which the model's identifiable count is measured
+_REFERENCE_POSES = REFERENCE_POSES  # a well-spread pose set on which the model's identifiable count is measured
 
 
 def structural_rank(
@@ -918,6 +920,7 @@ def _reference_base(
         tuple(sorted(fixed_columns)),
         float(problem.row_weights[0] / problem.row_weights[-1]),
         rank_tolerance,
+        repr(error_model.mechanism.workspace),  # the reference poses are drawn in it
     )
     if key not in _STRUCTURAL_RANKS:
         _STRUCTURAL_RANKS[key] = _reference_selection(problem, marker, fixed_columns, rank_tolerance)
@@ -932,7 +935,7 @@ def _reference_selection(
 ) -> BaseParameters:
     error_model = problem.error_model
     mechanism = error_model.mechanism
-    actuators = workspace_actuators(mechanism, _REFERENCE_POSES, np.random.default_rng(2020))
+    actuators = workspace_actuators(mechanism, _REFERENCE_POSES, np.random.default_rng(REFERENCE_SEED))
     reference = measure(mechanism, actuators, position_only=problem.measurements.position_only)
     offsets = tuple((float(x), float(y), float(z)) for x, y, z in problem.point_offsets)
     if problem.n_points:  # the points at the fit's start offsets, every one seen

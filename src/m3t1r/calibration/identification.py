@@ -28,6 +28,8 @@ from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationW
 __all__ = [
     "BaseParameters",
     "IDENTIFIABILITY_TOLERANCE",
+    "REFERENCE_POSES",
+    "REFERENCE_SEED",
     "TIE_TOLERANCE",
     "best_index",
     "pivoted_qr",
@@ -149,6 +151,13 @@ TIE_TOLERANCE = 1e-9
 #: column-normalised whitened Jacobian. Redundant columns sit at 1e-13 and below; O(error^2) effects
 #: (1e-6 of a 1 mm error) and genuine weak directions at 1e-7 and above.
 IDENTIFIABILITY_TOLERANCE = 1e-8
+
+#: What a closed-loop model can identify is measured on one pose set, spread over the workspace box:
+#: REFERENCE_POSES draws of seed REFERENCE_SEED (`workspace_actuators`). `calibrate` requires its
+#: data to identify that many parameters, and `plan` its poses; a direction barely above the
+#: tolerance is identified on more rows and not on fewer, so both must measure on the same set.
+REFERENCE_POSES = 40
+REFERENCE_SEED = 2020
 
 
 def best_index(scores: ArrayLike, *, largest: bool = True) -> int:

@@ -30,15 +30,21 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 import pinocchio as pin
+import scipy.linalg
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from m3t1r._threads import on_one_blas_thread
-from m3t1r.calibration.identification import select_base_parameters, unexcited_parameters
+from m3t1r.calibration.identification import (
+    REFERENCE_POSES,
+    REFERENCE_SEED,
+    select_base_parameters,
+    unexcited_parameters,
+)
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.pose_selection import (
     PoseSelection,
@@ -61,6 +67,7 @@ __all__ = [
     "order_for_travel",
     "path_travel",
     "predicted_accuracy",
+    "predicted_accuracy_of_rows",
     "base_information",
     "DEFAULT_CANDIDATES_PER_POSE",
     "DEFAULT_EVALUATION_POSES",
@@ -281,7 +288,8 @@ def predicted_accuracy(
     un-whitened pose sensitivities (n, 6, m) to them (position [m], then orientation [rad] rows).
 
     The covariance M^-1 is formed with M scaled to a unit diagonal (its entries mix m and rad
-    units over many decades). Rotation is NaN when `position_only`.
+    units over many decades). Rotation is NaN when `position_only`. Forming M squares the
+    condition number of the rows: `predicted_accuracy_of_rows` avoids that where the rows are at hand.
     """
     scale = 1.0 / np.sqrt(np.diag(information))
     try:
@@ -289,8 +297,30 @@ def predicted_accuracy(
     except np.linalg.LinAlgError:
         raise InvalidInputError("the plan does not identify every base parameter: add poses or candidates") from None
     # J Cov J^T = (J S L^-T)(J S L^-T)^T with Cov = S (L L^T)^-1 S.
+    return _accuracy(factor, scale, sensitivities, position_only)
+
+
+def predicted_accuracy_of_rows(
+    rows: np.ndarray, sensitivities: np.ndarray, position_only: bool = False
+) -> PredictedAccuracy:
+    """`predicted_accuracy` of the information M = A^T A of whitened rows A (k, m), from the
+    triangular factor of A itself: M = R^T R without forming M, so base parameters that the rows
+    identify only weakly (R's diagonal down to 1e-8 of its largest, as the identifiability rule
+    allows) do not make a singular M in floating point."""
+    norms = np.linalg.norm(rows, axis=0)
+    triangular = cast(np.ndarray, np.linalg.qr(rows / np.where(norms > 0.0, norms, 1.0), mode="r"))
+    if not (np.all(norms > 0.0) and np.all(np.abs(np.diag(triangular)) > 0.0)):
+        raise InvalidInputError("the plan does not identify every base parameter: add poses or candidates")
+    scale = 1.0 / norms
+    return _accuracy(triangular.T, scale, sensitivities, position_only)
+
+
+def _accuracy(
+    lower: np.ndarray, scale: np.ndarray, sensitivities: np.ndarray, position_only: bool
+) -> PredictedAccuracy:
+    """Pose std from L (m, m) lower triangular with L L^T = S M S, S = diag(scale)."""
     rows = np.asarray(sensitivities, dtype=float) * scale
-    flat = np.linalg.solve(factor, rows.reshape(-1, rows.shape[2]).T).T.reshape(rows.shape)
+    flat = scipy.linalg.solve_triangular(lower, rows.reshape(-1, rows.shape[2]).T, lower=True).T.reshape(rows.shape)
     variance = np.sum(flat**2, axis=2)  # (n, 6) per row
     position = np.sqrt(variance[:, :3].sum(axis=1))
     rotation = np.full(len(position), np.nan) if position_only else np.sqrt(variance[:, 3:].sum(axis=1))
@@ -323,16 +353,19 @@ def _plan(
     position_only: bool,
     noise: tuple[float, float],
     units: tuple[str, ...],
+    base_columns: tuple[int, ...] | None = None,
 ) -> MeasurementPlan:
-    """Select, order and assess a plan from prepared candidates."""
-    selection = select_poses(candidates.blocks, n_poses)
+    """Select, order and assess a plan from prepared candidates (over `base_columns`, default the
+    candidates' own base parameters)."""
+    selection = select_poses(candidates.blocks, n_poses, columns=base_columns)
     if not math.isfinite(selection.log_det):
-        raise InvalidInputError(_shortfall(candidates, selection, n_poses))
+        raise InvalidInputError(_shortfall(candidates, selection, n_poses, base_columns is not None))
     chosen = np.array(selection.indices, dtype=int)
     order = order_for_travel(candidates.configurations[chosen], start)
-    information = base_information(candidates.blocks, chosen, selection.columns)
-    sign, log_det = np.linalg.slogdet(information)
-    accuracy = predicted_accuracy(information, candidates.evaluation[:, :, list(selection.columns)], position_only)
+    rows = candidates.blocks[chosen][:, :, list(selection.columns)].reshape(-1, len(selection.columns))
+    accuracy = predicted_accuracy_of_rows(rows, candidates.evaluation[:, :, list(selection.columns)], position_only)
+    # log det M = 2 sum log |R_ii| (A = QR): finite wherever the accuracy is, unlike slogdet of M.
+    log_det = 2.0 * float(np.sum(np.log(np.abs(np.diag(cast(np.ndarray, np.linalg.qr(rows, mode="r")))))))
     ordered = candidates.configurations[chosen[order]]
     return MeasurementPlan(
         kind=kind,
@@ -341,7 +374,7 @@ def _plan(
         candidate_indices=tuple(int(i) for i in chosen[order]),
         n_candidates=len(candidates.configurations),
         selection=selection,
-        log_det=float(log_det) if sign > 0 else -math.inf,
+        log_det=log_det,
         start=np.asarray(start, dtype=float),
         travel=path_travel(ordered, start),
         travel_selection_order=path_travel(candidates.configurations[chosen], start),
@@ -352,24 +385,31 @@ def _plan(
     )
 
 
-def _shortfall(candidates: _Candidates, selection: PoseSelection, n_poses: int) -> str:
-    """Why the selected poses cannot identify the candidates' base parameters: the candidates do
-    (that is how the base columns were chosen), so more poses help; which parameters they leave
-    unexcited, and how many poses give as many rows as parameters."""
+def _shortfall(candidates: _Candidates, selection: PoseSelection, n_poses: int, reference: bool) -> str:
+    """Why the selected poses cannot identify the base parameters (the candidates', or with
+    `reference` those of calibrate's reference pose set): which parameters they leave unexcited,
+    and how many poses give as many rows as parameters."""
     rows = candidates.blocks.shape[1]
     identifiable = len(selection.columns)
-    head = (
-        f"{n_poses} poses cannot identify the {identifiable} parameters that the "
-        f"{len(candidates.configurations)} candidates identify"
+    source = (
+        f"the {REFERENCE_POSES} reference poses calibrate judges by"
+        if reference
+        else f"the {len(candidates.configurations)} candidates"
     )
+    head = f"{n_poses} poses cannot identify the {identifiable} parameters that {source} identify"
     chosen = candidates.blocks[list(selection.indices)].reshape(-1, candidates.blocks.shape[2])
     columns = list(selection.columns)
     kept = select_base_parameters(chosen[:, columns], [candidates.names[c] for c in columns], max_condition=math.inf)
     weak = unexcited_parameters(chosen, candidates.names, columns, max(identifiable - kept.rank, 1))
-    return (
-        f"{head}: they leave {', '.join(weak[:8])}{' ...' if len(weak) > 8 else ''} unexcited; plan more "
-        f"poses ({n_poses} give {n_poses * rows} rows for {identifiable} parameters)"
-    )
+    listed = f"{', '.join(weak[:8])}{' ...' if len(weak) > 8 else ''}"
+    if reference and n_poses * rows >= identifiable:
+        return (
+            f"{head}: they leave {listed} unexcited, parameters barely identifiable on any poses (the "
+            "reference poses and the candidates disagree on them), so more poses are unlikely to help: a "
+            f"larger workspace box may, or calibrate will hold them at nominal (--fix {' '.join(weak)})"
+        )
+    counts = f"{n_poses} give {n_poses * rows} rows for {identifiable} parameters"
+    return f"{head}: they leave {listed} unexcited; plan more poses ({counts})"
 
 
 def _check_counts(n_poses: int, n_candidates: int | None) -> int:
@@ -408,7 +448,28 @@ def plan_closed_loop(
     candidates = _Candidates(sliders, blocks, _unwhitened(evaluation, scales), names)
     home = mechanism.home[[mechanism.model.idx_qs[mechanism.model.getJointId(n)] for n in mechanism.actuated_joints]]
     units = mechanism.joint_units()
-    return _plan("closed_loop", mechanism.actuated_joints, candidates, n_poses, home, position_only, scales, units)
+    base = _reference_columns(mechanism, blocks, noise, position_only)
+    return _plan(
+        "closed_loop", mechanism.actuated_joints, candidates, n_poses, home, position_only, scales, units, base
+    )
+
+
+def _reference_columns(
+    mechanism: Mechanism, blocks: np.ndarray, noise: TrackerNoise, position_only: bool
+) -> tuple[int, ...] | None:
+    """The base parameters a plan must identify: those of calibrate's reference pose set
+    (`REFERENCE_POSES`, `REFERENCE_SEED`) where the candidates identify another number (a direction
+    barely above the rank tolerance on one pose set and below it on the other: a leg's rod joints),
+    so that plan and calibrate ask the same of the poses; None (the candidates' own choice) otherwise."""
+    stacked = blocks.reshape(-1, blocks.shape[2])
+    names = [f"p{k}" for k in range(blocks.shape[2])]
+    candidates = select_base_parameters(stacked, names, max_condition=math.inf)
+    draws = workspace_actuators(mechanism, REFERENCE_POSES, np.random.default_rng(REFERENCE_SEED))
+    reference_blocks, _ = closed_loop_candidate_blocks(mechanism, draws, noise, position_only=position_only)
+    reference = select_base_parameters(
+        reference_blocks.reshape(-1, reference_blocks.shape[2]), names, max_condition=math.inf
+    )
+    return reference.indices if reference.rank != candidates.rank else None
 
 
 @on_one_blas_thread

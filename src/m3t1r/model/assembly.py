@@ -31,6 +31,8 @@ __all__ = ["HomeAssembly", "assemble_home"]
 _DAMPED_ITERATIONS = 400
 _SMOOTH_TOLERANCE = 1e-9  # [m] the damped phase hands over to the closure rows' own Newton below this
 _POLISH_TOLERANCE = 1e-13  # [m or rad] max |enforced row| the polish aims at
+_RESTARTS = 8  # offset starts tried when the solve from the guess stalls
+_RESTART_ANGLE, _RESTART_LENGTH = 0.1, 0.01  # [rad], [m] their standard deviation per passive joint
 
 
 @dataclass(frozen=True)
@@ -78,6 +80,8 @@ def assemble_home(
     smooth = _SmoothClosures(model, closures, system)
     q, iterations = _damped(smooth, guess.copy(), passive)
     q, residual = system.assemble(q, passive, _POLISH_TOLERANCE)
+    if not residual <= _SMOOTH_TOLERANCE:
+        q, residual, iterations = _restarted(smooth, system, guess, passive, (q, residual, iterations))
     q, wrapped = _wrapped(model, q, passive)
     names = [_joint_name(model, v) for v in passive]
     change = q[passive] - guess[passive]
@@ -170,6 +174,37 @@ def _damped(smooth: _SmoothClosures, q: np.ndarray, passive: np.ndarray) -> tupl
             if not mu < 1e300:  # no step shortens the residual: a local minimum, not an assembly
                 return q, iteration
     return q, _DAMPED_ITERATIONS
+
+
+def _restarted(
+    smooth: _SmoothClosures,
+    system: ClosureSystem,
+    guess: np.ndarray,
+    passive: np.ndarray,
+    first: tuple[np.ndarray, float, int],
+) -> tuple[np.ndarray, float, int]:
+    """(q, residual, iterations) from small fixed offsets of the guess when the solve from the guess
+    itself stalled: a guess on a singularity (a linkage published stretched straight, every link on
+    one line) is a stationary point of the residual, where no step shortens it. Of the starts that
+    close, the assembly nearest the guess; without one, the first attempt as it was."""
+    best, iterations = first, first[2]
+    scale = np.array([_RESTART_ANGLE if _is_revolute(smooth.model, int(v)) else _RESTART_LENGTH for v in passive])
+    for seed in range(_RESTARTS):
+        start = guess.copy()
+        start[passive] += scale * np.random.default_rng(seed).standard_normal(len(passive))
+        q, used = _damped(smooth, start, passive)
+        q, residual = system.assemble(q, passive, _POLISH_TOLERANCE)
+        iterations += used
+        closes = residual <= _SMOOTH_TOLERANCE
+        if closes and not (
+            best[1] <= _SMOOTH_TOLERANCE and _distance(best[0], guess, passive) <= _distance(q, guess, passive)
+        ):
+            best = (q, residual, 0)
+    return best[0], best[1], iterations
+
+
+def _distance(q: np.ndarray, guess: np.ndarray, passive: np.ndarray) -> float:
+    return float(np.linalg.norm(q[passive] - guess[passive]))
 
 
 def _squared(residual: np.ndarray) -> float:

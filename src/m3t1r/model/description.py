@@ -24,7 +24,7 @@ from m3t1r.io.pairing import closures_match, closures_sha256, paired_closures_pa
 from m3t1r.io.paths import read_bounded, size_refusal
 from m3t1r.io.temporaries import pending_temporaries
 from m3t1r.model.assembly import HomeAssembly, assemble_home, limits_violated
-from m3t1r.model.closures import ClosureSpec, ClosureSystem, without_rows
+from m3t1r.model.closures import ClosureSpec, ClosureSystem, closure_rank, without_rows
 from m3t1r.model.defaults import default_task, task_entry, task_words
 from m3t1r.model.mjcf_io import is_mjcf, mjcf_sidecar_path, read_mjcf
 from m3t1r.model.schema import SCHEMA_VERSIONS, declared_frame_entries, load_closures_yaml, read_description
@@ -460,9 +460,7 @@ def _settled(mechanism: Mechanism) -> Mechanism:
             if speed > 1e-9:
                 raise ModelFileError(
                     mechanism.closures_path,
-                    f"the closures leave {len(redundancy.locked)} degree(s) of freedom beyond the "
-                    f"actuators: with the actuators held, frame '{mechanism.model.frames[frame].name}' "
-                    f"can still move ({speed:.2g} per unit joint speed); rows or closures are missing",
+                    _free_motion_refusal(mechanism, system, home, frame, len(redundancy.locked), speed),
                 )
     locked = tuple(_joint_name(mechanism.model, v) for v in redundancy.locked)
     closures = mechanism.closures
@@ -481,6 +479,32 @@ def _settled(mechanism: Mechanism) -> Mechanism:
         mechanism, closures=closures, home=home, locked_joints=mechanism.locked_joints + locked, home_assembly=assembly
     )
     return dataclasses.replace(settled, task=_task_of(settled, notes), notes=tuple(notes))
+
+
+def _free_motion_refusal(
+    mechanism: Mechanism, system: ClosureSystem, home: np.ndarray, frame: int, free: int, speed: float
+) -> str:
+    """Why the closures leave `free` degrees of freedom with the actuators held, where `frame` moves
+    along some of them (`speed` [m or rad per unit joint speed] at most): how many move it, the
+    joints that move most along the one that moves it fastest, and how many move nothing but
+    passive joints (idle spins, which alone would be locked)."""
+    passive = mechanism.passive_ids
+    _, jacobian = system.evaluate(home, True)
+    rows = jacobian[:, passive]
+    null = np.linalg.svd(rows)[2][closure_rank(rows) :].T if rows.shape[0] else np.eye(len(passive))
+    frame_jacobian = pin.getFrameJacobian(mechanism.model, system.data, frame, pin.LOCAL_WORLD_ALIGNED)
+    _, motion, directions = np.linalg.svd(frame_jacobian[:, passive] @ null)
+    moving = int(np.count_nonzero(motion > 1e-9))
+    fastest = null @ directions[0]
+    names = [_joint_name(mechanism.model, int(passive[k])) for k in np.argsort(-np.abs(fastest))[:3]]
+    idle = free - moving
+    return (
+        f"the closures leave {free} degree(s) of freedom beyond the actuators: with the actuators held, "
+        f"frame '{mechanism.model.frames[frame].name}' can still move along {moving} of them ({speed:.2g} per "
+        f"unit joint speed; mostly joints {', '.join(names)})"
+        + (f", and {idle} move(s) only passive joints (idle spins: load locks those when alone)" if idle else "")
+        + "; rows or closures are missing"
+    )
 
 
 def _task_of(mechanism: Mechanism, notes: list[str]) -> TaskSpec:
@@ -526,8 +550,8 @@ def _assembled_home(
     if not assembly.residual <= HOME_TOLERANCE:
         raise ModelFileError(
             mechanism.closures_path,
-            f"{given}, and Newton from the given values reached only {assembly.residual:.1e} "
-            "(give home values closer to an assembly)",
+            f"{given}, and Newton from the given values reached only {assembly.residual:.1e}; "
+            + _with_actuators_free(mechanism, system),
         )
     for name, value, lower, upper in limits_violated(mechanism.model, home, passive)[:1]:
         raise ModelFileError(
@@ -537,6 +561,36 @@ def _assembled_home(
             "joints near the assembly mode wanted)",
         )
     return home, assembly
+
+
+def _with_actuators_free(mechanism: Mechanism, system: ClosureSystem) -> str:
+    """Advice for a home that does not assemble with the actuators held: the same solve with every
+    joint free either closes within the joint limits (then the actuator values it needed are given)
+    or does not (then the closures may not hold on this tree at all)."""
+    model = mechanism.model
+    every = np.arange(model.nv)
+    home, assembly = assemble_home(model, mechanism.closures, system, mechanism.home, every)
+    beyond = limits_violated(model, home, every)[:1]
+    if assembly.residual <= HOME_TOLERANCE and not beyond:
+        values = ", ".join(
+            f"{name}: {home[model.idx_qs[model.getJointId(name)]] + 0.0:.4g}" for name in mechanism.actuated_joints
+        )
+        return (
+            f"with the actuators free too, it closes with them at {{{values}}}: give actuator home values "
+            "near those, a little inside the actuators' reach (the nearest values that close are often at "
+            "its edge, where the loops are singular)"
+        )
+    found = (
+        f"with every joint free it closes only with joint '{beyond[0][0]}' at {beyond[0][1]:.4g}, beyond its "
+        f"URDF limits [{beyond[0][2]:.4g}, {beyond[0][3]:.4g}]"
+        if assembly.residual <= HOME_TOLERANCE
+        else f"even with every joint free it reaches only {assembly.residual:.1e} from the given values"
+    )
+    return (
+        f"{found}: the closures may not all hold on this model (check each closure's type, 3D or 6D, its rows "
+        "and frames, and that the model's joints are the mechanism's: a ball joint given as one revolute, say), "
+        "or the given values are far from any assembly"
+    )
 
 
 def _replace_missing_limits(mechanism: Mechanism) -> list[str]:
