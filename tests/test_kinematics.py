@@ -392,7 +392,7 @@ def test_too_few_iterations_is_not_converged_not_out_of_workspace(mechanism):
 
 def test_diagonal_blocks_of_a_block_triangular_pattern():
     """Rows/columns permuted lower block-triangular pattern: blocks {0, 2} (2 x 2) and {1} (1 x 1)."""
-    from m3t1r.model.kinematics import diagonal_blocks
+    from m3t1r.model.branches import diagonal_blocks
 
     pattern = np.array([[1, 0, 1], [1, 1, 0], [1, 0, 1]], dtype=bool)
     blocks = sorted((sorted(r.tolist()), sorted(c.tolist())) for r, c in diagonal_blocks(pattern))
@@ -414,14 +414,24 @@ def test_cold_inverse_converges_quadratically(mechanism, target, most):
     assert ClosedLoopSolver(mechanism).inverse(target).iterations <= most
 
 
-def test_closure_residual_by_closure_sizes(mechanism):
-    from m3t1r.model.description import closure_residual_by_closure
-
-    sizes = {spec.name: residual.shape for spec, residual in closure_residual_by_closure(mechanism, mechanism.home)}
-    assert sizes["platform"] == (6,) and sizes["five_bar_I"] == (3,)
-    solver = ClosedLoopSolver(mechanism)
-    full = np.concatenate([r for _, r in closure_residual_by_closure(mechanism, mechanism.home + 0.01)])
-    np.testing.assert_allclose(solver.closure_residual(mechanism.home + 0.01, all_rows=True), full, atol=1e-15)
+def test_every_row_of_every_closure_in_closure_order(mechanism):
+    """closure_residual(all_rows=True): 3 rows R_a^T (p_b - p_a) per 3D closure and 6 rows log6(aMb)
+    per 6D one, in the closures file's order, from the frames' placements at q."""
+    model, q = mechanism.model, mechanism.home + 0.01
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, q)
+    expected = []
+    for spec in mechanism.closures:
+        oMa, oMb = data.oMf[spec.frame_a_id], data.oMf[spec.frame_b_id]
+        if spec.type == "3D":
+            expected.append(oMa.rotation.T @ (oMb.translation - oMa.translation))
+        else:
+            expected.append(pin.log6(oMa.actInv(oMb)).vector)
+    types = {spec.name: spec.type for spec in mechanism.closures}
+    assert types["platform"] == "6D" and types["five_bar_I"] == "3D"
+    residual = ClosedLoopSolver(mechanism).closure_residual(q, all_rows=True)
+    assert residual.shape == (sum(len(rows) for rows in expected),)
+    np.testing.assert_allclose(residual, np.concatenate(expected), atol=1e-15)
 
 
 def test_bad_configuration_is_named(solver, mechanism):
@@ -516,7 +526,7 @@ def test_diagonal_blocks_follow_the_matched_columns_not_the_rows():
     """The only perfect matching is the cycle r0->c1, r1->c2, r2->c0 (and r3->c3), no cycle among
     the rows: four 1 x 1 blocks, each on its own matched entry."""
     from m3t1r.errors import SingularConfigurationError
-    from m3t1r.model.kinematics import diagonal_blocks
+    from m3t1r.model.branches import diagonal_blocks
 
     pattern = np.array([[0, 1, 0, 0], [0, 1, 1, 0], [1, 0, 1, 0], [1, 0, 0, 1]], dtype=bool)
     blocks = sorted((r.tolist(), c.tolist()) for r, c in diagonal_blocks(pattern))
@@ -529,7 +539,7 @@ def test_diagonal_blocks_follow_the_matched_columns_not_the_rows():
 def test_det_sign_from_lu_factors():
     from scipy.linalg import lapack
 
-    from m3t1r.model.kinematics import _det_sign
+    from m3t1r.model.branches import det_sign
 
     rng = np.random.default_rng(4)
     signs = []
@@ -537,9 +547,9 @@ def test_det_sign_from_lu_factors():
         for _ in range(6):
             matrix = rng.normal(size=(n, n))
             signs.append(np.linalg.det(matrix) > 0)
-            assert _det_sign(lapack.dgetrf(matrix)) == signs[-1]
+            assert det_sign(lapack.dgetrf(matrix)) == signs[-1]
     assert any(signs) and not all(signs)
-    assert _det_sign(lapack.dgetrf(np.eye(4))) is True
+    assert det_sign(lapack.dgetrf(np.eye(4))) is True
 
 
 def test_mobility_counts_rows_and_singular_values_as_documented(mechanism):
@@ -675,15 +685,15 @@ def test_newton_failures_say_why_word_for_word(mechanism):
 
 def test_block_structure_of_the_passive_system_from_a_cold_cache(mechanism):
     """The five-bars and the platform loop: four 2 x 2 blocks and one 8 x 8, found from scratch."""
-    from m3t1r.model import kinematics
+    from m3t1r.model import branches
 
     key = (mechanism.closures, mechanism.actuated_joints, tuple(mechanism.model.names))
-    saved = kinematics._BLOCK_CACHE.pop(key, None)
+    saved = branches._BLOCK_CACHE.pop(key, None)
     try:
         blocks = ClosedLoopSolver(mechanism).branch_blocks
     finally:
         if saved is not None:
-            kinematics._BLOCK_CACHE[key] = saved
+            branches._BLOCK_CACHE[key] = saved
     found = sorted((sorted(r.tolist()), sorted(c.tolist())) for r, c in blocks)
     assert found == [
         ([0, 1], [2, 7]),
@@ -709,14 +719,14 @@ def test_returned_poses_do_not_move_with_later_solves(mechanism):
 
 def test_branch_signature_reads_every_block_by_its_size():
     """A 1 x 1 block by its sign, a 2 x 2 by its closed-form determinant, larger ones by LU."""
-    from m3t1r.model.kinematics import _BranchSignature
+    from m3t1r.model.branches import BranchSignature
 
     blocks = [
         (np.array([0]), np.array([0])),
         (np.array([1, 2]), np.array([1, 2])),
         (np.array([3, 4, 5]), np.array([3, 4, 5])),
     ]
-    signature = _BranchSignature(blocks, 6)
+    signature = BranchSignature(blocks, 6)
     jac = np.eye(6)
     jac[0, 0] = 0.5
     jac[1:3, 1:3] = [[1.0, 2.0], [3.0, 4.0]]  # det -2 (1 * 4 - 2 / 3 would be positive)
@@ -1085,7 +1095,7 @@ def test_the_block_cache_is_per_topology(mechanism, tmp_path):
 def test_diagonal_blocks_come_in_upper_block_triangular_order():
     """Rows 0, 1, 2 on their own unknowns; row 0 also uses unknown 1 and row 2 unknown 0: block {2}
     must come before {0}, and {0} before {1}, so that no row uses an unknown of an earlier block."""
-    from m3t1r.model.kinematics import diagonal_blocks
+    from m3t1r.model.branches import diagonal_blocks
 
     pattern = np.array([[1, 1, 0], [0, 1, 0], [1, 0, 1]], dtype=bool)
     blocks = diagonal_blocks(pattern)
@@ -1104,9 +1114,9 @@ def test_diagonal_blocks_come_in_upper_block_triangular_order():
 def test_branch_signature_factors_each_block_when_a_pivot_comes_from_below():
     """An entry the block structure says is zero (row 1, column 0) but is not, and larger than the
     block's own: the LU takes its pivot from the next block, so each block is factored on its own."""
-    from m3t1r.model.kinematics import _BranchSignature
+    from m3t1r.model.branches import BranchSignature
 
-    signature = _BranchSignature([(np.array([0]), np.array([0])), (np.array([1]), np.array([1]))], 2)
+    signature = BranchSignature([(np.array([0]), np.array([0])), (np.array([1]), np.array([1]))], 2)
     assert signature(np.array([[0.1, 0.0], [5.0, -1.0]])) == b"\x01\x00"
     assert signature(np.array([[0.1, 0.0], [0.0, -1.0]])) == b"\x01\x00"  # the same from the one LU
     assert signature(np.array([[-0.1, 3.0], [0.0, -1.0]])) == b"\x00\x00"

@@ -1,7 +1,7 @@
 """The compiled Newton loops of FK and IK (`model.native`) against the Python loops they replace.
 
-Single solves against `ClosedLoopSolver(native=False)` (the Python `newton`), batches against the
-numpy `newton_batch`: same solutions, iterations, branches and typed failures, on the M machine, a
+Single solves and batches against `ClosedLoopSolver(native=False)` (the Python `newton`, which a
+batch runs row by row): same solutions, iterations, branches and typed failures, on the M machine, a
 calibrated copy, a tool task frame and the example mechanisms (planar x, y and full-rotation tasks).
 """
 

@@ -24,6 +24,8 @@ __all__ = [
     "ASSEMBLY_MAX_CHANGE",
     "without_rows",
     "closure_rank",
+    "relative_supports",
+    "frame_support",
 ]
 
 ROW_COUNT = {"3D": 3, "6D": 6}
@@ -64,10 +66,22 @@ class Redundancy:
 
 
 class ClosureSystem:
-    """Residual and Jacobian of the enforced rows of some closures of `model` (its own `Data`)."""
+    """Residual and Jacobian of the enforced rows of some closures of `model` (its own `Data`): the one
+    definition of a closure's rows that every solve, batch, sensitivity and load-time check reads.
 
-    def __init__(self, model: pin.Model, closures: tuple[ClosureSpec, ...]) -> None:
-        self.model, self.data = model, model.createData()
+    Pinocchio's constraint models evaluate the rows (one `calc` per closure, one stacked Jacobian):
+    measured against a hand-written stacked operator and a numpy batch, they are several times faster
+    per pose and within about 1.3x of the numpy batch over 1,000 poses (docs/design.md, "Solver").
+    `all_rows=True` enforces every row of every closure (rank analysis, `closure_residual(all_rows)`);
+    `data`: a `Data` of `model` to share with another system (default: its own).
+    """
+
+    def __init__(
+        self, model: pin.Model, closures: tuple[ClosureSpec, ...], all_rows: bool = False, data: pin.Data | None = None
+    ) -> None:
+        if all_rows:
+            closures = tuple(replace(c, rows=tuple(range(ROW_COUNT[c.type]))) for c in closures)
+        self.model, self.data = model, model.createData() if data is None else data
         self.constraints, self.constraint_data = pin.StdVec_ConstraintModel(), pin.StdVec_ConstraintData()
         for spec in closures:
             fa, fb = model.frames[spec.frame_a_id], model.frames[spec.frame_b_id]
@@ -80,9 +94,11 @@ class ClosureSystem:
         self.errors = [d.constraint_position_error for d in inner]  # live views, refreshed by `calc`
         slots = np.concatenate(([0], np.cumsum([ROW_COUNT[c.type] for c in closures]))).astype(int)
         self.welds = [(int(slots[i]), d) for i, d in enumerate(inner) if closures[i].type == "6D"]
+        self._placed = [(int(slots[i]), c.type, d) for i, (c, d) in enumerate(zip(closures, inner))]
         self.enforced = np.concatenate(
             [slots[i] + np.array(c.rows, dtype=int) for i, c in enumerate(closures)] + [np.zeros(0, dtype=int)]
         )
+        self.n_rows, self.n_full = len(self.enforced), int(slots[-1])
 
     @overload
     def evaluate(self, q: np.ndarray, with_jacobian: Literal[True]) -> tuple[np.ndarray, np.ndarray]: ...
@@ -92,7 +108,8 @@ class ClosureSystem:
         """Enforced rows at q and, optionally, their exact Jacobian (rows x nv). The constraint models'
         6D Jacobian is velocity-level (the relative twist of b in a's frame, a left perturbation of
         aMb); the exact one is Jlog6(aMb) Ad(aMb^-1) = Jlog6(bMa) times it, since
-        log6(exp(x) M) = -log6(M^-1 exp(-x))."""
+        log6(exp(x) M) = -log6(M^-1 exp(-x)). Leaves `data` at q (joint placements, and the WORLD
+        joint Jacobian `data.J` when with_jacobian)."""
         model, data = self.model, self.data
         if with_jacobian:
             pin.computeJointJacobians(model, data, q)
@@ -108,6 +125,26 @@ class ClosureSystem:
         for slot, cdata in self.welds:
             jac[slot : slot + 6] = pin.Jlog6(cdata.c1Mc2.inverse()).dot(jac[slot : slot + 6])
         return residual, jac.take(self.enforced, axis=0)
+
+    def sensitivity(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(residual, Jacobian wrt q, row operator (rows x 6)) of the enforced rows at q.
+
+        Row r of closure c changes by operator[r] @ (xi_b - xi_a) for spatial (WORLD) twists xi of its
+        two frames, [v; w] at the base origin: R_a^T [I, -[p_b]x] for a 3D closure, Jlog6(aMb)
+        Ad(oMb^-1) for a 6D one. That is how geometric-parameter sensitivities enter (calibration).
+        Leaves `data` at q with every frame placed (`data.oMf`) and the WORLD joint Jacobian.
+        """
+        residual, jac = self.evaluate(q, True)
+        pin.updateFramePlacements(self.model, self.data)
+        full = np.empty((self.n_full, 6))
+        for slot, kind, cdata in self._placed:
+            oMa, oMb = cdata.oMc1, cdata.oMc2
+            if kind == "3D":
+                rotation_t = oMa.rotation.T
+                full[slot : slot + 3] = np.hstack((rotation_t, -rotation_t @ pin.skew(oMb.translation)))
+            else:
+                full[slot : slot + 6] = pin.Jlog6(cdata.c1Mc2) @ oMb.inverse().action
+        return residual, jac, full[self.enforced]
 
     def assemble(self, q: np.ndarray, free: np.ndarray, tolerance: float) -> tuple[np.ndarray, float]:
         """Least-squares Gauss-Newton on the enforced rows over the columns `free` from q.
@@ -153,6 +190,21 @@ class ClosureSystem:
             keep = _pivots(square.T, rank)
             dropped = tuple(r for r in range(square.shape[0]) if r not in keep)
         return Redundancy(locked, dropped, rank), _rank(jac)
+
+
+def frame_support(model: pin.Model, frame_id: int) -> np.ndarray:
+    """(nv,) mask of the joints that move frame `frame_id` (1.0) and those that do not (0.0)."""
+    mask = np.zeros(model.nv)
+    for j in model.supports[model.frames[frame_id].parentJoint][1:]:
+        mask[model.idx_vs[j]] = 1.0
+    return mask
+
+
+def relative_supports(model: pin.Model, closures: tuple[ClosureSpec, ...]) -> np.ndarray:
+    """(closures, nv) signed column masks support(frame b) - support(frame a): +1 for a joint that moves
+    frame b and not frame a, -1 for the reverse, 0 for a joint that moves both or neither."""
+    rows = [frame_support(model, c.frame_b_id) - frame_support(model, c.frame_a_id) for c in closures]
+    return np.array(rows).reshape(-1, model.nv)
 
 
 def closure_rank(matrix: np.ndarray) -> int:

@@ -1,7 +1,7 @@
 """The compiled Newton loop of closed-loop FK (`_native_newton`, C++ on Pinocchio), when it is built.
 
 `tools/build_native.py` (run by `make`) compiles it in place. It solves the problem of
-`ClosedLoopSolver.newton` (single solves) and `batch_kinematics.newton_batch` (rows), step for step:
+`ClosedLoopSolver.newton` (single solves, and batch rows without the compiled loop), step for step:
 the same residual and exact Jacobian of the enforced rows, and the same `NewtonRules` (passed with
 every call: chord steps, step cap, convergence test, singular threshold, no-assembly threshold), the
 1-norm reciprocal condition and branch labels (signs of the diagonal blocks' determinants). It holds
