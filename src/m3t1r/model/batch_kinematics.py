@@ -219,7 +219,9 @@ def forward_batch(
     branch = None
     if reference is not None:  # the first-order predictor along home's solution manifold
         tangent, branch = reference
-        start[:, solver.passive] += solver.predict(solver.mechanism.home, values - start[:, solver.actuated], tangent, None)
+        start[:, solver.passive] += solver.predict(
+            solver.mechanism.home, values - start[:, solver.actuated], tangent, None
+        )
     start[:, solver.actuated] = values
     parts = []
     if len(rows):
