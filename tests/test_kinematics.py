@@ -1139,7 +1139,7 @@ def test_newton_calls_a_zero_pivot_or_a_nan_inverse_singular(solver, jacobian):
 def test_newton_rcond_is_exact_and_its_inverse_is_returned(solver):
     """rcond = 1 / (|J|_1 |J^-1|_1): J = [[2, 1], [0, 4]] has |J|_1 = 5, J^-1 = [[0.5, -0.125], [0, 0.25]],
     |J^-1|_1 = 0.5: 0.4, reported with the inverse (FK's tangent uses it)."""
-    from m3t1r.model.kinematics import _inverse_and_rcond
+    from m3t1r.model.newton import inverse_and_rcond
 
     jacobian = np.array([[2.0, 1.0], [0.0, 4.0]])
     system = _Scripted([[1.0, 0.0], [0.0, 0.0]], jacobian=jacobian)
@@ -1147,7 +1147,7 @@ def test_newton_rcond_is_exact_and_its_inverse_is_returned(solver):
     np.testing.assert_allclose(outcome.inverse, np.linalg.inv(jacobian), rtol=1e-15)
     from scipy.linalg import lapack
 
-    inverse, rcond = _inverse_and_rcond(lapack.dgetrf(jacobian)[:2], 5.0)
+    inverse, rcond = inverse_and_rcond(lapack.dgetrf(jacobian)[:2], 5.0)
     assert rcond == pytest.approx(0.4, rel=1e-15)
 
 

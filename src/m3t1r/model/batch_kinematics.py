@@ -17,16 +17,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
-from m3t1r.errors import (
-    BranchChangeError,
-    InvalidInputError,
-    M3t1rError,
-    NotConvergedError,
-    OutOfWorkspaceError,
-    SingularConfigurationError,
-    real_array,
-)
+from m3t1r.errors import InvalidInputError, M3t1rError, OutOfWorkspaceError, real_array
 from m3t1r.model.native import available_cores
+from m3t1r.model.newton import CONVERGED, FAILURES, reason
 from m3t1r.model.newton_rules import DEFAULT_RULES
 
 if TYPE_CHECKING:
@@ -118,15 +111,7 @@ def rpy_batch(rotations: np.ndarray) -> np.ndarray:
     )
 
 
-_CONVERGED, _ACTIVE, _LIMIT = 0, -1, 5  # _LIMIT: converged, but a slider is beyond its limit
-_FAILURES = {1: OutOfWorkspaceError, 2: NotConvergedError, 3: SingularConfigurationError, 4: BranchChangeError}
-_REASONS = {
-    1: "the closures cannot be assembled here (target out of the workspace or too far from the "
-    "initial configuration's branch)",
-    2: "Newton did not reach the tolerance",
-    3: "singular configuration (reciprocal condition below 1e-10)",
-    4: "the solution lies on another assembly branch than the start (Newton crossed a singularity)",
-}
+_CONVERGED, _LIMIT = CONVERGED, 5  # _LIMIT: converged, but a slider is beyond its limit
 
 
 @dataclass
@@ -146,13 +131,12 @@ def failures_of(
 ) -> list[RowFailure]:
     """Typed failures of the rows of `solved` that did not converge (indices shifted by `offset`);
     singular rows name `singular_rcond`, the threshold they fell below."""
-    reasons = _REASONS | {3: f"singular configuration (reciprocal condition below {singular_rcond:g})"}
     return [
         RowFailure(
             offset + int(i),
-            f"{what}: {reasons[int(solved.status[i])]} (residual "
+            f"{what}: {reason(int(solved.status[i]), singular_rcond=singular_rcond)} (residual "
             f"{solved.norm[i]:.3e} after {int(solved.iterations[i])} iterations)",
-            _FAILURES[int(solved.status[i])],
+            FAILURES[int(solved.status[i])],
         )
         for i in np.flatnonzero((solved.status != _CONVERGED) & (solved.status != _LIMIT))
     ]

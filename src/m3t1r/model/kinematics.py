@@ -18,29 +18,35 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 import pinocchio as pin
 from scipy.linalg import blas, lapack
 
 from m3t1r.errors import (
-    BranchChangeError,
     InvalidInputError,
     KinematicsError,
-    NotConvergedError,
     OutOfWorkspaceError,
-    SingularConfigurationError,
     require_count,
     require_finite_vector,
     require_real,
 )
-from m3t1r.model.batch_kinematics import _FAILURES, _REASONS, SolvedRows, forward_batch, inverse_batch
+from m3t1r.model.batch_kinematics import SolvedRows, forward_batch, inverse_batch
 from m3t1r.model.branches import BranchSignature, det_sign
 from m3t1r.model.closures import ClosureSystem, frame_support, relative_supports
 from m3t1r.model.description import Mechanism
-from m3t1r.model.native import CONVERGED as _native_converged
 from m3t1r.model.native import NativeChain
+from m3t1r.model.newton import (
+    CONVERGED,
+    STATUS,
+    Outcome,
+    Signature,
+    System,
+    failure,
+    inverse_and_rcond,
+    newton,
+    one_norm,
+)
 from m3t1r.model.newton_rules import DEFAULT_RULES, NewtonRules
 from m3t1r.model.solver_layout import solver_layout
 
@@ -82,51 +88,7 @@ def roll_pitch_of(rotation: np.ndarray) -> tuple[float, float]:
 
 
 _FLOAT = np.dtype(float)
-_dasum, _idamax, _dlange = blas.dasum, blas.idamax, lapack.dlange
-
-
-_STATUS = {error: status for status, error in _FAILURES.items()}  # a typed failure's status code
-
-
-def _native_error(status: int, norm: float, iterations: int, rcond: float) -> Exception:
-    """The typed error of a compiled solve's status, worded as `newton`'s (and the batches')."""
-    reason = f"singular configuration (reciprocal condition {rcond:.2e})" if status == 3 else _REASONS[status]
-    return _FAILURES[status](reason, norm, iterations)
-
-
-class _Outcome(NamedTuple):
-    """A converged Newton solve: solution, residual, steps, the inverse of the last factorised system,
-    last Jacobian and branch."""
-
-    q: np.ndarray
-    residual: float
-    iterations: int
-    inverse: np.ndarray
-    jacobian: np.ndarray
-    branch: bytes
-
-
-def _one_norm(square: np.ndarray) -> float:
-    """Largest column sum of |A| (dgecon's anorm): the infinity norm of A^T, which for a C-ordered A
-    LAPACK reads in place (Fortran order), without the copy that A itself would cost."""
-    return float(_dlange("I", square.T))
-
-
-def _inverse_and_rcond(lu: tuple, one_norm: float) -> tuple[np.ndarray, float]:
-    """A^-1 from getrf factors, and A's reciprocal condition number 1 / (|A|_1 |A^-1|_1), exact where
-    dgecon would estimate it at about the same cost; the inverse then serves FK's tangent too.
-    0 when U has a zero pivot or the inverse overflows."""
-    inverse, info = lapack.dgetri(lu[0], lu[1])
-    rcond = 1.0 / (one_norm * float(_dlange("1", inverse))) if info == 0 else 0.0
-    return inverse, (rcond if rcond == rcond else 0.0)  # nan (inf - inf in the inverse) counts as singular
-
-
-def _max_abs(vector: np.ndarray) -> float:
-    """max |v_i| as numpy's abs().max() gives it (nan if any entry is nan), by two BLAS calls: a
-    fraction of a numpy reduction's overhead on vectors this short. dasum is nan exactly when an
-    entry is (a sum of absolute values never makes nan from finite or infinite terms)."""
-    total = _dasum(vector)
-    return abs(float(vector[_idamax(vector)])) if total == total else math.nan
+_dasum = blas.dasum
 
 
 @dataclass(frozen=True)
@@ -429,8 +391,8 @@ class ClosedLoopSolver:
         status, norm, iterations, rcond = native.forward(
             q, values, order, previous if order == 2 else None, branch, self._compiled_rules
         )
-        if status != _native_converged:
-            raise _native_error(status, norm, iterations, rcond)
+        if status != CONVERGED:
+            raise failure(status, norm, iterations, rcond)
         self._tangent = native.tangent  # overwritten only by the next success, which reads it first
         self._last_branch = bytes(native.branch)
         self.last_q = q
@@ -453,7 +415,7 @@ class ClosedLoopSolver:
         assert jac is not None, "asked with_jacobian"
         square = jac.take(self.passive, axis=1)
         lu = lapack.dgetrf(square)[:2]
-        inverse, rcond = _inverse_and_rcond(lu, _one_norm(square))
+        inverse, rcond = inverse_and_rcond(lu, one_norm(square))
         if not rcond >= self.rules.singular_rcond:
             return None
         return -inverse.dot(jac.take(self.actuated, axis=1)), self._branch(jac)
@@ -514,75 +476,11 @@ class ClosedLoopSolver:
         `updateFramePlacement`'s placement by value), so the solver's data may move on."""
         return pin.updateFramePlacement(self.model, self.data, self._platform)
 
-    def newton(self, q: np.ndarray, unknowns: np.ndarray | None, system, signature, start_branch=None) -> _Outcome:
-        """Newton on a square system over the columns `unknowns` (None: every column), with chord steps,
-        under `self.rules` (as the compiled loop and the batches).
-
-        The Jacobian is evaluated at the start and after every step from a residual above
-        `rules.chord_below`; below it, later steps reuse the LU factors while each step still
-        contracts the residual by `rules.chord_contraction`, and refresh them otherwise.
-        `signature(jac, lu)` labels the branch: its value at the last Jacobian must equal
-        `start_branch` (default: its value at the first Jacobian), else BranchChangeError.
-        """
-        rules = self.rules
-        tolerance, contraction, max_step = rules.tolerance, rules.chord_contraction, rules.max_step
-        residual, jac = system(q, True)
-        previous = norm = math.inf
-        last_jac = square = label = lu = None  # label: the signature of last_jac, once computed
-        for iteration in range(rules.max_iterations + 1):
-            norm = _max_abs(residual)
-            if not math.isfinite(norm):
-                break
-            if jac is None and norm > contraction * previous and norm > tolerance:
-                residual, jac = system(q, True)
-            if jac is not None:
-                square = jac if unknowns is None else jac.take(unknowns, axis=1)
-                *lu, info = lapack.dgetrf(square)
-                if info > 0:  # a zero pivot: no step exists (the compiled loop's `factor` says the same)
-                    raise SingularConfigurationError(
-                        "singular configuration (reciprocal condition 0.00e+00)", norm, iteration
-                    )
-                label = None
-                if start_branch is None:
-                    start_branch = label = signature(jac, lu)
-                last_jac, jac = jac, None
-            if norm <= tolerance:
-                # Conditioning and branch are judged at the last Jacobian only.
-                assert lu is not None and square is not None and last_jac is not None, "the first pass sets them"
-                inverse, rcond = _inverse_and_rcond(lu, _one_norm(square))
-                if rcond < rules.singular_rcond:
-                    raise SingularConfigurationError(
-                        f"singular configuration (reciprocal condition {rcond:.2e})", norm, iteration
-                    )
-                branch = label if label is not None else signature(last_jac, lu)
-                if branch != start_branch:
-                    raise BranchChangeError(
-                        "the solution lies on another assembly branch than the start (Newton crossed a singularity)",
-                        norm,
-                        iteration,
-                    )
-                return _Outcome(q, norm, iteration, inverse, last_jac, branch)
-            if iteration == rules.max_iterations:
-                break
-            assert lu is not None, "the first iteration factorises"
-            step = lapack.dgetrs(lu[0], lu[1], residual)[0]
-            biggest = abs(float(step[_idamax(step)]))  # nan entries make q nan: the next residual stops
-            if biggest > max_step:
-                step *= max_step / biggest
-            if unknowns is None:
-                q -= step
-            else:
-                q[unknowns] -= step
-            previous = norm
-            residual, jac = system(q, previous > rules.chord_below)
-        if norm > rules.no_assembly or not math.isfinite(norm):
-            raise OutOfWorkspaceError(
-                "the closures cannot be assembled here (target out of the workspace "
-                "or too far from the initial configuration's branch)",
-                norm,
-                iteration,
-            )
-        raise NotConvergedError("Newton did not reach the tolerance", norm, iteration)
+    def newton(
+        self, q: np.ndarray, unknowns: np.ndarray | None, system: System, signature: Signature, start_branch=None
+    ) -> Outcome:
+        """`newton.newton` under `self.rules`: the one Python Newton of single solves and batch rows."""
+        return newton(q, unknowns, system, signature, self.rules, start_branch)
 
     # ----------------------------------------------------------------------------------------
     # Inverse kinematics
@@ -732,8 +630,8 @@ class ClosedLoopSolver:
         status, residual, iterations, rcond = native.inverse(
             q, goal, goal_rotation, order, self._inverse_previous, start, self._compiled_rules
         )
-        if status != _native_converged:
-            raise _native_error(status, residual, iterations, rcond)
+        if status != CONVERGED:
+            raise failure(status, residual, iterations, rcond)
         # The task frame's placement stays in the compiled call's buffer, which the next warm solve
         # reads: no SE3 of it unless the result needs one (a task frame other than the platform).
         return (
@@ -901,7 +799,7 @@ class ClosedLoopSolver:
             try:
                 outcome = self.newton(q[i], unknowns, system, signature, start_branch=branch)
             except KinematicsError as error:
-                solved.status[i], solved.norm[i] = _STATUS[type(error)], error.residual
+                solved.status[i], solved.norm[i] = STATUS[type(error)], error.residual
                 solved.iterations[i] = error.iterations + steps_taken
                 continue
             solved.norm[i], solved.iterations[i] = outcome.residual, outcome.iterations + steps_taken

@@ -48,7 +48,7 @@ __all__ = ["AVAILABLE", "NativeChain", "CONVERGED", "PURE_PYTHON_VARIABLE", "ava
 
 AVAILABLE = _native_newton is not None
 _EMPTY = np.zeros(0)
-CONVERGED = 0  # status codes 1-4 as batch_kinematics' rows: no assembly, not converged, singular, branch change
+CONVERGED = 0  # status codes 1-4 as `newton`: no assembly, not converged, singular, branch change
 
 # Joint types the compiled model rebuilds, by Pinocchio's short name: the code `joint_of` reads.
 _ROTATION_CODES = {"none": 0, "yaw": 1, "full": 2}
