@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from m3t1r.model.closures import ROW_COUNT
 from m3t1r.model.native_status import STALE, load_compiled
 
 _native_newton, _WHY_NOT = load_compiled()  # _WHY_NOT: why the Python loops run ("": they do not)
@@ -121,10 +122,7 @@ class NativeChain:
         where = {f: k for k, f in enumerate(frame_ids)}
         rows = np.cumsum([0] + [len(c.rows) for c in closures])
         spec = np.array(
-            [
-                [3 if c.type == "3D" else 6, where[c.frame_a_id], where[c.frame_b_id], rows[k]]
-                for k, c in enumerate(closures)
-            ],
+            [[ROW_COUNT[c.type], where[c.frame_a_id], where[c.frame_b_id], rows[k]] for k, c in enumerate(closures)],
             dtype=np.int64,
         ).reshape(-1, 4)
         components = np.array([r for c in closures for r in c.rows], dtype=np.int64)
