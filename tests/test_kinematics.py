@@ -509,8 +509,8 @@ def test_reset_forgets_every_warm_start(mechanism):
     solver.forward(solver.last_q[solver.actuated] + 0.01)
     solver.inverse(TARGET + [0.01, 0.0, 0.0, 0.05])
     solver.reset()
-    for name in ("_previous", "_task_inverse", "_inverse_previous", "_last_goal", "_last_inverse_branch", "_last_task"):
-        assert getattr(solver, name) is None, name
+    for name in ("previous", "task_inverse", "inverse_previous", "goal", "inverse_branch", "task"):
+        assert getattr(solver.warm, name) is None, name
     np.testing.assert_array_equal(solver.last_q, mechanism.home)
     # What is left is a new solver's start: home's tangent and branch, the batch's first step.
     sliders = mechanism.home[solver.actuated] + 0.01
@@ -851,9 +851,9 @@ def test_an_explicit_start_takes_its_own_branch_not_the_warm_one(mechanism, comp
     solver = ClosedLoopSolver(mechanism, native=compiled)
     solution = solver.inverse(TARGET)
     # Labels set by hand: no public call leaves a solver's warm start on a branch no solve can have.
-    solver._last_inverse_branch = b"\x02"
+    solver.warm.inverse_branch = b"\x02"
     assert solver.inverse(TARGET, q_init=mechanism.home).residual <= 1e-12
-    solver._last_branch = b"\x02"  # after the IK, which sets it
+    solver.warm.branch = b"\x02"  # after the IK, which sets it
     assert solver.forward(solution.actuators, q_init=mechanism.home).residual <= 1e-12
 
 
@@ -877,7 +877,7 @@ def test_warm_forward_keeps_the_last_solution_s_branch(mechanism):
 
     solver = ClosedLoopSolver(mechanism)
     sliders = solver.forward(mechanism.home[mechanism.actuated_ids] + 0.01).q[mechanism.actuated_ids]
-    solver._last_branch = b"\x02"
+    solver.warm.branch = b"\x02"
     with pytest.raises(BranchChangeError):
         solver.forward(sliders + 0.01)
 
@@ -1021,7 +1021,7 @@ def test_forward_records_the_predictor_history_and_the_branch(mechanism, compile
         assert result.residual <= 1e-12
         # Read directly: publicly the history only shapes the next start's second-order term; this pins
         # what it holds, exactly, in both loops.
-        previous = solver._previous
+        previous = solver.warm.previous
         if compiled and previous is not None:
             previous = (previous[: len(home_sliders)], previous[len(home_sliders) :])
         history.append(None if previous is None else previous[0].copy())

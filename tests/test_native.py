@@ -218,7 +218,7 @@ def test_failures_are_the_python_loop_s_typed_errors(mechanism):
         kinds.add((type(caught.value), caught.value.iterations))
         solver.forward(mechanism.home[mechanism.actuated_ids])
         # A branch the next solve cannot keep: set by hand, as no public call leaves a solver on one.
-        solver._last_branch = bytes(1 - b for b in solver._last_branch)
+        solver.warm.branch = bytes(1 - b for b in solver.warm.branch)
         with pytest.raises(BranchChangeError) as caught:
             solver.forward(mechanism.home[mechanism.actuated_ids] + 1e-3)
         kinds.add((type(caught.value), caught.value.iterations))
@@ -621,10 +621,10 @@ def test_a_warm_inverse_keeps_the_last_solution_s_branch(mechanism, compiled):
     solver = ClosedLoopSolver(mechanism, native=compiled)
     targets = _targets(mechanism, 3, 12)
     solver.inverse(targets[0])
-    solver._last_inverse_branch = b"\x02" * (len(solver.home_reference()[1]) + 1)
+    solver.warm.inverse_branch = b"\x02" * (len(solver.home_reference()[1]) + 1)
     with pytest.raises(BranchChangeError):
         solver.inverse(targets[1])
-    solver._last_inverse_branch = b"\x02" * (len(solver.home_reference()[1]) + 1)
+    solver.warm.inverse_branch = b"\x02" * (len(solver.home_reference()[1]) + 1)
     assert solver.inverse(targets[2], q_init=mechanism.home).residual <= 1e-12
 
 

@@ -49,6 +49,7 @@ from m3t1r.model.newton import (
 )
 from m3t1r.model.newton_rules import DEFAULT_RULES, NewtonRules
 from m3t1r.model.solver_layout import solver_layout
+from m3t1r.model.warm_start import WarmStart
 
 __all__ = [
     "ForwardResult",
@@ -225,10 +226,8 @@ class ClosedLoopSolver:
             if native
             else None
         )
-        self._last_branch: bytes | None = None  # signature at this solver's last FK solution
-        self._tangent: np.ndarray | None = None  # d q_passive / d sliders at the last factorisation
         self._home: tuple[np.ndarray, bytes] | None = None  # home's tangent and branch, once computed
-        self.last_q: np.ndarray = mechanism.home.copy()
+        self.warm = WarmStart(mechanism.home.copy())  # where the next solve continues from (`reset`)
         self.reset()
 
     # One rule set, replaced whole: a solver's loops never see two versions of it.
@@ -351,33 +350,29 @@ class ClosedLoopSolver:
         Raises InvalidInputError for bad actuators, BranchChangeError / NotConvergedError /
         OutOfWorkspaceError / SingularConfigurationError (with the final residual) otherwise.
         """
-        values = self.check_actuators(actuators)
+        values, warm = self.check_actuators(actuators), self.warm
         if q_init is None:  # a continuation from the last solution (initially home)
-            q, tangent, branch, previous = self.last_q.copy(), self._tangent, self._last_branch, self._previous
+            q, tangent, branch, previous = warm.q.copy(), warm.tangent, warm.branch, warm.previous
         else:  # a continuation from q_init: its own tangent and branch
             q = require_finite_vector(q_init, self.model.nq, "q_init").copy()
             (tangent, branch), previous = self._continuation_from(q), None
-        self._tangent = self._previous = self._last_goal = self._inverse_previous = None  # until this succeeds
+        warm.tangent = warm.previous = warm.goal = warm.inverse_previous = None  # until this succeeds
         if self.native is not None:
             before = q.take(self._prior_columns)  # where this solve continues from, for the next one
             result = self._forward_native(q, values, tangent is not None, previous, branch)
-            self._previous = before
+            warm.previous = before
             return result
         start = q.copy()
         if tangent is not None:
             q[self.passive] += self.predict(start, values - q.take(self.actuated), tangent, previous)
         q[self.actuated] = values
         outcome = self.newton(q, self.passive, self._system, self._passive_branch, start_branch=branch)
-        self._tangent = -outcome.inverse.dot(outcome.jacobian.take(self.actuated, axis=1))
+        warm.tangent = -outcome.inverse.dot(outcome.jacobian.take(self.actuated, axis=1))
         # Where this solve continued from, for the second-order predictor of the next one.
-        self._previous = (start.take(self.actuated), start.take(self.passive))
-        self._last_branch = outcome.branch
-        self.last_q = outcome.q
+        warm.previous = (start.take(self.actuated), start.take(self.passive))
+        warm.branch, warm.q = outcome.branch, outcome.q
         pose = self._platform_pose()
         return ForwardResult(pose, outcome.q.copy(), outcome.residual, outcome.iterations, self._task_pose(pose))
-
-    # (sliders, passive q) of the solution before last_q; with the compiled loop, the two concatenated
-    _previous: tuple[np.ndarray, np.ndarray] | np.ndarray | None = None
 
     def _forward_native(
         self, q: np.ndarray, values: np.ndarray, predicted: bool, previous, branch: bytes | None
@@ -393,9 +388,9 @@ class ClosedLoopSolver:
         )
         if status != CONVERGED:
             raise failure(status, norm, iterations, rcond)
-        self._tangent = native.tangent  # overwritten only by the next success, which reads it first
-        self._last_branch = bytes(native.branch)
-        self.last_q = q
+        self.warm.tangent = native.tangent  # overwritten only by the next success, which reads it first
+        self.warm.branch = bytes(native.branch)
+        self.warm.q = q
         pose = pin.SE3(native.platform)
         return ForwardResult(
             pose, q.copy(), norm, iterations, pose if self._task_frame == self._platform else pin.SE3(native.task)
@@ -421,7 +416,7 @@ class ClosedLoopSolver:
         return -inverse.dot(jac.take(self.actuated, axis=1)), self._branch(jac)
 
     def _continuation_from(self, q: np.ndarray) -> tuple[np.ndarray | None, bytes | None]:
-        """The warm-start state (`_tangent`, `_last_branch`) of a solve continuing from q: home's cached
+        """The FK warm-start state (`warm.tangent`, `warm.branch`) of a solve continuing from q: home's cached
         reference at home, q's own elsewhere; (None, None) at a singular q (labels then at the start).
         The compiled loop reads its tangent from `native.tangent`, which this fills."""
         home = self.mechanism.home
@@ -558,20 +553,20 @@ class ClosedLoopSolver:
         if not self._square_task or self._uncommandable != ():
             self.check_square_task()
         goal, goal_rotation, wanted_tilt = self._goal(target)
-        warm = q_init is None
-        q = (self.last_q if warm else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
-        predicted = warm and self._task_inverse is not None and self._last_task is not None
+        continuing, state = q_init is None, self.warm
+        q = (state.q if continuing else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
+        predicted = continuing and state.task_inverse is not None and state.task is not None
         if predicted and self.native is None:
-            assert self._task_inverse is not None and self._last_task is not None, "as `predicted` says"
+            assert state.task_inverse is not None and state.task is not None, "as `predicted` says"
             q[self._unknown_columns] += self.inverse_predict(
-                goal, goal_rotation, self._task_inverse, self._last_task, self._inverse_previous
+                goal, goal_rotation, state.task_inverse, state.task, state.inverse_previous
             )
-        self._task_inverse = None  # dropped until this solve succeeds
+        state.task_inverse = None  # dropped until this solve succeeds
         # A warm solve must stay on the previous solution's branch (assembly and working mode).
-        start = self._last_inverse_branch if warm else None
-        self._last_inverse_branch = None
+        start = state.inverse_branch if continuing else None
+        state.inverse_branch = None
         if self.native is not None:
-            order = (1 if self._inverse_previous is None else 2) if predicted else 0
+            order = (1 if state.inverse_previous is None else 2) if predicted else 0
             q, residual, iterations, branch, task_inverse, last_task, pose = self._inverse_native(
                 q, start, goal, goal_rotation, order
             )
@@ -601,12 +596,11 @@ class ClosedLoopSolver:
                 iterations,
             )
         # The second-order predictor's history: the solution this one started from, with its goal.
-        self._inverse_previous = (self._last_goal, self.last_q) if warm and self._last_goal is not None else None
+        state.inverse_previous = (state.goal, state.q) if continuing and state.goal is not None else None
         # The FK warm start now follows this solution; its predictor tangent is from elsewhere.
-        self.last_q, self._tangent, self._last_branch, self._previous = q, None, branch[:-1], None
-        self._task_inverse, self._last_inverse_branch = task_inverse, branch
-        self._last_goal = (goal, goal_rotation)
-        self._last_task = last_task
+        state.q, state.tangent, state.branch, state.previous = q, None, branch[:-1], None
+        state.task_inverse, state.inverse_branch = task_inverse, branch
+        state.goal, state.task = (goal, goal_rotation), last_task
         task_pose = pose if self._task_frame == self._platform else pin.SE3(last_task)  # a copy either way
         return InverseResult(
             actuators,
@@ -628,7 +622,7 @@ class ClosedLoopSolver:
         native = self.native
         assert native is not None, "called only with the compiled loop"
         status, residual, iterations, rcond = native.inverse(
-            q, goal, goal_rotation, order, self._inverse_previous, start, self._compiled_rules
+            q, goal, goal_rotation, order, self.warm.inverse_previous, start, self._compiled_rules
         )
         if status != CONVERGED:
             raise failure(status, residual, iterations, rcond)
@@ -702,7 +696,7 @@ class ClosedLoopSolver:
             lam = -float(rows.dot(back)) / bb if bb > 0.0 else 0.0
             if 0.0 < lam < 2.0:
                 columns = self._unknown_columns
-                step += lam * lam * (last_q[columns] - self.last_q[columns] + task_inverse.dot(back))
+                step += lam * lam * (last_q[columns] - self.warm.q[columns] + task_inverse.dot(back))
         return step
 
     def _inverse_system(self, goal: np.ndarray, goal_rotation: np.ndarray | None):
@@ -807,24 +801,16 @@ class ClosedLoopSolver:
             solved.rotation[i], solved.position[i] = pose.rotation, pose.translation
         return solved
 
-    _task_inverse: np.ndarray | None = None  # task-row columns of the last IK system's inverse
-    _inverse_previous: tuple | None = None  # ((goal, goal rotation), q) of the IK solution before last_q
-    _last_goal: tuple | None = None  # (goal, goal rotation) of last_q when it is an IK solution
-    _last_inverse_branch: bytes | None = None  # signature at the last IK solution
-    # Task frame placement at the last IK solution (with the compiled loop: its 4 x 4 buffer, [m])
-    _last_task: pin.SE3 | np.ndarray | None = None
+    @property
+    def last_q(self) -> np.ndarray:
+        """The last solution (nq) [m, rad], where a warm solve starts (home after `reset`)."""
+        return self.warm.q
 
     def reset(self) -> None:
         """Forget the warm start and cached factorisations: the next solve starts from home, as a new
         solver's first and as every row of `forward_batch` (home's tangent predictor, home's branch)."""
-        self._previous = None
-        self._tangent, self._last_branch = self._continuation_from(self.mechanism.home)
-        self._task_inverse = None
-        self._inverse_previous = None
-        self._last_goal = None
-        self._last_inverse_branch = None
-        self._last_task = None
-        self.last_q = self.mechanism.home.copy()
+        tangent, branch = self._continuation_from(self.mechanism.home)
+        self.warm = WarmStart(self.mechanism.home.copy(), tangent, branch)
 
 
 def require_square_task(mechanism: Mechanism) -> None:
