@@ -17,24 +17,17 @@ from m3t1r.errors import (
     SingularConfigurationError,
 )
 from m3t1r.model import batch_kinematics as bk
-from m3t1r.model.batch_kinematics import rpy_batch
 from m3t1r.model.description import Mechanism
 from m3t1r.model.design import NOMINAL
 from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.newton_rules import NewtonRules
+from m3t1r.model.rotations import rpy_batch
 from m3t1r.model.task import TaskSpec
 
 
 def workspace_poses(n: int, seed: int) -> np.ndarray:
     return NOMINAL.workspace.sample(np.random.default_rng(seed), n)
-
-
-def test_rpy_batch_matches_pinocchio():
-    rng = np.random.default_rng(2)
-    rpy = rng.uniform(-1.2, 1.2, (20, 3))
-    rotations = np.array([pin.rpy.rpyToMatrix(*r) for r in rpy])
-    np.testing.assert_allclose(rpy_batch(rotations), rpy, atol=1e-13)
 
 
 @pytest.mark.parametrize("seed", [None, 0])
@@ -135,16 +128,7 @@ def wrist(tmp_path_factory) -> Mechanism:
 
 
 # ---------------------------------------------------------------------------------------------
-# Small batched helpers
-
-
-def test_rpy_batch_keeps_leading_axes_and_matches_pinocchio():
-    rng = np.random.default_rng(10)
-    rotations = np.array([pin.rpy.rpyToMatrix(*r) for r in rng.uniform(-1.4, 1.4, (6, 3))]).reshape(2, 3, 3, 3)
-    rpy = bk.rpy_batch(rotations)
-    assert rpy.shape == (2, 3, 3)
-    for index in np.ndindex(2, 3):
-        np.testing.assert_allclose(rpy[index], pin.rpy.matrixToRpy(rotations[index]), atol=1e-14)
+# Typed failure rows
 
 
 def test_failures_of_reasons_and_error_classes():
@@ -333,7 +317,7 @@ def test_inverse_batch_with_a_full_rotation_task(wrist):
     assert ik.complete and list(ik.iterations) == [0, 4, 4]
     np.testing.assert_allclose(ik.actuators, sliders, atol=1e-12)
     np.testing.assert_allclose(ik.poses, fk.poses, atol=1e-12)
-    assert np.abs(bk.rpy_batch(fk.poses[:, :3, :3])[2, :2]).min() > 0.15  # the goal has roll and pitch
+    assert np.abs(rpy_batch(fk.poses[:, :3, :3])[2, :2]).min() > 0.15  # the goal has roll and pitch
     np.testing.assert_allclose(ik.tilt, 0.0, atol=1e-12)  # reached minus commanded roll and pitch
     single = solver.inverse(quaternions[2])
     np.testing.assert_allclose(ik.actuators[2], single.actuators, atol=1e-12)
@@ -407,7 +391,7 @@ def test_m_machine_iteration_counts_from_home(mechanism):
     assert list(solver.forward_batch(ik.actuators).iterations) == [5, 3, 4]
     assert list(solver.forward_batch(ik.actuators, q_init=mechanism.home).iterations) == [4, 3, 4]
     np.testing.assert_allclose(ik.poses[:, :3, 3], targets[[0, 1, 3], :3], atol=1e-12)
-    np.testing.assert_allclose(bk.rpy_batch(ik.poses[:, :3, :3])[:, 2], targets[[0, 1, 3], 3], atol=1e-12)
+    np.testing.assert_allclose(rpy_batch(ik.poses[:, :3, :3])[:, 2], targets[[0, 1, 3], 3], atol=1e-12)
 
 
 def test_one_target_and_one_slider_set(mechanism, five_bar):

@@ -11,7 +11,7 @@ from conftest import perturb_every_origin
 
 from m3t1r.errors import BranchChangeError, InvalidInputError, KinematicsError, NotConvergedError, OutOfWorkspaceError
 from m3t1r.model.design import NOMINAL
-from m3t1r.model.kinematics import ClosedLoopSolver, roll_pitch_of, yaw_of
+from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 
 
 def workspace_poses(n: int, seed: int) -> np.ndarray:
@@ -1314,17 +1314,3 @@ def test_targets_of_every_kind_give_the_same_solve(mechanism):
             ClosedLoopSolver(mechanism).inverse(bad)
     with pytest.raises(InvalidInputError, match="not a numeric vector"):  # not a float array: the general path
         ClosedLoopSolver(mechanism).inverse(np.array([0.5, 0.5, -0.1, "x"], dtype=object))
-
-
-@pytest.mark.parametrize("pitch", [0.0, 0.3, -1.2, 1.5607, 1.5707, -1.5708])
-def test_roll_pitch_of_is_pinocchio_s_rpy(pitch):
-    """Roll and pitch of a rotation or of a placement's, as Pinocchio's ZYX convention gives them,
-    also next to pitch = +-pi/2 (where the heading and the roll trade places)."""
-    rng = np.random.default_rng(int(1e4 * abs(pitch)))
-    for _ in range(20):
-        rotation = pin.rpy.rpyToMatrix(rng.uniform(-3.0, 3.0), pitch, rng.uniform(-3.0, 3.0))
-        expected = pin.rpy.matrixToRpy(rotation)[:2]
-        for given in (rotation, pin.SE3(rotation, np.zeros(3)).homogeneous):
-            got = np.array(roll_pitch_of(given))
-            wrapped = (got - expected + np.pi) % (2 * np.pi) - np.pi
-            np.testing.assert_allclose(wrapped, 0.0, atol=1e-9)

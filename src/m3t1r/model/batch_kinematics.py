@@ -21,6 +21,7 @@ from m3t1r.errors import InvalidInputError, M3t1rError, OutOfWorkspaceError, rea
 from m3t1r.model.native import available_cores
 from m3t1r.model.newton import CONVERGED, FAILURES, reason
 from m3t1r.model.newton_rules import DEFAULT_RULES
+from m3t1r.model.rotations import rpy_batch
 
 if TYPE_CHECKING:
     from m3t1r.model.kinematics import ClosedLoopSolver
@@ -31,7 +32,6 @@ __all__ = [
     "InverseBatch",
     "SolvedRows",
     "failures_of",
-    "rpy_batch",
     "start_configurations",
 ]
 
@@ -94,21 +94,6 @@ class InverseBatch(ForwardBatch):
 
     actuators: np.ndarray
     tilt: np.ndarray
-
-
-def rpy_batch(rotations: np.ndarray) -> np.ndarray:
-    """(roll, pitch, yaw) (..., 3) [rad] of rotations (..., 3, 3), ZYX convention as `pin.rpy.matrixToRpy`
-    away from pitch = +-pi/2: yaw = atan2(R10, R00), pitch = atan2(-R20, hypot(R21, R22)),
-    roll = atan2(R21, R22)."""
-    r = rotations
-    return np.stack(
-        [
-            np.arctan2(r[..., 2, 1], r[..., 2, 2]),
-            np.arctan2(-r[..., 2, 0], np.hypot(r[..., 2, 1], r[..., 2, 2])),
-            np.arctan2(r[..., 1, 0], r[..., 0, 0]),
-        ],
-        axis=-1,
-    )
 
 
 _CONVERGED, _LIMIT = CONVERGED, 5  # _LIMIT: converged, but a slider is beyond its limit

@@ -21,7 +21,7 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg
 
-from m3t1r.model.poe import skew
+from m3t1r.model.rotations import skew
 
 __all__ = [
     "CLOSURE_TYPES",

@@ -16,7 +16,6 @@ C++ API when `model.native` is built (one call per solve); the Python ones here 
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,6 +47,7 @@ from m3t1r.model.newton import (
     one_norm,
 )
 from m3t1r.model.newton_rules import DEFAULT_RULES, NewtonRules
+from m3t1r.model.rotations import roll_pitch_of, yaw_of
 from m3t1r.model.solver_layout import solver_layout
 from m3t1r.model.warm_start import WarmStart
 
@@ -66,26 +66,6 @@ __all__ = [
 
 MOBILITY_RANK_TOL = 1e-9  # singular values below this fraction of the largest count as zero
 SINGULAR_RCOND = DEFAULT_RULES.singular_rcond  # the default rules' singular threshold (`NewtonRules`)
-
-
-def yaw_of(rotation: np.ndarray) -> float:
-    """Heading of the frame's x axis in the base frame: atan2(R[1,0], R[0,0]) [rad].
-
-    Used everywhere as the platform's yaw theta. Under residual tilt it differs by about
-    roll*pitch/2 from the z component of log3 (docs/design.md, "Conventions"); this is the one we command.
-    """
-    return math.atan2(rotation[1, 0], rotation[0, 0])
-
-
-def roll_pitch_of(rotation: np.ndarray) -> tuple[float, float]:
-    """Roll and pitch [rad] of a rotation (3 x 3, or a 4 x 4 placement's), from Pinocchio's ZYX
-    (yaw-pitch-roll) RPY convention: pitch = atan2(-R20, |(R21, R22)|), roll = atan2(R21, R22)."""
-    r20, r21, r22 = rotation[2, :3].tolist()
-    pitch = math.atan2(-r20, math.sqrt(r21 * r21 + r22 * r22))
-    if abs(abs(pitch) - 0.5 * math.pi) < 1e-2:  # near gimbal lock Pinocchio moves the heading into roll
-        rpy = pin.rpy.matrixToRpy(np.asarray(rotation)[:3, :3])
-        return float(rpy[0]), float(rpy[1])
-    return math.atan2(r21, r22), pitch
 
 
 _FLOAT = np.dtype(float)
