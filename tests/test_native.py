@@ -26,6 +26,7 @@ from m3t1r.model.design import NOMINAL
 from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
 from m3t1r.model.newton_rules import NewtonRules
+from m3t1r.model.solver_layout import SolverLayout
 
 
 def test_the_compiled_loop_is_built():
@@ -316,7 +317,8 @@ def test_only_one_dof_revolute_and_prismatic_trees_are_compiled(mechanism):
     model = pin.Model()
     model.addJoint(0, pin.JointModelSpherical(), pin.SE3.Identity(), "ball")
     none = np.zeros(0, dtype=int)
-    assert native.NativeChain.of(model, (), none, none, [], 0, mechanism.task, none, np.zeros((0, 1)), none) is None
+    layout = SolverLayout(none, none, None, 0, np.zeros(0), np.zeros(0), 0, 0, [])
+    assert native.NativeChain.of(model, (), layout, mechanism.task) is None
     assert ClosedLoopSolver(mechanism, native=False).native is None
 
 

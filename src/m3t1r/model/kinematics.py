@@ -5,12 +5,15 @@ the closures satisfied by Newton's method on the enforced closure rows.
 
 The closure rows and their Jacobian come from one place, `closures.ClosureSystem` (Pinocchio's
 constraint models); calibration's row operator (each closure's derivative as a function of the
-relative spatial twist of its frames) comes from there too. FK solves only the passive columns (a square system when the
-sliders are independent inputs); LU factors are reused across Newton steps (chord steps) until
-contraction slows. A warm-started solve (FK or IK) starts from the last solution moved by a
-predictor built from the last solve's factorisation: first order along the solution manifold,
-plus a second-order term from the solution before it. The same loops run compiled on Pinocchio's
-C++ API when `model.native` is built (one call per solve); the Python ones here are the reference.
+relative spatial twist of its frames) comes from there too. FK solves only the passive columns (a
+square system when the sliders are independent inputs) by the one Python Newton (`model.newton`:
+LU factors reused across chord steps until contraction slows). A warm-started solve (FK or IK)
+starts from the last solution (`warm_start.WarmStart`) moved by a predictor built from the last
+solve's factorisation: first order along the solution manifold, plus a second-order term from the
+solution before it. Batches run the same Newton row by row (`solve_rows`). The same loops run
+compiled on Pinocchio's C++ API when `model.native` is built (one call per solve, or per batch);
+the Python ones are the reference. Branch labels: `model.branches`; the fixed bookkeeping:
+`solver_layout.SolverLayout`.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from m3t1r.errors import (
 )
 from m3t1r.model.batch_kinematics import SolvedRows, forward_batch, inverse_batch
 from m3t1r.model.branches import BranchSignature, det_sign
-from m3t1r.model.closures import ClosureSystem, frame_support, relative_supports
+from m3t1r.model.closures import ClosureSystem
 from m3t1r.model.description import Mechanism
 from m3t1r.model.native import NativeChain
 from m3t1r.model.newton import (
@@ -154,7 +157,9 @@ class ClosedLoopSolver:
     another thread makes single solves wait). All outputs are copies.
 
     branch_blocks: the diagonal blocks (closure rows, passive joint columns) of the passive closure
-    Jacobian, in upper block-triangular order (`diagonal_blocks`); branch labels: each block's determinant sign.
+    Jacobian, in upper block-triangular order (`branches.diagonal_blocks`); branch labels: each
+    block's determinant sign. layout: the fixed bookkeeping (`SolverLayout`) that batches and the
+    compiled loop read too; warm: where the next solve continues from (`WarmStart`).
     """
 
     def __init__(
@@ -190,22 +195,7 @@ class ClosedLoopSolver:
         self._goal_shape = (len(mechanism.task.columns),)
         self._unknowns, self._unknown_columns = layout.unknowns, layout.unknown_columns
         # FK's and IK's Newton loops compiled (`model.native`), when built and the joints allow; None: the Python loops.
-        self.native = (
-            NativeChain.of(
-                model,
-                mechanism.closures,
-                self.passive,
-                self.actuated,
-                self.branch_blocks,
-                self._platform,
-                mechanism.task,
-                np.arange(model.nv) if self._unknowns is None else self._unknowns,
-                relative_supports(model, mechanism.closures),
-                np.flatnonzero(frame_support(model, self._task_frame)),
-            )
-            if native
-            else None
-        )
+        self.native = NativeChain.of(model, mechanism.closures, layout, mechanism.task) if native else None
         self._home: tuple[np.ndarray, bytes] | None = None  # home's tangent and branch, once computed
         self.warm = WarmStart(mechanism.home.copy())  # where the next solve continues from (`reset`)
         self.reset()

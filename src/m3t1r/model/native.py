@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from m3t1r.model.closures import ROW_COUNT
+from m3t1r.model.closures import ROW_COUNT, frame_support, relative_supports
 from m3t1r.model.native_status import STALE, load_compiled
 
 _native_newton, _WHY_NOT = load_compiled()  # _WHY_NOT: why the Python loops run ("": they do not)
@@ -43,6 +43,7 @@ if TYPE_CHECKING:
     import pinocchio as pin
 
     from m3t1r.model.closures import ClosureSpec
+    from m3t1r.model.solver_layout import SolverLayout
     from m3t1r.model.task import TaskSpec
 
 __all__ = ["AVAILABLE", "NativeChain", "CONVERGED", "PURE_PYTHON_VARIABLE", "available_cores", "status"]
@@ -88,24 +89,13 @@ class NativeChain:
 
     @classmethod
     def of(
-        cls,
-        model: pin.Model,
-        closures: tuple[ClosureSpec, ...],
-        passive: np.ndarray,
-        actuated: np.ndarray,
-        blocks: list[tuple[np.ndarray, np.ndarray]],
-        platform_frame: int,
-        task: TaskSpec,
-        unknowns: np.ndarray,
-        column_signs: np.ndarray,
-        task_columns: np.ndarray,
+        cls, model: pin.Model, closures: tuple[ClosureSpec, ...], layout: SolverLayout, task: TaskSpec
     ) -> NativeChain | None:
         """The compiled chain, or None when the module is not built or a joint is not 1-DoF revolute/prismatic.
 
-        unknowns: IK's columns (every joint but the locked ones); IK is square only when the task's
-        dimension equals the actuator count (else only FK may be called). column_signs: (closures, nv)
-        support(frame b) - support(frame a) of each closure (`ClosedLoopSolver`'s); task_columns: the
-        velocity indices of the joints that move the task frame.
+        layout: the solver's (`SolverLayout`: FK's and IK's columns, branch blocks, platform and task
+        frames); IK is square only when the task's dimension equals the actuator count (else only FK
+        may be called).
         """
         if _native_newton is None:
             _warn_once_without_module()
@@ -116,9 +106,10 @@ class NativeChain:
         joints = np.array([[model.parents[j], _KINDS[names[j - 1]]] for j in range(1, model.njoints)], dtype=np.int64)
         axes = np.array([_axis(model.joints[j]) for j in range(1, model.njoints)])
         placements = np.array([model.jointPlacements[j].homogeneous for j in range(1, model.njoints)])
+        passive, actuated, blocks = layout.passive, layout.actuated, layout.blocks
+        unknowns = np.arange(model.nv) if layout.unknowns is None else layout.unknowns
         frame_ids = sorted({c.frame_a_id for c in closures} | {c.frame_b_id for c in closures})
-        task_frame = model.getFrameId(task.frame)
-        frame_ids += [platform_frame, task_frame]
+        frame_ids += [layout.platform_frame, layout.task_frame]
         where = {f: k for k, f in enumerate(frame_ids)}
         rows = np.cumsum([0] + [len(c.rows) for c in closures])
         spec = np.array(
@@ -137,7 +128,7 @@ class NativeChain:
             np.array([model.frames[f].placement.homogeneous for f in frame_ids]),
             spec,
             components,
-            np.ascontiguousarray(np.reshape(column_signs, (len(closures), model.nv)), dtype=float),
+            np.ascontiguousarray(relative_supports(model, closures), dtype=float),
             np.asarray(passive, dtype=np.int64),
             np.asarray(actuated, dtype=np.int64),
             np.concatenate([r for r, _ in blocks]).astype(np.int64),
@@ -145,7 +136,7 @@ class NativeChain:
             np.cumsum([len(r) for r, _ in blocks]).astype(np.int64),
             ik_columns,
             ik_axes.astype(np.int64),
-            np.asarray(task_columns, dtype=np.int64),
+            np.flatnonzero(frame_support(model, layout.task_frame)).astype(np.int64),
             len(frame_ids) - 2,
             len(frame_ids) - 1,
             _ROTATION_CODES[task.rotation] if square else 0,
