@@ -189,6 +189,8 @@ class ClosedLoopSolver:
         self._branch = BranchSignature(layout.blocks, model.nv)
         self._prior_columns = np.concatenate((self.actuated, self.passive))  # the compiled predictor's history
         self._limit_lists = (layout.actuator_lower.tolist(), layout.actuator_upper.tolist())
+        # check_actuators' fast path: a float array of this shape, under finite limits (read once).
+        self._fast_limits = layout.actuator_lower.shape if layout.finite_limits else None
         self._platform, self._task_frame = layout.platform_frame, layout.task_frame
         self._target_name = f"target ({', '.join(mechanism.task.columns)})"  # in IK's input refusals
         self._square_task = mechanism.task.dimension == len(mechanism.actuated_joints)
@@ -289,8 +291,7 @@ class ClosedLoopSolver:
         if (
             type(actuators) is np.ndarray
             and actuators.dtype == _FLOAT
-            and actuators.shape == self.layout.actuator_lower.shape
-            and self.layout.finite_limits
+            and actuators.shape == self._fast_limits
         ):
             values = actuators.copy()
             # A loop over a handful of floats costs less than the numpy calls; False for NaN.

@@ -51,6 +51,7 @@ class SolverLayout:
 
     @property
     def finite_limits(self) -> bool:
+        """Whether every slider has finite limits on both sides."""
         return bool(np.all(np.isfinite(self.actuator_lower)) and np.all(np.isfinite(self.actuator_upper)))
 
 
