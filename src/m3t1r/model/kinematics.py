@@ -288,11 +288,7 @@ class ClosedLoopSolver:
     # Forward kinematics
     def check_actuators(self, actuators: np.ndarray) -> np.ndarray:
         """Validate slider values [m]: finite, right count, within the URDF limits (no clipping)."""
-        if (
-            type(actuators) is np.ndarray
-            and actuators.dtype == _FLOAT
-            and actuators.shape == self._fast_limits
-        ):
+        if type(actuators) is np.ndarray and actuators.dtype == _FLOAT and actuators.shape == self._fast_limits:
             values = actuators.copy()
             # A loop over a handful of floats costs less than the numpy calls; False for NaN.
             if all(
