@@ -12,7 +12,7 @@ never returned as a result.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import pinocchio as pin
@@ -24,10 +24,12 @@ from m3t1r.model.newton_rules import DEFAULT_RULES
 from m3t1r.model.rotations import rpy_batch
 
 if TYPE_CHECKING:
-    from m3t1r.model.kinematics import ClosedLoopSolver
+    from m3t1r.model.description import Mechanism
+    from m3t1r.model.solver_layout import SolverLayout
 
 __all__ = [
     "RowFailure",
+    "RowSolver",
     "ForwardBatch",
     "InverseBatch",
     "SolvedRows",
@@ -111,6 +113,32 @@ class SolvedRows:
     position: np.ndarray
 
 
+class RowSolver(Protocol):
+    """What a batch reads from its solver (`ClosedLoopSolver`): the problem, its layout and rules, the
+    predictor from home and the rows' Newton."""
+
+    mechanism: Mechanism
+    model: pin.Model
+    layout: SolverLayout
+    passive: np.ndarray
+    actuated: np.ndarray
+
+    @property
+    def singular_rcond(self) -> float: ...
+    def home_reference(self) -> tuple[np.ndarray, bytes] | None: ...
+    def predict(self, start: np.ndarray, change: np.ndarray, tangent: np.ndarray, previous: None) -> np.ndarray: ...
+    def check_square_task(self) -> None: ...
+    def solve_rows(
+        self,
+        starts: np.ndarray,
+        branch: bytes | None,
+        steps_taken: int,
+        goals: np.ndarray | None = None,
+        goal_rotations: np.ndarray | None = None,
+        threads: int = 1,
+    ) -> SolvedRows: ...
+
+
 def failures_of(
     solved: SolvedRows, offset: int, what: str, singular_rcond: float = DEFAULT_RULES.singular_rcond
 ) -> list[RowFailure]:
@@ -127,7 +155,7 @@ def failures_of(
     ]
 
 
-def start_configurations(solver: ClosedLoopSolver, n: int, q_init: np.ndarray | None) -> np.ndarray:
+def start_configurations(solver: RowSolver, n: int, q_init: np.ndarray | None) -> np.ndarray:
     """Start configurations (n, nq): home by default, one nq vector for every row, or one per row."""
     nq = solver.model.nq
     if q_init is None:
@@ -153,7 +181,7 @@ def _rows(values: object, width: int, what: str, columns: tuple[str, ...]) -> np
 
 
 def forward_batch(
-    solver: ClosedLoopSolver, sliders: np.ndarray, q_init: np.ndarray | None = None, threads: int | None = None
+    solver: RowSolver, sliders: np.ndarray, q_init: np.ndarray | None = None, threads: int | None = None
 ) -> ForwardBatch:
     """Platform poses for n slider sets (n, k) [m], each solved from q_init.
 
@@ -212,7 +240,7 @@ def _thread_count(threads: int | None) -> int:
     return int(threads)
 
 
-def _task_poses(solver: ClosedLoopSolver, q: np.ndarray) -> np.ndarray:
+def _task_poses(solver: RowSolver, q: np.ndarray) -> np.ndarray:
     """Task frame placements (n, 4, 4) in the base frame at configurations q (n, nq)."""
     model, data, frame = solver.model, solver.mechanism.model.createData(), solver.layout.task_frame
     poses = np.empty((len(q), 4, 4))
@@ -222,7 +250,7 @@ def _task_poses(solver: ClosedLoopSolver, q: np.ndarray) -> np.ndarray:
     return poses
 
 
-def _forward_result(solver: ClosedLoopSolver, n: int, parts: list, failures: list) -> ForwardBatch:
+def _forward_result(solver: RowSolver, n: int, parts: list, failures: list) -> ForwardBatch:
     """Gather the converged rows of every part (in input order) into a frozen ForwardBatch (q: (M, nq),
     also when no row converged), with the task frame's placements."""
     indices, poses, qs, norms, steps = [], [], [], [], []
@@ -254,7 +282,7 @@ def _forward_result(solver: ClosedLoopSolver, n: int, parts: list, failures: lis
 
 
 def inverse_batch(
-    solver: ClosedLoopSolver, targets: np.ndarray, q_init: np.ndarray | None = None, threads: int | None = None
+    solver: RowSolver, targets: np.ndarray, q_init: np.ndarray | None = None, threads: int | None = None
 ) -> InverseBatch:
     """Slider values for n targets, rows of task coordinates (`TaskSpec.columns`, e.g. x, y, z, theta)
     [m, rad], each from q_init (default home).
@@ -292,7 +320,7 @@ def inverse_batch(
     )
 
 
-def _beyond_limits(solver: ClosedLoopSolver, solved: SolvedRows, rows: np.ndarray) -> list[RowFailure]:
+def _beyond_limits(solver: RowSolver, solved: SolvedRows, rows: np.ndarray) -> list[RowFailure]:
     """Converged IK rows that need a slider beyond its limit, marked _LIMIT in `solved`, as failures."""
     names, units = solver.mechanism.actuated_joints, solver.mechanism.joint_units()
     lower, upper = solver.layout.actuator_lower, solver.layout.actuator_upper
