@@ -147,7 +147,7 @@ class ClosureSystem:
 
     Pinocchio's constraint models evaluate the rows (one `calc` per closure, one stacked Jacobian):
     measured against a hand-written stacked operator and a numpy batch, they are several times faster
-    per pose and within about 1.3x of the numpy batch over 1,000 poses (docs/design.md, "Solver").
+    per pose and within about 1.3x of the numpy batch over 1,000 poses (docs/design.md, "How it works").
     `all_rows=True` enforces every row of every closure (rank analysis, `closure_residual(all_rows)`);
     `data`: a `Data` of `model` to share with another system (default: its own).
     """
