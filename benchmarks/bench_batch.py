@@ -10,7 +10,8 @@ same machine load. Operations:
   1 mm / 1 mrad perturbed machine as the calibrated model (per target);
 - `forward_batch` / `inverse_batch` over n random workspace poses, every row from home (per pose),
   with the largest platform difference to `forward(a, q_init=home)` on a sample of rows;
-  `forward_batch` on every core, on one thread, and in the numpy loop (`native=False`);
+  `forward_batch` on every core, on one thread, and in the Python loop (`native=False`: the
+  single-solve Newton row by row);
 - SLSQP with exact Jacobians and with finite differences (`bench_kinematics.SlsqpKinematics`) from
   home on the first rows of the same set (per pose), for the batch ratio at equal accuracy;
 - Pinocchio evaluations per warm solve (counted in the Python loop; the compiled one takes the same
@@ -37,7 +38,6 @@ from bench_kinematics import SlsqpKinematics, workspace_path  # noqa: E402
 
 from m3t1r._threads import single_blas_thread  # noqa: E402
 from m3t1r.compensation import Compensator  # noqa: E402
-from m3t1r.model import batch_kinematics  # noqa: E402
 from m3t1r.model.description import Mechanism  # noqa: E402
 from m3t1r.model.design import NOMINAL  # noqa: E402
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed  # noqa: E402
@@ -228,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         runs["forward_batch"] = lambda: solver.forward_batch(cloud_sliders)
         runs["forward_batch, 1 thread"] = lambda: solver.forward_batch(cloud_sliders, threads=1)
         numpy_solver = ClosedLoopSolver(mechanism, native=False)
-        runs["forward_batch, numpy loop"] = lambda: numpy_solver.forward_batch(cloud_sliders)
+        runs["forward_batch, Python loop"] = lambda: numpy_solver.forward_batch(cloud_sliders)
         runs["inverse_batch"] = lambda: solver.inverse_batch(cloud)
         for name, baseline in slsqp.items():
             runs[f"{name} (FK from home)"] = lambda b=baseline: [b.forward(a, mechanism.home) for a in few]
@@ -285,10 +285,7 @@ def main(argv: list[str] | None = None) -> int:
             [[name, f"{j:.2f}", f"{r:.2f}", f"{j + r * res_unit:.1f}"] for name, (j, r) in evaluations.items()],
         )
     )
-    print(
-        f"\nPeak traced memory of forward_batch (numpy arrays; the numpy loop solves rows in chunks of "
-        f"{batch_kinematics._CHUNK:,}):\n"
-    )
+    print("\nPeak traced memory of forward_batch (numpy arrays and Python objects):\n")
     print(table(["poses", "peak memory", "time"], memory))
     return 0
 

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
+import pinocchio as pin
 import pytest
 import yaml
 
-from m3t1r.errors import ModelFileError
-from m3t1r.model.closures import ClosureSpec, ClosureSystem, _null_space, _rank, without_rows
+from m3t1r.errors import ModelFileError, ModelWarning
+from m3t1r.model.closures import CLOSURE_TYPES, ROW_COUNT, ClosureSpec, ClosureSystem, _null_space, _rank, without_rows
 from m3t1r.model.description import Mechanism, nominal_model_paths
-from m3t1r.model.examples import spherical_wrist_files
+from m3t1r.model.examples import rod_five_bar_files, spherical_wrist_files
 
 
 @pytest.fixture(scope="module")
@@ -30,6 +33,55 @@ def test_jacobian_matches_differences_far_from_assembly(wrist):
         dq[k] = step
         difference = (system.evaluate(q + dq, False)[0] - system.evaluate(q - dq, False)[0]) / (2 * step)
         np.testing.assert_allclose(jacobian[:, k], difference, atol=1e-7)
+
+
+def _rod_five_bar(folder):
+    """The rod five-bar, whose load notes (open limits, the rod's idle spin locked) are not what is
+    tested here."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ModelWarning)
+        return Mechanism.load(*rod_five_bar_files(folder))
+
+
+@pytest.mark.parametrize("machine", ["m_machine", "wrist", "rod_five_bar"])
+def test_row_operator_maps_the_relative_twist_to_the_jacobian(machine, wrist, tmp_path):
+    """`sensitivity`'s operator, row by row, times the relative WORLD twist (J_b - J_a) of a closure's
+    two frames is that closure's Jacobian, away from an assembly too: 3D closures (M machine), 6D
+    welds held in some rows (wrist) and in all six (rod five-bar); every row of every closure with
+    all_rows, in the closures' order."""
+    mechanism = {
+        "m_machine": lambda: Mechanism.load(),
+        "wrist": lambda: wrist,
+        "rod_five_bar": lambda: _rod_five_bar(tmp_path),
+    }[machine]()
+    q = mechanism.home + np.random.default_rng(4).normal(0.0, 0.2, mechanism.model.nq)
+    for all_rows in (False, True):
+        system = ClosureSystem(mechanism.model, mechanism.closures, all_rows=all_rows)
+        residual, jacobian, operator = system.sensitivity(q)
+        np.testing.assert_array_equal(residual, system.evaluate(q, False)[0])
+        assert operator.shape == (system.n_rows, 6) == (len(residual), 6)
+        start = 0
+        for closure in mechanism.closures:
+            frame_b, frame_a = (
+                pin.getFrameJacobian(system.model, system.data, f, pin.WORLD)
+                for f in (closure.frame_b_id, closure.frame_a_id)
+            )
+            count = ROW_COUNT[closure.type] if all_rows else len(closure.rows)
+            rows = slice(start, start + count)
+            np.testing.assert_allclose(operator[rows] @ (frame_b - frame_a), jacobian[rows], atol=1e-12)
+            start = rows.stop
+        assert start == system.n_rows
+
+
+def test_every_closure_type_has_its_rows_models_and_operator():
+    """The one table of closure types: 3D holds 3 rows (a point anchor), 6D six (a frame anchor);
+    the operator of identical frames at the origin is [I, 0] for a point and the identity for a weld."""
+    assert ROW_COUNT == {"3D": 3, "6D": 6}
+    assert CLOSURE_TYPES["3D"].anchor is pin.PointAnchorConstraintModel
+    assert CLOSURE_TYPES["6D"].contact == pin.ContactType.CONTACT_6D
+    identity = [(pin.SE3.Identity(), pin.SE3.Identity())]
+    np.testing.assert_allclose(CLOSURE_TYPES["3D"].operator(identity)[0], np.eye(3, 6), atol=0)
+    np.testing.assert_allclose(CLOSURE_TYPES["6D"].operator(identity)[0], np.eye(6), atol=1e-15)
 
 
 def test_rank_rule():

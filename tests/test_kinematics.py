@@ -1,6 +1,5 @@
 """Closed-loop kinematics against the closed form of docs/design.md, on nominal and perturbed machines."""
 
-import dataclasses
 import math
 
 import closed_form
@@ -11,7 +10,7 @@ from conftest import perturb_every_origin
 
 from m3t1r.errors import BranchChangeError, InvalidInputError, KinematicsError, NotConvergedError, OutOfWorkspaceError
 from m3t1r.model.design import NOMINAL
-from m3t1r.model.kinematics import ClosedLoopSolver, roll_pitch_of, yaw_of
+from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 
 
 def workspace_poses(n: int, seed: int) -> np.ndarray:
@@ -390,22 +389,6 @@ def test_too_few_iterations_is_not_converged_not_out_of_workspace(mechanism):
 # Block patterns, quadratic convergence of a cold inverse, closure sizes, named bad configurations
 
 
-def test_diagonal_blocks_of_a_block_triangular_pattern():
-    """Rows/columns permuted lower block-triangular pattern: blocks {0, 2} (2 x 2) and {1} (1 x 1)."""
-    from m3t1r.model.kinematics import diagonal_blocks
-
-    pattern = np.array([[1, 0, 1], [1, 1, 0], [1, 0, 1]], dtype=bool)
-    blocks = sorted((sorted(r.tolist()), sorted(c.tolist())) for r, c in diagonal_blocks(pattern))
-    assert blocks == [([0, 2], [0, 2]), ([1], [1])]
-    # Each row's matched column is one of its own non-zeros.
-    for rows, cols in diagonal_blocks(pattern):
-        assert pattern[np.ix_(rows, cols)].any(axis=1).all()
-    from m3t1r.errors import SingularConfigurationError
-
-    with pytest.raises(SingularConfigurationError, match="structurally singular"):
-        diagonal_blocks(np.array([[1, 1], [0, 0]], dtype=bool))
-
-
 @pytest.mark.parametrize(
     "target, most", [((0.55, 0.6, -0.1, 0.3), 6), ((0.45, 0.3, -0.2, -0.6), 8), ((0.58, 0.8, -0.02, 0.7), 7)]
 )
@@ -414,14 +397,24 @@ def test_cold_inverse_converges_quadratically(mechanism, target, most):
     assert ClosedLoopSolver(mechanism).inverse(target).iterations <= most
 
 
-def test_closure_residual_by_closure_sizes(mechanism):
-    from m3t1r.model.description import closure_residual_by_closure
-
-    sizes = {spec.name: residual.shape for spec, residual in closure_residual_by_closure(mechanism, mechanism.home)}
-    assert sizes["platform"] == (6,) and sizes["five_bar_I"] == (3,)
-    solver = ClosedLoopSolver(mechanism)
-    full = np.concatenate([r for _, r in closure_residual_by_closure(mechanism, mechanism.home + 0.01)])
-    np.testing.assert_allclose(solver.closure_residual(mechanism.home + 0.01, all_rows=True), full, atol=1e-15)
+def test_every_row_of_every_closure_in_closure_order(mechanism):
+    """closure_residual(all_rows=True): 3 rows R_a^T (p_b - p_a) per 3D closure and 6 rows log6(aMb)
+    per 6D one, in the closures file's order, from the frames' placements at q."""
+    model, q = mechanism.model, mechanism.home + 0.01
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, q)
+    expected = []
+    for spec in mechanism.closures:
+        oMa, oMb = data.oMf[spec.frame_a_id], data.oMf[spec.frame_b_id]
+        if spec.type == "3D":
+            expected.append(oMa.rotation.T @ (oMb.translation - oMa.translation))
+        else:
+            expected.append(pin.log6(oMa.actInv(oMb)).vector)
+    types = {spec.name: spec.type for spec in mechanism.closures}
+    assert types["platform"] == "6D" and types["five_bar_I"] == "3D"
+    residual = ClosedLoopSolver(mechanism).closure_residual(q, all_rows=True)
+    assert residual.shape == (sum(len(rows) for rows in expected),)
+    np.testing.assert_allclose(residual, np.concatenate(expected), atol=1e-15)
 
 
 def test_bad_configuration_is_named(solver, mechanism):
@@ -499,8 +492,8 @@ def test_reset_forgets_every_warm_start(mechanism):
     solver.forward(solver.last_q[solver.actuated] + 0.01)
     solver.inverse(TARGET + [0.01, 0.0, 0.0, 0.05])
     solver.reset()
-    for name in ("_previous", "_task_inverse", "_inverse_previous", "_last_goal", "_last_inverse_branch", "_last_task"):
-        assert getattr(solver, name) is None, name
+    for name in ("previous", "task_inverse", "inverse_previous", "goal", "inverse_branch", "task"):
+        assert getattr(solver.warm, name) is None, name
     np.testing.assert_array_equal(solver.last_q, mechanism.home)
     # What is left is a new solver's start: home's tangent and branch, the batch's first step.
     sliders = mechanism.home[solver.actuated] + 0.01
@@ -510,36 +503,6 @@ def test_reset_forgets_every_warm_start(mechanism):
     solver.reset()
     solver.last_q[0] += 1.0  # a copy: home itself is untouched
     assert mechanism.home[0] != solver.last_q[0]
-
-
-def test_diagonal_blocks_follow_the_matched_columns_not_the_rows():
-    """The only perfect matching is the cycle r0->c1, r1->c2, r2->c0 (and r3->c3), no cycle among
-    the rows: four 1 x 1 blocks, each on its own matched entry."""
-    from m3t1r.errors import SingularConfigurationError
-    from m3t1r.model.kinematics import diagonal_blocks
-
-    pattern = np.array([[0, 1, 0, 0], [0, 1, 1, 0], [1, 0, 1, 0], [1, 0, 0, 1]], dtype=bool)
-    blocks = sorted((r.tolist(), c.tolist()) for r, c in diagonal_blocks(pattern))
-    assert blocks == [([0], [1]), ([1], [2]), ([2], [0]), ([3], [3])]
-    with pytest.raises(SingularConfigurationError) as caught:
-        diagonal_blocks(np.array([[1, 1], [0, 0]], dtype=bool))
-    assert str(caught.value) == "the closure system is structurally singular (residual nan after 0 iterations)"
-
-
-def test_det_sign_from_lu_factors():
-    from scipy.linalg import lapack
-
-    from m3t1r.model.kinematics import _det_sign
-
-    rng = np.random.default_rng(4)
-    signs = []
-    for n in (3, 4, 5, 6):
-        for _ in range(6):
-            matrix = rng.normal(size=(n, n))
-            signs.append(np.linalg.det(matrix) > 0)
-            assert _det_sign(lapack.dgetrf(matrix)) == signs[-1]
-    assert any(signs) and not all(signs)
-    assert _det_sign(lapack.dgetrf(np.eye(4))) is True
 
 
 def test_mobility_counts_rows_and_singular_values_as_documented(mechanism):
@@ -675,15 +638,15 @@ def test_newton_failures_say_why_word_for_word(mechanism):
 
 def test_block_structure_of_the_passive_system_from_a_cold_cache(mechanism):
     """The five-bars and the platform loop: four 2 x 2 blocks and one 8 x 8, found from scratch."""
-    from m3t1r.model import kinematics
+    from m3t1r.model import branches
 
     key = (mechanism.closures, mechanism.actuated_joints, tuple(mechanism.model.names))
-    saved = kinematics._BLOCK_CACHE.pop(key, None)
+    saved = branches._BLOCK_CACHE.pop(key, None)
     try:
         blocks = ClosedLoopSolver(mechanism).branch_blocks
     finally:
         if saved is not None:
-            kinematics._BLOCK_CACHE[key] = saved
+            branches._BLOCK_CACHE[key] = saved
     found = sorted((sorted(r.tolist()), sorted(c.tolist())) for r, c in blocks)
     assert found == [
         ([0, 1], [2, 7]),
@@ -705,25 +668,6 @@ def test_returned_poses_do_not_move_with_later_solves(mechanism):
     solver.inverse(TARGET + [0.02, 0.0, 0.0, 0.1])
     np.testing.assert_array_equal(forward.pose.homogeneous, kept[0])
     np.testing.assert_array_equal(inverse.pose.homogeneous, kept[1])
-
-
-def test_branch_signature_reads_every_block_by_its_size():
-    """A 1 x 1 block by its sign, a 2 x 2 by its closed-form determinant, larger ones by LU."""
-    from m3t1r.model.kinematics import _BranchSignature
-
-    blocks = [
-        (np.array([0]), np.array([0])),
-        (np.array([1, 2]), np.array([1, 2])),
-        (np.array([3, 4, 5]), np.array([3, 4, 5])),
-    ]
-    signature = _BranchSignature(blocks, 6)
-    jac = np.eye(6)
-    jac[0, 0] = 0.5
-    jac[1:3, 1:3] = [[1.0, 2.0], [3.0, 4.0]]  # det -2 (1 * 4 - 2 / 3 would be positive)
-    jac[3:, 3:] = [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 2.0]]  # det -2, needs a pivot
-    assert signature(jac) == b"\x01\x00\x00"
-    jac[0, 0], jac[1:3, 1:3], jac[5, 5] = -0.5, [[4.0, 1.0], [3.0, 2.0]], -2.0  # every sign flipped
-    assert signature(jac) == b"\x00\x01\x01"
 
 
 def test_a_failed_inverse_leaves_a_usable_warm_start(mechanism):
@@ -841,9 +785,9 @@ def test_an_explicit_start_takes_its_own_branch_not_the_warm_one(mechanism, comp
     solver = ClosedLoopSolver(mechanism, native=compiled)
     solution = solver.inverse(TARGET)
     # Labels set by hand: no public call leaves a solver's warm start on a branch no solve can have.
-    solver._last_inverse_branch = b"\x02"
+    solver.warm.inverse_branch = b"\x02"
     assert solver.inverse(TARGET, q_init=mechanism.home).residual <= 1e-12
-    solver._last_branch = b"\x02"  # after the IK, which sets it
+    solver.warm.branch = b"\x02"  # after the IK, which sets it
     assert solver.forward(solution.actuators, q_init=mechanism.home).residual <= 1e-12
 
 
@@ -867,7 +811,7 @@ def test_warm_forward_keeps_the_last_solution_s_branch(mechanism):
 
     solver = ClosedLoopSolver(mechanism)
     sliders = solver.forward(mechanism.home[mechanism.actuated_ids] + 0.01).q[mechanism.actuated_ids]
-    solver._last_branch = b"\x02"
+    solver.warm.branch = b"\x02"
     with pytest.raises(BranchChangeError):
         solver.forward(sliders + 0.01)
 
@@ -893,110 +837,6 @@ def test_a_task_that_is_not_square_is_refused_word_for_word(tmp_path):
 # `newton` on stand-in systems: every evaluation recorded, residuals scripted
 
 
-class _Scripted:
-    """A 2 x 2 stand-in system: the k-th evaluation returns residuals[k] (whatever q is), and the
-    Jacobian `jacobian` when asked. `calls` records each with_jacobian argument."""
-
-    def __init__(self, residuals, jacobian=np.eye(2)):
-        self.residuals, self.jacobian, self.calls = [np.asarray(r, dtype=float) for r in residuals], jacobian, []
-
-    def __call__(self, q, with_jacobian):
-        self.calls.append(with_jacobian)
-        residual = self.residuals[min(len(self.calls), len(self.residuals)) - 1]
-        return residual, (self.jacobian.copy() if with_jacobian else None)
-
-
-def _label(jac, lu):
-    return b"branch"
-
-
-def _chord_from_any_residual(solver):
-    """The stand-ins' residuals are of order 1: with chord steps allowed from any residual, the
-    contraction rule alone decides when the Jacobian is refreshed."""
-    solver.rules = dataclasses.replace(solver.rules, chord_below=math.inf)
-    return solver
-
-
-def test_newton_refreshes_the_jacobian_only_when_a_chord_step_contracts_too_little(solver):
-    """Chord steps while |r| <= 0.05 |r_previous| (a contraction of exactly 0.05 is still enough);
-    a refresh otherwise, and none once the tolerance is met (a residual exactly at it is converged)."""
-    _chord_from_any_residual(solver)
-    solver.rules = dataclasses.replace(solver.rules, tolerance=0.04)  # the stand-ins' residuals are of order 1
-    # 1 -> 0.05 (exactly 0.05 of it: keep the factors) -> 0.04 (met).
-    system = _Scripted([[1.0, 0.0], [0.05, 0.0], [0.04, 0.0]])
-    outcome = solver.newton(np.zeros(2), None, system, _label)
-    assert system.calls == [True, False, False] and outcome.iterations == 2 and outcome.residual == 0.04
-    assert outcome.branch == b"branch"
-    # 1 -> 0.5 (too little: refresh) -> 0.04 = tolerance, 0.04 > 0.05 * 0.5: met all the same, no refresh.
-    system = _Scripted([[1.0, 0.0], [0.5, 0.0], [0.5, 0.0], [0.04, 0.0]])
-    outcome = solver.newton(np.zeros(2), None, system, _label)
-    assert system.calls == [True, False, True, False] and outcome.iterations == 2 and outcome.branch == b"branch"
-    # The first evaluation has the Jacobian, then chord steps while they contract.
-    solver.tolerance = 1e-12
-    system = _Scripted([[1.0, 0.0], [0.01, 0.0], [1e-4, 0.0], [0.0, 0.0]])
-    outcome = solver.newton(np.zeros(2), None, system, _label)
-    assert system.calls == [True, False, False, False] and outcome.iterations == 3
-    np.testing.assert_array_equal(outcome.jacobian, np.eye(2))
-    # Under the default rules a step from a residual above chord_below (1e-4) gets a fresh Jacobian
-    # whatever its contraction; from 1e-4 itself, a chord step.
-    solver.rules = dataclasses.replace(solver.rules, chord_below=1e-4)
-    system = _Scripted([[1.0, 0.0], [1e-4, 0.0], [1e-9, 0.0], [0.0, 0.0]])
-    outcome = solver.newton(np.zeros(2), None, system, _label)
-    assert system.calls == [True, True, False, False] and outcome.iterations == 3
-
-
-def test_newton_stops_on_a_non_finite_residual_as_out_of_workspace(solver):
-    """Wherever the nan is: after a larger entry too (BLAS idamax may skip a nan there)."""
-    _chord_from_any_residual(solver)
-    for residual in ([np.nan, 0.0], [np.inf, 0.0], [5.0, np.nan], [0.5, -np.inf]):
-        system = _Scripted([[1.0, 0.0], residual])
-        with pytest.raises(OutOfWorkspaceError) as caught:
-            solver.newton(np.zeros(2), None, system, _label)
-        assert caught.value.iterations == 1 and system.calls == [True, False]
-        assert not math.isfinite(caught.value.residual)
-
-
-def test_newton_singular_verdict_uses_the_one_norm_and_is_word_for_word(solver):
-    """J = [[1, 1], [0, 1e-11]]: 1-norm 1, |J^-1|_1 = 2e11, so rcond = 5e-12 (the infinity norm,
-    2, would give 2.5e-12)."""
-    from m3t1r.errors import SingularConfigurationError
-
-    system = _Scripted([[1.0, 0.0], [3e-13, 0.0]], jacobian=np.array([[1.0, 1.0], [0.0, 1e-11]]))
-    solver.tolerance = 1e-12
-    with pytest.raises(SingularConfigurationError) as caught:
-        solver.newton(np.zeros(2), None, system, _label)
-    assert (
-        str(caught.value)
-        == "singular configuration (reciprocal condition 5.00e-12) (residual 3.000e-13 after 1 iterations)"
-    )
-    assert caught.value.residual == 3e-13 and caught.value.iterations == 1
-
-
-def test_newton_branch_change_is_word_for_word(solver):
-    _chord_from_any_residual(solver)
-    from m3t1r.errors import BranchChangeError
-
-    system = _Scripted([[1.0, 0.0], [0.5, 0.0], [0.5, 0.0], [2e-13, 0.0]])
-    labels = iter([b"start", b"other", b"other"])
-    with pytest.raises(BranchChangeError) as caught:
-        solver.newton(np.zeros(2), None, system, lambda jac, lu: next(labels))
-    assert str(caught.value) == (
-        "the solution lies on another assembly branch than the start (Newton crossed a "
-        "singularity) (residual 2.000e-13 after 2 iterations)"
-    )
-    assert caught.value.residual == 2e-13 and caught.value.iterations == 2
-
-
-def test_newton_far_or_near_after_the_last_step_at_exactly_1e_6(solver):
-    """Stopped by max_iterations: a residual of exactly 1e-6 is near (NotConverged), above it far."""
-    solver.max_iterations = 1
-    for last, error in ((1e-6, NotConvergedError), (np.nextafter(1e-6, 1.0), OutOfWorkspaceError)):
-        system = _Scripted([[1.0, 0.0], [last, 0.0]])
-        with pytest.raises(error) as caught:
-            solver.newton(np.zeros(2), None, system, _label)
-        assert caught.value.residual == last and caught.value.iterations == 1
-
-
 @pytest.mark.parametrize("compiled", [False, True])
 def test_forward_records_the_predictor_history_and_the_branch(mechanism, compiled):
     """After each FK, where it continued from: the solution before it (warm) or q_init (a continuation
@@ -1011,7 +851,7 @@ def test_forward_records_the_predictor_history_and_the_branch(mechanism, compile
         assert result.residual <= 1e-12
         # Read directly: publicly the history only shapes the next start's second-order term; this pins
         # what it holds, exactly, in both loops.
-        previous = solver._previous
+        previous = solver.warm.previous
         if compiled and previous is not None:
             previous = (previous[: len(home_sliders)], previous[len(home_sliders) :])
         history.append(None if previous is None else previous[0].copy())
@@ -1080,79 +920,6 @@ def test_the_block_cache_is_per_topology(mechanism, tmp_path):
 
 # ------------------------------------------------------------------------------------------------
 # The block order the one-LU signature relies on, its fallback, the exact rcond
-
-
-def test_diagonal_blocks_come_in_upper_block_triangular_order():
-    """Rows 0, 1, 2 on their own unknowns; row 0 also uses unknown 1 and row 2 unknown 0: block {2}
-    must come before {0}, and {0} before {1}, so that no row uses an unknown of an earlier block."""
-    from m3t1r.model.kinematics import diagonal_blocks
-
-    pattern = np.array([[1, 1, 0], [0, 1, 0], [1, 0, 1]], dtype=bool)
-    blocks = diagonal_blocks(pattern)
-    assert [(r.tolist(), c.tolist()) for r, c in blocks] == [([2], [2]), ([0], [0]), ([1], [1])]
-    # The machine's blocks, in the solver's order, leave zeros below the diagonal blocks.
-    from m3t1r.model.description import Mechanism
-
-    solver = ClosedLoopSolver(Mechanism.load())
-    jac = solver.closure_jacobian(solver.mechanism.home + 0.05)
-    order = solver.branch_blocks
-    for later, (rows, _) in enumerate(order):
-        for _, columns in order[:later]:
-            assert not jac[np.ix_(rows, columns)].any()
-
-
-def test_branch_signature_factors_each_block_when_a_pivot_comes_from_below():
-    """An entry the block structure says is zero (row 1, column 0) but is not, and larger than the
-    block's own: the LU takes its pivot from the next block, so each block is factored on its own."""
-    from m3t1r.model.kinematics import _BranchSignature
-
-    signature = _BranchSignature([(np.array([0]), np.array([0])), (np.array([1]), np.array([1]))], 2)
-    assert signature(np.array([[0.1, 0.0], [5.0, -1.0]])) == b"\x01\x00"
-    assert signature(np.array([[0.1, 0.0], [0.0, -1.0]])) == b"\x01\x00"  # the same from the one LU
-    assert signature(np.array([[-0.1, 3.0], [0.0, -1.0]])) == b"\x00\x00"
-
-
-@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the steps on these factors are nan
-@pytest.mark.parametrize(
-    "jacobian", [np.array([[1.0, 1.0], [1.0, 1.0]]), np.array([[1.0, np.nan], [0.0, 1.0]])], ids=["zero pivot", "nan"]
-)
-def test_newton_calls_a_zero_pivot_or_a_nan_inverse_singular(solver, jacobian):
-    """rcond is 0 when U has a zero pivot (no inverse) or the inverse is nan, never accepted."""
-    from m3t1r.errors import SingularConfigurationError
-
-    system = _Scripted([[1.0, 0.0], [0.0, 0.0]], jacobian=jacobian)
-    with pytest.raises(SingularConfigurationError) as caught:
-        solver.newton(np.zeros(2), None, system, _label)
-    assert str(caught.value).startswith("singular configuration (reciprocal condition 0.00e+00)")
-
-
-def test_newton_rcond_is_exact_and_its_inverse_is_returned(solver):
-    """rcond = 1 / (|J|_1 |J^-1|_1): J = [[2, 1], [0, 4]] has |J|_1 = 5, J^-1 = [[0.5, -0.125], [0, 0.25]],
-    |J^-1|_1 = 0.5: 0.4, reported with the inverse (FK's tangent uses it)."""
-    from m3t1r.model.kinematics import _inverse_and_rcond
-
-    jacobian = np.array([[2.0, 1.0], [0.0, 4.0]])
-    system = _Scripted([[1.0, 0.0], [0.0, 0.0]], jacobian=jacobian)
-    outcome = solver.newton(np.zeros(2), None, system, _label)
-    np.testing.assert_allclose(outcome.inverse, np.linalg.inv(jacobian), rtol=1e-15)
-    from scipy.linalg import lapack
-
-    inverse, rcond = _inverse_and_rcond(lapack.dgetrf(jacobian)[:2], 5.0)
-    assert rcond == pytest.approx(0.4, rel=1e-15)
-
-
-def test_newton_labels_a_single_jacobian_once(solver):
-    """A cold solve on one Jacobian computes its signature once and compares it with itself."""
-    _chord_from_any_residual(solver)
-    calls = []
-
-    def counted(jac, lu):
-        calls.append(1)
-        return b"branch"
-
-    system = _Scripted([[1.0, 0.0], [0.01, 0.0], [0.0, 0.0]])
-    outcome = solver.newton(np.zeros(2), None, system, counted)
-    assert len(calls) == 1 and outcome.branch == b"branch" and system.calls == [True, False, False]
 
 
 # The last IK task pose of the predictor tests: coordinates about (0.5, 0.625, -0.125, 0.2), returned
@@ -1304,17 +1071,3 @@ def test_targets_of_every_kind_give_the_same_solve(mechanism):
             ClosedLoopSolver(mechanism).inverse(bad)
     with pytest.raises(InvalidInputError, match="not a numeric vector"):  # not a float array: the general path
         ClosedLoopSolver(mechanism).inverse(np.array([0.5, 0.5, -0.1, "x"], dtype=object))
-
-
-@pytest.mark.parametrize("pitch", [0.0, 0.3, -1.2, 1.5607, 1.5707, -1.5708])
-def test_roll_pitch_of_is_pinocchio_s_rpy(pitch):
-    """Roll and pitch of a rotation or of a placement's, as Pinocchio's ZYX convention gives them,
-    also next to pitch = +-pi/2 (where the heading and the roll trade places)."""
-    rng = np.random.default_rng(int(1e4 * abs(pitch)))
-    for _ in range(20):
-        rotation = pin.rpy.rpyToMatrix(rng.uniform(-3.0, 3.0), pitch, rng.uniform(-3.0, 3.0))
-        expected = pin.rpy.matrixToRpy(rotation)[:2]
-        for given in (rotation, pin.SE3(rotation, np.zeros(3)).homogeneous):
-            got = np.array(roll_pitch_of(given))
-            wrapped = (got - expected + np.pi) % (2 * np.pi) - np.pi
-            np.testing.assert_allclose(wrapped, 0.0, atol=1e-9)

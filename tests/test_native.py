@@ -1,7 +1,7 @@
 """The compiled Newton loops of FK and IK (`model.native`) against the Python loops they replace.
 
-Single solves against `ClosedLoopSolver(native=False)` (the Python `newton`), batches against the
-numpy `newton_batch`: same solutions, iterations, branches and typed failures, on the M machine, a
+Single solves and batches against `ClosedLoopSolver(native=False)` (the Python `newton`, which a
+batch runs row by row): same solutions, iterations, branches and typed failures, on the M machine, a
 calibrated copy, a tool task frame and the example mechanisms (planar x, y and full-rotation tasks).
 """
 
@@ -26,6 +26,7 @@ from m3t1r.model.design import NOMINAL
 from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
 from m3t1r.model.newton_rules import NewtonRules
+from m3t1r.model.solver_layout import SolverLayout
 
 
 def test_the_compiled_loop_is_built():
@@ -218,7 +219,7 @@ def test_failures_are_the_python_loop_s_typed_errors(mechanism):
         kinds.add((type(caught.value), caught.value.iterations))
         solver.forward(mechanism.home[mechanism.actuated_ids])
         # A branch the next solve cannot keep: set by hand, as no public call leaves a solver on one.
-        solver._last_branch = bytes(1 - b for b in solver._last_branch)
+        solver.warm.branch = bytes(1 - b for b in solver.warm.branch)
         with pytest.raises(BranchChangeError) as caught:
             solver.forward(mechanism.home[mechanism.actuated_ids] + 1e-3)
         kinds.add((type(caught.value), caught.value.iterations))
@@ -316,7 +317,8 @@ def test_only_one_dof_revolute_and_prismatic_trees_are_compiled(mechanism):
     model = pin.Model()
     model.addJoint(0, pin.JointModelSpherical(), pin.SE3.Identity(), "ball")
     none = np.zeros(0, dtype=int)
-    assert native.NativeChain.of(model, (), none, none, [], 0, mechanism.task, none, np.zeros((0, 1)), none) is None
+    layout = SolverLayout(none, none, None, 0, np.zeros(0), np.zeros(0), 0, 0, [])
+    assert native.NativeChain.of(model, (), layout, mechanism.task) is None
     assert ClosedLoopSolver(mechanism, native=False).native is None
 
 
@@ -621,10 +623,10 @@ def test_a_warm_inverse_keeps_the_last_solution_s_branch(mechanism, compiled):
     solver = ClosedLoopSolver(mechanism, native=compiled)
     targets = _targets(mechanism, 3, 12)
     solver.inverse(targets[0])
-    solver._last_inverse_branch = b"\x02" * (len(solver.home_reference()[1]) + 1)
+    solver.warm.inverse_branch = b"\x02" * (len(solver.home_reference()[1]) + 1)
     with pytest.raises(BranchChangeError):
         solver.inverse(targets[1])
-    solver._last_inverse_branch = b"\x02" * (len(solver.home_reference()[1]) + 1)
+    solver.warm.inverse_branch = b"\x02" * (len(solver.home_reference()[1]) + 1)
     assert solver.inverse(targets[2], q_init=mechanism.home).residual <= 1e-12
 
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from m3t1r.model.closures import ClosureSpec, ClosureSystem
+from m3t1r.model.closures import CLOSURE_TYPES, ClosureSpec, ClosureSystem
 
 __all__ = ["HomeAssembly", "assemble_home"]
 
@@ -104,8 +104,9 @@ def limits_violated(model: pin.Model, q: np.ndarray, joints: np.ndarray) -> list
 
 
 class _SmoothClosures:
-    """Closure residuals without branch cuts, and their Jacobian over every joint (rows x nv). A
-    closure with only some rows enforced keeps those rows, as the closure system has them."""
+    """Closure residuals without branch cuts (`ClosureType.smooth`), and their Jacobian over every
+    joint (rows x nv). A closure with only some rows enforced keeps those rows, as the closure system
+    has them."""
 
     def __init__(self, model: pin.Model, closures: tuple[ClosureSpec, ...], system: ClosureSystem) -> None:
         self.model, self.data, self.closures, self.system = model, model.createData(), closures, system
@@ -113,33 +114,27 @@ class _SmoothClosures:
         # The length that makes a unit of R_b - R_a weigh as much as a metre of p_b - p_a: the tree's scale.
         self.length = max(float(np.linalg.norm(placements, axis=1).sum()) / max(len(placements), 1), 1e-3)
         starts = np.cumsum([0] + [len(spec.rows) for spec in closures])
-        self.partial = [
-            (spec, np.arange(starts[k], starts[k + 1]))
-            for k, spec in enumerate(closures)
-            if len(spec.rows) != (3 if spec.type == "3D" else 6)
-        ]
+        whole = [len(spec.rows) == CLOSURE_TYPES[spec.type].rows for spec in closures]
+        self.whole = [(spec, CLOSURE_TYPES[spec.type].smooth) for spec, full in zip(closures, whole) if full]
+        self.partial = [np.arange(starts[k], starts[k + 1]) for k, full in enumerate(whole) if not full]
 
     def evaluate(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         model, data = self.model, self.data
         pin.computeJointJacobians(model, data, q)
         pin.updateFramePlacements(model, data)
-        rows, jacobians = [], []
-        for spec in self.closures:
-            if len(spec.rows) != (3 if spec.type == "3D" else 6):
-                continue
-            a, b = data.oMf[spec.frame_a_id], data.oMf[spec.frame_b_id]
+        rows: list[np.ndarray] = []
+        jacobians: list[np.ndarray] = []
+        for spec, smooth in self.whole:
             ja = pin.getFrameJacobian(model, data, spec.frame_a_id, pin.LOCAL_WORLD_ALIGNED)
             jb = pin.getFrameJacobian(model, data, spec.frame_b_id, pin.LOCAL_WORLD_ALIGNED)
-            rows.append(b.translation - a.translation)
-            jacobians.append(jb[:3] - ja[:3])
-            if spec.type == "6D":
-                for k in range(3):  # column k of R: d r = w x r = -[r] w
-                    ra, rb = a.rotation[:, k], b.rotation[:, k]
-                    rows.append(self.length * (rb - ra))
-                    jacobians.append(self.length * (-pin.skew(rb) @ jb[3:] + pin.skew(ra) @ ja[3:]))
+            more_rows, more_jacobians = smooth(
+                data.oMf[spec.frame_a_id], data.oMf[spec.frame_b_id], ja, jb, self.length
+            )
+            rows += more_rows
+            jacobians += more_jacobians
         if self.partial:
             residual, jac = self.system.evaluate(q, True)
-            for _, slots in self.partial:
+            for slots in self.partial:
                 rows.append(residual[slots])
                 jacobians.append(jac[slots])
         return np.concatenate(rows), np.concatenate(jacobians)

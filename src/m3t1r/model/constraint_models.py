@@ -28,7 +28,7 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r.errors import InvalidInputError
-from m3t1r.model.closures import ROW_COUNT, ClosureSpec, ClosureSystem, closure_rank
+from m3t1r.model.closures import CLOSURE_TYPES, ROW_COUNT, ClosureSpec, ClosureSystem, closure_rank
 
 if TYPE_CHECKING:
     from m3t1r.model.description import Mechanism
@@ -66,9 +66,8 @@ def rigid_constraint_models(
         placement_b = frame_b.placement
         if len(spec.rows) < ROW_COUNT[spec.type]:
             placement_b = placement_b * data.oMf[spec.frame_a_id].actInv(data.oMf[spec.frame_b_id]).inverse()
-        kind = pin.ContactType.CONTACT_3D if spec.type == "3D" else pin.ContactType.CONTACT_6D
         constraint = pin.RigidConstraintModel(
-            kind,
+            CLOSURE_TYPES[spec.type].contact,
             model,
             frame_a.parentJoint,
             frame_a.placement,

@@ -12,7 +12,7 @@ import importlib.resources
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Literal, cast
+from typing import Literal, cast
 
 import numpy as np
 import pinocchio as pin
@@ -632,16 +632,3 @@ def _unbounded_passive_joints(mechanism: Mechanism) -> list[str]:
         f"{len(unbounded)} passive joint(s) without usable URDF limits ({shown}): taken as unbounded "
         "(an empty <limit/> or a continuous joint gives no range)"
     ]
-
-
-def closure_residual_by_closure(mechanism: Mechanism, q: np.ndarray) -> Iterator[tuple[ClosureSpec, np.ndarray]]:
-    """Yield (closure, full residual of its type) at q; a slow, obvious reference for checks."""
-    model = mechanism.model
-    data = model.createData()
-    pin.framesForwardKinematics(model, data, q)
-    for spec in mechanism.closures:
-        oMa, oMb = data.oMf[spec.frame_a_id], data.oMf[spec.frame_b_id]
-        if spec.type == "3D":
-            yield spec, oMa.rotation.T @ (oMb.translation - oMa.translation)
-        else:
-            yield spec, pin.log6(oMa.actInv(oMb)).vector

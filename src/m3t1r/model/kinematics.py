@@ -3,48 +3,56 @@
 Pinocchio computes the tree's placements and its WORLD-frame joint Jacobian; this module keeps
 the closures satisfied by Newton's method on the enforced closure rows.
 
-Structure used for speed. With `J` the WORLD joint Jacobian (6 x nv, spatial twists at the base
-origin, [v; w]), the relative spatial twist of closure frame b with respect to frame a is
-`J * s_c`, where s_c = support(b) - support(a) is a signed column mask. Every closure residual is
-a function of the relative placement only, so its derivative is a small row operator O_c
-(k_c x 6) applied to that relative twist, and the whole closure Jacobian is `(O @ J) * S`: two
-array operations for all closures. FK solves only the passive columns (a square system when the
-sliders are independent inputs); LU factors are reused across Newton steps (chord steps) until
-contraction slows. A warm-started solve (FK or IK) starts from the last solution moved by a
-predictor built from the last solve's factorisation: first order along the solution manifold,
-plus a second-order term from the solution before it. The same loops run compiled on Pinocchio's
-C++ API when `model.native` is built (one call per solve); the Python ones here are the reference.
+The closure rows and their Jacobian come from one place, `closures.ClosureSystem` (Pinocchio's
+constraint models); calibration's row operator (each closure's derivative as a function of the
+relative spatial twist of its frames) comes from there too. FK solves only the passive columns (a
+square system when the sliders are independent inputs) by the one Python Newton (`model.newton`:
+LU factors reused across chord steps until contraction slows). A warm-started solve (FK or IK)
+starts from the last solution (`warm_start.WarmStart`) moved by a predictor built from the last
+solve's factorisation: first order along the solution manifold, plus a second-order term from the
+solution before it. Batches run the same Newton row by row (`solve_rows`). The same loops run
+compiled on Pinocchio's C++ API when `model.native` is built (one call per solve, or per batch);
+the Python ones are the reference. Branch labels: `model.branches`; the fixed bookkeeping:
+`solver_layout.SolverLayout`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 import pinocchio as pin
 from scipy.linalg import blas, lapack
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components, maximum_bipartite_matching
 
 from m3t1r.errors import (
-    BranchChangeError,
     InvalidInputError,
-    NotConvergedError,
+    KinematicsError,
     OutOfWorkspaceError,
-    SingularConfigurationError,
     require_count,
     require_finite_vector,
     require_real,
 )
-from m3t1r.model.batch_kinematics import _FAILURES, _REASONS, StackedKinematics, forward_batch, inverse_batch
+from m3t1r.model.batch_kinematics import SolvedRows, forward_batch, inverse_batch
+from m3t1r.model.branches import BranchSignature, det_sign
 from m3t1r.model.closures import ClosureSystem
 from m3t1r.model.description import Mechanism
-from m3t1r.model.native import CONVERGED as _native_converged
 from m3t1r.model.native import NativeChain
+from m3t1r.model.newton import (
+    CONVERGED,
+    STATUS,
+    Outcome,
+    Signature,
+    System,
+    failure,
+    inverse_and_rcond,
+    newton,
+    one_norm,
+)
 from m3t1r.model.newton_rules import DEFAULT_RULES, NewtonRules
+from m3t1r.model.rotations import roll_pitch_of, yaw_of
+from m3t1r.model.solver_layout import solver_layout
+from m3t1r.model.warm_start import WarmStart
 
 __all__ = [
     "ForwardResult",
@@ -63,147 +71,8 @@ MOBILITY_RANK_TOL = 1e-9  # singular values below this fraction of the largest c
 SINGULAR_RCOND = DEFAULT_RULES.singular_rcond  # the default rules' singular threshold (`NewtonRules`)
 
 
-def yaw_of(rotation: np.ndarray) -> float:
-    """Heading of the frame's x axis in the base frame: atan2(R[1,0], R[0,0]) [rad].
-
-    Used everywhere as the platform's yaw theta. Under residual tilt it differs by about
-    roll*pitch/2 from the z component of log3 (docs/design.md, "Conventions"); this is the one we command.
-    """
-    return math.atan2(rotation[1, 0], rotation[0, 0])
-
-
-def roll_pitch_of(rotation: np.ndarray) -> tuple[float, float]:
-    """Roll and pitch [rad] of a rotation (3 x 3, or a 4 x 4 placement's), from Pinocchio's ZYX
-    (yaw-pitch-roll) RPY convention: pitch = atan2(-R20, |(R21, R22)|), roll = atan2(R21, R22)."""
-    r20, r21, r22 = rotation[2, :3].tolist()
-    pitch = math.atan2(-r20, math.sqrt(r21 * r21 + r22 * r22))
-    if abs(abs(pitch) - 0.5 * math.pi) < 1e-2:  # near gimbal lock Pinocchio moves the heading into roll
-        rpy = pin.rpy.matrixToRpy(np.asarray(rotation)[:3, :3])
-        return float(rpy[0]), float(rpy[1])
-    return math.atan2(r21, r22), pitch
-
-
-# Batched skew matrices: [p]x[r, c] = sign * p[src] for the six off-diagonal entries.
-_SKEW_ROWS, _SKEW_COLS = np.array([0, 0, 1, 1, 2, 2]), np.array([1, 2, 0, 2, 0, 1])
-_SKEW_SRC, _SKEW_SIGN = np.array([2, 1, 2, 0, 1, 0]), np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
-
-
-def _det_sign(lu: tuple) -> bool:
-    """Whether det(A) > 0, from LAPACK getrf factors (0-based pivots)."""
-    factors, pivots = lu[0], lu[1]
-    flips = np.count_nonzero(factors.diagonal() < 0) + np.count_nonzero(pivots != _ARANGE[: len(pivots)])
-    return bool(flips % 2 == 0)
-
-
-_ARANGE = np.arange(256)
 _FLOAT = np.dtype(float)
-_dasum, _idamax, _dlange = blas.dasum, blas.idamax, lapack.dlange
-
-
-def diagonal_blocks(pattern: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(rows, columns) of the diagonal blocks of the block-triangular form of a square pattern,
-    in upper block-triangular order: no row uses an unknown of an earlier block.
-
-    A perfect matching puts one unknown on each row; the strongly connected components of
-    "row i uses the unknown matched to row k" are the blocks (Dulmage-Mendelsohn fine form).
-    """
-    match = maximum_bipartite_matching(csr_matrix(pattern.astype(np.int8)), perm_type="column")
-    if np.any(match < 0):
-        raise SingularConfigurationError("the closure system is structurally singular")
-    uses = pattern[:, match]
-    count, labels = connected_components(csr_matrix(uses.astype(np.int8)), directed=True, connection="strong")
-    before = np.zeros((count, count), dtype=bool)  # before[a, b]: block a's rows use block b's unknowns
-    row, used = np.nonzero(uses)
-    before[labels[row], labels[used]] = True
-    order: list[int] = []
-    while len(order) < count:  # the blocks form a DAG: one of them is never used by the others left
-        order.append(
-            next(
-                b
-                for b in range(count)
-                if b not in order and not any(before[a, b] for a in range(count) if a != b and a not in order)
-            )
-        )
-    return [(rows, match[rows]) for rows in (np.flatnonzero(labels == b) for b in order)]
-
-
-_BLOCK_CACHE: dict[tuple, list[tuple[np.ndarray, np.ndarray]]] = {}
-
-
-class _BranchSignature:
-    """Signs of the determinants of the diagonal blocks of the passive closure system.
-
-    One determinant over the whole system would miss two loops flipping at once (e.g. both
-    five-bars folding their knees below the rails); each block's determinant changes sign only
-    through that block's own singularity. All of them come from one LU of the system permuted to
-    upper block-triangular form (`diagonal_blocks`' order): with zeros below the diagonal blocks,
-    partial pivoting takes each pivot of a block's columns among that block's rows, so a block's
-    sign is that of its U diagonal times that of its own row swaps. Should a pivot come from below
-    its block (entries the structure says are zero are not), the blocks are factored one by one.
-    """
-
-    def __init__(self, blocks: list[tuple[np.ndarray, np.ndarray]], n_columns: int) -> None:
-        rows, columns = np.concatenate([r for r, _ in blocks]), np.concatenate([c for _, c in blocks])
-        self._square = rows[:, None] * n_columns + columns[None, :]  # flat indices into a (rows x n_columns) Jacobian
-        ends = np.cumsum([len(r) for r, _ in blocks]).tolist()
-        self._spans = list(zip([0] + ends[:-1], ends))  # each block's positions in the permuted system
-
-    def __call__(self, jac: np.ndarray) -> bytes:
-        square = jac.take(self._square)
-        factors, pivots = lapack.dgetrf(square)[:2]
-        # Python lists: at this size a loop costs less than the numpy calls that would replace it.
-        diagonal, swaps, signs = factors.diagonal().tolist(), pivots.tolist(), []
-        for start, end in self._spans:
-            flips = 0
-            for k in range(start, end):
-                if swaps[k] >= end:  # a pivot from below the block: its structural zeros are not
-                    return b"".join(
-                        b"\x01" if _det_sign(lapack.dgetrf(square[a:b, a:b])) else b"\x00" for a, b in self._spans
-                    )
-                flips += (diagonal[k] < 0.0) + (swaps[k] != k)
-            signs.append(flips % 2 == 0)
-        return bytes(signs)
-
-
-def _native_error(status: int, norm: float, iterations: int, rcond: float) -> Exception:
-    """The typed error of a compiled solve's status, worded as `newton`'s (and the batches')."""
-    reason = f"singular configuration (reciprocal condition {rcond:.2e})" if status == 3 else _REASONS[status]
-    return _FAILURES[status](reason, norm, iterations)
-
-
-class _Outcome(NamedTuple):
-    """A converged Newton solve: solution, residual, steps, the inverse of the last factorised system,
-    last Jacobian and branch."""
-
-    q: np.ndarray
-    residual: float
-    iterations: int
-    inverse: np.ndarray
-    jacobian: np.ndarray
-    branch: bytes
-
-
-def _one_norm(square: np.ndarray) -> float:
-    """Largest column sum of |A| (dgecon's anorm): the infinity norm of A^T, which for a C-ordered A
-    LAPACK reads in place (Fortran order), without the copy that A itself would cost."""
-    return float(_dlange("I", square.T))
-
-
-def _inverse_and_rcond(lu: tuple, one_norm: float) -> tuple[np.ndarray, float]:
-    """A^-1 from getrf factors, and A's reciprocal condition number 1 / (|A|_1 |A^-1|_1), exact where
-    dgecon would estimate it at about the same cost; the inverse then serves FK's tangent too.
-    0 when U has a zero pivot or the inverse overflows."""
-    inverse, info = lapack.dgetri(lu[0], lu[1])
-    rcond = 1.0 / (one_norm * float(_dlange("1", inverse))) if info == 0 else 0.0
-    return inverse, (rcond if rcond == rcond else 0.0)  # nan (inf - inf in the inverse) counts as singular
-
-
-def _max_abs(vector: np.ndarray) -> float:
-    """max |v_i| as numpy's abs().max() gives it (nan if any entry is nan), by two BLAS calls: a
-    fraction of a numpy reduction's overhead on vectors this short. dasum is nan exactly when an
-    entry is (a sum of absolute values never makes nan from finite or infinite terms)."""
-    total = _dasum(vector)
-    return abs(float(vector[_idamax(vector)])) if total == total else math.nan
+_dasum = blas.dasum
 
 
 @dataclass(frozen=True)
@@ -288,7 +157,9 @@ class ClosedLoopSolver:
     another thread makes single solves wait). All outputs are copies.
 
     branch_blocks: the diagonal blocks (closure rows, passive joint columns) of the passive closure
-    Jacobian, in upper block-triangular order (`diagonal_blocks`); branch labels: each block's determinant sign.
+    Jacobian, in upper block-triangular order (`branches.diagonal_blocks`); branch labels: each
+    block's determinant sign. layout: the fixed bookkeeping (`SolverLayout`) that batches and the
+    compiled loop read too; warm: where the next solve continues from (`WarmStart`).
     """
 
     def __init__(
@@ -310,99 +181,25 @@ class ClosedLoopSolver:
             rules = dataclasses.replace(rules, max_iterations=_checked_max_iterations(max_iterations))
         self.rules = rules  # every Newton loop of this solver reads these, Python and compiled
         model = self.model
-        nv = model.nv
-
-        def support_mask(frame_id: int) -> np.ndarray:
-            mask = np.zeros(nv)
-            for j in model.supports[model.frames[frame_id].parentJoint][1:]:
-                mask[model.idx_vs[j]] = 1.0
-            return mask
-
-        # Row bookkeeping for the enforced rows (and for all rows, used by rank analysis).
-        # Layout of the full residual (every component of every closure, in closure order) and
-        # of the enforced rows within it.
-        closures = mechanism.closures
-        sizes = [3 if c.type == "3D" else 6 for c in closures]
-        starts = np.concatenate(([0], np.cumsum(sizes)[:-1]))
-        self._n_full = int(sum(sizes))
-        self._all_rows = np.arange(self._n_full)
-        self._enforced = np.concatenate([start + np.array(c.rows, dtype=int) for start, c in zip(starts, closures)])
-        signed = [support_mask(c.frame_b_id) - support_mask(c.frame_a_id) for c in closures]
-        full_row_mask = np.repeat(np.array(signed), sizes, axis=0)
-        self._row_masks = {False: full_row_mask[self._enforced], True: full_row_mask}
-        # Frames the residuals read (the platform last, for IK); indices below are into this list.
-        self._frame_ids = sorted({c.frame_a_id for c in closures} | {c.frame_b_id for c in closures})
-        self._frame_ids.append(mechanism.platform_frame_id)
-        position = {fid: k for k, fid in enumerate(self._frame_ids)}
-        points = [(start, c) for start, c in zip(starts, closures) if c.type == "3D"]
-        self._p_a = np.array([position[c.frame_a_id] for _, c in points], dtype=int)
-        self._p_b = np.array([position[c.frame_b_id] for _, c in points], dtype=int)
-        self._p_slots = np.array([start + np.arange(3) for start, _ in points], dtype=int).reshape(-1)
-        self._w_frames = [
-            (int(start), position[c.frame_a_id], position[c.frame_b_id])
-            for start, c in zip(starts, closures)
-            if c.type == "6D"
-        ]
-        self.n_rows = len(self._enforced)
-
-        self.actuated = mechanism.actuated_ids
-        self.passive = mechanism.passive_ids
+        # Every row of every closure, on the same Data (rank analysis, `closure_residual(all_rows=True)`).
+        self._all_rows_system = ClosureSystem(model, mechanism.closures, all_rows=True, data=self.data)
+        self.layout = layout = solver_layout(mechanism, self._closure_system)
+        self.n_rows, self.passive, self.actuated = layout.n_rows, layout.passive, layout.actuated
+        self.branch_blocks = layout.blocks
+        self._branch = BranchSignature(layout.blocks, model.nv)
         self._prior_columns = np.concatenate((self.actuated, self.passive))  # the compiled predictor's history
-        self._act_lower, self._act_upper = mechanism.joint_limits()
-        self._finite_limits = bool(np.all(np.isfinite(self._act_lower)) and np.all(np.isfinite(self._act_upper)))
-        self._limit_lists = (self._act_lower.tolist(), self._act_upper.tolist())
-        self._platform = mechanism.platform_frame_id
-        self._task_frame = model.getFrameId(mechanism.task.frame)
+        self._limit_lists = (layout.actuator_lower.tolist(), layout.actuator_upper.tolist())
+        # check_actuators' fast path: a float array of this shape, under finite limits (read once).
+        self._fast_limits = layout.actuator_lower.shape if layout.finite_limits else None
+        self._platform, self._task_frame = layout.platform_frame, layout.task_frame
         self._target_name = f"target ({', '.join(mechanism.task.columns)})"  # in IK's input refusals
         self._square_task = mechanism.task.dimension == len(mechanism.actuated_joints)
         self._goal_shape = (len(mechanism.task.columns),)
-        locked = np.zeros(nv, dtype=bool)
-        locked[mechanism.locked_ids] = True
-        # IK's columns: every joint but the locked ones (None: all, which saves a copy per step)
-        self._unknowns = np.flatnonzero(~locked) if locked.any() else None
-        self._unknown_columns = slice(None) if self._unknowns is None else self._unknowns
-        if self.n_rows != len(self.passive):
-            raise InvalidInputError(
-                f"{mechanism.closures_path}: {self.n_rows} enforced closure rows for "
-                f"{len(self.passive)} passive joints; "
-                "forward kinematics needs a square system (one row per passive joint)"
-            )
-        # Block-triangular structure of the passive system, from its pattern at a few generic q
-        # (numerically zero entries at one q, e.g. by axis alignment at home, must not split blocks).
-        # It depends on the topology only, so calibrated copies of a machine share it.
-        key = (mechanism.closures, mechanism.actuated_joints, tuple(model.names))
-        if key not in _BLOCK_CACHE:
-            rng = np.random.default_rng(0)
-            pattern = np.zeros((self.n_rows, len(self.passive)), dtype=bool)
-            for _ in range(3):
-                q = mechanism.home + rng.normal(0.0, 0.1, model.nv)
-                jac = self._evaluate(q, with_jacobian=True)[1][:, self.passive]
-                pattern |= np.abs(jac) > 1e-9 * np.max(np.abs(jac))
-            _BLOCK_CACHE[key] = [(rows, self.passive[cols]) for rows, cols in diagonal_blocks(pattern)]
-        self.branch_blocks = _BLOCK_CACHE[key]
-        self._branch = _BranchSignature(self.branch_blocks, model.nv)
+        self._unknowns, self._unknown_columns = layout.unknowns, layout.unknown_columns
         # FK's and IK's Newton loops compiled (`model.native`), when built and the joints allow; None: the Python loops.
-        self.native = (
-            NativeChain.of(
-                model,
-                mechanism.closures,
-                self.passive,
-                self.actuated,
-                self.branch_blocks,
-                self._platform,
-                mechanism.task,
-                np.arange(nv) if self._unknowns is None else self._unknowns,
-                np.array(signed),
-                np.flatnonzero(support_mask(self._task_frame)),
-            )
-            if native
-            else None
-        )
-        self._stacked = None  # batched kinematics, built on first use
-        self._last_branch: bytes | None = None  # signature at this solver's last FK solution
-        self._tangent: np.ndarray | None = None  # d q_passive / d sliders at the last factorisation
+        self.native = NativeChain.of(model, mechanism.closures, layout, mechanism.task) if native else None
         self._home: tuple[np.ndarray, bytes] | None = None  # home's tangent and branch, once computed
-        self.last_q: np.ndarray = mechanism.home.copy()
+        self.warm = WarmStart(mechanism.home.copy())  # where the next solve continues from (`reset`)
         self.reset()
 
     # One rule set, replaced whole: a solver's loops never see two versions of it.
@@ -452,68 +249,30 @@ class ClosedLoopSolver:
         with_jacobian)."""
         return self._closure_system.evaluate(q, with_jacobian)
 
-    def _evaluate(self, q: np.ndarray, with_jacobian: bool, all_rows: bool = False):
-        """Residual (enforced or all rows) at q and, optionally, its Jacobian (rows x nv) and the
-        row operator (rows x 6) that maps each closure's relative spatial twist to its rows.
-
-        3D closures are evaluated together on stacked frame placements: Python-level calls,
-        not arithmetic, dominate the cost at this size.
-        """
-        model, data = self.model, self.data
-        if with_jacobian:
-            # Every frame is updated here: callers of closure_sensitivity read data.oMf.
-            pin.computeJointJacobians(model, data, q)  # forward kinematics + WORLD joint Jacobian
-            pin.updateFramePlacements(model, data)
-            every = data.oMf.tolist()
-            frames = [every[i] for i in self._frame_ids]
-        else:
-            # Only the frames used (closure frames and platform): cheaper than all of them.
-            pin.forwardKinematics(model, data, q)
-            update = pin.updateFramePlacement
-            frames = [update(model, data, i) for i in self._frame_ids]
-        self._frames = frames
-        H = np.array([f.homogeneous for f in frames])
-        Ra_T, pa, pb = H[self._p_a, :3, :3].transpose(0, 2, 1), H[self._p_a, :3, 3], H[self._p_b, :3, 3]
-        full = np.empty(self._n_full)
-        full[self._p_slots] = (Ra_T @ (pb - pa)[:, :, None]).ravel()  # R_a^T (p_b - p_a)
-        welds = []
-        for slot, ia, ib in self._w_frames:
-            aMb = frames[ia].actInv(frames[ib])
-            full[slot : slot + 6] = pin.log6(aMb).vector
-            welds.append((slot, aMb, frames[ib]))
-        rows = self._all_rows if all_rows else self._enforced
-        residual = full[rows]
-        if not with_jacobian:
-            return residual, None, None
-        operator = np.empty((self._n_full, 6))
-        # d[R_a^T (p_b - p_a)] = R_a^T [I, -[p_b]x] (relative spatial twist of b w.r.t. a)
-        skew_pb = np.zeros((len(pb), 3, 3))
-        skew_pb[:, _SKEW_ROWS, _SKEW_COLS] = pb[:, _SKEW_SRC] * _SKEW_SIGN
-        operator[self._p_slots.reshape(-1, 3)] = np.concatenate((Ra_T, -(Ra_T @ skew_pb)), axis=2)
-        for slot, aMb, oMb in welds:
-            # d log6(aMb) = Jlog6(aMb) Ad(oMb^-1) (relative spatial twist)
-            operator[slot : slot + 6] = pin.Jlog6(aMb) @ oMb.inverse().action
-        operator = operator[rows]
-        return residual, (operator @ data.J) * self._row_masks[all_rows], operator
-
     def closure_residual(self, q: np.ndarray, all_rows: bool = False) -> np.ndarray:
-        """Enforced closure rows at q (or every row of every closure) [m, rad]."""
+        """Enforced closure rows at q (or every row of every closure) [m, rad]; leaves `data` at q with
+        every frame placed."""
         q = require_finite_vector(q, self.model.nq, "configuration q")
-        return self._evaluate(q, with_jacobian=False, all_rows=all_rows)[0]
+        system = self._all_rows_system if all_rows else self._closure_system
+        residual = system.evaluate(q, False)[0]
+        pin.updateFramePlacements(self.model, self.data)
+        return residual
 
     def closure_sensitivity(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(residual, Jacobian wrt q, row operator) of the enforced rows at q; leaves `data` at q.
+        """(residual, Jacobian wrt q, row operator) of the enforced rows at q (`ClosureSystem.sensitivity`);
+        leaves `data` at q (frames, joint placements and the WORLD joint Jacobian).
 
         Row r of closure c changes by operator[r] @ (xi_b - xi_a) for spatial (WORLD) twists
         xi of its two frames: that is how geometric-parameter sensitivities enter (calibration).
         """
         q = require_finite_vector(q, self.model.nq, "configuration q")
-        return self._evaluate(q, with_jacobian=True)
+        return self._closure_system.sensitivity(q)
 
     def closure_jacobian(self, q: np.ndarray, all_rows: bool = False) -> np.ndarray:
         """d(closure residual)/dq (rows x nv), exact (analytic), enforced rows unless all_rows."""
         q = require_finite_vector(q, self.model.nq, "configuration q")
-        return self._evaluate(q, with_jacobian=True, all_rows=all_rows)[1]
+        system = self._all_rows_system if all_rows else self._closure_system
+        return system.evaluate(q, True)[1]
 
     def mobility(self, q: np.ndarray, all_rows: bool = False, rank_tolerance: float = MOBILITY_RANK_TOL) -> int:
         """nv minus the rank of the closure Jacobian at q.
@@ -529,12 +288,7 @@ class ClosedLoopSolver:
     # Forward kinematics
     def check_actuators(self, actuators: np.ndarray) -> np.ndarray:
         """Validate slider values [m]: finite, right count, within the URDF limits (no clipping)."""
-        if (
-            type(actuators) is np.ndarray
-            and actuators.dtype == _FLOAT
-            and actuators.shape == self._act_lower.shape
-            and self._finite_limits
-        ):
+        if type(actuators) is np.ndarray and actuators.dtype == _FLOAT and actuators.shape == self._fast_limits:
             values = actuators.copy()
             # A loop over a handful of floats costs less than the numpy calls; False for NaN.
             if all(
@@ -543,12 +297,12 @@ class ClosedLoopSolver:
             ):
                 return values
         values = require_finite_vector(actuators, len(self.actuated), "actuator values")
-        names = self.mechanism.actuated_joints
-        outside = (values < self._act_lower) | (values > self._act_upper)
+        names, (lower, upper) = self.mechanism.actuated_joints, self._limit_lists
+        outside = (values < self.layout.actuator_lower) | (values > self.layout.actuator_upper)
         for k in np.flatnonzero(outside) if outside.any() else ():
             raise InvalidInputError(
                 f"actuator '{names[k]}' = {values[k]:.6g} is beyond its joint limit "
-                f"[{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}] (SI units: metres for sliders)"
+                f"[{lower[k]:.6g}, {upper[k]:.6g}] (SI units: metres for sliders)"
             )
         return values
 
@@ -563,33 +317,29 @@ class ClosedLoopSolver:
         Raises InvalidInputError for bad actuators, BranchChangeError / NotConvergedError /
         OutOfWorkspaceError / SingularConfigurationError (with the final residual) otherwise.
         """
-        values = self.check_actuators(actuators)
+        values, warm = self.check_actuators(actuators), self.warm
         if q_init is None:  # a continuation from the last solution (initially home)
-            q, tangent, branch, previous = self.last_q.copy(), self._tangent, self._last_branch, self._previous
+            q, tangent, branch, previous = warm.q.copy(), warm.tangent, warm.branch, warm.previous
         else:  # a continuation from q_init: its own tangent and branch
             q = require_finite_vector(q_init, self.model.nq, "q_init").copy()
             (tangent, branch), previous = self._continuation_from(q), None
-        self._tangent = self._previous = self._last_goal = self._inverse_previous = None  # until this succeeds
+        warm.tangent = warm.previous = warm.goal = warm.inverse_previous = None  # until this succeeds
         if self.native is not None:
             before = q.take(self._prior_columns)  # where this solve continues from, for the next one
             result = self._forward_native(q, values, tangent is not None, previous, branch)
-            self._previous = before
+            warm.previous = before
             return result
         start = q.copy()
         if tangent is not None:
             q[self.passive] += self.predict(start, values - q.take(self.actuated), tangent, previous)
         q[self.actuated] = values
         outcome = self.newton(q, self.passive, self._system, self._passive_branch, start_branch=branch)
-        self._tangent = -outcome.inverse.dot(outcome.jacobian.take(self.actuated, axis=1))
+        warm.tangent = -outcome.inverse.dot(outcome.jacobian.take(self.actuated, axis=1))
         # Where this solve continued from, for the second-order predictor of the next one.
-        self._previous = (start.take(self.actuated), start.take(self.passive))
-        self._last_branch = outcome.branch
-        self.last_q = outcome.q
+        warm.previous = (start.take(self.actuated), start.take(self.passive))
+        warm.branch, warm.q = outcome.branch, outcome.q
         pose = self._platform_pose()
         return ForwardResult(pose, outcome.q.copy(), outcome.residual, outcome.iterations, self._task_pose(pose))
-
-    # (sliders, passive q) of the solution before last_q; with the compiled loop, the two concatenated
-    _previous: tuple[np.ndarray, np.ndarray] | np.ndarray | None = None
 
     def _forward_native(
         self, q: np.ndarray, values: np.ndarray, predicted: bool, previous, branch: bytes | None
@@ -603,11 +353,11 @@ class ClosedLoopSolver:
         status, norm, iterations, rcond = native.forward(
             q, values, order, previous if order == 2 else None, branch, self._compiled_rules
         )
-        if status != _native_converged:
-            raise _native_error(status, norm, iterations, rcond)
-        self._tangent = native.tangent  # overwritten only by the next success, which reads it first
-        self._last_branch = bytes(native.branch)
-        self.last_q = q
+        if status != CONVERGED:
+            raise failure(status, norm, iterations, rcond)
+        self.warm.tangent = native.tangent  # overwritten only by the next success, which reads it first
+        self.warm.branch = bytes(native.branch)
+        self.warm.q = q
         pose = pin.SE3(native.platform)
         return ForwardResult(
             pose, q.copy(), norm, iterations, pose if self._task_frame == self._platform else pin.SE3(native.task)
@@ -627,13 +377,13 @@ class ClosedLoopSolver:
         assert jac is not None, "asked with_jacobian"
         square = jac.take(self.passive, axis=1)
         lu = lapack.dgetrf(square)[:2]
-        inverse, rcond = _inverse_and_rcond(lu, _one_norm(square))
+        inverse, rcond = inverse_and_rcond(lu, one_norm(square))
         if not rcond >= self.rules.singular_rcond:
             return None
         return -inverse.dot(jac.take(self.actuated, axis=1)), self._branch(jac)
 
     def _continuation_from(self, q: np.ndarray) -> tuple[np.ndarray | None, bytes | None]:
-        """The warm-start state (`_tangent`, `_last_branch`) of a solve continuing from q: home's cached
+        """The FK warm-start state (`warm.tangent`, `warm.branch`) of a solve continuing from q: home's cached
         reference at home, q's own elsewhere; (None, None) at a singular q (labels then at the start).
         The compiled loop reads its tangent from `native.tangent`, which this fills."""
         home = self.mechanism.home
@@ -655,8 +405,9 @@ class ClosedLoopSolver:
         the previous step e (sliders s_k - s_(k-1)): the previous solution gives
         1/2 H[e, e] ~= q_(k-1) - q_k + T e, applied as lam^2 1/2 H[e, e] with lam = (d . e) / (e . e),
         only while the path keeps going the same way (0 < lam < 2). Newton corrects whatever remains.
+        `change` may be (n, k), one slider change per row (first order only: a batch from home).
         """
-        step = tangent.dot(change)
+        step = tangent.dot(change) if change.ndim == 1 else change.dot(tangent.T)  # one change or a row per start
         if previous is not None:
             last_sliders, last_passive = previous
             e = start.take(self.actuated) - last_sliders
@@ -667,7 +418,12 @@ class ClosedLoopSolver:
         return step
 
     def _passive_branch(self, jac: np.ndarray, lu: tuple) -> bytes:
+        """FK's branch labels: the passive blocks' determinant signs."""
         return self._branch(jac)
+
+    def _inverse_branch(self, jac: np.ndarray, lu: tuple) -> bytes:
+        """IK's branch labels: the passive blocks', then the sign of det of the whole system."""
+        return self._branch(jac) + bytes([det_sign(lu)])
 
     def _task_pose(self, platform: pin.SE3) -> pin.SE3:
         """The task frame at the configuration last evaluated (a copy), or `platform` when they are one frame."""
@@ -682,71 +438,11 @@ class ClosedLoopSolver:
         `updateFramePlacement`'s placement by value), so the solver's data may move on."""
         return pin.updateFramePlacement(self.model, self.data, self._platform)
 
-    def newton(self, q: np.ndarray, unknowns: np.ndarray | None, system, signature, start_branch=None) -> _Outcome:
-        """Newton on a square system over the columns `unknowns` (None: every column), with chord steps,
-        under `self.rules` (as the compiled loop and the batches).
-
-        The Jacobian is evaluated at the start and after every step from a residual above
-        `rules.chord_below`; below it, later steps reuse the LU factors while each step still
-        contracts the residual by `rules.chord_contraction`, and refresh them otherwise.
-        `signature(jac, lu)` labels the branch: its value at the last Jacobian must equal
-        `start_branch` (default: its value at the first Jacobian), else BranchChangeError.
-        """
-        rules = self.rules
-        tolerance, contraction, max_step = rules.tolerance, rules.chord_contraction, rules.max_step
-        residual, jac = system(q, True)
-        previous = norm = math.inf
-        last_jac = square = label = lu = None  # label: the signature of last_jac, once computed
-        for iteration in range(rules.max_iterations + 1):
-            norm = _max_abs(residual)
-            if not math.isfinite(norm):
-                break
-            if jac is None and norm > contraction * previous and norm > tolerance:
-                residual, jac = system(q, True)
-            if jac is not None:
-                square = jac if unknowns is None else jac.take(unknowns, axis=1)
-                lu = lapack.dgetrf(square)[:2]
-                label = None
-                if start_branch is None:
-                    start_branch = label = signature(jac, lu)
-                last_jac, jac = jac, None
-            if norm <= tolerance:
-                # Conditioning and branch are judged at the last Jacobian only.
-                assert lu is not None and square is not None and last_jac is not None, "the first pass sets them"
-                inverse, rcond = _inverse_and_rcond(lu, _one_norm(square))
-                if rcond < rules.singular_rcond:
-                    raise SingularConfigurationError(
-                        f"singular configuration (reciprocal condition {rcond:.2e})", norm, iteration
-                    )
-                branch = label if label is not None else signature(last_jac, lu)
-                if branch != start_branch:
-                    raise BranchChangeError(
-                        "the solution lies on another assembly branch than the start (Newton crossed a singularity)",
-                        norm,
-                        iteration,
-                    )
-                return _Outcome(q, norm, iteration, inverse, last_jac, branch)
-            if iteration == rules.max_iterations:
-                break
-            assert lu is not None, "the first iteration factorises"
-            step = lapack.dgetrs(lu[0], lu[1], residual)[0]
-            biggest = abs(float(step[_idamax(step)]))  # nan entries make q nan: the next residual stops
-            if biggest > max_step:
-                step *= max_step / biggest
-            if unknowns is None:
-                q -= step
-            else:
-                q[unknowns] -= step
-            previous = norm
-            residual, jac = system(q, previous > rules.chord_below)
-        if norm > rules.no_assembly or not math.isfinite(norm):
-            raise OutOfWorkspaceError(
-                "the closures cannot be assembled here (target out of the workspace "
-                "or too far from the initial configuration's branch)",
-                norm,
-                iteration,
-            )
-        raise NotConvergedError("Newton did not reach the tolerance", norm, iteration)
+    def newton(
+        self, q: np.ndarray, unknowns: np.ndarray | None, system: System, signature: Signature, start_branch=None
+    ) -> Outcome:
+        """`newton.newton` under `self.rules`: the one Python Newton of single solves and batch rows."""
+        return newton(q, unknowns, system, signature, self.rules, start_branch)
 
     # ----------------------------------------------------------------------------------------
     # Inverse kinematics
@@ -824,20 +520,20 @@ class ClosedLoopSolver:
         if not self._square_task or self._uncommandable != ():
             self.check_square_task()
         goal, goal_rotation, wanted_tilt = self._goal(target)
-        warm = q_init is None
-        q = (self.last_q if warm else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
-        predicted = warm and self._task_inverse is not None and self._last_task is not None
+        continuing, state = q_init is None, self.warm
+        q = (state.q if continuing else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
+        predicted = continuing and state.task_inverse is not None and state.task is not None
         if predicted and self.native is None:
-            assert self._task_inverse is not None and self._last_task is not None, "as `predicted` says"
+            assert state.task_inverse is not None and state.task is not None, "as `predicted` says"
             q[self._unknown_columns] += self.inverse_predict(
-                goal, goal_rotation, self._task_inverse, self._last_task, self._inverse_previous
+                goal, goal_rotation, state.task_inverse, state.task, state.inverse_previous
             )
-        self._task_inverse = None  # dropped until this solve succeeds
+        state.task_inverse = None  # dropped until this solve succeeds
         # A warm solve must stay on the previous solution's branch (assembly and working mode).
-        start = self._last_inverse_branch if warm else None
-        self._last_inverse_branch = None
+        start = state.inverse_branch if continuing else None
+        state.inverse_branch = None
         if self.native is not None:
-            order = (1 if self._inverse_previous is None else 2) if predicted else 0
+            order = (1 if state.inverse_previous is None else 2) if predicted else 0
             q, residual, iterations, branch, task_inverse, last_task, pose = self._inverse_native(
                 q, start, goal, goal_rotation, order
             )
@@ -847,7 +543,7 @@ class ClosedLoopSolver:
                 q,
                 self._unknowns,
                 self._inverse_system(goal, goal_rotation),
-                lambda jac, lu: self._branch(jac) + bytes([_det_sign(lu)]),
+                self._inverse_branch,
                 start_branch=start,
             )
             q, residual, iterations, branch = outcome.q, outcome.residual, outcome.iterations, outcome.branch
@@ -862,17 +558,16 @@ class ClosedLoopSolver:
         for k in outside:
             raise OutOfWorkspaceError(
                 f"target needs actuator '{names[k]}' = {actuators[k]:.6g} {self.mechanism.joint_units()[k]}, "
-                f"beyond its limit [{self._act_lower[k]:.6g}, {self._act_upper[k]:.6g}]",
+                f"beyond its limit [{lower[k]:.6g}, {upper[k]:.6g}]",
                 residual,
                 iterations,
             )
         # The second-order predictor's history: the solution this one started from, with its goal.
-        self._inverse_previous = (self._last_goal, self.last_q) if warm and self._last_goal is not None else None
+        state.inverse_previous = (state.goal, state.q) if continuing and state.goal is not None else None
         # The FK warm start now follows this solution; its predictor tangent is from elsewhere.
-        self.last_q, self._tangent, self._last_branch, self._previous = q, None, branch[:-1], None
-        self._task_inverse, self._last_inverse_branch = task_inverse, branch
-        self._last_goal = (goal, goal_rotation)
-        self._last_task = last_task
+        state.q, state.tangent, state.branch, state.previous = q, None, branch[:-1], None
+        state.task_inverse, state.inverse_branch = task_inverse, branch
+        state.goal, state.task = (goal, goal_rotation), last_task
         task_pose = pose if self._task_frame == self._platform else pin.SE3(last_task)  # a copy either way
         return InverseResult(
             actuators,
@@ -894,10 +589,10 @@ class ClosedLoopSolver:
         native = self.native
         assert native is not None, "called only with the compiled loop"
         status, residual, iterations, rcond = native.inverse(
-            q, goal, goal_rotation, order, self._inverse_previous, start, self._compiled_rules
+            q, goal, goal_rotation, order, self.warm.inverse_previous, start, self._compiled_rules
         )
-        if status != _native_converged:
-            raise _native_error(status, residual, iterations, rcond)
+        if status != CONVERGED:
+            raise failure(status, residual, iterations, rcond)
         # The task frame's placement stays in the compiled call's buffer, which the next warm solve
         # reads: no SE3 of it unless the result needs one (a task frame other than the platform).
         return (
@@ -968,7 +663,7 @@ class ClosedLoopSolver:
             lam = -float(rows.dot(back)) / bb if bb > 0.0 else 0.0
             if 0.0 < lam < 2.0:
                 columns = self._unknown_columns
-                step += lam * lam * (last_q[columns] - self.last_q[columns] + task_inverse.dot(back))
+                step += lam * lam * (last_q[columns] - self.warm.q[columns] + task_inverse.dot(back))
         return step
 
     def _inverse_system(self, goal: np.ndarray, goal_rotation: np.ndarray | None):
@@ -993,9 +688,7 @@ class ClosedLoopSolver:
         """Forward kinematics of n slider sets (n, k) [m] at once (`batch_kinematics.forward_batch`).
 
         Every row is solved on home's branch (the reference), from home moved along the solution
-        manifold to first order, or from q_init when given, by the compiled Newton loop row by row in one
-        call (without it, one vectorised numpy Newton over all rows: stacked POE placements, batched
-        inverses), not by n calls. Where
+        manifold to first order, or from q_init when given, by `solve_rows`. Where
         `forward(a, q_init=home)` converges the two agree to the tolerance; far from home the batch
         also assembles rows where plain Newton from home crosses a singularity. Returns a `ForwardBatch`: `.poses`
         (M, 4, 4), `.q`, `.iterations` of the M converged rows `.indices`; every other row is in
@@ -1003,37 +696,88 @@ class ClosedLoopSolver:
         With the compiled loop the rows are shared among `threads` threads (None: every core this
         process may use); the results do not depend on it.
         """
-        return forward_batch(self._batch_kinematics(), actuators, q_init, threads)
+        return forward_batch(self, actuators, q_init, threads)
 
     def inverse_batch(self, targets: np.ndarray, q_init: np.ndarray | None = None, threads: int | None = None):
         """Inverse kinematics of n targets (n, 4) rows (x, y, z, theta) [m, rad] at once; returns an
         `InverseBatch` (`.actuators`, `.poses`, `.tilt`, ... of the converged rows, `.failures`).
         Compiled loop and threads as `forward_batch`."""
-        return inverse_batch(self._batch_kinematics(), targets, q_init, threads)
+        return inverse_batch(self, targets, q_init, threads)
 
-    def _batch_kinematics(self):
-        if self._stacked is None:
-            self._stacked = StackedKinematics(self)
-        return self._stacked
+    def solve_rows(
+        self,
+        starts: np.ndarray,
+        branch: bytes | None,
+        steps_taken: int,
+        goals: np.ndarray | None = None,
+        goal_rotations: np.ndarray | None = None,
+        threads: int = 1,
+    ) -> SolvedRows:
+        """Newton from every row of `starts` (n, nq), solved in place: FK's passive system (goals None)
+        or IK's toward goals[i] (task coordinates; goal_rotations[i] for a full-rotation task).
 
-    _task_inverse: np.ndarray | None = None  # task-row columns of the last IK system's inverse
-    _inverse_previous: tuple | None = None  # ((goal, goal rotation), q) of the IK solution before last_q
-    _last_goal: tuple | None = None  # (goal, goal rotation) of last_q when it is an IK solution
-    _last_inverse_branch: bytes | None = None  # signature at the last IK solution
-    # Task frame placement at the last IK solution (with the compiled loop: its 4 x 4 buffer, [m])
-    _last_task: pin.SE3 | np.ndarray | None = None
+        The compiled loop takes every row in one call, shared among `threads`; without it the
+        single solves' `newton` runs row after row. branch: the labels every row must end with
+        (None: each row's at its start); steps_taken: iterations already spent (a predictor), counted.
+        Status codes as `NativeChain`: 0 converged, 1 no assembly, 2 not converged, 3 singular,
+        4 branch change. Moves `data` (the Python loop) but not the warm start.
+        """
+        if self.native is not None:
+            labels = None if branch is None else np.frombuffer(branch, dtype=np.uint8)
+            rules = self._compiled_rules
+            if goals is None:
+                status, norm, iterations, platform = self.native.forward_rows(
+                    starts, labels, steps_taken, rules, threads
+                )
+            else:
+                status, norm, iterations, platform = self.native.inverse_rows(
+                    starts, goals, goal_rotations, labels, steps_taken, rules, threads
+                )
+            return SolvedRows(starts, status, norm, iterations, platform[:, :3, :3], platform[:, :3, 3])
+        return self._python_rows(starts, branch, steps_taken, goals, goal_rotations)
+
+    def _python_rows(
+        self,
+        q: np.ndarray,
+        branch: bytes | None,
+        steps_taken: int,
+        goals: np.ndarray | None,
+        goal_rotations: np.ndarray | None,
+    ) -> SolvedRows:
+        """`solve_rows` without the compiled loop: `newton` on each row, its typed failure as a status."""
+        n = len(q)
+        solved = SolvedRows(
+            q, np.zeros(n, dtype=int), np.zeros(n), np.zeros(n, dtype=int), np.zeros((n, 3, 3)), np.zeros((n, 3))
+        )
+        for i in range(n):
+            unknowns: np.ndarray | None = self.passive
+            if goals is None:
+                system, signature = self._system, self._passive_branch
+            else:
+                goal_rotation = None if goal_rotations is None else goal_rotations[i]
+                system, unknowns = self._inverse_system(goals[i], goal_rotation), self._unknowns
+                signature = self._inverse_branch
+            try:
+                outcome = self.newton(q[i], unknowns, system, signature, start_branch=branch)
+            except KinematicsError as error:
+                solved.status[i], solved.norm[i] = STATUS[type(error)], error.residual
+                solved.iterations[i] = error.iterations + steps_taken
+                continue
+            solved.norm[i], solved.iterations[i] = outcome.residual, outcome.iterations + steps_taken
+            pose = self._platform_pose()
+            solved.rotation[i], solved.position[i] = pose.rotation, pose.translation
+        return solved
+
+    @property
+    def last_q(self) -> np.ndarray:
+        """The last solution (nq) [m, rad], where a warm solve starts (home after `reset`)."""
+        return self.warm.q
 
     def reset(self) -> None:
         """Forget the warm start and cached factorisations: the next solve starts from home, as a new
         solver's first and as every row of `forward_batch` (home's tangent predictor, home's branch)."""
-        self._previous = None
-        self._tangent, self._last_branch = self._continuation_from(self.mechanism.home)
-        self._task_inverse = None
-        self._inverse_previous = None
-        self._last_goal = None
-        self._last_inverse_branch = None
-        self._last_task = None
-        self.last_q = self.mechanism.home.copy()
+        tangent, branch = self._continuation_from(self.mechanism.home)
+        self.warm = WarmStart(self.mechanism.home.copy(), tangent, branch)
 
 
 def require_square_task(mechanism: Mechanism) -> None:

@@ -1,7 +1,7 @@
 """The compiled Newton loop of closed-loop FK (`_native_newton`, C++ on Pinocchio), when it is built.
 
 `tools/build_native.py` (run by `make`) compiles it in place. It solves the problem of
-`ClosedLoopSolver.newton` (single solves) and `batch_kinematics.newton_batch` (rows), step for step:
+`ClosedLoopSolver.newton` (single solves, and batch rows without the compiled loop), step for step:
 the same residual and exact Jacobian of the enforced rows, and the same `NewtonRules` (passed with
 every call: chord steps, step cap, convergence test, singular threshold, no-assembly threshold), the
 1-norm reciprocal condition and branch labels (signs of the diagonal blocks' determinants). It holds
@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from m3t1r.model.closures import ROW_COUNT, frame_support, relative_supports
 from m3t1r.model.native_status import STALE, load_compiled
 
 _native_newton, _WHY_NOT = load_compiled()  # _WHY_NOT: why the Python loops run ("": they do not)
@@ -42,13 +43,14 @@ if TYPE_CHECKING:
     import pinocchio as pin
 
     from m3t1r.model.closures import ClosureSpec
+    from m3t1r.model.solver_layout import SolverLayout
     from m3t1r.model.task import TaskSpec
 
 __all__ = ["AVAILABLE", "NativeChain", "CONVERGED", "PURE_PYTHON_VARIABLE", "available_cores", "status"]
 
 AVAILABLE = _native_newton is not None
 _EMPTY = np.zeros(0)
-CONVERGED = 0  # status codes 1-4 as batch_kinematics' rows: no assembly, not converged, singular, branch change
+CONVERGED = 0  # status codes 1-4 as `newton`: no assembly, not converged, singular, branch change
 
 # Joint types the compiled model rebuilds, by Pinocchio's short name: the code `joint_of` reads.
 _ROTATION_CODES = {"none": 0, "yaw": 1, "full": 2}
@@ -87,24 +89,13 @@ class NativeChain:
 
     @classmethod
     def of(
-        cls,
-        model: pin.Model,
-        closures: tuple[ClosureSpec, ...],
-        passive: np.ndarray,
-        actuated: np.ndarray,
-        blocks: list[tuple[np.ndarray, np.ndarray]],
-        platform_frame: int,
-        task: TaskSpec,
-        unknowns: np.ndarray,
-        column_signs: np.ndarray,
-        task_columns: np.ndarray,
+        cls, model: pin.Model, closures: tuple[ClosureSpec, ...], layout: SolverLayout, task: TaskSpec
     ) -> NativeChain | None:
         """The compiled chain, or None when the module is not built or a joint is not 1-DoF revolute/prismatic.
 
-        unknowns: IK's columns (every joint but the locked ones); IK is square only when the task's
-        dimension equals the actuator count (else only FK may be called). column_signs: (closures, nv)
-        support(frame b) - support(frame a) of each closure (`ClosedLoopSolver`'s); task_columns: the
-        velocity indices of the joints that move the task frame.
+        layout: the solver's (`SolverLayout`: FK's and IK's columns, branch blocks, platform and task
+        frames); IK is square only when the task's dimension equals the actuator count (else only FK
+        may be called).
         """
         if _native_newton is None:
             _warn_once_without_module()
@@ -115,16 +106,14 @@ class NativeChain:
         joints = np.array([[model.parents[j], _KINDS[names[j - 1]]] for j in range(1, model.njoints)], dtype=np.int64)
         axes = np.array([_axis(model.joints[j]) for j in range(1, model.njoints)])
         placements = np.array([model.jointPlacements[j].homogeneous for j in range(1, model.njoints)])
+        passive, actuated, blocks = layout.passive, layout.actuated, layout.blocks
+        unknowns = np.arange(model.nv) if layout.unknowns is None else layout.unknowns
         frame_ids = sorted({c.frame_a_id for c in closures} | {c.frame_b_id for c in closures})
-        task_frame = model.getFrameId(task.frame)
-        frame_ids += [platform_frame, task_frame]
+        frame_ids += [layout.platform_frame, layout.task_frame]
         where = {f: k for k, f in enumerate(frame_ids)}
         rows = np.cumsum([0] + [len(c.rows) for c in closures])
         spec = np.array(
-            [
-                [3 if c.type == "3D" else 6, where[c.frame_a_id], where[c.frame_b_id], rows[k]]
-                for k, c in enumerate(closures)
-            ],
+            [[ROW_COUNT[c.type], where[c.frame_a_id], where[c.frame_b_id], rows[k]] for k, c in enumerate(closures)],
             dtype=np.int64,
         ).reshape(-1, 4)
         components = np.array([r for c in closures for r in c.rows], dtype=np.int64)
@@ -139,7 +128,7 @@ class NativeChain:
             np.array([model.frames[f].placement.homogeneous for f in frame_ids]),
             spec,
             components,
-            np.ascontiguousarray(np.reshape(column_signs, (len(closures), model.nv)), dtype=float),
+            np.ascontiguousarray(relative_supports(model, closures), dtype=float),
             np.asarray(passive, dtype=np.int64),
             np.asarray(actuated, dtype=np.int64),
             np.concatenate([r for r, _ in blocks]).astype(np.int64),
@@ -147,7 +136,7 @@ class NativeChain:
             np.cumsum([len(r) for r, _ in blocks]).astype(np.int64),
             ik_columns,
             ik_axes.astype(np.int64),
-            np.asarray(task_columns, dtype=np.int64),
+            np.flatnonzero(frame_support(model, layout.task_frame)).astype(np.int64),
             len(frame_ids) - 2,
             len(frame_ids) - 1,
             _ROTATION_CODES[task.rotation] if square else 0,

@@ -1,8 +1,9 @@
 """The rules every closed-loop Newton loop obeys, in one frozen object.
 
-Single solves (`ClosedLoopSolver.newton`), the numpy batches (`batch_kinematics.newton_batch`) and
-the compiled loop (`model.native`) all read one `NewtonRules`: where they once kept their own copies
-of these numbers, one of them could (and did) drift from the others.
+The Python Newton (`ClosedLoopSolver.newton`, which single solves and, without the compiled loop,
+every batch row run) and the compiled loop (`model.native`, passed `NewtonRules.compiled()` with
+every call) read one `NewtonRules`: where they once kept their own copies of these numbers, one of
+them could (and did) drift from the others.
 """
 
 from __future__ import annotations
