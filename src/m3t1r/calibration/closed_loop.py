@@ -10,18 +10,15 @@ measurement frame [m], orientation in the measured (marker) frame [rad]; positio
 the first three. It is whitened by the tracker noise and minimised by Levenberg-Marquardt (updates
 T(0) <- T(0) exp6(dX), eq. 33) over the base (identifiable) parameters, chosen once at the start
 by column-pivoted QR with the setup's parameters kept first (the gauge: the base-side placements
-the measurement frame makes redundant stay nominal). Then, in that order:
-- outliers: poses beyond `outlier_sigma` noise sigmas are dropped and the fit resumed, every pose
-  re-judged each round, until the flagged set is stable;
-- model selection: forward selection of the base parameters scored by leave-one-pose-out
-  prediction (PRESS, `identification.forward_selection`); if fewer predict better, they alone are
-  refitted from the start.
+the measurement frame makes redundant stay nominal); then outliers and model selection. Those
+steps are the pipeline both fits share (`m3t1r.calibration.pipeline`); this module is the problem
+(`ClosedLoopProblem`): the assembled poses, the residual and its Jacobian, the registration of the
+setup and the judgement of poses that identify fewer parameters than the machine has.
 """
 
 from __future__ import annotations
 
 import copy
-import math
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -33,14 +30,9 @@ from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.error_model import ClosedLoopErrorModel, PlatformSensitivities
 from m3t1r.calibration.identification import (
     IDENTIFIABILITY_TOLERANCE,
-    OUTLIER_SIGMA,
     BaseParameters,
     LMResult,
     ParameterSelection,
-    checked_outlier_sigma,
-    forward_selection,
-    levenberg_marquardt,
-    outlier_poses,
     parameter_columns,
     select_base_parameters,
     triangular_factor,
@@ -48,8 +40,17 @@ from m3t1r.calibration.identification import (
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
-from m3t1r.calibration.repeats import grouped_blocks, grouped_folds
-from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning, require_count
+from m3t1r.calibration.pipeline import (
+    CalibrationOptions,
+    LMSettings,
+    PipelineFit,
+    PoseErrorRMS,
+    fit,
+    prior_columns,
+    run_pipeline,
+)
+from m3t1r.calibration.repeats import grouped_folds
+from m3t1r.errors import IdentificationError, InvalidInputError, require_count
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
@@ -58,6 +59,8 @@ from m3t1r.model.workspace import workspace_actuators
 
 __all__ = [
     "ClosedLoopCalibration",
+    "ClosedLoopProblem",
+    "ClosedLoopState",
     "calibrate_closed_loop",
     "pose_errors",
     "predicted_pose_std",
@@ -65,12 +68,8 @@ __all__ = [
     "setup_parameter_names",
     "CrossValidation",
     "cross_validate",
-    "calibration_result",
-    "fit_assembled",
     "structural_rank",
 ]
-
-_MAX_OUTLIER_ROUNDS = 5
 
 
 def setup_parameter_names(
@@ -112,7 +111,7 @@ _BLOCK = 512  # poses per block of the error model's stacks (about 100 kB per po
 
 
 @dataclass(eq=False)
-class _State:
+class ClosedLoopState:
     """An LM iterate: a model and measurement setup, the assembled configuration (N, nq) and
     platform pose (N, 4, 4, base frame) of every measured pose, the parameter steps accumulated
     since the start (for priors), and, once evaluated, its whitened residual and Jacobian."""
@@ -125,7 +124,7 @@ class _State:
     whitened: tuple[np.ndarray, np.ndarray] | None = None
 
 
-class _ClosedLoopProblem:
+class ClosedLoopProblem:
     """Whitened measurement residuals over a set of parameter columns (the LeastSquaresProblem
     protocol). Columns index the machine's parameters, then the setup's (`setup_parameter_names`);
     priors add one row x_c / sigma_c per parameter c with a prior."""
@@ -140,8 +139,12 @@ class _ClosedLoopProblem:
         estimate_frame: bool = False,
         estimate_marker: bool = False,
         priors: Mapping[int, float] | None = None,
+        rank_tolerance: float = IDENTIFIABILITY_TOLERANCE,
+        reference_marker: pin.SE3 = pin.SE3.Identity(),
     ) -> None:
         self.error_model = error_model
+        self.rank_tolerance = rank_tolerance  # of the judgement `check_base` and the reference set
+        self.reference_marker = reference_marker  # the marker given, on which the reference set is measured
         self.measurements = measurements
         self.columns = columns
         self.n_machine = error_model.n_parameters
@@ -177,6 +180,52 @@ class _ClosedLoopProblem:
         self.point_offsets = np.zeros((self.n_points, 3))  # the registered start's, for the reference rank
 
     @property
+    def rows_per_pose(self) -> int:
+        return self.measurements.rows_per_pose
+
+    @property
+    def setup_columns(self) -> np.ndarray:
+        """The measurement setup's columns, after the machine's: the gauge."""
+        return np.arange(self.n_machine, len(self.names))
+
+    default_cost_tolerance = 1e-10
+    default_step_significance = 0.01
+
+    def default_iterations(self, n_parameters: int) -> int:
+        return default_iterations(n_parameters)
+
+    def reselection_bound(self) -> int:
+        return 0  # a shortfall is refused (`check_base`), never left for a re-selection
+
+    def restart(self, state: ClosedLoopState) -> ClosedLoopState:
+        return replace(state, whitened=None)
+
+    def accumulated(self, state: ClosedLoopState) -> np.ndarray:
+        assert state.accumulated is not None, "iterates come from `assemble`"
+        return state.accumulated
+
+    def pose_blocks(self, state: ClosedLoopState) -> np.ndarray:
+        return self.pose_residuals(state) * self.noise_weights.reshape(len(self.measurements), -1)
+
+    def raw_blocks(self, state: ClosedLoopState) -> np.ndarray:
+        return self.pose_residuals(state)
+
+    def jacobian_factor(self, state: ClosedLoopState) -> np.ndarray:
+        """The triangular factor of the whitened pose rows over every column (`evaluate`, reduce=True)."""
+        return self.evaluate(state, np.arange(len(self.names)), reduce=True)[1]
+
+    def check_base(self, base: BaseParameters, factor: np.ndarray, fixed: Sequence[int]) -> None:
+        """IdentificationError when the data identify fewer parameters than the reference pose set
+        does (`_reference_base`), saying why and what would help (`_shortfall`)."""
+        reference = _reference_base(self, self.reference_marker, fixed, self.rank_tolerance)
+        if base.rank >= reference.rank:
+            return
+        missing = unexcited_parameters(factor, self.names, reference.indices, reference.rank - base.rank)
+        hold = _holding_that_identifies(self, self.reference_marker, factor, fixed, self.rank_tolerance, missing)
+        counts = (len(self.measurements), len(self.measurements) * self.rows_per_pose)
+        raise IdentificationError(_shortfall(base, reference, missing, hold, counts, self.rank_tolerance))
+
+    @property
     def weights(self) -> np.ndarray:
         """Per-row 1/sigma of the pose rows; zero on the rows of flagged outliers."""
         return self.noise_weights * np.repeat(self.active, self.measurements.rows_per_pose)
@@ -187,7 +236,7 @@ class _ClosedLoopProblem:
         start: np.ndarray | None,
         setup: MeasurementSetup = MeasurementSetup(),
         accumulated: np.ndarray | None = None,
-    ) -> _State:
+    ) -> ClosedLoopState:
         """Assemble every measured pose on `model` in one vectorised solve (`forward_batch`): each
         from its row of `start` (N, nq) and on that row's branch, or from home (None) on home's.
         The first pose that fails is named in an IdentificationError (InvalidInputError for a slider
@@ -199,13 +248,13 @@ class _ClosedLoopProblem:
             error = InvalidInputError if first.error is InvalidInputError else IdentificationError
             raise error(f"measured pose {first.index} (0-based) does not assemble: {first.reason}")
         accumulated = np.zeros(len(self.names)) if accumulated is None else accumulated
-        return _State(model, solved.q, solved.poses, setup, accumulated)
+        return ClosedLoopState(model, solved.q, solved.poses, setup, accumulated)
 
-    def measured_frames(self, state: _State) -> np.ndarray:
+    def measured_frames(self, state: ClosedLoopState) -> np.ndarray:
         """The model's prediction of every measured frame (N, 4, 4), in the measurement frame."""
         return state.setup.measured_poses(state.poses)
 
-    def pose_residuals(self, state: _State) -> np.ndarray:
+    def pose_residuals(self, state: ClosedLoopState) -> np.ndarray:
         """Unwhitened residual blocks (N, k) of every pose, outliers included (zeros where a point was not seen)."""
         if self._measured_points is not None:
             predicted = state.setup.measured_points(state.poses).reshape(len(state.poses), -1)
@@ -215,7 +264,7 @@ class _ClosedLoopProblem:
         )
         return residual
 
-    def prior_rows(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
+    def prior_rows(self, state: ClosedLoopState) -> tuple[np.ndarray, np.ndarray]:
         """The prior rows x_c / sigma_c of the fitted columns with a prior, in the columns' order, and their
         Jacobian (rows, fitted columns) [1/sigma]."""
         picked = [(i, self.priors[c]) for i, c in enumerate(self.columns) if c in self.priors]
@@ -227,14 +276,14 @@ class _ClosedLoopProblem:
             values[row] = state.accumulated[self.columns[i]] / sigma
         return values, jacobian
 
-    def residual(self, state: _State) -> np.ndarray:
+    def residual(self, state: ClosedLoopState) -> np.ndarray:
         """Whitened residual from the assembled poses alone (LM trial steps)."""
         if state.model is None:  # a trial that did not assemble: every row infinite, prior rows too
             return np.full(len(self.weights) + sum(1 for c in self.columns if c in self.priors), np.inf)
         return np.concatenate((self.pose_residuals(state).reshape(-1) * self.weights, self.prior_rows(state)[0]))
 
     def evaluate(
-        self, state: _State, columns: np.ndarray, reduce: bool = False, extra_rows: int = 0
+        self, state: ClosedLoopState, columns: np.ndarray, reduce: bool = False, extra_rows: int = 0
     ) -> tuple[np.ndarray, np.ndarray]:
         """Whitened pose residual (6N or 3N rows, times `weights`) and its whitened Jacobian over
         `columns`, each followed by `extra_rows` rows left for the caller to fill (priors).
@@ -267,7 +316,7 @@ class _ClosedLoopProblem:
         return residual, jacobian
 
     def _block_rows(
-        self, state: _State, block: slice, columns: np.ndarray, sensitivities: PlatformSensitivities
+        self, state: ClosedLoopState, block: slice, columns: np.ndarray, sensitivities: PlatformSensitivities
     ) -> tuple[np.ndarray, np.ndarray]:
         """Residual rows and Jacobian rows of the poses in `block` (measurement-frame twists)."""
         if self._measured_points is not None:
@@ -281,7 +330,7 @@ class _ClosedLoopProblem:
         return residual.reshape(-1), (rows @ twists).reshape(residual.size, -1)
 
     def _point_rows(
-        self, state: _State, block: slice, columns: np.ndarray, sensitivities: PlatformSensitivities
+        self, state: ClosedLoopState, block: slice, columns: np.ndarray, sensitivities: PlatformSensitivities
     ) -> tuple[np.ndarray, np.ndarray]:
         """`_block_rows` of P points: point k at F T_platform p_k moves by v + w x p_k under the
         platform's twist (v, w) in the measurement frame, and by R_(F T_platform) along its own offset."""
@@ -317,7 +366,7 @@ class _ClosedLoopProblem:
                 blocks.append(adjoint_matrices(measured)[:, :, c - self.marker_slot, None])
         return measured, np.concatenate(blocks, axis=2)
 
-    def residual_and_jacobian(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
+    def residual_and_jacobian(self, state: ClosedLoopState) -> tuple[np.ndarray, np.ndarray]:
         if state.model is None:  # a trial step that did not assemble: reject it
             n = len(self.residual(state))
             return np.full(n, np.inf), np.zeros((n, len(self.columns)))
@@ -329,11 +378,11 @@ class _ClosedLoopProblem:
             state.whitened = (residual, jacobian)
         return state.whitened
 
-    def release(self, state: _State) -> None:
-        """LM hook: a superseded iterate drops its Jacobian (`_release`)."""
-        _release(state)
+    def release(self, state: ClosedLoopState) -> None:
+        """LM hook: a superseded iterate drops its Jacobian; it keeps its model, setup and assembly."""
+        state.whitened = None
 
-    def retract(self, state: _State, step: np.ndarray) -> _State:
+    def retract(self, state: ClosedLoopState, step: np.ndarray) -> ClosedLoopState:
         assert state.accumulated is not None, "LM iterates come from `assemble`"
         vector = np.zeros(len(self.names))
         vector[self.columns] = step
@@ -352,7 +401,7 @@ class _ClosedLoopProblem:
         try:  # from the iterate's assembly, which the batch's chord Newton corrects in a few steps
             return self.assemble(model, state.configurations, setup, state.accumulated + vector)
         except IdentificationError:  # a pose does not assemble on the trial model: LM rejects the step
-            return _State(None, state.configurations, np.zeros((0, 4, 4)), setup, state.accumulated + vector)
+            return ClosedLoopState(None, state.configurations, np.zeros((0, 4, 4)), setup, state.accumulated + vector)
 
 
 @dataclass(frozen=True)
@@ -370,6 +419,8 @@ class ClosedLoopCalibration:
     freedom of the inliers under the stated noise (about 1 when the model explains the data);
     rms_before / rms_after: position [m] and orientation [rad] RMS of the inliers' residual at the
     start (nominal machine, registered frame) and the end (orientation nan when position-only).
+    lm: the last Levenberg-Marquardt run, iterations: LM's iterations over every run; problem,
+    start and settings: the fit's problem, registered start and LM settings (`cross_validate`).
     """
 
     mechanism: Mechanism
@@ -379,73 +430,44 @@ class ClosedLoopCalibration:
     std: dict[str, float]
     base: BaseParameters
     fitted: tuple[str, ...]
-    rms_before: tuple[float, float]
-    rms_after: tuple[float, float]
+    rms_before: PoseErrorRMS
+    rms_after: PoseErrorRMS
     variance_factor: float
     outliers: tuple[int, ...]
     covariance: np.ndarray = field(repr=False)
     lm: LMResult = field(repr=False)
+    iterations: int = 0
     selection: ParameterSelection | None = field(default=None, repr=False)
-    problem: _ClosedLoopProblem | None = field(default=None, repr=False)
-    start: _State | None = field(default=None, repr=False)
-    options: dict = field(default_factory=dict, repr=False)
+    problem: ClosedLoopProblem | None = field(default=None, repr=False)
+    start: ClosedLoopState | None = field(default=None, repr=False)
+    settings: LMSettings | None = field(default=None, repr=False)
 
     @property
     def converged(self) -> bool:
         return bool(self.lm.converged)
 
-
-def _rms(residual: np.ndarray, points_seen: int | None = None) -> tuple[float, float]:
-    """Position [m] and orientation [rad] RMS of residual blocks (N, k); with points, the position RMS
-    over the `points_seen` points (the blocks' other rows are zero) and no orientation."""
-    if points_seen is not None:
-        return float(np.sqrt(np.sum(residual**2) / max(points_seen, 1))), float("nan")
-    position = float(np.sqrt(np.mean(np.sum(residual[:, :3] ** 2, axis=1))))
-    rotation = float(np.sqrt(np.mean(np.sum(residual[:, 3:] ** 2, axis=1)))) if residual.shape[1] == 6 else float("nan")
-    return position, rotation
+    @property
+    def termination(self) -> str:
+        return self.lm.termination
 
 
 @on_one_blas_thread
 def calibrate_closed_loop(
     mechanism: Mechanism,
     measurements: PoseMeasurements,
-    noise: TrackerNoise = TrackerNoise(),
+    options: CalibrationOptions = CalibrationOptions(),
     *,
-    setup: MeasurementSetup | None = None,
-    estimate_frame: bool = False,
-    estimate_marker: bool = False,
-    outlier_sigma: float | None = OUTLIER_SIGMA,
-    select: bool = False,
-    fixed: Sequence[str] = (),
-    priors: Mapping[str, float] | None = None,
-    rank_tolerance: float = IDENTIFIABILITY_TOLERANCE,
-    max_iterations: int | None = None,
-    cost_tolerance: float = 1e-10,
-    absolute_cost_tolerance: float = 1e-6,
-    step_significance: float = 0.01,
-    refine: bool = False,
-    refine_rank_tolerance: float = 1e-7,
-    refine_iterations: int = 400,
     error_model: ClosedLoopErrorModel | None = None,
     progress: Callable[[], None] | None = None,
-    groups: np.ndarray | None = None,
 ) -> ClosedLoopCalibration:
     """Identify the placement errors of every joint and closure/platform frame (module docstring),
-    and the measurement setup where asked.
+    and the measurement setup where asked (`CalibrationOptions`: noise, setup, outliers, selection,
+    fixed parameters and priors, LM's tolerances; a closed loop takes no joint noise or compliance).
 
-    setup: the measurement frame and marker (default: identity, i.e. the platform frame measured
-    in the base frame). estimate_frame: estimate the frame, started by rigid registration of the
-    nominal model's predictions to the measurements (any rotation, metres away); estimate_marker:
-    estimate the marker (its position only with position-only data); with several points per pose
-    (`PoseMeasurements.points`) every point's offset in the platform frame is estimated instead, and
-    only the points seen count (residual rows, degrees of freedom, outlier gate). outlier_sigma: the gate for
-    outlier poses in noise sigmas (None: keep every pose). select: model selection by
-    leave-one-pose-out prediction. max_iterations: LM's cap (default `default_iterations` of the
-    base-parameter count). fixed: parameter or placement names held at nominal;
-    priors: {name: sigma} adds a Tikhonov row x / sigma toward nominal ([m] or [rad]).
-    progress: called once per Jacobian evaluation (here and in `cross_validate` of the result).
-    groups: (N,) a label per pose, repeats of one pose sharing one (`repeats.pose_groups`): model
-    selection then leaves each group out whole (`repeats.grouped_blocks`).
+    With several points per pose (`PoseMeasurements.points`) every point's offset in the platform
+    frame is estimated, and only the points seen count (residual rows, degrees of freedom, outlier
+    gate). error_model: the placements to identify (default: every one); progress: called once per
+    Jacobian evaluation (here and in `cross_validate` of the result).
 
     LM stops when an accepted step lowers the whitened cost 1/2 chi^2 by less than
     step_significance * s^2, s^2 = chi^2 / (m - p) being the a-posteriori noise variance (m rows,
@@ -453,80 +475,50 @@ def calibrate_closed_loop(
     own standard deviation (0.14 for 0.01), which the data cannot tell from noise. Being relative to
     the fit's own residual, the rule keeps noise-free data converging to rounding level. Also when
     the cost drops by less than cost_tolerance relatively or absolute_cost_tolerance absolutely.
-    refine=True (exact data only, e.g. simulation studies): after convergence, re-select the
-    base parameters at the estimate, where some of the directions unidentifiable at the nominal
-    geometry have become weakly identifiable (O(error^2) effects), and continue with damped LM.
-    Raises IdentificationError when there are fewer measurement rows than base parameters, when a
-    measured pose cannot be assembled on the starting model, or when LM ends on a model that does
-    not assemble. A fit that did not converge is returned with converged False: `m3t1r.assessment`
-    judges it.
+    Raises IdentificationError when the poses identify fewer parameters than the model can (saying
+    what would help), when a measured pose cannot be assembled on the starting model, or when LM
+    ends on a model that does not assemble. A fit that did not converge is returned with converged
+    False: `m3t1r.assessment` judges it.
     """
-    outlier_sigma = checked_outlier_sigma(outlier_sigma)
-    if max_iterations is not None:
-        max_iterations = require_count(max_iterations, "max_iterations")
+    if options.compliance or options.joint_noise:
+        raise InvalidInputError(
+            "a closed-loop fit takes no joint noise or compliance (its readings are the sliders): "
+            "they are options of a serial robot's calibration"
+        )
     error_model = error_model or ClosedLoopErrorModel(mechanism)
-    setup = setup or MeasurementSetup()
-    problem = _ClosedLoopProblem(
+    setup = options.start_setup
+    problem = ClosedLoopProblem(
         error_model,
         measurements,
-        noise,
+        options.noise,
         np.zeros(0, dtype=int),
-        estimate_frame=estimate_frame,
-        estimate_marker=estimate_marker,
+        estimate_frame=options.estimate_frame,
+        estimate_marker=options.estimate_marker,
+        rank_tolerance=options.rank_tolerance,
+        reference_marker=setup.marker,
     )
-    everything = problem.columns = np.arange(len(problem.names))
+    problem.columns = np.arange(len(problem.names))
     problem.on_evaluate = progress
-    fixed_columns = parameter_columns(problem.names, fixed, "fixed parameter")
-    problem.priors = {
-        c: sigma for name, sigma in (priors or {}).items() for c in parameter_columns(problem.names, [name], "prior")
-    }
-    if any(not (math.isfinite(s) and s > 0) for s in problem.priors.values()):
-        raise InvalidInputError("a prior's sigma must be a positive number [m or rad]")
+    problem.priors = prior_columns(problem.names, options.priors)
     try:
         start = problem.assemble(mechanism.model, None, setup=setup)
     except IdentificationError as exc:
         raise IdentificationError(f"on the starting model, {exc}") from None
     start.setup = (
-        _registered_points(problem, start, setup, estimate_frame)
+        _registered_points(problem, start, setup, options.estimate_frame)
         if problem.n_points
-        else _registered_setup(problem, start, setup, estimate_frame, estimate_marker)
+        else _registered_setup(problem, start, setup, options.estimate_frame, options.estimate_marker)
     )
-    residual, factor = problem.evaluate(start, everything, reduce=True)
-    factor[:, fixed_columns] = 0.0
-    forced = np.arange(error_model.n_parameters, len(everything))
-    base = select_base_parameters(factor, problem.names, rank_tolerance=rank_tolerance, forced=forced)
-    reference = _reference_base(problem, setup.marker, fixed_columns, rank_tolerance)
-    if base.rank < reference.rank:
-        missing = unexcited_parameters(factor, problem.names, reference.indices, reference.rank - base.rank)
-        hold = _holding_that_identifies(problem, setup.marker, factor, fixed_columns, rank_tolerance, missing)
-        raise IdentificationError(
-            _shortfall(base, reference, missing, hold, (len(measurements), len(residual)), rank_tolerance)
-        )
-    problem.columns = np.array(base.indices)
-    state = replace(start, whitened=None)
-    # Damping starts low: 1e-3 over-damps the weak directions (about twice the iterations).
-    degrees_of_freedom = max(len(residual) - base.rank, 1)
-    if max_iterations is None:
-        max_iterations = default_iterations(base.rank)
-    options = dict(
-        max_iterations=max_iterations,
-        initial_damping=1e-6,
-        absolute_cost_tolerance=absolute_cost_tolerance,
-        cost_tolerance=max(cost_tolerance, 2.0 * step_significance / degrees_of_freedom),
-    )
-    result = fit_assembled(problem, state, options)
-    if outlier_sigma is not None:
-        result = _reject_outliers(problem, state, result, outlier_sigma, options)
-    selection = None
-    if select:
-        selection, result = _select_parameters(problem, start, result, forced, options, groups)
-    if refine:
-        result = _refine(problem, result, refine_rank_tolerance, refine_iterations)
-    return replace(calibration_result(mechanism, problem, start, result, base, selection), start=start, options=options)
+    outcome = run_pipeline(problem, start, options)
+    return _calibration(mechanism, problem, outcome)
 
 
 def _registered_setup(
-    problem: _ClosedLoopProblem, start: _State, setup: MeasurementSetup, estimate_frame: bool, estimate_marker: bool
+    problem: ClosedLoopProblem,
+    start: ClosedLoopState,
+    setup: MeasurementSetup,
+    estimate_frame: bool,
+    estimate_marker: bool,
 ) -> MeasurementSetup:
     """The setup LM starts from: the frame by rigid registration of the nominal predictions
     (positions), then, with orientation data, the marker's orientation in closed form."""
@@ -548,7 +540,7 @@ _POINT_REGISTRATION_ROUNDS = 5  # alternations of frame and offsets: the start L
 
 
 def _registered_points(
-    problem: _ClosedLoopProblem, start: _State, setup: MeasurementSetup, estimate_frame: bool
+    problem: ClosedLoopProblem, start: ClosedLoopState, setup: MeasurementSetup, estimate_frame: bool
 ) -> MeasurementSetup:
     """The setup LM starts from with P points: alternately the frame by rigid registration of every
     point seen (with the current offsets, zero at first) and each point's offset as the mean of its
@@ -576,141 +568,35 @@ def _registered_points(
     )
 
 
-def fit_assembled(problem: _ClosedLoopProblem, state: _State, options: dict) -> LMResult:
-    """`levenberg_marquardt` with `options`; IdentificationError when it ends on a model that does not assemble."""
-    result = levenberg_marquardt(problem, state, **options)
-    if result.state.model is None:
-        raise IdentificationError("calibration ended on a model that does not assemble")
-    return result
-
-
-def _whitened_blocks(problem: _ClosedLoopProblem, state: _State) -> np.ndarray:
-    return problem.pose_residuals(state) * problem.noise_weights.reshape(len(problem.measurements), -1)
-
-
-def _measured_rows(problem: _ClosedLoopProblem) -> np.ndarray | None:
-    """Rows measured per pose (3 per point seen) with points, None otherwise (every row)."""
-    return problem.seen.sum(axis=1) if problem.n_points else None
-
-
-def _reject_outliers(
-    problem: _ClosedLoopProblem, start: _State, result: LMResult, sigma: float, options: dict
-) -> LMResult:
-    """Flag poses beyond `sigma`, refit without them from the start, re-judge every pose; until the
-    set is stable. Resuming from the estimate instead stalls: the outliers pull it into a curved
-    valley of the weak directions, where LM then creeps for tens of iterations."""
-    for _ in range(_MAX_OUTLIER_ROUNDS):
-        blocks, measured_rows = _whitened_blocks(problem, result.state), _measured_rows(problem)
-        flagged, _scale = (
-            outlier_poses(blocks, sigma) if measured_rows is None else outlier_poses(blocks, sigma, measured_rows)
-        )
-        if np.array_equal(~flagged, problem.active):
-            break
-        if np.count_nonzero(problem.seen[~flagged]) <= len(problem.columns):
-            raise IdentificationError(
-                f"{np.count_nonzero(flagged)} of {len(flagged)} poses are outliers: "
-                "too few poses are left to fit the model"
-            )
-        problem.active = ~flagged
-        _release(result.state)
-        result = fit_assembled(problem, replace(start, whitened=None), options)
-    return result
-
-
-def _release(state: _State) -> None:
-    """Drop the Jacobian an iterate holds for the next LM step: a superseded fit's final state keeps
-    only its model, setup and assembly."""
-    state.whitened = None
-
-
-def _select_parameters(
-    problem: _ClosedLoopProblem,
-    start: _State,
-    result: LMResult,
-    forced: np.ndarray,
-    options: dict,
-    groups: np.ndarray | None = None,
-) -> tuple[ParameterSelection, LMResult]:
-    """Forward selection by leave-one-pose-out PRESS on the fit linearised at the estimate
-    (residual at the start ~ r - J dx); a smaller set is refitted from the start. (Resuming from
-    the estimate with the dropped parameters reset saved one iteration in eight: not worth it.)"""
-    rows = problem.measurements.rows_per_pose
-    r, J = problem.residual_and_jacobian(result.state)
-    pose_rows = len(problem.weights)
-    keep = np.repeat(problem.active, rows)
-    step = result.state.accumulated[problem.columns]
-    r0 = (r[:pose_rows] - J[:pose_rows] @ step)[keep]
-    forced_positions = np.flatnonzero(np.isin(problem.columns, forced))
-    pose_jacobian = J[:pose_rows] if keep.all() else J[:pose_rows][keep]  # a copy only with outliers
-    pose_jacobian, r0, block = grouped_blocks(
-        pose_jacobian, r0, rows, None if groups is None else np.asarray(groups)[problem.active]
-    )
-    selection = forward_selection(pose_jacobian, r0, block, range(len(problem.columns)), forced_positions)
-    if len(selection.indices) == len(problem.columns):
-        return selection, result
-    problem.columns = problem.columns[list(selection.indices)]
-    _release(result.state)
-    return selection, fit_assembled(problem, replace(start, whitened=None), options)
-
-
-def _refine(problem: _ClosedLoopProblem, result: LMResult, rank_tolerance: float, iterations: int) -> LMResult:
-    everything = np.arange(len(problem.names))
-    _, factor = problem.evaluate(result.state, everything, reduce=True)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", PoorExcitationWarning)  # weak by construction
-        refined = select_base_parameters(factor, problem.names, rank_tolerance=rank_tolerance)
-    if refined.rank <= len(problem.columns):
-        return result
-    problem.columns = np.array(refined.indices)
-    state = problem.assemble(
-        result.state.model, result.state.configurations, result.state.setup, result.state.accumulated
-    )
-    return levenberg_marquardt(problem, state, max_iterations=iterations, initial_damping=1e-9, cost_tolerance=1e-14)
-
-
-def calibration_result(
-    mechanism: Mechanism,
-    problem: _ClosedLoopProblem,
-    start: _State,
-    result: LMResult,
-    base: BaseParameters,
-    selection: ParameterSelection | None,
+def _calibration(
+    mechanism: Mechanism, problem: ClosedLoopProblem, outcome: PipelineFit[ClosedLoopState]
 ) -> ClosedLoopCalibration:
-    """The calibration a fit ended on: covariance and std from its final whitened Jacobian, the variance
-    factor, the inliers' RMS before and after, the outliers and the identified model."""
-    final_residual, final_jacobian = problem.residual_and_jacobian(result.state)
-    # Covariance of the fitted parameters from the noise model: (J^T W J)^-1 with whitened J.
-    # From the SVD of J (of its triangular factor: the same singular values and right vectors, in
-    # memory independent of the pose count) rather than pinv(J^T J): squaring the condition number
-    # of a weakly excited set can make the diagonal slightly negative.
-    _, singular, vt = np.linalg.svd(triangular_factor(final_jacobian), full_matrices=False)
-    kept = singular > 1e-12 * singular[0]
-    covariance = (vt[kept].T / singular[kept] ** 2) @ vt[kept]
+    """The calibration a pipeline ended on: the identified machine and its parameters by name."""
+    state = outcome.lm.state
+    assert state.model is not None, "the pipeline ends on a model that assembles"
     std = np.zeros(len(problem.names))
-    std[problem.columns] = np.sqrt(np.sum((vt[kept] / singular[kept, None]) ** 2, axis=0))
+    std[list(outcome.columns)] = outcome.std
     error_model = problem.error_model
-    identified = _accumulated_parameters(error_model, mechanism.model, result.state.model)
-    active_rows = np.count_nonzero(problem.weights) + len(final_residual) - len(problem.weights)
-    dof = active_rows - len(problem.columns)
-    inliers = problem.active
-    # (getattr: `_calibration` reads only a few of the problem's parts; one of points has `n_points`)
-    points_seen = int(np.count_nonzero(problem.seen[inliers])) // 3 if getattr(problem, "n_points", 0) else None
+    identified = _accumulated_parameters(error_model, mechanism.model, state.model)
     return ClosedLoopCalibration(
-        mechanism=rehomed(mechanism.with_model(result.state.model)),
+        mechanism=rehomed(mechanism.with_model(state.model)),
         error_model=error_model,
-        setup=result.state.setup,
+        setup=state.setup,
         parameters=dict(zip(error_model.names, identified)),
         std=dict(zip(problem.names, std)),
-        base=base,
-        fitted=tuple(problem.names[c] for c in problem.columns),
-        rms_before=_rms(problem.pose_residuals(start)[inliers], points_seen),
-        rms_after=_rms(problem.pose_residuals(result.state)[inliers], points_seen),
-        variance_factor=float(final_residual @ final_residual / dof) if dof > 0 else float("nan"),
-        outliers=tuple(int(i) for i in np.flatnonzero(~inliers)),
-        covariance=covariance,
-        lm=result,
-        selection=selection,
+        base=outcome.base,
+        fitted=tuple(problem.names[c] for c in outcome.columns),
+        rms_before=outcome.rms_before,
+        rms_after=outcome.rms_after,
+        variance_factor=outcome.variance_factor,
+        outliers=outcome.outliers,
+        covariance=outcome.covariance,
+        lm=outcome.lm,
+        iterations=outcome.iterations,
+        selection=outcome.selection,
         problem=problem,
+        start=outcome.start,
+        settings=outcome.settings,
     )
 
 
@@ -763,7 +649,8 @@ def cross_validate(
             held = inliers[assignment == fold]
             fold_problem.active = problem.active.copy()
             fold_problem.active[held] = False
-            result = fit_assembled(fold_problem, replace(start, whitened=None), calibration.options)
+            assert calibration.settings is not None, "a calibration made by calibrate_closed_loop has its settings"
+            result = fit(fold_problem, fold_problem.restart(start), calibration.settings)
             residuals[assignment == fold] = fold_problem.pose_residuals(result.state)[held]
     else:
         r, J = problem.residual_and_jacobian(calibration.lm.state)
@@ -795,7 +682,7 @@ _REFERENCE_POSES = 40  # a well-spread pose set on which the model's identifiabl
 
 
 def structural_rank(
-    problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
+    problem: ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
 ) -> int:
     """Number of identifiable parameters of the model and setup themselves, independent of the
     user's poses (`_reference_base`)."""
@@ -803,7 +690,7 @@ def structural_rank(
 
 
 def _reference_base(
-    problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
+    problem: ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
 ) -> BaseParameters:
     """The base parameters on a fixed, seeded set of poses spread over the workspace box: what the
     model and setup can identify, whatever the user's poses. Cached (it depends on the starting
@@ -837,7 +724,7 @@ _STRUCTURAL_RANKS: dict[tuple, BaseParameters] = {}
 
 
 def _reference_selection(
-    problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
+    problem: ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
 ) -> BaseParameters:
     error_model = problem.error_model
     mechanism = error_model.mechanism
@@ -855,7 +742,7 @@ def _reference_selection(
         )
     names = problem.names
     everything = np.arange(len(names))
-    twin = _ClosedLoopProblem(
+    twin = ClosedLoopProblem(
         error_model,
         reference,
         TrackerNoise(),
@@ -879,7 +766,7 @@ _MARGINAL = 100.0
 
 
 def _holding_that_identifies(
-    problem: _ClosedLoopProblem,
+    problem: ClosedLoopProblem,
     marker: pin.SE3,
     factor: np.ndarray,
     fixed_columns: Sequence[int],
