@@ -546,15 +546,21 @@ def test_identifiable_count_on_the_reference_poses(mechanism, few_poses, monkeyp
     cache = {}
     monkeypatch.setattr(closed_loop, "_STRUCTURAL_RANKS", cache)
     error_model = ClosedLoopErrorModel(mechanism)
-    full = ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(204))
+    full = ClosedLoopProblem(error_model, few_poses, np.arange(204), CalibrationOptions(noise=NOISE))
     positions = ClosedLoopProblem(
-        error_model, measure(mechanism, few_poses.actuators, position_only=True), NOISE, np.arange(204)
+        error_model,
+        measure(mechanism, few_poses.actuators, position_only=True),
+        np.arange(204),
+        CalibrationOptions(noise=NOISE),
     )
     identity, turned = pin.SE3.Identity(), pin.SE3(pin.utils.rotate("x", 0.5), np.array([0.0, 0.0, 0.05]))
     assert closed_loop.structural_rank(full, identity, [], 1e-8) == 56
     assert closed_loop.structural_rank(full, identity, list(range(12)), 1e-8) == 52
     with_setup = ClosedLoopProblem(
-        error_model, few_poses, NOISE, np.arange(216), estimate_frame=True, estimate_marker=True
+        error_model,
+        few_poses,
+        np.arange(216),
+        CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True),
     )
     assert closed_loop.structural_rank(with_setup, turned, [], 1e-8) == 56
     assert closed_loop.structural_rank(positions, identity, [], 1e-8) == 53
@@ -619,7 +625,9 @@ def test_prior_rows_and_a_trial_that_does_not_assemble(mechanism, few_poses):
     (model None, nothing accumulated) is all infinite, prior rows included (it used to raise
     TypeError with priors)."""
     error_model = ClosedLoopErrorModel(mechanism)
-    problem = ClosedLoopProblem(error_model, few_poses, NOISE, np.array([0, 5, 7]), priors={5: 0.5, 7: 2e-3, 100: 1.0})
+    problem = ClosedLoopProblem(
+        error_model, few_poses, np.array([0, 5, 7]), CalibrationOptions(noise=NOISE), priors={5: 0.5, 7: 2e-3, 100: 1.0}
+    )
     accumulated = np.zeros(204)
     accumulated[[0, 5, 7]] = [1.0, 1e-3, -4e-3]
     values, jacobian = problem.prior_rows(
@@ -633,7 +641,7 @@ def test_prior_rows_and_a_trial_that_does_not_assemble(mechanism, few_poses):
     r, J = problem.residual_and_jacobian(failed)
     assert r.shape == (26,) and np.all(r == np.inf)
     np.testing.assert_array_equal(J, np.zeros((26, 3)))
-    plain = ClosedLoopProblem(error_model, few_poses, NOISE, np.array([0, 5, 7]))
+    plain = ClosedLoopProblem(error_model, few_poses, np.array([0, 5, 7]), CalibrationOptions(noise=NOISE))
     assert plain.residual(failed).shape == (24,)
 
 
@@ -714,7 +722,10 @@ def test_registered_setup_is_exact_on_the_nominal_machine(mechanism):
     for position_only in (False, True):
         measurements = measure(mechanism, actuators, position_only=position_only, setup=MeasurementSetup(frame, marker))
         problem = ClosedLoopProblem(
-            error_model, measurements, NOISE, np.arange(204), estimate_frame=True, estimate_marker=True
+            error_model,
+            measurements,
+            np.arange(204),
+            CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True),
         )
         start = problem.assemble(mechanism.model, None)
         both = _registered_setup(problem, start, MeasurementSetup(marker=axes_unknown), True, True)
@@ -739,7 +750,9 @@ def test_outlier_rounds_and_too_few_poses_left(mechanism):
     poses = list(exact.poses)
     poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
     measurements = PoseMeasurements(exact.actuators, tuple(poses))
-    problem = ClosedLoopProblem(ClosedLoopErrorModel(mechanism), measurements, NOISE, np.arange(18))
+    problem = ClosedLoopProblem(
+        ClosedLoopErrorModel(mechanism), measurements, np.arange(18), CalibrationOptions(noise=NOISE)
+    )
     start = problem.assemble(mechanism.model, None)
     fit = SimpleNamespace(state=start)
     with pytest.raises(IdentificationError) as error:
@@ -812,7 +825,7 @@ def test_refine_options_weights_and_an_equal_rank(mechanism, few_poses, monkeypa
     otherwise continues with damped LM (1e-9, cost tolerance 1e-14) from the iterate's model,
     assembly, setup and accumulated steps; the weak-excitation warning is silenced."""
     error_model = ClosedLoopErrorModel(mechanism)
-    problem = ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(3))
+    problem = ClosedLoopProblem(error_model, few_poses, np.arange(3), CalibrationOptions(noise=NOISE))
     problem.active = np.array([True, False, True, True])
     setup = MeasurementSetup(marker=pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.02])))
     accumulated = np.linspace(-1e-4, 1e-4, 204)
@@ -847,7 +860,9 @@ def test_refine_options_weights_and_an_equal_rank(mechanism, few_poses, monkeypa
     assert continued.whitened is None
     # Orientation weighted 1e5 below position: the re-selection warns of weak excitation, which
     # the refinement silences.
-    weak = ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=1.0), np.arange(3))
+    weak = ClosedLoopProblem(
+        error_model, few_poses, np.arange(3), CalibrationOptions(noise=TrackerNoise(position=1e-5, rotation=1.0))
+    )
     with pytest.warns(PoorExcitationWarning):
         select_base_parameters(weak.evaluate(state, np.arange(204))[1], weak.names, rank_tolerance=1e-9)
     with warnings.catch_warnings():
@@ -860,7 +875,9 @@ def test_select_parameters_scores_the_pose_rows_only(mechanism, few_poses, monke
     rows of the inliers, at r - J x."""
     error_model = ClosedLoopErrorModel(mechanism)
     columns = np.array([0, 1, 2, 6, 7, 8])
-    problem = ClosedLoopProblem(error_model, few_poses, NOISE, columns, priors={1: 1e-3, 7: 2e-3})
+    problem = ClosedLoopProblem(
+        error_model, few_poses, columns, CalibrationOptions(noise=NOISE), priors={1: 1e-3, 7: 2e-3}
+    )
     problem.active = np.array([True, True, False, True])
     accumulated = np.zeros(204)
     accumulated[columns] = [1e-5, -2e-5, 3e-5, 1e-5, 0.0, -1e-5]
@@ -889,7 +906,10 @@ def _problem_with_a_1_m_outlier(mechanism, columns: np.ndarray) -> ClosedLoopPro
     poses = list(exact.poses)
     poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
     return ClosedLoopProblem(
-        ClosedLoopErrorModel(mechanism), PoseMeasurements(exact.actuators, tuple(poses)), NOISE, columns
+        ClosedLoopErrorModel(mechanism),
+        PoseMeasurements(exact.actuators, tuple(poses)),
+        columns,
+        CalibrationOptions(noise=NOISE),
     )
 
 
@@ -990,17 +1010,19 @@ def test_identifiable_count_weights_fixed_columns_and_the_setup_gauge(mechanism,
     tolerance of 1e-5 with position 1e5 times less trusted than orientation (30 without that gauge)."""
     error_model = ClosedLoopErrorModel(mechanism)
     identity, turned = pin.SE3.Identity(), pin.SE3(pin.utils.rotate("x", 0.5), np.array([0.0, 0.0, 0.05]))
-    skewed = ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=1.0), np.arange(204))
+    skewed = ClosedLoopProblem(
+        error_model, few_poses, np.arange(204), CalibrationOptions(noise=TrackerNoise(position=1e-5, rotation=1.0))
+    )
     assert closed_loop.structural_rank(skewed, identity, [], 1e-8) == 56
-    frame = ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(210), estimate_frame=True)
+    frame = ClosedLoopProblem(
+        error_model, few_poses, np.arange(210), CalibrationOptions(noise=NOISE, estimate_frame=True)
+    )
     assert closed_loop.structural_rank(frame, identity, list(range(200)), 1e-8) == 8
     both = ClosedLoopProblem(
         error_model,
         few_poses,
-        TrackerNoise(position=1.0, rotation=1e-5),
         np.arange(216),
-        estimate_frame=True,
-        estimate_marker=True,
+        CalibrationOptions(noise=TrackerNoise(position=1.0, rotation=1e-5), estimate_frame=True, estimate_marker=True),
     )
     assert closed_loop.structural_rank(both, turned, [], 1e-5) == 29
 
@@ -1009,7 +1031,9 @@ def test_problem_layout_weights_and_measured_frames(mechanism, few_poses):
     """Names, setup slots, per-row noise weights, the measured positions and rotations, and the
     defaults (no setup columns, every pose active, no progress hook)."""
     error_model = ClosedLoopErrorModel(mechanism)
-    plain = ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=4e-5), np.arange(204))
+    plain = ClosedLoopProblem(
+        error_model, few_poses, np.arange(204), CalibrationOptions(noise=TrackerNoise(position=1e-5, rotation=4e-5))
+    )
     assert plain.names == error_model.names and plain.frame_slot is None and plain.marker_slot is None
     assert plain.n_machine == 204 and plain.priors == {} and plain.on_evaluate is None
     assert plain.active.dtype == bool and plain.active.tolist() == [True] * 4
@@ -1019,16 +1043,24 @@ def test_problem_layout_weights_and_measured_frames(mechanism, few_poses):
     np.testing.assert_array_equal(plain.measured_positions, measured[:, :3, 3])
     np.testing.assert_array_equal(plain.measured_rotations, measured[:, :3, :3])
     positions = measure(mechanism, few_poses.actuators[:1], position_only=True)
-    marker = ClosedLoopProblem(error_model, positions, NOISE, np.arange(207), estimate_marker=True)
+    marker = ClosedLoopProblem(
+        error_model, positions, np.arange(207), CalibrationOptions(noise=NOISE, estimate_marker=True)
+    )
     assert marker.names == error_model.names + ("marker.dt[0]", "marker.dt[1]", "marker.dt[2]")
     assert marker.frame_slot is None and marker.marker_slot == 204 and marker.measured_rotations is None
     np.testing.assert_array_equal(marker.noise_weights, [1 / NOISE.position] * 3)
     np.testing.assert_array_equal(marker.measured_positions, [positions.poses[0].translation])
     both = ClosedLoopProblem(
-        error_model, few_poses, NOISE, np.arange(216), estimate_frame=True, estimate_marker=True, priors={3: 0.5}
+        error_model,
+        few_poses,
+        np.arange(216),
+        CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True),
+        priors={3: 0.5},
     )
     assert both.frame_slot == 204 and both.marker_slot == 210 and len(both.names) == 216 and both.priors == {3: 0.5}
-    frame = ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(210), estimate_frame=True)
+    frame = ClosedLoopProblem(
+        error_model, few_poses, np.arange(210), CalibrationOptions(noise=NOISE, estimate_frame=True)
+    )
     assert frame.frame_slot == 204 and frame.marker_slot is None and len(frame.names) == 210
     both.active = np.array([True, False, True, True])
     np.testing.assert_array_equal(
@@ -1056,7 +1088,9 @@ class _FakeSolver:
 
 
 def test_assemble_solves_every_pose_in_one_batch_from_its_start(mechanism, few_poses, monkeypatch):
-    problem = ClosedLoopProblem(ClosedLoopErrorModel(mechanism), few_poses, NOISE, np.arange(204))
+    problem = ClosedLoopProblem(
+        ClosedLoopErrorModel(mechanism), few_poses, np.arange(204), CalibrationOptions(noise=NOISE)
+    )
     monkeypatch.setattr(closed_loop, "ClosedLoopSolver", _FakeSolver)
     _FakeSolver.calls, _FakeSolver.failures = [], ()
     starts = np.repeat(np.arange(4.0)[:, None], 20, axis=1)
@@ -1095,7 +1129,9 @@ def test_retract_moves_model_and_setup_and_assembles_from_the_iterate(mechanism,
     error_model = ClosedLoopErrorModel(mechanism)
     positions = measure(mechanism, few_poses.actuators, position_only=True)
     columns = np.array([2, 30, 204, 209, 210, 212])
-    problem = ClosedLoopProblem(error_model, positions, NOISE, columns, estimate_frame=True, estimate_marker=True)
+    problem = ClosedLoopProblem(
+        error_model, positions, columns, CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True)
+    )
     frame = pin.SE3(pin.utils.rotate("z", 0.3), np.array([0.1, 0.2, 0.3]))
     marker = pin.SE3(pin.utils.rotate("x", 0.2), np.array([0.0, 0.0, 0.05]))
     configurations = np.repeat(0.01 * np.arange(4.0)[:, None], 20, axis=1)
@@ -1117,7 +1153,7 @@ def test_retract_moves_model_and_setup_and_assembles_from_the_iterate(mechanism,
     np.testing.assert_allclose(setup.marker.homogeneous, (marker * pin.exp6(dm)).homogeneous, atol=1e-15)
     np.testing.assert_array_equal(total, accumulated + vector)
     # No setup columns: the setup is carried as is.
-    machine_only = ClosedLoopProblem(error_model, positions, NOISE, np.array([2, 30]))
+    machine_only = ClosedLoopProblem(error_model, positions, np.array([2, 30]), CalibrationOptions(noise=NOISE))
     monkeypatch.setattr(machine_only, "assemble", lambda *args: calls.append(args) or "assembled")
     calls.clear()
     machine_only.retract(dataclasses.replace(state, accumulated=np.zeros(204)), step[:2])
@@ -1141,7 +1177,9 @@ def test_evaluate_in_blocks_reduced_with_extra_rows_and_progress(mechanism, few_
     error_model = ClosedLoopErrorModel(mechanism)
     measurements = measure(mechanism, np.vstack((few_poses.actuators, few_poses.actuators[:3])))
     columns = np.array([0, 7, 33, 100, 203, 204, 209, 210, 215])
-    problem = ClosedLoopProblem(error_model, measurements, NOISE, columns, estimate_frame=True, estimate_marker=True)
+    problem = ClosedLoopProblem(
+        error_model, measurements, columns, CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True)
+    )
     problem.active = np.array([True, True, False, True, True, True, True])
     calls = []
     problem.on_evaluate = lambda: calls.append(1)
@@ -1170,10 +1208,8 @@ def test_evaluate_in_blocks_reduced_with_extra_rows_and_progress(mechanism, few_
     one = ClosedLoopProblem(
         error_model,
         measure(mechanism, few_poses.actuators[:1]),
-        NOISE,
         columns,
-        estimate_frame=True,
-        estimate_marker=True,
+        CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True),
     )
     assert one.evaluate(one.assemble(mechanism.model, None, setup=setup), columns, reduce=True)[1].shape == (6, 9)
     np.testing.assert_allclose(
@@ -1211,7 +1247,12 @@ def test_structural_rank_cache_keys_on_the_noise_ratio_and_the_data_kind(mechani
     positions = measure(mechanism, few_poses.actuators, position_only=True)
     rank = closed_loop.structural_rank
     counts = [
-        rank(ClosedLoopProblem(error_model, measurements, noise, np.arange(204)), identity, [], 1e-8)
+        rank(
+            ClosedLoopProblem(error_model, measurements, np.arange(204), CalibrationOptions(noise=noise)),
+            identity,
+            [],
+            1e-8,
+        )
         for measurements, noise in (
             (few_poses, TrackerNoise(position=1e-5, rotation=1.0)),
             (few_poses, TrackerNoise(position=1.0, rotation=1e-5)),
@@ -1230,7 +1271,9 @@ def test_jacobian_is_the_derivative_of_the_residual_along_retract(mechanism, few
     measurements = measure(mechanism, few_poses.actuators[:3], position_only=position_only)
     n_names = 204 + 6 + (3 if position_only else 6)
     columns = np.array([1, 40, 150, 203] + list(range(204, n_names)))
-    problem = ClosedLoopProblem(error_model, measurements, NOISE, columns, estimate_frame=True, estimate_marker=True)
+    problem = ClosedLoopProblem(
+        error_model, measurements, columns, CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True)
+    )
     setup = MeasurementSetup(
         pin.SE3(pin.utils.rotate("z", 0.4) @ pin.utils.rotate("x", 0.2), np.array([0.2, -0.1, 0.1])),
         pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.01, 0.02, 0.05])),

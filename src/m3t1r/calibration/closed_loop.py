@@ -29,7 +29,6 @@ import pinocchio as pin
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.error_model import ClosedLoopErrorModel, PlatformSensitivities
 from m3t1r.calibration.identification import (
-    IDENTIFIABILITY_TOLERANCE,
     BaseParameters,
     LMResult,
     ParameterSelection,
@@ -39,7 +38,7 @@ from m3t1r.calibration.identification import (
     unexcited_parameters,
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
-from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
+from m3t1r.calibration.measurements import PoseMeasurements, assembled_from_home, measure
 from m3t1r.calibration.pipeline import (
     CalibrationOptions,
     LMSettings,
@@ -125,26 +124,24 @@ class ClosedLoopState:
 
 
 class ClosedLoopProblem:
-    """Whitened measurement residuals over a set of parameter columns (the LeastSquaresProblem
-    protocol). Columns index the machine's parameters, then the setup's (`setup_parameter_names`);
-    priors add one row x_c / sigma_c per parameter c with a prior."""
+    """Whitened measurement residuals over a set of parameter columns (the pipeline's
+    `CalibrationProblem`). Columns index the machine's parameters, then the setup's
+    (`setup_parameter_names`, as `options` estimates them); priors {column: sigma} add one row
+    x_c / sigma_c per fitted column c with a prior. From `options`: the noise that whitens, what of
+    the setup is estimated, the rank tolerance and the given marker of the judgement (`check_base`)."""
 
     def __init__(
         self,
         error_model: ClosedLoopErrorModel,
         measurements: PoseMeasurements,
-        noise: TrackerNoise,
         columns: np.ndarray,
-        *,
-        estimate_frame: bool = False,
-        estimate_marker: bool = False,
+        options: CalibrationOptions = CalibrationOptions(),
         priors: Mapping[int, float] | None = None,
-        rank_tolerance: float = IDENTIFIABILITY_TOLERANCE,
-        reference_marker: pin.SE3 = pin.SE3.Identity(),
     ) -> None:
+        noise, estimate_frame, estimate_marker = options.noise, options.estimate_frame, options.estimate_marker
         self.error_model = error_model
-        self.rank_tolerance = rank_tolerance  # of the judgement `check_base` and the reference set
-        self.reference_marker = reference_marker  # the marker given, on which the reference set is measured
+        self.rank_tolerance = options.rank_tolerance
+        self.reference_marker = options.start_setup.marker  # the reference set is measured through it
         self.measurements = measurements
         self.columns = columns
         self.n_machine = error_model.n_parameters
@@ -487,16 +484,7 @@ def calibrate_closed_loop(
         )
     error_model = error_model or ClosedLoopErrorModel(mechanism)
     setup = options.start_setup
-    problem = ClosedLoopProblem(
-        error_model,
-        measurements,
-        options.noise,
-        np.zeros(0, dtype=int),
-        estimate_frame=options.estimate_frame,
-        estimate_marker=options.estimate_marker,
-        rank_tolerance=options.rank_tolerance,
-        reference_marker=setup.marker,
-    )
+    problem = ClosedLoopProblem(error_model, measurements, np.zeros(0, dtype=int), options)
     problem.columns = np.arange(len(problem.names))
     problem.on_evaluate = progress
     problem.priors = prior_columns(problem.names, options.priors)
@@ -745,10 +733,10 @@ def _reference_selection(
     twin = ClosedLoopProblem(
         error_model,
         reference,
-        TrackerNoise(),
         everything,
-        estimate_frame=problem.frame_slot is not None,
-        estimate_marker=problem.marker_slot is not None,
+        CalibrationOptions(
+            estimate_frame=problem.frame_slot is not None, estimate_marker=problem.marker_slot is not None
+        ),
     )
     twin.noise_weights = np.tile(problem.row_weights, len(reference))
     state = twin.assemble(mechanism.model, None, setup=MeasurementSetup(marker=marker, points=offsets))
