@@ -138,9 +138,9 @@ def test_serial_blocks_selection_beats_random() -> None:
 
 def test_closed_loop_blocks_match_the_calibration_jacobian(mechanism) -> None:
     from m3t1r.calibration.closed_loop import ClosedLoopProblem
-    from m3t1r.calibration.pipeline import CalibrationOptions
     from m3t1r.calibration.error_model import ClosedLoopErrorModel
     from m3t1r.calibration.measurements import TrackerNoise, measure
+    from m3t1r.calibration.pipeline import CalibrationOptions
     from m3t1r.model.workspace import workspace_actuators
 
     actuators = workspace_actuators(mechanism, 40, np.random.default_rng(14))

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import copy
 import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -140,6 +140,7 @@ class ClosedLoopProblem:
     ) -> None:
         noise, estimate_frame, estimate_marker = options.noise, options.estimate_frame, options.estimate_marker
         self.error_model = error_model
+        self.stream = options.stream_jacobian  # LM on the compressed rows (`streamed`), or on every row
         self.rank_tolerance = options.rank_tolerance
         self.reference_marker = options.start_setup.marker  # the reference set is measured through it
         self.measurements = measurements
@@ -291,25 +292,63 @@ class ClosedLoopProblem:
         column norms, at most `len(columns)` rows; no extra rows): enough to choose base
         parameters, in memory independent of the pose count.
         """
+        n, k = len(state.configurations), self.measurements.rows_per_pose
+        residual = np.empty(n * k + extra_rows)
+        jacobian = np.zeros((0, len(columns))) if reduce else np.empty((n * k + extra_rows, len(columns)))
+        for block, block_residual, block_jacobian in self.whitened_blocks(state, columns):
+            rows = slice(k * block.start, k * block.stop)
+            residual[rows] = block_residual
+            if reduce:
+                jacobian = triangular_factor(block_jacobian, previous=jacobian)
+            else:
+                jacobian[rows] = block_jacobian
+        return residual, jacobian
+
+    def whitened_blocks(
+        self, state: ClosedLoopState, columns: np.ndarray
+    ) -> Iterator[tuple[slice, np.ndarray, np.ndarray]]:
+        """The poses in blocks of `_BLOCK`: (the block's poses, their whitened residual rows, their
+        whitened Jacobian rows over `columns`), flagged poses' rows zero. One Jacobian evaluation
+        (`on_evaluate` is called once); the error model's stacks exist for one block at a time."""
         if self.on_evaluate is not None:
             self.on_evaluate()
         solver = ClosedLoopSolver(self.error_model.mechanism.with_model(state.model))
         machine = columns[columns < self.n_machine]
         n, k = len(state.configurations), self.measurements.rows_per_pose
         weights = self.weights
-        residual = np.empty(n * k + extra_rows)
-        jacobian = np.zeros((0, len(columns))) if reduce else np.empty((n * k + extra_rows, len(columns)))
         for start in range(0, n, _BLOCK):
             block = slice(start, min(start + _BLOCK, n))
             sensitivities = self.error_model.platform_sensitivities(solver, state.configurations[block], machine)
             rows = slice(k * block.start, k * block.stop)
             block_residual, block_jacobian = self._block_rows(state, block, columns, sensitivities)
-            residual[rows] = block_residual * weights[rows]
             block_jacobian *= weights[rows, None]
-            if reduce:
-                jacobian = triangular_factor(block_jacobian, previous=jacobian)
-            else:
-                jacobian[rows] = block_jacobian
+            yield block, block_residual * weights[rows], block_jacobian
+
+    def streamed(self, state: ClosedLoopState) -> tuple[np.ndarray, np.ndarray]:
+        """The fit's least-squares problem compressed: z = [Q^T r; rho] and [R; 0] from the QR of the
+        whitened pose rows [J r] accumulated block by block (`triangular_factor`), then the prior
+        rows. |z|^2 = |r|^2, R^T z = J^T r and R^T R = J^T J, so Levenberg-Marquardt takes the same
+        steps on them as on (r, J), in memory bounded by the parameters, not the poses."""
+        p = len(self.columns)
+        factor = np.zeros((0, p + 1))
+        for _, block_residual, block_jacobian in self.whitened_blocks(state, self.columns):
+            factor = triangular_factor(block_jacobian, block_residual, previous=factor)
+        prior_values, prior_jacobian = self.prior_rows(state)
+        return np.concatenate((factor[:, p], prior_values)), np.vstack((factor[:, :p], prior_jacobian))
+
+    def pose_rows(self, state: ClosedLoopState) -> tuple[np.ndarray, np.ndarray]:
+        """The inlier poses' whitened residual rows and Jacobian rows over `columns` (a new
+        column-major array the caller may overwrite: the selection projects it in place)."""
+        k = self.rows_per_pose
+        keep = np.repeat(self.active, k)
+        residual = np.empty(np.count_nonzero(keep))
+        jacobian = np.empty((len(residual), len(self.columns)), order="F")
+        at = 0
+        for block, block_residual, block_jacobian in self.whitened_blocks(state, self.columns):
+            kept = keep[k * block.start : k * block.stop]
+            size = np.count_nonzero(kept)
+            residual[at : at + size], jacobian[at : at + size] = block_residual[kept], block_jacobian[kept]
+            at += size
         return residual, jacobian
 
     def _block_rows(
@@ -364,9 +403,15 @@ class ClosedLoopProblem:
         return measured, np.concatenate(blocks, axis=2)
 
     def residual_and_jacobian(self, state: ClosedLoopState) -> tuple[np.ndarray, np.ndarray]:
+        """The whitened residual and Jacobian over `columns`: every row (pose rows, then priors), or
+        with `stream` their compressed form (`streamed`), which has the same cost, gradient and
+        normal equations in p + 1 rows (and the priors')."""
         if state.model is None:  # a trial step that did not assemble: reject it
-            n = len(self.residual(state))
+            priors = sum(1 for c in self.columns if c in self.priors)
+            n = len(self.columns) + 1 + priors if self.stream else len(self.residual(state))
             return np.full(n, np.inf), np.zeros((n, len(self.columns)))
+        if state.whitened is None and self.stream:
+            state.whitened = self.streamed(state)
         if state.whitened is None:
             prior_values, prior_jacobian = self.prior_rows(state)
             residual, jacobian = self.evaluate(state, self.columns, extra_rows=len(prior_values))
@@ -641,14 +686,9 @@ def cross_validate(
             result = fit(fold_problem, fold_problem.restart(start), calibration.settings)
             residuals[assignment == fold] = fold_problem.pose_residuals(result.state)[held]
     else:
-        r, J = problem.residual_and_jacobian(calibration.lm.state)
-        information, gradient = J.T @ J, J.T @ r
-        for fold in range(folds):
-            rows = (k * inliers[assignment == fold, None] + np.arange(k)).reshape(-1)
-            step = -np.linalg.lstsq(information - J[rows].T @ J[rows], gradient - J[rows].T @ r[rows], rcond=None)[0]
-            weights = problem.weights[rows]
-            predicted = np.divide(r[rows] + J[rows] @ step, weights, out=np.zeros(len(rows)), where=weights != 0)
-            residuals[assignment == fold] = predicted.reshape(-1, k)
+        fold_of = np.full(len(problem.active), -1)
+        fold_of[inliers] = assignment
+        residuals[:] = _fold_predictions(problem, calibration.lm.state, fold_of, folds)[inliers]
     if problem.n_points:  # one error per point seen
         position = np.linalg.norm(residuals.reshape(len(inliers), -1, 3), axis=2)[problem.seen[inliers][:, ::3]]
         return CrossValidation(
@@ -657,6 +697,41 @@ def cross_validate(
     position = np.linalg.norm(residuals[:, :3], axis=1)
     rotation = np.linalg.norm(residuals[:, 3:], axis=1) if k == 6 else np.full(len(inliers), np.nan)
     return CrossValidation(PoseErrors(position, rotation), folds, len(np.unique(labels[inliers])))
+
+
+def _fold_predictions(
+    problem: ClosedLoopProblem, state: ClosedLoopState, fold_of: np.ndarray, folds: int
+) -> np.ndarray:
+    """Unwhitened residual blocks (N, k) each fold's Gauss-Newton refit predicts for its poses
+    (`cross_validate`; zero rows for the poses of no fold, fold -1), in two passes over the pose
+    blocks: the folds' normal equations J_F^T J_F and J_F^T r_F, then the predictions r_F + J_F dx_F
+    of their own rows. Memory is bounded by the parameters (and the folds), not the poses."""
+    r, J = problem.residual_and_jacobian(state)  # compressed or not: the same normal equations
+    information, gradient = J.T @ J, J.T @ r
+    k, p = problem.rows_per_pose, len(problem.columns)
+    fold_information, fold_gradient = np.zeros((folds, p, p)), np.zeros((folds, p))
+    for block, block_residual, block_jacobian in problem.whitened_blocks(state, problem.columns):
+        row_folds = np.repeat(fold_of[block], k)
+        for fold in np.unique(row_folds[row_folds >= 0]):
+            rows = row_folds == fold
+            fold_information[fold] += block_jacobian[rows].T @ block_jacobian[rows]
+            fold_gradient[fold] += block_jacobian[rows].T @ block_residual[rows]
+    steps = np.array(
+        [
+            -np.linalg.lstsq(information - fold_information[f], gradient - fold_gradient[f], rcond=None)[0]
+            for f in range(folds)
+        ]
+    )
+    predicted = np.zeros((len(fold_of), k))
+    weights = problem.weights.reshape(-1, k)
+    for block, block_residual, block_jacobian in problem.whitened_blocks(state, problem.columns):
+        poses = np.arange(block.start, block.stop)[fold_of[block] >= 0]
+        local = poses - block.start
+        rows = block_residual.reshape(-1, k)[local] + np.einsum(
+            "nkp,np->nk", block_jacobian.reshape(-1, k, p)[local], steps[fold_of[poses]]
+        )
+        predicted[poses] = np.divide(rows, weights[poses], out=np.zeros_like(rows), where=weights[poses] != 0)
+    return predicted
 
 
 def default_iterations(n_parameters: int) -> int:

@@ -105,6 +105,11 @@ class CalibrationOptions:
     joint_noise: a serial robot's joint-reading standard deviation [rad or m], propagated into the
         whitening (0: exact readings); compliance: fit a serial joint's compliance under gravity.
         A closed-loop fit takes neither (its readings are the sliders, its passive joints solved).
+    stream_jacobian: a closed-loop fit accumulates Levenberg-Marquardt's least-squares problem
+        pose block by pose block (the QR of [J r], `ClosedLoopProblem.streamed`), so that its
+        memory is bounded by the parameters, not the poses; False holds the whole whitened
+        Jacobian instead (the same fit to rounding: the reference the streamed one is checked
+        against). A serial fit holds its Jacobian either way.
     """
 
     noise: TrackerNoise = TrackerNoise()
@@ -126,6 +131,7 @@ class CalibrationOptions:
     refine_iterations: int = 400
     joint_noise: float = 0.0
     compliance: bool = False
+    stream_jacobian: bool = True
 
     def __post_init__(self) -> None:
         # Checked once here, so that every fit refuses the same bad settings with the same message.
@@ -241,6 +247,11 @@ class CalibrationProblem(Protocol[State]):
 
     def raw_blocks(self, state: State) -> np.ndarray:
         """Unwhitened residual blocks (N, rows_per_pose) of every pose [m, rad]."""
+        ...
+
+    def pose_rows(self, state: State) -> tuple[np.ndarray, np.ndarray]:
+        """The inlier poses' whitened residual rows and their Jacobian over `columns`, a new
+        column-major array the caller may overwrite (the selection projects it in place)."""
         ...
 
     def jacobian_factor(self, state: State) -> np.ndarray:
@@ -390,16 +401,14 @@ def select_parameters(
     a smaller set is refitted from the start. Returns the record, the fit and the refit's
     iterations. groups: (N,) labels whose poses are left out together (`repeats.grouped_blocks`)."""
     rows = problem.rows_per_pose
-    r, J = problem.residual_and_jacobian(result.state)
-    pose_rows = len(problem.active) * rows
-    keep = np.repeat(problem.active, rows)
-    step = problem.accumulated(result.state)[problem.columns]
-    r0 = (r[:pose_rows] - J[:pose_rows] @ step)[keep]
+    r, J = problem.pose_rows(result.state)
+    r0 = r - J @ problem.accumulated(result.state)[problem.columns]
     forced = np.flatnonzero(np.isin(problem.columns, problem.setup_columns))
-    pose_jacobian = J[:pose_rows] if keep.all() else J[:pose_rows][keep]  # a copy only with outliers
     labels = None if groups is None else np.asarray(groups)[problem.active]
-    pose_jacobian, r0, block = grouped_blocks(pose_jacobian, r0, rows, labels)
-    selection = forward_selection(pose_jacobian, r0, block, range(len(problem.columns)), forced)
+    J, r0, block = grouped_blocks(J, r0, rows, labels)
+    # The only Jacobian of every pose the pipeline holds: projected in place, never copied.
+    selection = forward_selection(J, r0, block, range(len(problem.columns)), forced, overwrite=True)
+    del J
     if len(selection.indices) == len(problem.columns):
         return selection, result, 0
     problem.columns = problem.columns[list(selection.indices)]

@@ -459,6 +459,11 @@ class SerialProblem:
     def raw_blocks(self, state: SerialState) -> np.ndarray:
         return self._residual.raw_residual(state)
 
+    def pose_rows(self, state: SerialState) -> tuple[np.ndarray, np.ndarray]:
+        r, J = self._residual.residual_and_jacobian(state)
+        keep = np.repeat(self.active, self.rows_per_pose)
+        return r[keep], np.asfortranarray(J[keep][:, self.columns])
+
     def jacobian_factor(self, state: SerialState) -> np.ndarray:
         """The whitened Jacobian of every pose row over every column (a copy)."""
         return self._residual.residual_and_jacobian(state)[1].copy()
