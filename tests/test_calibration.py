@@ -677,7 +677,7 @@ def test_the_streamed_fit_is_the_in_memory_fit(mechanism):
     }
     streamed, in_memory = fits[True], fits[False]
     assert len(streamed.problem.residual_and_jacobian(streamed.lm.state)[0]) <= len(streamed.fitted) + 2
-    assert len(in_memory.problem.residual_and_jacobian(in_memory.lm.state)[0]) > 600 * 6
+    assert len(in_memory.problem.residual_and_jacobian(in_memory.lm.state)[0]) >= 600 * 6  # every pose row
     assert streamed.base.indices == in_memory.base.indices and streamed.fitted == in_memory.fitted
     assert streamed.outliers == in_memory.outliers == tuple(study.outliers)
     assert streamed.lm.iterations == in_memory.lm.iterations and streamed.converged and in_memory.converged
