@@ -28,6 +28,7 @@ from m3t1r._threads import single_blas_thread  # noqa: E402
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, cross_validate  # noqa: E402
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise, measure
+from m3t1r.calibration.pipeline import CalibrationOptions  # noqa: E402
 from m3t1r.calibration.simulation import simulate_study  # noqa: E402
 from m3t1r.errors import PoorExcitationWarning  # noqa: E402
 from m3t1r.metrics import pose_errors_between  # noqa: E402
@@ -50,10 +51,14 @@ def _variants(nominal, study, given):
     base = dict(setup=MeasurementSetup(marker=given), estimate_frame=True, estimate_marker=True)
     return {
         "plain least squares": lambda: calibrate_closed_loop(
-            nominal, study.measurements, NOISE, outlier_sigma=None, **base
+            nominal, study.measurements, CalibrationOptions(NOISE, outlier_sigma=None, **base)
         ),
-        "outlier gate (5 sigma)": lambda: calibrate_closed_loop(nominal, study.measurements, NOISE, **base),
-        "gate + LOO selection": lambda: calibrate_closed_loop(nominal, study.measurements, NOISE, select=True, **base),
+        "outlier gate (5 sigma)": lambda: calibrate_closed_loop(
+            nominal, study.measurements, CalibrationOptions(NOISE, **base)
+        ),
+        "gate + LOO selection": lambda: calibrate_closed_loop(
+            nominal, study.measurements, CalibrationOptions(NOISE, select=True, **base)
+        ),
     }
 
 

@@ -12,6 +12,7 @@ import time
 
 from m3t1r._threads import single_blas_thread
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.model.description import Mechanism
 
@@ -29,7 +30,7 @@ def main() -> None:
             for label, refine in (("base parameters (default)", False), ("refined at the estimate", True)):
                 start = time.perf_counter()
                 calibration = calibrate_closed_loop(
-                    nominal, study.measurements, refine=refine, refine_iterations=args.iterations
+                    nominal, study.measurements, CalibrationOptions(refine=refine, refine_iterations=args.iterations)
                 )
                 seconds = time.perf_counter() - start
                 errors = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)

@@ -33,6 +33,7 @@ from _common import fmt_time, header, interleaved_times, median, table  # noqa: 
 
 from m3t1r._threads import single_blas_thread  # noqa: E402
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.serial import calibrate_serial  # noqa: E402
 from m3t1r.calibration.serial_evaluation import pose_errors
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
@@ -123,7 +124,9 @@ def main(argv: list[str] | None = None) -> int:
                     noise=NOISE,
                 )
                 held_out = sample_configurations(model, chain, N_HELD_OUT, rng)
-                ours = calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=NOISE)
+                ours = calibrate_serial(
+                    model, chain, data.q_readings, data.measured_poses, CalibrationOptions(noise=NOISE)
+                )
                 baseline = FiniteDifferenceCalibration(
                     model, chain, data.q_readings, data.measured_poses, ours.base.indices, NOISE
                 )
@@ -131,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
                 times = interleaved_times(
                     {
                         "ours": lambda: calibrate_serial(
-                            model, chain, data.q_readings, data.measured_poses, noise=NOISE
+                            model, chain, data.q_readings, data.measured_poses, CalibrationOptions(noise=NOISE)
                         ),
                         "fd": baseline.solve,
                     },

@@ -1,4 +1,4 @@
-"""Peak memory and time of `m3t1r calibrate` by pose count (issue 12, item 3).
+"""Peak memory and time of `m3t1r calibrate` by pose count (issues 12 and 26).
 
 For each size N: `m3t1r simulate -n N` writes noisy measurements of a simulated machine, then
 `m3t1r calibrate` runs on them with the command's defaults (outliers gated, model selection,
@@ -8,9 +8,16 @@ in the same run, is a child that only imports the package and loads the model: w
 needs before any data. Reported per size: peak, peak above the baseline, that per pose, and time
 per pose (constant when time is linear in the pose count).
 
-Goals (issue 12): at most 1 GiB at 20,000 poses and 1.5 GiB at 100,000.
+Then the check that bounding the memory changed no result: on `--compare` simulated poses (5,000)
+the fit with Levenberg-Marquardt's least squares accumulated pose block by pose block (the default,
+`CalibrationOptions.stream_jacobian`) against the fit holding the whole Jacobian, same options as
+the command's (outlier gate, model selection): the largest platform pose difference of the two
+calibrated machines at 200 held-out slider sets.
 
-Run: python benchmarks/bench_memory.py [--sizes 5000 20000 100000] [--quick]
+Goals (issue 26): at most 1 GiB and 5 minutes at 100,000 poses on one process; the same calibrated
+model as the in-memory fit to 1e-9 m on 5,000 poses.
+
+Run: python benchmarks/bench_memory.py [--sizes 5000 20000 100000] [--compare 5000] [--quick]
 """
 
 from __future__ import annotations
@@ -62,6 +69,7 @@ def _measure(argv: list[str]) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[5000, 20000, 100000])
+    parser.add_argument("--compare", type=int, default=5000, help="poses of the streamed / in-memory check (0: none)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
     parser.add_argument("--child", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -90,8 +98,41 @@ def main(argv: list[str] | None = None) -> int:
             )
     print(table(["run", "peak RSS", "above the baseline", "per pose", "wall time", "time per pose"], rows))
     print()
-    print("Goals: peak at most 1 GiB at 20,000 poses and 1.5 GiB at 100,000 (issue 12).")
+    compare = 60 if args.quick else args.compare
+    if compare:
+        print(_streamed_against_in_memory(compare))
+        print()
+    print("Goals (issue 26): at most 1 GiB and 5 min at 100,000 poses; streamed = in-memory to 1e-9 m at 5,000.")
     return 0
+
+
+def _streamed_against_in_memory(n: int) -> str:
+    """The largest pose difference [m, rad] of the streamed and the in-memory fit of n simulated poses."""
+    import dataclasses
+
+    from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors
+    from m3t1r.calibration.measurements import TrackerNoise
+    from m3t1r.calibration.pipeline import CalibrationOptions
+    from m3t1r.calibration.simulation import simulate_study
+    from m3t1r.model.description import Mechanism
+
+    nominal = Mechanism.load()
+    study = simulate_study(nominal, n_poses=n, n_holdout=200, seed=26, noise=TrackerNoise(), outliers=3)
+    options = CalibrationOptions(noise=TrackerNoise(), select=True)
+    timed = {}
+    for stream in (True, False):
+        start = time.perf_counter()
+        fit = calibrate_closed_loop(nominal, study.measurements, dataclasses.replace(options, stream_jacobian=stream))
+        timed[stream] = (fit, time.perf_counter() - start)
+    (streamed, t_streamed), (in_memory, t_in_memory) = timed[True], timed[False]
+    between = pose_errors(streamed.mechanism, in_memory.mechanism, study.holdout_actuators)
+    same = streamed.fitted == in_memory.fitted and streamed.outliers == in_memory.outliers
+    return (
+        f"{n:,} poses, streamed ({fmt_time(t_streamed)}) against in-memory ({fmt_time(t_in_memory)}) fit: "
+        f"calibrated machines within {between.position_max:.1e} m, {between.rotation_max:.1e} rad; "
+        f"{'the same' if same else 'DIFFERENT'} fitted parameters ({len(streamed.fitted)}) and outliers "
+        f"{streamed.outliers}"
+    )
 
 
 if __name__ == "__main__":

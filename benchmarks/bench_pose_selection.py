@@ -28,6 +28,7 @@ from m3t1r._threads import single_blas_thread  # noqa: E402
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors  # noqa: E402
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.measurements import TrackerNoise, measure
+from m3t1r.calibration.pipeline import CalibrationOptions  # noqa: E402
 from m3t1r.calibration.pose_selection import (
     closed_loop_candidate_blocks,
     information_log_det,
@@ -49,7 +50,7 @@ def held_out_error(
     None when the set cannot identify the base parameters."""
     measurements = measure(truth, actuators, rng, NOISE)
     try:
-        calibration = calibrate_closed_loop(nominal, measurements, NOISE)
+        calibration = calibrate_closed_loop(nominal, measurements, CalibrationOptions(noise=NOISE))
     except IdentificationError:
         return None
     errors = pose_errors(calibration.mechanism, truth, holdout)

@@ -39,6 +39,7 @@ from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors  # 
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.identification import RecursiveLeastSquares, batch_least_squares  # noqa: E402
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
+from m3t1r.calibration.pipeline import CalibrationOptions  # noqa: E402
 from m3t1r.calibration.simulation import simulate_study  # noqa: E402
 from m3t1r.errors import KinematicsError  # noqa: E402
 from m3t1r.model.description import Mechanism  # noqa: E402
@@ -122,7 +123,7 @@ def closed_loop_section(
     rows, fd_rows, timings = [], [], {}
     for n in sizes:
         study = simulate_study(nominal, n_poses=n, n_holdout=100, seed=7 + n, noise=NOISE)
-        run = lambda: calibrate_closed_loop(nominal, study.measurements, NOISE)  # noqa: E731
+        run = lambda: calibrate_closed_loop(nominal, study.measurements, CalibrationOptions(noise=NOISE))  # noqa: E731
         runs: dict = {"ours": run}
         if n in fd_sizes:
             # The baseline estimates our base set: the rank analysis is given to it for free.
@@ -263,7 +264,9 @@ def serial_section(sizes: list[int], fd_sizes: list[int], repeats: int, memory: 
     rows = []
     for n in sizes:
         data = simulate_serial_measurements(model, chain, n, np.random.default_rng(n), noise=SERIAL_NOISE)
-        run = lambda: calibrate_serial(model, chain, data.q_readings, data.measured_poses, noise=SERIAL_NOISE)  # noqa: E731
+        run = lambda: calibrate_serial(
+            model, chain, data.q_readings, data.measured_poses, CalibrationOptions(noise=SERIAL_NOISE)
+        )  # noqa: E731
         runs = {"ours": run}
         if n in fd_sizes:
             runs["fd"] = FiniteDifferenceCalibration(

@@ -26,6 +26,7 @@ from _common import header, table  # noqa: E402
 from m3t1r._threads import single_blas_thread  # noqa: E402
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std  # noqa: E402
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.pipeline import CalibrationOptions  # noqa: E402
 from m3t1r.calibration.simulation import simulate_study  # noqa: E402
 from m3t1r.model.description import Mechanism  # noqa: E402
 from m3t1r.model.design import NOMINAL  # noqa: E402
@@ -99,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         grid, xs, ys = grid_actuators(nominal, *args.grid)
         for t in range(args.truths):
             study = simulate_study(nominal, n_poses=args.poses, n_holdout=args.holdout, seed=900 + t, noise=NOISE)
-            calibration = calibrate_closed_loop(nominal, study.measurements, NOISE)
+            calibration = calibrate_closed_loop(nominal, study.measurements, CalibrationOptions(noise=NOISE))
             predicted = predicted_pose_std(calibration, study.holdout_actuators)
             actual = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
             p_rms = math.sqrt(np.mean(predicted.position**2))

@@ -54,6 +54,7 @@ from m3t1r.app.static_page import write_static_html
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.compensation import compensate, compensation_accuracy, workspace_targets
 from m3t1r.errors import PoorExcitationWarning
@@ -130,7 +131,7 @@ assert (error_model.n_parameters, kinds["joint"], kinds["frame"]) == (204, 20, 1
 
 # %%
 t0 = time.perf_counter()
-cal = calibrate_closed_loop(mech, measurements, noise)
+cal = calibrate_closed_loop(mech, measurements, CalibrationOptions(noise=noise))
 seconds = time.perf_counter() - t0
 shrink = math.sqrt(1 - cal.base.rank / (6 * len(measurements)))
 print(
@@ -230,7 +231,7 @@ for n in (20, 30, 40, N_POSES):
     subset = PoseMeasurements(measurements.actuators[:n], measurements.poses[:n])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PoorExcitationWarning)
-        fitted = cal if n == N_POSES else calibrate_closed_loop(mech, subset, noise)
+        fitted = cal if n == N_POSES else calibrate_closed_loop(mech, subset, CalibrationOptions(noise=noise))
     e = pose_errors(fitted.mechanism, study.truth, held[:50])
     std = predicted_pose_std(fitted, held[:50])
     flagged = any(issubclass(w.category, PoorExcitationWarning) for w in caught)

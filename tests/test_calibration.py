@@ -10,16 +10,12 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from m3t1r.calibration import closed_loop
+from m3t1r.calibration import closed_loop, pipeline
 from m3t1r.calibration.closed_loop import (
-    _ClosedLoopProblem,
-    _refine,
+    ClosedLoopProblem,
+    ClosedLoopState,
     _registered_setup,
-    _reject_outliers,
     _residual_rows_batch,
-    _rms,
-    _select_parameters,
-    _State,
     calibrate_closed_loop,
     cross_validate,
     default_iterations,
@@ -32,6 +28,7 @@ from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.identification import forward_selection, select_base_parameters
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
+from m3t1r.calibration.pipeline import CalibrationOptions, LMSettings, pose_error_rms
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors, simulate_study
 from m3t1r.errors import BranchChangeError, IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.metrics import pose_errors_between
@@ -146,7 +143,7 @@ def test_noise_free_0_1mm_machine_is_recovered_to_nanometres(mechanism):
 def test_noisy_calibration_sits_at_the_predicted_floor(mechanism):
     noise = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
     study = simulate_study(mechanism, n_poses=50, n_holdout=200, seed=13, noise=noise)
-    calibration = calibrate_closed_loop(mechanism, study.measurements, noise)
+    calibration = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=noise))
     before = pose_errors(study.nominal, study.truth, study.holdout_actuators)
     after = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
     predicted = predicted_pose_std(calibration, study.holdout_actuators)
@@ -174,7 +171,9 @@ def test_predicted_measurement_std_is_the_tracker_frame_error_of_a_frame_estimat
     noise = TrackerNoise(10e-6, 20e-6)
     measured = measure(truth, workspace_actuators(mechanism, 60, rng), rng, noise, setup=setup)
     calibration = calibrate_closed_loop(
-        mechanism, measured, noise, setup=MeasurementSetup(marker=setup.marker), estimate_frame=True
+        mechanism,
+        measured,
+        CalibrationOptions(noise=noise, setup=MeasurementSetup(marker=setup.marker), estimate_frame=True),
     )
     held_out = workspace_actuators(mechanism, 300, np.random.default_rng(101))
     actual = pose_errors_between(
@@ -192,7 +191,7 @@ def test_predicted_measurement_std_without_a_setup_is_the_platform_std(mechanism
     """No frame, no marker: the measured frame is the platform in the base, so both predictions agree."""
     noise = TrackerNoise(position=10e-6, rotation=20e-6)
     study = simulate_study(mechanism, n_poses=40, n_holdout=20, seed=3, noise=noise)
-    calibration = calibrate_closed_loop(mechanism, study.measurements, noise)
+    calibration = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=noise))
     measured = predicted_measurement_std(calibration, study.holdout_actuators)
     platform = predicted_pose_std(calibration, study.holdout_actuators)
     np.testing.assert_allclose(measured.position, platform.position, rtol=1e-10)
@@ -204,7 +203,7 @@ def test_predicted_measurement_std_without_a_setup_is_the_platform_std(mechanism
 def test_position_only_measurements(mechanism):
     noise = TrackerNoise(position=10e-6, rotation=20e-6)
     study = simulate_study(mechanism, n_poses=60, n_holdout=100, seed=14, noise=noise, position_only=True)
-    calibration = calibrate_closed_loop(mechanism, study.measurements, noise)
+    calibration = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=noise))
     after = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
     predicted = predicted_pose_std(calibration, study.holdout_actuators)
     assert np.sqrt(np.mean(after.position**2)) <= 1.5 * np.sqrt(np.mean(predicted.position**2))
@@ -252,7 +251,7 @@ def test_a_motor_that_never_moves_is_named_and_the_advice_works(files, leg, tmp_
     assert held and all(name.split(".dt[")[0] in leg for name in held), held
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        calibration = calibrate_closed_loop(machine, measurements, fixed=held)
+        calibration = calibrate_closed_loop(machine, measurements, CalibrationOptions(fixed=held))
     assert calibration.converged and not set(held) & set(calibration.base.names)
 
 
@@ -263,7 +262,7 @@ def test_barely_identifiable_directions_are_not_answered_with_more_poses(mechani
     sliders = workspace_actuators(mechanism, 40, np.random.default_rng(1))
     measurements = measure(mechanism, sliders, position_only=True)
     with pytest.raises(IdentificationError) as refusal:
-        calibrate_closed_loop(mechanism, measurements, rank_tolerance=1e-4, outlier_sigma=None)
+        calibrate_closed_loop(mechanism, measurements, CalibrationOptions(rank_tolerance=1e-4, outlier_sigma=None))
     message = str(refusal.value)
     assert message.startswith("40 poses give 120 residual rows for 53 identifiable parameters and identify only ")
     assert "barely identifiable on any poses" in message and "more poses are unlikely to help" in message
@@ -272,7 +271,7 @@ def test_barely_identifiable_directions_are_not_answered_with_more_poses(mechani
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         calibration = calibrate_closed_loop(
-            mechanism, measurements, fixed=held, rank_tolerance=1e-4, outlier_sigma=None
+            mechanism, measurements, CalibrationOptions(fixed=held, rank_tolerance=1e-4, outlier_sigma=None)
         )
     assert calibration.converged and not set(held) & set(calibration.base.names)
 
@@ -321,7 +320,7 @@ def test_calibration_options_are_checked_at_the_call(mechanism, options, message
     """A negative or NaN gate silently disabled outlier rejection; fixed="q12" was read letter by letter."""
     study = simulate_study(mechanism, n_poses=12, n_holdout=0, seed=16)
     with pytest.raises(InvalidInputError, match=message):
-        calibrate_closed_loop(mechanism, study.measurements, **options)
+        calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(**options))
 
 
 def test_complex_readings_and_seeds_below_zero_are_refused(mechanism):
@@ -347,7 +346,7 @@ NOISE = TrackerNoise(position=10e-6, rotation=20e-6, actuator=1e-6)
 @pytest.fixture(scope="module")
 def noisy(mechanism):
     study = simulate_study(mechanism, n_poses=50, n_holdout=100, seed=13, noise=NOISE)
-    return study, calibrate_closed_loop(mechanism, study.measurements, NOISE)
+    return study, calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=NOISE))
 
 
 def _fitted_names(calibration) -> tuple[str, ...]:
@@ -417,7 +416,9 @@ def test_predicted_std_of_a_fit_with_its_own_placements(noisy):
     joints_only = ClosedLoopErrorModel(
         mechanism, tuple(Placement.joint(mechanism.model.names[j]) for j in reversed(range(1, mechanism.model.njoints)))
     )
-    calibration = calibrate_closed_loop(mechanism, study.measurements, NOISE, error_model=joints_only)
+    calibration = calibrate_closed_loop(
+        mechanism, study.measurements, CalibrationOptions(noise=NOISE), error_model=joints_only
+    )
     sliders = study.holdout_actuators[:2]
     expected_position, expected_rotation = _finite_difference_pose_std(calibration, sliders)
     for predicted in (predicted_pose_std(calibration, sliders), predicted_measurement_std(calibration, sliders)):
@@ -511,10 +512,14 @@ def test_iteration_cap_is_60_or_5_per_parameter():
     assert [default_iterations(n) for n in (0, 11, 12, 13, 56, 100)] == [60, 60, 60, 65, 280, 500]
 
 
+#: One Levenberg-Marquardt iteration, LM's own defaults otherwise: the pipeline's steps on tiny problems.
+ONE_STEP = LMSettings(max_iterations=1, cost_tolerance=1e-12, absolute_cost_tolerance=0.0, initial_damping=1e-3)
+
+
 def test_rms():
     residual = np.array([[3.0, 4.0, 0.0, 1.0, 2.0, 2.0], [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
-    assert _rms(residual) == pytest.approx((np.sqrt(12.5), np.sqrt(4.5)), rel=1e-15)
-    position, rotation = _rms(residual[:, :3])
+    assert pose_error_rms(residual) == pytest.approx((np.sqrt(12.5), np.sqrt(4.5)), rel=1e-15)
+    position, rotation = pose_error_rms(residual[:, :3])
     assert position == pytest.approx(np.sqrt(12.5), rel=1e-15) and np.isnan(rotation) and type(rotation) is float
 
 
@@ -527,12 +532,12 @@ def few_poses(mechanism):
 def test_names_and_priors_are_checked_before_any_fit(mechanism, few_poses):
     for sigma in (0.0, -1.0, float("inf"), float("nan")):
         with pytest.raises(InvalidInputError) as error:
-            calibrate_closed_loop(mechanism, few_poses, priors={"q11.dt[0]": sigma})
-        assert str(error.value) == "a prior's sigma must be a positive number [m or rad]"
+            calibrate_closed_loop(mechanism, few_poses, CalibrationOptions(priors={"q11.dt[0]": sigma}))
+        assert str(error.value) == "prior of 'q11.dt[0]': sigma must be a positive number (m, rad or rad/Nm)"
     with pytest.raises(InvalidInputError, match=r"^prior: 'nope' is neither a parameter \(e.g. q11.dt\[0\]\)"):
-        calibrate_closed_loop(mechanism, few_poses, priors={"nope": 1.0})
+        calibrate_closed_loop(mechanism, few_poses, CalibrationOptions(priors={"nope": 1.0}))
     with pytest.raises(InvalidInputError, match=r"^fixed parameter: 'nope' is neither a parameter"):
-        calibrate_closed_loop(mechanism, few_poses, fixed=["nope"])
+        calibrate_closed_loop(mechanism, few_poses, CalibrationOptions(fixed=["nope"]))
 
 
 def test_identifiable_count_on_the_reference_poses(mechanism, few_poses, monkeypatch):
@@ -542,15 +547,21 @@ def test_identifiable_count_on_the_reference_poses(mechanism, few_poses, monkeyp
     cache = {}
     monkeypatch.setattr(closed_loop, "_STRUCTURAL_RANKS", cache)
     error_model = ClosedLoopErrorModel(mechanism)
-    full = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(204))
-    positions = _ClosedLoopProblem(
-        error_model, measure(mechanism, few_poses.actuators, position_only=True), NOISE, np.arange(204)
+    full = ClosedLoopProblem(error_model, few_poses, np.arange(204), CalibrationOptions(noise=NOISE))
+    positions = ClosedLoopProblem(
+        error_model,
+        measure(mechanism, few_poses.actuators, position_only=True),
+        np.arange(204),
+        CalibrationOptions(noise=NOISE),
     )
     identity, turned = pin.SE3.Identity(), pin.SE3(pin.utils.rotate("x", 0.5), np.array([0.0, 0.0, 0.05]))
     assert closed_loop.structural_rank(full, identity, [], 1e-8) == 56
     assert closed_loop.structural_rank(full, identity, list(range(12)), 1e-8) == 52
-    with_setup = _ClosedLoopProblem(
-        error_model, few_poses, NOISE, np.arange(216), estimate_frame=True, estimate_marker=True
+    with_setup = ClosedLoopProblem(
+        error_model,
+        few_poses,
+        np.arange(216),
+        CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True),
     )
     assert closed_loop.structural_rank(with_setup, turned, [], 1e-8) == 56
     assert closed_loop.structural_rank(positions, identity, [], 1e-8) == 53
@@ -560,12 +571,22 @@ def test_identifiable_count_on_the_reference_poses(mechanism, few_poses, monkeyp
     assert closed_loop.structural_rank(positions, identity, [], 1e-3) == 47 and len(cache) == 6
 
 
+def _assert_same_selection(selection, expected):
+    """The same choices, and scores equal to rounding (the rows come from other products, and exact
+    data score at rounding level)."""
+    assert (selection.indices, selection.order, selection.tied) == (expected.indices, expected.order, expected.tied)
+    np.testing.assert_allclose(selection.path, expected.path, rtol=1e-9, atol=1e-20)
+    np.testing.assert_allclose(
+        [selection.press, selection.press_all], [expected.press, expected.press_all], rtol=1e-9, atol=1e-20
+    )
+
+
 def test_selection_scores_the_fit_linearised_at_the_estimate(noisy):
     """Forward selection on r - J x at the estimate over the inliers; all kept: the same fit."""
     _, calibration = noisy
     problem = copy.copy(calibration.problem)
     state = calibration.lm.state
-    r, J = problem.residual_and_jacobian(state)
+    r, J = problem.evaluate(state, problem.columns)  # every pose row (the fit holds them compressed)
     rows = len(problem.weights)
     keep = np.repeat(problem.active, 6)
     columns = problem.columns.copy()
@@ -574,12 +595,10 @@ def test_selection_scores_the_fit_linearised_at_the_estimate(noisy):
         (r[:rows] - J[:rows] @ state.accumulated[columns])[keep],
         6,
         range(len(columns)),
-        np.flatnonzero(columns < 12),
+        np.flatnonzero(columns >= 204),  # the setup's columns, forced: none here
     )
-    selection, result = _select_parameters(
-        problem, calibration.start, calibration.lm, np.arange(12), calibration.options
-    )
-    assert selection == expected
+    selection, result, _ = pipeline.select_parameters(problem, calibration.start, calibration.lm, calibration.settings)
+    _assert_same_selection(selection, expected)
     if len(selection.indices) == len(columns):
         assert result is calibration.lm
     else:
@@ -594,14 +613,14 @@ def test_refine_reselects_at_the_estimate_and_continues(noisy):
     problem = copy.copy(calibration.problem)
     problem.active = problem.active.copy()
     problem.active[0] = False  # an outlier's rows: zero weights in the re-selection
-    assert _refine(problem, calibration.lm, 0.5, 2) is calibration.lm
+    assert pipeline.refine(problem, calibration.lm, 0.5, 2) is calibration.lm
     problem.active = calibration.problem.active
     np.testing.assert_array_equal(problem.columns, calibration.problem.columns)
     before = len(problem.columns)
     # The iterate's setup is carried into the refit (here a marker 0.1 mm off: a higher cost).
     moved = MeasurementSetup(marker=pin.SE3(np.eye(3), np.array([1e-4, 0.0, 0.0])))
     start = dataclasses.replace(calibration.lm, state=dataclasses.replace(calibration.lm.state, setup=moved))
-    refined = _refine(problem, start, 1e-7, 2)
+    refined = pipeline.refine(problem, start, 1e-7, 2)
     assert len(problem.columns) > before and refined.iterations <= 2
     shifted = problem.residual(dataclasses.replace(calibration.lm.state, setup=moved))
     assert refined.cost_history[0] == pytest.approx(0.5 * shifted @ shifted, rel=1e-9)
@@ -617,22 +636,64 @@ def test_prior_rows_and_a_trial_that_does_not_assemble(mechanism, few_poses):
     (model None, nothing accumulated) is all infinite, prior rows included (it used to raise
     TypeError with priors)."""
     error_model = ClosedLoopErrorModel(mechanism)
-    problem = _ClosedLoopProblem(error_model, few_poses, NOISE, np.array([0, 5, 7]), priors={5: 0.5, 7: 2e-3, 100: 1.0})
+    in_memory = CalibrationOptions(noise=NOISE, stream_jacobian=False)
+    problem = ClosedLoopProblem(
+        error_model, few_poses, np.array([0, 5, 7]), in_memory, priors={5: 0.5, 7: 2e-3, 100: 1.0}
+    )
     accumulated = np.zeros(204)
     accumulated[[0, 5, 7]] = [1.0, 1e-3, -4e-3]
     values, jacobian = problem.prior_rows(
-        _State(mechanism.model, np.zeros((0, 20)), np.zeros((0, 4, 4)), accumulated=accumulated)
+        ClosedLoopState(mechanism.model, np.zeros((0, 20)), np.zeros((0, 4, 4)), accumulated=accumulated)
     )
     np.testing.assert_allclose(values, [1e-3 / 0.5, -4e-3 / 2e-3], rtol=1e-15)
     np.testing.assert_array_equal(jacobian, [[0.0, 2.0, 0.0], [0.0, 0.0, 500.0]])
-    failed = _State(None, np.zeros((0, 20)), np.zeros((0, 4, 4)))
+    failed = ClosedLoopState(None, np.zeros((0, 20)), np.zeros((0, 4, 4)))
     residual = problem.residual(failed)
     assert residual.shape == (4 * 6 + 2,) and np.all(residual == np.inf)
     r, J = problem.residual_and_jacobian(failed)
     assert r.shape == (26,) and np.all(r == np.inf)
     np.testing.assert_array_equal(J, np.zeros((26, 3)))
-    plain = _ClosedLoopProblem(error_model, few_poses, NOISE, np.array([0, 5, 7]))
+    plain = ClosedLoopProblem(error_model, few_poses, np.array([0, 5, 7]), in_memory)
     assert plain.residual(failed).shape == (24,)
+    streamed = ClosedLoopProblem(error_model, few_poses, np.array([0, 5, 7]), priors={5: 0.5, 7: 2e-3})
+    r, J = streamed.residual_and_jacobian(failed)  # the compressed rows: 3 columns + 1, and the 2 priors
+    assert r.shape == (6,) and np.all(r == np.inf) and J.shape == (6, 3)
+
+
+def test_the_streamed_fit_is_the_in_memory_fit(mechanism):
+    """Levenberg-Marquardt on the QR of [J r] accumulated pose block by pose block (memory bounded by
+    the parameters) and on every row of J give the same fit to rounding: the same base, outliers and
+    selection, the calibrated machines within 1e-9 m and rad of each other, the same uncertainty and
+    the same cross-validation. 600 poses span two blocks of the streamed accumulation."""
+    frame = pin.SE3(pin.utils.rotate("z", 0.7), np.array([1.2, -0.4, 0.3]))
+    study = simulate_study(
+        mechanism, n_poses=600, n_holdout=50, seed=23, noise=NOISE, setup=MeasurementSetup(frame=frame), outliers=2
+    )
+    options = CalibrationOptions(noise=NOISE, estimate_frame=True, select=True, priors={"q12.dt[0]": 1e-3})
+    fits = {
+        stream: calibrate_closed_loop(
+            mechanism, study.measurements, dataclasses.replace(options, stream_jacobian=stream)
+        )
+        for stream in (True, False)
+    }
+    streamed, in_memory = fits[True], fits[False]
+    assert len(streamed.problem.residual_and_jacobian(streamed.lm.state)[0]) <= len(streamed.fitted) + 2
+    assert len(in_memory.problem.residual_and_jacobian(in_memory.lm.state)[0]) >= 600 * 6  # every pose row
+    assert streamed.base.indices == in_memory.base.indices and streamed.fitted == in_memory.fitted
+    assert streamed.outliers == in_memory.outliers == tuple(study.outliers)
+    assert streamed.lm.iterations == in_memory.lm.iterations and streamed.converged and in_memory.converged
+    between = pose_errors(streamed.mechanism, in_memory.mechanism, study.holdout_actuators)
+    assert between.position_max < 1e-9 and between.rotation_max < 1e-9
+    frames = streamed.setup.frame.actInv(in_memory.setup.frame)
+    assert np.linalg.norm(frames.translation) < 1e-9 and np.linalg.norm(pin.log3(frames.rotation)) < 1e-9
+    np.testing.assert_allclose(
+        streamed.covariance, in_memory.covariance, rtol=1e-6, atol=1e-9 * np.abs(in_memory.covariance).max()
+    )
+    assert streamed.variance_factor == pytest.approx(in_memory.variance_factor, rel=1e-9)
+    assert streamed.rms_after == pytest.approx(in_memory.rms_after, rel=1e-9)
+    a, b = cross_validate(streamed, folds=4), cross_validate(in_memory, folds=4)
+    np.testing.assert_allclose(a.errors.position, b.errors.position, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(a.errors.rotation, b.errors.rotation, rtol=1e-6, atol=1e-12)
 
 
 def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
@@ -648,13 +709,15 @@ def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
     calibration = calibrate_closed_loop(
         mechanism,
         study.measurements,
-        NOISE,
-        setup=MeasurementSetup(marker=pin.SE3(np.eye(3), marker.translation)),
-        estimate_frame=True,
-        estimate_marker=True,
-        fixed=["q11"],
-        priors={"q12.dt[0]": 1e-3},
-        select=True,
+        CalibrationOptions(
+            noise=NOISE,
+            setup=MeasurementSetup(marker=pin.SE3(np.eye(3), marker.translation)),
+            estimate_frame=True,
+            estimate_marker=True,
+            fixed=["q11"],
+            priors={"q12.dt[0]": 1e-3},
+            select=True,
+        ),
         progress=lambda: calls.append(1),
     )
     assert calibration.selection is not None and len(calibration.selection.indices) == len(calibration.fitted)
@@ -709,8 +772,11 @@ def test_registered_setup_is_exact_on_the_nominal_machine(mechanism):
     axes_unknown = pin.SE3(np.eye(3), marker.translation)
     for position_only in (False, True):
         measurements = measure(mechanism, actuators, position_only=position_only, setup=MeasurementSetup(frame, marker))
-        problem = _ClosedLoopProblem(
-            error_model, measurements, NOISE, np.arange(204), estimate_frame=True, estimate_marker=True
+        problem = ClosedLoopProblem(
+            error_model,
+            measurements,
+            np.arange(204),
+            CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True),
         )
         start = problem.assemble(mechanism.model, None)
         both = _registered_setup(problem, start, MeasurementSetup(marker=axes_unknown), True, True)
@@ -735,18 +801,20 @@ def test_outlier_rounds_and_too_few_poses_left(mechanism):
     poses = list(exact.poses)
     poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
     measurements = PoseMeasurements(exact.actuators, tuple(poses))
-    problem = _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), measurements, NOISE, np.arange(18))
+    problem = ClosedLoopProblem(
+        ClosedLoopErrorModel(mechanism), measurements, np.arange(18), CalibrationOptions(noise=NOISE)
+    )
     start = problem.assemble(mechanism.model, None)
     fit = SimpleNamespace(state=start)
     with pytest.raises(IdentificationError) as error:
-        _reject_outliers(problem, start, fit, 5.0, {"max_iterations": 1})
+        pipeline.reject_outliers(problem, start, fit, 5.0, ONE_STEP)
     assert str(error.value) == "1 of 4 poses are outliers: too few poses are left to fit the model"
     assert problem.active.all()
     problem.columns = np.arange(17)
-    result = _reject_outliers(problem, start, fit, 5.0, {"max_iterations": 1})
+    result, iterations = pipeline.reject_outliers(problem, start, fit, 5.0, ONE_STEP)
     np.testing.assert_array_equal(problem.active, [True, False, True, True])
-    assert result is not fit and result.iterations <= 1 and result.state.model is not None
-    assert _reject_outliers(problem, start, result, 1e9, {"max_iterations": 1}).state is not None  # gate: none
+    assert result is not fit and iterations == result.iterations <= 1 and result.state.model is not None
+    assert pipeline.reject_outliers(problem, start, result, 1e9, ONE_STEP)[0].state is not None  # gate: none
     np.testing.assert_array_equal(problem.active, [True, True, True, True])
 
 
@@ -761,7 +829,8 @@ def test_covariance_std_and_variance_factor_from_the_final_jacobian(noisy):
     std = np.array([calibration.std[name] for name in calibration.fitted])
     np.testing.assert_allclose(std, np.sqrt(np.diag(covariance)), rtol=1e-6)
     assert all(calibration.std[name] == 0.0 for name in set(problem.names) - set(calibration.fitted))
-    assert calibration.variance_factor == pytest.approx(r @ r / (len(r) - len(problem.columns)), rel=1e-12)
+    dof = np.count_nonzero(problem.weights) - len(problem.columns)  # the measured inlier rows, no priors
+    assert calibration.variance_factor == pytest.approx(r @ r / dof, rel=1e-12)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -780,29 +849,35 @@ class _Recorder:
         return self.result
 
 
-def test_fit_passes_its_options_and_refuses_a_model_that_does_not_assemble(monkeypatch):
+def test_fit_passes_its_settings_and_refuses_a_model_that_does_not_assemble(monkeypatch):
     problem, state = object(), object()
-    options = {"max_iterations": 7, "initial_damping": 1e-6, "cost_tolerance": 0.25}
-    good = SimpleNamespace(state=SimpleNamespace(model="a model"))
+    settings = LMSettings(max_iterations=7, cost_tolerance=0.25, absolute_cost_tolerance=1e-3)
+    good = SimpleNamespace(cost=2.0)
     recorder = _Recorder(good)
-    monkeypatch.setattr(closed_loop, "levenberg_marquardt", recorder)
-    assert closed_loop.fit_assembled(problem, state, options) is good
+    monkeypatch.setattr(pipeline, "levenberg_marquardt", recorder)
+    assert pipeline.fit(problem, state, settings) is good
     assert len(recorder.calls) == 1
     called_problem, called_state, called_options = recorder.calls[0]
-    assert called_problem is problem and called_state is state and called_options == options
-    recorder.result = SimpleNamespace(state=SimpleNamespace(model=None))
+    assert called_problem is problem and called_state is state
+    assert called_options == {
+        "max_iterations": 7,
+        "initial_damping": 1e-6,
+        "absolute_cost_tolerance": 1e-3,
+        "cost_tolerance": 0.25,
+    }
+    recorder.result = SimpleNamespace(cost=float("inf"))  # every pose row infinite: a model that does not assemble
     with pytest.raises(IdentificationError) as error:
-        closed_loop.fit_assembled(problem, state, options)
+        pipeline.fit(problem, state, settings)
     assert str(error.value) == "calibration ended on a model that does not assemble"
 
 
 def test_refine_options_weights_and_an_equal_rank(mechanism, few_poses, monkeypatch):
-    """_refine re-selects on the whitened Jacobian of every parameter at the iterate (zero rows
+    """`pipeline.refine` re-selects on the whitened Jacobian of every parameter at the iterate (zero rows
     for outliers), keeps the fit when no more columns are identifiable (equal count included), and
     otherwise continues with damped LM (1e-9, cost tolerance 1e-14) from the iterate's model,
     assembly, setup and accumulated steps; the weak-excitation warning is silenced."""
     error_model = ClosedLoopErrorModel(mechanism)
-    problem = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(3))
+    problem = ClosedLoopProblem(error_model, few_poses, np.arange(3), CalibrationOptions(noise=NOISE))
     problem.active = np.array([True, False, True, True])
     setup = MeasurementSetup(marker=pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.02])))
     accumulated = np.linspace(-1e-4, 1e-4, 204)
@@ -812,31 +887,39 @@ def test_refine_options_weights_and_an_equal_rank(mechanism, few_poses, monkeypa
     expected = select_base_parameters(jacobian, problem.names, rank_tolerance=1e-3)
     assert 3 < expected.rank < 24
     result = SimpleNamespace(state=state)
-    recorder = _Recorder("continued")
-    monkeypatch.setattr(closed_loop, "levenberg_marquardt", recorder)
+    continued_fit = SimpleNamespace(cost=0.0)
+    recorder = _Recorder(continued_fit)
+    monkeypatch.setattr(pipeline, "levenberg_marquardt", recorder)
     problem.columns = np.arange(expected.rank)  # as many as identifiable: the fit is kept
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert _refine(problem, result, 1e-3, 5) is result
+        assert pipeline.refine(problem, result, 1e-3, 5) is result
         assert recorder.calls == [] and len(problem.columns) == expected.rank
         problem.columns = np.arange(3)
-        assert _refine(problem, result, 1e-3, 5) == "continued"
+        assert pipeline.refine(problem, result, 1e-3, 5) is continued_fit
     np.testing.assert_array_equal(problem.columns, expected.indices)
     ((called_problem, continued, options),) = recorder.calls
     assert called_problem is problem
-    assert options == {"max_iterations": 5, "initial_damping": 1e-9, "cost_tolerance": 1e-14}
+    assert options == {
+        "max_iterations": 5,
+        "initial_damping": 1e-9,
+        "absolute_cost_tolerance": 0.0,
+        "cost_tolerance": 1e-14,
+    }
     assert continued.model is state.model and continued.setup is setup and continued.accumulated is accumulated
     for q, q0 in zip(continued.configurations, state.configurations):
         np.testing.assert_allclose(q, q0, atol=1e-12)
     assert continued.whitened is None
     # Orientation weighted 1e5 below position: the re-selection warns of weak excitation, which
-    # _refine silences.
-    weak = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=1.0), np.arange(3))
+    # the refinement silences.
+    weak = ClosedLoopProblem(
+        error_model, few_poses, np.arange(3), CalibrationOptions(noise=TrackerNoise(position=1e-5, rotation=1.0))
+    )
     with pytest.warns(PoorExcitationWarning):
         select_base_parameters(weak.evaluate(state, np.arange(204))[1], weak.names, rank_tolerance=1e-9)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert _refine(weak, result, 1e-9, 5) == "continued"
+        assert pipeline.refine(weak, result, 1e-9, 5) is continued_fit
 
 
 def test_select_parameters_scores_the_pose_rows_only(mechanism, few_poses, monkeypatch):
@@ -844,7 +927,8 @@ def test_select_parameters_scores_the_pose_rows_only(mechanism, few_poses, monke
     rows of the inliers, at r - J x."""
     error_model = ClosedLoopErrorModel(mechanism)
     columns = np.array([0, 1, 2, 6, 7, 8])
-    problem = _ClosedLoopProblem(error_model, few_poses, NOISE, columns, priors={1: 1e-3, 7: 2e-3})
+    in_memory = CalibrationOptions(noise=NOISE, stream_jacobian=False)  # every row, to read them
+    problem = ClosedLoopProblem(error_model, few_poses, columns, in_memory, priors={1: 1e-3, 7: 2e-3})
     problem.active = np.array([True, True, False, True])
     accumulated = np.zeros(204)
     accumulated[columns] = [1e-5, -2e-5, 3e-5, 1e-5, 0.0, -1e-5]
@@ -852,29 +936,31 @@ def test_select_parameters_scores_the_pose_rows_only(mechanism, few_poses, monke
     r, J = problem.residual_and_jacobian(dataclasses.replace(state))
     assert len(r) == 24 + 2
     keep = np.repeat(problem.active, 6)
-    expected = forward_selection(J[:24][keep], (r[:24] - J[:24] @ accumulated[columns])[keep], 6, range(6), [0, 1])
+    expected = forward_selection(J[:24][keep], (r[:24] - J[:24] @ accumulated[columns])[keep], 6, range(6), [])
     fits = []
-    fit = closed_loop.fit_assembled
-    monkeypatch.setattr(closed_loop, "fit_assembled", lambda *args: fits.append(args[1]) or fit(*args))
+    fit = pipeline.fit
+    monkeypatch.setattr(pipeline, "fit", lambda *args: fits.append(args[1]) or fit(*args))
     start = dataclasses.replace(state)
     problem.residual_and_jacobian(start)  # the start's Jacobian cached over every column
-    selection, result = _select_parameters(
-        problem, start, SimpleNamespace(state=state), np.arange(2), {"max_iterations": 1}
-    )
-    assert selection == expected
+    selection, result, iterations = pipeline.select_parameters(problem, start, SimpleNamespace(state=state), ONE_STEP)
+    assert iterations == result.iterations
+    _assert_same_selection(selection, expected)
     np.testing.assert_array_equal(problem.columns, columns[list(selection.indices)])
     assert len(selection.indices) < len(columns)
     (refit_start,) = fits  # a smaller set is refitted from the start, its Jacobian evaluated afresh
     assert refit_start is not start and refit_start.whitened is None and start.whitened is not None
 
 
-def _problem_with_a_1_m_outlier(mechanism, columns: np.ndarray) -> _ClosedLoopProblem:
+def _problem_with_a_1_m_outlier(mechanism, columns: np.ndarray) -> ClosedLoopProblem:
     """Four exact poses of the nominal machine, pose 1 moved 1 m along x, fitting `columns`."""
     exact = measure(mechanism, workspace_actuators(mechanism, 4, np.random.default_rng(63)))
     poses = list(exact.poses)
     poses[1] = pin.SE3(poses[1].rotation, poses[1].translation + np.array([1.0, 0.0, 0.0]))
-    return _ClosedLoopProblem(
-        ClosedLoopErrorModel(mechanism), PoseMeasurements(exact.actuators, tuple(poses)), NOISE, columns
+    return ClosedLoopProblem(
+        ClosedLoopErrorModel(mechanism),
+        PoseMeasurements(exact.actuators, tuple(poses)),
+        columns,
+        CalibrationOptions(noise=NOISE),
     )
 
 
@@ -885,7 +971,7 @@ def test_outlier_refit_starts_from_a_fresh_jacobian(mechanism):
     start = problem.assemble(mechanism.model, None)
     problem.residual_and_jacobian(start)  # cached with the outlier's rows
     fit = SimpleNamespace(state=dataclasses.replace(start))  # the first fit's final iterate (released)
-    result = _reject_outliers(problem, start, fit, 5.0, {"max_iterations": 1})
+    result, _ = pipeline.reject_outliers(problem, start, fit, 5.0, ONE_STEP)
     np.testing.assert_array_equal(problem.active, [True, False, True, True])
     assert fit.state.whitened is None and start.whitened is not None
     inliers = problem.residual(start)
@@ -894,24 +980,30 @@ def test_outlier_refit_starts_from_a_fresh_jacobian(mechanism):
 
 
 class _StandInProblem:
-    """The parts of `_ClosedLoopProblem` that `calibration_result` reads, with a chosen final Jacobian."""
+    """The parts of a problem that `pipeline.summarise` and `closed_loop._calibration` read, with a
+    chosen final Jacobian: two poses of six rows, the second flagged, `measured` rows of the first seen."""
 
-    def __init__(self, error_model, residual, jacobian, weights, columns, active, pose_residuals):
-        self.error_model, self.weights, self.columns, self.active = error_model, weights, columns, active
+    def __init__(self, error_model, final_rows, measured, columns, blocks):
+        self.error_model, self.columns, self.active = error_model, columns, np.array([True, False])
         self.names = error_model.names + setup_parameter_names(True, False, False)
-        self.final_rows, self.residuals_by_state = (residual, jacobian), pose_residuals
+        self.priors = {int(columns[0]): 1.0, int(columns[1]): 2.0}
+        self.seen = np.zeros((2, 6), dtype=bool)
+        self.seen[0, :measured] = True
+        self.seen[1] = True
+        self.n_points = 0
+        self.final_rows, self.blocks_by_state = final_rows, blocks
 
     def residual_and_jacobian(self, state):
         return self.final_rows
 
-    def pose_residuals(self, state):
-        return self.residuals_by_state[id(state)]
+    def raw_blocks(self, state):
+        return self.blocks_by_state[id(state)]
 
 
-def test_calibration_result_from_a_known_final_jacobian(mechanism):
+def test_calibration_summary_from_a_known_final_jacobian(mechanism):
     """Covariance V S^-2 V^T over the singular values above 1e-12 of the largest (a 5e-10 one of 1e3
-    is dropped, 0.5 is kept), std per fitted name and zero elsewhere, chi^2 / (active rows + prior
-    rows - columns) and nan when that is not positive, the inliers' RMS before and after, the
+    is dropped, 0.5 is kept), std per fitted name and zero elsewhere, chi^2 / (measured inlier rows +
+    prior rows - columns) and nan when that is not positive, the inliers' RMS before and after, the
     outliers, the identified machine errors; the result carries the fit's pieces as given."""
     error_model = ClosedLoopErrorModel(mechanism)
     rng = np.random.default_rng(64)
@@ -924,30 +1016,21 @@ def test_calibration_result_from_a_known_final_jacobian(mechanism):
     errors[[3, 40, 100]] = [2e-5, -1e-5, 3e-5]
     model = error_model.perturbed(mechanism.model, errors)
     setup = MeasurementSetup(frame=pin.SE3(np.eye(3), np.array([0.1, 0.0, 0.0])))
-    end = _State(model, np.zeros((0, 20)), np.zeros((0, 4, 4)), setup)
-    start = _State(mechanism.model, np.zeros((0, 20)), np.zeros((0, 4, 4)))
+    end = ClosedLoopState(model, np.zeros((0, 20)), np.zeros((0, 4, 4)), setup)
+    start = ClosedLoopState(mechanism.model, np.zeros((0, 20)), np.zeros((0, 4, 4)))
     before = np.arange(12.0).reshape(2, 6)
     after = before / 1000
     columns = np.array([3, 40, 205])
     base, selection = object(), object()
     lm = SimpleNamespace(state=end)
     outcomes, problems = {}, {}
-    for active_rows in (8, 3, 2, 1):  # 2 prior rows, 3 columns: dof 7, 2, 1, 0
-        weights = np.zeros(12)
-        weights[:active_rows] = 1.0
-        problems[active_rows] = _StandInProblem(
-            error_model,
-            residual,
-            jacobian,
-            weights,
-            columns,
-            np.array([True, False]),
-            {id(start): before, id(end): after},
+    for measured in (6, 3, 2, 1):  # 2 prior rows, 3 columns: dof 5, 2, 1, 0
+        problems[measured] = _StandInProblem(
+            error_model, (residual, jacobian), measured, columns, {id(start): before, id(end): after}
         )
-        outcomes[active_rows] = closed_loop.calibration_result(
-            mechanism, problems[active_rows], start, lm, base, selection
-        )
-    calibration = outcomes[8]
+        summary = pipeline.summarise(problems[measured], start, lm, (base, selection, 7), ONE_STEP)
+        outcomes[measured] = closed_loop._calibration(mechanism, problems[measured], summary)
+    calibration = outcomes[6]
     expected = (v[:, :2] / singular[:2] ** 2) @ v[:, :2].T
     np.testing.assert_allclose(calibration.covariance, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
     std = np.array([calibration.std[name] for name in calibration.problem.names])
@@ -956,17 +1039,17 @@ def test_calibration_result_from_a_known_final_jacobian(mechanism):
     np.testing.assert_allclose(std, expected_std, rtol=1e-9)
     assert list(calibration.std) == list(error_model.names) + list(setup_parameter_names(True, False, False))
     assert calibration.fitted == ("q11.dt[3]", error_model.names[40], "measurement_frame.dt[1]")
-    assert calibration.variance_factor == pytest.approx(residual @ residual / 7, rel=1e-12)
+    assert calibration.variance_factor == pytest.approx(residual @ residual / 5, rel=1e-12)
     assert outcomes[3].variance_factor == pytest.approx(residual @ residual / 2, rel=1e-12)
     assert outcomes[2].variance_factor == pytest.approx(residual @ residual, rel=1e-12)
     assert np.isnan(outcomes[1].variance_factor) and type(outcomes[1].variance_factor) is float
-    assert calibration.rms_before == _rms(before[:1]) and calibration.rms_after == _rms(after[:1])
+    assert calibration.rms_before == pose_error_rms(before[:1]) and calibration.rms_after == pose_error_rms(after[:1])
     assert calibration.outliers == (1,) and type(calibration.outliers[0]) is int
     assert list(calibration.parameters) == list(error_model.names)
     np.testing.assert_allclose([calibration.parameters[name] for name in error_model.names], errors, atol=1e-12)
     assert calibration.setup is setup and calibration.error_model is error_model
     assert calibration.base is base and calibration.selection is selection and calibration.lm is lm
-    assert calibration.problem is problems[8]
+    assert calibration.problem is problems[6] and calibration.iterations == 7 and calibration.settings is ONE_STEP
     for placement, expected_placement in zip(calibration.mechanism.model.jointPlacements, model.jointPlacements):
         np.testing.assert_allclose(placement.homogeneous, expected_placement.homogeneous, atol=1e-15)
 
@@ -978,17 +1061,19 @@ def test_identifiable_count_weights_fixed_columns_and_the_setup_gauge(mechanism,
     tolerance of 1e-5 with position 1e5 times less trusted than orientation (30 without that gauge)."""
     error_model = ClosedLoopErrorModel(mechanism)
     identity, turned = pin.SE3.Identity(), pin.SE3(pin.utils.rotate("x", 0.5), np.array([0.0, 0.0, 0.05]))
-    skewed = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=1.0), np.arange(204))
+    skewed = ClosedLoopProblem(
+        error_model, few_poses, np.arange(204), CalibrationOptions(noise=TrackerNoise(position=1e-5, rotation=1.0))
+    )
     assert closed_loop.structural_rank(skewed, identity, [], 1e-8) == 56
-    frame = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(210), estimate_frame=True)
+    frame = ClosedLoopProblem(
+        error_model, few_poses, np.arange(210), CalibrationOptions(noise=NOISE, estimate_frame=True)
+    )
     assert closed_loop.structural_rank(frame, identity, list(range(200)), 1e-8) == 8
-    both = _ClosedLoopProblem(
+    both = ClosedLoopProblem(
         error_model,
         few_poses,
-        TrackerNoise(position=1.0, rotation=1e-5),
         np.arange(216),
-        estimate_frame=True,
-        estimate_marker=True,
+        CalibrationOptions(noise=TrackerNoise(position=1.0, rotation=1e-5), estimate_frame=True, estimate_marker=True),
     )
     assert closed_loop.structural_rank(both, turned, [], 1e-5) == 29
 
@@ -997,7 +1082,9 @@ def test_problem_layout_weights_and_measured_frames(mechanism, few_poses):
     """Names, setup slots, per-row noise weights, the measured positions and rotations, and the
     defaults (no setup columns, every pose active, no progress hook)."""
     error_model = ClosedLoopErrorModel(mechanism)
-    plain = _ClosedLoopProblem(error_model, few_poses, TrackerNoise(position=1e-5, rotation=4e-5), np.arange(204))
+    plain = ClosedLoopProblem(
+        error_model, few_poses, np.arange(204), CalibrationOptions(noise=TrackerNoise(position=1e-5, rotation=4e-5))
+    )
     assert plain.names == error_model.names and plain.frame_slot is None and plain.marker_slot is None
     assert plain.n_machine == 204 and plain.priors == {} and plain.on_evaluate is None
     assert plain.active.dtype == bool and plain.active.tolist() == [True] * 4
@@ -1007,16 +1094,24 @@ def test_problem_layout_weights_and_measured_frames(mechanism, few_poses):
     np.testing.assert_array_equal(plain.measured_positions, measured[:, :3, 3])
     np.testing.assert_array_equal(plain.measured_rotations, measured[:, :3, :3])
     positions = measure(mechanism, few_poses.actuators[:1], position_only=True)
-    marker = _ClosedLoopProblem(error_model, positions, NOISE, np.arange(207), estimate_marker=True)
+    marker = ClosedLoopProblem(
+        error_model, positions, np.arange(207), CalibrationOptions(noise=NOISE, estimate_marker=True)
+    )
     assert marker.names == error_model.names + ("marker.dt[0]", "marker.dt[1]", "marker.dt[2]")
     assert marker.frame_slot is None and marker.marker_slot == 204 and marker.measured_rotations is None
     np.testing.assert_array_equal(marker.noise_weights, [1 / NOISE.position] * 3)
     np.testing.assert_array_equal(marker.measured_positions, [positions.poses[0].translation])
-    both = _ClosedLoopProblem(
-        error_model, few_poses, NOISE, np.arange(216), estimate_frame=True, estimate_marker=True, priors={3: 0.5}
+    both = ClosedLoopProblem(
+        error_model,
+        few_poses,
+        np.arange(216),
+        CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True),
+        priors={3: 0.5},
     )
     assert both.frame_slot == 204 and both.marker_slot == 210 and len(both.names) == 216 and both.priors == {3: 0.5}
-    frame = _ClosedLoopProblem(error_model, few_poses, NOISE, np.arange(210), estimate_frame=True)
+    frame = ClosedLoopProblem(
+        error_model, few_poses, np.arange(210), CalibrationOptions(noise=NOISE, estimate_frame=True)
+    )
     assert frame.frame_slot == 204 and frame.marker_slot is None and len(frame.names) == 210
     both.active = np.array([True, False, True, True])
     np.testing.assert_array_equal(
@@ -1044,7 +1139,9 @@ class _FakeSolver:
 
 
 def test_assemble_solves_every_pose_in_one_batch_from_its_start(mechanism, few_poses, monkeypatch):
-    problem = _ClosedLoopProblem(ClosedLoopErrorModel(mechanism), few_poses, NOISE, np.arange(204))
+    problem = ClosedLoopProblem(
+        ClosedLoopErrorModel(mechanism), few_poses, np.arange(204), CalibrationOptions(noise=NOISE)
+    )
     monkeypatch.setattr(closed_loop, "ClosedLoopSolver", _FakeSolver)
     _FakeSolver.calls, _FakeSolver.failures = [], ()
     starts = np.repeat(np.arange(4.0)[:, None], 20, axis=1)
@@ -1083,12 +1180,14 @@ def test_retract_moves_model_and_setup_and_assembles_from_the_iterate(mechanism,
     error_model = ClosedLoopErrorModel(mechanism)
     positions = measure(mechanism, few_poses.actuators, position_only=True)
     columns = np.array([2, 30, 204, 209, 210, 212])
-    problem = _ClosedLoopProblem(error_model, positions, NOISE, columns, estimate_frame=True, estimate_marker=True)
+    problem = ClosedLoopProblem(
+        error_model, positions, columns, CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True)
+    )
     frame = pin.SE3(pin.utils.rotate("z", 0.3), np.array([0.1, 0.2, 0.3]))
     marker = pin.SE3(pin.utils.rotate("x", 0.2), np.array([0.0, 0.0, 0.05]))
     configurations = np.repeat(0.01 * np.arange(4.0)[:, None], 20, axis=1)
     accumulated = np.linspace(0.0, 1.0, 213)
-    state = _State("model", configurations, np.ones((4, 4, 4)), MeasurementSetup(frame, marker), accumulated)
+    state = ClosedLoopState("model", configurations, np.ones((4, 4, 4)), MeasurementSetup(frame, marker), accumulated)
     step = np.array([1e-3, -2e-3, 0.01, 0.02, 0.03, -0.04])
     calls = []
     monkeypatch.setattr(error_model, "perturbed", lambda model, vector: ("perturbed", model, vector.copy()))
@@ -1105,7 +1204,7 @@ def test_retract_moves_model_and_setup_and_assembles_from_the_iterate(mechanism,
     np.testing.assert_allclose(setup.marker.homogeneous, (marker * pin.exp6(dm)).homogeneous, atol=1e-15)
     np.testing.assert_array_equal(total, accumulated + vector)
     # No setup columns: the setup is carried as is.
-    machine_only = _ClosedLoopProblem(error_model, positions, NOISE, np.array([2, 30]))
+    machine_only = ClosedLoopProblem(error_model, positions, np.array([2, 30]), CalibrationOptions(noise=NOISE))
     monkeypatch.setattr(machine_only, "assemble", lambda *args: calls.append(args) or "assembled")
     calls.clear()
     machine_only.retract(dataclasses.replace(state, accumulated=np.zeros(204)), step[:2])
@@ -1129,7 +1228,9 @@ def test_evaluate_in_blocks_reduced_with_extra_rows_and_progress(mechanism, few_
     error_model = ClosedLoopErrorModel(mechanism)
     measurements = measure(mechanism, np.vstack((few_poses.actuators, few_poses.actuators[:3])))
     columns = np.array([0, 7, 33, 100, 203, 204, 209, 210, 215])
-    problem = _ClosedLoopProblem(error_model, measurements, NOISE, columns, estimate_frame=True, estimate_marker=True)
+    problem = ClosedLoopProblem(
+        error_model, measurements, columns, CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True)
+    )
     problem.active = np.array([True, True, False, True, True, True, True])
     calls = []
     problem.on_evaluate = lambda: calls.append(1)
@@ -1155,13 +1256,11 @@ def test_evaluate_in_blocks_reduced_with_extra_rows_and_progress(mechanism, few_
     np.testing.assert_array_equal(residual, whole[0])
     assert factor.shape == (9, 9)
     # One pose, 6 rows for 9 columns: a factor of 6 rows (nothing stacked on an empty start).
-    one = _ClosedLoopProblem(
+    one = ClosedLoopProblem(
         error_model,
         measure(mechanism, few_poses.actuators[:1]),
-        NOISE,
         columns,
-        estimate_frame=True,
-        estimate_marker=True,
+        CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True),
     )
     assert one.evaluate(one.assemble(mechanism.model, None, setup=setup), columns, reduce=True)[1].shape == (6, 9)
     np.testing.assert_allclose(
@@ -1175,19 +1274,17 @@ def test_outlier_rounds_refit_only_when_the_flagged_set_changes(mechanism, monke
     problem = _problem_with_a_1_m_outlier(mechanism, np.arange(3))
     start = problem.assemble(mechanism.model, None)
     fits = []
-    fit = closed_loop.fit_assembled
-    monkeypatch.setattr(
-        closed_loop, "fit_assembled", lambda *args: fits.append((args[1], args[1].whitened)) or fit(*args)
-    )
-    first = _reject_outliers(
-        problem, start, SimpleNamespace(state=dataclasses.replace(start)), 5.0, {"max_iterations": 1}
+    fit = pipeline.fit
+    monkeypatch.setattr(pipeline, "fit", lambda *args: fits.append((args[1], args[1].whitened)) or fit(*args))
+    first, _ = pipeline.reject_outliers(
+        problem, start, SimpleNamespace(state=dataclasses.replace(start)), 5.0, ONE_STEP
     )
     assert len(fits) == 1 and fits[0][0] is not start and fits[0][1] is None
     np.testing.assert_array_equal(problem.active, [True, False, True, True])
-    assert _reject_outliers(problem, start, first, 5.0, {"max_iterations": 1}) is first and len(fits) == 1
+    assert pipeline.reject_outliers(problem, start, first, 5.0, ONE_STEP) == (first, 0) and len(fits) == 1
     flips = iter([[False, False, False, False], [False, True, False, False]] * 3)
-    monkeypatch.setattr(closed_loop, "outlier_poses", lambda blocks, sigma: (np.array(next(flips)), 1.0))
-    _reject_outliers(problem, start, first, 5.0, {"max_iterations": 1})
+    monkeypatch.setattr(pipeline, "outlier_poses", lambda blocks, sigma, rows: (np.array(next(flips)), 1.0))
+    pipeline.reject_outliers(problem, start, first, 5.0, ONE_STEP)
     assert len(fits) == 1 + 5
 
 
@@ -1201,7 +1298,12 @@ def test_structural_rank_cache_keys_on_the_noise_ratio_and_the_data_kind(mechani
     positions = measure(mechanism, few_poses.actuators, position_only=True)
     rank = closed_loop.structural_rank
     counts = [
-        rank(_ClosedLoopProblem(error_model, measurements, noise, np.arange(204)), identity, [], 1e-8)
+        rank(
+            ClosedLoopProblem(error_model, measurements, np.arange(204), CalibrationOptions(noise=noise)),
+            identity,
+            [],
+            1e-8,
+        )
         for measurements, noise in (
             (few_poses, TrackerNoise(position=1e-5, rotation=1.0)),
             (few_poses, TrackerNoise(position=1.0, rotation=1e-5)),
@@ -1220,7 +1322,9 @@ def test_jacobian_is_the_derivative_of_the_residual_along_retract(mechanism, few
     measurements = measure(mechanism, few_poses.actuators[:3], position_only=position_only)
     n_names = 204 + 6 + (3 if position_only else 6)
     columns = np.array([1, 40, 150, 203] + list(range(204, n_names)))
-    problem = _ClosedLoopProblem(error_model, measurements, NOISE, columns, estimate_frame=True, estimate_marker=True)
+    problem = ClosedLoopProblem(
+        error_model, measurements, columns, CalibrationOptions(noise=NOISE, estimate_frame=True, estimate_marker=True)
+    )
     setup = MeasurementSetup(
         pin.SE3(pin.utils.rotate("z", 0.4) @ pin.utils.rotate("x", 0.2), np.array([0.2, -0.1, 0.1])),
         pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.01, 0.02, 0.05])),

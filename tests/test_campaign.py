@@ -22,6 +22,7 @@ from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.identification import forward_selection
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.repeats import grouped_blocks, grouped_folds, pose_groups
 from m3t1r.calibration.simulation import SimulatedStudy, actual_machine, random_placement_errors, simulate_study
 from m3t1r.calibration.validation import validate
@@ -141,7 +142,9 @@ def test_mistakes_are_refused_with_their_likely_cause(tmp_path, capsys, mistake,
 def test_linearised_cross_validation_agrees_with_refitting_every_fold():
     nominal = Mechanism.load()
     study = simulate_study(nominal, 50, 0, 7, noise=TrackerNoise(), outliers=1)
-    calibration = calibrate_closed_loop(nominal, study.measurements, TrackerNoise(), select=True)
+    calibration = calibrate_closed_loop(
+        nominal, study.measurements, CalibrationOptions(noise=TrackerNoise(), select=True)
+    )
     assert calibration.outliers == study.outliers
     quick, refitted = cross_validate(calibration), cross_validate(calibration, refit=True)
     assert len(quick.errors.position) == 49
@@ -450,12 +453,16 @@ def test_three_points_on_the_platform_calibrate_the_machine_a_single_marker_does
     seen = np.isfinite(points[:, :, 0])
     first = [pin.SE3(np.eye(3), row[np.isfinite(row[:, 0])][0]) for row in points]
     several = calibrate_closed_loop(
-        mechanism, PoseMeasurements(actuators, tuple(first), True, points), noise, estimate_frame=True
+        mechanism,
+        PoseMeasurements(actuators, tuple(first), True, points),
+        CalibrationOptions(noise=noise, estimate_frame=True),
     )
     marker = pin.SE3(np.eye(3), np.array(_POINT_OFFSETS[0]))
     single = measure(truth, actuators, rng, noise, position_only=True, setup=replace(frame, marker=marker))
     guess = MeasurementSetup(marker=pin.SE3(np.eye(3), np.array(_POINT_OFFSETS[0]) + [0.01, 0.0, 0.0]))
-    alone = calibrate_closed_loop(mechanism, single, noise, setup=guess, estimate_frame=True, estimate_marker=True)
+    alone = calibrate_closed_loop(
+        mechanism, single, CalibrationOptions(noise=noise, setup=guess, estimate_frame=True, estimate_marker=True)
+    )
     assert several.converged and alone.converged and several.outliers == ()
     assert 0.7 < several.variance_factor < 1.4
     assert [n for n in several.fitted if n.startswith("marker.")][:3] == [f"marker.p1.dt[{k}]" for k in range(3)]

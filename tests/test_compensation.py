@@ -11,6 +11,7 @@ from conftest import frame_coordinates, perturb_every_origin
 
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.compensation import (
     Compensator,
@@ -45,7 +46,7 @@ def lissajous_path(n: int) -> np.ndarray:
 def calibrated_study(mechanism):
     """A 1 mm / 1 mrad truth machine, 50 noisy poses (10 um / 20 urad tracker), calibrated once."""
     study = simulate_study(mechanism, n_poses=50, n_holdout=200, seed=23, noise=TrackerNoise())
-    calibration = calibrate_closed_loop(mechanism, study.measurements, TrackerNoise())
+    calibration = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise()))
     return study, calibration
 
 

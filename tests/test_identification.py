@@ -518,6 +518,25 @@ def test_forward_selection_path_press_order_and_ties_against_refits(forced):
     assert len(selection.indices) < p  # and the best is not every column
 
 
+@pytest.mark.parametrize("forced", [(), (5,), (6, 1)])
+def test_forward_selection_in_place_is_the_same_selection(forced):
+    """overwrite=True projects a column-major Jacobian in place (its columns are spent) and chooses
+    as the copying selection does; a row-major one, which cannot be projected in place, is left as it is."""
+    rng = np.random.default_rng(6)
+    n, k, p = 12, 3, 7
+    J = rng.normal(size=(n * k, p))
+    r = -(J @ np.r_[1.0, -0.6, 0.3, 0.0, 0.0, 0.0, 0.0]) + rng.normal(size=n * k)
+    copied = forward_selection(J, r, k, range(p), forced=forced)
+    spent = np.asfortranarray(J)
+    in_place = forward_selection(spent, r, k, range(p), forced=forced, overwrite=True)
+    assert (in_place.indices, in_place.order, in_place.tied) == (copied.indices, copied.order, copied.tied)
+    np.testing.assert_allclose(in_place.path, copied.path, rtol=1e-12)
+    assert not np.allclose(spent, J)  # projected in place: no second matrix of every row
+    row_major = J.copy()
+    assert forward_selection(row_major, r, k, range(p), forced=forced, overwrite=True).order == copied.order
+    np.testing.assert_array_equal(row_major, J)
+
+
 def test_forward_selection_stops_when_no_candidate_is_independent_and_checks_rows():
     rng = np.random.default_rng(5)
     base = rng.normal(size=(30, 2))

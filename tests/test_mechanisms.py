@@ -22,6 +22,7 @@ import yaml
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.compensation import joint_limit_violation
 from m3t1r.errors import InvalidInputError, ModelFileError, ModelWarning
@@ -129,7 +130,9 @@ def test_closed_loop_calibration_of_every_origin(mechanism, noisy):
     study = simulate_study(
         mechanism, n_poses=60, n_holdout=150, seed=11, sigma_position=1e-4, sigma_rotation=1e-4, noise=noise
     )
-    calibration = calibrate_closed_loop(mechanism, study.measurements, noise or TrackerNoise())
+    calibration = calibrate_closed_loop(
+        mechanism, study.measurements, CalibrationOptions(noise=noise or TrackerNoise())
+    )
     assert calibration.lm.converged
     held_out = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
     if not noisy:
@@ -352,7 +355,9 @@ def test_a_frame_error_moves_the_closure_frames_attached_to_it(tmp_path):
     assert "platform.dt[0]" not in default.names  # a link frame on a moving joint: no placement of its own
     error_model = ClosedLoopErrorModel(mechanism, default.placements + (Placement.frame("platform"),))
     study = simulate_study(mechanism, n_poses=30, n_holdout=0, seed=11, sigma_position=1e-4, sigma_rotation=1e-4)
-    calibration = calibrate_closed_loop(mechanism, study.measurements, error_model=error_model, outlier_sigma=None)
+    calibration = calibrate_closed_loop(
+        mechanism, study.measurements, CalibrationOptions(outlier_sigma=None), error_model=error_model
+    )
     problem, state = calibration.problem, calibration.lm.state
     _, jacobian = problem.residual_and_jacobian(state)
     names = [problem.names[c] for c in problem.columns]

@@ -21,6 +21,7 @@ from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, pr
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.identification import select_base_parameters
 from m3t1r.calibration.measurements import TrackerNoise, measure
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.planning import (
     order_for_travel,
     path_travel,
@@ -78,7 +79,7 @@ def test_plan_of_40_calibrates_to_the_noise_level(plan_file, mechanism) -> None:
     rng = np.random.default_rng(11)
     truth = actual_machine(mechanism, random_placement_errors(ClosedLoopErrorModel(mechanism), rng, 1e-3, 1e-3))
     noise = TrackerNoise(10e-6, 20e-6)
-    calibration = calibrate_closed_loop(mechanism, measure(truth, sliders, rng, noise), noise)
+    calibration = calibrate_closed_loop(mechanism, measure(truth, sliders, rng, noise), CalibrationOptions(noise=noise))
     held_out = workspace_actuators(mechanism, 200, np.random.default_rng(12))
     errors = pose_errors(calibration.mechanism, truth, held_out)
     print(
@@ -266,7 +267,9 @@ def test_plan_and_calibrate_count_the_same_identifiable_parameters(tmp_path) -> 
     for files in (five_bar_files, spherical_wrist_files):
         machine = Mechanism.load(*files(tmp_path))
         plan = plan_closed_loop(machine, 20, np.random.default_rng(3), n_evaluation=5)
-        calibration = calibrate_closed_loop(machine, measure(machine, plan.configurations), outlier_sigma=None)
+        calibration = calibrate_closed_loop(
+            machine, measure(machine, plan.configurations), CalibrationOptions(outlier_sigma=None)
+        )
         assert len(plan.selection.columns) == calibration.base.rank
 
 

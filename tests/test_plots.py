@@ -13,6 +13,7 @@ from m3t1r.app.plots import (
     plot_predicted_std_map,
     plot_workspace_error_map,
 )
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.errors import InvalidInputError, OutputPathError
 from m3t1r.metrics import PoseErrors
 
@@ -201,7 +202,9 @@ def test_calibration_plots_title_the_map_by_what_it_shows(tmp_path, monkeypatch,
     study = simulate_study(
         mechanism, n_poses=40, n_holdout=0, seed=5, noise=TrackerNoise(), setup=MeasurementSetup(frame)
     )
-    calibration = calibrate_closed_loop(mechanism, study.measurements, TrackerNoise(), estimate_frame=estimate_frame)
+    calibration = calibrate_closed_loop(
+        mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise(), estimate_frame=estimate_frame)
+    )
     maps = []
     monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
     monkeypatch.setattr(
@@ -236,7 +239,9 @@ def test_calibration_plots_of_a_position_only_tracker(tmp_path, monkeypatch):
     study = simulate_study(
         mechanism, n_poses=40, n_holdout=0, seed=6, noise=TrackerNoise(), position_only=True, setup=setup
     )
-    calibration = calibrate_closed_loop(mechanism, study.measurements, TrackerNoise(), estimate_frame=True)
+    calibration = calibrate_closed_loop(
+        mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise(), estimate_frame=True)
+    )
     monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
     written = reporting.write_calibration_plots(mechanism, calibration, tmp_path)
     assert [path.name for path in written] == ["pose_errors_before_after.png", "predicted_error_map.png"]
@@ -259,7 +264,7 @@ def test_calibration_plots_of_other_mechanisms_map_their_own_workspace(tmp_path,
     files = (five_bar_files if kind == "five_bar" else spherical_wrist_files)(tmp_path / "model")
     mechanism = Mechanism.load(*files)
     study = simulate_study(mechanism, n_poses=30, n_holdout=0, seed=2, noise=TrackerNoise())
-    calibration = calibrate_closed_loop(mechanism, study.measurements, TrackerNoise())
+    calibration = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise()))
     maps = []
     monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))
     monkeypatch.setattr(
@@ -322,7 +327,7 @@ def test_calibration_plots_show_the_outliers_the_fit_left_out(tmp_path, monkeypa
     for k in (7, 22):
         poses[k] = pin.SE3(poses[k].rotation, poses[k].translation + np.array([4e-3, 0.0, 0.0]))
     measurements = PoseMeasurements(study.measurements.actuators, tuple(poses))
-    calibration = calibrate_closed_loop(mechanism, measurements, TrackerNoise())
+    calibration = calibrate_closed_loop(mechanism, measurements, CalibrationOptions(noise=TrackerNoise()))
     assert sorted(calibration.outliers) == [7, 22]
     drawn = []
     monkeypatch.setattr(reporting, "cross_validation_curve", lambda *args, **kwargs: ([], [], []))

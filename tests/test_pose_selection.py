@@ -137,9 +137,10 @@ def test_serial_blocks_selection_beats_random() -> None:
 
 
 def test_closed_loop_blocks_match_the_calibration_jacobian(mechanism) -> None:
-    from m3t1r.calibration.closed_loop import _ClosedLoopProblem
+    from m3t1r.calibration.closed_loop import ClosedLoopProblem
     from m3t1r.calibration.error_model import ClosedLoopErrorModel
     from m3t1r.calibration.measurements import TrackerNoise, measure
+    from m3t1r.calibration.pipeline import CalibrationOptions
     from m3t1r.model.workspace import workspace_actuators
 
     actuators = workspace_actuators(mechanism, 40, np.random.default_rng(14))
@@ -149,7 +150,9 @@ def test_closed_loop_blocks_match_the_calibration_jacobian(mechanism) -> None:
     assert blocks.shape == (40, 6, error_model.n_parameters) and names == error_model.names
     # At exact measurements on the nominal machine these are the calibration's whitened rows.
     measurements = measure(mechanism, actuators)
-    problem = _ClosedLoopProblem(error_model, measurements, noise, np.arange(error_model.n_parameters))
+    problem = ClosedLoopProblem(
+        error_model, measurements, np.arange(error_model.n_parameters), CalibrationOptions(noise)
+    )
     state = problem.assemble(mechanism.model, None)
     _, jacobian = problem.evaluate(state, problem.columns)
     np.testing.assert_allclose(blocks.reshape(-1, error_model.n_parameters), jacobian, atol=1e-6 * np.abs(blocks).max())

@@ -19,6 +19,7 @@ from m3t1r.calibration import serial_evaluation, serial_robots, serial_simulatio
 from m3t1r.calibration.assessment import FitRejected
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.validation import validate
 from m3t1r.errors import DataFileError, IdentificationError, InvalidInputError, ModelFileError
 from m3t1r.io.tables import read_table, table_text
@@ -77,10 +78,7 @@ def test_frame_and_marker_are_recovered_up_to_the_robot_gauge(ur10, turn: str) -
         chain,
         data.q_readings,
         as_rows(measured),
-        noise=NOISE,
-        setup=given,
-        estimate_frame=True,
-        estimate_marker=True,
+        CalibrationOptions(noise=NOISE, setup=given, estimate_frame=True, estimate_marker=True),
     )
     assert calibration.converged and calibration.termination in ("cost", "step", "gradient")
     assert 0.7 < calibration.variance_factor < 1.4 and calibration.outliers == ()
@@ -125,10 +123,9 @@ def test_gross_outliers_are_flagged_exactly(ur10) -> None:
         chain,
         data.q_readings,
         rows,
-        noise=NOISE,
-        setup=MeasurementSetup(marker=MARKER),
-        estimate_frame=True,
-        estimate_marker=True,
+        CalibrationOptions(
+            noise=NOISE, setup=MeasurementSetup(marker=MARKER), estimate_frame=True, estimate_marker=True
+        ),
     )
     assert calibration.outliers == (11, 42)
     assert calibration.converged and calibration.variance_factor < 1.4
@@ -183,11 +180,9 @@ def test_selection_with_compliance_predicts_outside_the_training_postures(ur10) 
             chain,
             train,
             as_rows(measured),
-            noise=NOISE,
-            setup=MeasurementSetup(marker=MARKER),
-            estimate_frame=True,
-            estimate_marker=True,
-            **options,
+            CalibrationOptions(
+                noise=NOISE, setup=MeasurementSetup(marker=MARKER), estimate_frame=True, estimate_marker=True, **options
+            ),
         )
         predicted = serial_evaluation.predict_measurements(calibration, test)
         mean_error[name] = np.linalg.norm(predicted[:, :3, 3] - exact[:, :3, 3], axis=1).mean()
@@ -688,11 +683,11 @@ def test_several_points_per_pose_calibrate_with_each_offset_and_predict_every_po
     points[[3, 17, 30], [1, 0, 3]] = np.nan  # occluded markers
     points[22, 2] += np.array([0.0, 3e-3, 0.0])  # a 3 mm gross reading of one marker
     calibration = S.calibrate_serial(
-        model, chain, data.q_readings, points, position_only=True, noise=NOISE, estimate_frame=True
+        model, chain, data.q_readings, points, CalibrationOptions(noise=NOISE, estimate_frame=True), position_only=True
     )
     assert calibration.converged and calibration.outliers == (22,)
     assert 0.6 < calibration.variance_factor < 1.5
-    assert calibration.residual_before.position > 1e-3 and calibration.residual_after.position < 2e-5
+    assert calibration.rms_before.position > 1e-3 and calibration.rms_after.position < 2e-5
     assert len(calibration.setup.points) == 4
     # The common part of the offsets is the tool placement's (the gauge); their differences are not.
     offsets = np.array(calibration.setup.points)

@@ -32,6 +32,7 @@ if TYPE_CHECKING:  # the names as type checkers and editors see them; at run tim
     from m3t1r.calibration.error_model import ClosedLoopErrorModel
     from m3t1r.calibration.measurement_setup import MeasurementSetup
     from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, measure
+    from m3t1r.calibration.pipeline import CalibrationOptions
     from m3t1r.calibration.planning import MeasurementPlan, plan_closed_loop, plan_serial
     from m3t1r.calibration.pose_selection import PoseSelection, select_poses
     from m3t1r.calibration.serial import SerialCalibration, calibrate_serial
@@ -83,6 +84,7 @@ _MODULE_EXPORTS: dict[str, tuple[str, ...]] = {
     "m3t1r.calibration.error_model": ("ClosedLoopErrorModel",),
     "m3t1r.calibration.measurement_setup": ("MeasurementSetup",),
     "m3t1r.calibration.measurements": ("PoseMeasurements", "TrackerNoise", "measure"),
+    "m3t1r.calibration.pipeline": ("CalibrationOptions",),
     "m3t1r.calibration.planning": ("MeasurementPlan", "plan_closed_loop", "plan_serial"),
     "m3t1r.calibration.pose_selection": ("PoseSelection", "select_poses"),
     "m3t1r.calibration.serial": ("SerialCalibration", "calibrate_serial"),
@@ -180,6 +182,7 @@ __all__ = [
     "MeasurementSetup",
     "measure",
     "ClosedLoopErrorModel",
+    "CalibrationOptions",
     "ClosedLoopCalibration",
     "calibrate_closed_loop",
     "pose_errors",

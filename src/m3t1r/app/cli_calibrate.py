@@ -56,6 +56,7 @@ from m3t1r.calibration.assessment import (
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, CrossValidation, calibrate_closed_loop, cross_validate
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.repeats import pose_groups
 from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.io.instruments.formats import export_hint
@@ -302,22 +303,19 @@ def _fit(
     gate: bool = True,
 ) -> ClosedLoopCalibration:
     """The fit of the data (`_precheck` judged them first; `gate`: with the --outlier-sigma gate)."""
-    kwargs = {} if args.max_iterations is None else {"max_iterations": args.max_iterations}
-    return calibrate_closed_loop(
-        nominal,
-        data.measurements,
-        noise,
+    options = CalibrationOptions(
+        noise=noise,
         setup=MeasurementSetup(marker=marker),
         estimate_frame=estimate_frame,
         estimate_marker=args.marker is not None,
         outlier_sigma=(args.outlier_sigma or None) if gate else None,
         select=args.select == "loo",
         fixed=args.fix,
-        priors=args.prior,
-        progress=progress,
+        priors=args.prior or {},
         groups=pose_groups(data.measurements.actuators, data.sources),
-        **kwargs,
+        max_iterations=args.max_iterations,
     )
+    return calibrate_closed_loop(nominal, data.measurements, options, progress=progress)
 
 
 def _left(calibration: ClosedLoopCalibration, data: MeasurementFile) -> ResidualSummary:

@@ -50,6 +50,7 @@ from m3t1r.calibration.assessment import (
 from m3t1r.calibration.identification import parameter_columns
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.repeats import pose_groups
 from m3t1r.calibration.serial import SerialCalibration, calibrate_serial, require_gravity_load
 from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial, held_out_errors
@@ -252,7 +253,7 @@ def _fit_causes(
         )
         if order:  # the whole story: every other check would read the scrambled orientations
             return order
-    after = calibration.residual_after
+    after = calibration.rms_after
     beyond_noise = not calibration.converged or not calibration.variance_factor <= MAX_NOISE_RATIO**2
     return _diagnose(model, chain, data, marker, estimate_frame) + residual_causes(
         after.position,
@@ -444,16 +445,10 @@ def _fit(
     estimate_frame: bool,
     gate: bool = True,
 ) -> SerialCalibration:
-    kwargs = {} if args.max_iterations is None else {"max_iterations": args.max_iterations}
     measured = np.array([g.translation for g in data.poses]) if data.position_only else data.poses
     if data.points is not None:
         measured = data.points
-    return calibrate_serial(
-        model,
-        chain,
-        data.readings,
-        measured,
-        position_only=data.position_only,
+    options = CalibrationOptions(
         noise=noise,
         setup=MeasurementSetup(marker=marker),
         estimate_frame=estimate_frame,
@@ -464,13 +459,14 @@ def _fit(
         fixed=list(args.fix or ()),
         priors=dict(args.prior or {}),
         groups=pose_groups(data.readings, data.sources),
-        **kwargs,
+        max_iterations=args.max_iterations,
     )
+    return calibrate_serial(model, chain, data.readings, measured, options, position_only=data.position_only)
 
 
 def _left(calibration: SerialCalibration, data: SerialCampaign) -> ResidualSummary:
     """What the fit left; with several points per pose, each point seen counts as a 3-row measurement."""
-    after = calibration.residual_after
+    after = calibration.rms_after
     if data.points is not None:
         inliers = np.setdiff1d(np.arange(len(data.points)), calibration.outliers)
         seen = int(np.count_nonzero(np.isfinite(data.points[inliers, :, 0])))
@@ -492,7 +488,7 @@ def _implied_noise(calibration: SerialCalibration, noise: TrackerNoise) -> str:
 
 
 def _print_summary(calibration: SerialCalibration, outlier_lines: list[int]) -> None:
-    before, after = calibration.residual_before, calibration.residual_after
+    before, after = calibration.rms_before, calibration.rms_after
     print(
         f"identified {calibration.base.rank} of {len(calibration.names)} parameters "
         f"(condition number {calibration.base.condition_number:.3g}); fitted {len(calibration.fitted)} in "
@@ -594,8 +590,8 @@ def explain(calibration: SerialCalibration, warnings_seen: Sequence[str] = (), f
     marker_estimated = any(n.startswith("marker.") for n in calibration.names)
     notes += fit_movement_notes(
         moved,
-        calibration.residual_before.position,
-        calibration.residual_after.position,
+        calibration.rms_before.position,
+        calibration.rms_after.position,
         None if marker_estimated else calibration.chain.tool_frame,
         _along_last_axis(calibration.chain),
         std,
@@ -646,7 +642,7 @@ def serial_calibration_report(
     std, fitted = calibration.std(), set(calibration.fitted)
     robot_parameters = [n for n in calibration.names if not n.startswith(("measurement_frame.", "marker."))]
     values = dict(zip(calibration.names, calibration.values))
-    before, after = calibration.residual_before, calibration.residual_after
+    before, after = calibration.rms_before, calibration.rms_after
     return {
         "tool": f"m3t1r {__version__}",
         "created": _dt.datetime.now().isoformat(timespec="seconds"),

@@ -33,6 +33,7 @@ from m3t1r.app.plots import (
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_closed_loop, predicted_measurement_std
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.errors import IdentificationError, InvalidInputError, KinematicsError, PoorExcitationWarning
 from m3t1r.io.outputs import OutputSet
 from m3t1r.metrics import PoseErrors, rotation_angles
@@ -88,14 +89,13 @@ def _subset(measurements: PoseMeasurements, indices: np.ndarray) -> PoseMeasurem
 def cross_validation_curve(
     nominal: Mechanism,
     measurements: PoseMeasurements,
-    noise: TrackerNoise,
+    options: CalibrationOptions,
     seed: int = 0,
     test_fraction: float = 0.2,
-    **fit_options,
 ) -> tuple[list[int], list[float], list[float]]:
     """(training sizes, mean position error [m], mean rotation error [rad]) on held-back poses.
 
-    fit_options go to `calibrate_closed_loop` (e.g. the measurement setup to estimate). Sizes too
+    options go to `calibrate_closed_loop` (the noise, the measurement setup to estimate). Sizes too
     small to identify every parameter are skipped (calibrate_closed_loop refuses them).
     """
     order = np.random.default_rng(seed).permutation(len(measurements))
@@ -107,7 +107,7 @@ def cross_validation_curve(
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", PoorExcitationWarning)  # small subsets are poor by design
-                fitted = calibrate_closed_loop(nominal, _subset(measurements, train[:k]), noise, **fit_options)
+                fitted = calibrate_closed_loop(nominal, _subset(measurements, train[:k]), options)
         except (IdentificationError, KinematicsError):
             continue
         errors = measured_pose_errors(fitted.mechanism, _subset(measurements, test), fitted.setup)
@@ -192,15 +192,13 @@ def _stage_calibration_plots(
             labels=labels,
         )
     ]
-    sizes, position, rotation = cross_validation_curve(
-        nominal,
-        measurements,
-        noise,
-        seed,
+    options = CalibrationOptions(
+        noise=noise,
         setup=MeasurementSetup(marker=start.setup.marker),
         estimate_frame=problem.frame_slot is not None,
         estimate_marker=problem.marker_slot is not None,
     )
+    sizes, position, rotation = cross_validation_curve(nominal, measurements, options, seed)
     if sizes:
         written.append(
             plot_error_vs_poses(

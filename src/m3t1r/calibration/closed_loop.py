@@ -10,52 +10,48 @@ measurement frame [m], orientation in the measured (marker) frame [rad]; positio
 the first three. It is whitened by the tracker noise and minimised by Levenberg-Marquardt (updates
 T(0) <- T(0) exp6(dX), eq. 33) over the base (identifiable) parameters, chosen once at the start
 by column-pivoted QR with the setup's parameters kept first (the gauge: the base-side placements
-the measurement frame makes redundant stay nominal). Then, in that order:
-- outliers: poses beyond `outlier_sigma` noise sigmas are dropped and the fit resumed, every pose
-  re-judged each round, until the flagged set is stable;
-- model selection: forward selection of the base parameters scored by leave-one-pose-out
-  prediction (PRESS, `identification.forward_selection`); if fewer predict better, they alone are
-  refitted from the start;
-- generic rank: where the estimate identifies more than the nominal (a nominal of special
-  geometry) and the added directions explain the residual significantly, the fit continues over
-  every parameter with an effect (`_fit_at_generic_rank`).
+the measurement frame makes redundant stay nominal); then outliers and model selection. Those
+steps are the pipeline both fits share (`m3t1r.calibration.pipeline`); this module is the problem
+(`ClosedLoopProblem`): the assembled poses, the residual and its Jacobian, the registration of the
+setup and the judgement of poses that identify fewer parameters than the machine has.
 """
 
 from __future__ import annotations
 
 import copy
-import math
 import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pinocchio as pin
-import scipy.special
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.error_model import ClosedLoopErrorModel, PlatformSensitivities
 from m3t1r.calibration.identification import (
-    IDENTIFIABILITY_TOLERANCE,
-    OUTLIER_SIGMA,
     REFERENCE_POSES,
     REFERENCE_SEED,
     BaseParameters,
     LMResult,
     ParameterSelection,
-    checked_outlier_sigma,
-    forward_selection,
-    levenberg_marquardt,
-    outlier_poses,
     parameter_columns,
     select_base_parameters,
     triangular_factor,
     unexcited_parameters,
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame, register_marker_rotation
-from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
-from m3t1r.calibration.repeats import grouped_blocks, grouped_folds
-from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning, require_count
+from m3t1r.calibration.measurements import PoseMeasurements, assembled_from_home, measure
+from m3t1r.calibration.pipeline import (
+    CalibrationOptions,
+    LMSettings,
+    PipelineFit,
+    PoseErrorRMS,
+    fit,
+    prior_columns,
+    run_pipeline,
+)
+from m3t1r.calibration.repeats import grouped_folds
+from m3t1r.errors import IdentificationError, InvalidInputError, require_count
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
@@ -64,6 +60,8 @@ from m3t1r.model.workspace import workspace_actuators
 
 __all__ = [
     "ClosedLoopCalibration",
+    "ClosedLoopProblem",
+    "ClosedLoopState",
     "calibrate_closed_loop",
     "pose_errors",
     "predicted_pose_std",
@@ -71,12 +69,8 @@ __all__ = [
     "setup_parameter_names",
     "CrossValidation",
     "cross_validate",
-    "calibration_result",
-    "fit_assembled",
     "structural_rank",
 ]
-
-_MAX_OUTLIER_ROUNDS = 5
 
 
 def setup_parameter_names(
@@ -118,7 +112,7 @@ _BLOCK = 512  # poses per block of the error model's stacks (about 100 kB per po
 
 
 @dataclass(eq=False)
-class _State:
+class ClosedLoopState:
     """An LM iterate: a model and measurement setup, the assembled configuration (N, nq) and
     platform pose (N, 4, 4, base frame) of every measured pose, the parameter steps accumulated
     since the start (for priors), and, once evaluated, its whitened residual and Jacobian."""
@@ -131,23 +125,26 @@ class _State:
     whitened: tuple[np.ndarray, np.ndarray] | None = None
 
 
-class _ClosedLoopProblem:
-    """Whitened measurement residuals over a set of parameter columns (the LeastSquaresProblem
-    protocol). Columns index the machine's parameters, then the setup's (`setup_parameter_names`);
-    priors add one row x_c / sigma_c per parameter c with a prior."""
+class ClosedLoopProblem:
+    """Whitened measurement residuals over a set of parameter columns (the pipeline's
+    `CalibrationProblem`). Columns index the machine's parameters, then the setup's
+    (`setup_parameter_names`, as `options` estimates them); priors {column: sigma} add one row
+    x_c / sigma_c per fitted column c with a prior. From `options`: the noise that whitens, what of
+    the setup is estimated, the rank tolerance and the given marker of the judgement (`check_base`)."""
 
     def __init__(
         self,
         error_model: ClosedLoopErrorModel,
         measurements: PoseMeasurements,
-        noise: TrackerNoise,
         columns: np.ndarray,
-        *,
-        estimate_frame: bool = False,
-        estimate_marker: bool = False,
+        options: CalibrationOptions = CalibrationOptions(),
         priors: Mapping[int, float] | None = None,
     ) -> None:
+        noise, estimate_frame, estimate_marker = options.noise, options.estimate_frame, options.estimate_marker
         self.error_model = error_model
+        self.stream = options.stream_jacobian  # LM on the compressed rows (`streamed`), or on every row
+        self.rank_tolerance = options.rank_tolerance
+        self.reference_marker = options.start_setup.marker  # the reference set is measured through it
         self.measurements = measurements
         self.columns = columns
         self.n_machine = error_model.n_parameters
@@ -183,6 +180,53 @@ class _ClosedLoopProblem:
         self.point_offsets = np.zeros((self.n_points, 3))  # the registered start's, for the reference rank
 
     @property
+    def rows_per_pose(self) -> int:
+        return self.measurements.rows_per_pose
+
+    @property
+    def setup_columns(self) -> np.ndarray:
+        """The measurement setup's columns, after the machine's: the gauge."""
+        return np.arange(self.n_machine, len(self.names))
+
+    default_cost_tolerance = 1e-10
+    default_step_significance = 0.01
+
+    def default_iterations(self, n_parameters: int) -> int:
+        return default_iterations(n_parameters)
+
+    def reselection_bound(self) -> int:
+        return 0  # a shortfall is refused (`check_base`), never left for a re-selection
+
+    def restart(self, state: ClosedLoopState) -> ClosedLoopState:
+        return replace(state, whitened=None)
+
+    def accumulated(self, state: ClosedLoopState) -> np.ndarray:
+        assert state.accumulated is not None, "iterates come from `assemble`"
+        return state.accumulated
+
+    def pose_blocks(self, state: ClosedLoopState) -> np.ndarray:
+        return self.pose_residuals(state) * self.noise_weights.reshape(len(self.measurements), -1)
+
+    def raw_blocks(self, state: ClosedLoopState) -> np.ndarray:
+        return self.pose_residuals(state)
+
+    def jacobian_factor(self, state: ClosedLoopState, with_residual: bool = False) -> np.ndarray:
+        """The triangular factor of the whitened pose rows over every column (`evaluate`, reduce=True),
+        of [J r] with_residual (flagged poses' rows are zero)."""
+        return self.evaluate(state, np.arange(len(self.names)), reduce=True, with_residual=with_residual)[1]
+
+    def check_base(self, base: BaseParameters, factor: np.ndarray, fixed: Sequence[int]) -> None:
+        """IdentificationError when the data identify fewer parameters than the reference pose set
+        does (`_reference_base`), saying why and what would help (`_shortfall`)."""
+        reference = _reference_base(self, self.reference_marker, fixed, self.rank_tolerance)
+        if base.rank >= reference.rank:
+            return
+        missing = unexcited_parameters(factor, self.names, reference.indices, reference.rank - base.rank)
+        hold = _holding_that_identifies(self, self.reference_marker, factor, fixed, self.rank_tolerance, missing)
+        counts = (len(self.measurements), len(self.measurements) * self.rows_per_pose)
+        raise IdentificationError(_shortfall(base, reference, missing, hold, counts, self.rank_tolerance))
+
+    @property
     def weights(self) -> np.ndarray:
         """Per-row 1/sigma of the pose rows; zero on the rows of flagged outliers."""
         return self.noise_weights * np.repeat(self.active, self.measurements.rows_per_pose)
@@ -193,7 +237,7 @@ class _ClosedLoopProblem:
         start: np.ndarray | None,
         setup: MeasurementSetup = MeasurementSetup(),
         accumulated: np.ndarray | None = None,
-    ) -> _State:
+    ) -> ClosedLoopState:
         """Assemble every measured pose on `model` in one vectorised solve (`forward_batch`): each
         from its row of `start` (N, nq) and on that row's branch, or from home (None) on home's.
         The first pose that fails is named in an IdentificationError (InvalidInputError for a slider
@@ -205,13 +249,13 @@ class _ClosedLoopProblem:
             error = InvalidInputError if first.error is InvalidInputError else IdentificationError
             raise error(f"measured pose {first.index} (0-based) does not assemble: {first.reason}")
         accumulated = np.zeros(len(self.names)) if accumulated is None else accumulated
-        return _State(model, solved.q, solved.poses, setup, accumulated)
+        return ClosedLoopState(model, solved.q, solved.poses, setup, accumulated)
 
-    def measured_frames(self, state: _State) -> np.ndarray:
+    def measured_frames(self, state: ClosedLoopState) -> np.ndarray:
         """The model's prediction of every measured frame (N, 4, 4), in the measurement frame."""
         return state.setup.measured_poses(state.poses)
 
-    def pose_residuals(self, state: _State) -> np.ndarray:
+    def pose_residuals(self, state: ClosedLoopState) -> np.ndarray:
         """Unwhitened residual blocks (N, k) of every pose, outliers included (zeros where a point was not seen)."""
         if self._measured_points is not None:
             predicted = state.setup.measured_points(state.poses).reshape(len(state.poses), -1)
@@ -221,7 +265,7 @@ class _ClosedLoopProblem:
         )
         return residual
 
-    def prior_rows(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
+    def prior_rows(self, state: ClosedLoopState) -> tuple[np.ndarray, np.ndarray]:
         """The prior rows x_c / sigma_c of the fitted columns with a prior, in the columns' order, and their
         Jacobian (rows, fitted columns) [1/sigma]."""
         picked = [(i, self.priors[c]) for i, c in enumerate(self.columns) if c in self.priors]
@@ -233,7 +277,7 @@ class _ClosedLoopProblem:
             values[row] = state.accumulated[self.columns[i]] / sigma
         return values, jacobian
 
-    def residual(self, state: _State) -> np.ndarray:
+    def residual(self, state: ClosedLoopState) -> np.ndarray:
         """Whitened residual from the assembled poses alone (LM trial steps)."""
         if state.model is None:  # a trial that did not assemble: every row infinite, prior rows too
             return np.full(len(self.weights) + sum(1 for c in self.columns if c in self.priors), np.inf)
@@ -241,7 +285,7 @@ class _ClosedLoopProblem:
 
     def evaluate(
         self,
-        state: _State,
+        state: ClosedLoopState,
         columns: np.ndarray,
         reduce: bool = False,
         extra_rows: int = 0,
@@ -257,31 +301,69 @@ class _ClosedLoopProblem:
         parameters, in memory independent of the pose count. With with_residual too, the factor of
         [J r] (`triangular_factor`: its last column holds Q^T r, what a linear fit can explain).
         """
-        if self.on_evaluate is not None:
-            self.on_evaluate()
-        solver = ClosedLoopSolver(self.error_model.mechanism.with_model(state.model))
-        machine = columns[columns < self.n_machine]
         n, k = len(state.configurations), self.measurements.rows_per_pose
-        weights = self.weights
         residual = np.empty(n * k + extra_rows)
         jacobian = (
             np.zeros((0, len(columns) + with_residual)) if reduce else np.empty((n * k + extra_rows, len(columns)))
         )
-        for start in range(0, n, _BLOCK):
-            block = slice(start, min(start + _BLOCK, n))
-            sensitivities = self.error_model.platform_sensitivities(solver, state.configurations[block], machine)
+        for block, block_residual, block_jacobian in self.whitened_blocks(state, columns):
             rows = slice(k * block.start, k * block.stop)
-            block_residual, block_jacobian = self._block_rows(state, block, columns, sensitivities)
-            residual[rows] = block_residual * weights[rows]
-            block_jacobian *= weights[rows, None]
+            residual[rows] = block_residual
             if reduce:
                 jacobian = triangular_factor(block_jacobian, residual[rows] if with_residual else None, jacobian)
             else:
                 jacobian[rows] = block_jacobian
         return residual, jacobian
 
+    def whitened_blocks(
+        self, state: ClosedLoopState, columns: np.ndarray
+    ) -> Iterator[tuple[slice, np.ndarray, np.ndarray]]:
+        """The poses in blocks of `_BLOCK`: (the block's poses, their whitened residual rows, their
+        whitened Jacobian rows over `columns`), flagged poses' rows zero. One Jacobian evaluation
+        (`on_evaluate` is called once); the error model's stacks exist for one block at a time."""
+        if self.on_evaluate is not None:
+            self.on_evaluate()
+        solver = ClosedLoopSolver(self.error_model.mechanism.with_model(state.model))
+        machine = columns[columns < self.n_machine]
+        n, k = len(state.configurations), self.measurements.rows_per_pose
+        weights = self.weights
+        for start in range(0, n, _BLOCK):
+            block = slice(start, min(start + _BLOCK, n))
+            sensitivities = self.error_model.platform_sensitivities(solver, state.configurations[block], machine)
+            rows = slice(k * block.start, k * block.stop)
+            block_residual, block_jacobian = self._block_rows(state, block, columns, sensitivities)
+            block_jacobian *= weights[rows, None]
+            yield block, block_residual * weights[rows], block_jacobian
+
+    def streamed(self, state: ClosedLoopState) -> tuple[np.ndarray, np.ndarray]:
+        """The fit's least-squares problem compressed: z = [Q^T r; rho] and [R; 0] from the QR of the
+        whitened pose rows [J r] accumulated block by block (`triangular_factor`), then the prior
+        rows. |z|^2 = |r|^2, R^T z = J^T r and R^T R = J^T J, so Levenberg-Marquardt takes the same
+        steps on them as on (r, J), in memory bounded by the parameters, not the poses."""
+        p = len(self.columns)
+        factor = np.zeros((0, p + 1))
+        for _, block_residual, block_jacobian in self.whitened_blocks(state, self.columns):
+            factor = triangular_factor(block_jacobian, block_residual, previous=factor)
+        prior_values, prior_jacobian = self.prior_rows(state)
+        return np.concatenate((factor[:, p], prior_values)), np.vstack((factor[:, :p], prior_jacobian))
+
+    def pose_rows(self, state: ClosedLoopState) -> tuple[np.ndarray, np.ndarray]:
+        """The inlier poses' whitened residual rows and Jacobian rows over `columns` (a new
+        column-major array the caller may overwrite: the selection projects it in place)."""
+        k = self.rows_per_pose
+        keep = np.repeat(self.active, k)
+        residual = np.empty(np.count_nonzero(keep))
+        jacobian = np.empty((len(residual), len(self.columns)), order="F")
+        at = 0
+        for block, block_residual, block_jacobian in self.whitened_blocks(state, self.columns):
+            kept = keep[k * block.start : k * block.stop]
+            size = np.count_nonzero(kept)
+            residual[at : at + size], jacobian[at : at + size] = block_residual[kept], block_jacobian[kept]
+            at += size
+        return residual, jacobian
+
     def _block_rows(
-        self, state: _State, block: slice, columns: np.ndarray, sensitivities: PlatformSensitivities
+        self, state: ClosedLoopState, block: slice, columns: np.ndarray, sensitivities: PlatformSensitivities
     ) -> tuple[np.ndarray, np.ndarray]:
         """Residual rows and Jacobian rows of the poses in `block` (measurement-frame twists)."""
         if self._measured_points is not None:
@@ -295,7 +377,7 @@ class _ClosedLoopProblem:
         return residual.reshape(-1), (rows @ twists).reshape(residual.size, -1)
 
     def _point_rows(
-        self, state: _State, block: slice, columns: np.ndarray, sensitivities: PlatformSensitivities
+        self, state: ClosedLoopState, block: slice, columns: np.ndarray, sensitivities: PlatformSensitivities
     ) -> tuple[np.ndarray, np.ndarray]:
         """`_block_rows` of P points: point k at F T_platform p_k moves by v + w x p_k under the
         platform's twist (v, w) in the measurement frame, and by R_(F T_platform) along its own offset."""
@@ -331,10 +413,16 @@ class _ClosedLoopProblem:
                 blocks.append(adjoint_matrices(measured)[:, :, c - self.marker_slot, None])
         return measured, np.concatenate(blocks, axis=2)
 
-    def residual_and_jacobian(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
+    def residual_and_jacobian(self, state: ClosedLoopState) -> tuple[np.ndarray, np.ndarray]:
+        """The whitened residual and Jacobian over `columns`: every row (pose rows, then priors), or
+        with `stream` their compressed form (`streamed`), which has the same cost, gradient and
+        normal equations in p + 1 rows (and the priors')."""
         if state.model is None:  # a trial step that did not assemble: reject it
-            n = len(self.residual(state))
+            priors = sum(1 for c in self.columns if c in self.priors)
+            n = len(self.columns) + 1 + priors if self.stream else len(self.residual(state))
             return np.full(n, np.inf), np.zeros((n, len(self.columns)))
+        if state.whitened is None and self.stream:
+            state.whitened = self.streamed(state)
         if state.whitened is None:
             prior_values, prior_jacobian = self.prior_rows(state)
             residual, jacobian = self.evaluate(state, self.columns, extra_rows=len(prior_values))
@@ -343,11 +431,11 @@ class _ClosedLoopProblem:
             state.whitened = (residual, jacobian)
         return state.whitened
 
-    def release(self, state: _State) -> None:
-        """LM hook: a superseded iterate drops its Jacobian (`_release`)."""
-        _release(state)
+    def release(self, state: ClosedLoopState) -> None:
+        """LM hook: a superseded iterate drops its Jacobian; it keeps its model, setup and assembly."""
+        state.whitened = None
 
-    def retract(self, state: _State, step: np.ndarray) -> _State:
+    def retract(self, state: ClosedLoopState, step: np.ndarray) -> ClosedLoopState:
         assert state.accumulated is not None, "LM iterates come from `assemble`"
         vector = np.zeros(len(self.names))
         vector[self.columns] = step
@@ -366,7 +454,7 @@ class _ClosedLoopProblem:
         try:  # from the iterate's assembly, which the batch's chord Newton corrects in a few steps
             return self.assemble(model, state.configurations, setup, state.accumulated + vector)
         except IdentificationError:  # a pose does not assemble on the trial model: LM rejects the step
-            return _State(None, state.configurations, np.zeros((0, 4, 4)), setup, state.accumulated + vector)
+            return ClosedLoopState(None, state.configurations, np.zeros((0, 4, 4)), setup, state.accumulated + vector)
 
 
 @dataclass(frozen=True)
@@ -384,6 +472,8 @@ class ClosedLoopCalibration:
     freedom of the inliers under the stated noise (about 1 when the model explains the data);
     rms_before / rms_after: position [m] and orientation [rad] RMS of the inliers' residual at the
     start (nominal machine, registered frame) and the end (orientation nan when position-only).
+    lm: the last Levenberg-Marquardt run, iterations: LM's iterations over every run; problem,
+    start and settings: the fit's problem, registered start and LM settings (`cross_validate`).
     """
 
     mechanism: Mechanism
@@ -393,73 +483,44 @@ class ClosedLoopCalibration:
     std: dict[str, float]
     base: BaseParameters
     fitted: tuple[str, ...]
-    rms_before: tuple[float, float]
-    rms_after: tuple[float, float]
+    rms_before: PoseErrorRMS
+    rms_after: PoseErrorRMS
     variance_factor: float
     outliers: tuple[int, ...]
     covariance: np.ndarray = field(repr=False)
     lm: LMResult = field(repr=False)
+    iterations: int = 0
     selection: ParameterSelection | None = field(default=None, repr=False)
-    problem: _ClosedLoopProblem | None = field(default=None, repr=False)
-    start: _State | None = field(default=None, repr=False)
-    options: dict = field(default_factory=dict, repr=False)
+    problem: ClosedLoopProblem | None = field(default=None, repr=False)
+    start: ClosedLoopState | None = field(default=None, repr=False)
+    settings: LMSettings | None = field(default=None, repr=False)
 
     @property
     def converged(self) -> bool:
         return bool(self.lm.converged)
 
-
-def _rms(residual: np.ndarray, points_seen: int | None = None) -> tuple[float, float]:
-    """Position [m] and orientation [rad] RMS of residual blocks (N, k); with points, the position RMS
-    over the `points_seen` points (the blocks' other rows are zero) and no orientation."""
-    if points_seen is not None:
-        return float(np.sqrt(np.sum(residual**2) / max(points_seen, 1))), float("nan")
-    position = float(np.sqrt(np.mean(np.sum(residual[:, :3] ** 2, axis=1))))
-    rotation = float(np.sqrt(np.mean(np.sum(residual[:, 3:] ** 2, axis=1)))) if residual.shape[1] == 6 else float("nan")
-    return position, rotation
+    @property
+    def termination(self) -> str:
+        return self.lm.termination
 
 
 @on_one_blas_thread
 def calibrate_closed_loop(
     mechanism: Mechanism,
     measurements: PoseMeasurements,
-    noise: TrackerNoise = TrackerNoise(),
+    options: CalibrationOptions = CalibrationOptions(),
     *,
-    setup: MeasurementSetup | None = None,
-    estimate_frame: bool = False,
-    estimate_marker: bool = False,
-    outlier_sigma: float | None = OUTLIER_SIGMA,
-    select: bool = False,
-    fixed: Sequence[str] = (),
-    priors: Mapping[str, float] | None = None,
-    rank_tolerance: float = IDENTIFIABILITY_TOLERANCE,
-    max_iterations: int | None = None,
-    cost_tolerance: float = 1e-10,
-    absolute_cost_tolerance: float = 1e-6,
-    step_significance: float = 0.01,
-    refine: bool = False,
-    refine_rank_tolerance: float = 1e-7,
-    refine_iterations: int = 400,
     error_model: ClosedLoopErrorModel | None = None,
     progress: Callable[[], None] | None = None,
-    groups: np.ndarray | None = None,
 ) -> ClosedLoopCalibration:
     """Identify the placement errors of every joint and closure/platform frame (module docstring),
-    and the measurement setup where asked.
+    and the measurement setup where asked (`CalibrationOptions`: noise, setup, outliers, selection,
+    fixed parameters and priors, LM's tolerances; a closed loop takes no joint noise or compliance).
 
-    setup: the measurement frame and marker (default: identity, i.e. the platform frame measured
-    in the base frame). estimate_frame: estimate the frame, started by rigid registration of the
-    nominal model's predictions to the measurements (any rotation, metres away); estimate_marker:
-    estimate the marker (its position only with position-only data); with several points per pose
-    (`PoseMeasurements.points`) every point's offset in the platform frame is estimated instead, and
-    only the points seen count (residual rows, degrees of freedom, outlier gate). outlier_sigma: the gate for
-    outlier poses in noise sigmas (None: keep every pose). select: model selection by
-    leave-one-pose-out prediction. max_iterations: LM's cap (default `default_iterations` of the
-    base-parameter count). fixed: parameter or placement names held at nominal;
-    priors: {name: sigma} adds a Tikhonov row x / sigma toward nominal ([m] or [rad]).
-    progress: called once per Jacobian evaluation (here and in `cross_validate` of the result).
-    groups: (N,) a label per pose, repeats of one pose sharing one (`repeats.pose_groups`): model
-    selection then leaves each group out whole (`repeats.grouped_blocks`).
+    With several points per pose (`PoseMeasurements.points`) every point's offset in the platform
+    frame is estimated, and only the points seen count (residual rows, degrees of freedom, outlier
+    gate). error_model: the placements to identify (default: every one); progress: called once per
+    Jacobian evaluation (here and in `cross_validate` of the result).
 
     LM stops when an accepted step lowers the whitened cost 1/2 chi^2 by less than
     step_significance * s^2, s^2 = chi^2 / (m - p) being the a-posteriori noise variance (m rows,
@@ -467,81 +528,41 @@ def calibrate_closed_loop(
     own standard deviation (0.14 for 0.01), which the data cannot tell from noise. Being relative to
     the fit's own residual, the rule keeps noise-free data converging to rounding level. Also when
     the cost drops by less than cost_tolerance relatively or absolute_cost_tolerance absolutely.
-    refine=True (exact data only, e.g. simulation studies): after convergence, re-select the
-    base parameters at the estimate, where some of the directions unidentifiable at the nominal
-    geometry have become weakly identifiable (O(error^2) effects), and continue with damped LM.
-    Raises IdentificationError when there are fewer measurement rows than base parameters, when a
-    measured pose cannot be assembled on the starting model, or when LM ends on a model that does
-    not assemble. A fit that did not converge is returned with converged False: `m3t1r.assessment`
-    judges it.
+    Raises IdentificationError when the poses identify fewer parameters than the model can (saying
+    what would help), when a measured pose cannot be assembled on the starting model, or when LM
+    ends on a model that does not assemble. A fit that did not converge is returned with converged
+    False: `m3t1r.assessment` judges it.
     """
-    outlier_sigma = checked_outlier_sigma(outlier_sigma)
-    if max_iterations is not None:
-        max_iterations = require_count(max_iterations, "max_iterations")
+    if options.compliance or options.joint_noise:
+        raise InvalidInputError(
+            "a closed-loop fit takes no joint noise or compliance (its readings are the sliders): "
+            "they are options of a serial robot's calibration"
+        )
     error_model = error_model or ClosedLoopErrorModel(mechanism)
-    setup = setup or MeasurementSetup()
-    problem = _ClosedLoopProblem(
-        error_model,
-        measurements,
-        noise,
-        np.zeros(0, dtype=int),
-        estimate_frame=estimate_frame,
-        estimate_marker=estimate_marker,
-    )
-    everything = problem.columns = np.arange(len(problem.names))
+    setup = options.start_setup
+    problem = ClosedLoopProblem(error_model, measurements, np.zeros(0, dtype=int), options)
+    problem.columns = np.arange(len(problem.names))
     problem.on_evaluate = progress
-    fixed_columns = parameter_columns(problem.names, fixed, "fixed parameter")
-    problem.priors = {
-        c: sigma for name, sigma in (priors or {}).items() for c in parameter_columns(problem.names, [name], "prior")
-    }
-    if any(not (math.isfinite(s) and s > 0) for s in problem.priors.values()):
-        raise InvalidInputError("a prior's sigma must be a positive number [m or rad]")
+    problem.priors = prior_columns(problem.names, options.priors)
     try:
         start = problem.assemble(mechanism.model, None, setup=setup)
     except IdentificationError as exc:
         raise IdentificationError(f"on the starting model, {exc}") from None
     start.setup = (
-        _registered_points(problem, start, setup, estimate_frame)
+        _registered_points(problem, start, setup, options.estimate_frame)
         if problem.n_points
-        else _registered_setup(problem, start, setup, estimate_frame, estimate_marker)
+        else _registered_setup(problem, start, setup, options.estimate_frame, options.estimate_marker)
     )
-    residual, factor = problem.evaluate(start, everything, reduce=True)
-    factor[:, fixed_columns] = 0.0
-    forced = np.arange(error_model.n_parameters, len(everything))
-    base = select_base_parameters(factor, problem.names, rank_tolerance=rank_tolerance, forced=forced)
-    reference = _reference_base(problem, setup.marker, fixed_columns, rank_tolerance)
-    if base.rank < reference.rank:
-        missing = unexcited_parameters(factor, problem.names, reference.indices, reference.rank - base.rank)
-        hold = _holding_that_identifies(problem, setup.marker, factor, fixed_columns, rank_tolerance, missing)
-        raise IdentificationError(
-            _shortfall(base, reference, missing, hold, (len(measurements), len(residual)), rank_tolerance)
-        )
-    problem.columns = np.array(base.indices)
-    state = replace(start, whitened=None)
-    # Damping starts low: 1e-3 over-damps the weak directions (about twice the iterations).
-    degrees_of_freedom = max(len(residual) - base.rank, 1)
-    if max_iterations is None:
-        max_iterations = default_iterations(base.rank)
-    options = dict(
-        max_iterations=max_iterations,
-        initial_damping=1e-6,
-        absolute_cost_tolerance=absolute_cost_tolerance,
-        cost_tolerance=max(cost_tolerance, 2.0 * step_significance / degrees_of_freedom),
-    )
-    result = fit_assembled(problem, state, options)
-    if outlier_sigma is not None:
-        result = _reject_outliers(problem, state, result, outlier_sigma, options)
-    selection = None
-    if select:
-        selection, result = _select_parameters(problem, start, result, forced, options, groups)
-    result = _fit_at_generic_rank(problem, result, base.rank, fixed_columns, forced, rank_tolerance, options)
-    if refine:
-        result = _refine(problem, result, refine_rank_tolerance, refine_iterations)
-    return replace(calibration_result(mechanism, problem, start, result, base, selection), start=start, options=options)
+    outcome = run_pipeline(problem, start, options)
+    return _calibration(mechanism, problem, outcome)
 
 
 def _registered_setup(
-    problem: _ClosedLoopProblem, start: _State, setup: MeasurementSetup, estimate_frame: bool, estimate_marker: bool
+    problem: ClosedLoopProblem,
+    start: ClosedLoopState,
+    setup: MeasurementSetup,
+    estimate_frame: bool,
+    estimate_marker: bool,
 ) -> MeasurementSetup:
     """The setup LM starts from: the frame by rigid registration of the nominal predictions
     (positions), then, with orientation data, the marker's orientation in closed form."""
@@ -563,7 +584,7 @@ _POINT_REGISTRATION_ROUNDS = 5  # alternations of frame and offsets: the start L
 
 
 def _registered_points(
-    problem: _ClosedLoopProblem, start: _State, setup: MeasurementSetup, estimate_frame: bool
+    problem: ClosedLoopProblem, start: ClosedLoopState, setup: MeasurementSetup, estimate_frame: bool
 ) -> MeasurementSetup:
     """The setup LM starts from with P points: alternately the frame by rigid registration of every
     point seen (with the current offsets, zero at first) and each point's offset as the mean of its
@@ -591,219 +612,35 @@ def _registered_points(
     )
 
 
-def fit_assembled(problem: _ClosedLoopProblem, state: _State, options: dict) -> LMResult:
-    """`levenberg_marquardt` with `options`; IdentificationError when it ends on a model that does not assemble."""
-    result = levenberg_marquardt(problem, state, **options)
-    if result.state.model is None:
-        raise IdentificationError("calibration ended on a model that does not assemble")
-    return result
-
-
-def _whitened_blocks(problem: _ClosedLoopProblem, state: _State) -> np.ndarray:
-    return problem.pose_residuals(state) * problem.noise_weights.reshape(len(problem.measurements), -1)
-
-
-def _measured_rows(problem: _ClosedLoopProblem) -> np.ndarray | None:
-    """Rows measured per pose (3 per point seen) with points, None otherwise (every row)."""
-    return problem.seen.sum(axis=1) if problem.n_points else None
-
-
-def _reject_outliers(
-    problem: _ClosedLoopProblem, start: _State, result: LMResult, sigma: float, options: dict
-) -> LMResult:
-    """Flag poses beyond `sigma`, refit without them from the start, re-judge every pose; until the
-    set is stable. Resuming from the estimate instead stalls: the outliers pull it into a curved
-    valley of the weak directions, where LM then creeps for tens of iterations."""
-    for _ in range(_MAX_OUTLIER_ROUNDS):
-        blocks, measured_rows = _whitened_blocks(problem, result.state), _measured_rows(problem)
-        flagged, _scale = (
-            outlier_poses(blocks, sigma) if measured_rows is None else outlier_poses(blocks, sigma, measured_rows)
-        )
-        if np.array_equal(~flagged, problem.active):
-            break
-        if np.count_nonzero(problem.seen[~flagged]) <= len(problem.columns):
-            raise IdentificationError(
-                f"{np.count_nonzero(flagged)} of {len(flagged)} poses are outliers: "
-                "too few poses are left to fit the model"
-            )
-        problem.active = ~flagged
-        _release(result.state)
-        result = fit_assembled(problem, replace(start, whitened=None), options)
-    return result
-
-
-def _release(state: _State) -> None:
-    """Drop the Jacobian an iterate holds for the next LM step: a superseded fit's final state keeps
-    only its model, setup and assembly."""
-    state.whitened = None
-
-
-def _select_parameters(
-    problem: _ClosedLoopProblem,
-    start: _State,
-    result: LMResult,
-    forced: np.ndarray,
-    options: dict,
-    groups: np.ndarray | None = None,
-) -> tuple[ParameterSelection, LMResult]:
-    """Forward selection by leave-one-pose-out PRESS on the fit linearised at the estimate
-    (residual at the start ~ r - J dx); a smaller set is refitted from the start. (Resuming from
-    the estimate with the dropped parameters reset saved one iteration in eight: not worth it.)"""
-    rows = problem.measurements.rows_per_pose
-    r, J = problem.residual_and_jacobian(result.state)
-    pose_rows = len(problem.weights)
-    keep = np.repeat(problem.active, rows)
-    step = result.state.accumulated[problem.columns]
-    r0 = (r[:pose_rows] - J[:pose_rows] @ step)[keep]
-    forced_positions = np.flatnonzero(np.isin(problem.columns, forced))
-    pose_jacobian = J[:pose_rows] if keep.all() else J[:pose_rows][keep]  # a copy only with outliers
-    pose_jacobian, r0, block = grouped_blocks(
-        pose_jacobian, r0, rows, None if groups is None else np.asarray(groups)[problem.active]
-    )
-    selection = forward_selection(pose_jacobian, r0, block, range(len(problem.columns)), forced_positions)
-    if len(selection.indices) == len(problem.columns):
-        return selection, result
-    problem.columns = problem.columns[list(selection.indices)]
-    _release(result.state)
-    return selection, fit_assembled(problem, replace(start, whitened=None), options)
-
-
-def _refine(problem: _ClosedLoopProblem, result: LMResult, rank_tolerance: float, iterations: int) -> LMResult:
-    everything = np.arange(len(problem.names))
-    _, factor = problem.evaluate(result.state, everything, reduce=True)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", PoorExcitationWarning)  # weak by construction
-        refined = select_base_parameters(factor, problem.names, rank_tolerance=rank_tolerance)
-    if refined.rank <= len(problem.columns):
-        return result
-    problem.columns = np.array(refined.indices)
-    state = problem.assemble(
-        result.state.model, result.state.configurations, result.state.setup, result.state.accumulated
-    )
-    return levenberg_marquardt(problem, state, max_iterations=iterations, initial_damping=1e-9, cost_tolerance=1e-14)
-
-
-#: The F test's p-value below which `_fit_at_generic_rank` refits and keeps the refit: a drop in chi^2 that
-#: fitting noise with that many more parameters gives once in a thousand fits.
-_GENERIC_RANK_SIGNIFICANCE = 1e-3
-
-
-def _fit_at_generic_rank(
-    problem: _ClosedLoopProblem,
-    result: LMResult,
-    nominal_rank: int,
-    fixed_columns: Sequence[int],
-    forced: np.ndarray,
-    rank_tolerance: float,
-    options: dict,
-) -> LMResult:
-    """The fit over every parameter with an effect, where the estimate identifies more than the nominal.
-
-    A nominal of special geometry (exact parallelograms, a plane) moves the platform only at second
-    order along some placement errors, which a machine with errors moves at first order: base
-    parameters chosen at the nominal are then too few to follow the curved set of machines that
-    explain the data, and the fit stalls at a residual of order error^2. When the base fit is within the
-    stated noise (chi^2 at most its degrees of freedom: a fit beyond it has a model error, not a rank
-    cap), the rank at the estimate exceeds `nominal_rank` and the directions it adds explain the
-    residual significantly (`_significant`, linearised at the estimate), LM resumes from it over
-    every column with an effect there, damped in the parameters' own units (`unit_damping`:
-    combinations the data do not determine keep their values rather than being driven along that set).
-    The refit is kept when it converged and its own drop in chi^2 passes the same test. On noisy data
-    the added directions explain noise: no refit.
-    """
-    everything = np.arange(len(problem.names))
-    residual, augmented = problem.evaluate(result.state, everything, reduce=True, with_residual=True)
-    factor, rotated = augmented[:, :-1], augmented[:, -1]  # R and Q^T r of the whitened pose rows
-    factor[:, fixed_columns] = 0.0
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", PoorExcitationWarning)  # the added directions are weak by nature
-        here = select_base_parameters(factor, problem.names, rank_tolerance=rank_tolerance, forced=forced)
-    chi2, rows = float(residual @ residual), np.count_nonzero(problem.weights)
-    extra, dof = here.rank - len(problem.columns), rows - here.rank
-    # A base fit beyond the stated noise is not capped by the rank: a model error is (a frame, a marker),
-    # which the added weak directions must not absorb into implausible placements.
-    within_noise = chi2 <= rows - len(problem.columns)
-    if not within_noise or here.rank <= nominal_rank:
-        return result
-    if not _significant(chi2, chi2 - _explained(factor, rotated, here), extra, dof):
-        return result
-    base_columns = problem.columns
-    norms = np.linalg.norm(factor, axis=0)
-    problem.columns = everything[norms > rank_tolerance * norms.max()]
-    state = result.state
-    state = problem.assemble(state.model, state.configurations, state.setup, state.accumulated)
-    refit = levenberg_marquardt(
-        problem, state, **{**options, "max_iterations": default_iterations(here.rank)}, unit_damping=True
-    )
-    if refit.converged and _significant(2.0 * result.cost, 2.0 * refit.cost, extra, dof):
-        _release(result.state)
-        return refit
-    problem.columns = base_columns
-    return result
-
-
-def _explained(factor: np.ndarray, rotated: np.ndarray, base: BaseParameters) -> float:
-    """The part of |r|^2 a linear fit over the base columns explains, from the triangular factor R of the
-    whitened Jacobian and Q^T r (`evaluate` with_residual): |P Q^T r|^2, P projecting on R's base columns."""
-    columns = factor[:, list(base.indices)]
-    columns = columns / np.linalg.norm(columns, axis=0)
-    fitted = columns @ np.linalg.lstsq(columns, rotated, rcond=None)[0]
-    return float(fitted @ fitted)
-
-
-def _significant(before: float, after: float, extra: int, dof: int) -> bool:
-    """Whether chi^2 dropping from `before` to `after` with `extra` more parameters is beyond what fitting
-    noise gives: the F test of the drop per parameter against the residual's own variance after / dof,
-    at p < `_GENERIC_RANK_SIGNIFICANCE`."""
-    if extra <= 0 or dof <= 0 or not after < before:
-        return False
-    ratio = (before - after) / extra / max(after / dof, 1e-300)
-    return bool(scipy.special.fdtrc(extra, dof, ratio) < _GENERIC_RANK_SIGNIFICANCE)
-
-
-def calibration_result(
-    mechanism: Mechanism,
-    problem: _ClosedLoopProblem,
-    start: _State,
-    result: LMResult,
-    base: BaseParameters,
-    selection: ParameterSelection | None,
+def _calibration(
+    mechanism: Mechanism, problem: ClosedLoopProblem, outcome: PipelineFit[ClosedLoopState]
 ) -> ClosedLoopCalibration:
-    """The calibration a fit ended on: covariance and std from its final whitened Jacobian, the variance
-    factor, the inliers' RMS before and after, the outliers and the identified model."""
-    final_residual, final_jacobian = problem.residual_and_jacobian(result.state)
-    # Covariance of the fitted parameters from the noise model: (J^T W J)^-1 with whitened J.
-    # From the SVD of J (of its triangular factor: the same singular values and right vectors, in
-    # memory independent of the pose count) rather than pinv(J^T J): squaring the condition number
-    # of a weakly excited set can make the diagonal slightly negative.
-    _, singular, vt = np.linalg.svd(triangular_factor(final_jacobian), full_matrices=False)
-    kept = singular > 1e-12 * singular[0]
-    covariance = (vt[kept].T / singular[kept] ** 2) @ vt[kept]
+    """The calibration a pipeline ended on: the identified machine and its parameters by name."""
+    state = outcome.lm.state
+    assert state.model is not None, "the pipeline ends on a model that assembles"
     std = np.zeros(len(problem.names))
-    std[problem.columns] = np.sqrt(np.sum((vt[kept] / singular[kept, None]) ** 2, axis=0))
+    std[list(outcome.columns)] = outcome.std
     error_model = problem.error_model
-    identified = _accumulated_parameters(error_model, mechanism.model, result.state.model)
-    active_rows = np.count_nonzero(problem.weights) + len(final_residual) - len(problem.weights)
-    dof = active_rows - len(problem.columns)
-    inliers = problem.active
-    # (getattr: `_calibration` reads only a few of the problem's parts; one of points has `n_points`)
-    points_seen = int(np.count_nonzero(problem.seen[inliers])) // 3 if getattr(problem, "n_points", 0) else None
+    identified = _accumulated_parameters(error_model, mechanism.model, state.model)
     return ClosedLoopCalibration(
-        mechanism=rehomed(mechanism.with_model(result.state.model)),
+        mechanism=rehomed(mechanism.with_model(state.model)),
         error_model=error_model,
-        setup=result.state.setup,
+        setup=state.setup,
         parameters=dict(zip(error_model.names, identified)),
         std=dict(zip(problem.names, std)),
-        base=base,
-        fitted=tuple(problem.names[c] for c in problem.columns),
-        rms_before=_rms(problem.pose_residuals(start)[inliers], points_seen),
-        rms_after=_rms(problem.pose_residuals(result.state)[inliers], points_seen),
-        variance_factor=float(final_residual @ final_residual / dof) if dof > 0 else float("nan"),
-        outliers=tuple(int(i) for i in np.flatnonzero(~inliers)),
-        covariance=covariance,
-        lm=result,
-        selection=selection,
+        base=outcome.base,
+        fitted=tuple(problem.names[c] for c in outcome.columns),
+        rms_before=outcome.rms_before,
+        rms_after=outcome.rms_after,
+        variance_factor=outcome.variance_factor,
+        outliers=outcome.outliers,
+        covariance=outcome.covariance,
+        lm=outcome.lm,
+        iterations=outcome.iterations,
+        selection=outcome.selection,
         problem=problem,
+        start=outcome.start,
+        settings=outcome.settings,
     )
 
 
@@ -856,17 +693,13 @@ def cross_validate(
             held = inliers[assignment == fold]
             fold_problem.active = problem.active.copy()
             fold_problem.active[held] = False
-            result = fit_assembled(fold_problem, replace(start, whitened=None), calibration.options)
+            assert calibration.settings is not None, "a calibration made by calibrate_closed_loop has its settings"
+            result = fit(fold_problem, fold_problem.restart(start), calibration.settings)
             residuals[assignment == fold] = fold_problem.pose_residuals(result.state)[held]
     else:
-        r, J = problem.residual_and_jacobian(calibration.lm.state)
-        information, gradient = J.T @ J, J.T @ r
-        for fold in range(folds):
-            rows = (k * inliers[assignment == fold, None] + np.arange(k)).reshape(-1)
-            step = -np.linalg.lstsq(information - J[rows].T @ J[rows], gradient - J[rows].T @ r[rows], rcond=None)[0]
-            weights = problem.weights[rows]
-            predicted = np.divide(r[rows] + J[rows] @ step, weights, out=np.zeros(len(rows)), where=weights != 0)
-            residuals[assignment == fold] = predicted.reshape(-1, k)
+        fold_of = np.full(len(problem.active), -1)
+        fold_of[inliers] = assignment
+        residuals[:] = _fold_predictions(problem, calibration.lm.state, fold_of, folds)[inliers]
     if problem.n_points:  # one error per point seen
         position = np.linalg.norm(residuals.reshape(len(inliers), -1, 3), axis=2)[problem.seen[inliers][:, ::3]]
         return CrossValidation(
@@ -875,6 +708,41 @@ def cross_validate(
     position = np.linalg.norm(residuals[:, :3], axis=1)
     rotation = np.linalg.norm(residuals[:, 3:], axis=1) if k == 6 else np.full(len(inliers), np.nan)
     return CrossValidation(PoseErrors(position, rotation), folds, len(np.unique(labels[inliers])))
+
+
+def _fold_predictions(
+    problem: ClosedLoopProblem, state: ClosedLoopState, fold_of: np.ndarray, folds: int
+) -> np.ndarray:
+    """Unwhitened residual blocks (N, k) each fold's Gauss-Newton refit predicts for its poses
+    (`cross_validate`; zero rows for the poses of no fold, fold -1), in two passes over the pose
+    blocks: the folds' normal equations J_F^T J_F and J_F^T r_F, then the predictions r_F + J_F dx_F
+    of their own rows. Memory is bounded by the parameters (and the folds), not the poses."""
+    r, J = problem.residual_and_jacobian(state)  # compressed or not: the same normal equations
+    information, gradient = J.T @ J, J.T @ r
+    k, p = problem.rows_per_pose, len(problem.columns)
+    fold_information, fold_gradient = np.zeros((folds, p, p)), np.zeros((folds, p))
+    for block, block_residual, block_jacobian in problem.whitened_blocks(state, problem.columns):
+        row_folds = np.repeat(fold_of[block], k)
+        for fold in np.unique(row_folds[row_folds >= 0]):
+            rows = row_folds == fold
+            fold_information[fold] += block_jacobian[rows].T @ block_jacobian[rows]
+            fold_gradient[fold] += block_jacobian[rows].T @ block_residual[rows]
+    steps = np.array(
+        [
+            -np.linalg.lstsq(information - fold_information[f], gradient - fold_gradient[f], rcond=None)[0]
+            for f in range(folds)
+        ]
+    )
+    predicted = np.zeros((len(fold_of), k))
+    weights = problem.weights.reshape(-1, k)
+    for block, block_residual, block_jacobian in problem.whitened_blocks(state, problem.columns):
+        poses = np.arange(block.start, block.stop)[fold_of[block] >= 0]
+        local = poses - block.start
+        rows = block_residual.reshape(-1, k)[local] + np.einsum(
+            "nkp,np->nk", block_jacobian.reshape(-1, k, p)[local], steps[fold_of[poses]]
+        )
+        predicted[poses] = np.divide(rows, weights[poses], out=np.zeros_like(rows), where=weights[poses] != 0)
+    return predicted
 
 
 def default_iterations(n_parameters: int) -> int:
@@ -888,7 +756,7 @@ _REFERENCE_POSES = REFERENCE_POSES  # a well-spread pose set on which the model'
 
 
 def structural_rank(
-    problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
+    problem: ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
 ) -> int:
     """Number of identifiable parameters of the model and setup themselves, independent of the
     user's poses (`_reference_base`)."""
@@ -896,7 +764,7 @@ def structural_rank(
 
 
 def _reference_base(
-    problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
+    problem: ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
 ) -> BaseParameters:
     """The base parameters on a fixed, seeded set of poses spread over the workspace box: what the
     model and setup can identify, whatever the user's poses. Cached (it depends on the starting
@@ -931,7 +799,7 @@ _STRUCTURAL_RANKS: dict[tuple, BaseParameters] = {}
 
 
 def _reference_selection(
-    problem: _ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
+    problem: ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
 ) -> BaseParameters:
     error_model = problem.error_model
     mechanism = error_model.mechanism
@@ -949,13 +817,13 @@ def _reference_selection(
         )
     names = problem.names
     everything = np.arange(len(names))
-    twin = _ClosedLoopProblem(
+    twin = ClosedLoopProblem(
         error_model,
         reference,
-        TrackerNoise(),
         everything,
-        estimate_frame=problem.frame_slot is not None,
-        estimate_marker=problem.marker_slot is not None,
+        CalibrationOptions(
+            estimate_frame=problem.frame_slot is not None, estimate_marker=problem.marker_slot is not None
+        ),
     )
     twin.noise_weights = np.tile(problem.row_weights, len(reference))
     state = twin.assemble(mechanism.model, None, setup=MeasurementSetup(marker=marker, points=offsets))
@@ -973,7 +841,7 @@ _MARGINAL = 100.0
 
 
 def _holding_that_identifies(
-    problem: _ClosedLoopProblem,
+    problem: ClosedLoopProblem,
     marker: pin.SE3,
     factor: np.ndarray,
     fixed_columns: Sequence[int],

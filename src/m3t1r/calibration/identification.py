@@ -507,6 +507,7 @@ def forward_selection(
     forced: Sequence[int] | np.ndarray = (),
     *,
     rank_tolerance: float = 1e-9,
+    overwrite: bool = False,
 ) -> ParameterSelection:
     """Greedy forward selection of columns of the whitened linear model r + J dx (m = N k rows).
 
@@ -515,6 +516,9 @@ def forward_selection(
     (e_loo_i = (I - H_ii)^-1 e_i, H_ii the pose's k x k block). The whole path is scored and the
     set with the lowest PRESS is chosen: a parameter enters only where it predicts left-out poses
     better, not merely fits the training set better.
+
+    overwrite=True lets a column-major float64 `jacobian` be the projected copy itself (its columns
+    are overwritten): the selection then holds no second matrix of every row.
     """
     J = _as_matrix(jacobian, "jacobian")
     r = _as_rows(residual, J.shape[0], "residual")
@@ -529,9 +533,15 @@ def forward_selection(
     per_pose = [_loo_press(fitted.reshape(n, k), leverage)]
     remaining = [int(c) for c in candidates if int(c) not in chosen]
     # The one copy of the Jacobian, column-major so that the in-place updates below run on contiguous columns.
-    projected = np.empty((J.shape[0], len(remaining)), order="F")
-    for position, column in enumerate(remaining):
-        projected[:, position] = J[:, column]
+    in_place = overwrite and J.flags.f_contiguous and remaining == [c for c in range(J.shape[1]) if c not in chosen]
+    if in_place:
+        projected = J
+        for column in sorted(chosen, reverse=True):  # the forced columns out, the others kept in order
+            projected = without_column(projected, column)
+    else:
+        projected = np.empty((J.shape[0], len(remaining)), order="F")
+        for position, column in enumerate(remaining):
+            projected[:, position] = J[:, column]
     norms = np.zeros(J.shape[1])
     norms[remaining] = _column_norms_of(projected)  # as the lengths below: a column is never longer than itself
     project_out(projected, basis)

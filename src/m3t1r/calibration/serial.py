@@ -25,7 +25,7 @@ Position-only mode drops the orientation rows.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 
@@ -35,54 +35,49 @@ from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.identification import (
-    IDENTIFIABILITY_TOLERANCE,
-    OUTLIER_SIGMA,
     BaseParameters,
     LMResult,
     ParameterSelection,
-    batch_least_squares,
-    checked_outlier_sigma,
-    forward_selection,
-    levenberg_marquardt,
-    outlier_poses,
     parameter_columns,
-    select_base_parameters,
+    triangular_factor,
 )
 from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
 from m3t1r.calibration.measurements import TrackerNoise
-from m3t1r.calibration.repeats import grouped_blocks
+from m3t1r.calibration.pipeline import (
+    CalibrationOptions,
+    LMSettings,
+    PipelineFit,
+    PoseErrorRMS,
+    prior_columns,
+    run_pipeline,
+)
 from m3t1r.calibration.serial_simulation import _checked_joint_noise, _readonly
-from m3t1r.errors import IdentificationError, InvalidInputError, real_array, require_count
+from m3t1r.errors import IdentificationError, InvalidInputError, real_array
 from m3t1r.model.poe import Placement, SerialChain, jlog3_batch, log3_batch, perturb, placement_poses, skew
 
 __all__ = [
-    "PoseErrorRMS",
     "SerialCalibration",
+    "SerialLayout",
+    "SerialMeasurements",
+    "SerialProblem",
+    "SerialResidual",
+    "SerialState",
     "calibrate_serial",
     "compliant_readings",
-    "fit_base",
     "gravity_torques",
     "moved_mass",
     "nominal_state",
     "parse_measurements",
-    "pose_error_rms",
     "pose_whitening",
-    "prior_columns",
-    "reject_outliers",
     "require_gravity_load",
-    "select_base",
-    "select_parameters",
     "start_state",
-    "SerialLayout",
-    "SerialProblem",
-    "SerialResidual",
 ]
 
 
 # --------------------------------------------------------------------------------------------------
 # Residuals
 #
-# The optimiser's state (`_State`) holds the chain's n + 1 initial poses T(0) as one read-only
+# The optimiser's state (`SerialState`) holds the chain's n + 1 initial poses T(0) as one read-only
 # (n + 1, 4, 4) array (`SerialChain.initial_transforms`), not a Pinocchio model: a step
 # T(0) <- T(0) exp6(dx) (eq. 33) then costs n + 1 small products instead of a model copy, and forward
 # kinematics of all poses is one batched pass (`placement_poses`); beside them, the measurement frame
@@ -117,7 +112,11 @@ def _placement_rows(frames: np.ndarray, orientation: bool, log_jacobians: np.nda
 
 
 @dataclass(frozen=True)
-class _Measurements:
+class SerialMeasurements:
+    """Checked measurements of a serial robot (`parse_measurements`): joint readings q (N, n) [rad or m]
+    and measured positions [m] (N, 3), or (N, 3 P) of P points per row; rotations (N, 3, 3) of the
+    measured frames, None with positions only."""
+
     q: np.ndarray  # (N, n)
     positions: np.ndarray  # (N, 3); (N, 3 P) with P points per row, NaN where a point was not seen
     rotations: np.ndarray | None  # (N, 3, 3), None in position-only mode (always with points)
@@ -191,7 +190,7 @@ _IDENTITY.flags.writeable = False
 
 
 @dataclass(frozen=True, eq=False)
-class _State:
+class SerialState:
     """One optimiser iterate (read-only arrays; caches key on identity).
 
     transforms: the chain's initial poses T(0) (n + 1, 4, 4) (m). frame: F, the robot base in the
@@ -231,7 +230,7 @@ class _Evaluation:
 
 
 class SerialResidual:
-    """The whitened residual of every parameter of `layout`, as a function of the state (`_State`).
+    """The whitened residual of every parameter of `layout`, as a function of the state (`SerialState`).
 
     Pose i is predicted as M_i = F g(q_i + c tau_i) K (module docstring); its residual is
     [p_M - p_meas (m, measurement frame); log3(R_meas^T R_M) (rad, measured frame)].
@@ -242,7 +241,7 @@ class SerialResidual:
     def __init__(
         self,
         chain: SerialChain,
-        data: _Measurements,
+        data: SerialMeasurements,
         whitening: np.ndarray,
         layout: SerialLayout | None = None,
         torques: np.ndarray | None = None,
@@ -252,16 +251,16 @@ class SerialResidual:
         self.whitening = whitening  # (N, k, k): inverse Cholesky factor of each pose's covariance
         self.layout = layout or SerialLayout(chain.n_joints)
         self.torques = torques  # (N, n) gravity torques tau(q) (Nm or N), for the compliance columns
-        self._state: _State | None = None
+        self._state: SerialState | None = None
         self._evaluation: _Evaluation | None = None
 
-    def joint_coordinates(self, state: _State) -> np.ndarray:
+    def joint_coordinates(self, state: SerialState) -> np.ndarray:
         """q + c tau(q) (N, n): the readings moved by the joints' compliance under gravity."""
         if state.compliance is None or self.torques is None:
             return self.data.q
         return self.data.q + state.compliance * self.torques
 
-    def _evaluate(self, state: _State) -> _Evaluation:
+    def _evaluate(self, state: SerialState) -> _Evaluation:
         if state is not self._state or self._evaluation is None:
             frames = placement_poses(self.chain, state.transforms, self.joint_coordinates(state))
             if state.points is not None:
@@ -274,7 +273,7 @@ class SerialResidual:
             self._state = state
         return self._evaluation
 
-    def raw_residual(self, state: _State) -> np.ndarray:
+    def raw_residual(self, state: SerialState) -> np.ndarray:
         """(N, k): p_model - p_meas (m, measurement frame) [, log3(R_meas^T R_model) (rad, measured frame)]."""
         e = self._evaluate(state)
         if e.residual is None:
@@ -293,7 +292,7 @@ class SerialResidual:
             e.residual.flags.writeable = False  # cached: callers share it
         return e.residual
 
-    def residual(self, state: _State) -> np.ndarray:
+    def residual(self, state: SerialState) -> np.ndarray:
         """Whitened residual (N k,), no Jacobian: what a trial step needs."""
         e = self._evaluate(state)
         if e.whitened is None:
@@ -301,7 +300,7 @@ class SerialResidual:
             e.whitened.flags.writeable = False
         return e.whitened
 
-    def residual_and_jacobian(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
+    def residual_and_jacobian(self, state: SerialState) -> tuple[np.ndarray, np.ndarray]:
         """Whitened residual (N k,) and its Jacobian (N k, layout.size) over every parameter."""
         r = self.residual(state)
         e = self._evaluate(state)
@@ -311,7 +310,7 @@ class SerialResidual:
             e.jacobian.flags.writeable = False
         return r, e.jacobian
 
-    def _rows(self, state: _State, e: _Evaluation, log_jacobians: np.ndarray | None) -> np.ndarray:
+    def _rows(self, state: SerialState, e: _Evaluation, log_jacobians: np.ndarray | None) -> np.ndarray:
         """Unwhitened residual rows (N, k, layout.size).
 
         Each error acts as a right-multiplied twist on a frame known in the measurement frame: F
@@ -350,7 +349,7 @@ class SerialResidual:
             out[:, :, layout.compliance_slice] = joint_rows * self.torques[:, None, :]
         return out
 
-    def _point_rows(self, state: _State, e: _Evaluation) -> np.ndarray:
+    def _point_rows(self, state: SerialState, e: _Evaluation) -> np.ndarray:
         """Unwhitened rows (N, 3 P, layout.size) of P points: point k is the endpoint F g T(p_k) of the
         stack [F, F F_1 .. F F_P] as in `_rows`, and its own offset's columns are its translation rows."""
         assert e.points is not None and state.points is not None
@@ -375,7 +374,7 @@ class SerialResidual:
                 out[:, block, layout.compliance_slice] = joint_rows * self.torques[:, None, :]
         return out
 
-    def retract(self, state: _State, step: np.ndarray) -> _State:
+    def retract(self, state: SerialState, step: np.ndarray) -> SerialState:
         """T_j(0) <- T_j(0) exp6(dt_j) per placement (eq. 33), F <- F exp6(df), K <- K exp6(dk),
         c <- c + dc, for step = x in layout order."""
         layout = self.layout
@@ -397,20 +396,24 @@ class SerialResidual:
         if layout.compliance:
             compliance = _readonly((0.0 if compliance is None else compliance) + step[layout.compliance_slice])
         accumulated = _readonly(step if state.accumulated is None else state.accumulated + step)
-        return _State(out, frame, marker, compliance, accumulated, points)
+        return SerialState(out, frame, marker, compliance, accumulated, points)
 
 
 class SerialProblem:
-    """The whitened calibration residual over some columns, for `levenberg_marquardt`.
+    """The whitened calibration residual over some columns, for the pipeline (`CalibrationProblem`).
 
     active: (N,) poses that count (flagged outliers are zero rows); priors: {column: sigma} add a
     row x_c / sigma (Tikhonov, toward the start) per column with a prior, sigma in m, rad or rad/Nm.
     """
 
+    default_cost_tolerance = 1e-12
+    default_step_significance = 0.0
+
     def __init__(
         self, residual: SerialResidual, columns: Sequence[int] | np.ndarray, priors: Mapping[int, float] | None = None
     ) -> None:
         self._residual = residual
+        self.names = residual.layout.names(residual.chain)
         self.columns = np.asarray(columns, dtype=int)
         self.priors = dict(priors or {})
         self.active = np.ones(residual.data.q.shape[0], dtype=bool)
@@ -419,10 +422,67 @@ class SerialProblem:
     def model(self) -> SerialResidual:
         return self._residual
 
+    @property
+    def rows_per_pose(self) -> int:
+        return self._residual.data.rows_per_pose
+
+    @property
+    def seen(self) -> np.ndarray:
+        return self._residual.data.seen
+
+    @property
+    def n_points(self) -> int:
+        return self._residual.data.n_points
+
+    @property
+    def setup_columns(self) -> np.ndarray:
+        return self._residual.layout.setup_columns
+
+    def default_iterations(self, n_parameters: int) -> int:
+        return 30
+
+    def reselection_bound(self) -> int:
+        """The structural bound 4 r + 2 p + 6 (+ 3 with positions only, section 3.2; + n with compliance)."""
+        layout = self._residual.layout
+        bound = self._residual.chain.rank_bound(self._residual.data.rotations is None)
+        return bound + (layout.n_joints if layout.compliance else 0)
+
+    def check_base(self, base: BaseParameters, factor: np.ndarray, fixed: Sequence[int]) -> None:
+        """Nothing is refused here: a rank below the bound is chosen again at the estimate."""
+
+    def release(self, state: SerialState) -> None:
+        """Nothing to drop: the residual's cache keys on the last state evaluated."""
+
+    def restart(self, state: SerialState) -> SerialState:
+        return state  # read-only: its evaluations do not depend on the columns or the poses kept
+
+    def accumulated(self, state: SerialState) -> np.ndarray:
+        return np.zeros(len(self.names)) if state.accumulated is None else state.accumulated
+
+    def pose_blocks(self, state: SerialState) -> np.ndarray:
+        return self._residual.residual(state).reshape(-1, self.rows_per_pose)
+
+    def raw_blocks(self, state: SerialState) -> np.ndarray:
+        return self._residual.raw_residual(state)
+
+    def pose_rows(self, state: SerialState) -> tuple[np.ndarray, np.ndarray]:
+        r, J = self._residual.residual_and_jacobian(state)
+        keep = np.repeat(self.active, self.rows_per_pose)
+        return r[keep], np.asfortranarray(J[keep][:, self.columns])
+
+    def jacobian_factor(self, state: SerialState, with_residual: bool = False) -> np.ndarray:
+        """The whitened Jacobian of every pose row over every column (a copy); with_residual, the
+        triangular factor of the inliers' [J r] instead."""
+        r, J = self._residual.residual_and_jacobian(state)
+        if not with_residual:
+            return J.copy()
+        keep = np.repeat(self.active, self.rows_per_pose)
+        return triangular_factor(J[keep], r[keep])
+
     def _mask(self) -> np.ndarray | None:
         return None if self.active.all() else np.repeat(self.active, self._residual.data.rows_per_pose)
 
-    def _prior_rows(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
+    def _prior_rows(self, state: SerialState) -> tuple[np.ndarray, np.ndarray]:
         picked = [(i, self.priors[c]) for i, c in enumerate(self.columns) if c in self.priors]
         values, jacobian = np.zeros(len(picked)), np.zeros((len(picked), len(self.columns)))
         for row, (i, sigma) in enumerate(picked):
@@ -430,7 +490,7 @@ class SerialProblem:
             values[row] = 0.0 if state.accumulated is None else state.accumulated[self.columns[i]] / sigma
         return values, jacobian
 
-    def residual(self, state: _State) -> np.ndarray:
+    def residual(self, state: SerialState) -> np.ndarray:
         r = self._residual.residual(state)
         mask = self._mask()
         if mask is None and not self.priors:
@@ -438,7 +498,7 @@ class SerialProblem:
         r = r if mask is None else r * mask
         return np.concatenate((r, self._prior_rows(state)[0]))
 
-    def residual_and_jacobian(self, state: _State) -> tuple[np.ndarray, np.ndarray]:
+    def residual_and_jacobian(self, state: SerialState) -> tuple[np.ndarray, np.ndarray]:
         r, J = self._residual.residual_and_jacobian(state)
         J = J[:, self.columns]
         mask = self._mask()
@@ -449,28 +509,23 @@ class SerialProblem:
         values, rows = self._prior_rows(state)
         return np.concatenate((r, values)), np.vstack((J, rows))
 
-    def retract(self, state: _State, step: np.ndarray) -> _State:
+    def retract(self, state: SerialState, step: np.ndarray) -> SerialState:
         full = np.zeros(self._residual.layout.size)
         full[self.columns] = step
         return self._residual.retract(state, full)
 
-    def degrees_of_freedom(self) -> int:
-        """Measured rows of the inliers and priors, less the fitted columns."""
-        picked = sum(1 for c in self.columns if c in self.priors)
-        return int(np.count_nonzero(self._residual.data.seen[self.active])) + picked - len(self.columns)
 
-
-def nominal_state(chain: SerialChain, model: pin.Model, setup: MeasurementSetup | None = None) -> _State:
+def nominal_state(chain: SerialChain, model: pin.Model, setup: MeasurementSetup | None = None) -> SerialState:
     """The starting state: `model`'s initial poses, and the setup's frame and marker (default identity)."""
     transforms = chain.initial_transforms(model)
     transforms.flags.writeable = False
     if setup is None:
-        return _State(transforms)
-    return _State(transforms, _readonly(setup.frame.homogeneous), _readonly(setup.marker.homogeneous))
+        return SerialState(transforms)
+    return SerialState(transforms, _readonly(setup.frame.homogeneous), _readonly(setup.marker.homogeneous))
 
 
 def pose_whitening(
-    chain: SerialChain, state: _State, data: _Measurements, noise: TrackerNoise, joint_noise: float
+    chain: SerialChain, state: SerialState, data: SerialMeasurements, noise: TrackerNoise, joint_noise: float
 ) -> np.ndarray:
     """Inverse Cholesky factors (N, k, k) of the residual covariance of each pose.
 
@@ -554,26 +609,8 @@ def compliant_readings(
 # --------------------------------------------------------------------------------------------------
 # Calibration
 
-# Re-selections of the base parameters at the estimate, after the one at the nominal model.
-_MAX_RESELECTIONS = 2
-# Millimetre errors on metre links: the model is nearly linear over the whole correction, so start
-# close to Gauss-Newton (Madsen & Nielsen's advice for a good starting point). With the textbook
-# 1e-3, Marquardt's column scaling over-damps the weak combinations found by a re-selection.
-_INITIAL_DAMPING = 1e-6
-# Refits while the set of flagged outlier poses changes.
-_MAX_OUTLIER_ROUNDS = 5
 
-
-@dataclass(frozen=True)
-class PoseErrorRMS:
-    """Root mean square over poses of the position error norm (m) and rotation angle (rad;
-    nan when orientation was not measured)."""
-
-    position: float
-    rotation: float
-
-
-def _parse_points(q: np.ndarray, measured_points: ArrayLike) -> _Measurements:
+def _parse_points(q: np.ndarray, measured_points: ArrayLike) -> SerialMeasurements:
     """(N, P, 3) positions of P points per row [m], NaN where a point was not seen."""
     points = np.array(measured_points, dtype=float)
     if points.shape[2] != 3 or points.shape[1] < 1:
@@ -590,12 +627,12 @@ def _parse_points(q: np.ndarray, measured_points: ArrayLike) -> _Measurements:
     unseen = np.flatnonzero(~np.any(finite[:, :, 0], axis=0))
     if unseen.size:
         raise InvalidInputError(f"measured points: point {int(unseen[0]) + 1} is seen in no row")
-    return _Measurements(q=q, positions=points.reshape(len(points), -1), rotations=None, n_points=points.shape[1])
+    return SerialMeasurements(q=q, positions=points.reshape(len(points), -1), rotations=None, n_points=points.shape[1])
 
 
 def parse_measurements(
     chain: SerialChain, q_readings: ArrayLike, measured_poses: Sequence[pin.SE3] | ArrayLike, position_only: bool
-) -> _Measurements:
+) -> SerialMeasurements:
     """The checked measurements: joint readings (N, n) [rad or m] and SE3 poses, (N, 7) [x, y, z, qx, qy, qz, qw]
     rows [m], (N, 3) positions [m] (with `position_only`) or (N, P, 3) points; InvalidInputError names the row."""
     q = real_array(q_readings, "q_readings")
@@ -635,17 +672,7 @@ def parse_measurements(
             rotations = np.array([pin.XYZQUATToSE3(row).rotation for row in array])
     if positions.shape[0] != q.shape[0]:
         raise InvalidInputError(f"{q.shape[0]} joint readings but {positions.shape[0]} measured poses")
-    return _Measurements(q=q, positions=positions, rotations=None if position_only else rotations)
-
-
-def pose_error_rms(residual: np.ndarray, seen: np.ndarray | None = None) -> PoseErrorRMS:
-    """RMS of the pose errors of residual rows (N, k); with `seen` (N, 3 P), of every point seen."""
-    if seen is not None:
-        squared = np.sum(residual.reshape(len(residual), -1, 3) ** 2, axis=2)[seen[:, ::3]]
-        return PoseErrorRMS(float(np.sqrt(np.mean(squared))), np.nan)
-    position = float(np.sqrt(np.mean(np.sum(residual[:, :3] ** 2, axis=1))))
-    rotation = float(np.sqrt(np.mean(np.sum(residual[:, 3:] ** 2, axis=1)))) if residual.shape[1] == 6 else np.nan
-    return PoseErrorRMS(position, rotation)
+    return SerialMeasurements(q=q, positions=positions, rotations=None if position_only else rotations)
 
 
 @dataclass(frozen=True)
@@ -665,10 +692,12 @@ class SerialCalibration:
         solution; parameter_std: sqrt(diag(covariance)).
     variance_factor: chi^2 / (rows - fitted) of the inliers' whitened residual (priors included);
         ~1 when the noise model is right and the error model explains the data.
-    iterations: Levenberg-Marquardt iterations over all runs; converged, termination: the last run's.
+    lm: the last Levenberg-Marquardt run (converged, termination: its); iterations: LM's
+        iterations over every run.
     outliers: indices of the poses flagged and left out; selection: the forward-selection record.
-    residual_before / residual_after: RMS of the inliers' residuals at the start (nominal robot,
-        given or registered frame) and at the calibrated model.
+    rms_before / rms_after: RMS of the inliers' residuals at the start (nominal robot, given or
+        registered frame) and at the calibrated model.
+    problem, start and settings: the fit's problem, start and LM settings (`cross_validate_serial`).
     """
 
     model: pin.Model
@@ -679,12 +708,11 @@ class SerialCalibration:
     parameter_std: np.ndarray
     variance_factor: float
     iterations: int
-    converged: bool
-    residual_before: PoseErrorRMS
-    residual_after: PoseErrorRMS
+    lm: LMResult = field(repr=False)
+    rms_before: PoseErrorRMS
+    rms_after: PoseErrorRMS
     position_only: bool
     setup: MeasurementSetup = field(default_factory=MeasurementSetup)
-    termination: str = ""
     outliers: tuple[int, ...] = ()
     fitted: tuple[str, ...] = ()
     fitted_indices: tuple[int, ...] = ()
@@ -692,34 +720,32 @@ class SerialCalibration:
     values: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     compliance: Mapping[str, float] = field(default_factory=dict)
     selection: ParameterSelection | None = field(default=None, repr=False)
-    _problem: SerialProblem | None = field(default=None, repr=False)
-    _start: _State | None = field(default=None, repr=False)
-    _solve: Callable[..., LMResult] | None = field(default=None, repr=False)
+    problem: SerialProblem | None = field(default=None, repr=False)
+    start: SerialState | None = field(default=None, repr=False)
+    settings: LMSettings | None = field(default=None, repr=False)
+
+    @property
+    def converged(self) -> bool:
+        return bool(self.lm.converged)
+
+    @property
+    def termination(self) -> str:
+        return self.lm.termination
 
     def std(self) -> dict[str, float]:
         """Standard deviation per fitted parameter name (m, rad, rad/Nm)."""
         return dict(zip(self.fitted, map(float, self.parameter_std)))
 
 
-def prior_columns(names: Sequence[str], priors: Mapping[str, float] | None) -> dict[int, float]:
-    """The column of each parameter a prior of sigma (m, rad or rad/Nm) names, by parameter or placement."""
-    out: dict[int, float] = {}
-    for name, sigma in (priors or {}).items():
-        if not (np.isfinite(sigma) and sigma > 0.0):
-            raise InvalidInputError(f"prior of '{name}': sigma must be a positive number (m, rad or rad/Nm)")
-        out.update({c: float(sigma) for c in parameter_columns(names, [name], "prior")})
-    return out
-
-
 def start_state(
     chain: SerialChain,
     model: pin.Model,
-    data: _Measurements,
+    data: SerialMeasurements,
     setup: MeasurementSetup,
     estimate_frame: bool,
     estimate_marker: bool,
     compliance: bool,
-) -> _State:
+) -> SerialState:
     """The nominal robot with the given setup, and closed-form starts for what is estimated.
 
     estimate_frame: F from the rigid registration of the nominal predictions g(q) K to the measured
@@ -750,8 +776,8 @@ _POINT_START_ROUNDS = 4
 
 
 def _point_start(
-    state: _State, tool: np.ndarray, data: _Measurements, estimate_frame: bool, compliance: bool
-) -> _State:
+    state: SerialState, tool: np.ndarray, data: SerialMeasurements, estimate_frame: bool, compliance: bool
+) -> SerialState:
     """The start of a fit of P points: alternately F by `register_frame` of every point seen (at its
     current offset) and each offset p_k in closed form given F, the mean over its rows of
     R_g^T (F^-1 p_meas - t_g) (least squares, R_g orthonormal); from zero offsets."""
@@ -773,127 +799,15 @@ def _point_start(
     return state
 
 
-def select_base(
-    problem: SerialProblem, state: _State, names: Sequence[str], rank_tolerance: float, fixed: Sequence[int]
-) -> BaseParameters:
-    """Base parameters of the whitened Jacobian at `state`, fixed columns zeroed, setup kept first."""
-    J = problem.model.residual_and_jacobian(state)[1]
-    if len(fixed):
-        J = J.copy()
-        J[:, list(fixed)] = 0.0
-    return select_base_parameters(J, names, rank_tolerance, forced=problem.model.layout.setup_columns)
-
-
-def fit_base(
-    problem: SerialProblem,
-    start: _State,
-    names: Sequence[str],
-    rank_tolerance: float,
-    fixed: Sequence[int],
-    solve: Callable[..., LMResult],
-) -> tuple[BaseParameters, LMResult, int]:
-    """Select the base parameters at the start, fit them; while the rank is below the structural
-    bound, re-select at the estimate and resume (nominal CAD geometry can hide parameters, e.g.
-    UR's tool point on the last joint axis hides two from position measurements)."""
-    base = select_base(problem, start, names, rank_tolerance, fixed)
-    problem.columns = np.array(base.indices)
-    result = solve(problem, start)
-    iterations = result.iterations
-    layout = problem.model.layout
-    bound = problem.model.chain.rank_bound(problem.model.data.rotations is None) + (
-        layout.n_joints if layout.compliance else 0
-    )
-    for _ in range(_MAX_RESELECTIONS if base.rank < bound else 0):
-        candidate = select_base(problem, result.state, names, rank_tolerance, fixed)
-        if candidate.rank <= base.rank:
-            break
-        base = candidate
-        problem.columns = np.array(base.indices)
-        result = solve(problem, result.state)
-        iterations += result.iterations
-    return base, result, iterations
-
-
-def reject_outliers(
-    problem: SerialProblem, start: _State, result: LMResult, sigma: float, solve: Callable[..., LMResult]
-) -> tuple[LMResult, int]:
-    """Flag poses beyond `sigma` noise sigmas (`outlier_poses`), refit from the start without them,
-    re-judge every pose; until the flagged set is stable (at most _MAX_OUTLIER_ROUNDS refits)."""
-    iterations = 0
-    rows = problem.model.data.rows_per_pose
-    for _ in range(_MAX_OUTLIER_ROUNDS):
-        data = problem.model.data
-        flagged, _scale = outlier_poses(
-            problem.model.residual(result.state).reshape(-1, rows),
-            sigma,
-            data.seen.sum(axis=1) if data.n_points else None,
-        )
-        if np.array_equal(~flagged, problem.active):
-            break
-        if np.count_nonzero(~flagged) * rows <= len(problem.columns):
-            raise IdentificationError(
-                f"{np.count_nonzero(flagged)} of {len(flagged)} poses are outliers: "
-                "too few poses are left to fit the model"
-            )
-        problem.active = ~flagged
-        result = solve(problem, start)
-        iterations += result.iterations
-    return result, iterations
-
-
-def select_parameters(
-    problem: SerialProblem,
-    start: _State,
-    result: LMResult,
-    solve: Callable[..., LMResult],
-    groups: ArrayLike | None = None,
-) -> tuple[ParameterSelection, LMResult, int]:
-    """Forward selection by leave-one-pose-out PRESS of the fit linearised at the estimate (the
-    residual at the start is about r - J x, x the accumulated step), the setup forced; a smaller
-    set is refitted from the start."""
-    rows = problem.model.data.rows_per_pose
-    r, J = problem.model.residual_and_jacobian(result.state)
-    J = J[:, problem.columns]
-    keep = np.repeat(problem.active, rows)
-    step = (
-        np.zeros(len(problem.columns))
-        if result.state.accumulated is None
-        else result.state.accumulated[problem.columns]
-    )
-    r0 = (r - J @ step)[keep]
-    forced = np.flatnonzero(np.isin(problem.columns, problem.model.layout.setup_columns))
-    labels = None if groups is None else np.asarray(groups)[problem.active]
-    jacobian, r0, block = grouped_blocks(J[keep], r0, rows, labels)
-    selection = forward_selection(jacobian, r0, block, range(len(problem.columns)), forced)
-    if len(selection.indices) == len(problem.columns):
-        return selection, result, 0
-    problem.columns = problem.columns[list(selection.indices)]
-    refit = solve(problem, start)
-    return selection, refit, refit.iterations
-
-
 @on_one_blas_thread  # tiny matrices: BLAS threads only add wake-up latency
 def calibrate_serial(
     model: pin.Model,
     chain: SerialChain,
     q_readings: ArrayLike,
     measured_poses: Sequence[pin.SE3] | ArrayLike,
+    options: CalibrationOptions = CalibrationOptions(),
     *,
     position_only: bool = False,
-    noise: TrackerNoise = TrackerNoise(),
-    joint_noise: float = 0.0,
-    rank_tolerance: float = IDENTIFIABILITY_TOLERANCE,
-    max_iterations: int = 30,
-    absolute_cost_tolerance: float = 1e-6,
-    setup: MeasurementSetup | None = None,
-    estimate_frame: bool = False,
-    estimate_marker: bool = False,
-    outlier_sigma: float | None = OUTLIER_SIGMA,
-    select: bool = False,
-    compliance: bool = False,
-    fixed: Sequence[str] = (),
-    priors: Mapping[str, float] | None = None,
-    groups: ArrayLike | None = None,
 ) -> SerialCalibration:
     """Identify the placement errors of `chain` (and the measurement setup, compliance) from measurements.
 
@@ -903,95 +817,53 @@ def calibrate_serial(
     measured_poses: measured frames M_i in the measurement frame: SE3 objects, or an (N, 7) array
         [x, y, z, qx, qy, qz, qw] (m), or (N, 3) positions (m) with position_only=True.
     position_only: use the position rows only (3 per pose; the marker's orientation is irrelevant).
-    noise: the tracker's position [m] and orientation [rad] standard deviations, used to whiten
-        the residuals (`TrackerNoise`; its `actuator` is not used).
-    joint_noise: standard deviation of the joint readings (rad or m, every joint), propagated
-        into the whitening through the joint Jacobian; 0 takes the readings as exact.
-    estimate_frame: fit F's 6 parameters, started by `register_frame` of the nominal predictions
-        to the measurements; estimate_marker: fit K's 6 (3 translations with positions only).
+    options (`CalibrationOptions`): noise whitens the residuals (its `actuator` is not used);
+        joint_noise (rad or m, every joint) is propagated into the whitening through the joint
+        Jacobian (0 takes the readings as exact); estimate_frame starts F by `register_frame` of
+        the nominal predictions to the measurements, estimate_marker K's rotation in closed form.
         The setup's columns are kept first in the base-parameter choice, so the placements it makes
         redundant (the first placement for F, the tool placement for K) are the ones left nominal:
-        the calibrated URDF's base stays the robot's base and its tool frame the tool.
-    outlier_sigma: gate of `identification.outlier_poses` in noise sigmas; flagged poses are
-        dropped and the fit restarted until the flagged set is stable. None keeps every pose.
-    select: forward selection of the fitted parameters by leave-one-pose-out PRESS, setup forced.
-    compliance: add candidates c_j (rad/Nm) with q_j -> q_j + c_j tau_j(q), tau from
-        `gravity_torques` (the model's inertias); chosen like the other parameters.
-    fixed: parameter or placement names held at their start; priors: {name: sigma} adds a row
-        x / sigma pulling the parameter toward its start (m, rad, rad/Nm).
-    groups: (N,) a label per pose, repeats of one posture sharing one (`repeats.pose_groups`): the
-        selection then leaves each group out whole (`repeats.grouped_blocks`).
-    absolute_cost_tolerance: LM also stops once an accepted step lowers 1/2 chi^2 by less than
-        this (a noise variance; 1e-6 moves the estimate by ~1e-3 of its std).
+        the calibrated URDF's base stays the robot's base and its tool frame the tool. compliance
+        adds candidates c_j (rad/Nm) with q_j -> q_j + c_j tau_j(q), tau from `gravity_torques`
+        (the model's inertias), chosen like the other parameters.
 
-    Method: base parameters by pivoted QR of the whitened Jacobian at the start; LM over them with
-    T(0) <- T(0) exp6(dx) (eq. 33); re-selection at the estimate while the rank is below the
-    structural bound 4 r + 2 p + 6 (+ 3 with positions only, section 3.2; + n with compliance);
-    then outliers, then selection. A fit that did not converge is returned with converged False.
+    Method (`m3t1r.calibration.pipeline`): base parameters by pivoted QR of the whitened Jacobian at
+    the start; LM over them with T(0) <- T(0) exp6(dx) (eq. 33); re-selection at the estimate while
+    the rank is below the structural bound 4 r + 2 p + 6 (+ 3 with positions only, section 3.2; + n
+    with compliance); then outliers, then selection. A fit that did not converge is returned with
+    converged False.
     """
     chain.check_model(model)
-    outlier_sigma = checked_outlier_sigma(outlier_sigma)
-    max_iterations = require_count(max_iterations, "max_iterations")
     data = parse_measurements(chain, q_readings, measured_poses, position_only)
     if data.n_points:
-        layout = SerialLayout(chain.n_joints, estimate_frame, 3 * data.n_points, compliance, data.n_points)
-    else:
         layout = SerialLayout(
-            chain.n_joints, estimate_frame, (3 if position_only else 6) if estimate_marker else 0, compliance
+            chain.n_joints, options.estimate_frame, 3 * data.n_points, options.compliance, data.n_points
         )
+    else:
+        marker = (3 if position_only else 6) if options.estimate_marker else 0
+        layout = SerialLayout(chain.n_joints, options.estimate_frame, marker, options.compliance)
     names = layout.names(chain)
-    fixed_columns = parameter_columns(names, fixed, "fixed parameter")
-    if len(set(fixed_columns)) == layout.size:
+    if len(set(parameter_columns(names, options.fixed, "fixed parameter"))) == layout.size:
         raise IdentificationError(
             f"all {layout.size} candidate parameters are held fixed: nothing is left to fit "
             "(estimate the measurement frame, a marker or compliance, or fix fewer)"
         )
-    start = start_state(chain, model, data, setup or MeasurementSetup(), estimate_frame, estimate_marker, compliance)
-    if compliance:
-        require_gravity_load(model, chain)
-    torques = gravity_torques(model, chain, data.q) if compliance else None
-    whitening = pose_whitening(chain, start, data, noise, _checked_joint_noise(joint_noise))
-    residual = SerialResidual(chain, data, whitening, layout, torques)
-    problem = SerialProblem(residual, np.arange(layout.size), prior_columns(names, priors))
-    solve = functools.partial(
-        levenberg_marquardt,
-        max_iterations=max_iterations,
-        initial_damping=_INITIAL_DAMPING,
-        absolute_cost_tolerance=absolute_cost_tolerance,
+    start = start_state(
+        chain, model, data, options.start_setup, options.estimate_frame, options.estimate_marker, options.compliance
     )
-    base, result, iterations = fit_base(problem, start, names, rank_tolerance, fixed_columns, solve)
-    if outlier_sigma is not None:
-        result, more = reject_outliers(problem, start, result, outlier_sigma, solve)
-        iterations += more
-    selection = None
-    if select:
-        selection, result, more = select_parameters(problem, start, result, solve, groups)
-        iterations += more
-    return _result(model, problem, start, result, base, selection, iterations, solve)
+    if options.compliance:
+        require_gravity_load(model, chain)
+    torques = gravity_torques(model, chain, data.q) if options.compliance else None
+    whitening = pose_whitening(chain, start, data, options.noise, _checked_joint_noise(options.joint_noise))
+    residual = SerialResidual(chain, data, whitening, layout, torques)
+    problem = SerialProblem(residual, np.arange(layout.size), prior_columns(names, options.priors))
+    return _result(model, problem, run_pipeline(problem, start, options))
 
 
-def _result(
-    model: pin.Model,
-    problem: SerialProblem,
-    start: _State,
-    result: LMResult,
-    base: BaseParameters,
-    selection: ParameterSelection | None,
-    iterations: int,
-    solve: Callable[..., LMResult],
-) -> SerialCalibration:
-    residual, state = problem.model, result.state
+def _result(model: pin.Model, problem: SerialProblem, outcome: PipelineFit[SerialState]) -> SerialCalibration:
+    """The calibration a pipeline ended on: the calibrated model, the deltas and the compliance."""
+    residual, state, start = problem.model, outcome.lm.state, outcome.start
     chain, layout = residual.chain, residual.layout
-    r, J = problem.residual_and_jacobian(state)
-    # Selection keeps no parameter when the start already explains the data (e.g. exact nominal
-    # measurements): nothing is fitted, so there is no covariance to report.
-    covariance, std = np.zeros((0, 0)), np.zeros(0)
-    if J.shape[1]:
-        fit = batch_least_squares(J, -r, covariance_from="noise_model")
-        covariance, std = fit.covariance, fit.std
-    dof = problem.degrees_of_freedom()
-    inliers = problem.active
-    seen = residual.data.seen[inliers] if residual.data.n_points else None
     # dt_j = log6(T_j(0)^-1 T_j,c(0)) per placement (for j = 1 with a base frame, the inverse base
     # placement cancels); the calibrated model is the nominal one perturbed by exactly these.
     deltas = {
@@ -1000,8 +872,7 @@ def _result(
     }
     values = np.zeros(layout.size) if state.accumulated is None else state.accumulated.copy()
     values[: layout.n_chain] = np.concatenate(list(deltas.values()))
-    fitted = tuple(int(c) for c in problem.columns)
-    names = layout.names(chain)
+    fitted = outcome.columns
     compliance = {}
     if layout.compliance and state.compliance is not None:
         compliance = {
@@ -1013,31 +884,30 @@ def _result(
         model=perturb(model, deltas),
         chain=chain,
         deltas=MappingProxyType(deltas),
-        base=base,
-        covariance=covariance,
-        parameter_std=std,
-        variance_factor=float(r @ r / dof) if dof > 0 else float("nan"),
-        iterations=iterations,
-        converged=result.converged,
-        residual_before=pose_error_rms(residual.raw_residual(start)[inliers], seen),
-        residual_after=pose_error_rms(residual.raw_residual(state)[inliers], seen),
+        base=outcome.base,
+        covariance=outcome.covariance,
+        parameter_std=outcome.std,
+        variance_factor=outcome.variance_factor,
+        iterations=outcome.iterations,
+        lm=outcome.lm,
+        rms_before=outcome.rms_before,
+        rms_after=outcome.rms_after,
         position_only=residual.data.rotations is None,
         setup=_fitted_setup(state),
-        termination=result.termination,
-        outliers=tuple(int(i) for i in np.flatnonzero(~inliers)),
-        fitted=tuple(names[c] for c in fitted),
+        outliers=outcome.outliers,
+        fitted=tuple(problem.names[c] for c in fitted),
         fitted_indices=fitted,
-        names=names,
+        names=problem.names,
         values=_readonly(values),
         compliance=MappingProxyType(compliance),
-        selection=selection,
-        _problem=problem,
-        _start=start,
-        _solve=solve,
+        selection=outcome.selection,
+        problem=problem,
+        start=start,
+        settings=outcome.settings,
     )
 
 
-def _fitted_setup(state: _State) -> MeasurementSetup:
+def _fitted_setup(state: SerialState) -> MeasurementSetup:
     """The measurement setup of a state: F and K, or F and the points' offsets."""
     if state.points is None:
         return MeasurementSetup(pin.SE3(state.frame), pin.SE3(state.marker))

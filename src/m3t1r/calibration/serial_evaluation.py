@@ -12,6 +12,7 @@ import pinocchio as pin
 from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
+from m3t1r.calibration.pipeline import fit
 from m3t1r.calibration.repeats import grouped_folds
 from m3t1r.calibration.serial import SerialCalibration, _placement_rows, compliant_readings, gravity_torques
 from m3t1r.errors import InvalidInputError, require_count
@@ -152,8 +153,8 @@ def cross_validate_serial(
 
     groups: (N,) a label per pose the calibration was given (`repeats.pose_groups`); poses sharing
     one are held out together. None: every pose on its own."""
-    problem, start, solve = calibration._problem, calibration._start, calibration._solve
-    if problem is None or start is None or solve is None:
+    problem, start, settings = calibration.problem, calibration.start, calibration.settings
+    if problem is None or start is None or settings is None:
         raise InvalidInputError("cross_validate_serial needs a calibration made by calibrate_serial")
     inliers = np.flatnonzero(problem.active)
     if folds < 2 or len(inliers) < 2 * folds:
@@ -169,7 +170,7 @@ def cross_validate_serial(
         held = inliers[fold_of == fold]
         fold_problem.active = problem.active.copy()
         fold_problem.active[held] = False
-        result = solve(fold_problem, start)
+        result = fit(fold_problem, start, settings)
         residuals[fold_of == fold] = problem.model.raw_residual(result.state)[held]
     n_groups = len(np.unique(labels[inliers]))
     data = problem.model.data

@@ -18,6 +18,7 @@ import numpy as np
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_closed_loop, pose_errors
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.errors import KinematicsError
 from m3t1r.metrics import PoseErrors
@@ -185,7 +186,9 @@ def closed_chain_study(
     closed_loop = closed_loop_errors = None
     if compare_closed_loop:
         sliders = readings[:, nominal.actuated_ids]
-        closed_loop = calibrate_closed_loop(nominal, PoseMeasurements(sliders, measured), tracker)
+        closed_loop = calibrate_closed_loop(
+            nominal, PoseMeasurements(sliders, measured), CalibrationOptions(noise=tracker)
+        )
         closed_loop_errors = pose_errors(truth, closed_loop.mechanism, study.holdout_actuators)
 
     crank_error = _crank_errors(nominal, q_held)
