@@ -864,6 +864,7 @@ def test_fit_passes_its_settings_and_refuses_a_model_that_does_not_assemble(monk
         "initial_damping": 1e-6,
         "absolute_cost_tolerance": 1e-3,
         "cost_tolerance": 0.25,
+        "unit_damping": False,
     }
     recorder.result = SimpleNamespace(cost=float("inf"))  # every pose row infinite: a model that does not assemble
     with pytest.raises(IdentificationError) as error:
@@ -905,6 +906,7 @@ def test_refine_options_weights_and_an_equal_rank(mechanism, few_poses, monkeypa
         "initial_damping": 1e-9,
         "absolute_cost_tolerance": 0.0,
         "cost_tolerance": 1e-14,
+        "unit_damping": False,
     }
     assert continued.model is state.model and continued.setup is setup and continued.accumulated is accumulated
     for q, q0 in zip(continued.configurations, state.configurations):

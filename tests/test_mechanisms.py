@@ -157,7 +157,7 @@ def test_a_planar_nominal_does_not_cap_what_a_noise_free_fit_identifies(tmp_path
     study = simulate_study(
         mechanism, n_poses=60, n_holdout=150, seed=2, sigma_position=1e-3, sigma_rotation=1e-3, noise=noise
     )
-    calibration = calibrate_closed_loop(mechanism, study.measurements, TrackerNoise())
+    calibration = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise()))
     assert calibration.lm.converged
     held_out = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
     if noisy:

@@ -301,7 +301,7 @@ def test_a_direction_at_the_rank_tolerance_is_decided_as_calibrate_decides(tmp_p
     assert planned is not None, str(refusal.value)
     poses = workspace_actuators(narrow, 20, np.random.default_rng(4))
     with pytest.raises(IdentificationError) as calibrated:
-        calibrate_closed_loop(narrow, measure(narrow, poses), outlier_sigma=None)
+        calibrate_closed_loop(narrow, measure(narrow, poses), CalibrationOptions(outlier_sigma=None))
     named = re.search(
         r"for (\d+) identifiable parameters and identify only \d+: (.+) are barely", str(calibrated.value)
     )
@@ -309,7 +309,9 @@ def test_a_direction_at_the_rank_tolerance_is_decided_as_calibrate_decides(tmp_p
     assert planned.group(1) == named.group(1) == "18" and planned.group(2) == named.group(2)
     wide = boxed(1e-3)
     plan = plan_closed_loop(wide, 20, np.random.default_rng(0), n_evaluation=5)
-    calibration = calibrate_closed_loop(wide, measure(wide, plan.configurations), outlier_sigma=None)
+    calibration = calibrate_closed_loop(
+        wide, measure(wide, plan.configurations), CalibrationOptions(outlier_sigma=None)
+    )
     assert len(plan.selection.columns) == calibration.base.rank == 18
 
 
