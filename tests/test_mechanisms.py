@@ -17,6 +17,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import reference_kinematics as reference
+import scipy.linalg
 import yaml
 
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
@@ -26,6 +27,7 @@ from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.simulation import simulate_study
 from m3t1r.compensation import joint_limit_violation
 from m3t1r.errors import InvalidInputError, ModelFileError, ModelWarning
+from m3t1r.model.closures import ClosureSystem
 from m3t1r.model.description import Mechanism, nominal_model_paths
 from m3t1r.model.examples import (
     first_time_five_bar_files,
@@ -655,6 +657,29 @@ def test_the_rods_idle_spin_is_locked(tmp_path):
     mechanism = _quiet_load(*rod_five_bar_files(tmp_path))
     assert len(mechanism.locked_joints) == 1 and mechanism.locked_joints[0] in ("x", "y", "z", "s2_x", "s2_y", "s2_z")
     assert mechanism.closures[0].rows == (0, 1, 2, 3, 4, 5)
+
+
+def test_a_rough_home_is_assembled_with_the_rods_idle_spin_nearest_the_guess(tmp_path):
+    """The rod's spin about its own axis moves no link but the rod: every spin closes, and load must take
+    the one nearest the given values. From x = 2 and s2_z = 1 rad off, the damped solve alone left the
+    spin 0.9 rad (tangentially) away from the nearest, 2.70 instead of 2.55 rad from the guess."""
+    urdf, closures = rod_five_bar_files(tmp_path)
+    document = yaml.safe_load(closures.read_text())
+    document["home"].update(x=2.0, s2_z=1.0)
+    closures.write_text(yaml.safe_dump(document, sort_keys=False))
+    mechanism = _quiet_load(urdf, closures)
+    model = mechanism.model
+    guess = mechanism.home.copy()
+    for name, value in document["home"].items():
+        guess[model.idx_qs[model.getJointId(name)]] = value
+    passive = [model.idx_vs[j] for j in range(1, model.njoints) if model.names[j] not in mechanism.actuated_joints]
+    residual, jacobian = ClosureSystem(model, mechanism.closures, all_rows=True).evaluate(mechanism.home, True)
+    assert np.abs(residual).max() < 1e-9
+    spin = scipy.linalg.null_space(jacobian[:, passive])
+    assert spin.shape[1] == 1  # the idle spin, the only motion left with the motors held
+    offset = mechanism.home[passive] - guess[passive]
+    assert abs(float(spin[:, 0] @ offset)) < 1e-6  # nearest along the spin: the offset is normal to it
+    assert np.linalg.norm(offset) < 2.6
 
 
 def test_a_written_truth_and_calibrated_pair_reloads_as_the_machine_it_came_from(published, tmp_path):

@@ -12,8 +12,13 @@ The damped phase minimises a residual that is smooth everywhere: for a closure w
 enforced, p_b - p_a (3D) and also R_b - R_a (6D, nine entries, scaled by a length so that they
 weigh as positions): unlike log6, which the closure rows use, it has no branch cut at a half turn,
 where published zeros often put a duplicated rod. The result is then polished on the enforced
-rows themselves (`ClosureSystem.assemble`), and revolute joints are brought back by whole turns into
-their limits, or into (-pi, pi] when the URDF gives none.
+rows themselves (`ClosureSystem.assemble`), moved along the motion the closures leave the passive joints
+(idle spins of a rod between two spherical joints, any mobility beyond the actuators) to the point of that
+set nearest the guess (`_nearest_to_guess`: a rod's spin, which moves nothing else, is wherever the
+damped path left it), and revolute joints are brought back by whole turns into their limits, or into
+(-pi, pi] when the URDF gives none. Of several discrete assembly modes, the one the damped path from the
+guess reaches is kept, not the nearest in joint space: on a published hexapod, that nearest one has the
+platform upside down.
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from m3t1r.model.closures import CLOSURE_TYPES, ClosureSpec, ClosureSystem
+from m3t1r.model.closures import CLOSURE_TYPES, ClosureSpec, ClosureSystem, closure_null_space
 
 __all__ = ["HomeAssembly", "assemble_home"]
 
@@ -33,6 +38,8 @@ _SMOOTH_TOLERANCE = 1e-9  # [m] the damped phase hands over to the closure rows'
 _POLISH_TOLERANCE = 1e-13  # [m or rad] max |enforced row| the polish aims at
 _RESTARTS = 8  # offset starts tried when the solve from the guess stalls
 _RESTART_ANGLE, _RESTART_LENGTH = 0.1, 0.01  # [rad], [m] their standard deviation per passive joint
+_NEAREST_STEPS = 50  # projected steps toward the guess along the closures' own motion
+_NEAREST_TOLERANCE = 1e-10  # [rad or m] the tangential offset from the guess at which they stop
 
 
 @dataclass(frozen=True)
@@ -82,6 +89,8 @@ def assemble_home(
     q, residual = system.assemble(q, passive, _POLISH_TOLERANCE)
     if not residual <= _SMOOTH_TOLERANCE:
         q, residual, iterations = _restarted(smooth, system, guess, passive, (q, residual, iterations))
+    if residual <= _SMOOTH_TOLERANCE:
+        q, residual = _nearest_to_guess(model, system, q, residual, guess, passive)
     q, wrapped = _wrapped(model, q, passive)
     names = [_joint_name(model, v) for v in passive]
     change = q[passive] - guess[passive]
@@ -183,7 +192,8 @@ def _restarted(
     one line) is a stationary point of the residual, where no step shortens it. Of the starts that
     close, the assembly nearest the guess; without one, the first attempt as it was."""
     best, iterations = first, first[2]
-    scale = np.array([_RESTART_ANGLE if _is_revolute(smooth.model, int(v)) else _RESTART_LENGTH for v in passive])
+    turns = np.array([_is_revolute(smooth.model, int(v)) for v in passive], dtype=bool)
+    scale = np.where(turns, _RESTART_ANGLE, _RESTART_LENGTH)
     for seed in range(_RESTARTS):
         start = guess.copy()
         start[passive] += scale * np.random.default_rng(seed).standard_normal(len(passive))
@@ -192,14 +202,47 @@ def _restarted(
         iterations += used
         closes = residual <= _SMOOTH_TOLERANCE
         if closes and not (
-            best[1] <= _SMOOTH_TOLERANCE and _distance(best[0], guess, passive) <= _distance(q, guess, passive)
+            best[1] <= _SMOOTH_TOLERANCE
+            and _distance(best[0], guess, passive, turns) <= _distance(q, guess, passive, turns)
         ):
             best = (q, residual, 0)
     return best[0], best[1], iterations
 
 
-def _distance(q: np.ndarray, guess: np.ndarray, passive: np.ndarray) -> float:
-    return float(np.linalg.norm(q[passive] - guess[passive]))
+def _nearest_to_guess(
+    model: pin.Model, system: ClosureSystem, q: np.ndarray, residual: float, guess: np.ndarray, passive: np.ndarray
+) -> tuple[np.ndarray, float]:
+    """(q, residual) moved from the assembly q, along the set of assemblies connected to it (actuators
+    held), to the one nearest `guess` over the passive joints (revolute ones modulo whole turns): steps
+    along the null space of the passive closure Jacobian toward the guess, each closed again by Newton,
+    while the distance drops. Where the closures leave no motion (the usual case) q is returned as it is;
+    a rod's idle spin, which Newton leaves wherever the damped phase put it, is brought back to the guess."""
+    turns = np.array([_is_revolute(model, int(v)) for v in passive], dtype=bool)
+    for _ in range(_NEAREST_STEPS):
+        null = closure_null_space(system.evaluate(q, True)[1][:, passive])
+        step = -null @ (null.T @ _offset(q, guess, passive, turns))
+        if not float(np.linalg.norm(step)) > _NEAREST_TOLERANCE:
+            break
+        trial = q.copy()
+        trial[passive] += step
+        trial, trial_residual = system.assemble(trial, passive, _POLISH_TOLERANCE)
+        if not (
+            trial_residual <= _SMOOTH_TOLERANCE
+            and _distance(trial, guess, passive, turns) < _distance(q, guess, passive, turns)
+        ):
+            break
+        q, residual = trial, trial_residual
+    return q, residual
+
+
+def _distance(q: np.ndarray, guess: np.ndarray, passive: np.ndarray, turns: np.ndarray) -> float:
+    """|q - guess| over the passive joints [rad or m], revolute ones (`turns`) modulo whole turns."""
+    return float(np.linalg.norm(_offset(q, guess, passive, turns)))
+
+
+def _offset(q: np.ndarray, guess: np.ndarray, passive: np.ndarray, turns: np.ndarray) -> np.ndarray:
+    change = q[passive] - guess[passive]
+    return np.where(turns, _principal(change), change)
 
 
 def _squared(residual: np.ndarray) -> float:

@@ -297,6 +297,11 @@ def closure_rank(matrix: np.ndarray) -> int:
     return _rank(matrix)
 
 
+def closure_null_space(matrix: np.ndarray) -> np.ndarray:
+    """Orthonormal basis (columns) of a closure Jacobian's right null space, under the same rule."""
+    return _null_space(matrix)
+
+
 def _rank(matrix: np.ndarray) -> int:
     """Singular values above max(shape) * eps * 1e3 times the largest (one rule for rank and null space)."""
     if matrix.size == 0:
