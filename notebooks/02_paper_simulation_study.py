@@ -237,7 +237,7 @@ assert dict(ident.rank_per_chain) == {"B1": 24, "B3": 24} and ident.rank_stacked
 # visible, so the 48 estimated parameters become 56, and $\lVert X \rVert$ jumps once at the restart.
 
 # %%
-cal = paper.calibrate_two_chains(mech, q_true[fit], measured_fit, solver="recursive")
+cal = paper.calibrate_two_chains(mech, q_true[fit], measured_fit, options=paper.TwoChainOptions(solver="recursive"))
 print(f"{cal.iterations} iterations, converged: {cal.converged}, {cal.base.rank} parameters estimated")
 print("||X|| per iteration: " + ", ".join(f"{x:.1e}" for x in cal.step_norms))
 print()
@@ -253,7 +253,7 @@ for c in chains:
     assert max(after.position.max(), after.rotation.max()) < 1e-12  # exact data: reproduced to rounding
 assert cal.converged and cal.base.rank == 56  # 48, plus 4 per chain visible once the axes tilt
 
-batch = paper.calibrate_two_chains(mech, q_true[fit], measured_fit, solver="batch")
+batch = paper.calibrate_two_chains(mech, q_true[fit], measured_fit, options=paper.TwoChainOptions(solver="batch"))
 d_dt = max(np.abs(batch.deltas[p] - cal.deltas[p]).max() for p in cal.deltas)
 d_pose = max(
     max(e.position.max(), e.rotation.max())

@@ -194,13 +194,18 @@ def test_calibration_plots_title_the_map_by_what_it_shows(tmp_path, monkeypatch,
     from m3t1r.calibration.closed_loop import calibrate_closed_loop
     from m3t1r.calibration.measurement_setup import MeasurementSetup
     from m3t1r.calibration.measurements import TrackerNoise
-    from m3t1r.calibration.simulation import simulate_study
+    from m3t1r.calibration.simulation import StudyOptions, simulate_study
     from m3t1r.model.description import Mechanism
 
     mechanism = Mechanism.load()
     frame = pin.SE3(pin.utils.rotate("z", 2.0), np.array([1.5, -0.8, 0.3])) if estimate_frame else pin.SE3.Identity()
     study = simulate_study(
-        mechanism, n_poses=40, n_holdout=0, seed=5, noise=TrackerNoise(), setup=MeasurementSetup(frame)
+        mechanism,
+        n_poses=40,
+        n_holdout=0,
+        seed=5,
+        noise=TrackerNoise(),
+        options=StudyOptions(setup=MeasurementSetup(frame)),
     )
     calibration = calibrate_closed_loop(
         mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise(), estimate_frame=estimate_frame)
@@ -231,13 +236,18 @@ def test_calibration_plots_of_a_position_only_tracker(tmp_path, monkeypatch):
     from m3t1r.calibration.closed_loop import calibrate_closed_loop
     from m3t1r.calibration.measurement_setup import MeasurementSetup
     from m3t1r.calibration.measurements import TrackerNoise
-    from m3t1r.calibration.simulation import simulate_study
+    from m3t1r.calibration.simulation import StudyOptions, simulate_study
     from m3t1r.model.description import Mechanism
 
     mechanism = Mechanism.load()
     setup = MeasurementSetup(pin.SE3(pin.utils.rotate("z", -1.0), np.array([1.5, 2.0, -0.3])))
     study = simulate_study(
-        mechanism, n_poses=40, n_holdout=0, seed=6, noise=TrackerNoise(), position_only=True, setup=setup
+        mechanism,
+        n_poses=40,
+        n_holdout=0,
+        seed=6,
+        noise=TrackerNoise(),
+        options=StudyOptions(setup=setup, position_only=True),
     )
     calibration = calibrate_closed_loop(
         mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise(), estimate_frame=True)
@@ -257,7 +267,7 @@ def test_calibration_plots_of_other_mechanisms_map_their_own_workspace(tmp_path,
     from m3t1r.app import reporting
     from m3t1r.calibration.closed_loop import calibrate_closed_loop
     from m3t1r.calibration.measurements import TrackerNoise
-    from m3t1r.calibration.simulation import simulate_study
+    from m3t1r.calibration.simulation import StudyOptions, simulate_study
     from m3t1r.model.description import Mechanism
     from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 
@@ -318,7 +328,7 @@ def test_calibration_plots_show_the_outliers_the_fit_left_out(tmp_path, monkeypa
     from m3t1r.app import reporting
     from m3t1r.calibration.closed_loop import calibrate_closed_loop
     from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
-    from m3t1r.calibration.simulation import simulate_study
+    from m3t1r.calibration.simulation import StudyOptions, simulate_study
     from m3t1r.model.description import Mechanism
 
     mechanism = Mechanism.load()
