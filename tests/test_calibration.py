@@ -29,7 +29,13 @@ from m3t1r.calibration.identification import forward_selection, select_base_para
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
 from m3t1r.calibration.pipeline import CalibrationOptions, LMSettings, pose_error_rms
-from m3t1r.calibration.simulation import PlacementErrorScale, StudyOptions, actual_machine, random_placement_errors, simulate_study
+from m3t1r.calibration.simulation import (
+    PlacementErrorScale,
+    StudyOptions,
+    actual_machine,
+    random_placement_errors,
+    simulate_study,
+)
 from m3t1r.errors import BranchChangeError, IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.metrics import pose_errors_between
 from m3t1r.model.batch_kinematics import RowFailure
@@ -202,7 +208,9 @@ def test_predicted_measurement_std_without_a_setup_is_the_platform_std(mechanism
 
 def test_position_only_measurements(mechanism):
     noise = TrackerNoise(position=10e-6, rotation=20e-6)
-    study = simulate_study(mechanism, n_poses=60, n_holdout=100, seed=14, noise=noise, options=StudyOptions(position_only=True))
+    study = simulate_study(
+        mechanism, n_poses=60, n_holdout=100, seed=14, noise=noise, options=StudyOptions(position_only=True)
+    )
     calibration = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=noise))
     after = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
     predicted = predicted_pose_std(calibration, study.holdout_actuators)
@@ -297,7 +305,9 @@ def test_idle_chains_cross_validate_a_noise_free_calibration(mechanism, noise_fr
     the fit, are predicted 10x better by the calibrated model (offsets removed)."""
     from m3t1r.app.reporting import IDLE_CHAIN_JOINTS, passive_joint_residuals
 
-    study = simulate_study(mechanism, n_poses=50, n_holdout=200, seed=11, options=StudyOptions(passive_joints=IDLE_CHAIN_JOINTS))
+    study = simulate_study(
+        mechanism, n_poses=50, n_holdout=200, seed=11, options=StudyOptions(passive_joints=IDLE_CHAIN_JOINTS)
+    )
     _, calibration = noise_free_1mm  # same seed, same truth and poses
     actuators = study.measurements.actuators
     before = passive_joint_residuals(mechanism, actuators, IDLE_CHAIN_JOINTS, study.passive_readings)

@@ -24,7 +24,13 @@ from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
 from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.repeats import grouped_blocks, grouped_folds, pose_groups
-from m3t1r.calibration.simulation import SimulatedStudy, StudyOptions, actual_machine, random_placement_errors, simulate_study
+from m3t1r.calibration.simulation import (
+    SimulatedStudy,
+    StudyOptions,
+    actual_machine,
+    random_placement_errors,
+    simulate_study,
+)
 from m3t1r.calibration.validation import validate
 from m3t1r.errors import InvalidInputError
 from m3t1r.io.poses import measurement_column

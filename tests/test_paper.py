@@ -175,7 +175,9 @@ def test_recursive_least_squares_equals_batch(mechanism, nominal_configurations,
     assert difference <= 1e-12  # measured 1.7e-16 on a step of norm 1.1e-2
     # Whole calibrations over the 48 structural combinations (condition 1e3): same parameters.
     structural = {
-        solver: calibrate_two_chains(mechanism, q, measured, options=TwoChainOptions(solver=solver, rank_tolerance=NOISY_READINGS_REL_TOL))
+        solver: calibrate_two_chains(
+            mechanism, q, measured, options=TwoChainOptions(solver=solver, rank_tolerance=NOISY_READINGS_REL_TOL)
+        )
         for solver in ("batch", "recursive")
     }
     assert (
@@ -187,7 +189,10 @@ def test_recursive_least_squares_equals_batch(mechanism, nominal_configurations,
     )  # measured 1.1e-14
     # With the second-order combinations re-selected (condition 1e9) the two solvers' rounding
     # moves the parameters apart along them (measured 1.6e-3) but not the poses (measured 5.6e-16).
-    full = {solver: calibrate_two_chains(mechanism, q, measured, options=TwoChainOptions(solver=solver)) for solver in ("batch", "recursive")}
+    full = {
+        solver: calibrate_two_chains(mechanism, q, measured, options=TwoChainOptions(solver=solver))
+        for solver in ("batch", "recursive")
+    }
     held = nominal_configurations[20:]
     for name in ("B1", "B3"):
         for a, b in zip(full["batch"].predict(name, held), full["recursive"].predict(name, held)):

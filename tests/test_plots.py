@@ -267,7 +267,7 @@ def test_calibration_plots_of_other_mechanisms_map_their_own_workspace(tmp_path,
     from m3t1r.app import reporting
     from m3t1r.calibration.closed_loop import calibrate_closed_loop
     from m3t1r.calibration.measurements import TrackerNoise
-    from m3t1r.calibration.simulation import StudyOptions, simulate_study
+    from m3t1r.calibration.simulation import simulate_study
     from m3t1r.model.description import Mechanism
     from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 
@@ -328,7 +328,7 @@ def test_calibration_plots_show_the_outliers_the_fit_left_out(tmp_path, monkeypa
     from m3t1r.app import reporting
     from m3t1r.calibration.closed_loop import calibrate_closed_loop
     from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
-    from m3t1r.calibration.simulation import StudyOptions, simulate_study
+    from m3t1r.calibration.simulation import simulate_study
     from m3t1r.model.description import Mechanism
 
     mechanism = Mechanism.load()

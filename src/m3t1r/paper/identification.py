@@ -34,7 +34,13 @@ from m3t1r.model.poe import Placement, forward_and_error_jacobians, perturb, pla
 from m3t1r.paper.chains import _TWIST, PaperChain, _as_configurations, _per_chain_poses, _pose_differences, paper_chains
 from m3t1r.paper.error_model import TwoChainErrorModel, _row_weights, two_chain_error_model
 
-__all__ = ["EXACT_DATA_REL_TOL", "NOISY_READINGS_REL_TOL", "PaperCalibration", "TwoChainOptions", "calibrate_two_chains"]
+__all__ = [
+    "EXACT_DATA_REL_TOL",
+    "NOISY_READINGS_REL_TOL",
+    "PaperCalibration",
+    "TwoChainOptions",
+    "calibrate_two_chains",
+]
 
 Solver = Literal["batch", "recursive"]
 Unidentifiable = Literal["base", "minimum_norm"]
