@@ -8,6 +8,7 @@ import pytest
 from matplotlib.figure import Figure
 
 from m3t1r.app.plots import (
+    PlotFile,
     plot_error_vs_poses,
     plot_pose_errors_before_after,
     plot_predicted_std_map,
@@ -126,11 +127,15 @@ def test_refuses_to_overwrite_a_protected_input(tmp_path, errors, workspace_poin
     alias = tmp_path / "link.csv"
     alias.symlink_to(measurements)
     calls = [
-        lambda p: plot_pose_errors_before_after(*errors, p, protect=[measurements]),
-        lambda p: plot_error_vs_poses([10, 20], [1e-5, 5e-6], [2e-5, 1e-5], p, protect=[measurements]),
-        lambda p: plot_workspace_error_map(workspace_points, np.ones(120), np.ones(120), p, protect=[measurements]),
+        lambda p: plot_pose_errors_before_after(*errors, PlotFile(p, protect=(measurements,))),
+        lambda p: plot_error_vs_poses([10, 20], [1e-5, 5e-6], [2e-5, 1e-5], PlotFile(p, protect=(measurements,))),
+        lambda p: plot_workspace_error_map(
+            workspace_points, np.ones(120), np.ones(120), PlotFile(p, protect=(measurements,))
+        ),
         lambda p: plot_predicted_std_map(
-            workspace_points, PoseErrors(np.ones(120), np.ones(120)), p, protect=[measurements]
+            workspace_points,
+            PoseErrors(np.ones(120), np.ones(120)),
+            PlotFile(p, protect=(measurements,)),
         ),
     ]
     for call in calls:
