@@ -220,7 +220,7 @@ def test_calibration_plots_title_the_map_by_what_it_shows(tmp_path, monkeypatch,
     monkeypatch.setattr(
         reporting,
         "plot_predicted_std_map",
-        lambda targets, std, path, title, protect, plane, outputs: maps.append((targets, std, title)) or path,
+        lambda targets, std, path, title, plane: maps.append((targets, std, title)) or path,
     )
     reporting.write_calibration_plots(mechanism, calibration, tmp_path)
     ((targets, std, title),) = maps
@@ -285,7 +285,7 @@ def test_calibration_plots_of_other_mechanisms_map_their_own_workspace(tmp_path,
     monkeypatch.setattr(
         reporting,
         "plot_predicted_std_map",
-        lambda where, std, path, title, protect, plane, outputs: maps.append((where, std, plane)) or path,
+        lambda where, std, path, title, plane: maps.append((where, std, plane)) or path,
     )
     reporting.write_calibration_plots(mechanism, calibration, tmp_path / "plots")
     ((where, std, plane),) = maps
