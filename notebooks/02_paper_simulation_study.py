@@ -289,8 +289,8 @@ display(Image(filename=str(figure), width=640))
 # `paper_study` runs sections 2-6 above from one seed, drawing in the same order. Without noise it should print the
 # same held-out numbers as the cell above. With `noise=TrackerNoise()` the tracker perturbs the measured poses
 # (10 µm, 20 µrad) and the joint readings get encoder noise: 1 µm on the sliders (`TrackerNoise.actuator`) and
-# 10 µrad on the other joints (`passive_encoder_noise`, by default `paper.PASSIVE_ENCODER_NOISE`). The
-# identification then stops at the noise level, as in the paper's Fig. 4.
+# 10 µrad on the other joints (`TwoChainStudyOptions.passive_encoder_noise`, by default
+# `paper.PASSIVE_ENCODER_NOISE`). The identification then stops at the noise level, as in the paper's Fig. 4.
 
 # %%
 exact = paper.paper_study(SEED, n_poses=N_POSES, n_holdout=N_HOLDOUT)
