@@ -864,8 +864,8 @@ class _Recorder:
     def __init__(self, result):
         self.result, self.calls = result, []
 
-    def __call__(self, problem, state, **options):
-        self.calls.append((problem, state, options))
+    def __call__(self, problem, state, settings):
+        self.calls.append((problem, state, settings))
         return self.result
 
 
@@ -877,15 +877,8 @@ def test_fit_passes_its_settings_and_refuses_a_model_that_does_not_assemble(monk
     monkeypatch.setattr(pipeline, "levenberg_marquardt", recorder)
     assert pipeline.fit(problem, state, settings) is good
     assert len(recorder.calls) == 1
-    called_problem, called_state, called_options = recorder.calls[0]
-    assert called_problem is problem and called_state is state
-    assert called_options == {
-        "max_iterations": 7,
-        "initial_damping": 1e-6,
-        "absolute_cost_tolerance": 1e-3,
-        "cost_tolerance": 0.25,
-        "unit_damping": False,
-    }
+    called_problem, called_state, called_settings = recorder.calls[0]
+    assert called_problem is problem and called_state is state and called_settings is settings
     recorder.result = SimpleNamespace(cost=float("inf"))  # every pose row infinite: a model that does not assemble
     with pytest.raises(IdentificationError) as error:
         pipeline.fit(problem, state, settings)
@@ -919,15 +912,12 @@ def test_refine_options_weights_and_an_equal_rank(mechanism, few_poses, monkeypa
         problem.columns = np.arange(3)
         assert pipeline.refine(problem, result, 1e-3, 5) is continued_fit
     np.testing.assert_array_equal(problem.columns, expected.indices)
-    ((called_problem, continued, options),) = recorder.calls
+    ((called_problem, continued, settings),) = recorder.calls
     assert called_problem is problem
-    assert options == {
-        "max_iterations": 5,
-        "initial_damping": 1e-9,
-        "absolute_cost_tolerance": 0.0,
-        "cost_tolerance": 1e-14,
-        "unit_damping": False,
-    }
+    assert settings == LMSettings(
+        max_iterations=5, cost_tolerance=1e-14, absolute_cost_tolerance=0.0, initial_damping=1e-9
+    )
+    assert (settings.step_tolerance, settings.gradient_tolerance, settings.unit_damping) == (1e-12, 1e-12, False)
     assert continued.model is state.model and continued.setup is setup and continued.accumulated is accumulated
     for q, q0 in zip(continued.configurations, state.configurations):
         np.testing.assert_allclose(q, q0, atol=1e-12)
