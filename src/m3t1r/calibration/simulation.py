@@ -155,8 +155,8 @@ class SimulatedStudy:
     setup: the truth measurement frame and marker the measurements were taken with; outliers:
     indices of the measurements spoiled by gross errors. passive_joints / passive_readings:
     encoder readings (N, k) of those joints of the truth at the measured poses (noisy with
-    `encoder_noise` [rad] when the study is noisy), for cross-validation; the calibration does not
-    use them.
+    `StudyOptions.encoder_noise` [rad] when the study is noisy), for cross-validation; the
+    calibration does not use them.
     """
 
     nominal: Mechanism
