@@ -29,7 +29,7 @@ from m3t1r.calibration.closed_loop import calibrate_closed_loop, cross_validate 
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise, measure
 from m3t1r.calibration.pipeline import CalibrationOptions  # noqa: E402
-from m3t1r.calibration.simulation import simulate_study  # noqa: E402
+from m3t1r.calibration.simulation import StudyOptions, simulate_study  # noqa: E402
 from m3t1r.errors import PoorExcitationWarning  # noqa: E402
 from m3t1r.metrics import pose_errors_between  # noqa: E402
 from m3t1r.model.description import Mechanism  # noqa: E402
@@ -65,7 +65,7 @@ def _variants(nominal, study, given):
 def run_case(nominal: Mechanism, seed: int, poses: int, outliers: int, repeats: int) -> list[list[str]]:
     rng = np.random.default_rng(500 + seed)
     setup = _setup(rng)
-    study = simulate_study(nominal, poses, 200, seed, noise=NOISE, setup=setup, outliers=outliers)
+    study = simulate_study(nominal, poses, 200, seed, noise=NOISE, options=StudyOptions(setup=setup, outliers=outliers))
     given = pin.SE3(np.eye(3), setup.marker.translation + rng.normal(size=3) * 0.5e-3 / np.sqrt(3))
     runs = _variants(nominal, study, given)
     results: dict[str, object] = {}

@@ -38,6 +38,7 @@ from m3t1r.calibration.serial import calibrate_serial  # noqa: E402
 from m3t1r.calibration.serial_evaluation import pose_errors
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
 from m3t1r.calibration.serial_simulation import sample_configurations, simulate_serial_measurements
+from m3t1r.calibration.simulation import PlacementErrorScale
 from m3t1r.model.poe import SerialChain, perturb  # noqa: E402
 
 N_POSES = 50
@@ -118,8 +119,7 @@ def main(argv: list[str] | None = None) -> int:
                     chain,
                     N_POSES,
                     rng,
-                    translation_error=1e-3,
-                    rotation_error=1e-3,
+                    errors=PlacementErrorScale(1e-3, 1e-3),
                     joint_offset=1e-3,
                     noise=NOISE,
                 )

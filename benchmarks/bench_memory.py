@@ -113,11 +113,13 @@ def _streamed_against_in_memory(n: int) -> str:
     from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors
     from m3t1r.calibration.measurements import TrackerNoise
     from m3t1r.calibration.pipeline import CalibrationOptions
-    from m3t1r.calibration.simulation import simulate_study
+    from m3t1r.calibration.simulation import StudyOptions, simulate_study
     from m3t1r.model.description import Mechanism
 
     nominal = Mechanism.load()
-    study = simulate_study(nominal, n_poses=n, n_holdout=200, seed=26, noise=TrackerNoise(), outliers=3)
+    study = simulate_study(
+        nominal, n_poses=n, n_holdout=200, seed=26, noise=TrackerNoise(), options=StudyOptions(outliers=3)
+    )
     options = CalibrationOptions(noise=TrackerNoise(), select=True)
     timed = {}
     for stream in (True, False):

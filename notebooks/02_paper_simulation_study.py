@@ -237,7 +237,7 @@ assert dict(ident.rank_per_chain) == {"B1": 24, "B3": 24} and ident.rank_stacked
 # visible, so the 48 estimated parameters become 56, and $\lVert X \rVert$ jumps once at the restart.
 
 # %%
-cal = paper.calibrate_two_chains(mech, q_true[fit], measured_fit, solver="recursive")
+cal = paper.calibrate_two_chains(mech, q_true[fit], measured_fit, options=paper.TwoChainOptions(solver="recursive"))
 print(f"{cal.iterations} iterations, converged: {cal.converged}, {cal.base.rank} parameters estimated")
 print("||X|| per iteration: " + ", ".join(f"{x:.1e}" for x in cal.step_norms))
 print()
@@ -253,7 +253,7 @@ for c in chains:
     assert max(after.position.max(), after.rotation.max()) < 1e-12  # exact data: reproduced to rounding
 assert cal.converged and cal.base.rank == 56  # 48, plus 4 per chain visible once the axes tilt
 
-batch = paper.calibrate_two_chains(mech, q_true[fit], measured_fit, solver="batch")
+batch = paper.calibrate_two_chains(mech, q_true[fit], measured_fit, options=paper.TwoChainOptions(solver="batch"))
 d_dt = max(np.abs(batch.deltas[p] - cal.deltas[p]).max() for p in cal.deltas)
 d_pose = max(
     max(e.position.max(), e.rotation.max())
@@ -289,8 +289,8 @@ display(Image(filename=str(figure), width=640))
 # `paper_study` runs sections 2-6 above from one seed, drawing in the same order. Without noise it should print the
 # same held-out numbers as the cell above. With `noise=TrackerNoise()` the tracker perturbs the measured poses
 # (10 µm, 20 µrad) and the joint readings get encoder noise: 1 µm on the sliders (`TrackerNoise.actuator`) and
-# 10 µrad on the other joints (`passive_encoder_noise`, by default `paper.PASSIVE_ENCODER_NOISE`). The
-# identification then stops at the noise level, as in the paper's Fig. 4.
+# 10 µrad on the other joints (`TwoChainStudyOptions.passive_encoder_noise`, by default
+# `paper.PASSIVE_ENCODER_NOISE`). The identification then stops at the noise level, as in the paper's Fig. 4.
 
 # %%
 exact = paper.paper_study(SEED, n_poses=N_POSES, n_holdout=N_HOLDOUT)

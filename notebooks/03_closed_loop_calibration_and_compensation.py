@@ -347,7 +347,8 @@ HTML(
 )
 
 # %% [markdown]
-# **Things to try.** Change `SEED`, `N_POSES` or the `TrackerNoise` values. Pass `position_only=True` to
-# `simulate_study` to simulate a tracker that sees only a point on the platform, then compare the rank and the
-# held-out errors. Scale the machine's errors with `sigma_position` and `sigma_rotation`. Change the compensation
+# **Things to try.** Change `SEED`, `N_POSES` or the `TrackerNoise` values. Pass
+# `options=StudyOptions(position_only=True)` to `simulate_study` to simulate a tracker that sees only a point on the
+# platform, then compare the rank and the held-out errors. Scale the machine's errors with
+# `errors=PlacementErrorScale(position, rotation)`. Change the compensation
 # targets, for instance to `compensation.workspace_grid((5, 5, 3, 3))`, a serpentine grid.

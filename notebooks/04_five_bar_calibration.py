@@ -33,7 +33,7 @@ from m3t1r.app.plots import plot_pose_errors_before_after, plot_workspace_error_
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.pipeline import CalibrationOptions
-from m3t1r.calibration.simulation import simulate_study
+from m3t1r.calibration.simulation import PlacementErrorScale, simulate_study
 from m3t1r.compensation import compensation_accuracy
 from m3t1r.model.description import Mechanism, nominal_model_paths
 from m3t1r.model.kinematics import ClosedLoopSolver
@@ -87,7 +87,12 @@ assert forward.complete and inverse.complete and round_trip < 1e-8
 # %%
 noise = TrackerNoise(position=1e-5, rotation=2e-5, actuator=1e-6)
 study = simulate_study(
-    five_bar, n_poses=40, n_holdout=300, seed=1, sigma_position=1e-4, sigma_rotation=1e-4, noise=noise
+    five_bar,
+    n_poses=40,
+    n_holdout=300,
+    seed=1,
+    noise=noise,
+    errors=PlacementErrorScale(1e-4, 1e-4),
 )
 calibration = calibrate_closed_loop(five_bar, study.measurements, CalibrationOptions(noise=noise))
 before = pose_errors(five_bar, study.truth, study.holdout_actuators)

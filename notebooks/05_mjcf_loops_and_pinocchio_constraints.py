@@ -33,7 +33,7 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors
-from m3t1r.calibration.simulation import simulate_study
+from m3t1r.calibration.simulation import PlacementErrorScale, simulate_study
 from m3t1r.model.closures import ClosureSystem
 from m3t1r.model.constraint_models import constraint_residual, rigid_constraint_datas, rigid_constraint_models
 from m3t1r.model.description import Mechanism
@@ -111,7 +111,7 @@ assert worst < 1e-9
 # conventions) for `initConstraintDynamics` / `constraintDynamics`.
 
 # %%
-study = simulate_study(loop, n_poses=30, n_holdout=20, seed=2, sigma_position=1e-4, sigma_rotation=1e-4)
+study = simulate_study(loop, n_poses=30, n_holdout=20, seed=2, errors=PlacementErrorScale(1e-4, 1e-4))
 calibrated = calibrate_closed_loop(loop, study.measurements).mechanism
 held_out = pose_errors(calibrated, study.truth, study.holdout_actuators)
 print(f"held-out error of the calibrated machine: {held_out.position_max:.1e} m, {held_out.rotation_max:.1e} rad")

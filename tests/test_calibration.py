@@ -29,7 +29,13 @@ from m3t1r.calibration.identification import forward_selection, select_base_para
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
 from m3t1r.calibration.pipeline import CalibrationOptions, LMSettings, pose_error_rms
-from m3t1r.calibration.simulation import actual_machine, random_placement_errors, simulate_study
+from m3t1r.calibration.simulation import (
+    PlacementErrorScale,
+    StudyOptions,
+    actual_machine,
+    random_placement_errors,
+    simulate_study,
+)
 from m3t1r.errors import BranchChangeError, IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.metrics import pose_errors_between
 from m3t1r.model.batch_kinematics import RowFailure
@@ -134,7 +140,7 @@ def test_noise_free_1mm_machine_is_recovered_below_a_micrometre(noise_free_1mm):
 
 
 def test_noise_free_0_1mm_machine_is_recovered_to_nanometres(mechanism):
-    study = simulate_study(mechanism, n_poses=50, n_holdout=200, seed=12, sigma_position=1e-4, sigma_rotation=1e-4)
+    study = simulate_study(mechanism, n_poses=50, n_holdout=200, seed=12, errors=PlacementErrorScale(1e-4, 1e-4))
     calibration = calibrate_closed_loop(mechanism, study.measurements)
     after = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
     assert after.position_mean < 1e-8 and after.rotation_mean < 1e-7
@@ -202,7 +208,9 @@ def test_predicted_measurement_std_without_a_setup_is_the_platform_std(mechanism
 
 def test_position_only_measurements(mechanism):
     noise = TrackerNoise(position=10e-6, rotation=20e-6)
-    study = simulate_study(mechanism, n_poses=60, n_holdout=100, seed=14, noise=noise, position_only=True)
+    study = simulate_study(
+        mechanism, n_poses=60, n_holdout=100, seed=14, noise=noise, options=StudyOptions(position_only=True)
+    )
     calibration = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=noise))
     after = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
     predicted = predicted_pose_std(calibration, study.holdout_actuators)
@@ -297,7 +305,9 @@ def test_idle_chains_cross_validate_a_noise_free_calibration(mechanism, noise_fr
     the fit, are predicted 10x better by the calibrated model (offsets removed)."""
     from m3t1r.app.reporting import IDLE_CHAIN_JOINTS, passive_joint_residuals
 
-    study = simulate_study(mechanism, n_poses=50, n_holdout=200, seed=11, passive_joints=IDLE_CHAIN_JOINTS)
+    study = simulate_study(
+        mechanism, n_poses=50, n_holdout=200, seed=11, options=StudyOptions(passive_joints=IDLE_CHAIN_JOINTS)
+    )
     _, calibration = noise_free_1mm  # same seed, same truth and poses
     actuators = study.measurements.actuators
     before = passive_joint_residuals(mechanism, actuators, IDLE_CHAIN_JOINTS, study.passive_readings)
@@ -667,7 +677,12 @@ def test_the_streamed_fit_is_the_in_memory_fit(mechanism):
     the same cross-validation. 600 poses span two blocks of the streamed accumulation."""
     frame = pin.SE3(pin.utils.rotate("z", 0.7), np.array([1.2, -0.4, 0.3]))
     study = simulate_study(
-        mechanism, n_poses=600, n_holdout=50, seed=23, noise=NOISE, setup=MeasurementSetup(frame=frame), outliers=2
+        mechanism,
+        n_poses=600,
+        n_holdout=50,
+        seed=23,
+        noise=NOISE,
+        options=StudyOptions(setup=MeasurementSetup(frame=frame), outliers=2),
     )
     options = CalibrationOptions(noise=NOISE, estimate_frame=True, select=True, priors={"q12.dt[0]": 1e-3})
     fits = {
@@ -703,7 +718,12 @@ def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
     frame = pin.SE3(pin.utils.rotate("z", 2.0), np.array([1.5, -0.8, 0.3]))
     marker = pin.SE3(pin.utils.rotate("y", 0.3), np.array([0.01, 0.0, 0.05]))
     study = simulate_study(
-        mechanism, n_poses=40, n_holdout=0, seed=17, noise=NOISE, setup=MeasurementSetup(frame, marker), outliers=1
+        mechanism,
+        n_poses=40,
+        n_holdout=0,
+        seed=17,
+        noise=NOISE,
+        options=StudyOptions(setup=MeasurementSetup(frame, marker), outliers=1),
     )
     calls = []
     calibration = calibrate_closed_loop(
@@ -844,8 +864,8 @@ class _Recorder:
     def __init__(self, result):
         self.result, self.calls = result, []
 
-    def __call__(self, problem, state, **options):
-        self.calls.append((problem, state, options))
+    def __call__(self, problem, state, settings):
+        self.calls.append((problem, state, settings))
         return self.result
 
 
@@ -857,15 +877,8 @@ def test_fit_passes_its_settings_and_refuses_a_model_that_does_not_assemble(monk
     monkeypatch.setattr(pipeline, "levenberg_marquardt", recorder)
     assert pipeline.fit(problem, state, settings) is good
     assert len(recorder.calls) == 1
-    called_problem, called_state, called_options = recorder.calls[0]
-    assert called_problem is problem and called_state is state
-    assert called_options == {
-        "max_iterations": 7,
-        "initial_damping": 1e-6,
-        "absolute_cost_tolerance": 1e-3,
-        "cost_tolerance": 0.25,
-        "unit_damping": False,
-    }
+    called_problem, called_state, called_settings = recorder.calls[0]
+    assert called_problem is problem and called_state is state and called_settings is settings
     recorder.result = SimpleNamespace(cost=float("inf"))  # every pose row infinite: a model that does not assemble
     with pytest.raises(IdentificationError) as error:
         pipeline.fit(problem, state, settings)
@@ -899,15 +912,12 @@ def test_refine_options_weights_and_an_equal_rank(mechanism, few_poses, monkeypa
         problem.columns = np.arange(3)
         assert pipeline.refine(problem, result, 1e-3, 5) is continued_fit
     np.testing.assert_array_equal(problem.columns, expected.indices)
-    ((called_problem, continued, options),) = recorder.calls
+    ((called_problem, continued, settings),) = recorder.calls
     assert called_problem is problem
-    assert options == {
-        "max_iterations": 5,
-        "initial_damping": 1e-9,
-        "absolute_cost_tolerance": 0.0,
-        "cost_tolerance": 1e-14,
-        "unit_damping": False,
-    }
+    assert settings == LMSettings(
+        max_iterations=5, cost_tolerance=1e-14, absolute_cost_tolerance=0.0, initial_damping=1e-9
+    )
+    assert (settings.step_tolerance, settings.gradient_tolerance, settings.unit_damping) == (1e-12, 1e-12, False)
     assert continued.model is state.model and continued.setup is setup and continued.accumulated is accumulated
     for q, q0 in zip(continued.configurations, state.configurations):
         np.testing.assert_allclose(q, q0, atol=1e-12)

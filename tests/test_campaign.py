@@ -24,7 +24,13 @@ from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
 from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.repeats import grouped_blocks, grouped_folds, pose_groups
-from m3t1r.calibration.simulation import SimulatedStudy, actual_machine, random_placement_errors, simulate_study
+from m3t1r.calibration.simulation import (
+    SimulatedStudy,
+    StudyOptions,
+    actual_machine,
+    random_placement_errors,
+    simulate_study,
+)
 from m3t1r.calibration.validation import validate
 from m3t1r.errors import InvalidInputError
 from m3t1r.io.poses import measurement_column
@@ -49,7 +55,12 @@ def _campaign(tmp_path: Path, seed: int, position_only: bool) -> tuple[Simulated
     rng = np.random.default_rng(1000 + seed)
     setup = _random_setup(rng)
     study = simulate_study(
-        nominal, 60, 200, seed, noise=TrackerNoise(), position_only=position_only, setup=setup, outliers=2
+        nominal,
+        60,
+        200,
+        seed,
+        noise=TrackerNoise(),
+        options=StudyOptions(setup=setup, position_only=position_only, outliers=2),
     )
     path = tmp_path / "campaign.csv"
     write_measurements(path, nominal, study.measurements, units="mm")
@@ -141,7 +152,7 @@ def test_mistakes_are_refused_with_their_likely_cause(tmp_path, capsys, mistake,
 
 def test_linearised_cross_validation_agrees_with_refitting_every_fold():
     nominal = Mechanism.load()
-    study = simulate_study(nominal, 50, 0, 7, noise=TrackerNoise(), outliers=1)
+    study = simulate_study(nominal, 50, 0, 7, noise=TrackerNoise(), options=StudyOptions(outliers=1))
     calibration = calibrate_closed_loop(
         nominal, study.measurements, CalibrationOptions(noise=TrackerNoise(), select=True)
     )

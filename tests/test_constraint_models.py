@@ -13,7 +13,7 @@ import pytest
 from mjcf_mechanisms import five_bar_mjcf, spatial_loop_mjcf
 
 from m3t1r.calibration.closed_loop import calibrate_closed_loop
-from m3t1r.calibration.simulation import simulate_study
+from m3t1r.calibration.simulation import PlacementErrorScale, simulate_study
 from m3t1r.errors import InvalidInputError, ModelWarning
 from m3t1r.model.closures import ClosureSystem, closure_rank
 from m3t1r.model.constraint_models import constraint_residual, rigid_constraint_datas, rigid_constraint_models
@@ -103,7 +103,7 @@ def _reduced_dynamics(
 
 def test_constraint_dynamics_on_a_calibrated_machine_keeps_its_loop_closed(tmp_path):
     nominal = _spatial_loop(tmp_path)
-    study = simulate_study(nominal, n_poses=30, n_holdout=5, seed=2, sigma_position=1e-4, sigma_rotation=1e-4)
+    study = simulate_study(nominal, n_poses=30, n_holdout=5, seed=2, errors=PlacementErrorScale(1e-4, 1e-4))
     calibrated = calibrate_closed_loop(nominal, study.measurements).mechanism
     model = calibrated.model
     models = rigid_constraint_models(calibrated)
@@ -126,7 +126,7 @@ def test_constraint_dynamics_on_a_calibrated_machine_keeps_its_loop_closed(tmp_p
 
 def test_rows_a_calibrated_planar_loop_leaves_out_are_held_only_on_request(tmp_path):
     nominal = _load(five_bar_mjcf(tmp_path))
-    study = simulate_study(nominal, n_poses=30, n_holdout=5, seed=5, sigma_position=1e-4, sigma_rotation=1e-4)
+    study = simulate_study(nominal, n_poses=30, n_holdout=5, seed=5, errors=PlacementErrorScale(1e-4, 1e-4))
     with pytest.raises(InvalidInputError, match=r"closure\(s\) tip: the rows m3t1r leaves out do not hold"):
         rigid_constraint_models(study.truth)
     held = rigid_constraint_models(study.truth, left_out_rows="hold")

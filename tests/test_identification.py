@@ -11,6 +11,7 @@ import scipy.stats  # a reference for outlier_gate, which the package computes w
 
 from m3t1r.calibration import identification
 from m3t1r.calibration.identification import (
+    LMSettings,
     RecursiveLeastSquares,
     batch_least_squares,
     best_index,
@@ -182,7 +183,7 @@ class RotationFit:
 
 
 def test_levenberg_marquardt_rosenbrock() -> None:
-    result = levenberg_marquardt(Rosenbrock(), np.array([-1.2, 1.0]), max_iterations=100)
+    result = levenberg_marquardt(Rosenbrock(), np.array([-1.2, 1.0]), LMSettings(max_iterations=100))
     assert result.converged, result.termination
     np.testing.assert_allclose(result.state, [1.0, 1.0], atol=1e-10)
     assert result.cost < 1e-20
@@ -204,7 +205,7 @@ def test_levenberg_marquardt_on_a_manifold_matches_closed_form() -> None:
 
 
 def test_levenberg_marquardt_reports_non_convergence() -> None:
-    result = levenberg_marquardt(Rosenbrock(), np.array([-1.2, 1.0]), max_iterations=2)
+    result = levenberg_marquardt(Rosenbrock(), np.array([-1.2, 1.0]), LMSettings(max_iterations=2))
     assert not result.converged and result.termination == "max_iterations" and result.iterations == 2
 
 
@@ -262,7 +263,9 @@ def _decreases(result):
 def test_relative_cost_rule_stops_at_the_first_small_decrease():
     tolerance = 1e-7
     result = levenberg_marquardt(
-        ExponentialFit(), X_FAR, cost_tolerance=tolerance, step_tolerance=0.0, gradient_tolerance=0.0
+        ExponentialFit(),
+        X_FAR,
+        LMSettings(cost_tolerance=tolerance, step_tolerance=0.0, gradient_tolerance=0.0),
     )
     assert result.converged and result.termination == "cost"
     decrease, before = _decreases(result)
@@ -277,10 +280,7 @@ def test_absolute_cost_rule_stops_at_the_first_small_decrease():
     result = levenberg_marquardt(
         ExponentialFit(),
         X_FAR,
-        cost_tolerance=0.0,
-        step_tolerance=0.0,
-        gradient_tolerance=0.0,
-        absolute_cost_tolerance=absolute,
+        LMSettings(cost_tolerance=0.0, step_tolerance=0.0, gradient_tolerance=0.0, absolute_cost_tolerance=absolute),
     )
     assert result.termination == "cost"
     decrease, _ = _decreases(result)
@@ -290,7 +290,9 @@ def test_absolute_cost_rule_stops_at_the_first_small_decrease():
 
 def test_without_cost_rules_the_step_rule_stops():
     result = levenberg_marquardt(
-        ExponentialFit(), X0, cost_tolerance=0.0, step_tolerance=1e-10, gradient_tolerance=0.0, max_iterations=200
+        ExponentialFit(),
+        X0,
+        LMSettings(cost_tolerance=0.0, step_tolerance=1e-10, gradient_tolerance=0.0, max_iterations=200),
     )
     assert result.converged and result.termination == "step" and result.step_norm <= 1e-10
     # The step rule stops before the step is accepted: the iteration count includes that last solve.
@@ -305,7 +307,9 @@ def test_gradient_rule_on_a_zero_residual_problem():
         def retract(self, x, step):
             return x + step
 
-    result = levenberg_marquardt(Line(), np.zeros(2), gradient_tolerance=1e-8, cost_tolerance=0.0, step_tolerance=0.0)
+    result = levenberg_marquardt(
+        Line(), np.zeros(2), LMSettings(gradient_tolerance=1e-8, cost_tolerance=0.0, step_tolerance=0.0)
+    )
     assert result.termination == "gradient" and result.converged
     np.testing.assert_allclose(result.state, [1.0, -3.0], atol=1e-8)
     assert result.iterations == len(result.cost_history) - 1 and result.iterations <= 4
@@ -316,7 +320,9 @@ def test_gradient_rule_on_a_zero_residual_problem():
 
 def test_max_iterations_is_reported_not_converged():
     result = levenberg_marquardt(
-        ExponentialFit(), X0, cost_tolerance=0.0, step_tolerance=0.0, gradient_tolerance=0.0, max_iterations=2
+        ExponentialFit(),
+        X0,
+        LMSettings(cost_tolerance=0.0, step_tolerance=0.0, gradient_tolerance=0.0, max_iterations=2),
     )
     assert result.termination == "max_iterations" and not result.converged and result.iterations == 2
 
@@ -339,7 +345,7 @@ def test_non_finite_trial_cost_is_rejected_not_accepted():
             r, _ = self.residual_and_jacobian(x)
             return np.full_like(r, np.nan) if x[0] > 2.5 else r  # the undamped first step overshoots
 
-    result = levenberg_marquardt(Guarded(), np.array([3.0, -3.0]), initial_damping=1e-9)
+    result = levenberg_marquardt(Guarded(), np.array([3.0, -3.0]), LMSettings(initial_damping=1e-9))
     assert result.converged and np.all(np.isfinite(result.cost_history))
     np.testing.assert_allclose(result.state, [2.0, -1.5], atol=0.05)
 
@@ -350,7 +356,7 @@ def test_stalled_when_the_jacobian_is_wrong():
             r, J = super().residual_and_jacobian(x)
             return r, -J
 
-    result = levenberg_marquardt(WrongSign(), X0, step_tolerance=0.0)
+    result = levenberg_marquardt(WrongSign(), X0, LMSettings(step_tolerance=0.0))
     assert result.termination == "stalled" and not result.converged and result.iterations == 1
     assert result.cost == result.cost_history[0]  # nothing accepted
     # With the default step tolerance the ever more damped steps shrink below it first.
@@ -754,11 +760,9 @@ def test_trial_steps_follow_the_marquardt_nielsen_schedule(damping):
     result = levenberg_marquardt(
         problem,
         start,
-        initial_damping=damping,
-        max_iterations=6,
-        cost_tolerance=0.0,
-        step_tolerance=0.0,
-        gradient_tolerance=0.0,
+        LMSettings(
+            initial_damping=damping, max_iterations=6, cost_tolerance=0.0, step_tolerance=0.0, gradient_tolerance=0.0
+        ),
     )
     assert result.termination == "max_iterations" and result.iterations == 6
     reference = _reference_steps(ExponentialFit(), start, damping, 6)
@@ -772,11 +776,9 @@ def test_rejections_happen_in_the_schedule_test():
     levenberg_marquardt(
         problem,
         np.array([0.1, 6.0]),
-        initial_damping=1e-9,
-        max_iterations=6,
-        cost_tolerance=0.0,
-        step_tolerance=0.0,
-        gradient_tolerance=0.0,
+        LMSettings(
+            initial_damping=1e-9, max_iterations=6, cost_tolerance=0.0, step_tolerance=0.0, gradient_tolerance=0.0
+        ),
     )
     assert len(problem.steps) >= 6 + 3  # several rejected trials in a row: nu doubles
 
@@ -802,29 +804,33 @@ class Linear:
 
 def test_step_rule_at_its_exact_tolerance_and_every_field_of_the_result():
     problem = Linear()
-    result = levenberg_marquardt(problem, np.zeros(1), initial_damping=0.0, step_tolerance=0.75)
+    result = levenberg_marquardt(problem, np.zeros(1), LMSettings(initial_damping=0.0, step_tolerance=0.75))
     assert result.termination == "step" and result.converged is True and result.iterations == 1
     assert result.step_norm == 0.75 and problem.steps == []  # a step of exactly the tolerance is not taken
     np.testing.assert_array_equal(result.state, [0.0])
     assert result.cost == 0.28125 and result.cost_history == (0.28125,)
     # Just below the step: taken, then the gradient rule stops at the minimum.
-    result = levenberg_marquardt(Linear(), np.zeros(1), initial_damping=0.0, step_tolerance=0.75 * (1 - 1e-12))
+    result = levenberg_marquardt(
+        Linear(), np.zeros(1), LMSettings(initial_damping=0.0, step_tolerance=0.75 * (1 - 1e-12))
+    )
     assert result.termination == "gradient" and result.iterations == 1 and result.cost == 0.0
 
 
 def test_cost_rules_at_their_exact_tolerance_and_every_field_of_the_result():
     # The first step removes the whole cost: decrease 0.28125 = 1.0 x the cost before the step.
-    relative = levenberg_marquardt(Linear(), np.zeros(1), initial_damping=0.0, cost_tolerance=1.0)
+    relative = levenberg_marquardt(Linear(), np.zeros(1), LMSettings(initial_damping=0.0, cost_tolerance=1.0))
     assert relative.termination == "cost" and relative.converged is True and relative.iterations == 1
     assert relative.cost == 0.0 and relative.cost_history == (0.28125, 0.0) and relative.step_norm == 0.75
     np.testing.assert_array_equal(relative.state, [0.75])
     absolute = levenberg_marquardt(
-        Linear(), np.zeros(1), initial_damping=0.0, cost_tolerance=0.0, absolute_cost_tolerance=0.28125
+        Linear(),
+        np.zeros(1),
+        LMSettings(initial_damping=0.0, cost_tolerance=0.0, absolute_cost_tolerance=0.28125),
     )
     assert absolute.termination == "cost" and absolute.iterations == 1 and absolute.cost == 0.0
     # Just below: the cost rules let the step through and the gradient rule stops one iteration on.
     for tolerances in ({"cost_tolerance": 1.0 - 1e-12}, {"cost_tolerance": 0.0, "absolute_cost_tolerance": 0.28}):
-        result = levenberg_marquardt(Linear(), np.zeros(1), initial_damping=0.0, **tolerances)
+        result = levenberg_marquardt(Linear(), np.zeros(1), LMSettings(initial_damping=0.0, **tolerances))
         assert result.termination == "gradient" and result.iterations == 1 and result.cost == 0.0
 
 
@@ -837,9 +843,9 @@ def test_gradient_rule_at_its_exact_tolerance():
             return x + step
 
     start = np.array([0.5, -3.0])  # gradient J^T r = (-0.5, 0) exactly
-    at = levenberg_marquardt(Line(), start, gradient_tolerance=0.5)
+    at = levenberg_marquardt(Line(), start, LMSettings(gradient_tolerance=0.5))
     assert at.termination == "gradient" and at.iterations == 0 and at.state is start
-    assert levenberg_marquardt(Line(), start, gradient_tolerance=0.5 * (1 - 1e-12)).iterations >= 1
+    assert levenberg_marquardt(Line(), start, LMSettings(gradient_tolerance=0.5 * (1 - 1e-12))).iterations >= 1
 
 
 def test_no_parameters_stops_on_the_gradient_rule():
@@ -865,7 +871,7 @@ class Decaying:
 
 
 def test_default_iteration_limit_is_50_and_every_field_of_the_result():
-    result = levenberg_marquardt(Decaying(), np.zeros(1), gradient_tolerance=0.0)
+    result = levenberg_marquardt(Decaying(), np.zeros(1), LMSettings(gradient_tolerance=0.0))
     assert result.termination == "max_iterations" and result.iterations == 50 and result.converged is False
     assert len(result.cost_history) == 51 and result.cost == result.cost_history[-1] < 1e-40
     assert result.state[0] > 45.0 and 0.5 < result.step_norm < 1.5
@@ -888,7 +894,7 @@ class Opposed:
 def test_stalled_after_the_damping_passes_1e30_and_every_field_of_the_result():
     start = np.array([0.3])
     problem = Opposed()
-    result = levenberg_marquardt(problem, start, step_tolerance=0.0)
+    result = levenberg_marquardt(problem, start, LMSettings(step_tolerance=0.0))
     # mu = 1e-3 x 2 x 4 x ... x 2^k first exceeds 1e30 at k = 15 (2^120 > 1e33 > 2^105).
     assert len(problem.steps) == 15
     assert result.termination == "stalled" and result.converged is False and result.iterations == 1
@@ -899,7 +905,10 @@ def test_stalled_after_the_damping_passes_1e30_and_every_field_of_the_result():
     assert np.all(norms[1:] < norms[:-1])
     # Exactly 1e30 is not beyond the limit: 5e29 x 2 = 1e30 leads to one more trial (at 4e30).
     problem = Opposed()
-    assert levenberg_marquardt(problem, start, step_tolerance=0.0, initial_damping=5e29).termination == "stalled"
+    assert (
+        levenberg_marquardt(problem, start, LMSettings(step_tolerance=0.0, initial_damping=5e29)).termination
+        == "stalled"
+    )
     assert len(problem.steps) == 2
 
 
@@ -926,7 +935,9 @@ def test_residual_only_trials_and_release_of_superseded_iterates():
     problem = Hooked()
     start = np.array([0.1, 6.0])  # far: several trials are rejected
     result = levenberg_marquardt(
-        problem, start, max_iterations=6, cost_tolerance=0.0, step_tolerance=0.0, gradient_tolerance=0.0
+        problem,
+        start,
+        LMSettings(max_iterations=6, cost_tolerance=0.0, step_tolerance=0.0, gradient_tolerance=0.0),
     )
     accepted = len(result.cost_history) - 1
     assert accepted == 6 and problem.trials > accepted  # rejected trials cost no Jacobian
@@ -958,10 +969,7 @@ def test_steps_are_invariant_under_a_scaling_of_the_residual_even_with_a_vanishi
         levenberg_marquardt(
             problem,
             np.array([3.0, 0.0]),
-            max_iterations=3,
-            gradient_tolerance=0.0,
-            cost_tolerance=0.0,
-            step_tolerance=0.0,
+            LMSettings(max_iterations=3, gradient_tolerance=0.0, cost_tolerance=0.0, step_tolerance=0.0),
         )
         runs.append(np.array(problem.steps))
     assert runs[0].shape == (3, 2)
@@ -987,7 +995,9 @@ def test_an_accepted_step_with_a_predicted_decrease_of_zero_doubles_the_damping(
 
     problem = Blind()
     result = levenberg_marquardt(
-        problem, np.zeros(1), max_iterations=2, gradient_tolerance=0.0, cost_tolerance=0.0, step_tolerance=0.0
+        problem,
+        np.zeros(1),
+        LMSettings(max_iterations=2, gradient_tolerance=0.0, cost_tolerance=0.0, step_tolerance=0.0),
     )
     assert result.cost_history[:2] == (0.5, 0.125)
     # Step k is -r_1 / (1e-100 (1 + mu)): mu = 1e-3 first, then 2e-3 (rho taken as 0: mu x 2).

@@ -22,7 +22,10 @@ other exception.
 from __future__ import annotations
 
 import ast
+import dataclasses
 import graphlib
+import importlib
+import inspect
 from pathlib import Path
 
 import pytest
@@ -166,3 +169,61 @@ def test_the_facade_exports_what_it_names():
     missing = [name for name in m3t1r.__all__ if not hasattr(m3t1r, name)]
     assert missing == []
     assert (SRC / "m3t1r" / "py.typed").is_file()
+
+
+# ------------------------------------------------------------------------------------------------
+# A public signature stays short: at most MAX_PARAMETERS parameters (self/cls and *args/**kwargs
+# aside); settings that travel together belong in a small frozen dataclass (CalibrationOptions,
+# StudyOptions, TwoChainOptions, PlotFile, ...).
+MAX_PARAMETERS = 8
+# Justified exceptions, "module.qualname": none. Dataclass and NamedTuple constructors are exempt
+# (checked below): their fields are the record itself, one parameter per field by construction.
+ALLOWED_LONG_SIGNATURES: set[str] = set()
+
+
+def _is_record(cls: type) -> bool:
+    return dataclasses.is_dataclass(cls) or (issubclass(cls, tuple) and hasattr(cls, "_fields"))
+
+
+def _counted_parameters(function: object, is_method: bool) -> int:
+    parameters = list(inspect.signature(function).parameters.values())  # type: ignore[arg-type]
+    if is_method and parameters and parameters[0].name in ("self", "cls"):
+        parameters = parameters[1:]
+    return sum(p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD) for p in parameters)
+
+
+def _public_callables() -> list[tuple[str, object, bool]]:
+    """(name, function, is_method) for every function in a module's __all__ and every public method
+    (and __init__) defined by a public class there."""
+    found: list[tuple[str, object, bool]] = []
+    for module_name in sorted(MODULES):
+        module = importlib.import_module(module_name)
+        for name in getattr(module, "__all__", ()):
+            value = getattr(module, name)
+            if getattr(value, "__module__", None) != module_name:
+                continue  # a re-export: checked where it is defined
+            if inspect.isfunction(value):
+                found.append((f"{module_name}.{name}", value, False))
+            elif inspect.isclass(value):
+                for attribute, member in vars(value).items():
+                    if attribute.startswith("_") and attribute != "__init__":
+                        continue
+                    if attribute == "__init__" and _is_record(value):
+                        continue
+                    is_static = isinstance(member, staticmethod)
+                    function = member.__func__ if isinstance(member, (staticmethod, classmethod)) else member
+                    if inspect.isfunction(function):
+                        found.append((f"{module_name}.{name}.{attribute}", function, not is_static))
+    return found
+
+
+def test_public_functions_take_at_most_eight_parameters():
+    callables = _public_callables()
+    assert len(callables) > 100  # the walk sees the public API, not an empty list
+    long = {
+        name: count
+        for name, function, is_method in callables
+        if (count := _counted_parameters(function, is_method)) > MAX_PARAMETERS
+    }
+    assert {name: count for name, count in long.items() if name not in ALLOWED_LONG_SIGNATURES} == {}
+    assert ALLOWED_LONG_SIGNATURES <= set(long), "an allowed exception that is no longer long"

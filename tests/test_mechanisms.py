@@ -24,7 +24,7 @@ from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, pr
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.pipeline import CalibrationOptions
-from m3t1r.calibration.simulation import simulate_study
+from m3t1r.calibration.simulation import PlacementErrorScale, simulate_study
 from m3t1r.compensation import joint_limit_violation
 from m3t1r.errors import InvalidInputError, ModelFileError, ModelWarning
 from m3t1r.model.closures import ClosureSystem
@@ -130,7 +130,12 @@ def test_closed_loop_calibration_of_every_origin(mechanism, noisy):
     """0.1 mm / 0.1 mrad errors on every joint and frame origin; 60 poses, judged on 150 held out."""
     noise = TrackerNoise() if noisy else None
     study = simulate_study(
-        mechanism, n_poses=60, n_holdout=150, seed=11, sigma_position=1e-4, sigma_rotation=1e-4, noise=noise
+        mechanism,
+        n_poses=60,
+        n_holdout=150,
+        seed=11,
+        noise=noise,
+        errors=PlacementErrorScale(1e-4, 1e-4),
     )
     calibration = calibrate_closed_loop(
         mechanism, study.measurements, CalibrationOptions(noise=noise or TrackerNoise())
@@ -157,7 +162,12 @@ def test_a_planar_nominal_does_not_cap_what_a_noise_free_fit_identifies(tmp_path
     mechanism = _quiet_load(*rod_five_bar_files(tmp_path))
     noise = TrackerNoise() if noisy else None
     study = simulate_study(
-        mechanism, n_poses=60, n_holdout=150, seed=2, sigma_position=1e-3, sigma_rotation=1e-3, noise=noise
+        mechanism,
+        n_poses=60,
+        n_holdout=150,
+        seed=2,
+        noise=noise,
+        errors=PlacementErrorScale(1e-3, 1e-3),
     )
     calibration = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise()))
     assert calibration.lm.converged
@@ -246,7 +256,7 @@ def test_closure_on_a_joint_frame(tmp_path):
         ClosedLoopSolver(nominal).forward_batch(sliders).poses,
         atol=1e-12,
     )
-    study = simulate_study(mechanism, n_poses=40, n_holdout=50, seed=2, sigma_position=1e-4, sigma_rotation=1e-4)
+    study = simulate_study(mechanism, n_poses=40, n_holdout=50, seed=2, errors=PlacementErrorScale(1e-4, 1e-4))
     calibration = calibrate_closed_loop(mechanism, study.measurements)
     assert "D_I.dt[0]" not in calibration.error_model.names  # the joint's own placement carries it
     assert pose_errors(calibration.mechanism, study.truth, study.holdout_actuators).position_max < 1e-7
@@ -294,7 +304,7 @@ def test_welded_double_hinge_locks_the_gauge_joint(tmp_path):
     )
     targets = plain.task.coordinates(plain_solver.forward_batch(sliders).poses)
     np.testing.assert_allclose(solver.inverse_batch(targets).actuators, sliders, atol=1e-8)
-    study = simulate_study(mechanism, n_poses=50, n_holdout=50, seed=3, sigma_position=1e-4, sigma_rotation=1e-4)
+    study = simulate_study(mechanism, n_poses=50, n_holdout=50, seed=3, errors=PlacementErrorScale(1e-4, 1e-4))
     calibration = calibrate_closed_loop(mechanism, study.measurements)
     assert pose_errors(calibration.mechanism, study.truth, study.holdout_actuators).position_max < 1e-7
 
@@ -356,7 +366,7 @@ def test_a_frame_error_moves_the_closure_frames_attached_to_it(tmp_path):
     default = ClosedLoopErrorModel(mechanism)
     assert "platform.dt[0]" not in default.names  # a link frame on a moving joint: no placement of its own
     error_model = ClosedLoopErrorModel(mechanism, default.placements + (Placement.frame("platform"),))
-    study = simulate_study(mechanism, n_poses=30, n_holdout=0, seed=11, sigma_position=1e-4, sigma_rotation=1e-4)
+    study = simulate_study(mechanism, n_poses=30, n_holdout=0, seed=11, errors=PlacementErrorScale(1e-4, 1e-4))
     calibration = calibrate_closed_loop(
         mechanism, study.measurements, CalibrationOptions(outlier_sigma=None), error_model=error_model
     )
@@ -684,7 +694,7 @@ def test_a_rough_home_is_assembled_with_the_rods_idle_spin_nearest_the_guess(tmp
 
 def test_a_written_truth_and_calibrated_pair_reloads_as_the_machine_it_came_from(published, tmp_path):
     nominal = _quiet_load(*published)
-    study = simulate_study(nominal, n_poses=30, n_holdout=20, seed=5, sigma_position=1e-4, sigma_rotation=1e-4)
+    study = simulate_study(nominal, n_poses=30, n_holdout=20, seed=5, errors=PlacementErrorScale(1e-4, 1e-4))
     calibrated = calibrate_closed_loop(nominal, study.measurements).mechanism
     for name, machine in (("truth", study.truth), ("calibrated", calibrated)):
         machine.save(tmp_path / f"{name}.urdf")

@@ -15,9 +15,15 @@ from m3t1r.model.workspace import workspace_actuators
 from m3t1r.paper.chains import paper_chains
 from m3t1r.paper.closed_chain import closed_chain_study
 from m3t1r.paper.error_model import PAPER_IDENTIFIABLE_BOUND, two_chain_error_model, two_chain_identifiability
-from m3t1r.paper.identification import NOISY_READINGS_REL_TOL, calibrate_two_chains
+from m3t1r.paper.identification import NOISY_READINGS_REL_TOL, TwoChainOptions, calibrate_two_chains
 from m3t1r.paper.passive_angles import estimate_lower_crank_angles
-from m3t1r.paper.simulation import PASSIVE_ENCODER_NOISE, actual_chain_poses, preset_errors, sensor_readings
+from m3t1r.paper.simulation import (
+    PASSIVE_ENCODER_NOISE,
+    TwoChainStudyOptions,
+    actual_chain_poses,
+    preset_errors,
+    sensor_readings,
+)
 from m3t1r.paper.study import paper_study
 
 # The re-selected base of an exact fit keeps second-order combinations on purpose (see
@@ -162,14 +168,16 @@ def test_recursive_least_squares_equals_batch(mechanism, nominal_configurations,
     q = nominal_configurations[:20]
     measured = {name: poses[:20] for name, poses in truth.items()}
     one = {
-        solver: calibrate_two_chains(mechanism, q, measured, solver=solver, max_iterations=1)
+        solver: calibrate_two_chains(mechanism, q, measured, options=TwoChainOptions(solver=solver, max_iterations=1))
         for solver in ("batch", "recursive")
     }
     difference = max(np.abs(one["batch"].deltas[p] - one["recursive"].deltas[p]).max() for p in one["batch"].deltas)
     assert difference <= 1e-12  # measured 1.7e-16 on a step of norm 1.1e-2
     # Whole calibrations over the 48 structural combinations (condition 1e3): same parameters.
     structural = {
-        solver: calibrate_two_chains(mechanism, q, measured, solver=solver, rank_tolerance=NOISY_READINGS_REL_TOL)
+        solver: calibrate_two_chains(
+            mechanism, q, measured, options=TwoChainOptions(solver=solver, rank_tolerance=NOISY_READINGS_REL_TOL)
+        )
         for solver in ("batch", "recursive")
     }
     assert (
@@ -181,7 +189,10 @@ def test_recursive_least_squares_equals_batch(mechanism, nominal_configurations,
     )  # measured 1.1e-14
     # With the second-order combinations re-selected (condition 1e9) the two solvers' rounding
     # moves the parameters apart along them (measured 1.6e-3) but not the poses (measured 5.6e-16).
-    full = {solver: calibrate_two_chains(mechanism, q, measured, solver=solver) for solver in ("batch", "recursive")}
+    full = {
+        solver: calibrate_two_chains(mechanism, q, measured, options=TwoChainOptions(solver=solver))
+        for solver in ("batch", "recursive")
+    }
     held = nominal_configurations[20:]
     for name in ("B1", "B3"):
         for a, b in zip(full["batch"].predict(name, held), full["recursive"].predict(name, held)):
@@ -209,7 +220,7 @@ def test_local_poe_model_absorbs_twist_and_offset_errors_exactly(mechanism, nomi
         mechanism,
         nominal_configurations[fit],
         {name: poses[fit] for name, poses in truth.items()},
-        unidentifiable="minimum_norm",
+        options=TwoChainOptions(unidentifiable="minimum_norm"),
     )
     assert all(_worst(e) <= 1e-12 for e in minimum_norm.residual_after.values())  # measured 1.1e-15
 
@@ -250,7 +261,7 @@ def test_typed_errors_name_the_culprit(mechanism, nominal_configurations, exact_
     with pytest.raises(InvalidInputError, match="no joint named 'q99'"):
         estimate_lower_crank_angles(mechanism, {"q99": [0.0]})
     with pytest.raises(InvalidInputError, match="solver"):
-        calibrate_two_chains(mechanism, q, measured, solver="newton")
+        calibrate_two_chains(mechanism, q, measured, options=TwoChainOptions(solver="newton"))
     with pytest.raises(InvalidInputError, match="method"):
         estimate_lower_crank_angles(mechanism, q, method="guess")
     bad = q.copy()
@@ -386,7 +397,7 @@ def test_the_sensors_read_with_the_tracker_noise_and_the_passive_encoder_noise(
         assert error[index] == pytest.approx(expected, rel=0.05)
     assert np.array_equal(sensor_readings(mechanism, chains, q, None, 3e-5, np.random.default_rng(0)), q)
     with pytest.raises(InvalidInputError, match="passive_encoder_noise must be finite and >= 0"):
-        paper_study(3, noise=noise, passive_encoder_noise=-1e-5, mechanism=mechanism)
+        paper_study(3, noise=noise, mechanism=mechanism, options=TwoChainStudyOptions(passive_encoder_noise=-1e-5))
 
 
 # --------------------------------------------------------------------------------------------------

@@ -8,6 +8,7 @@ import pytest
 from matplotlib.figure import Figure
 
 from m3t1r.app.plots import (
+    PlotFile,
     plot_error_vs_poses,
     plot_pose_errors_before_after,
     plot_predicted_std_map,
@@ -126,11 +127,15 @@ def test_refuses_to_overwrite_a_protected_input(tmp_path, errors, workspace_poin
     alias = tmp_path / "link.csv"
     alias.symlink_to(measurements)
     calls = [
-        lambda p: plot_pose_errors_before_after(*errors, p, protect=[measurements]),
-        lambda p: plot_error_vs_poses([10, 20], [1e-5, 5e-6], [2e-5, 1e-5], p, protect=[measurements]),
-        lambda p: plot_workspace_error_map(workspace_points, np.ones(120), np.ones(120), p, protect=[measurements]),
+        lambda p: plot_pose_errors_before_after(*errors, PlotFile(p, protect=(measurements,))),
+        lambda p: plot_error_vs_poses([10, 20], [1e-5, 5e-6], [2e-5, 1e-5], PlotFile(p, protect=(measurements,))),
+        lambda p: plot_workspace_error_map(
+            workspace_points, np.ones(120), np.ones(120), PlotFile(p, protect=(measurements,))
+        ),
         lambda p: plot_predicted_std_map(
-            workspace_points, PoseErrors(np.ones(120), np.ones(120)), p, protect=[measurements]
+            workspace_points,
+            PoseErrors(np.ones(120), np.ones(120)),
+            PlotFile(p, protect=(measurements,)),
         ),
     ]
     for call in calls:
@@ -194,13 +199,18 @@ def test_calibration_plots_title_the_map_by_what_it_shows(tmp_path, monkeypatch,
     from m3t1r.calibration.closed_loop import calibrate_closed_loop
     from m3t1r.calibration.measurement_setup import MeasurementSetup
     from m3t1r.calibration.measurements import TrackerNoise
-    from m3t1r.calibration.simulation import simulate_study
+    from m3t1r.calibration.simulation import StudyOptions, simulate_study
     from m3t1r.model.description import Mechanism
 
     mechanism = Mechanism.load()
     frame = pin.SE3(pin.utils.rotate("z", 2.0), np.array([1.5, -0.8, 0.3])) if estimate_frame else pin.SE3.Identity()
     study = simulate_study(
-        mechanism, n_poses=40, n_holdout=0, seed=5, noise=TrackerNoise(), setup=MeasurementSetup(frame)
+        mechanism,
+        n_poses=40,
+        n_holdout=0,
+        seed=5,
+        noise=TrackerNoise(),
+        options=StudyOptions(setup=MeasurementSetup(frame)),
     )
     calibration = calibrate_closed_loop(
         mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise(), estimate_frame=estimate_frame)
@@ -210,7 +220,7 @@ def test_calibration_plots_title_the_map_by_what_it_shows(tmp_path, monkeypatch,
     monkeypatch.setattr(
         reporting,
         "plot_predicted_std_map",
-        lambda targets, std, path, title, protect, plane, outputs: maps.append((targets, std, title)) or path,
+        lambda targets, std, path, title, plane: maps.append((targets, std, title)) or path,
     )
     reporting.write_calibration_plots(mechanism, calibration, tmp_path)
     ((targets, std, title),) = maps
@@ -231,13 +241,18 @@ def test_calibration_plots_of_a_position_only_tracker(tmp_path, monkeypatch):
     from m3t1r.calibration.closed_loop import calibrate_closed_loop
     from m3t1r.calibration.measurement_setup import MeasurementSetup
     from m3t1r.calibration.measurements import TrackerNoise
-    from m3t1r.calibration.simulation import simulate_study
+    from m3t1r.calibration.simulation import StudyOptions, simulate_study
     from m3t1r.model.description import Mechanism
 
     mechanism = Mechanism.load()
     setup = MeasurementSetup(pin.SE3(pin.utils.rotate("z", -1.0), np.array([1.5, 2.0, -0.3])))
     study = simulate_study(
-        mechanism, n_poses=40, n_holdout=0, seed=6, noise=TrackerNoise(), position_only=True, setup=setup
+        mechanism,
+        n_poses=40,
+        n_holdout=0,
+        seed=6,
+        noise=TrackerNoise(),
+        options=StudyOptions(setup=setup, position_only=True),
     )
     calibration = calibrate_closed_loop(
         mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise(), estimate_frame=True)
@@ -270,7 +285,7 @@ def test_calibration_plots_of_other_mechanisms_map_their_own_workspace(tmp_path,
     monkeypatch.setattr(
         reporting,
         "plot_predicted_std_map",
-        lambda where, std, path, title, protect, plane, outputs: maps.append((where, std, plane)) or path,
+        lambda where, std, path, title, plane: maps.append((where, std, plane)) or path,
     )
     reporting.write_calibration_plots(mechanism, calibration, tmp_path / "plots")
     ((where, std, plane),) = maps

@@ -651,7 +651,9 @@ def _lm(calls):
 
     def solve(problem, state, settings=None):
         result = levenberg_marquardt(
-            problem, state, max_iterations=30, initial_damping=1e-6, absolute_cost_tolerance=1e-6
+            problem,
+            state,
+            LMSettings(max_iterations=30, initial_damping=1e-6, absolute_cost_tolerance=1e-6),
         )
         calls.append((len(problem.columns), state, result))
         return result
@@ -728,7 +730,7 @@ def _outlier_problem(model, chain, errors: dict[int, float], n_poses: int = 10):
 
 
 #: The settings the pipeline's steps pass on to `pipeline.fit` (stood in for by `_Fixed` and `_lm`).
-SETTINGS = LMSettings(max_iterations=30, cost_tolerance=1e-12, absolute_cost_tolerance=1e-6)
+SETTINGS = LMSettings(max_iterations=30, cost_tolerance=1e-12, absolute_cost_tolerance=1e-6, initial_damping=1e-6)
 
 
 def _reject(monkeypatch, problem, start, result, sigma, solve):

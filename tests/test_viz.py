@@ -24,7 +24,7 @@ import pytest
 import umsgpack
 
 from m3t1r.app import live_viewer, scene, static_page
-from m3t1r.calibration.simulation import simulate_study
+from m3t1r.calibration.simulation import PlacementErrorScale, simulate_study
 from m3t1r.errors import InvalidInputError, KinematicsError, OutputPathError
 from m3t1r.model.description import Mechanism
 
@@ -34,7 +34,7 @@ POSE = (0.55, 0.6, -0.1, 0.3)  # inside the design workspace box, with some yaw
 @pytest.fixture(scope="module")
 def study(mechanism):
     # 5 mm / 5 mrad errors (five times a real machine's) so the two machines differ visibly.
-    return simulate_study(mechanism, n_poses=8, n_holdout=0, seed=1, sigma_position=5e-3, sigma_rotation=5e-3)
+    return simulate_study(mechanism, n_poses=8, n_holdout=0, seed=1, errors=PlacementErrorScale(5e-3, 5e-3))
 
 
 @pytest.fixture(scope="module")
@@ -183,7 +183,11 @@ def test_default_magnification_draws_the_largest_offset_as_a_tenth_of_the_machin
     is drawn as 4 % to 10 % of the machine's size (or no joint turned beyond 0.3 rad), and stated."""
     for sigma in (1e-4, 1e-3):
         truth = simulate_study(
-            mechanism, n_poses=8, n_holdout=0, seed=1, sigma_position=sigma, sigma_rotation=sigma
+            mechanism,
+            n_poses=8,
+            n_holdout=0,
+            seed=1,
+            errors=PlacementErrorScale(sigma, sigma),
         ).truth
         views = scene.comparison_views(mechanism, truth)
         recorded = static_page.build_scene(views)

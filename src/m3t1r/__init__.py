@@ -38,7 +38,13 @@ if TYPE_CHECKING:  # the names as type checkers and editors see them; at run tim
     from m3t1r.calibration.serial import SerialCalibration, calibrate_serial
     from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial
     from m3t1r.calibration.serial_robots import load_example_robot
-    from m3t1r.calibration.simulation import SimulatedStudy, actual_machine, simulate_study
+    from m3t1r.calibration.simulation import (
+        PlacementErrorScale,
+        SimulatedStudy,
+        StudyOptions,
+        actual_machine,
+        simulate_study,
+    )
     from m3t1r.calibration.validation import Validation, validate
     from m3t1r.compensation import Compensation, CompensationAccuracy, Compensator, compensate, compensation_accuracy
     from m3t1r.errors import (
@@ -90,7 +96,13 @@ _MODULE_EXPORTS: dict[str, tuple[str, ...]] = {
     "m3t1r.calibration.serial": ("SerialCalibration", "calibrate_serial"),
     "m3t1r.calibration.serial_evaluation": ("SerialCrossValidation", "cross_validate_serial"),
     "m3t1r.calibration.serial_robots": ("load_example_robot",),
-    "m3t1r.calibration.simulation": ("SimulatedStudy", "actual_machine", "simulate_study"),
+    "m3t1r.calibration.simulation": (
+        "PlacementErrorScale",
+        "SimulatedStudy",
+        "StudyOptions",
+        "actual_machine",
+        "simulate_study",
+    ),
     "m3t1r.calibration.validation": ("Validation", "validate"),
     "m3t1r.compensation": (
         "Compensation",
@@ -197,6 +209,8 @@ __all__ = [
     "load_example_robot",
     "SimulatedStudy",
     "simulate_study",
+    "PlacementErrorScale",
+    "StudyOptions",
     "actual_machine",
     "PoseSelection",
     "select_poses",

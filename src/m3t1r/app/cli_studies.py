@@ -12,7 +12,7 @@ from m3t1r.app.cli_common import load_mechanism, provenance, say
 from m3t1r.app.datasets import measurement_table
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
-from m3t1r.calibration.simulation import simulate_study
+from m3t1r.calibration.simulation import PlacementErrorScale, StudyOptions, simulate_study
 from m3t1r.errors import InvalidInputError
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.progress import Heartbeat
@@ -40,13 +40,11 @@ def cmd_simulate(args: argparse.Namespace) -> None:
             args.n,
             0,
             args.seed,
-            args.sigma_pos,
-            args.sigma_rot,
-            noise,
-            args.position_only,
-            passive_joints=passive,
-            setup=setup,
-            outliers=args.outliers,
+            errors=PlacementErrorScale(args.sigma_pos, args.sigma_rot),
+            noise=noise,
+            options=StudyOptions(
+                setup=setup, position_only=args.position_only, passive_joints=passive, outliers=args.outliers
+            ),
         )
     comments = provenance(args) + [
         f"truth: {args.sigma_pos:g} m / {args.sigma_rot:g} rad errors on every joint placement and "

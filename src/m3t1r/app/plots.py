@@ -2,11 +2,11 @@
 
 Figures are built on `matplotlib.figure.Figure` with an explicit Agg canvas: no pyplot, so no
 global backend switch, no display, and nothing to close (a figure without pyplot's registry is
-freed with its last reference). Each function renders to memory and writes through
-`io.atomic_write_bytes`: a reader sees the old file or the new one, never a half-written PNG,
-and a path in `protect` (an input file) is refused before anything is written. Given `outputs`
-(an `io.OutputSet` that declares the path), it stages the PNG there instead, to be written with
-the set's other outputs or not at all.
+freed with its last reference). Each function takes where to write as a path or a `PlotFile`,
+renders to memory and writes through `io.atomic_write_bytes`: a reader sees the old file or the
+new one, never a half-written PNG, and a path in `PlotFile.protect` (an input file) is refused
+before anything is written. Given `PlotFile.outputs` (an `io.OutputSet` that declares the path),
+it stages the PNG there instead, to be written with the set's other outputs or not at all.
 
 Inputs are SI (m, rad); axes show readable units chosen from the data (m/mm/um/nm,
 rad/mrad/urad/nrad). Error plots use log scales, on which a zero cannot be drawn: such points are
@@ -19,7 +19,7 @@ import io as _stdio
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence, cast
+from typing import Sequence, cast
 
 import numpy as np
 import scipy.special
@@ -34,6 +34,7 @@ from m3t1r.io.paths import StrPath, ensure_not_protected
 from m3t1r.metrics import PoseErrors
 
 __all__ = [
+    "PlotFile",
     "plot_pose_errors_before_after",
     "plot_error_vs_poses",
     "plot_workspace_error_map",
@@ -127,40 +128,51 @@ def _zero_note(count: int) -> str:
     return f" ({count} zero, not drawn on log scale)" if count else ""
 
 
-def _check_output(path: StrPath, protect: Iterable[StrPath], outputs: OutputSet | None = None) -> None:
+@dataclass(frozen=True)
+class PlotFile:
+    """Where a figure goes: the PNG file `path`, refused when it is one of `protect` (the command's
+    inputs); or, with `outputs` (an `OutputSet` that declares `path`), staged there to land with the
+    set's other outputs at its commit."""
+
+    path: StrPath
+    protect: tuple[StrPath, ...] = ()
+    outputs: OutputSet | None = None
+
+
+def _plot_file(path: StrPath | PlotFile) -> PlotFile:
+    return path if isinstance(path, PlotFile) else PlotFile(path)
+
+
+def _check_output(path: StrPath | PlotFile) -> None:
     """The checks `atomic_write_bytes` makes, done before rendering (a figure takes ~0.3 s); an
     output of an OutputSet was checked with the set's other outputs (and `outputs` names it)."""
-    if outputs is not None:
-        outputs.output(path)  # KeyError for a path the set does not declare: a caller bug
+    file = _plot_file(path)
+    if file.outputs is not None:
+        file.outputs.output(file.path)  # KeyError for a path the set does not declare: a caller bug
         return
-    target = Path(path)
-    ensure_not_protected(target, protect)
+    target = Path(file.path)
+    ensure_not_protected(target, file.protect)
     if target.is_dir():
         raise OutputPathError(target, "is a directory, expected a PNG file path")
     if not target.parent.is_dir():
         raise OutputPathError(target, f"directory {target.parent} does not exist")
 
 
-def _save(
-    figure: Figure,
-    path: StrPath,
-    protect: Iterable[StrPath],
-    outputs: OutputSet | None = None,
-    description: str | None = None,
-) -> Path:
-    """Render to PNG in memory, then replace `path` atomically, or stage it in `outputs` (to land
-    with the set's other outputs at its commit); returns the path. `description` goes into the PNG's
-    Description text chunk: what the figure marks, in words, for a reader without the image."""
-    target = Path(path)
-    protect = tuple(protect)
+def _save(figure: Figure, path: StrPath | PlotFile, description: str | None = None) -> Path:
+    """Render to PNG in memory, then replace the file atomically, or stage it in the PlotFile's
+    `outputs` (to land with the set's other outputs at its commit); returns the path. `description`
+    goes into the PNG's Description text chunk: what the figure marks, in words, for a reader
+    without the image."""
+    file = _plot_file(path)
+    target = Path(file.path)
     FigureCanvasAgg(figure)
     buffer = _stdio.BytesIO()
     metadata = {"Description": description} if description else None
     figure.savefig(buffer, format="png", dpi=_DPI, metadata=metadata)
-    if outputs is not None:
-        outputs.stage(path, buffer.getvalue())
+    if file.outputs is not None:
+        file.outputs.stage(file.path, buffer.getvalue())
     else:
-        atomic_write_bytes(target, buffer.getvalue(), protect=protect)
+        atomic_write_bytes(target, buffer.getvalue(), protect=file.protect)
     return target
 
 
@@ -168,10 +180,8 @@ def _save(
 def plot_pose_errors_before_after(
     before: PoseErrors,
     after: PoseErrors,
-    path: StrPath,
+    path: StrPath | PlotFile,
     title: str = "Platform pose error before and after calibration",
-    protect: Iterable[StrPath] = (),
-    outputs: OutputSet | None = None,
     outliers: Sequence[int] | np.ndarray = (),
     labels: Sequence[str] | None = None,
 ) -> Path:
@@ -200,7 +210,7 @@ def plot_pose_errors_before_after(
         panels.append((label, units, b, a))
     left_out, names = _outlier_labels(outliers, labels, len(panels[0][2]))
 
-    _check_output(path, protect, outputs)
+    _check_output(path)
     figure = Figure(figsize=(8.0, 6.5), layout="constrained")
     figure.suptitle(title)
     axes = np.atleast_1d(figure.subplots(len(panels), 1, sharex=True))
@@ -227,7 +237,7 @@ def plot_pose_errors_before_after(
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(loc="best", fontsize="small")
     axes[-1].set_xlabel("pose index")
-    return _save(figure, path, protect, outputs, _outlier_description(names))
+    return _save(figure, path, _outlier_description(names))
 
 
 _MAX_LABELS = 12  # more names than this cover the curves; the PNG's description lists them all
@@ -267,11 +277,9 @@ def plot_error_vs_poses(
     n_poses: Sequence[int],
     position_errors: Sequence[float],
     rotation_errors: Sequence[float] | None,
-    path: StrPath,
+    path: StrPath | PlotFile,
     predicted: tuple[Sequence[float], Sequence[float] | None] | None = None,
     title: str = "Held-out error vs number of calibration poses",
-    protect: Iterable[StrPath] = (),
-    outputs: OutputSet | None = None,
 ) -> Path:
     """Held-out platform error of the calibrated model against the number of calibration poses N.
 
@@ -312,7 +320,7 @@ def plot_error_vs_poses(
                 raise InvalidInputError(f"predicted {name}: {len(prediction)} values for {len(n)} values of n_poses")
         checked.append((name, units, measured, prediction))
 
-    _check_output(path, protect, outputs)
+    _check_output(path)
     figure = Figure(figsize=(5.0 * len(checked), 4.0), layout="constrained")
     figure.suptitle(title)
     axes = np.atleast_1d(figure.subplots(1, len(checked)))
@@ -331,7 +339,7 @@ def plot_error_vs_poses(
         ax.set_ylabel(name.lower())
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize="small")
-    return _save(figure, path, protect, outputs)
+    return _save(figure, path)
 
 
 def _xy(targets: object, what: str) -> np.ndarray:
@@ -390,12 +398,10 @@ def plot_workspace_error_map(
     targets: object,
     errors_before: Sequence[float] | np.ndarray,
     errors_after: Sequence[float] | np.ndarray,
-    path: StrPath,
+    path: StrPath | PlotFile,
     kind: str = "position",
     shared_scale: bool = False,
     title: str = "Error of the actual platform over the workspace",
-    protect: Iterable[StrPath] = (),
-    outputs: OutputSet | None = None,
 ) -> Path:
     """Error of the actual platform at each target, without and with compensation, over x-y.
 
@@ -415,7 +421,7 @@ def plot_workspace_error_map(
         raise InvalidInputError(
             f"{len(xy)} targets, {len(before)} errors before, {len(after)} after: one error of each per target"
         )
-    _check_output(path, protect, outputs)
+    _check_output(path)
     figure = Figure(figsize=(8.5, 6.0), layout="constrained")
     planar = _finite_array(targets, "targets", ndim=2).shape[1] == 2  # the five-bar's x, y: nothing projected
     figure.suptitle(f"{title}\n({len(xy)} targets{'' if planar else '; z and theta projected onto x-y'})")
@@ -427,17 +433,15 @@ def plot_workspace_error_map(
         f"{kind} error",
         shared_scale,
     )
-    return _save(figure, path, protect, outputs)
+    return _save(figure, path)
 
 
 def plot_predicted_std_map(
     targets: object,
     std: PoseErrors,
-    path: StrPath,
+    path: StrPath | PlotFile,
     title: str = "Predicted standard deviation of the calibrated platform pose",
-    protect: Iterable[StrPath] = (),
     plane: tuple[str, str] = _PLATFORM_PLANE,
-    outputs: OutputSet | None = None,
 ) -> Path:
     """Predicted pose uncertainty of the calibrated model over the workspace, drawn over a plane.
 
@@ -452,13 +456,13 @@ def plot_predicted_std_map(
     rotation = _nonnegative(_finite_array(std.rotation, "std.rotation"), "std.rotation")
     if not len(position) == len(rotation) == len(xy):
         raise InvalidInputError(f"{len(xy)} targets, {len(position)} position std, {len(rotation)} orientation std")
-    _check_output(path, protect, outputs)
+    _check_output(path)
     figure = Figure(figsize=(8.5, 6.0), layout="constrained")
     figure.suptitle(f"{title}\n({len(xy)} poses; the other coordinates projected onto this plane)")
     left, right = cast(np.ndarray, figure.subfigures(1, 2))  # an array for more than one subfigure
     _scatter_panels(left, xy, [("position", position)], _LENGTH_UNITS, "predicted position std", False, plane)
     _scatter_panels(right, xy, [("orientation", rotation)], _ANGLE_UNITS, "predicted orientation std", False, plane)
-    return _save(figure, path, protect, outputs)
+    return _save(figure, path)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -509,10 +513,8 @@ def plot_validation_histogram(
     scale: float,
     flagged: object,
     labels: Sequence[str],
-    path: StrPath,
+    path: StrPath | PlotFile,
     title: str = "Prediction errors of the calibrated model",
-    protect: Iterable[StrPath] = (),
-    outputs: OutputSet | None = None,
 ) -> Path:
     """Histograms of the position [m] (and rotation [rad], or None) errors of validated rows, the rows
     beyond the gate stacked in red, against the counts the noise model expects: a 3-D error of
@@ -528,7 +530,7 @@ def plot_validation_histogram(
     ]
     if not (math.isfinite(scale) and scale >= 1.0) or min(noise) <= 0:
         raise InvalidInputError(f"noise {noise} and scale {scale}: positive noise and a scale of at least 1")
-    _check_output(path, protect, outputs)
+    _check_output(path)
     figure = Figure(figsize=(max(6.5, 5.0 * len(checked)), 4.2), layout="constrained")
     figure.suptitle(title)
     axes = np.atleast_1d(figure.subplots(1, len(checked)))
@@ -565,7 +567,7 @@ def plot_validation_histogram(
         ax.set_ylabel("rows")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize="small")
-    return _save(figure, path, protect, outputs, _flag_description(checked[0][3], labels))
+    return _save(figure, path, _flag_description(checked[0][3], labels))
 
 
 def _two_and_five(units: tuple[_Unit, ...]):
@@ -588,10 +590,8 @@ def plot_normalised_qq(
     scale: float,
     flagged: object,
     labels: Sequence[str],
-    path: StrPath,
+    path: StrPath | PlotFile,
     title: str = "Normalised residuals against the noise model",
-    protect: Iterable[StrPath] = (),
-    outputs: OutputSet | None = None,
 ) -> Path:
     """Normal QQ plot of every residual coordinate divided by its stated noise: residuals (M, 3) or
     (M, 6), [dp / sigma_p, dr / sigma_r] per validated row (`Validation.residuals`), one panel for
@@ -603,7 +603,7 @@ def plot_normalised_qq(
     if z.shape[1] not in (3, 6):
         raise InvalidInputError(f"residuals: shape {z.shape}, expected (rows, 3) or (rows, 6)")
     _, mask = _validation_rows(np.zeros(len(z)), flagged, labels, "residual rows")
-    _check_output(path, protect, outputs)
+    _check_output(path)
     panels = [("position", z[:, :3])] + ([("orientation", z[:, 3:])] if z.shape[1] == 6 else [])
     figure = Figure(figsize=(max(6.5, 5.0 * len(panels)), 4.5), layout="constrained")
     figure.suptitle(title)
@@ -630,7 +630,7 @@ def plot_normalised_qq(
         ax.set_ylabel(f"{name} residual / stated noise")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize="small", loc="upper left")
-    return _save(figure, path, protect, outputs, _flag_description(mask, labels))
+    return _save(figure, path, _flag_description(mask, labels))
 
 
 def plot_errors_over_workspace(
@@ -638,11 +638,9 @@ def plot_errors_over_workspace(
     errors: object,
     flagged: object,
     labels: Sequence[str],
-    path: StrPath,
+    path: StrPath | PlotFile,
     frame: str = "measurement frame",
     title: str = "Position error of the calibrated model where each row was measured",
-    protect: Iterable[StrPath] = (),
-    outputs: OutputSet | None = None,
 ) -> Path:
     """The measured positions (M, 3) [m] in `frame`, over x-y and x-z, coloured by each row's
     position error [m] (log colour scale), the flagged rows circled and named by their label.
@@ -653,7 +651,7 @@ def plot_errors_over_workspace(
     values, mask = _validation_rows(errors, flagged, labels, "errors")
     if len(values) != len(xyz):
         raise InvalidInputError(f"{len(xyz)} positions for {len(values)} errors")
-    _check_output(path, protect, outputs)
+    _check_output(path)
     figure = Figure(figsize=(10.0, 4.8), layout="constrained")
     figure.suptitle(
         f"{title}\n(mean {_readable(float(values.mean()), _LENGTH_UNITS)}, "
@@ -674,4 +672,4 @@ def plot_errors_over_workspace(
     axes[0].legend(fontsize="small")
     colorbar = figure.colorbar(mappable, ax=list(axes), label="position error")
     _readable_log_axis(colorbar.ax.yaxis, _LENGTH_UNITS)
-    return _save(figure, path, protect, outputs, _flag_description(mask, labels))
+    return _save(figure, path, _flag_description(mask, labels))

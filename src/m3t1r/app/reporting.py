@@ -23,6 +23,7 @@ import numpy as np
 from m3t1r.app.cli_common import check_plots_folder
 from m3t1r.app.passive_joints import PassiveJointResiduals, passive_joint_residuals
 from m3t1r.app.plots import (
+    PlotFile,
     plot_error_vs_poses,
     plot_errors_over_workspace,
     plot_normalised_qq,
@@ -185,9 +186,8 @@ def _stage_calibration_plots(
         plot_pose_errors_before_after(
             measured_pose_errors(nominal, problem.measurements, start.setup),
             measured_pose_errors(calibration.mechanism, problem.measurements, calibration.setup),
-            out_dir / PLOT_NAMES[0],
+            PlotFile(out_dir / PLOT_NAMES[0], outputs=outputs),
             title="Calibration poses: model vs measured pose",
-            outputs=outputs,
             outliers=np.flatnonzero(~problem.active),
             labels=labels,
         )
@@ -205,9 +205,8 @@ def _stage_calibration_plots(
                 sizes,
                 position,
                 None if measurements.position_only else rotation,
-                out_dir / PLOT_NAMES[1],
+                PlotFile(out_dir / PLOT_NAMES[1], outputs=outputs),
                 title="Cross-validated error vs number of calibration poses",
-                outputs=outputs,
             )
         )
     sliders, where, plane = map_poses(calibration.mechanism, 300, np.random.default_rng(seed))
@@ -229,7 +228,11 @@ def _stage_calibration_plots(
     )
     written.append(
         plot_predicted_std_map(
-            where, std, out_dir / PLOT_NAMES[2], title=title, protect=(), plane=plane, outputs=outputs
+            where,
+            std,
+            PlotFile(out_dir / PLOT_NAMES[2], outputs=outputs),
+            title=title,
+            plane=plane,
         )
     )
     return written
@@ -301,8 +304,7 @@ def write_validation_plots(result: Validation, out_dir: Path, outputs: OutputSet
             result.scale,
             flagged,
             labels,
-            folder / VALIDATION_PLOT_NAMES[0],
-            outputs=outputs,
+            PlotFile(folder / VALIDATION_PLOT_NAMES[0], outputs=outputs),
             title=f"Prediction errors of the calibrated model\n{predicted}",
         ),
         plot_normalised_qq(
@@ -310,8 +312,7 @@ def write_validation_plots(result: Validation, out_dir: Path, outputs: OutputSet
             result.scale,
             flagged,
             labels,
-            folder / VALIDATION_PLOT_NAMES[1],
-            outputs=outputs,
+            PlotFile(folder / VALIDATION_PLOT_NAMES[1], outputs=outputs),
             title=f"Residuals over the report's noise model\n{predicted}",
         ),
         plot_errors_over_workspace(
@@ -319,7 +320,6 @@ def write_validation_plots(result: Validation, out_dir: Path, outputs: OutputSet
             result.errors.position,
             flagged,
             labels,
-            folder / VALIDATION_PLOT_NAMES[2],
-            outputs=outputs,
+            PlotFile(folder / VALIDATION_PLOT_NAMES[2], outputs=outputs),
         ),
     ]

@@ -35,6 +35,7 @@ __all__ = [
     "pivoted_qr",
     "project_out",
     "LMResult",
+    "LMSettings",
     "OUTLIER_SIGMA",
     "outlier_gate",
     "ParameterSelection",
@@ -801,19 +802,27 @@ class LMResult(Generic[State]):
     step_norm: float
 
 
+@dataclass(frozen=True)
+class LMSettings:
+    """The settings of `levenberg_marquardt` (its docstring gives each test): a calibration keeps its
+    own with its result, so that cross-validation refits each fold the same way."""
+
+    max_iterations: int = 50
+    cost_tolerance: float = 1e-12
+    absolute_cost_tolerance: float = 0.0
+    initial_damping: float = 1e-3
+    unit_damping: bool = False
+    step_tolerance: float = 1e-12
+    gradient_tolerance: float = 1e-12
+
+
 def levenberg_marquardt(
     problem: LeastSquaresProblem[State],
     x0: State,
-    *,
-    max_iterations: int = 50,
-    step_tolerance: float = 1e-12,
-    cost_tolerance: float = 1e-12,
-    gradient_tolerance: float = 1e-12,
-    initial_damping: float = 1e-3,
-    absolute_cost_tolerance: float = 0.0,
-    unit_damping: bool = False,
+    settings: LMSettings = LMSettings(),
 ) -> LMResult[State]:
-    """Minimise 1/2 ||r||^2 with Levenberg-Marquardt steps applied through `problem.retract`.
+    """Minimise 1/2 ||r||^2 with Levenberg-Marquardt steps applied through `problem.retract`; the
+    names below are the fields of `settings`.
 
     Step: argmin ||r + J dx||^2 + mu ||D dx||^2 with D^2 = diag(J^T J) (Marquardt's scaling, so mu
     is unit free), or with unit_damping D = max_j ||J_j|| I: damped in the parameters' own units, so
@@ -836,14 +845,14 @@ def levenberg_marquardt(
     r, J = problem.residual_and_jacobian(state)
     cost = 0.5 * float(r @ r)
     history = [cost]
-    mu = initial_damping
+    mu = settings.initial_damping
     nu = 2.0
     step_norm = float("nan")
-    for iteration in range(1, max_iterations + 1):
+    for iteration in range(1, settings.max_iterations + 1):
         gradient = J.T @ r
         if not np.all(np.isfinite(gradient)):
             raise IdentificationError(f"levenberg_marquardt: non-finite gradient at iteration {iteration}")
-        if np.max(np.abs(gradient), initial=0.0) <= gradient_tolerance:
+        if np.max(np.abs(gradient), initial=0.0) <= settings.gradient_tolerance:
             return LMResult(state, iteration - 1, cost, tuple(history), True, "gradient", step_norm)
         # R and Q^T r from a QR of [J r] in row blocks: the memory of J's Q is never needed.
         augmented_factor = triangular_factor(J, r)
@@ -851,7 +860,7 @@ def levenberg_marquardt(
         rj, qtr = augmented_factor[:size, :-1], augmented_factor[:size, -1]
         scale = _column_norms_of(J)
         scale = np.maximum(scale, 1e-12 * max(scale.max(), 1e-300))
-        if unit_damping:
+        if settings.unit_damping:
             scale = np.full_like(scale, scale.max(initial=1.0))
         p = J.shape[1]
         while True:
@@ -859,7 +868,7 @@ def levenberg_marquardt(
             rhs = np.concatenate([-qtr, np.zeros(p)])
             dx = np.linalg.lstsq(augmented, rhs, rcond=None)[0]
             step_norm = float(np.linalg.norm(dx))
-            if step_norm <= step_tolerance:
+            if step_norm <= settings.step_tolerance:
                 return LMResult(state, iteration, cost, tuple(history), True, "step", step_norm)
             j_dx = rj @ dx
             predicted = -float(qtr @ j_dx) - 0.5 * float(j_dx @ j_dx)
@@ -881,7 +890,7 @@ def levenberg_marquardt(
                     r_trial, J_trial = problem.residual_and_jacobian(trial)
                 state, r, J, cost = trial, r_trial, J_trial, cost_trial
                 history.append(cost)
-                if decrease <= max(cost_tolerance * (cost + decrease), absolute_cost_tolerance):
+                if decrease <= max(settings.cost_tolerance * (cost + decrease), settings.absolute_cost_tolerance):
                     return LMResult(state, iteration, cost, tuple(history), True, "cost", step_norm)
                 break
             mu *= nu
@@ -890,4 +899,4 @@ def levenberg_marquardt(
                 # No step along the descent direction lowers the cost although the gradient test
                 # failed: the Jacobian is inconsistent with the residual, or rounding dominates.
                 return LMResult(state, iteration, cost, tuple(history), False, "stalled", step_norm)
-    return LMResult(state, max_iterations, cost, tuple(history), False, "max_iterations", step_norm)
+    return LMResult(state, settings.max_iterations, cost, tuple(history), False, "max_iterations", step_norm)

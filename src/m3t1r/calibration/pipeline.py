@@ -37,6 +37,7 @@ from m3t1r.calibration.identification import (
     OUTLIER_SIGMA,
     BaseParameters,
     LMResult,
+    LMSettings,
     ParameterSelection,
     checked_outlier_sigma,
     forward_selection,
@@ -154,18 +155,6 @@ class CalibrationOptions:
     def start_setup(self) -> MeasurementSetup:
         """The setup the fit starts from (identity when none is given)."""
         return self.setup or MeasurementSetup()
-
-
-@dataclass(frozen=True)
-class LMSettings:
-    """Levenberg-Marquardt's settings of one calibration (`levenberg_marquardt`'s keywords), kept with
-    its result so that cross-validation refits each fold the same way."""
-
-    max_iterations: int
-    cost_tolerance: float
-    absolute_cost_tolerance: float
-    initial_damping: float = INITIAL_DAMPING
-    unit_damping: bool = False
 
 
 class PoseErrorRMS(NamedTuple):
@@ -316,15 +305,7 @@ class PipelineFit(Generic[State]):
 def fit(problem: CalibrationProblem[State], state: State, settings: LMSettings) -> LMResult[State]:
     """`levenberg_marquardt` with `settings`; IdentificationError when it ends on a state whose residual
     is not finite (a closed loop that does not assemble)."""
-    result = levenberg_marquardt(
-        problem,
-        state,
-        max_iterations=settings.max_iterations,
-        initial_damping=settings.initial_damping,
-        absolute_cost_tolerance=settings.absolute_cost_tolerance,
-        cost_tolerance=settings.cost_tolerance,
-        unit_damping=settings.unit_damping,
-    )
+    result = levenberg_marquardt(problem, state, settings)
     if not math.isfinite(result.cost):
         raise IdentificationError("calibration ended on a model that does not assemble")
     return result
@@ -355,6 +336,7 @@ def fit_base(
         max_iterations=options.max_iterations or problem.default_iterations(base.rank),
         cost_tolerance=max(cost_tolerance, 2.0 * significance / degrees_of_freedom),
         absolute_cost_tolerance=options.absolute_cost_tolerance,
+        initial_damping=INITIAL_DAMPING,
     )
     result = fit(problem, problem.restart(start), settings)
     iterations = result.iterations

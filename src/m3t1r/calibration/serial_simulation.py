@@ -11,6 +11,7 @@ import numpy as np
 import pinocchio as pin
 
 from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.simulation import PlacementErrorScale
 from m3t1r.errors import InvalidInputError
 from m3t1r.model.poe import Placement, SerialChain, perturb, tool_poses
 
@@ -68,15 +69,14 @@ def simulate_serial_measurements(
     n_poses: int,
     rng: np.random.Generator,
     *,
-    translation_error: float = 1e-3,
-    rotation_error: float = 1e-3,
+    errors: PlacementErrorScale = PlacementErrorScale(),
     joint_offset: float = 1e-3,
     noise: TrackerNoise | None = TrackerNoise(),
     joint_noise: float = 0.0,
 ) -> SerialMeasurements:
     """Draw a true robot and `n_poses` noisy measurements of its tool pose.
 
-    Placement errors: dt ~ N(0, diag(translation_error^2 I3, rotation_error^2 I3)) (m, rad) on each
+    Placement errors: dt ~ N(0, diag(errors.position^2 I3, errors.rotation^2 I3)) (m, rad) on each
     placement of `chain.placements()`. Joint offsets: dq_k ~ N(0, joint_offset^2) (rad or m).
     Measured poses: the tracker's position noise N(0, noise.position^2 I3) (m) in {B} and rotation
     noise R_meas = R exp3(e), e ~ N(0, noise.rotation^2 I3) (rad); exact with noise=None
@@ -91,11 +91,11 @@ def simulate_serial_measurements(
     if n_poses < 1:
         raise InvalidInputError(f"n_poses must be >= 1, got {n_poses}")
     joint_noise = _checked_joint_noise(joint_noise)
-    sigma = np.r_[np.full(3, translation_error), np.full(3, rotation_error)]
+    sigma = np.r_[np.full(3, errors.position), np.full(3, errors.rotation)]
     placements = chain.placements()
-    errors = {p: rng.normal(0.0, 1.0, 6) * sigma for p in placements}
+    drawn = {p: rng.normal(0.0, 1.0, 6) * sigma for p in placements}
     offsets = rng.normal(0.0, joint_offset, chain.n_joints)
-    truth = perturb(perturb(model, errors), {p: chain.twists[k] * offsets[k] for k, p in enumerate(placements[:-1])})
+    truth = perturb(perturb(model, drawn), {p: chain.twists[k] * offsets[k] for k, p in enumerate(placements[:-1])})
     q_true = sample_configurations(model, chain, n_poses, rng)
     q_readings = q_true + rng.normal(0.0, joint_noise, q_true.shape) if joint_noise > 0.0 else q_true.copy()
     measured = []
@@ -105,7 +105,7 @@ def simulate_serial_measurements(
             continue
         rotation = g[:3, :3] @ pin.exp3(rng.normal(0.0, noise.rotation, 3))
         measured.append(pin.SE3(rotation, g[:3, 3] + rng.normal(0.0, noise.position, 3)))
-    frozen_errors = MappingProxyType({p: _readonly(v) for p, v in errors.items()})
+    frozen_errors = MappingProxyType({p: _readonly(v) for p, v in drawn.items()})
     return SerialMeasurements(
         truth=truth,
         placement_errors=frozen_errors,

@@ -24,6 +24,8 @@ from m3t1r.model.kinematics import rehomed
 from m3t1r.model.workspace import workspace_actuators
 
 __all__ = [
+    "PlacementErrorScale",
+    "StudyOptions",
     "SimulatedStudy",
     "random_placement_errors",
     "actual_machine",
@@ -32,6 +34,32 @@ __all__ = [
     "simulate_study",
     "with_outliers",
 ]
+
+
+@dataclass(frozen=True)
+class PlacementErrorScale:
+    """Standard deviations of the errors drawn on a simulated machine's placements, dt = [v; w]:
+    position [m] on v and rotation [rad] on w."""
+
+    position: float = 1e-3
+    rotation: float = 1e-3
+
+
+@dataclass(frozen=True)
+class StudyOptions:
+    """The rarer settings of `simulate_study`: what the truth is measured with and what else is read.
+
+    setup: the truth measurement frame and marker; position_only: the tracker sees positions only;
+    passive_joints: joints whose encoders are also read at the measured poses, with Gaussian noise of
+    `encoder_noise` [rad] when the study is noisy; outliers: how many measurements get a 3-5 mm gross
+    error (drawn last).
+    """
+
+    setup: MeasurementSetup = field(default_factory=MeasurementSetup)
+    position_only: bool = False
+    passive_joints: tuple[str, ...] = ()
+    encoder_noise: float = 1e-5
+    outliers: int = 0
 
 
 def random_placement_errors(
@@ -127,8 +155,8 @@ class SimulatedStudy:
     setup: the truth measurement frame and marker the measurements were taken with; outliers:
     indices of the measurements spoiled by gross errors. passive_joints / passive_readings:
     encoder readings (N, k) of those joints of the truth at the measured poses (noisy with
-    `encoder_noise` [rad] when the study is noisy), for cross-validation; the calibration does not
-    use them.
+    `StudyOptions.encoder_noise` [rad] when the study is noisy), for cross-validation; the
+    calibration does not use them.
     """
 
     nominal: Mechanism
@@ -148,37 +176,34 @@ def simulate_study(
     n_poses: int = 50,
     n_holdout: int = 200,
     seed: int = 0,
-    sigma_position: float = 1e-3,
-    sigma_rotation: float = 1e-3,
+    *,
+    errors: PlacementErrorScale = PlacementErrorScale(),
     noise: TrackerNoise | None = None,
-    position_only: bool = False,
-    passive_joints: tuple[str, ...] = (),
-    encoder_noise: float = 1e-5,
-    setup: MeasurementSetup | None = None,
-    outliers: int = 0,
+    options: StudyOptions = StudyOptions(),
 ) -> SimulatedStudy:
-    """Draw a truth machine (errors on every joint and closure/platform frame), n_poses noisy (or
-    exact, noise=None) measurements taken with `setup` and n_holdout other slider sets, all from one
-    seed; `outliers` of the measurements get a 3-5 mm gross error (drawn last)."""
+    """Draw a truth machine (`errors` on every joint and closure/platform frame), n_poses noisy (or
+    exact, noise=None) measurements taken as `options` says and n_holdout other slider sets, all from
+    one seed; `options.outliers` of the measurements get a 3-5 mm gross error (drawn last)."""
     if n_poses < 1 or n_holdout < 0:
         raise InvalidInputError(f"n_poses must be >= 1 and n_holdout >= 0, got {n_poses}, {n_holdout}")
     rng = np.random.default_rng(require_count(seed, "seed", minimum=0))
     error_model = ClosedLoopErrorModel(nominal)
-    errors = random_placement_errors(error_model, rng, sigma_position, sigma_rotation)
-    truth = actual_machine(nominal, errors, error_model)
+    drawn = random_placement_errors(error_model, rng, errors.position, errors.rotation)
+    truth = actual_machine(nominal, drawn, error_model)
     actuators = workspace_actuators(nominal, n_poses + n_holdout, rng)
-    setup = setup or MeasurementSetup()
-    measurements = measure(truth, actuators[:n_poses], rng, noise, position_only, setup)
+    setup = options.setup
+    measurements = measure(truth, actuators[:n_poses], rng, noise, options.position_only, setup)
+    passive_joints = tuple(options.passive_joints)
     readings = None
     if passive_joints:
         # Drawn after everything else, so adding encoders does not change the rest of the study.
         columns = [truth.model.idx_qs[truth.model.getJointId(name)] for name in passive_joints]
         readings = assembled_from_home(truth, actuators[:n_poses]).q[:, columns]
         if noise is not None:
-            readings = readings + rng.normal(0.0, encoder_noise, readings.shape)
+            readings = readings + rng.normal(0.0, options.encoder_noise, readings.shape)
     spoiled: tuple[int, ...] = ()
-    if outliers:
-        measurements, spoiled = with_outliers(measurements, rng, outliers)
+    if options.outliers:
+        measurements, spoiled = with_outliers(measurements, rng, options.outliers)
     return SimulatedStudy(
-        nominal, truth, errors, measurements, actuators[n_poses:], seed, tuple(passive_joints), readings, setup, spoiled
+        nominal, truth, drawn, measurements, actuators[n_poses:], seed, passive_joints, readings, setup, spoiled
     )

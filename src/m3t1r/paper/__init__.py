@@ -73,6 +73,7 @@ from m3t1r.paper.identification import (
     EXACT_DATA_REL_TOL,
     NOISY_READINGS_REL_TOL,
     PaperCalibration,
+    TwoChainOptions,
     calibrate_two_chains,
 )
 from m3t1r.paper.passive_angles import CrankMethod, LowerCrankEstimate, estimate_lower_crank_angles
@@ -80,6 +81,7 @@ from m3t1r.paper.simulation import (
     PASSIVE_ENCODER_NOISE,
     PresetErrors,
     PresetErrorScale,
+    TwoChainStudyOptions,
     actual_chain_poses,
     preset_errors,
 )
@@ -102,6 +104,8 @@ __all__ = [
     "PresetErrorScale",
     "PresetErrors",
     "TwoChainErrorModel",
+    "TwoChainOptions",
+    "TwoChainStudyOptions",
     "actual_chain_poses",
     "calibrate_two_chains",
     "closed_chain_study",

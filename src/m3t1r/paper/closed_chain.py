@@ -19,21 +19,16 @@ from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, calibrate_closed_loop, pose_errors
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise
 from m3t1r.calibration.pipeline import CalibrationOptions
-from m3t1r.calibration.simulation import simulate_study
+from m3t1r.calibration.simulation import PlacementErrorScale, simulate_study
 from m3t1r.errors import KinematicsError
 from m3t1r.metrics import PoseErrors
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
 from m3t1r.model.poe import perturb
 from m3t1r.paper.chains import PaperChain, _chain_poses, _pose_differences, paper_chains
-from m3t1r.paper.identification import (
-    EXACT_DATA_REL_TOL,
-    NOISY_READINGS_REL_TOL,
-    PaperCalibration,
-    calibrate_two_chains,
-)
+from m3t1r.paper.identification import PaperCalibration, calibrate_two_chains
 from m3t1r.paper.passive_angles import estimate_lower_crank_angles
-from m3t1r.paper.simulation import PASSIVE_ENCODER_NOISE, _checked_passive_encoder_noise, _observe, sensor_readings
+from m3t1r.paper.simulation import TwoChainStudyOptions, _checked_passive_encoder_noise, _observe, sensor_readings
 
 __all__ = ["ClosedChainStudyResult", "closed_chain_study"]
 
@@ -117,14 +112,12 @@ def closed_chain_study(
     seed: int = 0,
     *,
     noise: TrackerNoise | None = None,
-    passive_encoder_noise: float = PASSIVE_ENCODER_NOISE,
     n_poses: int = 20,
     n_holdout: int = 50,
-    sigma_position: float = 1e-3,
-    sigma_rotation: float = 1e-3,
+    errors: PlacementErrorScale = PlacementErrorScale(),
     compare_closed_loop: bool = True,
-    rank_tolerance: float | None = None,
     mechanism: Mechanism | None = None,
+    options: TwoChainStudyOptions = TwoChainStudyOptions(),
 ) -> ClosedChainStudyResult:
     """Calibrate the paper's two chains on a simulated closed-chain machine and judge the result
     on held-out slider sets, against the closed-loop calibration of the same data.
@@ -132,8 +125,9 @@ def closed_chain_study(
     Data per calibration pose: the slider readings, the readings of every joint of both chains
     (the truth's assembled configuration, plus noise), and the measured pose of the platform
     frame P_I (plus tracker noise), which is the target of both chains. Noise as in `paper_study`:
-    `noise` for the tracker and the sliders, `passive_encoder_noise` [rad] for the other joints,
-    none at all with noise=None. Held-out poses use exact readings for every method.
+    `noise` for the tracker and the sliders, `options.passive_encoder_noise` [rad] for the other
+    joints, none at all with noise=None. Held-out poses use exact readings for every method. The
+    truth's placement errors are drawn with `errors` (`simulate_study`).
 
     The paper's premise y_1 = y_2 (eq. 21) is a rigid platform that both chains end on. On a
     machine with errors the closure cannot hold in every direction: the truth keeps P_I and P_II
@@ -141,7 +135,7 @@ def closed_chain_study(
     with the pose (the strain a real machine takes up in joint play and elasticity). Chain B1
     ends at the measured frame and fits it exactly; chain B3 cannot, and its undamped iteration
     can wander along weakly identifiable directions.
-    rank_tolerance: as in `paper_study`.
+    options: as in `paper_study`.
     """
     nominal = Mechanism.load() if mechanism is None else mechanism
     chains = paper_chains(nominal)
@@ -150,8 +144,7 @@ def closed_chain_study(
         n_poses=n_poses,
         n_holdout=n_holdout,
         seed=seed,
-        sigma_position=sigma_position,
-        sigma_rotation=sigma_rotation,
+        errors=errors,
         noise=None,
     )
     truth = study.truth
@@ -163,13 +156,12 @@ def closed_chain_study(
     q_held = np.array([r.q for r in held_forward])
     held_truth = tuple(r.pose for r in held_forward)
 
-    passive_encoder_noise = _checked_passive_encoder_noise(passive_encoder_noise) if noise is not None else 0.0
+    passive_encoder_noise = _checked_passive_encoder_noise(options.passive_encoder_noise) if noise is not None else 0.0
     readings = sensor_readings(nominal, chains, q_fit, noise, passive_encoder_noise, rng)
     measured = _observe([r.pose for r in fit_forward], noise, rng)
     tracker = noise if noise is not None else TrackerNoise()
-    if rank_tolerance is None:
-        rank_tolerance = EXACT_DATA_REL_TOL if noise is None else NOISY_READINGS_REL_TOL
-    calibration = calibrate_two_chains(nominal, readings, measured, noise=tracker, rank_tolerance=rank_tolerance)
+    fit_options = options.fit_options(noisy=noise is not None)
+    calibration = calibrate_two_chains(nominal, readings, measured, noise=tracker, options=fit_options)
 
     first, second = chains
     sensors_before = _pose_differences(_chain_poses(first, nominal.model, q_held), held_truth)

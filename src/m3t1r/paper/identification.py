@@ -34,7 +34,13 @@ from m3t1r.model.poe import Placement, forward_and_error_jacobians, perturb, pla
 from m3t1r.paper.chains import _TWIST, PaperChain, _as_configurations, _per_chain_poses, _pose_differences, paper_chains
 from m3t1r.paper.error_model import TwoChainErrorModel, _row_weights, two_chain_error_model
 
-__all__ = ["EXACT_DATA_REL_TOL", "NOISY_READINGS_REL_TOL", "PaperCalibration", "calibrate_two_chains"]
+__all__ = [
+    "EXACT_DATA_REL_TOL",
+    "NOISY_READINGS_REL_TOL",
+    "PaperCalibration",
+    "TwoChainOptions",
+    "calibrate_two_chains",
+]
 
 Solver = Literal["batch", "recursive"]
 Unidentifiable = Literal["base", "minimum_norm"]
@@ -95,6 +101,30 @@ class PaperCalibration:
         return tuple(poses)
 
 
+@dataclass(frozen=True)
+class TwoChainOptions:
+    """Settings of `calibrate_two_chains`' iteration.
+
+    solver: "batch" (eq. 32 by SVD) or "recursive" (one pose at a time, square-root RLS); both
+        give the same update to rounding.
+    unidentifiable: "base" estimates the identifiable subset chosen by pivoted QR of the weighted
+        Jacobian at the starting model (the others stay at zero); "minimum_norm" estimates all
+        84 with the minimum-norm least-squares step.
+    tolerance: stop when ||X|| < tolerance (eq. 33's "until ||X|| approaches zero"), or when the
+        step moves no modelled pose by more than `tolerance` (m or rad): along combinations that
+        the data see only weakly, rounding alone moves X by eps / sigma_min, far above any useful
+        parameter tolerance, while the poses have long converged.
+    max_iterations: per stage (see `calibrate_two_chains`).
+    rank_tolerance: rank threshold of `select_base_parameters`.
+    """
+
+    solver: Solver = "recursive"
+    unidentifiable: Unidentifiable = "base"
+    tolerance: float = 1e-12
+    max_iterations: int = 30
+    rank_tolerance: float = EXACT_DATA_REL_TOL
+
+
 def _solve_step(A: np.ndarray, y: np.ndarray, weights: np.ndarray, solver: Solver) -> np.ndarray:
     """One least-squares update X of eq. (32) from per-pose blocks A (N, 12, p), y (N, 12)."""
     if solver == "batch":
@@ -131,11 +161,7 @@ def calibrate_two_chains(
     measured_poses: Sequence[pin.SE3] | Mapping[str, Sequence[pin.SE3]],
     *,
     noise: TrackerNoise = TrackerNoise(),
-    solver: Solver = "recursive",
-    unidentifiable: Unidentifiable = "base",
-    tolerance: float = 1e-12,
-    max_iterations: int = 30,
-    rank_tolerance: float = EXACT_DATA_REL_TOL,
+    options: TwoChainOptions = TwoChainOptions(),
     model: pin.Model | None = None,
 ) -> PaperCalibration:
     """Identify both chains' initial-pose errors by the paper's iterated least squares.
@@ -147,17 +173,7 @@ def calibrate_two_chains(
         when each chain has its own measured end pose (the paper's simulation, eq. 37).
     noise: tracker standard deviations; the rows are weighted 1/sigma at each tool point
         (`TwoChainErrorModel.at_tool_points`). Joint-reading noise is not modelled (as in the paper).
-    solver: "batch" (eq. 32 by SVD) or "recursive" (one pose at a time, square-root RLS); both
-        give the same update to rounding.
-    unidentifiable: "base" estimates the identifiable subset chosen by pivoted QR of the weighted
-        Jacobian at the starting model (the others stay at zero); "minimum_norm" estimates all
-        84 with the minimum-norm least-squares step.
-    tolerance: stop when ||X|| < tolerance (eq. 33's "until ||X|| approaches zero"), or when the
-        step moves no modelled pose by more than `tolerance` (m or rad): along combinations that
-        the data see only weakly, rounding alone moves X by eps / sigma_min, far above any useful
-        parameter tolerance, while the poses have long converged.
-    max_iterations: per stage (see below).
-    rank_tolerance: rank threshold of `select_base_parameters`.
+    options: the iteration's settings (`TwoChainOptions`).
     model: the starting tree model (default: the mechanism's nominal one).
 
     Each iteration linearises at the current model: X = argmin ||W (A X - Y)|| (eq. 31-32) and
@@ -180,6 +196,8 @@ def calibrate_two_chains(
     Raises IdentificationError when there are fewer rows than estimated parameters or when the
     iteration diverges.
     """
+    solver, unidentifiable, tolerance = options.solver, options.unidentifiable, options.tolerance
+    max_iterations, rank_tolerance = options.max_iterations, options.rank_tolerance
     _check_options(solver, unidentifiable, tolerance, max_iterations)
     start = mechanism.model if model is None else model
     chains = paper_chains(mechanism)

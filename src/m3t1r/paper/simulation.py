@@ -18,11 +18,13 @@ from m3t1r.errors import InvalidInputError
 from m3t1r.model.description import Mechanism
 from m3t1r.model.poe import Placement
 from m3t1r.paper.chains import _TWIST, PaperChain
+from m3t1r.paper.identification import EXACT_DATA_REL_TOL, NOISY_READINGS_REL_TOL, TwoChainOptions
 
 __all__ = [
     "PASSIVE_ENCODER_NOISE",
     "PresetErrorScale",
     "PresetErrors",
+    "TwoChainStudyOptions",
     "actual_chain_poses",
     "preset_errors",
     "sensor_readings",
@@ -32,6 +34,26 @@ __all__ = [
 #: method reads (every joint of both chains), in a study with noise. The tracker and the slider
 #: encoders are a `TrackerNoise`.
 PASSIVE_ENCODER_NOISE = 1e-5
+
+
+@dataclass(frozen=True)
+class TwoChainStudyOptions:
+    """The rarer settings of `paper_study` and `closed_chain_study`.
+
+    passive_encoder_noise: standard deviation [rad] of the passive joints' encoders in a study with
+        noise (a study without noise reads every joint exactly).
+    fit: the settings of `calibrate_two_chains`; None: its defaults with the rank threshold chosen
+        by the data, `EXACT_DATA_REL_TOL` without noise and `NOISY_READINGS_REL_TOL` with it.
+    """
+
+    passive_encoder_noise: float = PASSIVE_ENCODER_NOISE
+    fit: TwoChainOptions | None = None
+
+    def fit_options(self, noisy: bool) -> TwoChainOptions:
+        """The settings of the study's `calibrate_two_chains`, for noisy or exact readings."""
+        if self.fit is not None:
+            return self.fit
+        return TwoChainOptions(rank_tolerance=NOISY_READINGS_REL_TOL if noisy else EXACT_DATA_REL_TOL)
 
 
 @dataclass(frozen=True)

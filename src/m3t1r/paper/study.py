@@ -22,18 +22,12 @@ from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.workspace import workspace_actuators
 from m3t1r.paper.chains import PaperChain, _chain_poses, _pose_differences, paper_chains
 from m3t1r.paper.error_model import Identifiability, two_chain_identifiability
-from m3t1r.paper.identification import (
-    EXACT_DATA_REL_TOL,
-    NOISY_READINGS_REL_TOL,
-    PaperCalibration,
-    Solver,
-    calibrate_two_chains,
-)
+from m3t1r.paper.identification import PaperCalibration, calibrate_two_chains
 from m3t1r.paper.passive_angles import LowerCrankEstimate, estimate_lower_crank_angles
 from m3t1r.paper.simulation import (
-    PASSIVE_ENCODER_NOISE,
     PresetErrors,
     PresetErrorScale,
+    TwoChainStudyOptions,
     _checked_passive_encoder_noise,
     _observe,
     actual_chain_poses,
@@ -121,14 +115,12 @@ def paper_study(
     seed: int = 0,
     *,
     noise: TrackerNoise | None = None,
-    passive_encoder_noise: float = PASSIVE_ENCODER_NOISE,
     passive_from: PassiveSource = "sensor",
     n_poses: int = 20,
     n_holdout: int = 50,
     scale: PresetErrorScale = PresetErrorScale(),
-    solver: Solver = "recursive",
-    rank_tolerance: float | None = None,
     mechanism: Mechanism | None = None,
+    options: TwoChainStudyOptions = TwoChainStudyOptions(),
 ) -> PaperStudyResult:
     """The paper's simulation, step by step (section 6):
 
@@ -143,11 +135,11 @@ def paper_study(
 
     With `noise` (the tracker's and slider encoders'), the tracker perturbs the measured poses, the
     slider encoders the slider readings and the passive joints' encoders, of standard deviation
-    `passive_encoder_noise` [rad], every other reading; without, every reading is exact. With
+    `options.passive_encoder_noise` [rad], every other reading; without, every reading is exact. With
     passive_from other than "sensor", q_13 and q_23 are estimated from the other readings with
     the nominal model instead of read. The first n_poses calibrate, the rest are held out.
-    solver and rank_tolerance are passed to `calibrate_two_chains`; rank_tolerance defaults to
-    `EXACT_DATA_REL_TOL` without noise and `NOISY_READINGS_REL_TOL` with it.
+    `options.fit_options` gives the settings of `calibrate_two_chains` (by default its own, with
+    the rank threshold `EXACT_DATA_REL_TOL` without noise and `NOISY_READINGS_REL_TOL` with it).
     """
     if n_poses < 1 or n_holdout < 1:
         raise InvalidInputError(f"need n_poses >= 1 and n_holdout >= 1, got {n_poses}, {n_holdout}")
@@ -161,23 +153,22 @@ def paper_study(
     truth = [actual_chain_poses(chain, nominal.model, preset, q_true) for chain in chains]
 
     fit, held = slice(0, n_poses), slice(n_poses, None)
-    passive_encoder_noise = _checked_passive_encoder_noise(passive_encoder_noise) if noise is not None else 0.0
+    passive_encoder_noise = _checked_passive_encoder_noise(options.passive_encoder_noise) if noise is not None else 0.0
     readings = sensor_readings(nominal, chains, q_true[fit], noise, passive_encoder_noise, rng)
     readings, fit_estimate = _with_passive(nominal, readings, passive_from, nominal.model)
     measured = {chain.name: _observe(poses[fit], noise, rng) for chain, poses in zip(chains, truth)}
     tracker = noise if noise is not None else TrackerNoise()
-    if rank_tolerance is None:
-        rank_tolerance = EXACT_DATA_REL_TOL if noise is None else NOISY_READINGS_REL_TOL
+    fit_options = options.fit_options(noisy=noise is not None)
     calibration: PaperCalibration | None = None
     failure = None
     try:
-        calibration = calibrate_two_chains(
-            nominal, readings, measured, noise=tracker, solver=solver, rank_tolerance=rank_tolerance
-        )
+        calibration = calibrate_two_chains(nominal, readings, measured, noise=tracker, options=fit_options)
     except IdentificationError as exc:
         failure = str(exc)
     calibrated = None if calibration is None else calibration.model
-    identifiability = two_chain_identifiability(nominal, readings, noise=tracker, rank_tolerance=rank_tolerance)
+    identifiability = two_chain_identifiability(
+        nominal, readings, noise=tracker, rank_tolerance=fit_options.rank_tolerance
+    )
 
     holdout, held_estimate = _with_passive(nominal, q_true[held], passive_from, nominal.model)
     crank_error = None
