@@ -39,7 +39,7 @@ from m3t1r.io.poses import pose_rows
 from m3t1r.metrics import PoseErrors
 from m3t1r.model.description import Mechanism
 from m3t1r.model.design import NOMINAL, WorkspaceBox
-from m3t1r.model.kinematics import ClosedLoopSolver, ForwardResult, InverseResult, roll_pitch_of
+from m3t1r.model.kinematics import ClosedLoopSolver, ForwardResult, InverseResult, roll_pitch_of, within_limits
 from m3t1r.model.task import TaskSpec
 
 __all__ = [
@@ -273,7 +273,7 @@ class _JointLimits:
 
     def violation(self, q: np.ndarray) -> str | None:
         """`joint_limit_violation` of q (None when every joint is inside its limits)."""
-        if all(low <= value <= high for low, value, high in zip(self._lower, q.tolist(), self._upper)):
+        if within_limits(self._lower, q.tolist(), self._upper):
             return None
         return joint_limit_violation(self._model, q)  # names the joint; NaN counts as outside there too
 
