@@ -27,12 +27,12 @@ in the middle of a path costs two solves and does not derail its neighbours.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 from typing import Sequence, Union
 
 import numpy as np
 import pinocchio as pin
 
+from m3t1r._lazy import lazy
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError, OutOfWorkspaceError, real_array
 from m3t1r.io.poses import pose_rows
@@ -135,12 +135,12 @@ class Compensation:
     failures: tuple[TargetFailure, ...]
     task: TaskSpec | None = None
 
-    @cached_property
+    @lazy
     def command_poses(self) -> tuple[pin.SE3, ...]:
         """T_cp of every row as pin.SE3 (`command_placements`)."""
         return tuple(pin.SE3(h) for h in self.command_placements)
 
-    @cached_property
+    @lazy
     def reached_poses(self) -> tuple[pin.SE3, ...]:
         """The calibrated model's task frame at q^c of every row as pin.SE3 (`reached_placements`)."""
         return tuple(pin.SE3(h) for h in self.reached_placements)

@@ -21,13 +21,13 @@ from __future__ import annotations
 import dataclasses
 import operator
 from dataclasses import dataclass
-from functools import cached_property
 from typing import TypeVar
 
 import numpy as np
 import pinocchio as pin
 from scipy.linalg import blas, lapack
 
+from m3t1r._lazy import lazy
 from m3t1r.errors import (
     InvalidInputError,
     KinematicsError,
@@ -96,12 +96,12 @@ class ForwardResult:
     platform_placement: np.ndarray
     task_placement: np.ndarray
 
-    @cached_property
+    @lazy
     def pose(self) -> pin.SE3:
         """The platform frame in the base frame."""
         return pin.SE3(self.platform_placement)
 
-    @cached_property
+    @lazy
     def task_pose(self) -> pin.SE3:
         """The task frame in the base frame (`pose` itself when the task is on the platform frame)."""
         return self.pose if self.task_placement is self.platform_placement else pin.SE3(self.task_placement)
@@ -136,12 +136,12 @@ class InverseResult:
     platform_placement: np.ndarray
     task_placement: np.ndarray
 
-    @cached_property
+    @lazy
     def pose(self) -> pin.SE3:
         """The platform pose reached, in the base frame."""
         return pin.SE3(self.platform_placement)
 
-    @cached_property
+    @lazy
     def task_pose(self) -> pin.SE3:
         """The task frame reached, in the base frame (`pose` itself when the task is on the platform frame)."""
         return self.pose if self.task_placement is self.platform_placement else pin.SE3(self.task_placement)
