@@ -235,6 +235,7 @@ class ClosedLoopSolver:
         # check_actuators' fast path: a float array of this shape, under finite limits (read once).
         self._fast_limits = layout.actuator_lower.shape if layout.finite_limits else None
         self._platform, self._task_frame = layout.platform_frame, layout.task_frame
+        self._task_on_platform = layout.task_frame == layout.platform_frame
         self._target_name = f"target ({', '.join(mechanism.task.columns)})"  # in IK's input refusals
         self._square_task = mechanism.task.dimension == len(mechanism.actuated_joints)
         self._goal_shape = (len(mechanism.task.columns),)
@@ -398,9 +399,14 @@ class ClosedLoopSolver:
         self.warm.branch = bytes(native.branch)
         self.warm.q = q
         platform = native.platform.copy()
-        task = platform if self._task_frame == self._platform else native.task.copy()
-        fields = {"q": q.copy(), "residual": norm, "iterations": iterations}
-        return _built(ForwardResult, {**fields, "platform_placement": platform, "task_placement": task})
+        fields = {
+            "q": q.copy(),
+            "residual": norm,
+            "iterations": iterations,
+            "platform_placement": platform,
+            "task_placement": platform if self._task_on_platform else native.task.copy(),
+        }
+        return _built(ForwardResult, fields)
 
     def home_reference(self) -> tuple[np.ndarray, bytes] | None:
         """(T, branch) at home: T = -J_passive^-1 J_actuated (passive x actuated), d q_passive / d a,
@@ -615,7 +621,8 @@ class ClosedLoopSolver:
         if status != CONVERGED:
             raise failure(status, residual, iterations, rcond)
         actuators = q.take(self.actuated)
-        self._check_reached_actuators(actuators, residual, iterations)
+        if not within_limits(self._limit_lists[0], actuators.tolist(), self._limit_lists[1]):
+            self._check_reached_actuators(actuators, residual, iterations)  # names the actuator
         task = native.inverse_task
         roll, pitch = roll_pitch_of(task)
         self._keep_inverse_solution(
@@ -623,10 +630,15 @@ class ClosedLoopSolver:
         )
         state.task = task
         platform = native.inverse_platform.copy()
-        fields = {"actuators": actuators, "q": q.copy(), "residual": residual, "iterations": iterations}
-        fields["tilt"] = (roll - wanted_tilt[0], pitch - wanted_tilt[1])
-        fields["platform_placement"] = platform
-        fields["task_placement"] = platform if self._task_frame == self._platform else task.copy()
+        fields = {
+            "actuators": actuators,
+            "q": q.copy(),
+            "residual": residual,
+            "iterations": iterations,
+            "tilt": (roll - wanted_tilt[0], pitch - wanted_tilt[1]),
+            "platform_placement": platform,
+            "task_placement": platform if self._task_on_platform else task.copy(),
+        }
         return _built(InverseResult, fields)
 
     def _check_reached_actuators(self, actuators: np.ndarray, residual: float, iterations: int) -> None:
