@@ -110,6 +110,15 @@ def test_batch_outputs_on_the_calibrated_model(calibrated_study, accuracy):
     assert batch.iterations.shape == (60,) and batch.iterations.min() >= 1
     with pytest.raises(ValueError):
         batch.actuators[0, 0] = 0.0  # results are read-only
+    with pytest.raises(ValueError):
+        batch.command_placements[0, 0, 3] = 0.0
+    # The SE3 views are the placements, in both the path and the vectorised compensation.
+    vectorised = Compensator(study.nominal, calibration.mechanism).compensate_batch(targets[:60])
+    for poses in (batch, vectorised):
+        assert poses.command_placements.shape == poses.reached_placements.shape == (60, 4, 4)
+        np.testing.assert_array_equal([p.homogeneous for p in poses.command_poses], poses.command_placements)
+        np.testing.assert_array_equal([p.homogeneous for p in poses.reached_poses], poses.reached_placements)
+    np.testing.assert_allclose(vectorised.command_placements, batch.command_placements, atol=1e-9)
 
 
 def test_pose_output_is_what_the_nominal_controller_turns_into_the_compensated_sliders(calibrated_study):

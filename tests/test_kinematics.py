@@ -1021,6 +1021,24 @@ def test_the_task_pose_is_the_platform_pose_when_the_task_is_on_the_platform(mec
     assert forward.task_pose is forward.pose and inverse.task_pose is inverse.pose
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_result_keeps_its_own_placements_while_the_solver_moves_on(mechanism, compiled):
+    """Results hold copies of the placements a solve ends at (`platform_placement`, `task_placement`):
+    later solves, which reuse the solver's buffers, leave them alone; `pose` is their pin.SE3."""
+    solver = ClosedLoopSolver(mechanism, native=compiled)
+    inverse = solver.inverse(TARGET)
+    forward = solver.forward(inverse.actuators)
+    placements = [r.platform_placement.copy() for r in (inverse, forward)]
+    solver.inverse(TARGET + [0.02, -0.01, 0.01, 0.05])
+    solver.forward(inverse.actuators + 0.01)
+    for result, placement in zip((inverse, forward), placements):
+        np.testing.assert_array_equal(result.platform_placement, placement)
+        np.testing.assert_array_equal(result.pose.homogeneous, placement)
+    np.testing.assert_allclose(inverse.platform_placement[:3, 3], TARGET[:3], atol=1e-12)
+    assert yaw_of(inverse.platform_placement) == pytest.approx(TARGET[3], abs=1e-12)
+    np.testing.assert_allclose(forward.platform_placement, inverse.platform_placement, atol=1e-10)
+
+
 def test_a_tool_task_frame_is_reported_apart_from_the_platform(tool_machine):
     """IK puts the tool, not the platform, on the target; FK and IK report both frames at q."""
     from conftest import frame_coordinates

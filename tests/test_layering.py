@@ -35,7 +35,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 # Lowest first. A module belongs to the first layer whose prefix matches its dotted name (`m3t1r.io`
 # covers m3t1r.io.tables, `m3t1r.paper` covers m3t1r.paper.study, and so on).
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
-    ("ground", ("m3t1r.errors", "m3t1r._threads", "m3t1r._version", "m3t1r.io", "m3t1r.metrics")),
+    ("ground", ("m3t1r.errors", "m3t1r._lazy", "m3t1r._threads", "m3t1r._version", "m3t1r.io", "m3t1r.metrics")),
     ("model", ("m3t1r.model",)),
     ("calibration", ("m3t1r.calibration",)),
     ("compensation", ("m3t1r.compensation",)),

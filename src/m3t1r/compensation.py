@@ -32,13 +32,14 @@ from typing import Sequence, Union
 import numpy as np
 import pinocchio as pin
 
+from m3t1r._lazy import lazy
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.errors import InvalidInputError, KinematicsError, M3t1rError, OutOfWorkspaceError, real_array
 from m3t1r.io.poses import pose_rows
 from m3t1r.metrics import PoseErrors
 from m3t1r.model.description import Mechanism
 from m3t1r.model.design import NOMINAL, WorkspaceBox
-from m3t1r.model.kinematics import ClosedLoopSolver, ForwardResult, InverseResult, roll_pitch_of
+from m3t1r.model.kinematics import ClosedLoopSolver, ForwardResult, InverseResult, roll_pitch_of, within_limits
 from m3t1r.model.task import TaskSpec
 
 __all__ = [
@@ -115,8 +116,10 @@ class Compensation:
     is therefore finite. M = len(indices) = N - len(failures).
 
     indices: (M,) int, input position of each row; actuators: (M, 4) q^c [m] ("actuators" output,
-    columns `actuated_joints`); command_poses: M task-frame placements T_cp ("pose" output);
-    reached_poses: M task-frame placements of the calibrated model at q^c; tilt: (M, 2) roll, pitch [rad]
+    columns `actuated_joints`); command_placements: (M, 4, 4) task-frame placements T_cp in the base
+    frame [m] ("pose" output; `command_poses` the same as pin.SE3, built on first use);
+    reached_placements: (M, 4, 4) task-frame placements of the calibrated model at q^c (`reached_poses`
+    as pin.SE3); tilt: (M, 2) roll, pitch [rad]
     of the calibrated machine at each target minus the requested ones (reported, not compensated);
     iterations: (M,) Newton steps of the calibrated IK; failures: the excluded targets, ascending.
     """
@@ -125,12 +128,22 @@ class Compensation:
     actuated_joints: tuple[str, ...]
     indices: np.ndarray
     actuators: np.ndarray
-    command_poses: tuple[pin.SE3, ...]
-    reached_poses: tuple[pin.SE3, ...]
+    command_placements: np.ndarray
+    reached_placements: np.ndarray
     tilt: np.ndarray
     iterations: np.ndarray
     failures: tuple[TargetFailure, ...]
     task: TaskSpec | None = None
+
+    @lazy
+    def command_poses(self) -> tuple[pin.SE3, ...]:
+        """T_cp of every row as pin.SE3 (`command_placements`)."""
+        return tuple(pin.SE3(h) for h in self.command_placements)
+
+    @lazy
+    def reached_poses(self) -> tuple[pin.SE3, ...]:
+        """The calibrated model's task frame at q^c of every row as pin.SE3 (`reached_placements`)."""
+        return tuple(pin.SE3(h) for h in self.reached_placements)
 
     @property
     def complete(self) -> bool:
@@ -142,7 +155,7 @@ class Compensation:
         """T_cp as task coordinates (M, d) (`TaskSpec.columns`, e.g. x, y, z, theta [m, rad] with
         theta = `yaw_of`): the pose output for a controller taking task targets."""
         task = self.task or TaskSpec("platform")
-        return task.coordinates(np.array([pose.homogeneous for pose in self.command_poses]).reshape(-1, 4, 4))
+        return task.coordinates(self.command_placements)
 
     def command_pose_rows(self) -> np.ndarray:
         """T_cp as (M, 7) rows x, y, z, qx, qy, qz, qw (`io.POSE_COLUMNS`): the pose output as a file row."""
@@ -260,7 +273,7 @@ class _JointLimits:
 
     def violation(self, q: np.ndarray) -> str | None:
         """`joint_limit_violation` of q (None when every joint is inside its limits)."""
-        if all(low <= value <= high for low, value, high in zip(self._lower, q.tolist(), self._upper)):
+        if within_limits(self._lower, q.tolist(), self._upper):
             return None
         return joint_limit_violation(self._model, q)  # names the joint; NaN counts as outside there too
 
@@ -363,15 +376,15 @@ class Compensator:
                 failures.append(TargetFailure(index, f"{stage}: {exc}", type(exc)))
                 continue
             indices.append(index)
-            commands.append((ik.actuators, fk.task_pose, ik.task_pose, ik.tilt, ik.iterations))
-        actuators, command_poses, reached_poses, tilt, iterations = zip(*commands) if commands else ((),) * 5
+            commands.append((ik.actuators, fk.task_placement, ik.task_placement, ik.tilt, ik.iterations))
+        actuators, command_placements, reached_placements, tilt, iterations = zip(*commands) if commands else ((),) * 5
         return Compensation(
             n_targets=len(rows),
             actuated_joints=self.calibrated.actuated_joints,
             indices=_frozen(np.array(indices, dtype=int)),
             actuators=_frozen(np.array(actuators).reshape(-1, len(self.calibrated.actuated_joints))),
-            command_poses=command_poses,
-            reached_poses=reached_poses,
+            command_placements=_frozen(np.array(command_placements).reshape(-1, 4, 4)),
+            reached_placements=_frozen(np.array(reached_placements).reshape(-1, 4, 4)),
             tilt=_frozen(np.array(tilt).reshape(-1, 2)),
             iterations=_frozen(np.array(iterations, dtype=int)),
             failures=tuple(failures),
@@ -425,8 +438,8 @@ class Compensator:
             actuated_joints=self.calibrated.actuated_joints,
             indices=_frozen(ik.indices[good]),
             actuators=_frozen(ik.actuators[good]),
-            command_poses=tuple(pin.SE3(h) for h in fk.task_poses),
-            reached_poses=tuple(pin.SE3(h) for h in ik.task_poses[good]),
+            command_placements=_frozen(fk.task_poses),
+            reached_placements=_frozen(ik.task_poses[good]),
             tilt=_frozen(ik.tilt[good] - wanted[ik.indices[good]]),
             iterations=_frozen(ik.iterations[good]),
             failures=tuple(sorted(failures, key=lambda f: f.index)),

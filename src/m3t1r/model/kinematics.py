@@ -19,12 +19,15 @@ the Python ones are the reference. Branch labels: `model.branches`; the fixed bo
 from __future__ import annotations
 
 import dataclasses
+import operator
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 import pinocchio as pin
 from scipy.linalg import blas, lapack
 
+from m3t1r._lazy import lazy
 from m3t1r.errors import (
     InvalidInputError,
     KinematicsError,
@@ -57,6 +60,7 @@ from m3t1r.model.warm_start import WarmStart
 __all__ = [
     "ForwardResult",
     "InverseResult",
+    "within_limits",
     "ClosedLoopSolver",
     "yaw_of",
     "roll_pitch_of",
@@ -79,51 +83,90 @@ _dasum = blas.dasum
 class ForwardResult:
     """A converged forward-kinematics solve.
 
-    pose: platform frame in the base frame; q: full configuration (nq);
-    residual: max |enforced closure row| at q [m or rad]; iterations: Newton steps taken;
-    task_pose: the task frame (`Mechanism.task.frame`, what IK and compensation command) in the base
-    frame: `pose` itself when the task is on the platform frame.
+    q: full configuration (nq); residual: max |enforced closure row| at q [m or rad]; iterations:
+    Newton steps taken; platform_placement: the platform frame in the base frame, 4 x 4 homogeneous
+    [m]; task_placement: the task frame (`Mechanism.task.frame`, what IK and compensation command)
+    in the base frame, the same array when the task is on the platform frame. `pose` and `task_pose`
+    are those two as pin.SE3, built on first use.
     """
 
-    pose: pin.SE3
     q: np.ndarray
     residual: float
     iterations: int
-    task_pose: pin.SE3
+    platform_placement: np.ndarray
+    task_placement: np.ndarray
+
+    @lazy
+    def pose(self) -> pin.SE3:
+        """The platform frame in the base frame."""
+        return pin.SE3(self.platform_placement)
+
+    @lazy
+    def task_pose(self) -> pin.SE3:
+        """The task frame in the base frame (`pose` itself when the task is on the platform frame)."""
+        return self.pose if self.task_placement is self.platform_placement else pin.SE3(self.task_placement)
 
     @property
     def yaw(self) -> float:
-        return yaw_of(self.pose.rotation)
+        return yaw_of(self.platform_placement)
 
     @property
     def roll_pitch(self) -> tuple[float, float]:
-        return roll_pitch_of(self.pose.rotation)
+        return roll_pitch_of(self.platform_placement)
 
 
 @dataclass(frozen=True)
 class InverseResult:
     """A converged inverse-kinematics solve of position and yaw (a square system).
 
-    actuators: slider values in `Mechanism.actuated_joints` order [m]; pose: the platform pose
-    reached; task_pose: the task frame reached, whose commanded components (M machine: position and
-    yaw) equal the target's, roll and pitch being whatever the geometry gives (`pose` itself when the
+    actuators: slider values in `Mechanism.actuated_joints` order [m]; q: full configuration (nq);
+    platform_placement: the platform frame reached, 4 x 4 homogeneous in the base frame [m];
+    task_placement: the task frame reached, whose commanded components (M machine: position and yaw)
+    equal the target's, roll and pitch being whatever the geometry gives (the same array when the
     task is on the platform frame); tilt: (roll, pitch) of the task frame reached minus those
     requested (zero when a 4-vector target was given) [rad]: the part of a 6D target that cannot be
-    commanded.
+    commanded. `pose` and `task_pose` are the two placements as pin.SE3, built on first use.
     """
 
     actuators: np.ndarray
     q: np.ndarray
-    pose: pin.SE3
     residual: float
     iterations: int
     tilt: tuple[float, float]
-    task_pose: pin.SE3
+    platform_placement: np.ndarray
+    task_placement: np.ndarray
+
+    @lazy
+    def pose(self) -> pin.SE3:
+        """The platform pose reached, in the base frame."""
+        return pin.SE3(self.platform_placement)
+
+    @lazy
+    def task_pose(self) -> pin.SE3:
+        """The task frame reached, in the base frame (`pose` itself when the task is on the platform frame)."""
+        return self.pose if self.task_placement is self.platform_placement else pin.SE3(self.task_placement)
+
+
+_Result = TypeVar("_Result", ForwardResult, InverseResult)
+
+
+def _built(cls: type[_Result], fields: dict) -> _Result:
+    """A frozen result from its fields without the dataclass __init__, which pays one object.__setattr__
+    per field: about a microsecond of every warm solve (the fields are already checked and copied)."""
+    result = object.__new__(cls)
+    result.__dict__.update(fields)
+    return result
 
 
 #: The loosest Newton tolerance a solver accepts (max |closure row| [m, rad]): a micrometre, about
 #: a tracker's noise; beyond it "solved" poses would be open loops.
 MAX_TOLERANCE = 1e-6
+
+
+def within_limits(lower: list[float], values: list[float], upper: list[float]) -> bool:
+    """lower[k] <= values[k] <= upper[k] for every k (False where a value is NaN): comparisons mapped in C
+    over Python floats, a fraction of numpy's cost, and of a generator's, at a few to a few tens of joints."""
+    return all(map(operator.le, lower, values)) and all(map(operator.le, values, upper))
 
 
 def _checked_tolerance(value: object) -> float:
@@ -192,6 +235,7 @@ class ClosedLoopSolver:
         # check_actuators' fast path: a float array of this shape, under finite limits (read once).
         self._fast_limits = layout.actuator_lower.shape if layout.finite_limits else None
         self._platform, self._task_frame = layout.platform_frame, layout.task_frame
+        self._task_on_platform = layout.task_frame == layout.platform_frame
         self._target_name = f"target ({', '.join(mechanism.task.columns)})"  # in IK's input refusals
         self._square_task = mechanism.task.dimension == len(mechanism.actuated_joints)
         self._goal_shape = (len(mechanism.task.columns),)
@@ -290,11 +334,7 @@ class ClosedLoopSolver:
         """Validate slider values [m]: finite, right count, within the URDF limits (no clipping)."""
         if type(actuators) is np.ndarray and actuators.dtype == _FLOAT and actuators.shape == self._fast_limits:
             values = actuators.copy()
-            # A loop over a handful of floats costs less than the numpy calls; False for NaN.
-            if all(
-                low <= value <= high
-                for low, value, high in zip(self._limit_lists[0], values.tolist(), self._limit_lists[1])
-            ):
+            if within_limits(self._limit_lists[0], values.tolist(), self._limit_lists[1]):
                 return values
         values = require_finite_vector(actuators, len(self.actuated), "actuator values")
         names, (lower, upper) = self.mechanism.actuated_joints, self._limit_lists
@@ -338,8 +378,8 @@ class ClosedLoopSolver:
         # Where this solve continued from, for the second-order predictor of the next one.
         warm.previous = (start.take(self.actuated), start.take(self.passive))
         warm.branch, warm.q = outcome.branch, outcome.q
-        pose = self._platform_pose()
-        return ForwardResult(pose, outcome.q.copy(), outcome.residual, outcome.iterations, self._task_pose(pose))
+        platform, task = self._placements()
+        return ForwardResult(outcome.q.copy(), outcome.residual, outcome.iterations, platform, task)
 
     def _forward_native(
         self, q: np.ndarray, values: np.ndarray, predicted: bool, previous, branch: bytes | None
@@ -358,10 +398,15 @@ class ClosedLoopSolver:
         self.warm.tangent = native.tangent  # overwritten only by the next success, which reads it first
         self.warm.branch = bytes(native.branch)
         self.warm.q = q
-        pose = pin.SE3(native.platform)
-        return ForwardResult(
-            pose, q.copy(), norm, iterations, pose if self._task_frame == self._platform else pin.SE3(native.task)
-        )
+        platform = native.platform.copy()
+        fields = {
+            "q": q.copy(),
+            "residual": norm,
+            "iterations": iterations,
+            "platform_placement": platform,
+            "task_placement": platform if self._task_on_platform else native.task.copy(),
+        }
+        return _built(ForwardResult, fields)
 
     def home_reference(self) -> tuple[np.ndarray, bytes] | None:
         """(T, branch) at home: T = -J_passive^-1 J_actuated (passive x actuated), d q_passive / d a,
@@ -425,13 +470,13 @@ class ClosedLoopSolver:
         """IK's branch labels: the passive blocks', then the sign of det of the whole system."""
         return self._branch(jac) + bytes([det_sign(lu)])
 
-    def _task_pose(self, platform: pin.SE3) -> pin.SE3:
-        """The task frame at the configuration last evaluated (a copy), or `platform` when they are one frame."""
-        return (
-            platform
-            if self._task_frame == self._platform
-            else pin.updateFramePlacement(self.model, self.data, self._task_frame)
-        )
+    def _placements(self) -> tuple[np.ndarray, np.ndarray]:
+        """(platform, task frame) 4 x 4 [m] at the configuration last evaluated (copies), the task one the
+        platform's array itself when they are one frame."""
+        platform = self._platform_pose().homogeneous
+        if self._task_frame == self._platform:
+            return platform, platform
+        return platform, pin.updateFramePlacement(self.model, self.data, self._task_frame).homogeneous
 
     def _platform_pose(self) -> pin.SE3:
         """The platform frame at the configuration last evaluated: a copy (the binding returns
@@ -523,87 +568,106 @@ class ClosedLoopSolver:
         continuing, state = q_init is None, self.warm
         q = (state.q if continuing else require_finite_vector(q_init, self.model.nq, "q_init")).copy()
         predicted = continuing and state.task_inverse is not None and state.task is not None
-        if predicted and self.native is None:
+        if self.native is not None:
+            order = (1 if state.inverse_previous is None else 2) if predicted else 0
+            return self._inverse_native(q, goal, goal_rotation, wanted_tilt, order, continuing)
+        if predicted:
             assert state.task_inverse is not None and state.task is not None, "as `predicted` says"
             q[self._unknown_columns] += self.inverse_predict(
                 goal, goal_rotation, state.task_inverse, state.task, state.inverse_previous
             )
-        state.task_inverse = None  # dropped until this solve succeeds
         # A warm solve must stay on the previous solution's branch (assembly and working mode).
         start = state.inverse_branch if continuing else None
-        state.inverse_branch = None
-        if self.native is not None:
-            order = (1 if state.inverse_previous is None else 2) if predicted else 0
-            q, residual, iterations, branch, task_inverse, last_task, pose = self._inverse_native(
-                q, start, goal, goal_rotation, order
-            )
-            tilt = roll_pitch_of(self.native.inverse_task)
-        else:
-            outcome = self.newton(
-                q,
-                self._unknowns,
-                self._inverse_system(goal, goal_rotation),
-                self._inverse_branch,
-                start_branch=start,
-            )
-            q, residual, iterations, branch = outcome.q, outcome.residual, outcome.iterations, outcome.branch
-            task_inverse = outcome.inverse[:, self.n_rows :]
-            last_task = pin.updateFramePlacement(self.model, self.data, self._task_frame)  # a copy
-            pose = self._platform_pose()
-            tilt = roll_pitch_of(last_task.rotation)
+        state.task_inverse = state.inverse_branch = None  # dropped until this solve succeeds
+        outcome = self.newton(
+            q,
+            self._unknowns,
+            self._inverse_system(goal, goal_rotation),
+            self._inverse_branch,
+            start_branch=start,
+        )
+        q, residual, iterations, branch = outcome.q, outcome.residual, outcome.iterations, outcome.branch
         actuators = q.take(self.actuated)
-        names = self.mechanism.actuated_joints
+        self._check_reached_actuators(actuators, residual, iterations)
+        last_task = pin.updateFramePlacement(self.model, self.data, self._task_frame)  # a copy
+        platform, task = self._placements()
+        roll, pitch = roll_pitch_of(task)
+        self._keep_inverse_solution(continuing, q, branch, outcome.inverse[:, self.n_rows :], (goal, goal_rotation))
+        state.task = last_task
+        tilt = (roll - wanted_tilt[0], pitch - wanted_tilt[1])
+        return InverseResult(actuators, q.copy(), residual, iterations, tilt, platform, task)
+
+    def _inverse_native(
+        self,
+        q: np.ndarray,
+        goal: np.ndarray,
+        goal_rotation: np.ndarray | None,
+        wanted_tilt: tuple[float, float],
+        order: int,
+        continuing: bool,
+    ) -> InverseResult:
+        """`inverse` in the compiled loop, predictor of the given order included (q: the start, solved in
+        place); the same checks, bookkeeping, errors and result as the Python loop. The warm start's task
+        inverse and task frame stay in the compiled call's buffers, which the next warm solve reads; `data`
+        is not moved to the solution."""
+        native, state = self.native, self.warm
+        assert native is not None, "called only with the compiled loop"
+        # A warm solve must stay on the previous solution's branch (assembly and working mode).
+        start = state.inverse_branch if continuing else None
+        state.task_inverse = state.inverse_branch = None  # dropped until this solve succeeds
+        status, residual, iterations, rcond = native.inverse(
+            q, goal, goal_rotation, order, state.inverse_previous, start, self._compiled_rules
+        )
+        if status != CONVERGED:
+            raise failure(status, residual, iterations, rcond)
+        actuators = q.take(self.actuated)
+        if not within_limits(self._limit_lists[0], actuators.tolist(), self._limit_lists[1]):
+            self._check_reached_actuators(actuators, residual, iterations)  # names the actuator
+        task = native.inverse_task
+        roll, pitch = roll_pitch_of(task)
+        self._keep_inverse_solution(
+            continuing, q, bytes(native.inverse_branch), native.task_inverse, (goal, goal_rotation)
+        )
+        state.task = task
+        platform = native.inverse_platform.copy()
+        fields = {
+            "actuators": actuators,
+            "q": q.copy(),
+            "residual": residual,
+            "iterations": iterations,
+            "tilt": (roll - wanted_tilt[0], pitch - wanted_tilt[1]),
+            "platform_placement": platform,
+            "task_placement": platform if self._task_on_platform else task.copy(),
+        }
+        return _built(InverseResult, fields)
+
+    def _check_reached_actuators(self, actuators: np.ndarray, residual: float, iterations: int) -> None:
+        """OutOfWorkspaceError naming the first actuator [m or rad] an IK solution puts beyond its limit."""
         lower, upper = self._limit_lists
-        outside = [k for k, value in enumerate(actuators.tolist()) if not lower[k] <= value <= upper[k]]
-        for k in outside:
-            raise OutOfWorkspaceError(
-                f"target needs actuator '{names[k]}' = {actuators[k]:.6g} {self.mechanism.joint_units()[k]}, "
-                f"beyond its limit [{lower[k]:.6g}, {upper[k]:.6g}]",
-                residual,
-                iterations,
-            )
+        values = actuators.tolist()
+        if within_limits(lower, values, upper):
+            return
+        names = self.mechanism.actuated_joints
+        for k, value in enumerate(values):
+            if not lower[k] <= value <= upper[k]:
+                raise OutOfWorkspaceError(
+                    f"target needs actuator '{names[k]}' = {actuators[k]:.6g} {self.mechanism.joint_units()[k]}, "
+                    f"beyond its limit [{lower[k]:.6g}, {upper[k]:.6g}]",
+                    residual,
+                    iterations,
+                )
+
+    def _keep_inverse_solution(
+        self, continuing: bool, q: np.ndarray, branch: bytes, task_inverse: np.ndarray, goal: tuple
+    ) -> None:
+        """The warm start after an IK success at q (its labels `branch`, the task columns of its inverse,
+        its (goal, goal rotation)); the caller sets `task`."""
+        state = self.warm
         # The second-order predictor's history: the solution this one started from, with its goal.
         state.inverse_previous = (state.goal, state.q) if continuing and state.goal is not None else None
         # The FK warm start now follows this solution; its predictor tangent is from elsewhere.
         state.q, state.tangent, state.branch, state.previous = q, None, branch[:-1], None
-        state.task_inverse, state.inverse_branch = task_inverse, branch
-        state.goal, state.task = (goal, goal_rotation), last_task
-        task_pose = pose if self._task_frame == self._platform else pin.SE3(last_task)  # a copy either way
-        return InverseResult(
-            actuators,
-            q.copy(),
-            pose,
-            residual,
-            iterations,
-            (tilt[0] - wanted_tilt[0], tilt[1] - wanted_tilt[1]),
-            task_pose,
-        )
-
-    def _inverse_native(
-        self, q: np.ndarray, start: bytes | None, goal: np.ndarray, goal_rotation: np.ndarray | None, order: int
-    ):
-        """IK in the compiled loop, predictor of the given order included (q: the last solution, solved in
-        place): (q, residual, iterations, branch, task columns of the inverse, task frame (the compiled
-        call's 4 x 4 buffer), platform pose)
-        as the Python loop gives them; `data` is not moved to the solution."""
-        native = self.native
-        assert native is not None, "called only with the compiled loop"
-        status, residual, iterations, rcond = native.inverse(
-            q, goal, goal_rotation, order, self.warm.inverse_previous, start, self._compiled_rules
-        )
-        if status != CONVERGED:
-            raise failure(status, residual, iterations, rcond)
-        # The task frame's placement stays in the compiled call's buffer, which the next warm solve
-        # reads: no SE3 of it unless the result needs one (a task frame other than the platform).
-        return (
-            q,
-            residual,
-            iterations,
-            bytes(native.inverse_branch),
-            native.task_inverse,
-            native.inverse_task,
-            pin.SE3(native.inverse_platform),
-        )
+        state.task_inverse, state.inverse_branch, state.goal = task_inverse, branch, goal
 
     def _goal(self, target: pin.SE3 | np.ndarray) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float]]:
         """(task goal, goal rotation for a full-rotation task else None, requested (roll, pitch))."""
