@@ -35,8 +35,8 @@ def main() -> None:
                 seconds = time.perf_counter() - start
                 errors = pose_errors(calibration.mechanism, study.truth, study.holdout_actuators)
                 print(
-                    f"{seed:>4} {label:<28}{calibration.base.rank:>5}{len(calibration.fitted):>7}{errors.position_mean:>19.2e}"
-                    f"{errors.position.max():>11.2e}{seconds:>10.1f}"
+                    f"{seed:>4} {label:<28}{calibration.base.rank:>5}{len(calibration.fitted):>7}"
+                    f"{errors.position_mean:>19.2e}{errors.position.max():>11.2e}{seconds:>10.1f}"
                 )
     print("reference implementation (docs/results.md): 1.7e-07 mean, 1.3e-06 max")
 
