@@ -25,6 +25,7 @@ import pinocchio as pin
 from m3t1r._version import __version__
 from m3t1r.app.cli_common import (
     RowFailures,
+    calibration_options,
     campaign_report_fields,
     checked_marker,
     held_out_entry,
@@ -56,7 +57,6 @@ from m3t1r.calibration.assessment import (
 from m3t1r.calibration.closed_loop import ClosedLoopCalibration, CrossValidation, calibrate_closed_loop, cross_validate
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
-from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.repeats import pose_groups
 from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.io.instruments.formats import export_hint
@@ -303,18 +303,8 @@ def _fit(
     gate: bool = True,
 ) -> ClosedLoopCalibration:
     """The fit of the data (`_precheck` judged them first; `gate`: with the --outlier-sigma gate)."""
-    options = CalibrationOptions(
-        noise=noise,
-        setup=MeasurementSetup(marker=marker),
-        estimate_frame=estimate_frame,
-        estimate_marker=args.marker is not None,
-        outlier_sigma=(args.outlier_sigma or None) if gate else None,
-        select=args.select == "loo",
-        fixed=args.fix,
-        priors=args.prior or {},
-        groups=pose_groups(data.measurements.actuators, data.sources),
-        max_iterations=args.max_iterations,
-    )
+    groups = pose_groups(data.measurements.actuators, data.sources)
+    options = calibration_options(args, noise, marker, estimate_frame, groups, gate)
     return calibrate_closed_loop(nominal, data.measurements, options, progress=progress)
 
 

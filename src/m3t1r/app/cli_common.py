@@ -17,6 +17,8 @@ import pinocchio as pin
 from m3t1r._version import __version__
 from m3t1r.calibration.assessment import describe_parameter
 from m3t1r.calibration.measurement_setup import MeasurementSetup
+from m3t1r.calibration.measurements import TrackerNoise
+from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.errors import InvalidInputError, M3t1rError, ModelWarning, OutputPathError
 from m3t1r.io.pairing import paired_closures_path, recorded_closures_sha256
 from m3t1r.io.paths import read_bounded
@@ -303,3 +305,29 @@ def selection_note(dropped: Sequence[str], selection) -> list[str]:
         + ", ".join(describe_parameter(n) for n in dropped[:8])
         + (" ..." if len(dropped) > 8 else "")
     ]
+
+
+def calibration_options(
+    args: argparse.Namespace,
+    noise: TrackerNoise,
+    marker: pin.SE3,
+    estimate_frame: bool,
+    groups: np.ndarray,
+    gate: bool = True,
+    compliance: bool = False,
+) -> CalibrationOptions:
+    """The settings `calibrate`'s flags give either fit (`--marker`, `--outlier-sigma` unless not `gate`,
+    `--select`, `--fix`, `--prior`, `--max-iterations`); groups: the poses' repeat labels."""
+    return CalibrationOptions(
+        noise=noise,
+        setup=MeasurementSetup(marker=marker),
+        estimate_frame=estimate_frame,
+        estimate_marker=args.marker is not None,
+        outlier_sigma=(args.outlier_sigma or None) if gate else None,
+        select=args.select == "loo",
+        compliance=compliance,
+        fixed=list(args.fix or ()),
+        priors=dict(args.prior or {}),
+        groups=groups,
+        max_iterations=args.max_iterations,
+    )

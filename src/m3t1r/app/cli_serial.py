@@ -24,6 +24,7 @@ import pinocchio as pin
 from m3t1r._version import __version__
 from m3t1r.app.cli_common import (
     RowFailures,
+    calibration_options,
     campaign_report_fields,
     checked_marker,
     held_out_entry,
@@ -50,7 +51,6 @@ from m3t1r.calibration.assessment import (
 from m3t1r.calibration.identification import parameter_columns
 from m3t1r.calibration.measurement_setup import LENGTH_UNITS, MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
-from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.repeats import pose_groups
 from m3t1r.calibration.serial import SerialCalibration, calibrate_serial, require_gravity_load
 from m3t1r.calibration.serial_evaluation import SerialCrossValidation, cross_validate_serial, held_out_errors
@@ -448,19 +448,8 @@ def _fit(
     measured = np.array([g.translation for g in data.poses]) if data.position_only else data.poses
     if data.points is not None:
         measured = data.points
-    options = CalibrationOptions(
-        noise=noise,
-        setup=MeasurementSetup(marker=marker),
-        estimate_frame=estimate_frame,
-        estimate_marker=args.marker is not None,
-        outlier_sigma=(args.outlier_sigma or None) if gate else None,
-        select=args.select == "loo",
-        compliance=bool(args.compliance),
-        fixed=list(args.fix or ()),
-        priors=dict(args.prior or {}),
-        groups=pose_groups(data.readings, data.sources),
-        max_iterations=args.max_iterations,
-    )
+    groups = pose_groups(data.readings, data.sources)
+    options = calibration_options(args, noise, marker, estimate_frame, groups, gate, bool(args.compliance))
     return calibrate_serial(model, chain, data.readings, measured, options, position_only=data.position_only)
 
 
