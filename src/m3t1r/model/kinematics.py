@@ -79,8 +79,25 @@ _FLOAT = np.dtype(float)
 _dasum = blas.dasum
 
 
+class _PlacementViews:
+    """`pose` and `task_pose` of a solve's result: its two 4 x 4 placements as pin.SE3, built on first use."""
+
+    platform_placement: np.ndarray
+    task_placement: np.ndarray
+
+    @lazy
+    def pose(self) -> pin.SE3:
+        """The platform frame (reached) in the base frame."""
+        return pin.SE3(self.platform_placement)
+
+    @lazy
+    def task_pose(self) -> pin.SE3:
+        """The task frame (reached) in the base frame (`pose` itself when the task is on the platform frame)."""
+        return self.pose if self.task_placement is self.platform_placement else pin.SE3(self.task_placement)
+
+
 @dataclass(frozen=True)
-class ForwardResult:
+class ForwardResult(_PlacementViews):
     """A converged forward-kinematics solve.
 
     q: full configuration (nq); residual: max |enforced closure row| at q [m or rad]; iterations:
@@ -96,16 +113,6 @@ class ForwardResult:
     platform_placement: np.ndarray
     task_placement: np.ndarray
 
-    @lazy
-    def pose(self) -> pin.SE3:
-        """The platform frame in the base frame."""
-        return pin.SE3(self.platform_placement)
-
-    @lazy
-    def task_pose(self) -> pin.SE3:
-        """The task frame in the base frame (`pose` itself when the task is on the platform frame)."""
-        return self.pose if self.task_placement is self.platform_placement else pin.SE3(self.task_placement)
-
     @property
     def yaw(self) -> float:
         return yaw_of(self.platform_placement)
@@ -116,7 +123,7 @@ class ForwardResult:
 
 
 @dataclass(frozen=True)
-class InverseResult:
+class InverseResult(_PlacementViews):
     """A converged inverse-kinematics solve of position and yaw (a square system).
 
     actuators: slider values in `Mechanism.actuated_joints` order [m]; q: full configuration (nq);
@@ -135,16 +142,6 @@ class InverseResult:
     tilt: tuple[float, float]
     platform_placement: np.ndarray
     task_placement: np.ndarray
-
-    @lazy
-    def pose(self) -> pin.SE3:
-        """The platform pose reached, in the base frame."""
-        return pin.SE3(self.platform_placement)
-
-    @lazy
-    def task_pose(self) -> pin.SE3:
-        """The task frame reached, in the base frame (`pose` itself when the task is on the platform frame)."""
-        return self.pose if self.task_placement is self.platform_placement else pin.SE3(self.task_placement)
 
 
 _Result = TypeVar("_Result", ForwardResult, InverseResult)
