@@ -32,8 +32,6 @@ from m3t1r.calibration.identification import (
     REFERENCE_POSES,
     REFERENCE_SEED,
     BaseParameters,
-    LMResult,
-    ParameterSelection,
     parameter_columns,
     select_base_parameters,
     triangular_factor,
@@ -43,12 +41,12 @@ from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
 from m3t1r.calibration.measurements import PoseMeasurements, assembled_from_home, measure
 from m3t1r.calibration.pipeline import (
     CalibrationOptions,
-    LMSettings,
+    FitSummary,
     PipelineFit,
-    PoseErrorRMS,
     fit,
     prior_columns,
     run_pipeline,
+    summary_fields,
 )
 from m3t1r.calibration.repeats import grouped_folds
 from m3t1r.errors import IdentificationError, InvalidInputError, require_count
@@ -457,23 +455,18 @@ class ClosedLoopProblem:
             return ClosedLoopState(None, state.configurations, np.zeros((0, 4, 4)), setup, state.accumulated + vector)
 
 
-@dataclass(frozen=True)
-class ClosedLoopCalibration:
-    """Result of `calibrate_closed_loop`.
+@dataclass(frozen=True, kw_only=True)
+class ClosedLoopCalibration(FitSummary[ClosedLoopState]):
+    """Result of `calibrate_closed_loop`: the fit's `FitSummary` (base, covariance, variance factor,
+    RMS before and after, outliers, LM's run and settings, the registered start; RMS orientation nan
+    when position-only), and
 
     mechanism: the calibrated machine (nominal closures on the identified tree model, home
     re-assembled); setup: the measurement frame and marker (estimated or as given);
     parameters: identified machine error per parameter name, relative to the starting model (zero
     for the ones not fitted); std: standard deviations of every fitted parameter (machine and
-    setup) from sigma^2 (J^T W J)^-1; base: the identifiable set (column-pivoted QR);
-    fitted: the columns finally fitted (base, or fewer after model selection), whose covariance
-    is `covariance`; selection: the forward-selection record (None when not run);
-    outliers: indices of the poses flagged and left out; variance_factor: chi^2 / degrees of
-    freedom of the inliers under the stated noise (about 1 when the model explains the data);
-    rms_before / rms_after: position [m] and orientation [rad] RMS of the inliers' residual at the
-    start (nominal machine, registered frame) and the end (orientation nan when position-only).
-    lm: the last Levenberg-Marquardt run, iterations: LM's iterations over every run; problem,
-    start and settings: the fit's problem, registered start and LM settings (`cross_validate`).
+    setup) from sigma^2 (J^T W J)^-1; fitted: the columns finally fitted (base, or fewer after
+    model selection), whose covariance is `covariance`; problem: the fit's problem (`cross_validate`).
     """
 
     mechanism: Mechanism
@@ -481,27 +474,8 @@ class ClosedLoopCalibration:
     setup: MeasurementSetup
     parameters: dict[str, float]
     std: dict[str, float]
-    base: BaseParameters
     fitted: tuple[str, ...]
-    rms_before: PoseErrorRMS
-    rms_after: PoseErrorRMS
-    variance_factor: float
-    outliers: tuple[int, ...]
-    covariance: np.ndarray = field(repr=False)
-    lm: LMResult = field(repr=False)
-    iterations: int = 0
-    selection: ParameterSelection | None = field(default=None, repr=False)
     problem: ClosedLoopProblem | None = field(default=None, repr=False)
-    start: ClosedLoopState | None = field(default=None, repr=False)
-    settings: LMSettings | None = field(default=None, repr=False)
-
-    @property
-    def converged(self) -> bool:
-        return bool(self.lm.converged)
-
-    @property
-    def termination(self) -> str:
-        return self.lm.termination
 
 
 @on_one_blas_thread
@@ -628,19 +602,9 @@ def _calibration(
         setup=state.setup,
         parameters=dict(zip(error_model.names, identified)),
         std=dict(zip(problem.names, std)),
-        base=outcome.base,
         fitted=tuple(problem.names[c] for c in outcome.columns),
-        rms_before=outcome.rms_before,
-        rms_after=outcome.rms_after,
-        variance_factor=outcome.variance_factor,
-        outliers=outcome.outliers,
-        covariance=outcome.covariance,
-        lm=outcome.lm,
-        iterations=outcome.iterations,
-        selection=outcome.selection,
         problem=problem,
-        start=outcome.start,
-        settings=outcome.settings,
+        **summary_fields(outcome),
     )
 
 

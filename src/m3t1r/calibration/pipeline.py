@@ -25,9 +25,9 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from types import MappingProxyType
-from typing import Generic, NamedTuple, Protocol, TypeVar
+from typing import Any, Generic, NamedTuple, Protocol, TypeVar
 
 import numpy as np
 
@@ -55,6 +55,7 @@ from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationW
 __all__ = [
     "CalibrationOptions",
     "CalibrationProblem",
+    "FitSummary",
     "LMSettings",
     "PipelineFit",
     "PoseErrorRMS",
@@ -68,6 +69,7 @@ __all__ = [
     "reject_outliers",
     "run_pipeline",
     "select_parameters",
+    "summary_fields",
 ]
 
 State = TypeVar("State")
@@ -274,32 +276,56 @@ class CalibrationProblem(Protocol[State]):
     def default_step_significance(self) -> float: ...
 
 
-@dataclass(frozen=True)
-class PipelineFit(Generic[State]):
-    """What `run_pipeline` ends on.
+@dataclass(frozen=True, kw_only=True)
+class FitSummary(Generic[State]):
+    """What every calibration reports of its fit: the pipeline's summary (`PipelineFit`) and the
+    closed-loop and serial results built on it (`ClosedLoopCalibration`, `SerialCalibration`).
 
     start: the registered start; lm: the last Levenberg-Marquardt run (its state is the estimate);
     iterations: LM iterations over every run; base: the identifiable set at the start (or at a
-    re-selection); selection: the forward-selection record (None when not run); columns: the
-    columns finally fitted; covariance (len(columns),)^2 from the noise model, (J^T J)^-1 with J
-    whitened, and std its diagonal's root; variance_factor: chi^2 / degrees of freedom of the
-    inliers' rows and priors; rms_before / rms_after: the inliers' residual RMS at the start and the
-    end; outliers: the flagged poses; settings: LM's, for refits of the same kind.
+    re-selection); selection: the forward-selection record (None when not run); covariance over the
+    columns finally fitted, from the noise model, (J^T J)^-1 with J whitened; variance_factor:
+    chi^2 / degrees of freedom of the inliers' rows and priors (about 1 when the model explains the
+    data under the stated noise); rms_before / rms_after: the inliers' residual RMS at the start and
+    the end; outliers: the indices of the poses flagged and left out; settings: LM's, for refits of
+    the same kind (cross-validation).
     """
 
-    start: State
-    lm: LMResult[State]
+    start: State = field(repr=False)
+    lm: LMResult[State] = field(repr=False)
     iterations: int
     base: BaseParameters
-    selection: ParameterSelection | None
-    columns: tuple[int, ...]
-    covariance: np.ndarray
-    std: np.ndarray
+    selection: ParameterSelection | None = field(default=None, repr=False)
+    covariance: np.ndarray = field(repr=False)
     variance_factor: float
     rms_before: PoseErrorRMS
     rms_after: PoseErrorRMS
     outliers: tuple[int, ...]
-    settings: LMSettings
+    settings: LMSettings = field(repr=False)
+
+    @property
+    def converged(self) -> bool:
+        """The last Levenberg-Marquardt run met one of its convergence tests."""
+        return bool(self.lm.converged)
+
+    @property
+    def termination(self) -> str:
+        """The test that stopped the last Levenberg-Marquardt run (`LMResult.termination`)."""
+        return self.lm.termination
+
+
+def summary_fields(summary: FitSummary[State]) -> dict[str, Any]:
+    """The `FitSummary` fields of `summary` by name: what a calibration result copies from its pipeline fit."""
+    return {f.name: getattr(summary, f.name) for f in fields(FitSummary)}
+
+
+@dataclass(frozen=True, kw_only=True)
+class PipelineFit(FitSummary[State]):
+    """What `run_pipeline` ends on: the `FitSummary`, with the columns finally fitted and std, the
+    root of the covariance's diagonal."""
+
+    columns: tuple[int, ...]
+    std: np.ndarray
 
 
 def fit(problem: CalibrationProblem[State], state: State, settings: LMSettings) -> LMResult[State]:

@@ -36,8 +36,6 @@ from numpy.typing import ArrayLike
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.identification import (
     BaseParameters,
-    LMResult,
-    ParameterSelection,
     parameter_columns,
     triangular_factor,
 )
@@ -45,11 +43,11 @@ from m3t1r.calibration.measurement_setup import MeasurementSetup, register_frame
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.pipeline import (
     CalibrationOptions,
-    LMSettings,
+    FitSummary,
     PipelineFit,
-    PoseErrorRMS,
     prior_columns,
     run_pipeline,
+    summary_fields,
 )
 from m3t1r.calibration.serial_simulation import _checked_joint_noise, _readonly
 from m3t1r.errors import IdentificationError, InvalidInputError, real_array
@@ -675,9 +673,11 @@ def parse_measurements(
     return SerialMeasurements(q=q, positions=positions, rotations=None if position_only else rotations)
 
 
-@dataclass(frozen=True)
-class SerialCalibration:
-    """Result of `calibrate_serial`.
+@dataclass(frozen=True, kw_only=True)
+class SerialCalibration(FitSummary[SerialState]):
+    """Result of `calibrate_serial`: the fit's `FitSummary` (base, covariance, variance factor with
+    the priors, RMS before and after at the nominal robot and the calibrated model, outliers, LM's run
+    and settings, the start), and
 
     model: calibrated copy of the input model, T_c(0) = T(0) exp6(dt) per placement (eq. 33): the
         robot alone (the measurement frame and the marker are in `setup`, the compliance apart).
@@ -686,51 +686,23 @@ class SerialCalibration:
     compliance: {joint: c} (rad/Nm, m/N) of the joints whose compliance was fitted; q -> q + c tau(q).
     names: every candidate parameter (`SerialLayout`: placements, setup, compliance); values: each one's
         identified change from the start (zero where not fitted).
-    base: the identifiable parameters (column-pivoted QR, the setup's kept first: the gauge);
-        fitted: the names finally fitted (base, or fewer after model selection), fitted_indices
-        their columns; covariance: (len(fitted),)^2 from the noise model, (J_w^T J_w)^-1 at the
-        solution; parameter_std: sqrt(diag(covariance)).
-    variance_factor: chi^2 / (rows - fitted) of the inliers' whitened residual (priors included);
-        ~1 when the noise model is right and the error model explains the data.
-    lm: the last Levenberg-Marquardt run (converged, termination: its); iterations: LM's
-        iterations over every run.
-    outliers: indices of the poses flagged and left out; selection: the forward-selection record.
-    rms_before / rms_after: RMS of the inliers' residuals at the start (nominal robot, given or
-        registered frame) and at the calibrated model.
-    problem, start and settings: the fit's problem, start and LM settings (`cross_validate_serial`).
+    fitted: the names finally fitted (base, or fewer after model selection), fitted_indices their
+        columns, the covariance's order; parameter_std: sqrt(diag(covariance)).
+    problem: the fit's problem (`cross_validate_serial`).
     """
 
     model: pin.Model
     chain: SerialChain
     deltas: Mapping[Placement, np.ndarray]
-    base: BaseParameters
-    covariance: np.ndarray
     parameter_std: np.ndarray
-    variance_factor: float
-    iterations: int
-    lm: LMResult = field(repr=False)
-    rms_before: PoseErrorRMS
-    rms_after: PoseErrorRMS
     position_only: bool
     setup: MeasurementSetup = field(default_factory=MeasurementSetup)
-    outliers: tuple[int, ...] = ()
     fitted: tuple[str, ...] = ()
     fitted_indices: tuple[int, ...] = ()
     names: tuple[str, ...] = ()
     values: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     compliance: Mapping[str, float] = field(default_factory=dict)
-    selection: ParameterSelection | None = field(default=None, repr=False)
     problem: SerialProblem | None = field(default=None, repr=False)
-    start: SerialState | None = field(default=None, repr=False)
-    settings: LMSettings | None = field(default=None, repr=False)
-
-    @property
-    def converged(self) -> bool:
-        return bool(self.lm.converged)
-
-    @property
-    def termination(self) -> str:
-        return self.lm.termination
 
     def std(self) -> dict[str, float]:
         """Standard deviation per fitted parameter name (m, rad, rad/Nm)."""
@@ -884,26 +856,16 @@ def _result(model: pin.Model, problem: SerialProblem, outcome: PipelineFit[Seria
         model=perturb(model, deltas),
         chain=chain,
         deltas=MappingProxyType(deltas),
-        base=outcome.base,
-        covariance=outcome.covariance,
         parameter_std=outcome.std,
-        variance_factor=outcome.variance_factor,
-        iterations=outcome.iterations,
-        lm=outcome.lm,
-        rms_before=outcome.rms_before,
-        rms_after=outcome.rms_after,
         position_only=residual.data.rotations is None,
         setup=_fitted_setup(state),
-        outliers=outcome.outliers,
         fitted=tuple(problem.names[c] for c in fitted),
         fitted_indices=fitted,
         names=problem.names,
         values=_readonly(values),
         compliance=MappingProxyType(compliance),
-        selection=outcome.selection,
         problem=problem,
-        start=start,
-        settings=outcome.settings,
+        **summary_fields(outcome),
     )
 
 
