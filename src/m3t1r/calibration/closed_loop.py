@@ -29,8 +29,6 @@ import pinocchio as pin
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.error_model import ClosedLoopErrorModel, PlatformSensitivities
 from m3t1r.calibration.identification import (
-    REFERENCE_POSES,
-    REFERENCE_SEED,
     BaseParameters,
     parameter_columns,
     select_base_parameters,
@@ -48,13 +46,13 @@ from m3t1r.calibration.pipeline import (
     run_pipeline,
     summary_fields,
 )
+from m3t1r.calibration.pose_selection import reference_base
 from m3t1r.calibration.repeats import grouped_folds
 from m3t1r.errors import IdentificationError, InvalidInputError, require_count
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
 from m3t1r.model.poe import adjoint_matrices, jlog3_batch, log3_batch, placement_of, skew
-from m3t1r.model.workspace import workspace_actuators
 
 __all__ = [
     "ClosedLoopCalibration",
@@ -716,9 +714,6 @@ def default_iterations(n_parameters: int) -> int:
     return max(60, 5 * n_parameters)
 
 
-_REFERENCE_POSES = REFERENCE_POSES  # a well-spread pose set on which the model's identifiable count is measured
-
-
 def structural_rank(
     problem: ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
 ) -> int:
@@ -765,38 +760,36 @@ _STRUCTURAL_RANKS: dict[tuple, BaseParameters] = {}
 def _reference_selection(
     problem: ClosedLoopProblem, marker: pin.SE3, fixed_columns: Sequence[int], rank_tolerance: float
 ) -> BaseParameters:
+    """`reference_base` on the rows this problem fits: the reference poses measured exactly on the
+    starting machine through `marker` (or at the start's point offsets), with the same setup estimated."""
     error_model = problem.error_model
     mechanism = error_model.mechanism
-    actuators = workspace_actuators(mechanism, _REFERENCE_POSES, np.random.default_rng(REFERENCE_SEED))
-    reference = measure(mechanism, actuators, position_only=problem.measurements.position_only)
     offsets = tuple((float(x), float(y), float(z)) for x, y, z in problem.point_offsets)
-    if problem.n_points:  # the points at the fit's start offsets, every one seen
-        platform = np.array([pose.homogeneous for pose in reference.poses])
-        reference = PoseMeasurements(
-            reference.actuators, reference.poses, True, MeasurementSetup(points=offsets).measured_points(platform)
-        )
-    else:
-        reference = PoseMeasurements(
-            reference.actuators, tuple(pose * marker for pose in reference.poses), reference.position_only
-        )
-    names = problem.names
-    everything = np.arange(len(names))
-    twin = ClosedLoopProblem(
-        error_model,
-        reference,
-        everything,
-        CalibrationOptions(
-            estimate_frame=problem.frame_slot is not None, estimate_marker=problem.marker_slot is not None
-        ),
+    options = CalibrationOptions(
+        estimate_frame=problem.frame_slot is not None, estimate_marker=problem.marker_slot is not None
     )
-    twin.noise_weights = np.tile(problem.row_weights, len(reference))
-    state = twin.assemble(mechanism.model, None, setup=MeasurementSetup(marker=marker, points=offsets))
-    _, jacobian = twin.evaluate(state, everything)
-    jacobian[:, list(fixed_columns)] = 0.0
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        forced = np.arange(error_model.n_parameters, len(names))
-        return select_base_parameters(jacobian, names, rank_tolerance, forced=forced)
+
+    def whitened_jacobian(actuators: np.ndarray) -> np.ndarray:
+        reference = measure(mechanism, actuators, position_only=problem.measurements.position_only)
+        if problem.n_points:  # the points at the fit's start offsets, every one seen
+            platform = np.array([pose.homogeneous for pose in reference.poses])
+            reference = PoseMeasurements(
+                reference.actuators, reference.poses, True, MeasurementSetup(points=offsets).measured_points(platform)
+            )
+        else:
+            reference = PoseMeasurements(
+                reference.actuators, tuple(pose * marker for pose in reference.poses), reference.position_only
+            )
+        everything = np.arange(len(problem.names))
+        twin = ClosedLoopProblem(error_model, reference, everything, options)
+        twin.noise_weights = np.tile(problem.row_weights, len(reference))
+        state = twin.assemble(mechanism.model, None, setup=MeasurementSetup(marker=marker, points=offsets))
+        return twin.evaluate(state, everything)[1]
+
+    forced = np.arange(error_model.n_parameters, len(problem.names))
+    return reference_base(
+        mechanism, whitened_jacobian, problem.names, fixed=fixed_columns, forced=forced, rank_tolerance=rank_tolerance
+    )
 
 
 #: A reference-set direction weaker than this many times the rank tolerance is barely identifiable

@@ -39,16 +39,12 @@ from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from m3t1r._threads import on_one_blas_thread
-from m3t1r.calibration.identification import (
-    REFERENCE_POSES,
-    REFERENCE_SEED,
-    select_base_parameters,
-    unexcited_parameters,
-)
+from m3t1r.calibration.identification import REFERENCE_POSES, select_base_parameters, unexcited_parameters
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.pose_selection import (
     PoseSelection,
     closed_loop_candidate_blocks,
+    reference_base,
     select_poses,
     serial_candidate_blocks,
 )
@@ -457,18 +453,19 @@ def plan_closed_loop(
 def _reference_columns(
     mechanism: Mechanism, blocks: np.ndarray, noise: TrackerNoise, position_only: bool
 ) -> tuple[int, ...] | None:
-    """The base parameters a plan must identify: those of calibrate's reference pose set
-    (`REFERENCE_POSES`, `REFERENCE_SEED`) where the candidates identify another number (a direction
-    barely above the rank tolerance on one pose set and below it on the other: a leg's rod joints),
-    so that plan and calibrate ask the same of the poses; None (the candidates' own choice) otherwise."""
+    """The base parameters a plan must identify: those calibrate judges by (`reference_base`) where
+    the candidates identify another number (a direction barely above the rank tolerance on one pose
+    set and below it on the other: a leg's rod joints), so that plan and calibrate ask the same of the
+    poses; None (the candidates' own choice) otherwise."""
     stacked = blocks.reshape(-1, blocks.shape[2])
     names = [f"p{k}" for k in range(blocks.shape[2])]
     candidates = select_base_parameters(stacked, names, max_condition=math.inf)
-    draws = workspace_actuators(mechanism, REFERENCE_POSES, np.random.default_rng(REFERENCE_SEED))
-    reference_blocks, _ = closed_loop_candidate_blocks(mechanism, draws, noise, position_only=position_only)
-    reference = select_base_parameters(
-        reference_blocks.reshape(-1, reference_blocks.shape[2]), names, max_condition=math.inf
-    )
+
+    def reference_rows(actuators: np.ndarray) -> np.ndarray:
+        rows, _ = closed_loop_candidate_blocks(mechanism, actuators, noise, position_only=position_only)
+        return rows.reshape(-1, rows.shape[2])
+
+    reference = reference_base(mechanism, reference_rows, names)
     return reference.indices if reference.rank != candidates.rank else None
 
 

@@ -13,13 +13,14 @@ most) until a full pass improves nothing. Both steps use the matrix determinant 
 evaluated for every candidate at once from one Cholesky factor of M.
 
 Nothing here knows about robots except the two helpers that build blocks for the closed-loop
-machine (`closed_loop_candidate_blocks`) and for a serial chain (`serial_candidate_blocks`).
+machine (`closed_loop_candidate_blocks`) and for a serial chain (`serial_candidate_blocks`), and
+the closed-loop model's reference pose set, which `plan` and `calibrate` judge poses by (`reference_base`).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,18 +30,27 @@ from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
-from m3t1r.calibration.identification import IDENTIFIABILITY_TOLERANCE, best_index, select_base_parameters
+from m3t1r.calibration.identification import (
+    IDENTIFIABILITY_TOLERANCE,
+    REFERENCE_POSES,
+    REFERENCE_SEED,
+    BaseParameters,
+    best_index,
+    select_base_parameters,
+)
 from m3t1r.calibration.measurements import TrackerNoise, assembled_from_home
 from m3t1r.errors import InvalidInputError
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.poe import SerialChain, forward_and_error_jacobians
+from m3t1r.model.workspace import workspace_actuators
 
 __all__ = [
     "PoseSelection",
     "closed_loop_candidate_blocks",
     "information_log_det",
     "observability_index",
+    "reference_base",
     "select_poses",
     "serial_candidate_blocks",
 ]
@@ -322,6 +332,29 @@ def closed_loop_candidate_blocks(
         ]
     )
     return blocks * weights[:rows, None], error_model.names
+
+
+def reference_base(
+    mechanism: Mechanism,
+    whitened_jacobian: Callable[[np.ndarray], np.ndarray],
+    names: Sequence[str],
+    *,
+    fixed: Sequence[int] = (),
+    forced: Sequence[int] | np.ndarray = (),
+    rank_tolerance: float = IDENTIFIABILITY_TOLERANCE,
+) -> BaseParameters:
+    """What a closed-loop model can identify whatever the user's poses: the one measure by which
+    `plan` chooses poses and `calibrate` judges them. The base parameters of `whitened_jacobian(actuators)`
+    (the whitened rows of every pose stacked, one column per name of `names`) at the reference pose
+    set, `REFERENCE_POSES` slider sets [m or rad] of seed `REFERENCE_SEED` drawn in the workspace box
+    (`workspace_actuators`), with the `fixed` columns zeroed and the `forced` ones (the measurement
+    setup's, the gauge) kept first. A direction barely above `rank_tolerance` is identified on more
+    rows and not on fewer, so plan and calibrate must measure on this same set. The reference set's
+    own weak directions are what it measures: no PoorExcitationWarning."""
+    actuators = workspace_actuators(mechanism, REFERENCE_POSES, np.random.default_rng(REFERENCE_SEED))
+    jacobian = whitened_jacobian(actuators)
+    jacobian[:, list(fixed)] = 0.0
+    return select_base_parameters(jacobian, names, rank_tolerance, max_condition=math.inf, forced=forced)
 
 
 def serial_candidate_blocks(
