@@ -33,7 +33,7 @@ from m3t1r.calibration.planning import (
 from m3t1r.calibration.pose_selection import closed_loop_candidate_blocks, information_log_det
 from m3t1r.calibration.serial_robots import load_example_robot
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors
-from m3t1r.errors import IdentificationError, InvalidInputError, M3t1rError
+from m3t1r.errors import IdentificationError, InvalidInputError, M3t1rError, PoorExcitationWarning
 from m3t1r.io.tables import read_table
 from m3t1r.model.description import Mechanism
 from m3t1r.model.examples import five_bar_files, spherical_wrist_files
@@ -273,22 +273,25 @@ def test_plan_and_calibrate_count_the_same_identifiable_parameters(tmp_path) -> 
         assert len(plan.selection.columns) == calibration.base.rank
 
 
+def _boxed_five_bar(tmp_path: Path, half: float) -> tuple[Path, Path]:
+    """The packaged five-bar's files with a workspace box of +-half [rad] about home on each slider."""
+    urdf, closures = five_bar_files(tmp_path)
+    document = yaml.safe_load(closures.read_text())
+    home = document["home"]
+    document["workspace"] = {"actuators": {a: [home[a] - half, home[a] + half] for a in document["actuated_joints"]}}
+    closures.write_text(yaml.safe_dump(document, sort_keys=False))
+    return urdf, closures
+
+
 def test_a_direction_at_the_rank_tolerance_is_decided_as_calibrate_decides(tmp_path):
     """The five-bar in a box of +-0.35 mrad about home: its two weakest parameters sit at the rank
     tolerance (|R_ii| / |R_00| ~ 1e-8, from the box's curvature), identifiable on calibrate's 40
     reference poses (1.03e-8) and not on the plan's 400 candidates (0.97e-8). The plan asks of its
     poses what calibrate will: the reference's 18, and refuses as calibrate refuses, naming the same
     two and not advising more poses; at +-1 mrad both count 18 and the plan is calibrated."""
-    urdf, closures = five_bar_files(tmp_path)
 
     def boxed(half: float) -> Mechanism:
-        document = yaml.safe_load(closures.read_text())
-        home = document["home"]
-        document["workspace"] = {
-            "actuators": {a: [home[a] - half, home[a] + half] for a in document["actuated_joints"]}
-        }
-        closures.write_text(yaml.safe_dump(document, sort_keys=False))
-        return Mechanism.load(urdf, closures)
+        return Mechanism.load(*_boxed_five_bar(tmp_path, half))
 
     narrow = boxed(3.5e-4)
     with pytest.raises(InvalidInputError) as refusal:
@@ -313,6 +316,43 @@ def test_a_direction_at_the_rank_tolerance_is_decided_as_calibrate_decides(tmp_p
         wide, measure(wide, plan.configurations), CalibrationOptions(outlier_sigma=None)
     )
     assert len(plan.selection.columns) == calibration.base.rank == 18
+
+
+def test_plan_fix_plans_for_the_parameters_calibrate_fix_fits(tmp_path, capsys):
+    """The narrow five-bar's refusal names the two parameters to hold and the commands that hold them;
+    `plan --fix` with those names writes a plan of the 16 others, which `calibrate` holding the same two
+    identifies in full (without them held, calibrate refuses those poses)."""
+    urdf, closures = _boxed_five_bar(tmp_path, 3.5e-4)
+    plan_csv = tmp_path / "plan.csv"
+    argv = ["plan", "-n", "20", "--model", str(urdf), "--closures", str(closures), "-o", str(plan_csv)]
+    assert run(argv) == 2
+    refusal = capsys.readouterr().out
+    advice = re.search(r"\(plan --fix (.+), then calibrate --fix (.+)\)", refusal)
+    assert advice is not None and advice.group(1) == advice.group(2), refusal
+    held = advice.group(1).split()
+    assert len(held) == 2 and not plan_csv.exists()
+    assert run([*argv, "--fix", *held]) == 0
+    assert "16 identifiable parameters" in capsys.readouterr().out
+    narrow = Mechanism.load(urdf, closures)
+    sliders, _ = read_actuators(plan_csv, narrow)
+    measured = measure(narrow, sliders)
+    calibration = calibrate_closed_loop(narrow, measured, CalibrationOptions(outlier_sigma=None, fixed=held))
+    assert calibration.base.rank == 16 and not set(held) & set(calibration.fitted)
+    with pytest.raises(IdentificationError, match="identify only 17"), pytest.warns(PoorExcitationWarning):
+        calibrate_closed_loop(narrow, measured, CalibrationOptions(outlier_sigma=None))
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--fix", "q99"], "fixed parameter: 'q99' is neither a parameter"),
+        (["--serial", "ur5", "--fix", "shoulder_pan_joint"], "--fix plans a closed-loop machine"),
+    ],
+)
+def test_plan_fix_refuses_what_it_cannot_hold(tmp_path, capsys, argv, message):
+    assert run(["plan", "-n", "10", *argv, "-o", str(tmp_path / "plan.csv")]) == 2
+    assert message in capsys.readouterr().out
+    assert not (tmp_path / "plan.csv").exists()
 
 
 @pytest.mark.parametrize(

@@ -67,6 +67,8 @@ def _make_plan(args: argparse.Namespace):
     if args.serial:
         if args.model or args.closures:
             raise InvalidInputError("--model/--closures describe the M machine; with --serial give the robot only")
+        if args.fix:  # a serial plan is never refused for a direction at the rank tolerance
+            raise InvalidInputError("--fix plans a closed-loop machine; a serial plan identifies every base parameter")
         model, chain = _serial_robot(args.serial, args.tool, args.base)
         noise = TrackerNoise(args.noise_pos, args.noise_rot)
         plan = plan_serial(
@@ -84,6 +86,7 @@ def _make_plan(args: argparse.Namespace):
         n_candidates=args.candidates,
         noise=TrackerNoise(args.noise_pos, args.noise_rot),
         position_only=args.position_only,
+        fixed=args.fix,
     )
     return plan, [mechanism.urdf_path, mechanism.closures_path]
 

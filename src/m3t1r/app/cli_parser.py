@@ -308,6 +308,20 @@ def build_parser(description: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _add_fix_option(parser: argparse.ArgumentParser) -> None:
+    """`--fix`, the parameters held at nominal: in `calibrate`, and in `plan`, which plans for the others."""
+    parser.add_argument(
+        "--fix",
+        nargs="+",
+        type=_comma_list,
+        action=_ExtendLists,
+        default=[],
+        metavar="NAME",
+        help="hold parameters (q12.dt[3]) or whole placements (q12) at nominal (repeatable, or a "
+        "comma list: --fix q12 --fix q13,q14)",
+    )
+
+
 def add_campaign_options(parser: argparse.ArgumentParser) -> None:
     """The measurement-setup, robustness and judgement options of `calibrate` (closed loop and serial)."""
     parser.add_argument(
@@ -344,16 +358,7 @@ def add_campaign_options(parser: argparse.ArgumentParser) -> None:
         default="loo",
         help="model selection: keep the parameters that predict left-out poses (default loo)",
     )
-    parser.add_argument(
-        "--fix",
-        nargs="+",
-        type=_comma_list,
-        action=_ExtendLists,
-        default=[],
-        metavar="NAME",
-        help="hold parameters (q12.dt[3]) or whole placements (q12) at nominal (repeatable, or a "
-        "comma list: --fix q12 --fix q13,q14)",
-    )
+    _add_fix_option(parser)
     parser.add_argument(
         "--prior",
         nargs="+",
@@ -405,6 +410,7 @@ def add_plan_parser(verbs: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--candidates", type=count_number, metavar="K", help="candidates drawn in the workspace (default 20 n)"
     )
     p.add_argument("--position-only", action="store_true", help="a tracker without orientation")
+    _add_fix_option(p)  # the parameters calibrate will hold: the plan identifies the others
     p.add_argument("--noise-pos", type=positive_number, default=10e-6, metavar="M", help="tracker position noise [m]")
     p.add_argument(
         "--noise-rot", type=positive_number, default=20e-6, metavar="RAD", help="tracker rotation noise [rad]"

@@ -28,7 +28,7 @@ alone, found with a k-d tree in O(n) memory instead of an n x n distance matrix.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, cast
 
@@ -39,7 +39,12 @@ from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from m3t1r._threads import on_one_blas_thread
-from m3t1r.calibration.identification import REFERENCE_POSES, select_base_parameters, unexcited_parameters
+from m3t1r.calibration.identification import (
+    REFERENCE_POSES,
+    parameter_columns,
+    select_base_parameters,
+    unexcited_parameters,
+)
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.pose_selection import (
     PoseSelection,
@@ -402,7 +407,8 @@ def _shortfall(candidates: _Candidates, selection: PoseSelection, n_poses: int, 
         return (
             f"{head}: they leave {listed} unexcited, parameters barely identifiable on any poses (the "
             "reference poses and the candidates disagree on them), so more poses are unlikely to help: a "
-            f"larger workspace box may, or calibrate will hold them at nominal (--fix {' '.join(weak)})"
+            f"larger workspace box may; or hold them at nominal in the plan and the calibration alike "
+            f"(plan --fix {' '.join(weak)}, then calibrate --fix {' '.join(weak)})"
         )
     counts = f"{n_poses} give {n_poses * rows} rows for {identifiable} parameters"
     return f"{head}: they leave {listed} unexcited; plan more poses ({counts})"
@@ -427,36 +433,49 @@ def plan_closed_loop(
     noise: TrackerNoise | None = None,
     position_only: bool = False,
     n_evaluation: int = DEFAULT_EVALUATION_POSES,
+    fixed: Sequence[str] = (),
 ) -> MeasurementPlan:
     """A plan of `n_poses` actuator sets [m or rad] for a closed-loop mechanism (module docstring).
 
     Candidates (default 20 n_poses) and evaluation poses are drawn uniformly in the design's
     workspace box and mapped to sliders by the nominal IK from home (`workspace_actuators`), so
     every one is within the slider limits and assembles on the home branch. noise: the tracker
-    noise the calibration will assume (default `TrackerNoise()`, as `m3t1r calibrate`).
+    noise the calibration will assume (default `TrackerNoise()`, as `m3t1r calibrate`). fixed:
+    parameter (`q12.dt[3]`) or placement (`q12`) names the calibration will hold at nominal
+    (`CalibrationOptions.fixed`, `calibrate --fix`): the plan identifies the others, and its
+    predicted accuracy takes the held ones as known.
     """
     k = _check_counts(n_poses, n_candidates)
     noise = noise or TrackerNoise()
     sliders = workspace_actuators(mechanism, k, rng)
     blocks, names = closed_loop_candidate_blocks(mechanism, sliders, noise, position_only=position_only)
+    held = _held_at_nominal(blocks, names, fixed)
     evaluation, _ = closed_loop_candidate_blocks(mechanism, workspace_actuators(mechanism, n_evaluation, rng), noise)
     scales = (noise.position, noise.rotation)
     candidates = _Candidates(sliders, blocks, _unwhitened(evaluation, scales), names)
     home = mechanism.home[[mechanism.model.idx_qs[mechanism.model.getJointId(n)] for n in mechanism.actuated_joints]]
     units = mechanism.joint_units()
-    base = _reference_columns(mechanism, blocks, noise, position_only)
+    base = _reference_columns(mechanism, blocks, noise, position_only, held)
     return _plan(
         "closed_loop", mechanism.actuated_joints, candidates, n_poses, home, position_only, scales, units, base
     )
 
 
+def _held_at_nominal(blocks: np.ndarray, names: Sequence[str], fixed: Sequence[str]) -> list[int]:
+    """The columns `fixed` names (as `CalibrationOptions.fixed` does), zeroed in the candidate blocks
+    (K, rows, P) in place: no pose is chosen to identify them, and no base parameter includes them."""
+    columns = parameter_columns(names, fixed, "fixed parameter")
+    blocks[:, :, columns] = 0.0
+    return columns
+
+
 def _reference_columns(
-    mechanism: Mechanism, blocks: np.ndarray, noise: TrackerNoise, position_only: bool
+    mechanism: Mechanism, blocks: np.ndarray, noise: TrackerNoise, position_only: bool, fixed: Sequence[int] = ()
 ) -> tuple[int, ...] | None:
-    """The base parameters a plan must identify: those calibrate judges by (`reference_base`) where
-    the candidates identify another number (a direction barely above the rank tolerance on one pose
-    set and below it on the other: a leg's rod joints), so that plan and calibrate ask the same of the
-    poses; None (the candidates' own choice) otherwise."""
+    """The base parameters a plan must identify: those calibrate judges by (`reference_base`, the
+    `fixed` columns held) where the candidates identify another number (a direction barely above the
+    rank tolerance on one pose set and below it on the other: a leg's rod joints), so that plan and
+    calibrate ask the same of the poses; None (the candidates' own choice) otherwise."""
     stacked = blocks.reshape(-1, blocks.shape[2])
     names = [f"p{k}" for k in range(blocks.shape[2])]
     candidates = select_base_parameters(stacked, names, max_condition=math.inf)
@@ -465,7 +484,7 @@ def _reference_columns(
         rows, _ = closed_loop_candidate_blocks(mechanism, actuators, noise, position_only=position_only)
         return rows.reshape(-1, rows.shape[2])
 
-    reference = reference_base(mechanism, reference_rows, names)
+    reference = reference_base(mechanism, reference_rows, names, fixed=fixed)
     return reference.indices if reference.rank != candidates.rank else None
 
 
