@@ -68,19 +68,23 @@ def _campaign(tmp_path: Path, seed: int, position_only: bool) -> tuple[Simulated
     return study, path, ["--marker", *map(str, given), "--units", "mm"]
 
 
+def _calibrate_in_tracker_frame(tmp_path: Path, path: Path, *options: str) -> dict:
+    """`m3t1r calibrate PATH -o cal.urdf --report cal.json --frame estimate OPTIONS...` in tmp_path,
+    which must succeed; the report, read as strict JSON (no NaN or Infinity)."""
+    report_path, urdf = tmp_path / "cal.json", tmp_path / "cal.urdf"
+    written = ["-o", str(urdf), "--report", str(report_path)]
+    assert main(["calibrate", str(path), *written, "--frame", "estimate", *options]) == 0
+    return json.loads(report_path.read_text(), parse_constant=lambda c: pytest.fail(f"{c} is not JSON"))
+
+
 @pytest.mark.parametrize("seed, position_only", [(0, False), (1, True)])
 def test_tracker_campaign_is_calibrated_in_the_tracker_frame(tmp_path, capsys, seed, position_only):
     study, path, options = _campaign(tmp_path, seed, position_only)
-    urdf, report_path = tmp_path / "cal.urdf", tmp_path / "cal.json"
-    assert (
-        main(["calibrate", str(path), "-o", str(urdf), "--report", str(report_path), "--frame", "estimate", *options])
-        == 0
-    )
-    report = json.loads(report_path.read_text(), parse_constant=lambda c: pytest.fail(f"{c} is not JSON"))
+    report = _calibrate_in_tracker_frame(tmp_path, path, *options)
     assert report["outliers"] == [i + 2 for i in study.outliers]  # line 1 is the header
     assert report["converged"] and 0.5 < report["variance_factor"] < 1.5
     assert str(study.outliers[0] + 2) in capsys.readouterr().out
-    calibrated, estimated = Mechanism.load(urdf), MeasurementSetup.from_report(report)
+    calibrated, estimated = Mechanism.load(tmp_path / "cal.urdf"), MeasurementSetup.from_report(report)
     truth = measure(study.truth, study.holdout_actuators, setup=study.setup).poses
     predicted = measure(calibrated, study.holdout_actuators, setup=estimated).poses
     errors = pose_errors_between(predicted, truth)
@@ -98,12 +102,8 @@ def test_tracker_campaign_is_calibrated_in_the_tracker_frame(tmp_path, capsys, s
 
 def test_calibrated_urdf_holds_the_machine_alone(tmp_path):
     study, path, options = _campaign(tmp_path, 2, False)
-    urdf, report_path = tmp_path / "cal.urdf", tmp_path / "cal.json"
-    assert (
-        main(["calibrate", str(path), "-o", str(urdf), "--report", str(report_path), "--frame", "estimate", *options])
-        == 0
-    )
-    calibrated = Mechanism.load(urdf)
+    report = _calibrate_in_tracker_frame(tmp_path, path, *options)
+    calibrated = Mechanism.load(tmp_path / "cal.urdf")
     # The platform frame stays the platform (the reflector's 50-100 mm went to the marker) and the
     # base stays the base (the tracker's metres went to the frame): placements move by build errors.
     for name in (calibrated.platform_frame, "q11", "q21"):
@@ -114,7 +114,6 @@ def test_calibrated_urdf_holds_the_machine_alone(tmp_path):
             a, b = model.jointPlacements[model.getJointId(name)], nominal.jointPlacements[nominal.getJointId(name)]
         moved = pin.log6(a.actInv(b)).vector  # gauge-fixed build errors: a few mm / mrad, not 50 mm or metres
         assert np.linalg.norm(moved[:3]) < 0.02 and np.linalg.norm(moved[3:]) < 0.02
-    report = json.loads(report_path.read_text())
     marker = np.array(report["marker"]["translation"])
     assert np.linalg.norm(marker[:2] - study.setup.marker.translation[:2]) < 5e-3
 
@@ -167,31 +166,8 @@ def test_linearised_cross_validation_agrees_with_refitting_every_fold():
 
 def test_fixed_and_prior_parameters_are_honoured_and_reported(tmp_path):
     study, path, options = _campaign(tmp_path, 4, False)
-    urdf, report_path = tmp_path / "cal.urdf", tmp_path / "cal.json"
-    assert (
-        main(
-            [
-                "calibrate",
-                str(path),
-                "-o",
-                str(urdf),
-                "--report",
-                str(report_path),
-                "--frame",
-                "estimate",
-                "--fix",
-                "q12",
-                "q22.dt[5]",
-                "--prior",
-                "q13=1e-4",
-                "--prior",
-                "q23.dt[0]=1e-5",
-                *options,
-            ]
-        )
-        == 0
-    )
-    report = json.loads(report_path.read_text())
+    fixed_and_priors = ["--fix", "q12", "q22.dt[5]", "--prior", "q13=1e-4", "--prior", "q23.dt[0]=1e-5"]
+    report = _calibrate_in_tracker_frame(tmp_path, path, *fixed_and_priors, *options)
     assert report["fixed"] == ["q12", "q22.dt[5]"] and report["priors"] == {"q13": 1e-4, "q23.dt[0]": 1e-5}
     values = {p["name"]: p for p in report["parameters"]}
     assert all(values[f"q12.dt[{k}]"]["value"] == 0.0 and not values[f"q12.dt[{k}]"]["fitted"] for k in range(6))
@@ -231,28 +207,7 @@ def test_auto_noise_finds_the_tracker_noise_and_keeps_the_outlier_gate(tmp_path,
     """10 um / 20 urad of tracker noise and two gross errors, the noise left to the data: the estimate
     is within 20 % of the truth, the gross readings are still flagged, and the report says so."""
     study, path, options = _campaign(tmp_path, 6, False)
-    report_path = tmp_path / "cal.json"
-    assert (
-        main(
-            [
-                "calibrate",
-                str(path),
-                "-o",
-                str(tmp_path / "cal.urdf"),
-                "--report",
-                str(report_path),
-                "--frame",
-                "estimate",
-                "--noise-pos",
-                "auto",
-                "--noise-rot",
-                "auto",
-                *options,
-            ]
-        )
-        == 0
-    )
-    report = json.loads(report_path.read_text())
+    report = _calibrate_in_tracker_frame(tmp_path, path, "--noise-pos", "auto", "--noise-rot", "auto", *options)
     assert report["noise_source"]["position"] == report["noise_source"]["rotation"] == "estimated"
     assert 8e-6 < report["noise_model"]["position_m"] < 12e-6 and 16e-6 < report["noise_model"]["rotation_rad"] < 24e-6
     assert report["outliers"] == [i + 2 for i in study.outliers] and report["warnings"] == []
@@ -272,29 +227,8 @@ def test_a_gross_reading_is_left_out_before_the_noise_is_estimated(tmp_path, cap
     fields[x] = repr(float(fields[x]) + 1000.0)  # mm
     lines[1 + row] = ",".join(fields)
     path.write_text("\n".join(lines) + "\n")
-    report_path = tmp_path / "cal.json"
-    assert (
-        main(
-            [
-                "calibrate",
-                str(path),
-                "-o",
-                str(tmp_path / "cal.urdf"),
-                "--report",
-                str(report_path),
-                "--frame",
-                "estimate",
-                "--noise-pos",
-                "auto",
-                "--noise-rot",
-                "auto",
-                *options,
-            ]
-        )
-        == 0
-    )
+    report = _calibrate_in_tracker_frame(tmp_path, path, "--noise-pos", "auto", "--noise-rot", "auto", *options)
     assert f"note: line {row + 2}: the measured point is " in capsys.readouterr().out
-    report = json.loads(report_path.read_text())
     assert report["outliers"] == sorted([i + 2 for i in study.outliers] + [row + 2])
     assert 8e-6 < report["noise_model"]["position_m"] < 12e-6 and 16e-6 < report["noise_model"]["rotation_rad"] < 24e-6
     assert report["input"]["poses"] == 60 and report["warnings"] == []
@@ -304,26 +238,7 @@ def test_a_noise_stated_too_small_gives_a_written_machine_and_a_warning(tmp_path
     """10 um of tracker noise stated as 2 um: nothing the checks know explains the residual, so the
     machine is written, and the warning gives the variance factor and the noise the residual implies."""
     study, path, options = _campaign(tmp_path, 7, True)
-    report_path = tmp_path / "cal.json"
-    assert (
-        main(
-            [
-                "calibrate",
-                str(path),
-                "-o",
-                str(tmp_path / "cal.urdf"),
-                "--report",
-                str(report_path),
-                "--frame",
-                "estimate",
-                "--noise-pos",
-                "2e-6",
-                *options,
-            ]
-        )
-        == 0
-    )
-    report = json.loads(report_path.read_text())
+    report = _calibrate_in_tracker_frame(tmp_path, path, "--noise-pos", "2e-6", *options)
     assert report["variance_factor"] > 15 and len(report["warnings"]) == 1
     implied = float(report["warnings"][0].split("imply a noise of ")[1].split(" m")[0])
     assert 7e-6 < implied < 13e-6
@@ -350,27 +265,8 @@ def test_outliers_by_source_repeats_held_out_together_and_a_held_out_file_scored
     path.write_text("\n".join([lines[0] + ",source", *rows]) + "\n")
     held = tmp_path / "held.csv"
     held.write_text("\n".join([lines[0], *lines[41:]]) + "\n")
-    report_path, urdf = tmp_path / "cal.json", tmp_path / "cal.urdf"
-    assert (
-        main(
-            [
-                "calibrate",
-                str(path),
-                "-o",
-                str(urdf),
-                "--report",
-                str(report_path),
-                "--frame",
-                "estimate",
-                "--validate",
-                str(held),
-                *options,
-            ]
-        )
-        == 0
-    )
+    report = _calibrate_in_tracker_frame(tmp_path, path, "--validate", str(held), *options)
     out = capsys.readouterr().out
-    report = json.loads(report_path.read_text())
     fitted_outliers = sorted(i for i in study.outliers if i < 40)
     assert fitted_outliers, "the seed spoils a fitted pose"
     sources = [1000 + i for i in fitted_outliers] + [2000 + i for i in fitted_outliers if i < 10]
@@ -379,7 +275,7 @@ def test_outliers_by_source_repeats_held_out_together_and_a_held_out_file_scored
     postures = 40 - len(fitted_outliers)
     assert report["cross_validation"]["groups"] == postures
     assert f"{postures} distinct poses, each held out whole" in out and " m RMS " in out
-    scored = validate(held, urdf, report_path)
+    scored = validate(held, tmp_path / "cal.urdf", tmp_path / "cal.json")
     entry = report["held_out"]
     assert entry["poses"] == 20 and entry["failed_lines"] == []
     assert entry["position_mean_m"] == pytest.approx(scored.errors.position_mean, rel=1e-6)

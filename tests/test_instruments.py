@@ -10,7 +10,6 @@ tracker in its own frame at 100 Hz with 50 um noise, dwelling 1.5 s at each post
 
 from __future__ import annotations
 
-import argparse
 import builtins
 import json
 from dataclasses import dataclass
@@ -19,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
+from command_lines import serial_calibration_arguments
 from scipy.spatial.transform import Rotation
 
 from m3t1r.app.cli import main
@@ -383,29 +383,12 @@ def test_convert_writes_a_table_that_calibrates_like_the_plain_csv(session, tmp_
     plain = plain_csv(tmp_path / "plain.csv", session)
     reports = {}
     for name, path in (("plain", plain), ("converted", converted)):
-        arguments = argparse.Namespace(
-            measurements=str(path),
-            output=None,
-            report=str(tmp_path / f"{name}.json"),
-            serial="ur10",
-            base=None,
-            tool="tool0",
-            noise_pos=NOISE,
-            noise_rot=1e-4,
-            frame="estimate",
-            marker=[0.0, 0.0, 0.0],
-            units="m",
-            force=False,
-            max_iterations=None,
-            fix=[],
-            prior={},
-            outlier_sigma=5.0,
-            select="loo",
-            compliance=False,
-            folds=4,
+        report = tmp_path / f"{name}.json"
+        marker = [0.0, 0.0, 0.0]  # --marker 0 0 0: the body estimated from the flange
+        run_serial_calibration(
+            serial_calibration_arguments(path, report, noise_pos=NOISE, noise_rot=1e-4, marker=marker)
         )
-        run_serial_calibration(arguments)
-        reports[name] = json.loads((tmp_path / f"{name}.json").read_text())
+        reports[name] = json.loads(report.read_text())
     out = capsys.readouterr().out
     gross = int(table.column("source")[12])
     assert reports["converted"]["outlier_sources"] == [gross]
@@ -550,28 +533,9 @@ def test_every_marker_of_a_stream_is_kept_as_points_and_calibrates(session, tmp_
     )
     second = exact[:, :3, :3] @ offsets[1] + exact[:, :3, 3]
     assert np.max(np.abs(np.column_stack([table.column(c) for c in "x2 y2 z2".split()]) - second)) < 5 * NOISE
-    arguments = argparse.Namespace(
-        measurements=str(converted),
-        output=None,
-        report=str(tmp_path / "points.json"),
-        serial="ur10",
-        base=None,
-        tool="tool0",
-        noise_pos=NOISE,
-        noise_rot=1e-4,
-        frame="estimate",
-        marker=None,
-        units="m",
-        force=False,
-        max_iterations=None,
-        fix=[],
-        prior={},
-        outlier_sigma=5.0,
-        select="loo",
-        compliance=False,
-        folds=4,
+    run_serial_calibration(
+        serial_calibration_arguments(converted, tmp_path / "points.json", noise_pos=NOISE, noise_rot=1e-4)
     )
-    run_serial_calibration(arguments)
     report = json.loads((tmp_path / "points.json").read_text())
     found = np.array(report["points"])  # in the tool frame, up to the tool placement's 1 mm / 1 mrad (the gauge)
     assert np.max(np.abs((found - found[0]) - (BODY.rotation @ offsets.T).T)) < 1e-3

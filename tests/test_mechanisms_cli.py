@@ -53,46 +53,24 @@ def _model(files) -> list[str]:
     return ["--model", str(files[0]), "--closures", str(files[1])]
 
 
+def _simulate(files, measurements: Path, n: int, seed: int, *options: str) -> None:
+    """`m3t1r simulate` of `n` poses of the machine with 0.1 mm / 0.1 mrad placement errors (seed `seed`)."""
+    errors = ["--sigma-pos", "1e-4", "--sigma-rot", "1e-4"]
+    argv = ["simulate", *_model(files), "-n", str(n), "--seed", str(seed), *errors, *options]
+    assert main([*argv, "-o", str(measurements)]) == 0
+
+
+def _calibrate(measurements: Path, files, calibrated: Path, *options: str) -> int:
+    """The exit status of `m3t1r calibrate MEASUREMENTS --model --closures -o CALIBRATED OPTIONS...`."""
+    return main(["calibrate", str(measurements), *_model(files), "-o", str(calibrated), *options])
+
+
 @pytest.mark.parametrize("noise_free", [True, False])
 def test_simulate_calibrate_evaluate(files, tmp_path, noise_free, capsys):
     measurements, truth_urdf, calibrated = tmp_path / "m.csv", tmp_path / "truth.urdf", tmp_path / "cal.urdf"
     noise = ["--noise-free"] if noise_free else []
-    assert (
-        main(
-            [
-                "simulate",
-                *_model(files),
-                "-n",
-                "50",
-                "--seed",
-                "4",
-                "--sigma-pos",
-                "1e-4",
-                "--sigma-rot",
-                "1e-4",
-                *noise,
-                "-o",
-                str(measurements),
-                "--truth-urdf",
-                str(truth_urdf),
-            ]
-        )
-        == 0
-    )
-    assert (
-        main(
-            [
-                "calibrate",
-                str(measurements),
-                *_model(files),
-                "-o",
-                str(calibrated),
-                "--report",
-                str(tmp_path / "cal.json"),
-            ]
-        )
-        == 0
-    )
+    _simulate(files, measurements, 50, 4, *noise, "--truth-urdf", str(truth_urdf))
+    assert _calibrate(measurements, files, calibrated, "--report", str(tmp_path / "cal.json")) == 0
     nominal, truth, fitted = Mechanism.load(*files), Mechanism.load(truth_urdf), Mechanism.load(calibrated)
     holdout = workspace_actuators(nominal, 100, np.random.default_rng(9))
     before, after = pose_errors(nominal, truth, holdout), pose_errors(fitted, truth, holdout)
@@ -206,42 +184,10 @@ def test_plan_draws_in_the_declared_workspace(files, tmp_path):
 def test_joints_named_like_pose_columns_are_recorded_and_read_back(writer, tmp_path, capsys):
     files = writer(tmp_path / "model")
     measurements = tmp_path / "m.csv"
-    assert (
-        main(
-            [
-                "simulate",
-                *_model(files),
-                "-n",
-                "30",
-                "--seed",
-                "2",
-                "--sigma-pos",
-                "1e-4",
-                "--sigma-rot",
-                "1e-4",
-                "--with-passive",
-                "-o",
-                str(measurements),
-            ]
-        )
-        == 0
-    )
+    _simulate(files, measurements, 30, 2, "--with-passive")
     header = next(line for line in measurements.read_text().splitlines() if not line.startswith("#")).split(",")
     assert "joint:x" in header and "joint:y" in header and header[-7:] == ["x", "y", "z", "qx", "qy", "qz", "qw"]
-    assert (
-        main(
-            [
-                "calibrate",
-                str(measurements),
-                *_model(files),
-                "-o",
-                str(tmp_path / "cal.urdf"),
-                "--report",
-                str(tmp_path / "cal.json"),
-            ]
-        )
-        == 0
-    )
+    assert _calibrate(measurements, files, tmp_path / "cal.urdf", "--report", str(tmp_path / "cal.json")) == 0
     assert "passive-joint readings" in capsys.readouterr().out
     assert (
         main(
@@ -263,47 +209,9 @@ def test_joints_named_like_pose_columns_are_recorded_and_read_back(writer, tmp_p
 def test_compensate_report_targets_of_the_measured_point_on_a_position_task(tmp_path, capsys):
     files = published_five_bar_files(tmp_path / "model")
     measurements, calibrated, report = tmp_path / "m.csv", tmp_path / "cal.urdf", tmp_path / "cal.json"
-    assert (
-        main(
-            [
-                "simulate",
-                *_model(files),
-                "-n",
-                "30",
-                "--seed",
-                "3",
-                "--sigma-pos",
-                "1e-4",
-                "--sigma-rot",
-                "1e-4",
-                "--marker",
-                "0.01",
-                "0.0",
-                "0.005",
-                "-o",
-                str(measurements),
-            ]
-        )
-        == 0
-    )
-    assert (
-        main(
-            [
-                "calibrate",
-                str(measurements),
-                *_model(files),
-                "-o",
-                str(calibrated),
-                "--report",
-                str(report),
-                "--marker",
-                "0.01",
-                "0.0",
-                "0.005",
-            ]
-        )
-        == 0
-    )
+    marker = ["--marker", "0.01", "0.0", "0.005"]
+    _simulate(files, measurements, 30, 3, *marker)
+    assert _calibrate(measurements, files, calibrated, "--report", str(report), *marker) == 0
     nominal, fitted = Mechanism.load(*files), Mechanism.load(calibrated)
     sliders = workspace_actuators(nominal, 5, np.random.default_rng(4))
     setup = read_report(report).setup
@@ -339,65 +247,15 @@ def test_compensate_report_targets_of_the_measured_point_on_a_position_task(tmp_
 def test_a_stated_noise_below_the_models_floor_is_named_as_the_cause(tmp_path, capsys):
     files = published_five_bar_files(tmp_path / "model")
     measurements = tmp_path / "m.csv"
-    assert (
-        main(
-            [
-                "simulate",
-                *_model(files),
-                "-n",
-                "30",
-                "--seed",
-                "3",
-                "--sigma-pos",
-                "1e-4",
-                "--sigma-rot",
-                "1e-4",
-                "--noise-free",
-                "-o",
-                str(measurements),
-            ]
-        )
-        == 0
-    )
+    _simulate(files, measurements, 30, 3, "--noise-free")
     capsys.readouterr()
-    assert (
-        main(
-            [
-                "calibrate",
-                str(measurements),
-                *_model(files),
-                "-o",
-                str(tmp_path / "cal.urdf"),
-                "--noise-pos",
-                "1e-15",
-                "--noise-rot",
-                "1e-15",
-                "--noise-act",
-                "1e-15",
-            ]
-        )
-        == 1
-    )
+    stated = ["--noise-pos", "1e-15", "--noise-rot", "1e-15", "--noise-act", "1e-15"]
+    assert _calibrate(measurements, files, tmp_path / "cal.urdf", *stated) == 1
     err = capsys.readouterr().err
     assert "is below what the model can fit" in err and "--marker" not in err, err
     assert not (tmp_path / "cal.urdf").exists()
     # The rotation noise estimated (`auto`): the cause names the stated position noise alone, as a number.
-    assert (
-        main(
-            [
-                "calibrate",
-                str(measurements),
-                *_model(files),
-                "-o",
-                str(tmp_path / "cal.urdf"),
-                "--noise-pos",
-                "1e-15",
-                "--noise-rot",
-                "auto",
-            ]
-        )
-        == 1
-    )
+    assert _calibrate(measurements, files, tmp_path / "cal.urdf", "--noise-pos", "1e-15", "--noise-rot", "auto") == 1
     err = capsys.readouterr().err
     assert "likely cause: the stated noise (1e-15 m) is below what the model can fit" in err, err
     assert not (tmp_path / "cal.urdf").exists()
@@ -442,13 +300,17 @@ def _in_process(tool, work: Path):
     return InProcess([], work)
 
 
+def _checked_in(work: Path, monkeypatch, tool, urdf: Path, closures: Path) -> list:
+    """`tool.check` of a pair, every verb run in process from a fresh working folder `work`."""
+    work.mkdir()
+    monkeypatch.chdir(work)
+    return tool.check(urdf, closures, _in_process(tool, work))
+
+
 def test_check_mechanism_passes_every_verb_on_a_first_time_five_bar(tmp_path, monkeypatch):
     tool = _check_mechanism_tool()
     urdf, closures = first_time_five_bar_files(tmp_path / "model")
-    work = tmp_path / "work"
-    work.mkdir()
-    monkeypatch.chdir(work)
-    figures = tool.check(urdf, closures, _in_process(tool, work))
+    figures = _checked_in(tmp_path / "work", monkeypatch, tool, urdf, closures)
     printed = tool.table("first_time_five_bar", figures)
     assert len(figures) == 12 and all(f.passed for f in figures), printed
     fk = next(f for f in figures if f.check.startswith("fk vs independent"))
@@ -464,10 +326,7 @@ def test_check_mechanism_from_actuator_values_alone_checks_the_home_then_every_v
     document = yaml.safe_load(closures.read_text())
     document["home"] = {name: document["home"][name] for name in document["actuated_joints"]}
     closures.write_text(yaml.safe_dump(document, sort_keys=False))
-    work = tmp_path / "work"
-    work.mkdir()
-    monkeypatch.chdir(work)
-    figures = tool.check(urdf, closures, _in_process(tool, work))
+    figures = _checked_in(tmp_path / "work", monkeypatch, tool, urdf, closures)
     printed = tool.table("rough five_bar", figures)
     assert len(figures) == 14 and all(f.passed for f in figures), printed
     assert figures[0].check.startswith("home by m3t1r") and figures[0].value <= 1e-9

@@ -4,7 +4,6 @@ predicted accuracy is the one a calibration on it reports."""
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import io
 import itertools
@@ -14,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from command_lines import run_campaign_verb as run
 
 from m3t1r.app.datasets import read_actuators
 from m3t1r.app.demo import DemoSettings
@@ -33,30 +33,13 @@ from m3t1r.calibration.planning import (
 from m3t1r.calibration.pose_selection import closed_loop_candidate_blocks, information_log_det
 from m3t1r.calibration.serial_robots import load_example_robot
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors
-from m3t1r.errors import IdentificationError, InvalidInputError, M3t1rError, PoorExcitationWarning
+from m3t1r.errors import IdentificationError, InvalidInputError, PoorExcitationWarning
 from m3t1r.io.tables import read_table
 from m3t1r.model.description import Mechanism
 from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver
 from m3t1r.model.poe import SerialChain
 from m3t1r.model.workspace import workspace_actuators
-
-
-def run(argv: list[str]) -> int:
-    """The verbs through cli_campaign's own registration, with `m3t1r.app.cli.main`'s exit statuses."""
-    from m3t1r.app.cli_campaign import add_plan_parser, add_validate_parser
-
-    parser = argparse.ArgumentParser(prog="m3t1r")
-    verbs = parser.add_subparsers(dest="verb", required=True)
-    add_plan_parser(verbs)
-    add_validate_parser(verbs)
-    args = parser.parse_args(argv)
-    try:
-        args.run(args)
-    except (M3t1rError, OSError) as exc:
-        print(f"m3t1r: error: {exc}")
-        return 2
-    return 0
 
 
 @pytest.fixture(scope="module")

@@ -10,6 +10,7 @@ import re
 import numpy as np
 import pinocchio as pin
 import pytest
+from command_lines import serial_calibration_arguments
 
 from m3t1r.app.cli import main
 from m3t1r.app.cli_common import RowFailures
@@ -200,30 +201,10 @@ def test_selection_with_compliance_predicts_outside_the_training_postures(ur10) 
 
 
 def namespace(tmp_path, measurements, **overrides) -> argparse.Namespace:
-    values = dict(
-        measurements=str(measurements),
-        output=None,
-        report=str(tmp_path / "report.json"),
-        serial="ur10",
-        base=None,
-        tool="tool0",
-        noise_pos=1e-5,
-        noise_rot=2e-5,
-        frame="estimate",
-        marker=list(MARKER.translation + 3e-4),
-        units="m",
-        force=False,
-        max_iterations=None,
-        fix=[],
-        prior={},
-        outlier_sigma=5.0,
-        select="loo",
-        compliance=False,
-        folds=4,
-        joint={},
+    """`calibrate --serial` of `measurements` with the report in tmp_path and MARKER's CAD position 0.3 mm off."""
+    return serial_calibration_arguments(
+        measurements, tmp_path / "report.json", **{"marker": list(MARKER.translation + 3e-4), **overrides}
     )
-    values.update(overrides)
-    return argparse.Namespace(**values)
 
 
 def write_campaign(path, chain, q, rows: np.ndarray) -> None:

@@ -3,7 +3,6 @@ units, flags, failed rows, PRED.csv, and typed errors for bad reports and files.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -12,6 +11,7 @@ import pinocchio as pin
 import pytest
 import scipy.special
 import scipy.stats
+from command_lines import run_campaign_verb as run
 
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.measurement_setup import MeasurementSetup, se3_to_report
@@ -20,7 +20,7 @@ from m3t1r.calibration.serial_robots import example_robot_data_dir, load_example
 from m3t1r.calibration.serial_simulation import sample_configurations
 from m3t1r.calibration.simulation import actual_machine, random_placement_errors
 from m3t1r.calibration.validation import read_report, sigma_equivalent, validate
-from m3t1r.errors import DataFileError, InvalidInputError, M3t1rError, ModelFileError
+from m3t1r.errors import DataFileError, InvalidInputError, ModelFileError
 from m3t1r.io.poses import POSE_COLUMNS, pose_rows
 from m3t1r.io.tables import read_table, write_table
 from m3t1r.model.poe import SerialChain, tool_poses
@@ -33,25 +33,9 @@ SETUP = MeasurementSetup(
 )
 
 
-def run(argv: list[str]) -> int:
-    """The verbs through cli_campaign's own registration, with `m3t1r.app.cli.main`'s exit statuses."""
-    from m3t1r.app.cli_campaign import add_plan_parser, add_validate_parser
-    from m3t1r.app.cli_common import RowFailures
-
-    parser = argparse.ArgumentParser(prog="m3t1r")
-    verbs = parser.add_subparsers(dest="verb", required=True)
-    add_plan_parser(verbs)
-    add_validate_parser(verbs)
-    args = parser.parse_args(argv)
-    try:
-        args.run(args)
-    except RowFailures as exc:
-        print(f"m3t1r: error: {exc}")
-        return 1
-    except (M3t1rError, OSError) as exc:
-        print(f"m3t1r: error: {exc}")
-        return 2
-    return 0
+def validate_argv(measurements: Path, calibrated: Path, report: Path, *options: object) -> list[str]:
+    """`m3t1r validate MEASUREMENTS --calibrated URDF --report JSON OPTIONS...` as an argument list."""
+    return ["validate", str(measurements), "--calibrated", str(calibrated), "--report", str(report), *map(str, options)]
 
 
 def report_document(kind: str = "closed_loop", units: str = "m", **nominal) -> dict:
@@ -107,16 +91,9 @@ def test_noise_free_rows_are_predicted_exactly_through_frame_and_marker(machine,
     folder, _, _, poses, _ = machine
     assert (
         run(
-            [
-                "validate",
-                str(folder / "exact.csv"),
-                "--calibrated",
-                str(folder / "cal.urdf"),
-                "--report",
-                str(folder / "report.json"),
-                "--predictions",
-                str(folder / "pred.csv"),
-            ]
+            validate_argv(
+                folder / "exact.csv", folder / "cal.urdf", folder / "report.json", "--predictions", folder / "pred.csv"
+            )
         )
         == 0
     )
@@ -155,18 +132,15 @@ def test_millimetre_file_gives_the_same_errors_and_predictions_in_mm(machine, tm
     assert 3e-6 < in_m.errors.position_mean < 4e-5 and 5e-6 < in_m.errors.rotation_mean < 8e-5  # ~1.6 sigma
     assert (
         run(
-            [
-                "validate",
-                str(tmp_path / "mm.csv"),
-                "--calibrated",
-                str(folder / "cal.urdf"),
-                "--report",
-                str(folder / "report.json"),
+            validate_argv(
+                tmp_path / "mm.csv",
+                folder / "cal.urdf",
+                folder / "report.json",
                 "--units",
                 "mm",
                 "--predictions",
-                str(tmp_path / "pred.csv"),
-            ]
+                tmp_path / "pred.csv",
+            )
         )
         == 0
     )
@@ -185,19 +159,7 @@ def test_gross_errors_are_flagged_by_line_and_exit_status_stays_zero(machine, tm
     poses = np.array([p.homogeneous for p in noisy.poses])
     poses[[2, 7], :3, 3] += np.array([[2e-4, 0, 0], [0, 0, -3e-4]])
     write_campaign(tmp_path / "spoiled.csv", mechanism.actuated_joints, sliders, poses)
-    assert (
-        run(
-            [
-                "validate",
-                str(tmp_path / "spoiled.csv"),
-                "--calibrated",
-                str(folder / "cal.urdf"),
-                "--report",
-                str(folder / "report.json"),
-            ]
-        )
-        == 0
-    )
+    assert run(validate_argv(tmp_path / "spoiled.csv", folder / "cal.urdf", folder / "report.json")) == 0
     out = capsys.readouterr().out
     lines = read_table(tmp_path / "spoiled.csv", required=mechanism.actuated_joints, optional=POSE_COLUMNS).line_numbers
     assert out.count("FLAGGED") == 2
@@ -226,14 +188,7 @@ def test_rows_that_do_not_assemble_are_listed_and_the_rest_assessed(machine, tmp
     line = int(
         read_table(tmp_path / "bad.csv", required=mechanism.actuated_joints, optional=POSE_COLUMNS).line_numbers[3]
     )
-    common = [
-        "validate",
-        str(tmp_path / "bad.csv"),
-        "--calibrated",
-        str(folder / "cal.urdf"),
-        "--report",
-        str(folder / "report.json"),
-    ]
+    common = validate_argv(tmp_path / "bad.csv", folder / "cal.urdf", folder / "report.json")
     assert run(common) == 0
     out = capsys.readouterr().out
     assert f"line {line} not predicted" in out and f"{N_ROWS - 1} of {N_ROWS} rows predicted" in out
@@ -278,19 +233,7 @@ def test_bad_reports_are_refused_naming_file_and_field(machine, tmp_path, edit, 
     with pytest.raises(InvalidInputError, match=message) as caught:
         validate(folder / "exact.csv", folder / "cal.urdf", tmp_path / "bad.json")
     assert "bad.json" in str(caught.value)
-    assert (
-        run(
-            [
-                "validate",
-                str(folder / "exact.csv"),
-                "--calibrated",
-                str(folder / "cal.urdf"),
-                "--report",
-                str(tmp_path / "bad.json"),
-            ]
-        )
-        == 2
-    )
+    assert run(validate_argv(folder / "exact.csv", folder / "cal.urdf", tmp_path / "bad.json")) == 2
 
 
 def test_missing_files_are_typed_errors_naming_the_file(machine, tmp_path) -> None:
@@ -311,16 +254,9 @@ def test_predictions_never_overwrite_an_input(machine, capsys) -> None:
     before = (folder / "exact.csv").read_bytes()
     assert (
         run(
-            [
-                "validate",
-                str(folder / "exact.csv"),
-                "--calibrated",
-                str(folder / "cal.urdf"),
-                "--report",
-                str(folder / "report.json"),
-                "--predictions",
-                str(folder / "exact.csv"),
-            ]
+            validate_argv(
+                folder / "exact.csv", folder / "cal.urdf", folder / "report.json", "--predictions", folder / "exact.csv"
+            )
         )
         == 2
     )
@@ -347,18 +283,7 @@ def test_serial_rows_are_predicted_through_the_reports_chain(serial_robot, tmp_p
     assert result.kind == "serial" and result.heading is None
     assert result.errors.position_max < 1e-9 and result.errors.rotation_max < 1e-9
     assert (
-        run(
-            [
-                "validate",
-                str(tmp_path / "ur5.csv"),
-                "--calibrated",
-                str(urdf),
-                "--report",
-                str(tmp_path / "report.json"),
-                "--predictions",
-                str(tmp_path / "pred.csv"),
-            ]
-        )
+        run(validate_argv(tmp_path / "ur5.csv", urdf, tmp_path / "report.json", "--predictions", tmp_path / "pred.csv"))
         == 0
     )
     assert "heading" not in capsys.readouterr().out
@@ -403,16 +328,13 @@ def test_exit_statuses_through_the_main_command_line(machine, tmp_path, mechanis
     write_campaign(tmp_path / "bad.csv", mechanism.actuated_joints, bad, poses)
     assert (
         main(
-            [
-                "validate",
-                str(tmp_path / "bad.csv"),
-                "--calibrated",
-                str(folder / "cal.urdf"),
-                "--report",
-                str(folder / "report.json"),
+            validate_argv(
+                tmp_path / "bad.csv",
+                folder / "cal.urdf",
+                folder / "report.json",
                 "--predictions",
-                str(tmp_path / "bad_pred.csv"),
-            ]
+                tmp_path / "bad_pred.csv",
+            )
         )
         == 1
     )
@@ -473,14 +395,7 @@ def test_plots_name_the_flagged_rows_by_source_and_are_written_as_a_unit(machine
     lines = read_table(
         tmp_path / "converted.csv", required=mechanism.actuated_joints, optional=(*POSE_COLUMNS, "source")
     ).line_numbers
-    common = [
-        "validate",
-        str(tmp_path / "converted.csv"),
-        "--calibrated",
-        str(folder / "cal.urdf"),
-        "--report",
-        str(folder / "report.json"),
-    ]
+    common = validate_argv(tmp_path / "converted.csv", folder / "cal.urdf", folder / "report.json")
     assert run(common + ["--plots", str(tmp_path / "plots"), "--predictions", str(tmp_path / "pred.csv")]) == 0
     out = capsys.readouterr().out
     assert "wrote 12 predicted measurements" in out and "error_histogram.png" in out
@@ -518,16 +433,9 @@ def test_plots_of_a_position_only_file_without_sources(machine, tmp_path, mechan
     line = table.line_numbers[4]
     assert (
         run(
-            [
-                "validate",
-                str(tmp_path / "xyz.csv"),
-                "--calibrated",
-                str(folder / "cal.urdf"),
-                "--report",
-                str(folder / "report.json"),
-                "--plots",
-                str(tmp_path / "plots"),
-            ]
+            validate_argv(
+                tmp_path / "xyz.csv", folder / "cal.urdf", folder / "report.json", "--plots", tmp_path / "plots"
+            )
         )
         == 0
     )
@@ -541,16 +449,9 @@ def test_plots_into_a_file_are_refused_before_any_work(machine, capsys) -> None:
     inputs = {p: p.read_bytes() for p in folder.iterdir() if p.is_file()}
     assert (
         run(
-            [
-                "validate",
-                str(folder / "exact.csv"),
-                "--calibrated",
-                str(folder / "cal.urdf"),
-                "--report",
-                str(folder / "report.json"),
-                "--plots",
-                str(folder / "exact.csv"),
-            ]
+            validate_argv(
+                folder / "exact.csv", folder / "cal.urdf", folder / "report.json", "--plots", folder / "exact.csv"
+            )
         )
         == 2
     )
