@@ -47,8 +47,8 @@ from m3t1r.calibration.pipeline import (
     summary_fields,
 )
 from m3t1r.calibration.pose_selection import reference_base
-from m3t1r.calibration.repeats import grouped_folds
-from m3t1r.errors import IdentificationError, InvalidInputError, require_count
+from m3t1r.calibration.repeats import CrossValidation, fold_errors, inlier_folds
+from m3t1r.errors import IdentificationError, InvalidInputError
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver, rehomed
@@ -606,20 +606,6 @@ def _calibration(
     )
 
 
-@dataclass(frozen=True)
-class CrossValidation:
-    """k-fold prediction of held-back measurements (outliers excluded): each fold is refitted on
-    the others (same parameters, same setup estimation) and predicts its poses' measurements.
-    The errors include the measurement noise, as a fresh validation set of the same quality does.
-    errors: per inlier pose, position [m] and rotation [rad] (nan when position-only); with several
-    points per pose, per point seen on an inlier pose (position only). groups: how
-    many groups of repeats the inlier poses form (`m3t1r.calibration.repeats`), each held out whole."""
-
-    errors: PoseErrors
-    folds: int
-    groups: int = 0
-
-
 @on_one_blas_thread
 def cross_validate(
     calibration: ClosedLoopCalibration,
@@ -640,13 +626,7 @@ def cross_validate(
     problem, start = calibration.problem, calibration.start
     if problem is None or start is None:
         raise InvalidInputError("cross_validate needs a calibration made by calibrate_closed_loop")
-    inliers = np.flatnonzero(problem.active)
-    if folds < 2 or len(inliers) < 2 * folds:
-        raise InvalidInputError(f"cross-validation: {folds} folds need at least {2 * folds} inlier poses")
-    labels = np.arange(len(problem.active)) if groups is None else np.asarray(groups)
-    if labels.shape != problem.active.shape:
-        raise InvalidInputError(f"cross-validation: {labels.shape} group labels for {len(problem.active)} poses")
-    assignment = grouped_folds(labels[inliers], folds, np.random.default_rng(require_count(seed, "seed", minimum=0)))
+    inliers, assignment, n_groups = inlier_folds(problem.active, folds, seed, groups)
     k = problem.measurements.rows_per_pose
     residuals = np.empty((len(inliers), k))
     if refit:
@@ -662,14 +642,8 @@ def cross_validate(
         fold_of = np.full(len(problem.active), -1)
         fold_of[inliers] = assignment
         residuals[:] = _fold_predictions(problem, calibration.lm.state, fold_of, folds)[inliers]
-    if problem.n_points:  # one error per point seen
-        position = np.linalg.norm(residuals.reshape(len(inliers), -1, 3), axis=2)[problem.seen[inliers][:, ::3]]
-        return CrossValidation(
-            PoseErrors(position, np.full(len(position), np.nan)), folds, len(np.unique(labels[inliers]))
-        )
-    position = np.linalg.norm(residuals[:, :3], axis=1)
-    rotation = np.linalg.norm(residuals[:, 3:], axis=1) if k == 6 else np.full(len(inliers), np.nan)
-    return CrossValidation(PoseErrors(position, rotation), folds, len(np.unique(labels[inliers])))
+    seen_points = problem.seen[inliers][:, ::3] if problem.n_points else None  # one error per point seen
+    return CrossValidation(fold_errors(residuals, seen_points), folds, n_groups)
 
 
 def _fold_predictions(

@@ -6,16 +6,34 @@ its repeat stays in training is predicted too well: cross-validation would be op
 form one group when they have the same `source` (the tracker file's line, frame or message that
 `m3t1r convert` writes) or joint readings that agree within `REPEAT_TOLERANCE` in every joint
 (transitively). Folds are then drawn over groups, so that a group is held out whole.
+
+The closed-loop and serial cross-validations (`closed_loop.cross_validate`,
+`serial_evaluation.cross_validate_serial`) split their inlier poses here (`inlier_folds`) and
+report one record (`CrossValidation`, errors from `fold_errors`).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import NamedTuple
+
 import numpy as np
 from numpy.typing import ArrayLike
 
-from m3t1r.errors import InvalidInputError
+from m3t1r.errors import InvalidInputError, require_count
+from m3t1r.metrics import PoseErrors
 
-__all__ = ["MAX_PADDING", "REPEAT_TOLERANCE", "grouped_blocks", "grouped_folds", "pose_groups"]
+__all__ = [
+    "MAX_PADDING",
+    "REPEAT_TOLERANCE",
+    "CrossValidation",
+    "InlierFolds",
+    "fold_errors",
+    "grouped_blocks",
+    "grouped_folds",
+    "inlier_folds",
+    "pose_groups",
+]
 
 #: Joint readings within this of each other in every joint [rad or m] are one posture: a robot's
 #: repeatability is well above it, and distinct postures of a calibration are far more than it apart.
@@ -75,6 +93,57 @@ def grouped_folds(groups: ArrayLike, folds: int, rng: np.random.Generator) -> np
             f"(repeats of a pose count once), got {n_groups}"
         )
     return (rng.permutation(n_groups) % folds)[labels]
+
+
+class InlierFolds(NamedTuple):
+    """The k-fold split of a calibration's inlier poses: inliers (M,) their indices among the N poses,
+    fold (M,) the fold of each, groups the number of groups of repeats they form."""
+
+    inliers: np.ndarray
+    fold: np.ndarray
+    groups: int
+
+
+def inlier_folds(active: np.ndarray, folds: int, seed: int, groups: ArrayLike | None = None) -> InlierFolds:
+    """Deal the poses `active` (N,) keeps to `folds` folds, whole groups of `groups` (N,) labels
+    (`pose_groups`; None: every pose its own) to a fold, by `grouped_folds` with seed `seed`.
+    InvalidInputError for fewer than 2 folds, fewer than 2 inlier poses per fold, labels of another
+    length, or fewer distinct poses than folds."""
+    inliers = np.flatnonzero(active)
+    if folds < 2 or len(inliers) < 2 * folds:
+        raise InvalidInputError(f"cross-validation: {folds} folds need at least {2 * folds} inlier poses")
+    labels = np.arange(len(active)) if groups is None else np.asarray(groups)
+    if labels.shape != active.shape:
+        raise InvalidInputError(f"cross-validation: {labels.shape} group labels for {len(active)} poses")
+    fold = grouped_folds(labels[inliers], folds, np.random.default_rng(require_count(seed, "seed", minimum=0)))
+    return InlierFolds(inliers, fold, len(np.unique(labels[inliers])))
+
+
+@dataclass(frozen=True)
+class CrossValidation:
+    """k-fold prediction of held-back measurements (outliers excluded), of a closed-loop or a serial
+    calibration: each fold is refitted on the others (same parameters, same setup estimation, from the
+    same start) and predicts its poses' measurements in the measurement frame. The errors include the
+    measurement noise, as a fresh validation set of the same quality does. errors: per inlier pose,
+    position [m] and rotation [rad] (nan when position-only); with several points per pose, per point
+    seen on an inlier pose (position only). groups: how many groups of repeats the inlier poses form,
+    each held out whole; the number of inlier poses when no groups were given."""
+
+    errors: PoseErrors
+    folds: int
+    groups: int = 0
+
+
+def fold_errors(residuals: np.ndarray, seen_points: np.ndarray | None = None) -> PoseErrors:
+    """The `CrossValidation` errors of held-out residual blocks (M, k) [m, rad], k = 6 or 3 (position
+    only): per pose, the position error's norm and the rotation error's angle (nan when k = 3); with
+    seen_points (M, P), which of P points per pose were seen (k = 3 P), per point seen, position only."""
+    if seen_points is not None:
+        position = np.linalg.norm(residuals.reshape(len(residuals), -1, 3), axis=2)[seen_points]
+        return PoseErrors(position, np.full(len(position), np.nan))
+    position = np.linalg.norm(residuals[:, :3], axis=1)
+    rotation = np.linalg.norm(residuals[:, 3:], axis=1) if residuals.shape[1] == 6 else np.full(len(position), np.nan)
+    return PoseErrors(position, rotation)
 
 
 #: Grouped rows may grow by padding to at most this multiple of the rows; beyond, poses are left

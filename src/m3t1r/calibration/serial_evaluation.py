@@ -5,7 +5,6 @@ standard deviations, cross-validation.
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
@@ -13,9 +12,9 @@ from numpy.typing import ArrayLike
 
 from m3t1r._threads import on_one_blas_thread
 from m3t1r.calibration.pipeline import fit
-from m3t1r.calibration.repeats import grouped_folds
+from m3t1r.calibration.repeats import CrossValidation, fold_errors, inlier_folds
 from m3t1r.calibration.serial import SerialCalibration, _placement_rows, compliant_readings, gravity_torques
-from m3t1r.errors import InvalidInputError, require_count
+from m3t1r.errors import InvalidInputError
 from m3t1r.metrics import PoseErrors, pose_errors_between
 from m3t1r.model.poe import SerialChain, placement_poses, tool_poses
 
@@ -130,19 +129,8 @@ def predicted_pose_std(calibration: SerialCalibration, q_chain: ArrayLike) -> Po
     return PoseErrors(position=position, rotation=rotation)
 
 
-@dataclass(frozen=True)
-class SerialCrossValidation:
-    """k-fold prediction of held-back measurements (outliers excluded): each fold is refitted on the
-    others (same parameters, same setup estimation, from the same start) and predicts its poses'
-    measurements in the measurement frame. The errors include the measurement noise, as a fresh
-    validation set of the same quality would. errors: per inlier pose, position (m) and rotation
-    (rad, nan when position-only); with several points per pose, per point seen (position only).
-    groups: how many groups of repeats the inlier poses form (`m3t1r.calibration.repeats`), each
-    held out whole; the number of inlier poses when no groups were given."""
-
-    errors: PoseErrors
-    folds: int
-    groups: int = 0
+#: The serial calibration's cross-validation record: the closed loop's (`repeats.CrossValidation`).
+SerialCrossValidation = CrossValidation
 
 
 @on_one_blas_thread
@@ -156,13 +144,7 @@ def cross_validate_serial(
     problem, start, settings = calibration.problem, calibration.start, calibration.settings
     if problem is None or start is None or settings is None:
         raise InvalidInputError("cross_validate_serial needs a calibration made by calibrate_serial")
-    inliers = np.flatnonzero(problem.active)
-    if folds < 2 or len(inliers) < 2 * folds:
-        raise InvalidInputError(f"cross-validation: {folds} folds need at least {2 * folds} inlier poses")
-    labels = np.arange(len(problem.active)) if groups is None else np.asarray(groups)
-    if labels.shape != problem.active.shape:
-        raise InvalidInputError(f"cross-validation: {labels.shape} group labels for {len(problem.active)} poses")
-    fold_of = grouped_folds(labels[inliers], folds, np.random.default_rng(require_count(seed, "seed", minimum=0)))
+    inliers, fold_of, n_groups = inlier_folds(problem.active, folds, seed, groups)
     residuals = np.empty((len(inliers), problem.model.data.rows_per_pose))
     fold_problem = copy.copy(problem)
     fold_problem.columns = np.array(calibration.fitted_indices, dtype=int)
@@ -172,12 +154,6 @@ def cross_validate_serial(
         fold_problem.active[held] = False
         result = fit(fold_problem, start, settings)
         residuals[fold_of == fold] = problem.model.raw_residual(result.state)[held]
-    n_groups = len(np.unique(labels[inliers]))
     data = problem.model.data
-    if data.n_points:
-        seen = data.seen[inliers][:, ::3]
-        position = np.linalg.norm(residuals.reshape(len(inliers), -1, 3), axis=2)[seen]
-        return SerialCrossValidation(PoseErrors(position, np.full(len(position), np.nan)), folds, n_groups)
-    position = np.linalg.norm(residuals[:, :3], axis=1)
-    rotation = np.linalg.norm(residuals[:, 3:], axis=1) if residuals.shape[1] == 6 else np.full(len(inliers), np.nan)
-    return SerialCrossValidation(PoseErrors(position, rotation), folds, n_groups)
+    seen_points = data.seen[inliers][:, ::3] if data.n_points else None  # one error per point seen
+    return CrossValidation(fold_errors(residuals, seen_points), folds, n_groups)
