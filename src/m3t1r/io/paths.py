@@ -1,16 +1,25 @@
 """What an output path names: `-` for standard output, and whether two paths are the same file
-(through symlinks, hard links and bind mounts), so an output never overwrites an input."""
+(through symlinks, hard links and bind mounts), so an output never overwrites an input; how much
+of an input is read, and why one is refused (`read_input`)."""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TypeAlias
 
 from m3t1r.errors import OutputPathError
 
-__all__ = ["MAX_INPUT_BYTES", "STDOUT", "StrPath", "ensure_not_protected", "read_bounded", "size_refusal"]
+__all__ = [
+    "MAX_INPUT_BYTES",
+    "STDOUT",
+    "StrPath",
+    "ensure_not_protected",
+    "read_bounded",
+    "read_input",
+    "size_refusal",
+]
 
 StrPath: TypeAlias = "str | os.PathLike[str]"
 
@@ -34,6 +43,24 @@ def read_bounded(path: StrPath, limit: int = MAX_INPUT_BYTES) -> bytes | None:
 def size_refusal(limit: int = MAX_INPUT_BYTES) -> str:
     """The message for an input over `limit` bytes (`read_bounded` gave None)."""
     return f"larger than {limit / 2**20:g} MiB (or a device that never ends): not an input file of m3t1r"
+
+
+def read_input(path: Path, refusal: Callable[[Path, str], Exception], expected: str = "a file") -> bytes:
+    """The bytes of the input file `path` (`read_bounded`), or `refusal(path, why)` raised: file not
+    found, a directory (`expected` names what was wanted), cannot read (the system's reason), or
+    too large (`size_refusal`). refusal: the typed error of the caller's kind of file, such as
+    `DataFileError` or `ModelFileError`."""
+    try:
+        data = read_bounded(path)
+    except FileNotFoundError:
+        raise refusal(path, "file not found") from None
+    except IsADirectoryError:
+        raise refusal(path, f"is a directory, expected {expected}") from None
+    except OSError as exc:
+        raise refusal(path, f"cannot read: {exc.strerror or exc}") from None
+    if data is None:
+        raise refusal(path, size_refusal())
+    return data
 
 
 def ensure_not_protected(path: StrPath, protect: Iterable[StrPath]) -> None:

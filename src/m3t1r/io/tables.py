@@ -26,7 +26,7 @@ import numpy as np
 
 from m3t1r.errors import DataFileError, InvalidInputError
 from m3t1r.io.outputs import atomic_write_text
-from m3t1r.io.paths import StrPath, read_bounded, size_refusal
+from m3t1r.io.paths import StrPath, read_input
 
 __all__ = ["MAX_MAGNITUDE", "Table", "format_float", "read_header", "read_table", "table_text", "write_table"]
 
@@ -244,16 +244,7 @@ def read_header(path: StrPath) -> tuple[str, ...]:
 
 
 def _read_text(source: Path) -> str:
-    try:
-        raw = read_bounded(source)
-    except FileNotFoundError:
-        raise DataFileError(source, "file not found") from None
-    except IsADirectoryError:
-        raise DataFileError(source, "is a directory, expected a CSV file") from None
-    except OSError as exc:
-        raise DataFileError(source, f"cannot read: {exc.strerror or exc}") from None
-    if raw is None:
-        raise DataFileError(source, size_refusal())
+    raw = read_input(source, DataFileError, "a CSV file")
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:

@@ -21,7 +21,7 @@ import yaml
 from m3t1r.errors import ModelFileError, ModelWarning
 from m3t1r.io.outputs import OutputSet
 from m3t1r.io.pairing import closures_match, closures_sha256, paired_closures_path, recorded_closures_sha256
-from m3t1r.io.paths import read_bounded, size_refusal
+from m3t1r.io.paths import read_input
 from m3t1r.io.temporaries import pending_temporaries
 from m3t1r.model.assembly import HomeAssembly, assemble_home, limits_violated
 from m3t1r.model.closures import ClosureSpec, ClosureSystem, closure_rank, without_rows
@@ -352,17 +352,7 @@ def _recorded_sha256(urdf: Path) -> str | None:
 
 
 def _read_bytes(path: Path) -> bytes:
-    try:
-        data = read_bounded(path)
-    except FileNotFoundError:
-        raise ModelFileError(path, "file not found") from None
-    except IsADirectoryError:
-        raise ModelFileError(path, "is a directory, expected a file") from None
-    except OSError as exc:
-        raise ModelFileError(path, f"cannot read: {exc.strerror or exc}") from None
-    if data is None:
-        raise ModelFileError(path, size_refusal())
-    return data
+    return read_input(path, ModelFileError)
 
 
 def _closures_of(urdf: Path, closures: Path, recorded: str | None) -> tuple[Path, bytes]:
