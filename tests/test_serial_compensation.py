@@ -46,3 +46,18 @@ def test_a_joint_at_its_limit_is_held_there_while_other_joints_can_reach(ur10) -
     full = compensate_serial(model, calibrated, chain, program, {})
     assert len(full.failures) == 1 and "puts joint 'wrist_3_joint' at 6.28" in full.failures[0][1]
     assert np.isnan(full.commands[0]).all()
+
+
+def test_a_chain_from_a_turned_base_frame_puts_the_tool_on_the_nominal_pose() -> None:
+    # UR10's `base` frame is turned pi about z from base_link: the tool Jacobian must be expressed in
+    # its axes (its world placement, not the identity), or every Gauss-Newton step goes astray.
+    model = load_example_robot("ur10")
+    chain = SerialChain.from_model(model, "tool0", base_frame="base")
+    rng = np.random.default_rng(3)
+    calibrated = perturb(model, {p: rng.normal(0.0, 1e-3, 6) for p in chain.placements()})
+    program = rng.uniform([-3, -2.3, 0.6, -3, -3, -3], [3, -0.6, 2.4, 3, 3, 3], (6, 6))
+    result = compensate_serial(model, calibrated, chain, program, COMPLIANCE)
+    assert result.failures == ()
+    moved = S.compliant_readings(calibrated, chain, result.commands, COMPLIANCE)
+    reached, target = tool_poses(chain, calibrated, moved), tool_poses(chain, model, program)
+    assert np.abs(reached - target).max() < 1e-9

@@ -54,7 +54,8 @@ def _tool_jacobian(model: pin.Model, data: pin.Data, chain: SerialChain, q: np.n
     columns = jacobian[:, [model.joints[j].idx_v for j in chain.joint_ids]]
     if chain.base_frame_id is None:
         return columns
-    base = data.oMf[chain.base_frame_id].rotation  # the base frame's axes in the world's
+    # computeFrameJacobian placed the joints (data.oMi) at `full` but not the frames: place the base's.
+    base = pin.updateFramePlacement(model, data, chain.base_frame_id).rotation  # its axes in the world's
     return np.vstack((base.T @ columns[:3], base.T @ columns[3:]))
 
 
