@@ -321,7 +321,7 @@ def test_idle_chains_cross_validate_a_noise_free_calibration(mechanism, noise_fr
     [
         ({"outlier_sigma": -5.0}, "outlier_sigma: None or 0"),
         ({"outlier_sigma": 0.5}, "outlier_sigma: None or 0"),
-        ({"outlier_sigma": float("nan")}, "outlier_sigma: expected a finite number"),
+        ({"outlier_sigma": float("nan")}, "^outlier_sigma: expected a finite number, got nan$"),  # not "number finite"
         ({"fixed": "q12"}, r"fixed parameter: expected a list of names such as \['q12'\], got 'q12'"),
         ({"max_iterations": 0}, "max_iterations: expected a whole number of at least 1"),
     ],

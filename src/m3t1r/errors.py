@@ -103,8 +103,8 @@ def require_real(value: object, what: str, *, minimum: float = -np.inf, inclusiv
     except (TypeError, ValueError):
         raise InvalidInputError(f"{what}: expected a real number, got {value!r}") from None
     if not np.isfinite(number) or number < minimum or (not inclusive and number == minimum):
-        bound = f"{'at least' if inclusive else 'above'} {minimum:g}" if np.isfinite(minimum) else "finite"
-        raise InvalidInputError(f"{what}: expected a finite number {bound}, got {value!r}")
+        bound = f" {'at least' if inclusive else 'above'} {minimum:g}" if np.isfinite(minimum) else ""
+        raise InvalidInputError(f"{what}: expected a finite number{bound}, got {value!r}")
     return number
 
 
