@@ -25,6 +25,9 @@ _FIELD = r"\{[^{}\s]*\}"  # an f-string's replacement field, read as any name
 _CITED = re.compile(
     r"(?<![\w./-])((?:%s)/(?:[\w.*/-]|%s)*(?:[\w*]|%s))" % ("|".join(TOP_FOLDERS + PACKAGE_FOLDERS), _FIELD, _FIELD)
 )
+# A code span that reads as a relative path with a file extension, whatever folder it starts with
+# (`.ci/run.sh`, `doc/design.md`, `instruments/vicon.py`); not `../x`, an absolute path or a URL.
+_BACKQUOTED = re.compile(r"`(?!\.\./)([\w.-]+(?:/[^`\s/:]+)+\.[A-Za-z]\w*)`")
 _LINK = re.compile(r"\]\((?!https?:|mailto:|#)([^)#\s]+)")
 _TEST_ID = re.compile(r"(?:tests/)?(test_\w+\.py)::(\w+)|(?<=`)::(\w+)")  # `::name`: in the file cited last
 _OUTSIDE = re.compile(r"shared/design|/work/|/tmp/wt/|\.\./\.\./")
@@ -48,14 +51,14 @@ def _texts() -> list[tuple[Path, int, str]]:
 
 def _exists(cited: str) -> bool:
     """Whether a cited path names something in the checkout; a placeholder (`notebooks/NAME.py`,
-    `tests/test_MODULE.py`), a pattern (`benchmarks/bench_*.py`) or an f-string's field
+    `tests/test_MODULE.py`, `build/<module>.log`), a pattern (`benchmarks/bench_*.py`) or an f-string's field
     (`bench_{name}.py`) stands for the files it matches."""
     path = re.sub(_FIELD, "*", cited)
     first = path.split("/")[0]
     if first in PACKAGE_FOLDERS:
         path = ("src/" if first == "m3t1r" else "src/m3t1r/") + path
-    if re.search(r"[A-Z]{3,}", Path(path).stem.replace("README", "")):
-        return True  # a placeholder a reader fills in
+    if re.search(r"[A-Z]{3,}|<\w+>", Path(path).stem.replace("README", "")):
+        return True  # a placeholder a reader fills in (`NAME`, `<module>`)
     return any(ROOT.glob(path)) if "*" in path else (ROOT / path).exists()
 
 
@@ -71,6 +74,19 @@ def test_every_cited_repository_path_exists():
         if not _exists(m.group(1))
     ]
     assert not missing, "cited paths that the repository does not have:\n" + "\n".join(missing)
+
+
+def test_every_backquoted_path_exists():
+    """A path in a code span that starts with a folder the check above does not read (a typo such as
+    `doc/`, a hidden folder, a package sub-folder cited without its parents) names a file too."""
+    known = TOP_FOLDERS + PACKAGE_FOLDERS
+    missing = [
+        f"{path.relative_to(ROOT)}:{_line(text, m.start(), line)}: {m.group(1)}"
+        for path, line, text in _texts()
+        for m in _BACKQUOTED.finditer(text)
+        if m.group(1).split("/")[0] not in known and not _exists(m.group(1))
+    ]
+    assert not missing, "paths in code spans that the repository does not have:\n" + "\n".join(missing)
 
 
 @pytest.mark.parametrize("document", _files(DOCUMENTS), ids=lambda p: str(p.relative_to(ROOT)))
@@ -126,6 +142,9 @@ def test_the_scan_reads_what_it_claims_to():
     assert [_exists(c) for c in cited] == [True, True, True, True, False]
     assert _exists("notebooks/NAME.py") and _exists("benchmarks/bench_*.py") and not _exists("tools/bench_*.py")
     assert not _CITED.findall("https://example.org/docs/x.md ../docs/x.md /usr/src/x.py")
+    spans = "`.ci/run.sh`, `doc/design.md`, `https://example.org/x.md`, `../docs/x.md`, `/usr/x.py`, `a b/c.md`"
+    assert _BACKQUOTED.findall(spans) == [".ci/run.sh", "doc/design.md"]
+    assert not _exists("doc/design.md") and _exists("build/mutation/<module>.survivors.txt")
     ids = [(m.group(1), m.group(2) or m.group(3)) for m in _TEST_ID.finditer("`test_docs.py::test_x`, `::test_y`")]
     assert ids == [("test_docs.py", "test_x"), (None, "test_y")]
     assert "test_every_cited_test_exists" in _test_functions("test_docs.py") and not _test_functions("test_none.py")
