@@ -148,3 +148,9 @@ def test_the_scan_reads_what_it_claims_to():
     ids = [(m.group(1), m.group(2) or m.group(3)) for m in _TEST_ID.finditer("`test_docs.py::test_x`, `::test_y`")]
     assert ids == [("test_docs.py", "test_x"), (None, "test_y")]
     assert "test_every_cited_test_exists" in _test_functions("test_docs.py") and not _test_functions("test_none.py")
+
+
+def test_the_readme_is_a_front_page_of_at_most_300_lines():
+    """Issue 25: the README is what a newcomer reads first; history and long tables live in docs/."""
+    lines = (ROOT / "README.md").read_text(encoding="utf-8").count("\n")
+    assert lines <= 300, f"README.md has {lines} lines"
