@@ -156,16 +156,21 @@ PyObject * build(PyObject *, PyObject * args) {
   t.rotation = task_rotation;
   t.rows = static_cast<int>(t.axes.size()) + (task_rotation == 1 ? 1 : task_rotation == 2 ? 3 : 0);
   c->fk.rows = c->rows;
-  for (Py_ssize_t j = 0; j < passive.items(); ++j) c->fk.unknowns.push_back(static_cast<int>(passive.q()[j]));
+  for (Py_ssize_t j = 0; j < passive.items(); ++j) c->fk.original.push_back(static_cast<int>(passive.q()[j]));
   c->ik.inverse = true;
   c->ik.rows = c->rows + t.rows;
-  for (Py_ssize_t j = 0; j < unknowns.items(); ++j) c->ik.unknowns.push_back(static_cast<int>(unknowns.q()[j]));
+  for (Py_ssize_t j = 0; j < unknowns.items(); ++j) c->ik.original.push_back(static_cast<int>(unknowns.q()[j]));
+  std::vector<std::vector<int>> block_rows, block_columns;
+  for (const Block & block : c->blocks) {
+    block_rows.push_back(block.rows);
+    block_columns.push_back(block.columns);
+  }
   for (System * s : {&c->fk, &c->ik}) {
-    if (static_cast<int>(s->unknowns.size()) != s->rows) {
+    if (static_cast<int>(s->original.size()) != s->rows) {
       PyErr_SetString(PyExc_ValueError, "a Newton system is not square");
       return nullptr;
     }
-    s->lu.resize(s->rows);
+    order_system(*s, block_rows, block_columns);
   }
   c->platform = platform;
   c->task = task;
@@ -173,6 +178,14 @@ PyObject * build(PyObject *, PyObject * args) {
   c->jacobian = Matrix::Zero(c->ik.rows, nv);
   c->step = Vector::Zero(c->ik.rows);
   c->now.resize(c->blocks.size() + 1);
+  const Eigen::Index most = std::max<Eigen::Index>(c->ik.rows, static_cast<Eigen::Index>(c->fk.original.size()));
+  c->q = Vector::Zero(c->model.nq);
+  c->change = Vector::Zero(static_cast<Eigen::Index>(c->actuated.size()));
+  c->last_change = c->change;
+  c->goal_rows = Vector::Zero(t.rows);
+  c->back_rows = c->goal_rows;
+  c->predicted = Vector::Zero(most);
+  c->curve = c->predicted;
   return PyCapsule_New(handle.release(), "m3t1r.Chain", destroy);
 }
 
@@ -209,7 +222,7 @@ PyObject * forward(PyObject *, PyObject * args) {
   std::unique_lock<std::mutex> lock;
   Chain * c = open_chain(capsule, lock, rules);
   if (c == nullptr) return nullptr;
-  const size_t n_passive = c->fk.unknowns.size(), n_act = c->actuated.size();
+  const size_t n_passive = c->fk.original.size(), n_act = c->actuated.size();
   Buffer bq, bsliders, btangent, bprevious, bbranch, bplatform, btask;
   if (!bq.get(oq, true, 'd', c->model.nq, "q") || !bsliders.get(osliders, false, 'd', n_act, "sliders")
       || !btangent.get(otangent, true, 'd', n_passive * n_act, "tangent")
@@ -219,30 +232,33 @@ PyObject * forward(PyObject *, PyObject * args) {
     return nullptr;
   Eigen::Map<Vector> qmap(bq.d(), c->model.nq);
   Eigen::Map<Matrix> tangent(btangent.d(), n_passive, n_act);
-  Vector q = qmap;
+  Vector & q = c->q;
+  q = qmap;
   if (order >= 1) {
-    Vector change(n_act), e(n_act);
+    Vector &change = c->change, &e = c->last_change;
     for (size_t j = 0; j < n_act; ++j) change[j] = bsliders.d()[j] - q[c->actuated[j]];
-    Vector step = tangent * change;
+    auto step = c->predicted.head(static_cast<Eigen::Index>(n_passive));
+    step.noalias() = tangent * change;
     if (order == 2) {
       for (size_t j = 0; j < n_act; ++j) e[j] = q[c->actuated[j]] - bprevious.d()[j];
       const double ee = e.dot(e), lam = ee > 0.0 ? change.dot(e) / ee : 0.0;
       if (0.0 < lam && lam < 2.0) {
-        Vector curve = tangent * e;
-        for (size_t j = 0; j < n_passive; ++j) curve[j] += bprevious.d()[n_act + j] - q[c->fk.unknowns[j]];
+        auto curve = c->curve.head(static_cast<Eigen::Index>(n_passive));
+        curve.noalias() = tangent * e;
+        for (size_t j = 0; j < n_passive; ++j) curve[j] += bprevious.d()[n_act + j] - q[c->fk.original[j]];
         step += lam * lam * curve;
       }
     }
-    for (size_t j = 0; j < n_passive; ++j) q[c->fk.unknowns[j]] += step[j];
+    for (size_t j = 0; j < n_passive; ++j) q[c->fk.original[j]] += step[j];
   }
   for (size_t j = 0; j < n_act; ++j) q[c->actuated[j]] = bsliders.d()[j];
   const Outcome out = newton(*c, c->fk, q, bbranch.b(), has_start != 0, 0);
   qmap = q;
   if (out.status == CONVERGED) {
     for (size_t j = 0; j < n_act; ++j) {  // -J_passive^-1 J_actuated by solves with the last factors
-      c->step.head(c->rows) = -c->jacobian.col(c->actuated[j]).head(c->rows);
+      for (int i = 0; i < c->rows; ++i) c->step[i] = -c->jacobian(c->fk.row_order[i], c->actuated[j]);
       c->fk.lu.solve(c->step.data());
-      tangent.col(j) = c->step.head(c->rows);
+      for (size_t k = 0; k < n_passive; ++k) tangent(c->fk.position[k], j) = c->step[k];
     }
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
@@ -269,7 +285,7 @@ PyObject * inverse(PyObject *, PyObject * args) {
   Chain * c = open_chain(capsule, lock, rules);
   if (c == nullptr) return nullptr;
   Task & t = c->task_spec;
-  const size_t n_unknowns = c->ik.unknowns.size();
+  const size_t n_unknowns = c->ik.original.size();
   const Py_ssize_t needed = static_cast<Py_ssize_t>(t.axes.size()) + (t.rotation == 1 ? 1 : 0);
   Buffer bq, bgoal, brot, binverse, blast, bpgoal, bprot, bpq, bbranch, bplatform, btask;
   if (!bq.get(oq, true, 'd', c->model.nq, "q") || !bgoal.get(ogoal, false, 'd', -1, "goal")
@@ -290,32 +306,35 @@ PyObject * inverse(PyObject *, PyObject * args) {
   t.goal_rotation = Eigen::Map<const Eigen::Matrix<double, 3, 3, Eigen::RowMajor>>(brot.d());
   Eigen::Map<Vector> qmap(bq.d(), c->model.nq);
   Eigen::Map<Matrix> task_inverse(binverse.d(), n_unknowns, t.rows);
-  Vector q = qmap;
+  Vector & q = c->q;
+  q = qmap;
   if (order >= 1) {
     const SE3 last = se3_from(blast.d());
-    Vector rows(t.rows), back(t.rows);
+    Vector &rows = c->goal_rows, &back = c->back_rows;
     task_residual(t, last, t.goal, t.goal_rotation, rows.data());
-    Vector step = -(task_inverse * rows);
+    auto step = c->predicted.head(static_cast<Eigen::Index>(n_unknowns));
+    step.noalias() = -(task_inverse * rows);
     if (order == 2) {
       const Eigen::Matrix3d previous_rotation = Eigen::Map<const Eigen::Matrix<double, 3, 3, Eigen::RowMajor>>(bprot.d());
       task_residual(t, last, bpgoal.d(), previous_rotation, back.data());
       const double bb = back.dot(back), lam = bb > 0.0 ? -rows.dot(back) / bb : 0.0;
       if (0.0 < lam && lam < 2.0) {
-        Vector curve = task_inverse * back;
-        for (size_t j = 0; j < n_unknowns; ++j) curve[j] += bpq.d()[c->ik.unknowns[j]] - q[c->ik.unknowns[j]];
+        auto curve = c->curve.head(static_cast<Eigen::Index>(n_unknowns));
+        curve.noalias() = task_inverse * back;
+        for (size_t j = 0; j < n_unknowns; ++j) curve[j] += bpq.d()[c->ik.original[j]] - q[c->ik.original[j]];
         step += lam * lam * curve;
       }
     }
-    for (size_t j = 0; j < n_unknowns; ++j) q[c->ik.unknowns[j]] += step[j];
+    for (size_t j = 0; j < n_unknowns; ++j) q[c->ik.original[j]] += step[j];
   }
   const Outcome out = newton(*c, c->ik, q, bbranch.b(), has_start != 0, 0);
   qmap = q;
   if (out.status == CONVERGED) {
     for (int k = 0; k < t.rows; ++k) {  // the task rows' columns of the inverse: solves of unit vectors
       c->step.setZero();
-      c->step[c->rows + k] = 1.0;
+      c->step[c->ik.row_position[c->rows + k]] = 1.0;
       c->ik.lu.solve(c->step.data());
-      task_inverse.col(k) = c->step.head(static_cast<Eigen::Index>(n_unknowns));
+      for (size_t m = 0; m < n_unknowns; ++m) task_inverse(c->ik.position[m], k) = c->step[m];
     }
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
