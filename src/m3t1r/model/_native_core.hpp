@@ -135,10 +135,12 @@ class DenseLU {
   void solve(double * b) const {  // b := A^-1 b
     const double * a = f_.data();
     for (int k = 0; k < n_; ++k) std::swap(b[k], b[pivot_[k]]);
+    int first = 0;  // L's rows down to b's first nonzero leave b as it is (a unit vector: most of them)
+    while (first < n_ && b[first] == 0.0) ++first;
     // Each entry summed in a local, over the factors' nonzeros in increasing column order (the terms
     // a dense loop adds, less its zero products): written through b, every term would wait for the
     // store of the one before, b possibly aliasing the factors.
-    for (int i = 1; i < n_; ++i) {
+    for (int i = first + 1; i < n_; ++i) {
       const int * columns = lower_.data() + lower_list_[i] * n_;
       const double * row = a + i * n_;
       double sum = b[i];
