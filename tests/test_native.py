@@ -377,6 +377,30 @@ def test_warm_inverse_path_matches_the_python_loop(mechanism):
     _compare_inverse(mechanism, _targets(mechanism, 120, 1))
 
 
+def test_inverse_from_home_across_the_workspace_ends_as_the_python_loop(mechanism):
+    """The compiled IK factorises its system with the loop blocks first (its branch labels read from
+    those factors); over the whole workspace box each solve from home ends as the Python loop's
+    (dgetrf of the system as it comes, labels from a second factorisation): same solution, iterations
+    and failure class."""
+    compiled, python = ClosedLoopSolver(mechanism), ClosedLoopSolver(mechanism, native=False)
+    outcomes = []
+    for target in NOMINAL.workspace.sample(np.random.default_rng(7), 80):
+        ends = []
+        for solver in (compiled, python):
+            try:
+                ends.append(solver.inverse(target, q_init=mechanism.home))
+            except M3t1rError as error:
+                ends.append(type(error))
+        a, b = ends
+        if isinstance(a, type) or isinstance(b, type):
+            assert a == b
+            continue
+        np.testing.assert_allclose(a.q, b.q, atol=1e-11)
+        assert a.iterations == b.iterations
+        outcomes.append(a.iterations)
+    assert len(outcomes) >= 70  # the box is the workspace: nearly every target is reached
+
+
 def test_inverse_of_a_tool_and_of_a_calibrated_copy_match(mechanism, tool_machine):
     _compare_inverse(tool_machine, _targets(tool_machine, 30, 2))
     machine = rehomed(mechanism.with_model(perturb_every_origin(mechanism.model, np.random.default_rng(4), 1e-3, 1e-3)))

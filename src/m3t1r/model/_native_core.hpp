@@ -10,7 +10,9 @@
 // joint. Each Newton step: residual and exact Jacobian, chord steps on one LU until contraction
 // slows, the largest step component capped; at convergence the 1-norm reciprocal condition test and
 // the branch labels (signs of the loop blocks' determinants, plus the whole system's for IK) of the
-// last factorised system. The test decides as the exact reciprocal condition would, which is computed
+// last factorised system. Systems are factorised in block order (`System`): the passive blocks
+// first, so that their labels are read from the system's own factors, and the solves run over the
+// factors' nonzeros only. No solve allocates: every buffer is the chain's, sized by `build`. The test decides as the exact reciprocal condition would, which is computed
 // (from the explicit inverse) only where an O(n^2) lower bound does not clear the threshold; FK's
 // tangent and IK's task columns of the inverse are solves with the last factors. Python keeps input
 // checks, limits and the result objects.
@@ -68,39 +70,63 @@ class DenseLU {
     n_ = n;
     f_.setZero(n, n);
     pivot_.assign(static_cast<size_t>(n), 0);
-    nonzero_.assign(static_cast<size_t>(n), 0);
+    block_end_.assign(static_cast<size_t>(n), n);
+    upper_.assign(static_cast<size_t>(n) * n, 0);
+    lower_.assign(static_cast<size_t>(n) * n, 0);
+    upper_count_.assign(static_cast<size_t>(n), 0);
+    lower_count_.assign(static_cast<size_t>(n), 0);
+    lower_list_.assign(static_cast<size_t>(n), 0);
+    bound_.assign(static_cast<size_t>(n), 0.0);
   }
   double & operator()(int i, int j) { return f_(i, j); }  // fill A here, then factor()
 
-  // Factors A in place; false at a zero (or NaN) pivot.
+  // Leading diagonal blocks [start, end) of the rows and columns (ends: their end positions, in order):
+  // a pivot of a block's column is then taken among its own rows unless a row below the blocks holds
+  // an entry more than 1 / kBlockPivot = 100 times larger (threshold partial pivoting), so that the factors
+  // of the blocks are the blocks' own LU (their determinants' signs: `block_positive`). Rows of later
+  // blocks must hold zeros in earlier blocks' columns (an upper block-triangular order); without blocks,
+  // or where the block's rows hold the column's largest entry, the pivot is partial pivoting's.
+  void set_blocks(const std::vector<int> & ends) {
+    int start = 0;
+    for (const int end : ends) {
+      for (int k = start; k < end; ++k) block_end_[static_cast<size_t>(k)] = end;
+      start = end;
+    }
+  }
+
+  // Factors A in place; false at a zero (or NaN) pivot. Keeps, row by row, the nonzero columns of L
+  // (strictly below the diagonal) and of U (strictly above): the terms the solves add.
   bool factor() {
     odd_ = false;
     double * a = f_.data();
+    for (int i = 0; i < n_; ++i) {
+      lower_list_[i] = i;
+      lower_count_[i] = 0;
+    }
     for (int k = 0; k < n_; ++k) {
-      int p = k;
-      double biggest = std::fabs(a[k * n_ + k]);
-      for (int i = k + 1; i < n_; ++i) {
-        const double size = std::fabs(a[i * n_ + k]);
-        if (size > biggest) {
-          biggest = size;
-          p = i;
-        }
-      }
+      const int p = pivot_row_of(k);
       pivot_[k] = p;
-      if (!(biggest > 0.0)) return false;
+      if (!(std::fabs(a[p * n_ + k]) > 0.0)) return false;
       if (p != k) {
         std::swap_ranges(a + k * n_, a + (k + 1) * n_, a + p * n_);
+        std::swap(lower_list_[k], lower_list_[p]);
         odd_ = !odd_;
       }
       const double * pivot_row = a + k * n_;
-      int count = 0;  // the pivot row's nonzero entries right of k: the only ones an update changes
-      for (int j = k + 1; j < n_; ++j)
-        if (pivot_row[j] != 0.0) nonzero_[count++] = j;
+      int * nonzero = upper_.data() + k * n_;  // the pivot row's nonzero entries right of k: U's row k,
+      int count = 0;                           // and the only entries an update changes
+      for (int j = k + 1; j < n_; ++j) {
+        nonzero[count] = j;
+        count += pivot_row[j] != 0.0;
+      }
+      upper_count_[k] = count;
       for (int i = k + 1; i < n_; ++i) {
         double * row = a + i * n_;
         if (row[k] == 0.0) continue;
+        const int list = lower_list_[i];
+        lower_[list * n_ + lower_count_[list]++] = k;
         const double l = row[k] /= pivot_row[k];
-        for (int c = 0; c < count; ++c) row[nonzero_[c]] -= l * pivot_row[nonzero_[c]];
+        for (int c = 0; c < count; ++c) row[nonzero[c]] -= l * pivot_row[nonzero[c]];
       }
     }
     return true;
@@ -109,17 +135,24 @@ class DenseLU {
   void solve(double * b) const {  // b := A^-1 b
     const double * a = f_.data();
     for (int k = 0; k < n_; ++k) std::swap(b[k], b[pivot_[k]]);
-    // Each entry summed in a local (in the same order): written through b, every term would wait
-    // for the store of the one before, b possibly aliasing the factors.
-    for (int i = 1; i < n_; ++i) {
+    int first = 0;  // L's rows down to b's first nonzero leave b as it is (a unit vector: most of them)
+    while (first < n_ && b[first] == 0.0) ++first;
+    // Each entry summed in a local, over the factors' nonzeros in increasing column order (the terms
+    // a dense loop adds, less its zero products): written through b, every term would wait for the
+    // store of the one before, b possibly aliasing the factors.
+    for (int i = first + 1; i < n_; ++i) {
+      const int * columns = lower_.data() + lower_list_[i] * n_;
+      const double * row = a + i * n_;
       double sum = b[i];
-      for (int j = 0; j < i; ++j) sum -= a[i * n_ + j] * b[j];
+      for (int e = 0, count = lower_count_[lower_list_[i]]; e < count; ++e) sum -= row[columns[e]] * b[columns[e]];
       b[i] = sum;
     }
     for (int i = n_ - 1; i >= 0; --i) {
+      const int * columns = upper_.data() + i * n_;
+      const double * row = a + i * n_;
       double sum = b[i];
-      for (int j = i + 1; j < n_; ++j) sum -= a[i * n_ + j] * b[j];
-      b[i] = sum / a[i * n_ + i];
+      for (int e = 0; e < upper_count_[i]; ++e) sum -= row[columns[e]] * b[columns[e]];
+      b[i] = sum / row[i];
     }
   }
 
@@ -129,10 +162,14 @@ class DenseLU {
     double * x = out.data();
     for (int k = 0; k < n_; ++k)
       if (pivot_[k] != k) std::swap_ranges(x + k * n_, x + (k + 1) * n_, x + pivot_[k] * n_);
-    for (int i = 1; i < n_; ++i)
-      for (int j = 0; j < i; ++j) subtract_row(x, i, j, a[i * n_ + j]);
+    for (int i = 1; i < n_; ++i) {
+      const int * columns = lower_.data() + lower_list_[i] * n_;
+      for (int e = 0, count = lower_count_[lower_list_[i]]; e < count; ++e)
+        subtract_row(x, i, columns[e], a[i * n_ + columns[e]]);
+    }
     for (int i = n_ - 1; i >= 0; --i) {
-      for (int j = i + 1; j < n_; ++j) subtract_row(x, i, j, a[i * n_ + j]);
+      const int * columns = upper_.data() + i * n_;
+      for (int e = 0; e < upper_count_[i]; ++e) subtract_row(x, i, columns[e], a[i * n_ + columns[e]]);
       for (int c = 0; c < n_; ++c) x[i * n_ + c] /= a[i * n_ + i];
     }
   }
@@ -143,7 +180,6 @@ class DenseLU {
   // nonnegative terms (no cancellation). Pessimistic by 10-2,000 on the M machine's systems.
   double inverse_one_norm_bound() const {
     const double * a = f_.data();
-    bound_.assign(static_cast<size_t>(n_), 1.0);
     double * y = bound_.data();
     for (int i = 0; i < n_; ++i) {  // M(U)^T y = e: forward, U's column i above the diagonal
       double sum = 1.0;
@@ -161,6 +197,21 @@ class DenseLU {
     return biggest;
   }
 
+  // Whether the leading diagonal block [start, end) of a block upper-triangular A has det > 0, read
+  // from the factors: its pivots all from its own rows (else false in `inside`, and nothing known).
+  bool block_positive(int start, int end, bool & inside) const {
+    bool positive = true;
+    inside = true;
+    for (int k = start; k < end; ++k) {
+      if (pivot_[k] >= end) {
+        inside = false;
+        return false;
+      }
+      if ((f_(k, k) < 0.0) != (pivot_[k] != k)) positive = !positive;
+    }
+    return positive;
+  }
+
   bool positive_determinant() const {
     bool positive = !odd_;
     for (int k = 0; k < n_; ++k)
@@ -169,14 +220,48 @@ class DenseLU {
   }
 
  private:
+  // The threshold of threshold partial pivoting (0.01, as sparse LU codes take): each such step's
+  // multipliers are at most 100 in magnitude. On the M machine's IK systems along the path and over its
+  // workspace the blocks' own largest entry is 0.04-0.05 times a task row's in one column (metres
+  // against radians), which 0.1 would refuse.
+  static constexpr double kBlockPivot = 0.01;
+
+  // Step k's pivot row: the first entry of largest magnitude in column k at or below the diagonal
+  // (LAPACK getrf's), unless k is in a leading block whose rows hold one at least kBlockPivot times it.
+  int pivot_row_of(int k) const {
+    const double * a = f_.data();
+    const int end = block_end_[k];
+    int p = k;
+    double biggest = std::fabs(a[k * n_ + k]);
+    for (int i = k + 1; i < end; ++i) {
+      const double size = std::fabs(a[i * n_ + k]);
+      if (size > biggest) {
+        biggest = size;
+        p = i;
+      }
+    }
+    int below = p;
+    double largest = biggest;
+    for (int i = end; i < n_; ++i) {
+      const double size = std::fabs(a[i * n_ + k]);
+      if (size > largest) {
+        largest = size;
+        below = i;
+      }
+    }
+    return biggest >= kBlockPivot * largest || end == n_ ? p : below;
+  }
+
   void subtract_row(double * x, int i, int j, double factor) const {  // row i of x -= factor row j
-    if (factor == 0.0) return;
     for (int c = 0; c < n_; ++c) x[i * n_ + c] -= factor * x[j * n_ + c];
   }
   int n_ = 0;
   Matrix f_;  // A, then its factors: unit L strictly below the diagonal, U on and above
   std::vector<int> pivot_;  // the row swapped with row k at step k
-  std::vector<int> nonzero_;  // factor's work list of columns
+  std::vector<int> block_end_;  // the end of position k's leading block (n: none)
+  std::vector<int> upper_, upper_count_;  // U's row k: its nonzero columns right of k, upper_[k n ...]
+  std::vector<int> lower_, lower_count_;  // L's nonzero columns, by list; a list moves with its row's swaps
+  std::vector<int> lower_list_;  // row i's list of L columns: lower_[lower_list_[i] n ...]
   mutable std::vector<double> bound_;  // inverse_one_norm_bound's work vector
   bool odd_ = false;  // an odd count of swaps
 };
@@ -199,13 +284,88 @@ struct Task {
 
 // One square Newton system: FK (closure rows over the passive joints) or IK (closure and task rows
 // over every unlocked joint), with its own factorisation buffers.
+//
+// The system is factorised in block order: the passive blocks' rows and columns first, in `Chain::blocks`'
+// (upper block-triangular) order, then the other rows (IK's task rows) and unknowns (IK's actuated
+// joints). Partial pivoting then takes each block column's pivot among its own block's rows, unless a
+// task row's entry is larger, so the LU is that of the diagonal blocks (whose determinants' signs are
+// the branch labels, read from the factors) plus a border, with no fill-in between blocks.
 struct System {
   bool inverse = false;
   int rows = 0;
-  std::vector<int> unknowns;
+  std::vector<int> original;   // the unknowns (velocity indices) in the caller's order (tangent, task_inverse)
+  std::vector<int> unknowns;   // the same in block order: column k of the factorised system
+  std::vector<int> position;   // unknowns[k] == original[position[k]]
+  std::vector<int> row_order;  // row i of the factorised system is row row_order[i] of the residual
+  std::vector<int> row_position;  // row_order[row_position[r]] == r
+  bool blocks_lead = false;  // the blocks are the system's leading diagonal blocks (labels from its factors)
+  bool odd_order = false;    // the two orderings' permutations have, together, an odd parity
+  std::vector<double> column_sums;  // of |entries| of the last factorised system, by column (block order)
   Matrix inverse_matrix;
   DenseLU lu;
 };
+
+// Parity of a permutation (true: odd), by counting its cycles.
+inline bool odd_permutation(const std::vector<int> & p) {
+  std::vector<unsigned char> seen(p.size(), 0);
+  size_t cycles = 0;
+  for (size_t i = 0; i < p.size(); ++i) {
+    if (seen[i]) continue;
+    ++cycles;
+    for (size_t j = i; !seen[j]; j = static_cast<size_t>(p[j])) seen[j] = 1;
+  }
+  return (p.size() - cycles) % 2 == 1;
+}
+
+// Sets s.unknowns, s.position, s.row_order, s.row_position, s.blocks_lead and s.odd_order from
+// s.original and s.rows: block order where every block's rows and columns are among the system's, else
+// the caller's order.
+inline void order_system(System & s, const std::vector<std::vector<int>> & block_rows,
+                         const std::vector<std::vector<int>> & block_columns) {
+  const size_t n = s.original.size();
+  std::vector<int> rows, positions;
+  std::vector<unsigned char> row_used(static_cast<size_t>(s.rows), 0), column_used(n, 0);
+  bool lead = true;
+  for (size_t b = 0; b < block_rows.size() && lead; ++b)
+    for (size_t i = 0; i < block_rows[b].size() && lead; ++i) {
+      const int r = block_rows[b][i];
+      const auto found = std::find(s.original.begin(), s.original.end(), block_columns[b][i]);
+      if (r < 0 || r >= s.rows || row_used[static_cast<size_t>(r)] || found == s.original.end()
+          || column_used[static_cast<size_t>(found - s.original.begin())]) {
+        lead = false;
+        break;
+      }
+      row_used[static_cast<size_t>(r)] = 1;
+      column_used[static_cast<size_t>(found - s.original.begin())] = 1;
+      rows.push_back(r);
+      positions.push_back(static_cast<int>(found - s.original.begin()));
+    }
+  if (!lead) {
+    rows.clear();
+    positions.clear();
+    std::fill(row_used.begin(), row_used.end(), 0);
+    std::fill(column_used.begin(), column_used.end(), 0);
+  }
+  for (int r = 0; r < s.rows; ++r)
+    if (!row_used[static_cast<size_t>(r)]) rows.push_back(r);
+  for (size_t j = 0; j < n; ++j)
+    if (!column_used[j]) positions.push_back(static_cast<int>(j));
+  s.blocks_lead = lead;
+  s.row_order = rows;
+  s.position = positions;
+  s.row_position.assign(static_cast<size_t>(s.rows), 0);
+  for (int i = 0; i < s.rows; ++i) s.row_position[static_cast<size_t>(rows[i])] = i;
+  s.unknowns.resize(n);
+  for (size_t k = 0; k < n; ++k) s.unknowns[k] = s.original[static_cast<size_t>(positions[k])];
+  s.odd_order = odd_permutation(rows) != odd_permutation(positions);
+  s.column_sums.assign(n, 0.0);
+  s.lu.resize(s.rows);
+  if (lead) {
+    std::vector<int> ends;
+    for (const std::vector<int> & block : block_rows) ends.push_back((ends.empty() ? 0 : ends.back()) + static_cast<int>(block.size()));
+    s.lu.set_blocks(ends);
+  }
+}
 
 // NewtonRules (m3t1r.model.newton_rules), passed with every call.
 struct Rules {
@@ -226,10 +386,14 @@ struct Chain {
   System fk, ik;
   int platform = 0, task = 0, rows = 0;
   Rules rules;  // the current call's
-  // Work buffers, allocated once: closure rows then task rows.
+  // Work buffers, allocated once: closure rows then task rows. The Jacobian's entries outside the
+  // closures' and the task's columns are never written: zero from `build` on.
   Vector residual, step;
   Matrix jacobian;  // (rows + task rows) x nv
   std::vector<unsigned char> now;
+  // The single solves' predictor buffers, allocated once: q, slider change and last step (FK), task
+  // rows of the goal and of the previous goal (IK), the predicted step and its curvature term.
+  Vector q, change, last_change, goal_rows, back_rows, predicted, curve;
 };
 
 void evaluate_closures(Chain & c, bool with_jacobian) {
@@ -291,7 +455,6 @@ void evaluate_task(Chain & c, bool with_jacobian) {
     pinocchio::Jlog3(Eigen::Matrix3d(t.goal_rotation.transpose() * rotation), jlog);
     jlog = jlog * rotation.transpose();
   }
-  for (int k = 0; k < t.rows; ++k) c.jacobian.row(row + k).setZero();
   for (const int col : t.columns) {
     const Eigen::Vector3d v = c.data.J.col(col).head<3>(), w = c.data.J.col(col).tail<3>();
     const Eigen::Vector3d linear = v + w.cross(p);
@@ -308,7 +471,6 @@ void evaluate(Chain & c, const System & s, const Vector & q, bool with_jacobian)
     pinocchio::forwardKinematics(c.model, c.data, q);
   for (size_t f = 0; f < c.frame_parent.size(); ++f)
     c.frame_world[f] = c.data.oMi[c.frame_parent[f]] * c.frame_placement[f];
-  if (with_jacobian) c.jacobian.topRows(c.rows).setZero();
   evaluate_closures(c, with_jacobian);
   if (s.inverse) evaluate_task(c, with_jacobian);
 }
@@ -323,35 +485,53 @@ double max_abs(const Vector & v, int n) {
   return m;
 }
 
-// Branch labels at the current Jacobian: sign of each diagonal block's determinant of the passive
-// closure system (true: > 0), then for IK the sign of the whole system's determinant.
+// Branch labels at the current Jacobian, whose system `s.lu` holds factorised: sign of each diagonal
+// block's determinant of the passive closure system (true: > 0), read from s.lu's factors where the
+// blocks lead the system and their pivots stayed in them (else each block factorised on its own), then
+// for IK the sign of the whole system's determinant (in the caller's row and column order).
 void labels(Chain & c, const System & s, unsigned char * out) {
-  for (size_t b = 0; b < c.blocks.size(); ++b) {
+  bool inside = s.blocks_lead;
+  for (int b = 0, start = 0; inside && b < static_cast<int>(c.blocks.size()); ++b) {
+    const int end = start + static_cast<int>(c.blocks[b].rows.size());
+    out[b] = s.lu.block_positive(start, end, inside) ? 1 : 0;
+    start = end;
+  }
+  for (size_t b = 0; !inside && b < c.blocks.size(); ++b) {
     Block & block = c.blocks[b];
     for (size_t i = 0; i < block.rows.size(); ++i)
       for (size_t j = 0; j < block.columns.size(); ++j)
         block.lu(static_cast<int>(i), static_cast<int>(j)) = c.jacobian(block.rows[i], block.columns[j]);
     out[b] = block.lu.factor() && block.lu.positive_determinant() ? 1 : 0;
   }
-  if (s.inverse) out[c.blocks.size()] = s.lu.positive_determinant() ? 1 : 0;
+  if (s.inverse) out[c.blocks.size()] = s.lu.positive_determinant() != s.odd_order ? 1 : 0;
 }
 
-// |A|_1 (the largest column sum of |A|) of the system at the last Jacobian, which the buffer still holds
-// after chord steps (residual-only evaluations leave it alone): needed at convergence only.
-double one_norm(const Chain & c, const System & s) {
+// |A|_1 (the largest column sum of |A|) of the system last factorised, at the last Jacobian (which the
+// buffer still holds after chord steps: residual-only evaluations leave it alone): needed at
+// convergence only.
+double one_norm(const System & s) {
   double biggest = 0.0;
-  for (size_t j = 0; j < s.unknowns.size(); ++j) {
-    double sum = 0.0;
-    for (int i = 0; i < s.rows; ++i) sum += std::fabs(c.jacobian(i, s.unknowns[j]));
+  for (const double sum : s.column_sums) {
     if (std::isnan(sum)) return sum;
     if (sum > biggest) biggest = sum;
   }
   return biggest;
 }
 
+// Factors the system at the current Jacobian (in block order), keeping its columns' sums of |entries|
+// (summed in the residual's row order) for `one_norm`.
 bool factor(Chain & c, System & s) {
-  for (int i = 0; i < s.rows; ++i)
-    for (size_t j = 0; j < s.unknowns.size(); ++j) s.lu(i, static_cast<int>(j)) = c.jacobian(i, s.unknowns[j]);
+  const int n = static_cast<int>(s.unknowns.size());
+  std::fill(s.column_sums.begin(), s.column_sums.end(), 0.0);
+  for (int r = 0; r < s.rows; ++r) {
+    const int i = s.row_position[r];
+    const double * row = c.jacobian.data() + static_cast<Eigen::Index>(r) * c.jacobian.cols();
+    for (int j = 0; j < n; ++j) {
+      const double value = row[s.unknowns[j]];
+      s.lu(i, j) = value;
+      s.column_sums[j] += std::fabs(value);
+    }
+  }
   return s.lu.factor();
 }
 
@@ -389,7 +569,7 @@ Outcome newton(Chain & c, System & s, Vector & q, unsigned char * branch, bool h
     if (norm <= rules.tolerance) {
       // The exact reciprocal condition decides only where its lower bound from
       // inverse_one_norm_bound does not already clear the threshold (with a margin for rounding).
-      const double norm_a = one_norm(c, s);
+      const double norm_a = one_norm(s);
       const double lower = 1.0 / (norm_a * s.lu.inverse_one_norm_bound() * (1.0 + 1e-9));
       if (!(lower >= rules.singular_rcond)) {
         s.lu.inverse(s.inverse_matrix);
@@ -401,7 +581,7 @@ Outcome newton(Chain & c, System & s, Vector & q, unsigned char * branch, bool h
       return {CONVERGED, iteration, norm};
     }
     if (iteration == rules.max_iterations + steps_taken) break;
-    c.step.head(s.rows) = c.residual.head(s.rows);
+    for (int i = 0; i < s.rows; ++i) c.step[i] = c.residual[s.row_order[i]];
     s.lu.solve(c.step.data());
     const double biggest = c.step.head(s.rows).cwiseAbs().maxCoeff();
     if (biggest > rules.max_step) c.step.head(s.rows) *= rules.max_step / biggest;

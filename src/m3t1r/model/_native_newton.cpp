@@ -63,9 +63,14 @@ pinocchio::JointModel joint_of(long long kind, const double * axis) {
 // What the capsule owns: the chain, and a lock held by every solve on it. A batch releases the GIL
 // while it runs; a single solve from another Python thread then waits for the lock instead of
 // sharing the chain's buffers (it holds the GIL meanwhile, which the batch needs only after unlocking).
+// `bind` gives it the warm-start arrays that every single solve reads and writes (held until the
+// capsule goes): FK's tangent, labels, platform and task placements, IK's task inverse, labels and
+// placements.
 struct Handle {
   Chain chain;
   std::mutex lock;
+  Buffer tangent, branch, platform, task, task_inverse, inverse_branch, inverse_platform, inverse_task;
+  bool bound = false;
 };
 
 void destroy(PyObject * capsule) {
@@ -156,16 +161,21 @@ PyObject * build(PyObject *, PyObject * args) {
   t.rotation = task_rotation;
   t.rows = static_cast<int>(t.axes.size()) + (task_rotation == 1 ? 1 : task_rotation == 2 ? 3 : 0);
   c->fk.rows = c->rows;
-  for (Py_ssize_t j = 0; j < passive.items(); ++j) c->fk.unknowns.push_back(static_cast<int>(passive.q()[j]));
+  for (Py_ssize_t j = 0; j < passive.items(); ++j) c->fk.original.push_back(static_cast<int>(passive.q()[j]));
   c->ik.inverse = true;
   c->ik.rows = c->rows + t.rows;
-  for (Py_ssize_t j = 0; j < unknowns.items(); ++j) c->ik.unknowns.push_back(static_cast<int>(unknowns.q()[j]));
+  for (Py_ssize_t j = 0; j < unknowns.items(); ++j) c->ik.original.push_back(static_cast<int>(unknowns.q()[j]));
+  std::vector<std::vector<int>> block_rows, block_columns;
+  for (const Block & block : c->blocks) {
+    block_rows.push_back(block.rows);
+    block_columns.push_back(block.columns);
+  }
   for (System * s : {&c->fk, &c->ik}) {
-    if (static_cast<int>(s->unknowns.size()) != s->rows) {
+    if (static_cast<int>(s->original.size()) != s->rows) {
       PyErr_SetString(PyExc_ValueError, "a Newton system is not square");
       return nullptr;
     }
-    s->lu.resize(s->rows);
+    order_system(*s, block_rows, block_columns);
   }
   c->platform = platform;
   c->task = task;
@@ -173,7 +183,43 @@ PyObject * build(PyObject *, PyObject * args) {
   c->jacobian = Matrix::Zero(c->ik.rows, nv);
   c->step = Vector::Zero(c->ik.rows);
   c->now.resize(c->blocks.size() + 1);
+  const Eigen::Index most = std::max<Eigen::Index>(c->ik.rows, static_cast<Eigen::Index>(c->fk.original.size()));
+  c->q = Vector::Zero(c->model.nq);
+  c->change = Vector::Zero(static_cast<Eigen::Index>(c->actuated.size()));
+  c->last_change = c->change;
+  c->goal_rows = Vector::Zero(t.rows);
+  c->back_rows = c->goal_rows;
+  c->predicted = Vector::Zero(most);
+  c->curve = c->predicted;
   return PyCapsule_New(handle.release(), "m3t1r.Chain", destroy);
+}
+
+// bind(chain, tangent (P*A,), branch (B,) uint8, platform (16,), task (16,), task_inverse (U*T,),
+//      inverse_branch (B+1,) uint8, inverse_platform (16,), inverse_task (16,)): the arrays `forward` and
+// `inverse` then read and write (writable, C-contiguous; kept until the chain goes), once per chain.
+PyObject * bind(PyObject *, PyObject * args) {
+  PyObject *capsule, *o[8];
+  if (!PyArg_ParseTuple(args, "OOOOOOOOO", &capsule, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7]))
+    return nullptr;
+  Handle * handle = handle_of(capsule);
+  if (handle == nullptr) return nullptr;
+  if (handle->bound) {
+    PyErr_SetString(PyExc_ValueError, "bind: the chain's arrays are bound already");
+    return nullptr;
+  }
+  const Chain & c = handle->chain;
+  const Py_ssize_t blocks = static_cast<Py_ssize_t>(c.blocks.size());
+  const Py_ssize_t tangent = static_cast<Py_ssize_t>(c.fk.original.size() * c.actuated.size());
+  const Py_ssize_t task_inverse = static_cast<Py_ssize_t>(c.ik.original.size()) * c.task_spec.rows;
+  if (!handle->tangent.get(o[0], true, 'd', tangent, "tangent") || !handle->branch.get(o[1], true, 'B', blocks, "branch")
+      || !handle->platform.get(o[2], true, 'd', 16, "platform") || !handle->task.get(o[3], true, 'd', 16, "task")
+      || !handle->task_inverse.get(o[4], true, 'd', task_inverse, "task_inverse")
+      || !handle->inverse_branch.get(o[5], true, 'B', blocks + 1, "inverse_branch")
+      || !handle->inverse_platform.get(o[6], true, 'd', 16, "inverse_platform")
+      || !handle->inverse_task.get(o[7], true, 'd', 16, "inverse_task"))
+    return nullptr;  // the views taken so far are released with the capsule
+  handle->bound = true;
+  Py_RETURN_NONE;
 }
 
 // The call's Newton rules (NewtonRules.compiled(): tolerance, max_iterations, singular_rcond, max_step,
@@ -184,65 +230,72 @@ PyObject * build(PyObject *, PyObject * args) {
 
 // The capsule's chain for a single solve: `lock` takes its lock for the call, and the call's rules are
 // set (nullptr, with the Python error set, when the capsule holds no chain).
-Chain * open_chain(PyObject * capsule, std::unique_lock<std::mutex> & lock, const Rules & rules) {
+Handle * open_chain(PyObject * capsule, std::unique_lock<std::mutex> & lock, const Rules & rules) {
   Handle * handle = handle_of(capsule);
   if (handle == nullptr) return nullptr;
+  if (!handle->bound) {
+    PyErr_SetString(PyExc_ValueError, "the chain's warm-start arrays are not bound (bind)");
+    return nullptr;
+  }
   lock = std::unique_lock<std::mutex>(handle->lock);
   handle->chain.rules = rules;
-  return &handle->chain;
+  return handle;
 }
 
-// forward(chain, q (nq,) in/out, sliders (A,), order, tangent (P*A,) in/out, previous (A+P,),
-//         branch (B,) uint8 in/out, has_start, platform (16,) out, task (16,) out,
+// forward(chain, q (nq,) in/out, sliders (A,), order, previous (A+P,), has_start,
 //         rules (7, RULES_FORMAT)) -> (status, residual, iterations, rcond of a singular end)
+// with the bound tangent (in/out), branch (in/out), platform and task (out).
 // q: the last solution; `order` 1 or 2 moves its passive joints by the predictor of
 // ClosedLoopSolver._predict (tangent T of the last success; order 2 adds lam^2 (p_prev - p + T e) with
 // e = a - a_prev, lam = (d . e) / (e . e), d the slider change, previous = (a_prev, p_prev)); then the
 // sliders are set and Newton runs under the rules. On success tangent = -J_passive^-1 J_actuated.
 PyObject * forward(PyObject *, PyObject * args) {
-  PyObject *capsule, *oq, *osliders, *otangent, *oprevious, *obranch, *oplatform, *otask;
+  PyObject *capsule, *oq, *osliders, *oprevious;
   int order, has_start;
   Rules rules;
-  if (!PyArg_ParseTuple(args, "OOOiOOOpOO" RULES_FORMAT, &capsule, &oq, &osliders, &order, &otangent, &oprevious,
-                        &obranch, &has_start, &oplatform, &otask, RULES_ARGS(rules)))
+  if (!PyArg_ParseTuple(args, "OOOiOp" RULES_FORMAT, &capsule, &oq, &osliders, &order, &oprevious, &has_start,
+                        RULES_ARGS(rules)))
     return nullptr;
   std::unique_lock<std::mutex> lock;
-  Chain * c = open_chain(capsule, lock, rules);
-  if (c == nullptr) return nullptr;
-  const size_t n_passive = c->fk.unknowns.size(), n_act = c->actuated.size();
-  Buffer bq, bsliders, btangent, bprevious, bbranch, bplatform, btask;
+  Handle * handle = open_chain(capsule, lock, rules);
+  if (handle == nullptr) return nullptr;
+  Chain * c = &handle->chain;
+  const size_t n_passive = c->fk.original.size(), n_act = c->actuated.size();
+  Buffer bq, bsliders, bprevious;
   if (!bq.get(oq, true, 'd', c->model.nq, "q") || !bsliders.get(osliders, false, 'd', n_act, "sliders")
-      || !btangent.get(otangent, true, 'd', n_passive * n_act, "tangent")
-      || !bprevious.get(oprevious, false, 'd', order == 2 ? static_cast<Py_ssize_t>(n_act + n_passive) : -1, "previous")
-      || !bbranch.get(obranch, true, 'B', c->blocks.size(), "branch")
-      || !bplatform.get(oplatform, true, 'd', 16, "platform") || !btask.get(otask, true, 'd', 16, "task"))
+      || !bprevious.get(oprevious, false, 'd', order == 2 ? static_cast<Py_ssize_t>(n_act + n_passive) : -1, "previous"))
     return nullptr;
+  const Buffer &btangent = handle->tangent, &bbranch = handle->branch, &bplatform = handle->platform,
+               &btask = handle->task;
   Eigen::Map<Vector> qmap(bq.d(), c->model.nq);
   Eigen::Map<Matrix> tangent(btangent.d(), n_passive, n_act);
-  Vector q = qmap;
+  Vector & q = c->q;
+  q = qmap;
   if (order >= 1) {
-    Vector change(n_act), e(n_act);
+    Vector &change = c->change, &e = c->last_change;
     for (size_t j = 0; j < n_act; ++j) change[j] = bsliders.d()[j] - q[c->actuated[j]];
-    Vector step = tangent * change;
+    auto step = c->predicted.head(static_cast<Eigen::Index>(n_passive));
+    step.noalias() = tangent * change;
     if (order == 2) {
       for (size_t j = 0; j < n_act; ++j) e[j] = q[c->actuated[j]] - bprevious.d()[j];
       const double ee = e.dot(e), lam = ee > 0.0 ? change.dot(e) / ee : 0.0;
       if (0.0 < lam && lam < 2.0) {
-        Vector curve = tangent * e;
-        for (size_t j = 0; j < n_passive; ++j) curve[j] += bprevious.d()[n_act + j] - q[c->fk.unknowns[j]];
+        auto curve = c->curve.head(static_cast<Eigen::Index>(n_passive));
+        curve.noalias() = tangent * e;
+        for (size_t j = 0; j < n_passive; ++j) curve[j] += bprevious.d()[n_act + j] - q[c->fk.original[j]];
         step += lam * lam * curve;
       }
     }
-    for (size_t j = 0; j < n_passive; ++j) q[c->fk.unknowns[j]] += step[j];
+    for (size_t j = 0; j < n_passive; ++j) q[c->fk.original[j]] += step[j];
   }
   for (size_t j = 0; j < n_act; ++j) q[c->actuated[j]] = bsliders.d()[j];
   const Outcome out = newton(*c, c->fk, q, bbranch.b(), has_start != 0, 0);
   qmap = q;
   if (out.status == CONVERGED) {
     for (size_t j = 0; j < n_act; ++j) {  // -J_passive^-1 J_actuated by solves with the last factors
-      c->step.head(c->rows) = -c->jacobian.col(c->actuated[j]).head(c->rows);
+      for (int i = 0; i < c->rows; ++i) c->step[i] = -c->jacobian(c->fk.row_order[i], c->actuated[j]);
       c->fk.lu.solve(c->step.data());
-      tangent.col(j) = c->step.head(c->rows);
+      for (size_t k = 0; k < n_passive; ++k) tangent(c->fk.position[k], j) = c->step[k];
     }
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
@@ -250,38 +303,39 @@ PyObject * forward(PyObject *, PyObject * args) {
   return Py_BuildValue("(idid)", out.status, out.norm, out.iterations, out.rcond);
 }
 
-// inverse(chain, q (nq,) in/out, goal (task coordinates), goal_rotation (9,), order, task_inverse (U*T,) in/out,
-//         last_task (16,), previous_goal (task coordinates), previous_rotation (9,), previous_q (nq,),
-//         branch (B+1,) uint8 in/out, has_start, platform (16,) out, task (16,) out,
+// inverse(chain, q (nq,) in/out, goal (task coordinates), goal_rotation (9,), order,
+//         previous_goal (task coordinates), previous_rotation (9,), previous_q (nq,), has_start,
 //         rules (7, RULES_FORMAT)) -> (status, residual, iterations, rcond of a singular end)
+// with the bound task_inverse (in/out), inverse_task (in: last_task, the last success's; out),
+// inverse_branch (in/out) and inverse_platform (out).
 // q: the last solution; `order` 1 or 2 moves its unknown joints by ClosedLoopSolver._inverse_step's
 // predictor (X the task columns of the last inverse, r the new goal's task rows at last_task; order 2
 // adds lam^2 (q_prev - q + X b), b the previous goal's rows, lam = -(r . b) / (b . b)). Newton under the
 // rules; on success task_inverse = the task-row columns of the inverse of the last system.
 PyObject * inverse(PyObject *, PyObject * args) {
-  PyObject *capsule, *oq, *ogoal, *orot, *oinverse, *olast, *opgoal, *oprot, *opq, *obranch, *oplatform, *otask;
+  PyObject *capsule, *oq, *ogoal, *orot, *opgoal, *oprot, *opq;
   int order, has_start;
   Rules rules;
-  if (!PyArg_ParseTuple(args, "OOOOiOOOOOOpOO" RULES_FORMAT, &capsule, &oq, &ogoal, &orot, &order, &oinverse, &olast,
-                        &opgoal, &oprot, &opq, &obranch, &has_start, &oplatform, &otask, RULES_ARGS(rules)))
+  if (!PyArg_ParseTuple(args, "OOOOiOOOp" RULES_FORMAT, &capsule, &oq, &ogoal, &orot, &order, &opgoal, &oprot, &opq,
+                        &has_start, RULES_ARGS(rules)))
     return nullptr;
   std::unique_lock<std::mutex> lock;
-  Chain * c = open_chain(capsule, lock, rules);
-  if (c == nullptr) return nullptr;
+  Handle * handle = open_chain(capsule, lock, rules);
+  if (handle == nullptr) return nullptr;
+  Chain * c = &handle->chain;
   Task & t = c->task_spec;
-  const size_t n_unknowns = c->ik.unknowns.size();
+  const size_t n_unknowns = c->ik.original.size();
   const Py_ssize_t needed = static_cast<Py_ssize_t>(t.axes.size()) + (t.rotation == 1 ? 1 : 0);
-  Buffer bq, bgoal, brot, binverse, blast, bpgoal, bprot, bpq, bbranch, bplatform, btask;
+  Buffer bq, bgoal, brot, bpgoal, bprot, bpq;
   if (!bq.get(oq, true, 'd', c->model.nq, "q") || !bgoal.get(ogoal, false, 'd', -1, "goal")
       || !brot.get(orot, false, 'd', 9, "goal_rotation")
-      || !binverse.get(oinverse, true, 'd', n_unknowns * t.rows, "task_inverse")
-      || !blast.get(olast, false, 'd', order >= 1 ? 16 : -1, "last_task")
       || !bpgoal.get(opgoal, false, 'd', order == 2 ? bgoal.items() : -1, "previous_goal")
       || !bprot.get(oprot, false, 'd', order == 2 ? 9 : -1, "previous_rotation")
-      || !bpq.get(opq, false, 'd', order == 2 ? c->model.nq : -1, "previous_q")
-      || !bbranch.get(obranch, true, 'B', c->blocks.size() + 1, "branch")
-      || !bplatform.get(oplatform, true, 'd', 16, "platform") || !btask.get(otask, true, 'd', 16, "task"))
+      || !bpq.get(opq, false, 'd', order == 2 ? c->model.nq : -1, "previous_q"))
     return nullptr;
+  // The last success's task frame (the predictor's), overwritten by this one's on success.
+  const Buffer &binverse = handle->task_inverse, &blast = handle->inverse_task, &bbranch = handle->inverse_branch,
+               &bplatform = handle->inverse_platform, &btask = handle->inverse_task;
   if (bgoal.items() < needed || bgoal.items() > 4 + static_cast<Py_ssize_t>(t.axes.size())) {
     PyErr_SetString(PyExc_ValueError, "goal: wrong number of task coordinates");
     return nullptr;
@@ -290,32 +344,36 @@ PyObject * inverse(PyObject *, PyObject * args) {
   t.goal_rotation = Eigen::Map<const Eigen::Matrix<double, 3, 3, Eigen::RowMajor>>(brot.d());
   Eigen::Map<Vector> qmap(bq.d(), c->model.nq);
   Eigen::Map<Matrix> task_inverse(binverse.d(), n_unknowns, t.rows);
-  Vector q = qmap;
+  Vector & q = c->q;
+  q = qmap;
   if (order >= 1) {
     const SE3 last = se3_from(blast.d());
-    Vector rows(t.rows), back(t.rows);
+    Vector &rows = c->goal_rows, &back = c->back_rows;
     task_residual(t, last, t.goal, t.goal_rotation, rows.data());
-    Vector step = -(task_inverse * rows);
+    auto step = c->predicted.head(static_cast<Eigen::Index>(n_unknowns));
+    step.noalias() = task_inverse * rows;  // negated below: -(X r) would be evaluated into a temporary
+    step = -step;
     if (order == 2) {
       const Eigen::Matrix3d previous_rotation = Eigen::Map<const Eigen::Matrix<double, 3, 3, Eigen::RowMajor>>(bprot.d());
       task_residual(t, last, bpgoal.d(), previous_rotation, back.data());
       const double bb = back.dot(back), lam = bb > 0.0 ? -rows.dot(back) / bb : 0.0;
       if (0.0 < lam && lam < 2.0) {
-        Vector curve = task_inverse * back;
-        for (size_t j = 0; j < n_unknowns; ++j) curve[j] += bpq.d()[c->ik.unknowns[j]] - q[c->ik.unknowns[j]];
+        auto curve = c->curve.head(static_cast<Eigen::Index>(n_unknowns));
+        curve.noalias() = task_inverse * back;
+        for (size_t j = 0; j < n_unknowns; ++j) curve[j] += bpq.d()[c->ik.original[j]] - q[c->ik.original[j]];
         step += lam * lam * curve;
       }
     }
-    for (size_t j = 0; j < n_unknowns; ++j) q[c->ik.unknowns[j]] += step[j];
+    for (size_t j = 0; j < n_unknowns; ++j) q[c->ik.original[j]] += step[j];
   }
   const Outcome out = newton(*c, c->ik, q, bbranch.b(), has_start != 0, 0);
   qmap = q;
   if (out.status == CONVERGED) {
     for (int k = 0; k < t.rows; ++k) {  // the task rows' columns of the inverse: solves of unit vectors
       c->step.setZero();
-      c->step[c->rows + k] = 1.0;
+      c->step[c->ik.row_position[c->rows + k]] = 1.0;
       c->ik.lu.solve(c->step.data());
-      task_inverse.col(k) = c->step.head(static_cast<Eigen::Index>(n_unknowns));
+      for (size_t m = 0; m < n_unknowns; ++m) task_inverse(c->ik.position[m], k) = c->step[m];
     }
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
@@ -426,6 +484,7 @@ PyObject * rows(PyObject *, PyObject * args) {
 
 PyMethodDef methods[] = {
     {"build", build, METH_VARARGS, "A closed chain from arrays (see the source)."},
+    {"bind", bind, METH_VARARGS, "Binds a chain's warm-start arrays (see the source)."},
     {"forward", forward, METH_VARARGS, "One Newton solve of the passive joints, in place."},
     {"inverse", inverse, METH_VARARGS, "One Newton solve of closure and task rows, in place."},
     {"rows", rows, METH_VARARGS, "FK or IK Newton solves of many rows, in place."},

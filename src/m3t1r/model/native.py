@@ -86,6 +86,19 @@ class NativeChain:
         self.branch = bytearray(n_blocks)  # FK's labels at the last success
         self.inverse_branch = bytearray(n_blocks + 1)  # IK's: the blocks', then sign(det) of the whole system
         self._identity = np.eye(3)
+        # The compiled chain reads and writes these arrays in place (bound once: every solve then passes
+        # only its own inputs), so they are never rebound: fill them with `[:] =`.
+        self._module.bind(
+            handle,
+            self.tangent,
+            self.branch,
+            self.platform,
+            self.task,
+            self.task_inverse,
+            self.inverse_branch,
+            self.inverse_platform,
+            self.inverse_task,
+        )
 
     @classmethod
     def of(
@@ -164,17 +177,7 @@ class NativeChain:
         if start_branch is not None:  # labels are 0 or 1: a label of another length cannot be met
             self.branch[:] = start_branch if len(start_branch) == self.n_blocks else b"\xff" * self.n_blocks
         return self._module.forward(
-            self._handle,
-            q,
-            sliders,
-            order,
-            self.tangent,
-            _EMPTY if previous is None else previous,
-            self.branch,
-            start_branch is not None,
-            self.platform,
-            self.task,
-            *rules,
+            self._handle, q, sliders, order, _EMPTY if previous is None else previous, start_branch is not None, *rules
         )
 
     def inverse(
@@ -205,15 +208,10 @@ class NativeChain:
             goal,
             self._identity if goal_rotation is None else goal_rotation,
             order,
-            self.task_inverse,
-            self.inverse_task,
             last_goal,
             self._identity if last_rotation is None else last_rotation,
             last_q,
-            self.inverse_branch,
             start_branch is not None,
-            self.inverse_platform,
-            self.inverse_task,
             *rules,
         )
 
