@@ -1,13 +1,19 @@
 """Assembly branches (`m3t1r.model.branches`): the diagonal blocks of the passive closure system in
 upper block-triangular order, and their determinant signs from one LU."""
 
+import dataclasses
+
 import numpy as np
+import pinocchio as pin
 import pytest
 from scipy.linalg import lapack
 
 from m3t1r.errors import SingularConfigurationError
-from m3t1r.model.branches import BranchSignature, det_sign, diagonal_blocks
+from m3t1r.model import branches
+from m3t1r.model.branches import BranchSignature, branch_blocks, det_sign, diagonal_blocks
+from m3t1r.model.closures import ClosureSystem
 from m3t1r.model.description import Mechanism
+from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver
 
 
@@ -88,3 +94,42 @@ def test_branch_signature_factors_each_block_when_a_pivot_comes_from_below():
     assert signature(np.array([[0.1, 0.0], [5.0, -1.0]])) == b"\x01\x00"
     assert signature(np.array([[0.1, 0.0], [0.0, -1.0]])) == b"\x01\x00"  # the same from the one LU
     assert signature(np.array([[-0.1, 3.0], [0.0, -1.0]])) == b"\x00\x00"
+
+
+# ---------------------------------------------------------------------------------------------------
+# A mechanism's branch blocks: from its closure Jacobian's pattern, cached per topology
+
+
+def _as_sets(blocks):
+    return [(sorted(rows.tolist()), sorted(columns.tolist())) for rows, columns in blocks]
+
+
+def test_the_m_machine_s_blocks_are_the_platform_loop_then_the_four_planar_loops(monkeypatch):
+    """With the cache emptied (the first machine of a topology in a process): the platform closure and
+    the parallelograms' shared joints form one 8 x 8 block, which the four 2 x 2 loops' rows use."""
+    monkeypatch.setattr(branches, "_BLOCK_CACHE", {})
+    mechanism = Mechanism.load()
+    blocks = branch_blocks(mechanism, ClosureSystem(mechanism.model, mechanism.closures))
+    assert _as_sets(blocks) == [
+        ([4, 5, 10, 11, 12, 13, 14, 15], [3, 4, 5, 6, 13, 14, 15, 16]),
+        ([0, 1], [2, 7]),
+        ([2, 3], [1, 9]),
+        ([6, 7], [12, 17]),
+        ([8, 9], [11, 19]),
+    ]
+
+
+def test_blocks_are_cached_per_topology_and_shared_by_calibrated_copies(monkeypatch, tmp_path):
+    monkeypatch.setattr(branches, "_BLOCK_CACHE", {})
+    five_bar = Mechanism.load(*five_bar_files(tmp_path))
+    first = branch_blocks(five_bar, ClosureSystem(five_bar.model, five_bar.closures))
+    assert _as_sets(first) == [([0, 1], [1, 3])]
+    wrist = Mechanism.load(*spherical_wrist_files(tmp_path))
+    assert _as_sets(branch_blocks(wrist, ClosureSystem(wrist.model, wrist.closures))) == [
+        ([0, 1, 2, 3, 4, 5], [1, 2, 4, 5, 7, 8])
+    ]
+    # Another machine of the five-bar's topology (other link lengths): the cached blocks, not a new pattern.
+    model = five_bar.model.copy()
+    model.jointPlacements[2] = pin.SE3(np.eye(3), np.array([0.3, 0.1, 0.0])) * model.jointPlacements[2]
+    copy = dataclasses.replace(five_bar, model=model)
+    assert branch_blocks(copy, ClosureSystem(model, copy.closures)) is first

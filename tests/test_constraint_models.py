@@ -4,19 +4,26 @@ constrained dynamics on a calibrated machine is the dynamics of m3t1r's closures
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import perturb_every_origin
 from mjcf_mechanisms import five_bar_mjcf, spatial_loop_mjcf
 
 from m3t1r.calibration.closed_loop import calibrate_closed_loop
 from m3t1r.calibration.simulation import PlacementErrorScale, simulate_study
 from m3t1r.errors import InvalidInputError, ModelWarning
 from m3t1r.model.closures import ClosureSystem, closure_rank
-from m3t1r.model.constraint_models import constraint_residual, rigid_constraint_datas, rigid_constraint_models
+from m3t1r.model.constraint_models import (
+    constraint_residual,
+    rigid_constraint_datas,
+    rigid_constraint_models,
+    rows_left_out_that_move,
+)
 from m3t1r.model.description import Mechanism
 from m3t1r.model.examples import five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver
@@ -133,3 +140,64 @@ def test_rows_a_calibrated_planar_loop_leaves_out_are_held_only_on_request(tmp_p
     assert np.abs(constraint_residual(study.truth.model, held, study.truth.home)).max() < 1e-9
     # The nominal planar loop's left-out row holds by itself: handed over without asking.
     assert len(rigid_constraint_models(nominal)) == 1
+
+
+# ---------------------------------------------------------------------------------------------------
+# Closures enforced whole, the reference pose, and the refusal word for word
+
+
+def _whole(mechanism: Mechanism) -> Mechanism:
+    """`mechanism` with every row of every closure enforced."""
+    closures = tuple(dataclasses.replace(c, rows=tuple(range(6 if c.type == "6D" else 3))) for c in mechanism.closures)
+    return dataclasses.replace(mechanism, closures=closures)
+
+
+def test_a_closure_enforced_whole_is_handed_over_as_it_is_whatever_the_reference(tmp_path):
+    """The spherical wrist's two 6D closures with all six rows: Pinocchio's error at any configuration,
+    assembled or not, is m3t1r's residual [v; w], and a reference (here one that is not assembled) moves
+    nothing."""
+    whole = _whole(_load(*spherical_wrist_files(tmp_path)))
+    q = whole.home + np.random.default_rng(1).normal(0.0, 0.1, whole.model.nq)
+    ours = ClosureSystem(whole.model, whole.closures).evaluate(q, False)[0]
+    assert np.abs(ours[[3, 4, 5, 9, 10, 11]]).min() > 1e-3  # the rotation rows are far from closed
+    for reference in (None, q.tolist()):
+        models = rigid_constraint_models(whole, reference)
+        np.testing.assert_allclose(constraint_residual(whole.model, models, q), ours, atol=1e-12, rtol=0)
+
+
+def test_left_out_rows_are_held_at_the_reference_pose_given(tmp_path):
+    """On a calibrated five-bar the held row moves with the machine: held at another assembled pose
+    (given as a list), the constraints close there and not at home."""
+    nominal = _load(five_bar_mjcf(tmp_path))
+    truth = simulate_study(nominal, n_poses=30, n_holdout=5, seed=5, errors=PlacementErrorScale(1e-4, 1e-4)).truth
+    pose = _assembled_poses(truth, 3)[-1]
+    held = rigid_constraint_models(truth, pose.tolist(), left_out_rows="hold")
+    assert np.abs(constraint_residual(truth.model, held, pose)).max() < 1e-9
+    assert np.abs(constraint_residual(truth.model, held, truth.home)).max() > 1e-7
+
+
+def test_no_constraints_have_an_empty_residual():
+    mechanism = _load()
+    residual = constraint_residual(mechanism.model, pin.StdVec_RigidConstraintModel(), mechanism.home)
+    assert residual.shape == (0,)
+
+
+def test_every_closure_whose_left_out_rows_move_is_named_in_the_refusal():
+    """An M machine with errors on every joint and frame placement: all seven closures' left-out rows
+    move; a closure enforced whole is never among them, and the closures after it are still checked."""
+    mechanism = _load()
+    erred = dataclasses.replace(
+        mechanism, model=perturb_every_origin(mechanism.model, np.random.default_rng(3), 1e-4, 1e-4)
+    )
+    names = [c.name for c in mechanism.closures]
+    assert rows_left_out_that_move(erred, erred.home) == tuple(names)
+    with pytest.raises(InvalidInputError) as caught:
+        rigid_constraint_models(erred)
+    assert str(caught.value) == (
+        f"{mechanism.closures_path}: closure(s) {', '.join(names)}: the rows m3t1r leaves out do not hold by "
+        "themselves on this machine (its errors make them independent of the enforced rows), so a rigid "
+        "Pinocchio constraint would lock motion the machine has; left_out_rows='hold' hands them over "
+        "held at the reference pose anyway"
+    )
+    first_whole = dataclasses.replace(erred, closures=(_whole(erred).closures[0], *erred.closures[1:]))
+    assert rows_left_out_that_move(first_whole, erred.home) == tuple(names[1:])

@@ -726,3 +726,82 @@ def test_newton_rules_refuse_what_no_loop_could_obey():
         with pytest.raises(InvalidInputError, match=f"Newton rules: {next(iter(bad))}"):
             NewtonRules(**bad)
     assert ClosedLoopSolver(Mechanism.load(), tolerance=1e-9).rules == NewtonRules(tolerance=1e-9)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Whether the compiled loop is usable (`native_status`): what `m3t1r --version` reports, and why not
+
+
+def test_a_built_module_of_these_sources_is_loaded_and_reported_usable():
+    module, why = native_status.load_compiled()
+    assert (module.__name__, why) == ("m3t1r.model._native_newton", "")
+    assert native_status.compiled_newton_status() == "yes"
+
+
+@pytest.mark.parametrize("stamp", [None, "0" * 64, ""])
+def test_a_module_without_its_sources_stamp_is_stale_and_the_status_says_how_to_rebuild(monkeypatch, stamp):
+    """A missing stamp (an old build) is as stale as a wrong one: neither is loaded."""
+    import importlib
+
+    module = importlib.import_module("m3t1r.model._native_newton")
+    if stamp is None:
+        monkeypatch.delattr(module, "source_sha256")
+    else:
+        monkeypatch.setattr(module, "source_sha256", stamp)
+    assert native_status.load_compiled() == (None, native_status.STALE)
+    expected = "no: older than its source (make native, or python tools/build_native.py)"
+    assert native_status.compiled_newton_status() == expected
+
+
+def test_an_install_without_the_sources_trusts_its_build(monkeypatch, tmp_path):
+    import importlib
+
+    module = importlib.import_module("m3t1r.model._native_newton")
+    monkeypatch.setattr(module, "source_sha256", "0" * 64)
+    monkeypatch.setattr(native_status, "SOURCES", (tmp_path / "_native_newton.cpp", native_status.SOURCES[1]))
+    assert native_status.load_compiled() == (module, "")
+    assert native_status.compiled_newton_status() == "yes"
+
+
+def test_a_module_not_built_is_reported_with_how_to_build_it(monkeypatch):
+    import importlib.util
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name.endswith("_native_newton") else find_spec(name, *a)
+    )
+    assert native_status.load_compiled() == (None, native_status.NOT_BUILT)
+    assert native_status.compiled_newton_status() == "no: not built (make native, or python tools/build_native.py)"
+
+
+def test_a_module_that_does_not_load_is_reported_with_the_import_error_alone(monkeypatch):
+    import importlib
+
+    import_module = importlib.import_module
+
+    def failing(name, *args):
+        if name.endswith("_native_newton"):
+            raise ImportError("undefined symbol: pinocchio_x")
+        return import_module(name, *args)
+
+    monkeypatch.setattr(importlib, "import_module", failing)
+    assert native_status.load_compiled() == (None, "it does not load (undefined symbol: pinocchio_x)")
+    assert native_status.compiled_newton_status() == "no: it does not load (undefined symbol: pinocchio_x)"
+
+
+def test_newton_rules_at_their_bounds_name_the_rule_and_the_value():
+    """Zero is a valid rcond floor (never refuse as singular) and a valid iteration budget (only the
+    start is judged); a zero contraction or chord threshold is not, and the refusal quotes the value."""
+    assert NewtonRules(singular_rcond=0.0, max_iterations=0).compiled() == (1e-12, 0, 0.0, 0.3, 0.05, 1e-4, 1e-6)
+    refusals = {
+        "chord_below": "Newton rules: chord_below must be a number > 0, got 0.0",
+        "chord_contraction": "Newton rules: chord_contraction must be in (0, 1), got 0.0",
+        "max_step": "Newton rules: max_step must be a number > 0, got 0.0",
+    }
+    for name, message in refusals.items():
+        with pytest.raises(InvalidInputError) as caught:
+            NewtonRules(**{name: 0.0})
+        assert str(caught.value) == message
+    with pytest.raises(InvalidInputError) as caught:
+        NewtonRules(max_iterations=True)
+    assert str(caught.value) == "Newton rules: max_iterations must be an integer >= 0, got True"

@@ -158,3 +158,112 @@ def test_a_zero_pivot_before_convergence_ends_the_solve_as_singular():
         == "singular configuration (reciprocal condition 0.00e+00) (residual 1.000e+00 after 0 iterations)"
     )
     assert system.calls == [True]
+
+
+# ---------------------------------------------------------------------------------------------------
+# Steps on a system that depends on q: in place, over some columns, capped, and what the labels see
+
+
+class _Linear:
+    """r(q) = A q - b with Jacobian A (rows x nv); `seen` records a copy of every q evaluated."""
+
+    def __init__(self, matrix, target):
+        self.matrix, self.target, self.seen = np.asarray(matrix, dtype=float), np.asarray(target, dtype=float), []
+
+    def __call__(self, q, with_jacobian):
+        self.seen.append(q.copy())
+        return self.matrix @ q - self.target, (self.matrix.copy() if with_jacobian else None)
+
+
+UNCAPPED = NewtonRules(max_step=10.0)  # one Newton step solves a linear system
+
+
+def test_newton_solves_in_place_and_returns_the_solution():
+    """A linear system: one Newton step from 0 lands on A^-1 b = (0.25, 0.5), in the array passed."""
+    system, q = _Linear([[2.0, 1.0], [0.0, 4.0]], [1.0, 2.0]), np.zeros(2)
+    outcome = newton(q, None, system, _label, UNCAPPED)
+    assert outcome.q is q and outcome.iterations == 1 and outcome.residual == 0.0
+    np.testing.assert_allclose(q, [0.25, 0.5], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(system.seen, [[0.0, 0.0], [0.25, 0.5]], rtol=0, atol=1e-15)
+
+
+def test_newton_over_some_columns_leaves_the_others_alone():
+    """Three columns, unknowns 0 and 2: the square system is A's columns 0 and 2; q[1] stays 0.1."""
+    matrix = np.array([[2.0, 5.0, 1.0], [0.0, 7.0, 4.0]])
+    system, q = _Linear(matrix, [1.0, 2.0]), np.array([0.0, 0.1, 0.0])
+    outcome = newton(q, np.array([0, 2]), system, _label, UNCAPPED)
+    assert outcome.q is q and q[1] == 0.1 and outcome.iterations == 1
+    np.testing.assert_allclose(matrix @ q, [1.0, 2.0], rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(outcome.jacobian, matrix)
+    np.testing.assert_allclose(outcome.inverse, np.linalg.inv(matrix[:, [0, 2]]), rtol=1e-15)
+
+
+def test_newton_caps_a_step_at_max_step_keeping_its_direction():
+    """From 0 towards (0.1, 1) under max_step 0.3: steps of (0.03, 0.3), capped by their largest
+    component, until the last, shorter one."""
+    system, q = _Linear(np.eye(2), [0.1, 1.0]), np.zeros(2)
+    outcome = newton(q, None, system, _label, NewtonRules())
+    expected = [[0.0, 0.0], [0.03, 0.3], [0.06, 0.6], [0.09, 0.9], [0.1, 1.0]]
+    np.testing.assert_allclose(system.seen, expected, rtol=0, atol=1e-15)
+    assert outcome.iterations == 4
+
+
+def test_a_refreshed_jacobian_is_evaluated_where_the_solve_stands():
+    """Chord steps allowed from any residual: each capped step contracts |r| by 0.7 only (> 0.05),
+    so the Jacobian is refreshed, at the new q, after every evaluation without it."""
+    system, q = _Linear(np.eye(2), [0.1, 1.0]), np.zeros(2)
+    assert newton(q, None, system, _label, CHORD_FROM_ANY_RESIDUAL).iterations == 4
+    steps = [[0.0, 0.0], [0.03, 0.3], [0.06, 0.6], [0.09, 0.9], [0.1, 1.0]]
+    expected = [steps[0]] + [s for s in steps[1:-1] for _ in range(2)] + [steps[-1]]
+    np.testing.assert_allclose(system.seen, expected, rtol=0, atol=1e-15)
+
+
+def test_newton_judges_contraction_against_the_previous_residual():
+    """From |r| = 2, a chord step to 0.09 contracts by 0.045 <= 0.05: no refresh (0.05 of 2 is 0.1)."""
+    system = _Scripted([[2.0, 0.0], [0.09, 0.0], [0.0, 0.0]])
+    outcome = newton(np.zeros(2), None, system, _label, CHORD_FROM_ANY_RESIDUAL)
+    assert system.calls == [True, False, False] and outcome.iterations == 2
+
+
+def test_a_zero_first_pivot_is_singular_before_any_step():
+    """A first column of zeros: getrf's first pivot is zero (info 1)."""
+    system = _Scripted([[1.0, 0.0]], jacobian=np.array([[0.0, 1.0], [0.0, 2.0]]))
+    with pytest.raises(SingularConfigurationError) as caught:
+        newton(np.zeros(2), None, system, _label, NewtonRules())
+    assert caught.value.iterations == 0 and system.calls == [True]
+
+
+def test_a_converged_system_exactly_at_the_rcond_threshold_is_accepted():
+    """rcond of [[2, 1], [0, 4]] is 0.4 exactly (test above): refused below the threshold only."""
+    jacobian = np.array([[2.0, 1.0], [0.0, 4.0]])
+    system = _Scripted([[1.0, 0.0], [0.0, 0.0]], jacobian=jacobian)
+    assert newton(np.zeros(2), None, system, _label, NewtonRules(singular_rcond=0.4)).iterations == 1
+    system = _Scripted([[1.0, 0.0], [0.0, 0.0]], jacobian=jacobian)
+    with pytest.raises(SingularConfigurationError, match=r"reciprocal condition 4.00e-01"):
+        newton(np.zeros(2), None, system, _label, NewtonRules(singular_rcond=np.nextafter(0.4, 1.0)))
+
+
+def test_the_factors_of_a_singular_matrix_have_rcond_zero():
+    """getri fails on U's zero pivot (leaving finite numbers in its output): rcond 0, not their condition."""
+    for singular in ([[1.0, 2.0], [2.0, 4.0]], [[0.0, 1.0], [0.0, 2.0]], [[1.0, 0.0], [0.0, 0.0]]):
+        assert inverse_and_rcond(lapack.dgetrf(np.array(singular))[:2], 3.0)[1] == 0.0
+
+
+def test_the_labels_read_the_jacobian_and_the_factors_of_its_square_system():
+    """The start's label (unless a start branch is given) and the converged one: each reads the full
+    Jacobian and the getrf factors of its unknowns' columns."""
+    matrix = np.array([[2.0, 5.0, 1.0], [0.0, 7.0, 4.0]])
+    factors = lapack.dgetrf(matrix[:, [0, 2]])[:2]
+    for start in (None, b"branch"):
+        seen = []
+
+        def recording(jac, lu):
+            seen.append((jac.copy(), lu))
+            return b"branch"
+
+        newton(np.zeros(3), np.array([0, 2]), _Linear(matrix, [1.0, 2.0]), recording, UNCAPPED, start)
+        assert len(seen) == (2 if start is None else 1)  # the start's, then the converged Jacobian's
+        for jac, lu in seen:
+            np.testing.assert_array_equal(jac, matrix)
+            np.testing.assert_array_equal(lu[0], factors[0])
+            np.testing.assert_array_equal(lu[1], factors[1])

@@ -35,6 +35,10 @@ __all__ = ["SerialCompensation", "compensate_serial"]
 
 _TOLERANCE = 1e-12  # [m, rad] tool pose error at which a solve stops
 _MAX_ITERATIONS = 30
+_UNSETTLED = (
+    "the commands under the compliance's deflection do not converge here (q_c = q_a - c tau(q_c): a "
+    "compliance this large moves the deflection as much as the deflection itself)"
+)
 
 
 @dataclass(frozen=True)
@@ -84,8 +88,9 @@ def _reach(
 
 def _command(
     calibrated: pin.Model, chain: SerialChain, actual: np.ndarray, compliance: Mapping[str, float]
-) -> np.ndarray:
-    """q_c with q_c + c tau(q_c) = actual (module docstring, step 2)."""
+) -> np.ndarray | None:
+    """q_c with q_c + c tau(q_c) = actual (module docstring, step 2), or None when the fixed point does
+    not converge in _MAX_ITERATIONS (a compliance so large that the deflection changes as much as itself)."""
     command = actual.copy()
     for _ in range(_MAX_ITERATIONS):
         deflection = compliant_readings(calibrated, chain, command, compliance)[0] - command
@@ -93,7 +98,7 @@ def _command(
         if np.max(np.abs(updated - command)) < _TOLERANCE:
             return updated
         command = updated
-    return command
+    return None
 
 
 def _compensate_one(
@@ -107,42 +112,51 @@ def _compensate_one(
     tolerance: float,
 ) -> tuple[np.ndarray, float, str]:
     """(command, residual, failure reason or "") of one configuration. A joint whose command falls
-    beyond its limit is held at that limit and the others solve again, while the chain has joints
-    to spare (a redundant arm, or a torso at its stop)."""
+    beyond its limit is held with its command at that limit and the others solve again, while the
+    chain has joints to spare (a redundant arm, or a torso at its stop). A held joint's reading is its
+    limit plus its deflection, which moves as the other joints do: the solve is repeated from the
+    readings it leads to until the held commands are at their limits (within _TOLERANCE)."""
     lower, upper = limits
+    bounded = lower < upper
     free = np.ones(chain.n_joints, dtype=bool)
+    held_at = np.full(chain.n_joints, np.nan)  # the limit each held joint's command is held at
     start = start.copy()
     nan = np.full(chain.n_joints, np.nan)
-    while True:
+    for _ in range(_MAX_ITERATIONS):
         actual, residual = _reach(calibrated, chain, target, start, rows, free)
         if not residual <= tolerance:
-            return (
-                nan,
-                residual,
-                (
-                    "the calibrated robot does not reach the nominal tool pose near this "
-                    f"configuration (error {residual:.3g} left)"
-                ),
-            )
+            return nan, residual, _unreachable(residual)
         command = _command(calibrated, chain, actual, compliance)
-        bounded = lower < upper
-        # A held joint's command moves only with its deflection (micro-radians): clipped, not held again.
+        if command is None:
+            return nan, residual, _UNSETTLED
+        # A held joint is settled once its command is at its limit; a free one is beyond past _TOLERANCE.
         beyond = np.flatnonzero(free & bounded & ((command < lower - _TOLERANCE) | (command > upper + _TOLERANCE)))
-        if not beyond.size:
-            return np.clip(command, np.where(bounded, lower, -np.inf), np.where(bounded, upper, np.inf)), residual, ""
+        drift = np.abs(command[~free] - held_at[~free])
+        if not beyond.size and not np.any(drift > _TOLERANCE):
+            command = np.clip(command, np.where(bounded, lower, -np.inf), np.where(bounded, upper, np.inf))
+            command[~free] = held_at[~free]  # within _TOLERANCE of it
+            return command, residual, ""
         if np.count_nonzero(free) - beyond.size < rows.stop - rows.start:
-            k = int(beyond[0])
-            return (
-                nan,
-                residual,
-                (
-                    f"the compensated command puts joint '{chain.joint_names[k]}' at {command[k]:.6g}, "
-                    f"beyond its limit [{lower[k]:.6g}, {upper[k]:.6g}]"
-                ),
-            )
+            return nan, residual, _beyond_limit(chain, int(beyond[0]), command, limits)
         free[beyond] = False
-        start = actual.copy()  # held where its command is at the limit: the deflection stays as it was
-        start[beyond] = np.clip(command[beyond], lower[beyond], upper[beyond]) + actual[beyond] - command[beyond]
+        held_at[beyond] = np.clip(command[beyond], lower[beyond], upper[beyond])
+        start = actual.copy()  # held joints read their limit plus their deflection at the current command
+        start[~free] = held_at[~free] + actual[~free] - command[~free]
+    return nan, residual, "the held joints' deflections do not settle (their commands keep leaving the limits)"
+
+
+def _unreachable(residual: float) -> str:
+    return (
+        f"the calibrated robot does not reach the nominal tool pose near this configuration (error {residual:.3g} left)"
+    )
+
+
+def _beyond_limit(chain: SerialChain, k: int, command: np.ndarray, limits: tuple[np.ndarray, np.ndarray]) -> str:
+    lower, upper = limits
+    return (
+        f"the compensated command puts joint '{chain.joint_names[k]}' at {command[k]:.6g}, "
+        f"beyond its limit [{lower[k]:.6g}, {upper[k]:.6g}]"
+    )
 
 
 def compensate_serial(
