@@ -111,9 +111,10 @@ _BLOCK = 512  # poses per block of the error model's stacks (about 100 kB per po
 class ClosedLoopState:
     """An LM iterate: a model and measurement setup, the assembled configuration (N, nq) and
     platform pose (N, 4, 4, base frame) of every measured pose, the parameter steps accumulated
-    since the start (for priors), and, once evaluated, its whitened residual and Jacobian; and once
-    `jacobian_factor` ran on it, the row weights it ran with and the triangular factor of [J r] over
-    every column (kept by `restart`: a fit over any columns from this state starts from it)."""
+    since the start (for priors), and, once evaluated, its whitened residual and Jacobian; `factor`,
+    once `jacobian_factor` ran on it, the row weights it ran with and the triangular factor of [J r]
+    over every column; `restarted`, on a state made by `restart`, the factor of the state it restarts
+    (when it had one), from which its first evaluation comes."""
 
     model: pin.Model | None
     configurations: np.ndarray
@@ -122,6 +123,7 @@ class ClosedLoopState:
     accumulated: np.ndarray | None = None
     whitened: tuple[np.ndarray, np.ndarray] | None = None
     factor: tuple[np.ndarray, np.ndarray] | None = None
+    restarted: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class ClosedLoopProblem:
@@ -197,7 +199,10 @@ class ClosedLoopProblem:
         return 0  # a shortfall is refused (`check_base`), never left for a re-selection
 
     def restart(self, state: ClosedLoopState) -> ClosedLoopState:
-        return replace(state, whitened=None)
+        """`state` without its evaluation, for a fit over other columns or poses; its first evaluation
+        comes from `state`'s factor (`jacobian_factor`, at the start: the base choice's) where the
+        weights are the same (`streamed`)."""
+        return replace(state, whitened=None, factor=None, restarted=state.factor or state.restarted)
 
     def accumulated(self, state: ClosedLoopState) -> np.ndarray:
         assert state.accumulated is not None, "iterates come from `assemble`"
@@ -346,11 +351,12 @@ class ClosedLoopProblem:
         whitened pose rows [J r] accumulated block by block (`triangular_factor`), then the prior
         rows. |z|^2 = |r|^2, R^T z = J^T r and R^T R = J^T J, so Levenberg-Marquardt takes the same
         steps on them as on (r, J), in memory bounded by the parameters, not the poses. Where
-        `state.factor` holds the factor of [J r] over every column for these weights (the base choice's,
-        at the start), the same R and z come from a QR of its columns, without evaluating the poses."""
+        `state.restarted` holds the factor of [J r] over every column for these weights (a restart of a
+        state whose factor was taken: the base choice's, at the start), the same R and z (up to the
+        rotation Q) come from a QR of its columns, without evaluating the poses."""
         p = len(self.columns)
-        if state.factor is not None and np.array_equal(state.factor[0], self.weights):
-            factor = triangular_factor(state.factor[1][:, np.r_[self.columns, len(self.names)]])
+        if state.restarted is not None and np.array_equal(state.restarted[0], self.weights):
+            factor = triangular_factor(state.restarted[1][:, np.r_[self.columns, len(self.names)]])
         else:
             factor = np.zeros((0, p + 1))
             for _, block_residual, block_jacobian in self.whitened_blocks(state, self.columns):
