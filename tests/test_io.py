@@ -151,6 +151,9 @@ MALFORMED = {
     "inf": ("x,y,z\n-Infinity,2,3\n", 2, "x", "'-Infinity' is not finite"),
     "overflow": ("x,y,z\n1,1e999,3\n", 2, "y", "too large for a double"),
     "bad quoting": ('x,y,z\n1,2,3\n1,"2,3\n4,5,6\n', 3, None, "malformed CSV"),
+    "exponent without digits": ("x,y,z\n1,2,3\n4,1e,6\n", 3, "y", "'1e' is not a number"),
+    "two decimal points": ("x,y,z\n1.2.3,2,3\n", 2, "x", "'1.2.3' is not a number"),
+    "a sign alone": ("x,y,z\n1,2,-\n", 2, "z", "'-' is not a number"),
     # The first fault in file order, whatever the kinds of the later ones.
     "a bad number before too few fields": ("x,y,z\n1,abc,3\n4,5\n", 2, "y", "'abc' is not a number"),
     "a bad number before bad quoting": ('x,y,z\n1,2,x\n1,"2,3\n', 2, "z", "'x' is not a number"),

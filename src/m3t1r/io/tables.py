@@ -353,14 +353,17 @@ def _check_header(
     return tuple(header)
 
 
-_PLAIN_DECIMALS = re.compile(r"(?:[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\n)*")
+# Characters of plain decimals and the line breaks joining them: on fields of these alone, float()
+# accepts exactly what `_DECIMAL` does (no underscores, letters or spaces; one character class, so
+# that matching a whole table keeps no state per field).
+_DECIMAL_CHARACTERS = re.compile(r"[0-9eE+\-.\n]*")
 
 
 @dataclass(frozen=True)
 class _Converter:
     """The fields of a table's data rows to doubles: every field a plain decimal (`_DECIMAL`), finite
-    and within max_magnitude, converted in one numpy pass; any other table field by field, which
-    refuses the first bad field in file order, as `_parse_number` words it."""
+    and within max_magnitude, converted in one pass (float() of each, into one array); any other
+    table field by field, which refuses the first bad field in file order, as `_parse_number` words it."""
 
     source: Path
     columns: tuple[str, ...]
@@ -369,10 +372,14 @@ class _Converter:
 
     def __call__(self, rows: list[list[str]], lines: list[int]) -> np.ndarray:
         fields = [field for row in rows for field in row]
-        if _PLAIN_DECIMALS.fullmatch("\n".join(fields) + "\n"):
-            values = np.array(fields, dtype=float).reshape(len(rows), len(self.columns))  # float(), field by field
-            if np.all(np.isfinite(values)) and np.all(np.abs(values) <= self.max_magnitude):
-                return values
+        if _DECIMAL_CHARACTERS.fullmatch("\n".join(fields)):
+            try:
+                values = np.fromiter(map(float, fields), dtype=float, count=len(fields))
+            except ValueError:  # a field such as "1e" or "": the field-by-field pass names it
+                pass
+            else:
+                if np.all(np.isfinite(values)) and np.all(np.abs(values) <= self.max_magnitude):
+                    return values.reshape(len(rows), len(self.columns))
         return self.field_by_field(rows, lines)
 
     def field_by_field(self, rows: list[list[str]], lines: list[int]) -> np.ndarray:
