@@ -711,6 +711,35 @@ def test_the_streamed_fit_is_the_in_memory_fit(mechanism):
     np.testing.assert_allclose(a.errors.rotation, b.errors.rotation, rtol=1e-6, atol=1e-12)
 
 
+def test_a_fit_from_a_state_whose_factor_was_taken_evaluates_no_pose_for_its_first_step(mechanism, few_poses):
+    """After `jacobian_factor` at a state (the base choice, at the start), the streamed problem over
+    any columns at that state, restarted, comes from that factor without evaluating a pose: the same
+    cost, gradient and normal equations as evaluated afresh, priors included. Once the weights change
+    (a pose flagged) the factor no longer applies and the poses are evaluated again."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    problem = ClosedLoopProblem(error_model, few_poses, np.array([0, 5, 7, 30, 101]), priors={5: 0.5})
+    evaluations = []
+    problem.on_evaluate = lambda: evaluations.append(1)
+    offset = 1e-3 * np.random.default_rng(62).normal(size=204)
+    start = problem.assemble(error_model.perturbed(mechanism.model, offset), None)
+
+    def normal_equations(state):
+        r, J = problem.residual_and_jacobian(problem.restart(state))
+        return r @ r, J.T @ r, J.T @ J
+
+    fresh = normal_equations(start)
+    assert len(evaluations) == 1 and np.linalg.norm(fresh[1]) > 0.0
+    factor = problem.jacobian_factor(start)
+    assert factor.shape[1] == 204 and len(evaluations) == 2
+    reused = normal_equations(start)
+    assert len(evaluations) == 2  # no pose evaluated
+    for a, b in zip(reused, fresh):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
+    problem.active = np.array([True, False, True, True])
+    flagged = normal_equations(start)
+    assert len(evaluations) == 3 and flagged[0] < fresh[0]
+
+
 def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
     """One fit with every option: the frame and marker estimated (the setup's 12 columns kept),
     one gross outlier flagged, a placement held, a prior, progress reported; then cross-validation

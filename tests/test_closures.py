@@ -79,9 +79,32 @@ def test_every_closure_type_has_its_rows_models_and_operator():
     assert ROW_COUNT == {"3D": 3, "6D": 6}
     assert CLOSURE_TYPES["3D"].anchor is pin.PointAnchorConstraintModel
     assert CLOSURE_TYPES["6D"].contact == pin.ContactType.CONTACT_6D
-    identity = [(pin.SE3.Identity(), pin.SE3.Identity())]
-    np.testing.assert_allclose(CLOSURE_TYPES["3D"].operator(identity)[0], np.eye(3, 6), atol=0)
-    np.testing.assert_allclose(CLOSURE_TYPES["6D"].operator(identity)[0], np.eye(6), atol=1e-15)
+    identity = np.eye(4)[None]
+    np.testing.assert_allclose(CLOSURE_TYPES["3D"].operator(identity, identity)[0], np.eye(3, 6), atol=0)
+    np.testing.assert_allclose(CLOSURE_TYPES["6D"].operator(identity, identity)[0], np.eye(6), atol=1e-15)
+
+
+@pytest.mark.parametrize("machine", ["m_machine", "wrist", "rod_five_bar"])
+def test_row_operators_of_many_configurations_at_once_are_each_one_s_operator(machine, wrist, tmp_path):
+    """`operators` from the joint placements of N configurations (stacked as (N, njoints, 4, 4)) gives
+    each configuration's `sensitivity` operator, 3D closures (M machine) and 6D welds (wrist, rod
+    five-bar), away from an assembly; enforced rows and every row."""
+    mechanism = {
+        "m_machine": lambda: Mechanism.load(),
+        "wrist": lambda: wrist,
+        "rod_five_bar": lambda: _rod_five_bar(tmp_path),
+    }[machine]()
+    rng = np.random.default_rng(5)
+    configurations = mechanism.home + rng.normal(0.0, 0.3, (3, mechanism.model.nq))
+    for all_rows in (False, True):
+        system = ClosureSystem(mechanism.model, mechanism.closures, all_rows=all_rows)
+        expected, placements = [], []
+        for q in configurations:
+            expected.append(system.sensitivity(q)[2])
+            placements.append([p.homogeneous for p in system.data.oMi.tolist()])
+        batch = system.operators(np.array(placements))
+        assert batch.shape == (3, system.n_rows, 6)
+        np.testing.assert_allclose(batch, np.array(expected), rtol=0, atol=1e-12)
 
 
 def test_rank_rule():

@@ -946,6 +946,25 @@ def test_residual_only_trials_and_release_of_superseded_iterates():
     assert all(a is b for a, b in zip(problem.released, problem.states[:-1], strict=True))
 
 
+def test_a_run_stopped_by_the_cost_test_evaluates_no_jacobian_at_its_last_iterate():
+    """The cost test needs only the accepted trial's cost: with a residual-only method the run returns
+    there, one Jacobian per accepted step but the last; without one every trial brings its Jacobian.
+    Both take the same steps to the same state."""
+
+    class ResidualOnly(ExponentialFit):
+        def residual(self, x):
+            return x[0] * np.exp(x[1] * self.t) - self.y
+
+    lean, plain = ResidualOnly(), ExponentialFit()
+    settings = LMSettings(cost_tolerance=1e-6)
+    result = levenberg_marquardt(lean, X0, settings)
+    reference = levenberg_marquardt(plain, X0, settings)
+    assert result.termination == reference.termination == "cost" and result.iterations >= 2
+    assert lean.calls == result.iterations  # the start and each accepted step but the last
+    assert result.cost_history == reference.cost_history
+    np.testing.assert_array_equal(result.state, reference.state)
+
+
 def test_steps_are_invariant_under_a_scaling_of_the_residual_even_with_a_vanishing_column():
     class Scaled:
         """Column 1 is 1e-14 of column 0: below the 1e-12 floor of Marquardt's scaling at any c."""
@@ -1248,9 +1267,9 @@ def test_rls_prior_without_mean_and_estimate_before_any_row():
 
 
 def test_forward_selection_scores_every_batch_of_candidates_and_skips_dead_ones():
-    # 400 poses of 50 rows: 2e6 // (400 x 50^2) = 2 candidates per batch, three batches for five.
+    # 25,000 poses of 10 rows: 5e5 // (25,000 x 10) = 2 candidates per batch, three batches for five.
     rng = np.random.default_rng(15)
-    n, k = 400, 50
+    n, k = 25000, 10
     live = rng.normal(size=(n * k, 3))
     J = np.column_stack((np.zeros(n * k), np.zeros(n * k), live))  # the first batch is dead
     r = -(live @ np.r_[0.05, 0.2, 1.0]) + 3.0 * rng.normal(size=n * k)
@@ -1297,6 +1316,28 @@ def test_forward_selection_ties_use_the_sample_standard_error(n, seed, tied):
         warnings.simplefilter("error")
         selection = forward_selection(J, r, k, range(3))
     assert selection.tied == tied
+
+
+@pytest.mark.parametrize("forced", [(), (4, 9)])
+def test_forward_selection_scores_candidates_as_refits_do_where_a_few_poses_have_high_leverage(forced):
+    """Each candidate's PRESS comes from a rank-one update of every pose's (I - H_ii)^-1: on 6-row
+    poses, three of them far out (leverage near one for some columns), the order of the columns and
+    the PRESS path are those of explicit leave-one-pose-out refits."""
+    rng = np.random.default_rng(24)
+    n, k, p = 25, 6, 11
+    J = rng.normal(size=(n * k, p))
+    J[: 3 * k] *= 30.0  # poses 0-2 dominate their columns' fit
+    r = -(J @ np.r_[0.4, -0.2, 0.1, 0.05, np.zeros(p - 4)]) + rng.normal(size=n * k)
+    selection = forward_selection(J, r, k, range(p), forced=forced)
+    chosen = list(forced)
+    for column in selection.order:
+        left = [c for c in range(p) if c not in chosen]
+        scores = [_loo_reference(J, r, k, chosen + [c]).sum() for c in left]
+        assert column == left[int(np.argmin(scores))]
+        chosen.append(column)
+    assert len(selection.path) == p - len(forced) + 1  # every candidate independent: the whole path
+    path = [_loo_reference(J, r, k, chosen[: len(forced) + size]).sum() for size in range(len(selection.path))]
+    np.testing.assert_allclose(selection.path, path, rtol=1e-8)
 
 
 # --------------------------------------------------------------------------------------------------

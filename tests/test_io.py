@@ -151,6 +151,13 @@ MALFORMED = {
     "inf": ("x,y,z\n-Infinity,2,3\n", 2, "x", "'-Infinity' is not finite"),
     "overflow": ("x,y,z\n1,1e999,3\n", 2, "y", "too large for a double"),
     "bad quoting": ('x,y,z\n1,2,3\n1,"2,3\n4,5,6\n', 3, None, "malformed CSV"),
+    "exponent without digits": ("x,y,z\n1,2,3\n4,1e,6\n", 3, "y", "'1e' is not a number"),
+    "two decimal points": ("x,y,z\n1.2.3,2,3\n", 2, "x", "'1.2.3' is not a number"),
+    "a sign alone": ("x,y,z\n1,2,-\n", 2, "z", "'-' is not a number"),
+    # The first fault in file order, whatever the kinds of the later ones.
+    "a bad number before too few fields": ("x,y,z\n1,abc,3\n4,5\n", 2, "y", "'abc' is not a number"),
+    "a bad number before bad quoting": ('x,y,z\n1,2,x\n1,"2,3\n', 2, "z", "'x' is not a number"),
+    "an overflow before a bad number": ("x,y,z\n1,2,3\n1e999,2,3\n4,abc,6\n", 3, "x", "too large for a double"),
 }
 
 
@@ -170,6 +177,16 @@ def test_malformed_file_names_line_and_column(tmp_path: Path, case: str) -> None
         assert f"line {line}" in str(error)
     if column is not None:
         assert f"column '{column}'" in str(error)
+
+
+def test_every_decimal_form_reads_as_python_reads_it(tmp_path: Path) -> None:
+    """Signs, a bare point on either side, leading zeros, exponents of either case: each field is the
+    double float() gives it (a table of plain decimals is converted in one pass)."""
+    fields = [["+1.", "-.5", "3e-2"], ["00012", "1E5", "0.1"], ["-0.30000000000000004", "2.5e-310", "7"]]
+    path = write(tmp_path / "forms.csv", "x,y,z\n" + "".join(",".join(row) + "\n" for row in fields))
+    table = read_table(path, required=REQUIRED)
+    assert table.data.tolist() == [[float(field) for field in row] for row in fields]
+    assert table.line_numbers.tolist() == [2, 3, 4]
 
 
 def test_missing_file(tmp_path: Path) -> None:

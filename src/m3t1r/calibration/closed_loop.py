@@ -111,7 +111,10 @@ _BLOCK = 512  # poses per block of the error model's stacks (about 100 kB per po
 class ClosedLoopState:
     """An LM iterate: a model and measurement setup, the assembled configuration (N, nq) and
     platform pose (N, 4, 4, base frame) of every measured pose, the parameter steps accumulated
-    since the start (for priors), and, once evaluated, its whitened residual and Jacobian."""
+    since the start (for priors), and, once evaluated, its whitened residual and Jacobian; `factor`,
+    once `jacobian_factor` ran on it, the row weights it ran with and the triangular factor of [J r]
+    over every column; `restarted`, on a state made by `restart`, the factor of the state it restarts
+    (when it had one), from which its first evaluation comes."""
 
     model: pin.Model | None
     configurations: np.ndarray
@@ -119,6 +122,8 @@ class ClosedLoopState:
     setup: MeasurementSetup = field(default_factory=MeasurementSetup)
     accumulated: np.ndarray | None = None
     whitened: tuple[np.ndarray, np.ndarray] | None = None
+    factor: tuple[np.ndarray, np.ndarray] | None = None
+    restarted: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class ClosedLoopProblem:
@@ -194,7 +199,10 @@ class ClosedLoopProblem:
         return 0  # a shortfall is refused (`check_base`), never left for a re-selection
 
     def restart(self, state: ClosedLoopState) -> ClosedLoopState:
-        return replace(state, whitened=None)
+        """`state` without its evaluation, for a fit over other columns or poses; its first evaluation
+        comes from `state`'s factor (`jacobian_factor`, at the start: the base choice's) where the
+        weights are the same (`streamed`)."""
+        return replace(state, whitened=None, factor=None, restarted=state.factor or state.restarted)
 
     def accumulated(self, state: ClosedLoopState) -> np.ndarray:
         assert state.accumulated is not None, "iterates come from `assemble`"
@@ -208,8 +216,15 @@ class ClosedLoopProblem:
 
     def jacobian_factor(self, state: ClosedLoopState, with_residual: bool = False) -> np.ndarray:
         """The triangular factor of the whitened pose rows over every column (`evaluate`, reduce=True),
-        of [J r] with_residual (flagged poses' rows are zero)."""
-        return self.evaluate(state, np.arange(len(self.names)), reduce=True, with_residual=with_residual)[1]
+        of [J r] with_residual (flagged poses' rows are zero): a copy of the factor of [J r] that
+        `state.factor` keeps for these weights (evaluated once), without its last column unless
+        with_residual (R^T R = J^T J either way)."""
+        weights = self.weights
+        if state.factor is None or not np.array_equal(state.factor[0], weights):
+            columns = np.arange(len(self.names))
+            state.factor = (weights, self.evaluate(state, columns, reduce=True, with_residual=True)[1])
+        augmented = state.factor[1]
+        return augmented.copy() if with_residual else augmented[:, :-1].copy()
 
     def check_base(self, base: BaseParameters, factor: np.ndarray, fixed: Sequence[int]) -> None:
         """IdentificationError when the data identify fewer parameters than the reference pose set
@@ -335,11 +350,17 @@ class ClosedLoopProblem:
         """The fit's least-squares problem compressed: z = [Q^T r; rho] and [R; 0] from the QR of the
         whitened pose rows [J r] accumulated block by block (`triangular_factor`), then the prior
         rows. |z|^2 = |r|^2, R^T z = J^T r and R^T R = J^T J, so Levenberg-Marquardt takes the same
-        steps on them as on (r, J), in memory bounded by the parameters, not the poses."""
+        steps on them as on (r, J), in memory bounded by the parameters, not the poses. Where
+        `state.restarted` holds the factor of [J r] over every column for these weights (a restart of a
+        state whose factor was taken: the base choice's, at the start), the same R and z (up to the
+        rotation Q) come from a QR of its columns, without evaluating the poses."""
         p = len(self.columns)
-        factor = np.zeros((0, p + 1))
-        for _, block_residual, block_jacobian in self.whitened_blocks(state, self.columns):
-            factor = triangular_factor(block_jacobian, block_residual, previous=factor)
+        if state.restarted is not None and np.array_equal(state.restarted[0], self.weights):
+            factor = triangular_factor(state.restarted[1][:, np.r_[self.columns, len(self.names)]])
+        else:
+            factor = np.zeros((0, p + 1))
+            for _, block_residual, block_jacobian in self.whitened_blocks(state, self.columns):
+                factor = triangular_factor(block_jacobian, block_residual, previous=factor)
         prior_values, prior_jacobian = self.prior_rows(state)
         return np.concatenate((factor[:, p], prior_values)), np.vstack((factor[:, :p], prior_jacobian))
 

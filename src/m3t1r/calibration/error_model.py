@@ -154,21 +154,22 @@ class ClosedLoopErrorModel:
         dq_passive / dp at each, for the parameter `columns` (default all).
 
         Sliders held fixed; the passive joints move with the parameters through the closures.
-        Only the Pinocchio passes run per pose; the algebra (eq. 17 blocks Ad(oMi[parent]
-        jointPlacement), closure rows, the implicit passive solve) runs on stacks, restricted to the
-        requested columns. d xi_P / dp = X_P - (J_P,pas J_c,pas^-1) dr_c/dp: the passive solve has
-        6 right-hand sides, not P. Leaves solver.data at the last configuration.
+        Only the Pinocchio passes run per pose; the closures' row operators and the algebra (eq. 17
+        blocks Ad(oMi[parent] jointPlacement), closure rows, the implicit passive solve) run on
+        stacks, restricted to the requested columns. d xi_P / dp = X_P - (J_P,pas J_c,pas^-1) dr_c/dp:
+        the passive solve has 6 right-hand sides, not P. Leaves solver.data at the last configuration.
         """
         model, data = solver.model, solver.data
         n = len(configurations)
         jac_q = np.empty((n, solver.n_rows, model.nv))
-        operator = np.empty((n, solver.n_rows, 6))
         joint_jacobian = np.empty((n, 6, model.nv))
         joints = np.empty((n, model.njoints, 4, 4))
         for i, q in enumerate(configurations):
-            _, jac_q[i], operator[i] = solver.closure_sensitivity(q)
+            jac_q[i] = solver.closure_jacobian(q)  # leaves data.J and data.oMi at q
             joint_jacobian[i] = data.J
             joints[i] = [placement.homogeneous for placement in data.oMi.tolist()]
+        operator = solver.closure_operators(joints)  # `closure_sensitivity`'s, for every pose at once
+        pin.updateFramePlacements(model, data)  # data left as `closure_sensitivity` leaves it, frames placed
         # oMf = oMi[parent] frame.placement, not data.oMf: Pinocchio never updates oMf[0], the universe
         # frame, which anchors an error of the base frame (it stays at identity when the base moves).
         placements = np.array([model.frames[f].placement.homogeneous for f in self._adjoint_frames])

@@ -464,13 +464,35 @@ class ParameterSelection:
     tied: int
 
 
+def _loo_system(leverage: np.ndarray) -> np.ndarray:
+    """I - H_ii for each k x k leverage block (..., N, k, k), kept off singular by 1e-12 I."""
+    eye = np.eye(leverage.shape[-1])
+    return eye - leverage + 1e-12 * eye
+
+
 def _loo_press(residual: np.ndarray, leverage: np.ndarray) -> np.ndarray:
     """Per-pose squared LOO residuals (..., N): e_loo_i = (I - H_ii)^-1 e_i for each k-row block."""
-    k = residual.shape[-1]
-    eye = np.eye(k)
-    system = eye - leverage + 1e-12 * eye
-    loo = np.linalg.solve(system, residual[..., None])[..., 0]
+    loo = np.linalg.solve(_loo_system(leverage), residual[..., None])[..., 0]
     return np.sum(loo**2, axis=-1)
+
+
+def _candidate_press(inverse: np.ndarray, loo: np.ndarray, fitted: np.ndarray, units: np.ndarray) -> np.ndarray:
+    """PRESS of the current fit with each candidate direction added, without a solve per candidate.
+
+    inverse (N, k, k): M_i = (I - H_ii)^-1 of the current fit (`_loo_system`); loo (N, k): its LOO
+    residuals w_i = M_i e_i; fitted (N, k): its residual blocks e_i; units (N, k, c): the candidates'
+    unit directions, orthogonal to the fitted columns. Adding u lowers every residual block by
+    g u_i (g = u . e over every row) and raises H_ii by u_i u_i^T, a rank-one change of each block,
+    so by Sherman-Morrison the new LOO residual is w_i + v_i (u_i . w_i - g) / (1 - u_i . v_i) with
+    v_i = M_i u_i: one k x k product per pose and candidate instead of a k x k solve. Returns (c,).
+    """
+    v = inverse @ units
+    along = np.einsum("nkc,nkc->nc", units, v)
+    onto_loo = np.einsum("nkc,nk->nc", units, loo)
+    g = np.einsum("nkc,nk->c", units, fitted)
+    shift = (onto_loo - g) / np.maximum(1.0 - along, 1e-12)  # 1 - u.v > 0 while I - H_ii - u u^T is regular
+    trial = loo[..., None] + v * shift[:, None, :]
+    return np.einsum("nkc,nkc->c", trial, trial)
 
 
 # Columns per in-place update of `forward_selection`'s projected Jacobian (temporaries of this width).
@@ -514,7 +536,9 @@ def forward_selection(
 
     Starting from `forced`, each step adds the candidate column whose least-squares fit has the
     smallest leave-one-pose-out PRESS; the hat matrix gives every LOO residual without a refit
-    (e_loo_i = (I - H_ii)^-1 e_i, H_ii the pose's k x k block). The whole path is scored and the
+    (e_loo_i = (I - H_ii)^-1 e_i, H_ii the pose's k x k block), and a candidate changes each
+    block by rank one, so it is scored from the current (I - H_ii)^-1 without a solve
+    (`_candidate_press`); the path's PRESS is solved afresh at each step. The whole path is scored and the
     set with the lowest PRESS is chosen: a parameter enters only where it predicts left-out poses
     better, not merely fits the training set better.
 
@@ -546,22 +570,22 @@ def forward_selection(
     norms = np.zeros(J.shape[1])
     norms[remaining] = _column_norms_of(projected)  # as the lengths below: a column is never longer than itself
     project_out(projected, basis)
-    chunk = max(1, int(2e6 // max(1, n * k * k)))  # candidates per batch: about 16 MB per (c, N, k, k) stack
+    chunk = max(1, int(5e5 // max(1, n * k)))  # candidates per batch: about 4 MB per (N, k, c) stack
     while remaining:
         lengths = _column_norms_of(projected)
         alive = lengths > rank_tolerance * np.maximum(norms[remaining], 1e-300)
         if not alive.any():
             break
+        inverse = np.linalg.inv(_loo_system(leverage))
+        loo = (inverse @ fitted.reshape(n, k, 1))[..., 0]
         scores = np.full(len(remaining), np.inf)
         for start in range(0, len(remaining), chunk):
             block = np.arange(start, min(start + chunk, len(remaining)))
             block = block[alive[block]]
             if not block.size:
                 continue
-            u = (projected[:, block] / lengths[block]).T.reshape(block.size, n, k)
-            trial_fit = fitted.reshape(n, k) - u * np.einsum("cnk,nk->c", u, fitted.reshape(n, k))[:, None, None]
-            trial_leverage = leverage + u[..., :, None] * u[..., None, :]
-            scores[block] = _loo_press(trial_fit, trial_leverage).sum(axis=1)
+            units = (projected[:, block] / lengths[block]).reshape(n, k, block.size)
+            scores[block] = _candidate_press(inverse, loo, fitted.reshape(n, k), units)
         best = best_index(scores, largest=False)
         u = projected[:, best] / lengths[best]
         fitted = fitted - u * (u @ fitted)
@@ -834,8 +858,10 @@ def levenberg_marquardt(
     Stops when ||J^T r||_inf <= gradient_tolerance, when a step has ||dx|| <= step_tolerance
     (parameter units), or when an accepted step lowers the cost by less than cost_tolerance times
     the cost or by less than absolute_cost_tolerance (for a whitened residual, in units of noise
-    variance: a decrease far below one cannot be told from noise). An iteration is one Jacobian
-    evaluation, however many damping trials it took.
+    variance: a decrease far below one cannot be told from noise). An iteration is one accepted step,
+    however many damping trials it took, and one Jacobian evaluation, at its start; a run that stops
+    on the cost test returns before evaluating the Jacobian at its last iterate, which decides nothing
+    here (a problem with `residual` leaves it to a later caller).
     """
     state = x0
     # Optional cheaper residual for trial steps (rejected steps then cost no Jacobian), and an
@@ -886,12 +912,13 @@ def levenberg_marquardt(
                 if release is not None:
                     release(state)
                 del J  # the superseded iterate's Jacobian, before the next one is built
-                if J_trial is None:
-                    r_trial, J_trial = problem.residual_and_jacobian(trial)
-                state, r, J, cost = trial, r_trial, J_trial, cost_trial
+                state, cost = trial, cost_trial
                 history.append(cost)
                 if decrease <= max(settings.cost_tolerance * (cost + decrease), settings.absolute_cost_tolerance):
+                    # Decided by the cost alone: the new iterate's Jacobian (when not yet evaluated) is
+                    # left to whoever needs it.
                     return LMResult(state, iteration, cost, tuple(history), True, "cost", step_norm)
+                r, J = (r_trial, J_trial) if J_trial is not None else problem.residual_and_jacobian(trial)
                 break
             mu *= nu
             nu *= 2.0

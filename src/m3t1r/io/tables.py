@@ -133,28 +133,26 @@ def read_table(
         raise DataFileError(source, "no header line: the file is empty or holds only comments") from None
     columns = _check_header(source, header_line, header, required, optional, optional_groups)
 
-    rows: list[list[float]] = []
+    rows: list[list[str]] = []
     lines: list[int] = []
-    for line, fields in records:
-        if len(fields) != len(columns):
-            # Too few fields: name the first column without a value; too many: no column to name.
-            missing = columns[len(fields)] if len(fields) < len(columns) else None
-            raise DataFileError(
-                source, f"{len(fields)} fields, but the header has {len(columns)} columns", row=line, column=missing
-            )
-        rows.append(
-            [
-                math.nan
-                if not field and name in blank_allowed
-                else _parse_number(source, line, name, field, max_magnitude)
-                for name, field in zip(columns, fields)
-            ]
-        )
-        lines.append(line)
+    convert = _Converter(source, columns, blank_allowed, max_magnitude)
+    try:
+        for line, fields in records:
+            if len(fields) != len(columns):
+                # Too few fields: name the first column without a value; too many: no column to name.
+                missing = columns[len(fields)] if len(fields) < len(columns) else None
+                raise DataFileError(
+                    source, f"{len(fields)} fields, but the header has {len(columns)} columns", row=line, column=missing
+                )
+            rows.append(fields)
+            lines.append(line)
+    except DataFileError:
+        convert.field_by_field(rows, lines)  # a bad field on an earlier line is the first fault
+        raise
     if not rows:
         raise DataFileError(source, "no data rows after the header", row=header_line)
 
-    table = Table(path=source, columns=columns, data=np.array(rows, dtype=float), line_numbers=np.array(lines))
+    table = Table(path=source, columns=columns, data=convert(rows, lines), line_numbers=np.array(lines))
     if reject_duplicate_rows:
         _reject_duplicate_rows(table)
     return table
@@ -353,6 +351,48 @@ def _check_header(
                 column=absent[0],
             )
     return tuple(header)
+
+
+# Characters of plain decimals and the line breaks joining them: on fields of these alone, float()
+# accepts exactly what `_DECIMAL` does (no underscores, letters or spaces; one character class, so
+# that matching a whole table keeps no state per field).
+_DECIMAL_CHARACTERS = re.compile(r"[0-9eE+\-.\n]*")
+
+
+@dataclass(frozen=True)
+class _Converter:
+    """The fields of a table's data rows to doubles: every field a plain decimal (`_DECIMAL`), finite
+    and within max_magnitude, converted in one pass (float() of each, into one array); any other
+    table field by field, which refuses the first bad field in file order, as `_parse_number` words it."""
+
+    source: Path
+    columns: tuple[str, ...]
+    blank_allowed: Sequence[str]
+    max_magnitude: float
+
+    def __call__(self, rows: list[list[str]], lines: list[int]) -> np.ndarray:
+        fields = [field for row in rows for field in row]
+        if _DECIMAL_CHARACTERS.fullmatch("\n".join(fields)):
+            try:
+                values = np.fromiter(map(float, fields), dtype=float, count=len(fields))
+            except ValueError:  # a field such as "1e" or "": the field-by-field pass names it
+                pass
+            else:
+                if np.all(np.isfinite(values)) and np.all(np.abs(values) <= self.max_magnitude):
+                    return values.reshape(len(rows), len(self.columns))
+        return self.field_by_field(rows, lines)
+
+    def field_by_field(self, rows: list[list[str]], lines: list[int]) -> np.ndarray:
+        values = [
+            [
+                math.nan
+                if not field and name in self.blank_allowed
+                else _parse_number(self.source, line, name, field, self.max_magnitude)
+                for name, field in zip(self.columns, fields)
+            ]
+            for line, fields in zip(lines, rows)
+        ]
+        return np.array(values, dtype=float).reshape(len(rows), len(self.columns))
 
 
 def _parse_number(source: Path, line: int, column: str, field: str, max_magnitude: float = math.inf) -> float:

@@ -50,30 +50,33 @@ class ClosureType:
     rows: residual components; anchor: the Pinocchio constraint model whose position error is the
     residual; contact: its rigid constraint type (`constraint_models`); exact: maps the model's
     velocity-level Jacobian block to the residual's exact derivative (None: it already is);
-    operator([(oMa, oMb), ...]): the residual's derivative (k x rows x 6) along the relative WORLD
-    twist xi_b - xi_a, for k closures of the type at once; smooth(oMa, oMb, J_a, J_b, length): rows
-    without branch cuts with the same zeros, and their Jacobian from LOCAL_WORLD_ALIGNED frame
-    Jacobians (load-time assembly from a rough home).
+    operator(oMa, oMb): the residual's derivative (..., rows, 6) along the relative WORLD twist
+    xi_b - xi_a, for stacks of closures of the type at once (placements (..., 4, 4));
+    smooth(oMa, oMb, J_a, J_b, length): rows without branch cuts with the same zeros, and their
+    Jacobian from LOCAL_WORLD_ALIGNED frame Jacobians (load-time assembly from a rough home).
     """
 
     rows: int
     anchor: Any
     contact: Any
     exact: Callable[[np.ndarray, Any], np.ndarray] | None
-    operator: Callable[[list[tuple[pin.SE3, pin.SE3]]], np.ndarray]
+    operator: Callable[[np.ndarray, np.ndarray], np.ndarray]
     smooth: Callable[[pin.SE3, pin.SE3, np.ndarray, np.ndarray, float], SmoothRows]
 
 
-def _point_operator(pairs: list[tuple[pin.SE3, pin.SE3]]) -> np.ndarray:
+def _point_operator(oMa: np.ndarray, oMb: np.ndarray) -> np.ndarray:
     """d[R_a^T (p_b - p_a)] = R_a^T [I, -[p_b]x] (relative spatial twist of b with respect to a),
-    for every pair (oMa, oMb) at once: (k, 3, 6)."""
-    rotation_t = np.array([a.rotation.T for a, _ in pairs])
-    return np.concatenate((rotation_t, -rotation_t @ skew(np.array([b.translation for _, b in pairs]))), axis=2)
+    for every pair of placements (..., 4, 4) at once: (..., 3, 6)."""
+    rotation_t = np.swapaxes(oMa[..., :3, :3], -1, -2)
+    return np.concatenate((rotation_t, -rotation_t @ skew(oMb[..., :3, 3])), axis=-1)
 
 
-def _frame_operator(pairs: list[tuple[pin.SE3, pin.SE3]]) -> np.ndarray:
-    """d log6(aMb) = Jlog6(aMb) Ad(oMb^-1) (relative spatial twist), for every pair: (k, 6, 6)."""
-    return np.array([pin.Jlog6(a.actInv(b)) @ b.inverse().action for a, b in pairs])
+def _frame_operator(oMa: np.ndarray, oMb: np.ndarray) -> np.ndarray:
+    """d log6(aMb) = Jlog6(aMb) Ad(oMb^-1) (relative spatial twist), for every pair of placements
+    (..., 4, 4): (..., 6, 6)."""
+    pairs = zip(oMa.reshape(-1, 4, 4), oMb.reshape(-1, 4, 4))
+    blocks = [pin.Jlog6(a.actInv(b)) @ b.inverse().action for a, b in ((pin.SE3(a), pin.SE3(b)) for a, b in pairs)]
+    return np.array(blocks).reshape(oMa.shape[:-2] + (6, 6))
 
 
 def _frame_exact(block: np.ndarray, cdata: Any) -> np.ndarray:
@@ -141,6 +144,20 @@ class Redundancy:
     rank: int
 
 
+@dataclass(frozen=True, eq=False)
+class _ClosuresOfAType:
+    """The closures of one type in a `ClosureSystem`: the type's operator, their rows (all of them),
+    their constraint datas, and their two frames as parent joints and placements in them (a, b)."""
+
+    operator: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    rows: np.ndarray
+    datas: list[Any]
+    joints_a: np.ndarray
+    placements_a: np.ndarray
+    joints_b: np.ndarray
+    placements_b: np.ndarray
+
+
 class ClosureSystem:
     """Residual and Jacobian of the enforced rows of some closures of `model` (its own `Data`): the one
     definition of a closure's rows that every solve, batch, sensitivity and load-time check reads.
@@ -176,16 +193,25 @@ class ClosureSystem:
             for i, (kind, d) in enumerate(zip(kinds, inner))
             if kind.exact
         ]
-        # Per type: its row operator, its closures' rows (all of them) and constraint datas.
-        self._by_type = [
-            (
-                kind.operator,
-                np.concatenate([slots[i] + np.arange(kind.rows) for i in range(len(closures)) if kinds[i] is kind]),
-                [d for d, other in zip(inner, kinds) if other is kind],
+        # Per type: its row operator, its closures' rows (all of them) and constraint datas, and each
+        # closure's two frames as (parent joint, placement in it), from which `operators` places them.
+        self._by_type: list[_ClosuresOfAType] = []
+        for kind in CLOSURE_TYPES.values():
+            mine = [i for i in range(len(closures)) if kinds[i] is kind]
+            if not mine:
+                continue
+            a, b = ([model.frames[getattr(closures[i], side)] for i in mine] for side in ("frame_a_id", "frame_b_id"))
+            self._by_type.append(
+                _ClosuresOfAType(
+                    kind.operator,
+                    np.concatenate([slots[i] + np.arange(kind.rows) for i in mine]),
+                    [inner[i] for i in mine],
+                    np.array([f.parentJoint for f in a], dtype=int),
+                    np.array([f.placement.homogeneous for f in a]),
+                    np.array([f.parentJoint for f in b], dtype=int),
+                    np.array([f.placement.homogeneous for f in b]),
+                )
             )
-            for kind in CLOSURE_TYPES.values()
-            if kind in kinds
-        ]
         self.enforced = np.concatenate(
             [slots[i] + np.array(c.rows, dtype=int) for i, c in enumerate(closures)] + [np.zeros(0, dtype=int)]
         )
@@ -227,9 +253,23 @@ class ClosureSystem:
         residual, jac = self.evaluate(q, True)
         pin.updateFramePlacements(self.model, self.data)
         full = np.empty((self.n_full, 6))
-        for operator, rows, datas in self._by_type:
-            full[rows] = operator([(d.oMc1, d.oMc2) for d in datas]).reshape(-1, 6)
+        for group in self._by_type:
+            a = np.array([d.oMc1.homogeneous for d in group.datas])
+            b = np.array([d.oMc2.homogeneous for d in group.datas])
+            full[group.rows] = group.operator(a, b).reshape(-1, 6)
         return residual, jac, full[self.enforced]
+
+    def operators(self, joint_placements: np.ndarray) -> np.ndarray:
+        """The row operators of `sensitivity` (N, rows, 6) at N configurations at once, from their joint
+        placements oMi (N, njoints, 4, 4): each closure frame placed as oMi[parent joint] placement,
+        as its constraint model places it."""
+        n = len(joint_placements)
+        full = np.empty((n, self.n_full, 6))
+        for group in self._by_type:
+            oMa = joint_placements[:, group.joints_a] @ group.placements_a
+            oMb = joint_placements[:, group.joints_b] @ group.placements_b
+            full[:, group.rows] = group.operator(oMa, oMb).reshape(n, -1, 6)
+        return full[:, self.enforced]
 
     def assemble(self, q: np.ndarray, free: np.ndarray, tolerance: float) -> tuple[np.ndarray, float]:
         """Least-squares Gauss-Newton on the enforced rows over the columns `free` from q.

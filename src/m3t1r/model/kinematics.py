@@ -309,8 +309,14 @@ class ClosedLoopSolver:
         q = require_finite_vector(q, self.model.nq, "configuration q")
         return self._closure_system.sensitivity(q)
 
+    def closure_operators(self, joint_placements: np.ndarray) -> np.ndarray:
+        """The row operators of `closure_sensitivity` (N, rows, 6) at N configurations at once, from
+        their joint placements oMi (N, njoints, 4, 4) (`ClosureSystem.operators`)."""
+        return self._closure_system.operators(joint_placements)
+
     def closure_jacobian(self, q: np.ndarray, all_rows: bool = False) -> np.ndarray:
-        """d(closure residual)/dq (rows x nv), exact (analytic), enforced rows unless all_rows."""
+        """d(closure residual)/dq (rows x nv), exact (analytic), enforced rows unless all_rows; leaves
+        `data` at q (joint placements and the WORLD joint Jacobian)."""
         q = require_finite_vector(q, self.model.nq, "configuration q")
         system = self._all_rows_system if all_rows else self._closure_system
         return system.evaluate(q, True)[1]
