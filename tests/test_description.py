@@ -13,7 +13,7 @@ import pinocchio as pin
 import pytest
 import yaml
 import yourdfpy
-from test_mechanisms import _welded_double_hinge
+from model_files import edit_yaml, welded_double_hinge
 
 from m3t1r.errors import ModelFileError, ModelWarning, OutputPathError
 from m3t1r.io.pairing import closures_sha256, recorded_closures_sha256, sha256_bytes, with_closures_sha256
@@ -281,12 +281,6 @@ def _five_bar(folder: Path) -> tuple[Path, Path]:
     return five_bar_files(folder)
 
 
-def _edit_yaml(path: Path, change) -> None:
-    document = yaml.safe_load(path.read_text())
-    change(document)
-    path.write_text(yaml.safe_dump(document, sort_keys=False))
-
-
 def _refusal(call) -> str:
     with pytest.raises(ModelFileError) as caught:
         call()
@@ -404,7 +398,7 @@ def test_the_nominal_urdf_with_given_closures(tmp_path):
 
 def test_a_cell_no_field_check_foresaw_is_refused_naming_the_file(tmp_path):
     urdf, closures = _five_bar(tmp_path)
-    _edit_yaml(closures, lambda d: d["home"].update(motor_1=10**400))
+    edit_yaml(closures, lambda d: d["home"].update(motor_1=10**400))
     assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
         f"{closures}: malformed closures file: OverflowError: int too large to convert to float"
     )
@@ -412,7 +406,7 @@ def test_a_cell_no_field_check_foresaw_is_refused_naming_the_file(tmp_path):
 
 def test_load_notes_are_warnings_attributed_to_the_caller(tmp_path):
     urdf, closures = _five_bar(tmp_path)
-    _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0, 1, 2]))
+    edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0, 1, 2]))
     with pytest.warns(ModelWarning) as caught:
         Mechanism.load(urdf, closures)
     assert [str(w.message) for w in caught] == [
@@ -426,7 +420,7 @@ def test_load_notes_are_warnings_attributed_to_the_caller(tmp_path):
 )
 def test_load_notes_point_at_the_caller_exactly(tmp_path):
     urdf, closures = _five_bar(tmp_path)
-    _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0, 1, 2]))
+    edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0, 1, 2]))
     with pytest.warns(ModelWarning) as caught:
         Mechanism.load(urdf, closures)
     assert caught[0].filename == __file__
@@ -516,7 +510,7 @@ def test_an_actuator_without_limits_and_no_workspace_is_unbounded(tmp_path):
             flags=re.S,
         )
     )
-    _edit_yaml(closures, lambda d: d.pop("workspace"))
+    edit_yaml(closures, lambda d: d.pop("workspace"))
     with pytest.warns(ModelWarning) as caught:
         mechanism = Mechanism.load(urdf, closures)
     assert [str(w.message) for w in caught] == [
@@ -653,7 +647,7 @@ def test_a_home_whose_actuator_values_cannot_close_says_which_would(tmp_path):
     urdf.write_bytes(source_urdf.read_bytes())
     closures.write_bytes(source_closures.read_bytes())
     home = yaml.safe_load(closures.read_text())["home"]
-    _edit_yaml(closures, lambda d: d["home"].update(q11_B2=home["q11"] + 0.5))
+    edit_yaml(closures, lambda d: d["home"].update(q11_B2=home["q11"] + 0.5))
     message = _refusal(lambda: Mechanism.load(urdf, closures))
     found = re.search(
         r"with the actuators free too, it closes with them at \{(.*)\}: give actuator home values", message
@@ -662,7 +656,7 @@ def test_a_home_whose_actuator_values_cannot_close_says_which_would(tmp_path):
     given = dict(entry.split(": ") for entry in found.group(1).split(", "))
     assert list(given) == ["q11", "q11_B2", "q21", "q21_B4"]
     inside = {name: 0.95 * float(value) + 0.05 * home[name] for name, value in given.items()}
-    _edit_yaml(closures, lambda d: d["home"].update(inside))
+    edit_yaml(closures, lambda d: d["home"].update(inside))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ModelWarning)
         loaded = Mechanism.load(urdf, closures)
@@ -713,7 +707,7 @@ def test_a_nan_residual_names_its_closure(mechanism):
 
 def test_missing_rows_are_refused_naming_the_file(tmp_path):
     urdf, closures = _five_bar(tmp_path)
-    _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0]))
+    edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0]))
     assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
         f"{closures}: the closures leave 1 degree(s) of freedom beyond the actuators: with the actuators held, "
         "frame 'effector' can still move along 1 of them (1 per unit joint speed; mostly joints elbow_1, elbow_2); "
@@ -729,9 +723,9 @@ _THIRD_CUT_JOINT = """<joint name="cut_3" type="revolute"><parent link="cut_link
 
 def test_the_locked_gauge_note_names_every_locked_joint(tmp_path):
     """The five-bar's distal hinge modelled three times (two in series on chain 1): two gauges."""
-    urdf, closures = _welded_double_hinge(tmp_path)
+    urdf, closures = welded_double_hinge(tmp_path)
     urdf.write_text(urdf.read_text().replace("</robot>", _THIRD_CUT_JOINT))
-    _edit_yaml(closures, lambda d: d["home"].update(cut_3=0.0) or d["closures"][0].update(frame_a="cut_link_3"))
+    edit_yaml(closures, lambda d: d["home"].update(cut_3=0.0) or d["closures"][0].update(frame_a="cut_link_3"))
     with pytest.warns(ModelWarning):
         mechanism = Mechanism.load(urdf, closures)
     locked = mechanism.locked_joints

@@ -7,6 +7,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 from conftest import perturb_every_origin
+from model_files import edit_yaml, welded_double_hinge
 
 from m3t1r.errors import BranchChangeError, InvalidInputError, KinematicsError, NotConvergedError, OutOfWorkspaceError
 from m3t1r.model.design import NOMINAL
@@ -761,13 +762,11 @@ def test_warm_inverse_with_a_locked_joint_steps_the_unlocked_columns(tmp_path):
     predictor's step goes to those columns only."""
     import warnings
 
-    from test_mechanisms import _welded_double_hinge
-
     from m3t1r.model.description import Mechanism
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        hinge = Mechanism.load(*_welded_double_hinge(tmp_path))
+        hinge = Mechanism.load(*welded_double_hinge(tmp_path))
     assert len(hinge.locked_joints) == 1
     solver = ClosedLoopSolver(hinge)
     sliders = hinge.home[hinge.actuated_ids]
@@ -817,13 +816,12 @@ def test_warm_forward_keeps_the_last_solution_s_branch(mechanism):
 
 
 def test_a_task_that_is_not_square_is_refused_word_for_word(tmp_path):
-    from test_mechanisms import _edit_yaml
 
     from m3t1r.model.description import Mechanism
     from m3t1r.model.examples import five_bar_files
 
     urdf, closures = five_bar_files(tmp_path)
-    _edit_yaml(closures, lambda d: d["task"].update(position=["x", "y", "z"]))
+    edit_yaml(closures, lambda d: d["task"].update(position=["x", "y", "z"]))
     solver = ClosedLoopSolver(Mechanism.load(urdf, closures))
     with pytest.raises(InvalidInputError) as caught:
         solver.inverse(np.zeros(3))

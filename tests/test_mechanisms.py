@@ -19,6 +19,7 @@ import pytest
 import reference_kinematics as reference
 import scipy.linalg
 import yaml
+from model_files import edit_text, edit_yaml, welded_double_hinge
 
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
@@ -182,17 +183,6 @@ def test_a_planar_nominal_does_not_cap_what_a_noise_free_fit_identifies(tmp_path
 
 # ------------------------------------------------------------------------------------------------
 # Load-time repairs
-def _edit(path: Path, change) -> None:
-    text = path.read_text()
-    path.write_text(change(text))
-
-
-def _edit_yaml(path: Path, change) -> None:
-    document = yaml.safe_load(path.read_text())
-    change(document)
-    path.write_text(yaml.safe_dump(document, sort_keys=False))
-
-
 def _load_noting(urdf: Path, closures: Path, pattern: str) -> Mechanism:
     with pytest.warns(ModelWarning, match=pattern):
         return Mechanism.load(urdf, closures)
@@ -202,7 +192,7 @@ def test_urdf_without_actuator_limits_takes_the_workspace_box(tmp_path):
     urdf, closures = five_bar_files(tmp_path)
     # A <limit> with effort and velocity only (URDF requires the element on a revolute joint): Pinocchio
     # then reads the position limits as [0, 0].
-    _edit(
+    edit_text(
         urdf,
         lambda text: re.sub(
             r'(<joint name="motor_\d" type="revolute">(?:(?!</joint>).)*?)<limit[^>]*/>',
@@ -228,7 +218,7 @@ def test_urdf_without_actuator_limits_takes_the_workspace_box(tmp_path):
 def test_home_off_by_1e_5_is_assembled(tmp_path):
     urdf, closures = spherical_wrist_files(tmp_path)
     exact = Mechanism.load(urdf, closures).home
-    _edit_yaml(
+    edit_yaml(
         closures,
         lambda d: d["home"].update(
             {name: value + 1e-5 for name, value in d["home"].items() if not name.startswith("motor")}
@@ -245,7 +235,7 @@ def test_closure_on_a_joint_frame(tmp_path):
     urdf, closures = tmp_path / "m.urdf", tmp_path / "m.closures.yaml"
     urdf.write_bytes(source_urdf.read_bytes())
     closures.write_bytes(source_closures.read_bytes())
-    _edit_yaml(closures, lambda d: next(c for c in d["closures"] if c["name"] == "five_bar_I").update(frame_b="q12_pa"))
+    edit_yaml(closures, lambda d: next(c for c in d["closures"] if c["name"] == "five_bar_I").update(frame_b="q12_pa"))
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # nothing to note
         mechanism = Mechanism.load(urdf, closures)
@@ -262,33 +252,8 @@ def test_closure_on_a_joint_frame(tmp_path):
     assert pose_errors(calibration.mechanism, study.truth, study.holdout_actuators).position_max < 1e-7
 
 
-_CUT_JOINTS = """
-  <joint name="cut_1" type="revolute"><parent link="effector"/><child link="cut_link_1"/>
-    <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="0 0 1"/><limit lower="-4" upper="4" effort="1" velocity="1"/></joint>
-  <link name="cut_link_1"/>
-  <joint name="cut_2" type="revolute"><parent link="tip_2"/><child link="cut_link_2"/>
-    <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="0 0 1"/><limit lower="-4" upper="4" effort="1" velocity="1"/></joint>
-  <link name="cut_link_2"/>
-</robot>"""
-
-
-def _welded_double_hinge(folder: Path) -> tuple[Path, Path]:
-    """The five-bar with its distal hinge modelled as two coaxial hinges, one per chain, welded 6D."""
-    urdf, closures = five_bar_files(folder)
-    _edit(urdf, lambda text: text.replace("</robot>", _CUT_JOINTS))
-
-    def weld(document: dict) -> None:
-        home = document["home"]
-        heading_1, heading_2 = home["motor_1"] + home["elbow_1"], home["motor_2"] + home["elbow_2"]
-        home.update(cut_1=0.0, cut_2=heading_1 - heading_2 + 1e-5)  # approximate, as from a CAD export
-        document["closures"] = [{"name": "cut", "type": "6D", "frame_a": "cut_link_1", "frame_b": "cut_link_2"}]
-
-    _edit_yaml(closures, weld)
-    return urdf, closures
-
-
 def test_welded_double_hinge_locks_the_gauge_joint(tmp_path):
-    urdf, closures = _welded_double_hinge(tmp_path)
+    urdf, closures = welded_double_hinge(tmp_path)
     with pytest.warns(ModelWarning) as caught:
         mechanism = Mechanism.load(urdf, closures)
     notes = [str(w.message) for w in caught]
@@ -311,7 +276,7 @@ def test_welded_double_hinge_locks_the_gauge_joint(tmp_path):
 
 def _loaded_with_home(urdf: Path, closures: Path, home: dict) -> Mechanism:
     """The pair loaded with `home` (joint name: value) in place of the file's home."""
-    _edit_yaml(closures, lambda d: d.update(home=home))
+    edit_yaml(closures, lambda d: d.update(home=home))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ModelWarning)
         return Mechanism.load(urdf, closures)
@@ -350,7 +315,7 @@ def test_rough_homes_assemble_to_the_assembly_mode_nearest_the_guess(tmp_path):
 
 def test_a_task_that_is_not_square_is_refused_by_inverse_only(tmp_path):
     urdf, closures = five_bar_files(tmp_path)
-    _edit_yaml(closures, lambda d: d["task"].update(position=["x", "y", "z"]))
+    edit_yaml(closures, lambda d: d["task"].update(position=["x", "y", "z"]))
     mechanism = Mechanism.load(urdf, closures)
     solver = ClosedLoopSolver(mechanism)
     solver.forward(mechanism.home[mechanism.actuated_ids])  # forward kinematics does not need the task
@@ -388,7 +353,7 @@ def test_a_frame_error_moves_the_closure_frames_attached_to_it(tmp_path):
 
 def test_kinematics_do_not_need_the_meshes(tmp_path):
     urdf, closures = five_bar_files(tmp_path)
-    _edit(
+    edit_text(
         urdf, lambda text: text.replace('<sphere radius="0.01"/>', '<mesh filename="package://gone/effector.stl"/>', 1)
     )
     assert "gone/effector.stl" in urdf.read_text()
@@ -434,14 +399,14 @@ def test_kinematics_do_not_need_the_meshes(tmp_path):
 )
 def test_malformed_task_or_workspace_is_named(tmp_path, change, message):
     urdf, closures = five_bar_files(tmp_path)
-    _edit_yaml(closures, change)
+    edit_yaml(closures, change)
     with pytest.raises(ModelFileError, match=message):
         Mechanism.load(urdf, closures)
 
 
 def test_a_declared_box_the_machine_cannot_reach_is_named(tmp_path):
     urdf, closures = five_bar_files(tmp_path)
-    _edit_yaml(closures, lambda d: d.update(workspace={"task": {"x": [-0.1, 0.1], "y": [0.9, 1.0]}}))
+    edit_yaml(closures, lambda d: d.update(workspace={"task": {"x": [-0.1, 0.1], "y": [0.9, 1.0]}}))
     mechanism = Mechanism.load(urdf, closures)
     with pytest.raises(ModelFileError, match=r"draws in the declared task workspace box cannot be assembled from home"):
         workspace_actuators(mechanism, 5, np.random.default_rng(0))
@@ -450,7 +415,7 @@ def test_a_declared_box_the_machine_cannot_reach_is_named(tmp_path):
 def test_missing_closure_rows_are_not_taken_for_a_gauge(tmp_path):
     """With only the x row of the five-bar's loop, the effector keeps a free motion: an error, not a lock."""
     urdf, closures = five_bar_files(tmp_path)
-    _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0]))
+    edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0]))
     with pytest.raises(
         ModelFileError,
         match="leave 1 degree.* of freedom beyond the actuators: with the actuators "
@@ -465,7 +430,7 @@ def test_a_free_motion_beside_an_idle_spin_is_counted_apart_and_named(tmp_path):
     the refusal says 1 moves the effector, names the joints that move most along it, and counts the
     other as an idle spin, where a published leg's refusal counted 3 and said nothing of which."""
     urdf, closures = rod_five_bar_files(tmp_path)
-    _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[1, 2, 3, 4, 5]))
+    edit_yaml(closures, lambda d: d["closures"][0].update(rows=[1, 2, 3, 4, 5]))
     with pytest.raises(ModelFileError) as refusal:
         Mechanism.load(urdf, closures)
     found = re.search(
@@ -481,7 +446,7 @@ def test_a_free_motion_beside_an_idle_spin_is_counted_apart_and_named(tmp_path):
 
 def test_a_row_that_holds_by_itself_is_dropped_with_a_note(tmp_path):
     urdf, closures = five_bar_files(tmp_path)
-    _edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0, 1, 2]))  # z: the plane's normal, always 0
+    edit_yaml(closures, lambda d: d["closures"][0].update(rows=[0, 1, 2]))  # z: the plane's normal, always 0
     mechanism = _load_noting(urdf, closures, r"1 closure row\(s\) dropped as dependent on the others: loop\[2\]")
     assert mechanism.closures[0].rows == (0, 1) and mechanism.locked_joints == ()
 
@@ -493,7 +458,7 @@ def test_closures_that_hold_the_actuators_are_refused(tmp_path):
     data = mechanism.model.createData()
     pin.framesForwardKinematics(mechanism.model, data, mechanism.home)
     x, y, _ = (float(v) for v in data.oMf[mechanism.model.getFrameId("effector")].translation)
-    _edit(
+    edit_text(
         urdf,
         lambda text: text.replace(
             "</robot>",
@@ -502,7 +467,7 @@ def test_closures_that_hold_the_actuators_are_refused(tmp_path):
             '</joint><link name="anchor"/></robot>',
         ),
     )
-    _edit_yaml(
+    edit_yaml(
         closures,
         lambda d: d["closures"].append(
             {"name": "pin", "type": "3D", "frame_a": "anchor", "frame_b": "effector", "rows": [0, 1]}
@@ -518,7 +483,7 @@ def test_closures_that_hold_the_actuators_are_refused(tmp_path):
 
 def test_a_schema_1_file_samples_between_the_actuator_limits(tmp_path):
     urdf, closures = five_bar_files(tmp_path)
-    _edit_yaml(
+    edit_yaml(
         closures,
         lambda d: (
             [d.pop(key) for key in ("schema_version", "workspace")]
@@ -532,9 +497,9 @@ def test_a_schema_1_file_samples_between_the_actuator_limits(tmp_path):
     assert np.all(draws >= lower) and np.all(draws <= upper)
     # URDF limits of [0.5, 3.5] rad still assemble everywhere on home's branch (tests/reference_kinematics.py
     # agrees); [0.2, 4.0] reach past the five-bar's singularities, where FK from home changes branch.
-    _edit(urdf, lambda text: text.replace('lower="1.83" upper="2.83"', 'lower="0.5" upper="3.5"'))
+    edit_text(urdf, lambda text: text.replace('lower="1.83" upper="2.83"', 'lower="0.5" upper="3.5"'))
     assert len(workspace_actuators(Mechanism.load(urdf, closures), 200, np.random.default_rng(1))) == 200
-    _edit(urdf, lambda text: text.replace('lower="0.5" upper="3.5"', 'lower="0.2" upper="4.0"'))
+    edit_text(urdf, lambda text: text.replace('lower="0.5" upper="3.5"', 'lower="0.2" upper="4.0"'))
     with pytest.raises(
         ModelFileError,
         match=r"draws in the actuators' URDF limits \(no workspace declared: add a "
@@ -595,7 +560,7 @@ def test_a_schema_1_file_of_four_actuators_keeps_position_and_yaw_without_a_note
     folder_urdf.write_bytes(urdf.read_bytes())
     copy = tmp_path / "m.closures.yaml"
     copy.write_bytes(closures.read_bytes())
-    _edit_yaml(copy, lambda d: [d.pop(key) for key in ("schema_version", "task")])
+    edit_yaml(copy, lambda d: [d.pop(key) for key in ("schema_version", "task")])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ModelWarning)
         mechanism = Mechanism.load(folder_urdf, copy)
@@ -730,6 +695,6 @@ def test_a_continuous_joint_stays_continuous_in_the_written_urdf(tmp_path):
 )
 def test_malformed_declared_frames_or_locked_joints_are_named(tmp_path, change, message):
     urdf, closures = published_five_bar_files(tmp_path)
-    _edit_yaml(closures, change)
+    edit_yaml(closures, change)
     with pytest.raises(ModelFileError, match=re.escape(message)):
         _quiet_load(urdf, closures)

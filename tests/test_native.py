@@ -11,6 +11,7 @@ import pytest
 from conftest import perturb_every_origin
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
+from model_files import edit_yaml, welded_double_hinge
 
 from m3t1r.errors import (
     BranchChangeError,
@@ -534,12 +535,11 @@ def test_a_task_that_is_not_square_still_gets_the_compiled_forward(tmp_path, tas
     """IK needs as many task rows as actuators; FK does not: the five-bar commanding x, y, z or x, y,
     yaw (3 rows for 2 sliders) solves FK in the compiled loop as in the Python one, and IK is refused
     by name."""
-    from test_mechanisms import _edit_yaml
 
     from m3t1r.errors import InvalidInputError
 
     urdf, closures = five_bar_files(tmp_path)
-    _edit_yaml(closures, lambda d: d["task"].update(task))
+    edit_yaml(closures, lambda d: d["task"].update(task))
     machine = Mechanism.load(urdf, closures)
     assert ClosedLoopSolver(machine).native is not None
     low, high = machine.joint_limits()
@@ -572,11 +572,9 @@ def test_a_locked_gauge_joint_stays_out_of_the_compiled_ik(tmp_path):
     """The welded double hinge locks one joint: the compiled IK solves the other columns, as the Python one."""
     import warnings
 
-    from test_mechanisms import _welded_double_hinge
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        hinge = Mechanism.load(*_welded_double_hinge(tmp_path))
+        hinge = Mechanism.load(*welded_double_hinge(tmp_path))
     assert len(hinge.locked_joints) == 1
     _compare_inverse(hinge, _targets(hinge, 20, 7))
     result = ClosedLoopSolver(hinge).inverse(_targets(hinge, 3, 8)[-1], q_init=hinge.home)

@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from model_files import welded_double_hinge
 
 from m3t1r.errors import InvalidInputError
 from m3t1r.model import branches
@@ -48,11 +49,10 @@ def test_the_layout_s_arrays_are_read_only_copies(mechanism):
 
 
 def test_locked_joints_are_left_out_of_the_inverse_s_columns(tmp_path):
-    from test_mechanisms import _welded_double_hinge
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        hinge = Mechanism.load(*_welded_double_hinge(tmp_path))
+        hinge = Mechanism.load(*welded_double_hinge(tmp_path))
     layout = solver_layout(hinge, ClosureSystem(hinge.model, hinge.closures))
     free = [i for i in range(hinge.model.nv) if i not in hinge.locked_ids.tolist()]
     assert len(free) == hinge.model.nv - 1
