@@ -493,6 +493,17 @@ def _loo_reference(J, r, k, columns):
     return out
 
 
+def _assert_each_step_adds_the_smallest_press(J, r, k, forced, order) -> None:
+    """Each step of `order` adds, of the columns left, the one whose refit has the smallest PRESS
+    (`_loo_reference`, explicit leave-one-pose-out refits)."""
+    chosen = list(forced)
+    for column in order:
+        left = [c for c in range(J.shape[1]) if c not in chosen]
+        scores = [_loo_reference(J, r, k, chosen + [c]).sum() for c in left]
+        assert column == left[int(np.argmin(scores))]
+        chosen.append(column)
+
+
 @pytest.mark.parametrize("forced", [(), (5,), (6, 1)])
 def test_forward_selection_path_press_order_and_ties_against_refits(forced):
     rng = np.random.default_rng(5)
@@ -510,13 +521,7 @@ def test_forward_selection_path_press_order_and_ties_against_refits(forced):
     assert selection.indices == tuple(sorted(list(forced) + list(selection.order[:best])))
     assert selection.press == pytest.approx(path[best], rel=1e-8)
     assert selection.press_all == pytest.approx(path[-1], rel=1e-8)
-    # Each step adds the column with the smallest PRESS among those left.
-    chosen = list(forced)
-    for column in selection.order:
-        left = [c for c in range(p) if c not in chosen]
-        scores = [_loo_reference(J, r, k, chosen + [c]).sum() for c in left]
-        assert column == left[int(np.argmin(scores))]
-        chosen.append(column)
+    _assert_each_step_adds_the_smallest_press(J, r, k, forced, selection.order)
     differences = np.array(per_pose) - per_pose[best]
     se = differences.std(axis=1, ddof=1) * np.sqrt(n)
     assert selection.tied == int(np.count_nonzero(path - path[best] <= se)) - 1
@@ -1329,14 +1334,12 @@ def test_forward_selection_scores_candidates_as_refits_do_where_a_few_poses_have
     J[: 3 * k] *= 30.0  # poses 0-2 dominate their columns' fit
     r = -(J @ np.r_[0.4, -0.2, 0.1, 0.05, np.zeros(p - 4)]) + rng.normal(size=n * k)
     selection = forward_selection(J, r, k, range(p), forced=forced)
-    chosen = list(forced)
-    for column in selection.order:
-        left = [c for c in range(p) if c not in chosen]
-        scores = [_loo_reference(J, r, k, chosen + [c]).sum() for c in left]
-        assert column == left[int(np.argmin(scores))]
-        chosen.append(column)
+    _assert_each_step_adds_the_smallest_press(J, r, k, forced, selection.order)
     assert len(selection.path) == p - len(forced) + 1  # every candidate independent: the whole path
-    path = [_loo_reference(J, r, k, chosen[: len(forced) + size]).sum() for size in range(len(selection.path))]
+    path = [
+        _loo_reference(J, r, k, (list(forced) + list(selection.order))[: len(forced) + size]).sum()
+        for size in range(len(selection.path))
+    ]
     np.testing.assert_allclose(selection.path, path, rtol=1e-8)
 
 

@@ -14,20 +14,22 @@ from m3t1r.model.poe import Placement, SerialChain, perturb, tool_poses
 COMPLIANCE = {"shoulder_lift_joint": -6e-5, "elbow_joint": -9e-5}  # rad/Nm
 
 
-@pytest.fixture(scope="module")
-def ur10():
-    model = load_example_robot("ur10")
-    chain = SerialChain.from_model(model, "tool0")
+def _robot_with_errors(name: str, tool: str):
+    """(nominal model, its chain to `tool`, a copy with 1 mm / 1 mrad placement errors)."""
+    model = load_example_robot(name)
+    chain = SerialChain.from_model(model, tool)
     rng = np.random.default_rng(1)
     return model, chain, perturb(model, {p: rng.normal(0.0, 1e-3, 6) for p in chain.placements()})
+
+
+@pytest.fixture(scope="module")
+def ur10():
+    return _robot_with_errors("ur10", "tool0")
 
 
 @pytest.fixture(scope="module")
 def panda():
-    model = load_example_robot("panda")
-    chain = SerialChain.from_model(model, "panda_hand_tcp")
-    rng = np.random.default_rng(1)
-    return model, chain, perturb(model, {p: rng.normal(0.0, 1e-3, 6) for p in chain.placements()})
+    return _robot_with_errors("panda", "panda_hand_tcp")
 
 
 def test_commands_put_the_compliant_calibrated_tool_on_the_nominal_pose(ur10) -> None:
