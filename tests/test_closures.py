@@ -10,7 +10,17 @@ import pytest
 import yaml
 
 from m3t1r.errors import ModelFileError, ModelWarning
-from m3t1r.model.closures import CLOSURE_TYPES, ROW_COUNT, ClosureSpec, ClosureSystem, _null_space, _rank, without_rows
+from m3t1r.model.closures import (
+    CLOSURE_TYPES,
+    ROW_COUNT,
+    ClosureSpec,
+    ClosureSystem,
+    _null_space,
+    _rank,
+    frame_support,
+    relative_supports,
+    without_rows,
+)
 from m3t1r.model.description import Mechanism, nominal_model_paths
 from m3t1r.model.examples import rod_five_bar_files, spherical_wrist_files
 
@@ -105,6 +115,57 @@ def test_row_operators_of_many_configurations_at_once_are_each_one_s_operator(ma
         batch = system.operators(np.array(placements))
         assert batch.shape == (3, system.n_rows, 6)
         np.testing.assert_allclose(batch, np.array(expected), rtol=0, atol=1e-12)
+
+
+def test_row_operators_keep_the_stack_shape_of_the_placements():
+    """Each type's operator on placements stacked (2, 3, 4, 4) is (2, 3, rows, 6), each block the
+    operator of its one pair."""
+    rng = np.random.default_rng(6)
+    oMa, oMb = (
+        np.array([pin.exp6(twist).homogeneous for twist in rng.normal(0, 1, (6, 6))]).reshape(2, 3, 4, 4)
+        for _ in range(2)
+    )
+    for kind in CLOSURE_TYPES.values():
+        stacked = kind.operator(oMa, oMb)
+        assert stacked.shape == (2, 3, kind.rows, 6)
+        for i in range(2):
+            for k in range(3):
+                np.testing.assert_allclose(
+                    stacked[i, k], kind.operator(oMa[i, k][None], oMb[i, k][None])[0], rtol=0, atol=1e-12
+                )
+
+
+def test_relative_supports_are_one_signed_row_per_closure(wrist):
+    """(closures, nv), each row support(frame b) - support(frame a); no closures: (0, nv)."""
+    supports = relative_supports(wrist.model, wrist.closures)
+    assert supports.shape == (len(wrist.closures), wrist.model.nv)
+    for row, closure in zip(supports, wrist.closures):
+        np.testing.assert_array_equal(
+            row, frame_support(wrist.model, closure.frame_b_id) - frame_support(wrist.model, closure.frame_a_id)
+        )
+    assert set(np.unique(supports)) <= {-1.0, 0.0, 1.0} and np.abs(supports).sum() > 0
+    assert relative_supports(wrist.model, ()).shape == (0, wrist.model.nv)
+
+
+def test_a_system_given_a_data_evaluates_in_it(wrist):
+    """`data=`: the system computes in the caller's Data (the solver shares its own), not a new one."""
+    data = wrist.model.createData()
+    system = ClosureSystem(wrist.model, wrist.closures, data=data)
+    assert system.data is data
+    q = wrist.home + 0.1
+    system.evaluate(q, True)
+    pin.forwardKinematics(wrist.model, reference := wrist.model.createData(), q)
+    np.testing.assert_allclose(data.oMi[-1].homogeneous, reference.oMi[-1].homogeneous, atol=1e-12)
+
+
+def test_assembly_from_a_configuration_that_is_not_finite_reports_an_infinite_residual(wrist):
+    """A NaN joint value gives NaN rows: no step is taken and the worst row is reported as inf, never NaN."""
+    system = ClosureSystem(wrist.model, wrist.closures)
+    q = wrist.home.copy()
+    q[0] = np.nan
+    out, worst = system.assemble(q, np.arange(wrist.model.nv), 1e-9)
+    assert worst == np.inf
+    np.testing.assert_array_equal(out, q)
 
 
 def test_rank_rule():

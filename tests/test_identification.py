@@ -15,6 +15,7 @@ from m3t1r.calibration.identification import (
     RecursiveLeastSquares,
     batch_least_squares,
     best_index,
+    checked_outlier_sigma,
     forward_selection,
     levenberg_marquardt,
     outlier_gate,
@@ -447,6 +448,49 @@ def test_outlier_gate_is_the_5_sigma_chi2_quantile_from_both_sides(k):
     gate4 = scipy.stats.chi2.isf(2.0 * scipy.stats.norm.sf(4.0), k)
     d2 = np.r_[np.full(9, 1e-3), gate4 * (1 + 1e-9), gate4 * (1 - 1e-9)]
     assert list(np.flatnonzero(outlier_poses(_blocks_with_d2(d2, k), sigma=4.0)[0])) == [9]
+
+
+@pytest.mark.parametrize(("sigma", "gate"), [(None, None), (0, None), (0.0, None), (1, 1.0), (3, 3.0), (1000, 1000.0)])
+def test_an_outlier_gate_of_none_or_zero_keeps_every_pose_and_1_to_1000_sigmas_is_a_gate(sigma, gate):
+    assert checked_outlier_sigma(sigma) == gate
+
+
+@pytest.mark.parametrize(
+    ("sigma", "message"),
+    [
+        ("a", "expected a real number, got 'a'"),
+        (float("nan"), "expected a finite number, got nan"),
+    ]
+    + [
+        (value, f"None or 0 (keep every pose) or a gate of 1 to 1000 noise sigmas, got {value!r}")
+        for value in (0.5, 0.999, -1, 1000.5, 1001.0)
+    ],
+)
+def test_an_outlier_gate_that_flags_good_poses_or_none_is_refused_by_name(sigma, message):
+    with pytest.raises(InvalidInputError) as caught:
+        checked_outlier_sigma(sigma)
+    assert str(caught.value) == f"outlier_sigma: {message}"
+
+
+def test_poses_with_fewer_measured_rows_get_their_own_chi2_median_and_gate():
+    """measured_rows: each pose's statistic is chi^2 with its own degrees of freedom (3 or 6 rows of a
+    6-row block); the variance factor is the median of d^2 / median(chi^2_k_i), here 4 (s = 2), and
+    each pose is gated at s^2 times its own 5-sigma quantile."""
+    import scipy.stats
+
+    dof = np.array([3, 6] * 5 + [3, 3, 6])
+    median = scipy.stats.chi2.median(dof)
+    gate = scipy.stats.chi2.isf(2.0 * scipy.stats.norm.sf(5.0), dof)
+    d2 = 4.0 * median
+    d2[10] = 4.0 * gate[10] * (1 + 1e-9)  # 3 rows, just beyond its gate
+    d2[11] = 4.0 * gate[11] * (1 - 1e-9)  # 3 rows, just within
+    d2[12] = 4.0 * gate[10] * 1.01  # 6 rows: beyond a 3-row gate, within its own
+    assert 4.0 * gate[10] * 1.01 < 4.0 * gate[12]
+    blocks = np.zeros((len(dof), 6))
+    blocks[:, 0] = np.sqrt(d2)
+    flagged, scale = outlier_poses(blocks, measured_rows=dof)
+    assert list(np.flatnonzero(flagged)) == [10]
+    assert scale == pytest.approx(2.0, rel=1e-12)
 
 
 def test_outlier_scale_is_the_median_ratio_and_never_below_one():

@@ -582,6 +582,52 @@ def test_a_partial_group_lists_the_absent_columns(tmp_path):
     assert str(error) == f"{path}, line 1, column 'qb': columns qa, qb, qc go together: qb, qc missing"
 
 
+_POSE_SCHEMA = {"required": ("j1", "x", "y", "z"), "optional_groups": (QUATERNION,)}
+_CONVERTS = "converts the file (it keeps the joint columns)"
+
+
+def test_a_rotation_matrix_is_named_by_its_first_and_last_columns_and_converted_without_options(tmp_path):
+    matrix = [f"r{i}{j}" for i in "123" for j in "123"]
+    path = _csv(tmp_path, ",".join(["j1", "x", "y", "z", *matrix]) + "\n" + ",".join(["0"] * 13) + "\n")
+    assert str(_read_error(path, **_POSE_SCHEMA)) == (
+        f"{path}, line 1, column 'r11': unknown columns: {', '.join(matrix)}; expected columns: j1, x, y, z, qx, qy, "
+        "qz, qw; r11 ... r33 look like an orientation as a rotation matrix: this file takes a unit quaternion qx, "
+        f"qy, qz, qw, and `m3t1r convert {path} -o measurements.csv` {_CONVERTS}"
+    )
+
+
+def test_an_orientation_hint_beside_a_missing_column_asks_no_question(tmp_path):
+    path = _csv(tmp_path, "j1,x,y,roll,pitch,yaw\n0,1,2,0,0,0\n")
+    assert str(_read_error(path, **_POSE_SCHEMA)) == (
+        f"{path}, line 1, column 'z': missing required columns: z; unknown columns: roll, pitch, yaw; roll, pitch, "
+        "yaw look like an orientation as Euler angles: this file takes a unit quaternion qx, qy, qz, qw, and "
+        f"`m3t1r convert {path} --euler SEQ [--degrees] -o measurements.csv` {_CONVERTS}"
+    )
+
+
+def test_unknown_columns_of_a_pose_table_that_are_no_orientation_get_no_hint(tmp_path):
+    path = _csv(tmp_path, "j1,x,y,z,roll,pitch\n0,1,2,3,0,0\n")  # two of the three angles: not Euler angles
+    assert str(_read_error(path, **_POSE_SCHEMA)) == (
+        f"{path}, line 1, column 'roll': unknown columns: roll, pitch (is this file for another model?); "
+        "expected columns: j1, x, y, z, qx, qy, qz, qw"
+    )
+
+
+def test_read_header_names_the_file_that_has_no_header_or_a_malformed_one(tmp_path):
+    empty = _csv(tmp_path, "# only a comment\n\n", "empty.csv")
+    with pytest.raises(DataFileError) as caught:
+        read_header(empty)
+    assert (caught.value.path, str(caught.value)) == (
+        str(empty),
+        f"{empty}: no header line: the file is empty or holds only comments",
+    )
+    quoted = _csv(tmp_path, '# c\nx,"y\n1,2\n', "quoted.csv")
+    with pytest.raises(DataFileError) as caught:
+        read_header(quoted)
+    assert (caught.value.path, caught.value.row) == (str(quoted), 2)
+    assert str(caught.value).startswith(f"{quoted}, line 2: malformed CSV: ")
+
+
 # -- read_table: fields ---------------------------------------------------------------------------
 
 
@@ -610,6 +656,18 @@ def test_default_magnitude_bound_is_inclusive_at_1e6(tmp_path):
     assert str(error) == (
         f"{beyond}, line 3, column 'y': value 1000000.0000001 is implausibly large: |value| > 1e+06 "
         "(SI units: m, rad); it would overflow the computation"
+    )
+
+
+def test_the_magnitude_bound_is_inclusive_in_a_table_with_blank_fields_too(tmp_path):
+    """A blank field (allowed in its column) sends the whole table through the field-by-field reading:
+    the same bound, inclusive at its value."""
+    path = _csv(tmp_path, "x,y\n1000000,\n-1e6,2\n")
+    data = read_table(path, ["x", "y"], blank_allowed=("y",)).data
+    assert data[:, 0].tolist() == [1e6, -1e6] and np.isnan(data[0, 1]) and data[1, 1] == 2.0
+    beyond = _csv(tmp_path, "x,y\n1000000.0000001,\n", "beyond.csv")
+    assert str(_read_error(beyond, ["x", "y"], blank_allowed=("y",))).startswith(
+        f"{beyond}, line 2, column 'x': value 1000000.0000001 is implausibly large: |value| > 1e+06 "
     )
 
 

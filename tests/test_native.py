@@ -97,6 +97,25 @@ def test_without_the_module_the_pure_python_variable_keeps_it_quiet(mechanism, m
         _with_the_module(monkeypatch)
 
 
+@pytest.mark.parametrize(
+    ("value", "chosen"),
+    [("1", True), ("yes", True), (" YES ", True), ("true", True), ("True", True), ("on", True), ("ON", True)]
+    + [("", False), ("0", False), ("no", False), ("off", False), ("y", False)],
+)
+def test_the_pure_python_variable_is_read_in_any_case_and_spacing(monkeypatch, value, chosen):
+    """1, yes, true and on (any case, spaces around) choose the pure-Python loop; anything else does not."""
+    monkeypatch.setenv(native.PURE_PYTHON_VARIABLE, value)
+    try:
+        _without_the_module(monkeypatch)
+        assert native.status() == (
+            f"pure-Python Newton loop: the compiled one is not built{', as M3T1R_PURE_PYTHON asks' if chosen else ''} "
+            "(4-6x slower; build it: make native, or reinstall with a C++ compiler, "
+            "e.g. pip install --force-reinstall .)"
+        )
+    finally:
+        _with_the_module(monkeypatch)
+
+
 def _path(solver: ClosedLoopSolver, n: int = 200) -> np.ndarray:
     """Slider values along a smooth workspace path (Lissajous in x, y, z, theta)."""
     t = np.linspace(0.0, 2.0 * np.pi, n)
