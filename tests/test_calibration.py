@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pinocchio as pin
 import pytest
+import scipy.special
 
 from m3t1r.calibration import closed_loop, pipeline
 from m3t1r.calibration.closed_loop import (
@@ -25,7 +26,7 @@ from m3t1r.calibration.closed_loop import (
     setup_parameter_names,
 )
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
-from m3t1r.calibration.identification import forward_selection, select_base_parameters
+from m3t1r.calibration.identification import forward_selection, outlier_gate, select_base_parameters
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
 from m3t1r.calibration.pipeline import CalibrationOptions, LMSettings, pose_error_rms
@@ -1384,3 +1385,73 @@ def test_jacobian_is_the_derivative_of_the_residual_along_retract(mechanism, few
         plus, minus = problem.retract(state, step), problem.retract(state, -step)
         numeric[:, j] = (problem.pose_residuals(plus) - problem.pose_residuals(minus)).reshape(-1) / (2 * eps)
     np.testing.assert_allclose(jacobian, numeric, atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------------
+# Refinement through the whole calibration (`refine=True`): the fit, its columns and its iterations
+
+
+def test_refinement_continues_over_the_columns_identifiable_at_the_estimate(mechanism, noisy):
+    """refine=True re-selects at the estimate (tolerance 1e-7): more columns are fitted, LM continues
+    for at most `refine_iterations`, and the iterations add up; a tolerance that finds no more
+    columns (0.5) returns the fit without refinement, its iterations unchanged."""
+    study, plain = noisy
+    refined = calibrate_closed_loop(
+        mechanism, study.measurements, CalibrationOptions(noise=NOISE, refine=True, refine_iterations=2)
+    )
+    assert len(refined.fitted) > len(plain.fitted)  # chosen anew at the estimate, no gauge kept first
+    assert 1 <= refined.lm.iterations <= 2
+    assert refined.iterations == plain.iterations + refined.lm.iterations
+    assert refined.base.rank == plain.base.rank and refined.outliers == plain.outliers
+    loose = calibrate_closed_loop(
+        mechanism,
+        study.measurements,
+        CalibrationOptions(noise=NOISE, refine=True, refine_rank_tolerance=0.5, refine_iterations=2),
+    )
+    assert loose.fitted == plain.fitted and loose.iterations == plain.iterations
+    assert loose.variance_factor == pytest.approx(plain.variance_factor, rel=1e-12)
+
+
+# --------------------------------------------------------------------------------------------------
+# Outlier rounds with several points per pose: each pose judged on the rows it measured
+
+
+class _PointsProblem:
+    """Ten poses of three points (nine rows), the last pose seeing its first point only: what
+    `pipeline.reject_outliers` reads of a problem, with chosen whitened blocks."""
+
+    def __init__(self, last_pose_chi2):
+        self.n_points, self.columns = 3, np.arange(4)
+        self.seen = np.ones((10, 9), dtype=bool)
+        self.seen[9, 3:] = False
+        self.blocks = np.where(self.seen, 1.0, 0.0)
+        self.blocks[9, :3] = np.sqrt(last_pose_chi2 / 3.0)
+        self.active = np.ones(10, dtype=bool)
+
+    def pose_blocks(self, state):
+        return self.blocks
+
+    def release(self, state):
+        pass
+
+    def restart(self, state):
+        return state
+
+
+def test_a_pose_seeing_fewer_points_is_judged_on_its_own_rows(monkeypatch):
+    """A pose seeing one point of three has 3 degrees of freedom, not 9: a chi^2 between the two
+    gates (scaled by the robust variance factor, 9 / median chi^2_9 here) flags it, and the fit is
+    redone without it from the start; judged on 9 rows it would be kept."""
+    scale2 = 9.0 / (2.0 * float(scipy.special.gammaincinv(4.5, 0.5)))
+    gate_3, gate_9 = outlier_gate(5.0, 3) * scale2, outlier_gate(5.0, 9) * scale2
+    assert gate_3 < 0.9 * gate_9
+    problem = _PointsProblem(0.5 * (gate_3 + gate_9))
+    refit = SimpleNamespace(state="refit", iterations=3)
+    monkeypatch.setattr(pipeline, "fit", lambda problem, state, settings: refit)
+    result, iterations = pipeline.reject_outliers(problem, "start", SimpleNamespace(state="fit"), 5.0, ONE_STEP)
+    assert result is refit and iterations == 3  # one refit: the flagged set is then stable
+    np.testing.assert_array_equal(problem.active, np.arange(10) != 9)
+    below = _PointsProblem(0.9 * gate_3)
+    kept = SimpleNamespace(state="fit")
+    assert pipeline.reject_outliers(below, "start", kept, 5.0, ONE_STEP) == (kept, 0)
+    assert below.active.all()

@@ -175,9 +175,27 @@ def test_a_planar_nominal_does_not_cap_what_a_noise_free_fit_identifies(tmp_path
     if noisy:
         assert len(calibration.fitted) == calibration.base.rank
         assert 0.5 < calibration.variance_factor < 1.5
+        assert calibration.iterations == calibration.lm.iterations  # the base fit alone: no refit counted
         return
     assert len(calibration.fitted) > calibration.base.rank
+    assert calibration.iterations > calibration.lm.iterations  # the base fit's, then the refit's
     assert held_out.position_max < 1e-7 and held_out.rotation_max < 1e-6
+
+
+def test_a_fit_beyond_the_stated_noise_stays_at_the_nominals_parameters(tmp_path):
+    """The rod five-bar measured with 10 times the noise the fit is told (100 um, 200 urad): its
+    residual is far above the stated noise, so the fit keeps the nominal's base parameters, where the
+    same data stated at their own noise pass the gate and still keep them (the added directions fit
+    noise)."""
+    mechanism = _quiet_load(*rod_five_bar_files(tmp_path))
+    stated, actual = TrackerNoise(), TrackerNoise(position=1e-4, rotation=2e-4)
+    study = simulate_study(
+        mechanism, n_poses=60, n_holdout=0, seed=2, noise=actual, errors=PlacementErrorScale(1e-3, 1e-3)
+    )
+    calibration = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=stated))
+    assert 50.0 < calibration.variance_factor < 200.0
+    assert len(calibration.fitted) == calibration.base.rank
+    assert calibration.iterations == calibration.lm.iterations
 
 
 # ------------------------------------------------------------------------------------------------
