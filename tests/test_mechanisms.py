@@ -20,13 +20,14 @@ import reference_kinematics as reference
 import scipy.linalg
 import yaml
 
+from m3t1r.calibration import pipeline
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.simulation import PlacementErrorScale, simulate_study
 from m3t1r.compensation import joint_limit_violation
-from m3t1r.errors import InvalidInputError, ModelFileError, ModelWarning
+from m3t1r.errors import IdentificationError, InvalidInputError, ModelFileError, ModelWarning
 from m3t1r.model.closures import ClosureSystem
 from m3t1r.model.description import Mechanism, nominal_model_paths
 from m3t1r.model.examples import (
@@ -185,6 +186,24 @@ def test_a_planar_nominal_does_not_cap_what_a_noise_free_fit_identifies(tmp_path
     held = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise(), fixed=[added]))
     assert len(held.fitted) > held.base.rank and added not in held.fitted
     assert abs(held.parameters[added]) < 1e-11  # its start, to the rounding of its placement's other steps
+
+
+def test_a_refit_past_the_nominal_rank_that_does_not_assemble_is_dropped(tmp_path, monkeypatch):
+    """The rod five-bar's noise-free fit, its refit over every column with an effect made to end on a
+    machine that does not assemble: the base fit is kept, columns and iterations its own."""
+    mechanism = _quiet_load(*rod_five_bar_files(tmp_path))
+    study = simulate_study(mechanism, n_poses=60, n_holdout=0, seed=2, errors=PlacementErrorScale(1e-3, 1e-3))
+    fit = pipeline.fit
+
+    def refused_refit(problem, state, settings):
+        if settings.unit_damping:  # the refit past the nominal's rank alone is damped in units
+            raise IdentificationError("calibration ended on a model that does not assemble")
+        return fit(problem, state, settings)
+
+    monkeypatch.setattr(pipeline, "fit", refused_refit)
+    calibration = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise()))
+    assert calibration.lm.converged and len(calibration.fitted) == calibration.base.rank
+    assert calibration.iterations == calibration.lm.iterations
 
 
 @pytest.mark.parametrize(
