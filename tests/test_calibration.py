@@ -1455,3 +1455,29 @@ def test_a_pose_seeing_fewer_points_is_judged_on_its_own_rows(monkeypatch):
     kept = SimpleNamespace(state="fit")
     assert pipeline.reject_outliers(below, "start", kept, 5.0, ONE_STEP) == (kept, 0)
     assert below.active.all()
+
+
+def test_rms_of_points_is_over_the_points_seen():
+    """With `seen` (N, 3 P), the position RMS is over every point seen, each point's error the norm of
+    its three rows; orientation is not measured (nan)."""
+    residual = np.array([[3.0, 4.0, 0.0, 9.0, 9.0, 9.0], [0.0, 1.0, 0.0, 2.0, 2.0, 1.0]])
+    seen = np.array([[True] * 3 + [False] * 3, [True] * 6])
+    position, rotation = pose_error_rms(residual, seen)
+    assert position == pytest.approx(np.sqrt((25.0 + 1.0 + 9.0) / 3), rel=1e-15)
+    assert np.isnan(rotation) and type(rotation) is float
+
+
+def test_calibration_summary_of_points_reports_the_rms_of_the_points_seen(mechanism):
+    """A fit of two points per pose: the summary's RMS before and after are over the inliers' points
+    seen (`pose_error_rms` with their `seen` rows), not over every row."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    jacobian = np.eye(14, 3)
+    before = np.array([[3.0, 4.0, 0.0, 9.0, 9.0, 9.0], [1.0, 1.0, 1.0, 1.0, 1.0, 1.0]])
+    start, end = object(), object()
+    problem = _StandInProblem(
+        error_model, (np.ones(14), jacobian), 3, np.array([3, 40, 205]), {id(start): before, id(end): before / 10}
+    )
+    problem.n_points = 2  # pose 0 sees its first point only; pose 1 (flagged) both
+    summary = pipeline.summarise(problem, start, SimpleNamespace(state=end), (object(), None, 1), ONE_STEP)
+    assert summary.rms_before.position == pytest.approx(5.0, rel=1e-15) and np.isnan(summary.rms_before.rotation)
+    assert summary.rms_after.position == pytest.approx(0.5, rel=1e-15) and np.isnan(summary.rms_after.rotation)
