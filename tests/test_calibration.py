@@ -334,6 +334,21 @@ def test_calibration_options_are_checked_at_the_call(mechanism, options, message
         calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(**options))
 
 
+def test_calibration_options_hold_their_settings_in_one_form():
+    """Whole numbers as int, names as a tuple, priors as a read-only mapping, groups as an array, a
+    zero outlier gate as None (keep every pose)."""
+    options = CalibrationOptions(
+        max_iterations=np.int64(7), fixed=["q11", "q12"], priors={"q12.dt[0]": 1e-3}, groups=[0, 0, 1], outlier_sigma=0
+    )
+    assert options.max_iterations == 7 and type(options.max_iterations) is int
+    assert options.fixed == ("q11", "q12") and options.outlier_sigma is None
+    assert dict(options.priors) == {"q12.dt[0]": 1e-3}
+    with pytest.raises(TypeError):
+        options.priors["q11.dt[0]"] = 1.0  # type: ignore[index]
+    assert isinstance(options.groups, np.ndarray) and options.groups.tolist() == [0, 0, 1]
+    assert CalibrationOptions(outlier_sigma=3).outlier_sigma == 3.0
+
+
 def test_complex_readings_and_seeds_below_zero_are_refused(mechanism):
     study = simulate_study(mechanism, n_poses=4, n_holdout=0, seed=16)
     with pytest.raises(InvalidInputError, match="actuator readings: complex values given"):
@@ -741,7 +756,7 @@ def test_a_fit_from_a_state_whose_factor_was_taken_evaluates_no_pose_for_its_fir
     assert len(evaluations) == 3 and flagged[0] < fresh[0]
 
 
-def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
+def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism, monkeypatch):
     """One fit with every option: the frame and marker estimated (the setup's 12 columns kept),
     one gross outlier flagged, a placement held, a prior, progress reported; then cross-validation
     and its refusals."""
@@ -755,7 +770,9 @@ def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
         noise=NOISE,
         options=StudyOptions(setup=MeasurementSetup(frame, marker), outliers=1),
     )
-    calls = []
+    calls, runs = [], []
+    fit = pipeline.fit
+    monkeypatch.setattr(pipeline, "fit", lambda *args: runs.append(fit(*args)) or runs[-1])
     calibration = calibrate_closed_loop(
         mechanism,
         study.measurements,
@@ -783,6 +800,8 @@ def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
     assert 0.6 < calibration.variance_factor < 1.6
     assert calibration.rms_after[0] < 3e-5 < 1e-3 < calibration.rms_before[0]
     assert len(calls) >= calibration.lm.iterations + 1
+    # The iterations are those of every LM run: the base fit, the refit without the outlier, the rest.
+    assert len(runs) >= 2 and calibration.iterations == sum(run.iterations for run in runs)
     for estimate, truth in ((calibration.setup.frame, frame), (calibration.setup.marker, marker)):
         difference = truth.actInv(estimate)
         assert np.linalg.norm(difference.translation) < 1e-2 and np.linalg.norm(pin.log3(difference.rotation)) < 1e-2
@@ -1403,6 +1422,7 @@ def test_refinement_continues_over_the_columns_identifiable_at_the_estimate(mech
     assert 1 <= refined.lm.iterations <= 2
     assert refined.iterations == plain.iterations + refined.lm.iterations
     assert refined.base.rank == plain.base.rank and refined.outliers == plain.outliers
+    assert plain.selection is None and refined.selection is None  # no model selection asked for
     loose = calibrate_closed_loop(
         mechanism,
         study.measurements,
