@@ -1485,6 +1485,9 @@ def test_rms_of_points_is_over_the_points_seen():
     position, rotation = pose_error_rms(residual, seen)
     assert position == pytest.approx(np.sqrt((25.0 + 1.0 + 9.0) / 3), rel=1e-15)
     assert np.isnan(rotation) and type(rotation) is float
+    four = np.zeros((1, 12))
+    four[0, 9] = 2.0  # the fourth point 2 off, the others exact, every point seen
+    assert pose_error_rms(four, np.ones((1, 12), dtype=bool)).position == pytest.approx(1.0, rel=1e-15)
 
 
 def test_calibration_summary_of_points_reports_the_rms_of_the_points_seen(mechanism):
