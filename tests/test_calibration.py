@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pinocchio as pin
 import pytest
+import scipy.special
 
 from m3t1r.calibration import closed_loop, pipeline
 from m3t1r.calibration.closed_loop import (
@@ -25,7 +26,7 @@ from m3t1r.calibration.closed_loop import (
     setup_parameter_names,
 )
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
-from m3t1r.calibration.identification import forward_selection, select_base_parameters
+from m3t1r.calibration.identification import forward_selection, outlier_gate, select_base_parameters
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
 from m3t1r.calibration.pipeline import CalibrationOptions, LMSettings, pose_error_rms
@@ -331,6 +332,21 @@ def test_calibration_options_are_checked_at_the_call(mechanism, options, message
     study = simulate_study(mechanism, n_poses=12, n_holdout=0, seed=16)
     with pytest.raises(InvalidInputError, match=message):
         calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(**options))
+
+
+def test_calibration_options_hold_their_settings_in_one_form():
+    """Whole numbers as int, names as a tuple, priors as a read-only mapping, groups as an array, a
+    zero outlier gate as None (keep every pose)."""
+    options = CalibrationOptions(
+        max_iterations=np.int64(7), fixed=["q11", "q12"], priors={"q12.dt[0]": 1e-3}, groups=[0, 0, 1], outlier_sigma=0
+    )
+    assert options.max_iterations == 7 and type(options.max_iterations) is int
+    assert options.fixed == ("q11", "q12") and options.outlier_sigma is None
+    assert dict(options.priors) == {"q12.dt[0]": 1e-3}
+    with pytest.raises(TypeError):
+        options.priors["q11.dt[0]"] = 1.0  # type: ignore[index]
+    assert isinstance(options.groups, np.ndarray) and options.groups.tolist() == [0, 0, 1]
+    assert CalibrationOptions(outlier_sigma=3).outlier_sigma == 3.0
 
 
 def test_complex_readings_and_seeds_below_zero_are_refused(mechanism):
@@ -740,7 +756,7 @@ def test_a_fit_from_a_state_whose_factor_was_taken_evaluates_no_pose_for_its_fir
     assert len(evaluations) == 3 and flagged[0] < fresh[0]
 
 
-def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
+def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism, monkeypatch):
     """One fit with every option: the frame and marker estimated (the setup's 12 columns kept),
     one gross outlier flagged, a placement held, a prior, progress reported; then cross-validation
     and its refusals."""
@@ -754,7 +770,9 @@ def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
         noise=NOISE,
         options=StudyOptions(setup=MeasurementSetup(frame, marker), outliers=1),
     )
-    calls = []
+    calls, runs = [], []
+    fit = pipeline.fit
+    monkeypatch.setattr(pipeline, "fit", lambda *args: runs.append(fit(*args)) or runs[-1])
     calibration = calibrate_closed_loop(
         mechanism,
         study.measurements,
@@ -782,6 +800,8 @@ def test_campaign_with_setup_outliers_priors_and_fixed_parameters(mechanism):
     assert 0.6 < calibration.variance_factor < 1.6
     assert calibration.rms_after[0] < 3e-5 < 1e-3 < calibration.rms_before[0]
     assert len(calls) >= calibration.lm.iterations + 1
+    # The iterations are those of every LM run: the base fit, the refit without the outlier, the rest.
+    assert len(runs) >= 2 and calibration.iterations == sum(run.iterations for run in runs)
     for estimate, truth in ((calibration.setup.frame, frame), (calibration.setup.marker, marker)):
         difference = truth.actInv(estimate)
         assert np.linalg.norm(difference.translation) < 1e-2 and np.linalg.norm(pin.log3(difference.rotation)) < 1e-2
@@ -1384,3 +1404,103 @@ def test_jacobian_is_the_derivative_of_the_residual_along_retract(mechanism, few
         plus, minus = problem.retract(state, step), problem.retract(state, -step)
         numeric[:, j] = (problem.pose_residuals(plus) - problem.pose_residuals(minus)).reshape(-1) / (2 * eps)
     np.testing.assert_allclose(jacobian, numeric, atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------------
+# Refinement through the whole calibration (`refine=True`): the fit, its columns and its iterations
+
+
+def test_refinement_continues_over_the_columns_identifiable_at_the_estimate(mechanism, noisy):
+    """refine=True re-selects at the estimate (tolerance 1e-7): more columns are fitted, LM continues
+    for at most `refine_iterations`, and the iterations add up; a tolerance that finds no more
+    columns (0.5) returns the fit without refinement, its iterations unchanged."""
+    study, plain = noisy
+    refined = calibrate_closed_loop(
+        mechanism, study.measurements, CalibrationOptions(noise=NOISE, refine=True, refine_iterations=2)
+    )
+    assert len(refined.fitted) > len(plain.fitted)  # chosen anew at the estimate, no gauge kept first
+    assert 1 <= refined.lm.iterations <= 2
+    assert refined.iterations == plain.iterations + refined.lm.iterations
+    assert refined.base.rank == plain.base.rank and refined.outliers == plain.outliers
+    assert plain.selection is None and refined.selection is None  # no model selection asked for
+    loose = calibrate_closed_loop(
+        mechanism,
+        study.measurements,
+        CalibrationOptions(noise=NOISE, refine=True, refine_rank_tolerance=0.5, refine_iterations=2),
+    )
+    assert loose.fitted == plain.fitted and loose.iterations == plain.iterations
+    assert loose.variance_factor == pytest.approx(plain.variance_factor, rel=1e-12)
+
+
+# --------------------------------------------------------------------------------------------------
+# Outlier rounds with several points per pose: each pose judged on the rows it measured
+
+
+class _PointsProblem:
+    """Ten poses of three points (nine rows), the last pose seeing its first point only: what
+    `pipeline.reject_outliers` reads of a problem, with chosen whitened blocks."""
+
+    def __init__(self, last_pose_chi2):
+        self.n_points, self.columns = 3, np.arange(4)
+        self.seen = np.ones((10, 9), dtype=bool)
+        self.seen[9, 3:] = False
+        self.blocks = np.where(self.seen, 1.0, 0.0)
+        self.blocks[9, :3] = np.sqrt(last_pose_chi2 / 3.0)
+        self.active = np.ones(10, dtype=bool)
+
+    def pose_blocks(self, state):
+        return self.blocks
+
+    def release(self, state):
+        pass
+
+    def restart(self, state):
+        return state
+
+
+def test_a_pose_seeing_fewer_points_is_judged_on_its_own_rows(monkeypatch):
+    """A pose seeing one point of three has 3 degrees of freedom, not 9: a chi^2 between the two
+    gates (scaled by the robust variance factor, 9 / median chi^2_9 here) flags it, and the fit is
+    redone without it from the start; judged on 9 rows it would be kept."""
+    scale2 = 9.0 / (2.0 * float(scipy.special.gammaincinv(4.5, 0.5)))
+    gate_3, gate_9 = outlier_gate(5.0, 3) * scale2, outlier_gate(5.0, 9) * scale2
+    assert gate_3 < 0.9 * gate_9
+    problem = _PointsProblem(0.5 * (gate_3 + gate_9))
+    refit = SimpleNamespace(state="refit", iterations=3)
+    monkeypatch.setattr(pipeline, "fit", lambda problem, state, settings: refit)
+    result, iterations = pipeline.reject_outliers(problem, "start", SimpleNamespace(state="fit"), 5.0, ONE_STEP)
+    assert result is refit and iterations == 3  # one refit: the flagged set is then stable
+    np.testing.assert_array_equal(problem.active, np.arange(10) != 9)
+    below = _PointsProblem(0.9 * gate_3)
+    kept = SimpleNamespace(state="fit")
+    assert pipeline.reject_outliers(below, "start", kept, 5.0, ONE_STEP) == (kept, 0)
+    assert below.active.all()
+
+
+def test_rms_of_points_is_over_the_points_seen():
+    """With `seen` (N, 3 P), the position RMS is over every point seen, each point's error the norm of
+    its three rows; orientation is not measured (nan)."""
+    residual = np.array([[3.0, 4.0, 0.0, 9.0, 9.0, 9.0], [0.0, 1.0, 0.0, 2.0, 2.0, 1.0]])
+    seen = np.array([[True] * 3 + [False] * 3, [True] * 6])
+    position, rotation = pose_error_rms(residual, seen)
+    assert position == pytest.approx(np.sqrt((25.0 + 1.0 + 9.0) / 3), rel=1e-15)
+    assert np.isnan(rotation) and type(rotation) is float
+    four = np.zeros((1, 12))
+    four[0, 9] = 2.0  # the fourth point 2 off, the others exact, every point seen
+    assert pose_error_rms(four, np.ones((1, 12), dtype=bool)).position == pytest.approx(1.0, rel=1e-15)
+
+
+def test_calibration_summary_of_points_reports_the_rms_of_the_points_seen(mechanism):
+    """A fit of two points per pose: the summary's RMS before and after are over the inliers' points
+    seen (`pose_error_rms` with their `seen` rows), not over every row."""
+    error_model = ClosedLoopErrorModel(mechanism)
+    jacobian = np.eye(14, 3)
+    before = np.array([[3.0, 4.0, 0.0, 9.0, 9.0, 9.0], [1.0, 1.0, 1.0, 1.0, 1.0, 1.0]])
+    start, end = object(), object()
+    problem = _StandInProblem(
+        error_model, (np.ones(14), jacobian), 3, np.array([3, 40, 205]), {id(start): before, id(end): before / 10}
+    )
+    problem.n_points = 2  # pose 0 sees its first point only; pose 1 (flagged) both
+    summary = pipeline.summarise(problem, start, SimpleNamespace(state=end), (object(), None, 1), ONE_STEP)
+    assert summary.rms_before.position == pytest.approx(5.0, rel=1e-15) and np.isnan(summary.rms_before.rotation)
+    assert summary.rms_after.position == pytest.approx(0.5, rel=1e-15) and np.isnan(summary.rms_after.rotation)

@@ -21,13 +21,14 @@ import scipy.linalg
 import yaml
 from model_files import edit_text, edit_yaml, welded_double_hinge
 
+from m3t1r.calibration import pipeline
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
 from m3t1r.calibration.error_model import ClosedLoopErrorModel
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.pipeline import CalibrationOptions
 from m3t1r.calibration.simulation import PlacementErrorScale, simulate_study
 from m3t1r.compensation import joint_limit_violation
-from m3t1r.errors import InvalidInputError, ModelFileError, ModelWarning
+from m3t1r.errors import IdentificationError, InvalidInputError, ModelFileError, ModelWarning
 from m3t1r.model.closures import ClosureSystem
 from m3t1r.model.description import Mechanism, nominal_model_paths
 from m3t1r.model.examples import (
@@ -176,9 +177,58 @@ def test_a_planar_nominal_does_not_cap_what_a_noise_free_fit_identifies(tmp_path
     if noisy:
         assert len(calibration.fitted) == calibration.base.rank
         assert 0.5 < calibration.variance_factor < 1.5
+        assert calibration.iterations == calibration.lm.iterations  # the base fit alone: no refit counted
         return
     assert len(calibration.fitted) > calibration.base.rank
+    assert calibration.iterations > calibration.lm.iterations  # the base fit's, then the refit's
     assert held_out.position_max < 1e-7 and held_out.rotation_max < 1e-6
+    # A parameter held fixed stays out of the fit past the nominal's rank too.
+    added = next(name for name in calibration.fitted if name not in calibration.base.names)
+    held = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise(), fixed=[added]))
+    assert len(held.fitted) > held.base.rank and added not in held.fitted
+    assert abs(held.parameters[added]) < 1e-11  # its start, to the rounding of its placement's other steps
+
+
+def test_a_refit_past_the_nominal_rank_that_does_not_assemble_is_dropped(tmp_path, monkeypatch):
+    """The rod five-bar's noise-free fit, its refit over every column with an effect made to end on a
+    machine that does not assemble: the base fit is kept, columns and iterations its own."""
+    mechanism = _quiet_load(*rod_five_bar_files(tmp_path))
+    study = simulate_study(mechanism, n_poses=60, n_holdout=0, seed=2, errors=PlacementErrorScale(1e-3, 1e-3))
+    fit = pipeline.fit
+
+    def refused_refit(problem, state, settings):
+        if settings.unit_damping:  # the refit past the nominal's rank alone is damped in units
+            raise IdentificationError("calibration ended on a model that does not assemble")
+        return fit(problem, state, settings)
+
+    monkeypatch.setattr(pipeline, "fit", refused_refit)
+    calibration = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise()))
+    assert calibration.lm.converged and len(calibration.fitted) == calibration.base.rank
+    assert calibration.iterations == calibration.lm.iterations
+
+
+@pytest.mark.parametrize(
+    ("actual", "variance_factor"),
+    [
+        (TrackerNoise(position=1e-4, rotation=2e-4), (50.0, 200.0)),  # 10 times the stated noise: the gate
+        (TrackerNoise(position=7e-6, rotation=14e-6), (0.3, 0.7)),  # 0.7 times: not significant
+    ],
+)
+def test_a_noisy_fit_stays_at_the_nominals_parameters(tmp_path, actual, variance_factor):
+    """The rod five-bar measured with other noise than the fit is told (10 um, 20 urad). Ten times
+    more: the residual is far above the stated noise (a model error, which the weak directions must
+    not absorb), so the fit past the nominal's rank is not tried. Less: within the stated noise, the
+    directions the estimate adds explain no significant part of it. Either way the fit keeps the
+    nominal's base parameters and its iterations are the base fit's alone."""
+    mechanism = _quiet_load(*rod_five_bar_files(tmp_path))
+    study = simulate_study(
+        mechanism, n_poses=60, n_holdout=0, seed=2, noise=actual, errors=PlacementErrorScale(1e-3, 1e-3)
+    )
+    calibration = calibrate_closed_loop(mechanism, study.measurements, CalibrationOptions(noise=TrackerNoise()))
+    low, high = variance_factor
+    assert low < calibration.variance_factor < high
+    assert len(calibration.fitted) == calibration.base.rank
+    assert calibration.iterations == calibration.lm.iterations
 
 
 # ------------------------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from m3t1r.calibration.identification import forward_selection, levenberg_marqua
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import TrackerNoise
 from m3t1r.calibration.pipeline import CalibrationOptions, LMSettings, pose_error_rms, prior_columns
+from m3t1r.calibration.repeats import grouped_blocks
 from m3t1r.calibration.serial import calibrate_serial
 from m3t1r.calibration.serial_evaluation import pose_errors, predicted_pose_std
 from m3t1r.calibration.serial_robots import example_tool_frame, load_example_robot
@@ -1045,6 +1046,29 @@ def test_selection_at_the_start_scores_the_residual_itself(ur5):
     expected = forward_selection(J[:, problem.columns], r, 6, range(21), np.array([], dtype=int))
     selection, _, _ = pipeline.select_parameters(problem, start, SimpleNamespace(state=start, iterations=0), SETTINGS)
     assert selection == expected
+
+
+def test_selection_leaves_each_group_of_repeats_out_whole(ur5):
+    """groups: poses sharing a label are left out together (`repeats.grouped_blocks` of the inliers'
+    rows and labels, a flagged pose's label dropped with its rows): the PRESS of pairs left out."""
+    model, chain = ur5
+    simulated = simulate_serial_measurements(model, chain, 15, np.random.default_rng(55), noise=TRACKER)
+    data = S.parse_measurements(chain, simulated.q_readings, simulated.measured_poses, False)
+    problem, start = _problem(model, chain, data, S.SerialLayout(6))
+    columns = np.arange(0, 42, 2)
+    problem.active[4] = False
+    groups = np.arange(15) // 2  # pairs of poses: 0 and 1, 2 and 3, ...
+    r, J = problem.model.residual_and_jacobian(start)
+    keep = np.repeat(problem.active, 6)
+    grouped = grouped_blocks(J[keep][:, columns], r[keep], 6, groups[problem.active])
+    expected = forward_selection(*grouped, range(21), np.array([], dtype=int))
+    at_start = SimpleNamespace(state=start, iterations=0)
+    problem.columns = columns
+    selection, _, _ = pipeline.select_parameters(problem, start, at_start, SETTINGS, groups)
+    _assert_same_selection(selection, expected)
+    problem.columns = columns
+    one_by_one = pipeline.select_parameters(problem, start, at_start, SETTINGS)[0]
+    assert abs(one_by_one.press_all - selection.press_all) > 1e-3 * selection.press_all
 
 
 def test_orientation_residual_near_a_half_turn(ur5):
