@@ -147,11 +147,11 @@ class Redundancy:
 @dataclass(frozen=True, eq=False)
 class _ClosuresOfAType:
     """The closures of one type in a `ClosureSystem`: the type's operator, their rows (all of them),
-    their constraint datas, and their two frames as parent joints and placements in them (a, b)."""
+    and their two frames as parent joints and placements in them (a, b), as their constraint models
+    place them."""
 
     operator: Callable[[np.ndarray, np.ndarray], np.ndarray]
     rows: np.ndarray
-    datas: list[Any]
     joints_a: np.ndarray
     placements_a: np.ndarray
     joints_b: np.ndarray
@@ -193,8 +193,8 @@ class ClosureSystem:
             for i, (kind, d) in enumerate(zip(kinds, inner))
             if kind.exact
         ]
-        # Per type: its row operator, its closures' rows (all of them) and constraint datas, and each
-        # closure's two frames as (parent joint, placement in it), from which `operators` places them.
+        # Per type: its row operator, its closures' rows (all of them), and each closure's two frames as
+        # (parent joint, placement in it), from which `operators` places them.
         self._by_type: list[_ClosuresOfAType] = []
         for kind in CLOSURE_TYPES.values():
             mine = [i for i in range(len(closures)) if kinds[i] is kind]
@@ -205,7 +205,6 @@ class ClosureSystem:
                 _ClosuresOfAType(
                     kind.operator,
                     np.concatenate([slots[i] + np.arange(kind.rows) for i in mine]),
-                    [inner[i] for i in mine],
                     np.array([f.parentJoint for f in a], dtype=int),
                     np.array([f.placement.homogeneous for f in a]),
                     np.array([f.parentJoint for f in b], dtype=int),
@@ -252,12 +251,8 @@ class ClosureSystem:
         """
         residual, jac = self.evaluate(q, True)
         pin.updateFramePlacements(self.model, self.data)
-        full = np.empty((self.n_full, 6))
-        for group in self._by_type:
-            a = np.array([d.oMc1.homogeneous for d in group.datas])
-            b = np.array([d.oMc2.homogeneous for d in group.datas])
-            full[group.rows] = group.operator(a, b).reshape(-1, 6)
-        return residual, jac, full[self.enforced]
+        joints = np.array([placement.homogeneous for placement in self.data.oMi.tolist()])
+        return residual, jac, self.operators(joints[None])[0]
 
     def operators(self, joint_placements: np.ndarray) -> np.ndarray:
         """The row operators of `sensitivity` (N, rows, 6) at N configurations at once, from their joint
