@@ -790,6 +790,39 @@ def test_an_explicit_start_takes_its_own_branch_not_the_warm_one(mechanism, comp
     assert solver.forward(solution.actuators, q_init=mechanism.home).residual <= 1e-12
 
 
+def _with_q13_upper_limit(mechanism, upper_limit: float):
+    model = mechanism.model.copy()
+    upper = model.upperPositionLimit.copy()
+    upper[model.idx_qs[model.getJointId("q13")]] = upper_limit
+    model.upperPositionLimit = upper
+    return mechanism.with_model(model)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_solutions_say_whether_every_joint_is_within_its_limits(mechanism, compiled):
+    """On a copy whose hinge q13 may turn only to 1.05 rad (nominal: 2.62), IK and FK solutions
+    putting q13 beyond it say so in within_joint_limits (a flag: only the sliders' limits are
+    refusals); on the nominal model every one is within; a hinge exactly at its stop is within."""
+    k = mechanism.model.idx_qs[mechanism.model.getJointId("q13")]
+    stiff = ClosedLoopSolver(_with_q13_upper_limit(mechanism, 1.05), native=compiled)
+    nominal = ClosedLoopSolver(mechanism, native=compiled)
+    targets = np.array([[0.50, 0.50, -0.10, 0.0], [0.52, 0.55, -0.12, 0.1], [0.48, 0.60, -0.08, -0.2]])
+    flags = []
+    for target in targets:
+        ik = stiff.inverse(target, q_init=mechanism.home)
+        fk = stiff.forward(ik.actuators, q_init=mechanism.home)
+        assert ik.within_joint_limits is fk.within_joint_limits is bool(ik.q[k] <= 1.05)
+        assert nominal.inverse(target, q_init=mechanism.home).within_joint_limits is True
+        assert nominal.forward(ik.actuators).within_joint_limits is True
+        flags.append(ik.within_joint_limits)
+    assert flags == [True, True, False]  # the targets straddle the stop
+    angle = nominal.inverse(targets[0], q_init=mechanism.home).q[k]
+    for upper_limit, within in ((angle, True), (np.nextafter(angle, -np.inf), False)):
+        solver = ClosedLoopSolver(_with_q13_upper_limit(mechanism, upper_limit), native=compiled)
+        solution = solver.inverse(targets[0], q_init=mechanism.home)
+        assert solution.q[k] == angle and solution.within_joint_limits is within
+
+
 @pytest.mark.parametrize("slider, bound", [(0, "upper"), (1, "lower")])
 def test_inverse_accepts_an_actuator_exactly_at_its_limit(mechanism, slider, bound):
     """IK's limit check is inclusive, as `check_actuators`: a start at a solution with a slider

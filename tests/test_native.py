@@ -142,6 +142,7 @@ def _compare_paths(machine: Mechanism, sliders: np.ndarray) -> None:
         np.testing.assert_allclose(a.task_pose.homogeneous, b.task_pose.homogeneous, atol=1e-12)
         assert a.iterations == b.iterations and a.residual <= 1e-12 and b.residual <= 1e-12
         assert abs(a.residual - b.residual) <= 1e-13
+        assert a.within_joint_limits is b.within_joint_limits is True
         on_platform = machine.task.frame == machine.model.frames[machine.platform_frame_id].name
         assert (a.task_pose is a.pose) == on_platform and (b.task_pose is b.pose) == on_platform
         # The warm state (branch, tangent, history) shows in the next solve: its iterations and q.
@@ -384,6 +385,7 @@ def _compare_inverse(machine: Mechanism, targets: np.ndarray) -> None:
         np.testing.assert_allclose(a.task_pose.homogeneous, b.task_pose.homogeneous, atol=1e-12)
         np.testing.assert_allclose(a.tilt, b.tilt, atol=1e-12)
         assert a.iterations == b.iterations and a.residual <= 1e-12
+        assert a.within_joint_limits is b.within_joint_limits is True
     # What a caller does to the results does not reach the warm start of the next solve.
     for result in (a, b):
         result.task_pose.translation = result.task_pose.translation + 0.1
@@ -669,6 +671,35 @@ def test_a_warm_inverse_keeps_the_last_solution_s_branch(mechanism, compiled):
         solver.inverse(targets[1])
     solver.warm.inverse_branch = b"\x02" * (len(solver.home_reference()[1]) + 1)
     assert solver.inverse(targets[2], q_init=mechanism.home).residual <= 1e-12
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_warm_forward_refuses_sliders_beyond_their_limits_and_keeps_its_warm_start(mechanism, compiled):
+    """Sliders one ulp beyond a limit, or NaN, given as a float array to a warm FK (which the compiled
+    loop checks itself): InvalidInputError naming the slider as `check_actuators` does, and nothing
+    of the warm start changes: the next solves take the same steps to the same configurations as a
+    solver that never saw the refusals."""
+    sliders = _path(ClosedLoopSolver(mechanism), 12)
+    solver, untouched = ClosedLoopSolver(mechanism, native=compiled), ClosedLoopSolver(mechanism, native=compiled)
+    assert (solver.native is not None) == compiled
+    for values in sliders[:6]:
+        solver.forward(values)
+        untouched.forward(values)
+    lower, upper = mechanism.joint_limits()
+    beyond, missing = sliders[6].copy(), sliders[6].copy()
+    beyond[2], missing[0] = np.nextafter(upper[2], np.inf), np.nan
+    with pytest.raises(InvalidInputError) as caught:
+        solver.forward(beyond)
+    assert str(caught.value) == (
+        f"actuator 'q21' = {beyond[2]:.6g} is beyond its joint limit "
+        f"[{lower[2]:.6g}, {upper[2]:.6g}] (SI units: metres for sliders)"
+    )
+    with pytest.raises(InvalidInputError, match="actuator values"):
+        solver.forward(missing)
+    for values in sliders[6:]:
+        a, b = solver.forward(values), untouched.forward(values)
+        np.testing.assert_array_equal(a.q, b.q)
+        assert a.iterations == b.iterations
 
 
 def test_a_bad_thread_count_is_refused_by_inverse_batch_too(solver):

@@ -242,19 +242,24 @@ class _PathSolver:
         self._warm = False  # False while the last good solution is home itself: nothing to retry from
 
     def inverse(self, target: np.ndarray | pin.SE3) -> InverseResult:
-        return self._solve(self.solver.inverse, target)
-
-    def forward(self, actuators: np.ndarray) -> ForwardResult:
-        return self._solve(self.solver.forward, actuators)
-
-    def _solve(self, solve, argument):
-        """Warm-started solve; after a failure, once more from home (unless that was the start)."""
+        """Warm-started IK; after a failure, once more from home (unless that was the start)."""
         try:
-            result = solve(argument)
+            result = self.solver.inverse(target)
         except KinematicsError:
             if not self._warm:
                 raise
-            result = solve(argument, q_init=self._home)
+            result = self.solver.inverse(target, q_init=self._home)
+        self._warm = True
+        return result
+
+    def forward(self, actuators: np.ndarray) -> ForwardResult:
+        """Warm-started FK; after a failure, once more from home (unless that was the start)."""
+        try:
+            result = self.solver.forward(actuators)
+        except KinematicsError:
+            if not self._warm:
+                raise
+            result = self.solver.forward(actuators, q_init=self._home)
         self._warm = True
         return result
 
@@ -283,6 +288,8 @@ class _JointLimits:
         The solver keeps the sliders within their limits but not the passive hinges (models/README.md):
         a target reachable only with, say, the platform hinge past its stop is not a command to send.
         """
+        if result.within_joint_limits:  # the solver's own check, against this model's limits
+            return
         violation = self.violation(result.q)
         if violation is not None:
             raise OutOfWorkspaceError(violation, result.residual, result.iterations)
@@ -359,15 +366,18 @@ class Compensator:
         """
         rows = _validated_targets(targets, self.calibrated.task)
         indices, commands, failures = [], [], []
+        # `command`'s steps, with the limit check's common case inline: a servo loop pays per call.
+        inverse, forward, limits = self._inverse.inverse, self._forward.forward, self._limits
         for index, target in enumerate(rows):
             if progress is not None:
                 progress(index)
             stage = "inverse kinematics of the calibrated model"
             try:
-                ik = self._inverse.inverse(target)
-                self._limits.check(ik)
+                ik = inverse(target)
+                if not ik.within_joint_limits:
+                    limits.check(ik)
                 stage = "forward kinematics of the nominal model at the compensated sliders"
-                fk = self._forward.forward(ik.actuators)
+                fk = forward(ik.actuators)
             except (KinematicsError, InvalidInputError) as exc:
                 # InvalidInputError here can only be q^c beyond the nominal model's slider limits.
                 if strict:

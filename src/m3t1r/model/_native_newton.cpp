@@ -8,6 +8,8 @@
 
 #include "_native_core.hpp"
 
+#include <pinocchio/math.hpp>  // rpy::matrixToRpy
+
 #include <memory>
 #include <mutex>
 #include <string>
@@ -65,13 +67,40 @@ pinocchio::JointModel joint_of(long long kind, const double * axis) {
 // sharing the chain's buffers (it holds the GIL meanwhile, which the batch needs only after unlocking).
 // `bind` gives it the warm-start arrays that every single solve reads and writes (held until the
 // capsule goes): FK's tangent, labels, platform and task placements, IK's task inverse, labels and
-// placements.
+// placements; FK's history (the sliders and passive joints its last success started from, which the
+// next one's second-order predictor reads) and IK's actuators; and the model's joint limits (lower,
+// upper: nq), which single solves check.
 struct Handle {
   Chain chain;
   std::mutex lock;
-  Buffer tangent, branch, platform, task, task_inverse, inverse_branch, inverse_platform, inverse_task;
+  Buffer tangent, branch, platform, task, task_inverse, inverse_branch, inverse_platform, inverse_task, history,
+      inverse_actuators, lower, upper;
+  std::vector<double> start;  // FK's start, kept for `history` until the solve succeeds
   bool bound = false;
 };
+
+// A single solve's code for sliders given beyond their limits: nothing was solved or changed (the caller
+// names the slider). After Newton's codes (Status), which batch rows share.
+constexpr int SLIDER_BEYOND_LIMIT = 5;
+
+// Roll and pitch [rad] of a rotation, as m3t1r.model.rotations.roll_pitch_of: Pinocchio's ZYX (yaw-pitch-roll)
+// convention, pitch = atan2(-R20, |(R21, R22)|), roll = atan2(R21, R22), and its matrixToRpy near gimbal lock.
+std::pair<double, double> roll_pitch(const Eigen::Matrix3d & r) {
+  const double pitch = std::atan2(-r(2, 0), std::sqrt(r(2, 1) * r(2, 1) + r(2, 2) * r(2, 2)));
+  if (std::abs(std::abs(pitch) - 0.5 * M_PI) < 1e-2) {
+    const Eigen::Vector3d rpy = pinocchio::rpy::matrixToRpy(r);
+    return {rpy[0], rpy[1]};
+  }
+  return {std::atan2(r(2, 1), r(2, 2)), pitch};
+}
+
+// The first coordinate of q outside [lower, upper] (NaN counts as outside), or -1.
+long first_beyond_limits(const Handle & h, const double * q, Py_ssize_t nq) {
+  const double *lower = h.lower.d(), *upper = h.upper.d();
+  for (Py_ssize_t k = 0; k < nq; ++k)
+    if (!(lower[k] <= q[k] && q[k] <= upper[k])) return static_cast<long>(k);
+  return -1;
+}
 
 void destroy(PyObject * capsule) {
   delete static_cast<Handle *>(PyCapsule_GetPointer(capsule, "m3t1r.Chain"));
@@ -198,8 +227,9 @@ PyObject * build(PyObject *, PyObject * args) {
 //      inverse_branch (B+1,) uint8, inverse_platform (16,), inverse_task (16,)): the arrays `forward` and
 // `inverse` then read and write (writable, C-contiguous; kept until the chain goes), once per chain.
 PyObject * bind(PyObject *, PyObject * args) {
-  PyObject *capsule, *o[8];
-  if (!PyArg_ParseTuple(args, "OOOOOOOOO", &capsule, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7]))
+  PyObject *capsule, *o[12];
+  if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOO", &capsule, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7],
+                        &o[8], &o[9], &o[10], &o[11]))
     return nullptr;
   Handle * handle = handle_of(capsule);
   if (handle == nullptr) return nullptr;
@@ -211,13 +241,19 @@ PyObject * bind(PyObject *, PyObject * args) {
   const Py_ssize_t blocks = static_cast<Py_ssize_t>(c.blocks.size());
   const Py_ssize_t tangent = static_cast<Py_ssize_t>(c.fk.original.size() * c.actuated.size());
   const Py_ssize_t task_inverse = static_cast<Py_ssize_t>(c.ik.original.size()) * c.task_spec.rows;
+  const Py_ssize_t n_history = static_cast<Py_ssize_t>(c.actuated.size() + c.fk.original.size());
   if (!handle->tangent.get(o[0], true, 'd', tangent, "tangent") || !handle->branch.get(o[1], true, 'B', blocks, "branch")
       || !handle->platform.get(o[2], true, 'd', 16, "platform") || !handle->task.get(o[3], true, 'd', 16, "task")
       || !handle->task_inverse.get(o[4], true, 'd', task_inverse, "task_inverse")
       || !handle->inverse_branch.get(o[5], true, 'B', blocks + 1, "inverse_branch")
       || !handle->inverse_platform.get(o[6], true, 'd', 16, "inverse_platform")
-      || !handle->inverse_task.get(o[7], true, 'd', 16, "inverse_task"))
+      || !handle->inverse_task.get(o[7], true, 'd', 16, "inverse_task")
+      || !handle->history.get(o[8], true, 'd', n_history, "history")
+      || !handle->inverse_actuators.get(o[9], true, 'd', static_cast<Py_ssize_t>(c.actuated.size()), "inverse_actuators")
+      || !handle->lower.get(o[10], false, 'd', c.model.nq, "lower")
+      || !handle->upper.get(o[11], false, 'd', c.model.nq, "upper"))
     return nullptr;  // the views taken so far are released with the capsule
+  handle->start.resize(static_cast<size_t>(n_history));
   handle->bound = true;
   Py_RETURN_NONE;
 }
@@ -243,8 +279,11 @@ Handle * open_chain(PyObject * capsule, std::unique_lock<std::mutex> & lock, con
 }
 
 // forward(chain, q (nq,) in/out, sliders (A,), order, previous (A+P,), has_start,
-//         rules (7, RULES_FORMAT)) -> (status, residual, iterations, rcond of a singular end)
-// with the bound tangent (in/out), branch (in/out), platform and task (out).
+//         rules (7, RULES_FORMAT)) -> (status, residual, iterations, rcond of a singular end,
+//         first coordinate of the solution beyond its joint limits or -1)
+// with the bound tangent (in/out), branch (in/out), platform and task (out), history (out: q's sliders and
+// passive joints, the start, on success; `previous` may be it). Sliders beyond their limits (or NaN)
+// return SLIDER_BEYOND_LIMIT at once, touching nothing.
 // q: the last solution; `order` 1 or 2 moves its passive joints by the predictor of
 // ClosedLoopSolver._predict (tangent T of the last success; order 2 adds lam^2 (p_prev - p + T e) with
 // e = a - a_prev, lam = (d . e) / (e . e), d the slider change, previous = (a_prev, p_prev)); then the
@@ -267,10 +306,17 @@ PyObject * forward(PyObject *, PyObject * args) {
     return nullptr;
   const Buffer &btangent = handle->tangent, &bbranch = handle->branch, &bplatform = handle->platform,
                &btask = handle->task;
+  for (size_t j = 0; j < n_act; ++j) {
+    const double value = bsliders.d()[j];
+    if (!(handle->lower.d()[c->actuated[j]] <= value && value <= handle->upper.d()[c->actuated[j]]))
+      return Py_BuildValue("(ididl)", SLIDER_BEYOND_LIMIT, 0.0, 0, 0.0, -1L);
+  }
   Eigen::Map<Vector> qmap(bq.d(), c->model.nq);
   Eigen::Map<Matrix> tangent(btangent.d(), n_passive, n_act);
   Vector & q = c->q;
   q = qmap;
+  for (size_t j = 0; j < n_act; ++j) handle->start[j] = q[c->actuated[j]];
+  for (size_t j = 0; j < n_passive; ++j) handle->start[n_act + j] = q[c->fk.original[j]];
   if (order >= 1) {
     Vector &change = c->change, &e = c->last_change;
     for (size_t j = 0; j < n_act; ++j) change[j] = bsliders.d()[j] - q[c->actuated[j]];
@@ -297,17 +343,20 @@ PyObject * forward(PyObject *, PyObject * args) {
       c->fk.lu.solve(c->step.data());
       for (size_t k = 0; k < n_passive; ++k) tangent(c->fk.position[k], j) = c->step[k];
     }
+    std::copy(handle->start.begin(), handle->start.end(), handle->history.d());
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
   }
-  return Py_BuildValue("(idid)", out.status, out.norm, out.iterations, out.rcond);
+  const long beyond = out.status == CONVERGED ? first_beyond_limits(*handle, bq.d(), c->model.nq) : -1;
+  return Py_BuildValue("(ididl)", out.status, out.norm, out.iterations, out.rcond, beyond);
 }
 
 // inverse(chain, q (nq,) in/out, goal (task coordinates), goal_rotation (9,), order,
 //         previous_goal (task coordinates), previous_rotation (9,), previous_q (nq,), has_start,
-//         rules (7, RULES_FORMAT)) -> (status, residual, iterations, rcond of a singular end)
+//         rules (7, RULES_FORMAT)) -> (status, residual, iterations, rcond of a singular end,
+//         first coordinate of the solution beyond its joint limits or -1, roll, pitch of the task frame)
 // with the bound task_inverse (in/out), inverse_task (in: last_task, the last success's; out),
-// inverse_branch (in/out) and inverse_platform (out).
+// inverse_branch (in/out), inverse_platform and inverse_actuators (out).
 // q: the last solution; `order` 1 or 2 moves its unknown joints by ClosedLoopSolver._inverse_step's
 // predictor (X the task columns of the last inverse, r the new goal's task rows at last_task; order 2
 // adds lam^2 (q_prev - q + X b), b the previous goal's rows, lam = -(r . b) / (b . b)). Newton under the
@@ -375,10 +424,14 @@ PyObject * inverse(PyObject *, PyObject * args) {
       c->ik.lu.solve(c->step.data());
       for (size_t m = 0; m < n_unknowns; ++m) task_inverse(c->ik.position[m], k) = c->step[m];
     }
+    for (size_t j = 0; j < c->actuated.size(); ++j) handle->inverse_actuators.d()[j] = q[c->actuated[j]];
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
   }
-  return Py_BuildValue("(idid)", out.status, out.norm, out.iterations, out.rcond);
+  const long beyond = out.status == CONVERGED ? first_beyond_limits(*handle, bq.d(), c->model.nq) : -1;
+  const auto [roll, pitch] = out.status == CONVERGED ? roll_pitch(c->frame_world[c->task].rotation())
+                                                     : std::pair<double, double>(0.0, 0.0);
+  return Py_BuildValue("(ididldd)", out.status, out.norm, out.iterations, out.rcond, beyond, roll, pitch);
 }
 
 // Where a row batch reads and writes: q (n, nq) in/out, optional labels every row must end with, per-row

@@ -40,7 +40,7 @@ from m3t1r.model.batch_kinematics import SolvedRows, forward_batch, inverse_batc
 from m3t1r.model.branches import BranchSignature, det_sign
 from m3t1r.model.closures import ClosureSystem
 from m3t1r.model.description import Mechanism
-from m3t1r.model.native import NativeChain
+from m3t1r.model.native import SLIDER_BEYOND_LIMIT, NativeChain
 from m3t1r.model.newton import (
     CONVERGED,
     STATUS,
@@ -104,7 +104,8 @@ class ForwardResult(_PlacementViews):
     Newton steps taken; platform_placement: the platform frame in the base frame, 4 x 4 homogeneous
     [m]; task_placement: the task frame (`Mechanism.task.frame`, what IK and compensation command)
     in the base frame, the same array when the task is on the platform frame. `pose` and `task_pose`
-    are those two as pin.SE3, built on first use.
+    are those two as pin.SE3, built on first use. within_joint_limits: every coordinate of q within
+    its URDF position limits (the sliders are; a passive hinge may be past its stop).
     """
 
     q: np.ndarray
@@ -112,6 +113,7 @@ class ForwardResult(_PlacementViews):
     iterations: int
     platform_placement: np.ndarray
     task_placement: np.ndarray
+    within_joint_limits: bool
 
     @property
     def yaw(self) -> float:
@@ -133,6 +135,8 @@ class InverseResult(_PlacementViews):
     task is on the platform frame); tilt: (roll, pitch) of the task frame reached minus those
     requested (zero when a 4-vector target was given) [rad]: the part of a 6D target that cannot be
     commanded. `pose` and `task_pose` are the two placements as pin.SE3, built on first use.
+    within_joint_limits: every coordinate of q within its URDF position limits (the sliders always
+    are: IK refuses a target that needs one beyond; a passive hinge may be past its stop).
     """
 
     actuators: np.ndarray
@@ -142,6 +146,7 @@ class InverseResult(_PlacementViews):
     tilt: tuple[float, float]
     platform_placement: np.ndarray
     task_placement: np.ndarray
+    within_joint_limits: bool
 
 
 _Result = TypeVar("_Result", ForwardResult, InverseResult)
@@ -227,8 +232,8 @@ class ClosedLoopSolver:
         self.n_rows, self.passive, self.actuated = layout.n_rows, layout.passive, layout.actuated
         self.branch_blocks = layout.blocks
         self._branch = BranchSignature(layout.blocks, model.nv)
-        self._prior_columns = np.concatenate((self.actuated, self.passive))  # the compiled predictor's history
         self._limit_lists = (layout.actuator_lower.tolist(), layout.actuator_upper.tolist())
+        self._joint_limit_lists = (model.lowerPositionLimit.tolist(), model.upperPositionLimit.tolist())
         # check_actuators' fast path: a float array of this shape, under finite limits (read once).
         self._fast_limits = layout.actuator_lower.shape if layout.finite_limits else None
         self._platform, self._task_frame = layout.platform_frame, layout.task_frame
@@ -360,18 +365,25 @@ class ClosedLoopSolver:
         Raises InvalidInputError for bad actuators, BranchChangeError / NotConvergedError /
         OutOfWorkspaceError / SingularConfigurationError (with the final residual) otherwise.
         """
-        values, warm = self.check_actuators(actuators), self.warm
+        warm, native = self.warm, self.native
+        # A warm solve of a float array under finite limits: the compiled loop checks its sliders itself
+        # (the refusal is still check_actuators').
+        compiled_check = (
+            native is not None
+            and q_init is None
+            and type(actuators) is np.ndarray
+            and actuators.dtype == _FLOAT
+            and actuators.shape == self._fast_limits
+        )
+        values = actuators if compiled_check else self.check_actuators(actuators)
         if q_init is None:  # a continuation from the last solution (initially home)
             q, tangent, branch, previous = warm.q.copy(), warm.tangent, warm.branch, warm.previous
         else:  # a continuation from q_init: its own tangent and branch
             q = require_finite_vector(q_init, self.model.nq, "q_init").copy()
             (tangent, branch), previous = self._continuation_from(q), None
+        if native is not None:
+            return self._forward_native(q, values, tangent is not None, previous, branch)
         warm.tangent = warm.previous = warm.goal = warm.inverse_previous = None  # until this succeeds
-        if self.native is not None:
-            before = q.take(self._prior_columns)  # where this solve continues from, for the next one
-            result = self._forward_native(q, values, tangent is not None, previous, branch)
-            warm.previous = before
-            return result
         start = q.copy()
         if tangent is not None:
             q[self.passive] += self.predict(start, values - q.take(self.actuated), tangent, previous)
@@ -382,25 +394,32 @@ class ClosedLoopSolver:
         warm.previous = (start.take(self.actuated), start.take(self.passive))
         warm.branch, warm.q = outcome.branch, outcome.q
         platform, task = self._placements()
-        return ForwardResult(outcome.q.copy(), outcome.residual, outcome.iterations, platform, task)
+        within = within_limits(self._joint_limit_lists[0], outcome.q.tolist(), self._joint_limit_lists[1])
+        return ForwardResult(outcome.q.copy(), outcome.residual, outcome.iterations, platform, task, within)
 
     def _forward_native(
         self, q: np.ndarray, values: np.ndarray, predicted: bool, previous, branch: bytes | None
     ) -> ForwardResult:
         """`forward` in the compiled loop, predictor included (q: the start, solved in place; its tangent in
-        `native.tangent`); the same bookkeeping, errors and result as the Python loop. `data` is not moved
-        to the solution."""
-        native = self.native
+        `native.tangent`; values: float sliders, checked here when `forward` did not); the same bookkeeping,
+        errors and result as the Python loop. `data` is not moved to the solution."""
+        native, warm = self.native, self.warm
         assert native is not None, "called only with the compiled loop"
         order = (1 if previous is None else 2) if predicted else 0
-        status, norm, iterations, rcond = native.forward(
+        status, norm, iterations, rcond, beyond = native.forward(
             q, values, order, previous if order == 2 else None, branch, self._compiled_rules
         )
+        if status == SLIDER_BEYOND_LIMIT:  # nothing solved: the warm start stays as it was
+            self.check_actuators(values)  # raises InvalidInputError naming the slider
+            raise InvalidInputError(f"actuator values {values.tolist()} beyond their joint limits")
+        warm.goal = warm.inverse_previous = None  # this FK ends any IK path
         if status != CONVERGED:
+            warm.tangent = warm.previous = None
             raise failure(status, norm, iterations, rcond)
-        self.warm.tangent = native.tangent  # overwritten only by the next success, which reads it first
-        self.warm.branch = bytes(native.branch)
-        self.warm.q = q
+        # The tangent and where this solve started (the next one's second-order history) stay in the
+        # compiled call's arrays, overwritten only by the next success, which reads them first.
+        warm.tangent, warm.previous = native.tangent, native.history
+        warm.branch, warm.q = bytes(native.branch), q
         platform = native.platform.copy()
         fields = {
             "q": q.copy(),
@@ -408,6 +427,7 @@ class ClosedLoopSolver:
             "iterations": iterations,
             "platform_placement": platform,
             "task_placement": platform if self._task_on_platform else native.task.copy(),
+            "within_joint_limits": beyond < 0,
         }
         return _built(ForwardResult, fields)
 
@@ -598,7 +618,8 @@ class ClosedLoopSolver:
         self._keep_inverse_solution(continuing, q, branch, outcome.inverse[:, self.n_rows :], (goal, goal_rotation))
         state.task = last_task
         tilt = (roll - wanted_tilt[0], pitch - wanted_tilt[1])
-        return InverseResult(actuators, q.copy(), residual, iterations, tilt, platform, task)
+        within = within_limits(self._joint_limit_lists[0], q.tolist(), self._joint_limit_lists[1])
+        return InverseResult(actuators, q.copy(), residual, iterations, tilt, platform, task, within)
 
     def _inverse_native(
         self,
@@ -618,16 +639,15 @@ class ClosedLoopSolver:
         # A warm solve must stay on the previous solution's branch (assembly and working mode).
         start = state.inverse_branch if continuing else None
         state.task_inverse = state.inverse_branch = None  # dropped until this solve succeeds
-        status, residual, iterations, rcond = native.inverse(
+        status, residual, iterations, rcond, beyond, roll, pitch = native.inverse(
             q, goal, goal_rotation, order, state.inverse_previous, start, self._compiled_rules
         )
         if status != CONVERGED:
             raise failure(status, residual, iterations, rcond)
-        actuators = q.take(self.actuated)
-        if not within_limits(self._limit_lists[0], actuators.tolist(), self._limit_lists[1]):
+        actuators = native.inverse_actuators.copy()
+        if beyond >= 0:  # a joint beyond its limit: refused if it is an actuator
             self._check_reached_actuators(actuators, residual, iterations)  # names the actuator
-        task = native.inverse_task
-        roll, pitch = roll_pitch_of(task)
+        task = native.inverse_task  # its roll and pitch came with the result (`roll_pitch_of`'s)
         self._keep_inverse_solution(
             continuing, q, bytes(native.inverse_branch), native.task_inverse, (goal, goal_rotation)
         )
@@ -641,6 +661,7 @@ class ClosedLoopSolver:
             "tilt": (roll - wanted_tilt[0], pitch - wanted_tilt[1]),
             "platform_placement": platform,
             "task_placement": platform if self._task_on_platform else task.copy(),
+            "within_joint_limits": beyond < 0,
         }
         return _built(InverseResult, fields)
 

@@ -51,6 +51,7 @@ __all__ = ["AVAILABLE", "NativeChain", "CONVERGED", "PURE_PYTHON_VARIABLE", "ava
 AVAILABLE = _native_newton is not None
 _EMPTY = np.zeros(0)
 CONVERGED = 0  # status codes 1-4 as `newton`: no assembly, not converged, singular, branch change
+SLIDER_BEYOND_LIMIT = 5  # a single FK's sliders beyond their limits (or NaN): nothing solved
 
 # Joint types the compiled model rebuilds, by Pinocchio's short name: the code `joint_of` reads.
 _ROTATION_CODES = {"none": 0, "yaw": 1, "full": 2}
@@ -75,8 +76,14 @@ class NativeChain:
     """
 
     def __init__(
-        self, handle: object, n_blocks: int, n_passive: int, n_actuated: int, n_unknowns: int, task_rows: int
+        self,
+        handle: object,
+        counts: tuple[int, int, int, int, int],
+        limits: tuple[np.ndarray, np.ndarray],
     ) -> None:
+        """counts: (branch blocks, passive joints, actuated joints, IK unknowns, task rows); limits: the
+        model's (lower, upper) position limits (nq), which single solves check."""
+        n_blocks, n_passive, n_actuated, n_unknowns, task_rows = counts
         assert _native_newton is not None, "built by `of` only when the module is"
         self._handle, self.n_blocks, self._module = handle, n_blocks, _native_newton
         self.tangent = np.zeros((n_passive, n_actuated))  # FK: -J_passive^-1 J_actuated at the last success
@@ -85,7 +92,11 @@ class NativeChain:
         self.inverse_platform, self.inverse_task = np.eye(4), np.eye(4)  # IK's
         self.branch = bytearray(n_blocks)  # FK's labels at the last success
         self.inverse_branch = bytearray(n_blocks + 1)  # IK's: the blocks', then sign(det) of the whole system
+        # FK's history: the sliders and passive joints its last success started from (the second-order
+        # predictor's `previous`); IK's actuators at its last success [m or rad].
+        self.history, self.inverse_actuators = np.zeros(n_actuated + n_passive), np.zeros(n_actuated)
         self._identity = np.eye(3)
+        self._lower, self._upper = (np.array(limit, dtype=float) for limit in limits)
         # The compiled chain reads and writes these arrays in place (bound once: every solve then passes
         # only its own inputs), so they are never rebound: fill them with `[:] =`.
         self._module.bind(
@@ -98,6 +109,10 @@ class NativeChain:
             self.inverse_branch,
             self.inverse_platform,
             self.inverse_task,
+            self.history,
+            self.inverse_actuators,
+            self._lower,
+            self._upper,
         )
 
     @classmethod
@@ -154,7 +169,8 @@ class NativeChain:
             len(frame_ids) - 1,
             _ROTATION_CODES[task.rotation] if square else 0,
         )
-        return cls(handle, len(blocks), len(passive), len(actuated), len(ik_columns), task.dimension if square else 0)
+        counts = (len(blocks), len(passive), len(actuated), len(ik_columns), task.dimension if square else 0)
+        return cls(handle, counts, (model.lowerPositionLimit, model.upperPositionLimit))
 
     def forward(
         self,
@@ -164,15 +180,19 @@ class NativeChain:
         previous: np.ndarray | None,
         start_branch: bytes | None,
         rules: tuple,
-    ) -> tuple[int, float, int, float]:
+    ) -> tuple[int, float, int, float, int]:
         """FK from the last solution q (nq, float64, solved in place) to `sliders` (float64).
 
         order: 0 no predictor, 1 first order along `tangent` (the last success's), 2 also second order
         with previous = (sliders, passive joints) of the solution before q, concatenated
         (`ClosedLoopSolver.predict`). start_branch: the labels the solution must have (None: those at
         its start); rules: `NewtonRules.compiled()`, what every loop obeys. On success
-        `tangent`, `platform`, `task` and `branch` hold the solution's. Returns (status, max |row|,
-        iterations, reciprocal condition of a singular end (0 for a zero pivot) or 0).
+        `tangent`, `platform`, `task` and `branch` hold the solution's, and `history` this solve's
+        start (its sliders, then passive joints: the next solve's `previous`, which may be `history`
+        itself). Returns (status, max |row|, iterations, reciprocal condition of a singular end (0 for
+        a zero pivot) or 0, the first
+        coordinate of a solution beyond its joint limits or -1); status SLIDER_BEYOND_LIMIT when a
+        slider is beyond its limit or NaN, before anything is solved or changed.
         """
         if start_branch is not None:  # labels are 0 or 1: a label of another length cannot be met
             self.branch[:] = start_branch if len(start_branch) == self.n_blocks else b"\xff" * self.n_blocks
@@ -189,14 +209,16 @@ class NativeChain:
         previous: tuple | None,
         start_branch: bytes | None,
         rules: tuple,
-    ) -> tuple[int, float, int, float]:
+    ) -> tuple[int, float, int, float, int, float, float]:
         """IK from the last solution q (solved in place) on [closure rows; task rows] with `goal` (task
         coordinates) and `goal_rotation` (3 x 3, a full-rotation task).
 
         order: 0 no predictor, 1 first order from `task_inverse` and `inverse_task` (the last IK
         success's), 2 also second order with previous = ((goal, goal rotation), q) of the IK solution
         before (`ClosedLoopSolver.inverse_predict`). On success `task_inverse`, `inverse_platform`,
-        `inverse_task` and `inverse_branch` hold the solution's; otherwise as `forward`.
+        `inverse_task`, `inverse_branch` and `inverse_actuators` hold the solution's; returns as
+        `forward`, then the roll and pitch [rad] of the task frame reached (`roll_pitch_of`; zeros
+        after a failure).
         """
         if start_branch is not None:
             count = self.n_blocks + 1

@@ -18,10 +18,11 @@ class WarmStart:
     q: the last solution (nq) [m, rad]. FK: tangent, d q_passive / d sliders at the last factorisation
     (None: no first-order predictor); branch, the labels at the last solution (None: taken at the next
     start); previous, (sliders, passive q) of the solution before q (the second-order predictor's
-    history; with the compiled loop the two concatenated). IK: task_inverse, the task-row columns of
-    the inverse of the last IK system; inverse_previous, ((goal, goal rotation), q) of the IK solution
-    before q; goal, (goal, goal rotation) of q when it is an IK solution; inverse_branch, the labels at
-    the last IK solution; task, the task frame there (with the compiled loop its 4 x 4 buffer [m]).
+    history; with the compiled loop the two concatenated, in its `history` buffer). IK: task_inverse,
+    the task-row columns of the inverse of the last IK system; inverse_previous, ((goal, goal
+    rotation), q) of the IK solution before q; goal, (goal, goal rotation) of q when it is an IK
+    solution; inverse_branch, the labels at the last IK solution; task, the task frame there (with
+    the compiled loop its 4 x 4 buffer [m]).
     """
 
     q: np.ndarray
