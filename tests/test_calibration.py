@@ -30,6 +30,7 @@ from m3t1r.calibration.identification import forward_selection, outlier_gate, se
 from m3t1r.calibration.measurement_setup import MeasurementSetup
 from m3t1r.calibration.measurements import PoseMeasurements, TrackerNoise, assembled_from_home, measure
 from m3t1r.calibration.pipeline import CalibrationOptions, LMSettings, pose_error_rms
+from m3t1r.calibration.repeats import inlier_folds
 from m3t1r.calibration.simulation import (
     PlacementErrorScale,
     StudyOptions,
@@ -285,6 +286,44 @@ def test_barely_identifiable_directions_are_not_answered_with_more_poses(mechani
     assert calibration.converged and not set(held) & set(calibration.base.names)
 
 
+def test_a_shortfall_says_what_is_missing_and_the_advice_that_can_help():
+    """The refusal's wording, from its counts and ranks (rank tolerance 1e-8, so a direction is
+    marginal below a ratio of 1e-6): more poses only when the rows are fewer than the identifiable
+    parameters (each pose's rows named); else the first eight missing names, "..." beyond, and either
+    "barely identifiable" (no more missing than marginal directions of the reference set) or "do not
+    excite"; the holding advice with the parameters found to work, or without them."""
+    shortfall, tolerance = closed_loop._shortfall, 1e-8
+
+    def ranks(rank, ratios=()):
+        return SimpleNamespace(rank=rank, r_diag_ratio=np.r_[np.ones(rank - len(ratios)), ratios])
+
+    head = "1 poses give 6 residual rows for 24 identifiable parameters and identify only 6"
+    assert shortfall(ranks(6), ranks(24), ["a"], [], (1, 6), tolerance) == (
+        f"{head}: add poses (each gives 6 rows), spread over the workspace"
+    )
+    names = [f"p{k}" for k in range(9)]
+    exact = shortfall(ranks(22), ranks(24), names[:8], [], (4, 24), tolerance)
+    assert exact == (
+        "4 poses give 24 residual rows for 24 identifiable parameters and identify only 22: these poses do "
+        "not excite p0, p1, p2, p3, p4, p5, p6, p7; poses that move them, over more of the workspace, "
+        "would, or hold the weakest at nominal (--fix)"
+    )
+    more = shortfall(ranks(22), ranks(24), names, ["p0", "p8"], (4, 24), tolerance)
+    assert more.endswith(
+        "p6, p7 ...; poses that move them, over more of the workspace, would, or hold them at nominal (--fix p0 p8)"
+    )
+    assert shortfall(ranks(22), ranks(24, (1e-7, 9.99e-7)), names[:2], ["p0"], (4, 24), tolerance) == (
+        "4 poses give 24 residual rows for 24 identifiable parameters and identify only 22: p0, p1 are barely "
+        "identifiable on any poses (on poses spread over the whole workspace, within 100 times the rank "
+        "tolerance), so more poses are unlikely to help: hold them at nominal (--fix p0)"
+    )
+    # Two missing against two marginal reference directions (a ratio at 1e-6 is not marginal).
+    for ratios, barely in (((1e-7, 9.99e-7), True), ((1e-7, 1e-6), False), ((1e-7,), False)):
+        message = shortfall(ranks(22), ranks(24, ratios), names[:2], [], (4, 24), tolerance)
+        assert ("barely identifiable on any poses" in message) is barely
+        assert ("these poses do not excite p0, p1;" in message) is not barely
+
+
 def test_measurement_that_does_not_assemble_is_refused(mechanism):
     study = simulate_study(mechanism, n_poses=12, n_holdout=0, seed=16)
     actuators = study.measurements.actuators.copy()
@@ -419,6 +458,10 @@ def test_predicted_pose_std_is_the_covariance_through_finite_differences(noisy):
     predicted = predicted_pose_std(calibration, sliders)
     np.testing.assert_allclose(predicted.position, expected_position, rtol=1e-3)
     np.testing.assert_allclose(predicted.rotation, expected_rotation, rtol=1e-3)
+    # 600 slider sets, in blocks of 512 poses: every set predicted as alone.
+    many = predicted_pose_std(calibration, np.tile(sliders, (200, 1)))
+    np.testing.assert_allclose(many.position, np.tile(predicted.position, 200), rtol=1e-9)
+    np.testing.assert_allclose(many.rotation, np.tile(predicted.rotation, 200), rtol=1e-9)
     # No slider set: nothing predicted; a set beyond a limit: refused, naming it.
     empty = predicted_pose_std(calibration, np.zeros((0, 4)))
     assert empty.position.shape == empty.rotation.shape == (0,)
@@ -725,6 +768,23 @@ def test_the_streamed_fit_is_the_in_memory_fit(mechanism):
     a, b = cross_validate(streamed, folds=4), cross_validate(in_memory, folds=4)
     np.testing.assert_allclose(a.errors.position, b.errors.position, rtol=1e-6, atol=1e-12)
     np.testing.assert_allclose(a.errors.rotation, b.errors.rotation, rtol=1e-6, atol=1e-12)
+    # Each fold's prediction is the Gauss-Newton step on every other row (the outliers' weigh nothing)
+    # from the estimate, applied to the fold's rows and unwhitened: the same over both pose blocks.
+    problem = in_memory.problem
+    r, J = problem.residual_and_jacobian(in_memory.lm.state)
+    assert J.shape[0] == 600 * 6  # no prior on a fitted column
+    inliers, fold = inlier_folds(problem.active, 4, 0)[:2]
+    pose_fold = np.full(600, -1)
+    pose_fold[inliers] = fold
+    row_fold = np.repeat(pose_fold, 6)
+    predicted = np.zeros(len(r))
+    for f in range(4):
+        held = row_fold == f
+        step = -np.linalg.lstsq(J[~held], r[~held], rcond=None)[0]
+        predicted[held] = (r[held] + J[held] @ step) / problem.weights[held]
+    expected = predicted.reshape(-1, 6)[inliers]
+    np.testing.assert_allclose(b.errors.position, np.linalg.norm(expected[:, :3], axis=1), rtol=1e-6)
+    np.testing.assert_allclose(b.errors.rotation, np.linalg.norm(expected[:, 3:], axis=1), rtol=1e-6)
 
 
 def test_a_fit_from_a_state_whose_factor_was_taken_evaluates_no_pose_for_its_first_step(mechanism, few_poses):
