@@ -1435,6 +1435,17 @@ def test_structural_rank_cache_keys_on_the_noise_ratio_and_the_data_kind(mechani
     assert counts == [56, 52, 56, 53]
 
 
+def _retract_differences(problem, state, eps=1e-6):
+    """Central differences of the pose residual rows along retract's update of each column."""
+    numeric = np.empty((problem.pose_residuals(state).size, len(problem.columns)))
+    for j in range(len(problem.columns)):
+        step = np.zeros(len(problem.columns))
+        step[j] = eps
+        plus, minus = problem.retract(state, step), problem.retract(state, -step)
+        numeric[:, j] = (problem.pose_residuals(plus) - problem.pose_residuals(minus)).reshape(-1) / (2 * eps)
+    return numeric
+
+
 @pytest.mark.parametrize("position_only", [False, True])
 def test_jacobian_is_the_derivative_of_the_residual_along_retract(mechanism, few_poses, position_only):
     """Every column of evaluate's Jacobian (machine, measurement frame, marker) against central
@@ -1456,14 +1467,7 @@ def test_jacobian_is_the_derivative_of_the_residual_along_retract(mechanism, few
         residual, problem.pose_residuals(state).reshape(-1) * problem.weights, rtol=1e-12, atol=1e-9
     )
     jacobian = jacobian / problem.weights[:, None]  # every weight positive here
-    eps = 1e-6
-    numeric = np.empty_like(jacobian)
-    for j in range(len(columns)):
-        step = np.zeros(len(columns))
-        step[j] = eps
-        plus, minus = problem.retract(state, step), problem.retract(state, -step)
-        numeric[:, j] = (problem.pose_residuals(plus) - problem.pose_residuals(minus)).reshape(-1) / (2 * eps)
-    np.testing.assert_allclose(jacobian, numeric, atol=1e-6)
+    np.testing.assert_allclose(jacobian, _retract_differences(problem, state), atol=1e-6)
 
 
 _OFFSETS = np.array([[0.05, -0.02, 0.03], [-0.04, 0.03, 0.02], [0.01, 0.05, -0.01]])  # [m], platform frame
@@ -1504,14 +1508,7 @@ def test_point_jacobian_is_the_derivative_of_the_residual_along_retract(mechanis
     assert np.count_nonzero(~seen) == 3 and not np.any(residual[~seen]) and not np.any(jacobian[~seen])
     np.testing.assert_allclose(residual[seen], expected.reshape(-1)[seen] / NOISE.position, rtol=1e-12)
     jacobian = jacobian[seen] / problem.weights[seen, None]
-    eps = 1e-6
-    numeric = np.empty_like(jacobian)
-    for j in range(len(columns)):
-        step = np.zeros(len(columns))
-        step[j] = eps
-        plus, minus = problem.retract(state, step), problem.retract(state, -step)
-        numeric[:, j] = (problem.pose_residuals(plus) - problem.pose_residuals(minus)).reshape(-1)[seen] / (2 * eps)
-    np.testing.assert_allclose(jacobian, numeric, atol=1e-6)
+    np.testing.assert_allclose(jacobian, _retract_differences(problem, state)[seen], atol=1e-6)
 
 
 def test_registered_points_are_the_mean_sightings_through_the_registered_frame(mechanism):

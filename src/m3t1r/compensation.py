@@ -242,24 +242,19 @@ class _PathSolver:
         self._warm = False  # False while the last good solution is home itself: nothing to retry from
 
     def inverse(self, target: np.ndarray | pin.SE3) -> InverseResult:
-        """Warm-started IK; after a failure, once more from home (unless that was the start)."""
-        try:
-            result = self.solver.inverse(target)
-        except KinematicsError:
-            if not self._warm:
-                raise
-            result = self.solver.inverse(target, q_init=self._home)
-        self._warm = True
-        return result
+        return self.solve(self.solver.inverse, target)
 
     def forward(self, actuators: np.ndarray) -> ForwardResult:
-        """Warm-started FK; after a failure, once more from home (unless that was the start)."""
+        return self.solve(self.solver.forward, actuators)
+
+    def solve(self, solve, argument):
+        """Warm-started solve; after a failure, once more from home (unless that was the start)."""
         try:
-            result = self.solver.forward(actuators)
+            result = solve(argument)
         except KinematicsError:
             if not self._warm:
                 raise
-            result = self.solver.forward(actuators, q_init=self._home)
+            result = solve(argument, q_init=self._home)
         self._warm = True
         return result
 
@@ -366,18 +361,19 @@ class Compensator:
         """
         rows = _validated_targets(targets, self.calibrated.task)
         indices, commands, failures = [], [], []
-        # `command`'s steps, with the limit check's common case inline: a servo loop pays per call.
-        inverse, forward, limits = self._inverse.inverse, self._forward.forward, self._limits
+        # `command`'s steps, a layer of calls fewer: a servo loop pays for each.
+        calibrated, nominal, limits = self._inverse, self._forward, self._limits
+        inverse, forward = calibrated.solver.inverse, nominal.solver.forward
         for index, target in enumerate(rows):
             if progress is not None:
                 progress(index)
             stage = "inverse kinematics of the calibrated model"
             try:
-                ik = inverse(target)
+                ik = calibrated.solve(inverse, target)
                 if not ik.within_joint_limits:
                     limits.check(ik)
                 stage = "forward kinematics of the nominal model at the compensated sliders"
-                fk = forward(ik.actuators)
+                fk = nominal.solve(forward, ik.actuators)
             except (KinematicsError, InvalidInputError) as exc:
                 # InvalidInputError here can only be q^c beyond the nominal model's slider limits.
                 if strict:
