@@ -16,7 +16,10 @@ function, its line as written and the line as the mutant writes it. Every mutant
 making that change to a line of that text matches the row; a row that matches no mutant is
 reported as stale, and a survivor is written in the same row format, ready to be reviewed.
 
-Usage: python tools/mutation.py [MODULE ...] [--max-children N] [--workdir DIR]
+With --functions NAME ... (`name` or `Class.name`, as a row writes them) only those functions' mutants
+run and count: the score of what an edit touched, in minutes where the module takes an hour.
+
+Usage: python tools/mutation.py [MODULE ...] [--max-children N] [--workdir DIR] [--functions NAME ...]
 """
 
 from __future__ import annotations
@@ -175,27 +178,40 @@ def results(copy: Path) -> dict[str, str]:
     return dict(line.strip().rsplit(": ", 1) for line in output.splitlines() if ": " in line)
 
 
-def run_module(module: str, tests: list[str], max_children: int, workdir: Path) -> tuple[int, int, int, Counter]:
+def mutant_pattern(module: str, function: str) -> str:
+    """mutmut's name pattern of the mutants of `function` (`name` or `Class.name`) in `module`."""
+    class_name, _, name = function.rpartition(".")
+    return f"m3t1r.{module}." + (f"x\u01c1{class_name}\u01c1{name}" if class_name else f"x_{name}") + "__mutmut_*"
+
+
+def run_module(
+    module: str, tests: list[str], max_children: int, workdir: Path, functions: list[str] | None = None
+) -> tuple[int, int, int, Counter]:
     copy = workdir / module
     copy_tree(copy)
     configure(copy, module, tests)
     log = workdir / f"{module}.log"  # mutmut's output: why a run failed (e.g. its clean test run)
+    names = [mutant_pattern(module, f) for f in functions or ()]
     with log.open("w") as output:
         subprocess.run(
-            ["nice", "-n", "10", sys.executable, "-m", "mutmut", "run", "--max-children", str(max_children)],
+            ["nice", "-n", "10", sys.executable, "-m", "mutmut", "run", "--max-children", str(max_children), *names],
             cwd=copy,
             check=True,
             stdout=output,
             stderr=subprocess.STDOUT,
         )
-    statuses = results(copy)
     changes = mutant_changes(module, copy)  # the copy's source: the checkout may change during the run
+    statuses = {
+        name: status for name, status in results(copy).items() if not functions or changes[name].function in functions
+    }
     equivalent = {change for change in equivalent_changes() if change.module == module}
     counted = {name: status for name, status in statuses.items() if changes[name] not in equivalent}
     counts = Counter(counted.values())
     killed = sum(n for status, n in counts.items() if status in KILLED)
     survivors = sorted(name for name, status in counted.items() if status not in KILLED)
-    stale = equivalent - {changes[name] for name in statuses}
+    stale = {change for change in equivalent if not functions or change.function in functions} - {
+        changes[name] for name in statuses
+    }
     (workdir / f"{module}.survivors.txt").write_text(
         "".join(f"{changes[n].row(counted[n])}\n" for n in survivors)
         + "".join(f"stale row, no such mutant: {change.row()}\n" for change in sorted(stale, key=str))
@@ -209,6 +225,7 @@ def main() -> int:
     parser.add_argument("modules", nargs="*", default=list(config), help=f"among {', '.join(config)}")
     parser.add_argument("--max-children", type=int, default=2)
     parser.add_argument("--workdir", type=Path, default=ROOT / "build" / "mutation")
+    parser.add_argument("--functions", nargs="+", help="only these functions' mutants (name or Class.name)")
     args = parser.parse_args()
     unknown = [m for m in args.modules if m not in config]
     if unknown:
@@ -217,7 +234,9 @@ def main() -> int:
     total_killed = total = 0
     print(f"{'module':<16} {'killed':>7} {'counted':>8} {'equivalent':>11} {'score':>7}  other statuses")
     for module in args.modules:
-        killed, counted, equivalent, counts = run_module(module, config[module], args.max_children, args.workdir)
+        killed, counted, equivalent, counts = run_module(
+            module, config[module], args.max_children, args.workdir, args.functions
+        )
         total_killed, total = total_killed + killed, total + counted
         other = ", ".join(f"{s} {n}" for s, n in sorted(counts.items()) if s not in KILLED)
         print(
