@@ -7,10 +7,12 @@ import numpy as np
 import pinocchio as pin
 import pytest
 from conftest import perturb_every_origin
-from model_files import edit_yaml, welded_double_hinge
+from model_files import edit_text, edit_yaml, welded_double_hinge
 
 from m3t1r.errors import BranchChangeError, InvalidInputError, KinematicsError, NotConvergedError, OutOfWorkspaceError
+from m3t1r.model.description import Mechanism
 from m3t1r.model.design import NOMINAL
+from m3t1r.model.examples import FiveBarGeometry, five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
 
 
@@ -221,9 +223,6 @@ def _path_from_home(mechanism, sliders: np.ndarray, steps: int = 10):
 
 
 def _machines(mechanism, tool_machine, tmp_path):
-    from m3t1r.model.description import Mechanism
-    from m3t1r.model.examples import FiveBarGeometry, five_bar_files, spherical_wrist_files
-
     # A five-bar whose motor box reaches to within a few degrees of its stretched-elbow singularity,
     # where the two assembly modes are close: a start on the wrong side of it is easy to make.
     stretched = FiveBarGeometry(distal=0.28)
@@ -821,6 +820,25 @@ def test_solutions_say_whether_every_joint_is_within_its_limits(mechanism, compi
         solver = ClosedLoopSolver(_with_q13_upper_limit(mechanism, upper_limit), native=compiled)
         solution = solver.inverse(targets[0], q_init=mechanism.home)
         assert solution.q[k] == angle and solution.within_joint_limits is within
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_passive_first_coordinate_beyond_its_limit_is_flagged(tmp_path, compiled):
+    """The five-bar driven by elbow_1 and motor_2, motor_1 (coordinate 0 of q) free to turn only to
+    2.35 rad: FK moving it to 2.376 rad says so, and IK to that pose too; moving it to 2.285 is within."""
+    urdf, closures = five_bar_files(tmp_path)
+    edit_text(urdf, lambda text: text.replace('lower="1.83" upper="2.83"', 'lower="1.83" upper="2.35"', 1))
+    edit_yaml(closures, lambda document: document.update(actuated_joints=["elbow_1", "motor_2"], workspace=None))
+    machine = Mechanism.load(urdf, closures)
+    assert machine.model.names[1] == "motor_1" and 0 not in machine.actuated_ids
+    solver = ClosedLoopSolver(machine, native=compiled)
+    home_sliders = machine.home[machine.actuated_ids]
+    for change, within in ((-0.05, False), (0.05, True)):
+        fk = solver.forward(home_sliders + [change, 0.0], q_init=machine.home)
+        assert (fk.q[0] > 2.35) is not within and fk.within_joint_limits is within
+        ik = solver.inverse(machine.task.coordinates(fk.task_placement[None])[0], q_init=machine.home)
+        np.testing.assert_allclose(ik.q, fk.q, atol=1e-9)
+        assert ik.within_joint_limits is within
 
 
 @pytest.mark.parametrize("slider, bound", [(0, "upper"), (1, "lower")])

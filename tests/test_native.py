@@ -699,10 +699,32 @@ def test_a_warm_forward_refuses_sliders_beyond_their_limits_and_keeps_its_warm_s
     )
     with pytest.raises(InvalidInputError, match="actuator values"):
         solver.forward(missing)
+    with pytest.raises(InvalidInputError, match="actuator 'q21'"):
+        solver.forward(beyond, q_init=mechanism.home)  # a start of its own: refused before its tangent is taken
     for values in sliders[6:]:
         a, b = solver.forward(values), untouched.forward(values)
         np.testing.assert_array_equal(a.q, b.q)
         assert a.iterations == b.iterations
+
+
+def test_after_an_inverse_and_after_a_failed_one_both_loops_take_the_same_steps(mechanism):
+    """FK right after IK starts from IK's solution without a tangent (a slider moved 5 mm); IK after a
+    failed IK starts from the last solution without the failed solve's predictor or labels: the
+    compiled loop takes the Python loop's steps to the same configurations."""
+    targets = _targets(mechanism, 4, 13)
+    results = []
+    for solver in (ClosedLoopSolver(mechanism), ClosedLoopSolver(mechanism, native=False)):
+        ik = solver.inverse(targets[0])
+        fk = solver.forward(ik.actuators + [5e-3, 0.0, 0.0, 0.0])
+        solver.inverse(targets[1])
+        with pytest.raises(OutOfWorkspaceError):
+            solver.inverse(targets[2] + [5.0, 0.0, 0.0, 0.0])  # 5 m away
+        after = solver.inverse(targets[3])
+        results.append((fk.q, fk.iterations, after.q, after.iterations))
+    (fa, ja, qa, ia), (fb, jb, qb, ib) = results
+    np.testing.assert_allclose(fa, fb, atol=1e-12)
+    np.testing.assert_allclose(qa, qb, atol=1e-12)
+    assert (ja, ia) == (jb, ib) and ja >= 1
 
 
 def test_a_bad_thread_count_is_refused_by_inverse_batch_too(solver):
