@@ -1521,7 +1521,8 @@ def test_registered_points_are_the_mean_sightings_through_the_registered_frame(m
     actuators = workspace_actuators(mechanism, 12, np.random.default_rng(65))
     measurements = _points_of(mechanism, actuators, hidden=[(0, 0), (3, 1), (4, 2), (7, 0)])
     seen = np.isfinite(measurements.points[:, :, 0])
-    for estimate_frame, given in ((False, MeasurementSetup(_TRACKER)), (True, MeasurementSetup())):
+    reflector = pin.SE3(np.eye(3), np.array([0.07, -0.02, 0.03]))  # a marker of one-point data: points have none
+    for estimate_frame, given in ((False, MeasurementSetup(_TRACKER, reflector)), (True, MeasurementSetup())):
         options = CalibrationOptions(noise=NOISE, estimate_frame=estimate_frame, setup=given)
         problem = ClosedLoopProblem(ClosedLoopErrorModel(mechanism), measurements, np.arange(204), options)
         start = problem.assemble(mechanism.model, None, setup=given)
