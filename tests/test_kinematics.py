@@ -822,6 +822,19 @@ def test_solutions_say_whether_every_joint_is_within_its_limits(mechanism, compi
         assert solution.q[k] == angle and solution.within_joint_limits is within
 
 
+def test_roll_and_pitch_of_the_m_machine_are_not_commandable(mechanism, tmp_path):
+    """The M machine's platform keeps its roll and pitch (3T1R): a task of z and the full rotation
+    has rx and ry that no closure-compatible motion moves, though every joint alone tilts it."""
+    urdf = tmp_path / "m3t1r.urdf"
+    closures = tmp_path / "m3t1r.closures.yaml"
+    urdf.write_text(mechanism.urdf_path.read_text())
+    closures.write_text(mechanism.closures_path.read_text())
+    edit_yaml(
+        closures, lambda document: (document["task"].update(position=["z"], rotation="full"), document.pop("workspace"))
+    )
+    assert ClosedLoopSolver(Mechanism.load(urdf, closures)).uncommandable_task_rows() == ("rx", "ry")
+
+
 @pytest.mark.parametrize("compiled", [True, False])
 def test_a_passive_first_coordinate_beyond_its_limit_is_flagged(tmp_path, compiled):
     """The five-bar driven by elbow_1 and motor_2, motor_1 (coordinate 0 of q) free to turn only to
