@@ -394,8 +394,13 @@ class ClosedLoopSolver:
         warm.previous = (start.take(self.actuated), start.take(self.passive))
         warm.branch, warm.q = outcome.branch, outcome.q
         platform, task = self._placements()
-        within = within_limits(self._joint_limit_lists[0], outcome.q.tolist(), self._joint_limit_lists[1])
+        within = self._within_joint_limits(outcome.q)
         return ForwardResult(outcome.q.copy(), outcome.residual, outcome.iterations, platform, task, within)
+
+    def _within_joint_limits(self, q: np.ndarray) -> bool:
+        """Every coordinate of q within its URDF limits: the Python loops' `within_joint_limits` (the
+        compiled loop's check, `first_beyond_limits`, gives the same)."""
+        return within_limits(self._joint_limit_lists[0], q.tolist(), self._joint_limit_lists[1])
 
     def _forward_native(
         self, q: np.ndarray, values: np.ndarray, predicted: bool, previous, branch: bytes | None
@@ -618,7 +623,7 @@ class ClosedLoopSolver:
         self._keep_inverse_solution(continuing, q, branch, outcome.inverse[:, self.n_rows :], (goal, goal_rotation))
         state.task = last_task
         tilt = (roll - wanted_tilt[0], pitch - wanted_tilt[1])
-        within = within_limits(self._joint_limit_lists[0], q.tolist(), self._joint_limit_lists[1])
+        within = self._within_joint_limits(q)
         return InverseResult(actuators, q.copy(), residual, iterations, tilt, platform, task, within)
 
     def _inverse_native(

@@ -190,9 +190,9 @@ class NativeChain:
         `tangent`, `platform`, `task` and `branch` hold the solution's, and `history` this solve's
         start (its sliders, then passive joints: the next solve's `previous`, which may be `history`
         itself). Returns (status, max |row|, iterations, reciprocal condition of a singular end (0 for
-        a zero pivot) or 0, the first
-        coordinate of a solution beyond its joint limits or -1); status SLIDER_BEYOND_LIMIT when a
-        slider is beyond its limit or NaN, before anything is solved or changed.
+        a zero pivot) or 0, the first coordinate of a solution beyond its joint limits or -1); status
+        SLIDER_BEYOND_LIMIT when a slider is beyond its limit or NaN, before anything is solved or
+        changed.
         """
         if start_branch is not None:  # labels are 0 or 1: a label of another length cannot be met
             self.branch[:] = start_branch if len(start_branch) == self.n_blocks else b"\xff" * self.n_blocks
