@@ -259,7 +259,8 @@ def test_a_singular_configuration_is_refused_with_its_class(mechanism, monkeypat
 def test_a_threshold_beside_the_exact_reciprocal_condition_decides_as_the_python_loop(mechanism, side):
     """The compiled loop clears most solves by a cheap lower bound on the reciprocal condition; a
     threshold a hair below or above the exact value (where the bound cannot decide) must still end as
-    the Python loop's exact test does: single FK, FK from home, and forward_batch rows."""
+    the Python loop's exact test does: single FK, FK from home, and forward_batch rows started where
+    the single solve from home starts (home moved along its tangent: the same Newton path)."""
     sliders = mechanism.home[mechanism.actuated_ids] + np.array([0.02, -0.01, 0.015, -0.02])
     q = ClosedLoopSolver(mechanism, native=False).forward(sliders, q_init=mechanism.home).q
     reference = ClosedLoopSolver(mechanism, native=False)
@@ -268,7 +269,10 @@ def test_a_threshold_beside_the_exact_reciprocal_condition_decides_as_the_python
     rules = NewtonRules(singular_rcond=exact * (1.0 + side * 1e-6))
     for use in (True, False):
         solver = ClosedLoopSolver(mechanism, native=use, rules=rules)
-        batch = solver.forward_batch(np.array([sliders, sliders]))
+        start = mechanism.home.copy()
+        start[solver.actuated] = sliders
+        start[solver.passive] += solver.predict_from_home((sliders - mechanism.home[solver.actuated])[None], False)[0]
+        batch = solver.forward_batch(np.array([sliders, sliders]), q_init=start)
         if side < 0:
             np.testing.assert_allclose(solver.forward(sliders, q_init=mechanism.home).q, q, atol=1e-11)
             assert batch.complete

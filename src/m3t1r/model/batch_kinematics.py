@@ -126,7 +126,8 @@ class RowSolver(Protocol):
     @property
     def singular_rcond(self) -> float: ...
     def home_reference(self) -> tuple[np.ndarray, bytes] | None: ...
-    def predict(self, start: np.ndarray, change: np.ndarray, tangent: np.ndarray, previous: None) -> np.ndarray: ...
+    def home_curvature(self) -> np.ndarray | None: ...
+    def predict_from_home(self, changes: np.ndarray, second_order: bool = True) -> np.ndarray: ...
     def check_square_task(self) -> None: ...
     def solve_rows(
         self,
@@ -185,8 +186,8 @@ def forward_batch(
 ) -> ForwardBatch:
     """Platform poses for n slider sets (n, k) [m], each solved from q_init.
 
-    Default (q_init None): every row starts from home moved along home's solution manifold to first
-    order (`ClosedLoopSolver.predict` with home's tangent, counted as one iteration) and must end on
+    Default (q_init None): every row starts from home moved along home's solution manifold to second
+    order (`ClosedLoopSolver.predict_from_home`, counted as one iteration) and must end on
     home's assembly branch (the branch labels at home). Far from home this assembles rows where plain
     Newton from home's passive joints crosses a singularity (`forward(a, q_init=home)` then raises
     BranchChangeError or OutOfWorkspaceError); where both succeed they agree to the tolerance.
@@ -213,22 +214,41 @@ def forward_batch(
     ]
     rows = np.flatnonzero(~outside.any(axis=1))
     reference = solver.home_reference() if q_init is None else None
-    branch = None
-    if reference is not None:  # the first-order predictor along home's solution manifold
-        tangent, branch = reference
-        start[:, solver.passive] += solver.predict(
-            solver.mechanism.home, values - start[:, solver.actuated], tangent, None
-        )
     start[:, solver.actuated] = values
-    parts = []
-    if len(rows):
-        solved = solver.solve_rows(start[rows], branch, int(reference is not None), threads=workers)
+    if reference is None:
+        parts = [(rows, solver.solve_rows(start[rows], None, 0, threads=workers))] if len(rows) else []
+    else:
+        parts = _rows_from_home(solver, start[rows], rows, reference[1], workers)
+    if parts:
+        last_rows, last = parts[-1]
         failures += [
-            RowFailure(int(rows[f.index]), f.reason, f.error)
-            for f in failures_of(solved, 0, "forward kinematics", solver.singular_rcond)
+            RowFailure(int(last_rows[f.index]), f.reason, f.error)
+            for f in failures_of(last, 0, "forward kinematics", solver.singular_rcond)
         ]
-        parts.append((rows, solved))
     return _forward_result(solver, len(values), parts, failures)
+
+
+def _rows_from_home(
+    solver: RowSolver, start: np.ndarray, rows: np.ndarray, branch: bytes, workers: int
+) -> list[tuple[np.ndarray, SolvedRows]]:
+    """Rows `rows` (their sliders set in `start`, passive joints at home's) solved from home's
+    second-order prediction, then the rows it loses from the first-order one: [(rows, solved)]
+    and, if any was lost, [(lost rows, solved again)], whose failures are the batch's.
+
+    Far from home the curvature's term can carry a start past a singularity that the first-order
+    start stays clear of (five-bar sliders 1.5 rad from home): retried, such a row ends as it
+    did before the second-order term, so the batch converges wherever it did with first order only.
+    """
+    changes = start[:, solver.actuated] - solver.mechanism.home[solver.actuated]
+    predicted = start.copy()
+    predicted[:, solver.passive] += solver.predict_from_home(changes)
+    solved = solver.solve_rows(predicted, branch, 1, threads=workers)
+    lost = np.flatnonzero(solved.status != _CONVERGED)
+    if not len(lost) or solver.home_curvature() is None:
+        return [(rows, solved)]
+    again = start[lost]
+    again[:, solver.passive] += solver.predict_from_home(changes[lost], second_order=False)
+    return [(rows, solved), (rows[lost], solver.solve_rows(again, branch, 1, threads=workers))]
 
 
 def _thread_count(threads: int | None) -> int:

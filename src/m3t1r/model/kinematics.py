@@ -361,7 +361,8 @@ class ClosedLoopSolver:
         home, and again after `reset`): the start moved along its tangent to the slider change (plus
         a second-order term along the last step when warm), then Newton on the enforced closure rows
         over the passive joints only (sliders locked), J_c,passive dq_passive = -r_c. The solution
-        must carry the start's branch labels: a new solver's first solve is `forward_batch`'s row.
+        must carry the start's branch labels (a new solver's first solve: home's, as `forward_batch`'s rows,
+        which start from home's second-order prediction instead and agree with it to the tolerance).
         Raises InvalidInputError for bad actuators, BranchChangeError / NotConvergedError /
         OutOfWorkspaceError / SingularConfigurationError (with the final residual) otherwise.
         """
@@ -444,6 +445,50 @@ class ClosedLoopSolver:
             self._home = self._reference(self.mechanism.home)
         return self._home
 
+    def home_curvature(self) -> np.ndarray | None:
+        """H (passive x actuated x actuated): the second derivative d^2 q_passive / da_i da_j of home's
+        solution manifold [rad or m per slider unit squared], by central differences of its tangent T
+        along it: H[:, :, j] = (T(home + h t_j) - T(home - h t_j)) / 2h with t_j = (e_j on the sliders,
+        T e_j on the passive joints) and h = 1e-4. Both points are off the manifold by the same O(h^2),
+        which the difference cancels: H is exact to O(h^2), no solve needed. None when home or one of
+        the points is singular (batches from home then predict to first order)."""
+        if self._curvature is None:
+            reference = self.home_reference()
+            self._curvature = (None,) if reference is None else (self._tangent_derivative(reference[0]),)
+        return self._curvature[0]
+
+    _curvature: tuple[np.ndarray | None] | None = None
+
+    def _tangent_derivative(self, tangent: np.ndarray, h: float = 1e-4) -> np.ndarray | None:
+        """(T(home + h t_j) - T(home - h t_j)) / 2h for each slider j: `home_curvature`."""
+        curvature = np.empty((len(self.passive), len(self.actuated), len(self.actuated)))
+        for j in range(len(self.actuated)):
+            moved = []
+            for sign in (1.0, -1.0):
+                q = self.mechanism.home.copy()
+                q[self.actuated[j]] += sign * h
+                q[self.passive] += sign * h * tangent[:, j]
+                reference = self._reference(q)
+                if reference is None:
+                    return None
+                moved.append(reference[0])
+            curvature[:, :, j] = (moved[0] - moved[1]) / (2.0 * h)
+        return curvature
+
+    def predict_from_home(self, changes: np.ndarray, second_order: bool = True) -> np.ndarray:
+        """Passive-joint changes (n, passive) [rad or m] from home for slider changes (n, k) from home's
+        sliders, along home's solution manifold: T d (`home_reference`), plus 1/2 H[d, d]
+        (`home_curvature`) when second_order and H is known. The starts of batch rows from home."""
+        reference = self.home_reference()
+        assert reference is not None, "asked only where home is regular"
+        step = changes.dot(reference[0].T)
+        curvature = self.home_curvature() if second_order else None
+        if curvature is not None:
+            k = len(self.actuated)
+            pairs = (changes[:, :, None] * changes[:, None, :]).reshape(len(changes), k * k)
+            step += 0.5 * pairs.dot(curvature.reshape(len(self.passive), k * k).T)
+        return step
+
     def _reference(self, q: np.ndarray) -> tuple[np.ndarray, bytes] | None:
         """(tangent, branch labels) of the passive closure system at q, or None where it is singular."""
         _, jac = self._system(q, True)
@@ -478,9 +523,8 @@ class ClosedLoopSolver:
         the previous step e (sliders s_k - s_(k-1)): the previous solution gives
         1/2 H[e, e] ~= q_(k-1) - q_k + T e, applied as lam^2 1/2 H[e, e] with lam = (d . e) / (e . e),
         only while the path keeps going the same way (0 < lam < 2). Newton corrects whatever remains.
-        `change` may be (n, k), one slider change per row (first order only: a batch from home).
         """
-        step = tangent.dot(change) if change.ndim == 1 else change.dot(tangent.T)  # one change or a row per start
+        step = tangent.dot(change)
         if previous is not None:
             last_sliders, last_passive = previous
             e = start.take(self.actuated) - last_sliders
@@ -781,7 +825,7 @@ class ClosedLoopSolver:
         """Forward kinematics of n slider sets (n, k) [m] at once (`batch_kinematics.forward_batch`).
 
         Every row is solved on home's branch (the reference), from home moved along the solution
-        manifold to first order, or from q_init when given, by `solve_rows`. Where
+        manifold to second order, or from q_init when given, by `solve_rows`. Where
         `forward(a, q_init=home)` converges the two agree to the tolerance; far from home the batch
         also assembles rows where plain Newton from home crosses a singularity. Returns a `ForwardBatch`: `.poses`
         (M, 4, 4), `.q`, `.iterations` of the M converged rows `.indices`; every other row is in
