@@ -79,6 +79,8 @@ class DenseLU {
     bound_.assign(static_cast<size_t>(n), 0.0);
   }
   double & operator()(int i, int j) { return f_(i, j); }  // fill A here, then factor()
+  double * data() { return f_.data(); }  // A's entries, row by row
+  void zero() { f_.setZero(); }
 
   // Leading diagonal blocks [start, end) of the rows and columns (ends: their end positions, in order):
   // a pivot of a block's column is then taken among its own rows unless a row below the blocks holds
@@ -300,7 +302,15 @@ struct System {
   std::vector<int> row_position;  // row_order[row_position[r]] == r
   bool blocks_lead = false;  // the blocks are the system's leading diagonal blocks (labels from its factors)
   bool odd_order = false;    // the two orderings' permutations have, together, an odd parity
-  std::vector<double> column_sums;  // of |entries| of the last factorised system, by column (block order)
+  // The entries the evaluations can make nonzero (a closure row's columns, a task row's), rows in the
+  // residual's order: where each sits in the factorised system (row-major, block order) and in the
+  // Jacobian (row-major), and its column there. `factor` copies only these (the M machine's FK system:
+  // 64 of 256).
+  struct Entry {
+    int system, jacobian, column;
+  };
+  std::vector<Entry> pattern;
+  std::vector<double> column_sums;  // one_norm's work vector, by column (block order)
   Matrix inverse_matrix;
   DenseLU lu;
 };
@@ -365,6 +375,28 @@ inline void order_system(System & s, const std::vector<std::vector<int>> & block
     for (const std::vector<int> & block : block_rows) ends.push_back((ends.empty() ? 0 : ends.back()) + static_cast<int>(block.size()));
     s.lu.set_blocks(ends);
   }
+}
+
+// s.pattern from the closures' and the task's columns (velocity indices) over a Jacobian of `nv` columns,
+// after order_system: row r of the residual is closure row r below `closure_rows`, task row after.
+inline void set_pattern(System & s, const std::vector<Closure> & closures, const std::vector<int> & task_columns,
+                        int closure_rows, int nv) {
+  std::vector<int> column_of(static_cast<size_t>(nv), -1);
+  const int n = static_cast<int>(s.unknowns.size());
+  for (int k = 0; k < n; ++k) column_of[static_cast<size_t>(s.unknowns[k])] = k;
+  s.pattern.clear();
+  const auto add = [&](int r, int velocity) {
+    const int j = column_of[static_cast<size_t>(velocity)];
+    if (j >= 0) s.pattern.push_back({s.row_position[r] * n + j, r * nv + velocity, j});
+  };
+  for (const Closure & k : closures)
+    for (int r = k.first_row; r < k.first_row + static_cast<int>(k.components.size()) && r < s.rows; ++r)
+      for (const auto & col : k.columns) add(r, col.first);
+  for (int r = closure_rows; r < s.rows; ++r)
+    for (const int col : task_columns) add(r, col);
+  // In the residual's row order: one_norm's sums then add the terms the dense loop added.
+  std::stable_sort(s.pattern.begin(), s.pattern.end(),
+                   [nv](const System::Entry & a, const System::Entry & b) { return a.jacobian / nv < b.jacobian / nv; });
 }
 
 // NewtonRules (m3t1r.model.newton_rules), passed with every call.
@@ -506,10 +538,13 @@ void labels(Chain & c, const System & s, unsigned char * out) {
   if (s.inverse) out[c.blocks.size()] = s.lu.positive_determinant() != s.odd_order ? 1 : 0;
 }
 
-// |A|_1 (the largest column sum of |A|) of the system last factorised, at the last Jacobian (which the
-// buffer still holds after chord steps: residual-only evaluations leave it alone): needed at
-// convergence only.
-double one_norm(const System & s) {
+// |A|_1 (the largest column sum of |A|, summed in the residual's row order) of the system last
+// factorised, from the last Jacobian (which the buffer still holds after chord steps: residual-only
+// evaluations leave it alone): needed at convergence only.
+double one_norm(const Chain & c, System & s) {
+  std::fill(s.column_sums.begin(), s.column_sums.end(), 0.0);
+  const double * jacobian = c.jacobian.data();
+  for (const System::Entry & e : s.pattern) s.column_sums[e.column] += std::fabs(jacobian[e.jacobian]);
   double biggest = 0.0;
   for (const double sum : s.column_sums) {
     if (std::isnan(sum)) return sum;
@@ -518,20 +553,12 @@ double one_norm(const System & s) {
   return biggest;
 }
 
-// Factors the system at the current Jacobian (in block order), keeping its columns' sums of |entries|
-// (summed in the residual's row order) for `one_norm`.
+// Factors the system at the current Jacobian (in block order): its pattern's entries into zeros.
 bool factor(Chain & c, System & s) {
-  const int n = static_cast<int>(s.unknowns.size());
-  std::fill(s.column_sums.begin(), s.column_sums.end(), 0.0);
-  for (int r = 0; r < s.rows; ++r) {
-    const int i = s.row_position[r];
-    const double * row = c.jacobian.data() + static_cast<Eigen::Index>(r) * c.jacobian.cols();
-    for (int j = 0; j < n; ++j) {
-      const double value = row[s.unknowns[j]];
-      s.lu(i, j) = value;
-      s.column_sums[j] += std::fabs(value);
-    }
-  }
+  s.lu.zero();
+  double * system = s.lu.data();
+  const double * jacobian = c.jacobian.data();
+  for (const System::Entry & e : s.pattern) system[e.system] = jacobian[e.jacobian];
   return s.lu.factor();
 }
 
@@ -569,7 +596,7 @@ Outcome newton(Chain & c, System & s, Vector & q, unsigned char * branch, bool h
     if (norm <= rules.tolerance) {
       // The exact reciprocal condition decides only where its lower bound from
       // inverse_one_norm_bound does not already clear the threshold (with a margin for rounding).
-      const double norm_a = one_norm(s);
+      const double norm_a = one_norm(c, s);
       const double lower = 1.0 / (norm_a * s.lu.inverse_one_norm_bound() * (1.0 + 1e-9));
       if (!(lower >= rules.singular_rcond)) {
         s.lu.inverse(s.inverse_matrix);

@@ -205,6 +205,7 @@ PyObject * build(PyObject *, PyObject * args) {
       return nullptr;
     }
     order_system(*s, block_rows, block_columns);
+    set_pattern(*s, c->closures, t.columns, c->rows, nv);
   }
   c->platform = platform;
   c->task = task;
