@@ -1,6 +1,7 @@
 """Batched closed-loop kinematics (`ClosedLoopSolver.forward_batch` / `inverse_batch`) against the single solves."""
 
 import dataclasses
+import itertools
 import re
 
 import closed_form
@@ -208,7 +209,7 @@ def test_forward_batch_slider_limits_are_inclusive_and_named(five_bar):
     solver = ClosedLoopSolver(five_bar)
     sliders = np.array([[2.33, 0.3], [2.33, 1.4], [1.7, 1.4], [1.83, 0.81], [2.33, 0.81], [2.83, 0.31]])
     batch = solver.forward_batch(sliders)
-    assert list(batch.indices) == [3, 4, 5] and list(batch.iterations) == [4, 1, 4]
+    assert list(batch.indices) == [3, 4, 5] and list(batch.iterations) == [3, 1, 4]
     assert [(f.index, f.reason, f.error) for f in batch.failures] == [
         (0, "actuator 'motor_2' = 0.3 is beyond its joint limit", InvalidInputError),
         (1, "actuator 'motor_2' = 1.4 is beyond its joint limit", InvalidInputError),
@@ -232,44 +233,56 @@ def test_forward_batch_every_row_beyond_its_limits(five_bar):
     assert list(batch.ok) == [False, False]
 
 
-def test_home_curvature_is_the_second_derivative_of_the_solved_passive_joints(mechanism):
-    """H[:, i, j] = d^2 q_passive / da_i da_j at home, against central second differences of solves
-    from home (step 5 mm: their truncation, about 1e-5 relative, sets the tolerance)."""
+def test_home_derivatives_are_those_of_the_solved_passive_joints(mechanism):
+    """H = d^2 q_passive / da^2 and G = d^3 q_passive / da^3 at home, against central differences of
+    solves from home, extrapolated from two steps (10 and 5 mm, 20 and 10 mm)."""
     solver = ClosedLoopSolver(mechanism)
     home, act, passive = mechanism.home, solver.actuated, solver.passive
 
     def solved(change):
         return solver.forward(home[act] + change, q_init=home).q[passive]
 
-    h, steps = 5e-3, 5e-3 * np.eye(len(act))
-    differences = np.array(
-        [[(solved(a + b) - solved(a - b) - solved(b - a) + solved(-a - b)) / (4 * h * h) for b in steps] for a in steps]
-    ).transpose(2, 0, 1)
-    curvature = solver.home_curvature()
-    assert curvature is not None and curvature.shape == (len(passive), len(act), len(act))
-    np.testing.assert_allclose(curvature, np.swapaxes(curvature, 1, 2), atol=1e-6 * np.abs(curvature).max())
-    np.testing.assert_allclose(curvature, differences, atol=1e-4 * np.abs(curvature).max())
+    def difference(h, *axes):  # the mixed central difference along the given slider axes
+        total = 0.0
+        for signs in itertools.product((1.0, -1.0), repeat=len(axes)):
+            total = total + np.prod(signs) * solved(h * sum(s * np.eye(len(act))[a] for s, a in zip(signs, axes)))
+        return total / (2 * h) ** len(axes)
+
+    derivatives = solver.home_derivatives()
+    assert derivatives is not None
+    curvature, third = derivatives
+    assert curvature.shape == (len(passive), 4, 4) and third.shape == (len(passive), 4, 4, 4)
+
+    def extrapolated(h, *axes):  # Richardson from steps h and h / 2: O(h^4)
+        return (4.0 * difference(h / 2, *axes) - difference(h, *axes)) / 3.0
+
+    for i, j in itertools.product(range(4), repeat=2):
+        np.testing.assert_allclose(curvature[:, i, j], extrapolated(1e-2, i, j), atol=1e-4 * np.abs(curvature).max())
+    for i, j, k in [(0, 0, 0), (0, 1, 2), (3, 1, 3), (2, 2, 1)]:
+        np.testing.assert_allclose(third[:, i, j, k], extrapolated(2e-2, i, j, k), atol=1e-3 * np.abs(third).max())
+    np.testing.assert_allclose(third, np.swapaxes(third, 1, 3), atol=1e-5 * np.abs(third).max())
 
 
-def test_the_prediction_from_home_is_second_order(mechanism):
-    """Home moved by T d + 1/2 H[d, d] misses the solution by O(|d|^3): halving d divides the miss by
-    about 8 (by about 4 to first order)."""
+def test_the_prediction_from_home_has_the_order_asked(mechanism):
+    """Home moved along its manifold to order m misses the solution by O(|d|^(m+1)): halving d divides
+    the miss by about 2^(m+1): 4, 8, 16."""
     solver = ClosedLoopSolver(mechanism)
     home, act, passive = mechanism.home, solver.actuated, solver.passive
     direction = np.array([0.04, -0.03, 0.02, 0.05])
-    misses = {True: [], False: []}
+    misses: dict[int, list[float]] = {1: [], 2: [], 3: []}
     for scale in (1.0, 0.5):
         change = scale * direction
         exact = solver.forward(home[act] + change, q_init=home).q[passive] - home[passive]
-        for second in misses:
-            misses[second].append(np.abs(solver.predict_from_home(change[None], second)[0] - exact).max())
-    assert 6.0 < misses[True][0] / misses[True][1] < 10.0
-    assert 3.0 < misses[False][0] / misses[False][1] < 5.0 and misses[True][0] < misses[False][0] / 5
+        for order, miss in misses.items():
+            miss.append(np.abs(solver.predict_from_home(change[None], order)[0] - exact).max())
+    ratios = {order: miss[0] / miss[1] for order, miss in misses.items()}
+    assert 3.0 < ratios[1] < 5.0 and 6.0 < ratios[2] < 10.0 and 12.0 < ratios[3] < 20.0, ratios
+    assert misses[3][0] < misses[2][0] / 5 < misses[1][0] / 25
 
 
 @pytest.mark.parametrize("compiled", [True, False])
 def test_forward_batch_predictor_from_home_and_given_starts(five_bar, compiled):
-    """From home the second-order prediction is step 1 (home itself: converged at 1); from q_init = home,
+    """From home the third-order prediction is step 1 (home itself: converged at 1); from q_init = home,
     plain Newton. Both end on the same poses; q_init is neither modified nor shared. Both Newton loops."""
     solver = ClosedLoopSolver(five_bar, native=compiled)
     sliders = np.array([[2.73, 0.41], [2.9, 0.8], [1.93, 1.21], [2.33, 0.81]])
@@ -345,7 +358,7 @@ def test_inverse_batch_with_a_full_rotation_task(wrist):
     solver = ClosedLoopSolver(wrist)
     sliders = wrist.home[[0, 3, 6]] + np.array([[0.0, 0.0, 0.0], [0.1, -0.1, 0.05], [0.2, 0.1, -0.2]])
     fk = solver.forward_batch(sliders)
-    assert list(fk.iterations) == [1, 3, 4]
+    assert list(fk.iterations) == [1, 3, 3]
     assert list(solver.forward_batch(sliders, q_init=wrist.home).iterations) == [0, 4, 4]
     quaternions = np.array([pin.Quaternion(p[:3, :3]).coeffs() for p in fk.poses])
     ik = solver.inverse_batch(quaternions)
@@ -423,7 +436,7 @@ def test_m_machine_iteration_counts_from_home(mechanism):
     cold = solver.inverse_batch(targets, q_init=mechanism.home)
     assert list(cold.iterations) == [4, 3, 4] and cold.failures[0].reason.endswith("after 60 iterations)")
     np.testing.assert_allclose(cold.actuators, ik.actuators, atol=1e-11)
-    assert list(solver.forward_batch(ik.actuators).iterations) == [4, 3, 4]
+    assert list(solver.forward_batch(ik.actuators).iterations) == [3, 2, 3]
     assert list(solver.forward_batch(ik.actuators, q_init=mechanism.home).iterations) == [4, 3, 4]
     np.testing.assert_allclose(ik.poses[:, :3, 3], targets[[0, 1, 3], :3], atol=1e-12)
     np.testing.assert_allclose(rpy_batch(ik.poses[:, :3, :3])[:, 2], targets[[0, 1, 3], 3], atol=1e-12)

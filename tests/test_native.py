@@ -271,7 +271,7 @@ def test_a_threshold_beside_the_exact_reciprocal_condition_decides_as_the_python
         solver = ClosedLoopSolver(mechanism, native=use, rules=rules)
         start = mechanism.home.copy()
         start[solver.actuated] = sliders
-        start[solver.passive] += solver.predict_from_home((sliders - mechanism.home[solver.actuated])[None], False)[0]
+        start[solver.passive] += solver.predict_from_home((sliders - mechanism.home[solver.actuated])[None], 1)[0]
         batch = solver.forward_batch(np.array([sliders, sliders]), q_init=start)
         if side < 0:
             np.testing.assert_allclose(solver.forward(sliders, q_init=mechanism.home).q, q, atol=1e-11)

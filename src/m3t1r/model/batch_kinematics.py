@@ -126,8 +126,8 @@ class RowSolver(Protocol):
     @property
     def singular_rcond(self) -> float: ...
     def home_reference(self) -> tuple[np.ndarray, bytes] | None: ...
-    def home_curvature(self) -> np.ndarray | None: ...
-    def predict_from_home(self, changes: np.ndarray, second_order: bool = True) -> np.ndarray: ...
+    def home_derivatives(self) -> tuple[np.ndarray, np.ndarray] | None: ...
+    def predict_from_home(self, changes: np.ndarray, order: int = 3) -> np.ndarray: ...
     def check_square_task(self) -> None: ...
     def solve_rows(
         self,
@@ -186,7 +186,7 @@ def forward_batch(
 ) -> ForwardBatch:
     """Platform poses for n slider sets (n, k) [m], each solved from q_init.
 
-    Default (q_init None): every row starts from home moved along home's solution manifold to second
+    Default (q_init None): every row starts from home moved along home's solution manifold to third
     order (`ClosedLoopSolver.predict_from_home`, counted as one iteration) and must end on
     home's assembly branch (the branch labels at home). Far from home this assembles rows where plain
     Newton from home's passive joints crosses a singularity (`forward(a, q_init=home)` then raises
@@ -232,22 +232,22 @@ def _rows_from_home(
     solver: RowSolver, start: np.ndarray, rows: np.ndarray, branch: bytes, workers: int
 ) -> list[tuple[np.ndarray, SolvedRows]]:
     """Rows `rows` (their sliders set in `start`, passive joints at home's) solved from home's
-    second-order prediction, then the rows it loses from the first-order one: [(rows, solved)]
+    third-order prediction, then the rows it loses from the first-order one: [(rows, solved)]
     and, if any was lost, [(lost rows, solved again)], whose failures are the batch's.
 
-    Far from home the curvature's term can carry a start past a singularity that the first-order
+    Far from home the higher-order terms can carry a start past a singularity that the first-order
     start stays clear of (five-bar sliders 1.5 rad from home): retried, such a row ends as it
-    did before the second-order term, so the batch converges wherever it did with first order only.
+    did with the first-order start, so the batch converges wherever that start converges.
     """
     changes = start[:, solver.actuated] - solver.mechanism.home[solver.actuated]
     predicted = start.copy()
     predicted[:, solver.passive] += solver.predict_from_home(changes)
     solved = solver.solve_rows(predicted, branch, 1, threads=workers)
     lost = np.flatnonzero(solved.status != _CONVERGED)
-    if not len(lost) or solver.home_curvature() is None:
+    if not len(lost) or solver.home_derivatives() is None:
         return [(rows, solved)]
     again = start[lost]
-    again[:, solver.passive] += solver.predict_from_home(changes[lost], second_order=False)
+    again[:, solver.passive] += solver.predict_from_home(changes[lost], order=1)
     return [(rows, solved), (rows[lost], solver.solve_rows(again, branch, 1, threads=workers))]
 
 

@@ -362,7 +362,7 @@ class ClosedLoopSolver:
         a second-order term along the last step when warm), then Newton on the enforced closure rows
         over the passive joints only (sliders locked), J_c,passive dq_passive = -r_c. The solution
         must carry the start's branch labels (a new solver's first solve: home's, as `forward_batch`'s rows,
-        which start from home's second-order prediction instead and agree with it to the tolerance).
+        which start from home's third-order prediction instead and agree with it to the tolerance).
         Raises InvalidInputError for bad actuators, BranchChangeError / NotConvergedError /
         OutOfWorkspaceError / SingularConfigurationError (with the final residual) otherwise.
         """
@@ -445,48 +445,68 @@ class ClosedLoopSolver:
             self._home = self._reference(self.mechanism.home)
         return self._home
 
-    def home_curvature(self) -> np.ndarray | None:
-        """H (passive x actuated x actuated): the second derivative d^2 q_passive / da_i da_j of home's
-        solution manifold [rad or m per slider unit squared], by central differences of its tangent T
-        along it: H[:, :, j] = (T(home + h t_j) - T(home - h t_j)) / 2h with t_j = (e_j on the sliders,
-        T e_j on the passive joints) and h = 1e-4. Both points are off the manifold by the same O(h^2),
-        which the difference cancels: H is exact to O(h^2), no solve needed. None when home or one of
-        the points is singular (batches from home then predict to first order)."""
-        if self._curvature is None:
-            reference = self.home_reference()
-            self._curvature = (None,) if reference is None else (self._tangent_derivative(reference[0]),)
-        return self._curvature[0]
+    def home_derivatives(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(H, G): the second and third derivatives of home's solution manifold q_passive(a),
+        H[p, i, j] = d^2 q_p / da_i da_j and G[p, i, j, l] = d^3 q_p / da_i da_j da_l [rad or m per
+        slider unit squared, cubed], by central differences along the manifold's first-order curves,
+        no solve needed: D(f)(q)[..., j] = (f(q + h t_j) - f(q - h t_j)) / 2h with t_j = (e_j on the
+        sliders, T(q) e_j on the passive joints), T the tangent (`home_reference`); H = D(T)(home) with
+        h = 1e-4, G = D(D(T))(home) with an outer h = 1e-3. Each pair of points is off the manifold by
+        the same O(h^2), which its difference cancels. None when home or one of the points is singular
+        (batches from home then predict to first order)."""
+        if self._derivatives is None:
+            home, inner, outer = self.mechanism.home, 1e-4, 1e-3
+            curvature = self._tangent_derivative(home, inner)
+            moved = [self._tangent_derivative(q, inner) for q in self._tangent_points(home, outer)]
+            known = [m for m in moved if m is not None]
+            if curvature is None or len(known) != 2 * len(self.actuated):
+                self._derivatives = (None,)
+            else:
+                self._derivatives = ((curvature, self._central_differences(known, outer)),)
+        return self._derivatives[0]
 
-    _curvature: tuple[np.ndarray | None] | None = None
+    _derivatives: tuple[tuple[np.ndarray, np.ndarray] | None] | None = None
 
-    def _tangent_derivative(self, tangent: np.ndarray, h: float = 1e-4) -> np.ndarray | None:
-        """(T(home + h t_j) - T(home - h t_j)) / 2h for each slider j: `home_curvature`."""
-        curvature = np.empty((len(self.passive), len(self.actuated), len(self.actuated)))
+    def _tangent_points(self, q: np.ndarray, h: float) -> list[np.ndarray]:
+        """q + h t_j and q - h t_j for each slider j, in that order (`home_derivatives`); [] where q is singular."""
+        reference = self._reference(q)
+        if reference is None:
+            return []
+        points = []
         for j in range(len(self.actuated)):
-            moved = []
             for sign in (1.0, -1.0):
-                q = self.mechanism.home.copy()
-                q[self.actuated[j]] += sign * h
-                q[self.passive] += sign * h * tangent[:, j]
-                reference = self._reference(q)
-                if reference is None:
-                    return None
-                moved.append(reference[0])
-            curvature[:, :, j] = (moved[0] - moved[1]) / (2.0 * h)
-        return curvature
+                moved = q.copy()
+                moved[self.actuated[j]] += sign * h
+                moved[self.passive] += sign * h * reference[0][:, j]
+                points.append(moved)
+        return points
 
-    def predict_from_home(self, changes: np.ndarray, second_order: bool = True) -> np.ndarray:
-        """Passive-joint changes (n, passive) [rad or m] from home for slider changes (n, k) from home's
-        sliders, along home's solution manifold: T d (`home_reference`), plus 1/2 H[d, d]
-        (`home_curvature`) when second_order and H is known. The starts of batch rows from home."""
+    def _tangent_derivative(self, q: np.ndarray, h: float) -> np.ndarray | None:
+        """D(T)(q) (passive x actuated x actuated) of `home_derivatives`, or None where a point is singular."""
+        references = [self._reference(point) for point in self._tangent_points(q, h)]
+        tangents = [r[0] for r in references if r is not None]
+        return self._central_differences(tangents, h) if len(tangents) == 2 * len(self.actuated) else None
+
+    def _central_differences(self, values: list[np.ndarray], h: float) -> np.ndarray:
+        """(values[2 j] - values[2 j + 1]) / 2h for each slider j, along a new last axis."""
+        return np.stack([(values[2 * j] - values[2 * j + 1]) / (2.0 * h) for j in range(len(self.actuated))], -1)
+
+    def predict_from_home(self, changes: np.ndarray, order: int = 3) -> np.ndarray:
+        """Passive-joint changes (n, passive) [rad or m] from home for slider changes d (n, k) from home's
+        sliders, along home's solution manifold to `order` (1, 2 or 3): T d + 1/2 H[d, d] +
+        1/6 G[d, d, d] (`home_reference`, `home_derivatives`; first order where those are unknown).
+        The starts of batch rows from home."""
         reference = self.home_reference()
         assert reference is not None, "asked only where home is regular"
         step = changes.dot(reference[0].T)
-        curvature = self.home_curvature() if second_order else None
-        if curvature is not None:
-            k = len(self.actuated)
-            pairs = (changes[:, :, None] * changes[:, None, :]).reshape(len(changes), k * k)
-            step += 0.5 * pairs.dot(curvature.reshape(len(self.passive), k * k).T)
+        derivatives = self.home_derivatives() if order >= 2 else None
+        if derivatives is not None:
+            n, k, p = len(changes), len(self.actuated), len(self.passive)
+            pairs = (changes[:, :, None] * changes[:, None, :]).reshape(n, k * k)
+            step += 0.5 * pairs.dot(derivatives[0].reshape(p, k * k).T)
+            if order >= 3:
+                triples = (pairs[:, :, None] * changes[:, None, :]).reshape(n, k**3)
+                step += triples.dot(derivatives[1].reshape(p, k**3).T) / 6.0
         return step
 
     def _reference(self, q: np.ndarray) -> tuple[np.ndarray, bytes] | None:
@@ -825,7 +845,7 @@ class ClosedLoopSolver:
         """Forward kinematics of n slider sets (n, k) [m] at once (`batch_kinematics.forward_batch`).
 
         Every row is solved on home's branch (the reference), from home moved along the solution
-        manifold to second order, or from q_init when given, by `solve_rows`. Where
+        manifold to third order, or from q_init when given, by `solve_rows`. Where
         `forward(a, q_init=home)` converges the two agree to the tolerance; far from home the batch
         also assembles rows where plain Newton from home crosses a singularity. Returns a `ForwardBatch`: `.poses`
         (M, 4, 4), `.q`, `.iterations` of the M converged rows `.indices`; every other row is in
