@@ -1151,3 +1151,127 @@ def test_targets_of_every_kind_give_the_same_solve(mechanism):
             ClosedLoopSolver(mechanism).inverse(bad)
     with pytest.raises(InvalidInputError, match="not a numeric vector"):  # not a float array: the general path
         ClosedLoopSolver(mechanism).inverse(np.array([0.5, 0.5, -0.1, "x"], dtype=object))
+
+
+# ------------------------------------------------------------------------------------------------
+# Refusals word for word, what `data` holds after a call, the row solves' codes
+
+
+@pytest.mark.parametrize(
+    "options,message",
+    [
+        ({"tolerance": 0.0}, "ClosedLoopSolver tolerance: expected a finite number above 0, got 0.0"),
+        ({"max_iterations": -1}, "ClosedLoopSolver max_iterations: expected a whole number of at least 0, got -1"),
+    ],
+)
+def test_a_refused_solver_setting_names_the_solver_word_for_word(mechanism, options, message):
+    with pytest.raises(InvalidInputError) as caught:
+        ClosedLoopSolver(mechanism, **options)
+    assert str(caught.value) == message
+
+
+def _m_machine_with_task(mechanism, tmp_path, **task):
+    """The M machine's files in tmp_path with the task's fields replaced (and no workspace box)."""
+    urdf, closures = tmp_path / "m3t1r.urdf", tmp_path / "m3t1r.closures.yaml"
+    urdf.write_text(mechanism.urdf_path.read_text())
+    closures.write_text(mechanism.closures_path.read_text())
+    edit_yaml(closures, lambda document: (document["task"].update(**task), document.pop("workspace")))
+    return Mechanism.load(urdf, closures)
+
+
+def test_an_uncommandable_task_is_refused_word_for_word(mechanism, tmp_path):
+    """IK of the M machine's z and full rotation: square, but rx and ry never move: refused naming both."""
+    machine = _m_machine_with_task(mechanism, tmp_path, position=["z"], rotation="full")
+    with pytest.raises(InvalidInputError) as caught:
+        ClosedLoopSolver(machine).inverse(np.array([-0.1, 0.0, 0.0, 0.0, 1.0]))
+    assert str(caught.value) == (
+        f"{machine.closures_path}: the task's rx, ry (frame 'P_I') cannot be commanded: no motion the closures "
+        "allow changes it (at home and near it), so inverse kinematics would be singular at every target; "
+        "declare a task of coordinates the mechanism moves (models/README.md)"
+    )
+
+
+def test_a_task_that_is_not_square_is_refused_after_its_rows_were_asked_for(mechanism, tmp_path):
+    """The M machine's (x, y, z): every row is commandable, but three rows for four sliders is not a
+    square IK: still refused once `uncommandable_task_rows` has answered ()."""
+    machine = _m_machine_with_task(mechanism, tmp_path, rotation="none")
+    solver = ClosedLoopSolver(machine)
+    assert solver.uncommandable_task_rows() == ()
+    with pytest.raises(InvalidInputError, match="inverse kinematics needs as many task coordinates as actuators"):
+        solver.inverse(np.array([0.5, 0.5, -0.1]))
+
+
+def _frame_placements(model: pin.Model, q: np.ndarray) -> list[np.ndarray]:
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, q)
+    return [placement.homogeneous for placement in data.oMf]
+
+
+def test_every_row_residual_and_jacobian_leave_data_at_q(mechanism):
+    """closure_residual(all_rows=True) leaves `data` at q with every frame placed, closure_jacobian(all_rows=True)
+    its joint placements at q, as the enforced rows' calls do: the solver's one Data, whatever the rows."""
+    solver = ClosedLoopSolver(mechanism)
+    elsewhere = solver.forward(mechanism.home[mechanism.actuated_ids] + 0.02).q
+    for all_rows in (False, True):
+        solver.closure_residual(mechanism.home)
+        solver.closure_residual(elsewhere, all_rows=all_rows)
+        for got, expected in zip(solver.data.oMf, _frame_placements(mechanism.model, elsewhere)):
+            np.testing.assert_allclose(got.homogeneous, expected, atol=1e-12)
+        solver.closure_residual(mechanism.home)
+        solver.closure_jacobian(elsewhere, all_rows=all_rows)
+        joints = mechanism.model.createData()
+        pin.forwardKinematics(mechanism.model, joints, elsewhere)
+        for got, expected in zip(solver.data.oMi, joints.oMi):
+            np.testing.assert_allclose(got.homogeneous, expected.homogeneous, atol=1e-12)
+
+
+def test_closure_operators_of_many_configurations_are_those_of_closure_sensitivity(mechanism):
+    solver = ClosedLoopSolver(mechanism)
+    home = mechanism.home[mechanism.actuated_ids]
+    configurations = [solver.forward(home + change).q for change in (0.0, 0.03, -0.05)]
+    operators, placements = [], []
+    for q in configurations:
+        operators.append(solver.closure_sensitivity(q)[2])
+        placements.append([placement.homogeneous for placement in solver.data.oMi])
+    batch = solver.closure_operators(np.array(placements))
+    assert batch.shape == (3, *operators[0].shape)
+    np.testing.assert_allclose(batch, np.array(operators), atol=1e-12)
+
+
+@pytest.mark.parametrize("slider, bound, beyond", [(0, "upper", 1), (1, "lower", 2)])
+def test_an_ik_refusal_names_the_actuator_beyond_not_one_exactly_at_its_limit(mechanism, slider, bound, beyond):
+    """One slider exactly at its limit (allowed), a later one past a limit lowered on a copy: IK from the
+    solution takes no step and names the later one, in both loops."""
+    limits = mechanism.joint_limits()
+    sliders = mechanism.home[mechanism.actuated_ids].copy()
+    sliders[slider] = limits[0 if bound == "lower" else 1][slider]
+    fk = ClosedLoopSolver(mechanism).forward(sliders, q_init=mechanism.home)
+    model = mechanism.model.copy()
+    upper = model.upperPositionLimit.copy()
+    upper[model.idx_qs[model.getJointId(mechanism.actuated_joints[beyond])]] = sliders[beyond] - 0.01
+    model.upperPositionLimit = upper
+    name = mechanism.actuated_joints[beyond]
+    for compiled in (True, False):
+        solver = ClosedLoopSolver(mechanism.with_model(model), native=compiled)
+        with pytest.raises(OutOfWorkspaceError) as caught:
+            solver.inverse(np.r_[fk.pose.translation, fk.yaw], q_init=fk.q)
+        message = f"target needs actuator '{name}' = {sliders[beyond]:.6g} m, beyond its limit [-0.6, "
+        assert str(caught.value).startswith(f"{message}{sliders[beyond] - 0.01:.6g}]")
+        assert caught.value.iterations == 0
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_row_solves_give_whole_status_codes_and_iterations_and_keep_a_given_branch(mechanism, compiled):
+    """solve_rows' IK rows: integer status codes and iteration counts (the two loops alike), 0 converged
+    toward the goals; given labels no solve can have, every row is a branch change (code 4)."""
+    solver = ClosedLoopSolver(mechanism, native=compiled)
+    goals = np.array([TARGET, TARGET + [0.01, 0.0, 0.0, 0.0]])
+    impossible = b"\x02" * (len(solver.home_reference()[1]) + 1)  # IK's labels: the passive blocks', then det's
+    for branch, status in ((None, 0), (impossible, 4)):
+        starts = np.repeat(mechanism.home[None, :], 2, axis=0)
+        solved = solver.solve_rows(starts, branch, 1, goals)
+        assert solved.status.dtype.kind == solved.iterations.dtype.kind == "i"
+        assert solved.status.tolist() == [status, status]
+        assert all(2 <= steps <= 21 for steps in solved.iterations.tolist())
+    fk = solver.solve_rows(np.repeat(mechanism.home[None, :], 2, axis=0), None, 0)
+    assert fk.status.dtype.kind == fk.iterations.dtype.kind == "i" and fk.status.tolist() == [0, 0]
