@@ -1275,3 +1275,46 @@ def test_row_solves_give_whole_status_codes_and_iterations_and_keep_a_given_bran
         assert all(2 <= steps <= 21 for steps in solved.iterations.tolist())
     fk = solver.solve_rows(np.repeat(mechanism.home[None, :], 2, axis=0), None, 0)
     assert fk.status.dtype.kind == fk.iterations.dtype.kind == "i" and fk.status.tolist() == [0, 0]
+
+
+# ------------------------------------------------------------------------------------------------
+# Assembly modes: an explicit start's own, and the first step from home held to home's
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_an_explicit_start_on_the_other_assembly_mode_stays_on_it(tmp_path, compiled):
+    """The five-bar's two assembly modes at the same motors: the effector mirrored across the line of
+    the elbows. FK from a solution on the mode home is not on continues on that mode (its own tangent
+    and labels), while the warm solve from home stays on home's."""
+    machine = Mechanism.load(*five_bar_files(tmp_path))
+    sliders = machine.home[machine.actuated_ids]
+    folded = machine.home.copy()
+    folded[machine.model.idx_qs[machine.model.getJointId("elbow_1")]] = -3.0
+    folded[machine.model.idx_qs[machine.model.getJointId("elbow_2")]] = -3.0
+    other = ClosedLoopSolver(machine, native=compiled).forward(sliders, q_init=folded)
+    solver = ClosedLoopSolver(machine, native=compiled)
+    on_home_s = solver.forward(sliders + 0.02)
+    on_other = solver.forward(sliders + 0.02, q_init=other.q)
+    data = machine.model.createData()
+    pin.forwardKinematics(machine.model, data, on_other.q)
+    elbow_1, elbow_2 = (data.oMi[machine.model.getJointId(name)].translation for name in ("elbow_1", "elbow_2"))
+    axis = (elbow_2 - elbow_1) / np.linalg.norm(elbow_2 - elbow_1)
+    effector = on_home_s.task_pose.translation
+    foot = elbow_1 + axis * axis.dot(effector - elbow_1)
+    np.testing.assert_allclose(on_other.task_pose.translation, 2.0 * foot - effector, atol=1e-9)
+    assert np.linalg.norm(on_other.task_pose.translation - effector) > 0.3
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_first_forward_whose_first_step_crosses_a_singularity_is_refused(mechanism, compiled):
+    """Sliders whose first-order step from home lands past a singularity of the passive system, where
+    the path from home fails too: the first forward of a fresh and of a reset solver, held to home's
+    labels, refuse the pose Newton finds there (on another assembly mode) instead of returning it."""
+    sliders = np.array([0.09, 0.12, 0.55, -0.51])
+    assert _path_from_home(mechanism, sliders) is None
+    reset = ClosedLoopSolver(mechanism, native=compiled)
+    reset.forward(mechanism.home[mechanism.actuated_ids] + 0.01)
+    reset.reset()
+    for solver in (ClosedLoopSolver(mechanism, native=compiled), reset):
+        with pytest.raises(BranchChangeError):
+            solver.forward(sliders)
