@@ -1,5 +1,6 @@
 """Closed-loop kinematics against the closed form of docs/design.md, on nominal and perturbed machines."""
 
+import dataclasses
 import math
 
 import closed_form
@@ -1318,3 +1319,60 @@ def test_a_first_forward_whose_first_step_crosses_a_singularity_is_refused(mecha
     for solver in (ClosedLoopSolver(mechanism, native=compiled), reset):
         with pytest.raises(BranchChangeError):
             solver.forward(sliders)
+
+
+# ------------------------------------------------------------------------------------------------
+# Task rows no closure-compatible motion moves: their names, a home singular for IK, home alone
+
+
+@pytest.mark.parametrize(
+    "task, unmoved",
+    [
+        ({"position": ["x", "y"], "rotation": "yaw"}, ("x", "theta")),
+        ({"position": ["y"], "rotation": "full"}, ("rx", "ry", "rz")),
+    ],
+)
+def test_a_task_on_a_slider_s_carriage_can_command_only_its_rail(mechanism, tmp_path, task, unmoved):
+    """Slider q11's carriage (slider_B1) translates along its rail, the base's y axis, and never turns:
+    of a task on it, only y is moved (its yaw and full rotation never are)."""
+    machine = _m_machine_with_task(mechanism, tmp_path, frame="slider_B1", **task)
+    assert ClosedLoopSolver(machine).uncommandable_task_rows() == unmoved
+
+
+def test_a_task_row_unmoved_only_at_a_singular_home_is_commandable(tmp_path):
+    """A five-bar whose home has leg 1 stretched along x (motor_1 and elbow_1 at 0, the effector at
+    (0.5, 0)): there the effector can move along y only, but a step away from home it moves along x
+    too. So x is commandable (only home's own rates would call it dead), and IK near home solves.
+    The rows come from home and two steps of 1e-3 along home's tangent."""
+    urdf, closures = five_bar_files(tmp_path)
+    edit_text(urdf, lambda text: text.replace('lower="1.83" upper="2.83"', 'lower="-0.5" upper="2.83"', 1))
+    # Leg 2 from (0.1, 0) to (0.5, 0): sides 0.25, 0.35 and 0.4, its motor at 60 degrees.
+    motor_2 = math.pi / 3
+    elbow = np.array([0.1 + 0.25 * math.cos(motor_2), 0.25 * math.sin(motor_2)])
+    elbow_2 = math.atan2(-elbow[1], 0.5 - elbow[0]) - motor_2
+    home = {"motor_1": 0.0, "elbow_1": 0.0, "motor_2": motor_2, "elbow_2": elbow_2}
+    edit_yaml(closures, lambda document: document.update(home=home, workspace=None))
+    machine = Mechanism.load(urdf, closures)
+    solver = ClosedLoopSolver(machine)
+    np.testing.assert_allclose(
+        solver.forward(machine.home[machine.actuated_ids]).task_pose.translation, [0.5, 0.0, 0.0], atol=1e-12
+    )
+    assert solver.uncommandable_task_rows() == ()
+    sliders = machine.home[machine.actuated_ids] + [0.05, 0.02]
+    target = ClosedLoopSolver(machine).forward(sliders).task_pose.translation[:2]
+    nearby = ClosedLoopSolver(machine).forward(sliders - 0.01).q  # home itself is singular for IK
+    np.testing.assert_allclose(solver.inverse(target, q_init=nearby).actuators, sliders, atol=1e-9)
+
+
+def test_a_solver_that_calls_home_singular_answers_the_task_rows_from_home_alone(mechanism, tmp_path):
+    """With a singular threshold of 1 (every rcond below it) home has no reference, so no step along
+    its tangent: the rows are home's own (the five-bar's z of a task (x, z), the M machine's none)."""
+    from m3t1r.model.newton_rules import DEFAULT_RULES
+
+    urdf, closures = five_bar_files(tmp_path)
+    edit_yaml(closures, lambda document: document["task"].update(position=["x", "z"]))
+    rules = dataclasses.replace(DEFAULT_RULES, singular_rcond=1.0)
+    for machine, unmoved in ((Mechanism.load(urdf, closures), ("z",)), (mechanism, ())):
+        solver = ClosedLoopSolver(machine, rules=rules)
+        assert solver.home_reference() is None
+        assert solver.uncommandable_task_rows() == unmoved
