@@ -1376,3 +1376,18 @@ def test_a_solver_that_calls_home_singular_answers_the_task_rows_from_home_alone
         solver = ClosedLoopSolver(machine, rules=rules)
         assert solver.home_reference() is None
         assert solver.uncommandable_task_rows() == unmoved
+
+
+def test_the_task_rows_of_a_solver_with_a_single_closure_row(tmp_path):
+    """The five-bar driven by three joints (motor_1, elbow_1, motor_2), its closure enforcing x alone: one
+    closure row over four unknowns leaves a 3D closure-compatible motion, which moves both x and y."""
+    urdf, closures = five_bar_files(tmp_path)
+
+    def three_inputs(document):
+        document.update(actuated_joints=["motor_1", "elbow_1", "motor_2"], workspace=None)
+        document["closures"][0]["rows"] = [0]
+
+    edit_yaml(closures, three_inputs)
+    solver = ClosedLoopSolver(Mechanism.load(urdf, closures))
+    assert solver.n_rows == 1
+    assert solver.uncommandable_task_rows() == ()
