@@ -1,5 +1,6 @@
 """Closed-loop kinematics against the closed form of docs/design.md, on nominal and perturbed machines."""
 
+import dataclasses
 import math
 
 import closed_form
@@ -1151,3 +1152,242 @@ def test_targets_of_every_kind_give_the_same_solve(mechanism):
             ClosedLoopSolver(mechanism).inverse(bad)
     with pytest.raises(InvalidInputError, match="not a numeric vector"):  # not a float array: the general path
         ClosedLoopSolver(mechanism).inverse(np.array([0.5, 0.5, -0.1, "x"], dtype=object))
+
+
+# ------------------------------------------------------------------------------------------------
+# Refusals word for word, what `data` holds after a call, the row solves' codes
+
+
+@pytest.mark.parametrize(
+    "options,message",
+    [
+        ({"tolerance": 0.0}, "ClosedLoopSolver tolerance: expected a finite number above 0, got 0.0"),
+        ({"max_iterations": -1}, "ClosedLoopSolver max_iterations: expected a whole number of at least 0, got -1"),
+    ],
+)
+def test_a_refused_solver_setting_names_the_solver_word_for_word(mechanism, options, message):
+    with pytest.raises(InvalidInputError) as caught:
+        ClosedLoopSolver(mechanism, **options)
+    assert str(caught.value) == message
+
+
+def _m_machine_with_task(mechanism, tmp_path, **task):
+    """The M machine's files in tmp_path with the task's fields replaced (and no workspace box)."""
+    urdf, closures = tmp_path / "m3t1r.urdf", tmp_path / "m3t1r.closures.yaml"
+    urdf.write_text(mechanism.urdf_path.read_text())
+    closures.write_text(mechanism.closures_path.read_text())
+    edit_yaml(closures, lambda document: (document["task"].update(**task), document.pop("workspace")))
+    return Mechanism.load(urdf, closures)
+
+
+def test_an_uncommandable_task_is_refused_word_for_word(mechanism, tmp_path):
+    """IK of the M machine's z and full rotation: square, but rx and ry never move: refused naming both."""
+    machine = _m_machine_with_task(mechanism, tmp_path, position=["z"], rotation="full")
+    with pytest.raises(InvalidInputError) as caught:
+        ClosedLoopSolver(machine).inverse(np.array([-0.1, 0.0, 0.0, 0.0, 1.0]))
+    assert str(caught.value) == (
+        f"{machine.closures_path}: the task's rx, ry (frame 'P_I') cannot be commanded: no motion the closures "
+        "allow changes it (at home and near it), so inverse kinematics would be singular at every target; "
+        "declare a task of coordinates the mechanism moves (models/README.md)"
+    )
+
+
+def test_a_task_that_is_not_square_is_refused_after_its_rows_were_asked_for(mechanism, tmp_path):
+    """The M machine's (x, y, z): every row is commandable, but three rows for four sliders is not a
+    square IK: still refused once `uncommandable_task_rows` has answered ()."""
+    machine = _m_machine_with_task(mechanism, tmp_path, rotation="none")
+    solver = ClosedLoopSolver(machine)
+    assert solver.uncommandable_task_rows() == ()
+    with pytest.raises(InvalidInputError, match="inverse kinematics needs as many task coordinates as actuators"):
+        solver.inverse(np.array([0.5, 0.5, -0.1]))
+
+
+def _frame_placements(model: pin.Model, q: np.ndarray) -> list[np.ndarray]:
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, q)
+    return [placement.homogeneous for placement in data.oMf]
+
+
+def test_every_row_residual_and_jacobian_leave_data_at_q(mechanism):
+    """closure_residual(all_rows=True) leaves `data` at q with every frame placed, closure_jacobian(all_rows=True)
+    its joint placements at q, as the enforced rows' calls do: the solver's one Data, whatever the rows."""
+    solver = ClosedLoopSolver(mechanism)
+    elsewhere = solver.forward(mechanism.home[mechanism.actuated_ids] + 0.02).q
+    for all_rows in (False, True):
+        solver.closure_residual(mechanism.home)
+        solver.closure_residual(elsewhere, all_rows=all_rows)
+        for got, expected in zip(solver.data.oMf, _frame_placements(mechanism.model, elsewhere)):
+            np.testing.assert_allclose(got.homogeneous, expected, atol=1e-12)
+        solver.closure_residual(mechanism.home)
+        solver.closure_jacobian(elsewhere, all_rows=all_rows)
+        joints = mechanism.model.createData()
+        pin.forwardKinematics(mechanism.model, joints, elsewhere)
+        for got, expected in zip(solver.data.oMi, joints.oMi):
+            np.testing.assert_allclose(got.homogeneous, expected.homogeneous, atol=1e-12)
+
+
+def test_closure_operators_of_many_configurations_are_those_of_closure_sensitivity(mechanism):
+    solver = ClosedLoopSolver(mechanism)
+    home = mechanism.home[mechanism.actuated_ids]
+    configurations = [solver.forward(home + change).q for change in (0.0, 0.03, -0.05)]
+    operators, placements = [], []
+    for q in configurations:
+        operators.append(solver.closure_sensitivity(q)[2])
+        placements.append([placement.homogeneous for placement in solver.data.oMi])
+    batch = solver.closure_operators(np.array(placements))
+    assert batch.shape == (3, *operators[0].shape)
+    np.testing.assert_allclose(batch, np.array(operators), atol=1e-12)
+
+
+@pytest.mark.parametrize("slider, bound, beyond", [(0, "upper", 1), (1, "lower", 2)])
+def test_an_ik_refusal_names_the_actuator_beyond_not_one_exactly_at_its_limit(mechanism, slider, bound, beyond):
+    """One slider exactly at its limit (allowed), a later one past a limit lowered on a copy: IK from the
+    solution takes no step and names the later one, in both loops."""
+    limits = mechanism.joint_limits()
+    sliders = mechanism.home[mechanism.actuated_ids].copy()
+    sliders[slider] = limits[0 if bound == "lower" else 1][slider]
+    fk = ClosedLoopSolver(mechanism).forward(sliders, q_init=mechanism.home)
+    model = mechanism.model.copy()
+    upper = model.upperPositionLimit.copy()
+    upper[model.idx_qs[model.getJointId(mechanism.actuated_joints[beyond])]] = sliders[beyond] - 0.01
+    model.upperPositionLimit = upper
+    name = mechanism.actuated_joints[beyond]
+    for compiled in (True, False):
+        solver = ClosedLoopSolver(mechanism.with_model(model), native=compiled)
+        with pytest.raises(OutOfWorkspaceError) as caught:
+            solver.inverse(np.r_[fk.pose.translation, fk.yaw], q_init=fk.q)
+        message = f"target needs actuator '{name}' = {sliders[beyond]:.6g} m, beyond its limit [-0.6, "
+        assert str(caught.value).startswith(f"{message}{sliders[beyond] - 0.01:.6g}]")
+        assert caught.value.iterations == 0
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_row_solves_give_whole_status_codes_and_iterations_and_keep_a_given_branch(mechanism, compiled):
+    """solve_rows' IK rows: integer status codes and iteration counts (the two loops alike), 0 converged
+    toward the goals; given labels no solve can have, every row is a branch change (code 4)."""
+    solver = ClosedLoopSolver(mechanism, native=compiled)
+    goals = np.array([TARGET, TARGET + [0.01, 0.0, 0.0, 0.0]])
+    impossible = b"\x02" * (len(solver.home_reference()[1]) + 1)  # IK's labels: the passive blocks', then det's
+    for branch, status in ((None, 0), (impossible, 4)):
+        starts = np.repeat(mechanism.home[None, :], 2, axis=0)
+        solved = solver.solve_rows(starts, branch, 1, goals)
+        assert solved.status.dtype.kind == solved.iterations.dtype.kind == "i"
+        assert solved.status.tolist() == [status, status]
+        assert all(2 <= steps <= 21 for steps in solved.iterations.tolist())
+    fk = solver.solve_rows(np.repeat(mechanism.home[None, :], 2, axis=0), None, 0)
+    assert fk.status.dtype.kind == fk.iterations.dtype.kind == "i" and fk.status.tolist() == [0, 0]
+
+
+# ------------------------------------------------------------------------------------------------
+# Assembly modes: an explicit start's own, and the first step from home held to home's
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_an_explicit_start_on_the_other_assembly_mode_stays_on_it(tmp_path, compiled):
+    """The five-bar's two assembly modes at the same motors: the effector mirrored across the line of
+    the elbows. FK from a solution on the mode home is not on continues on that mode (its own tangent
+    and labels), while the warm solve from home stays on home's."""
+    machine = Mechanism.load(*five_bar_files(tmp_path))
+    sliders = machine.home[machine.actuated_ids]
+    folded = machine.home.copy()
+    folded[machine.model.idx_qs[machine.model.getJointId("elbow_1")]] = -3.0
+    folded[machine.model.idx_qs[machine.model.getJointId("elbow_2")]] = -3.0
+    other = ClosedLoopSolver(machine, native=compiled).forward(sliders, q_init=folded)
+    solver = ClosedLoopSolver(machine, native=compiled)
+    on_home_s = solver.forward(sliders + 0.02)
+    on_other = solver.forward(sliders + 0.02, q_init=other.q)
+    data = machine.model.createData()
+    pin.forwardKinematics(machine.model, data, on_other.q)
+    elbow_1, elbow_2 = (data.oMi[machine.model.getJointId(name)].translation for name in ("elbow_1", "elbow_2"))
+    axis = (elbow_2 - elbow_1) / np.linalg.norm(elbow_2 - elbow_1)
+    effector = on_home_s.task_pose.translation
+    foot = elbow_1 + axis * axis.dot(effector - elbow_1)
+    np.testing.assert_allclose(on_other.task_pose.translation, 2.0 * foot - effector, atol=1e-9)
+    assert np.linalg.norm(on_other.task_pose.translation - effector) > 0.3
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_first_forward_whose_first_step_crosses_a_singularity_is_refused(mechanism, compiled):
+    """Sliders whose first-order step from home lands past a singularity of the passive system, where
+    the path from home fails too: the first forward of a fresh and of a reset solver, held to home's
+    labels, refuse the pose Newton finds there (on another assembly mode) instead of returning it."""
+    sliders = np.array([0.09, 0.12, 0.55, -0.51])
+    assert _path_from_home(mechanism, sliders) is None
+    reset = ClosedLoopSolver(mechanism, native=compiled)
+    reset.forward(mechanism.home[mechanism.actuated_ids] + 0.01)
+    reset.reset()
+    for solver in (ClosedLoopSolver(mechanism, native=compiled), reset):
+        with pytest.raises(BranchChangeError):
+            solver.forward(sliders)
+
+
+# ------------------------------------------------------------------------------------------------
+# Task rows no closure-compatible motion moves: their names, a home singular for IK, home alone
+
+
+@pytest.mark.parametrize(
+    "task, unmoved",
+    [
+        ({"position": ["x", "y"], "rotation": "yaw"}, ("x", "theta")),
+        ({"position": ["y"], "rotation": "full"}, ("rx", "ry", "rz")),
+    ],
+)
+def test_a_task_on_a_slider_s_carriage_can_command_only_its_rail(mechanism, tmp_path, task, unmoved):
+    """Slider q11's carriage (slider_B1) translates along its rail, the base's y axis, and never turns:
+    of a task on it, only y is moved (its yaw and full rotation never are)."""
+    machine = _m_machine_with_task(mechanism, tmp_path, frame="slider_B1", **task)
+    assert ClosedLoopSolver(machine).uncommandable_task_rows() == unmoved
+
+
+def test_a_task_row_unmoved_only_at_a_singular_home_is_commandable(tmp_path):
+    """A five-bar whose home has leg 1 stretched along x (motor_1 and elbow_1 at 0, the effector at
+    (0.5, 0)): there the effector can move along y only, but a step away from home it moves along x
+    too. So x is commandable (only home's own rates would call it dead), and IK near home solves.
+    The rows come from home and two steps of 1e-3 along home's tangent."""
+    urdf, closures = five_bar_files(tmp_path)
+    edit_text(urdf, lambda text: text.replace('lower="1.83" upper="2.83"', 'lower="-0.5" upper="2.83"', 1))
+    # Leg 2 from (0.1, 0) to (0.5, 0): sides 0.25, 0.35 and 0.4, its motor at 60 degrees.
+    motor_2 = math.pi / 3
+    elbow = np.array([0.1 + 0.25 * math.cos(motor_2), 0.25 * math.sin(motor_2)])
+    elbow_2 = math.atan2(-elbow[1], 0.5 - elbow[0]) - motor_2
+    home = {"motor_1": 0.0, "elbow_1": 0.0, "motor_2": motor_2, "elbow_2": elbow_2}
+    edit_yaml(closures, lambda document: document.update(home=home, workspace=None))
+    machine = Mechanism.load(urdf, closures)
+    solver = ClosedLoopSolver(machine)
+    np.testing.assert_allclose(
+        solver.forward(machine.home[machine.actuated_ids]).task_pose.translation, [0.5, 0.0, 0.0], atol=1e-12
+    )
+    assert solver.uncommandable_task_rows() == ()
+    sliders = machine.home[machine.actuated_ids] + [0.05, 0.02]
+    target = ClosedLoopSolver(machine).forward(sliders).task_pose.translation[:2]
+    nearby = ClosedLoopSolver(machine).forward(sliders - 0.01).q  # home itself is singular for IK
+    np.testing.assert_allclose(solver.inverse(target, q_init=nearby).actuators, sliders, atol=1e-9)
+
+
+def test_a_solver_that_calls_home_singular_answers_the_task_rows_from_home_alone(mechanism, tmp_path):
+    """With a singular threshold of 1 (every rcond below it) home has no reference, so no step along
+    its tangent: the rows are home's own (the five-bar's z of a task (x, z), the M machine's none)."""
+    from m3t1r.model.newton_rules import DEFAULT_RULES
+
+    urdf, closures = five_bar_files(tmp_path)
+    edit_yaml(closures, lambda document: document["task"].update(position=["x", "z"]))
+    rules = dataclasses.replace(DEFAULT_RULES, singular_rcond=1.0)
+    for machine, unmoved in ((Mechanism.load(urdf, closures), ("z",)), (mechanism, ())):
+        solver = ClosedLoopSolver(machine, rules=rules)
+        assert solver.home_reference() is None
+        assert solver.uncommandable_task_rows() == unmoved
+
+
+def test_the_task_rows_of_a_solver_with_a_single_closure_row(tmp_path):
+    """The five-bar driven by three joints (motor_1, elbow_1, motor_2), its closure enforcing x alone: one
+    closure row over four unknowns leaves a 3D closure-compatible motion, which moves both x and y."""
+    urdf, closures = five_bar_files(tmp_path)
+
+    def three_inputs(document):
+        document.update(actuated_joints=["motor_1", "elbow_1", "motor_2"], workspace=None)
+        document["closures"][0]["rows"] = [0]
+
+    edit_yaml(closures, three_inputs)
+    solver = ClosedLoopSolver(Mechanism.load(urdf, closures))
+    assert solver.n_rows == 1
+    assert solver.uncommandable_task_rows() == ()
