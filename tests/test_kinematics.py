@@ -1,6 +1,7 @@
 """Closed-loop kinematics against the closed form of docs/design.md, on nominal and perturbed machines."""
 
 import dataclasses
+import itertools
 import math
 
 import closed_form
@@ -979,6 +980,57 @@ def test_the_block_cache_is_per_topology(mechanism, tmp_path):
     assert sorted(sum((r for r, _ in found), [])) == list(range(solver.n_rows))
     result = solver.forward(five_bar.home[five_bar.actuated_ids] + 0.01)
     assert result.residual <= 1e-12
+
+
+# ------------------------------------------------------------------------------------------------
+# The prediction from home of batch rows: home's derivatives and the order of its miss
+
+
+def test_home_derivatives_are_those_of_the_solved_passive_joints(mechanism):
+    """H = d^2 q_passive / da^2 and G = d^3 q_passive / da^3 at home, against central differences of
+    solves from home, extrapolated from two steps (10 and 5 mm, 20 and 10 mm)."""
+    solver = ClosedLoopSolver(mechanism)
+    home, act, passive = mechanism.home, solver.actuated, solver.passive
+
+    def solved(change):
+        return solver.forward(home[act] + change, q_init=home).q[passive]
+
+    def difference(h, *axes):  # the mixed central difference along the given slider axes
+        total = 0.0
+        for signs in itertools.product((1.0, -1.0), repeat=len(axes)):
+            total = total + np.prod(signs) * solved(h * sum(s * np.eye(len(act))[a] for s, a in zip(signs, axes)))
+        return total / (2 * h) ** len(axes)
+
+    derivatives = solver.home_derivatives()
+    assert derivatives is not None
+    curvature, third = derivatives
+    assert curvature.shape == (len(passive), 4, 4) and third.shape == (len(passive), 4, 4, 4)
+
+    def extrapolated(h, *axes):  # Richardson from steps h and h / 2: O(h^4)
+        return (4.0 * difference(h / 2, *axes) - difference(h, *axes)) / 3.0
+
+    for i, j in itertools.product(range(4), repeat=2):
+        np.testing.assert_allclose(curvature[:, i, j], extrapolated(1e-2, i, j), atol=1e-4 * np.abs(curvature).max())
+    for i, j, k in [(0, 0, 0), (0, 1, 2), (3, 1, 3), (2, 2, 1)]:
+        np.testing.assert_allclose(third[:, i, j, k], extrapolated(2e-2, i, j, k), atol=1e-3 * np.abs(third).max())
+    np.testing.assert_allclose(third, np.swapaxes(third, 1, 3), atol=1e-5 * np.abs(third).max())
+
+
+def test_the_prediction_from_home_has_the_order_asked(mechanism):
+    """Home moved along its manifold to order m misses the solution by O(|d|^(m+1)): halving d divides
+    the miss by about 2^(m+1): 4, 8, 16."""
+    solver = ClosedLoopSolver(mechanism)
+    home, act, passive = mechanism.home, solver.actuated, solver.passive
+    direction = np.array([0.04, -0.03, 0.02, 0.05])
+    misses: dict[int, list[float]] = {1: [], 2: [], 3: []}
+    for scale in (1.0, 0.5):
+        change = scale * direction
+        exact = solver.forward(home[act] + change, q_init=home).q[passive] - home[passive]
+        for order, miss in misses.items():
+            miss.append(np.abs(solver.predict_from_home(change[None], order)[0] - exact).max())
+    ratios = {order: miss[0] / miss[1] for order, miss in misses.items()}
+    assert 3.0 < ratios[1] < 5.0 and 6.0 < ratios[2] < 10.0 and 12.0 < ratios[3] < 20.0, ratios
+    assert misses[3][0] < misses[2][0] / 5 < misses[1][0] / 25
 
 
 # ------------------------------------------------------------------------------------------------
