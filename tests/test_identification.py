@@ -7,6 +7,7 @@ import warnings
 import numpy as np
 import pinocchio as pin
 import pytest
+import scipy.linalg
 import scipy.stats  # a reference for outlier_gate, which the package computes with scipy.special
 
 from m3t1r.calibration import identification
@@ -1223,6 +1224,18 @@ def test_unexcited_parameters_are_invariant_under_column_scaling_weakest_directi
     with pytest.raises(InvalidInputError) as error:
         unexcited_parameters(np.ones(3), names, [0], 1)
     assert str(error.value) == "jacobian: expected a 2-D array, got shape (3,)"
+
+
+def test_unexcited_parameters_of_equal_weight_come_in_the_order_of_the_columns_given():
+    """A circulant block whose rows sum to zero: its columns have one length and the weakest direction
+    weighs all 20 equally (5 independent columns beside it weigh nothing); the 20 come in the order of
+    `columns`, however many there are (a stable sort: rounding does not reorder twins)."""
+    rng = np.random.default_rng(9)
+    a = rng.normal(size=20)
+    J = scipy.linalg.block_diag(scipy.linalg.circulant(a - a.mean()), rng.normal(size=(10, 5)))
+    names = [f"p{j}" for j in range(25)]
+    order = [int(c) for c in rng.permutation(25)]
+    assert unexcited_parameters(J, names, order, 1) == tuple(names[c] for c in order if c < 20)
 
 
 def test_unexcited_parameters_name_the_main_parts_of_the_weakest_directions():
