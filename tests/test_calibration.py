@@ -1744,7 +1744,10 @@ def test_a_fit_within_the_noise_is_refit_over_every_column_with_an_effect_damped
     np.testing.assert_array_equal(problem.columns, [0, 1])
     assert state == ("restarted", "estimate") and problem.released == ["estimate"]
     assert settings == dataclasses.replace(
-        _BASE_SETTINGS, max_iterations=4 * 5 * 2, absolute_cost_tolerance=pytest.approx(1e-6 * 10.0 / 19), unit_damping=True
+        _BASE_SETTINGS,
+        max_iterations=4 * 5 * 2,
+        absolute_cost_tolerance=pytest.approx(1e-6 * 10.0 / 19),
+        unit_damping=True,
     )
 
 

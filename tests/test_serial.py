@@ -699,7 +699,9 @@ def test_lm_stops_at_the_step_significance_per_degree_of_freedom_and_the_serial_
     def settings(n_poses: int, **options) -> LMSettings:
         data = simulate_serial_measurements(model, chain, n_poses, np.random.default_rng(56), noise=TRACKER)
         options = {"noise": TRACKER, "outlier_sigma": None, **options}
-        calibration = calibrate_serial(model, chain, data.q_readings, data.measured_poses, CalibrationOptions(**options))
+        calibration = calibrate_serial(
+            model, chain, data.q_readings, data.measured_poses, CalibrationOptions(**options)
+        )
         assert calibration.base.rank == 30  # 4 r + 2 p + 6 of the UR5's revolute joints, full poses
         return calibration.settings
 
@@ -1101,7 +1103,9 @@ def test_the_calibrations_selection_leaves_the_given_groups_out_whole(ur5):
     model, chain = ur5
     data = simulate_serial_measurements(model, chain, 15, np.random.default_rng(57), noise=TRACKER)
     twice = np.repeat(data.q_readings, 2, axis=0), [pose for pose in data.measured_poses for _ in range(2)]
-    once = calibrate_serial(model, chain, data.q_readings, data.measured_poses, CalibrationOptions(TRACKER, select=True))
+    once = calibrate_serial(
+        model, chain, data.q_readings, data.measured_poses, CalibrationOptions(TRACKER, select=True)
+    )
     paired = calibrate_serial(model, chain, *twice, CalibrationOptions(TRACKER, select=True, groups=np.arange(30) // 2))
     flat = calibrate_serial(model, chain, *twice, CalibrationOptions(TRACKER, select=True))
     assert once.selection is not None and paired.selection is not None and flat.selection is not None
