@@ -689,6 +689,26 @@ def test_fit_base_reselects_at_the_estimate_while_the_rank_grows(ur5, compliance
     np.testing.assert_array_equal(problem.columns, base.indices)
 
 
+def test_a_base_at_the_structural_bound_is_not_chosen_again_at_the_estimate(ur5, monkeypatch):
+    """Full poses: the start identifies the bound 4 r + 2 p + 6 = 30 already, so the base is chosen once
+    (one Jacobian factor, at the start) and LM runs once; positions only (25 of 27 at the start), twice."""
+    model, chain = ur5
+    simulated = simulate_serial_measurements(model, chain, 20, np.random.default_rng(44), noise=TRACKER)
+    for position_only, factors, fits in ((False, 1, 1), (True, 3, 2)):
+        data = S.parse_measurements(chain, simulated.q_readings, simulated.measured_poses, position_only)
+        problem, start = _problem(model, chain, data, S.SerialLayout(6))
+        taken = []
+        jacobian_factor = problem.jacobian_factor
+        monkeypatch.setattr(
+            problem, "jacobian_factor", lambda state, *args: taken.append(state) or jacobian_factor(state)
+        )
+        calls = []
+        monkeypatch.setattr(pipeline, "fit", _lm(calls))
+        base = pipeline.fit_base(problem, start, CalibrationOptions(rank_tolerance=1e-9), [])[0]
+        assert base.rank == problem.reselection_bound() == (27 if position_only else 30)
+        assert len(taken) == factors and taken[0] is start and len(calls) == fits
+
+
 def test_lm_stops_at_the_step_significance_per_degree_of_freedom_and_the_serial_defaults(ur5):
     """The relative cost test is the larger of `cost_tolerance` and `step_significance` noise variances:
     1/2 chi^2 of N k rows over r base parameters is about (N k - r) / 2 variances, so a decrease of s
