@@ -427,6 +427,11 @@ def test_parameter_columns_by_name_and_by_placement_in_the_order_asked():
     )
     with pytest.raises(InvalidInputError):
         parameter_columns(NAMES, ["q1.dt"], "--fix")  # only the part before ".dt[" names a placement
+    # A bare string would be read letter by letter, a list holding a number is no list of names: refused.
+    for wanted in ("q1", b"q1", ["q1", 3]):
+        with pytest.raises(InvalidInputError) as error:
+            parameter_columns(NAMES, wanted, "--fix")
+        assert str(error.value) == f"--fix: expected a list of names such as ['q12'], got {wanted!r}"
 
 
 def _blocks_with_d2(d2: np.ndarray, k: int) -> np.ndarray:
