@@ -1243,6 +1243,18 @@ def test_unexcited_parameters_of_equal_weight_come_in_the_order_of_the_columns_g
     assert unexcited_parameters(J, names, order, 1) == tuple(names[c] for c in order if c < 20)
 
 
+@pytest.mark.parametrize(("delta", "tied"), [(4e-10, True), (2e-9, False)])
+def test_unexcited_weights_equal_to_9_digits_are_twins_in_column_order(delta, tied):
+    """c = a + (1 + delta) b: the weakest direction weighs a and b 1 / |c| and (1 + delta) / |c| of c's,
+    0.71 delta apart. Equal to 9 digits (delta 4e-10: 0.7071067810 and 0.7071067813) they are twins and
+    come in the order of `columns`; 1.4e-9 apart (delta 2e-9), b, the heavier, comes first either way."""
+    J = np.zeros((4, 3))
+    J[0, 0] = J[1, 1] = 1.0
+    J[:, 2] = J[:, 0] + (1.0 + delta) * J[:, 1]
+    assert unexcited_parameters(J, "abc", [0, 1, 2], 1) == (("c", "a", "b") if tied else ("c", "b", "a"))
+    assert unexcited_parameters(J, "abc", [1, 0, 2], 1) == ("c", "b", "a")
+
+
 def test_unexcited_parameters_name_the_main_parts_of_the_weakest_directions():
     """Weak means nearly dependent on the others once columns are normalised (as for the rank)."""
     J = np.zeros((5, 4))
