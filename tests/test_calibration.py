@@ -1645,3 +1645,180 @@ def test_calibration_summary_of_points_reports_the_rms_of_the_points_seen(mechan
     summary = pipeline.summarise(problem, start, SimpleNamespace(state=end), (object(), None, 1), ONE_STEP)
     assert summary.rms_before.position == pytest.approx(5.0, rel=1e-15) and np.isnan(summary.rms_before.rotation)
     assert summary.rms_after.position == pytest.approx(0.5, rel=1e-15) and np.isnan(summary.rms_after.rotation)
+
+
+# --------------------------------------------------------------------------------------------------
+# The fit past the nominal's rank (`pipeline.fit_past_nominal_rank`) on a stand-in problem whose chi^2,
+# Jacobian at the estimate and refit are given: the gate, both F tests with their parameter and
+# degree-of-freedom counts (`generic_rank.significant`), the refit's columns and settings
+
+
+#: 20 poses of one row: orthonormal directions q0 ... q3 of the residual space.
+_Q = np.linalg.qr(np.random.default_rng(62).normal(size=(20, 4)))[0].T
+#: The F test's critical ratio for 1 added parameter and 20 - 2 degrees of freedom at p = 1e-3.
+_F_CRITICAL = float(scipy.special.fdtri(1, 18, 1.0 - 1e-3))
+#: The base fit's settings handed on (its absolute tolerance scaled for the refit).
+_BASE_SETTINGS = LMSettings(max_iterations=11, cost_tolerance=1e-10, absolute_cost_tolerance=1e-6, initial_damping=1e-6)
+
+
+class _PastRankProblem:
+    """The problem at the estimate: whitened Jacobian `jacobian` (20, p), residual `residual`, one fitted
+    column (0); every row seen, every pose an inlier; `default_iterations` 5 per parameter."""
+
+    rows_per_pose, n_points = 1, 0
+
+    def __init__(self, jacobian, residual, setup_columns=()):
+        self.jacobian, self.r = jacobian, residual
+        self.names = tuple(f"p{j}" for j in range(jacobian.shape[1]))
+        self.columns = np.array([0])
+        self.active = np.ones(20, dtype=bool)
+        self.seen = np.ones((20, 1), dtype=bool)
+        self.setup_columns = np.array(setup_columns, dtype=int)
+        self.priors = {}
+        self.released = []
+
+    def pose_blocks(self, state):
+        return self.r.reshape(20, 1)
+
+    def jacobian_factor(self, state, with_residual=False):
+        assert with_residual
+        return np.column_stack((self.jacobian, self.r))  # [J r] itself: F^T F = J^T J, and |P r|^2 the same
+
+    def default_iterations(self, n_parameters):
+        return 5 * n_parameters
+
+    def restart(self, state):
+        return ("restarted", state)
+
+    def release(self, state):
+        self.released.append(state)
+
+
+def _past_rank(along, across, weak=1.0, setup_columns=()):
+    """Column 0 along q0 (fitted), column 1 at `weak` from it towards q1, column 2 of no effect (1e-10 of the
+    largest norm, above it with the tolerance divided by the norm); residual `along` q1 + `across` q3:
+    chi^2 along^2 + across^2, of which the added direction explains along^2."""
+    jacobian = 10.0 * np.column_stack((_Q[0], _Q[0] + weak * _Q[1], 1e-10 * _Q[2]))
+    return _PastRankProblem(jacobian, along * _Q[1] + across * _Q[3], setup_columns)
+
+
+def _residual_for(f_ratio, chi2):
+    """(along, across) with chi^2 and the added direction's F ratio along^2 / (across^2 / 18)."""
+    across2 = chi2 / (1.0 + f_ratio / 18.0)
+    return np.sqrt(chi2 - across2), np.sqrt(across2)
+
+
+def _run_past_rank(monkeypatch, problem, refit, nominal_rank=1, rank_tolerance=1e-8):
+    calls = []
+
+    def fit(problem, state, settings):
+        calls.append((problem.columns.copy(), state, settings))
+        if refit is None:
+            raise IdentificationError("calibration ended on a model that does not assemble")
+        return refit
+
+    monkeypatch.setattr(pipeline, "fit", fit)
+    chi2 = float(problem.r @ problem.r)
+    result = SimpleNamespace(state="estimate", cost=0.5 * chi2)
+    out = pipeline.fit_past_nominal_rank(problem, result, nominal_rank, [], rank_tolerance, _BASE_SETTINGS)
+    return result, out, calls
+
+
+def _refit_with(chi2, f_ratio, converged=True):
+    """A refit whose drop in chi^2 from `chi2` has the F ratio `f_ratio` (1 parameter, 18 dof), 9 iterations."""
+    after = chi2 / (1.0 + f_ratio / 18.0)
+    return SimpleNamespace(cost=0.5 * after, converged=converged, iterations=9)
+
+
+def test_a_fit_within_the_noise_is_refit_over_every_column_with_an_effect_damped_in_units(monkeypatch):
+    """chi^2 = 10 of 20 rows: within the noise; the added direction's F ratio twice the critical one.
+    The refit runs from the estimate over the columns above the tolerance times the largest norm, with
+    4 x the default iterations of its rank, the absolute tolerance in units of the base fit's variance
+    factor chi^2 / (rows - fitted) and unit damping; kept, it replaces the fit and its iterations count."""
+    problem = _past_rank(*_residual_for(2.0 * _F_CRITICAL, 10.0))
+    refit = _refit_with(10.0, 2.0 * _F_CRITICAL)
+    result, (kept, iterations), calls = _run_past_rank(monkeypatch, problem, refit)
+    assert kept is refit and iterations == 9
+    ((columns, state, settings),) = calls
+    np.testing.assert_array_equal(columns, [0, 1])
+    np.testing.assert_array_equal(problem.columns, [0, 1])
+    assert state == ("restarted", "estimate") and problem.released == ["estimate"]
+    assert settings == dataclasses.replace(
+        _BASE_SETTINGS,
+        max_iterations=4 * 5 * 2,
+        absolute_cost_tolerance=pytest.approx(1e-6 * 10.0 / 19),
+        unit_damping=True,
+    )
+
+
+@pytest.mark.parametrize("chi2", [18.5, 19.5])
+def test_the_fit_past_the_nominal_rank_is_tried_only_within_the_stated_noise(monkeypatch, chi2):
+    """The gate: chi^2 at most its degrees of freedom, 20 rows less the 1 fitted column (a significant
+    added direction either way)."""
+    problem = _past_rank(*_residual_for(3.0 * _F_CRITICAL, chi2))
+    refit = _refit_with(chi2, 3.0 * _F_CRITICAL)
+    result, out, calls = _run_past_rank(monkeypatch, problem, refit)
+    if chi2 < 19.0:
+        assert out == (refit, 9) and len(calls) == 1
+    else:
+        assert out == (result, 0) and calls == [] and problem.columns.tolist() == [0]
+
+
+@pytest.mark.parametrize("factor", [0.95, 1.05])
+def test_the_added_directions_must_explain_the_residual_by_the_f_test_of_their_count(monkeypatch, factor):
+    """The F test of the explained part, for here.rank - fitted = 1 parameter and rows - here.rank = 18
+    degrees of freedom, on either side of its critical ratio: below it no refit is tried."""
+    problem = _past_rank(*_residual_for(factor * _F_CRITICAL, 10.0))
+    refit = _refit_with(10.0, 3.0 * _F_CRITICAL)
+    result, out, calls = _run_past_rank(monkeypatch, problem, refit)
+    assert out == ((refit, 9) if factor > 1.0 else (result, 0))
+    assert len(calls) == (factor > 1.0)
+
+
+@pytest.mark.parametrize("factor", [0.95, 1.05])
+def test_a_refit_is_kept_only_when_its_own_drop_in_chi2_passes_the_f_test(monkeypatch, factor):
+    """The refit's chi^2 = 2 cost against the fit's 2 cost, on either side of the critical ratio; a refit
+    not kept leaves the fit and its columns, and its iterations still count."""
+    problem = _past_rank(*_residual_for(3.0 * _F_CRITICAL, 10.0))
+    refit = _refit_with(10.0, factor * _F_CRITICAL)
+    result, out, calls = _run_past_rank(monkeypatch, problem, refit)
+    assert len(calls) == 1
+    if factor > 1.0:
+        assert out == (refit, 9) and problem.columns.tolist() == [0, 1]
+    else:
+        assert out == (result, 9) and problem.columns.tolist() == [0] and problem.released == []
+
+
+def test_a_refit_that_did_not_converge_or_does_not_assemble_is_dropped(monkeypatch):
+    problem = _past_rank(*_residual_for(3.0 * _F_CRITICAL, 10.0))
+    result, out, calls = _run_past_rank(monkeypatch, problem, _refit_with(10.0, 3.0 * _F_CRITICAL, converged=False))
+    assert out == (result, 9) and len(calls) == 1 and problem.columns.tolist() == [0]
+    result, out, calls = _run_past_rank(monkeypatch, problem, None)
+    assert out == (result, 0) and len(calls) == 1 and problem.columns.tolist() == [0]
+
+
+def test_the_rank_at_the_estimate_must_pass_the_nominals_and_is_judged_at_the_given_tolerance(monkeypatch):
+    """No refit when the estimate identifies only the nominal's rank (2 of 2), or when the added
+    direction (at 1e-5 from the fitted one) is below the given tolerance; above it, one."""
+    along_across = _residual_for(3.0 * _F_CRITICAL, 10.0)
+    refit = _refit_with(10.0, 3.0 * _F_CRITICAL)
+    result, out, calls = _run_past_rank(monkeypatch, _past_rank(*along_across), refit, nominal_rank=2)
+    assert out == (result, 0) and calls == []
+    weak = _past_rank(*along_across, weak=1e-5)
+    result, out, calls = _run_past_rank(monkeypatch, weak, refit, rank_tolerance=1e-4)
+    assert out == (result, 0) and calls == []
+    assert _run_past_rank(monkeypatch, weak, refit, rank_tolerance=1e-6)[1] == (refit, 9)
+
+
+def test_the_setup_columns_are_kept_first_in_the_choice_at_the_estimate(monkeypatch):
+    """At a tolerance of 0.8, a setup column along q0 + q1 kept first leaves the fitted column and the
+    one along q1 at 1/sqrt(2) each: rank 1, no refit; not a setup column, the pivoted choice finds 2."""
+    along, across = _residual_for(3.0 * _F_CRITICAL, 10.0)
+    refit = _refit_with(10.0, 3.0 * _F_CRITICAL)
+    jacobian = np.column_stack((_Q[0], _Q[1], (_Q[0] + _Q[1]) / np.sqrt(2.0)))
+    residual = along * _Q[1] + across * _Q[3]
+    plain = _PastRankProblem(jacobian, residual)
+    assert _run_past_rank(monkeypatch, plain, refit, rank_tolerance=0.8)[1] == (refit, 9)
+    gauge = _PastRankProblem(jacobian, residual, setup_columns=[2])
+    result, out, calls = _run_past_rank(monkeypatch, gauge, refit, rank_tolerance=0.8)
+    assert out == (result, 0) and calls == []

@@ -7,6 +7,7 @@ import warnings
 import numpy as np
 import pinocchio as pin
 import pytest
+import scipy.linalg
 import scipy.stats  # a reference for outlier_gate, which the package computes with scipy.special
 
 from m3t1r.calibration import identification
@@ -426,6 +427,11 @@ def test_parameter_columns_by_name_and_by_placement_in_the_order_asked():
     )
     with pytest.raises(InvalidInputError):
         parameter_columns(NAMES, ["q1.dt"], "--fix")  # only the part before ".dt[" names a placement
+    # A bare string would be read letter by letter, a list holding a number is no list of names: refused.
+    for wanted in ("q1", b"q1", ["q1", 3]):
+        with pytest.raises(InvalidInputError) as error:
+            parameter_columns(NAMES, wanted, "--fix")
+        assert str(error.value) == f"--fix: expected a list of names such as ['q12'], got {wanted!r}"
 
 
 def _blocks_with_d2(d2: np.ndarray, k: int) -> np.ndarray:
@@ -491,6 +497,28 @@ def test_poses_with_fewer_measured_rows_get_their_own_chi2_median_and_gate():
     flagged, scale = outlier_poses(blocks, measured_rows=dof)
     assert list(np.flatnonzero(flagged)) == [10]
     assert scale == pytest.approx(2.0, rel=1e-12)
+
+
+def test_with_measured_rows_the_scale_is_never_below_one_and_the_exact_gate_is_not_an_outlier():
+    """Residuals well inside the noise: s = 1, and each pose is gated at its own quantile unscaled; a
+    statistic exactly at its gate is not beyond it, the next float is."""
+    import scipy.stats
+
+    dof = np.array([3, 6, 3, 6, 3, 6, 3])
+    d2 = 0.25 * scipy.stats.chi2.median(dof)
+    gate = outlier_gate(5.0, 3)
+    v = float(np.sqrt(gate))
+    while v * v > gate:
+        v = float(np.nextafter(v, 0.0))
+    blocks = np.zeros((7, 6))
+    blocks[:, 0] = np.sqrt(d2)
+    blocks[2, :2] = v, np.sqrt(gate - v * v)  # 3 rows: at its gate exactly
+    assert np.sum(blocks[2] ** 2) == gate
+    blocks[4, 0] = np.sqrt(gate * (1 + 1e-9))  # 3 rows: just beyond
+    flagged, scale = outlier_poses(blocks, measured_rows=dof)
+    assert scale == 1.0 and np.flatnonzero(flagged).tolist() == [4]
+    blocks[2, 0] = np.nextafter(v, np.inf)
+    assert np.flatnonzero(outlier_poses(blocks, measured_rows=dof)[0]).tolist() == [2, 4]
 
 
 def test_outlier_scale_is_the_median_ratio_and_never_below_one():
@@ -573,7 +601,7 @@ def test_forward_selection_path_press_order_and_ties_against_refits(forced):
     assert len(selection.indices) < p  # and the best is not every column
 
 
-@pytest.mark.parametrize("forced", [(), (5,), (6, 1)])
+@pytest.mark.parametrize("forced", [(), (5,), (6, 1), (2, 4)])
 def test_forward_selection_in_place_is_the_same_selection(forced):
     """overwrite=True projects a column-major Jacobian in place (its columns are spent) and chooses
     as the copying selection does; a row-major one, which cannot be projected in place, is left as it is."""
@@ -590,6 +618,9 @@ def test_forward_selection_in_place_is_the_same_selection(forced):
     row_major = J.copy()
     assert forward_selection(row_major, r, k, range(p), forced=forced, overwrite=True).order == copied.order
     np.testing.assert_array_equal(row_major, J)
+    kept = np.asfortranarray(J)  # column-major, but not given to overwrite: the default copies
+    assert forward_selection(kept, r, k, range(p), forced=forced).order == copied.order
+    np.testing.assert_array_equal(kept, J)
 
 
 def test_forward_selection_stops_when_no_candidate_is_independent_and_checks_rows():
@@ -779,12 +810,15 @@ class Recorded(ExponentialFit):
         return x + step
 
 
-def _reference_steps(problem, x, mu, iterations):
-    """Every trial step of LM with Marquardt scaling and Nielsen's damping update (the docstring)."""
+def _reference_steps(problem, x, mu, iterations, unit_damping=False):
+    """Every trial step of LM with Marquardt scaling (or unit damping: D = max_j ||J_j|| I) and Nielsen's
+    damping update (the docstring)."""
     r, J = problem.residual_and_jacobian(x)
     cost, nu, steps = 0.5 * r @ r, 2.0, []
     for _ in range(iterations):
         d2 = np.diag(J.T @ J)
+        if unit_damping:
+            d2 = np.full_like(d2, d2.max())
         while True:
             dx = np.linalg.solve(J.T @ J + mu * np.diag(d2), -J.T @ r)
             steps.append(dx)
@@ -818,6 +852,54 @@ def test_trial_steps_follow_the_marquardt_nielsen_schedule(damping):
     assert len(problem.steps) == len(reference)
     np.testing.assert_allclose(np.array(problem.steps), np.array(reference), rtol=1e-6, atol=1e-12)
     assert result.step_norm == pytest.approx(np.linalg.norm(reference[-1]), rel=1e-6)
+
+
+class ScaledExponentialFit(Recorded):
+    """`ExponentialFit` with residual and Jacobian times c (c = 1e-3: every column norm below 1)."""
+
+    def __init__(self, c: float) -> None:
+        super().__init__()
+        self.c = c
+
+    def residual_and_jacobian(self, x):
+        r, J = super().residual_and_jacobian(x)
+        return self.c * r, self.c * J
+
+
+@pytest.mark.parametrize("c", [1.0, 1e-3])
+def test_unit_damping_is_by_the_largest_column_norm_whatever_the_residuals_scale(c):
+    """unit_damping: D = max_j ||J_j|| I, so that mu stays unit free (the same steps for r and J scaled
+    by c, column norms below 1 included), every trial step as the documented rule gives it."""
+    problem = ScaledExponentialFit(c)
+    start = np.array([0.1, 6.0])
+    settings = LMSettings(
+        initial_damping=1e-3,
+        unit_damping=True,
+        max_iterations=6,
+        cost_tolerance=0.0,
+        step_tolerance=0.0,
+        gradient_tolerance=0.0,
+    )
+    result = levenberg_marquardt(problem, start, settings)
+    assert result.termination == "max_iterations" and result.iterations == 6
+    reference = _reference_steps(ScaledExponentialFit(1.0), start, 1e-3, 6, unit_damping=True)
+    assert len(problem.steps) == len(reference)
+    np.testing.assert_allclose(np.array(problem.steps), np.array(reference), rtol=1e-6, atol=1e-12)
+    marquardt = _reference_steps(ScaledExponentialFit(1.0), start, 1e-3, 6)
+    assert not np.allclose(marquardt[0], reference[0], rtol=1e-3)  # the scaling differs from Marquardt's
+
+
+def test_without_a_residual_hook_a_trial_is_evaluated_once_with_its_jacobian():
+    """A problem with residual_and_jacobian alone: each trial step is one evaluation, which serves the
+    next iteration when the step is accepted (no second one at the same state)."""
+    problem = Recorded()
+    result = levenberg_marquardt(
+        problem,
+        np.array([0.1, 6.0]),
+        LMSettings(max_iterations=6, cost_tolerance=0.0, step_tolerance=0.0, gradient_tolerance=0.0),
+    )
+    assert result.iterations == 6 and len(problem.steps) > 6  # rejected trials too
+    assert problem.calls == 1 + len(problem.steps)
 
 
 def test_rejections_happen_in_the_schedule_test():
@@ -1112,6 +1194,67 @@ def test_pivoted_qr_factors_the_permuted_matrix_and_pivots_on_the_largest_remain
     assert np.all(zero == 0.0) and zero_pivots.tolist() == [0, 1]
 
 
+def test_pivoted_qr_ties_go_to_the_lower_original_column_after_swaps_and_integers_are_floats():
+    """The tie rule is about original columns, also once a pivot has moved them: here column 3 first
+    (swapped with 0), then 0 and 1 tie and 0, now at position 3, wins. Zero columns left: still ordered by
+    the rule (0, 1, 2 after 3). Integer input is factored in floating point."""
+    A = np.zeros((4, 4))
+    A[:, 3] = [0.0, 0.0, 0.0, 2.0]
+    A[:, 0] = [1.0, 0.0, 0.0, 0.0]
+    A[:, 1] = [0.0, 1.0, 0.0, 0.0]
+    r, pivots = pivoted_qr(A)
+    assert pivots.tolist() == [3, 0, 1, 2]
+    np.testing.assert_allclose(np.abs(np.diag(r)), [2.0, 1.0, 1.0, 0.0], atol=1e-15)
+    assert pivoted_qr(np.eye(4)[:, ::-1] * [0, 0, 0, 1])[1].tolist() == [3, 0, 1, 2]  # one non-zero column
+    integers = np.array([[2, 1], [1, 3], [0, 1]])
+    r_int, pivots_int = pivoted_qr(integers)
+    r_float, pivots_float = pivoted_qr(integers.astype(float))
+    assert pivots_int.tolist() == pivots_float.tolist() == [1, 0]
+    np.testing.assert_allclose(r_int, r_float, rtol=1e-14)
+    np.testing.assert_allclose(r_int.T @ r_int, integers[:, pivots_int].T @ integers[:, pivots_int], rtol=1e-14)
+
+
+def test_unexcited_parameters_are_invariant_under_column_scaling_weakest_direction_first_and_name_the_jacobian():
+    """The directions are those of the column-normalised Jacobian, also for columns shorter than 1; with
+    count 2 the weakest direction's parameters come first; a bad Jacobian is refused by its name."""
+    rng = np.random.default_rng(7)
+    base = rng.normal(size=(8, 5))
+    J = np.column_stack((base[:, :3], base[:, 0] + 1e-4 * base[:, 3], base[:, 2] + 1e-2 * base[:, 4]))
+    names = "abcde"
+    weakest = unexcited_parameters(J, names, range(5), 1)
+    both = unexcited_parameters(J, names, range(5), 2)
+    assert set(weakest) == {"a", "d"} and both[: len(weakest)] == weakest and {"c", "e"} <= set(both)
+    for scales in ([1e-3, 2e-3, 5e-4, 1e-3, 3e-3], [1e3, 1e-2, 1.0, 0.5, 2e2]):
+        assert unexcited_parameters(J * scales, names, range(5), 2) == both
+    with pytest.raises(InvalidInputError) as error:
+        unexcited_parameters(np.ones(3), names, [0], 1)
+    assert str(error.value) == "jacobian: expected a 2-D array, got shape (3,)"
+
+
+def test_unexcited_parameters_of_equal_weight_come_in_the_order_of_the_columns_given():
+    """A circulant block whose rows sum to zero: its columns have one length and the weakest direction
+    weighs all 20 equally (5 independent columns beside it weigh nothing); the 20 come in the order of
+    `columns`, however many there are (a stable sort: rounding does not reorder twins)."""
+    rng = np.random.default_rng(9)
+    a = rng.normal(size=20)
+    J = scipy.linalg.block_diag(scipy.linalg.circulant(a - a.mean()), rng.normal(size=(10, 5)))
+    names = [f"p{j}" for j in range(25)]
+    order = [int(c) for c in rng.permutation(25)]
+    assert unexcited_parameters(J, names, order, 1) == tuple(names[c] for c in order if c < 20)
+
+
+@pytest.mark.parametrize(("delta", "tied"), [(4e-10, True), (2e-9, False)])
+def test_unexcited_weights_equal_to_9_digits_are_twins_in_column_order(delta, tied):
+    """c = a + (1 + delta) b: the weakest direction weighs a and b 1 / |c| and (1 + delta) / |c| of c's,
+    0.71 delta apart. Equal to 9 digits (delta 4e-10: 0.7071067810 and 0.7071067813) they are twins and
+    come in the order of `columns`; 1.4e-9 apart (delta 2e-9), b, the heavier, comes first either way."""
+    J = np.zeros((4, 3))
+    J[0, 0] = J[1, 1] = 1.0
+    J[:, 2] = J[:, 0] + (1.0 + delta) * J[:, 1]
+    assert unexcited_parameters(J, "abc", [0, 1, 2], 1) == (("c", "a", "b") if tied else ("c", "b", "a"))
+    assert unexcited_parameters(J, "abc", [1, 0, 2], 1) == ("c", "b", "a")
+
+
 def test_unexcited_parameters_name_the_main_parts_of_the_weakest_directions():
     """Weak means nearly dependent on the others once columns are normalised (as for the rank)."""
     J = np.zeros((5, 4))
@@ -1128,6 +1271,10 @@ def test_best_index_takes_the_lower_of_scores_within_1e_9():
     assert best_index([1.0, 3.0, 3.0 * (1 + 0.5e-9), 2.0]) == 1
     assert best_index([1.0, 3.0, 3.0 * (1 + 2e-9), 2.0]) == 2
     assert best_index([-np.inf, -np.inf, 0.5]) == 2 and best_index([-np.inf, -np.inf]) == 0
+    assert best_index([1.0, np.inf, 2.0]) == 1 and best_index([np.inf, -np.inf], largest=False) == 1
+    # Scores are compared as floats: unsigned integers negate as numbers (the smallest of 0 and 2 is 0).
+    assert best_index(np.array([0, 2], dtype=np.uint8), largest=False) == 0
+    assert best_index(np.array([3, 0, 2], dtype=np.uint8), largest=False) == 1
     assert best_index([4.0, 2.0, 2.0 * (1 - 0.5e-9)], largest=False) == 1
     assert best_index([4.0, 2.0, 2.0 * (1 - 2e-9)], largest=False) == 2
     assert best_index([np.inf, 5.0, np.inf], largest=False) == 1

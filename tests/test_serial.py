@@ -689,6 +689,51 @@ def test_fit_base_reselects_at_the_estimate_while_the_rank_grows(ur5, compliance
     np.testing.assert_array_equal(problem.columns, base.indices)
 
 
+def test_a_base_at_the_structural_bound_is_not_chosen_again_at_the_estimate(ur5, monkeypatch):
+    """Full poses: the start identifies the bound 4 r + 2 p + 6 = 30 already, so the base is chosen once
+    (one Jacobian factor, at the start) and LM runs once; positions only (25 of 27 at the start), twice."""
+    model, chain = ur5
+    simulated = simulate_serial_measurements(model, chain, 20, np.random.default_rng(44), noise=TRACKER)
+    for position_only, factors, fits in ((False, 1, 1), (True, 3, 2)):
+        data = S.parse_measurements(chain, simulated.q_readings, simulated.measured_poses, position_only)
+        problem, start = _problem(model, chain, data, S.SerialLayout(6))
+        taken = []
+        jacobian_factor = problem.jacobian_factor
+        monkeypatch.setattr(
+            problem, "jacobian_factor", lambda state, *args: taken.append(state) or jacobian_factor(state)
+        )
+        calls = []
+        monkeypatch.setattr(pipeline, "fit", _lm(calls))
+        base = pipeline.fit_base(problem, start, CalibrationOptions(rank_tolerance=1e-9), [])[0]
+        assert base.rank == problem.reselection_bound() == (27 if position_only else 30)
+        assert len(taken) == factors and taken[0] is start and len(calls) == fits
+
+
+def test_lm_stops_at_the_step_significance_per_degree_of_freedom_and_the_serial_defaults(ur5):
+    """The relative cost test is the larger of `cost_tolerance` and `step_significance` noise variances:
+    1/2 chi^2 of N k rows over r base parameters is about (N k - r) / 2 variances, so a decrease of s
+    variances is 2 s / (N k - r) of the cost (at least one degree of freedom). A serial fit's defaults:
+    30 iterations, a relative tolerance of 1e-12 and no significance; the absolute tolerance is passed on."""
+    model, chain = ur5
+
+    def settings(n_poses: int, **options) -> LMSettings:
+        data = simulate_serial_measurements(model, chain, n_poses, np.random.default_rng(56), noise=TRACKER)
+        options = {"noise": TRACKER, "outlier_sigma": None, **options}
+        calibration = calibrate_serial(
+            model, chain, data.q_readings, data.measured_poses, CalibrationOptions(**options)
+        )
+        assert calibration.base.rank == 30  # 4 r + 2 p + 6 of the UR5's revolute joints, full poses
+        return calibration.settings
+
+    assert settings(12) == LMSettings(30, 1e-12, 1e-6, 1e-6)
+    assert settings(12, absolute_cost_tolerance=1e-3, max_iterations=7) == LMSettings(7, 1e-12, 1e-3, 1e-6)
+    assert settings(12, step_significance=0.5).cost_tolerance == pytest.approx(2.0 * 0.5 / (12 * 6 - 30), rel=1e-12)
+    assert settings(12, step_significance=0.5, cost_tolerance=0.1).cost_tolerance == 0.1
+    assert settings(12, step_significance=1e-3, cost_tolerance=1e-5).cost_tolerance == pytest.approx(2e-3 / 42)
+    # 5 poses, 30 rows for 30 parameters: no degree of freedom, counted as one.
+    assert settings(5, step_significance=0.5).cost_tolerance == pytest.approx(1.0, rel=1e-12)
+
+
 def test_select_base_keeps_the_setup_first_and_leaves_fixed_columns_out(ur5):
     model, chain = ur5
     data = _exact_setup_data(model, chain, n_poses=20)
@@ -1069,6 +1114,25 @@ def test_selection_leaves_each_group_of_repeats_out_whole(ur5):
     problem.columns = columns
     one_by_one = pipeline.select_parameters(problem, start, at_start, SETTINGS)[0]
     assert abs(one_by_one.press_all - selection.press_all) > 1e-3 * selection.press_all
+
+
+def test_the_calibrations_selection_leaves_the_given_groups_out_whole(ur5):
+    """`groups` reach the selection of a calibration: every pose measured twice and the pair labelled
+    as one group gives each pair's leave-out error of the single set twice (PRESS doubled at every step
+    of the same path); without the labels each copy is predicted by its twin, and the path differs."""
+    model, chain = ur5
+    data = simulate_serial_measurements(model, chain, 15, np.random.default_rng(57), noise=TRACKER)
+    twice = np.repeat(data.q_readings, 2, axis=0), [pose for pose in data.measured_poses for _ in range(2)]
+    once = calibrate_serial(
+        model, chain, data.q_readings, data.measured_poses, CalibrationOptions(TRACKER, select=True)
+    )
+    paired = calibrate_serial(model, chain, *twice, CalibrationOptions(TRACKER, select=True, groups=np.arange(30) // 2))
+    flat = calibrate_serial(model, chain, *twice, CalibrationOptions(TRACKER, select=True))
+    assert once.selection is not None and paired.selection is not None and flat.selection is not None
+    assert paired.selection.order == once.selection.order
+    np.testing.assert_allclose(paired.selection.path, 2.0 * np.array(once.selection.path), rtol=1e-6)
+    assert paired.selection.press == pytest.approx(2.0 * once.selection.press, rel=1e-6)
+    assert np.abs(np.array(flat.selection.path) / paired.selection.path - 1.0).max() > 0.1
 
 
 def test_orientation_residual_near_a_half_turn(ur5):

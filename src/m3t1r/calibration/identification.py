@@ -887,7 +887,7 @@ def levenberg_marquardt(
         scale = _column_norms_of(J)
         scale = np.maximum(scale, 1e-12 * max(scale.max(), 1e-300))
         if settings.unit_damping:
-            scale = np.full_like(scale, scale.max(initial=1.0))
+            scale = np.full_like(scale, scale.max())
         p = J.shape[1]
         while True:
             augmented = np.vstack([rj, np.sqrt(mu) * np.diag(scale)])
