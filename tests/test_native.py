@@ -247,6 +247,29 @@ def test_failures_are_the_python_loop_s_typed_errors(mechanism):
     assert len(kinds) == 2
 
 
+def test_home_derivatives_agree_between_the_loops(mechanism):
+    """The prediction from home's derivatives: the compiled tangents give the Python loop's (their
+    central differences amplify the rounding by 1 / h^2 = 1e8 for G)."""
+    (curvature, third), (python_curvature, python_third) = (
+        ClosedLoopSolver(mechanism, native=use).home_derivatives() for use in (True, False)
+    )
+    np.testing.assert_allclose(curvature, python_curvature, atol=1e-9 * np.abs(python_curvature).max())
+    np.testing.assert_allclose(third, python_third, atol=1e-6 * np.abs(python_third).max())
+
+
+def test_compiled_tangents_are_home_s_and_refused_below_the_threshold(mechanism):
+    solver = ClosedLoopSolver(mechanism)
+    assert solver.native is not None
+    configurations = np.array([mechanism.home, mechanism.home + 1e-3])
+    tangents, regular = solver.native.tangents(configurations, solver.rules.singular_rcond)
+    assert tangents.shape == (2, len(solver.passive), len(solver.actuated)) and list(regular) == [True, True]
+    np.testing.assert_allclose(tangents[0], solver.home_reference()[0], atol=1e-12)
+    jacobian = solver.closure_jacobian(configurations[1])  # off the manifold: T of the unsolved q
+    expected = -np.linalg.solve(jacobian[:, solver.passive], jacobian[:, solver.actuated])
+    np.testing.assert_allclose(tangents[1], expected, atol=1e-11)
+    assert not solver.native.tangents(configurations, 2.0)[1].any()  # no reciprocal condition reaches 2
+
+
 def test_a_singular_configuration_is_refused_with_its_class(mechanism, monkeypatch):
     """A threshold no configuration meets makes every converged solve singular, in both loops."""
     for use in (True, False):

@@ -553,6 +553,18 @@ double one_norm(const Chain & c, System & s) {
   return biggest;
 }
 
+// The 1-norm reciprocal condition of the system last factorised where it is below `threshold` (exact,
+// from the inverse; NaN where the inverse overflows), else a lower bound at or above it: the exact
+// value decides only where the bound from inverse_one_norm_bound does not already clear the threshold
+// (with a margin for rounding).
+double reciprocal_condition(const Chain & c, System & s, double threshold) {
+  const double norm_a = one_norm(c, s);
+  const double lower = 1.0 / (norm_a * s.lu.inverse_one_norm_bound() * (1.0 + 1e-9));
+  if (lower >= threshold) return lower;
+  s.lu.inverse(s.inverse_matrix);
+  return 1.0 / (norm_a * s.inverse_matrix.cwiseAbs().colwise().sum().maxCoeff());
+}
+
 // Factors the system at the current Jacobian (in block order): its pattern's entries into zeros.
 bool factor(Chain & c, System & s) {
   s.lu.zero();
@@ -594,15 +606,8 @@ Outcome newton(Chain & c, System & s, Vector & q, unsigned char * branch, bool h
       fresh = false;
     }
     if (norm <= rules.tolerance) {
-      // The exact reciprocal condition decides only where its lower bound from
-      // inverse_one_norm_bound does not already clear the threshold (with a margin for rounding).
-      const double norm_a = one_norm(c, s);
-      const double lower = 1.0 / (norm_a * s.lu.inverse_one_norm_bound() * (1.0 + 1e-9));
-      if (!(lower >= rules.singular_rcond)) {
-        s.lu.inverse(s.inverse_matrix);
-        const double rcond = 1.0 / (norm_a * s.inverse_matrix.cwiseAbs().colwise().sum().maxCoeff());
-        if (!(rcond >= rules.singular_rcond)) return {SINGULAR, iteration, norm, rcond == rcond ? rcond : 0.0};
-      }
+      const double rcond = reciprocal_condition(c, s, rules.singular_rcond);
+      if (!(rcond >= rules.singular_rcond)) return {SINGULAR, iteration, norm, rcond == rcond ? rcond : 0.0};
       labels(c, s, c.now.data());
       if (std::memcmp(c.now.data(), branch, n_labels) != 0) return {BRANCH_CHANGE, iteration, norm};
       return {CONVERGED, iteration, norm};

@@ -536,12 +536,52 @@ PyObject * rows(PyObject *, PyObject * args) {
   return PyLong_FromSsize_t(n);
 }
 
+// tangents(chain, q (m, nq), out (m, P*A) out, ok (m,) uint8 out, singular_rcond) -> m:
+//   T = -J_passive^-1 J_actuated of FK's passive system at each row's q as given (not solved:
+//   ClosedLoopSolver.home_derivatives' points, off the solution manifold), laid out as the bound
+//   tangent (P x A, the passive joints in the caller's order); ok[i] = 0 where the system is singular
+//   there (a zero pivot, or a reciprocal condition below singular_rcond: `reciprocal_condition`).
+PyObject * tangents(PyObject *, PyObject * args) {
+  PyObject *capsule, *oq, *oout, *ook;
+  double threshold;
+  if (!PyArg_ParseTuple(args, "OOOOd", &capsule, &oq, &oout, &ook, &threshold)) return nullptr;
+  Handle * handle = handle_of(capsule);
+  if (handle == nullptr) return nullptr;
+  Chain * c = &handle->chain;
+  const Py_ssize_t nq = c->model.nq, n_passive = static_cast<Py_ssize_t>(c->fk.original.size()),
+                   n_act = static_cast<Py_ssize_t>(c->actuated.size());
+  Buffer bq, bout, bok;
+  if (!bq.get(oq, false, 'd', -1, "q")) return nullptr;
+  const Py_ssize_t m = bq.items() / nq;
+  if (bq.items() != m * nq) {
+    PyErr_SetString(PyExc_ValueError, "q: not rows of nq");
+    return nullptr;
+  }
+  if (!bout.get(oout, true, 'd', m * n_passive * n_act, "out") || !bok.get(ook, true, 'B', m, "ok")) return nullptr;
+  const std::lock_guard<std::mutex> guard(handle->lock);
+  System & s = c->fk;
+  for (Py_ssize_t i = 0; i < m; ++i) {
+    c->q = Eigen::Map<const Vector>(bq.d() + i * nq, nq);
+    evaluate(*c, s, c->q, true);
+    const bool regular = factor(*c, s) && reciprocal_condition(*c, s, threshold) >= threshold;
+    bok.b()[i] = regular ? 1 : 0;
+    Eigen::Map<Matrix> tangent(bout.d() + i * n_passive * n_act, n_passive, n_act);
+    for (Py_ssize_t j = 0; regular && j < n_act; ++j) {
+      for (int r = 0; r < c->rows; ++r) c->step[r] = -c->jacobian(s.row_order[r], c->actuated[j]);
+      s.lu.solve(c->step.data());
+      for (Py_ssize_t k = 0; k < n_passive; ++k) tangent(s.position[k], j) = c->step[k];
+    }
+  }
+  return PyLong_FromSsize_t(m);
+}
+
 PyMethodDef methods[] = {
     {"build", build, METH_VARARGS, "A closed chain from arrays (see the source)."},
     {"bind", bind, METH_VARARGS, "Binds a chain's warm-start arrays (see the source)."},
     {"forward", forward, METH_VARARGS, "One Newton solve of the passive joints, in place."},
     {"inverse", inverse, METH_VARARGS, "One Newton solve of closure and task rows, in place."},
     {"rows", rows, METH_VARARGS, "FK or IK Newton solves of many rows, in place."},
+    {"tangents", tangents, METH_VARARGS, "FK's tangents at many configurations, unsolved."},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native_newton",

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import operator
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -455,39 +456,53 @@ class ClosedLoopSolver:
         the same O(h^2), which its difference cancels. None when home or one of the points is singular
         (batches from home then predict to first order)."""
         if self._derivatives is None:
-            home, inner, outer = self.mechanism.home, 1e-4, 1e-3
-            curvature = self._tangent_derivative(home, inner)
-            moved = [self._tangent_derivative(q, inner) for q in self._tangent_points(home, outer)]
-            known = [m for m in moved if m is not None]
-            if curvature is None or len(known) != 2 * len(self.actuated):
-                self._derivatives = (None,)
-            else:
-                self._derivatives = ((curvature, self._central_differences(known, outer)),)
+            self._derivatives = (self._derivatives_at_home(),)
         return self._derivatives[0]
 
     _derivatives: tuple[tuple[np.ndarray, np.ndarray] | None] | None = None
 
-    def _tangent_points(self, q: np.ndarray, h: float) -> list[np.ndarray]:
-        """q + h t_j and q - h t_j for each slider j, in that order (`home_derivatives`); [] where q is singular."""
-        reference = self._reference(q)
+    def _derivatives_at_home(self, inner: float = 1e-4, outer: float = 1e-3) -> tuple[np.ndarray, np.ndarray] | None:
+        """`home_derivatives` computed from the tangents at 2k + 2k points around home, then at 2k points
+        around each of the outer 2k (81 tangents for four sliders, in two calls of `_tangents_at`)."""
+        reference = self.home_reference()
         if reference is None:
-            return []
+            return None
+        home, k2 = self.mechanism.home, 2 * len(self.actuated)
+        around = self._tangent_points(home, reference[0], inner) + self._tangent_points(home, reference[0], outer)
+        first = self._tangents_at(around)
+        if first is None:
+            return None
+        points = [
+            p for point, tangent in zip(around[k2:], first[k2:]) for p in self._tangent_points(point, tangent, inner)
+        ]
+        second = self._tangents_at(points)
+        if second is None:
+            return None
+        moved = [self._central_differences(second[k2 * i : k2 * (i + 1)], inner) for i in range(k2)]
+        return self._central_differences(first[:k2], inner), self._central_differences(moved, outer)
+
+    def _tangents_at(self, points: list[np.ndarray]) -> np.ndarray | None:
+        """T = -J_passive^-1 J_actuated (m, passive, actuated) at each point as given (not solved), or None
+        if the passive system is singular at one (its reciprocal condition below the threshold)."""
+        if self.native is not None:
+            tangents, regular = self.native.tangents(np.array(points), self.rules.singular_rcond)
+            return tangents if regular.all() else None
+        references = [self._reference(point) for point in points]
+        known = [r[0] for r in references if r is not None]
+        return np.array(known) if len(known) == len(points) else None
+
+    def _tangent_points(self, q: np.ndarray, tangent: np.ndarray, h: float) -> list[np.ndarray]:
+        """q + h t_j and q - h t_j for each slider j, in that order, t_j = (e_j, tangent e_j)."""
         points = []
         for j in range(len(self.actuated)):
             for sign in (1.0, -1.0):
                 moved = q.copy()
                 moved[self.actuated[j]] += sign * h
-                moved[self.passive] += sign * h * reference[0][:, j]
+                moved[self.passive] += sign * h * tangent[:, j]
                 points.append(moved)
         return points
 
-    def _tangent_derivative(self, q: np.ndarray, h: float) -> np.ndarray | None:
-        """D(T)(q) (passive x actuated x actuated) of `home_derivatives`, or None where a point is singular."""
-        references = [self._reference(point) for point in self._tangent_points(q, h)]
-        tangents = [r[0] for r in references if r is not None]
-        return self._central_differences(tangents, h) if len(tangents) == 2 * len(self.actuated) else None
-
-    def _central_differences(self, values: list[np.ndarray], h: float) -> np.ndarray:
+    def _central_differences(self, values: Sequence[np.ndarray] | np.ndarray, h: float) -> np.ndarray:
         """(values[2 j] - values[2 j + 1]) / 2h for each slider j, along a new last axis."""
         return np.stack([(values[2 * j] - values[2 * j + 1]) / (2.0 * h) for j in range(len(self.actuated))], -1)
 

@@ -237,6 +237,16 @@ class NativeChain:
             *rules,
         )
 
+    def tangents(self, q: np.ndarray, singular_rcond: float) -> tuple[np.ndarray, np.ndarray]:
+        """FK's tangents T = -J_passive^-1 J_actuated (m, P, A) at configurations q (m, nq) as given (not
+        solved), and whether each is regular there (m,) bool: no zero pivot, a reciprocal condition of
+        at least singular_rcond (the tangent of an irregular row is left unset)."""
+        q = np.ascontiguousarray(q, dtype=float)
+        tangents = np.zeros((len(q), *self.tangent.shape))
+        regular = np.zeros(len(q), dtype=np.uint8)
+        self._module.tangents(self._handle, q, tangents, regular, float(singular_rcond))
+        return tangents, regular.astype(bool)
+
     def forward_rows(
         self, q: np.ndarray, start_branch: np.ndarray | None, steps_taken: int, rules: tuple, threads: int = 1
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
