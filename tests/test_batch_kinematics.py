@@ -223,6 +223,27 @@ def test_forward_batch_slider_limits_are_inclusive_and_named(five_bar):
         np.testing.assert_allclose(batch.poses[k], fk.pose.homogeneous, atol=1e-12)
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_row_the_third_order_start_loses_is_solved_from_the_first_order_one(mechanism, compiled):
+    """Sliders near the M machine's URDF limits, outside its workspace: from home's third-order start
+    Newton crosses a singularity (status 4, another branch); the batch solves such a row again from
+    the first-order start, the single solve's from home, and returns that solve's solution, its
+    predicted start counted as one step."""
+    solver, home = ClosedLoopSolver(mechanism, native=compiled), mechanism.home
+    sliders = np.array([[-0.392, -0.179, 0.436, -0.483], [0.572, -0.307, 0.244, -0.491]])
+    start = np.repeat(home[None], 2, axis=0)
+    start[:, solver.actuated] = sliders
+    start[:, solver.passive] += solver.predict_from_home(sliders - home[solver.actuated])
+    reference = solver.home_reference()
+    assert reference is not None and list(solver.solve_rows(start, reference[1], 1).status) == [4, 4]
+    batch = solver.forward_batch(sliders)
+    assert batch.complete
+    for row, values in enumerate(sliders):
+        single = ClosedLoopSolver(mechanism, native=compiled).forward(values, q_init=home)
+        np.testing.assert_allclose(batch.q[row], single.q, atol=1e-12)
+        assert batch.iterations[row] == single.iterations + 1
+
+
 def test_forward_batch_every_row_beyond_its_limits(five_bar):
     batch = ClosedLoopSolver(five_bar).forward_batch(np.array([[2.33, 0.3], [3.0, 0.8]]))
     assert batch.n == 2 and len(batch.indices) == 0 and batch.indices.dtype.kind == "i"

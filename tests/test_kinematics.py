@@ -16,6 +16,7 @@ from m3t1r.model.description import Mechanism
 from m3t1r.model.design import NOMINAL
 from m3t1r.model.examples import FiveBarGeometry, five_bar_files, spherical_wrist_files
 from m3t1r.model.kinematics import ClosedLoopSolver, yaw_of
+from m3t1r.model.newton_rules import NewtonRules
 
 
 def workspace_poses(n: int, seed: int) -> np.ndarray:
@@ -1014,6 +1015,21 @@ def test_home_derivatives_are_those_of_the_solved_passive_joints(mechanism):
     for i, j, k in [(0, 0, 0), (0, 1, 2), (3, 1, 3), (2, 2, 1)]:
         np.testing.assert_allclose(third[:, i, j, k], extrapolated(2e-2, i, j, k), atol=1e-3 * np.abs(third).max())
     np.testing.assert_allclose(third, np.swapaxes(third, 1, 3), atol=1e-5 * np.abs(third).max())
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_home_barely_regular_has_no_derivatives_and_predicts_to_first_order(mechanism, compiled):
+    """A threshold a hair below home's reciprocal condition: home is regular, but points 1e-4 away
+    along its tangents are not, so its derivatives are unknown and every order predicts as the first."""
+    home = mechanism.home
+    plain = ClosedLoopSolver(mechanism, native=compiled)
+    exact = 1.0 / np.linalg.cond(plain.closure_jacobian(home)[:, plain.passive], 1)
+    solver = ClosedLoopSolver(mechanism, native=compiled, rules=NewtonRules(singular_rcond=exact * (1 - 1e-9)))
+    assert solver.home_reference() is not None and solver.home_derivatives() is None
+    assert plain.home_derivatives() is not None
+    change = np.array([[0.02, -0.01, 0.015, -0.02]])
+    np.testing.assert_array_equal(solver.predict_from_home(change, 3), solver.predict_from_home(change, 1))
+    assert np.abs(plain.predict_from_home(change, 3) - plain.predict_from_home(change, 1)).max() > 1e-5
 
 
 def test_the_prediction_from_home_has_the_order_asked(mechanism):
