@@ -242,6 +242,13 @@ def test_a_row_the_third_order_start_loses_is_solved_from_the_first_order_one(me
         single = ClosedLoopSolver(mechanism, native=compiled).forward(values, q_init=home)
         np.testing.assert_allclose(batch.q[row], single.q, atol=1e-12)
         assert batch.iterations[row] == single.iterations + 1
+    # From this one's third-order start Newton converges on another branch: held to home's, refused.
+    other = np.array([[0.0086, -0.0357, 0.4981, -0.5907]])
+    start = np.repeat(home[None], 1, axis=0)
+    start[:, solver.actuated] = other
+    start[:, solver.passive] += solver.predict_from_home(other - home[solver.actuated])
+    assert list(solver.solve_rows(start, None, 1).status) == [0]  # labels at its start: assembled
+    assert [f.error for f in solver.forward_batch(other).failures] == [BranchChangeError]
 
 
 def test_forward_batch_every_row_beyond_its_limits(five_bar):

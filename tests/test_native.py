@@ -263,6 +263,9 @@ def test_compiled_tangents_are_home_s_and_refused_below_the_threshold(mechanism)
     configurations = np.array([mechanism.home, mechanism.home + 1e-3])
     tangents, regular = solver.native.tangents(configurations, solver.rules.singular_rcond)
     assert tangents.shape == (2, len(solver.passive), len(solver.actuated)) and list(regular) == [True, True]
+    assert regular.dtype == bool
+    rounded = solver.native.tangents(configurations.astype(np.float32), solver.rules.singular_rcond)[0]
+    np.testing.assert_allclose(rounded, tangents, atol=1e-4 * np.abs(tangents).max())  # converted, not refused
     np.testing.assert_allclose(tangents[0], solver.home_reference()[0], atol=1e-12)
     jacobian = solver.closure_jacobian(configurations[1])  # off the manifold: T of the unsolved q
     expected = -np.linalg.solve(jacobian[:, solver.passive], jacobian[:, solver.actuated])
