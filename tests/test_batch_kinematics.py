@@ -334,6 +334,25 @@ def test_inverse_batch_limit_and_assembly_failures_word_for_word(five_bar, compi
     assert list(cold.iterations) == [3, 4] and "after 60 iterations" in cold.failures[0].reason
 
 
+def test_inverse_batch_slider_limits_are_inclusive(five_bar):
+    """A target whose solution puts motor_1 exactly at its lower limit and motor_2 exactly at its
+    upper one (the limits moved to home's values) is solved, as forward_batch and the single solve
+    accept those sliders."""
+    model = five_bar.model.copy()
+    model.lowerPositionLimit[0], model.upperPositionLimit[2] = five_bar.home[0], five_bar.home[2]
+    machine = five_bar.with_model(model)
+    solver = ClosedLoopSolver(machine)
+    sliders = five_bar.home[[0, 2]]
+    # The limits are copies of home's values: the solution sits at them, not within rounding of them.
+    assert solver.layout.actuator_lower[0] == sliders[0] and solver.layout.actuator_upper[1] == sliders[1]
+    assert solver.forward_batch(sliders[None]).complete
+    target = solver.forward(sliders).pose.translation[:2]
+    single = solver.inverse(target)
+    ik = solver.inverse_batch(target[None])
+    assert ik.complete and ik.failures == () and list(ik.iterations) == [single.iterations]
+    np.testing.assert_allclose(ik.actuators[0], single.actuators, atol=1e-12)
+
+
 def test_inverse_batch_with_a_full_rotation_task(wrist):
     solver = ClosedLoopSolver(wrist)
     sliders = wrist.home[[0, 3, 6]] + np.array([[0.0, 0.0, 0.0], [0.1, -0.1, 0.05], [0.2, 0.1, -0.2]])
@@ -383,6 +402,9 @@ def test_bad_targets_and_starts_are_refused_word_for_word(five_bar):
         solver.inverse_batch([[0.0, 0.4], [0.0, np.nan]])
     assert str(caught.value) == "targets: row 1 (0-based): y = nan, not finite"
     sliders = [[2.33, 0.81], [2.33, 0.81]]
+    with pytest.raises(InvalidInputError) as caught:
+        solver.forward_batch(sliders, q_init=[["a", 0.0, 0.0, 0.0]])
+    assert str(caught.value) == "q_init: not numeric (could not convert string to float: 'a')"
     for q_init, shape in (
         (np.zeros(3), "(3,)"),
         (np.zeros((3, 4)), "(3, 4)"),
@@ -527,3 +549,22 @@ def test_a_singular_row_names_the_threshold_of_the_solver_s_rules(mechanism):
         (failure,) = batch.failures
         assert failure.error is SingularConfigurationError
         assert "(reciprocal condition below 2)" in failure.reason
+
+
+def test_a_singular_ik_row_names_the_threshold_of_the_solver_s_rules(five_bar):
+    """IK under a threshold no configuration meets: the row fails as the single solve does (its error
+    class, after as many steps), and its reason names the solver's threshold, not the default's."""
+    target = ClosedLoopSolver(five_bar).forward(five_bar.home[[0, 2]] + 1e-3).pose.translation[:2]
+    for native in (True, False):
+        solver = ClosedLoopSolver(five_bar, native=native, rules=NewtonRules(singular_rcond=2.0))
+        with pytest.raises(SingularConfigurationError) as caught:
+            solver.inverse(target)
+        steps = re.search(r"after (\d+) iterations\)$", str(caught.value))
+        assert steps is not None
+        (failure,) = solver.inverse_batch(target[None]).failures
+        assert failure.error is SingularConfigurationError
+        assert re.fullmatch(
+            r"inverse kinematics: singular configuration \(reciprocal condition below 2\) "
+            rf"\(residual \S+ after {steps[1]} iterations\)",
+            failure.reason,
+        )
