@@ -138,8 +138,7 @@ def test_failures_of_reasons_and_error_classes():
         np.array([0, 1, 2, 3, 4, 5]),
         np.array([0.0, 0.5, 2e-7, 1e-13, 3e-14, 0.0]),
         np.array([3, 0, 60, 7, 8, 2]),
-        np.zeros((n, 3, 3)),
-        np.zeros((n, 3)),
+        np.zeros((n, 4, 4)),
     )
     failures = bk.failures_of(solved, 10, "what")
     assert [(f.index, f.error) for f in failures] == [

@@ -103,14 +103,14 @@ _CONVERGED, _LIMIT = CONVERGED, 5  # _LIMIT: converged, but a slider is beyond i
 
 @dataclass
 class SolvedRows:
-    """Raw outcome of a batched Newton solve: per row q, status code, residual, steps, platform pose."""
+    """Raw outcome of a batched Newton solve: per row q, status code, residual, steps, platform pose
+    (n, 4, 4), valid where the status is converged."""
 
     q: np.ndarray
     status: np.ndarray
     norm: np.ndarray
     iterations: np.ndarray
-    rotation: np.ndarray
-    position: np.ndarray
+    platform: np.ndarray
 
 
 class RowSolver(Protocol):
@@ -273,29 +273,31 @@ def _task_poses(solver: RowSolver, q: np.ndarray) -> np.ndarray:
 def _forward_result(solver: RowSolver, n: int, parts: list, failures: list) -> ForwardBatch:
     """Gather the converged rows of every part (in input order) into a frozen ForwardBatch (q: (M, nq),
     also when no row converged), with the task frame's placements."""
-    indices, poses, qs, norms, steps = [], [], [], [], []
+    columns: list[list[np.ndarray]] = [[], [], [], [], []]  # rows, poses, q, residuals, iterations
     for chunk, solved in parts:
         good = solved.status == _CONVERGED
-        pose = np.zeros((int(good.sum()), 4, 4))
-        pose[:, :3, :3], pose[:, :3, 3], pose[:, 3, 3] = solved.rotation[good], solved.position[good], 1.0
-        indices.append(chunk[good])
-        poses.append(pose)
-        qs.append(solved.q[good])
-        norms.append(solved.norm[good])
-        steps.append(solved.iterations[good])
-    cat = lambda arrays, shape: np.concatenate(arrays) if arrays else np.zeros(shape)
-    index = cat(indices, (0,)).astype(int)
-    order = np.argsort(index, kind="stable")
-    platform, q = _frozen(cat(poses, (0, 4, 4))[order]), _frozen(cat(qs, (0, solver.model.nq))[order])
+        kept = slice(None) if good.all() else good  # the usual batch: its arrays as they are
+        for column, array in zip(columns, (chunk, solved.platform, solved.q, solved.norm, solved.iterations)):
+            column.append(array[kept])
+    widths = ((), (4, 4), (solver.model.nq,), (), ())
+    if len(parts) == 1 and bool(np.all(np.diff(columns[0][0]) > 0)):  # one part, rows in input order
+        index, platform, q, norms, steps = (column[0] for column in columns)
+    else:
+        index, platform, q, norms, steps = (
+            np.concatenate(column) if column else np.zeros((0, *width)) for column, width in zip(columns, widths)
+        )
+        order = np.argsort(index, kind="stable")
+        index, platform, q, norms, steps = index[order], platform[order], q[order], norms[order], steps[order]
+    platform, q = _frozen(platform), _frozen(q)
     layout = solver.layout
     task = platform if layout.task_frame == layout.platform_frame else _frozen(_task_poses(solver, q))
     return ForwardBatch(
         n=n,
-        indices=_frozen(index[order]),
+        indices=_frozen(index.astype(int)),
         poses=platform,
         q=q,
-        residuals=_frozen(cat(norms, (0,))[order]),
-        iterations=_frozen(cat(steps, (0,)).astype(int)[order]),
+        residuals=_frozen(norms),
+        iterations=_frozen(steps.astype(int)),
         failures=tuple(sorted(failures, key=lambda f: f.index)),
         task_poses=task,
     )
