@@ -1144,3 +1144,89 @@ def test_orientation_residual_near_a_half_turn(ur5):
     residual = S.SerialResidual(chain, data, np.broadcast_to(np.eye(6), (3, 6, 6)))
     raw = residual.raw_residual(S.nominal_state(chain, model))
     np.testing.assert_allclose(raw, np.tile([0.0, 0.0, 0.0, -3.1, 0.0, 0.0], (3, 1)), atol=1e-12)
+
+
+# --------------------------------------------------------------------------------------------------
+# Several points per pose: (N, P, 3) measured positions of P points on the tool
+
+POINT_OFFSETS = np.array([[0.05, 0.0, 0.02], [-0.03, 0.04, 0.06], [0.0, -0.05, 0.1]])
+
+
+def _point_measurements(model, chain, n_poses: int, seed: int, truth=None):
+    """Exact (N, 3, 3) points F g(q) p_k of `truth` (default the nominal model) at sampled postures."""
+    q = sample_configurations(model, chain, n_poses, np.random.default_rng(seed))
+    g = tool_poses(chain, model if truth is None else truth, q)
+    return q, MeasurementSetup(FRAME, points=tuple(map(tuple, POINT_OFFSETS))).measured_points(g)
+
+
+def test_point_jacobian_of_every_column_matches_finite_differences(ur5):
+    """Placements, frame, point offsets and compliance columns of a point fit at a non-nominal state."""
+    model, chain = ur5
+    q, points = _point_measurements(model, chain, 6, 60)
+    data = S.parse_measurements(chain, q, points, False)
+    assert data.n_points == 3 and data.rows_per_pose == 9
+    layout = S.SerialLayout(6, frame=True, marker=9, compliance=True, points=3)
+    residual = S.SerialResidual(
+        chain, data, np.broadcast_to(np.eye(9), (6, 9, 9)), layout, S.gravity_torques(model, chain, q)
+    )
+    truth = perturb(model, {p: np.full(6, 2e-3) for p in chain.placements()})
+    start = replace(S.nominal_state(chain, truth, MeasurementSetup(FRAME)), points=POINT_OFFSETS)
+    rng = np.random.default_rng(61)
+    state = residual.retract(start, np.r_[np.zeros(42), rng.normal(0.0, 1e-3, 15), rng.normal(0.0, 1e-4, 6)])
+    assert state.compliance is not None and state.points is not None
+    # The raw residual: F g(q + c tau) p_k - measured, point by point.
+    g = tool_poses(chain, truth, q + state.compliance * S.gravity_torques(model, chain, q))
+    predicted = np.einsum("nij,pj->npi", (state.frame @ g)[:, :3, :3], state.points) + (state.frame @ g)[:, None, :3, 3]
+    np.testing.assert_allclose(residual.raw_residual(state), (predicted - points).reshape(6, 9), atol=1e-12)
+    _, J = residual.residual_and_jacobian(state)
+    numeric = np.empty_like(J)
+    for i in range(layout.size):
+        dx = np.zeros(layout.size)
+        dx[i] = 1e-7 if i < layout.compliance_slice.start else 1e-9
+        numeric[:, i] = (
+            residual.residual(residual.retract(state, dx)) - residual.residual(residual.retract(state, -dx))
+        ) / (2 * dx[i])
+    for block in (slice(0, 42), layout.frame_slice, layout.marker_slice, layout.compliance_slice):
+        assert np.linalg.norm(J[:, block] - numeric[:, block]) <= 1e-6 * np.linalg.norm(J[:, block]), block
+
+
+def test_points_calibrate_exactly_from_an_unknown_frame(ur5):
+    """Exact points of a perturbed UR5 seen from FRAME, one point hidden in some rows: the fit from the
+    registered start predicts every point at held-out postures as the truth does."""
+    model, chain = ur5
+    truth = perturb(model, {p: np.full(6, 1e-3) for p in chain.placements()})
+    q, points = _point_measurements(model, chain, 30, 62, truth)
+    points[::4, 1] = np.nan
+    calibration = calibrate_serial(model, chain, q, points, CalibrationOptions(noise=TRACKER, estimate_frame=True))
+    assert calibration.converged and len(calibration.setup.points) == 3
+    q_new, actual = _point_measurements(model, chain, 20, 63, truth)
+    predicted = calibration.setup.measured_points(tool_poses(chain, calibration.model, q_new))
+    np.testing.assert_allclose(predicted, actual, atol=1e-8)
+
+
+def test_measured_points_are_refused_word_for_word(ur5):
+    model, chain = ur5
+    q, points = _point_measurements(model, chain, 4, 64)
+
+    def refused(array, message, rows=q):
+        with pytest.raises(InvalidInputError) as caught:
+            S.parse_measurements(chain, rows, array, False)
+        assert str(caught.value) == message
+
+    refused(points[:, :, :2], "measured points: expected shape (N, P, 3), got (4, 3, 2)")
+    refused(points[:, :0], "measured points: expected shape (N, P, 3), got (4, 0, 3)")
+    refused(points, "3 joint readings but 4 rows of measured points", q[:3])
+    partial = points.copy()
+    partial[2, 1, 0] = np.nan
+    refused(partial, "measured points: row 2 has a point with some coordinates missing")
+    blind = points.copy()
+    blind[1] = np.nan
+    refused(blind, "measured points: row 1 sees no point")
+    unseen = points.copy()
+    unseen[:, 2] = np.nan
+    refused(unseen, "measured points: point 3 is seen in no row")
+    seen = points.copy()
+    seen[0, 0] = np.nan
+    data = S.parse_measurements(chain, q, seen, False)
+    assert data.n_points == 3 and data.rotations is None
+    np.testing.assert_array_equal(data.positions, seen.reshape(4, 9))
