@@ -528,6 +528,41 @@ def test_gravity_torques_are_pinocchios_on_the_chain_joints(ur5):
     np.testing.assert_array_equal(single[0], torques[1])
 
 
+def test_compliant_readings_move_each_joint_by_its_compliance_times_pinocchios_gravity(ur5):
+    model, chain = ur5
+    q = sample_configurations(model, chain, 3, np.random.default_rng(43))
+    compliance = {"shoulder_lift_joint": -2e-6, "elbow_joint": 3e-6}
+    moved = S.compliant_readings(model, chain, q, compliance)
+    data = model.createData()
+    for row, read in zip(q, moved):
+        tau = pin.computeGeneralizedGravity(model, data, row)
+        np.testing.assert_allclose(read, row + np.array([0.0, -2e-6, 3e-6, 0.0, 0.0, 0.0]) * tau, rtol=0, atol=1e-15)
+    assert np.all(moved[:, [0, 3, 4, 5]] == q[:, [0, 3, 4, 5]]) and np.all(moved[:, 1:3] != q[:, 1:3])
+    np.testing.assert_array_equal(S.compliant_readings(model, chain, list(q[0]), {}), q[:1])
+    assert S.moved_mass(model, chain) == pytest.approx(sum(model.inertias[j].mass for j in range(1, model.njoints)))
+
+
+def test_a_chain_that_moves_no_mass_refuses_compliance_word_for_word(ur5):
+    model, chain = ur5
+    massless = model.copy()
+    for j in range(massless.njoints):
+        massless.inertias[j] = pin.Inertia.Zero()
+    assert S.moved_mass(massless, chain) == 0.0
+    message = (
+        "the links that joints shoulder_pan_joint .. wrist_3_joint move have no mass (the URDF gives them no "
+        "<inertial>): the gravity torques are zero in every posture, so joint compliance under gravity cannot be "
+        "fitted or applied; use a URDF with the links' inertial elements, or leave out --compliance"
+    )
+    with pytest.raises(InvalidInputError) as caught:
+        S.compliant_readings(massless, chain, np.zeros((1, 6)), {"elbow_joint": 1e-6})
+    assert str(caught.value) == message
+    np.testing.assert_array_equal(S.compliant_readings(massless, chain, np.zeros((1, 6)), {}), np.zeros((1, 6)))
+    data = simulate_serial_measurements(model, chain, 5, np.random.default_rng(44), noise=TRACKER)
+    with pytest.raises(InvalidInputError) as caught:
+        calibrate_serial(massless, chain, data.q_readings, data.measured_poses, CalibrationOptions(compliance=True))
+    assert str(caught.value) == message
+
+
 def _plain_problem(model, chain, n_poses: int = 5, position_only: bool = False):
     data = _measurements(model, chain, position_only, n_poses=n_poses)
     state = S.nominal_state(chain, model, MeasurementSetup(FRAME, MARKER))
@@ -1202,6 +1237,23 @@ def test_points_calibrate_exactly_from_an_unknown_frame(ur5):
     q_new, actual = _point_measurements(model, chain, 20, 63, truth)
     predicted = calibration.setup.measured_points(tool_poses(chain, calibration.model, q_new))
     np.testing.assert_allclose(predicted, actual, atol=1e-8)
+
+
+def test_point_start_finds_the_offsets_and_the_frame_of_exact_points(ur5):
+    """Given F, each offset in closed form; from the identity, the alternation of registrations and
+    offsets nears F and the offsets (the truth of exact nominal points)."""
+    model, chain = ur5
+    q, points = _point_measurements(model, chain, 12, 65)
+    points[::3, 0] = np.nan
+    data = S.parse_measurements(chain, q, points, False)
+    given = S.start_state(chain, model, data, MeasurementSetup(FRAME), False, False, True)
+    np.testing.assert_allclose(given.points, POINT_OFFSETS, atol=1e-12)
+    np.testing.assert_array_equal(given.frame, FRAME.homogeneous)
+    np.testing.assert_array_equal(given.compliance, np.zeros(6))
+    found = S.start_state(chain, model, data, MeasurementSetup(), True, False, False)
+    assert found.compliance is None
+    assert np.abs(found.frame - FRAME.homogeneous).max() < 1e-3  # a start within a millimetre and a mrad
+    assert np.abs(found.points - POINT_OFFSETS).max() < 1e-3
 
 
 def test_measured_points_are_refused_word_for_word(ur5):
