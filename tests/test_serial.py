@@ -557,6 +557,15 @@ def test_a_chain_that_moves_no_mass_refuses_compliance_word_for_word(ur5):
         S.compliant_readings(massless, chain, np.zeros((1, 6)), {"elbow_joint": 1e-6})
     assert str(caught.value) == message
     np.testing.assert_array_equal(S.compliant_readings(massless, chain, np.zeros((1, 6)), {}), np.zeros((1, 6)))
+    assert S.compliant_readings(massless, chain, [[0, 0, 0, 0, 0, 0]], {}).dtype == np.float64
+    light = massless.copy()  # 0.1 kg per link: light, still loaded
+    for j in range(1, light.njoints):
+        light.inertias[j] = pin.Inertia(0.1, np.array([0.0, 0.0, 0.05]), np.eye(3) * 1e-4)
+    assert S.moved_mass(light, chain) == pytest.approx(0.6)
+    q = np.array([[0.0, -1.0, 1.0, 0.0, 0.0, 0.0]])
+    moved = S.compliant_readings(light, chain, q, {"shoulder_lift_joint": 1e-3})
+    np.testing.assert_allclose(moved, q + 1e-3 * np.array([[0, 1, 0, 0, 0, 0]]) * S.gravity_torques(light, chain, q))
+    assert moved[0, 1] != q[0, 1]
     data = simulate_serial_measurements(model, chain, 5, np.random.default_rng(44), noise=TRACKER)
     with pytest.raises(InvalidInputError) as caught:
         calibrate_serial(massless, chain, data.q_readings, data.measured_poses, CalibrationOptions(compliance=True))
