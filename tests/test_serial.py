@@ -1210,6 +1210,8 @@ def test_point_jacobian_of_every_column_matches_finite_differences(ur5):
     data = S.parse_measurements(chain, q, points, False)
     assert data.n_points == 3 and data.rows_per_pose == 9
     layout = S.SerialLayout(6, frame=True, marker=9, compliance=True, points=3)
+    assert layout.names(chain)[48:57] == tuple(f"marker.p{k}.dt[{j}]" for k in (1, 2, 3) for j in (0, 1, 2))
+    assert layout.names(chain)[57:] == tuple(f"compliance.{joint}" for joint in chain.joint_names)
     residual = S.SerialResidual(
         chain, data, np.broadcast_to(np.eye(9), (6, 9, 9)), layout, S.gravity_torques(model, chain, q)
     )
@@ -1232,6 +1234,41 @@ def test_point_jacobian_of_every_column_matches_finite_differences(ur5):
         ) / (2 * dx[i])
     for block in (slice(0, 42), layout.frame_slice, layout.marker_slice, layout.compliance_slice):
         assert np.linalg.norm(J[:, block] - numeric[:, block]) <= 1e-6 * np.linalg.norm(J[:, block]), block
+
+
+def test_point_whitening_decouples_the_points_not_seen(ur5):
+    """A hidden point's rows are zero; the rows seen are whitened by the inverse Cholesky factor of
+    their own covariance diag(sigma^2) + sigma_q^2 J_q J_q^T (J_q by finite differences)."""
+    model, chain = ur5
+    q, points = _point_measurements(model, chain, 4, 66)
+    points[0, 0] = points[2, 1] = np.nan
+    data = S.parse_measurements(chain, q, points, False)
+    state = replace(S.nominal_state(chain, model, MeasurementSetup(FRAME)), points=POINT_OFFSETS)
+    seen = np.isfinite(points).reshape(4, 9)
+    exact = S.pose_whitening(chain, state, data, TRACKER, 0.0)
+    np.testing.assert_array_equal(exact, np.eye(9)[None] * seen[:, :, None] / 1e-5)
+    sigma_q = 3e-5
+    whitening = S.pose_whitening(chain, state, data, TRACKER, sigma_q)
+    unit = np.broadcast_to(np.eye(9), (4, 9, 9))
+    joint_jacobian = np.empty((4, 9, 6))
+    for j in range(6):
+        shifted = []
+        for h in (1e-7, -1e-7):
+            moved = q.copy()
+            moved[:, j] += h
+            residual = S.SerialResidual(
+                chain, S.parse_measurements(chain, moved, points, False), unit, S.SerialLayout(6)
+            )
+            shifted.append(np.nan_to_num(residual.raw_residual(state)))
+        joint_jacobian[:, :, j] = (shifted[0] - shifted[1]) / 2e-7
+    for n in range(4):
+        rows = np.flatnonzero(seen[n])
+        covariance = 1e-10 * np.eye(rows.size) + sigma_q**2 * joint_jacobian[n, rows] @ joint_jacobian[n, rows].T
+        np.testing.assert_allclose(
+            whitening[n][np.ix_(rows, rows)], np.linalg.inv(np.linalg.cholesky(covariance)), rtol=1e-6, atol=1e-3
+        )
+        np.testing.assert_array_equal(whitening[n][~seen[n]], 0.0)
+        np.testing.assert_array_equal(whitening[n][:, ~seen[n]], 0.0)
 
 
 def test_points_calibrate_exactly_from_an_unknown_frame(ur5):
