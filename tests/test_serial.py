@@ -528,6 +528,50 @@ def test_gravity_torques_are_pinocchios_on_the_chain_joints(ur5):
     np.testing.assert_array_equal(single[0], torques[1])
 
 
+def test_compliant_readings_move_each_joint_by_its_compliance_times_pinocchios_gravity(ur5):
+    model, chain = ur5
+    q = sample_configurations(model, chain, 3, np.random.default_rng(43))
+    compliance = {"shoulder_lift_joint": -2e-6, "elbow_joint": 3e-6}
+    moved = S.compliant_readings(model, chain, q, compliance)
+    data = model.createData()
+    for row, read in zip(q, moved):
+        tau = pin.computeGeneralizedGravity(model, data, row)
+        np.testing.assert_allclose(read, row + np.array([0.0, -2e-6, 3e-6, 0.0, 0.0, 0.0]) * tau, rtol=0, atol=1e-15)
+    assert np.all(moved[:, [0, 3, 4, 5]] == q[:, [0, 3, 4, 5]]) and np.all(moved[:, 1:3] != q[:, 1:3])
+    np.testing.assert_array_equal(S.compliant_readings(model, chain, list(q[0]), {}), q[:1])
+    assert S.moved_mass(model, chain) == pytest.approx(sum(model.inertias[j].mass for j in range(1, model.njoints)))
+
+
+def test_a_chain_that_moves_no_mass_refuses_compliance_word_for_word(ur5):
+    model, chain = ur5
+    massless = model.copy()
+    for j in range(massless.njoints):
+        massless.inertias[j] = pin.Inertia.Zero()
+    assert S.moved_mass(massless, chain) == 0.0
+    message = (
+        "the links that joints shoulder_pan_joint .. wrist_3_joint move have no mass (the URDF gives them no "
+        "<inertial>): the gravity torques are zero in every posture, so joint compliance under gravity cannot be "
+        "fitted or applied; use a URDF with the links' inertial elements, or leave out --compliance"
+    )
+    with pytest.raises(InvalidInputError) as caught:
+        S.compliant_readings(massless, chain, np.zeros((1, 6)), {"elbow_joint": 1e-6})
+    assert str(caught.value) == message
+    np.testing.assert_array_equal(S.compliant_readings(massless, chain, np.zeros((1, 6)), {}), np.zeros((1, 6)))
+    assert S.compliant_readings(massless, chain, [[0, 0, 0, 0, 0, 0]], {}).dtype == np.float64
+    light = massless.copy()  # 0.1 kg per link: light, still loaded
+    for j in range(1, light.njoints):
+        light.inertias[j] = pin.Inertia(0.1, np.array([0.0, 0.0, 0.05]), np.eye(3) * 1e-4)
+    assert S.moved_mass(light, chain) == pytest.approx(0.6)
+    q = np.array([[0.0, -1.0, 1.0, 0.0, 0.0, 0.0]])
+    moved = S.compliant_readings(light, chain, q, {"shoulder_lift_joint": 1e-3})
+    np.testing.assert_allclose(moved, q + 1e-3 * np.array([[0, 1, 0, 0, 0, 0]]) * S.gravity_torques(light, chain, q))
+    assert moved[0, 1] != q[0, 1]
+    data = simulate_serial_measurements(model, chain, 5, np.random.default_rng(44), noise=TRACKER)
+    with pytest.raises(InvalidInputError) as caught:
+        calibrate_serial(massless, chain, data.q_readings, data.measured_poses, CalibrationOptions(compliance=True))
+    assert str(caught.value) == message
+
+
 def _plain_problem(model, chain, n_poses: int = 5, position_only: bool = False):
     data = _measurements(model, chain, position_only, n_poses=n_poses)
     state = S.nominal_state(chain, model, MeasurementSetup(FRAME, MARKER))
@@ -1144,3 +1188,143 @@ def test_orientation_residual_near_a_half_turn(ur5):
     residual = S.SerialResidual(chain, data, np.broadcast_to(np.eye(6), (3, 6, 6)))
     raw = residual.raw_residual(S.nominal_state(chain, model))
     np.testing.assert_allclose(raw, np.tile([0.0, 0.0, 0.0, -3.1, 0.0, 0.0], (3, 1)), atol=1e-12)
+
+
+# --------------------------------------------------------------------------------------------------
+# Several points per pose: (N, P, 3) measured positions of P points on the tool
+
+POINT_OFFSETS = np.array([[0.05, 0.0, 0.02], [-0.03, 0.04, 0.06], [0.0, -0.05, 0.1]])
+
+
+def _point_measurements(model, chain, n_poses: int, seed: int, truth=None):
+    """Exact (N, 3, 3) points F g(q) p_k of `truth` (default the nominal model) at sampled postures."""
+    q = sample_configurations(model, chain, n_poses, np.random.default_rng(seed))
+    g = tool_poses(chain, model if truth is None else truth, q)
+    return q, MeasurementSetup(FRAME, points=tuple(map(tuple, POINT_OFFSETS))).measured_points(g)
+
+
+def test_point_jacobian_of_every_column_matches_finite_differences(ur5):
+    """Placements, frame, point offsets and compliance columns of a point fit at a non-nominal state."""
+    model, chain = ur5
+    q, points = _point_measurements(model, chain, 6, 60)
+    data = S.parse_measurements(chain, q, points, False)
+    assert data.n_points == 3 and data.rows_per_pose == 9
+    layout = S.SerialLayout(6, frame=True, marker=9, compliance=True, points=3)
+    assert layout.names(chain)[48:57] == tuple(f"marker.p{k}.dt[{j}]" for k in (1, 2, 3) for j in (0, 1, 2))
+    assert layout.names(chain)[57:] == tuple(f"compliance.{joint}" for joint in chain.joint_names)
+    residual = S.SerialResidual(
+        chain, data, np.broadcast_to(np.eye(9), (6, 9, 9)), layout, S.gravity_torques(model, chain, q)
+    )
+    truth = perturb(model, {p: np.full(6, 2e-3) for p in chain.placements()})
+    start = replace(S.nominal_state(chain, truth, MeasurementSetup(FRAME)), points=POINT_OFFSETS)
+    rng = np.random.default_rng(61)
+    state = residual.retract(start, np.r_[np.zeros(42), rng.normal(0.0, 1e-3, 15), rng.normal(0.0, 1e-4, 6)])
+    assert state.compliance is not None and state.points is not None
+    # The raw residual: F g(q + c tau) p_k - measured, point by point.
+    g = tool_poses(chain, truth, q + state.compliance * S.gravity_torques(model, chain, q))
+    predicted = np.einsum("nij,pj->npi", (state.frame @ g)[:, :3, :3], state.points) + (state.frame @ g)[:, None, :3, 3]
+    np.testing.assert_allclose(residual.raw_residual(state), (predicted - points).reshape(6, 9), atol=1e-12)
+    _, J = residual.residual_and_jacobian(state)
+    numeric = np.empty_like(J)
+    for i in range(layout.size):
+        dx = np.zeros(layout.size)
+        dx[i] = 1e-7 if i < layout.compliance_slice.start else 1e-9
+        numeric[:, i] = (
+            residual.residual(residual.retract(state, dx)) - residual.residual(residual.retract(state, -dx))
+        ) / (2 * dx[i])
+    for block in (slice(0, 42), layout.frame_slice, layout.marker_slice, layout.compliance_slice):
+        assert np.linalg.norm(J[:, block] - numeric[:, block]) <= 1e-6 * np.linalg.norm(J[:, block]), block
+
+
+def test_point_whitening_decouples_the_points_not_seen(ur5):
+    """A hidden point's rows are zero; the rows seen are whitened by the inverse Cholesky factor of
+    their own covariance diag(sigma^2) + sigma_q^2 J_q J_q^T (J_q by finite differences)."""
+    model, chain = ur5
+    q, points = _point_measurements(model, chain, 4, 66)
+    points[0, 0] = points[2, 1] = np.nan
+    data = S.parse_measurements(chain, q, points, False)
+    state = replace(S.nominal_state(chain, model, MeasurementSetup(FRAME)), points=POINT_OFFSETS)
+    seen = np.isfinite(points).reshape(4, 9)
+    exact = S.pose_whitening(chain, state, data, TRACKER, 0.0)
+    np.testing.assert_array_equal(exact, np.eye(9)[None] * seen[:, :, None] / 1e-5)
+    sigma_q = 3e-5
+    whitening = S.pose_whitening(chain, state, data, TRACKER, sigma_q)
+    unit = np.broadcast_to(np.eye(9), (4, 9, 9))
+    joint_jacobian = np.empty((4, 9, 6))
+    for j in range(6):
+        shifted = []
+        for h in (1e-7, -1e-7):
+            moved = q.copy()
+            moved[:, j] += h
+            residual = S.SerialResidual(
+                chain, S.parse_measurements(chain, moved, points, False), unit, S.SerialLayout(6)
+            )
+            shifted.append(np.nan_to_num(residual.raw_residual(state)))
+        joint_jacobian[:, :, j] = (shifted[0] - shifted[1]) / 2e-7
+    for n in range(4):
+        rows = np.flatnonzero(seen[n])
+        covariance = 1e-10 * np.eye(rows.size) + sigma_q**2 * joint_jacobian[n, rows] @ joint_jacobian[n, rows].T
+        np.testing.assert_allclose(
+            whitening[n][np.ix_(rows, rows)], np.linalg.inv(np.linalg.cholesky(covariance)), rtol=1e-6, atol=1e-3
+        )
+        np.testing.assert_array_equal(whitening[n][~seen[n]], 0.0)
+        np.testing.assert_array_equal(whitening[n][:, ~seen[n]], 0.0)
+
+
+def test_points_calibrate_exactly_from_an_unknown_frame(ur5):
+    """Exact points of a perturbed UR5 seen from FRAME, one point hidden in some rows: the fit from the
+    registered start predicts every point at held-out postures as the truth does."""
+    model, chain = ur5
+    truth = perturb(model, {p: np.full(6, 1e-3) for p in chain.placements()})
+    q, points = _point_measurements(model, chain, 30, 62, truth)
+    points[::4, 1] = np.nan
+    calibration = calibrate_serial(model, chain, q, points, CalibrationOptions(noise=TRACKER, estimate_frame=True))
+    assert calibration.converged and len(calibration.setup.points) == 3
+    q_new, actual = _point_measurements(model, chain, 20, 63, truth)
+    predicted = calibration.setup.measured_points(tool_poses(chain, calibration.model, q_new))
+    np.testing.assert_allclose(predicted, actual, atol=1e-8)
+
+
+def test_point_start_finds_the_offsets_and_the_frame_of_exact_points(ur5):
+    """Given F, each offset in closed form; from the identity, the alternation of registrations and
+    offsets nears F and the offsets (the truth of exact nominal points)."""
+    model, chain = ur5
+    q, points = _point_measurements(model, chain, 12, 65)
+    points[::3, 0] = np.nan
+    data = S.parse_measurements(chain, q, points, False)
+    given = S.start_state(chain, model, data, MeasurementSetup(FRAME), False, False, True)
+    np.testing.assert_allclose(given.points, POINT_OFFSETS, atol=1e-12)
+    np.testing.assert_array_equal(given.frame, FRAME.homogeneous)
+    np.testing.assert_array_equal(given.compliance, np.zeros(6))
+    found = S.start_state(chain, model, data, MeasurementSetup(), True, False, False)
+    assert found.compliance is None
+    assert np.abs(found.frame - FRAME.homogeneous).max() < 1e-3  # a start within a millimetre and a mrad
+    assert np.abs(found.points - POINT_OFFSETS).max() < 1e-3
+
+
+def test_measured_points_are_refused_word_for_word(ur5):
+    model, chain = ur5
+    q, points = _point_measurements(model, chain, 4, 64)
+
+    def refused(array, message, rows=q):
+        with pytest.raises(InvalidInputError) as caught:
+            S.parse_measurements(chain, rows, array, False)
+        assert str(caught.value) == message
+
+    refused(points[:, :, :2], "measured points: expected shape (N, P, 3), got (4, 3, 2)")
+    refused(points[:, :0], "measured points: expected shape (N, P, 3), got (4, 0, 3)")
+    refused(points, "3 joint readings but 4 rows of measured points", q[:3])
+    partial = points.copy()
+    partial[2, 1, 0] = np.nan
+    refused(partial, "measured points: row 2 has a point with some coordinates missing")
+    blind = points.copy()
+    blind[1] = np.nan
+    refused(blind, "measured points: row 1 sees no point")
+    unseen = points.copy()
+    unseen[:, 2] = np.nan
+    refused(unseen, "measured points: point 3 is seen in no row")
+    seen = points.copy()
+    seen[0, 0] = np.nan
+    data = S.parse_measurements(chain, q, seen, False)
+    assert data.n_points == 3 and data.rotations is None
+    np.testing.assert_array_equal(data.positions, seen.reshape(4, 9))

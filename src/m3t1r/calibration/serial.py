@@ -616,7 +616,7 @@ def _parse_points(q: np.ndarray, measured_points: ArrayLike) -> SerialMeasuremen
     if points.shape[0] != q.shape[0]:
         raise InvalidInputError(f"{q.shape[0]} joint readings but {points.shape[0]} rows of measured points")
     finite = np.isfinite(points)
-    partial = np.flatnonzero(np.any(finite, axis=2) != np.all(finite, axis=2))
+    partial = np.flatnonzero(np.any(np.any(finite, axis=2) != np.all(finite, axis=2), axis=1))
     if partial.size:
         raise InvalidInputError(f"measured points: row {int(partial[0])} has a point with some coordinates missing")
     blind = np.flatnonzero(~np.any(finite, axis=(1, 2)))
