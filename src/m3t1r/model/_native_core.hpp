@@ -565,6 +565,19 @@ double reciprocal_condition(const Chain & c, System & s, double threshold) {
   return 1.0 / (norm_a * s.inverse_matrix.cwiseAbs().colwise().sum().maxCoeff());
 }
 
+// T = -J_passive^-1 J_actuated (P x A, row-major, the passive joints in the caller's order) into `out`,
+// by solves with FK's last factors at the Jacobian still in the buffer.
+void write_tangent(Chain & c, double * out) {
+  System & s = c.fk;
+  const size_t n_passive = s.original.size(), n_act = c.actuated.size();
+  Eigen::Map<Matrix> tangent(out, static_cast<Eigen::Index>(n_passive), static_cast<Eigen::Index>(n_act));
+  for (size_t j = 0; j < n_act; ++j) {
+    for (int i = 0; i < c.rows; ++i) c.step[i] = -c.jacobian(s.row_order[i], c.actuated[j]);
+    s.lu.solve(c.step.data());
+    for (size_t k = 0; k < n_passive; ++k) tangent(s.position[k], static_cast<Eigen::Index>(j)) = c.step[k];
+  }
+}
+
 // Factors the system at the current Jacobian (in block order): its pattern's entries into zeros.
 bool factor(Chain & c, System & s) {
   s.lu.zero();

@@ -339,11 +339,7 @@ PyObject * forward(PyObject *, PyObject * args) {
   const Outcome out = newton(*c, c->fk, q, bbranch.b(), has_start != 0, 0);
   qmap = q;
   if (out.status == CONVERGED) {
-    for (size_t j = 0; j < n_act; ++j) {  // -J_passive^-1 J_actuated by solves with the last factors
-      for (int i = 0; i < c->rows; ++i) c->step[i] = -c->jacobian(c->fk.row_order[i], c->actuated[j]);
-      c->fk.lu.solve(c->step.data());
-      for (size_t k = 0; k < n_passive; ++k) tangent(c->fk.position[k], j) = c->step[k];
-    }
+    write_tangent(*c, btangent.d());
     std::copy(handle->start.begin(), handle->start.end(), handle->history.d());
     write_pose(c->frame_world[c->platform], bplatform.d());
     write_pose(c->frame_world[c->task], btask.d());
@@ -565,12 +561,7 @@ PyObject * tangents(PyObject *, PyObject * args) {
     evaluate(*c, s, c->q, true);
     const bool regular = factor(*c, s) && reciprocal_condition(*c, s, threshold) >= threshold;
     bok.b()[i] = regular ? 1 : 0;
-    Eigen::Map<Matrix> tangent(bout.d() + i * n_passive * n_act, n_passive, n_act);
-    for (Py_ssize_t j = 0; regular && j < n_act; ++j) {
-      for (int r = 0; r < c->rows; ++r) c->step[r] = -c->jacobian(s.row_order[r], c->actuated[j]);
-      s.lu.solve(c->step.data());
-      for (Py_ssize_t k = 0; k < n_passive; ++k) tangent(s.position[k], j) = c->step[k];
-    }
+    if (regular) write_tangent(*c, bout.d() + i * n_passive * n_act);
   }
   return PyLong_FromSsize_t(m);
 }
