@@ -216,15 +216,14 @@ def forward_batch(
     reference = solver.home_reference() if q_init is None else None
     start[:, solver.actuated] = values
     if reference is None:
-        parts = [(rows, solver.solve_rows(start[rows], None, 0, threads=workers))] if len(rows) else []
+        parts = [(rows, solver.solve_rows(start[rows], None, 0, threads=workers))]
     else:
         parts = _rows_from_home(solver, start[rows], rows, reference[1], workers)
-    if parts:
-        last_rows, last = parts[-1]
-        failures += [
-            RowFailure(int(last_rows[f.index]), f.reason, f.error)
-            for f in failures_of(last, 0, "forward kinematics", solver.singular_rcond)
-        ]
+    last_rows, last = parts[-1]
+    failures += [
+        RowFailure(int(last_rows[f.index]), f.reason, f.error)
+        for f in failures_of(last, 0, "forward kinematics", solver.singular_rcond)
+    ]
     return _forward_result(solver, len(values), parts, failures)
 
 
@@ -272,7 +271,8 @@ def _task_poses(solver: RowSolver, q: np.ndarray) -> np.ndarray:
 
 def _forward_result(solver: RowSolver, n: int, parts: list, failures: list) -> ForwardBatch:
     """Gather the converged rows of every part (in input order) into a frozen ForwardBatch (q: (M, nq),
-    also when no row converged), with the task frame's placements."""
+    also when no row converged), with the task frame's placements. A single part's rows are in input
+    order already (every caller's: `np.flatnonzero` or `np.arange`)."""
     columns: list[list[np.ndarray]] = [[], [], [], [], []]  # rows, poses, q, residuals, iterations
     for chunk, solved in parts:
         good = solved.status == _CONVERGED
@@ -280,7 +280,7 @@ def _forward_result(solver: RowSolver, n: int, parts: list, failures: list) -> F
         for column, array in zip(columns, (chunk, solved.platform, solved.q, solved.norm, solved.iterations)):
             column.append(array[kept])
     widths = ((), (4, 4), (solver.model.nq,), (), ())
-    if len(parts) == 1 and bool(np.all(np.diff(columns[0][0]) > 0)):  # one part, rows in input order
+    if len(parts) == 1:
         index, platform, q, norms, steps = (column[0] for column in columns)
     else:
         index, platform, q, norms, steps = (
