@@ -376,6 +376,20 @@ MARKER = pin.SE3(pin.utils.rotate("y", 0.3) @ pin.utils.rotate("x", -0.2), np.ar
 FRAME = pin.SE3(pin.utils.rotate("z", 2.0) @ pin.utils.rotate("x", 0.4), np.array([2.0, -1.0, 0.3]))
 
 
+def _assert_jacobian_is_the_retract_derivative(J, residual, state, layout):
+    """J against central differences of the residual along `retract` (steps 1e-7, 1e-9 for the
+    compliances), block by block (placements, frame, marker or points, compliance) to 1e-6 relative."""
+    numeric = np.empty_like(J)
+    for i in range(layout.size):
+        dx = np.zeros(layout.size)
+        dx[i] = 1e-7 if i < layout.compliance_slice.start else 1e-9
+        numeric[:, i] = (
+            residual.residual(residual.retract(state, dx)) - residual.residual(residual.retract(state, -dx))
+        ) / (2 * dx[i])
+    for block in (slice(0, 42), layout.frame_slice, layout.marker_slice, layout.compliance_slice):
+        assert np.linalg.norm(J[:, block] - numeric[:, block]) <= 1e-6 * np.linalg.norm(J[:, block]), block
+
+
 def _measurements(model, chain, position_only: bool = False, n_poses: int = 6, seed: int = 40):
     data = simulate_serial_measurements(model, chain, n_poses, np.random.default_rng(seed), noise=TRACKER)
     measured = FRAME.homogeneous @ np.array([g.homogeneous for g in data.measured_poses]) @ MARKER.homogeneous
@@ -438,16 +452,7 @@ def test_jacobian_of_every_column_matches_finite_differences(ur5, position_only)
     )
     predicted = state.frame @ g @ state.marker
     np.testing.assert_allclose(raw[:, :3], predicted[:, :3, 3] - data.positions, atol=1e-12)
-    step = 1e-7
-    numeric = np.empty_like(J)
-    for i in range(layout.size):
-        dx = np.zeros(layout.size)
-        dx[i] = step if i < layout.compliance_slice.start else 1e-9
-        numeric[:, i] = (
-            residual.residual(residual.retract(state, dx)) - residual.residual(residual.retract(state, -dx))
-        ) / (2 * dx[i])
-    for block in (slice(0, 42), layout.frame_slice, layout.marker_slice, layout.compliance_slice):
-        assert np.linalg.norm(J[:, block] - numeric[:, block]) <= 1e-6 * np.linalg.norm(J[:, block]), block
+    _assert_jacobian_is_the_retract_derivative(J, residual, state, layout)
 
 
 def test_retract_accumulates_the_steps_in_layout_order(ur5):
@@ -1225,15 +1230,7 @@ def test_point_jacobian_of_every_column_matches_finite_differences(ur5):
     predicted = np.einsum("nij,pj->npi", (state.frame @ g)[:, :3, :3], state.points) + (state.frame @ g)[:, None, :3, 3]
     np.testing.assert_allclose(residual.raw_residual(state), (predicted - points).reshape(6, 9), atol=1e-12)
     _, J = residual.residual_and_jacobian(state)
-    numeric = np.empty_like(J)
-    for i in range(layout.size):
-        dx = np.zeros(layout.size)
-        dx[i] = 1e-7 if i < layout.compliance_slice.start else 1e-9
-        numeric[:, i] = (
-            residual.residual(residual.retract(state, dx)) - residual.residual(residual.retract(state, -dx))
-        ) / (2 * dx[i])
-    for block in (slice(0, 42), layout.frame_slice, layout.marker_slice, layout.compliance_slice):
-        assert np.linalg.norm(J[:, block] - numeric[:, block]) <= 1e-6 * np.linalg.norm(J[:, block]), block
+    _assert_jacobian_is_the_retract_derivative(J, residual, state, layout)
 
 
 def test_point_whitening_decouples_the_points_not_seen(ur5):
