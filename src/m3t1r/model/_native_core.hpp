@@ -77,6 +77,7 @@ class DenseLU {
     lower_count_.assign(static_cast<size_t>(n), 0);
     lower_list_.assign(static_cast<size_t>(n), 0);
     bound_.assign(static_cast<size_t>(n), 0.0);
+    reciprocal_.assign(static_cast<size_t>(n), 0.0);
   }
   double & operator()(int i, int j) { return f_(i, j); }  // fill A here, then factor()
   double * data() { return f_.data(); }  // A's entries, row by row
@@ -115,6 +116,9 @@ class DenseLU {
         odd_ = !odd_;
       }
       const double * pivot_row = a + k * n_;
+      // The pivot's reciprocal, as LAPACK's dgetf2 scales by it (a multiply where a division would be on
+      // every elimination's and back-substitution's critical path), unless the pivot is subnormal.
+      reciprocal_[k] = std::fabs(pivot_row[k]) >= std::numeric_limits<double>::min() ? 1.0 / pivot_row[k] : 0.0;
       int * nonzero = upper_.data() + k * n_;  // the pivot row's nonzero entries right of k: U's row k,
       int count = 0;                           // and the only entries an update changes
       for (int j = k + 1; j < n_; ++j) {
@@ -127,7 +131,7 @@ class DenseLU {
         if (row[k] == 0.0) continue;
         const int list = lower_list_[i];
         lower_[list * n_ + lower_count_[list]++] = k;
-        const double l = row[k] /= pivot_row[k];
+        const double l = row[k] = over_pivot(row[k], k);
         for (int c = 0; c < count; ++c) row[nonzero[c]] -= l * pivot_row[nonzero[c]];
       }
     }
@@ -154,7 +158,7 @@ class DenseLU {
       const double * row = a + i * n_;
       double sum = b[i];
       for (int e = 0; e < upper_count_[i]; ++e) sum -= row[columns[e]] * b[columns[e]];
-      b[i] = sum / row[i];
+      b[i] = over_pivot(sum, i);
     }
   }
 
@@ -172,7 +176,7 @@ class DenseLU {
     for (int i = n_ - 1; i >= 0; --i) {
       const int * columns = upper_.data() + i * n_;
       for (int e = 0; e < upper_count_[i]; ++e) subtract_row(x, i, columns[e], a[i * n_ + columns[e]]);
-      for (int c = 0; c < n_; ++c) x[i * n_ + c] /= a[i * n_ + i];
+      for (int c = 0; c < n_; ++c) x[i * n_ + c] = over_pivot(x[i * n_ + c], i);
     }
   }
 
@@ -183,18 +187,24 @@ class DenseLU {
   double inverse_one_norm_bound() const {
     const double * a = f_.data();
     double * y = bound_.data();
-    for (int i = 0; i < n_; ++i) {  // M(U)^T y = e: forward, U's column i above the diagonal
-      double sum = 1.0;
-      for (int k = 0; k < i; ++k) sum += std::fabs(a[k * n_ + i]) * y[k];
-      y[i] = sum / std::fabs(a[i * n_ + i]);
+    // Both solves over the factors' nonzeros, each row's terms scattered once it is final: M(U)^T y = e
+    // forward (y[j] gains |U[k, j]| y[k] in increasing k, the order of a dense loop), then M(L)^T z = y
+    // backward (z[i] gains |L[k, i]| z[k], k decreasing).
+    std::fill(bound_.begin(), bound_.end(), 1.0);
+    for (int k = 0; k < n_; ++k) {
+      y[k] /= std::fabs(a[k * n_ + k]);
+      const int * columns = upper_.data() + k * n_;
+      for (int e = 0; e < upper_count_[k]; ++e) y[columns[e]] += std::fabs(a[k * n_ + columns[e]]) * y[k];
+    }
+    for (int k = n_ - 1; k > 0; --k) {
+      const int * columns = lower_.data() + lower_list_[k] * n_;
+      for (int e = 0, count = lower_count_[lower_list_[k]]; e < count; ++e)
+        y[columns[e]] += std::fabs(a[k * n_ + columns[e]]) * y[k];
     }
     double biggest = 0.0;
-    for (int i = n_ - 1; i >= 0; --i) {  // M(L)^T z = y: backward, L's column i below the diagonal
-      double sum = y[i];
-      for (int k = i + 1; k < n_; ++k) sum += std::fabs(a[k * n_ + i]) * y[k];
-      y[i] = sum;
-      if (std::isnan(sum)) return sum;
-      if (sum > biggest) biggest = sum;
+    for (int i = 0; i < n_; ++i) {
+      if (std::isnan(y[i])) return y[i];
+      if (y[i] > biggest) biggest = y[i];
     }
     return biggest;
   }
@@ -222,6 +232,10 @@ class DenseLU {
   }
 
  private:
+  double over_pivot(double x, int k) const {  // x / U[k, k]
+    return reciprocal_[k] != 0.0 ? x * reciprocal_[k] : x / f_(k, k);
+  }
+
   // The threshold of threshold partial pivoting (0.01, as sparse LU codes take): each such step's
   // multipliers are at most 100 in magnitude. On the M machine's IK systems along the path and over its
   // workspace the blocks' own largest entry is 0.04-0.05 times a task row's in one column (metres
@@ -264,6 +278,7 @@ class DenseLU {
   std::vector<int> upper_, upper_count_;  // U's row k: its nonzero columns right of k, upper_[k n ...]
   std::vector<int> lower_, lower_count_;  // L's nonzero columns, by list; a list moves with its row's swaps
   std::vector<int> lower_list_;  // row i's list of L columns: lower_[lower_list_[i] n ...]
+  std::vector<double> reciprocal_;  // 1 / U[k, k] (0: a subnormal pivot, divided by)
   mutable std::vector<double> bound_;  // inverse_one_norm_bound's work vector
   bool odd_ = false;  // an odd count of swaps
 };
@@ -410,7 +425,8 @@ struct Chain {
   Model model;
   Data data;
   std::vector<int> frame_parent;
-  std::vector<SE3> frame_placement, frame_world;
+  std::vector<SE3> frame_placement, frame_world;  // frame_world: positions only where not frame_rotated
+  std::vector<unsigned char> frame_rotated;
   std::vector<Closure> closures;
   std::vector<int> actuated;
   std::vector<Block> blocks;
@@ -430,7 +446,7 @@ struct Chain {
 
 void evaluate_closures(Chain & c, bool with_jacobian) {
   Eigen::Matrix<double, 6, 1> full;
-  Eigen::Matrix<double, 6, 6> op;
+  Eigen::Matrix<double, 6, 6, Eigen::RowMajor> op;  // its rows dotted with the Jacobian's columns: both contiguous
   for (const Closure & k : c.closures) {
     const SE3 & a = c.frame_world[k.frame_a];
     const SE3 & b = c.frame_world[k.frame_b];
@@ -442,7 +458,9 @@ void evaluate_closures(Chain & c, bool with_jacobian) {
       }
     } else {
       const SE3 aMb = a.actInv(b);
-      full = pinocchio::log6(aMb).toVector();
+      // log6 from the rotation's quaternion: the same twist, with one atan2 where the rotation
+      // matrix's log3 takes four (3 % of forward_batch's instructions on the M machine).
+      full = pinocchio::log6(Eigen::Quaterniond(aMb.rotation()), aMb.translation()).toVector();
       if (with_jacobian) op = pinocchio::Jlog6(aMb) * b.inverse().toActionMatrix();
     }
     for (size_t r = 0; r < k.components.size(); ++r) {
@@ -501,8 +519,13 @@ void evaluate(Chain & c, const System & s, const Vector & q, bool with_jacobian)
     pinocchio::computeJointJacobians(c.model, c.data, q);
   else
     pinocchio::forwardKinematics(c.model, c.data, q);
-  for (size_t f = 0; f < c.frame_parent.size(); ++f)
-    c.frame_world[f] = c.data.oMi[c.frame_parent[f]] * c.frame_placement[f];
+  for (size_t f = 0; f < c.frame_parent.size(); ++f) {
+    const SE3 & joint = c.data.oMi[c.frame_parent[f]];
+    if (c.frame_rotated[f])
+      c.frame_world[f] = joint * c.frame_placement[f];
+    else
+      c.frame_world[f].translation() = joint.act(c.frame_placement[f].translation());
+  }
   evaluate_closures(c, with_jacobian);
   if (s.inverse) evaluate_task(c, with_jacobian);
 }
