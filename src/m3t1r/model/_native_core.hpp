@@ -450,26 +450,32 @@ void evaluate_closures(Chain & c, bool with_jacobian) {
   for (const Closure & k : c.closures) {
     const SE3 & a = c.frame_world[k.frame_a];
     const SE3 & b = c.frame_world[k.frame_b];
+    const int components = static_cast<int>(k.components.size());
     if (k.type == 3) {
-      full.head<3>() = a.rotation().transpose() * (b.translation() - a.translation());
-      if (with_jacobian) {
-        op.topLeftCorner<3, 3>() = a.rotation().transpose();
-        op.topRightCorner<3, 3>() = -a.rotation().transpose() * pinocchio::skew(b.translation());
-      }
-    } else {
-      const SE3 aMb = a.actInv(b);
-      // log6 from the rotation's quaternion: the same twist, with one atan2 where the rotation
-      // matrix's log3 takes four (3 % of forward_batch's instructions on the M machine).
-      full = pinocchio::log6(Eigen::Quaterniond(aMb.rotation()), aMb.translation()).toVector();
-      if (with_jacobian) op = pinocchio::Jlog6(aMb) * b.inverse().toActionMatrix();
-    }
-    for (size_t r = 0; r < k.components.size(); ++r) {
-      const int row = k.first_row + static_cast<int>(r);
-      c.residual[row] = full[k.components[r]];
+      // R_a^T [I, -[p_b]] xi = R_a^T (v + w x p_b): the velocity of the point p_b, in frame a's axes
+      const Eigen::Matrix3d & rotation = a.rotation();
+      const Eigen::Vector3d & point = b.translation();
+      full.head<3>() = rotation.transpose() * (point - a.translation());
+      for (int r = 0; r < components; ++r) c.residual[k.first_row + r] = full[k.components[r]];
       if (!with_jacobian) continue;
-      for (const auto & col : k.columns)
-        c.jacobian(row, col.first) = col.second * op.row(k.components[r]).dot(c.data.J.col(col.first));
+      for (const auto & col : k.columns) {
+        const auto twist = c.data.J.col(col.first);
+        const Eigen::Vector3d velocity = twist.head<3>() + twist.tail<3>().cross(point);
+        for (int r = 0; r < components; ++r)
+          c.jacobian(k.first_row + r, col.first) = col.second * rotation.col(k.components[r]).dot(velocity);
+      }
+      continue;
     }
+    const SE3 aMb = a.actInv(b);
+    // log6 from the rotation's quaternion: the same twist, with one atan2 where the rotation
+    // matrix's log3 takes four (3 % of forward_batch's instructions on the M machine).
+    full = pinocchio::log6(Eigen::Quaterniond(aMb.rotation()), aMb.translation()).toVector();
+    for (int r = 0; r < components; ++r) c.residual[k.first_row + r] = full[k.components[r]];
+    if (!with_jacobian) continue;
+    op = pinocchio::Jlog6(aMb) * b.inverse().toActionMatrix();
+    for (int r = 0; r < components; ++r)
+      for (const auto & col : k.columns)
+        c.jacobian(k.first_row + r, col.first) = col.second * op.row(k.components[r]).dot(c.data.J.col(col.first));
   }
 }
 

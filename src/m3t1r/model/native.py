@@ -136,8 +136,9 @@ class NativeChain:
         placements = np.array([model.jointPlacements[j].homogeneous for j in range(1, model.njoints)])
         passive, actuated, blocks = layout.passive, layout.actuated, layout.blocks
         unknowns = np.arange(model.nv) if layout.unknowns is None else layout.unknowns
-        frame_ids = sorted({c.frame_a_id for c in closures} | {c.frame_b_id for c in closures})
-        frame_ids += [layout.platform_frame, layout.task_frame]
+        # Each frame once: the platform and the task frame are often a closure's frame too.
+        named = {layout.platform_frame, layout.task_frame}
+        frame_ids = sorted({c.frame_a_id for c in closures} | {c.frame_b_id for c in closures} | named)
         where = {f: k for k, f in enumerate(frame_ids)}
         rows = np.cumsum([0] + [len(c.rows) for c in closures])
         spec = np.array(
@@ -165,8 +166,8 @@ class NativeChain:
             ik_columns,
             ik_axes.astype(np.int64),
             np.flatnonzero(frame_support(model, layout.task_frame)).astype(np.int64),
-            len(frame_ids) - 2,
-            len(frame_ids) - 1,
+            where[layout.platform_frame],
+            where[layout.task_frame],
             _ROTATION_CODES[task.rotation] if square else 0,
         )
         counts = (len(blocks), len(passive), len(actuated), len(ik_columns), task.dimension if square else 0)
