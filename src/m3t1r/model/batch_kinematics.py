@@ -174,9 +174,9 @@ def _rows(values: object, width: int, what: str, columns: tuple[str, ...]) -> np
     array = real_array(values, what, "numeric rows")
     if array.ndim != 2 or array.shape[1] != width:
         raise InvalidInputError(f"{what}: shape {array.shape}, expected (n, {width}) rows {columns}")
-    bad = np.argwhere(~np.isfinite(array))
-    if bad.size:
-        row, col = (int(i) for i in bad[0])
+    finite = np.isfinite(array)
+    if not finite.all():
+        row, col = (int(i) for i in np.argwhere(~finite)[0])
         raise InvalidInputError(f"{what}: row {row} (0-based): {columns[col]} = {array[row, col]}, not finite")
     return array
 
@@ -215,10 +215,11 @@ def forward_batch(
     rows = np.flatnonzero(~outside.any(axis=1))
     reference = solver.home_reference() if q_init is None else None
     start[:, solver.actuated] = values
+    inside = start if len(rows) == len(start) else start[rows]  # the rows' own array, solved in place
     if reference is None:
-        parts = [(rows, solver.solve_rows(start[rows], None, 0, threads=workers))]
+        parts = [(rows, solver.solve_rows(inside, None, 0, threads=workers))]
     else:
-        parts = _rows_from_home(solver, start[rows], rows, reference[1], workers)
+        parts = _rows_from_home(solver, inside, rows, reference[1], workers)
     last_rows, last = parts[-1]
     failures += [
         RowFailure(int(last_rows[f.index]), f.reason, f.error)
@@ -230,22 +231,23 @@ def forward_batch(
 def _rows_from_home(
     solver: RowSolver, start: np.ndarray, rows: np.ndarray, branch: bytes, workers: int
 ) -> list[tuple[np.ndarray, SolvedRows]]:
-    """Rows `rows` (their sliders set in `start`, passive joints at home's) solved from home's
-    third-order prediction, then the rows it loses from the first-order one: [(rows, solved)]
-    and, if any was lost, [(lost rows, solved again)], whose failures are the batch's.
+    """Rows `rows` (their sliders set in `start`, every other joint at home's) solved from home's
+    third-order prediction, in place in `start`, then the rows it loses from the first-order one:
+    [(rows, solved)] and, if any was lost, [(lost rows, solved again)], whose failures are the batch's.
 
     Far from home the higher-order terms can carry a start past a singularity that the first-order
     start stays clear of (five-bar sliders 1.5 rad from home): retried, such a row ends as it
     did with the first-order start, so the batch converges wherever that start converges.
     """
-    changes = start[:, solver.actuated] - solver.mechanism.home[solver.actuated]
-    predicted = start.copy()
-    predicted[:, solver.passive] += solver.predict_from_home(changes)
-    solved = solver.solve_rows(predicted, branch, 1, threads=workers)
+    home, sliders = solver.mechanism.home, start[:, solver.actuated]
+    changes = sliders - home[solver.actuated]
+    start[:, solver.passive] += solver.predict_from_home(changes)
+    solved = solver.solve_rows(start, branch, 1, threads=workers)
     lost = np.flatnonzero(solved.status != _CONVERGED)
     if not len(lost) or solver.home_derivatives() is None:
         return [(rows, solved)]
-    again = start[lost]
+    again = np.repeat(home[None, :], len(lost), axis=0)
+    again[:, solver.actuated] = sliders[lost]
     again[:, solver.passive] += solver.predict_from_home(changes[lost], order=1)
     return [(rows, solved), (rows[lost], solver.solve_rows(again, branch, 1, threads=workers))]
 

@@ -199,6 +199,19 @@ def _products(k: int, power: int) -> np.ndarray:
     return np.array(list(itertools.combinations_with_replacement(range(k), power)), dtype=int)
 
 
+@functools.cache
+def _monomial_steps(k: int, degree: int) -> tuple[tuple[int, int], ...]:
+    """How each monomial of k sliders of degree 2 to `degree` (in `_products` order, after the k of
+    degree 1) is one multiply: (row of the monomial of its first factors, its last slider)."""
+    steps: list[tuple[int, int]] = []
+    rows = {(i,): i for i in range(k)}
+    for power in range(2, degree + 1):
+        for axes in map(tuple, _products(k, power).tolist()):
+            steps.append((rows[axes[:-1]], axes[-1]))
+            rows[axes] = k + len(steps) - 1
+    return tuple(steps)
+
+
 class ClosedLoopSolver:
     """Newton solver for the closures of one `Mechanism` (keeps its own Pinocchio `Data`).
 
@@ -524,14 +537,15 @@ class ClosedLoopSolver:
         The starts of batch rows from home: one product of d's monomials up to `order`, each product of
         sliders once (H and G are symmetric), with their coefficients."""
         degree = 1 if order < 2 or self.home_derivatives() is None else min(order, 3)
-        columns = [changes]
-        for power in range(2, degree + 1):
-            axes = _products(changes.shape[1], power)
-            monomials = changes[:, axes[:, 0]]
-            for factor in range(1, power):  # column by column: twice as fast as one product over a gather
-                monomials = monomials * changes[:, axes[:, factor]]
-            columns.append(monomials)
-        return np.hstack(columns).dot(self._prediction_coefficients(degree))
+        coefficients = self._prediction_coefficients(degree)
+        k = changes.shape[1]
+        # Monomials as rows, each one multiply of two contiguous rows: gathering columns of the (n, k)
+        # changes cost eight times as much on 2,000 rows.
+        monomials = np.empty((len(coefficients), len(changes)))
+        monomials[:k] = changes.T
+        for row, (lower, slider) in enumerate(_monomial_steps(k, degree), start=k):
+            np.multiply(monomials[lower], monomials[slider], out=monomials[row])
+        return monomials.T.dot(coefficients)
 
     def _prediction_coefficients(self, degree: int) -> np.ndarray:
         """`predict_from_home`'s coefficients (monomials x passive) to `degree`: T's transpose, then
