@@ -1049,6 +1049,18 @@ def test_the_prediction_from_home_has_the_order_asked(mechanism):
     assert misses[3][0] < misses[2][0] / 5 < misses[1][0] / 25
 
 
+def test_a_prediction_past_third_order_is_the_third_order_one(mechanism):
+    """Only home's second and third derivatives are known: orders above 3 predict as order 3, for
+    one row and for many (each row's monomials are its own)."""
+    solver = ClosedLoopSolver(mechanism)
+    changes = np.array([[0.04, -0.03, 0.02, 0.05], [-0.02, 0.01, 0.03, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    third = solver.predict_from_home(changes, 3)
+    np.testing.assert_array_equal(solver.predict_from_home(changes, 4), third)
+    np.testing.assert_array_equal(solver.predict_from_home(changes, 7), third)
+    np.testing.assert_array_equal(third[2], np.zeros(len(solver.passive)))
+    np.testing.assert_allclose(solver.predict_from_home(changes[:1], 3)[0], third[0], rtol=0, atol=1e-15)
+
+
 # ------------------------------------------------------------------------------------------------
 # The block order the one-LU signature relies on, its fallback, the exact rcond
 
