@@ -13,7 +13,7 @@ import pinocchio as pin
 import pytest
 import yaml
 import yourdfpy
-from model_files import edit_yaml, welded_double_hinge
+from model_files import edit_text, edit_yaml, welded_double_hinge
 
 from m3t1r.errors import ModelFileError, ModelWarning, OutputPathError
 from m3t1r.io.pairing import closures_sha256, recorded_closures_sha256, sha256_bytes, with_closures_sha256
@@ -181,18 +181,19 @@ def test_a_pair_recorded_with_the_raw_bytes_sha256_still_loads(tmp_path):
         Mechanism.load(urdf)
 
 
-def test_a_mimic_joint_is_refused_by_name(tmp_path):
+@pytest.mark.parametrize("joint, leader", [("elbow_1", "motor_1"), ("motor_1", "motor_2")])  # motor_1: the first joint
+def test_a_mimic_joint_is_refused_by_name(tmp_path, joint, leader):
     """Pinocchio reads a <mimic> joint as an independent one: the closures would solve it on its own
     and a calibration would move it apart while the written URDF kept the tag."""
     urdf, closures = five_bar_files(tmp_path)
     text = urdf.read_text()
-    start = text.index('<joint name="elbow_1"')
+    start = text.index(f'<joint name="{joint}"')
     end = text.index("</joint>", start)
-    urdf.write_text(text[:end] + '<mimic joint="motor_1" multiplier="1" offset="0"/>' + text[end:])
+    urdf.write_text(text[:end] + f'<mimic joint="{leader}" multiplier="1" offset="0"/>' + text[end:])
     with pytest.raises(ModelFileError) as caught:
         Mechanism.load(urdf, closures)
     assert str(caught.value) == (
-        f"{urdf}: joint 'elbow_1' mimics joint 'motor_1' (<mimic>): m3t1r moves and "
+        f"{urdf}: joint '{joint}' mimics joint '{leader}' (<mimic>): m3t1r moves and "
         "calibrates every joint on its own, so a coupled joint is not supported; remove the "
         "tag (an independent joint) or make the joint fixed"
     )
@@ -437,13 +438,16 @@ def test_a_continuous_first_joint_is_an_unbounded_revolute_one(tmp_path):
     assert mechanism.joint_units() == ("rad", "rad")
 
 
-def test_a_multi_dof_joint_is_refused(tmp_path):
+@pytest.mark.parametrize(
+    "joint, kind, nq", [("elbow_2", "floating", 7), ("motor_1", "floating", 7), ("elbow_1", "planar", 4)]
+)  # motor_1: the tree's first joint
+def test_a_multi_dof_joint_is_refused(tmp_path, joint, kind, nq):
     urdf, closures = _five_bar(tmp_path)
     urdf.write_text(
-        urdf.read_text().replace('<joint name="elbow_2" type="revolute">', '<joint name="elbow_2" type="floating">')
+        urdf.read_text().replace(f'<joint name="{joint}" type="revolute">', f'<joint name="{joint}" type="{kind}">')
     )
     assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
-        f"{urdf}: joint 'elbow_2' is not a 1-DoF revolute/prismatic/continuous joint (nq=7); multi-DoF joints "
+        f"{urdf}: joint '{joint}' is not a 1-DoF revolute/prismatic/continuous joint (nq={nq}); multi-DoF joints "
         "are not supported"
     )
 
@@ -635,6 +639,8 @@ def test_a_home_newton_cannot_close_is_refused(mechanism, tmp_path):
     assert found is not None, message
     assert float(found.group(1)) > 1e-9  # 5 m off: only a slider beyond its 0.6 m would close the loop
     assert not float(found.group(4)) <= float(found.group(3)) <= float(found.group(5))
+    lower, upper = mechanism.joint_limits((found.group(2),))  # the joint's own interval, lower bound first
+    assert (found.group(4), found.group(5)) == (f"{lower[0]:.4g}", f"{upper[0]:.4g}") and lower[0] < upper[0]
 
 
 def test_a_home_whose_actuator_values_cannot_close_says_which_would(tmp_path):
@@ -649,12 +655,20 @@ def test_a_home_whose_actuator_values_cannot_close_says_which_would(tmp_path):
     home = yaml.safe_load(closures.read_text())["home"]
     edit_yaml(closures, lambda d: d["home"].update(q11_B2=home["q11"] + 0.5))
     message = _refusal(lambda: Mechanism.load(urdf, closures))
-    found = re.search(
-        r"with the actuators free too, it closes with them at \{(.*)\}: give actuator home values", message
+    found = re.fullmatch(
+        re.escape(f"{closures}: home does not close: closure 'five_bar_I' residual 5.000e-01 > 1e-09, and Newton ")
+        + r"from the given values reached only \S+; with the actuators free too, it closes with them at \{(.*)\}: "
+        + re.escape(
+            "give actuator home values near those, a little inside the actuators' reach (the nearest values "
+            "that close are often at its edge, where the loops are singular)"
+        ),
+        message,
     )
     assert found is not None, message
     given = dict(entry.split(": ") for entry in found.group(1).split(", "))
     assert list(given) == ["q11", "q11_B2", "q21", "q21_B4"]
+    lower, upper = Mechanism.load().joint_limits()
+    assert np.all((lower < [float(v) for v in given.values()]) & ([float(v) for v in given.values()] < upper))
     inside = {name: 0.95 * float(value) + 0.05 * home[name] for name, value in given.items()}
     edit_yaml(closures, lambda d: d["home"].update(inside))
     with warnings.catch_warnings():
@@ -734,3 +748,152 @@ def test_the_locked_gauge_note_names_every_locked_joint(tmp_path):
         f"passive joint(s) {locked[0]}, {locked[1]} locked at their home value: their motion is already spanned "
         "by the other passive joints (a gauge, e.g. a cut joint modelled twice)" in mechanism.notes
     )
+
+
+def test_a_home_assembled_beyond_a_passive_joints_limits_is_refused(tmp_path):
+    """elbow_1 given inside [-1.62, 1] but closing only at -1.651 (and -1.651 + 2 pi is beyond too)."""
+    urdf, closures = _five_bar(tmp_path)
+    edit_text(
+        urdf,
+        lambda text: text.replace(
+            '<limit lower="-3.141592653589793" upper="3.141592653589793"', '<limit lower="-1.62" upper="1.0"', 1
+        ),
+    )
+    edit_yaml(closures, lambda d: d["home"].update(elbow_1=-1.6))
+    assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
+        f"{closures}: home does not close: closure 'loop' residual 1.780e-02 > 1e-09; the assembly nearest the "
+        "given values puts joint 'elbow_1' at -1.65087, beyond its URDF limits [-1.62, 1] (give home values of the "
+        "passive joints near the assembly mode wanted)"
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# What load says about joints: units, passive joints without limits, idle joints, missing rows.
+
+
+def test_joint_units_are_metres_for_sliders_and_radians_for_hinges(mechanism):
+    assert mechanism.joint_units() == ("m", "m", "m", "m")  # the M machine's four sliders
+    assert mechanism.joint_units(("q12", "q21", "q13_bar")) == ("rad", "m", "rad")
+    assert mechanism.joint_units(()) == ()
+
+
+_IDLE_FIRST_JOINT = """<joint name="idle" type="revolute"><parent link="base"/><child link="idle_link"/>
+    <axis xyz="0 0 1"/><limit effort="1" velocity="1"/></joint>
+  <link name="idle_link"/>
+</robot>"""
+
+
+def test_a_passive_first_joint_without_limits_is_named_unbounded_and_locked(tmp_path):
+    """A spin of a link on the base, listed first in the tree (joints of a link are ordered by name):
+    velocity index 0, no range, moving nothing the closures see."""
+    urdf, closures = _five_bar(tmp_path)
+    edit_text(urdf, lambda text: text.replace("</robot>", _IDLE_FIRST_JOINT))
+    edit_yaml(closures, lambda d: d["home"].update(idle=0.0))
+    with pytest.warns(ModelWarning) as caught:
+        mechanism = Mechanism.load(urdf, closures)
+    assert mechanism.model.names[1] == "idle" and mechanism.locked_joints == ("idle",)
+    assert [str(w.message) for w in caught] == [
+        "five_bar.closures.yaml: 1 passive joint(s) without usable URDF limits (idle): taken as unbounded "
+        "(an empty <limit/> or a continuous joint gives no range)",
+        "five_bar.closures.yaml: passive joint(s) idle locked at their home value: their motion is already "
+        "spanned by the other passive joints (a gauge, e.g. a cut joint modelled twice)",
+    ]
+    lower, upper = mechanism.joint_limits(("idle", "elbow_1"))
+    assert (lower.tolist(), upper.tolist()) == ([-np.inf, -np.pi], [np.inf, np.pi])
+
+
+_PASSIVE_IN_TREE_ORDER = ("q12", "q12_pa", "q13", "q13_pa", "q14", "q13_bar", "q12_bar")
+
+
+@pytest.mark.parametrize(
+    "count, shown",
+    [(6, "q12, q12_pa, q13, q13_pa, q14, q13_bar"), (7, "q12, q12_pa, q13, q13_pa, q14, q13_bar and 1 more")],
+)
+def test_passive_joints_without_limits_are_listed_six_at_most(tmp_path, count, shown):
+    urdf, closures = _copy_model(tmp_path)
+    for name in _PASSIVE_IN_TREE_ORDER[:count]:
+        edit_text(
+            urdf,
+            lambda text: re.sub(
+                rf'(<joint name="{name}" type="revolute">(?:(?!</joint>).)*?)<limit[^>]*/>',
+                r'\1<limit effort="1" velocity="1"/>',
+                text,
+                flags=re.S,
+            ),
+        )
+    with pytest.warns(ModelWarning) as caught:
+        mechanism = Mechanism.load(urdf, closures)
+    assert [str(w.message) for w in caught] == [
+        f"m.yaml: {count} passive joint(s) without usable URDF limits ({shown}): taken as unbounded "
+        "(an empty <limit/> or a continuous joint gives no range)"
+    ]
+    lower, upper = mechanism.joint_limits(_PASSIVE_IN_TREE_ORDER)
+    assert np.isinf(lower).tolist() == [True] * count + [False] * (7 - count)
+    assert np.isinf(upper).tolist() == [True] * count + [False] * (7 - count)
+
+
+def test_missing_rows_of_a_spatial_closure_are_counted_on_the_motion_they_leave(tmp_path):
+    """The M machine's platform closure without its yaw row: one motion left, which turns P_I. Over
+    every passive joint (the closures ignored) P_I could move along several directions, not 1."""
+    urdf, closures = _copy_model(tmp_path)
+    _edit_closures(closures, lambda d: d["closures"][6].update(rows=[0, 1, 2]))
+    message = _refusal(lambda: Mechanism.load(urdf, closures))
+    found = re.fullmatch(
+        re.escape(
+            f"{closures}: the closures leave 1 degree(s) of freedom beyond the actuators: with the actuators held, "
+            "frame 'P_I' can still move along 1 of them ("
+        )
+        + r"(\S+) per unit joint speed; mostly joints (\w+), (\w+), (\w+)\); rows or closures are missing",
+        message,
+    )
+    assert found is not None, message
+    assert float(found.group(1)) > 0.1
+    assert set(found.groups()[1:]) < set(_joint_names_of(Mechanism.load(), Mechanism.load().passive_ids))
+
+
+def _joint_names_of(mechanism: Mechanism, velocity_indices) -> set[str]:
+    model = mechanism.model
+    return {model.names[j] for j in range(1, model.njoints) if model.idx_vs[j] in set(velocity_indices)}
+
+
+# ----------------------------------------------------------------------------------------------
+# What `pair_bytes` records of what load derived, and the note of a derived task.
+
+
+def test_a_declared_task_is_written_as_the_file_gives_it(tmp_path):
+    """A task without `frame:` (the platform frame's) is the source's entry in the written file: only a
+    derived task is written out in full."""
+    urdf, closures = _five_bar(tmp_path)
+    edit_yaml(closures, lambda d: d["task"].pop("frame"))
+    mechanism = Mechanism.load(urdf, closures)
+    document = yaml.safe_load(mechanism.pair_bytes(tmp_path / "out.urdf")[1].decode().split("\n", 1)[1])
+    assert document["task"] == {"position": ["x", "y"], "rotation": "none"}
+    assert mechanism.task == TaskSpec("effector", ("x", "y"), "none")
+
+
+def test_a_mechanism_with_other_closures_than_its_document_writes_the_documents(tmp_path):
+    """`pair_bytes` writes load's rows into the document's closures only when they are the mechanism's
+    one for one; a mechanism given other closures leaves the document's entries as read."""
+    urdf, closures = welded_double_hinge(tmp_path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ModelWarning)
+        mechanism = Mechanism.load(urdf, closures)
+    source = yaml.safe_load(closures.read_text())["closures"]
+    written = yaml.safe_load(mechanism.pair_bytes(tmp_path / "out.urdf")[1].decode().split("\n", 1)[1])
+    assert [entry["rows"] for entry in written["closures"]] == [list(spec.rows) for spec in mechanism.closures]
+    other = replace(mechanism, closures=mechanism.closures + mechanism.closures)
+    written = yaml.safe_load(other.pair_bytes(tmp_path / "out.urdf")[1].decode().split("\n", 1)[1])
+    assert written["closures"] == source
+
+
+def test_a_derived_task_is_noted_word_for_word(tmp_path):
+    urdf, closures = _five_bar(tmp_path)
+    edit_yaml(closures, lambda d: d.pop("task"))
+    with pytest.warns(ModelWarning) as caught:
+        mechanism = Mechanism.load(urdf, closures)
+    assert [str(w.message) for w in caught] == [
+        "five_bar.closures.yaml: no task declared: inverse kinematics, plans and reports take the x, y of frame "
+        "'effector' (the coordinates the actuators command at home); declare `task:` to choose others "
+        "(models/README.md)"
+    ]
+    assert mechanism.task == TaskSpec("effector", ("x", "y"), "none")

@@ -27,6 +27,7 @@ from mjcf_mechanisms import (
 from m3t1r.app.cli import main
 from m3t1r.calibration.closed_loop import pose_errors
 from m3t1r.errors import ModelFileError, ModelWarning
+from m3t1r.io.pairing import closures_sha256, recorded_closures_sha256
 from m3t1r.model.description import Mechanism
 from m3t1r.model.kinematics import ClosedLoopSolver
 
@@ -264,6 +265,42 @@ def test_a_sidecar_gives_the_task_but_not_what_the_mjcf_gives(tmp_path):
     sidecar.write_text("platform_frame: nowhere\n")
     with pytest.raises(ModelFileError, match=r"platform_frame: frame 'nowhere' does not exist"):
         Mechanism.load(path)
+
+
+def test_a_sidecar_named_on_load_is_read_wherever_it_is(tmp_path):
+    path = five_bar_mjcf(tmp_path)
+    (tmp_path / "five_bar.closures.yaml").write_text("platform_frame: effector\nhome: {motor_l: 0.2}\n")
+    sidecar = tmp_path / "elsewhere" / "task.yaml"
+    sidecar.parent.mkdir()
+    sidecar.write_text("platform_frame: effector\ntask: {position: [x, y]}\nhome: {motor_l: 0.1}\n")
+    mechanism = _load(path, sidecar)
+    assert (mechanism.urdf_path, mechanism.closures_path, mechanism.home[0]) == (path, sidecar, 0.1)
+    assert mechanism.task.dimension == 2
+    sidecar.write_text("platform_frame: [\n")
+    with pytest.raises(ModelFileError) as caught:
+        Mechanism.load(path, sidecar)
+    assert str(caught.value) == (
+        f"{sidecar}: line 2, column 1: not valid YAML: expected the node content, but found '<stream end>'"
+    )
+
+
+def test_an_mjcf_machine_without_a_sidecar_is_its_own_closures_file(tmp_path):
+    path = five_bar_mjcf(tmp_path)
+    mechanism = _load(path)
+    assert (mechanism.source, mechanism.urdf_path, mechanism.closures_path) == ("mjcf", path, path)
+    with pytest.raises(ModelFileError) as caught:
+        mechanism.visual_model  # noqa: B018
+    assert str(caught.value) == f"{path}: the visual geometry of an MJCF model is not loaded"
+
+
+@pytest.mark.parametrize("model, robot", [('model="five_bar"', "five_bar"), ("", "machine")])
+def test_an_mjcf_machines_urdf_records_its_closures_and_is_named_as_the_model(tmp_path, model, robot):
+    """The written URDF's robot is the MJCF's `model`, or without one the URDF's own name."""
+    path = five_bar_mjcf(tmp_path)
+    path.write_text(path.read_text().replace('<mujoco model="five_bar">', f"<mujoco {model}>"))
+    urdf_bytes, closures_bytes = _load(path).pair_bytes(tmp_path / "out" / "machine.urdf")
+    assert recorded_closures_sha256(urdf_bytes) == closures_sha256(closures_bytes)
+    assert re.findall(rb"<robot [^>]*>", urdf_bytes) == [f'<robot name="{robot}">'.encode()]
 
 
 def test_the_cli_takes_an_mjcf_as_model(tmp_path, capsys):
