@@ -677,6 +677,36 @@ def test_a_home_whose_actuator_values_cannot_close_says_which_would(tmp_path):
     assert loaded.home_assembly is not None and loaded.home_assembly.residual <= 1e-9
 
 
+def test_a_home_slider_beyond_its_limits_is_refused_assembled_or_not(tmp_path):
+    """The five-bar with motor_1 at home beyond its URDF limit, whether home then needs assembling
+    (motor_1 moved past the limit: the passive joints follow) or closes as given (the limit moved
+    inside home): every solve would refuse that slider value, so load refuses it, naming both."""
+    urdf, closures = five_bar_files(tmp_path)
+    (lower,), (upper,) = Mechanism.load(urdf, closures).joint_limits(("motor_1",))
+    edit_yaml(closures, lambda d: d["home"].update(motor_1=float(upper) + 0.17))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ModelWarning)
+        message = _refusal(lambda: Mechanism.load(urdf, closures))
+    assert message == (
+        f"{closures}: home puts joint 'motor_1' at {upper + 0.17:.6g}, beyond its URDF limits "
+        f"[{lower:.6g}, {upper:.6g}]: give a home inside them, or limits that hold it"
+    )
+    urdf, closures = five_bar_files(tmp_path / "closing")
+    home = yaml.safe_load(closures.read_text())["home"]["motor_1"]
+
+    def narrowed(text: str) -> str:
+        start = text.index('<joint name="motor_1"')
+        end = text.index("</joint>", start)
+        joint = re.sub(r'upper="[^"]*"', f'upper="{home - 0.01!r}"', text[start:end])
+        return text[:start] + joint + text[end:]
+
+    edit_text(urdf, narrowed)
+    assert _refusal(lambda: Mechanism.load(urdf, closures)) == (
+        f"{closures}: home puts joint 'motor_1' at {home:.6g}, beyond its URDF limits "
+        f"[{lower:.6g}, {home - 0.01:.6g}]: give a home inside them, or limits that hold it"
+    )
+
+
 def test_a_home_far_from_an_assembly_is_assembled(mechanism, tmp_path):
     """Half a metre off: no refusal for being far; the loops close with the actuators held."""
     broken = _with_closure_frame_moved(mechanism, "five_bar_I", 2, 0.5)

@@ -437,6 +437,7 @@ def _settled(mechanism: Mechanism) -> Mechanism:
     if not np.abs(system.evaluate(home, False)[0]).max(initial=0.0) <= HOME_TOLERANCE:  # NaN fails too
         home, assembly = _assembled_home(mechanism, system, passive)
         notes.append(assembly.note(HOME_TOLERANCE))
+    _refuse_home_beyond_limits(mechanism, home)
     redundancy, full_rank = system.redundancy(home, passive)
     if full_rank > redundancy.rank:
         raise ModelFileError(
@@ -551,6 +552,18 @@ def _assembled_home(
             "joints near the assembly mode wanted)",
         )
     return home, assembly
+
+
+def _refuse_home_beyond_limits(mechanism: Mechanism, home: np.ndarray) -> None:
+    """ModelFileError (the closures file, where home is given) when home, as given or assembled,
+    leaves a joint's usable URDF limits: an actuator there is a slider value every solve refuses."""
+    model = mechanism.model
+    for name, value, lower, upper in limits_violated(model, home, np.arange(model.nv))[:1]:
+        raise ModelFileError(
+            mechanism.closures_path,
+            f"home puts joint '{name}' at {value:.6g}, beyond its URDF limits [{lower:.6g}, {upper:.6g}]: "
+            "give a home inside them, or limits that hold it",
+        )
 
 
 def _with_actuators_free(mechanism: Mechanism, system: ClosureSystem) -> str:
