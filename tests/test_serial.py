@@ -1320,8 +1320,16 @@ def test_measured_points_are_refused_word_for_word(ur5):
     unseen = points.copy()
     unseen[:, 2] = np.nan
     refused(unseen, "measured points: point 3 is seen in no row")
+    refused(points + 1e-3j, "measured points: complex values given; joint values and coordinates are real numbers")
+    with pytest.raises(InvalidInputError, match=r"^measured points: not numeric \("):  # then numpy's words
+        S.parse_measurements(chain, q, np.full(points.shape, "seen"), False)
+    millimetres = S.parse_measurements(chain, q, np.round(points * 1e3).astype(int), False)  # integers read as floats
+    assert millimetres.positions.dtype == float
+    np.testing.assert_array_equal(millimetres.positions, np.round(points * 1e3).reshape(4, 9))
     seen = points.copy()
     seen[0, 0] = np.nan
     data = S.parse_measurements(chain, q, seen, False)
     assert data.n_points == 3 and data.rotations is None
     np.testing.assert_array_equal(data.positions, seen.reshape(4, 9))
+    seen[1, 1] += 1.0  # the measurements are a copy: the caller's array stays theirs
+    np.testing.assert_array_equal(data.positions[1, 3:6], points[1, 1])
