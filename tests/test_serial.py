@@ -1283,6 +1283,7 @@ def test_points_calibrate_exactly_from_an_unknown_frame(ur5):
     points[::4, 1] = np.nan
     calibration = calibrate_serial(model, chain, q, points, CalibrationOptions(noise=TRACKER, estimate_frame=True))
     assert calibration.converged and len(calibration.setup.points) == 3
+    np.testing.assert_array_equal(calibration.setup.marker.homogeneous, np.eye(4))  # unused with points
     q_new, actual = _point_measurements(model, chain, 20, 63, truth)
     predicted = calibration.setup.measured_points(tool_poses(chain, calibration.model, q_new))
     np.testing.assert_allclose(predicted, actual, atol=1e-8)
