@@ -1052,6 +1052,11 @@ def test_measurement_parsing_and_its_exact_refusals(ur5):
     twice = rows.copy()
     twice[1, 3:] *= 2.0
     refused(f"measured_poses: quaternion of row 1 has norm {np.linalg.norm(twice[1, 3:]):.6g}", q, twice)
+    complex_values = ": complex values given; joint values and coordinates are real numbers"
+    refused("q_readings" + complex_values, q + 1e-3j, rows)
+    refused("measured_poses" + complex_values, q, rows + 1e-3j)
+    # (N, 4, 4) homogeneous matrices are not a format: refused as poses, not read as 4 points of 4 coordinates.
+    refused(expected + "(4, 4, 4)", q, homogeneous)
 
 
 @pytest.mark.parametrize(
@@ -1201,11 +1206,12 @@ def test_orientation_residual_near_a_half_turn(ur5):
 POINT_OFFSETS = np.array([[0.05, 0.0, 0.02], [-0.03, 0.04, 0.06], [0.0, -0.05, 0.1]])
 
 
-def _point_measurements(model, chain, n_poses: int, seed: int, truth=None):
-    """Exact (N, 3, 3) points F g(q) p_k of `truth` (default the nominal model) at sampled postures."""
+def _point_measurements(model, chain, n_poses: int, seed: int, truth=None, offsets=POINT_OFFSETS):
+    """Exact (N, P, 3) points F g(q) p_k of `truth` (default the nominal model) at sampled postures, P
+    the offsets' (default the three of POINT_OFFSETS)."""
     q = sample_configurations(model, chain, n_poses, np.random.default_rng(seed))
     g = tool_poses(chain, model if truth is None else truth, q)
-    return q, MeasurementSetup(FRAME, points=tuple(map(tuple, POINT_OFFSETS))).measured_points(g)
+    return q, MeasurementSetup(FRAME, points=tuple(map(tuple, offsets))).measured_points(g)
 
 
 def test_point_jacobian_of_every_column_matches_finite_differences(ur5):
@@ -1277,6 +1283,7 @@ def test_points_calibrate_exactly_from_an_unknown_frame(ur5):
     points[::4, 1] = np.nan
     calibration = calibrate_serial(model, chain, q, points, CalibrationOptions(noise=TRACKER, estimate_frame=True))
     assert calibration.converged and len(calibration.setup.points) == 3
+    np.testing.assert_array_equal(calibration.setup.marker.homogeneous, np.eye(4))  # unused with points
     q_new, actual = _point_measurements(model, chain, 20, 63, truth)
     predicted = calibration.setup.measured_points(tool_poses(chain, calibration.model, q_new))
     np.testing.assert_allclose(predicted, actual, atol=1e-8)
@@ -1297,6 +1304,26 @@ def test_point_start_finds_the_offsets_and_the_frame_of_exact_points(ur5):
     assert found.compliance is None
     assert np.abs(found.frame - FRAME.homogeneous).max() < 1e-3  # a start within a millimetre and a mrad
     assert np.abs(found.points - POINT_OFFSETS).max() < 1e-3
+
+
+@pytest.mark.parametrize("n_points", [1, 2, 4])
+def test_any_number_of_points_is_parsed_and_started(ur5, n_points):
+    """One point, two or four (not only three of three coordinates): P points give 3 P rows per pose,
+    and the start given F finds every offset, so the nominal robot's exact points leave no residual."""
+    model, chain = ur5
+    offsets = np.r_[POINT_OFFSETS, [[0.02, 0.03, -0.04]]][:n_points]
+    q, points = _point_measurements(model, chain, 8, 67, offsets=offsets)
+    if n_points > 1:
+        points[1::3, -1] = np.nan  # the last point hidden in some rows
+    data = S.parse_measurements(chain, q, points, False)
+    assert data.n_points == n_points and data.rows_per_pose == 3 * n_points
+    np.testing.assert_array_equal(data.positions, points.reshape(8, 3 * n_points))
+    start = S.start_state(chain, model, data, MeasurementSetup(FRAME), False, False, False)
+    np.testing.assert_allclose(start.points, offsets, atol=1e-12)
+    layout = S.SerialLayout(6, marker=3 * n_points, points=n_points)
+    unit = np.broadcast_to(np.eye(3 * n_points), (8, 3 * n_points, 3 * n_points))
+    residual = S.SerialResidual(chain, data, unit, layout)
+    np.testing.assert_allclose(residual.raw_residual(start), 0.0, atol=1e-12)
 
 
 def test_measured_points_are_refused_word_for_word(ur5):
@@ -1320,8 +1347,16 @@ def test_measured_points_are_refused_word_for_word(ur5):
     unseen = points.copy()
     unseen[:, 2] = np.nan
     refused(unseen, "measured points: point 3 is seen in no row")
+    refused(points + 1e-3j, "measured points: complex values given; joint values and coordinates are real numbers")
+    with pytest.raises(InvalidInputError, match=r"^measured points: not numeric \("):  # then numpy's words
+        S.parse_measurements(chain, q, np.full(points.shape, "seen"), False)
+    millimetres = S.parse_measurements(chain, q, np.round(points * 1e3).astype(int), False)  # integers read as floats
+    assert millimetres.positions.dtype == float
+    np.testing.assert_array_equal(millimetres.positions, np.round(points * 1e3).reshape(4, 9))
     seen = points.copy()
     seen[0, 0] = np.nan
     data = S.parse_measurements(chain, q, seen, False)
     assert data.n_points == 3 and data.rotations is None
     np.testing.assert_array_equal(data.positions, seen.reshape(4, 9))
+    seen[1, 1] += 1.0  # the measurements are a copy: the caller's array stays theirs
+    np.testing.assert_array_equal(data.positions[1, 3:6], points[1, 1])

@@ -609,8 +609,9 @@ def compliant_readings(
 
 
 def _parse_points(q: np.ndarray, measured_points: ArrayLike) -> SerialMeasurements:
-    """(N, P, 3) positions of P points per row [m], NaN where a point was not seen."""
-    points = np.array(measured_points, dtype=float)
+    """(N, P, 3) positions of P points per row [m], NaN where a point was not seen; refused as
+    `real_array` refuses complex or non-numeric values, and copied (the caller's array stays theirs)."""
+    points = real_array(measured_points, "measured points").copy()
     if points.shape[2] != 3 or points.shape[1] < 1:
         raise InvalidInputError(f"measured points: expected shape (N, P, 3), got {points.shape}")
     if points.shape[0] != q.shape[0]:
