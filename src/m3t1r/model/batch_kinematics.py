@@ -127,7 +127,7 @@ class RowSolver(Protocol):
     def singular_rcond(self) -> float: ...
     def home_reference(self) -> tuple[np.ndarray, bytes] | None: ...
     def home_derivatives(self) -> tuple[np.ndarray, np.ndarray] | None: ...
-    def predict_from_home(self, changes: np.ndarray, order: int = 3) -> np.ndarray: ...
+    def starts_from_home(self, sliders: np.ndarray, order: int = 3) -> np.ndarray: ...
     def check_square_task(self) -> None: ...
     def solve_rows(
         self,
@@ -200,7 +200,7 @@ def forward_batch(
     workers = _thread_count(threads)
     names = solver.mechanism.actuated_joints
     values = _rows(sliders, len(names), "actuator values", names)
-    start = start_configurations(solver, len(values), q_init)
+    start = None if q_init is None else start_configurations(solver, len(values), q_init)
     lower, upper = solver.layout.actuator_lower, solver.layout.actuator_upper
     outside = (values < lower) | (values > upper)
     failures = [
@@ -214,12 +214,14 @@ def forward_batch(
     ]
     rows = np.flatnonzero(~outside.any(axis=1))
     reference = solver.home_reference() if q_init is None else None
-    start[:, solver.actuated] = values
-    inside = start if len(rows) == len(start) else start[rows]  # the rows' own array, solved in place
     if reference is None:
+        if start is None:  # home singular: plain Newton from it, labels at each start
+            start = start_configurations(solver, len(values), None)
+        start[:, solver.actuated] = values
+        inside = start if len(rows) == len(start) else start[rows]  # the rows' own array, solved in place
         parts = [(rows, solver.solve_rows(inside, None, 0, threads=workers))]
     else:
-        parts = _rows_from_home(solver, inside, rows, reference[1], workers)
+        parts = _rows_from_home(solver, values[rows], rows, reference[1], workers)
     last_rows, last = parts[-1]
     failures += [
         RowFailure(int(last_rows[f.index]), f.reason, f.error)
@@ -229,26 +231,21 @@ def forward_batch(
 
 
 def _rows_from_home(
-    solver: RowSolver, start: np.ndarray, rows: np.ndarray, branch: bytes, workers: int
+    solver: RowSolver, sliders: np.ndarray, rows: np.ndarray, branch: bytes, workers: int
 ) -> list[tuple[np.ndarray, SolvedRows]]:
-    """Rows `rows` (their sliders set in `start`, every other joint at home's) solved from home's
-    third-order prediction, in place in `start`, then the rows it loses from the first-order one:
-    [(rows, solved)] and, if any was lost, [(lost rows, solved again)], whose failures are the batch's.
+    """Rows `rows` of slider values `sliders` solved from home's third-order prediction
+    (`starts_from_home`), then the rows it loses from the first-order one: [(rows, solved)] and, if
+    any was lost, [(lost rows, solved again)], whose failures are the batch's.
 
     Far from home the higher-order terms can carry a start past a singularity that the first-order
     start stays clear of (five-bar sliders 1.5 rad from home): retried, such a row ends as it
     did with the first-order start, so the batch converges wherever that start converges.
     """
-    home, sliders = solver.mechanism.home, start[:, solver.actuated]
-    changes = sliders - home[solver.actuated]
-    start[:, solver.passive] += solver.predict_from_home(changes)
-    solved = solver.solve_rows(start, branch, 1, threads=workers)
+    solved = solver.solve_rows(solver.starts_from_home(sliders), branch, 1, threads=workers)
     lost = np.flatnonzero(solved.status != _CONVERGED)
     if not len(lost) or solver.home_derivatives() is None:
         return [(rows, solved)]
-    again = np.repeat(home[None, :], len(lost), axis=0)
-    again[:, solver.actuated] = sliders[lost]
-    again[:, solver.passive] += solver.predict_from_home(changes[lost], order=1)
+    again = solver.starts_from_home(sliders[lost], order=1)
     return [(rows, solved), (rows[lost], solver.solve_rows(again, branch, 1, threads=workers))]
 
 

@@ -533,9 +533,22 @@ class ClosedLoopSolver:
     def predict_from_home(self, changes: np.ndarray, order: int = 3) -> np.ndarray:
         """Passive-joint changes (n, passive) [rad or m] from home for slider changes d (n, k) from home's
         sliders, along home's solution manifold to `order` (1, 2 or 3): T d + 1/2 H[d, d] +
-        1/6 G[d, d, d] (`home_reference`, `home_derivatives`; first order where those are unknown).
-        The starts of batch rows from home: one product of d's monomials up to `order`, each product of
-        sliders once (H and G are symmetric), with their coefficients."""
+        1/6 G[d, d, d] (`home_reference`, `home_derivatives`; first order where those are unknown):
+        one product of d's monomials up to `order`, each product of sliders once (H and G are
+        symmetric), with their coefficients."""
+        return self._moves_from_home(changes, order)[:, self.passive]
+
+    def starts_from_home(self, sliders: np.ndarray, order: int = 3) -> np.ndarray:
+        """The starts (n, nq) of batch rows from home for slider values (n, k) [m]: home with the
+        sliders set and the passive joints moved by `predict_from_home` to `order`."""
+        home = self.mechanism.home
+        starts = self._moves_from_home(sliders - home[self.actuated], order)
+        starts += home
+        starts[:, self.actuated] = sliders
+        return starts
+
+    def _moves_from_home(self, changes: np.ndarray, order: int) -> np.ndarray:
+        """`predict_from_home`'s changes in every column of q (n, nq), zero outside the passive joints."""
         degree = 1 if order < 2 or self.home_derivatives() is None else min(order, 3)
         coefficients = self._prediction_coefficients(degree)
         k = changes.shape[1]
@@ -548,8 +561,9 @@ class ClosedLoopSolver:
         return monomials.T.dot(coefficients)
 
     def _prediction_coefficients(self, degree: int) -> np.ndarray:
-        """`predict_from_home`'s coefficients (monomials x passive) to `degree`: T's transpose, then
-        H / 2! and G / 3! at each product of sliders i <= j (<= l) times its count of orderings."""
+        """`_moves_from_home`'s coefficients (monomials x nq, zero outside the passive columns) to
+        `degree`: T's transpose, then H / 2! and G / 3! at each product of sliders i <= j (<= l)
+        times its count of orderings."""
         if degree not in self._coefficients:
             reference, derivatives = self.home_reference(), self.home_derivatives()
             assert reference is not None, "asked only where home is regular"
@@ -558,7 +572,10 @@ class ClosedLoopSolver:
                 for axes in _products(len(self.actuated), power):
                     orderings = math.factorial(power) // math.prod(math.factorial(c) for c in Counter(axes).values())
                     rows.append(orderings / math.factorial(power) * tensor[(slice(None),) + tuple(axes)][None, :])
-            self._coefficients[degree] = np.vstack(rows)
+            passive = np.vstack(rows)
+            coefficients = np.zeros((len(passive), self.model.nq))
+            coefficients[:, self.passive] = passive
+            self._coefficients[degree] = coefficients
         return self._coefficients[degree]
 
     def _reference(self, q: np.ndarray) -> tuple[np.ndarray, bytes] | None:
