@@ -1,8 +1,10 @@
-"""Model files as the tests edit them: a text or YAML file rewritten in place, and the five-bar whose
-distal hinge is modelled as two coaxial hinges welded 6D (a gauge joint the load must lock)."""
+"""Model files as the tests edit them: a text or YAML file rewritten in place, joints' position
+limits removed, and the five-bar whose distal hinge is modelled as two coaxial hinges welded 6D (a
+gauge joint the load must lock)."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import yaml
@@ -14,6 +16,20 @@ def edit_text(path: Path, change) -> None:
     """Rewrite a text file by change(text) -> text."""
     text = path.read_text()
     path.write_text(change(text))
+
+
+def strip_position_limits(urdf: Path, joints: str) -> None:
+    """Give every revolute joint whose name matches the regular expression `joints` a <limit> with
+    effort and velocity only (URDF requires the element; Pinocchio then reads the range as [0, 0])."""
+    edit_text(
+        urdf,
+        lambda text: re.sub(
+            rf'(<joint name="{joints}" type="revolute">(?:(?!</joint>).)*?)<limit[^>]*/>',
+            r'\1<limit effort="1" velocity="1"/>',
+            text,
+            flags=re.S,
+        ),
+    )
 
 
 def edit_yaml(path: Path, change) -> None:

@@ -13,7 +13,7 @@ import pinocchio as pin
 import pytest
 import yaml
 import yourdfpy
-from model_files import edit_text, edit_yaml, welded_double_hinge
+from model_files import edit_text, edit_yaml, strip_position_limits, welded_double_hinge
 
 from m3t1r.errors import ModelFileError, ModelWarning, OutputPathError
 from m3t1r.io.pairing import closures_sha256, recorded_closures_sha256, sha256_bytes, with_closures_sha256
@@ -842,15 +842,7 @@ _PASSIVE_IN_TREE_ORDER = ("q12", "q12_pa", "q13", "q13_pa", "q14", "q13_bar", "q
 def test_passive_joints_without_limits_are_listed_six_at_most(tmp_path, count, shown):
     urdf, closures = _copy_model(tmp_path)
     for name in _PASSIVE_IN_TREE_ORDER[:count]:
-        edit_text(
-            urdf,
-            lambda text: re.sub(
-                rf'(<joint name="{name}" type="revolute">(?:(?!</joint>).)*?)<limit[^>]*/>',
-                r'\1<limit effort="1" velocity="1"/>',
-                text,
-                flags=re.S,
-            ),
-        )
+        strip_position_limits(urdf, re.escape(name))
     with pytest.warns(ModelWarning) as caught:
         mechanism = Mechanism.load(urdf, closures)
     assert [str(w.message) for w in caught] == [

@@ -19,7 +19,7 @@ import pytest
 import reference_kinematics as reference
 import scipy.linalg
 import yaml
-from model_files import edit_text, edit_yaml, welded_double_hinge
+from model_files import edit_text, edit_yaml, strip_position_limits, welded_double_hinge
 
 from m3t1r.calibration import pipeline
 from m3t1r.calibration.closed_loop import calibrate_closed_loop, pose_errors, predicted_pose_std
@@ -242,15 +242,7 @@ def test_urdf_without_actuator_limits_takes_the_workspace_box(tmp_path):
     urdf, closures = five_bar_files(tmp_path)
     # A <limit> with effort and velocity only (URDF requires the element on a revolute joint): Pinocchio
     # then reads the position limits as [0, 0].
-    edit_text(
-        urdf,
-        lambda text: re.sub(
-            r'(<joint name="motor_\d" type="revolute">(?:(?!</joint>).)*?)<limit[^>]*/>',
-            r'\1<limit effort="10" velocity="10"/>',
-            text,
-            flags=re.S,
-        ),
-    )
+    strip_position_limits(urdf, r"motor_\d")
     with pytest.warns(ModelWarning) as caught:
         mechanism = Mechanism.load(urdf, closures)
     assert [str(w.message) for w in caught] == [
