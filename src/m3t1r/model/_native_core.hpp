@@ -78,6 +78,7 @@ class DenseLU {
     lower_list_.assign(static_cast<size_t>(n), 0);
     bound_.assign(static_cast<size_t>(n), 0.0);
     reciprocal_.assign(static_cast<size_t>(n), 0.0);
+    pivot_values_.assign(static_cast<size_t>(n), 0.0);
   }
   double & operator()(int i, int j) { return f_(i, j); }  // fill A here, then factor()
   double * data() { return f_.data(); }  // A's entries, row by row
@@ -126,13 +127,18 @@ class DenseLU {
         count += pivot_row[j] != 0.0;
       }
       upper_count_[k] = count;
+      // The pivot row's entries and the reciprocal in locals: stores into the rows below could alias
+      // them for all the compiler knows, which would reload them for every row and every entry.
+      double * values = pivot_values_.data();
+      for (int c = 0; c < count; ++c) values[c] = pivot_row[nonzero[c]];
+      const double inverse = reciprocal_[k], pivot = pivot_row[k];
       for (int i = k + 1; i < n_; ++i) {
         double * row = a + i * n_;
         if (row[k] == 0.0) continue;
         const int list = lower_list_[i];
         lower_[list * n_ + lower_count_[list]++] = k;
-        const double l = row[k] = over_pivot(row[k], k);
-        for (int c = 0; c < count; ++c) row[nonzero[c]] -= l * pivot_row[nonzero[c]];
+        const double l = row[k] = inverse != 0.0 ? row[k] * inverse : row[k] / pivot;
+        for (int c = 0; c < count; ++c) row[nonzero[c]] -= l * values[c];
       }
     }
     return true;
@@ -279,6 +285,7 @@ class DenseLU {
   std::vector<int> lower_, lower_count_;  // L's nonzero columns, by list; a list moves with its row's swaps
   std::vector<int> lower_list_;  // row i's list of L columns: lower_[lower_list_[i] n ...]
   std::vector<double> reciprocal_;  // 1 / U[k, k] (0: a subnormal pivot, divided by)
+  std::vector<double> pivot_values_;  // factor's copy of the pivot row's nonzero entries
   mutable std::vector<double> bound_;  // inverse_one_norm_bound's work vector
   bool odd_ = false;  // an odd count of swaps
 };
