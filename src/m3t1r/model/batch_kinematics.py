@@ -187,7 +187,7 @@ def forward_batch(
     """Platform poses for n slider sets (n, k) [m], each solved from q_init.
 
     Default (q_init None): every row starts from home moved along home's solution manifold to third
-    order (`ClosedLoopSolver.predict_from_home`, counted as one iteration) and must end on
+    order (`ClosedLoopSolver.starts_from_home`, counted as one iteration) and must end on
     home's assembly branch (the branch labels at home). Far from home this assembles rows where plain
     Newton from home's passive joints crosses a singularity (`forward(a, q_init=home)` then raises
     BranchChangeError or OutOfWorkspaceError); where both succeed they agree to the tolerance.

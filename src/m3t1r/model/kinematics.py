@@ -269,7 +269,7 @@ class ClosedLoopSolver:
         # FK's and IK's Newton loops compiled (`model.native`), when built and the joints allow; None: the Python loops.
         self.native = NativeChain.of(model, mechanism.closures, layout, mechanism.task) if native else None
         self._home: tuple[np.ndarray, bytes] | None = None  # home's tangent and branch, once computed
-        self._coefficients: dict[int, np.ndarray] = {}  # predict_from_home's, by degree
+        self._coefficients: dict[int, np.ndarray] = {}  # _moves_from_home's, by degree
         self.warm = WarmStart(mechanism.home.copy())  # where the next solve continues from (`reset`)
         self.reset()
 
