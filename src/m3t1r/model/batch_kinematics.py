@@ -200,7 +200,6 @@ def forward_batch(
     workers = _thread_count(threads)
     names = solver.mechanism.actuated_joints
     values = _rows(sliders, len(names), "actuator values", names)
-    start = None if q_init is None else start_configurations(solver, len(values), q_init)
     lower, upper = solver.layout.actuator_lower, solver.layout.actuator_upper
     outside = (values < lower) | (values > upper)
     failures = [
@@ -214,9 +213,8 @@ def forward_batch(
     ]
     rows = np.flatnonzero(~outside.any(axis=1))
     reference = solver.home_reference() if q_init is None else None
-    if reference is None:
-        if start is None:  # home singular: plain Newton from it, labels at each start
-            start = start_configurations(solver, len(values), None)
+    if reference is None:  # from q_init, or from a singular home: labels at each start
+        start = start_configurations(solver, len(values), q_init)
         start[:, solver.actuated] = values
         inside = start if len(rows) == len(start) else start[rows]  # the rows' own array, solved in place
         parts = [(rows, solver.solve_rows(inside, None, 0, threads=workers))]
