@@ -209,20 +209,20 @@ PyObject * build(PyObject *, PyObject * args) {
   }
   c->platform = platform;
   c->task = task;
-  // A frame only a 3D closure's frame b names needs its position alone (R_a^T (p_b - p_a)).
-  std::vector<int> rotated = {platform, task};
-  for (const Closure & k : c->closures) {
-    rotated.push_back(k.frame_a);
-    if (k.type == 6) rotated.push_back(k.frame_b);
-    if (k.frame_b < 0 || k.frame_b >= static_cast<int>(c->frame_parent.size())) rotated.push_back(-1);
+  const int n_frames = static_cast<int>(c->frame_parent.size());
+  const auto known = [n_frames](int f) { return 0 <= f && f < n_frames; };
+  bool frames_known = known(platform) && known(task);
+  for (const Closure & k : c->closures) frames_known = frames_known && known(k.frame_a) && known(k.frame_b);
+  if (!frames_known) {
+    PyErr_SetString(PyExc_ValueError, "a closure, platform or task frame is not among frame_parents");
+    return nullptr;
   }
+  // A frame only a 3D closure's frame b names needs its position alone (R_a^T (p_b - p_a)).
   c->frame_rotated.assign(c->frame_parent.size(), 0);
-  for (const int f : rotated) {
-    if (f < 0 || f >= static_cast<int>(c->frame_parent.size())) {
-      PyErr_SetString(PyExc_ValueError, "a closure, platform or task frame is not among frame_parents");
-      return nullptr;
-    }
-    c->frame_rotated[static_cast<size_t>(f)] = 1;
+  c->frame_rotated[static_cast<size_t>(platform)] = c->frame_rotated[static_cast<size_t>(task)] = 1;
+  for (const Closure & k : c->closures) {
+    c->frame_rotated[static_cast<size_t>(k.frame_a)] = 1;
+    if (k.type == 6) c->frame_rotated[static_cast<size_t>(k.frame_b)] = 1;
   }
   c->residual = Vector::Zero(c->ik.rows);
   c->jacobian = Matrix::Zero(c->ik.rows, nv);
